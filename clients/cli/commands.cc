@@ -1,0 +1,394 @@
+#include "clients/cli/commands.h"
+
+#include <algorithm>
+#include <fstream>
+#include <iterator>
+#include <memory>
+#include <sstream>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
+#include "clients/cli/printing.h"
+#include "clients/cli/synthetic_traces.h"
+#include "clients/cli/trace_io.h"
+
+namespace fleetmem::cli {
+namespace {
+
+constexpr uint64_t kDefaultK = 5;
+constexpr uint64_t kMaxK = 1000;
+constexpr uint64_t kDefaultSampleCount = 10;
+// How often a watch checks for Ctrl-C.
+constexpr std::chrono::milliseconds kWatchPoll{200};
+// Reconnection attempts of a watch in a row without an event: with backoff
+// capped at 5 s, a watch outlives a server restart of a few minutes.
+constexpr int kWatchMaxAttempts = 60;
+
+FlagSpec FleetFlag() { return {"fleet", "ID", "fleet id (required)"}; }
+
+// The command table (built once, never destroyed).
+const std::vector<Command>& CommandTable() {
+  static const auto* const commands = new std::vector<Command>{
+      {{"upload",
+        "--fleet ID --file FILE",
+        "Upload memory traces from a JSON Lines file.",
+        "FILE holds one fleetmem.v1.MemoryTrace per line in protobuf JSON, "
+        "e.g.\n"
+        "  {\"robotId\":\"robot-1\",\"seq\":\"1\",\"domain\":\"summer\","
+        "\"code\":[0.1,0.2],\n"
+        "   \"pose\":{\"x\":1.5,\"y\":2},\"reward\":0.7,"
+        "\"encoderVersion\":\"v1\"}\n"
+        "('-' reads stdin; `fleetmem gen-traces` writes such files). Traces\n"
+        "are sent in one stream; a retried upload is safe because the server\n"
+        "stores each (robotId, seq) once. Prints how many traces were "
+        "accepted\n"
+        "and how many were duplicates (after a retry, duplicates may include\n"
+        "traces that an earlier failed attempt of the same upload stored).",
+        {FleetFlag(),
+         {"file", "FILE",
+          "JSON Lines file of traces, '-' for stdin (required)"}}},
+       RunUpload},
+      {{"query",
+        "--fleet ID (--code-file FILE | --code LIST) [--k N] "
+        "[--near X,Y[,Z] --radius M]",
+        "Find the k traces of the fleet's memory nearest to a code.",
+        "The code comes from --code (numbers separated by commas) or from\n"
+        "--code-file: a JSON array of numbers, or a JSON object with a "
+        "\"code\"\n"
+        "array (a QueryPlaceRequest, or one line of a traces file; '-' reads\n"
+        "stdin). Flags override k/near/radiusM given in the file.",
+        {FleetFlag(),
+         {"code", "LIST", "query code, e.g. \"0.1,0.2,0.3\""},
+         {"code-file", "FILE", "JSON file holding the query code"},
+         {"k", "N", "matches wanted, 1..1000 (default 5)"},
+         {"near", "X,Y[,Z]", "position prior in metres (needs --radius)"},
+         {"radius", "M", "only matches within M metres of --near"}}},
+       RunQuery},
+      {{"sample",
+        "--fleet ID --robot ROBOT [--count N]",
+        "Draw traces for a robot's replay (importance sampling).",
+        "Not retried: each call increments the replay counts of the traces\n"
+        "it returns.",
+        {FleetFlag(),
+         {"robot", "ROBOT", "robot refreshing its memory (required)"},
+         {"count", "N", "traces wanted (default 10)"}}},
+       RunSample},
+      {{"stats",
+        "--fleet ID",
+        "Show the fleet's memory, robots and domains.",
+        "",
+        {FleetFlag()}},
+       RunStats},
+      {{"consolidate",
+        "--fleet ID",
+        "Consolidate all pending traces now (clustering, then forgetting).",
+        "",
+        {FleetFlag()}},
+       RunConsolidate},
+      {{"watch",
+        "--fleet ID [--after ID] [--max-events N]",
+        "Stream memory events (clusters added and forgotten).",
+        "Prints the events after --after (0: the whole history), then live\n"
+        "ones, until --max-events were printed or Ctrl-C. Reconnects after a\n"
+        "broken stream (e.g. a server restart) without missing or repeating\n"
+        "events; gives up after 60 failed reconnections in a row (backoff up\n"
+        "to 5 s, a few minutes). On exit prints the last event id on stderr\n"
+        "(resume with --after ID). With --json, one JSON object per line.",
+        {FleetFlag(),
+         {"after", "ID", "start after this event id (default 0)"},
+         {"max-events", "N", "stop after N events (default 0: no limit)"}}},
+       RunWatch},
+      {{"gen-traces",
+        "--robots N --per-robot M --dim D [--seed S] [--encoder V] "
+        "[--out FILE]",
+        "Write SYNTHETIC traces as JSON Lines (for docs and smoke tests).",
+        "The traces are made up, not recorded: every robot drives the same\n"
+        "loop of M places 5 m apart in its own domain (summer, fall, winter,\n"
+        "spring in turn); a code is the place's prototype plus a domain shift\n"
+        "and noise, L2-normalised, so the same place seen by two robots gives\n"
+        "nearby codes. Rewards are random. Same seed, same output. Does not\n"
+        "contact the server.",
+        {{"robots", "N", "robots robot-1..robot-N (default 3)"},
+         {"per-robot", "M", "traces per robot, seq 1..M (default 100)"},
+         {"dim", "D", "code dimension (default 256)"},
+         {"seed", "S", "random seed (default 1)"},
+         {"encoder", "V", "encoderVersion of the traces (default v1)"},
+         {"out", "FILE", "output file (default stdout)"}}},
+       RunGenTraces},
+  };
+  return *commands;
+}
+
+// Reads all of FILE, or of stdin for "-".
+absl::StatusOr<std::string> ReadAll(const Invocation& invocation,
+                                    const std::string& path) {
+  if (path == "-") {
+    return std::string(std::istreambuf_iterator<char>(*invocation.in), {});
+  }
+  std::ifstream file(path);
+  if (!file) return absl::InvalidArgumentError("cannot open " + path);
+  return std::string(std::istreambuf_iterator<char>(file), {});
+}
+
+std::unique_ptr<client::Client> Connect(const Invocation& invocation) {
+  return client::Client::Create(invocation.client_options);
+}
+
+// Prints a unary response as JSON or through `print_table`.
+template <typename Response, typename PrintTable>
+int PrintResponse(const Invocation& invocation, const Response& response,
+                  PrintTable print_table) {
+  if (invocation.json) {
+    PrintJson(response, /*pretty=*/false, *invocation.out);
+  } else {
+    print_table(response, *invocation.out);
+  }
+  return kExitOk;
+}
+
+// Sets the position prior of `request` from --near/--radius.
+absl::Status SetPrior(const FlagValues& flags, v1::QueryPlaceRequest* request) {
+  if (flags.Has("near") != flags.Has("radius")) {
+    return absl::InvalidArgumentError("--near and --radius go together");
+  }
+  if (!flags.Has("near")) return absl::OkStatus();
+  absl::StatusOr<std::vector<double>> near = flags.RequiredList("near");
+  if (!near.ok()) return near.status();
+  if (near->size() < 2 || near->size() > 3) {
+    return absl::InvalidArgumentError("--near wants X,Y or X,Y,Z");
+  }
+  absl::StatusOr<double> radius = flags.RequiredDouble("radius");
+  if (!radius.ok()) return radius.status();
+  if (*radius <= 0) {
+    return absl::InvalidArgumentError("--radius must be positive");
+  }
+  request->mutable_near()->set_x((*near)[0]);
+  request->mutable_near()->set_y((*near)[1]);
+  request->mutable_near()->set_z(near->size() == 3 ? (*near)[2] : 0.0);
+  request->set_radius_m(*radius);
+  return absl::OkStatus();
+}
+
+// The QueryPlaceRequest described by the flags.
+absl::StatusOr<v1::QueryPlaceRequest> QueryFromFlags(
+    const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return fleet.status();
+  if (flags.Has("code") == flags.Has("code-file")) {
+    return absl::InvalidArgumentError("give one of --code or --code-file");
+  }
+  v1::QueryPlaceRequest request;
+  if (flags.Has("code-file")) {
+    absl::StatusOr<std::string> path = flags.Required("code-file");
+    if (!path.ok()) return path.status();
+    absl::StatusOr<std::string> json = ReadAll(invocation, *path);
+    if (!json.ok()) return json.status();
+    absl::StatusOr<v1::QueryPlaceRequest> parsed = ParseQueryJson(*json);
+    if (!parsed.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(*path, ": ", parsed.status().message()));
+    }
+    request = *std::move(parsed);
+  } else {
+    absl::StatusOr<std::vector<double>> code = flags.RequiredList("code");
+    if (!code.ok()) return code.status();
+    for (double value : *code) request.add_code(static_cast<float>(value));
+  }
+  request.set_fleet_id(*fleet);
+  absl::StatusOr<uint64_t> k =
+      flags.UintOr("k", request.k() != 0 ? request.k() : kDefaultK, kMaxK);
+  if (!k.ok()) return k.status();
+  if (*k == 0) return absl::InvalidArgumentError("--k must be 1..1000");
+  request.set_k(static_cast<uint32_t>(*k));
+  if (absl::Status prior = SetPrior(flags, &request); !prior.ok()) {
+    return prior;
+  }
+  return request;
+}
+
+}  // namespace
+
+std::span<const Command> Commands() { return CommandTable(); }
+
+int UsageError(const Invocation& invocation, const absl::Status& status) {
+  *invocation.err << "error: " << status.message() << "\nrun 'fleetmem "
+                  << invocation.command << " --help' for usage\n";
+  return kExitUsage;
+}
+
+int ServerError(const Invocation& invocation, const absl::Status& status) {
+  *invocation.err << "error: " << absl::StatusCodeToString(status.code())
+                  << ": " << status.message() << "\n";
+  return kExitServerError;
+}
+
+int RunUpload(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<std::string> path = flags.Required("file");
+  if (!path.ok()) return UsageError(invocation, path.status());
+  absl::StatusOr<std::vector<v1::MemoryTrace>> traces;
+  if (*path == "-") {
+    traces = ReadTracesJsonl(*invocation.in);
+  } else {
+    std::ifstream file(*path);
+    if (!file) {
+      return UsageError(invocation,
+                        absl::InvalidArgumentError("cannot open " + *path));
+    }
+    traces = ReadTracesJsonl(file);
+  }
+  if (!traces.ok()) {
+    return UsageError(invocation, absl::InvalidArgumentError(absl::StrCat(
+                                      *path, ": ", traces.status().message())));
+  }
+  absl::StatusOr<v1::UploadTracesResponse> response =
+      Connect(invocation)->Upload(*fleet, *traces);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(invocation, *response, PrintUpload);
+}
+
+int RunQuery(const Invocation& invocation) {
+  absl::StatusOr<v1::QueryPlaceRequest> request = QueryFromFlags(invocation);
+  if (!request.ok()) return UsageError(invocation, request.status());
+  absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
+      Connect(invocation)->QueryPlace(*request);
+  if (!matches.ok()) return ServerError(invocation, matches.status());
+  if (invocation.json) {
+    v1::QueryPlaceResponse response;
+    for (v1::PlaceMatch& match : *matches) {
+      *response.add_matches() = std::move(match);
+    }
+    PrintJson(response, /*pretty=*/false, *invocation.out);
+  } else {
+    PrintMatches(*matches, *invocation.out);
+  }
+  return kExitOk;
+}
+
+int RunSample(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<std::string> robot = flags.Required("robot");
+  if (!robot.ok()) return UsageError(invocation, robot.status());
+  absl::StatusOr<uint64_t> count =
+      flags.UintOr("count", kDefaultSampleCount, UINT32_MAX);
+  if (!count.ok()) return UsageError(invocation, count.status());
+  if (*count == 0) {
+    return UsageError(invocation,
+                      absl::InvalidArgumentError("--count must be positive"));
+  }
+  absl::StatusOr<std::vector<v1::MemoryTrace>> traces =
+      Connect(invocation)
+          ->SampleReplay(*fleet, *robot, static_cast<uint32_t>(*count));
+  if (!traces.ok()) return ServerError(invocation, traces.status());
+  if (invocation.json) {
+    v1::SampleReplayResponse response;
+    for (v1::MemoryTrace& trace : *traces) {
+      *response.add_traces() = std::move(trace);
+    }
+    PrintJson(response, /*pretty=*/false, *invocation.out);
+  } else {
+    PrintTraces(*traces, *invocation.out);
+  }
+  return kExitOk;
+}
+
+int RunStats(const Invocation& invocation) {
+  absl::StatusOr<std::string> fleet = invocation.flags->Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<v1::GetStatsResponse> stats =
+      Connect(invocation)->GetStats(*fleet);
+  if (!stats.ok()) return ServerError(invocation, stats.status());
+  return PrintResponse(invocation, *stats, PrintStats);
+}
+
+int RunConsolidate(const Invocation& invocation) {
+  absl::StatusOr<std::string> fleet = invocation.flags->Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<v1::ConsolidateResponse> response =
+      Connect(invocation)->Consolidate(*fleet);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(invocation, *response, PrintConsolidate);
+}
+
+int RunWatch(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<uint64_t> after = flags.UintOr("after", 0);
+  if (!after.ok()) return UsageError(invocation, after.status());
+  absl::StatusOr<uint64_t> max_events = flags.UintOr("max-events", 0);
+  if (!max_events.ok()) return UsageError(invocation, max_events.status());
+  const std::atomic<bool>* stop =
+      invocation.enable_stop ? invocation.enable_stop() : nullptr;
+  client::ClientOptions options = invocation.client_options;
+  options.max_attempts = std::max(options.max_attempts, kWatchMaxAttempts);
+  uint64_t printed = 0;
+  auto print_event = [&](const v1::MemoryEvent& event) {
+    if (invocation.json) {
+      PrintJson(event, /*pretty=*/false, *invocation.out);
+      invocation.out->flush();
+    } else {
+      PrintEvent(event, *invocation.out);
+    }
+    ++printed;
+    return *max_events == 0 || printed < *max_events;
+  };
+  absl::StatusOr<uint64_t> last = client::Client::Create(options)->Watch(
+      *fleet, *after, print_event, stop, kWatchPoll);
+  if (!last.ok()) return ServerError(invocation, last.status());
+  *invocation.err << "last event id: " << *last << " (resume with --after "
+                  << *last << ")\n";
+  return kExitOk;
+}
+
+int RunGenTraces(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  SyntheticTraceOptions options;
+  absl::StatusOr<uint64_t> robots = flags.UintOr("robots", 3, 100'000);
+  absl::StatusOr<uint64_t> per_robot =
+      flags.UintOr("per-robot", 100, 10'000'000);
+  absl::StatusOr<uint64_t> dimension = flags.UintOr("dim", 256, 65'536);
+  absl::StatusOr<uint64_t> seed = flags.UintOr("seed", 1);
+  for (const auto* value : {&robots, &per_robot, &dimension, &seed}) {
+    if (!value->ok()) return UsageError(invocation, value->status());
+  }
+  if (*robots == 0 || *per_robot == 0 || *dimension == 0) {
+    return UsageError(invocation,
+                      absl::InvalidArgumentError(
+                          "--robots, --per-robot and --dim must be positive"));
+  }
+  options.robots = static_cast<int>(*robots);
+  options.per_robot = static_cast<int>(*per_robot);
+  options.dimension = static_cast<int>(*dimension);
+  options.seed = *seed;
+  options.encoder_version = flags.StringOr("encoder", "v1");
+  const std::vector<v1::MemoryTrace> traces = GenerateSyntheticTraces(options);
+
+  const std::string path = flags.StringOr("out", "-");
+  std::ofstream file;
+  std::ostream* out = invocation.out;
+  if (path != "-") {
+    file.open(path);
+    if (!file) {
+      return UsageError(invocation,
+                        absl::InvalidArgumentError("cannot write " + path));
+    }
+    out = &file;
+  }
+  if (absl::Status written = WriteTracesJsonl(traces, *out); !written.ok()) {
+    return UsageError(invocation, written);
+  }
+  *invocation.err << "wrote " << traces.size() << " synthetic traces ("
+                  << options.robots << " robots x " << options.per_robot
+                  << ", dim " << options.dimension << ")"
+                  << (path == "-" ? "" : " to " + path) << "\n";
+  return kExitOk;
+}
+
+}  // namespace fleetmem::cli

@@ -1,0 +1,67 @@
+// The subcommands of the `fleetmem` tool, one function each. A command
+// validates its flags (usage error: exit 2), makes its call through the C++
+// client (server error: exit 1, "error: CODE: message" on stderr) and prints
+// the result as a table or, with --json, as protobuf JSON (exit 0).
+#ifndef FLEETMEM_CLIENTS_CLI_COMMANDS_H_
+#define FLEETMEM_CLIENTS_CLI_COMMANDS_H_
+
+#include <atomic>
+#include <functional>
+#include <istream>
+#include <ostream>
+#include <span>
+#include <string>
+
+#include "absl/status/status.h"
+#include "clients/cli/flags.h"
+#include "clients/cpp/fleetmem_client.h"
+
+namespace fleetmem::cli {
+
+inline constexpr int kExitOk = 0;
+inline constexpr int kExitServerError = 1;
+inline constexpr int kExitUsage = 2;
+
+// What a command runs with. Pointers are not owned and outlive the call.
+struct Invocation {
+  // Name of the command, for messages.
+  std::string command;
+  // Connection settings from the global flags.
+  client::ClientOptions client_options;
+  // --json: print protobuf JSON instead of tables.
+  bool json = false;
+  // The command's own flags.
+  const FlagValues* flags = nullptr;
+  std::istream* in = nullptr;
+  std::ostream* out = nullptr;
+  std::ostream* err = nullptr;
+  // Installs the SIGINT/SIGTERM handlers and returns the flag they set (see
+  // CliEnvironment::enable_stop); may be empty.
+  std::function<const std::atomic<bool>*()> enable_stop;
+};
+
+// A subcommand: its flags and help, and the function that runs it.
+struct Command {
+  CommandSpec spec;
+  int (*run)(const Invocation&) = nullptr;
+};
+
+// Every subcommand but `help`, in the order of the help text.
+std::span<const Command> Commands();
+
+int RunUpload(const Invocation& invocation);
+int RunQuery(const Invocation& invocation);
+int RunSample(const Invocation& invocation);
+int RunStats(const Invocation& invocation);
+int RunConsolidate(const Invocation& invocation);
+int RunWatch(const Invocation& invocation);
+int RunGenTraces(const Invocation& invocation);
+
+// Prints "error: <message>" and a pointer to the help; returns kExitUsage.
+int UsageError(const Invocation& invocation, const absl::Status& status);
+// Prints "error: CODE: message"; returns kExitServerError.
+int ServerError(const Invocation& invocation, const absl::Status& status);
+
+}  // namespace fleetmem::cli
+
+#endif  // FLEETMEM_CLIENTS_CLI_COMMANDS_H_

@@ -1,0 +1,174 @@
+#include "clients/cli/printing.h"
+
+#include <algorithm>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "google/protobuf/util/json_util.h"
+
+namespace fleetmem::cli {
+namespace {
+
+std::string Metres(double value) { return absl::StrFormat("%.2f", value); }
+std::string Fixed(double value) { return absl::StrFormat("%.4f", value); }
+std::string Or(const std::string& text, const char* fallback) {
+  return text.empty() ? fallback : text;
+}
+
+// Two-column table of labelled values.
+void PrintPairs(std::vector<std::pair<std::string, std::string>> pairs,
+                std::ostream& out) {
+  Table table;
+  for (auto& [label, value] : pairs) {
+    table.AddRow({std::move(label), std::move(value)});
+  }
+  table.Print(out);
+}
+
+}  // namespace
+
+void Table::AddRow(std::vector<std::string> cells) {
+  rows_.push_back(std::move(cells));
+}
+
+void Table::Print(std::ostream& out) const {
+  std::vector<size_t> widths;
+  for (const auto& row : rows_) {
+    widths.resize(std::max(widths.size(), row.size()), 0);
+    for (size_t i = 0; i < row.size(); ++i) {
+      widths[i] = std::max(widths[i], row[i].size());
+    }
+  }
+  for (const auto& row : rows_) {
+    std::string line;
+    for (size_t i = 0; i < row.size(); ++i) {
+      absl::StrAppend(&line, row[i]);
+      if (i + 1 < row.size()) {
+        line.append(widths[i] - row[i].size() + 2, ' ');
+      }
+    }
+    out << line << '\n';
+  }
+}
+
+void PrintJson(const google::protobuf::Message& message, bool pretty,
+               std::ostream& out) {
+  google::protobuf::util::JsonPrintOptions options;
+  options.add_whitespace = pretty;
+  options.always_print_primitive_fields = true;
+  std::string json;
+  // Printing a valid message cannot fail (no Any fields in the API).
+  (void)google::protobuf::util::MessageToJsonString(message, &json, options);
+  out << json;
+  if (json.empty() || json.back() != '\n') out << '\n';
+}
+
+void PrintUpload(const v1::UploadTracesResponse& response, std::ostream& out) {
+  PrintPairs({{"accepted", absl::StrCat(response.accepted())},
+              {"duplicates", absl::StrCat(response.duplicates())},
+              {"consolidations", absl::StrCat(response.consolidations())}},
+             out);
+}
+
+void PrintConsolidate(const v1::ConsolidateResponse& response,
+                      std::ostream& out) {
+  PrintPairs(
+      {{"consolidated traces", absl::StrCat(response.consolidated_traces())},
+       {"downsampled traces", absl::StrCat(response.downsampled_traces())},
+       {"clusters added", absl::StrCat(response.clusters_added())},
+       {"clusters forgotten", absl::StrCat(response.clusters_forgotten())},
+       {"clusters", absl::StrCat(response.clusters())},
+       {"traces", absl::StrCat(response.traces())}},
+      out);
+}
+
+void PrintStats(const v1::GetStatsResponse& stats, std::ostream& out) {
+  PrintPairs({{"traces", absl::StrCat(stats.traces())},
+              {"pending traces", absl::StrCat(stats.pending_traces())},
+              {"clusters", absl::StrCat(stats.clusters(), " (max ",
+                                        stats.max_clusters(), ")")},
+              {"traces per cluster",
+               absl::StrCat("max ", stats.max_traces_per_cluster())},
+              {"code dimension", absl::StrCat(stats.code_dimension())},
+              {"encoder version", Or(stats.encoder_version(), "-")},
+              {"consolidations", absl::StrCat(stats.consolidations())},
+              {"clusters forgotten", absl::StrCat(stats.clusters_forgotten())},
+              {"last event id", absl::StrCat(stats.last_event_id())}},
+             out);
+  if (!stats.robots().empty()) {
+    out << '\n';
+    Table robots;
+    robots.AddRow(
+        {"ROBOT", "TRACES", "PENDING", "MAX SEQ", "RECEIVED", "REPLAYED"});
+    for (const v1::RobotStats& robot : stats.robots()) {
+      robots.AddRow(
+          {robot.robot_id(), absl::StrCat(robot.traces()),
+           absl::StrCat(robot.pending_traces()), absl::StrCat(robot.max_seq()),
+           absl::StrCat(robot.received()), absl::StrCat(robot.replayed())});
+    }
+    robots.Print(out);
+  }
+  if (!stats.domains().empty()) {
+    out << '\n';
+    Table domains;
+    domains.AddRow({"DOMAIN", "TRACES", "PENDING"});
+    for (const v1::DomainStats& domain : stats.domains()) {
+      domains.AddRow({Or(domain.domain(), "-"), absl::StrCat(domain.traces()),
+                      absl::StrCat(domain.pending_traces())});
+    }
+    domains.Print(out);
+  }
+}
+
+void PrintMatches(std::span<const v1::PlaceMatch> matches, std::ostream& out) {
+  if (matches.empty()) {
+    out << "no matches\n";
+    return;
+  }
+  Table table;
+  table.AddRow({"#", "DISTANCE", "ROBOT", "SEQ", "DOMAIN", "X", "Y", "Z",
+                "CLUSTER", "REWARD"});
+  int rank = 0;
+  for (const v1::PlaceMatch& match : matches) {
+    const v1::MemoryTrace& trace = match.trace();
+    table.AddRow({absl::StrCat(++rank), Fixed(match.distance()),
+                  trace.robot_id(), absl::StrCat(trace.seq()),
+                  Or(trace.domain(), "-"), Metres(trace.pose().x()),
+                  Metres(trace.pose().y()), Metres(trace.pose().z()),
+                  absl::StrCat(trace.cluster_id()), Fixed(trace.reward())});
+  }
+  table.Print(out);
+}
+
+void PrintTraces(std::span<const v1::MemoryTrace> traces, std::ostream& out) {
+  if (traces.empty()) {
+    out << "no traces\n";
+    return;
+  }
+  Table table;
+  table.AddRow({"ROBOT", "SEQ", "DOMAIN", "X", "Y", "Z", "REWARD", "REPLAYS",
+                "CLUSTER"});
+  for (const v1::MemoryTrace& trace : traces) {
+    table.AddRow({trace.robot_id(), absl::StrCat(trace.seq()),
+                  Or(trace.domain(), "-"), Metres(trace.pose().x()),
+                  Metres(trace.pose().y()), Metres(trace.pose().z()),
+                  Fixed(trace.reward()), absl::StrCat(trace.replay_count()),
+                  absl::StrCat(trace.cluster_id())});
+  }
+  table.Print(out);
+}
+
+void PrintEvent(const v1::MemoryEvent& event, std::ostream& out) {
+  out << absl::StrFormat(
+             "%d %s cluster=%d traces=%d robot=%s domain=%s "
+             "at=(%.2f, %.2f, %.2f) mean_reward=%.4f",
+             event.id(), v1::MemoryEvent::Type_Name(event.type()),
+             event.cluster_id(), event.trace_count(), Or(event.robot_id(), "-"),
+             Or(event.domain(), "-"), event.centroid_pose().x(),
+             event.centroid_pose().y(), event.centroid_pose().z(),
+             event.mean_reward())
+      << std::endl;  // Flushed: a watch is often piped.
+}
+
+}  // namespace fleetmem::cli

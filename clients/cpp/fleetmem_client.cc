@@ -1,0 +1,343 @@
+#include "clients/cpp/fleetmem_client.h"
+
+#include <algorithm>
+#include <condition_variable>
+#include <mutex>
+#include <random>
+#include <thread>
+#include <utility>
+
+#include "grpcpp/grpcpp.h"
+
+namespace fleetmem::client {
+namespace {
+
+// Largest response the client accepts: SampleReplay of 10,000 traces of
+// dimension 256 is ~11 MB, above gRPC's default of 4 MB.
+constexpr int kMaxReceiveMessageBytes = 64 << 20;
+
+bool IsRetryable(grpc::StatusCode code) {
+  return code == grpc::StatusCode::UNAVAILABLE ||
+         code == grpc::StatusCode::DEADLINE_EXCEEDED ||
+         code == grpc::StatusCode::RESOURCE_EXHAUSTED;
+}
+
+bool Stopped(const std::atomic<bool>* stop) {
+  return stop != nullptr && stop->load();
+}
+
+void SetDeadline(const ClientOptions& options, grpc::ClientContext* context) {
+  context->set_deadline(std::chrono::system_clock::now() + options.deadline);
+}
+
+// Wait before attempt `failures + 1`: uniform in [b/2, b] with
+// b = min(initial_backoff * 2^(failures-1), max_backoff).
+std::chrono::milliseconds BackoffDelay(const ClientOptions& options,
+                                       int failures) {
+  std::chrono::milliseconds nominal = options.initial_backoff;
+  for (int i = 1; i < failures && nominal < options.max_backoff; ++i) {
+    nominal *= 2;
+  }
+  nominal = std::min(nominal, options.max_backoff);
+  if (nominal.count() <= 0) return std::chrono::milliseconds(0);
+  thread_local std::minstd_rand rng{std::random_device{}()};
+  std::uniform_int_distribution<int64_t> jitter(nominal.count() / 2,
+                                                nominal.count());
+  return std::chrono::milliseconds(jitter(rng));
+}
+
+// Waits `delay` before a retry. The synchronous API makes progress on a
+// connection only while some thread is inside a call on the channel (and
+// otherwise every 5 s, from gRPC's backup poller), and a call that fails fast
+// does not stay long enough. So with a channel, the wait waits on the
+// channel's state until the end of the delay, which drives the connection;
+// the full delay is still waited, so that a server that answers UNAVAILABLE
+// is not called again at once. Without a channel (injected stub), or with an
+// injected `sleep`, it just sleeps.
+void WaitOnChannel(const ClientOptions& options, grpc::Channel* channel,
+                   std::chrono::milliseconds delay) {
+  if (options.sleep) {
+    options.sleep(delay);
+    return;
+  }
+  if (channel == nullptr) {
+    std::this_thread::sleep_for(delay);
+    return;
+  }
+  const auto end = std::chrono::system_clock::now() + delay;
+  while (std::chrono::system_clock::now() < end) {
+    const grpc_connectivity_state state =
+        channel->GetState(/*try_to_connect=*/true);
+    if (!channel->WaitForStateChange(state, end)) break;  // `end` reached.
+  }
+}
+
+// Before a retry wait: a channel in TRANSIENT_FAILURE refuses calls until its
+// own reconnect backoff ends; resetting it starts a connection attempt now.
+void ResetConnectBackoff(grpc::Channel* channel) {
+  if (channel != nullptr) {
+    grpc::experimental::ChannelResetConnectionBackoff(channel);
+  }
+}
+
+// The wait before retry number `failures`.
+void WaitBeforeRetry(const ClientOptions& options, grpc::Channel* channel,
+                     int failures) {
+  ResetConnectBackoff(channel);
+  WaitOnChannel(options, channel, BackoffDelay(options, failures));
+}
+
+// WaitBeforeRetry in slices of at most `poll`, returning early once `stop`.
+void WaitBeforeRetryUnlessStopped(const ClientOptions& options,
+                                  grpc::Channel* channel, int failures,
+                                  const std::atomic<bool>* stop,
+                                  std::chrono::milliseconds poll) {
+  ResetConnectBackoff(channel);
+  std::chrono::milliseconds delay = BackoffDelay(options, failures);
+  const auto slice = std::max(poll, std::chrono::milliseconds(1));
+  while (delay.count() > 0 && !Stopped(stop)) {
+    const auto step = stop == nullptr ? delay : std::min(delay, slice);
+    WaitOnChannel(options, channel, step);
+    delay -= step;
+  }
+}
+
+// Runs `call` with a fresh context and deadline per attempt, retrying
+// retryable codes with backoff when `retry` is set.
+grpc::Status CallWithRetry(
+    const ClientOptions& options, grpc::Channel* channel, bool retry,
+    const std::function<grpc::Status(grpc::ClientContext*)>& call) {
+  const int max_attempts = retry ? std::max(1, options.max_attempts) : 1;
+  for (int attempt = 1;; ++attempt) {
+    grpc::ClientContext context;
+    SetDeadline(options, &context);
+    grpc::Status status = call(&context);
+    if (status.ok() || !IsRetryable(status.error_code()) ||
+        attempt >= max_attempts) {
+      return status;
+    }
+    WaitBeforeRetry(options, channel, attempt);
+  }
+}
+
+// While alive, checks `stop` every `poll` and cancels `context` once it is
+// set. Must be destroyed before `context`.
+class StopWatcher {
+ public:
+  StopWatcher(const std::atomic<bool>* stop, std::chrono::milliseconds poll,
+              grpc::ClientContext* context) {
+    if (stop == nullptr) return;
+    thread_ = std::thread([this, stop, poll, context] {
+      std::unique_lock<std::mutex> lock(mutex_);
+      while (!done_) {
+        if (stop->load()) {
+          context->TryCancel();
+          return;
+        }
+        done_changed_.wait_for(lock, poll);
+      }
+    });
+  }
+  StopWatcher(const StopWatcher&) = delete;
+  StopWatcher& operator=(const StopWatcher&) = delete;
+  ~StopWatcher() {
+    if (!thread_.joinable()) return;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      done_ = true;
+    }
+    done_changed_.notify_all();
+    thread_.join();
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable done_changed_;
+  bool done_ = false;
+  std::thread thread_;
+};
+
+// One upload stream of `traces` in messages of `batch_size` traces.
+grpc::Status UploadOnce(v1::MemoryService::StubInterface& stub,
+                        grpc::ClientContext* context, std::string_view fleet_id,
+                        std::span<const v1::MemoryTrace> traces,
+                        size_t batch_size, v1::UploadTracesResponse* response) {
+  std::unique_ptr<grpc::ClientWriterInterface<v1::UploadTracesRequest>> writer =
+      stub.UploadTraces(context, response);
+  for (size_t begin = 0; begin < traces.size(); begin += batch_size) {
+    const size_t end = std::min(traces.size(), begin + batch_size);
+    v1::UploadTracesRequest request;
+    request.set_fleet_id(std::string(fleet_id));
+    request.mutable_traces()->Reserve(static_cast<int>(end - begin));
+    for (size_t i = begin; i < end; ++i) *request.add_traces() = traces[i];
+    // A failed write means the stream is broken; Finish() says why.
+    if (!writer->Write(request)) break;
+  }
+  writer->WritesDone();
+  return writer->Finish();
+}
+
+}  // namespace
+
+absl::Status FromGrpcStatus(const grpc::Status& status) {
+  if (status.ok()) return absl::OkStatus();
+  return absl::Status(static_cast<absl::StatusCode>(status.error_code()),
+                      status.error_message());
+}
+
+std::unique_ptr<Client> Client::Create(ClientOptions options) {
+  grpc::ChannelArguments arguments;
+  arguments.SetMaxReceiveMessageSize(kMaxReceiveMessageBytes);
+  // gRPC's own reconnect backoff (1 s doubling to 120 s by default) would
+  // make calls fail fast for up to two minutes after a server restart; keep
+  // it on the client's retry schedule instead.
+  arguments.SetInt(
+      GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS,
+      static_cast<int>(std::max<int64_t>(1, options.initial_backoff.count())));
+  arguments.SetInt(
+      GRPC_ARG_MAX_RECONNECT_BACKOFF_MS,
+      static_cast<int>(std::max<int64_t>(1, options.max_backoff.count())));
+  std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
+      options.target, grpc::InsecureChannelCredentials(), arguments);
+  auto client = std::make_unique<Client>(std::move(options),
+                                         v1::MemoryService::NewStub(channel));
+  client->channel_ = std::move(channel);
+  return client;
+}
+
+Client::Client(ClientOptions options,
+               std::unique_ptr<v1::MemoryService::StubInterface> stub)
+    : options_(std::move(options)), stub_(std::move(stub)) {}
+
+absl::StatusOr<v1::UploadTracesResponse> Client::Upload(
+    std::string_view fleet_id, std::span<const v1::MemoryTrace> traces) {
+  v1::UploadTracesResponse response;
+  if (traces.empty()) return response;
+  const size_t batch_size = std::max<size_t>(1, options_.upload_batch_size);
+  grpc::Status status =
+      CallWithRetry(options_, channel_.get(), /*retry=*/true,
+                    [&](grpc::ClientContext* context) {
+                      response.Clear();
+                      return UploadOnce(*stub_, context, fleet_id, traces,
+                                        batch_size, &response);
+                    });
+  if (!status.ok()) return FromGrpcStatus(status);
+  return response;
+}
+
+absl::StatusOr<v1::ConsolidateResponse> Client::Consolidate(
+    std::string_view fleet_id) {
+  v1::ConsolidateRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  v1::ConsolidateResponse response;
+  grpc::Status status =
+      CallWithRetry(options_, channel_.get(), /*retry=*/true,
+                    [&](grpc::ClientContext* context) {
+                      return stub_->Consolidate(context, request, &response);
+                    });
+  if (!status.ok()) return FromGrpcStatus(status);
+  return response;
+}
+
+absl::StatusOr<std::vector<v1::MemoryTrace>> Client::SampleReplay(
+    std::string_view fleet_id, std::string_view robot_id, uint32_t count) {
+  v1::SampleReplayRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  request.set_robot_id(std::string(robot_id));
+  request.set_count(count);
+  v1::SampleReplayResponse response;
+  grpc::Status status =
+      CallWithRetry(options_, channel_.get(), /*retry=*/false,
+                    [&](grpc::ClientContext* context) {
+                      return stub_->SampleReplay(context, request, &response);
+                    });
+  if (!status.ok()) return FromGrpcStatus(status);
+  return std::vector<v1::MemoryTrace>(
+      std::make_move_iterator(response.mutable_traces()->begin()),
+      std::make_move_iterator(response.mutable_traces()->end()));
+}
+
+absl::StatusOr<std::vector<v1::PlaceMatch>> Client::QueryPlace(
+    const v1::QueryPlaceRequest& request) {
+  v1::QueryPlaceResponse response;
+  grpc::Status status =
+      CallWithRetry(options_, channel_.get(), /*retry=*/true,
+                    [&](grpc::ClientContext* context) {
+                      return stub_->QueryPlace(context, request, &response);
+                    });
+  if (!status.ok()) return FromGrpcStatus(status);
+  return std::vector<v1::PlaceMatch>(
+      std::make_move_iterator(response.mutable_matches()->begin()),
+      std::make_move_iterator(response.mutable_matches()->end()));
+}
+
+absl::StatusOr<v1::GetStatsResponse> Client::GetStats(
+    std::string_view fleet_id) {
+  v1::GetStatsRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  v1::GetStatsResponse response;
+  grpc::Status status =
+      CallWithRetry(options_, channel_.get(), /*retry=*/true,
+                    [&](grpc::ClientContext* context) {
+                      return stub_->GetStats(context, request, &response);
+                    });
+  if (!status.ok()) return FromGrpcStatus(status);
+  return response;
+}
+
+absl::StatusOr<uint64_t> Client::Watch(
+    std::string_view fleet_id, uint64_t after_event,
+    const std::function<bool(const v1::MemoryEvent&)>& on_event,
+    const std::atomic<bool>* stop, std::chrono::milliseconds poll) {
+  uint64_t last_delivered = after_event;
+  int failures = 0;  // Attempts in a row that delivered no event.
+  while (!Stopped(stop)) {
+    v1::WatchMemoryRequest request;
+    request.set_fleet_id(std::string(fleet_id));
+    request.set_after_event(last_delivered);
+    grpc::ClientContext context;
+    SetDeadline(options_, &context);
+    StopWatcher stop_watcher(stop, poll, &context);
+    std::unique_ptr<grpc::ClientReaderInterface<v1::MemoryEvent>> reader =
+        stub_->WatchMemory(&context, request);
+    bool progressed = false;
+    bool caller_done = false;
+    v1::MemoryEvent event;
+    while (reader->Read(&event)) {
+      if (event.id() <= last_delivered) continue;
+      last_delivered = event.id();
+      progressed = true;
+      if (!on_event(event)) {
+        caller_done = true;
+        context.TryCancel();
+        while (reader->Read(&event)) {
+        }
+        break;
+      }
+    }
+    const grpc::Status status = reader->Finish();
+    if (caller_done || Stopped(stop)) break;
+    if (status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED) {
+      failures = 0;  // The attempt's deadline: reopen from the cursor.
+      continue;
+    }
+    // We did not cancel, so CANCELLED means the server dropped the stream
+    // (e.g. while shutting down): reconnect like for UNAVAILABLE.
+    if (!status.ok() && !IsRetryable(status.error_code()) &&
+        status.error_code() != grpc::StatusCode::CANCELLED) {
+      return FromGrpcStatus(status);
+    }
+    failures = progressed ? 1 : failures + 1;
+    if (failures >= std::max(1, options_.max_attempts)) {
+      if (status.ok()) {
+        return absl::UnavailableError("watch stream closed by the server");
+      }
+      return FromGrpcStatus(status);
+    }
+    WaitBeforeRetryUnlessStopped(options_, channel_.get(), failures, stop,
+                                 poll);
+  }
+  return last_delivered;
+}
+
+}  // namespace fleetmem::client

@@ -1,0 +1,120 @@
+// C++ client of fleetmem.v1.MemoryService for robots and tools. Links only
+// the generated API and gRPC. Every attempt of a call carries a deadline of
+// now + options.deadline. Calls that are safe to repeat (all but SampleReplay,
+// which increments replay counts) are retried with exponential backoff on
+// UNAVAILABLE, DEADLINE_EXCEEDED and RESOURCE_EXHAUSTED: uploads are
+// idempotent by (robot_id, seq), and a repeated Consolidate only finds less
+// (or nothing) pending. Other codes are returned at once.
+//
+// Backoff: before attempt n + 1 the client waits a uniformly random time in
+// [b/2, b], b = min(initial_backoff * 2^(n-1), max_backoff).
+//
+// Thread-safe: one Client may be shared by many threads.
+#ifndef FLEETMEM_CLIENTS_CPP_FLEETMEM_CLIENT_H_
+#define FLEETMEM_CLIENTS_CPP_FLEETMEM_CLIENT_H_
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "fleetmem/v1/memory.grpc.pb.h"
+#include "fleetmem/v1/memory.pb.h"
+
+namespace fleetmem::client {
+
+struct ClientOptions {
+  // Server address, "host:port".
+  std::string target = "127.0.0.1:50051";
+  // Deadline of each attempt of a call.
+  std::chrono::milliseconds deadline{10000};
+  // Attempts per call for retryable failures (1 = no retry).
+  int max_attempts = 5;
+  // Backoff before the second attempt; doubles up to max_backoff.
+  std::chrono::milliseconds initial_backoff{100};
+  std::chrono::milliseconds max_backoff{5000};
+  // Traces per UploadTracesRequest message of an upload stream (0 acts as 1).
+  size_t upload_batch_size = 500;
+  // Waits between attempts instead of the client's own wait (see Create);
+  // empty by default. Tests inject a recorder so that no test waits on the
+  // real clock.
+  std::function<void(std::chrono::milliseconds)> sleep;
+};
+
+class Client {
+ public:
+  // Creates a client over a new insecure channel to options.target. Does not
+  // connect until the first call. Accepts responses up to 64 MiB. A retry
+  // wait of such a client resets the channel's connect backoff and waits on
+  // the channel (not in sleep_for), so that a restarted server is reconnected
+  // during the wait; between calls the channel reconnects on the same
+  // initial/max backoff.
+  static std::unique_ptr<Client> Create(ClientOptions options);
+  // Uses an existing stub (for tests with an in-process channel).
+  Client(ClientOptions options,
+         std::unique_ptr<v1::MemoryService::StubInterface> stub);
+
+  // Uploads `traces` in one client stream of messages of upload_batch_size
+  // traces; a retry repeats the whole stream. Returns the response of the
+  // attempt that succeeded, so accepted + duplicates == traces.size(). After
+  // a retry, `duplicates` may include traces stored by an earlier failed
+  // attempt of the same call (and `consolidations` counts only the last
+  // attempt's). An empty `traces` returns zeros without calling the server.
+  absl::StatusOr<v1::UploadTracesResponse> Upload(
+      std::string_view fleet_id, std::span<const v1::MemoryTrace> traces);
+  // Retried; after a retry the counts are those of the last attempt.
+  absl::StatusOr<v1::ConsolidateResponse> Consolidate(
+      std::string_view fleet_id);
+  // One attempt only (a repeat would increment replay counts twice).
+  absl::StatusOr<std::vector<v1::MemoryTrace>> SampleReplay(
+      std::string_view fleet_id, std::string_view robot_id, uint32_t count);
+  absl::StatusOr<std::vector<v1::PlaceMatch>> QueryPlace(
+      const v1::QueryPlaceRequest& request);
+  absl::StatusOr<v1::GetStatsResponse> GetStats(std::string_view fleet_id);
+
+  // Streams events after `after_event` to `on_event` until it returns false
+  // or `stop` becomes true (checked at least every `poll`); reconnects after
+  // a broken stream from the last event delivered, so none is missed or
+  // repeated (an event whose id is not above the last delivered one is
+  // skipped). Returns the id of the last event delivered (`after_event` if
+  // none), or the error that ended the watch.
+  //
+  // How: each attempt is one WatchMemory stream with a deadline of
+  // now + options.deadline. When that deadline expires the stream is simply
+  // reopened from the cursor (an idle fleet is not an error). UNAVAILABLE,
+  // RESOURCE_EXHAUSTED, CANCELLED not caused by this client (a server that
+  // shuts down may cancel its streams) and a stream the server ends with OK
+  // are retried with backoff; after max_attempts such attempts in a row
+  // without an event the last error is returned (UNAVAILABLE for a closed
+  // stream). Other codes end the watch. With a `stop` flag, a helper thread per
+  // attempt checks it every `poll` and TryCancel()s the stream; backoff waits
+  // are cut into slices of `poll` too. `on_event` runs on the calling thread.
+  absl::StatusOr<uint64_t> Watch(
+      std::string_view fleet_id, uint64_t after_event,
+      const std::function<bool(const v1::MemoryEvent&)>& on_event,
+      const std::atomic<bool>* stop = nullptr,
+      std::chrono::milliseconds poll = std::chrono::milliseconds(500));
+
+  const ClientOptions& options() const { return options_; }
+
+ private:
+  ClientOptions options_;
+  std::unique_ptr<v1::MemoryService::StubInterface> stub_;
+  // The channel of a client made by Create() (null with an injected stub);
+  // retry waits drive its reconnection.
+  std::shared_ptr<grpc::Channel> channel_;
+};
+
+// grpc::Status -> absl::Status (same code and message).
+absl::Status FromGrpcStatus(const grpc::Status& status);
+
+}  // namespace fleetmem::client
+
+#endif  // FLEETMEM_CLIENTS_CPP_FLEETMEM_CLIENT_H_

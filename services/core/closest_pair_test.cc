@@ -1,0 +1,132 @@
+#include "services/core/closest_pair.h"
+
+#include <map>
+#include <random>
+#include <tuple>
+
+#include "gtest/gtest.h"
+
+namespace fleetmem::core {
+namespace {
+
+// O(K^2) reference: smallest (distance, a, b) over all pairs a < b, with the
+// same distance formula the tracker uses.
+std::optional<ClosestPairTracker::Pair> BruteForce(
+    const std::map<uint64_t, Eigen::VectorXf>& points) {
+  std::optional<ClosestPairTracker::Pair> best;
+  for (auto i = points.begin(); i != points.end(); ++i) {
+    for (auto j = std::next(i); j != points.end(); ++j) {
+      const double d =
+          (i->second.cast<double>() - j->second.cast<double>()).norm();
+      if (!best || std::tie(d, i->first, j->first) <
+                       std::tie(best->distance, best->a, best->b)) {
+        best = ClosestPairTracker::Pair{i->first, j->first, d};
+      }
+    }
+  }
+  return best;
+}
+
+void ExpectSame(const std::optional<ClosestPairTracker::Pair>& got,
+                const std::optional<ClosestPairTracker::Pair>& want, int step) {
+  ASSERT_EQ(got.has_value(), want.has_value()) << "step " << step;
+  if (!want) return;
+  EXPECT_EQ(got->a, want->a) << "step " << step;
+  EXPECT_EQ(got->b, want->b) << "step " << step;
+  EXPECT_EQ(got->distance, want->distance) << "step " << step;
+}
+
+TEST(ClosestPairTrackerTest, FewerThanTwoPoints) {
+  ClosestPairTracker tracker;
+  EXPECT_FALSE(tracker.Closest().has_value());
+  tracker.Insert(1, Eigen::Vector2f(0, 0));
+  EXPECT_FALSE(tracker.Closest().has_value());
+  tracker.Insert(2, Eigen::Vector2f(3, 4));
+  ASSERT_TRUE(tracker.Closest().has_value());
+  EXPECT_EQ(tracker.Closest()->a, 1u);
+  EXPECT_EQ(tracker.Closest()->b, 2u);
+  EXPECT_DOUBLE_EQ(tracker.Closest()->distance, 5.0);
+  tracker.Remove(1);
+  EXPECT_FALSE(tracker.Closest().has_value());
+  EXPECT_EQ(tracker.size(), 1u);
+  tracker.Remove(42);  // absent: no-op
+  EXPECT_EQ(tracker.size(), 1u);
+}
+
+TEST(ClosestPairTrackerTest, TiesGoToSmallestIds) {
+  ClosestPairTracker tracker;
+  tracker.Insert(9, Eigen::Vector2f(10, 0));
+  tracker.Insert(7, Eigen::Vector2f(11, 0));
+  tracker.Insert(5, Eigen::Vector2f(0, 0));
+  tracker.Insert(8, Eigen::Vector2f(1, 0));
+  const auto pair = tracker.Closest();
+  ASSERT_TRUE(pair.has_value());
+  EXPECT_EQ(pair->a, 5u);
+  EXPECT_EQ(pair->b, 8u);
+}
+
+// Random inserts and removals, compared against the O(K^2) reference after
+// every step. `grid` coordinates make many exact distance ties.
+void RunRandomSequence(int dimension, bool grid, uint64_t seed, int steps) {
+  std::mt19937_64 rng(seed);
+  std::uniform_int_distribution<int> cell(0, 6);
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  ClosestPairTracker tracker;
+  std::map<uint64_t, Eigen::VectorXf> reference;
+  uint64_t next_id = 0;
+  for (int step = 0; step < steps; ++step) {
+    const bool insert = reference.size() < 3 || rng() % 100 < 55;
+    if (insert) {
+      Eigen::VectorXf p(dimension);
+      for (int d = 0; d < dimension; ++d) {
+        p[d] = grid ? static_cast<float>(cell(rng)) : gauss(rng);
+      }
+      const uint64_t id = next_id += 1 + rng() % 3;
+      tracker.Insert(id, p);
+      reference[id] = p;
+    } else {
+      auto it = reference.begin();
+      std::advance(it, rng() % reference.size());
+      tracker.Remove(it->first);
+      reference.erase(it);
+    }
+    ASSERT_EQ(tracker.size(), reference.size());
+    ExpectSame(tracker.Closest(), BruteForce(reference), step);
+    if (::testing::Test::HasFailure()) return;
+  }
+}
+
+TEST(ClosestPairTrackerTest, MatchesBruteForceOnGridWithTies) {
+  for (uint64_t seed = 1; seed <= 3; ++seed)
+    RunRandomSequence(2, true, seed, 400);
+}
+
+TEST(ClosestPairTrackerTest, MatchesBruteForceInHighDimension) {
+  RunRandomSequence(32, false, 17, 600);
+}
+
+TEST(ClosestPairTrackerTest, RemovingDownToEmpty) {
+  ClosestPairTracker tracker;
+  std::map<uint64_t, Eigen::VectorXf> reference;
+  std::mt19937_64 rng(5);
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  for (uint64_t id = 0; id < 60; ++id) {
+    Eigen::VectorXf p(3);
+    for (int d = 0; d < 3; ++d) p[d] = gauss(rng);
+    tracker.Insert(id, p);
+    reference[id] = p;
+  }
+  // Always remove a member of the current closest pair, as forgetting does.
+  for (int step = 0; step < 60; ++step) {
+    const auto pair = tracker.Closest();
+    ExpectSame(pair, BruteForce(reference), step);
+    if (HasFailure()) return;
+    const uint64_t victim = pair ? pair->a : reference.begin()->first;
+    tracker.Remove(victim);
+    reference.erase(victim);
+  }
+  EXPECT_EQ(tracker.size(), 0u);
+}
+
+}  // namespace
+}  // namespace fleetmem::core

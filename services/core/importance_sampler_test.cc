@@ -1,0 +1,158 @@
+#include "services/core/importance_sampler.h"
+
+#include <cmath>
+#include <limits>
+#include <map>
+#include <numeric>
+#include <set>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+
+namespace fleetmem::core {
+namespace {
+
+using ::testing::UnorderedElementsAre;
+
+// Pearson chi-square statistic of observed counts against probabilities.
+double ChiSquare(const std::vector<int>& observed,
+                 const std::vector<double>& probabilities, int trials) {
+  double chi2 = 0.0;
+  for (size_t i = 0; i < observed.size(); ++i) {
+    const double expected = probabilities[i] * trials;
+    chi2 += (observed[i] - expected) * (observed[i] - expected) / expected;
+  }
+  return chi2;
+}
+
+TEST(ReplayWeightTest, DecaysWithReplayCount) {
+  EXPECT_DOUBLE_EQ(ReplayWeight(2.0f, 0, 0.9, 1e-3), 2.0);
+  EXPECT_DOUBLE_EQ(ReplayWeight(2.0f, 3, 0.9, 1e-3), 2.0 * 0.9 * 0.9 * 0.9);
+  EXPECT_DOUBLE_EQ(ReplayWeight(2.0f, 3, 0.5, 1e-3), 0.25);
+}
+
+TEST(ReplayWeightTest, GammaOneIgnoresReplayCount) {
+  EXPECT_DOUBLE_EQ(ReplayWeight(2.0f, 0, 1.0, 1e-3),
+                   ReplayWeight(2.0f, 1000, 1.0, 1e-3));
+}
+
+TEST(ReplayWeightTest, RewardClampedToFloor) {
+  EXPECT_DOUBLE_EQ(ReplayWeight(0.0f, 0, 0.9, 1e-3), 1e-3);
+  EXPECT_DOUBLE_EQ(ReplayWeight(-5.0f, 0, 0.9, 1e-3), 1e-3);
+  EXPECT_DOUBLE_EQ(
+      ReplayWeight(std::numeric_limits<float>::quiet_NaN(), 0, 0.9, 1e-3),
+      1e-3);
+  EXPECT_DOUBLE_EQ(ReplayWeight(0.0f, 1, 0.5, 1e-3), 0.5e-3);
+}
+
+TEST(SampleWithoutReplacementTest, DistinctAndClamped) {
+  std::mt19937_64 rng(1);
+  const std::vector<double> weights = {1, 5, 0.1, 2, 3, 8, 1e-6};
+  for (size_t count : {0u, 1u, 3u, 7u, 100u}) {
+    const std::vector<size_t> drawn =
+        SampleWithoutReplacement(weights, count, rng);
+    EXPECT_EQ(drawn.size(), std::min<size_t>(count, weights.size()));
+    EXPECT_EQ(std::set<size_t>(drawn.begin(), drawn.end()).size(),
+              drawn.size());
+    for (size_t i : drawn) EXPECT_LT(i, weights.size());
+  }
+  EXPECT_TRUE(SampleWithoutReplacement({}, 5, rng).empty());
+}
+
+TEST(SampleWithoutReplacementTest, ReproducibleForFixedSeed) {
+  const std::vector<double> weights = {1, 2, 3, 4, 5, 6, 7, 8};
+  std::mt19937_64 a(5), b(5);
+  EXPECT_EQ(SampleWithoutReplacement(weights, 5, a),
+            SampleWithoutReplacement(weights, 5, b));
+}
+
+TEST(SampleWithoutReplacementTest, FirstDrawProportionalToWeight) {
+  const std::vector<double> weights = {1, 2, 3, 4, 10};
+  const double total = std::accumulate(weights.begin(), weights.end(), 0.0);
+  std::vector<double> p;
+  for (double w : weights) p.push_back(w / total);
+  constexpr int kTrials = 20000;
+  std::mt19937_64 rng(2024);
+  std::vector<int> first(weights.size(), 0);
+  for (int t = 0; t < kTrials; ++t) {
+    ++first[SampleWithoutReplacement(weights, 2, rng)[0]];
+  }
+  // 4 degrees of freedom: P(chi2 > 18.47) = 0.001.
+  EXPECT_LT(ChiSquare(first, p, kTrials), 18.47);
+}
+
+TEST(SampleWithoutReplacementTest, DrawOrderIsSuccessiveSampling) {
+  // P(first = i, second = j) = w_i / W * w_j / (W - w_i).
+  const std::vector<double> weights = {1, 2, 5};
+  const double total = 8;
+  std::vector<double> p;
+  std::vector<std::pair<size_t, size_t>> cells;
+  for (size_t i = 0; i < 3; ++i) {
+    for (size_t j = 0; j < 3; ++j) {
+      if (i == j) continue;
+      cells.push_back({i, j});
+      p.push_back(weights[i] / total * weights[j] / (total - weights[i]));
+    }
+  }
+  constexpr int kTrials = 20000;
+  std::mt19937_64 rng(77);
+  std::vector<int> observed(cells.size(), 0);
+  for (int t = 0; t < kTrials; ++t) {
+    const std::vector<size_t> d = SampleWithoutReplacement(weights, 2, rng);
+    for (size_t c = 0; c < cells.size(); ++c) {
+      if (cells[c] == std::make_pair(d[0], d[1])) ++observed[c];
+    }
+  }
+  // 5 degrees of freedom: P(chi2 > 20.52) = 0.001.
+  EXPECT_LT(ChiSquare(observed, p, kTrials), 20.52);
+}
+
+TEST(SampleWithoutReplacementTest, TinyWeightsKeepTheirRatio) {
+  // u^(1/w) would underflow to 0 for every item; log keys do not.
+  const std::vector<double> weights = {1e-300, 3e-300};
+  constexpr int kTrials = 20000;
+  std::mt19937_64 rng(8);
+  std::vector<int> first(2, 0);
+  for (int t = 0; t < kTrials; ++t) {
+    ++first[SampleWithoutReplacement(weights, 1, rng)[0]];
+  }
+  // 1 degree of freedom: P(chi2 > 10.83) = 0.001.
+  EXPECT_LT(ChiSquare(first, {0.25, 0.75}, kTrials), 10.83);
+}
+
+TEST(SampleWithoutReplacementTest, NonPositiveWeightsComeLast) {
+  const std::vector<double> weights = {
+      0.0, 1.0, -2.0, 1e-9, std::numeric_limits<double>::quiet_NaN()};
+  std::mt19937_64 rng(3);
+  for (int t = 0; t < 200; ++t) {
+    const std::vector<size_t> drawn = SampleWithoutReplacement(weights, 5, rng);
+    ASSERT_EQ(drawn.size(), 5u);
+    EXPECT_THAT(std::vector<size_t>(drawn.begin(), drawn.begin() + 2),
+                UnorderedElementsAre(1, 3));
+  }
+}
+
+TEST(SampleWithoutReplacementTest, DecayLowersChanceOfReplayedItems) {
+  // Two traces of equal reward; the second was replayed 10 times.
+  constexpr int kTrials = 20000;
+  for (double gamma : {0.9, 1.0}) {
+    const std::vector<double> weights = {ReplayWeight(1.0f, 0, gamma, 1e-3),
+                                         ReplayWeight(1.0f, 10, gamma, 1e-3)};
+    const double p_replayed = weights[1] / (weights[0] + weights[1]);
+    std::mt19937_64 rng(12);
+    std::vector<int> first(2, 0);
+    for (int t = 0; t < kTrials; ++t) {
+      ++first[SampleWithoutReplacement(weights, 1, rng)[0]];
+    }
+    EXPECT_LT(ChiSquare(first, {1 - p_replayed, p_replayed}, kTrials), 10.83)
+        << "gamma " << gamma;
+    if (gamma < 1.0) {
+      EXPECT_LT(first[1], kTrials * 0.30);  // 0.9^10/(1+0.9^10) = 0.26
+    } else {
+      EXPECT_GT(first[1], kTrials * 0.47);  // ablation: n is ignored
+    }
+  }
+}
+
+}  // namespace
+}  // namespace fleetmem::core

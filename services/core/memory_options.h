@@ -1,0 +1,40 @@
+// Parameters of the static memory (BioSLAM Sec. V, memory.md). Defaults are
+// the paper's experiment where it gives them, otherwise memory.md's decisions.
+#ifndef FLEETMEM_SERVICES_CORE_MEMORY_OPTIONS_H_
+#define FLEETMEM_SERVICES_CORE_MEMORY_OPTIONS_H_
+
+#include <cstdint>
+
+#include "absl/status/status.h"
+
+namespace fleetmem::core {
+
+struct MemoryOptions {
+  // K: clusters per consolidated batch (Eq. 14); min(K, batch size) is used.
+  int clusters_per_batch = 20;
+  // N_max: traces kept per cluster by downsampling (Eq. 15).
+  int max_traces_per_cluster = 50;
+  // K_max: clusters in the static memory before forgetting (Algorithm 2).
+  int max_clusters = 100;
+  // gamma in w_k = gamma^{n_k} * R_k (Eq. 18); 1 disables time decay.
+  double replay_decay = 0.9;
+  // Rewards are clamped below to this floor so no trace has zero weight.
+  double reward_floor = 1e-3;
+  // lambda = 1 / spatial_scale_m in c_k = [z_k, lambda * p_k]: this many
+  // metres weigh like one unit of (normalised) code distance.
+  double spatial_scale_m = 10.0;
+  // Ablation "w/o consolidation-clustering": store every trace of a batch in
+  // one cluster, no k-means and no downsampling.
+  bool clustering = true;
+  // Lloyd iterations of k-means after k-means++ seeding.
+  int kmeans_max_iterations = 50;
+  // Seed of the k-means++ random generator (runs are reproducible).
+  uint64_t seed = 42;
+};
+
+// OK if every field is in range; otherwise INVALID_ARGUMENT naming the field.
+absl::Status ValidateMemoryOptions(const MemoryOptions& options);
+
+}  // namespace fleetmem::core
+
+#endif  // FLEETMEM_SERVICES_CORE_MEMORY_OPTIONS_H_

@@ -1,0 +1,183 @@
+#include "services/core/static_memory.h"
+
+#include <algorithm>
+#include <limits>
+#include <utility>
+
+#include "services/core/downsampler.h"
+#include "services/core/feature_space.h"
+#include "services/core/importance_sampler.h"
+#include "services/core/kmeans.h"
+
+namespace fleetmem::core {
+namespace {
+
+// Mean feature-spatial code of `traces` (non-empty, equal code sizes).
+std::vector<float> Centroid(const std::vector<MemoryTrace>& traces,
+                            double spatial_scale_m) {
+  Eigen::VectorXd sum;
+  for (const MemoryTrace& trace : traces) {
+    const Eigen::VectorXd c =
+        FeatureSpatialCode(trace, spatial_scale_m).cast<double>();
+    if (sum.size() == 0) {
+      sum = c;
+    } else {
+      sum += c;
+    }
+  }
+  std::vector<float> centroid(static_cast<size_t>(sum.size()));
+  if (traces.empty()) return centroid;
+  for (Eigen::Index i = 0; i < sum.size(); ++i) {
+    centroid[static_cast<size_t>(i)] =
+        static_cast<float>(sum[i] / static_cast<double>(traces.size()));
+  }
+  return centroid;
+}
+
+Eigen::VectorXf ToVector(const std::vector<float>& values) {
+  return Eigen::Map<const Eigen::VectorXf>(
+      values.data(), static_cast<Eigen::Index>(values.size()));
+}
+
+}  // namespace
+
+StaticMemory::StaticMemory(MemoryOptions options)
+    : options_(std::move(options)) {}
+
+void StaticMemory::Restore(Cluster cluster) {
+  if (cluster.centroid.empty() && !cluster.traces.empty()) {
+    cluster.centroid = Centroid(cluster.traces, options_.spatial_scale_m);
+  }
+  if (clusters_.contains(cluster.id)) Erase(cluster.id);  // id must be new
+  Insert(std::move(cluster));
+}
+
+ConsolidationResult StaticMemory::Consolidate(std::vector<MemoryTrace> batch,
+                                              uint64_t first_cluster_id,
+                                              std::mt19937_64& rng) {
+  ConsolidationResult result;
+  if (batch.empty()) return result;
+  const std::string robot_id = batch.front().robot_id;
+
+  std::vector<std::vector<MemoryTrace>> groups;
+  if (!options_.clustering) {
+    groups.push_back(std::move(batch));
+  } else {
+    const Eigen::Index n = static_cast<Eigen::Index>(batch.size());
+    Eigen::MatrixXf points(
+        static_cast<Eigen::Index>(batch.front().code.size() + 3), n);
+    for (Eigen::Index i = 0; i < n; ++i) {
+      points.col(i) = FeatureSpatialCode(batch[static_cast<size_t>(i)],
+                                         options_.spatial_scale_m);
+    }
+    const int k = static_cast<int>(std::min<size_t>(
+        static_cast<size_t>(options_.clusters_per_batch), batch.size()));
+    const KMeansResult kmeans =
+        KMeans(points, k, options_.kmeans_max_iterations, rng);
+    groups.resize(static_cast<size_t>(kmeans.centroids.cols()));
+    for (size_t i = 0; i < batch.size(); ++i) {
+      groups[static_cast<size_t>(kmeans.assignment[i])].push_back(
+          std::move(batch[i]));
+    }
+    for (std::vector<MemoryTrace>& group : groups) {
+      std::vector<MemoryTrace> dropped =
+          DownsampleByReward(group, options_.max_traces_per_cluster);
+      for (MemoryTrace& trace : dropped) {
+        trace.cluster_id = 0;
+        result.downsampled.push_back(std::move(trace));
+      }
+    }
+  }
+
+  for (size_t i = 0; i < groups.size(); ++i) {
+    Cluster cluster;
+    cluster.id = first_cluster_id + i;
+    cluster.robot_id = robot_id;
+    cluster.centroid = Centroid(groups[i], options_.spatial_scale_m);
+    cluster.traces = std::move(groups[i]);
+    for (MemoryTrace& trace : cluster.traces) trace.cluster_id = cluster.id;
+    result.added.push_back(cluster);
+    Insert(std::move(cluster));
+  }
+  result.forgotten = Forget();
+  return result;
+}
+
+std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
+                                                       std::mt19937_64& rng) {
+  std::vector<MemoryTrace*> all;
+  all.reserve(trace_count_);
+  for (auto& [id, cluster] : clusters_) {
+    for (MemoryTrace& trace : cluster.traces) all.push_back(&trace);
+  }
+  std::vector<double> weights(all.size());
+  for (size_t i = 0; i < all.size(); ++i) {
+    weights[i] = ReplayWeight(all[i]->reward, all[i]->replay_count,
+                              options_.replay_decay, options_.reward_floor);
+  }
+  const std::vector<size_t> drawn =
+      SampleWithoutReplacement(weights, count, rng);
+  std::vector<MemoryTrace> out;
+  out.reserve(drawn.size());
+  for (size_t index : drawn) {
+    MemoryTrace& trace = *all[index];
+    if (trace.replay_count < std::numeric_limits<uint32_t>::max()) {
+      ++trace.replay_count;
+    }
+    out.push_back(trace);
+  }
+  return out;
+}
+
+const MemoryTrace* StaticMemory::Find(const TraceKey& key) const {
+  auto owner = cluster_of_.find(key);
+  if (owner == cluster_of_.end()) return nullptr;
+  auto cluster = clusters_.find(owner->second);
+  if (cluster == clusters_.end()) return nullptr;
+  for (const MemoryTrace& trace : cluster->second.traces) {
+    if (trace.seq == key.seq && trace.robot_id == key.robot_id) return &trace;
+  }
+  return nullptr;
+}
+
+void StaticMemory::Insert(Cluster cluster) {
+  const uint64_t id = cluster.id;
+  trace_count_ += cluster.traces.size();
+  for (const MemoryTrace& trace : cluster.traces) cluster_of_[trace.key()] = id;
+  centroids_.Insert(id, ToVector(cluster.centroid));
+  clusters_.emplace(id, std::move(cluster));
+}
+
+Cluster StaticMemory::Erase(uint64_t cluster_id) {
+  auto node = clusters_.extract(cluster_id);
+  if (node.empty()) return Cluster{};
+  Cluster cluster = std::move(node.mapped());
+  trace_count_ -= cluster.traces.size();
+  for (const MemoryTrace& trace : cluster.traces) {
+    auto it = cluster_of_.find(trace.key());
+    if (it != cluster_of_.end() && it->second == cluster_id) {
+      cluster_of_.erase(it);
+    }
+  }
+  centroids_.Remove(cluster_id);
+  return cluster;
+}
+
+std::vector<Cluster> StaticMemory::Forget() {
+  std::vector<Cluster> forgotten;
+  const size_t max_clusters =
+      static_cast<size_t>(std::max(options_.max_clusters, 1));
+  while (clusters_.size() > max_clusters) {
+    const std::optional<ClosestPairTracker::Pair> pair = centroids_.Closest();
+    if (!pair) break;
+    const double reward_a = clusters_.at(pair->a).MeanReward();
+    const double reward_b = clusters_.at(pair->b).MeanReward();
+    // Keep what is hard: drop the lower mean reward; ties drop the older
+    // (smaller id, pair->a).
+    const uint64_t victim = reward_b < reward_a ? pair->b : pair->a;
+    forgotten.push_back(Erase(victim));
+  }
+  return forgotten;
+}
+
+}  // namespace fleetmem::core

@@ -1,0 +1,85 @@
+// The static memory M_S of one fleet: bounded clusters of memory traces,
+// consolidated from batches (Algorithm 1), pruned by forgetting (Algorithm 2)
+// and sampled for replay (Eq. 18). Pure and single-threaded: the caller locks,
+// persists what each call reports, and injects randomness.
+#ifndef FLEETMEM_SERVICES_CORE_STATIC_MEMORY_H_
+#define FLEETMEM_SERVICES_CORE_STATIC_MEMORY_H_
+
+#include <cstdint>
+#include <map>
+#include <random>
+#include <vector>
+
+#include "absl/container/flat_hash_map.h"
+#include "services/core/closest_pair.h"
+#include "services/core/memory_options.h"
+#include "services/core/types.h"
+
+namespace fleetmem::core {
+
+// What one consolidation changed; the caller persists it.
+struct ConsolidationResult {
+  // Clusters appended to the memory (after downsampling), oldest first.
+  // Clusters that forgetting removed again in the same call are in
+  // `forgotten` too.
+  std::vector<Cluster> added;
+  // Traces dropped by downsampling (Eq. 15).
+  std::vector<MemoryTrace> downsampled;
+  // Clusters removed by forgetting (Algorithm 2), in removal order.
+  std::vector<Cluster> forgotten;
+};
+
+class StaticMemory {
+ public:
+  // `options` must pass ValidateMemoryOptions.
+  explicit StaticMemory(MemoryOptions options);
+
+  StaticMemory(const StaticMemory&) = delete;
+  StaticMemory& operator=(const StaticMemory&) = delete;
+  StaticMemory(StaticMemory&&) = default;
+  StaticMemory& operator=(StaticMemory&&) = default;
+
+  // Puts back a cluster loaded from storage as is (no forgetting). Its id
+  // must be new.
+  void Restore(Cluster cluster);
+
+  // Algorithm 1 on one batch (one robot's segment): builds feature-spatial
+  // codes, clusters them with k-means++ into min(K, |batch|) clusters,
+  // downsamples each to N_max traces by reward, appends the clusters with ids
+  // first_cluster_id, first_cluster_id + 1, ..., then forgets while more than
+  // K_max clusters are held. With clustering off the batch becomes one
+  // cluster as is. An empty batch changes nothing. All codes of the batch
+  // must have one dimension (the caller validates with ValidateTrace).
+  ConsolidationResult Consolidate(std::vector<MemoryTrace> batch,
+                                  uint64_t first_cluster_id,
+                                  std::mt19937_64& rng);
+
+  // Refresh (Eq. 18): draws up to `count` distinct traces with weight
+  // gamma^n * R, increments their replay_count and returns copies of them
+  // (with the new counts), in draw order.
+  std::vector<MemoryTrace> SampleForReplay(size_t count, std::mt19937_64& rng);
+
+  // The trace with this key, or nullptr. Valid until the next mutation.
+  const MemoryTrace* Find(const TraceKey& key) const;
+
+  // Clusters by id (ascending = oldest first).
+  const std::map<uint64_t, Cluster>& clusters() const { return clusters_; }
+  size_t trace_count() const { return trace_count_; }
+  const MemoryOptions& options() const { return options_; }
+
+ private:
+  void Insert(Cluster cluster);
+  Cluster Erase(uint64_t cluster_id);
+  // Algorithm 2: removes clusters until at most K_max remain.
+  std::vector<Cluster> Forget();
+
+  MemoryOptions options_;
+  std::map<uint64_t, Cluster> clusters_;
+  absl::flat_hash_map<TraceKey, uint64_t> cluster_of_;  // trace -> cluster
+  ClosestPairTracker centroids_;
+  size_t trace_count_ = 0;
+};
+
+}  // namespace fleetmem::core
+
+#endif  // FLEETMEM_SERVICES_CORE_STATIC_MEMORY_H_

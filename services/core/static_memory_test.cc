@@ -1,0 +1,356 @@
+#include "services/core/static_memory.h"
+
+#include <algorithm>
+#include <random>
+#include <set>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "services/core/downsampler.h"
+#include "services/core/feature_space.h"
+#include "services/core/kmeans.h"
+
+namespace fleetmem::core {
+namespace {
+
+constexpr int kDim = 8;
+
+// A robot's segment: `n` traces along a road, codes drawn around a few
+// prototypes, random rewards.
+std::vector<MemoryTrace> Segment(const std::string& robot, uint64_t first_seq,
+                                 int n, std::mt19937_64& rng) {
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  std::uniform_real_distribution<float> reward(0.0f, 2.0f);
+  std::vector<MemoryTrace> batch;
+  for (int i = 0; i < n; ++i) {
+    MemoryTrace t;
+    t.robot_id = robot;
+    t.seq = first_seq + i;
+    t.domain = i % 3 == 0 ? "night" : "summer";
+    t.code.resize(kDim);
+    for (float& v : t.code) v = gauss(rng);
+    t.place.x = 5.0 * i + gauss(rng);
+    t.place.y = gauss(rng);
+    t.reward = reward(rng);
+    t.timestamp_ns = static_cast<int64_t>(t.seq) * 1000;
+    t.encoder_version = "v1";
+    batch.push_back(std::move(t));
+  }
+  return batch;
+}
+
+// A one-trace cluster at code `code` (and place 0), reward `reward`.
+Cluster OneTraceCluster(uint64_t id, std::vector<float> code, float reward,
+                        double spatial_scale_m) {
+  MemoryTrace t;
+  t.robot_id = "old";
+  t.seq = id;
+  t.code = std::move(code);
+  t.reward = reward;
+  t.cluster_id = id;
+  Cluster c;
+  c.id = id;
+  c.robot_id = "old";
+  const Eigen::VectorXf f = FeatureSpatialCode(t, spatial_scale_m);
+  c.centroid.assign(f.data(), f.data() + f.size());
+  c.traces.push_back(std::move(t));
+  return c;
+}
+
+void ExpectInvariants(const StaticMemory& memory) {
+  const MemoryOptions& o = memory.options();
+  EXPECT_LE(memory.clusters().size(), static_cast<size_t>(o.max_clusters));
+  size_t traces = 0;
+  for (const auto& [id, cluster] : memory.clusters()) {
+    EXPECT_EQ(cluster.id, id);
+    if (o.clustering) {
+      EXPECT_LE(cluster.traces.size(),
+                static_cast<size_t>(o.max_traces_per_cluster));
+    }
+    EXPECT_FALSE(cluster.traces.empty());
+    for (const MemoryTrace& t : cluster.traces) {
+      EXPECT_EQ(t.cluster_id, id);
+      EXPECT_EQ(memory.Find(t.key()), &t);
+    }
+    traces += cluster.traces.size();
+  }
+  EXPECT_EQ(memory.trace_count(), traces);
+}
+
+TEST(StaticMemoryTest, EmptyBatchChangesNothing) {
+  StaticMemory memory(MemoryOptions{});
+  std::mt19937_64 rng(1);
+  const ConsolidationResult r = memory.Consolidate({}, 1, rng);
+  EXPECT_TRUE(r.added.empty());
+  EXPECT_TRUE(r.downsampled.empty());
+  EXPECT_TRUE(r.forgotten.empty());
+  EXPECT_TRUE(memory.clusters().empty());
+}
+
+TEST(StaticMemoryTest, ConsolidateClustersAndDownsamples) {
+  MemoryOptions options;
+  options.clusters_per_batch = 5;
+  options.max_traces_per_cluster = 4;
+  StaticMemory memory(options);
+  std::mt19937_64 data_rng(3);
+  const std::vector<MemoryTrace> batch = Segment("r1", 100, 60, data_rng);
+
+  // The same k-means run the memory does, to check the downsampling.
+  std::mt19937_64 rng(9);
+  std::mt19937_64 rng_copy = rng;
+  Eigen::MatrixXf points(kDim + 3, 60);
+  for (int i = 0; i < 60; ++i) {
+    points.col(i) = FeatureSpatialCode(batch[i], options.spatial_scale_m);
+  }
+  const KMeansResult kmeans =
+      KMeans(points, 5, options.kmeans_max_iterations, rng_copy);
+
+  const ConsolidationResult r = memory.Consolidate(batch, 40, rng);
+  ASSERT_EQ(r.added.size(), 5u);
+  EXPECT_TRUE(r.forgotten.empty());
+  size_t kept = 0;
+  for (size_t i = 0; i < r.added.size(); ++i) {
+    const Cluster& c = r.added[i];
+    EXPECT_EQ(c.id, 40 + i);
+    EXPECT_EQ(c.robot_id, "r1");
+    kept += c.traces.size();
+    // Kept = the N_max highest rewards of k-means group i.
+    std::vector<MemoryTrace> group;
+    for (int p = 0; p < 60; ++p) {
+      if (kmeans.assignment[p] == static_cast<int>(i))
+        group.push_back(batch[p]);
+    }
+    DownsampleByReward(group, 4);
+    std::set<uint64_t> want, got;
+    for (const MemoryTrace& t : group) want.insert(t.seq);
+    for (const MemoryTrace& t : c.traces) got.insert(t.seq);
+    EXPECT_EQ(got, want) << "cluster " << c.id;
+    // Centroid recomputed from the kept traces.
+    Eigen::VectorXf mean = Eigen::VectorXf::Zero(kDim + 3);
+    for (const MemoryTrace& t : c.traces) {
+      mean += FeatureSpatialCode(t, options.spatial_scale_m);
+    }
+    mean /= static_cast<float>(c.traces.size());
+    ASSERT_EQ(c.centroid.size(), static_cast<size_t>(kDim + 3));
+    for (int d = 0; d < kDim + 3; ++d) {
+      EXPECT_NEAR(c.centroid[d], mean[d], 1e-5);
+    }
+  }
+  EXPECT_EQ(kept, 20u);
+  EXPECT_EQ(r.downsampled.size(), 40u);
+  EXPECT_EQ(memory.trace_count(), 20u);
+  for (const MemoryTrace& t : r.downsampled) {
+    EXPECT_EQ(memory.Find(t.key()), nullptr);
+  }
+  ExpectInvariants(memory);
+}
+
+TEST(StaticMemoryTest, ConsolidateIsReproducible) {
+  MemoryOptions options;
+  options.clusters_per_batch = 6;
+  options.max_traces_per_cluster = 5;
+  std::mt19937_64 data_rng(3);
+  const std::vector<MemoryTrace> batch = Segment("r1", 0, 80, data_rng);
+  StaticMemory a(options), b(options);
+  std::mt19937_64 rng_a(5), rng_b(5);
+  const ConsolidationResult ra = a.Consolidate(batch, 1, rng_a);
+  const ConsolidationResult rb = b.Consolidate(batch, 1, rng_b);
+  ASSERT_EQ(ra.added.size(), rb.added.size());
+  for (size_t i = 0; i < ra.added.size(); ++i) {
+    EXPECT_EQ(ra.added[i].centroid, rb.added[i].centroid);
+    ASSERT_EQ(ra.added[i].traces.size(), rb.added[i].traces.size());
+    for (size_t j = 0; j < ra.added[i].traces.size(); ++j) {
+      EXPECT_EQ(ra.added[i].traces[j].key(), rb.added[i].traces[j].key());
+    }
+  }
+}
+
+TEST(StaticMemoryTest, SmallBatchGetsOneClusterPerTrace) {
+  StaticMemory memory(MemoryOptions{});  // K = 20
+  std::mt19937_64 rng(3);
+  const ConsolidationResult r =
+      memory.Consolidate(Segment("r1", 0, 7, rng), 1, rng);
+  ASSERT_EQ(r.added.size(), 7u);
+  for (const Cluster& c : r.added) EXPECT_EQ(c.traces.size(), 1u);
+  ExpectInvariants(memory);
+}
+
+TEST(StaticMemoryTest, BoundsHoldOverManyBatches) {
+  MemoryOptions options;
+  options.clusters_per_batch = 8;
+  options.max_traces_per_cluster = 5;
+  options.max_clusters = 30;
+  StaticMemory memory(options);
+  std::mt19937_64 rng(21);
+  uint64_t next_cluster = 1;
+  size_t added = 0, forgotten = 0;
+  std::set<uint64_t> forgotten_ids;
+  for (int b = 0; b < 40; ++b) {
+    const std::string robot = "r" + std::to_string(b % 4);
+    const ConsolidationResult r = memory.Consolidate(
+        Segment(robot, 1000 * b, 50, rng), next_cluster, rng);
+    ASSERT_EQ(r.added.size(), 8u);
+    next_cluster += r.added.size();
+    added += r.added.size();
+    forgotten += r.forgotten.size();
+    for (const Cluster& c : r.forgotten) {
+      EXPECT_TRUE(forgotten_ids.insert(c.id).second);
+      EXPECT_FALSE(memory.clusters().contains(c.id));
+      for (const MemoryTrace& t : c.traces) {
+        EXPECT_EQ(memory.Find(t.key()), nullptr);
+      }
+    }
+    ASSERT_LE(memory.clusters().size(), 30u) << "batch " << b;
+    ExpectInvariants(memory);
+    if (HasFailure()) return;
+  }
+  EXPECT_EQ(memory.clusters().size(), 30u);
+  EXPECT_EQ(added - forgotten, 30u);
+}
+
+TEST(StaticMemoryTest, ForgettingRemovesLowerRewardOfClosestPair) {
+  MemoryOptions options;
+  options.max_clusters = 2;
+  StaticMemory memory(options);
+  const double s = options.spatial_scale_m;
+  // Cluster 1 (reward 5) and cluster 2 (reward 1) are far apart.
+  memory.Restore(OneTraceCluster(1, {1, 0, 0, 0}, 5.0f, s));
+  memory.Restore(OneTraceCluster(2, {0, 0, 0, 1}, 1.0f, s));
+  EXPECT_EQ(memory.trace_count(), 2u);
+
+  // A new trace close to cluster 1 with a lower reward: it is forgotten.
+  MemoryTrace near1;
+  near1.robot_id = "r";
+  near1.seq = 10;
+  near1.code = {1, 0.1f, 0, 0};
+  near1.reward = 2.0f;
+  std::mt19937_64 rng(1);
+  ConsolidationResult r = memory.Consolidate({near1}, 3, rng);
+  ASSERT_EQ(r.added.size(), 1u);
+  ASSERT_EQ(r.forgotten.size(), 1u);
+  EXPECT_EQ(r.forgotten[0].id, 3u);
+  EXPECT_EQ(r.added[0].id, 3u);  // reported as added and forgotten
+  EXPECT_EQ(memory.Find(near1.key()), nullptr);
+
+  // A new trace close to cluster 1 with a higher reward: cluster 1 goes.
+  near1.seq = 11;
+  near1.reward = 9.0f;
+  r = memory.Consolidate({near1}, 4, rng);
+  ASSERT_EQ(r.forgotten.size(), 1u);
+  EXPECT_EQ(r.forgotten[0].id, 1u);
+  EXPECT_THAT(memory.clusters(), ::testing::SizeIs(2));
+  EXPECT_TRUE(memory.clusters().contains(2));
+  EXPECT_TRUE(memory.clusters().contains(4));
+  EXPECT_NE(memory.Find(near1.key()), nullptr);
+
+  // Equal mean rewards: the older cluster (smaller id) goes.
+  MemoryTrace near2;
+  near2.robot_id = "r";
+  near2.seq = 12;
+  near2.code = {0, 0, 0.1f, 1};
+  near2.reward = 1.0f;
+  r = memory.Consolidate({near2}, 5, rng);
+  ASSERT_EQ(r.forgotten.size(), 1u);
+  EXPECT_EQ(r.forgotten[0].id, 2u);
+  ExpectInvariants(memory);
+}
+
+TEST(StaticMemoryTest, RestoredClustersTakePartInForgetting) {
+  MemoryOptions options;
+  options.max_clusters = 3;
+  StaticMemory memory(options);
+  const double s = options.spatial_scale_m;
+  memory.Restore(OneTraceCluster(1, {1, 0, 0}, 1.0f, s));
+  memory.Restore(OneTraceCluster(2, {1, 0.01f, 0}, 0.5f, s));  // near 1
+  memory.Restore(OneTraceCluster(3, {0, 0, 1}, 1.0f, s));
+  EXPECT_EQ(memory.clusters().size(), 3u);
+  MemoryTrace far;
+  far.robot_id = "r";
+  far.seq = 1;
+  far.code = {0, 1, 0};
+  far.reward = 1.0f;
+  std::mt19937_64 rng(1);
+  const ConsolidationResult r = memory.Consolidate({far}, 4, rng);
+  ASSERT_EQ(r.forgotten.size(), 1u);
+  EXPECT_EQ(r.forgotten[0].id, 2u);
+}
+
+TEST(StaticMemoryTest, WithoutClusteringTheBatchIsOneCluster) {
+  MemoryOptions options;
+  options.clustering = false;
+  options.max_traces_per_cluster = 5;
+  StaticMemory memory(options);
+  std::mt19937_64 rng(3);
+  const std::vector<MemoryTrace> batch = Segment("r9", 0, 40, rng);
+  const ConsolidationResult r = memory.Consolidate(batch, 7, rng);
+  ASSERT_EQ(r.added.size(), 1u);
+  EXPECT_TRUE(r.downsampled.empty());
+  EXPECT_EQ(r.added[0].id, 7u);
+  EXPECT_EQ(r.added[0].robot_id, "r9");
+  EXPECT_EQ(r.added[0].traces.size(), 40u);
+  EXPECT_EQ(memory.trace_count(), 40u);
+  for (const MemoryTrace& t : batch) {
+    const MemoryTrace* found = memory.Find(t.key());
+    ASSERT_NE(found, nullptr);
+    EXPECT_EQ(found->cluster_id, 7u);
+  }
+}
+
+TEST(StaticMemoryTest, SampleForReplayIncrementsCounts) {
+  MemoryOptions options;
+  options.clustering = false;
+  StaticMemory memory(options);
+  std::mt19937_64 rng(3);
+  memory.Consolidate(Segment("r1", 0, 30, rng), 1, rng);
+
+  const std::vector<MemoryTrace> drawn = memory.SampleForReplay(10, rng);
+  ASSERT_EQ(drawn.size(), 10u);
+  std::set<TraceKey> keys;
+  for (const MemoryTrace& t : drawn) {
+    EXPECT_TRUE(keys.insert(t.key()).second) << "duplicate";
+    EXPECT_EQ(t.replay_count, 1u);
+    EXPECT_EQ(memory.Find(t.key())->replay_count, 1u);
+  }
+  size_t replayed = 0;
+  for (const MemoryTrace& t : memory.clusters().begin()->second.traces) {
+    replayed += t.replay_count;
+  }
+  EXPECT_EQ(replayed, 10u);
+
+  const std::vector<MemoryTrace> all = memory.SampleForReplay(1000, rng);
+  EXPECT_EQ(all.size(), 30u);  // clamped
+  for (const MemoryTrace& t : all) {
+    EXPECT_EQ(t.replay_count, keys.contains(t.key()) ? 2u : 1u);
+  }
+  EXPECT_TRUE(memory.SampleForReplay(0, rng).empty());
+}
+
+// First draw from a fresh memory of two equal-reward traces, one of which
+// was replayed 20 times: decay makes it unlikely; gamma = 1 ignores n.
+double ShareOfReplayedTraceDrawnFirst(double gamma) {
+  MemoryOptions options;
+  options.replay_decay = gamma;
+  std::mt19937_64 rng(31);
+  int replayed_first = 0;
+  constexpr int kTrials = 4000;
+  for (int t = 0; t < kTrials; ++t) {
+    StaticMemory memory(options);
+    Cluster c = OneTraceCluster(1, {1, 0}, 1.0f, options.spatial_scale_m);
+    MemoryTrace second = c.traces[0];
+    second.seq = 2;
+    second.replay_count = 20;
+    c.traces.push_back(second);
+    memory.Restore(std::move(c));
+    if (memory.SampleForReplay(1, rng)[0].seq == 2) ++replayed_first;
+  }
+  return static_cast<double>(replayed_first) / kTrials;
+}
+
+TEST(StaticMemoryTest, DecayLowersChanceOfReplayedTraces) {
+  // 0.9^20 / (1 + 0.9^20) = 0.108.
+  EXPECT_NEAR(ShareOfReplayedTraceDrawnFirst(0.9), 0.108, 0.03);
+  EXPECT_NEAR(ShareOfReplayedTraceDrawnFirst(1.0), 0.5, 0.03);
+}
+
+}  // namespace
+}  // namespace fleetmem::core

@@ -1,0 +1,880 @@
+#include "services/engine/memory_engine.h"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <random>
+#include <utility>
+
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "services/common/log.h"
+#include "services/core/feature_space.h"
+#include "services/core/static_memory.h"
+#include "services/core/validation.h"
+
+namespace fleetmem::engine {
+namespace {
+
+// Debian's absl has its own string_view type, distinct from std::string_view.
+absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
+
+// Seed of a fleet's generator: the configured seed mixed with a stable
+// (FNV-1a) hash of the fleet id, finalised by splitmix64.
+uint64_t FleetSeed(uint64_t seed, std::string_view fleet_id) {
+  uint64_t hash = 1469598103934665603ull;
+  for (unsigned char c : fleet_id) {
+    hash ^= c;
+    hash *= 1099511628211ull;
+  }
+  uint64_t z = seed ^ (hash + 0x9e3779b97f4a7c15ull);
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
+absl::Status FleetNotFound(std::string_view fleet_id) {
+  return absl::NotFoundError(
+      absl::StrCat("fleet \"", V(fleet_id),
+                   "\" does not exist (it is created by its first upload)"));
+}
+
+// Checks a whole upload against the fleet's shape; `meta` is null for a fleet
+// that does not exist yet (its first upload then fixes the shape from
+// traces[0]).
+absl::Status ValidateUpload(std::string_view fleet_id,
+                            std::span<const core::MemoryTrace> traces,
+                            const FleetMeta* meta, size_t max_traces) {
+  if (traces.size() > max_traces) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("upload has ", traces.size(), " traces but at most ",
+                     max_traces, " are allowed per upload"));
+  }
+  if (traces.empty()) return absl::OkStatus();
+  const size_t dimension =
+      meta != nullptr ? meta->code_dimension : traces[0].code.size();
+  const std::string_view encoder = meta != nullptr
+                                       ? std::string_view(meta->encoder_version)
+                                       : traces[0].encoder_version;
+  for (size_t i = 0; i < traces.size(); ++i) {
+    const core::MemoryTrace& trace = traces[i];
+    const std::string what = absl::StrCat("traces[", i, "]");
+    if (trace.code.size() != dimension) {
+      if (meta != nullptr) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ".code has dimension ", trace.code.size(),
+                         " but fleet \"", V(fleet_id), "\" uses ", dimension));
+      }
+      return absl::InvalidArgumentError(absl::StrCat(
+          what, ".code has dimension ", trace.code.size(),
+          " but traces[0].code has ", dimension, " (fleet \"", V(fleet_id),
+          "\" is new and takes its dimension from its first upload)"));
+    }
+    if (trace.encoder_version != encoder) {
+      if (meta != nullptr) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ".encoder_version \"", trace.encoder_version,
+                         "\" differs from fleet \"", V(fleet_id), "\"'s \"",
+                         V(encoder), "\""));
+      }
+      return absl::InvalidArgumentError(absl::StrCat(
+          what, ".encoder_version \"", trace.encoder_version,
+          "\" differs from traces[0]'s \"", V(encoder), "\" (fleet \"",
+          V(fleet_id),
+          "\" is new and takes its encoder version from its first upload)"));
+    }
+    core::TraceShape shape;
+    shape.code_dimension = dimension;
+    shape.encoder_version = encoder;
+    shape.fleet_id = fleet_id;
+    absl::Status status = core::ValidateTrace(what, trace, shape);
+    if (!status.ok()) return status;
+  }
+  return absl::OkStatus();
+}
+
+bool IsFinitePlace(const core::Place& place) {
+  return std::isfinite(place.x) && std::isfinite(place.y) &&
+         std::isfinite(place.z) && std::isfinite(place.yaw);
+}
+
+double PlaceDistance(const core::Place& a, const core::Place& b) {
+  const double dx = a.x - b.x;
+  const double dy = a.y - b.y;
+  const double dz = a.z - b.z;
+  return std::sqrt(dx * dx + dy * dy + dz * dz);
+}
+
+void Accumulate(const ConsolidateResult& batch, ConsolidateResult* total) {
+  total->consolidated_traces += batch.consolidated_traces;
+  total->downsampled_traces += batch.downsampled_traces;
+  total->clusters_added += batch.clusters_added;
+  total->clusters_forgotten += batch.clusters_forgotten;
+}
+
+// What a fleet operation leaves for after the fleet lock is released.
+struct Notices {
+  uint64_t last_event_id = 0;  // newest durable event, 0 if none
+  ConsolidateResult consolidated;
+  uint64_t consolidations = 0;
+  double consolidation_seconds = 0.0;
+};
+
+}  // namespace
+
+absl::Status ValidateEngineOptions(const EngineOptions& options) {
+  absl::Status status = core::ValidateMemoryOptions(options.memory);
+  if (!status.ok()) return status;
+  const std::pair<const char*, size_t> positive[] = {
+      {"segment_size", options.segment_size},
+      {"max_traces_per_upload", options.max_traces_per_upload},
+      {"max_sample_count", options.max_sample_count},
+      {"max_query_k", options.max_query_k},
+      {"max_events_per_read", options.max_events_per_read},
+  };
+  for (const auto& [name, value] : positive) {
+    if (value == 0) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("engine option ", name, " must be at least 1"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// One fleet's state. Every member but `id` and `engine` is guarded by `mu`.
+struct MemoryEngine::Fleet {
+  Fleet(std::string fleet_id, const MemoryEngine* owner)
+      : id(std::move(fleet_id)),
+        engine(owner),
+        memory(owner->options_.memory),
+        rng(FleetSeed(owner->options_.memory.seed, id)) {}
+
+  // True once the fleet's first upload is durable.
+  bool exists() const ABSL_SHARED_LOCKS_REQUIRED(mu) {
+    return meta.code_dimension != 0;
+  }
+
+  // Rebuilds every member from the store. On failure the fleet is left empty
+  // and `stale` holds the error; the next mutating call retries.
+  absl::Status Reload() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Reloads if a previous reload failed.
+  absl::Status EnsureLoaded() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // For readers: OK unless a reload failed.
+  absl::Status CheckLoaded() const ABSL_SHARED_LOCKS_REQUIRED(mu);
+  absl::Status Rebuild(FleetRecord record) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  absl::Status IndexTraces(const std::vector<const core::MemoryTrace*>& traces)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  absl::Status UnindexTraces(const std::vector<core::TraceKey>& keys)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+
+  absl::Status Upload(std::span<const core::MemoryTrace> traces,
+                      UploadResult* result, Notices* notices)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
+  // and 2) and persists the outcome in one mutation.
+  absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
+      std::string_view robot_id, size_t count)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  FleetStats Stats() const ABSL_SHARED_LOCKS_REQUIRED(mu);
+
+  // Fleet is nested in MemoryEngine and so reaches its private members; these
+  // helpers keep private declarations out of the public header. Fleets are
+  // never removed from the map, so a returned pointer lives as long as the
+  // engine.
+  static Fleet* Find(const MemoryEngine& engine, std::string_view fleet_id);
+  static Fleet* FindOrAdd(MemoryEngine& engine, std::string_view fleet_id);
+  // Calls the fleet's listeners (the caller holds no fleet lock).
+  static void Notify(MemoryEngine& engine, std::string_view fleet_id,
+                     uint64_t last_event_id);
+
+  const std::string id;
+  const MemoryEngine* const engine;
+
+  mutable absl::Mutex mu;
+  absl::Status stale ABSL_GUARDED_BY(mu);
+  FleetMeta meta ABSL_GUARDED_BY(mu);
+  core::StaticMemory memory ABSL_GUARDED_BY(mu);
+  // Pending traces per robot, in arrival order.
+  std::map<std::string, std::vector<core::MemoryTrace>, std::less<>> pending
+      ABSL_GUARDED_BY(mu);
+  std::map<std::string, RobotRecord, std::less<>> robots ABSL_GUARDED_BY(mu);
+  // Index of the static memory's normalised codes under handles; null until
+  // the code dimension is known.
+  std::unique_ptr<PlaceIndex> index ABSL_GUARDED_BY(mu);
+  absl::flat_hash_map<core::TraceKey, uint64_t> handle_of ABSL_GUARDED_BY(mu);
+  absl::flat_hash_map<uint64_t, core::TraceKey> key_of ABSL_GUARDED_BY(mu);
+  uint64_t next_handle ABSL_GUARDED_BY(mu) = 1;
+  std::mt19937_64 rng ABSL_GUARDED_BY(mu);
+};
+
+absl::Status MemoryEngine::Fleet::Reload() {
+  absl::StatusOr<FleetRecord> record = engine->store_->LoadFleet(id);
+  absl::Status status =
+      record.ok() ? Rebuild(*std::move(record)) : record.status();
+  if (!status.ok()) {
+    FLEETMEM_LOG(kError) << "fleet \"" << id
+                         << "\" could not be reloaded: " << status;
+    Rebuild(FleetRecord{}).IgnoreError();
+    stale = status;
+    return status;
+  }
+  stale = absl::OkStatus();
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::EnsureLoaded() {
+  if (stale.ok()) return absl::OkStatus();
+  return Reload();
+}
+
+absl::Status MemoryEngine::Fleet::CheckLoaded() const {
+  if (stale.ok()) return absl::OkStatus();
+  return absl::UnavailableError(
+      absl::StrCat("fleet \"", id, "\" is not loaded after a storage error (",
+                   stale.message(), "); retry later"));
+}
+
+absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
+  meta = record.meta;
+  memory = core::StaticMemory(engine->options_.memory);
+  pending.clear();
+  robots.clear();
+  index.reset();
+  handle_of.clear();
+  key_of.clear();
+  next_handle = 1;
+  if (meta.code_dimension == 0) {
+    if (!record.clusters.empty() || !record.pending.empty()) {
+      return absl::DataLossError(absl::StrCat(
+          "fleet \"", id, "\" has stored traces but no code dimension"));
+    }
+    return absl::OkStatus();
+  }
+  for (core::MemoryTrace& trace : record.pending) {
+    std::string robot_id = trace.robot_id;
+    pending[robot_id].push_back(std::move(trace));
+  }
+  for (RobotRecord& robot : record.robots) {
+    std::string robot_id = robot.robot_id;
+    robots[robot_id] = std::move(robot);
+  }
+  for (core::Cluster& cluster : record.clusters) {
+    for (core::MemoryTrace& trace : cluster.traces) {
+      trace.cluster_id = cluster.id;
+    }
+    memory.Restore(std::move(cluster));
+  }
+  index = engine->index_factory_(meta.code_dimension);
+  if (index == nullptr) {
+    return absl::InternalError(
+        absl::StrCat("the index factory made no index for fleet \"", id, "\""));
+  }
+  std::vector<const core::MemoryTrace*> traces;
+  traces.reserve(memory.trace_count());
+  for (const auto& [cluster_id, cluster] : memory.clusters()) {
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      traces.push_back(&trace);
+    }
+  }
+  return IndexTraces(traces);
+}
+
+absl::Status MemoryEngine::Fleet::IndexTraces(
+    const std::vector<const core::MemoryTrace*>& traces) {
+  if (traces.empty()) return absl::OkStatus();
+  if (index == nullptr) {
+    return absl::InternalError(absl::StrCat("fleet \"", id, "\" has no index"));
+  }
+  std::vector<uint64_t> ids;
+  std::vector<std::vector<float>> vectors;
+  ids.reserve(traces.size());
+  vectors.reserve(traces.size());
+  for (const core::MemoryTrace* trace : traces) {
+    ids.push_back(next_handle++);
+    vectors.push_back(core::NormalizedCode(trace->code));
+  }
+  absl::Status status = index->Add(ids, vectors);
+  if (!status.ok()) return status;
+  for (size_t i = 0; i < traces.size(); ++i) {
+    handle_of[traces[i]->key()] = ids[i];
+    key_of[ids[i]] = traces[i]->key();
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::UnindexTraces(
+    const std::vector<core::TraceKey>& keys) {
+  std::vector<uint64_t> ids;
+  for (const core::TraceKey& key : keys) {
+    auto it = handle_of.find(key);
+    if (it == handle_of.end()) continue;
+    ids.push_back(it->second);
+    key_of.erase(it->second);
+    handle_of.erase(it);
+  }
+  if (ids.empty() || index == nullptr) return absl::OkStatus();
+  return index->Remove(ids);
+}
+
+absl::Status MemoryEngine::Fleet::Upload(
+    std::span<const core::MemoryTrace> traces, UploadResult* result,
+    Notices* notices) {
+  absl::Status status = EnsureLoaded();
+  if (!status.ok()) return status;
+  const bool is_new = !exists();
+  status = ValidateUpload(id, traces, is_new ? nullptr : &meta,
+                          engine->options_.max_traces_per_upload);
+  if (!status.ok()) return status;
+  if (traces.empty()) return absl::OkStatus();
+
+  // Duplicates are seqs already received or repeated within this upload:
+  // inserting into a copy of the robot's SeqSet detects both.
+  FleetMutation mutation;
+  std::map<std::string, RobotRecord> changed_robots;
+  for (const core::MemoryTrace& trace : traces) {
+    auto [it, inserted] = changed_robots.try_emplace(trace.robot_id);
+    RobotRecord& record = it->second;
+    if (inserted) {
+      auto known = robots.find(trace.robot_id);
+      if (known != robots.end()) {
+        record = known->second;
+      } else {
+        record.robot_id = trace.robot_id;
+      }
+    }
+    if (!record.received.Insert(trace.seq)) {
+      ++result->duplicates;
+      continue;
+    }
+    core::MemoryTrace accepted = trace;
+    accepted.replay_count = 0;
+    accepted.cluster_id = 0;
+    mutation.put_pending.push_back(std::move(accepted));
+  }
+  result->accepted = mutation.put_pending.size();
+  if (mutation.put_pending.empty()) return absl::OkStatus();
+  for (auto& [robot_id, record] : changed_robots) {
+    auto known = robots.find(robot_id);
+    const uint64_t before =
+        known == robots.end() ? 0 : known->second.received.size();
+    if (record.received.size() != before) mutation.put_robots.push_back(record);
+  }
+
+  std::unique_ptr<PlaceIndex> new_index;
+  if (is_new) {
+    mutation.put_meta = true;
+    mutation.meta = meta;
+    mutation.meta.code_dimension = static_cast<uint32_t>(traces[0].code.size());
+    mutation.meta.encoder_version = traces[0].encoder_version;
+    new_index = engine->index_factory_(mutation.meta.code_dimension);
+    if (new_index == nullptr) {
+      return absl::InternalError(absl::StrCat(
+          "the index factory made no index for fleet \"", id, "\""));
+    }
+  }
+
+  status = engine->store_->Apply(id, mutation);
+  if (!status.ok()) return status;
+
+  // Durable: now the in-memory state follows.
+  if (is_new) {
+    meta = mutation.meta;
+    index = std::move(new_index);
+  }
+  for (RobotRecord& record : mutation.put_robots) {
+    std::string robot_id = record.robot_id;
+    robots[robot_id] = std::move(record);
+  }
+  for (core::MemoryTrace& trace : mutation.put_pending) {
+    std::string robot_id = trace.robot_id;
+    pending[robot_id].push_back(std::move(trace));
+  }
+
+  std::vector<std::string> full;
+  for (const auto& [robot_id, robot_pending] : pending) {
+    if (robot_pending.size() >= engine->options_.segment_size) {
+      full.push_back(robot_id);
+    }
+  }
+  for (const std::string& robot_id : full) {
+    status = ConsolidateRobot(robot_id, notices);
+    if (!status.ok()) return status;
+    ++result->consolidations;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
+                                                   Notices* notices) {
+  auto found = pending.find(robot_id);
+  if (found == pending.end() || found->second.empty()) return absl::OkStatus();
+  const absl::Time start = absl::Now();
+  std::vector<core::MemoryTrace> batch = std::move(found->second);
+  pending.erase(found);
+
+  FleetMutation mutation;
+  mutation.erase_pending.reserve(batch.size());
+  for (const core::MemoryTrace& trace : batch) {
+    mutation.erase_pending.push_back(trace.key());
+  }
+  const size_t batch_size = batch.size();
+  const uint64_t first_cluster_id = meta.next_cluster_id;
+  core::ConsolidationResult outcome =
+      memory.Consolidate(std::move(batch), first_cluster_id, rng);
+
+  FleetMeta new_meta = meta;
+  new_meta.next_cluster_id = first_cluster_id + outcome.added.size();
+  absl::flat_hash_set<uint64_t> added_ids;
+  for (const core::Cluster& cluster : outcome.added) {
+    added_ids.insert(cluster.id);
+    new_meta.next_cluster_id =
+        std::max(new_meta.next_cluster_id, cluster.id + 1);
+  }
+  absl::flat_hash_set<uint64_t> forgotten_ids;
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    forgotten_ids.insert(cluster.id);
+  }
+  for (const core::Cluster& cluster : outcome.added) {
+    if (forgotten_ids.contains(cluster.id)) continue;
+    auto held = memory.clusters().find(cluster.id);
+    mutation.put_clusters.push_back(
+        held != memory.clusters().end() ? held->second : cluster);
+  }
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    if (!added_ids.contains(cluster.id)) {
+      mutation.erase_clusters.push_back(cluster.id);
+    }
+  }
+
+  const int64_t now_ns = engine->options_.now_ns();
+  auto append_event = [&](const core::Cluster& cluster, core::EventType type) {
+    core::MemoryEvent event = core::DescribeCluster(cluster, type);
+    event.id = new_meta.next_event_id++;
+    event.timestamp_ns = now_ns;
+    mutation.append_events.push_back(std::move(event));
+  };
+  for (const core::Cluster& cluster : outcome.added) {
+    append_event(cluster, core::EventType::kClusterAdded);
+  }
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    append_event(cluster, core::EventType::kClusterForgotten);
+  }
+  new_meta.consolidations += 1;
+  new_meta.clusters_forgotten += outcome.forgotten.size();
+  mutation.put_meta = true;
+  mutation.meta = new_meta;
+
+  absl::Status status = engine->store_->Apply(id, mutation);
+  if (!status.ok()) {
+    // The static memory already ran ahead of the store: drop it.
+    FLEETMEM_LOG(kError) << "fleet \"" << id << "\": consolidation of robot \""
+                         << robot_id << "\" not stored: " << status;
+    Reload().IgnoreError();
+    return status;
+  }
+  meta = new_meta;
+  if (!mutation.append_events.empty()) {
+    notices->last_event_id = mutation.append_events.back().id;
+  }
+
+  std::vector<core::TraceKey> removed;
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    if (added_ids.contains(cluster.id)) continue;
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      removed.push_back(trace.key());
+    }
+  }
+  std::vector<const core::MemoryTrace*> added_traces;
+  for (const core::Cluster& cluster : mutation.put_clusters) {
+    auto held = memory.clusters().find(cluster.id);
+    if (held == memory.clusters().end()) continue;
+    for (const core::MemoryTrace& trace : held->second.traces) {
+      added_traces.push_back(&trace);
+    }
+  }
+  status = UnindexTraces(removed);
+  if (status.ok()) status = IndexTraces(added_traces);
+  if (!status.ok()) {
+    FLEETMEM_LOG(kError) << "fleet \"" << id
+                         << "\": index update failed, rebuilding: " << status;
+    absl::Status reloaded = Reload();
+    if (!reloaded.ok()) return reloaded;
+  }
+
+  ConsolidateResult batch_result;
+  batch_result.consolidated_traces = batch_size;
+  batch_result.downsampled_traces = outcome.downsampled.size();
+  batch_result.clusters_added = outcome.added.size();
+  batch_result.clusters_forgotten = outcome.forgotten.size();
+  Accumulate(batch_result, &notices->consolidated);
+  ++notices->consolidations;
+  notices->consolidation_seconds += absl::ToDoubleSeconds(absl::Now() - start);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<core::MemoryTrace>>
+MemoryEngine::Fleet::SampleReplay(std::string_view robot_id, size_t count) {
+  std::vector<core::MemoryTrace> traces = memory.SampleForReplay(count, rng);
+  if (traces.empty()) return traces;
+  RobotRecord record;
+  auto known = robots.find(robot_id);
+  if (known != robots.end()) {
+    record = known->second;
+  } else {
+    record.robot_id = std::string(robot_id);
+  }
+  record.replayed += traces.size();
+  FleetMutation mutation;
+  mutation.update_traces = traces;
+  mutation.put_robots.push_back(record);
+  absl::Status status = engine->store_->Apply(id, mutation);
+  if (!status.ok()) {
+    // Replay counts were already incremented in memory: drop them.
+    Reload().IgnoreError();
+    return status;
+  }
+  robots[record.robot_id] = std::move(record);
+  return traces;
+}
+
+FleetStats MemoryEngine::Fleet::Stats() const {
+  FleetStats stats;
+  stats.traces = memory.trace_count();
+  stats.clusters = memory.clusters().size();
+  stats.code_dimension = meta.code_dimension;
+  stats.encoder_version = meta.encoder_version;
+  stats.last_event_id = meta.next_event_id - 1;
+  stats.consolidations = meta.consolidations;
+  stats.clusters_forgotten = meta.clusters_forgotten;
+  stats.max_clusters =
+      static_cast<uint32_t>(engine->options_.memory.max_clusters);
+  stats.max_traces_per_cluster =
+      static_cast<uint32_t>(engine->options_.memory.max_traces_per_cluster);
+
+  std::map<std::string, RobotStats> by_robot;
+  std::map<std::string, DomainStats> by_domain;
+  auto robot_stats = [&](const std::string& robot_id) -> RobotStats& {
+    RobotStats& robot = by_robot[robot_id];
+    robot.robot_id = robot_id;
+    return robot;
+  };
+  auto domain_stats = [&](const std::string& domain) -> DomainStats& {
+    DomainStats& entry = by_domain[domain];
+    entry.domain = domain;
+    return entry;
+  };
+  for (const auto& [robot_id, record] : robots) {
+    RobotStats& robot = robot_stats(robot_id);
+    robot.max_seq = record.received.max();
+    robot.received = record.received.size();
+    robot.replayed = record.replayed;
+  }
+  for (const auto& [cluster_id, cluster] : memory.clusters()) {
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      ++robot_stats(trace.robot_id).traces;
+      ++domain_stats(trace.domain).traces;
+    }
+  }
+  for (const auto& [robot_id, traces] : pending) {
+    stats.pending_traces += traces.size();
+    robot_stats(robot_id).pending_traces += traces.size();
+    for (const core::MemoryTrace& trace : traces) {
+      ++domain_stats(trace.domain).pending_traces;
+    }
+  }
+  for (auto& [robot_id, robot] : by_robot) {
+    stats.robots.push_back(std::move(robot));
+  }
+  for (auto& [domain, entry] : by_domain) {
+    stats.domains.push_back(std::move(entry));
+  }
+  return stats;
+}
+
+MemoryEngine::MemoryEngine(EngineOptions options, MemoryStore* store,
+                           PlaceIndexFactory index_factory, EngineHooks hooks)
+    : options_(std::move(options)),
+      store_(store),
+      index_factory_(std::move(index_factory)),
+      hooks_(std::move(hooks)) {
+  if (!options_.now_ns) {
+    options_.now_ns = [] { return absl::GetCurrentTimeNanos(); };
+  }
+}
+
+MemoryEngine::~MemoryEngine() = default;
+
+absl::StatusOr<std::unique_ptr<MemoryEngine>> MemoryEngine::Open(
+    EngineOptions options, MemoryStore* store, PlaceIndexFactory index_factory,
+    EngineHooks hooks) {
+  absl::Status status = ValidateEngineOptions(options);
+  if (!status.ok()) return status;
+  if (store == nullptr) {
+    return absl::InvalidArgumentError("MemoryEngine::Open needs a store");
+  }
+  if (!index_factory) {
+    return absl::InvalidArgumentError(
+        "MemoryEngine::Open needs an index factory");
+  }
+  std::unique_ptr<MemoryEngine> engine(new MemoryEngine(
+      std::move(options), store, std::move(index_factory), std::move(hooks)));
+  absl::StatusOr<std::vector<std::string>> fleet_ids = store->ListFleets();
+  if (!fleet_ids.ok()) return fleet_ids.status();
+  absl::MutexLock fleets_lock(&engine->fleets_mu_);
+  for (const std::string& fleet_id : *fleet_ids) {
+    auto fleet = std::make_unique<Fleet>(fleet_id, engine.get());
+    {
+      absl::MutexLock lock(&fleet->mu);
+      status = fleet->Reload();
+    }
+    if (!status.ok()) {
+      return absl::Status(
+          status.code(),
+          absl::StrCat("loading fleet \"", fleet_id, "\": ", status.message()));
+    }
+    engine->fleets_[fleet_id] = std::move(fleet);
+  }
+  FLEETMEM_LOG(kInfo) << "memory engine opened with " << fleet_ids->size()
+                      << " fleet(s)";
+  return engine;
+}
+
+MemoryEngine::Fleet* MemoryEngine::Fleet::Find(const MemoryEngine& engine,
+                                               std::string_view fleet_id) {
+  absl::ReaderMutexLock lock(&engine.fleets_mu_);
+  auto it = engine.fleets_.find(std::string(fleet_id));
+  return it == engine.fleets_.end() ? nullptr : it->second.get();
+}
+
+MemoryEngine::Fleet* MemoryEngine::Fleet::FindOrAdd(MemoryEngine& engine,
+                                                    std::string_view fleet_id) {
+  absl::MutexLock lock(&engine.fleets_mu_);
+  auto [it, inserted] = engine.fleets_.try_emplace(std::string(fleet_id));
+  if (inserted) {
+    it->second = std::make_unique<Fleet>(std::string(fleet_id), &engine);
+  }
+  return it->second.get();
+}
+
+void MemoryEngine::Fleet::Notify(MemoryEngine& engine,
+                                 std::string_view fleet_id,
+                                 uint64_t last_event_id) {
+  if (last_event_id == 0) return;
+  absl::ReaderMutexLock lock(&engine.listeners_mu_);
+  for (const auto& [handle, listener] : engine.listeners_) {
+    if (listener.fleet_id == fleet_id) listener.callback(last_event_id);
+  }
+}
+
+absl::StatusOr<UploadResult> MemoryEngine::Upload(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces) {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) {
+    // Validated before a fleet object exists, so a bad first upload leaves
+    // nothing behind.
+    status = ValidateUpload(fleet_id, traces, nullptr,
+                            options_.max_traces_per_upload);
+    if (!status.ok()) return status;
+    if (traces.empty()) return UploadResult{};
+    fleet = Fleet::FindOrAdd(*this, fleet_id);
+  }
+  UploadResult result;
+  Notices notices;
+  {
+    absl::MutexLock lock(&fleet->mu);
+    status = fleet->Upload(traces, &result, &notices);
+    notices.consolidated.clusters = fleet->memory.clusters().size();
+    notices.consolidated.traces = fleet->memory.trace_count();
+  }
+  Fleet::Notify(*this, fleet_id, notices.last_event_id);
+  if (notices.consolidations > 0 && hooks_.on_consolidate) {
+    hooks_.on_consolidate(fleet_id, notices.consolidated,
+                          notices.consolidation_seconds);
+  }
+  if (!status.ok()) return status;
+  if (hooks_.on_upload) hooks_.on_upload(fleet_id, result);
+  return result;
+}
+
+absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
+    std::string_view fleet_id) {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return FleetNotFound(fleet_id);
+  const absl::Time start = absl::Now();
+  Notices notices;
+  {
+    absl::MutexLock lock(&fleet->mu);
+    status = fleet->EnsureLoaded();
+    if (!status.ok()) return status;
+    if (!fleet->exists()) return FleetNotFound(fleet_id);
+    std::vector<std::string> robot_ids;
+    for (const auto& [robot_id, traces] : fleet->pending) {
+      if (!traces.empty()) robot_ids.push_back(robot_id);
+    }
+    for (const std::string& robot_id : robot_ids) {
+      status = fleet->ConsolidateRobot(robot_id, &notices);
+      if (!status.ok()) break;
+    }
+    notices.consolidated.clusters = fleet->memory.clusters().size();
+    notices.consolidated.traces = fleet->memory.trace_count();
+  }
+  Fleet::Notify(*this, fleet_id, notices.last_event_id);
+  if (!status.ok()) return status;
+  if (hooks_.on_consolidate) {
+    hooks_.on_consolidate(fleet_id, notices.consolidated,
+                          absl::ToDoubleSeconds(absl::Now() - start));
+  }
+  return notices.consolidated;
+}
+
+absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
+    std::string_view fleet_id, std::string_view robot_id, size_t count) {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (status.ok()) status = core::ValidateId("robot_id", robot_id);
+  if (!status.ok()) return status;
+  if (count < 1 || count > options_.max_sample_count) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "count is ", count, " but must be in 1..", options_.max_sample_count));
+  }
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return FleetNotFound(fleet_id);
+  absl::StatusOr<std::vector<core::MemoryTrace>> traces;
+  {
+    absl::MutexLock lock(&fleet->mu);
+    status = fleet->EnsureLoaded();
+    if (!status.ok()) return status;
+    if (!fleet->exists()) return FleetNotFound(fleet_id);
+    traces = fleet->SampleReplay(robot_id, count);
+  }
+  if (traces.ok() && hooks_.on_sample) {
+    hooks_.on_sample(fleet_id, traces->size());
+  }
+  return traces;
+}
+
+absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
+    std::string_view fleet_id, const PlaceQuery& query) const {
+  const absl::Time start = absl::Now();
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (status.ok()) status = core::ValidateCode("code", query.code);
+  if (!status.ok()) return status;
+  if (query.k > options_.max_query_k) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "k is ", query.k, " but must be at most ", options_.max_query_k));
+  }
+  if (!std::isfinite(query.radius_m)) {
+    return absl::InvalidArgumentError("radius_m must be finite");
+  }
+  const bool use_prior = query.radius_m > 0.0;
+  if (use_prior && !IsFinitePlace(query.near)) {
+    return absl::InvalidArgumentError("near must have finite coordinates");
+  }
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return FleetNotFound(fleet_id);
+
+  std::vector<PlaceMatch> matches;
+  {
+    absl::ReaderMutexLock lock(&fleet->mu);
+    status = fleet->CheckLoaded();
+    if (!status.ok()) return status;
+    if (!fleet->exists()) return FleetNotFound(fleet_id);
+    if (query.code.size() != fleet->meta.code_dimension) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "code has dimension ", query.code.size(), " but fleet \"",
+          V(fleet_id), "\" uses ", fleet->meta.code_dimension));
+    }
+    if (fleet->index == nullptr) {
+      return absl::InternalError(
+          absl::StrCat("fleet \"", V(fleet_id), "\" has no index"));
+    }
+    const std::vector<float> normalized = core::NormalizedCode(query.code);
+    SearchParams params;
+    params.k = std::max<size_t>(query.k, 1);
+    if (use_prior) {
+      params.accept = [fleet, &query](uint64_t handle) {
+        auto key = fleet->key_of.find(handle);
+        if (key == fleet->key_of.end()) return false;
+        const core::MemoryTrace* trace = fleet->memory.Find(key->second);
+        return trace != nullptr &&
+               PlaceDistance(trace->place, query.near) <= query.radius_m;
+      };
+    }
+    absl::StatusOr<std::vector<Neighbor>> neighbors =
+        fleet->index->Search(normalized, params);
+    if (!neighbors.ok()) return neighbors.status();
+    matches.reserve(neighbors->size());
+    for (const Neighbor& neighbor : *neighbors) {
+      auto key = fleet->key_of.find(neighbor.id);
+      if (key == fleet->key_of.end()) continue;
+      const core::MemoryTrace* trace = fleet->memory.Find(key->second);
+      if (trace == nullptr) continue;
+      matches.push_back(PlaceMatch{*trace, neighbor.distance});
+    }
+  }
+  if (hooks_.on_query) {
+    hooks_.on_query(fleet_id, absl::ToDoubleSeconds(absl::Now() - start));
+  }
+  return matches;
+}
+
+absl::StatusOr<FleetStats> MemoryEngine::GetStats(
+    std::string_view fleet_id) const {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return FleetNotFound(fleet_id);
+  absl::ReaderMutexLock lock(&fleet->mu);
+  status = fleet->CheckLoaded();
+  if (!status.ok()) return status;
+  if (!fleet->exists()) return FleetNotFound(fleet_id);
+  return fleet->Stats();
+}
+
+absl::StatusOr<std::vector<core::MemoryEvent>> MemoryEngine::ReadEvents(
+    std::string_view fleet_id, uint64_t after_event) const {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  if (Fleet::Find(*this, fleet_id) == nullptr) {
+    return std::vector<core::MemoryEvent>();
+  }
+  return store_->ReadEvents(fleet_id, after_event,
+                            options_.max_events_per_read);
+}
+
+uint64_t MemoryEngine::Subscribe(std::string_view fleet_id,
+                                 EventListener listener) {
+  absl::MutexLock lock(&listeners_mu_);
+  const uint64_t handle = next_listener_++;
+  listeners_[handle] = Listener{std::string(fleet_id), std::move(listener)};
+  return handle;
+}
+
+void MemoryEngine::Unsubscribe(uint64_t handle) {
+  absl::MutexLock lock(&listeners_mu_);
+  listeners_.erase(handle);
+}
+
+std::vector<std::string> MemoryEngine::ListFleets() const {
+  std::vector<const Fleet*> fleets;
+  {
+    absl::ReaderMutexLock lock(&fleets_mu_);
+    for (const auto& [fleet_id, fleet] : fleets_) fleets.push_back(fleet.get());
+  }
+  std::vector<std::string> fleet_ids;
+  for (const Fleet* fleet : fleets) {
+    absl::ReaderMutexLock lock(&fleet->mu);
+    if (fleet->exists()) fleet_ids.push_back(fleet->id);
+  }
+  std::sort(fleet_ids.begin(), fleet_ids.end());
+  return fleet_ids;
+}
+
+}  // namespace fleetmem::engine

@@ -1,0 +1,194 @@
+// The fleet memory service without a transport: one StaticMemory per fleet
+// kept in step with durable storage and a place index, automatic
+// consolidation per robot segment, replay sampling, queries and events.
+//
+// Thread-safe: calls on different fleets run in parallel; on one fleet,
+// queries and stats share a reader lock, mutations take it exclusively.
+// Every mutation is durable in the store before the call returns OK; if the
+// store fails, the fleet is reloaded from the store and the error returned,
+// so memory never runs ahead of disk.
+#ifndef FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_H_
+#define FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_H_
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "services/core/memory_options.h"
+#include "services/core/types.h"
+#include "services/engine/memory_store.h"
+#include "services/engine/place_index.h"
+
+namespace fleetmem::engine {
+
+struct EngineOptions {
+  // Memory parameters of every fleet (K, N_max, K_max, gamma, ...).
+  core::MemoryOptions memory;
+  // A robot's pending traces are consolidated automatically once this many
+  // have accumulated.
+  size_t segment_size = 200;
+  // Most traces one upload message may carry.
+  size_t max_traces_per_upload = 1000;
+  // Most traces one SampleReplay may ask for.
+  size_t max_sample_count = 10000;
+  // Most matches one QueryPlace may ask for.
+  size_t max_query_k = 1000;
+  // Events returned by one ReadEvents call at most.
+  size_t max_events_per_read = 1000;
+  // Nanoseconds since the epoch, for event timestamps (injected for tests).
+  std::function<int64_t()> now_ns;
+};
+
+absl::Status ValidateEngineOptions(const EngineOptions& options);
+
+struct UploadResult {
+  uint64_t accepted = 0;
+  uint64_t duplicates = 0;
+  uint64_t consolidations = 0;
+};
+
+struct ConsolidateResult {
+  uint64_t consolidated_traces = 0;
+  uint64_t downsampled_traces = 0;
+  uint64_t clusters_added = 0;
+  uint64_t clusters_forgotten = 0;
+  uint64_t clusters = 0;
+  uint64_t traces = 0;
+};
+
+struct PlaceQuery {
+  std::vector<float> code;
+  size_t k = 1;  // 0 means 1
+  // Position prior; ignored when radius_m <= 0.
+  core::Place near;
+  double radius_m = 0.0;
+};
+
+struct PlaceMatch {
+  core::MemoryTrace trace;
+  float distance = 0.0f;  // between normalised codes
+};
+
+struct RobotStats {
+  std::string robot_id;
+  uint64_t traces = 0;
+  uint64_t pending_traces = 0;
+  uint64_t max_seq = 0;
+  uint64_t received = 0;
+  uint64_t replayed = 0;
+};
+
+struct DomainStats {
+  std::string domain;
+  uint64_t traces = 0;
+  uint64_t pending_traces = 0;
+};
+
+struct FleetStats {
+  uint64_t traces = 0;
+  uint64_t pending_traces = 0;
+  uint64_t clusters = 0;
+  uint32_t code_dimension = 0;
+  std::string encoder_version;
+  uint64_t last_event_id = 0;
+  uint64_t consolidations = 0;
+  uint64_t clusters_forgotten = 0;
+  uint32_t max_clusters = 0;
+  uint32_t max_traces_per_cluster = 0;
+  std::vector<RobotStats> robots;    // sorted by robot_id
+  std::vector<DomainStats> domains;  // sorted by domain
+};
+
+// Observers of the engine (metrics); every member may be empty. Called
+// outside fleet locks.
+struct EngineHooks {
+  std::function<void(std::string_view fleet, const UploadResult&)> on_upload;
+  std::function<void(std::string_view fleet, const ConsolidateResult&,
+                     double seconds)>
+      on_consolidate;
+  std::function<void(std::string_view fleet, size_t count)> on_sample;
+  std::function<void(std::string_view fleet, double seconds)> on_query;
+};
+
+class MemoryEngine {
+ public:
+  // Loads every fleet from `store`. The store must outlive the engine.
+  static absl::StatusOr<std::unique_ptr<MemoryEngine>> Open(
+      EngineOptions options, MemoryStore* store,
+      PlaceIndexFactory index_factory, EngineHooks hooks = {});
+  ~MemoryEngine();
+
+  // Validates all of `traces` first (ids, finite values, the fleet's code
+  // dimension and encoder version, at most max_traces_per_upload); any error
+  // is INVALID_ARGUMENT and changes nothing. Then stores the traces whose
+  // (robot_id, seq) is new as pending (durably), counts the rest as
+  // duplicates, and consolidates each robot whose pending traces reached
+  // segment_size. The first upload to an unknown fleet creates it with the
+  // dimension and encoder version of its traces.
+  absl::StatusOr<UploadResult> Upload(std::string_view fleet_id,
+                                      std::span<const core::MemoryTrace> traces);
+
+  // Consolidates every robot's pending traces (one batch per robot).
+  // NOT_FOUND for an unknown fleet.
+  absl::StatusOr<ConsolidateResult> Consolidate(std::string_view fleet_id);
+
+  // Eq. 18 refresh for `robot_id`: 1 <= count <= max_sample_count.
+  absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
+      std::string_view fleet_id, std::string_view robot_id, size_t count);
+
+  // Nearest traces of the static memory to query.code, nearest first.
+  absl::StatusOr<std::vector<PlaceMatch>> QueryPlace(
+      std::string_view fleet_id, const PlaceQuery& query) const;
+
+  // NOT_FOUND for an unknown fleet.
+  absl::StatusOr<FleetStats> GetStats(std::string_view fleet_id) const;
+
+  // Up to max_events_per_read events with id > after_event (any valid fleet
+  // id; an unknown fleet has none yet).
+  absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
+      std::string_view fleet_id, uint64_t after_event) const;
+
+  // Calls `listener` (outside locks, on the mutating thread) after new events
+  // of `fleet_id` are durable, with the id of the newest. Returns a handle
+  // for Unsubscribe. Listeners must be quick and must not call Unsubscribe.
+  using EventListener = std::function<void(uint64_t last_event_id)>;
+  uint64_t Subscribe(std::string_view fleet_id, EventListener listener);
+  void Unsubscribe(uint64_t handle);
+
+  std::vector<std::string> ListFleets() const;
+
+ private:
+  struct Fleet;
+  MemoryEngine(EngineOptions options, MemoryStore* store,
+               PlaceIndexFactory index_factory, EngineHooks hooks);
+
+  EngineOptions options_;
+  MemoryStore* store_;
+  PlaceIndexFactory index_factory_;
+  EngineHooks hooks_;
+
+  mutable absl::Mutex fleets_mu_;
+  absl::flat_hash_map<std::string, std::unique_ptr<Fleet>> fleets_
+      ABSL_GUARDED_BY(fleets_mu_);
+
+  absl::Mutex listeners_mu_;
+  struct Listener {
+    std::string fleet_id;
+    EventListener callback;
+  };
+  absl::flat_hash_map<uint64_t, Listener> listeners_
+      ABSL_GUARDED_BY(listeners_mu_);
+  uint64_t next_listener_ = 1 ABSL_GUARDED_BY(listeners_mu_);
+};
+
+}  // namespace fleetmem::engine
+
+#endif  // FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_H_

@@ -1,0 +1,951 @@
+#include "services/engine/memory_engine.h"
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <map>
+#include <memory>
+#include <random>
+#include <string>
+#include <thread>
+#include <utility>
+#include <vector>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/container/flat_hash_set.h"
+#include "absl/status/status.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "services/index/exact_index.h"
+#include "services/storage/in_memory_store.h"
+
+namespace fleetmem::engine {
+namespace {
+
+using ::testing::ElementsAre;
+using ::testing::HasSubstr;
+using ::testing::IsEmpty;
+using ::testing::SizeIs;
+
+constexpr size_t kDimension = 8;
+
+// Options small enough that a few uploads exercise every path.
+EngineOptions SmallOptions() {
+  EngineOptions options;
+  options.memory.clusters_per_batch = 4;
+  options.memory.max_traces_per_cluster = 3;
+  options.memory.max_clusters = 5;
+  options.segment_size = 20;
+  options.max_traces_per_upload = 50;
+  options.max_sample_count = 100;
+  options.max_query_k = 200;
+  options.max_events_per_read = 1000;
+  return options;
+}
+
+PlaceIndexFactory ExactFactory() {
+  return [](size_t dimension) { return index::NewExactIndex(dimension); };
+}
+
+// A trace with a random code whose place lies on the x axis at 5 m * seq.
+core::MemoryTrace MakeTrace(std::string robot_id, uint64_t seq,
+                            std::mt19937_64& rng, float reward = 1.0f,
+                            size_t dimension = kDimension) {
+  std::normal_distribution<float> normal;
+  core::MemoryTrace trace;
+  trace.robot_id = std::move(robot_id);
+  trace.seq = seq;
+  trace.domain = seq % 2 == 0 ? "summer" : "winter";
+  trace.code.resize(dimension);
+  for (float& value : trace.code) value = normal(rng);
+  trace.place = core::Place{5.0 * static_cast<double>(seq), 0.0, 0.0, 0.0};
+  trace.reward = reward;
+  trace.timestamp_ns = static_cast<int64_t>(seq) * 1000;
+  trace.encoder_version = "v1";
+  return trace;
+}
+
+std::vector<core::MemoryTrace> MakeTraces(const std::string& robot_id,
+                                          uint64_t first_seq, size_t count,
+                                          std::mt19937_64& rng) {
+  std::vector<core::MemoryTrace> traces;
+  for (size_t i = 0; i < count; ++i) {
+    traces.push_back(MakeTrace(robot_id, first_seq + i, rng));
+  }
+  return traces;
+}
+
+// Every trace of the static memory (QueryPlace with the largest k).
+std::vector<core::MemoryTrace> AllTraces(const MemoryEngine& engine,
+                                         std::string_view fleet_id,
+                                         size_t max_k) {
+  PlaceQuery query;
+  query.code.assign(kDimension, 1.0f);
+  query.k = max_k;
+  absl::StatusOr<std::vector<PlaceMatch>> matches =
+      engine.QueryPlace(fleet_id, query);
+  EXPECT_TRUE(matches.ok()) << matches.status();
+  std::vector<core::MemoryTrace> traces;
+  if (!matches.ok()) return traces;
+  for (PlaceMatch& match : *matches) traces.push_back(std::move(match.trace));
+  return traces;
+}
+
+// A store that forwards to another and fails Apply while `fail` is set.
+class FlakyStore : public MemoryStore {
+ public:
+  explicit FlakyStore(MemoryStore* inner) : inner_(inner) {}
+  absl::StatusOr<std::vector<std::string>> ListFleets() override {
+    return inner_->ListFleets();
+  }
+  absl::StatusOr<FleetRecord> LoadFleet(std::string_view fleet_id) override {
+    return inner_->LoadFleet(fleet_id);
+  }
+  absl::Status Apply(std::string_view fleet_id,
+                     const FleetMutation& mutation) override {
+    ++applies;
+    if (fail_after >= 0 && applies > fail_after) {
+      return absl::InternalError("disk on fire");
+    }
+    return inner_->Apply(fleet_id, mutation);
+  }
+  absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
+      std::string_view fleet_id, uint64_t after_event, size_t limit) override {
+    return inner_->ReadEvents(fleet_id, after_event, limit);
+  }
+
+  int applies = 0;
+  int fail_after = -1;  // Apply calls that succeed before failures; -1: never
+
+ private:
+  MemoryStore* inner_;
+};
+
+class MemoryEngineTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    store_ = storage::NewInMemoryStore();
+    options_ = SmallOptions();
+    options_.now_ns = [this] { return ++clock_ns_; };
+    engine_ = OpenEngine();
+  }
+
+  std::unique_ptr<MemoryEngine> OpenEngine(EngineHooks hooks = {}) {
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
+        MemoryEngine::Open(options_, store_.get(), ExactFactory(), hooks);
+    EXPECT_TRUE(engine.ok()) << engine.status();
+    return engine.ok() ? *std::move(engine) : nullptr;
+  }
+
+  FleetStats Stats(std::string_view fleet_id = "f1") {
+    absl::StatusOr<FleetStats> stats = engine_->GetStats(fleet_id);
+    EXPECT_TRUE(stats.ok()) << stats.status();
+    return stats.ok() ? *stats : FleetStats{};
+  }
+
+  UploadResult MustUpload(std::span<const core::MemoryTrace> traces,
+                          std::string_view fleet_id = "f1") {
+    absl::StatusOr<UploadResult> result = engine_->Upload(fleet_id, traces);
+    EXPECT_TRUE(result.ok()) << result.status();
+    return result.ok() ? *result : UploadResult{};
+  }
+
+  std::mt19937_64 rng_{7};
+  int64_t clock_ns_ = 1000;
+  EngineOptions options_;
+  std::unique_ptr<MemoryStore> store_;
+  std::unique_ptr<MemoryEngine> engine_;
+};
+
+const RobotStats* FindRobot(const FleetStats& stats, std::string_view robot) {
+  for (const RobotStats& entry : stats.robots) {
+    if (entry.robot_id == robot) return &entry;
+  }
+  return nullptr;
+}
+
+// Compares every field of two stats.
+void ExpectSameStats(const FleetStats& a, const FleetStats& b) {
+  EXPECT_EQ(a.traces, b.traces);
+  EXPECT_EQ(a.pending_traces, b.pending_traces);
+  EXPECT_EQ(a.clusters, b.clusters);
+  EXPECT_EQ(a.code_dimension, b.code_dimension);
+  EXPECT_EQ(a.encoder_version, b.encoder_version);
+  EXPECT_EQ(a.last_event_id, b.last_event_id);
+  EXPECT_EQ(a.consolidations, b.consolidations);
+  EXPECT_EQ(a.clusters_forgotten, b.clusters_forgotten);
+  EXPECT_EQ(a.max_clusters, b.max_clusters);
+  EXPECT_EQ(a.max_traces_per_cluster, b.max_traces_per_cluster);
+  ASSERT_EQ(a.robots.size(), b.robots.size());
+  for (size_t i = 0; i < a.robots.size(); ++i) {
+    EXPECT_EQ(a.robots[i].robot_id, b.robots[i].robot_id);
+    EXPECT_EQ(a.robots[i].traces, b.robots[i].traces);
+    EXPECT_EQ(a.robots[i].pending_traces, b.robots[i].pending_traces);
+    EXPECT_EQ(a.robots[i].max_seq, b.robots[i].max_seq);
+    EXPECT_EQ(a.robots[i].received, b.robots[i].received);
+    EXPECT_EQ(a.robots[i].replayed, b.robots[i].replayed);
+  }
+  ASSERT_EQ(a.domains.size(), b.domains.size());
+  for (size_t i = 0; i < a.domains.size(); ++i) {
+    EXPECT_EQ(a.domains[i].domain, b.domains[i].domain);
+    EXPECT_EQ(a.domains[i].traces, b.domains[i].traces);
+    EXPECT_EQ(a.domains[i].pending_traces, b.domains[i].pending_traces);
+  }
+}
+
+TEST(ValidateEngineOptionsTest, RejectsZeroLimitsAndBadMemoryOptions) {
+  EXPECT_TRUE(ValidateEngineOptions(EngineOptions{}).ok());
+  EngineOptions options;
+  options.segment_size = 0;
+  EXPECT_EQ(ValidateEngineOptions(options).code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(ValidateEngineOptions(options).message(),
+              HasSubstr("segment_size"));
+  options = EngineOptions{};
+  options.max_query_k = 0;
+  EXPECT_EQ(ValidateEngineOptions(options).code(),
+            absl::StatusCode::kInvalidArgument);
+  options = EngineOptions{};
+  options.memory.max_clusters = 0;
+  EXPECT_EQ(ValidateEngineOptions(options).code(),
+            absl::StatusCode::kInvalidArgument);
+
+  std::unique_ptr<MemoryStore> store = storage::NewInMemoryStore();
+  options = EngineOptions{};
+  options.max_events_per_read = 0;
+  EXPECT_EQ(
+      MemoryEngine::Open(options, store.get(), ExactFactory()).status().code(),
+      absl::StatusCode::kInvalidArgument);
+}
+
+TEST(FleetMutationTest, EmptyOnlyWithoutChanges) {
+  FleetMutation mutation;
+  EXPECT_TRUE(mutation.empty());
+  mutation.put_meta = true;
+  EXPECT_FALSE(mutation.empty());
+  mutation = FleetMutation{};
+  mutation.erase_clusters.push_back(3);
+  EXPECT_FALSE(mutation.empty());
+  mutation = FleetMutation{};
+  mutation.append_events.emplace_back();
+  EXPECT_FALSE(mutation.empty());
+}
+
+TEST_F(MemoryEngineTest, UploadKeepsTracesPendingUntilSegmentIsFull) {
+  std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 10, rng_);
+  UploadResult result = MustUpload(traces);
+  EXPECT_EQ(result.accepted, 10u);
+  EXPECT_EQ(result.duplicates, 0u);
+  EXPECT_EQ(result.consolidations, 0u);
+
+  FleetStats stats = Stats();
+  EXPECT_EQ(stats.pending_traces, 10u);
+  EXPECT_EQ(stats.traces, 0u);
+  EXPECT_EQ(stats.clusters, 0u);
+  EXPECT_EQ(stats.code_dimension, kDimension);
+  EXPECT_EQ(stats.encoder_version, "v1");
+  EXPECT_EQ(stats.last_event_id, 0u);
+  EXPECT_EQ(stats.max_clusters, 5u);
+  EXPECT_EQ(stats.max_traces_per_cluster, 3u);
+  ASSERT_THAT(stats.robots, SizeIs(1));
+  EXPECT_EQ(stats.robots[0].robot_id, "r1");
+  EXPECT_EQ(stats.robots[0].pending_traces, 10u);
+  EXPECT_EQ(stats.robots[0].received, 10u);
+  EXPECT_EQ(stats.robots[0].max_seq, 10u);
+  ASSERT_THAT(stats.domains, SizeIs(2));
+  EXPECT_EQ(stats.domains[0].domain, "summer");
+  EXPECT_EQ(stats.domains[0].pending_traces, 5u);
+  EXPECT_EQ(stats.domains[1].domain, "winter");
+  EXPECT_EQ(stats.domains[1].pending_traces, 5u);
+  EXPECT_THAT(engine_->ListFleets(), ElementsAre("f1"));
+}
+
+TEST_F(MemoryEngineTest, ConsolidatesAutomaticallyAtSegmentSize) {
+  MustUpload(MakeTraces("r1", 1, 15, rng_));
+  MustUpload(MakeTraces("r2", 1, 5, rng_));
+  UploadResult result = MustUpload(MakeTraces("r1", 16, 5, rng_));
+  EXPECT_EQ(result.accepted, 5u);
+  EXPECT_EQ(result.consolidations, 1u);
+
+  FleetStats stats = Stats();
+  EXPECT_EQ(stats.consolidations, 1u);
+  EXPECT_EQ(stats.pending_traces, 5u);  // r2 is below the segment size
+  EXPECT_EQ(stats.clusters, 4u);        // K = 4
+  EXPECT_GT(stats.traces, 0u);
+  EXPECT_LE(stats.traces, 4u * 3u);  // N_max = 3
+  EXPECT_EQ(stats.last_event_id, 4u);
+  const RobotStats* r1 = FindRobot(stats, "r1");
+  ASSERT_NE(r1, nullptr);
+  EXPECT_EQ(r1->pending_traces, 0u);
+  EXPECT_EQ(r1->traces, stats.traces);
+  EXPECT_EQ(r1->received, 20u);
+  const RobotStats* r2 = FindRobot(stats, "r2");
+  ASSERT_NE(r2, nullptr);
+  EXPECT_EQ(r2->pending_traces, 5u);
+
+  for (const core::MemoryTrace& trace : AllTraces(*engine_, "f1", 200)) {
+    EXPECT_NE(trace.cluster_id, 0u);
+    EXPECT_EQ(trace.robot_id, "r1");
+  }
+}
+
+TEST_F(MemoryEngineTest, ConsolidateTakesEveryRobotsPendingTraces) {
+  MustUpload(MakeTraces("r1", 1, 6, rng_));
+  MustUpload(MakeTraces("r2", 1, 2, rng_));
+  absl::StatusOr<ConsolidateResult> result = engine_->Consolidate("f1");
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->consolidated_traces, 8u);
+  EXPECT_EQ(result->clusters_added, 4u + 2u);  // min(K, batch) per robot
+  EXPECT_EQ(result->clusters_forgotten, 1u);   // 6 > K_max = 5
+  EXPECT_EQ(result->clusters, 5u);
+  // 6 traces in 4 clusters and 2 in 2 never exceed N_max = 3.
+  EXPECT_EQ(result->downsampled_traces, 0u);
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("f1", 0);
+  ASSERT_TRUE(events.ok());
+  uint64_t forgotten_traces = 0;
+  for (const core::MemoryEvent& event : *events) {
+    if (event.type == core::EventType::kClusterForgotten) {
+      forgotten_traces += event.trace_count;
+    }
+  }
+  EXPECT_GE(forgotten_traces, 1u);
+  EXPECT_EQ(result->traces, 8u - forgotten_traces);
+
+  FleetStats stats = Stats();
+  EXPECT_EQ(stats.pending_traces, 0u);
+  EXPECT_EQ(stats.consolidations, 2u);  // one batch per robot
+  EXPECT_EQ(stats.clusters, result->clusters);
+  EXPECT_EQ(stats.traces, result->traces);
+  EXPECT_EQ(stats.clusters_forgotten, 1u);
+  EXPECT_EQ(stats.last_event_id, 6u + 1u);
+
+  // Nothing pending: a second call changes nothing.
+  absl::StatusOr<ConsolidateResult> again = engine_->Consolidate("f1");
+  ASSERT_TRUE(again.ok());
+  EXPECT_EQ(again->consolidated_traces, 0u);
+  EXPECT_EQ(again->clusters, 5u);
+  EXPECT_EQ(Stats().consolidations, 2u);
+}
+
+TEST_F(MemoryEngineTest, UnknownFleetIsNotFound) {
+  const std::string expected =
+      "fleet \"nope\" does not exist (it is created by its first upload)";
+  EXPECT_EQ(engine_->Consolidate("nope").status(),
+            absl::NotFoundError(expected));
+  EXPECT_EQ(engine_->GetStats("nope").status(), absl::NotFoundError(expected));
+  EXPECT_EQ(engine_->SampleReplay("nope", "r1", 1).status(),
+            absl::NotFoundError(expected));
+  PlaceQuery query;
+  query.code.assign(kDimension, 1.0f);
+  EXPECT_EQ(engine_->QueryPlace("nope", query).status(),
+            absl::NotFoundError(expected));
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("nope", 0);
+  ASSERT_TRUE(events.ok());
+  EXPECT_THAT(*events, IsEmpty());
+  EXPECT_EQ(engine_->ReadEvents("bad fleet", 0).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(engine_->ListFleets(), IsEmpty());
+}
+
+TEST_F(MemoryEngineTest, DuplicatesAreCountedAndStoredOnce) {
+  std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 5, rng_);
+  MustUpload(traces);
+  // A retry of the same upload.
+  UploadResult retry = MustUpload(traces);
+  EXPECT_EQ(retry.accepted, 0u);
+  EXPECT_EQ(retry.duplicates, 5u);
+  // Repeats inside one upload: the second copy of seq 7 is a duplicate, and
+  // so is the already received seq 3.
+  std::vector<core::MemoryTrace> batch = {
+      MakeTrace("r1", 6, rng_), MakeTrace("r1", 7, rng_),
+      MakeTrace("r1", 7, rng_), MakeTrace("r1", 3, rng_),
+      MakeTrace("r2", 7, rng_)};
+  UploadResult mixed = MustUpload(batch);
+  EXPECT_EQ(mixed.accepted, 3u);
+  EXPECT_EQ(mixed.duplicates, 2u);
+
+  FleetStats stats = Stats();
+  EXPECT_EQ(stats.pending_traces, 8u);
+  const RobotStats* r1 = FindRobot(stats, "r1");
+  ASSERT_NE(r1, nullptr);
+  EXPECT_EQ(r1->received, 7u);
+  EXPECT_EQ(r1->pending_traces, 7u);
+  EXPECT_EQ(r1->max_seq, 7u);
+
+  // Duplicates stay duplicates after consolidation.
+  ASSERT_TRUE(engine_->Consolidate("f1").ok());
+  UploadResult after = MustUpload(traces);
+  EXPECT_EQ(after.duplicates, 5u);
+  EXPECT_EQ(Stats().pending_traces, 0u);
+}
+
+TEST_F(MemoryEngineTest, BadInputIsRejectedAndChangesNothing) {
+  MustUpload(MakeTraces("r1", 1, 5, rng_));
+  const FleetStats before = Stats();
+
+  struct Case {
+    std::string name;
+    std::string fleet_id;
+    std::function<void(std::vector<core::MemoryTrace>&)> spoil;
+    std::string message;
+  };
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  const std::vector<Case> cases = {
+      {"dimension", "f1",
+       [](auto& t) { t[2].code.resize(kDimension * 2, 0.5f); },
+       "traces[2].code has dimension 16 but fleet \"f1\" uses 8"},
+      {"nan code", "f1", [&](auto& t) { t[2].code[1] = nan; }, "traces[2]"},
+      {"inf place", "f1", [&](auto& t) { t[2].place.y = inf; }, "traces[2]"},
+      {"inf reward", "f1", [&](auto& t) { t[2].reward = inf; }, "traces[2]"},
+      {"negative reward", "f1", [](auto& t) { t[2].reward = -1.0f; },
+       "traces[2]"},
+      {"empty robot id", "f1", [](auto& t) { t[2].robot_id.clear(); },
+       "traces[2].robot_id"},
+      {"empty fleet id", "", [](auto&) {}, "fleet_id"},
+      {"bad fleet id", "f 1", [](auto&) {}, "fleet_id"},
+      {"encoder", "f1", [](auto& t) { t[2].encoder_version = "v2"; },
+       "traces[2].encoder_version \"v2\" differs from fleet \"f1\"'s \"v1\""},
+      {"oversized", "f1",
+       [&](auto& t) {
+         std::vector<core::MemoryTrace> more = MakeTraces("r3", 100, 51, rng_);
+         t = std::move(more);
+       },
+       "at most 50"},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    std::vector<core::MemoryTrace> traces = MakeTraces("r2", 1, 4, rng_);
+    c.spoil(traces);
+    absl::StatusOr<UploadResult> result = engine_->Upload(c.fleet_id, traces);
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(result.status().message(), HasSubstr(c.message));
+    ExpectSameStats(Stats(), before);
+  }
+  EXPECT_THAT(engine_->ListFleets(), ElementsAre("f1"));
+}
+
+TEST_F(MemoryEngineTest, NewFleetNeedsOneShapeInItsFirstUpload) {
+  std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 4, rng_);
+  traces[3].code.push_back(1.0f);
+  absl::StatusOr<UploadResult> result = engine_->Upload("f2", traces);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              HasSubstr("traces[3].code has dimension 9 but traces[0]"));
+
+  traces = MakeTraces("r1", 1, 4, rng_);
+  traces[1].encoder_version = "v9";
+  result = engine_->Upload("f2", traces);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              HasSubstr("traces[1].encoder_version"));
+
+  EXPECT_EQ(engine_->GetStats("f2").status().code(),
+            absl::StatusCode::kNotFound);
+  EXPECT_THAT(engine_->ListFleets(), IsEmpty());
+
+  // An empty first upload creates nothing either.
+  result = engine_->Upload("f2", {});
+  ASSERT_TRUE(result.ok());
+  EXPECT_EQ(result->accepted, 0u);
+  EXPECT_THAT(engine_->ListFleets(), IsEmpty());
+}
+
+TEST_F(MemoryEngineTest, MemoryStaysWithinBoundsOverManySegments) {
+  for (int segment = 0; segment < 12; ++segment) {
+    const std::string robot = "r" + std::to_string(segment % 3);
+    MustUpload(MakeTraces(robot, 1 + 20 * (segment / 3), 20, rng_));
+    FleetStats stats = Stats();
+    EXPECT_LE(stats.clusters, 5u);
+    EXPECT_LE(stats.traces, 5u * 3u);
+  }
+  FleetStats stats = Stats();
+  EXPECT_EQ(stats.consolidations, 12u);
+  EXPECT_EQ(stats.clusters, 5u);
+  EXPECT_EQ(stats.clusters_forgotten, 12u * 4u - 5u);
+  EXPECT_EQ(stats.pending_traces, 0u);
+  EXPECT_EQ(stats.last_event_id, 12u * 4u + stats.clusters_forgotten);
+
+  std::map<uint64_t, int> per_cluster;
+  std::vector<core::MemoryTrace> traces = AllTraces(*engine_, "f1", 200);
+  EXPECT_EQ(traces.size(), stats.traces);
+  for (const core::MemoryTrace& trace : traces) ++per_cluster[trace.cluster_id];
+  EXPECT_EQ(per_cluster.size(), stats.clusters);
+  for (const auto& [cluster_id, count] : per_cluster) EXPECT_LE(count, 3);
+}
+
+class ReplayTest : public MemoryEngineTest {
+ protected:
+  void SetUp() override {
+    store_ = storage::NewInMemoryStore();
+    options_ = SmallOptions();
+    // Keep every trace (no downsampling, no forgetting) and no time decay,
+    // so the weights are exactly the rewards.
+    options_.memory.clusters_per_batch = 2;
+    options_.memory.max_traces_per_cluster = 100;
+    options_.memory.max_clusters = 100;
+    options_.memory.replay_decay = 1.0;
+    engine_ = OpenEngine();
+    std::vector<core::MemoryTrace> traces;
+    for (uint64_t seq = 1; seq <= 20; ++seq) {
+      traces.push_back(MakeTrace("r1", seq, rng_, seq <= 10 ? 1.0f : 0.1f));
+    }
+    MustUpload(traces);
+    EXPECT_EQ(Stats().traces, 20u);
+  }
+};
+
+TEST_F(ReplayTest, FavoursHighRewards) {
+  constexpr int kDraws = 2000;
+  int high = 0;
+  for (int i = 0; i < kDraws; ++i) {
+    absl::StatusOr<std::vector<core::MemoryTrace>> drawn =
+        engine_->SampleReplay("f1", "r1", 1);
+    ASSERT_TRUE(drawn.ok()) << drawn.status();
+    ASSERT_THAT(*drawn, SizeIs(1));
+    if ((*drawn)[0].reward > 0.5f) ++high;
+  }
+  // P(high) = 10 / (10 + 10 * 0.1) = 0.91; uniform sampling would give 0.5.
+  EXPECT_GT(high, kDraws * 8 / 10);
+  EXPECT_LT(high, kDraws * 97 / 100);
+  EXPECT_EQ(FindRobot(Stats(), "r1")->replayed, static_cast<uint64_t>(kDraws));
+}
+
+TEST_F(ReplayTest, IncrementsReplayCountsDurably) {
+  absl::StatusOr<std::vector<core::MemoryTrace>> first =
+      engine_->SampleReplay("f1", "r1", 100);
+  ASSERT_TRUE(first.ok()) << first.status();
+  ASSERT_THAT(*first, SizeIs(20));  // fewer held than asked for
+  absl::flat_hash_set<uint64_t> seqs;
+  for (const core::MemoryTrace& trace : *first) {
+    EXPECT_EQ(trace.replay_count, 1u);
+    seqs.insert(trace.seq);
+  }
+  EXPECT_EQ(seqs.size(), 20u);  // without replacement
+
+  absl::StatusOr<std::vector<core::MemoryTrace>> second =
+      engine_->SampleReplay("f1", "peer", 20);
+  ASSERT_TRUE(second.ok());
+  for (const core::MemoryTrace& trace : *second) {
+    EXPECT_EQ(trace.replay_count, 2u);
+  }
+  for (const core::MemoryTrace& trace : AllTraces(*engine_, "f1", 200)) {
+    EXPECT_EQ(trace.replay_count, 2u);
+  }
+  FleetStats stats = Stats();
+  EXPECT_EQ(FindRobot(stats, "r1")->replayed, 20u);
+  // A robot that never uploaded gets a record.
+  const RobotStats* peer = FindRobot(stats, "peer");
+  ASSERT_NE(peer, nullptr);
+  EXPECT_EQ(peer->replayed, 20u);
+  EXPECT_EQ(peer->received, 0u);
+
+  // Durable: a new engine over the same store sees the counts.
+  engine_ = OpenEngine();
+  for (const core::MemoryTrace& trace : AllTraces(*engine_, "f1", 200)) {
+    EXPECT_EQ(trace.replay_count, 2u);
+  }
+  ExpectSameStats(Stats(), stats);
+}
+
+TEST_F(ReplayTest, RejectsBadCounts) {
+  EXPECT_EQ(engine_->SampleReplay("f1", "r1", 0).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(engine_->SampleReplay("f1", "r1", 101).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(engine_->SampleReplay("f1", "", 1).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(FindRobot(Stats(), "r1")->replayed, 0u);
+}
+
+TEST_F(ReplayTest, StoredCodeFindsItselfFirst) {
+  std::vector<core::MemoryTrace> traces = AllTraces(*engine_, "f1", 200);
+  ASSERT_THAT(traces, SizeIs(20));
+  for (const core::MemoryTrace& trace : traces) {
+    PlaceQuery query;
+    // Scaled: distances are between normalised codes.
+    for (float value : trace.code) query.code.push_back(3.0f * value);
+    query.k = 3;
+    absl::StatusOr<std::vector<PlaceMatch>> matches =
+        engine_->QueryPlace("f1", query);
+    ASSERT_TRUE(matches.ok()) << matches.status();
+    ASSERT_THAT(*matches, SizeIs(3));
+    EXPECT_EQ((*matches)[0].trace.key(), trace.key());
+    EXPECT_NEAR((*matches)[0].distance, 0.0f, 1e-3f);
+    EXPECT_EQ((*matches)[0].trace.code, trace.code);
+    EXPECT_LE((*matches)[0].distance, (*matches)[1].distance);
+    EXPECT_LE((*matches)[1].distance, (*matches)[2].distance);
+    EXPECT_LE((*matches)[2].distance, 2.0f);
+  }
+}
+
+TEST_F(ReplayTest, QueryRejectsBadInput) {
+  PlaceQuery query;
+  query.code.assign(kDimension + 1, 1.0f);
+  absl::StatusOr<std::vector<PlaceMatch>> matches =
+      engine_->QueryPlace("f1", query);
+  EXPECT_EQ(matches.status(),
+            absl::InvalidArgumentError(
+                "code has dimension 9 but fleet \"f1\" uses 8"));
+  query.code.assign(kDimension, 1.0f);
+  query.code[0] = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_EQ(engine_->QueryPlace("f1", query).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  query.code.assign(kDimension, 1.0f);
+  query.k = 201;
+  EXPECT_EQ(engine_->QueryPlace("f1", query).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  query.k = 0;  // means 1
+  matches = engine_->QueryPlace("f1", query);
+  ASSERT_TRUE(matches.ok());
+  EXPECT_THAT(*matches, SizeIs(1));
+}
+
+TEST_F(ReplayTest, PositionPriorKeepsOnlyNearbyTraces) {
+  // Places are at x = 5 * seq. Query with the code of seq 1 but a prior
+  // around seq 10 (x = 50) with 12 m radius: seqs 8..12 qualify.
+  std::vector<core::MemoryTrace> traces = AllTraces(*engine_, "f1", 200);
+  const core::MemoryTrace* first = nullptr;
+  for (const core::MemoryTrace& trace : traces) {
+    if (trace.seq == 1) first = &trace;
+  }
+  ASSERT_NE(first, nullptr);
+  PlaceQuery query;
+  query.code = first->code;
+  query.k = 20;
+  query.near = core::Place{50.0, 0.0, 0.0, 0.0};
+  query.radius_m = 12.0;
+  absl::StatusOr<std::vector<PlaceMatch>> matches =
+      engine_->QueryPlace("f1", query);
+  ASSERT_TRUE(matches.ok()) << matches.status();
+  std::vector<uint64_t> seqs;
+  for (const PlaceMatch& match : *matches) seqs.push_back(match.trace.seq);
+  std::sort(seqs.begin(), seqs.end());
+  EXPECT_THAT(seqs, ElementsAre(8, 9, 10, 11, 12));
+
+  // Without the prior the trace finds itself.
+  query.radius_m = 0.0;
+  matches = engine_->QueryPlace("f1", query);
+  ASSERT_TRUE(matches.ok());
+  EXPECT_EQ((*matches)[0].trace.seq, 1u);
+}
+
+TEST_F(MemoryEngineTest, EventsHaveIncreasingIdsAndResumeAfterCursor) {
+  for (int segment = 0; segment < 3; ++segment) {
+    MustUpload(MakeTraces("r1", 1 + 20 * segment, 20, rng_));
+  }
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("f1", 0);
+  ASSERT_TRUE(events.ok()) << events.status();
+  const FleetStats stats = Stats();
+  ASSERT_EQ(events->size(), stats.last_event_id);
+  int added = 0;
+  int forgotten = 0;
+  for (size_t i = 0; i < events->size(); ++i) {
+    const core::MemoryEvent& event = (*events)[i];
+    EXPECT_EQ(event.id, i + 1);
+    if (i > 0) {
+      EXPECT_GE(event.timestamp_ns, (*events)[i - 1].timestamp_ns);
+    }
+    EXPECT_GT(event.timestamp_ns, 1000);  // from the injected clock
+    EXPECT_NE(event.cluster_id, 0u);
+    EXPECT_EQ(event.robot_id, "r1");
+    if (event.type == core::EventType::kClusterAdded) {
+      ++added;
+      EXPECT_GE(event.trace_count, 1u);
+      EXPECT_LE(event.trace_count, 3u);
+    } else {
+      ++forgotten;
+    }
+  }
+  EXPECT_EQ(added, 12);
+  EXPECT_EQ(forgotten, 7);
+  EXPECT_EQ(static_cast<uint64_t>(forgotten), stats.clusters_forgotten);
+
+  absl::StatusOr<std::vector<core::MemoryEvent>> rest =
+      engine_->ReadEvents("f1", 5);
+  ASSERT_TRUE(rest.ok());
+  ASSERT_EQ(rest->size(), events->size() - 5);
+  EXPECT_EQ(rest->front().id, 6u);
+  EXPECT_EQ(rest->back().id, stats.last_event_id);
+  rest = engine_->ReadEvents("f1", stats.last_event_id);
+  ASSERT_TRUE(rest.ok());
+  EXPECT_THAT(*rest, IsEmpty());
+}
+
+TEST_F(MemoryEngineTest, ReadEventsReturnsAtMostMaxEventsPerRead) {
+  options_.max_events_per_read = 3;
+  engine_ = OpenEngine();
+  MustUpload(MakeTraces("r1", 1, 20, rng_));
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("f1", 0);
+  ASSERT_TRUE(events.ok());
+  ASSERT_THAT(*events, SizeIs(3));
+  events = engine_->ReadEvents("f1", events->back().id);
+  ASSERT_TRUE(events.ok());
+  ASSERT_THAT(*events, SizeIs(1));
+  EXPECT_EQ((*events)[0].id, 4u);
+}
+
+TEST_F(MemoryEngineTest, ReopeningRestoresTheSameMemory) {
+  for (int segment = 0; segment < 6; ++segment) {
+    const std::string robot = segment % 2 == 0 ? "r1" : "r2";
+    MustUpload(MakeTraces(robot, 1 + 20 * (segment / 2), 20, rng_));
+  }
+  MustUpload(MakeTraces("r3", 1, 7, rng_));  // stays pending
+  MustUpload(MakeTraces("r3", 1, 7, rng_), "f2");
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r1", 6).ok());
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r9", 4).ok());
+
+  const FleetStats stats = Stats();
+  std::vector<core::MemoryTrace> traces = AllTraces(*engine_, "f1", 200);
+  std::vector<std::vector<PlaceMatch>> results;
+  for (const core::MemoryTrace& trace : traces) {
+    PlaceQuery query;
+    query.code = trace.code;
+    query.k = 4;
+    absl::StatusOr<std::vector<PlaceMatch>> matches =
+        engine_->QueryPlace("f1", query);
+    ASSERT_TRUE(matches.ok());
+    results.push_back(*std::move(matches));
+  }
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("f1", 0);
+  ASSERT_TRUE(events.ok());
+
+  engine_.reset();
+  engine_ = OpenEngine();
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_THAT(engine_->ListFleets(), ElementsAre("f1", "f2"));
+  ExpectSameStats(Stats(), stats);
+  EXPECT_EQ(Stats("f2").pending_traces, 7u);
+  for (size_t i = 0; i < traces.size(); ++i) {
+    PlaceQuery query;
+    query.code = traces[i].code;
+    query.k = 4;
+    absl::StatusOr<std::vector<PlaceMatch>> matches =
+        engine_->QueryPlace("f1", query);
+    ASSERT_TRUE(matches.ok());
+    ASSERT_EQ(matches->size(), results[i].size());
+    for (size_t j = 0; j < matches->size(); ++j) {
+      const core::MemoryTrace& a = (*matches)[j].trace;
+      const core::MemoryTrace& b = results[i][j].trace;
+      EXPECT_EQ(a.key(), b.key());
+      EXPECT_EQ(a.replay_count, b.replay_count);
+      EXPECT_EQ(a.cluster_id, b.cluster_id);
+      EXPECT_EQ(a.code, b.code);
+      EXPECT_EQ(a.domain, b.domain);
+      EXPECT_FLOAT_EQ((*matches)[j].distance, results[i][j].distance);
+    }
+  }
+  // Received sequence numbers survive: a retry is still a duplicate.
+  UploadResult retry = MustUpload(MakeTraces("r1", 1, 20, rng_));
+  EXPECT_EQ(retry.duplicates, 20u);
+  // Event ids continue where they stopped.
+  MustUpload(MakeTraces("r3", 8, 13, rng_));
+  absl::StatusOr<std::vector<core::MemoryEvent>> more =
+      engine_->ReadEvents("f1", stats.last_event_id);
+  ASSERT_TRUE(more.ok());
+  ASSERT_THAT(*more, ::testing::Not(IsEmpty()));
+  EXPECT_EQ(more->front().id, stats.last_event_id + 1);
+  EXPECT_EQ(events->size(), stats.last_event_id);
+}
+
+TEST_F(MemoryEngineTest, ListenersFireAfterEventsAreDurable) {
+  std::vector<uint64_t> f1_calls;
+  std::vector<uint64_t> f2_calls;
+  uint64_t durable_at_call = 0;
+  const uint64_t h1 = engine_->Subscribe("f1", [&](uint64_t last) {
+    f1_calls.push_back(last);
+    // Outside the fleet lock and after the events are durable.
+    absl::StatusOr<std::vector<core::MemoryEvent>> events =
+        engine_->ReadEvents("f1", 0);
+    if (events.ok() && !events->empty()) durable_at_call = events->back().id;
+  });
+  engine_->Subscribe("f2", [&](uint64_t last) { f2_calls.push_back(last); });
+
+  MustUpload(MakeTraces("r1", 1, 10, rng_));
+  EXPECT_THAT(f1_calls, IsEmpty());  // no events yet
+  MustUpload(MakeTraces("r1", 11, 10, rng_));
+  const uint64_t last = Stats().last_event_id;
+  EXPECT_THAT(f1_calls, ElementsAre(last));
+  EXPECT_EQ(durable_at_call, last);
+  EXPECT_THAT(f2_calls, IsEmpty());
+
+  engine_->Unsubscribe(h1);
+  MustUpload(MakeTraces("r1", 21, 20, rng_));
+  EXPECT_THAT(f1_calls, SizeIs(1));
+}
+
+TEST_F(MemoryEngineTest, HooksSeeUploadsConsolidationsSamplesAndQueries) {
+  int uploads = 0;
+  int consolidations = 0;
+  uint64_t consolidated_traces = 0;
+  size_t sampled = 0;
+  int queries = 0;
+  EngineHooks hooks;
+  hooks.on_upload = [&](std::string_view fleet, const UploadResult& result) {
+    EXPECT_EQ(fleet, "f1");
+    ++uploads;
+  };
+  hooks.on_consolidate = [&](std::string_view, const ConsolidateResult& result,
+                             double seconds) {
+    EXPECT_GE(seconds, 0.0);
+    ++consolidations;
+    consolidated_traces += result.consolidated_traces;
+  };
+  hooks.on_sample = [&](std::string_view, size_t count) { sampled += count; };
+  hooks.on_query = [&](std::string_view, double) { ++queries; };
+  engine_ = OpenEngine(hooks);
+  MustUpload(MakeTraces("r1", 1, 20, rng_));
+  MustUpload(MakeTraces("r2", 1, 3, rng_));
+  ASSERT_TRUE(engine_->Consolidate("f1").ok());
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r1", 2).ok());
+  AllTraces(*engine_, "f1", 10);
+  EXPECT_EQ(uploads, 2);
+  EXPECT_EQ(consolidations, 2);
+  EXPECT_EQ(consolidated_traces, 23u);
+  EXPECT_EQ(sampled, 2u);
+  EXPECT_EQ(queries, 1);
+}
+
+TEST_F(MemoryEngineTest, ServerFieldsOfUploadsAreIgnored) {
+  std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 20, rng_);
+  for (core::MemoryTrace& trace : traces) {
+    trace.replay_count = 7;
+    trace.cluster_id = 99;
+  }
+  options_.memory.max_traces_per_cluster = 100;
+  engine_ = OpenEngine();
+  MustUpload(traces);
+  std::vector<core::MemoryTrace> stored = AllTraces(*engine_, "f1", 200);
+  ASSERT_THAT(stored, SizeIs(20));
+  absl::flat_hash_set<uint64_t> clusters;
+  for (const core::MemoryTrace& trace : stored) {
+    EXPECT_EQ(trace.replay_count, 0u);
+    clusters.insert(trace.cluster_id);
+    const core::MemoryTrace& sent = traces[trace.seq - 1];
+    EXPECT_EQ(trace.code, sent.code);
+    EXPECT_EQ(trace.domain, sent.domain);
+    EXPECT_EQ(trace.place.x, sent.place.x);
+    EXPECT_EQ(trace.reward, sent.reward);
+    EXPECT_EQ(trace.timestamp_ns, sent.timestamp_ns);
+    EXPECT_EQ(trace.encoder_version, "v1");
+  }
+  EXPECT_THAT(clusters, ::testing::UnorderedElementsAre(1, 2, 3, 4));
+}
+
+TEST_F(MemoryEngineTest, ConcurrentCallsOnSeveralFleets) {
+  constexpr int kThreads = 4;
+  constexpr int kSegments = 3;
+  std::vector<std::thread> threads;
+  for (int t = 0; t < kThreads; ++t) {
+    threads.emplace_back([this, t] {
+      std::mt19937_64 rng(100 + t);
+      const std::string own = "fleet" + std::to_string(t);
+      const std::string robot = "r" + std::to_string(t);
+      for (int segment = 0; segment < kSegments; ++segment) {
+        std::vector<core::MemoryTrace> traces =
+            MakeTraces(robot, 1 + 20 * segment, 20, rng);
+        EXPECT_TRUE(engine_->Upload(own, traces).ok());
+        EXPECT_TRUE(engine_->Upload("shared", traces).ok());
+        EXPECT_TRUE(engine_->GetStats("shared").ok());
+        PlaceQuery query;
+        query.code = traces[0].code;
+        query.k = 5;
+        EXPECT_TRUE(engine_->QueryPlace(own, query).ok());
+        EXPECT_TRUE(engine_->SampleReplay("shared", robot, 3).ok());
+      }
+    });
+  }
+  for (std::thread& thread : threads) thread.join();
+  EXPECT_THAT(engine_->ListFleets(), SizeIs(kThreads + 1));
+  FleetStats shared = Stats("shared");
+  EXPECT_EQ(shared.consolidations, static_cast<uint64_t>(kThreads * kSegments));
+  EXPECT_EQ(shared.clusters, 5u);
+  EXPECT_THAT(shared.robots, SizeIs(kThreads));
+  for (const RobotStats& robot : shared.robots) {
+    EXPECT_EQ(robot.received, 20u * kSegments);
+    EXPECT_EQ(robot.replayed, 3u * kSegments);
+  }
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("shared", 0);
+  ASSERT_TRUE(events.ok());
+  ASSERT_EQ(events->size(), shared.last_event_id);
+  for (size_t i = 0; i < events->size(); ++i) {
+    EXPECT_EQ((*events)[i].id, i + 1);
+  }
+}
+
+TEST_F(MemoryEngineTest, StoreFailureDuringUploadStoresNothing) {
+  FlakyStore flaky(store_.get());
+  flaky.fail_after = 0;
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
+      MemoryEngine::Open(options_, &flaky, ExactFactory());
+  ASSERT_TRUE(engine.ok());
+  absl::StatusOr<UploadResult> result =
+      (*engine)->Upload("f1", MakeTraces("r1", 1, 5, rng_));
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInternal);
+  EXPECT_THAT((*engine)->ListFleets(), IsEmpty());
+  flaky.fail_after = -1;
+  result = (*engine)->Upload("f1", MakeTraces("r1", 1, 5, rng_));
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->accepted, 5u);
+}
+
+TEST_F(MemoryEngineTest, StoreFailureDuringConsolidationKeepsTheUpload) {
+  FlakyStore flaky(store_.get());
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options_, &flaky, ExactFactory());
+  ASSERT_TRUE(opened.ok());
+  MemoryEngine& engine = **opened;
+  std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 20, rng_);
+  // The upload's own mutation succeeds, the consolidation's fails.
+  flaky.fail_after = flaky.applies + 1;
+  absl::StatusOr<UploadResult> result = engine.Upload("f1", traces);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInternal);
+
+  // Memory was reloaded from the store: all 20 traces pending, none lost.
+  absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_EQ(stats->pending_traces, 20u);
+  EXPECT_EQ(stats->traces, 0u);
+  EXPECT_EQ(stats->clusters, 0u);
+  EXPECT_EQ(stats->last_event_id, 0u);
+
+  // A retry finds duplicates; Consolidate then succeeds.
+  flaky.fail_after = -1;
+  result = engine.Upload("f1", traces);
+  ASSERT_TRUE(result.ok());
+  EXPECT_EQ(result->duplicates, 20u);
+  ASSERT_TRUE(engine.Consolidate("f1").ok());
+  stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(stats->pending_traces, 0u);
+  EXPECT_EQ(stats->clusters, 4u);
+  EXPECT_EQ(stats->last_event_id, 4u);
+}
+
+TEST_F(MemoryEngineTest, StoreFailureDuringReplayKeepsCounts) {
+  FlakyStore flaky(store_.get());
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options_, &flaky, ExactFactory());
+  ASSERT_TRUE(opened.ok());
+  MemoryEngine& engine = **opened;
+  ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", 1, 20, rng_)).ok());
+  flaky.fail_after = flaky.applies;
+  EXPECT_EQ(engine.SampleReplay("f1", "r1", 5).status().code(),
+            absl::StatusCode::kInternal);
+  flaky.fail_after = -1;
+  for (const core::MemoryTrace& trace : AllTraces(engine, "f1", 200)) {
+    EXPECT_EQ(trace.replay_count, 0u);
+  }
+  absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(FindRobot(*stats, "r1")->replayed, 0u);
+}
+
+}  // namespace
+}  // namespace fleetmem::engine

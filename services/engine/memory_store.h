@@ -1,0 +1,99 @@
+// The storage port of the engine: where a fleet's static memory, pending
+// traces, received sequence numbers and events live durably. Implementations:
+// services/storage (RocksDB; in-memory for tests).
+#ifndef FLEETMEM_SERVICES_ENGINE_MEMORY_STORE_H_
+#define FLEETMEM_SERVICES_ENGINE_MEMORY_STORE_H_
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "services/core/seq_set.h"
+#include "services/core/types.h"
+
+namespace fleetmem::engine {
+
+// Per-fleet facts that are not traces, clusters or events.
+struct FleetMeta {
+  uint32_t code_dimension = 0;  // fixed by the first upload
+  std::string encoder_version;  // fixed by the first upload
+  uint64_t next_cluster_id = 1;
+  uint64_t next_event_id = 1;
+  uint64_t consolidations = 0;
+  uint64_t clusters_forgotten = 0;
+};
+
+// Counters kept per robot (stats), persisted with the robot's SeqSet.
+struct RobotRecord {
+  std::string robot_id;
+  core::SeqSet received;  // every seq ever accepted from the robot
+  uint64_t replayed = 0;  // traces handed to this robot by SampleReplay
+};
+
+// Everything stored for one fleet, as loaded at start-up.
+struct FleetRecord {
+  std::string fleet_id;
+  FleetMeta meta;
+  std::vector<core::MemoryTrace> pending;  // awaiting consolidation
+  std::vector<core::Cluster> clusters;     // with their traces, by id
+  std::vector<RobotRecord> robots;
+};
+
+// One atomic change of a fleet. Applied in this order: erasures, then puts.
+struct FleetMutation {
+  bool put_meta = false;
+  FleetMeta meta;
+  std::vector<core::MemoryTrace> put_pending;
+  std::vector<core::TraceKey> erase_pending;
+  // Clusters (centroid + membership) and their traces. A put cluster's
+  // traces are written with it; an erased cluster's traces are erased.
+  std::vector<core::Cluster> put_clusters;
+  std::vector<uint64_t> erase_clusters;
+  // Traces of the static memory whose fields changed (e.g. replay_count);
+  // their cluster already exists.
+  std::vector<core::MemoryTrace> update_traces;
+  // Traces removed from an existing cluster (downsampling never does this
+  // today, but forgetting of single traces may).
+  std::vector<core::TraceKey> erase_traces;
+  std::vector<RobotRecord> put_robots;
+  std::vector<core::MemoryEvent> append_events;
+
+  // True if applying the mutation would change nothing. Inline: the ports
+  // target is header-only.
+  bool empty() const {
+    return !put_meta && put_pending.empty() && erase_pending.empty() &&
+           put_clusters.empty() && erase_clusters.empty() &&
+           update_traces.empty() && erase_traces.empty() &&
+           put_robots.empty() && append_events.empty();
+  }
+};
+
+// Thread-safe. Every method returns a non-OK status on storage failure,
+// never throws.
+class MemoryStore {
+ public:
+  virtual ~MemoryStore() = default;
+
+  // Ids of every fleet with stored state, sorted.
+  virtual absl::StatusOr<std::vector<std::string>> ListFleets() = 0;
+
+  // Everything stored for `fleet_id` (empty record if nothing is).
+  virtual absl::StatusOr<FleetRecord> LoadFleet(std::string_view fleet_id) = 0;
+
+  // Applies `mutation` atomically; when OK is returned the change is durable
+  // (survives a process crash, and with sync on, a machine crash).
+  virtual absl::Status Apply(std::string_view fleet_id,
+                             const FleetMutation& mutation) = 0;
+
+  // Up to `limit` events of the fleet with id > after_event, ascending.
+  virtual absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
+      std::string_view fleet_id, uint64_t after_event, size_t limit) = 0;
+};
+
+}  // namespace fleetmem::engine
+
+#endif  // FLEETMEM_SERVICES_ENGINE_MEMORY_STORE_H_

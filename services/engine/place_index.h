@@ -1,0 +1,56 @@
+// The search port of the engine: nearest codes among the static memory's
+// traces. Implementations: services/index (exact brute force with Eigen;
+// FLANN randomized kd-trees).
+#ifndef FLEETMEM_SERVICES_ENGINE_PLACE_INDEX_H_
+#define FLEETMEM_SERVICES_ENGINE_PLACE_INDEX_H_
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace fleetmem::engine {
+
+struct Neighbor {
+  uint64_t id = 0;
+  float distance = 0.0f;  // Euclidean, between the stored vectors
+};
+
+struct SearchParams {
+  // Neighbours wanted.
+  size_t k = 1;
+  // When set, only ids it accepts are returned (e.g. a position prior).
+  std::function<bool(uint64_t)> accept;
+};
+
+// Not thread-safe for writers: the caller serialises Add/Remove against each
+// other and against Search (Search calls may run concurrently).
+class PlaceIndex {
+ public:
+  virtual ~PlaceIndex() = default;
+
+  // Adds vectors of the index's dimension under new ids. INVALID_ARGUMENT on
+  // a wrong dimension or a used id; nothing is added then.
+  virtual absl::Status Add(std::span<const uint64_t> ids,
+                           std::span<const std::vector<float>> vectors) = 0;
+  // Removes ids; unknown ids are ignored.
+  virtual absl::Status Remove(std::span<const uint64_t> ids) = 0;
+  // Up to params.k nearest accepted vectors, nearest first (ties: smaller id).
+  virtual absl::StatusOr<std::vector<Neighbor>> Search(
+      std::span<const float> query, const SearchParams& params) const = 0;
+  virtual size_t size() const = 0;
+  virtual size_t dimension() const = 0;
+};
+
+// Makes an empty index of `dimension` for one fleet.
+using PlaceIndexFactory =
+    std::function<std::unique_ptr<PlaceIndex>(size_t dimension)>;
+
+}  // namespace fleetmem::engine
+
+#endif  // FLEETMEM_SERVICES_ENGINE_PLACE_INDEX_H_

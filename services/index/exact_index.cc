@@ -1,0 +1,186 @@
+#include "services/index/exact_index.h"
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <cfloat>
+#include <cmath>
+#include <new>
+#include <utility>
+#include <vector>
+
+#include "absl/container/flat_hash_map.h"
+#include "services/index/index_input.h"
+
+namespace fleetmem::index {
+namespace {
+
+using engine::Neighbor;
+using engine::SearchParams;
+
+// Makes room for `needed` elements, at least doubling the capacity, so that
+// a series of Adds copies each element O(1) times.
+template <typename T>
+void ReserveGeometric(std::vector<T>& v, size_t needed) {
+  if (needed > v.capacity()) v.reserve(std::max(needed, 2 * v.capacity()));
+}
+
+class ExactIndex final : public engine::PlaceIndex {
+ public:
+  explicit ExactIndex(size_t dimension) : dimension_(dimension) {}
+
+  absl::Status Add(std::span<const uint64_t> ids,
+                   std::span<const std::vector<float>> vectors) override;
+  absl::Status Remove(std::span<const uint64_t> ids) override;
+  absl::StatusOr<std::vector<Neighbor>> Search(
+      std::span<const float> query, const SearchParams& params) const override;
+  size_t size() const override { return ids_.size(); }
+  size_t dimension() const override { return dimension_; }
+
+ private:
+  // Grows the storage to hold `count` vectors (doubling); may throw
+  // std::bad_alloc and then leaves the stored vectors unchanged.
+  void Reserve(size_t count);
+  // Squared Euclidean distance of column `column` to `query`, in double.
+  double ExactSquaredDistance(
+      size_t column, const Eigen::Map<const Eigen::VectorXf>& query) const;
+
+  const size_t dimension_;
+  // dimension_ × capacity; the first size() columns are the stored vectors.
+  Eigen::MatrixXf vectors_;
+  // Squared norm of each column (same capacity).
+  Eigen::VectorXf squared_norms_;
+  // Column → id; its size is the number of stored vectors.
+  std::vector<uint64_t> ids_;
+  // Id → column.
+  absl::flat_hash_map<uint64_t, size_t> column_of_;
+};
+
+void ExactIndex::Reserve(size_t count) {
+  const size_t capacity = static_cast<size_t>(vectors_.cols());
+  if (count <= capacity) return;
+  const size_t new_capacity = std::max<size_t>({count, 2 * capacity, 16});
+  Eigen::MatrixXf vectors(dimension_, new_capacity);
+  Eigen::VectorXf squared_norms(new_capacity);
+  const size_t used = ids_.size();
+  vectors.leftCols(used) = vectors_.leftCols(used);
+  squared_norms.head(used) = squared_norms_.head(used);
+  vectors_.swap(vectors);
+  squared_norms_.swap(squared_norms);
+}
+
+absl::Status ExactIndex::Add(std::span<const uint64_t> ids,
+                             std::span<const std::vector<float>> vectors) {
+  if (absl::Status status = CheckAddBatch(
+          dimension_, ids, vectors,
+          [this](uint64_t id) { return column_of_.contains(id); });
+      !status.ok()) {
+    return status;
+  }
+  try {
+    Reserve(ids_.size() + ids.size());
+    ReserveGeometric(ids_, ids_.size() + ids.size());
+    column_of_.reserve(ids_.size() + ids.size());
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError("exact index: out of memory in Add");
+  }
+  for (size_t i = 0; i < ids.size(); ++i) {
+    const size_t column = ids_.size();
+    vectors_.col(column) =
+        Eigen::Map<const Eigen::VectorXf>(vectors[i].data(), dimension_);
+    squared_norms_(column) = vectors_.col(column).squaredNorm();
+    ids_.push_back(ids[i]);
+    column_of_.emplace(ids[i], column);
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ExactIndex::Remove(std::span<const uint64_t> ids) {
+  for (uint64_t id : ids) {
+    auto it = column_of_.find(id);
+    if (it == column_of_.end()) continue;
+    const size_t column = it->second;
+    const size_t last = ids_.size() - 1;
+    column_of_.erase(it);
+    if (column != last) {
+      vectors_.col(column) = vectors_.col(last);
+      squared_norms_(column) = squared_norms_(last);
+      ids_[column] = ids_[last];
+      column_of_[ids_[column]] = column;
+    }
+    ids_.pop_back();
+  }
+  return absl::OkStatus();
+}
+
+double ExactIndex::ExactSquaredDistance(
+    size_t column, const Eigen::Map<const Eigen::VectorXf>& query) const {
+  return (vectors_.col(column).cast<double>() - query.cast<double>())
+      .squaredNorm();
+}
+
+absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
+    std::span<const float> query, const SearchParams& params) const {
+  if (absl::Status status = CheckQuery(dimension_, query); !status.ok()) {
+    return status;
+  }
+  const size_t count = ids_.size();
+  if (count == 0 || params.k == 0) return std::vector<Neighbor>();
+  try {
+    const Eigen::Map<const Eigen::VectorXf> q(query.data(), dimension_);
+    const float query_norm = q.squaredNorm();
+    // Squared distances up to float rounding, in one matrix-vector product.
+    Eigen::VectorXf scores = vectors_.leftCols(count).transpose() * q;
+    scores = (squared_norms_.head(count) - 2.0f * scores).array() + query_norm;
+
+    std::vector<size_t> candidates;
+    candidates.reserve(count);
+    for (size_t column = 0; column < count; ++column) {
+      if (!params.accept || params.accept(ids_[column])) {
+        candidates.push_back(column);
+      }
+    }
+    if (candidates.size() > params.k) {
+      // Each score is within `bound` of the true squared distance, so every
+      // true k-nearest vector scores at most kth + 2 * bound. Twice the
+      // textbook bound on the float dot-product and sum errors.
+      const double unit = dimension_ * static_cast<double>(FLT_EPSILON);
+      const double gamma = unit / (1.0 - unit);
+      const double bound = 2.0 * (2.0 * gamma + 4.0 * FLT_EPSILON) *
+                           (squared_norms_.head(count).maxCoeff() + query_norm);
+      auto by_score = [&scores](size_t a, size_t b) {
+        return scores(a) < scores(b);
+      };
+      std::nth_element(candidates.begin(), candidates.begin() + params.k - 1,
+                       candidates.end(), by_score);
+      const double limit = scores(candidates[params.k - 1]) + 2.0 * bound;
+      std::erase_if(candidates,
+                    [&](size_t column) { return scores(column) > limit; });
+    }
+
+    std::vector<std::pair<double, uint64_t>> exact;
+    exact.reserve(candidates.size());
+    for (size_t column : candidates) {
+      exact.emplace_back(ExactSquaredDistance(column, q), ids_[column]);
+    }
+    const size_t wanted = std::min(params.k, exact.size());
+    std::partial_sort(exact.begin(), exact.begin() + wanted, exact.end());
+    std::vector<Neighbor> neighbors;
+    neighbors.reserve(wanted);
+    for (size_t i = 0; i < wanted; ++i) {
+      neighbors.push_back(
+          {exact[i].second,
+           static_cast<float>(std::sqrt(std::max(0.0, exact[i].first)))});
+    }
+    return neighbors;
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError("exact index: out of memory in Search");
+  }
+}
+
+}  // namespace
+
+std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension) {
+  return std::make_unique<ExactIndex>(dimension);
+}
+
+}  // namespace fleetmem::index

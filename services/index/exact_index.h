@@ -1,0 +1,32 @@
+// Exact nearest-neighbour search by brute force (Eigen): the reference
+// PlaceIndex every approximate index is measured against.
+#ifndef FLEETMEM_SERVICES_INDEX_EXACT_INDEX_H_
+#define FLEETMEM_SERVICES_INDEX_EXACT_INDEX_H_
+
+#include <cstddef>
+#include <memory>
+
+#include "services/engine/place_index.h"
+
+namespace fleetmem::index {
+
+// Returns an empty exact index for vectors of `dimension` (> 0; with 0 every
+// Add is INVALID_ARGUMENT).
+//
+// Vectors are the columns of one contiguous float matrix; Remove moves the
+// last column into the hole (O(dimension) per id). Search scores all stored
+// vectors with one matrix-vector product (‖x‖² − 2xᵀq + ‖q‖²), then
+// re-scores in double precision every candidate that float rounding could
+// place among the k nearest, so the result is the exact k nearest accepted
+// vectors, ties broken by the smaller id. Cost per Search: O(size ×
+// dimension) plus one call of params.accept per stored vector when set.
+//
+// Beyond the port's contract: Add and Search also refuse non-finite values
+// (INVALID_ARGUMENT), and Add refuses a batch with a repeated id or with
+// ids.size() != vectors.size(). Out of memory is RESOURCE_EXHAUSTED and
+// changes nothing. Thread-safety as in engine::PlaceIndex.
+std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension);
+
+}  // namespace fleetmem::index
+
+#endif  // FLEETMEM_SERVICES_INDEX_EXACT_INDEX_H_

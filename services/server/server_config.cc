@@ -1,0 +1,372 @@
+#include "services/server/server_config.h"
+
+#include <climits>
+#include <cstdint>
+#include <fstream>
+#include <sstream>
+#include <utility>
+#include <vector>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "google/protobuf/io/tokenizer.h"
+#include "google/protobuf/text_format.h"
+#include "services/server/server_config.pb.h"
+
+namespace fleetmem::server {
+namespace {
+
+// Collects the text-format parser's complaints as "line L, column C: msg".
+class ErrorList : public google::protobuf::io::ErrorCollector {
+ public:
+  void AddError(int line, google::protobuf::io::ColumnNumber column,
+                const std::string& message) override {
+    errors_.push_back(absl::StrCat("line ", line + 1, ", column ", column + 1,
+                                   ": ", message));
+  }
+  std::string Joined() const { return absl::StrJoin(errors_, "; "); }
+
+ private:
+  std::vector<std::string> errors_;
+};
+
+absl::Status ApplyLogLevel(std::string_view what, std::string_view text,
+                           ServerConfig* config) {
+  if (!log::ParseLevel(text, &config->log_level)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        std::string(what), ": unknown log level \"", std::string(text),
+        "\" (want debug, info, warning or error)"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ApplyIndex(std::string_view what, std::string_view text,
+                        ServerConfig* config) {
+  if (!ParseIndexKind(text, &config->index)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(std::string(what), ": unknown index \"", std::string(text),
+                     "\" (want exact or flann)"));
+  }
+  return absl::OkStatus();
+}
+
+void ApplyMemory(const MemoryConfig& in, core::MemoryOptions* out) {
+  if (in.has_clusters_per_batch()) {
+    out->clusters_per_batch = in.clusters_per_batch();
+  }
+  if (in.has_max_traces_per_cluster()) {
+    out->max_traces_per_cluster = in.max_traces_per_cluster();
+  }
+  if (in.has_max_clusters()) out->max_clusters = in.max_clusters();
+  if (in.has_replay_decay()) out->replay_decay = in.replay_decay();
+  if (in.has_reward_floor()) out->reward_floor = in.reward_floor();
+  if (in.has_spatial_scale_m()) out->spatial_scale_m = in.spatial_scale_m();
+  if (in.has_clustering()) out->clustering = in.clustering();
+  if (in.has_kmeans_max_iterations()) {
+    out->kmeans_max_iterations = in.kmeans_max_iterations();
+  }
+  if (in.has_seed()) out->seed = in.seed();
+}
+
+void ApplyEngine(const EngineConfig& in, engine::EngineOptions* out) {
+  if (in.has_segment_size()) out->segment_size = in.segment_size();
+  if (in.has_max_traces_per_upload()) {
+    out->max_traces_per_upload = in.max_traces_per_upload();
+  }
+  if (in.has_max_sample_count()) {
+    out->max_sample_count = in.max_sample_count();
+  }
+  if (in.has_max_query_k()) out->max_query_k = in.max_query_k();
+  if (in.has_max_events_per_read()) {
+    out->max_events_per_read = in.max_events_per_read();
+  }
+}
+
+void ApplyStorage(const StorageConfig& in, storage::RocksDbStoreOptions* out) {
+  if (in.has_sync()) out->sync = in.sync();
+  if (in.has_block_cache_bytes()) {
+    out->block_cache_bytes = in.block_cache_bytes();
+  }
+  if (in.has_write_buffer_bytes()) {
+    out->write_buffer_bytes = in.write_buffer_bytes();
+  }
+  if (in.has_bloom_bits_per_key()) {
+    out->bloom_bits_per_key = in.bloom_bits_per_key();
+  }
+  if (in.has_background_jobs()) out->background_jobs = in.background_jobs();
+  if (in.has_compress()) out->compress = in.compress();
+}
+
+void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
+  if (in.has_trees()) out->trees = in.trees();
+  if (in.has_checks()) out->checks = in.checks();
+  if (in.has_rebuild_removed_fraction()) {
+    out->rebuild_removed_fraction = in.rebuild_removed_fraction();
+  }
+  if (in.has_add_rebuild_factor()) {
+    out->add_rebuild_factor = in.add_rebuild_factor();
+  }
+  if (in.has_accept_oversample()) {
+    out->accept_oversample = in.accept_oversample();
+  }
+}
+
+// The flags that take a value, and where they go.
+struct FlagSpec {
+  std::string_view name;
+  std::optional<std::string> CommandLine::*field;
+  std::string_view value_name;
+  std::string_view help;
+};
+
+const FlagSpec kFlags[] = {
+    {"listen", &CommandLine::listen, "HOST:PORT",
+     "address to listen on; port 0 picks a free port (default "
+     "127.0.0.1:50051)"},
+    {"data-dir", &CommandLine::data_dir, "DIR",
+     "folder of the server's state, created if missing; RocksDB lives in "
+     "DIR/db (required, here or in the config file)"},
+    {"config", &CommandLine::config_file, "FILE",
+     "config file in protobuf text format (services/server/"
+     "server_config.proto); flags override it"},
+    {"log-level", &CommandLine::log_level, "LEVEL",
+     "debug, info, warning or error (default info)"},
+    {"index", &CommandLine::index, "KIND",
+     "place index: exact or flann (default exact)"},
+};
+
+// "host:port" -> port, or nullopt if malformed.
+std::optional<int> ListenPort(std::string_view listen) {
+  size_t colon = listen.rfind(':');
+  if (colon == std::string_view::npos || colon == 0) return std::nullopt;
+  int port = 0;
+  if (!absl::SimpleAtoi(std::string(listen.substr(colon + 1)), &port))
+    return std::nullopt;
+  if (port < 0 || port > 65535) return std::nullopt;
+  return port;
+}
+
+}  // namespace
+
+bool ParseIndexKind(std::string_view text, IndexKind* kind) {
+  if (text == "exact") {
+    *kind = IndexKind::kExact;
+  } else if (text == "flann") {
+    *kind = IndexKind::kFlann;
+  } else {
+    return false;
+  }
+  return true;
+}
+
+std::string_view IndexKindName(IndexKind kind) {
+  switch (kind) {
+    case IndexKind::kExact:
+      return "exact";
+    case IndexKind::kFlann:
+      return "flann";
+  }
+  return "?";
+}
+
+absl::StatusOr<CommandLine> ParseCommandLine(int argc,
+                                             const char* const* argv) {
+  CommandLine out;
+  for (int i = 1; i < argc; ++i) {
+    std::string_view arg = argv[i];
+    if (arg == "--help" || arg == "-help" || arg == "-h") {
+      out.help = true;
+      continue;
+    }
+    if (arg.substr(0, 2) != "--" || arg.size() == 2) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("unexpected argument \"", std::string(arg), "\""));
+    }
+    arg.remove_prefix(2);
+    std::string_view name = arg;
+    std::optional<std::string_view> value;
+    if (size_t eq = arg.find('='); eq != std::string_view::npos) {
+      name = arg.substr(0, eq);
+      value = arg.substr(eq + 1);
+    }
+    const FlagSpec* spec = nullptr;
+    for (const FlagSpec& candidate : kFlags) {
+      if (candidate.name == name) spec = &candidate;
+    }
+    if (spec == nullptr) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown flag --", std::string(name)));
+    }
+    if (!value.has_value()) {
+      if (i + 1 >= argc) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("flag --", std::string(name), " needs a value (",
+                         std::string(spec->value_name), ")"));
+      }
+      value = argv[++i];
+    }
+    out.*(spec->field) = std::string(*value);
+  }
+  return out;
+}
+
+std::string Usage() {
+  std::string out =
+      "Usage: fleetmem-server --data-dir DIR [flags]\n"
+      "Serves fleetmem.v1.MemoryService (gRPC) until SIGTERM or SIGINT.\n\n"
+      "Flags:\n";
+  for (const FlagSpec& flag : kFlags) {
+    absl::StrAppend(&out, "  --", std::string(flag.name), " ",
+                    std::string(flag.value_name), "\n      ",
+                    std::string(flag.help), "\n");
+  }
+  absl::StrAppend(&out, "  --help\n      print this text and exit\n");
+  return out;
+}
+
+absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
+  ServerConfigFile file;
+  ErrorList errors;
+  google::protobuf::TextFormat::Parser parser;
+  parser.RecordErrorsTo(&errors);
+  if (!parser.ParseFromString(std::string(text), &file)) {
+    return absl::InvalidArgumentError(errors.Joined());
+  }
+  if (file.has_listen()) config->listen = file.listen();
+  if (file.has_data_dir()) config->data_dir = file.data_dir();
+  if (file.has_log_level()) {
+    absl::Status status = ApplyLogLevel("log_level", file.log_level(), config);
+    if (!status.ok()) return status;
+  }
+  if (file.has_index()) {
+    absl::Status status = ApplyIndex("index", file.index(), config);
+    if (!status.ok()) return status;
+  }
+  if (file.has_worker_threads()) config->work.threads = file.worker_threads();
+  if (file.has_max_queued_calls()) {
+    config->work.max_queued = file.max_queued_calls();
+  }
+  if (file.has_max_receive_message_bytes()) {
+    config->max_receive_message_bytes = file.max_receive_message_bytes();
+  }
+  if (file.has_shutdown_grace_seconds()) {
+    if (file.shutdown_grace_seconds() > 3600) {
+      return absl::InvalidArgumentError("shutdown_grace_seconds: at most 3600");
+    }
+    config->shutdown_grace_seconds =
+        static_cast<int>(file.shutdown_grace_seconds());
+  }
+  ApplyMemory(file.memory(), &config->engine.memory);
+  ApplyEngine(file.engine(), &config->engine);
+  ApplyStorage(file.storage(), &config->storage);
+  ApplyFlann(file.flann(), &config->flann);
+  return absl::OkStatus();
+}
+
+absl::Status ApplyCommandLine(const CommandLine& command_line,
+                              ServerConfig* config) {
+  if (command_line.listen) config->listen = *command_line.listen;
+  if (command_line.data_dir) config->data_dir = *command_line.data_dir;
+  if (command_line.log_level) {
+    absl::Status status =
+        ApplyLogLevel("--log-level", *command_line.log_level, config);
+    if (!status.ok()) return status;
+  }
+  if (command_line.index) {
+    absl::Status status = ApplyIndex("--index", *command_line.index, config);
+    if (!status.ok()) return status;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ValidateServerConfig(const ServerConfig& config) {
+  if (config.data_dir.empty()) {
+    return absl::InvalidArgumentError(
+        "data_dir: required (--data-dir DIR or data_dir in the config file)");
+  }
+  if (!ListenPort(config.listen).has_value()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("listen: \"", config.listen,
+                     "\" is not HOST:PORT with a port in 0..65535"));
+  }
+  if (config.max_receive_message_bytes == 0 ||
+      config.max_receive_message_bytes > static_cast<size_t>(INT_MAX)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_receive_message_bytes: must be in 1..", INT_MAX));
+  }
+  if (config.work.max_queued == 0) {
+    return absl::InvalidArgumentError("max_queued_calls: must be positive");
+  }
+  if (config.work.threads > 1024) {
+    return absl::InvalidArgumentError("worker_threads: at most 1024");
+  }
+  if (config.storage.background_jobs < 1) {
+    return absl::InvalidArgumentError(
+        "storage.background_jobs: must be positive");
+  }
+  if (config.storage.bloom_bits_per_key < 0) {
+    return absl::InvalidArgumentError(
+        "storage.bloom_bits_per_key: must not be negative");
+  }
+  if (config.shutdown_grace_seconds < 0) {
+    return absl::InvalidArgumentError(
+        "shutdown_grace_seconds: must not be negative");
+  }
+  return engine::ValidateEngineOptions(config.engine);
+}
+
+absl::StatusOr<ServerConfig> LoadServerConfig(const CommandLine& command_line) {
+  ServerConfig config;
+  if (command_line.config_file) {
+    const std::string& path = *command_line.config_file;
+    std::ifstream in(path);
+    if (!in) {
+      return absl::NotFoundError(
+          absl::StrCat("config file ", path, ": cannot be read"));
+    }
+    std::stringstream text;
+    text << in.rdbuf();
+    absl::Status status = ApplyConfigText(text.str(), &config);
+    if (!status.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("config file ", path, ": ", status.message()));
+    }
+  }
+  absl::Status status = ApplyCommandLine(command_line, &config);
+  if (!status.ok()) return status;
+  status = ValidateServerConfig(config);
+  if (!status.ok()) return status;
+  return config;
+}
+
+std::string DescribeConfig(const ServerConfig& config) {
+  const core::MemoryOptions& memory = config.engine.memory;
+  std::string out = absl::StrCat(
+      "index=", std::string(IndexKindName(config.index)),
+      " worker_threads=", transport::WorkerThreads(config.work),
+      " max_queued_calls=", config.work.max_queued,
+      " max_receive_message_bytes=", config.max_receive_message_bytes,
+      " clusters_per_batch=", memory.clusters_per_batch,
+      " max_traces_per_cluster=", memory.max_traces_per_cluster,
+      " max_clusters=", memory.max_clusters,
+      " replay_decay=", memory.replay_decay,
+      " reward_floor=", memory.reward_floor,
+      " spatial_scale_m=", memory.spatial_scale_m,
+      " clustering=", memory.clustering ? "true" : "false",
+      " kmeans_max_iterations=", memory.kmeans_max_iterations,
+      " seed=", memory.seed, " segment_size=", config.engine.segment_size,
+      " max_traces_per_upload=", config.engine.max_traces_per_upload,
+      " max_sample_count=", config.engine.max_sample_count,
+      " max_query_k=", config.engine.max_query_k,
+      " max_events_per_read=", config.engine.max_events_per_read,
+      " rocksdb_sync=", config.storage.sync ? "true" : "false",
+      " shutdown_grace_seconds=", config.shutdown_grace_seconds);
+  if (config.index == IndexKind::kFlann) {
+    absl::StrAppend(&out, " flann_trees=", config.flann.trees,
+                    " flann_checks=", config.flann.checks);
+  }
+  return out;
+}
+
+}  // namespace fleetmem::server

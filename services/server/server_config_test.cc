@@ -1,0 +1,174 @@
+#include "services/server/server_config.h"
+
+#include <string>
+#include <vector>
+
+#include "gtest/gtest.h"
+
+namespace fleetmem::server {
+namespace {
+
+absl::StatusOr<CommandLine> Parse(std::vector<std::string> args) {
+  std::vector<const char*> argv = {"fleetmem-server"};
+  for (const std::string& arg : args) argv.push_back(arg.c_str());
+  return ParseCommandLine(static_cast<int>(argv.size()), argv.data());
+}
+
+TEST(ParseCommandLineTest, BothFlagForms) {
+  absl::StatusOr<CommandLine> parsed =
+      Parse({"--listen=0.0.0.0:0", "--data-dir", "/tmp/x", "--log-level",
+             "debug", "--index=flann", "--config", "a.textproto"});
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_FALSE(parsed->help);
+  EXPECT_EQ(parsed->listen, "0.0.0.0:0");
+  EXPECT_EQ(parsed->data_dir, "/tmp/x");
+  EXPECT_EQ(parsed->log_level, "debug");
+  EXPECT_EQ(parsed->index, "flann");
+  EXPECT_EQ(parsed->config_file, "a.textproto");
+}
+
+TEST(ParseCommandLineTest, Help) {
+  for (const char* flag : {"--help", "-h"}) {
+    absl::StatusOr<CommandLine> parsed = Parse({flag});
+    ASSERT_TRUE(parsed.ok());
+    EXPECT_TRUE(parsed->help);
+  }
+  EXPECT_NE(Usage().find("--data-dir"), std::string::npos);
+}
+
+TEST(ParseCommandLineTest, Errors) {
+  const std::vector<std::vector<std::string>> cases = {
+      {"--bogus=1"}, {"--listen"}, {"positional"}, {"--"}, {"-x"},
+  };
+  for (const auto& args : cases) {
+    absl::StatusOr<CommandLine> parsed = Parse(args);
+    EXPECT_EQ(parsed.status().code(), absl::StatusCode::kInvalidArgument)
+        << args[0];
+  }
+}
+
+TEST(ServerConfigTest, FileThenFlags) {
+  ServerConfig config;
+  ASSERT_TRUE(ApplyConfigText(R"pb(
+                                listen: "10.0.0.1:7000"
+                                data_dir: "/data/a"
+                                log_level: "warning"
+                                index: "flann"
+                                worker_threads: 3
+                                max_queued_calls: 7
+                                max_receive_message_bytes: 1048576
+                                memory {
+                                  max_clusters: 200
+                                  replay_decay: 1.0
+                                  clustering: false
+                                  seed: 7
+                                }
+                                engine { segment_size: 50 max_query_k: 10 }
+                                storage { sync: false }
+                                flann { trees: 8 checks: 64 }
+                              )pb",
+                              &config)
+                  .ok());
+  EXPECT_EQ(config.listen, "10.0.0.1:7000");
+  EXPECT_EQ(config.log_level, log::Level::kWarning);
+  EXPECT_EQ(config.index, IndexKind::kFlann);
+  EXPECT_EQ(config.work.threads, 3u);
+  EXPECT_EQ(config.work.max_queued, 7u);
+  EXPECT_EQ(config.max_receive_message_bytes, 1048576u);
+  EXPECT_EQ(config.engine.memory.max_clusters, 200);
+  EXPECT_EQ(config.engine.memory.replay_decay, 1.0);
+  EXPECT_FALSE(config.engine.memory.clustering);
+  EXPECT_EQ(config.engine.memory.seed, 7u);
+  // Unset fields keep their defaults.
+  EXPECT_EQ(config.engine.memory.clusters_per_batch, 20);
+  EXPECT_EQ(config.engine.segment_size, 50u);
+  EXPECT_EQ(config.engine.max_query_k, 10u);
+  EXPECT_EQ(config.engine.max_sample_count, 10000u);
+  EXPECT_FALSE(config.storage.sync);
+  EXPECT_EQ(config.flann.trees, 8);
+  EXPECT_EQ(config.flann.checks, 64);
+
+  CommandLine flags;
+  flags.listen = "127.0.0.1:0";
+  flags.index = "exact";
+  ASSERT_TRUE(ApplyCommandLine(flags, &config).ok());
+  EXPECT_EQ(config.listen, "127.0.0.1:0");
+  EXPECT_EQ(config.index, IndexKind::kExact);
+  EXPECT_EQ(config.data_dir, "/data/a");  // from the file
+  EXPECT_TRUE(ValidateServerConfig(config).ok());
+}
+
+TEST(ServerConfigTest, BadFileText) {
+  const char* cases[] = {
+      "listen: ",                     // syntax
+      "no_such_field: 1",             // unknown field
+      "memory { max_clusters: -x }",  // bad value
+      "index: \"hnsw\"",              // unknown index
+      "log_level: \"loud\"",          // unknown level
+  };
+  for (const char* text : cases) {
+    ServerConfig config;
+    absl::Status status = ApplyConfigText(text, &config);
+    EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << text;
+  }
+  ServerConfig config;
+  absl::Status status = ApplyConfigText("\n\nbogus: 1", &config);
+  EXPECT_NE(status.message().find("line 3"), std::string::npos) << status;
+}
+
+TEST(ServerConfigTest, Validation) {
+  auto valid = [] {
+    ServerConfig config;
+    config.data_dir = "/tmp/d";
+    return config;
+  };
+  EXPECT_TRUE(ValidateServerConfig(valid()).ok());
+
+  struct Case {
+    const char* name;
+    void (*mutate)(ServerConfig&);
+  };
+  const Case cases[] = {
+      {"no data dir", [](ServerConfig& c) { c.data_dir.clear(); }},
+      {"no port", [](ServerConfig& c) { c.listen = "localhost"; }},
+      {"port range", [](ServerConfig& c) { c.listen = "localhost:70000"; }},
+      {"port text", [](ServerConfig& c) { c.listen = "localhost:http"; }},
+      {"no host", [](ServerConfig& c) { c.listen = ":50051"; }},
+      {"message size",
+       [](ServerConfig& c) { c.max_receive_message_bytes = 0; }},
+      {"queue", [](ServerConfig& c) { c.work.max_queued = 0; }},
+      {"engine", [](ServerConfig& c) { c.engine.memory.max_clusters = 0; }},
+      {"segment", [](ServerConfig& c) { c.engine.segment_size = 0; }},
+      {"gamma", [](ServerConfig& c) { c.engine.memory.replay_decay = 1.5; }},
+  };
+  for (const Case& c : cases) {
+    ServerConfig config = valid();
+    c.mutate(config);
+    EXPECT_EQ(ValidateServerConfig(config).code(),
+              absl::StatusCode::kInvalidArgument)
+        << c.name;
+  }
+}
+
+TEST(ServerConfigTest, LoadWithoutFileUsesDefaultsAndFlags) {
+  CommandLine flags;
+  flags.data_dir = "/tmp/d";
+  absl::StatusOr<ServerConfig> config = LoadServerConfig(flags);
+  ASSERT_TRUE(config.ok()) << config.status();
+  EXPECT_EQ(config->listen, "127.0.0.1:50051");
+  EXPECT_EQ(config->index, kDefaultIndex);
+  EXPECT_EQ(config->max_receive_message_bytes, size_t{16} << 20);
+
+  flags.config_file = "/nonexistent/fleetmem.textproto";
+  EXPECT_EQ(LoadServerConfig(flags).status().code(),
+            absl::StatusCode::kNotFound);
+
+  CommandLine bad;
+  bad.data_dir = "/tmp/d";
+  bad.log_level = "verbose";
+  EXPECT_EQ(LoadServerConfig(bad).status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace fleetmem::server

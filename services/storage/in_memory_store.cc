@@ -1,0 +1,193 @@
+#include "services/storage/in_memory_store.h"
+
+#include <algorithm>
+#include <functional>
+#include <map>
+#include <optional>
+#include <set>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "absl/synchronization/mutex.h"
+#include "services/storage/mutation_checks.h"
+
+namespace fleetmem::storage {
+namespace {
+
+using core::TraceKey;
+
+struct StoredCluster {
+  std::string robot_id;
+  std::vector<float> centroid;
+  std::vector<TraceKey> members;
+};
+
+struct Fleet {
+  std::optional<engine::FleetMeta> meta;
+  std::map<TraceKey, core::MemoryTrace> pending;
+  std::map<uint64_t, StoredCluster> clusters;
+  std::map<TraceKey, core::MemoryTrace> traces;  // of the static memory
+  std::map<std::string, engine::RobotRecord> robots;
+  std::map<uint64_t, core::MemoryEvent> events;
+
+  bool empty() const {
+    return !meta && pending.empty() && clusters.empty() && traces.empty() &&
+           robots.empty() && events.empty();
+  }
+
+  void DropMember(uint64_t cluster_id, const TraceKey& key) {
+    auto cluster = clusters.find(cluster_id);
+    if (cluster == clusters.end()) return;
+    std::erase(cluster->second.members, key);
+  }
+
+  void EraseCluster(uint64_t id) {
+    auto cluster = clusters.find(id);
+    if (cluster == clusters.end()) return;
+    for (const TraceKey& member : cluster->second.members) traces.erase(member);
+    clusters.erase(cluster);
+  }
+
+  void EraseTrace(const TraceKey& key) {
+    auto trace = traces.find(key);
+    if (trace == traces.end()) return;
+    DropMember(trace->second.cluster_id, key);
+    traces.erase(trace);
+  }
+
+  void PutCluster(const core::Cluster& cluster) {
+    std::set<TraceKey> keep;
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      keep.insert(trace.key());
+    }
+    if (auto old = clusters.find(cluster.id); old != clusters.end()) {
+      for (const TraceKey& member : old->second.members) {
+        if (!keep.contains(member)) traces.erase(member);
+      }
+    }
+    StoredCluster stored{cluster.robot_id, cluster.centroid, {}};
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      auto existing = traces.find(trace.key());
+      if (existing != traces.end() &&
+          existing->second.cluster_id != cluster.id) {
+        DropMember(existing->second.cluster_id, trace.key());
+      }
+      core::MemoryTrace& slot = traces[trace.key()];
+      slot = trace;
+      slot.cluster_id = cluster.id;
+      stored.members.push_back(trace.key());
+    }
+    clusters[cluster.id] = std::move(stored);
+  }
+
+  void UpdateTrace(const core::MemoryTrace& trace) {
+    auto existing = traces.find(trace.key());
+    if (existing == traces.end()) return;
+    const uint64_t cluster_id = existing->second.cluster_id;
+    existing->second = trace;
+    existing->second.cluster_id = cluster_id;
+  }
+};
+
+class InMemoryStore final : public engine::MemoryStore {
+ public:
+  absl::StatusOr<std::vector<std::string>> ListFleets() override {
+    absl::MutexLock lock(&mu_);
+    std::vector<std::string> ids;
+    ids.reserve(fleets_.size());
+    for (const auto& [id, fleet] : fleets_) ids.push_back(id);
+    return ids;
+  }
+
+  absl::StatusOr<engine::FleetRecord> LoadFleet(
+      std::string_view fleet_id) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    engine::FleetRecord record;
+    record.fleet_id = std::string(fleet_id);
+    absl::MutexLock lock(&mu_);
+    auto it = fleets_.find(fleet_id);
+    if (it == fleets_.end()) return record;
+    const Fleet& fleet = it->second;
+    record.meta = fleet.meta.value_or(engine::FleetMeta{});
+    for (const auto& [key, trace] : fleet.pending) {
+      record.pending.push_back(trace);
+    }
+    for (const auto& [id, stored] : fleet.clusters) {
+      core::Cluster& cluster = record.clusters.emplace_back();
+      cluster.id = id;
+      cluster.robot_id = stored.robot_id;
+      cluster.centroid = stored.centroid;
+      for (const TraceKey& member : stored.members) {
+        cluster.traces.push_back(fleet.traces.at(member));
+      }
+    }
+    for (const auto& [id, robot] : fleet.robots) record.robots.push_back(robot);
+    return record;
+  }
+
+  absl::Status Apply(std::string_view fleet_id,
+                     const engine::FleetMutation& m) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    if (absl::Status status = internal::CheckMutation(m); !status.ok()) {
+      return status;
+    }
+    absl::MutexLock lock(&mu_);
+    auto it = fleets_.try_emplace(std::string(fleet_id)).first;
+    Fleet& fleet = it->second;
+    for (const TraceKey& key : m.erase_pending) fleet.pending.erase(key);
+    for (uint64_t id : m.erase_clusters) fleet.EraseCluster(id);
+    for (const TraceKey& key : m.erase_traces) fleet.EraseTrace(key);
+    if (m.put_meta) fleet.meta = m.meta;
+    for (const core::MemoryTrace& trace : m.put_pending) {
+      fleet.pending[trace.key()] = trace;
+    }
+    for (const core::Cluster& cluster : m.put_clusters) {
+      fleet.PutCluster(cluster);
+    }
+    for (const core::MemoryTrace& trace : m.update_traces) {
+      fleet.UpdateTrace(trace);
+    }
+    for (const engine::RobotRecord& robot : m.put_robots) {
+      fleet.robots[robot.robot_id] = robot;
+    }
+    for (const core::MemoryEvent& event : m.append_events) {
+      fleet.events[event.id] = event;
+    }
+    if (fleet.empty()) fleets_.erase(it);
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
+      std::string_view fleet_id, uint64_t after_event, size_t limit) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    std::vector<core::MemoryEvent> events;
+    absl::MutexLock lock(&mu_);
+    auto it = fleets_.find(fleet_id);
+    if (it == fleets_.end()) return events;
+    const auto& stored = it->second.events;
+    for (auto event = stored.upper_bound(after_event);
+         event != stored.end() && events.size() < limit; ++event) {
+      events.push_back(event->second);
+    }
+    return events;
+  }
+
+ private:
+  absl::Mutex mu_;
+  std::map<std::string, Fleet, std::less<>> fleets_ ABSL_GUARDED_BY(mu_);
+};
+
+}  // namespace
+
+std::unique_ptr<engine::MemoryStore> NewInMemoryStore() {
+  return std::make_unique<InMemoryStore>();
+}
+
+}  // namespace fleetmem::storage

@@ -1,0 +1,74 @@
+// Key layout of the RocksDB store. Internal to services/storage.
+//
+// Every key is  tag (1 byte) | fleet id | 0x00 | suffix, with suffix:
+//   meta     'm'  (empty)
+//   pending  'p'  robot id | 0x00 | seq (8 bytes, big-endian)
+//   cluster  'c'  cluster id (8 bytes, big-endian)
+//   trace    't'  robot id | 0x00 | seq (8 bytes, big-endian)
+//   robot    'r'  robot id
+//   event    'e'  event id (8 bytes, big-endian)
+// Ids are restricted upstream to [A-Za-z0-9._:-], so 0x00 never occurs in
+// them: all keys of one (tag, fleet) form one contiguous range, a fleet id
+// that is a prefix of another ("f", "f1") cannot alias it, and big-endian
+// numbers sort numerically. One more key, kFormatKey, holds the layout
+// version and belongs to no fleet.
+#ifndef FLEETMEM_SERVICES_STORAGE_KEYS_H_
+#define FLEETMEM_SERVICES_STORAGE_KEYS_H_
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+
+#include "services/core/types.h"
+
+namespace fleetmem::storage::keys {
+
+enum class Tag : char {
+  kMeta = 'm',
+  kPending = 'p',
+  kCluster = 'c',
+  kTrace = 't',
+  kRobot = 'r',
+  kEvent = 'e',
+};
+
+// Every tag that holds per-fleet records.
+inline constexpr Tag kFleetTags[] = {Tag::kMeta,  Tag::kPending, Tag::kCluster,
+                                     Tag::kTrace, Tag::kRobot,   Tag::kEvent};
+
+inline constexpr char kSeparator = '\0';
+inline constexpr std::string_view kFormatKey = "!format";
+inline constexpr std::string_view kFormatVersion = "fleetmem.storage/1";
+
+// tag | fleet | 0x00: every key of (tag, fleet) starts with it.
+std::string Prefix(Tag tag, std::string_view fleet_id);
+// tag | fleet | 0x01: the first key after every key of (tag, fleet).
+std::string PrefixEnd(Tag tag, std::string_view fleet_id);
+
+std::string MetaKey(std::string_view fleet_id);
+std::string PendingKey(std::string_view fleet_id, const core::TraceKey& key);
+std::string TraceKey(std::string_view fleet_id, const core::TraceKey& key);
+std::string ClusterKey(std::string_view fleet_id, uint64_t cluster_id);
+std::string RobotKey(std::string_view fleet_id, std::string_view robot_id);
+std::string EventKey(std::string_view fleet_id, uint64_t event_id);
+
+// The parts of a key; nullopt if `key` does not follow the layout.
+struct ParsedKey {
+  Tag tag = Tag::kMeta;
+  std::string_view fleet_id;
+  std::string_view suffix;  // after the separator
+};
+std::optional<ParsedKey> Parse(std::string_view key);
+
+// Suffix decoders; nullopt if malformed.
+std::optional<core::TraceKey> ParseTraceSuffix(std::string_view suffix);
+std::optional<uint64_t> ParseIdSuffix(std::string_view suffix);
+
+// A readable name for error messages: "trace[f1/r2/17]", "cluster[f1/5]",
+// "meta[f1]"; an unparsable key is shown escaped.
+std::string Describe(std::string_view key);
+
+}  // namespace fleetmem::storage::keys
+
+#endif  // FLEETMEM_SERVICES_STORAGE_KEYS_H_

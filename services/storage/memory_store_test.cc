@@ -1,0 +1,475 @@
+// Conformance tests of engine::MemoryStore, run against both stores.
+#include "services/engine/memory_store.h"
+
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "gtest/gtest.h"
+#include "services/storage/in_memory_store.h"
+#include "services/storage/rocksdb_store.h"
+#include "services/storage/store_test_util.h"
+
+namespace fleetmem::storage {
+namespace {
+
+using core::EventType;
+using engine::FleetMutation;
+using engine::FleetRecord;
+using testing::Dump;
+using testing::MakeCluster;
+using testing::MakeEvent;
+using testing::MakeMeta;
+using testing::MakeRobot;
+using testing::MakeTrace;
+
+enum class StoreKind { kInMemory, kRocksDb };
+
+std::string KindName(StoreKind kind) {
+  return kind == StoreKind::kInMemory ? "InMemory" : "RocksDb";
+}
+
+void PrintTo(StoreKind kind, std::ostream* os) { *os << KindName(kind); }
+
+// One store under test; Reopen() closes and reopens a RocksDB store on the
+// same directory (the in-memory store stays as it is).
+class StoreHarness {
+ public:
+  explicit StoreHarness(StoreKind kind) : kind_(kind) { Reopen(); }
+
+  engine::MemoryStore& store() { return *store_; }
+
+  void Reopen() {
+    if (kind_ == StoreKind::kInMemory) {
+      if (store_ == nullptr) store_ = NewInMemoryStore();
+      return;
+    }
+    store_.reset();
+    RocksDbStoreOptions options;
+    options.path = absl::StrCat(dir_.path(), "/db");
+    absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+        OpenRocksDbStore(options);
+    ASSERT_TRUE(store.ok()) << store.status();
+    store_ = std::move(*store);
+  }
+
+ private:
+  StoreKind kind_;
+  testing::TempDir dir_;
+  std::unique_ptr<engine::MemoryStore> store_;
+};
+
+FleetRecord Load(engine::MemoryStore& store, std::string_view fleet_id) {
+  absl::StatusOr<FleetRecord> record = store.LoadFleet(fleet_id);
+  EXPECT_TRUE(record.ok()) << record.status();
+  return record.ok() ? std::move(*record) : FleetRecord{};
+}
+
+std::vector<core::MemoryEvent> Events(engine::MemoryStore& store,
+                                      std::string_view fleet_id, uint64_t after,
+                                      size_t limit) {
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      store.ReadEvents(fleet_id, after, limit);
+  EXPECT_TRUE(events.ok()) << events.status();
+  return events.ok() ? std::move(*events) : std::vector<core::MemoryEvent>{};
+}
+
+std::vector<std::string> Fleets(engine::MemoryStore& store) {
+  absl::StatusOr<std::vector<std::string>> fleets = store.ListFleets();
+  EXPECT_TRUE(fleets.ok()) << fleets.status();
+  return fleets.ok() ? std::move(*fleets) : std::vector<std::string>{};
+}
+
+// ---------------------------------------------------------------------------
+// Round trips: mutations applied to fleet "f", then the record that
+// LoadFleet must return, before and after reopening.
+
+struct RoundTripCase {
+  std::string name;
+  std::vector<FleetMutation> mutations;
+  FleetRecord want;
+};
+
+void PrintTo(const RoundTripCase& c, std::ostream* os) { *os << c.name; }
+
+FleetRecord Want() {
+  FleetRecord record;
+  record.fleet_id = "f";
+  return record;
+}
+
+std::vector<RoundTripCase> RoundTripCases() {
+  std::vector<RoundTripCase> cases;
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "Meta";
+    FleetMutation& m = c.mutations.emplace_back();
+    m.put_meta = true;
+    m.meta = MakeMeta(7);
+    c.want = Want();
+    c.want.meta = MakeMeta(7);
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "PendingPutOverwriteErase";
+    FleetMutation& put = c.mutations.emplace_back();
+    put.put_pending = {MakeTrace("r1", 3), MakeTrace("r0", 7),
+                       MakeTrace("r1", 1), MakeTrace("r10", 2),
+                       MakeTrace("r1", 256)};
+    FleetMutation& change = c.mutations.emplace_back();
+    core::MemoryTrace changed = MakeTrace("r1", 3);
+    changed.reward = 9.5f;
+    changed.code = {1.0f, 2.0f};
+    change.put_pending = {changed};
+    change.erase_pending = {{"r0", 7}, {"r0", 8}, {"nobody", 1}};
+    c.want = Want();
+    c.want.pending = {MakeTrace("r1", 1), changed, MakeTrace("r1", 256),
+                      MakeTrace("r10", 2)};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "EraseThenPutInOneMutation";
+    c.mutations.emplace_back().put_pending = {MakeTrace("r", 1)};
+    FleetMutation& m = c.mutations.emplace_back();
+    core::MemoryTrace again = MakeTrace("r", 1);
+    again.domain = "again";
+    m.erase_pending = {{"r", 1}};
+    m.put_pending = {again};
+    c.want = Want();
+    c.want.pending = {again};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "ClustersByIdTracesInGivenOrder";
+    core::Cluster seven = MakeCluster(7, "r1", {5, 2, 9});
+    core::Cluster three = MakeCluster(3, "r2", {1, 4});
+    core::Cluster sent = seven;
+    sent.traces[1].cluster_id = 0;  // the store sets it
+    c.mutations.emplace_back().put_clusters = {sent, three};
+    c.want = Want();
+    c.want.clusters = {three, seven};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "EraseClusterErasesItsTraces";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {1, 2}),
+                                               MakeCluster(2, "r", {3})};
+    c.mutations.emplace_back().erase_clusters = {1, 99};
+    // The id comes back with other traces: none of the old ones may reappear.
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {100})};
+    c.want = Want();
+    c.want.clusters = {MakeCluster(1, "r", {100}), MakeCluster(2, "r", {3})};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "PutClusterReplacesItsMembers";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {1, 2, 3})};
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {3, 4})};
+    // Erasing a trace that was dropped is a no-op, not a corruption.
+    c.mutations.emplace_back().erase_traces = {{"r", 1}};
+    c.want = Want();
+    c.want.clusters = {MakeCluster(1, "r", {3, 4})};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "TraceMovesBetweenClusters";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {1, 2})};
+    c.mutations.emplace_back().put_clusters = {MakeCluster(2, "r", {2, 3})};
+    // Cluster 1 no longer owns r/2: erasing it must leave r/2 in cluster 2.
+    c.mutations.emplace_back().erase_clusters = {1};
+    c.want = Want();
+    c.want.clusters = {MakeCluster(2, "r", {2, 3})};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "EraseAndPutClusterInOneMutation";  // erasures come first
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {1, 2})};
+    FleetMutation& m = c.mutations.emplace_back();
+    m.erase_clusters = {1};
+    m.put_clusters = {MakeCluster(1, "r", {2, 3})};
+    c.want = Want();
+    c.want.clusters = {MakeCluster(1, "r", {2, 3})};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "UpdateTracesKeepsClusterIgnoresUnknown";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(4, "r", {1, 2})};
+    core::MemoryTrace replayed = MakeTrace("r", 2);  // cluster_id 0
+    replayed.replay_count = 5;
+    FleetMutation& m = c.mutations.emplace_back();
+    m.update_traces = {replayed, MakeTrace("r", 99)};
+    replayed.replay_count = 6;
+    c.mutations.emplace_back().update_traces = {replayed};
+    c.want = Want();
+    core::Cluster want = MakeCluster(4, "r", {1, 2});
+    want.traces[1].replay_count = 6;
+    c.want.clusters = {want};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "EraseSingleTraces";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(4, "r", {1, 2, 3}),
+                                               MakeCluster(5, "q", {1})};
+    c.mutations.emplace_back().erase_traces = {{"r", 2}, {"r", 50}, {"q", 1}};
+    c.want = Want();
+    c.want.clusters = {MakeCluster(4, "r", {1, 3}), MakeCluster(5, "q", {})};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "RobotsSeqSetIntervals";
+    c.mutations.emplace_back().put_robots = {
+        MakeRobot("r2", {{1, 5}, {7, 7}, {10, 20}}, 42), MakeRobot("r1", {}, 0),
+        MakeRobot("r10", {{3, 3}, {UINT64_MAX - 1, UINT64_MAX}}, 1)};
+    c.mutations.emplace_back().put_robots = {MakeRobot("r1", {{1, 1}}, 8)};
+    c.want = Want();
+    c.want.robots = {
+        MakeRobot("r1", {{1, 1}}, 8),
+        MakeRobot("r10", {{3, 3}, {UINT64_MAX - 1, UINT64_MAX}}, 1),
+        MakeRobot("r2", {{1, 5}, {7, 7}, {10, 20}}, 42)};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "ConsolidationInOneMutation";
+    c.mutations.emplace_back().put_pending = {
+        MakeTrace("r", 1), MakeTrace("r", 2), MakeTrace("r", 3)};
+    FleetMutation& m = c.mutations.emplace_back();
+    m.put_meta = true;
+    m.meta = MakeMeta(1);
+    m.erase_pending = {{"r", 1}, {"r", 2}};
+    m.put_clusters = {MakeCluster(1, "r", {2, 1})};
+    m.put_robots = {MakeRobot("r", {{1, 3}}, 0)};
+    m.append_events = {MakeEvent(1, EventType::kClusterAdded, 1)};
+    c.want = Want();
+    c.want.meta = MakeMeta(1);
+    c.want.pending = {MakeTrace("r", 3)};
+    c.want.clusters = {MakeCluster(1, "r", {2, 1})};
+    c.want.robots = {MakeRobot("r", {{1, 3}}, 0)};
+  }
+  return cases;
+}
+
+class RoundTripTest
+    : public ::testing::TestWithParam<std::tuple<StoreKind, RoundTripCase>> {};
+
+TEST_P(RoundTripTest, LoadReturnsWhatWasApplied) {
+  const auto& [kind, c] = GetParam();
+  StoreHarness harness(kind);
+  for (const FleetMutation& m : c.mutations) {
+    ASSERT_TRUE(harness.store().Apply("f", m).ok());
+  }
+  EXPECT_EQ(Dump(Load(harness.store(), "f")), Dump(c.want));
+  harness.Reopen();
+  EXPECT_EQ(Dump(Load(harness.store(), "f")), Dump(c.want)) << "after reopen";
+  EXPECT_EQ(Fleets(harness.store()), std::vector<std::string>{"f"});
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    BothStores, RoundTripTest,
+    ::testing::Combine(::testing::Values(StoreKind::kInMemory,
+                                         StoreKind::kRocksDb),
+                       ::testing::ValuesIn(RoundTripCases())),
+    [](const auto& info) {
+      return absl::StrCat(KindName(std::get<0>(info.param)), "_",
+                          std::get<1>(info.param).name);
+    });
+
+// ---------------------------------------------------------------------------
+// Behaviour beyond one fleet's record.
+
+class StoreTest : public ::testing::TestWithParam<StoreKind> {
+ protected:
+  StoreTest() : harness_(GetParam()) {}
+  engine::MemoryStore& store() { return harness_.store(); }
+
+  StoreHarness harness_;
+};
+
+TEST_P(StoreTest, EmptyStore) {
+  EXPECT_TRUE(Fleets(store()).empty());
+  EXPECT_EQ(Dump(Load(store(), "nobody")), Dump([] {
+              FleetRecord r;
+              r.fleet_id = "nobody";
+              return r;
+            }()));
+  EXPECT_TRUE(Events(store(), "nobody", 0, 10).empty());
+}
+
+TEST_P(StoreTest, EventsAfterCursorWithLimit) {
+  std::vector<core::MemoryEvent> all;
+  for (uint64_t id = 1; id <= 300; ++id) {
+    all.push_back(MakeEvent(
+        id,
+        id % 4 == 0 ? EventType::kClusterForgotten : EventType::kClusterAdded,
+        id / 2));
+  }
+  FleetMutation first;
+  first.append_events.assign(all.begin(), all.begin() + 200);
+  FleetMutation second;
+  second.append_events.assign(all.begin() + 200, all.end());
+  ASSERT_TRUE(store().Apply("f", first).ok());
+  ASSERT_TRUE(store().Apply("f", second).ok());
+  FleetMutation other;  // another fleet's events stay out of f's stream
+  other.append_events = {MakeEvent(301, EventType::kClusterAdded, 1)};
+  ASSERT_TRUE(store().Apply("f1", other).ok());
+
+  auto slice = [&](size_t begin, size_t end) {
+    return std::vector<core::MemoryEvent>(all.begin() + begin,
+                                          all.begin() + end);
+  };
+  struct Case {
+    uint64_t after;
+    size_t limit;
+    std::vector<core::MemoryEvent> want;
+  };
+  const std::vector<Case> cases = {
+      {0, 1000, all},
+      {0, 3, slice(0, 3)},
+      {3, 4, slice(3, 7)},
+      {255, 2, slice(255, 257)},  // crosses a byte
+      {298, 10, slice(298, 300)},
+      {300, 10, {}},
+      {5, 0, {}},
+      {UINT64_MAX, 10, {}},
+  };
+  for (const Case& c : cases) {
+    EXPECT_EQ(Dump(Events(store(), "f", c.after, c.limit)), Dump(c.want))
+        << "after " << c.after << " limit " << c.limit;
+  }
+  harness_.Reopen();
+  EXPECT_EQ(Dump(Events(store(), "f", 100, 1000)), Dump(slice(100, 300)));
+  EXPECT_EQ(Dump(Events(store(), "f1", 0, 1000)), Dump(other.append_events));
+}
+
+TEST_P(StoreTest, FleetsAreIsolated) {
+  // "f" is a byte prefix of the others: their keys must never mix.
+  const std::vector<std::string> fleets = {"f", "f1", "f.1", "g"};
+  for (size_t i = 0; i < fleets.size(); ++i) {
+    FleetMutation m;
+    m.put_meta = true;
+    m.meta = MakeMeta(i);
+    m.put_pending = {MakeTrace("r", i + 1)};
+    m.put_clusters = {MakeCluster(1, "r", {100 + i})};
+    m.put_robots = {MakeRobot("r", {{1, i + 1}}, i)};
+    m.append_events = {MakeEvent(1, EventType::kClusterAdded, 1)};
+    ASSERT_TRUE(store().Apply(fleets[i], m).ok());
+  }
+  // Erasing everything of "f" leaves the others whole.
+  FleetMutation erase;
+  erase.erase_pending = {{"r", 1}, {"r", 2}, {"r", 3}};
+  erase.erase_clusters = {1};
+  ASSERT_TRUE(store().Apply("f", erase).ok());
+
+  for (int reopen = 0; reopen < 2; ++reopen) {
+    if (reopen) harness_.Reopen();
+    for (size_t i = 0; i < fleets.size(); ++i) {
+      FleetRecord want;
+      want.fleet_id = fleets[i];
+      want.meta = MakeMeta(i);
+      if (i > 0) {
+        want.pending = {MakeTrace("r", i + 1)};
+        want.clusters = {MakeCluster(1, "r", {100 + i})};
+      }
+      want.robots = {MakeRobot("r", {{1, i + 1}}, i)};
+      EXPECT_EQ(Dump(Load(store(), fleets[i])), Dump(want));
+      EXPECT_EQ(Events(store(), fleets[i], 0, 10).size(), 1u) << fleets[i];
+    }
+    EXPECT_EQ(Fleets(store()),
+              (std::vector<std::string>{"f", "f.1", "f1", "g"}));
+  }
+}
+
+TEST_P(StoreTest, ListFleetsListsEveryFleetWithARecord) {
+  FleetMutation pending_only;
+  pending_only.put_pending = {MakeTrace("r", 1)};
+  FleetMutation meta_only;
+  meta_only.put_meta = true;
+  FleetMutation events_only;
+  events_only.append_events = {MakeEvent(4, EventType::kClusterAdded, 1)};
+  ASSERT_TRUE(store().Apply("b", meta_only).ok());
+  ASSERT_TRUE(store().Apply("a", pending_only).ok());
+  ASSERT_TRUE(store().Apply("c", events_only).ok());
+  ASSERT_TRUE(store().Apply("d", FleetMutation{}).ok());  // stores nothing
+  EXPECT_EQ(Fleets(store()), (std::vector<std::string>{"a", "b", "c"}));
+
+  FleetMutation erase;
+  erase.erase_pending = {{"r", 1}};
+  ASSERT_TRUE(store().Apply("a", erase).ok());
+  harness_.Reopen();
+  EXPECT_EQ(Fleets(store()), (std::vector<std::string>{"b", "c"}));
+}
+
+TEST_P(StoreTest, InvalidMutationsChangeNothing) {
+  struct Case {
+    std::string name;
+    std::string fleet_id;
+    FleetMutation mutation;
+  };
+  std::vector<Case> cases;
+  auto add = [&](std::string name, std::string fleet_id) -> FleetMutation& {
+    Case& c = cases.emplace_back();
+    c.name = std::move(name);
+    c.fleet_id = std::move(fleet_id);
+    // A valid change that must not be applied along with the invalid one.
+    c.mutation.put_pending = {MakeTrace("ok", 1)};
+    return c.mutation;
+  };
+  add("empty fleet", "");
+  add("NUL in fleet", std::string("f\0x", 3));
+  add("NUL in robot", "f")
+      .put_pending.push_back(MakeTrace(std::string("r\0", 2), 2));
+  add("NUL in erased key", "f").erase_traces = {{std::string("\0", 1), 1}};
+  add("cluster id 0", "f").put_clusters = {MakeCluster(0, "r", {1})};
+  add("cluster twice", "f").put_clusters = {MakeCluster(2, "r", {1}),
+                                            MakeCluster(2, "r", {2})};
+  add("trace in two clusters", "f").put_clusters = {MakeCluster(2, "r", {1}),
+                                                    MakeCluster(3, "r", {1})};
+  add("event id 0", "f").append_events = {
+      MakeEvent(0, EventType::kClusterAdded, 1)};
+  for (const Case& c : cases) {
+    EXPECT_EQ(store().Apply(c.fleet_id, c.mutation).code(),
+              absl::StatusCode::kInvalidArgument)
+        << c.name;
+  }
+  EXPECT_TRUE(Fleets(store()).empty());
+  EXPECT_EQ(store().LoadFleet("").status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+TEST_P(StoreTest, ScriptedWorkloadMatchesInMemoryReference) {
+  const std::vector<FleetMutation> script = testing::ScriptedMutations(40);
+  std::unique_ptr<engine::MemoryStore> reference = NewInMemoryStore();
+  for (const FleetMutation& m : script) {
+    ASSERT_TRUE(reference->Apply("fleet", m).ok());
+  }
+  // Four fleets written from four threads at once.
+  std::vector<std::thread> writers;
+  for (int t = 0; t < 4; ++t) {
+    writers.emplace_back([&, t] {
+      for (const FleetMutation& m : script) {
+        EXPECT_TRUE(store().Apply(absl::StrCat("fleet", t), m).ok());
+        EXPECT_TRUE(store().LoadFleet(absl::StrCat("fleet", t)).ok());
+      }
+    });
+  }
+  for (std::thread& writer : writers) writer.join();
+  FleetRecord want = Load(*reference, "fleet");
+  ASSERT_FALSE(want.clusters.empty());
+  ASSERT_FALSE(want.pending.empty());
+  const std::vector<core::MemoryEvent> want_events =
+      Events(*reference, "fleet", 0, 1000);
+  for (int t = 0; t < 4; ++t) {
+    want.fleet_id = absl::StrCat("fleet", t);
+    EXPECT_EQ(Dump(Load(store(), want.fleet_id)), Dump(want));
+    EXPECT_EQ(Dump(Events(store(), want.fleet_id, 0, 1000)), Dump(want_events));
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(BothStores, StoreTest,
+                         ::testing::Values(StoreKind::kInMemory,
+                                           StoreKind::kRocksDb),
+                         [](const auto& info) { return KindName(info.param); });
+
+}  // namespace
+}  // namespace fleetmem::storage

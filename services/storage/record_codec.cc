@@ -1,0 +1,253 @@
+#include "services/storage/record_codec.h"
+
+#include <optional>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "services/core/seq_set.h"
+#include "services/storage/keys.h"
+#include "services/storage/records.pb.h"
+
+namespace fleetmem::storage {
+namespace {
+
+// Debian's absl has its own string_view type, distinct from std::string_view.
+absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
+
+absl::Status Corrupt(std::string_view key, std::string_view what) {
+  return absl::DataLossError(
+      absl::StrCat("corrupt record at ", keys::Describe(key), ": ", V(what)));
+}
+
+template <typename Message>
+absl::Status Parse(std::string_view key, std::string_view value,
+                   Message* message) {
+  if (!message->ParseFromArray(value.data(), static_cast<int>(value.size()))) {
+    return Corrupt(key, absl::StrCat("cannot parse ", message->GetTypeName()));
+  }
+  return absl::OkStatus();
+}
+
+// The key's suffix, if `key` has `tag` (the fleet is not checked: the store
+// only reads keys inside the fleet's range).
+std::optional<std::string_view> SuffixOf(std::string_view key, keys::Tag tag) {
+  const std::optional<keys::ParsedKey> parsed = keys::Parse(key);
+  if (!parsed || parsed->tag != tag) return std::nullopt;
+  return parsed->suffix;
+}
+
+void ToProto(const core::Place& place, Place* out) {
+  out->set_x(place.x);
+  out->set_y(place.y);
+  out->set_z(place.z);
+  out->set_yaw(place.yaw);
+}
+
+core::Place FromProto(const Place& place) {
+  return core::Place{place.x(), place.y(), place.z(), place.yaw()};
+}
+
+}  // namespace
+
+std::string EncodeMeta(const engine::FleetMeta& meta) {
+  Meta record;
+  record.set_code_dimension(meta.code_dimension);
+  record.set_encoder_version(meta.encoder_version);
+  record.set_next_cluster_id(meta.next_cluster_id);
+  record.set_next_event_id(meta.next_event_id);
+  record.set_consolidations(meta.consolidations);
+  record.set_clusters_forgotten(meta.clusters_forgotten);
+  return record.SerializeAsString();
+}
+
+absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
+                                             std::string_view value) {
+  Meta record;
+  if (absl::Status status = Parse(key, value, &record); !status.ok()) {
+    return status;
+  }
+  engine::FleetMeta meta;
+  meta.code_dimension = record.code_dimension();
+  meta.encoder_version = record.encoder_version();
+  meta.next_cluster_id = record.next_cluster_id();
+  meta.next_event_id = record.next_event_id();
+  meta.consolidations = record.consolidations();
+  meta.clusters_forgotten = record.clusters_forgotten();
+  return meta;
+}
+
+std::string EncodeTrace(const core::MemoryTrace& trace) {
+  Trace record;
+  record.set_robot_id(trace.robot_id);
+  record.set_seq(trace.seq);
+  record.set_domain(trace.domain);
+  record.mutable_code()->Add(trace.code.begin(), trace.code.end());
+  ToProto(trace.place, record.mutable_place());
+  record.set_reward(trace.reward);
+  record.set_reward_external(trace.reward_external);
+  record.set_reward_internal(trace.reward_internal);
+  record.set_timestamp_ns(trace.timestamp_ns);
+  record.set_replay_count(trace.replay_count);
+  record.set_encoder_version(trace.encoder_version);
+  record.set_cluster_id(trace.cluster_id);
+  return record.SerializeAsString();
+}
+
+absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
+                                              std::string_view value) {
+  Trace record;
+  if (absl::Status status = Parse(key, value, &record); !status.ok()) {
+    return status;
+  }
+  std::optional<std::string_view> suffix = SuffixOf(key, keys::Tag::kTrace);
+  if (!suffix) suffix = SuffixOf(key, keys::Tag::kPending);
+  const std::optional<core::TraceKey> key_of_record =
+      suffix ? keys::ParseTraceSuffix(*suffix) : std::nullopt;
+  if (!key_of_record || key_of_record->robot_id != record.robot_id() ||
+      key_of_record->seq != record.seq()) {
+    return Corrupt(key, "trace does not match its key");
+  }
+  core::MemoryTrace trace;
+  trace.robot_id = record.robot_id();
+  trace.seq = record.seq();
+  trace.domain = record.domain();
+  trace.code.assign(record.code().begin(), record.code().end());
+  trace.place = FromProto(record.place());
+  trace.reward = record.reward();
+  trace.reward_external = record.reward_external();
+  trace.reward_internal = record.reward_internal();
+  trace.timestamp_ns = record.timestamp_ns();
+  trace.replay_count = record.replay_count();
+  trace.encoder_version = record.encoder_version();
+  trace.cluster_id = record.cluster_id();
+  return trace;
+}
+
+std::string EncodeCluster(const StoredCluster& cluster) {
+  Cluster record;
+  record.set_id(cluster.id);
+  record.set_robot_id(cluster.robot_id);
+  record.mutable_centroid()->Add(cluster.centroid.begin(),
+                                 cluster.centroid.end());
+  for (const core::TraceKey& member : cluster.members) {
+    TraceKey* out = record.add_members();
+    out->set_robot_id(member.robot_id);
+    out->set_seq(member.seq);
+  }
+  return record.SerializeAsString();
+}
+
+absl::StatusOr<StoredCluster> DecodeCluster(std::string_view key,
+                                            std::string_view value) {
+  Cluster record;
+  if (absl::Status status = Parse(key, value, &record); !status.ok()) {
+    return status;
+  }
+  const std::optional<std::string_view> suffix =
+      SuffixOf(key, keys::Tag::kCluster);
+  const std::optional<uint64_t> id =
+      suffix ? keys::ParseIdSuffix(*suffix) : std::nullopt;
+  if (!id || *id != record.id()) {
+    return Corrupt(key, "cluster does not match its key");
+  }
+  StoredCluster cluster;
+  cluster.id = record.id();
+  cluster.robot_id = record.robot_id();
+  cluster.centroid.assign(record.centroid().begin(), record.centroid().end());
+  cluster.members.reserve(record.members_size());
+  for (const TraceKey& member : record.members()) {
+    cluster.members.push_back(core::TraceKey{member.robot_id(), member.seq()});
+  }
+  return cluster;
+}
+
+std::string EncodeRobot(const engine::RobotRecord& robot) {
+  Robot record;
+  record.set_robot_id(robot.robot_id);
+  for (const core::SeqSet::Interval& interval : robot.received.Intervals()) {
+    SeqInterval* out = record.add_received();
+    out->set_first(interval.first);
+    out->set_last(interval.second);
+  }
+  record.set_replayed(robot.replayed);
+  return record.SerializeAsString();
+}
+
+absl::StatusOr<engine::RobotRecord> DecodeRobot(std::string_view key,
+                                                std::string_view value) {
+  Robot record;
+  if (absl::Status status = Parse(key, value, &record); !status.ok()) {
+    return status;
+  }
+  const std::optional<std::string_view> suffix =
+      SuffixOf(key, keys::Tag::kRobot);
+  if (!suffix || *suffix != record.robot_id()) {
+    return Corrupt(key, "robot does not match its key");
+  }
+  std::vector<core::SeqSet::Interval> intervals;
+  intervals.reserve(record.received_size());
+  for (const SeqInterval& interval : record.received()) {
+    if (interval.first() > interval.last()) {
+      return Corrupt(key, "interval with first > last");
+    }
+    intervals.emplace_back(interval.first(), interval.last());
+  }
+  engine::RobotRecord robot;
+  robot.robot_id = record.robot_id();
+  robot.received = core::SeqSet::FromIntervals(intervals);
+  robot.replayed = record.replayed();
+  return robot;
+}
+
+std::string EncodeEvent(const core::MemoryEvent& event) {
+  Event record;
+  record.set_id(event.id);
+  record.set_type(event.type == core::EventType::kClusterForgotten
+                      ? EVENT_TYPE_CLUSTER_FORGOTTEN
+                      : EVENT_TYPE_CLUSTER_ADDED);
+  record.set_cluster_id(event.cluster_id);
+  record.set_trace_count(event.trace_count);
+  record.set_robot_id(event.robot_id);
+  record.set_domain(event.domain);
+  ToProto(event.centroid_place, record.mutable_centroid_place());
+  record.set_mean_reward(event.mean_reward);
+  record.set_timestamp_ns(event.timestamp_ns);
+  return record.SerializeAsString();
+}
+
+absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
+                                              std::string_view value) {
+  Event record;
+  if (absl::Status status = Parse(key, value, &record); !status.ok()) {
+    return status;
+  }
+  const std::optional<std::string_view> suffix =
+      SuffixOf(key, keys::Tag::kEvent);
+  const std::optional<uint64_t> id =
+      suffix ? keys::ParseIdSuffix(*suffix) : std::nullopt;
+  if (!id || *id != record.id()) {
+    return Corrupt(key, "event does not match its key");
+  }
+  core::MemoryEvent event;
+  switch (record.type()) {
+    case EVENT_TYPE_CLUSTER_ADDED:
+      event.type = core::EventType::kClusterAdded;
+      break;
+    case EVENT_TYPE_CLUSTER_FORGOTTEN:
+      event.type = core::EventType::kClusterForgotten;
+      break;
+    default:
+      return Corrupt(key, absl::StrCat("unknown event type ", record.type()));
+  }
+  event.id = record.id();
+  event.cluster_id = record.cluster_id();
+  event.trace_count = record.trace_count();
+  event.robot_id = record.robot_id();
+  event.domain = record.domain();
+  event.centroid_place = FromProto(record.centroid_place());
+  event.mean_reward = record.mean_reward();
+  event.timestamp_ns = record.timestamp_ns();
+  return event;
+}
+
+}  // namespace fleetmem::storage

@@ -1,0 +1,52 @@
+// Values of the RocksDB store: domain types <-> records.proto bytes.
+// Internal to services/storage; the protobuf types stay in record_codec.cc.
+//
+// Every Decode* returns DATA_LOSS naming `key` (keys::Describe) when the bytes
+// do not parse or do not match the key they were read from.
+#ifndef FLEETMEM_SERVICES_STORAGE_RECORD_CODEC_H_
+#define FLEETMEM_SERVICES_STORAGE_RECORD_CODEC_H_
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "services/core/types.h"
+#include "services/engine/memory_store.h"
+
+namespace fleetmem::storage {
+
+// A cluster as stored: its traces are separate records, listed by key in the
+// cluster's order.
+struct StoredCluster {
+  uint64_t id = 0;
+  std::string robot_id;
+  std::vector<float> centroid;
+  std::vector<core::TraceKey> members;
+};
+
+std::string EncodeMeta(const engine::FleetMeta& meta);
+absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
+                                             std::string_view value);
+
+// Pending and static-memory traces alike (cluster_id is 0 while pending).
+std::string EncodeTrace(const core::MemoryTrace& trace);
+absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
+                                              std::string_view value);
+
+std::string EncodeCluster(const StoredCluster& cluster);
+absl::StatusOr<StoredCluster> DecodeCluster(std::string_view key,
+                                            std::string_view value);
+
+std::string EncodeRobot(const engine::RobotRecord& robot);
+absl::StatusOr<engine::RobotRecord> DecodeRobot(std::string_view key,
+                                                std::string_view value);
+
+std::string EncodeEvent(const core::MemoryEvent& event);
+absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
+                                              std::string_view value);
+
+}  // namespace fleetmem::storage
+
+#endif  // FLEETMEM_SERVICES_STORAGE_RECORD_CODEC_H_

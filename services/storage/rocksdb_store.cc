@@ -1,0 +1,612 @@
+#include "services/storage/rocksdb_store.h"
+
+#include <algorithm>
+#include <exception>
+#include <filesystem>
+#include <map>
+#include <optional>
+#include <set>
+#include <string>
+#include <system_error>
+#include <utility>
+#include <vector>
+
+#include "absl/functional/function_ref.h"
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
+#include "rocksdb/cache.h"
+#include "rocksdb/convenience.h"
+#include "rocksdb/db.h"
+#include "rocksdb/filter_policy.h"
+#include "rocksdb/iterator.h"
+#include "rocksdb/options.h"
+#include "rocksdb/table.h"
+#include "rocksdb/write_batch.h"
+#include "services/common/log.h"
+#include "services/storage/keys.h"
+#include "services/storage/mutation_checks.h"
+#include "services/storage/record_codec.h"
+
+namespace fleetmem::storage {
+namespace {
+
+using core::TraceKey;
+
+// Debian's absl has its own string_view type, distinct from std::string_view.
+absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
+
+rocksdb::Slice ToSlice(std::string_view bytes) {
+  return rocksdb::Slice(bytes.data(), bytes.size());
+}
+
+std::string_view ToView(const rocksdb::Slice& slice) {
+  return std::string_view(slice.data(), slice.size());
+}
+
+// The one place where RocksDB statuses become absl ones. `what` says which
+// operation failed ("open '/var/lib/fleetmem'", "write fleet f1").
+absl::Status FromRocksDb(const rocksdb::Status& status, std::string_view what) {
+  if (status.ok()) return absl::OkStatus();
+  const std::string message =
+      absl::StrCat("RocksDB ", V(what), ": ", status.ToString());
+  if (status.IsNoSpace()) return absl::ResourceExhaustedError(message);
+  switch (status.code()) {
+    case rocksdb::Status::kCorruption:
+      return absl::DataLossError(message);
+    case rocksdb::Status::kInvalidArgument:
+      return absl::InvalidArgumentError(message);
+    case rocksdb::Status::kNotFound:
+      return absl::NotFoundError(message);
+    case rocksdb::Status::kIOError:
+    case rocksdb::Status::kBusy:
+    case rocksdb::Status::kTimedOut:
+    case rocksdb::Status::kTryAgain:
+    case rocksdb::Status::kShutdownInProgress:
+    case rocksdb::Status::kAborted:
+      return absl::UnavailableError(message);
+    default:
+      return absl::InternalError(message);
+  }
+}
+
+// Releases a snapshot when leaving a scope.
+class ScopedSnapshot {
+ public:
+  explicit ScopedSnapshot(rocksdb::DB* db)
+      : db_(db), snapshot_(db->GetSnapshot()) {}
+  ~ScopedSnapshot() { db_->ReleaseSnapshot(snapshot_); }
+  ScopedSnapshot(const ScopedSnapshot&) = delete;
+  ScopedSnapshot& operator=(const ScopedSnapshot&) = delete;
+
+  rocksdb::ReadOptions ReadOptions() const {
+    rocksdb::ReadOptions options;
+    options.snapshot = snapshot_;
+    return options;
+  }
+
+ private:
+  rocksdb::DB* db_;
+  const rocksdb::Snapshot* snapshot_;
+};
+
+// Calls `visit(key, value)` for each key in [begin, end), ascending, until it
+// returns false or an error.
+absl::Status ForEachInRange(
+    rocksdb::DB* db, rocksdb::ReadOptions options, std::string_view begin,
+    std::string_view end,
+    absl::FunctionRef<absl::StatusOr<bool>(std::string_view, std::string_view)>
+        visit) {
+  const rocksdb::Slice upper_bound = ToSlice(end);
+  options.iterate_upper_bound = &upper_bound;
+  std::unique_ptr<rocksdb::Iterator> it(db->NewIterator(options));
+  for (it->Seek(ToSlice(begin)); it->Valid(); it->Next()) {
+    absl::StatusOr<bool> more = visit(ToView(it->key()), ToView(it->value()));
+    if (!more.ok()) return more.status();
+    if (!*more) break;
+  }
+  return FromRocksDb(it->status(), "scan");
+}
+
+// The changes of one Apply, staged by key so that later steps read what
+// earlier steps wrote; turned into one WriteBatch at the end.
+class Staging {
+ public:
+  explicit Staging(rocksdb::DB* db) : db_(db) {}
+
+  // The value of `key` as the mutation has left it so far; nullopt if absent.
+  absl::StatusOr<std::optional<std::string>> Get(const std::string& key) {
+    if (auto staged = writes_.find(key); staged != writes_.end()) {
+      return staged->second;
+    }
+    std::string value;
+    const rocksdb::Status status =
+        db_->Get(rocksdb::ReadOptions(), ToSlice(key), &value);
+    if (status.IsNotFound()) return std::nullopt;
+    if (!status.ok()) return FromRocksDb(status, "read");
+    return value;
+  }
+
+  void Put(std::string key, std::string value) {
+    writes_[std::move(key)] = std::move(value);
+  }
+  void Delete(std::string key) { writes_[std::move(key)] = std::nullopt; }
+
+  // Erasures first, then puts.
+  rocksdb::WriteBatch ToBatch() const {
+    rocksdb::WriteBatch batch;
+    for (const auto& [key, value] : writes_) {
+      if (!value) batch.Delete(ToSlice(key));
+    }
+    for (const auto& [key, value] : writes_) {
+      if (value) batch.Put(ToSlice(key), ToSlice(*value));
+    }
+    return batch;
+  }
+
+ private:
+  rocksdb::DB* db_;
+  std::map<std::string, std::optional<std::string>> writes_;
+};
+
+// Runs one FleetMutation against a Staging (see the rules in the header).
+class MutationWriter {
+ public:
+  MutationWriter(std::string_view fleet_id, Staging* staging)
+      : fleet_id_(fleet_id), staging_(staging) {}
+
+  absl::Status Run(const engine::FleetMutation& m) {
+    for (const TraceKey& key : m.erase_pending) {
+      staging_->Delete(keys::PendingKey(fleet_id_, key));
+    }
+    for (uint64_t id : m.erase_clusters) {
+      if (absl::Status status = EraseCluster(id); !status.ok()) return status;
+    }
+    for (const TraceKey& key : m.erase_traces) {
+      if (absl::Status status = EraseTrace(key); !status.ok()) return status;
+    }
+    if (m.put_meta) staging_->Put(keys::MetaKey(fleet_id_), EncodeMeta(m.meta));
+    for (const core::MemoryTrace& trace : m.put_pending) {
+      staging_->Put(keys::PendingKey(fleet_id_, trace.key()),
+                    EncodeTrace(trace));
+    }
+    for (const core::Cluster& cluster : m.put_clusters) {
+      if (absl::Status status = PutCluster(cluster); !status.ok()) {
+        return status;
+      }
+    }
+    for (const core::MemoryTrace& trace : m.update_traces) {
+      if (absl::Status status = UpdateTrace(trace); !status.ok()) {
+        return status;
+      }
+    }
+    for (const engine::RobotRecord& robot : m.put_robots) {
+      staging_->Put(keys::RobotKey(fleet_id_, robot.robot_id),
+                    EncodeRobot(robot));
+    }
+    for (const core::MemoryEvent& event : m.append_events) {
+      staging_->Put(keys::EventKey(fleet_id_, event.id), EncodeEvent(event));
+    }
+    return absl::OkStatus();
+  }
+
+ private:
+  absl::StatusOr<std::optional<StoredCluster>> GetCluster(uint64_t id) {
+    const std::string key = keys::ClusterKey(fleet_id_, id);
+    absl::StatusOr<std::optional<std::string>> value = staging_->Get(key);
+    if (!value.ok()) return value.status();
+    if (!value->has_value()) return std::nullopt;
+    absl::StatusOr<StoredCluster> cluster = DecodeCluster(key, **value);
+    if (!cluster.ok()) return cluster.status();
+    return std::move(*cluster);
+  }
+
+  absl::StatusOr<std::optional<core::MemoryTrace>> GetTrace(
+      const TraceKey& trace_key) {
+    const std::string key = keys::TraceKey(fleet_id_, trace_key);
+    absl::StatusOr<std::optional<std::string>> value = staging_->Get(key);
+    if (!value.ok()) return value.status();
+    if (!value->has_value()) return std::nullopt;
+    absl::StatusOr<core::MemoryTrace> trace = DecodeTrace(key, **value);
+    if (!trace.ok()) return trace.status();
+    return std::move(*trace);
+  }
+
+  void PutClusterRecord(const StoredCluster& cluster) {
+    staging_->Put(keys::ClusterKey(fleet_id_, cluster.id),
+                  EncodeCluster(cluster));
+  }
+
+  // Removes `key` from the member list of cluster `cluster_id`, if stored.
+  absl::Status DropMember(uint64_t cluster_id, const TraceKey& key) {
+    absl::StatusOr<std::optional<StoredCluster>> cluster =
+        GetCluster(cluster_id);
+    if (!cluster.ok()) return cluster.status();
+    if (!cluster->has_value()) return absl::OkStatus();
+    std::erase((*cluster)->members, key);
+    PutClusterRecord(**cluster);
+    return absl::OkStatus();
+  }
+
+  absl::Status EraseCluster(uint64_t id) {
+    absl::StatusOr<std::optional<StoredCluster>> cluster = GetCluster(id);
+    if (!cluster.ok()) return cluster.status();
+    if (!cluster->has_value()) return absl::OkStatus();
+    for (const TraceKey& member : (*cluster)->members) {
+      staging_->Delete(keys::TraceKey(fleet_id_, member));
+    }
+    staging_->Delete(keys::ClusterKey(fleet_id_, id));
+    return absl::OkStatus();
+  }
+
+  absl::Status EraseTrace(const TraceKey& key) {
+    absl::StatusOr<std::optional<core::MemoryTrace>> trace = GetTrace(key);
+    if (!trace.ok()) return trace.status();
+    if (!trace->has_value()) return absl::OkStatus();
+    staging_->Delete(keys::TraceKey(fleet_id_, key));
+    return DropMember((*trace)->cluster_id, key);
+  }
+
+  absl::Status PutCluster(const core::Cluster& cluster) {
+    std::set<TraceKey> keep;
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      keep.insert(trace.key());
+    }
+    absl::StatusOr<std::optional<StoredCluster>> old = GetCluster(cluster.id);
+    if (!old.ok()) return old.status();
+    if (old->has_value()) {
+      for (const TraceKey& member : (*old)->members) {
+        if (!keep.contains(member)) {
+          staging_->Delete(keys::TraceKey(fleet_id_, member));
+        }
+      }
+    }
+    StoredCluster stored{cluster.id, cluster.robot_id, cluster.centroid, {}};
+    stored.members.reserve(cluster.traces.size());
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      absl::StatusOr<std::optional<core::MemoryTrace>> existing =
+          GetTrace(trace.key());
+      if (!existing.ok()) return existing.status();
+      if (existing->has_value() && (*existing)->cluster_id != cluster.id) {
+        if (absl::Status status =
+                DropMember((*existing)->cluster_id, trace.key());
+            !status.ok()) {
+          return status;
+        }
+      }
+      core::MemoryTrace copy = trace;
+      copy.cluster_id = cluster.id;
+      staging_->Put(keys::TraceKey(fleet_id_, trace.key()), EncodeTrace(copy));
+      stored.members.push_back(trace.key());
+    }
+    PutClusterRecord(stored);
+    return absl::OkStatus();
+  }
+
+  absl::Status UpdateTrace(const core::MemoryTrace& trace) {
+    absl::StatusOr<std::optional<core::MemoryTrace>> existing =
+        GetTrace(trace.key());
+    if (!existing.ok()) return existing.status();
+    if (!existing->has_value()) return absl::OkStatus();
+    core::MemoryTrace copy = trace;
+    copy.cluster_id = (*existing)->cluster_id;
+    staging_->Put(keys::TraceKey(fleet_id_, trace.key()), EncodeTrace(copy));
+    return absl::OkStatus();
+  }
+
+  std::string_view fleet_id_;
+  Staging* staging_;
+};
+
+class RocksDbStore final : public engine::MemoryStore {
+ public:
+  RocksDbStore(std::unique_ptr<rocksdb::DB> db, std::string path, bool sync)
+      : db_(std::move(db)), path_(std::move(path)) {
+    write_options_.sync = sync;
+  }
+
+  ~RocksDbStore() override {
+    // No iterator or snapshot outlives a call, so the database can close.
+    const rocksdb::Status status = db_->Close();
+    if (!status.ok()) {
+      FLEETMEM_LOG(kWarning)
+          << "closing RocksDB at " << path_ << ": " << status.ToString();
+    }
+  }
+
+  absl::StatusOr<std::vector<std::string>> ListFleets() override {
+    std::set<std::string> fleets;
+    std::unique_ptr<rocksdb::Iterator> it(
+        db_->NewIterator(rocksdb::ReadOptions()));
+    // Skip scan: one seek per (tag, fleet), not one step per record.
+    for (keys::Tag tag : keys::kFleetTags) {
+      it->Seek(ToSlice(std::string(1, static_cast<char>(tag))));
+      while (it->Valid() && it->key().size() > 0 &&
+             it->key()[0] == static_cast<char>(tag)) {
+        const std::optional<keys::ParsedKey> parsed =
+            keys::Parse(ToView(it->key()));
+        if (!parsed) {
+          return absl::DataLossError(
+              absl::StrCat("malformed key in RocksDB at ", path_, ": ",
+                           keys::Describe(ToView(it->key()))));
+        }
+        fleets.emplace(parsed->fleet_id);
+        it->Seek(ToSlice(keys::PrefixEnd(tag, parsed->fleet_id)));
+      }
+      if (absl::Status status = FromRocksDb(it->status(), "list fleets");
+          !status.ok()) {
+        return status;
+      }
+    }
+    return std::vector<std::string>(fleets.begin(), fleets.end());
+  }
+
+  absl::StatusOr<engine::FleetRecord> LoadFleet(
+      std::string_view fleet_id) override {
+    engine::FleetRecord record;
+    record.fleet_id = std::string(fleet_id);
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    ScopedSnapshot snapshot(db_.get());
+    const rocksdb::ReadOptions read = snapshot.ReadOptions();
+
+    const std::string meta_key = keys::MetaKey(fleet_id);
+    std::string value;
+    const rocksdb::Status got = db_->Get(read, ToSlice(meta_key), &value);
+    if (got.ok()) {
+      absl::StatusOr<engine::FleetMeta> meta = DecodeMeta(meta_key, value);
+      if (!meta.ok()) return meta.status();
+      record.meta = std::move(*meta);
+    } else if (!got.IsNotFound()) {
+      return FromRocksDb(got, absl::StrCat("load fleet ", V(fleet_id)));
+    }
+
+    absl::Status status =
+        Scan(read, keys::Tag::kPending, fleet_id,
+             [&](std::string_view key, std::string_view v) {
+               return Append(DecodeTrace(key, v), &record.pending);
+             });
+    if (!status.ok()) return status;
+    status = Scan(read, keys::Tag::kRobot, fleet_id,
+                  [&](std::string_view key, std::string_view v) {
+                    return Append(DecodeRobot(key, v), &record.robots);
+                  });
+    if (!status.ok()) return status;
+
+    std::map<TraceKey, core::MemoryTrace> traces;
+    status = Scan(read, keys::Tag::kTrace, fleet_id,
+                  [&](std::string_view key, std::string_view v) {
+                    absl::StatusOr<core::MemoryTrace> trace =
+                        DecodeTrace(key, v);
+                    if (!trace.ok()) return trace.status();
+                    const TraceKey trace_key = trace->key();
+                    traces.emplace(trace_key, std::move(*trace));
+                    return absl::OkStatus();
+                  });
+    if (!status.ok()) return status;
+    status = Scan(
+        read, keys::Tag::kCluster, fleet_id,
+        [&](std::string_view key, std::string_view v) {
+          absl::StatusOr<StoredCluster> stored = DecodeCluster(key, v);
+          if (!stored.ok()) return stored.status();
+          return Assemble(key, std::move(*stored), &traces, &record.clusters);
+        });
+    if (!status.ok()) return status;
+    if (!traces.empty()) {
+      const TraceKey& orphan = traces.begin()->first;
+      return absl::DataLossError(
+          absl::StrCat("corrupt record at ",
+                       keys::Describe(keys::TraceKey(fleet_id, orphan)),
+                       ": trace of cluster ", traces.begin()->second.cluster_id,
+                       " which does not list it"));
+    }
+    return record;
+  }
+
+  absl::Status Apply(std::string_view fleet_id,
+                     const engine::FleetMutation& mutation) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    if (absl::Status status = internal::CheckMutation(mutation); !status.ok()) {
+      return status;
+    }
+    // Serialised: the staged reads must see every earlier Apply's writes and
+    // no concurrent one's.
+    absl::MutexLock lock(&apply_mu_);
+    Staging staging(db_.get());
+    if (absl::Status status = MutationWriter(fleet_id, &staging).Run(mutation);
+        !status.ok()) {
+      return status;
+    }
+    rocksdb::WriteBatch batch = staging.ToBatch();
+    if (batch.Count() == 0) return absl::OkStatus();
+    return FromRocksDb(db_->Write(write_options_, &batch),
+                       absl::StrCat("write fleet ", V(fleet_id)));
+  }
+
+  absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
+      std::string_view fleet_id, uint64_t after_event, size_t limit) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    std::vector<core::MemoryEvent> events;
+    if (limit == 0 || after_event == UINT64_MAX) return events;
+    const absl::Status status = ForEachInRange(
+        db_.get(), rocksdb::ReadOptions(),
+        keys::EventKey(fleet_id, after_event + 1),
+        keys::PrefixEnd(keys::Tag::kEvent, fleet_id),
+        [&](std::string_view key,
+            std::string_view value) -> absl::StatusOr<bool> {
+          absl::StatusOr<core::MemoryEvent> event = DecodeEvent(key, value);
+          if (!event.ok()) return event.status();
+          events.push_back(std::move(*event));
+          return events.size() < limit;
+        });
+    if (!status.ok()) return status;
+    return events;
+  }
+
+ private:
+  template <typename T>
+  static absl::Status Append(absl::StatusOr<T> value, std::vector<T>* out) {
+    if (!value.ok()) return value.status();
+    out->push_back(std::move(*value));
+    return absl::OkStatus();
+  }
+
+  // Visits every record of (tag, fleet), ascending by key.
+  absl::Status Scan(
+      const rocksdb::ReadOptions& read, keys::Tag tag,
+      std::string_view fleet_id,
+      absl::FunctionRef<absl::Status(std::string_view, std::string_view)>
+          visit) {
+    return ForEachInRange(db_.get(), read, keys::Prefix(tag, fleet_id),
+                          keys::PrefixEnd(tag, fleet_id),
+                          [&](std::string_view key,
+                              std::string_view value) -> absl::StatusOr<bool> {
+                            if (absl::Status status = visit(key, value);
+                                !status.ok()) {
+                              return status;
+                            }
+                            return true;
+                          });
+  }
+
+  // Moves the member traces of `stored` out of `traces` into a new cluster.
+  static absl::Status Assemble(std::string_view key, StoredCluster stored,
+                               std::map<TraceKey, core::MemoryTrace>* traces,
+                               std::vector<core::Cluster>* clusters) {
+    core::Cluster cluster;
+    cluster.id = stored.id;
+    cluster.robot_id = std::move(stored.robot_id);
+    cluster.centroid = std::move(stored.centroid);
+    cluster.traces.reserve(stored.members.size());
+    for (const TraceKey& member : stored.members) {
+      auto trace = traces->find(member);
+      if (trace == traces->end() || trace->second.cluster_id != stored.id) {
+        return absl::DataLossError(absl::StrCat(
+            "corrupt record at ", keys::Describe(key), ": member ",
+            member.robot_id, "/", member.seq, " has no trace of this cluster"));
+      }
+      cluster.traces.push_back(std::move(trace->second));
+      traces->erase(trace);
+    }
+    clusters->push_back(std::move(cluster));
+    return absl::OkStatus();
+  }
+
+  std::unique_ptr<rocksdb::DB> db_;
+  const std::string path_;
+  rocksdb::WriteOptions write_options_;
+  absl::Mutex apply_mu_;
+};
+
+rocksdb::Options MakeOptions(const RocksDbStoreOptions& options) {
+  rocksdb::Options db_options;
+  db_options.create_if_missing = options.create_if_missing;
+  db_options.max_background_jobs = std::max(1, options.background_jobs);
+  db_options.write_buffer_size = options.write_buffer_bytes;
+  db_options.keep_log_file_num = 5;
+  if (options.compress) {
+    const std::vector<rocksdb::CompressionType> supported =
+        rocksdb::GetSupportedCompressions();
+    auto has = [&](rocksdb::CompressionType type) {
+      return std::find(supported.begin(), supported.end(), type) !=
+             supported.end();
+    };
+    if (has(rocksdb::kLZ4Compression)) {
+      db_options.compression = rocksdb::kLZ4Compression;
+    } else if (has(rocksdb::kSnappyCompression)) {
+      db_options.compression = rocksdb::kSnappyCompression;
+    }
+    if (has(rocksdb::kZSTD)) {
+      db_options.bottommost_compression = rocksdb::kZSTD;
+    }
+  } else {
+    db_options.compression = rocksdb::kNoCompression;
+  }
+  rocksdb::BlockBasedTableOptions table;
+  if (options.block_cache_bytes > 0) {
+    table.block_cache = rocksdb::NewLRUCache(options.block_cache_bytes);
+  } else {
+    table.no_block_cache = true;
+  }
+  if (options.bloom_bits_per_key > 0) {
+    table.filter_policy.reset(
+        rocksdb::NewBloomFilterPolicy(options.bloom_bits_per_key));
+  }
+  db_options.table_factory.reset(rocksdb::NewBlockBasedTableFactory(table));
+  return db_options;
+}
+
+// Writes the layout version into a new database; refuses another version.
+absl::Status CheckFormat(rocksdb::DB* db, const std::string& path) {
+  std::string version;
+  const rocksdb::Status got =
+      db->Get(rocksdb::ReadOptions(), ToSlice(keys::kFormatKey), &version);
+  if (got.IsNotFound()) {
+    rocksdb::WriteOptions write;
+    write.sync = true;
+    return FromRocksDb(db->Put(write, ToSlice(keys::kFormatKey),
+                               ToSlice(keys::kFormatVersion)),
+                       absl::StrCat("write format version at '", path, "'"));
+  }
+  if (!got.ok()) {
+    return FromRocksDb(got,
+                       absl::StrCat("read format version at '", path, "'"));
+  }
+  if (version != keys::kFormatVersion) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("RocksDB at '", path, "' has key layout \"", version,
+                     "\", this build reads \"", V(keys::kFormatVersion), "\""));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
+    const RocksDbStoreOptions& options) {
+  if (options.path.empty()) {
+    return absl::InvalidArgumentError("RocksDbStoreOptions.path is empty");
+  }
+  if (options.create_if_missing) {
+    std::error_code error;
+    std::filesystem::create_directories(options.path, error);
+    if (error) {
+      return absl::UnavailableError(
+          absl::StrCat("cannot create RocksDB directory '", options.path,
+                       "': ", error.message()));
+    }
+  }
+  rocksdb::DB* raw = nullptr;
+  const rocksdb::Status status =
+      rocksdb::DB::Open(MakeOptions(options), options.path, &raw);
+  if (!status.ok()) {
+    delete raw;
+    return FromRocksDb(status, absl::StrCat("open '", options.path, "'"));
+  }
+  std::unique_ptr<rocksdb::DB> db(raw);
+  if (absl::Status format = CheckFormat(db.get(), options.path); !format.ok()) {
+    db->Close().PermitUncheckedError();
+    return format;
+  }
+  FLEETMEM_LOG(kInfo) << "opened RocksDB store at " << options.path
+                      << (options.sync ? " (sync writes)" : " (async writes)");
+  return std::make_unique<RocksDbStore>(std::move(db), options.path,
+                                        options.sync);
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<engine::MemoryStore>> OpenRocksDbStore(
+    const RocksDbStoreOptions& options) {
+  try {
+    return Open(options);
+  } catch (const std::exception& e) {
+    return absl::InternalError(
+        absl::StrCat("opening RocksDB at '", options.path, "': ", e.what()));
+  }
+}
+
+}  // namespace fleetmem::storage

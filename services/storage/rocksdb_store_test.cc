@@ -1,0 +1,363 @@
+// Tests specific to the RocksDB store: reopening, crashes, open errors and
+// corrupt records. (Semantics shared with the in-memory store are in
+// memory_store_test.cc.)
+#include "services/storage/rocksdb_store.h"
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdlib>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "rocksdb/db.h"
+#include "services/storage/in_memory_store.h"
+#include "services/storage/keys.h"
+#include "services/storage/record_codec.h"
+#include "services/storage/store_test_util.h"
+
+extern char** environ;
+
+namespace fleetmem::storage {
+namespace {
+
+using engine::FleetMutation;
+using engine::FleetRecord;
+using testing::Dump;
+using ::testing::HasSubstr;
+using testing::ScriptedMutations;
+using testing::TempDir;
+
+std::unique_ptr<engine::MemoryStore> OpenOrDie(const std::string& path,
+                                               bool sync = true) {
+  RocksDbStoreOptions options;
+  options.path = path;
+  options.sync = sync;
+  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+      OpenRocksDbStore(options);
+  EXPECT_TRUE(store.ok()) << store.status();
+  return store.ok() ? std::move(*store) : nullptr;
+}
+
+// Dump of the fleet and of all its events, or of the error.
+std::string DumpFleet(engine::MemoryStore& store, std::string_view fleet_id) {
+  absl::StatusOr<FleetRecord> record = store.LoadFleet(fleet_id);
+  if (!record.ok()) return record.status().ToString();
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      store.ReadEvents(fleet_id, 0, 100000);
+  if (!events.ok()) return events.status().ToString();
+  return absl::StrCat(Dump(*record), Dump(*events));
+}
+
+// The expected dump of `fleet_id` after the first `count` mutations of
+// `script`, from the in-memory store.
+std::string ReferenceDump(const std::vector<FleetMutation>& script,
+                          size_t count, std::string_view fleet_id) {
+  std::unique_ptr<engine::MemoryStore> reference = NewInMemoryStore();
+  for (size_t i = 0; i < count; ++i) {
+    EXPECT_TRUE(reference->Apply(fleet_id, script[i]).ok());
+  }
+  return DumpFleet(*reference, fleet_id);
+}
+
+TEST(RocksDbStoreTest, ReopenGivesExactlyTheSameRecords) {
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  const std::vector<std::string> fleets = {"f", "f1", "fleet-b"};
+  std::vector<std::string> before;
+  {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+    ASSERT_NE(store, nullptr);
+    for (size_t i = 0; i < fleets.size(); ++i) {
+      for (const FleetMutation& m : ScriptedMutations(30 + 10 * i)) {
+        ASSERT_TRUE(store->Apply(fleets[i], m).ok());
+      }
+      before.push_back(DumpFleet(*store, fleets[i]));
+      EXPECT_EQ(before.back(), ReferenceDump(ScriptedMutations(30 + 10 * i),
+                                             30 + 10 * i, fleets[i]));
+    }
+  }
+  std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+  ASSERT_NE(store, nullptr);
+  EXPECT_EQ(store->ListFleets().value_or(std::vector<std::string>{}), fleets);
+  for (size_t i = 0; i < fleets.size(); ++i) {
+    EXPECT_EQ(DumpFleet(*store, fleets[i]), before[i]) << fleets[i];
+  }
+}
+
+// --- Crash: a child process applies mutations and is killed with SIGKILL.
+
+constexpr char kChildDirEnv[] = "FLEETMEM_STORAGE_CRASH_DIR";
+constexpr char kChildCountEnv[] = "FLEETMEM_STORAGE_CRASH_COUNT";
+constexpr char kChildSyncEnv[] = "FLEETMEM_STORAGE_CRASH_SYNC";
+constexpr char kChildAckFdEnv[] = "FLEETMEM_STORAGE_CRASH_ACK_FD";
+constexpr char kCrashFleet[] = "crash";
+
+// The child of RocksDbCrashTest, started by it through fork + exec of this
+// binary (a fresh process, so no RocksDB thread state is inherited). Applies
+// the scripted mutations, writes one byte to the ack pipe after each OK, then
+// kills itself without closing the database.
+TEST(RocksDbCrashChild, DISABLED_ApplyThenDie) {
+  const char* dir = std::getenv(kChildDirEnv);
+  if (dir == nullptr) GTEST_SKIP() << "runs only as RocksDbCrashTest's child";
+  const int count = std::atoi(std::getenv(kChildCountEnv));
+  const bool sync = std::string(std::getenv(kChildSyncEnv)) == "1";
+  const int ack_fd = std::atoi(std::getenv(kChildAckFdEnv));
+  std::unique_ptr<engine::MemoryStore> store = OpenOrDie(dir, sync);
+  if (store == nullptr) _exit(2);
+  for (const FleetMutation& m : ScriptedMutations(count)) {
+    if (!store->Apply(kCrashFleet, m).ok()) _exit(3);
+    if (write(ack_fd, "+", 1) != 1) _exit(4);
+  }
+  raise(SIGKILL);
+  _exit(5);  // not reached
+}
+
+struct CrashCase {
+  std::string name;
+  bool sync = true;
+  int script_length = 0;
+  // 0: the child kills itself after the whole script; otherwise the parent
+  // kills it as soon as this many mutations are acknowledged, probably in
+  // the middle of a write.
+  int kill_after_acks = 0;
+};
+
+void PrintTo(const CrashCase& c, std::ostream* os) { *os << c.name; }
+
+class RocksDbCrashTest : public ::testing::TestWithParam<CrashCase> {};
+
+TEST_P(RocksDbCrashTest, AcknowledgedMutationsSurviveSigkill) {
+  const CrashCase& c = GetParam();
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  int ack[2];
+  ASSERT_EQ(pipe(ack), 0);
+
+  // Everything the child needs is prepared before fork: after it, only
+  // async-signal-safe calls.
+  char self[4096];
+  const ssize_t self_length =
+      readlink("/proc/self/exe", self, sizeof(self) - 1);
+  ASSERT_GT(self_length, 0);
+  self[self_length] = '\0';
+  std::vector<std::string> args = {
+      self, "--gtest_filter=RocksDbCrashChild.DISABLED_ApplyThenDie",
+      "--gtest_also_run_disabled_tests"};
+  std::vector<std::string> env;
+  for (char** e = environ; *e != nullptr; ++e) env.emplace_back(*e);
+  env.push_back(absl::StrCat(kChildDirEnv, "=", path));
+  env.push_back(absl::StrCat(kChildCountEnv, "=", c.script_length));
+  env.push_back(absl::StrCat(kChildSyncEnv, "=", c.sync ? "1" : "0"));
+  env.push_back(absl::StrCat(kChildAckFdEnv, "=", ack[1]));
+  std::vector<char*> argv;
+  for (std::string& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  std::vector<char*> envp;
+  for (std::string& e : env) envp.push_back(e.data());
+  envp.push_back(nullptr);
+
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    close(ack[0]);
+    const int null = open("/dev/null", O_WRONLY);
+    if (null >= 0) dup2(null, STDOUT_FILENO);
+    execve(argv[0], argv.data(), envp.data());
+    _exit(127);
+  }
+  close(ack[1]);
+  int acked = 0;
+  char buffer[256];
+  bool killed = false;
+  for (;;) {
+    const ssize_t n = read(ack[0], buffer, sizeof(buffer));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) break;  // EOF: the child is gone
+    acked += static_cast<int>(n);
+    if (c.kill_after_acks > 0 && !killed && acked >= c.kill_after_acks) {
+      kill(pid, SIGKILL);
+      killed = true;
+    }
+  }
+  close(ack[0]);
+  RecordProperty("acked", acked);
+  int wait_status = 0;
+  ASSERT_EQ(waitpid(pid, &wait_status, 0), pid);
+  ASSERT_TRUE(WIFSIGNALED(wait_status))
+      << "child exited with " << WEXITSTATUS(wait_status);
+  EXPECT_EQ(WTERMSIG(wait_status), SIGKILL);
+  if (c.kill_after_acks == 0) {
+    ASSERT_EQ(acked, c.script_length);
+  } else {
+    ASSERT_GE(acked, c.kill_after_acks);
+  }
+
+  std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+  ASSERT_NE(store, nullptr);
+  const std::string got = DumpFleet(*store, kCrashFleet);
+  const std::vector<FleetMutation> script = ScriptedMutations(c.script_length);
+  const std::string after_acked = ReferenceDump(script, acked, kCrashFleet);
+  if (got == after_acked) return;
+  // Killed between a durable write and its ack: one more mutation is there,
+  // whole (never a part of one).
+  ASSERT_LT(acked, c.script_length) << "acked " << acked;
+  EXPECT_EQ(got, ReferenceDump(script, acked + 1, kCrashFleet))
+      << "acked " << acked;
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Kill, RocksDbCrashTest,
+    ::testing::Values(CrashCase{"SyncChildKillsItself", true, 40, 0},
+                      CrashCase{"NoSyncChildKillsItself", false, 40, 0},
+                      CrashCase{"SyncKilledMidStream", true, 400, 25},
+                      CrashCase{"NoSyncKilledMidStream", false, 400, 100}),
+    [](const auto& info) { return info.param.name; });
+
+// --- Open errors.
+
+TEST(RocksDbStoreTest, OpenOnUnwritablePathGivesAClearError) {
+  TempDir dir;
+  const std::string file = absl::StrCat(dir.path(), "/plain-file");
+  std::ofstream(file) << "not a directory";
+  struct Case {
+    std::string path;
+    bool create_if_missing;
+    absl::StatusCode code;
+  };
+  std::vector<Case> cases = {
+      // Below a regular file: no one, not even root, can create it.
+      {absl::StrCat(file, "/db"), true, absl::StatusCode::kUnavailable},
+      {file, true, absl::StatusCode::kUnavailable},
+      {absl::StrCat(dir.path(), "/missing"), false,
+       absl::StatusCode::kInvalidArgument},
+  };
+  if (geteuid() != 0) {  // permissions do not bind root
+    const std::string read_only = absl::StrCat(dir.path(), "/read-only");
+    ASSERT_EQ(mkdir(read_only.c_str(), 0500), 0);
+    cases.push_back(
+        {absl::StrCat(read_only, "/db"), true, absl::StatusCode::kUnavailable});
+  }
+  for (const Case& c : cases) {
+    RocksDbStoreOptions options;
+    options.path = c.path;
+    options.create_if_missing = c.create_if_missing;
+    absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+        OpenRocksDbStore(options);
+    ASSERT_FALSE(store.ok()) << c.path;
+    EXPECT_EQ(store.status().code(), c.code) << store.status();
+    EXPECT_THAT(store.status().message(), HasSubstr(c.path));
+  }
+  EXPECT_EQ(OpenRocksDbStore(RocksDbStoreOptions{}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+TEST(RocksDbStoreTest, SecondOpenOfTheSameDatabaseFails) {
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  std::unique_ptr<engine::MemoryStore> first = OpenOrDie(path);
+  ASSERT_NE(first, nullptr);
+  RocksDbStoreOptions options;
+  options.path = path;
+  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> second =
+      OpenRocksDbStore(options);
+  ASSERT_FALSE(second.ok());
+  EXPECT_EQ(second.status().code(), absl::StatusCode::kUnavailable)
+      << second.status();
+  EXPECT_THAT(second.status().message(), HasSubstr("lock"));
+}
+
+// --- Records written behind the store's back.
+
+// Writes raw key/value pairs into the (closed) database at `path`.
+void PutRaw(const std::string& path,
+            const std::vector<std::pair<std::string, std::string>>& records) {
+  rocksdb::DB* raw = nullptr;
+  rocksdb::Options options;
+  ASSERT_TRUE(rocksdb::DB::Open(options, path, &raw).ok());
+  std::unique_ptr<rocksdb::DB> db(raw);
+  for (const auto& [key, value] : records) {
+    ASSERT_TRUE(db->Put(rocksdb::WriteOptions(), key, value).ok());
+  }
+  ASSERT_TRUE(db->Close().ok());
+}
+
+class RocksDbCorruptionTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path_);
+    ASSERT_NE(store, nullptr);
+    FleetMutation m;
+    m.put_clusters = {testing::MakeCluster(1, "r", {1, 2})};
+    m.append_events = {
+        testing::MakeEvent(1, core::EventType::kClusterAdded, 1)};
+    ASSERT_TRUE(store->Apply("f", m).ok());
+    ASSERT_TRUE(store->Apply("g", m).ok());
+  }
+
+  // Loads of "f" and of its events fail with DATA_LOSS naming `key`; "g" is
+  // unaffected.
+  void ExpectDataLoss(const std::string& what, bool in_events) {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path_);
+    ASSERT_NE(store, nullptr);
+    const absl::Status status = in_events
+                                    ? store->ReadEvents("f", 0, 10).status()
+                                    : store->LoadFleet("f").status();
+    EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
+    EXPECT_THAT(status.message(), HasSubstr(what));
+    EXPECT_TRUE(store->LoadFleet("g").ok());
+    EXPECT_TRUE(store->ReadEvents("g", 0, 10).ok());
+  }
+
+  TempDir dir_;
+  const std::string path_ = absl::StrCat(dir_.path(), "/db");
+};
+
+TEST_F(RocksDbCorruptionTest, UnparsableTrace) {
+  PutRaw(path_, {{keys::TraceKey("f", {"r", 2}), "\xff\xff\xff"}});
+  ExpectDataLoss("trace[f/r/2]", false);
+}
+
+TEST_F(RocksDbCorruptionTest, UnparsableEvent) {
+  PutRaw(path_, {{keys::EventKey("f", 1), "\xff"}});
+  ExpectDataLoss("event[f/1]", true);
+}
+
+TEST_F(RocksDbCorruptionTest, RecordUnderAnotherKey) {
+  core::MemoryTrace trace = testing::MakeTrace("r", 1);
+  trace.cluster_id = 1;
+  PutRaw(path_, {{keys::TraceKey("f", {"r", 2}), EncodeTrace(trace)}});
+  ExpectDataLoss("trace[f/r/2]: trace does not match its key", false);
+}
+
+TEST_F(RocksDbCorruptionTest, TraceThatNoClusterLists) {
+  core::MemoryTrace trace = testing::MakeTrace("r", 9);
+  trace.cluster_id = 1;
+  PutRaw(path_, {{keys::TraceKey("f", {"r", 9}), EncodeTrace(trace)}});
+  ExpectDataLoss("trace[f/r/9]", false);
+}
+
+TEST_F(RocksDbCorruptionTest, ClusterMemberWithoutTrace) {
+  PutRaw(path_, {{keys::ClusterKey("f", 2),
+                  EncodeCluster(StoredCluster{2, "r", {1.0f}, {{"r", 7}}})}});
+  ExpectDataLoss("cluster[f/2]", false);
+}
+
+TEST_F(RocksDbCorruptionTest, OtherKeyLayoutVersionIsRefused) {
+  PutRaw(path_, {{std::string(keys::kFormatKey), "fleetmem.storage/99"}});
+  RocksDbStoreOptions options;
+  options.path = path_;
+  const absl::Status status = OpenRocksDbStore(options).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition) << status;
+  EXPECT_THAT(status.message(), HasSubstr("fleetmem.storage/99"));
+}
+
+}  // namespace
+}  // namespace fleetmem::storage

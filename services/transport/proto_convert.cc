@@ -1,0 +1,159 @@
+#include "services/transport/proto_convert.h"
+
+namespace fleetmem::transport {
+
+core::Place PlaceFromProto(const v1::Pose& pose) {
+  return core::Place{
+      .x = pose.x(), .y = pose.y(), .z = pose.z(), .yaw = pose.yaw()};
+}
+
+void PlaceToProto(const core::Place& place, v1::Pose* pose) {
+  pose->set_x(place.x);
+  pose->set_y(place.y);
+  pose->set_z(place.z);
+  pose->set_yaw(place.yaw);
+}
+
+core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace) {
+  core::MemoryTrace out;
+  out.robot_id = trace.robot_id();
+  out.seq = trace.seq();
+  out.domain = trace.domain();
+  out.code.assign(trace.code().begin(), trace.code().end());
+  out.place = PlaceFromProto(trace.pose());
+  out.reward = trace.reward();
+  out.reward_external = trace.reward_external();
+  out.reward_internal = trace.reward_internal();
+  out.timestamp_ns = trace.timestamp_ns();
+  out.replay_count = trace.replay_count();
+  out.encoder_version = trace.encoder_version();
+  out.cluster_id = trace.cluster_id();
+  return out;
+}
+
+void TraceToProto(const core::MemoryTrace& trace, v1::MemoryTrace* out) {
+  out->set_robot_id(trace.robot_id);
+  out->set_seq(trace.seq);
+  out->set_domain(trace.domain);
+  out->mutable_code()->Assign(trace.code.begin(), trace.code.end());
+  PlaceToProto(trace.place, out->mutable_pose());
+  out->set_reward(trace.reward);
+  out->set_reward_external(trace.reward_external);
+  out->set_reward_internal(trace.reward_internal);
+  out->set_timestamp_ns(trace.timestamp_ns);
+  out->set_replay_count(trace.replay_count);
+  out->set_encoder_version(trace.encoder_version);
+  out->set_cluster_id(trace.cluster_id);
+}
+
+std::vector<core::MemoryTrace> UploadedTracesFromProto(
+    const google::protobuf::RepeatedPtrField<v1::MemoryTrace>& traces) {
+  std::vector<core::MemoryTrace> out;
+  out.reserve(traces.size());
+  for (const v1::MemoryTrace& trace : traces) {
+    core::MemoryTrace& added = out.emplace_back(TraceFromProto(trace));
+    added.replay_count = 0;
+    added.cluster_id = 0;
+  }
+  return out;
+}
+
+namespace {
+
+v1::MemoryEvent::Type EventTypeToProto(core::EventType type) {
+  switch (type) {
+    case core::EventType::kClusterAdded:
+      return v1::MemoryEvent::CLUSTER_ADDED;
+    case core::EventType::kClusterForgotten:
+      return v1::MemoryEvent::CLUSTER_FORGOTTEN;
+  }
+  return v1::MemoryEvent::TYPE_UNSPECIFIED;
+}
+
+}  // namespace
+
+void EventToProto(const core::MemoryEvent& event, v1::MemoryEvent* out) {
+  out->set_id(event.id);
+  out->set_type(EventTypeToProto(event.type));
+  out->set_cluster_id(event.cluster_id);
+  out->set_trace_count(event.trace_count);
+  out->set_robot_id(event.robot_id);
+  out->set_domain(event.domain);
+  PlaceToProto(event.centroid_place, out->mutable_centroid_pose());
+  out->set_mean_reward(event.mean_reward);
+  out->set_timestamp_ns(event.timestamp_ns);
+}
+
+engine::PlaceQuery QueryFromProto(const v1::QueryPlaceRequest& request) {
+  engine::PlaceQuery query;
+  query.code.assign(request.code().begin(), request.code().end());
+  query.k = request.k();
+  query.near = PlaceFromProto(request.near());
+  query.radius_m = request.radius_m();
+  return query;
+}
+
+void AddUploadResult(const engine::UploadResult& result,
+                     v1::UploadTracesResponse* out) {
+  out->set_accepted(out->accepted() + result.accepted);
+  out->set_duplicates(out->duplicates() + result.duplicates);
+  out->set_consolidations(out->consolidations() + result.consolidations);
+}
+
+void ConsolidateResultToProto(const engine::ConsolidateResult& result,
+                              v1::ConsolidateResponse* out) {
+  out->set_consolidated_traces(result.consolidated_traces);
+  out->set_downsampled_traces(result.downsampled_traces);
+  out->set_clusters_added(result.clusters_added);
+  out->set_clusters_forgotten(result.clusters_forgotten);
+  out->set_clusters(result.clusters);
+  out->set_traces(result.traces);
+}
+
+void SampledTracesToProto(std::span<const core::MemoryTrace> traces,
+                          v1::SampleReplayResponse* out) {
+  out->mutable_traces()->Reserve(static_cast<int>(traces.size()));
+  for (const core::MemoryTrace& trace : traces) {
+    TraceToProto(trace, out->add_traces());
+  }
+}
+
+void MatchesToProto(std::span<const engine::PlaceMatch> matches,
+                    v1::QueryPlaceResponse* out) {
+  out->mutable_matches()->Reserve(static_cast<int>(matches.size()));
+  for (const engine::PlaceMatch& match : matches) {
+    v1::PlaceMatch* added = out->add_matches();
+    TraceToProto(match.trace, added->mutable_trace());
+    added->set_distance(match.distance);
+  }
+}
+
+void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out) {
+  out->set_traces(stats.traces);
+  out->set_pending_traces(stats.pending_traces);
+  out->set_clusters(stats.clusters);
+  out->set_code_dimension(stats.code_dimension);
+  out->set_encoder_version(stats.encoder_version);
+  out->set_last_event_id(stats.last_event_id);
+  out->set_consolidations(stats.consolidations);
+  out->set_clusters_forgotten(stats.clusters_forgotten);
+  for (const engine::RobotStats& robot : stats.robots) {
+    v1::RobotStats* added = out->add_robots();
+    added->set_robot_id(robot.robot_id);
+    added->set_traces(robot.traces);
+    added->set_pending_traces(robot.pending_traces);
+    added->set_max_seq(robot.max_seq);
+    added->set_received(robot.received);
+    added->set_replayed(robot.replayed);
+  }
+  for (const engine::DomainStats& domain : stats.domains) {
+    v1::DomainStats* added = out->add_domains();
+    added->set_domain(domain.domain);
+    added->set_traces(domain.traces);
+    added->set_pending_traces(domain.pending_traces);
+  }
+  out->set_max_clusters(stats.max_clusters);
+  out->set_max_traces_per_cluster(stats.max_traces_per_cluster);
+}
+
+}  // namespace fleetmem::transport

@@ -1,0 +1,47 @@
+// Conversions between the fleetmem.v1 API messages and the engine's domain
+// types. Pure functions; no validation (the engine validates domain values).
+#ifndef FLEETMEM_SERVICES_TRANSPORT_PROTO_CONVERT_H_
+#define FLEETMEM_SERVICES_TRANSPORT_PROTO_CONVERT_H_
+
+#include <span>
+#include <vector>
+
+#include "fleetmem/v1/memory.pb.h"
+#include "google/protobuf/repeated_ptr_field.h"
+#include "services/core/types.h"
+#include "services/engine/memory_engine.h"
+
+namespace fleetmem::transport {
+
+core::Place PlaceFromProto(const v1::Pose& pose);
+void PlaceToProto(const core::Place& place, v1::Pose* pose);
+
+// Every field, including the server-set replay_count and cluster_id.
+core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace);
+void TraceToProto(const core::MemoryTrace& trace, v1::MemoryTrace* out);
+
+// The traces of an upload message. replay_count and cluster_id are set by
+// the server, so they are cleared here ("ignored on upload").
+std::vector<core::MemoryTrace> UploadedTracesFromProto(
+    const google::protobuf::RepeatedPtrField<v1::MemoryTrace>& traces);
+
+// CLUSTER_ADDED / CLUSTER_FORGOTTEN.
+void EventToProto(const core::MemoryEvent& event, v1::MemoryEvent* out);
+
+engine::PlaceQuery QueryFromProto(const v1::QueryPlaceRequest& request);
+
+// Adds `result` to the counters of `out` (an upload stream sums its
+// messages).
+void AddUploadResult(const engine::UploadResult& result,
+                     v1::UploadTracesResponse* out);
+void ConsolidateResultToProto(const engine::ConsolidateResult& result,
+                              v1::ConsolidateResponse* out);
+void SampledTracesToProto(std::span<const core::MemoryTrace> traces,
+                          v1::SampleReplayResponse* out);
+void MatchesToProto(std::span<const engine::PlaceMatch> matches,
+                    v1::QueryPlaceResponse* out);
+void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out);
+
+}  // namespace fleetmem::transport
+
+#endif  // FLEETMEM_SERVICES_TRANSPORT_PROTO_CONVERT_H_

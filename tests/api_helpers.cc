@@ -1,0 +1,205 @@
+#include "tests/api_helpers.h"
+
+#include "absl/strings/str_cat.h"
+
+namespace fleetmem::testing {
+namespace {
+
+const char* CodeName(grpc::StatusCode code) {
+  switch (code) {
+    case grpc::StatusCode::OK:
+      return "OK";
+    case grpc::StatusCode::CANCELLED:
+      return "CANCELLED";
+    case grpc::StatusCode::UNKNOWN:
+      return "UNKNOWN";
+    case grpc::StatusCode::INVALID_ARGUMENT:
+      return "INVALID_ARGUMENT";
+    case grpc::StatusCode::DEADLINE_EXCEEDED:
+      return "DEADLINE_EXCEEDED";
+    case grpc::StatusCode::NOT_FOUND:
+      return "NOT_FOUND";
+    case grpc::StatusCode::ALREADY_EXISTS:
+      return "ALREADY_EXISTS";
+    case grpc::StatusCode::PERMISSION_DENIED:
+      return "PERMISSION_DENIED";
+    case grpc::StatusCode::RESOURCE_EXHAUSTED:
+      return "RESOURCE_EXHAUSTED";
+    case grpc::StatusCode::FAILED_PRECONDITION:
+      return "FAILED_PRECONDITION";
+    case grpc::StatusCode::ABORTED:
+      return "ABORTED";
+    case grpc::StatusCode::OUT_OF_RANGE:
+      return "OUT_OF_RANGE";
+    case grpc::StatusCode::UNIMPLEMENTED:
+      return "UNIMPLEMENTED";
+    case grpc::StatusCode::INTERNAL:
+      return "INTERNAL";
+    case grpc::StatusCode::UNAVAILABLE:
+      return "UNAVAILABLE";
+    case grpc::StatusCode::DATA_LOSS:
+      return "DATA_LOSS";
+    case grpc::StatusCode::UNAUTHENTICATED:
+      return "UNAUTHENTICATED";
+    default:
+      return "?";
+  }
+}
+
+}  // namespace
+
+std::unique_ptr<grpc::ClientContext> MakeContext(
+    std::chrono::milliseconds timeout) {
+  auto context = std::make_unique<grpc::ClientContext>();
+  context->set_deadline(std::chrono::system_clock::now() + timeout);
+  return context;
+}
+
+std::string Describe(const grpc::Status& status) {
+  return absl::StrCat(CodeName(status.error_code()), ": ",
+                      status.error_message());
+}
+
+std::shared_ptr<grpc::Channel> MakeChannel(const std::string& address) {
+  grpc::ChannelArguments arguments;
+  // Large enough for SampleReplay of every trace of a test fleet.
+  arguments.SetMaxReceiveMessageSize(64 << 20);
+  return grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(),
+                                   arguments);
+}
+
+std::unique_ptr<v1::MemoryService::Stub> MakeStub(const std::string& address) {
+  return v1::MemoryService::NewStub(MakeChannel(address));
+}
+
+Reply<v1::UploadTracesResponse> Upload(
+    v1::MemoryService::StubInterface& stub,
+    std::span<const v1::UploadTracesRequest> requests,
+    std::chrono::milliseconds timeout) {
+  Reply<v1::UploadTracesResponse> reply;
+  auto context = MakeContext(timeout);
+  std::unique_ptr<grpc::ClientWriterInterface<v1::UploadTracesRequest>> writer =
+      stub.UploadTraces(context.get(), &reply.response);
+  for (const v1::UploadTracesRequest& request : requests) {
+    if (!writer->Write(request)) break;
+  }
+  writer->WritesDone();
+  reply.status = writer->Finish();
+  return reply;
+}
+
+Reply<v1::UploadTracesResponse> UploadTraces(
+    v1::MemoryService::StubInterface& stub, const std::string& fleet_id,
+    std::span<const v1::MemoryTrace> traces, size_t batch,
+    std::chrono::milliseconds timeout) {
+  std::vector<v1::UploadTracesRequest> requests;
+  if (batch == 0) batch = 1;
+  for (size_t begin = 0; begin < traces.size(); begin += batch) {
+    v1::UploadTracesRequest& request = requests.emplace_back();
+    request.set_fleet_id(fleet_id);
+    for (size_t i = begin; i < std::min(traces.size(), begin + batch); ++i) {
+      *request.add_traces() = traces[i];
+    }
+  }
+  return Upload(stub, requests, timeout);
+}
+
+Reply<v1::GetStatsResponse> GetStats(v1::MemoryService::StubInterface& stub,
+                                     const std::string& fleet_id) {
+  Reply<v1::GetStatsResponse> reply;
+  v1::GetStatsRequest request;
+  request.set_fleet_id(fleet_id);
+  auto context = MakeContext();
+  reply.status = stub.GetStats(context.get(), request, &reply.response);
+  return reply;
+}
+
+Reply<v1::ConsolidateResponse> Consolidate(
+    v1::MemoryService::StubInterface& stub, const std::string& fleet_id) {
+  Reply<v1::ConsolidateResponse> reply;
+  v1::ConsolidateRequest request;
+  request.set_fleet_id(fleet_id);
+  auto context = MakeContext();
+  reply.status = stub.Consolidate(context.get(), request, &reply.response);
+  return reply;
+}
+
+Reply<v1::SampleReplayResponse> SampleReplay(
+    v1::MemoryService::StubInterface& stub, const std::string& fleet_id,
+    const std::string& robot_id, uint32_t count) {
+  Reply<v1::SampleReplayResponse> reply;
+  v1::SampleReplayRequest request;
+  request.set_fleet_id(fleet_id);
+  request.set_robot_id(robot_id);
+  request.set_count(count);
+  auto context = MakeContext();
+  reply.status = stub.SampleReplay(context.get(), request, &reply.response);
+  return reply;
+}
+
+Reply<v1::QueryPlaceResponse> QueryPlace(v1::MemoryService::StubInterface& stub,
+                                         const v1::QueryPlaceRequest& request) {
+  Reply<v1::QueryPlaceResponse> reply;
+  auto context = MakeContext();
+  reply.status = stub.QueryPlace(context.get(), request, &reply.response);
+  return reply;
+}
+
+Reply<v1::QueryPlaceResponse> QueryCode(v1::MemoryService::StubInterface& stub,
+                                        const std::string& fleet_id,
+                                        std::span<const float> code,
+                                        uint32_t k) {
+  v1::QueryPlaceRequest request;
+  request.set_fleet_id(fleet_id);
+  for (float value : code) request.add_code(value);
+  request.set_k(k);
+  return QueryPlace(stub, request);
+}
+
+Reply<std::vector<v1::MemoryEvent>> ReadEvents(
+    v1::MemoryService::StubInterface& stub, const std::string& fleet_id,
+    uint64_t after_event, uint64_t until_event, size_t max_events,
+    std::chrono::milliseconds timeout) {
+  Reply<std::vector<v1::MemoryEvent>> reply;
+  v1::WatchMemoryRequest request;
+  request.set_fleet_id(fleet_id);
+  request.set_after_event(after_event);
+  auto context = MakeContext(timeout);
+  std::unique_ptr<grpc::ClientReaderInterface<v1::MemoryEvent>> reader =
+      stub.WatchMemory(context.get(), request);
+  bool limit_reached = until_event == 0 && max_events == 0;
+  v1::MemoryEvent event;
+  while (!limit_reached && reader->Read(&event)) {
+    reply.response.push_back(event);
+    limit_reached = (until_event != 0 && event.id() >= until_event) ||
+                    reply.response.size() >= max_events;
+  }
+  if (limit_reached) {
+    context->TryCancel();
+    reader->Finish();
+    reply.status = grpc::Status::OK;
+  } else {
+    reply.status = reader->Finish();
+  }
+  return reply;
+}
+
+const v1::RobotStats* FindRobot(const v1::GetStatsResponse& stats,
+                                const std::string& robot_id) {
+  for (const v1::RobotStats& robot : stats.robots()) {
+    if (robot.robot_id() == robot_id) return &robot;
+  }
+  return nullptr;
+}
+
+std::vector<float> CodeOf(const v1::MemoryTrace& trace) {
+  return std::vector<float>(trace.code().begin(), trace.code().end());
+}
+
+}  // namespace fleetmem::testing
+
+namespace grpc {
+void PrintTo(const Status& status, std::ostream* out) {
+  *out << fleetmem::testing::Describe(status);
+}
+}  // namespace grpc

@@ -1,0 +1,297 @@
+#include "tests/server_process.h"
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/prctl.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <sstream>
+#include <system_error>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "gtest/gtest.h"
+
+namespace fleetmem::testing {
+namespace {
+
+constexpr char kListeningMarker[] = "fleetmem-server listening on ";
+
+std::string ErrnoText(const char* what) {
+  return absl::StrCat(what, ": ", std::strerror(errno));
+}
+
+}  // namespace
+
+std::string DefaultServerBinary() {
+#ifdef FLEETMEM_BIN_DIR
+  return std::string(FLEETMEM_BIN_DIR) + "/fleetmem-server";
+#else
+  return "fleetmem-server";
+#endif
+}
+
+absl::StatusOr<std::string> MakeTempDir(const std::string& prefix) {
+  const char* tmp = std::getenv("TMPDIR");
+  std::string pattern = absl::StrCat(
+      (tmp != nullptr && *tmp != '\0') ? tmp : "/tmp", "/", prefix, "XXXXXX");
+  std::vector<char> buffer(pattern.begin(), pattern.end());
+  buffer.push_back('\0');
+  if (mkdtemp(buffer.data()) == nullptr) {
+    return absl::InternalError(ErrnoText("mkdtemp"));
+  }
+  return std::string(buffer.data());
+}
+
+absl::Status RemoveTree(const std::string& path) {
+  std::error_code error;
+  std::filesystem::remove_all(path, error);
+  if (error) {
+    return absl::InternalError(
+        absl::StrCat("remove_all(", path, "): ", error.message()));
+  }
+  return absl::OkStatus();
+}
+
+TempDir::TempDir(const std::string& prefix) {
+  absl::StatusOr<std::string> path = MakeTempDir(prefix);
+  if (!path.ok()) {
+    ADD_FAILURE() << "cannot make a temporary directory: " << path.status();
+    return;
+  }
+  path_ = *std::move(path);
+}
+
+TempDir::~TempDir() {
+  if (path_.empty() || std::getenv("FLEETMEM_KEEP_TEST_DIRS") != nullptr) {
+    return;
+  }
+  absl::Status status = RemoveTree(path_);
+  if (!status.ok()) ADD_FAILURE() << status;
+}
+
+std::string TempDir::Join(const std::string& name) const {
+  return absl::StrCat(path_, "/", name);
+}
+
+std::optional<int> ParseListeningPort(const std::string& output) {
+  size_t at = output.find(kListeningMarker);
+  if (at == std::string::npos) return std::nullopt;
+  size_t begin = at + std::strlen(kListeningMarker);
+  size_t end = output.find_first_of("\r\n", begin);
+  if (end == std::string::npos) return std::nullopt;  // line not complete
+  std::string address = output.substr(begin, end - begin);
+  while (!address.empty() && address.back() == ' ') address.pop_back();
+  size_t colon = address.rfind(':');
+  if (colon == std::string::npos) return std::nullopt;
+  int port = 0;
+  if (!absl::SimpleAtoi(address.substr(colon + 1), &port) || port <= 0 ||
+      port > 65535) {
+    return std::nullopt;
+  }
+  return port;
+}
+
+std::string ReadFileOrEmpty(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return "";
+  std::ostringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+ServerProcess::ServerProcess(ServerOptions options)
+    : options_(std::move(options)) {}
+
+ServerProcess::~ServerProcess() {
+  if (running()) Kill();
+  JoinReader();
+}
+
+std::string ServerProcess::address() const {
+  return absl::StrCat("127.0.0.1:", port_);
+}
+
+std::string ServerProcess::Output() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return output_;
+}
+
+absl::Status ServerProcess::Start() {
+  if (running()) return absl::FailedPreconditionError("already running");
+  if (access(options_.binary.c_str(), X_OK) != 0) {
+    return absl::NotFoundError(absl::StrCat(
+        "server binary not found or not executable: ", options_.binary,
+        " (build target fleetmem-server)"));
+  }
+  JoinReader();  // from an earlier run
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    output_.clear();
+    reader_done_ = false;
+    listening_port_.reset();
+  }
+  port_ = 0;
+
+  // Everything the child needs is prepared before fork(): after fork() in a
+  // threaded process only async-signal-safe calls are allowed.
+  std::vector<std::string> args = {options_.binary, "--listen", options_.listen,
+                                   "--data-dir", options_.data_dir};
+  if (!options_.config_file.empty()) {
+    args.push_back("--config");
+    args.push_back(options_.config_file);
+  }
+  args.insert(args.end(), options_.extra_args.begin(),
+              options_.extra_args.end());
+  std::vector<char*> argv;
+  for (std::string& arg : args) argv.push_back(arg.data());
+  argv.push_back(nullptr);
+
+  int fds[2];
+  if (pipe2(fds, O_CLOEXEC) != 0)
+    return absl::InternalError(ErrnoText("pipe2"));
+  const pid_t parent = getpid();
+  pid_t pid = fork();
+  if (pid < 0) {
+    close(fds[0]);
+    close(fds[1]);
+    return absl::InternalError(ErrnoText("fork"));
+  }
+  if (pid == 0) {
+    // Child: stdout and stderr into the pipe; die with the test process.
+    // Own process group, so that Kill() also ends anything it started.
+    setpgid(0, 0);
+    prctl(PR_SET_PDEATHSIG, SIGKILL);
+    if (getppid() != parent) _exit(127);
+    dup2(fds[1], STDOUT_FILENO);
+    dup2(fds[1], STDERR_FILENO);
+    int devnull = open("/dev/null", O_RDONLY);
+    if (devnull >= 0) dup2(devnull, STDIN_FILENO);
+    execv(argv[0], argv.data());
+    static const char kExecFailed[] = "exec of fleetmem-server failed\n";
+    ssize_t ignored =
+        write(STDERR_FILENO, kExecFailed, sizeof(kExecFailed) - 1);
+    (void)ignored;
+    _exit(127);
+  }
+  close(fds[1]);
+  pid_ = pid;
+  reader_ = std::thread([this, fd = fds[0]] { ReadOutput(fd); });
+
+  std::unique_lock<std::mutex> lock(mu_);
+  bool ready = cv_.wait_for(lock, options_.start_timeout, [this] {
+    return listening_port_.has_value() || reader_done_;
+  });
+  if (ready && listening_port_.has_value()) {
+    port_ = *listening_port_;
+    return absl::OkStatus();
+  }
+  lock.unlock();
+  // Either the process closed its output (it exited) or it was too slow.
+  const bool timed_out = !ready;
+  if (timed_out) {
+    Kill();
+  } else {
+    absl::StatusOr<int> code = WaitForExit(std::chrono::milliseconds(5000));
+    if (!code.ok()) Kill();
+  }
+  JoinReader();
+  std::string message = absl::StrCat(
+      timed_out ? "no \"listening on\" line within "
+                : "the server ended its output before listening; ",
+      timed_out ? absl::StrCat(options_.start_timeout.count(), " ms; ") : "",
+      "command: ", absl::StrJoin(args, " "), "\n--- server output ---\n",
+      Output());
+  return timed_out ? absl::DeadlineExceededError(message)
+                   : absl::InternalError(message);
+}
+
+void ServerProcess::ReadOutput(int fd) {
+  std::ofstream log;
+  if (!options_.log_file.empty()) {
+    log.open(options_.log_file, std::ios::app | std::ios::binary);
+  }
+  char buffer[4096];
+  while (true) {
+    ssize_t n = read(fd, buffer, sizeof(buffer));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) break;
+    if (log.is_open()) {
+      log.write(buffer, n);
+      log.flush();
+    }
+    std::lock_guard<std::mutex> lock(mu_);
+    output_.append(buffer, static_cast<size_t>(n));
+    if (!listening_port_.has_value()) {
+      listening_port_ = ParseListeningPort(output_);
+      if (listening_port_.has_value()) cv_.notify_all();
+    }
+  }
+  close(fd);
+  std::lock_guard<std::mutex> lock(mu_);
+  reader_done_ = true;
+  cv_.notify_all();
+}
+
+void ServerProcess::JoinReader() {
+  if (reader_.joinable()) reader_.join();
+}
+
+absl::StatusOr<int> ServerProcess::WaitForExit(
+    std::chrono::milliseconds timeout) {
+  if (!running()) return absl::FailedPreconditionError("not running");
+  const auto give_up = std::chrono::steady_clock::now() + timeout;
+  while (true) {
+    int status = 0;
+    pid_t done = waitpid(pid_, &status, WNOHANG);
+    if (done == pid_) {
+      pid_ = -1;
+      if (WIFEXITED(status)) return WEXITSTATUS(status);
+      if (WIFSIGNALED(status)) return -WTERMSIG(status);
+      return absl::InternalError("unexpected wait status");
+    }
+    if (done < 0 && errno != EINTR) {
+      pid_ = -1;
+      return absl::InternalError(ErrnoText("waitpid"));
+    }
+    if (std::chrono::steady_clock::now() >= give_up) {
+      return absl::DeadlineExceededError(absl::StrCat("the server (pid ", pid_,
+                                                      ") did not exit within ",
+                                                      timeout.count(), " ms"));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+}
+
+absl::StatusOr<int> ServerProcess::Stop(std::chrono::milliseconds timeout) {
+  if (!running()) return absl::FailedPreconditionError("not running");
+  kill(pid_, SIGTERM);
+  absl::StatusOr<int> code = WaitForExit(timeout);
+  if (!code.ok() && running()) Kill();
+  JoinReader();
+  return code;
+}
+
+void ServerProcess::Kill() {
+  if (!running()) return;
+  kill(-pid_, SIGKILL);  // the server's process group (see Start)
+  kill(pid_, SIGKILL);
+  int status = 0;
+  while (waitpid(pid_, &status, 0) < 0 && errno == EINTR) {
+  }
+  pid_ = -1;
+  JoinReader();
+}
+
+void ServerProcess::Signal(int signal) {
+  if (running()) kill(pid_, signal);
+}
+
+}  // namespace fleetmem::testing

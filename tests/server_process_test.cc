@@ -1,0 +1,151 @@
+// Tests of the test utilities themselves, with shell scripts standing in for
+// the server binary.
+#include "tests/server_process.h"
+
+#include <sys/stat.h>
+
+#include <fstream>
+#include <optional>
+#include <string>
+
+#include "absl/strings/match.h"
+#include "gtest/gtest.h"
+
+namespace fleetmem::testing {
+namespace {
+
+TEST(ParseListeningPortTest, FindsThePortOfACompleteLine) {
+  struct Case {
+    std::string output;
+    std::optional<int> port;
+  };
+  const Case cases[] = {
+      {"fleetmem-server listening on 127.0.0.1:4242\n", 4242},
+      {"I0101 log\nfleetmem-server listening on [::1]:50051\r\nmore", 50051},
+      {"prefix: fleetmem-server listening on 0.0.0.0:1 \n", 1},
+      {"fleetmem-server listening on 127.0.0.1:4242", std::nullopt},
+      {"fleetmem-server listening on 127.0.0.1:0\n", std::nullopt},
+      {"fleetmem-server listening on 127.0.0.1:http\n", std::nullopt},
+      {"fleetmem-server listening on 127.0.0.1:70000\n", std::nullopt},
+      {"server listening on 127.0.0.1:4242\n", std::nullopt},
+      {"", std::nullopt},
+  };
+  for (const Case& c : cases) {
+    EXPECT_EQ(ParseListeningPort(c.output), c.port) << c.output;
+  }
+}
+
+class ServerProcessTest : public ::testing::Test {
+ protected:
+  // An executable shell script `name` in the temporary directory.
+  std::string Script(const std::string& name, const std::string& body) {
+    std::string path = dir_.Join(name);
+    std::ofstream(path) << "#!/bin/sh\n" << body << "\n";
+    EXPECT_EQ(chmod(path.c_str(), 0755), 0);
+    return path;
+  }
+  ServerOptions Options(const std::string& binary) {
+    ServerOptions options;
+    options.binary = binary;
+    options.data_dir = dir_.Join("data");
+    options.log_file = dir_.Join("server.log");
+    options.start_timeout = std::chrono::milliseconds(5000);
+    return options;
+  }
+  TempDir dir_;
+};
+
+TEST_F(ServerProcessTest, StartsStopsAndLogs) {
+  ServerProcess server(Options(Script("ok.sh",
+                                      "echo \"args: $*\"\n"
+                                      "echo 'fleetmem-server listening on "
+                                      "127.0.0.1:4242' >&2\n"
+                                      "trap 'echo bye; exit 0' TERM\n"
+                                      "while true; do sleep 0.05; done")));
+  ASSERT_TRUE(server.Start().ok());
+  EXPECT_TRUE(server.running());
+  EXPECT_EQ(server.port(), 4242);
+  EXPECT_EQ(server.address(), "127.0.0.1:4242");
+  absl::StatusOr<int> code = server.Stop();
+  ASSERT_TRUE(code.ok()) << code.status();
+  EXPECT_EQ(*code, 0);
+  EXPECT_FALSE(server.running());
+  const std::string log = ReadFileOrEmpty(dir_.Join("server.log"));
+  EXPECT_TRUE(absl::StrContains(
+      log, "args: --listen 127.0.0.1:0 --data-dir " + dir_.Join("data")))
+      << log;
+  EXPECT_TRUE(absl::StrContains(log, "bye")) << log;
+  EXPECT_EQ(server.Output(), log);
+}
+
+TEST_F(ServerProcessTest, PassesTheConfigFile) {
+  ServerOptions options =
+      Options(Script("config.sh",
+                     "echo \"args: $*\"; echo 'fleetmem-server listening on "
+                     "h:7'; exec sleep 30"));
+  options.config_file = "/some/config.yaml";
+  ServerProcess server(options);
+  ASSERT_TRUE(server.Start().ok());
+  EXPECT_TRUE(absl::StrContains(server.Output(), "--config /some/config.yaml"));
+  server.Kill();
+  EXPECT_FALSE(server.running());
+}
+
+TEST_F(ServerProcessTest, ReportsAServerThatExitsBeforeListening) {
+  ServerProcess server(
+      Options(Script("fail.sh", "echo 'cannot open data dir'; exit 3")));
+  absl::Status status = server.Start();
+  EXPECT_EQ(status.code(), absl::StatusCode::kInternal) << status;
+  EXPECT_TRUE(absl::StrContains(status.message(), "cannot open data dir"))
+      << status;
+  EXPECT_FALSE(server.running());
+}
+
+TEST_F(ServerProcessTest, TimesOutOnASilentServer) {
+  ServerOptions options =
+      Options(Script("silent.sh", "echo 'starting'; exec sleep 30"));
+  options.start_timeout = std::chrono::milliseconds(300);
+  ServerProcess server(options);
+  absl::Status status = server.Start();
+  EXPECT_EQ(status.code(), absl::StatusCode::kDeadlineExceeded) << status;
+  EXPECT_TRUE(absl::StrContains(status.message(), "starting")) << status;
+  EXPECT_FALSE(server.running());
+}
+
+TEST_F(ServerProcessTest, StopGivesUpOnAServerIgnoringSigterm) {
+  ServerProcess server(
+      Options(Script("stubborn.sh",
+                     "trap '' TERM\n"
+                     "echo 'fleetmem-server listening on [::1]:5151'\n"
+                     "exec sleep 30")));
+  ASSERT_TRUE(server.Start().ok());
+  EXPECT_EQ(server.port(), 5151);
+  absl::StatusOr<int> code = server.Stop(std::chrono::milliseconds(200));
+  EXPECT_EQ(code.status().code(), absl::StatusCode::kDeadlineExceeded);
+  EXPECT_FALSE(server.running());
+}
+
+TEST_F(ServerProcessTest, MissingBinaryIsNotFound) {
+  ServerProcess server(Options(dir_.Join("no-such-binary")));
+  EXPECT_EQ(server.Start().code(), absl::StatusCode::kNotFound);
+}
+
+TEST(TempDirTest, MakesAndRemovesADirectory) {
+  std::string path;
+  {
+    TempDir dir("fleetmem-tempdir-test-");
+    path = dir.path();
+    struct stat info;
+    ASSERT_EQ(stat(path.c_str(), &info), 0);
+    EXPECT_TRUE(S_ISDIR(info.st_mode));
+    ASSERT_EQ(mkdir(dir.Join("sub").c_str(), 0755), 0);
+    std::ofstream(dir.Join("sub/file")) << "x";
+  }
+  if (std::getenv("FLEETMEM_KEEP_TEST_DIRS") == nullptr) {
+    struct stat info;
+    EXPECT_NE(stat(path.c_str(), &info), 0) << path << " still exists";
+  }
+}
+
+}  // namespace
+}  // namespace fleetmem::testing

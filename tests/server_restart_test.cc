@@ -1,0 +1,433 @@
+// Integration tests of fleetmem-server's durability: a SIGKILLed server
+// restarted on the same RocksDB data directory has everything it
+// acknowledged, and SIGTERM shuts it down cleanly (exit code 0) even with
+// streams in flight.
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <iostream>
+#include <map>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "fleetmem/v1/memory.grpc.pb.h"
+#include "fleetmem/v1/memory.pb.h"
+#include "google/protobuf/util/message_differencer.h"
+#include "gtest/gtest.h"
+#include "tests/api_helpers.h"
+#include "tests/integration_fixture.h"
+#include "tests/synthetic_traces.h"
+
+namespace fleetmem::testing {
+namespace {
+
+using ::google::protobuf::util::MessageDifferencer;
+
+constexpr size_t kDim = 32;
+
+struct RobotPlan {
+  std::string robot_id;
+  size_t count;
+};
+
+TraceSpec SpecOf(const RobotPlan& plan) {
+  return TraceSpec{
+      .robot_id = plan.robot_id,
+      .count = plan.count,
+      .dimension = kDim,
+      .reward = [](uint64_t seq) { return 0.2f + 0.1f * (seq % 7); }};
+}
+
+// `expected` and `actual` are equal; the message lists the differences.
+void ExpectSameMessage(const google::protobuf::Message& expected,
+                       const google::protobuf::Message& actual,
+                       const std::string& what) {
+  std::string diff;
+  MessageDifferencer differencer;
+  differencer.ReportDifferencesToString(&diff);
+  EXPECT_TRUE(differencer.Compare(expected, actual))
+      << what << " differs after the restart:\n"
+      << diff;
+}
+
+// What a client can observe of a fleet, to compare across restarts.
+struct Observation {
+  v1::GetStatsResponse stats;
+  std::vector<v1::MemoryEvent> events;
+  std::vector<v1::QueryPlaceResponse> queries;
+};
+
+class RestartTest : public ServerTest {
+ protected:
+  void Observe(const std::string& fleet,
+               const std::vector<v1::QueryPlaceRequest>& queries,
+               Observation* observation) {
+    Reply<v1::GetStatsResponse> stats = GetStats(stub(), fleet);
+    ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+    observation->stats = stats.response;
+    Reply<std::vector<v1::MemoryEvent>> events =
+        ReadEvents(stub(), fleet, 0, stats.response.last_event_id());
+    ASSERT_TRUE(events.ok()) << Describe(events.status);
+    observation->events = events.response;
+    observation->queries.clear();
+    for (const v1::QueryPlaceRequest& request : queries) {
+      Reply<v1::QueryPlaceResponse> reply = QueryPlace(stub(), request);
+      ASSERT_TRUE(reply.ok()) << Describe(reply.status);
+      observation->queries.push_back(reply.response);
+    }
+  }
+};
+
+TEST_F(RestartTest, KilledServerKeepsEverythingAcknowledged) {
+  const std::string fleet = "fleet-durable";
+  // 3,000 traces; the counts leave 400 pending (count % 200 per robot).
+  const std::vector<RobotPlan> plans = {{"robot-a", 650},
+                                        {"robot-b", 550},
+                                        {"robot-c", 600},
+                                        {"robot-d", 640},
+                                        {"robot-e", 560}};
+  std::vector<uint64_t> acknowledged(plans.size(), 0);
+  std::vector<std::string> errors(plans.size());
+  std::vector<std::thread> threads;
+  for (size_t r = 0; r < plans.size(); ++r) {
+    threads.emplace_back([&, r] {
+      std::unique_ptr<v1::MemoryService::Stub> robot_stub =
+          MakeStub(server().address());
+      std::vector<v1::MemoryTrace> traces = MakeTraces(SpecOf(plans[r]));
+      for (size_t begin = 0; begin < traces.size(); begin += 100) {
+        std::span<const v1::MemoryTrace> part = std::span(traces).subspan(
+            begin, std::min<size_t>(100, traces.size() - begin));
+        Reply<v1::UploadTracesResponse> reply =
+            UploadTraces(*robot_stub, fleet, part, /*batch=*/50);
+        if (!reply.ok()) {
+          errors[r] = Describe(reply.status);
+          return;
+        }
+        acknowledged[r] += reply.response.accepted();
+      }
+    });
+  }
+  for (std::thread& thread : threads) thread.join();
+  uint64_t total = 0, pending = 0, consolidations = 0;
+  for (size_t r = 0; r < plans.size(); ++r) {
+    ASSERT_EQ(errors[r], "") << plans[r].robot_id;
+    ASSERT_EQ(acknowledged[r], plans[r].count) << plans[r].robot_id;
+    total += acknowledged[r];
+    pending += plans[r].count % 200;
+    consolidations += plans[r].count / 200;
+  }
+  ASSERT_EQ(total, 3000u);
+
+  // Crash right after the last acknowledgement: no clean shutdown.
+  ASSERT_NO_FATAL_FAILURE(KillAndRestart());
+
+  Reply<v1::GetStatsResponse> stats = GetStats(stub(), fleet);
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(stats.response.code_dimension(), kDim);
+  EXPECT_EQ(stats.response.encoder_version(), "enc-v1");
+  EXPECT_EQ(stats.response.pending_traces(), pending);
+  EXPECT_EQ(stats.response.consolidations(), consolidations);
+  EXPECT_LE(stats.response.clusters(), 100u);
+  EXPECT_GT(stats.response.traces(), 0u);
+  uint64_t received = 0;
+  for (const RobotPlan& plan : plans) {
+    const v1::RobotStats* robot = FindRobot(stats.response, plan.robot_id);
+    ASSERT_NE(robot, nullptr) << plan.robot_id;
+    EXPECT_EQ(robot->received(), plan.count) << plan.robot_id;
+    EXPECT_EQ(robot->max_seq(), plan.count) << plan.robot_id;
+    EXPECT_EQ(robot->pending_traces(), plan.count % 200) << plan.robot_id;
+    received += robot->received();
+  }
+  EXPECT_EQ(received, total) << "acknowledged traces were lost";
+
+  // Replay some traces (acknowledged mutations too), then observe the fleet.
+  for (int round = 0; round < 2; ++round) {
+    Reply<v1::SampleReplayResponse> sample =
+        SampleReplay(stub(), fleet, "robot-a", 250);
+    ASSERT_TRUE(sample.ok()) << Describe(sample.status);
+  }
+  std::vector<v1::QueryPlaceRequest> queries;
+  for (const RobotPlan& plan : plans) {
+    for (uint64_t seq : {uint64_t{1}, uint64_t{333}, uint64_t{plan.count}}) {
+      v1::QueryPlaceRequest& request = queries.emplace_back();
+      request.set_fleet_id(fleet);
+      v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
+      for (float value : trace.code()) request.add_code(value);
+      request.set_k(10);
+      if (seq == 333) {  // with a position prior
+        *request.mutable_near() = trace.pose();
+        request.set_radius_m(400.0);
+      }
+    }
+  }
+  Observation before;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &before));
+  ASSERT_FALSE(before.events.empty());
+
+  ASSERT_NO_FATAL_FAILURE(KillAndRestart());
+
+  Observation after;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &after));
+  ExpectSameMessage(before.stats, after.stats, "GetStats");
+  ASSERT_EQ(after.events.size(), before.events.size());
+  for (size_t i = 0; i < before.events.size(); ++i) {
+    ExpectSameMessage(before.events[i], after.events[i],
+                      "event " + std::to_string(i));
+  }
+  ASSERT_EQ(after.queries.size(), before.queries.size());
+  for (size_t i = 0; i < before.queries.size(); ++i) {
+    // Includes each match's replay_count and cluster_id.
+    ExpectSameMessage(before.queries[i], after.queries[i],
+                      "QueryPlace " + std::to_string(i));
+  }
+
+  // Every trace is still known: a full retry is all duplicates.
+  uint64_t duplicates = 0, accepted = 0;
+  for (const RobotPlan& plan : plans) {
+    Reply<v1::UploadTracesResponse> reply =
+        UploadTraces(stub(), fleet, MakeTraces(SpecOf(plan)), /*batch=*/500);
+    ASSERT_TRUE(reply.ok()) << Describe(reply.status);
+    duplicates += reply.response.duplicates();
+    accepted += reply.response.accepted();
+  }
+  EXPECT_EQ(accepted, 0u);
+  EXPECT_EQ(duplicates, total);
+
+  // Event ids continue after the restart (never reused).
+  const uint64_t last_before = before.stats.last_event_id();
+  Reply<v1::UploadTracesResponse> more = UploadTraces(
+      stub(), fleet, MakeTraces(SpecOf({"robot-f", 200})), /*batch=*/100);
+  ASSERT_TRUE(more.ok()) << Describe(more.status);
+  EXPECT_EQ(more.response.consolidations(), 1u);
+  Reply<v1::GetStatsResponse> latest = GetStats(stub(), fleet);
+  ASSERT_TRUE(latest.ok()) << Describe(latest.status);
+  ASSERT_GT(latest.response.last_event_id(), last_before);
+  Reply<std::vector<v1::MemoryEvent>> fresh =
+      ReadEvents(stub(), fleet, last_before, latest.response.last_event_id());
+  ASSERT_TRUE(fresh.ok()) << Describe(fresh.status);
+  ASSERT_FALSE(fresh.response.empty());
+  EXPECT_EQ(fresh.response.front().id(), last_before + 1);
+  for (const v1::MemoryEvent& event : fresh.response) {
+    EXPECT_GT(event.id(), last_before);
+  }
+
+  // Replay counts survived: one more draw of everything adds exactly one.
+  std::map<std::pair<std::string, uint64_t>, uint32_t> counts_before;
+  for (const v1::QueryPlaceResponse& query : before.queries) {
+    for (const v1::PlaceMatch& match : query.matches()) {
+      counts_before[{match.trace().robot_id(), match.trace().seq()}] =
+          match.trace().replay_count();
+    }
+  }
+  Reply<v1::SampleReplayResponse> everything =
+      SampleReplay(stub(), fleet, "robot-b", 10000);
+  ASSERT_TRUE(everything.ok()) << Describe(everything.status);
+  size_t checked = 0, replayed_before = 0;
+  for (const v1::MemoryTrace& trace : everything.response.traces()) {
+    auto it = counts_before.find({trace.robot_id(), trace.seq()});
+    if (it == counts_before.end()) continue;
+    ++checked;
+    replayed_before += it->second > 0 ? 1 : 0;
+    EXPECT_EQ(trace.replay_count(), it->second + 1)
+        << trace.robot_id() << "/" << trace.seq();
+  }
+  EXPECT_GT(checked, 0u);
+  EXPECT_GT(replayed_before, 0u) << "precondition: some matches were replayed";
+}
+
+TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
+  const std::string fleet = "fleet-clean-restart";
+  const std::vector<RobotPlan> plans = {{"robot-a", 230}, {"robot-b", 200}};
+  for (const RobotPlan& plan : plans) {
+    ASSERT_TRUE(UploadTraces(stub(), fleet, MakeTraces(SpecOf(plan))).ok());
+  }
+  for (int round = 0; round < 3; ++round) {
+    ASSERT_TRUE(SampleReplay(stub(), fleet, "robot-b", 60).ok());
+  }
+  std::vector<v1::QueryPlaceRequest> queries;
+  for (uint64_t seq : {1, 50, 100, 150, 200}) {
+    v1::QueryPlaceRequest& request = queries.emplace_back();
+    request.set_fleet_id(fleet);
+    const v1::MemoryTrace trace = MakeTrace(SpecOf(plans[0]), seq);
+    for (float value : trace.code()) request.add_code(value);
+    request.set_k(20);
+  }
+  Observation before;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &before));
+
+  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+
+  Observation after;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &after));
+  ExpectSameMessage(before.stats, after.stats, "GetStats");
+  ASSERT_EQ(after.events.size(), before.events.size());
+  for (size_t i = 0; i < before.events.size(); ++i) {
+    ExpectSameMessage(before.events[i], after.events[i],
+                      "event " + std::to_string(i));
+  }
+  for (size_t i = 0; i < before.queries.size(); ++i) {
+    // Includes each match's replay_count and cluster_id.
+    ExpectSameMessage(before.queries[i], after.queries[i],
+                      "QueryPlace " + std::to_string(i));
+  }
+}
+
+TEST_F(RestartTest, SigtermDuringUploadExitsCleanlyAndKeepsAcknowledgedData) {
+  const std::string fleet = "fleet-shutdown";
+  Reply<v1::UploadTracesResponse> acked = UploadTraces(
+      stub(), fleet, MakeTraces(SpecOf({"robot-acked", 300})), /*batch=*/100);
+  ASSERT_TRUE(acked.ok()) << Describe(acked.status);
+  ASSERT_EQ(acked.response.accepted(), 300u);
+
+  // A long upload stream (200 messages of 50 traces) still being written
+  // when the server gets SIGTERM.
+  constexpr size_t kMessages = 200;
+  constexpr size_t kPerMessage = 50;
+  const std::vector<v1::MemoryTrace> flight =
+      MakeTraces(SpecOf({"robot-flight", kMessages * kPerMessage}));
+  std::atomic<size_t> written{0};
+  grpc::Status flight_status;
+  v1::UploadTracesResponse flight_response;
+  std::thread uploader([&] {
+    std::unique_ptr<v1::MemoryService::Stub> robot_stub =
+        MakeStub(server().address());
+    auto context = MakeContext(std::chrono::seconds(120));
+    auto writer = robot_stub->UploadTraces(context.get(), &flight_response);
+    for (size_t m = 0; m < kMessages; ++m) {
+      if (!writer->Write(MakeUploadRequest(
+              fleet,
+              std::span(flight).subspan(m * kPerMessage, kPerMessage)))) {
+        break;
+      }
+      ++written;
+    }
+    writer->WritesDone();
+    flight_status = writer->Finish();
+  });
+  // Waits (bounded) until ten messages are on their way.
+  for (int i = 0; i < 6000 && written < 10; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  EXPECT_GE(written.load(), 10u) << "the upload did not get going";
+
+  const size_t written_at_sigterm = written.load();
+  absl::StatusOr<int> code = server().Stop(std::chrono::seconds(60));
+  uploader.join();
+  ASSERT_TRUE(code.ok()) << code.status();
+  EXPECT_EQ(*code, 0) << "fleetmem-server did not exit cleanly on SIGTERM";
+  EXPECT_TRUE(flight_status.ok() ||
+              flight_status.error_code() == grpc::StatusCode::UNAVAILABLE)
+      << "in-flight upload ended with " << Describe(flight_status);
+
+  ASSERT_NO_FATAL_FAILURE(StartServer());
+  Reply<v1::GetStatsResponse> stats = GetStats(stub(), fleet);
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  const v1::RobotStats* robot = FindRobot(stats.response, "robot-acked");
+  ASSERT_NE(robot, nullptr);
+  EXPECT_EQ(robot->received(), 300u);
+  EXPECT_EQ(robot->max_seq(), 300u);
+
+  // Of the in-flight stream, a prefix of whole messages is stored.
+  robot = FindRobot(stats.response, "robot-flight");
+  const uint64_t stored = robot == nullptr ? 0 : robot->received();
+  std::cout << "in-flight upload: " << written_at_sigterm << " of " << kMessages
+            << " messages written at SIGTERM, ended with "
+            << Describe(flight_status) << ", " << stored << " of "
+            << flight.size() << " traces stored" << std::endl;
+  EXPECT_EQ(stored % kPerMessage, 0u) << "a message was stored in part";
+  if (robot != nullptr) {
+    EXPECT_EQ(robot->max_seq(), stored);
+  }
+  if (flight_status.ok()) {
+    EXPECT_EQ(flight_response.accepted(), flight.size());
+    EXPECT_EQ(stored, flight.size());
+  }
+  if (stored > 0) {
+    Reply<v1::UploadTracesResponse> retry = UploadTraces(
+        stub(), fleet, std::span(flight).first(stored), /*batch=*/500);
+    ASSERT_TRUE(retry.ok()) << Describe(retry.status);
+    EXPECT_EQ(retry.response.duplicates(), stored);
+    EXPECT_EQ(retry.response.accepted(), 0u);
+  }
+}
+
+TEST_F(RestartTest, SigtermWithAnIdleClientConnectedExitsCleanly) {
+  // Robots stay connected between calls; the server must still stop.
+  std::unique_ptr<v1::MemoryService::Stub> robot_stub =
+      MakeStub(server().address());
+  TraceSpec spec = SpecOf({"robot-idle", 10});
+  Reply<v1::UploadTracesResponse> upload =
+      UploadTraces(*robot_stub, "fleet-idle-client", MakeTraces(spec));
+  ASSERT_TRUE(upload.ok()) << Describe(upload.status);
+  ASSERT_TRUE(GetStats(*robot_stub, "fleet-idle-client").ok());
+  ASSERT_NO_FATAL_FAILURE(StopServer());
+  robot_stub.reset();
+  ASSERT_NO_FATAL_FAILURE(StartServer());
+  Reply<v1::GetStatsResponse> stats = GetStats(stub(), "fleet-idle-client");
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(stats.response.pending_traces(), 10u);
+}
+
+TEST_F(RestartTest, SigtermWithAnOpenWatchExitsCleanly) {
+  const std::string fleet = "fleet-watched";
+  ASSERT_TRUE(
+      UploadTraces(stub(), fleet, MakeTraces(SpecOf({"robot-w", 40}))).ok());
+  Reply<v1::ConsolidateResponse> consolidated = Consolidate(stub(), fleet);
+  ASSERT_TRUE(consolidated.ok()) << Describe(consolidated.status);
+  const size_t history = consolidated.response.clusters_added();
+  ASSERT_GT(history, 0u);
+
+  std::mutex mu;
+  std::condition_variable cv;
+  size_t received = 0;
+  bool done = false;
+  grpc::Status status;
+  std::thread watcher([&] {
+    std::unique_ptr<v1::MemoryService::Stub> watch_stub =
+        MakeStub(server().address());
+    auto context = MakeContext(std::chrono::seconds(120));
+    v1::WatchMemoryRequest request;
+    request.set_fleet_id(fleet);
+    auto reader = watch_stub->WatchMemory(context.get(), request);
+    v1::MemoryEvent event;
+    while (reader->Read(&event)) {
+      std::lock_guard<std::mutex> lock(mu);
+      ++received;
+      cv.notify_all();
+    }
+    grpc::Status finished = reader->Finish();
+    std::lock_guard<std::mutex> lock(mu);
+    status = finished;
+    done = true;
+    cv.notify_all();
+  });
+  {
+    std::unique_lock<std::mutex> lock(mu);
+    EXPECT_TRUE(cv.wait_for(lock, std::chrono::seconds(30), [&] {
+      return done || received >= history;
+    })) << "the watch did not deliver the history";
+    EXPECT_FALSE(done) << Describe(status);
+  }
+
+  absl::StatusOr<int> code = server().Stop(std::chrono::seconds(30));
+  watcher.join();
+  ASSERT_TRUE(code.ok()) << code.status()
+                         << " (shutdown hangs on an open WatchMemory stream)";
+  EXPECT_EQ(*code, 0) << "fleetmem-server did not exit cleanly on SIGTERM";
+  // The proto promises UNAVAILABLE while the server shuts down, so that
+  // clients reconnect (elsewhere or later) from their cursor.
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::UNAVAILABLE)
+      << Describe(status);
+  EXPECT_EQ(received, history);
+
+  ASSERT_NO_FATAL_FAILURE(StartServer());
+  Reply<v1::GetStatsResponse> stats = GetStats(stub(), fleet);
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(stats.response.clusters(), consolidated.response.clusters());
+  EXPECT_EQ(stats.response.traces(), consolidated.response.traces());
+}
+
+}  // namespace
+}  // namespace fleetmem::testing

@@ -1,0 +1,88 @@
+#include "tools/demo/code_search.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <utility>
+
+namespace fleetmem::demo {
+namespace {
+
+double Norm(std::span<const float> a) {
+  double sum = 0.0;
+  for (float v : a) sum += static_cast<double>(v) * v;
+  return std::sqrt(sum);
+}
+
+}  // namespace
+
+float CosineSimilarity(std::span<const float> a, std::span<const float> b) {
+  const double norm_a = Norm(a);
+  const double norm_b = Norm(b);
+  if (norm_a == 0.0 || norm_b == 0.0) {
+    return norm_a == norm_b ? 1.0f : 0.0f;
+  }
+  double dot = 0.0;
+  const size_t n = std::min(a.size(), b.size());
+  for (size_t i = 0; i < n; ++i) dot += static_cast<double>(a[i]) * b[i];
+  return static_cast<float>(std::clamp(dot / (norm_a * norm_b), -1.0, 1.0));
+}
+
+float CodeDistance(std::span<const float> a, std::span<const float> b) {
+  const double norm_a = Norm(a);
+  const double norm_b = Norm(b);
+  const size_t n = std::min(a.size(), b.size());
+  double sum = 0.0;
+  for (size_t i = 0; i < n; ++i) {
+    const double x = norm_a > 0.0 ? a[i] / norm_a : 0.0;
+    const double y = norm_b > 0.0 ? b[i] / norm_b : 0.0;
+    sum += (x - y) * (x - y);
+  }
+  return static_cast<float>(std::sqrt(sum));
+}
+
+void BruteForceIndex::Add(std::span<const float> code, double label) {
+  const double norm = Norm(code);
+  for (size_t i = 0; i < dimension_; ++i) {
+    const float v = i < code.size() ? code[i] : 0.0f;
+    normalised_.push_back(norm > 0.0 ? static_cast<float>(v / norm) : 0.0f);
+  }
+  labels_.push_back(label);
+}
+
+std::vector<double> BruteForceIndex::Search(std::span<const float> query,
+                                            size_t k) const {
+  const double norm = Norm(query);
+  std::vector<float> q(dimension_, 0.0f);
+  for (size_t i = 0; i < dimension_ && i < query.size(); ++i) {
+    q[i] = norm > 0.0 ? static_cast<float>(query[i] / norm) : 0.0f;
+  }
+  std::vector<std::pair<float, size_t>> scored(labels_.size());
+  for (size_t row = 0; row < labels_.size(); ++row) {
+    const float* r = normalised_.data() + row * dimension_;
+    float sum = 0.0f;
+    for (size_t i = 0; i < dimension_; ++i) {
+      const float d = r[i] - q[i];
+      sum += d * d;
+    }
+    scored[row] = {sum, row};
+  }
+  k = std::min(k, scored.size());
+  std::partial_sort(scored.begin(), scored.begin() + k, scored.end());
+  std::vector<double> labels;
+  labels.reserve(k);
+  for (size_t i = 0; i < k; ++i) labels.push_back(labels_[scored[i].second]);
+  return labels;
+}
+
+int FirstCorrectRank(std::span<const double> retrieved_x, double query_x,
+                     double tolerance) {
+  for (size_t i = 0; i < retrieved_x.size(); ++i) {
+    if (std::abs(retrieved_x[i] - query_x) <= tolerance) {
+      return static_cast<int>(i) + 1;
+    }
+  }
+  return 0;
+}
+
+}  // namespace fleetmem::demo

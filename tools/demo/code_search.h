@@ -1,0 +1,49 @@
+// Client-side code arithmetic for the demo: cosine similarity, the server's
+// code distance (Euclidean between L2-normalised codes), exact k-nearest
+// search by brute force (the demo's unbounded baseline) and the
+// first-correct rank of a retrieval.
+#ifndef FLEETMEM_TOOLS_DEMO_CODE_SEARCH_H_
+#define FLEETMEM_TOOLS_DEMO_CODE_SEARCH_H_
+
+#include <cstddef>
+#include <span>
+#include <vector>
+
+namespace fleetmem::demo {
+
+// cos(a, b) for codes of equal size; 1 if both are all zero (the same code),
+// 0 if only one is.
+float CosineSimilarity(std::span<const float> a, std::span<const float> b);
+
+// |a/|a| - b/|b||, in [0, 2]; an all-zero code stays zero (as the server's
+// core::CodeDistance does).
+float CodeDistance(std::span<const float> a, std::span<const float> b);
+
+// Exact nearest codes by CodeDistance over a fixed set. Not thread-safe for
+// Add; Search is const and may run concurrently.
+class BruteForceIndex {
+ public:
+  explicit BruteForceIndex(size_t dimension) : dimension_(dimension) {}
+
+  // Appends `code` (of the index's dimension) with a caller-chosen label.
+  void Add(std::span<const float> code, double label);
+  size_t size() const { return labels_.size(); }
+
+  // Labels of the min(k, size()) nearest codes to `query`, nearest first
+  // (ties by insertion order).
+  std::vector<double> Search(std::span<const float> query, size_t k) const;
+
+ private:
+  size_t dimension_;
+  std::vector<float> normalised_;  // size() rows of dimension_
+  std::vector<double> labels_;
+};
+
+// 1-based rank of the first of `retrieved_x` (nearest first) within
+// `tolerance` of `query_x`, or 0 if none is.
+int FirstCorrectRank(std::span<const double> retrieved_x, double query_x,
+                     double tolerance);
+
+}  // namespace fleetmem::demo
+
+#endif  // FLEETMEM_TOOLS_DEMO_CODE_SEARCH_H_

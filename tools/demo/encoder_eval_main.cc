@@ -1,0 +1,188 @@
+// fleetmem-encoder-eval: compares the demo's candidate image codes on the
+// real Nordland data without a server. For every encoder: summer -> winter
+// place recognition by exact nearest-neighbour search (recall@1/@5, WR) over
+// the whole route and over the demo's robot stretches, the internal reward
+// statistics and the encoding time.
+//
+//   fleetmem-encoder-eval [--data DIR] [--robots N] [--stretch-length N]
+//                         [--encoders a,b,...]
+#include <chrono>
+#include <cstdio>
+#include <iostream>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "absl/flags/flag.h"
+#include "absl/flags/usage.h"
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "services/core/place_metrics.h"
+#include "tools/demo/code_search.h"
+#include "tools/demo/command_line.h"
+#include "tools/demo/image_encoder.h"
+#include "tools/demo/nordland.h"
+#include "tools/demo/rewards.h"
+
+ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
+          "shared data folder (holds nordland/summer and nordland/winter)");
+ABSL_FLAG(int, robots, 3, "robot stretches of the demo");
+ABSL_FLAG(int, stretch_length, 300, "frames per robot stretch");
+ABSL_FLAG(std::string, encoders, "",
+          "comma-separated encoder names (default: all)");
+
+namespace fleetmem::demo {
+namespace {
+
+// A query is correct within +-2 files (README.md).
+constexpr double kToleranceUnits = 2.0 * kNordlandUnitsPerFile;
+constexpr size_t kTopK = 6;
+
+struct Season {
+  std::vector<int> numbers;
+  std::vector<cv::Mat> images;
+};
+
+absl::StatusOr<Season> LoadSeason(const std::string& dir) {
+  Season season;
+  absl::StatusOr<std::vector<int>> numbers = ListNordlandFrames(dir);
+  if (!numbers.ok()) return numbers.status();
+  season.numbers = *std::move(numbers);
+  for (int number : season.numbers) {
+    absl::StatusOr<cv::Mat> image = LoadNordlandGrey(dir, number);
+    if (!image.ok()) return image.status();
+    season.images.push_back(*std::move(image));
+  }
+  return season;
+}
+
+// Recall over queries `query_rows` of winter against references `db_rows`
+// of summer (rows of the same frame list; same row = same place).
+core::FirstCorrectRanks Ranks(const std::vector<std::vector<float>>& summer,
+                              const std::vector<std::vector<float>>& winter,
+                              const Season& season,
+                              const std::vector<size_t>& rows) {
+  BruteForceIndex index(summer.front().size());
+  for (size_t row : rows) index.Add(summer[row], season.numbers[row]);
+  core::FirstCorrectRanks ranks;
+  for (size_t row : rows) {
+    const std::vector<double> x = index.Search(winter[row], kTopK);
+    ranks.push_back(FirstCorrectRank(x, season.numbers[row], kToleranceUnits));
+  }
+  return ranks;
+}
+
+absl::Status Run() {
+  const std::string root = absl::GetFlag(FLAGS_data) + "/nordland";
+  absl::StatusOr<Season> summer = LoadSeason(root + "/summer");
+  if (!summer.ok()) return summer.status();
+  absl::StatusOr<Season> winter = LoadSeason(root + "/winter");
+  if (!winter.ok()) return winter.status();
+  if (summer->numbers != winter->numbers) {
+    return absl::FailedPreconditionError(
+        "summer and winter hold different frame numbers");
+  }
+  absl::StatusOr<std::vector<Stretch>> stretches =
+      SpreadStretches(summer->numbers.size(), absl::GetFlag(FLAGS_robots),
+                      absl::GetFlag(FLAGS_stretch_length));
+  if (!stretches.ok()) return stretches.status();
+  std::vector<size_t> all_rows, stretch_rows;
+  for (size_t i = 0; i < summer->numbers.size(); ++i) all_rows.push_back(i);
+  for (const Stretch& s : *stretches) {
+    for (size_t i = s.begin; i < s.end; ++i) stretch_rows.push_back(i);
+  }
+
+  std::vector<std::string> names = EncoderNames();
+  if (!absl::GetFlag(FLAGS_encoders).empty()) {
+    names = absl::StrSplit(absl::GetFlag(FLAGS_encoders), ',');
+  }
+  std::printf(
+      "Nordland summer -> winter, exact search, correct within +-2 "
+      "files; %zu frames, stretches: %zu frames\n",
+      all_rows.size(), stretch_rows.size());
+  std::printf("%-22s %5s | %6s %6s %6s | %6s %6s %6s | %6s %6s %6s | %6s\n",
+              "encoder", "dim", "r@1", "r@5", "WR", "s r@1", "s r@5", "s WR",
+              "R_in", "R_ex", "R_ex>0", "us/img");
+  for (const std::string& name : names) {
+    absl::StatusOr<std::unique_ptr<ImageEncoder>> encoder =
+        NewEncoderByName(name);
+    if (!encoder.ok()) return encoder.status();
+    std::vector<std::vector<float>> summer_codes, winter_codes;
+    const auto start = std::chrono::steady_clock::now();
+    for (size_t i = 0; i < all_rows.size(); ++i) {
+      absl::StatusOr<std::vector<float>> s =
+          (*encoder)->Encode(summer->images[i]);
+      absl::StatusOr<std::vector<float>> w =
+          (*encoder)->Encode(winter->images[i]);
+      if (!s.ok()) return s.status();
+      if (!w.ok()) return w.status();
+      summer_codes.push_back(*std::move(s));
+      winter_codes.push_back(*std::move(w));
+    }
+    const double us_per_image = std::chrono::duration<double, std::micro>(
+                                    std::chrono::steady_clock::now() - start)
+                                    .count() /
+                                (2.0 * all_rows.size());
+    // Rewards over the robot stretches, as the demo computes them.
+    std::mt19937_64 rng(7);
+    double internal_sum = 0.0, external_sum = 0.0;
+    size_t external_positive = 0;
+    for (const Stretch& s : *stretches) {
+      std::vector<std::vector<float>> codes;
+      std::vector<double> x;
+      for (size_t i = s.begin; i < s.end; ++i) {
+        absl::StatusOr<cv::Mat> moved =
+            RandomShiftCrop(summer->images[i], ShiftCropOptions{}, rng);
+        if (!moved.ok()) return moved.status();
+        absl::StatusOr<std::vector<float>> code = (*encoder)->Encode(*moved);
+        if (!code.ok()) return code.status();
+        internal_sum += InternalReward(summer_codes[i], *code);
+        codes.push_back(summer_codes[i]);
+        x.push_back(summer->numbers[i]);
+      }
+      for (float r : ExternalRewards(codes, x, TripletOptions{})) {
+        external_sum += r;
+        external_positive += r > 0.0f ? 1 : 0;
+      }
+    }
+    const core::FirstCorrectRanks all =
+        Ranks(summer_codes, winter_codes, *summer, all_rows);
+    const core::FirstCorrectRanks part =
+        Ranks(summer_codes, winter_codes, *summer, stretch_rows);
+    std::printf(
+        "%-22s %5zu | %6.3f %6.3f %6.3f | %6.3f %6.3f %6.3f | %6.3f %6.3f "
+        "%6.3f | %6.1f\n",
+        name.c_str(), (*encoder)->dimension(), core::RecallAtK(all, 1),
+        core::RecallAtK(all, 5), core::WeightedRecall(all),
+        core::RecallAtK(part, 1), core::RecallAtK(part, 5),
+        core::WeightedRecall(part), internal_sum / stretch_rows.size(),
+        external_sum / stretch_rows.size(),
+        static_cast<double>(external_positive) / stretch_rows.size(),
+        us_per_image);
+    std::fflush(stdout);
+  }
+  std::printf(
+      "r@k/WR: whole route; s r@k/s WR: robot stretches only; R_in, "
+      "R_ex: mean rewards over the stretches; R_ex>0: share of "
+      "stretch frames with a non-zero triplet loss.\n"
+      "Data: Nordland railway footage, NRK (CC BY).\n");
+  return absl::OkStatus();
+}
+
+}  // namespace
+}  // namespace fleetmem::demo
+
+int main(int argc, char** argv) {
+  absl::SetProgramUsageMessage(
+      "Compares the demo's image encoders on Nordland summer -> winter.");
+  fleetmem::demo::ParseDashedCommandLine(argc, argv);
+  const absl::Status status = fleetmem::demo::Run();
+  if (!status.ok()) {
+    std::cerr << "fleetmem-encoder-eval: " << status << "\n";
+    return 1;
+  }
+  return 0;
+}

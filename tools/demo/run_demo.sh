@@ -1,0 +1,129 @@
+#!/usr/bin/env bash
+# Runs the Nordland fleet demo end to end (`make demo`):
+#   1. starts BUILD_DIR/bin/fleetmem-server on a free local port with its
+#      embedded RocksDB under .demo/data (logs in .demo/server.log),
+#   2. waits until it logs "listening",
+#   3. runs BUILD_DIR/bin/fleetmem-demo against it (results table on stdout
+#      and in .demo/results.md),
+#   4. stops the server with SIGTERM and waits for it (also on failure or
+#      Ctrl-C, through an exit trap).
+#
+# Usage: tools/demo/run_demo.sh [BUILD_DIR] [fleetmem-demo flags...]
+#   BUILD_DIR defaults to "build" (relative to the project root).
+# Environment: FLEETMEM_DEMO_STARTUP_TIMEOUT (seconds, default 30),
+#   FLEETMEM_DEMO_STOP_TIMEOUT (seconds, default 30).
+set -euo pipefail
+
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+build_dir="${1:-build}"
+if [[ $# -gt 0 ]]; then shift; fi
+case "$build_dir" in
+  /*) ;;
+  *) build_dir="$root/$build_dir" ;;
+esac
+server_bin="$build_dir/bin/fleetmem-server"
+demo_bin="$build_dir/bin/fleetmem-demo"
+for bin in "$server_bin" "$demo_bin"; do
+  if [[ ! -x "$bin" ]]; then
+    echo "run_demo.sh: $bin not found; build it first (make build)" >&2
+    exit 1
+  fi
+done
+
+demo_dir="$root/.demo"
+log="$demo_dir/server.log"
+results="$demo_dir/results.md"
+startup_timeout="${FLEETMEM_DEMO_STARTUP_TIMEOUT:-30}"
+stop_timeout="${FLEETMEM_DEMO_STOP_TIMEOUT:-30}"
+mkdir -p "$demo_dir"
+
+server_pid=""
+server_status=0
+# Stops the server (SIGTERM, then SIGKILL after stop_timeout) and records
+# its exit status in server_status. Safe to call twice.
+stop_server() {
+  [[ -n "$server_pid" ]] || return 0
+  local pid="$server_pid"
+  server_pid=""
+  if kill -0 "$pid" 2>/dev/null; then
+    echo "run_demo.sh: stopping fleetmem-server (pid $pid)"
+    kill -TERM "$pid" 2>/dev/null || true
+    local waited=0
+    while kill -0 "$pid" 2>/dev/null && ((waited < stop_timeout * 10)); do
+      sleep 0.1
+      waited=$((waited + 1))
+    done
+    if kill -0 "$pid" 2>/dev/null; then
+      echo "run_demo.sh: fleetmem-server did not stop within" \
+        "${stop_timeout}s of SIGTERM; killing it" >&2
+      kill -KILL "$pid" 2>/dev/null || true
+    fi
+  fi
+  server_status=0
+  wait "$pid" 2>/dev/null || server_status=$?
+}
+demo_pid=""
+# On Ctrl-C or SIGTERM: stop the demo too (it runs in the background so that
+# the signal is handled at once), then exit; the EXIT trap stops the server.
+stop_all() {
+  if [[ -n "$demo_pid" ]]; then
+    kill -TERM "$demo_pid" 2>/dev/null || true
+    wait "$demo_pid" 2>/dev/null || true
+    demo_pid=""
+  fi
+  exit "$1"
+}
+trap stop_server EXIT
+trap 'stop_all 130' INT
+trap 'stop_all 143' TERM
+
+# Port 0: the server picks a free port and logs the address it listens on.
+# The log is emptied here, not by the background job's redirection, so the
+# wait below cannot read the previous run's address.
+: >"$log"
+"$server_bin" --listen 127.0.0.1:0 --data-dir "$demo_dir/data" >>"$log" 2>&1 &
+server_pid=$!
+echo "run_demo.sh: started fleetmem-server (pid $server_pid), log $log"
+
+address=""
+deadline=$((SECONDS + startup_timeout))
+while [[ -z "$address" ]]; do
+  if ! kill -0 "$server_pid" 2>/dev/null; then
+    status=0
+    wait "$server_pid" || status=$?
+    server_pid=""
+    echo "run_demo.sh: fleetmem-server exited during start-up (status" \
+      "$status); last lines of $log:" >&2
+    tail -n 20 "$log" >&2
+    exit 1
+  fi
+  address="$(grep -m1 -o 'listening on [^ ]*' "$log" | cut -d' ' -f3 || true)"
+  if [[ -z "$address" ]]; then
+    if ((SECONDS >= deadline)); then
+      echo "run_demo.sh: fleetmem-server did not log \"listening\" within" \
+        "${startup_timeout}s; last lines of $log:" >&2
+      tail -n 20 "$log" >&2
+      exit 1
+    fi
+    sleep 0.1
+  fi
+done
+echo "run_demo.sh: fleetmem-server listening on $address"
+
+demo_status=0
+"$demo_bin" --server "$address" --results-md "$results" "$@" &
+demo_pid=$!
+wait "$demo_pid" || demo_status=$?
+demo_pid=""
+
+stop_server
+if ((server_status != 0)); then
+  echo "run_demo.sh: fleetmem-server exited with status $server_status;" \
+    "see $log" >&2
+fi
+if ((demo_status != 0)); then
+  echo "run_demo.sh: fleetmem-demo failed (status $demo_status)" >&2
+  exit "$demo_status"
+fi
+if ((server_status != 0)); then exit 1; fi
+echo "run_demo.sh: done; results in $results, server log in $log"
