@@ -57,10 +57,10 @@ class ServerProcessTest : public ::testing::Test {
 
 TEST_F(ServerProcessTest, StartsStopsAndLogs) {
   ServerProcess server(Options(Script("ok.sh",
+                                      "trap 'echo bye; exit 0' TERM\n"
                                       "echo \"args: $*\"\n"
                                       "echo 'fleetmem-server listening on "
                                       "127.0.0.1:4242' >&2\n"
-                                      "trap 'echo bye; exit 0' TERM\n"
                                       "while true; do sleep 0.05; done")));
   ASSERT_TRUE(server.Start().ok());
   EXPECT_TRUE(server.running());

@@ -124,9 +124,23 @@ struct Notices {
 
 }  // namespace
 
+const core::MemoryOptions& MemoryEngine::MemoryOptionsFor(
+    std::string_view fleet_id) const {
+  auto it = options_.fleet_memory.find(fleet_id);
+  return it == options_.fleet_memory.end() ? options_.memory : it->second;
+}
+
 absl::Status ValidateEngineOptions(const EngineOptions& options) {
   absl::Status status = core::ValidateMemoryOptions(options.memory);
   if (!status.ok()) return status;
+  for (const auto& [fleet_id, memory] : options.fleet_memory) {
+    status = core::ValidateId("fleet_memory fleet id", fleet_id);
+    if (status.ok()) status = core::ValidateMemoryOptions(memory);
+    if (!status.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "memory options of fleet \"", V(fleet_id), "\": ", status.message()));
+    }
+  }
   const std::pair<const char*, size_t> positive[] = {
       {"segment_size", options.segment_size},
       {"max_traces_per_upload", options.max_traces_per_upload},
@@ -148,8 +162,8 @@ struct MemoryEngine::Fleet {
   Fleet(std::string fleet_id, const MemoryEngine* owner)
       : id(std::move(fleet_id)),
         engine(owner),
-        memory(owner->options_.memory),
-        rng(FleetSeed(owner->options_.memory.seed, id)) {}
+        memory(owner->MemoryOptionsFor(id)),
+        rng(FleetSeed(memory.options().seed, id)) {}
 
   // True once the fleet's first upload is durable.
   bool exists() const ABSL_SHARED_LOCKS_REQUIRED(mu) {
@@ -240,7 +254,7 @@ absl::Status MemoryEngine::Fleet::CheckLoaded() const {
 
 absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   meta = record.meta;
-  memory = core::StaticMemory(engine->options_.memory);
+  memory = core::StaticMemory(engine->MemoryOptionsFor(id));
   pending.clear();
   robots.clear();
   index.reset();
@@ -550,10 +564,9 @@ FleetStats MemoryEngine::Fleet::Stats() const {
   stats.last_event_id = meta.next_event_id - 1;
   stats.consolidations = meta.consolidations;
   stats.clusters_forgotten = meta.clusters_forgotten;
-  stats.max_clusters =
-      static_cast<uint32_t>(engine->options_.memory.max_clusters);
+  stats.max_clusters = static_cast<uint32_t>(memory.options().max_clusters);
   stats.max_traces_per_cluster =
-      static_cast<uint32_t>(engine->options_.memory.max_traces_per_cluster);
+      static_cast<uint32_t>(memory.options().max_traces_per_cluster);
 
   std::map<std::string, RobotStats> by_robot;
   std::map<std::string, DomainStats> by_domain;

@@ -12,6 +12,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <span>
 #include <string>
@@ -32,6 +33,9 @@ namespace fleetmem::engine {
 struct EngineOptions {
   // Memory parameters of every fleet (K, N_max, K_max, gamma, ...).
   core::MemoryOptions memory;
+  // Per-fleet replacements of `memory`, by fleet id (e.g. an ablation fleet
+  // with clustering off next to the production fleets).
+  std::map<std::string, core::MemoryOptions, std::less<>> fleet_memory;
   // A robot's pending traces are consolidated automatically once this many
   // have accumulated.
   size_t segment_size = 200;
@@ -133,8 +137,8 @@ class MemoryEngine {
   // duplicates, and consolidates each robot whose pending traces reached
   // segment_size. The first upload to an unknown fleet creates it with the
   // dimension and encoder version of its traces.
-  absl::StatusOr<UploadResult> Upload(std::string_view fleet_id,
-                                      std::span<const core::MemoryTrace> traces);
+  absl::StatusOr<UploadResult> Upload(
+      std::string_view fleet_id, std::span<const core::MemoryTrace> traces);
 
   // Consolidates every robot's pending traces (one batch per robot).
   // NOT_FOUND for an unknown fleet.
@@ -164,6 +168,9 @@ class MemoryEngine {
   void Unsubscribe(uint64_t handle);
 
   std::vector<std::string> ListFleets() const;
+
+  // The memory parameters in force for `fleet_id`.
+  const core::MemoryOptions& MemoryOptionsFor(std::string_view fleet_id) const;
 
  private:
   struct Fleet;

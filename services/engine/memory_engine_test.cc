@@ -476,6 +476,27 @@ TEST_F(MemoryEngineTest, MemoryStaysWithinBoundsOverManySegments) {
   for (const auto& [cluster_id, count] : per_cluster) EXPECT_LE(count, 3);
 }
 
+TEST_F(MemoryEngineTest, PerFleetMemoryOptionsReplaceTheServerWide) {
+  core::MemoryOptions ablation = options_.memory;
+  ablation.clustering = false;  // "w/o consolidation-clustering"
+  ablation.max_clusters = 2;
+  options_.fleet_memory["ablation"] = ablation;
+  engine_ = OpenEngine();
+  MustUpload(MakeTraces("r1", 1, 20, rng_), "ablation");
+  MustUpload(MakeTraces("r1", 1, 20, rng_), "f1");
+  FleetStats plain = Stats("ablation");
+  EXPECT_EQ(plain.clusters, 1u);  // the whole segment, no k-means
+  EXPECT_EQ(plain.traces, 20u);   // and no downsampling
+  EXPECT_EQ(plain.max_clusters, 2u);
+  FleetStats clustered = Stats("f1");
+  EXPECT_EQ(clustered.max_clusters, 5u);
+  EXPECT_LE(clustered.traces, 4u * 3u);
+
+  options_.fleet_memory["bad"].replay_decay = 2.0;
+  EXPECT_EQ(ValidateEngineOptions(options_).code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
 class ReplayTest : public MemoryEngineTest {
  protected:
   void SetUp() override {

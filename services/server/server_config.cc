@@ -258,6 +258,14 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
         static_cast<int>(file.shutdown_grace_seconds());
   }
   ApplyMemory(file.memory(), &config->engine.memory);
+  for (const FleetMemoryConfig& fleet : file.fleets()) {
+    core::MemoryOptions memory = config->engine.memory;
+    ApplyMemory(fleet.memory(), &memory);
+    if (!config->engine.fleet_memory.emplace(fleet.fleet_id(), memory).second) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "fleets: fleet_id \"", fleet.fleet_id(), "\" is configured twice"));
+    }
+  }
   ApplyEngine(file.engine(), &config->engine);
   ApplyStorage(file.storage(), &config->storage);
   ApplyFlann(file.flann(), &config->flann);

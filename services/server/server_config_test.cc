@@ -98,6 +98,47 @@ TEST(ServerConfigTest, FileThenFlags) {
   EXPECT_TRUE(ValidateServerConfig(config).ok());
 }
 
+TEST(ServerConfigTest, PerFleetMemoryStartsFromTheServerWide) {
+  ServerConfig config;
+  config.data_dir = "/tmp/d";
+  ASSERT_TRUE(ApplyConfigText(R"pb(
+                                memory { max_clusters: 200 }
+                                fleets {
+                                  fleet_id: "ablation"
+                                  memory { clustering: false replay_decay: 1 }
+                                }
+                              )pb",
+                              &config)
+                  .ok());
+  ASSERT_EQ(config.engine.fleet_memory.count("ablation"), 1u);
+  const core::MemoryOptions& ablation = config.engine.fleet_memory["ablation"];
+  EXPECT_FALSE(ablation.clustering);
+  EXPECT_EQ(ablation.replay_decay, 1.0);
+  EXPECT_EQ(ablation.max_clusters, 200);  // inherited
+  EXPECT_TRUE(config.engine.memory.clustering);
+  EXPECT_TRUE(ValidateServerConfig(config).ok());
+
+  ServerConfig twice;
+  EXPECT_EQ(ApplyConfigText(R"pb(
+                              fleets { fleet_id: "a" }
+                              fleets { fleet_id: "a" }
+                            )pb",
+                            &twice)
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+  ServerConfig bad;
+  bad.data_dir = "/tmp/d";
+  ASSERT_TRUE(ApplyConfigText(R"pb(fleets {
+                                     fleet_id: "a"
+                                     memory { replay_decay: 2 }
+                                   })pb",
+                              &bad)
+                  .ok());
+  absl::Status status = ValidateServerConfig(bad);
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(status.message().find("fleet \"a\""), std::string::npos) << status;
+}
+
 TEST(ServerConfigTest, BadFileText) {
   const char* cases[] = {
       "listen: ",                     // syntax

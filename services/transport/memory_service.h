@@ -30,8 +30,8 @@ class MemoryServiceImpl final : public v1::MemoryService::CallbackService {
   MemoryServiceImpl(engine::MemoryEngine* engine, WorkQueue* work);
 
   // New calls get UNAVAILABLE, upload streams end at their next message with
-  // UNAVAILABLE, and every watch finishes with OK. Calls already on the pool
-  // complete. Idempotent.
+  // UNAVAILABLE, and every watch finishes at once with UNAVAILABLE. Calls
+  // already on the pool complete. Idempotent.
   void Shutdown();
 
   grpc::ServerReadReactor<v1::UploadTracesRequest>* UploadTraces(

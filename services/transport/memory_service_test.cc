@@ -220,7 +220,7 @@ TEST_F(MemoryServiceTest, WatchStreamsHistoryThenLiveEventsUntilShutdown) {
   service_->Shutdown();
   v1::MemoryEvent extra;
   EXPECT_FALSE(reader->Read(&extra));
-  EXPECT_TRUE(reader->Finish().ok());
+  EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::UNAVAILABLE);
 
   // New calls are refused.
   v1::GetStatsResponse stats;

@@ -44,7 +44,7 @@ WatchReactor::WatchReactor(ServiceState* state,
 
 void WatchReactor::Stop() {
   absl::MutexLock lock(&shared_->mu);
-  FinishLocked(grpc::Status::OK);
+  FinishLocked(ShuttingDownStatus());
 }
 
 void WatchReactor::ScheduleReadLocked() {

@@ -22,9 +22,10 @@ namespace fleetmem::transport {
 // the cursor in pages (MemoryEngine::ReadEvents, on the worker pool) and
 // writes them one at a time (one write in flight). When it has caught up it
 // waits for a notification from the engine, then reads again. Finishes OK
-// when the call is cancelled or its deadline passes (OnCancel) and when the
-// server shuts down (Stop); INVALID_ARGUMENT for a bad fleet id, the engine's
-// error if a read fails, RESOURCE_EXHAUSTED if the pool is full.
+// when the call is cancelled or its deadline passes (OnCancel); UNAVAILABLE
+// when the server shuts down (Stop), so that clients resume from their cursor
+// elsewhere or later; INVALID_ARGUMENT for a bad fleet id; the engine's error
+// if a read fails; RESOURCE_EXHAUSTED if the pool is full.
 //
 // Lifetime: created by the service, deleted in OnDone. The pool task and the
 // engine listener do not point at the reactor directly but at a Shared block
@@ -34,7 +35,8 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
  public:
   WatchReactor(ServiceState* state, const v1::WatchMemoryRequest& request);
 
-  // Finishes the call with OK (server shutdown). Thread-safe.
+  // Finishes the call with UNAVAILABLE (server shutdown) once the write in
+  // flight, if any, is done. Thread-safe.
   void Stop();
 
   void OnWriteDone(bool ok) override;
