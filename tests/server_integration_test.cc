@@ -754,7 +754,7 @@ TEST_F(QueryPlaceTest, PositionPriorLimitsTheRadius) {
   EXPECT_EQ(reply.response.matches(0).trace().seq(), 1u);
 }
 
-TEST_F(QueryPlaceTest, PendingTracesAreNotMatched) {
+TEST_F(QueryPlaceTest, PendingTracesAreMatchedBeforeConsolidation) {
   TraceSpec pending = spec_;
   pending.first_seq = 101;
   pending.count = 1;
@@ -763,10 +763,13 @@ TEST_F(QueryPlaceTest, PendingTracesAreNotMatched) {
   Reply<v1::QueryPlaceResponse> reply =
       QueryCode(stub(), kFleet, CodeOf(extra[0]), 1000);
   ASSERT_TRUE(reply.ok()) << Describe(reply.status);
-  EXPECT_EQ(reply.response.matches_size(), 100);
-  for (const v1::PlaceMatch& match : reply.response.matches()) {
-    EXPECT_NE(match.trace().seq(), 101u) << "a pending trace was matched";
-  }
+  EXPECT_EQ(reply.response.matches_size(), 101);
+  ASSERT_GT(reply.response.matches_size(), 0);
+  // The just-uploaded trace finds itself first and says it is pending.
+  const v1::PlaceMatch& first = reply.response.matches(0);
+  EXPECT_EQ(first.trace().seq(), 101u);
+  EXPECT_EQ(first.trace().cluster_id(), 0u);
+  EXPECT_NEAR(first.distance(), 0.0f, 1e-4f);
   EXPECT_EQ(QueryCode(stub(), "no-such-fleet", CodeOf(extra[0]), 1)
                 .status.error_code(),
             grpc::StatusCode::NOT_FOUND);

@@ -182,6 +182,11 @@ struct MemoryEngine::Fleet {
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   absl::Status UnindexTraces(const std::vector<core::TraceKey>& keys)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Appends a pending trace of its robot.
+  void AddPending(core::MemoryTrace trace) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // The trace with `key` in the static memory or among the pending traces.
+  const core::MemoryTrace* FindTrace(const core::TraceKey& key) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
 
   absl::Status Upload(std::span<const core::MemoryTrace> traces,
                       UploadResult* result, Notices* notices)
@@ -212,12 +217,15 @@ struct MemoryEngine::Fleet {
   absl::Status stale ABSL_GUARDED_BY(mu);
   FleetMeta meta ABSL_GUARDED_BY(mu);
   core::StaticMemory memory ABSL_GUARDED_BY(mu);
-  // Pending traces per robot, in arrival order.
+  // Pending traces per robot, in arrival order. A robot's vector only grows
+  // until it is consolidated as a whole, so positions in it are stable.
   std::map<std::string, std::vector<core::MemoryTrace>, std::less<>> pending
       ABSL_GUARDED_BY(mu);
+  absl::flat_hash_map<core::TraceKey, size_t> pending_position
+      ABSL_GUARDED_BY(mu);
   std::map<std::string, RobotRecord, std::less<>> robots ABSL_GUARDED_BY(mu);
-  // Index of the static memory's normalised codes under handles; null until
-  // the code dimension is known.
+  // Index of the normalised codes of the static memory's and the pending
+  // traces under handles; null until the code dimension is known.
   std::unique_ptr<PlaceIndex> index ABSL_GUARDED_BY(mu);
   absl::flat_hash_map<core::TraceKey, uint64_t> handle_of ABSL_GUARDED_BY(mu);
   absl::flat_hash_map<uint64_t, core::TraceKey> key_of ABSL_GUARDED_BY(mu);
@@ -256,6 +264,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   meta = record.meta;
   memory = core::StaticMemory(engine->MemoryOptionsFor(id));
   pending.clear();
+  pending_position.clear();
   robots.clear();
   index.reset();
   handle_of.clear();
@@ -268,10 +277,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
     }
     return absl::OkStatus();
   }
-  for (core::MemoryTrace& trace : record.pending) {
-    std::string robot_id = trace.robot_id;
-    pending[robot_id].push_back(std::move(trace));
-  }
+  for (core::MemoryTrace& trace : record.pending) AddPending(std::move(trace));
   for (RobotRecord& robot : record.robots) {
     std::string robot_id = robot.robot_id;
     robots[robot_id] = std::move(robot);
@@ -288,13 +294,32 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
         absl::StrCat("the index factory made no index for fleet \"", id, "\""));
   }
   std::vector<const core::MemoryTrace*> traces;
-  traces.reserve(memory.trace_count());
+  traces.reserve(memory.trace_count() + pending_position.size());
   for (const auto& [cluster_id, cluster] : memory.clusters()) {
     for (const core::MemoryTrace& trace : cluster.traces) {
       traces.push_back(&trace);
     }
   }
+  for (const auto& [robot_id, robot_pending] : pending) {
+    for (const core::MemoryTrace& trace : robot_pending) {
+      traces.push_back(&trace);
+    }
+  }
   return IndexTraces(traces);
+}
+
+void MemoryEngine::Fleet::AddPending(core::MemoryTrace trace) {
+  std::vector<core::MemoryTrace>& robot_pending = pending[trace.robot_id];
+  pending_position[trace.key()] = robot_pending.size();
+  robot_pending.push_back(std::move(trace));
+}
+
+const core::MemoryTrace* MemoryEngine::Fleet::FindTrace(
+    const core::TraceKey& key) const {
+  if (const core::MemoryTrace* trace = memory.Find(key)) return trace;
+  auto position = pending_position.find(key);
+  if (position == pending_position.end()) return nullptr;
+  return &pending.find(key.robot_id)->second[position->second];
 }
 
 absl::Status MemoryEngine::Fleet::IndexTraces(
@@ -403,9 +428,23 @@ absl::Status MemoryEngine::Fleet::Upload(
     std::string robot_id = record.robot_id;
     robots[robot_id] = std::move(record);
   }
+  std::vector<core::TraceKey> fresh_keys;
+  fresh_keys.reserve(mutation.put_pending.size());
   for (core::MemoryTrace& trace : mutation.put_pending) {
-    std::string robot_id = trace.robot_id;
-    pending[robot_id].push_back(std::move(trace));
+    fresh_keys.push_back(trace.key());
+    AddPending(std::move(trace));
+  }
+  // Pending traces are searchable at once (a robot relocalises against what
+  // the fleet uploaded a moment ago, not only what is consolidated).
+  std::vector<const core::MemoryTrace*> fresh;
+  fresh.reserve(fresh_keys.size());
+  for (const core::TraceKey& key : fresh_keys) fresh.push_back(FindTrace(key));
+  status = IndexTraces(fresh);
+  if (!status.ok()) {
+    FLEETMEM_LOG(kError) << "fleet \"" << id
+                         << "\": index update failed, rebuilding: " << status;
+    status = Reload();
+    if (!status.ok()) return status;
   }
 
   std::vector<std::string> full;
@@ -429,6 +468,9 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
   const absl::Time start = absl::Now();
   std::vector<core::MemoryTrace> batch = std::move(found->second);
   pending.erase(found);
+  for (const core::MemoryTrace& trace : batch) {
+    pending_position.erase(trace.key());
+  }
 
   FleetMutation mutation;
   mutation.erase_pending.reserve(batch.size());
@@ -495,7 +537,9 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
     notices->last_event_id = mutation.append_events.back().id;
   }
 
-  std::vector<core::TraceKey> removed;
+  // The batch was indexed while pending: take it out, then put back what
+  // the static memory kept.
+  std::vector<core::TraceKey> removed = mutation.erase_pending;
   for (const core::Cluster& cluster : outcome.forgotten) {
     if (added_ids.contains(cluster.id)) continue;
     for (const core::MemoryTrace& trace : cluster.traces) {
@@ -815,7 +859,7 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
       params.accept = [fleet, &query](uint64_t handle) {
         auto key = fleet->key_of.find(handle);
         if (key == fleet->key_of.end()) return false;
-        const core::MemoryTrace* trace = fleet->memory.Find(key->second);
+        const core::MemoryTrace* trace = fleet->FindTrace(key->second);
         return trace != nullptr &&
                PlaceDistance(trace->place, query.near) <= query.radius_m;
       };
@@ -827,7 +871,7 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     for (const Neighbor& neighbor : *neighbors) {
       auto key = fleet->key_of.find(neighbor.id);
       if (key == fleet->key_of.end()) continue;
-      const core::MemoryTrace* trace = fleet->memory.Find(key->second);
+      const core::MemoryTrace* trace = fleet->FindTrace(key->second);
       if (trace == nullptr) continue;
       matches.push_back(PlaceMatch{*trace, neighbor.distance});
     }

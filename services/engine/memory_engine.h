@@ -148,7 +148,8 @@ class MemoryEngine {
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, size_t count);
 
-  // Nearest traces of the static memory to query.code, nearest first.
+  // Nearest traces to query.code among the static memory's and the pending
+  // ones (cluster_id 0), nearest first.
   absl::StatusOr<std::vector<PlaceMatch>> QueryPlace(
       std::string_view fleet_id, const PlaceQuery& query) const;
 

@@ -283,10 +283,21 @@ TEST_F(MemoryEngineTest, ConsolidatesAutomaticallyAtSegmentSize) {
   ASSERT_NE(r2, nullptr);
   EXPECT_EQ(r2->pending_traces, 5u);
 
-  for (const core::MemoryTrace& trace : AllTraces(*engine_, "f1", 200)) {
-    EXPECT_NE(trace.cluster_id, 0u);
-    EXPECT_EQ(trace.robot_id, "r1");
+  // Queries see the static memory (r1, in clusters) and the pending traces
+  // (r2, cluster 0); downsampled traces of r1 are gone from the index.
+  size_t pending_matches = 0;
+  std::vector<core::MemoryTrace> found = AllTraces(*engine_, "f1", 200);
+  EXPECT_EQ(found.size(), stats.traces + stats.pending_traces);
+  for (const core::MemoryTrace& trace : found) {
+    if (trace.robot_id == "r1") {
+      EXPECT_NE(trace.cluster_id, 0u);
+    } else {
+      EXPECT_EQ(trace.robot_id, "r2");
+      EXPECT_EQ(trace.cluster_id, 0u);
+      ++pending_matches;
+    }
   }
+  EXPECT_EQ(pending_matches, 5u);
 }
 
 TEST_F(MemoryEngineTest, ConsolidateTakesEveryRobotsPendingTraces) {

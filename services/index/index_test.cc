@@ -9,6 +9,7 @@
 #include <random>
 #include <set>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -469,6 +470,44 @@ TEST_P(PlaceIndexTest, StoredVectorFindsItselfFirst) {
               << " stored vector found first: " << found_first << " / "
               << ids.size() << "\n";
     EXPECT_GE(found_first, ids.size() * 99 / 100);
+  }
+}
+
+TEST_P(PlaceIndexTest, ConcurrentSearchesGiveTheSequentialAnswers) {
+  constexpr size_t kDimension = 32;
+  std::mt19937 rng(13);
+  std::unique_ptr<PlaceIndex> index = Make(kDimension);
+  std::vector<uint64_t> ids;
+  std::vector<Vector> vectors;
+  for (uint64_t id = 0; id < 1000; ++id) {
+    ids.push_back(id);
+    vectors.push_back(RandomGaussian(kDimension, rng));
+  }
+  ASSERT_TRUE(index->Add(ids, vectors).ok());
+  ASSERT_TRUE(index->Remove(std::vector<uint64_t>{1, 2, 3, 500}).ok());
+  std::vector<Vector> queries;
+  std::vector<std::vector<uint64_t>> sequential;
+  for (int q = 0; q < 50; ++q) {
+    queries.push_back(RandomGaussian(kDimension, rng));
+    sequential.push_back(Ids(SearchOk(*index, queries.back(), 7)));
+  }
+  std::vector<std::vector<std::vector<uint64_t>>> answers(4);
+  std::vector<std::thread> threads;
+  for (size_t t = 0; t < answers.size(); ++t) {
+    threads.emplace_back([&, t] {
+      for (int round = 0; round < 5; ++round) {
+        for (const Vector& query : queries) {
+          answers[t].push_back(Ids(SearchOk(*index, query, 7)));
+        }
+      }
+    });
+  }
+  for (std::thread& thread : threads) thread.join();
+  for (const auto& answer : answers) {
+    ASSERT_EQ(answer.size(), 5 * queries.size());
+    for (size_t i = 0; i < answer.size(); ++i) {
+      EXPECT_EQ(answer[i], sequential[i % queries.size()]);
+    }
   }
 }
 

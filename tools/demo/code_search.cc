@@ -28,19 +28,6 @@ float CosineSimilarity(std::span<const float> a, std::span<const float> b) {
   return static_cast<float>(std::clamp(dot / (norm_a * norm_b), -1.0, 1.0));
 }
 
-float CodeDistance(std::span<const float> a, std::span<const float> b) {
-  const double norm_a = Norm(a);
-  const double norm_b = Norm(b);
-  const size_t n = std::min(a.size(), b.size());
-  double sum = 0.0;
-  for (size_t i = 0; i < n; ++i) {
-    const double x = norm_a > 0.0 ? a[i] / norm_a : 0.0;
-    const double y = norm_b > 0.0 ? b[i] / norm_b : 0.0;
-    sum += (x - y) * (x - y);
-  }
-  return static_cast<float>(std::sqrt(sum));
-}
-
 void BruteForceIndex::Add(std::span<const float> code, double label) {
   const double norm = Norm(code);
   for (size_t i = 0; i < dimension_; ++i) {

@@ -9,15 +9,16 @@
 #include <span>
 #include <vector>
 
+#include "services/core/feature_space.h"
+
 namespace fleetmem::demo {
 
 // cos(a, b) for codes of equal size; 1 if both are all zero (the same code),
 // 0 if only one is.
 float CosineSimilarity(std::span<const float> a, std::span<const float> b);
 
-// |a/|a| - b/|b||, in [0, 2]; an all-zero code stays zero (as the server's
-// core::CodeDistance does).
-float CodeDistance(std::span<const float> a, std::span<const float> b);
+// The server's code distance (normalised Euclidean), shared with the core.
+using core::CodeDistance;
 
 // Exact nearest codes by CodeDistance over a fixed set. Not thread-safe for
 // Add; Search is const and may run concurrently.
