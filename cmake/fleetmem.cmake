@@ -25,7 +25,8 @@ function(fleetmem_test name)
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} GTest::gmock GTest::gtest_main)
   target_compile_definitions(${name} PRIVATE
     FLEETMEM_DATA_DIR="${FLEETMEM_DATA_DIR}"
-    FLEETMEM_BIN_DIR="${CMAKE_BINARY_DIR}/bin")
+    FLEETMEM_BIN_DIR="${CMAKE_BINARY_DIR}/bin"
+    FLEETMEM_SOURCE_DIR="${PROJECT_SOURCE_DIR}")
   add_test(NAME ${name} COMMAND ${name})
   if(NOT ARG_TIMEOUT)
     set(ARG_TIMEOUT 300)

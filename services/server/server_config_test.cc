@@ -1,5 +1,7 @@
 #include "services/server/server_config.h"
 
+#include <fstream>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -137,6 +139,42 @@ TEST(ServerConfigTest, PerFleetMemoryStartsFromTheServerWide) {
   absl::Status status = ValidateServerConfig(bad);
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(status.message().find("fleet \"a\""), std::string::npos) << status;
+}
+
+// The example shipped for users parses, validates and says the truth about
+// the defaults it lists.
+TEST(ServerConfigTest, ExampleConfigIsValid) {
+  std::ifstream file(FLEETMEM_SOURCE_DIR
+                     "/services/server/fleetmem-server.example.textproto");
+  ASSERT_TRUE(file.good());
+  std::stringstream text;
+  text << file.rdbuf();
+  ServerConfig config;
+  ASSERT_TRUE(ApplyConfigText(text.str(), &config).ok());
+  EXPECT_TRUE(ValidateServerConfig(config).ok());
+  const ServerConfig defaults;
+  const core::MemoryOptions& memory = config.engine.memory;
+  const core::MemoryOptions& default_memory = defaults.engine.memory;
+  EXPECT_EQ(memory.clusters_per_batch, default_memory.clusters_per_batch);
+  EXPECT_EQ(memory.max_traces_per_cluster,
+            default_memory.max_traces_per_cluster);
+  EXPECT_EQ(memory.max_clusters, default_memory.max_clusters);
+  EXPECT_EQ(memory.replay_decay, default_memory.replay_decay);
+  EXPECT_EQ(memory.reward_floor, default_memory.reward_floor);
+  EXPECT_EQ(memory.spatial_scale_m, default_memory.spatial_scale_m);
+  EXPECT_EQ(memory.seed, default_memory.seed);
+  EXPECT_EQ(config.engine.segment_size, defaults.engine.segment_size);
+  EXPECT_EQ(config.engine.max_traces_per_upload,
+            defaults.engine.max_traces_per_upload);
+  EXPECT_EQ(config.engine.max_sample_count, defaults.engine.max_sample_count);
+  EXPECT_EQ(config.storage.sync, defaults.storage.sync);
+  EXPECT_EQ(config.max_receive_message_bytes,
+            defaults.max_receive_message_bytes);
+  EXPECT_EQ(config.shutdown_grace_seconds, defaults.shutdown_grace_seconds);
+  EXPECT_EQ(config.index, defaults.index);
+  EXPECT_EQ(
+      config.engine.fleet_memory.at("ablation-no-time-decay").replay_decay,
+      1.0);
 }
 
 TEST(ServerConfigTest, BadFileText) {
