@@ -7,12 +7,13 @@ namespace {
 
 constexpr double kInfinity = std::numeric_limits<double>::infinity();
 
-// Euclidean distance in double precision; symmetric bit for bit, so ties are
-// seen the same way from both ends. Points of different dimension are
-// infinitely far apart.
+// Euclidean distance, computed in float (vectorised; this is the hot loop of
+// forgetting) and symmetric bit for bit — (a - b) and (b - a) differ only in
+// sign, and Eigen reduces both in the same order — so ties are seen the same
+// way from both ends. Points of different dimension are infinitely far apart.
 double Distance(const Eigen::VectorXf& a, const Eigen::VectorXf& b) {
   if (a.size() != b.size()) return kInfinity;
-  return (a.cast<double>() - b.cast<double>()).norm();
+  return static_cast<double>((a - b).norm());
 }
 
 // True if `candidate` at `distance` is a better neighbour than the current

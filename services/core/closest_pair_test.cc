@@ -16,8 +16,7 @@ std::optional<ClosestPairTracker::Pair> BruteForce(
   std::optional<ClosestPairTracker::Pair> best;
   for (auto i = points.begin(); i != points.end(); ++i) {
     for (auto j = std::next(i); j != points.end(); ++j) {
-      const double d =
-          (i->second.cast<double>() - j->second.cast<double>()).norm();
+      const double d = static_cast<double>((i->second - j->second).norm());
       if (!best || std::tie(d, i->first, j->first) <
                        std::tie(best->distance, best->a, best->b)) {
         best = ClosestPairTracker::Pair{i->first, j->first, d};
