@@ -45,8 +45,10 @@ test: build
 demo: build
 	@tools/demo/run_demo.sh $(BUILD_DIR)
 
+# Benchmarks with their peers measured in the same run (docs/*-benchmark.md).
 bench: build
 	@$(BUILD_DIR)/bin/fleetmem_index_bench --benchmark_min_time=0.2
+	@$(BUILD_DIR)/bin/fleetmem_forgetting_bench --benchmark_min_time=0.2
 
 format:
 	@git ls-files '*.h' '*.cc' | xargs clang-format -i
