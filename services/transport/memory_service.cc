@@ -3,7 +3,6 @@
 #include <utility>
 #include <vector>
 
-#include "services/core/validation.h"
 #include "services/transport/grpc_status.h"
 #include "services/transport/proto_convert.h"
 #include "services/transport/upload_reactor.h"
@@ -48,8 +47,6 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::Consolidate(
     grpc::CallbackServerContext* context, const v1::ConsolidateRequest* request,
     v1::ConsolidateResponse* response) {
   return RunUnary(context, [this, request, response]() -> absl::Status {
-    absl::Status valid = core::ValidateId("fleet_id", request->fleet_id());
-    if (!valid.ok()) return valid;
     absl::StatusOr<engine::ConsolidateResult> result =
         state_.engine().Consolidate(request->fleet_id());
     if (!result.ok()) return result.status();
@@ -63,8 +60,6 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
     const v1::SampleReplayRequest* request,
     v1::SampleReplayResponse* response) {
   return RunUnary(context, [this, request, response]() -> absl::Status {
-    absl::Status valid = core::ValidateId("fleet_id", request->fleet_id());
-    if (!valid.ok()) return valid;
     absl::StatusOr<std::vector<core::MemoryTrace>> traces =
         state_.engine().SampleReplay(request->fleet_id(), request->robot_id(),
                                      request->count());
@@ -78,8 +73,6 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::QueryPlace(
     grpc::CallbackServerContext* context, const v1::QueryPlaceRequest* request,
     v1::QueryPlaceResponse* response) {
   return RunUnary(context, [this, request, response]() -> absl::Status {
-    absl::Status valid = core::ValidateId("fleet_id", request->fleet_id());
-    if (!valid.ok()) return valid;
     absl::StatusOr<std::vector<engine::PlaceMatch>> matches =
         state_.engine().QueryPlace(request->fleet_id(),
                                    QueryFromProto(*request));
@@ -99,8 +92,6 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::GetStats(
     grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
     v1::GetStatsResponse* response) {
   return RunUnary(context, [this, request, response]() -> absl::Status {
-    absl::Status valid = core::ValidateId("fleet_id", request->fleet_id());
-    if (!valid.ok()) return valid;
     absl::StatusOr<engine::FleetStats> stats =
         state_.engine().GetStats(request->fleet_id());
     if (!stats.ok()) return stats.status();
