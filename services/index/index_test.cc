@@ -41,6 +41,20 @@ Vector RandomGaussian(size_t dimension, std::mt19937& rng, float sigma = 1) {
   return v;
 }
 
+// Ids 0..count-1 with gaussian vectors of `dimension`.
+struct Dataset {
+  std::vector<uint64_t> ids;
+  std::vector<Vector> vectors;
+};
+Dataset GaussianDataset(size_t count, size_t dimension, std::mt19937& rng) {
+  Dataset data;
+  for (uint64_t id = 0; id < count; ++id) {
+    data.ids.push_back(id);
+    data.vectors.push_back(RandomGaussian(dimension, rng));
+  }
+  return data;
+}
+
 Vector Normalized(Vector v) {
   double norm = 0;
   for (float x : v) norm += double{x} * x;
@@ -367,12 +381,7 @@ TEST_P(PlaceIndexTest, RemovedIdsNeverComeBack) {
   constexpr size_t kDimension = 8;
   std::mt19937 rng(7);
   std::unique_ptr<PlaceIndex> index = Make(kDimension);
-  std::vector<uint64_t> ids;
-  std::vector<Vector> vectors;
-  for (uint64_t id = 0; id < 400; ++id) {
-    ids.push_back(id);
-    vectors.push_back(RandomGaussian(kDimension, rng));
-  }
+  auto [ids, vectors] = GaussianDataset(400, kDimension, rng);
   ASSERT_TRUE(index->Add(ids, vectors).ok());
   std::set<uint64_t> removed;
   for (int step = 0; step < 10; ++step) {
@@ -407,12 +416,7 @@ TEST_P(PlaceIndexTest, AcceptFilterOnlyReturnsAcceptedIds) {
   std::mt19937 rng(3);
   std::unique_ptr<PlaceIndex> index = Make(kDimension);
   NaiveIndex reference;
-  std::vector<uint64_t> ids;
-  std::vector<Vector> vectors;
-  for (uint64_t id = 0; id < 600; ++id) {
-    ids.push_back(id);
-    vectors.push_back(RandomGaussian(kDimension, rng));
-  }
+  auto [ids, vectors] = GaussianDataset(600, kDimension, rng);
   ASSERT_TRUE(index->Add(ids, vectors).ok());
   reference.Add(ids, vectors);
   struct Filter {
@@ -477,12 +481,7 @@ TEST_P(PlaceIndexTest, ConcurrentSearchesGiveTheSequentialAnswers) {
   constexpr size_t kDimension = 32;
   std::mt19937 rng(13);
   std::unique_ptr<PlaceIndex> index = Make(kDimension);
-  std::vector<uint64_t> ids;
-  std::vector<Vector> vectors;
-  for (uint64_t id = 0; id < 1000; ++id) {
-    ids.push_back(id);
-    vectors.push_back(RandomGaussian(kDimension, rng));
-  }
+  auto [ids, vectors] = GaussianDataset(1000, kDimension, rng);
   ASSERT_TRUE(index->Add(ids, vectors).ok());
   ASSERT_TRUE(index->Remove(std::vector<uint64_t>{1, 2, 3, 500}).ok());
   std::vector<Vector> queries;
