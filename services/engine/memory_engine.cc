@@ -537,25 +537,19 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
     notices->last_event_id = mutation.append_events.back().id;
   }
 
-  // The batch was indexed while pending: take it out, then put back what
-  // the static memory kept.
-  std::vector<core::TraceKey> removed = mutation.erase_pending;
+  // The batch was indexed while pending and its codes do not change: only
+  // what downsampling dropped and what forgetting removed (including
+  // clusters of this batch) leaves the index.
+  std::vector<core::TraceKey> removed;
+  for (const core::MemoryTrace& trace : outcome.downsampled) {
+    removed.push_back(trace.key());
+  }
   for (const core::Cluster& cluster : outcome.forgotten) {
-    if (added_ids.contains(cluster.id)) continue;
     for (const core::MemoryTrace& trace : cluster.traces) {
       removed.push_back(trace.key());
     }
   }
-  std::vector<const core::MemoryTrace*> added_traces;
-  for (const core::Cluster& cluster : mutation.put_clusters) {
-    auto held = memory.clusters().find(cluster.id);
-    if (held == memory.clusters().end()) continue;
-    for (const core::MemoryTrace& trace : held->second.traces) {
-      added_traces.push_back(&trace);
-    }
-  }
   status = UnindexTraces(removed);
-  if (status.ok()) status = IndexTraces(added_traces);
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": index update failed, rebuilding: " << status;
