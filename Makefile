@@ -9,7 +9,8 @@ CTEST_ARGS ?=
 DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler \
   libabsl-dev librocksdb-dev libflann-dev liblz4-dev libeigen3-dev \
-  libopencv-dev libgtest-dev libgmock-dev libbenchmark-dev
+  libopencv-dev libgtest-dev libgmock-dev libbenchmark-dev \
+  libsodium-dev libcli11-dev openssl
 
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 

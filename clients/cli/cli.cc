@@ -21,6 +21,14 @@ std::vector<FlagSpec> GlobalFlags() {
            "deadline of each attempt of a call (default 10000)"},
           {"json", "",
            "print responses as protobuf JSON (one per line) instead of tables"},
+          {"token-file", "FILE",
+           "file with the token NAME:SECRET (default $FLEETMEM_TOKEN_FILE, "
+           "else the token in $FLEETMEM_TOKEN, else none)"},
+          {"tls-ca", "FILE", "PEM of the server's CA: connect with TLS"},
+          {"tls-cert", "FILE", "PEM client certificate (mutual TLS)"},
+          {"tls-key", "FILE", "PEM key of --tls-cert"},
+          {"tls-server-name", "NAME",
+           "name expected in the server's certificate (default: the host)"},
           {"help", "", "show help (also -h)"}};
 }
 
@@ -50,6 +58,16 @@ absl::StatusOr<client::ClientOptions> ClientOptionsFrom(
     return absl::InvalidArgumentError("--deadline-ms must be positive");
   }
   options.deadline = std::chrono::milliseconds(*deadline_ms);
+  client::CredentialSources sources;
+  sources.token_file = global.StringOr("token-file", "");
+  sources.ca_file = global.StringOr("tls-ca", "");
+  sources.cert_file = global.StringOr("tls-cert", "");
+  sources.key_file = global.StringOr("tls-key", "");
+  if (absl::Status loaded = client::LoadCredentials(sources, &options);
+      !loaded.ok()) {
+    return loaded;
+  }
+  options.tls_server_name = global.StringOr("tls-server-name", "");
   return options;
 }
 

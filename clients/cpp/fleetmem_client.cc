@@ -1,13 +1,19 @@
 #include "clients/cpp/fleetmem_client.h"
 
 #include <algorithm>
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
 #include <condition_variable>
 #include <mutex>
 #include <random>
 #include <thread>
 #include <utility>
 
+#include "absl/strings/ascii.h"
+#include "absl/strings/str_cat.h"
 #include "grpcpp/grpcpp.h"
+#include "grpcpp/security/credentials.h"
 
 namespace fleetmem::client {
 namespace {
@@ -26,8 +32,36 @@ bool Stopped(const std::atomic<bool>* stop) {
   return stop != nullptr && stop->load();
 }
 
+// Deadline and credentials of one attempt.
 void SetDeadline(const ClientOptions& options, grpc::ClientContext* context) {
   context->set_deadline(std::chrono::system_clock::now() + options.deadline);
+  if (!options.token.empty()) {
+    context->AddMetadata("authorization", "Bearer " + options.token);
+  }
+}
+
+absl::StatusOr<std::string> ReadFile(const std::string& what,
+                                     const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    return absl::NotFoundError(
+        absl::StrCat(what, " file ", path, ": cannot be read"));
+  }
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+std::shared_ptr<grpc::ChannelCredentials> ChannelCredentialsFor(
+    const ClientOptions& options) {
+  if (options.tls_root_certs_pem.empty()) {
+    return grpc::InsecureChannelCredentials();
+  }
+  grpc::SslCredentialsOptions ssl;
+  ssl.pem_root_certs = options.tls_root_certs_pem;
+  ssl.pem_cert_chain = options.tls_cert_chain_pem;
+  ssl.pem_private_key = options.tls_private_key_pem;
+  return grpc::SslCredentials(ssl);
 }
 
 // Wait before attempt `failures + 1`: uniform in [b/2, b] with
@@ -185,8 +219,56 @@ absl::Status FromGrpcStatus(const grpc::Status& status) {
                       status.error_message());
 }
 
+absl::Status LoadCredentials(const CredentialSources& sources,
+                             ClientOptions* options) {
+  std::string token_file = sources.token_file;
+  if (token_file.empty()) {
+    if (const char* file = std::getenv("FLEETMEM_TOKEN_FILE")) {
+      token_file = file;
+    } else if (const char* token = std::getenv("FLEETMEM_TOKEN")) {
+      options->token = std::string(absl::StripAsciiWhitespace(token));
+    }
+  }
+  if (!token_file.empty()) {
+    absl::StatusOr<std::string> token = ReadFile("token", token_file);
+    if (!token.ok()) return token.status();
+    options->token = std::string(absl::StripAsciiWhitespace(*token));
+    if (options->token.empty()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("token file ", token_file, " is empty"));
+    }
+  }
+  if (sources.cert_file.empty() != sources.key_file.empty()) {
+    return absl::InvalidArgumentError(
+        "a client certificate needs its key, and a key its certificate");
+  }
+  if (!sources.cert_file.empty() && sources.ca_file.empty()) {
+    return absl::InvalidArgumentError(
+        "a client certificate needs TLS: give the server's CA too");
+  }
+  const struct {
+    const std::string& path;
+    const char* what;
+    std::string* out;
+  } files[] = {
+      {sources.ca_file, "CA certificate", &options->tls_root_certs_pem},
+      {sources.cert_file, "client certificate", &options->tls_cert_chain_pem},
+      {sources.key_file, "client key", &options->tls_private_key_pem},
+  };
+  for (const auto& file : files) {
+    if (file.path.empty()) continue;
+    absl::StatusOr<std::string> pem = ReadFile(file.what, file.path);
+    if (!pem.ok()) return pem.status();
+    *file.out = std::move(*pem);
+  }
+  return absl::OkStatus();
+}
+
 std::unique_ptr<Client> Client::Create(ClientOptions options) {
   grpc::ChannelArguments arguments;
+  if (!options.tls_server_name.empty()) {
+    arguments.SetSslTargetNameOverride(options.tls_server_name);
+  }
   arguments.SetMaxReceiveMessageSize(kMaxReceiveMessageBytes);
   // gRPC's own reconnect backoff (1 s doubling to 120 s by default) would
   // make calls fail fast for up to two minutes after a server restart; keep
@@ -198,7 +280,7 @@ std::unique_ptr<Client> Client::Create(ClientOptions options) {
       GRPC_ARG_MAX_RECONNECT_BACKOFF_MS,
       static_cast<int>(std::max<int64_t>(1, options.max_backoff.count())));
   std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
-      options.target, grpc::InsecureChannelCredentials(), arguments);
+      options.target, ChannelCredentialsFor(options), arguments);
   auto client = std::make_unique<Client>(std::move(options),
                                          v1::MemoryService::NewStub(channel));
   client->channel_ = std::move(channel);

@@ -42,15 +42,48 @@ struct ClientOptions {
   std::chrono::milliseconds max_backoff{5000};
   // Traces per UploadTracesRequest message of an upload stream (0 acts as 1).
   size_t upload_batch_size = 500;
+  // Credentials. `token` ("NAME:SECRET", from fleetmem-credential) is sent
+  // as "authorization: Bearer TOKEN" with every call; empty sends none.
+  std::string token;
+  // TLS: PEM of the CA that signed the server's certificate; empty means a
+  // plaintext channel.
+  std::string tls_root_certs_pem;
+  // Mutual TLS: the client's certificate chain and private key (PEM).
+  std::string tls_cert_chain_pem;
+  std::string tls_private_key_pem;
+  // Name to expect in the server's certificate instead of the target's host
+  // (e.g. when dialling an IP address).
+  std::string tls_server_name;
   // Waits between attempts instead of the client's own wait (see Create);
   // empty by default. Tests inject a recorder so that no test waits on the
   // real clock.
   std::function<void(std::chrono::milliseconds)> sleep;
 };
 
+// Where a client's credentials come from. Secrets are read from files or the
+// environment, never from a command line (which `ps` shows).
+struct CredentialSources {
+  // File holding the token "NAME:SECRET" (surrounding whitespace ignored).
+  // Empty: the FLEETMEM_TOKEN_FILE environment variable names the file, or
+  // FLEETMEM_TOKEN holds the token itself; neither set means no token.
+  std::string token_file;
+  // PEM files: the CA of the server's certificate (turns TLS on), and the
+  // client's certificate and key for mutual TLS (both or neither).
+  std::string ca_file;
+  std::string cert_file;
+  std::string key_file;
+};
+
+// Fills options->token and the TLS fields from `sources`. NOT_FOUND naming
+// the file that cannot be read; INVALID_ARGUMENT for an empty token file or
+// a certificate without its key.
+absl::Status LoadCredentials(const CredentialSources& sources,
+                             ClientOptions* options);
+
 class Client {
  public:
-  // Creates a client over a new insecure channel to options.target. Does not
+  // Creates a client over a new channel to options.target (TLS when
+  // options.tls_root_certs_pem is set, else plaintext). Does not
   // connect until the first call. Accepts responses up to 64 MiB. A retry
   // wait of such a client resets the channel's connect backoff and waits on
   // the channel (not in sleep_for), so that a restarted server is reconnected

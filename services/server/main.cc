@@ -1,7 +1,8 @@
 // fleetmem-server: the composition root. Reads flags and the config file,
 // opens RocksDB under DATA_DIR/db, loads every fleet into the engine, serves
-// fleetmem.v1.MemoryService (plus health checking and reflection) and shuts
-// down cleanly on SIGTERM or SIGINT.
+// fleetmem.v1.MemoryService (plus health checking and reflection) with the
+// credentials file's access policy and TLS when configured, re-reads the
+// credentials file on SIGHUP, and shuts down cleanly on SIGTERM or SIGINT.
 //
 // Exit codes: 0 after a clean shutdown or --help; 2 for bad flags or config;
 // 1 if the server cannot start (storage, engine, address).
@@ -11,6 +12,8 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <sstream>
 #include <iostream>
 #include <memory>
 #include <string>
@@ -19,9 +22,14 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
+#include "grpcpp/security/server_credentials.h"
+#include "grpcpp/security/tls_certificate_provider.h"
+#include "grpcpp/security/tls_credentials_options.h"
+#include "services/auth/authenticator.h"
 #include "services/common/log.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
@@ -53,18 +61,115 @@ std::string WithPort(const std::string& listen, int port) {
   return listen.substr(0, listen.rfind(':') + 1) + std::to_string(port);
 }
 
-// Blocks SIGTERM and SIGINT in this thread and every thread it starts later
-// (gRPC's, RocksDB's, the workers), so that only sigwait sees them.
+// Blocks SIGTERM, SIGINT and SIGHUP in this thread and every thread it
+// starts later (gRPC's, RocksDB's, the workers), so that only sigwait sees
+// them.
 sigset_t BlockShutdownSignals() {
   sigset_t signals;
   sigemptyset(&signals);
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGHUP);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
   return signals;
 }
 
+absl::StatusOr<std::vector<auth::CredentialEntry>> ReadCredentials(
+    const std::string& path) {
+  std::ifstream in(path);
+  if (!in) {
+    return absl::NotFoundError(
+        absl::StrCat("credentials file ", path, ": cannot be read"));
+  }
+  std::stringstream text;
+  text << in.rdbuf();
+  absl::StatusOr<std::vector<auth::CredentialEntry>> entries =
+      auth::ParseCredentials(text.str());
+  if (!entries.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "credentials file ", path, ": ", entries.status().message()));
+  }
+  return entries;
+}
+
+// INVALID_ARGUMENT naming the first TLS file that cannot be read.
+absl::Status CheckReadable(const SecurityConfig& security) {
+  for (const std::string* path :
+       {&security.tls_cert_file, &security.tls_key_file,
+        &security.tls_client_ca_file}) {
+    if (path->empty()) continue;
+    std::ifstream in(*path);
+    if (!in) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("TLS file ", *path, ": cannot be read"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Plaintext, or TLS from files that gRPC re-reads every tls_reload_seconds
+// (so a renewed certificate is served without a restart).
+std::shared_ptr<grpc::ServerCredentials> MakeServerCredentials(
+    const SecurityConfig& security) {
+  if (security.tls_cert_file.empty()) {
+    return grpc::InsecureServerCredentials();
+  }
+  auto provider =
+      std::make_shared<grpc::experimental::FileWatcherCertificateProvider>(
+          security.tls_key_file, security.tls_cert_file,
+          security.tls_client_ca_file,
+          static_cast<unsigned int>(security.tls_reload_seconds));
+  grpc::experimental::TlsServerCredentialsOptions options(provider);
+  options.watch_identity_key_cert_pairs();
+  if (security.tls_client_ca_file.empty()) {
+    options.set_cert_request_type(GRPC_SSL_DONT_REQUEST_CLIENT_CERTIFICATE);
+  } else {
+    options.watch_root_certs();
+    options.set_cert_request_type(
+        security.require_client_certificate
+            ? GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY
+            : GRPC_SSL_REQUEST_CLIENT_CERTIFICATE_AND_VERIFY);
+  }
+  return grpc::experimental::TlsServerCredentials(options);
+}
+
+// Re-reads the credentials file; a file that does not load leaves the old
+// credentials in force.
+void ReloadCredentials(const std::string& path,
+                       auth::Authenticator* authenticator) {
+  if (authenticator == nullptr) {
+    FLEETMEM_LOG(kInfo) << "SIGHUP: auth is off, nothing to reload";
+    return;
+  }
+  absl::StatusOr<std::vector<auth::CredentialEntry>> entries =
+      ReadCredentials(path);
+  if (!entries.ok()) {
+    FLEETMEM_LOG(kError) << "SIGHUP: keeping the previous credentials: "
+                         << entries.status().message();
+    return;
+  }
+  const size_t count = entries->size();
+  authenticator->Replace(std::move(*entries));
+  FLEETMEM_LOG(kInfo) << "SIGHUP: reloaded " << count
+                      << " principals from " << path;
+}
+
 int Serve(const ServerConfig& config, const sigset_t& signals) {
+  const SecurityConfig& security = config.security;
+  std::unique_ptr<auth::Authenticator> authenticator;
+  if (!security.auth_file.empty()) {
+    absl::StatusOr<std::vector<auth::CredentialEntry>> entries =
+        ReadCredentials(security.auth_file);
+    if (!entries.ok()) {
+      FLEETMEM_LOG(kError) << entries.status().message();
+      return 2;
+    }
+    authenticator = std::make_unique<auth::Authenticator>(std::move(*entries));
+  }
+  if (absl::Status readable = CheckReadable(security); !readable.ok()) {
+    FLEETMEM_LOG(kError) << readable.message();
+    return 2;
+  }
   std::error_code error;
   std::filesystem::create_directories(config.data_dir, error);
   if (error) {
@@ -88,13 +193,16 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     return 1;
   }
   transport::WorkQueue work(config.work);
-  transport::MemoryServiceImpl service(engine->get(), &work);
+  transport::MemoryServiceImpl service(engine->get(), &work,
+                                       authenticator.get());
 
   grpc::EnableDefaultHealthCheckService(true);
-  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  const bool reflection =
+      authenticator == nullptr || security.reflection_with_auth;
+  if (reflection) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   int port = 0;
-  builder.AddListeningPort(config.listen, grpc::InsecureServerCredentials(),
+  builder.AddListeningPort(config.listen, MakeServerCredentials(security),
                            &port);
   builder.SetMaxReceiveMessageSize(
       static_cast<int>(config.max_receive_message_bytes));
@@ -114,11 +222,30 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                       << store_options.path << "), "
                       << (*engine)->ListFleets().size() << " fleets loaded";
   FLEETMEM_LOG(kInfo) << "options: " << DescribeConfig(config);
-  FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address;
+  if (authenticator == nullptr) {
+    FLEETMEM_LOG(kWarning)
+        << "auth is OFF: every caller may read and write every fleet "
+           "(start with --auth-file FILE to require credentials)";
+  } else {
+    FLEETMEM_LOG(kInfo) << "auth on: " << authenticator->size()
+                        << " principals from " << security.auth_file
+                        << "; reflection "
+                        << (reflection ? "on (without credentials)" : "off");
+  }
+  if (security.tls_cert_file.empty()) {
+    FLEETMEM_LOG(kWarning) << "TLS is off: traffic, tokens included, is "
+                              "plaintext";
+  }
+  FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address
+                      << (security.tls_cert_file.empty() ? "" : " (TLS)");
   std::cout << "fleetmem-server listening on " << address << std::endl;
 
   int signal = 0;
-  sigwait(&signals, &signal);
+  while (true) {
+    sigwait(&signals, &signal);
+    if (signal != SIGHUP) break;
+    ReloadCredentials(security.auth_file, authenticator.get());
+  }
   FLEETMEM_LOG(kInfo) << "received "
                       << (signal == SIGINT ? "SIGINT" : "SIGTERM")
                       << ", shutting down (grace "

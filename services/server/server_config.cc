@@ -1,5 +1,6 @@
 #include "services/server/server_config.h"
 
+#include <algorithm>
 #include <climits>
 #include <cstdint>
 #include <fstream>
@@ -112,6 +113,28 @@ void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
   }
 }
 
+void ApplySecurity(const SecurityConfigFile& in, SecurityConfig* out) {
+  if (in.has_auth_file()) out->auth_file = in.auth_file();
+  if (in.has_allow_unauthenticated()) {
+    out->allow_unauthenticated = in.allow_unauthenticated();
+  }
+  if (in.has_tls_cert_file()) out->tls_cert_file = in.tls_cert_file();
+  if (in.has_tls_key_file()) out->tls_key_file = in.tls_key_file();
+  if (in.has_tls_client_ca_file()) {
+    out->tls_client_ca_file = in.tls_client_ca_file();
+  }
+  if (in.has_require_client_certificate()) {
+    out->require_client_certificate = in.require_client_certificate();
+  }
+  if (in.has_tls_reload_seconds()) {
+    out->tls_reload_seconds = static_cast<int>(
+        std::min<uint32_t>(in.tls_reload_seconds(), 86400));
+  }
+  if (in.has_reflection_with_auth()) {
+    out->reflection_with_auth = in.reflection_with_auth();
+  }
+}
+
 // The flags that take a value, and where they go.
 struct FlagSpec {
   std::string_view name;
@@ -134,7 +157,17 @@ const FlagSpec kFlags[] = {
      "debug, info, warning or error (default info)"},
     {"index", &CommandLine::index, "KIND",
      "place index: exact or flann (default exact)"},
+    {"auth-file", &CommandLine::auth_file, "FILE",
+     "credentials file (services/auth/credentials.proto): turns auth on; "
+     "re-read on SIGHUP"},
+    {"tls-cert", &CommandLine::tls_cert, "FILE",
+     "PEM certificate chain of the server: TLS on (with --tls-key)"},
+    {"tls-key", &CommandLine::tls_key, "FILE", "PEM private key of --tls-cert"},
+    {"tls-client-ca", &CommandLine::tls_client_ca, "FILE",
+     "PEM CA bundle for client certificates (mutual TLS)"},
 };
+
+constexpr std::string_view kAllowUnauthenticated = "allow-unauthenticated";
 
 // "host:port" -> port, or nullopt if malformed.
 std::optional<int> ListenPort(std::string_view listen) {
@@ -184,6 +217,10 @@ absl::StatusOr<CommandLine> ParseCommandLine(int argc,
           absl::StrCat("unexpected argument \"", std::string(arg), "\""));
     }
     arg.remove_prefix(2);
+    if (arg == kAllowUnauthenticated) {
+      out.allow_unauthenticated = true;
+      continue;
+    }
     std::string_view name = arg;
     std::optional<std::string_view> value;
     if (size_t eq = arg.find('='); eq != std::string_view::npos) {
@@ -221,6 +258,9 @@ std::string Usage() {
                     std::string(flag.value_name), "\n      ",
                     std::string(flag.help), "\n");
   }
+  absl::StrAppend(&out, "  --", std::string(kAllowUnauthenticated),
+                  "\n      serve without --auth-file on a non-loopback "
+                  "address (anyone who reaches the port may do anything)\n");
   absl::StrAppend(&out, "  --help\n      print this text and exit\n");
   return out;
 }
@@ -269,6 +309,7 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   ApplyEngine(file.engine(), &config->engine);
   ApplyStorage(file.storage(), &config->storage);
   ApplyFlann(file.flann(), &config->flann);
+  ApplySecurity(file.security(), &config->security);
   return absl::OkStatus();
 }
 
@@ -285,6 +326,14 @@ absl::Status ApplyCommandLine(const CommandLine& command_line,
     absl::Status status = ApplyIndex("--index", *command_line.index, config);
     if (!status.ok()) return status;
   }
+  SecurityConfig& security = config->security;
+  if (command_line.auth_file) security.auth_file = *command_line.auth_file;
+  if (command_line.tls_cert) security.tls_cert_file = *command_line.tls_cert;
+  if (command_line.tls_key) security.tls_key_file = *command_line.tls_key;
+  if (command_line.tls_client_ca) {
+    security.tls_client_ca_file = *command_line.tls_client_ca;
+  }
+  if (command_line.allow_unauthenticated) security.allow_unauthenticated = true;
   return absl::OkStatus();
 }
 
@@ -321,7 +370,45 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
     return absl::InvalidArgumentError(
         "shutdown_grace_seconds: must not be negative");
   }
+  const SecurityConfig& security = config.security;
+  if (security.tls_cert_file.empty() != security.tls_key_file.empty()) {
+    return absl::InvalidArgumentError(
+        "tls_cert_file / tls_key_file: give both (--tls-cert and --tls-key) "
+        "or neither");
+  }
+  if (!security.tls_client_ca_file.empty() && security.tls_cert_file.empty()) {
+    return absl::InvalidArgumentError(
+        "tls_client_ca_file: client certificates need TLS (--tls-cert and "
+        "--tls-key)");
+  }
+  if (security.require_client_certificate &&
+      security.tls_client_ca_file.empty()) {
+    return absl::InvalidArgumentError(
+        "require_client_certificate: needs tls_client_ca_file");
+  }
+  if (security.tls_reload_seconds < 1) {
+    return absl::InvalidArgumentError("tls_reload_seconds: must be positive");
+  }
+  if (security.auth_file.empty() && !security.allow_unauthenticated &&
+      !IsLoopbackListen(config.listen)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "listen: refusing to serve ", config.listen,
+        " without authentication; give --auth-file FILE, or "
+        "--allow-unauthenticated if anyone who reaches the port may read "
+        "and write every fleet"));
+  }
   return engine::ValidateEngineOptions(config.engine);
+}
+
+bool IsLoopbackListen(std::string_view listen) {
+  const size_t colon = listen.rfind(':');
+  std::string_view host =
+      colon == std::string_view::npos ? listen : listen.substr(0, colon);
+  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
+    host = host.substr(1, host.size() - 2);
+  }
+  if (host == "localhost" || host == "::1") return true;
+  return host.substr(0, 4) == "127.";
 }
 
 absl::StatusOr<ServerConfig> LoadServerConfig(const CommandLine& command_line) {
@@ -369,7 +456,14 @@ std::string DescribeConfig(const ServerConfig& config) {
       " max_query_k=", config.engine.max_query_k,
       " max_events_per_read=", config.engine.max_events_per_read,
       " rocksdb_sync=", config.storage.sync ? "true" : "false",
-      " shutdown_grace_seconds=", config.shutdown_grace_seconds);
+      " shutdown_grace_seconds=", config.shutdown_grace_seconds,
+      " auth=", config.security.auth_file.empty() ? "off" : "on",
+      " tls=", config.security.tls_cert_file.empty() ? "off" : "on",
+      " client_certificates=",
+      config.security.tls_client_ca_file.empty()
+          ? "off"
+          : (config.security.require_client_certificate ? "required"
+                                                        : "optional"));
   if (config.index == IndexKind::kFlann) {
     absl::StrAppend(&out, " flann_trees=", config.flann.trees,
                     " flann_checks=", config.flann.checks);

@@ -29,6 +29,29 @@ inline constexpr IndexKind kDefaultIndex = IndexKind::kExact;
 bool ParseIndexKind(std::string_view text, IndexKind* kind);
 std::string_view IndexKindName(IndexKind kind);
 
+// Identity, roles and TLS (docs/security.md).
+struct SecurityConfig {
+  // Credentials file (services/auth/credentials.proto); empty turns auth
+  // off: every caller is an admin. Re-read on SIGHUP.
+  std::string auth_file;
+  // Without auth_file the server starts only on a loopback address unless
+  // this is set.
+  bool allow_unauthenticated = false;
+  // PEM certificate chain and key of the server: TLS on when both are set.
+  std::string tls_cert_file;
+  std::string tls_key_file;
+  // PEM CA bundle for client certificates: with it, clients may present a
+  // certificate (mutual TLS) whose common name names their principal.
+  std::string tls_client_ca_file;
+  // Refuse TLS clients without a valid certificate (needs the client CA).
+  bool require_client_certificate = false;
+  // How often the certificate and key files are checked for changes.
+  int tls_reload_seconds = 60;
+  // Server reflection with auth on (off by default then: reflection would be
+  // answered without credentials). Without auth it is always on.
+  bool reflection_with_auth = false;
+};
+
 struct ServerConfig {
   // HOST:PORT to listen on; port 0 picks a free port.
   std::string listen = "127.0.0.1:50051";
@@ -49,7 +72,11 @@ struct ServerConfig {
   size_t max_receive_message_bytes = size_t{16} << 20;
   // On SIGTERM/SIGINT, calls in flight get this long to finish.
   int shutdown_grace_seconds = 10;
+  SecurityConfig security;
 };
+
+// True for 127.0.0.0/8, ::1 and "localhost" (the host part of HOST:PORT).
+bool IsLoopbackListen(std::string_view listen);
 
 // What the command line asked for; unset fields leave the file's or the
 // default value.
@@ -60,10 +87,16 @@ struct CommandLine {
   std::optional<std::string> data_dir;
   std::optional<std::string> log_level;
   std::optional<std::string> index;
+  std::optional<std::string> auth_file;
+  std::optional<std::string> tls_cert;
+  std::optional<std::string> tls_key;
+  std::optional<std::string> tls_client_ca;
+  bool allow_unauthenticated = false;
 };
 
 // Parses argv[1..argc): --listen, --data-dir, --config, --log-level,
-// --index as "--name=value" or "--name value"; --help or -h. INVALID_ARGUMENT
+// --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca as
+// "--name=value" or "--name value"; --allow-unauthenticated; --help or -h. INVALID_ARGUMENT
 // for an unknown flag, a missing value or a positional argument.
 absl::StatusOr<CommandLine> ParseCommandLine(int argc, const char* const* argv);
 
@@ -81,8 +114,9 @@ absl::Status ApplyCommandLine(const CommandLine& command_line,
                               ServerConfig* config);
 
 // OK if the server can start with `config`: data_dir set, listen is
-// HOST:PORT, limits positive, engine options valid (ValidateEngineOptions).
-// Otherwise INVALID_ARGUMENT naming the setting.
+// HOST:PORT, limits positive, engine options valid (ValidateEngineOptions),
+// TLS files paired, and auth on or the address loopback (or
+// allow_unauthenticated). Otherwise INVALID_ARGUMENT naming the setting.
 absl::Status ValidateServerConfig(const ServerConfig& config);
 
 // Defaults, then the --config file (NOT_FOUND / INVALID_ARGUMENT if it

@@ -3,6 +3,7 @@
 #include <utility>
 #include <vector>
 
+#include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
 #include "services/transport/proto_convert.h"
 #include "services/transport/upload_reactor.h"
@@ -10,14 +11,16 @@
 
 namespace fleetmem::transport {
 
-MemoryServiceImpl::MemoryServiceImpl(engine::MemoryEngine* engine,
-                                     WorkQueue* work)
-    : state_(engine, work) {}
+MemoryServiceImpl::MemoryServiceImpl(
+    engine::MemoryEngine* engine, WorkQueue* work,
+    const auth::Authenticator* authenticator)
+    : state_(engine, work, authenticator) {}
 
 void MemoryServiceImpl::Shutdown() { state_.Shutdown(); }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
-    grpc::CallbackServerContext* context,
+    grpc::CallbackServerContext* context, auth::Action action,
+    std::string fleet_id, std::string robot_id,
     absl::AnyInvocable<absl::Status() &&> work) {
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   if (state_.shutting_down()) {
@@ -25,10 +28,18 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
     return reactor;
   }
   bool queued = state_.work().TrySubmit(
-      [context, reactor, work = std::move(work)]() mutable {
+      [this, context, reactor, action, fleet_id = std::move(fleet_id),
+       robot_id = std::move(robot_id),
+       work = std::move(work)]() mutable {
         grpc::Status live = CheckCallLive(*context);
         if (!live.ok()) {
           reactor->Finish(live);
+          return;
+        }
+        absl::StatusOr<auth::Principal> allowed = AuthorizeCall(
+            state_.authenticator(), *context, action, fleet_id, robot_id);
+        if (!allowed.ok()) {
+          reactor->Finish(ToGrpcStatus(allowed.status()));
           return;
         }
         reactor->Finish(ToGrpcStatus(std::move(work)()));
@@ -37,16 +48,16 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
   return reactor;
 }
 
-grpc::ServerReadReactor<v1::UploadTracesRequest>*
-MemoryServiceImpl::UploadTraces(grpc::CallbackServerContext* context,
-                                v1::UploadTracesResponse* response) {
+grpc::ServerReadReactor<grpc::ByteBuffer>* MemoryServiceImpl::UploadTraces(
+    grpc::CallbackServerContext* context, grpc::ByteBuffer* response) {
   return new UploadReactor(&state_, context, response);
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::Consolidate(
     grpc::CallbackServerContext* context, const v1::ConsolidateRequest* request,
     v1::ConsolidateResponse* response) {
-  return RunUnary(context, [this, request, response]() -> absl::Status {
+  return RunUnary(context, auth::Action::kConsolidate, request->fleet_id(), {},
+                  [this, request, response]() -> absl::Status {
     absl::StatusOr<engine::ConsolidateResult> result =
         state_.engine().Consolidate(request->fleet_id());
     if (!result.ok()) return result.status();
@@ -59,7 +70,9 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
     grpc::CallbackServerContext* context,
     const v1::SampleReplayRequest* request,
     v1::SampleReplayResponse* response) {
-  return RunUnary(context, [this, request, response]() -> absl::Status {
+  return RunUnary(context, auth::Action::kSample, request->fleet_id(),
+                  request->robot_id(),
+                  [this, request, response]() -> absl::Status {
     absl::StatusOr<std::vector<core::MemoryTrace>> traces =
         state_.engine().SampleReplay(request->fleet_id(), request->robot_id(),
                                      request->count());
@@ -72,7 +85,8 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
 grpc::ServerUnaryReactor* MemoryServiceImpl::QueryPlace(
     grpc::CallbackServerContext* context, const v1::QueryPlaceRequest* request,
     v1::QueryPlaceResponse* response) {
-  return RunUnary(context, [this, request, response]() -> absl::Status {
+  return RunUnary(context, auth::Action::kQuery, request->fleet_id(), {},
+                  [this, request, response]() -> absl::Status {
     absl::StatusOr<std::vector<engine::PlaceMatch>> matches =
         state_.engine().QueryPlace(request->fleet_id(),
                                    QueryFromProto(*request));
@@ -85,13 +99,14 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::QueryPlace(
 grpc::ServerWriteReactor<v1::MemoryEvent>* MemoryServiceImpl::WatchMemory(
     grpc::CallbackServerContext* context,
     const v1::WatchMemoryRequest* request) {
-  return new WatchReactor(&state_, *request);
+  return new WatchReactor(&state_, *context, *request);
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::GetStats(
     grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
     v1::GetStatsResponse* response) {
-  return RunUnary(context, [this, request, response]() -> absl::Status {
+  return RunUnary(context, auth::Action::kStats, request->fleet_id(), {},
+                  [this, request, response]() -> absl::Status {
     absl::StatusOr<engine::FleetStats> stats =
         state_.engine().GetStats(request->fleet_id());
     if (!stats.ok()) return stats.status();

@@ -3,6 +3,9 @@
 // block on fsync; gRPC's callback threads never do), translates the result
 // back and finishes with the engine's status.
 //
+// Every call is authenticated and authorised first (call_auth.h):
+//   UNAUTHENTICATED     no, unknown or wrong credentials (auth on).
+//   PERMISSION_DENIED   outside the caller's role or fleets.
 // Every call is answered:
 //   UNAVAILABLE         after Shutdown().
 //   RESOURCE_EXHAUSTED  "server busy" when the pool's queue is full.
@@ -14,6 +17,8 @@
 #include "absl/functional/any_invocable.h"
 #include "absl/status/status.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
+#include "services/auth/access_policy.h"
+#include "services/auth/authenticator.h"
 #include "services/engine/memory_engine.h"
 #include "services/transport/service_state.h"
 #include "services/transport/work_queue.h"
@@ -24,19 +29,27 @@ namespace fleetmem::transport {
 // in this order: Shutdown(), grpc::Server::Shutdown(deadline) (it waits for
 // the calls in flight, which still need `work`), WorkQueue::Stop(), then
 // destroy the service, the engine and the store.
-class MemoryServiceImpl final : public v1::MemoryService::CallbackService {
+//
+// UploadTraces is registered raw (bytes in, bytes out) so that a message
+// that does not parse fails the call with INVALID_ARGUMENT naming it, where
+// gRPC's own parsing would end the stream as if the client had closed it.
+class MemoryServiceImpl final
+    : public v1::MemoryService::WithRawCallbackMethod_UploadTraces<
+          v1::MemoryService::CallbackService> {
  public:
-  // `engine` and `work` must outlive the service.
-  MemoryServiceImpl(engine::MemoryEngine* engine, WorkQueue* work);
+  // `engine`, `work` and `authenticator` must outlive the service; a null
+  // `authenticator` turns auth off.
+  MemoryServiceImpl(engine::MemoryEngine* engine, WorkQueue* work,
+                    const auth::Authenticator* authenticator = nullptr);
 
   // New calls get UNAVAILABLE, upload streams end at their next message with
   // UNAVAILABLE, and every watch finishes at once with UNAVAILABLE. Calls
   // already on the pool complete. Idempotent.
   void Shutdown();
 
-  grpc::ServerReadReactor<v1::UploadTracesRequest>* UploadTraces(
+  grpc::ServerReadReactor<grpc::ByteBuffer>* UploadTraces(
       grpc::CallbackServerContext* context,
-      v1::UploadTracesResponse* response) override;
+      grpc::ByteBuffer* response) override;
   grpc::ServerUnaryReactor* Consolidate(
       grpc::CallbackServerContext* context,
       const v1::ConsolidateRequest* request,
@@ -57,10 +70,12 @@ class MemoryServiceImpl final : public v1::MemoryService::CallbackService {
                                      v1::GetStatsResponse* response) override;
 
  private:
-  // Finishes the call's default reactor with `work()`'s status, run on the
-  // pool; or at once with UNAVAILABLE / RESOURCE_EXHAUSTED.
+  // On the pool: authorises `action` on `fleet_id` (for `robot_id`), then
+  // finishes the call's default reactor with `work()`'s status; or at once
+  // with UNAVAILABLE / RESOURCE_EXHAUSTED.
   grpc::ServerUnaryReactor* RunUnary(
-      grpc::CallbackServerContext* context,
+      grpc::CallbackServerContext* context, auth::Action action,
+      std::string fleet_id, std::string robot_id,
       absl::AnyInvocable<absl::Status() &&> work);
 
   ServiceState state_;

@@ -8,6 +8,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/synchronization/mutex.h"
+#include "services/auth/authenticator.h"
 #include "services/engine/memory_engine.h"
 #include "services/transport/work_queue.h"
 
@@ -19,12 +20,15 @@ class WatchReactor;
 // Shutdown waits for all calls to end before the service is destroyed).
 class ServiceState {
  public:
-  // `engine` and `work` must outlive this object.
-  ServiceState(engine::MemoryEngine* engine, WorkQueue* work)
-      : engine_(engine), work_(work) {}
+  // `engine`, `work` and `authenticator` must outlive this object; a null
+  // `authenticator` means auth is off (every caller is an admin).
+  ServiceState(engine::MemoryEngine* engine, WorkQueue* work,
+               const auth::Authenticator* authenticator)
+      : engine_(engine), work_(work), authenticator_(authenticator) {}
 
   engine::MemoryEngine& engine() const { return *engine_; }
   WorkQueue& work() const { return *work_; }
+  const auth::Authenticator* authenticator() const { return authenticator_; }
 
   bool shutting_down() const {
     return shutting_down_.load(std::memory_order_acquire);
@@ -43,6 +47,7 @@ class ServiceState {
  private:
   engine::MemoryEngine* const engine_;
   WorkQueue* const work_;
+  const auth::Authenticator* const authenticator_;
   std::atomic<bool> shutting_down_{false};
   absl::Mutex watches_mu_;
   absl::flat_hash_set<WatchReactor*> watches_ ABSL_GUARDED_BY(watches_mu_);

@@ -3,46 +3,101 @@
 #include <utility>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "services/common/log.h"
 #include "services/core/validation.h"
+#include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
 #include "services/transport/proto_convert.h"
 
 namespace fleetmem::transport {
+namespace {
+
+// The bytes of a received message, in one string.
+std::string Flatten(const grpc::ByteBuffer& buffer) {
+  std::vector<grpc::Slice> slices;
+  std::string out;
+  if (!buffer.Dump(&slices).ok()) return out;
+  out.reserve(buffer.Length());
+  for (const grpc::Slice& slice : slices) {
+    out.append(reinterpret_cast<const char*>(slice.begin()), slice.size());
+  }
+  return out;
+}
+
+}  // namespace
+
+absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
+    absl::string_view bytes, uint64_t index) {
+  v1::UploadTracesRequest request;
+  if (!request.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("message ", index, " of the stream (", bytes.size(),
+                     " bytes) does not parse as fleetmem.v1."
+                     "UploadTracesRequest"));
+  }
+  return request;
+}
 
 UploadReactor::UploadReactor(ServiceState* state,
                              grpc::CallbackServerContext* context,
-                             v1::UploadTracesResponse* response)
+                             grpc::ByteBuffer* response)
     : state_(state), context_(context), response_(response) {
   if (state_->shutting_down()) {
     Finish(ShuttingDownStatus());
     return;
   }
-  StartRead(&request_);
+  StartRead(&buffer_);
+}
+
+void UploadReactor::Fail(const absl::Status& status) {
+  std::string message(status.message());
+  if (!absl::StrContains(message, "message ")) {
+    message = absl::StrCat("message ", index_, " of the stream: ", message);
+  }
+  if (index_ > 1) {
+    absl::StrAppend(&message, "; messages 1..", index_ - 1,
+                    " are durable (", totals_.accepted(), " accepted, ",
+                    totals_.duplicates(), " duplicates)");
+  } else {
+    absl::StrAppend(&message, "; nothing was stored");
+  }
+  Finish(ToGrpcStatus(absl::Status(status.code(), message)));
 }
 
 void UploadReactor::OnReadDone(bool ok) {
   if (!ok) {
     // The client closed its side (or the call broke): every message read so
     // far is durable, so report the totals.
+    std::string bytes = totals_.SerializeAsString();
+    grpc::Slice slice(bytes);
+    *response_ = grpc::ByteBuffer(&slice, 1);
     Finish(grpc::Status::OK);
     return;
   }
+  ++index_;
   if (state_->shutting_down()) {
     Finish(ShuttingDownStatus());
     return;
   }
+  absl::StatusOr<v1::UploadTracesRequest> parsed =
+      ParseUploadMessage(Flatten(buffer_), index_);
+  buffer_.Clear();
+  if (!parsed.ok()) {
+    Fail(parsed.status());
+    return;
+  }
+  request_ = std::move(*parsed);
   if (fleet_id_.empty()) {
     absl::Status valid = core::ValidateId("fleet_id", request_.fleet_id());
     if (!valid.ok()) {
-      Finish(ToGrpcStatus(valid));
+      Fail(valid);
       return;
     }
     fleet_id_ = request_.fleet_id();
   } else if (request_.fleet_id() != fleet_id_) {
-    Finish(grpc::Status(
-        grpc::StatusCode::INVALID_ARGUMENT,
+    Fail(absl::InvalidArgumentError(
         absl::StrCat("fleet_id: every message of an UploadTraces stream must "
                      "name the same fleet; got \"",
                      request_.fleet_id(), "\" after \"", fleet_id_, "\"")));
@@ -59,6 +114,25 @@ void UploadReactor::Store() {
     Finish(live);
     return;
   }
+  if (!principal_.has_value()) {
+    absl::StatusOr<auth::Principal> principal =
+        AuthorizeCall(state_->authenticator(), *context_,
+                      auth::Action::kUpload, fleet_id_);
+    if (!principal.ok()) {
+      Fail(principal.status());
+      return;
+    }
+    principal_ = std::move(*principal);
+  }
+  for (int i = 0; i < request_.traces_size(); ++i) {
+    absl::Status allowed =
+        auth::AuthorizeUploadAs(*principal_, request_.traces(i).robot_id());
+    if (!allowed.ok()) {
+      Fail(absl::PermissionDeniedError(
+          absl::StrCat("traces[", i, "]: ", allowed.message())));
+      return;
+    }
+  }
   std::vector<core::MemoryTrace> traces =
       UploadedTracesFromProto(request_.traces());
   absl::StatusOr<engine::UploadResult> result =
@@ -66,11 +140,11 @@ void UploadReactor::Store() {
   if (!result.ok()) {
     FLEETMEM_LOG(kDebug) << "UploadTraces " << fleet_id_ << ": "
                          << result.status();
-    Finish(ToGrpcStatus(result.status()));
+    Fail(result.status());
     return;
   }
-  AddUploadResult(*result, response_);
-  StartRead(&request_);
+  AddUploadResult(*result, &totals_);
+  StartRead(&buffer_);
 }
 
 void UploadReactor::OnDone() { delete this; }

@@ -2,30 +2,50 @@
 #ifndef FLEETMEM_SERVICES_TRANSPORT_UPLOAD_REACTOR_H_
 #define FLEETMEM_SERVICES_TRANSPORT_UPLOAD_REACTOR_H_
 
+#include <cstdint>
+#include <optional>
 #include <string>
 
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
+#include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/server_callback.h"
+#include "services/auth/access_policy.h"
 #include "services/transport/service_state.h"
 
 namespace fleetmem::transport {
 
-// Reads one message, stores it with MemoryEngine::Upload on the worker pool,
-// and only then reads the next (at most one message in flight per stream, so
-// a fast client is held back by the server's storage). Finishes with the
-// summed counters at the end of the stream, or with the first error: a
-// message naming another fleet (INVALID_ARGUMENT), an engine error, a full
-// pool (RESOURCE_EXHAUSTED), a passed deadline (DEADLINE_EXCEEDED), or a
-// message arriving after shutdown began (UNAVAILABLE; messages stored before
-// are durable and count as duplicates when retried).
+// Parses message `index` (1-based) of an upload stream. INVALID_ARGUMENT
+// naming the message if the bytes are not an UploadTracesRequest.
+absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
+    absl::string_view bytes, uint64_t index);
+
+// Reads one message (raw bytes), parses it, stores it with
+// MemoryEngine::Upload on the worker pool, and only then reads the next (at
+// most one message in flight per stream, so a fast client is held back by
+// the server's storage). Finishes with the summed counters at the end of the
+// stream, or with the first error, which names the message ("message 3 of
+// the stream: ...") and says what the messages before it did (they are
+// durable and count as duplicates when retried):
+//   INVALID_ARGUMENT    a message that does not parse, names another fleet
+//                       or fails validation (nothing of it is stored);
+//   UNAUTHENTICATED / PERMISSION_DENIED   the access policy (a robot uploads
+//                       only traces of its own robot id);
+//   RESOURCE_EXHAUSTED  a full pool;
+//   DEADLINE_EXCEEDED   a passed deadline;
+//   UNAVAILABLE         a message arriving after shutdown began;
+//   the engine's error otherwise (e.g. a failed write: nothing of that
+//   message is stored).
 //
 // Created by the service for each call; deletes itself in OnDone. At any
 // time at most one of {a gRPC reaction, the pool task} runs for a stream, so
 // its fields need no lock.
-class UploadReactor : public grpc::ServerReadReactor<v1::UploadTracesRequest> {
+class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
  public:
   UploadReactor(ServiceState* state, grpc::CallbackServerContext* context,
-                v1::UploadTracesResponse* response);
+                grpc::ByteBuffer* response);
 
   void OnReadDone(bool ok) override;
   void OnDone() override;
@@ -33,12 +53,19 @@ class UploadReactor : public grpc::ServerReadReactor<v1::UploadTracesRequest> {
  private:
   // Runs on the worker pool.
   void Store();
+  // Finishes with `status` for the current message, saying what the earlier
+  // messages of the stream did.
+  void Fail(const absl::Status& status);
 
   ServiceState* const state_;
   grpc::CallbackServerContext* const context_;
-  v1::UploadTracesResponse* const response_;  // the running totals
-  v1::UploadTracesRequest request_;
-  std::string fleet_id_;  // of the first message
+  grpc::ByteBuffer* const response_;
+  grpc::ByteBuffer buffer_;           // the message being read
+  v1::UploadTracesRequest request_;   // ... parsed
+  v1::UploadTracesResponse totals_;   // the running totals
+  uint64_t index_ = 0;                // 1-based number of the current message
+  std::string fleet_id_;              // of the first message
+  std::optional<auth::Principal> principal_;  // once authenticated
 };
 
 }  // namespace fleetmem::transport

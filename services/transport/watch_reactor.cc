@@ -4,18 +4,25 @@
 
 #include "services/common/log.h"
 #include "services/core/validation.h"
+#include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
 #include "services/transport/proto_convert.h"
 
 namespace fleetmem::transport {
 
 WatchReactor::WatchReactor(ServiceState* state,
+                           const grpc::CallbackServerContext& context,
                            const v1::WatchMemoryRequest& request)
     : state_(state),
       fleet_id_(request.fleet_id()),
       shared_(std::make_shared<Shared>()),
       read_cursor_(request.after_event()) {
   absl::Status valid = core::ValidateId("fleet_id", fleet_id_);
+  if (valid.ok()) {
+    valid = AuthorizeCall(state_->authenticator(), context,
+                          auth::Action::kWatch, fleet_id_)
+                .status();
+  }
   if (!valid.ok()) {
     absl::MutexLock lock(&shared_->mu);
     FinishLocked(ToGrpcStatus(valid));

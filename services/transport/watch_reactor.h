@@ -24,7 +24,8 @@ namespace fleetmem::transport {
 // waits for a notification from the engine, then reads again. Finishes OK
 // when the call is cancelled or its deadline passes (OnCancel); UNAVAILABLE
 // when the server shuts down (Stop), so that clients resume from their cursor
-// elsewhere or later; INVALID_ARGUMENT for a bad fleet id; the engine's error
+// elsewhere or later; INVALID_ARGUMENT for a bad fleet id;
+// UNAUTHENTICATED / PERMISSION_DENIED from the access policy; the engine's error
 // if a read fails; RESOURCE_EXHAUSTED if the pool is full.
 //
 // Lifetime: created by the service, deleted in OnDone. The pool task and the
@@ -33,7 +34,9 @@ namespace fleetmem::transport {
 // or notification finds nullptr instead of a deleted reactor.
 class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
  public:
-  WatchReactor(ServiceState* state, const v1::WatchMemoryRequest& request);
+  // Authenticates and authorises the caller (auth::Action::kWatch) first.
+  WatchReactor(ServiceState* state, const grpc::CallbackServerContext& context,
+               const v1::WatchMemoryRequest& request);
 
   // Finishes the call with UNAVAILABLE (server shutdown) once the write in
   // flight, if any, is done. Thread-safe.

@@ -1,0 +1,238 @@
+#include "services/auth/authenticator.h"
+
+#include <sodium.h>
+
+#include <utility>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "google/protobuf/io/tokenizer.h"
+#include "google/protobuf/text_format.h"
+#include "services/auth/credentials.pb.h"
+#include "services/auth/secret.h"
+#include "services/core/validation.h"
+
+namespace fleetmem::auth {
+namespace {
+
+// Most distinct tokens whose check is cached; the cache is emptied when full
+// (a flood of wrong tokens costs Argon2 time, never unbounded memory).
+constexpr size_t kMaxCachedTokens = 4096;
+
+class ErrorList : public google::protobuf::io::ErrorCollector {
+ public:
+  void AddError(int line, google::protobuf::io::ColumnNumber column,
+                const std::string& message) override {
+    errors_.push_back(absl::StrCat("line ", line + 1, ", column ", column + 1,
+                                   ": ", message));
+  }
+  std::string Joined() const { return absl::StrJoin(errors_, "; "); }
+
+ private:
+  std::vector<std::string> errors_;
+};
+
+absl::Status Bad(int index, absl::string_view name, absl::string_view why) {
+  return absl::InvalidArgumentError(
+      absl::StrCat("principal ", index + 1, " (\"", name, "\"): ", why));
+}
+
+absl::StatusOr<CredentialEntry> ToEntry(int index,
+                                        const file::Principal& in) {
+  CredentialEntry out;
+  if (absl::Status valid = core::ValidateId("name", in.name()); !valid.ok()) {
+    return Bad(index, in.name(), valid.message());
+  }
+  out.principal.name = in.name();
+  switch (in.role()) {
+    case file::ROBOT:
+      out.principal.role = Role::kRobot;
+      break;
+    case file::READER:
+      out.principal.role = Role::kReader;
+      break;
+    case file::ADMIN:
+      out.principal.role = Role::kAdmin;
+      break;
+    default:
+      return Bad(index, in.name(), "role: required (ROBOT, READER or ADMIN)");
+  }
+  if (out.principal.role == Role::kRobot) {
+    out.principal.robot_id = in.robot_id().empty() ? in.name() : in.robot_id();
+    if (absl::Status valid = core::ValidateId("robot_id", out.principal.robot_id);
+        !valid.ok()) {
+      return Bad(index, in.name(), valid.message());
+    }
+  } else if (!in.robot_id().empty()) {
+    return Bad(index, in.name(), "robot_id: only a ROBOT has one");
+  }
+  for (const std::string& fleet : in.fleets()) {
+    if (fleet == "*") {
+      out.principal.fleets.push_back(fleet);
+      continue;
+    }
+    if (absl::Status valid = core::ValidateId("fleets", fleet); !valid.ok()) {
+      return Bad(index, in.name(), valid.message());
+    }
+    out.principal.fleets.push_back(fleet);
+  }
+  if (out.principal.role != Role::kAdmin && out.principal.fleets.empty()) {
+    return Bad(index, in.name(),
+               "fleets: a robot or reader needs at least one (\"*\" for all)");
+  }
+  if (in.secret_hash().empty() && in.certificate_common_name().empty()) {
+    return Bad(index, in.name(),
+               "needs secret_hash (token) or certificate_common_name (mutual "
+               "TLS)");
+  }
+  if (!in.secret_hash().empty()) {
+    if (absl::Status valid = CheckSecretHash(in.secret_hash()); !valid.ok()) {
+      return Bad(index, in.name(), valid.message());
+    }
+    out.secret_hash = in.secret_hash();
+  }
+  if (in.certificate_common_name().size() > 256) {
+    return Bad(index, in.name(),
+               "certificate_common_name: longer than 256 characters");
+  }
+  out.certificate_common_name = in.certificate_common_name();
+  return out;
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
+    absl::string_view text) {
+  file::CredentialsFile parsed;
+  ErrorList errors;
+  google::protobuf::TextFormat::Parser parser;
+  parser.RecordErrorsTo(&errors);
+  if (!parser.ParseFromString(std::string(text), &parsed)) {
+    return absl::InvalidArgumentError(errors.Joined());
+  }
+  std::vector<CredentialEntry> entries;
+  absl::flat_hash_set<std::string> names;
+  absl::flat_hash_set<std::string> common_names;
+  for (int i = 0; i < parsed.principal_size(); ++i) {
+    absl::StatusOr<CredentialEntry> entry = ToEntry(i, parsed.principal(i));
+    if (!entry.ok()) return entry.status();
+    if (!names.insert(entry->principal.name).second) {
+      return Bad(i, entry->principal.name, "name: used by an earlier principal");
+    }
+    if (!entry->certificate_common_name.empty() &&
+        !common_names.insert(entry->certificate_common_name).second) {
+      return Bad(i, entry->principal.name,
+                 "certificate_common_name: used by an earlier principal");
+    }
+    entries.push_back(std::move(*entry));
+  }
+  return entries;
+}
+
+std::string MakeToken(absl::string_view name, absl::string_view secret) {
+  return absl::StrCat(name, ":", secret);
+}
+
+struct Authenticator::Set {
+  std::vector<CredentialEntry> entries;
+  absl::flat_hash_map<std::string, size_t> by_name;
+  absl::flat_hash_map<std::string, size_t> by_common_name;
+  // Keyed BLAKE2b of a token -> index into `entries`, or -1 (wrong token).
+  unsigned char digest_key[crypto_generichash_KEYBYTES];
+  mutable absl::Mutex mu;
+  mutable absl::flat_hash_map<std::string, int> checked ABSL_GUARDED_BY(mu);
+
+  explicit Set(std::vector<CredentialEntry> all) : entries(std::move(all)) {
+    for (size_t i = 0; i < entries.size(); ++i) {
+      by_name.emplace(entries[i].principal.name, i);
+      if (!entries[i].certificate_common_name.empty()) {
+        by_common_name.emplace(entries[i].certificate_common_name, i);
+      }
+    }
+    if (sodium_init() >= 0) {
+      randombytes_buf(digest_key, sizeof digest_key);
+    } else {
+      sodium_memzero(digest_key, sizeof digest_key);
+    }
+  }
+
+  std::string Digest(const std::string& token) const {
+    unsigned char out[crypto_generichash_BYTES];
+    crypto_generichash(out, sizeof out,
+                       reinterpret_cast<const unsigned char*>(token.data()),
+                       token.size(), digest_key, sizeof digest_key);
+    return std::string(reinterpret_cast<const char*>(out), sizeof out);
+  }
+};
+
+Authenticator::Authenticator(std::vector<CredentialEntry> entries)
+    : set_(std::make_shared<const Set>(std::move(entries))) {}
+
+void Authenticator::Replace(std::vector<CredentialEntry> entries) {
+  auto set = std::make_shared<const Set>(std::move(entries));
+  absl::MutexLock lock(&mu_);
+  set_ = std::move(set);
+}
+
+std::shared_ptr<const Authenticator::Set> Authenticator::Current() const {
+  absl::MutexLock lock(&mu_);
+  return set_;
+}
+
+size_t Authenticator::size() const { return Current()->entries.size(); }
+
+absl::StatusOr<Principal> Authenticator::CheckToken(
+    const std::shared_ptr<const Set>& set, const std::string& token) const {
+  const absl::Status wrong = absl::UnauthenticatedError(
+      "unknown or wrong token (expected \"authorization: Bearer NAME:SECRET\" "
+      "for a principal of the server's credentials file)");
+  const std::string digest = set->Digest(token);
+  {
+    absl::MutexLock lock(&set->mu);
+    if (auto it = set->checked.find(digest); it != set->checked.end()) {
+      if (it->second < 0) return wrong;
+      return set->entries[it->second].principal;
+    }
+  }
+  int found = -1;
+  const size_t colon = token.rfind(':');
+  if (colon != std::string::npos) {
+    auto named = set->by_name.find(token.substr(0, colon));
+    if (named != set->by_name.end()) {
+      const CredentialEntry& entry = set->entries[named->second];
+      if (!entry.secret_hash.empty() &&
+          VerifySecret(entry.secret_hash, token.substr(colon + 1))) {
+        found = static_cast<int>(named->second);
+      }
+    }
+  }
+  {
+    absl::MutexLock lock(&set->mu);
+    if (set->checked.size() >= kMaxCachedTokens) set->checked.clear();
+    set->checked.emplace(digest, found);
+  }
+  if (found < 0) return wrong;
+  return set->entries[found].principal;
+}
+
+absl::StatusOr<Principal> Authenticator::Authenticate(
+    const PresentedCredentials& presented) const {
+  const std::shared_ptr<const Set> set = Current();
+  if (presented.token.has_value()) return CheckToken(set, *presented.token);
+  if (presented.certificate_common_name.has_value()) {
+    auto it = set->by_common_name.find(*presented.certificate_common_name);
+    if (it == set->by_common_name.end()) {
+      return absl::UnauthenticatedError(absl::StrCat(
+          "client certificate \"", *presented.certificate_common_name,
+          "\" names no principal of the server's credentials file"));
+    }
+    return set->entries[it->second].principal;
+  }
+  return absl::UnauthenticatedError(
+      "no credentials: send \"authorization: Bearer NAME:SECRET\" or a client "
+      "certificate");
+}
+
+}  // namespace fleetmem::auth

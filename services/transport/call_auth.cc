@@ -1,0 +1,57 @@
+#include "services/transport/call_auth.h"
+
+#include <string>
+#include <vector>
+
+#include "absl/strings/match.h"
+#include "grpc/grpc_security_constants.h"
+#include "grpcpp/security/auth_context.h"
+
+namespace fleetmem::transport {
+
+auth::PresentedCredentials PresentedBy(
+    const grpc::CallbackServerContext& context) {
+  auth::PresentedCredentials presented;
+  const auto& metadata = context.client_metadata();
+  if (auto it = metadata.find("authorization"); it != metadata.end()) {
+    const std::string value(it->second.data(), it->second.size());
+    constexpr absl::string_view kBearer = "Bearer ";
+    presented.token = absl::StartsWith(value, kBearer)
+                          ? value.substr(kBearer.size())
+                          : value;  // a malformed header fails the check
+  }
+  const std::shared_ptr<const grpc::AuthContext> auth = context.auth_context();
+  if (auth != nullptr && auth->IsPeerAuthenticated()) {
+    const std::vector<grpc::string_ref> names =
+        auth->FindPropertyValues(GRPC_X509_CN_PROPERTY_NAME);
+    if (!names.empty()) {
+      presented.certificate_common_name =
+          std::string(names.front().data(), names.front().size());
+    }
+  }
+  return presented;
+}
+
+absl::StatusOr<auth::Principal> AuthenticateCall(
+    const auth::Authenticator* authenticator,
+    const grpc::CallbackServerContext& context) {
+  if (authenticator == nullptr) return auth::Principal::Anonymous();
+  return authenticator->Authenticate(PresentedBy(context));
+}
+
+absl::StatusOr<auth::Principal> AuthorizeCall(
+    const auth::Authenticator* authenticator,
+    const grpc::CallbackServerContext& context, auth::Action action,
+    absl::string_view fleet_id, absl::string_view robot_id) {
+  absl::StatusOr<auth::Principal> principal =
+      AuthenticateCall(authenticator, context);
+  if (!principal.ok()) return principal.status();
+  if (absl::Status allowed =
+          auth::Authorize(*principal, action, fleet_id, robot_id);
+      !allowed.ok()) {
+    return allowed;
+  }
+  return principal;
+}
+
+}  // namespace fleetmem::transport

@@ -1,0 +1,35 @@
+// The gRPC side of the access policy: what a call presents (the
+// `authorization: Bearer NAME:SECRET` header, the common name of a client
+// certificate verified by TLS) goes to auth::Authenticator, and the
+// principal to auth::Authorize. Every handler of the service calls
+// AuthorizeCall before its work.
+#ifndef FLEETMEM_SERVICES_TRANSPORT_CALL_AUTH_H_
+#define FLEETMEM_SERVICES_TRANSPORT_CALL_AUTH_H_
+
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
+#include "grpcpp/server_context.h"
+#include "services/auth/access_policy.h"
+#include "services/auth/authenticator.h"
+
+namespace fleetmem::transport {
+
+// What the caller of `context` presents.
+auth::PresentedCredentials PresentedBy(
+    const grpc::CallbackServerContext& context);
+
+// The caller's principal: auth::Principal::Anonymous() when `authenticator`
+// is null (auth off), else Authenticate's (UNAUTHENTICATED on failure).
+absl::StatusOr<auth::Principal> AuthenticateCall(
+    const auth::Authenticator* authenticator,
+    const grpc::CallbackServerContext& context);
+
+// AuthenticateCall, then auth::Authorize(principal, action, fleet, robot).
+absl::StatusOr<auth::Principal> AuthorizeCall(
+    const auth::Authenticator* authenticator,
+    const grpc::CallbackServerContext& context, auth::Action action,
+    absl::string_view fleet_id, absl::string_view robot_id = {});
+
+}  // namespace fleetmem::transport
+
+#endif  // FLEETMEM_SERVICES_TRANSPORT_CALL_AUTH_H_
