@@ -236,8 +236,12 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     FLEETMEM_LOG(kWarning) << "TLS is off: traffic, tokens included, is "
                               "plaintext";
   }
-  FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address
-                      << (security.tls_cert_file.empty() ? "" : " (TLS)");
+  if (!security.tls_cert_file.empty()) {
+    FLEETMEM_LOG(kInfo) << "TLS on: certificate " << security.tls_cert_file
+                        << ", re-read every " << security.tls_reload_seconds
+                        << " s";
+  }
+  FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address;
   std::cout << "fleetmem-server listening on " << address << std::endl;
 
   int signal = 0;

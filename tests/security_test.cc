@@ -1,0 +1,286 @@
+// Identity, roles and TLS against the real server: principals made with the
+// real fleetmem-credential tool, certificates made with openssl.
+#include <signal.h>
+
+#include <chrono>
+#include <fstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "tests/api_helpers.h"
+#include "tests/security_helpers.h"
+#include "tests/server_process.h"
+#include "tests/synthetic_traces.h"
+
+namespace fleetmem::testing {
+namespace {
+
+using ::testing::HasSubstr;
+
+constexpr char kFleet[] = "f1";
+
+std::vector<v1::MemoryTrace> Traces(const std::string& robot, uint64_t first,
+                                    size_t count) {
+  TraceSpec spec;
+  spec.robot_id = robot;
+  spec.first_seq = first;
+  spec.count = count;
+  return MakeTraces(spec);
+}
+
+// A server with auth on, and one principal of each kind:
+//   robot-7 (robot, fleet f1, token), robot-8 (robot, fleet f1, certificate
+//   only), grafana (reader of f1), ops (admin).
+class AuthTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    credentials_ = dir_.Join("credentials.textproto");
+    auto add = [&](const std::string& name, const std::string& role,
+                   std::vector<std::string> fleets, std::string* token) {
+      absl::StatusOr<std::string> made =
+          AddPrincipal(dir_.path(), credentials_, name, role, fleets);
+      ASSERT_TRUE(made.ok()) << made.status();
+      *token = *made;
+    };
+    ASSERT_NO_FATAL_FAILURE(add("robot-7", "robot", {kFleet}, &robot7_));
+    ASSERT_NO_FATAL_FAILURE(add("grafana", "reader", {kFleet}, &reader_));
+    ASSERT_NO_FATAL_FAILURE(add("ops", "admin", {}, &admin_));
+    ASSERT_TRUE(AddPrincipal(dir_.path(), credentials_, "robot-8", "robot",
+                             {kFleet}, "robot-8")
+                    .ok());
+  }
+
+  void TearDown() override {
+    if (server_ != nullptr && server_->running()) {
+      absl::StatusOr<int> code = server_->Stop();
+      EXPECT_TRUE(code.ok() && *code == 0) << server_->Output();
+    }
+    if (HasFailure() && server_ != nullptr) {
+      std::cerr << "---- server log ----\n" << server_->Output();
+    }
+  }
+
+  void Start(std::vector<std::string> extra = {}) {
+    ServerOptions options;
+    options.data_dir = dir_.Join("data");
+    options.log_file = dir_.Join("server.log");
+    options.extra_args = {"--auth-file", credentials_};
+    options.extra_args.insert(options.extra_args.end(), extra.begin(),
+                              extra.end());
+    server_ = std::make_unique<ServerProcess>(options);
+    absl::Status started = server_->Start();
+    ASSERT_TRUE(started.ok()) << started;
+  }
+
+  std::unique_ptr<v1::MemoryService::Stub> As(const std::string& token) {
+    return MakeSecureStub(server_->address(), {token, "", "", ""});
+  }
+
+  TempDir dir_{"fleetmem-auth-"};
+  std::string credentials_;
+  std::string robot7_, reader_, admin_;
+  std::unique_ptr<ServerProcess> server_;
+};
+
+TEST_F(AuthTest, NoOrWrongCredentialsAreUnauthenticated) {
+  ASSERT_NO_FATAL_FAILURE(Start());
+  for (const std::string& token :
+       {std::string(), std::string("robot-7:wrong"),
+        std::string("nobody:") + robot7_.substr(robot7_.find(':') + 1)}) {
+    auto stub = As(token);
+    EXPECT_EQ(GetStats(*stub, kFleet).status.error_code(),
+              grpc::StatusCode::UNAUTHENTICATED)
+        << token;
+    EXPECT_EQ(UploadTraces(*stub, kFleet, Traces("robot-7", 1, 3))
+                  .status.error_code(),
+              grpc::StatusCode::UNAUTHENTICATED);
+    EXPECT_EQ(ReadEvents(*stub, kFleet, 0, 1).status.error_code(),
+              grpc::StatusCode::UNAUTHENTICATED);
+  }
+  EXPECT_THAT(GetStats(*As(""), kFleet).status.error_message(),
+              HasSubstr("Bearer"));
+}
+
+TEST_F(AuthTest, RobotActsOnlyAsItselfInItsFleets) {
+  ASSERT_NO_FATAL_FAILURE(Start());
+  auto robot = As(robot7_);
+  auto admin = As(admin_);
+  Reply<v1::UploadTracesResponse> own =
+      UploadTraces(*robot, kFleet, Traces("robot-7", 1, 20));
+  ASSERT_TRUE(own.ok()) << Describe(own.status);
+  EXPECT_EQ(own.response.accepted(), 20u);
+
+  // Another robot's sequence numbers: refused, nothing stored, so the real
+  // robot-8's traces are not turned into duplicates.
+  Reply<v1::UploadTracesResponse> forged =
+      UploadTraces(*robot, kFleet, Traces("robot-8", 1, 5));
+  EXPECT_EQ(forged.status.error_code(), grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_THAT(forged.status.error_message(), HasSubstr("robot-8"));
+  Reply<v1::GetStatsResponse> stats = GetStats(*admin, kFleet);
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(FindRobot(stats.response, "robot-8"), nullptr);
+  EXPECT_EQ(stats.response.pending_traces(), 20u);
+
+  // Other fleets, consolidation, replay for another robot: refused.
+  EXPECT_EQ(UploadTraces(*robot, "f2", Traces("robot-7", 100, 2))
+                .status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_EQ(GetStats(*robot, "f2").status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_EQ(ReadEvents(*robot, "f2", 0, 1).status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_EQ(Consolidate(*robot, kFleet).status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_EQ(SampleReplay(*robot, kFleet, "robot-8", 5).status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+
+  // What it may do.
+  ASSERT_TRUE(Consolidate(*admin, kFleet).ok());
+  EXPECT_TRUE(GetStats(*robot, kFleet).ok());
+  Reply<v1::SampleReplayResponse> sample =
+      SampleReplay(*robot, kFleet, "robot-7", 5);
+  ASSERT_TRUE(sample.ok()) << Describe(sample.status);
+  EXPECT_EQ(sample.response.traces_size(), 5);
+  std::vector<float> code = CodeOf(own.ok() ? Traces("robot-7", 1, 1)[0]
+                                            : v1::MemoryTrace());
+  EXPECT_TRUE(QueryCode(*robot, kFleet, code, 1).ok());
+}
+
+TEST_F(AuthTest, ReaderCannotWrite) {
+  ASSERT_NO_FATAL_FAILURE(Start());
+  auto admin = As(admin_);
+  ASSERT_TRUE(UploadTraces(*admin, kFleet, Traces("robot-7", 1, 10)).ok());
+  auto reader = As(reader_);
+  EXPECT_EQ(UploadTraces(*reader, kFleet, Traces("grafana", 1, 1))
+                .status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_EQ(SampleReplay(*reader, kFleet, "robot-7", 1).status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_EQ(Consolidate(*reader, kFleet).status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_TRUE(GetStats(*reader, kFleet).ok());
+  std::vector<float> code = CodeOf(Traces("robot-7", 1, 1)[0]);
+  EXPECT_TRUE(QueryCode(*reader, kFleet, code, 3).ok());
+  // Replay counts were not touched by the refused sample.
+  Reply<v1::GetStatsResponse> stats = GetStats(*admin, kFleet);
+  ASSERT_TRUE(stats.ok());
+  const v1::RobotStats* robot = FindRobot(stats.response, "robot-7");
+  ASSERT_NE(robot, nullptr);
+  EXPECT_EQ(robot->replayed(), 0u);
+}
+
+TEST_F(AuthTest, SighupReloadsTheCredentials) {
+  ASSERT_NO_FATAL_FAILURE(Start());
+  ASSERT_TRUE(GetStats(*As(robot7_), kFleet).status.error_code() !=
+              grpc::StatusCode::UNAUTHENTICATED);
+  // A file that does not parse leaves the old credentials in force.
+  const std::string good = ReadFileOrEmpty(credentials_);
+  std::ofstream(credentials_) << "principal { oops";
+  server_->Signal(SIGHUP);
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  EXPECT_NE(GetStats(*As(robot7_), kFleet).status.error_code(),
+            grpc::StatusCode::UNAUTHENTICATED);
+  // robot-7 revoked: the file is rewritten without it.
+  const size_t begin = good.find("principal {\n  name: \"grafana\"");
+  ASSERT_NE(begin, std::string::npos);
+  std::ofstream(credentials_) << good.substr(begin);
+  server_->Signal(SIGHUP);
+  const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  grpc::StatusCode code = grpc::StatusCode::OK;
+  while (std::chrono::steady_clock::now() < end) {
+    code = GetStats(*As(robot7_), kFleet).status.error_code();
+    if (code == grpc::StatusCode::UNAUTHENTICATED) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_EQ(code, grpc::StatusCode::UNAUTHENTICATED);
+  EXPECT_THAT(server_->Output(), HasSubstr("keeping the previous credentials"));
+  EXPECT_NE(GetStats(*As(reader_), kFleet).status.error_code(),
+            grpc::StatusCode::UNAUTHENTICATED);
+}
+
+TEST(OpenServerTest, RefusesANonLoopbackAddressWithoutAuth) {
+  TempDir dir("fleetmem-open-");
+  ServerOptions options;
+  options.data_dir = dir.Join("data");
+  options.log_file = dir.Join("server.log");
+  options.listen = "0.0.0.0:0";
+  options.start_timeout = std::chrono::milliseconds(10000);
+  ServerProcess refused(options);
+  absl::Status started = refused.Start();
+  EXPECT_FALSE(started.ok());
+  EXPECT_THAT(refused.Output(), HasSubstr("--allow-unauthenticated"));
+
+  options.extra_args = {"--allow-unauthenticated"};
+  ServerProcess open(options);
+  ASSERT_TRUE(open.Start().ok()) << open.Output();
+  EXPECT_THAT(open.Output(), HasSubstr("auth is OFF"));
+  absl::StatusOr<int> code = open.Stop();
+  EXPECT_TRUE(code.ok() && *code == 0);
+}
+
+class TlsTest : public AuthTest {
+ protected:
+  void SetUp() override {
+    AuthTest::SetUp();
+    ASSERT_TRUE(MakeCertificates(dir_.path(), {"robot-8", "stranger"}).ok());
+    ca_ = ReadFileOrEmpty(dir_.Join("ca.pem"));
+  }
+
+  void StartTls() {
+    Start({"--tls-cert", dir_.Join("server.pem"), "--tls-key",
+           dir_.Join("server.key"), "--tls-client-ca", dir_.Join("ca.pem")});
+  }
+
+  ChannelSecurity Client(const std::string& name) {
+    return {"", ca_, ReadFileOrEmpty(dir_.Join(name + ".pem")),
+            ReadFileOrEmpty(dir_.Join(name + ".key"))};
+  }
+
+  std::string ca_;
+};
+
+TEST_F(TlsTest, TlsClientsConnectAndPlaintextOnesAreRefused) {
+  ASSERT_NO_FATAL_FAILURE(StartTls());
+  auto tls = MakeSecureStub(server_->address(), {robot7_, ca_, "", ""});
+  Reply<v1::UploadTracesResponse> uploaded =
+      UploadTraces(*tls, kFleet, Traces("robot-7", 1, 5));
+  ASSERT_TRUE(uploaded.ok()) << Describe(uploaded.status);
+
+  auto plaintext = As(robot7_);
+  EXPECT_EQ(GetStats(*plaintext, kFleet).status.error_code(),
+            grpc::StatusCode::UNAVAILABLE);
+  // A client that does not trust the server's CA does not connect either.
+  auto untrusting = MakeSecureStub(
+      server_->address(),
+      {robot7_, ReadFileOrEmpty(dir_.Join("rogue-ca.pem")), "", ""});
+  EXPECT_EQ(GetStats(*untrusting, kFleet).status.error_code(),
+            grpc::StatusCode::UNAVAILABLE);
+}
+
+TEST_F(TlsTest, ClientCertificateNamesTheRobot) {
+  ASSERT_NO_FATAL_FAILURE(StartTls());
+  // robot-8 has no token: its certificate authenticates it.
+  auto robot8 = MakeSecureStub(server_->address(), Client("client-robot-8"));
+  Reply<v1::UploadTracesResponse> own =
+      UploadTraces(*robot8, kFleet, Traces("robot-8", 1, 5));
+  ASSERT_TRUE(own.ok()) << Describe(own.status);
+  EXPECT_EQ(UploadTraces(*robot8, kFleet, Traces("robot-7", 1, 5))
+                .status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+  // A valid certificate whose name is not in the credentials file.
+  auto stranger = MakeSecureStub(server_->address(), Client("client-stranger"));
+  EXPECT_EQ(GetStats(*stranger, kFleet).status.error_code(),
+            grpc::StatusCode::UNAUTHENTICATED);
+  // A certificate of another CA with robot-8's name: the handshake fails.
+  auto rogue = MakeSecureStub(server_->address(), Client("rogue-client"));
+  EXPECT_EQ(UploadTraces(*rogue, kFleet, Traces("robot-8", 10, 1))
+                .status.error_code(),
+            grpc::StatusCode::UNAVAILABLE);
+}
+
+}  // namespace
+}  // namespace fleetmem::testing
