@@ -450,11 +450,13 @@ TEST_F(StandardServicesTest, HealthCheckIsServing) {
   EXPECT_EQ(response, std::string("\x08\x01", 2)) << "status is not SERVING";
 }
 
-// One ServerReflectionInfo exchange with a list_services request through the
-// generic stub and a completion queue; the raw response bytes.
-grpc::Status ListServicesByReflection(std::shared_ptr<grpc::Channel> channel,
-                                      const std::string& method,
-                                      std::string* response) {
+// One streaming call of `method` through the generic stub and a completion
+// queue: writes `messages` (raw bytes) in order, half-closes, reads one
+// response; its raw bytes go to `response`.
+grpc::Status GenericStreamCall(std::shared_ptr<grpc::Channel> channel,
+                               const std::string& method,
+                               const std::vector<std::string>& messages,
+                               std::string* response) {
   grpc::GenericStub generic(channel);
   grpc::CompletionQueue queue;
   auto context = MakeContext();
@@ -467,14 +469,13 @@ grpc::Status ListServicesByReflection(std::shared_ptr<grpc::Channel> channel,
     if (!queue.Next(&tag, &ok)) return false;
     return ok && reinterpret_cast<intptr_t>(tag) == expected;
   };
-  // ServerReflectionRequest{list_services: ""}: field 7, length 0.
-  grpc::Slice slice(std::string("\x3a\x00", 2));
-  grpc::ByteBuffer request(&slice, 1);
   grpc::ByteBuffer reply;
-  bool ok = true;
   call->StartCall(reinterpret_cast<void*>(1));
-  ok = ok && await(1);
-  if (ok) {
+  bool ok = await(1);
+  for (const std::string& message : messages) {
+    if (!ok) break;
+    grpc::Slice slice(message);
+    grpc::ByteBuffer request(&slice, 1);
     call->Write(request, reinterpret_cast<void*>(2));
     ok = await(2);
   }
@@ -506,9 +507,46 @@ grpc::Status ListServicesByReflection(std::shared_ptr<grpc::Channel> channel,
     }
   }
   if (status.ok() && !got_reply) {
-    return grpc::Status(grpc::StatusCode::UNKNOWN, "no reflection response");
+    return grpc::Status(grpc::StatusCode::UNKNOWN, "no response");
   }
   return status;
+}
+
+// One ServerReflectionInfo exchange with a list_services request.
+grpc::Status ListServicesByReflection(std::shared_ptr<grpc::Channel> channel,
+                                      const std::string& method,
+                                      std::string* response) {
+  // ServerReflectionRequest{list_services: ""}: field 7, length 0.
+  return GenericStreamCall(channel, method, {std::string("\x3a\x00", 2)},
+                           response);
+}
+
+TEST_F(BadInputTest, UnparseableUploadMessageFailsTheStream) {
+  // Message 1: ten good traces; message 2: bytes that are no
+  // UploadTracesRequest; message 3: ten more good traces.
+  std::vector<v1::MemoryTrace> first, third;
+  for (uint64_t seq = 301; seq <= 310; ++seq) first.push_back(NewTrace(seq));
+  for (uint64_t seq = 311; seq <= 320; ++seq) third.push_back(NewTrace(seq));
+  const std::vector<std::string> messages = {
+      MakeUploadRequest(kFleet, first).SerializeAsString(),
+      std::string("\x12\xff\xff\xff\x0f garbage", 13),
+      MakeUploadRequest(kFleet, third).SerializeAsString()};
+  std::string response;
+  grpc::Status status =
+      GenericStreamCall(MakeChannel(server().address()),
+                        "/fleetmem.v1.MemoryService/UploadTraces", messages,
+                        &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << Describe(status);
+  for (const char* words : {"message 2 of the stream", "does not parse",
+                            "messages 1..1 are durable (10 accepted"}) {
+    EXPECT_TRUE(absl::StrContains(status.error_message(), words))
+        << status.error_message();
+  }
+  Reply<v1::GetStatsResponse> stats = GetStats(stub(), kFleet);
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(stats.response.pending_traces(), before_.pending_traces() + 10)
+      << "message 1 is durable; the call failed before message 3";
 }
 
 TEST_F(StandardServicesTest, ReflectionListsTheMemoryService) {
