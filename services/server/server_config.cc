@@ -97,6 +97,7 @@ void ApplyStorage(const StorageConfig& in, storage::RocksDbStoreOptions* out) {
   }
   if (in.has_background_jobs()) out->background_jobs = in.background_jobs();
   if (in.has_compress()) out->compress = in.compress();
+  if (in.has_min_free_bytes()) out->min_free_bytes = in.min_free_bytes();
 }
 
 void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
@@ -456,6 +457,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       " max_query_k=", config.engine.max_query_k,
       " max_events_per_read=", config.engine.max_events_per_read,
       " rocksdb_sync=", config.storage.sync ? "true" : "false",
+      " min_free_bytes=", config.storage.min_free_bytes,
       " shutdown_grace_seconds=", config.shutdown_grace_seconds,
       " auth=", config.security.auth_file.empty() ? "off" : "on",
       " tls=", config.security.tls_cert_file.empty() ? "off" : "on",

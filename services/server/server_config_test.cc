@@ -168,6 +168,7 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
             defaults.engine.max_traces_per_upload);
   EXPECT_EQ(config.engine.max_sample_count, defaults.engine.max_sample_count);
   EXPECT_EQ(config.storage.sync, defaults.storage.sync);
+  EXPECT_EQ(config.storage.min_free_bytes, defaults.storage.min_free_bytes);
   EXPECT_EQ(config.max_receive_message_bytes,
             defaults.max_receive_message_bytes);
   EXPECT_EQ(config.shutdown_grace_seconds, defaults.shutdown_grace_seconds);

@@ -1,6 +1,10 @@
 #include "services/storage/rocksdb_store.h"
 
+#include <sys/statvfs.h>
+
 #include <algorithm>
+#include <cerrno>
+#include <cstring>
 #include <exception>
 #include <filesystem>
 #include <map>
@@ -21,6 +25,7 @@
 #include "rocksdb/filter_policy.h"
 #include "rocksdb/iterator.h"
 #include "rocksdb/options.h"
+#include "rocksdb/sst_file_manager.h"
 #include "rocksdb/table.h"
 #include "rocksdb/write_batch.h"
 #include "services/common/log.h"
@@ -298,11 +303,25 @@ class MutationWriter {
   Staging* staging_;
 };
 
+absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
+  struct statvfs info;
+  if (statvfs(path.c_str(), &info) != 0) {
+    return absl::UnavailableError(
+        absl::StrCat("statvfs '", path, "': ", std::strerror(errno)));
+  }
+  return static_cast<uint64_t>(info.f_bavail) * info.f_frsize;
+}
+
 class RocksDbStore final : public engine::MemoryStore {
  public:
-  RocksDbStore(std::unique_ptr<rocksdb::DB> db, std::string path, bool sync)
-      : db_(std::move(db)), path_(std::move(path)) {
-    write_options_.sync = sync;
+  RocksDbStore(std::unique_ptr<rocksdb::DB> db,
+               const RocksDbStoreOptions& options)
+      : db_(std::move(db)),
+        path_(options.path),
+        min_free_bytes_(options.min_free_bytes),
+        free_bytes_(options.free_bytes ? options.free_bytes
+                                       : StatvfsFreeBytes) {
+    write_options_.sync = options.sync;
   }
 
   ~RocksDbStore() override {
@@ -422,8 +441,21 @@ class RocksDbStore final : public engine::MemoryStore {
     }
     rocksdb::WriteBatch batch = staging.ToBatch();
     if (batch.Count() == 0) return absl::OkStatus();
-    return FromRocksDb(db_->Write(write_options_, &batch),
-                       absl::StrCat("write fleet ", V(fleet_id)));
+    if (absl::Status room = CheckRoom(fleet_id, batch.GetDataSize());
+        !room.ok()) {
+      return room;
+    }
+    if (absl::Status resumed = ResumeAfterError(); !resumed.ok()) {
+      return resumed;
+    }
+    const rocksdb::Status written = db_->Write(write_options_, &batch);
+    if (!written.ok()) {
+      write_failed_ = true;
+      FLEETMEM_LOG(kError) << "RocksDB write of fleet " << fleet_id
+                           << " failed: " << written.ToString();
+    }
+    return FromRocksDb(written, absl::StrCat("write fleet ", V(fleet_id),
+                                             " (nothing of it was stored)"));
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
@@ -497,10 +529,61 @@ class RocksDbStore final : public engine::MemoryStore {
     return absl::OkStatus();
   }
 
+  // RESOURCE_EXHAUSTED if writing `bytes` would leave less than the
+  // reserve free. Called under apply_mu_.
+  absl::Status CheckRoom(std::string_view fleet_id, size_t bytes) {
+    if (min_free_bytes_ == 0) return absl::OkStatus();
+    absl::StatusOr<uint64_t> free = free_bytes_(path_);
+    if (!free.ok()) return free.status();
+    // The batch goes to the write-ahead log now and to a table file later.
+    const uint64_t needed = min_free_bytes_ + 2 * uint64_t{bytes};
+    if (*free >= needed) {
+      if (low_space_) {
+        FLEETMEM_LOG(kInfo) << "disk space is back under " << path_ << " ("
+                            << *free << " bytes free); writes resume";
+        low_space_ = false;
+      }
+      return absl::OkStatus();
+    }
+    if (!low_space_) {
+      FLEETMEM_LOG(kError) << "disk nearly full under " << path_ << ": "
+                           << *free << " bytes free, reserve "
+                           << min_free_bytes_ << "; refusing writes";
+      low_space_ = true;
+    }
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "disk nearly full: ", *free, " bytes free under ", path_,
+        ", a write of fleet ", V(fleet_id), " needs ", 2 * uint64_t{bytes},
+        " above the reserve of ", min_free_bytes_,
+        " (storage.min_free_bytes); nothing was stored. Reads are served; "
+        "writes resume once space is freed"));
+  }
+
+  // After a failed write RocksDB may hold a background error that stops
+  // every later write; ask it to resume (it re-checks the files). Called
+  // under apply_mu_.
+  absl::Status ResumeAfterError() {
+    if (!write_failed_) return absl::OkStatus();
+    const rocksdb::Status resumed = db_->Resume();
+    if (!resumed.ok()) {
+      return FromRocksDb(resumed,
+                         "resume after a failed write (nothing was stored)");
+    }
+    FLEETMEM_LOG(kInfo) << "RocksDB at " << path_
+                        << " resumed after a failed write";
+    write_failed_ = false;
+    return absl::OkStatus();
+  }
+
   std::unique_ptr<rocksdb::DB> db_;
   const std::string path_;
+  const uint64_t min_free_bytes_;
+  const std::function<absl::StatusOr<uint64_t>(const std::string&)>
+      free_bytes_;
   rocksdb::WriteOptions write_options_;
   absl::Mutex apply_mu_;
+  bool low_space_ ABSL_GUARDED_BY(apply_mu_) = false;
+  bool write_failed_ ABSL_GUARDED_BY(apply_mu_) = false;
 };
 
 rocksdb::Options MakeOptions(const RocksDbStoreOptions& options) {
@@ -538,6 +621,10 @@ rocksdb::Options MakeOptions(const RocksDbStoreOptions& options) {
         rocksdb::NewBloomFilterPolicy(options.bloom_bits_per_key));
   }
   db_options.table_factory.reset(rocksdb::NewBlockBasedTableFactory(table));
+  // Tracks table file sizes so that RocksDB checks free space before a
+  // compaction and recovers by itself from a no-space background error.
+  db_options.sst_file_manager.reset(
+      rocksdb::NewSstFileManager(rocksdb::Env::Default()));
   return db_options;
 }
 
@@ -593,8 +680,7 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
   }
   FLEETMEM_LOG(kInfo) << "opened RocksDB store at " << options.path
                       << (options.sync ? " (sync writes)" : " (async writes)");
-  return std::make_unique<RocksDbStore>(std::move(db), options.path,
-                                        options.sync);
+  return std::make_unique<RocksDbStore>(std::move(db), options);
 }
 
 }  // namespace

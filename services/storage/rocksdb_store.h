@@ -25,6 +25,8 @@
 #define FLEETMEM_SERVICES_STORAGE_ROCKSDB_STORE_H_
 
 #include <cstddef>
+#include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 
@@ -55,6 +57,16 @@ struct RocksDbStoreOptions {
   // Compress table files: LZ4 (else Snappy) for upper levels and ZSTD for the
   // last level, whichever this RocksDB build supports.
   bool compress = true;
+  // Disk reserve: Apply refuses a write (RESOURCE_EXHAUSTED, nothing
+  // written) when the filesystem of `path` would have less than this many
+  // bytes free after it. RocksDB is never driven into ENOSPC by our writes
+  // (Debian's RocksDB build asserts on a write-ahead-log error), so
+  // flushes and compactions keep the room they need, reads go on, and
+  // writes resume by themselves once space is freed. 0 disables the check.
+  uint64_t min_free_bytes = uint64_t{64} << 20;
+  // Free bytes on the filesystem holding `path` (statvfs by default; tests
+  // inject their own).
+  std::function<absl::StatusOr<uint64_t>(const std::string& path)> free_bytes;
 };
 
 // Opens (or creates) the database at `options.path`. Errors:
@@ -68,8 +80,11 @@ struct RocksDbStoreOptions {
 // The returned store is thread-safe: reads run in parallel, Apply calls are
 // serialised. Destroying it closes the database (writes already returned OK
 // are in the write-ahead log; nothing else is flushed). Errors of later calls:
-// UNAVAILABLE / RESOURCE_EXHAUSTED (disk full) / INTERNAL for RocksDB
-// failures, DATA_LOSS naming the key for a record that does not decode.
+// RESOURCE_EXHAUSTED (below the disk reserve, or disk full: nothing of the
+// write is stored), UNAVAILABLE / INTERNAL for other RocksDB failures (after
+// a failed write the next Apply first asks RocksDB to resume), DATA_LOSS
+// naming the key for a record that does not decode. A failed write never
+// ends the process.
 absl::StatusOr<std::unique_ptr<engine::MemoryStore>> OpenRocksDbStore(
     const RocksDbStoreOptions& options);
 

@@ -3,6 +3,7 @@
 // memory_store_test.cc.)
 #include "services/storage/rocksdb_store.h"
 
+#include <atomic>
 #include <fcntl.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -357,6 +358,35 @@ TEST_F(RocksDbCorruptionTest, OtherKeyLayoutVersionIsRefused) {
   const absl::Status status = OpenRocksDbStore(options).status();
   EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition) << status;
   EXPECT_THAT(status.message(), HasSubstr("fleetmem.storage/99"));
+}
+
+TEST(RocksDbStoreTest, BelowTheDiskReserveWritesAreRefusedAndReadsServed) {
+  testing::TempDir dir;
+  std::atomic<uint64_t> free_bytes{uint64_t{1} << 30};
+  RocksDbStoreOptions options;
+  options.path = dir.path();
+  options.min_free_bytes = 1 << 20;
+  options.free_bytes = [&](const std::string&) -> absl::StatusOr<uint64_t> {
+    return free_bytes.load();
+  };
+  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+      OpenRocksDbStore(options);
+  ASSERT_TRUE(store.ok()) << store.status();
+  const std::vector<engine::FleetMutation> script =
+      testing::ScriptedMutations(3);
+  ASSERT_TRUE((*store)->Apply("f", script[0]).ok());
+  const std::string before = DumpFleet(**store, "f");
+
+  free_bytes = (1 << 20) + 100;  // the reserve, plus less than a write needs
+  const absl::Status refused = (*store)->Apply("f", script[1]);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(refused.message(), HasSubstr("disk nearly full"));
+  EXPECT_THAT(refused.message(), HasSubstr("nothing was stored"));
+  EXPECT_EQ(DumpFleet(**store, "f"), before) << "a refused write changed it";
+
+  free_bytes = uint64_t{1} << 30;  // space returns
+  EXPECT_TRUE((*store)->Apply("f", script[1]).ok());
+  EXPECT_EQ(DumpFleet(**store, "f"), ReferenceDump(script, 2, "f"));
 }
 
 }  // namespace

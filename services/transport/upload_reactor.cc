@@ -60,7 +60,7 @@ void UploadReactor::Fail(const absl::Status& status) {
     absl::StrAppend(&message, "; messages 1..", index_ - 1,
                     " are durable (", totals_.accepted(), " accepted, ",
                     totals_.duplicates(), " duplicates)");
-  } else {
+  } else if (!absl::StrContains(message, "nothing was stored")) {
     absl::StrAppend(&message, "; nothing was stored");
   }
   Finish(ToGrpcStatus(absl::Status(status.code(), message)));

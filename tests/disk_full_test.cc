@@ -1,0 +1,179 @@
+// The server on a small filesystem that fills up: reads go on, writes are
+// refused with a clear status, the process never aborts, writes resume by
+// themselves once space is freed, and every acknowledged trace is still
+// there after a kill -9. The filesystem is a tmpfs the test mounts (needs
+// root; skipped with a message otherwise).
+#include <sys/mount.h>
+#include <sys/stat.h>
+#include <sys/statvfs.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstring>
+#include <fstream>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "gtest/gtest.h"
+#include "tests/api_helpers.h"
+#include "tests/server_process.h"
+#include "tests/synthetic_traces.h"
+
+namespace fleetmem::testing {
+namespace {
+
+constexpr char kFleet[] = "full";
+constexpr size_t kBatch = 200;
+constexpr uint64_t kMiB = 1 << 20;
+
+// A tmpfs of `size_mib` mounted on a new directory; unmounted (lazily, so a
+// leftover process cannot block it) by the destructor.
+class SmallFilesystem {
+ public:
+  SmallFilesystem(const std::string& path, int size_mib) : path_(path) {
+    if (geteuid() != 0) {
+      why_not_ = "not root: cannot mount a tmpfs";
+      return;
+    }
+    const std::string options = absl::StrCat("size=", size_mib, "m");
+    if (mount("tmpfs", path.c_str(), "tmpfs", 0, options.c_str()) != 0) {
+      why_not_ = absl::StrCat("mount tmpfs on ", path, ": ", strerror(errno));
+      return;
+    }
+    mounted_ = true;
+  }
+  ~SmallFilesystem() {
+    if (mounted_) umount2(path_.c_str(), MNT_DETACH);
+  }
+  bool mounted() const { return mounted_; }
+  const std::string& why_not() const { return why_not_; }
+
+ private:
+  std::string path_;
+  bool mounted_ = false;
+  std::string why_not_;
+};
+
+// Free bytes under `path`.
+uint64_t FreeBytes(const std::string& path) {
+  struct statvfs info;
+  if (statvfs(path.c_str(), &info) != 0) return 0;
+  return static_cast<uint64_t>(info.f_bavail) * info.f_frsize;
+}
+
+// Writes a file of `bytes` zeros (leaving the filesystem that much fuller).
+void Fill(const std::string& file, uint64_t bytes) {
+  std::ofstream out(file, std::ios::binary);
+  const std::string chunk(kMiB, '\0');
+  for (uint64_t written = 0; written < bytes; written += chunk.size()) {
+    out.write(chunk.data(),
+              static_cast<std::streamsize>(std::min<uint64_t>(
+                  chunk.size(), bytes - written)));
+  }
+}
+
+TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
+  TempDir dir("fleetmem-diskfull-");
+  const std::string mount_point = dir.Join("fs");
+  ASSERT_EQ(mkdir(mount_point.c_str(), 0700), 0);
+  SmallFilesystem filesystem(mount_point, 48);
+  if (!filesystem.mounted()) GTEST_SKIP() << filesystem.why_not();
+
+  const std::string config = dir.Join("server.textproto");
+  // Nothing is consolidated (so nothing is forgotten): every acknowledged
+  // trace must stay in the fleet.
+  std::ofstream(config) << "storage { min_free_bytes: " << 6 * kMiB
+                        << " write_buffer_bytes: " << 2 * kMiB << " }\n"
+                        << "engine { segment_size: 1000000 }\n";
+  ServerOptions options;
+  options.data_dir = mount_point + "/data";
+  options.config_file = config;
+  options.log_file = dir.Join("server.log");
+  auto server = std::make_unique<ServerProcess>(options);
+  ASSERT_TRUE(server->Start().ok()) << server->Output();
+  auto stub = MakeStub(server->address());
+
+  // Leave about 10 MiB free: room for a few MiB of traces above the reserve.
+  const std::string filler = mount_point + "/filler";
+  Fill(filler, FreeBytes(mount_point) - 10 * kMiB);
+
+  TraceSpec spec;
+  spec.robot_id = "robot-1";
+  spec.dimension = 256;
+  spec.count = kBatch;
+  uint64_t acknowledged = 0;
+  grpc::Status refused;
+  for (int i = 0; i < 200 && refused.ok(); ++i) {
+    spec.first_seq = 1 + acknowledged;
+    Reply<v1::UploadTracesResponse> reply =
+        UploadTraces(*stub, kFleet, MakeTraces(spec), kBatch);
+    if (reply.ok()) {
+      acknowledged += reply.response.accepted();
+    } else {
+      refused = reply.status;
+    }
+  }
+  ASSERT_FALSE(refused.ok()) << "the filesystem never filled up";
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED)
+      << Describe(refused);
+  EXPECT_TRUE(absl::StrContains(refused.error_message(), "disk nearly full"))
+      << Describe(refused);
+  EXPECT_TRUE(absl::StrContains(refused.error_message(), "nothing was stored"))
+      << Describe(refused);
+  ASSERT_GT(acknowledged, 0u);
+
+  // Reads are served and hold exactly what was acknowledged.
+  Reply<v1::GetStatsResponse> stats = GetStats(*stub, kFleet);
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(),
+            acknowledged);
+  spec.first_seq = 1;
+  std::vector<float> code = CodeOf(MakeTrace(spec, 1));
+  EXPECT_TRUE(QueryCode(*stub, kFleet, code, 3).ok());
+  // Another process takes the last byte: still refused, reads still served,
+  // the process alive.
+  const std::string last_bytes = mount_point + "/last-bytes";
+  Fill(last_bytes, FreeBytes(mount_point));
+  EXPECT_LT(FreeBytes(mount_point), kMiB);
+  spec.first_seq = 1 + acknowledged;
+  EXPECT_EQ(UploadTraces(*stub, kFleet, MakeTraces(spec)).status.error_code(),
+            grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_TRUE(GetStats(*stub, kFleet).ok());
+  EXPECT_TRUE(QueryCode(*stub, kFleet, code, 3).ok());
+  EXPECT_TRUE(server->running());
+  std::cout << "acknowledged " << acknowledged
+            << " traces before the disk filled\n";
+
+  // Space returns: writes resume by themselves.
+  ASSERT_EQ(unlink(filler.c_str()), 0);
+  ASSERT_EQ(unlink(last_bytes.c_str()), 0);
+  Reply<v1::UploadTracesResponse> resumed =
+      UploadTraces(*stub, kFleet, MakeTraces(spec));
+  ASSERT_TRUE(resumed.ok()) << Describe(resumed.status);
+  acknowledged += resumed.response.accepted();
+
+  // Every acknowledged trace survives a kill -9 and a restart in place.
+  stub.reset();
+  server->Kill();
+  server = std::make_unique<ServerProcess>(options);
+  ASSERT_TRUE(server->Start().ok()) << server->Output();
+  stub = MakeStub(server->address());
+  stats = GetStats(*stub, kFleet);
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(),
+            acknowledged);
+  const v1::RobotStats* robot = FindRobot(stats.response, "robot-1");
+  ASSERT_NE(robot, nullptr);
+  EXPECT_EQ(robot->received(), acknowledged);
+  stub.reset();
+  absl::StatusOr<int> code_on_stop = server->Stop();
+  EXPECT_TRUE(code_on_stop.ok() && *code_on_stop == 0);
+  if (HasFailure()) std::cerr << server->Output();
+}
+
+}  // namespace
+}  // namespace fleetmem::testing
