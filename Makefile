@@ -10,11 +10,21 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler \
   libabsl-dev librocksdb-dev libflann-dev liblz4-dev libeigen3-dev \
   libopencv-dev libgtest-dev libgmock-dev libbenchmark-dev \
-  libsodium-dev libcli11-dev openssl
+  libsodium-dev libcli11-dev openssl clang-14 libclang-rt-14-dev
 
+empty :=
+space := $(empty) $(empty)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all deps configure build test demo bench format clean
+.PHONY: all deps configure build test test-asan test-tsan fuzz soak crash \
+  demo bench format clean
+
+SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
+SANITIZER_FLAGS_tsan := -fsanitize=thread -fno-omit-frame-pointer
+# The tests that run under ThreadSanitizer: the pure core, the engine on the
+# in-memory store and the stores themselves (docs/reliability.md says why
+# the gRPC ones cannot).
+TSAN_TESTS := fleetmem_core_test fleetmem_engine_test fleetmem_storage_test
 
 all: build
 
@@ -41,6 +51,42 @@ build: configure
 test: build
 	@cd $(BUILD_DIR) && ctest --output-on-failure -j $(JOBS) $(CTEST_ARGS)
 
+# The whole suite under AddressSanitizer + UndefinedBehaviorSanitizer
+# (build-asan/; the integration tests run the instrumented server).
+test-asan: deps
+	@cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_asan)" \
+	  -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZER_FLAGS_asan)" \
+	  -DFLEETMEM_BUILD_BENCH=OFF >/dev/null
+	@cmake --build build-asan -j $(JOBS)
+	@cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
+	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
+	  ctest --output-on-failure -j $(JOBS) $(CTEST_ARGS)
+
+# Core, engine and storage tests under ThreadSanitizer (build-tsan/).
+test-tsan: deps
+	@cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_tsan)" \
+	  -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZER_FLAGS_tsan)" \
+	  -DFLEETMEM_BUILD_BENCH=OFF -DFLEETMEM_BUILD_DEMO=OFF >/dev/null
+	@cmake --build build-tsan -j $(JOBS) --target $(TSAN_TESTS)
+	@cd build-tsan && TSAN_OPTIONS="halt_on_error=1 suppressions=$(CURDIR)/tools/tsan.supp" \
+	  ctest --output-on-failure -j $(JOBS) -R '^($(subst $(space),|,$(TSAN_TESTS)))$$' $(CTEST_ARGS)
+
+# The libFuzzer harnesses (clang, ASan + UBSan; build-fuzz/), FUZZ_SECONDS
+# each from their seed corpora in the tree.
+FUZZ_SECONDS ?= 20
+FUZZ_FLAGS := -fsanitize=fuzzer-no-link,address,undefined -fno-omit-frame-pointer -gline-tables-only
+fuzz: deps
+	@cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+	  -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 \
+	  -DCMAKE_CXX_FLAGS="$(FUZZ_FLAGS)" \
+	  -DCMAKE_EXE_LINKER_FLAGS="-fsanitize=address,undefined" \
+	  -DFLEETMEM_BUILD_FUZZ=ON -DFLEETMEM_BUILD_TESTS=OFF \
+	  -DFLEETMEM_BUILD_BENCH=OFF >/dev/null
+	@cmake --build build-fuzz -j $(JOBS) --target fleetmem_fuzzers
+	@tools/fuzz/run_fuzzers.sh build-fuzz $(FUZZ_SECONDS)
+
 # Starts the server on an embedded RocksDB under .demo/ and runs a
 # three-robot fleet on the real Nordland data; ends with a results table.
 demo: build
@@ -55,4 +101,4 @@ format:
 	@git ls-files '*.h' '*.cc' | xargs clang-format -i
 
 clean:
-	rm -rf $(BUILD_DIR) .demo
+	rm -rf $(BUILD_DIR) build-asan build-tsan build-fuzz .demo

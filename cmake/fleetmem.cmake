@@ -33,3 +33,22 @@ function(fleetmem_test name)
   endif()
   set_tests_properties(${name} PROPERTIES TIMEOUT ${ARG_TIMEOUT} LABELS "${ARG_LABELS}")
 endfunction()
+
+# fleetmem_fuzzer(NAME SOURCES ... DEPS ...)
+# A libFuzzer harness (clang, FLEETMEM_BUILD_FUZZ=ON); its seed corpus is
+# fuzz_corpus/NAME/ beside the source. `make fuzz` builds and runs them all.
+function(fleetmem_fuzzer name)
+  if(NOT FLEETMEM_BUILD_FUZZ)
+    return()
+  endif()
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
+  add_executable(${name} ${ARG_SOURCES})
+  set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY
+                        "${CMAKE_BINARY_DIR}/fuzz")
+  target_include_directories(${name} PRIVATE ${PROJECT_SOURCE_DIR})
+  target_link_libraries(${name} PRIVATE ${ARG_DEPS})
+  target_link_options(${name} PRIVATE -fsanitize=fuzzer)
+  add_dependencies(fleetmem_fuzzers ${name})
+  file(APPEND "${CMAKE_BINARY_DIR}/fuzz/fuzzers.txt"
+       "${name} ${CMAKE_CURRENT_SOURCE_DIR}/fuzz_corpus/${name}\n")
+endfunction()

@@ -12,6 +12,7 @@
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/security/credentials.h"
 
@@ -30,6 +31,13 @@ bool IsRetryable(grpc::StatusCode code) {
 
 bool Stopped(const std::atomic<bool>* stop) {
   return stop != nullptr && stop->load();
+}
+
+// 16 random hex digits: the request id of one SampleReplay (its retries
+// reuse it, so the server counts the replay once).
+std::string NewRequestId() {
+  thread_local std::mt19937_64 rng{std::random_device{}()};
+  return absl::StrFormat("%016x", rng());
 }
 
 // Deadline and credentials of one attempt.
@@ -327,9 +335,10 @@ absl::StatusOr<std::vector<v1::MemoryTrace>> Client::SampleReplay(
   request.set_fleet_id(std::string(fleet_id));
   request.set_robot_id(std::string(robot_id));
   request.set_count(count);
+  request.set_request_id(NewRequestId());
   v1::SampleReplayResponse response;
   grpc::Status status =
-      CallWithRetry(options_, channel_.get(), /*retry=*/false,
+      CallWithRetry(options_, channel_.get(), /*retry=*/true,
                     [&](grpc::ClientContext* context) {
                       return stub_->SampleReplay(context, request, &response);
                     });

@@ -1,10 +1,11 @@
 // C++ client of fleetmem.v1.MemoryService for robots and tools. Links only
 // the generated API and gRPC. Every attempt of a call carries a deadline of
-// now + options.deadline. Calls that are safe to repeat (all but SampleReplay,
-// which increments replay counts) are retried with exponential backoff on
-// UNAVAILABLE, DEADLINE_EXCEEDED and RESOURCE_EXHAUSTED: uploads are
-// idempotent by (robot_id, seq), and a repeated Consolidate only finds less
-// (or nothing) pending. Other codes are returned at once.
+// now + options.deadline (and the token, if any). Every call is safe to
+// repeat and is retried with exponential backoff on UNAVAILABLE,
+// DEADLINE_EXCEEDED and RESOURCE_EXHAUSTED: uploads are idempotent by
+// (robot_id, seq), a repeated Consolidate only finds less (or nothing)
+// pending, and a SampleReplay carries one request id over its attempts, so
+// the server counts the replay once. Other codes are returned at once.
 //
 // Backoff: before attempt n + 1 the client waits a uniformly random time in
 // [b/2, b], b = min(initial_backoff * 2^(n-1), max_backoff).
@@ -105,7 +106,8 @@ class Client {
   // Retried; after a retry the counts are those of the last attempt.
   absl::StatusOr<v1::ConsolidateResponse> Consolidate(
       std::string_view fleet_id);
-  // One attempt only (a repeat would increment replay counts twice).
+  // Retried with one fresh request id per call: a retry after a lost answer
+  // gets the same traces, counted once.
   absl::StatusOr<std::vector<v1::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint32_t count);
   absl::StatusOr<std::vector<v1::PlaceMatch>> QueryPlace(

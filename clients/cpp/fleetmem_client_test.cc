@@ -48,6 +48,11 @@ class FakeMemoryService final : public v1::MemoryService::Service {
     break_code_ = break_code;
   }
 
+  std::vector<std::string> sample_request_ids() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return sample_request_ids_;
+  }
+
   int calls() {
     std::lock_guard<std::mutex> lock(mutex_);
     return calls_;
@@ -100,6 +105,10 @@ class FakeMemoryService final : public v1::MemoryService::Service {
   grpc::Status SampleReplay(grpc::ServerContext* context,
                             const v1::SampleReplayRequest* request,
                             v1::SampleReplayResponse* response) override {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      sample_request_ids_.push_back(request->request_id());
+    }
     if (StartCall(context)) return Failure();
     for (uint32_t i = 0; i < request->count(); ++i) {
       v1::MemoryTrace* trace = response->add_traces();
@@ -186,6 +195,7 @@ class FakeMemoryService final : public v1::MemoryService::Service {
   int failures_left_ = 0;
   grpc::StatusCode failure_code_ = grpc::StatusCode::UNAVAILABLE;
   int calls_ = 0;
+  std::vector<std::string> sample_request_ids_;
   std::vector<Millis> deadlines_left_;
   std::vector<int> upload_message_sizes_;
   std::set<std::pair<std::string, uint64_t>> stored_;
@@ -328,19 +338,22 @@ TEST_F(ClientTest, BackoffIsJittered) {
   }
 }
 
-TEST_F(ClientTest, SampleReplayIsNotRetried) {
+TEST_F(ClientTest, SampleReplayRetriesWithOneRequestId) {
   std::unique_ptr<Client> client = Client::Create(Options());
-  service_.FailNext(1, grpc::StatusCode::UNAVAILABLE);
+  service_.FailNext(1, grpc::StatusCode::DEADLINE_EXCEEDED);
 
   absl::StatusOr<std::vector<v1::MemoryTrace>> traces =
       client->SampleReplay("fleet", "robot-1", 3);
-
-  EXPECT_EQ(traces.status().code(), absl::StatusCode::kUnavailable);
-  EXPECT_EQ(service_.calls(), 1);
-
-  traces = client->SampleReplay("fleet", "robot-1", 3);
   ASSERT_TRUE(traces.ok()) << traces.status();
   EXPECT_THAT(*traces, SizeIs(3));
+  EXPECT_EQ(service_.calls(), 2);
+
+  ASSERT_TRUE(client->SampleReplay("fleet", "robot-1", 3).ok());
+  const std::vector<std::string> ids = service_.sample_request_ids();
+  ASSERT_THAT(ids, SizeIs(3));
+  EXPECT_FALSE(ids[0].empty());
+  EXPECT_EQ(ids[0], ids[1]) << "a retry must carry the same request id";
+  EXPECT_NE(ids[1], ids[2]) << "a new call needs a new request id";
 }
 
 TEST_F(ClientTest, ConsolidateAndQueryPlaceAreRetried) {

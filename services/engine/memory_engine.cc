@@ -1,6 +1,7 @@
 #include "services/engine/memory_engine.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <map>
 #include <random>
@@ -154,7 +155,7 @@ absl::Status ValidateEngineOptions(const EngineOptions& options) {
           absl::StrCat("engine option ", name, " must be at least 1"));
     }
   }
-  return absl::OkStatus();
+  return ValidateQuotaOptions(options.limits);
 }
 
 // One fleet's state. Every member but `id` and `engine` is guarded by `mu`.
@@ -196,7 +197,7 @@ struct MemoryEngine::Fleet {
   absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
-      std::string_view robot_id, size_t count)
+      std::string_view robot_id, size_t count, std::string_view request_id)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   FleetStats Stats() const ABSL_SHARED_LOCKS_REQUIRED(mu);
 
@@ -205,7 +206,10 @@ struct MemoryEngine::Fleet {
   // never removed from the map, so a returned pointer lives as long as the
   // engine.
   static Fleet* Find(const MemoryEngine& engine, std::string_view fleet_id);
-  static Fleet* FindOrAdd(MemoryEngine& engine, std::string_view fleet_id);
+  // RESOURCE_EXHAUSTED (limit max_fleets) instead of adding a fleet beyond
+  // the limit.
+  static absl::StatusOr<Fleet*> FindOrAdd(MemoryEngine& engine,
+                                          std::string_view fleet_id);
   // Calls the fleet's listeners (the caller holds no fleet lock).
   static void Notify(MemoryEngine& engine, std::string_view fleet_id,
                      uint64_t last_event_id);
@@ -369,6 +373,13 @@ absl::Status MemoryEngine::Fleet::Upload(
                           engine->options_.max_traces_per_upload);
   if (!status.ok()) return status;
   if (traces.empty()) return absl::OkStatus();
+  UploadQuota& quota = *engine->quota_;
+  if (is_new) {
+    status = quota.AdmitDimension(id, traces[0].code.size());
+    if (!status.ok()) return status;
+  }
+  status = quota.AdmitRates(id, traces);
+  if (!status.ok()) return status;
 
   // Duplicates are seqs already received or repeated within this upload:
   // inserting into a copy of the robot's SeqSet detects both.
@@ -396,6 +407,12 @@ absl::Status MemoryEngine::Fleet::Upload(
   }
   result->accepted = mutation.put_pending.size();
   if (mutation.put_pending.empty()) return absl::OkStatus();
+  status = quota.AdmitStored(id, memory.trace_count() + pending_position.size(),
+                             mutation.put_pending.size());
+  if (!status.ok()) {
+    *result = UploadResult{};
+    return status;
+  }
   for (auto& [robot_id, record] : changed_robots) {
     auto known = robots.find(robot_id);
     const uint64_t before =
@@ -521,6 +538,12 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
   }
   new_meta.consolidations += 1;
   new_meta.clusters_forgotten += outcome.forgotten.size();
+  const size_t retained = engine->options_.max_events_per_fleet;
+  if (retained > 0 &&
+      new_meta.next_event_id - new_meta.first_event_id > retained) {
+    new_meta.first_event_id = new_meta.next_event_id - retained;
+    mutation.erase_events_before = new_meta.first_event_id;
+  }
   mutation.put_meta = true;
   mutation.meta = new_meta;
 
@@ -569,9 +592,8 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
 }
 
 absl::StatusOr<std::vector<core::MemoryTrace>>
-MemoryEngine::Fleet::SampleReplay(std::string_view robot_id, size_t count) {
-  std::vector<core::MemoryTrace> traces = memory.SampleForReplay(count, rng);
-  if (traces.empty()) return traces;
+MemoryEngine::Fleet::SampleReplay(std::string_view robot_id, size_t count,
+                                  std::string_view request_id) {
   RobotRecord record;
   auto known = robots.find(robot_id);
   if (known != robots.end()) {
@@ -579,7 +601,25 @@ MemoryEngine::Fleet::SampleReplay(std::string_view robot_id, size_t count) {
   } else {
     record.robot_id = std::string(robot_id);
   }
+  if (!request_id.empty() && request_id == record.last_sample_request_id) {
+    // A retry: the same traces again, as they are now, counted once.
+    std::vector<core::MemoryTrace> again;
+    for (const core::TraceKey& key : record.last_sample) {
+      const core::MemoryTrace* trace = FindTrace(key);
+      if (trace != nullptr && trace->cluster_id != 0) again.push_back(*trace);
+    }
+    return again;
+  }
+  std::vector<core::MemoryTrace> traces = memory.SampleForReplay(count, rng);
+  if (traces.empty()) return traces;
   record.replayed += traces.size();
+  if (!request_id.empty()) {
+    record.last_sample_request_id = std::string(request_id);
+    record.last_sample.clear();
+    for (const core::MemoryTrace& trace : traces) {
+      record.last_sample.push_back(trace.key());
+    }
+  }
   FleetMutation mutation;
   mutation.update_traces = traces;
   mutation.put_robots.push_back(record);
@@ -602,6 +642,8 @@ FleetStats MemoryEngine::Fleet::Stats() const {
   stats.last_event_id = meta.next_event_id - 1;
   stats.consolidations = meta.consolidations;
   stats.clusters_forgotten = meta.clusters_forgotten;
+  stats.first_event_id = std::max<uint64_t>(1, meta.first_event_id);
+  stats.quota_rejections = engine->quota_->Rejections(id);
   stats.max_clusters = static_cast<uint32_t>(memory.options().max_clusters);
   stats.max_traces_per_cluster =
       static_cast<uint32_t>(memory.options().max_traces_per_cluster);
@@ -655,6 +697,14 @@ MemoryEngine::MemoryEngine(EngineOptions options, MemoryStore* store,
   if (!options_.now_ns) {
     options_.now_ns = [] { return absl::GetCurrentTimeNanos(); };
   }
+  if (!options_.now_seconds) {
+    options_.now_seconds = [] {
+      return std::chrono::duration<double>(
+                 std::chrono::steady_clock::now().time_since_epoch())
+          .count();
+    };
+  }
+  quota_ = std::make_unique<UploadQuota>(options_.limits, options_.now_seconds);
 }
 
 MemoryEngine::~MemoryEngine() = default;
@@ -701,14 +751,17 @@ MemoryEngine::Fleet* MemoryEngine::Fleet::Find(const MemoryEngine& engine,
   return it == engine.fleets_.end() ? nullptr : it->second.get();
 }
 
-MemoryEngine::Fleet* MemoryEngine::Fleet::FindOrAdd(MemoryEngine& engine,
-                                                    std::string_view fleet_id) {
+absl::StatusOr<MemoryEngine::Fleet*> MemoryEngine::Fleet::FindOrAdd(
+    MemoryEngine& engine, std::string_view fleet_id) {
   absl::MutexLock lock(&engine.fleets_mu_);
-  auto [it, inserted] = engine.fleets_.try_emplace(std::string(fleet_id));
-  if (inserted) {
-    it->second = std::make_unique<Fleet>(std::string(fleet_id), &engine);
-  }
-  return it->second.get();
+  auto it = engine.fleets_.find(std::string(fleet_id));
+  if (it != engine.fleets_.end()) return it->second.get();
+  absl::Status admitted =
+      engine.quota_->AdmitNewFleet(fleet_id, engine.fleets_.size());
+  if (!admitted.ok()) return admitted;
+  auto& fleet = engine.fleets_[std::string(fleet_id)];
+  fleet = std::make_unique<Fleet>(std::string(fleet_id), &engine);
+  return fleet.get();
 }
 
 void MemoryEngine::Fleet::Notify(MemoryEngine& engine,
@@ -733,7 +786,11 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
                             options_.max_traces_per_upload);
     if (!status.ok()) return status;
     if (traces.empty()) return UploadResult{};
-    fleet = Fleet::FindOrAdd(*this, fleet_id);
+    status = quota_->AdmitDimension(fleet_id, traces[0].code.size());
+    if (!status.ok()) return status;
+    absl::StatusOr<Fleet*> added = Fleet::FindOrAdd(*this, fleet_id);
+    if (!added.ok()) return added.status();
+    fleet = *added;
   }
   UploadResult result;
   Notices notices;
@@ -787,9 +844,17 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
 }
 
 absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
-    std::string_view fleet_id, std::string_view robot_id, size_t count) {
+    std::string_view fleet_id, std::string_view robot_id, size_t count,
+    std::string_view request_id) {
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
   if (status.ok()) status = core::ValidateId("robot_id", robot_id);
+  if (status.ok() && !request_id.empty()) {
+    status = core::ValidateId("request_id", request_id);
+    if (status.ok() && request_id.size() > 64) {
+      status = absl::InvalidArgumentError(
+          "request_id: longer than 64 characters");
+    }
+  }
   if (!status.ok()) return status;
   if (count < 1 || count > options_.max_sample_count) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -803,7 +868,7 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
     status = fleet->EnsureLoaded();
     if (!status.ok()) return status;
     if (!fleet->exists()) return FleetNotFound(fleet_id);
-    traces = fleet->SampleReplay(robot_id, count);
+    traces = fleet->SampleReplay(robot_id, count, request_id);
   }
   if (traces.ok() && hooks_.on_sample) {
     hooks_.on_sample(fleet_id, traces->size());
@@ -893,8 +958,20 @@ absl::StatusOr<std::vector<core::MemoryEvent>> MemoryEngine::ReadEvents(
     std::string_view fleet_id, uint64_t after_event) const {
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
   if (!status.ok()) return status;
-  if (Fleet::Find(*this, fleet_id) == nullptr) {
-    return std::vector<core::MemoryEvent>();
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return std::vector<core::MemoryEvent>();
+  // Under the reader lock: retention erases events only under the writer
+  // lock, so none can vanish between the check and the read.
+  absl::ReaderMutexLock lock(&fleet->mu);
+  const uint64_t first = std::max<uint64_t>(1, fleet->meta.first_event_id);
+  if (after_event > 0 && after_event + 1 < first) {
+    return absl::OutOfRangeError(absl::StrCat(
+        "events ", after_event + 1, "..", first - 1, " of fleet \"",
+        V(fleet_id), "\" were erased by the retention bound (",
+        options_.max_events_per_fleet,
+        " events, max_events_per_fleet); the oldest kept is ", first,
+        ": re-read the fleet's state (GetStats, queries) and watch again from "
+        "after_event 0"));
   }
   return store_->ReadEvents(fleet_id, after_event,
                             options_.max_events_per_read);

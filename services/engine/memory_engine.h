@@ -27,6 +27,7 @@
 #include "services/core/types.h"
 #include "services/engine/memory_store.h"
 #include "services/engine/place_index.h"
+#include "services/engine/upload_quota.h"
 
 namespace fleetmem::engine {
 
@@ -47,8 +48,17 @@ struct EngineOptions {
   size_t max_query_k = 1000;
   // Events returned by one ReadEvents call at most.
   size_t max_events_per_read = 1000;
+  // Event retention: a fleet keeps its newest this-many events; older ones
+  // are erased with the consolidation that makes new ones (0 keeps all). A
+  // watcher whose cursor points before the oldest kept event gets
+  // OUT_OF_RANGE (ReadEvents).
+  size_t max_events_per_fleet = 100'000;
+  // Upload quotas (rates, stored traces, fleets, code dimension).
+  QuotaOptions limits;
   // Nanoseconds since the epoch, for event timestamps (injected for tests).
   std::function<int64_t()> now_ns;
+  // Monotonic seconds for the rate limits (injected for tests).
+  std::function<double()> now_seconds;
 };
 
 absl::Status ValidateEngineOptions(const EngineOptions& options);
@@ -107,6 +117,10 @@ struct FleetStats {
   uint64_t clusters_forgotten = 0;
   uint32_t max_clusters = 0;
   uint32_t max_traces_per_cluster = 0;
+  // Oldest event still kept (event retention).
+  uint64_t first_event_id = 1;
+  // Uploads refused by each limit since the server started.
+  std::map<std::string, uint64_t> quota_rejections;
   std::vector<RobotStats> robots;    // sorted by robot_id
   std::vector<DomainStats> domains;  // sorted by domain
 };
@@ -132,7 +146,9 @@ class MemoryEngine {
 
   // Validates all of `traces` first (ids, finite values, the fleet's code
   // dimension and encoder version, at most max_traces_per_upload); any error
-  // is INVALID_ARGUMENT and changes nothing. Then stores the traces whose
+  // is INVALID_ARGUMENT and changes nothing. Then the quotas (limits): a
+  // refusal is RESOURCE_EXHAUSTED naming the limit and changes nothing. Then
+  // stores the traces whose
   // (robot_id, seq) is new as pending (durably), counts the rest as
   // duplicates, and consolidates each robot whose pending traces reached
   // segment_size. The first upload to an unknown fleet creates it with the
@@ -145,8 +161,14 @@ class MemoryEngine {
   absl::StatusOr<ConsolidateResult> Consolidate(std::string_view fleet_id);
 
   // Eq. 18 refresh for `robot_id`: 1 <= count <= max_sample_count.
+  // `request_id` (optional, 1-64 characters of [A-Za-z0-9._:-]) makes a
+  // retry safe: when it equals the robot's previous request id, the traces
+  // of that call are returned again (as they are now; forgotten ones are
+  // left out) and no replay count changes. The id and the traces drawn are
+  // stored atomically with the counts they incremented.
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
-      std::string_view fleet_id, std::string_view robot_id, size_t count);
+      std::string_view fleet_id, std::string_view robot_id, size_t count,
+      std::string_view request_id = {});
 
   // Nearest traces to query.code among the static memory's and the pending
   // ones (cluster_id 0), nearest first.
@@ -157,7 +179,9 @@ class MemoryEngine {
   absl::StatusOr<FleetStats> GetStats(std::string_view fleet_id) const;
 
   // Up to max_events_per_read events with id > after_event (any valid fleet
-  // id; an unknown fleet has none yet).
+  // id; an unknown fleet has none yet). OUT_OF_RANGE if after_event > 0 and
+  // events after it were already erased by the retention bound (the message
+  // names the oldest kept event; resume after_event = 0 to start from it).
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
       std::string_view fleet_id, uint64_t after_event) const;
 
@@ -182,6 +206,7 @@ class MemoryEngine {
   MemoryStore* store_;
   PlaceIndexFactory index_factory_;
   EngineHooks hooks_;
+  std::unique_ptr<UploadQuota> quota_;
 
   mutable absl::Mutex fleets_mu_;
   absl::flat_hash_map<std::string, std::unique_ptr<Fleet>> fleets_

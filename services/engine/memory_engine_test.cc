@@ -582,6 +582,32 @@ TEST_F(ReplayTest, IncrementsReplayCountsDurably) {
   ExpectSameStats(Stats(), stats);
 }
 
+TEST_F(ReplayTest, RetryWithTheSameRequestIdIsCountedOnce) {
+  absl::StatusOr<std::vector<core::MemoryTrace>> first =
+      engine_->SampleReplay("f1", "r9", 5, "req-1");
+  ASSERT_TRUE(first.ok()) << first.status();
+  ASSERT_EQ(first->size(), 5u);
+  const FleetStats after_first = Stats();
+  // The answer was lost; the robot retries with the same id.
+  for (bool reopen : {false, true}) {
+    if (reopen) engine_ = OpenEngine();
+    absl::StatusOr<std::vector<core::MemoryTrace>> retry =
+        engine_->SampleReplay("f1", "r9", 5, "req-1");
+    ASSERT_TRUE(retry.ok()) << retry.status();
+    ASSERT_EQ(retry->size(), 5u);
+    for (size_t i = 0; i < 5; ++i) {
+      EXPECT_EQ((*retry)[i].key(), (*first)[i].key());
+      EXPECT_EQ((*retry)[i].replay_count, (*first)[i].replay_count);
+    }
+    ExpectSameStats(Stats(), after_first);
+  }
+  // A new id draws (and counts) again.
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r9", 5, "req-2").ok());
+  EXPECT_EQ(FindRobot(Stats(), "r9")->replayed, 10u);
+  EXPECT_EQ(engine_->SampleReplay("f1", "r9", 5, "bad id").status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
 TEST_F(ReplayTest, RejectsBadCounts) {
   EXPECT_EQ(engine_->SampleReplay("f1", "r1", 0).status().code(),
             absl::StatusCode::kInvalidArgument);
@@ -719,6 +745,66 @@ TEST_F(MemoryEngineTest, ReadEventsReturnsAtMostMaxEventsPerRead) {
   ASSERT_TRUE(events.ok());
   ASSERT_THAT(*events, SizeIs(1));
   EXPECT_EQ((*events)[0].id, 4u);
+}
+
+TEST_F(MemoryEngineTest, EventRetentionKeepsTheNewestEvents) {
+  options_.max_events_per_fleet = 5;
+  engine_ = OpenEngine();
+  for (int segment = 0; segment < 3; ++segment) {
+    MustUpload(MakeTraces("r1", 1 + 20 * segment, 20, rng_));
+  }
+  const FleetStats stats = Stats();
+  ASSERT_GT(stats.last_event_id, 5u);
+  const uint64_t first = stats.first_event_id;
+  EXPECT_GT(first, 1u);
+  EXPECT_LE(stats.last_event_id - first + 1, 5u);
+  // From the start: the oldest kept event first.
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("f1", 0);
+  ASSERT_TRUE(events.ok()) << events.status();
+  ASSERT_FALSE(events->empty());
+  EXPECT_EQ(events->front().id, first);
+  EXPECT_EQ(events->back().id, stats.last_event_id);
+  // A cursor right before the oldest kept event is fine; an older one was
+  // compacted away.
+  EXPECT_TRUE(engine_->ReadEvents("f1", first - 1).ok());
+  const absl::Status gone = engine_->ReadEvents("f1", 1).status();
+  EXPECT_EQ(gone.code(), absl::StatusCode::kOutOfRange);
+  EXPECT_THAT(gone.message(), HasSubstr("retention"));
+  // The bound survives a restart.
+  engine_ = OpenEngine();
+  EXPECT_EQ(Stats().first_event_id, first);
+  EXPECT_EQ(engine_->ReadEvents("f1", 1).status().code(),
+            absl::StatusCode::kOutOfRange);
+}
+
+TEST_F(MemoryEngineTest, QuotasRefuseUploadsAndChangeNothing) {
+  double now = 0;
+  options_.limits.robot_traces_per_second = 10;  // bucket of 20
+  options_.limits.max_fleets = 1;
+  options_.limits.max_traces_per_fleet = 25;
+  options_.now_seconds = [&] { return now; };
+  engine_ = OpenEngine();
+  MustUpload(MakeTraces("r1", 1, 15, rng_));
+  // Rate: 15 of 20 tokens spent.
+  absl::StatusOr<UploadResult> refused =
+      engine_->Upload("f1", MakeTraces("r1", 16, 10, rng_));
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(refused.status().message(), HasSubstr("robot_traces_per_second"));
+  EXPECT_EQ(Stats().pending_traces + Stats().traces, 15u);
+  // Stored traces: 15 held + 11 > 25.
+  now = 10;
+  refused = engine_->Upload("f1", MakeTraces("r2", 1, 11, rng_));
+  EXPECT_THAT(refused.status().message(), HasSubstr("max_traces_per_fleet"));
+  // Fleets: one exists.
+  refused = engine_->Upload("f2", MakeTraces("r1", 1, 1, rng_));
+  EXPECT_THAT(refused.status().message(), HasSubstr("max_fleets"));
+  EXPECT_EQ(engine_->GetStats("f2").status().code(),
+            absl::StatusCode::kNotFound);
+  const FleetStats stats = Stats();
+  EXPECT_EQ(stats.quota_rejections.at("robot_traces_per_second"), 1u);
+  EXPECT_EQ(stats.quota_rejections.at("max_traces_per_fleet"), 1u);
+  EXPECT_EQ(stats.robots.size(), 1u) << "a refused robot was recorded";
 }
 
 TEST_F(MemoryEngineTest, ReopeningRestoresTheSameMemory) {

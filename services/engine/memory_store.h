@@ -25,6 +25,9 @@ struct FleetMeta {
   uint64_t next_event_id = 1;
   uint64_t consolidations = 0;
   uint64_t clusters_forgotten = 0;
+  // Oldest event still stored (older ones were dropped by the retention
+  // bound); 0 or 1 when none ever was.
+  uint64_t first_event_id = 1;
 };
 
 // Counters kept per robot (stats), persisted with the robot's SeqSet.
@@ -32,6 +35,10 @@ struct RobotRecord {
   std::string robot_id;
   core::SeqSet received;  // every seq ever accepted from the robot
   uint64_t replayed = 0;  // traces handed to this robot by SampleReplay
+  // The robot's last SampleReplay that carried a request id, and the traces
+  // it drew: a retry with the same id gets them again, uncounted.
+  std::string last_sample_request_id;
+  std::vector<core::TraceKey> last_sample;
 };
 
 // Everything stored for one fleet, as loaded at start-up.
@@ -61,6 +68,8 @@ struct FleetMutation {
   std::vector<core::TraceKey> erase_traces;
   std::vector<RobotRecord> put_robots;
   std::vector<core::MemoryEvent> append_events;
+  // Events with id < this are erased (event retention); 0 erases none.
+  uint64_t erase_events_before = 0;
 
   // True if applying the mutation would change nothing. Inline: the ports
   // target is header-only.
@@ -68,7 +77,8 @@ struct FleetMutation {
     return !put_meta && put_pending.empty() && erase_pending.empty() &&
            put_clusters.empty() && erase_clusters.empty() &&
            update_traces.empty() && erase_traces.empty() &&
-           put_robots.empty() && append_events.empty();
+           put_robots.empty() && append_events.empty() &&
+           erase_events_before == 0;
   }
 };
 

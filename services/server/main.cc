@@ -194,7 +194,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   }
   transport::WorkQueue work(config.work);
   transport::MemoryServiceImpl service(engine->get(), &work,
-                                       authenticator.get());
+                                       authenticator.get(), config.service);
 
   grpc::EnableDefaultHealthCheckService(true);
   const bool reflection =

@@ -82,6 +82,36 @@ void ApplyEngine(const EngineConfig& in, engine::EngineOptions* out) {
   if (in.has_max_events_per_read()) {
     out->max_events_per_read = in.max_events_per_read();
   }
+  if (in.has_max_events_per_fleet()) {
+    out->max_events_per_fleet = in.max_events_per_fleet();
+  }
+}
+
+void ApplyLimits(const LimitsConfig& in, engine::QuotaOptions* out,
+                 transport::ServiceOptions* service) {
+  if (in.has_fleet_traces_per_second()) {
+    out->fleet_traces_per_second = in.fleet_traces_per_second();
+  }
+  if (in.has_fleet_bytes_per_second()) {
+    out->fleet_bytes_per_second = in.fleet_bytes_per_second();
+  }
+  if (in.has_robot_traces_per_second()) {
+    out->robot_traces_per_second = in.robot_traces_per_second();
+  }
+  if (in.has_robot_bytes_per_second()) {
+    out->robot_bytes_per_second = in.robot_bytes_per_second();
+  }
+  if (in.has_burst_seconds()) out->burst_seconds = in.burst_seconds();
+  if (in.has_max_traces_per_fleet()) {
+    out->max_traces_per_fleet = in.max_traces_per_fleet();
+  }
+  if (in.has_max_fleets()) out->max_fleets = in.max_fleets();
+  if (in.has_max_code_dimension()) {
+    out->max_code_dimension = in.max_code_dimension();
+  }
+  if (in.has_max_streams_per_client()) {
+    service->max_streams_per_client = in.max_streams_per_client();
+  }
 }
 
 void ApplyStorage(const StorageConfig& in, storage::RocksDbStoreOptions* out) {
@@ -311,6 +341,7 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   ApplyStorage(file.storage(), &config->storage);
   ApplyFlann(file.flann(), &config->flann);
   ApplySecurity(file.security(), &config->security);
+  ApplyLimits(file.limits(), &config->engine.limits, &config->service);
   return absl::OkStatus();
 }
 
@@ -456,6 +487,15 @@ std::string DescribeConfig(const ServerConfig& config) {
       " max_sample_count=", config.engine.max_sample_count,
       " max_query_k=", config.engine.max_query_k,
       " max_events_per_read=", config.engine.max_events_per_read,
+      " max_events_per_fleet=", config.engine.max_events_per_fleet,
+      " max_fleets=", config.engine.limits.max_fleets,
+      " max_traces_per_fleet=", config.engine.limits.max_traces_per_fleet,
+      " max_code_dimension=", config.engine.limits.max_code_dimension,
+      " robot_traces_per_second=",
+      config.engine.limits.robot_traces_per_second,
+      " fleet_traces_per_second=",
+      config.engine.limits.fleet_traces_per_second,
+      " max_streams_per_client=", config.service.max_streams_per_client,
       " rocksdb_sync=", config.storage.sync ? "true" : "false",
       " min_free_bytes=", config.storage.min_free_bytes,
       " shutdown_grace_seconds=", config.shutdown_grace_seconds,

@@ -15,6 +15,7 @@
 #include "services/engine/memory_engine.h"
 #include "services/index/flann_index.h"
 #include "services/storage/rocksdb_store.h"
+#include "services/transport/service_state.h"
 #include "services/transport/work_queue.h"
 
 namespace fleetmem::server {
@@ -68,6 +69,8 @@ struct ServerConfig {
   storage::RocksDbStoreOptions storage;
   // Workers running engine calls and the length of their queue.
   transport::WorkQueueOptions work;
+  // Per-client stream limit of the gRPC service.
+  transport::ServiceOptions service;
   // Largest request message accepted (gRPC answers RESOURCE_EXHAUSTED).
   size_t max_receive_message_bytes = size_t{16} << 20;
   // On SIGTERM/SIGINT, calls in flight get this long to finish.

@@ -169,6 +169,19 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
   EXPECT_EQ(config.engine.max_sample_count, defaults.engine.max_sample_count);
   EXPECT_EQ(config.storage.sync, defaults.storage.sync);
   EXPECT_EQ(config.storage.min_free_bytes, defaults.storage.min_free_bytes);
+  EXPECT_EQ(config.engine.max_events_per_fleet,
+            defaults.engine.max_events_per_fleet);
+  EXPECT_EQ(config.engine.limits.max_fleets, defaults.engine.limits.max_fleets);
+  EXPECT_EQ(config.engine.limits.max_traces_per_fleet,
+            defaults.engine.limits.max_traces_per_fleet);
+  EXPECT_EQ(config.engine.limits.max_code_dimension,
+            defaults.engine.limits.max_code_dimension);
+  EXPECT_EQ(config.engine.limits.robot_traces_per_second,
+            defaults.engine.limits.robot_traces_per_second);
+  EXPECT_EQ(config.engine.limits.burst_seconds,
+            defaults.engine.limits.burst_seconds);
+  EXPECT_EQ(config.service.max_streams_per_client,
+            defaults.service.max_streams_per_client);
   EXPECT_EQ(config.max_receive_message_bytes,
             defaults.max_receive_message_bytes);
   EXPECT_EQ(config.shutdown_grace_seconds, defaults.shutdown_grace_seconds);
@@ -248,6 +261,63 @@ TEST(ServerConfigTest, LoadWithoutFileUsesDefaultsAndFlags) {
   bad.log_level = "verbose";
   EXPECT_EQ(LoadServerConfig(bad).status().code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace fleetmem::server
+
+namespace fleetmem::server {
+namespace {
+
+TEST(ServerConfigTest, SecurityAndLimitsFromTheFileAndFlags) {
+  ServerConfig config;
+  ASSERT_TRUE(ApplyConfigText(
+                  "data_dir: \"d\" listen: \"0.0.0.0:1\"\n"
+                  "limits { robot_traces_per_second: 5 max_fleets: 2 "
+                  "max_streams_per_client: 3 }\n"
+                  "engine { max_events_per_fleet: 7 }\n"
+                  "security { tls_cert_file: \"s.pem\" tls_key_file: "
+                  "\"s.key\" }\n",
+                  &config)
+                  .ok());
+  EXPECT_EQ(config.engine.limits.robot_traces_per_second, 5);
+  EXPECT_EQ(config.engine.limits.max_fleets, 2u);
+  EXPECT_EQ(config.service.max_streams_per_client, 3u);
+  EXPECT_EQ(config.engine.max_events_per_fleet, 7u);
+  // Not loopback and no auth: refused until either is given.
+  absl::Status open = ValidateServerConfig(config);
+  EXPECT_EQ(open.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(open.message().find("--allow-unauthenticated"), std::string::npos);
+  const char* argv[] = {"fleetmem-server", "--auth-file", "creds",
+                        "--tls-client-ca", "ca.pem"};
+  absl::StatusOr<CommandLine> flags = ParseCommandLine(5, argv);
+  ASSERT_TRUE(flags.ok()) << flags.status();
+  ASSERT_TRUE(ApplyCommandLine(*flags, &config).ok());
+  EXPECT_TRUE(ValidateServerConfig(config).ok());
+  EXPECT_EQ(config.security.auth_file, "creds");
+
+  ServerConfig unpaired;
+  unpaired.data_dir = "d";
+  unpaired.security.tls_cert_file = "s.pem";
+  EXPECT_FALSE(ValidateServerConfig(unpaired).ok());
+  ServerConfig bad_rate;
+  bad_rate.data_dir = "d";
+  bad_rate.engine.limits.robot_traces_per_second = -1;
+  EXPECT_FALSE(ValidateServerConfig(bad_rate).ok());
+}
+
+TEST(ServerConfigTest, LoopbackAddresses) {
+  EXPECT_TRUE(IsLoopbackListen("127.0.0.1:1"));
+  EXPECT_TRUE(IsLoopbackListen("127.9.9.9:0"));
+  EXPECT_TRUE(IsLoopbackListen("localhost:5"));
+  EXPECT_TRUE(IsLoopbackListen("[::1]:5"));
+  EXPECT_FALSE(IsLoopbackListen("0.0.0.0:5"));
+  EXPECT_FALSE(IsLoopbackListen("[::]:5"));
+  EXPECT_FALSE(IsLoopbackListen("10.0.0.1:5"));
+  const char* argv[] = {"fleetmem-server", "--allow-unauthenticated"};
+  absl::StatusOr<CommandLine> flags = ParseCommandLine(2, argv);
+  ASSERT_TRUE(flags.ok());
+  EXPECT_TRUE(flags->allow_unauthenticated);
 }
 
 }  // namespace

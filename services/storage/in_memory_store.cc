@@ -158,6 +158,8 @@ class InMemoryStore final : public engine::MemoryStore {
     for (const core::MemoryEvent& event : m.append_events) {
       fleet.events[event.id] = event;
     }
+    fleet.events.erase(fleet.events.begin(),
+                       fleet.events.lower_bound(m.erase_events_before));
     if (fleet.empty()) fleets_.erase(it);
     return absl::OkStatus();
   }

@@ -342,6 +342,31 @@ TEST_P(StoreTest, EventsAfterCursorWithLimit) {
   EXPECT_EQ(Dump(Events(store(), "f1", 0, 1000)), Dump(other.append_events));
 }
 
+TEST_P(StoreTest, EventRetentionErasesOlderEvents) {
+  FleetMutation first;
+  for (uint64_t id = 1; id <= 300; ++id) {
+    first.append_events.push_back(
+        MakeEvent(id, EventType::kClusterAdded, id));
+  }
+  ASSERT_TRUE(store().Apply("f", first).ok());
+  FleetMutation other;
+  other.append_events = {MakeEvent(1, EventType::kClusterAdded, 1)};
+  ASSERT_TRUE(store().Apply("f1", other).ok());
+  FleetMutation trim;  // one more event, and only the newest 100 kept
+  trim.append_events = {MakeEvent(301, EventType::kClusterAdded, 301)};
+  trim.erase_events_before = 202;
+  ASSERT_TRUE(store().Apply("f", trim).ok());
+  for (bool reopened : {false, true}) {
+    if (reopened) harness_.Reopen();
+    const std::vector<core::MemoryEvent> kept = Events(store(), "f", 0, 1000);
+    ASSERT_EQ(kept.size(), 100u) << "reopened " << reopened;
+    EXPECT_EQ(kept.front().id, 202u);
+    EXPECT_EQ(kept.back().id, 301u);
+    EXPECT_EQ(Events(store(), "f1", 0, 10).size(), 1u)
+        << "another fleet's events were erased";
+  }
+}
+
 TEST_P(StoreTest, FleetsAreIsolated) {
   // "f" is a byte prefix of the others: their keys must never mix.
   const std::vector<std::string> fleets = {"f", "f1", "f.1", "g"};

@@ -1,5 +1,6 @@
 #include "services/storage/record_codec.h"
 
+#include <algorithm>
 #include <optional>
 
 #include "absl/status/status.h"
@@ -57,6 +58,7 @@ std::string EncodeMeta(const engine::FleetMeta& meta) {
   record.set_next_event_id(meta.next_event_id);
   record.set_consolidations(meta.consolidations);
   record.set_clusters_forgotten(meta.clusters_forgotten);
+  record.set_first_event_id(meta.first_event_id);
   return record.SerializeAsString();
 }
 
@@ -73,6 +75,7 @@ absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
   meta.next_event_id = record.next_event_id();
   meta.consolidations = record.consolidations();
   meta.clusters_forgotten = record.clusters_forgotten();
+  meta.first_event_id = std::max<uint64_t>(1, record.first_event_id());
   return meta;
 }
 
@@ -170,6 +173,12 @@ std::string EncodeRobot(const engine::RobotRecord& robot) {
     out->set_last(interval.second);
   }
   record.set_replayed(robot.replayed);
+  record.set_last_sample_request_id(robot.last_sample_request_id);
+  for (const core::TraceKey& key : robot.last_sample) {
+    TraceKey* out = record.add_last_sample();
+    out->set_robot_id(key.robot_id);
+    out->set_seq(key.seq);
+  }
   return record.SerializeAsString();
 }
 
@@ -196,6 +205,11 @@ absl::StatusOr<engine::RobotRecord> DecodeRobot(std::string_view key,
   robot.robot_id = record.robot_id();
   robot.received = core::SeqSet::FromIntervals(intervals);
   robot.replayed = record.replayed();
+  robot.last_sample_request_id = record.last_sample_request_id();
+  robot.last_sample.reserve(record.last_sample_size());
+  for (const TraceKey& key : record.last_sample()) {
+    robot.last_sample.push_back(core::TraceKey{key.robot_id(), key.seq()});
+  }
   return robot;
 }
 

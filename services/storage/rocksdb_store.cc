@@ -440,6 +440,12 @@ class RocksDbStore final : public engine::MemoryStore {
       return status;
     }
     rocksdb::WriteBatch batch = staging.ToBatch();
+    if (mutation.erase_events_before > 1) {
+      // Event retention: one range tombstone for every older event.
+      batch.DeleteRange(
+          ToSlice(keys::EventKey(fleet_id, 0)),
+          ToSlice(keys::EventKey(fleet_id, mutation.erase_events_before)));
+    }
     if (batch.Count() == 0) return absl::OkStatus();
     if (absl::Status room = CheckRoom(fleet_id, batch.GetDataSize());
         !room.ok()) {

@@ -32,6 +32,22 @@ auth::PresentedCredentials PresentedBy(
   return presented;
 }
 
+std::string ClientName(const grpc::CallbackServerContext& context) {
+  auth::PresentedCredentials presented = PresentedBy(context);
+  if (presented.token.has_value()) {
+    const size_t colon = presented.token->rfind(':');
+    return "token:" + presented.token->substr(0, colon);
+  }
+  if (presented.certificate_common_name.has_value()) {
+    return "certificate:" + *presented.certificate_common_name;
+  }
+  const std::string peer = context.peer();
+  const size_t colon = peer.rfind(':');
+  return colon == std::string::npos || colon < peer.find(':') + 1
+             ? peer
+             : peer.substr(0, colon);
+}
+
 absl::StatusOr<auth::Principal> AuthenticateCall(
     const auth::Authenticator* authenticator,
     const grpc::CallbackServerContext& context) {

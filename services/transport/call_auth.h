@@ -6,6 +6,8 @@
 #ifndef FLEETMEM_SERVICES_TRANSPORT_CALL_AUTH_H_
 #define FLEETMEM_SERVICES_TRANSPORT_CALL_AUTH_H_
 
+#include <string>
+
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 #include "grpcpp/server_context.h"
@@ -17,6 +19,11 @@ namespace fleetmem::transport {
 // What the caller of `context` presents.
 auth::PresentedCredentials PresentedBy(
     const grpc::CallbackServerContext& context);
+
+// Who a call comes from, for per-client limits, without verifying it: the
+// name part of its token, else its certificate's common name, else its
+// address without the port ("ipv4:10.0.0.7").
+std::string ClientName(const grpc::CallbackServerContext& context);
 
 // The caller's principal: auth::Principal::Anonymous() when `authenticator`
 // is null (auth off), else Authenticate's (UNAUTHENTICATED on failure).

@@ -13,8 +13,8 @@ namespace fleetmem::transport {
 
 MemoryServiceImpl::MemoryServiceImpl(
     engine::MemoryEngine* engine, WorkQueue* work,
-    const auth::Authenticator* authenticator)
-    : state_(engine, work, authenticator) {}
+    const auth::Authenticator* authenticator, ServiceOptions options)
+    : state_(engine, work, authenticator, options) {}
 
 void MemoryServiceImpl::Shutdown() { state_.Shutdown(); }
 
@@ -75,7 +75,7 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
                   [this, request, response]() -> absl::Status {
     absl::StatusOr<std::vector<core::MemoryTrace>> traces =
         state_.engine().SampleReplay(request->fleet_id(), request->robot_id(),
-                                     request->count());
+                                     request->count(), request->request_id());
     if (!traces.ok()) return traces.status();
     SampledTracesToProto(*traces, response);
     return absl::OkStatus();

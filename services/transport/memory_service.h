@@ -40,7 +40,8 @@ class MemoryServiceImpl final
   // `engine`, `work` and `authenticator` must outlive the service; a null
   // `authenticator` turns auth off.
   MemoryServiceImpl(engine::MemoryEngine* engine, WorkQueue* work,
-                    const auth::Authenticator* authenticator = nullptr);
+                    const auth::Authenticator* authenticator = nullptr,
+                    ServiceOptions options = {});
 
   // New calls get UNAVAILABLE, upload streams end at their next message with
   // UNAVAILABLE, and every watch finishes at once with UNAVAILABLE. Calls

@@ -154,6 +154,10 @@ void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out) {
   }
   out->set_max_clusters(stats.max_clusters);
   out->set_max_traces_per_cluster(stats.max_traces_per_cluster);
+  out->set_first_event_id(stats.first_event_id);
+  for (const auto& [limit, count] : stats.quota_rejections) {
+    (*out->mutable_quota_rejections())[limit] = count;
+  }
 }
 
 }  // namespace fleetmem::transport

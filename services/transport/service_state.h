@@ -4,9 +4,14 @@
 #define FLEETMEM_SERVICES_TRANSPORT_SERVICE_STATE_H_
 
 #include <atomic>
+#include <cstddef>
+#include <cstdint>
+#include <string>
 
 #include "absl/base/thread_annotations.h"
+#include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
+#include "absl/status/status.h"
 #include "absl/synchronization/mutex.h"
 #include "services/auth/authenticator.h"
 #include "services/engine/memory_engine.h"
@@ -16,6 +21,13 @@ namespace fleetmem::transport {
 
 class WatchReactor;
 
+struct ServiceOptions {
+  // Upload and watch streams one client (ClientName) may hold open at once;
+  // 0 = unlimited. One more is refused with RESOURCE_EXHAUSTED naming the
+  // limit max_streams_per_client.
+  size_t max_streams_per_client = 64;
+};
+
 // Thread-safe. Owned by the service; outlives every call (the server's
 // Shutdown waits for all calls to end before the service is destroyed).
 class ServiceState {
@@ -23,8 +35,12 @@ class ServiceState {
   // `engine`, `work` and `authenticator` must outlive this object; a null
   // `authenticator` means auth is off (every caller is an admin).
   ServiceState(engine::MemoryEngine* engine, WorkQueue* work,
-               const auth::Authenticator* authenticator)
-      : engine_(engine), work_(work), authenticator_(authenticator) {}
+               const auth::Authenticator* authenticator,
+               ServiceOptions options = {})
+      : engine_(engine),
+        work_(work),
+        authenticator_(authenticator),
+        options_(options) {}
 
   engine::MemoryEngine& engine() const { return *engine_; }
   WorkQueue& work() const { return *work_; }
@@ -44,10 +60,22 @@ class ServiceState {
   // Idempotent.
   void Shutdown();
 
+  // Takes one of `client`'s stream slots; RESOURCE_EXHAUSTED (limit
+  // max_streams_per_client) when it holds them all. Each OK is matched by
+  // one ReleaseStream.
+  absl::Status AcquireStream(const std::string& client);
+  void ReleaseStream(const std::string& client);
+  // Streams refused by max_streams_per_client since start.
+  uint64_t streams_refused() const;
+
  private:
   engine::MemoryEngine* const engine_;
   WorkQueue* const work_;
   const auth::Authenticator* const authenticator_;
+  const ServiceOptions options_;
+  mutable absl::Mutex streams_mu_;
+  absl::flat_hash_map<std::string, size_t> streams_ ABSL_GUARDED_BY(streams_mu_);
+  uint64_t streams_refused_ ABSL_GUARDED_BY(streams_mu_) = 0;
   std::atomic<bool> shutting_down_{false};
   absl::Mutex watches_mu_;
   absl::flat_hash_set<WatchReactor*> watches_ ABSL_GUARDED_BY(watches_mu_);

@@ -48,6 +48,12 @@ UploadReactor::UploadReactor(ServiceState* state,
     Finish(ShuttingDownStatus());
     return;
   }
+  std::string client = ClientName(*context);
+  if (absl::Status slot = state_->AcquireStream(client); !slot.ok()) {
+    Finish(ToGrpcStatus(slot));
+    return;
+  }
+  client_ = std::move(client);
   StartRead(&buffer_);
 }
 
@@ -147,6 +153,9 @@ void UploadReactor::Store() {
   StartRead(&buffer_);
 }
 
-void UploadReactor::OnDone() { delete this; }
+void UploadReactor::OnDone() {
+  if (!client_.empty()) state_->ReleaseStream(client_);
+  delete this;
+}
 
 }  // namespace fleetmem::transport

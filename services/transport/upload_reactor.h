@@ -33,7 +33,8 @@ absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
 //                       or fails validation (nothing of it is stored);
 //   UNAUTHENTICATED / PERMISSION_DENIED   the access policy (a robot uploads
 //                       only traces of its own robot id);
-//   RESOURCE_EXHAUSTED  a full pool;
+//   RESOURCE_EXHAUSTED  a full pool, the client's open streams
+//                       (max_streams_per_client) or an upload quota;
 //   DEADLINE_EXCEEDED   a passed deadline;
 //   UNAVAILABLE         a message arriving after shutdown began;
 //   the engine's error otherwise (e.g. a failed write: nothing of that
@@ -66,6 +67,7 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   uint64_t index_ = 0;                // 1-based number of the current message
   std::string fleet_id_;              // of the first message
   std::optional<auth::Principal> principal_;  // once authenticated
+  std::string client_;                        // holds a stream slot if set
 };
 
 }  // namespace fleetmem::transport

@@ -17,17 +17,26 @@ WatchReactor::WatchReactor(ServiceState* state,
       fleet_id_(request.fleet_id()),
       shared_(std::make_shared<Shared>()),
       read_cursor_(request.after_event()) {
+  FLEETMEM_LOG(kDebug) << "WatchMemory " << fleet_id_ << " from "
+                       << ClientName(context) << " after "
+                       << request.after_event();
   absl::Status valid = core::ValidateId("fleet_id", fleet_id_);
   if (valid.ok()) {
     valid = AuthorizeCall(state_->authenticator(), context,
                           auth::Action::kWatch, fleet_id_)
                 .status();
   }
+  std::string client;
+  if (valid.ok()) {
+    client = ClientName(context);
+    valid = state_->AcquireStream(client);
+  }
   if (!valid.ok()) {
     absl::MutexLock lock(&shared_->mu);
     FinishLocked(ToGrpcStatus(valid));
     return;
   }
+  client_ = std::move(client);
   if (!state_->AddWatch(this)) {
     absl::MutexLock lock(&shared_->mu);
     FinishLocked(ShuttingDownStatus());
@@ -156,6 +165,7 @@ void WatchReactor::OnDone() {
     shared_->reactor = nullptr;
   }
   if (subscribed_) state_->engine().Unsubscribe(subscription_);
+  if (!client_.empty()) state_->ReleaseStream(client_);
   delete this;
 }
 

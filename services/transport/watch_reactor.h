@@ -66,6 +66,7 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
   bool registered_ = false;
   bool subscribed_ = false;
   uint64_t subscription_ = 0;
+  std::string client_;  // holds a stream slot if set
 
   // Guarded by shared_->mu.
   uint64_t read_cursor_ = 0;  // id of the newest event read

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <sstream>
 #include <system_error>
 
 #include "absl/status/status.h"
@@ -51,15 +53,26 @@ absl::StatusOr<cv::Mat> LoadNordlandGrey(const std::string& season_dir,
   if (!std::filesystem::exists(path)) {
     return absl::NotFoundError(absl::StrCat("missing frame ", path));
   }
+  std::ifstream in(path, std::ios::binary);
+  std::stringstream bytes;
+  bytes << in.rdbuf();
+  if (!in) return absl::DataLossError(absl::StrCat("cannot read ", path));
+  return DecodeGrey(bytes.str(), path);
+}
+
+absl::StatusOr<cv::Mat> DecodeGrey(std::string_view bytes,
+                                   const std::string& name) {
   cv::Mat grey;
   try {
-    grey = cv::imread(path, cv::IMREAD_GRAYSCALE);
+    const cv::Mat raw(1, static_cast<int>(bytes.size()), CV_8UC1,
+                      const_cast<char*>(bytes.data()));
+    grey = cv::imdecode(raw, cv::IMREAD_GRAYSCALE);
   } catch (const cv::Exception& e) {
     return absl::DataLossError(
-        absl::StrCat("cannot decode ", path, ": ", e.what()));
+        absl::StrCat("cannot decode ", name, ": ", e.what()));
   }
   if (grey.empty()) {
-    return absl::DataLossError(absl::StrCat("cannot decode ", path));
+    return absl::DataLossError(absl::StrCat("cannot decode ", name));
   }
   return grey;
 }

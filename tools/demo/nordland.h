@@ -27,6 +27,12 @@ std::string NordlandFileName(int number);
 absl::StatusOr<std::vector<int>> ListNordlandFrames(
     const std::string& season_dir);
 
+// Decodes an image file's bytes (PNG, JPEG, ...) to an 8-bit single-channel
+// image. DATA_LOSS naming `name` if they do not decode. (The parser behind
+// LoadNordlandGrey, fuzzed by image_decode_fuzz.cc.)
+absl::StatusOr<cv::Mat> DecodeGrey(std::string_view bytes,
+                                   const std::string& name);
+
 // The frame `number` of `season_dir` as an 8-bit single-channel image (the
 // files hold grey content in three channels). Black frames (tunnels,
 // stations) are returned as they are. NOT_FOUND if the file is missing,

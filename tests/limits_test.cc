@@ -1,0 +1,142 @@
+// Quotas and event retention against the real server: every refusal is
+// RESOURCE_EXHAUSTED naming its limit, changes nothing and is counted; a
+// watcher whose cursor was compacted away gets OUT_OF_RANGE.
+#include <chrono>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/strings/match.h"
+#include "gtest/gtest.h"
+#include "tests/api_helpers.h"
+#include "tests/server_process.h"
+#include "tests/synthetic_traces.h"
+
+namespace fleetmem::testing {
+namespace {
+
+constexpr char kFleet[] = "limited";
+
+class LimitsTest : public ::testing::Test {
+ protected:
+  void Start(const std::string& config_text) {
+    const std::string config = dir_.Join("server.textproto");
+    std::ofstream(config) << config_text;
+    ServerOptions options;
+    options.data_dir = dir_.Join("data");
+    options.config_file = config;
+    options.log_file = dir_.Join("server.log");
+    server_ = std::make_unique<ServerProcess>(options);
+    absl::Status started = server_->Start();
+    ASSERT_TRUE(started.ok()) << started;
+    stub_ = MakeStub(server_->address());
+  }
+
+  void TearDown() override {
+    stub_.reset();
+    if (server_ != nullptr && server_->running()) {
+      absl::StatusOr<int> code = server_->Stop();
+      EXPECT_TRUE(code.ok() && *code == 0);
+    }
+    if (HasFailure() && server_ != nullptr) std::cerr << server_->Output();
+  }
+
+  static void ExpectLimit(const grpc::Status& status, const std::string& name) {
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED)
+        << Describe(status);
+    EXPECT_TRUE(absl::StrContains(status.error_message(), "limit " + name))
+        << Describe(status);
+  }
+
+  TempDir dir_{"fleetmem-limits-"};
+  std::unique_ptr<ServerProcess> server_;
+  std::unique_ptr<v1::MemoryService::Stub> stub_;
+};
+
+TEST_F(LimitsTest, QuotasRefuseNameTheLimitAndAreCounted) {
+  ASSERT_NO_FATAL_FAILURE(Start(
+      "limits { robot_traces_per_second: 20 burst_seconds: 5 max_fleets: 1 "
+      "max_code_dimension: 64 }\n"));
+  TraceSpec spec{.robot_id = "r1", .count = 100, .dimension = 32};
+  ASSERT_TRUE(UploadTraces(*stub_, kFleet, MakeTraces(spec)).ok());
+  // The bucket (100 traces) is empty now.
+  spec.first_seq = 101;
+  spec.count = 10;
+  Reply<v1::UploadTracesResponse> refused =
+      UploadTraces(*stub_, kFleet, MakeTraces(spec));
+  ExpectLimit(refused.status, "robot_traces_per_second");
+  // Another fleet would exceed max_fleets; a wide code max_code_dimension.
+  ExpectLimit(UploadTraces(*stub_, "other", MakeTraces(spec)).status,
+              "max_fleets");
+  Reply<v1::GetStatsResponse> stats = GetStats(*stub_, kFleet);
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(), 100u);
+  EXPECT_EQ(stats.response.quota_rejections().at("robot_traces_per_second"),
+            1u);
+  EXPECT_EQ(GetStats(*stub_, "other").status.error_code(),
+            grpc::StatusCode::NOT_FOUND);
+}
+
+TEST_F(LimitsTest, StreamsPerClient) {
+  ASSERT_NO_FATAL_FAILURE(Start("limits { max_streams_per_client: 2 }\n"));
+  TraceSpec spec{.robot_id = "r1", .count = 50, .dimension = 8};
+  ASSERT_TRUE(UploadTraces(*stub_, kFleet, MakeTraces(spec)).ok());
+  ASSERT_TRUE(Consolidate(*stub_, kFleet).ok());  // events to watch
+  // Two open watches hold both slots of this client; each has delivered
+  // an event, so both are registered on the server.
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
+  std::vector<std::unique_ptr<grpc::ClientReader<v1::MemoryEvent>>> watches;
+  for (int i = 0; i < 2; ++i) {
+    contexts.push_back(MakeContext(std::chrono::seconds(30)));
+    v1::WatchMemoryRequest request;
+    request.set_fleet_id(kFleet);
+    watches.push_back(stub_->WatchMemory(contexts.back().get(), request));
+    v1::MemoryEvent event;
+    ASSERT_TRUE(watches.back()->Read(&event));
+  }
+  spec.first_seq = 100;
+  ExpectLimit(UploadTraces(*stub_, kFleet, MakeTraces(spec)).status,
+              "max_streams_per_client");
+  ExpectLimit(ReadEvents(*stub_, kFleet, 0, 1).status,
+              "max_streams_per_client");
+  for (auto& context : contexts) context->TryCancel();
+  for (auto& watch : watches) watch->Finish().IgnoreError();
+  watches.clear();
+  // Slots are returned when the streams end.
+  grpc::Status again;
+  for (int attempt = 0; attempt < 50; ++attempt) {
+    spec.first_seq = 1000 + attempt * 10;
+    again = UploadTraces(*stub_, kFleet, MakeTraces(spec)).status;
+    if (again.ok()) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_TRUE(again.ok()) << Describe(again);
+}
+
+TEST_F(LimitsTest, CompactedCursorIsOutOfRange) {
+  ASSERT_NO_FATAL_FAILURE(
+      Start("engine { max_events_per_fleet: 5 segment_size: 20 }\n"
+            "memory { clusters_per_batch: 4 max_clusters: 6 }\n"));
+  TraceSpec spec{.robot_id = "r1", .count = 100, .dimension = 8};
+  // Messages of one segment: each consolidates and adds events.
+  ASSERT_TRUE(UploadTraces(*stub_, kFleet, MakeTraces(spec), 20).ok());
+  Reply<v1::GetStatsResponse> stats = GetStats(*stub_, kFleet);
+  ASSERT_TRUE(stats.ok());
+  ASSERT_GT(stats.response.last_event_id(), 5u);
+  const uint64_t first = stats.response.first_event_id();
+  EXPECT_EQ(stats.response.last_event_id() - first + 1, 5u);
+  Reply<std::vector<v1::MemoryEvent>> old = ReadEvents(*stub_, kFleet, 1, 2);
+  EXPECT_EQ(old.status.error_code(), grpc::StatusCode::OUT_OF_RANGE)
+      << Describe(old.status);
+  EXPECT_TRUE(absl::StrContains(old.status.error_message(), "retention"));
+  Reply<std::vector<v1::MemoryEvent>> all =
+      ReadEvents(*stub_, kFleet, 0, stats.response.last_event_id());
+  ASSERT_TRUE(all.ok()) << Describe(all.status);
+  ASSERT_EQ(all.response.size(), 5u);
+  EXPECT_EQ(all.response.front().id(), first);
+}
+
+}  // namespace
+}  // namespace fleetmem::testing
