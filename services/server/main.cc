@@ -23,6 +23,8 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
@@ -257,8 +259,15 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   health->SetServingStatus(kServiceName, false);
   health->SetServingStatus(false);
   service.Shutdown();  // new calls UNAVAILABLE, watches end
-  server->Shutdown(std::chrono::system_clock::now() +
-                   std::chrono::seconds(config.shutdown_grace_seconds));
+  // Calls being worked on get the grace period; then everything left (idle
+  // connections, upload streams waiting on their client) is cancelled at
+  // once instead of waiting for each client's GOAWAY ping acknowledgement.
+  if (!service.WaitIdle(absl::Now() +
+                        absl::Seconds(config.shutdown_grace_seconds))) {
+    FLEETMEM_LOG(kWarning) << "calls still running after the grace period "
+                              "are cancelled";
+  }
+  server->Shutdown(std::chrono::system_clock::now());
   work.Stop();
   server.reset();
   engine->reset();

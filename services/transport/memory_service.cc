@@ -18,6 +18,10 @@ MemoryServiceImpl::MemoryServiceImpl(
 
 void MemoryServiceImpl::Shutdown() { state_.Shutdown(); }
 
+bool MemoryServiceImpl::WaitIdle(absl::Time deadline) {
+  return state_.WaitIdle(deadline);
+}
+
 grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
     grpc::CallbackServerContext* context, auth::Action action,
     std::string fleet_id, std::string robot_id,
@@ -27,24 +31,25 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
     reactor->Finish(ShuttingDownStatus());
     return reactor;
   }
+  state_.BeginWork();
   bool queued = state_.work().TrySubmit(
       [this, context, reactor, action, fleet_id = std::move(fleet_id),
        robot_id = std::move(robot_id),
        work = std::move(work)]() mutable {
-        grpc::Status live = CheckCallLive(*context);
-        if (!live.ok()) {
-          reactor->Finish(live);
-          return;
-        }
-        absl::StatusOr<auth::Principal> allowed = AuthorizeCall(
-            state_.authenticator(), *context, action, fleet_id, robot_id);
-        if (!allowed.ok()) {
-          reactor->Finish(ToGrpcStatus(allowed.status()));
-          return;
-        }
-        reactor->Finish(ToGrpcStatus(std::move(work)()));
+        reactor->Finish([&] {
+          grpc::Status live = CheckCallLive(*context);
+          if (!live.ok()) return live;
+          absl::StatusOr<auth::Principal> allowed = AuthorizeCall(
+              state_.authenticator(), *context, action, fleet_id, robot_id);
+          if (!allowed.ok()) return ToGrpcStatus(allowed.status());
+          return ToGrpcStatus(std::move(work)());
+        }());
+        state_.EndWork();
       });
-  if (!queued) reactor->Finish(ServerBusyStatus());
+  if (!queued) {
+    state_.EndWork();
+    reactor->Finish(ServerBusyStatus());
+  }
   return reactor;
 }
 

@@ -26,9 +26,10 @@
 namespace fleetmem::transport {
 
 // Thread-safe. Register with grpc::ServerBuilder::RegisterService. Shut down
-// in this order: Shutdown(), grpc::Server::Shutdown(deadline) (it waits for
-// the calls in flight, which still need `work`), WorkQueue::Stop(), then
-// destroy the service, the engine and the store.
+// in this order: Shutdown(), WaitIdle(now + grace), grpc::Server::Shutdown
+// (now: cancels what is left, idle connections included, without waiting
+// for their GOAWAY handshake), WorkQueue::Stop(), then destroy the service,
+// the engine and the store.
 //
 // UploadTraces is registered raw (bytes in, bytes out) so that a message
 // that does not parse fails the call with INVALID_ARGUMENT naming it, where
@@ -47,6 +48,13 @@ class MemoryServiceImpl final
   // UNAVAILABLE, and every watch finishes at once with UNAVAILABLE. Calls
   // already on the pool complete. Idempotent.
   void Shutdown();
+
+  // After Shutdown: blocks until no call is being worked on (a unary call
+  // queued or running, an upload message being stored) or until `deadline`;
+  // true if idle. Idle connections and upload streams waiting for their
+  // client's next message do not count: the server may then cancel them at
+  // once (grpc::Server::Shutdown with a past deadline).
+  bool WaitIdle(absl::Time deadline);
 
   grpc::ServerReadReactor<grpc::ByteBuffer>* UploadTraces(
       grpc::CallbackServerContext* context,

@@ -54,6 +54,24 @@ void ServiceState::ReleaseStream(const std::string& client) {
   if (--it->second == 0) streams_.erase(it);
 }
 
+void ServiceState::BeginWork() {
+  absl::MutexLock lock(&work_mu_);
+  ++work_in_flight_;
+}
+
+void ServiceState::EndWork() {
+  absl::MutexLock lock(&work_mu_);
+  --work_in_flight_;
+}
+
+bool ServiceState::WaitIdle(absl::Time deadline) {
+  absl::MutexLock lock(&work_mu_);
+  auto idle = [this]() ABSL_SHARED_LOCKS_REQUIRED(work_mu_) {
+    return work_in_flight_ <= 0;
+  };
+  return work_mu_.AwaitWithDeadline(absl::Condition(&idle), deadline);
+}
+
 uint64_t ServiceState::streams_refused() const {
   absl::MutexLock lock(&streams_mu_);
   return streams_refused_;

@@ -13,6 +13,7 @@
 #include "absl/container/flat_hash_set.h"
 #include "absl/status/status.h"
 #include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
 #include "services/auth/authenticator.h"
 #include "services/engine/memory_engine.h"
 #include "services/transport/work_queue.h"
@@ -60,6 +61,14 @@ class ServiceState {
   // Idempotent.
   void Shutdown();
 
+  // Work in flight: a unary call from submission to its answer, an upload
+  // message from submission to its storage. Shutdown waits for these (up to
+  // its grace), not for idle connections or streams waiting on a client.
+  void BeginWork();
+  void EndWork();
+  // Blocks until no work is in flight or `deadline`; true if idle.
+  bool WaitIdle(absl::Time deadline);
+
   // Takes one of `client`'s stream slots; RESOURCE_EXHAUSTED (limit
   // max_streams_per_client) when it holds them all. Each OK is matched by
   // one ReleaseStream.
@@ -76,6 +85,8 @@ class ServiceState {
   mutable absl::Mutex streams_mu_;
   absl::flat_hash_map<std::string, size_t> streams_ ABSL_GUARDED_BY(streams_mu_);
   uint64_t streams_refused_ ABSL_GUARDED_BY(streams_mu_) = 0;
+  absl::Mutex work_mu_;
+  int64_t work_in_flight_ ABSL_GUARDED_BY(work_mu_) = 0;
   std::atomic<bool> shutting_down_{false};
   absl::Mutex watches_mu_;
   absl::flat_hash_set<WatchReactor*> watches_ ABSL_GUARDED_BY(watches_mu_);

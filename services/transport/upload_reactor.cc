@@ -109,7 +109,13 @@ void UploadReactor::OnReadDone(bool ok) {
                      request_.fleet_id(), "\" after \"", fleet_id_, "\"")));
     return;
   }
-  if (!state_->work().TrySubmit([this] { Store(); })) {
+  state_->BeginWork();
+  if (!state_->work().TrySubmit([this] {
+        ServiceState* state = state_;  // `this` may be gone after Store()
+        Store();
+        state->EndWork();
+      })) {
+    state_->EndWork();
     Finish(ServerBusyStatus());
   }
 }
