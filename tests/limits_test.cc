@@ -57,7 +57,7 @@ class LimitsTest : public ::testing::Test {
 
 TEST_F(LimitsTest, QuotasRefuseNameTheLimitAndAreCounted) {
   ASSERT_NO_FATAL_FAILURE(Start(
-      "limits { robot_traces_per_second: 20 burst_seconds: 5 max_fleets: 1 "
+      "limits { robot_traces_per_second: 1 burst_seconds: 100 max_fleets: 1 "
       "max_code_dimension: 64 }\n"));
   TraceSpec spec{.robot_id = "r1", .count = 100, .dimension = 32};
   ASSERT_TRUE(UploadTraces(*stub_, kFleet, MakeTraces(spec)).ok());
