@@ -87,6 +87,19 @@ fuzz: deps
 	@cmake --build build-fuzz -j $(JOBS) --target fleetmem_fuzzers
 	@tools/fuzz/run_fuzzers.sh build-fuzz $(FUZZ_SECONDS)
 
+# 20 SIGKILLs of the server under concurrent uploads; every acknowledged
+# trace is checked after each restart (docs/reliability.md).
+CRASH_TRIALS ?= 20
+crash: build
+	@tools/load/crash_trials.sh $(BUILD_DIR) $(CRASH_TRIALS)
+
+# The server at half its measured peak load for SOAK_SECONDS (one hour by
+# default; e.g. make soak SOAK_SECONDS=300 SOAK_INTERVAL=15).
+SOAK_SECONDS ?= 3600
+SOAK_INTERVAL ?= 60
+soak: build
+	@tools/load/soak.sh $(BUILD_DIR) $(SOAK_SECONDS) $(SOAK_INTERVAL) $(BUILD_DIR)/soak.csv
+
 # Starts the server on an embedded RocksDB under .demo/ and runs a
 # three-robot fleet on the real Nordland data; ends with a results table.
 demo: build
