@@ -113,6 +113,10 @@ absl::Status MakeCertificates(const std::string& dir,
   }
   if (status.ok()) status = ca("rogue-ca", "rogue CA");
   if (status.ok()) status = signed_by("rogue-ca", "rogue-client", "robot-8", "");
+  if (status.ok()) {
+    status = signed_by("rogue-ca", "server-renewed", "localhost",
+                       "DNS:localhost,IP:127.0.0.1");
+  }
   return status;
 }
 

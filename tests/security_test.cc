@@ -282,5 +282,72 @@ TEST_F(TlsTest, ClientCertificateNamesTheRobot) {
             grpc::StatusCode::UNAVAILABLE);
 }
 
+TEST_F(TlsTest, RenewedCertificateIsServedWithoutARestart) {
+  const std::string config = dir_.Join("tls.textproto");
+  std::ofstream(config) << "security { tls_reload_seconds: 1 }\n";
+  // The served files are copies, replaced by rename as a renewal would be.
+  ASSERT_TRUE(RunCommand("cd " + dir_.path() +
+                         " && cp server.pem live.pem && cp server.key live.key")
+                  .ok());
+  ASSERT_NO_FATAL_FAILURE(Start({"--config", config, "--tls-cert",
+                                 dir_.Join("live.pem"), "--tls-key",
+                                 dir_.Join("live.key")}));
+  const std::string renewed_ca = ReadFileOrEmpty(dir_.Join("rogue-ca.pem"));
+  EXPECT_TRUE(GetStats(*MakeSecureStub(server_->address(),
+                                       {admin_, ca_, "", ""}),
+                       kFleet)
+                  .status.error_code() != grpc::StatusCode::UNAVAILABLE);
+  EXPECT_EQ(GetStats(*MakeSecureStub(server_->address(),
+                                     {admin_, renewed_ca, "", ""}),
+                     kFleet)
+                .status.error_code(),
+            grpc::StatusCode::UNAVAILABLE);
+  ASSERT_TRUE(RunCommand("cd " + dir_.path() +
+                         " && cp server-renewed.key next.key && cp "
+                         "server-renewed.pem next.pem && mv next.key live.key "
+                         "&& mv next.pem live.pem")
+                  .ok());
+  grpc::StatusCode code = grpc::StatusCode::UNAVAILABLE;
+  const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(15);
+  while (code == grpc::StatusCode::UNAVAILABLE &&
+         std::chrono::steady_clock::now() < end) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    code = GetStats(*MakeSecureStub(server_->address(),
+                                    {admin_, renewed_ca, "", ""}),
+                    kFleet)
+               .status.error_code();
+  }
+  EXPECT_NE(code, grpc::StatusCode::UNAVAILABLE)
+      << "the renewed certificate was not served";
+}
+
+TEST_F(AuthTest, CommandLineToolTakesItsTokenFromAFileOrTheEnvironment) {
+  ASSERT_NO_FATAL_FAILURE(Start());
+  ASSERT_TRUE(UploadTraces(*As(admin_), kFleet, Traces("robot-7", 1, 3)).ok());
+  const std::string tool = std::string(FLEETMEM_BIN_DIR) + "/fleetmem";
+  const std::string server = " --server " + server_->address();
+  const std::string quiet = " >/dev/null 2>&1";
+  EXPECT_FALSE(
+      RunCommand("env -u FLEETMEM_TOKEN -u FLEETMEM_TOKEN_FILE " + tool +
+                 server + " stats --fleet f1" + quiet)
+          .ok());
+  EXPECT_TRUE(RunCommand(tool + server + " --token-file " +
+                         dir_.Join("grafana.token") + " stats --fleet f1" +
+                         quiet)
+                  .ok());
+  EXPECT_TRUE(RunCommand("FLEETMEM_TOKEN_FILE=" + dir_.Join("robot-7.token") +
+                         " " + tool + server + " stats --fleet f1" + quiet)
+                  .ok());
+  EXPECT_TRUE(RunCommand("FLEETMEM_TOKEN=$(cat " + dir_.Join("ops.token") +
+                         ") " + tool + server + " consolidate --fleet f1" +
+                         quiet)
+                  .ok());
+  // A reader's token does not consolidate.
+  EXPECT_FALSE(RunCommand(tool + server + " --token-file " +
+                          dir_.Join("grafana.token") +
+                          " consolidate --fleet f1" + quiet)
+                   .ok());
+}
+
 }  // namespace
 }  // namespace fleetmem::testing
