@@ -55,7 +55,8 @@ TEST(KeysTest, ParseRoundTrips) {
   ASSERT_TRUE(trace_key.has_value());
   EXPECT_EQ(*trace_key, (core::TraceKey{"robot.7", 4097}));
 
-  const std::optional<ParsedKey> event = Parse(EventKey("g", 77));
+  const std::string event_key = EventKey("g", 77);  // Parse returns views
+  const std::optional<ParsedKey> event = Parse(event_key);
   ASSERT_TRUE(event.has_value());
   EXPECT_EQ(ParseIdSuffix(event->suffix), 77u);
 

@@ -454,7 +454,20 @@ class RocksDbStore final : public engine::MemoryStore {
     if (absl::Status resumed = ResumeAfterError(); !resumed.ok()) {
       return resumed;
     }
-    const rocksdb::Status written = db_->Write(write_options_, &batch);
+    rocksdb::Status written = db_->Write(write_options_, &batch);
+    if (!written.ok()) {
+      // A background error (e.g. a flush that met a full disk) stops every
+      // write until RocksDB resumes; there is room now (CheckRoom), so
+      // resume and try once more. A WriteBatch applied twice leaves the
+      // same state, so the retry cannot double anything.
+      FLEETMEM_LOG(kWarning) << "RocksDB write of fleet " << fleet_id
+                             << " failed: " << written.ToString()
+                             << "; resuming and retrying once";
+      write_failed_ = true;
+      if (ResumeAfterError().ok()) {
+        written = db_->Write(write_options_, &batch);
+      }
+    }
     if (!written.ok()) {
       write_failed_ = true;
       FLEETMEM_LOG(kError) << "RocksDB write of fleet " << fleet_id
