@@ -19,6 +19,8 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "rocksdb/cache.h"
 #include "rocksdb/convenience.h"
 #include "rocksdb/db.h"
@@ -303,6 +305,14 @@ class MutationWriter {
   Staging* staging_;
 };
 
+// How a write waits for RocksDB to recover from a background error: up to
+// kResumeAttempts x kResumeInterval = 6 s. RocksDB's recovery from a
+// no-space error is driven by its SstFileManager, which re-checks the free
+// space every 5 s; other retryable errors are resumed every kResumeInterval
+// (see MakeOptions).
+constexpr int kResumeAttempts = 30;
+constexpr absl::Duration kResumeInterval = absl::Milliseconds(200);
+
 absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
   struct statvfs info;
   if (statvfs(path.c_str(), &info) != 0) {
@@ -456,15 +466,21 @@ class RocksDbStore final : public engine::MemoryStore {
     }
     rocksdb::Status written = db_->Write(write_options_, &batch);
     if (!written.ok()) {
-      // A background error (e.g. a flush that met a full disk) stops every
-      // write until RocksDB resumes; there is room now (CheckRoom), so
-      // resume and try once more. A WriteBatch applied twice leaves the
-      // same state, so the retry cannot double anything.
+      // A background error (e.g. a flush that met a disk someone else
+      // filled) stops every write until RocksDB has recovered, which its own
+      // auto-resume retries every kResumeInterval. While there is room
+      // (CheckRoom), wait for that or resume ourselves, and retry: a
+      // WriteBatch applied twice leaves the same state, so a retry cannot
+      // double anything.
       FLEETMEM_LOG(kWarning) << "RocksDB write of fleet " << fleet_id
                              << " failed: " << written.ToString()
-                             << "; resuming and retrying once";
+                             << "; waiting for RocksDB to resume";
       write_failed_ = true;
-      if (ResumeAfterError().ok()) {
+      for (int attempt = 0; attempt < kResumeAttempts && !written.ok();
+           ++attempt) {
+        absl::SleepFor(kResumeInterval);
+        if (!CheckRoom(fleet_id, batch.GetDataSize()).ok()) break;
+        if (!ResumeAfterError().ok()) continue;  // busy: auto-resume running
         written = db_->Write(write_options_, &batch);
       }
     }
@@ -640,8 +656,13 @@ rocksdb::Options MakeOptions(const RocksDbStoreOptions& options) {
         rocksdb::NewBloomFilterPolicy(options.bloom_bits_per_key));
   }
   db_options.table_factory.reset(rocksdb::NewBlockBasedTableFactory(table));
-  // Tracks table file sizes so that RocksDB checks free space before a
-  // compaction and recovers by itself from a no-space background error.
+  // After a retryable background error (I/O), RocksDB resumes by itself;
+  // retry every 200 ms instead of every second.
+  db_options.bgerror_resume_retry_interval =
+      absl::ToInt64Microseconds(kResumeInterval);
+  // Recovery from a no-space background error needs an SstFileManager (it
+  // watches the free space and resumes the database); it also makes RocksDB
+  // check the free space before a compaction.
   db_options.sst_file_manager.reset(
       rocksdb::NewSstFileManager(rocksdb::Env::Default()));
   return db_options;
