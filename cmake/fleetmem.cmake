@@ -23,6 +23,13 @@ function(fleetmem_test name)
                         "${CMAKE_BINARY_DIR}/tests")
   target_include_directories(${name} PRIVATE ${PROJECT_SOURCE_DIR})
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} GTest::gmock GTest::gtest_main)
+  if(FLEETMEM_TSAN_ABSL_ANNOTATIONS)
+    # ThreadSanitizer build: tell TSan about Debian's uninstrumented
+    # absl::Mutex (tools/tsan/absl_mutex_annotations.cc).
+    target_sources(${name} PRIVATE
+                   ${PROJECT_SOURCE_DIR}/tools/tsan/absl_mutex_annotations.cc)
+    target_link_libraries(${name} PRIVATE ${CMAKE_DL_LIBS})
+  endif()
   target_compile_definitions(${name} PRIVATE
     FLEETMEM_DATA_DIR="${FLEETMEM_DATA_DIR}"
     FLEETMEM_BIN_DIR="${CMAKE_BINARY_DIR}/bin"

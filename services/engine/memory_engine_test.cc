@@ -1,5 +1,6 @@
 #include "services/engine/memory_engine.h"
 
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -151,7 +152,7 @@ class MemoryEngineTest : public ::testing::Test {
   }
 
   std::mt19937_64 rng_{7};
-  int64_t clock_ns_ = 1000;
+  std::atomic<int64_t> clock_ns_{1000};  // read by concurrent fleets
   EngineOptions options_;
   std::unique_ptr<MemoryStore> store_;
   std::unique_ptr<MemoryEngine> engine_;
