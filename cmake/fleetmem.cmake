@@ -59,3 +59,26 @@ function(fleetmem_fuzzer name)
   file(APPEND "${CMAKE_BINARY_DIR}/fuzz/fuzzers.txt"
        "${name} ${CMAKE_CURRENT_SOURCE_DIR}/fuzz_corpus/${name}\n")
 endfunction()
+
+# fleetmem_proto_library(NAME PROTO file.proto)
+# A static library of the C++ code protoc generates for a private .proto of a
+# module (storage records, server config, credentials file). The generated
+# header is included as "<module path>/<file>.pb.h".
+function(fleetmem_proto_library name)
+  cmake_parse_arguments(ARG "" "PROTO" "" ${ARGN})
+  set(gen_dir ${CMAKE_CURRENT_BINARY_DIR}/gen)
+  file(RELATIVE_PATH rel ${PROJECT_SOURCE_DIR}
+       ${CMAKE_CURRENT_SOURCE_DIR}/${ARG_PROTO})
+  string(REGEX REPLACE "\\.proto$" "" stem ${rel})
+  file(MAKE_DIRECTORY ${gen_dir})
+  add_custom_command(
+    OUTPUT ${gen_dir}/${stem}.pb.cc ${gen_dir}/${stem}.pb.h
+    COMMAND protobuf::protoc
+    ARGS --proto_path=${PROJECT_SOURCE_DIR} --cpp_out=${gen_dir}
+         ${CMAKE_CURRENT_SOURCE_DIR}/${ARG_PROTO}
+    DEPENDS ${ARG_PROTO}
+    COMMENT "Generating ${rel}")
+  add_library(${name} STATIC ${gen_dir}/${stem}.pb.cc)
+  target_include_directories(${name} PUBLIC ${gen_dir})
+  target_link_libraries(${name} PUBLIC protobuf::libprotobuf)
+endfunction()

@@ -7,11 +7,9 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
-#include "absl/strings/str_join.h"
-#include "google/protobuf/io/tokenizer.h"
-#include "google/protobuf/text_format.h"
 #include "services/auth/credentials.pb.h"
 #include "services/auth/secret.h"
+#include "services/common/text_format.h"
 #include "services/core/validation.h"
 
 namespace fleetmem::auth {
@@ -20,19 +18,6 @@ namespace {
 // Most distinct tokens whose check is cached; the cache is emptied when full
 // (a flood of wrong tokens costs Argon2 time, never unbounded memory).
 constexpr size_t kMaxCachedTokens = 4096;
-
-class ErrorList : public google::protobuf::io::ErrorCollector {
- public:
-  void AddError(int line, google::protobuf::io::ColumnNumber column,
-                const std::string& message) override {
-    errors_.push_back(absl::StrCat("line ", line + 1, ", column ", column + 1,
-                                   ": ", message));
-  }
-  std::string Joined() const { return absl::StrJoin(errors_, "; "); }
-
- private:
-  std::vector<std::string> errors_;
-};
 
 absl::Status Bad(int index, absl::string_view name, absl::string_view why) {
   return absl::InvalidArgumentError(
@@ -106,11 +91,10 @@ absl::StatusOr<CredentialEntry> ToEntry(int index,
 absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
     absl::string_view text) {
   file::CredentialsFile parsed;
-  ErrorList errors;
-  google::protobuf::TextFormat::Parser parser;
-  parser.RecordErrorsTo(&errors);
-  if (!parser.ParseFromString(std::string(text), &parsed)) {
-    return absl::InvalidArgumentError(errors.Joined());
+  if (absl::Status syntax =
+          ParseTextFormat(std::string_view(text.data(), text.size()), &parsed);
+      !syntax.ok()) {
+    return syntax;
   }
   std::vector<CredentialEntry> entries;
   absl::flat_hash_set<std::string> names;

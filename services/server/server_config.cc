@@ -10,28 +10,13 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
-#include "absl/strings/str_join.h"
-#include "google/protobuf/io/tokenizer.h"
-#include "google/protobuf/text_format.h"
+#include "services/common/text_format.h"
 #include "services/server/server_config.pb.h"
 
 namespace fleetmem::server {
 namespace {
 
 // Collects the text-format parser's complaints as "line L, column C: msg".
-class ErrorList : public google::protobuf::io::ErrorCollector {
- public:
-  void AddError(int line, google::protobuf::io::ColumnNumber column,
-                const std::string& message) override {
-    errors_.push_back(absl::StrCat("line ", line + 1, ", column ", column + 1,
-                                   ": ", message));
-  }
-  std::string Joined() const { return absl::StrJoin(errors_, "; "); }
-
- private:
-  std::vector<std::string> errors_;
-};
-
 absl::Status ApplyLogLevel(std::string_view what, std::string_view text,
                            ServerConfig* config) {
   if (!log::ParseLevel(text, &config->log_level)) {
@@ -298,11 +283,8 @@ std::string Usage() {
 
 absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   ServerConfigFile file;
-  ErrorList errors;
-  google::protobuf::TextFormat::Parser parser;
-  parser.RecordErrorsTo(&errors);
-  if (!parser.ParseFromString(std::string(text), &file)) {
-    return absl::InvalidArgumentError(errors.Joined());
+  if (absl::Status syntax = ParseTextFormat(text, &file); !syntax.ok()) {
+    return syntax;
   }
   if (file.has_listen()) config->listen = file.listen();
   if (file.has_data_dir()) config->data_dir = file.data_dir();
