@@ -102,12 +102,15 @@ void FillEmptyClusters(const MatrixXd& points, const MatrixXd& centres,
       if (counts[assignment[i]] < 2) continue;
       const double d =
           (points.col(i) - centres.col(assignment[i])).squaredNorm();
-      if (d > farthest_distance) {
+      // The first candidate is taken even if its distance is not a number,
+      // so an empty cluster is always filled (k <= n).
+      if (farthest < 0 || d > farthest_distance) {
         farthest_distance = d;
         farthest = i;
       }
     }
     assert(farthest >= 0);  // k <= n
+    if (farthest < 0) return;
     --counts[assignment[farthest]];
     assignment[farthest] = c;
     counts[c] = 1;

@@ -1,6 +1,7 @@
 #include "services/core/kmeans.h"
 
 #include <algorithm>
+#include <limits>
 #include <random>
 #include <set>
 #include <vector>
@@ -138,6 +139,25 @@ TEST(KMeansTest, AllPointsIdentical) {
   std::mt19937_64 rng(2);
   const KMeansResult r = KMeans(points, 3, 10, rng);
   ExpectConsistent(points, r, 3);
+}
+
+// Points whose distances overflow (inf - inf = NaN) must still leave no
+// cluster empty and no point unassigned (the upload fuzzer found an index of
+// -1 here before places were bounded).
+TEST(KMeansTest, NonFiniteDistancesStillFillEveryCluster) {
+  const float inf = std::numeric_limits<float>::infinity();
+  Eigen::MatrixXf points(1, 5);
+  points << inf, inf, -inf, inf, -inf;
+  std::mt19937_64 rng(3);
+  const KMeansResult r = KMeans(points, 3, 5, rng);
+  ASSERT_EQ(r.assignment.size(), 5u);
+  std::vector<int> counts(3, 0);
+  for (int a : r.assignment) {
+    ASSERT_GE(a, 0);
+    ASSERT_LT(a, 3);
+    ++counts[a];
+  }
+  for (int count : counts) EXPECT_GE(count, 1);
 }
 
 TEST(KMeansTest, KLargerThanNIsClamped) {

@@ -134,6 +134,18 @@ absl::Status ValidateTrace(std::string_view what, const MemoryTrace& trace,
     return Invalid(
         absl::StrCat(V(what), ".reward is ", trace.reward, "; must be >= 0"));
   }
+  const std::pair<std::string_view, double> coordinates[] = {
+      {"place.x", trace.place.x},
+      {"place.y", trace.place.y},
+      {"place.z", trace.place.z},
+  };
+  for (const auto& [field, value] : coordinates) {
+    if (std::abs(value) > kMaxCoordinateM) {
+      return Invalid(absl::StrCat(V(what), ".", V(field), " is ", value,
+                                  "; must be within +-", kMaxCoordinateM,
+                                  " m"));
+    }
+  }
   return absl::OkStatus();
 }
 

@@ -16,6 +16,9 @@ inline constexpr size_t kMaxIdLength = 128;
 inline constexpr size_t kMaxDomainLength = 64;
 inline constexpr size_t kMaxEncoderVersionLength = 64;
 inline constexpr size_t kMaxCodeDimension = 65536;
+// Largest |x|, |y|, |z| of a place, in metres: far beyond any map frame, and
+// small enough that the feature-spatial code (single precision) stays finite.
+inline constexpr double kMaxCoordinateM = 1e9;
 
 // Fleet and robot ids: 1..128 characters of [A-Za-z0-9._:-]. `what` names the
 // field in the message ("fleet_id", "traces[3].robot_id").
@@ -32,7 +35,7 @@ struct TraceShape {
   std::string_view fleet_id;
 };
 
-// Checks ids, code, place (finite), rewards (finite, reward >= 0), domain and
+// Checks ids, code, place (finite, |x|, |y|, |z| <= kMaxCoordinateM), rewards (finite, reward >= 0), domain and
 // encoder version lengths, and the fleet's dimension and encoder version.
 absl::Status ValidateTrace(std::string_view what, const MemoryTrace& trace,
                            const TraceShape& shape);

@@ -135,6 +135,11 @@ TEST(ValidateTraceTest, RejectsBadTraces) {
       {"Inf yaw",
        [](MemoryTrace& t) { t.place.yaw = kInf; },
        {"traces[3].place.yaw"}},
+      // Found by the upload fuzzer: a finite place too large for the
+      // single-precision feature-spatial code made k-means index -1.
+      {"place beyond any map",
+       [](MemoryTrace& t) { t.place.z = 1e300; },
+       {"traces[3].place.z is 1e+300; must be within"}},
       {"long domain",
        [](MemoryTrace& t) {
          t.domain = std::string(kMaxDomainLength + 1, 'd');

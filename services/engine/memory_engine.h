@@ -219,7 +219,7 @@ class MemoryEngine {
   };
   absl::flat_hash_map<uint64_t, Listener> listeners_
       ABSL_GUARDED_BY(listeners_mu_);
-  uint64_t next_listener_ = 1 ABSL_GUARDED_BY(listeners_mu_);
+  uint64_t next_listener_ ABSL_GUARDED_BY(listeners_mu_) = 1;
 };
 
 }  // namespace fleetmem::engine
