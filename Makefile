@@ -113,8 +113,9 @@ bench: build
 	@$(BUILD_DIR)/bin/fleetmem_index_bench --benchmark_min_time=0.2
 	@$(BUILD_DIR)/bin/fleetmem_forgetting_bench --benchmark_min_time=0.2
 
+CLANG_FORMAT ?= $(shell command -v clang-format || command -v clang-format-14)
 format:
-	@git ls-files '*.h' '*.cc' | xargs clang-format -i
+	@git ls-files '*.h' '*.cc' | xargs $(CLANG_FORMAT) -i
 
 clean:
 	rm -rf $(BUILD_DIR) build-asan build-tsan build-fuzz .demo

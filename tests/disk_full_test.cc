@@ -70,9 +70,8 @@ void Fill(const std::string& file, uint64_t bytes) {
   std::ofstream out(file, std::ios::binary);
   const std::string chunk(kMiB, '\0');
   for (uint64_t written = 0; written < bytes; written += chunk.size()) {
-    out.write(chunk.data(),
-              static_cast<std::streamsize>(std::min<uint64_t>(
-                  chunk.size(), bytes - written)));
+    out.write(chunk.data(), static_cast<std::streamsize>(std::min<uint64_t>(
+                                chunk.size(), bytes - written)));
   }
 }
 

@@ -18,7 +18,8 @@ namespace {
 class TokenInterceptor : public grpc::experimental::Interceptor {
  public:
   explicit TokenInterceptor(std::string header) : header_(std::move(header)) {}
-  void Intercept(grpc::experimental::InterceptorBatchMethods* methods) override {
+  void Intercept(
+      grpc::experimental::InterceptorBatchMethods* methods) override {
     if (methods->QueryInterceptionHookPoint(
             grpc::experimental::InterceptionHookPoints::
                 PRE_SEND_INITIAL_METADATA)) {
@@ -56,15 +57,15 @@ absl::Status RunCommand(const std::string& command) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::string> AddPrincipal(
-    const std::string& dir, const std::string& credentials_file,
-    const std::string& name, const std::string& role,
-    const std::vector<std::string>& fleets,
-    const std::string& certificate_cn) {
+absl::StatusOr<std::string> AddPrincipal(const std::string& dir,
+                                         const std::string& credentials_file,
+                                         const std::string& name,
+                                         const std::string& role,
+                                         const std::vector<std::string>& fleets,
+                                         const std::string& certificate_cn) {
   const std::string token_file = absl::StrCat(dir, "/", name, ".token");
-  std::string command =
-      absl::StrCat(FLEETMEM_BIN_DIR, "/fleetmem-credential --name ", name,
-                   " --role ", role);
+  std::string command = absl::StrCat(
+      FLEETMEM_BIN_DIR, "/fleetmem-credential --name ", name, " --role ", role);
   for (const std::string& fleet : fleets) {
     absl::StrAppend(&command, " --fleet '", fleet, "'");
   }
@@ -105,14 +106,15 @@ absl::Status MakeCertificates(const std::string& dir,
   };
   absl::Status status = ca("ca", "fleetmem test CA");
   if (status.ok()) {
-    status = signed_by("ca", "server", "localhost",
-                       "DNS:localhost,IP:127.0.0.1");
+    status =
+        signed_by("ca", "server", "localhost", "DNS:localhost,IP:127.0.0.1");
   }
   for (const std::string& cn : client_cns) {
     if (status.ok()) status = signed_by("ca", "client-" + cn, cn, "");
   }
   if (status.ok()) status = ca("rogue-ca", "rogue CA");
-  if (status.ok()) status = signed_by("rogue-ca", "rogue-client", "robot-8", "");
+  if (status.ok())
+    status = signed_by("rogue-ca", "rogue-client", "robot-8", "");
   if (status.ok()) {
     status = signed_by("rogue-ca", "server-renewed", "localhost",
                        "DNS:localhost,IP:127.0.0.1");

@@ -126,9 +126,9 @@ TEST_F(AuthTest, RobotActsOnlyAsItselfInItsFleets) {
   EXPECT_EQ(stats.response.pending_traces(), 20u);
 
   // Other fleets, consolidation, replay for another robot: refused.
-  EXPECT_EQ(UploadTraces(*robot, "f2", Traces("robot-7", 100, 2))
-                .status.error_code(),
-            grpc::StatusCode::PERMISSION_DENIED);
+  EXPECT_EQ(
+      UploadTraces(*robot, "f2", Traces("robot-7", 100, 2)).status.error_code(),
+      grpc::StatusCode::PERMISSION_DENIED);
   EXPECT_EQ(GetStats(*robot, "f2").status.error_code(),
             grpc::StatusCode::PERMISSION_DENIED);
   EXPECT_EQ(ReadEvents(*robot, "f2", 0, 1).status.error_code(),
@@ -145,8 +145,8 @@ TEST_F(AuthTest, RobotActsOnlyAsItselfInItsFleets) {
       SampleReplay(*robot, kFleet, "robot-7", 5);
   ASSERT_TRUE(sample.ok()) << Describe(sample.status);
   EXPECT_EQ(sample.response.traces_size(), 5);
-  std::vector<float> code = CodeOf(own.ok() ? Traces("robot-7", 1, 1)[0]
-                                            : v1::MemoryTrace());
+  std::vector<float> code =
+      CodeOf(own.ok() ? Traces("robot-7", 1, 1)[0] : v1::MemoryTrace());
   EXPECT_TRUE(QueryCode(*robot, kFleet, code, 1).ok());
 }
 
@@ -289,14 +289,14 @@ TEST_F(TlsTest, RenewedCertificateIsServedWithoutARestart) {
   ASSERT_TRUE(RunCommand("cd " + dir_.path() +
                          " && cp server.pem live.pem && cp server.key live.key")
                   .ok());
-  ASSERT_NO_FATAL_FAILURE(Start({"--config", config, "--tls-cert",
-                                 dir_.Join("live.pem"), "--tls-key",
-                                 dir_.Join("live.key")}));
+  ASSERT_NO_FATAL_FAILURE(
+      Start({"--config", config, "--tls-cert", dir_.Join("live.pem"),
+             "--tls-key", dir_.Join("live.key")}));
   const std::string renewed_ca = ReadFileOrEmpty(dir_.Join("rogue-ca.pem"));
-  EXPECT_TRUE(GetStats(*MakeSecureStub(server_->address(),
-                                       {admin_, ca_, "", ""}),
-                       kFleet)
-                  .status.error_code() != grpc::StatusCode::UNAVAILABLE);
+  EXPECT_TRUE(
+      GetStats(*MakeSecureStub(server_->address(), {admin_, ca_, "", ""}),
+               kFleet)
+          .status.error_code() != grpc::StatusCode::UNAVAILABLE);
   EXPECT_EQ(GetStats(*MakeSecureStub(server_->address(),
                                      {admin_, renewed_ca, "", ""}),
                      kFleet)
@@ -327,10 +327,9 @@ TEST_F(AuthTest, CommandLineToolTakesItsTokenFromAFileOrTheEnvironment) {
   const std::string tool = std::string(FLEETMEM_BIN_DIR) + "/fleetmem";
   const std::string server = " --server " + server_->address();
   const std::string quiet = " >/dev/null 2>&1";
-  EXPECT_FALSE(
-      RunCommand("env -u FLEETMEM_TOKEN -u FLEETMEM_TOKEN_FILE " + tool +
-                 server + " stats --fleet f1" + quiet)
-          .ok());
+  EXPECT_FALSE(RunCommand("env -u FLEETMEM_TOKEN -u FLEETMEM_TOKEN_FILE " +
+                          tool + server + " stats --fleet f1" + quiet)
+                   .ok());
   EXPECT_TRUE(RunCommand(tool + server + " --token-file " +
                          dir_.Join("grafana.token") + " stats --fleet f1" +
                          quiet)

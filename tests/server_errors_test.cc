@@ -532,10 +532,9 @@ TEST_F(BadInputTest, UnparseableUploadMessageFailsTheStream) {
       std::string("\x12\xff\xff\xff\x0f garbage", 13),
       MakeUploadRequest(kFleet, third).SerializeAsString()};
   std::string response;
-  grpc::Status status =
-      GenericStreamCall(MakeChannel(server().address()),
-                        "/fleetmem.v1.MemoryService/UploadTraces", messages,
-                        &response);
+  grpc::Status status = GenericStreamCall(
+      MakeChannel(server().address()),
+      "/fleetmem.v1.MemoryService/UploadTraces", messages, &response);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
       << Describe(status);
   for (const char* words : {"message 2 of the stream", "does not parse",

@@ -1,12 +1,12 @@
 #include "clients/cpp/fleetmem_client.h"
 
 #include <algorithm>
+#include <condition_variable>
 #include <cstdlib>
 #include <fstream>
-#include <sstream>
-#include <condition_variable>
 #include <mutex>
 #include <random>
+#include <sstream>
 #include <thread>
 #include <utility>
 

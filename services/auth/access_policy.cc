@@ -61,9 +61,9 @@ absl::Status Authorize(const Principal& principal, Action action,
                        absl::string_view fleet_id, absl::string_view robot_id) {
   if (principal.role == Role::kAdmin) return absl::OkStatus();
   if (!InFleet(principal, fleet_id)) {
-    return Denied(principal, action,
-                  absl::StrCat("it does not belong to fleet \"", fleet_id,
-                               "\""));
+    return Denied(
+        principal, action,
+        absl::StrCat("it does not belong to fleet \"", fleet_id, "\""));
   }
   switch (action) {
     case Action::kQuery:
@@ -82,10 +82,10 @@ absl::Status Authorize(const Principal& principal, Action action,
                       "weights)");
       }
       if (robot_id != principal.robot_id) {
-        return Denied(principal, action,
-                      absl::StrCat("it samples only for its own robot id \"",
-                                   principal.robot_id, "\", not \"", robot_id,
-                                   "\""));
+        return Denied(
+            principal, action,
+            absl::StrCat("it samples only for its own robot id \"",
+                         principal.robot_id, "\", not \"", robot_id, "\""));
       }
       return absl::OkStatus();
   }
@@ -98,10 +98,10 @@ absl::Status AuthorizeUploadAs(const Principal& principal,
   if (principal.role == Role::kRobot && robot_id == principal.robot_id) {
     return absl::OkStatus();
   }
-  return Denied(principal, Action::kUpload,
-                absl::StrCat("a trace of robot \"", robot_id,
-                             "\" (it uploads only as \"", principal.robot_id,
-                             "\")"));
+  return Denied(
+      principal, Action::kUpload,
+      absl::StrCat("a trace of robot \"", robot_id, "\" (it uploads only as \"",
+                   principal.robot_id, "\")"));
 }
 
 }  // namespace fleetmem::auth

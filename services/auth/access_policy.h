@@ -5,10 +5,10 @@
 #define FLEETMEM_SERVICES_AUTH_ACCESS_POLICY_H_
 
 #include <string>
-#include "absl/strings/string_view.h"
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/strings/string_view.h"
 
 namespace fleetmem::auth {
 

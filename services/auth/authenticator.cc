@@ -24,8 +24,7 @@ absl::Status Bad(int index, absl::string_view name, absl::string_view why) {
       absl::StrCat("principal ", index + 1, " (\"", name, "\"): ", why));
 }
 
-absl::StatusOr<CredentialEntry> ToEntry(int index,
-                                        const file::Principal& in) {
+absl::StatusOr<CredentialEntry> ToEntry(int index, const file::Principal& in) {
   CredentialEntry out;
   if (absl::Status valid = core::ValidateId("name", in.name()); !valid.ok()) {
     return Bad(index, in.name(), valid.message());
@@ -46,7 +45,8 @@ absl::StatusOr<CredentialEntry> ToEntry(int index,
   }
   if (out.principal.role == Role::kRobot) {
     out.principal.robot_id = in.robot_id().empty() ? in.name() : in.robot_id();
-    if (absl::Status valid = core::ValidateId("robot_id", out.principal.robot_id);
+    if (absl::Status valid =
+            core::ValidateId("robot_id", out.principal.robot_id);
         !valid.ok()) {
       return Bad(index, in.name(), valid.message());
     }
@@ -103,7 +103,8 @@ absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
     absl::StatusOr<CredentialEntry> entry = ToEntry(i, parsed.principal(i));
     if (!entry.ok()) return entry.status();
     if (!names.insert(entry->principal.name).second) {
-      return Bad(i, entry->principal.name, "name: used by an earlier principal");
+      return Bad(i, entry->principal.name,
+                 "name: used by an earlier principal");
     }
     if (!entry->certificate_common_name.empty() &&
         !common_names.insert(entry->certificate_common_name).second) {

@@ -40,8 +40,7 @@ TEST(ParseCredentialsTest, AcceptsAFile) {
       "\"f1\" certificate_common_name: \"robot-8.fleet\" }\n"
       "principal { name: \"ops\" role: ADMIN certificate_common_name: \"ops\" "
       "}\n");
-  absl::StatusOr<std::vector<CredentialEntry>> entries =
-      ParseCredentials(text);
+  absl::StatusOr<std::vector<CredentialEntry>> entries = ParseCredentials(text);
   ASSERT_TRUE(entries.ok()) << entries.status();
   ASSERT_EQ(entries->size(), 3u);
   EXPECT_EQ((*entries)[0].principal.robot_id, "robot-7");
@@ -88,14 +87,13 @@ TEST(ParseCredentialsTest, RejectsBadEntries) {
 class AuthenticatorTest : public ::testing::Test {
  protected:
   std::vector<CredentialEntry> Entries(const std::string& secret) {
-    absl::StatusOr<std::vector<CredentialEntry>> entries =
-        ParseCredentials(absl::StrCat(
-            "principal { name: \"robot-7\" role: ROBOT fleets: \"f1\" "
-            "secret_hash: \"",
-            Hash(secret),
-            "\" }\n"
-            "principal { name: \"r8\" role: ROBOT fleets: \"f1\" "
-            "certificate_common_name: \"robot-8\" }\n"));
+    absl::StatusOr<std::vector<CredentialEntry>> entries = ParseCredentials(
+        absl::StrCat("principal { name: \"robot-7\" role: ROBOT fleets: \"f1\" "
+                     "secret_hash: \"",
+                     Hash(secret),
+                     "\" }\n"
+                     "principal { name: \"r8\" role: ROBOT fleets: \"f1\" "
+                     "certificate_common_name: \"robot-8\" }\n"));
     EXPECT_TRUE(entries.ok()) << entries.status();
     return *entries;
   }

@@ -75,8 +75,8 @@ int main(int argc, char** argv) {
                  "or both\n";
     return 2;
   }
-  std::string entry = absl::StrCat("principal {\n  name: ", Quoted(name),
-                                   "\n  role: ");
+  std::string entry =
+      absl::StrCat("principal {\n  name: ", Quoted(name), "\n  role: ");
   for (char& c : role) c = static_cast<char>(std::toupper(c));
   absl::StrAppend(&entry, role, "\n");
   if (!robot_id.empty()) {

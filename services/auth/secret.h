@@ -3,9 +3,9 @@
 #define FLEETMEM_SERVICES_AUTH_SECRET_H_
 
 #include <string>
-#include "absl/strings/string_view.h"
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 
 namespace fleetmem::auth {
 

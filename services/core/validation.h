@@ -35,8 +35,9 @@ struct TraceShape {
   std::string_view fleet_id;
 };
 
-// Checks ids, code, place (finite, |x|, |y|, |z| <= kMaxCoordinateM), rewards (finite, reward >= 0), domain and
-// encoder version lengths, and the fleet's dimension and encoder version.
+// Checks ids, code, place (finite, |x|, |y|, |z| <= kMaxCoordinateM), rewards
+// (finite, reward >= 0), domain and encoder version lengths, and the fleet's
+// dimension and encoder version.
 absl::Status ValidateTrace(std::string_view what, const MemoryTrace& trace,
                            const TraceShape& shape);
 

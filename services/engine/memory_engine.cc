@@ -851,8 +851,8 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
   if (status.ok() && !request_id.empty()) {
     status = core::ValidateId("request_id", request_id);
     if (status.ok() && request_id.size() > 64) {
-      status = absl::InvalidArgumentError(
-          "request_id: longer than 64 characters");
+      status =
+          absl::InvalidArgumentError("request_id: longer than 64 characters");
     }
   }
   if (!status.ok()) return status;

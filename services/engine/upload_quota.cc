@@ -56,10 +56,10 @@ absl::Status UploadQuota::AdmitNewFleet(std::string_view fleet_id,
     return absl::OkStatus();
   }
   absl::MutexLock lock(&mu_);
-  return Refuse(fleet_id, "max_fleets",
-                absl::StrCat("(", options_.max_fleets,
-                             ") reached: fleet \"", V(fleet_id),
-                             "\" is not created; nothing was stored"));
+  return Refuse(
+      fleet_id, "max_fleets",
+      absl::StrCat("(", options_.max_fleets, ") reached: fleet \"", V(fleet_id),
+                   "\" is not created; nothing was stored"));
 }
 
 absl::Status UploadQuota::AdmitDimension(std::string_view fleet_id,
@@ -82,12 +82,12 @@ absl::Status UploadQuota::AdmitStored(std::string_view fleet_id, uint64_t held,
     return absl::OkStatus();
   }
   absl::MutexLock lock(&mu_);
-  return Refuse(
-      fleet_id, "max_traces_per_fleet",
-      absl::StrCat("(", options_.max_traces_per_fleet, ") reached: fleet \"",
-                   V(fleet_id), "\" holds ", held, " traces and this upload ",
-                   "adds ", adding, "; nothing was stored (consolidation and "
-                   "forgetting make room)"));
+  return Refuse(fleet_id, "max_traces_per_fleet",
+                absl::StrCat("(", options_.max_traces_per_fleet,
+                             ") reached: fleet \"", V(fleet_id), "\" holds ",
+                             held, " traces and this upload ", "adds ", adding,
+                             "; nothing was stored (consolidation and "
+                             "forgetting make room)"));
 }
 
 bool UploadQuota::Refill(Bucket& bucket, double rate, double need,
@@ -147,9 +147,8 @@ absl::Status UploadQuota::AdmitRates(
     const std::string who =
         absl::StrCat("robot \"", robot, "\" in fleet \"", fleet, "\"");
     if (options_.robot_traces_per_second > 0) {
-      demands.push_back({&trace_buckets_, key,
-                         options_.robot_traces_per_second, need.first,
-                         "robot_traces_per_second", who, "traces"});
+      demands.push_back({&trace_buckets_, key, options_.robot_traces_per_second,
+                         need.first, "robot_traces_per_second", who, "traces"});
     }
     if (options_.robot_bytes_per_second > 0) {
       demands.push_back({&byte_buckets_, key, options_.robot_bytes_per_second,

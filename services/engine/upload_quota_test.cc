@@ -43,8 +43,8 @@ TEST(UploadQuotaTest, RobotRateRefillsOverTime) {
 TEST(UploadQuotaTest, RefusedMessageConsumesNothing) {
   double now = 0.0;
   QuotaOptions options;
-  options.fleet_traces_per_second = 100;   // bucket 200
-  options.robot_traces_per_second = 5;     // bucket 10
+  options.fleet_traces_per_second = 100;  // bucket 200
+  options.robot_traces_per_second = 5;    // bucket 10
   UploadQuota quota(options, [&] { return now; });
   EXPECT_TRUE(quota.AdmitRates("f", Traces("a", 10)).ok());
   // Robot "a" is out; the fleet bucket must not be charged for the refusal.

@@ -13,9 +13,9 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <sstream>
 #include <iostream>
 #include <memory>
+#include <sstream>
 #include <string>
 #include <system_error>
 #include <utility>
@@ -152,8 +152,8 @@ void ReloadCredentials(const std::string& path,
   }
   const size_t count = entries->size();
   authenticator->Replace(std::move(*entries));
-  FLEETMEM_LOG(kInfo) << "SIGHUP: reloaded " << count
-                      << " principals from " << path;
+  FLEETMEM_LOG(kInfo) << "SIGHUP: reloaded " << count << " principals from "
+                      << path;
 }
 
 int Serve(const ServerConfig& config, const sigset_t& signals) {

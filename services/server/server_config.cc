@@ -143,8 +143,8 @@ void ApplySecurity(const SecurityConfigFile& in, SecurityConfig* out) {
     out->require_client_certificate = in.require_client_certificate();
   }
   if (in.has_tls_reload_seconds()) {
-    out->tls_reload_seconds = static_cast<int>(
-        std::min<uint32_t>(in.tls_reload_seconds(), 86400));
+    out->tls_reload_seconds =
+        static_cast<int>(std::min<uint32_t>(in.tls_reload_seconds(), 86400));
   }
   if (in.has_reflection_with_auth()) {
     out->reflection_with_auth = in.reflection_with_auth();
@@ -473,10 +473,8 @@ std::string DescribeConfig(const ServerConfig& config) {
       " max_fleets=", config.engine.limits.max_fleets,
       " max_traces_per_fleet=", config.engine.limits.max_traces_per_fleet,
       " max_code_dimension=", config.engine.limits.max_code_dimension,
-      " robot_traces_per_second=",
-      config.engine.limits.robot_traces_per_second,
-      " fleet_traces_per_second=",
-      config.engine.limits.fleet_traces_per_second,
+      " robot_traces_per_second=", config.engine.limits.robot_traces_per_second,
+      " fleet_traces_per_second=", config.engine.limits.fleet_traces_per_second,
       " max_streams_per_client=", config.service.max_streams_per_client,
       " rocksdb_sync=", config.storage.sync ? "true" : "false",
       " min_free_bytes=", config.storage.min_free_bytes,

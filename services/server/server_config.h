@@ -99,8 +99,9 @@ struct CommandLine {
 
 // Parses argv[1..argc): --listen, --data-dir, --config, --log-level,
 // --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca as
-// "--name=value" or "--name value"; --allow-unauthenticated; --help or -h. INVALID_ARGUMENT
-// for an unknown flag, a missing value or a positional argument.
+// "--name=value" or "--name value"; --allow-unauthenticated; --help or -h.
+// INVALID_ARGUMENT for an unknown flag, a missing value or a positional
+// argument.
 absl::StatusOr<CommandLine> ParseCommandLine(int argc, const char* const* argv);
 
 // The --help text.

@@ -271,15 +271,15 @@ namespace {
 
 TEST(ServerConfigTest, SecurityAndLimitsFromTheFileAndFlags) {
   ServerConfig config;
-  ASSERT_TRUE(ApplyConfigText(
-                  "data_dir: \"d\" listen: \"0.0.0.0:1\"\n"
-                  "limits { robot_traces_per_second: 5 max_fleets: 2 "
-                  "max_streams_per_client: 3 }\n"
-                  "engine { max_events_per_fleet: 7 }\n"
-                  "security { tls_cert_file: \"s.pem\" tls_key_file: "
-                  "\"s.key\" }\n",
-                  &config)
-                  .ok());
+  ASSERT_TRUE(
+      ApplyConfigText("data_dir: \"d\" listen: \"0.0.0.0:1\"\n"
+                      "limits { robot_traces_per_second: 5 max_fleets: 2 "
+                      "max_streams_per_client: 3 }\n"
+                      "engine { max_events_per_fleet: 7 }\n"
+                      "security { tls_cert_file: \"s.pem\" tls_key_file: "
+                      "\"s.key\" }\n",
+                      &config)
+          .ok());
   EXPECT_EQ(config.engine.limits.robot_traces_per_second, 5);
   EXPECT_EQ(config.engine.limits.max_fleets, 2u);
   EXPECT_EQ(config.service.max_streams_per_client, 3u);

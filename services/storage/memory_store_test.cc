@@ -345,8 +345,7 @@ TEST_P(StoreTest, EventsAfterCursorWithLimit) {
 TEST_P(StoreTest, EventRetentionErasesOlderEvents) {
   FleetMutation first;
   for (uint64_t id = 1; id <= 300; ++id) {
-    first.append_events.push_back(
-        MakeEvent(id, EventType::kClusterAdded, id));
+    first.append_events.push_back(MakeEvent(id, EventType::kClusterAdded, id));
   }
   ASSERT_TRUE(store().Apply("f", first).ok());
   FleetMutation other;

@@ -613,8 +613,7 @@ class RocksDbStore final : public engine::MemoryStore {
   std::unique_ptr<rocksdb::DB> db_;
   const std::string path_;
   const uint64_t min_free_bytes_;
-  const std::function<absl::StatusOr<uint64_t>(const std::string&)>
-      free_bytes_;
+  const std::function<absl::StatusOr<uint64_t>(const std::string&)> free_bytes_;
   rocksdb::WriteOptions write_options_;
   absl::Mutex apply_mu_;
   bool low_space_ ABSL_GUARDED_BY(apply_mu_) = false;

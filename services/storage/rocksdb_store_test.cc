@@ -3,12 +3,12 @@
 // memory_store_test.cc.)
 #include "services/storage/rocksdb_store.h"
 
-#include <atomic>
 #include <fcntl.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cstdlib>
 #include <fstream>
 #include <memory>

@@ -11,9 +11,10 @@
 
 namespace fleetmem::transport {
 
-MemoryServiceImpl::MemoryServiceImpl(
-    engine::MemoryEngine* engine, WorkQueue* work,
-    const auth::Authenticator* authenticator, ServiceOptions options)
+MemoryServiceImpl::MemoryServiceImpl(engine::MemoryEngine* engine,
+                                     WorkQueue* work,
+                                     const auth::Authenticator* authenticator,
+                                     ServiceOptions options)
     : state_(engine, work, authenticator, options) {}
 
 void MemoryServiceImpl::Shutdown() { state_.Shutdown(); }
@@ -34,8 +35,7 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
   state_.BeginWork();
   bool queued = state_.work().TrySubmit(
       [this, context, reactor, action, fleet_id = std::move(fleet_id),
-       robot_id = std::move(robot_id),
-       work = std::move(work)]() mutable {
+       robot_id = std::move(robot_id), work = std::move(work)]() mutable {
         reactor->Finish([&] {
           grpc::Status live = CheckCallLive(*context);
           if (!live.ok()) return live;
@@ -63,12 +63,12 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::Consolidate(
     v1::ConsolidateResponse* response) {
   return RunUnary(context, auth::Action::kConsolidate, request->fleet_id(), {},
                   [this, request, response]() -> absl::Status {
-    absl::StatusOr<engine::ConsolidateResult> result =
-        state_.engine().Consolidate(request->fleet_id());
-    if (!result.ok()) return result.status();
-    ConsolidateResultToProto(*result, response);
-    return absl::OkStatus();
-  });
+                    absl::StatusOr<engine::ConsolidateResult> result =
+                        state_.engine().Consolidate(request->fleet_id());
+                    if (!result.ok()) return result.status();
+                    ConsolidateResultToProto(*result, response);
+                    return absl::OkStatus();
+                  });
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
@@ -78,13 +78,14 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
   return RunUnary(context, auth::Action::kSample, request->fleet_id(),
                   request->robot_id(),
                   [this, request, response]() -> absl::Status {
-    absl::StatusOr<std::vector<core::MemoryTrace>> traces =
-        state_.engine().SampleReplay(request->fleet_id(), request->robot_id(),
-                                     request->count(), request->request_id());
-    if (!traces.ok()) return traces.status();
-    SampledTracesToProto(*traces, response);
-    return absl::OkStatus();
-  });
+                    absl::StatusOr<std::vector<core::MemoryTrace>> traces =
+                        state_.engine().SampleReplay(
+                            request->fleet_id(), request->robot_id(),
+                            request->count(), request->request_id());
+                    if (!traces.ok()) return traces.status();
+                    SampledTracesToProto(*traces, response);
+                    return absl::OkStatus();
+                  });
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::QueryPlace(
@@ -92,13 +93,13 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::QueryPlace(
     v1::QueryPlaceResponse* response) {
   return RunUnary(context, auth::Action::kQuery, request->fleet_id(), {},
                   [this, request, response]() -> absl::Status {
-    absl::StatusOr<std::vector<engine::PlaceMatch>> matches =
-        state_.engine().QueryPlace(request->fleet_id(),
-                                   QueryFromProto(*request));
-    if (!matches.ok()) return matches.status();
-    MatchesToProto(*matches, response);
-    return absl::OkStatus();
-  });
+                    absl::StatusOr<std::vector<engine::PlaceMatch>> matches =
+                        state_.engine().QueryPlace(request->fleet_id(),
+                                                   QueryFromProto(*request));
+                    if (!matches.ok()) return matches.status();
+                    MatchesToProto(*matches, response);
+                    return absl::OkStatus();
+                  });
 }
 
 grpc::ServerWriteReactor<v1::MemoryEvent>* MemoryServiceImpl::WatchMemory(
@@ -112,12 +113,12 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::GetStats(
     v1::GetStatsResponse* response) {
   return RunUnary(context, auth::Action::kStats, request->fleet_id(), {},
                   [this, request, response]() -> absl::Status {
-    absl::StatusOr<engine::FleetStats> stats =
-        state_.engine().GetStats(request->fleet_id());
-    if (!stats.ok()) return stats.status();
-    StatsToProto(*stats, response);
-    return absl::OkStatus();
-  });
+                    absl::StatusOr<engine::FleetStats> stats =
+                        state_.engine().GetStats(request->fleet_id());
+                    if (!stats.ok()) return stats.status();
+                    StatsToProto(*stats, response);
+                    return absl::OkStatus();
+                  });
 }
 
 }  // namespace fleetmem::transport

@@ -26,8 +26,6 @@ void ServiceState::Shutdown() {
   for (WatchReactor* watch : watches_) watch->Stop();
 }
 
-
-
 absl::Status ServiceState::AcquireStream(const std::string& client) {
   absl::MutexLock lock(&streams_mu_);
   size_t& open = streams_[client];

@@ -83,7 +83,8 @@ class ServiceState {
   const auth::Authenticator* const authenticator_;
   const ServiceOptions options_;
   mutable absl::Mutex streams_mu_;
-  absl::flat_hash_map<std::string, size_t> streams_ ABSL_GUARDED_BY(streams_mu_);
+  absl::flat_hash_map<std::string, size_t> streams_
+      ABSL_GUARDED_BY(streams_mu_);
   uint64_t streams_refused_ ABSL_GUARDED_BY(streams_mu_) = 0;
   absl::Mutex work_mu_;
   int64_t work_in_flight_ ABSL_GUARDED_BY(work_mu_) = 0;

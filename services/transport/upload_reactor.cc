@@ -63,9 +63,9 @@ void UploadReactor::Fail(const absl::Status& status) {
     message = absl::StrCat("message ", index_, " of the stream: ", message);
   }
   if (index_ > 1) {
-    absl::StrAppend(&message, "; messages 1..", index_ - 1,
-                    " are durable (", totals_.accepted(), " accepted, ",
-                    totals_.duplicates(), " duplicates)");
+    absl::StrAppend(&message, "; messages 1..", index_ - 1, " are durable (",
+                    totals_.accepted(), " accepted, ", totals_.duplicates(),
+                    " duplicates)");
   } else if (!absl::StrContains(message, "nothing was stored")) {
     absl::StrAppend(&message, "; nothing was stored");
   }
@@ -127,9 +127,8 @@ void UploadReactor::Store() {
     return;
   }
   if (!principal_.has_value()) {
-    absl::StatusOr<auth::Principal> principal =
-        AuthorizeCall(state_->authenticator(), *context_,
-                      auth::Action::kUpload, fleet_id_);
+    absl::StatusOr<auth::Principal> principal = AuthorizeCall(
+        state_->authenticator(), *context_, auth::Action::kUpload, fleet_id_);
     if (!principal.ok()) {
       Fail(principal.status());
       return;

@@ -61,11 +61,11 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   ServiceState* const state_;
   grpc::CallbackServerContext* const context_;
   grpc::ByteBuffer* const response_;
-  grpc::ByteBuffer buffer_;           // the message being read
-  v1::UploadTracesRequest request_;   // ... parsed
-  v1::UploadTracesResponse totals_;   // the running totals
-  uint64_t index_ = 0;                // 1-based number of the current message
-  std::string fleet_id_;              // of the first message
+  grpc::ByteBuffer buffer_;          // the message being read
+  v1::UploadTracesRequest request_;  // ... parsed
+  v1::UploadTracesResponse totals_;  // the running totals
+  uint64_t index_ = 0;               // 1-based number of the current message
+  std::string fleet_id_;             // of the first message
   std::optional<auth::Principal> principal_;  // once authenticated
   std::string client_;                        // holds a stream slot if set
 };

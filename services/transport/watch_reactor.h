@@ -25,8 +25,8 @@ namespace fleetmem::transport {
 // when the call is cancelled or its deadline passes (OnCancel); UNAVAILABLE
 // when the server shuts down (Stop), so that clients resume from their cursor
 // elsewhere or later; INVALID_ARGUMENT for a bad fleet id;
-// UNAUTHENTICATED / PERMISSION_DENIED from the access policy; the engine's error
-// if a read fails; RESOURCE_EXHAUSTED if the pool is full.
+// UNAUTHENTICATED / PERMISSION_DENIED from the access policy; the engine's
+// error if a read fails; RESOURCE_EXHAUSTED if the pool is full.
 //
 // Lifetime: created by the service, deleted in OnDone. The pool task and the
 // engine listener do not point at the reactor directly but at a Shared block

@@ -80,7 +80,8 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
                                             const std::atomic<bool>* stop,
                                             LatencyLog* latencies) {
   if (options.robots < 1 || options.batch < 1 || options.dimension < 1) {
-    return absl::InvalidArgumentError("robots, batch and dimension must be >= 1");
+    return absl::InvalidArgumentError(
+        "robots, batch and dimension must be >= 1");
   }
   std::ofstream log;
   if (!ack_log.empty()) {
@@ -107,8 +108,9 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
              !(stop != nullptr && stop->load())) {
         if (interval.count() > 0) {
           std::this_thread::sleep_until(due);
-          due += std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-              interval);
+          due +=
+              std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                  interval);
         }
         const uint64_t last = next + options.batch - 1;
         const std::vector<v1::MemoryTrace> traces =
@@ -141,9 +143,9 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
     });
   }
   for (std::thread& thread : threads) thread.join();
-  result.seconds = std::chrono::duration<double>(
-                       std::chrono::steady_clock::now() - start)
-                       .count();
+  result.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count();
   return result;
 }
 

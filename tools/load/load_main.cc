@@ -54,8 +54,8 @@ void AddCommon(CLI::App* app, Common* common) {
   app->add_option("--tls-key", common->credentials.key_file, "client key");
 }
 
-absl::StatusOr<fleetmem::client::ClientOptions> ClientFor(
-    const Common& common, int attempts) {
+absl::StatusOr<fleetmem::client::ClientOptions> ClientFor(const Common& common,
+                                                          int attempts) {
   fleetmem::client::ClientOptions options;
   options.target = common.server;
   options.max_attempts = attempts;
@@ -84,8 +84,8 @@ void QueryLoop(const fleetmem::client::ClientOptions& options,
     fleetmem::v1::QueryPlaceRequest request;
     request.set_fleet_id(fleet);
     request.set_k(5);
-    const fleetmem::v1::MemoryTrace probe = fleetmem::load::LoadTrace(
-        "load-0", 1 + rng() % 1000, dimension);
+    const fleetmem::v1::MemoryTrace probe =
+        fleetmem::load::LoadTrace("load-0", 1 + rng() % 1000, dimension);
     *request.mutable_code() = probe.code();
     const auto sent = std::chrono::steady_clock::now();
     if (client->QueryPlace(request).ok()) {
@@ -110,8 +110,8 @@ int Soak(const Common& common, int pid, double seconds, double interval,
   load.robots = robots;
   uint64_t next_seq = 1;
   if (rate <= 0) {
-    load.duration = std::chrono::milliseconds(
-        static_cast<int64_t>(peak_seconds * 1000));
+    load.duration =
+        std::chrono::milliseconds(static_cast<int64_t>(peak_seconds * 1000));
     absl::StatusOr<fleetmem::load::UploadLoadResult> peak =
         fleetmem::load::RunUploads(*options, load, "", nullptr, nullptr);
     if (!peak.ok()) return Fail(peak.status());
@@ -125,8 +125,8 @@ int Soak(const Common& common, int pid, double seconds, double interval,
   }
   load.rate = rate;
   load.first_seq = next_seq;
-  load.duration = std::chrono::milliseconds(
-      static_cast<int64_t>(seconds * 1000));
+  load.duration =
+      std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
   std::atomic<bool> stop{false};
   LatencyLog uploads, queries;
   fleetmem::load::UploadLoadResult result;
@@ -135,9 +135,9 @@ int Soak(const Common& common, int pid, double seconds, double interval,
         fleetmem::load::RunUploads(*options, load, "", &stop, &uploads);
     if (run.ok()) result = *run;
   });
-  std::thread querier(
-      [&] { QueryLoop(*options, common.fleet, common.dimension, 20, stop,
-                      &queries); });
+  std::thread querier([&] {
+    QueryLoop(*options, common.fleet, common.dimension, 20, stop, &queries);
+  });
   std::ofstream csv;
   if (!report.empty()) {
     csv.open(report);
@@ -150,11 +150,11 @@ int Soak(const Common& common, int pid, double seconds, double interval,
   const auto start = std::chrono::steady_clock::now();
   int exit_code = 0;
   for (double elapsed = 0; elapsed < seconds;) {
-    std::this_thread::sleep_for(std::chrono::duration<double>(
-        std::min(interval, seconds - elapsed)));
-    elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() -
-                                            start)
-                  .count();
+    std::this_thread::sleep_for(
+        std::chrono::duration<double>(std::min(interval, seconds - elapsed)));
+    elapsed =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+            .count();
     absl::StatusOr<fleetmem::load::ProcessSample> sample =
         fleetmem::load::SampleProcess(pid);
     if (!sample.ok()) {
@@ -179,7 +179,8 @@ int Soak(const Common& common, int pid, double seconds, double interval,
   uploader.join();
   querier.join();
   std::cout << absl::StrFormat(
-      "soak: %llu traces acknowledged in %.0f s (%.0f/s), %llu failed calls%s\n",
+      "soak: %llu traces acknowledged in %.0f s (%.0f/s), %llu failed "
+      "calls%s\n",
       static_cast<unsigned long long>(result.acknowledged), result.seconds,
       result.seconds > 0 ? result.acknowledged / result.seconds : 0.0,
       static_cast<unsigned long long>(result.failed_calls),
@@ -266,8 +267,7 @@ int main(int argc, char** argv) {
         static_cast<unsigned long long>(result->acknowledged),
         static_cast<unsigned long long>(result->present),
         static_cast<unsigned long long>(result->lost));
-    return result->lost == 0 && result->present == result->acknowledged ? 0
-                                                                        : 1;
+    return result->lost == 0 && result->present == result->acknowledged ? 0 : 1;
   }
   return Soak(common, pid, soak_seconds, interval, rate, peak_seconds, robots,
               report);
