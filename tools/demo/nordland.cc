@@ -62,6 +62,15 @@ absl::StatusOr<cv::Mat> LoadNordlandGrey(const std::string& season_dir,
 
 absl::StatusOr<cv::Mat> DecodeGrey(std::string_view bytes,
                                    const std::string& name) {
+  // Only PNG and JPEG reach OpenCV: imdecode would hand other bytes to every
+  // decoder it has, and Debian's DICOM one (GDCM) aborts the process on
+  // malformed input (found by image_decode_fuzz).
+  constexpr std::string_view kPng("\x89PNG\r\n\x1a\n", 8);
+  constexpr std::string_view kJpeg("\xff\xd8\xff", 3);
+  if (!bytes.starts_with(kPng) && !bytes.starts_with(kJpeg)) {
+    return absl::DataLossError(
+        absl::StrCat("cannot decode ", name, ": not a PNG or JPEG file"));
+  }
   cv::Mat grey;
   try {
     const cv::Mat raw(1, static_cast<int>(bytes.size()), CV_8UC1,

@@ -27,8 +27,9 @@ std::string NordlandFileName(int number);
 absl::StatusOr<std::vector<int>> ListNordlandFrames(
     const std::string& season_dir);
 
-// Decodes an image file's bytes (PNG, JPEG, ...) to an 8-bit single-channel
-// image. DATA_LOSS naming `name` if they do not decode. (The parser behind
+// Decodes an image file's bytes (PNG or JPEG, told by their signature) to an
+// 8-bit single-channel image. DATA_LOSS naming `name` for any other format
+// or bytes that do not decode. (The parser behind
 // LoadNordlandGrey, fuzzed by image_decode_fuzz.cc.)
 absl::StatusOr<cv::Mat> DecodeGrey(std::string_view bytes,
                                    const std::string& name);

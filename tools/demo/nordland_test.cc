@@ -46,6 +46,20 @@ TEST(LoadNordlandGreyTest, LoadsOneGreyThumbnail) {
             absl::StatusCode::kNotFound);
 }
 
+// image_decode_fuzz found bytes that OpenCV hands to Debian's DICOM decoder,
+// which aborts: only PNG and JPEG signatures are decoded.
+TEST(DecodeGreyTest, OnlyPngAndJpegAreDecoded) {
+  const std::string dicom_like =
+      std::string(128, '\0') + "DICM" + std::string(16, '\xa3');
+  absl::StatusOr<cv::Mat> decoded = DecodeGrey(dicom_like, "x.dcm");
+  EXPECT_EQ(decoded.status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_NE(decoded.status().message().find("not a PNG or JPEG"),
+            std::string::npos);
+  const std::string truncated_png("\x89PNG\r\n\x1a\n\0\0", 10);
+  EXPECT_EQ(DecodeGrey(truncated_png, "t.png").status().code(),
+            absl::StatusCode::kDataLoss);
+}
+
 TEST(ListNordlandFramesTest, MissingFolderIsNotFound) {
   EXPECT_EQ(ListNordlandFrames("/nonexistent/nordland").status().code(),
             absl::StatusCode::kNotFound);
