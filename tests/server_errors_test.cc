@@ -537,7 +537,7 @@ TEST_F(BadInputTest, UnparseableUploadMessageFailsTheStream) {
       "/fleetmem.v1.MemoryService/UploadTraces", messages, &response);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
       << Describe(status);
-  for (const char* words : {"message 2 of the stream", "does not parse",
+  for (const char* words : {"message 2 of the stream", "do not parse",
                             "messages 1..1 are durable (10 accepted"}) {
     EXPECT_TRUE(absl::StrContains(status.error_message(), words))
         << status.error_message();

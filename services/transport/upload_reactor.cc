@@ -3,7 +3,6 @@
 #include <utility>
 #include <vector>
 
-#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "services/common/log.h"
 #include "services/core/validation.h"
@@ -33,9 +32,8 @@ absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
   v1::UploadTracesRequest request;
   if (!request.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
     return absl::InvalidArgumentError(
-        absl::StrCat("message ", index, " of the stream (", bytes.size(),
-                     " bytes) does not parse as fleetmem.v1."
-                     "UploadTracesRequest"));
+        absl::StrCat("message ", index, " of the stream: ", bytes.size(),
+                     " bytes do not parse as fleetmem.v1.UploadTracesRequest"));
   }
   return request;
 }
@@ -57,19 +55,17 @@ UploadReactor::UploadReactor(ServiceState* state,
   StartRead(&buffer_);
 }
 
+std::string UploadReactor::Earlier() const {
+  if (index_ <= 1) return "; nothing of the stream was stored";
+  return absl::StrCat("; messages 1..", index_ - 1, " are durable (",
+                      totals_.accepted(), " accepted, ", totals_.duplicates(),
+                      " duplicates)");
+}
+
 void UploadReactor::Fail(const absl::Status& status) {
-  std::string message(status.message());
-  if (!absl::StrContains(message, "message ")) {
-    message = absl::StrCat("message ", index_, " of the stream: ", message);
-  }
-  if (index_ > 1) {
-    absl::StrAppend(&message, "; messages 1..", index_ - 1, " are durable (",
-                    totals_.accepted(), " accepted, ", totals_.duplicates(),
-                    " duplicates)");
-  } else if (!absl::StrContains(message, "nothing was stored")) {
-    absl::StrAppend(&message, "; nothing was stored");
-  }
-  Finish(ToGrpcStatus(absl::Status(status.code(), message)));
+  Finish(ToGrpcStatus(absl::Status(
+      status.code(), absl::StrCat("message ", index_, " of the stream: ",
+                                  status.message(), Earlier()))));
 }
 
 void UploadReactor::OnReadDone(bool ok) {
@@ -91,7 +87,9 @@ void UploadReactor::OnReadDone(bool ok) {
       ParseUploadMessage(Flatten(buffer_), index_);
   buffer_.Clear();
   if (!parsed.ok()) {
-    Fail(parsed.status());
+    Finish(ToGrpcStatus(absl::Status(
+        parsed.status().code(),
+        absl::StrCat(parsed.status().message(), Earlier()))));
     return;
   }
   request_ = std::move(*parsed);

@@ -54,9 +54,11 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
  private:
   // Runs on the worker pool.
   void Store();
-  // Finishes with `status` for the current message, saying what the earlier
-  // messages of the stream did.
+  // Finishes with `status` for the current message: "message N of the
+  // stream: ..." plus Earlier().
   void Fail(const absl::Status& status);
+  // What the messages before the current one did, as a suffix.
+  std::string Earlier() const;
 
   ServiceState* const state_;
   grpc::CallbackServerContext* const context_;

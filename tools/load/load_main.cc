@@ -121,7 +121,8 @@ int Soak(const Common& common, int pid, double seconds, double interval,
     std::cout << absl::StrFormat(
         "peak: %.0f traces/s over %.1f s (%d robots, batch %d, dim %d); "
         "soak at half: %.0f traces/s\n",
-        peak_rate, peak->seconds, robots, load.batch, load.dimension, rate);
+        peak_rate, peak->seconds, robots, load.batch, load.dimension, rate)
+              << std::flush;
   }
   load.rate = rate;
   load.first_seq = next_seq;
@@ -172,7 +173,8 @@ int Soak(const Common& common, int pid, double seconds, double interval,
     std::cout << absl::StrFormat(
         "%9.0f  %7.1f  %3d  %7zu  %6.2f  %6.2f  %6.2f  %7zu  %5.2f  %5.2f\n",
         elapsed, sample->rss_bytes / 1048576.0, sample->open_fds, up.count,
-        up.p50, up.p99, up.max, q.count, q.p50, q.p99);
+        up.p50, up.p99, up.max, q.count, q.p50, q.p99)
+              << std::flush;
     if (csv.is_open()) csv << row << "\n" << std::flush;
   }
   stop = true;
