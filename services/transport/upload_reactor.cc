@@ -87,9 +87,9 @@ void UploadReactor::OnReadDone(bool ok) {
       ParseUploadMessage(Flatten(buffer_), index_);
   buffer_.Clear();
   if (!parsed.ok()) {
-    Finish(ToGrpcStatus(absl::Status(
-        parsed.status().code(),
-        absl::StrCat(parsed.status().message(), Earlier()))));
+    Finish(ToGrpcStatus(
+        absl::Status(parsed.status().code(),
+                     absl::StrCat(parsed.status().message(), Earlier()))));
     return;
   }
   request_ = std::move(*parsed);

@@ -118,11 +118,13 @@ int Soak(const Common& common, int pid, double seconds, double interval,
     const double peak_rate = peak->acknowledged / peak->seconds;
     rate = peak_rate / 2;
     for (uint64_t seq : peak->next_seq) next_seq = std::max(next_seq, seq);
-    std::cout << absl::StrFormat(
-        "peak: %.0f traces/s over %.1f s (%d robots, batch %d, dim %d); "
-        "soak at half: %.0f traces/s\n",
-        peak_rate, peak->seconds, robots, load.batch, load.dimension, rate)
-              << std::flush;
+    std::cout
+        << absl::StrFormat(
+               "peak: %.0f traces/s over %.1f s (%d robots, batch %d, dim %d); "
+               "soak at half: %.0f traces/s\n",
+               peak_rate, peak->seconds, robots, load.batch, load.dimension,
+               rate)
+        << std::flush;
   }
   load.rate = rate;
   load.first_seq = next_seq;
@@ -171,9 +173,10 @@ int Soak(const Common& common, int pid, double seconds, double interval,
         sample->rss_bytes / 1048576.0, sample->open_fds, up.count, up.p50,
         up.p99, up.max, q.count, q.p50, q.p99);
     std::cout << absl::StrFormat(
-        "%9.0f  %7.1f  %3d  %7zu  %6.2f  %6.2f  %6.2f  %7zu  %5.2f  %5.2f\n",
-        elapsed, sample->rss_bytes / 1048576.0, sample->open_fds, up.count,
-        up.p50, up.p99, up.max, q.count, q.p50, q.p99)
+                     "%9.0f  %7.1f  %3d  %7zu  %6.2f  %6.2f  %6.2f  %7zu  "
+                     "%5.2f  %5.2f\n",
+                     elapsed, sample->rss_bytes / 1048576.0, sample->open_fds,
+                     up.count, up.p50, up.p99, up.max, q.count, q.p50, q.p99)
               << std::flush;
     if (csv.is_open()) csv << row << "\n" << std::flush;
   }
