@@ -306,11 +306,11 @@ class MutationWriter {
 };
 
 // How a write waits for RocksDB to recover from a background error: up to
-// kResumeAttempts x kResumeInterval = 6 s. RocksDB's recovery from a
+// kResumeAttempts x kResumeInterval = 8 s. RocksDB's recovery from a
 // no-space error is driven by its SstFileManager, which re-checks the free
 // space every 5 s; other retryable errors are resumed every kResumeInterval
 // (see MakeOptions).
-constexpr int kResumeAttempts = 30;
+constexpr int kResumeAttempts = 40;
 constexpr absl::Duration kResumeInterval = absl::Milliseconds(200);
 
 absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
