@@ -5,11 +5,12 @@
 start_server() {
   local build=$1 data=$2 log=$3
   shift 3
+  : >"$log"  # exists before the server's shell opens it
   "$build/bin/fleetmem-server" --listen 127.0.0.1:0 --data-dir "$data" "$@" \
     >"$log" 2>&1 &
   SERVER_PID=$!
   for _ in $(seq 1 300); do
-    SERVER_ADDR=$(sed -n 's/^fleetmem-server listening on \(.*\)$/\1/p' "$log" | head -1)
+    SERVER_ADDR=$(sed -n 's/^fleetmem-server listening on \(.*\)$/\1/p' "$log" | head -1 || true)
     [ -n "$SERVER_ADDR" ] && return 0
     kill -0 "$SERVER_PID" 2>/dev/null || break
     sleep 0.1
