@@ -1,7 +1,6 @@
 #include "services/transport/service_state.h"
 
 #include "absl/strings/str_cat.h"
-#include "services/common/log.h"
 #include "services/transport/watch_reactor.h"
 
 namespace fleetmem::transport {
@@ -32,14 +31,11 @@ absl::Status ServiceState::AcquireStream(const std::string& client) {
   if (options_.max_streams_per_client > 0 &&
       open >= options_.max_streams_per_client) {
     if (open == 0) streams_.erase(client);
-    ++streams_refused_;
     return absl::ResourceExhaustedError(absl::StrCat(
         "limit max_streams_per_client (", options_.max_streams_per_client,
         ") reached by ", client, ": close a stream or retry later"));
   }
   ++open;
-  FLEETMEM_LOG(kDebug) << "stream opened by " << client << " (" << open
-                       << " open)";
   return absl::OkStatus();
 }
 
@@ -47,8 +43,6 @@ void ServiceState::ReleaseStream(const std::string& client) {
   absl::MutexLock lock(&streams_mu_);
   auto it = streams_.find(client);
   if (it == streams_.end()) return;
-  FLEETMEM_LOG(kDebug) << "stream closed by " << client << " ("
-                       << it->second - 1 << " open)";
   if (--it->second == 0) streams_.erase(it);
 }
 
@@ -68,11 +62,6 @@ bool ServiceState::WaitIdle(absl::Time deadline) {
     return work_in_flight_ <= 0;
   };
   return work_mu_.AwaitWithDeadline(absl::Condition(&idle), deadline);
-}
-
-uint64_t ServiceState::streams_refused() const {
-  absl::MutexLock lock(&streams_mu_);
-  return streams_refused_;
 }
 
 }  // namespace fleetmem::transport

@@ -74,8 +74,6 @@ class ServiceState {
   // one ReleaseStream.
   absl::Status AcquireStream(const std::string& client);
   void ReleaseStream(const std::string& client);
-  // Streams refused by max_streams_per_client since start.
-  uint64_t streams_refused() const;
 
  private:
   engine::MemoryEngine* const engine_;
@@ -85,7 +83,6 @@ class ServiceState {
   mutable absl::Mutex streams_mu_;
   absl::flat_hash_map<std::string, size_t> streams_
       ABSL_GUARDED_BY(streams_mu_);
-  uint64_t streams_refused_ ABSL_GUARDED_BY(streams_mu_) = 0;
   absl::Mutex work_mu_;
   int64_t work_in_flight_ ABSL_GUARDED_BY(work_mu_) = 0;
   std::atomic<bool> shutting_down_{false};

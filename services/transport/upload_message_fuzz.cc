@@ -19,7 +19,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   namespace fm = fleetmem;
   absl::StatusOr<fm::v1::UploadTracesRequest> request =
       fm::transport::ParseUploadMessage(
-          absl::string_view(reinterpret_cast<const char*>(data), size), 1);
+          absl::string_view(reinterpret_cast<const char*>(data), size));
   if (!request.ok() || request->traces().empty()) return 0;
   const std::vector<fm::core::MemoryTrace> traces =
       fm::transport::UploadedTracesFromProto(request->traces());

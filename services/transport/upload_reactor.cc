@@ -28,11 +28,11 @@ std::string Flatten(const grpc::ByteBuffer& buffer) {
 }  // namespace
 
 absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
-    absl::string_view bytes, uint64_t index) {
+    absl::string_view bytes) {
   v1::UploadTracesRequest request;
   if (!request.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
     return absl::InvalidArgumentError(
-        absl::StrCat("message ", index, " of the stream: ", bytes.size(),
+        absl::StrCat(bytes.size(),
                      " bytes do not parse as fleetmem.v1.UploadTracesRequest"));
   }
   return request;
@@ -84,12 +84,10 @@ void UploadReactor::OnReadDone(bool ok) {
     return;
   }
   absl::StatusOr<v1::UploadTracesRequest> parsed =
-      ParseUploadMessage(Flatten(buffer_), index_);
+      ParseUploadMessage(Flatten(buffer_));
   buffer_.Clear();
   if (!parsed.ok()) {
-    Finish(ToGrpcStatus(
-        absl::Status(parsed.status().code(),
-                     absl::StrCat(parsed.status().message(), Earlier()))));
+    Fail(parsed.status());
     return;
   }
   request_ = std::move(*parsed);

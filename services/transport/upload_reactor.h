@@ -17,10 +17,10 @@
 
 namespace fleetmem::transport {
 
-// Parses message `index` (1-based) of an upload stream. INVALID_ARGUMENT
-// naming the message if the bytes are not an UploadTracesRequest.
+// Parses one message of an upload stream. INVALID_ARGUMENT if the bytes are
+// not an UploadTracesRequest (the reactor adds which message it was).
 absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
-    absl::string_view bytes, uint64_t index);
+    absl::string_view bytes);
 
 // Reads one message (raw bytes), parses it, stores it with
 // MemoryEngine::Upload on the worker pool, and only then reads the next (at

@@ -17,9 +17,6 @@ WatchReactor::WatchReactor(ServiceState* state,
       fleet_id_(request.fleet_id()),
       shared_(std::make_shared<Shared>()),
       read_cursor_(request.after_event()) {
-  FLEETMEM_LOG(kDebug) << "WatchMemory " << fleet_id_ << " from "
-                       << ClientName(context) << " after "
-                       << request.after_event();
   absl::Status valid = core::ValidateId("fleet_id", fleet_id_);
   if (valid.ok()) {
     valid = AuthorizeCall(state_->authenticator(), context,
