@@ -60,12 +60,19 @@ function(fleetmem_fuzzer name)
        "${name} ${CMAKE_CURRENT_SOURCE_DIR}/fuzz_corpus/${name}\n")
 endfunction()
 
-# fleetmem_proto_library(NAME PROTO file.proto)
+# fleetmem_proto_library(NAME PROTO file.proto [DEPS fleetmem_api])
 # A static library of the C++ code protoc generates for a private .proto of a
-# module (storage records, server config, credentials file). The generated
-# header is included as "<module path>/<file>.pb.h".
+# module (storage records, server config, credentials file, robot state). The
+# generated header is included as "<module path>/<file>.pb.h". With DEPS
+# fleetmem_api the .proto may import "fleetmem/v1/memory.proto".
 function(fleetmem_proto_library name)
-  cmake_parse_arguments(ARG "" "PROTO" "" ${ARGN})
+  cmake_parse_arguments(ARG "" "PROTO" "DEPS" ${ARGN})
+  set(import_args "")
+  set(import_deps "")
+  if("fleetmem_api" IN_LIST ARG_DEPS)
+    set(import_args --proto_path=${PROJECT_SOURCE_DIR}/proto)
+    set(import_deps ${PROJECT_SOURCE_DIR}/proto/fleetmem/v1/memory.proto)
+  endif()
   set(gen_dir ${CMAKE_CURRENT_BINARY_DIR}/gen)
   file(RELATIVE_PATH rel ${PROJECT_SOURCE_DIR}
        ${CMAKE_CURRENT_SOURCE_DIR}/${ARG_PROTO})
@@ -74,11 +81,11 @@ function(fleetmem_proto_library name)
   add_custom_command(
     OUTPUT ${gen_dir}/${stem}.pb.cc ${gen_dir}/${stem}.pb.h
     COMMAND protobuf::protoc
-    ARGS --proto_path=${PROJECT_SOURCE_DIR} --cpp_out=${gen_dir}
+    ARGS --proto_path=${PROJECT_SOURCE_DIR} ${import_args} --cpp_out=${gen_dir}
          ${CMAKE_CURRENT_SOURCE_DIR}/${ARG_PROTO}
-    DEPENDS ${ARG_PROTO}
+    DEPENDS ${ARG_PROTO} ${import_deps}
     COMMENT "Generating ${rel}")
   add_library(${name} STATIC ${gen_dir}/${stem}.pb.cc)
   target_include_directories(${name} PUBLIC ${gen_dir})
-  target_link_libraries(${name} PUBLIC protobuf::libprotobuf)
+  target_link_libraries(${name} PUBLIC protobuf::libprotobuf ${ARG_DEPS})
 endfunction()

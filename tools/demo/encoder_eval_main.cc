@@ -21,11 +21,11 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "services/core/place_metrics.h"
-#include "tools/demo/code_search.h"
+#include "clients/robot/code_search.h"
+#include "clients/robot/image_encoder.h"
+#include "clients/robot/nordland.h"
+#include "clients/robot/rewards.h"
 #include "tools/demo/command_line.h"
-#include "tools/demo/image_encoder.h"
-#include "tools/demo/nordland.h"
-#include "tools/demo/rewards.h"
 
 ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
           "shared data folder (holds nordland/summer and nordland/winter)");
@@ -36,6 +36,22 @@ ABSL_FLAG(std::string, encoders, "",
 
 namespace fleetmem::demo {
 namespace {
+
+using robot::BruteForceIndex;
+using robot::ExternalRewards;
+using robot::FirstCorrectRank;
+using robot::ImageEncoder;
+using robot::ImageEncoderNames;
+using robot::InternalReward;
+using robot::kNordlandUnitsPerFile;
+using robot::ListNordlandFrames;
+using robot::LoadNordlandGrey;
+using robot::NewImageEncoderByName;
+using robot::RandomShiftCrop;
+using robot::ShiftCropOptions;
+using robot::SpreadStretches;
+using robot::Stretch;
+using robot::TripletOptions;
 
 // A query is correct within +-2 files (README.md).
 constexpr double kToleranceUnits = 2.0 * kNordlandUnitsPerFile;
@@ -69,8 +85,11 @@ core::FirstCorrectRanks Ranks(const std::vector<std::vector<float>>& summer,
   for (size_t row : rows) index.Add(summer[row], season.numbers[row]);
   core::FirstCorrectRanks ranks;
   for (size_t row : rows) {
-    const std::vector<double> x = index.Search(winter[row], kTopK);
-    ranks.push_back(FirstCorrectRank(x, season.numbers[row], kToleranceUnits));
+    std::vector<core::Place> found;
+    for (double x : index.Search(winter[row], kTopK)) found.push_back({.x = x});
+    ranks.push_back(FirstCorrectRank(
+        found, {.x = static_cast<double>(season.numbers[row])},
+        kToleranceUnits));
   }
   return ranks;
 }
@@ -95,7 +114,7 @@ absl::Status Run() {
     for (size_t i = s.begin; i < s.end; ++i) stretch_rows.push_back(i);
   }
 
-  std::vector<std::string> names = EncoderNames();
+  std::vector<std::string> names = ImageEncoderNames();
   if (!absl::GetFlag(FLAGS_encoders).empty()) {
     names = absl::StrSplit(absl::GetFlag(FLAGS_encoders), ',');
   }
@@ -108,15 +127,15 @@ absl::Status Run() {
               "R_in", "R_ex", "R_ex>0", "us/img");
   for (const std::string& name : names) {
     absl::StatusOr<std::unique_ptr<ImageEncoder>> encoder =
-        NewEncoderByName(name);
+        NewImageEncoderByName(name);
     if (!encoder.ok()) return encoder.status();
     std::vector<std::vector<float>> summer_codes, winter_codes;
     const auto start = std::chrono::steady_clock::now();
     for (size_t i = 0; i < all_rows.size(); ++i) {
       absl::StatusOr<std::vector<float>> s =
-          (*encoder)->Encode(summer->images[i]);
+          (*encoder)->EncodeImage(summer->images[i]);
       absl::StatusOr<std::vector<float>> w =
-          (*encoder)->Encode(winter->images[i]);
+          (*encoder)->EncodeImage(winter->images[i]);
       if (!s.ok()) return s.status();
       if (!w.ok()) return w.status();
       summer_codes.push_back(*std::move(s));
@@ -132,16 +151,16 @@ absl::Status Run() {
     size_t external_positive = 0;
     for (const Stretch& s : *stretches) {
       std::vector<std::vector<float>> codes;
-      std::vector<double> x;
+      std::vector<core::Place> x;
       for (size_t i = s.begin; i < s.end; ++i) {
         absl::StatusOr<cv::Mat> moved =
             RandomShiftCrop(summer->images[i], ShiftCropOptions{}, rng);
         if (!moved.ok()) return moved.status();
-        absl::StatusOr<std::vector<float>> code = (*encoder)->Encode(*moved);
+        absl::StatusOr<std::vector<float>> code = (*encoder)->EncodeImage(*moved);
         if (!code.ok()) return code.status();
         internal_sum += InternalReward(summer_codes[i], *code);
         codes.push_back(summer_codes[i]);
-        x.push_back(summer->numbers[i]);
+        x.push_back({.x = static_cast<double>(summer->numbers[i])});
       }
       for (float r : ExternalRewards(codes, x, TripletOptions{})) {
         external_sum += r;

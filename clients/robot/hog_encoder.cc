@@ -8,9 +8,9 @@
 #include "absl/strings/str_format.h"
 #include "opencv2/imgproc.hpp"
 #include "opencv2/objdetect.hpp"
-#include "tools/demo/image_encoder.h"
+#include "clients/robot/image_encoder.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 class HogEncoder : public ImageEncoder {
@@ -33,7 +33,7 @@ class HogEncoder : public ImageEncoder {
   const std::string& version() const override { return version_; }
   size_t dimension() const override { return hog_.getDescriptorSize(); }
 
-  absl::StatusOr<std::vector<float>> Encode(
+  absl::StatusOr<std::vector<float>> EncodeImage(
       const cv::Mat& grey) const override {
     if (grey.empty() || grey.type() != CV_8UC1) {
       return absl::InvalidArgumentError(
@@ -75,4 +75,4 @@ std::unique_ptr<ImageEncoder> NewHogEncoder(const HogOptions& options) {
   return std::make_unique<HogEncoder>(options);
 }
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

@@ -1,11 +1,11 @@
-#include "tools/demo/nordland.h"
+#include "clients/robot/nordland.h"
 
 #include <filesystem>
 #include <string>
 
 #include "gtest/gtest.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 // The real recordings (read-only), ../shared/data beside the project.
@@ -97,4 +97,4 @@ TEST(SpreadStretchesTest, RejectsWhatDoesNotFit) {
 }
 
 }  // namespace
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

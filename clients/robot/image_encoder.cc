@@ -1,4 +1,4 @@
-#include "tools/demo/image_encoder.h"
+#include "clients/robot/image_encoder.h"
 
 #include <variant>
 
@@ -6,7 +6,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 struct NamedEncoder {
@@ -15,7 +15,7 @@ struct NamedEncoder {
 };
 
 // The variants compared by fleetmem-encoder-eval (see tools/demo/README.md
-// for their measured recall); the first is the demo's default.
+// for their measured recall); the first is the default.
 constexpr NamedEncoder kEncoders[] = {
     {"hog-64x32-c8-s8-b6", HogOptions{.cell = 8, .block_stride = 8, .bins = 6}},
     {"patchnorm-32x16-p8", PatchNormOptions{.patch = 8}},
@@ -42,20 +42,40 @@ std::unique_ptr<ImageEncoder> Make(const NamedEncoder& entry) {
 
 }  // namespace
 
-std::vector<std::string> EncoderNames() {
+absl::StatusOr<std::vector<float>> ImageEncoder::Encode(
+    const Observation& observation) const {
+  if (observation.image.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "image encoder ", version(), " got ", observation.name,
+        ", which holds no image (a laser scan needs a scan encoder)"));
+  }
+  return EncodeImage(observation.image);
+}
+
+absl::StatusOr<Observation> ImageEncoder::Perturb(
+    const Observation& observation, std::mt19937_64& rng) const {
+  absl::StatusOr<cv::Mat> moved =
+      RandomShiftCrop(observation.image, ShiftCropOptions{}, rng);
+  if (!moved.ok()) return moved.status();
+  Observation perturbed = observation;
+  perturbed.image = *std::move(moved);
+  return perturbed;
+}
+
+std::vector<std::string> ImageEncoderNames() {
   std::vector<std::string> names;
   for (const NamedEncoder& entry : kEncoders) names.push_back(entry.name);
   return names;
 }
 
-absl::StatusOr<std::unique_ptr<ImageEncoder>> NewEncoderByName(
+absl::StatusOr<std::unique_ptr<ImageEncoder>> NewImageEncoderByName(
     std::string_view name) {
   for (const NamedEncoder& entry : kEncoders) {
     if (name == entry.name) return Make(entry);
   }
   return absl::InvalidArgumentError(
       absl::StrCat("unknown encoder \"", std::string(name),
-                   "\"; known: ", absl::StrJoin(EncoderNames(), ", ")));
+                   "\"; known: ", absl::StrJoin(ImageEncoderNames(), ", ")));
 }
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

@@ -1,9 +1,8 @@
-// Classical holistic image codes, the robot-side encoder E of the demo: one
-// float vector per image, compared by the server after L2 normalisation.
-// Codes of different encoders (or options) are not comparable; each encoder
-// names itself by a version string that travels with every trace.
-#ifndef FLEETMEM_TOOLS_DEMO_IMAGE_ENCODER_H_
-#define FLEETMEM_TOOLS_DEMO_IMAGE_ENCODER_H_
+// Classical holistic image codes: one float vector per image, compared by the
+// server after L2 normalisation. They implement the robot's Encoder
+// (encoder.h) for observations that carry an image.
+#ifndef FLEETMEM_CLIENTS_ROBOT_IMAGE_ENCODER_H_
+#define FLEETMEM_CLIENTS_ROBOT_IMAGE_ENCODER_H_
 
 #include <cstddef>
 #include <memory>
@@ -12,23 +11,28 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "clients/robot/encoder.h"
+#include "clients/robot/rewards.h"
 #include "opencv2/core.hpp"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 
-// Thread-safe: Encode is const and keeps no state between calls.
-class ImageEncoder {
+// An encoder of images. Thread-safe: every method is const.
+class ImageEncoder : public Encoder {
  public:
-  virtual ~ImageEncoder() = default;
-
-  // Version carried by every trace, e.g. "patchnorm-32x16-p8-v1".
-  virtual const std::string& version() const = 0;
-  // Size of every code Encode returns.
-  virtual size_t dimension() const = 0;
   // Code of an 8-bit single-channel image of any size. INVALID_ARGUMENT for
   // an empty or non-CV_8UC1 image; INTERNAL if OpenCV fails.
-  virtual absl::StatusOr<std::vector<float>> Encode(
+  virtual absl::StatusOr<std::vector<float>> EncodeImage(
       const cv::Mat& grey) const = 0;
+
+  // EncodeImage(observation.image); INVALID_ARGUMENT naming the observation
+  // if it has no image.
+  absl::StatusOr<std::vector<float>> Encode(
+      const Observation& observation) const final;
+  // The observation with its image shifted and cropped (RandomShiftCrop with
+  // the default ShiftCropOptions).
+  absl::StatusOr<Observation> Perturb(const Observation& observation,
+                                      std::mt19937_64& rng) const final;
 };
 
 // SeqSLAM-style code: resize to width x height (area averaging), then
@@ -63,12 +67,12 @@ struct HogOptions {
 // Returns nullptr if the options are out of range.
 std::unique_ptr<ImageEncoder> NewHogEncoder(const HogOptions& options);
 
-// Names accepted by NewEncoderByName, the demo's default first.
-std::vector<std::string> EncoderNames();
-// One of EncoderNames(); INVALID_ARGUMENT listing the names otherwise.
-absl::StatusOr<std::unique_ptr<ImageEncoder>> NewEncoderByName(
+// Names accepted by NewImageEncoderByName, the default first.
+std::vector<std::string> ImageEncoderNames();
+// One of ImageEncoderNames(); INVALID_ARGUMENT listing the names otherwise.
+absl::StatusOr<std::unique_ptr<ImageEncoder>> NewImageEncoderByName(
     std::string_view name);
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot
 
-#endif  // FLEETMEM_TOOLS_DEMO_IMAGE_ENCODER_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_IMAGE_ENCODER_H_

@@ -8,9 +8,9 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "opencv2/imgproc.hpp"
-#include "tools/demo/image_encoder.h"
+#include "clients/robot/image_encoder.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 // Blocks whose standard deviation is below this (grey levels) are flat.
@@ -28,7 +28,7 @@ class PatchNormEncoder : public ImageEncoder {
     return static_cast<size_t>(options_.width) * options_.height;
   }
 
-  absl::StatusOr<std::vector<float>> Encode(
+  absl::StatusOr<std::vector<float>> EncodeImage(
       const cv::Mat& grey) const override {
     if (grey.empty() || grey.type() != CV_8UC1) {
       return absl::InvalidArgumentError(
@@ -75,4 +75,4 @@ std::unique_ptr<ImageEncoder> NewPatchNormEncoder(
   return std::make_unique<PatchNormEncoder>(options);
 }
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

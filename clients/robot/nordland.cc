@@ -1,4 +1,4 @@
-#include "tools/demo/nordland.h"
+#include "clients/robot/nordland.h"
 
 #include <algorithm>
 #include <cstdio>
@@ -14,7 +14,7 @@
 #include "absl/strings/strip.h"
 #include "opencv2/imgcodecs.hpp"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 
 std::string NordlandFileName(int number) {
   return absl::StrFormat("images-%05d.png", number);
@@ -102,4 +102,4 @@ absl::StatusOr<std::vector<Stretch>> SpreadStretches(size_t total, int count,
   return stretches;
 }
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

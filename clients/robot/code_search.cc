@@ -1,11 +1,11 @@
-#include "tools/demo/code_search.h"
+#include "clients/robot/code_search.h"
 
 #include <algorithm>
 #include <cmath>
 #include <numeric>
 #include <utility>
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 double Norm(std::span<const float> a) {
@@ -62,14 +62,19 @@ std::vector<double> BruteForceIndex::Search(std::span<const float> query,
   return labels;
 }
 
-int FirstCorrectRank(std::span<const double> retrieved_x, double query_x,
-                     double tolerance) {
-  for (size_t i = 0; i < retrieved_x.size(); ++i) {
-    if (std::abs(retrieved_x[i] - query_x) <= tolerance) {
+double PlaceDistance(const core::Place& a, const core::Place& b) {
+  return std::sqrt((a.x - b.x) * (a.x - b.x) + (a.y - b.y) * (a.y - b.y) +
+                   (a.z - b.z) * (a.z - b.z));
+}
+
+int FirstCorrectRank(std::span<const core::Place> retrieved,
+                     const core::Place& query, double tolerance) {
+  for (size_t i = 0; i < retrieved.size(); ++i) {
+    if (PlaceDistance(retrieved[i], query) <= tolerance) {
       return static_cast<int>(i) + 1;
     }
   }
   return 0;
 }
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

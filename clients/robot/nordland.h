@@ -3,8 +3,8 @@
 // per place, `images-NNNNN.png` with NNNNN = 10, 20, ..., 25000. The same
 // file name is the same place; a frame's place along the route is its number
 // (x = NNNNN, y = z = 0; 10 units between consecutive files).
-#ifndef FLEETMEM_TOOLS_DEMO_NORDLAND_H_
-#define FLEETMEM_TOOLS_DEMO_NORDLAND_H_
+#ifndef FLEETMEM_CLIENTS_ROBOT_NORDLAND_H_
+#define FLEETMEM_CLIENTS_ROBOT_NORDLAND_H_
 
 #include <cstddef>
 #include <string>
@@ -14,7 +14,7 @@
 #include "absl/status/statusor.h"
 #include "opencv2/core.hpp"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 
 // Distance along the route between consecutive files, in place units.
 inline constexpr int kNordlandUnitsPerFile = 10;
@@ -54,6 +54,6 @@ struct Stretch {
 absl::StatusOr<std::vector<Stretch>> SpreadStretches(size_t total, int count,
                                                      int length);
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot
 
-#endif  // FLEETMEM_TOOLS_DEMO_NORDLAND_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_NORDLAND_H_

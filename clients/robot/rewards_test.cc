@@ -1,4 +1,4 @@
-#include "tools/demo/rewards.h"
+#include "clients/robot/rewards.h"
 
 #include <cmath>
 #include <random>
@@ -8,7 +8,7 @@
 #include "gtest/gtest.h"
 #include "opencv2/core.hpp"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 using ::testing::ElementsAre;
@@ -78,7 +78,7 @@ TEST(ExternalRewardsTest, IsTheTripletLossOfHardestPairs) {
   // Frames at route positions 0, 10, 20, 200. Frame 0's positive (within
   // 10) is frame 10; its negatives (beyond 100) are frame 200 only.
   const std::vector<std::vector<float>> codes = {At(0), At(60), At(65), At(10)};
-  const std::vector<double> x = {0, 10, 20, 200};
+  const std::vector<core::Place> x = {{.x = 0}, {.x = 10}, {.x = 20}, {.x = 200}};
   const TripletOptions options{
       .margin = 0.1, .positive_radius = 10, .negative_radius = 100};
   const std::vector<float> rewards = ExternalRewards(codes, x, options);
@@ -91,17 +91,27 @@ TEST(ExternalRewardsTest, IsTheTripletLossOfHardestPairs) {
   EXPECT_THAT(rewards[3], FloatNear(std::max(0.0f, 0.1f - Chord(10)), 1e-6f));
 }
 
+TEST(ExternalRewardsTest, MeasuresDistancesInThePlane) {
+  // Scans 3 m apart in y are negatives at a 2 m radius, whatever x says.
+  const std::vector<std::vector<float>> codes = {At(0), At(10)};
+  const std::vector<core::Place> places = {{.x = 0, .y = 0}, {.x = 0, .y = 3}};
+  const std::vector<float> rewards = ExternalRewards(
+      codes, places,
+      {.margin = 0.5, .positive_radius = 1.0, .negative_radius = 2.0});
+  EXPECT_THAT(rewards[0], FloatNear(0.5f - Chord(10), 1e-5f));
+}
+
 TEST(ExternalRewardsTest, NoNegativeMeansZero) {
   const std::vector<std::vector<float>> codes = {At(0), At(90)};
-  const std::vector<double> x = {0, 10};
+  const std::vector<core::Place> x = {{.x = 0}, {.x = 10}};
   EXPECT_THAT(ExternalRewards(codes, x, TripletOptions{}), ElementsAre(0, 0));
 }
 
 TEST(ExternalRewardsTest, MismatchedSizesGiveNothing) {
   const std::vector<std::vector<float>> codes = {At(0), At(90)};
-  const std::vector<double> x = {0};
+  const std::vector<core::Place> x = {{.x = 0}};
   EXPECT_TRUE(ExternalRewards(codes, x, TripletOptions{}).empty());
 }
 
 }  // namespace
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

@@ -1,4 +1,4 @@
-#include "tools/demo/code_search.h"
+#include "clients/robot/code_search.h"
 
 #include <cmath>
 #include <vector>
@@ -6,7 +6,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 using ::testing::ElementsAre;
@@ -71,10 +71,19 @@ TEST(FirstCorrectRankTest, Cases) {
       {{121, 79, 80}, 100, 3},
   };
   for (const Case& c : cases) {
-    EXPECT_EQ(FirstCorrectRank(c.retrieved, c.query, 20.0), c.want)
+    std::vector<core::Place> retrieved;
+    for (double x : c.retrieved) retrieved.push_back({.x = x});
+    EXPECT_EQ(FirstCorrectRank(retrieved, {.x = c.query}, 20.0), c.want)
         << "query " << c.query;
   }
 }
 
+TEST(FirstCorrectRankTest, CountsDistanceInThePlane) {
+  const std::vector<core::Place> retrieved = {{.x = 0, .y = 3},
+                                              {.x = 1, .y = 1}};
+  EXPECT_EQ(FirstCorrectRank(retrieved, {.x = 0, .y = 0}, 2.0), 2);
+  EXPECT_DOUBLE_EQ(PlaceDistance({.x = 3, .y = 4}, {}), 5.0);
+}
+
 }  // namespace
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

@@ -13,8 +13,8 @@
 //
 // R = R_ex + R_in (Eq. 13). Both are high for the observations the encoder
 // handles worst, which are the ones worth keeping and replaying.
-#ifndef FLEETMEM_TOOLS_DEMO_REWARDS_H_
-#define FLEETMEM_TOOLS_DEMO_REWARDS_H_
+#ifndef FLEETMEM_CLIENTS_ROBOT_REWARDS_H_
+#define FLEETMEM_CLIENTS_ROBOT_REWARDS_H_
 
 #include <random>
 #include <span>
@@ -22,8 +22,9 @@
 
 #include "absl/status/statusor.h"
 #include "opencv2/core.hpp"
+#include "services/core/types.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 
 // The perturbation A of the internal reward.
 struct ShiftCropOptions {
@@ -46,20 +47,21 @@ float InternalReward(std::span<const float> code,
 struct TripletOptions {
   // alpha of Eq. 7, in code-distance units.
   double margin = 0.1;
-  // Positives: other frames within this distance along the route (place
-  // units; Nordland has 10 per file, so 10 = the adjacent frames).
+  // Positives: other frames within this distance (place units; Nordland
+  // has 10 per file along the route, so 10 = the adjacent frames).
   double positive_radius = 10.0;
-  // Negatives: frames farther than this along the route.
+  // Negatives: frames farther than this.
   double negative_radius = 100.0;
 };
 
-// R_ex of every frame of a stretch: codes[i] observed at route position
-// x[i]. A frame without positives uses d(q, pos) = 0; one without negatives
-// gets 0. Sizes of `codes` and `x` must match (else an empty result).
+// R_ex of every observation of a segment: codes[i] observed at places[i]
+// (distances between places by PlaceDistance). A frame without positives
+// uses d(q, pos) = 0; one without negatives gets 0. Sizes of `codes` and
+// `places` must match (else an empty result).
 std::vector<float> ExternalRewards(std::span<const std::vector<float>> codes,
-                                   std::span<const double> x,
+                                   std::span<const core::Place> places,
                                    const TripletOptions& options);
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot
 
-#endif  // FLEETMEM_TOOLS_DEMO_REWARDS_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_REWARDS_H_

@@ -1,4 +1,4 @@
-#include "tools/demo/rewards.h"
+#include "clients/robot/rewards.h"
 
 #include <algorithm>
 #include <cmath>
@@ -7,9 +7,9 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "opencv2/imgproc.hpp"
-#include "tools/demo/code_search.h"
+#include "clients/robot/code_search.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 
 absl::StatusOr<cv::Mat> RandomShiftCrop(const cv::Mat& image,
                                         const ShiftCropOptions& options,
@@ -40,10 +40,10 @@ float InternalReward(std::span<const float> code,
 }
 
 std::vector<float> ExternalRewards(std::span<const std::vector<float>> codes,
-                                   std::span<const double> x,
+                                   std::span<const core::Place> places,
                                    const TripletOptions& options) {
   const size_t n = codes.size();
-  if (x.size() != n) return {};
+  if (places.size() != n) return {};
   // All pairwise distances once: a stretch is a few hundred frames.
   std::vector<float> distance(n * n, 0.0f);
   for (size_t i = 0; i < n; ++i) {
@@ -57,7 +57,7 @@ std::vector<float> ExternalRewards(std::span<const std::vector<float>> codes,
     float hardest_positive = 0.0f;
     float hardest_negative = std::numeric_limits<float>::infinity();
     for (size_t j = 0; j < n; ++j) {
-      const double along = std::abs(x[j] - x[i]);
+      const double along = PlaceDistance(places[j], places[i]);
       if (j != i && along <= options.positive_radius) {
         hardest_positive = std::max(hardest_positive, distance[i * n + j]);
       } else if (along > options.negative_radius) {
@@ -71,4 +71,4 @@ std::vector<float> ExternalRewards(std::span<const std::vector<float>> codes,
   return rewards;
 }
 
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

@@ -1,4 +1,4 @@
-#include "tools/demo/image_encoder.h"
+#include "clients/robot/image_encoder.h"
 
 #include <cmath>
 #include <set>
@@ -8,9 +8,9 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "opencv2/core.hpp"
-#include "tools/demo/code_search.h"
+#include "clients/robot/code_search.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 namespace {
 
 using ::testing::Each;
@@ -30,7 +30,7 @@ TEST(PatchNormEncoderTest, EveryPatchHasZeroMeanAndUnitVariance) {
   ASSERT_NE(encoder, nullptr);
   EXPECT_EQ(encoder->dimension(), 512u);
   EXPECT_EQ(encoder->version(), "patchnorm-32x16-p8-v1");
-  absl::StatusOr<std::vector<float>> code = encoder->Encode(RandomImage(1));
+  absl::StatusOr<std::vector<float>> code = encoder->EncodeImage(RandomImage(1));
   ASSERT_TRUE(code.ok()) << code.status();
   ASSERT_EQ(code->size(), 512u);
   // Row-major 32x16 thumbnail; patch (px, py) covers 8x8 of it.
@@ -55,8 +55,8 @@ TEST(PatchNormEncoderTest, IgnoresBrightnessAndContrast) {
   const cv::Mat image = RandomImage(2);
   cv::Mat brighter;
   image.convertTo(brighter, CV_8UC1, 1.2, 10);  // stays below 255
-  absl::StatusOr<std::vector<float>> a = encoder->Encode(image);
-  absl::StatusOr<std::vector<float>> b = encoder->Encode(brighter);
+  absl::StatusOr<std::vector<float>> a = encoder->EncodeImage(image);
+  absl::StatusOr<std::vector<float>> b = encoder->EncodeImage(brighter);
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_LT(CodeDistance(*a, *b), 0.05f);
 }
@@ -64,7 +64,7 @@ TEST(PatchNormEncoderTest, IgnoresBrightnessAndContrast) {
 TEST(PatchNormEncoderTest, BlackFrameGivesZeros) {
   const auto encoder = NewPatchNormEncoder({});
   absl::StatusOr<std::vector<float>> code =
-      encoder->Encode(cv::Mat::zeros(32, 64, CV_8UC1));
+      encoder->EncodeImage(cv::Mat::zeros(32, 64, CV_8UC1));
   ASSERT_TRUE(code.ok());
   EXPECT_THAT(*code, Each(0.0f));
 }
@@ -82,11 +82,11 @@ TEST(HogEncoderTest, DimensionMatchesTheLayout) {
       {.width = 64, .height = 32, .cell = 8, .block_stride = 8, .bins = 6});
   ASSERT_NE(encoder, nullptr);
   EXPECT_EQ(encoder->dimension(), 7u * 3u * 4u * 6u);
-  absl::StatusOr<std::vector<float>> code = encoder->Encode(RandomImage(3));
+  absl::StatusOr<std::vector<float>> code = encoder->EncodeImage(RandomImage(3));
   ASSERT_TRUE(code.ok()) << code.status();
   EXPECT_EQ(code->size(), encoder->dimension());
   // Another image gives another code.
-  absl::StatusOr<std::vector<float>> other = encoder->Encode(RandomImage(4));
+  absl::StatusOr<std::vector<float>> other = encoder->EncodeImage(RandomImage(4));
   ASSERT_TRUE(other.ok());
   EXPECT_GT(CodeDistance(*code, *other), 0.1f);
 }
@@ -99,37 +99,37 @@ TEST(HogEncoderTest, RejectsBadOptions) {
 }
 
 TEST(ImageEncoderTest, RejectsNonGreyImages) {
-  for (const std::string& name : EncoderNames()) {
+  for (const std::string& name : ImageEncoderNames()) {
     absl::StatusOr<std::unique_ptr<ImageEncoder>> encoder =
-        NewEncoderByName(name);
+        NewImageEncoderByName(name);
     ASSERT_TRUE(encoder.ok());
-    EXPECT_EQ((*encoder)->Encode(cv::Mat()).status().code(),
+    EXPECT_EQ((*encoder)->EncodeImage(cv::Mat()).status().code(),
               absl::StatusCode::kInvalidArgument)
         << name;
-    EXPECT_EQ((*encoder)->Encode(cv::Mat(32, 64, CV_8UC3)).status().code(),
+    EXPECT_EQ((*encoder)->EncodeImage(cv::Mat(32, 64, CV_8UC3)).status().code(),
               absl::StatusCode::kInvalidArgument)
         << name;
   }
 }
 
-TEST(NewEncoderByNameTest, EveryNameMakesADistinctEncoder) {
+TEST(NewImageEncoderByNameTest, EveryNameMakesADistinctEncoder) {
   std::set<std::string> versions;
-  for (const std::string& name : EncoderNames()) {
+  for (const std::string& name : ImageEncoderNames()) {
     absl::StatusOr<std::unique_ptr<ImageEncoder>> encoder =
-        NewEncoderByName(name);
+        NewImageEncoderByName(name);
     ASSERT_TRUE(encoder.ok()) << name;
     ASSERT_NE(*encoder, nullptr) << name;
     EXPECT_TRUE(versions.insert((*encoder)->version()).second) << name;
     absl::StatusOr<std::vector<float>> code =
-        (*encoder)->Encode(RandomImage(5));
+        (*encoder)->EncodeImage(RandomImage(5));
     ASSERT_TRUE(code.ok()) << name;
     EXPECT_EQ(code->size(), (*encoder)->dimension()) << name;
   }
   const absl::StatusOr<std::unique_ptr<ImageEncoder>> unknown =
-      NewEncoderByName("sift");
+      NewImageEncoderByName("sift");
   EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(unknown.status().message(), HasSubstr("hog-64x32-c8-s8-b6"));
 }
 
 }  // namespace
-}  // namespace fleetmem::demo
+}  // namespace fleetmem::robot

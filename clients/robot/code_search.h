@@ -1,17 +1,18 @@
-// Client-side code arithmetic for the demo: cosine similarity, the server's
-// code distance (Euclidean between L2-normalised codes), exact k-nearest
-// search by brute force (the demo's unbounded baseline) and the
-// first-correct rank of a retrieval.
-#ifndef FLEETMEM_TOOLS_DEMO_CODE_SEARCH_H_
-#define FLEETMEM_TOOLS_DEMO_CODE_SEARCH_H_
+// Robot-side code arithmetic: cosine similarity, the server's code distance
+// (Euclidean between L2-normalised codes), exact k-nearest search by brute
+// force (the demo's unbounded baseline), distances between places and the
+// first-correct rank of a retrieval (relocalisation scoring).
+#ifndef FLEETMEM_CLIENTS_ROBOT_CODE_SEARCH_H_
+#define FLEETMEM_CLIENTS_ROBOT_CODE_SEARCH_H_
 
 #include <cstddef>
 #include <span>
 #include <vector>
 
 #include "services/core/feature_space.h"
+#include "services/core/types.h"
 
-namespace fleetmem::demo {
+namespace fleetmem::robot {
 
 // cos(a, b) for codes of equal size; 1 if both are all zero (the same code),
 // 0 if only one is.
@@ -40,11 +41,14 @@ class BruteForceIndex {
   std::vector<double> labels_;
 };
 
-// 1-based rank of the first of `retrieved_x` (nearest first) within
-// `tolerance` of `query_x`, or 0 if none is.
-int FirstCorrectRank(std::span<const double> retrieved_x, double query_x,
-                     double tolerance);
+// Euclidean distance between two places (x, y, z; yaw ignored).
+double PlaceDistance(const core::Place& a, const core::Place& b);
 
-}  // namespace fleetmem::demo
+// 1-based rank of the first of `retrieved` (nearest first) within
+// `tolerance` of `query` (PlaceDistance), or 0 if none is.
+int FirstCorrectRank(std::span<const core::Place> retrieved,
+                     const core::Place& query, double tolerance);
 
-#endif  // FLEETMEM_TOOLS_DEMO_CODE_SEARCH_H_
+}  // namespace fleetmem::robot
+
+#endif  // FLEETMEM_CLIENTS_ROBOT_CODE_SEARCH_H_

@@ -1,0 +1,190 @@
+// The robot's lifelong loop (BioSLAM Algorithm 3, memory.md), over one
+// observation source, against one fleet:
+//
+//   for each observation q (from where the robot stopped last time):
+//     encode z = E(q); R_in = 1 - cos(E(q), E(A(q)))        (Eq. 12)
+//     relocalise: QueryPlace(z) against the whole fleet, scored against the
+//       observation's known place
+//     record (z, p, R_in) durably with the source position  (robot_store.h)
+//   at the end of each segment (200 observations by default, and at the
+//   end of the source):
+//     replay: draw from the dynamic memory M_D                (Eq. 19)
+//     learner hook: train on the segment + the replayed traces
+//     R_ex = triplet loss within the segment; R = R_ex + R_in (Eqs. 11, 13)
+//     seal the segment into the upload queue (seqs given here, durably)
+//     add the robot's own traces to M_D; refresh M_D from the fleet
+//       (SampleReplay, Eq. 18)
+//
+// Beside the loop, an uploader thread drains the queue in order, in batches,
+// whenever the server answers (store-and-forward), and a watcher thread
+// follows WatchMemory from its durable cursor. Upload errors that a retry
+// can mend (UNAVAILABLE, DEADLINE_EXCEEDED, RESOURCE_EXHAUSTED, ABORTED) are
+// retried with backoff for as long as it takes; any other is fatal: the
+// robot stops observing and Run returns it, and the queue keeps every trace.
+#ifndef FLEETMEM_CLIENTS_ROBOT_AGENT_H_
+#define FLEETMEM_CLIENTS_ROBOT_AGENT_H_
+
+#include <atomic>
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <limits>
+#include <memory>
+#include <random>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
+#include "clients/cpp/fleetmem_client.h"
+#include "clients/robot/dynamic_memory.h"
+#include "clients/robot/encoder.h"
+#include "clients/robot/observation_source.h"
+#include "clients/robot/rewards.h"
+#include "clients/robot/robot_store.h"
+
+namespace fleetmem::robot {
+
+// Where the next step's learned model trains (Algorithm 3's inner loop).
+class Learner {
+ public:
+  virtual ~Learner() = default;
+  // Called once per segment before its rewards: the segment's real
+  // observations (re-read from the source) and the traces replayed from the
+  // dynamic memory for it (Eq. 19). An error stops the robot.
+  virtual absl::Status Learn(std::span<const Observation> segment,
+                             std::span<const core::MemoryTrace> replayed) = 0;
+};
+
+struct AgentOptions {
+  std::string fleet_id;
+  std::string robot_id;
+  // Domain of the traces ("summer", "lidar").
+  std::string domain;
+  // Observations per segment (the paper's ~200, about 2 km).
+  size_t segment_size = 200;
+  // Observe source indices [first, last); last is clamped to the source.
+  size_t first = 0;
+  size_t last = std::numeric_limits<size_t>::max();
+  // Observations per second (0 = as fast as possible): emulates a sensor.
+  double rate_hz = 0.0;
+  // Upload traces (a query-only robot relocalises and uploads nothing).
+  bool upload = true;
+  // Relocalise every observation against the fleet (k matches).
+  bool relocalise = true;
+  uint32_t query_k = 6;
+  // A match within this distance of the true place is correct (place units).
+  double match_radius = 20.0;
+  // R_ex (Eq. 7) within a segment.
+  TripletOptions triplet;
+  DynamicMemoryOptions dynamic_memory;
+  // Traces asked of the fleet per refresh (Eq. 18); 0 = the capacity of M_D.
+  uint32_t refresh_count = 0;
+  // Traces drawn from M_D per segment for replay (Eq. 19).
+  size_t replay_per_segment = 64;
+  // Traces per upload call.
+  size_t upload_batch = 200;
+  // Backoff of the uploader while the server cannot take traces.
+  std::chrono::milliseconds initial_backoff{200};
+  std::chrono::milliseconds max_backoff{5000};
+  // At the end of the source: how long to wait for the queue to drain.
+  std::chrono::milliseconds drain_timeout{120000};
+  // Status file (JSON) rewritten at least this often; empty path = none.
+  std::string status_file;
+  std::chrono::milliseconds status_interval{1000};
+  // Progress lines at least this often (and at every segment).
+  std::chrono::milliseconds progress_interval{5000};
+  // Seed of R_in's perturbations and of replay draws.
+  uint64_t seed = 1;
+  // Where progress and log lines go (default: stderr).
+  std::function<void(std::string_view)> log;
+};
+
+// What Run did, for the summary line.
+struct AgentSummary {
+  RobotState state;
+  QueueInfo queue;
+  // Observations this run made (not counting earlier runs).
+  uint64_t observed_this_run = 0;
+  bool source_finished = false;
+  bool drained = false;
+};
+
+class Agent {
+ public:
+  // `client` uploads, samples and watches; `query_client` relocalises and
+  // refreshes (one attempt per call with a short deadline, so that an
+  // unreachable server does not hold the loop). Neither may be null; they
+  // may be the same. `learner` may be null.
+  Agent(AgentOptions options, client::Client* client,
+        client::Client* query_client, const ObservationSource* source,
+        const Encoder* encoder, RobotStore* store, Learner* learner = nullptr);
+  ~Agent();
+
+  // Runs until the source ends (then drains the queue, bounded by
+  // drain_timeout) or `stop` becomes true (then returns at once: everything
+  // observed is uploaded or durable). Returns the first fatal error (a bad
+  // observation, a refused upload, a failing disk) with what was kept.
+  absl::Status Run(const std::atomic<bool>& stop);
+
+  AgentSummary summary() const;
+
+ private:
+  absl::Status ObserveOne(size_t index, const std::atomic<bool>& stop);
+  // Ends a segment: replay, learner, rewards, seal (uploading robot), then
+  // refresh.
+  absl::Status SealSegment();
+  struct Replayed {
+    uint64_t own = 0;
+    uint64_t peer = 0;
+  };
+  // Replay draws (Eq. 19) and the learner hook over source `indices`.
+  absl::StatusOr<Replayed> ReplayAndLearn(const std::vector<size_t>& indices);
+  void Refresh();
+  void UploadLoop();
+  void WatchLoop();
+  void WriteStatus(std::string_view phase, bool force);
+  void Progress(bool force);
+  void Log(const std::string& line) const;
+  absl::Status fatal() const;
+  void SetFatal(absl::Status status);
+  // Sleeps up to `duration`, returning early once `stop` is set.
+  static void SleepUnless(std::chrono::milliseconds duration,
+                          const std::atomic<bool>& stop);
+
+  const AgentOptions options_;
+  client::Client* const client_;
+  client::Client* const query_client_;
+  const ObservationSource* const source_;
+  const Encoder* const encoder_;
+  RobotStore* const store_;
+  Learner* const learner_;
+  DynamicMemory memory_;
+  std::mt19937_64 rng_;
+  size_t end_ = 0;
+  // Source indices of a query-only robot's open segment (not durable: only
+  // replay depends on it).
+  std::vector<size_t> query_segment_;
+  uint64_t observed_this_run_ = 0;
+  bool source_finished_ = false;
+  bool drained_ = false;
+  std::string phase_ = "starting";
+
+  std::atomic<bool> stop_threads_{false};
+  mutable absl::Mutex mu_;
+  absl::Status fatal_ ABSL_GUARDED_BY(mu_);
+  std::string last_error_ ABSL_GUARDED_BY(mu_);
+  std::chrono::steady_clock::time_point last_status_{};
+  std::chrono::steady_clock::time_point last_progress_{};
+};
+
+// v1::MemoryTrace -> core::MemoryTrace (the fields the dynamic memory uses
+// and keeps).
+core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace);
+
+}  // namespace fleetmem::robot
+
+#endif  // FLEETMEM_CLIENTS_ROBOT_AGENT_H_

@@ -1,0 +1,331 @@
+// fleetmem-robot: one robot of a fleet, as its own program (docs/robot.md).
+// It observes a recorded source (Nordland images, images with poses, a
+// CARMEN laser log), relocalises each observation against the fleet's
+// memory, queues its memory traces on its own disk and uploads them whenever
+// the server answers, and keeps its dynamic memory refreshed from the whole
+// fleet. Restarted on the same --data-dir it resumes where it stopped: no
+// observation is made twice or skipped, no seq is reused.
+//
+//   fleetmem-robot --server 127.0.0.1:50051 --fleet nordland \
+//       --robot-id robot-1 --source nordland:../shared/data/nordland/summer \
+//       --data-dir /var/lib/fleetmem-robot --first 0 --last 300
+//
+// Exit codes: 0 the source was observed and the queue drained, or SIGTERM /
+// SIGINT stopped it cleanly; 1 an error (the message says what was kept);
+// 2 bad flags; 3 the source was observed but the queue did not drain within
+// --drain-timeout (it is kept for the next start).
+#include <csignal>
+#include <cstdlib>
+#include <iostream>
+#include <string>
+
+#include "CLI/CLI.hpp"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "clients/cpp/fleetmem_client.h"
+#include "clients/robot/agent.h"
+#include "clients/robot/encoder.h"
+#include "clients/robot/observation_source.h"
+#include "clients/robot/robot_store.h"
+
+namespace {
+
+std::atomic<bool> g_stop{false};
+
+extern "C" void OnSignal(int) { g_stop.store(true); }
+
+struct Flags {
+  std::string server = "127.0.0.1:50051";
+  std::string fleet;
+  std::string robot_id;
+  std::string source;
+  std::string data_dir;
+  fleetmem::client::CredentialSources credentials;
+  std::string tls_server_name;
+  std::string encoder;
+  std::string domain;
+  size_t segment_size = 200;
+  double rate_hz = 0.0;
+  size_t first = 0;
+  size_t last = 0;  // 0 = to the end
+  bool query_only = false;
+  bool no_relocalise = false;
+  double match_radius = 0.0;  // 0 = the source's default
+  uint32_t query_k = 6;
+  size_t dynamic_memory = 1000;
+  double gamma = 0.9;
+  uint32_t refresh_count = 0;
+  size_t replay_per_segment = 64;
+  size_t upload_batch = 200;
+  double queue_max_mb = 256.0;
+  std::string queue_full_policy = "refuse";
+  double drain_timeout_s = 120.0;
+  double deadline_s = 10.0;
+  uint64_t seed = 1;
+};
+
+void AddFlags(CLI::App& app, Flags& flags) {
+  app.add_option("--server", flags.server, "fleetmem-server HOST:PORT")
+      ->capture_default_str();
+  app.add_option("--fleet", flags.fleet, "fleet id")->required();
+  app.add_option("--robot-id", flags.robot_id,
+                 "this robot's id (stable across restarts)")
+      ->required();
+  app.add_option("--source", flags.source,
+                 "nordland:DIR | images:DIR,POSES.csv | carmen:FILE[.bz2]")
+      ->required();
+  app.add_option("--data-dir", flags.data_dir,
+                 "the robot's own durable state: upload queue, source "
+                 "position, seq counter, watch cursor, status.json")
+      ->required();
+  app.add_option("--token-file", flags.credentials.token_file,
+                 "file with the token NAME:SECRET (or FLEETMEM_TOKEN_FILE / "
+                 "FLEETMEM_TOKEN)");
+  app.add_option("--tls-ca", flags.credentials.ca_file,
+                 "PEM of the server's CA: turns TLS on");
+  app.add_option("--tls-cert", flags.credentials.cert_file,
+                 "client certificate (PEM) for mutual TLS");
+  app.add_option("--tls-key", flags.credentials.key_file,
+                 "client private key (PEM) for mutual TLS");
+  app.add_option("--tls-server-name", flags.tls_server_name,
+                 "name to expect in the server's certificate");
+  app.add_option("--encoder", flags.encoder,
+                 "place code (default: hog-64x32-c8-s8-b6 for images, "
+                 "scanring-r32-d32 for scans)");
+  app.add_option("--domain", flags.domain,
+                 "domain of the traces (default: the Nordland folder's name, "
+                 "\"images\" or \"lidar\")");
+  app.add_option("--segment-size", flags.segment_size,
+                 "observations per segment (Algorithm 3)")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.add_option("--rate", flags.rate_hz,
+                 "observations per second, 0 = as fast as possible")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--first", flags.first, "first source index to observe")
+      ->capture_default_str();
+  app.add_option("--last", flags.last,
+                 "stop before this source index (0 = the end)")
+      ->capture_default_str();
+  app.add_flag("--query-only", flags.query_only,
+               "relocalise only: upload nothing (e.g. a winter drive "
+               "querying the summer memory)");
+  app.add_flag("--no-relocalise", flags.no_relocalise,
+               "do not query the fleet per observation");
+  app.add_option("--match-radius", flags.match_radius,
+                 "a relocalisation within this distance is correct (place "
+                 "units; 0 = the source's default: 20 for Nordland, 2 m "
+                 "otherwise)")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--query-k", flags.query_k, "matches per relocalisation")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100));
+  app.add_option("--dynamic-memory", flags.dynamic_memory,
+                 "capacity of the dynamic memory M_D")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.add_option("--gamma", flags.gamma, "time decay of replay (Eq. 19)")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1.0));
+  app.add_option("--refresh-count", flags.refresh_count,
+                 "traces per refresh (0 = the capacity of M_D)")
+      ->capture_default_str();
+  app.add_option("--replay-per-segment", flags.replay_per_segment,
+                 "traces replayed from M_D per segment")
+      ->capture_default_str();
+  app.add_option("--upload-batch", flags.upload_batch, "traces per upload")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.add_option("--queue-max-mb", flags.queue_max_mb,
+                 "bound of the upload queue (MiB)")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.add_option("--queue-full-policy", flags.queue_full_policy,
+                 "refuse (stop observing until it drains) or drop-oldest")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"refuse", "drop-oldest"}));
+  app.add_option("--drain-timeout", flags.drain_timeout_s,
+                 "seconds to wait for the queue to drain at the end")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--deadline", flags.deadline_s, "seconds per server call")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.add_option("--seed", flags.seed, "seed of R_in and replay draws")
+      ->capture_default_str();
+  app.set_config("--config", "",
+                 "TOML or INI file of these options (flags win)");
+}
+
+// On a first start (no seq given yet), learns the highest seq the server
+// holds for this robot, so that a robot whose disk was wiped does not
+// reuse them.
+absl::Status LearnFirstSeq(fleetmem::client::Client& client,
+                           fleetmem::robot::RobotStore& store,
+                           const Flags& flags) {
+  const fleetmem::robot::RobotState state = store.state();
+  if (state.next_seq() != 1 || state.traces_queued() != 0 ||
+      store.queue().open_segment != 0) {
+    return absl::OkStatus();
+  }
+  absl::StatusOr<fleetmem::v1::GetStatsResponse> stats =
+      client.GetStats(flags.fleet);
+  if (!stats.ok() && stats.status().code() == absl::StatusCode::kNotFound) {
+    return absl::OkStatus();  // a new fleet: start at 1
+  }
+  if (!stats.ok()) {
+    return absl::Status(
+        stats.status().code(),
+        absl::StrCat("a robot's first start must reach the server to learn "
+                     "its last seq (nothing was observed): ",
+                     stats.status().message()));
+  }
+  for (const fleetmem::v1::RobotStats& robot : stats->robots()) {
+    if (robot.robot_id() == flags.robot_id && robot.max_seq() > 0) {
+      std::cerr << "[" << flags.robot_id << "] the fleet already holds seqs "
+                << "up to " << robot.max_seq()
+                << " of this robot; continuing after them\n";
+      return store.SetFirstSeq(robot.max_seq() + 1);
+    }
+  }
+  return absl::OkStatus();
+}
+
+int Run(const Flags& flags) {
+  namespace robot = fleetmem::robot;
+  absl::StatusOr<std::unique_ptr<robot::ObservationSource>> source =
+      robot::OpenSource(flags.source);
+  if (!source.ok()) {
+    std::cerr << "fleetmem-robot: " << source.status().message() << "\n";
+    return 1;
+  }
+  const std::string encoder_name =
+      flags.encoder.empty() ? (*source)->default_encoder() : flags.encoder;
+  absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder =
+      robot::NewEncoderByName(encoder_name);
+  if (!encoder.ok()) {
+    std::cerr << "fleetmem-robot: " << encoder.status().message() << "\n";
+    return 2;
+  }
+  fleetmem::client::ClientOptions client_options;
+  client_options.target = flags.server;
+  client_options.deadline = std::chrono::milliseconds(
+      static_cast<int64_t>(flags.deadline_s * 1000));
+  client_options.tls_server_name = flags.tls_server_name;
+  absl::Status loaded =
+      fleetmem::client::LoadCredentials(flags.credentials, &client_options);
+  if (!loaded.ok()) {
+    std::cerr << "fleetmem-robot: " << loaded.message() << "\n";
+    return 2;
+  }
+  // Retrying client for the first-start check; the agent's clients make one
+  // attempt per call (the uploader and watcher retry on their own).
+  std::unique_ptr<fleetmem::client::Client> setup_client =
+      fleetmem::client::Client::Create(client_options);
+  client_options.max_attempts = 1;
+  client_options.upload_batch_size = flags.upload_batch;
+  std::unique_ptr<fleetmem::client::Client> client =
+      fleetmem::client::Client::Create(client_options);
+  client_options.deadline = std::min(client_options.deadline,
+                                     std::chrono::milliseconds(2000));
+  std::unique_ptr<fleetmem::client::Client> query_client =
+      fleetmem::client::Client::Create(client_options);
+
+  robot::RobotStoreOptions store_options;
+  store_options.max_bytes =
+      static_cast<uint64_t>(flags.queue_max_mb * 1024.0 * 1024.0);
+  store_options.full_policy = *robot::ParseFullPolicy(flags.queue_full_policy);
+  absl::StatusOr<std::unique_ptr<robot::RobotStore>> store =
+      robot::RobotStore::Open(
+          flags.data_dir,
+          {.robot_id = flags.robot_id,
+           .fleet_id = flags.fleet,
+           .source = (*source)->description()},
+          store_options);
+  if (!store.ok()) {
+    std::cerr << "fleetmem-robot: " << store.status().message() << "\n";
+    return 1;
+  }
+  if (!flags.query_only) {
+    absl::Status first = LearnFirstSeq(*setup_client, **store, flags);
+    if (!first.ok()) {
+      std::cerr << "fleetmem-robot: " << first.message() << "\n";
+      return 1;
+    }
+  }
+
+  robot::AgentOptions options;
+  options.fleet_id = flags.fleet;
+  options.robot_id = flags.robot_id;
+  options.domain =
+      flags.domain.empty() ? (*source)->default_domain() : flags.domain;
+  options.segment_size = flags.segment_size;
+  options.first = flags.first;
+  if (flags.last > 0) options.last = flags.last;
+  options.rate_hz = flags.rate_hz;
+  options.upload = !flags.query_only;
+  options.relocalise = !flags.no_relocalise;
+  options.query_k = flags.query_k;
+  options.match_radius = flags.match_radius > 0.0
+                             ? flags.match_radius
+                             : (*source)->default_match_radius();
+  // Triplet radii scale with the match radius: Nordland's 20 units give the
+  // demo's positives within 10 (adjacent files) and negatives beyond 100.
+  options.triplet.positive_radius = options.match_radius / 2.0;
+  options.triplet.negative_radius = options.match_radius * 5.0;
+  options.dynamic_memory.capacity = flags.dynamic_memory;
+  options.dynamic_memory.gamma = flags.gamma;
+  options.refresh_count = flags.refresh_count;
+  options.replay_per_segment = flags.replay_per_segment;
+  options.upload_batch = flags.upload_batch;
+  options.drain_timeout = std::chrono::milliseconds(
+      static_cast<int64_t>(flags.drain_timeout_s * 1000));
+  options.status_file = flags.data_dir + "/status.json";
+  options.seed = flags.seed;
+
+  std::cerr << absl::StrFormat(
+      "[%s] fleetmem-robot: fleet %s on %s, source %s (%d observations), "
+      "encoder %s (%d dims), domain %s, data dir %s%s\n",
+      flags.robot_id, flags.fleet, flags.server, (*source)->description(),
+      (*source)->size(), (*encoder)->version(), (*encoder)->dimension(),
+      options.domain, flags.data_dir, flags.query_only ? ", query only" : "");
+  robot::Agent agent(options, client.get(), query_client.get(), source->get(),
+                     encoder->get(), store->get());
+  std::signal(SIGTERM, OnSignal);
+  std::signal(SIGINT, OnSignal);
+  const absl::Status status = agent.Run(g_stop);
+  const robot::AgentSummary summary = agent.summary();
+  std::cerr << absl::StrFormat(
+      "[%s] summary: %d observations this run (%d in all), %d traces "
+      "queued in all, %d uploaded (%d duplicates), %d still queued, %d "
+      "segments, replayed %d own + %d peer traces, %d refreshes\n",
+      flags.robot_id, summary.observed_this_run, summary.state.observations(),
+      summary.state.traces_queued(), summary.state.traces_uploaded(),
+      summary.state.upload_duplicates(), summary.queue.depth,
+      summary.state.segments(), summary.state.replayed_own(),
+      summary.state.replayed_peer(), summary.state.refreshes());
+  if (!status.ok()) {
+    std::cerr << "fleetmem-robot: " << status.ToString() << "\n";
+    return 1;
+  }
+  if (summary.source_finished && !flags.query_only && !summary.drained) {
+    return 3;
+  }
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"fleetmem-robot: one robot of a fleet (docs/robot.md)."};
+  Flags flags;
+  AddFlags(app, flags);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    const int code = app.exit(e);
+    return code == 0 ? 0 : 2;
+  }
+  return Run(flags);
+}
