@@ -3,8 +3,9 @@
 #   1. starts BUILD_DIR/bin/fleetmem-server on a free local port with its
 #      embedded RocksDB under .demo/data (logs in .demo/server.log),
 #   2. waits until it logs "listening",
-#   3. runs BUILD_DIR/bin/fleetmem-demo against it (results table on stdout
-#      and in .demo/results.md),
+#   3. runs BUILD_DIR/bin/fleetmem-demo against it, which runs the fleet as
+#      fleetmem-robot processes (their data dirs under .demo/robots) and
+#      prints the results table (also in .demo/results.md),
 #   4. stops the server with SIGTERM and waits for it (also on failure or
 #      Ctrl-C, through an exit trap).
 #
@@ -23,7 +24,8 @@ case "$build_dir" in
 esac
 server_bin="$build_dir/bin/fleetmem-server"
 demo_bin="$build_dir/bin/fleetmem-demo"
-for bin in "$server_bin" "$demo_bin"; do
+robot_bin="$build_dir/bin/fleetmem-robot"
+for bin in "$server_bin" "$demo_bin" "$robot_bin"; do
   if [[ ! -x "$bin" ]]; then
     echo "run_demo.sh: $bin not found; build it first (make build)" >&2
     exit 1
@@ -111,7 +113,8 @@ done
 echo "run_demo.sh: fleetmem-server listening on $address"
 
 demo_status=0
-"$demo_bin" --server "$address" --results-md "$results" "$@" &
+"$demo_bin" --server "$address" --results-md "$results" \
+  --robot-binary "$robot_bin" --work-dir "$demo_dir/robots" "$@" &
 demo_pid=$!
 wait "$demo_pid" || demo_status=$?
 demo_pid=""

@@ -1,0 +1,382 @@
+// fleetmem-robot end to end: the real robot binary against the real server
+// binary, both killed with SIGKILL at moments the test picks, on the real
+// Nordland and laser recordings. Every check counts traces on the server by
+// (robot_id, seq): RobotStats.received counts the traces the server
+// accepted (a repeat of a stored (robot, seq) is a duplicate and not
+// counted), max_seq the highest seq it got; received == max_seq == the
+// observations made means none was lost and none stored twice.
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/prctl.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <fstream>
+#include <random>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "clients/robot/robot_state.pb.h"
+#include "gmock/gmock.h"
+#include "google/protobuf/util/json_util.h"
+#include "gtest/gtest.h"
+#include "tests/api_helpers.h"
+#include "tests/server_process.h"
+
+namespace fleetmem::testing {
+namespace {
+
+using ::testing::HasSubstr;
+using Clock = std::chrono::steady_clock;
+
+const std::string kData = FLEETMEM_DATA_DIR;
+const std::string kSummer = "nordland:" + kData + "/nordland/summer";
+const std::string kLaser = "carmen:" + kData + "/laser/aces.clf.bz2";
+
+// One run of fleetmem-robot (fork/exec; output appended to a log file; its
+// own process group; SIGKILLed if the test thread dies).
+class RobotProcess {
+ public:
+  RobotProcess(std::vector<std::string> args, std::string log)
+      : args_(std::move(args)), log_(std::move(log)) {}
+  ~RobotProcess() {
+    if (pid_ > 0) Kill();
+  }
+
+  void Start() {
+    std::vector<std::string> argv_strings = {std::string(FLEETMEM_BIN_DIR) +
+                                             "/fleetmem-robot"};
+    argv_strings.insert(argv_strings.end(), args_.begin(), args_.end());
+    std::vector<char*> argv;
+    for (std::string& arg : argv_strings) argv.push_back(arg.data());
+    argv.push_back(nullptr);
+    const int fd = open(log_.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+    ASSERT_GE(fd, 0) << log_;
+    pid_ = fork();
+    ASSERT_GE(pid_, 0);
+    if (pid_ == 0) {
+      setpgid(0, 0);
+      prctl(PR_SET_PDEATHSIG, SIGKILL);
+      dup2(fd, 1);
+      dup2(fd, 2);
+      execv(argv[0], argv.data());
+      _exit(127);
+    }
+    close(fd);
+  }
+  void Kill() {
+    kill(pid_, SIGKILL);
+    Wait();
+  }
+  // Exit code, or -signal.
+  int Wait() {
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    pid_ = -1;
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -WTERMSIG(status);
+  }
+  bool running() const { return pid_ > 0; }
+  pid_t pid() const { return pid_; }
+
+ private:
+  std::vector<std::string> args_;
+  std::string log_;
+  pid_t pid_ = -1;
+};
+
+robot::state::RobotStatus ReadStatus(const std::string& data_dir) {
+  robot::state::RobotStatus status;
+  const std::string json = ReadFileOrEmpty(data_dir + "/status.json");
+  if (!json.empty()) {
+    (void)google::protobuf::util::JsonStringToMessage(json, &status);
+  }
+  return status;
+}
+
+class RobotIntegrationTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_FALSE(dir_.path().empty());
+    ASSERT_EQ(mkdir(dir_.Join("server").c_str(), 0755), 0);
+    ASSERT_NO_FATAL_FAILURE(StartServer());
+  }
+  void TearDown() override {
+    if (HasFailure()) {
+      std::cerr << "---- server log ----\n"
+                << ReadFileOrEmpty(dir_.Join("server.log")).substr(0, 20000)
+                << "\n---- robot log ----\n"
+                << ReadFileOrEmpty(dir_.Join("robot.log")).substr(0, 40000)
+                << std::endl;
+    }
+    if (server_ && server_->running()) {
+      absl::StatusOr<int> code = server_->Stop();
+      EXPECT_TRUE(code.ok() && *code == 0);
+    }
+  }
+
+  // (Re)starts the server on the same data dir and, after the first start,
+  // the same port, so that robots find it again.
+  void StartServer() {
+    ServerOptions options;
+    options.data_dir = dir_.Join("server");
+    options.log_file = dir_.Join("server.log");
+    options.listen =
+        port_ == 0 ? "127.0.0.1:0" : absl::StrCat("127.0.0.1:", port_);
+    server_ = std::make_unique<ServerProcess>(options);
+    absl::Status started = server_->Start();
+    ASSERT_TRUE(started.ok()) << started;
+    port_ = server_->port();
+  }
+
+  std::string Address() const { return absl::StrCat("127.0.0.1:", port_); }
+
+  std::vector<std::string> RobotArgs(const std::string& fleet,
+                                     const std::string& robot_id,
+                                     const std::string& source, size_t last,
+                                     double rate,
+                                     const std::string& data_dir) {
+    return {"--server", Address(), "--fleet", fleet, "--robot-id", robot_id,
+            "--source", source, "--data-dir", data_dir, "--last",
+            absl::StrCat(last), "--rate", absl::StrCat(rate),
+            "--drain-timeout", "60", "--segment-size", "100"};
+  }
+
+  v1::RobotStats Stats(const std::string& fleet, const std::string& robot) {
+    std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
+    Reply<v1::GetStatsResponse> stats = GetStats(*stub, fleet);
+    EXPECT_TRUE(stats.ok()) << Describe(stats.status);
+    const v1::RobotStats* found = FindRobot(stats.response, robot);
+    return found == nullptr ? v1::RobotStats() : *found;
+  }
+
+  TempDir dir_{"fleetmem-robot-it-"};
+  std::unique_ptr<ServerProcess> server_;
+  int port_ = 0;
+};
+
+TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileARobotUploads) {
+  constexpr size_t kObservations = 2000;
+  RobotProcess robot(RobotArgs("f-nordland", "r1", kSummer, kObservations,
+                               250.0, dir_.Join("r1")),
+                     dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(robot.Start());
+  std::mt19937 rng(std::random_device{}());
+  for (int kill = 0; kill < 2; ++kill) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(
+        std::uniform_int_distribution<int>(1500, 3000)(rng)));
+    server_->Kill();
+    std::this_thread::sleep_for(std::chrono::milliseconds(
+        std::uniform_int_distribution<int>(200, 1500)(rng)));
+    ASSERT_NO_FATAL_FAILURE(StartServer());
+  }
+  EXPECT_EQ(robot.Wait(), 0);
+  const v1::RobotStats stats = Stats("f-nordland", "r1");
+  EXPECT_EQ(stats.received(), kObservations);
+  EXPECT_EQ(stats.max_seq(), kObservations);
+  const robot::state::RobotStatus status = ReadStatus(dir_.Join("r1"));
+  EXPECT_EQ(status.phase(), "done");
+  EXPECT_EQ(status.queue_depth(), 0u);
+  EXPECT_EQ(status.counters().traces_queued(), kObservations);
+}
+
+TEST_F(RobotIntegrationTest, RobotsKilledTwiceAndRestartedLoseAndRepeatNothing) {
+  // A camera robot on Nordland and a laser robot on the ACES log (their own
+  // fleets: a fleet holds one encoder), both SIGKILLed twice mid-run.
+  struct Case {
+    std::string fleet, robot, source;
+    size_t observations;
+  };
+  const Case cases[] = {{"f-camera", "cam-1", kSummer, 2000},
+                        {"f-laser", "laser-1", kLaser, 1500}};
+  std::vector<std::unique_ptr<RobotProcess>> robots;
+  for (const Case& c : cases) {
+    robots.push_back(std::make_unique<RobotProcess>(
+        RobotArgs(c.fleet, c.robot, c.source, c.observations, 300.0,
+                  dir_.Join(c.robot)),
+        dir_.Join("robot.log")));
+    ASSERT_NO_FATAL_FAILURE(robots.back()->Start());
+  }
+  std::mt19937 rng(std::random_device{}());
+  for (int kill = 0; kill < 2; ++kill) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(
+        std::uniform_int_distribution<int>(1000, 2000)(rng)));
+    for (auto& robot : robots) {
+      robot->Kill();
+      ASSERT_NO_FATAL_FAILURE(robot->Start());
+    }
+  }
+  for (size_t i = 0; i < robots.size(); ++i) {
+    EXPECT_EQ(robots[i]->Wait(), 0) << cases[i].robot;
+    const v1::RobotStats stats = Stats(cases[i].fleet, cases[i].robot);
+    EXPECT_EQ(stats.received(), cases[i].observations) << cases[i].robot;
+    EXPECT_EQ(stats.max_seq(), cases[i].observations) << cases[i].robot;
+    const robot::state::RobotStatus status =
+        ReadStatus(dir_.Join(cases[i].robot));
+    // Each observation was made once: the position and the count agree.
+    EXPECT_EQ(status.counters().observations(), cases[i].observations);
+    EXPECT_EQ(status.counters().next_index(), cases[i].observations);
+  }
+  const std::string log = ReadFileOrEmpty(dir_.Join("robot.log"));
+  EXPECT_THAT(log, HasSubstr("resuming at observation"));
+}
+
+TEST_F(RobotIntegrationTest, ServerDownFor30SecondsTheQueueGrowsThenDrains) {
+  constexpr size_t kObservations = 1600;
+  const std::string data_dir = dir_.Join("r1");
+  RobotProcess robot(RobotArgs("f-outage", "r1", kSummer, kObservations, 40.0,
+                               data_dir),
+                     dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(robot.Start());
+  std::this_thread::sleep_for(std::chrono::seconds(4));
+  server_->Kill();
+  const auto down = Clock::now();
+  uint64_t peak = 0;
+  double oldest = 0.0;
+  while (Clock::now() - down < std::chrono::seconds(30)) {
+    std::this_thread::sleep_for(std::chrono::seconds(1));
+    const robot::state::RobotStatus status = ReadStatus(data_dir);
+    peak = std::max(peak, status.queue_depth());
+    oldest = std::max(oldest, status.queue_oldest_age_s());
+  }
+  // 30 s at 40 Hz: about 1,200 observations, sealed every 100 and queued.
+  EXPECT_GE(peak, 900u);
+  EXPECT_GE(oldest, 15.0);
+  ASSERT_NO_FATAL_FAILURE(StartServer());
+  EXPECT_EQ(robot.Wait(), 0);
+  const v1::RobotStats stats = Stats("f-outage", "r1");
+  EXPECT_EQ(stats.received(), kObservations);
+  EXPECT_EQ(stats.max_seq(), kObservations);
+  EXPECT_EQ(ReadStatus(data_dir).queue_depth(), 0u);
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("robot.log")),
+              HasSubstr("server reachable again"));
+}
+
+TEST_F(RobotIntegrationTest, TwoRobotsReplayEachOthersTracesAfterRefresh) {
+  // Different stretches of the route, the same fleet, at the same time.
+  std::vector<std::string> a = RobotArgs("f-share", "robot-a", kSummer, 600,
+                                         80.0, dir_.Join("a"));
+  std::vector<std::string> b = RobotArgs("f-share", "robot-b", kSummer, 1600,
+                                         80.0, dir_.Join("b"));
+  b.insert(b.end(), {"--first", "1000"});
+  RobotProcess robot_a(a, dir_.Join("robot.log"));
+  RobotProcess robot_b(b, dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(robot_a.Start());
+  ASSERT_NO_FATAL_FAILURE(robot_b.Start());
+  EXPECT_EQ(robot_a.Wait(), 0);
+  EXPECT_EQ(robot_b.Wait(), 0);
+  const robot::state::RobotStatus status_a = ReadStatus(dir_.Join("a"));
+  const robot::state::RobotStatus status_b = ReadStatus(dir_.Join("b"));
+  EXPECT_GT(status_a.counters().replayed_peer(), 0u);
+  EXPECT_GT(status_b.counters().replayed_peer(), 0u);
+  EXPECT_GT(status_a.dynamic_memory_by_robot().count("robot-b"), 0u);
+  EXPECT_GT(status_b.dynamic_memory_by_robot().count("robot-a"), 0u);
+  EXPECT_GT(status_a.counters().peer_clusters_added(), 0u);
+}
+
+TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {
+  // The fleet holds HOG codes; a robot with another encoder is refused
+  // (FAILED_PRECONDITION / INVALID_ARGUMENT are not retried).
+  RobotProcess first(RobotArgs("f-refuse", "r1", kSummer, 100, 0.0,
+                               dir_.Join("r1")),
+                     dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(first.Start());
+  ASSERT_EQ(first.Wait(), 0);
+  std::vector<std::string> args =
+      RobotArgs("f-refuse", "r2", kSummer, 150, 0.0, dir_.Join("r2"));
+  args.insert(args.end(), {"--encoder", "patchnorm-32x16-p8"});
+  RobotProcess second(args, dir_.Join("robot2.log"));
+  ASSERT_NO_FATAL_FAILURE(second.Start());
+  EXPECT_EQ(second.Wait(), 1);
+  const std::string log = ReadFileOrEmpty(dir_.Join("robot2.log"));
+  EXPECT_THAT(log, HasSubstr("the server refused traces seq 1.."));
+  EXPECT_THAT(log, HasSubstr("stays in the queue"));
+  const robot::state::RobotStatus status = ReadStatus(dir_.Join("r2"));
+  EXPECT_EQ(status.phase(), "failed");
+  EXPECT_EQ(status.queue_depth() + status.open_segment(),
+            status.counters().observations());
+  EXPECT_GT(status.queue_depth(), 0u);
+  EXPECT_EQ(Stats("f-refuse", "r2").received(), 0u);
+}
+
+TEST_F(RobotIntegrationTest, BadSourcesGiveAClearMessage) {
+  struct Case {
+    std::string source;
+    std::string message;
+  };
+  const std::string truncated = dir_.Join("cut.clf.bz2");
+  {
+    std::ifstream in(kData + "/laser/aces.clf.bz2", std::ios::binary);
+    std::string bytes((std::istreambuf_iterator<char>(in)),
+                      std::istreambuf_iterator<char>());
+    std::ofstream(truncated, std::ios::binary)
+        << bytes.substr(0, bytes.size() / 3);
+  }
+  const Case cases[] = {
+      {"nordland:" + dir_.Join("missing"), "cannot list"},
+      {"carmen:" + truncated, truncated + ": corrupt or truncated bzip2"},
+      {"lidar:/x", "unknown source kind"},
+  };
+  for (const Case& c : cases) {
+    RobotProcess robot(RobotArgs("f-bad", "r1", c.source, 10, 0.0,
+                                 dir_.Join("bad")),
+                       dir_.Join("bad.log"));
+    ASSERT_NO_FATAL_FAILURE(robot.Start());
+    EXPECT_EQ(robot.Wait(), 1) << c.source;
+    EXPECT_THAT(ReadFileOrEmpty(dir_.Join("bad.log")), HasSubstr(c.message));
+  }
+}
+
+TEST_F(RobotIntegrationTest, ACorruptImageStopsTheRobotAtItAndLosesNothing) {
+  // Ten real frames, the sixth corrupt: the robot observes five, stops with
+  // the file's name, and after the file is fixed resumes at the sixth.
+  const std::string folder = dir_.Join("images");
+  ASSERT_EQ(mkdir(folder.c_str(), 0755), 0);
+  std::ofstream csv(folder + "/poses.csv");
+  csv << "file,x,y\n";
+  for (int i = 1; i <= 10; ++i) {
+    const std::string name = absl::StrCat("images-", 10000 + i * 10, ".png");
+    const std::string from = kData + "/nordland/summer/" +
+                             absl::StrCat("images-", 10000 + i * 10, ".png");
+    std::ifstream in(from, std::ios::binary);
+    std::stringstream bytes;
+    bytes << in.rdbuf();
+    std::ofstream(folder + "/" + name, std::ios::binary)
+        << (i == 6 ? bytes.str().substr(0, 60) : bytes.str());
+    csv << name << "," << i * 10 << ",0\n";
+  }
+  csv.close();
+  const std::string source =
+      absl::StrCat("images:", folder, ",", folder, "/poses.csv");
+  RobotProcess robot(RobotArgs("f-images", "r1", source, 10, 0.0,
+                               dir_.Join("r1")),
+                     dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(robot.Start());
+  EXPECT_EQ(robot.Wait(), 1);
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("robot.log")),
+              HasSubstr("images-10060.png"));
+  EXPECT_EQ(ReadStatus(dir_.Join("r1")).counters().next_index(), 5u);
+  // Fix the file; the robot resumes at it.
+  {
+    std::ifstream in(kData + "/nordland/summer/images-10060.png",
+                     std::ios::binary);
+    std::stringstream bytes;
+    bytes << in.rdbuf();
+    std::ofstream(folder + "/images-10060.png", std::ios::binary)
+        << bytes.str();
+  }
+  RobotProcess again(RobotArgs("f-images", "r1", source, 10, 0.0,
+                               dir_.Join("r1")),
+                     dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(again.Start());
+  EXPECT_EQ(again.Wait(), 0);
+  const v1::RobotStats stats = Stats("f-images", "r1");
+  EXPECT_EQ(stats.received(), 10u);
+  EXPECT_EQ(stats.max_seq(), 10u);
+}
+
+}  // namespace
+}  // namespace fleetmem::testing
