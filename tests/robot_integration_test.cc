@@ -137,12 +137,16 @@ class RobotIntegrationTest : public ::testing::Test {
   std::vector<std::string> RobotArgs(const std::string& fleet,
                                      const std::string& robot_id,
                                      const std::string& source, size_t last,
-                                     double rate,
-                                     const std::string& data_dir) {
-    return {"--server", Address(), "--fleet", fleet, "--robot-id", robot_id,
-            "--source", source, "--data-dir", data_dir, "--last",
-            absl::StrCat(last), "--rate", absl::StrCat(rate),
-            "--drain-timeout", "60", "--segment-size", "100"};
+                                     double rate, const std::string& data_dir) {
+    return {"--server",        Address(),
+            "--fleet",         fleet,
+            "--robot-id",      robot_id,
+            "--source",        source,
+            "--data-dir",      data_dir,
+            "--last",          absl::StrCat(last),
+            "--rate",          absl::StrCat(rate),
+            "--drain-timeout", "60",
+            "--segment-size",  "100"};
   }
 
   v1::RobotStats Stats(const std::string& fleet, const std::string& robot) {
@@ -183,7 +187,8 @@ TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileARobotUploads) {
   EXPECT_EQ(status.counters().traces_queued(), kObservations);
 }
 
-TEST_F(RobotIntegrationTest, RobotsKilledTwiceAndRestartedLoseAndRepeatNothing) {
+TEST_F(RobotIntegrationTest,
+       RobotsKilledTwiceAndRestartedLoseAndRepeatNothing) {
   // A camera robot on Nordland and a laser robot on the ACES log (their own
   // fleets: a fleet holds one encoder), both SIGKILLed twice mid-run.
   struct Case {
@@ -227,9 +232,9 @@ TEST_F(RobotIntegrationTest, RobotsKilledTwiceAndRestartedLoseAndRepeatNothing) 
 TEST_F(RobotIntegrationTest, ServerDownFor30SecondsTheQueueGrowsThenDrains) {
   constexpr size_t kObservations = 1600;
   const std::string data_dir = dir_.Join("r1");
-  RobotProcess robot(RobotArgs("f-outage", "r1", kSummer, kObservations, 40.0,
-                               data_dir),
-                     dir_.Join("robot.log"));
+  RobotProcess robot(
+      RobotArgs("f-outage", "r1", kSummer, kObservations, 40.0, data_dir),
+      dir_.Join("robot.log"));
   ASSERT_NO_FATAL_FAILURE(robot.Start());
   std::this_thread::sleep_for(std::chrono::seconds(4));
   server_->Kill();
@@ -257,10 +262,10 @@ TEST_F(RobotIntegrationTest, ServerDownFor30SecondsTheQueueGrowsThenDrains) {
 
 TEST_F(RobotIntegrationTest, TwoRobotsReplayEachOthersTracesAfterRefresh) {
   // Different stretches of the route, the same fleet, at the same time.
-  std::vector<std::string> a = RobotArgs("f-share", "robot-a", kSummer, 600,
-                                         80.0, dir_.Join("a"));
-  std::vector<std::string> b = RobotArgs("f-share", "robot-b", kSummer, 1600,
-                                         80.0, dir_.Join("b"));
+  std::vector<std::string> a =
+      RobotArgs("f-share", "robot-a", kSummer, 600, 80.0, dir_.Join("a"));
+  std::vector<std::string> b =
+      RobotArgs("f-share", "robot-b", kSummer, 1600, 80.0, dir_.Join("b"));
   b.insert(b.end(), {"--first", "1000"});
   RobotProcess robot_a(a, dir_.Join("robot.log"));
   RobotProcess robot_b(b, dir_.Join("robot.log"));
@@ -280,9 +285,9 @@ TEST_F(RobotIntegrationTest, TwoRobotsReplayEachOthersTracesAfterRefresh) {
 TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {
   // The fleet holds HOG codes; a robot with another encoder is refused
   // (FAILED_PRECONDITION / INVALID_ARGUMENT are not retried).
-  RobotProcess first(RobotArgs("f-refuse", "r1", kSummer, 100, 0.0,
-                               dir_.Join("r1")),
-                     dir_.Join("robot.log"));
+  RobotProcess first(
+      RobotArgs("f-refuse", "r1", kSummer, 100, 0.0, dir_.Join("r1")),
+      dir_.Join("robot.log"));
   ASSERT_NO_FATAL_FAILURE(first.Start());
   ASSERT_EQ(first.Wait(), 0);
   std::vector<std::string> args =
@@ -321,9 +326,9 @@ TEST_F(RobotIntegrationTest, BadSourcesGiveAClearMessage) {
       {"lidar:/x", "unknown source kind"},
   };
   for (const Case& c : cases) {
-    RobotProcess robot(RobotArgs("f-bad", "r1", c.source, 10, 0.0,
-                                 dir_.Join("bad")),
-                       dir_.Join("bad.log"));
+    RobotProcess robot(
+        RobotArgs("f-bad", "r1", c.source, 10, 0.0, dir_.Join("bad")),
+        dir_.Join("bad.log"));
     ASSERT_NO_FATAL_FAILURE(robot.Start());
     EXPECT_EQ(robot.Wait(), 1) << c.source;
     EXPECT_THAT(ReadFileOrEmpty(dir_.Join("bad.log")), HasSubstr(c.message));
@@ -351,9 +356,9 @@ TEST_F(RobotIntegrationTest, ACorruptImageStopsTheRobotAtItAndLosesNothing) {
   csv.close();
   const std::string source =
       absl::StrCat("images:", folder, ",", folder, "/poses.csv");
-  RobotProcess robot(RobotArgs("f-images", "r1", source, 10, 0.0,
-                               dir_.Join("r1")),
-                     dir_.Join("robot.log"));
+  RobotProcess robot(
+      RobotArgs("f-images", "r1", source, 10, 0.0, dir_.Join("r1")),
+      dir_.Join("robot.log"));
   ASSERT_NO_FATAL_FAILURE(robot.Start());
   EXPECT_EQ(robot.Wait(), 1);
   EXPECT_THAT(ReadFileOrEmpty(dir_.Join("robot.log")),
@@ -368,9 +373,9 @@ TEST_F(RobotIntegrationTest, ACorruptImageStopsTheRobotAtItAndLosesNothing) {
     std::ofstream(folder + "/images-10060.png", std::ios::binary)
         << bytes.str();
   }
-  RobotProcess again(RobotArgs("f-images", "r1", source, 10, 0.0,
-                               dir_.Join("r1")),
-                     dir_.Join("robot.log"));
+  RobotProcess again(
+      RobotArgs("f-images", "r1", source, 10, 0.0, dir_.Join("r1")),
+      dir_.Join("robot.log"));
   ASSERT_NO_FATAL_FAILURE(again.Start());
   EXPECT_EQ(again.Wait(), 0);
   const v1::RobotStats stats = Stats("f-images", "r1");

@@ -104,9 +104,8 @@ void Agent::SleepUnless(std::chrono::milliseconds duration,
                         const std::atomic<bool>& stop) {
   const auto until = Clock::now() + duration;
   while (!stop.load() && Clock::now() < until) {
-    std::this_thread::sleep_for(
-        std::min<Clock::duration>(std::chrono::milliseconds(50),
-                                  until - Clock::now()));
+    std::this_thread::sleep_for(std::min<Clock::duration>(
+        std::chrono::milliseconds(50), until - Clock::now()));
   }
 }
 
@@ -138,8 +137,7 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
         "resuming at observation %d of %s (%d observed before, %d open, "
         "%d queued, next seq %d)",
         index, source_->description(), start.observations(),
-        store_->queue().open_segment, store_->queue().depth,
-        start.next_seq()));
+        store_->queue().open_segment, store_->queue().depth, start.next_seq()));
   }
   if (index != start.next_index()) {
     // First run with --first beyond 0: the position starts there.
@@ -232,8 +230,8 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
   if (!observation.ok()) return observation.status();
   absl::StatusOr<std::vector<float>> code = encoder_->Encode(*observation);
   if (!code.ok()) return code.status();
-  absl::Status valid = core::ValidateCode(
-      absl::StrCat("code of ", observation->name), *code);
+  absl::Status valid =
+      core::ValidateCode(absl::StrCat("code of ", observation->name), *code);
   if (!valid.ok()) return valid;
   // R_in (Eq. 12); the generator is seeded per observation so that a
   // repeated observation after a crash gets the same reward.
@@ -488,9 +486,8 @@ void Agent::UploadLoop() {
     absl::StatusOr<v1::UploadTracesResponse> response =
         client_->Upload(options_.fleet_id, *batch);
     if (response.ok()) {
-      absl::Status marked =
-          store_->MarkUploaded(batch->back().seq(), response->accepted(),
-                               response->duplicates());
+      absl::Status marked = store_->MarkUploaded(
+          batch->back().seq(), response->accepted(), response->duplicates());
       if (!marked.ok()) {
         SetFatal(marked);
         return;
@@ -509,8 +506,7 @@ void Agent::UploadLoop() {
           absl::StrFormat("the server refused traces seq %d..%d: %s; every "
                           "queued trace stays in the queue (%d)",
                           batch->front().seq(), batch->back().seq(),
-                          response.status().message(),
-                          store_->queue().depth)));
+                          response.status().message(), store_->queue().depth)));
       Log(std::string(fatal().message()));
       return;
     }
@@ -575,10 +571,10 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   status.set_queue_bytes(queue.bytes);
   status.set_queue_max_bytes(store_->options().max_bytes);
   const int64_t now_ns = absl::ToUnixNanos(absl::Now());
-  status.set_queue_oldest_age_s(
-      queue.oldest_stored_unix_ns == 0
-          ? 0.0
-          : (now_ns - queue.oldest_stored_unix_ns) / 1e9);
+  status.set_queue_oldest_age_s(queue.oldest_stored_unix_ns == 0
+                                    ? 0.0
+                                    : (now_ns - queue.oldest_stored_unix_ns) /
+                                          1e9);
   status.set_open_segment(queue.open_segment);
   status.set_dynamic_memory_size(memory_.size());
   for (const auto& [robot, count] : memory_.CountByRobot()) {
@@ -590,9 +586,9 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   status.set_relocalisation_recall_at_5(core::RecallAtK(ranks, 5));
   status.set_relocalisation_weighted_recall(core::WeightedRecall(ranks));
   status.set_relocalisation_ms_mean(
-      ranks.empty() ? 0.0
-                    : status.counters().relocalisation_ms_total() /
-                          ranks.size());
+      ranks.empty()
+          ? 0.0
+          : status.counters().relocalisation_ms_total() / ranks.size());
   {
     absl::MutexLock lock(&mu_);
     status.set_last_error(last_error_);
@@ -603,8 +599,7 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   print.add_whitespace = true;
   print.always_print_primitive_fields = true;
   print.preserve_proto_field_names = true;
-  if (!google::protobuf::util::MessageToJsonString(status, &json, print)
-           .ok()) {
+  if (!google::protobuf::util::MessageToJsonString(status, &json, print).ok()) {
     return;
   }
   // Write-then-rename, so that a reader never sees half a file.

@@ -49,10 +49,10 @@ absl::StatusOr<std::vector<Observation>> ParseCarmenLog(
     }
     const size_t needed = 2 + beams + kFieldsAfterRanges;
     if (fields.size() < needed) {
-      return LineError(name, line_number,
-                       absl::StrCat("FLASER with ", beams, " beams needs ",
-                                    needed, " fields, got ", fields.size(),
-                                    " (line cut short?)"));
+      return LineError(
+          name, line_number,
+          absl::StrCat("FLASER with ", beams, " beams needs ", needed,
+                       " fields, got ", fields.size(), " (line cut short?)"));
     }
     Observation scan;
     scan.index = scans.size();
@@ -79,14 +79,13 @@ absl::StatusOr<std::vector<Observation>> ParseCarmenLog(
                                       "\" is not a finite number"));
       }
     }
-    scan.place = core::Place{.x = pose[0], .y = pose[1], .z = 0.0,
-                             .yaw = pose[2]};
+    scan.place =
+        core::Place{.x = pose[0], .y = pose[1], .z = 0.0, .yaw = pose[2]};
     scan.timestamp_ns = static_cast<int64_t>(std::llround(pose[3] * 1e9));
     scans.push_back(std::move(scan));
   }
   if (scans.empty()) {
-    return absl::NotFoundError(
-        absl::StrCat(name, " holds no FLASER record"));
+    return absl::NotFoundError(absl::StrCat(name, " holds no FLASER record"));
   }
   return scans;
 }
@@ -97,7 +96,8 @@ absl::StatusOr<std::string> ReadMaybeBzip2(const std::string& path) {
     if (!in) return absl::NotFoundError(absl::StrCat("cannot open ", path));
     std::stringstream text;
     text << in.rdbuf();
-    if (in.bad()) return absl::DataLossError(absl::StrCat("cannot read ", path));
+    if (in.bad())
+      return absl::DataLossError(absl::StrCat("cannot read ", path));
     return text.str();
   }
   std::unique_ptr<FILE, int (*)(FILE*)> file(std::fopen(path.c_str(), "rb"),
@@ -119,9 +119,9 @@ absl::StatusOr<std::string> ReadMaybeBzip2(const std::string& path) {
     if (error == BZ_STREAM_END) break;
     if (error != BZ_OK) {
       BZ2_bzReadClose(&error, bz);
-      return absl::DataLossError(absl::StrCat(
-          path, ": corrupt or truncated bzip2 data after ", text.size(),
-          " decompressed bytes"));
+      return absl::DataLossError(
+          absl::StrCat(path, ": corrupt or truncated bzip2 data after ",
+                       text.size(), " decompressed bytes"));
     }
   }
   BZ2_bzReadClose(&error, bz);

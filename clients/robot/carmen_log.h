@@ -20,8 +20,8 @@ namespace fleetmem::robot {
 // INVALID_ARGUMENT naming `name` and the line for a FLASER line that is cut
 // short or holds a value that is not a number (ranges must be finite and
 // >= 0, beams 1..4096); NOT_FOUND if the log holds no FLASER record.
-absl::StatusOr<std::vector<Observation>> ParseCarmenLog(std::string_view text,
-                                                        const std::string& name);
+absl::StatusOr<std::vector<Observation>> ParseCarmenLog(
+    std::string_view text, const std::string& name);
 
 // The whole text of `path`, decompressed through libbz2 if the name ends in
 // ".bz2". NOT_FOUND if it cannot be opened; DATA_LOSS naming the file for a

@@ -8,8 +8,7 @@
 
 namespace fleetmem::robot {
 
-DynamicMemory::DynamicMemory(std::string robot_id,
-                             DynamicMemoryOptions options)
+DynamicMemory::DynamicMemory(std::string robot_id, DynamicMemoryOptions options)
     : robot_id_(std::move(robot_id)), options_(options) {}
 
 double DynamicMemory::Weight(const ReplayEntry& entry) const {
@@ -23,8 +22,10 @@ void DynamicMemory::AddOwn(const core::MemoryTrace& trace) {
                              return entry.trace.key() == trace.key();
                            });
   if (same != entries_.end()) entries_.erase(same);
-  entries_.push_back(ReplayEntry{
-      .trace = trace, .local_replays = 0, .local = true, .added = next_added_++});
+  entries_.push_back(ReplayEntry{.trace = trace,
+                                 .local_replays = 0,
+                                 .local = true,
+                                 .added = next_added_++});
   EvictToCapacity();
 }
 
@@ -38,11 +39,11 @@ void DynamicMemory::Refresh(const std::vector<core::MemoryTrace>& sampled) {
   for (const core::MemoryTrace& trace : sampled) {
     if (!in_sample.emplace(trace.key(), true).second) continue;
     auto it = replays.find(trace.key());
-    next.push_back(ReplayEntry{
-        .trace = trace,
-        .local_replays = it == replays.end() ? 0 : it->second,
-        .local = false,
-        .added = next_added_++});
+    next.push_back(
+        ReplayEntry{.trace = trace,
+                    .local_replays = it == replays.end() ? 0 : it->second,
+                    .local = false,
+                    .added = next_added_++});
   }
   for (ReplayEntry& entry : entries_) {
     if (entry.local && !in_sample.contains(entry.trace.key())) {

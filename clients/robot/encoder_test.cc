@@ -114,8 +114,8 @@ TEST(ScanRingEncoderTest, PerturbRotatesByWholeBeams) {
   for (int i = 0; i < 20; ++i) {
     absl::StatusOr<Observation> moved = encoder->Perturb(scan, rng);
     ASSERT_TRUE(moved.ok());
-    int zeros = static_cast<int>(std::count(moved->scan.ranges.begin(),
-                                            moved->scan.ranges.end(), 0.0f));
+    int zeros = static_cast<int>(
+        std::count(moved->scan.ranges.begin(), moved->scan.ranges.end(), 0.0f));
     EXPECT_LE(zeros, 2);
   }
   EXPECT_EQ(NewScanRingEncoder({.range_bins = 0}), nullptr);
@@ -127,7 +127,8 @@ TEST(ScanRingEncoderTest, SeparatesPlacesOfTheRealAcesLog) {
   absl::StatusOr<std::string> text =
       ReadMaybeBzip2(std::string(FLEETMEM_DATA_DIR) + "/laser/aces.clf.bz2");
   ASSERT_TRUE(text.ok()) << text.status();
-  absl::StatusOr<std::vector<Observation>> scans = ParseCarmenLog(*text, "aces");
+  absl::StatusOr<std::vector<Observation>> scans =
+      ParseCarmenLog(*text, "aces");
   ASSERT_TRUE(scans.ok());
   std::unique_ptr<Encoder> encoder = NewScanRingEncoder({});
   auto distance = [&](size_t i, size_t j) {

@@ -6,9 +6,9 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "clients/robot/image_encoder.h"
 #include "opencv2/imgproc.hpp"
 #include "opencv2/objdetect.hpp"
-#include "clients/robot/image_encoder.h"
 
 namespace fleetmem::robot {
 namespace {

@@ -15,8 +15,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   absl::StatusOr<cv::Mat> grey = robot::DecodeGrey(
       std::string_view(reinterpret_cast<const char*>(data), size), "input");
   if (!grey.ok()) return 0;
-  static const std::unique_ptr<robot::ImageEncoder> encoder =
-      std::move(*robot::NewImageEncoderByName(robot::ImageEncoderNames().front()));
+  static const std::unique_ptr<robot::ImageEncoder> encoder = std::move(
+      *robot::NewImageEncoderByName(robot::ImageEncoderNames().front()));
   encoder->EncodeImage(*grey).IgnoreError();
   return 0;
 }

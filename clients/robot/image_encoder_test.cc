@@ -5,10 +5,10 @@
 #include <string>
 #include <vector>
 
+#include "clients/robot/code_search.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "opencv2/core.hpp"
-#include "clients/robot/code_search.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -30,7 +30,8 @@ TEST(PatchNormEncoderTest, EveryPatchHasZeroMeanAndUnitVariance) {
   ASSERT_NE(encoder, nullptr);
   EXPECT_EQ(encoder->dimension(), 512u);
   EXPECT_EQ(encoder->version(), "patchnorm-32x16-p8-v1");
-  absl::StatusOr<std::vector<float>> code = encoder->EncodeImage(RandomImage(1));
+  absl::StatusOr<std::vector<float>> code =
+      encoder->EncodeImage(RandomImage(1));
   ASSERT_TRUE(code.ok()) << code.status();
   ASSERT_EQ(code->size(), 512u);
   // Row-major 32x16 thumbnail; patch (px, py) covers 8x8 of it.
@@ -82,11 +83,13 @@ TEST(HogEncoderTest, DimensionMatchesTheLayout) {
       {.width = 64, .height = 32, .cell = 8, .block_stride = 8, .bins = 6});
   ASSERT_NE(encoder, nullptr);
   EXPECT_EQ(encoder->dimension(), 7u * 3u * 4u * 6u);
-  absl::StatusOr<std::vector<float>> code = encoder->EncodeImage(RandomImage(3));
+  absl::StatusOr<std::vector<float>> code =
+      encoder->EncodeImage(RandomImage(3));
   ASSERT_TRUE(code.ok()) << code.status();
   EXPECT_EQ(code->size(), encoder->dimension());
   // Another image gives another code.
-  absl::StatusOr<std::vector<float>> other = encoder->EncodeImage(RandomImage(4));
+  absl::StatusOr<std::vector<float>> other =
+      encoder->EncodeImage(RandomImage(4));
   ASSERT_TRUE(other.ok());
   EXPECT_GT(CodeDistance(*code, *other), 0.1f);
 }

@@ -199,7 +199,8 @@ absl::StatusOr<std::vector<PosedImage>> ParsePosesCsv(const std::string& path) {
                                   "\" is not a finite number"));
       }
     }
-    if (auto it = column.find("timestamp_ns"); it != column.end() &&
+    if (auto it = column.find("timestamp_ns");
+        it != column.end() &&
         !absl::SimpleAtoi(fields[it->second], &image.timestamp_ns)) {
       return error(absl::StrCat("timestamp_ns \"", fields[it->second],
                                 "\" is not an integer"));

@@ -7,8 +7,8 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "opencv2/imgproc.hpp"
 #include "clients/robot/image_encoder.h"
+#include "opencv2/imgproc.hpp"
 
 namespace fleetmem::robot {
 namespace {

@@ -6,8 +6,8 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
-#include "opencv2/imgproc.hpp"
 #include "clients/robot/code_search.h"
+#include "opencv2/imgproc.hpp"
 
 namespace fleetmem::robot {
 

@@ -78,7 +78,8 @@ TEST(ExternalRewardsTest, IsTheTripletLossOfHardestPairs) {
   // Frames at route positions 0, 10, 20, 200. Frame 0's positive (within
   // 10) is frame 10; its negatives (beyond 100) are frame 200 only.
   const std::vector<std::vector<float>> codes = {At(0), At(60), At(65), At(10)};
-  const std::vector<core::Place> x = {{.x = 0}, {.x = 10}, {.x = 20}, {.x = 200}};
+  const std::vector<core::Place> x = {
+      {.x = 0}, {.x = 10}, {.x = 20}, {.x = 200}};
   const TripletOptions options{
       .margin = 0.1, .positive_radius = 10, .negative_radius = 100};
   const std::vector<float> rewards = ExternalRewards(codes, x, options);

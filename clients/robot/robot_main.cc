@@ -210,8 +210,8 @@ int Run(const Flags& flags) {
   }
   fleetmem::client::ClientOptions client_options;
   client_options.target = flags.server;
-  client_options.deadline = std::chrono::milliseconds(
-      static_cast<int64_t>(flags.deadline_s * 1000));
+  client_options.deadline =
+      std::chrono::milliseconds(static_cast<int64_t>(flags.deadline_s * 1000));
   client_options.tls_server_name = flags.tls_server_name;
   absl::Status loaded =
       fleetmem::client::LoadCredentials(flags.credentials, &client_options);
@@ -227,8 +227,8 @@ int Run(const Flags& flags) {
   client_options.upload_batch_size = flags.upload_batch;
   std::unique_ptr<fleetmem::client::Client> client =
       fleetmem::client::Client::Create(client_options);
-  client_options.deadline = std::min(client_options.deadline,
-                                     std::chrono::milliseconds(2000));
+  client_options.deadline =
+      std::min(client_options.deadline, std::chrono::milliseconds(2000));
   std::unique_ptr<fleetmem::client::Client> query_client =
       fleetmem::client::Client::Create(client_options);
 
@@ -237,12 +237,11 @@ int Run(const Flags& flags) {
       static_cast<uint64_t>(flags.queue_max_mb * 1024.0 * 1024.0);
   store_options.full_policy = *robot::ParseFullPolicy(flags.queue_full_policy);
   absl::StatusOr<std::unique_ptr<robot::RobotStore>> store =
-      robot::RobotStore::Open(
-          flags.data_dir,
-          {.robot_id = flags.robot_id,
-           .fleet_id = flags.fleet,
-           .source = (*source)->description()},
-          store_options);
+      robot::RobotStore::Open(flags.data_dir,
+                              {.robot_id = flags.robot_id,
+                               .fleet_id = flags.fleet,
+                               .source = (*source)->description()},
+                              store_options);
   if (!store.ok()) {
     std::cerr << "fleetmem-robot: " << store.status().message() << "\n";
     return 1;

@@ -57,9 +57,9 @@ const char* FullPolicyName(FullPolicy policy) {
 absl::StatusOr<FullPolicy> ParseFullPolicy(std::string_view name) {
   if (name == "refuse") return FullPolicy::kRefuse;
   if (name == "drop-oldest") return FullPolicy::kDropOldest;
-  return absl::InvalidArgumentError(absl::StrCat(
-      "queue full policy \"", std::string(name),
-      "\" must be refuse or drop-oldest"));
+  return absl::InvalidArgumentError(
+      absl::StrCat("queue full policy \"", std::string(name),
+                   "\" must be refuse or drop-oldest"));
 }
 
 RobotStore::RobotStore(std::unique_ptr<rocksdb::DB> db,
@@ -157,8 +157,8 @@ absl::Status RobotStore::Commit(rocksdb::WriteBatch& batch,
   batch.Put(kStateKey, next.SerializeAsString());
   rocksdb::WriteOptions write;
   write.sync = options_.sync;
-  absl::Status status = FromRocks(db_->Write(write, &batch),
-                                  "the robot store could not write");
+  absl::Status status =
+      FromRocks(db_->Write(write, &batch), "the robot store could not write");
   if (status.ok()) state_ = next;
   return status;
 }
@@ -252,8 +252,10 @@ absl::StatusOr<uint64_t> RobotStore::SealSegment(
   absl::MutexLock lock(&mu_);
   if (traces.size() != open_.size()) {
     return absl::InvalidArgumentError(
-        absl::StrCat("sealing ", traces.size(), " traces, but the open segment "
-                     "holds ", open_.size(), " observations"));
+        absl::StrCat("sealing ", traces.size(),
+                     " traces, but the open segment "
+                     "holds ",
+                     open_.size(), " observations"));
   }
   RobotState next = state_;
   const uint64_t first_seq = next.next_seq();
@@ -307,9 +309,9 @@ absl::StatusOr<std::vector<v1::MemoryTrace>> RobotStore::PeekQueue(
   std::vector<v1::MemoryTrace> traces;
   std::unique_ptr<rocksdb::Iterator> it(
       db_->NewIterator(rocksdb::ReadOptions()));
-  for (it->Seek(kQueuePrefix); it->Valid() &&
-                               it->key().starts_with(kQueuePrefix) &&
-                               traces.size() < max;
+  for (it->Seek(kQueuePrefix);
+       it->Valid() && it->key().starts_with(kQueuePrefix) &&
+       traces.size() < max;
        it->Next()) {
     StoredTrace stored;
     if (!stored.ParseFromArray(it->value().data(),

@@ -147,7 +147,7 @@ class RobotStore {
   bool created_ = false;
   mutable absl::Mutex mu_;
   RobotState state_ ABSL_GUARDED_BY(mu_);
-  std::map<uint64_t, Queued> queue_ ABSL_GUARDED_BY(mu_);  // by seq
+  std::map<uint64_t, Queued> queue_ ABSL_GUARDED_BY(mu_);   // by seq
   std::map<uint64_t, uint64_t> open_ ABSL_GUARDED_BY(mu_);  // index -> bytes
   uint64_t bytes_ ABSL_GUARDED_BY(mu_) = 0;
 };

@@ -24,12 +24,12 @@ const RobotIdentity kIdentity{
 class RobotStoreTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = (std::filesystem::temp_directory_path() /
-            absl::StrCat("fleetmem-robot-store-", getpid(), "-",
-                         ::testing::UnitTest::GetInstance()
-                             ->current_test_info()
-                             ->name()))
-               .string();
+    dir_ =
+        (std::filesystem::temp_directory_path() /
+         absl::StrCat(
+             "fleetmem-robot-store-", getpid(), "-",
+             ::testing::UnitTest::GetInstance()->current_test_info()->name()))
+            .string();
     std::filesystem::remove_all(dir_);
   }
   void TearDown() override { std::filesystem::remove_all(dir_); }
@@ -87,7 +87,8 @@ TEST_F(RobotStoreTest, SeqsAreNeverReusedAfterARestart) {
   ASSERT_TRUE(store->MarkUploaded(5, 5, 0).ok());
   EXPECT_EQ(store->queue().depth, 0u);
   EXPECT_EQ(store->state().traces_uploaded(), 5u);
-  EXPECT_EQ(store->SetFirstSeq(1).code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store->SetFirstSeq(1).code(),
+            absl::StatusCode::kFailedPrecondition);
   store.reset();
   store = Open();
   Segment(*store, 5, 6);

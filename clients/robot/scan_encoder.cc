@@ -54,8 +54,8 @@ class ScanRingEncoder : public Encoder {
         code[options_.range_bins] += 1.0f;
         continue;
       }
-      const int r = std::min(options_.range_bins - 1,
-                             static_cast<int>(range / ring));
+      const int r =
+          std::min(options_.range_bins - 1, static_cast<int>(range / ring));
       code[r] += 1.0f;
       const double bearing = -scan.field_of_view / 2.0 + step * i;
       points.emplace_back(range * std::cos(bearing), range * std::sin(bearing));

@@ -130,17 +130,25 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
         absl::StrCat(setup.work_dir, "/", drive.robot_id, "-", season);
     std::vector<std::string> args = {
         setup.robot_binary,
-        "--server", setup.server,
-        "--fleet", setup.fleet_id,
-        "--robot-id", drive.robot_id,
-        "--source", absl::StrCat("nordland:", season == "summer"
-                                                  ? setup.summer_dir
-                                                  : setup.winter_dir),
-        "--data-dir", dir,
-        "--first", absl::StrCat(drive.stretch.begin),
-        "--last", absl::StrCat(drive.stretch.end),
-        "--encoder", setup.encoder_name,
-        "--segment-size", absl::StrCat(setup.segment_size)};
+        "--server",
+        setup.server,
+        "--fleet",
+        setup.fleet_id,
+        "--robot-id",
+        drive.robot_id,
+        "--source",
+        absl::StrCat("nordland:",
+                     season == "summer" ? setup.summer_dir : setup.winter_dir),
+        "--data-dir",
+        dir,
+        "--first",
+        absl::StrCat(drive.stretch.begin),
+        "--last",
+        absl::StrCat(drive.stretch.end),
+        "--encoder",
+        setup.encoder_name,
+        "--segment-size",
+        absl::StrCat(setup.segment_size)};
     if (query_only) args.push_back("--query-only");
     std::vector<char*> argv;
     for (std::string& arg : args) argv.push_back(arg.data());
@@ -176,9 +184,8 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
     std::stringstream json;
     json << in.rdbuf();
     RobotStatus& status = season == "summer" ? drive.summer : drive.winter;
-    if (!in ||
-        !google::protobuf::util::JsonStringToMessage(json.str(), &status)
-             .ok()) {
+    if (!in || !google::protobuf::util::JsonStringToMessage(json.str(), &status)
+                    .ok()) {
       return absl::InternalError(absl::StrCat("cannot read ", path));
     }
   }
@@ -384,12 +391,13 @@ absl::Status Run(const char* argv0) {
   const uint64_t final_batches =
       stats->consolidations() - before->consolidations();
   for (const v1::RobotStats& robot : stats->robots()) {
-    std::printf("stats: %s holds %llu of its %llu uploaded traces (max seq "
-                "%llu)\n",
-                robot.robot_id().c_str(),
-                static_cast<unsigned long long>(robot.traces()),
-                static_cast<unsigned long long>(robot.received()),
-                static_cast<unsigned long long>(robot.max_seq()));
+    std::printf(
+        "stats: %s holds %llu of its %llu uploaded traces (max seq "
+        "%llu)\n",
+        robot.robot_id().c_str(),
+        static_cast<unsigned long long>(robot.traces()),
+        static_cast<unsigned long long>(robot.received()),
+        static_cast<unsigned long long>(robot.max_seq()));
   }
   absl::StatusOr<EventSummary> events =
       ReadEvents(*observer, setup.fleet_id, stats->last_event_id());
@@ -412,8 +420,7 @@ absl::Status Run(const char* argv0) {
   double query_ms_sum = 0.0;
   for (const Drive& drive : drives) {
     const core::FirstCorrectRanks ranks = Ranks(drive.winter);
-    memory_row.ranks.insert(memory_row.ranks.end(), ranks.begin(),
-                            ranks.end());
+    memory_row.ranks.insert(memory_row.ranks.end(), ranks.begin(), ranks.end());
     query_ms_sum += drive.winter.counters().relocalisation_ms_total();
   }
   robot::BruteForceIndex baseline(setup.encoder->dimension());
@@ -435,7 +442,8 @@ absl::Status Run(const char* argv0) {
       if (!code.ok()) return code.status();
       const auto start = Clock::now();
       std::vector<core::Place> found;
-      for (double x : baseline.Search(*code, kQueryK)) found.push_back({.x = x});
+      for (double x : baseline.Search(*code, kQueryK))
+        found.push_back({.x = x});
       local_ms.push_back(MillisSince(start));
       baseline_row.ranks.push_back(
           robot::FirstCorrectRank(found, place, kToleranceUnits));
@@ -458,8 +466,9 @@ absl::Status Run(const char* argv0) {
   memory_row.query_ms =
       memory_row.ranks.empty() ? 0.0 : query_ms_sum / memory_row.ranks.size();
   memory_row.consolidation_ms =
-      final_batches > 0 ? absl::StrFormat("%.1f", consolidate_ms / final_batches)
-                        : "-";
+      final_batches > 0
+          ? absl::StrFormat("%.1f", consolidate_ms / final_batches)
+          : "-";
   baseline_row.traces = absl::StrCat(baseline.size());
   baseline_row.clusters = "-";
   baseline_row.consolidation_ms = "-";
@@ -478,9 +487,7 @@ absl::Status Run(const char* argv0) {
       "- Encoder %s (%zu dims). Memory bounds of the fleet: N_max = %d "
       "traces per cluster, K_max = %d clusters; %d consolidations, %d "
       "clusters forgotten.\n"
-      "- Time per consolidation: the final Consolidate call (client round "
-      "trip, %.1f ms) divided by the %d robot batches it consolidated (%d "
-      "traces).\n"
+      "- Time per consolidation: %s.\n"
       "- Time per query: fleet memory = the robots' QueryPlace round trip "
       "(k = %d) while driving; baseline = in-process brute force over %zu "
       "codes.\n"
@@ -500,9 +507,18 @@ absl::Status Run(const char* argv0) {
       }(),
       summer_s, winter_s, setup.encoder->version(), setup.encoder->dimension(),
       stats->max_traces_per_cluster(), stats->max_clusters(),
-      stats->consolidations(), stats->clusters_forgotten(), consolidate_ms,
-      final_batches, consolidated->consolidated_traces(), kQueryK,
-      baseline.size(), covered, queries,
+      stats->consolidations(), stats->clusters_forgotten(),
+      final_batches > 0
+          ? absl::StrFormat(
+                "the final Consolidate call (client round trip, %.1f ms) "
+                "divided by the %d robot batches it consolidated (%d traces)",
+                consolidate_ms, final_batches,
+                consolidated->consolidated_traces())
+          : std::string("not measured: the robots' uploads consolidated "
+                        "every batch (stretches a multiple of the segment "
+                        "size), so the final Consolidate call had nothing "
+                        "to do"),
+      kQueryK, baseline.size(), covered, queries,
       100.0 * covered / std::max<size_t>(queries, 1));
 
   std::printf("\nResults (fleet %s)\n\n%s\n%s\n%s\n%s\n",

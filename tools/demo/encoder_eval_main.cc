@@ -20,11 +20,11 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
-#include "services/core/place_metrics.h"
 #include "clients/robot/code_search.h"
 #include "clients/robot/image_encoder.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/rewards.h"
+#include "services/core/place_metrics.h"
 #include "tools/demo/command_line.h"
 
 ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
@@ -87,9 +87,9 @@ core::FirstCorrectRanks Ranks(const std::vector<std::vector<float>>& summer,
   for (size_t row : rows) {
     std::vector<core::Place> found;
     for (double x : index.Search(winter[row], kTopK)) found.push_back({.x = x});
-    ranks.push_back(FirstCorrectRank(
-        found, {.x = static_cast<double>(season.numbers[row])},
-        kToleranceUnits));
+    ranks.push_back(
+        FirstCorrectRank(found, {.x = static_cast<double>(season.numbers[row])},
+                         kToleranceUnits));
   }
   return ranks;
 }
@@ -156,7 +156,8 @@ absl::Status Run() {
         absl::StatusOr<cv::Mat> moved =
             RandomShiftCrop(summer->images[i], ShiftCropOptions{}, rng);
         if (!moved.ok()) return moved.status();
-        absl::StatusOr<std::vector<float>> code = (*encoder)->EncodeImage(*moved);
+        absl::StatusOr<std::vector<float>> code =
+            (*encoder)->EncodeImage(*moved);
         if (!code.ok()) return code.status();
         internal_sum += InternalReward(summer_codes[i], *code);
         codes.push_back(summer_codes[i]);
