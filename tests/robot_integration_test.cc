@@ -72,6 +72,7 @@ class RobotProcess {
     kill(pid_, SIGKILL);
     Wait();
   }
+  void Signal(int signal) { kill(pid_, signal); }
   // Exit code, or -signal.
   int Wait() {
     int status = 0;
@@ -185,6 +186,39 @@ TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileARobotUploads) {
   EXPECT_EQ(status.phase(), "done");
   EXPECT_EQ(status.queue_depth(), 0u);
   EXPECT_EQ(status.counters().traces_queued(), kObservations);
+  // The encoder's version travelled with every trace.
+  std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
+  EXPECT_EQ(GetStats(*stub, "f-nordland").response.encoder_version(),
+            "hog-64x32-c8-s8-b6-v1");
+}
+
+TEST_F(RobotIntegrationTest, SigtermStopsCleanlyAndARestartFinishes) {
+  constexpr size_t kObservations = 600;
+  const std::string data_dir = dir_.Join("r1");
+  RobotProcess robot(
+      RobotArgs("f-term", "r1", kSummer, kObservations, 150.0, data_dir),
+      dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(robot.Start());
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  robot.Signal(SIGTERM);
+  EXPECT_EQ(robot.Wait(), 0);
+  const robot::state::RobotStatus stopped = ReadStatus(data_dir);
+  EXPECT_EQ(stopped.phase(), "stopped");
+  const uint64_t observed = stopped.counters().observations();
+  EXPECT_GT(observed, 0u);
+  EXPECT_LT(observed, kObservations);
+  // Everything observed is uploaded or durable here.
+  EXPECT_EQ(stopped.counters().traces_uploaded() + stopped.queue_depth() +
+                stopped.open_segment(),
+            observed);
+  RobotProcess again(
+      RobotArgs("f-term", "r1", kSummer, kObservations, 0.0, data_dir),
+      dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(again.Start());
+  EXPECT_EQ(again.Wait(), 0);
+  const v1::RobotStats stats = Stats("f-term", "r1");
+  EXPECT_EQ(stats.received(), kObservations);
+  EXPECT_EQ(stats.max_seq(), kObservations);
 }
 
 TEST_F(RobotIntegrationTest,
