@@ -114,11 +114,23 @@ def main():
           'certificate_common_name: "x" }\n'
           'principal { name: "a" role: ADMIN certificate_common_name: "y" }\n')
 
-    img = "tools/demo/fuzz_corpus/image_decode_fuzz"
+    img = "clients/robot/fuzz_corpus/image_decode_fuzz"
     write(img, "grey-8x4.png", png(8, 4, False, range(32)))
     write(img, "rgb-16x8.png", png(16, 8, True,
                                    [(i * 7) % 256 for i in range(16 * 8 * 3)]))
     write(img, "one-pixel.png", png(1, 1, False, [128]))
+
+    # CARMEN logs: the message kinds of a real log, and two broken records.
+    carmen = "clients/robot/fuzz_corpus/carmen_log_fuzz"
+    write(carmen, "log",
+          "# message formats defined: PARAM SYNC ODOM FLASER\n"
+          "PARAM robot_use_laser on nohost 0\n"
+          "ODOM 0.0 0.0 0.0 0.1 0.0 0.0 70.1 nohost 0.1\n"
+          "FLASER 5 1.5 2.25 49.9 50.0 0.0 0.5 -0.25 1.57 0.5 -0.25 1.57 "
+          "70.2 nohost 0.2\n"
+          "FLASER 3 1 2 3 1.0 1.0 0.0 1.0 1.0 0.0 70.3 nohost 0.3\r\n")
+    write(carmen, "nan-range", "FLASER 3 1.0 2.0 nan 0 0 0 0 0 0 1.5 host 0\n")
+    write(carmen, "short", "FLASER 180 1.0 2.0\n")
 
 
 if __name__ == "__main__":
