@@ -325,7 +325,7 @@ TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {
   ASSERT_NO_FATAL_FAILURE(first.Start());
   ASSERT_EQ(first.Wait(), 0);
   std::vector<std::string> args =
-      RobotArgs("f-refuse", "r2", kSummer, 150, 0.0, dir_.Join("r2"));
+      RobotArgs("f-refuse", "r2", kSummer, 2000, 200.0, dir_.Join("r2"));
   args.insert(args.end(), {"--encoder", "patchnorm-32x16-p8"});
   RobotProcess second(args, dir_.Join("robot2.log"));
   ASSERT_NO_FATAL_FAILURE(second.Start());
@@ -338,6 +338,8 @@ TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {
   EXPECT_EQ(status.queue_depth() + status.open_segment(),
             status.counters().observations());
   EXPECT_GT(status.queue_depth(), 0u);
+  // It stopped observing at the refusal, not at the end of its source.
+  EXPECT_LT(status.counters().observations(), 1000u);
   EXPECT_EQ(Stats("f-refuse", "r2").received(), 0u);
 }
 

@@ -166,6 +166,9 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
         if (stop.load()) break;
       }
     }
+    // A refused upload or a failing disk stops the robot at once.
+    status = fatal();
+    if (!status.ok()) break;
     status = ObserveOne(index, stop);
     if (!status.ok()) break;
     if (!options_.upload && store_->state().next_index() == index + 1) {
