@@ -350,9 +350,7 @@ TEST_F(RobotIntegrationTest, BadSourcesGiveAClearMessage) {
   };
   const std::string truncated = dir_.Join("cut.clf.bz2");
   {
-    std::ifstream in(kData + "/laser/aces.clf.bz2", std::ios::binary);
-    std::string bytes((std::istreambuf_iterator<char>(in)),
-                      std::istreambuf_iterator<char>());
+    const std::string bytes = ReadFileOrEmpty(kData + "/laser/aces.clf.bz2");
     std::ofstream(truncated, std::ios::binary)
         << bytes.substr(0, bytes.size() / 3);
   }
@@ -380,13 +378,11 @@ TEST_F(RobotIntegrationTest, ACorruptImageStopsTheRobotAtItAndLosesNothing) {
   csv << "file,x,y\n";
   for (int i = 1; i <= 10; ++i) {
     const std::string name = absl::StrCat("images-", 10000 + i * 10, ".png");
-    const std::string from = kData + "/nordland/summer/" +
-                             absl::StrCat("images-", 10000 + i * 10, ".png");
-    std::ifstream in(from, std::ios::binary);
-    std::stringstream bytes;
-    bytes << in.rdbuf();
+    const std::string bytes =
+        ReadFileOrEmpty(kData + "/nordland/summer/" + name);
+    ASSERT_FALSE(bytes.empty()) << name;
     std::ofstream(folder + "/" + name, std::ios::binary)
-        << (i == 6 ? bytes.str().substr(0, 60) : bytes.str());
+        << (i == 6 ? bytes.substr(0, 60) : bytes);
     csv << name << "," << i * 10 << ",0\n";
   }
   csv.close();
@@ -401,14 +397,8 @@ TEST_F(RobotIntegrationTest, ACorruptImageStopsTheRobotAtItAndLosesNothing) {
               HasSubstr("images-10060.png"));
   EXPECT_EQ(ReadStatus(dir_.Join("r1")).counters().next_index(), 5u);
   // Fix the file; the robot resumes at it.
-  {
-    std::ifstream in(kData + "/nordland/summer/images-10060.png",
-                     std::ios::binary);
-    std::stringstream bytes;
-    bytes << in.rdbuf();
-    std::ofstream(folder + "/images-10060.png", std::ios::binary)
-        << bytes.str();
-  }
+  std::ofstream(folder + "/images-10060.png", std::ios::binary)
+      << ReadFileOrEmpty(kData + "/nordland/summer/images-10060.png");
   RobotProcess again(
       RobotArgs("f-images", "r1", source, 10, 0.0, dir_.Join("r1")),
       dir_.Join("robot.log"));

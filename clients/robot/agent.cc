@@ -15,6 +15,7 @@
 #include "absl/time/time.h"
 #include "clients/robot/code_search.h"
 #include "google/protobuf/util/json_util.h"
+#include "proto/convert/trace_convert.h"
 #include "services/core/place_metrics.h"
 #include "services/core/validation.h"
 
@@ -30,10 +31,8 @@ bool Retryable(absl::StatusCode code) {
          code == absl::StatusCode::kAborted;
 }
 
-core::Place PlaceOf(const v1::Pose& pose) {
-  return core::Place{
-      .x = pose.x(), .y = pose.y(), .z = pose.z(), .yaw = pose.yaw()};
-}
+using api::PlaceFromProto;
+using api::TraceFromProto;
 
 // First-correct ranks from the durable histogram (for the core's metrics).
 core::FirstCorrectRanks RanksOf(const RobotState& state) {
@@ -45,23 +44,6 @@ core::FirstCorrectRanks RanksOf(const RobotState& state) {
 }
 
 }  // namespace
-
-core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace) {
-  core::MemoryTrace out;
-  out.robot_id = trace.robot_id();
-  out.seq = trace.seq();
-  out.domain = trace.domain();
-  out.code.assign(trace.code().begin(), trace.code().end());
-  out.place = PlaceOf(trace.pose());
-  out.reward = trace.reward();
-  out.reward_external = trace.reward_external();
-  out.reward_internal = trace.reward_internal();
-  out.timestamp_ns = trace.timestamp_ns();
-  out.replay_count = trace.replay_count();
-  out.encoder_version = trace.encoder_version();
-  out.cluster_id = trace.cluster_id();
-  return out;
-}
 
 Agent::Agent(AgentOptions options, client::Client* client,
              client::Client* query_client, const ObservationSource* source,
@@ -263,7 +245,7 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
     if (matches.ok() && !matches->empty()) {
       std::vector<core::Place> found;
       for (const v1::PlaceMatch& match : *matches) {
-        found.push_back(PlaceOf(match.trace().pose()));
+        found.push_back(PlaceFromProto(match.trace().pose()));
       }
       rank = FirstCorrectRank(found, observation->place, options_.match_radius);
     } else if (matches.ok() ||
@@ -278,10 +260,7 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
   trace.set_robot_id(options_.robot_id);
   trace.set_domain(options_.domain);
   trace.mutable_code()->Assign(code->begin(), code->end());
-  trace.mutable_pose()->set_x(observation->place.x);
-  trace.mutable_pose()->set_y(observation->place.y);
-  trace.mutable_pose()->set_z(observation->place.z);
-  trace.mutable_pose()->set_yaw(observation->place.yaw);
+  api::PlaceToProto(observation->place, trace.mutable_pose());
   trace.set_reward_internal(internal);
   trace.set_timestamp_ns(observation->timestamp_ns != 0
                              ? observation->timestamp_ns
@@ -403,7 +382,7 @@ absl::Status Agent::SealSegment() {
   for (StoredTrace& stored : *open) {
     codes.emplace_back(stored.trace().code().begin(),
                        stored.trace().code().end());
-    places.push_back(PlaceOf(stored.trace().pose()));
+    places.push_back(PlaceFromProto(stored.trace().pose()));
     traces.push_back(std::move(*stored.mutable_trace()));
   }
   const std::vector<float> external =

@@ -181,10 +181,6 @@ class Agent {
   std::chrono::steady_clock::time_point last_progress_{};
 };
 
-// v1::MemoryTrace -> core::MemoryTrace (the fields the dynamic memory uses
-// and keeps).
-core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace);
-
 }  // namespace fleetmem::robot
 
 #endif  // FLEETMEM_CLIENTS_ROBOT_AGENT_H_

@@ -6,44 +6,34 @@
 #include <utility>
 
 namespace fleetmem::robot {
-namespace {
-
-double Norm(std::span<const float> a) {
-  double sum = 0.0;
-  for (float v : a) sum += static_cast<double>(v) * v;
-  return std::sqrt(sum);
-}
-
-}  // namespace
 
 float CosineSimilarity(std::span<const float> a, std::span<const float> b) {
-  const double norm_a = Norm(a);
-  const double norm_b = Norm(b);
-  if (norm_a == 0.0 || norm_b == 0.0) {
-    return norm_a == norm_b ? 1.0f : 0.0f;
+  const std::vector<float> unit_a = core::NormalizedCode(a);
+  const std::vector<float> unit_b = core::NormalizedCode(b);
+  auto zero = [](const std::vector<float>& v) {
+    return std::all_of(v.begin(), v.end(), [](float x) { return x == 0.0f; });
+  };
+  if (zero(unit_a) || zero(unit_b)) {
+    return zero(unit_a) == zero(unit_b) ? 1.0f : 0.0f;
   }
   double dot = 0.0;
-  const size_t n = std::min(a.size(), b.size());
-  for (size_t i = 0; i < n; ++i) dot += static_cast<double>(a[i]) * b[i];
-  return static_cast<float>(std::clamp(dot / (norm_a * norm_b), -1.0, 1.0));
+  const size_t n = std::min(unit_a.size(), unit_b.size());
+  for (size_t i = 0; i < n; ++i)
+    dot += static_cast<double>(unit_a[i]) * unit_b[i];
+  return static_cast<float>(std::clamp(dot, -1.0, 1.0));
 }
 
 void BruteForceIndex::Add(std::span<const float> code, double label) {
-  const double norm = Norm(code);
-  for (size_t i = 0; i < dimension_; ++i) {
-    const float v = i < code.size() ? code[i] : 0.0f;
-    normalised_.push_back(norm > 0.0 ? static_cast<float>(v / norm) : 0.0f);
-  }
+  std::vector<float> unit = core::NormalizedCode(code);
+  unit.resize(dimension_, 0.0f);
+  normalised_.insert(normalised_.end(), unit.begin(), unit.end());
   labels_.push_back(label);
 }
 
 std::vector<double> BruteForceIndex::Search(std::span<const float> query,
                                             size_t k) const {
-  const double norm = Norm(query);
-  std::vector<float> q(dimension_, 0.0f);
-  for (size_t i = 0; i < dimension_ && i < query.size(); ++i) {
-    q[i] = norm > 0.0 ? static_cast<float>(query[i] / norm) : 0.0f;
-  }
+  std::vector<float> q = core::NormalizedCode(query);
+  q.resize(dimension_, 0.0f);
   std::vector<std::pair<float, size_t>> scored(labels_.size());
   for (size_t row = 0; row < labels_.size(); ++row) {
     const float* r = normalised_.data() + row * dimension_;

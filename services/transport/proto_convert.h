@@ -8,17 +8,17 @@
 
 #include "fleetmem/v1/memory.pb.h"
 #include "google/protobuf/repeated_ptr_field.h"
+#include "proto/convert/trace_convert.h"
 #include "services/core/types.h"
 #include "services/engine/memory_engine.h"
 
 namespace fleetmem::transport {
 
-core::Place PlaceFromProto(const v1::Pose& pose);
-void PlaceToProto(const core::Place& place, v1::Pose* pose);
-
-// Every field, including the server-set replay_count and cluster_id.
-core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace);
-void TraceToProto(const core::MemoryTrace& trace, v1::MemoryTrace* out);
+// Traces and places: shared with the robot (proto/convert).
+using api::PlaceFromProto;
+using api::PlaceToProto;
+using api::TraceFromProto;
+using api::TraceToProto;
 
 // The traces of an upload message. replay_count and cluster_id are set by
 // the server, so they are cleared here ("ignored on upload").
