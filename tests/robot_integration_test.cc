@@ -163,12 +163,24 @@ class RobotIntegrationTest : public ::testing::Test {
   int port_ = 0;
 };
 
-TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileARobotUploads) {
-  constexpr size_t kObservations = 2000;
-  RobotProcess robot(RobotArgs("f-nordland", "r1", kSummer, kObservations,
-                               250.0, dir_.Join("r1")),
-                     dir_.Join("robot.log"));
-  ASSERT_NO_FATAL_FAILURE(robot.Start());
+TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileRobotsUpload) {
+  // A camera robot on Nordland and a laser robot on the ACES log (their own
+  // fleets: a fleet holds one encoder) while the server is SIGKILLed twice.
+  struct Case {
+    std::string fleet, robot, source, encoder_version;
+    size_t observations;
+  };
+  const Case cases[] = {
+      {"f-nordland", "r1", kSummer, "hog-64x32-c8-s8-b6-v1", 2000},
+      {"f-aces", "scan-1", kLaser, "scanring-r32-d32-m20-v1", 1500}};
+  std::vector<std::unique_ptr<RobotProcess>> robots;
+  for (const Case& c : cases) {
+    robots.push_back(std::make_unique<RobotProcess>(
+        RobotArgs(c.fleet, c.robot, c.source, c.observations, 250.0,
+                  dir_.Join(c.robot)),
+        dir_.Join("robot.log")));
+    ASSERT_NO_FATAL_FAILURE(robots.back()->Start());
+  }
   std::mt19937 rng(std::random_device{}());
   for (int kill = 0; kill < 2; ++kill) {
     std::this_thread::sleep_for(std::chrono::milliseconds(
@@ -178,18 +190,21 @@ TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileARobotUploads) {
         std::uniform_int_distribution<int>(200, 1500)(rng)));
     ASSERT_NO_FATAL_FAILURE(StartServer());
   }
-  EXPECT_EQ(robot.Wait(), 0);
-  const v1::RobotStats stats = Stats("f-nordland", "r1");
-  EXPECT_EQ(stats.received(), kObservations);
-  EXPECT_EQ(stats.max_seq(), kObservations);
-  const robot::state::RobotStatus status = ReadStatus(dir_.Join("r1"));
-  EXPECT_EQ(status.phase(), "done");
-  EXPECT_EQ(status.queue_depth(), 0u);
-  EXPECT_EQ(status.counters().traces_queued(), kObservations);
-  // The encoder's version travelled with every trace.
   std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
-  EXPECT_EQ(GetStats(*stub, "f-nordland").response.encoder_version(),
-            "hog-64x32-c8-s8-b6-v1");
+  for (size_t i = 0; i < robots.size(); ++i) {
+    const Case& c = cases[i];
+    EXPECT_EQ(robots[i]->Wait(), 0) << c.robot;
+    const v1::RobotStats stats = Stats(c.fleet, c.robot);
+    EXPECT_EQ(stats.received(), c.observations) << c.robot;
+    EXPECT_EQ(stats.max_seq(), c.observations) << c.robot;
+    const robot::state::RobotStatus status = ReadStatus(dir_.Join(c.robot));
+    EXPECT_EQ(status.phase(), "done") << c.robot;
+    EXPECT_EQ(status.queue_depth(), 0u) << c.robot;
+    EXPECT_EQ(status.counters().traces_queued(), c.observations) << c.robot;
+    // The encoder's version travelled with every trace.
+    EXPECT_EQ(GetStats(*stub, c.fleet).response.encoder_version(),
+              c.encoder_version);
+  }
 }
 
 TEST_F(RobotIntegrationTest, SigtermStopsCleanlyAndARestartFinishes) {
@@ -258,6 +273,11 @@ TEST_F(RobotIntegrationTest,
     // Each observation was made once: the position and the count agree.
     EXPECT_EQ(status.counters().observations(), cases[i].observations);
     EXPECT_EQ(status.counters().next_index(), cases[i].observations);
+    // The watch resumed from its durable cursor: every event id from 1 to
+    // the cursor was counted exactly once.
+    EXPECT_GT(status.counters().watch_cursor(), 0u);
+    EXPECT_EQ(status.counters().events_seen(),
+              status.counters().watch_cursor());
   }
   const std::string log = ReadFileOrEmpty(dir_.Join("robot.log"));
   EXPECT_THAT(log, HasSubstr("resuming at observation"));
@@ -331,6 +351,7 @@ TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {
   ASSERT_NO_FATAL_FAILURE(second.Start());
   EXPECT_EQ(second.Wait(), 1);
   const std::string log = ReadFileOrEmpty(dir_.Join("robot2.log"));
+  EXPECT_THAT(log, HasSubstr("INVALID_ARGUMENT"));
   EXPECT_THAT(log, HasSubstr("the server refused traces seq 1.."));
   EXPECT_THAT(log, HasSubstr("stays in the queue"));
   const robot::state::RobotStatus status = ReadStatus(dir_.Join("r2"));
