@@ -1,0 +1,163 @@
+// The agent's loop without a server (the address refuses connections): the
+// segments, the learner hook, the durable queue and position. The agent
+// against the real server is tested in tests/robot_integration_test.cc.
+#include "clients/robot/agent.h"
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+
+namespace fleetmem::robot {
+namespace {
+
+using ::testing::ElementsAre;
+
+const std::string kSummer = std::string(FLEETMEM_DATA_DIR) + "/nordland/summer";
+
+class RecordingLearner : public Learner {
+ public:
+  absl::Status Learn(std::span<const Observation> segment,
+                     std::span<const core::MemoryTrace> replayed) override {
+    std::vector<size_t> indices;
+    for (const Observation& observation : segment) {
+      indices.push_back(observation.index);
+      EXPECT_FALSE(observation.image.empty());
+    }
+    segments.push_back(indices);
+    replayed_sizes.push_back(replayed.size());
+    return absl::OkStatus();
+  }
+  std::vector<std::vector<size_t>> segments;
+  std::vector<size_t> replayed_sizes;
+};
+
+class AgentTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ =
+        (std::filesystem::temp_directory_path() /
+         absl::StrCat(
+             "fleetmem-agent-", getpid(), "-",
+             ::testing::UnitTest::GetInstance()->current_test_info()->name()))
+            .string();
+    std::filesystem::remove_all(dir_);
+    absl::StatusOr<std::unique_ptr<ObservationSource>> source =
+        OpenNordlandFolder(kSummer);
+    ASSERT_TRUE(source.ok()) << source.status();
+    source_ = *std::move(source);
+    absl::StatusOr<std::unique_ptr<Encoder>> encoder =
+        NewEncoderByName(source_->default_encoder());
+    ASSERT_TRUE(encoder.ok());
+    encoder_ = *std::move(encoder);
+    client::ClientOptions client_options;
+    client_options.target = "127.0.0.1:1";  // nothing listens there
+    client_options.max_attempts = 1;
+    client_options.deadline = std::chrono::milliseconds(500);
+    client_ = client::Client::Create(client_options);
+  }
+  void TearDown() override { std::filesystem::remove_all(dir_); }
+
+  std::unique_ptr<RobotStore> OpenStore() {
+    absl::StatusOr<std::unique_ptr<RobotStore>> store = RobotStore::Open(
+        dir_, {.robot_id = "r1", .fleet_id = "f1", .source = "s"}, {});
+    EXPECT_TRUE(store.ok()) << store.status();
+    return store.ok() ? *std::move(store) : nullptr;
+  }
+
+  AgentOptions Options(size_t first, size_t last) {
+    AgentOptions options;
+    options.fleet_id = "f1";
+    options.robot_id = "r1";
+    options.domain = "summer";
+    options.segment_size = 4;
+    options.first = first;
+    options.last = last;
+    options.relocalise = false;
+    options.drain_timeout = std::chrono::milliseconds(0);
+    options.status_file = dir_ + "/status.json";
+    options.log = [](std::string_view) {};
+    return options;
+  }
+
+  std::string dir_;
+  std::unique_ptr<ObservationSource> source_;
+  std::unique_ptr<Encoder> encoder_;
+  std::unique_ptr<client::Client> client_;
+};
+
+TEST_F(AgentTest, QueuesEverySegmentWhileTheServerIsAwayAndResumes) {
+  std::atomic<bool> stop{false};
+  {
+    std::unique_ptr<RobotStore> store = OpenStore();
+    RecordingLearner learner;
+    Agent agent(Options(100, 110), client_.get(), client_.get(), source_.get(),
+                encoder_.get(), store.get(), &learner);
+    // The source ends; the queue cannot drain (no server) and is kept.
+    EXPECT_TRUE(agent.Run(stop).ok());
+    const AgentSummary summary = agent.summary();
+    EXPECT_TRUE(summary.source_finished);
+    EXPECT_FALSE(summary.drained);
+    EXPECT_EQ(summary.queue.depth, 10u);
+    EXPECT_EQ(summary.state.next_seq(), 11u);
+    EXPECT_EQ(summary.state.segments(), 3u);
+    // Segments of 4, 4 and the last 2, each handed to the learner with its
+    // real observations; nothing to replay without a fleet.
+    EXPECT_THAT(learner.segments, ElementsAre(ElementsAre(100, 101, 102, 103),
+                                              ElementsAre(104, 105, 106, 107),
+                                              ElementsAre(108, 109)));
+    // The robot's own traces fill its dynamic memory: later segments replay.
+    EXPECT_THAT(learner.replayed_sizes, ElementsAre(0, 4, 8));
+  }
+  // Every queued trace carries the encoder's version, a seq, a place and
+  // its rewards.
+  std::unique_ptr<RobotStore> store = OpenStore();
+  absl::StatusOr<std::vector<v1::MemoryTrace>> queued = store->PeekQueue(100);
+  ASSERT_TRUE(queued.ok());
+  ASSERT_EQ(queued->size(), 10u);
+  for (size_t i = 0; i < queued->size(); ++i) {
+    const v1::MemoryTrace& trace = (*queued)[i];
+    EXPECT_EQ(trace.seq(), i + 1);
+    EXPECT_EQ(trace.encoder_version(), encoder_->version());
+    EXPECT_EQ(trace.code_size(), static_cast<int>(encoder_->dimension()));
+    EXPECT_EQ(trace.pose().x(), 10.0 * (101 + i));  // images-01010.png, ...
+    EXPECT_EQ(trace.domain(), "summer");
+    EXPECT_FLOAT_EQ(trace.reward(),
+                    trace.reward_external() + trace.reward_internal());
+    EXPECT_GT(trace.reward_internal(), 0.0f);
+  }
+  // A second run with a longer range resumes after observation 109.
+  RecordingLearner learner;
+  Agent agent(Options(100, 114), client_.get(), client_.get(), source_.get(),
+              encoder_.get(), store.get(), &learner);
+  EXPECT_TRUE(agent.Run(stop).ok());
+  EXPECT_EQ(agent.summary().observed_this_run, 4u);
+  EXPECT_THAT(learner.segments, ElementsAre(ElementsAre(110, 111, 112, 113)));
+  EXPECT_EQ(agent.summary().state.next_seq(), 15u);
+}
+
+TEST_F(AgentTest, ALearnerErrorStopsTheRobotAndKeepsTheSegmentOpen) {
+  class FailingLearner : public Learner {
+    absl::Status Learn(std::span<const Observation>,
+                       std::span<const core::MemoryTrace>) override {
+      return absl::InternalError("out of memory in training");
+    }
+  } learner;
+  std::unique_ptr<RobotStore> store = OpenStore();
+  Agent agent(Options(0, 10), client_.get(), client_.get(), source_.get(),
+              encoder_.get(), store.get(), &learner);
+  std::atomic<bool> stop{false};
+  const absl::Status status = agent.Run(stop);
+  EXPECT_EQ(status.code(), absl::StatusCode::kInternal);
+  EXPECT_EQ(store->queue().open_segment, 4u);
+  EXPECT_EQ(store->queue().depth, 0u);
+  EXPECT_EQ(store->state().next_index(), 4u);
+  EXPECT_THAT(std::filesystem::exists(dir_ + "/status.json"), true);
+}
+
+}  // namespace
+}  // namespace fleetmem::robot
