@@ -199,7 +199,7 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
   if (status.ok()) status = fatal();
   join();
   if (status.ok() && source_finished_) {
-    phase_ = "done";
+    phase_ = drained_ || !options_.upload ? "done" : "undrained";
   } else if (!status.ok()) {
     phase_ = "failed";
     absl::MutexLock lock(&mu_);
