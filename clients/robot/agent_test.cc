@@ -7,6 +7,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
@@ -62,9 +63,9 @@ class AgentTest : public ::testing::Test {
   }
   void TearDown() override { std::filesystem::remove_all(dir_); }
 
-  std::unique_ptr<RobotStore> OpenStore() {
+  std::unique_ptr<RobotStore> OpenStore(RobotStoreOptions options = {}) {
     absl::StatusOr<std::unique_ptr<RobotStore>> store = RobotStore::Open(
-        dir_, {.robot_id = "r1", .fleet_id = "f1", .source = "s"}, {});
+        dir_, {.robot_id = "r1", .fleet_id = "f1", .source = "s"}, options);
     EXPECT_TRUE(store.ok()) << store.status();
     return store.ok() ? *std::move(store) : nullptr;
   }
@@ -157,6 +158,56 @@ TEST_F(AgentTest, ALearnerErrorStopsTheRobotAndKeepsTheSegmentOpen) {
   EXPECT_EQ(store->queue().depth, 0u);
   EXPECT_EQ(store->state().next_index(), 4u);
   EXPECT_THAT(std::filesystem::exists(dir_ + "/status.json"), true);
+}
+
+// A HOG trace takes about 2.1 KB in the queue: room for about three.
+constexpr uint64_t kThreeTraces = 7000;
+
+TEST_F(AgentTest, AFullQueueStopsObservingWithALogLineAndDropsNothing) {
+  std::unique_ptr<RobotStore> store = OpenStore(
+      {.max_bytes = kThreeTraces, .full_policy = FullPolicy::kRefuse});
+  AgentOptions options = Options(0, 50);
+  options.segment_size = 2;
+  std::vector<std::string> lines;
+  absl::Mutex mu;
+  options.log = [&](std::string_view line) {
+    absl::MutexLock lock(&mu);
+    lines.emplace_back(line);
+  };
+  Agent agent(options, client_.get(), client_.get(), source_.get(),
+              encoder_.get(), store.get());
+  std::atomic<bool> stop{false};
+  absl::Status status;
+  std::thread run([&] { status = agent.Run(stop); });
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  stop = true;
+  run.join();
+  EXPECT_TRUE(status.ok()) << status;
+  const AgentSummary summary = agent.summary();
+  // It waits at the bound instead of dropping: 3 observations, no more.
+  EXPECT_EQ(summary.state.next_index(), 3u);
+  EXPECT_EQ(summary.state.traces_dropped(), 0u);
+  EXPECT_LE(summary.queue.bytes, kThreeTraces);
+  absl::MutexLock lock(&mu);
+  EXPECT_THAT(lines,
+              ::testing::Contains(::testing::HasSubstr("upload queue full: ")));
+}
+
+TEST_F(AgentTest, DropOldestKeepsObservingAndCountsWhatItDropped) {
+  std::unique_ptr<RobotStore> store = OpenStore(
+      {.max_bytes = kThreeTraces, .full_policy = FullPolicy::kDropOldest});
+  AgentOptions options = Options(0, 10);
+  options.segment_size = 2;
+  Agent agent(options, client_.get(), client_.get(), source_.get(),
+              encoder_.get(), store.get());
+  std::atomic<bool> stop{false};
+  EXPECT_TRUE(agent.Run(stop).ok());
+  const AgentSummary summary = agent.summary();
+  EXPECT_EQ(summary.state.next_index(), 10u);
+  EXPECT_EQ(summary.state.traces_queued(), 10u);
+  EXPECT_EQ(summary.queue.depth + summary.state.traces_dropped(), 10u);
+  EXPECT_GE(summary.state.traces_dropped(), 6u);
+  EXPECT_LE(summary.queue.bytes, kThreeTraces);
 }
 
 }  // namespace
