@@ -230,7 +230,7 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
 
   // Relocalisation against the fleet's memory.
   int rank = -1;  // -1: not scored
-  bool unanswered = false, empty = false;
+  bool unanswered = false, empty = false, unscored = false;
   double query_ms = 0.0;
   if (options_.relocalise) {
     v1::QueryPlaceRequest request;
@@ -247,7 +247,12 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
       for (const v1::PlaceMatch& match : *matches) {
         found.push_back(PlaceFromProto(match.trace().pose()));
       }
-      rank = FirstCorrectRank(found, observation->place, options_.match_radius);
+      if (options_.score_relocalisation) {
+        rank =
+            FirstCorrectRank(found, observation->place, options_.match_radius);
+      } else {
+        unscored = true;
+      }
     } else if (matches.ok() ||
                matches.status().code() == absl::StatusCode::kNotFound) {
       empty = true;  // no memory yet (an unknown fleet is an empty one)
@@ -273,6 +278,11 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
       }
       state.set_relocalisation_ranks(rank,
                                      state.relocalisation_ranks(rank) + 1);
+    }
+    if (unscored) {
+      state.set_relocalisation_unscored(state.relocalisation_unscored() + 1);
+    }
+    if (rank >= 0 || unscored) {
       state.set_relocalisation_ms_total(state.relocalisation_ms_total() +
                                         query_ms);
     }
@@ -567,10 +577,11 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   status.set_relocalisation_recall_at_1(core::RecallAtK(ranks, 1));
   status.set_relocalisation_recall_at_5(core::RecallAtK(ranks, 5));
   status.set_relocalisation_weighted_recall(core::WeightedRecall(ranks));
+  const uint64_t answered =
+      ranks.size() + status.counters().relocalisation_unscored();
   status.set_relocalisation_ms_mean(
-      ranks.empty()
-          ? 0.0
-          : status.counters().relocalisation_ms_total() / ranks.size());
+      answered == 0 ? 0.0
+                    : status.counters().relocalisation_ms_total() / answered);
   {
     absl::MutexLock lock(&mu_);
     status.set_last_error(last_error_);
@@ -610,11 +621,15 @@ void Agent::Progress(bool force) {
   Log(absl::StrFormat(
       "%s: observed %d/%d | queue %d (oldest %.1f s) | uploaded %d | "
       "refreshed %d (M_D %d, %d traces from peers) | replayed %d from "
-      "peers | relocalisation r@1 %.3f over %d",
+      "peers | relocalisation r@1 %.3f over %d%s",
       phase_, state.next_index(), end_, queue.depth, age,
       state.traces_uploaded(), state.refreshes(), memory_.size(),
       state.refreshed_peer_traces(), state.replayed_peer(),
-      core::RecallAtK(ranks, 1), ranks.size()));
+      core::RecallAtK(ranks, 1), ranks.size(),
+      state.relocalisation_unscored() == 0
+          ? std::string()
+          : absl::StrFormat(" (%d more without ground truth)",
+                            state.relocalisation_unscored())));
 }
 
 }  // namespace fleetmem::robot

@@ -78,6 +78,9 @@ struct AgentOptions {
   uint32_t query_k = 6;
   // A match within this distance of the true place is correct (place units).
   double match_radius = 20.0;
+  // Score relocalisations (only where the source's places are ground truth;
+  // a laser log's are odometry).
+  bool score_relocalisation = true;
   // R_ex (Eq. 7) within a segment.
   TripletOptions triplet;
   DynamicMemoryOptions dynamic_memory;

@@ -71,6 +71,7 @@ class NordlandSource : public ObservationSource {
   double default_match_radius() const override {
     return 2.0 * kNordlandUnitsPerFile;
   }
+  bool places_are_ground_truth() const override { return true; }
 
  private:
   std::string description_;
@@ -115,6 +116,7 @@ class ImageFolderSource : public ObservationSource {
     return ImageEncoderNames().front();
   }
   double default_match_radius() const override { return 2.0; }
+  bool places_are_ground_truth() const override { return true; }
 
  private:
   std::string description_;
@@ -140,6 +142,7 @@ class CarmenSource : public ObservationSource {
     return ScanEncoderNames().front();
   }
   double default_match_radius() const override { return 2.0; }
+  bool places_are_ground_truth() const override { return false; }
 
  private:
   std::string description_;

@@ -48,6 +48,9 @@ class ObservationSource {
   virtual std::string default_domain() const = 0;
   virtual std::string default_encoder() const = 0;
   virtual double default_match_radius() const = 0;
+  // Whether an observation's place is ground truth (Nordland's route
+  // position, a pose file) or only odometry (a laser log's pose).
+  virtual bool places_are_ground_truth() const = 0;
 };
 
 absl::StatusOr<std::unique_ptr<ObservationSource>> OpenNordlandFolder(

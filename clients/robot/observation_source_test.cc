@@ -42,6 +42,7 @@ TEST(ObservationSourceTest, NordlandFolderPlacesFramesByNumber) {
   EXPECT_EQ((*source)->size(), 2500u);
   EXPECT_EQ((*source)->default_domain(), "winter");
   EXPECT_DOUBLE_EQ((*source)->default_match_radius(), 20.0);
+  EXPECT_TRUE((*source)->places_are_ground_truth());
   absl::StatusOr<Observation> frame = (*source)->Read(122);
   ASSERT_TRUE(frame.ok()) << frame.status();
   EXPECT_EQ(frame->name, "images-01230.png");
@@ -59,6 +60,7 @@ TEST(ObservationSourceTest, CarmenSourceReadsTheRealLog) {
   EXPECT_EQ((*source)->size(), 7374u);
   EXPECT_EQ((*source)->default_domain(), "lidar");
   EXPECT_EQ((*source)->default_encoder(), "scanring-r32-d32");
+  EXPECT_FALSE((*source)->places_are_ground_truth());  // odometry
   absl::StatusOr<Observation> scan = (*source)->Read(7373);
   ASSERT_TRUE(scan.ok());
   EXPECT_EQ(scan->scan.ranges.size(), 180u);

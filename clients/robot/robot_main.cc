@@ -50,6 +50,7 @@ struct Flags {
   size_t last = 0;  // 0 = to the end
   bool query_only = false;
   bool no_relocalise = false;
+  bool score_odometry = false;
   double match_radius = 0.0;  // 0 = the source's default
   uint32_t query_k = 6;
   size_t dynamic_memory = 1000;
@@ -113,6 +114,9 @@ void AddFlags(CLI::App& app, Flags& flags) {
                "querying the summer memory)");
   app.add_flag("--no-relocalise", flags.no_relocalise,
                "do not query the fleet per observation");
+  app.add_flag("--score-odometry", flags.score_odometry,
+               "score relocalisations against a laser log's odometry poses "
+               "(not ground truth: they drift)");
   app.add_option("--match-radius", flags.match_radius,
                  "a relocalisation within this distance is correct (place "
                  "units; 0 = the source's default: 20 for Nordland, 2 m "
@@ -266,6 +270,8 @@ int Run(const Flags& flags) {
   options.upload = !flags.query_only;
   options.relocalise = !flags.no_relocalise;
   options.query_k = flags.query_k;
+  options.score_relocalisation =
+      (*source)->places_are_ground_truth() || flags.score_odometry;
   options.match_radius = flags.match_radius > 0.0
                              ? flags.match_radius
                              : (*source)->default_match_radius();
