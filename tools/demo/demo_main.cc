@@ -21,6 +21,7 @@
 //   fleetmem-demo [--server HOST:PORT] [--data DIR] [--fleet ID]
 //                 [--robots N] [--stretch-length N] [--results-md FILE]
 //                 [--work-dir DIR] [--robot-binary PATH]
+//                 [--sequential-robots]
 #include <spawn.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -74,6 +75,10 @@ ABSL_FLAG(std::string, work_dir, ".demo/robots",
           "the robots' data dirs go below (one per robot and season)");
 ABSL_FLAG(std::string, robot_binary, "",
           "fleetmem-robot (default: beside this program)");
+ABSL_FLAG(bool, sequential_robots, false,
+          "run the robots one after another instead of side by side: the "
+          "server then receives their segments in a fixed order, so a run "
+          "with a fixed --fleet repeats exactly");
 
 namespace fleetmem::demo {
 namespace {
@@ -124,7 +129,9 @@ std::string StatusPath(const Setup& setup, const Drive& drive,
 // progress goes to this program's stderr.
 absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
                        const std::string& season, bool query_only) {
+  const bool sequential = absl::GetFlag(FLAGS_sequential_robots);
   std::vector<pid_t> pids;
+  std::vector<int> exit_statuses(drives.size(), 0);
   for (const Drive& drive : drives) {
     const std::string dir =
         absl::StrCat(setup.work_dir, "/", drive.robot_id, "-", season);
@@ -166,11 +173,12 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
                 setup.numbers[drive.stretch.end - 1], pid);
     std::fflush(stdout);
     pids.push_back(pid);
+    if (sequential) waitpid(pid, &exit_statuses[pids.size() - 1], 0);
   }
   absl::Status result;
   for (size_t i = 0; i < pids.size(); ++i) {
-    int status = 0;
-    waitpid(pids[i], &status, 0);
+    int& status = exit_statuses[i];
+    if (!sequential) waitpid(pids[i], &status, 0);
     if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) {
       result.Update(absl::InternalError(absl::StrCat(
           "fleetmem-robot ", drives[i].robot_id, " (", season,
