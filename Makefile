@@ -16,7 +16,7 @@ empty :=
 space := $(empty) $(empty)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all deps configure build test test-asan test-tsan fuzz soak crash \
+.PHONY: all deps configure build test test-asan test-tsan fuzz soak crash robot-crash \
   demo bench format clean
 
 SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
@@ -95,6 +95,12 @@ fuzz: deps
 CRASH_TRIALS ?= 20
 crash: build
 	@tools/load/crash_trials.sh $(BUILD_DIR) $(CRASH_TRIALS)
+
+# Robot crash trials: a camera and a laser robot on the real data while the
+# server and the robots are SIGKILLed at random moments (10 trials x 4 kills).
+ROBOT_CRASH_TRIALS ?= 10
+robot-crash: build
+	@tools/load/robot_crash_trials.sh $(BUILD_DIR) $(ROBOT_CRASH_TRIALS)
 
 # The server at half its measured peak load for SOAK_SECONDS (one hour by
 # default; e.g. make soak SOAK_SECONDS=300 SOAK_INTERVAL=15).
