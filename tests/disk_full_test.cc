@@ -21,6 +21,7 @@
 #include "gtest/gtest.h"
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
+#include "tests/small_filesystem.h"
 #include "tests/synthetic_traces.h"
 
 namespace fleetmem::testing {
@@ -28,52 +29,6 @@ namespace {
 
 constexpr char kFleet[] = "full";
 constexpr size_t kBatch = 200;
-constexpr uint64_t kMiB = 1 << 20;
-
-// A tmpfs of `size_mib` mounted on a new directory; unmounted (lazily, so a
-// leftover process cannot block it) by the destructor.
-class SmallFilesystem {
- public:
-  SmallFilesystem(const std::string& path, int size_mib) : path_(path) {
-    if (geteuid() != 0) {
-      why_not_ = "not root: cannot mount a tmpfs";
-      return;
-    }
-    const std::string options = absl::StrCat("size=", size_mib, "m");
-    if (mount("tmpfs", path.c_str(), "tmpfs", 0, options.c_str()) != 0) {
-      why_not_ = absl::StrCat("mount tmpfs on ", path, ": ", strerror(errno));
-      return;
-    }
-    mounted_ = true;
-  }
-  ~SmallFilesystem() {
-    if (mounted_) umount2(path_.c_str(), MNT_DETACH);
-  }
-  bool mounted() const { return mounted_; }
-  const std::string& why_not() const { return why_not_; }
-
- private:
-  std::string path_;
-  bool mounted_ = false;
-  std::string why_not_;
-};
-
-// Free bytes under `path`.
-uint64_t FreeBytes(const std::string& path) {
-  struct statvfs info;
-  if (statvfs(path.c_str(), &info) != 0) return 0;
-  return static_cast<uint64_t>(info.f_bavail) * info.f_frsize;
-}
-
-// Writes a file of `bytes` zeros (leaving the filesystem that much fuller).
-void Fill(const std::string& file, uint64_t bytes) {
-  std::ofstream out(file, std::ios::binary);
-  const std::string chunk(kMiB, '\0');
-  for (uint64_t written = 0; written < bytes; written += chunk.size()) {
-    out.write(chunk.data(), static_cast<std::streamsize>(std::min<uint64_t>(
-                                chunk.size(), bytes - written)));
-  }
-}
 
 TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   TempDir dir("fleetmem-diskfull-");

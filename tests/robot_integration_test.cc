@@ -26,6 +26,7 @@
 #include "gtest/gtest.h"
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
+#include "tests/small_filesystem.h"
 
 namespace fleetmem::testing {
 namespace {
@@ -428,6 +429,43 @@ TEST_F(RobotIntegrationTest, ACorruptImageStopsTheRobotAtItAndLosesNothing) {
   const v1::RobotStats stats = Stats("f-images", "r1");
   EXPECT_EQ(stats.received(), 10u);
   EXPECT_EQ(stats.max_seq(), 10u);
+}
+
+TEST_F(RobotIntegrationTest, AFullRobotDiskStopsItCleanlyAndLosesNothing) {
+  // The robot's data dir on a small tmpfs that another file fills up while
+  // the robot observes: the next observation is refused by the disk reserve
+  // with a clear error (exit 1, no abort, RocksDB never meets ENOSPC), what
+  // was recorded before stays, and after space is freed a restart finishes
+  // with every observation stored once.
+  const std::string mount_point = dir_.Join("fs");
+  ASSERT_EQ(mkdir(mount_point.c_str(), 0700), 0);
+  SmallFilesystem filesystem(mount_point, 64);
+  if (!filesystem.mounted()) GTEST_SKIP() << filesystem.why_not();
+  const std::string data_dir = mount_point + "/robot";
+  constexpr size_t kObservations = 2000;
+  std::vector<std::string> args =
+      RobotArgs("f-disk", "r1", kSummer, kObservations, 200.0, data_dir);
+  args.insert(args.end(), {"--disk-reserve-mb", "16"});
+  RobotProcess robot(args, dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(robot.Start());
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  const std::string filler = mount_point + "/filler";
+  Fill(filler, FreeBytes(mount_point) - 15 * kMiB);
+  EXPECT_EQ(robot.Wait(), 1);
+  const std::string log = ReadFileOrEmpty(dir_.Join("robot.log"));
+  EXPECT_THAT(log, HasSubstr("disk nearly full"));
+  const uint64_t recorded = ReadStatus(data_dir).counters().next_index();
+  EXPECT_GT(recorded, 0u);
+  EXPECT_LT(recorded, kObservations);
+  // Free the space; the restarted robot goes on from where it stopped.
+  ASSERT_EQ(unlink(filler.c_str()), 0);
+  RobotProcess again(args, dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(again.Start());
+  EXPECT_EQ(again.Wait(), 0);
+  const v1::RobotStats stats = Stats("f-disk", "r1");
+  EXPECT_EQ(stats.received(), kObservations);
+  EXPECT_EQ(stats.max_seq(), kObservations);
+  EXPECT_EQ(ReadStatus(data_dir).counters().observations(), kObservations);
 }
 
 }  // namespace

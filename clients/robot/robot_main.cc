@@ -59,6 +59,7 @@ struct Flags {
   size_t replay_per_segment = 64;
   size_t upload_batch = 200;
   double queue_max_mb = 256.0;
+  double disk_reserve_mb = 64.0;
   std::string queue_full_policy = "refuse";
   double drain_timeout_s = 120.0;
   double deadline_s = 10.0;
@@ -145,6 +146,11 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "bound of the upload queue (MiB)")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  app.add_option("--disk-reserve-mb", flags.disk_reserve_mb,
+                 "refuse to record while the data dir's filesystem has less "
+                 "free (MiB)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
   app.add_option("--queue-full-policy", flags.queue_full_policy,
                  "refuse (stop observing until it drains) or drop-oldest")
       ->capture_default_str()
@@ -240,6 +246,8 @@ int Run(const Flags& flags) {
   store_options.max_bytes =
       static_cast<uint64_t>(flags.queue_max_mb * 1024.0 * 1024.0);
   store_options.full_policy = *robot::ParseFullPolicy(flags.queue_full_policy);
+  store_options.min_free_bytes =
+      static_cast<uint64_t>(flags.disk_reserve_mb * 1024.0 * 1024.0);
   absl::StatusOr<std::unique_ptr<robot::RobotStore>> store =
       robot::RobotStore::Open(flags.data_dir,
                               {.robot_id = flags.robot_id,

@@ -1,5 +1,7 @@
 #include "clients/robot/robot_store.h"
 
+#include <sys/statvfs.h>
+
 #include <filesystem>
 #include <system_error>
 #include <utility>
@@ -81,6 +83,10 @@ absl::StatusOr<std::unique_ptr<RobotStore>> RobotStore::Open(
   db_options.create_if_missing = true;
   db_options.max_open_files = 64;
   db_options.keep_log_file_num = 2;
+  // A robot's queue is small and its disk may be too: a 4 MiB memtable
+  // (about 2,000 HOG traces) keeps the write-ahead log and its
+  // preallocation small.
+  db_options.write_buffer_size = 4u << 20;
   rocksdb::DB* raw = nullptr;
   const std::string path = (std::filesystem::path(dir) / "queue").string();
   absl::Status opened =
@@ -89,6 +95,7 @@ absl::StatusOr<std::unique_ptr<RobotStore>> RobotStore::Open(
   if (!opened.ok()) return opened;
   std::unique_ptr<RobotStore> store(
       new RobotStore(std::unique_ptr<rocksdb::DB>(raw), options));
+  store->path_ = path;
   absl::Status loaded = store->Load();
   if (!loaded.ok()) return loaded;
   absl::MutexLock lock(&store->mu_);
@@ -152,6 +159,27 @@ absl::Status RobotStore::Load() {
   return FromRocks(it->status(), "cannot read the robot store");
 }
 
+absl::Status RobotStore::CheckReserve(uint64_t bytes,
+                                      std::string_view what) const {
+  if (options_.min_free_bytes == 0) return absl::OkStatus();
+  uint64_t free = 0;
+  if (options_.free_bytes) {
+    free = options_.free_bytes();
+  } else {
+    struct statvfs info;
+    if (statvfs(path_.c_str(), &info) != 0) return absl::OkStatus();
+    free = static_cast<uint64_t>(info.f_bavail) * info.f_frsize;
+  }
+  // Twice the payload: the write-ahead log and the memtable's later flush.
+  if (free >= options_.min_free_bytes + 2 * bytes) return absl::OkStatus();
+  return absl::UnavailableError(absl::StrCat(
+      "disk nearly full: ", free, " bytes free under ", path_,
+      ", below the reserve of ", options_.min_free_bytes,
+      " bytes (--disk-reserve-mb); ", std::string(what),
+      " was not recorded; everything recorded before is kept. Free space "
+      "and restart: the robot resumes there"));
+}
+
 absl::Status RobotStore::Commit(rocksdb::WriteBatch& batch,
                                 const RobotState& next) {
   batch.Put(kStateKey, next.SerializeAsString());
@@ -200,6 +228,9 @@ absl::Status RobotStore::RecordObservation(
   stored.set_source_index(source_index);
   stored.set_stored_unix_ns(NowUnixNs());
   const std::string value = stored.SerializeAsString();
+  absl::Status reserve =
+      CheckReserve(value.size(), absl::StrCat("observation ", source_index));
+  if (!reserve.ok()) return reserve;
   absl::MutexLock lock(&mu_);
   if (source_index != state_.next_index()) {
     return absl::FailedPreconditionError(
@@ -257,6 +288,11 @@ absl::StatusOr<uint64_t> RobotStore::SealSegment(
                      "holds ",
                      open_.size(), " observations"));
   }
+  uint64_t payload = 0;
+  for (const auto& [index, bytes] : open_) payload += bytes;
+  absl::Status reserve = CheckReserve(
+      payload, absl::StrCat("the segment of ", open_.size(), " observations"));
+  if (!reserve.ok()) return reserve;
   RobotState next = state_;
   const uint64_t first_seq = next.next_seq();
   rocksdb::WriteBatch batch;

@@ -63,6 +63,16 @@ struct RobotStoreOptions {
   // fsync every write (what makes an observation durable); tests of logic
   // only may turn it off.
   bool sync = true;
+  // Disk reserve: an observation or a sealed segment is refused (UNAVAILABLE
+  // "disk nearly full", nothing written) unless the filesystem of the store
+  // keeps this many bytes free after it. RocksDB is never driven into
+  // ENOSPC, which Debian's build answers with an assertion failure
+  // (abort). Removing uploaded traces and updating counters are small and
+  // not held back. 0 disables the check.
+  uint64_t min_free_bytes = uint64_t{64} << 20;
+  // Free bytes of the filesystem holding the store (statvfs by default;
+  // tests inject).
+  std::function<uint64_t()> free_bytes;
 };
 
 // Who owns a data dir.
@@ -133,6 +143,8 @@ class RobotStore {
  private:
   RobotStore(std::unique_ptr<rocksdb::DB> db, RobotStoreOptions options);
   absl::Status Load();
+  // OK if writing `bytes` keeps min_free_bytes free.
+  absl::Status CheckReserve(uint64_t bytes, std::string_view what) const;
   // Writes `batch` plus the state; caller holds mu_.
   absl::Status Commit(rocksdb::WriteBatch& batch, const RobotState& next)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
@@ -144,6 +156,7 @@ class RobotStore {
 
   const std::unique_ptr<rocksdb::DB> db_;
   const RobotStoreOptions options_;
+  std::string path_;
   bool created_ = false;
   mutable absl::Mutex mu_;
   RobotState state_ ABSL_GUARDED_BY(mu_);

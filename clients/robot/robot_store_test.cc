@@ -166,6 +166,24 @@ TEST_F(RobotStoreTest, DropOldestMakesRoomAndCountsWhatItDropped) {
   EXPECT_EQ(queued->front().seq(), state.traces_dropped() + 1);
 }
 
+TEST_F(RobotStoreTest, TheDiskReserveRefusesNewDataButNotRemovals) {
+  uint64_t free = 100u << 20;
+  std::unique_ptr<RobotStore> store = Open(
+      {.min_free_bytes = 64u << 20, .free_bytes = [&free] { return free; }});
+  Segment(*store, 0, 3);
+  free = (64u << 20) + 10;  // less than the reserve plus twice a trace
+  const absl::Status refused = store->RecordObservation(3, Observed(3));
+  EXPECT_EQ(refused.code(), absl::StatusCode::kUnavailable);
+  EXPECT_THAT(refused.message(), HasSubstr("disk nearly full"));
+  EXPECT_THAT(refused.message(), HasSubstr("observation 3 was not recorded"));
+  EXPECT_EQ(store->state().next_index(), 3u);
+  // Uploaded traces still leave (that is how space comes back).
+  EXPECT_TRUE(store->MarkUploaded(3, 3, 0).ok());
+  EXPECT_EQ(store->queue().depth, 0u);
+  free = 100u << 20;
+  EXPECT_TRUE(store->RecordObservation(3, Observed(3)).ok());
+}
+
 // The child records and seals observations as fast as it can until it is
 // SIGKILLed; the reopened store must be consistent: the position counts
 // every recorded observation once, seqs are 1..next_seq-1 without a gap,
