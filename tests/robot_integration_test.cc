@@ -99,6 +99,18 @@ robot::state::RobotStatus ReadStatus(const std::string& data_dir) {
   return status;
 }
 
+// A camera robot on Nordland and a laser robot on the ACES log, each in
+// its own fleet (a fleet holds one encoder).
+struct RobotCase {
+  std::string fleet, robot, source, encoder_version;
+  size_t observations;
+};
+std::vector<RobotCase> CameraAndLaser(const std::string& prefix) {
+  return {
+      {prefix + "-camera", "cam-1", kSummer, "hog-64x32-c8-s8-b6-v1", 2000},
+      {prefix + "-laser", "laser-1", kLaser, "scanring-r32-d32-m20-v1", 1500}};
+}
+
 class RobotIntegrationTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -159,29 +171,29 @@ class RobotIntegrationTest : public ::testing::Test {
     return found == nullptr ? v1::RobotStats() : *found;
   }
 
+  // Starts one robot per case, observing at `rate` Hz.
+  std::vector<std::unique_ptr<RobotProcess>> StartRobots(
+      const std::vector<RobotCase>& cases, double rate) {
+    std::vector<std::unique_ptr<RobotProcess>> robots;
+    for (const RobotCase& c : cases) {
+      robots.push_back(std::make_unique<RobotProcess>(
+          RobotArgs(c.fleet, c.robot, c.source, c.observations, rate,
+                    dir_.Join(c.robot)),
+          dir_.Join("robot.log")));
+      robots.back()->Start();
+      if (HasFatalFailure()) break;
+    }
+    return robots;
+  }
+
   TempDir dir_{"fleetmem-robot-it-"};
   std::unique_ptr<ServerProcess> server_;
   int port_ = 0;
 };
 
 TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileRobotsUpload) {
-  // A camera robot on Nordland and a laser robot on the ACES log (their own
-  // fleets: a fleet holds one encoder) while the server is SIGKILLed twice.
-  struct Case {
-    std::string fleet, robot, source, encoder_version;
-    size_t observations;
-  };
-  const Case cases[] = {
-      {"f-nordland", "r1", kSummer, "hog-64x32-c8-s8-b6-v1", 2000},
-      {"f-aces", "scan-1", kLaser, "scanring-r32-d32-m20-v1", 1500}};
-  std::vector<std::unique_ptr<RobotProcess>> robots;
-  for (const Case& c : cases) {
-    robots.push_back(std::make_unique<RobotProcess>(
-        RobotArgs(c.fleet, c.robot, c.source, c.observations, 250.0,
-                  dir_.Join(c.robot)),
-        dir_.Join("robot.log")));
-    ASSERT_NO_FATAL_FAILURE(robots.back()->Start());
-  }
+  const std::vector<RobotCase> cases = CameraAndLaser("server-kill");
+  std::vector<std::unique_ptr<RobotProcess>> robots = StartRobots(cases, 250);
   std::mt19937 rng(std::random_device{}());
   for (int kill = 0; kill < 2; ++kill) {
     std::this_thread::sleep_for(std::chrono::milliseconds(
@@ -193,7 +205,7 @@ TEST_F(RobotIntegrationTest, ServerKilledTwiceWhileRobotsUpload) {
   }
   std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
   for (size_t i = 0; i < robots.size(); ++i) {
-    const Case& c = cases[i];
+    const RobotCase& c = cases[i];
     EXPECT_EQ(robots[i]->Wait(), 0) << c.robot;
     const v1::RobotStats stats = Stats(c.fleet, c.robot);
     EXPECT_EQ(stats.received(), c.observations) << c.robot;
@@ -239,22 +251,8 @@ TEST_F(RobotIntegrationTest, SigtermStopsCleanlyAndARestartFinishes) {
 
 TEST_F(RobotIntegrationTest,
        RobotsKilledTwiceAndRestartedLoseAndRepeatNothing) {
-  // A camera robot on Nordland and a laser robot on the ACES log (their own
-  // fleets: a fleet holds one encoder), both SIGKILLed twice mid-run.
-  struct Case {
-    std::string fleet, robot, source;
-    size_t observations;
-  };
-  const Case cases[] = {{"f-camera", "cam-1", kSummer, 2000},
-                        {"f-laser", "laser-1", kLaser, 1500}};
-  std::vector<std::unique_ptr<RobotProcess>> robots;
-  for (const Case& c : cases) {
-    robots.push_back(std::make_unique<RobotProcess>(
-        RobotArgs(c.fleet, c.robot, c.source, c.observations, 300.0,
-                  dir_.Join(c.robot)),
-        dir_.Join("robot.log")));
-    ASSERT_NO_FATAL_FAILURE(robots.back()->Start());
-  }
+  const std::vector<RobotCase> cases = CameraAndLaser("robot-kill");
+  std::vector<std::unique_ptr<RobotProcess>> robots = StartRobots(cases, 300);
   std::mt19937 rng(std::random_device{}());
   for (int kill = 0; kill < 2; ++kill) {
     std::this_thread::sleep_for(std::chrono::milliseconds(
