@@ -48,6 +48,16 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   options.config_file = config;
   options.log_file = dir.Join("server.log");
   auto server = std::make_unique<ServerProcess>(options);
+  // On failure, show what the server said (a crash names its cause there).
+  struct PrintLogOnFailure {
+    std::string log_file;
+    ~PrintLogOnFailure() {
+      if (::testing::Test::HasFailure()) {
+        std::cerr << "---- fleetmem-server output ----\n"
+                  << ReadFileOrEmpty(log_file) << "\n---- end ----\n";
+      }
+    }
+  } print_log{options.log_file};
   ASSERT_TRUE(server->Start().ok()) << server->Output();
   auto stub = MakeStub(server->address());
 
