@@ -34,15 +34,6 @@ bool Retryable(absl::StatusCode code) {
 using api::PlaceFromProto;
 using api::TraceFromProto;
 
-// First-correct ranks from the durable histogram (for the core's metrics).
-core::FirstCorrectRanks RanksOf(const RobotState& state) {
-  core::FirstCorrectRanks ranks;
-  for (int r = 0; r < state.relocalisation_ranks_size(); ++r) {
-    ranks.insert(ranks.end(), state.relocalisation_ranks(r), r);
-  }
-  return ranks;
-}
-
 }  // namespace
 
 Agent::Agent(AgentOptions options, client::Client* client,
@@ -465,16 +456,17 @@ void Agent::UploadLoop() {
   std::chrono::milliseconds backoff = options_.initial_backoff;
   bool unreachable = false;
   while (!stop_threads_.load()) {
+    if (store_->queue().depth == 0) {  // in memory: no disk read when idle
+      SleepUnless(std::chrono::milliseconds(50), stop_threads_);
+      continue;
+    }
     absl::StatusOr<std::vector<v1::MemoryTrace>> batch =
         store_->PeekQueue(std::max<size_t>(options_.upload_batch, 1));
     if (!batch.ok()) {
       SetFatal(batch.status());
       return;
     }
-    if (batch->empty()) {
-      SleepUnless(std::chrono::milliseconds(50), stop_threads_);
-      continue;
-    }
+    if (batch->empty()) continue;  // dropped meanwhile (drop-oldest)
     absl::StatusOr<v1::UploadTracesResponse> response =
         client_->Upload(options_.fleet_id, *batch);
     if (response.ok()) {
@@ -539,8 +531,11 @@ void Agent::WatchLoop() {
         &stop_threads_, std::chrono::milliseconds(200));
     if (stop_threads_.load()) return;
     // The fleet may not exist yet, or the server is away: look again soon.
+    if (!last.ok() && !watch_error_logged_) {
+      Log(absl::StrCat("watch: ", last.status().ToString(), "; retrying"));
+      watch_error_logged_ = true;
+    }
     SleepUnless(std::chrono::seconds(1), stop_threads_);
-    (void)last;
   }
 }
 
@@ -572,7 +567,7 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   for (const auto& [robot, count] : memory_.CountByRobot()) {
     (*status.mutable_dynamic_memory_by_robot())[robot] = count;
   }
-  const core::FirstCorrectRanks ranks = RanksOf(status.counters());
+  const core::FirstCorrectRanks ranks = RelocalisationRanks(status.counters());
   status.set_relocalisation_scored(ranks.size());
   status.set_relocalisation_recall_at_1(core::RecallAtK(ranks, 1));
   status.set_relocalisation_recall_at_5(core::RecallAtK(ranks, 5));
@@ -597,13 +592,19 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   }
   // Write-then-rename, so that a reader never sees half a file.
   const std::string tmp = options_.status_file + ".tmp";
+  std::error_code error;
   {
     std::ofstream out(tmp, std::ios::trunc);
     out << json;
-    if (!out) return;
+    out.close();
+    if (!out) error = std::make_error_code(std::errc::io_error);
   }
-  std::error_code error;
-  std::filesystem::rename(tmp, options_.status_file, error);
+  if (!error) std::filesystem::rename(tmp, options_.status_file, error);
+  if (error && !status_write_failed_) {
+    Log(absl::StrCat("cannot write the status file ", options_.status_file,
+                     ": ", error.message(), " (the robot goes on)"));
+  }
+  status_write_failed_ = static_cast<bool>(error);
 }
 
 void Agent::Progress(bool force) {
@@ -612,7 +613,7 @@ void Agent::Progress(bool force) {
   last_progress_ = now;
   const RobotState state = store_->state();
   const QueueInfo queue = store_->queue();
-  const core::FirstCorrectRanks ranks = RanksOf(state);
+  const core::FirstCorrectRanks ranks = RelocalisationRanks(state);
   const double age =
       queue.oldest_stored_unix_ns == 0
           ? 0.0

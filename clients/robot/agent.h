@@ -175,6 +175,9 @@ class Agent {
   bool source_finished_ = false;
   bool drained_ = false;
   std::string phase_ = "starting";
+  // One log line per kind of trouble, not one per attempt.
+  bool status_write_failed_ = false;  // main thread
+  bool watch_error_logged_ = false;   // watcher thread
 
   std::atomic<bool> stop_threads_{false};
   mutable absl::Mutex mu_;

@@ -4,15 +4,14 @@
 
 #include <cmath>
 #include <cstdio>
-#include <fstream>
 #include <memory>
-#include <sstream>
 
 #include "absl/status/status.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/string_view.h"
+#include "clients/robot/read_file.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -91,15 +90,7 @@ absl::StatusOr<std::vector<Observation>> ParseCarmenLog(
 }
 
 absl::StatusOr<std::string> ReadMaybeBzip2(const std::string& path) {
-  if (!absl::EndsWith(path, ".bz2")) {
-    std::ifstream in(path, std::ios::binary);
-    if (!in) return absl::NotFoundError(absl::StrCat("cannot open ", path));
-    std::stringstream text;
-    text << in.rdbuf();
-    if (in.bad())
-      return absl::DataLossError(absl::StrCat("cannot read ", path));
-    return text.str();
-  }
+  if (!absl::EndsWith(path, ".bz2")) return ReadFile(path);
   std::unique_ptr<FILE, int (*)(FILE*)> file(std::fopen(path.c_str(), "rb"),
                                              &std::fclose);
   if (file == nullptr) {

@@ -3,8 +3,6 @@
 #include <algorithm>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 #include <system_error>
 
 #include "absl/status/status.h"
@@ -12,6 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/strip.h"
+#include "clients/robot/read_file.h"
 #include "opencv2/imgcodecs.hpp"
 
 namespace fleetmem::robot {
@@ -53,11 +52,13 @@ absl::StatusOr<cv::Mat> LoadNordlandGrey(const std::string& season_dir,
   if (!std::filesystem::exists(path)) {
     return absl::NotFoundError(absl::StrCat("missing frame ", path));
   }
-  std::ifstream in(path, std::ios::binary);
-  std::stringstream bytes;
-  bytes << in.rdbuf();
-  if (!in) return absl::DataLossError(absl::StrCat("cannot read ", path));
-  return DecodeGrey(bytes.str(), path);
+  return LoadGrey(path);
+}
+
+absl::StatusOr<cv::Mat> LoadGrey(const std::string& path) {
+  absl::StatusOr<std::string> bytes = ReadFile(path);
+  if (!bytes.ok()) return bytes.status();
+  return DecodeGrey(*bytes, path);
 }
 
 absl::StatusOr<cv::Mat> DecodeGrey(std::string_view bytes,

@@ -34,6 +34,10 @@ absl::StatusOr<std::vector<int>> ListNordlandFrames(
 absl::StatusOr<cv::Mat> DecodeGrey(std::string_view bytes,
                                    const std::string& name);
 
+// The image file `path` as an 8-bit single-channel image: ReadFile's errors,
+// then DecodeGrey's.
+absl::StatusOr<cv::Mat> LoadGrey(const std::string& path);
+
 // The frame `number` of `season_dir` as an 8-bit single-channel image (the
 // files hold grey content in three channels). Black frames (tunnels,
 // stations) are returned as they are. NOT_FOUND if the file is missing,

@@ -4,7 +4,6 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
-#include <sstream>
 #include <utility>
 #include <vector>
 
@@ -26,15 +25,6 @@ absl::Status OutOfRange(const std::string& description, size_t index,
                         size_t size) {
   return absl::OutOfRangeError(absl::StrCat(
       description, " has ", size, " observations; there is no index ", index));
-}
-
-absl::StatusOr<cv::Mat> LoadGrey(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(absl::StrCat("cannot open ", path));
-  std::stringstream bytes;
-  bytes << in.rdbuf();
-  if (in.bad()) return absl::DataLossError(absl::StrCat("cannot read ", path));
-  return DecodeGrey(bytes.str(), path);
 }
 
 class NordlandSource : public ObservationSource {

@@ -52,6 +52,14 @@ int64_t NowUnixNs() { return absl::ToUnixNanos(absl::Now()); }
 
 }  // namespace
 
+core::FirstCorrectRanks RelocalisationRanks(const RobotState& state) {
+  core::FirstCorrectRanks ranks;
+  for (int r = 0; r < state.relocalisation_ranks_size(); ++r) {
+    ranks.insert(ranks.end(), state.relocalisation_ranks(r), r);
+  }
+  return ranks;
+}
+
 const char* FullPolicyName(FullPolicy policy) {
   return policy == FullPolicy::kRefuse ? "refuse" : "drop-oldest";
 }
@@ -314,10 +322,8 @@ absl::StatusOr<uint64_t> RobotStore::SealSegment(
     next.set_next_seq(next.next_seq() + 1);
     ++index;
   }
-  uint64_t open_bytes = 0;
-  for (const auto& [i, bytes] : open_) open_bytes += bytes;
   // Drop-oldest: make room for the sealed traces.
-  uint64_t bytes_after = bytes_ - open_bytes + added_bytes;
+  uint64_t bytes_after = bytes_ - payload + added_bytes;
   std::vector<uint64_t> dropped;
   if (options_.full_policy == FullPolicy::kDropOldest) {
     for (auto it = queue_.begin();

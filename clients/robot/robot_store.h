@@ -35,6 +35,7 @@
 #include "absl/synchronization/mutex.h"
 #include "clients/robot/robot_state.pb.h"
 #include "fleetmem/v1/memory.pb.h"
+#include "services/core/place_metrics.h"
 
 namespace rocksdb {
 class DB;
@@ -164,6 +165,10 @@ class RobotStore {
   std::map<uint64_t, uint64_t> open_ ABSL_GUARDED_BY(mu_);  // index -> bytes
   uint64_t bytes_ ABSL_GUARDED_BY(mu_) = 0;
 };
+
+// The relocalisation scores of `state` (its rank histogram) as the core's
+// first-correct ranks, for RecallAtK and WeightedRecall.
+core::FirstCorrectRanks RelocalisationRanks(const RobotState& state);
 
 const char* FullPolicyName(FullPolicy policy);
 // "refuse" or "drop-oldest".

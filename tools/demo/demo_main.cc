@@ -53,7 +53,7 @@
 #include "clients/robot/code_search.h"
 #include "clients/robot/image_encoder.h"
 #include "clients/robot/nordland.h"
-#include "clients/robot/robot_state.pb.h"
+#include "clients/robot/robot_store.h"
 #include "google/protobuf/util/json_util.h"
 #include "services/core/place_metrics.h"
 #include "tools/demo/command_line.h"
@@ -238,16 +238,6 @@ absl::StatusOr<EventSummary> ReadEvents(client::Client& client,
   return summary;
 }
 
-// First-correct ranks from a robot's durable histogram.
-core::FirstCorrectRanks Ranks(const RobotStatus& status) {
-  core::FirstCorrectRanks ranks;
-  const robot::state::RobotState& state = status.counters();
-  for (int r = 0; r < state.relocalisation_ranks_size(); ++r) {
-    ranks.insert(ranks.end(), state.relocalisation_ranks(r), r);
-  }
-  return ranks;
-}
-
 struct Row {
   std::string system;
   core::FirstCorrectRanks ranks;
@@ -285,7 +275,8 @@ std::string RobotTable(const Setup& setup, const std::vector<Drive>& drives) {
          drive.winter.dynamic_memory_by_robot()) {
       (robot_id == drive.robot_id ? own : peers) += count;
     }
-    const core::FirstCorrectRanks ranks = Ranks(drive.winter);
+    const core::FirstCorrectRanks ranks =
+        robot::RelocalisationRanks(drive.winter.counters());
     absl::StrAppendFormat(
         &out, "| %s | %d..%d | %d | %d / %d | %d | %d | %.3f | %.3f |\n",
         drive.robot_id, setup.numbers[drive.stretch.begin],
@@ -306,7 +297,7 @@ absl::StatusOr<std::vector<float>> EncodeFrame(const Setup& setup,
   return setup.encoder->EncodeImage(*grey);
 }
 
-absl::Status Run(const char* argv0) {
+absl::Status Run() {
   Setup setup;
   setup.fleet_id = absl::GetFlag(FLAGS_fleet);
   if (setup.fleet_id.empty()) {
@@ -343,7 +334,6 @@ absl::Status Run(const char* argv0) {
          "fleetmem-robot")
             .string();
   }
-  (void)argv0;
   setup.work_dir =
       absl::StrCat(absl::GetFlag(FLAGS_work_dir), "/", setup.fleet_id);
   absl::StatusOr<std::vector<robot::Stretch>> stretches =
@@ -427,7 +417,8 @@ absl::Status Run(const char* argv0) {
   baseline_row.system = "all traces, no memory bound (baseline)";
   double query_ms_sum = 0.0;
   for (const Drive& drive : drives) {
-    const core::FirstCorrectRanks ranks = Ranks(drive.winter);
+    const core::FirstCorrectRanks ranks =
+        robot::RelocalisationRanks(drive.winter.counters());
     memory_row.ranks.insert(memory_row.ranks.end(), ranks.begin(), ranks.end());
     query_ms_sum += drive.winter.counters().relocalisation_ms_total();
   }
@@ -555,7 +546,7 @@ int main(int argc, char** argv) {
       "Fleet memory demo on Nordland: three fleetmem-robot processes share "
       "one memory of the summer route and recognise its places in winter.");
   fleetmem::demo::ParseDashedCommandLine(argc, argv);
-  const absl::Status status = fleetmem::demo::Run(argv[0]);
+  const absl::Status status = fleetmem::demo::Run();
   if (!status.ok()) {
     std::cerr << "fleetmem-demo: " << status << "\n";
     return 1;

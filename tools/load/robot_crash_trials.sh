@@ -22,24 +22,30 @@ camera_n=${ROBOT_CRASH_CAMERA:-1500}
 laser_n=${ROBOT_CRASH_LASER:-3000}
 data=${FLEETMEM_DATA:-$root/../shared/data}
 dir=$(mktemp -d "${TMPDIR:-/tmp}/fleetmem-robot-crash-XXXXXX")
-server_pid="" camera_pid="" laser_pid=""
+server_pid="" camera_pid="" laser_pid="" server_starts=0
 trap 'kill -9 $server_pid $camera_pid $laser_pid 2>/dev/null || true; rm -rf "$dir"' EXIT
 RANDOM=7  # repeatable kill times
 
-# A free port, kept for every restart so the robots find the server again.
-port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
-addr="127.0.0.1:$port"
-
+# The first start picks a free port; every restart keeps it, so the robots
+# find the server again.
+addr=""
 start_server() {
-  "$build/bin/fleetmem-server" --listen "$addr" --data-dir "$dir/server" \
-    >>"$dir/server.log" 2>&1 &
+  local log="$dir/server-$((++server_starts)).log"
+  : >"$log"
+  "$build/bin/fleetmem-server" --listen "${addr:-127.0.0.1:0}" \
+    --data-dir "$dir/server" >"$log" 2>&1 &
   server_pid=$!
   for _ in $(seq 1 300); do
-    grep -q "listening on $addr" "$dir/server.log" 2>/dev/null && return 0
+    local listening
+    listening=$(sed -n 's/^fleetmem-server listening on \(.*\)$/\1/p' "$log")
+    if [ -n "$listening" ]; then
+      addr=$listening
+      return 0
+    fi
     sleep 0.1
   done
-  echo "fleetmem-server did not start on $addr" >&2
-  tail -20 "$dir/server.log" >&2
+  echo "fleetmem-server did not start (${addr:-new port})" >&2
+  tail -20 "$log" >&2
   return 1
 }
 # start_robot NAME FLEET SOURCE LAST RATE: sets ${NAME}_pid.
