@@ -16,8 +16,11 @@
 // --drain-timeout (it is kept for the next start).
 #include <csignal>
 #include <cstdlib>
+#include <filesystem>
 #include <iostream>
+#include <optional>
 #include <string>
+#include <utility>
 
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_cat.h"
@@ -27,6 +30,7 @@
 #include "clients/robot/encoder.h"
 #include "clients/robot/observation_source.h"
 #include "clients/robot/robot_store.h"
+#include "services/core/validation.h"
 
 namespace {
 
@@ -168,42 +172,46 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "TOML or INI file of these options (flags win)");
 }
 
-// On a first start (no seq given yet), learns the highest seq the server
-// holds for this robot, so that a robot whose disk was wiped does not
-// reuse them.
-absl::Status LearnFirstSeq(fleetmem::client::Client& client,
-                           fleetmem::robot::RobotStore& store,
-                           const Flags& flags) {
-  const fleetmem::robot::RobotState state = store.state();
-  if (state.next_seq() != 1 || state.traces_queued() != 0 ||
-      store.queue().open_segment != 0) {
-    return absl::OkStatus();
-  }
+// The highest seq the fleet holds of this robot (0 if none, or if the fleet
+// does not exist yet). A robot that has not given a seq yet starts after it,
+// so that a robot whose disk was wiped does not reuse them.
+absl::StatusOr<uint64_t> ServerMaxSeq(fleetmem::client::Client& client,
+                                      const Flags& flags) {
   absl::StatusOr<fleetmem::v1::GetStatsResponse> stats =
       client.GetStats(flags.fleet);
   if (!stats.ok() && stats.status().code() == absl::StatusCode::kNotFound) {
-    return absl::OkStatus();  // a new fleet: start at 1
+    return 0;  // a new fleet
   }
   if (!stats.ok()) {
     return absl::Status(
         stats.status().code(),
         absl::StrCat("a robot's first start must reach the server to learn "
-                     "its last seq (nothing was observed): ",
+                     "its last seq (nothing was observed or written): ",
                      stats.status().message()));
   }
   for (const fleetmem::v1::RobotStats& robot : stats->robots()) {
-    if (robot.robot_id() == flags.robot_id && robot.max_seq() > 0) {
-      std::cerr << "[" << flags.robot_id << "] the fleet already holds seqs "
-                << "up to " << robot.max_seq()
-                << " of this robot; continuing after them\n";
-      return store.SetFirstSeq(robot.max_seq() + 1);
-    }
+    if (robot.robot_id() == flags.robot_id) return robot.max_seq();
   }
-  return absl::OkStatus();
+  return 0;
+}
+
+// True if the store has given no seq and holds nothing.
+bool GaveNoSeq(const fleetmem::robot::RobotStore& store) {
+  const fleetmem::robot::RobotState state = store.state();
+  return state.next_seq() == 1 && state.traces_queued() == 0 &&
+         store.queue().open_segment == 0;
 }
 
 int Run(const Flags& flags) {
   namespace robot = fleetmem::robot;
+  for (const auto& [what, id] : {std::pair{"--fleet", &flags.fleet},
+                                 std::pair{"--robot-id", &flags.robot_id}}) {
+    absl::Status valid = fleetmem::core::ValidateId(what, *id);
+    if (!valid.ok()) {
+      std::cerr << "fleetmem-robot: " << valid.message() << "\n";
+      return 2;
+    }
+  }
   absl::StatusOr<std::unique_ptr<robot::ObservationSource>> source =
       robot::OpenSource(flags.source);
   if (!source.ok()) {
@@ -248,6 +256,17 @@ int Run(const Flags& flags) {
   store_options.full_policy = *robot::ParseFullPolicy(flags.queue_full_policy);
   store_options.min_free_bytes =
       static_cast<uint64_t>(flags.disk_reserve_mb * 1024.0 * 1024.0);
+  // A first start asks the server before anything is written here.
+  const bool new_dir =
+      !std::filesystem::exists(std::filesystem::path(flags.data_dir) / "queue");
+  std::optional<absl::StatusOr<uint64_t>> max_seq;
+  if (!flags.query_only && new_dir) {
+    max_seq = ServerMaxSeq(*setup_client, flags);
+    if (!max_seq->ok()) {
+      std::cerr << "fleetmem-robot: " << max_seq->status().message() << "\n";
+      return 1;
+    }
+  }
   absl::StatusOr<std::unique_ptr<robot::RobotStore>> store =
       robot::RobotStore::Open(flags.data_dir,
                               {.robot_id = flags.robot_id,
@@ -258,8 +277,15 @@ int Run(const Flags& flags) {
     std::cerr << "fleetmem-robot: " << store.status().message() << "\n";
     return 1;
   }
-  if (!flags.query_only) {
-    absl::Status first = LearnFirstSeq(*setup_client, **store, flags);
+  if (!flags.query_only && GaveNoSeq(**store)) {
+    if (!max_seq.has_value()) max_seq = ServerMaxSeq(*setup_client, flags);
+    absl::Status first = max_seq->status();
+    if (first.ok() && **max_seq > 0) {
+      std::cerr << "[" << flags.robot_id << "] the fleet already holds seqs "
+                << "up to " << **max_seq
+                << " of this robot; continuing after them\n";
+      first = (*store)->SetFirstSeq(**max_seq + 1);
+    }
     if (!first.ok()) {
       std::cerr << "fleetmem-robot: " << first.message() << "\n";
       return 1;
