@@ -209,79 +209,9 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
   absl::Status valid =
       core::ValidateCode(absl::StrCat("code of ", observation->name), *code);
   if (!valid.ok()) return valid;
-  // R_in (Eq. 12); the generator is seeded per observation so that a
-  // repeated observation after a crash gets the same reward.
-  std::mt19937_64 perturb_rng(options_.seed * 1000003u + index);
-  absl::StatusOr<Observation> moved =
-      encoder_->Perturb(*observation, perturb_rng);
-  if (!moved.ok()) return moved.status();
-  absl::StatusOr<std::vector<float>> moved_code = encoder_->Encode(*moved);
-  if (!moved_code.ok()) return moved_code.status();
-  const float internal = InternalReward(*code, *moved_code);
-
-  // Relocalisation against the fleet's memory.
-  int rank = -1;  // -1: not scored
-  bool unanswered = false, empty = false, unscored = false;
-  double query_ms = 0.0;
-  if (options_.relocalise) {
-    v1::QueryPlaceRequest request;
-    request.set_fleet_id(options_.fleet_id);
-    request.mutable_code()->Assign(code->begin(), code->end());
-    request.set_k(options_.query_k);
-    const auto start = Clock::now();
-    absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
-        query_client_->QueryPlace(request);
-    query_ms =
-        std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-    if (matches.ok() && !matches->empty()) {
-      std::vector<core::Place> found;
-      for (const v1::PlaceMatch& match : *matches) {
-        found.push_back(PlaceFromProto(match.trace().pose()));
-      }
-      if (options_.score_relocalisation) {
-        rank =
-            FirstCorrectRank(found, observation->place, options_.match_radius);
-      } else {
-        unscored = true;
-      }
-    } else if (matches.ok() ||
-               matches.status().code() == absl::StatusCode::kNotFound) {
-      empty = true;  // no memory yet (an unknown fleet is an empty one)
-    } else {
-      unanswered = true;
-    }
-  }
-
-  v1::MemoryTrace trace;
-  trace.set_robot_id(options_.robot_id);
-  trace.set_domain(options_.domain);
-  trace.mutable_code()->Assign(code->begin(), code->end());
-  api::PlaceToProto(observation->place, trace.mutable_pose());
-  trace.set_reward_internal(internal);
-  trace.set_timestamp_ns(observation->timestamp_ns != 0
-                             ? observation->timestamp_ns
-                             : absl::ToUnixNanos(absl::Now()));
-  trace.set_encoder_version(encoder_->version());
-  auto update = [&](RobotState& state) {
-    if (rank >= 0) {
-      while (state.relocalisation_ranks_size() <= rank) {
-        state.add_relocalisation_ranks(0);
-      }
-      state.set_relocalisation_ranks(rank,
-                                     state.relocalisation_ranks(rank) + 1);
-    }
-    if (unscored) {
-      state.set_relocalisation_unscored(state.relocalisation_unscored() + 1);
-    }
-    if (rank >= 0 || unscored) {
-      state.set_relocalisation_ms_total(state.relocalisation_ms_total() +
-                                        query_ms);
-    }
-    if (unanswered) {
-      state.set_relocalisation_unanswered(state.relocalisation_unanswered() +
-                                          1);
-    }
-    if (empty) state.set_relocalisation_empty(state.relocalisation_empty() + 1);
+  const Relocalisation relocalisation = Relocalise(*code, observation->place);
+  auto update = [&relocalisation](RobotState& state) {
+    relocalisation.CountIn(state);
   };
   if (!options_.upload) {
     // A query-only robot records only its position and its scores.
@@ -293,6 +223,25 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
     if (moved_on.ok()) ++observed_this_run_;
     return moved_on;
   }
+  // R_in (Eq. 12); the generator is seeded per observation so that a
+  // repeated observation after a crash gets the same reward.
+  std::mt19937_64 perturb_rng(options_.seed * 1000003u + index);
+  absl::StatusOr<Observation> moved =
+      encoder_->Perturb(*observation, perturb_rng);
+  if (!moved.ok()) return moved.status();
+  absl::StatusOr<std::vector<float>> moved_code = encoder_->Encode(*moved);
+  if (!moved_code.ok()) return moved_code.status();
+  const float internal = InternalReward(*code, *moved_code);
+  v1::MemoryTrace trace;
+  trace.set_robot_id(options_.robot_id);
+  trace.set_domain(options_.domain);
+  trace.mutable_code()->Assign(code->begin(), code->end());
+  api::PlaceToProto(observation->place, trace.mutable_pose());
+  trace.set_reward_internal(internal);
+  trace.set_timestamp_ns(observation->timestamp_ns != 0
+                             ? observation->timestamp_ns
+                             : absl::ToUnixNanos(absl::Now()));
+  trace.set_encoder_version(encoder_->version());
   bool told = false;
   while (true) {
     absl::Status recorded = store_->RecordObservation(index, trace, update);
@@ -322,6 +271,57 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
   phase_ = "observing";
   ++observed_this_run_;
   return absl::OkStatus();
+}
+
+Agent::Relocalisation Agent::Relocalise(const std::vector<float>& code,
+                                        const core::Place& place) const {
+  Relocalisation result;
+  if (!options_.relocalise) return result;
+  v1::QueryPlaceRequest request;
+  request.set_fleet_id(options_.fleet_id);
+  request.mutable_code()->Assign(code.begin(), code.end());
+  request.set_k(options_.query_k);
+  const auto start = Clock::now();
+  absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
+      query_client_->QueryPlace(request);
+  result.ms =
+      std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+  if (matches.ok() && !matches->empty()) {
+    if (!options_.score_relocalisation) {
+      result.unscored = true;
+      return result;
+    }
+    std::vector<core::Place> found;
+    for (const v1::PlaceMatch& match : *matches) {
+      found.push_back(PlaceFromProto(match.trace().pose()));
+    }
+    result.rank = FirstCorrectRank(found, place, options_.match_radius);
+  } else if (matches.ok() ||
+             matches.status().code() == absl::StatusCode::kNotFound) {
+    result.empty = true;  // no memory yet (an unknown fleet is an empty one)
+  } else {
+    result.unanswered = true;
+  }
+  return result;
+}
+
+void Agent::Relocalisation::CountIn(RobotState& state) const {
+  if (rank >= 0) {
+    while (state.relocalisation_ranks_size() <= rank) {
+      state.add_relocalisation_ranks(0);
+    }
+    state.set_relocalisation_ranks(rank, state.relocalisation_ranks(rank) + 1);
+  }
+  if (unscored) {
+    state.set_relocalisation_unscored(state.relocalisation_unscored() + 1);
+  }
+  if (rank >= 0 || unscored) {
+    state.set_relocalisation_ms_total(state.relocalisation_ms_total() + ms);
+  }
+  if (unanswered) {
+    state.set_relocalisation_unanswered(state.relocalisation_unanswered() + 1);
+  }
+  if (empty) state.set_relocalisation_empty(state.relocalisation_empty() + 1);
 }
 
 absl::StatusOr<Agent::Replayed> Agent::ReplayAndLearn(

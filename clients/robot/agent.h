@@ -137,6 +137,18 @@ class Agent {
 
  private:
   absl::Status ObserveOne(size_t index, const std::atomic<bool>& stop);
+  // One QueryPlace for an observation and how it scored.
+  struct Relocalisation {
+    int rank = -1;  // first correct rank (0: none in the top k); -1 unscored
+    bool unanswered = false;  // the server did not answer
+    bool empty = false;       // the fleet's memory is empty (or absent)
+    bool unscored = false;    // answered, but the place is not ground truth
+    double ms = 0.0;
+    // Adds this query to the durable counters.
+    void CountIn(RobotState& state) const;
+  };
+  Relocalisation Relocalise(const std::vector<float>& code,
+                            const core::Place& place) const;
   // Ends a segment: replay, learner, rewards, seal (uploading robot), then
   // refresh.
   absl::Status SealSegment();
