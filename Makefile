@@ -10,7 +10,8 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler \
   libabsl-dev librocksdb-dev libflann-dev liblz4-dev libeigen3-dev \
   libopencv-dev libgtest-dev libgmock-dev libbenchmark-dev \
-  libsodium-dev libcli11-dev libbz2-dev openssl clang-14 libclang-rt-14-dev
+  libsodium-dev libcli11-dev libbz2-dev openssl clang-14 libclang-rt-14-dev \
+  libtorch-dev gnuplot-nox
 
 empty :=
 space := $(empty) $(empty)

@@ -339,7 +339,7 @@ absl::StatusOr<Agent::Replayed> Agent::ReplayAndLearn(
       if (!observation.ok()) return observation.status();
       segment.push_back(*std::move(observation));
     }
-    absl::Status learned = learner_->Learn(segment, replayed);
+    absl::Status learned = learner_->Learn(segment, replayed, memory_.entries());
     if (!learned.ok()) return learned;
   }
   return result;
@@ -386,8 +386,17 @@ absl::Status Agent::SealSegment() {
     places.push_back(PlaceFromProto(stored.trace().pose()));
     traces.push_back(std::move(*stored.mutable_trace()));
   }
-  const std::vector<float> external =
-      ExternalRewards(codes, places, options_.triplet);
+  std::vector<float> external;
+  if (learner_ != nullptr) {
+    absl::StatusOr<std::vector<float>> learned =
+        learner_->ExternalRewards(codes, places, memory_.entries());
+    if (learned.ok() && learned->size() == codes.size()) {
+      external = *std::move(learned);
+    } else if (!learned.ok() && !absl::IsUnimplemented(learned.status())) {
+      return learned.status();
+    }
+  }
+  if (external.empty()) external = ExternalRewards(codes, places, options_.triplet);
   for (size_t k = 0; k < traces.size(); ++k) {
     traces[k].set_reward_external(external[k]);
     traces[k].set_reward(external[k] + traces[k].reward_internal());

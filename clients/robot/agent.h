@@ -53,10 +53,23 @@ class Learner {
  public:
   virtual ~Learner() = default;
   // Called once per segment before its rewards: the segment's real
-  // observations (re-read from the source) and the traces replayed from the
-  // dynamic memory for it (Eq. 19). An error stops the robot.
+  // observations (re-read from the source), the traces replayed from the
+  // dynamic memory for it (Eq. 19) and the whole dynamic memory (where a
+  // learner finds remembered traces of the same places). An error stops the
+  // robot.
   virtual absl::Status Learn(std::span<const Observation> segment,
-                             std::span<const core::MemoryTrace> replayed) = 0;
+                             std::span<const core::MemoryTrace> replayed,
+                             std::span<const ReplayEntry> memory) = 0;
+  // R_ex (Eq. 11) of each of the segment's traces, codes[i] observed at
+  // places[i], under the learner's own model, after Learn. UNIMPLEMENTED (the
+  // default) makes the agent use the triplet loss in code space
+  // (rewards.h's ExternalRewards). Any other error stops the robot.
+  virtual absl::StatusOr<std::vector<float>> ExternalRewards(
+      std::span<const std::vector<float>> codes,
+      std::span<const core::Place> places,
+      std::span<const ReplayEntry> memory) {
+    return absl::UnimplementedError("no learned external reward");
+  }
 };
 
 struct AgentOptions {

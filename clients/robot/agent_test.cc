@@ -23,7 +23,8 @@ const std::string kSummer = std::string(FLEETMEM_DATA_DIR) + "/nordland/summer";
 class RecordingLearner : public Learner {
  public:
   absl::Status Learn(std::span<const Observation> segment,
-                     std::span<const core::MemoryTrace> replayed) override {
+                     std::span<const core::MemoryTrace> replayed,
+                     std::span<const ReplayEntry>) override {
     std::vector<size_t> indices;
     for (const Observation& observation : segment) {
       indices.push_back(observation.index);
@@ -144,7 +145,8 @@ TEST_F(AgentTest, QueuesEverySegmentWhileTheServerIsAwayAndResumes) {
 TEST_F(AgentTest, ALearnerErrorStopsTheRobotAndKeepsTheSegmentOpen) {
   class FailingLearner : public Learner {
     absl::Status Learn(std::span<const Observation>,
-                       std::span<const core::MemoryTrace>) override {
+                       std::span<const core::MemoryTrace>,
+                       std::span<const ReplayEntry>) override {
       return absl::InternalError("out of memory in training");
     }
   } learner;

@@ -1,0 +1,94 @@
+// The GPL model on a robot: as the robot's encoder E (codes z for every
+// observation, versioned by the model) and as its learner (Algorithm 3's
+// inner loop: per segment, the place head learns from the segment and the
+// traces replayed from the dynamic memory; R_ex comes from the model).
+//
+// The encoder and the learner share one model: the encoder is frozen (the
+// fleet's shared encoder, learning.md), so the codes a robot uploads never
+// change while its place head and decoder learn. Both lock the model, so
+// the agent may call them from any thread.
+#ifndef FLEETMEM_CLIENTS_ROBOT_GPL_GPL_ROBOT_H_
+#define FLEETMEM_CLIENTS_ROBOT_GPL_GPL_ROBOT_H_
+
+#include <map>
+#include <memory>
+#include <random>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "clients/robot/agent.h"
+#include "clients/robot/encoder.h"
+#include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/gpl/segment_learner.h"
+
+namespace fleetmem::robot::gpl {
+
+// A model and the lock every user of it takes.
+struct SharedModel {
+  absl::Mutex mu;
+  std::unique_ptr<GplModel> model ABSL_PT_GUARDED_BY(mu);
+};
+
+// Loads a model file for a robot: the encoder is frozen on load (a robot
+// never changes the codes of its fleet). Errors as GplModel::Load.
+absl::StatusOr<std::unique_ptr<SharedModel>> LoadSharedModel(
+    const std::string& path);
+
+class GplEncoder : public Encoder {
+ public:
+  explicit GplEncoder(SharedModel* shared);
+  const std::string& version() const override { return version_; }
+  size_t dimension() const override { return dimension_; }
+  // z = E(image); INVALID_ARGUMENT for an observation without an image.
+  absl::StatusOr<std::vector<float>> Encode(
+      const Observation& observation) const override;
+  // A of R_in: a random horizontal rotation of the image for a model with
+  // wrap-around (panoramas, scan images), a shift-crop otherwise.
+  absl::StatusOr<Observation> Perturb(const Observation& observation,
+                                      std::mt19937_64& rng) const override;
+
+ private:
+  SharedModel* shared_;
+  std::string version_;
+  size_t dimension_;
+  bool wrap_;
+};
+
+class GplLearner : public Learner {
+ public:
+  // `domain` is the robot's (AgentOptions::domain). `save_path`, if not
+  // empty, receives the model after every segment (Save's atomic rename).
+  GplLearner(SharedModel* shared, std::string domain,
+             SegmentLearnerOptions options, std::string save_path = "");
+  absl::Status Learn(std::span<const Observation> segment,
+                     std::span<const core::MemoryTrace> replayed,
+                     std::span<const ReplayEntry> memory) override;
+  absl::StatusOr<std::vector<float>> ExternalRewards(
+      std::span<const std::vector<float>> codes,
+      std::span<const core::Place> places,
+      std::span<const ReplayEntry> memory) override;
+  // Steps and loss of the last segment.
+  SegmentLearnStats last() const;
+
+ private:
+  int DomainId(const std::string& domain);
+  std::vector<LearnSample> MemorySamples(std::span<const ReplayEntry> memory);
+
+  SharedModel* shared_;
+  std::string domain_;
+  std::string save_path_;
+  std::map<std::string, int> domains_;
+  std::unique_ptr<SegmentLearner> learner_;
+  SegmentLearnStats last_;
+};
+
+// Rotates an image about its vertical axis: column c moves to (c + shift)
+// mod width.
+cv::Mat RollColumns(const cv::Mat& image, int shift);
+
+}  // namespace fleetmem::robot::gpl
+
+#endif  // FLEETMEM_CLIENTS_ROBOT_GPL_GPL_ROBOT_H_

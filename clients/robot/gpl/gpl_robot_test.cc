@@ -1,0 +1,143 @@
+#include "clients/robot/gpl/gpl_robot.h"
+
+#include <cstdio>
+#include <random>
+#include <string>
+#include <unistd.h>
+#include <vector>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "opencv2/core.hpp"
+#include "opencv2/imgproc.hpp"
+
+namespace fleetmem::robot::gpl {
+namespace {
+
+cv::Mat Noise(uint64_t seed) {
+  cv::RNG rng(seed);
+  cv::Mat m(32, 64, CV_8UC1);
+  rng.fill(m, cv::RNG::UNIFORM, 0, 256);
+  return m;
+}
+
+std::unique_ptr<SharedModel> SavedAndLoaded(bool wrap = false) {
+  GplOptions options;
+  options.wrap_horizontal = wrap;
+  auto model = *GplModel::Create(options, "gpl-robot-test-v1");
+  std::vector<cv::Mat> images;
+  for (int i = 0; i < 16; ++i) images.push_back(Noise(500 + i));
+  EXPECT_TRUE(model->InitialisePlaceHead(*model->Encode(images)).ok());
+  const std::string path = ::testing::TempDir() + "/gpl-robot-" +
+                           std::to_string(::getpid()) + (wrap ? "w" : "") + ".pt";
+  EXPECT_TRUE(model->Save(path).ok());
+  auto shared = LoadSharedModel(path);
+  std::remove(path.c_str());
+  EXPECT_TRUE(shared.ok()) << shared.status();
+  return shared.ok() ? *std::move(shared) : nullptr;
+}
+
+// A place's look: a random 4 x 8 block pattern; another season sees it
+// brighter and with noise.
+cv::Mat Place(uint64_t seed, bool other_season) {
+  cv::RNG rng(seed);
+  cv::Mat blocks(4, 8, CV_8UC1);
+  rng.fill(blocks, cv::RNG::UNIFORM, 0, 200);
+  cv::Mat image;
+  cv::resize(blocks, image, cv::Size(64, 32), 0, 0, cv::INTER_NEAREST);
+  if (!other_season) return image;
+  cv::Mat noise(32, 64, CV_8UC1);
+  cv::RNG(seed + 1000).fill(noise, cv::RNG::UNIFORM, 0, 60);
+  return image + noise;
+}
+
+TEST(GplRobotTest, RollColumnsRotatesAboutTheVerticalAxis) {
+  cv::Mat m = (cv::Mat_<uint8_t>(1, 4) << 1, 2, 3, 4);
+  cv::Mat r = RollColumns(m, 1);
+  EXPECT_EQ(r.at<uint8_t>(0, 0), 4);
+  EXPECT_EQ(r.at<uint8_t>(0, 1), 1);
+  EXPECT_EQ(RollColumns(m, -1).at<uint8_t>(0, 0), 2);
+  EXPECT_EQ(RollColumns(m, 4).at<uint8_t>(0, 2), 3);
+}
+
+TEST(GplRobotTest, EncoderCarriesTheModelVersionAndFreezesIt) {
+  auto shared = SavedAndLoaded();
+  ASSERT_NE(shared, nullptr);
+  GplEncoder encoder(shared.get());
+  EXPECT_EQ(encoder.version(), "gpl-robot-test-v1");
+  EXPECT_EQ(encoder.dimension(), 256u);
+  Observation o;
+  o.image = Noise(1);
+  auto z = encoder.Encode(o);
+  ASSERT_TRUE(z.ok()) << z.status();
+  EXPECT_EQ(z->size(), 256u);
+  Observation scan;
+  scan.name = "aces.clf:3";
+  scan.scan.ranges = {1.0f, 2.0f};
+  EXPECT_EQ(encoder.Encode(scan).status().code(), absl::StatusCode::kInvalidArgument);
+  std::mt19937_64 rng(1);
+  auto moved = encoder.Perturb(o, rng);
+  ASSERT_TRUE(moved.ok());
+  EXPECT_EQ(moved->image.size(), o.image.size());
+  absl::MutexLock lock(&shared->mu);
+  EXPECT_TRUE(shared->model->encoder_frozen());
+}
+
+// The learner pairs a new-domain observation with the remembered trace of
+// the same place: after a few segments, winter frames describe closer to
+// the summer frames of their places than to other places.
+TEST(GplRobotTest, LearnerPairsNewObservationsWithRememberedPlaces) {
+  auto shared = SavedAndLoaded();
+  ASSERT_NE(shared, nullptr);
+  GplEncoder encoder(shared.get());
+  SegmentLearnerOptions options;
+  options.steps_per_segment = 40;
+  options.batch_size = 16;
+  options.generative_steps_per_segment = 1;
+  GplLearner learner(shared.get(), "winter", options);
+  // 12 places, 10 units apart... spread so that negatives exist.
+  std::vector<Observation> winter;
+  std::vector<ReplayEntry> memory;
+  for (int i = 0; i < 12; ++i) {
+    Observation o;
+    o.place.x = 50.0 * i;
+    o.image = Place(100 + i, false);
+    winter.push_back(o);
+    Observation s = o;
+    s.image = Place(100 + i, true);  // another season's look
+    ReplayEntry e;
+    e.trace.code = *encoder.Encode(s);
+    e.trace.place = s.place;
+    e.trace.domain = "summer";
+    e.trace.robot_id = "peer";
+    memory.push_back(e);
+  }
+  std::vector<core::MemoryTrace> replayed;
+  for (int i = 0; i < 4; ++i) replayed.push_back(memory[i].trace);
+  std::vector<std::vector<float>> codes;
+  std::vector<core::Place> places;
+  for (const Observation& o : winter) {
+    codes.push_back(*encoder.Encode(o));
+    places.push_back(o.place);
+  }
+  auto before = learner.ExternalRewards(codes, places, memory);
+  ASSERT_TRUE(before.ok()) << before.status();
+  ASSERT_EQ(before->size(), 12u);
+  for (int segment = 0; segment < 5; ++segment) {
+    ASSERT_TRUE(learner.Learn(winter, replayed, memory).ok());
+  }
+  EXPECT_GT(learner.last().steps, 0);
+  auto after = learner.ExternalRewards(codes, places, memory);
+  ASSERT_TRUE(after.ok());
+  double sum_before = 0, sum_after = 0;
+  for (int i = 0; i < 12; ++i) {
+    sum_before += (*before)[i];
+    sum_after += (*after)[i];
+  }
+  EXPECT_LT(sum_after, sum_before * 0.5) << sum_before << " -> " << sum_after;
+  // Codes do not move: the encoder is frozen.
+  EXPECT_EQ(*encoder.Encode(winter[0]), codes[0]);
+}
+
+}  // namespace
+}  // namespace fleetmem::robot::gpl

@@ -1,0 +1,129 @@
+#include "clients/robot/gpl/segment_learner.h"
+
+#include <algorithm>
+#include <utility>
+
+namespace fleetmem::robot::gpl {
+
+SegmentLearner::SegmentLearner(GplModel* model, SegmentLearnerOptions options)
+    : model_(model), options_(std::move(options)), rng_(options_.seed) {}
+
+absl::StatusOr<std::vector<std::vector<float>>> SegmentLearner::RememberedCodes(
+    std::span<const LearnSample> samples) {
+  std::vector<std::vector<float>> codes;
+  codes.reserve(samples.size());
+  for (const LearnSample& s : samples) codes.push_back(s.code);
+  if (options_.replay_input == ReplayInput::kCode || codes.empty()) return codes;
+  return model_->Reencode(codes);
+}
+
+absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
+    std::span<const LearnSample> segment, std::span<const LearnSample> replayed,
+    std::span<const LearnSample> memory) {
+  // The pool: segment [0, s), replayed [s, s + r), memory after.
+  std::vector<TripletSample> pool;
+  std::vector<std::vector<float>> codes;
+  for (const LearnSample& x : segment) {
+    pool.push_back({x.place, x.domain});
+    codes.push_back(x.code);
+  }
+  for (std::span<const LearnSample> part : {replayed, memory}) {
+    absl::StatusOr<std::vector<std::vector<float>>> remembered = RememberedCodes(part);
+    if (!remembered.ok()) return remembered.status();
+    for (size_t i = 0; i < part.size(); ++i) {
+      pool.push_back({part[i].place, part[i].domain});
+      codes.push_back(std::move((*remembered)[i]));
+    }
+  }
+  SegmentLearnStats stats;
+  if (segment.empty() && replayed.empty()) return stats;
+  const size_t s = segment.size(), r = replayed.size();
+  const size_t replay_anchors =
+      r == 0 ? 0
+             : std::min<size_t>(options_.batch_size,
+                                size_t(options_.batch_size * options_.replay_share + 0.5));
+  const size_t real_anchors = s == 0 ? 0 : options_.batch_size - replay_anchors;
+  std::vector<std::vector<float>> descriptors;
+  for (int step = 0; step < options_.steps_per_segment; ++step) {
+    if (step % std::max(1, options_.mining_interval) == 0) {
+      absl::StatusOr<std::vector<std::vector<float>>> d = model_->Describe(codes);
+      if (!d.ok()) return d.status();
+      descriptors = *std::move(d);
+    }
+    std::vector<size_t> anchors;
+    for (size_t i = 0; i < real_anchors; ++i) {
+      anchors.push_back(std::uniform_int_distribution<size_t>(0, s - 1)(rng_));
+    }
+    for (size_t i = 0; i < replay_anchors; ++i) {
+      anchors.push_back(s + std::uniform_int_distribution<size_t>(0, r - 1)(rng_));
+    }
+    const std::vector<TripletIndex> triplets =
+        MineTriplets(pool, anchors, descriptors, options_.mining, rng_);
+    if (triplets.empty()) continue;
+    CodeTriplets batch;
+    for (const TripletIndex& t : triplets) {
+      batch.anchors.push_back(codes[t.anchor]);
+      batch.positives.push_back(codes[t.positive]);
+      batch.negatives.push_back(codes[t.negative]);
+    }
+    absl::StatusOr<StepLosses> losses = model_->TrainPlaceHead(batch);
+    if (!losses.ok()) return losses.status();
+    if (stats.steps == 0) stats.first_loss = losses->loc;
+    stats.last_loss = losses->loc;
+    stats.steps += 1;
+    stats.triplets += int(triplets.size());
+  }
+  return stats;
+}
+
+absl::Status SegmentLearner::LearnImages(std::span<const cv::Mat> images) {
+  if (images.empty()) return absl::OkStatus();
+  std::vector<cv::Mat> batch;
+  for (int step = 0; step < options_.generative_steps_per_segment; ++step) {
+    batch.clear();
+    for (int i = 0; i < options_.batch_size; ++i) {
+      batch.push_back(images[std::uniform_int_distribution<size_t>(
+          0, images.size() - 1)(rng_)]);
+    }
+    absl::StatusOr<StepLosses> losses = model_->TrainGenerative(batch);
+    if (!losses.ok()) return losses.status();
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<float>> SegmentLearner::ExternalRewards(
+    std::span<const LearnSample> segment, std::span<const LearnSample> memory) {
+  std::vector<float> rewards(segment.size(), 0.0f);
+  if (segment.empty()) return rewards;
+  std::vector<TripletSample> pool;
+  std::vector<std::vector<float>> codes;
+  for (const LearnSample& x : segment) {
+    pool.push_back({x.place, x.domain});
+    codes.push_back(x.code);
+  }
+  absl::StatusOr<std::vector<std::vector<float>>> remembered = RememberedCodes(memory);
+  if (!remembered.ok()) return remembered.status();
+  for (size_t i = 0; i < memory.size(); ++i) {
+    pool.push_back({memory[i].place, memory[i].domain});
+    codes.push_back(std::move((*remembered)[i]));
+  }
+  absl::StatusOr<std::vector<std::vector<float>>> descriptors = model_->Describe(codes);
+  if (!descriptors.ok()) return descriptors.status();
+  std::vector<size_t> anchors(segment.size());
+  for (size_t i = 0; i < anchors.size(); ++i) anchors[i] = i;
+  const std::vector<TripletIndex> triplets =
+      HardestTriplets(pool, anchors, *descriptors, options_.mining);
+  if (triplets.empty()) return rewards;
+  CodeTriplets batch;
+  for (const TripletIndex& t : triplets) {
+    batch.anchors.push_back(codes[t.anchor]);
+    batch.positives.push_back(codes[t.positive]);
+    batch.negatives.push_back(codes[t.negative]);
+  }
+  absl::StatusOr<std::vector<float>> losses = model_->TripletLosses(batch);
+  if (!losses.ok()) return losses.status();
+  for (size_t i = 0; i < triplets.size(); ++i) rewards[triplets[i].anchor] = (*losses)[i];
+  return rewards;
+}
+
+}  // namespace fleetmem::robot::gpl

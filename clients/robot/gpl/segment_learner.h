@@ -1,0 +1,103 @@
+// What a robot learns per segment (BioSLAM Algorithm 3, lines 3-6): the
+// place head F is trained on the segment's real samples together with
+// samples replayed from the dynamic memory (Eq. 19), with the triplet loss
+// of Eq. 7; positives and negatives come from the segment, the replayed
+// samples and the rest of the dynamic memory, by place (triplets.h).
+//
+// Replayed samples enter as codes. With ReplayInput::kDecoded a remembered
+// code z' is first turned into a synthetic observation and encoded again,
+// E(G(z')) (Eq. 20, the paper's generative replay); with kCode it enters as
+// z' itself. The encoder is frozen (learning.md's fleet decision), so kCode
+// is exact and kDecoded only adds the decoder's error: the evaluation
+// measures both.
+//
+// Also the external reward R_ex (Eq. 11) of each new sample: its Eq. 7
+// loss against the hardest positive and negative among the segment and the
+// dynamic memory, under the current F.
+//
+// Not thread-safe; drives one model.
+#ifndef FLEETMEM_CLIENTS_ROBOT_GPL_SEGMENT_LEARNER_H_
+#define FLEETMEM_CLIENTS_ROBOT_GPL_SEGMENT_LEARNER_H_
+
+#include <cstdint>
+#include <random>
+#include <span>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/gpl/triplets.h"
+#include "services/core/types.h"
+
+namespace fleetmem::robot::gpl {
+
+struct LearnSample {
+  std::vector<float> code;  // z = E(q)
+  core::Place place;
+  int domain = 0;
+};
+
+enum class ReplayInput { kCode, kDecoded };
+
+struct SegmentLearnerOptions {
+  // Gradient steps on F per segment (the paper's "until converged", bounded
+  // for a 2-core robot).
+  int steps_per_segment = 60;
+  // Triplets per step.
+  int batch_size = 32;
+  // Share of a step's anchors drawn from the replayed samples (when there
+  // are any); the rest are the segment's real samples.
+  double replay_share = 0.5;
+  ReplayInput replay_input = ReplayInput::kCode;
+  // Steps between refreshes of the pool's descriptors for negative mining.
+  int mining_interval = 10;
+  TripletMiningOptions mining;
+  // Decoder/discriminator steps per segment on the segment's images
+  // (LearnImages only; 0 = the decoder does not learn).
+  int generative_steps_per_segment = 0;
+  uint64_t seed = 1;
+};
+
+struct SegmentLearnStats {
+  int steps = 0;
+  int triplets = 0;
+  float first_loss = 0.0f;
+  float last_loss = 0.0f;
+};
+
+class SegmentLearner {
+ public:
+  // `model` must outlive the learner; its encoder should be frozen.
+  SegmentLearner(GplModel* model, SegmentLearnerOptions options);
+
+  // Trains F on `segment` (real) and `replayed` (drawn from M_D), with
+  // `memory` (the rest of M_D) as further positives and negatives. A
+  // segment with no triplet (e.g. one sample) trains nothing.
+  absl::StatusOr<SegmentLearnStats> Learn(std::span<const LearnSample> segment,
+                                          std::span<const LearnSample> replayed,
+                                          std::span<const LearnSample> memory);
+
+  // generative_steps_per_segment decoder steps on `images` (the segment's
+  // real observations), in batches of batch_size.
+  absl::Status LearnImages(std::span<const cv::Mat> images);
+
+  // R_ex of each segment sample (Eq. 11), in segment order.
+  absl::StatusOr<std::vector<float>> ExternalRewards(
+      std::span<const LearnSample> segment, std::span<const LearnSample> memory);
+
+  const SegmentLearnerOptions& options() const { return options_; }
+
+ private:
+  // Codes of remembered samples as the place head sees them (kDecoded:
+  // E(G(z))).
+  absl::StatusOr<std::vector<std::vector<float>>> RememberedCodes(
+      std::span<const LearnSample> samples);
+
+  GplModel* model_;
+  SegmentLearnerOptions options_;
+  std::mt19937_64 rng_;
+};
+
+}  // namespace fleetmem::robot::gpl
+
+#endif  // FLEETMEM_CLIENTS_ROBOT_GPL_SEGMENT_LEARNER_H_
