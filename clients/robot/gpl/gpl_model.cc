@@ -206,11 +206,11 @@ torch::Tensor OptionsToTensor(const GplOptions& o) {
       double(o.vlad_clusters), double(o.vlad_features),
       o.wrap_horizontal ? 1.0 : 0.0, double(o.margin), o.head_learning_rate,
       o.encoder_learning_rate, o.generative_learning_rate,
-      double(o.pixel_weight), double(o.seed)}, torch::kFloat64);
+      double(o.pixel_weight), double(o.seed), double(o.gan_weight)}, torch::kFloat64);
 }
 
 absl::StatusOr<GplOptions> OptionsFromTensor(const torch::Tensor& t) {
-  if (t.dim() != 1 || t.size(0) != 14 || t.scalar_type() != torch::kFloat64) {
+  if (t.dim() != 1 || t.size(0) != 15 || t.scalar_type() != torch::kFloat64) {
     return absl::DataLossError("the options record has the wrong shape");
   }
   auto v = t.accessor<double, 1>();
@@ -229,6 +229,7 @@ absl::StatusOr<GplOptions> OptionsFromTensor(const torch::Tensor& t) {
   o.generative_learning_rate = v[11];
   o.pixel_weight = float(v[12]);
   o.seed = uint64_t(v[13]);
+  o.gan_weight = float(v[14]);
   return o;
 }
 
@@ -360,11 +361,26 @@ struct GplModel::Impl {
     torch::Tensor z = z_graph.detach();
     torch::Tensor fake = decoder->forward(z_graph);
     torch::Tensor pixel = (fake - q).abs().mean();
-    torch::Tensor consistency = (encoder->forward(decoder->forward(z)) - z).abs().mean();
+    // Eq. 9 trains G only: were E to learn from it, a constant encoder
+    // would satisfy it trivially (the codes collapse).
+    torch::Tensor consistency = (EncodeWithoutLearning(decoder->forward(z)) - z).abs().mean();
     torch::Tensor fake_logits = discriminator->forward(decoder->forward(z));
     torch::Tensor gan_g = F::binary_cross_entropy_with_logits(
         fake_logits, torch::ones_like(fake_logits));
     return {consistency + options.pixel_weight * pixel, gan_g};
+  }
+
+  // E(x) with gradients flowing to x but not into E's weights.
+  torch::Tensor EncodeWithoutLearning(const torch::Tensor& x) {
+    std::vector<torch::Tensor> params = encoder->parameters();
+    std::vector<bool> was;
+    for (torch::Tensor& p : params) {
+      was.push_back(p.requires_grad());
+      p.set_requires_grad(false);
+    }
+    torch::Tensor out = encoder->forward(x);
+    for (size_t i = 0; i < params.size(); ++i) params[i].set_requires_grad(was[i]);
+    return out;
   }
 
   float StepDiscriminator(const torch::Tensor& q, const torch::Tensor& z) {
@@ -660,7 +676,7 @@ absl::StatusOr<StepLosses> GplModel::TrainGenerative(std::span<const cv::Mat> im
     }
     impl_->decoder_opt.zero_grad();
     auto [rec, gan_g] = impl_->GenerativeLosses(*q, z);
-    (rec + gan_g).backward();
+    (rec + options().gan_weight * gan_g).backward();
     impl_->decoder_opt.step();
     StepLosses out;
     out.rec = rec.item<float>();
@@ -692,7 +708,7 @@ absl::StatusOr<StepLosses> GplModel::TrainJoint(const ImageTriplets& batch) {
     torch::Tensor z = impl_->encoder->forward(*q);
     torch::Tensor loc = impl_->TripletLoss(impl_->head->forward(z)).mean();
     auto [rec, gan_g] = impl_->GenerativeLosses(*q, z);
-    (loc + rec + gan_g).backward();  // Eq. 10
+    (loc + rec + options().gan_weight * gan_g).backward();  // Eq. 10
     impl_->encoder_opt.step();
     impl_->head_opt.step();
     impl_->decoder_opt.step();

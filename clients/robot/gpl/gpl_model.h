@@ -63,11 +63,13 @@ struct GplOptions {
   // alpha of Eq. 7, on squared distances between unit descriptors (0..4).
   float margin = 0.3f;
   // Adam learning rates: place head (f, V), encoder, decoder/discriminator.
-  double head_learning_rate = 1e-3;
+  double head_learning_rate = 3e-4;
   double encoder_learning_rate = 1e-3;
   double generative_learning_rate = 1e-3;
   // Weight of the pixel reconstruction term in the decoder's loss.
   float pixel_weight = 1.0f;
+  // Weight of L_gan for the decoder in L_joint (Eq. 10 has 1).
+  float gan_weight = 1.0f;
   // Seeds torch's generator when the model is created (initial weights).
   uint64_t seed = 1;
 };
