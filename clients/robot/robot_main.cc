@@ -28,6 +28,7 @@
 #include "clients/cpp/fleetmem_client.h"
 #include "clients/robot/agent.h"
 #include "clients/robot/encoder.h"
+#include "clients/robot/gpl/gpl_robot.h"
 #include "clients/robot/observation_source.h"
 #include "clients/robot/robot_store.h"
 #include "services/core/validation.h"
@@ -47,6 +48,9 @@ struct Flags {
   fleetmem::client::CredentialSources credentials;
   std::string tls_server_name;
   std::string encoder;
+  std::string gpl_model;
+  bool learn = false;
+  int learn_steps = 60;
   std::string domain;
   size_t segment_size = 200;
   double rate_hz = 0.0;
@@ -98,6 +102,17 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--encoder", flags.encoder,
                  "place code (default: hog-64x32-c8-s8-b6 for images, "
                  "scanring-r32-d32 for scans)");
+  app.add_option("--gpl-model", flags.gpl_model,
+                 "GPL model file (fleetmem-eval pretrain): its frozen encoder "
+                 "makes the codes (instead of --encoder)");
+  app.add_flag("--learn", flags.learn,
+               "train the GPL place head every segment on the segment and the "
+               "traces replayed from the dynamic memory (needs --gpl-model); "
+               "the learned model is kept in DATA_DIR/gpl-learned.pt");
+  app.add_option("--learn-steps", flags.learn_steps,
+                 "place-head gradient steps per segment")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
   app.add_option("--domain", flags.domain,
                  "domain of the traces (default: the Nordland folder's name, "
                  "\"images\" or \"lidar\")");
@@ -172,6 +187,29 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "TOML or INI file of these options (flags win)");
 }
 
+// The robot's GPL model: its own learned copy (DATA_DIR/gpl-learned.pt,
+// written after every segment) when it learns and has one of the same
+// encoder version, else the fleet's model file.
+absl::StatusOr<std::unique_ptr<fleetmem::robot::gpl::SharedModel>> LoadGplModel(
+    const std::string& fleet_model, const std::string& learned, bool learn) {
+  namespace gpl = fleetmem::robot::gpl;
+  absl::StatusOr<std::unique_ptr<gpl::SharedModel>> model = gpl::LoadSharedModel(fleet_model);
+  if (!model.ok() || !learn || !std::filesystem::exists(learned)) return model;
+  absl::StatusOr<std::unique_ptr<gpl::SharedModel>> own = gpl::LoadSharedModel(learned);
+  if (!own.ok()) {
+    return absl::Status(own.status().code(),
+                        absl::StrCat("the robot's learned model: ", own.status().message()));
+  }
+  absl::MutexLock a(&(*model)->mu);
+  absl::MutexLock b(&(*own)->mu);
+  if ((*own)->model->version() != (*model)->model->version()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        learned, " holds encoder ", (*own)->model->version(), " but --gpl-model is ",
+        (*model)->model->version(), ": a new fleet encoder needs a new data dir"));
+  }
+  return own;
+}
+
 // The highest seq the fleet holds of this robot (0 if none, or if the fleet
 // does not exist yet). A robot that has not given a seq yet starts after it,
 // so that a robot whose disk was wiped does not reuse them.
@@ -218,10 +256,31 @@ int Run(const Flags& flags) {
     std::cerr << "fleetmem-robot: " << source.status().message() << "\n";
     return 1;
   }
-  const std::string encoder_name =
-      flags.encoder.empty() ? (*source)->default_encoder() : flags.encoder;
-  absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder =
-      robot::NewEncoderByName(encoder_name);
+  if (flags.learn && flags.gpl_model.empty()) {
+    std::cerr << "fleetmem-robot: --learn needs --gpl-model\n";
+    return 2;
+  }
+  if (!flags.gpl_model.empty() && !flags.encoder.empty()) {
+    std::cerr << "fleetmem-robot: give --encoder or --gpl-model, not both\n";
+    return 2;
+  }
+  std::unique_ptr<robot::gpl::SharedModel> gpl;
+  std::unique_ptr<robot::gpl::GplLearner> learner;
+  absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder;
+  if (!flags.gpl_model.empty()) {
+    absl::StatusOr<std::unique_ptr<robot::gpl::SharedModel>> model =
+        LoadGplModel(flags.gpl_model, flags.data_dir + "/gpl-learned.pt", flags.learn);
+    if (!model.ok()) {
+      std::cerr << "fleetmem-robot: " << model.status().message() << "\n";
+      return 2;
+    }
+    gpl = *std::move(model);
+    encoder = std::unique_ptr<robot::Encoder>(new robot::gpl::GplEncoder(gpl.get()));
+  } else {
+    const std::string encoder_name =
+        flags.encoder.empty() ? (*source)->default_encoder() : flags.encoder;
+    encoder = robot::NewEncoderByName(encoder_name);
+  }
   if (!encoder.ok()) {
     std::cerr << "fleetmem-robot: " << encoder.status().message() << "\n";
     return 2;
@@ -329,8 +388,19 @@ int Run(const Flags& flags) {
       flags.robot_id, flags.fleet, flags.server, (*source)->description(),
       (*source)->size(), (*encoder)->version(), (*encoder)->dimension(),
       options.domain, flags.data_dir, flags.query_only ? ", query only" : "");
+  if (flags.learn) {
+    robot::gpl::SegmentLearnerOptions learn;
+    learn.steps_per_segment = flags.learn_steps;
+    learn.seed = flags.seed;
+    // Positives within the match radius (a correct match), negatives beyond
+    // five of it (as the code-space R_ex, rewards.h).
+    learn.mining.positive_radius = options.match_radius;
+    learn.mining.negative_radius = options.triplet.negative_radius;
+    learner = std::make_unique<robot::gpl::GplLearner>(
+        gpl.get(), options.domain, learn, flags.data_dir + "/gpl-learned.pt");
+  }
   robot::Agent agent(options, client.get(), query_client.get(), source->get(),
-                     encoder->get(), store->get());
+                     encoder->get(), store->get(), learner.get());
   std::signal(SIGTERM, OnSignal);
   std::signal(SIGINT, OnSignal);
   const absl::Status status = agent.Run(g_stop);

@@ -51,6 +51,7 @@
 #include "absl/time/time.h"
 #include "clients/cpp/fleetmem_client.h"
 #include "clients/robot/code_search.h"
+#include "clients/robot/gpl/gpl_model.h"
 #include "clients/robot/image_encoder.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/robot_store.h"
@@ -75,6 +76,11 @@ ABSL_FLAG(std::string, work_dir, ".demo/robots",
           "the robots' data dirs go below (one per robot and season)");
 ABSL_FLAG(std::string, robot_binary, "",
           "fleetmem-robot (default: beside this program)");
+ABSL_FLAG(std::string, gpl_model, "",
+          "a fleet GPL model (fleetmem-eval pretrain): the same robots drive "
+          "again in a second fleet with it and learn (--learn), and the table "
+          "shows the learned model beside the classical code");
+ABSL_FLAG(int, learn_steps, 30, "place-head steps per segment of the GPL robots");
 ABSL_FLAG(bool, sequential_robots, false,
           "run the robots one after another instead of side by side: the "
           "server then receives their segments in a fixed order, so a run "
@@ -110,6 +116,8 @@ struct Setup {
   std::unique_ptr<robot::ImageEncoder> encoder;
   std::string encoder_name;
   int segment_size = 200;
+  // Non-empty: the robots run the GPL model and learn (second pass).
+  std::string gpl_model;
 };
 
 struct Drive {
@@ -152,10 +160,14 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
         absl::StrCat(drive.stretch.begin),
         "--last",
         absl::StrCat(drive.stretch.end),
-        "--encoder",
-        setup.encoder_name,
         "--segment-size",
         absl::StrCat(setup.segment_size)};
+    if (setup.gpl_model.empty()) {
+      args.insert(args.end(), {"--encoder", setup.encoder_name});
+    } else {
+      args.insert(args.end(), {"--gpl-model", setup.gpl_model, "--learn", "--learn-steps",
+                               absl::StrCat(absl::GetFlag(FLAGS_learn_steps))});
+    }
     if (query_only) args.push_back("--query-only");
     std::vector<char*> argv;
     for (std::string& arg : args) argv.push_back(arg.data());
@@ -295,6 +307,96 @@ absl::StatusOr<std::vector<float>> EncodeFrame(const Setup& setup,
   absl::StatusOr<cv::Mat> grey = robot::LoadNordlandGrey(dir, number);
   if (!grey.ok()) return grey.status();
   return setup.encoder->EncodeImage(*grey);
+}
+
+// The GPL pass: the same drives in a fleet of their own with the fleet's
+// GPL model, learning every segment (summer uploads; winter query-only, its
+// segments paired with the summer traces in each robot's dynamic memory).
+// Rows: the frozen fleet model and each robot's learned model after winter,
+// scored like the baseline (winter frames against every summer frame of the
+// stretches, descriptors F(E(q))).
+absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical, std::vector<Drive> drives,
+                                         client::Client& observer) {
+  Setup setup;
+  setup.fleet_id = classical.fleet_id + "-gpl";
+  setup.server = classical.server;
+  setup.summer_dir = classical.summer_dir;
+  setup.winter_dir = classical.winter_dir;
+  setup.robot_binary = classical.robot_binary;
+  setup.work_dir = classical.work_dir + "-gpl";
+  setup.numbers = classical.numbers;
+  setup.segment_size = classical.segment_size;
+  setup.gpl_model = absl::GetFlag(FLAGS_gpl_model);
+  std::printf("\nGPL pass: fleet %s, model %s, the robots learn (%d steps per segment)\n",
+              setup.fleet_id.c_str(), setup.gpl_model.c_str(),
+              absl::GetFlag(FLAGS_learn_steps));
+  std::fflush(stdout);
+  absl::Status ran = RunRobots(setup, drives, "summer", /*query_only=*/false);
+  if (!ran.ok()) return ran;
+  absl::StatusOr<v1::ConsolidateResponse> consolidated = observer.Consolidate(setup.fleet_id);
+  if (!consolidated.ok()) return consolidated.status();
+  ran = RunRobots(setup, drives, "winter", /*query_only=*/true);
+  if (!ran.ok()) return ran;
+
+  // Codes of every frame of the stretches (the encoder is frozen: the same
+  // for the fleet model and every robot's learned copy).
+  absl::StatusOr<std::unique_ptr<robot::gpl::GplModel>> fleet_model =
+      robot::gpl::GplModel::Load(setup.gpl_model);
+  if (!fleet_model.ok()) return fleet_model.status();
+  std::vector<std::vector<float>> summer_codes, winter_codes;
+  std::vector<double> summer_x, winter_x;
+  std::vector<size_t> owner;  // drive of each winter frame
+  for (size_t d = 0; d < drives.size(); ++d) {
+    for (size_t i = drives[d].stretch.begin; i < drives[d].stretch.end; ++i) {
+      for (const bool winter : {false, true}) {
+        absl::StatusOr<cv::Mat> grey = robot::LoadNordlandGrey(
+            winter ? setup.winter_dir : setup.summer_dir, setup.numbers[i]);
+        if (!grey.ok()) return grey.status();
+        absl::StatusOr<std::vector<std::vector<float>>> z =
+            (*fleet_model)->Encode(std::span<const cv::Mat>(&*grey, 1));
+        if (!z.ok()) return z.status();
+        (winter ? winter_codes : summer_codes).push_back(std::move((*z)[0]));
+        (winter ? winter_x : summer_x).push_back(setup.numbers[i]);
+      }
+      owner.push_back(d);
+    }
+  }
+  // Scores winter frames (of drive `only`, or all) under `model`.
+  auto score = [&](robot::gpl::GplModel& model, int only,
+                   core::FirstCorrectRanks& ranks) -> absl::Status {
+    absl::StatusOr<std::vector<std::vector<float>>> db = model.Describe(summer_codes);
+    if (!db.ok()) return db.status();
+    absl::StatusOr<std::vector<std::vector<float>>> q = model.Describe(winter_codes);
+    if (!q.ok()) return q.status();
+    robot::BruteForceIndex index(model.descriptor_dimension());
+    for (size_t j = 0; j < db->size(); ++j) index.Add((*db)[j], summer_x[j]);
+    for (size_t j = 0; j < q->size(); ++j) {
+      if (only >= 0 && owner[j] != size_t(only)) continue;
+      std::vector<core::Place> found;
+      for (double x : index.Search((*q)[j], kQueryK)) found.push_back({.x = x});
+      ranks.push_back(robot::FirstCorrectRank(found, {.x = winter_x[j]}, kToleranceUnits));
+    }
+    return absl::OkStatus();
+  };
+  Row frozen, learned;
+  frozen.system = absl::StrCat("GPL fleet model ", (*fleet_model)->version(),
+                               ", before learning (all summer frames)");
+  learned.system = "GPL learned by each robot (summer + winter drives; all summer frames)";
+  for (Row* row : {&frozen, &learned}) {
+    row->traces = absl::StrCat(summer_codes.size());
+    row->clusters = "-";
+    row->consolidation_ms = "-";
+  }
+  if (absl::Status s = score(**fleet_model, -1, frozen.ranks); !s.ok()) return s;
+  for (size_t d = 0; d < drives.size(); ++d) {
+    const std::string path = absl::StrCat(setup.work_dir, "/", drives[d].robot_id,
+                                          "-winter/gpl-learned.pt");
+    absl::StatusOr<std::unique_ptr<robot::gpl::GplModel>> own =
+        robot::gpl::GplModel::Load(path);
+    if (!own.ok()) return own.status();
+    if (absl::Status s = score(**own, int(d), learned.ranks); !s.ok()) return s;
+  }
+  return std::vector<Row>{frozen, learned};
 }
 
 absl::Status Run() {
@@ -475,7 +577,13 @@ absl::Status Run() {
       std::accumulate(local_ms.begin(), local_ms.end(), 0.0) /
       std::max<size_t>(local_ms.size(), 1);
 
-  const std::string table = Table({memory_row, baseline_row});
+  std::vector<Row> rows = {memory_row, baseline_row};
+  if (!absl::GetFlag(FLAGS_gpl_model).empty()) {
+    absl::StatusOr<std::vector<Row>> gpl = GplPass(setup, drives, *observer);
+    if (!gpl.ok()) return gpl.status();
+    rows.insert(rows.end(), gpl->begin(), gpl->end());
+  }
+  const std::string table = Table(rows);
   const std::string robots = RobotTable(setup, drives);
   const std::string notes = absl::StrFormat(
       "- %zu winter relocalisations by %zu fleetmem-robot processes (query "

@@ -112,9 +112,21 @@ while [[ -z "$address" ]]; do
 done
 echo "run_demo.sh: fleetmem-server listening on $address"
 
+# The fleet's GPL model: its encoder pre-trained once on the first summer
+# stretch (300 frames, quick settings), then frozen; the robots' second pass
+# learns with it. Kept in .demo/ and reused by later demos.
+eval_bin="$build_dir/bin/fleetmem-eval"
+gpl_model="$demo_dir/gpl-fleet.pt"
+if [[ ! -f "$gpl_model" ]]; then
+  echo "run_demo.sh: pre-training the fleet's GPL model on 300 summer frames (about a minute)"
+  "$eval_bin" pretrain --images "${FLEETMEM_DATA:-$root/../shared/data}/nordland/summer" \
+    --count 300 --steps 300 --version gpl-demo-64x32-d256-v1 --out "$gpl_model"
+fi
+
 demo_status=0
 "$demo_bin" --server "$address" --results-md "$results" \
-  --robot-binary "$robot_bin" --work-dir "$demo_dir/robots" "$@" &
+  --robot-binary "$robot_bin" --work-dir "$demo_dir/robots" \
+  --gpl-model "$gpl_model" "$@" &
 demo_pid=$!
 wait "$demo_pid" || demo_status=$?
 demo_pid=""

@@ -3,10 +3,15 @@
 //   fleetmem-eval lifelong --data-root DIR --out DIR [--quick]
 //       BioSLAM's lifelong place-recognition protocol, every method
 //       (tools/eval/lifelong.h, docs/results.md).
+//   fleetmem-eval pretrain --images DIR --out FILE [--first N --count N]
+//       A fleet's GPL model: the encoder trained on one domain's frames and
+//       frozen (clients/robot/gpl/pretrain.h), for fleetmem-robot
+//       --gpl-model.
 //
 // Exit codes: 0 done, 1 the run failed (message on stderr), 2 bad usage.
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <string>
@@ -14,6 +19,8 @@
 
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_join.h"
+#include "clients/robot/gpl/pretrain.h"
+#include "clients/robot/nordland.h"
 #include "tools/eval/lifelong.h"
 
 namespace {
@@ -66,10 +73,72 @@ int main(int argc, char** argv) {
                        "override: Adam learning rate of the place head");
   lifelong->add_option("--gan-weight", options.gan_weight,
                        "override: weight of L_gan in the decoder's loss");
+  struct {
+    std::string images, out, version = "gpl-64x32-d256-v1";
+    size_t first = 0, count = 0;
+    int steps = 1000, code_dimension = 256, threads = 2;
+    uint64_t seed = 1;
+  } pre;
+  CLI::App* pretrain = app.add_subcommand(
+      "pretrain", "train a fleet's GPL model on one domain's frames (images-NNNNN.png)");
+  pretrain->add_option("--images", pre.images, "folder of images-NNNNN.png frames")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  pretrain->add_option("--out", pre.out, "model file to write")->required();
+  pretrain->add_option("--first", pre.first, "first frame (index in file order)");
+  pretrain->add_option("--count", pre.count, "frames to use (0 = all)");
+  pretrain->add_option("--steps", pre.steps, "L_joint steps")->capture_default_str();
+  pretrain->add_option("--code-dimension", pre.code_dimension, "D")->capture_default_str();
+  pretrain->add_option("--version", pre.version, "encoder version the codes carry")
+      ->capture_default_str();
+  pretrain->add_option("--seed", pre.seed, "seed")->capture_default_str();
+  pretrain->add_option("--threads", pre.threads, "torch threads")->capture_default_str();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
+  }
+  if (pretrain->parsed()) {
+    namespace gpl = fleetmem::robot::gpl;
+    gpl::SetTorchThreads(pre.threads);
+    absl::StatusOr<std::vector<int>> frames = fleetmem::robot::ListNordlandFrames(pre.images);
+    if (!frames.ok()) {
+      std::fprintf(stderr, "fleetmem-eval pretrain: %s\n", frames.status().ToString().c_str());
+      return 1;
+    }
+    const size_t end = pre.count == 0 ? frames->size()
+                                      : std::min(frames->size(), pre.first + pre.count);
+    std::vector<cv::Mat> images;
+    std::vector<double> positions;
+    for (size_t i = pre.first; i < end; ++i) {
+      absl::StatusOr<cv::Mat> image = fleetmem::robot::LoadNordlandGrey(pre.images, (*frames)[i]);
+      if (!image.ok()) {
+        std::fprintf(stderr, "fleetmem-eval pretrain: %s\n", image.status().ToString().c_str());
+        return 1;
+      }
+      images.push_back(*std::move(image));
+      positions.push_back((*frames)[i]);
+    }
+    gpl::PretrainOptions options;
+    options.model.code_dimension = pre.code_dimension;
+    options.model.seed = pre.seed;
+    options.version = pre.version;
+    options.steps = pre.steps;
+    options.seed = pre.seed;
+    options.log = [](std::string_view line) {
+      std::fprintf(stderr, "%.*s\n", int(line.size()), line.data());
+    };
+    absl::StatusOr<std::unique_ptr<gpl::GplModel>> model =
+        gpl::PretrainFleetEncoder(images, positions, options);
+    absl::Status saved = model.ok() ? (*model)->Save(pre.out) : model.status();
+    if (!saved.ok()) {
+      std::fprintf(stderr, "fleetmem-eval pretrain: %s\n", saved.ToString().c_str());
+      return 1;
+    }
+    std::fprintf(stderr, "fleetmem-eval pretrain: %s (%lld parameters) written to %s\n",
+                 pre.version.c_str(), static_cast<long long>((*model)->ParameterCount()),
+                 pre.out.c_str());
+    return 0;
   }
   const absl::Status status = fleetmem::eval::RunLifelong(options);
   if (!status.ok()) {

@@ -26,6 +26,7 @@
 #include "clients/robot/dynamic_memory.h"
 #include "clients/robot/encoder.h"
 #include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/gpl/pretrain.h"
 #include "clients/robot/gpl/segment_learner.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/rewards.h"
@@ -292,79 +293,37 @@ absl::StatusOr<std::vector<DomainScore>> EvaluateModel(Context& ctx, GplModel& m
   return Evaluate(ctx.data, descriptors);
 }
 
-// A random photometric change for pre-training (the fleet encoder sees
-// only its first domain, so it is taught that light, contrast, blur and
-// sensor noise are not place): gamma in [0.5, 2], contrast in [0.6, 1.4],
-// a Gaussian blur (sigma up to 1.5 px) half of the time, noise of up to 12
-// grey levels.
-cv::Mat Augment(const cv::Mat& image, std::mt19937_64& rng) {
-  std::uniform_real_distribution<double> u(0.0, 1.0);
-  const double gamma = std::exp(std::log(0.5) + u(rng) * (std::log(2.0) - std::log(0.5)));
-  const double contrast = 0.6 + 0.8 * u(rng);
-  cv::Mat lut(1, 256, CV_8UC1);
-  for (int v = 0; v < 256; ++v) {
-    const double g = 255.0 * std::pow(v / 255.0, gamma);
-    lut.at<uint8_t>(v) = cv::saturate_cast<uint8_t>(128.0 + contrast * (g - 128.0));
-  }
-  cv::Mat out;
-  cv::LUT(image, lut, out);
-  if (u(rng) < 0.5) cv::GaussianBlur(out, out, cv::Size(0, 0), 0.3 + 1.2 * u(rng));
-  cv::Mat noise(out.size(), CV_16SC1);
-  cv::randn(noise, 0, 12.0 * u(rng));
-  cv::Mat widened;
-  out.convertTo(widened, CV_16SC1);
-  cv::Mat(widened + noise).convertTo(out, CV_8UC1);
-  return out;
-}
-
 // Pre-training of the fleet encoder (learning.md: trained once on the
 // initial domain, then frozen): L_joint (Eq. 10) on summer area 1's
 // training frames, then every frame is encoded once.
 absl::Status Pretrain(Context& ctx) {
   const Data& data = ctx.data;
-  robot::gpl::GplOptions options;
-  options.seed = ctx.options->seed;
-  options.code_dimension = ctx.options->code_dimension;
+  robot::gpl::PretrainOptions options;
+  options.model.seed = ctx.options->seed;
+  options.model.code_dimension = ctx.options->code_dimension;
   if (ctx.options->head_learning_rate > 0) {
-    options.head_learning_rate = ctx.options->head_learning_rate;
+    options.model.head_learning_rate = ctx.options->head_learning_rate;
   }
-  if (ctx.options->gan_weight >= 0) options.gan_weight = float(ctx.options->gan_weight);
-  absl::StatusOr<std::unique_ptr<GplModel>> model = GplModel::Create(
-      options, absl::StrFormat("gpl-64x32-d%d-s%d-p%d-v1", options.code_dimension,
-                               ctx.options->seed, ctx.settings.pretrain_steps));
-  if (!model.ok()) return model.status();
-  const std::vector<size_t> train = data.Indices(0, false);
+  if (ctx.options->gan_weight >= 0) options.model.gan_weight = float(ctx.options->gan_weight);
+  options.version = absl::StrFormat("gpl-64x32-d%d-s%d-p%d-v1", options.model.code_dimension,
+                                    ctx.options->seed, ctx.settings.pretrain_steps);
+  options.steps = ctx.settings.pretrain_steps;
+  options.batch_size = ctx.settings.batch_size / 2;
+  options.positive_radius = ctx.mining.positive_radius;
+  options.negative_radius = ctx.mining.negative_radius;
+  options.seed = ctx.options->seed;
+  options.log = [](std::string_view line) { Progress(std::string(line)); };
   std::vector<cv::Mat> images;
-  for (size_t i : train) images.push_back(data.images[0][i]);
-  absl::StatusOr<std::vector<std::vector<float>>> first = (*model)->Encode(images);
-  if (!first.ok()) return first.status();
-  if (absl::Status s = (*model)->InitialisePlaceHead(*first); !s.ok()) return s;
-  std::mt19937_64 rng(ctx.options->seed);
-  std::uniform_int_distribution<size_t> pick(0, train.size() - 1);
-  const auto start = Clock::now();
-  robot::gpl::StepLosses losses;
-  for (int step = 0; step < ctx.settings.pretrain_steps; ++step) {
-    robot::gpl::ImageTriplets batch;
-    while (int(batch.anchors.size()) < ctx.settings.batch_size / 2) {
-      const size_t a = pick(rng), p = pick(rng), n = pick(rng);
-      const double dp = std::abs(data.numbers[train[a]] - data.numbers[train[p]]);
-      const double dn = std::abs(data.numbers[train[a]] - data.numbers[train[n]]);
-      if (a == p || dp > ctx.mining.positive_radius || dn <= ctx.mining.negative_radius) continue;
-      batch.anchors.push_back(Augment(images[a], rng));
-      batch.positives.push_back(Augment(images[p], rng));
-      batch.negatives.push_back(Augment(images[n], rng));
-    }
-    absl::StatusOr<robot::gpl::StepLosses> l = (*model)->TrainJoint(batch);
-    if (!l.ok()) return l.status();
-    losses = *l;
-    if ((step + 1) % 50 == 0 || step + 1 == ctx.settings.pretrain_steps) {
-      Progress(absl::StrFormat(
-          "[pretrain] step %d/%d: L_loc %.3f L_rec %.3f L_gan(G) %.3f L_gan(D) %.3f (%.0f s)",
-          step + 1, ctx.settings.pretrain_steps, losses.loc, losses.rec, losses.gan_g,
-          losses.gan_d, std::chrono::duration<double>(Clock::now() - start).count()));
-    }
+  std::vector<double> positions;
+  for (size_t i : data.Indices(0, false)) {
+    images.push_back(data.images[0][i]);
+    positions.push_back(data.numbers[i]);
   }
-  (*model)->FreezeEncoder();
+  const auto start = Clock::now();
+  absl::StatusOr<std::unique_ptr<GplModel>> model =
+      robot::gpl::PretrainFleetEncoder(images, positions, options);
+  if (!model.ok()) return model.status();
+  std::mt19937_64 rng(ctx.options->seed);
   ctx.pretrained = *std::move(model);
   if (absl::Status s = ctx.pretrained->Save(ctx.options->out_dir + "/encoder.pt"); !s.ok()) {
     return s;
