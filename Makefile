@@ -54,7 +54,9 @@ test: build
 	@cd $(BUILD_DIR) && ctest --output-on-failure -j $(JOBS) $(CTEST_ARGS)
 
 # The whole suite under AddressSanitizer + UndefinedBehaviorSanitizer
-# (build-asan/; the integration tests run the instrumented server).
+# (build-asan/; the integration tests run the instrumented server), but the
+# quick lifelong evaluation (label "eval": a compute job in an uninstrumented
+# libtorch; its code paths run in the GPL unit and robot tests).
 test-asan: deps
 	@cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_asan)" \
@@ -63,7 +65,7 @@ test-asan: deps
 	@cmake --build build-asan -j $(JOBS)
 	@cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
 	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-	  ctest --output-on-failure -j $(JOBS) $(CTEST_ARGS)
+	  ctest --output-on-failure -j $(JOBS) -LE eval $(CTEST_ARGS)
 
 # Core, engine and storage tests under ThreadSanitizer (build-tsan/).
 test-tsan: deps

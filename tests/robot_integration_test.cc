@@ -24,6 +24,7 @@
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"
 #include "gtest/gtest.h"
+#include "clients/robot/gpl/gpl_model.h"
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
 #include "tests/small_filesystem.h"
@@ -361,6 +362,51 @@ TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {
   // It stopped observing at the refusal, not at the end of its source.
   EXPECT_LT(status.counters().observations(), 1000u);
   EXPECT_EQ(Stats("f-refuse", "r2").received(), 0u);
+}
+
+// A robot with the fleet's GPL model: learns every segment, uploads codes
+// that carry the model's version, keeps its learned model and resumes it;
+// a model of another version on the same data dir is refused up front.
+TEST_F(RobotIntegrationTest, AGplRobotLearnsAndItsCodesCarryTheModelVersion) {
+  auto model = robot::gpl::GplModel::Create({}, "gpl-it-v1");
+  ASSERT_TRUE(model.ok()) << model.status();
+  ASSERT_TRUE((*model)->Save(dir_.Join("fleet.pt")).ok());
+  std::vector<std::string> args =
+      RobotArgs("f-gpl", "g1", kSummer, 250, 0.0, dir_.Join("g1"));
+  args.insert(args.end(), {"--gpl-model", dir_.Join("fleet.pt"), "--learn",
+                           "--learn-steps", "5"});
+  RobotProcess robot(args, dir_.Join("gpl.log"));
+  ASSERT_NO_FATAL_FAILURE(robot.Start());
+  ASSERT_EQ(robot.Wait(), 0) << ReadFileOrEmpty(dir_.Join("gpl.log"));
+  const v1::RobotStats stats = Stats("f-gpl", "g1");
+  EXPECT_EQ(stats.received(), 250u);
+  EXPECT_EQ(stats.max_seq(), 250u);
+  std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
+  Reply<v1::SampleReplayResponse> sample = SampleReplay(*stub, "f-gpl", "g1", 10);
+  ASSERT_TRUE(sample.ok()) << Describe(sample.status);
+  ASSERT_FALSE(sample.response.traces().empty());
+  for (const v1::MemoryTrace& trace : sample.response.traces()) {
+    EXPECT_EQ(trace.encoder_version(), "gpl-it-v1");
+    EXPECT_EQ(trace.code_size(), 256);
+    EXPECT_GE(trace.reward_external(), 0.0f);
+  }
+  auto learned = robot::gpl::GplModel::Load(dir_.Join("g1") + "/gpl-learned.pt");
+  ASSERT_TRUE(learned.ok()) << learned.status();
+  EXPECT_EQ((*learned)->version(), "gpl-it-v1");
+  EXPECT_TRUE((*learned)->encoder_frozen());
+
+  // Another fleet encoder on the same data dir: refused before observing.
+  (*model)->set_version("gpl-it-v2");
+  ASSERT_TRUE((*model)->Save(dir_.Join("fleet2.pt")).ok());
+  std::vector<std::string> again =
+      RobotArgs("f-gpl", "g1", kSummer, 300, 0.0, dir_.Join("g1"));
+  again.insert(again.end(), {"--gpl-model", dir_.Join("fleet2.pt"), "--learn"});
+  RobotProcess upgraded(again, dir_.Join("gpl2.log"));
+  ASSERT_NO_FATAL_FAILURE(upgraded.Start());
+  EXPECT_EQ(upgraded.Wait(), 2);
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("gpl2.log")),
+              HasSubstr("a new fleet encoder needs a new data dir"));
+  EXPECT_EQ(Stats("f-gpl", "g1").received(), 250u);
 }
 
 TEST_F(RobotIntegrationTest, BadSourcesGiveAClearMessage) {
