@@ -20,11 +20,11 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "clients/robot/gpl/gpl_model.h"
 #include "clients/robot/robot_state.pb.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"
 #include "gtest/gtest.h"
-#include "clients/robot/gpl/gpl_model.h"
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
 #include "tests/small_filesystem.h"
@@ -382,7 +382,8 @@ TEST_F(RobotIntegrationTest, AGplRobotLearnsAndItsCodesCarryTheModelVersion) {
   EXPECT_EQ(stats.received(), 250u);
   EXPECT_EQ(stats.max_seq(), 250u);
   std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
-  Reply<v1::SampleReplayResponse> sample = SampleReplay(*stub, "f-gpl", "g1", 10);
+  Reply<v1::SampleReplayResponse> sample =
+      SampleReplay(*stub, "f-gpl", "g1", 10);
   ASSERT_TRUE(sample.ok()) << Describe(sample.status);
   ASSERT_FALSE(sample.response.traces().empty());
   for (const v1::MemoryTrace& trace : sample.response.traces()) {
@@ -390,7 +391,8 @@ TEST_F(RobotIntegrationTest, AGplRobotLearnsAndItsCodesCarryTheModelVersion) {
     EXPECT_EQ(trace.code_size(), 256);
     EXPECT_GE(trace.reward_external(), 0.0f);
   }
-  auto learned = robot::gpl::GplModel::Load(dir_.Join("g1") + "/gpl-learned.pt");
+  auto learned =
+      robot::gpl::GplModel::Load(dir_.Join("g1") + "/gpl-learned.pt");
   ASSERT_TRUE(learned.ok()) << learned.status();
   EXPECT_EQ((*learned)->version(), "gpl-it-v1");
   EXPECT_TRUE((*learned)->encoder_frozen());

@@ -339,7 +339,8 @@ absl::StatusOr<Agent::Replayed> Agent::ReplayAndLearn(
       if (!observation.ok()) return observation.status();
       segment.push_back(*std::move(observation));
     }
-    absl::Status learned = learner_->Learn(segment, replayed, memory_.entries());
+    absl::Status learned =
+        learner_->Learn(segment, replayed, memory_.entries());
     if (!learned.ok()) return learned;
   }
   return result;
@@ -396,7 +397,8 @@ absl::Status Agent::SealSegment() {
       return learned.status();
     }
   }
-  if (external.empty()) external = ExternalRewards(codes, places, options_.triplet);
+  if (external.empty())
+    external = ExternalRewards(codes, places, options_.triplet);
   for (size_t k = 0; k < traces.size(); ++k) {
     traces[k].set_reward_external(external[k]);
     traces[k].set_reward(external[k] + traces[k].reward_internal());

@@ -193,19 +193,23 @@ void AddFlags(CLI::App& app, Flags& flags) {
 absl::StatusOr<std::unique_ptr<fleetmem::robot::gpl::SharedModel>> LoadGplModel(
     const std::string& fleet_model, const std::string& learned, bool learn) {
   namespace gpl = fleetmem::robot::gpl;
-  absl::StatusOr<std::unique_ptr<gpl::SharedModel>> model = gpl::LoadSharedModel(fleet_model);
+  absl::StatusOr<std::unique_ptr<gpl::SharedModel>> model =
+      gpl::LoadSharedModel(fleet_model);
   if (!model.ok() || !learn || !std::filesystem::exists(learned)) return model;
-  absl::StatusOr<std::unique_ptr<gpl::SharedModel>> own = gpl::LoadSharedModel(learned);
+  absl::StatusOr<std::unique_ptr<gpl::SharedModel>> own =
+      gpl::LoadSharedModel(learned);
   if (!own.ok()) {
-    return absl::Status(own.status().code(),
-                        absl::StrCat("the robot's learned model: ", own.status().message()));
+    return absl::Status(
+        own.status().code(),
+        absl::StrCat("the robot's learned model: ", own.status().message()));
   }
   absl::MutexLock a(&(*model)->mu);
   absl::MutexLock b(&(*own)->mu);
   if ((*own)->model->version() != (*model)->model->version()) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        learned, " holds encoder ", (*own)->model->version(), " but --gpl-model is ",
-        (*model)->model->version(), ": a new fleet encoder needs a new data dir"));
+    return absl::FailedPreconditionError(
+        absl::StrCat(learned, " holds encoder ", (*own)->model->version(),
+                     " but --gpl-model is ", (*model)->model->version(),
+                     ": a new fleet encoder needs a new data dir"));
   }
   return own;
 }
@@ -269,13 +273,15 @@ int Run(const Flags& flags) {
   absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder;
   if (!flags.gpl_model.empty()) {
     absl::StatusOr<std::unique_ptr<robot::gpl::SharedModel>> model =
-        LoadGplModel(flags.gpl_model, flags.data_dir + "/gpl-learned.pt", flags.learn);
+        LoadGplModel(flags.gpl_model, flags.data_dir + "/gpl-learned.pt",
+                     flags.learn);
     if (!model.ok()) {
       std::cerr << "fleetmem-robot: " << model.status().message() << "\n";
       return 2;
     }
     gpl = *std::move(model);
-    encoder = std::unique_ptr<robot::Encoder>(new robot::gpl::GplEncoder(gpl.get()));
+    encoder =
+        std::unique_ptr<robot::Encoder>(new robot::gpl::GplEncoder(gpl.get()));
   } else {
     const std::string encoder_name =
         flags.encoder.empty() ? (*source)->default_encoder() : flags.encoder;

@@ -80,7 +80,8 @@ ABSL_FLAG(std::string, gpl_model, "",
           "a fleet GPL model (fleetmem-eval pretrain): the same robots drive "
           "again in a second fleet with it and learn (--learn), and the table "
           "shows the learned model beside the classical code");
-ABSL_FLAG(int, learn_steps, 30, "place-head steps per segment of the GPL robots");
+ABSL_FLAG(int, learn_steps, 30,
+          "place-head steps per segment of the GPL robots");
 ABSL_FLAG(bool, sequential_robots, false,
           "run the robots one after another instead of side by side: the "
           "server then receives their segments in a fixed order, so a run "
@@ -165,8 +166,9 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
     if (setup.gpl_model.empty()) {
       args.insert(args.end(), {"--encoder", setup.encoder_name});
     } else {
-      args.insert(args.end(), {"--gpl-model", setup.gpl_model, "--learn", "--learn-steps",
-                               absl::StrCat(absl::GetFlag(FLAGS_learn_steps))});
+      args.insert(args.end(),
+                  {"--gpl-model", setup.gpl_model, "--learn", "--learn-steps",
+                   absl::StrCat(absl::GetFlag(FLAGS_learn_steps))});
     }
     if (query_only) args.push_back("--query-only");
     std::vector<char*> argv;
@@ -315,7 +317,8 @@ absl::StatusOr<std::vector<float>> EncodeFrame(const Setup& setup,
 // Rows: the frozen fleet model and each robot's learned model after winter,
 // scored like the baseline (winter frames against every summer frame of the
 // stretches, descriptors F(E(q))).
-absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical, std::vector<Drive> drives,
+absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
+                                         std::vector<Drive> drives,
                                          client::Client& observer) {
   Setup setup;
   setup.fleet_id = classical.fleet_id + "-gpl";
@@ -327,13 +330,16 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical, std::vector<Dri
   setup.numbers = classical.numbers;
   setup.segment_size = classical.segment_size;
   setup.gpl_model = absl::GetFlag(FLAGS_gpl_model);
-  std::printf("\nGPL pass: fleet %s, model %s, the robots learn (%d steps per segment)\n",
-              setup.fleet_id.c_str(), setup.gpl_model.c_str(),
-              absl::GetFlag(FLAGS_learn_steps));
+  std::printf(
+      "\nGPL pass: fleet %s, model %s, the robots learn (%d steps per "
+      "segment)\n",
+      setup.fleet_id.c_str(), setup.gpl_model.c_str(),
+      absl::GetFlag(FLAGS_learn_steps));
   std::fflush(stdout);
   absl::Status ran = RunRobots(setup, drives, "summer", /*query_only=*/false);
   if (!ran.ok()) return ran;
-  absl::StatusOr<v1::ConsolidateResponse> consolidated = observer.Consolidate(setup.fleet_id);
+  absl::StatusOr<v1::ConsolidateResponse> consolidated =
+      observer.Consolidate(setup.fleet_id);
   if (!consolidated.ok()) return consolidated.status();
   ran = RunRobots(setup, drives, "winter", /*query_only=*/true);
   if (!ran.ok()) return ran;
@@ -364,9 +370,11 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical, std::vector<Dri
   // Scores winter frames (of drive `only`, or all) under `model`.
   auto score = [&](robot::gpl::GplModel& model, int only,
                    core::FirstCorrectRanks& ranks) -> absl::Status {
-    absl::StatusOr<std::vector<std::vector<float>>> db = model.Describe(summer_codes);
+    absl::StatusOr<std::vector<std::vector<float>>> db =
+        model.Describe(summer_codes);
     if (!db.ok()) return db.status();
-    absl::StatusOr<std::vector<std::vector<float>>> q = model.Describe(winter_codes);
+    absl::StatusOr<std::vector<std::vector<float>>> q =
+        model.Describe(winter_codes);
     if (!q.ok()) return q.status();
     robot::BruteForceIndex index(model.descriptor_dimension());
     for (size_t j = 0; j < db->size(); ++j) index.Add((*db)[j], summer_x[j]);
@@ -374,23 +382,26 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical, std::vector<Dri
       if (only >= 0 && owner[j] != size_t(only)) continue;
       std::vector<core::Place> found;
       for (double x : index.Search((*q)[j], kQueryK)) found.push_back({.x = x});
-      ranks.push_back(robot::FirstCorrectRank(found, {.x = winter_x[j]}, kToleranceUnits));
+      ranks.push_back(
+          robot::FirstCorrectRank(found, {.x = winter_x[j]}, kToleranceUnits));
     }
     return absl::OkStatus();
   };
   Row frozen, learned;
   frozen.system = absl::StrCat("GPL fleet model ", (*fleet_model)->version(),
                                ", before learning (all summer frames)");
-  learned.system = "GPL learned by each robot (summer + winter drives; all summer frames)";
+  learned.system =
+      "GPL learned by each robot (summer + winter drives; all summer frames)";
   for (Row* row : {&frozen, &learned}) {
     row->traces = absl::StrCat(summer_codes.size());
     row->clusters = "-";
     row->consolidation_ms = "-";
   }
-  if (absl::Status s = score(**fleet_model, -1, frozen.ranks); !s.ok()) return s;
+  if (absl::Status s = score(**fleet_model, -1, frozen.ranks); !s.ok())
+    return s;
   for (size_t d = 0; d < drives.size(); ++d) {
-    const std::string path = absl::StrCat(setup.work_dir, "/", drives[d].robot_id,
-                                          "-winter/gpl-learned.pt");
+    const std::string path = absl::StrCat(
+        setup.work_dir, "/", drives[d].robot_id, "-winter/gpl-learned.pt");
     absl::StatusOr<std::unique_ptr<robot::gpl::GplModel>> own =
         robot::gpl::GplModel::Load(path);
     if (!own.ok()) return own.status();

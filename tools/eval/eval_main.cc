@@ -27,7 +27,8 @@ namespace {
 
 std::string BesideThisProgram(const std::string& name) {
   std::error_code ec;
-  const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);
+  const std::filesystem::path self =
+      std::filesystem::read_symlink("/proc/self/exe", ec);
   if (ec) return name;
   return (self.parent_path() / name).string();
 }
@@ -35,40 +36,52 @@ std::string BesideThisProgram(const std::string& name) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"fleetmem-eval: evaluations of fleetmem's robot side on recorded data"};
+  CLI::App app{
+      "fleetmem-eval: evaluations of fleetmem's robot side on recorded data"};
   app.require_subcommand(1);
   fleetmem::eval::LifelongOptions options;
   options.server_binary = BesideThisProgram("fleetmem-server");
-  CLI::App* lifelong = app.add_subcommand(
-      "lifelong",
-      "BioSLAM's lifelong protocol on a Nordland-layout data root (summer areas 1-3, then "
-      "winter areas 1-3); writes summary.csv, curves.csv, curves.png, fleet.csv");
-  lifelong->add_option("--data-root", options.data_root,
-                       "folder with nordland/{summer,winter}/images-NNNNN.png")
+  CLI::App* lifelong =
+      app.add_subcommand("lifelong",
+                         "BioSLAM's lifelong protocol on a Nordland-layout "
+                         "data root (summer areas 1-3, then "
+                         "winter areas 1-3); writes summary.csv, curves.csv, "
+                         "curves.png, fleet.csv");
+  lifelong
+      ->add_option("--data-root", options.data_root,
+                   "folder with nordland/{summer,winter}/images-NNNNN.png")
       ->required()
       ->check(CLI::ExistingDirectory);
-  lifelong->add_option("--out", options.out_dir, "output folder (created)")->required();
-  lifelong->add_flag("--quick", options.quick, "quick settings (under 10 minutes on 2 cores)");
-  lifelong->add_option("--methods", options.methods,
-                       "methods to run (default all): " +
-                           absl::StrJoin(fleetmem::eval::LifelongMethodNames(), ", "))
+  lifelong->add_option("--out", options.out_dir, "output folder (created)")
+      ->required();
+  lifelong->add_flag("--quick", options.quick,
+                     "quick settings (under 10 minutes on 2 cores)");
+  lifelong
+      ->add_option(
+          "--methods", options.methods,
+          "methods to run (default all): " +
+              absl::StrJoin(fleetmem::eval::LifelongMethodNames(), ", "))
       ->delimiter(',');
-  lifelong->add_option("--seed", options.seed, "seed of every generator")->capture_default_str();
+  lifelong->add_option("--seed", options.seed, "seed of every generator")
+      ->capture_default_str();
   lifelong->add_option("--threads", options.threads, "torch intra-op threads")
       ->capture_default_str()
       ->check(CLI::Range(1, 64));
-  lifelong->add_option("--server-binary", options.server_binary,
-                       "fleetmem-server to run (default: beside this program)")
+  lifelong
+      ->add_option("--server-binary", options.server_binary,
+                   "fleetmem-server to run (default: beside this program)")
       ->capture_default_str();
-  lifelong->add_option("--code-dimension", options.code_dimension,
-                       "D of the GPL memory codes (a multiple of 32)")
+  lifelong
+      ->add_option("--code-dimension", options.code_dimension,
+                   "D of the GPL memory codes (a multiple of 32)")
       ->capture_default_str();
   lifelong->add_option("--pretrain-steps", options.pretrain_steps,
                        "override: L_joint steps of the encoder's pre-training");
   lifelong->add_option("--steps-per-segment", options.steps_per_segment,
                        "override: place-head steps per segment");
-  lifelong->add_option("--negative-candidates", options.negative_candidates,
-                       "override: negatives drawn per anchor (the nearest is used)");
+  lifelong->add_option(
+      "--negative-candidates", options.negative_candidates,
+      "override: negatives drawn per anchor (the nearest is used)");
   lifelong->add_option("--head-lr", options.head_learning_rate,
                        "override: Adam learning rate of the place head");
   lifelong->add_option("--gan-weight", options.gan_weight,
@@ -80,19 +93,26 @@ int main(int argc, char** argv) {
     uint64_t seed = 1;
   } pre;
   CLI::App* pretrain = app.add_subcommand(
-      "pretrain", "train a fleet's GPL model on one domain's frames (images-NNNNN.png)");
-  pretrain->add_option("--images", pre.images, "folder of images-NNNNN.png frames")
+      "pretrain",
+      "train a fleet's GPL model on one domain's frames (images-NNNNN.png)");
+  pretrain
+      ->add_option("--images", pre.images, "folder of images-NNNNN.png frames")
       ->required()
       ->check(CLI::ExistingDirectory);
   pretrain->add_option("--out", pre.out, "model file to write")->required();
-  pretrain->add_option("--first", pre.first, "first frame (index in file order)");
+  pretrain->add_option("--first", pre.first,
+                       "first frame (index in file order)");
   pretrain->add_option("--count", pre.count, "frames to use (0 = all)");
-  pretrain->add_option("--steps", pre.steps, "L_joint steps")->capture_default_str();
-  pretrain->add_option("--code-dimension", pre.code_dimension, "D")->capture_default_str();
-  pretrain->add_option("--version", pre.version, "encoder version the codes carry")
+  pretrain->add_option("--steps", pre.steps, "L_joint steps")
+      ->capture_default_str();
+  pretrain->add_option("--code-dimension", pre.code_dimension, "D")
+      ->capture_default_str();
+  pretrain
+      ->add_option("--version", pre.version, "encoder version the codes carry")
       ->capture_default_str();
   pretrain->add_option("--seed", pre.seed, "seed")->capture_default_str();
-  pretrain->add_option("--threads", pre.threads, "torch threads")->capture_default_str();
+  pretrain->add_option("--threads", pre.threads, "torch threads")
+      ->capture_default_str();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -101,19 +121,24 @@ int main(int argc, char** argv) {
   if (pretrain->parsed()) {
     namespace gpl = fleetmem::robot::gpl;
     gpl::SetTorchThreads(pre.threads);
-    absl::StatusOr<std::vector<int>> frames = fleetmem::robot::ListNordlandFrames(pre.images);
+    absl::StatusOr<std::vector<int>> frames =
+        fleetmem::robot::ListNordlandFrames(pre.images);
     if (!frames.ok()) {
-      std::fprintf(stderr, "fleetmem-eval pretrain: %s\n", frames.status().ToString().c_str());
+      std::fprintf(stderr, "fleetmem-eval pretrain: %s\n",
+                   frames.status().ToString().c_str());
       return 1;
     }
-    const size_t end = pre.count == 0 ? frames->size()
-                                      : std::min(frames->size(), pre.first + pre.count);
+    const size_t end = pre.count == 0
+                           ? frames->size()
+                           : std::min(frames->size(), pre.first + pre.count);
     std::vector<cv::Mat> images;
     std::vector<double> positions;
     for (size_t i = pre.first; i < end; ++i) {
-      absl::StatusOr<cv::Mat> image = fleetmem::robot::LoadNordlandGrey(pre.images, (*frames)[i]);
+      absl::StatusOr<cv::Mat> image =
+          fleetmem::robot::LoadNordlandGrey(pre.images, (*frames)[i]);
       if (!image.ok()) {
-        std::fprintf(stderr, "fleetmem-eval pretrain: %s\n", image.status().ToString().c_str());
+        std::fprintf(stderr, "fleetmem-eval pretrain: %s\n",
+                     image.status().ToString().c_str());
         return 1;
       }
       images.push_back(*std::move(image));
@@ -132,17 +157,20 @@ int main(int argc, char** argv) {
         gpl::PretrainFleetEncoder(images, positions, options);
     absl::Status saved = model.ok() ? (*model)->Save(pre.out) : model.status();
     if (!saved.ok()) {
-      std::fprintf(stderr, "fleetmem-eval pretrain: %s\n", saved.ToString().c_str());
+      std::fprintf(stderr, "fleetmem-eval pretrain: %s\n",
+                   saved.ToString().c_str());
       return 1;
     }
-    std::fprintf(stderr, "fleetmem-eval pretrain: %s (%lld parameters) written to %s\n",
-                 pre.version.c_str(), static_cast<long long>((*model)->ParameterCount()),
-                 pre.out.c_str());
+    std::fprintf(
+        stderr, "fleetmem-eval pretrain: %s (%lld parameters) written to %s\n",
+        pre.version.c_str(), static_cast<long long>((*model)->ParameterCount()),
+        pre.out.c_str());
     return 0;
   }
   const absl::Status status = fleetmem::eval::RunLifelong(options);
   if (!status.ok()) {
-    std::fprintf(stderr, "fleetmem-eval lifelong: %s\n", status.ToString().c_str());
+    std::fprintf(stderr, "fleetmem-eval lifelong: %s\n",
+                 status.ToString().c_str());
     return 1;
   }
   return 0;

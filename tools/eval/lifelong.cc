@@ -17,7 +17,6 @@
 #include <vector>
 
 #include "Eigen/Dense"
-#include "opencv2/imgproc.hpp"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -30,6 +29,7 @@
 #include "clients/robot/gpl/segment_learner.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/rewards.h"
+#include "opencv2/imgproc.hpp"
 #include "proto/convert/trace_convert.h"
 #include "services/core/place_metrics.h"
 #include "tools/eval/server_child.h"
@@ -61,8 +61,11 @@ struct Settings {
 };
 
 Settings SettingsFor(bool quick) {
-  if (quick) return Settings{.pretrain_steps = 300, .steps_per_segment = 40, .generative_steps = 2};
-  return Settings{.pretrain_steps = 1000, .steps_per_segment = 300, .generative_steps = 10};
+  if (quick)
+    return Settings{
+        .pretrain_steps = 300, .steps_per_segment = 40, .generative_steps = 2};
+  return Settings{
+      .pretrain_steps = 1000, .steps_per_segment = 300, .generative_steps = 10};
 }
 
 std::string DomainName(int d) {
@@ -95,8 +98,8 @@ absl::StatusOr<Data> LoadData(const std::string& root) {
   Data data;
   std::vector<int> lists[kSeasons];
   for (int s = 0; s < kSeasons; ++s) {
-    absl::StatusOr<std::vector<int>> frames =
-        robot::ListNordlandFrames(absl::StrCat(root, "/nordland/", kSeasonNames[s]));
+    absl::StatusOr<std::vector<int>> frames = robot::ListNordlandFrames(
+        absl::StrCat(root, "/nordland/", kSeasonNames[s]));
     if (!frames.ok()) return frames.status();
     lists[s] = *std::move(frames);
   }
@@ -149,8 +152,9 @@ struct DomainScore {
 
 // Recall@1..6 and WR of every domain's queries against the summer training
 // frames; descriptors[s][i] for season s and route index i.
-std::vector<DomainScore> Evaluate(const Data& data,
-                                  const std::vector<std::vector<float>> (&descriptors)[kSeasons]) {
+std::vector<DomainScore> Evaluate(
+    const Data& data,
+    const std::vector<std::vector<float>> (&descriptors)[kSeasons]) {
   std::vector<size_t> db;
   for (int a = 0; a < kAreas; ++a) {
     for (size_t i : data.Indices(a, false)) db.push_back(i);
@@ -166,9 +170,10 @@ std::vector<DomainScore> Evaluate(const Data& data,
     for (size_t r = 0; r < queries.size(); ++r) {
       for (size_t j = 0; j < db.size(); ++j) order[j] = int(j);
       const size_t k = std::min<size_t>(kMaxK, db.size());
-      std::partial_sort(order.begin(), order.begin() + k, order.end(), [&](int a, int b) {
-        return sim(r, a) > sim(r, b) || (sim(r, a) == sim(r, b) && a < b);
-      });
+      std::partial_sort(
+          order.begin(), order.begin() + k, order.end(), [&](int a, int b) {
+            return sim(r, a) > sim(r, b) || (sim(r, a) == sim(r, b) && a < b);
+          });
       int first = 0;
       for (size_t j = 0; j < k && first == 0; ++j) {
         const long gap = long(db[order[j]]) - long(queries[r]);
@@ -176,7 +181,8 @@ std::vector<DomainScore> Evaluate(const Data& data,
       }
       ranks.push_back(first);
     }
-    for (int k = 1; k <= kMaxK; ++k) scores[d].recall[k - 1] = core::RecallAtK(ranks, k);
+    for (int k = 1; k <= kMaxK; ++k)
+      scores[d].recall[k - 1] = core::RecallAtK(ranks, k);
     scores[d].wr = core::WeightedRecall(ranks);
   }
   return scores;
@@ -208,7 +214,8 @@ struct MethodResult {
       }
       if (t + 1 < scores[t].size()) {
         double later = 0;
-        for (size_t d = t + 1; d < scores[t].size(); ++d) later += scores[t][d].wr;
+        for (size_t d = t + 1; d < scores[t].size(); ++d)
+          later += scores[t][d].wr;
         gen_sum += later / (scores[t].size() - t - 1);
         ++gen_n;
       }
@@ -236,14 +243,21 @@ std::vector<MethodSpec> Specs() {
   specs.push_back({.name = "classical", .learn = false});
   specs.push_back({.name = "gpl_pretrained", .learn = false});
   specs.push_back({.name = "finetune"});
-  specs.push_back({.name = "uniform_replay", .remember = true, .clustering = false,
-                   .decay = false, .rewards = RewardMode::kUniform});
+  specs.push_back({.name = "uniform_replay",
+                   .remember = true,
+                   .clustering = false,
+                   .decay = false,
+                   .rewards = RewardMode::kUniform});
   specs.push_back({.name = "bioslam", .remember = true});
-  specs.push_back({.name = "no_rex", .remember = true, .rewards = RewardMode::kNoExternal});
-  specs.push_back({.name = "no_rin", .remember = true, .rewards = RewardMode::kNoInternal});
-  specs.push_back({.name = "no_clustering", .remember = true, .clustering = false});
+  specs.push_back(
+      {.name = "no_rex", .remember = true, .rewards = RewardMode::kNoExternal});
+  specs.push_back(
+      {.name = "no_rin", .remember = true, .rewards = RewardMode::kNoInternal});
+  specs.push_back(
+      {.name = "no_clustering", .remember = true, .clustering = false});
   specs.push_back({.name = "no_decay", .remember = true, .decay = false});
-  specs.push_back({.name = "bioslam_decoded", .remember = true,
+  specs.push_back({.name = "bioslam_decoded",
+                   .remember = true,
                    .replay_input = ReplayInput::kDecoded});
   specs.push_back({.name = "fleet_shared", .remember = true});
   return specs;
@@ -283,10 +297,12 @@ absl::StatusOr<std::vector<std::vector<float>>> DescribeAll(
   return out;
 }
 
-absl::StatusOr<std::vector<DomainScore>> EvaluateModel(Context& ctx, GplModel& model) {
+absl::StatusOr<std::vector<DomainScore>> EvaluateModel(Context& ctx,
+                                                       GplModel& model) {
   std::vector<std::vector<float>> descriptors[kSeasons];
   for (int s = 0; s < kSeasons; ++s) {
-    absl::StatusOr<std::vector<std::vector<float>>> d = DescribeAll(model, ctx.codes[s]);
+    absl::StatusOr<std::vector<std::vector<float>>> d =
+        DescribeAll(model, ctx.codes[s]);
     if (!d.ok()) return d.status();
     descriptors[s] = *std::move(d);
   }
@@ -304,9 +320,11 @@ absl::Status Pretrain(Context& ctx) {
   if (ctx.options->head_learning_rate > 0) {
     options.model.head_learning_rate = ctx.options->head_learning_rate;
   }
-  if (ctx.options->gan_weight >= 0) options.model.gan_weight = float(ctx.options->gan_weight);
-  options.version = absl::StrFormat("gpl-64x32-d%d-s%d-p%d-v1", options.model.code_dimension,
-                                    ctx.options->seed, ctx.settings.pretrain_steps);
+  if (ctx.options->gan_weight >= 0)
+    options.model.gan_weight = float(ctx.options->gan_weight);
+  options.version =
+      absl::StrFormat("gpl-64x32-d%d-s%d-p%d-v1", options.model.code_dimension,
+                      ctx.options->seed, ctx.settings.pretrain_steps);
   options.steps = ctx.settings.pretrain_steps;
   options.batch_size = ctx.settings.batch_size / 2;
   options.positive_radius = ctx.mining.positive_radius;
@@ -325,12 +343,15 @@ absl::Status Pretrain(Context& ctx) {
   if (!model.ok()) return model.status();
   std::mt19937_64 rng(ctx.options->seed);
   ctx.pretrained = *std::move(model);
-  if (absl::Status s = ctx.pretrained->Save(ctx.options->out_dir + "/encoder.pt"); !s.ok()) {
+  if (absl::Status s =
+          ctx.pretrained->Save(ctx.options->out_dir + "/encoder.pt");
+      !s.ok()) {
     return s;
   }
   // Codes and R_in (Eq. 12, A = a random shift-crop) of every frame.
   for (int s = 0; s < kSeasons; ++s) {
-    absl::StatusOr<std::vector<std::vector<float>>> z = ctx.pretrained->Encode(data.images[s]);
+    absl::StatusOr<std::vector<std::vector<float>>> z =
+        ctx.pretrained->Encode(data.images[s]);
     if (!z.ok()) return z.status();
     ctx.codes[s] = *std::move(z);
     std::vector<cv::Mat> moved;
@@ -339,15 +360,18 @@ absl::Status Pretrain(Context& ctx) {
       if (!m.ok()) return m.status();
       moved.push_back(*std::move(m));
     }
-    absl::StatusOr<std::vector<std::vector<float>>> zm = ctx.pretrained->Encode(moved);
+    absl::StatusOr<std::vector<std::vector<float>>> zm =
+        ctx.pretrained->Encode(moved);
     if (!zm.ok()) return zm.status();
     for (size_t i = 0; i < moved.size(); ++i) {
-      ctx.internal[s].push_back(robot::InternalReward(ctx.codes[s][i], (*zm)[i]));
+      ctx.internal[s].push_back(
+          robot::InternalReward(ctx.codes[s][i], (*zm)[i]));
     }
   }
-  Progress(absl::StrFormat("[pretrain] fleet encoder %s frozen: %d parameters, %.0f s",
-                           ctx.pretrained->version(), ctx.pretrained->ParameterCount(),
-                           std::chrono::duration<double>(Clock::now() - start).count()));
+  Progress(absl::StrFormat(
+      "[pretrain] fleet encoder %s frozen: %d parameters, %.0f s",
+      ctx.pretrained->version(), ctx.pretrained->ParameterCount(),
+      std::chrono::duration<double>(Clock::now() - start).count()));
   return absl::OkStatus();
 }
 
@@ -362,8 +386,8 @@ struct Robot {
   robot::gpl::SegmentLearnStats last;
 };
 
-absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec, const std::string& id,
-                               uint64_t seed) {
+absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
+                               const std::string& id, uint64_t seed) {
   Robot r;
   r.id = id;
   absl::StatusOr<std::unique_ptr<GplModel>> model = ctx.pretrained->Clone();
@@ -373,8 +397,9 @@ absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec, const std::
   lo.steps_per_segment = ctx.settings.steps_per_segment;
   lo.batch_size = ctx.settings.batch_size;
   lo.replay_input = spec.replay_input;
-  lo.generative_steps_per_segment =
-      spec.replay_input == ReplayInput::kDecoded ? ctx.settings.generative_steps : 0;
+  lo.generative_steps_per_segment = spec.replay_input == ReplayInput::kDecoded
+                                        ? ctx.settings.generative_steps
+                                        : 0;
   lo.mining = ctx.mining;
   lo.seed = seed;
   r.learner = std::make_unique<SegmentLearner>(r.model.get(), lo);
@@ -392,13 +417,15 @@ LearnSample FromTrace(const core::MemoryTrace& t) {
 
 // Algorithm 3 for one segment of one robot: replay and learn, rewards,
 // upload and consolidate, refresh M_D.
-absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r, int season,
-                        const std::vector<size_t>& segment, client::Client* client,
-                        const std::string& fleet) {
+absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
+                        int season, const std::vector<size_t>& segment,
+                        client::Client* client, const std::string& fleet) {
   std::vector<LearnSample> real;
-  for (size_t i : segment) real.push_back({ctx.codes[season][i], ctx.data.PlaceOf(i), season});
+  for (size_t i : segment)
+    real.push_back({ctx.codes[season][i], ctx.data.PlaceOf(i), season});
   std::vector<LearnSample> memory;
-  for (const robot::ReplayEntry& e : r.memory->entries()) memory.push_back(FromTrace(e.trace));
+  for (const robot::ReplayEntry& e : r.memory->entries())
+    memory.push_back(FromTrace(e.trace));
   if (spec.learn && spec.remember && ctx.recall_per_observation > 0) {
     // Place recall: the fleet's remembered traces of each new observation's
     // place (QueryPlace with a position prior), the partners of Eq. 7.
@@ -410,7 +437,8 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r, int seas
       request.set_k(ctx.recall_per_observation);
       api::PlaceToProto(x.place, request.mutable_near());
       request.set_radius_m(ctx.mining.positive_radius);
-      absl::StatusOr<std::vector<v1::PlaceMatch>> matches = client->QueryPlace(request);
+      absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
+          client->QueryPlace(request);
       if (absl::IsNotFound(matches.status())) break;  // no fleet memory yet
       if (!matches.ok()) return matches.status();
       for (const v1::PlaceMatch& m : *matches) {
@@ -423,11 +451,13 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r, int seas
   if (spec.learn) {
     std::vector<LearnSample> replayed;
     if (spec.remember) {
-      for (const core::MemoryTrace& t : r.memory->Replay(ctx.settings.replay_per_segment, r.rng)) {
+      for (const core::MemoryTrace& t :
+           r.memory->Replay(ctx.settings.replay_per_segment, r.rng)) {
         replayed.push_back(FromTrace(t));
       }
     }
-    absl::StatusOr<robot::gpl::SegmentLearnStats> stats = r.learner->Learn(real, replayed, memory);
+    absl::StatusOr<robot::gpl::SegmentLearnStats> stats =
+        r.learner->Learn(real, replayed, memory);
     if (!stats.ok()) return stats.status();
     r.last = *stats;
     if (spec.replay_input == ReplayInput::kDecoded) {
@@ -437,7 +467,8 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r, int seas
     }
   }
   if (!spec.remember) return absl::OkStatus();
-  absl::StatusOr<std::vector<float>> external = r.learner->ExternalRewards(real, memory);
+  absl::StatusOr<std::vector<float>> external =
+      r.learner->ExternalRewards(real, memory);
   if (!external.ok()) return external.status();
   std::vector<v1::MemoryTrace> traces;
   std::vector<core::MemoryTrace> own;
@@ -451,49 +482,66 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r, int seas
     t.reward_external = (*external)[k];
     t.reward_internal = ctx.internal[season][segment[k]];
     switch (spec.rewards) {
-      case RewardMode::kFull: t.reward = t.reward_external + t.reward_internal; break;
-      case RewardMode::kNoExternal: t.reward = t.reward_internal; break;
-      case RewardMode::kNoInternal: t.reward = t.reward_external; break;
-      case RewardMode::kUniform: t.reward = 1.0f; break;
+      case RewardMode::kFull:
+        t.reward = t.reward_external + t.reward_internal;
+        break;
+      case RewardMode::kNoExternal:
+        t.reward = t.reward_internal;
+        break;
+      case RewardMode::kNoInternal:
+        t.reward = t.reward_external;
+        break;
+      case RewardMode::kUniform:
+        t.reward = 1.0f;
+        break;
     }
     t.timestamp_ns = int64_t(t.seq);
     t.encoder_version = r.model->version();
     own.push_back(t);
     api::TraceToProto(t, &traces.emplace_back());
   }
-  absl::StatusOr<v1::UploadTracesResponse> uploaded = client->Upload(fleet, traces);
+  absl::StatusOr<v1::UploadTracesResponse> uploaded =
+      client->Upload(fleet, traces);
   if (!uploaded.ok()) return uploaded.status();
-  absl::StatusOr<v1::ConsolidateResponse> consolidated = client->Consolidate(fleet);
+  absl::StatusOr<v1::ConsolidateResponse> consolidated =
+      client->Consolidate(fleet);
   if (!consolidated.ok()) return consolidated.status();
   for (const core::MemoryTrace& t : own) r.memory->AddOwn(t);
   absl::StatusOr<std::vector<v1::MemoryTrace>> sampled =
       client->SampleReplay(fleet, r.id, uint32_t(ctx.settings.memory_capacity));
   if (!sampled.ok()) return sampled.status();
   std::vector<core::MemoryTrace> refreshed;
-  for (const v1::MemoryTrace& t : *sampled) refreshed.push_back(api::TraceFromProto(t));
+  for (const v1::MemoryTrace& t : *sampled)
+    refreshed.push_back(api::TraceFromProto(t));
   r.memory->Refresh(refreshed);
   return absl::OkStatus();
 }
 
-std::vector<std::vector<size_t>> Segments(const std::vector<size_t>& indices, size_t size) {
+std::vector<std::vector<size_t>> Segments(const std::vector<size_t>& indices,
+                                          size_t size) {
   std::vector<std::vector<size_t>> out;
   for (size_t b = 0; b < indices.size(); b += size) {
-    out.emplace_back(indices.begin() + b, indices.begin() + std::min(indices.size(), b + size));
+    out.emplace_back(indices.begin() + b,
+                     indices.begin() + std::min(indices.size(), b + size));
   }
   return out;
 }
 
 // A server child with the method's memory configuration.
-absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(Context& ctx, const MethodSpec& spec) {
-  const std::string dir = absl::StrCat(ctx.options->out_dir, "/servers/", spec.name);
+absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
+    Context& ctx, const MethodSpec& spec) {
+  const std::string dir =
+      absl::StrCat(ctx.options->out_dir, "/servers/", spec.name);
   std::error_code ec;
   std::filesystem::remove_all(dir, ec);
   std::filesystem::create_directories(dir + "/data", ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot create ", dir, ": ", ec.message()));
+  if (ec)
+    return absl::InternalError(
+        absl::StrCat("cannot create ", dir, ": ", ec.message()));
   auto server = std::make_unique<ServerChild>();
-  absl::Status started = server->Start(ctx.server_binary, dir + "/data",
-                                       ctx.config_file[spec.clustering][spec.decay],
-                                       dir + "/server.log");
+  absl::Status started = server->Start(
+      ctx.server_binary, dir + "/data",
+      ctx.config_file[spec.clustering][spec.decay], dir + "/server.log");
   if (!started.ok()) return started;
   return server;
 }
@@ -515,7 +563,8 @@ double SeenWr(const std::vector<DomainScore>& scores, size_t t) {
   return sum / (t + 1);
 }
 
-absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx, const MethodSpec& spec) {
+absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
+                                            const MethodSpec& spec) {
   MethodResult result;
   result.name = spec.name;
   const auto start = Clock::now();
@@ -534,7 +583,8 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx, const MethodSpec& spec
       }
     }
     const std::vector<DomainScore> scores = Evaluate(ctx.data, codes);
-    result.scores.assign(kDomains, scores);  // nothing learns: the same after every domain
+    result.scores.assign(
+        kDomains, scores);  // nothing learns: the same after every domain
     result.Summarise();
     result.seconds = Seconds(start);
     return result;
@@ -547,27 +597,32 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx, const MethodSpec& spec
     server = *std::move(s);
     client = Connect(*server);
   }
-  absl::StatusOr<Robot> robot = NewRobot(ctx, spec, "robot-1", ctx.options->seed + 17);
+  absl::StatusOr<Robot> robot =
+      NewRobot(ctx, spec, "robot-1", ctx.options->seed + 17);
   if (!robot.ok()) return robot.status();
   for (int t = 0; t < kDomains; ++t) {
     const int season = t / kAreas;
-    const auto segments = Segments(ctx.data.Indices(t % kAreas, false), ctx.settings.segment_size);
+    const auto segments = Segments(ctx.data.Indices(t % kAreas, false),
+                                   ctx.settings.segment_size);
     if (spec.learn) {
       for (const auto& segment : segments) {
-        absl::Status s = RunSegment(ctx, spec, *robot, season, segment, client.get(), spec.name);
+        absl::Status s = RunSegment(ctx, spec, *robot, season, segment,
+                                    client.get(), spec.name);
         if (!s.ok()) return s;
       }
     }
-    absl::StatusOr<std::vector<DomainScore>> scores = EvaluateModel(ctx, *robot->model);
+    absl::StatusOr<std::vector<DomainScore>> scores =
+        EvaluateModel(ctx, *robot->model);
     if (!scores.ok()) return scores.status();
     result.scores.push_back(*scores);
     const auto counts = robot->memory->CountByRobot();
     Progress(absl::StrFormat(
-        "[%s] domain %d/%d (%s): %d segments, last loss %.3f -> %.3f, M_D %d, WR "
+        "[%s] domain %d/%d (%s): %d segments, last loss %.3f -> %.3f, M_D %d, "
+        "WR "
         "here %.3f, seen %.3f (%.0f s)",
-        spec.name, t + 1, kDomains, DomainName(t), segments.size(), robot->last.first_loss,
-        robot->last.last_loss, robot->memory->size(), (*scores)[t].wr, SeenWr(*scores, t),
-        Seconds(start)));
+        spec.name, t + 1, kDomains, DomainName(t), segments.size(),
+        robot->last.first_loss, robot->last.last_loss, robot->memory->size(),
+        (*scores)[t].wr, SeenWr(*scores, t), Seconds(start)));
   }
   if (server) {
     if (absl::Status s = server->Stop(); !s.ok()) return s;
@@ -584,10 +639,12 @@ struct FleetRow {
   std::string robot;
   int own_area = 0, peer_area = 0;
   double own_wr = 0, peer_wr_shared = 0, peer_wr_alone = 0, peer_own_wr = 0;
-  double peer_winter_shared = 0, peer_winter_alone = 0, peer_winter_peer_own = 0;
+  double peer_winter_shared = 0, peer_winter_alone = 0,
+         peer_winter_peer_own = 0;
 };
 
-absl::StatusOr<MethodResult> RunFleetShared(Context& ctx, const MethodSpec& spec,
+absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
+                                            const MethodSpec& spec,
                                             std::vector<FleetRow>* rows) {
   MethodResult result;
   result.name = spec.name;
@@ -598,10 +655,12 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx, const MethodSpec& spec
   const int areas[2] = {0, 1};
   std::vector<Robot> shared, alone;
   for (int k = 0; k < 2; ++k) {
-    absl::StatusOr<Robot> a = NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
-                                       ctx.options->seed + 31 + k);
-    absl::StatusOr<Robot> b = NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
-                                       ctx.options->seed + 31 + k);
+    absl::StatusOr<Robot> a =
+        NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
+                 ctx.options->seed + 31 + k);
+    absl::StatusOr<Robot> b =
+        NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
+                 ctx.options->seed + 31 + k);
     if (!a.ok()) return a.status();
     if (!b.ok()) return b.status();
     shared.push_back(*std::move(a));
@@ -610,27 +669,31 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx, const MethodSpec& spec
   for (int season = 0; season < kSeasons; ++season) {
     std::vector<std::vector<size_t>> segs[2];
     for (int k = 0; k < 2; ++k) {
-      segs[k] = Segments(ctx.data.Indices(areas[k], false), ctx.settings.segment_size);
+      segs[k] = Segments(ctx.data.Indices(areas[k], false),
+                         ctx.settings.segment_size);
     }
     for (size_t j = 0; j < std::max(segs[0].size(), segs[1].size()); ++j) {
       for (int k = 0; k < 2; ++k) {
         if (j >= segs[k].size()) continue;
-        absl::Status s = RunSegment(ctx, spec, shared[k], season, segs[k][j], client.get(),
-                                    "fleet-shared");
+        absl::Status s = RunSegment(ctx, spec, shared[k], season, segs[k][j],
+                                    client.get(), "fleet-shared");
         if (!s.ok()) return s;
         s = RunSegment(ctx, spec, alone[k], season, segs[k][j], client.get(),
                        absl::StrCat("alone-", shared[k].id));
         if (!s.ok()) return s;
       }
     }
-    Progress(absl::StrFormat("[%s] %s done for both robots (and each alone) (%.0f s)",
-                             spec.name, kSeasonNames[season], Seconds(start)));
+    Progress(absl::StrFormat(
+        "[%s] %s done for both robots (and each alone) (%.0f s)", spec.name,
+        kSeasonNames[season], Seconds(start)));
   }
   if (absl::Status s = (*server)->Stop(); !s.ok()) return s;
   std::vector<DomainScore> s_shared[2], s_alone[2];
   for (int k = 0; k < 2; ++k) {
-    absl::StatusOr<std::vector<DomainScore>> a = EvaluateModel(ctx, *shared[k].model);
-    absl::StatusOr<std::vector<DomainScore>> b = EvaluateModel(ctx, *alone[k].model);
+    absl::StatusOr<std::vector<DomainScore>> a =
+        EvaluateModel(ctx, *shared[k].model);
+    absl::StatusOr<std::vector<DomainScore>> b =
+        EvaluateModel(ctx, *alone[k].model);
     if (!a.ok()) return a.status();
     if (!b.ok()) return b.status();
     s_shared[k] = *a;
@@ -658,10 +721,12 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx, const MethodSpec& spec
     own_sum += row.own_wr;
     peer_sum += row.peer_wr_shared;
     Progress(absl::StrFormat(
-        "[%s] %s: own area %d WR %.3f; peer's area %d WR %.3f shared vs %.3f alone "
+        "[%s] %s: own area %d WR %.3f; peer's area %d WR %.3f shared vs %.3f "
+        "alone "
         "(peer's own %.3f: %.0f%%)",
-        spec.name, row.robot, row.own_area, row.own_wr, row.peer_area, row.peer_wr_shared,
-        row.peer_wr_alone, row.peer_own_wr, 100 * row.peer_wr_shared / std::max(1e-9, row.peer_own_wr)));
+        spec.name, row.robot, row.own_area, row.own_wr, row.peer_area,
+        row.peer_wr_shared, row.peer_wr_alone, row.peer_own_wr,
+        100 * row.peer_wr_shared / std::max(1e-9, row.peer_own_wr)));
   }
   result.wr_final = wr_sum / 2;
   result.ae = own_sum / 2;
@@ -681,13 +746,15 @@ absl::Status WriteFile(const std::string& path, const std::string& text) {
 absl::Status WriteConfigs(Context& ctx) {
   for (int clustering = 0; clustering < 2; ++clustering) {
     for (int decay = 0; decay < 2; ++decay) {
-      const std::string path = absl::StrFormat("%s/server-c%d-d%d.textproto",
-                                               ctx.options->out_dir, clustering, decay);
+      const std::string path =
+          absl::StrFormat("%s/server-c%d-d%d.textproto", ctx.options->out_dir,
+                          clustering, decay);
       absl::Status s = WriteFile(
-          path, absl::StrFormat("log_level: \"warning\"\nmemory {\n  clustering: %s\n"
-                                "  replay_decay: %s\n  seed: %d\n}\n",
-                                clustering ? "true" : "false", decay ? "0.9" : "1",
-                                ctx.options->seed));
+          path,
+          absl::StrFormat("log_level: \"warning\"\nmemory {\n  clustering: %s\n"
+                          "  replay_decay: %s\n  seed: %d\n}\n",
+                          clustering ? "true" : "false", decay ? "0.9" : "1",
+                          ctx.options->seed));
       if (!s.ok()) return s;
       ctx.config_file[clustering][decay] = path;
     }
@@ -695,30 +762,35 @@ absl::Status WriteConfigs(Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status WriteOutputs(const Context& ctx, const std::vector<MethodResult>& results,
+absl::Status WriteOutputs(const Context& ctx,
+                          const std::vector<MethodResult>& results,
                           const std::vector<FleetRow>& fleet) {
   const std::string& dir = ctx.options->out_dir;
   std::string summary = "method,wr_final,ae,ra\n";
   std::string table =
-      "| method | WR final | AE | RA | WR on domains not yet learned | time (s) |\n"
+      "| method | WR final | AE | RA | WR on domains not yet learned | time "
+      "(s) |\n"
       "|---|---:|---:|---:|---:|---:|\n";
   std::string curves = "method,after_domain,domain,r1,r2,r3,r4,r5,r6,wr\n";
   std::string plot;
   int block = 0;
   std::string plot_titles;
   for (const MethodResult& r : results) {
-    summary += absl::StrFormat("%s,%.4f,%.4f,%.4f\n", r.name, r.wr_final, r.ae, r.ra);
-    table += absl::StrFormat("| %s | %.3f | %.3f | %.3f | %s | %.0f |\n", r.name, r.wr_final,
-                             r.ae, r.ra,
-                             r.scores.empty() ? "-" : absl::StrFormat("%.3f", r.generalisation),
-                             r.seconds);
+    summary +=
+        absl::StrFormat("%s,%.4f,%.4f,%.4f\n", r.name, r.wr_final, r.ae, r.ra);
+    table += absl::StrFormat(
+        "| %s | %.3f | %.3f | %.3f | %s | %.0f |\n", r.name, r.wr_final, r.ae,
+        r.ra,
+        r.scores.empty() ? "-" : absl::StrFormat("%.3f", r.generalisation),
+        r.seconds);
     if (r.scores.empty()) continue;
     for (size_t t = 0; t < r.scores.size(); ++t) {
       for (size_t d = 0; d < r.scores[t].size(); ++d) {
         const DomainScore& s = r.scores[t][d];
-        curves += absl::StrFormat("%s,%d,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", r.name,
-                                  t + 1, d + 1, s.recall[0], s.recall[1], s.recall[2],
-                                  s.recall[3], s.recall[4], s.recall[5], s.wr);
+        curves += absl::StrFormat(
+            "%s,%d,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", r.name, t + 1,
+            d + 1, s.recall[0], s.recall[1], s.recall[2], s.recall[3],
+            s.recall[4], s.recall[5], s.wr);
       }
     }
     // Plot data: after domain t, WR of each domain (learned or not), the
@@ -726,9 +798,9 @@ absl::Status WriteOutputs(const Context& ctx, const std::vector<MethodResult>& r
     for (size_t t = 0; t < r.scores.size(); ++t) {
       double earlier = 0;
       for (size_t d = 0; d < t; ++d) earlier += r.scores[t][d].wr;
-      plot += absl::StrFormat("%d %.4f %.4f %s", t + 1, SeenWr(r.scores[t], t),
-                              r.scores[t][t].wr,
-                              t == 0 ? "NaN" : absl::StrFormat("%.4f", earlier / t));
+      plot += absl::StrFormat(
+          "%d %.4f %.4f %s", t + 1, SeenWr(r.scores[t], t), r.scores[t][t].wr,
+          t == 0 ? "NaN" : absl::StrFormat("%.4f", earlier / t));
       for (size_t d = 0; d < r.scores[t].size(); ++d) {
         plot += absl::StrFormat(" %.4f", r.scores[t][d].wr);
       }
@@ -739,19 +811,24 @@ absl::Status WriteOutputs(const Context& ctx, const std::vector<MethodResult>& r
     ++block;
   }
   std::string fleet_csv =
-      "robot,own_area,own_wr,peer_area,peer_wr_shared,peer_wr_alone,peer_own_wr,"
-      "ratio_to_peer,peer_winter_wr_shared,peer_winter_wr_alone,peer_winter_own_wr\n";
+      "robot,own_area,own_wr,peer_area,peer_wr_shared,peer_wr_alone,peer_own_"
+      "wr,"
+      "ratio_to_peer,peer_winter_wr_shared,peer_winter_wr_alone,peer_winter_"
+      "own_wr\n";
   for (const FleetRow& f : fleet) {
-    fleet_csv += absl::StrFormat("%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", f.robot,
-                                 f.own_area, f.own_wr, f.peer_area, f.peer_wr_shared,
-                                 f.peer_wr_alone, f.peer_own_wr,
-                                 f.peer_wr_shared / std::max(1e-9, f.peer_own_wr),
-                                 f.peer_winter_shared, f.peer_winter_alone,
-                                 f.peer_winter_peer_own);
+    fleet_csv += absl::StrFormat(
+        "%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", f.robot,
+        f.own_area, f.own_wr, f.peer_area, f.peer_wr_shared, f.peer_wr_alone,
+        f.peer_own_wr, f.peer_wr_shared / std::max(1e-9, f.peer_own_wr),
+        f.peer_winter_shared, f.peer_winter_alone, f.peer_winter_peer_own);
   }
-  for (const auto& [name, text] : std::vector<std::pair<std::string, std::string>>{
-           {"summary.csv", summary}, {"summary.md", table}, {"curves.csv", curves},
-           {"curves.dat", plot}, {"fleet.csv", fleet_csv}}) {
+  for (const auto& [name, text] :
+       std::vector<std::pair<std::string, std::string>>{
+           {"summary.csv", summary},
+           {"summary.md", table},
+           {"curves.csv", curves},
+           {"curves.dat", plot},
+           {"fleet.csv", fleet_csv}}) {
     if (absl::Status s = WriteFile(dir + "/" + name, text); !s.ok()) return s;
   }
   // curves.png with gnuplot: three panels over the course of training.
@@ -759,24 +836,32 @@ absl::Status WriteOutputs(const Context& ctx, const std::vector<MethodResult>& r
       "set terminal pngcairo size 1500,480 font 'sans,10'\n"
       "set output '%s/curves.png'\n"
       "titles = '%s'\n"
-      "set multiplot layout 1,3 title 'Lifelong place recognition on %s (WR, Nordland "
+      "set multiplot layout 1,3 title 'Lifelong place recognition on %s (WR, "
+      "Nordland "
       "protocol: summer areas 1-3, then winter areas 1-3)'\n"
-      "set xrange [0.8:6.2]; set yrange [0:1]; set grid; set key bottom left font ',8'\n"
+      "set xrange [0.8:6.2]; set yrange [0:1]; set grid; set key bottom left "
+      "font ',8'\n"
       "set xtics ('S1' 1, 'S2' 2, 'S3' 3, 'W1' 4, 'W2' 5, 'W3' 6)\n"
       "set xlabel 'after learning domain'\n"
       "set title 'WR over the domains learned so far'\n"
-      "plot for [i=0:%d] '%s/curves.dat' index i using 1:2 with linespoints title word(titles, i+1)\n"
+      "plot for [i=0:%d] '%s/curves.dat' index i using 1:2 with linespoints "
+      "title word(titles, i+1)\n"
       "set title 'AE: WR on the domain just learned'\n"
-      "plot for [i=0:%d] '%s/curves.dat' index i using 1:3 with linespoints title word(titles, i+1)\n"
+      "plot for [i=0:%d] '%s/curves.dat' index i using 1:3 with linespoints "
+      "title word(titles, i+1)\n"
       "set title 'RA: WR on the earlier domains'\n"
-      "plot for [i=0:%d] '%s/curves.dat' index i using 1:4 with linespoints title word(titles, i+1)\n"
+      "plot for [i=0:%d] '%s/curves.dat' index i using 1:4 with linespoints "
+      "title word(titles, i+1)\n"
       "unset multiplot\n",
-      dir, plot_titles, ctx.options->data_root, block - 1, dir, block - 1, dir, block - 1, dir);
+      dir, plot_titles, ctx.options->data_root, block - 1, dir, block - 1, dir,
+      block - 1, dir);
   if (absl::Status s = WriteFile(dir + "/curves.gp", script); !s.ok()) return s;
-  const std::string command = absl::StrCat("gnuplot '", dir, "/curves.gp' 2>'", dir, "/gnuplot.log'");
+  const std::string command =
+      absl::StrCat("gnuplot '", dir, "/curves.gp' 2>'", dir, "/gnuplot.log'");
   if (block > 0 && std::system(command.c_str()) != 0) {
     return absl::InternalError(absl::StrCat(
-        "gnuplot failed to draw curves.png (the CSVs are written); see ", dir, "/gnuplot.log"));
+        "gnuplot failed to draw curves.png (the CSVs are written); see ", dir,
+        "/gnuplot.log"));
   }
   return absl::OkStatus();
 }
@@ -793,7 +878,8 @@ absl::Status RunLifelong(const LifelongOptions& options) {
   std::vector<MethodSpec> specs;
   for (const MethodSpec& s : Specs()) {
     if (options.methods.empty() ||
-        std::find(options.methods.begin(), options.methods.end(), s.name) != options.methods.end()) {
+        std::find(options.methods.begin(), options.methods.end(), s.name) !=
+            options.methods.end()) {
       specs.push_back(s);
     }
   }
@@ -806,13 +892,17 @@ absl::Status RunLifelong(const LifelongOptions& options) {
   }
   std::error_code ec;
   std::filesystem::create_directories(options.out_dir, ec);
-  if (ec) return absl::InvalidArgumentError(absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
+  if (ec)
+    return absl::InvalidArgumentError(
+        absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
   robot::gpl::SetTorchThreads(options.threads);
   Context ctx;
   ctx.options = &options;
   ctx.settings = SettingsFor(options.quick);
-  if (options.pretrain_steps > 0) ctx.settings.pretrain_steps = options.pretrain_steps;
-  if (options.steps_per_segment > 0) ctx.settings.steps_per_segment = options.steps_per_segment;
+  if (options.pretrain_steps > 0)
+    ctx.settings.pretrain_steps = options.pretrain_steps;
+  if (options.steps_per_segment > 0)
+    ctx.settings.steps_per_segment = options.steps_per_segment;
   if (options.negative_candidates > 0) {
     ctx.mining.negative_candidates = options.negative_candidates;
   }
@@ -826,36 +916,43 @@ absl::Status RunLifelong(const LifelongOptions& options) {
   ctx.mining.positive_radius = 2 * ctx.data.spacing;
   ctx.mining.negative_radius = 10 * ctx.data.spacing;
   Progress(absl::StrFormat(
-      "[data] %s: %d places in both seasons, 3 areas, %d queries per season, %d database "
+      "[data] %s: %d places in both seasons, 3 areas, %d queries per season, "
+      "%d database "
       "frames; %s settings",
       options.data_root, ctx.data.numbers.size(),
       std::count(ctx.data.query.begin(), ctx.data.query.end(), true),
-      ctx.data.numbers.size() - std::count(ctx.data.query.begin(), ctx.data.query.end(), true),
+      ctx.data.numbers.size() -
+          std::count(ctx.data.query.begin(), ctx.data.query.end(), true),
       options.quick ? "quick" : "full"));
   if (absl::Status s = WriteConfigs(ctx); !s.ok()) return s;
   if (absl::Status s = Pretrain(ctx); !s.ok()) return s;
   std::vector<MethodResult> results;
   std::vector<FleetRow> fleet;
   for (const MethodSpec& spec : specs) {
-    Progress(absl::StrFormat("[%s] start (%.0f s into the run)", spec.name, Seconds(start)));
+    Progress(absl::StrFormat("[%s] start (%.0f s into the run)", spec.name,
+                             Seconds(start)));
     absl::StatusOr<MethodResult> r = spec.name == "fleet_shared"
                                          ? RunFleetShared(ctx, spec, &fleet)
                                          : RunSingleRobot(ctx, spec);
     if (!r.ok()) {
-      return absl::Status(r.status().code(),
-                          absl::StrCat("method ", spec.name, ": ", r.status().message()));
+      return absl::Status(
+          r.status().code(),
+          absl::StrCat("method ", spec.name, ": ", r.status().message()));
     }
-    Progress(absl::StrFormat("[%s] WR final %.3f, AE %.3f, RA %.3f (%.0f s)", r->name,
-                             r->wr_final, r->ae, r->ra, r->seconds));
+    Progress(absl::StrFormat("[%s] WR final %.3f, AE %.3f, RA %.3f (%.0f s)",
+                             r->name, r->wr_final, r->ae, r->ra, r->seconds));
     results.push_back(*std::move(r));
   }
   if (absl::Status s = WriteOutputs(ctx, results, fleet); !s.ok()) return s;
   std::string table = "\nmethod             WR final   AE      RA\n";
   for (const MethodResult& r : results) {
-    table += absl::StrFormat("%-18s %.3f     %.3f   %.3f\n", r.name, r.wr_final, r.ae, r.ra);
+    table += absl::StrFormat("%-18s %.3f     %.3f   %.3f\n", r.name, r.wr_final,
+                             r.ae, r.ra);
   }
-  std::printf("%s\nwritten: %s/{summary.csv,summary.md,curves.csv,curves.png,fleet.csv} (%.0f s)\n",
-              table.c_str(), options.out_dir.c_str(), Seconds(start));
+  std::printf(
+      "%s\nwritten: "
+      "%s/{summary.csv,summary.md,curves.csv,curves.png,fleet.csv} (%.0f s)\n",
+      table.c_str(), options.out_dir.c_str(), Seconds(start));
   return absl::OkStatus();
 }
 

@@ -33,14 +33,16 @@ ServerChild::~ServerChild() {
   }
 }
 
-absl::Status ServerChild::Start(const std::string& binary, const std::string& data_dir,
+absl::Status ServerChild::Start(const std::string& binary,
+                                const std::string& data_dir,
                                 const std::string& config_file,
                                 const std::string& log_file) {
   if (::access(binary.c_str(), X_OK) != 0) {
     return absl::NotFoundError(absl::StrCat("no server binary ", binary));
   }
   const int log = ::open(log_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  if (log < 0) return absl::InternalError(absl::StrCat("cannot create ", log_file));
+  if (log < 0)
+    return absl::InternalError(absl::StrCat("cannot create ", log_file));
   const pid_t parent = ::getpid();
   const pid_t pid = ::fork();
   if (pid < 0) {
@@ -52,21 +54,23 @@ absl::Status ServerChild::Start(const std::string& binary, const std::string& da
     if (::getppid() != parent) ::_exit(127);
     ::dup2(log, STDOUT_FILENO);
     ::dup2(log, STDERR_FILENO);
-    ::execl(binary.c_str(), binary.c_str(), "--listen", "127.0.0.1:0", "--data-dir",
-            data_dir.c_str(), "--config", config_file.c_str(), nullptr);
+    ::execl(binary.c_str(), binary.c_str(), "--listen", "127.0.0.1:0",
+            "--data-dir", data_dir.c_str(), "--config", config_file.c_str(),
+            nullptr);
     ::_exit(127);
   }
   ::close(log);
   pid_ = pid;
   const std::string marker = "listening on ";
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::seconds(30);
   while (std::chrono::steady_clock::now() < deadline) {
     int status = 0;
     if (::waitpid(pid_, &status, WNOHANG) == pid_) {
       pid_ = -1;
-      return absl::InternalError(absl::StrCat(
-          "the server exited before listening; its log (", log_file,
-          "):\n", ReadAll(log_file)));
+      return absl::InternalError(
+          absl::StrCat("the server exited before listening; its log (",
+                       log_file, "):\n", ReadAll(log_file)));
     }
     const std::string out = ReadAll(log_file);
     const size_t at = out.find(marker);

@@ -26,7 +26,8 @@ class ServerChild {
   // `log_file`. NOT_FOUND without the binary; INTERNAL if it exits first;
   // DEADLINE_EXCEEDED if it does not listen in time (it is killed).
   absl::Status Start(const std::string& binary, const std::string& data_dir,
-                     const std::string& config_file, const std::string& log_file);
+                     const std::string& config_file,
+                     const std::string& log_file);
   // SIGTERM and wait for the exit; INTERNAL if it did not exit cleanly.
   absl::Status Stop();
   // "127.0.0.1:PORT".

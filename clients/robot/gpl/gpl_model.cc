@@ -71,7 +71,8 @@ TORCH_MODULE(EncoderNet);
 struct PlaceHeadImpl : torch::nn::Module {
   PlaceHeadImpl(const GplOptions& o, int code_channels) {
     const int h = o.head_channels;
-    f1 = register_module("f1", PaddedConv(code_channels, h, 3, o.wrap_horizontal));
+    f1 = register_module("f1",
+                         PaddedConv(code_channels, h, 3, o.wrap_horizontal));
     f2 = register_module("f2", PaddedConv(h, h, 3, o.wrap_horizontal));
     f3 = register_module("f3", PaddedConv(h, o.vlad_features, 1, false));
     assign = register_module(
@@ -90,11 +91,14 @@ struct PlaceHeadImpl : torch::nn::Module {
   // 1x1 convolution 2 alpha c_k . x - alpha ||c_k||^2.
   void InitialiseFrom(const torch::Tensor& z, double alpha, uint64_t seed) {
     torch::NoGradGuard no_grad;
-    torch::Tensor x = LocalFeatures(z).permute({0, 2, 3, 1}).reshape({-1, centres.size(1)});
+    torch::Tensor x =
+        LocalFeatures(z).permute({0, 2, 3, 1}).reshape({-1, centres.size(1)});
     const int64_t k = centres.size(0);
     if (x.size(0) < k) return;
     torch::Generator gen = at::detail::createCPUGenerator(seed);
-    torch::Tensor c = x.index_select(0, torch::randperm(x.size(0), gen).slice(0, 0, k)).clone();
+    torch::Tensor c =
+        x.index_select(0, torch::randperm(x.size(0), gen).slice(0, 0, k))
+            .clone();
     for (int iteration = 0; iteration < 20; ++iteration) {
       torch::Tensor nearest = torch::cdist(x, c).argmin(1);
       for (int64_t j = 0; j < k; ++j) {
@@ -108,9 +112,10 @@ struct PlaceHeadImpl : torch::nn::Module {
     conv->bias.copy_(-alpha * c.pow(2).sum(1));
   }
   torch::Tensor forward(torch::Tensor z) {
-    torch::Tensor x = LocalFeatures(z);                     // N L h w
-    torch::Tensor a = torch::softmax(assign->forward(x), 1).flatten(2);  // N K P
-    torch::Tensor xf = x.flatten(2);                        // N L P
+    torch::Tensor x = LocalFeatures(z);  // N L h w
+    torch::Tensor a =
+        torch::softmax(assign->forward(x), 1).flatten(2);  // N K P
+    torch::Tensor xf = x.flatten(2);                       // N L P
     torch::Tensor vlad = torch::bmm(a, xf.transpose(1, 2)) -
                          a.sum(2).unsqueeze(2) * centres.unsqueeze(0);  // N K L
     vlad = F::normalize(vlad, F::NormalizeFuncOptions().dim(2));
@@ -126,7 +131,8 @@ TORCH_MODULE(PlaceHead);
 struct DecoderNetImpl : torch::nn::Module {
   DecoderNetImpl(const GplOptions& o, int code_channels) {
     const int c = o.encoder_channels;
-    d0 = register_module("d0", PaddedConv(code_channels, 2 * c, 3, o.wrap_horizontal));
+    d0 = register_module(
+        "d0", PaddedConv(code_channels, 2 * c, 3, o.wrap_horizontal));
     d1 = register_module("d1", PaddedConv(2 * c, c, 3, o.wrap_horizontal));
     d2 = register_module("d2", PaddedConv(c, c / 2, 3, o.wrap_horizontal));
     d3 = register_module("d3", PaddedConv(c / 2, 1, 3, o.wrap_horizontal));
@@ -158,10 +164,13 @@ struct DiscriminatorNetImpl : torch::nn::Module {
     k2 = register_module("k2", conv(c / 2, c));
     k3 = register_module("k3", conv(c, c));
     out = register_module(
-        "out", torch::nn::Linear(c * (o.image_height / 8) * (o.image_width / 8), 1));
+        "out",
+        torch::nn::Linear(c * (o.image_height / 8) * (o.image_width / 8), 1));
   }
   torch::Tensor forward(torch::Tensor x) {
-    auto lrelu = [](const torch::Tensor& t) { return F::leaky_relu(t, F::LeakyReLUFuncOptions().negative_slope(0.2)); };
+    auto lrelu = [](const torch::Tensor& t) {
+      return F::leaky_relu(t, F::LeakyReLUFuncOptions().negative_slope(0.2));
+    };
     x = lrelu(k1->forward(x));
     x = lrelu(k2->forward(x));
     x = lrelu(k3->forward(x));
@@ -200,13 +209,16 @@ absl::Status ValidateOptions(const GplOptions& o) {
 
 // The options as one double tensor (Save/Load), in this fixed order.
 torch::Tensor OptionsToTensor(const GplOptions& o) {
-  return torch::tensor(std::vector<double>{
-      double(o.image_width), double(o.image_height), double(o.code_dimension),
-      double(o.encoder_channels), double(o.head_channels),
-      double(o.vlad_clusters), double(o.vlad_features),
-      o.wrap_horizontal ? 1.0 : 0.0, double(o.margin), o.head_learning_rate,
-      o.encoder_learning_rate, o.generative_learning_rate,
-      double(o.pixel_weight), double(o.seed), double(o.gan_weight)}, torch::kFloat64);
+  return torch::tensor(
+      std::vector<double>{double(o.image_width), double(o.image_height),
+                          double(o.code_dimension), double(o.encoder_channels),
+                          double(o.head_channels), double(o.vlad_clusters),
+                          double(o.vlad_features),
+                          o.wrap_horizontal ? 1.0 : 0.0, double(o.margin),
+                          o.head_learning_rate, o.encoder_learning_rate,
+                          o.generative_learning_rate, double(o.pixel_weight),
+                          double(o.seed), double(o.gan_weight)},
+      torch::kFloat64);
 }
 
 absl::StatusOr<GplOptions> OptionsFromTensor(const torch::Tensor& t) {
@@ -250,7 +262,8 @@ struct GplModel::Impl {
   Impl(const GplOptions& o, std::string v)
       : options(o),
         version(std::move(v)),
-        code_channels(o.code_dimension / ((o.image_width / 8) * (o.image_height / 8))),
+        code_channels(o.code_dimension /
+                      ((o.image_width / 8) * (o.image_height / 8))),
         encoder(o, code_channels),
         head(o, code_channels),
         decoder(o, code_channels),
@@ -268,7 +281,8 @@ struct GplModel::Impl {
 
   // Images -> N x 1 x H x W, grey, resized, each standardised to zero mean
   // and unit deviation (a black frame stays all zeros).
-  absl::StatusOr<torch::Tensor> ImagesToTensor(std::span<const cv::Mat> images) const {
+  absl::StatusOr<torch::Tensor> ImagesToTensor(
+      std::span<const cv::Mat> images) const {
     const int w = options.image_width, h = options.image_height;
     torch::Tensor out = torch::empty({int64_t(images.size()), 1, h, w});
     for (size_t i = 0; i < images.size(); ++i) {
@@ -306,7 +320,8 @@ struct GplModel::Impl {
   absl::StatusOr<torch::Tensor> CodesToTensor(
       std::span<const std::vector<float>> codes) const {
     const int cw = options.image_width / 8, ch = options.image_height / 8;
-    torch::Tensor out = torch::empty({int64_t(codes.size()), code_channels, ch, cw});
+    torch::Tensor out =
+        torch::empty({int64_t(codes.size()), code_channels, ch, cw});
     for (size_t i = 0; i < codes.size(); ++i) {
       if (int(codes[i].size()) != options.code_dimension) {
         return absl::InvalidArgumentError(absl::StrFormat(
@@ -363,7 +378,8 @@ struct GplModel::Impl {
     torch::Tensor pixel = (fake - q).abs().mean();
     // Eq. 9 trains G only: were E to learn from it, a constant encoder
     // would satisfy it trivially (the codes collapse).
-    torch::Tensor consistency = (EncodeWithoutLearning(decoder->forward(z)) - z).abs().mean();
+    torch::Tensor consistency =
+        (EncodeWithoutLearning(decoder->forward(z)) - z).abs().mean();
     torch::Tensor fake_logits = discriminator->forward(decoder->forward(z));
     torch::Tensor gan_g = F::binary_cross_entropy_with_logits(
         fake_logits, torch::ones_like(fake_logits));
@@ -379,7 +395,8 @@ struct GplModel::Impl {
       p.set_requires_grad(false);
     }
     torch::Tensor out = encoder->forward(x);
-    for (size_t i = 0; i < params.size(); ++i) params[i].set_requires_grad(was[i]);
+    for (size_t i = 0; i < params.size(); ++i)
+      params[i].set_requires_grad(was[i]);
     return out;
   }
 
@@ -394,7 +411,8 @@ struct GplModel::Impl {
     torch::Tensor fake_logits = discriminator->forward(fake);
     torch::Tensor loss =
         F::binary_cross_entropy_with_logits(real, torch::ones_like(real)) +
-        F::binary_cross_entropy_with_logits(fake_logits, torch::zeros_like(fake_logits));
+        F::binary_cross_entropy_with_logits(fake_logits,
+                                            torch::zeros_like(fake_logits));
     loss.backward();
     discriminator_opt.step();
     return loss.item<float>();
@@ -448,20 +466,21 @@ absl::Status GplModel::Save(const std::string& path) const {
   });
   if (!saved.ok()) {
     std::remove(tmp.c_str());
-    return absl::InternalError(
-        absl::StrCat("cannot write the model to ", path, ": ", saved.status().message()));
+    return absl::InternalError(absl::StrCat("cannot write the model to ", path,
+                                            ": ", saved.status().message()));
   }
   std::error_code ec;
   std::filesystem::rename(tmp, path, ec);
   if (ec) {
     std::remove(tmp.c_str());
-    return absl::InternalError(absl::StrCat("cannot rename ", tmp, " to ", path,
-                                            ": ", ec.message()));
+    return absl::InternalError(
+        absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
   }
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(const std::string& path) {
+absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
+    const std::string& path) {
   if (!std::filesystem::exists(path)) {
     return absl::NotFoundError(absl::StrCat("no model file ", path));
   }
@@ -480,15 +499,16 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(const std::string& path
   }
   if (!archive.try_read("format", format) || !format.isInt() ||
       format.toInt() != kFormat) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        path, " was written in GPL model format ",
-        format.isInt() ? std::to_string(format.toInt()) : "?",
-        "; this build reads format ", kFormat));
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, " was written in GPL model format ",
+                     format.isInt() ? std::to_string(format.toInt()) : "?",
+                     "; this build reads format ", kFormat));
   }
   if (!archive.try_read("version", version) || !version.isString() ||
       !archive.try_read("encoder_frozen", frozen) || !frozen.isBool() ||
       !archive.try_read("options", options_tensor)) {
-    return absl::DataLossError(absl::StrCat(path, " lacks its version or options"));
+    return absl::DataLossError(
+        absl::StrCat(path, " lacks its version or options"));
   }
   absl::StatusOr<GplOptions> options = OptionsFromTensor(options_tensor);
   if (!options.ok()) return options.status();
@@ -511,8 +531,8 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(const std::string& path
     impl.discriminator->load(d);
     if (frozen.toBool()) (*model)->FreezeEncoder();
   } catch (const std::exception& e) {
-    return absl::DataLossError(
-        absl::StrCat(path, ": the weights do not match the options: ", e.what()));
+    return absl::DataLossError(absl::StrCat(
+        path, ": the weights do not match the options: ", e.what()));
   }
   return model;
 }
@@ -534,7 +554,8 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Clone() const {
     return true;
   });
   if (!saved.ok()) return saved.status();
-  absl::StatusOr<std::unique_ptr<GplModel>> copy = Create(impl_->options, impl_->version);
+  absl::StatusOr<std::unique_ptr<GplModel>> copy =
+      Create(impl_->options, impl_->version);
   if (!copy.ok()) return copy.status();
   absl::StatusOr<bool> loaded = Guarded<bool>("clone", [&] {
     torch::serialize::InputArchive archive, e, h, g, d;
@@ -557,7 +578,9 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Clone() const {
 
 const GplOptions& GplModel::options() const { return impl_->options; }
 const std::string& GplModel::version() const { return impl_->version; }
-void GplModel::set_version(std::string version) { impl_->version = std::move(version); }
+void GplModel::set_version(std::string version) {
+  impl_->version = std::move(version);
+}
 int GplModel::code_dimension() const { return impl_->options.code_dimension; }
 int GplModel::descriptor_dimension() const {
   return impl_->options.vlad_clusters * impl_->options.vlad_features;
@@ -578,7 +601,8 @@ int64_t GplModel::ParameterCount() const {
 
 void GplModel::FreezeEncoder() {
   impl_->encoder_frozen = true;
-  for (torch::Tensor& p : impl_->encoder->parameters()) p.set_requires_grad(false);
+  for (torch::Tensor& p : impl_->encoder->parameters())
+    p.set_requires_grad(false);
 }
 
 absl::StatusOr<std::vector<std::vector<float>>> GplModel::Encode(
@@ -630,21 +654,27 @@ absl::StatusOr<std::vector<std::vector<float>>> GplModel::Reencode(
   });
 }
 
-absl::Status GplModel::InitialisePlaceHead(std::span<const std::vector<float>> codes) {
+absl::Status GplModel::InitialisePlaceHead(
+    std::span<const std::vector<float>> codes) {
   absl::StatusOr<torch::Tensor> z = impl_->CodesToTensor(codes);
   if (!z.ok()) return z.status();
-  return Guarded<bool>("initialise place head", [&] {
-    impl_->head->InitialiseFrom(*z, 10.0, impl_->options.seed);
-    return true;
-  }).status();
+  return Guarded<bool>("initialise place head",
+                       [&] {
+                         impl_->head->InitialiseFrom(*z, 10.0,
+                                                     impl_->options.seed);
+                         return true;
+                       })
+      .status();
 }
 
-absl::StatusOr<std::vector<float>> GplModel::TripletLosses(const CodeTriplets& batch) {
+absl::StatusOr<std::vector<float>> GplModel::TripletLosses(
+    const CodeTriplets& batch) {
   absl::StatusOr<torch::Tensor> z = impl_->TripletTensor(batch);
   if (!z.ok()) return z.status();
   return Guarded<std::vector<float>>("triplet losses", [&] {
     torch::NoGradGuard no_grad;
-    torch::Tensor loss = impl_->TripletLoss(impl_->head->forward(*z)).contiguous();
+    torch::Tensor loss =
+        impl_->TripletLoss(impl_->head->forward(*z)).contiguous();
     const float* p = loss.data_ptr<float>();
     return std::vector<float>(p, p + loss.size(0));
   });
@@ -664,10 +694,12 @@ absl::StatusOr<StepLosses> GplModel::TrainPlaceHead(const CodeTriplets& batch) {
   });
 }
 
-absl::StatusOr<StepLosses> GplModel::TrainGenerative(std::span<const cv::Mat> images) {
+absl::StatusOr<StepLosses> GplModel::TrainGenerative(
+    std::span<const cv::Mat> images) {
   absl::StatusOr<torch::Tensor> q = impl_->ImagesToTensor(images);
   if (!q.ok()) return q.status();
-  if (images.empty()) return absl::InvalidArgumentError("no images to train on");
+  if (images.empty())
+    return absl::InvalidArgumentError("no images to train on");
   return Guarded<StepLosses>("train decoder", [&] {
     torch::Tensor z;
     {
@@ -721,8 +753,6 @@ absl::StatusOr<StepLosses> GplModel::TrainJoint(const ImageTriplets& batch) {
   });
 }
 
-void SetTorchThreads(int threads) {
-  torch::set_num_threads(threads);
-}
+void SetTorchThreads(int threads) { torch::set_num_threads(threads); }
 
 }  // namespace fleetmem::robot::gpl

@@ -57,7 +57,8 @@ TEST(GplModelTest, ShapesOfCodesDescriptorsAndDecodedImages) {
   EXPECT_EQ((*decoded)[0].cols, 64);
   EXPECT_EQ((*decoded)[0].rows, 32);
   EXPECT_EQ((*decoded)[0].type(), CV_8UC1);
-  absl::StatusOr<std::vector<std::vector<float>>> again = model->Reencode(*codes);
+  absl::StatusOr<std::vector<std::vector<float>>> again =
+      model->Reencode(*codes);
   ASSERT_TRUE(again.ok());
   EXPECT_EQ((*again)[0].size(), 256u);
 }
@@ -73,9 +74,11 @@ TEST(GplModelTest, BadOptionsAndInputsAreRefused) {
             absl::StatusCode::kInvalidArgument);
   auto model = NewModel();
   std::vector<cv::Mat> empty{cv::Mat()};
-  EXPECT_EQ(model->Encode(empty).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(model->Encode(empty).status().code(),
+            absl::StatusCode::kInvalidArgument);
   std::vector<std::vector<float>> wrong{std::vector<float>(10, 0.0f)};
-  EXPECT_EQ(model->Describe(wrong).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(model->Describe(wrong).status().code(),
+            absl::StatusCode::kInvalidArgument);
   CodeTriplets uneven;
   uneven.anchors = {std::vector<float>(256, 0.0f)};
   EXPECT_EQ(model->TrainPlaceHead(uneven).status().code(),
@@ -89,7 +92,9 @@ TEST(GplModelTest, TripletLossMatchesHandComputedValues) {
   options.margin = 0.3f;
   auto model = NewModel(options);
   auto codes = *model->Encode(RandomImages(2, 64, 32, 7));
-  ASSERT_TRUE(model->InitialisePlaceHead(*model->Encode(RandomImages(16, 64, 32, 8))).ok());
+  ASSERT_TRUE(
+      model->InitialisePlaceHead(*model->Encode(RandomImages(16, 64, 32, 8)))
+          .ok());
   CodeTriplets same;
   same.anchors = {codes[0]};
   same.positives = {codes[0]};
@@ -98,7 +103,8 @@ TEST(GplModelTest, TripletLossMatchesHandComputedValues) {
 
   auto d = *model->Describe(codes);
   double dan = 0;
-  for (size_t i = 0; i < d[0].size(); ++i) dan += (d[0][i] - d[1][i]) * (d[0][i] - d[1][i]);
+  for (size_t i = 0; i < d[0].size(); ++i)
+    dan += (d[0][i] - d[1][i]) * (d[0][i] - d[1][i]);
   CodeTriplets easy;
   easy.anchors = {codes[0]};
   easy.positives = {codes[0]};
@@ -123,7 +129,8 @@ TEST(GplModelTest, TrainingTheHeadLowersTheTripletLoss) {
   }
   const float before = (*model->TrainPlaceHead(batch)).loc;
   float after = before;
-  for (int step = 0; step < 60; ++step) after = (*model->TrainPlaceHead(batch)).loc;
+  for (int step = 0; step < 60; ++step)
+    after = (*model->TrainPlaceHead(batch)).loc;
   EXPECT_LT(after, before * 0.5f) << before << " -> " << after;
 }
 
@@ -141,7 +148,8 @@ TEST(GplModelTest, FrozenEncoderKeepsItsCodesWhileHeadAndDecoderLearn) {
             absl::StatusCode::kFailedPrecondition);
   absl::StatusOr<StepLosses> g = model->TrainGenerative(images);
   ASSERT_TRUE(g.ok()) << g.status();
-  EXPECT_TRUE(std::isfinite(g->rec) && std::isfinite(g->gan_g) && std::isfinite(g->gan_d));
+  EXPECT_TRUE(std::isfinite(g->rec) && std::isfinite(g->gan_g) &&
+              std::isfinite(g->gan_d));
   CodeTriplets batch{{before[0]}, {before[1]}, {before[2]}};
   ASSERT_TRUE(model->TrainPlaceHead(batch).ok());
   EXPECT_EQ(*model->Encode(images), before);
@@ -158,8 +166,8 @@ TEST(GplModelTest, SaveAndLoadRoundTripKeepsVersionOptionsAndOutputs) {
   auto images = RandomImages(4, 64, 32, 11);
   auto codes = *model->Encode(images);
   auto descriptors = *model->Describe(codes);
-  const std::string path =
-      ::testing::TempDir() + "/gpl-roundtrip-" + std::to_string(::getpid()) + ".pt";
+  const std::string path = ::testing::TempDir() + "/gpl-roundtrip-" +
+                           std::to_string(::getpid()) + ".pt";
   ASSERT_TRUE(model->Save(path).ok());
   absl::StatusOr<std::unique_ptr<GplModel>> loaded = GplModel::Load(path);
   ASSERT_TRUE(loaded.ok()) << loaded.status();

@@ -43,8 +43,8 @@ absl::StatusOr<std::vector<float>> GplEncoder::Encode(
     const Observation& observation) const {
   if (observation.image.empty()) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "observation ", observation.name, " has no image (the GPL model ", version_,
-        " encodes images)"));
+        "observation ", observation.name, " has no image (the GPL model ",
+        version_, " encodes images)"));
   }
   absl::MutexLock lock(&shared_->mu);
   absl::StatusOr<std::vector<std::vector<float>>> codes =
@@ -71,9 +71,12 @@ absl::StatusOr<Observation> GplEncoder::Perturb(const Observation& observation,
 
 GplLearner::GplLearner(SharedModel* shared, std::string domain,
                        SegmentLearnerOptions options, std::string save_path)
-    : shared_(shared), domain_(std::move(domain)), save_path_(std::move(save_path)) {
+    : shared_(shared),
+      domain_(std::move(domain)),
+      save_path_(std::move(save_path)) {
   absl::MutexLock lock(&shared_->mu);
-  learner_ = std::make_unique<SegmentLearner>(shared_->model.get(), std::move(options));
+  learner_ = std::make_unique<SegmentLearner>(shared_->model.get(),
+                                              std::move(options));
 }
 
 int GplLearner::DomainId(const std::string& domain) {
@@ -85,7 +88,8 @@ std::vector<LearnSample> GplLearner::MemorySamples(
   std::vector<LearnSample> samples;
   samples.reserve(memory.size());
   for (const ReplayEntry& entry : memory) {
-    samples.push_back({entry.trace.code, entry.trace.place, DomainId(entry.trace.domain)});
+    samples.push_back(
+        {entry.trace.code, entry.trace.place, DomainId(entry.trace.domain)});
   }
   return samples;
 }
@@ -96,7 +100,8 @@ absl::Status GplLearner::Learn(std::span<const Observation> segment,
   absl::MutexLock lock(&shared_->mu);
   std::vector<cv::Mat> images;
   for (const Observation& o : segment) images.push_back(o.image);
-  absl::StatusOr<std::vector<std::vector<float>>> codes = shared_->model->Encode(images);
+  absl::StatusOr<std::vector<std::vector<float>>> codes =
+      shared_->model->Encode(images);
   if (!codes.ok()) return codes.status();
   const int own = DomainId(domain_);
   std::vector<LearnSample> real;
@@ -112,7 +117,8 @@ absl::Status GplLearner::Learn(std::span<const Observation> segment,
   std::erase_if(remembered, [&](const LearnSample& s) {
     return s.code.size() != size_t(shared_->model->code_dimension());
   });
-  absl::StatusOr<SegmentLearnStats> stats = learner_->Learn(real, replay, remembered);
+  absl::StatusOr<SegmentLearnStats> stats =
+      learner_->Learn(real, replay, remembered);
   if (!stats.ok()) return stats.status();
   last_ = *stats;
   if (absl::Status g = learner_->LearnImages(images); !g.ok()) return g;
@@ -121,8 +127,8 @@ absl::Status GplLearner::Learn(std::span<const Observation> segment,
 }
 
 absl::StatusOr<std::vector<float>> GplLearner::ExternalRewards(
-    std::span<const std::vector<float>> codes, std::span<const core::Place> places,
-    std::span<const ReplayEntry> memory) {
+    std::span<const std::vector<float>> codes,
+    std::span<const core::Place> places, std::span<const ReplayEntry> memory) {
   absl::MutexLock lock(&shared_->mu);
   const int own = DomainId(domain_);
   std::vector<LearnSample> segment;

@@ -1,9 +1,10 @@
 #include "clients/robot/gpl/gpl_robot.h"
 
+#include <unistd.h>
+
 #include <cstdio>
 #include <random>
 #include <string>
-#include <unistd.h>
 #include <vector>
 
 #include "gmock/gmock.h"
@@ -29,7 +30,8 @@ std::unique_ptr<SharedModel> SavedAndLoaded(bool wrap = false) {
   for (int i = 0; i < 16; ++i) images.push_back(Noise(500 + i));
   EXPECT_TRUE(model->InitialisePlaceHead(*model->Encode(images)).ok());
   const std::string path = ::testing::TempDir() + "/gpl-robot-" +
-                           std::to_string(::getpid()) + (wrap ? "w" : "") + ".pt";
+                           std::to_string(::getpid()) + (wrap ? "w" : "") +
+                           ".pt";
   EXPECT_TRUE(model->Save(path).ok());
   auto shared = LoadSharedModel(path);
   std::remove(path.c_str());
@@ -74,7 +76,8 @@ TEST(GplRobotTest, EncoderCarriesTheModelVersionAndFreezesIt) {
   Observation scan;
   scan.name = "aces.clf:3";
   scan.scan.ranges = {1.0f, 2.0f};
-  EXPECT_EQ(encoder.Encode(scan).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(encoder.Encode(scan).status().code(),
+            absl::StatusCode::kInvalidArgument);
   std::mt19937_64 rng(1);
   auto moved = encoder.Perturb(o, rng);
   ASSERT_TRUE(moved.ok());

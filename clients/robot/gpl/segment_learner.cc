@@ -13,7 +13,8 @@ absl::StatusOr<std::vector<std::vector<float>>> SegmentLearner::RememberedCodes(
   std::vector<std::vector<float>> codes;
   codes.reserve(samples.size());
   for (const LearnSample& s : samples) codes.push_back(s.code);
-  if (options_.replay_input == ReplayInput::kCode || codes.empty()) return codes;
+  if (options_.replay_input == ReplayInput::kCode || codes.empty())
+    return codes;
   return model_->Reencode(codes);
 }
 
@@ -28,7 +29,8 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
     codes.push_back(x.code);
   }
   for (std::span<const LearnSample> part : {replayed, memory}) {
-    absl::StatusOr<std::vector<std::vector<float>>> remembered = RememberedCodes(part);
+    absl::StatusOr<std::vector<std::vector<float>>> remembered =
+        RememberedCodes(part);
     if (!remembered.ok()) return remembered.status();
     for (size_t i = 0; i < part.size(); ++i) {
       pool.push_back({part[i].place, part[i].domain});
@@ -40,13 +42,15 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
   const size_t s = segment.size(), r = replayed.size();
   const size_t replay_anchors =
       r == 0 ? 0
-             : std::min<size_t>(options_.batch_size,
-                                size_t(options_.batch_size * options_.replay_share + 0.5));
+             : std::min<size_t>(
+                   options_.batch_size,
+                   size_t(options_.batch_size * options_.replay_share + 0.5));
   const size_t real_anchors = s == 0 ? 0 : options_.batch_size - replay_anchors;
   std::vector<std::vector<float>> descriptors;
   for (int step = 0; step < options_.steps_per_segment; ++step) {
     if (step % std::max(1, options_.mining_interval) == 0) {
-      absl::StatusOr<std::vector<std::vector<float>>> d = model_->Describe(codes);
+      absl::StatusOr<std::vector<std::vector<float>>> d =
+          model_->Describe(codes);
       if (!d.ok()) return d.status();
       descriptors = *std::move(d);
     }
@@ -55,7 +59,8 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
       anchors.push_back(std::uniform_int_distribution<size_t>(0, s - 1)(rng_));
     }
     for (size_t i = 0; i < replay_anchors; ++i) {
-      anchors.push_back(s + std::uniform_int_distribution<size_t>(0, r - 1)(rng_));
+      anchors.push_back(s +
+                        std::uniform_int_distribution<size_t>(0, r - 1)(rng_));
     }
     const std::vector<TripletIndex> triplets =
         MineTriplets(pool, anchors, descriptors, options_.mining, rng_);
@@ -101,13 +106,15 @@ absl::StatusOr<std::vector<float>> SegmentLearner::ExternalRewards(
     pool.push_back({x.place, x.domain});
     codes.push_back(x.code);
   }
-  absl::StatusOr<std::vector<std::vector<float>>> remembered = RememberedCodes(memory);
+  absl::StatusOr<std::vector<std::vector<float>>> remembered =
+      RememberedCodes(memory);
   if (!remembered.ok()) return remembered.status();
   for (size_t i = 0; i < memory.size(); ++i) {
     pool.push_back({memory[i].place, memory[i].domain});
     codes.push_back(std::move((*remembered)[i]));
   }
-  absl::StatusOr<std::vector<std::vector<float>>> descriptors = model_->Describe(codes);
+  absl::StatusOr<std::vector<std::vector<float>>> descriptors =
+      model_->Describe(codes);
   if (!descriptors.ok()) return descriptors.status();
   std::vector<size_t> anchors(segment.size());
   for (size_t i = 0; i < anchors.size(); ++i) anchors[i] = i;
@@ -122,7 +129,8 @@ absl::StatusOr<std::vector<float>> SegmentLearner::ExternalRewards(
   }
   absl::StatusOr<std::vector<float>> losses = model_->TripletLosses(batch);
   if (!losses.ok()) return losses.status();
-  for (size_t i = 0; i < triplets.size(); ++i) rewards[triplets[i].anchor] = (*losses)[i];
+  for (size_t i = 0; i < triplets.size(); ++i)
+    rewards[triplets[i].anchor] = (*losses)[i];
   return rewards;
 }
 

@@ -83,7 +83,8 @@ class SegmentLearner {
 
   // R_ex of each segment sample (Eq. 11), in segment order.
   absl::StatusOr<std::vector<float>> ExternalRewards(
-      std::span<const LearnSample> segment, std::span<const LearnSample> memory);
+      std::span<const LearnSample> segment,
+      std::span<const LearnSample> memory);
 
   const SegmentLearnerOptions& options() const { return options_; }
 

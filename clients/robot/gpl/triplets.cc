@@ -8,7 +8,8 @@
 namespace fleetmem::robot::gpl {
 namespace {
 
-float SquaredDistance(const std::vector<float>& a, const std::vector<float>& b) {
+float SquaredDistance(const std::vector<float>& a,
+                      const std::vector<float>& b) {
   float sum = 0.0f;
   for (size_t i = 0; i < a.size() && i < b.size(); ++i) {
     const float d = a[i] - b[i];

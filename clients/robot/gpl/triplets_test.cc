@@ -28,11 +28,14 @@ TEST(TripletsTest, PositivesPreferTheOtherDomainAndNegativesAreFar) {
   ASSERT_EQ(triplets.size(), 3u);
   for (const TripletIndex& t : triplets) {
     EXPECT_NE(pool[t.positive].domain, pool[t.anchor].domain);
-    EXPECT_LE(std::abs(pool[t.positive].place.x - pool[t.anchor].place.x), 20.0);
-    EXPECT_GT(std::abs(pool[t.negative].place.x - pool[t.anchor].place.x), 100.0);
+    EXPECT_LE(std::abs(pool[t.positive].place.x - pool[t.anchor].place.x),
+              20.0);
+    EXPECT_GT(std::abs(pool[t.negative].place.x - pool[t.anchor].place.x),
+              100.0);
   }
   options.prefer_other_domain = false;
-  const auto summer = std::vector<TripletSample>(pool.begin(), pool.begin() + 30);
+  const auto summer =
+      std::vector<TripletSample>(pool.begin(), pool.begin() + 30);
   auto same = MineTriplets(summer, std::vector<size_t>{5}, {}, options, rng);
   ASSERT_EQ(same.size(), 1u);
   EXPECT_NE(same[0].positive, 5u);
@@ -41,7 +44,8 @@ TEST(TripletsTest, PositivesPreferTheOtherDomainAndNegativesAreFar) {
 TEST(TripletsTest, AnchorsWithoutPositiveOrNegativeAreLeftOut) {
   std::vector<TripletSample> pool{{{0, 0, 0, 0}, 0}, {{500, 0, 0, 0}, 0}};
   std::mt19937_64 rng(1);
-  EXPECT_TRUE(MineTriplets(pool, std::vector<size_t>{0, 1}, {}, {}, rng).empty());
+  EXPECT_TRUE(
+      MineTriplets(pool, std::vector<size_t>{0, 1}, {}, {}, rng).empty());
   std::vector<TripletSample> near{{{0, 0, 0, 0}, 0}, {{10, 0, 0, 0}, 0}};
   EXPECT_TRUE(MineTriplets(near, std::vector<size_t>{0}, {}, {}, rng).empty());
 }
@@ -54,7 +58,8 @@ TEST(TripletsTest, MiningTakesTheNearestNegativeCandidate) {
   TripletMiningOptions options;
   options.negative_candidates = 400;  // sees every candidate
   std::mt19937_64 rng(3);
-  auto t = MineTriplets(pool, std::vector<size_t>{0}, descriptors, options, rng);
+  auto t =
+      MineTriplets(pool, std::vector<size_t>{0}, descriptors, options, rng);
   ASSERT_EQ(t.size(), 1u);
   EXPECT_EQ(t[0].negative, 29u);
 }
