@@ -418,6 +418,28 @@ struct GplModel::Impl {
     return loss.item<float>();
   }
 
+  // Every module's weights as nested archives of `archive`.
+  void WriteModules(torch::serialize::OutputArchive& archive) {
+    for (auto& [name, module] : Modules()) {
+      torch::serialize::OutputArchive nested;
+      module->save(nested);
+      archive.write(name, nested);
+    }
+  }
+  void ReadModules(torch::serialize::InputArchive& archive) {
+    for (auto& [name, module] : Modules()) {
+      torch::serialize::InputArchive nested;
+      archive.read(name, nested);
+      module->load(nested);
+    }
+  }
+  std::vector<std::pair<std::string, torch::nn::Module*>> Modules() {
+    return {{"encoder", encoder.get()},
+            {"head", head.get()},
+            {"decoder", decoder.get()},
+            {"discriminator", discriminator.get()}};
+  }
+
   GplOptions options;
   std::string version;
   int code_channels;
@@ -452,15 +474,7 @@ absl::Status GplModel::Save(const std::string& path) const {
     archive.write("version", c10::IValue(impl_->version));
     archive.write("encoder_frozen", c10::IValue(impl_->encoder_frozen));
     archive.write("options", OptionsToTensor(impl_->options));
-    torch::serialize::OutputArchive e, h, g, d;
-    impl_->encoder->save(e);
-    impl_->head->save(h);
-    impl_->decoder->save(g);
-    impl_->discriminator->save(d);
-    archive.write("encoder", e);
-    archive.write("head", h);
-    archive.write("decoder", g);
-    archive.write("discriminator", d);
+    impl_->WriteModules(archive);
     archive.save_to(tmp);
     return true;
   });
@@ -519,16 +533,7 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
       Create(*options, version.toStringRef());
   if (!model.ok()) return model.status();
   try {
-    torch::serialize::InputArchive e, h, g, d;
-    archive.read("encoder", e);
-    archive.read("head", h);
-    archive.read("decoder", g);
-    archive.read("discriminator", d);
-    Impl& impl = *(*model)->impl_;
-    impl.encoder->load(e);
-    impl.head->load(h);
-    impl.decoder->load(g);
-    impl.discriminator->load(d);
+    (*model)->impl_->ReadModules(archive);
     if (frozen.toBool()) (*model)->FreezeEncoder();
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(
@@ -540,16 +545,8 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
 absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Clone() const {
   std::stringstream buffer;
   absl::StatusOr<bool> saved = Guarded<bool>("clone", [&] {
-    torch::serialize::OutputArchive e, h, g, d;
-    impl_->encoder->save(e);
-    impl_->head->save(h);
-    impl_->decoder->save(g);
-    impl_->discriminator->save(d);
     torch::serialize::OutputArchive archive;
-    archive.write("encoder", e);
-    archive.write("head", h);
-    archive.write("decoder", g);
-    archive.write("discriminator", d);
+    impl_->WriteModules(archive);
     archive.save_to(buffer);
     return true;
   });
@@ -558,17 +555,9 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Clone() const {
       Create(impl_->options, impl_->version);
   if (!copy.ok()) return copy.status();
   absl::StatusOr<bool> loaded = Guarded<bool>("clone", [&] {
-    torch::serialize::InputArchive archive, e, h, g, d;
+    torch::serialize::InputArchive archive;
     archive.load_from(buffer);
-    archive.read("encoder", e);
-    archive.read("head", h);
-    archive.read("decoder", g);
-    archive.read("discriminator", d);
-    Impl& impl = *(*copy)->impl_;
-    impl.encoder->load(e);
-    impl.head->load(h);
-    impl.decoder->load(g);
-    impl.discriminator->load(d);
+    (*copy)->impl_->ReadModules(archive);
     return true;
   });
   if (!loaded.ok()) return loaded.status();
@@ -589,12 +578,8 @@ bool GplModel::encoder_frozen() const { return impl_->encoder_frozen; }
 
 int64_t GplModel::ParameterCount() const {
   int64_t n = 0;
-  for (const torch::nn::Module* m :
-       {static_cast<torch::nn::Module*>(impl_->encoder.get()),
-        static_cast<torch::nn::Module*>(impl_->head.get()),
-        static_cast<torch::nn::Module*>(impl_->decoder.get()),
-        static_cast<torch::nn::Module*>(impl_->discriminator.get())}) {
-    for (const torch::Tensor& p : m->parameters()) n += p.numel();
+  for (auto& [name, module] : impl_->Modules()) {
+    for (const torch::Tensor& p : module->parameters()) n += p.numel();
   }
   return n;
 }

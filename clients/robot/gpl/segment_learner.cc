@@ -18,25 +18,34 @@ absl::StatusOr<std::vector<std::vector<float>>> SegmentLearner::RememberedCodes(
   return model_->Reencode(codes);
 }
 
+absl::StatusOr<SegmentLearner::Pool> SegmentLearner::BuildPool(
+    std::span<const LearnSample> segment,
+    std::initializer_list<std::span<const LearnSample>> remembered) {
+  Pool pool;
+  for (const LearnSample& x : segment) {
+    pool.samples.push_back({x.place, x.domain});
+    pool.codes.push_back(x.code);
+  }
+  for (std::span<const LearnSample> part : remembered) {
+    absl::StatusOr<std::vector<std::vector<float>>> codes =
+        RememberedCodes(part);
+    if (!codes.ok()) return codes.status();
+    for (size_t i = 0; i < part.size(); ++i) {
+      pool.samples.push_back({part[i].place, part[i].domain});
+      pool.codes.push_back(std::move((*codes)[i]));
+    }
+  }
+  return pool;
+}
+
 absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
     std::span<const LearnSample> segment, std::span<const LearnSample> replayed,
     std::span<const LearnSample> memory) {
   // The pool: segment [0, s), replayed [s, s + r), memory after.
-  std::vector<TripletSample> pool;
-  std::vector<std::vector<float>> codes;
-  for (const LearnSample& x : segment) {
-    pool.push_back({x.place, x.domain});
-    codes.push_back(x.code);
-  }
-  for (std::span<const LearnSample> part : {replayed, memory}) {
-    absl::StatusOr<std::vector<std::vector<float>>> remembered =
-        RememberedCodes(part);
-    if (!remembered.ok()) return remembered.status();
-    for (size_t i = 0; i < part.size(); ++i) {
-      pool.push_back({part[i].place, part[i].domain});
-      codes.push_back(std::move((*remembered)[i]));
-    }
-  }
+  absl::StatusOr<Pool> built = BuildPool(segment, {replayed, memory});
+  if (!built.ok()) return built.status();
+  const std::vector<TripletSample>& pool = built->samples;
+  const std::vector<std::vector<float>>& codes = built->codes;
   SegmentLearnStats stats;
   if (segment.empty() && replayed.empty()) return stats;
   const size_t s = segment.size(), r = replayed.size();
@@ -100,19 +109,10 @@ absl::StatusOr<std::vector<float>> SegmentLearner::ExternalRewards(
     std::span<const LearnSample> segment, std::span<const LearnSample> memory) {
   std::vector<float> rewards(segment.size(), 0.0f);
   if (segment.empty()) return rewards;
-  std::vector<TripletSample> pool;
-  std::vector<std::vector<float>> codes;
-  for (const LearnSample& x : segment) {
-    pool.push_back({x.place, x.domain});
-    codes.push_back(x.code);
-  }
-  absl::StatusOr<std::vector<std::vector<float>>> remembered =
-      RememberedCodes(memory);
-  if (!remembered.ok()) return remembered.status();
-  for (size_t i = 0; i < memory.size(); ++i) {
-    pool.push_back({memory[i].place, memory[i].domain});
-    codes.push_back(std::move((*remembered)[i]));
-  }
+  absl::StatusOr<Pool> built = BuildPool(segment, {memory});
+  if (!built.ok()) return built.status();
+  const std::vector<TripletSample>& pool = built->samples;
+  const std::vector<std::vector<float>>& codes = built->codes;
   absl::StatusOr<std::vector<std::vector<float>>> descriptors =
       model_->Describe(codes);
   if (!descriptors.ok()) return descriptors.status();

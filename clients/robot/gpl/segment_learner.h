@@ -20,6 +20,7 @@
 #define FLEETMEM_CLIENTS_ROBOT_GPL_SEGMENT_LEARNER_H_
 
 #include <cstdint>
+#include <initializer_list>
 #include <random>
 #include <span>
 #include <vector>
@@ -93,6 +94,16 @@ class SegmentLearner {
   // E(G(z))).
   absl::StatusOr<std::vector<std::vector<float>>> RememberedCodes(
       std::span<const LearnSample> samples);
+
+  // Samples and the codes the place head sees: the segment first, then each
+  // remembered part in order.
+  struct Pool {
+    std::vector<TripletSample> samples;
+    std::vector<std::vector<float>> codes;
+  };
+  absl::StatusOr<Pool> BuildPool(
+      std::span<const LearnSample> segment,
+      std::initializer_list<std::span<const LearnSample>> remembered);
 
   GplModel* model_;
   SegmentLearnerOptions options_;
