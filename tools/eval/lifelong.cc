@@ -65,7 +65,7 @@ Settings SettingsFor(bool quick) {
     return Settings{
         .pretrain_steps = 300, .steps_per_segment = 40, .generative_steps = 2};
   return Settings{
-      .pretrain_steps = 1000, .steps_per_segment = 100, .generative_steps = 10};
+      .pretrain_steps = 300, .steps_per_segment = 100, .generative_steps = 10};
 }
 
 std::string DomainName(int d) {
