@@ -368,20 +368,24 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
     }
   }
   // Scores winter frames (of drive `only`, or all) under `model`.
+  // Time per query: the head's descriptor of the winter code plus the
+  // brute-force search (the database's descriptors are made once).
   auto score = [&](robot::gpl::GplModel& model, int only,
-                   core::FirstCorrectRanks& ranks) -> absl::Status {
+                   core::FirstCorrectRanks& ranks, double& ms) -> absl::Status {
     absl::StatusOr<std::vector<std::vector<float>>> db =
         model.Describe(summer_codes);
     if (!db.ok()) return db.status();
-    absl::StatusOr<std::vector<std::vector<float>>> q =
-        model.Describe(winter_codes);
-    if (!q.ok()) return q.status();
     robot::BruteForceIndex index(model.descriptor_dimension());
     for (size_t j = 0; j < db->size(); ++j) index.Add((*db)[j], summer_x[j]);
-    for (size_t j = 0; j < q->size(); ++j) {
+    for (size_t j = 0; j < winter_codes.size(); ++j) {
       if (only >= 0 && owner[j] != size_t(only)) continue;
+      const auto start = Clock::now();
+      absl::StatusOr<std::vector<std::vector<float>>> q = model.Describe(
+          std::span<const std::vector<float>>(&winter_codes[j], 1));
+      if (!q.ok()) return q.status();
       std::vector<core::Place> found;
-      for (double x : index.Search((*q)[j], kQueryK)) found.push_back({.x = x});
+      for (double x : index.Search((*q)[0], kQueryK)) found.push_back({.x = x});
+      ms += MillisSince(start);
       ranks.push_back(
           robot::FirstCorrectRank(found, {.x = winter_x[j]}, kToleranceUnits));
     }
@@ -397,7 +401,9 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
     row->clusters = "-";
     row->consolidation_ms = "-";
   }
-  if (absl::Status s = score(**fleet_model, -1, frozen.ranks); !s.ok())
+  double frozen_ms = 0.0, learned_ms = 0.0;
+  if (absl::Status s = score(**fleet_model, -1, frozen.ranks, frozen_ms);
+      !s.ok())
     return s;
   for (size_t d = 0; d < drives.size(); ++d) {
     const std::string path = absl::StrCat(
@@ -405,8 +411,13 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
     absl::StatusOr<std::unique_ptr<robot::gpl::GplModel>> own =
         robot::gpl::GplModel::Load(path);
     if (!own.ok()) return own.status();
-    if (absl::Status s = score(**own, int(d), learned.ranks); !s.ok()) return s;
+    if (absl::Status s = score(**own, int(d), learned.ranks, learned_ms);
+        !s.ok()) {
+      return s;
+    }
   }
+  frozen.query_ms = frozen_ms / std::max<size_t>(frozen.ranks.size(), 1);
+  learned.query_ms = learned_ms / std::max<size_t>(learned.ranks.size(), 1);
   return std::vector<Row>{frozen, learned};
 }
 
