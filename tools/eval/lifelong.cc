@@ -891,11 +891,14 @@ absl::Status RunLifelong(const LifelongOptions& options) {
           "unknown method '", m, "'; methods: ", absl::StrJoin(names, ", ")));
     }
   }
-  std::error_code ec;
-  std::filesystem::create_directories(options.out_dir, ec);
-  if (ec)
-    return absl::InvalidArgumentError(
-        absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
+  // A memory method needs the server: say so now, not after pre-training.
+  if (std::any_of(specs.begin(), specs.end(),
+                  [](const MethodSpec& s) { return s.remember; }) &&
+      ::access(options.server_binary.c_str(), X_OK) != 0) {
+    return absl::NotFoundError(absl::StrCat("no fleetmem-server binary at ",
+                                            options.server_binary,
+                                            " (--server-binary)"));
+  }
   robot::gpl::SetTorchThreads(options.threads);
   Context ctx;
   ctx.options = &options;
@@ -912,6 +915,13 @@ absl::Status RunLifelong(const LifelongOptions& options) {
   absl::StatusOr<Data> data = LoadData(options.data_root);
   if (!data.ok()) return data.status();
   ctx.data = *std::move(data);
+  // The output folder only once the input is known to be good.
+  std::error_code ec;
+  std::filesystem::create_directories(options.out_dir, ec);
+  if (ec) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
+  }
   // Positives within +-2 files (the tolerance of a correct match), negatives
   // beyond 10 files.
   ctx.mining.positive_radius = 2 * ctx.data.spacing;

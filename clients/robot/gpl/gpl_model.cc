@@ -245,6 +245,14 @@ absl::StatusOr<GplOptions> OptionsFromTensor(const torch::Tensor& t) {
   return o;
 }
 
+// An exception's message; libtorch's without the C++ backtrace it appends.
+std::string Message(const std::exception& e) {
+  if (const auto* torch_error = dynamic_cast<const c10::Error*>(&e)) {
+    return torch_error->what_without_backtrace();
+  }
+  return e.what();
+}
+
 // Runs `body`, turning any libtorch (c10::Error) or standard exception into
 // INTERNAL naming `what`.
 template <typename T, typename Body>
@@ -252,7 +260,7 @@ absl::StatusOr<T> Guarded(const char* what, Body&& body) {
   try {
     return body();
   } catch (const std::exception& e) {
-    return absl::InternalError(absl::StrCat("gpl: ", what, ": ", e.what()));
+    return absl::InternalError(absl::StrCat("gpl: ", what, ": ", Message(e)));
   }
 }
 
@@ -281,7 +289,18 @@ struct GplModel::Impl {
 
   // Images -> N x 1 x H x W, grey, resized, each standardised to zero mean
   // and unit deviation (a black frame stays all zeros).
+  // ImagesToTensor with OpenCV's and torch's exceptions as INVALID_ARGUMENT
+  // (an image OpenCV cannot convert, e.g. of an unexpected depth).
   absl::StatusOr<torch::Tensor> ImagesToTensor(
+      std::span<const cv::Mat> images) const {
+    try {
+      return ImagesToTensorUnguarded(images);
+    } catch (const std::exception& e) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("gpl: cannot convert the images: ", Message(e)));
+    }
+  }
+  absl::StatusOr<torch::Tensor> ImagesToTensorUnguarded(
       std::span<const cv::Mat> images) const {
     const int w = options.image_width, h = options.image_height;
     torch::Tensor out = torch::empty({int64_t(images.size()), 1, h, w});
@@ -374,13 +393,17 @@ struct GplModel::Impl {
   std::pair<torch::Tensor, torch::Tensor> GenerativeLosses(
       const torch::Tensor& q, const torch::Tensor& z_graph) {
     torch::Tensor z = z_graph.detach();
-    torch::Tensor fake = decoder->forward(z_graph);
+    // G(z) with gradients into G only (Eq. 9 and the GAN term), and, when E
+    // learns, G(E(q)) with gradients into E too (the pixel term).
+    torch::Tensor fake_g = decoder->forward(z);
+    torch::Tensor fake =
+        z_graph.requires_grad() ? decoder->forward(z_graph) : fake_g;
     torch::Tensor pixel = (fake - q).abs().mean();
     // Eq. 9 trains G only: were E to learn from it, a constant encoder
     // would satisfy it trivially (the codes collapse).
     torch::Tensor consistency =
-        (EncodeWithoutLearning(decoder->forward(z)) - z).abs().mean();
-    torch::Tensor fake_logits = discriminator->forward(decoder->forward(z));
+        (EncodeWithoutLearning(fake_g) - z).abs().mean();
+    torch::Tensor fake_logits = discriminator->forward(fake_g);
     torch::Tensor gan_g = F::binary_cross_entropy_with_logits(
         fake_logits, torch::ones_like(fake_logits));
     return {consistency + options.pixel_weight * pixel, gan_g};
@@ -503,7 +526,7 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
     archive.load_from(path);
   } catch (const std::exception& e) {
     return absl::DataLossError(
-        absl::StrCat(path, " is not a readable GPL model file: ", e.what()));
+        absl::StrCat(path, " is not a readable GPL model file: ", Message(e)));
   }
   c10::IValue magic, format, version, frozen;
   torch::Tensor options_tensor;
@@ -537,7 +560,7 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
     if (frozen.toBool()) (*model)->FreezeEncoder();
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(
-        path, ": the weights do not match the options: ", e.what()));
+        path, ": the weights do not match the options: ", Message(e)));
   }
   return model;
 }
