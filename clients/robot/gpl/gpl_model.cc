@@ -393,17 +393,13 @@ struct GplModel::Impl {
   std::pair<torch::Tensor, torch::Tensor> GenerativeLosses(
       const torch::Tensor& q, const torch::Tensor& z_graph) {
     torch::Tensor z = z_graph.detach();
-    // G(z) with gradients into G only (Eq. 9 and the GAN term), and, when E
-    // learns, G(E(q)) with gradients into E too (the pixel term).
-    torch::Tensor fake_g = decoder->forward(z);
-    torch::Tensor fake =
-        z_graph.requires_grad() ? decoder->forward(z_graph) : fake_g;
+    torch::Tensor fake = decoder->forward(z_graph);
     torch::Tensor pixel = (fake - q).abs().mean();
     // Eq. 9 trains G only: were E to learn from it, a constant encoder
     // would satisfy it trivially (the codes collapse).
     torch::Tensor consistency =
-        (EncodeWithoutLearning(fake_g) - z).abs().mean();
-    torch::Tensor fake_logits = discriminator->forward(fake_g);
+        (EncodeWithoutLearning(decoder->forward(z)) - z).abs().mean();
+    torch::Tensor fake_logits = discriminator->forward(decoder->forward(z));
     torch::Tensor gan_g = F::binary_cross_entropy_with_logits(
         fake_logits, torch::ones_like(fake_logits));
     return {consistency + options.pixel_weight * pixel, gan_g};
