@@ -53,6 +53,8 @@ absl::string_view ActionName(Action action) {
       return "watch events";
     case Action::kStats:
       return "read stats";
+    case Action::kSnapshot:
+      return "take snapshots";
   }
   return "?";
 }
@@ -60,6 +62,9 @@ absl::string_view ActionName(Action action) {
 absl::Status Authorize(const Principal& principal, Action action,
                        absl::string_view fleet_id, absl::string_view robot_id) {
   if (principal.role == Role::kAdmin) return absl::OkStatus();
+  if (action == Action::kSnapshot) {
+    return Denied(principal, action, "only an admin may");
+  }
   if (!InFleet(principal, fleet_id)) {
     return Denied(
         principal, action,
@@ -88,8 +93,14 @@ absl::Status Authorize(const Principal& principal, Action action,
                          principal.robot_id, "\", not \"", robot_id, "\""));
       }
       return absl::OkStatus();
+    case Action::kSnapshot:
+      break;
   }
   return Denied(principal, action, "unknown action");
+}
+
+bool MaySeeFleet(const Principal& principal, absl::string_view fleet_id) {
+  return principal.role == Role::kAdmin || InFleet(principal, fleet_id);
 }
 
 absl::Status AuthorizeUploadAs(const Principal& principal,

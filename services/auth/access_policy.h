@@ -37,7 +37,8 @@ enum class Action {
   kSample,       // SampleReplay (changes replay weights)
   kQuery,        // QueryPlace
   kWatch,        // WatchMemory
-  kStats,        // GetStats
+  kStats,        // GetStats, ListClusters, ListEvents, ListTraces
+  kSnapshot,     // CreateSnapshot (the whole store; no fleet)
 };
 
 absl::string_view ActionName(Action action);
@@ -49,9 +50,14 @@ absl::string_view ActionName(Action action);
 //   robot   upload, sample (for its own robot id), query, watch, stats in
 //           its fleets;
 //   reader  query, watch, stats in its fleets.
+// kSnapshot is an admin's only (`fleet_id` is ignored).
 absl::Status Authorize(const Principal& principal, Action action,
                        absl::string_view fleet_id,
                        absl::string_view robot_id = {});
+
+// True if `principal` may see `fleet_id` at all (ListFleets shows only
+// these): an admin every fleet, others the fleets of their entry.
+bool MaySeeFleet(const Principal& principal, absl::string_view fleet_id);
 
 // OK if `principal` may upload a trace of `robot_id` (a robot only its own,
 // an admin any); PERMISSION_DENIED otherwise. Call after Authorize(kUpload).

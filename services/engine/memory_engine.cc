@@ -5,6 +5,7 @@
 #include <cmath>
 #include <map>
 #include <random>
+#include <tuple>
 #include <utility>
 
 #include "absl/container/flat_hash_set.h"
@@ -1003,6 +1004,103 @@ std::vector<std::string> MemoryEngine::ListFleets() const {
   }
   std::sort(fleet_ids.begin(), fleet_ids.end());
   return fleet_ids;
+}
+
+namespace {
+
+TracePlace PlaceOf(const core::MemoryTrace& trace) {
+  return TracePlace{trace.robot_id, trace.seq, trace.domain, trace.place,
+                    trace.reward};
+}
+
+ClusterSummary Summarize(const core::Cluster& cluster, bool include_places) {
+  const core::MemoryEvent described =
+      core::DescribeCluster(cluster, core::EventType::kClusterAdded);
+  ClusterSummary summary;
+  summary.cluster_id = cluster.id;
+  summary.robot_id = cluster.robot_id;
+  summary.trace_count = described.trace_count;
+  summary.centroid_place = described.centroid_place;
+  summary.mean_reward = described.mean_reward;
+  for (const core::MemoryTrace& trace : cluster.traces) {
+    ++summary.robots[trace.robot_id];
+    ++summary.domains[trace.domain];
+    if (include_places) summary.places.push_back(PlaceOf(trace));
+  }
+  return summary;
+}
+
+}  // namespace
+
+absl::StatusOr<ClusterListing> MemoryEngine::ListClusters(
+    std::string_view fleet_id, bool include_places) const {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return FleetNotFound(fleet_id);
+  absl::ReaderMutexLock lock(&fleet->mu);
+  status = fleet->CheckLoaded();
+  if (!status.ok()) return status;
+  if (!fleet->exists()) return FleetNotFound(fleet_id);
+  ClusterListing listing;
+  listing.clusters.reserve(fleet->memory.clusters().size());
+  for (const auto& [cluster_id, cluster] : fleet->memory.clusters()) {
+    listing.clusters.push_back(Summarize(cluster, include_places));
+  }
+  if (include_places) {
+    for (const auto& [robot_id, traces] : fleet->pending) {
+      for (const core::MemoryTrace& trace : traces) {
+        listing.pending.push_back(PlaceOf(trace));
+      }
+    }
+  }
+  return listing;
+}
+
+absl::StatusOr<TracePage> MemoryEngine::ListTraces(
+    std::string_view fleet_id, const std::optional<core::TraceKey>& after,
+    size_t page_size) const {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  if (page_size == 0) {
+    return absl::InvalidArgumentError("page_size: must be at least 1");
+  }
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return FleetNotFound(fleet_id);
+  absl::ReaderMutexLock lock(&fleet->mu);
+  status = fleet->CheckLoaded();
+  if (!status.ok()) return status;
+  if (!fleet->exists()) return FleetNotFound(fleet_id);
+  // Every key after the cursor, in order; then the page's traces by key.
+  std::vector<const core::MemoryTrace*> candidates;
+  auto consider = [&](const core::MemoryTrace& trace) {
+    if (!after.has_value() || *after < trace.key()) {
+      candidates.push_back(&trace);
+    }
+  };
+  TracePage page;
+  for (const auto& [cluster_id, cluster] : fleet->memory.clusters()) {
+    for (const core::MemoryTrace& trace : cluster.traces) consider(trace);
+    page.total += cluster.traces.size();
+  }
+  for (const auto& [robot_id, traces] : fleet->pending) {
+    for (const core::MemoryTrace& trace : traces) consider(trace);
+    page.total += traces.size();
+  }
+  const size_t taken = std::min(page_size, candidates.size());
+  auto by_key = [](const core::MemoryTrace* a, const core::MemoryTrace* b) {
+    return std::tie(a->robot_id, a->seq) < std::tie(b->robot_id, b->seq);
+  };
+  std::partial_sort(candidates.begin(), candidates.begin() + taken,
+                    candidates.end(), by_key);
+  page.traces.reserve(taken);
+  for (size_t i = 0; i < taken; ++i) page.traces.push_back(*candidates[i]);
+  page.more = candidates.size() > taken;
+  return page;
+}
+
+absl::Status MemoryEngine::Checkpoint(const std::string& directory) {
+  return store_->Checkpoint(directory);
 }
 
 }  // namespace fleetmem::engine

@@ -14,6 +14,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -125,6 +126,38 @@ struct FleetStats {
   std::vector<DomainStats> domains;  // sorted by domain
 };
 
+// Where one trace was observed, without its code (maps, dashboards).
+struct TracePlace {
+  std::string robot_id;
+  uint64_t seq = 0;
+  std::string domain;
+  core::Place place;
+  float reward = 0.0f;
+};
+
+// One cluster of the static memory at a glance.
+struct ClusterSummary {
+  uint64_t cluster_id = 0;
+  std::string robot_id;  // robot whose segment made it
+  uint32_t trace_count = 0;
+  core::Place centroid_place;  // mean place of its traces
+  float mean_reward = 0.0f;
+  std::map<std::string, uint32_t> robots;   // traces per robot
+  std::map<std::string, uint32_t> domains;  // traces per domain
+  std::vector<TracePlace> places;           // with include_places only
+};
+
+struct ClusterListing {
+  std::vector<ClusterSummary> clusters;  // by id (oldest first)
+  std::vector<TracePlace> pending;       // with include_places only
+};
+
+struct TracePage {
+  std::vector<core::MemoryTrace> traces;  // by (robot_id, seq)
+  bool more = false;                      // traces follow the last one
+  uint64_t total = 0;                     // static + pending traces now
+};
+
 // Observers of the engine (metrics); every member may be empty. Called
 // outside fleet locks.
 struct EngineHooks {
@@ -193,6 +226,23 @@ class MemoryEngine {
   void Unsubscribe(uint64_t handle);
 
   std::vector<std::string> ListFleets() const;
+
+  // The static memory's clusters; with `include_places` also every trace's
+  // place (and the pending traces'). NOT_FOUND for an unknown fleet.
+  absl::StatusOr<ClusterListing> ListClusters(std::string_view fleet_id,
+                                              bool include_places) const;
+
+  // Up to `page_size` (>= 1) traces of the static memory and the pending
+  // ones, with codes, whose key is after `after` (all when nullopt), by
+  // (robot_id, seq). NOT_FOUND for an unknown fleet.
+  absl::StatusOr<TracePage> ListTraces(std::string_view fleet_id,
+                                       const std::optional<core::TraceKey>& after,
+                                       size_t page_size) const;
+
+  // The store's Checkpoint: a consistent copy of every fleet in the new
+  // directory `directory`, with every write acknowledged before the call.
+  // Serving goes on meanwhile.
+  absl::Status Checkpoint(const std::string& directory);
 
   // The memory parameters in force for `fleet_id`.
   const core::MemoryOptions& MemoryOptionsFor(std::string_view fleet_id) const;

@@ -102,6 +102,20 @@ class MemoryStore {
   // Up to `limit` events of the fleet with id > after_event, ascending.
   virtual absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
       std::string_view fleet_id, uint64_t after_event, size_t limit) = 0;
+
+  // Writes a consistent copy of everything stored into the new directory
+  // `directory` (it must not exist; its parent must): a store opened there
+  // holds the state of one instant, with every Apply that returned before
+  // the call. Writes go on meanwhile. UNIMPLEMENTED for a store that keeps
+  // nothing on disk; on any error nothing is left at `directory`.
+  virtual absl::Status Checkpoint(const std::string& directory) {
+    return absl::UnimplementedError(
+        "this store keeps nothing on disk and cannot take snapshots");
+  }
+
+  // Approximate bytes the store takes on disk (0 when it keeps nothing
+  // there), for metrics.
+  virtual uint64_t ApproximateDiskBytes() { return 0; }
 };
 
 }  // namespace fleetmem::engine

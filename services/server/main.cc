@@ -9,6 +9,7 @@
 #include <pthread.h>
 #include <signal.h>
 
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -34,10 +35,14 @@
 #include "services/auth/authenticator.h"
 #include "services/common/log.h"
 #include "services/engine/memory_engine.h"
+#include "services/http/http_server.h"
+#include "services/http/rest_gateway.h"
 #include "services/index/exact_index.h"
 #include "services/index/flann_index.h"
+#include "services/observability/metrics.h"
 #include "services/server/server_config.h"
 #include "services/storage/rocksdb_store.h"
+#include "services/transport/memory_api.h"
 #include "services/transport/memory_service.h"
 #include "services/transport/work_queue.h"
 
@@ -61,6 +66,18 @@ engine::PlaceIndexFactory MakeIndexFactory(const ServerConfig& config) {
 // "host:port" with the port replaced by `port` (for listen port 0).
 std::string WithPort(const std::string& listen, int port) {
   return listen.substr(0, listen.rfind(':') + 1) + std::to_string(port);
+}
+
+http::HttpServerOptions HttpOptions(const ServerConfig& config) {
+  http::HttpServerOptions options;
+  options.listen = config.http_listen;
+  options.tls_cert_file = config.security.tls_cert_file;
+  options.tls_key_file = config.security.tls_key_file;
+  options.tls_client_ca_file = config.security.tls_client_ca_file;
+  options.require_client_certificate =
+      config.security.require_client_certificate;
+  options.max_body_bytes = config.max_http_body_bytes;
+  return options;
 }
 
 // Blocks SIGTERM, SIGINT and SIGHUP in this thread and every thread it
@@ -181,22 +198,44 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   }
   storage::RocksDbStoreOptions store_options = config.storage;
   store_options.path = (std::filesystem::path(config.data_dir) / "db").string();
-  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> opened =
       storage::OpenRocksDbStore(store_options);
-  if (!store.ok()) {
-    FLEETMEM_LOG(kError) << "cannot open store: " << store.status();
+  if (!opened.ok()) {
+    FLEETMEM_LOG(kError) << "cannot open store: " << opened.status();
     return 1;
   }
+  // Metrics observe the store, the engine and both transports through
+  // hooks (services/observability).
+  observability::Metrics metrics;
+  std::unique_ptr<engine::MemoryStore> store =
+      metrics.TimedStore(std::move(*opened));
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
-      engine::MemoryEngine::Open(config.engine, store->get(),
-                                 MakeIndexFactory(config));
+      engine::MemoryEngine::Open(config.engine, store.get(),
+                                 MakeIndexFactory(config),
+                                 metrics.EngineHooks());
   if (!engine.ok()) {
     FLEETMEM_LOG(kError) << "cannot load fleets: " << engine.status();
     return 1;
   }
   transport::WorkQueue work(config.work);
+  metrics.SetScrapeSources(
+      {engine->get(), store.get(), [&work] { return work.queued(); }});
+  transport::ServiceOptions service_options = config.service;
+  service_options.api.snapshot_root =
+      config.snapshot_dir.empty()
+          ? (std::filesystem::path(config.data_dir) / "snapshots").string()
+          : config.snapshot_dir;
+  service_options.on_call = [&metrics](std::string_view transport,
+                                       std::string_view method,
+                                       absl::StatusCode code, double seconds) {
+    metrics.ObserveCall(transport, method, code, seconds);
+  };
+  service_options.on_upload_bytes = [&metrics](std::string_view fleet,
+                                               size_t bytes) {
+    metrics.ObserveUploadBytes(fleet, bytes);
+  };
   transport::MemoryServiceImpl service(engine->get(), &work,
-                                       authenticator.get(), config.service);
+                                       authenticator.get(), service_options);
 
   grpc::EnableDefaultHealthCheckService(true);
   const bool reflection =
@@ -218,6 +257,38 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   grpc::HealthCheckServiceInterface* health = server->GetHealthCheckService();
   health->SetServingStatus(kServiceName, true);
   health->SetServingStatus(true);
+
+  // The HTTP port: the same API (MemoryApi) behind the REST gateway.
+  std::atomic<bool> ready{true};
+  transport::MemoryApi http_api(engine->get(), service_options.api);
+  std::unique_ptr<http::RestGateway> gateway;
+  std::unique_ptr<http::HttpServer> http_server;
+  if (!config.http_listen.empty()) {
+    absl::StatusOr<std::unique_ptr<http::RestGateway>> made =
+        http::RestGateway::Create(&http_api, authenticator.get(),
+                                  service_options.on_call,
+                                  {.max_body_bytes = config.max_http_body_bytes});
+    absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
+        made.ok() ? http::HttpServer::Start(
+                        HttpOptions(config),
+                        {made->get(), [&metrics] { return metrics.Render(); },
+                         [&ready] { return ready.load(); }})
+                  : made.status();
+    if (!started.ok()) {
+      FLEETMEM_LOG(kError) << "HTTP: " << started.status().message();
+      server->Shutdown(std::chrono::system_clock::now());
+      work.Stop();
+      return started.status().code() == absl::StatusCode::kInvalidArgument ? 2
+                                                                           : 1;
+    }
+    gateway = std::move(*made);
+    http_server = std::move(*started);
+    const std::string http_address =
+        WithPort(config.http_listen, http_server->port());
+    FLEETMEM_LOG(kInfo) << "HTTP on " << http_address << " (dashboard at /, "
+                        << "REST under /v1/, /metrics, /healthz, /readyz)";
+    std::cout << "fleetmem-server http on " << http_address << std::endl;
+  }
 
   const std::string address = WithPort(config.listen, port);
   FLEETMEM_LOG(kInfo) << "data dir " << config.data_dir << " (store "
@@ -258,6 +329,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                       << config.shutdown_grace_seconds << " s)";
   health->SetServingStatus(kServiceName, false);
   health->SetServingStatus(false);
+  ready.store(false);
   service.Shutdown();  // new calls UNAVAILABLE, watches end
   // Calls being worked on get the grace period; then everything left (idle
   // connections, upload streams waiting on their client) is cancelled at
@@ -267,11 +339,12 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     FLEETMEM_LOG(kWarning) << "calls still running after the grace period "
                               "are cancelled";
   }
+  if (http_server != nullptr) http_server->Stop();  // finishes its calls
   server->Shutdown(std::chrono::system_clock::now());
   work.Stop();
   server.reset();
   engine->reset();
-  store->reset();
+  store.reset();
   FLEETMEM_LOG(kInfo) << "stopped";
   return 0;
 }

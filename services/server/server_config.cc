@@ -181,6 +181,11 @@ const FlagSpec kFlags[] = {
     {"tls-key", &CommandLine::tls_key, "FILE", "PEM private key of --tls-cert"},
     {"tls-client-ca", &CommandLine::tls_client_ca, "FILE",
      "PEM CA bundle for client certificates (mutual TLS)"},
+    {"http-listen", &CommandLine::http_listen, "HOST:PORT",
+     "HTTP port: REST/JSON under /v1/, /metrics, /healthz, /readyz and the "
+     "dashboard at /; same auth and TLS as gRPC (default off)"},
+    {"snapshot-dir", &CommandLine::snapshot_dir, "DIR",
+     "where CreateSnapshot writes DIR/NAME (default DATA_DIR/snapshots)"},
 };
 
 constexpr std::string_view kAllowUnauthenticated = "allow-unauthenticated";
@@ -288,6 +293,11 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   }
   if (file.has_listen()) config->listen = file.listen();
   if (file.has_data_dir()) config->data_dir = file.data_dir();
+  if (file.has_http_listen()) config->http_listen = file.http_listen();
+  if (file.has_max_http_body_bytes()) {
+    config->max_http_body_bytes = file.max_http_body_bytes();
+  }
+  if (file.has_snapshot_dir()) config->snapshot_dir = file.snapshot_dir();
   if (file.has_log_level()) {
     absl::Status status = ApplyLogLevel("log_level", file.log_level(), config);
     if (!status.ok()) return status;
@@ -331,6 +341,12 @@ absl::Status ApplyCommandLine(const CommandLine& command_line,
                               ServerConfig* config) {
   if (command_line.listen) config->listen = *command_line.listen;
   if (command_line.data_dir) config->data_dir = *command_line.data_dir;
+  if (command_line.http_listen) {
+    config->http_listen = *command_line.http_listen;
+  }
+  if (command_line.snapshot_dir) {
+    config->snapshot_dir = *command_line.snapshot_dir;
+  }
   if (command_line.log_level) {
     absl::Status status =
         ApplyLogLevel("--log-level", *command_line.log_level, config);
@@ -402,6 +418,24 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
   }
   if (security.tls_reload_seconds < 1) {
     return absl::InvalidArgumentError("tls_reload_seconds: must be positive");
+  }
+  if (!config.http_listen.empty() &&
+      !ListenPort(config.http_listen).has_value()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("http_listen: \"", config.http_listen,
+                     "\" is not HOST:PORT with a port in 0..65535"));
+  }
+  if (config.max_http_body_bytes < 1024) {
+    return absl::InvalidArgumentError(
+        "max_http_body_bytes: must be at least 1024");
+  }
+  if (security.auth_file.empty() && !security.allow_unauthenticated &&
+      !config.http_listen.empty() && !IsLoopbackListen(config.http_listen)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "http_listen: refusing to serve ", config.http_listen,
+        " without authentication; give --auth-file FILE, or "
+        "--allow-unauthenticated if anyone who reaches the port may read "
+        "and write every fleet"));
   }
   if (security.auth_file.empty() && !security.allow_unauthenticated &&
       !IsLoopbackListen(config.listen)) {

@@ -76,6 +76,14 @@ struct ServerConfig {
   // On SIGTERM/SIGINT, calls in flight get this long to finish.
   int shutdown_grace_seconds = 10;
   SecurityConfig security;
+  // HOST:PORT of the HTTP port (REST/JSON, /metrics, /healthz, /readyz,
+  // dashboard); empty = off. Same auth and TLS as gRPC.
+  std::string http_listen;
+  // Largest HTTP request body; larger ones get 413.
+  size_t max_http_body_bytes = size_t{4} << 20;
+  // Where CreateSnapshot writes (SNAPSHOT_DIR/NAME/db); empty =
+  // DATA_DIR/snapshots.
+  std::string snapshot_dir;
 };
 
 // True for 127.0.0.0/8, ::1 and "localhost" (the host part of HOST:PORT).
@@ -94,11 +102,14 @@ struct CommandLine {
   std::optional<std::string> tls_cert;
   std::optional<std::string> tls_key;
   std::optional<std::string> tls_client_ca;
+  std::optional<std::string> http_listen;
+  std::optional<std::string> snapshot_dir;
   bool allow_unauthenticated = false;
 };
 
 // Parses argv[1..argc): --listen, --data-dir, --config, --log-level,
-// --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca as
+// --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca,
+// --http-listen, --snapshot-dir as
 // "--name=value" or "--name value"; --allow-unauthenticated; --help or -h.
 // INVALID_ARGUMENT for an unknown flag, a missing value or a positional
 // argument.

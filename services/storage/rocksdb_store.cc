@@ -24,6 +24,7 @@
 #include "rocksdb/cache.h"
 #include "rocksdb/convenience.h"
 #include "rocksdb/db.h"
+#include "rocksdb/utilities/checkpoint.h"
 #include "rocksdb/filter_policy.h"
 #include "rocksdb/iterator.h"
 #include "rocksdb/options.h"
@@ -341,6 +342,26 @@ class RocksDbStore final : public engine::MemoryStore {
       FLEETMEM_LOG(kWarning)
           << "closing RocksDB at " << path_ << ": " << status.ToString();
     }
+  }
+
+  absl::Status Checkpoint(const std::string& directory) override {
+    rocksdb::Checkpoint* raw = nullptr;
+    rocksdb::Status status = rocksdb::Checkpoint::Create(db_.get(), &raw);
+    if (!status.ok()) return FromRocksDb(status, "create checkpoint");
+    std::unique_ptr<rocksdb::Checkpoint> checkpoint(raw);
+    // log_size_for_flush 0: the memtables are flushed first, so the copy is
+    // SST files (hard links where possible) and needs no WAL replay. RocksDB
+    // removes its temporary directory itself when this fails.
+    status = checkpoint->CreateCheckpoint(directory, /*log_size_for_flush=*/0);
+    return FromRocksDb(status, absl::StrCat("checkpoint to ", directory));
+  }
+
+  uint64_t ApproximateDiskBytes() override {
+    uint64_t sst = 0;
+    uint64_t memtables = 0;
+    db_->GetIntProperty(rocksdb::DB::Properties::kLiveSstFilesSize, &sst);
+    db_->GetIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables, &memtables);
+    return sst + memtables;
   }
 
   absl::StatusOr<std::vector<std::string>> ListFleets() override {

@@ -3,6 +3,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/time/clock.h"
 #include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
 #include "services/transport/proto_convert.h"
@@ -24,31 +25,37 @@ bool MemoryServiceImpl::WaitIdle(absl::Time deadline) {
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
-    grpc::CallbackServerContext* context, auth::Action action,
-    std::string fleet_id, std::string robot_id,
-    absl::AnyInvocable<absl::Status() &&> work) {
+    grpc::CallbackServerContext* context, const char* method,
+    const google::protobuf::Message* request,
+    google::protobuf::Message* response) {
+  const absl::Time started = absl::Now();
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  auto finish = [this, reactor, method, started](const grpc::Status& status) {
+    state_.ObserveCall(method, static_cast<absl::StatusCode>(status.error_code()),
+                       started);
+    reactor->Finish(status);
+  };
   if (state_.shutting_down()) {
-    reactor->Finish(ShuttingDownStatus());
+    finish(ShuttingDownStatus());
     return reactor;
   }
   state_.BeginWork();
   bool queued = state_.work().TrySubmit(
-      [this, context, reactor, action, fleet_id = std::move(fleet_id),
-       robot_id = std::move(robot_id), work = std::move(work)]() mutable {
-        reactor->Finish([&] {
+      [this, context, method, request, response, finish]() mutable {
+        finish([&] {
           grpc::Status live = CheckCallLive(*context);
           if (!live.ok()) return live;
-          absl::StatusOr<auth::Principal> allowed = AuthorizeCall(
-              state_.authenticator(), *context, action, fleet_id, robot_id);
-          if (!allowed.ok()) return ToGrpcStatus(allowed.status());
-          return ToGrpcStatus(std::move(work)());
+          absl::StatusOr<auth::Principal> caller =
+              AuthenticateCall(state_.authenticator(), *context);
+          if (!caller.ok()) return ToGrpcStatus(caller.status());
+          return ToGrpcStatus(
+              state_.api().Call(method, *caller, *request, response));
         }());
         state_.EndWork();
       });
   if (!queued) {
     state_.EndWork();
-    reactor->Finish(ServerBusyStatus());
+    finish(ServerBusyStatus());
   }
   return reactor;
 }
@@ -61,64 +68,61 @@ grpc::ServerReadReactor<grpc::ByteBuffer>* MemoryServiceImpl::UploadTraces(
 grpc::ServerUnaryReactor* MemoryServiceImpl::Consolidate(
     grpc::CallbackServerContext* context, const v1::ConsolidateRequest* request,
     v1::ConsolidateResponse* response) {
-  return RunUnary(context, auth::Action::kConsolidate, request->fleet_id(), {},
-                  [this, request, response]() -> absl::Status {
-                    absl::StatusOr<engine::ConsolidateResult> result =
-                        state_.engine().Consolidate(request->fleet_id());
-                    if (!result.ok()) return result.status();
-                    ConsolidateResultToProto(*result, response);
-                    return absl::OkStatus();
-                  });
+  return RunUnary(context, "Consolidate", request, response);
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
-    grpc::CallbackServerContext* context,
-    const v1::SampleReplayRequest* request,
+    grpc::CallbackServerContext* context, const v1::SampleReplayRequest* request,
     v1::SampleReplayResponse* response) {
-  return RunUnary(context, auth::Action::kSample, request->fleet_id(),
-                  request->robot_id(),
-                  [this, request, response]() -> absl::Status {
-                    absl::StatusOr<std::vector<core::MemoryTrace>> traces =
-                        state_.engine().SampleReplay(
-                            request->fleet_id(), request->robot_id(),
-                            request->count(), request->request_id());
-                    if (!traces.ok()) return traces.status();
-                    SampledTracesToProto(*traces, response);
-                    return absl::OkStatus();
-                  });
+  return RunUnary(context, "SampleReplay", request, response);
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::QueryPlace(
     grpc::CallbackServerContext* context, const v1::QueryPlaceRequest* request,
     v1::QueryPlaceResponse* response) {
-  return RunUnary(context, auth::Action::kQuery, request->fleet_id(), {},
-                  [this, request, response]() -> absl::Status {
-                    absl::StatusOr<std::vector<engine::PlaceMatch>> matches =
-                        state_.engine().QueryPlace(request->fleet_id(),
-                                                   QueryFromProto(*request));
-                    if (!matches.ok()) return matches.status();
-                    MatchesToProto(*matches, response);
-                    return absl::OkStatus();
-                  });
+  return RunUnary(context, "QueryPlace", request, response);
+}
+
+grpc::ServerUnaryReactor* MemoryServiceImpl::GetStats(
+    grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
+    v1::GetStatsResponse* response) {
+  return RunUnary(context, "GetStats", request, response);
+}
+
+grpc::ServerUnaryReactor* MemoryServiceImpl::ListFleets(
+    grpc::CallbackServerContext* context, const v1::ListFleetsRequest* request,
+    v1::ListFleetsResponse* response) {
+  return RunUnary(context, "ListFleets", request, response);
+}
+
+grpc::ServerUnaryReactor* MemoryServiceImpl::ListClusters(
+    grpc::CallbackServerContext* context, const v1::ListClustersRequest* request,
+    v1::ListClustersResponse* response) {
+  return RunUnary(context, "ListClusters", request, response);
+}
+
+grpc::ServerUnaryReactor* MemoryServiceImpl::ListEvents(
+    grpc::CallbackServerContext* context, const v1::ListEventsRequest* request,
+    v1::ListEventsResponse* response) {
+  return RunUnary(context, "ListEvents", request, response);
+}
+
+grpc::ServerUnaryReactor* MemoryServiceImpl::ListTraces(
+    grpc::CallbackServerContext* context, const v1::ListTracesRequest* request,
+    v1::ListTracesResponse* response) {
+  return RunUnary(context, "ListTraces", request, response);
+}
+
+grpc::ServerUnaryReactor* MemoryServiceImpl::CreateSnapshot(
+    grpc::CallbackServerContext* context, const v1::CreateSnapshotRequest* request,
+    v1::CreateSnapshotResponse* response) {
+  return RunUnary(context, "CreateSnapshot", request, response);
 }
 
 grpc::ServerWriteReactor<v1::MemoryEvent>* MemoryServiceImpl::WatchMemory(
     grpc::CallbackServerContext* context,
     const v1::WatchMemoryRequest* request) {
   return new WatchReactor(&state_, *context, *request);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::GetStats(
-    grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
-    v1::GetStatsResponse* response) {
-  return RunUnary(context, auth::Action::kStats, request->fleet_id(), {},
-                  [this, request, response]() -> absl::Status {
-                    absl::StatusOr<engine::FleetStats> stats =
-                        state_.engine().GetStats(request->fleet_id());
-                    if (!stats.ok()) return stats.status();
-                    StatsToProto(*stats, response);
-                    return absl::OkStatus();
-                  });
 }
 
 }  // namespace fleetmem::transport

@@ -77,15 +77,36 @@ class MemoryServiceImpl final
   grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context,
                                      const v1::GetStatsRequest* request,
                                      v1::GetStatsResponse* response) override;
+  grpc::ServerUnaryReactor* ListFleets(
+      grpc::CallbackServerContext* context,
+      const v1::ListFleetsRequest* request,
+      v1::ListFleetsResponse* response) override;
+  grpc::ServerUnaryReactor* ListClusters(
+      grpc::CallbackServerContext* context,
+      const v1::ListClustersRequest* request,
+      v1::ListClustersResponse* response) override;
+  grpc::ServerUnaryReactor* ListEvents(
+      grpc::CallbackServerContext* context,
+      const v1::ListEventsRequest* request,
+      v1::ListEventsResponse* response) override;
+  grpc::ServerUnaryReactor* ListTraces(
+      grpc::CallbackServerContext* context,
+      const v1::ListTracesRequest* request,
+      v1::ListTracesResponse* response) override;
+  grpc::ServerUnaryReactor* CreateSnapshot(
+      grpc::CallbackServerContext* context,
+      const v1::CreateSnapshotRequest* request,
+      v1::CreateSnapshotResponse* response) override;
 
  private:
-  // On the pool: authorises `action` on `fleet_id` (for `robot_id`), then
-  // finishes the call's default reactor with `work()`'s status; or at once
-  // with UNAVAILABLE / RESOURCE_EXHAUSTED.
-  grpc::ServerUnaryReactor* RunUnary(
-      grpc::CallbackServerContext* context, auth::Action action,
-      std::string fleet_id, std::string robot_id,
-      absl::AnyInvocable<absl::Status() &&> work);
+  // On the pool: authenticates the caller, then finishes the call's default
+  // reactor with the status of MemoryApi::`method` (which authorises and
+  // works); or at once with UNAVAILABLE / RESOURCE_EXHAUSTED. Every answer
+  // is reported to ServiceOptions::on_call.
+  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
+                                     const char* method,
+                                     const google::protobuf::Message* request,
+                                     google::protobuf::Message* response);
 
   ServiceState state_;
 };

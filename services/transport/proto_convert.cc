@@ -116,4 +116,51 @@ void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out) {
   }
 }
 
+void FleetSummaryToProto(std::string_view fleet_id,
+                         const engine::FleetStats& stats,
+                         v1::FleetSummary* out) {
+  out->set_fleet_id(std::string(fleet_id));
+  out->set_traces(stats.traces);
+  out->set_pending_traces(stats.pending_traces);
+  out->set_clusters(stats.clusters);
+  out->set_robots(static_cast<uint32_t>(stats.robots.size()));
+  out->set_last_event_id(stats.last_event_id);
+  out->set_code_dimension(stats.code_dimension);
+  out->set_encoder_version(stats.encoder_version);
+}
+
+namespace {
+
+void TracePlaceToProto(const engine::TracePlace& place, v1::TracePlace* out) {
+  out->set_robot_id(place.robot_id);
+  out->set_seq(place.seq);
+  out->set_domain(place.domain);
+  PlaceToProto(place.place, out->mutable_pose());
+  out->set_reward(place.reward);
+}
+
+}  // namespace
+
+void ClustersToProto(const engine::ClusterListing& listing,
+                     v1::ListClustersResponse* out) {
+  for (const engine::ClusterSummary& cluster : listing.clusters) {
+    v1::ClusterSummary* summary = out->add_clusters();
+    summary->set_cluster_id(cluster.cluster_id);
+    summary->set_robot_id(cluster.robot_id);
+    summary->set_trace_count(cluster.trace_count);
+    PlaceToProto(cluster.centroid_place, summary->mutable_centroid_pose());
+    summary->set_mean_reward(cluster.mean_reward);
+    summary->mutable_robots()->insert(cluster.robots.begin(),
+                                      cluster.robots.end());
+    summary->mutable_domains()->insert(cluster.domains.begin(),
+                                       cluster.domains.end());
+    for (const engine::TracePlace& place : cluster.places) {
+      TracePlaceToProto(place, summary->add_places());
+    }
+  }
+  for (const engine::TracePlace& place : listing.pending) {
+    TracePlaceToProto(place, out->add_pending());
+  }
+}
+
 }  // namespace fleetmem::transport

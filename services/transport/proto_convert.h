@@ -4,6 +4,7 @@
 #define FLEETMEM_SERVICES_TRANSPORT_PROTO_CONVERT_H_
 
 #include <span>
+#include <string_view>
 #include <vector>
 
 #include "fleetmem/v1/memory.pb.h"
@@ -41,6 +42,11 @@ void SampledTracesToProto(std::span<const core::MemoryTrace> traces,
 void MatchesToProto(std::span<const engine::PlaceMatch> matches,
                     v1::QueryPlaceResponse* out);
 void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out);
+void FleetSummaryToProto(std::string_view fleet_id,
+                         const engine::FleetStats& stats,
+                         v1::FleetSummary* out);
+void ClustersToProto(const engine::ClusterListing& listing,
+                     v1::ListClustersResponse* out);
 
 }  // namespace fleetmem::transport
 

@@ -1,5 +1,7 @@
 #include "services/transport/service_state.h"
 
+#include "absl/time/clock.h"
+
 #include "absl/strings/str_cat.h"
 #include "services/transport/watch_reactor.h"
 
@@ -15,6 +17,13 @@ bool ServiceState::AddWatch(WatchReactor* watch) {
 void ServiceState::RemoveWatch(WatchReactor* watch) {
   absl::MutexLock lock(&watches_mu_);
   watches_.erase(watch);
+}
+
+void ServiceState::ObserveCall(std::string_view method, absl::StatusCode code,
+                               absl::Time started) const {
+  if (!options_.on_call) return;
+  options_.on_call("grpc", method, code,
+                   absl::ToDoubleSeconds(absl::Now() - started));
 }
 
 void ServiceState::Shutdown() {

@@ -6,7 +6,9 @@
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <string>
+#include <string_view>
 
 #include "absl/base/thread_annotations.h"
 #include "absl/container/flat_hash_map.h"
@@ -16,13 +18,27 @@
 #include "absl/time/time.h"
 #include "services/auth/authenticator.h"
 #include "services/engine/memory_engine.h"
+#include "services/transport/memory_api.h"
 #include "services/transport/work_queue.h"
 
 namespace fleetmem::transport {
 
 class WatchReactor;
 
+// Observes every finished call, for metrics: the transport ("grpc",
+// "http"), the method ("GetStats"), the status code and the seconds it took.
+using CallObserver =
+    std::function<void(std::string_view transport, std::string_view method,
+                       absl::StatusCode code, double seconds)>;
+
 struct ServiceOptions {
+  // Options of the unary calls (snapshots, pages).
+  ApiOptions api;
+  // Called once per finished call (may be empty).
+  CallObserver on_call;
+  // Called with the size of each upload message stored (may be empty).
+  std::function<void(std::string_view fleet_id, size_t bytes)> on_upload_bytes;
+
   // Upload and watch streams one client (ClientName) may hold open at once;
   // 0 = unlimited. One more is refused with RESOURCE_EXHAUSTED naming the
   // limit max_streams_per_client.
@@ -41,11 +57,18 @@ class ServiceState {
       : engine_(engine),
         work_(work),
         authenticator_(authenticator),
-        options_(options) {}
+        options_(options),
+        api_(engine, options.api) {}
 
   engine::MemoryEngine& engine() const { return *engine_; }
   WorkQueue& work() const { return *work_; }
   const auth::Authenticator* authenticator() const { return authenticator_; }
+  MemoryApi& api() { return api_; }
+  const ServiceOptions& options() const { return options_; }
+
+  // Reports a finished call to options().on_call, if set.
+  void ObserveCall(std::string_view method, absl::StatusCode code,
+                   absl::Time started) const;
 
   bool shutting_down() const {
     return shutting_down_.load(std::memory_order_acquire);
@@ -80,6 +103,7 @@ class ServiceState {
   WorkQueue* const work_;
   const auth::Authenticator* const authenticator_;
   const ServiceOptions options_;
+  MemoryApi api_;
   mutable absl::Mutex streams_mu_;
   absl::flat_hash_map<std::string, size_t> streams_
       ABSL_GUARDED_BY(streams_mu_);

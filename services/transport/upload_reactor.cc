@@ -43,12 +43,12 @@ UploadReactor::UploadReactor(ServiceState* state,
                              grpc::ByteBuffer* response)
     : state_(state), context_(context), response_(response) {
   if (state_->shutting_down()) {
-    Finish(ShuttingDownStatus());
+    Done(ShuttingDownStatus());
     return;
   }
   std::string client = ClientName(*context);
   if (absl::Status slot = state_->AcquireStream(client); !slot.ok()) {
-    Finish(ToGrpcStatus(slot));
+    Done(ToGrpcStatus(slot));
     return;
   }
   client_ = std::move(client);
@@ -63,7 +63,7 @@ std::string UploadReactor::Earlier() const {
 }
 
 void UploadReactor::Fail(const absl::Status& status) {
-  Finish(ToGrpcStatus(absl::Status(
+  Done(ToGrpcStatus(absl::Status(
       status.code(), absl::StrCat("message ", index_, " of the stream: ",
                                   status.message(), Earlier()))));
 }
@@ -72,19 +72,20 @@ void UploadReactor::OnReadDone(bool ok) {
   if (!ok) {
     // The client closed its side (or the call broke): every message read so
     // far is durable, so report the totals.
-    std::string bytes = totals_.SerializeAsString();
-    grpc::Slice slice(bytes);
+    std::string answer = totals_.SerializeAsString();
+    grpc::Slice slice(answer);
     *response_ = grpc::ByteBuffer(&slice, 1);
-    Finish(grpc::Status::OK);
+    Done(grpc::Status::OK);
     return;
   }
   ++index_;
   if (state_->shutting_down()) {
-    Finish(ShuttingDownStatus());
+    Done(ShuttingDownStatus());
     return;
   }
-  absl::StatusOr<v1::UploadTracesRequest> parsed =
-      ParseUploadMessage(Flatten(buffer_));
+  const std::string bytes = Flatten(buffer_);
+  message_bytes_ = bytes.size();
+  absl::StatusOr<v1::UploadTracesRequest> parsed = ParseUploadMessage(bytes);
   buffer_.Clear();
   if (!parsed.ok()) {
     Fail(parsed.status());
@@ -112,14 +113,14 @@ void UploadReactor::OnReadDone(bool ok) {
         state->EndWork();
       })) {
     state_->EndWork();
-    Finish(ServerBusyStatus());
+    Done(ServerBusyStatus());
   }
 }
 
 void UploadReactor::Store() {
   grpc::Status live = CheckCallLive(*context_);
   if (!live.ok()) {
-    Finish(live);
+    Done(live);
     return;
   }
   if (!principal_.has_value()) {
@@ -151,7 +152,17 @@ void UploadReactor::Store() {
     return;
   }
   AddUploadResult(*result, &totals_);
+  if (state_->options().on_upload_bytes) {
+    state_->options().on_upload_bytes(fleet_id_, message_bytes_);
+  }
   StartRead(&buffer_);
+}
+
+void UploadReactor::Done(const grpc::Status& status) {
+  state_->ObserveCall("UploadTraces",
+                      static_cast<absl::StatusCode>(status.error_code()),
+                      started_);
+  Finish(status);
 }
 
 void UploadReactor::OnDone() {

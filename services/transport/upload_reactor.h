@@ -9,6 +9,8 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/server_callback.h"
@@ -57,6 +59,8 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   // Finishes with `status` for the current message: "message N of the
   // stream: ..." plus Earlier().
   void Fail(const absl::Status& status);
+  // Finish, reported to ServiceOptions::on_call.
+  void Done(const grpc::Status& status);
   // What the messages before the current one did, as a suffix.
   std::string Earlier() const;
 
@@ -70,6 +74,8 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   std::string fleet_id_;             // of the first message
   std::optional<auth::Principal> principal_;  // once authenticated
   std::string client_;                        // holds a stream slot if set
+  size_t message_bytes_ = 0;                  // of the message being stored
+  const absl::Time started_ = absl::Now();
 };
 
 }  // namespace fleetmem::transport

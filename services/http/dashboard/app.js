@@ -1,0 +1,355 @@
+// fleetmem dashboard: reads the REST API of the server that serves it
+// (/v1/fleets, /stats, /clusters?includePlaces=true, /events?after=N) and
+// redraws without reloading. No framework, no build step, nothing fetched
+// from elsewhere.
+'use strict';
+
+const state = {
+  token: sessionStorage.getItem('fleetmem-token') || '',
+  fleets: [],
+  fleet: null,           // selected fleet id
+  stats: null,
+  clusters: null,
+  events: [],            // newest last, at most MAX_EVENTS
+  lastEventId: 0,
+  fading: [],            // forgotten clusters: {x, y, r, at}
+  history: [],           // [{t, traces, clusters, forgotten}] from events
+  colourBy: 'robot',
+};
+const MAX_EVENTS = 500;
+const FADE_MS = 12000;
+const PALETTE = ['#2b6cb0', '#dd6b20', '#2f855a', '#805ad5', '#d53f8c', '#319795',
+  '#b7791f', '#4a5568', '#e53e3e', '#38a169', '#3182ce', '#975a16'];
+
+// #token=NAME:SECRET in the address (for scripts) is taken once, then removed.
+(function tokenFromHash() {
+  const match = location.hash.match(/token=([^&]+)/);
+  if (match) {
+    state.token = decodeURIComponent(match[1]);
+    sessionStorage.setItem('fleetmem-token', state.token);
+    history.replaceState(null, '', location.pathname);
+  }
+})();
+
+class AuthError extends Error {}
+
+async function api(path) {
+  const headers = state.token ? { Authorization: 'Bearer ' + state.token } : {};
+  const response = await fetch(path, { headers, cache: 'no-store' });
+  if (response.status === 401) throw new AuthError('credentials needed');
+  const body = await response.json();
+  if (!response.ok) throw new Error(body.message || response.statusText);
+  return body;
+}
+
+const num = (v) => Number(v || 0);
+const fmt = (v) => num(v).toLocaleString('en-US');
+const $ = (id) => document.getElementById(id);
+
+function colourOf(key) {
+  let h = 0;
+  for (const c of key) h = (h * 31 + c.charCodeAt(0)) >>> 0;
+  return PALETTE[h % PALETTE.length];
+}
+
+function setStatus(text, error) {
+  $('status').textContent = text;
+  $('status').className = error ? 'error' : 'muted';
+}
+
+function showLogin(message) {
+  $('login').hidden = false;
+  $('main').hidden = true;
+  $('login-error').textContent = message || '';
+}
+
+$('login-form').addEventListener('submit', (event) => {
+  event.preventDefault();
+  state.token = $('login-token').value.trim();
+  sessionStorage.setItem('fleetmem-token', state.token);
+  $('login').hidden = true;
+  refreshFleets();
+});
+
+$('colour-by').addEventListener('change', (event) => {
+  state.colourBy = event.target.value;
+  drawMap();
+});
+
+function selectFleet(fleetId) {
+  if (state.fleet === fleetId) return;
+  state.fleet = fleetId;
+  state.stats = null;
+  state.clusters = null;
+  state.events = [];
+  state.lastEventId = 0;
+  state.fading = [];
+  state.history = [];
+  $('events').innerHTML = '';
+  renderFleetList();
+  refreshFleet();
+  refreshMap();
+}
+
+function renderFleetList() {
+  const nav = $('fleet-list');
+  nav.innerHTML = '';
+  for (const fleet of state.fleets) {
+    const link = document.createElement('a');
+    link.href = '#';
+    link.dataset.fleet = fleet.fleetId;
+    link.textContent = `${fleet.fleetId} (${fmt(fleet.traces)} traces, ${fleet.robots} robots)`;
+    if (fleet.fleetId === state.fleet) link.className = 'active';
+    link.addEventListener('click', (e) => { e.preventDefault(); selectFleet(fleet.fleetId); });
+    nav.appendChild(link);
+  }
+}
+
+async function refreshFleets() {
+  try {
+    const answer = await api('/v1/fleets');
+    state.fleets = answer.fleets || [];
+    $('login').hidden = true;
+    $('empty').hidden = state.fleets.length > 0;
+    $('main').hidden = state.fleets.length === 0;
+    if (!state.fleet && state.fleets.length > 0) selectFleet(state.fleets[0].fleetId);
+    renderFleetList();
+    setStatus('live · ' + new Date().toLocaleTimeString());
+  } catch (error) {
+    if (error instanceof AuthError) {
+      showLogin(state.token ? 'That token was not accepted.' : '');
+    } else {
+      setStatus('server unreachable: ' + error.message, true);
+    }
+  }
+}
+
+async function refreshFleet() {
+  if (!state.fleet) return;
+  const fleet = state.fleet;
+  try {
+    const stats = await api(`/v1/fleets/${encodeURIComponent(fleet)}/stats`);
+    if (fleet !== state.fleet) return;
+    state.stats = stats;
+    renderStats();
+    await readEvents(fleet);
+  } catch (error) {
+    if (error instanceof AuthError) showLogin(); else setStatus(error.message, true);
+  }
+}
+
+async function readEvents(fleet) {
+  // Pages of up to 1,000 events until caught up.
+  for (let page = 0; page < 20; ++page) {
+    const answer = await api(`/v1/fleets/${encodeURIComponent(fleet)}/events?after=${state.lastEventId}`);
+    if (fleet !== state.fleet) return;
+    const events = answer.events || [];
+    if (events.length === 0) break;
+    const live = state.lastEventId > 0;
+    for (const event of events) addEvent(event, live);
+    state.lastEventId = num(answer.lastEventId);
+  }
+  drawChart();
+}
+
+function addEvent(event, live) {
+  const forgotten = event.type === 'CLUSTER_FORGOTTEN';
+  state.events.push(event);
+  if (state.events.length > MAX_EVENTS) state.events.shift();
+  const last = state.history.length ? state.history[state.history.length - 1]
+    : { traces: 0, clusters: 0, forgotten: 0 };
+  const sign = forgotten ? -1 : 1;
+  state.history.push({
+    t: num(event.timestampNs) / 1e6,
+    traces: last.traces + sign * num(event.traceCount),
+    clusters: last.clusters + sign,
+    forgotten: last.forgotten + (forgotten ? 1 : 0),
+  });
+  if (forgotten && live && event.centroidPose) {
+    state.fading.push({ x: event.centroidPose.x, y: event.centroidPose.y,
+      n: num(event.traceCount), at: performance.now() });
+  }
+  const item = document.createElement('li');
+  item.value = num(event.id);
+  item.className = (forgotten ? 'forgotten' : 'added') + (live ? ' fresh' : '');
+  const when = new Date(num(event.timestampNs) / 1e6).toLocaleTimeString();
+  const pose = event.centroidPose || {};
+  item.textContent = `${when} ${forgotten ? 'forgot' : 'added'} cluster ${event.clusterId}` +
+    ` · ${event.traceCount} traces · robot ${event.robotId}` +
+    (event.domain ? ` · ${event.domain}` : '') +
+    ` · at (${num(pose.x).toFixed(0)}, ${num(pose.y).toFixed(0)})`;
+  const list = $('events');
+  list.insertBefore(item, list.firstChild);
+  while (list.children.length > 200) list.removeChild(list.lastChild);
+  if (live) setTimeout(() => item.classList.remove('fresh'), 3000);
+  $('events-live').textContent = `last event #${event.id}`;
+}
+
+function renderStats() {
+  const s = state.stats;
+  $('stat-traces').textContent = fmt(s.traces);
+  $('stat-pending').textContent = fmt(s.pendingTraces);
+  $('stat-clusters').textContent = fmt(s.clusters);
+  $('stat-bound').textContent = s.maxClusters ? ` / ${fmt(s.maxClusters)}` : '';
+  $('stat-robots').textContent = fmt((s.robots || []).length);
+  $('stat-consolidations').textContent = fmt(s.consolidations);
+  $('stat-forgotten').textContent = fmt(s.clustersForgotten);
+  const total = Math.max(1, num(s.traces));
+  const robots = $('robots').tBodies[0];
+  robots.innerHTML = '';
+  for (const r of s.robots || []) {
+    const row = robots.insertRow();
+    row.dataset.robot = r.robotId;
+    const share = num(r.traces) / total;
+    const name = row.insertCell();
+    name.innerHTML = `<i class="dot" style="display:inline-block;width:.7em;height:.7em;border-radius:50%;margin-right:.3em;background:${colourOf(r.robotId)}"></i>`;
+    name.appendChild(document.createTextNode(r.robotId));
+    for (const v of [r.traces, r.pendingTraces, r.received, r.replayed]) {
+      row.insertCell().textContent = fmt(v);
+    }
+    row.insertCell().innerHTML =
+      `<span class="bar" style="width:${Math.round(share * 80)}px"></span>${(share * 100).toFixed(0)}%`;
+  }
+  const domains = $('domains').tBodies[0];
+  domains.innerHTML = '';
+  for (const d of s.domains || []) {
+    const row = domains.insertRow();
+    row.dataset.domain = d.domain;
+    row.insertCell().textContent = d.domain || '(none)';
+    row.insertCell().textContent = fmt(d.traces);
+    row.insertCell().textContent = fmt(d.pendingTraces);
+  }
+}
+
+async function refreshMap() {
+  if (!state.fleet) return;
+  const fleet = state.fleet;
+  try {
+    const answer = await api(`/v1/fleets/${encodeURIComponent(fleet)}/clusters?includePlaces=true`);
+    if (fleet !== state.fleet) return;
+    state.clusters = answer;
+    drawMap();
+  } catch (error) {
+    if (error instanceof AuthError) showLogin(); else setStatus(error.message, true);
+  }
+}
+
+function drawMap() {
+  const canvas = $('map');
+  const ctx = canvas.getContext('2d');
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const data = state.clusters;
+  if (!data) return;
+  const clusters = data.clusters || [];
+  const pending = data.pending || [];
+  const points = [];
+  for (const c of clusters) for (const p of c.places || []) points.push(p);
+  const all = points.concat(pending);
+  const extent = { x0: Infinity, x1: -Infinity, y0: Infinity, y1: -Infinity };
+  for (const p of all) {
+    const pose = p.pose || {};
+    extent.x0 = Math.min(extent.x0, num(pose.x)); extent.x1 = Math.max(extent.x1, num(pose.x));
+    extent.y0 = Math.min(extent.y0, num(pose.y)); extent.y1 = Math.max(extent.y1, num(pose.y));
+  }
+  for (const f of state.fading) {
+    extent.x0 = Math.min(extent.x0, f.x); extent.x1 = Math.max(extent.x1, f.x);
+    extent.y0 = Math.min(extent.y0, f.y); extent.y1 = Math.max(extent.y1, f.y);
+  }
+  if (!isFinite(extent.x0)) { extent.x0 = 0; extent.x1 = 1; extent.y0 = 0; extent.y1 = 1; }
+  const pad = 30;
+  const spanX = Math.max(1e-6, extent.x1 - extent.x0);
+  const spanY = Math.max(1e-6, extent.y1 - extent.y0);
+  const scale = Math.min((canvas.width - 2 * pad) / spanX, (canvas.height - 2 * pad) / spanY);
+  const sx = (x) => pad + (x - extent.x0) * scale + ((canvas.width - 2 * pad) - spanX * scale) / 2;
+  const sy = (y) => canvas.height - pad - (y - extent.y0) * scale - ((canvas.height - 2 * pad) - spanY * scale) / 2;
+  const keyOf = (p) => (state.colourBy === 'robot' ? p.robotId : (p.domain || '(none)'));
+
+  // Scale bar: a round number of metres.
+  const metres = Math.pow(10, Math.floor(Math.log10(spanX / 4 || 1)));
+  ctx.strokeStyle = '#4a5568'; ctx.fillStyle = '#4a5568'; ctx.lineWidth = 2;
+  ctx.beginPath(); ctx.moveTo(pad, canvas.height - 10); ctx.lineTo(pad + metres * scale, canvas.height - 10); ctx.stroke();
+  ctx.font = '12px system-ui'; ctx.fillText(`${metres} m`, pad + metres * scale + 6, canvas.height - 6);
+
+  const keys = new Map();
+  for (const p of points) {
+    const colour = colourOf(keyOf(p));
+    keys.set(keyOf(p), colour);
+    ctx.fillStyle = colour;
+    ctx.globalAlpha = 0.75;
+    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)), 2.5, 0, 2 * Math.PI); ctx.fill();
+  }
+  ctx.globalAlpha = 1;
+  for (const p of pending) {
+    const colour = colourOf(keyOf(p));
+    keys.set(keyOf(p), colour);
+    ctx.strokeStyle = colour; ctx.lineWidth = 1;
+    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)), 2.5, 0, 2 * Math.PI); ctx.stroke();
+  }
+  for (const c of clusters) {
+    const pose = c.centroidPose || {};
+    ctx.strokeStyle = '#1a202c'; ctx.lineWidth = 1.2; ctx.globalAlpha = 0.6;
+    ctx.beginPath(); ctx.arc(sx(num(pose.x)), sy(num(pose.y)), 3 + 2 * Math.sqrt(num(c.traceCount)), 0, 2 * Math.PI); ctx.stroke();
+  }
+  const now = performance.now();
+  state.fading = state.fading.filter((f) => now - f.at < FADE_MS);
+  for (const f of state.fading) {
+    ctx.globalAlpha = 1 - (now - f.at) / FADE_MS;
+    ctx.strokeStyle = '#c53030'; ctx.lineWidth = 2;
+    ctx.beginPath(); ctx.arc(sx(f.x), sy(f.y), 3 + 2 * Math.sqrt(f.n), 0, 2 * Math.PI); ctx.stroke();
+  }
+  ctx.globalAlpha = 1;
+  canvas.dataset.points = String(points.length + pending.length);
+  canvas.dataset.clusters = String(clusters.length);
+  const legend = $('legend');
+  legend.innerHTML = '';
+  for (const [key, colour] of [...keys.entries()].sort()) {
+    const span = document.createElement('span');
+    span.innerHTML = `<i style="background:${colour}"></i>`;
+    span.appendChild(document.createTextNode(key));
+    legend.appendChild(span);
+  }
+}
+
+function drawChart() {
+  const canvas = $('chart');
+  const ctx = canvas.getContext('2d');
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const h = state.history;
+  if (h.length === 0) return;
+  const pad = { l: 50, r: 50, t: 10, b: 24 };
+  const t0 = h[0].t;
+  const t1 = Math.max(h[h.length - 1].t, Date.now());
+  const maxTraces = Math.max(1, ...h.map((p) => p.traces));
+  const maxCount = Math.max(1, ...h.map((p) => Math.max(p.clusters, p.forgotten)));
+  const x = (t) => pad.l + (t - t0) / Math.max(1, t1 - t0) * (canvas.width - pad.l - pad.r);
+  const yl = (v) => canvas.height - pad.b - v / maxTraces * (canvas.height - pad.t - pad.b);
+  const yr = (v) => canvas.height - pad.b - v / maxCount * (canvas.height - pad.t - pad.b);
+  const line = (colour, y, key) => {
+    ctx.strokeStyle = colour; ctx.lineWidth = 2; ctx.beginPath();
+    h.forEach((p, i) => {
+      // Steps: the value holds until the next event.
+      if (i === 0) ctx.moveTo(x(p.t), y(p[key]));
+      else { ctx.lineTo(x(p.t), y(h[i - 1][key])); ctx.lineTo(x(p.t), y(p[key])); }
+    });
+    ctx.lineTo(x(t1), y(h[h.length - 1][key]));
+    ctx.stroke();
+  };
+  ctx.strokeStyle = '#e2e8f0'; ctx.lineWidth = 1;
+  ctx.strokeRect(pad.l, pad.t, canvas.width - pad.l - pad.r, canvas.height - pad.t - pad.b);
+  line('#2b6cb0', yl, 'traces');
+  line('#2f855a', yr, 'clusters');
+  line('#c53030', yr, 'forgotten');
+  ctx.fillStyle = '#4a5568'; ctx.font = '11px system-ui';
+  ctx.fillText(fmt(maxTraces), 4, pad.t + 10);
+  ctx.fillText('traces', 4, pad.t + 24);
+  ctx.fillText(fmt(maxCount), canvas.width - pad.r + 4, pad.t + 10);
+  ctx.fillText('clusters', canvas.width - pad.r + 4, pad.t + 24);
+  ctx.fillText(new Date(t0).toLocaleTimeString(), pad.l, canvas.height - 6);
+  ctx.fillText('now', canvas.width - pad.r - 20, canvas.height - 6);
+}
+
+refreshFleets();
+setInterval(refreshFleets, 5000);
+setInterval(refreshFleet, 1000);
+setInterval(refreshMap, 4000);
+setInterval(() => { if (state.fading.length) drawMap(); }, 200);

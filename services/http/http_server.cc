@@ -1,0 +1,221 @@
+#include "services/http/http_server.h"
+
+#include <openssl/err.h>
+#include <openssl/ssl.h>
+#include <openssl/x509.h>
+
+#include <fstream>
+#include <utility>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "httplib.h"
+#include "services/http/dashboard_assets.h"
+
+namespace fleetmem::http {
+namespace {
+
+void Answer(const HttpResponse& from, httplib::Response& to) {
+  to.status = from.status;
+  for (const auto& [name, value] : from.headers) to.set_header(name, value);
+  to.set_content(from.body, from.content_type.c_str());
+}
+
+// The common name of the client certificate TLS verified, if any.
+std::optional<std::string> CertificateCommonName(const httplib::Request& req) {
+  if (req.ssl == nullptr) return std::nullopt;
+  if (SSL_get_verify_result(req.ssl) != X509_V_OK) return std::nullopt;
+  X509* certificate = SSL_get_peer_certificate(req.ssl);
+  if (certificate == nullptr) return std::nullopt;
+  char name[256] = {0};
+  const int length = X509_NAME_get_text_by_NID(
+      X509_get_subject_name(certificate), NID_commonName, name, sizeof(name));
+  X509_free(certificate);
+  if (length <= 0) return std::nullopt;
+  return std::string(name, static_cast<size_t>(length));
+}
+
+HttpRequest FromHttplib(const httplib::Request& req) {
+  HttpRequest request;
+  request.method = req.method;
+  request.path = req.path;
+  // From the target's query only: httplib also puts the fields of a
+  // form-encoded body into req.params, and a body is never a query here.
+  if (const size_t question = req.target.find('?');
+      question != std::string::npos) {
+    httplib::Params params;
+    httplib::detail::parse_query_text(req.target.substr(question + 1), params);
+    for (const auto& [name, value] : params) request.query.emplace(name, value);
+  }
+  request.body = req.body;
+  if (req.has_header("Authorization")) {
+    request.authorization = req.get_header_value("Authorization");
+  }
+  request.certificate_common_name = CertificateCommonName(req);
+  return request;
+}
+
+absl::Status CheckReadable(const std::string& path) {
+  if (path.empty()) return absl::OkStatus();
+  if (!std::ifstream(path)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("TLS file ", path, ": cannot be read"));
+  }
+  return absl::OkStatus();
+}
+
+std::string OpenSslError() {
+  const unsigned long code = ERR_get_error();
+  if (code == 0) return "unknown OpenSSL error";
+  char text[256];
+  ERR_error_string_n(code, text, sizeof(text));
+  return text;
+}
+
+absl::StatusOr<std::unique_ptr<httplib::Server>> MakeServer(
+    const HttpServerOptions& options) {
+  if (options.tls_cert_file.empty()) {
+    return std::make_unique<httplib::Server>();
+  }
+  for (const std::string* path : {&options.tls_cert_file, &options.tls_key_file,
+                                  &options.tls_client_ca_file}) {
+    if (absl::Status readable = CheckReadable(*path); !readable.ok()) {
+      return readable;
+    }
+  }
+  std::string error;
+  auto server = std::make_unique<httplib::SSLServer>([&](SSL_CTX& context) {
+    if (SSL_CTX_use_certificate_chain_file(&context,
+                                           options.tls_cert_file.c_str()) != 1 ||
+        SSL_CTX_use_PrivateKey_file(&context, options.tls_key_file.c_str(),
+                                    SSL_FILETYPE_PEM) != 1 ||
+        SSL_CTX_check_private_key(&context) != 1) {
+      error = absl::StrCat("TLS certificate ", options.tls_cert_file,
+                           " or key ", options.tls_key_file, ": ",
+                           OpenSslError());
+      return false;
+    }
+    SSL_CTX_set_min_proto_version(&context, TLS1_2_VERSION);
+    if (!options.tls_client_ca_file.empty()) {
+      if (SSL_CTX_load_verify_locations(
+              &context, options.tls_client_ca_file.c_str(), nullptr) != 1) {
+        error = absl::StrCat("TLS client CA ", options.tls_client_ca_file,
+                             ": ", OpenSslError());
+        return false;
+      }
+      // Without "require", a client without a certificate may still connect
+      // and present a token; one with a certificate must present a valid one.
+      SSL_CTX_set_verify(&context,
+                         SSL_VERIFY_PEER |
+                             (options.require_client_certificate
+                                  ? SSL_VERIFY_FAIL_IF_NO_PEER_CERT
+                                  : 0),
+                         nullptr);
+    }
+    return true;
+  });
+  if (!server->is_valid()) {
+    return absl::InvalidArgumentError(
+        error.empty() ? "TLS context cannot be set up" : error);
+  }
+  return server;
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
+    const HttpServerOptions& options, HttpEndpoints endpoints) {
+  const size_t colon = options.listen.rfind(':');
+  int port = -1;
+  if (colon == std::string::npos ||
+      !absl::SimpleAtoi(options.listen.substr(colon + 1), &port) || port < 0 ||
+      port > 65535) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "http listen address \"", options.listen, "\" is not HOST:PORT"));
+  }
+  std::string host = options.listen.substr(0, colon);
+  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
+    host = host.substr(1, host.size() - 2);
+  }
+  absl::StatusOr<std::unique_ptr<httplib::Server>> made = MakeServer(options);
+  if (!made.ok()) return made.status();
+  std::unique_ptr<HttpServer> server(
+      new HttpServer(std::move(*made), std::move(endpoints)));
+  httplib::Server& http = *server->server_;
+  const size_t threads = options.threads == 0 ? 8 : options.threads;
+  http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
+  http.set_payload_max_length(options.max_body_bytes);
+  http.set_keep_alive_max_count(100);
+
+  HttpEndpoints* e = &server->endpoints_;
+  http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) {
+    res.set_content("ok\n", "text/plain");
+  });
+  http.Get("/readyz", [e](const httplib::Request&, httplib::Response& res) {
+    const bool ready = !e->ready || e->ready();
+    res.status = ready ? 200 : 503;
+    res.set_content(ready ? "ready\n" : "not ready\n", "text/plain");
+  });
+  http.Get("/metrics", [e](const httplib::Request&, httplib::Response& res) {
+    if (!e->metrics) {
+      res.status = 404;
+      return;
+    }
+    res.set_content(e->metrics(), "text/plain; version=0.0.4; charset=utf-8");
+  });
+  for (const EmbeddedFile& file : DashboardFiles()) {
+    auto serve = [&file](const httplib::Request&, httplib::Response& res) {
+      res.set_content(reinterpret_cast<const char*>(file.data), file.size,
+                      file.content_type);
+      res.set_header("Cache-Control", "no-cache");
+    };
+    http.Get(file.path, serve);
+    if (std::string(file.path) == "/index.html") http.Get("/", serve);
+  }
+  auto api = [e](const httplib::Request& req, httplib::Response& res) {
+    Answer(e->gateway->Handle(FromHttplib(req)), res);
+  };
+  http.Get("/v1/.*", api);
+  http.Post("/v1/.*", api);
+  http.Put("/v1/.*", api);
+  http.Delete("/v1/.*", api);
+  http.Patch("/v1/.*", api);
+  // Bodies over the limit, unknown paths: JSON errors like the API's.
+  http.set_error_handler([](const httplib::Request& req, httplib::Response& res) {
+    if (!res.body.empty()) return;
+    absl::Status status =
+        res.status == 413
+            ? absl::ResourceExhaustedError(
+                  "request body is over the server's limit (max_body_bytes)")
+            : absl::NotFoundError(absl::StrCat("no such page: ", req.path));
+    HttpResponse error = ErrorResponse(status);
+    res.set_content(error.body, error.content_type.c_str());
+  });
+
+  server->port_ = host.empty() ? -1 : 0;
+  if (port == 0) {
+    server->port_ = http.bind_to_any_port(host);
+  } else {
+    server->port_ = http.bind_to_port(host, port) ? port : -1;
+  }
+  if (server->port_ <= 0) {
+    return absl::UnavailableError(
+        absl::StrCat("cannot listen for HTTP on ", options.listen));
+  }
+  server->thread_ = std::thread([&http] { http.listen_after_bind(); });
+  return server;
+}
+
+HttpServer::HttpServer(std::unique_ptr<httplib::Server> server,
+                       HttpEndpoints endpoints)
+    : server_(std::move(server)), endpoints_(std::move(endpoints)) {}
+
+HttpServer::~HttpServer() { Stop(); }
+
+void HttpServer::Stop() {
+  if (!thread_.joinable()) return;
+  server_->stop();
+  thread_.join();
+}
+
+}  // namespace fleetmem::http

@@ -1,0 +1,82 @@
+// The server's one HTTP port (--http-listen), on cpp-httplib: the REST/JSON
+// gateway under /v1/, /metrics (Prometheus text format), /healthz and
+// /readyz (Kubernetes probes) and the dashboard (/ and its files, embedded
+// in the binary). TLS, when the server has a certificate, with the same
+// certificate, key and client CA as gRPC.
+//
+// Access: /v1/ applies the server's identity and roles (401, 403 as for
+// gRPC). /healthz, /readyz, /metrics and the dashboard's static files need no
+// credentials: the probes and Prometheus scrape without them, /metrics holds
+// counts per fleet id but no codes or places, and the page holds no data (it
+// asks the person for a reader token when the API answers 401).
+#ifndef FLEETMEM_SERVICES_HTTP_HTTP_SERVER_H_
+#define FLEETMEM_SERVICES_HTTP_HTTP_SERVER_H_
+
+#include <functional>
+#include <memory>
+#include <string>
+#include <thread>
+
+#include "absl/status/statusor.h"
+#include "services/http/rest_gateway.h"
+
+namespace httplib {
+class Server;
+}  // namespace httplib
+
+namespace fleetmem::http {
+
+struct HttpServerOptions {
+  // HOST:PORT; port 0 picks a free one (see HttpServer::port()).
+  std::string listen;
+  // TLS (PEM files) when tls_cert_file is set; client certificates are
+  // verified against tls_client_ca_file when set, and required when
+  // require_client_certificate. Loaded at start (restart to renew).
+  std::string tls_cert_file;
+  std::string tls_key_file;
+  std::string tls_client_ca_file;
+  bool require_client_certificate = false;
+  // Largest request body; larger ones get 413 before they are read.
+  size_t max_body_bytes = 4 << 20;
+  // Threads serving connections (each call runs on one; engine calls block
+  // on fsync). 0 = 8.
+  size_t threads = 0;
+};
+
+// What the server answers besides the REST routes.
+struct HttpEndpoints {
+  RestGateway* gateway = nullptr;  // required
+  // The /metrics body; 404 if empty.
+  std::function<std::string()> metrics;
+  // /readyz: true once the store is open and the server serves (and until
+  // shutdown begins).
+  std::function<bool()> ready;
+};
+
+class HttpServer {
+ public:
+  // Binds and starts serving on a background thread. INVALID_ARGUMENT for a
+  // malformed address or unreadable TLS files, UNAVAILABLE if the address
+  // cannot be bound.
+  static absl::StatusOr<std::unique_ptr<HttpServer>> Start(
+      const HttpServerOptions& options, HttpEndpoints endpoints);
+  ~HttpServer();  // Stop()
+
+  // The bound port.
+  int port() const { return port_; }
+  // Stops accepting, finishes the requests being served, joins the thread.
+  // Idempotent.
+  void Stop();
+
+ private:
+  HttpServer(std::unique_ptr<httplib::Server> server, HttpEndpoints endpoints);
+
+  std::unique_ptr<httplib::Server> server_;
+  HttpEndpoints endpoints_;
+  int port_ = 0;
+  std::thread thread_;
+};
+
+}  // namespace fleetmem::http
+
+#endif  // FLEETMEM_SERVICES_HTTP_HTTP_SERVER_H_

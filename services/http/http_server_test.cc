@@ -1,0 +1,113 @@
+#include "services/http/http_server.h"
+
+#include <memory>
+#include <string>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "httplib.h"
+#include "services/engine/memory_engine.h"
+#include "services/http/dashboard_assets.h"
+#include "services/index/exact_index.h"
+#include "services/storage/in_memory_store.h"
+
+namespace fleetmem::http {
+namespace {
+
+using ::testing::HasSubstr;
+
+class HttpServerTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    auto engine = engine::MemoryEngine::Open(
+        {}, store_.get(),
+        [](size_t dimension) { return index::NewExactIndex(dimension); });
+    ASSERT_TRUE(engine.ok());
+    engine_ = std::move(*engine);
+    api_ = std::make_unique<transport::MemoryApi>(engine_.get());
+    auto gateway = RestGateway::Create(api_.get(), nullptr, nullptr);
+    ASSERT_TRUE(gateway.ok());
+    gateway_ = std::move(*gateway);
+    HttpServerOptions options;
+    options.listen = "127.0.0.1:0";
+    options.max_body_bytes = 1000;
+    auto server = HttpServer::Start(
+        options, {gateway_.get(), [] { return std::string("up 1\n"); },
+                  [this] { return ready_; }});
+    ASSERT_TRUE(server.ok()) << server.status();
+    server_ = std::move(*server);
+    client_ = std::make_unique<httplib::Client>("127.0.0.1", server_->port());
+  }
+
+  std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
+  std::unique_ptr<engine::MemoryEngine> engine_;
+  std::unique_ptr<transport::MemoryApi> api_;
+  std::unique_ptr<RestGateway> gateway_;
+  std::unique_ptr<HttpServer> server_;
+  std::unique_ptr<httplib::Client> client_;
+  bool ready_ = true;
+};
+
+TEST_F(HttpServerTest, ProbesMetricsDashboardAndApi) {
+  auto health = client_->Get("/healthz");
+  ASSERT_TRUE(health);
+  EXPECT_EQ(health->status, 200);
+  EXPECT_EQ(client_->Get("/readyz")->status, 200);
+  ready_ = false;
+  EXPECT_EQ(client_->Get("/readyz")->status, 503);
+  EXPECT_EQ(client_->Get("/metrics")->body, "up 1\n");
+  auto page = client_->Get("/");
+  ASSERT_TRUE(page);
+  EXPECT_EQ(page->status, 200);
+  EXPECT_THAT(page->body, HasSubstr("<title>fleetmem"));
+  EXPECT_THAT(page->get_header_value("Content-Type"), HasSubstr("text/html"));
+  EXPECT_EQ(client_->Get("/app.js")->status, 200);
+  auto fleets = client_->Get("/v1/fleets");
+  ASSERT_TRUE(fleets);
+  EXPECT_EQ(fleets->status, 200);
+  EXPECT_EQ(fleets->body, "{\"fleets\":[]}");
+  auto missing = client_->Get("/nothing-here");
+  EXPECT_EQ(missing->status, 404);
+  EXPECT_THAT(missing->body, HasSubstr("NOT_FOUND"));
+}
+
+TEST_F(HttpServerTest, OversizedBodyIsRefused) {
+  auto response = client_->Post("/v1/fleets/a/query", std::string(5000, ' '),
+                                "application/json");
+  ASSERT_TRUE(response);
+  EXPECT_EQ(response->status, 413);
+}
+
+TEST_F(HttpServerTest, EveryDashboardFileIsServed) {
+  ASSERT_GE(DashboardFiles().size(), 3u);
+  for (const EmbeddedFile& file : DashboardFiles()) {
+    auto response = client_->Get(file.path);
+    ASSERT_TRUE(response) << file.path;
+    EXPECT_EQ(response->status, 200) << file.path;
+    EXPECT_EQ(response->body.size(), file.size) << file.path;
+  }
+}
+
+TEST(HttpServerStartTest, BadAddressAndTlsFiles) {
+  std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
+  auto engine = engine::MemoryEngine::Open(
+      {}, store.get(),
+      [](size_t dimension) { return index::NewExactIndex(dimension); });
+  ASSERT_TRUE(engine.ok());
+  transport::MemoryApi api(engine->get());
+  auto gateway = RestGateway::Create(&api, nullptr, nullptr);
+  ASSERT_TRUE(gateway.ok());
+  HttpServerOptions options;
+  options.listen = "nonsense";
+  EXPECT_EQ(HttpServer::Start(options, {gateway->get()}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  options.listen = "127.0.0.1:0";
+  options.tls_cert_file = "/nonexistent/cert.pem";
+  options.tls_key_file = "/nonexistent/key.pem";
+  absl::Status status = HttpServer::Start(options, {gateway->get()}).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(status.message(), HasSubstr("/nonexistent/cert.pem"));
+}
+
+}  // namespace
+}  // namespace fleetmem::http

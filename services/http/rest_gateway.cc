@@ -1,0 +1,395 @@
+#include "services/http/rest_gateway.h"
+
+#include <memory>
+#include <utility>
+
+#include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "google/api/annotations.pb.h"
+#include "google/protobuf/message.h"
+#include "google/protobuf/util/json_util.h"
+#include "services/http/http_error.pb.h"
+
+namespace fleetmem::http {
+namespace {
+
+using google::protobuf::Descriptor;
+using google::protobuf::FieldDescriptor;
+using google::protobuf::Message;
+using google::protobuf::MethodDescriptor;
+using google::protobuf::Reflection;
+
+constexpr char kService[] = "fleetmem.v1.MemoryService";
+constexpr char kApiPrefix[] = "/v1/";
+
+std::vector<std::string> Segments(const std::string& path) {
+  return absl::StrSplit(path, '/', absl::SkipEmpty());
+}
+
+bool IsVariable(const std::string& segment) {
+  return segment.size() > 2 && segment.front() == '{' && segment.back() == '}';
+}
+
+std::string VariableName(const std::string& segment) {
+  return segment.substr(1, segment.size() - 2);
+}
+
+// Matches `path` against `pattern`; the variables' values on success.
+std::optional<std::map<std::string, std::string>> Match(
+    const std::string& pattern, const std::vector<std::string>& path) {
+  const std::vector<std::string> want = Segments(pattern);
+  if (want.size() != path.size()) return std::nullopt;
+  std::map<std::string, std::string> variables;
+  for (size_t i = 0; i < want.size(); ++i) {
+    if (IsVariable(want[i])) {
+      variables[VariableName(want[i])] = path[i];
+    } else if (want[i] != path[i]) {
+      return std::nullopt;
+    }
+  }
+  return variables;
+}
+
+HttpResponse JsonResponse(int status, std::string body) {
+  HttpResponse response;
+  response.status = status;
+  response.body = std::move(body);
+  return response;
+}
+
+// Sets the scalar field `field` of `message` from the text `value` (a query
+// parameter); INVALID_ARGUMENT naming the parameter if it does not parse.
+absl::Status SetScalar(const std::string& parameter, const std::string& value,
+                       const FieldDescriptor& field, Message* message) {
+  const Reflection& r = *message->GetReflection();
+  auto bad = [&](absl::string_view expected) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("query parameter ", parameter, ": \"", value,
+                     "\" is not ", expected));
+  };
+  switch (field.cpp_type()) {
+    case FieldDescriptor::CPPTYPE_STRING:
+      r.SetString(message, &field, value);
+      return absl::OkStatus();
+    case FieldDescriptor::CPPTYPE_UINT32: {
+      uint32_t v = 0;
+      if (!absl::SimpleAtoi(value, &v)) return bad("an unsigned 32-bit number");
+      r.SetUInt32(message, &field, v);
+      return absl::OkStatus();
+    }
+    case FieldDescriptor::CPPTYPE_UINT64: {
+      uint64_t v = 0;
+      if (!absl::SimpleAtoi(value, &v)) return bad("an unsigned 64-bit number");
+      r.SetUInt64(message, &field, v);
+      return absl::OkStatus();
+    }
+    case FieldDescriptor::CPPTYPE_INT32: {
+      int32_t v = 0;
+      if (!absl::SimpleAtoi(value, &v)) return bad("a 32-bit number");
+      r.SetInt32(message, &field, v);
+      return absl::OkStatus();
+    }
+    case FieldDescriptor::CPPTYPE_INT64: {
+      int64_t v = 0;
+      if (!absl::SimpleAtoi(value, &v)) return bad("a 64-bit number");
+      r.SetInt64(message, &field, v);
+      return absl::OkStatus();
+    }
+    case FieldDescriptor::CPPTYPE_DOUBLE: {
+      double v = 0;
+      if (!absl::SimpleAtod(value, &v)) return bad("a number");
+      r.SetDouble(message, &field, v);
+      return absl::OkStatus();
+    }
+    case FieldDescriptor::CPPTYPE_FLOAT: {
+      float v = 0;
+      if (!absl::SimpleAtof(value, &v)) return bad("a number");
+      r.SetFloat(message, &field, v);
+      return absl::OkStatus();
+    }
+    case FieldDescriptor::CPPTYPE_BOOL: {
+      bool v = false;
+      if (!absl::SimpleAtob(value, &v)) return bad("true or false");
+      r.SetBool(message, &field, v);
+      return absl::OkStatus();
+    }
+    default:
+      return absl::InvalidArgumentError(absl::StrCat(
+          "query parameter ", parameter,
+          ": this field cannot be set from the query; use POST with a body"));
+  }
+}
+
+const FieldDescriptor* FindField(const Descriptor& type,
+                                 const std::string& name) {
+  const FieldDescriptor* field = type.FindFieldByName(name);
+  if (field == nullptr) field = type.FindFieldByCamelcaseName(name);
+  return field;
+}
+
+}  // namespace
+
+int HttpStatusFor(absl::StatusCode code) {
+  switch (code) {
+    case absl::StatusCode::kOk:
+      return 200;
+    case absl::StatusCode::kInvalidArgument:
+    case absl::StatusCode::kFailedPrecondition:
+    case absl::StatusCode::kOutOfRange:
+      return 400;
+    case absl::StatusCode::kUnauthenticated:
+      return 401;
+    case absl::StatusCode::kPermissionDenied:
+      return 403;
+    case absl::StatusCode::kNotFound:
+      return 404;
+    case absl::StatusCode::kAlreadyExists:
+    case absl::StatusCode::kAborted:
+      return 409;
+    case absl::StatusCode::kResourceExhausted:
+      return 429;
+    case absl::StatusCode::kCancelled:
+      return 499;
+    case absl::StatusCode::kUnimplemented:
+      return 501;
+    case absl::StatusCode::kUnavailable:
+      return 503;
+    case absl::StatusCode::kDeadlineExceeded:
+      return 504;
+    default:
+      return 500;
+  }
+}
+
+HttpResponse ErrorResponse(const absl::Status& status) {
+  HttpError error;
+  error.set_code(static_cast<int32_t>(status.code()));
+  error.set_status(absl::StatusCodeToString(status.code()));
+  error.set_message(std::string(status.message()));
+  std::string body;
+  // Cannot fail: the message has only scalar fields.
+  (void)google::protobuf::util::MessageToJsonString(error, &body);
+  HttpResponse response = JsonResponse(HttpStatusFor(status.code()), body);
+  if (status.code() == absl::StatusCode::kUnauthenticated) {
+    response.headers.emplace_back("WWW-Authenticate",
+                                  "Bearer realm=\"fleetmem\"");
+  }
+  return response;
+}
+
+absl::StatusOr<std::vector<Route>> RoutesFromProto(
+    const transport::MemoryApi& api) {
+  const google::protobuf::ServiceDescriptor* service =
+      google::protobuf::DescriptorPool::generated_pool()->FindServiceByName(
+          kService);
+  if (service == nullptr) {
+    return absl::InternalError(absl::StrCat(kService, " is not linked in"));
+  }
+  std::vector<Route> routes;
+  for (int i = 0; i < service->method_count(); ++i) {
+    const MethodDescriptor* method = service->method(i);
+    if (!method->options().HasExtension(google::api::http)) continue;
+    if (!api.Serves(method->name())) continue;
+    const google::api::HttpRule& rule =
+        method->options().GetExtension(google::api::http);
+    Route route;
+    route.method = method;
+    switch (rule.pattern_case()) {
+      case google::api::HttpRule::kGet:
+        route.verb = "GET";
+        route.pattern = rule.get();
+        break;
+      case google::api::HttpRule::kPost:
+        route.verb = "POST";
+        route.pattern = rule.post();
+        break;
+      default:
+        return absl::InvalidArgumentError(absl::StrCat(
+            method->full_name(), ": only get and post routes are served"));
+    }
+    if (!rule.body().empty() && rule.body() != "*") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          method->full_name(), ": body must be \"*\" or empty"));
+    }
+    route.body = rule.body() == "*";
+    for (const std::string& segment : Segments(route.pattern)) {
+      if (!IsVariable(segment)) continue;
+      const FieldDescriptor* field =
+          method->input_type()->FindFieldByName(VariableName(segment));
+      if (field == nullptr || field->is_repeated() ||
+          field->cpp_type() != FieldDescriptor::CPPTYPE_STRING) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(method->full_name(), ": path variable ", segment,
+                         " is not a string field of the request"));
+      }
+    }
+    routes.push_back(std::move(route));
+  }
+  return routes;
+}
+
+absl::StatusOr<std::unique_ptr<RestGateway>> RestGateway::Create(
+    transport::MemoryApi* api, const auth::Authenticator* authenticator,
+    transport::CallObserver on_call, RestOptions options) {
+  absl::StatusOr<std::vector<Route>> routes = RoutesFromProto(*api);
+  if (!routes.ok()) return routes.status();
+  return std::unique_ptr<RestGateway>(new RestGateway(
+      api, authenticator, std::move(on_call), options, std::move(*routes)));
+}
+
+RestGateway::RestGateway(transport::MemoryApi* api,
+                         const auth::Authenticator* authenticator,
+                         transport::CallObserver on_call, RestOptions options,
+                         std::vector<Route> routes)
+    : api_(api),
+      authenticator_(authenticator),
+      on_call_(std::move(on_call)),
+      options_(options),
+      routes_(std::move(routes)) {}
+
+bool RestGateway::IsApiPath(const std::string& path) {
+  return absl::StartsWith(path, kApiPrefix);
+}
+
+absl::StatusOr<auth::Principal> RestGateway::Authenticate(
+    const HttpRequest& request) const {
+  if (authenticator_ == nullptr) return auth::Principal::Anonymous();
+  auth::PresentedCredentials presented;
+  if (request.authorization.has_value()) {
+    constexpr absl::string_view kBearer = "Bearer ";
+    const std::string& value = *request.authorization;
+    // A malformed header is presented as is and fails the check.
+    presented.token = absl::StartsWith(value, kBearer)
+                          ? value.substr(kBearer.size())
+                          : value;
+  }
+  presented.certificate_common_name = request.certificate_common_name;
+  return authenticator_->Authenticate(presented);
+}
+
+HttpResponse RestGateway::Handle(const HttpRequest& request) const {
+  const std::vector<std::string> path = Segments(request.path);
+  bool path_known = false;
+  for (const Route& route : routes_) {
+    std::optional<std::map<std::string, std::string>> variables =
+        Match(route.pattern, path);
+    if (!variables.has_value()) continue;
+    path_known = true;
+    if (route.verb != request.method) continue;
+    const absl::Time started = absl::Now();
+    absl::StatusCode code = absl::StatusCode::kOk;
+    HttpResponse response = Serve(route, *variables, request, &code);
+    if (on_call_) {
+      on_call_("http", route.method->name(), code,
+               absl::ToDoubleSeconds(absl::Now() - started));
+    }
+    return response;
+  }
+  if (path_known) {
+    HttpResponse response = ErrorResponse(absl::InvalidArgumentError(
+        absl::StrCat("method ", request.method, " is not allowed on ",
+                     request.path)));
+    response.status = 405;
+    return response;
+  }
+  return ErrorResponse(absl::NotFoundError(absl::StrCat(
+      "no route ", request.method, " ", request.path,
+      " (docs/operations.md lists the REST routes)")));
+}
+
+HttpResponse RestGateway::Serve(
+    const Route& route, const std::map<std::string, std::string>& variables,
+    const HttpRequest& request, absl::StatusCode* code) const {
+  auto fail = [code](const absl::Status& status) -> HttpResponse {
+    *code = status.code();
+    return ErrorResponse(status);
+  };
+  *code = absl::StatusCode::kOk;
+  if (request.body.size() > options_.max_body_bytes) {
+    HttpResponse response = fail(absl::ResourceExhaustedError(
+        absl::StrCat("request body of ", request.body.size(),
+                     " bytes is over the limit of ", options_.max_body_bytes)));
+    response.status = 413;
+    return response;
+  }
+  absl::StatusOr<auth::Principal> caller = Authenticate(request);
+  if (!caller.ok()) return fail(caller.status());
+
+  const google::protobuf::Message* prototype =
+      google::protobuf::MessageFactory::generated_factory()->GetPrototype(
+          route.method->input_type());
+  std::unique_ptr<Message> message(prototype->New());
+  const Descriptor& type = *route.method->input_type();
+  if (route.body) {
+    const bool blank = std::all_of(
+        request.body.begin(), request.body.end(),
+        [](char c) { return absl::ascii_isspace(static_cast<unsigned char>(c)); });
+    if (!blank) {
+      google::protobuf::util::JsonParseOptions options;
+      options.ignore_unknown_fields = false;
+      const auto parsed = google::protobuf::util::JsonStringToMessage(
+          request.body, message.get(), options);
+      if (!parsed.ok()) {
+        return fail(absl::InvalidArgumentError(
+            absl::StrCat("request body: ", std::string(parsed.message()))));
+      }
+    }
+  } else if (!request.body.empty()) {
+    return fail(absl::InvalidArgumentError(absl::StrCat(
+        request.method, " ", route.pattern,
+        " takes no body; pass fields as query parameters")));
+  }
+  const Reflection& reflection = *message->GetReflection();
+  for (const auto& [name, value] : variables) {
+    const FieldDescriptor* field = type.FindFieldByName(name);
+    const std::string in_body = reflection.GetString(*message, field);
+    if (!in_body.empty() && in_body != value) {
+      return fail(absl::InvalidArgumentError(
+          absl::StrCat(name, ": the body says \"", in_body, "\", the path \"",
+                       value, "\"")));
+    }
+    reflection.SetString(message.get(), field, value);
+  }
+  for (const auto& [name, value] : request.query) {
+    const FieldDescriptor* field = FindField(type, name);
+    if (field == nullptr || field->is_repeated() ||
+        variables.contains(field->name())) {
+      return fail(absl::InvalidArgumentError(
+          absl::StrCat("query parameter ", name, ": not a field of ",
+                       type.full_name())));
+    }
+    if (route.body) {
+      return fail(absl::InvalidArgumentError(absl::StrCat(
+          "query parameter ", name, ": ", route.pattern,
+          " takes its fields in the JSON body")));
+    }
+    absl::Status set = SetScalar(name, value, *field, message.get());
+    if (!set.ok()) return fail(set);
+  }
+
+  const google::protobuf::Message* response_prototype =
+      google::protobuf::MessageFactory::generated_factory()->GetPrototype(
+          route.method->output_type());
+  std::unique_ptr<Message> answer(response_prototype->New());
+  absl::Status status =
+      api_->Call(route.method->name(), *caller, *message, answer.get());
+  if (!status.ok()) return fail(status);
+  google::protobuf::util::JsonPrintOptions print;
+  print.always_print_primitive_fields = true;
+  std::string body;
+  const auto printed =
+      google::protobuf::util::MessageToJsonString(*answer, &body, print);
+  if (!printed.ok()) {
+    return fail(absl::InternalError(absl::StrCat(
+        "answer cannot be written as JSON: ", std::string(printed.message()),
+        " (the call itself succeeded)")));
+  }
+  return JsonResponse(200, std::move(body));
+}
+
+}  // namespace fleetmem::http

@@ -1,0 +1,117 @@
+// REST/JSON for fleetmem.v1.MemoryService. The route table is read from the
+// google.api.http options of the RPCs in memory.proto (so routes and RPCs
+// cannot drift apart), each request goes through the same MemoryApi as gRPC,
+// and messages use protobuf's canonical JSON mapping (JsonStringToMessage /
+// MessageToJsonString). Transport-free: HttpServer adapts cpp-httplib to
+// Handle, and tests and the fuzzer call Handle directly.
+//
+// Request building, per route: the JSON body (routes with body "*": an
+// object of the request message; unknown fields and wrong types are 400
+// naming the field), then the path variables ({fleet_id}), then the query
+// parameters (GET: each a scalar field of the request, by its JSON or proto
+// name). Errors are {"code": <google.rpc code>, "status": "NOT_FOUND",
+// "message": <the gRPC message>} with the usual HTTP status.
+#ifndef FLEETMEM_SERVICES_HTTP_REST_GATEWAY_H_
+#define FLEETMEM_SERVICES_HTTP_REST_GATEWAY_H_
+
+#include <cstddef>
+#include <map>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "google/protobuf/descriptor.h"
+#include "services/auth/authenticator.h"
+#include "services/transport/memory_api.h"
+#include "services/transport/service_state.h"
+
+namespace fleetmem::http {
+
+struct HttpRequest {
+  std::string method;  // "GET", "POST", ...
+  std::string path;    // decoded, without the query
+  std::multimap<std::string, std::string> query;  // decoded
+  std::string body;
+  // The Authorization header, if sent.
+  std::optional<std::string> authorization;
+  // The common name of a client certificate verified by TLS.
+  std::optional<std::string> certificate_common_name;
+};
+
+struct HttpResponse {
+  int status = 200;
+  std::string content_type = "application/json";
+  std::string body;
+  std::vector<std::pair<std::string, std::string>> headers;
+};
+
+struct RestOptions {
+  // Largest request body accepted; a larger one is 413 (the HTTP server
+  // refuses it before reading it all).
+  size_t max_body_bytes = 4 << 20;
+};
+
+// One route of the table.
+struct Route {
+  std::string verb;     // "GET" or "POST"
+  std::string pattern;  // "/v1/fleets/{fleet_id}/stats"
+  bool body = false;    // the request message is the JSON body
+  const google::protobuf::MethodDescriptor* method = nullptr;
+};
+
+// The routes of every MemoryService RPC with a google.api.http option that
+// `api` serves, in proto order. INVALID_ARGUMENT for an option this gateway
+// cannot serve (another verb, a path variable that is not a string field).
+absl::StatusOr<std::vector<Route>> RoutesFromProto(
+    const transport::MemoryApi& api);
+
+// google.rpc code -> HTTP status (grpc-gateway's mapping).
+int HttpStatusFor(absl::StatusCode code);
+
+// The error body for `status`, from the HttpError message (JSON).
+HttpResponse ErrorResponse(const absl::Status& status);
+
+// Thread-safe.
+class RestGateway {
+ public:
+  // `api` and `authenticator` must outlive the gateway; a null
+  // `authenticator` means auth is off. `on_call` (may be empty) sees every
+  // answered API call with transport "http".
+  static absl::StatusOr<std::unique_ptr<RestGateway>> Create(
+      transport::MemoryApi* api, const auth::Authenticator* authenticator,
+      transport::CallObserver on_call, RestOptions options = {});
+
+  // True if `path` is under the API prefix /v1/ (Handle answers it).
+  static bool IsApiPath(const std::string& path);
+
+  // The answer to one request under /v1/: 404 for an unknown path, 405 for
+  // a known path with another verb, else the call's answer.
+  HttpResponse Handle(const HttpRequest& request) const;
+
+  const std::vector<Route>& routes() const { return routes_; }
+
+ private:
+  RestGateway(transport::MemoryApi* api,
+              const auth::Authenticator* authenticator,
+              transport::CallObserver on_call, RestOptions options,
+              std::vector<Route> routes);
+  absl::StatusOr<auth::Principal> Authenticate(
+      const HttpRequest& request) const;
+  HttpResponse Serve(const Route& route,
+                     const std::map<std::string, std::string>& variables,
+                     const HttpRequest& request,
+                     absl::StatusCode* code) const;
+
+  transport::MemoryApi* const api_;
+  const auth::Authenticator* const authenticator_;
+  const transport::CallObserver on_call_;
+  const RestOptions options_;
+  const std::vector<Route> routes_;
+};
+
+}  // namespace fleetmem::http
+
+#endif  // FLEETMEM_SERVICES_HTTP_REST_GATEWAY_H_

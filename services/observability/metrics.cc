@@ -1,0 +1,341 @@
+#include "services/observability/metrics.h"
+
+#include <sstream>
+#include <utility>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "prometheus/counter.h"
+#include "prometheus/family.h"
+#include "prometheus/gauge.h"
+#include "prometheus/histogram.h"
+#include "prometheus/registry.h"
+#include "prometheus/text_serializer.h"
+
+namespace fleetmem::observability {
+namespace {
+
+using prometheus::BuildCounter;
+using prometheus::BuildGauge;
+using prometheus::BuildHistogram;
+using prometheus::Counter;
+using prometheus::Family;
+using prometheus::Gauge;
+using prometheus::Histogram;
+
+// Seconds, from half a millisecond (a query on a small fleet) to 10 s (a
+// large consolidation or a stalled disk).
+const Histogram::BucketBoundaries& LatencyBuckets() {
+  static const Histogram::BucketBoundaries* buckets =
+      new Histogram::BucketBoundaries{0.0005, 0.001, 0.0025, 0.005, 0.01,
+                                      0.025,  0.05,  0.1,    0.25,  0.5,
+                                      1.0,    2.5,   5.0,    10.0};
+  return *buckets;
+}
+
+std::string CodeName(absl::StatusCode code) {
+  return absl::StatusCodeToString(code);
+}
+
+// Times every Apply of the wrapped store.
+class TimedMemoryStore final : public engine::MemoryStore {
+ public:
+  TimedMemoryStore(std::unique_ptr<engine::MemoryStore> store,
+                   Histogram* writes, Counter* write_errors)
+      : store_(std::move(store)),
+        writes_(writes),
+        write_errors_(write_errors) {}
+
+  absl::StatusOr<std::vector<std::string>> ListFleets() override {
+    return store_->ListFleets();
+  }
+  absl::StatusOr<engine::FleetRecord> LoadFleet(
+      std::string_view fleet_id) override {
+    return store_->LoadFleet(fleet_id);
+  }
+  absl::Status Apply(std::string_view fleet_id,
+                     const engine::FleetMutation& mutation) override {
+    const absl::Time start = absl::Now();
+    absl::Status status = store_->Apply(fleet_id, mutation);
+    writes_->Observe(absl::ToDoubleSeconds(absl::Now() - start));
+    if (!status.ok()) write_errors_->Increment();
+    return status;
+  }
+  absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
+      std::string_view fleet_id, uint64_t after_event, size_t limit) override {
+    return store_->ReadEvents(fleet_id, after_event, limit);
+  }
+  absl::Status Checkpoint(const std::string& directory) override {
+    return store_->Checkpoint(directory);
+  }
+  uint64_t ApproximateDiskBytes() override {
+    return store_->ApproximateDiskBytes();
+  }
+
+ private:
+  const std::unique_ptr<engine::MemoryStore> store_;
+  Histogram* const writes_;
+  Counter* const write_errors_;
+};
+
+}  // namespace
+
+struct Metrics::Families {
+  explicit Families(prometheus::Registry& r)
+      : calls(BuildCounter()
+                  .Name("fleetmem_rpc_requests_total")
+                  .Help("Finished calls by transport, method and status code")
+                  .Register(r)),
+        call_errors(BuildCounter()
+                        .Name("fleetmem_rpc_errors_total")
+                        .Help("Finished calls whose status was not OK")
+                        .Register(r)),
+        call_seconds(BuildHistogram()
+                         .Name("fleetmem_rpc_duration_seconds")
+                         .Help("Call latency by transport and method, from "
+                               "arrival to answer")
+                         .Register(r)),
+        uploaded_traces(BuildCounter()
+                            .Name("fleetmem_uploaded_traces_total")
+                            .Help("Traces stored by uploads (duplicates not "
+                                  "counted)")
+                            .Register(r)),
+        duplicate_traces(BuildCounter()
+                             .Name("fleetmem_duplicate_traces_total")
+                             .Help("Uploaded traces the fleet already had")
+                             .Register(r)),
+        uploaded_bytes(BuildCounter()
+                           .Name("fleetmem_uploaded_bytes_total")
+                           .Help("Bytes of upload messages stored")
+                           .Register(r)),
+        consolidations(BuildCounter()
+                           .Name("fleetmem_consolidations_total")
+                           .Help("Robot segments consolidated (Algorithm 1)")
+                           .Register(r)),
+        clusters_added(BuildCounter()
+                           .Name("fleetmem_clusters_added_total")
+                           .Help("Clusters added by consolidation")
+                           .Register(r)),
+        clusters_forgotten(BuildCounter()
+                               .Name("fleetmem_clusters_forgotten_total")
+                               .Help("Clusters removed by forgetting "
+                                     "(Algorithm 2)")
+                               .Register(r)),
+        forgetting_runs(BuildCounter()
+                            .Name("fleetmem_forgetting_runs_total")
+                            .Help("Consolidation calls in which forgetting "
+                                  "removed at least one cluster")
+                            .Register(r)),
+        downsampled_traces(BuildCounter()
+                               .Name("fleetmem_downsampled_traces_total")
+                               .Help("Traces dropped by downsampling (Eq. 15)")
+                               .Register(r)),
+        consolidation_seconds(
+            BuildHistogram()
+                .Name("fleetmem_consolidation_duration_seconds")
+                .Help("Time of one consolidation call, forgetting and the "
+                      "durable write included")
+                .Register(r)),
+        sampled_traces(BuildCounter()
+                           .Name("fleetmem_sampled_traces_total")
+                           .Help("Traces handed out by SampleReplay (Eq. 18)")
+                           .Register(r)),
+        query_seconds(BuildHistogram()
+                          .Name("fleetmem_query_duration_seconds")
+                          .Help("QueryPlace search time in the engine")
+                          .Register(r)),
+        store_write_seconds(BuildHistogram()
+                                .Name("fleetmem_store_write_duration_seconds")
+                                .Help("Durable write (RocksDB WriteBatch with "
+                                      "fsync) time")
+                                .Register(r)),
+        store_write_errors(BuildCounter()
+                               .Name("fleetmem_store_write_errors_total")
+                               .Help("Durable writes that failed")
+                               .Register(r)),
+        fleet_traces(BuildGauge()
+                         .Name("fleetmem_fleet_traces")
+                         .Help("Traces in the fleet's static memory")
+                         .Register(r)),
+        fleet_pending(BuildGauge()
+                          .Name("fleetmem_fleet_pending_traces")
+                          .Help("Traces awaiting consolidation")
+                          .Register(r)),
+        fleet_clusters(BuildGauge()
+                           .Name("fleetmem_fleet_clusters")
+                           .Help("Clusters in the fleet's static memory")
+                           .Register(r)),
+        fleet_robots(BuildGauge()
+                         .Name("fleetmem_fleet_robots")
+                         .Help("Robots that have uploaded to the fleet")
+                         .Register(r)),
+        fleet_last_event(BuildGauge()
+                             .Name("fleetmem_fleet_last_event_id")
+                             .Help("Id of the fleet's newest memory event")
+                             .Register(r)),
+        index_entries(BuildGauge()
+                          .Name("fleetmem_index_entries")
+                          .Help("Codes in the fleet's place index (static "
+                                "and pending traces)")
+                          .Register(r)),
+        fleets(BuildGauge()
+                   .Name("fleetmem_fleets")
+                   .Help("Fleets held by the server")
+                   .Register(r)),
+        store_bytes(BuildGauge()
+                        .Name("fleetmem_store_disk_bytes")
+                        .Help("RocksDB live SST files plus memtables, bytes")
+                        .Register(r)),
+        queue_depth(BuildGauge()
+                        .Name("fleetmem_work_queue_depth")
+                        .Help("Calls waiting for a worker thread")
+                        .Register(r)) {}
+
+  Family<Counter>& calls;
+  Family<Counter>& call_errors;
+  Family<Histogram>& call_seconds;
+  Family<Counter>& uploaded_traces;
+  Family<Counter>& duplicate_traces;
+  Family<Counter>& uploaded_bytes;
+  Family<Counter>& consolidations;
+  Family<Counter>& clusters_added;
+  Family<Counter>& clusters_forgotten;
+  Family<Counter>& forgetting_runs;
+  Family<Counter>& downsampled_traces;
+  Family<Histogram>& consolidation_seconds;
+  Family<Counter>& sampled_traces;
+  Family<Histogram>& query_seconds;
+  Family<Histogram>& store_write_seconds;
+  Family<Counter>& store_write_errors;
+  Family<Gauge>& fleet_traces;
+  Family<Gauge>& fleet_pending;
+  Family<Gauge>& fleet_clusters;
+  Family<Gauge>& fleet_robots;
+  Family<Gauge>& fleet_last_event;
+  Family<Gauge>& index_entries;
+  Family<Gauge>& fleets;
+  Family<Gauge>& store_bytes;
+  Family<Gauge>& queue_depth;
+};
+
+Metrics::Metrics()
+    : registry_(std::make_shared<prometheus::Registry>()),
+      families_(std::make_unique<Families>(*registry_)) {
+  // Zero-valued series exist from the start, so rate() has a baseline.
+  families_->store_write_errors.Add({});
+  families_->fleets.Add({});
+  families_->store_bytes.Add({});
+  families_->queue_depth.Add({});
+}
+
+Metrics::~Metrics() = default;
+
+engine::EngineHooks Metrics::EngineHooks() {
+  Families* f = families_.get();
+  engine::EngineHooks hooks;
+  hooks.on_upload = [f](std::string_view fleet,
+                        const engine::UploadResult& result) {
+    const prometheus::Labels labels{{"fleet", std::string(fleet)}};
+    f->uploaded_traces.Add(labels).Increment(
+        static_cast<double>(result.accepted));
+    f->duplicate_traces.Add(labels).Increment(
+        static_cast<double>(result.duplicates));
+  };
+  hooks.on_consolidate = [f](std::string_view fleet,
+                             const engine::ConsolidateResult& result,
+                             double seconds) {
+    const prometheus::Labels labels{{"fleet", std::string(fleet)}};
+    f->consolidations.Add(labels).Increment();
+    f->clusters_added.Add(labels).Increment(
+        static_cast<double>(result.clusters_added));
+    f->clusters_forgotten.Add(labels).Increment(
+        static_cast<double>(result.clusters_forgotten));
+    if (result.clusters_forgotten > 0) f->forgetting_runs.Add(labels).Increment();
+    f->downsampled_traces.Add(labels).Increment(
+        static_cast<double>(result.downsampled_traces));
+    f->consolidation_seconds.Add(labels, LatencyBuckets()).Observe(seconds);
+  };
+  hooks.on_sample = [f](std::string_view fleet, size_t count) {
+    f->sampled_traces.Add({{"fleet", std::string(fleet)}})
+        .Increment(static_cast<double>(count));
+  };
+  hooks.on_query = [f](std::string_view fleet, double seconds) {
+    f->query_seconds.Add({{"fleet", std::string(fleet)}}, LatencyBuckets())
+        .Observe(seconds);
+  };
+  return hooks;
+}
+
+void Metrics::ObserveCall(std::string_view transport, std::string_view method,
+                          absl::StatusCode code, double seconds) {
+  const std::string t(transport);
+  const std::string m(method);
+  families_->calls.Add({{"transport", t}, {"method", m}, {"code", CodeName(code)}})
+      .Increment();
+  if (code != absl::StatusCode::kOk) {
+    families_->call_errors.Add({{"transport", t}, {"method", m}}).Increment();
+  }
+  families_->call_seconds.Add({{"transport", t}, {"method", m}}, LatencyBuckets())
+      .Observe(seconds);
+}
+
+void Metrics::ObserveUploadBytes(std::string_view fleet, size_t bytes) {
+  families_->uploaded_bytes.Add({{"fleet", std::string(fleet)}})
+      .Increment(static_cast<double>(bytes));
+}
+
+std::unique_ptr<engine::MemoryStore> Metrics::TimedStore(
+    std::unique_ptr<engine::MemoryStore> store) {
+  return std::make_unique<TimedMemoryStore>(
+      std::move(store),
+      &families_->store_write_seconds.Add({}, LatencyBuckets()),
+      &families_->store_write_errors.Add({}));
+}
+
+void Metrics::SetScrapeSources(ScrapeSources sources) {
+  absl::MutexLock lock(&sources_mu_);
+  sources_ = std::move(sources);
+}
+
+void Metrics::RefreshGauges() {
+  absl::MutexLock lock(&sources_mu_);
+  Families& f = *families_;
+  if (sources_.engine != nullptr) {
+    const std::vector<std::string> fleet_ids = sources_.engine->ListFleets();
+    f.fleets.Add({}).Set(static_cast<double>(fleet_ids.size()));
+    for (const std::string& fleet_id : fleet_ids) {
+      absl::StatusOr<engine::FleetStats> stats =
+          sources_.engine->GetStats(fleet_id);
+      if (!stats.ok()) continue;
+      const prometheus::Labels labels{{"fleet", fleet_id}};
+      f.fleet_traces.Add(labels).Set(static_cast<double>(stats->traces));
+      f.fleet_pending.Add(labels).Set(
+          static_cast<double>(stats->pending_traces));
+      f.fleet_clusters.Add(labels).Set(static_cast<double>(stats->clusters));
+      f.fleet_robots.Add(labels).Set(static_cast<double>(stats->robots.size()));
+      f.fleet_last_event.Add(labels).Set(
+          static_cast<double>(stats->last_event_id));
+      f.index_entries.Add(labels).Set(
+          static_cast<double>(stats->traces + stats->pending_traces));
+    }
+  }
+  if (sources_.store != nullptr) {
+    f.store_bytes.Add({}).Set(
+        static_cast<double>(sources_.store->ApproximateDiskBytes()));
+  }
+  if (sources_.work_queue_depth) {
+    f.queue_depth.Add({}).Set(
+        static_cast<double>(sources_.work_queue_depth()));
+  }
+}
+
+std::string Metrics::Render() {
+  RefreshGauges();
+  std::ostringstream out;
+  prometheus::TextSerializer().Serialize(out, registry_->Collect());
+  return out.str();
+}
+
+}  // namespace fleetmem::observability

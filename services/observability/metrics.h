@@ -1,0 +1,78 @@
+// Prometheus metrics of the server, in one module: it observes the engine
+// (EngineHooks), the transports (call and upload observers) and the store
+// (a timing decorator), and reads gauges (per-fleet counts, index size, disk
+// bytes, worker-queue depth) when scraped. Neither the memory code nor the
+// transports call prometheus-cpp; they only call the hooks handed to them.
+//
+// Every metric is documented in docs/operations.md.
+#ifndef FLEETMEM_SERVICES_OBSERVABILITY_METRICS_H_
+#define FLEETMEM_SERVICES_OBSERVABILITY_METRICS_H_
+
+#include <cstddef>
+#include <functional>
+#include <memory>
+#include <string>
+#include <string_view>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
+#include "services/engine/memory_engine.h"
+#include "services/engine/memory_store.h"
+
+namespace prometheus {
+class Registry;
+}  // namespace prometheus
+
+namespace fleetmem::observability {
+
+// What is read at scrape time; every member may be empty/null.
+struct ScrapeSources {
+  const engine::MemoryEngine* engine = nullptr;
+  engine::MemoryStore* store = nullptr;
+  std::function<size_t()> work_queue_depth;
+};
+
+// Thread-safe.
+class Metrics {
+ public:
+  Metrics();
+  ~Metrics();
+  Metrics(const Metrics&) = delete;
+  Metrics& operator=(const Metrics&) = delete;
+
+  // Hooks for MemoryEngine::Open (uploads, consolidations, samples, query
+  // latency). They must not outlive this object.
+  engine::EngineHooks EngineHooks();
+
+  // One finished call of `method` on `transport` ("grpc", "http").
+  void ObserveCall(std::string_view transport, std::string_view method,
+                   absl::StatusCode code, double seconds);
+  // One upload message of `bytes` stored for `fleet`.
+  void ObserveUploadBytes(std::string_view fleet, size_t bytes);
+
+  // `store` with every Apply timed (fleetmem_store_write_duration_seconds).
+  std::unique_ptr<engine::MemoryStore> TimedStore(
+      std::unique_ptr<engine::MemoryStore> store);
+
+  // Set once the engine and the pool exist (before the first scrape that
+  // should show them).
+  void SetScrapeSources(ScrapeSources sources);
+
+  // Everything in the Prometheus text exposition format (version 0.0.4),
+  // with the gauges read from the scrape sources now.
+  std::string Render();
+
+ private:
+  struct Families;
+  void RefreshGauges();
+
+  std::shared_ptr<prometheus::Registry> registry_;
+  std::unique_ptr<Families> families_;
+  absl::Mutex sources_mu_;
+  ScrapeSources sources_ ABSL_GUARDED_BY(sources_mu_);
+};
+
+}  // namespace fleetmem::observability
+
+#endif  // FLEETMEM_SERVICES_OBSERVABILITY_METRICS_H_

@@ -1,0 +1,69 @@
+#include "services/observability/metrics.h"
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "services/engine/memory_engine.h"
+#include "services/index/exact_index.h"
+#include "services/storage/in_memory_store.h"
+
+namespace fleetmem::observability {
+namespace {
+
+using ::testing::HasSubstr;
+
+TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
+  Metrics metrics;
+  std::unique_ptr<engine::MemoryStore> store =
+      metrics.TimedStore(storage::NewInMemoryStore());
+  engine::EngineOptions options;
+  options.segment_size = 4;
+  options.memory.clusters_per_batch = 2;
+  options.memory.max_clusters = 1;  // one segment of 8: 2 clusters, 1 forgotten
+  auto engine = engine::MemoryEngine::Open(
+      options, store.get(),
+      [](size_t dimension) { return index::NewExactIndex(dimension); },
+      metrics.EngineHooks());
+  ASSERT_TRUE(engine.ok());
+  metrics.SetScrapeSources({engine->get(), store.get(), [] { return 7; }});
+  std::vector<core::MemoryTrace> traces;
+  for (uint64_t seq = 1; seq <= 8; ++seq) {
+    core::MemoryTrace trace;
+    trace.robot_id = "r1";
+    trace.seq = seq;
+    trace.code = {static_cast<float>(seq), 1.0f};
+    trace.reward = 1.0f;
+    traces.push_back(trace);
+  }
+  ASSERT_TRUE((*engine)->Upload("alpha", traces).ok());
+  metrics.ObserveCall("grpc", "GetStats", absl::StatusCode::kOk, 0.002);
+  metrics.ObserveCall("http", "GetStats", absl::StatusCode::kNotFound, 0.001);
+  metrics.ObserveUploadBytes("alpha", 1234);
+
+  const std::string text = metrics.Render();
+  EXPECT_THAT(text, HasSubstr("fleetmem_fleet_traces{fleet=\"alpha\"} "));
+  EXPECT_THAT(text, HasSubstr("fleetmem_uploaded_traces_total{fleet=\"alpha\"} 8"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_consolidations_total{fleet=\"alpha\"} 1"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_clusters_forgotten_total{fleet=\"alpha\"} 1"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_fleet_clusters{fleet=\"alpha\"} 1"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_rpc_requests_total{code=\"NOT_FOUND\","
+                              "method=\"GetStats\",transport=\"http\"} 1"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_rpc_errors_total{method=\"GetStats\","
+                              "transport=\"http\"} 1"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_rpc_duration_seconds_count{method="
+                              "\"GetStats\",transport=\"grpc\"} 1"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_uploaded_bytes_total{fleet=\"alpha\"} 1234"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_work_queue_depth 7"));
+  // One write per upload message and per consolidated segment at least.
+  EXPECT_THAT(text, HasSubstr("fleetmem_store_write_duration_seconds_count"));
+  EXPECT_THAT(text, ::testing::Not(HasSubstr(
+                        "fleetmem_store_write_duration_seconds_count 0")));
+  EXPECT_THAT(text, HasSubstr("# TYPE fleetmem_consolidation_duration_seconds "
+                              "histogram"));
+}
+
+}  // namespace
+}  // namespace fleetmem::observability

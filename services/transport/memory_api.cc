@@ -1,0 +1,281 @@
+#include "services/transport/memory_api.h"
+
+#include <algorithm>
+#include <filesystem>
+#include <system_error>
+#include <utility>
+#include <vector>
+
+#include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "services/core/validation.h"
+#include "services/transport/proto_convert.h"
+
+namespace fleetmem::transport {
+namespace {
+
+namespace fs = std::filesystem;
+using google::protobuf::Message;
+
+// Adapts a typed member to the generic form. The gateway makes its messages
+// from the method's descriptor with the generated factory, so the down-casts
+// hold.
+template <typename Request, typename Response>
+std::function<absl::Status(MemoryApi*, const auth::Principal&, const Message&,
+                           Message*)>
+Typed(absl::Status (MemoryApi::*member)(const auth::Principal&, const Request&,
+                                        Response*)) {
+  return [member](MemoryApi* api, const auth::Principal& caller,
+                  const Message& request, Message* response) {
+    return (api->*member)(caller, static_cast<const Request&>(request),
+                          static_cast<Response*>(response));
+  };
+}
+
+// 1-64 characters of [A-Za-z0-9._-], not "." or "..".
+absl::Status ValidateSnapshotName(absl::string_view name) {
+  const bool valid_chars =
+      !name.empty() && name.size() <= 64 &&
+      std::all_of(name.begin(), name.end(), [](char c) {
+        return absl::ascii_isalnum(static_cast<unsigned char>(c)) ||
+               c == '.' || c == '_' || c == '-';
+      });
+  if (!valid_chars || name == "." || name == "..") {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "name: \"", name,
+        "\" is not 1-64 characters of [A-Za-z0-9._-] (nor . or ..)"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<core::TraceKey> ParsePageToken(absl::string_view token) {
+  const size_t slash = token.rfind('/');
+  core::TraceKey key;
+  if (slash == absl::string_view::npos ||
+      !absl::SimpleAtoi(token.substr(slash + 1), &key.seq) ||
+      !core::ValidateId("robot_id", std::string(token.substr(0, slash))).ok()) {
+    return absl::InvalidArgumentError(
+        "page_token: malformed (pass next_page_token of the previous answer)");
+  }
+  key.robot_id = std::string(token.substr(0, slash));
+  return key;
+}
+
+std::string MakePageToken(const core::TraceKey& key) {
+  return absl::StrCat(key.robot_id, "/", key.seq);
+}
+
+MemoryApi::MemoryApi(engine::MemoryEngine* engine, ApiOptions options)
+    : engine_(engine), options_(std::move(options)) {
+  methods_["Consolidate"] = Typed(&MemoryApi::Consolidate);
+  methods_["SampleReplay"] = Typed(&MemoryApi::SampleReplay);
+  methods_["QueryPlace"] = Typed(&MemoryApi::QueryPlace);
+  methods_["GetStats"] = Typed(&MemoryApi::GetStats);
+  methods_["ListFleets"] = Typed(&MemoryApi::ListFleets);
+  methods_["ListClusters"] = Typed(&MemoryApi::ListClusters);
+  methods_["ListEvents"] = Typed(&MemoryApi::ListEvents);
+  methods_["ListTraces"] = Typed(&MemoryApi::ListTraces);
+  methods_["CreateSnapshot"] = Typed(&MemoryApi::CreateSnapshot);
+}
+
+bool MemoryApi::Serves(absl::string_view method_name) const {
+  return methods_.contains(method_name);
+}
+
+absl::Status MemoryApi::Call(absl::string_view method_name,
+                             const auth::Principal& caller,
+                             const Message& request, Message* response) {
+  auto it = methods_.find(method_name);
+  if (it == methods_.end()) {
+    return absl::UnimplementedError(
+        absl::StrCat("method ", method_name, " is not served here"));
+  }
+  return it->second(this, caller, request, response);
+}
+
+absl::Status MemoryApi::Consolidate(const auth::Principal& caller,
+                                    const v1::ConsolidateRequest& request,
+                                    v1::ConsolidateResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kConsolidate, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<engine::ConsolidateResult> result =
+      engine_->Consolidate(request.fleet_id());
+  if (!result.ok()) return result.status();
+  ConsolidateResultToProto(*result, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::SampleReplay(const auth::Principal& caller,
+                                     const v1::SampleReplayRequest& request,
+                                     v1::SampleReplayResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kSample, request.fleet_id(),
+                      request.robot_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<std::vector<core::MemoryTrace>> traces =
+      engine_->SampleReplay(request.fleet_id(), request.robot_id(),
+                            request.count(), request.request_id());
+  if (!traces.ok()) return traces.status();
+  SampledTracesToProto(*traces, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::QueryPlace(const auth::Principal& caller,
+                                   const v1::QueryPlaceRequest& request,
+                                   v1::QueryPlaceResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kQuery, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<std::vector<engine::PlaceMatch>> matches =
+      engine_->QueryPlace(request.fleet_id(), QueryFromProto(request));
+  if (!matches.ok()) return matches.status();
+  MatchesToProto(*matches, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::GetStats(const auth::Principal& caller,
+                                 const v1::GetStatsRequest& request,
+                                 v1::GetStatsResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kStats, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<engine::FleetStats> stats =
+      engine_->GetStats(request.fleet_id());
+  if (!stats.ok()) return stats.status();
+  StatsToProto(*stats, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::ListFleets(const auth::Principal& caller,
+                                   const v1::ListFleetsRequest& request,
+                                   v1::ListFleetsResponse* response) {
+  for (const std::string& fleet_id : engine_->ListFleets()) {
+    if (!auth::MaySeeFleet(caller, fleet_id)) continue;
+    absl::StatusOr<engine::FleetStats> stats = engine_->GetStats(fleet_id);
+    if (absl::IsNotFound(stats.status())) continue;  // cannot happen today
+    if (!stats.ok()) return stats.status();
+    FleetSummaryToProto(fleet_id, *stats, response->add_fleets());
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::ListClusters(const auth::Principal& caller,
+                                     const v1::ListClustersRequest& request,
+                                     v1::ListClustersResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kStats, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<engine::ClusterListing> listing =
+      engine_->ListClusters(request.fleet_id(), request.include_places());
+  if (!listing.ok()) return listing.status();
+  ClustersToProto(*listing, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::ListEvents(const auth::Principal& caller,
+                                   const v1::ListEventsRequest& request,
+                                   v1::ListEventsResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kStats, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents(request.fleet_id(), request.after());
+  if (!events.ok()) return events.status();
+  if (events->empty()) {
+    // The engine has no events for a fleet it does not know; say so here.
+    absl::StatusOr<engine::FleetStats> stats =
+        engine_->GetStats(request.fleet_id());
+    if (!stats.ok()) return stats.status();
+    response->set_last_event_id(request.after());
+    return absl::OkStatus();
+  }
+  for (const core::MemoryEvent& event : *events) {
+    EventToProto(event, response->add_events());
+  }
+  response->set_last_event_id(events->back().id);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::ListTraces(const auth::Principal& caller,
+                                   const v1::ListTracesRequest& request,
+                                   v1::ListTracesResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kStats, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  size_t page_size = request.page_size();
+  if (page_size == 0) page_size = options_.default_page_size;
+  if (page_size > options_.max_page_size) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_size: ", page_size, " is over the limit of ",
+                     options_.max_page_size));
+  }
+  std::optional<core::TraceKey> after;
+  if (!request.page_token().empty()) {
+    absl::StatusOr<core::TraceKey> key = ParsePageToken(request.page_token());
+    if (!key.ok()) return key.status();
+    after = std::move(*key);
+  }
+  absl::StatusOr<engine::TracePage> page =
+      engine_->ListTraces(request.fleet_id(), after, page_size);
+  if (!page.ok()) return page.status();
+  for (const core::MemoryTrace& trace : page->traces) {
+    TraceToProto(trace, response->add_traces());
+  }
+  if (page->more) {
+    response->set_next_page_token(MakePageToken(page->traces.back().key()));
+  }
+  response->set_total_traces(page->total);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::CreateSnapshot(const auth::Principal& caller,
+                                       const v1::CreateSnapshotRequest& request,
+                                       v1::CreateSnapshotResponse* response) {
+  absl::Status allowed = auth::Authorize(caller, auth::Action::kSnapshot, {});
+  if (!allowed.ok()) return allowed;
+  absl::Status valid = ValidateSnapshotName(request.name());
+  if (!valid.ok()) return valid;
+  if (options_.snapshot_root.empty()) {
+    return absl::FailedPreconditionError(
+        "snapshots are off on this server (no snapshot directory)");
+  }
+  const fs::path path = fs::path(options_.snapshot_root) / request.name();
+  std::error_code error;
+  fs::create_directories(options_.snapshot_root, error);
+  if (error) {
+    return absl::InternalError(
+        absl::StrCat("snapshot directory ", options_.snapshot_root,
+                     " cannot be created: ", error.message(),
+                     "; no snapshot was taken"));
+  }
+  // create_directory is the claim on the name: false if it exists.
+  if (!fs::create_directory(path, error)) {
+    if (error) {
+      return absl::InternalError(absl::StrCat(
+          "snapshot ", path.string(), " cannot be created: ", error.message(),
+          "; no snapshot was taken"));
+    }
+    return absl::AlreadyExistsError(absl::StrCat(
+        "snapshot ", path.string(), " exists; choose another name"));
+  }
+  const int64_t now_ns = absl::GetCurrentTimeNanos();
+  absl::Status taken = engine_->Checkpoint((path / "db").string());
+  if (!taken.ok()) {
+    fs::remove_all(path, error);
+    return absl::Status(taken.code(),
+                        absl::StrCat(taken.message(),
+                                     "; no snapshot was taken (", path.string(),
+                                     " removed)"));
+  }
+  response->set_path(path.string());
+  response->set_fleets(static_cast<uint32_t>(engine_->ListFleets().size()));
+  response->set_timestamp_ns(now_ns);
+  return absl::OkStatus();
+}
+
+}  // namespace fleetmem::transport

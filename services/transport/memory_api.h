@@ -1,0 +1,102 @@
+// The unary calls of fleetmem.v1.MemoryService as plain functions of the
+// caller's principal and the request message: one code path for both
+// transports. The gRPC handlers (memory_service.h) and the REST/JSON gateway
+// (services/http) authenticate the caller their own way, then call here;
+// every function authorises, validates, runs the engine and fills the
+// response, so both transports give the same answers and the same errors.
+//
+// Synchronous: engine calls block on fsync, so callers run these on worker
+// threads (the gRPC pool, the HTTP server's threads).
+#ifndef FLEETMEM_SERVICES_TRANSPORT_MEMORY_API_H_
+#define FLEETMEM_SERVICES_TRANSPORT_MEMORY_API_H_
+
+#include <functional>
+#include <memory>
+#include <string>
+#include "absl/strings/string_view.h"
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/status/status.h"
+#include "fleetmem/v1/memory.pb.h"
+#include "google/protobuf/message.h"
+#include "services/auth/access_policy.h"
+#include "services/engine/memory_engine.h"
+
+namespace fleetmem::transport {
+
+struct ApiOptions {
+  // Directory CreateSnapshot writes under (each snapshot a new directory
+  // SNAPSHOT_ROOT/NAME holding db/); empty refuses snapshots with
+  // FAILED_PRECONDITION. The server sets DATA_DIR/snapshots unless
+  // --snapshot-dir says otherwise.
+  std::string snapshot_root;
+  // ListTraces pages: the default and the most one page may ask for.
+  size_t default_page_size = 1000;
+  size_t max_page_size = 10000;
+};
+
+// Thread-safe.
+class MemoryApi {
+ public:
+  // `engine` must outlive the API.
+  MemoryApi(engine::MemoryEngine* engine, ApiOptions options = {});
+
+  absl::Status Consolidate(const auth::Principal& caller,
+                           const v1::ConsolidateRequest& request,
+                           v1::ConsolidateResponse* response);
+  absl::Status SampleReplay(const auth::Principal& caller,
+                            const v1::SampleReplayRequest& request,
+                            v1::SampleReplayResponse* response);
+  absl::Status QueryPlace(const auth::Principal& caller,
+                          const v1::QueryPlaceRequest& request,
+                          v1::QueryPlaceResponse* response);
+  absl::Status GetStats(const auth::Principal& caller,
+                        const v1::GetStatsRequest& request,
+                        v1::GetStatsResponse* response);
+  // Only the fleets `caller` may see; never NOT_FOUND.
+  absl::Status ListFleets(const auth::Principal& caller,
+                          const v1::ListFleetsRequest& request,
+                          v1::ListFleetsResponse* response);
+  absl::Status ListClusters(const auth::Principal& caller,
+                            const v1::ListClustersRequest& request,
+                            v1::ListClustersResponse* response);
+  // NOT_FOUND for a fleet that does not exist (yet).
+  absl::Status ListEvents(const auth::Principal& caller,
+                          const v1::ListEventsRequest& request,
+                          v1::ListEventsResponse* response);
+  absl::Status ListTraces(const auth::Principal& caller,
+                          const v1::ListTracesRequest& request,
+                          v1::ListTracesResponse* response);
+  // Admin only. ALREADY_EXISTS if the name is taken; on any error nothing is
+  // left under the name.
+  absl::Status CreateSnapshot(const auth::Principal& caller,
+                              const v1::CreateSnapshotRequest& request,
+                              v1::CreateSnapshotResponse* response);
+
+  // Generic form for the HTTP gateway: the unary method `method_name` (e.g.
+  // "GetStats") with messages of its request and response types.
+  // UNIMPLEMENTED for a method that is not unary or not known here.
+  absl::Status Call(absl::string_view method_name, const auth::Principal& caller,
+                    const google::protobuf::Message& request,
+                    google::protobuf::Message* response);
+  // True if Call serves `method_name`.
+  bool Serves(absl::string_view method_name) const;
+
+ private:
+  using Generic = std::function<absl::Status(
+      MemoryApi*, const auth::Principal&, const google::protobuf::Message&,
+      google::protobuf::Message*)>;
+
+  engine::MemoryEngine* const engine_;
+  const ApiOptions options_;
+  absl::flat_hash_map<std::string, Generic> methods_;
+};
+
+// The (robot_id, seq) cursor of a ListTraces page token; INVALID_ARGUMENT
+// naming page_token when it is malformed.
+absl::StatusOr<core::TraceKey> ParsePageToken(absl::string_view token);
+std::string MakePageToken(const core::TraceKey& key);
+
+}  // namespace fleetmem::transport
+
+#endif  // FLEETMEM_SERVICES_TRANSPORT_MEMORY_API_H_
