@@ -1,6 +1,7 @@
 #include "clients/cli/commands.h"
 
 #include <algorithm>
+#include <filesystem>
 #include <fstream>
 #include <iterator>
 #include <memory>
@@ -9,6 +10,7 @@
 
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
+#include "clients/cli/npy_writer.h"
 #include "clients/cli/printing.h"
 #include "clients/cli/synthetic_traces.h"
 #include "clients/cli/trace_io.h"
@@ -116,6 +118,46 @@ const std::vector<Command>& CommandTable() {
          {"encoder", "V", "encoderVersion of the traces (default v1)"},
          {"out", "FILE", "output file (default stdout)"}}},
        RunGenTraces},
+      {{"fleets",
+        "",
+        "List the fleets the caller may see, with their counts.",
+        "",
+        {}},
+       RunFleets},
+      {{"clusters",
+        "--fleet ID [--places]",
+        "List the static memory's clusters (centroid, size, robots, "
+        "domains).",
+        "With --places and --json, every trace's place is listed too.",
+        {FleetFlag(),
+         {"places", "", "include each trace's place (with --json)"}}},
+       RunClusters},
+      {{"snapshot",
+        "--name NAME",
+        "Admin: write a consistent snapshot of the whole store.",
+        "The server writes a RocksDB checkpoint to SNAPSHOT_DIR/NAME (its\n"
+        "--snapshot-dir, DATA_DIR/snapshots by default) while it keeps\n"
+        "serving; every write acknowledged before the call is in it. Start a\n"
+        "server with --data-dir SNAPSHOT_DIR/NAME to serve exactly that "
+        "state.",
+        {{"name", "NAME", "snapshot name, [A-Za-z0-9._-] (required)"}}},
+       RunSnapshot},
+      {{"export",
+        "--fleet ID --out DIR [--page-size N]",
+        "Write the fleet's codes and places as .npy arrays plus a CSV.",
+        "DIR/codes.npy    float32 N x D, one row per trace\n"
+        "DIR/places.npy   float64 N x 4: x, y, z, yaw (metres, radians)\n"
+        "DIR/metadata.csv row, robot_id, seq, domain, reward, "
+        "reward_external,\n"
+        "                 reward_internal, timestamp_ns, replay_count,\n"
+        "                 cluster_id (0: pending), encoder_version\n"
+        "Rows are in (robot_id, seq) order, read page by page from the live\n"
+        "memory (progress on stderr); for a frozen state, export from a\n"
+        "server started on a snapshot.",
+        {FleetFlag(),
+         {"out", "DIR", "output directory, created if missing (required)"},
+         {"page-size", "N", "traces per request, 1..10000 (default 1000)"}}},
+       RunExport},
   };
   return *commands;
 }
@@ -388,6 +430,114 @@ int RunGenTraces(const Invocation& invocation) {
                   << options.robots << " robots x " << options.per_robot
                   << ", dim " << options.dimension << ")"
                   << (path == "-" ? "" : " to " + path) << "\n";
+  return kExitOk;
+}
+
+int RunFleets(const Invocation& invocation) {
+  absl::StatusOr<v1::ListFleetsResponse> fleets =
+      Connect(invocation)->ListFleets();
+  if (!fleets.ok()) return ServerError(invocation, fleets.status());
+  return PrintResponse(invocation, *fleets, PrintFleets);
+}
+
+int RunClusters(const Invocation& invocation) {
+  absl::StatusOr<std::string> fleet = invocation.flags->Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<v1::ListClustersResponse> clusters =
+      Connect(invocation)->ListClusters(*fleet,
+                                        invocation.flags->Has("places"));
+  if (!clusters.ok()) return ServerError(invocation, clusters.status());
+  return PrintResponse(invocation, *clusters, PrintClusters);
+}
+
+int RunSnapshot(const Invocation& invocation) {
+  absl::StatusOr<std::string> name = invocation.flags->Required("name");
+  if (!name.ok()) return UsageError(invocation, name.status());
+  *invocation.err << "taking snapshot " << *name << " ..." << std::endl;
+  absl::StatusOr<v1::CreateSnapshotResponse> snapshot =
+      Connect(invocation)->CreateSnapshot(*name);
+  if (!snapshot.ok()) return ServerError(invocation, snapshot.status());
+  return PrintResponse(invocation, *snapshot, PrintSnapshot);
+}
+
+int RunExport(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<std::string> out = flags.Required("out");
+  if (!out.ok()) return UsageError(invocation, out.status());
+  absl::StatusOr<uint64_t> page_size = flags.UintOr("page-size", 1000, 10000);
+  if (!page_size.ok()) return UsageError(invocation, page_size.status());
+  if (*page_size == 0) {
+    return UsageError(invocation,
+                      absl::InvalidArgumentError("--page-size must be positive"));
+  }
+  std::error_code error;
+  std::filesystem::create_directories(*out, error);
+  if (error) {
+    return UsageError(invocation,
+                      absl::InvalidArgumentError(absl::StrCat(
+                          "cannot create ", *out, ": ", error.message())));
+  }
+  std::unique_ptr<client::Client> client = Connect(invocation);
+  std::vector<float> codes;
+  std::vector<double> places;
+  std::ostringstream csv;
+  csv << "row,robot_id,seq,domain,reward,reward_external,reward_internal,"
+         "timestamp_ns,replay_count,cluster_id,encoder_version\n";
+  size_t rows = 0;
+  size_t dimension = 0;
+  std::string token;
+  do {
+    absl::StatusOr<v1::ListTracesResponse> page = client->ListTraces(
+        *fleet, static_cast<uint32_t>(*page_size), token);
+    if (!page.ok()) {
+      *invocation.err << "export stopped after " << rows
+                      << " traces; nothing was written to " << *out << "\n";
+      return ServerError(invocation, page.status());
+    }
+    for (const v1::MemoryTrace& trace : page->traces()) {
+      if (rows == 0) dimension = static_cast<size_t>(trace.code_size());
+      if (static_cast<size_t>(trace.code_size()) != dimension) {
+        return ServerError(invocation,
+                           absl::DataLossError(absl::StrCat(
+                               "trace ", trace.robot_id(), "/", trace.seq(),
+                               " has dimension ", trace.code_size(),
+                               ", earlier ones ", dimension)));
+      }
+      codes.insert(codes.end(), trace.code().begin(), trace.code().end());
+      places.insert(places.end(), {trace.pose().x(), trace.pose().y(),
+                                   trace.pose().z(), trace.pose().yaw()});
+      // Ids and domains are [A-Za-z0-9._:-]: no CSV quoting needed.
+      csv << rows << ',' << trace.robot_id() << ',' << trace.seq() << ','
+          << trace.domain() << ',' << trace.reward() << ','
+          << trace.reward_external() << ',' << trace.reward_internal() << ','
+          << trace.timestamp_ns() << ',' << trace.replay_count() << ','
+          << trace.cluster_id() << ',' << trace.encoder_version() << '\n';
+      ++rows;
+    }
+    *invocation.err << "\rexported " << rows << " / " << page->total_traces()
+                    << " traces" << std::flush;
+    token = page->next_page_token();
+  } while (!token.empty());
+  *invocation.err << "\n";
+  const std::filesystem::path dir(*out);
+  for (absl::Status written :
+       {WriteNpy((dir / "codes.npy").string(), codes, rows, dimension),
+        WriteNpy((dir / "places.npy").string(), places, rows, 4)}) {
+    if (!written.ok()) return ServerError(invocation, written);
+  }
+  std::ofstream metadata(dir / "metadata.csv", std::ios::trunc);
+  metadata << csv.str();
+  metadata.flush();
+  if (!metadata) {
+    return ServerError(invocation,
+                       absl::InternalError(absl::StrCat(
+                           "cannot write ", (dir / "metadata.csv").string())));
+  }
+  *invocation.out << "wrote " << rows << " traces (dimension " << dimension
+                  << ") to " << *out
+                  << ": codes.npy, places.npy, metadata.csv\n";
   return kExitOk;
 }
 

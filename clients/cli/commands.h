@@ -56,6 +56,10 @@ int RunStats(const Invocation& invocation);
 int RunConsolidate(const Invocation& invocation);
 int RunWatch(const Invocation& invocation);
 int RunGenTraces(const Invocation& invocation);
+int RunFleets(const Invocation& invocation);
+int RunClusters(const Invocation& invocation);
+int RunSnapshot(const Invocation& invocation);
+int RunExport(const Invocation& invocation);
 
 // Prints "error: <message>" and a pointer to the help; returns kExitUsage.
 int UsageError(const Invocation& invocation, const absl::Status& status);

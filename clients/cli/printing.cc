@@ -1,5 +1,7 @@
 #include "clients/cli/printing.h"
 
+#include <map>
+
 #include <algorithm>
 #include <utility>
 
@@ -169,6 +171,66 @@ void PrintEvent(const v1::MemoryEvent& event, std::ostream& out) {
              event.centroid_pose().y(), event.centroid_pose().z(),
              event.mean_reward())
       << std::endl;  // Flushed: a watch is often piped.
+}
+
+void PrintFleets(const v1::ListFleetsResponse& fleets, std::ostream& out) {
+  if (fleets.fleets().empty()) {
+    out << "no fleets\n";
+    return;
+  }
+  Table table;
+  table.AddRow({"fleet", "traces", "pending", "clusters", "robots", "dim",
+                "encoder", "last event"});
+  for (const v1::FleetSummary& fleet : fleets.fleets()) {
+    table.AddRow({fleet.fleet_id(), absl::StrCat(fleet.traces()),
+                  absl::StrCat(fleet.pending_traces()),
+                  absl::StrCat(fleet.clusters()), absl::StrCat(fleet.robots()),
+                  absl::StrCat(fleet.code_dimension()),
+                  fleet.encoder_version(), absl::StrCat(fleet.last_event_id())});
+  }
+  table.Print(out);
+}
+
+namespace {
+
+// "robot-1:12 robot-2:3", by name.
+std::string Counts(const google::protobuf::Map<std::string, uint32_t>& counts) {
+  std::map<std::string, uint32_t> sorted(counts.begin(), counts.end());
+  std::string text;
+  for (const auto& [name, count] : sorted) {
+    absl::StrAppend(&text, text.empty() ? "" : " ",
+                    name.empty() ? "(none)" : name, ":", count);
+  }
+  return text;
+}
+
+}  // namespace
+
+void PrintClusters(const v1::ListClustersResponse& clusters,
+                   std::ostream& out) {
+  if (clusters.clusters().empty()) {
+    out << "no clusters yet\n";
+    return;
+  }
+  Table table;
+  table.AddRow({"cluster", "traces", "x", "y", "mean reward", "robots",
+                "domains"});
+  for (const v1::ClusterSummary& cluster : clusters.clusters()) {
+    table.AddRow({absl::StrCat(cluster.cluster_id()),
+                  absl::StrCat(cluster.trace_count()),
+                  absl::StrFormat("%.1f", cluster.centroid_pose().x()),
+                  absl::StrFormat("%.1f", cluster.centroid_pose().y()),
+                  absl::StrFormat("%.3f", cluster.mean_reward()),
+                  Counts(cluster.robots()), Counts(cluster.domains())});
+  }
+  table.Print(out);
+}
+
+void PrintSnapshot(const v1::CreateSnapshotResponse& snapshot,
+                   std::ostream& out) {
+  out << "snapshot of " << snapshot.fleets() << " fleet(s) written to "
+      << snapshot.path() << "\nrestore: fleetmem-server --data-dir "
+      << snapshot.path() << "\n";
 }
 
 }  // namespace fleetmem::cli

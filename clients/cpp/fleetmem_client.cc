@@ -376,6 +376,73 @@ absl::StatusOr<v1::GetStatsResponse> Client::GetStats(
   return response;
 }
 
+namespace {
+
+// One unary call with (or without) retries.
+template <typename Request, typename Response, typename Method>
+absl::StatusOr<Response> Unary(const ClientOptions& options,
+                               grpc::Channel* channel, bool retry,
+                               const Request& request, Method method) {
+  Response response;
+  grpc::Status status =
+      CallWithRetry(options, channel, retry, [&](grpc::ClientContext* context) {
+        return method(context, request, &response);
+      });
+  if (!status.ok()) return FromGrpcStatus(status);
+  return response;
+}
+
+}  // namespace
+
+absl::StatusOr<v1::ListFleetsResponse> Client::ListFleets() {
+  return Unary<v1::ListFleetsRequest, v1::ListFleetsResponse>(
+      options_, channel_.get(), /*retry=*/true, v1::ListFleetsRequest(),
+      [this](grpc::ClientContext* context, const v1::ListFleetsRequest& r,
+             v1::ListFleetsResponse* out) {
+        return stub_->ListFleets(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::ListClustersResponse> Client::ListClusters(
+    std::string_view fleet_id, bool include_places) {
+  v1::ListClustersRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  request.set_include_places(include_places);
+  return Unary<v1::ListClustersRequest, v1::ListClustersResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::ListClustersRequest& r,
+             v1::ListClustersResponse* out) {
+        return stub_->ListClusters(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::ListTracesResponse> Client::ListTraces(
+    std::string_view fleet_id, uint32_t page_size,
+    std::string_view page_token) {
+  v1::ListTracesRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  request.set_page_size(page_size);
+  request.set_page_token(std::string(page_token));
+  return Unary<v1::ListTracesRequest, v1::ListTracesResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::ListTracesRequest& r,
+             v1::ListTracesResponse* out) {
+        return stub_->ListTraces(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::CreateSnapshotResponse> Client::CreateSnapshot(
+    std::string_view name) {
+  v1::CreateSnapshotRequest request;
+  request.set_name(std::string(name));
+  return Unary<v1::CreateSnapshotRequest, v1::CreateSnapshotResponse>(
+      options_, channel_.get(), /*retry=*/false, request,
+      [this](grpc::ClientContext* context, const v1::CreateSnapshotRequest& r,
+             v1::CreateSnapshotResponse* out) {
+        return stub_->CreateSnapshot(context, r, out);
+      });
+}
+
 absl::StatusOr<uint64_t> Client::Watch(
     std::string_view fleet_id, uint64_t after_event,
     const std::function<bool(const v1::MemoryEvent&)>& on_event,

@@ -113,6 +113,17 @@ class Client {
   absl::StatusOr<std::vector<v1::PlaceMatch>> QueryPlace(
       const v1::QueryPlaceRequest& request);
   absl::StatusOr<v1::GetStatsResponse> GetStats(std::string_view fleet_id);
+  // Retried (reads).
+  absl::StatusOr<v1::ListFleetsResponse> ListFleets();
+  absl::StatusOr<v1::ListClustersResponse> ListClusters(
+      std::string_view fleet_id, bool include_places);
+  absl::StatusOr<v1::ListTracesResponse> ListTraces(
+      std::string_view fleet_id, uint32_t page_size,
+      std::string_view page_token);
+  // Not retried: a retry after a lost answer would find the name taken
+  // (ALREADY_EXISTS) although the snapshot was made.
+  absl::StatusOr<v1::CreateSnapshotResponse> CreateSnapshot(
+      std::string_view name);
 
   // Streams events after `after_event` to `on_event` until it returns false
   // or `stop` becomes true (checked at least every `poll`); reconnects after
