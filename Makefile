@@ -11,7 +11,9 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libabsl-dev librocksdb-dev libflann-dev liblz4-dev libeigen3-dev \
   libopencv-dev libgtest-dev libgmock-dev libbenchmark-dev \
   libsodium-dev libcli11-dev libbz2-dev openssl clang-14 libclang-rt-14-dev \
-  libtorch-dev gnuplot-nox
+  libtorch-dev gnuplot-nox \
+  libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
+  libssl-dev curl python3 python3-numpy prometheus chromium
 
 empty :=
 space := $(empty) $(empty)

@@ -1,0 +1,224 @@
+#!/usr/bin/env bash
+# The HTTP port of the real fleetmem-server, end to end, with real tools:
+#   rest       every REST route with curl: answers equal to the gRPC ones (the
+#              fleetmem CLI), bad JSON, unknown fields, unknown fleets,
+#              oversized bodies; export read back with numpy.
+#   snapshot   a snapshot taken under upload load; a second server started on
+#              it holds every trace acknowledged before the snapshot call.
+#   prometheus a real Prometheus scrapes /metrics; its query API returns the
+#              fleet's trace count.
+#   dashboard  headless Chromium renders the dashboard after a small fleet
+#              uploaded; the DOM shows the fleet, its robots, counts and a
+#              drawn map; the screenshot is kept as BUILD/test-artifacts/
+#              dashboard.png.
+# Usage: http_operations_test.sh BUILD_DIR MODE
+set -euo pipefail
+
+BUILD=$(cd "$1" && pwd)
+MODE=$2
+BIN=$BUILD/bin
+WORK=$(mktemp -d "${TMPDIR:-/tmp}/fleetmem-http-XXXXXX")
+PIDS=()
+cleanup() {
+  for pid in "${PIDS[@]}"; do kill -9 "$pid" 2>/dev/null || true; done
+  if [ -z "${FLEETMEM_KEEP_TEST_DIRS:-}" ]; then rm -rf "$WORK"; fi
+}
+trap cleanup EXIT
+fail() { echo "FAIL: $*" >&2; exit 1; }
+check() { # check DESCRIPTION COMMAND...
+  local what=$1; shift
+  if "$@"; then echo "ok: $what"; else fail "$what"; fi
+}
+
+# start_server NAME DATA_DIR [extra flags]: sets GRPC_ADDR and HTTP_ADDR.
+start_server() {
+  local name=$1 data=$2; shift 2
+  "$BIN/fleetmem-server" --data-dir "$data" --listen 127.0.0.1:0 \
+    --http-listen 127.0.0.1:0 "$@" > "$WORK/$name.log" 2>&1 &
+  PIDS+=($!)
+  disown $!
+  for _ in $(seq 1 300); do
+    if grep -q "http on" "$WORK/$name.log"; then break; fi
+    sleep 0.1
+  done
+  GRPC_ADDR=$(sed -n 's/^fleetmem-server listening on //p' "$WORK/$name.log")
+  HTTP_ADDR=$(sed -n 's/^fleetmem-server http on //p' "$WORK/$name.log")
+  [ -n "$GRPC_ADDR" ] && [ -n "$HTTP_ADDR" ] ||
+    { cat "$WORK/$name.log" >&2; fail "server $name did not start"; }
+}
+
+cli() { "$BIN/fleetmem" --server "$GRPC_ADDR" "$@"; }
+http_code() { # http_code METHOD PATH [BODY]: prints the status, body to $WORK/body
+  curl -s -o "$WORK/body" -w '%{http_code}' -X "$1" \
+    -H 'Content-Type: application/json' ${3:+--data-binary "$3"} \
+    "http://$HTTP_ADDR$2"
+}
+# json_equal FILE_A FILE_B: same JSON value.
+json_equal() {
+  /usr/bin/python3 -c 'import json,sys; a=json.load(open(sys.argv[1])); b=json.load(open(sys.argv[2])); sys.exit(0 if a==b else 1)' "$1" "$2" ||
+    { echo "--- $1"; cat "$1"; echo "--- $2"; cat "$2"; return 1; }
+}
+
+upload_fleet() { # upload_fleet FLEET ROBOTS PER_ROBOT
+  cli gen-traces --robots "$2" --per-robot "$3" --dim 32 --out "$WORK/traces.jsonl" > /dev/null
+  cli upload --fleet "$1" --file "$WORK/traces.jsonl" > /dev/null
+}
+
+case "$MODE" in
+rest)
+  start_server main "$WORK/data"
+  upload_fleet alpha 3 150
+  cli consolidate --fleet alpha > /dev/null  # clusters and events
+  for route in "GET /v1/fleets" "GET /v1/fleets/alpha/stats" \
+               "GET /v1/fleets/alpha/clusters"; do
+    set -- $route
+    check "$route is 200" [ "$(http_code "$1" "$2")" = 200 ]
+    cp "$WORK/body" "$WORK/rest.json"
+    case "$2" in
+      /v1/fleets) cli --json fleets > "$WORK/grpc.json" ;;
+      */stats) cli --json stats --fleet alpha > "$WORK/grpc.json" ;;
+      */clusters) cli --json clusters --fleet alpha > "$WORK/grpc.json" ;;
+    esac
+    check "$route equals the gRPC answer" json_equal "$WORK/rest.json" "$WORK/grpc.json"
+  done
+  check "events after a cursor" [ "$(http_code GET '/v1/fleets/alpha/events?after=2')" = 200 ]
+  check "events start at 3" /usr/bin/python3 -c 'import json; e=json.load(open("'"$WORK/body"'"))["events"]; assert e[0]["id"]=="3", e[0]'
+  code=$(head -1 "$WORK/traces.jsonl" | /usr/bin/python3 -c 'import json,sys; print(json.dumps({"code": json.load(sys.stdin)["code"], "k": 3}))')
+  check "query is 200" [ "$(http_code POST /v1/fleets/alpha/query "$code")" = 200 ]
+  cp "$WORK/body" "$WORK/rest.json"
+  echo "$code" > "$WORK/code.json"
+  cli --json query --fleet alpha --code-file "$WORK/code.json" --k 3 > "$WORK/grpc.json"
+  check "query equals the gRPC answer" json_equal "$WORK/rest.json" "$WORK/grpc.json"
+  check "sample is 200" [ "$(http_code POST /v1/fleets/alpha/sample '{"robotId":"robot-1","count":4}')" = 200 ]
+  check "sample returns 4 traces" /usr/bin/python3 -c 'import json; assert len(json.load(open("'"$WORK/body"'"))["traces"])==4'
+  check "consolidate is 200" [ "$(http_code POST /v1/fleets/alpha/consolidate '{}')" = 200 ]
+  check "bad JSON is 400" [ "$(http_code POST /v1/fleets/alpha/query '{"code": [1,')" = 400 ]
+  check "unknown field is 400 naming it" [ "$(http_code POST /v1/fleets/alpha/query '{"codes": [1]}')" = 400 ]
+  grep -q codes "$WORK/body" || fail "the message does not name the field: $(cat "$WORK/body")"
+  check "wrong type is 400" [ "$(http_code POST /v1/fleets/alpha/query '{"k": "three"}')" = 400 ]
+  check "unknown fleet is 404" [ "$(http_code GET /v1/fleets/nobody/stats)" = 404 ]
+  grep -q '"status":"NOT_FOUND"' "$WORK/body" || fail "404 body: $(cat "$WORK/body")"
+  /usr/bin/python3 -c 'print("{\"code\": [" + "0.5," * 1200000 + "0.5]}")' > "$WORK/big.json"
+  status=$(curl -s -o "$WORK/body" -w '%{http_code}' -X POST -H 'Content-Type: application/json' \
+    --data-binary "@$WORK/big.json" "http://$HTTP_ADDR/v1/fleets/alpha/query")
+  check "oversized body is 413" [ "$status" = 413 ]
+  check "unknown route is 404" [ "$(http_code GET /v1/nothing)" = 404 ]
+  check "healthz" [ "$(http_code GET /healthz)" = 200 ]
+  check "readyz" [ "$(http_code GET /readyz)" = 200 ]
+  check "metrics has the fleet's traces" grep -q 'fleetmem_fleet_traces{fleet="alpha"}' <(curl -s "http://$HTTP_ADDR/metrics")
+  cli export --fleet alpha --out "$WORK/export" --page-size 100 > /dev/null
+  check "export reads back with numpy" /usr/bin/python3 - "$WORK/export" <<'EOF'
+import csv, json, sys
+import numpy as np
+d = sys.argv[1]
+codes, places = np.load(d + "/codes.npy"), np.load(d + "/places.npy")
+rows = list(csv.DictReader(open(d + "/metadata.csv")))
+assert codes.shape == (450, 32) and codes.dtype == np.float32, codes.shape
+assert places.shape == (450, 4) and places.dtype == np.float64, places.shape
+assert len(rows) == 450
+first = json.loads(open(d + "/../traces.jsonl").readline())
+row = next(i for i, r in enumerate(rows) if r["robot_id"] == first["robotId"] and r["seq"] == first["seq"])
+assert np.allclose(codes[row], np.array(first["code"], dtype=np.float32)), row
+assert abs(places[row][0] - first["pose"]["x"]) < 1e-9
+EOF
+  ;;
+
+snapshot)
+  start_server main "$WORK/data"
+  cli gen-traces --robots 40 --per-robot 100 --dim 32 --out "$WORK/all.jsonl" > /dev/null
+  # One upload per robot, one after another, logging each acknowledgement.
+  (
+    for r in $(seq 1 40); do
+      grep "\"robotId\":\"robot-$r\"" "$WORK/all.jsonl" > "$WORK/r$r.jsonl"
+      cli upload --fleet load --file "$WORK/r$r.jsonl" > /dev/null
+      echo "robot-$r" >> "$WORK/acked"
+    done
+  ) &
+  uploader=$!
+  PIDS+=($uploader)
+  until [ "$(wc -l < "$WORK/acked" 2>/dev/null || echo 0)" -ge 10 ]; do sleep 0.1; done
+  cp "$WORK/acked" "$WORK/acked-before"   # acknowledged before the call began
+  cli snapshot --name under-load > "$WORK/snapshot.out"
+  wait "$uploader"
+  snap=$(sed -n 's/^restore: fleetmem-server --data-dir //p' "$WORK/snapshot.out")
+  check "snapshot directory exists" [ -d "$snap/db" ]
+  echo "acknowledged before the snapshot: $(wc -l < "$WORK/acked-before") robots"
+  start_server restored "$snap"
+  cli --json stats --fleet load > "$WORK/restored.json"
+  check "every trace acknowledged before the snapshot is in it" /usr/bin/python3 - "$WORK/restored.json" "$WORK/acked-before" <<'EOF'
+import json, sys
+stats = json.load(open(sys.argv[1]))
+received = {r["robotId"]: int(r["received"]) for r in stats["robots"]}
+for robot in open(sys.argv[2]).read().split():
+    assert received.get(robot) == 100, (robot, received.get(robot))
+print("restored robots:", len(received), "traces:", sum(received.values()))
+EOF
+  check "the live server kept serving and has all 40 robots" /usr/bin/python3 -c '
+import json, subprocess, sys
+s = json.loads(subprocess.check_output(sys.argv[1:]))
+assert len(s["robots"]) == 40, len(s["robots"])' "$BIN/fleetmem" --server "$(sed -n 's/^fleetmem-server listening on //p' "$WORK/main.log")" --json stats --fleet load
+  GRPC_ADDR=$(sed -n 's/^fleetmem-server listening on //p' "$WORK/main.log")
+  cli snapshot --name under-load > "$WORK/again.out" 2>&1 || true
+  check "a taken name is refused" grep -q ALREADY_EXISTS "$WORK/again.out"
+  ;;
+
+prometheus)
+  command -v prometheus > /dev/null || fail "prometheus is not installed (make deps)"
+  start_server main "$WORK/data"
+  upload_fleet scraped 2 250   # 200 per robot consolidate automatically
+  traces=$(cli --json stats --fleet scraped | /usr/bin/python3 -c 'import json,sys; print(json.load(sys.stdin)["traces"])')
+  port=$(/usr/bin/python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
+  cat > "$WORK/prometheus.yml" <<EOF
+global:
+  scrape_interval: 1s
+scrape_configs:
+  - job_name: fleetmem
+    static_configs:
+      - targets: ["$HTTP_ADDR"]
+EOF
+  prometheus --config.file="$WORK/prometheus.yml" --storage.tsdb.path="$WORK/tsdb" \
+    --web.listen-address="127.0.0.1:$port" > "$WORK/prometheus.log" 2>&1 &
+  PIDS+=($!)
+  disown $!
+  value=""
+  for _ in $(seq 1 60); do
+    value=$(curl -s "http://127.0.0.1:$port/api/v1/query" \
+      --data-urlencode 'query=fleetmem_fleet_traces{fleet="scraped"}' |
+      /usr/bin/python3 -c 'import json,sys; r=json.load(sys.stdin)["data"]["result"]; print(r[0]["value"][1] if r else "")' 2>/dev/null || true)
+    [ -n "$value" ] && break
+    sleep 1
+  done
+  echo "Prometheus says fleetmem_fleet_traces{fleet=\"scraped\"} = $value; GetStats says $traces"
+  check "the fleet has consolidated traces" [ "$traces" -gt 0 ]
+  check "Prometheus returns the fleet's trace count" [ "$value" = "$traces" ]
+  ;;
+
+dashboard)
+  command -v chromium > /dev/null || fail "chromium is not installed (make deps)"
+  start_server main "$WORK/data"
+  upload_fleet dashfleet 3 300
+  ARTIFACTS=$BUILD/test-artifacts
+  mkdir -p "$ARTIFACTS"
+  browse() {
+    timeout 120 chromium --headless --no-sandbox --disable-gpu --hide-scrollbars \
+      --user-data-dir="$WORK/chromium" --window-size=1400,1000 \
+      --virtual-time-budget=8000 "$@" "http://$HTTP_ADDR/" 2> "$WORK/chromium.log"
+  }
+  browse --dump-dom > "$WORK/dom.html"
+  browse --screenshot="$ARTIFACTS/dashboard.png" > /dev/null
+  check "the DOM shows the fleet" grep -q 'data-fleet="dashfleet"' "$WORK/dom.html"
+  for r in 1 2 3; do
+    check "the DOM shows robot-$r" grep -q "data-robot=\"robot-$r\"" "$WORK/dom.html"
+  done
+  traces=$(cli --json stats --fleet dashfleet | /usr/bin/python3 -c 'import json,sys; print("{:,}".format(int(json.load(sys.stdin)["traces"])))')
+  check "the DOM shows the trace count ($traces)" grep -q "id=\"stat-traces\" class=\"value\">$traces<" "$WORK/dom.html"
+  check "the map drew 900 places" grep -q 'data-points="900"' "$WORK/dom.html"
+  check "the map drew clusters" grep -qE 'data-clusters="[1-9][0-9]*"' "$WORK/dom.html"
+  check "the screenshot was saved" [ -s "$ARTIFACTS/dashboard.png" ]
+  echo "screenshot: $ARTIFACTS/dashboard.png"
+  ;;
+*)
+  fail "unknown mode $MODE"
+  ;;
+esac
+echo "PASS: $MODE"
