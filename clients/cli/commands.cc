@@ -444,8 +444,8 @@ int RunClusters(const Invocation& invocation) {
   absl::StatusOr<std::string> fleet = invocation.flags->Required("fleet");
   if (!fleet.ok()) return UsageError(invocation, fleet.status());
   absl::StatusOr<v1::ListClustersResponse> clusters =
-      Connect(invocation)->ListClusters(*fleet,
-                                        invocation.flags->Has("places"));
+      Connect(invocation)
+          ->ListClusters(*fleet, invocation.flags->Has("places"));
   if (!clusters.ok()) return ServerError(invocation, clusters.status());
   return PrintResponse(invocation, *clusters, PrintClusters);
 }
@@ -469,8 +469,8 @@ int RunExport(const Invocation& invocation) {
   absl::StatusOr<uint64_t> page_size = flags.UintOr("page-size", 1000, 10000);
   if (!page_size.ok()) return UsageError(invocation, page_size.status());
   if (*page_size == 0) {
-    return UsageError(invocation,
-                      absl::InvalidArgumentError("--page-size must be positive"));
+    return UsageError(
+        invocation, absl::InvalidArgumentError("--page-size must be positive"));
   }
   std::error_code error;
   std::filesystem::create_directories(*out, error);
@@ -489,8 +489,8 @@ int RunExport(const Invocation& invocation) {
   size_t dimension = 0;
   std::string token;
   do {
-    absl::StatusOr<v1::ListTracesResponse> page = client->ListTraces(
-        *fleet, static_cast<uint32_t>(*page_size), token);
+    absl::StatusOr<v1::ListTracesResponse> page =
+        client->ListTraces(*fleet, static_cast<uint32_t>(*page_size), token);
     if (!page.ok()) {
       *invocation.err << "export stopped after " << rows
                       << " traces; nothing was written to " << *out << "\n";
@@ -499,11 +499,11 @@ int RunExport(const Invocation& invocation) {
     for (const v1::MemoryTrace& trace : page->traces()) {
       if (rows == 0) dimension = static_cast<size_t>(trace.code_size());
       if (static_cast<size_t>(trace.code_size()) != dimension) {
-        return ServerError(invocation,
-                           absl::DataLossError(absl::StrCat(
-                               "trace ", trace.robot_id(), "/", trace.seq(),
-                               " has dimension ", trace.code_size(),
-                               ", earlier ones ", dimension)));
+        return ServerError(
+            invocation,
+            absl::DataLossError(absl::StrCat(
+                "trace ", trace.robot_id(), "/", trace.seq(), " has dimension ",
+                trace.code_size(), ", earlier ones ", dimension)));
       }
       codes.insert(codes.end(), trace.code().begin(), trace.code().end());
       places.insert(places.end(), {trace.pose().x(), trace.pose().y(),

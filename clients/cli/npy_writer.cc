@@ -14,9 +14,9 @@ template <typename T>
 absl::Status Write(const std::string& path, std::span<const T> values,
                    size_t rows, size_t cols, const std::string& descr) {
   if (values.size() != rows * cols) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(path, ": ", values.size(), " values for a ", rows, " x ",
-                     cols, " array"));
+    return absl::InvalidArgumentError(absl::StrCat(path, ": ", values.size(),
+                                                   " values for a ", rows,
+                                                   " x ", cols, " array"));
   }
   const std::string tmp = path + ".tmp";
   {
@@ -34,7 +34,8 @@ absl::Status Write(const std::string& path, std::span<const T> values,
   }
   if (std::rename(tmp.c_str(), path.c_str()) != 0) {
     std::remove(tmp.c_str());
-    return absl::InternalError(absl::StrCat("cannot rename ", tmp, " to ", path));
+    return absl::InternalError(
+        absl::StrCat("cannot rename ", tmp, " to ", path));
   }
   return absl::OkStatus();
 }
@@ -43,8 +44,8 @@ absl::Status Write(const std::string& path, std::span<const T> values,
 
 std::string NpyHeader(const std::string& descr, size_t rows, size_t cols) {
   std::string dict = absl::StrCat("{'descr': '", descr,
-                                  "', 'fortran_order': False, 'shape': (",
-                                  rows, ", ", cols, "), }");
+                                  "', 'fortran_order': False, 'shape': (", rows,
+                                  ", ", cols, "), }");
   // Preamble (10 bytes) + dict + padding + '\n' is a multiple of 64.
   const size_t unpadded = 10 + dict.size() + 1;
   dict.append((64 - unpadded % 64) % 64, ' ');

@@ -1,8 +1,7 @@
 #include "clients/cli/printing.h"
 
-#include <map>
-
 #include <algorithm>
+#include <map>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -185,8 +184,8 @@ void PrintFleets(const v1::ListFleetsResponse& fleets, std::ostream& out) {
     table.AddRow({fleet.fleet_id(), absl::StrCat(fleet.traces()),
                   absl::StrCat(fleet.pending_traces()),
                   absl::StrCat(fleet.clusters()), absl::StrCat(fleet.robots()),
-                  absl::StrCat(fleet.code_dimension()),
-                  fleet.encoder_version(), absl::StrCat(fleet.last_event_id())});
+                  absl::StrCat(fleet.code_dimension()), fleet.encoder_version(),
+                  absl::StrCat(fleet.last_event_id())});
   }
   table.Print(out);
 }
@@ -213,8 +212,8 @@ void PrintClusters(const v1::ListClustersResponse& clusters,
     return;
   }
   Table table;
-  table.AddRow({"cluster", "traces", "x", "y", "mean reward", "robots",
-                "domains"});
+  table.AddRow(
+      {"cluster", "traces", "x", "y", "mean reward", "robots", "domains"});
   for (const v1::ClusterSummary& cluster : clusters.clusters()) {
     table.AddRow({absl::StrCat(cluster.cluster_id()),
                   absl::StrCat(cluster.trace_count()),

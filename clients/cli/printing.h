@@ -34,8 +34,7 @@ void PrintConsolidate(const v1::ConsolidateResponse& response,
                       std::ostream& out);
 void PrintStats(const v1::GetStatsResponse& stats, std::ostream& out);
 void PrintFleets(const v1::ListFleetsResponse& fleets, std::ostream& out);
-void PrintClusters(const v1::ListClustersResponse& clusters,
-                   std::ostream& out);
+void PrintClusters(const v1::ListClustersResponse& clusters, std::ostream& out);
 void PrintSnapshot(const v1::CreateSnapshotResponse& snapshot,
                    std::ostream& out);
 void PrintMatches(std::span<const v1::PlaceMatch> matches, std::ostream& out);

@@ -235,9 +235,9 @@ class MemoryEngine {
   // Up to `page_size` (>= 1) traces of the static memory and the pending
   // ones, with codes, whose key is after `after` (all when nullopt), by
   // (robot_id, seq). NOT_FOUND for an unknown fleet.
-  absl::StatusOr<TracePage> ListTraces(std::string_view fleet_id,
-                                       const std::optional<core::TraceKey>& after,
-                                       size_t page_size) const;
+  absl::StatusOr<TracePage> ListTraces(
+      std::string_view fleet_id, const std::optional<core::TraceKey>& after,
+      size_t page_size) const;
 
   // The store's Checkpoint: a consistent copy of every fleet in the new
   // directory `directory`, with every write acknowledged before the call.

@@ -85,32 +85,32 @@ absl::StatusOr<std::unique_ptr<httplib::Server>> MakeServer(
   }
   std::string error;
   auto server = std::make_unique<httplib::SSLServer>([&](SSL_CTX& context) {
-    if (SSL_CTX_use_certificate_chain_file(&context,
-                                           options.tls_cert_file.c_str()) != 1 ||
+    if (SSL_CTX_use_certificate_chain_file(
+            &context, options.tls_cert_file.c_str()) != 1 ||
         SSL_CTX_use_PrivateKey_file(&context, options.tls_key_file.c_str(),
                                     SSL_FILETYPE_PEM) != 1 ||
         SSL_CTX_check_private_key(&context) != 1) {
-      error = absl::StrCat("TLS certificate ", options.tls_cert_file,
-                           " or key ", options.tls_key_file, ": ",
-                           OpenSslError());
+      error =
+          absl::StrCat("TLS certificate ", options.tls_cert_file, " or key ",
+                       options.tls_key_file, ": ", OpenSslError());
       return false;
     }
     SSL_CTX_set_min_proto_version(&context, TLS1_2_VERSION);
     if (!options.tls_client_ca_file.empty()) {
       if (SSL_CTX_load_verify_locations(
               &context, options.tls_client_ca_file.c_str(), nullptr) != 1) {
-        error = absl::StrCat("TLS client CA ", options.tls_client_ca_file,
-                             ": ", OpenSslError());
+        error = absl::StrCat("TLS client CA ", options.tls_client_ca_file, ": ",
+                             OpenSslError());
         return false;
       }
       // Without "require", a client without a certificate may still connect
       // and present a token; one with a certificate must present a valid one.
-      SSL_CTX_set_verify(&context,
-                         SSL_VERIFY_PEER |
-                             (options.require_client_certificate
-                                  ? SSL_VERIFY_FAIL_IF_NO_PEER_CERT
-                                  : 0),
-                         nullptr);
+      SSL_CTX_set_verify(
+          &context,
+          SSL_VERIFY_PEER | (options.require_client_certificate
+                                 ? SSL_VERIFY_FAIL_IF_NO_PEER_CERT
+                                 : 0),
+          nullptr);
     }
     return true;
   });
@@ -181,7 +181,8 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   http.Delete("/v1/.*", api);
   http.Patch("/v1/.*", api);
   // Bodies over the limit, unknown paths: JSON errors like the API's.
-  http.set_error_handler([](const httplib::Request& req, httplib::Response& res) {
+  http.set_error_handler([](const httplib::Request& req,
+                            httplib::Response& res) {
     if (!res.body.empty()) return;
     absl::Status status =
         res.status == 413

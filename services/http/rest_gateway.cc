@@ -68,9 +68,8 @@ absl::Status SetScalar(const std::string& parameter, const std::string& value,
                        const FieldDescriptor& field, Message* message) {
   const Reflection& r = *message->GetReflection();
   auto bad = [&](absl::string_view expected) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("query parameter ", parameter, ": \"", value,
-                     "\" is not ", expected));
+    return absl::InvalidArgumentError(absl::StrCat(
+        "query parameter ", parameter, ": \"", value, "\" is not ", expected));
   };
   switch (field.cpp_type()) {
     case FieldDescriptor::CPPTYPE_STRING:
@@ -213,8 +212,8 @@ absl::StatusOr<std::vector<Route>> RoutesFromProto(
             method->full_name(), ": only get and post routes are served"));
     }
     if (!rule.body().empty() && rule.body() != "*") {
-      return absl::InvalidArgumentError(absl::StrCat(
-          method->full_name(), ": body must be \"*\" or empty"));
+      return absl::InvalidArgumentError(
+          absl::StrCat(method->full_name(), ": body must be \"*\" or empty"));
     }
     route.body = rule.body() == "*";
     for (const std::string& segment : Segments(route.pattern)) {
@@ -264,9 +263,8 @@ absl::StatusOr<auth::Principal> RestGateway::Authenticate(
     constexpr absl::string_view kBearer = "Bearer ";
     const std::string& value = *request.authorization;
     // A malformed header is presented as is and fails the check.
-    presented.token = absl::StartsWith(value, kBearer)
-                          ? value.substr(kBearer.size())
-                          : value;
+    presented.token =
+        absl::StartsWith(value, kBearer) ? value.substr(kBearer.size()) : value;
   }
   presented.certificate_common_name = request.certificate_common_name;
   return authenticator_->Authenticate(presented);
@@ -291,15 +289,15 @@ HttpResponse RestGateway::Handle(const HttpRequest& request) const {
     return response;
   }
   if (path_known) {
-    HttpResponse response = ErrorResponse(absl::InvalidArgumentError(
-        absl::StrCat("method ", request.method, " is not allowed on ",
-                     request.path)));
+    HttpResponse response =
+        ErrorResponse(absl::InvalidArgumentError(absl::StrCat(
+            "method ", request.method, " is not allowed on ", request.path)));
     response.status = 405;
     return response;
   }
-  return ErrorResponse(absl::NotFoundError(absl::StrCat(
-      "no route ", request.method, " ", request.path,
-      " (docs/operations.md lists the REST routes)")));
+  return ErrorResponse(absl::NotFoundError(
+      absl::StrCat("no route ", request.method, " ", request.path,
+                   " (docs/operations.md lists the REST routes)")));
 }
 
 HttpResponse RestGateway::Serve(
@@ -326,9 +324,10 @@ HttpResponse RestGateway::Serve(
   std::unique_ptr<Message> message(prototype->New());
   const Descriptor& type = *route.method->input_type();
   if (route.body) {
-    const bool blank = std::all_of(
-        request.body.begin(), request.body.end(),
-        [](char c) { return absl::ascii_isspace(static_cast<unsigned char>(c)); });
+    const bool blank =
+        std::all_of(request.body.begin(), request.body.end(), [](char c) {
+          return absl::ascii_isspace(static_cast<unsigned char>(c));
+        });
     if (!blank) {
       google::protobuf::util::JsonParseOptions options;
       options.ignore_unknown_fields = false;
@@ -340,9 +339,9 @@ HttpResponse RestGateway::Serve(
       }
     }
   } else if (!request.body.empty()) {
-    return fail(absl::InvalidArgumentError(absl::StrCat(
-        request.method, " ", route.pattern,
-        " takes no body; pass fields as query parameters")));
+    return fail(absl::InvalidArgumentError(
+        absl::StrCat(request.method, " ", route.pattern,
+                     " takes no body; pass fields as query parameters")));
   }
   const Reflection& reflection = *message->GetReflection();
   for (const auto& [name, value] : variables) {
@@ -359,14 +358,13 @@ HttpResponse RestGateway::Serve(
     const FieldDescriptor* field = FindField(type, name);
     if (field == nullptr || field->is_repeated() ||
         variables.contains(field->name())) {
-      return fail(absl::InvalidArgumentError(
-          absl::StrCat("query parameter ", name, ": not a field of ",
-                       type.full_name())));
+      return fail(absl::InvalidArgumentError(absl::StrCat(
+          "query parameter ", name, ": not a field of ", type.full_name())));
     }
     if (route.body) {
-      return fail(absl::InvalidArgumentError(absl::StrCat(
-          "query parameter ", name, ": ", route.pattern,
-          " takes its fields in the JSON body")));
+      return fail(absl::InvalidArgumentError(
+          absl::StrCat("query parameter ", name, ": ", route.pattern,
+                       " takes its fields in the JSON body")));
     }
     absl::Status set = SetScalar(name, value, *field, message.get());
     if (!set.ok()) return fail(set);

@@ -31,8 +31,8 @@
 namespace fleetmem::http {
 
 struct HttpRequest {
-  std::string method;  // "GET", "POST", ...
-  std::string path;    // decoded, without the query
+  std::string method;                             // "GET", "POST", ...
+  std::string path;                               // decoded, without the query
   std::multimap<std::string, std::string> query;  // decoded
   std::string body;
   // The Authorization header, if sent.
@@ -102,8 +102,7 @@ class RestGateway {
       const HttpRequest& request) const;
   HttpResponse Serve(const Route& route,
                      const std::map<std::string, std::string>& variables,
-                     const HttpRequest& request,
-                     absl::StatusCode* code) const;
+                     const HttpRequest& request, absl::StatusCode* code) const;
 
   transport::MemoryApi* const api_;
   const auth::Authenticator* const authenticator_;

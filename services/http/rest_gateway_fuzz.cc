@@ -69,7 +69,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (question != std::string::npos) {
     for (absl::string_view pair :
          absl::StrSplit(target.substr(question + 1), '&', absl::SkipEmpty())) {
-      std::vector<std::string> parts = absl::StrSplit(pair, absl::MaxSplits('=', 1));
+      std::vector<std::string> parts =
+          absl::StrSplit(pair, absl::MaxSplits('=', 1));
       request.query.emplace(parts[0], parts.size() > 1 ? parts[1] : "");
     }
   }

@@ -225,8 +225,9 @@ TEST(RestGatewayAuthTest, TokensAndRoles) {
   absl::StatusOr<std::string> hash = auth::HashSecret("s3cret");
   ASSERT_TRUE(hash.ok());
   std::vector<auth::CredentialEntry> entries;
-  entries.push_back({auth::Principal{"viewer", auth::Role::kReader, "", {"alpha"}},
-                     *hash, ""});
+  entries.push_back(
+      {auth::Principal{"viewer", auth::Role::kReader, "", {"alpha"}}, *hash,
+       ""});
   auth::Authenticator authenticator(std::move(entries));
   transport::MemoryApi api(engine->get());
   auto gateway = RestGateway::Create(&api, &authenticator, nullptr);
@@ -247,10 +248,12 @@ TEST(RestGatewayAuthTest, TokensAndRoles) {
   HttpResponse denied = (*gateway)->Handle(consolidate);
   EXPECT_EQ(denied.status, 403);
   EXPECT_THAT(denied.body, HasSubstr("only an admin may"));
-  HttpRequest other{.method = "GET", .path = "/v1/fleets/beta/stats",
+  HttpRequest other{.method = "GET",
+                    .path = "/v1/fleets/beta/stats",
                     .authorization = "Bearer viewer:s3cret"};
   EXPECT_EQ((*gateway)->Handle(other).status, 403);
-  HttpRequest fleets{.method = "GET", .path = "/v1/fleets",
+  HttpRequest fleets{.method = "GET",
+                     .path = "/v1/fleets",
                      .authorization = "Bearer viewer:s3cret"};
   EXPECT_THAT((*gateway)->Handle(fleets).body, HasSubstr("alpha"));
 }

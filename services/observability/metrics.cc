@@ -252,7 +252,8 @@ engine::EngineHooks Metrics::EngineHooks() {
         static_cast<double>(result.clusters_added));
     f->clusters_forgotten.Add(labels).Increment(
         static_cast<double>(result.clusters_forgotten));
-    if (result.clusters_forgotten > 0) f->forgetting_runs.Add(labels).Increment();
+    if (result.clusters_forgotten > 0)
+      f->forgetting_runs.Add(labels).Increment();
     f->downsampled_traces.Add(labels).Increment(
         static_cast<double>(result.downsampled_traces));
     f->consolidation_seconds.Add(labels, LatencyBuckets()).Observe(seconds);
@@ -272,12 +273,14 @@ void Metrics::ObserveCall(std::string_view transport, std::string_view method,
                           absl::StatusCode code, double seconds) {
   const std::string t(transport);
   const std::string m(method);
-  families_->calls.Add({{"transport", t}, {"method", m}, {"code", CodeName(code)}})
+  families_->calls
+      .Add({{"transport", t}, {"method", m}, {"code", CodeName(code)}})
       .Increment();
   if (code != absl::StatusCode::kOk) {
     families_->call_errors.Add({{"transport", t}, {"method", m}}).Increment();
   }
-  families_->call_seconds.Add({{"transport", t}, {"method", m}}, LatencyBuckets())
+  families_->call_seconds
+      .Add({{"transport", t}, {"method", m}}, LatencyBuckets())
       .Observe(seconds);
 }
 
@@ -326,8 +329,7 @@ void Metrics::RefreshGauges() {
         static_cast<double>(sources_.store->ApproximateDiskBytes()));
   }
   if (sources_.work_queue_depth) {
-    f.queue_depth.Add({}).Set(
-        static_cast<double>(sources_.work_queue_depth()));
+    f.queue_depth.Add({}).Set(static_cast<double>(sources_.work_queue_depth()));
   }
 }
 

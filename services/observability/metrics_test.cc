@@ -45,9 +45,12 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
 
   const std::string text = metrics.Render();
   EXPECT_THAT(text, HasSubstr("fleetmem_fleet_traces{fleet=\"alpha\"} "));
-  EXPECT_THAT(text, HasSubstr("fleetmem_uploaded_traces_total{fleet=\"alpha\"} 8"));
-  EXPECT_THAT(text, HasSubstr("fleetmem_consolidations_total{fleet=\"alpha\"} 1"));
-  EXPECT_THAT(text, HasSubstr("fleetmem_clusters_forgotten_total{fleet=\"alpha\"} 1"));
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_uploaded_traces_total{fleet=\"alpha\"} 8"));
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_consolidations_total{fleet=\"alpha\"} 1"));
+  EXPECT_THAT(
+      text, HasSubstr("fleetmem_clusters_forgotten_total{fleet=\"alpha\"} 1"));
   EXPECT_THAT(text, HasSubstr("fleetmem_fleet_clusters{fleet=\"alpha\"} 1"));
   EXPECT_THAT(text, HasSubstr("fleetmem_rpc_requests_total{code=\"NOT_FOUND\","
                               "method=\"GetStats\",transport=\"http\"} 1"));
@@ -55,7 +58,8 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
                               "transport=\"http\"} 1"));
   EXPECT_THAT(text, HasSubstr("fleetmem_rpc_duration_seconds_count{method="
                               "\"GetStats\",transport=\"grpc\"} 1"));
-  EXPECT_THAT(text, HasSubstr("fleetmem_uploaded_bytes_total{fleet=\"alpha\"} 1234"));
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_uploaded_bytes_total{fleet=\"alpha\"} 1234"));
   EXPECT_THAT(text, HasSubstr("fleetmem_work_queue_depth 7"));
   // One write per upload message and per consolidated segment at least.
   EXPECT_THAT(text, HasSubstr("fleetmem_store_write_duration_seconds_count"));

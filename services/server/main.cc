@@ -265,9 +265,9 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   std::unique_ptr<http::HttpServer> http_server;
   if (!config.http_listen.empty()) {
     absl::StatusOr<std::unique_ptr<http::RestGateway>> made =
-        http::RestGateway::Create(&http_api, authenticator.get(),
-                                  service_options.on_call,
-                                  {.max_body_bytes = config.max_http_body_bytes});
+        http::RestGateway::Create(
+            &http_api, authenticator.get(), service_options.on_call,
+            {.max_body_bytes = config.max_http_body_bytes});
     absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
         made.ok() ? http::HttpServer::Start(
                         HttpOptions(config),

@@ -24,12 +24,12 @@
 #include "rocksdb/cache.h"
 #include "rocksdb/convenience.h"
 #include "rocksdb/db.h"
-#include "rocksdb/utilities/checkpoint.h"
 #include "rocksdb/filter_policy.h"
 #include "rocksdb/iterator.h"
 #include "rocksdb/options.h"
 #include "rocksdb/sst_file_manager.h"
 #include "rocksdb/table.h"
+#include "rocksdb/utilities/checkpoint.h"
 #include "rocksdb/write_batch.h"
 #include "services/common/log.h"
 #include "services/storage/keys.h"
@@ -360,7 +360,8 @@ class RocksDbStore final : public engine::MemoryStore {
     uint64_t sst = 0;
     uint64_t memtables = 0;
     db_->GetIntProperty(rocksdb::DB::Properties::kLiveSstFilesSize, &sst);
-    db_->GetIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables, &memtables);
+    db_->GetIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables,
+                        &memtables);
     return sst + memtables;
   }
 

@@ -39,8 +39,8 @@ absl::Status ValidateSnapshotName(absl::string_view name) {
   const bool valid_chars =
       !name.empty() && name.size() <= 64 &&
       std::all_of(name.begin(), name.end(), [](char c) {
-        return absl::ascii_isalnum(static_cast<unsigned char>(c)) ||
-               c == '.' || c == '_' || c == '-';
+        return absl::ascii_isalnum(static_cast<unsigned char>(c)) || c == '.' ||
+               c == '_' || c == '-';
       });
   if (!valid_chars || name == "." || name == "..") {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -113,9 +113,8 @@ absl::Status MemoryApi::Consolidate(const auth::Principal& caller,
 absl::Status MemoryApi::SampleReplay(const auth::Principal& caller,
                                      const v1::SampleReplayRequest& request,
                                      v1::SampleReplayResponse* response) {
-  absl::Status allowed =
-      auth::Authorize(caller, auth::Action::kSample, request.fleet_id(),
-                      request.robot_id());
+  absl::Status allowed = auth::Authorize(
+      caller, auth::Action::kSample, request.fleet_id(), request.robot_id());
   if (!allowed.ok()) return allowed;
   absl::StatusOr<std::vector<core::MemoryTrace>> traces =
       engine_->SampleReplay(request.fleet_id(), request.robot_id(),
@@ -210,9 +209,9 @@ absl::Status MemoryApi::ListTraces(const auth::Principal& caller,
   size_t page_size = request.page_size();
   if (page_size == 0) page_size = options_.default_page_size;
   if (page_size > options_.max_page_size) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("page_size: ", page_size, " is over the limit of ",
-                     options_.max_page_size));
+    return absl::InvalidArgumentError(absl::StrCat("page_size: ", page_size,
+                                                   " is over the limit of ",
+                                                   options_.max_page_size));
   }
   std::optional<core::TraceKey> after;
   if (!request.page_token().empty()) {
@@ -248,10 +247,9 @@ absl::Status MemoryApi::CreateSnapshot(const auth::Principal& caller,
   std::error_code error;
   fs::create_directories(options_.snapshot_root, error);
   if (error) {
-    return absl::InternalError(
-        absl::StrCat("snapshot directory ", options_.snapshot_root,
-                     " cannot be created: ", error.message(),
-                     "; no snapshot was taken"));
+    return absl::InternalError(absl::StrCat(
+        "snapshot directory ", options_.snapshot_root,
+        " cannot be created: ", error.message(), "; no snapshot was taken"));
   }
   // create_directory is the claim on the name: false if it exists.
   if (!fs::create_directory(path, error)) {
@@ -267,10 +265,9 @@ absl::Status MemoryApi::CreateSnapshot(const auth::Principal& caller,
   absl::Status taken = engine_->Checkpoint((path / "db").string());
   if (!taken.ok()) {
     fs::remove_all(path, error);
-    return absl::Status(taken.code(),
-                        absl::StrCat(taken.message(),
-                                     "; no snapshot was taken (", path.string(),
-                                     " removed)"));
+    return absl::Status(
+        taken.code(), absl::StrCat(taken.message(), "; no snapshot was taken (",
+                                   path.string(), " removed)"));
   }
   response->set_path(path.string());
   response->set_fleets(static_cast<uint32_t>(engine_->ListFleets().size()));

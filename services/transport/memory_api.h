@@ -13,10 +13,10 @@
 #include <functional>
 #include <memory>
 #include <string>
-#include "absl/strings/string_view.h"
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/status.h"
+#include "absl/strings/string_view.h"
 #include "fleetmem/v1/memory.pb.h"
 #include "google/protobuf/message.h"
 #include "services/auth/access_policy.h"
@@ -76,16 +76,17 @@ class MemoryApi {
   // Generic form for the HTTP gateway: the unary method `method_name` (e.g.
   // "GetStats") with messages of its request and response types.
   // UNIMPLEMENTED for a method that is not unary or not known here.
-  absl::Status Call(absl::string_view method_name, const auth::Principal& caller,
+  absl::Status Call(absl::string_view method_name,
+                    const auth::Principal& caller,
                     const google::protobuf::Message& request,
                     google::protobuf::Message* response);
   // True if Call serves `method_name`.
   bool Serves(absl::string_view method_name) const;
 
  private:
-  using Generic = std::function<absl::Status(
-      MemoryApi*, const auth::Principal&, const google::protobuf::Message&,
-      google::protobuf::Message*)>;
+  using Generic = std::function<absl::Status(MemoryApi*, const auth::Principal&,
+                                             const google::protobuf::Message&,
+                                             google::protobuf::Message*)>;
 
   engine::MemoryEngine* const engine_;
   const ApiOptions options_;

@@ -31,8 +31,8 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
   const absl::Time started = absl::Now();
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   auto finish = [this, reactor, method, started](const grpc::Status& status) {
-    state_.ObserveCall(method, static_cast<absl::StatusCode>(status.error_code()),
-                       started);
+    state_.ObserveCall(
+        method, static_cast<absl::StatusCode>(status.error_code()), started);
     reactor->Finish(status);
   };
   if (state_.shutting_down()) {
@@ -72,7 +72,8 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::Consolidate(
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
-    grpc::CallbackServerContext* context, const v1::SampleReplayRequest* request,
+    grpc::CallbackServerContext* context,
+    const v1::SampleReplayRequest* request,
     v1::SampleReplayResponse* response) {
   return RunUnary(context, "SampleReplay", request, response);
 }
@@ -96,7 +97,8 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::ListFleets(
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::ListClusters(
-    grpc::CallbackServerContext* context, const v1::ListClustersRequest* request,
+    grpc::CallbackServerContext* context,
+    const v1::ListClustersRequest* request,
     v1::ListClustersResponse* response) {
   return RunUnary(context, "ListClusters", request, response);
 }
@@ -114,7 +116,8 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::ListTraces(
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::CreateSnapshot(
-    grpc::CallbackServerContext* context, const v1::CreateSnapshotRequest* request,
+    grpc::CallbackServerContext* context,
+    const v1::CreateSnapshotRequest* request,
     v1::CreateSnapshotResponse* response) {
   return RunUnary(context, "CreateSnapshot", request, response);
 }

@@ -1,8 +1,7 @@
 #include "services/transport/service_state.h"
 
-#include "absl/time/clock.h"
-
 #include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
 #include "services/transport/watch_reactor.h"
 
 namespace fleetmem::transport {
