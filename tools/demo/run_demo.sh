@@ -83,7 +83,10 @@ trap 'stop_all 143' TERM
 # The log is emptied here, not by the background job's redirection, so the
 # wait below cannot read the previous run's address.
 : >"$log"
-"$server_bin" --listen 127.0.0.1:0 --data-dir "$demo_dir/data" >>"$log" 2>&1 &
+# The HTTP port (dashboard, REST, metrics): FLEETMEM_DEMO_HTTP_PORT, else a
+# free port, printed below.
+"$server_bin" --listen 127.0.0.1:0 --data-dir "$demo_dir/data" \
+  --http-listen "127.0.0.1:${FLEETMEM_DEMO_HTTP_PORT:-0}" >>"$log" 2>&1 &
 server_pid=$!
 echo "run_demo.sh: started fleetmem-server (pid $server_pid), log $log"
 
@@ -111,6 +114,8 @@ while [[ -z "$address" ]]; do
   fi
 done
 echo "run_demo.sh: fleetmem-server listening on $address"
+http_address="$(grep -m1 -o 'http on [^ ]*' "$log" | cut -d' ' -f3 || true)"
+echo "run_demo.sh: watch the fleet's memory live at http://$http_address/"
 
 # The fleet's GPL model: its encoder pre-trained once on the first summer
 # stretch (300 frames, quick settings), then frozen; the robots' second pass
