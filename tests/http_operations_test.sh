@@ -38,7 +38,8 @@ start_server() {
   PIDS+=($!)
   disown $!
   for _ in $(seq 1 300); do
-    if grep -q "http on" "$WORK/$name.log"; then break; fi
+    if grep -q "^fleetmem-server listening on" "$WORK/$name.log" &&
+       grep -q "^fleetmem-server http on" "$WORK/$name.log"; then break; fi
     sleep 0.1
   done
   GRPC_ADDR=$(sed -n 's/^fleetmem-server listening on //p' "$WORK/$name.log")
