@@ -6,6 +6,7 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "services/auth/credentials.pb.h"
 #include "services/auth/secret.h"
@@ -114,6 +115,12 @@ absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
     entries.push_back(std::move(*entry));
   }
   return entries;
+}
+
+std::string TokenFromAuthorization(absl::string_view value) {
+  constexpr absl::string_view kBearer = "Bearer ";
+  return std::string(
+      absl::StartsWith(value, kBearer) ? value.substr(kBearer.size()) : value);
 }
 
 std::string MakeToken(absl::string_view name, absl::string_view secret) {

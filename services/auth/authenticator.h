@@ -39,6 +39,11 @@ absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
 // NAME:SECRET`). The name is the principal's; the secret has no ':'.
 std::string MakeToken(absl::string_view name, absl::string_view secret);
 
+// The token of an Authorization header value "Bearer NAME:SECRET"; a value
+// without the "Bearer " prefix is returned whole (it then fails the check).
+// Shared by the gRPC and HTTP transports.
+std::string TokenFromAuthorization(absl::string_view value);
+
 struct PresentedCredentials {
   // The bearer token, if the caller sent one.
   std::optional<std::string> token;

@@ -211,6 +211,23 @@ struct MemoryEngine::Fleet {
   // the limit.
   static absl::StatusOr<Fleet*> FindOrAdd(MemoryEngine& engine,
                                           std::string_view fleet_id);
+  // For readers of an existing fleet: validates `fleet_id`, finds the fleet
+  // and runs `read(fleet)` under its reader lock. INVALID_ARGUMENT,
+  // NOT_FOUND, or the status of a failed reload instead.
+  template <typename Read>
+  static auto ReadExisting(const MemoryEngine& engine,
+                           std::string_view fleet_id, Read read)
+      -> decltype(read(std::declval<const Fleet&>())) {
+    absl::Status status = core::ValidateId("fleet_id", fleet_id);
+    if (!status.ok()) return status;
+    const Fleet* fleet = Find(engine, fleet_id);
+    if (fleet == nullptr) return FleetNotFound(fleet_id);
+    absl::ReaderMutexLock lock(&fleet->mu);
+    status = fleet->CheckLoaded();
+    if (!status.ok()) return status;
+    if (!fleet->exists()) return FleetNotFound(fleet_id);
+    return read(*fleet);
+  }
   // Calls the fleet's listeners (the caller holds no fleet lock).
   static void Notify(MemoryEngine& engine, std::string_view fleet_id,
                      uint64_t last_event_id);
@@ -944,15 +961,17 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
 
 absl::StatusOr<FleetStats> MemoryEngine::GetStats(
     std::string_view fleet_id) const {
-  absl::Status status = core::ValidateId("fleet_id", fleet_id);
-  if (!status.ok()) return status;
-  Fleet* fleet = Fleet::Find(*this, fleet_id);
-  if (fleet == nullptr) return FleetNotFound(fleet_id);
-  absl::ReaderMutexLock lock(&fleet->mu);
-  status = fleet->CheckLoaded();
-  if (!status.ok()) return status;
-  if (!fleet->exists()) return FleetNotFound(fleet_id);
-  return fleet->Stats();
+  return Fleet::ReadExisting(
+      *this, fleet_id, [](const Fleet& fleet) -> absl::StatusOr<FleetStats> {
+        return fleet.Stats();
+      });
+}
+
+absl::Status MemoryEngine::CheckFleetExists(std::string_view fleet_id) const {
+  return Fleet::ReadExisting(
+             *this, fleet_id,
+             [](const Fleet&) -> absl::StatusOr<bool> { return true; })
+      .status();
 }
 
 absl::StatusOr<std::vector<core::MemoryEvent>> MemoryEngine::ReadEvents(
@@ -1034,69 +1053,61 @@ ClusterSummary Summarize(const core::Cluster& cluster, bool include_places) {
 
 absl::StatusOr<ClusterListing> MemoryEngine::ListClusters(
     std::string_view fleet_id, bool include_places) const {
-  absl::Status status = core::ValidateId("fleet_id", fleet_id);
-  if (!status.ok()) return status;
-  Fleet* fleet = Fleet::Find(*this, fleet_id);
-  if (fleet == nullptr) return FleetNotFound(fleet_id);
-  absl::ReaderMutexLock lock(&fleet->mu);
-  status = fleet->CheckLoaded();
-  if (!status.ok()) return status;
-  if (!fleet->exists()) return FleetNotFound(fleet_id);
-  ClusterListing listing;
-  listing.clusters.reserve(fleet->memory.clusters().size());
-  for (const auto& [cluster_id, cluster] : fleet->memory.clusters()) {
-    listing.clusters.push_back(Summarize(cluster, include_places));
-  }
-  if (include_places) {
-    for (const auto& [robot_id, traces] : fleet->pending) {
-      for (const core::MemoryTrace& trace : traces) {
-        listing.pending.push_back(PlaceOf(trace));
-      }
-    }
-  }
-  return listing;
+  return Fleet::ReadExisting(
+      *this, fleet_id,
+      [include_places](const Fleet& fleet) -> absl::StatusOr<ClusterListing> {
+        ClusterListing listing;
+        listing.clusters.reserve(fleet.memory.clusters().size());
+        for (const auto& [cluster_id, cluster] : fleet.memory.clusters()) {
+          listing.clusters.push_back(Summarize(cluster, include_places));
+        }
+        if (!include_places) return listing;
+        for (const auto& [robot_id, traces] : fleet.pending) {
+          for (const core::MemoryTrace& trace : traces) {
+            listing.pending.push_back(PlaceOf(trace));
+          }
+        }
+        return listing;
+      });
 }
 
 absl::StatusOr<TracePage> MemoryEngine::ListTraces(
     std::string_view fleet_id, const std::optional<core::TraceKey>& after,
     size_t page_size) const {
-  absl::Status status = core::ValidateId("fleet_id", fleet_id);
-  if (!status.ok()) return status;
   if (page_size == 0) {
     return absl::InvalidArgumentError("page_size: must be at least 1");
   }
-  Fleet* fleet = Fleet::Find(*this, fleet_id);
-  if (fleet == nullptr) return FleetNotFound(fleet_id);
-  absl::ReaderMutexLock lock(&fleet->mu);
-  status = fleet->CheckLoaded();
-  if (!status.ok()) return status;
-  if (!fleet->exists()) return FleetNotFound(fleet_id);
-  // Every key after the cursor, in order; then the page's traces by key.
-  std::vector<const core::MemoryTrace*> candidates;
-  auto consider = [&](const core::MemoryTrace& trace) {
-    if (!after.has_value() || *after < trace.key()) {
-      candidates.push_back(&trace);
-    }
-  };
-  TracePage page;
-  for (const auto& [cluster_id, cluster] : fleet->memory.clusters()) {
-    for (const core::MemoryTrace& trace : cluster.traces) consider(trace);
-    page.total += cluster.traces.size();
-  }
-  for (const auto& [robot_id, traces] : fleet->pending) {
-    for (const core::MemoryTrace& trace : traces) consider(trace);
-    page.total += traces.size();
-  }
-  const size_t taken = std::min(page_size, candidates.size());
-  auto by_key = [](const core::MemoryTrace* a, const core::MemoryTrace* b) {
-    return std::tie(a->robot_id, a->seq) < std::tie(b->robot_id, b->seq);
-  };
-  std::partial_sort(candidates.begin(), candidates.begin() + taken,
-                    candidates.end(), by_key);
-  page.traces.reserve(taken);
-  for (size_t i = 0; i < taken; ++i) page.traces.push_back(*candidates[i]);
-  page.more = candidates.size() > taken;
-  return page;
+  return Fleet::ReadExisting(
+      *this, fleet_id, [&](const Fleet& fleet) -> absl::StatusOr<TracePage> {
+        // Every trace after the cursor; then the page's first ones by key.
+        std::vector<const core::MemoryTrace*> candidates;
+        TracePage page;
+        auto consider = [&](const std::vector<core::MemoryTrace>& traces) {
+          page.total += traces.size();
+          for (const core::MemoryTrace& trace : traces) {
+            if (!after.has_value() || *after < trace.key()) {
+              candidates.push_back(&trace);
+            }
+          }
+        };
+        for (const auto& [cluster_id, cluster] : fleet.memory.clusters()) {
+          consider(cluster.traces);
+        }
+        for (const auto& [robot_id, traces] : fleet.pending) consider(traces);
+        const size_t taken = std::min(page_size, candidates.size());
+        std::partial_sort(
+            candidates.begin(), candidates.begin() + taken, candidates.end(),
+            [](const core::MemoryTrace* a, const core::MemoryTrace* b) {
+              return std::tie(a->robot_id, a->seq) <
+                     std::tie(b->robot_id, b->seq);
+            });
+        page.traces.reserve(taken);
+        for (size_t i = 0; i < taken; ++i) {
+          page.traces.push_back(*candidates[i]);
+        }
+        page.more = candidates.size() > taken;
+        return page;
+      });
 }
 
 absl::Status MemoryEngine::Checkpoint(const std::string& directory) {

@@ -211,6 +211,10 @@ class MemoryEngine {
   // NOT_FOUND for an unknown fleet.
   absl::StatusOr<FleetStats> GetStats(std::string_view fleet_id) const;
 
+  // OK if the fleet exists (its first upload is durable); INVALID_ARGUMENT
+  // for a malformed id, NOT_FOUND otherwise. Cheap: no stats are computed.
+  absl::Status CheckFleetExists(std::string_view fleet_id) const;
+
   // Up to max_events_per_read events with id > after_event (any valid fleet
   // id; an unknown fleet has none yet). OUT_OF_RANGE if after_event > 0 and
   // events after it were already erased by the retention bound (the message

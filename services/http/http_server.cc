@@ -134,6 +134,7 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
         "http listen address \"", options.listen, "\" is not HOST:PORT"));
   }
   std::string host = options.listen.substr(0, colon);
+  if (host.empty()) host = "0.0.0.0";  // ":8080" is every interface
   if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
     host = host.substr(1, host.size() - 2);
   }
@@ -193,7 +194,6 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
     res.set_content(error.body, error.content_type.c_str());
   });
 
-  server->port_ = host.empty() ? -1 : 0;
   if (port == 0) {
     server->port_ = http.bind_to_any_port(host);
   } else {

@@ -39,10 +39,11 @@ std::string VariableName(const std::string& segment) {
   return segment.substr(1, segment.size() - 2);
 }
 
-// Matches `path` against `pattern`; the variables' values on success.
+// Matches `path` against a route's segments; the variables' values on
+// success.
 std::optional<std::map<std::string, std::string>> Match(
-    const std::string& pattern, const std::vector<std::string>& path) {
-  const std::vector<std::string> want = Segments(pattern);
+    const std::vector<std::string>& want,
+    const std::vector<std::string>& path) {
   if (want.size() != path.size()) return std::nullopt;
   std::map<std::string, std::string> variables;
   for (size_t i = 0; i < want.size(); ++i) {
@@ -216,7 +217,8 @@ absl::StatusOr<std::vector<Route>> RoutesFromProto(
           absl::StrCat(method->full_name(), ": body must be \"*\" or empty"));
     }
     route.body = rule.body() == "*";
-    for (const std::string& segment : Segments(route.pattern)) {
+    route.segments = Segments(route.pattern);
+    for (const std::string& segment : route.segments) {
       if (!IsVariable(segment)) continue;
       const FieldDescriptor* field =
           method->input_type()->FindFieldByName(VariableName(segment));
@@ -260,11 +262,7 @@ absl::StatusOr<auth::Principal> RestGateway::Authenticate(
   if (authenticator_ == nullptr) return auth::Principal::Anonymous();
   auth::PresentedCredentials presented;
   if (request.authorization.has_value()) {
-    constexpr absl::string_view kBearer = "Bearer ";
-    const std::string& value = *request.authorization;
-    // A malformed header is presented as is and fails the check.
-    presented.token =
-        absl::StartsWith(value, kBearer) ? value.substr(kBearer.size()) : value;
+    presented.token = auth::TokenFromAuthorization(*request.authorization);
   }
   presented.certificate_common_name = request.certificate_common_name;
   return authenticator_->Authenticate(presented);
@@ -275,7 +273,7 @@ HttpResponse RestGateway::Handle(const HttpRequest& request) const {
   bool path_known = false;
   for (const Route& route : routes_) {
     std::optional<std::map<std::string, std::string>> variables =
-        Match(route.pattern, path);
+        Match(route.segments, path);
     if (!variables.has_value()) continue;
     path_known = true;
     if (route.verb != request.method) continue;

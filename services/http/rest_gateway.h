@@ -56,9 +56,10 @@ struct RestOptions {
 
 // One route of the table.
 struct Route {
-  std::string verb;     // "GET" or "POST"
-  std::string pattern;  // "/v1/fleets/{fleet_id}/stats"
-  bool body = false;    // the request message is the JSON body
+  std::string verb;                   // "GET" or "POST"
+  std::string pattern;                // "/v1/fleets/{fleet_id}/stats"
+  std::vector<std::string> segments;  // of the pattern, split once
+  bool body = false;                  // the request message is the JSON body
   const google::protobuf::MethodDescriptor* method = nullptr;
 };
 

@@ -42,7 +42,6 @@
 #include "services/observability/metrics.h"
 #include "services/server/server_config.h"
 #include "services/storage/rocksdb_store.h"
-#include "services/transport/memory_api.h"
 #include "services/transport/memory_service.h"
 #include "services/transport/work_queue.h"
 
@@ -258,15 +257,14 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   health->SetServingStatus(kServiceName, true);
   health->SetServingStatus(true);
 
-  // The HTTP port: the same API (MemoryApi) behind the REST gateway.
+  // The HTTP port: the gRPC service's MemoryApi behind the REST gateway.
   std::atomic<bool> ready{true};
-  transport::MemoryApi http_api(engine->get(), service_options.api);
   std::unique_ptr<http::RestGateway> gateway;
   std::unique_ptr<http::HttpServer> http_server;
   if (!config.http_listen.empty()) {
     absl::StatusOr<std::unique_ptr<http::RestGateway>> made =
         http::RestGateway::Create(
-            &http_api, authenticator.get(), service_options.on_call,
+            &service.api(), authenticator.get(), service_options.on_call,
             {.max_body_bytes = config.max_http_body_bytes});
     absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
         made.ok() ? http::HttpServer::Start(

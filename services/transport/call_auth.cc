@@ -14,11 +14,8 @@ auth::PresentedCredentials PresentedBy(
   auth::PresentedCredentials presented;
   const auto& metadata = context.client_metadata();
   if (auto it = metadata.find("authorization"); it != metadata.end()) {
-    const std::string value(it->second.data(), it->second.size());
-    constexpr absl::string_view kBearer = "Bearer ";
-    presented.token = absl::StartsWith(value, kBearer)
-                          ? value.substr(kBearer.size())
-                          : value;  // a malformed header fails the check
+    presented.token = auth::TokenFromAuthorization(
+        absl::string_view(it->second.data(), it->second.size()));
   }
   const std::shared_ptr<const grpc::AuthContext> auth = context.auth_context();
   if (auth != nullptr && auth->IsPeerAuthenticated()) {

@@ -156,8 +156,7 @@ absl::Status MemoryApi::ListFleets(const auth::Principal& caller,
   for (const std::string& fleet_id : engine_->ListFleets()) {
     if (!auth::MaySeeFleet(caller, fleet_id)) continue;
     absl::StatusOr<engine::FleetStats> stats = engine_->GetStats(fleet_id);
-    if (absl::IsNotFound(stats.status())) continue;  // cannot happen today
-    if (!stats.ok()) return stats.status();
+    if (!stats.ok()) return stats.status();  // fleets are never removed
     FleetSummaryToProto(fleet_id, *stats, response->add_fleets());
   }
   return absl::OkStatus();
@@ -186,10 +185,10 @@ absl::Status MemoryApi::ListEvents(const auth::Principal& caller,
       engine_->ReadEvents(request.fleet_id(), request.after());
   if (!events.ok()) return events.status();
   if (events->empty()) {
-    // The engine has no events for a fleet it does not know; say so here.
-    absl::StatusOr<engine::FleetStats> stats =
-        engine_->GetStats(request.fleet_id());
-    if (!stats.ok()) return stats.status();
+    // The engine reads no events of a fleet it does not know (a watch may
+    // wait for its creation); this call says NOT_FOUND instead.
+    absl::Status exists = engine_->CheckFleetExists(request.fleet_id());
+    if (!exists.ok()) return exists;
     response->set_last_event_id(request.after());
     return absl::OkStatus();
   }

@@ -56,6 +56,10 @@ class MemoryServiceImpl final
   // once (grpc::Server::Shutdown with a past deadline).
   bool WaitIdle(absl::Time deadline);
 
+  // The unary calls this service runs, for another transport (the HTTP
+  // gateway) to serve the same functions.
+  MemoryApi& api() { return state_.api(); }
+
   grpc::ServerReadReactor<grpc::ByteBuffer>* UploadTraces(
       grpc::CallbackServerContext* context,
       grpc::ByteBuffer* response) override;
