@@ -320,5 +320,42 @@ TEST(ServerConfigTest, LoopbackAddresses) {
   EXPECT_TRUE(flags->allow_unauthenticated);
 }
 
+TEST(ServerConfigTest, HttpPortFlagsFileAndValidation) {
+  absl::StatusOr<CommandLine> flags =
+      Parse({"--data-dir", "/tmp/x", "--http-listen", "127.0.0.1:8080",
+             "--snapshot-dir", "/backups"});
+  ASSERT_TRUE(flags.ok()) << flags.status();
+  absl::StatusOr<ServerConfig> config = LoadServerConfig(*flags);
+  ASSERT_TRUE(config.ok()) << config.status();
+  EXPECT_EQ(config->http_listen, "127.0.0.1:8080");
+  EXPECT_EQ(config->snapshot_dir, "/backups");
+
+  ServerConfig file_config;
+  ASSERT_TRUE(ApplyConfigText("http_listen: \"127.0.0.1:0\" "
+                              "max_http_body_bytes: 65536",
+                              &file_config)
+                  .ok());
+  EXPECT_EQ(file_config.http_listen, "127.0.0.1:0");
+  EXPECT_EQ(file_config.max_http_body_bytes, 65536u);
+
+  ServerConfig bad = *config;
+  bad.http_listen = "nonsense";
+  absl::Status status = ValidateServerConfig(bad);
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(status.message().find("http_listen"), std::string::npos);
+  bad.http_listen = "127.0.0.1:0";
+  bad.max_http_body_bytes = 10;
+  EXPECT_NE(ValidateServerConfig(bad).message().find("max_http_body_bytes"),
+            std::string::npos);
+  // Open HTTP on a non-loopback address is refused like open gRPC.
+  ServerConfig open = *config;
+  open.http_listen = "0.0.0.0:8080";
+  status = ValidateServerConfig(open);
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(status.message().find("http_listen: refusing"), std::string::npos);
+  open.security.allow_unauthenticated = true;
+  EXPECT_TRUE(ValidateServerConfig(open).ok());
+}
+
 }  // namespace
 }  // namespace fleetmem::server
