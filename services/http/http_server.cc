@@ -185,11 +185,21 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   http.set_error_handler([](const httplib::Request& req,
                             httplib::Response& res) {
     if (!res.body.empty()) return;
-    absl::Status status =
-        res.status == 413
-            ? absl::ResourceExhaustedError(
-                  "request body is over the server's limit (max_body_bytes)")
-            : absl::NotFoundError(absl::StrCat("no such page: ", req.path));
+    absl::Status status;
+    switch (res.status) {
+      case 413:
+        status = absl::ResourceExhaustedError(
+            "request body is over the server's limit (max_body_bytes)");
+        break;
+      case 404:
+        status = absl::NotFoundError(absl::StrCat("no such page: ", req.path));
+        break;
+      case 400:
+        status = absl::InvalidArgumentError("malformed HTTP request");
+        break;
+      default:  // the HTTP status stays as httplib set it
+        status = absl::UnknownError(absl::StrCat("HTTP status ", res.status));
+    }
     HttpResponse error = ErrorResponse(status);
     res.set_content(error.body, error.content_type.c_str());
   });
