@@ -231,6 +231,31 @@ dashboard)
   check "the map drew clusters" grep -qE 'data-clusters="[1-9][0-9]*"' "$WORK/dom.html"
   check "the screenshot was saved" [ -s "$ARTIFACTS/dashboard.png" ]
   echo "screenshot: $ARTIFACTS/dashboard.png"
+
+  # With auth on, the page asks for a reader token; given one, it shows the
+  # fleet.
+  mkdir -p "$WORK/auth"
+  for who in "admin admin" "viewer reader"; do
+    set -- $who
+    "$BIN/fleetmem-credential" --name "$1" --role "$2" --fleet '*' \
+      --token-file "$WORK/auth/$1.token" >> "$WORK/auth/credentials.textproto"
+  done
+  start_server secured "$WORK/data-secured" --auth-file "$WORK/auth/credentials.textproto"
+  cli --token-file "$WORK/auth/admin.token" upload --fleet securefleet \
+    --file "$WORK/traces.jsonl" > /dev/null
+  check "the API refuses the dashboard's calls without a token" \
+    [ "$(http_code GET /v1/fleets)" = 401 ]
+  browse --dump-dom > "$WORK/dom-locked.html"
+  check "without a token the page shows the login form" \
+    grep -q '<div id="login">' "$WORK/dom-locked.html"
+  check "without a token the page shows no fleet" \
+    bash -c "! grep -q 'data-fleet=' '$WORK/dom-locked.html'"
+  token=$(cat "$WORK/auth/viewer.token")
+  timeout 120 chromium --headless --no-sandbox --disable-gpu \
+    --user-data-dir="$WORK/chromium2" --virtual-time-budget=8000 --dump-dom \
+    "http://$HTTP_ADDR/#token=$token" > "$WORK/dom-token.html" 2> /dev/null
+  check "with a reader token the page shows the fleet" \
+    grep -q 'data-fleet="securefleet"' "$WORK/dom-token.html"
   ;;
 *)
   fail "unknown mode $MODE"
