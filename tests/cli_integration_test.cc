@@ -608,20 +608,39 @@ TEST_F(CliTest, BadInputIsReportedAndChangesNothing) {
       << unparsable.Describe();
 }
 
+// `fleetmem health` is the probe of the images and of Kubernetes: exit 0
+// only for SERVING.
+TEST_F(CliTest, HealthIsServingAndAnUnknownServiceIsAnError) {
+  const std::string address = server_->address();
+  CliRun run = RunFleetmem({"--server", address, "health"});
+  EXPECT_EQ(run.exit_code, 0) << run.Describe();
+  EXPECT_EQ(run.out, "SERVING\n") << run.Describe();
+
+  run = RunFleetmem({"--server", address, "health", "--service", "nope.v1"});
+  EXPECT_EQ(run.exit_code, 1) << run.Describe();
+  EXPECT_TRUE(absl::StartsWith(run.err, "error: NOT_FOUND")) << run.Describe();
+}
+
 TEST_F(CliTest, StoppedServerIsAServerErrorWithoutHanging) {
   const std::string address = server_->address();
   const absl::StatusOr<int> stopped = server_->Stop();
   ASSERT_TRUE(stopped.ok()) << stopped.status();
   EXPECT_EQ(*stopped, 0);
 
-  const CliRun run = RunFleetmem({"--server", address, "--deadline-ms", "300",
-                                  "stats", "--fleet", kFleet});
-  EXPECT_FALSE(run.timed_out) << run.Describe();
-  EXPECT_EQ(run.exit_code, 1) << run.Describe();
-  EXPECT_TRUE(absl::StartsWith(run.err, "error: UNAVAILABLE") ||
-              absl::StartsWith(run.err, "error: DEADLINE_EXCEEDED"))
-      << run.Describe();
-  EXPECT_TRUE(run.out.empty()) << run.Describe();
+  for (const char* command : {"stats", "health"}) {
+    std::vector<std::string> args = {"--server", address, "--deadline-ms",
+                                     "300", command};
+    if (std::string(command) == "stats") {
+      args.insert(args.end(), {"--fleet", kFleet});
+    }
+    const CliRun run = RunFleetmem(args);
+    EXPECT_FALSE(run.timed_out) << run.Describe();
+    EXPECT_EQ(run.exit_code, 1) << run.Describe();
+    EXPECT_TRUE(absl::StartsWith(run.err, "error: UNAVAILABLE") ||
+                absl::StartsWith(run.err, "error: DEADLINE_EXCEEDED"))
+        << run.Describe();
+    EXPECT_TRUE(run.out.empty()) << run.Describe();
+  }
 }
 
 }  // namespace

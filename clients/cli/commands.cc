@@ -82,6 +82,15 @@ const std::vector<Command>& CommandTable() {
         "",
         {FleetFlag()}},
        RunStats},
+      {{"health",
+        "[--service NAME]",
+        "Ask the server's gRPC health service (grpc.health.v1).",
+        "Prints the serving status (SERVING, NOT_SERVING, SERVICE_UNKNOWN) "
+        "and\n"
+        "exits 0 only for SERVING: a probe for Kubernetes or Docker. Needs no\n"
+        "credential; one attempt within --deadline.",
+        {{"service", "NAME", "a service's full name (default: the server)"}}},
+       RunHealth},
       {{"consolidate",
         "--fleet ID",
         "Consolidate all pending traces now (clustering, then forgetting).",
@@ -347,6 +356,17 @@ int RunStats(const Invocation& invocation) {
       Connect(invocation)->GetStats(*fleet);
   if (!stats.ok()) return ServerError(invocation, stats.status());
   return PrintResponse(invocation, *stats, PrintStats);
+}
+
+int RunHealth(const Invocation& invocation) {
+  const std::string service = invocation.flags->Has("service")
+                                  ? *invocation.flags->Required("service")
+                                  : std::string();
+  absl::StatusOr<std::string> status =
+      Connect(invocation)->CheckHealth(service);
+  if (!status.ok()) return ServerError(invocation, status.status());
+  *invocation.out << *status << "\n";
+  return *status == "SERVING" ? kExitOk : kExitServerError;
 }
 
 int RunConsolidate(const Invocation& invocation) {

@@ -53,6 +53,7 @@ int RunUpload(const Invocation& invocation);
 int RunQuery(const Invocation& invocation);
 int RunSample(const Invocation& invocation);
 int RunStats(const Invocation& invocation);
+int RunHealth(const Invocation& invocation);
 int RunConsolidate(const Invocation& invocation);
 int RunWatch(const Invocation& invocation);
 int RunGenTraces(const Invocation& invocation);

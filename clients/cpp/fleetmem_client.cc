@@ -13,6 +13,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "grpc/health/v1/health.grpc.pb.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/security/credentials.h"
 
@@ -374,6 +375,24 @@ absl::StatusOr<v1::GetStatsResponse> Client::GetStats(
                     });
   if (!status.ok()) return FromGrpcStatus(status);
   return response;
+}
+
+absl::StatusOr<std::string> Client::CheckHealth(std::string_view service) {
+  if (channel_ == nullptr) {
+    return absl::FailedPreconditionError("CheckHealth needs a channel");
+  }
+  grpc::health::v1::HealthCheckRequest request;
+  request.set_service(std::string(service));
+  grpc::health::v1::HealthCheckResponse response;
+  auto stub = grpc::health::v1::Health::NewStub(channel_);
+  grpc::Status status =
+      CallWithRetry(options_, channel_.get(), /*retry=*/false,
+                    [&](grpc::ClientContext* context) {
+                      return stub->Check(context, request, &response);
+                    });
+  if (!status.ok()) return FromGrpcStatus(status);
+  return grpc::health::v1::HealthCheckResponse::ServingStatus_Name(
+      response.status());
 }
 
 namespace {

@@ -120,6 +120,11 @@ class Client {
   absl::StatusOr<v1::ListTracesResponse> ListTraces(
       std::string_view fleet_id, uint32_t page_size,
       std::string_view page_token);
+  // grpc.health.v1.Health/Check of `service` ("" = the server as a whole),
+  // not retried (a probe wants the answer of now): the serving status's
+  // name (SERVING, NOT_SERVING, SERVICE_UNKNOWN, UNKNOWN) or the call's
+  // error. Needs a channel (a client made by Create()).
+  absl::StatusOr<std::string> CheckHealth(std::string_view service);
   // Not retried: a retry after a lost answer would find the name taken
   // (ALREADY_EXISTS) although the snapshot was made.
   absl::StatusOr<v1::CreateSnapshotResponse> CreateSnapshot(

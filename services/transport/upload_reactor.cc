@@ -63,6 +63,18 @@ std::string UploadReactor::Earlier() const {
 }
 
 void UploadReactor::Fail(const absl::Status& status) {
+  // A refusal (bad traces, another encoder version, a robot id outside the
+  // caller's rights, a quota) is the operator's business too: the client's
+  // log is on the robot. Once per stream (the stream ends here).
+  if (!absl::IsUnavailable(status) && !absl::IsCancelled(status) &&
+      !absl::IsDeadlineExceeded(status)) {
+    FLEETMEM_LOG(kWarning) << "UploadTraces refused: fleet \"" << fleet_id_
+                           << "\", "
+                           << (principal_.has_value()
+                                   ? "principal " + principal_->name
+                                   : std::string("unauthenticated"))
+                           << " at " << context_->peer() << ": " << status;
+  }
   Done(ToGrpcStatus(absl::Status(
       status.code(), absl::StrCat("message ", index_, " of the stream: ",
                                   status.message(), Earlier()))));
@@ -146,8 +158,6 @@ void UploadReactor::Store() {
   absl::StatusOr<engine::UploadResult> result =
       state_->engine().Upload(fleet_id_, traces);
   if (!result.ok()) {
-    FLEETMEM_LOG(kDebug) << "UploadTraces " << fleet_id_ << ": "
-                         << result.status();
     Fail(result.status());
     return;
   }
