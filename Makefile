@@ -13,14 +13,15 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libsodium-dev libcli11-dev libbz2-dev openssl clang-14 libclang-rt-14-dev \
   libtorch-dev gnuplot-nox \
   libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
-  libssl-dev curl python3 python3-numpy prometheus chromium
+  libssl-dev curl python3 python3-numpy prometheus chromium \
+  debootstrap docker-compose
 
 empty :=
 space := $(empty) $(empty)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all deps configure build test test-asan test-tsan fuzz soak crash robot-crash \
-  demo bench format clean
+.PHONY: all deps configure build test test-asan test-tsan test-docker test-k8s \
+  fuzz soak crash robot-crash demo bench format clean
 
 SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
 SANITIZER_FLAGS_tsan := -fsanitize=thread -fno-omit-frame-pointer
@@ -58,7 +59,9 @@ test: build
 # The whole suite under AddressSanitizer + UndefinedBehaviorSanitizer
 # (build-asan/; the integration tests run the instrumented server), but the
 # quick lifelong evaluation (label "eval": a compute job in an uninstrumented
-# libtorch; its code paths run in the GPL unit and robot tests).
+# libtorch; its code paths run in the GPL unit and robot tests) and the
+# container and manifest tests (labels "docker", "k8s": they build their own
+# uninstrumented images, or run no C++).
 test-asan: deps
 	@cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_asan)" \
@@ -67,7 +70,18 @@ test-asan: deps
 	@cmake --build build-asan -j $(JOBS)
 	@cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
 	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-	  ctest --output-on-failure -j $(JOBS) -LE eval $(CTEST_ARGS)
+	  ctest --output-on-failure -j $(JOBS) -LE 'eval|docker|k8s' $(CTEST_ARGS)
+
+# The containers (tests/docker/fault_tests.py): builds the images from
+# docker/*.Dockerfile on a local debootstrap of bookworm, runs the compose
+# fleet and every fault, prints the table (docs/deployment.md). `make test`
+# runs it too when a Docker engine answers; it is skipped otherwise.
+test-docker: deps
+	@tests/docker/fault_tests.py
+
+# The Kubernetes manifests (k8s/) against the real API types (Go, k8s.io/api).
+test-k8s:
+	@k8s/validate/run.sh
 
 # Core, engine and storage tests under ThreadSanitizer (build-tsan/).
 test-tsan: deps

@@ -288,6 +288,15 @@ std::unique_ptr<Client> Client::Create(ClientOptions options) {
   arguments.SetInt(
       GRPC_ARG_MAX_RECONNECT_BACKOFF_MS,
       static_cast<int>(std::max<int64_t>(1, options.max_backoff.count())));
+  if (options.keepalive_time.count() > 0) {
+    arguments.SetInt(GRPC_ARG_KEEPALIVE_TIME_MS,
+                     static_cast<int>(options.keepalive_time.count()));
+    arguments.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS,
+                     static_cast<int>(options.keepalive_timeout.count()));
+    arguments.SetInt(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+    // Pings are the point, not data: no cap on pings without data.
+    arguments.SetInt(GRPC_ARG_HTTP2_MAX_PINGS_WITHOUT_DATA, 0);
+  }
   std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
       options.target, ChannelCredentialsFor(options), arguments);
   auto client = std::make_unique<Client>(std::move(options),

@@ -41,6 +41,14 @@ struct ClientOptions {
   // Backoff before the second attempt; doubles up to max_backoff.
   std::chrono::milliseconds initial_backoff{100};
   std::chrono::milliseconds max_backoff{5000};
+  // HTTP/2 keepalive pings every keepalive_time, also without calls; a
+  // connection whose ping is not answered within keepalive_timeout is
+  // dropped and redialled. Without them a connection whose path vanished
+  // silently (a robot off the network, a NAT that forgot it) looks READY
+  // until TCP gives up, some 15 minutes, and every call on it times out.
+  // fleetmem-server accepts pings this often; 0 turns keepalive off.
+  std::chrono::milliseconds keepalive_time{20000};
+  std::chrono::milliseconds keepalive_timeout{10000};
   // Traces per UploadTracesRequest message of an upload stream (0 acts as 1).
   size_t upload_batch_size = 500;
   // Credentials. `token` ("NAME:SECRET", from fleetmem-credential) is sent

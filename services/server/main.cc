@@ -246,6 +246,13 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                            &port);
   builder.SetMaxReceiveMessageSize(
       static_cast<int>(config.max_receive_message_bytes));
+  // Clients ping every 20 s to notice dead paths (ClientOptions::
+  // keepalive_time); gRPC's default answers a ping more often than every
+  // 5 minutes with GOAWAY "too_many_pings". Accept one every 10 s, also
+  // without calls; the server pings idle connections every 2 hours itself.
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  builder.AddChannelArgument(
+      GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 10000);
   builder.RegisterService(&service);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (server == nullptr || port == 0) {
