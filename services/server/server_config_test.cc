@@ -357,5 +357,70 @@ TEST(ServerConfigTest, HttpPortFlagsFileAndValidation) {
   EXPECT_TRUE(ValidateServerConfig(open).ok());
 }
 
+// The configuration files shipped with the images, the compose fleet, the
+// Docker tests and Kubernetes parse and validate: a typo there is caught
+// here, not when a container starts.
+std::string ReadSourceFile(const std::string& relative) {
+  std::ifstream in(std::string(FLEETMEM_SOURCE_DIR) + "/" + relative);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+// The block scalar `key: |` of a YAML file, without its indentation.
+std::string YamlBlock(const std::string& yaml, const std::string& key) {
+  std::istringstream in(yaml);
+  std::string line, block;
+  size_t indent = std::string::npos;
+  bool inside = false;
+  while (std::getline(in, line)) {
+    if (!inside) {
+      inside = line.find(key + ": |") != std::string::npos;
+      continue;
+    }
+    const size_t first = line.find_first_not_of(' ');
+    if (first == std::string::npos) continue;
+    if (indent == std::string::npos) indent = first;
+    if (first < indent) break;
+    block += line.substr(indent) + "\n";
+  }
+  return block;
+}
+
+TEST(ShippedConfigTest, EveryShippedServerConfigIsValid) {
+  const std::vector<std::pair<std::string, std::string>> files = {
+      {"docker/server.textproto", ReadSourceFile("docker/server.textproto")},
+      {"docker/compose/server.textproto",
+       ReadSourceFile("docker/compose/server.textproto")},
+      {"tests/docker/server-test.textproto",
+       ReadSourceFile("tests/docker/server-test.textproto")},
+      {"k8s/overlays/example/server.textproto",
+       ReadSourceFile("k8s/overlays/example/server.textproto")},
+      {"k8s/base/server-configmap.yaml",
+       YamlBlock(ReadSourceFile("k8s/base/server-configmap.yaml"),
+                 "server.textproto")},
+  };
+  for (const auto& [name, text] : files) {
+    SCOPED_TRACE(name);
+    ASSERT_NE(text.find("listen:"), std::string::npos) << "empty: " << name;
+    ServerConfig config;
+    ASSERT_TRUE(ApplyConfigText(text, &config).ok())
+        << ApplyConfigText(text, &config);
+    EXPECT_EQ(config.listen, "0.0.0.0:50051");
+    EXPECT_EQ(config.http_listen, "0.0.0.0:8080");
+    // The image's own file has no credentials: it must be refused on
+    // 0.0.0.0 (the server will not start open on a network); the others
+    // turn auth and TLS on and are valid as they are.
+    const absl::Status valid = ValidateServerConfig(config);
+    if (name == "docker/server.textproto") {
+      EXPECT_FALSE(valid.ok());
+    } else {
+      EXPECT_TRUE(valid.ok()) << valid;
+      EXPECT_FALSE(config.security.auth_file.empty());
+      EXPECT_FALSE(config.security.tls_cert_file.empty());
+    }
+  }
+}
+
 }  // namespace
 }  // namespace fleetmem::server

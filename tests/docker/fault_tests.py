@@ -310,14 +310,16 @@ def main():
         if kept_observing <= 0:
             failures.append("robot-2 did not keep observing while offline")
 
-        def drained():
-            status = fleet.robot_status("robot-2") or {}
-            queued = int(status.get("queue_depth", -1))
-            got = (fleet.received() or {}).get("robot-2", 0)
-            return queued == 0 and got >= int(status["counters"]["next_seq"]) - 1
-        wait_until("robot-2's queue drained", drained, 300, poll=1)
+        # The backlog: every trace robot-2 had sealed when it came back. The
+        # recovery ends when the server has all of it (uploads go in seq
+        # order, once each, so "received" is the highest seq stored).
+        backlog = int(fleet.robot_status("robot-2")["counters"]["next_seq"]) - 1
+        queued_at_reconnect = backlog - (fleet.received() or {}).get("robot-2", 0)
+        wait_until("robot-2's backlog on the server",
+                   lambda: (fleet.received() or {}).get("robot-2", 0) >= backlog, 300)
         offline_recovery = time.time() - t_reconnect
-        log(f"robot-2's queue drained {offline_recovery:.1f} s after reconnecting")
+        log(f"robot-2's backlog of {queued_at_reconnect} traces was on the server "
+            f"{offline_recovery:.1f} s after reconnecting")
 
         # Every robot finishes its drive and drains (exit 0).
         for name, container in robots.items():
@@ -329,10 +331,11 @@ def main():
         received = fleet.received() or {}
         keys = fleet.stored()
         report_sizing(fleet, server, robots, len(keys))
+        check_prometheus(fleet, len(keys), failures)
         rows.append(("server SIGKILL mid-upload, restart on its volume",
                      *count(keys, ROBOTS, observed, received), f"{server_recovery:.1f} s"))
-        rows.append((f"robot-2 offline {OFFLINE_S:.0f} s (kept observing: "
-                     f"{kept_observing})", *count(keys, ["robot-2"], observed, received),
+        rows.append((f"robot-2 offline {OFFLINE_S:.0f} s, kept observing "
+                     f"({kept_observing} observations, {queued_at_reconnect} queued)", *count(keys, ["robot-2"], observed, received),
                      f"{offline_recovery:.1f} s"))
         rows.append(("robot-1 SIGKILL, restart on its queue",
                      *count(keys, ["robot-1"], observed, received), f"{robot_recovery:.1f} s"))
@@ -387,6 +390,34 @@ def main():
     return 0
 
 
+def check_prometheus(fleet, traces, failures):
+    """Prometheus (in the fleet) scrapes the server over TLS: its target is
+    up and its traces + pending gauges add up to the stored count."""
+    port = fleet.env["FLEETMEM_PROMETHEUS_PORT"]
+
+    def query(expr):
+        url = f"http://127.0.0.1:{port}/api/v1/query?" + urllib.parse.urlencode({"query": expr})
+        with urllib.request.urlopen(url, timeout=5) as r:
+            return json.load(r)["data"]["result"]
+
+    def scraped():
+        try:
+            up = query('up{job="fleetmem"}')
+            gauge = query(f'fleetmem_fleet_traces{{fleet="{FLEET}"}} + '
+                          f'fleetmem_fleet_pending_traces{{fleet="{FLEET}"}}')
+        except (urllib.error.URLError, OSError, KeyError, ValueError):
+            return None
+        if up and up[0]["value"][1] == "1" and gauge and \
+                int(float(gauge[0]["value"][1])) == traces:
+            return gauge[0]["value"][1]
+        return None
+    try:
+        value = wait_until("Prometheus to scrape the stored count", scraped, 60, poll=2)
+        log(f"prometheus: target up; it has scraped {value} traces (+ pending)")
+    except RuntimeError as error:
+        failures.append(f"prometheus: {error}")
+
+
 def report_sizing(fleet, server, robots, traces):
     """Measured memory and disk of the fleet, for docs/deployment.md."""
     stats = fleet.rest(f"/v1/fleets/{FLEET}/stats")
@@ -417,10 +448,11 @@ def refused_robots(fleet, observed, failures):
               "--tls-ca=/run/secrets/ca.pem", "--tls-server-name=fleetmem-server",
               "--token-file=/run/secrets/robot-4.token",
               "--source=nordland:/recordings/summer", "--first=2300", "--last=2340",
-              "--segment-size=20", "--drain-timeout=20"]
+              "--data-dir=/var/lib/fleetmem-robot", "--segment-size=20",
+              "--drain-timeout=20"]
     cases = [
         ("robot with a wrong encoder version", "robot-4",
-         ["--robot-id=robot-4", "--encoder=hog-32x16-c8-s8-b6"],
+         ["--robot-id=robot-4", "--encoder=hog-64x32-c8-s16"],
          "encoder_version", "encoder_version", None),
         ("robot configured with another robot's id", "robot-1",
          ["--robot-id=robot-1"], "PERMISSION_DENIED", "PERMISSION_DENIED", None),
