@@ -437,6 +437,28 @@ TEST_F(RobotIntegrationTest, BadSourcesGiveAClearMessage) {
   }
 }
 
+// A misspelt option in the robot's config file is a usage error (exit 2)
+// naming it, not a silently kept default; a correct file is applied.
+TEST_F(RobotIntegrationTest, AConfigFileWithAnUnknownOptionIsRefused) {
+  const std::string source = "nordland:" + kData + "/nordland/summer";
+  std::ofstream(dir_.Join("bad.toml")) << "upload-batchh = 10\n";
+  std::vector<std::string> args =
+      RobotArgs("f-config", "r1", source, 10, 0.0, dir_.Join("config"));
+  args.insert(args.end(), {"--config", dir_.Join("bad.toml")});
+  RobotProcess bad(args, dir_.Join("bad-config.log"));
+  ASSERT_NO_FATAL_FAILURE(bad.Start());
+  EXPECT_EQ(bad.Wait(), 2);
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("bad-config.log")),
+              HasSubstr("upload-batchh"));
+
+  std::ofstream(dir_.Join("good.toml")) << "upload-batch = 3\n";
+  args.back() = dir_.Join("good.toml");
+  RobotProcess good(args, dir_.Join("good-config.log"));
+  ASSERT_NO_FATAL_FAILURE(good.Start());
+  EXPECT_EQ(good.Wait(), 0);
+  EXPECT_EQ(Stats("f-config", "r1").received(), 10u);
+}
+
 TEST_F(RobotIntegrationTest, ACorruptImageStopsTheRobotAtItAndLosesNothing) {
   // Ten real frames, the sixth corrupt: the robot observes five, stops with
   // the file's name, and after the file is fixed resumes at the sixth.

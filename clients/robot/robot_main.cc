@@ -185,6 +185,9 @@ void AddFlags(CLI::App& app, Flags& flags) {
       ->capture_default_str();
   app.set_config("--config", "",
                  "TOML or INI file of these options (flags win)");
+  // CLI11 ignores unknown keys of a config file by default: a misspelt
+  // option would silently keep its default. Refuse them.
+  app.allow_config_extras(CLI::config_extras_mode::error);
 }
 
 // The robot's GPL model: its own learned copy (DATA_DIR/gpl-learned.pt,

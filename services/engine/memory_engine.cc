@@ -63,17 +63,8 @@ absl::Status ValidateUpload(std::string_view fleet_id,
   for (size_t i = 0; i < traces.size(); ++i) {
     const core::MemoryTrace& trace = traces[i];
     const std::string what = absl::StrCat("traces[", i, "]");
-    if (trace.code.size() != dimension) {
-      if (meta != nullptr) {
-        return absl::InvalidArgumentError(
-            absl::StrCat(what, ".code has dimension ", trace.code.size(),
-                         " but fleet \"", V(fleet_id), "\" uses ", dimension));
-      }
-      return absl::InvalidArgumentError(absl::StrCat(
-          what, ".code has dimension ", trace.code.size(),
-          " but traces[0].code has ", dimension, " (fleet \"", V(fleet_id),
-          "\" is new and takes its dimension from its first upload)"));
-    }
+    // The encoder first: another encoder is the cause, a different
+    // dimension only its consequence.
     if (trace.encoder_version != encoder) {
       if (meta != nullptr) {
         return absl::InvalidArgumentError(
@@ -86,6 +77,17 @@ absl::Status ValidateUpload(std::string_view fleet_id,
           "\" differs from traces[0]'s \"", V(encoder), "\" (fleet \"",
           V(fleet_id),
           "\" is new and takes its encoder version from its first upload)"));
+    }
+    if (trace.code.size() != dimension) {
+      if (meta != nullptr) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ".code has dimension ", trace.code.size(),
+                         " but fleet \"", V(fleet_id), "\" uses ", dimension));
+      }
+      return absl::InvalidArgumentError(absl::StrCat(
+          what, ".code has dimension ", trace.code.size(),
+          " but traces[0].code has ", dimension, " (fleet \"", V(fleet_id),
+          "\" is new and takes its dimension from its first upload)"));
     }
     core::TraceShape shape;
     shape.code_dimension = dimension;

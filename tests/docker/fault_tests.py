@@ -179,7 +179,10 @@ class Fleet:
             stats = self.rest(f"/v1/fleets/{FLEET}/stats")
         except (urllib.error.URLError, OSError, ValueError):
             return None
-        return {r["robotId"]: int(r.get("received", 0)) for r in stats.get("robots", [])}
+        # Robots that only read (a refused robot's queries and replay draws)
+        # are listed with nothing received: leave them out.
+        received = {r["robotId"]: int(r.get("received", 0)) for r in stats.get("robots", [])}
+        return {robot: n for robot, n in received.items() if n > 0}
 
     def stored(self):
         """[(robot_id, seq)] of every trace ListTraces returns, all pages."""
