@@ -376,6 +376,9 @@ def main():
         if os.environ.get("FLEETMEM_DOCKER_KEEP") != "1":
             fleet.compose("down", "-v", "--remove-orphans", check=False)
             shutil.rmtree(workdir, ignore_errors=True)
+            # Build stages of older sources (untagged, ~3 GB each): keep a
+            # day's worth as build cache, drop the rest.
+            run(["docker", "image", "prune", "-f", "--filter", "until=24h"], check=False)
         else:
             log(f"kept: project {fleet.project}, secrets in {fleet.secrets}")
 
