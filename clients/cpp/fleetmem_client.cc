@@ -273,6 +273,10 @@ absl::Status LoadCredentials(const CredentialSources& sources,
   return absl::OkStatus();
 }
 
+namespace {
+constexpr int kDnsQueryTimeoutMs = 5000;
+}  // namespace
+
 std::unique_ptr<Client> Client::Create(ClientOptions options) {
   grpc::ChannelArguments arguments;
   if (!options.tls_server_name.empty()) {
@@ -297,6 +301,10 @@ std::unique_ptr<Client> Client::Create(ClientOptions options) {
     // Pings are the point, not data: no cap on pings without data.
     arguments.SetInt(GRPC_ARG_HTTP2_MAX_PINGS_WITHOUT_DATA, 0);
   }
+  // A DNS query sent while the robot is off the network never gets an
+  // answer; gRPC's c-ares resolver waits 120 s for one by default, and the
+  // channel with it. Give up on a query after the call deadline's order.
+  arguments.SetInt(GRPC_ARG_DNS_ARES_QUERY_TIMEOUT_MS, kDnsQueryTimeoutMs);
   std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
       options.target, ChannelCredentialsFor(options), arguments);
   auto client = std::make_unique<Client>(std::move(options),
