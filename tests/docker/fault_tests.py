@@ -106,13 +106,13 @@ def build_images():
     ]
     for dockerfile, tag, version in builds:
         log(f"docker build -f {dockerfile} -t {tag}")
-        result = run(["docker", "build", "-q", "-f", dockerfile,
+        result = run(["docker", "build", "-q", "--force-rm", "-f", dockerfile,
                       "--build-arg", f"BASE_IMAGE={BASE_IMAGE}",
                       "--build-arg", f"FLEETMEM_VERSION={version}",
                       "-t", tag, ROOT], check=False)
         if result.returncode != 0:
             # Again with the output shown: the build log is the diagnosis.
-            run(["docker", "build", "-f", dockerfile,
+            run(["docker", "build", "--force-rm", "-f", dockerfile,
                  "--build-arg", f"BASE_IMAGE={BASE_IMAGE}",
                  "--build-arg", f"FLEETMEM_VERSION={version}",
                  "-t", tag, ROOT], capture=False)
