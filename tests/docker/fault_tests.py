@@ -104,8 +104,9 @@ def build_images():
         ("docker/server.Dockerfile", f"fleetmem/server:{NEXT_VERSION}", NEXT_VERSION),
         ("tests/docker/prometheus.Dockerfile", PROMETHEUS_IMAGE, VERSION),
     ]
-    for dockerfile, tag, version in builds:
-        log(f"docker build -f {dockerfile} -t {tag}")
+    for relative, tag, version in builds:
+        log(f"docker build -f {relative} -t {tag}")
+        dockerfile = os.path.join(ROOT, relative)  # ctest runs us elsewhere
         result = run(["docker", "build", "-q", "--force-rm", "-f", dockerfile,
                       "--build-arg", f"BASE_IMAGE={BASE_IMAGE}",
                       "--build-arg", f"FLEETMEM_VERSION={version}",
