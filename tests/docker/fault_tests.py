@@ -486,10 +486,12 @@ def refused_robots(fleet, observed, failures):
                       *common, *flags], check=False, timeout=300)
         robot_log = result.stdout
         status = run(["docker", "cp", f"{name}:{ROBOT_STATUS}", "-"], check=False).stdout
-        start = status.find('"next_seq"')
+        # Traces it queued (not next_seq - 1: a robot starting as robot-1
+        # continues robot-1's sequence from the server's max_seq).
+        start = status.find('"traces_queued"')
         queued = 0
         if start >= 0:
-            queued = int(status[start:].split(":", 1)[1].split(",")[0].strip().strip('"')) - 1
+            queued = int(status[start:].split(":", 1)[1].split(",")[0].strip().strip('"'))
         run(["docker", "rm", "-v", name], check=False)
         server_log = fleet.logs(server)[server_log_before:]
         after_keys = fleet.stored()
