@@ -331,6 +331,11 @@ def main():
             if code != "0":
                 failures.append(f"{name} exited {code}:\n{fleet.logs(container)[-2000:]}")
         log(f"robots finished {time.time() - t_start:.0f} s after the start")
+        # A robot that exits 3 (its queue did not drain within its
+        # --drain-timeout) is started again by its restart policy: count it.
+        restarts = {name: int(run(["docker", "inspect", "-f", "{{.RestartCount}}", c]).stdout)
+                    for name, c in robots.items()}
+        log(f"restarts by the restart policy: {restarts}")
         observed = {r: fleet.observed(r)[0] for r in ROBOTS}
         received = fleet.received() or {}
         keys = fleet.stored()
@@ -339,7 +344,8 @@ def main():
         rows.append(("server SIGKILL mid-upload, restart on its volume",
                      *count(keys, ROBOTS, observed, received), f"{server_recovery:.1f} s"))
         rows.append((f"robot-2 offline {OFFLINE_S:.0f} s, kept observing "
-                     f"({kept_observing} observations, {queued_at_reconnect} queued)", *count(keys, ["robot-2"], observed, received),
+                     f"({kept_observing} observations, {queued_at_reconnect} queued; "
+                     f"restarted {restarts['robot-2']}x by its policy)", *count(keys, ["robot-2"], observed, received),
                      f"{offline_recovery:.1f} s"))
         rows.append(("robot-1 SIGKILL, restart on its queue",
                      *count(keys, ["robot-1"], observed, received), f"{robot_recovery:.1f} s"))
