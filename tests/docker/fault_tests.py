@@ -270,6 +270,14 @@ def main():
         server = fleet.container("fleetmem-server")
         robots = {r: fleet.container(r) for r in ROBOTS}
         t_start = time.time()
+        # The Kubernetes liveness probe (k8s/base): the gRPC health service
+        # over TLS through the image's CLI.
+        probe = run(["docker", "exec", server, "fleetmem", "--server=127.0.0.1:50051",
+                     "--tls-ca=/run/secrets/ca.pem", "--tls-server-name=fleetmem-server",
+                     "health"], check=False)
+        log(f"gRPC health probe in the server image: {probe.stdout.strip()}")
+        if probe.returncode != 0 or probe.stdout.strip() != "SERVING":
+            failures.append(f"gRPC health probe: exit {probe.returncode}: {probe.stdout}")
 
         # 1. Server SIGKILL mid-upload, as soon as every robot has uploaded.
         wait_until("every robot uploading",
