@@ -305,6 +305,10 @@ std::unique_ptr<Client> Client::Create(ClientOptions options) {
   // answer; gRPC's c-ares resolver waits 120 s for one by default, and the
   // channel with it. Give up on a query after the call deadline's order.
   arguments.SetInt(GRPC_ARG_DNS_ARES_QUERY_TIMEOUT_MS, kDnsQueryTimeoutMs);
+  // Each client its own subchannels: a new client must not inherit a
+  // connection state another one got stuck in (agent.h,
+  // reconnect_after_failures).
+  arguments.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
   std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
       options.target, ChannelCredentialsFor(options), arguments);
   auto client = std::make_unique<Client>(std::move(options),

@@ -466,6 +466,10 @@ void Agent::Refresh() {
 void Agent::UploadLoop() {
   std::chrono::milliseconds backoff = options_.initial_backoff;
   bool unreachable = false;
+  std::unique_ptr<client::Client> own_client;
+  if (options_.new_upload_client) own_client = options_.new_upload_client();
+  client::Client* uploader = own_client != nullptr ? own_client.get() : client_;
+  int failures = 0;
   while (!stop_threads_.load()) {
     if (store_->queue().depth == 0) {  // in memory: no disk read when idle
       SleepUnless(std::chrono::milliseconds(50), stop_threads_);
@@ -479,8 +483,9 @@ void Agent::UploadLoop() {
     }
     if (batch->empty()) continue;  // dropped meanwhile (drop-oldest)
     absl::StatusOr<v1::UploadTracesResponse> response =
-        client_->Upload(options_.fleet_id, *batch);
+        uploader->Upload(options_.fleet_id, *batch);
     if (response.ok()) {
+      failures = 0;
       absl::Status marked = store_->MarkUploaded(
           batch->back().seq(), response->accepted(), response->duplicates());
       if (!marked.ok()) {
@@ -514,6 +519,15 @@ void Agent::UploadLoop() {
           "cannot upload (%s); %d traces stay queued, retrying with backoff",
           response.status().ToString(), store_->queue().depth));
       unreachable = true;
+    }
+    if (own_client != nullptr && options_.reconnect_after_failures > 0 &&
+        ++failures >= options_.reconnect_after_failures) {
+      // A fresh channel (and subchannel): what a restart of the robot
+      // would give it.
+      own_client = options_.new_upload_client();
+      uploader = own_client.get();
+      failures = 0;
+      Log("uploader: opened a new connection to the server");
     }
     SleepUnless(backoff, stop_threads_);
     backoff = std::min(backoff * 2, options_.max_backoff);

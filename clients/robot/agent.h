@@ -106,6 +106,13 @@ struct AgentOptions {
   // Backoff of the uploader while the server cannot take traces.
   std::chrono::milliseconds initial_backoff{200};
   std::chrono::milliseconds max_backoff{5000};
+  // The uploader's own client, made by this factory (null: it uploads
+  // through `client`). After `reconnect_after_failures` failed uploads in a
+  // row it is replaced by a new one: a TLS channel of gRPC 1.51 may never
+  // reconnect after a network outage until it is reopened (grpc/grpc#33593;
+  // docs/deployment.md). 0 never replaces it.
+  std::function<std::unique_ptr<client::Client>()> new_upload_client;
+  int reconnect_after_failures = 6;
   // At the end of the source: how long to wait for the queue to drain.
   std::chrono::milliseconds drain_timeout{120000};
   // Status file (JSON) rewritten at least this often; empty path = none.

@@ -142,6 +142,43 @@ TEST_F(AgentTest, QueuesEverySegmentWhileTheServerIsAwayAndResumes) {
   EXPECT_EQ(agent.summary().state.next_seq(), 15u);
 }
 
+// With no server, the uploader opens a new connection after every
+// reconnect_after_failures failed uploads (a TLS channel of gRPC 1.51 may
+// never recover otherwise), and logs it; the queue is kept.
+TEST_F(AgentTest, TheUploaderReopensItsConnectionAfterFailuresInARow) {
+  std::atomic<bool> stop{false};
+  std::unique_ptr<RobotStore> store = OpenStore();
+  RecordingLearner learner;
+  AgentOptions options = Options(100, 104);
+  options.initial_backoff = std::chrono::milliseconds(1);
+  options.max_backoff = std::chrono::milliseconds(1);
+  options.drain_timeout = std::chrono::milliseconds(1500);
+  options.reconnect_after_failures = 3;
+  std::atomic<int> created{0};
+  options.new_upload_client = [&created] {
+    ++created;
+    client::ClientOptions unreachable;
+    unreachable.target = "127.0.0.1:1";
+    unreachable.max_attempts = 1;
+    unreachable.deadline = std::chrono::milliseconds(100);
+    return client::Client::Create(unreachable);
+  };
+  std::atomic<int> reopened{0};
+  options.log = [&reopened](std::string_view line) {
+    if (line.find("opened a new connection") != std::string_view::npos) {
+      ++reopened;
+    }
+  };
+  Agent agent(options, client_.get(), client_.get(), source_.get(),
+              encoder_.get(), store.get(), &learner);
+  EXPECT_TRUE(agent.Run(stop).ok());
+  EXPECT_FALSE(agent.summary().drained);
+  EXPECT_EQ(agent.summary().queue.depth, 4u);
+  // The first client, then one more per 3 failures.
+  EXPECT_GE(created.load(), 3);
+  EXPECT_GE(reopened.load(), 2);
+}
+
 TEST_F(AgentTest, ALearnerErrorStopsTheRobotAndKeepsTheSegmentOpen) {
   class FailingLearner : public Learner {
     absl::Status Learn(std::span<const Observation>,

@@ -408,6 +408,13 @@ int Run(const Flags& flags) {
     learner = std::make_unique<robot::gpl::GplLearner>(
         gpl.get(), options.domain, learn, flags.data_dir + "/gpl-learned.pt");
   }
+  // The uploader's own channel, reopened after failures (agent.h).
+  fleetmem::client::ClientOptions upload_options = client_options;
+  upload_options.deadline =
+      std::chrono::milliseconds(static_cast<int64_t>(flags.deadline_s * 1000));
+  options.new_upload_client = [upload_options] {
+    return fleetmem::client::Client::Create(upload_options);
+  };
   robot::Agent agent(options, client.get(), query_client.get(), source->get(),
                      encoder->get(), store->get(), learner.get());
   std::signal(SIGTERM, OnSignal);

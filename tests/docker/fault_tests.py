@@ -344,6 +344,7 @@ def main():
         restarts = {name: int(run(["docker", "inspect", "-f", "{{.RestartCount}}", c]).stdout)
                     for name, c in robots.items()}
         log(f"restarts by the restart policy: {restarts}")
+        reopened = fleet.logs(robots["robot-2"]).count("opened a new connection")
         observed = {r: fleet.observed(r)[0] for r in ROBOTS}
         received = fleet.received() or {}
         keys = fleet.stored()
@@ -353,7 +354,8 @@ def main():
                      *count(keys, ROBOTS, observed, received), f"{server_recovery:.1f} s"))
         rows.append((f"robot-2 offline {OFFLINE_S:.0f} s, kept observing "
                      f"({kept_observing} observations, {queued_at_reconnect} queued; "
-                     f"restarted {restarts['robot-2']}x by its policy)", *count(keys, ["robot-2"], observed, received),
+                     f"uploader reconnected {reopened}x, restarted "
+                     f"{restarts['robot-2']}x by its policy)", *count(keys, ["robot-2"], observed, received),
                      f"{offline_recovery:.1f} s"))
         rows.append(("robot-1 SIGKILL, restart on its queue",
                      *count(keys, ["robot-1"], observed, received), f"{robot_recovery:.1f} s"))
