@@ -303,7 +303,7 @@ std::unique_ptr<Client> Client::Create(ClientOptions options) {
   }
   // A DNS query sent while the robot is off the network never gets an
   // answer; gRPC's c-ares resolver waits 120 s for one by default, and the
-  // channel with it. Give up on a query after the call deadline's order.
+  // channel with it. Give up on a query after 5 s.
   arguments.SetInt(GRPC_ARG_DNS_ARES_QUERY_TIMEOUT_MS, kDnsQueryTimeoutMs);
   // Each client its own subchannels: a new client must not inherit a
   // connection state another one got stuck in (agent.h,

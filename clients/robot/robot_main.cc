@@ -313,6 +313,8 @@ int Run(const Flags& flags) {
   client_options.upload_batch_size = flags.upload_batch;
   std::unique_ptr<fleetmem::client::Client> client =
       fleetmem::client::Client::Create(client_options);
+  // The uploader's own channel, reopened after failures (agent.h).
+  const fleetmem::client::ClientOptions upload_options = client_options;
   client_options.deadline =
       std::min(client_options.deadline, std::chrono::milliseconds(2000));
   std::unique_ptr<fleetmem::client::Client> query_client =
@@ -408,10 +410,6 @@ int Run(const Flags& flags) {
     learner = std::make_unique<robot::gpl::GplLearner>(
         gpl.get(), options.domain, learn, flags.data_dir + "/gpl-learned.pt");
   }
-  // The uploader's own channel, reopened after failures (agent.h).
-  fleetmem::client::ClientOptions upload_options = client_options;
-  upload_options.deadline =
-      std::chrono::milliseconds(static_cast<int64_t>(flags.deadline_s * 1000));
   options.new_upload_client = [upload_options] {
     return fleetmem::client::Client::Create(upload_options);
   };

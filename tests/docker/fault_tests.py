@@ -210,15 +210,7 @@ class Fleet:
 
     # --- robots -----------------------------------------------------------
     def robot_status(self, service):
-        """The robot's status file (docker cp works on stopped containers)."""
-        result = run(["docker", "cp", f"{self.container(service)}:{ROBOT_STATUS}", "-"],
-                     check=False)
-        if result.returncode != 0:
-            return None
-        # `docker cp ... -` writes a tar stream: the JSON is its one member.
-        text = result.stdout
-        start, end = text.find("{"), text.rfind("}")
-        return json.loads(text[start:end + 1]) if start >= 0 else None
+        return container_status(self.container(service))
 
     def observed(self, service):
         status = self.robot_status(service) or {}
@@ -227,6 +219,17 @@ class Fleet:
 
     def logs(self, container):
         return run(["docker", "logs", container], check=False).stdout
+
+
+def container_status(container):
+    """A robot container's status file (docker cp works on stopped ones)."""
+    result = run(["docker", "cp", f"{container}:{ROBOT_STATUS}", "-"], check=False)
+    if result.returncode != 0:
+        return None
+    # `docker cp ... -` writes a tar stream: the JSON is its one member.
+    text = result.stdout
+    start, end = text.find("{"), text.rfind("}")
+    return json.loads(text[start:end + 1]) if start >= 0 else None
 
 
 def wait_until(what, predicate, timeout, poll=0.5):
@@ -280,9 +283,9 @@ def main():
             failures.append(f"gRPC health probe: exit {probe.returncode}: {probe.stdout}")
 
         # 1. Server SIGKILL mid-upload, as soon as every robot has uploaded.
-        wait_until("every robot uploading",
-                   lambda: (fleet.received() or {}).keys() >= set(ROBOTS)
-                   and min(fleet.received().values()) >= 10, 90)
+        def uploading(got):
+            return got.keys() >= set(ROBOTS) and min(got.values()) >= 10
+        wait_until("every robot uploading", lambda: uploading(fleet.received() or {}), 90)
         before = sum(fleet.received().values())
         log(f"fault: docker kill -s KILL server ({before} traces received so far)")
         t_kill = time.time()
@@ -290,7 +293,7 @@ def main():
         time.sleep(3)
         run(["docker", "start", server])
         wait_until("the server answering and receiving again",
-                   lambda: (fleet.received() or {}) and sum(fleet.received().values()) > before,
+                   lambda: sum((fleet.received() or {}).values()) > before,
                    120)
         server_recovery = time.time() - t_kill
         log(f"server back and receiving after {server_recovery:.1f} s")
@@ -452,6 +455,10 @@ def report_sizing(fleet, server, robots, traces):
     queue = run(["docker", "run", "--rm", "--volumes-from", robots["robot-1"], "--entrypoint",
                  "du", f"fleetmem/robot:{VERSION}", "-sb", "/var/lib/fleetmem-robot"],
                 check=False).stdout.split()
+    images = ", ".join(
+        f"{tag} {int(run(['docker', 'image', 'inspect', '-f', '{{.Size}}', tag]).stdout) / 1e6:.0f} MB"
+        for tag in (f"fleetmem/server:{VERSION}", f"fleetmem/robot:{VERSION}"))
+    log(f"images: {images}")
     log(f"sizing: {traces} traces of dimension {stats.get('codeDimension')} in "
         f"{stats.get('clusters')} clusters; server memory {memory}; server data dir "
         f"{disk_bytes / 2**20:.1f} MiB ({disk_bytes / max(traces, 1):.0f} B per trace); "
@@ -501,13 +508,10 @@ def refused_robots(fleet, observed, failures):
                       *secrets, *extra, "--entrypoint", "fleetmem-robot", image,
                       *common, *flags], check=False, timeout=300)
         robot_log = result.stdout
-        status = run(["docker", "cp", f"{name}:{ROBOT_STATUS}", "-"], check=False).stdout
         # Traces it queued (not next_seq - 1: a robot starting as robot-1
         # continues robot-1's sequence from the server's max_seq).
-        start = status.find('"traces_queued"')
-        queued = 0
-        if start >= 0:
-            queued = int(status[start:].split(":", 1)[1].split(",")[0].strip().strip('"'))
+        status = container_status(name) or {}
+        queued = int(status.get("counters", {}).get("traces_queued", 0))
         run(["docker", "rm", "-v", name], check=False)
         server_log = fleet.logs(server)[server_log_before:]
         after_keys = fleet.stored()
