@@ -7,6 +7,14 @@
 //       A fleet's GPL model: the encoder trained on one domain's frames and
 //       frozen (clients/robot/gpl/pretrain.h), for fleetmem-robot
 //       --gpl-model.
+//   fleetmem-eval trajectory --reference FILE --estimate FILE
+//       [--format kitti|tum] [--align se3|sim3|none] [--rpe-delta-m D]
+//       [--json]
+//       ATE, RPE and KITTI t_err/r_err of an estimate (docs/slam.md).
+//   fleetmem-eval relations --estimate FILE --relations FILE [--json]
+//       The Freiburg relations metric of a 2-D SLAM estimate.
+//   fleetmem-eval continual --table FILE [--json]
+//       CL-SLAM's AQ/RQ from a table of deployments.
 //
 // Exit codes: 0 done, 1 the run failed (message on stderr), 2 bad usage.
 #include <unistd.h>
@@ -22,6 +30,7 @@
 #include "clients/robot/gpl/pretrain.h"
 #include "clients/robot/nordland.h"
 #include "tools/eval/lifelong.h"
+#include "tools/eval/trajectory_eval.h"
 
 namespace {
 
@@ -113,10 +122,84 @@ int main(int argc, char** argv) {
   pretrain->add_option("--seed", pre.seed, "seed")->capture_default_str();
   pretrain->add_option("--threads", pre.threads, "torch threads")
       ->capture_default_str();
+  fleetmem::eval::TrajectoryEvalOptions traj;
+  CLI::App* trajectory = app.add_subcommand(
+      "trajectory",
+      "ATE (after SE(3)/Sim(3) alignment), RPE and KITTI t_err/r_err of an "
+      "estimate against a reference (KITTI or TUM files)");
+  trajectory->add_option("--reference", traj.reference, "ground truth file")
+      ->required()
+      ->check(CLI::ExistingFile);
+  trajectory->add_option("--estimate", traj.estimate, "estimated trajectory")
+      ->required()
+      ->check(CLI::ExistingFile);
+  trajectory
+      ->add_option("--format", traj.format,
+                   "kitti or tum (default: detected from the files)")
+      ->check(CLI::IsMember({"kitti", "tum"}));
+  trajectory->add_option("--align", traj.align, "ATE alignment")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"se3", "sim3", "none"}));
+  trajectory
+      ->add_option("--rpe-delta-m", traj.rpe_delta_m,
+                   "RPE pairs by this path length in metres (default: by "
+                   "--rpe-delta-frames)")
+      ->check(CLI::PositiveNumber);
+  trajectory
+      ->add_option("--rpe-delta-frames", traj.rpe_delta_frames,
+                   "RPE pairs every this many frames")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  trajectory->add_flag("--pairs-from-reference", traj.pairs_from_reference,
+                       "form RPE pairs on the reference's path (evo's "
+                       "--pairs_from_reference; default: the estimate's)");
+  trajectory
+      ->add_option("--max-time-diff", traj.max_time_diff_s,
+                   "largest time difference of associated TUM poses (s)")
+      ->capture_default_str();
+  trajectory->add_flag("--json", traj.json, "print JSON");
+  fleetmem::eval::RelationsEvalOptions rel;
+  CLI::App* relations = app.add_subcommand(
+      "relations",
+      "the Freiburg relations metric (Kuemmerle et al. 2009) of a 2-D SLAM "
+      "estimate (TUM file, timestamps of the scans)");
+  relations->add_option("--estimate", rel.estimate, "estimated trajectory")
+      ->required()
+      ->check(CLI::ExistingFile);
+  relations->add_option("--relations", rel.relations, "relations file")
+      ->required()
+      ->check(CLI::ExistingFile);
+  relations
+      ->add_option("--max-time-diff", rel.max_time_diff_s,
+                   "largest difference of a relation's time from a pose's")
+      ->capture_default_str();
+  relations->add_flag("--json", rel.json, "print JSON");
+  std::string continual_table;
+  bool continual_json = false;
+  CLI::App* continual = app.add_subcommand(
+      "continual",
+      "CL-SLAM's adaptation and retention quality (AQ, RQ) from a CSV of "
+      "deployments: sequence (scenes joined by '>'), t_err, r_err");
+  continual->add_option("--table", continual_table, "deployments CSV")
+      ->required()
+      ->check(CLI::ExistingFile);
+  continual->add_flag("--json", continual_json, "print JSON");
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
+  }
+  if (trajectory->parsed() || relations->parsed() || continual->parsed()) {
+    const absl::Status status =
+        trajectory->parsed()  ? fleetmem::eval::RunTrajectoryEval(traj)
+        : relations->parsed() ? fleetmem::eval::RunRelationsEval(rel)
+                              : fleetmem::eval::RunContinualScores(
+                                    continual_table, continual_json);
+    if (!status.ok()) {
+      std::fprintf(stderr, "fleetmem-eval: %s\n", status.ToString().c_str());
+      return 1;
+    }
+    return 0;
   }
   if (pretrain->parsed()) {
     namespace gpl = fleetmem::robot::gpl;
