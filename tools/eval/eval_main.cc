@@ -15,6 +15,9 @@
 //       The Freiburg relations metric of a 2-D SLAM estimate.
 //   fleetmem-eval continual --table FILE [--json]
 //       CL-SLAM's AQ/RQ from a table of deployments.
+//   fleetmem-eval slam --log FILE --relations FILE --out DIR
+//       The laser SLAM back end on a CARMEN log, scored by the relations
+//       metric (tools/eval/slam_eval.h).
 //
 // Exit codes: 0 done, 1 the run failed (message on stderr), 2 bad usage.
 #include <unistd.h>
@@ -30,6 +33,7 @@
 #include "clients/robot/gpl/pretrain.h"
 #include "clients/robot/nordland.h"
 #include "tools/eval/lifelong.h"
+#include "tools/eval/slam_eval.h"
 #include "tools/eval/trajectory_eval.h"
 
 namespace {
@@ -184,14 +188,35 @@ int main(int argc, char** argv) {
       ->required()
       ->check(CLI::ExistingFile);
   continual->add_flag("--json", continual_json, "print JSON");
+  fleetmem::eval::SlamEvalOptions slam_options;
+  CLI::App* slam = app.add_subcommand(
+      "slam",
+      "the laser SLAM back end on a CARMEN log (raw odometry, scan matching, "
+      "loops from the robot's own memory), scored by a relations file");
+  slam->add_option("--log", slam_options.log, "CARMEN log (.clf or .clf.bz2)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  slam->add_option("--relations", slam_options.relations, "relations file")
+      ->required()
+      ->check(CLI::ExistingFile);
+  slam->add_option("--out", slam_options.out_dir, "output folder (created)")
+      ->required();
+  slam->add_option("--candidates", slam_options.candidates,
+                   "loop candidates per keyframe")
+      ->capture_default_str();
+  slam->add_option("--prior-radius", slam_options.prior_radius_m,
+                   "position prior of own candidates (m)")
+      ->capture_default_str();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
   }
-  if (trajectory->parsed() || relations->parsed() || continual->parsed()) {
+  if (trajectory->parsed() || relations->parsed() || continual->parsed() ||
+      slam->parsed()) {
     const absl::Status status =
-        trajectory->parsed()  ? fleetmem::eval::RunTrajectoryEval(traj)
+        slam->parsed()        ? fleetmem::eval::RunSlamEval(slam_options)
+        : trajectory->parsed() ? fleetmem::eval::RunTrajectoryEval(traj)
         : relations->parsed() ? fleetmem::eval::RunRelationsEval(rel)
                               : fleetmem::eval::RunContinualScores(
                                     continual_table, continual_json);

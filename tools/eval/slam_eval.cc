@@ -1,0 +1,175 @@
+#include "tools/eval/slam_eval.h"
+
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "clients/robot/carmen_log.h"
+#include "clients/robot/code_search.h"
+#include "clients/robot/scan_encoder.h"
+#include "clients/robot/slam/laser_slam.h"
+#include "clients/robot/slam/trajectory_metrics.h"
+
+namespace fleetmem::eval {
+namespace {
+
+struct VariantResult {
+  std::string name;
+  slam::RelationsResult relations;
+  slam::LaserSlamCounters counters;
+  double ms_per_keyframe = 0.0;
+};
+
+absl::Status WriteText(const std::string& path, const std::string& text) {
+  std::ofstream out(path, std::ios::binary | std::ios::trunc);
+  out << text;
+  out.close();
+  if (!out) return absl::InternalError(absl::StrCat("cannot write ", path));
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status RunSlamEval(const SlamEvalOptions& options) {
+  absl::StatusOr<std::string> log = robot::ReadMaybeBzip2(options.log);
+  if (!log.ok()) return log.status();
+  absl::StatusOr<std::vector<robot::Observation>> scans =
+      robot::ParseCarmenLog(*log, options.log);
+  if (!scans.ok()) return scans.status();
+  std::ifstream rel_in(options.relations, std::ios::binary);
+  if (!rel_in) {
+    return absl::NotFoundError(absl::StrCat("cannot read ", options.relations));
+  }
+  std::stringstream rel_text;
+  rel_text << rel_in.rdbuf();
+  absl::StatusOr<std::vector<slam::Relation>> relations =
+      slam::ParseRelations(rel_text.str(), options.relations);
+  if (!relations.ok()) return relations.status();
+  absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder =
+      robot::NewScanEncoderByName(options.encoder);
+  if (!encoder.ok()) return encoder.status();
+  std::error_code ec;
+  std::filesystem::create_directories(options.out_dir, ec);
+  if (ec) {
+    return absl::InternalError(
+        absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
+  }
+
+  std::vector<VariantResult> results;
+  for (const std::string variant :
+       {"odometry", "scan_matching", "own_memory_loops"}) {
+    slam::LaserSlam mapper("robot-1", {});
+    robot::BruteForceIndex index((*encoder)->dimension());
+    std::vector<robot::LaserScan> keyframe_scans;
+    const auto start = std::chrono::steady_clock::now();
+    for (const robot::Observation& o : *scans) {
+      std::optional<size_t> k = mapper.AddScan(
+          o.timestamp_ns, slam::Pose2{o.place.x, o.place.y, o.place.yaw},
+          o.scan);
+      if (!k || variant != "own_memory_loops") continue;
+      absl::StatusOr<std::vector<float>> code = (*encoder)->Encode(o);
+      if (!code.ok()) return code.status();
+      // The robot's own memory: nearest codes, kept if the current
+      // estimate puts them within the prior's radius.
+      std::vector<slam::LoopCandidate> candidates;
+      const slam::Pose2 here = mapper.KeyframePose(*k);
+      for (double label : index.Search(*code, 50)) {
+        const size_t j = static_cast<size_t>(label);
+        const slam::Pose2 there = mapper.KeyframePose(j);
+        if (std::hypot(there.x - here.x, there.y - here.y) >
+            options.prior_radius_m) {
+          continue;
+        }
+        candidates.push_back(slam::LoopCandidate{
+            "robot-1", mapper.KeyframeTime(j), there, keyframe_scans[j]});
+        if (static_cast<int>(candidates.size()) >= options.candidates) break;
+      }
+      absl::StatusOr<int> closed = mapper.CloseLoops(*k, candidates);
+      if (!closed.ok()) return closed.status();
+      index.Add(*code, static_cast<double>(*k));
+      keyframe_scans.push_back(o.scan);
+    }
+    const double seconds = std::chrono::duration<double>(
+                               std::chrono::steady_clock::now() - start)
+                               .count();
+    const slam::Trajectory trajectory = variant == "odometry"
+                                            ? mapper.OdometryTrajectory()
+                                            : mapper.ScanTrajectory();
+    absl::StatusOr<slam::RelationsResult> r =
+        slam::RelationsError(trajectory, *relations, 1e-3);
+    if (!r.ok()) return r.status();
+    const std::string stem = absl::StrCat(options.out_dir, "/", variant);
+    if (absl::Status s = WriteText(
+            stem + ".tum",
+            slam::FormatTrajectory(trajectory, slam::TrajectoryFormat::kTum));
+        !s.ok()) {
+      return s;
+    }
+    std::vector<std::pair<slam::Pose2, slam::Points2>> map = mapper.MapScans();
+    if (variant == "odometry") {
+      // The keyframes at their odometry poses.
+      for (size_t i = 0; i < map.size(); ++i) {
+        const robot::Observation* o = nullptr;
+        for (const robot::Observation& s : *scans) {
+          if (s.timestamp_ns == mapper.KeyframeTime(i)) {
+            o = &s;
+            break;
+          }
+        }
+        if (o) map[i].first = slam::Pose2{o->place.x, o->place.y, o->place.yaw};
+      }
+    }
+    if (absl::Status s = slam::WriteOccupancyPng(map, 0.1, stem + ".png");
+        !s.ok()) {
+      return s;
+    }
+    VariantResult v{variant, *r, mapper.counters(),
+                    1000.0 * seconds /
+                        std::max<uint64_t>(1, mapper.counters().keyframes)};
+    std::fprintf(stderr,
+                 "slam %-17s relations %.3f +- %.3f m, %.2f +- %.2f deg; "
+                 "%llu keyframes, %.1f ms per keyframe\n",
+                 variant.c_str(), r->translation_m.mean, r->translation_m.std,
+                 r->rotation_deg.mean, r->rotation_deg.std,
+                 static_cast<unsigned long long>(v.counters.keyframes),
+                 v.ms_per_keyframe);
+    results.push_back(std::move(v));
+  }
+
+  std::string csv =
+      "variant,relations,trans_mean_m,trans_std_m,rot_mean_deg,rot_std_deg,"
+      "keyframes,odometry_matched,loops_proposed,loops_accepted,"
+      "loops_rejected_geometry,loops_rejected_graph,ms_per_keyframe\n";
+  std::printf("| variant | translation (m) | rotation (deg) | keyframes | "
+              "loops proposed | accepted | rejected (geometry) | rejected "
+              "(graph) | ms per keyframe |\n|---|---|---|---|---|---|---|---|"
+              "---|\n");
+  for (const VariantResult& v : results) {
+    const auto& c = v.counters;
+    absl::StrAppendFormat(
+        &csv, "%s,%d,%.4f,%.4f,%.4f,%.4f,%d,%d,%d,%d,%d,%d,%.2f\n", v.name,
+        v.relations.translation_m.count, v.relations.translation_m.mean,
+        v.relations.translation_m.std, v.relations.rotation_deg.mean,
+        v.relations.rotation_deg.std, c.keyframes, c.odometry_matched,
+        c.loops_proposed, c.loops_accepted, c.loops_rejected_geometry,
+        c.loops_rejected_graph, v.ms_per_keyframe);
+    std::printf("| %s | %.3f +- %.3f | %.2f +- %.2f | %llu | %llu | %llu | "
+                "%llu | %llu | %.1f |\n",
+                v.name.c_str(), v.relations.translation_m.mean,
+                v.relations.translation_m.std, v.relations.rotation_deg.mean,
+                v.relations.rotation_deg.std,
+                static_cast<unsigned long long>(c.keyframes),
+                static_cast<unsigned long long>(c.loops_proposed),
+                static_cast<unsigned long long>(c.loops_accepted),
+                static_cast<unsigned long long>(c.loops_rejected_geometry),
+                static_cast<unsigned long long>(c.loops_rejected_graph),
+                v.ms_per_keyframe);
+  }
+  return WriteText(options.out_dir + "/summary.csv", csv);
+}
+
+}  // namespace fleetmem::eval
