@@ -215,11 +215,11 @@ int main(int argc, char** argv) {
   if (trajectory->parsed() || relations->parsed() || continual->parsed() ||
       slam->parsed()) {
     const absl::Status status =
-        slam->parsed()        ? fleetmem::eval::RunSlamEval(slam_options)
+        slam->parsed()         ? fleetmem::eval::RunSlamEval(slam_options)
         : trajectory->parsed() ? fleetmem::eval::RunTrajectoryEval(traj)
-        : relations->parsed() ? fleetmem::eval::RunRelationsEval(rel)
-                              : fleetmem::eval::RunContinualScores(
-                                    continual_table, continual_json);
+        : relations->parsed()  ? fleetmem::eval::RunRelationsEval(rel)
+                               : fleetmem::eval::RunContinualScores(
+                                     continual_table, continual_json);
     if (!status.ok()) {
       std::fprintf(stderr, "fleetmem-eval: %s\n", status.ToString().c_str());
       return 1;

@@ -93,9 +93,9 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
       index.Add(*code, static_cast<double>(*k));
       keyframe_scans.push_back(o.scan);
     }
-    const double seconds = std::chrono::duration<double>(
-                               std::chrono::steady_clock::now() - start)
-                               .count();
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+            .count();
     const slam::Trajectory trajectory = variant == "odometry"
                                             ? mapper.OdometryTrajectory()
                                             : mapper.ScanTrajectory();
@@ -127,9 +127,9 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
         !s.ok()) {
       return s;
     }
-    VariantResult v{variant, *r, mapper.counters(),
-                    1000.0 * seconds /
-                        std::max<uint64_t>(1, mapper.counters().keyframes)};
+    VariantResult v{
+        variant, *r, mapper.counters(),
+        1000.0 * seconds / std::max<uint64_t>(1, mapper.counters().keyframes)};
     std::fprintf(stderr,
                  "slam %-17s relations %.3f +- %.3f m, %.2f +- %.2f deg; "
                  "%llu keyframes, %.1f ms per keyframe\n",
@@ -144,10 +144,11 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
       "variant,relations,trans_mean_m,trans_std_m,rot_mean_deg,rot_std_deg,"
       "keyframes,odometry_matched,loops_proposed,loops_accepted,"
       "loops_rejected_geometry,loops_rejected_graph,ms_per_keyframe\n";
-  std::printf("| variant | translation (m) | rotation (deg) | keyframes | "
-              "loops proposed | accepted | rejected (geometry) | rejected "
-              "(graph) | ms per keyframe |\n|---|---|---|---|---|---|---|---|"
-              "---|\n");
+  std::printf(
+      "| variant | translation (m) | rotation (deg) | keyframes | "
+      "loops proposed | accepted | rejected (geometry) | rejected "
+      "(graph) | ms per keyframe |\n|---|---|---|---|---|---|---|---|"
+      "---|\n");
   for (const VariantResult& v : results) {
     const auto& c = v.counters;
     absl::StrAppendFormat(
@@ -157,17 +158,18 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
         v.relations.rotation_deg.std, c.keyframes, c.odometry_matched,
         c.loops_proposed, c.loops_accepted, c.loops_rejected_geometry,
         c.loops_rejected_graph, v.ms_per_keyframe);
-    std::printf("| %s | %.3f +- %.3f | %.2f +- %.2f | %llu | %llu | %llu | "
-                "%llu | %llu | %.1f |\n",
-                v.name.c_str(), v.relations.translation_m.mean,
-                v.relations.translation_m.std, v.relations.rotation_deg.mean,
-                v.relations.rotation_deg.std,
-                static_cast<unsigned long long>(c.keyframes),
-                static_cast<unsigned long long>(c.loops_proposed),
-                static_cast<unsigned long long>(c.loops_accepted),
-                static_cast<unsigned long long>(c.loops_rejected_geometry),
-                static_cast<unsigned long long>(c.loops_rejected_graph),
-                v.ms_per_keyframe);
+    std::printf(
+        "| %s | %.3f +- %.3f | %.2f +- %.2f | %llu | %llu | %llu | "
+        "%llu | %llu | %.1f |\n",
+        v.name.c_str(), v.relations.translation_m.mean,
+        v.relations.translation_m.std, v.relations.rotation_deg.mean,
+        v.relations.rotation_deg.std,
+        static_cast<unsigned long long>(c.keyframes),
+        static_cast<unsigned long long>(c.loops_proposed),
+        static_cast<unsigned long long>(c.loops_accepted),
+        static_cast<unsigned long long>(c.loops_rejected_geometry),
+        static_cast<unsigned long long>(c.loops_rejected_graph),
+        v.ms_per_keyframe);
   }
   return WriteText(options.out_dir + "/summary.csv", csv);
 }

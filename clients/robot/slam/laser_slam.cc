@@ -20,8 +20,7 @@ LaserSlam::LaserSlam(std::string robot_id, const LaserSlamOptions& options)
       options_(options),
       graph_(options.graph) {}
 
-Eigen::Matrix3d LaserSlam::Information(double sigma_m,
-                                       double sigma_rad) const {
+Eigen::Matrix3d LaserSlam::Information(double sigma_m, double sigma_rad) const {
   return Eigen::Vector3d(1 / (sigma_m * sigma_m), 1 / (sigma_m * sigma_m),
                          1 / (sigma_rad * sigma_rad))
       .asDiagonal();
@@ -30,7 +29,8 @@ Eigen::Matrix3d LaserSlam::Information(double sigma_m,
 Points2 LaserSlam::LocalMap(size_t k, int count_before, int count_after) const {
   Points2 out;
   const Pose2 origin = graph_.pose(keyframes_[k].node);
-  const size_t first = k >= static_cast<size_t>(count_before) ? k - count_before : 0;
+  const size_t first =
+      k >= static_cast<size_t>(count_before) ? k - count_before : 0;
   const size_t last = std::min(keyframes_.size() - 1, k + count_after);
   for (size_t j = first; j <= last; ++j) {
     const Points2 moved = Transform(
@@ -74,19 +74,18 @@ std::optional<size_t> LaserSlam::AddScan(int64_t timestamp_ns,
         options_.odometry_match);
     const ScanMatch m = matcher.Match(kf.points, odo);
     // A match far from odometry is a wrong match, not a better odometry.
-    const bool plausible =
-        std::hypot(m.pose.x - odo.x, m.pose.y - odo.y) <
-            0.3 + 0.2 * std::hypot(odo.x, odo.y) &&
-        std::abs(NormalizeAngle(m.pose.yaw - odo.yaw)) < 0.2;
+    const bool plausible = std::hypot(m.pose.x - odo.x, m.pose.y - odo.y) <
+                               0.3 + 0.2 * std::hypot(odo.x, odo.y) &&
+                           std::abs(NormalizeAngle(m.pose.yaw - odo.yaw)) < 0.2;
     const bool matched = m.accepted && plausible;
     const Pose2 edge = matched ? m.pose : odo;
     kf.node = graph_.AddNode(Compose(graph_.pose(prev.node), edge));
     const absl::Status s = graph_.AddEdge(
         prev.node, kf.node, edge,
-        matched ? Information(options_.matched_sigma_m,
-                              options_.matched_sigma_rad)
-                : Information(options_.odometry_sigma_m,
-                              options_.odometry_sigma_rad),
+        matched
+            ? Information(options_.matched_sigma_m, options_.matched_sigma_rad)
+            : Information(options_.odometry_sigma_m,
+                          options_.odometry_sigma_rad),
         EdgeKind::kOdometry);
     (void)s;  // nodes exist and the information is positive definite
     ++(matched ? counters_.odometry_matched : counters_.odometry_unmatched);
@@ -129,8 +128,8 @@ absl::StatusOr<int> LaserSlam::CloseLoops(
       }
       ++counters_.loops_proposed;
       const ScanMatcher matcher(LocalMap(other, 2, 2), options_.loop_match);
-      const Pose2 guess = Between(graph_.pose(keyframes_[other].node),
-                                  graph_.pose(kf.node));
+      const Pose2 guess =
+          Between(graph_.pose(keyframes_[other].node), graph_.pose(kf.node));
       const ScanMatch m = matcher.MatchBest(
           kf.points,
           InitialGuesses(guess, options_.own_yaw_span_rad, 0.25,
@@ -139,8 +138,9 @@ absl::StatusOr<int> LaserSlam::CloseLoops(
         ++counters_.loops_rejected_geometry;
         continue;
       }
-      if (!graph_.AddEdge(keyframes_[other].node, kf.node, m.pose, loop_info,
-                          EdgeKind::kLoop)
+      if (!graph_
+               .AddEdge(keyframes_[other].node, kf.node, m.pose, loop_info,
+                        EdgeKind::kLoop)
                .ok()) {
         continue;
       }
@@ -159,12 +159,13 @@ absl::StatusOr<int> LaserSlam::CloseLoops(
       const Pose2 in_peer = Compose(c.pose, m.pose);
       auto anchor = anchors_.find(c.robot_id);
       if (anchor == anchors_.end()) {
-        const size_t node = graph_.AddNode(
-            Compose(graph_.pose(kf.node), Inverse(in_peer)));
+        const size_t node =
+            graph_.AddNode(Compose(graph_.pose(kf.node), Inverse(in_peer)));
         anchor = anchors_.emplace(c.robot_id, node).first;
       }
-      if (!graph_.AddEdge(anchor->second, kf.node, in_peer, loop_info,
-                          EdgeKind::kLoop)
+      if (!graph_
+               .AddEdge(anchor->second, kf.node, in_peer, loop_info,
+                        EdgeKind::kLoop)
                .ok()) {
         continue;
       }
@@ -233,8 +234,10 @@ absl::Status WriteOccupancyPng(
     return absl::InvalidArgumentError("no scan points for the map");
   }
   const int margin = 10;
-  const int width = static_cast<int>((max_x - min_x) / resolution_m) + 2 * margin;
-  const int height = static_cast<int>((max_y - min_y) / resolution_m) + 2 * margin;
+  const int width =
+      static_cast<int>((max_x - min_x) / resolution_m) + 2 * margin;
+  const int height =
+      static_cast<int>((max_y - min_y) / resolution_m) + 2 * margin;
   if (width > 20000 || height > 20000) {
     return absl::InvalidArgumentError("map larger than 20000 pixels a side");
   }
@@ -242,8 +245,9 @@ absl::Status WriteOccupancyPng(
   cv::Mat free_count = cv::Mat::zeros(height, width, CV_16U);
   cv::Mat hit_count = cv::Mat::zeros(height, width, CV_16U);
   auto pixel = [&](double x, double y) {
-    return cv::Point(static_cast<int>((x - min_x) / resolution_m) + margin,
-                     height - 1 - (static_cast<int>((y - min_y) / resolution_m) + margin));
+    return cv::Point(
+        static_cast<int>((x - min_x) / resolution_m) + margin,
+        height - 1 - (static_cast<int>((y - min_y) / resolution_m) + margin));
   };
   cv::Mat ray = cv::Mat::zeros(height, width, CV_8U);
   for (const auto& [pose, points] : scans) {
