@@ -82,13 +82,25 @@ struct Se3Blocks {
   std::vector<std::array<double, 4>> rotations;
 };
 
-ceres::Solver::Options SolverOptions(int max_iterations) {
+// One Levenberg-Marquardt solve; the report gets its iterations and costs.
+// INTERNAL if Ceres fails (the parameter blocks are then not to be used).
+absl::Status RunSolver(ceres::Problem& problem, int max_iterations,
+                       SolveReport& report) {
   ceres::Solver::Options options;
   options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   options.max_num_iterations = max_iterations;
   options.num_threads = 1;
   options.logging_type = ceres::SILENT;
-  return options;
+  ceres::Solver::Summary summary;
+  ceres::Solve(options, &problem, &summary);
+  if (summary.termination_type == ceres::FAILURE) {
+    return absl::InternalError(
+        absl::StrCat("pose graph solve failed: ", summary.message));
+  }
+  report.iterations = static_cast<int>(summary.iterations.size());
+  report.initial_cost = summary.initial_cost;
+  report.final_cost = summary.final_cost;
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -192,19 +204,14 @@ absl::Status PoseGraph<Pose2, 3>::Solve(double loss_scale,
   }
   problem.AddParameterBlock(blocks.poses[0].data(), 3);
   problem.SetParameterBlockConstant(blocks.poses[0].data());
-  ceres::Solver::Summary summary;
-  ceres::Solve(SolverOptions(options_.max_iterations), &problem, &summary);
-  if (summary.termination_type == ceres::FAILURE) {
-    return absl::InternalError(
-        absl::StrCat("pose graph solve failed: ", summary.message));
+  if (absl::Status s = RunSolver(problem, options_.max_iterations, report);
+      !s.ok()) {
+    return s;
   }
   for (size_t i = 0; i < poses_.size(); ++i) {
     const auto& b = blocks.poses[i];
     poses_[i] = Pose2{b[0], b[1], NormalizeAngle(b[2])};
   }
-  report.iterations = static_cast<int>(summary.iterations.size());
-  report.initial_cost = summary.initial_cost;
-  report.final_cost = summary.final_cost;
   return absl::OkStatus();
 }
 
@@ -253,11 +260,9 @@ absl::Status PoseGraph<Eigen::Isometry3d, 6>::Solve(double loss_scale,
   }
   problem.SetParameterBlockConstant(blocks.positions[0].data());
   problem.SetParameterBlockConstant(blocks.rotations[0].data());
-  ceres::Solver::Summary summary;
-  ceres::Solve(SolverOptions(options_.max_iterations), &problem, &summary);
-  if (summary.termination_type == ceres::FAILURE) {
-    return absl::InternalError(
-        absl::StrCat("pose graph solve failed: ", summary.message));
+  if (absl::Status s = RunSolver(problem, options_.max_iterations, report);
+      !s.ok()) {
+    return s;
   }
   for (size_t i = 0; i < poses_.size(); ++i) {
     const auto& t = blocks.positions[i];
@@ -269,9 +274,6 @@ absl::Status PoseGraph<Eigen::Isometry3d, 6>::Solve(double loss_scale,
     p.translation() << t[0], t[1], t[2];
     poses_[i] = p;
   }
-  report.iterations = static_cast<int>(summary.iterations.size());
-  report.initial_cost = summary.initial_cost;
-  report.final_cost = summary.final_cost;
   return absl::OkStatus();
 }
 
