@@ -42,7 +42,10 @@ Points2 Transform(const Points2& points, const Pose2& pose) {
 }
 
 long ScanMatcher::CellKey(int cx, int cy) const {
-  return (static_cast<long>(cx) << 32) ^ static_cast<unsigned int>(cy);
+  const uint64_t key =
+      (static_cast<uint64_t>(static_cast<uint32_t>(cx)) << 32) |
+      static_cast<uint32_t>(cy);
+  return static_cast<long>(key);
 }
 
 ScanMatcher::ScanMatcher(Points2 reference, const ScanMatchOptions& options)
