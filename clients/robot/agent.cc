@@ -38,7 +38,8 @@ using api::TraceFromProto;
 
 Agent::Agent(AgentOptions options, client::Client* client,
              client::Client* query_client, const ObservationSource* source,
-             const Encoder* encoder, RobotStore* store, Learner* learner)
+             const Encoder* encoder, RobotStore* store, Learner* learner,
+             ObservationHook* hook)
     : options_(std::move(options)),
       client_(client),
       query_client_(query_client),
@@ -46,6 +47,7 @@ Agent::Agent(AgentOptions options, client::Client* client,
       encoder_(encoder),
       store_(store),
       learner_(learner),
+      hook_(hook),
       memory_(options_.robot_id, options_.dynamic_memory),
       rng_(options_.seed) {
   end_ = std::min(options_.last, source_->size());
@@ -242,6 +244,11 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
                              ? observation->timestamp_ns
                              : absl::ToUnixNanos(absl::Now()));
   trace.set_encoder_version(encoder_->version());
+  if (hook_ != nullptr) {
+    absl::Status hooked =
+        hook_->BeforeRecord(index, *observation, *code, trace);
+    if (!hooked.ok()) return hooked;
+  }
   bool told = false;
   while (true) {
     absl::Status recorded = store_->RecordObservation(index, trace, update);

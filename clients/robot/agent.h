@@ -72,6 +72,21 @@ class Learner {
   }
 };
 
+// Sees every observation of an uploading robot after it is encoded and
+// before its trace is recorded, and may change that trace: the SLAM back end
+// (clients/robot/slam/fleet_slam.h) puts its pose estimate in `trace.pose`
+// and the keyframe's scan in `trace.attachment`. Called from the agent's
+// loop in source order, from the index the robot starts or resumes at. An
+// error stops the robot (nothing of that observation is recorded).
+class ObservationHook {
+ public:
+  virtual ~ObservationHook() = default;
+  virtual absl::Status BeforeRecord(size_t index,
+                                    const Observation& observation,
+                                    std::span<const float> code,
+                                    v1::MemoryTrace& trace) = 0;
+};
+
 struct AgentOptions {
   std::string fleet_id;
   std::string robot_id;
@@ -141,10 +156,11 @@ class Agent {
   // `client` uploads, samples and watches; `query_client` relocalises and
   // refreshes (one attempt per call with a short deadline, so that an
   // unreachable server does not hold the loop). Neither may be null; they
-  // may be the same. `learner` may be null.
+  // may be the same. `learner` and `hook` may be null.
   Agent(AgentOptions options, client::Client* client,
         client::Client* query_client, const ObservationSource* source,
-        const Encoder* encoder, RobotStore* store, Learner* learner = nullptr);
+        const Encoder* encoder, RobotStore* store, Learner* learner = nullptr,
+        ObservationHook* hook = nullptr);
   ~Agent();
 
   // Runs until the source ends (then drains the queue, bounded by
@@ -197,6 +213,7 @@ class Agent {
   const Encoder* const encoder_;
   RobotStore* const store_;
   Learner* const learner_;
+  ObservationHook* const hook_;
   DynamicMemory memory_;
   std::mt19937_64 rng_;
   size_t end_ = 0;

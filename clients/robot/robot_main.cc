@@ -10,6 +10,10 @@
 //       --robot-id robot-1 --source nordland:../shared/data/nordland/summer \
 //       --data-dir /var/lib/fleetmem-robot --first 0 --last 300
 //
+// With --slam (a laser source) it maps: keyframes by travel, loop closure
+// through the fleet's memory, a pose graph; trajectory.tum, map.png and
+// slam.json in --data-dir (clients/robot/slam/fleet_slam.h, docs/slam.md).
+//
 // Exit codes: 0 the source was observed and the queue drained, or SIGTERM /
 // SIGINT stopped it cleanly; 1 an error (the message says what was kept);
 // 2 bad flags; 3 the source was observed but the queue did not drain within
@@ -31,6 +35,7 @@
 #include "clients/robot/gpl/gpl_robot.h"
 #include "clients/robot/observation_source.h"
 #include "clients/robot/robot_store.h"
+#include "clients/robot/slam/fleet_slam.h"
 #include "services/core/validation.h"
 
 namespace {
@@ -72,6 +77,8 @@ struct Flags {
   double drain_timeout_s = 120.0;
   double deadline_s = 10.0;
   uint64_t seed = 1;
+  bool slam = false;
+  double keyframe_distance_m = 0.5;
 };
 
 void AddFlags(CLI::App& app, Flags& flags) {
@@ -181,6 +188,15 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--deadline", flags.deadline_s, "seconds per server call")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  app.add_flag("--slam", flags.slam,
+               "map a laser source: observe keyframes, close loops through "
+               "the fleet, write trajectory.tum, map.png, slam.json to "
+               "--data-dir (--first/--last count keyframes; the segment "
+               "size defaults to 25)");
+  app.add_option("--keyframe-distance", flags.keyframe_distance_m,
+                 "with --slam: metres of travel between keyframes")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   app.add_option("--seed", flags.seed, "seed of R_in and replay draws")
       ->capture_default_str();
   app.set_config("--config", "",
@@ -262,6 +278,20 @@ int Run(const Flags& flags) {
   if (!source.ok()) {
     std::cerr << "fleetmem-robot: " << source.status().message() << "\n";
     return 1;
+  }
+  fleetmem::slam::FleetSlamOptions slam_options;
+  slam_options.slam.keyframe_distance_m = flags.keyframe_distance_m;
+  const fleetmem::slam::KeyframeSource* keyframes = nullptr;
+  if (flags.slam) {
+    absl::StatusOr<std::unique_ptr<fleetmem::slam::KeyframeSource>> k =
+        fleetmem::slam::KeyframeSource::Open(*std::move(source),
+                                             slam_options.slam);
+    if (!k.ok()) {
+      std::cerr << "fleetmem-robot: " << k.status().message() << "\n";
+      return 2;
+    }
+    keyframes = k->get();
+    source = std::unique_ptr<robot::ObservationSource>(std::move(*k));
   }
   if (flags.learn && flags.gpl_model.empty()) {
     std::cerr << "fleetmem-robot: --learn needs --gpl-model\n";
@@ -372,7 +402,9 @@ int Run(const Flags& flags) {
   if (flags.last > 0) options.last = flags.last;
   options.rate_hz = flags.rate_hz;
   options.upload = !flags.query_only;
-  options.relocalise = !flags.no_relocalise;
+  // With --slam the SLAM back end asks the fleet itself (own traces near its
+  // estimate, peers' by code).
+  options.relocalise = !flags.no_relocalise && !flags.slam;
   options.query_k = flags.query_k;
   options.score_relocalisation =
       (*source)->places_are_ground_truth() || flags.score_odometry;
@@ -413,8 +445,16 @@ int Run(const Flags& flags) {
   options.new_upload_client = [upload_options] {
     return fleetmem::client::Client::Create(upload_options);
   };
+  std::unique_ptr<fleetmem::slam::FleetSlam> slam;
+  if (flags.slam) {
+    slam_options.fleet_id = flags.fleet;
+    slam_options.robot_id = flags.robot_id;
+    slam = std::make_unique<fleetmem::slam::FleetSlam>(
+        slam_options, keyframes, encoder->get(), query_client.get(),
+        flags.first);
+  }
   robot::Agent agent(options, client.get(), query_client.get(), source->get(),
-                     encoder->get(), store->get(), learner.get());
+                     encoder->get(), store->get(), learner.get(), slam.get());
   std::signal(SIGTERM, OnSignal);
   std::signal(SIGINT, OnSignal);
   const absl::Status status = agent.Run(g_stop);
@@ -428,6 +468,28 @@ int Run(const Flags& flags) {
       summary.state.upload_duplicates(), summary.queue.depth,
       summary.state.segments(), summary.state.replayed_own(),
       summary.state.replayed_peer(), summary.state.refreshes());
+  if (slam) {
+    const fleetmem::slam::LaserSlamCounters& c = slam->slam().counters();
+    std::cerr << absl::StrFormat(
+        "[%s] slam: %d scans, %d keyframes, loops %d proposed, %d accepted "
+        "(%d inter-robot), %d rejected by geometry, %d by the graph; "
+        "%.1f ms SLAM + %.1f ms queries per keyframe\n",
+        flags.robot_id, c.scans, c.keyframes, c.loops_proposed,
+        c.loops_accepted, c.inter_robot_loops, c.loops_rejected_geometry,
+        c.loops_rejected_graph,
+        slam->stats().slam_ms / std::max<uint64_t>(1, c.keyframes),
+        slam->stats().query_ms / std::max<uint64_t>(1, c.keyframes));
+    absl::Status written =
+        summary.source_finished
+            ? slam->FinishSession(flags.last > 0 ? flags.last
+                                                 : keyframes->size())
+            : absl::OkStatus();
+    if (written.ok()) written = slam->WriteOutputs(flags.data_dir);
+    if (!written.ok()) {
+      std::cerr << "fleetmem-robot: " << written.ToString() << "\n";
+      if (status.ok()) return 1;
+    }
+  }
   if (!status.ok()) {
     std::cerr << "fleetmem-robot: " << status.ToString() << "\n";
     return 1;
@@ -450,5 +512,8 @@ int main(int argc, char** argv) {
     const int code = app.exit(e);
     return code == 0 ? 0 : 2;
   }
+  // A mapping robot uploads keyframes in small segments, so that its own
+  // and its peers' loop candidates reach the fleet soon.
+  if (flags.slam && app.count("--segment-size") == 0) flags.segment_size = 25;
   return Run(flags);
 }

@@ -28,6 +28,7 @@ core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace) {
   out.replay_count = trace.replay_count();
   out.encoder_version = trace.encoder_version();
   out.cluster_id = trace.cluster_id();
+  out.attachment = trace.attachment();
   return out;
 }
 
@@ -44,6 +45,7 @@ void TraceToProto(const core::MemoryTrace& trace, v1::MemoryTrace* out) {
   out->set_replay_count(trace.replay_count);
   out->set_encoder_version(trace.encoder_version);
   out->set_cluster_id(trace.cluster_id);
+  out->set_attachment(trace.attachment);
 }
 
 }  // namespace fleetmem::api

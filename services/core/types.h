@@ -46,6 +46,8 @@ struct MemoryTrace {
   uint32_t replay_count = 0;  // n_k (Eq. 18)
   std::string encoder_version;
   uint64_t cluster_id = 0;  // 0 while pending
+  // Opaque keyframe data for peers (a laser scan for SLAM), <= 16 KiB.
+  std::string attachment;
 
   TraceKey key() const { return TraceKey{robot_id, seq}; }
 };

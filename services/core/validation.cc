@@ -103,6 +103,11 @@ absl::Status ValidateTrace(std::string_view what, const MemoryTrace& trace,
       !s.ok()) {
     return s;
   }
+  if (trace.attachment.size() > kMaxAttachmentBytes) {
+    return Invalid(absl::StrCat(V(what), ".attachment has ",
+                                trace.attachment.size(), " bytes; at most ",
+                                kMaxAttachmentBytes, " allowed"));
+  }
   if (absl::Status s = ValidateCode(absl::StrCat(V(what), ".code"), trace.code);
       !s.ok()) {
     return s;

@@ -16,6 +16,7 @@ inline constexpr size_t kMaxIdLength = 128;
 inline constexpr size_t kMaxDomainLength = 64;
 inline constexpr size_t kMaxEncoderVersionLength = 64;
 inline constexpr size_t kMaxCodeDimension = 65536;
+inline constexpr size_t kMaxAttachmentBytes = 16384;
 // Largest |x|, |y|, |z| of a place, in metres: far beyond any map frame, and
 // small enough that the feature-spatial code (single precision) stays finite.
 inline constexpr double kMaxCoordinateM = 1e9;

@@ -93,6 +93,7 @@ std::string EncodeTrace(const core::MemoryTrace& trace) {
   record.set_replay_count(trace.replay_count);
   record.set_encoder_version(trace.encoder_version);
   record.set_cluster_id(trace.cluster_id);
+  record.set_attachment(trace.attachment);
   return record.SerializeAsString();
 }
 
@@ -123,6 +124,7 @@ absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
   trace.replay_count = record.replay_count();
   trace.encoder_version = record.encoder_version();
   trace.cluster_id = record.cluster_id();
+  trace.attachment = record.attachment();
   return trace;
 }
 

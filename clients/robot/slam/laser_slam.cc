@@ -40,21 +40,43 @@ Points2 LaserSlam::LocalMap(size_t k, int count_before, int count_after) const {
   return out;
 }
 
+namespace {
+
+bool MovedEnough(const Pose2& keyframe, const Pose2& odometry,
+                 const LaserSlamOptions& options) {
+  const Pose2 since = Between(keyframe, odometry);
+  return std::hypot(since.x, since.y) >= options.keyframe_distance_m ||
+         std::abs(since.yaw) >= options.keyframe_turn_rad;
+}
+
+}  // namespace
+
+std::vector<size_t> SelectKeyframes(const std::vector<Pose2>& odometry,
+                                    const LaserSlamOptions& options) {
+  std::vector<size_t> out;
+  for (size_t i = 0; i < odometry.size(); ++i) {
+    if (out.empty() ||
+        MovedEnough(odometry[out.back()], odometry[i], options)) {
+      out.push_back(i);
+    }
+  }
+  return out;
+}
+
 std::optional<size_t> LaserSlam::AddScan(int64_t timestamp_ns,
                                          const Pose2& odometry,
-                                         const robot::LaserScan& scan) {
+                                         const robot::LaserScan& scan,
+                                         KeyframeChoice choice) {
   ++counters_.scans;
   if (last_odometry_) {
     path_m_ += std::hypot(odometry.x - last_odometry_->x,
                           odometry.y - last_odometry_->y);
   }
   last_odometry_ = odometry;
-  bool keyframe = keyframes_.empty();
-  if (!keyframe) {
-    const Pose2 since = Between(keyframes_.back().odometry, odometry);
-    keyframe = std::hypot(since.x, since.y) >= options_.keyframe_distance_m ||
-               std::abs(since.yaw) >= options_.keyframe_turn_rad;
-  }
+  const bool keyframe =
+      keyframes_.empty() || choice == KeyframeChoice::kKeyframe ||
+      (choice == KeyframeChoice::kByMotion &&
+       MovedEnough(keyframes_.back().odometry, odometry, options_));
   if (!keyframe) {
     scans_.push_back(ScanRecord{timestamp_ns, keyframes_.size() - 1, odometry});
     return std::nullopt;
@@ -145,19 +167,36 @@ absl::StatusOr<int> LaserSlam::CloseLoops(
         continue;
       }
     } else {
+      auto anchor = anchors_.find(c.robot_id);
+      std::vector<Pose2> guesses;
+      if (anchor != anchors_.end() &&
+          anchor_loops_[c.robot_id] >= options_.anchor_loops_for_prior) {
+        // The maps are joined: the anchor predicts where this keyframe is
+        // in the peer's frame. A candidate far from that is another place
+        // that looks alike; a near one is verified around the prediction.
+        const Pose2 predicted =
+            Compose(Inverse(graph_.pose(anchor->second)), graph_.pose(kf.node));
+        if (std::hypot(predicted.x - c.pose.x, predicted.y - c.pose.y) >
+            options_.anchored_peer_radius_m) {
+          continue;
+        }
+        guesses = InitialGuesses(
+            Between(c.pose, predicted), options_.own_yaw_span_rad, 0.25,
+            options_.own_xy_span_m, options_.own_xy_span_m);
+      } else {
+        // Codes are rotation invariant: search every heading near the
+        // peer's keyframe.
+        guesses = InitialGuesses(Pose2{}, M_PI, M_PI / 8, 0.5, 0.5);
+      }
       ++counters_.loops_proposed;
       const ScanMatcher matcher(ScanPoints(c.scan, options_.max_range_m),
                                 options_.loop_match);
-      // Codes are rotation invariant: search every heading near the peer's
-      // keyframe.
-      const ScanMatch m = matcher.MatchBest(
-          kf.points, InitialGuesses(Pose2{}, M_PI, M_PI / 8, 0.5, 0.5));
+      const ScanMatch m = matcher.MatchBest(kf.points, guesses);
       if (!m.accepted) {
         ++counters_.loops_rejected_geometry;
         continue;
       }
       const Pose2 in_peer = Compose(c.pose, m.pose);
-      auto anchor = anchors_.find(c.robot_id);
       if (anchor == anchors_.end()) {
         const size_t node =
             graph_.AddNode(Compose(graph_.pose(kf.node), Inverse(in_peer)));
@@ -170,6 +209,7 @@ absl::StatusOr<int> LaserSlam::CloseLoops(
         continue;
       }
       ++counters_.inter_robot_loops;
+      ++anchor_loops_[c.robot_id];
     }
     ++counters_.loops_accepted;
     ++accepted;
@@ -208,6 +248,12 @@ std::optional<Pose2> LaserSlam::FrameInPeer(const std::string& peer) const {
   auto it = anchors_.find(peer);
   if (it == anchors_.end()) return std::nullopt;
   return Inverse(graph_.pose(it->second));
+}
+
+std::vector<std::string> LaserSlam::Peers() const {
+  std::vector<std::string> out;
+  for (const auto& [peer, node] : anchors_) out.push_back(peer);
+  return out;
 }
 
 std::vector<std::pair<Pose2, Points2>> LaserSlam::MapScans() const {

@@ -43,12 +43,18 @@ struct LaserSlamOptions {
   // these spans around the current estimate (yaw, x/y).
   double own_yaw_span_rad = 0.5;
   double own_xy_span_m = 1.0;
+  // After this many verified loops with a peer its anchor is trusted as a
+  // prior: peers' candidates farther than anchored_peer_radius_m from the
+  // predicted place are skipped, nearer ones are verified locally.
+  int anchor_loops_for_prior = 3;
+  double anchored_peer_radius_m = 8.0;
   // Geometric check of a candidate; stricter than odometry matching.
   ScanMatchOptions loop_match{.max_iterations = 40,
                               .max_correspondence_m = 1.5,
                               .final_correspondence_m = 0.2,
                               .min_inlier_ratio = 0.75,
-                              .max_rms_m = 0.06};
+                              .max_rms_m = 0.06,
+                              .min_conditioning = 0.1};
   ScanMatchOptions odometry_match{};
   // Standard deviations of the edges (metres, radians).
   double matched_sigma_m = 0.03;
@@ -88,10 +94,15 @@ class LaserSlam {
  public:
   LaserSlam(std::string robot_id, const LaserSlamOptions& options);
 
+  // Whether a scan becomes a keyframe: by the options' travel and turn, or
+  // as the caller decided (a keyframe source that selected them already).
+  enum class KeyframeChoice { kByMotion, kKeyframe, kNotKeyframe };
   // One scan with its odometry pose (the robot's own frame). Returns the
-  // keyframe index when the scan became a keyframe.
-  std::optional<size_t> AddScan(int64_t timestamp_ns, const Pose2& odometry,
-                                const robot::LaserScan& scan);
+  // keyframe index when the scan became a keyframe. The first scan always
+  // does.
+  std::optional<size_t> AddScan(
+      int64_t timestamp_ns, const Pose2& odometry, const robot::LaserScan& scan,
+      KeyframeChoice choice = KeyframeChoice::kByMotion);
   // Verifies `candidates` for keyframe `keyframe` (the newest); accepted
   // ones become edges and the graph is re-optimised. Returns how many were
   // accepted. Candidates of the keyframe itself or too recent are skipped.
@@ -116,6 +127,8 @@ class LaserSlam {
   // The pose of this robot's frame in `peer`'s frame, once an inter-robot
   // loop anchored the two maps.
   std::optional<Pose2> FrameInPeer(const std::string& peer) const;
+  // Peers anchored so far.
+  std::vector<std::string> Peers() const;
   // Keyframe scans (sensor frame) at their estimated poses, for the map.
   std::vector<std::pair<Pose2, Points2>> MapScans() const;
   const LaserSlamCounters& counters() const { return counters_; }
@@ -146,10 +159,18 @@ class LaserSlam {
   std::map<int64_t, size_t> keyframe_by_time_;
   // Peer robot -> anchor node (the peer's frame in this robot's frame).
   std::map<std::string, size_t> anchors_;
+  // Verified inter-robot loops per peer.
+  std::map<std::string, int> anchor_loops_;
   double path_m_ = 0.0;
   std::optional<Pose2> last_odometry_;
   LaserSlamCounters counters_;
 };
+
+// Indices of the keyframes among consecutive odometry poses: the first, then
+// each pose that moved keyframe_distance_m or turned keyframe_turn_rad from
+// the last keyframe (LaserSlam's rule).
+std::vector<size_t> SelectKeyframes(const std::vector<Pose2>& odometry,
+                                    const LaserSlamOptions& options);
 
 // A simple occupancy grid of the keyframe scans (free space along each
 // beam, occupied at its end), as an 8-bit PNG: white free, black

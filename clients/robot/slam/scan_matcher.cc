@@ -162,18 +162,25 @@ ScanMatch ScanMatcher::Match(const Points2& scan, const Pose2& initial) const {
   const Points2 moved = Transform(scan, result.pose);
   int inliers = 0;
   double sum_sq = 0.0;
+  Eigen::Matrix2d normal_matrix = Eigen::Matrix2d::Zero();
   for (const Eigen::Vector2d& w : moved) {
     const int j = Nearest(w, options_.final_correspondence_m);
     if (j < 0) continue;
     ++inliers;
+    if (has_normal_[j]) normal_matrix += normals_[j] * normals_[j].transpose();
     const double e = has_normal_[j] ? normals_[j].dot(w - points_[j])
                                     : (w - points_[j]).norm();
     sum_sq += e * e;
   }
   result.inlier_ratio = static_cast<double>(inliers) / scan.size();
   result.rms_m = inliers > 0 ? std::sqrt(sum_sq / inliers) : 0.0;
+  const Eigen::Vector2d eig =
+      Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(normal_matrix)
+          .eigenvalues();
+  result.conditioning = eig(1) > 0.0 ? eig(0) / eig(1) : 0.0;
   result.accepted = result.inlier_ratio >= options_.min_inlier_ratio &&
-                    result.rms_m <= options_.max_rms_m;
+                    result.rms_m <= options_.max_rms_m &&
+                    result.conditioning >= options_.min_conditioning;
   return result;
 }
 

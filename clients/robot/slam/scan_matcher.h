@@ -37,6 +37,11 @@ struct ScanMatchOptions {
   // RMS is at most max_rms_m.
   double min_inlier_ratio = 0.6;
   double max_rms_m = 0.08;
+  // ... and when the match pins the translation down in every direction:
+  // the smaller eigenvalue of the point-to-line normal matrix's translation
+  // block is at least this share of the larger. A corridor constrains only
+  // across it; ICP can slide along it to any place that looks the same.
+  double min_conditioning = 0.0;
 };
 
 struct ScanMatch {
@@ -44,6 +49,8 @@ struct ScanMatch {
   Pose2 pose;
   double inlier_ratio = 0.0;
   double rms_m = 0.0;
+  // lambda_min / lambda_max of the translation block (1: well constrained).
+  double conditioning = 0.0;
   int iterations = 0;
   bool accepted = false;
 };
