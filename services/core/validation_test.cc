@@ -90,6 +90,17 @@ TEST(ValidateTraceTest, AcceptsGoodTrace) {
   EXPECT_TRUE(ValidateTrace("traces[3]", zero_reward, shape).ok());
 }
 
+TEST(ValidateTraceTest, AttachmentsUpToTheirLimit) {
+  MemoryTrace t = GoodTrace();
+  t.attachment.assign(kMaxAttachmentBytes, '\0');
+  EXPECT_TRUE(ValidateTrace("traces[3]", t, TraceShape{}).ok());
+  t.attachment.push_back('x');
+  const absl::Status status = ValidateTrace("traces[3]", t, TraceShape{});
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(status.message()),
+              ::testing::HasSubstr("traces[3].attachment has 16385 bytes"));
+}
+
 TEST(ValidateTraceTest, RejectsBadTraces) {
   const TraceCase cases[] = {
       {"empty robot id",

@@ -7,6 +7,7 @@
 #include <map>
 #include <stdexcept>
 
+#include "absl/strings/escaping.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
@@ -28,7 +29,8 @@ void DumpTrace(const core::MemoryTrace& t, std::string* out) {
   absl::StrAppend(out, "    trace ", t.robot_id, "/", t.seq,
                   " domain=", t.domain, " cluster=", t.cluster_id,
                   " replay=", t.replay_count, " ts=", t.timestamp_ns,
-                  " enc=", t.encoder_version);
+                  " enc=", t.encoder_version,
+                  " attachment=", absl::CHexEscape(t.attachment));
   absl::StrAppendFormat(out, " reward=%a ex=%a in=%a place=", t.reward,
                         t.reward_external, t.reward_internal);
   DumpPlace(t.place, out);
@@ -52,6 +54,8 @@ core::MemoryTrace MakeTrace(const std::string& robot_id, uint64_t seq) {
   trace.reward_internal = 0.05f + 0.01f * seq;
   trace.timestamp_ns = 1'700'000'000'000'000'000 + static_cast<int64_t>(seq);
   trace.encoder_version = "netvlad-1";
+  // Bytes of any value (a scan), every third trace.
+  if (seq % 3 == 0) trace.attachment = std::string("\0\x01scan\xff", 7);
   return trace;
 }
 
