@@ -132,6 +132,18 @@ def main():
     write(carmen, "nan-range", "FLASER 3 1.0 2.0 nan 0 0 0 0 0 0 1.5 host 0\n")
     write(carmen, "short", "FLASER 180 1.0 2.0\n")
 
+    # SLAM readers: a KITTI and a TUM trajectory, relations, deployments, a
+    # scan attachment (3 beams, 180 degrees, 1.5 m, no return, 2 m).
+    traj = "clients/robot/slam/fuzz_corpus/trajectory_fuzz"
+    write(traj, "kitti", "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1 0 0 0 0 1 0\n"
+          "1 0 0 2 0 1 0 0.5 0 0 1 0\n")
+    write(traj, "tum", "# t x y z qx qy qz qw\n0.0 0 0 0 0 0 0 1\n"
+          "0.1 1 0 0 0 0 0.7071068 0.7071068\n0.2 1 1 0 0 0 1 0\n")
+    write(traj, "relations", "90.2 90.7 0.42 -0.0007 0 0 0 0.017\n")
+    write(traj, "deployments", "sequence,t_err,r_err\nct>k1,2.5,0.37\n"
+          "ct>k1>r1>k2,4.85,1.59\nct>k1>k2,7.48,1.63\n")
+    write(traj, "scan", struct.pack("<Hf3H", 3, 3.14159265, 1500, 0, 2000))
+
 
 if __name__ == "__main__":
     main()
