@@ -3,13 +3,12 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "clients/robot/carmen_log.h"
 #include "clients/robot/code_search.h"
+#include "clients/robot/read_file.h"
 #include "clients/robot/scan_encoder.h"
 #include "clients/robot/slam/laser_slam.h"
 #include "clients/robot/slam/trajectory_metrics.h"
@@ -24,14 +23,6 @@ struct VariantResult {
   double ms_per_keyframe = 0.0;
 };
 
-absl::Status WriteText(const std::string& path, const std::string& text) {
-  std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  out << text;
-  out.close();
-  if (!out) return absl::InternalError(absl::StrCat("cannot write ", path));
-  return absl::OkStatus();
-}
-
 }  // namespace
 
 absl::Status RunSlamEval(const SlamEvalOptions& options) {
@@ -40,14 +31,10 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
   absl::StatusOr<std::vector<robot::Observation>> scans =
       robot::ParseCarmenLog(*log, options.log);
   if (!scans.ok()) return scans.status();
-  std::ifstream rel_in(options.relations, std::ios::binary);
-  if (!rel_in) {
-    return absl::NotFoundError(absl::StrCat("cannot read ", options.relations));
-  }
-  std::stringstream rel_text;
-  rel_text << rel_in.rdbuf();
+  absl::StatusOr<std::string> rel_text = robot::ReadFile(options.relations);
+  if (!rel_text.ok()) return rel_text.status();
   absl::StatusOr<std::vector<slam::Relation>> relations =
-      slam::ParseRelations(rel_text.str(), options.relations);
+      slam::ParseRelations(*rel_text, options.relations);
   if (!relations.ok()) return relations.status();
   absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder =
       robot::NewScanEncoderByName(options.encoder);
@@ -103,7 +90,7 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
         slam::RelationsError(trajectory, *relations, 1e-3);
     if (!r.ok()) return r.status();
     const std::string stem = absl::StrCat(options.out_dir, "/", variant);
-    if (absl::Status s = WriteText(
+    if (absl::Status s = robot::WriteFile(
             stem + ".tum",
             slam::FormatTrajectory(trajectory, slam::TrajectoryFormat::kTum));
         !s.ok()) {
@@ -171,7 +158,7 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
         static_cast<unsigned long long>(c.loops_rejected_graph),
         v.ms_per_keyframe);
   }
-  return WriteText(options.out_dir + "/summary.csv", csv);
+  return robot::WriteFile(options.out_dir + "/summary.csv", csv);
 }
 
 }  // namespace fleetmem::eval

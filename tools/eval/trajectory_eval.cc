@@ -1,12 +1,11 @@
 #include "tools/eval/trajectory_eval.h"
 
 #include <cstdio>
-#include <fstream>
 #include <optional>
-#include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "clients/robot/read_file.h"
 #include "clients/robot/slam/trajectory.h"
 #include "clients/robot/slam/trajectory_metrics.h"
 #include "google/protobuf/util/json_util.h"
@@ -47,14 +46,6 @@ void PrintStats(const char* what, const ErrorStats& s) {
       static_cast<unsigned long long>(s.count()));
 }
 
-absl::StatusOr<std::string> ReadText(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path));
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  return buffer.str();
-}
-
 }  // namespace
 
 absl::Status RunTrajectoryEval(const TrajectoryEvalOptions& options) {
@@ -78,7 +69,7 @@ absl::Status RunTrajectoryEval(const TrajectoryEvalOptions& options) {
   // format was given.
   bool by_index = format == slam::TrajectoryFormat::kKitti;
   if (!format) {
-    absl::StatusOr<std::string> text = ReadText(options.reference);
+    absl::StatusOr<std::string> text = robot::ReadFile(options.reference);
     if (!text.ok()) return text.status();
     by_index = *slam::DetectTrajectoryFormat(*text, options.reference) ==
                slam::TrajectoryFormat::kKitti;
@@ -147,7 +138,7 @@ absl::Status RunRelationsEval(const RelationsEvalOptions& options) {
   absl::StatusOr<slam::Trajectory> estimate =
       slam::ReadTrajectoryFile(options.estimate, std::nullopt);
   if (!estimate.ok()) return estimate.status();
-  absl::StatusOr<std::string> text = ReadText(options.relations);
+  absl::StatusOr<std::string> text = robot::ReadFile(options.relations);
   if (!text.ok()) return text.status();
   absl::StatusOr<std::vector<slam::Relation>> relations =
       slam::ParseRelations(*text, options.relations);
@@ -181,7 +172,7 @@ absl::Status RunRelationsEval(const RelationsEvalOptions& options) {
 }
 
 absl::Status RunContinualScores(const std::string& table, bool json) {
-  absl::StatusOr<std::string> text = ReadText(table);
+  absl::StatusOr<std::string> text = robot::ReadFile(table);
   if (!text.ok()) return text.status();
   absl::StatusOr<std::vector<slam::Deployment>> deployments =
       slam::ParseDeployments(*text, table);

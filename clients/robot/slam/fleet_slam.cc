@@ -2,9 +2,9 @@
 
 #include <chrono>
 #include <cmath>
-#include <fstream>
 
 #include "absl/strings/str_cat.h"
+#include "clients/robot/read_file.h"
 #include "clients/robot/slam/trajectory.h"
 #include "google/protobuf/struct.pb.h"
 #include "google/protobuf/util/json_util.h"
@@ -21,14 +21,6 @@ double MsSince(Clock::time_point start) {
 
 Pose2 OdometryOf(const robot::Observation& o) {
   return Pose2{o.place.x, o.place.y, o.place.yaw};
-}
-
-absl::Status WriteFile(const std::string& path, const std::string& text) {
-  std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  out << text;
-  out.close();
-  if (!out) return absl::InternalError(absl::StrCat("cannot write ", path));
-  return absl::OkStatus();
 }
 
 }  // namespace
@@ -215,13 +207,13 @@ absl::Status FleetSlam::FinishSession(size_t end_keyframe) {
 absl::Status FleetSlam::WriteOutputs(const std::string& dir) const {
   if (slam_.num_keyframes() == 0) return absl::OkStatus();
   const Trajectory trajectory = slam_.ScanTrajectory();
-  if (absl::Status s =
-          WriteFile(dir + "/trajectory.tum",
-                    FormatTrajectory(trajectory, TrajectoryFormat::kTum));
+  if (absl::Status s = robot::WriteFile(
+          dir + "/trajectory.tum",
+          FormatTrajectory(trajectory, TrajectoryFormat::kTum));
       !s.ok()) {
     return s;
   }
-  if (absl::Status s = WriteFile(
+  if (absl::Status s = robot::WriteFile(
           dir + "/odometry.tum",
           FormatTrajectory(slam_.OdometryTrajectory(), TrajectoryFormat::kTum));
       !s.ok()) {
@@ -268,8 +260,8 @@ absl::Status FleetSlam::WriteOutputs(const std::string& dir) const {
     const Eigen::Isometry3d t = PlanarPose(frame->x, frame->y, frame->yaw);
     for (StampedPose& p : in_peer) p.pose = t * p.pose;
     if (absl::Status s =
-            WriteFile(absl::StrCat(dir, "/trajectory_in_", peer, ".tum"),
-                      FormatTrajectory(in_peer, TrajectoryFormat::kTum));
+            robot::WriteFile(absl::StrCat(dir, "/trajectory_in_", peer, ".tum"),
+                             FormatTrajectory(in_peer, TrajectoryFormat::kTum));
         !s.ok()) {
       return s;
     }
@@ -280,7 +272,7 @@ absl::Status FleetSlam::WriteOutputs(const std::string& dir) const {
   if (!google::protobuf::util::MessageToJsonString(report, &json, print).ok()) {
     return absl::InternalError("cannot print slam.json");
   }
-  return WriteFile(dir + "/slam.json", json);
+  return robot::WriteFile(dir + "/slam.json", json);
 }
 
 }  // namespace fleetmem::slam

@@ -1,14 +1,13 @@
 #include "clients/robot/slam/trajectory.h"
 
 #include <cmath>
-#include <fstream>
-#include <sstream>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
+#include "clients/robot/read_file.h"
 
 namespace fleetmem::slam {
 namespace {
@@ -120,11 +119,9 @@ absl::StatusOr<Trajectory> ParseTrajectory(std::string_view text,
 
 absl::StatusOr<Trajectory> ReadTrajectoryFile(
     const std::string& path, std::optional<TrajectoryFormat> format) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path));
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  const std::string text = buffer.str();
+  absl::StatusOr<std::string> read = robot::ReadFile(path);
+  if (!read.ok()) return read.status();
+  const std::string& text = *read;
   if (!format) {
     absl::StatusOr<TrajectoryFormat> detected =
         DetectTrajectoryFormat(text, path);
