@@ -3,14 +3,21 @@
 independent numpy computation (reference_metrics.py) on the real estimates
 in ../shared/data/trajectories: KITTI 00 (ORB-SLAM, S-PTAM) and TUM fr1/xyz
 (RGBD-SLAM), SE(3) and Sim(3), RPE by frame and by 100 m (KITTI) / 0.5 m
-(TUM). Every figure must agree to 1e-6 (relative) or 1e-9 (absolute).
+(TUM); and fleetmem-eval relations on ACES' raw odometry against the
+relations metric computed here from the log. Every figure must agree to
+1e-6 (relative) or 1e-9 (absolute).
 
 usage: check_trajectory_eval.py BIN_DIR DATA_DIR
 """
+import bz2
 import json
+import math
 import os
 import subprocess
 import sys
+import tempfile
+
+import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FIELDS = ['poses', 'ate_rmse_m', 'alignment_scale', 'rpe_trans_rmse_m',
@@ -55,8 +62,64 @@ def main():
               f'{got["ate_rmse_m"]:.6f} m, RPE rmse {got["rpe_trans_rmse_m"]:.6f} m, '
               f't_err {got["kitti_t_err_percent"]:.4f} %, r_err '
               f'{got["kitti_r_err_deg_per_100m"]:.4f} deg/100 m')
+    failures += check_relations(bin_dir, os.path.join(sys.argv[2], 'laser'))
     print('all agree' if failures == 0 else f'{failures} mismatches')
     return 1 if failures else 0
+
+
+def check_relations(bin_dir, laser):
+    """The Freiburg relations metric of ACES' raw odometry, computed here
+    from the log and the relations file, against fleetmem-eval relations
+    on the same poses written as TUM."""
+    poses = []  # (t, x, y, theta) of every FLASER record
+    for line in bz2.open(os.path.join(laser, 'aces.clf.bz2'), 'rt'):
+        f = line.split()
+        if not f or f[0] != 'FLASER':
+            continue
+        n = int(f[1])
+        x, y, th = map(float, f[2 + n:5 + n])
+        poses.append((float(f[8 + n]), x, y, th))
+    times = np.array([p[0] for p in poses])
+    errors_t, errors_r = [], []
+    for line in open(os.path.join(laser, 'aces.relations')):
+        v = line.split()
+        if len(v) != 8:
+            continue
+        t1, t2, rx, ry, ryaw = float(v[0]), float(v[1]), float(v[2]), float(v[3]), float(v[7])
+        i, j = int(np.argmin(abs(times - t1))), int(np.argmin(abs(times - t2)))
+        if abs(times[i] - t1) > 1e-3 or abs(times[j] - t2) > 1e-3:
+            continue
+        _, xa, ya, ta = poses[i]
+        _, xb, yb, tb = poses[j]
+        # The estimate's relative pose, then its difference from the relation.
+        dx, dy = xb - xa, yb - ya
+        ex = math.cos(ta) * dx + math.sin(ta) * dy
+        ey = -math.sin(ta) * dx + math.cos(ta) * dy
+        ddx, ddy = ex - rx, ey - ry
+        errors_t.append(math.hypot(math.cos(ryaw) * ddx + math.sin(ryaw) * ddy,
+                                   -math.sin(ryaw) * ddx + math.cos(ryaw) * ddy))
+        d = (tb - ta) - ryaw
+        errors_r.append(abs(math.degrees(math.atan2(math.sin(d), math.cos(d)))))
+    with tempfile.NamedTemporaryFile('w', suffix='.tum', delete=False) as tum:
+        for t, x, y, th in poses:
+            tum.write(f'{t:.6f} {x!r} {y!r} 0 0 0 {math.sin(th / 2)!r} {math.cos(th / 2)!r}\n')
+    got = json.loads(subprocess.check_output(
+        [os.path.join(bin_dir, 'fleetmem-eval'), 'relations', '--estimate', tum.name,
+         '--relations', os.path.join(laser, 'aces.relations'), '--json']))
+    os.unlink(tum.name)
+    failures = 0
+    for name, a, b in [('count', int(got['relations_scored']), len(errors_t)),
+                       ('translation mean', got['translation_m']['mean'], np.mean(errors_t)),
+                       ('translation std', got['translation_m']['std'], np.std(errors_t)),
+                       ('rotation mean', got['rotation_deg']['mean'], np.mean(errors_r)),
+                       ('rotation std', got['rotation_deg']['std'], np.std(errors_r))]:
+        if abs(float(a) - float(b)) > max(1e-9, 1e-6 * abs(float(b))):
+            failures += 1
+            print(f'MISMATCH ACES relations {name}: fleetmem {a!r} numpy {b!r}')
+    print(f'ACES raw odometry relations: {len(errors_t)} scored, translation '
+          f'{np.mean(errors_t):.4f} +- {np.std(errors_t):.4f} m, rotation '
+          f'{np.mean(errors_r):.4f} +- {np.std(errors_r):.4f} deg')
+    return failures
 
 
 if __name__ == '__main__':
