@@ -282,6 +282,11 @@ int Run(const Flags& flags) {
   fleetmem::slam::FleetSlamOptions slam_options;
   slam_options.slam.keyframe_distance_m = flags.keyframe_distance_m;
   const fleetmem::slam::KeyframeSource* keyframes = nullptr;
+  if (flags.slam && flags.query_only) {
+    std::cerr << "fleetmem-robot: --slam maps and uploads its keyframes; it "
+                 "cannot be --query-only\n";
+    return 2;
+  }
   if (flags.slam) {
     absl::StatusOr<std::unique_ptr<fleetmem::slam::KeyframeSource>> k =
         fleetmem::slam::KeyframeSource::Open(*std::move(source),
