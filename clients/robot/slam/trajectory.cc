@@ -30,12 +30,20 @@ absl::StatusOr<std::vector<double>> LineNumbers(absl::string_view line,
   return numbers;
 }
 
-bool IsDataLine(absl::string_view line) {
-  line = absl::StripAsciiWhitespace(line);
-  return !line.empty() && line.front() != '#';
-}
-
 }  // namespace
+
+std::vector<DataLine> DataLines(std::string_view text) {
+  std::vector<DataLine> out;
+  int number = 0;
+  for (absl::string_view line :
+       absl::StrSplit(absl::string_view(text.data(), text.size()), '\n')) {
+    ++number;
+    line = absl::StripAsciiWhitespace(line);
+    if (line.empty() || line.front() == '#') continue;
+    out.push_back(DataLine{number, std::string_view(line.data(), line.size())});
+  }
+  return out;
+}
 
 absl::StatusOr<TrajectoryFormat> ParseTrajectoryFormat(std::string_view name) {
   if (name == "kitti") return TrajectoryFormat::kKitti;
@@ -46,11 +54,8 @@ absl::StatusOr<TrajectoryFormat> ParseTrajectoryFormat(std::string_view name) {
 
 absl::StatusOr<TrajectoryFormat> DetectTrajectoryFormat(
     std::string_view text, const std::string& name) {
-  int line_number = 0;
-  for (absl::string_view line :
-       absl::StrSplit(absl::string_view(text.data(), text.size()), '\n')) {
-    ++line_number;
-    if (!IsDataLine(line)) continue;
+  for (const auto& [line_number, line_view] : DataLines(text)) {
+    const absl::string_view line(line_view.data(), line_view.size());
     absl::StatusOr<std::vector<double>> numbers =
         LineNumbers(line, absl::StrCat(name, ":", line_number));
     if (!numbers.ok()) return numbers.status();
@@ -68,11 +73,8 @@ absl::StatusOr<Trajectory> ParseTrajectory(std::string_view text,
                                            const std::string& name) {
   const size_t fields = format == TrajectoryFormat::kKitti ? 12 : 8;
   Trajectory trajectory;
-  int line_number = 0;
-  for (absl::string_view line :
-       absl::StrSplit(absl::string_view(text.data(), text.size()), '\n')) {
-    ++line_number;
-    if (!IsDataLine(line)) continue;
+  for (const auto& [line_number, line_view] : DataLines(text)) {
+    const absl::string_view line(line_view.data(), line_view.size());
     const std::string where = absl::StrCat(name, ":", line_number);
     absl::StatusOr<std::vector<double>> n = LineNumbers(line, where);
     if (!n.ok()) return n.status();

@@ -53,6 +53,15 @@ absl::StatusOr<Trajectory> ReadTrajectoryFile(
 std::string FormatTrajectory(const Trajectory& trajectory,
                              TrajectoryFormat format);
 
+// The lines of a text file that hold data, with their 1-based numbers:
+// whitespace stripped, empty lines and '#' comments left out. The views
+// point into `text`.
+struct DataLine {
+  int number = 0;
+  std::string_view text;
+};
+std::vector<DataLine> DataLines(std::string_view text);
+
 // The pose of a planar robot at (x, y, yaw) as a 3-D pose (z = 0, rotation
 // about z), and back (the yaw of the rotation's x axis in the plane).
 Eigen::Isometry3d PlanarPose(double x, double y, double yaw);

@@ -270,12 +270,8 @@ KittiOdometryResult KittiOdometryError(const Trajectory& reference,
 absl::StatusOr<std::vector<Relation>> ParseRelations(std::string_view text,
                                                      const std::string& name) {
   std::vector<Relation> relations;
-  int line_number = 0;
-  for (absl::string_view line :
-       absl::StrSplit(absl::string_view(text.data(), text.size()), '\n')) {
-    ++line_number;
-    line = absl::StripAsciiWhitespace(line);
-    if (line.empty() || line.front() == '#') continue;
+  for (const auto& [line_number, line_view] : DataLines(text)) {
+    const absl::string_view line(line_view.data(), line_view.size());
     std::vector<absl::string_view> fields =
         absl::StrSplit(line, absl::ByAnyChar(" \t"), absl::SkipEmpty());
     double v[8];
@@ -354,12 +350,8 @@ absl::StatusOr<std::vector<Deployment>> ParseDeployments(
     std::string_view text, const std::string& name) {
   std::vector<Deployment> out;
   int col_seq = -1, col_t = -1, col_r = -1;
-  int line_number = 0;
-  for (absl::string_view line :
-       absl::StrSplit(absl::string_view(text.data(), text.size()), '\n')) {
-    ++line_number;
-    line = absl::StripAsciiWhitespace(line);
-    if (line.empty() || line.front() == '#') continue;
+  for (const auto& [line_number, line_view] : DataLines(text)) {
+    const absl::string_view line(line_view.data(), line_view.size());
     std::vector<std::string> fields = absl::StrSplit(line, ',');
     for (std::string& f : fields) absl::StripAsciiWhitespace(&f);
     if (col_seq < 0) {
