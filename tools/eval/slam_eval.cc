@@ -96,21 +96,9 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
         !s.ok()) {
       return s;
     }
-    std::vector<std::pair<slam::Pose2, slam::Points2>> map = mapper.MapScans();
-    if (variant == "odometry") {
-      // The keyframes at their odometry poses.
-      for (size_t i = 0; i < map.size(); ++i) {
-        const robot::Observation* o = nullptr;
-        for (const robot::Observation& s : *scans) {
-          if (s.timestamp_ns == mapper.KeyframeTime(i)) {
-            o = &s;
-            break;
-          }
-        }
-        if (o) map[i].first = slam::Pose2{o->place.x, o->place.y, o->place.yaw};
-      }
-    }
-    if (absl::Status s = slam::WriteOccupancyPng(map, 0.1, stem + ".png");
+    if (absl::Status s = slam::WriteOccupancyPng(
+            mapper.MapScans(/*at_odometry=*/variant == "odometry"), 0.1,
+            stem + ".png");
         !s.ok()) {
       return s;
     }

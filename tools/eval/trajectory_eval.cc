@@ -59,21 +59,15 @@ absl::Status RunTrajectoryEval(const TrajectoryEvalOptions& options) {
   absl::StatusOr<slam::Alignment> alignment =
       slam::ParseAlignment(options.align);
   if (!alignment.ok()) return alignment.status();
+  slam::TrajectoryFormat reference_format = slam::TrajectoryFormat::kTum;
   absl::StatusOr<slam::Trajectory> reference =
-      slam::ReadTrajectoryFile(options.reference, format);
+      slam::ReadTrajectoryFile(options.reference, format, &reference_format);
   if (!reference.ok()) return reference.status();
   absl::StatusOr<slam::Trajectory> estimate =
       slam::ReadTrajectoryFile(options.estimate, format);
   if (!estimate.ok()) return estimate.status();
-  // KITTI files carry no time: pair by index. Detect per file when no
-  // format was given.
-  bool by_index = format == slam::TrajectoryFormat::kKitti;
-  if (!format) {
-    absl::StatusOr<std::string> text = robot::ReadFile(options.reference);
-    if (!text.ok()) return text.status();
-    by_index = *slam::DetectTrajectoryFormat(*text, options.reference) ==
-               slam::TrajectoryFormat::kKitti;
-  }
+  // KITTI files carry no time: pair by index.
+  const bool by_index = reference_format == slam::TrajectoryFormat::kKitti;
   absl::StatusOr<std::pair<slam::Trajectory, slam::Trajectory>> pairs =
       slam::AssociatedPoses(*reference, *estimate, by_index,
                             options.max_time_diff_s);

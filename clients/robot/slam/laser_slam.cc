@@ -256,10 +256,12 @@ std::vector<std::string> LaserSlam::Peers() const {
   return out;
 }
 
-std::vector<std::pair<Pose2, Points2>> LaserSlam::MapScans() const {
+std::vector<std::pair<Pose2, Points2>> LaserSlam::MapScans(
+    bool at_odometry) const {
   std::vector<std::pair<Pose2, Points2>> out;
   for (const Keyframe& kf : keyframes_) {
-    out.emplace_back(graph_.pose(kf.node), kf.points);
+    out.emplace_back(at_odometry ? kf.odometry : graph_.pose(kf.node),
+                     kf.points);
   }
   return out;
 }

@@ -129,8 +129,10 @@ class LaserSlam {
   std::optional<Pose2> FrameInPeer(const std::string& peer) const;
   // Peers anchored so far.
   std::vector<std::string> Peers() const;
-  // Keyframe scans (sensor frame) at their estimated poses, for the map.
-  std::vector<std::pair<Pose2, Points2>> MapScans() const;
+  // Keyframe scans (sensor frame) at their estimated poses, for the map,
+  // or at their raw odometry poses.
+  std::vector<std::pair<Pose2, Points2>> MapScans(
+      bool at_odometry = false) const;
   const LaserSlamCounters& counters() const { return counters_; }
 
  private:

@@ -120,7 +120,8 @@ absl::StatusOr<Trajectory> ParseTrajectory(std::string_view text,
 }
 
 absl::StatusOr<Trajectory> ReadTrajectoryFile(
-    const std::string& path, std::optional<TrajectoryFormat> format) {
+    const std::string& path, std::optional<TrajectoryFormat> format,
+    TrajectoryFormat* used) {
   absl::StatusOr<std::string> read = robot::ReadFile(path);
   if (!read.ok()) return read.status();
   const std::string& text = *read;
@@ -130,6 +131,7 @@ absl::StatusOr<Trajectory> ReadTrajectoryFile(
     if (!detected.ok()) return detected.status();
     format = *detected;
   }
+  if (used != nullptr) *used = *format;
   return ParseTrajectory(text, *format, path);
 }
 

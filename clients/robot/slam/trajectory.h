@@ -44,10 +44,12 @@ absl::StatusOr<Trajectory> ParseTrajectory(std::string_view text,
                                            TrajectoryFormat format,
                                            const std::string& name);
 
-// Reads and parses `path`; `format` is detected when not given. NOT_FOUND
-// if the file cannot be read.
+// Reads and parses `path`; `format` is detected when not given (and
+// reported through `used` when that is not null). NOT_FOUND if the file
+// cannot be read.
 absl::StatusOr<Trajectory> ReadTrajectoryFile(
-    const std::string& path, std::optional<TrajectoryFormat> format);
+    const std::string& path, std::optional<TrajectoryFormat> format,
+    TrajectoryFormat* used = nullptr);
 
 // The text of a trajectory in `format` (full double precision).
 std::string FormatTrajectory(const Trajectory& trajectory,
