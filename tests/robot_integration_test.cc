@@ -20,7 +20,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/robot_state.pb.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"

@@ -32,7 +32,7 @@
 #include "clients/cpp/fleetmem_client.h"
 #include "clients/robot/agent.h"
 #include "clients/robot/encoder.h"
-#include "clients/robot/gpl/gpl_robot.h"
+#include "clients/robot/learning/gpl_robot.h"
 #include "clients/robot/observation_source.h"
 #include "clients/robot/robot_store.h"
 #include "clients/robot/slam/fleet_slam.h"

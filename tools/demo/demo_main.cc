@@ -51,7 +51,7 @@
 #include "absl/time/time.h"
 #include "clients/cpp/fleetmem_client.h"
 #include "clients/robot/code_search.h"
-#include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/image_encoder.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/robot_store.h"

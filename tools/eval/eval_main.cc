@@ -5,7 +5,7 @@
 //       (tools/eval/lifelong.h, docs/results.md).
 //   fleetmem-eval pretrain --images DIR --out FILE [--first N --count N]
 //       A fleet's GPL model: the encoder trained on one domain's frames and
-//       frozen (clients/robot/gpl/pretrain.h), for fleetmem-robot
+//       frozen (clients/robot/learning/pretrain.h), for fleetmem-robot
 //       --gpl-model.
 //   fleetmem-eval trajectory --reference FILE --estimate FILE
 //       [--format kitti|tum] [--align se3|sim3|none] [--rpe-delta-m D]
@@ -30,7 +30,7 @@
 
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_join.h"
-#include "clients/robot/gpl/pretrain.h"
+#include "clients/robot/learning/pretrain.h"
 #include "clients/robot/nordland.h"
 #include "tools/eval/lifelong.h"
 #include "tools/eval/slam_eval.h"

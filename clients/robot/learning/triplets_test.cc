@@ -1,4 +1,4 @@
-#include "clients/robot/gpl/triplets.h"
+#include "clients/robot/learning/triplets.h"
 
 #include <random>
 #include <vector>

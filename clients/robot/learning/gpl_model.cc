@@ -1,6 +1,6 @@
 // libtorch implementation of the GPL model (gpl_model.h). Every libtorch
 // exception stops here and becomes a status.
-#include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/learning/gpl_model.h"
 
 #include <torch/torch.h>
 

@@ -1,4 +1,4 @@
-#include "clients/robot/gpl/pretrain.h"
+#include "clients/robot/learning/pretrain.h"
 
 #include <chrono>
 #include <cmath>

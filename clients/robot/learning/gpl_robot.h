@@ -7,8 +7,8 @@
 // fleet's shared encoder, learning.md), so the codes a robot uploads never
 // change while its place head and decoder learn. Both lock the model, so
 // the agent may call them from any thread.
-#ifndef FLEETMEM_CLIENTS_ROBOT_GPL_GPL_ROBOT_H_
-#define FLEETMEM_CLIENTS_ROBOT_GPL_GPL_ROBOT_H_
+#ifndef FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_ROBOT_H_
+#define FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_ROBOT_H_
 
 #include <map>
 #include <memory>
@@ -21,8 +21,8 @@
 #include "absl/synchronization/mutex.h"
 #include "clients/robot/agent.h"
 #include "clients/robot/encoder.h"
-#include "clients/robot/gpl/gpl_model.h"
-#include "clients/robot/gpl/segment_learner.h"
+#include "clients/robot/learning/gpl_model.h"
+#include "clients/robot/learning/segment_learner.h"
 
 namespace fleetmem::robot::gpl {
 
@@ -91,4 +91,4 @@ cv::Mat RollColumns(const cv::Mat& image, int shift);
 
 }  // namespace fleetmem::robot::gpl
 
-#endif  // FLEETMEM_CLIENTS_ROBOT_GPL_GPL_ROBOT_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_ROBOT_H_

@@ -1,4 +1,4 @@
-#include "clients/robot/gpl/gpl_robot.h"
+#include "clients/robot/learning/gpl_robot.h"
 
 #include <unistd.h>
 

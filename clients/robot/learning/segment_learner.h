@@ -16,8 +16,8 @@
 // dynamic memory, under the current F.
 //
 // Not thread-safe; drives one model.
-#ifndef FLEETMEM_CLIENTS_ROBOT_GPL_SEGMENT_LEARNER_H_
-#define FLEETMEM_CLIENTS_ROBOT_GPL_SEGMENT_LEARNER_H_
+#ifndef FLEETMEM_CLIENTS_ROBOT_LEARNING_SEGMENT_LEARNER_H_
+#define FLEETMEM_CLIENTS_ROBOT_LEARNING_SEGMENT_LEARNER_H_
 
 #include <cstdint>
 #include <initializer_list>
@@ -26,8 +26,8 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "clients/robot/gpl/gpl_model.h"
-#include "clients/robot/gpl/triplets.h"
+#include "clients/robot/learning/gpl_model.h"
+#include "clients/robot/learning/triplets.h"
 #include "services/core/types.h"
 
 namespace fleetmem::robot::gpl {
@@ -112,4 +112,4 @@ class SegmentLearner {
 
 }  // namespace fleetmem::robot::gpl
 
-#endif  // FLEETMEM_CLIENTS_ROBOT_GPL_SEGMENT_LEARNER_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_LEARNING_SEGMENT_LEARNER_H_

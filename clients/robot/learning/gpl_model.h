@@ -28,8 +28,8 @@
 //
 // Not thread-safe: one thread drives a model. Every computation runs with
 // the number of intra-op threads torch was given (set_num_threads).
-#ifndef FLEETMEM_CLIENTS_ROBOT_GPL_GPL_MODEL_H_
-#define FLEETMEM_CLIENTS_ROBOT_GPL_GPL_MODEL_H_
+#ifndef FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_MODEL_H_
+#define FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_MODEL_H_
 
 #include <cstdint>
 #include <memory>
@@ -172,4 +172,4 @@ void SetTorchThreads(int threads);
 
 }  // namespace fleetmem::robot::gpl
 
-#endif  // FLEETMEM_CLIENTS_ROBOT_GPL_GPL_MODEL_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_MODEL_H_

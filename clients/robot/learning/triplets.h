@@ -6,8 +6,8 @@
 // (a summer frame): that pairing is what teaches domain invariance.
 //
 // Pure: no torch, no I/O. Descriptors, where given, are unit vectors.
-#ifndef FLEETMEM_CLIENTS_ROBOT_GPL_TRIPLETS_H_
-#define FLEETMEM_CLIENTS_ROBOT_GPL_TRIPLETS_H_
+#ifndef FLEETMEM_CLIENTS_ROBOT_LEARNING_TRIPLETS_H_
+#define FLEETMEM_CLIENTS_ROBOT_LEARNING_TRIPLETS_H_
 
 #include <cstddef>
 #include <random>
@@ -64,4 +64,4 @@ std::vector<TripletIndex> HardestTriplets(
 
 }  // namespace fleetmem::robot::gpl
 
-#endif  // FLEETMEM_CLIENTS_ROBOT_GPL_TRIPLETS_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_LEARNING_TRIPLETS_H_

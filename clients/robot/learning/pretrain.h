@@ -3,8 +3,8 @@
 // (Eq. 10) on E, F, G and D over one domain's frames, triplets by position
 // along the route, each image photometrically augmented so that the encoder
 // learns that light, contrast, blur and sensor noise are not place.
-#ifndef FLEETMEM_CLIENTS_ROBOT_GPL_PRETRAIN_H_
-#define FLEETMEM_CLIENTS_ROBOT_GPL_PRETRAIN_H_
+#ifndef FLEETMEM_CLIENTS_ROBOT_LEARNING_PRETRAIN_H_
+#define FLEETMEM_CLIENTS_ROBOT_LEARNING_PRETRAIN_H_
 
 #include <functional>
 #include <memory>
@@ -15,7 +15,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/learning/gpl_model.h"
 #include "opencv2/core.hpp"
 
 namespace fleetmem::robot::gpl {
@@ -51,4 +51,4 @@ absl::StatusOr<std::unique_ptr<GplModel>> PretrainFleetEncoder(
 
 }  // namespace fleetmem::robot::gpl
 
-#endif  // FLEETMEM_CLIENTS_ROBOT_GPL_PRETRAIN_H_
+#endif  // FLEETMEM_CLIENTS_ROBOT_LEARNING_PRETRAIN_H_

@@ -1,4 +1,4 @@
-#include "clients/robot/gpl/segment_learner.h"
+#include "clients/robot/learning/segment_learner.h"
 
 #include <algorithm>
 #include <utility>

@@ -1,4 +1,4 @@
-#include "clients/robot/gpl/gpl_model.h"
+#include "clients/robot/learning/gpl_model.h"
 
 #include <cmath>
 #include <cstdio>
