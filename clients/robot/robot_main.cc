@@ -36,6 +36,7 @@
 #include "clients/robot/observation_source.h"
 #include "clients/robot/robot_store.h"
 #include "clients/robot/slam/fleet_slam.h"
+#include "clients/robot/vo/vo_deployment.h"
 #include "services/core/validation.h"
 
 namespace {
@@ -79,6 +80,11 @@ struct Flags {
   uint64_t seed = 1;
   bool slam = false;
   double keyframe_distance_m = 0.5;
+  bool vo = false;
+  std::string vo_model;
+  std::string vo_method = "cl_slam";
+  std::string vo_environment;
+  int vo_update_steps = 5;
 };
 
 void AddFlags(CLI::App& app, Flags& flags) {
@@ -89,7 +95,8 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "this robot's id (stable across restarts)")
       ->required();
   app.add_option("--source", flags.source,
-                 "nordland:DIR | images:DIR,POSES.csv | carmen:FILE[.bz2]")
+                 "nordland:DIR | images:DIR,POSES.csv | carmen:FILE[.bz2] | "
+                 "kitti:DIR (with --vo)")
       ->required();
   app.add_option("--data-dir", flags.data_dir,
                  "the robot's own durable state: upload queue, source "
@@ -197,6 +204,25 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "with --slam: metres of travel between keyframes")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  app.add_flag("--vo", flags.vo,
+               "continual visual odometry (CL-SLAM) on a kitti:DIR source: "
+               "one deployment adapting online, the trajectory in KITTI and "
+               "TUM format under DATA_DIR/vo/, the weights for the next "
+               "deployment in DATA_DIR/vo-weights.pt; runs on the robot "
+               "alone (no server call)");
+  app.add_option("--vo-model", flags.vo_model,
+                 "with --vo: the fleet's pre-trained weights, used while "
+                 "DATA_DIR/vo-weights.pt does not exist");
+  app.add_option("--vo-method", flags.vo_method,
+                 "with --vo: cl_slam | expert_only | generalizer_only | fixed")
+      ->capture_default_str();
+  app.add_option("--vo-environment", flags.vo_environment,
+                 "with --vo: the environment's name (replay buffer; default "
+                 "the sequence folder's name)");
+  app.add_option("--vo-update-steps", flags.vo_update_steps,
+                 "with --vo: c, update steps per new frame")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
   app.add_option("--seed", flags.seed, "seed of R_in and replay draws")
       ->capture_default_str();
   app.set_config("--config", "",
@@ -263,6 +289,52 @@ bool GaveNoSeq(const fleetmem::robot::RobotStore& store) {
          store.queue().open_segment == 0;
 }
 
+// fleetmem-robot --vo: one deployment of the continual visual odometry
+// (clients/robot/vo/vo_deployment.h).
+int RunVo(const Flags& flags) {
+  namespace vo = fleetmem::vo;
+  if (!flags.source.starts_with("kitti:")) {
+    std::cerr << "fleetmem-robot: --vo needs --source kitti:DIR (image_l/, "
+                 "calib.txt, optional poses.txt)\n";
+    return 2;
+  }
+  absl::StatusOr<vo::VoMethod> method = vo::ParseVoMethod(flags.vo_method);
+  if (!method.ok()) {
+    std::cerr << "fleetmem-robot: " << method.status().message() << "\n";
+    return 2;
+  }
+  vo::VoDeploymentOptions options;
+  options.sequence_dir = flags.source.substr(6);
+  options.data_dir = flags.data_dir;
+  options.initial_model = flags.vo_model;
+  options.environment = flags.vo_environment;
+  options.method = *method;
+  options.vo.update_steps = flags.vo_update_steps;
+  options.vo.seed = flags.seed;
+  std::error_code ec;
+  std::filesystem::create_directories(flags.data_dir, ec);
+  fleetmem::robot::gpl::SetTorchThreads(2);
+  absl::StatusOr<vo::VoDeploymentReport> report = vo::RunVoDeployment(
+      options, [](size_t frame, size_t frames) {
+        if (frame % 10 == 0 || frame + 1 == frames) {
+          std::cerr << "vo: frame " << frame + 1 << "/" << frames << "\n";
+        }
+      });
+  if (!report.ok()) {
+    std::cerr << "fleetmem-robot: " << report.status().ToString() << "\n";
+    return 1;
+  }
+  std::cout << "vo: " << report->result.odometry.size() << " frames, "
+            << report->result.adapted_frames << " adapted, "
+            << report->result.loops << " loops, "
+            << absl::StrFormat("%.1f s", report->result.seconds);
+  if (report->ate_se3_m >= 0.0) {
+    std::cout << absl::StrFormat(", ATE %.3f m", report->ate_se3_m);
+  }
+  std::cout << "; trajectory in " << report->out_dir << "\n";
+  return 0;
+}
+
 int Run(const Flags& flags) {
   namespace robot = fleetmem::robot;
   for (const auto& [what, id] : {std::pair{"--fleet", &flags.fleet},
@@ -273,6 +345,7 @@ int Run(const Flags& flags) {
       return 2;
     }
   }
+  if (flags.vo) return RunVo(flags);
   absl::StatusOr<std::unique_ptr<robot::ObservationSource>> source =
       robot::OpenSource(flags.source);
   if (!source.ok()) {

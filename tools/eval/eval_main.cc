@@ -15,6 +15,9 @@
 //       The Freiburg relations metric of a 2-D SLAM estimate.
 //   fleetmem-eval continual --table FILE [--json]
 //       CL-SLAM's AQ/RQ from a table of deployments.
+//   fleetmem-eval continual-vo --data-root DIR --out DIR [--quick]
+//       CL-SLAM's continual visual odometry on the KITTI clips, every
+//       method, AQ/RQ (tools/eval/continual_vo_eval.h).
 //   fleetmem-eval slam --log FILE --relations FILE --out DIR
 //       The laser SLAM back end on a CARMEN log, scored by the relations
 //       metric (tools/eval/slam_eval.h).
@@ -32,6 +35,7 @@
 #include "absl/strings/str_join.h"
 #include "clients/robot/learning/pretrain.h"
 #include "clients/robot/nordland.h"
+#include "tools/eval/continual_vo_eval.h"
 #include "tools/eval/lifelong.h"
 #include "tools/eval/slam_eval.h"
 #include "tools/eval/trajectory_eval.h"
@@ -207,15 +211,44 @@ int main(int argc, char** argv) {
   slam->add_option("--prior-radius", slam_options.prior_radius_m,
                    "position prior of own candidates (m)")
       ->capture_default_str();
+  fleetmem::eval::ContinualVoEvalOptions vo_options;
+  CLI::App* continual_vo = app.add_subcommand(
+      "continual-vo",
+      "CL-SLAM's continual visual odometry on the real KITTI clips: "
+      "pre-training, deployments in sequence, every method, AQ/RQ "
+      "(docs/continual-vo.md)");
+  continual_vo->add_option("--data-root", vo_options.data_root,
+                           "folder holding kitti/clip1 and kitti/clip2")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  continual_vo->add_option("--out", vo_options.out_dir,
+                           "output folder (created)")
+      ->required();
+  continual_vo->add_flag("--quick", vo_options.quick,
+                         "one order and a shorter pre-training");
+  continual_vo->add_option("--pretrain-steps", vo_options.pretrain_steps,
+                           "pre-training steps (0: 1500 quick, 4000 full)")
+      ->check(CLI::NonNegativeNumber);
+  continual_vo->add_option("--update-steps", vo_options.update_steps,
+                           "c, update steps per new frame")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  continual_vo->add_option("--threads", vo_options.threads,
+                           "torch intra-op threads")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  continual_vo->add_option("--seed", vo_options.seed, "seed")
+      ->capture_default_str();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
   }
   if (trajectory->parsed() || relations->parsed() || continual->parsed() ||
-      slam->parsed()) {
+      slam->parsed() || continual_vo->parsed()) {
     const absl::Status status =
-        slam->parsed()         ? fleetmem::eval::RunSlamEval(slam_options)
+        continual_vo->parsed() ? fleetmem::eval::RunContinualVoEval(vo_options)
+        : slam->parsed()       ? fleetmem::eval::RunSlamEval(slam_options)
         : trajectory->parsed() ? fleetmem::eval::RunTrajectoryEval(traj)
         : relations->parsed()  ? fleetmem::eval::RunRelationsEval(rel)
                                : fleetmem::eval::RunContinualScores(

@@ -75,6 +75,12 @@ struct DepthDecoderImpl : torch::nn::Module {
       if (i < kScales) {
         disp[i] = register_module(absl::StrCat("disp", i),
                                   Conv(kDecoderChannels[i], 1, 3));
+        // sigmoid(-4.6) = 0.01: the untrained network sees everything about
+        // 9 m away. At sigmoid(0) = 0.5 it would see 0.2 m, where every
+        // warp leaves the image (border samples carry no gradient) and
+        // training from scratch never starts.
+        torch::NoGradGuard no_grad;
+        disp[i]->bias.fill_(-4.6);
       }
     }
   }

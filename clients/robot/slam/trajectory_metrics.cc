@@ -235,9 +235,10 @@ absl::StatusOr<RpeResult> RelativePoseError(const Trajectory& reference,
 }
 
 KittiOdometryResult KittiOdometryError(const Trajectory& reference,
-                                       const Trajectory& estimate) {
-  constexpr int kStep = 10;
-  constexpr double kLengths[] = {100, 200, 300, 400, 500, 600, 700, 800};
+                                       const Trajectory& estimate,
+                                       const KittiSegments& segments) {
+  const size_t kStep = static_cast<size_t>(std::max(1, segments.step_frames));
+  const std::vector<double>& kLengths = segments.lengths_m;
   const std::vector<double> dist = PathLengths(reference);
   KittiOdometryResult result;
   double t_sum = 0.0, r_sum = 0.0;

@@ -111,12 +111,20 @@ absl::StatusOr<RpeResult> RelativePoseError(const Trajectory& reference,
 struct KittiOdometryResult {
   double t_err_percent = 0.0;
   double r_err_deg_per_100m = 0.0;
-  // Sub-sequences evaluated (0 when the path is shorter than 100 m: then the
-  // errors are not defined and are left at 0).
+  // Sub-sequences evaluated (0 when the path is shorter than the shortest
+  // length: then the errors are not defined and are left at 0).
   size_t segments = 0;
 };
+// The sub-sequences: the devkit's 100..800 m every 10 frames by default.
+// Shorter lengths give the same definition on paths under 100 m (the
+// continual-VO clips); they are not comparable with KITTI's tables.
+struct KittiSegments {
+  std::vector<double> lengths_m = {100, 200, 300, 400, 500, 600, 700, 800};
+  int step_frames = 10;
+};
 KittiOdometryResult KittiOdometryError(const Trajectory& reference,
-                                       const Trajectory& estimate);
+                                       const Trajectory& estimate,
+                                       const KittiSegments& segments = {});
 
 // One line of a Freiburg relations file: `t1 t2 x y z roll pitch yaw`, the
 // pose of the scan at t2 in the frame of the scan at t1.
