@@ -314,8 +314,8 @@ int RunVo(const Flags& flags) {
   std::error_code ec;
   std::filesystem::create_directories(flags.data_dir, ec);
   fleetmem::robot::gpl::SetTorchThreads(2);
-  absl::StatusOr<vo::VoDeploymentReport> report = vo::RunVoDeployment(
-      options, [](size_t frame, size_t frames) {
+  absl::StatusOr<vo::VoDeploymentReport> report =
+      vo::RunVoDeployment(options, [](size_t frame, size_t frames) {
         if (frame % 10 == 0 || frame + 1 == frames) {
           std::cerr << "vo: frame " << frame + 1 << "/" << frames << "\n";
         }

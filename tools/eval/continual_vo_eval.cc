@@ -66,8 +66,8 @@ absl::StatusOr<Row> Score(const vo::KittiClip& clip,
   if (!frame.ok()) return frame.status();
   row.rpe_frame_trans = frame->translation_m.rmse;
   row.rpe_frame_rot = frame->rotation_deg.rmse;
-  absl::StatusOr<slam::RpeResult> ten = slam::RelativePoseError(
-      clip.ground_truth, estimate, {.delta_m = 10.0});
+  absl::StatusOr<slam::RpeResult> ten =
+      slam::RelativePoseError(clip.ground_truth, estimate, {.delta_m = 10.0});
   if (!ten.ok()) return ten.status();
   row.rpe_10m_trans = ten->translation_m.rmse;
   row.rpe_10m_rot = ten->rotation_deg.rmse;
@@ -80,8 +80,9 @@ absl::StatusOr<Row> Score(const vo::KittiClip& clip,
 
 absl::Status WriteTrajectory(const std::string& stem,
                              const slam::Trajectory& t) {
-  if (absl::Status s = WriteFile(
-          stem + ".kitti", slam::FormatTrajectory(t, slam::TrajectoryFormat::kKitti));
+  if (absl::Status s =
+          WriteFile(stem + ".kitti",
+                    slam::FormatTrajectory(t, slam::TrajectoryFormat::kKitti));
       !s.ok()) {
     return s;
   }
@@ -108,8 +109,7 @@ std::string SceneName(const std::string& clip) {
 }
 
 std::string Progress(const std::string& what, size_t frame, size_t frames) {
-  return absl::StrFormat("\r  %-46s frame %2zu/%zu", what, frame + 1,
-                         frames);
+  return absl::StrFormat("\r  %-46s frame %2zu/%zu", what, frame + 1, frames);
 }
 
 struct Context {
@@ -118,8 +118,7 @@ struct Context {
   bool tty = false;  // progress redrawn in place on a terminal
   std::vector<Row> rows;
   // Plot blocks per method: (title, data of ground truth, fixed, method).
-  std::map<std::string, std::vector<std::pair<std::string, std::string>>>
-      plots;
+  std::map<std::string, std::vector<std::pair<std::string, std::string>>> plots;
 };
 
 absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
@@ -151,8 +150,8 @@ absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
           std::fprintf(stderr,
                        "%s  step %4d/%d  loss %.4f (photometric %.4f, "
                        "velocity %.3f m)",
-                       ctx.tty ? "\r" : "\n", step + 1, pretrain_steps,
-                       l.total, l.photometric, l.velocity);
+                       ctx.tty ? "\r" : "\n", step + 1, pretrain_steps, l.total,
+                       l.photometric, l.velocity);
         }
       });
   if (!pre.ok()) return pre.status();
@@ -170,7 +169,8 @@ absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
   if (absl::Status s = (*pretrained)->CopyWeightsFrom(**model); !s.ok()) {
     return s;
   }
-  if (absl::Status s = (*pretrained)->Save(order_dir + "/weights/pretrained.pt");
+  if (absl::Status s =
+          (*pretrained)->Save(order_dir + "/weights/pretrained.pt");
       !s.ok()) {
     return s;
   }
@@ -205,8 +205,7 @@ absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
       absl::StatusOr<vo::DeploymentResult> d = step.vo->Deploy(
           step.clip->name, *step.clip, [&](size_t frame, size_t frames) {
             if (ctx.tty || frame + 1 == frames) {
-              std::fprintf(stderr, "%s",
-                           Progress(what, frame, frames).c_str());
+              std::fprintf(stderr, "%s", Progress(what, frame, frames).c_str());
             }
           });
       if (!d.ok()) return d.status();
@@ -230,8 +229,8 @@ absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
           !s.ok()) {
         return s;
       }
-      if (absl::Status s = step.vo->weights().Save(absl::StrCat(
-              order_dir, "/weights/", stem, "_", name, ".pt"));
+      if (absl::Status s = step.vo->weights().Save(
+              absl::StrCat(order_dir, "/weights/", stem, "_", name, ".pt"));
           !s.ok()) {
         return s;
       }
@@ -263,14 +262,16 @@ absl::Status RunClassical(Context& ctx, const vo::KittiClip& clip) {
 
 absl::Status WritePlots(const Context& ctx) {
   for (const auto& [method, panels] : ctx.plots) {
-    std::string data, script = absl::StrFormat(
-        "set terminal pngcairo size %d,430 font 'sans,9'\n"
-        "set output '%s/plot_%s.png'\n"
-        "set termoption noenhanced\n"
-        "set multiplot layout 1,%d title '%s: trajectories (x right, z "
-        "forward, m) against KITTI ground truth'\n"
-        "set size ratio -1; set grid; set key bottom right font ',8'\n",
-        360 * int(panels.size()), ctx.dir, method, int(panels.size()), method);
+    std::string data,
+        script = absl::StrFormat(
+            "set terminal pngcairo size %d,430 font 'sans,9'\n"
+            "set output '%s/plot_%s.png'\n"
+            "set termoption noenhanced\n"
+            "set multiplot layout 1,%d title '%s: trajectories (x right, z "
+            "forward, m) against KITTI ground truth'\n"
+            "set size ratio -1; set grid; set key bottom right font ',8'\n",
+            360 * int(panels.size()), ctx.dir, method, int(panels.size()),
+            method);
     for (size_t i = 0; i < panels.size(); ++i) {
       data += panels[i].second;
       absl::StrAppendFormat(
@@ -279,8 +280,7 @@ absl::Status WritePlots(const Context& ctx) {
           "plot '%s/plot_%s.dat' index %d using 1:2 with lines lw 2 lc "
           "rgb 'black' title 'ground truth', '' index %d using 1:2 with "
           "linespoints pt 7 ps 0.4 lc rgb '#d62728' title '%s'\n",
-          panels[i].first, ctx.dir, method, int(2 * i), int(2 * i + 1),
-          method);
+          panels[i].first, ctx.dir, method, int(2 * i), int(2 * i + 1), method);
     }
     script += "unset multiplot\n";
     if (absl::Status s =
@@ -293,9 +293,9 @@ absl::Status WritePlots(const Context& ctx) {
     const std::string command =
         absl::StrCat("gnuplot '", gp, "' 2>>'", ctx.dir, "/gnuplot.log'");
     if (std::system(command.c_str()) != 0) {
-      return absl::InternalError(absl::StrCat(
-          "gnuplot failed to draw plot_", method, ".png; see ", ctx.dir,
-          "/gnuplot.log"));
+      return absl::InternalError(absl::StrCat("gnuplot failed to draw plot_",
+                                              method, ".png; see ", ctx.dir,
+                                              "/gnuplot.log"));
     }
   }
   return absl::OkStatus();
@@ -355,12 +355,13 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
             ? absl::StrFormat("%.4f", r.kitti.r_err_deg_per_100m)
             : "n/a";
     absl::StrAppendFormat(
-        &summary, "%s,%s,%s,%s,%zu,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%s,%s,%d,%zu,%.1f\n",
-        r.order, r.sequence, r.scene, r.method, r.frames, r.ate_se3,
-        r.ate_sim3, r.rpe_frame_trans, r.rpe_frame_rot, r.rpe_10m_trans,
-        r.rpe_10m_rot, r.short_segments.t_err_percent,
-        r.short_segments.r_err_deg_per_100m, kitti_t, kitti_r, r.update_steps,
-        r.replay_samples, r.seconds);
+        &summary,
+        "%s,%s,%s,%s,%zu,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%s,%s,%d,%zu,%"
+        ".1f\n",
+        r.order, r.sequence, r.scene, r.method, r.frames, r.ate_se3, r.ate_sim3,
+        r.rpe_frame_trans, r.rpe_frame_rot, r.rpe_10m_trans, r.rpe_10m_rot,
+        r.short_segments.t_err_percent, r.short_segments.r_err_deg_per_100m,
+        kitti_t, kitti_r, r.update_steps, r.replay_samples, r.seconds);
   }
   // AQ and RQ per method (fleetmem-eval continual's computation).
   std::map<std::string, std::vector<slam::Deployment>> by_method;
@@ -374,13 +375,14 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
     d.r_err_deg_per_100m = r.short_segments.r_err_deg_per_100m;
     by_method[r.method].push_back(d);
     absl::StrAppendFormat(&deployments, "%s,%s,%.4f,%.4f\n", r.method,
-                          absl::StrJoin(d.scenes, ">"), d.t_err_percent, d.r_err_deg_per_100m);
+                          absl::StrJoin(d.scenes, ">"), d.t_err_percent,
+                          d.r_err_deg_per_100m);
   }
   std::string continual =
       "method,aq_trans,aq_rot,rq_trans,rq_rot,aq_sequences,rq_pairs\n";
   std::string table = absl::StrFormat(
-      "\n%-17s %-24s %8s %8s %9s %9s %8s\n", "method", "sequence",
-      "ATE se3", "ATE sim3", "RPE/frm", "t_err10-40", "r_err");
+      "\n%-17s %-24s %8s %8s %9s %9s %8s\n", "method", "sequence", "ATE se3",
+      "ATE sim3", "RPE/frm", "t_err10-40", "r_err");
   for (const Row& r : ctx.rows) {
     absl::StrAppendFormat(&table, "%-17s %-24s %8.3f %8.3f %9.3f %9.2f %8.2f\n",
                           r.method, r.sequence, r.ate_se3, r.ate_sim3,
@@ -410,11 +412,11 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
     }
   }
   if (absl::Status s = WritePlots(ctx); !s.ok()) return s;
-  std::printf("%s\nwall time %.0f s; results in %s\n", table.c_str(),
-              std::chrono::duration<double>(std::chrono::steady_clock::now() -
-                                            start)
-                  .count(),
-              options.out_dir.c_str());
+  std::printf(
+      "%s\nwall time %.0f s; results in %s\n", table.c_str(),
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count(),
+      options.out_dir.c_str());
   return absl::OkStatus();
 }
 

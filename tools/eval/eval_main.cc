@@ -217,24 +217,27 @@ int main(int argc, char** argv) {
       "CL-SLAM's continual visual odometry on the real KITTI clips: "
       "pre-training, deployments in sequence, every method, AQ/RQ "
       "(docs/continual-vo.md)");
-  continual_vo->add_option("--data-root", vo_options.data_root,
-                           "folder holding kitti/clip1 and kitti/clip2")
+  continual_vo
+      ->add_option("--data-root", vo_options.data_root,
+                   "folder holding kitti/clip1 and kitti/clip2")
       ->required()
       ->check(CLI::ExistingDirectory);
-  continual_vo->add_option("--out", vo_options.out_dir,
-                           "output folder (created)")
+  continual_vo
+      ->add_option("--out", vo_options.out_dir, "output folder (created)")
       ->required();
   continual_vo->add_flag("--quick", vo_options.quick,
                          "one order and a shorter pre-training");
-  continual_vo->add_option("--pretrain-steps", vo_options.pretrain_steps,
-                           "pre-training steps (0: 1500 quick, 4000 full)")
+  continual_vo
+      ->add_option("--pretrain-steps", vo_options.pretrain_steps,
+                   "pre-training steps (0: 1500 quick, 4000 full)")
       ->check(CLI::NonNegativeNumber);
-  continual_vo->add_option("--update-steps", vo_options.update_steps,
-                           "c, update steps per new frame")
+  continual_vo
+      ->add_option("--update-steps", vo_options.update_steps,
+                   "c, update steps per new frame")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
-  continual_vo->add_option("--threads", vo_options.threads,
-                           "torch intra-op threads")
+  continual_vo
+      ->add_option("--threads", vo_options.threads, "torch intra-op threads")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
   continual_vo->add_option("--seed", vo_options.seed, "seed")

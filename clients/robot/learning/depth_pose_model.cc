@@ -3,6 +3,7 @@
 // status.
 #include "clients/robot/learning/depth_pose_model.h"
 
+#include <ATen/CPUGeneratorImpl.h>
 #include <torch/torch.h>
 
 #include <cmath>
@@ -13,6 +14,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "clients/robot/learning/torch_archive.h"
 #include "opencv2/imgproc.hpp"
 
 namespace fleetmem::vo {
@@ -40,10 +42,10 @@ struct EncoderImpl : torch::nn::Module {
     int in = in_channels;
     for (size_t i = 0; i < kEncoderChannels.size(); ++i) {
       const int out = kEncoderChannels[i];
-      down.push_back(register_module(absl::StrCat("down", i),
-                                     Conv(in, out, 3, 2)));
-      same.push_back(register_module(absl::StrCat("same", i),
-                                     Conv(out, out, 3)));
+      down.push_back(
+          register_module(absl::StrCat("down", i), Conv(in, out, 3, 2)));
+      same.push_back(
+          register_module(absl::StrCat("same", i), Conv(out, out, 3)));
       in = out;
     }
   }
@@ -69,7 +71,8 @@ struct DepthDecoderImpl : torch::nn::Module {
       const int in0 = i == 4 ? kEncoderChannels[4] : kDecoderChannels[i + 1];
       up0[i] = register_module(absl::StrCat("up0_", i),
                                Conv(in0, kDecoderChannels[i], 3));
-      const int in1 = kDecoderChannels[i] + (i > 0 ? kEncoderChannels[i - 1] : 0);
+      const int in1 =
+          kDecoderChannels[i] + (i > 0 ? kEncoderChannels[i - 1] : 0);
       up1[i] = register_module(absl::StrCat("up1_", i),
                                Conv(in1, kDecoderChannels[i], 3));
       if (i < kScales) {
@@ -113,8 +116,8 @@ TORCH_MODULE(DepthDecoder);
 // O(1) outputs that a few hundred CPU steps can reach.
 struct PoseDecoderImpl : torch::nn::Module {
   PoseDecoderImpl() {
-    squeeze = register_module("squeeze",
-                              Conv(kEncoderChannels[4], kPoseChannels, 1));
+    squeeze =
+        register_module("squeeze", Conv(kEncoderChannels[4], kPoseChannels, 1));
     c1 = register_module("c1", Conv(kPoseChannels, kPoseChannels, 3));
     c2 = register_module("c2", Conv(kPoseChannels, kPoseChannels, 3));
     out = register_module("out", Conv(kPoseChannels, 6, 1));
@@ -152,11 +155,10 @@ absl::Status ValidateOptions(const DepthPoseOptions& o) {
 
 torch::Tensor OptionsToTensor(const DepthPoseOptions& o) {
   return torch::tensor(
-      std::vector<double>{double(o.image_width), double(o.image_height),
-                          o.min_depth_m, o.max_depth_m,
-                          double(o.smoothness_weight),
-                          double(o.velocity_weight), double(o.ssim_weight),
-                          o.learning_rate, double(o.seed)},
+      std::vector<double>{
+          double(o.image_width), double(o.image_height), o.min_depth_m,
+          o.max_depth_m, double(o.smoothness_weight), double(o.velocity_weight),
+          double(o.ssim_weight), o.learning_rate, double(o.seed)},
       torch::kFloat64);
 }
 
@@ -178,20 +180,9 @@ absl::StatusOr<DepthPoseOptions> OptionsFromTensor(const torch::Tensor& t) {
   return o;
 }
 
-std::string Message(const std::exception& e) {
-  if (const auto* torch_error = dynamic_cast<const c10::Error*>(&e)) {
-    return torch_error->what_without_backtrace();
-  }
-  return e.what();
-}
-
 template <typename T, typename Body>
 absl::StatusOr<T> Guarded(const char* what, Body&& body) {
-  try {
-    return body();
-  } catch (const std::exception& e) {
-    return absl::InternalError(absl::StrCat("vo: ", what, ": ", Message(e)));
-  }
+  return robot::learning::Guarded<T>("vo", what, std::forward<Body>(body));
 }
 
 // An 8-bit or float grey (or BGR) image as a 1 x 1 x H x W tensor in [0, 1]
@@ -235,11 +226,11 @@ torch::Tensor TransformFromParameters(const torch::Tensor& p) {
   const torch::Tensor c = 1 - ca;
   const torch::Tensor x = axis.slice(1, 0, 1), y = axis.slice(1, 1, 2),
                       z = axis.slice(1, 2, 3);
-  const torch::Tensor r = torch::cat(
-      {x * x * c + ca, x * y * c - z * sa, x * z * c + y * sa,  //
-       y * x * c + z * sa, y * y * c + ca, y * z * c - x * sa,  //
-       z * x * c - y * sa, z * y * c + x * sa, z * z * c + ca},
-      1);
+  const torch::Tensor r =
+      torch::cat({x * x * c + ca, x * y * c - z * sa, x * z * c + y * sa,  //
+                  y * x * c + z * sa, y * y * c + ca, y * z * c - x * sa,  //
+                  z * x * c - y * sa, z * y * c + x * sa, z * z * c + ca},
+                 1);
   const int64_t b = p.size(0);
   torch::Tensor top = torch::cat({r.view({b, 3, 3}), t.view({b, 3, 1})}, 2);
   torch::Tensor bottom =
@@ -259,8 +250,7 @@ torch::Tensor InvertTransform(const torch::Tensor& t) {
 // The sampling grid (B x H x W x 2, grid_sample's [-1, 1] coordinates with
 // align_corners = false) of the target pixels' projections into a source
 // camera: X_source = target_to_source * depth * K^-1 [u v 1]^T.
-torch::Tensor ProjectionGrid(const torch::Tensor& depth,
-                             const torch::Tensor& k,
+torch::Tensor ProjectionGrid(const torch::Tensor& depth, const torch::Tensor& k,
                              const torch::Tensor& target_to_source) {
   const int64_t b = depth.size(0), h = depth.size(2), w = depth.size(3);
   const torch::Tensor ys = torch::arange(h, torch::kFloat32);
@@ -320,11 +310,14 @@ torch::Tensor PhotometricError(const torch::Tensor& predicted,
 }
 
 // The per-pixel minimum of the warped sources' errors and, with automask,
-// of the unwarped sources' (plus a 1e-5 tie-breaking noise, Monodepth2).
+// of the unwarped sources' (plus a 1e-5 tie-breaking noise, Monodepth2,
+// drawn from the model's own generator: two models trained side by side do
+// not disturb each other's draws).
 torch::Tensor MinimumReprojection(const torch::Tensor& target,
                                   const std::vector<torch::Tensor>& warped,
                                   const std::vector<torch::Tensor>& sources,
-                                  bool automask, float ssim_weight) {
+                                  bool automask, float ssim_weight,
+                                  at::Generator& generator) {
   std::vector<torch::Tensor> errors;
   for (const torch::Tensor& w : warped) {
     errors.push_back(PhotometricError(w, target, ssim_weight));
@@ -332,14 +325,17 @@ torch::Tensor MinimumReprojection(const torch::Tensor& target,
   if (automask) {
     for (const torch::Tensor& s : sources) {
       torch::Tensor identity = PhotometricError(s, target, ssim_weight);
-      errors.push_back(identity + torch::randn_like(identity) * 1e-5);
+      errors.push_back(
+          identity +
+          at::randn(identity.sizes(), generator, identity.options()) * 1e-5);
     }
   }
   return std::get<0>(torch::cat(errors, 1).min(1));
 }
 
 // Edge-aware smoothness of the mean-normalised disparity.
-torch::Tensor Smoothness(const torch::Tensor& disp, const torch::Tensor& image) {
+torch::Tensor Smoothness(const torch::Tensor& disp,
+                         const torch::Tensor& image) {
   const torch::Tensor d = disp / (disp.mean({2, 3}, true) + 1e-7);
   const auto dx = [](const torch::Tensor& t) {
     return (t.slice(3, 0, -1) - t.slice(3, 1)).abs();
@@ -389,6 +385,7 @@ Camera ResizedCamera(const Camera& camera, int width, int height) {
 
 struct DepthPoseModel::Impl {
   explicit Impl(const DepthPoseOptions& o) : options(o) {
+    generator = at::make_generator<at::CPUGeneratorImpl>(o.seed);
     depth_encoder = Encoder(1);
     depth_decoder = DepthDecoder();
     pose_encoder = Encoder(2);
@@ -415,10 +412,9 @@ struct DepthPoseModel::Impl {
   }
 
   void Freeze() {
-    for (torch::nn::Module* m : {static_cast<torch::nn::Module*>(
-                                     depth_encoder.get()),
-                                 static_cast<torch::nn::Module*>(
-                                     pose_encoder.get())}) {
+    for (torch::nn::Module* m :
+         {static_cast<torch::nn::Module*>(depth_encoder.get()),
+          static_cast<torch::nn::Module*>(pose_encoder.get())}) {
       for (torch::Tensor& p : m->parameters()) p.set_requires_grad(false);
     }
     frozen = true;
@@ -450,8 +446,8 @@ struct DepthPoseModel::Impl {
     std::vector<torch::Tensor> prev, mid, next, right, ks, dist;
     bool stereo = true;
     for (const Triplet& t : batch) {
-      if (!(t.camera.fx > 0.0) || !(t.camera.fy > 0.0) ||
-          t.camera.width <= 0 || t.camera.height <= 0) {
+      if (!(t.camera.fx > 0.0) || !(t.camera.fy > 0.0) || t.camera.width <= 0 ||
+          t.camera.height <= 0) {
         return absl::InvalidArgumentError(
             "a triplet's camera lacks its focal length or image size");
       }
@@ -468,8 +464,8 @@ struct DepthPoseModel::Impl {
       mid.push_back(*b);
       next.push_back(*c);
       ks.push_back(Intrinsics(ResizedCamera(t.camera, w, h)));
-      dist.push_back(torch::tensor({float(t.distances_m[0]),
-                                    float(t.distances_m[1])}));
+      dist.push_back(
+          torch::tensor({float(t.distances_m[0]), float(t.distances_m[1])}));
       if (t.right_of_middle.empty() || !(t.camera.baseline_m > 0.0)) {
         stereo = false;
       } else {
@@ -506,30 +502,30 @@ struct DepthPoseModel::Impl {
     torch::Tensor photometric = torch::zeros({});
     torch::Tensor smoothness = torch::zeros({});
     for (int s = 0; s < kScales; ++s) {
-      const torch::Tensor disp = F::interpolate(
-          disps[s], F::InterpolateFuncOptions()
-                        .size(std::vector<int64_t>{h, w})
-                        .mode(torch::kBilinear)
-                        .align_corners(false));
+      const torch::Tensor disp =
+          F::interpolate(disps[s], F::InterpolateFuncOptions()
+                                       .size(std::vector<int64_t>{h, w})
+                                       .mode(torch::kBilinear)
+                                       .align_corners(false));
       const torch::Tensor depth = DispToDepth(disp);
       std::vector<torch::Tensor> warped;
       for (size_t j = 0; j < sources.size(); ++j) {
         warped.push_back(
             Warp(sources[j], ProjectionGrid(depth, k, to_source[j])));
       }
-      photometric = photometric + MinimumReprojection(i1, warped, sources,
-                                                      /*automask=*/true,
-                                                      options.ssim_weight)
-                                      .mean();
+      photometric =
+          photometric + MinimumReprojection(i1, warped, sources,
+                                            /*automask=*/true,
+                                            options.ssim_weight, generator)
+                            .mean();
       const torch::Tensor target_s =
-          s == 0 ? i1
-                 : F::interpolate(i1, F::InterpolateFuncOptions()
-                                          .size(std::vector<int64_t>{
-                                              disps[s].size(2),
-                                              disps[s].size(3)})
-                                          .mode(torch::kArea));
-      smoothness =
-          smoothness + Smoothness(disps[s], target_s) / double(1 << s);
+          s == 0
+              ? i1
+              : F::interpolate(i1, F::InterpolateFuncOptions()
+                                       .size(std::vector<int64_t>{
+                                           disps[s].size(2), disps[s].size(3)})
+                                       .mode(torch::kArea));
+      smoothness = smoothness + Smoothness(disps[s], target_s) / double(1 << s);
     }
     photometric = photometric / double(kScales);
     smoothness = smoothness / double(kScales);
@@ -552,6 +548,8 @@ struct DepthPoseModel::Impl {
   Encoder pose_encoder{nullptr};
   PoseDecoder pose_decoder{nullptr};
   std::unique_ptr<torch::optim::Adam> optimizer;
+  // The auto-mask's noise; seeded with options.seed (a clone starts afresh).
+  at::Generator generator = at::make_generator<at::CPUGeneratorImpl>(0);
   bool frozen = false;
 };
 
@@ -570,62 +568,25 @@ absl::StatusOr<std::unique_ptr<DepthPoseModel>> DepthPoseModel::Create(
 }
 
 absl::Status DepthPoseModel::Save(const std::string& path) const {
-  const std::string tmp = path + ".tmp";
-  absl::StatusOr<bool> saved = Guarded<bool>("save", [&] {
-    torch::serialize::OutputArchive archive;
-    archive.write("magic", c10::IValue(std::string(kMagic)));
-    archive.write("format", c10::IValue(kFormat));
-    archive.write("encoders_frozen", c10::IValue(impl_->frozen));
-    archive.write("options", OptionsToTensor(impl_->options));
-    for (auto& [name, module] : impl_->Modules()) {
-      torch::serialize::OutputArchive nested;
-      module->save(nested);
-      archive.write(name, nested);
-    }
-    archive.save_to(tmp);
-    return true;
-  });
-  if (!saved.ok()) {
-    std::remove(tmp.c_str());
-    return absl::InternalError(absl::StrCat("cannot write the model to ", path,
-                                            ": ", saved.status().message()));
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::remove(tmp.c_str());
-    return absl::InternalError(
-        absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
-  }
-  return absl::OkStatus();
+  return robot::learning::SaveModelArchive(
+      path, kMagic, kFormat,
+      [&](torch::serialize::OutputArchive& archive) {
+        archive.write("encoders_frozen", c10::IValue(impl_->frozen));
+        archive.write("options", OptionsToTensor(impl_->options));
+      },
+      impl_->Modules());
 }
 
 absl::StatusOr<std::unique_ptr<DepthPoseModel>> DepthPoseModel::Load(
     const std::string& path) {
-  if (!std::filesystem::exists(path)) {
-    return absl::NotFoundError(absl::StrCat("no model file ", path));
-  }
   torch::serialize::InputArchive archive;
-  try {
-    archive.load_from(path);
-  } catch (const std::exception& e) {
-    return absl::DataLossError(absl::StrCat(
-        path, " is not a readable depth and pose model file: ", Message(e)));
+  if (absl::Status s = robot::learning::OpenModelArchive(
+          path, kMagic, kFormat, "depth and pose model", archive);
+      !s.ok()) {
+    return s;
   }
-  c10::IValue magic, format, frozen;
+  c10::IValue frozen;
   torch::Tensor options_tensor;
-  if (!archive.try_read("magic", magic) || !magic.isString() ||
-      magic.toStringRef() != kMagic) {
-    return absl::DataLossError(
-        absl::StrCat(path, " is not a depth and pose model file"));
-  }
-  if (!archive.try_read("format", format) || !format.isInt() ||
-      format.toInt() != kFormat) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        path, " was written in depth and pose model format ",
-        format.isInt() ? std::to_string(format.toInt()) : "?",
-        "; this build reads format ", kFormat));
-  }
   if (!archive.try_read("encoders_frozen", frozen) || !frozen.isBool() ||
       !archive.try_read("options", options_tensor)) {
     return absl::DataLossError(absl::StrCat(path, " lacks its options"));
@@ -638,24 +599,17 @@ absl::StatusOr<std::unique_ptr<DepthPoseModel>> DepthPoseModel::Load(
   absl::StatusOr<std::unique_ptr<DepthPoseModel>> model = Create(*options);
   if (!model.ok()) return model.status();
   try {
-    for (auto& [name, module] : (*model)->impl_->Modules()) {
-      torch::serialize::InputArchive nested;
-      if (!archive.try_read(name, nested)) {
-        return absl::DataLossError(absl::StrCat(path, " lacks ", name));
-      }
-      module->load(nested);
-    }
+    robot::learning::ReadModules(archive, (*model)->impl_->Modules());
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(
-        path, ": the weights do not match the options: ", Message(e)));
+        path, ": the weights do not match the options: ", robot::learning::TorchMessage(e)));
   }
   if (frozen.toBool()) (*model)->FreezeEncoders();
   return model;
 }
 
 absl::StatusOr<std::unique_ptr<DepthPoseModel>> DepthPoseModel::Clone() const {
-  absl::StatusOr<std::unique_ptr<DepthPoseModel>> copy =
-      Create(impl_->options);
+  absl::StatusOr<std::unique_ptr<DepthPoseModel>> copy = Create(impl_->options);
   if (!copy.ok()) return copy.status();
   if (impl_->frozen) (*copy)->FreezeEncoders();
   if (absl::Status s = (*copy)->CopyWeightsFrom(*this); !s.ok()) return s;
@@ -702,15 +656,16 @@ bool DepthPoseModel::encoders_frozen() const { return impl_->frozen; }
 absl::StatusOr<VoLosses> DepthPoseModel::TrainStep(
     std::span<const Triplet> batch) {
   absl::StatusOr<absl::StatusOr<VoLosses>> result =
-      Guarded<absl::StatusOr<VoLosses>>("train", [&]() -> absl::StatusOr<VoLosses> {
-        absl::StatusOr<std::pair<torch::Tensor, VoLosses>> loss =
-            impl_->Loss(batch);
-        if (!loss.ok()) return loss.status();
-        impl_->optimizer->zero_grad();
-        loss->first.backward();
-        impl_->optimizer->step();
-        return loss->second;
-      });
+      Guarded<absl::StatusOr<VoLosses>>(
+          "train", [&]() -> absl::StatusOr<VoLosses> {
+            absl::StatusOr<std::pair<torch::Tensor, VoLosses>> loss =
+                impl_->Loss(batch);
+            if (!loss.ok()) return loss.status();
+            impl_->optimizer->zero_grad();
+            loss->first.backward();
+            impl_->optimizer->step();
+            return loss->second;
+          });
   if (!result.ok()) return result.status();
   return *result;
 }
@@ -718,13 +673,14 @@ absl::StatusOr<VoLosses> DepthPoseModel::TrainStep(
 absl::StatusOr<VoLosses> DepthPoseModel::Evaluate(
     std::span<const Triplet> batch) {
   absl::StatusOr<absl::StatusOr<VoLosses>> result =
-      Guarded<absl::StatusOr<VoLosses>>("evaluate", [&]() -> absl::StatusOr<VoLosses> {
-        torch::NoGradGuard no_grad;
-        absl::StatusOr<std::pair<torch::Tensor, VoLosses>> loss =
-            impl_->Loss(batch);
-        if (!loss.ok()) return loss.status();
-        return loss->second;
-      });
+      Guarded<absl::StatusOr<VoLosses>>(
+          "evaluate", [&]() -> absl::StatusOr<VoLosses> {
+            torch::NoGradGuard no_grad;
+            absl::StatusOr<std::pair<torch::Tensor, VoLosses>> loss =
+                impl_->Loss(batch);
+            if (!loss.ok()) return loss.status();
+            return loss->second;
+          });
   if (!result.ok()) return result.status();
   return *result;
 }
@@ -749,15 +705,13 @@ absl::StatusOr<cv::Mat> DepthPoseModel::PredictDepth(const cv::Mat& image) {
   if (!x.ok()) return x.status();
   return Guarded<cv::Mat>("depth", [&] {
     torch::NoGradGuard no_grad;
-    const torch::Tensor depth =
-        impl_->DispToDepth(
-                 impl_->depth_decoder->forward(
-                     impl_->depth_encoder->forward(*x))[0])
-            .contiguous();
+    const torch::Tensor depth = impl_
+                                    ->DispToDepth(impl_->depth_decoder->forward(
+                                        impl_->depth_encoder->forward(*x))[0])
+                                    .contiguous();
     cv::Mat out(impl_->options.image_height, impl_->options.image_width,
                 CV_32F);
-    std::memcpy(out.data, depth.data_ptr<float>(),
-                sizeof(float) * out.total());
+    std::memcpy(out.data, depth.data_ptr<float>(), sizeof(float) * out.total());
     return out;
   });
 }
@@ -778,7 +732,8 @@ absl::StatusOr<std::vector<float>> DepthPoseModel::Feature(
 Eigen::Isometry3d PoseFromParameters(const std::array<float, 6>& parameters) {
   const torch::Tensor t =
       TransformFromParameters(
-          torch::tensor(std::vector<float>(parameters.begin(), parameters.end()))
+          torch::tensor(
+              std::vector<float>(parameters.begin(), parameters.end()))
               .view({1, 6}))
           .to(torch::kFloat64)
           .contiguous();
@@ -816,7 +771,8 @@ absl::StatusOr<cv::Mat> WarpToTarget(const cv::Mat& source,
                                  IsometryTensor(source_in_target.inverse())))
             .contiguous();
     cv::Mat out(source.rows, source.cols, CV_32F);
-    std::memcpy(out.data, warped.data_ptr<float>(), sizeof(float) * out.total());
+    std::memcpy(out.data, warped.data_ptr<float>(),
+                sizeof(float) * out.total());
     return cv::Mat(out * 255.0);
   });
 }
@@ -846,12 +802,14 @@ absl::StatusOr<float> ReprojectionLoss(
     std::vector<torch::Tensor> srcs, warped;
     for (size_t i = 0; i < sources.size(); ++i) {
       srcs.push_back(MatTensor(ToFloatImage(sources[i])));
-      warped.push_back(Warp(
-          srcs.back(),
-          ProjectionGrid(depth, k,
-                         IsometryTensor(sources_in_target[i].inverse()))));
+      warped.push_back(
+          Warp(srcs.back(),
+               ProjectionGrid(depth, k,
+                              IsometryTensor(sources_in_target[i].inverse()))));
     }
-    return MinimumReprojection(t, warped, srcs, automask, ssim_weight)
+    at::Generator generator = at::make_generator<at::CPUGeneratorImpl>(0);
+    return MinimumReprojection(t, warped, srcs, automask, ssim_weight,
+                               generator)
         .mean()
         .item<float>();
   });

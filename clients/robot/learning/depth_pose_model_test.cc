@@ -39,7 +39,9 @@ cv::Mat Texture(int extra, uint64_t seed) {
   return noise;
 }
 
-cv::Mat ConstantDepth(float z) { return cv::Mat(kH, kW, CV_32F, cv::Scalar(z)); }
+cv::Mat ConstantDepth(float z) {
+  return cv::Mat(kH, kW, CV_32F, cv::Scalar(z));
+}
 
 Eigen::Isometry3d Translation(double x, double y, double z) {
   Eigen::Isometry3d t = Eigen::Isometry3d::Identity();

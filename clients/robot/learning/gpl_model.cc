@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "clients/robot/learning/torch_archive.h"
 #include "opencv2/imgproc.hpp"
 
 namespace fleetmem::robot::gpl {
@@ -245,23 +246,9 @@ absl::StatusOr<GplOptions> OptionsFromTensor(const torch::Tensor& t) {
   return o;
 }
 
-// An exception's message; libtorch's without the C++ backtrace it appends.
-std::string Message(const std::exception& e) {
-  if (const auto* torch_error = dynamic_cast<const c10::Error*>(&e)) {
-    return torch_error->what_without_backtrace();
-  }
-  return e.what();
-}
-
-// Runs `body`, turning any libtorch (c10::Error) or standard exception into
-// INTERNAL naming `what`.
 template <typename T, typename Body>
 absl::StatusOr<T> Guarded(const char* what, Body&& body) {
-  try {
-    return body();
-  } catch (const std::exception& e) {
-    return absl::InternalError(absl::StrCat("gpl: ", what, ": ", Message(e)));
-  }
+  return learning::Guarded<T>("gpl", what, std::forward<Body>(body));
 }
 
 }  // namespace
@@ -297,7 +284,7 @@ struct GplModel::Impl {
       return ImagesToTensorUnguarded(images);
     } catch (const std::exception& e) {
       return absl::InvalidArgumentError(
-          absl::StrCat("gpl: cannot convert the images: ", Message(e)));
+          absl::StrCat("gpl: cannot convert the images: ", learning::TorchMessage(e)));
     }
   }
   absl::StatusOr<torch::Tensor> ImagesToTensorUnguarded(
@@ -439,18 +426,10 @@ struct GplModel::Impl {
 
   // Every module's weights as nested archives of `archive`.
   void WriteModules(torch::serialize::OutputArchive& archive) {
-    for (auto& [name, module] : Modules()) {
-      torch::serialize::OutputArchive nested;
-      module->save(nested);
-      archive.write(name, nested);
-    }
+    learning::WriteModules(archive, Modules());
   }
   void ReadModules(torch::serialize::InputArchive& archive) {
-    for (auto& [name, module] : Modules()) {
-      torch::serialize::InputArchive nested;
-      archive.read(name, nested);
-      module->load(nested);
-    }
+    learning::ReadModules(archive, Modules());
   }
   std::vector<std::pair<std::string, torch::nn::Module*>> Modules() {
     return {{"encoder", encoder.get()},
@@ -485,58 +464,26 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Create(
 }
 
 absl::Status GplModel::Save(const std::string& path) const {
-  const std::string tmp = path + ".tmp";
-  absl::StatusOr<bool> saved = Guarded<bool>("save", [&] {
-    torch::serialize::OutputArchive archive;
-    archive.write("magic", c10::IValue(std::string(kMagic)));
-    archive.write("format", c10::IValue(kFormat));
-    archive.write("version", c10::IValue(impl_->version));
-    archive.write("encoder_frozen", c10::IValue(impl_->encoder_frozen));
-    archive.write("options", OptionsToTensor(impl_->options));
-    impl_->WriteModules(archive);
-    archive.save_to(tmp);
-    return true;
-  });
-  if (!saved.ok()) {
-    std::remove(tmp.c_str());
-    return absl::InternalError(absl::StrCat("cannot write the model to ", path,
-                                            ": ", saved.status().message()));
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::remove(tmp.c_str());
-    return absl::InternalError(
-        absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
-  }
-  return absl::OkStatus();
+  return learning::SaveModelArchive(
+      path, kMagic, kFormat,
+      [&](torch::serialize::OutputArchive& archive) {
+        archive.write("version", c10::IValue(impl_->version));
+        archive.write("encoder_frozen", c10::IValue(impl_->encoder_frozen));
+        archive.write("options", OptionsToTensor(impl_->options));
+      },
+      impl_->Modules());
 }
 
 absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
     const std::string& path) {
-  if (!std::filesystem::exists(path)) {
-    return absl::NotFoundError(absl::StrCat("no model file ", path));
-  }
   torch::serialize::InputArchive archive;
-  try {
-    archive.load_from(path);
-  } catch (const std::exception& e) {
-    return absl::DataLossError(
-        absl::StrCat(path, " is not a readable GPL model file: ", Message(e)));
+  if (absl::Status s = learning::OpenModelArchive(path, kMagic, kFormat,
+                                                  "GPL model", archive);
+      !s.ok()) {
+    return s;
   }
-  c10::IValue magic, format, version, frozen;
+  c10::IValue version, frozen;
   torch::Tensor options_tensor;
-  if (!archive.try_read("magic", magic) || !magic.isString() ||
-      magic.toStringRef() != kMagic) {
-    return absl::DataLossError(absl::StrCat(path, " is not a GPL model file"));
-  }
-  if (!archive.try_read("format", format) || !format.isInt() ||
-      format.toInt() != kFormat) {
-    return absl::FailedPreconditionError(
-        absl::StrCat(path, " was written in GPL model format ",
-                     format.isInt() ? std::to_string(format.toInt()) : "?",
-                     "; this build reads format ", kFormat));
-  }
   if (!archive.try_read("version", version) || !version.isString() ||
       !archive.try_read("encoder_frozen", frozen) || !frozen.isBool() ||
       !archive.try_read("options", options_tensor)) {
@@ -556,7 +503,7 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
     if (frozen.toBool()) (*model)->FreezeEncoder();
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(
-        path, ": the weights do not match the options: ", Message(e)));
+        path, ": the weights do not match the options: ", learning::TorchMessage(e)));
   }
   return model;
 }

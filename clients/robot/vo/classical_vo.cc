@@ -13,9 +13,9 @@ absl::StatusOr<ClassicalVoResult> RunClassicalVo(
   if (clip.left.empty()) {
     return absl::InvalidArgumentError("the clip has no frames");
   }
-  const cv::Mat k = (cv::Mat_<double>(3, 3) << clip.camera.fx, 0.0,
-                     clip.camera.cx, 0.0, clip.camera.fy, clip.camera.cy, 0.0,
-                     0.0, 1.0);
+  const cv::Mat k =
+      (cv::Mat_<double>(3, 3) << clip.camera.fx, 0.0, clip.camera.cx, 0.0,
+       clip.camera.fy, clip.camera.cy, 0.0, 0.0, 1.0);
   ClassicalVoResult result;
   Eigen::Isometry3d pose = Eigen::Isometry3d::Identity();
   Eigen::Isometry3d last_motion = Eigen::Isometry3d::Identity();

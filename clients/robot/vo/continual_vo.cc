@@ -41,9 +41,9 @@ absl::StatusOr<VoMethod> ParseVoMethod(std::string_view name) {
   if (name == "expert_only") return VoMethod::kExpertOnly;
   if (name == "generalizer_only") return VoMethod::kGeneralizerOnly;
   if (name == "cl_slam") return VoMethod::kClSlam;
-  return absl::InvalidArgumentError(absl::StrCat(
-      "unknown method '", std::string(name),
-      "' (fixed, expert_only, generalizer_only or cl_slam)"));
+  return absl::InvalidArgumentError(
+      absl::StrCat("unknown method '", std::string(name),
+                   "' (fixed, expert_only, generalizer_only or cl_slam)"));
 }
 
 std::string VoMethodName(VoMethod method) {
@@ -73,9 +73,8 @@ absl::StatusOr<VoLosses> Pretrain(
     const PretrainOptions& options,
     const std::function<void(int, const VoLosses&)>& progress) {
   if (clip.left.size() < 3) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("pre-training needs 3 frames; ", clip.name, " has ",
-                     clip.left.size()));
+    return absl::InvalidArgumentError(absl::StrCat(
+        "pre-training needs 3 frames; ", clip.name, " has ", clip.left.size()));
   }
   if (options.steps < 0 || options.batch_size <= 0) {
     return absl::InvalidArgumentError("steps >= 0 and batch_size > 0");
@@ -88,7 +87,8 @@ absl::StatusOr<VoLosses> Pretrain(
     for (int i = 0; i < options.batch_size; ++i) {
       const size_t m = middle(rng);
       Triplet t = ClipTriplet(clip, m - 1, m, m + 1);
-      if (options.stereo && !clip.right.empty()) t.right_of_middle = clip.right[m];
+      if (options.stereo && !clip.right.empty())
+        t.right_of_middle = clip.right[m];
       batch.push_back(std::move(t));
     }
     absl::StatusOr<VoLosses> losses = model.TrainStep(batch);
@@ -148,8 +148,8 @@ absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
     const std::function<void(size_t, size_t)>& progress) {
   const auto start = std::chrono::steady_clock::now();
   const bool has_expert = method_ != VoMethod::kGeneralizerOnly;
-  const bool has_generalizer = method_ == VoMethod::kGeneralizerOnly ||
-                               method_ == VoMethod::kClSlam;
+  const bool has_generalizer =
+      method_ == VoMethod::kGeneralizerOnly || method_ == VoMethod::kClSlam;
   const bool adapts = method_ != VoMethod::kFixed;
   std::unique_ptr<DepthPoseModel> expert, generalizer;
   if (has_expert) {
@@ -173,7 +173,8 @@ absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
   std::vector<size_t> accepted;
   for (size_t i = 0; i < n; ++i) {
     if (progress) progress(i, n);
-    absl::StatusOr<std::vector<float>> feature = weights_->Feature(clip.left[i]);
+    absl::StatusOr<std::vector<float>> feature =
+        weights_->Feature(clip.left[i]);
     if (!feature.ok()) return feature.status();
     features.push_back(core::NormalizedCode(*feature));
     if (i == 0) {
@@ -243,8 +244,9 @@ absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
       absl::StatusOr<Eigen::Isometry3d> relative =
           odometer.PredictMotion(clip.left[j], clip.left[i]);
       if (!relative.ok()) return relative.status();
-      if (graph.AddEdge(j, i, *relative, EdgeInformation(),
-                        slam::EdgeKind::kLoop)
+      if (graph
+              .AddEdge(j, i, *relative, EdgeInformation(),
+                       slam::EdgeKind::kLoop)
               .ok()) {
         ++result.loops;
         loop = true;
@@ -269,9 +271,9 @@ absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
   } else if (adapts) {
     weights_ = std::move(expert);
   }
-  result.seconds = std::chrono::duration<double>(
-                       std::chrono::steady_clock::now() - start)
-                       .count();
+  result.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count();
   return result;
 }
 

@@ -10,8 +10,8 @@ namespace {
 constexpr int kW = 64, kH = 32;
 
 KittiClip Clip(size_t frames) {
-  absl::StatusOr<KittiClip> clip = LoadKittiClip(
-      std::string(FLEETMEM_DATA_DIR) + "/kitti/clip1", kW, kH);
+  absl::StatusOr<KittiClip> clip =
+      LoadKittiClip(std::string(FLEETMEM_DATA_DIR) + "/kitti/clip1", kW, kH);
   EXPECT_TRUE(clip.ok()) << clip.status();
   return clip.ok() ? SubClip(*clip, 0, frames) : KittiClip{};
 }
@@ -59,9 +59,9 @@ TEST(ContinualVo, FixedChainsTheNetworksMotionsAndLearnsNothing) {
     EXPECT_LT((r->odometry[i].pose.matrix() - chained.matrix()).norm(), 1e-9);
     EXPECT_DOUBLE_EQ(r->odometry[i].time_s, clip.ground_truth[i].time_s);
   }
-  EXPECT_LT(Difference(*model, const_cast<DepthPoseModel&>((*vo)->weights()),
-                       clip),
-            1e-12);
+  EXPECT_LT(
+      Difference(*model, const_cast<DepthPoseModel&>((*vo)->weights()), clip),
+      1e-12);
 }
 
 TEST(ContinualVo, ClSlamAdaptsBothAndKeepsTheGeneralizer) {
@@ -82,14 +82,37 @@ TEST(ContinualVo, ClSlamAdaptsBothAndKeepsTheGeneralizer) {
   EXPECT_EQ(r->skipped_frames, 0);
   EXPECT_EQ(r->generalizer_odometry.size(), 6u);
   EXPECT_GE((*vo)->replay().buffers().at("a").size(), 1u);
-  EXPECT_GT(Difference(*model, const_cast<DepthPoseModel&>((*vo)->weights()),
-                       clip),
-            1e-6);
+  EXPECT_GT(
+      Difference(*model, const_cast<DepthPoseModel&>((*vo)->weights()), clip),
+      1e-6);
   // The clone branched before the deployment and is untouched by it.
   EXPECT_EQ((*branch)->replay().buffers().count("a"), 0u);
   EXPECT_LT(Difference(*model,
                        const_cast<DepthPoseModel&>((*branch)->weights()), clip),
             1e-12);
+}
+
+// CL-SLAM Sec. 5: on the first deployment after pre-training the expert
+// alone and CL-SLAM's expert are the same network on the same data; each
+// model's own random draws keep the generalizer from changing that.
+TEST(ContinualVo, FirstDeploymentExpertEqualsClSlamsExpert) {
+  const KittiClip clip = Clip(5);
+  std::unique_ptr<DepthPoseModel> model = Model();
+  absl::StatusOr<std::unique_ptr<ContinualVo>> expert =
+      ContinualVo::Create(*model, VoMethod::kExpertOnly, Options());
+  absl::StatusOr<std::unique_ptr<ContinualVo>> both =
+      ContinualVo::Create(*model, VoMethod::kClSlam, Options());
+  ASSERT_TRUE(expert.ok() && both.ok());
+  ASSERT_TRUE((*both)->Remember("pre", Clip(4)).ok());
+  absl::StatusOr<DeploymentResult> a = (*expert)->Deploy("a", clip);
+  absl::StatusOr<DeploymentResult> b = (*both)->Deploy("a", clip);
+  ASSERT_TRUE(a.ok() && b.ok());
+  for (size_t i = 0; i < clip.left.size(); ++i) {
+    EXPECT_LT((a->odometry[i].pose.matrix() - b->odometry[i].pose.matrix())
+                  .norm(),
+              1e-9)
+        << i;
+  }
 }
 
 TEST(ContinualVo, ExpertOnlyKeepsNoReplay) {

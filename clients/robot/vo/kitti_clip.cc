@@ -32,8 +32,10 @@ absl::StatusOr<std::vector<double>> Numbers(std::string_view line,
   }
   if (values.size() != 12) {
     return absl::InvalidArgumentError(
-        absl::StrCat(name, ":", line_number, ": a projection matrix needs 12 "
-                     "numbers, found ", values.size()));
+        absl::StrCat(name, ":", line_number,
+                     ": a projection matrix needs 12 "
+                     "numbers, found ",
+                     values.size()));
   }
   return values;
 }
@@ -105,12 +107,14 @@ absl::StatusOr<KittiClip> LoadKittiClip(const std::string& dir, int width,
   KittiClip clip;
   clip.name = root.filename().string();
   if (clip.name.empty()) clip.name = root.parent_path().filename().string();
-  absl::StatusOr<std::string> calib = robot::ReadFile((root / "calib.txt").string());
+  absl::StatusOr<std::string> calib =
+      robot::ReadFile((root / "calib.txt").string());
   if (!calib.ok()) return calib.status();
   absl::StatusOr<Camera> camera =
       ParseKittiCalibration(*calib, (root / "calib.txt").string());
   if (!camera.ok()) return camera.status();
-  absl::StatusOr<std::vector<cv::Mat>> left = ReadImages(root / "image_l", 0, 0);
+  absl::StatusOr<std::vector<cv::Mat>> left =
+      ReadImages(root / "image_l", 0, 0);
   if (!left.ok()) return left.status();
   if (left->empty()) {
     return absl::NotFoundError(absl::StrCat("no frames in ", dir, "/image_l"));
@@ -132,9 +136,9 @@ absl::StatusOr<KittiClip> LoadKittiClip(const std::string& dir, int width,
         ReadImages(root / "image_r", width, height);
     if (!right.ok()) return right.status();
     if (right->size() != clip.left.size()) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          dir, ": ", right->size(), " right frames for ", clip.left.size(),
-          " left frames"));
+      return absl::InvalidArgumentError(
+          absl::StrCat(dir, ": ", right->size(), " right frames for ",
+                       clip.left.size(), " left frames"));
     }
     clip.right = std::move(*right);
   }
@@ -142,17 +146,16 @@ absl::StatusOr<KittiClip> LoadKittiClip(const std::string& dir, int width,
       (root / "poses.txt").string(), slam::TrajectoryFormat::kKitti);
   if (!poses.ok()) return poses.status();
   if (poses->size() != clip.left.size()) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(dir, ": ", poses->size(), " poses for ",
-                     clip.left.size(), " frames"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        dir, ": ", poses->size(), " poses for ", clip.left.size(), " frames"));
   }
   clip.travelled_m.assign(poses->size(), 0.0);
   for (size_t i = 0; i < poses->size(); ++i) {
     (*poses)[i].time_s = i * clip.frame_interval_s;
     if (i > 0) {
-      clip.travelled_m[i] = ((*poses)[i].pose.translation() -
-                             (*poses)[i - 1].pose.translation())
-                                .norm();
+      clip.travelled_m[i] =
+          ((*poses)[i].pose.translation() - (*poses)[i - 1].pose.translation())
+              .norm();
     }
   }
   clip.ground_truth = std::move(*poses);
@@ -165,9 +168,9 @@ KittiClip SubClip(const KittiClip& clip, size_t first, size_t count) {
   sub.camera = clip.camera;
   sub.frame_interval_s = clip.frame_interval_s;
   const size_t end = std::min(clip.left.size(), first + count);
-  const Eigen::Isometry3d origin =
-      first < end ? clip.ground_truth[first].pose.inverse()
-                  : Eigen::Isometry3d::Identity();
+  const Eigen::Isometry3d origin = first < end
+                                       ? clip.ground_truth[first].pose.inverse()
+                                       : Eigen::Isometry3d::Identity();
   for (size_t i = first; i < end; ++i) {
     sub.left.push_back(clip.left[i]);
     if (!clip.right.empty()) sub.right.push_back(clip.right[i]);

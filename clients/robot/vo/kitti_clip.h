@@ -42,8 +42,8 @@ absl::StatusOr<Camera> ParseKittiCalibration(std::string_view text,
 // the camera with it), which keeps a replay buffer small. NOT_FOUND for a
 // missing folder or file, INVALID_ARGUMENT for unreadable content or a
 // count of poses that differs from the count of left frames.
-absl::StatusOr<KittiClip> LoadKittiClip(const std::string& dir,
-                                        int width = 0, int height = 0);
+absl::StatusOr<KittiClip> LoadKittiClip(const std::string& dir, int width = 0,
+                                        int height = 0);
 
 // Frames [first, first + count) of a clip (a shorter clip for quick runs).
 KittiClip SubClip(const KittiClip& clip, size_t first, size_t count);

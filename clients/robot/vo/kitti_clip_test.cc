@@ -24,9 +24,10 @@ TEST(ParseKittiCalibration, ReadsIntrinsicsAndBaseline) {
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(ParseKittiCalibration("", "c").status().code(),
             absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(
-      ParseKittiCalibration("0 0 600 0 0 701 180 0 0 0 1 x", "c").status().code(),
-      absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(ParseKittiCalibration("0 0 600 0 0 701 180 0 0 0 1 x", "c")
+                .status()
+                .code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 TEST(LoadKittiClip, RealClipWithResize) {
@@ -46,8 +47,9 @@ TEST(LoadKittiClip, RealClipWithResize) {
 
   KittiClip sub = SubClip(*clip, 10, 5);
   ASSERT_EQ(sub.left.size(), 5u);
-  EXPECT_LT((sub.ground_truth[0].pose.matrix() -
-             Eigen::Matrix4d::Identity()).norm(), 1e-6);
+  EXPECT_LT(
+      (sub.ground_truth[0].pose.matrix() - Eigen::Matrix4d::Identity()).norm(),
+      1e-6);
   EXPECT_EQ(sub.travelled_m[0], 0.0);
   EXPECT_DOUBLE_EQ(sub.travelled_m[1], clip->travelled_m[11]);
   // Relative motions are kept.

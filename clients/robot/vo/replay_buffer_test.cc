@@ -34,8 +34,7 @@ TEST(ReplayBuffer, AdmitsOnlyBelowTheSimilarityThreshold) {
   for (float& v : scaled) v *= 7.0f;
   EXPECT_EQ(buffer.Offer(scaled, Tagged(3)),
             ReplayBuffer::Outcome::kTooSimilar);
-  EXPECT_EQ(buffer.Offer(At(180), Tagged(4)),
-            ReplayBuffer::Outcome::kAdmitted);
+  EXPECT_EQ(buffer.Offer(At(180), Tagged(4)), ReplayBuffer::Outcome::kAdmitted);
   EXPECT_EQ(buffer.Offer(std::vector<float>{0.0f, 0.0f, 0.0f}, Tagged(5)),
             ReplayBuffer::Outcome::kTooSimilar);
   EXPECT_EQ(buffer.size(), 3u);
@@ -46,8 +45,7 @@ TEST(ReplayBuffer, WhenFullDropsTheLaterOfTheClosestPair) {
   ReplayBuffer buffer({.capacity = 3, .max_similarity = 0.95});
   ASSERT_EQ(buffer.Offer(At(0), Tagged(0)), ReplayBuffer::Outcome::kAdmitted);
   ASSERT_EQ(buffer.Offer(At(90), Tagged(1)), ReplayBuffer::Outcome::kAdmitted);
-  ASSERT_EQ(buffer.Offer(At(180), Tagged(2)),
-            ReplayBuffer::Outcome::kAdmitted);
+  ASSERT_EQ(buffer.Offer(At(180), Tagged(2)), ReplayBuffer::Outcome::kAdmitted);
   // 115 degrees is 25 from 90: ids 1 and 3 are the closest pair; 3 goes.
   EXPECT_EQ(buffer.Offer(At(115), Tagged(3)),
             ReplayBuffer::Outcome::kAdmittedWithEviction);

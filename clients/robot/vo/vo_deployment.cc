@@ -32,7 +32,8 @@ absl::StatusOr<VoDeploymentReport> RunVoDeployment(
   const bool resume = fs::exists(weights_path);
   if (!resume && options.initial_model.empty()) {
     return absl::NotFoundError(absl::StrCat(
-        "no ", weights_path, " and no initial model: pass the fleet's "
+        "no ", weights_path,
+        " and no initial model: pass the fleet's "
         "pre-trained weights (fleetmem-eval continual-vo writes them)"));
   }
   absl::StatusOr<std::unique_ptr<DepthPoseModel>> model =
@@ -53,7 +54,8 @@ absl::StatusOr<VoDeploymentReport> RunVoDeployment(
   if (!result.ok()) return result.status();
 
   int n = 1;
-  while (fs::exists(absl::StrCat(options.data_dir, "/vo/", environment, "-", n))) {
+  while (
+      fs::exists(absl::StrCat(options.data_dir, "/vo/", environment, "-", n))) {
     ++n;
   }
   VoDeploymentReport report;
@@ -61,15 +63,16 @@ absl::StatusOr<VoDeploymentReport> RunVoDeployment(
   std::error_code ec;
   fs::create_directories(report.out_dir, ec);
   if (ec) {
-    return absl::InternalError(absl::StrCat("cannot create ", report.out_dir,
-                                            ": ", ec.message()));
+    return absl::InternalError(
+        absl::StrCat("cannot create ", report.out_dir, ": ", ec.message()));
   }
-  if (absl::Status s = WriteBoth(report.out_dir + "/trajectory",
-                                 result->optimized);
+  if (absl::Status s =
+          WriteBoth(report.out_dir + "/trajectory", result->optimized);
       !s.ok()) {
     return s;
   }
-  if (absl::Status s = WriteBoth(report.out_dir + "/odometry", result->odometry);
+  if (absl::Status s =
+          WriteBoth(report.out_dir + "/odometry", result->odometry);
       !s.ok()) {
     return s;
   }
