@@ -42,7 +42,8 @@ FROM ${BASE_IMAGE}
 RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y \
       -qq --no-install-recommends ca-certificates libgrpc++1.51 \
       libprotobuf32 libabsl20220623 libopencv-core406 libopencv-imgproc406 \
-      libopencv-imgcodecs406 libopencv-objdetect406 libtorch1.13 libbz2-1.0 \
+      libopencv-imgcodecs406 libopencv-objdetect406 libopencv-calib3d406 \
+      libopencv-video406 libtorch1.13 libbz2-1.0 \
       liblz4-1 libsnappy1v5 libzstd1 libgoogle-glog0v6 libcholmod3 \
       libcxsparse3 libatlas3-base >/dev/null \
  && rm -rf /var/lib/apt/lists/* \

@@ -283,8 +283,8 @@ struct GplModel::Impl {
     try {
       return ImagesToTensorUnguarded(images);
     } catch (const std::exception& e) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("gpl: cannot convert the images: ", learning::TorchMessage(e)));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "gpl: cannot convert the images: ", learning::TorchMessage(e)));
     }
   }
   absl::StatusOr<torch::Tensor> ImagesToTensorUnguarded(
@@ -503,7 +503,8 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Load(
     if (frozen.toBool()) (*model)->FreezeEncoder();
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(
-        path, ": the weights do not match the options: ", learning::TorchMessage(e)));
+        path,
+        ": the weights do not match the options: ", learning::TorchMessage(e)));
   }
   return model;
 }

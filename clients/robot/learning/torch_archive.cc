@@ -69,8 +69,8 @@ absl::Status OpenModelArchive(const std::string& path, std::string_view magic,
     archive.load_from(path);
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(path, " is not a readable ",
-                                            std::string(kind), " file: ",
-                                            TorchMessage(e)));
+                                            std::string(kind),
+                                            " file: ", TorchMessage(e)));
   }
   c10::IValue stored_magic, stored_format;
   if (!archive.try_read("magic", stored_magic) || !stored_magic.isString() ||

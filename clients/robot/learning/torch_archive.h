@@ -34,8 +34,8 @@ absl::StatusOr<T> Guarded(std::string_view component, const char* what,
   try {
     return body();
   } catch (const std::exception& e) {
-    return absl::InternalError(absl::StrCat(
-        std::string(component), ": ", what, ": ", TorchMessage(e)));
+    return absl::InternalError(absl::StrCat(std::string(component), ": ", what,
+                                            ": ", TorchMessage(e)));
   }
 }
 

@@ -108,9 +108,9 @@ TEST(ContinualVo, FirstDeploymentExpertEqualsClSlamsExpert) {
   absl::StatusOr<DeploymentResult> b = (*both)->Deploy("a", clip);
   ASSERT_TRUE(a.ok() && b.ok());
   for (size_t i = 0; i < clip.left.size(); ++i) {
-    EXPECT_LT((a->odometry[i].pose.matrix() - b->odometry[i].pose.matrix())
-                  .norm(),
-              1e-9)
+    EXPECT_LT(
+        (a->odometry[i].pose.matrix() - b->odometry[i].pose.matrix()).norm(),
+        1e-9)
         << i;
   }
 }
