@@ -311,8 +311,6 @@ int RunVo(const Flags& flags) {
   options.method = *method;
   options.vo.update_steps = flags.vo_update_steps;
   options.vo.seed = flags.seed;
-  std::error_code ec;
-  std::filesystem::create_directories(flags.data_dir, ec);
   fleetmem::robot::gpl::SetTorchThreads(2);
   absl::StatusOr<vo::VoDeploymentReport> report =
       vo::RunVoDeployment(options, [](size_t frame, size_t frames) {

@@ -485,7 +485,6 @@ struct DepthPoseModel::Impl {
     const torch::Tensor i0 = torch::cat(prev), i1 = torch::cat(mid),
                         i2 = torch::cat(next);
     const torch::Tensor k = torch::stack(ks);
-    const int64_t b = i1.size(0);
 
     const std::vector<torch::Tensor> disps =
         depth_decoder->forward(depth_encoder->forward(i1));
@@ -544,7 +543,6 @@ struct DepthPoseModel::Impl {
     const torch::Tensor total = photometric +
                                 options.smoothness_weight * smoothness +
                                 options.velocity_weight * velocity;
-    (void)b;
     VoLosses losses{total.item<float>(), photometric.item<float>(),
                     smoothness.item<float>(), velocity.item<float>()};
     return std::make_pair(total, losses);

@@ -40,8 +40,11 @@ absl::StatusOr<std::vector<double>> Numbers(std::string_view line,
   return values;
 }
 
+// The PNGs of `dir` in name order, resized to width x height when both are
+// > 0; `original` (if given) gets the first image's size before resizing.
 absl::StatusOr<std::vector<cv::Mat>> ReadImages(const fs::path& dir, int width,
-                                                int height) {
+                                                int height,
+                                                cv::Size* original = nullptr) {
   std::vector<fs::path> files;
   std::error_code ec;
   for (const fs::directory_entry& e : fs::directory_iterator(dir, ec)) {
@@ -59,6 +62,7 @@ absl::StatusOr<std::vector<cv::Mat>> ReadImages(const fs::path& dir, int width,
       return absl::InvalidArgumentError(
           absl::StrCat(f.string(), " is not a readable image"));
     }
+    if (original != nullptr && images.empty()) *original = image.size();
     if (width > 0 && height > 0) {
       cv::Mat sized;
       cv::resize(image, sized, cv::Size(width, height), 0, 0, cv::INTER_AREA);
@@ -113,23 +117,17 @@ absl::StatusOr<KittiClip> LoadKittiClip(const std::string& dir, int width,
   absl::StatusOr<Camera> camera =
       ParseKittiCalibration(*calib, (root / "calib.txt").string());
   if (!camera.ok()) return camera.status();
+  cv::Size original;
   absl::StatusOr<std::vector<cv::Mat>> left =
-      ReadImages(root / "image_l", 0, 0);
+      ReadImages(root / "image_l", width, height, &original);
   if (!left.ok()) return left.status();
   if (left->empty()) {
     return absl::NotFoundError(absl::StrCat("no frames in ", dir, "/image_l"));
   }
-  camera->width = (*left)[0].cols;
-  camera->height = (*left)[0].rows;
-  clip.camera = *camera;
-  if (width > 0 && height > 0) {
-    for (cv::Mat& image : *left) {
-      cv::Mat sized;
-      cv::resize(image, sized, cv::Size(width, height), 0, 0, cv::INTER_AREA);
-      image = sized;
-    }
-    clip.camera = ResizedCamera(*camera, width, height);
-  }
+  camera->width = original.width;
+  camera->height = original.height;
+  clip.camera =
+      width > 0 && height > 0 ? ResizedCamera(*camera, width, height) : *camera;
   clip.left = std::move(*left);
   if (fs::is_directory(root / "image_r")) {
     absl::StatusOr<std::vector<cv::Mat>> right =
