@@ -1,6 +1,9 @@
 #include "services/core/closest_pair.h"
 
+#include <algorithm>
 #include <limits>
+
+#include "services/core/hnsw_graph.h"
 
 namespace fleetmem::core {
 namespace {
@@ -26,38 +29,121 @@ bool Better(double distance, uint64_t candidate, double current_distance,
 
 }  // namespace
 
+// The HNSW graph over the points and the point id of each of its slots.
+struct ClosestPairTracker::Graph {
+  Graph(size_t dimension, const ClosestPairOptions& options)
+      : hnsw(dimension, HnswGraphOptions{.m = options.hnsw_m,
+                                         .ef_construction =
+                                             options.hnsw_ef_construction,
+                                         .ef_search = options.hnsw_ef_search,
+                                         .seed = options.seed}) {}
+  HnswGraph hnsw;
+  std::vector<uint64_t> slot_id;  // slot -> point id
+};
+
+ClosestPairTracker::ClosestPairTracker(ClosestPairOptions options)
+    : options_(options) {
+  options_.exact_below = std::max<size_t>(options_.exact_below, 2);
+}
+ClosestPairTracker::~ClosestPairTracker() = default;
+ClosestPairTracker::ClosestPairTracker(ClosestPairTracker&&) noexcept = default;
+ClosestPairTracker& ClosestPairTracker::operator=(
+    ClosestPairTracker&&) noexcept = default;
+
+ClosestPairTracker::ClosestPairTracker(const ClosestPairTracker& other)
+    : options_(other.options_),
+      points_(other.points_),
+      by_distance_(other.by_distance_) {
+  if (other.graph_ != nullptr) BuildGraph();
+}
+
+ClosestPairTracker& ClosestPairTracker::operator=(
+    const ClosestPairTracker& other) {
+  if (this != &other) *this = ClosestPairTracker(other);
+  return *this;
+}
+
+void ClosestPairTracker::SetNeighbour(uint64_t id, Entry& entry,
+                                      uint64_t neighbour, double distance) {
+  ClearNeighbour(id, entry);
+  entry.neighbour = neighbour;
+  entry.distance = distance;
+  entry.has_neighbour = true;
+  points_.at(neighbour).keepers.push_back(id);
+  by_distance_.insert({distance, id});
+}
+
+void ClosestPairTracker::ClearNeighbour(uint64_t id, Entry& entry) {
+  if (!entry.has_neighbour) return;
+  by_distance_.erase({entry.distance, id});
+  auto held = points_.find(entry.neighbour);
+  if (held != points_.end()) std::erase(held->second.keepers, id);
+  entry.has_neighbour = false;
+  entry.neighbour = 0;
+  entry.distance = kInfinity;
+}
+
+std::vector<uint64_t> ClosestPairTracker::Candidates(
+    const Eigen::VectorXf& point, size_t count) const {
+  std::vector<uint64_t> ids;
+  if (graph_ == nullptr) {
+    ids.reserve(points_.size());
+    for (const auto& [id, entry] : points_) ids.push_back(id);
+    return ids;
+  }
+  for (const auto& [squared, slot] : graph_->hnsw.Search(point.data(), count)) {
+    ids.push_back(graph_->slot_id[slot]);
+  }
+  return ids;
+}
+
 void ClosestPairTracker::Insert(uint64_t id, const Eigen::VectorXf& point) {
   Remove(id);  // contract says absent; stay consistent if not
-  Entry entry{point, 0, kInfinity};
-  bool has_neighbour = false;
-  for (auto& [other_id, other] : points_) {
+  Entry& entry = points_.emplace(id, Entry{point}).first->second;
+  uint64_t best = 0;
+  double best_distance = kInfinity;
+  bool found = false;
+  for (uint64_t other_id : Candidates(point, options_.reverse_candidates)) {
+    if (other_id == id) continue;
+    Entry& other = points_.at(other_id);
     const double d = Distance(point, other.point);
-    if (!has_neighbour ||
-        Better(d, other_id, entry.distance, entry.neighbour)) {
-      entry.neighbour = other_id;
-      entry.distance = d;
-      has_neighbour = true;
+    if (!found || Better(d, other_id, best_distance, best)) {
+      best = other_id;
+      best_distance = d;
+      found = true;
     }
-    const bool other_has_neighbour = points_.size() > 1;
-    if (!other_has_neighbour ||
+    if (!other.has_neighbour ||
         Better(d, id, other.distance, other.neighbour)) {
-      if (other_has_neighbour) by_distance_.erase({other.distance, other_id});
-      other.neighbour = id;
-      other.distance = d;
-      by_distance_.insert({other.distance, other_id});
+      SetNeighbour(other_id, other, id, d);
     }
   }
-  if (has_neighbour) by_distance_.insert({entry.distance, id});
-  points_.emplace(id, std::move(entry));
+  if (found) SetNeighbour(id, entry, best, best_distance);
+  if (graph_ != nullptr) {
+    AddToGraph(id, entry);
+  } else if (points_.size() >= options_.exact_below) {
+    BuildGraph();
+  }
 }
 
 void ClosestPairTracker::Remove(uint64_t id) {
   auto it = points_.find(id);
   if (it == points_.end()) return;
-  by_distance_.erase({it->second.distance, id});
+  Entry& entry = it->second;
+  ClearNeighbour(id, entry);
+  const std::vector<uint64_t> keepers = std::move(entry.keepers);
+  if (graph_ != nullptr) {
+    graph_->hnsw.Remove(entry.slot);
+  }
   points_.erase(it);
-  for (auto& [other_id, other] : points_) {
-    if (other.neighbour == id) Recompute(other_id, other);
+  if (graph_ != nullptr && points_.size() < options_.exact_below / 2) {
+    graph_.reset();
+  }
+  for (uint64_t keeper : keepers) {
+    Entry& other = points_.at(keeper);
+    // Its neighbour is gone: the entry no longer holds it.
+    by_distance_.erase({other.distance, keeper});
+    other.has_neighbour = false;
+    Recompute(keeper, other);
   }
 }
 
@@ -69,21 +155,46 @@ std::optional<ClosestPairTracker::Pair> ClosestPairTracker::Closest() const {
 }
 
 void ClosestPairTracker::Recompute(uint64_t id, Entry& entry) {
-  by_distance_.erase({entry.distance, id});
-  bool has_neighbour = false;
-  entry.neighbour = 0;
-  entry.distance = kInfinity;
-  for (const auto& [other_id, other] : points_) {
+  ClearNeighbour(id, entry);
+  uint64_t best = 0;
+  double best_distance = kInfinity;
+  bool found = false;
+  // Two candidates at least: the point itself is among them.
+  for (uint64_t other_id :
+       Candidates(entry.point, std::max<size_t>(options_.reverse_candidates / 4, 2))) {
     if (other_id == id) continue;
-    const double d = Distance(entry.point, other.point);
-    if (!has_neighbour ||
-        Better(d, other_id, entry.distance, entry.neighbour)) {
-      entry.neighbour = other_id;
-      entry.distance = d;
-      has_neighbour = true;
+    const double d = Distance(entry.point, points_.at(other_id).point);
+    if (!found || Better(d, other_id, best_distance, best)) {
+      best = other_id;
+      best_distance = d;
+      found = true;
     }
   }
-  if (has_neighbour) by_distance_.insert({entry.distance, id});
+  if (found) SetNeighbour(id, entry, best, best_distance);
+}
+
+void ClosestPairTracker::BuildGraph() {
+  graph_.reset();
+  if (points_.empty()) return;
+  const size_t dimension =
+      static_cast<size_t>(points_.begin()->second.point.size());
+  graph_ = std::make_unique<Graph>(dimension, options_);
+  graph_->hnsw.Reserve(2 * points_.size());
+  // In id order, so that the graph (and every later answer) depends only on
+  // the points, not on the hash map's iteration order.
+  std::vector<uint64_t> ids;
+  ids.reserve(points_.size());
+  for (const auto& [id, entry] : points_) ids.push_back(id);
+  std::sort(ids.begin(), ids.end());
+  for (uint64_t id : ids) AddToGraph(id, points_.at(id));
+}
+
+void ClosestPairTracker::AddToGraph(uint64_t id, Entry& entry) {
+  entry.slot = graph_->hnsw.Add(entry.point.data());
+  if (entry.slot >= graph_->slot_id.size()) {
+    graph_->slot_id.resize(entry.slot + 1);
+  }
+  graph_->slot_id[entry.slot] = id;
 }
 
 }  // namespace fleetmem::core

@@ -1,19 +1,48 @@
 // Closest pair of centroids under insertions and removals (Eqs. 16-17)
-// without an O(K^2) scan per removal: every point keeps its nearest neighbour;
-// an ordered set of (distance, point) yields the closest pair in O(log K).
-// Insert is O(K); Remove is O(K) per point whose neighbour was removed.
+// without an O(K^2) scan per removal: every point keeps its nearest neighbour
+// (and knows which points keep it as theirs); an ordered set of
+// (distance, point) yields the closest pair in O(log K).
+//
+// Below ClosestPairOptions::exact_below points the neighbours are found by
+// exact scans: Insert is O(K); Remove is O(K) per point whose neighbour was
+// removed; the pair is the exact closest pair. From exact_below points on
+// they are found through an HNSW graph over the points (hnswlib): Insert and
+// Remove cost O(log K) distance computations each, and the pair is the
+// closest pair up to the graph's recall (a point whose nearest neighbour the
+// new point becomes is only updated if it is among the new point's
+// `reverse_candidates` approximate nearest neighbours). bench/forgetting_bench
+// measures both against each other; docs/performance.md gives the agreement.
 #ifndef FLEETMEM_SERVICES_CORE_CLOSEST_PAIR_H_
 #define FLEETMEM_SERVICES_CORE_CLOSEST_PAIR_H_
 
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <set>
 #include <unordered_map>
 #include <utility>
+#include <vector>
 
 #include "Eigen/Core"
 
 namespace fleetmem::core {
+
+struct ClosestPairOptions {
+  // Exact scans below this many points; the HNSW graph from it on (the
+  // graph is dropped again below exact_below / 2). The default is where the
+  // graph's update cost falls below the scans' (bench/forgetting_bench).
+  size_t exact_below = 2048;
+  // HNSW graph: links per node, candidate list while building and while
+  // searching.
+  size_t hnsw_m = 16;
+  size_t hnsw_ef_construction = 100;
+  size_t hnsw_ef_search = 64;
+  // Approximate neighbours of a new point checked for points whose nearest
+  // neighbour it becomes.
+  size_t reverse_candidates = 32;
+  // Seed of the graph's level generator (runs are reproducible).
+  uint64_t seed = 42;
+};
 
 class ClosestPairTracker {
  public:
@@ -23,6 +52,13 @@ class ClosestPairTracker {
     double distance = 0.0;
   };
 
+  explicit ClosestPairTracker(ClosestPairOptions options = {});
+  ~ClosestPairTracker();
+  ClosestPairTracker(const ClosestPairTracker& other);
+  ClosestPairTracker& operator=(const ClosestPairTracker& other);
+  ClosestPairTracker(ClosestPairTracker&&) noexcept;
+  ClosestPairTracker& operator=(ClosestPairTracker&&) noexcept;
+
   // Adds a point; `id` must not be present. All points have one dimension.
   void Insert(uint64_t id, const Eigen::VectorXf& point);
   // Removes a point if present.
@@ -31,17 +67,37 @@ class ClosestPairTracker {
   // nullopt with fewer than two points.
   std::optional<Pair> Closest() const;
   size_t size() const { return points_.size(); }
+  // True while neighbours are found through the HNSW graph.
+  bool approximate() const { return graph_ != nullptr; }
 
  private:
+  struct Graph;  // hnswlib, kept out of this header
   struct Entry {
     Eigen::VectorXf point;
     uint64_t neighbour = 0;
     double distance = 0.0;
+    bool has_neighbour = false;
+    // Points whose neighbour this one is.
+    std::vector<uint64_t> keepers;
+    uint32_t slot = 0;  // label in the graph
   };
+  // Makes `neighbour` (at `distance`) the neighbour of `id`.
+  void SetNeighbour(uint64_t id, Entry& entry, uint64_t neighbour,
+                    double distance);
+  void ClearNeighbour(uint64_t id, Entry& entry);
+  // Finds the neighbour of `id` again (exact scan or graph search).
   void Recompute(uint64_t id, Entry& entry);
+  // Candidate neighbours of `point` among the other points: all of them, or
+  // the graph's `count` approximate nearest.
+  std::vector<uint64_t> Candidates(const Eigen::VectorXf& point,
+                                   size_t count) const;
+  void BuildGraph();
+  void AddToGraph(uint64_t id, Entry& entry);
 
+  ClosestPairOptions options_;
   std::unordered_map<uint64_t, Entry> points_;
   std::set<std::pair<double, uint64_t>> by_distance_;  // (distance, id)
+  std::unique_ptr<Graph> graph_;
 };
 
 }  // namespace fleetmem::core

@@ -127,5 +127,56 @@ TEST(ClosestPairTrackerTest, RemovingDownToEmpty) {
   EXPECT_EQ(tracker.size(), 0u);
 }
 
+
+// Above exact_below the tracker answers through its HNSW graph: the pair is
+// approximate, but the bookkeeping must stay consistent (sizes, removals down
+// to the exact regime again) and the pair close to the true one.
+TEST(ClosestPairTrackerTest, GraphModeAgreesWithBruteForceMostly) {
+  ClosestPairOptions options;
+  options.exact_below = 64;
+  ClosestPairTracker tracker(options);
+  std::map<uint64_t, Eigen::VectorXf> reference;
+  std::mt19937_64 rng(23);
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  uint64_t next_id = 1;
+  auto insert = [&] {
+    Eigen::VectorXf p(16);
+    for (int d = 0; d < 16; ++d) p[d] = gauss(rng);
+    tracker.Insert(next_id, p);
+    reference[next_id++] = p;
+  };
+  for (int i = 0; i < 300; ++i) insert();
+  EXPECT_TRUE(tracker.approximate());
+  int same = 0, steps = 0;
+  // Forgetting-like churn: insert a few, remove a member of the closest pair.
+  for (int step = 0; step < 200; ++step) {
+    insert();
+    const auto got = tracker.Closest();
+    const auto want = BruteForce(reference);
+    ASSERT_TRUE(got.has_value());
+    ++steps;
+    if (got->a == want->a && got->b == want->b) ++same;
+    // Never closer than the true closest pair, and a real pair of points.
+    EXPECT_GE(got->distance, want->distance);
+    EXPECT_FLOAT_EQ(static_cast<float>(got->distance),
+                    (reference.at(got->a) - reference.at(got->b)).norm());
+    tracker.Remove(got->a);
+    reference.erase(got->a);
+    ASSERT_EQ(tracker.size(), reference.size());
+  }
+  EXPECT_GE(same, steps * 9 / 10) << same << " of " << steps;
+  // Back below exact_below / 2: exact again, and exactly right.
+  while (reference.size() > 20) {
+    const uint64_t id = reference.begin()->first;
+    tracker.Remove(id);
+    reference.erase(id);
+  }
+  EXPECT_FALSE(tracker.approximate());
+  ExpectSame(tracker.Closest(), BruteForce(reference), -1);
+  // A copy answers like the original.
+  ClosestPairTracker copy = tracker;
+  ExpectSame(copy.Closest(), tracker.Closest(), -2);
+}
+
 }  // namespace
 }  // namespace fleetmem::core

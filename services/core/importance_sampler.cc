@@ -66,4 +66,91 @@ std::vector<size_t> SampleWithoutReplacement(std::span<const double> weights,
   return drawn;
 }
 
+void WeightedSampler::SumTree::Set(size_t slot, double value) {
+  if (slot >= leaves_) {
+    size_t leaves = std::max<size_t>(leaves_, 16);
+    while (leaves <= slot) leaves *= 2;
+    std::vector<double> nodes(2 * leaves, 0.0);
+    for (size_t i = 0; i < leaves_; ++i) nodes[leaves + i] = nodes_[leaves_ + i];
+    for (size_t i = leaves - 1; i >= 1; --i) {
+      nodes[i] = nodes[2 * i] + nodes[2 * i + 1];
+    }
+    leaves_ = leaves;
+    nodes_ = std::move(nodes);
+  }
+  size_t node = leaves_ + slot;
+  nodes_[node] = value;
+  for (node /= 2; node >= 1; node /= 2) {
+    nodes_[node] = nodes_[2 * node] + nodes_[2 * node + 1];
+  }
+}
+
+double WeightedSampler::SumTree::Get(size_t slot) const {
+  return slot < leaves_ ? nodes_[leaves_ + slot] : 0.0;
+}
+
+size_t WeightedSampler::SumTree::Find(double target) const {
+  size_t node = 1;
+  while (node < leaves_) {
+    const double left = nodes_[2 * node];
+    const double right = nodes_[2 * node + 1];
+    // Rounding can leave `target` at or past the left sum when the right
+    // subtree is empty: stay on the side that holds weight.
+    if ((target < left && left > 0.0) || right <= 0.0) {
+      node = 2 * node;
+    } else {
+      target -= left;
+      node = 2 * node + 1;
+    }
+  }
+  return node - leaves_;
+}
+
+void WeightedSampler::Set(size_t slot, double weight) {
+  const bool was = positive_.Get(slot) > 0.0 || zero_.Get(slot) > 0.0;
+  if (weight > 0.0) {
+    // An infinite weight is drawn first among finite ones; keep the sums
+    // finite.
+    positive_.Set(slot, std::min(weight, std::numeric_limits<double>::max() /
+                                             (1ull << 40)));
+    if (zero_.Get(slot) > 0.0) zero_.Set(slot, 0.0);
+  } else {
+    zero_.Set(slot, 1.0);
+    if (positive_.Get(slot) > 0.0) positive_.Set(slot, 0.0);
+  }
+  if (!was) ++size_;
+}
+
+void WeightedSampler::Clear(size_t slot) {
+  const bool was = positive_.Get(slot) > 0.0 || zero_.Get(slot) > 0.0;
+  if (positive_.Get(slot) > 0.0) positive_.Set(slot, 0.0);
+  if (zero_.Get(slot) > 0.0) zero_.Set(slot, 0.0);
+  if (was) --size_;
+}
+
+std::vector<size_t> WeightedSampler::Draw(size_t count, std::mt19937_64& rng) {
+  count = std::min(count, size_);
+  std::vector<size_t> drawn;
+  drawn.reserve(count);
+  // Drawn slots leave their tree until the end (without replacement).
+  std::vector<std::pair<size_t, double>> taken_positive;
+  std::vector<size_t> taken_zero;
+  while (drawn.size() < count) {
+    SumTree& tree = positive_.Total() > 0.0 ? positive_ : zero_;
+    const double total = tree.Total();
+    if (total <= 0.0) break;
+    const size_t slot = tree.Find(UniformOpen01(rng) * total);
+    if (&tree == &positive_) {
+      taken_positive.emplace_back(slot, tree.Get(slot));
+    } else {
+      taken_zero.push_back(slot);
+    }
+    tree.Set(slot, 0.0);
+    drawn.push_back(slot);
+  }
+  for (const auto& [slot, weight] : taken_positive) positive_.Set(slot, weight);
+  for (size_t slot : taken_zero) zero_.Set(slot, 1.0);
+  return drawn;
+}
+
 }  // namespace fleetmem::core

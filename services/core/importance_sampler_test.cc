@@ -154,5 +154,97 @@ TEST(SampleWithoutReplacementTest, DecayLowersChanceOfReplayedItems) {
   }
 }
 
+TEST(WeightedSamplerTest, DrawsDistinctSlotsAndKeepsWeights) {
+  WeightedSampler sampler;
+  const std::vector<double> weights = {1, 5, 0.1, 2, 3, 8, 1e-6};
+  for (size_t i = 0; i < weights.size(); ++i) sampler.Set(i, weights[i]);
+  EXPECT_EQ(sampler.size(), weights.size());
+  std::mt19937_64 rng(3);
+  for (size_t count : {0u, 1u, 3u, 7u, 100u}) {
+    const std::vector<size_t> drawn = sampler.Draw(count, rng);
+    EXPECT_EQ(drawn.size(), std::min<size_t>(count, weights.size()));
+    EXPECT_EQ(std::set<size_t>(drawn.begin(), drawn.end()).size(),
+              drawn.size());
+    for (size_t i : drawn) EXPECT_LT(i, weights.size());
+  }
+  EXPECT_EQ(sampler.size(), weights.size());
+  sampler.Clear(5);
+  sampler.Clear(5);  // twice: no-op
+  EXPECT_EQ(sampler.size(), weights.size() - 1);
+  for (int trial = 0; trial < 200; ++trial) {
+    for (size_t slot : sampler.Draw(3, rng)) EXPECT_NE(slot, 5u);
+  }
+}
+
+// The first two draws of successive sampling from weights {1, 2, 3, 4}: the
+// sum tree must give the same joint distribution as the closed form
+// P(i then j) = w_i / W * w_j / (W - w_i).
+TEST(WeightedSamplerTest, SuccessiveSamplingDistribution) {
+  const std::vector<double> weights = {1, 2, 3, 4};
+  WeightedSampler sampler;
+  for (size_t i = 0; i < weights.size(); ++i) sampler.Set(i, weights[i]);
+  std::mt19937_64 rng(11);
+  const int trials = 40000;
+  std::vector<int> observed(16, 0);
+  for (int t = 0; t < trials; ++t) {
+    const std::vector<size_t> drawn = sampler.Draw(2, rng);
+    ++observed[drawn[0] * 4 + drawn[1]];
+  }
+  std::vector<int> counts;
+  std::vector<double> probabilities;
+  for (size_t i = 0; i < 4; ++i) {
+    for (size_t j = 0; j < 4; ++j) {
+      if (i == j) {
+        EXPECT_EQ(observed[i * 4 + j], 0);
+        continue;
+      }
+      counts.push_back(observed[i * 4 + j]);
+      probabilities.push_back(weights[i] / 10.0 * weights[j] /
+                              (10.0 - weights[i]));
+    }
+  }
+  // 11 degrees of freedom: chi-square 99.9th percentile is 31.3.
+  EXPECT_LT(ChiSquare(counts, probabilities, trials), 31.3);
+}
+
+TEST(WeightedSamplerTest, ZeroWeightsComeLastAndUniform) {
+  WeightedSampler sampler;
+  sampler.Set(0, 0.0);
+  sampler.Set(1, std::numeric_limits<double>::quiet_NaN());
+  sampler.Set(2, 1.0);
+  sampler.Set(3, -1.0);
+  std::mt19937_64 rng(5);
+  std::vector<int> first_zero(4, 0);
+  for (int t = 0; t < 3000; ++t) {
+    const std::vector<size_t> drawn = sampler.Draw(4, rng);
+    ASSERT_EQ(drawn.size(), 4u);
+    EXPECT_EQ(drawn[0], 2u);
+    ++first_zero[drawn[1]];
+  }
+  for (size_t slot : {0u, 1u, 3u}) {
+    EXPECT_GT(first_zero[slot], 850);
+    EXPECT_LT(first_zero[slot], 1150);
+  }
+  // A weight that becomes positive moves out of the lower tier.
+  sampler.Set(0, 5.0);
+  EXPECT_EQ(sampler.size(), 4u);
+  const std::vector<size_t> drawn = sampler.Draw(2, rng);
+  EXPECT_EQ(std::set<size_t>(drawn.begin(), drawn.end()),
+            (std::set<size_t>{0, 2}));
+}
+
+TEST(WeightedSamplerTest, GrowsAndReusesSlots) {
+  WeightedSampler sampler;
+  for (size_t i = 0; i < 1000; ++i) sampler.Set(i, 1.0 + i % 7);
+  for (size_t i = 0; i < 1000; i += 2) sampler.Clear(i);
+  EXPECT_EQ(sampler.size(), 500u);
+  std::mt19937_64 rng(9);
+  const std::vector<size_t> all = sampler.Draw(1000, rng);
+  ASSERT_EQ(all.size(), 500u);
+  for (size_t slot : all) EXPECT_EQ(slot % 2, 1u);
+  sampler.Set(4000, 2.0);
+  EXPECT_EQ(sampler.size(), 501u);
+}
+
 }  // namespace
 }  // namespace fleetmem::core

@@ -41,6 +41,10 @@ absl::Status ValidateMemoryOptions(const MemoryOptions& options) {
     return OutOfRange("kmeans_max_iterations", options.kmeans_max_iterations,
                       ">= 1");
   }
+  if (options.forgetting_exact_below < 2) {
+    return OutOfRange("forgetting_exact_below", options.forgetting_exact_below,
+                      ">= 2");
+  }
   return absl::OkStatus();
 }
 

@@ -30,6 +30,11 @@ struct MemoryOptions {
   int kmeans_max_iterations = 50;
   // Seed of the k-means++ random generator (runs are reproducible).
   uint64_t seed = 42;
+  // Forgetting's closest pair of centroids is found by exact scans while
+  // fewer clusters than this are held, and through an HNSW graph over the
+  // centroids from then on (ClosestPairTracker; approximate, O(log K) per
+  // change instead of O(K)). The paper's memory (K_max = 100) stays exact.
+  int forgetting_exact_below = 2048;
 };
 
 // OK if every field is in range; otherwise INVALID_ARGUMENT naming the field.

@@ -41,8 +41,21 @@ Eigen::VectorXf ToVector(const std::vector<float>& values) {
 
 }  // namespace
 
+namespace {
+
+ClosestPairOptions ClosestPairOptionsFor(const MemoryOptions& options) {
+  ClosestPairOptions closest;
+  closest.exact_below =
+      static_cast<size_t>(std::max(options.forgetting_exact_below, 2));
+  closest.seed = options.seed;
+  return closest;
+}
+
+}  // namespace
+
 StaticMemory::StaticMemory(MemoryOptions options)
-    : options_(std::move(options)) {}
+    : options_(std::move(options)),
+      centroids_(ClosestPairOptionsFor(options_)) {}
 
 void StaticMemory::Restore(Cluster cluster) {
   if (cluster.centroid.empty() && !cluster.traces.empty()) {
@@ -105,47 +118,61 @@ ConsolidationResult StaticMemory::Consolidate(std::vector<MemoryTrace> batch,
 
 std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
                                                        std::mt19937_64& rng) {
-  std::vector<MemoryTrace*> all;
-  all.reserve(trace_count_);
-  for (auto& [id, cluster] : clusters_) {
-    for (MemoryTrace& trace : cluster.traces) all.push_back(&trace);
-  }
-  std::vector<double> weights(all.size());
-  for (size_t i = 0; i < all.size(); ++i) {
-    weights[i] = ReplayWeight(all[i]->reward, all[i]->replay_count,
-                              options_.replay_decay, options_.reward_floor);
-  }
-  const std::vector<size_t> drawn =
-      SampleWithoutReplacement(weights, count, rng);
+  const std::vector<size_t> drawn = replay_.Draw(count, rng);
   std::vector<MemoryTrace> out;
   out.reserve(drawn.size());
-  for (size_t index : drawn) {
-    MemoryTrace& trace = *all[index];
+  for (size_t slot : drawn) {
+    MemoryTrace& trace = *slot_trace_[slot];
     if (trace.replay_count < std::numeric_limits<uint32_t>::max()) {
       ++trace.replay_count;
     }
+    replay_.Set(slot, ReplayWeight(trace.reward, trace.replay_count,
+                                   options_.replay_decay,
+                                   options_.reward_floor));
     out.push_back(trace);
   }
   return out;
 }
 
 const MemoryTrace* StaticMemory::Find(const TraceKey& key) const {
-  auto owner = cluster_of_.find(key);
-  if (owner == cluster_of_.end()) return nullptr;
-  auto cluster = clusters_.find(owner->second);
-  if (cluster == clusters_.end()) return nullptr;
-  for (const MemoryTrace& trace : cluster->second.traces) {
-    if (trace.seq == key.seq && trace.robot_id == key.robot_id) return &trace;
-  }
-  return nullptr;
+  auto found = location_.find(key);
+  if (found == location_.end()) return nullptr;
+  return slot_trace_[found->second.slot];
 }
+
+namespace {
+
+void Count(std::map<std::string, uint64_t, std::less<>>& counts,
+           const std::string& key, int64_t delta) {
+  auto [it, inserted] = counts.try_emplace(key, 0);
+  it->second += static_cast<uint64_t>(delta);
+  if (it->second == 0) counts.erase(it);
+}
+
+}  // namespace
 
 void StaticMemory::Insert(Cluster cluster) {
   const uint64_t id = cluster.id;
-  trace_count_ += cluster.traces.size();
-  for (const MemoryTrace& trace : cluster.traces) cluster_of_[trace.key()] = id;
   centroids_.Insert(id, ToVector(cluster.centroid));
-  clusters_.emplace(id, std::move(cluster));
+  Cluster& stored = clusters_.emplace(id, std::move(cluster)).first->second;
+  trace_count_ += stored.traces.size();
+  for (MemoryTrace& trace : stored.traces) {
+    uint32_t slot;
+    if (!free_slots_.empty()) {
+      slot = free_slots_.back();
+      free_slots_.pop_back();
+    } else {
+      slot = static_cast<uint32_t>(slot_trace_.size());
+      slot_trace_.push_back(nullptr);
+    }
+    slot_trace_[slot] = &trace;
+    replay_.Set(slot, ReplayWeight(trace.reward, trace.replay_count,
+                                   options_.replay_decay,
+                                   options_.reward_floor));
+    location_[trace.key()] = Location{id, slot};
+    Count(traces_by_robot_, trace.robot_id, 1);
+    Count(traces_by_domain_, trace.domain, 1);
+  }
 }
 
 Cluster StaticMemory::Erase(uint64_t cluster_id) {
@@ -154,10 +181,15 @@ Cluster StaticMemory::Erase(uint64_t cluster_id) {
   Cluster cluster = std::move(node.mapped());
   trace_count_ -= cluster.traces.size();
   for (const MemoryTrace& trace : cluster.traces) {
-    auto it = cluster_of_.find(trace.key());
-    if (it != cluster_of_.end() && it->second == cluster_id) {
-      cluster_of_.erase(it);
+    auto it = location_.find(trace.key());
+    if (it != location_.end() && it->second.cluster_id == cluster_id) {
+      replay_.Clear(it->second.slot);
+      slot_trace_[it->second.slot] = nullptr;
+      free_slots_.push_back(it->second.slot);
+      location_.erase(it);
     }
+    Count(traces_by_robot_, trace.robot_id, -1);
+    Count(traces_by_domain_, trace.domain, -1);
   }
   centroids_.Remove(cluster_id);
   return cluster;

@@ -8,10 +8,12 @@
 #include <cstdint>
 #include <map>
 #include <random>
+#include <string>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
 #include "services/core/closest_pair.h"
+#include "services/core/importance_sampler.h"
 #include "services/core/memory_options.h"
 #include "services/core/types.h"
 
@@ -56,7 +58,8 @@ class StaticMemory {
 
   // Refresh (Eq. 18): draws up to `count` distinct traces with weight
   // gamma^n * R, increments their replay_count and returns copies of them
-  // (with the new counts), in draw order.
+  // (with the new counts), in draw order. O(count log trace_count()): the
+  // weights live in a sum tree kept up to date by every change.
   std::vector<MemoryTrace> SampleForReplay(size_t count, std::mt19937_64& rng);
 
   // The trace with this key, or nullptr. Valid until the next mutation.
@@ -65,6 +68,15 @@ class StaticMemory {
   // Clusters by id (ascending = oldest first).
   const std::map<uint64_t, Cluster>& clusters() const { return clusters_; }
   size_t trace_count() const { return trace_count_; }
+  // Traces held per robot and per domain (kept up to date by every change,
+  // so statistics cost O(robots + domains), not O(traces)).
+  const std::map<std::string, uint64_t, std::less<>>& traces_by_robot() const {
+    return traces_by_robot_;
+  }
+  const std::map<std::string, uint64_t, std::less<>>& traces_by_domain()
+      const {
+    return traces_by_domain_;
+  }
   const MemoryOptions& options() const { return options_; }
 
  private:
@@ -73,11 +85,25 @@ class StaticMemory {
   // Algorithm 2: removes clusters until at most K_max remain.
   std::vector<Cluster> Forget();
 
+  // Where a trace is: its cluster and its slot in the replay sampler.
+  struct Location {
+    uint64_t cluster_id = 0;
+    uint32_t slot = 0;
+  };
+
   MemoryOptions options_;
   std::map<uint64_t, Cluster> clusters_;
-  absl::flat_hash_map<TraceKey, uint64_t> cluster_of_;  // trace -> cluster
+  absl::flat_hash_map<TraceKey, Location> location_;
   ClosestPairTracker centroids_;
   size_t trace_count_ = 0;
+  // Replay weights by slot; slot_trace_[slot] is the trace (nodes of
+  // clusters_ do not move, nor do their traces once inserted). Freed slots
+  // are reused last-in first-out.
+  WeightedSampler replay_;
+  std::vector<MemoryTrace*> slot_trace_;
+  std::vector<uint32_t> free_slots_;
+  std::map<std::string, uint64_t, std::less<>> traces_by_robot_;
+  std::map<std::string, uint64_t, std::less<>> traces_by_domain_;
 };
 
 }  // namespace fleetmem::core

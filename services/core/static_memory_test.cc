@@ -1,6 +1,7 @@
 #include "services/core/static_memory.h"
 
 #include <algorithm>
+#include <map>
 #include <random>
 #include <set>
 
@@ -61,8 +62,13 @@ void ExpectInvariants(const StaticMemory& memory) {
   const MemoryOptions& o = memory.options();
   EXPECT_LE(memory.clusters().size(), static_cast<size_t>(o.max_clusters));
   size_t traces = 0;
+  std::map<std::string, uint64_t, std::less<>> by_robot, by_domain;
   for (const auto& [id, cluster] : memory.clusters()) {
     EXPECT_EQ(cluster.id, id);
+    for (const MemoryTrace& t : cluster.traces) {
+      ++by_robot[t.robot_id];
+      ++by_domain[t.domain];
+    }
     if (o.clustering) {
       EXPECT_LE(cluster.traces.size(),
                 static_cast<size_t>(o.max_traces_per_cluster));
@@ -75,6 +81,9 @@ void ExpectInvariants(const StaticMemory& memory) {
     traces += cluster.traces.size();
   }
   EXPECT_EQ(memory.trace_count(), traces);
+  // The incrementally kept counts equal a walk over every trace.
+  EXPECT_EQ(memory.traces_by_robot(), by_robot);
+  EXPECT_EQ(memory.traces_by_domain(), by_domain);
 }
 
 TEST(StaticMemoryTest, EmptyBatchChangesNothing) {

@@ -247,6 +247,9 @@ struct MemoryEngine::Fleet {
       ABSL_GUARDED_BY(mu);
   absl::flat_hash_map<core::TraceKey, size_t> pending_position
       ABSL_GUARDED_BY(mu);
+  // Pending traces per domain (statistics without walking the traces).
+  std::map<std::string, uint64_t, std::less<>> pending_by_domain
+      ABSL_GUARDED_BY(mu);
   std::map<std::string, RobotRecord, std::less<>> robots ABSL_GUARDED_BY(mu);
   // Index of the normalised codes of the static memory's and the pending
   // traces under handles; null until the code dimension is known.
@@ -289,6 +292,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   memory = core::StaticMemory(engine->MemoryOptionsFor(id));
   pending.clear();
   pending_position.clear();
+  pending_by_domain.clear();
   robots.clear();
   index.reset();
   handle_of.clear();
@@ -335,6 +339,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
 void MemoryEngine::Fleet::AddPending(core::MemoryTrace trace) {
   std::vector<core::MemoryTrace>& robot_pending = pending[trace.robot_id];
   pending_position[trace.key()] = robot_pending.size();
+  ++pending_by_domain[trace.domain];
   robot_pending.push_back(std::move(trace));
 }
 
@@ -507,6 +512,10 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
   pending.erase(found);
   for (const core::MemoryTrace& trace : batch) {
     pending_position.erase(trace.key());
+    auto domain = pending_by_domain.find(trace.domain);
+    if (domain != pending_by_domain.end() && --domain->second == 0) {
+      pending_by_domain.erase(domain);
+    }
   }
 
   FleetMutation mutation;
@@ -686,18 +695,19 @@ FleetStats MemoryEngine::Fleet::Stats() const {
     robot.received = record.received.size();
     robot.replayed = record.replayed;
   }
-  for (const auto& [cluster_id, cluster] : memory.clusters()) {
-    for (const core::MemoryTrace& trace : cluster.traces) {
-      ++robot_stats(trace.robot_id).traces;
-      ++domain_stats(trace.domain).traces;
-    }
+  // O(robots + domains): the counts are kept up to date by every change.
+  for (const auto& [robot_id, count] : memory.traces_by_robot()) {
+    robot_stats(robot_id).traces = count;
+  }
+  for (const auto& [domain, count] : memory.traces_by_domain()) {
+    domain_stats(domain).traces = count;
   }
   for (const auto& [robot_id, traces] : pending) {
     stats.pending_traces += traces.size();
     robot_stats(robot_id).pending_traces += traces.size();
-    for (const core::MemoryTrace& trace : traces) {
-      ++domain_stats(trace.domain).pending_traces;
-    }
+  }
+  for (const auto& [domain, count] : pending_by_domain) {
+    domain_stats(domain).pending_traces = count;
   }
   for (auto& [robot_id, robot] : by_robot) {
     stats.robots.push_back(std::move(robot));

@@ -36,6 +36,14 @@ class ExactIndex final : public engine::PlaceIndex {
   size_t size() const override { return ids_.size(); }
   size_t dimension() const override { return dimension_; }
 
+  void ForEach(const std::function<void(uint64_t, std::span<const float>)>&
+                   visit) const {
+    for (size_t column = 0; column < ids_.size(); ++column) {
+      visit(ids_[column],
+            std::span<const float>(vectors_.col(column).data(), dimension_));
+    }
+  }
+
  private:
   // Grows the storage to hold `count` vectors (doubling); may throw
   // std::bad_alloc and then leaves the stored vectors unchanged.
@@ -178,6 +186,14 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
 }
 
 }  // namespace
+
+void ForEachExactVector(
+    const engine::PlaceIndex& index,
+    const std::function<void(uint64_t, std::span<const float>)>& visit) {
+  if (const auto* exact = dynamic_cast<const ExactIndex*>(&index)) {
+    exact->ForEach(visit);
+  }
+}
 
 std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension) {
   return std::make_unique<ExactIndex>(dimension);

@@ -4,7 +4,10 @@
 #define FLEETMEM_SERVICES_INDEX_EXACT_INDEX_H_
 
 #include <cstddef>
+#include <cstdint>
+#include <functional>
 #include <memory>
+#include <span>
 
 #include "services/engine/place_index.h"
 
@@ -26,6 +29,12 @@ namespace fleetmem::index {
 // ids.size() != vectors.size(). Out of memory is RESOURCE_EXHAUSTED and
 // changes nothing. Thread-safety as in engine::PlaceIndex.
 std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension);
+
+// Calls visit(id, vector) for every vector of an index made by NewExactIndex
+// (in storage order); does nothing for another kind of index.
+void ForEachExactVector(
+    const engine::PlaceIndex& index,
+    const std::function<void(uint64_t, std::span<const float>)>& visit);
 
 }  // namespace fleetmem::index
 

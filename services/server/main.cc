@@ -39,6 +39,7 @@
 #include "services/http/rest_gateway.h"
 #include "services/index/exact_index.h"
 #include "services/index/flann_index.h"
+#include "services/index/hnsw_index.h"
 #include "services/observability/metrics.h"
 #include "services/server/server_config.h"
 #include "services/storage/rocksdb_store.h"
@@ -55,6 +56,14 @@ engine::PlaceIndexFactory MakeIndexFactory(const ServerConfig& config) {
     case IndexKind::kFlann:
       return [options = config.flann](size_t dimension) {
         return index::NewFlannIndex(dimension, options);
+      };
+    case IndexKind::kHnsw:
+      return [options = config.tiered.hnsw](size_t dimension) {
+        return index::NewHnswIndex(dimension, options);
+      };
+    case IndexKind::kAuto:
+      return [options = config.tiered](size_t dimension) {
+        return index::NewTieredIndex(dimension, options);
       };
     case IndexKind::kExact:
       break;

@@ -32,7 +32,7 @@ absl::Status ApplyIndex(std::string_view what, std::string_view text,
   if (!ParseIndexKind(text, &config->index)) {
     return absl::InvalidArgumentError(
         absl::StrCat(std::string(what), ": unknown index \"", std::string(text),
-                     "\" (want exact or flann)"));
+                     "\" (want auto, exact, hnsw or flann)"));
   }
   return absl::OkStatus();
 }
@@ -53,6 +53,9 @@ void ApplyMemory(const MemoryConfig& in, core::MemoryOptions* out) {
     out->kmeans_max_iterations = in.kmeans_max_iterations();
   }
   if (in.has_seed()) out->seed = in.seed();
+  if (in.has_forgetting_exact_below()) {
+    out->forgetting_exact_below = in.forgetting_exact_below();
+  }
 }
 
 void ApplyEngine(const EngineConfig& in, engine::EngineOptions* out) {
@@ -115,6 +118,13 @@ void ApplyStorage(const StorageConfig& in, storage::RocksDbStoreOptions* out) {
   if (in.has_min_free_bytes()) out->min_free_bytes = in.min_free_bytes();
 }
 
+void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
+  if (in.has_m()) out->hnsw.m = in.m();
+  if (in.has_ef_construction()) out->hnsw.ef_construction = in.ef_construction();
+  if (in.has_ef_search()) out->hnsw.ef_search = in.ef_search();
+  if (in.has_hnsw_from()) out->hnsw_from = in.hnsw_from();
+}
+
 void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
   if (in.has_trees()) out->trees = in.trees();
   if (in.has_checks()) out->checks = in.checks();
@@ -172,7 +182,7 @@ const FlagSpec kFlags[] = {
     {"log-level", &CommandLine::log_level, "LEVEL",
      "debug, info, warning or error (default info)"},
     {"index", &CommandLine::index, "KIND",
-     "place index: exact or flann (default exact)"},
+     "place index: auto, exact, hnsw or flann (default auto)"},
     {"auth-file", &CommandLine::auth_file, "FILE",
      "credentials file (services/auth/credentials.proto): turns auth on; "
      "re-read on SIGHUP"},
@@ -204,8 +214,12 @@ std::optional<int> ListenPort(std::string_view listen) {
 }  // namespace
 
 bool ParseIndexKind(std::string_view text, IndexKind* kind) {
-  if (text == "exact") {
+  if (text == "auto") {
+    *kind = IndexKind::kAuto;
+  } else if (text == "exact") {
     *kind = IndexKind::kExact;
+  } else if (text == "hnsw") {
+    *kind = IndexKind::kHnsw;
   } else if (text == "flann") {
     *kind = IndexKind::kFlann;
   } else {
@@ -216,8 +230,12 @@ bool ParseIndexKind(std::string_view text, IndexKind* kind) {
 
 std::string_view IndexKindName(IndexKind kind) {
   switch (kind) {
+    case IndexKind::kAuto:
+      return "auto";
     case IndexKind::kExact:
       return "exact";
+    case IndexKind::kHnsw:
+      return "hnsw";
     case IndexKind::kFlann:
       return "flann";
   }
@@ -332,6 +350,7 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   ApplyEngine(file.engine(), &config->engine);
   ApplyStorage(file.storage(), &config->storage);
   ApplyFlann(file.flann(), &config->flann);
+  ApplyHnsw(file.hnsw(), &config->tiered);
   ApplySecurity(file.security(), &config->security);
   ApplyLimits(file.limits(), &config->engine.limits, &config->service);
   return absl::OkStatus();
@@ -384,6 +403,17 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
   }
   if (config.work.max_queued == 0) {
     return absl::InvalidArgumentError("max_queued_calls: must be positive");
+  }
+  if (config.tiered.hnsw.m < 2 || config.tiered.hnsw.m > 256) {
+    return absl::InvalidArgumentError("hnsw.m: must be in 2..256");
+  }
+  if (config.tiered.hnsw.ef_construction < 1 ||
+      config.tiered.hnsw.ef_search < 1) {
+    return absl::InvalidArgumentError(
+        "hnsw.ef_construction and hnsw.ef_search: must be positive");
+  }
+  if (config.tiered.hnsw_from < 2) {
+    return absl::InvalidArgumentError("hnsw.hnsw_from: must be at least 2");
   }
   if (config.work.threads > 1024) {
     return absl::InvalidArgumentError("worker_threads: at most 1024");
@@ -520,6 +550,13 @@ std::string DescribeConfig(const ServerConfig& config) {
           ? "off"
           : (config.security.require_client_certificate ? "required"
                                                         : "optional"));
+  if (config.index == IndexKind::kAuto || config.index == IndexKind::kHnsw) {
+    absl::StrAppend(&out, " hnsw_m=", config.tiered.hnsw.m,
+                    " hnsw_ef_search=", config.tiered.hnsw.ef_search);
+    if (config.index == IndexKind::kAuto) {
+      absl::StrAppend(&out, " hnsw_from=", config.tiered.hnsw_from);
+    }
+  }
   if (config.index == IndexKind::kFlann) {
     absl::StrAppend(&out, " flann_trees=", config.flann.trees,
                     " flann_checks=", config.flann.checks);

@@ -14,19 +14,22 @@
 #include "services/common/log.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/flann_index.h"
+#include "services/index/hnsw_index.h"
 #include "services/storage/rocksdb_store.h"
 #include "services/transport/service_state.h"
 #include "services/transport/work_queue.h"
 
 namespace fleetmem::server {
 
-enum class IndexKind { kExact, kFlann };
+enum class IndexKind { kAuto, kExact, kHnsw, kFlann };
 
-// The place index used when neither file nor flag names one. Exact is the
-// reference (recall 1); switch here if the index benchmark favours FLANN.
-inline constexpr IndexKind kDefaultIndex = IndexKind::kExact;
+// The place index used when neither file nor flag names one: exact (recall
+// 1) while a fleet is small, HNSW from tiered.hnsw_from traces on, where the
+// exact scan grows slower than the graph at the recall docs/performance.md
+// states.
+inline constexpr IndexKind kDefaultIndex = IndexKind::kAuto;
 
-// "exact" / "flann"; false for anything else.
+// "auto" / "exact" / "hnsw" / "flann"; false for anything else.
 bool ParseIndexKind(std::string_view text, IndexKind* kind);
 std::string_view IndexKindName(IndexKind kind);
 
@@ -63,6 +66,8 @@ struct ServerConfig {
   IndexKind index = kDefaultIndex;
   // Used when index is kFlann.
   index::FlannIndexOptions flann;
+  // Used when index is kAuto (kHnsw: its `hnsw` member).
+  index::TieredIndexOptions tiered;
   // Memory parameters and limits of the engine.
   engine::EngineOptions engine;
   // RocksDB tuning; `path` is ignored, the database is data_dir/db.

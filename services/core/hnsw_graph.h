@@ -1,0 +1,71 @@
+// An HNSW graph (hnswlib; Malkov & Yashunin 2018) over float vectors under
+// small integer slots, with removal: a removed slot's node is marked deleted
+// (it still routes searches) and the next Add reuses it, so memory stays
+// bounded by the most vectors held at once. The one translation unit that
+// includes hnswlib (its 0.6 headers define non-inline functions), shared by
+// forgetting's ClosestPairTracker and services/index's HNSW place index.
+// Deterministic: the same calls give the same graph. Not thread-safe for
+// writers; concurrent Search calls are safe.
+#ifndef FLEETMEM_SERVICES_CORE_HNSW_GRAPH_H_
+#define FLEETMEM_SERVICES_CORE_HNSW_GRAPH_H_
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <utility>
+#include <vector>
+
+namespace fleetmem::core {
+
+struct HnswGraphOptions {
+  // Links per node (2 x m on the base layer).
+  size_t m = 16;
+  // Candidate lists while inserting and while searching (at least k is used).
+  size_t ef_construction = 100;
+  size_t ef_search = 64;
+  // Seed of the level generator.
+  uint64_t seed = 42;
+  // Share of a reused node's old neighbours whose links are recomputed
+  // (hnswlib's replace-deleted repairs all of them, at ~30x an insert's cost).
+  float repair_probability = 0.1f;
+};
+
+class HnswGraph {
+ public:
+  HnswGraph(size_t dimension, HnswGraphOptions options);
+  ~HnswGraph();
+  HnswGraph(const HnswGraph&) = delete;
+  HnswGraph& operator=(const HnswGraph&) = delete;
+
+  // Room for `count` live vectors without reallocation. May throw
+  // std::bad_alloc (the graph is unchanged then).
+  void Reserve(size_t count);
+  // Adds `dimension` floats; returns the slot (a removed one if any, last
+  // removed first). May throw std::bad_alloc.
+  uint32_t Add(const float* vector);
+  // Removes a live slot.
+  void Remove(uint32_t slot);
+  // Up to k nearest live slots as (squared Euclidean distance, slot),
+  // nearest first.
+  std::vector<std::pair<float, uint32_t>> Search(const float* query,
+                                                 size_t k) const;
+  // Squared Euclidean distance between `query` and the vector of `slot`.
+  float SquaredDistance(const float* query, uint32_t slot) const;
+  // The stored vector of a live slot.
+  const float* Vector(uint32_t slot) const;
+  size_t size() const { return live_; }
+  size_t dimension() const { return dimension_; }
+
+ private:
+  struct Impl;
+  size_t dimension_;
+  HnswGraphOptions options_;
+  std::unique_ptr<Impl> impl_;
+  std::vector<uint32_t> free_slots_;
+  uint32_t next_slot_ = 0;
+  size_t live_ = 0;
+};
+
+}  // namespace fleetmem::core
+
+#endif  // FLEETMEM_SERVICES_CORE_HNSW_GRAPH_H_
