@@ -196,7 +196,7 @@ TEST(ServerConfigTest, BadFileText) {
       "listen: ",                     // syntax
       "no_such_field: 1",             // unknown field
       "memory { max_clusters: -x }",  // bad value
-      "index: \"hnsw\"",              // unknown index
+      "index: \"annoy\"",             // unknown index
       "log_level: \"loud\"",          // unknown level
   };
   for (const char* text : cases) {
