@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
+#include <limits>
 #include <new>
 #include <utility>
 #include <vector>
@@ -140,29 +141,38 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
     Eigen::VectorXf scores = vectors_.leftCols(count).transpose() * q;
     scores = (squared_norms_.head(count) - 2.0f * scores).array() + query_norm;
 
-    std::vector<size_t> candidates;
-    candidates.reserve(count);
+    // Each score is within `bound` of the true squared distance, so every
+    // true k-nearest vector scores at most kth + 2 * bound. Twice the
+    // textbook bound on the float dot-product and sum errors.
+    const double unit = dimension_ * static_cast<double>(FLT_EPSILON);
+    const double gamma = unit / (1.0 - unit);
+    const double bound = 2.0 * (2.0 * gamma + 4.0 * FLT_EPSILON) *
+                         (squared_norms_.head(count).maxCoeff() + query_norm);
+    // The k-th smallest accepted score, in one pass with a bounded max-heap
+    // (O(size log k); no per-vector allocation).
+    std::vector<float> heap;
+    heap.reserve(params.k + 1);
     for (size_t column = 0; column < count; ++column) {
-      if (!params.accept || params.accept(ids_[column])) {
-        candidates.push_back(column);
+      const float score = scores(column);
+      if (heap.size() == params.k && score >= heap.front()) continue;
+      if (params.accept && !params.accept(ids_[column])) continue;
+      heap.push_back(score);
+      std::push_heap(heap.begin(), heap.end());
+      if (heap.size() > params.k) {
+        std::pop_heap(heap.begin(), heap.end());
+        heap.pop_back();
       }
     }
-    if (candidates.size() > params.k) {
-      // Each score is within `bound` of the true squared distance, so every
-      // true k-nearest vector scores at most kth + 2 * bound. Twice the
-      // textbook bound on the float dot-product and sum errors.
-      const double unit = dimension_ * static_cast<double>(FLT_EPSILON);
-      const double gamma = unit / (1.0 - unit);
-      const double bound = 2.0 * (2.0 * gamma + 4.0 * FLT_EPSILON) *
-                           (squared_norms_.head(count).maxCoeff() + query_norm);
-      auto by_score = [&scores](size_t a, size_t b) {
-        return scores(a) < scores(b);
-      };
-      std::nth_element(candidates.begin(), candidates.begin() + params.k - 1,
-                       candidates.end(), by_score);
-      const double limit = scores(candidates[params.k - 1]) + 2.0 * bound;
-      std::erase_if(candidates,
-                    [&](size_t column) { return scores(column) > limit; });
+    if (heap.empty()) return std::vector<Neighbor>();
+    const double limit = heap.size() < params.k
+                             ? std::numeric_limits<double>::infinity()
+                             : heap.front() + 2.0 * bound;
+    std::vector<size_t> candidates;
+    for (size_t column = 0; column < count; ++column) {
+      if (scores(column) <= limit &&
+          (!params.accept || params.accept(ids_[column]))) {
+        candidates.push_back(column);
+      }
     }
 
     std::vector<std::pair<double, uint64_t>> exact;

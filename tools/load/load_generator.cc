@@ -69,7 +69,9 @@ LatencyLog::Summary LatencyLog::Take() {
   Summary summary;
   summary.count = taken.size();
   summary.p50 = Percentile(taken, 0.5);
+  summary.p90 = Percentile(taken, 0.9);
   summary.p99 = Percentile(taken, 0.99);
+  summary.p999 = Percentile(taken, 0.999);
   summary.max = taken.empty() ? 0 : taken.back();
   return summary;
 }
@@ -103,9 +105,18 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
           client::Client::Create(client);
       const std::string robot = RobotName(r);
       uint64_t next = options.first_seq;
+      std::vector<v1::MemoryTrace> pool;
+      for (int i = 0; i < options.code_pool; ++i) {
+        pool.push_back(LoadTrace(robot, static_cast<uint64_t>(i) + 1,
+                                 options.dimension));
+      }
       auto due = std::chrono::steady_clock::now();
       while (std::chrono::steady_clock::now() < end &&
              !(stop != nullptr && stop->load())) {
+        if (options.max_traces > 0) {
+          std::lock_guard<std::mutex> lock(mu);
+          if (result.acknowledged >= options.max_traces) break;
+        }
         if (interval.count() > 0) {
           std::this_thread::sleep_until(due);
           due +=
@@ -113,8 +124,16 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
                   interval);
         }
         const uint64_t last = next + options.batch - 1;
-        const std::vector<v1::MemoryTrace> traces =
-            Batch(robot, next, last, options.dimension);
+        std::vector<v1::MemoryTrace> traces;
+        if (pool.empty()) {
+          traces = Batch(robot, next, last, options.dimension);
+        } else {
+          traces.reserve(options.batch);
+          for (uint64_t seq = next; seq <= last; ++seq) {
+            traces.push_back(pool[seq % pool.size()]);
+            traces.back().set_seq(seq);
+          }
+        }
         const auto sent = std::chrono::steady_clock::now();
         absl::StatusOr<v1::UploadTracesResponse> reply =
             connection->Upload(options.fleet_id, traces);

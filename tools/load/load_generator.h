@@ -40,15 +40,23 @@ struct UploadLoadOptions {
   // Stop a robot at its first failed call (crash trials) instead of
   // retrying the batch.
   bool stop_on_error = false;
+  // > 0: codes, rewards and places repeat with period code_pool per robot
+  // (generated once), so that making traces costs the client little next to
+  // sending them (benchmarks); 0: every trace is LoadTrace(robot, seq).
+  int code_pool = 0;
+  // > 0: stop once this many traces (all robots) were acknowledged.
+  uint64_t max_traces = 0;
 };
 
 // Latencies of calls, in milliseconds.
 class LatencyLog {
  public:
   void Add(double ms);
-  // {p50, p99, max, count} of what was added since the last Take().
+  // {p50, p90, p99, p99.9, max, count} of what was added since the last
+  // Take(), from every latency kept (exact order statistics; Debian has no
+  // C/C++ HdrHistogram, whose buckets approximate these).
   struct Summary {
-    double p50 = 0, p99 = 0, max = 0;
+    double p50 = 0, p90 = 0, p99 = 0, p999 = 0, max = 0;
     size_t count = 0;
   };
   Summary Take();

@@ -8,6 +8,14 @@
 //   fleetmem-load verify --server ADDR --ack-log FILE
 //       re-sends every logged batch: each trace must come back as a
 //       duplicate; exit 1 if any was lost.
+//   fleetmem-load bench --server ADDR [--robots N --batch B --dimension D
+//                       --seconds S --query-rate Q --sample-rate S
+//                       --peer ADDR --csv FILE]
+//       the same load against the server and against the bare gRPC peer
+//       (discarding uploads; started in this process unless --peer), printed
+//       with the ratio: upload throughput and latency percentiles per call.
+//   fleetmem-load peer [--listen ADDR]
+//       serves the peer alone.
 //   fleetmem-load soak --server ADDR --pid PID [--seconds S --interval S
 //                      --rate T/s --peak-seconds S --report FILE]
 //       measures the peak upload rate (when --rate is 0), then runs at half
@@ -29,6 +37,7 @@
 #include "absl/strings/str_format.h"
 #include "clients/cpp/fleetmem_client.h"
 #include "tools/load/load_generator.h"
+#include "tools/load/peer_server.h"
 
 namespace {
 
@@ -193,6 +202,192 @@ int Soak(const Common& common, int pid, double seconds, double interval,
   return exit_code;
 }
 
+// A call at about `rate` per second until `stop`, timing each (QueryPlace or
+// SampleReplay of the load's fleet).
+enum class Call { kQuery, kSample, kStats };
+
+void CallLoop(const fleetmem::client::ClientOptions& options,
+              const std::string& fleet, int dimension, double rate, Call call,
+              const std::atomic<bool>& stop, LatencyLog* latencies) {
+  std::unique_ptr<fleetmem::client::Client> client =
+      fleetmem::client::Client::Create(options);
+  std::mt19937_64 rng(7);
+  auto due = std::chrono::steady_clock::now();
+  const auto interval = std::chrono::duration_cast<
+      std::chrono::steady_clock::duration>(std::chrono::duration<double>(1.0 / rate));
+  while (!stop.load()) {
+    std::this_thread::sleep_until(due);
+    due += interval;
+    const auto sent = std::chrono::steady_clock::now();
+    bool ok;
+    if (call == Call::kStats) {
+      ok = client->GetStats(fleet).ok();
+    } else if (call == Call::kQuery) {
+      fleetmem::v1::QueryPlaceRequest request;
+      request.set_fleet_id(fleet);
+      request.set_k(10);
+      *request.mutable_code() =
+          fleetmem::load::LoadTrace("load-0", 1 + rng() % 1000, dimension)
+              .code();
+      ok = client->QueryPlace(request).ok();
+    } else {
+      ok = client->SampleReplay(fleet, "load-sampler", 1000).ok();
+    }
+    if (ok) {
+      latencies->Add(std::chrono::duration<double, std::milli>(
+                         std::chrono::steady_clock::now() - sent)
+                         .count());
+    }
+  }
+}
+
+struct PhaseResult {
+  std::string target;
+  double upload_rate = 0;  // traces/s acknowledged
+  LatencyLog::Summary upload, query, sample, stats;
+  uint64_t failed = 0;
+  std::string first_error;
+};
+
+// The same load against one target: robots uploading as fast as they can,
+// queries and samples at their rates beside them.
+absl::StatusOr<PhaseResult> RunPhase(const std::string& name,
+                                     fleetmem::client::ClientOptions options,
+                                     UploadLoadOptions load, double query_rate,
+                                     double sample_rate, double stats_rate) {
+  std::atomic<bool> stop{false};
+  LatencyLog uploads, queries, samples, stats;
+  absl::StatusOr<fleetmem::load::UploadLoadResult> run;
+  std::thread uploader([&] {
+    if (load.robots > 0) {
+      run = fleetmem::load::RunUploads(options, load, "", &stop, &uploads);
+    } else {  // calls only
+      std::this_thread::sleep_for(load.duration);
+      run = fleetmem::load::UploadLoadResult{};
+      run->seconds = std::chrono::duration<double>(load.duration).count();
+    }
+    stop = true;
+  });
+  std::vector<std::thread> callers;
+  if (query_rate > 0) {
+    callers.emplace_back([&] {
+      CallLoop(options, load.fleet_id, load.dimension, query_rate, Call::kQuery,
+               stop, &queries);
+    });
+  }
+  if (sample_rate > 0) {
+    callers.emplace_back([&] {
+      CallLoop(options, load.fleet_id, load.dimension, sample_rate,
+               Call::kSample, stop, &samples);
+    });
+  }
+  if (stats_rate > 0) {
+    callers.emplace_back([&] {
+      CallLoop(options, load.fleet_id, load.dimension, stats_rate, Call::kStats,
+               stop, &stats);
+    });
+  }
+  uploader.join();
+  for (std::thread& caller : callers) caller.join();
+  if (!run.ok()) return run.status();
+  PhaseResult result;
+  result.target = name;
+  result.upload_rate = run->acknowledged / std::max(run->seconds, 1e-9);
+  result.upload = uploads.Take();
+  result.query = queries.Take();
+  result.sample = samples.Take();
+  result.stats = stats.Take();
+  result.failed = run->failed_calls;
+  result.first_error = run->first_error;
+  return result;
+}
+
+// fleetmem-load bench: the load against the server, then against the bare
+// gRPC peer (started in this process unless --peer names one), as a table
+// with the ratio, and as CSV.
+int Bench(const Common& common, UploadLoadOptions load, double seconds,
+          double query_rate, double sample_rate, double stats_rate,
+          const std::string& peer_address,
+          const std::string& csv_path) {
+  absl::StatusOr<fleetmem::client::ClientOptions> options =
+      ClientFor(common, 1);
+  if (!options.ok()) return Fail(options.status());
+  load.fleet_id = common.fleet;
+  load.dimension = common.dimension;
+  load.duration =
+      std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
+  if (load.code_pool == 0) load.code_pool = 1000;
+  std::unique_ptr<fleetmem::load::PeerServer> peer;
+  fleetmem::client::ClientOptions peer_options = *options;
+  if (peer_address.empty()) {
+    absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> started =
+        fleetmem::load::PeerServer::Start("127.0.0.1:0");
+    if (!started.ok()) return Fail(started.status());
+    peer = *std::move(started);
+    peer_options.target = peer->address();
+  } else {
+    peer_options.target = peer_address;
+  }
+  std::vector<PhaseResult> results;
+  for (const auto& [name, target] :
+       {std::pair<std::string, fleetmem::client::ClientOptions>{"fleetmem",
+                                                                *options},
+        {"peer", peer_options}}) {
+    std::cerr << "fleetmem-load bench: " << load.robots << " stream(s), batch "
+              << load.batch << ", " << load.dimension << "-d, " << seconds
+              << " s against " << name << " (" << target.target << ")\n";
+    absl::StatusOr<PhaseResult> phase =
+        RunPhase(name, target, load, query_rate, sample_rate, stats_rate);
+    if (!phase.ok()) return Fail(phase.status());
+    results.push_back(*phase);
+    // The next phase continues the robots' seqs (no duplicates).
+    load.first_seq += 100'000'000;
+  }
+  std::cout << absl::StrFormat(
+      "%-9s %10s %8s %8s %8s %9s %9s %10s %10s %9s %9s\n", "target",
+      "uploads/s", "up p50", "up p99", "up p99.9", "query p50", "query p99",
+      "sample p50", "sample p99", "stats p50", "stats p99");
+  for (const PhaseResult& r : results) {
+    std::cout << absl::StrFormat(
+        "%-9s %10.0f %8.2f %8.2f %8.2f %9.3f %9.3f %10.3f %10.3f %9.3f %9.3f\n",
+        r.target, r.upload_rate, r.upload.p50, r.upload.p99, r.upload.p999,
+        r.query.p50, r.query.p99, r.sample.p50, r.sample.p99, r.stats.p50,
+        r.stats.p99);
+  }
+  const double ratio =
+      results[0].upload_rate / std::max(results[1].upload_rate, 1e-9);
+  std::cout << absl::StrFormat(
+      "fleetmem/peer upload throughput: %.3f (%.0f vs %.0f traces/s; "
+      "latencies in ms)\n",
+      ratio, results[0].upload_rate, results[1].upload_rate);
+  for (const PhaseResult& r : results) {
+    if (r.failed > 0) {
+      std::cout << r.target << ": " << r.failed
+                << " failed upload calls; first: " << r.first_error << "\n";
+    }
+  }
+  if (!csv_path.empty()) {
+    std::ofstream csv(csv_path);
+    csv << "target,streams,batch,dimension,seconds,uploads_per_s,"
+           "upload_p50_ms,upload_p90_ms,upload_p99_ms,upload_p999_ms,"
+           "upload_max_ms,query_calls,query_p50_ms,query_p99_ms,sample_calls,"
+           "sample_p50_ms,sample_p99_ms,stats_calls,stats_p50_ms,stats_p99_ms,"
+           "ratio_to_peer\n";
+    for (const PhaseResult& r : results) {
+      csv << absl::StrFormat(
+          "%s,%d,%d,%d,%.1f,%.1f,%.4f,%.4f,%.4f,%.4f,%.4f,%u,%.4f,%.4f,%u,"
+          "%.4f,%.4f,%u,%.4f,%.4f,%.4f\n",
+          r.target, load.robots, load.batch, load.dimension, seconds,
+          r.upload_rate, r.upload.p50, r.upload.p90, r.upload.p99,
+          r.upload.p999, r.upload.max, r.query.count, r.query.p50,
+          r.query.p99, r.sample.count, r.sample.p50, r.sample.p99,
+          r.stats.count, r.stats.p50, r.stats.p99, r.upload_rate / std::max(results[1].upload_rate, 1e-9));
+    }
+    if (!csv) return Fail(absl::DataLossError("cannot write " + csv_path));
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -211,6 +406,10 @@ int main(int argc, char** argv) {
   upload->add_option("--seconds", seconds, "how long");
   upload->add_option("--first-seq", load.first_seq, "first seq per robot");
   upload->add_option("--ack-log", ack_log, "append acknowledged batches");
+  upload->add_option("--traces", load.max_traces,
+                     "stop after this many acknowledged traces (all robots)");
+  upload->add_option("--code-pool", load.code_pool,
+                     "distinct codes per robot (0: every trace its own)");
   upload->add_flag("--stop-on-error", load.stop_on_error,
                    "stop a robot at its first failed call");
 
@@ -233,7 +432,46 @@ int main(int argc, char** argv) {
   soak->add_option("--robots", robots, "uploading robots");
   soak->add_option("--report", report, "CSV of the samples");
 
+  CLI::App* bench =
+      app.add_subcommand("bench", "throughput and latency against the peer");
+  AddCommon(bench, &common);
+  UploadLoadOptions bench_load;
+  double bench_seconds = 10, query_rate = 0, sample_rate = 0, stats_rate = 0;
+  std::string peer_address, csv_path;
+  bench->add_option("--robots", bench_load.robots,
+                    "upload streams (0: only the other calls)");
+  bench->add_option("--batch", bench_load.batch, "traces per call");
+  bench->add_option("--seconds", bench_seconds, "per target");
+  bench->add_option("--first-seq", bench_load.first_seq, "first seq per robot");
+  bench->add_option("--query-rate", query_rate, "QueryPlace calls/s beside");
+  bench->add_option("--sample-rate", sample_rate, "SampleReplay calls/s beside");
+  bench->add_option("--stats-rate", stats_rate, "GetStats calls/s beside");
+  bench->add_option("--code-pool", bench_load.code_pool,
+                    "distinct codes per robot (default 1000)");
+  bench->add_option("--peer", peer_address,
+                    "HOST:PORT of a running `fleetmem-load peer` (default: "
+                    "one started in this process)");
+  bench->add_option("--csv", csv_path, "write the results as CSV");
+
+  CLI::App* peer = app.add_subcommand(
+      "peer", "serve the bare gRPC peer (discards uploads) until killed");
+  std::string peer_listen = "127.0.0.1:50061";
+  peer->add_option("--listen", peer_listen, "HOST:PORT");
+
   CLI11_PARSE(app, argc, argv);
+
+  if (bench->parsed()) {
+    return Bench(common, bench_load, bench_seconds, query_rate, sample_rate,
+                 stats_rate, peer_address, csv_path);
+  }
+  if (peer->parsed()) {
+    absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> server =
+        fleetmem::load::PeerServer::Start(peer_listen);
+    if (!server.ok()) return Fail(server.status());
+    std::cout << "peer listening on " << (*server)->address() << std::endl;
+    (*server)->Wait();
+    return 0;
+  }
 
   if (upload->parsed()) {
     absl::StatusOr<fleetmem::client::ClientOptions> options =
