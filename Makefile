@@ -21,7 +21,7 @@ space := $(empty) $(empty)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: all deps configure build test test-asan test-tsan test-docker test-k8s \
-  fuzz soak crash robot-crash demo bench format clean
+  fuzz soak crash robot-crash demo bench perf format clean
 
 SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
 SANITIZER_FLAGS_tsan := -fsanitize=thread -fno-omit-frame-pointer
@@ -137,6 +137,19 @@ demo: build
 bench: build
 	@$(BUILD_DIR)/bin/fleetmem_index_bench --benchmark_min_time=0.2
 	@$(BUILD_DIR)/bin/fleetmem_forgetting_bench --benchmark_min_time=0.2
+
+# docs/performance.md: every figure and plot, into docs/perf/ (about 40 min
+# on the 2-core reference machine; run nothing else meanwhile).
+PERF_DIR ?= docs/perf
+perf: build
+	@mkdir -p $(PERF_DIR)
+	$(BUILD_DIR)/bin/fleetmem_memory_scale_bench --benchmark_min_time=0.5 \
+	  --benchmark_out=$(PERF_DIR)/memory_scale.json --benchmark_out_format=json
+	$(BUILD_DIR)/bin/fleetmem_ann_bench --benchmark_min_time=1 \
+	  --benchmark_out=$(PERF_DIR)/ann.json --benchmark_out_format=json
+	bench/load_bench.sh $(BUILD_DIR) $(PERF_DIR)/load.csv
+	bench/server_scale.sh $(BUILD_DIR) $(PERF_DIR)/server_scale.csv
+	bench/plot_perf.py $(PERF_DIR)
 
 CLANG_FORMAT ?= $(shell command -v clang-format || command -v clang-format-14)
 format:

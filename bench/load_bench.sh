@@ -1,0 +1,27 @@
+#!/bin/bash
+# P1: durable upload throughput of the real server against the bare gRPC
+# peer (fleetmem-load bench), 256-d traces in batches of 200, with one and
+# with eight streams, 10 s per target, each from an empty data directory,
+# default server settings (RocksDB with sync on: every acknowledged batch is
+# fsynced). Queries at 20/s run beside.
+#
+#   bench/load_bench.sh [BUILD_DIR] [OUT_CSV]
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+build=${1:-$here/build}
+out=${2:-$here/docs/perf/load.csv}
+work=$(mktemp -d)
+trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
+source "$here/tools/load/server_lib.sh"
+first=1
+for streams in 1 8; do
+  rm -rf "$work/data"
+  start_server "$build" "$work/data" "$work/server.log"
+  "$build/bin/fleetmem-load" bench --server "$SERVER_ADDR" --fleet p1 \
+    --dimension 256 --robots "$streams" --batch 200 --seconds 10 \
+    --query-rate 20 --csv "$work/run.csv"
+  stop_server
+  if [ $first = 1 ]; then head -1 "$work/run.csv" >"$out"; first=0; fi
+  tail -n +2 "$work/run.csv" >>"$out"
+done
+cat "$out"

@@ -1,0 +1,128 @@
+#!/usr/bin/python3
+"""Plots of docs/performance.md from the committed benchmark outputs.
+
+    bench/plot_perf.py docs/perf
+
+Reads memory_scale.json and ann.json (Google Benchmark JSON) and
+server_scale.csv from the directory, writes *.dat tables and draws the
+log-log plots with gnuplot (PNG) into the same directory.
+"""
+import csv
+import json
+import os
+import subprocess
+import sys
+
+
+def load(path):
+    with open(path) as f:
+        return json.load(f)["benchmarks"]
+
+
+def series(benchmarks, prefix):
+    """(size, ms) of the runs named prefix/<size>, by size."""
+    points = []
+    for b in benchmarks:
+        name = b["name"]
+        if not name.startswith(prefix + "/"):
+            continue
+        size = int(name[len(prefix) + 1:].split("/")[0])
+        ms = b["real_time"] * {"ms": 1, "us": 1e-3, "ns": 1e-6}[b["time_unit"]]
+        points.append((size, ms))
+    return sorted(points)
+
+
+def write(path, points):
+    with open(path, "w") as f:
+        for x, y in points:
+            f.write(f"{x} {y}\n")
+
+
+def plot(out_dir, name, title, ylabel, curves):
+    lines = [
+        "set terminal png size 800,500",
+        f"set output '{os.path.join(out_dir, name)}.png'",
+        f"set title '{title}'",
+        "set logscale xy",
+        "set xlabel 'traces in the memory'",
+        f"set ylabel '{ylabel}'",
+        "set key top left",
+        "set grid",
+    ]
+    parts = []
+    for data, label in curves:
+        parts.append(f"'{os.path.join(out_dir, data)}' using 1:2 "
+                     f"with linespoints title '{label}'")
+    lines.append("plot " + ", ".join(parts))
+    subprocess.run(["gnuplot"], input="\n".join(lines), text=True, check=True)
+
+
+def main():
+    out = sys.argv[1] if len(sys.argv) > 1 else "docs/perf"
+    scale = load(os.path.join(out, "memory_scale.json"))
+    for prefix, file in [
+        ("BM_Consolidate", None), ("BM_SampleReplay", "sample.dat"),
+        ("BM_SampleReplayScan", "sample_scan.dat"), ("BM_Stats", "stats.dat"),
+        ("BM_StatsScan", "stats_scan.dat")]:
+        if file:
+            write(os.path.join(out, file), series(scale, prefix))
+    by_mode = {0: [], 1: []}
+    for b in scale:
+        if b["name"].startswith("BM_Consolidate/"):
+            _, size, exact = b["name"].split("/")[:3]
+            by_mode[int(exact)].append((int(size), b["real_time"]))
+    write(os.path.join(out, "consolidate_hnsw.dat"), sorted(by_mode[0]))
+    write(os.path.join(out, "consolidate_exact.dat"), sorted(by_mode[1]))
+    plot(out, "consolidate", "P4: consolidation + forgetting of a 200-trace "
+         "segment into a full memory", "ms per segment",
+         [("consolidate_hnsw.dat", "closest pair via HNSW over centroids"),
+          ("consolidate_exact.dat", "peer: exact scans (previous)")])
+    plot(out, "sample_stats", "P5 SampleReplay of 1,000 and per-robot/domain "
+         "statistics", "ms per call",
+         [("sample.dat", "SampleReplay: sum tree"),
+          ("sample_scan.dat", "peer: SampleReplay by scan (previous)"),
+          ("stats_scan.dat", "peer: statistics by walking every trace")])
+
+    ann = load(os.path.join(out, "ann.json"))
+    kinds = {0: "fleetmem exact", 2: "fleetmem HNSW (ef 128)",
+             3: "hnswlib direct", 4: "faiss HNSW", 5: "faiss flat"}
+    curves = []
+    for kind, label in kinds.items():
+        points = []
+        for b in ann:
+            parts = b["name"].split("/")
+            if parts[0] == "BM_Query" and int(parts[1]) == kind:
+                points.append((int(parts[2]), b["p50_ms"]))
+        if points:
+            write(os.path.join(out, f"query_{kind}.dat"), sorted(points))
+            curves.append((f"query_{kind}.dat", label))
+    plot(out, "query", "Place query (k = 10, 256-d), median latency",
+         "ms per query", curves)
+
+    server = os.path.join(out, "server_scale.csv")
+    if os.path.exists(server):
+        fill, calls = [], {"query": [], "sample": [], "stats": []}
+        with open(server) as f:
+            for row in csv.DictReader(f):
+                if not row["size"].isdigit():
+                    continue
+                size = int(row["size"])
+                fill.append((size, float(row["fill_traces_per_s"])))
+                calls["query"].append((size, float(row["query_p50_ms"])))
+                calls["sample"].append((size, float(row["sample_p50_ms"])))
+                calls["stats"].append((size, float(row["stats_p50_ms"])))
+        write(os.path.join(out, "fill.dat"), fill)
+        for name, points in calls.items():
+            write(os.path.join(out, f"server_{name}.dat"), points)
+        plot(out, "server", "The real server as one fleet fills (gRPC, "
+             "loopback), median latency", "ms per call",
+             [("server_query.dat", "QueryPlace k=10"),
+              ("server_sample.dat", "SampleReplay of 1,000"),
+              ("server_stats.dat", "GetStats")])
+        plot(out, "fill", "Upload throughput while one fleet fills "
+             "(4 streams, batches of 200)", "traces/s",
+             [("fill.dat", "fleetmem")])
+
+
+if __name__ == "__main__":
+    main()
