@@ -39,6 +39,8 @@ def write(path, points):
 
 
 def plot(out_dir, name, title, ylabel, curves):
+    if not curves:
+        return
     lines = [
         "set terminal png size 800,500",
         f"set output '{os.path.join(out_dir, name)}.png'",
@@ -81,9 +83,11 @@ def main():
          "statistics", "ms per call",
          [("sample.dat", "SampleReplay: sum tree"),
           ("sample_scan.dat", "peer: SampleReplay by scan (previous)"),
+          ("stats.dat", "statistics: kept counts"),
           ("stats_scan.dat", "peer: statistics by walking every trace")])
 
-    ann = load(os.path.join(out, "ann.json"))
+    ann_path = os.path.join(out, "ann.json")
+    ann = load(ann_path) if os.path.exists(ann_path) else []
     kinds = {0: "fleetmem exact", 2: "fleetmem HNSW (ef 128)",
              3: "hnswlib direct", 4: "faiss HNSW", 5: "faiss flat"}
     curves = []
@@ -124,5 +128,73 @@ def main():
              [("fill.dat", "fleetmem")])
 
 
+def fmt_ms(ms):
+    return f"{ms * 1000:.1f} µs" if ms < 0.1 else f"{ms:.3g} ms"
+
+
+def tables(out):
+    """Prints the markdown tables of docs/performance.md."""
+    scale = {b["name"]: b for b in load(os.path.join(out, "memory_scale.json"))}
+    print("| traces | consolidate + forget (HNSW pair) | peer: exact scans "
+          "| SampleReplay 1,000 | peer: scan | stats | peer: walk |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for n in (5000, 100000, 1000000):
+        def t(name):
+            b = scale.get(name)
+            return fmt_ms(b["real_time"]) if b else "—"
+        print(f"| {n:,} | {t(f'BM_Consolidate/{n}/0')} | "
+              f"{t(f'BM_Consolidate/{n}/1')} | {t(f'BM_SampleReplay/{n}')} | "
+              f"{t(f'BM_SampleReplayScan/{n}')} | {t(f'BM_Stats/{n}')} | "
+              f"{t(f'BM_StatsScan/{n}')} |")
+    print()
+    names = {0: "fleetmem exact", 1: "fleetmem tiered (auto)",
+             2: "fleetmem HNSW", 3: "hnswlib direct", 4: "faiss HNSW",
+             5: "faiss flat"}
+    ann = []
+    path = os.path.join(out, "ann.json")
+    if os.path.exists(path):
+        ann = load(path)
+    print("| size | index | ef_search | recall@10 | p50 | p99 | QPS "
+          "| of copy bandwidth |")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|")
+    for b in ann:
+        parts = b["name"].split("/")
+        if parts[0] != "BM_Query":
+            continue
+        kind, size = int(parts[1]), int(parts[2])
+        ef = "—" if kind in (0, 5) or (kind == 1 and size < 20000) else \
+            str(int(b.get("ef_search", 128)))
+        bw = f"{b['bw_fraction']:.2f}" if "bw_fraction" in b else ""
+        print(f"| {size:,} | {names[kind]} | {ef} | {b['recall@10']:.3f} | "
+              f"{fmt_ms(b['p50_ms'])} | {fmt_ms(b['p99_ms'])} | "
+              f"{b['qps']:.0f} | {bw} |")
+    print()
+    load_csv = os.path.join(out, "load.csv")
+    if os.path.exists(load_csv):
+        print("| streams | target | traces/s | upload p50 | p99 | p99.9 "
+              "| query p50 | query p99 | ratio to peer |")
+        print("|---:|---|---:|---:|---:|---:|---:|---:|---:|")
+        with open(load_csv) as f:
+            for r in csv.DictReader(f):
+                print(f"| {r['streams']} | {r['target']} | "
+                      f"{float(r['uploads_per_s']):,.0f} | "
+                      f"{float(r['upload_p50_ms']):.2f} ms | "
+                      f"{float(r['upload_p99_ms']):.2f} ms | "
+                      f"{float(r['upload_p999_ms']):.2f} ms | "
+                      f"{float(r['query_p50_ms']):.2f} ms | "
+                      f"{float(r['query_p99_ms']):.2f} ms | "
+                      f"{float(r['ratio_to_peer']):.3f} |")
+    print()
+    server = os.path.join(out, "server_scale.csv")
+    if os.path.exists(server):
+        with open(server) as f:
+            rows = list(csv.reader(f))
+        print("| " + " | ".join(rows[0]) + " |")
+        print("|" + "---:|" * len(rows[0]))
+        for row in rows[1:]:
+            print("| " + " | ".join(row) + " |")
+
+
 if __name__ == "__main__":
     main()
+    tables(sys.argv[1] if len(sys.argv) > 1 else "docs/perf")

@@ -66,6 +66,8 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::Search(const float* query,
   return out;
 }
 
+void HnswGraph::set_ef_search(size_t ef) { impl_->hnsw.setEf(ef); }
+
 float HnswGraph::SquaredDistance(const float* query, uint32_t slot) const {
   return impl_->hnsw.fstdistfunc_(query, Vector(slot),
                                   impl_->hnsw.dist_func_param_);

@@ -49,6 +49,8 @@ class HnswGraph {
   // nearest first.
   std::vector<std::pair<float, uint32_t>> Search(const float* query,
                                                  size_t k) const;
+  // Changes the search candidate list (no rebuild; not while searching).
+  void set_ef_search(size_t ef);
   // Squared Euclidean distance between `query` and the vector of `slot`.
   float SquaredDistance(const float* query, uint32_t slot) const;
   // The stored vector of a live slot.

@@ -52,6 +52,8 @@ class HnswIndex final : public engine::PlaceIndex {
   size_t size() const override { return slot_of_.size(); }
   size_t dimension() const override { return graph_.dimension(); }
 
+  void set_ef_search(size_t ef) { graph_.set_ef_search(ef); }
+
   // Calls visit(id, vector) for every stored vector.
   void ForEach(const std::function<void(uint64_t, std::span<const float>)>&
                    visit) const {
@@ -181,6 +183,7 @@ class TieredIndex final : public engine::PlaceIndex {
     return active_->Search(query, params);
   }
   size_t size() const override { return active_->size(); }
+  engine::PlaceIndex& active() { return *active_; }
   size_t dimension() const override { return dimension_; }
 
  private:
@@ -232,6 +235,16 @@ class TieredIndex final : public engine::PlaceIndex {
 std::unique_ptr<engine::PlaceIndex> NewHnswIndex(size_t dimension,
                                                  HnswIndexOptions options) {
   return std::make_unique<HnswIndex>(dimension, options);
+}
+
+bool SetHnswEfSearch(engine::PlaceIndex& index, size_t ef_search) {
+  if (auto* tiered = dynamic_cast<TieredIndex*>(&index)) {
+    return SetHnswEfSearch(tiered->active(), ef_search);
+  }
+  auto* hnsw = dynamic_cast<HnswIndex*>(&index);
+  if (hnsw == nullptr) return false;
+  hnsw->set_ef_search(ef_search);
+  return true;
 }
 
 std::unique_ptr<engine::PlaceIndex> NewTieredIndex(size_t dimension,

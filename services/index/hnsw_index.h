@@ -41,6 +41,11 @@ struct HnswIndexOptions {
 std::unique_ptr<engine::PlaceIndex> NewHnswIndex(size_t dimension,
                                                  HnswIndexOptions options = {});
 
+// Sets ef_search of an index made by NewHnswIndex (or of a tiered index's
+// graph, once it has one) without rebuilding it; the caller serialises it
+// against Search like a writer. False for any other index.
+bool SetHnswEfSearch(engine::PlaceIndex& index, size_t ef_search);
+
 struct TieredIndexOptions {
   // The exact index serves while fewer vectors than this are held; the HNSW
   // graph is built from them when the size reaches it, and dropped again
