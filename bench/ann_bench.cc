@@ -13,12 +13,12 @@
 //   4 faiss IndexHNSWFlat, same M, ef_construction, ef_search
 //   5 faiss IndexFlatL2 (exact)
 // HNSW kinds use M = 16 and ef_search = 128 (the third argument, where
-// given); ef_construction 100, but 40 at 1,000,000 (build time). Counters: recall@10 against the exact answer (200 queries), p50/p99 in
-// ms, and for the exact kinds bw_fraction = (bytes scanned per query / time
-// per query) / copy bandwidth, the memory-bandwidth bound.
-// The copy bandwidth (context copy_bandwidth_GBps) is the best of five
-// memcpy calls of 1 GiB: bytes copied per second (STREAM would count the
-// writes too and report twice this).
+// given); ef_construction 100, but 40 at 1,000,000 (build time). Counters:
+// recall@10 against the exact answer (200 queries), p50/p99 in ms, and for the
+// exact kinds bw_fraction = (bytes scanned per query / time per query) / copy
+// bandwidth, the memory-bandwidth bound. The copy bandwidth (context
+// copy_bandwidth_GBps) is the best of five memcpy calls of 1 GiB: bytes copied
+// per second (STREAM would count the writes too and report twice this).
 #include <benchmark/benchmark.h>
 #include <omp.h>
 
@@ -26,11 +26,11 @@
 #include <chrono>
 #include <cstring>
 #include <functional>
-#include <string>
-#include <thread>
 #include <map>
 #include <memory>
 #include <set>
+#include <string>
+#include <thread>
 #include <vector>
 
 #include "bench/bench_data.h"
@@ -80,9 +80,11 @@ Data& DataOf(size_t size) {
   (void)data->exact->Add(ids, data->vectors);
   for (size_t q = 0; q < kRecallQueries; ++q) {
     std::set<uint64_t> top;
-    for (const auto& n : *data->exact->Search(data->queries[q], {kK, {}})) {
-      top.insert(n.id);
-    }
+    // Held in a local: a range-for over *Search(...) would outlive the
+    // temporary StatusOr.
+    const absl::StatusOr<std::vector<engine::Neighbor>> found =
+        data->exact->Search(data->queries[q], {kK, {}});
+    for (const auto& n : *found) top.insert(n.id);
     data->truth.push_back(std::move(top));
   }
   return *data;
@@ -101,9 +103,9 @@ struct Searcher {
 Searcher PlaceIndexSearcher(std::shared_ptr<engine::PlaceIndex> index) {
   return {[index](const Vector& query) {
             std::vector<uint64_t> ids;
-            for (const auto& n : *index->Search(query, {kK, {}})) {
-              ids.push_back(n.id);
-            }
+            const absl::StatusOr<std::vector<engine::Neighbor>> found =
+                index->Search(query, {kK, {}});
+            for (const auto& n : *found) ids.push_back(n.id);
             return ids;
           },
           [index](size_t ef) { SetHnswEfSearch(*index, ef); }};
@@ -138,7 +140,8 @@ Searcher Make(int kind, Data& data) {
       auto space = std::make_shared<hnswlib::L2Space>(kDimension);
       auto hnsw = std::make_shared<hnswlib::HierarchicalNSW<float>>(
           space.get(), size, kM, EfConstruction(size), 42);
-      for (size_t i = 0; i < size; ++i) hnsw->addPoint(data.vectors[i].data(), i);
+      for (size_t i = 0; i < size; ++i)
+        hnsw->addPoint(data.vectors[i].data(), i);
       hnsw->setEf(kEfSearch);
       return {[space, hnsw](const Vector& query) {
                 auto found = hnsw->searchKnn(query.data(), kK);
@@ -165,7 +168,9 @@ Searcher Make(int kind, Data& data) {
         hnsw->hnsw.efConstruction = static_cast<int>(EfConstruction(size));
         hnsw->hnsw.efSearch = kEfSearch;
         index = hnsw;
-        set_ef = [hnsw](size_t ef) { hnsw->hnsw.efSearch = static_cast<int>(ef); };
+        set_ef = [hnsw](size_t ef) {
+          hnsw->hnsw.efSearch = static_cast<int>(ef);
+        };
       } else {
         index = std::make_shared<faiss::IndexFlatL2>(kDimension);
       }
@@ -209,8 +214,8 @@ void BM_Query(benchmark::State& state) {
   const size_t size = static_cast<size_t>(state.range(1));
   Data& data = DataOf(size);
   const Searcher& search = SearcherOf(kind, size);
-  const size_t ef = state.range(2) > 0 ? static_cast<size_t>(state.range(2))
-                                       : kEfSearch;
+  const size_t ef =
+      state.range(2) > 0 ? static_cast<size_t>(state.range(2)) : kEfSearch;
   search.set_ef(ef);
   omp_set_num_threads(1);  // every kind answers on one thread
   double hits = 0;
@@ -228,12 +233,12 @@ void BM_Query(benchmark::State& state) {
   }
   std::sort(ms.begin(), ms.end());
   state.counters["recall@10"] = hits / (kRecallQueries * kK);
+
   state.counters["ef_search"] = static_cast<double>(ef);
   state.counters["p50_ms"] = ms[ms.size() / 2];
   state.counters["p99_ms"] = ms[ms.size() * 99 / 100];
-  state.counters["qps"] =
-      benchmark::Counter(static_cast<double>(state.iterations()),
-                         benchmark::Counter::kIsRate);
+  state.counters["qps"] = benchmark::Counter(
+      static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
   if ((kind == 0 || kind == 5) && copy_bandwidth > 0) {
     double mean = 0;
     for (double x : ms) mean += x;
@@ -252,9 +257,9 @@ void MeasureCopyBandwidth() {
     const auto start = std::chrono::steady_clock::now();
     std::memcpy(to.data(), from.data(), bytes);
     benchmark::ClobberMemory();
-    const double s = std::chrono::duration<double>(
-                         std::chrono::steady_clock::now() - start)
-                         .count();
+    const double s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+            .count();
     best = std::max(best, static_cast<double>(bytes) / s);
   }
   copy_bandwidth = best;
@@ -269,9 +274,11 @@ BENCHMARK(BM_Query)
     ->ArgsProduct({{0, 2, 3, 4, 5}, {50'000}, {0}})
     ->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Query)->Args({1, 5'000, 0})->Unit(benchmark::kMillisecond);
-// P3: every kind at 1,000,000; the HNSW kinds at ef_search 128 to 512.
+// P3 at 1,000,000: fleetmem's HNSW and hnswlib at ef_search 128 to 512
+// (faiss's HNSW, 2.3x slower than both at 50,000, is left out here: its
+// build alone takes ~10 minutes on this machine), and the exact scans.
 BENCHMARK(BM_Query)
-    ->ArgsProduct({{2, 3, 4}, {1'000'000}, {128, 256, 512}})
+    ->ArgsProduct({{2, 3}, {1'000'000}, {128, 256, 512}})
     ->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Query)
     ->ArgsProduct({{0, 5}, {1'000'000}, {0}})

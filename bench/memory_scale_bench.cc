@@ -79,7 +79,8 @@ void BM_Consolidate(benchmark::State& state) {
     state.PauseTiming();
     std::vector<MemoryTrace> segment;
     for (size_t i = 0; i < kSegment; ++i) {
-      segment.push_back(filled.source.NextTrace("robot-new", filled.next_seq++));
+      segment.push_back(
+          filled.source.NextTrace("robot-new", filled.next_seq++));
     }
     state.ResumeTiming();
     ConsolidationResult result = filled.memory->Consolidate(
@@ -159,14 +160,21 @@ BENCHMARK(BM_Consolidate)
     ->ArgsProduct({{5'000, 100'000}, {1}})
     ->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_SampleReplay)
-    ->Arg(5'000)->Arg(100'000)->Arg(1'000'000)
+    ->Arg(5'000)
+    ->Arg(100'000)
+    ->Arg(1'000'000)
     ->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_SampleReplayScan)
-    ->Arg(5'000)->Arg(100'000)->Arg(1'000'000)
+    ->Arg(5'000)
+    ->Arg(100'000)
+    ->Arg(1'000'000)
     ->Unit(benchmark::kMillisecond);
-BENCHMARK(BM_Stats)->Arg(5'000)->Arg(100'000)->Arg(1'000'000)
-    ->Unit(benchmark::kMillisecond);
-BENCHMARK(BM_StatsScan)->Arg(5'000)->Arg(100'000)->Arg(1'000'000)
+BENCHMARK(BM_Stats)->Arg(5'000)->Arg(100'000)->Arg(1'000'000)->Unit(
+    benchmark::kMillisecond);
+BENCHMARK(BM_StatsScan)
+    ->Arg(5'000)
+    ->Arg(100'000)
+    ->Arg(1'000'000)
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace

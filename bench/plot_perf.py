@@ -95,7 +95,8 @@ def main():
         points = []
         for b in ann:
             parts = b["name"].split("/")
-            if parts[0] == "BM_Query" and int(parts[1]) == kind:
+            if (parts[0] == "BM_Query" and int(parts[1]) == kind and
+                    b.get("ef_search", 128) == 128):
                 points.append((int(parts[2]), b["p50_ms"]))
         if points:
             write(os.path.join(out, f"query_{kind}.dat"), sorted(points))

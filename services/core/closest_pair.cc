@@ -32,11 +32,11 @@ bool Better(double distance, uint64_t candidate, double current_distance,
 // The HNSW graph over the points and the point id of each of its slots.
 struct ClosestPairTracker::Graph {
   Graph(size_t dimension, const ClosestPairOptions& options)
-      : hnsw(dimension, HnswGraphOptions{.m = options.hnsw_m,
-                                         .ef_construction =
-                                             options.hnsw_ef_construction,
-                                         .ef_search = options.hnsw_ef_search,
-                                         .seed = options.seed}) {}
+      : hnsw(dimension,
+             HnswGraphOptions{.m = options.hnsw_m,
+                              .ef_construction = options.hnsw_ef_construction,
+                              .ef_search = options.hnsw_ef_search,
+                              .seed = options.seed}) {}
   HnswGraph hnsw;
   std::vector<uint64_t> slot_id;  // slot -> point id
 };
@@ -160,8 +160,8 @@ void ClosestPairTracker::Recompute(uint64_t id, Entry& entry) {
   double best_distance = kInfinity;
   bool found = false;
   // Two candidates at least: the point itself is among them.
-  for (uint64_t other_id :
-       Candidates(entry.point, std::max<size_t>(options_.reverse_candidates / 4, 2))) {
+  for (uint64_t other_id : Candidates(
+           entry.point, std::max<size_t>(options_.reverse_candidates / 4, 2))) {
     if (other_id == id) continue;
     const double d = Distance(entry.point, points_.at(other_id).point);
     if (!found || Better(d, other_id, best_distance, best)) {

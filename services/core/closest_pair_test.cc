@@ -127,7 +127,6 @@ TEST(ClosestPairTrackerTest, RemovingDownToEmpty) {
   EXPECT_EQ(tracker.size(), 0u);
 }
 
-
 // Above exact_below the tracker answers through its HNSW graph: the pair is
 // approximate, but the bookkeeping must stay consistent (sizes, removals down
 // to the exact regime again) and the pair close to the true one.

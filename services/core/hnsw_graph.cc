@@ -74,8 +74,8 @@ float HnswGraph::SquaredDistance(const float* query, uint32_t slot) const {
 }
 
 const float* HnswGraph::Vector(uint32_t slot) const {
-  return reinterpret_cast<const float*>(impl_->hnsw.getDataByInternalId(
-      impl_->hnsw.label_lookup_.at(slot)));
+  return reinterpret_cast<const float*>(
+      impl_->hnsw.getDataByInternalId(impl_->hnsw.label_lookup_.at(slot)));
 }
 
 }  // namespace fleetmem::core

@@ -71,7 +71,8 @@ void WeightedSampler::SumTree::Set(size_t slot, double value) {
     size_t leaves = std::max<size_t>(leaves_, 16);
     while (leaves <= slot) leaves *= 2;
     std::vector<double> nodes(2 * leaves, 0.0);
-    for (size_t i = 0; i < leaves_; ++i) nodes[leaves + i] = nodes_[leaves_ + i];
+    for (size_t i = 0; i < leaves_; ++i)
+      nodes[leaves + i] = nodes_[leaves_ + i];
     for (size_t i = leaves - 1; i >= 1; --i) {
       nodes[i] = nodes[2 * i] + nodes[2 * i + 1];
     }

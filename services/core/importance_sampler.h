@@ -57,8 +57,9 @@ class WeightedSampler {
     size_t Find(double target) const;
 
    private:
-    size_t leaves_ = 0;          // a power of two
-    std::vector<double> nodes_;  // 1-based heap layout: leaves at [leaves_, 2 leaves_)
+    size_t leaves_ = 0;  // a power of two
+    std::vector<double>
+        nodes_;  // 1-based heap layout: leaves at [leaves_, 2 leaves_)
   };
 
   SumTree positive_;  // slots of positive weight

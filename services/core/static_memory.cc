@@ -126,9 +126,9 @@ std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
     if (trace.replay_count < std::numeric_limits<uint32_t>::max()) {
       ++trace.replay_count;
     }
-    replay_.Set(slot, ReplayWeight(trace.reward, trace.replay_count,
-                                   options_.replay_decay,
-                                   options_.reward_floor));
+    replay_.Set(slot,
+                ReplayWeight(trace.reward, trace.replay_count,
+                             options_.replay_decay, options_.reward_floor));
     out.push_back(trace);
   }
   return out;
@@ -166,9 +166,9 @@ void StaticMemory::Insert(Cluster cluster) {
       slot_trace_.push_back(nullptr);
     }
     slot_trace_[slot] = &trace;
-    replay_.Set(slot, ReplayWeight(trace.reward, trace.replay_count,
-                                   options_.replay_decay,
-                                   options_.reward_floor));
+    replay_.Set(slot,
+                ReplayWeight(trace.reward, trace.replay_count,
+                             options_.replay_decay, options_.reward_floor));
     location_[trace.key()] = Location{id, slot};
     Count(traces_by_robot_, trace.robot_id, 1);
     Count(traces_by_domain_, trace.domain, 1);

@@ -73,8 +73,7 @@ class StaticMemory {
   const std::map<std::string, uint64_t, std::less<>>& traces_by_robot() const {
     return traces_by_robot_;
   }
-  const std::map<std::string, uint64_t, std::less<>>& traces_by_domain()
-      const {
+  const std::map<std::string, uint64_t, std::less<>>& traces_by_domain() const {
     return traces_by_domain_;
   }
   const MemoryOptions& options() const { return options_; }

@@ -24,8 +24,8 @@ void KeepNearest(std::vector<Neighbor>& neighbors, size_t k) {
     return a.distance < b.distance || (a.distance == b.distance && a.id < b.id);
   };
   if (neighbors.size() > k) {
-    std::partial_sort(neighbors.begin(), neighbors.begin() + k,
-                      neighbors.end(), closer);
+    std::partial_sort(neighbors.begin(), neighbors.begin() + k, neighbors.end(),
+                      closer);
     neighbors.resize(k);
   } else {
     std::sort(neighbors.begin(), neighbors.end(), closer);
@@ -75,9 +75,9 @@ class HnswIndex final : public engine::PlaceIndex {
 
 absl::Status HnswIndex::Add(std::span<const uint64_t> ids,
                             std::span<const std::vector<float>> vectors) {
-  if (absl::Status status = CheckAddBatch(
-          dimension(), ids, vectors,
-          [this](uint64_t id) { return slot_of_.contains(id); });
+  if (absl::Status status =
+          CheckAddBatch(dimension(), ids, vectors,
+                        [this](uint64_t id) { return slot_of_.contains(id); });
       !status.ok()) {
     return status;
   }

@@ -714,8 +714,7 @@ TEST(HnswIndexTest, RecallAgainstExactIndexAfterChurn) {
       {"low-rank (16-d latent)",
        [&](std::mt19937& rng) { return low_rank.Next(rng); }, 0.9, 0.95},
       {"uniform on the sphere",
-       [](std::mt19937& rng) { return RandomUnit(kDimension, rng); }, 0.7,
-       0.7},
+       [](std::mt19937& rng) { return RandomUnit(kDimension, rng); }, 0.7, 0.7},
   };
   for (const RecallCase& c : cases) {
     SCOPED_TRACE(c.data);

@@ -120,7 +120,8 @@ void ApplyStorage(const StorageConfig& in, storage::RocksDbStoreOptions* out) {
 
 void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
   if (in.has_m()) out->hnsw.m = in.m();
-  if (in.has_ef_construction()) out->hnsw.ef_construction = in.ef_construction();
+  if (in.has_ef_construction())
+    out->hnsw.ef_construction = in.ef_construction();
   if (in.has_ef_search()) out->hnsw.ef_search = in.ef_search();
   if (in.has_hnsw_from()) out->hnsw_from = in.hnsw_from();
 }

@@ -107,8 +107,8 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
       uint64_t next = options.first_seq;
       std::vector<v1::MemoryTrace> pool;
       for (int i = 0; i < options.code_pool; ++i) {
-        pool.push_back(LoadTrace(robot, static_cast<uint64_t>(i) + 1,
-                                 options.dimension));
+        pool.push_back(
+            LoadTrace(robot, static_cast<uint64_t>(i) + 1, options.dimension));
       }
       auto due = std::chrono::steady_clock::now();
       while (std::chrono::steady_clock::now() < end &&

@@ -213,8 +213,9 @@ void CallLoop(const fleetmem::client::ClientOptions& options,
       fleetmem::client::Client::Create(options);
   std::mt19937_64 rng(7);
   auto due = std::chrono::steady_clock::now();
-  const auto interval = std::chrono::duration_cast<
-      std::chrono::steady_clock::duration>(std::chrono::duration<double>(1.0 / rate));
+  const auto interval =
+      std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+          std::chrono::duration<double>(1.0 / rate));
   while (!stop.load()) {
     std::this_thread::sleep_until(due);
     due += interval;
@@ -307,8 +308,7 @@ absl::StatusOr<PhaseResult> RunPhase(const std::string& name,
 // with the ratio, and as CSV.
 int Bench(const Common& common, UploadLoadOptions load, double seconds,
           double query_rate, double sample_rate, double stats_rate,
-          const std::string& peer_address,
-          const std::string& csv_path) {
+          const std::string& peer_address, const std::string& csv_path) {
   absl::StatusOr<fleetmem::client::ClientOptions> options =
       ClientFor(common, 1);
   if (!options.ok()) return Fail(options.status());
@@ -379,9 +379,10 @@ int Bench(const Common& common, UploadLoadOptions load, double seconds,
           "%.4f,%.4f,%u,%.4f,%.4f,%.4f\n",
           r.target, load.robots, load.batch, load.dimension, seconds,
           r.upload_rate, r.upload.p50, r.upload.p90, r.upload.p99,
-          r.upload.p999, r.upload.max, r.query.count, r.query.p50,
-          r.query.p99, r.sample.count, r.sample.p50, r.sample.p99,
-          r.stats.count, r.stats.p50, r.stats.p99, r.upload_rate / std::max(results[1].upload_rate, 1e-9));
+          r.upload.p999, r.upload.max, r.query.count, r.query.p50, r.query.p99,
+          r.sample.count, r.sample.p50, r.sample.p99, r.stats.count,
+          r.stats.p50, r.stats.p99,
+          r.upload_rate / std::max(results[1].upload_rate, 1e-9));
     }
     if (!csv) return Fail(absl::DataLossError("cannot write " + csv_path));
   }
@@ -444,7 +445,8 @@ int main(int argc, char** argv) {
   bench->add_option("--seconds", bench_seconds, "per target");
   bench->add_option("--first-seq", bench_load.first_seq, "first seq per robot");
   bench->add_option("--query-rate", query_rate, "QueryPlace calls/s beside");
-  bench->add_option("--sample-rate", sample_rate, "SampleReplay calls/s beside");
+  bench->add_option("--sample-rate", sample_rate,
+                    "SampleReplay calls/s beside");
   bench->add_option("--stats-rate", stats_rate, "GetStats calls/s beside");
   bench->add_option("--code-pool", bench_load.code_pool,
                     "distinct codes per robot (default 1000)");
