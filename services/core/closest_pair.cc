@@ -32,11 +32,7 @@ bool Better(double distance, uint64_t candidate, double current_distance,
 // The HNSW graph over the points and the point id of each of its slots.
 struct ClosestPairTracker::Graph {
   Graph(size_t dimension, const ClosestPairOptions& options)
-      : hnsw(dimension,
-             HnswGraphOptions{.m = options.hnsw_m,
-                              .ef_construction = options.hnsw_ef_construction,
-                              .ef_search = options.hnsw_ef_search,
-                              .seed = options.seed}) {}
+      : hnsw(dimension, options.graph) {}
   HnswGraph hnsw;
   std::vector<uint64_t> slot_id;  // slot -> point id
 };

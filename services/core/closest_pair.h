@@ -24,24 +24,21 @@
 #include <vector>
 
 #include "Eigen/Core"
+#include "services/core/hnsw_graph.h"
 
 namespace fleetmem::core {
 
 struct ClosestPairOptions {
   // Exact scans below this many points; the HNSW graph from it on (the
-  // graph is dropped again below exact_below / 2). The default is where the
-  // graph's update cost falls below the scans' (bench/forgetting_bench).
+  // graph is dropped again below exact_below / 2). The default keeps every
+  // memory up to 2,048 clusters exact (the paper's K_max is 100), where one
+  // scan of 259-d centroids costs well under a millisecond.
   size_t exact_below = 2048;
-  // HNSW graph: links per node, candidate list while building and while
-  // searching.
-  size_t hnsw_m = 16;
-  size_t hnsw_ef_construction = 100;
-  size_t hnsw_ef_search = 64;
+  // The HNSW graph (links per node, candidate lists, seed).
+  HnswGraphOptions graph;
   // Approximate neighbours of a new point checked for points whose nearest
   // neighbour it becomes.
   size_t reverse_candidates = 32;
-  // Seed of the graph's level generator (runs are reproducible).
-  uint64_t seed = 42;
 };
 
 class ClosestPairTracker {

@@ -47,7 +47,7 @@ ClosestPairOptions ClosestPairOptionsFor(const MemoryOptions& options) {
   ClosestPairOptions closest;
   closest.exact_below =
       static_cast<size_t>(std::max(options.forgetting_exact_below, 2));
-  closest.seed = options.seed;
+  closest.graph.seed = options.seed;
   return closest;
 }
 
