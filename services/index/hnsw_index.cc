@@ -155,7 +155,8 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
 
 // Exact below options.hnsw_from vectors, HNSW from it on (and exact again
 // below half of it). The switch moves every vector into the other index
-// (one-off: seconds at 50,000 x 256-d, under the fleet's writer lock).
+// (one-off: up to ~20 s at 20,000 x 256-d on the 2-core reference machine,
+// under the fleet's writer lock; docs/performance.md).
 class TieredIndex final : public engine::PlaceIndex {
  public:
   TieredIndex(size_t dimension, TieredIndexOptions options)

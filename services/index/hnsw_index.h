@@ -35,7 +35,8 @@ struct HnswIndexOptions {
 // An empty HNSW index for vectors of `dimension`. Remove marks the node
 // deleted (it still routes searches) and a later Add reuses it, so memory is
 // bounded by the most vectors ever held at once. Add costs O(log n)
-// distance computations (~0.1-0.3 ms at 256-d), Search O(ef log n).
+// distance computations (0.1-1 ms at 256-d on the reference machine,
+// docs/performance.md), Search O(ef log n).
 // Distances are Euclidean, computed in float. Thread-safety as in
 // engine::PlaceIndex (concurrent Search calls are safe).
 std::unique_ptr<engine::PlaceIndex> NewHnswIndex(size_t dimension,
@@ -52,7 +53,7 @@ struct TieredIndexOptions {
   // below half of it. The default is where the exact scan's median query
   // passes 1 ms (the P2 budget over gRPC) on the 2-core reference machine
   // (bench/ann_bench, docs/performance.md); below it, uploads keep the exact
-  // index's O(dimension) insert instead of HNSW's ~0.1 ms.
+  // index's O(dimension) insert instead of HNSW's ~0.1-1 ms.
   size_t hnsw_from = 20'000;
   HnswIndexOptions hnsw;
 };
