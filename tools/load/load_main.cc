@@ -81,29 +81,43 @@ int Fail(const absl::Status& status) {
   return 1;
 }
 
-// Queries at about `rate` per second until `stop`, timing each.
-void QueryLoop(const fleetmem::client::ClientOptions& options,
-               const std::string& fleet, int dimension, double rate,
-               const std::atomic<bool>& stop, LatencyLog* latencies) {
+// A call at about `rate` per second until `stop`, timing each (QueryPlace or
+// SampleReplay of the load's fleet).
+enum class Call { kQuery, kSample, kStats };
+
+void CallLoop(const fleetmem::client::ClientOptions& options,
+              const std::string& fleet, int dimension, double rate, Call call,
+              const std::atomic<bool>& stop, LatencyLog* latencies) {
   std::unique_ptr<fleetmem::client::Client> client =
       fleetmem::client::Client::Create(options);
   std::mt19937_64 rng(7);
-  uint64_t i = 0;
+  auto due = std::chrono::steady_clock::now();
+  const auto interval =
+      std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+          std::chrono::duration<double>(1.0 / rate));
   while (!stop.load()) {
-    fleetmem::v1::QueryPlaceRequest request;
-    request.set_fleet_id(fleet);
-    request.set_k(5);
-    const fleetmem::v1::MemoryTrace probe =
-        fleetmem::load::LoadTrace("load-0", 1 + rng() % 1000, dimension);
-    *request.mutable_code() = probe.code();
+    std::this_thread::sleep_until(due);
+    due += interval;
     const auto sent = std::chrono::steady_clock::now();
-    if (client->QueryPlace(request).ok()) {
+    bool ok;
+    if (call == Call::kStats) {
+      ok = client->GetStats(fleet).ok();
+    } else if (call == Call::kQuery) {
+      fleetmem::v1::QueryPlaceRequest request;
+      request.set_fleet_id(fleet);
+      request.set_k(10);
+      *request.mutable_code() =
+          fleetmem::load::LoadTrace("load-0", 1 + rng() % 1000, dimension)
+              .code();
+      ok = client->QueryPlace(request).ok();
+    } else {
+      ok = client->SampleReplay(fleet, "load-sampler", 1000).ok();
+    }
+    if (ok) {
       latencies->Add(std::chrono::duration<double, std::milli>(
                          std::chrono::steady_clock::now() - sent)
                          .count());
     }
-    ++i;
-    std::this_thread::sleep_for(std::chrono::duration<double>(1.0 / rate));
   }
 }
 
@@ -148,7 +162,8 @@ int Soak(const Common& common, int pid, double seconds, double interval,
     if (run.ok()) result = *run;
   });
   std::thread querier([&] {
-    QueryLoop(*options, common.fleet, common.dimension, 20, stop, &queries);
+    CallLoop(*options, common.fleet, common.dimension, 20, Call::kQuery, stop,
+             &queries);
   });
   std::ofstream csv;
   if (!report.empty()) {
@@ -200,46 +215,6 @@ int Soak(const Common& common, int pid, double seconds, double interval,
       static_cast<unsigned long long>(result.failed_calls),
       result.first_error.empty() ? "" : " (first: " + result.first_error + ")");
   return exit_code;
-}
-
-// A call at about `rate` per second until `stop`, timing each (QueryPlace or
-// SampleReplay of the load's fleet).
-enum class Call { kQuery, kSample, kStats };
-
-void CallLoop(const fleetmem::client::ClientOptions& options,
-              const std::string& fleet, int dimension, double rate, Call call,
-              const std::atomic<bool>& stop, LatencyLog* latencies) {
-  std::unique_ptr<fleetmem::client::Client> client =
-      fleetmem::client::Client::Create(options);
-  std::mt19937_64 rng(7);
-  auto due = std::chrono::steady_clock::now();
-  const auto interval =
-      std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-          std::chrono::duration<double>(1.0 / rate));
-  while (!stop.load()) {
-    std::this_thread::sleep_until(due);
-    due += interval;
-    const auto sent = std::chrono::steady_clock::now();
-    bool ok;
-    if (call == Call::kStats) {
-      ok = client->GetStats(fleet).ok();
-    } else if (call == Call::kQuery) {
-      fleetmem::v1::QueryPlaceRequest request;
-      request.set_fleet_id(fleet);
-      request.set_k(10);
-      *request.mutable_code() =
-          fleetmem::load::LoadTrace("load-0", 1 + rng() % 1000, dimension)
-              .code();
-      ok = client->QueryPlace(request).ok();
-    } else {
-      ok = client->SampleReplay(fleet, "load-sampler", 1000).ok();
-    }
-    if (ok) {
-      latencies->Add(std::chrono::duration<double, std::milli>(
-                         std::chrono::steady_clock::now() - sent)
-                         .count());
-    }
-  }
 }
 
 struct PhaseResult {
@@ -439,17 +414,23 @@ int main(int argc, char** argv) {
   UploadLoadOptions bench_load;
   double bench_seconds = 10, query_rate = 0, sample_rate = 0, stats_rate = 0;
   std::string peer_address, csv_path;
-  bench->add_option("--robots", bench_load.robots,
-                    "upload streams (0: only the other calls)");
-  bench->add_option("--batch", bench_load.batch, "traces per call");
-  bench->add_option("--seconds", bench_seconds, "per target");
+  bench
+      ->add_option("--robots", bench_load.robots,
+                   "upload streams (0: only the other calls)")
+      ->check(CLI::Range(0, 1024));
+  bench->add_option("--batch", bench_load.batch, "traces per call")
+      ->check(CLI::Range(1, 100000));
+  bench->add_option("--seconds", bench_seconds, "per target")
+      ->check(CLI::Range(0.001, 1e6));
   bench->add_option("--first-seq", bench_load.first_seq, "first seq per robot");
   bench->add_option("--query-rate", query_rate, "QueryPlace calls/s beside");
   bench->add_option("--sample-rate", sample_rate,
                     "SampleReplay calls/s beside");
   bench->add_option("--stats-rate", stats_rate, "GetStats calls/s beside");
-  bench->add_option("--code-pool", bench_load.code_pool,
-                    "distinct codes per robot (default 1000)");
+  bench
+      ->add_option("--code-pool", bench_load.code_pool,
+                   "distinct codes per robot (default 1000)")
+      ->check(CLI::NonNegativeNumber);
   bench->add_option("--peer", peer_address,
                     "HOST:PORT of a running `fleetmem-load peer` (default: "
                     "one started in this process)");
