@@ -634,6 +634,21 @@ struct RecallCase {
   double min_at10;
 };
 
+// Adds the same `count` vectors from `next` under ids first, first + 1, ...
+// to both indexes.
+void AddToBoth(PlaceIndex& a, PlaceIndex& b, uint64_t first, size_t count,
+               const std::function<Vector(std::mt19937&)>& next,
+               std::mt19937& rng) {
+  std::vector<uint64_t> ids;
+  std::vector<Vector> vectors;
+  for (uint64_t id = first; id < first + count; ++id) {
+    ids.push_back(id);
+    vectors.push_back(next(rng));
+  }
+  ASSERT_TRUE(a.Add(ids, vectors).ok());
+  ASSERT_TRUE(b.Add(ids, vectors).ok());
+}
+
 TEST(FlannIndexTest, RecallAgainstExactIndexOn256dUnitVectors) {
   constexpr size_t kDimension = 256;
   constexpr size_t kStored = 5000;  // the default static memory's capacity
@@ -653,14 +668,8 @@ TEST(FlannIndexTest, RecallAgainstExactIndexOn256dUnitVectors) {
     std::mt19937 rng(23);
     std::unique_ptr<PlaceIndex> exact = NewExactIndex(kDimension);
     std::unique_ptr<PlaceIndex> flann = NewFlannIndex(kDimension);
-    std::vector<uint64_t> ids;
-    std::vector<Vector> vectors;
-    for (uint64_t id = 0; id < kStored; ++id) {
-      ids.push_back(id);
-      vectors.push_back(c.next(rng));
-    }
-    ASSERT_TRUE(exact->Add(ids, vectors).ok());
-    ASSERT_TRUE(flann->Add(ids, vectors).ok());
+    AddToBoth(*exact, *flann, 0, kStored, c.next, rng);
+    if (HasFatalFailure()) return;
     std::vector<Vector> queries;
     for (size_t q = 0; q < kQueries; ++q) queries.push_back(c.next(rng));
     const Recall recall = MeasureRecall(*flann, *exact, queries);
@@ -721,25 +730,14 @@ TEST(HnswIndexTest, RecallAgainstExactIndexAfterChurn) {
     std::mt19937 rng(29);
     std::unique_ptr<PlaceIndex> exact = NewExactIndex(kDimension);
     std::unique_ptr<PlaceIndex> hnsw = NewHnswIndex(kDimension);
-    std::vector<uint64_t> ids;
-    std::vector<Vector> vectors;
-    for (uint64_t id = 0; id < kStored; ++id) {
-      ids.push_back(id);
-      vectors.push_back(c.next(rng));
-    }
-    ASSERT_TRUE(exact->Add(ids, vectors).ok());
-    ASSERT_TRUE(hnsw->Add(ids, vectors).ok());
-    std::vector<uint64_t> removed(ids.begin(), ids.begin() + kStored / 5);
+    AddToBoth(*exact, *hnsw, 0, kStored, c.next, rng);
+    if (HasFatalFailure()) return;
+    std::vector<uint64_t> removed(kStored / 5);
+    for (uint64_t id = 0; id < removed.size(); ++id) removed[id] = id;
     ASSERT_TRUE(exact->Remove(removed).ok());
     ASSERT_TRUE(hnsw->Remove(removed).ok());
-    std::vector<uint64_t> fresh_ids;
-    std::vector<Vector> fresh;
-    for (uint64_t id = kStored; id < kStored + kStored / 5; ++id) {
-      fresh_ids.push_back(id);
-      fresh.push_back(c.next(rng));
-    }
-    ASSERT_TRUE(exact->Add(fresh_ids, fresh).ok());
-    ASSERT_TRUE(hnsw->Add(fresh_ids, fresh).ok());
+    AddToBoth(*exact, *hnsw, kStored, kStored / 5, c.next, rng);
+    if (HasFatalFailure()) return;
     EXPECT_EQ(hnsw->size(), kStored);
     std::vector<Vector> queries;
     for (size_t q = 0; q < 200; ++q) queries.push_back(c.next(rng));
