@@ -91,7 +91,7 @@ test-tsan: deps
 	  -DFLEETMEM_BUILD_BENCH=OFF -DFLEETMEM_BUILD_DEMO=OFF \
 	  -DFLEETMEM_TSAN_ABSL_ANNOTATIONS=ON >/dev/null
 	@cmake --build build-tsan -j $(JOBS) --target $(TSAN_TESTS)
-	@cd build-tsan && TSAN_OPTIONS="halt_on_error=1" \
+	@cd build-tsan && TSAN_OPTIONS="halt_on_error=1 suppressions=$(CURDIR)/tools/tsan/suppressions.txt" \
 	  GTEST_FILTER='-RocksDb*:*/RocksDb:Kill/*' \
 	  ctest --output-on-failure -j $(JOBS) -R '^($(subst $(space),|,$(TSAN_TESTS)))$$' $(CTEST_ARGS)
 

@@ -17,6 +17,7 @@
 // recomputed, Efraimidis-Spirakis keys, partial sort).
 // Stats/<traces>: per-robot and per-domain counts from the kept counts; the
 // peer StatsScan walks every trace (as GetStats did).
+// Restore/<traces>: the static memory's share of a restart.
 #include <benchmark/benchmark.h>
 
 #include <cstdint>
@@ -153,6 +154,27 @@ void BM_StatsScan(benchmark::State& state) {
   }
 }
 
+// What a restart costs in the static memory: every cluster of a full
+// memory put back with Restore (sum tree, counts, forgetting's closest-pair
+// graph over the K centroids). The clusters are copied outside the timing.
+void BM_Restore(benchmark::State& state) {
+  Filled& filled = Memory(static_cast<size_t>(state.range(0)), false);
+  for (auto _ : state) {
+    state.PauseTiming();
+    std::vector<Cluster> clusters;
+    clusters.reserve(filled.memory->clusters().size());
+    for (const auto& [id, cluster] : filled.memory->clusters()) {
+      clusters.push_back(cluster);
+    }
+    auto memory = std::make_unique<StaticMemory>(filled.memory->options());
+    state.ResumeTiming();
+    for (Cluster& cluster : clusters) memory->Restore(std::move(cluster));
+    state.PauseTiming();
+    memory.reset();
+    state.ResumeTiming();
+  }
+}
+
 BENCHMARK(BM_Consolidate)
     ->ArgsProduct({{5'000, 100'000, 1'000'000}, {0}})
     ->Unit(benchmark::kMillisecond);
@@ -175,6 +197,11 @@ BENCHMARK(BM_StatsScan)
     ->Arg(5'000)
     ->Arg(100'000)
     ->Arg(1'000'000)
+    ->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_Restore)
+    ->Arg(100'000)
+    ->Arg(1'000'000)
+    ->Iterations(1)
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace

@@ -4,14 +4,16 @@
     bench/plot_perf.py docs/perf
 
 Reads memory_scale.json and ann.json (Google Benchmark JSON) and
-server_scale.csv from the directory, writes *.dat tables and draws the
+server_scale.csv from the directory, writes *.dat tables (in a temporary directory) and draws the
 log-log plots with gnuplot (PNG) into the same directory.
 """
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 
 
 def load(path):
@@ -32,8 +34,13 @@ def series(benchmarks, prefix):
     return sorted(points)
 
 
-def write(path, points):
-    with open(path, "w") as f:
+# The gnuplot data files are intermediates: they go to a temporary
+# directory, only the plots to the output directory.
+DAT_DIR = tempfile.mkdtemp(prefix="fleetmem-plot-")
+
+
+def write(name, points):
+    with open(os.path.join(DAT_DIR, name), "w") as f:
         for x, y in points:
             f.write(f"{x} {y}\n")
 
@@ -53,7 +60,7 @@ def plot(out_dir, name, title, ylabel, curves):
     ]
     parts = []
     for data, label in curves:
-        parts.append(f"'{os.path.join(out_dir, data)}' using 1:2 "
+        parts.append(f"'{os.path.join(DAT_DIR, data)}' using 1:2 "
                      f"with linespoints title '{label}'")
     lines.append("plot " + ", ".join(parts))
     subprocess.run(["gnuplot"], input="\n".join(lines), text=True, check=True)
@@ -67,14 +74,14 @@ def main():
         ("BM_SampleReplayScan", "sample_scan.dat"), ("BM_Stats", "stats.dat"),
         ("BM_StatsScan", "stats_scan.dat")]:
         if file:
-            write(os.path.join(out, file), series(scale, prefix))
+            write(file, series(scale, prefix))
     by_mode = {0: [], 1: []}
     for b in scale:
         if b["name"].startswith("BM_Consolidate/"):
             _, size, exact = b["name"].split("/")[:3]
             by_mode[int(exact)].append((int(size), b["real_time"]))
-    write(os.path.join(out, "consolidate_hnsw.dat"), sorted(by_mode[0]))
-    write(os.path.join(out, "consolidate_exact.dat"), sorted(by_mode[1]))
+    write("consolidate_hnsw.dat", sorted(by_mode[0]))
+    write("consolidate_exact.dat", sorted(by_mode[1]))
     plot(out, "consolidate", "P4: consolidation + forgetting of a 200-trace "
          "segment into a full memory", "ms per segment",
          [("consolidate_hnsw.dat", "closest pair via HNSW over centroids"),
@@ -99,7 +106,7 @@ def main():
                     b.get("ef_search", 128) == 128):
                 points.append((int(parts[2]), b["p50_ms"]))
         if points:
-            write(os.path.join(out, f"query_{kind}.dat"), sorted(points))
+            write(f"query_{kind}.dat", sorted(points))
             curves.append((f"query_{kind}.dat", label))
     plot(out, "query", "Place query (k = 10, 256-d), median latency",
          "ms per query", curves)
@@ -116,9 +123,9 @@ def main():
                 calls["query"].append((size, float(row["query_p50_ms"])))
                 calls["sample"].append((size, float(row["sample_p50_ms"])))
                 calls["stats"].append((size, float(row["stats_p50_ms"])))
-        write(os.path.join(out, "fill.dat"), fill)
+        write("fill.dat", fill)
         for name, points in calls.items():
-            write(os.path.join(out, f"server_{name}.dat"), points)
+            write(f"server_{name}.dat", points)
         plot(out, "server", "The real server as one fleet fills (gRPC, "
              "loopback), median latency", "ms per call",
              [("server_query.dat", "QueryPlace k=10"),
@@ -130,6 +137,8 @@ def main():
 
 
 def fmt_ms(ms):
+    if ms >= 1000:
+        return f"{ms / 1000:.2f} s"
     return f"{ms * 1000:.1f} µs" if ms < 0.1 else f"{ms:.3g} ms"
 
 
@@ -147,6 +156,12 @@ def tables(out):
               f"{t(f'BM_Consolidate/{n}/1')} | {t(f'BM_SampleReplay/{n}')} | "
               f"{t(f'BM_SampleReplayScan/{n}')} | {t(f'BM_Stats/{n}')} | "
               f"{t(f'BM_StatsScan/{n}')} |")
+    print()
+    print("| traces | Restore of every cluster (a restart's static-memory share) |")
+    print("|---:|---:|")
+    for n in (100000, 1000000):
+        b = scale.get(f"BM_Restore/{n}/iterations:1")
+        print(f"| {n:,} | {fmt_ms(b['real_time']) if b else '—'} |")
     print()
     names = {0: "fleetmem exact", 1: "fleetmem tiered (auto)",
              2: "fleetmem HNSW", 3: "hnswlib direct", 4: "faiss HNSW",
@@ -197,5 +212,8 @@ def tables(out):
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    finally:
+        shutil.rmtree(DAT_DIR, ignore_errors=True)
     tables(sys.argv[1] if len(sys.argv) > 1 else "docs/perf")

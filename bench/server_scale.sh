@@ -65,4 +65,6 @@ done
 end=$(date +%s.%N)
 restart=$(awk "BEGIN { printf \"%.2f\", $end - $start }")
 echo "restart_seconds_at_$largest,$restart" | tee -a "$out"
+# Where the restart went (the engine logs each fleet's load).
+grep -o 'fleet "scale" loaded.*' "$work/restart.log" >&2 || true
 stop_server

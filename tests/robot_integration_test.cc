@@ -228,7 +228,14 @@ TEST_F(RobotIntegrationTest, SigtermStopsCleanlyAndARestartFinishes) {
       RobotArgs("f-term", "r1", kSummer, kObservations, 150.0, data_dir),
       dir_.Join("robot.log"));
   ASSERT_NO_FATAL_FAILURE(robot.Start());
-  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  // Signal once the robot is observing, not after a fixed delay: a robot
+  // that is still loading (slow under the sanitizers) has no handler yet.
+  const auto deadline = Clock::now() + std::chrono::seconds(120);
+  while (ReadStatus(data_dir).counters().observations() == 0) {
+    ASSERT_LT(Clock::now(), deadline) << "the robot never started observing";
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
   robot.Signal(SIGTERM);
   EXPECT_EQ(robot.Wait(), 0);
   const robot::state::RobotStatus stopped = ReadStatus(data_dir);

@@ -21,7 +21,7 @@ struct HnswGraphOptions {
   // Links per node (2 x m on the base layer).
   size_t m = 16;
   // Candidate lists while inserting and while searching (at least k is used).
-  size_t ef_construction = 100;
+  size_t ef_construction = 40;
   size_t ef_search = 64;
   // Seed of the level generator.
   uint64_t seed = 42;

@@ -161,7 +161,8 @@ absl::Status ValidateEngineOptions(const EngineOptions& options) {
   return ValidateQuotaOptions(options.limits);
 }
 
-// One fleet's state. Every member but `id` and `engine` is guarded by `mu`.
+// One fleet's state. Every member but `id`, `engine` and the two mutexes is
+// guarded by `mu`.
 struct MemoryEngine::Fleet {
   Fleet(std::string fleet_id, const MemoryEngine* owner)
       : id(std::move(fleet_id)),
@@ -192,16 +193,33 @@ struct MemoryEngine::Fleet {
   const core::MemoryTrace* FindTrace(const core::TraceKey& key) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
 
-  absl::Status Upload(std::span<const core::MemoryTrace> traces,
-                      UploadResult* result, Notices* notices)
-      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // An upload in three steps, so that readers wait only for the last:
+  // PrepareUpload checks it and builds the store mutation (shared lock); the
+  // caller makes it durable (shared lock still held: the store's fsync does
+  // not block queries); CommitUpload applies it to memory and consolidates
+  // full segments (exclusive lock). The caller holds writer_mu throughout.
+  struct PreparedUpload {
+    FleetMutation mutation;
+    std::unique_ptr<PlaceIndex> new_index;  // for a new fleet
+  };
+  absl::Status PrepareUpload(std::span<const core::MemoryTrace> traces,
+                             UploadResult* result, PreparedUpload* prepared)
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  absl::Status CommitUpload(PreparedUpload prepared, UploadResult* result,
+                            Notices* notices) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
   // and 2) and persists the outcome in one mutation.
   absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
-  absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
-      std::string_view robot_id, size_t count, std::string_view request_id)
-      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Eq. 18 draw with the replay counts incremented in memory (exclusive
+  // lock). `mutation` gets what must be stored and `record` the robot's new
+  // record; a retry of the previous request returns its traces and leaves
+  // `mutation` empty. The caller stores the mutation under the shared lock,
+  // then calls FinishSample (or Reload on failure).
+  absl::StatusOr<std::vector<core::MemoryTrace>> DrawSample(
+      std::string_view robot_id, size_t count, std::string_view request_id,
+      FleetMutation* mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  void FinishSample(FleetMutation mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   FleetStats Stats() const ABSL_SHARED_LOCKS_REQUIRED(mu);
 
   // Fleet is nested in MemoryEngine and so reaches its private members; these
@@ -237,6 +255,11 @@ struct MemoryEngine::Fleet {
   const std::string id;
   const MemoryEngine* const engine;
 
+  // Serialises the fleet's mutating calls from start to end, so that they
+  // reach the store in the order they change memory. Taken before `mu`.
+  // Writers hold `mu` exclusively only while they change memory; their
+  // store writes (and fsyncs) run under `mu`'s shared lock, beside readers.
+  absl::Mutex writer_mu ABSL_ACQUIRED_BEFORE(mu);
   mutable absl::Mutex mu;
   absl::Status stale ABSL_GUARDED_BY(mu);
   FleetMeta meta ABSL_GUARDED_BY(mu);
@@ -261,9 +284,21 @@ struct MemoryEngine::Fleet {
 };
 
 absl::Status MemoryEngine::Fleet::Reload() {
+  const absl::Time start = absl::Now();
   absl::StatusOr<FleetRecord> record = engine->store_->LoadFleet(id);
+  const absl::Time read = absl::Now();
   absl::Status status =
       record.ok() ? Rebuild(*std::move(record)) : record.status();
+  if (status.ok() && exists()) {
+    FLEETMEM_LOG(kInfo) << "fleet \"" << id
+                        << "\" loaded: " << memory.trace_count()
+                        << " traces in " << memory.clusters().size()
+                        << " clusters, " << pending_position.size()
+                        << " pending; store read "
+                        << absl::ToDoubleSeconds(read - start)
+                        << " s, memory and index "
+                        << absl::ToDoubleSeconds(absl::Now() - read) << " s";
+  }
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\" could not be reloaded: " << status;
@@ -388,10 +423,10 @@ absl::Status MemoryEngine::Fleet::UnindexTraces(
   return index->Remove(ids);
 }
 
-absl::Status MemoryEngine::Fleet::Upload(
+absl::Status MemoryEngine::Fleet::PrepareUpload(
     std::span<const core::MemoryTrace> traces, UploadResult* result,
-    Notices* notices) {
-  absl::Status status = EnsureLoaded();
+    PreparedUpload* prepared) {
+  absl::Status status = CheckLoaded();
   if (!status.ok()) return status;
   const bool is_new = !exists();
   status = ValidateUpload(id, traces, is_new ? nullptr : &meta,
@@ -408,7 +443,7 @@ absl::Status MemoryEngine::Fleet::Upload(
 
   // Duplicates are seqs already received or repeated within this upload:
   // inserting into a copy of the robot's SeqSet detects both.
-  FleetMutation mutation;
+  FleetMutation& mutation = prepared->mutation;
   std::map<std::string, RobotRecord> changed_robots;
   for (const core::MemoryTrace& trace : traces) {
     auto [it, inserted] = changed_robots.try_emplace(trace.robot_id);
@@ -436,6 +471,7 @@ absl::Status MemoryEngine::Fleet::Upload(
                              mutation.put_pending.size());
   if (!status.ok()) {
     *result = UploadResult{};
+    mutation = FleetMutation{};
     return status;
   }
   for (auto& [robot_id, record] : changed_robots) {
@@ -445,26 +481,29 @@ absl::Status MemoryEngine::Fleet::Upload(
     if (record.received.size() != before) mutation.put_robots.push_back(record);
   }
 
-  std::unique_ptr<PlaceIndex> new_index;
   if (is_new) {
     mutation.put_meta = true;
     mutation.meta = meta;
     mutation.meta.code_dimension = static_cast<uint32_t>(traces[0].code.size());
     mutation.meta.encoder_version = traces[0].encoder_version;
-    new_index = engine->index_factory_(mutation.meta.code_dimension);
-    if (new_index == nullptr) {
+    prepared->new_index = engine->index_factory_(mutation.meta.code_dimension);
+    if (prepared->new_index == nullptr) {
+      mutation = FleetMutation{};
       return absl::InternalError(absl::StrCat(
           "the index factory made no index for fleet \"", id, "\""));
     }
   }
+  return absl::OkStatus();
+}
 
-  status = engine->store_->Apply(id, mutation);
-  if (!status.ok()) return status;
-
+absl::Status MemoryEngine::Fleet::CommitUpload(PreparedUpload prepared,
+                                               UploadResult* result,
+                                               Notices* notices) {
+  FleetMutation& mutation = prepared.mutation;
   // Durable: now the in-memory state follows.
-  if (is_new) {
+  if (mutation.put_meta) {
     meta = mutation.meta;
-    index = std::move(new_index);
+    index = std::move(prepared.new_index);
   }
   for (RobotRecord& record : mutation.put_robots) {
     std::string robot_id = record.robot_id;
@@ -481,7 +520,7 @@ absl::Status MemoryEngine::Fleet::Upload(
   std::vector<const core::MemoryTrace*> fresh;
   fresh.reserve(fresh_keys.size());
   for (const core::TraceKey& key : fresh_keys) fresh.push_back(FindTrace(key));
-  status = IndexTraces(fresh);
+  absl::Status status = IndexTraces(fresh);
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": index update failed, rebuilding: " << status;
@@ -620,9 +659,9 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<core::MemoryTrace>>
-MemoryEngine::Fleet::SampleReplay(std::string_view robot_id, size_t count,
-                                  std::string_view request_id) {
+absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
+    std::string_view robot_id, size_t count, std::string_view request_id,
+    FleetMutation* mutation) {
   RobotRecord record;
   auto known = robots.find(robot_id);
   if (known != robots.end()) {
@@ -649,17 +688,16 @@ MemoryEngine::Fleet::SampleReplay(std::string_view robot_id, size_t count,
       record.last_sample.push_back(trace.key());
     }
   }
-  FleetMutation mutation;
-  mutation.update_traces = traces;
-  mutation.put_robots.push_back(record);
-  absl::Status status = engine->store_->Apply(id, mutation);
-  if (!status.ok()) {
-    // Replay counts were already incremented in memory: drop them.
-    Reload().IgnoreError();
-    return status;
-  }
-  robots[record.robot_id] = std::move(record);
+  mutation->update_traces = traces;
+  mutation->put_robots.push_back(std::move(record));
   return traces;
+}
+
+void MemoryEngine::Fleet::FinishSample(FleetMutation mutation) {
+  for (RobotRecord& record : mutation.put_robots) {
+    std::string robot_id = record.robot_id;
+    robots[robot_id] = std::move(record);
+  }
 }
 
 FleetStats MemoryEngine::Fleet::Stats() const {
@@ -673,6 +711,7 @@ FleetStats MemoryEngine::Fleet::Stats() const {
   stats.clusters_forgotten = meta.clusters_forgotten;
   stats.first_event_id = std::max<uint64_t>(1, meta.first_event_id);
   stats.quota_rejections = engine->quota_->Rejections(id);
+  stats.unindexed_codes = index != nullptr ? index->unindexed() : 0;
   stats.max_clusters = static_cast<uint32_t>(memory.options().max_clusters);
   stats.max_traces_per_cluster =
       static_cast<uint32_t>(memory.options().max_traces_per_cluster);
@@ -759,6 +798,7 @@ absl::StatusOr<std::unique_ptr<MemoryEngine>> MemoryEngine::Open(
   for (const std::string& fleet_id : *fleet_ids) {
     auto fleet = std::make_unique<Fleet>(fleet_id, engine.get());
     {
+      absl::MutexLock writer(&fleet->writer_mu);
       absl::MutexLock lock(&fleet->mu);
       status = fleet->Reload();
     }
@@ -825,8 +865,23 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
   UploadResult result;
   Notices notices;
   {
+    absl::MutexLock writer(&fleet->writer_mu);
+    {
+      absl::MutexLock lock(&fleet->mu);
+      status = fleet->EnsureLoaded();
+    }
+    Fleet::PreparedUpload prepared;
+    if (status.ok()) {
+      absl::ReaderMutexLock lock(&fleet->mu);
+      status = fleet->PrepareUpload(traces, &result, &prepared);
+      if (status.ok() && !prepared.mutation.put_pending.empty()) {
+        status = store_->Apply(fleet->id, prepared.mutation);
+      }
+    }
     absl::MutexLock lock(&fleet->mu);
-    status = fleet->Upload(traces, &result, &notices);
+    if (status.ok() && !prepared.mutation.put_pending.empty()) {
+      status = fleet->CommitUpload(std::move(prepared), &result, &notices);
+    }
     notices.consolidated.clusters = fleet->memory.clusters().size();
     notices.consolidated.traces = fleet->memory.trace_count();
   }
@@ -849,6 +904,7 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
   const absl::Time start = absl::Now();
   Notices notices;
   {
+    absl::MutexLock writer(&fleet->writer_mu);
     absl::MutexLock lock(&fleet->mu);
     status = fleet->EnsureLoaded();
     if (!status.ok()) return status;
@@ -894,11 +950,30 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
   if (fleet == nullptr) return FleetNotFound(fleet_id);
   absl::StatusOr<std::vector<core::MemoryTrace>> traces;
   {
-    absl::MutexLock lock(&fleet->mu);
-    status = fleet->EnsureLoaded();
-    if (!status.ok()) return status;
-    if (!fleet->exists()) return FleetNotFound(fleet_id);
-    traces = fleet->SampleReplay(robot_id, count, request_id);
+    absl::MutexLock writer(&fleet->writer_mu);
+    FleetMutation mutation;
+    {
+      absl::MutexLock lock(&fleet->mu);
+      status = fleet->EnsureLoaded();
+      if (!status.ok()) return status;
+      if (!fleet->exists()) return FleetNotFound(fleet_id);
+      traces = fleet->DrawSample(robot_id, count, request_id, &mutation);
+    }
+    if (traces.ok() && !mutation.put_robots.empty()) {
+      // Readers may see the incremented counts while they are stored; if
+      // the store fails, the fleet is reloaded and the call fails.
+      {
+        absl::ReaderMutexLock lock(&fleet->mu);
+        status = store_->Apply(fleet->id, mutation);
+      }
+      absl::MutexLock lock(&fleet->mu);
+      if (status.ok()) {
+        fleet->FinishSample(std::move(mutation));
+      } else {
+        fleet->Reload().IgnoreError();
+        traces = status;
+      }
+    }
   }
   if (traces.ok() && hooks_.on_sample) {
     hooks_.on_sample(fleet_id, traces->size());

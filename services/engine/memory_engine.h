@@ -3,10 +3,16 @@
 // consolidation per robot segment, replay sampling, queries and events.
 //
 // Thread-safe: calls on different fleets run in parallel; on one fleet,
-// queries and stats share a reader lock, mutations take it exclusively.
+// mutations run one at a time, and queries and stats share a reader lock
+// with each other and with the store writes of uploads and samples: a query
+// waits while a mutation changes memory (an upload's commit, a replay draw)
+// and during a consolidation (k-means and its store write), not for an
+// upload's or a sample's fsync.
 // Every mutation is durable in the store before the call returns OK; if the
-// store fails, the fleet is reloaded from the store and the error returned,
-// so memory never runs ahead of disk.
+// store fails, the fleet is reloaded from the store and the error returned.
+// Uploaded traces and consolidations become visible only once durable; a
+// sample's incremented replay counts are visible while they are being
+// stored, and a store failure reverts them (by the reload).
 #ifndef FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_H_
 #define FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_H_
 
@@ -122,6 +128,9 @@ struct FleetStats {
   uint64_t first_event_id = 1;
   // Uploads refused by each limit since the server started.
   std::map<std::string, uint64_t> quota_rejections;
+  // Codes the place index holds outside its search graph (PlaceIndex::
+  // unindexed: the tiered index's backlog).
+  uint64_t unindexed_codes = 0;
   std::vector<RobotStats> robots;    // sorted by robot_id
   std::vector<DomainStats> domains;  // sorted by domain
 };

@@ -2,10 +2,12 @@
 
 #include <atomic>
 #include <cmath>
+#include <condition_variable>
 #include <cstdint>
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <random>
 #include <string>
 #include <thread>
@@ -15,9 +17,12 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/status/status.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/index/exact_index.h"
+#include "services/index/hnsw_index.h"
 #include "services/storage/in_memory_store.h"
 
 namespace fleetmem::engine {
@@ -92,10 +97,10 @@ std::vector<core::MemoryTrace> AllTraces(const MemoryEngine& engine,
   return traces;
 }
 
-// A store that forwards to another and fails Apply while `fail` is set.
-class FlakyStore : public MemoryStore {
+// Forwards every call to another store; the stores below override Apply.
+class ForwardingStore : public MemoryStore {
  public:
-  explicit FlakyStore(MemoryStore* inner) : inner_(inner) {}
+  explicit ForwardingStore(MemoryStore* inner) : inner_(inner) {}
   absl::StatusOr<std::vector<std::string>> ListFleets() override {
     return inner_->ListFleets();
   }
@@ -104,10 +109,6 @@ class FlakyStore : public MemoryStore {
   }
   absl::Status Apply(std::string_view fleet_id,
                      const FleetMutation& mutation) override {
-    ++applies;
-    if (fail_after >= 0 && applies > fail_after) {
-      return absl::InternalError("disk on fire");
-    }
     return inner_->Apply(fleet_id, mutation);
   }
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
@@ -115,11 +116,69 @@ class FlakyStore : public MemoryStore {
     return inner_->ReadEvents(fleet_id, after_event, limit);
   }
 
-  int applies = 0;
-  int fail_after = -1;  // Apply calls that succeed before failures; -1: never
-
  private:
   MemoryStore* inner_;
+};
+
+// A store that fails Apply after `fail_after` successful calls.
+class FlakyStore : public ForwardingStore {
+ public:
+  using ForwardingStore::ForwardingStore;
+  absl::Status Apply(std::string_view fleet_id,
+                     const FleetMutation& mutation) override {
+    ++applies;
+    if (fail_after >= 0 && applies > fail_after) {
+      return absl::InternalError("disk on fire");
+    }
+    return ForwardingStore::Apply(fleet_id, mutation);
+  }
+
+  int applies = 0;
+  int fail_after = -1;  // Apply calls that succeed before failures; -1: never
+};
+
+// A store whose Apply, while held, waits until Release(): a slow fsync that
+// a test controls.
+class GatedStore : public ForwardingStore {
+ public:
+  using ForwardingStore::ForwardingStore;
+  absl::Status Apply(std::string_view fleet_id,
+                     const FleetMutation& mutation) override {
+    {
+      std::unique_lock lock(mu_);
+      if (hold_) {
+        ++waiting_;
+        changed_.notify_all();
+        changed_.wait(lock, [this] { return !hold_; });
+        --waiting_;
+      }
+    }
+    return ForwardingStore::Apply(fleet_id, mutation);
+  }
+  void Hold() {
+    std::unique_lock lock(mu_);
+    hold_ = true;
+  }
+  // Blocks until `count` Apply calls are waiting.
+  void AwaitWaiting(int count) {
+    std::unique_lock lock(mu_);
+    changed_.wait(lock, [this, count] { return waiting_ >= count; });
+  }
+  void Release() {
+    {
+      std::unique_lock lock(mu_);
+      hold_ = false;
+    }
+    changed_.notify_all();
+  }
+
+ private:
+  // std::mutex rather than absl::Mutex::Await, which ThreadSanitizer does
+  // not see (Debian's absl is not instrumented).
+  std::mutex mu_;
+  std::condition_variable changed_;
+  bool hold_ = false;
+  int waiting_ = 0;
 };
 
 class MemoryEngineTest : public ::testing::Test {
@@ -996,6 +1055,90 @@ TEST_F(MemoryEngineTest, ConcurrentCallsOnSeveralFleets) {
   for (size_t i = 0; i < events->size(); ++i) {
     EXPECT_EQ((*events)[i].id, i + 1);
   }
+}
+
+// Queries and stats run while an upload's or a sample's store write is in
+// flight (they do not wait for its fsync); a second upload waits for the
+// first, so writes reach the store in order; the blocked upload's traces
+// are not visible before they are durable.
+TEST_F(MemoryEngineTest, ReadersDoNotWaitForStoreWrites) {
+  GatedStore gated(store_.get());
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options_, &gated, ExactFactory());
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  MemoryEngine& engine = **opened;
+  ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", 1, 10, rng_)).ok());
+  ASSERT_TRUE(engine.Consolidate("f1").ok());
+  const std::vector<core::MemoryTrace> held = MakeTraces("r2", 1, 5, rng_);
+
+  gated.Hold();
+  std::thread sampler(
+      [&] { EXPECT_TRUE(engine.SampleReplay("f1", "r1", 3).ok()); });
+  std::thread uploader([&] { EXPECT_TRUE(engine.Upload("f1", held).ok()); });
+  gated.AwaitWaiting(1);
+  // One write waits in the store, the other writer behind it; readers run.
+  for (int i = 0; i < 5; ++i) {
+    absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
+    ASSERT_TRUE(stats.ok()) << stats.status();
+    EXPECT_EQ(stats->pending_traces, 0u);  // r2's upload is not durable yet
+    PlaceQuery query;
+    query.code = held[0].code;
+    query.k = 3;
+    absl::StatusOr<std::vector<PlaceMatch>> found =
+        engine.QueryPlace("f1", query);
+    ASSERT_TRUE(found.ok()) << found.status();
+    for (const PlaceMatch& match : *found)
+      EXPECT_NE(match.trace.robot_id, "r2");
+  }
+  gated.Release();
+  sampler.join();
+  uploader.join();
+  absl::StatusOr<FleetStats> after = engine.GetStats("f1");
+  ASSERT_TRUE(after.ok()) << after.status();
+  const FleetStats& stats = *after;
+  ASSERT_NE(FindRobot(stats, "r2"), nullptr);
+  EXPECT_EQ(FindRobot(stats, "r2")->pending_traces, 5u);
+  EXPECT_EQ(FindRobot(stats, "r1")->replayed, 3u);
+  // And the store agrees after a reopen.
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> reopened =
+      MemoryEngine::Open(options_, store_.get(), ExactFactory());
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  absl::StatusOr<FleetStats> again = (*reopened)->GetStats("f1");
+  ASSERT_TRUE(again.ok()) << again.status();
+  ExpectSameStats(stats, *again);
+}
+
+// GetStats reports the place index's backlog: with the tiered index, whose
+// graph fills in the background, the codes not yet in the graph, until the
+// background thread has moved them all; with the exact index, none.
+TEST_F(MemoryEngineTest, StatsReportTheIndexBacklog) {
+  std::unique_ptr<MemoryStore> store = storage::NewInMemoryStore();
+  EngineOptions options = SmallOptions();
+  options.segment_size = 1000;  // everything stays pending (and indexed)
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options, store.get(), [](size_t dimension) {
+        index::TieredIndexOptions tiered;
+        tiered.hnsw_from = 10;
+        return index::NewTieredIndex(dimension, tiered);
+      });
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  MemoryEngine& engine = **opened;
+  for (uint64_t first = 1; first <= 150; first += 50) {
+    ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", first, 50, rng_)).ok());
+  }
+  absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_EQ(stats->pending_traces, 150u);
+  EXPECT_LE(stats->unindexed_codes, 150u);
+  const absl::Time deadline = absl::Now() + absl::Seconds(60);
+  while (stats->unindexed_codes > 0 && absl::Now() < deadline) {
+    absl::SleepFor(absl::Milliseconds(10));
+    stats = engine.GetStats("f1");
+    ASSERT_TRUE(stats.ok()) << stats.status();
+  }
+  EXPECT_EQ(stats->unindexed_codes, 0u);
+  MustUpload(MakeTraces("r1", 1, 30, rng_));
+  EXPECT_EQ(Stats().unindexed_codes, 0u);
 }
 
 TEST_F(MemoryEngineTest, StoreFailureDuringUploadStoresNothing) {

@@ -45,6 +45,9 @@ class PlaceIndex {
       std::span<const float> query, const SearchParams& params) const = 0;
   virtual size_t size() const = 0;
   virtual size_t dimension() const = 0;
+  // Vectors held but not yet in the index's search structure (searched by
+  // an exact scan meanwhile), e.g. a graph index's backlog; 0 by default.
+  virtual size_t unindexed() const { return 0; }
 };
 
 // Makes an empty index of `dimension` for one fleet.

@@ -37,9 +37,10 @@ class ExactIndex final : public engine::PlaceIndex {
   size_t size() const override { return ids_.size(); }
   size_t dimension() const override { return dimension_; }
 
-  void ForEach(const std::function<void(uint64_t, std::span<const float>)>&
-                   visit) const {
-    for (size_t column = 0; column < ids_.size(); ++column) {
+  void ForEach(
+      const std::function<void(uint64_t, std::span<const float>)>& visit,
+      size_t begin, size_t end) const {
+    for (size_t column = begin; column < std::min(end, ids_.size()); ++column) {
       visit(ids_[column],
             std::span<const float>(vectors_.col(column).data(), dimension_));
     }
@@ -199,9 +200,10 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
 
 void ForEachExactVector(
     const engine::PlaceIndex& index,
-    const std::function<void(uint64_t, std::span<const float>)>& visit) {
+    const std::function<void(uint64_t, std::span<const float>)>& visit,
+    size_t begin, size_t end) {
   if (const auto* exact = dynamic_cast<const ExactIndex*>(&index)) {
-    exact->ForEach(visit);
+    exact->ForEach(visit, begin, end);
   }
 }
 

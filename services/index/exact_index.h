@@ -30,11 +30,14 @@ namespace fleetmem::index {
 // changes nothing. Thread-safety as in engine::PlaceIndex.
 std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension);
 
-// Calls visit(id, vector) for every vector of an index made by NewExactIndex
-// (in storage order); does nothing for another kind of index.
+// Calls visit(id, vector) for the vectors of an index made by NewExactIndex
+// at storage positions [begin, end) (clamped to its size), in storage order;
+// does nothing for another kind of index. Removing the vectors at the last
+// positions moves no other vector.
 void ForEachExactVector(
     const engine::PlaceIndex& index,
-    const std::function<void(uint64_t, std::span<const float>)>& visit);
+    const std::function<void(uint64_t, std::span<const float>)>& visit,
+    size_t begin = 0, size_t end = SIZE_MAX);
 
 }  // namespace fleetmem::index
 

@@ -1,13 +1,22 @@
 #include "services/index/hnsw_index.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <condition_variable>
+#include <functional>
+#include <mutex>
 #include <new>
+#include <shared_mutex>
+#include <thread>
 #include <utility>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "services/common/log.h"
 #include "services/core/hnsw_graph.h"
 #include "services/index/exact_index.h"
 #include "services/index/index_input.h"
@@ -51,6 +60,7 @@ class HnswIndex final : public engine::PlaceIndex {
       std::span<const float> query, const SearchParams& params) const override;
   size_t size() const override { return slot_of_.size(); }
   size_t dimension() const override { return graph_.dimension(); }
+  bool contains(uint64_t id) const { return slot_of_.contains(id); }
 
   void set_ef_search(size_t ef) { graph_.set_ef_search(ef); }
 
@@ -130,7 +140,10 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
     size_t asked =
         params.accept ? params.k * options_.accept_oversample : params.k;
     while (true) {
-      if (params.accept && asked >= live / 2) {
+      // Asking for half the index or more: a scan costs as much as the graph
+      // search and, unlike it, reaches every vector (a graph can leave a
+      // node unreachable).
+      if (asked >= live / 2) {
         std::vector<Neighbor> all = Scan(query, params);
         KeepNearest(all, params.k);
         return all;
@@ -153,83 +166,236 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
   }
 }
 
-// Exact below options.hnsw_from vectors, HNSW from it on (and exact again
-// below half of it). The switch moves every vector into the other index
-// (one-off: up to ~20 s at 20,000 x 256-d on the 2-core reference machine,
-// under the fleet's writer lock; docs/performance.md).
+// Vectors copied out of one index for another, with their ids.
+struct IdVectors {
+  std::vector<uint64_t> ids;
+  std::vector<std::vector<float>> vectors;
+  std::function<void(uint64_t, std::span<const float>)> Collector() {
+    return [this](uint64_t id, std::span<const float> vector) {
+      ids.push_back(id);
+      vectors.emplace_back(vector.begin(), vector.end());
+    };
+  }
+};
+
+// Counts a caller as waiting for a lock from construction until Acquired()
+// (or destruction).
+class WaiterCount {
+ public:
+  explicit WaiterCount(std::atomic<int>& waiters) : waiters_(waiters) {
+    waiters_.fetch_add(1, std::memory_order_acq_rel);
+  }
+  ~WaiterCount() { Acquired(); }
+  void Acquired() const {
+    if (!acquired_) {
+      acquired_ = true;
+      waiters_.fetch_sub(1, std::memory_order_acq_rel);
+    }
+  }
+
+ private:
+  std::atomic<int>& waiters_;
+  mutable bool acquired_ = false;
+};
+
+// The exact index alone below options.hnsw_from vectors; from it on an HNSW
+// graph plus an exact growing segment (tail_) that a background thread
+// drains into the graph. One reader/writer lock guards both, so a Search
+// sees every vector exactly once: in the tail or in the graph.
 class TieredIndex final : public engine::PlaceIndex {
  public:
   TieredIndex(size_t dimension, TieredIndexOptions options)
       : dimension_(dimension),
         options_(options),
-        active_(NewExactIndex(dimension)) {}
+        tail_(NewExactIndex(dimension)) {
+    options_.indexer_batch = std::max<size_t>(1, options_.indexer_batch);
+  }
+  ~TieredIndex() override {
+    {
+      std::unique_lock lock(mu_);
+      stop_ = true;
+    }
+    changed_.notify_all();
+    if (indexer_.joinable()) indexer_.join();
+  }
 
   absl::Status Add(std::span<const uint64_t> ids,
-                   std::span<const std::vector<float>> vectors) override {
-    absl::Status status = active_->Add(ids, vectors);
-    if (status.ok() && !graph_ && active_->size() >= options_.hnsw_from) {
-      status = Switch(/*to_graph=*/true);
-    }
-    return status;
-  }
-  absl::Status Remove(std::span<const uint64_t> ids) override {
-    absl::Status status = active_->Remove(ids);
-    if (status.ok() && graph_ && active_->size() < options_.hnsw_from / 2) {
-      status = Switch(/*to_graph=*/false);
-    }
-    return status;
-  }
+                   std::span<const std::vector<float>> vectors) override;
+  absl::Status Remove(std::span<const uint64_t> ids) override;
   absl::StatusOr<std::vector<Neighbor>> Search(
-      std::span<const float> query, const SearchParams& params) const override {
-    return active_->Search(query, params);
+      std::span<const float> query, const SearchParams& params) const override;
+  size_t size() const override {
+    std::shared_lock lock(mu_);
+    return SizeLocked();
   }
-  size_t size() const override { return active_->size(); }
-  engine::PlaceIndex& active() { return *active_; }
   size_t dimension() const override { return dimension_; }
 
- private:
-  // Moves every vector into a new index of the other kind; on failure the
-  // current one stays.
-  absl::Status Switch(bool to_graph) {
-    std::unique_ptr<engine::PlaceIndex> next =
-        to_graph ? NewHnswIndex(dimension_, options_.hnsw)
-                 : NewExactIndex(dimension_);
-    std::vector<uint64_t> ids;
-    std::vector<std::vector<float>> vectors;
-    auto collect = [&](uint64_t id, std::span<const float> vector) {
-      ids.push_back(id);
-      vectors.emplace_back(vector.begin(), vector.end());
-    };
-    if (graph_) {
-      static_cast<const HnswIndex&>(*active_).ForEach(collect);
-    } else {
-      ForEachExactVector(*active_, collect);
-    }
-    // In id order: the graph depends on the vectors, not on storage order.
-    std::vector<size_t> order(ids.size());
-    for (size_t i = 0; i < order.size(); ++i) order[i] = i;
-    std::sort(order.begin(), order.end(),
-              [&](size_t a, size_t b) { return ids[a] < ids[b]; });
-    std::vector<uint64_t> sorted_ids;
-    std::vector<std::vector<float>> sorted_vectors;
-    sorted_ids.reserve(ids.size());
-    sorted_vectors.reserve(ids.size());
-    for (size_t i : order) {
-      sorted_ids.push_back(ids[i]);
-      sorted_vectors.push_back(std::move(vectors[i]));
-    }
-    absl::Status status = next->Add(sorted_ids, sorted_vectors);
-    if (!status.ok()) return status;
-    active_ = std::move(next);
-    graph_ = to_graph;
-    return absl::OkStatus();
+  void set_ef_search(size_t ef) {
+    std::unique_lock lock(mu_);
+    options_.hnsw.ef_search = ef;
+    if (graph_) graph_->set_ef_search(ef);
+  }
+  size_t WaitIdle() {
+    std::unique_lock lock(mu_);
+    changed_.wait(lock, [this] { return Idle(); });
+    return graph_ ? tail_->size() : 0;
+  }
+  size_t unindexed() const override {
+    std::shared_lock lock(mu_);
+    return graph_ ? tail_->size() : 0;
   }
 
+ private:
+  // The members below mu_ and the functions up to IndexerLoop need mu_
+  // (shared for reading). std::shared_mutex and a condition variable rather
+  // than absl::Mutex::Await: ThreadSanitizer sees these waits (`make
+  // test-tsan`; Debian's absl is not instrumented).
+  size_t SizeLocked() const {
+    return tail_->size() + (graph_ ? graph_->size() : 0);
+  }
+  // Nothing for the background thread to do.
+  bool Idle() const {
+    return stop_ || !graph_ || tail_->size() == 0 || paused_;
+  }
+  // Moves up to `count` vectors from the end of the tail into the graph.
+  absl::Status MoveToGraph(size_t count);
+  // Moves every graph vector back into the tail and drops the graph.
+  absl::Status DropGraph();
+  void IndexerLoop();
+
   const size_t dimension_;
-  const TieredIndexOptions options_;
-  std::unique_ptr<engine::PlaceIndex> active_;
-  bool graph_ = false;
+  mutable std::shared_mutex mu_;
+  // Signalled when there is work for the background thread or it made
+  // progress, stopped or paused.
+  std::condition_variable_any changed_;
+  TieredIndexOptions options_;
+  // Vectors not in the graph (all of them while there is no graph).
+  std::unique_ptr<engine::PlaceIndex> tail_;
+  std::unique_ptr<HnswIndex> graph_;
+  // The background thread stopped on an error; the next Add resumes it.
+  bool paused_ = false;
+  bool stop_ = false;
+  // Callers of Search, Add and Remove waiting for mu_; the background
+  // thread lets them all in before its next step.
+  mutable std::atomic<int> waiters_{0};
+  // Callers of Add and Remove waiting for mu_; new searches wait for them.
+  std::atomic<int> writers_{0};
+  std::thread indexer_;  // started with the first graph
 };
+
+absl::Status TieredIndex::Add(std::span<const uint64_t> ids,
+                              std::span<const std::vector<float>> vectors) {
+  const WaiterCount turn(waiters_);
+  const WaiterCount writer(writers_);
+  std::unique_lock lock(mu_);
+  turn.Acquired();
+  writer.Acquired();
+  // The tail's Add checks the batch and the tail's ids; the graph's ids here.
+  if (graph_) {
+    for (uint64_t id : ids) {
+      if (graph_->contains(id)) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("id ", id, " is already in the index"));
+      }
+    }
+  }
+  const size_t waiting = graph_ ? tail_->size() : 0;
+  absl::Status status = tail_->Add(ids, vectors);
+  if (!status.ok()) return status;
+  if (!graph_ && tail_->size() >= options_.hnsw_from) {
+    graph_ = std::make_unique<HnswIndex>(dimension_, options_.hnsw);
+    if (options_.background && !indexer_.joinable()) {
+      indexer_ = std::thread([this] { IndexerLoop(); });
+    }
+  }
+  if (!graph_) return absl::OkStatus();
+  paused_ = false;
+  if (!options_.background) return MoveToGraph(tail_->size());
+  changed_.notify_all();
+  if (waiting > options_.max_unindexed) return MoveToGraph(ids.size());
+  return absl::OkStatus();
+}
+
+absl::Status TieredIndex::Remove(std::span<const uint64_t> ids) {
+  const WaiterCount turn(waiters_);
+  const WaiterCount writer(writers_);
+  std::unique_lock lock(mu_);
+  turn.Acquired();
+  writer.Acquired();
+  absl::Status status = tail_->Remove(ids);
+  if (status.ok() && graph_) status = graph_->Remove(ids);
+  if (status.ok() && graph_ && SizeLocked() < options_.hnsw_from / 2) {
+    status = DropGraph();
+  }
+  changed_.notify_all();
+  return status;
+}
+
+absl::StatusOr<std::vector<Neighbor>> TieredIndex::Search(
+    std::span<const float> query, const SearchParams& params) const {
+  // glibc's reader/writer lock prefers readers: a steady stream of
+  // searches would starve the engine's Add and Remove, so searches let a
+  // waiting writer in first.
+  while (writers_.load(std::memory_order_acquire) > 0) {
+    absl::SleepFor(absl::Microseconds(20));
+  }
+  const WaiterCount turn(waiters_);
+  std::shared_lock lock(mu_);
+  turn.Acquired();
+  absl::StatusOr<std::vector<Neighbor>> found = tail_->Search(query, params);
+  if (!found.ok() || !graph_) return found;
+  absl::StatusOr<std::vector<Neighbor>> graphed = graph_->Search(query, params);
+  if (!graphed.ok()) return graphed;
+  found->insert(found->end(), graphed->begin(), graphed->end());
+  KeepNearest(*found, params.k);
+  return found;
+}
+
+absl::Status TieredIndex::MoveToGraph(size_t count) {
+  const size_t size = tail_->size();
+  count = std::min(count, size);
+  if (count == 0) return absl::OkStatus();
+  IdVectors moved;
+  ForEachExactVector(*tail_, moved.Collector(), size - count, size);
+  absl::Status status = graph_->Add(moved.ids, moved.vectors);
+  if (!status.ok()) return status;
+  status = tail_->Remove(moved.ids);
+  if (!status.ok()) return status;
+  // A drained tail gives its storage back (it doubled while it filled).
+  if (tail_->size() == 0) tail_ = NewExactIndex(dimension_);
+  return absl::OkStatus();
+}
+
+absl::Status TieredIndex::DropGraph() {
+  IdVectors moved;
+  graph_->ForEach(moved.Collector());
+  absl::Status status = tail_->Add(moved.ids, moved.vectors);
+  if (!status.ok()) return status;
+  graph_.reset();
+  return absl::OkStatus();
+}
+
+void TieredIndex::IndexerLoop() {
+  std::unique_lock lock(mu_);
+  while (true) {
+    changed_.wait(lock, [this] { return stop_ || !Idle(); });
+    if (stop_) break;
+    absl::Status status = MoveToGraph(options_.indexer_batch);
+    if (!status.ok()) {
+      FLEETMEM_LOG(kError) << "tiered index: " << tail_->size()
+                           << " vectors stay in the exact segment: " << status;
+      paused_ = true;
+    }
+    changed_.notify_all();  // progress or a pause, for WaitIdle
+    // Searches and writers go first: the lock is not fair, and a thread
+    // that re-locks at once would starve them.
+    lock.unlock();
+    do {
+      absl::SleepFor(absl::Microseconds(50));
+    } while (waiters_.load(std::memory_order_acquire) > 0);
+    lock.lock();
+  }
+}
 
 }  // namespace
 
@@ -240,12 +406,18 @@ std::unique_ptr<engine::PlaceIndex> NewHnswIndex(size_t dimension,
 
 bool SetHnswEfSearch(engine::PlaceIndex& index, size_t ef_search) {
   if (auto* tiered = dynamic_cast<TieredIndex*>(&index)) {
-    return SetHnswEfSearch(tiered->active(), ef_search);
+    tiered->set_ef_search(ef_search);
+    return true;
   }
   auto* hnsw = dynamic_cast<HnswIndex*>(&index);
   if (hnsw == nullptr) return false;
   hnsw->set_ef_search(ef_search);
   return true;
+}
+
+size_t WaitForIndexing(engine::PlaceIndex& index) {
+  auto* tiered = dynamic_cast<TieredIndex*>(&index);
+  return tiered == nullptr ? 0 : tiered->WaitIdle();
 }
 
 std::unique_ptr<engine::PlaceIndex> NewTieredIndex(size_t dimension,

@@ -1,5 +1,6 @@
 #include <Eigen/Core>
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <functional>
@@ -42,14 +43,16 @@ Vector RandomGaussian(size_t dimension, std::mt19937& rng, float sigma = 1) {
   return v;
 }
 
-// Ids 0..count-1 with gaussian vectors of `dimension`.
+// Ids with gaussian vectors.
 struct Dataset {
   std::vector<uint64_t> ids;
   std::vector<Vector> vectors;
 };
-Dataset GaussianDataset(size_t count, size_t dimension, std::mt19937& rng) {
+// Ids first..first+count-1 with gaussian vectors of `dimension`.
+Dataset GaussianDataset(size_t count, size_t dimension, std::mt19937& rng,
+                        uint64_t first = 0) {
   Dataset data;
-  for (uint64_t id = 0; id < count; ++id) {
+  for (uint64_t id = first; id < first + count; ++id) {
     data.ids.push_back(id);
     data.vectors.push_back(RandomGaussian(dimension, rng));
   }
@@ -207,6 +210,15 @@ std::vector<IndexCase> AllCases() {
        [](size_t d) {
          TieredIndexOptions options;
          options.hnsw_from = 8;
+         return NewTieredIndex(d, options);
+       },
+       false},
+      // The same, with the graph filled by Add itself.
+      {"TieredSynchronous",
+       [](size_t d) {
+         TieredIndexOptions options;
+         options.hnsw_from = 8;
+         options.background = false;
          return NewTieredIndex(d, options);
        },
        false},
@@ -749,6 +761,153 @@ TEST(HnswIndexTest, RecallAgainstExactIndexAfterChurn) {
     EXPECT_GE(recall.at1, c.min_at1);
     EXPECT_GE(recall.at10, c.min_at10);
   }
+}
+
+// ---------------------------------------------------------------------------
+// The tiered index's growing segment and background indexer.
+
+Dataset LowRankDataset(uint64_t first, size_t count,
+                       const LowRankSource& source, std::mt19937& rng) {
+  Dataset data;
+  for (uint64_t id = first; id < first + count; ++id) {
+    data.ids.push_back(id);
+    data.vectors.push_back(source.Next(rng));
+  }
+  return data;
+}
+
+// Every vector is searchable as soon as Add returns (from the growing
+// segment), and once the background thread has drained the segment the
+// graph answers as the exact index does (recall@10 on low-rank codes).
+TEST(TieredIndexTest, AddedVectorsAreFoundAtOnceAndDrainIntoTheGraph) {
+  constexpr size_t kDimension = 64;
+  std::mt19937 rng(41);
+  const LowRankSource source(kDimension, 8, rng);
+  TieredIndexOptions options;
+  options.hnsw_from = 500;
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  std::unique_ptr<PlaceIndex> exact = NewExactIndex(kDimension);
+  EXPECT_EQ(tiered->unindexed(), 0u);
+  for (uint64_t first = 0; first < 3000; first += 100) {
+    const Dataset batch = LowRankDataset(first, 100, source, rng);
+    ASSERT_TRUE(tiered->Add(batch.ids, batch.vectors).ok());
+    ASSERT_TRUE(exact->Add(batch.ids, batch.vectors).ok());
+    EXPECT_EQ(tiered->size(), first + 100);
+    // The newest vector finds itself, whichever part holds it.
+    EXPECT_THAT(Ids(SearchOk(*tiered, batch.vectors.back(), 1)),
+                ElementsAre(batch.ids.back()));
+  }
+  EXPECT_EQ(WaitForIndexing(*tiered), 0u);
+  EXPECT_EQ(tiered->unindexed(), 0u);
+  EXPECT_EQ(tiered->size(), 3000u);
+  std::vector<Vector> queries;
+  for (size_t q = 0; q < 100; ++q) queries.push_back(source.Next(rng));
+  const Recall recall = MeasureRecall(*tiered, *exact, queries);
+  EXPECT_GE(recall.at10, 0.95);
+  // Below half the threshold the graph is dropped: exact answers again.
+  std::vector<uint64_t> removed;
+  for (uint64_t id = 0; id < 2800; ++id) removed.push_back(id);
+  ASSERT_TRUE(tiered->Remove(removed).ok());
+  ASSERT_TRUE(exact->Remove(removed).ok());
+  EXPECT_EQ(tiered->size(), 200u);
+  EXPECT_EQ(tiered->unindexed(), 0u);
+  for (const Vector& query : queries) {
+    EXPECT_EQ(Ids(SearchOk(*tiered, query, 10)),
+              Ids(SearchOk(*exact, query, 10)));
+  }
+}
+
+// Back-pressure: however slow the background thread is, an Add that finds
+// more than max_unindexed vectors waiting moves as many into the graph as it
+// adds, so the growing segment never exceeds the switch size or the bound
+// by more than one batch.
+TEST(TieredIndexTest, GrowingSegmentStaysBounded) {
+  constexpr size_t kDimension = 16;
+  std::mt19937 rng(43);
+  TieredIndexOptions options;
+  options.hnsw_from = 50;
+  options.max_unindexed = 20;
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  for (uint64_t first = 0; first < 2000; first += 10) {
+    const Dataset batch = GaussianDataset(10, kDimension, rng, first);
+    ASSERT_TRUE(tiered->Add(batch.ids, batch.vectors).ok());
+    EXPECT_LE(tiered->unindexed(), 50u + 10u);
+  }
+  EXPECT_EQ(tiered->size(), 2000u);
+}
+
+// A bulk load (a restart) goes into the growing segment in one call without
+// waiting for the graph; a used id is refused whichever part holds it.
+TEST(TieredIndexTest, BulkAddReturnsBeforeTheGraphIsBuilt) {
+  constexpr size_t kDimension = 32;
+  std::mt19937 rng(47);
+  TieredIndexOptions options;
+  options.hnsw_from = 100;
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  const Dataset data = GaussianDataset(5000, kDimension, rng);
+  ASSERT_TRUE(tiered->Add(data.ids, data.vectors).ok());
+  EXPECT_EQ(tiered->size(), 5000u);
+  WaitForIndexing(*tiered);
+  EXPECT_EQ(tiered->unindexed(), 0u);
+  absl::Status used = tiered->Add(std::vector<uint64_t>{17},
+                                  std::vector<Vector>{data.vectors[0]});
+  EXPECT_EQ(used.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(used.message(), HasSubstr("id 17"));
+  EXPECT_EQ(tiered->size(), 5000u);
+}
+
+// Searches from several threads while the engine's single writer adds and
+// removes and the background thread moves vectors: every answer is sorted,
+// holds no id twice and no id removed before the search began.
+TEST(TieredIndexTest, SearchesDuringBackgroundIndexingSeeEachVectorOnce) {
+  constexpr size_t kDimension = 48;
+  std::mt19937 rng(53);
+  TieredIndexOptions options;
+  options.hnsw_from = 200;
+  options.indexer_batch = 4;
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  std::atomic<uint64_t> removed_below{0};
+  std::atomic<bool> done{false};
+  std::vector<std::thread> readers;
+  std::atomic<int> bad{0};
+  for (int t = 0; t < 2; ++t) {
+    readers.emplace_back([&, t] {
+      std::mt19937 local(100 + t);
+      while (!done.load()) {
+        const uint64_t floor = removed_below.load();
+        absl::StatusOr<std::vector<Neighbor>> found =
+            tiered->Search(RandomGaussian(kDimension, local), {20, {}});
+        if (!found.ok()) {
+          ++bad;
+          continue;
+        }
+        std::set<uint64_t> seen;
+        for (size_t i = 0; i < found->size(); ++i) {
+          const Neighbor& n = (*found)[i];
+          if (!seen.insert(n.id).second || n.id < floor ||
+              (i > 0 && n.distance < (*found)[i - 1].distance)) {
+            ++bad;
+          }
+        }
+      }
+    });
+  }
+  for (uint64_t first = 0; first < 6000; first += 50) {
+    const Dataset batch = GaussianDataset(50, kDimension, rng, first);
+    ASSERT_TRUE(tiered->Add(batch.ids, batch.vectors).ok());
+    if (first >= 1000) {
+      // Removes the oldest 25 before the floor moves past them.
+      std::vector<uint64_t> old;
+      const uint64_t from = removed_below.load();
+      for (uint64_t id = from; id < from + 25; ++id) old.push_back(id);
+      ASSERT_TRUE(tiered->Remove(old).ok());
+      removed_below.store(from + 25);
+    }
+  }
+  done.store(true);
+  for (std::thread& reader : readers) reader.join();
+  EXPECT_EQ(bad.load(), 0);
+  EXPECT_EQ(tiered->size(), 6000u - removed_below.load());
 }
 
 }  // namespace

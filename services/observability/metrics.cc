@@ -180,6 +180,11 @@ struct Metrics::Families {
                           .Help("Codes in the fleet's place index (static "
                                 "and pending traces)")
                           .Register(r)),
+        index_unindexed(BuildGauge()
+                            .Name("fleetmem_index_unindexed_codes")
+                            .Help("Codes waiting outside the fleet's HNSW "
+                                  "graph (scanned exactly until indexed)")
+                            .Register(r)),
         fleets(BuildGauge()
                    .Name("fleetmem_fleets")
                    .Help("Fleets held by the server")
@@ -215,6 +220,7 @@ struct Metrics::Families {
   Family<Gauge>& fleet_robots;
   Family<Gauge>& fleet_last_event;
   Family<Gauge>& index_entries;
+  Family<Gauge>& index_unindexed;
   Family<Gauge>& fleets;
   Family<Gauge>& store_bytes;
   Family<Gauge>& queue_depth;
@@ -322,6 +328,8 @@ void Metrics::RefreshGauges() {
           static_cast<double>(stats->last_event_id));
       f.index_entries.Add(labels).Set(
           static_cast<double>(stats->traces + stats->pending_traces));
+      f.index_unindexed.Add(labels).Set(
+          static_cast<double>(stats->unindexed_codes));
     }
   }
   if (sources_.store != nullptr) {

@@ -124,6 +124,7 @@ void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
     out->hnsw.ef_construction = in.ef_construction();
   if (in.has_ef_search()) out->hnsw.ef_search = in.ef_search();
   if (in.has_hnsw_from()) out->hnsw_from = in.hnsw_from();
+  if (in.has_max_unindexed()) out->max_unindexed = in.max_unindexed();
 }
 
 void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
@@ -555,7 +556,8 @@ std::string DescribeConfig(const ServerConfig& config) {
     absl::StrAppend(&out, " hnsw_m=", config.tiered.hnsw.m,
                     " hnsw_ef_search=", config.tiered.hnsw.ef_search);
     if (config.index == IndexKind::kAuto) {
-      absl::StrAppend(&out, " hnsw_from=", config.tiered.hnsw_from);
+      absl::StrAppend(&out, " hnsw_from=", config.tiered.hnsw_from,
+                      " max_unindexed=", config.tiered.max_unindexed);
     }
   }
   if (config.index == IndexKind::kFlann) {

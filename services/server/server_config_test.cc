@@ -186,6 +186,10 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
             defaults.max_receive_message_bytes);
   EXPECT_EQ(config.shutdown_grace_seconds, defaults.shutdown_grace_seconds);
   EXPECT_EQ(config.index, defaults.index);
+  EXPECT_EQ(config.tiered.hnsw_from, defaults.tiered.hnsw_from);
+  EXPECT_EQ(config.tiered.max_unindexed, defaults.tiered.max_unindexed);
+  EXPECT_EQ(config.tiered.hnsw.ef_construction,
+            defaults.tiered.hnsw.ef_construction);
   EXPECT_EQ(
       config.engine.fleet_memory.at("ablation-no-time-decay").replay_decay,
       1.0);

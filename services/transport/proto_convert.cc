@@ -111,6 +111,7 @@ void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out) {
   out->set_max_clusters(stats.max_clusters);
   out->set_max_traces_per_cluster(stats.max_traces_per_cluster);
   out->set_first_event_id(stats.first_event_id);
+  out->set_unindexed_codes(stats.unindexed_codes);
   for (const auto& [limit, count] : stats.quota_rejections) {
     (*out->mutable_quota_rejections())[limit] = count;
   }

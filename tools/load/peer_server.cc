@@ -2,6 +2,10 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include <algorithm>
+#include <atomic>
+#include <cstdint>
+
 #include "absl/strings/str_cat.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
 
@@ -15,23 +19,61 @@ class DiscardService final : public v1::MemoryService::Service {
                             v1::UploadTracesResponse* response) override {
     v1::UploadTracesRequest request;
     uint64_t traces = 0;
-    while (reader->Read(&request)) traces += request.traces_size();
+    while (reader->Read(&request)) {
+      traces += request.traces_size();
+      if (request.traces_size() > 0) {
+        dimension_.store(request.traces(0).code_size());
+      }
+    }
     response->set_accepted(traces);
     return grpc::Status::OK;
   }
-  grpc::Status QueryPlace(grpc::ServerContext*, const v1::QueryPlaceRequest*,
-                          v1::QueryPlaceResponse*) override {
+  // Answers carry as many traces of the asked dimension as the server's
+  // would (k matches; `count` samples of the fleet's dimension, which the
+  // peer learns from the uploads it discards), so both send the same bytes.
+  grpc::Status QueryPlace(grpc::ServerContext*,
+                          const v1::QueryPlaceRequest* request,
+                          v1::QueryPlaceResponse* response) override {
+    const v1::MemoryTrace trace = Filler(request->code_size());
+    for (uint32_t i = 0; i < std::max<uint32_t>(1, request->k()); ++i) {
+      v1::PlaceMatch* match = response->add_matches();
+      *match->mutable_trace() = trace;
+      match->set_distance(0.5f);
+    }
     return grpc::Status::OK;
   }
   grpc::Status SampleReplay(grpc::ServerContext*,
-                            const v1::SampleReplayRequest*,
-                            v1::SampleReplayResponse*) override {
+                            const v1::SampleReplayRequest* request,
+                            v1::SampleReplayResponse* response) override {
+    const v1::MemoryTrace trace = Filler(dimension_.load());
+    for (uint32_t i = 0; i < request->count(); ++i) {
+      *response->add_traces() = trace;
+    }
     return grpc::Status::OK;
   }
   grpc::Status GetStats(grpc::ServerContext*, const v1::GetStatsRequest*,
                         v1::GetStatsResponse*) override {
     return grpc::Status::OK;
   }
+
+ private:
+  // A trace of `dimension` as a server would return it.
+  static v1::MemoryTrace Filler(int dimension) {
+    v1::MemoryTrace trace;
+    trace.set_robot_id("peer-robot-0");
+    trace.set_seq(12345);
+    trace.set_domain("peer");
+    for (int i = 0; i < dimension; ++i) trace.add_code(0.0625f * (i % 7));
+    trace.mutable_pose()->set_x(1.5);
+    trace.mutable_pose()->set_y(-2.5);
+    trace.set_reward(0.75f);
+    trace.set_cluster_id(7);
+    trace.set_replay_count(1);
+    return trace;
+  }
+
+  // Code dimension of the last upload seen (samples of 0-d traces before).
+  std::atomic<int> dimension_{256};
 };
 
 }  // namespace
