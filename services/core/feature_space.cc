@@ -17,12 +17,21 @@ double Norm(std::span<const float> code) {
 }  // namespace
 
 std::vector<float> NormalizedCode(std::span<const float> code) {
-  std::vector<float> out(code.begin(), code.end());
+  std::vector<float> out(code.size());
+  NormalizeInto(code, out);
+  return out;
+}
+
+void NormalizeInto(std::span<const float> code, std::span<float> out) {
+  assert(out.size() == code.size());
   const double norm = Norm(code);
   if (norm > 0.0) {
-    for (float& v : out) v = static_cast<float>(v / norm);
+    for (size_t i = 0; i < code.size(); ++i) {
+      out[i] = static_cast<float>(code[i] / norm);
+    }
+  } else {
+    std::copy(code.begin(), code.end(), out.begin());
   }
-  return out;
 }
 
 Eigen::VectorXf FeatureSpatialCode(const MemoryTrace& trace,

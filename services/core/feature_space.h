@@ -14,6 +14,10 @@ namespace fleetmem::core {
 // `code` scaled to unit L2 norm; an all-zero code stays zero.
 std::vector<float> NormalizedCode(std::span<const float> code);
 
+// Writes NormalizedCode(code) into `out` (of code's size) without
+// allocating; the same values, bit for bit.
+void NormalizeInto(std::span<const float> code, std::span<float> out);
+
 // Feature-spatial code of `trace`: its normalised code followed by
 // (x, y, z) / spatial_scale_m. Dimension = code size + 3.
 Eigen::VectorXf FeatureSpatialCode(const MemoryTrace& trace,

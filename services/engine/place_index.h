@@ -13,6 +13,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "services/core/feature_space.h"
 
 namespace fleetmem::engine {
 
@@ -38,6 +39,20 @@ class PlaceIndex {
   // a wrong dimension or a used id; nothing is added then.
   virtual absl::Status Add(std::span<const uint64_t> ids,
                            std::span<const std::vector<float>> vectors) = 0;
+  // Add(ids, the codes scaled to unit length by core::NormalizedCode), with
+  // the same checks. The engine indexes its traces' codes this way; an index
+  // that can scale while it stores overrides it and saves the copies (a
+  // restart at 1,000,000 256-d traces would allocate 1 GB for them).
+  virtual absl::Status AddNormalized(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) {
+    std::vector<std::vector<float>> vectors;
+    vectors.reserve(codes.size());
+    for (std::span<const float> code : codes) {
+      vectors.push_back(core::NormalizedCode(code));
+    }
+    return Add(ids, vectors);
+  }
   // Removes ids; unknown ids are ignored.
   virtual absl::Status Remove(std::span<const uint64_t> ids) = 0;
   // Up to params.k nearest accepted vectors, nearest first (ties: smaller id).

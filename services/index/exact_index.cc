@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
+#include "services/core/feature_space.h"
 #include "services/index/index_input.h"
 
 namespace fleetmem::index {
@@ -30,7 +31,14 @@ class ExactIndex final : public engine::PlaceIndex {
   explicit ExactIndex(size_t dimension) : dimension_(dimension) {}
 
   absl::Status Add(std::span<const uint64_t> ids,
-                   std::span<const std::vector<float>> vectors) override;
+                   std::span<const std::vector<float>> vectors) override {
+    return Store(ids, vectors, /*normalize=*/false);
+  }
+  absl::Status AddNormalized(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) override {
+    return Store(ids, codes, /*normalize=*/true);
+  }
   absl::Status Remove(std::span<const uint64_t> ids) override;
   absl::StatusOr<std::vector<Neighbor>> Search(
       std::span<const float> query, const SearchParams& params) const override;
@@ -47,9 +55,17 @@ class ExactIndex final : public engine::PlaceIndex {
   }
 
  private:
+  // Add, scaling each vector to unit length as it is copied if `normalize`.
+  template <typename Vector>
+  absl::Status Store(std::span<const uint64_t> ids,
+                     std::span<const Vector> vectors, bool normalize);
   // Grows the storage to hold `count` vectors (doubling); may throw
   // std::bad_alloc and then leaves the stored vectors unchanged.
   void Reserve(size_t count);
+  // Returns storage once less than a quarter of it is used (a tiered
+  // index's tail after the graph took its vectors: 1 GB at 1,000,000 256-d
+  // codes). Keeps room for twice the vectors held.
+  void MaybeShrink();
   // Squared Euclidean distance of column `column` to `query`, in double.
   double ExactSquaredDistance(
       size_t column, const Eigen::Map<const Eigen::VectorXf>& query) const;
@@ -78,8 +94,10 @@ void ExactIndex::Reserve(size_t count) {
   squared_norms_.swap(squared_norms);
 }
 
-absl::Status ExactIndex::Add(std::span<const uint64_t> ids,
-                             std::span<const std::vector<float>> vectors) {
+template <typename Vector>
+absl::Status ExactIndex::Store(std::span<const uint64_t> ids,
+                               std::span<const Vector> vectors,
+                               bool normalize) {
   if (absl::Status status = CheckAddBatch(
           dimension_, ids, vectors,
           [this](uint64_t id) { return column_of_.contains(id); });
@@ -95,8 +113,15 @@ absl::Status ExactIndex::Add(std::span<const uint64_t> ids,
   }
   for (size_t i = 0; i < ids.size(); ++i) {
     const size_t column = ids_.size();
-    vectors_.col(column) =
-        Eigen::Map<const Eigen::VectorXf>(vectors[i].data(), dimension_);
+    const std::span<const float> vector(vectors[i]);
+    if (normalize) {
+      core::NormalizeInto(vector,
+                          std::span<float>(vectors_.col(column).data(),
+                                           dimension_));
+    } else {
+      vectors_.col(column) =
+          Eigen::Map<const Eigen::VectorXf>(vector.data(), dimension_);
+    }
     squared_norms_(column) = vectors_.col(column).squaredNorm();
     ids_.push_back(ids[i]);
     column_of_.emplace(ids[i], column);
@@ -119,7 +144,25 @@ absl::Status ExactIndex::Remove(std::span<const uint64_t> ids) {
     }
     ids_.pop_back();
   }
+  MaybeShrink();
   return absl::OkStatus();
+}
+
+void ExactIndex::MaybeShrink() {
+  const size_t capacity = static_cast<size_t>(vectors_.cols());
+  const size_t used = ids_.size();
+  if (capacity < 1024 || used >= capacity / 4) return;
+  try {
+    const size_t new_capacity = std::max<size_t>(2 * used, 16);
+    Eigen::MatrixXf vectors(dimension_, new_capacity);
+    Eigen::VectorXf squared_norms(new_capacity);
+    vectors.leftCols(used) = vectors_.leftCols(used);
+    squared_norms.head(used) = squared_norms_.head(used);
+    vectors_.swap(vectors);
+    squared_norms_.swap(squared_norms);
+  } catch (const std::bad_alloc&) {
+    // Keeps the larger storage: correct, only not returned yet.
+  }
 }
 
 double ExactIndex::ExactSquaredDistance(

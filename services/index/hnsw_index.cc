@@ -220,7 +220,14 @@ class TieredIndex final : public engine::PlaceIndex {
   }
 
   absl::Status Add(std::span<const uint64_t> ids,
-                   std::span<const std::vector<float>> vectors) override;
+                   std::span<const std::vector<float>> vectors) override {
+    return AddToTail(ids, [&] { return tail_->Add(ids, vectors); });
+  }
+  absl::Status AddNormalized(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) override {
+    return AddToTail(ids, [&] { return tail_->AddNormalized(ids, codes); });
+  }
   absl::Status Remove(std::span<const uint64_t> ids) override;
   absl::StatusOr<std::vector<Neighbor>> Search(
       std::span<const float> query, const SearchParams& params) const override;
@@ -246,6 +253,11 @@ class TieredIndex final : public engine::PlaceIndex {
   }
 
  private:
+  // Add and AddNormalized: `add` stores the batch in the tail (it checks
+  // the batch and the tail's ids; AddToTail the graph's); then the graph
+  // starts, or the backlog is bounded.
+  absl::Status AddToTail(std::span<const uint64_t> ids,
+                         const std::function<absl::Status()>& add);
   // The members below mu_ and the functions up to IndexerLoop need mu_
   // (shared for reading). std::shared_mutex and a condition variable rather
   // than absl::Mutex::Await: ThreadSanitizer sees these waits (`make
@@ -283,14 +295,13 @@ class TieredIndex final : public engine::PlaceIndex {
   std::thread indexer_;  // started with the first graph
 };
 
-absl::Status TieredIndex::Add(std::span<const uint64_t> ids,
-                              std::span<const std::vector<float>> vectors) {
+absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
+                                    const std::function<absl::Status()>& add) {
   const WaiterCount turn(waiters_);
   const WaiterCount writer(writers_);
   std::unique_lock lock(mu_);
   turn.Acquired();
   writer.Acquired();
-  // The tail's Add checks the batch and the tail's ids; the graph's ids here.
   if (graph_) {
     for (uint64_t id : ids) {
       if (graph_->contains(id)) {
@@ -300,7 +311,7 @@ absl::Status TieredIndex::Add(std::span<const uint64_t> ids,
     }
   }
   const size_t waiting = graph_ ? tail_->size() : 0;
-  absl::Status status = tail_->Add(ids, vectors);
+  absl::Status status = add();
   if (!status.ok()) return status;
   if (!graph_ && tail_->size() >= options_.hnsw_from) {
     graph_ = std::make_unique<HnswIndex>(dimension_, options_.hnsw);

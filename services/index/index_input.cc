@@ -15,11 +15,10 @@ bool AllFinite(std::span<const float> values) {
   return true;
 }
 
-}  // namespace
-
-absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
-                           std::span<const std::vector<float>> vectors,
-                           const std::function<bool(uint64_t)>& is_stored) {
+template <typename Vector>
+absl::Status CheckBatch(size_t dimension, std::span<const uint64_t> ids,
+                        std::span<const Vector> vectors,
+                        const std::function<bool(uint64_t)>& is_stored) {
   if (ids.size() != vectors.size()) {
     return absl::InvalidArgumentError(absl::StrCat(
         "index add: ", ids.size(), " ids but ", vectors.size(), " vectors"));
@@ -36,7 +35,7 @@ absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
           "index add: vectors[", i, "] (id ", ids[i], ") has dimension ",
           vectors[i].size(), ", the index has ", dimension));
     }
-    if (!AllFinite(vectors[i])) {
+    if (!AllFinite(std::span<const float>(vectors[i]))) {
       return absl::InvalidArgumentError(
           absl::StrCat("index add: vectors[", i, "] (id ", ids[i],
                        ") has a non-finite value"));
@@ -51,6 +50,20 @@ absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
     }
   }
   return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
+                           std::span<const std::vector<float>> vectors,
+                           const std::function<bool(uint64_t)>& is_stored) {
+  return CheckBatch(dimension, ids, vectors, is_stored);
+}
+
+absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
+                           std::span<const std::span<const float>> vectors,
+                           const std::function<bool(uint64_t)>& is_stored) {
+  return CheckBatch(dimension, ids, vectors, is_stored);
 }
 
 absl::Status CheckQuery(size_t dimension, std::span<const float> query) {

@@ -20,6 +20,9 @@ namespace fleetmem::index {
 absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
                            std::span<const std::vector<float>> vectors,
                            const std::function<bool(uint64_t)>& is_stored);
+absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
+                           std::span<const std::span<const float>> vectors,
+                           const std::function<bool(uint64_t)>& is_stored);
 
 // A query must have `dimension` finite values; INVALID_ARGUMENT otherwise.
 absl::Status CheckQuery(size_t dimension, std::span<const float> query);

@@ -341,6 +341,59 @@ TEST_P(PlaceIndexTest, BadAddIsInvalidArgumentAndAddsNothing) {
   }
 }
 
+std::vector<std::span<const float>> Views(const std::vector<Vector>& vectors) {
+  return std::vector<std::span<const float>>(vectors.begin(), vectors.end());
+}
+
+TEST_P(PlaceIndexTest, AddNormalizedStoresWhatAddOfNormalizedCopiesStores) {
+  constexpr size_t kDimension = 16;
+  std::mt19937 rng(11);
+  auto [ids, codes] = GaussianDataset(300, kDimension, rng);
+  codes[5] = Vector(kDimension, 0.0f);  // a zero code stays zero
+  std::vector<Vector> normalized;
+  for (const Vector& code : codes) {
+    normalized.push_back(core::NormalizedCode(code));
+  }
+  std::unique_ptr<PlaceIndex> copied = Make(kDimension);
+  std::unique_ptr<PlaceIndex> scaled = Make(kDimension);
+  ASSERT_TRUE(copied->Add(ids, normalized).ok());
+  ASSERT_TRUE(scaled->AddNormalized(ids, Views(codes)).ok());
+  ASSERT_EQ(scaled->size(), copied->size());
+  for (size_t i = 0; i < codes.size(); i += 7) {
+    // The stored vectors are the normalised codes: every distance is the
+    // one between normalised codes.
+    const std::vector<Neighbor> got = SearchOk(*scaled, normalized[i], 5);
+    ASSERT_FALSE(got.empty());
+    for (const Neighbor& n : got) {
+      const Eigen::Map<const Eigen::VectorXf> a(normalized[i].data(),
+                                                kDimension);
+      const Eigen::Map<const Eigen::VectorXf> b(normalized[n.id].data(),
+                                                kDimension);
+      EXPECT_NEAR(n.distance, (a - b).norm(), 1e-4) << i << " " << n.id;
+    }
+    // An exact index answers bit for bit as if given the copies.
+    if (GetParam().exact) {
+      const std::vector<Neighbor> want = SearchOk(*copied, normalized[i], 5);
+      ASSERT_EQ(Ids(got), Ids(want)) << i;
+      for (size_t j = 0; j < got.size(); ++j) {
+        EXPECT_EQ(got[j].distance, want[j].distance) << i;
+      }
+    }
+  }
+  // The checks are Add's: a bad batch adds nothing.
+  const std::vector<Vector> bad = {{1.0f}, Vector(kDimension, NAN)};
+  for (const Vector& code : bad) {
+    absl::Status status = scaled->AddNormalized(
+        std::vector<uint64_t>{1000}, Views(std::vector<Vector>{code}));
+    EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  }
+  EXPECT_EQ(scaled->AddNormalized(std::vector<uint64_t>{1000, ids[0]},
+                                  Views({codes[0], codes[1]}))
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(scaled->size(), copied->size());
+}
+
 TEST_P(PlaceIndexTest, ZeroDimensionIndexRefusesVectors) {
   std::unique_ptr<PlaceIndex> index = Make(0);
   EXPECT_EQ(
@@ -535,6 +588,33 @@ TEST_P(PlaceIndexTest, ConcurrentSearchesGiveTheSequentialAnswers) {
 
 // ---------------------------------------------------------------------------
 // The exact index against a double-precision scan.
+
+TEST(ExactIndexTest, AnswersAfterMostIsRemovedAndGrowsAgain) {
+  constexpr size_t kDimension = 8;
+  std::mt19937 rng(5);
+  std::unique_ptr<PlaceIndex> index = NewExactIndex(kDimension);
+  auto [ids, vectors] = GaussianDataset(5000, kDimension, rng);
+  ASSERT_TRUE(index->Add(ids, vectors).ok());
+  // Remove from the end in small steps, as a tiered index's indexer does,
+  // down to 100 vectors; the storage shrinks on the way.
+  for (size_t end = 5000; end > 100; end -= 4) {
+    std::vector<uint64_t> batch(ids.begin() + end - 4, ids.begin() + end);
+    ASSERT_TRUE(index->Remove(batch).ok());
+  }
+  ASSERT_EQ(index->size(), 100u);
+  for (size_t i = 0; i < 100; i += 9) {
+    EXPECT_EQ(SearchOk(*index, vectors[i], 1).front().id, ids[i]);
+  }
+  // It grows again.
+  std::vector<uint64_t> more_ids;
+  for (size_t i = 100; i < 3000; ++i) more_ids.push_back(ids[i]);
+  ASSERT_TRUE(index
+                  ->Add(more_ids, std::vector<Vector>(vectors.begin() + 100,
+                                                      vectors.begin() + 3000))
+                  .ok());
+  EXPECT_EQ(index->size(), 3000u);
+  EXPECT_EQ(SearchOk(*index, vectors[2999], 1).front().id, ids[2999]);
+}
 
 TEST(ExactIndexTest, MatchesDoublePrecisionScanAfterManyRemoves) {
   constexpr size_t kDimension = 64;
