@@ -4,12 +4,15 @@
 # with eight streams, 10 s per target, each from an empty data directory,
 # default server settings (RocksDB with sync on: every acknowledged batch is
 # fsynced). Queries at 20/s run beside.
+# P2 over gRPC: a fleet of 5,000 traces, then 20 s of QueryPlace (k = 10) at
+# 200/s and nothing else, against the server and the peer (QUERY_CSV).
 #
-#   bench/load_bench.sh [BUILD_DIR] [OUT_CSV]
+#   bench/load_bench.sh [BUILD_DIR] [OUT_CSV] [QUERY_CSV]
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 build=${1:-$here/build}
 out=${2:-$here/docs/perf/load.csv}
+query_out=${3:-$(dirname "$out")/query.csv}
 work=$(mktemp -d)
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
@@ -25,3 +28,13 @@ for streams in 1 8; do
   tail -n +2 "$work/run.csv" >>"$out"
 done
 cat "$out"
+rm -rf "$work/data"
+start_server "$build" "$work/data" "$work/server.log"
+"$build/bin/fleetmem-load" upload --server "$SERVER_ADDR" --fleet p2 \
+  --dimension 256 --robots 4 --batch 200 --seconds 1000 --traces 5000 \
+  >/dev/null
+"$build/bin/fleetmem-load" bench --server "$SERVER_ADDR" --fleet p2 \
+  --dimension 256 --robots 0 --seconds 20 --query-rate 200 \
+  --csv "$query_out" >/dev/null
+stop_server
+cat "$query_out"

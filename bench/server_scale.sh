@@ -12,7 +12,9 @@
 # SampleReplay of 1,000 at 5/s, GetStats at 10/s, against the server and the
 # bare gRPC peer), the server's RSS and the data directory's size. After the
 # largest size it stops the server (SIGTERM) and times a restart until the
-# port answers. The memory is bounded so that nothing is forgotten (K_max =
+# port answers, then 5 s of queries while the place graph refills in the
+# background, and the time until it is complete (GetStats unindexed_codes
+# = 0) with the RSS then. The memory is bounded so that nothing is forgotten (K_max =
 # the largest size / 10 clusters). Raw payload = traces x 256 x 4 bytes.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
@@ -67,4 +69,23 @@ restart=$(awk "BEGIN { printf \"%.2f\", $end - $start }")
 echo "restart_seconds_at_$largest,$restart" | tee -a "$out"
 # Where the restart went (the engine logs each fleet's load).
 grep -o 'fleet "scale" loaded.*' "$work/restart.log" >&2 || true
+SERVER_ADDR=$(sed -n 's/^fleetmem-server listening on \(.*\)$/\1/p' "$work/restart.log" | head -1)
+unindexed() {  # protobuf JSON leaves a zero out
+  local n
+  n=$("$build/bin/fleetmem" --server "$SERVER_ADDR" --json stats --fleet scale |
+    sed -n 's/.*"unindexedCodes":"\{0,1\}\([0-9]*\).*/\1/p')
+  echo "${n:-0}"
+}
+echo "restart_unindexed_codes_at_open,$(unindexed)" | tee -a "$out"
+"$load" bench --server "$SERVER_ADDR" --fleet scale --dimension 256 \
+  --robots 0 --seconds 5 --query-rate 20 --csv "$work/calls.csv" >/dev/null 2>&1
+echo "restart_query_p50_ms_while_refilling,$(sed -n 2p "$work/calls.csv" | cut -d, -f13)" | tee -a "$out"
+left=$(unindexed)
+while [ -n "$left" ] && [ "$left" -gt 0 ]; do
+  sleep 5
+  left=$(unindexed)
+done
+end=$(date +%s.%N)
+echo "restart_graph_complete_seconds,$(awk "BEGIN { printf \"%.0f\", $end - $start }")" | tee -a "$out"
+echo "restart_rss_mib_graph_complete,$(( $(ps -o rss= -p "$SERVER_PID") / 1024 ))" | tee -a "$out"
 stop_server

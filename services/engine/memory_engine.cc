@@ -3,8 +3,8 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <map>
 #include <functional>
+#include <map>
 #include <random>
 #include <system_error>
 #include <thread>
@@ -366,8 +366,8 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   cluster_ids.reserve(record.clusters.size());
   for (core::Cluster& cluster : record.clusters) {
     if (!cluster_ids.insert(cluster.id).second) {
-      return absl::DataLossError(absl::StrCat(
-          "fleet \"", id, "\" has cluster ", cluster.id, " twice"));
+      return absl::DataLossError(absl::StrCat("fleet \"", id, "\" has cluster ",
+                                              cluster.id, " twice"));
     }
     for (core::MemoryTrace& trace : cluster.traces) {
       trace.cluster_id = cluster.id;

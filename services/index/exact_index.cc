@@ -115,9 +115,8 @@ absl::Status ExactIndex::Store(std::span<const uint64_t> ids,
     const size_t column = ids_.size();
     const std::span<const float> vector(vectors[i]);
     if (normalize) {
-      core::NormalizeInto(vector,
-                          std::span<float>(vectors_.col(column).data(),
-                                           dimension_));
+      core::NormalizeInto(
+          vector, std::span<float>(vectors_.col(column).data(), dimension_));
     } else {
       vectors_.col(column) =
           Eigen::Map<const Eigen::VectorXf>(vector.data(), dimension_);

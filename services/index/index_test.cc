@@ -387,8 +387,9 @@ TEST_P(PlaceIndexTest, AddNormalizedStoresWhatAddOfNormalizedCopiesStores) {
         std::vector<uint64_t>{1000}, Views(std::vector<Vector>{code}));
     EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
   }
-  EXPECT_EQ(scaled->AddNormalized(std::vector<uint64_t>{1000, ids[0]},
-                                  Views({codes[0], codes[1]}))
+  EXPECT_EQ(scaled
+                ->AddNormalized(std::vector<uint64_t>{1000, ids[0]},
+                                Views({codes[0], codes[1]}))
                 .code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(scaled->size(), copied->size());
