@@ -931,6 +931,46 @@ TEST_F(MemoryEngineTest, ReopeningRestoresTheSameMemory) {
   EXPECT_EQ(events->size(), stats.last_event_id);
 }
 
+// From 10,000 traces a fleet's load fills the index on a second thread while
+// memory restores its clusters; every trace must come back under its key.
+TEST_F(MemoryEngineTest, ReopeningALargeFleetFindsEveryTrace) {
+  options_.memory.clusters_per_batch = 20;
+  options_.memory.max_traces_per_cluster = 50;
+  options_.memory.max_clusters = 5000;
+  options_.segment_size = 200;
+  options_.max_traces_per_upload = 200;
+  options_.max_query_k = 20000;
+  engine_ = OpenEngine();
+  ASSERT_NE(engine_, nullptr);
+  for (uint64_t first = 1; first <= 6000; first += 200) {
+    MustUpload(MakeTraces("r1", first, 200, rng_));
+    MustUpload(MakeTraces("r2", first, 200, rng_));
+  }
+  MustUpload(MakeTraces("r3", 1, 150, rng_));  // stays pending
+  const FleetStats stats = Stats();
+  ASSERT_GE(stats.traces + stats.pending_traces, 10000u);
+  std::vector<core::MemoryTrace> traces = AllTraces(*engine_, "f1", 20000);
+  ASSERT_EQ(traces.size(), stats.traces + stats.pending_traces);
+
+  engine_.reset();
+  engine_ = OpenEngine();
+  ASSERT_NE(engine_, nullptr);
+  ExpectSameStats(Stats(), stats);
+  EXPECT_EQ(AllTraces(*engine_, "f1", 20000).size(), traces.size());
+  for (size_t i = 0; i < traces.size(); i += 37) {
+    PlaceQuery query;
+    query.code = traces[i].code;
+    query.k = 1;
+    absl::StatusOr<std::vector<PlaceMatch>> matches =
+        engine_->QueryPlace("f1", query);
+    ASSERT_TRUE(matches.ok()) << matches.status();
+    ASSERT_EQ(matches->size(), 1u);
+    EXPECT_EQ(matches->front().trace.key(), traces[i].key());
+    EXPECT_EQ(matches->front().trace.code, traces[i].code);
+    EXPECT_EQ(matches->front().distance, 0.0f);
+  }
+}
+
 TEST_F(MemoryEngineTest, ListenersFireAfterEventsAreDurable) {
   std::vector<uint64_t> f1_calls;
   std::vector<uint64_t> f2_calls;
