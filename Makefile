@@ -138,17 +138,19 @@ bench: build
 	@$(BUILD_DIR)/bin/fleetmem_index_bench --benchmark_min_time=0.2
 	@$(BUILD_DIR)/bin/fleetmem_forgetting_bench --benchmark_min_time=0.2
 
-# docs/performance.md: every figure and plot, into docs/perf/ (about 40 min
+# docs/performance.md: every figure and plot, into docs/perf/ (about 75 min
 # on the 2-core reference machine; run nothing else meanwhile).
 PERF_DIR ?= docs/perf
+PERF_SIZES ?= 5000 20000 100000 200000 1000000
 perf: build
 	@mkdir -p $(PERF_DIR)
 	$(BUILD_DIR)/bin/fleetmem_memory_scale_bench --benchmark_min_time=0.5 \
 	  --benchmark_out=$(PERF_DIR)/memory_scale.json --benchmark_out_format=json
 	$(BUILD_DIR)/bin/fleetmem_ann_bench --benchmark_min_time=1 \
 	  --benchmark_out=$(PERF_DIR)/ann.json --benchmark_out_format=json
-	bench/load_bench.sh $(BUILD_DIR) $(PERF_DIR)/load.csv
-	bench/server_scale.sh $(BUILD_DIR) $(PERF_DIR)/server_scale.csv
+	bench/load_bench.sh $(BUILD_DIR) $(PERF_DIR)/load.csv $(PERF_DIR)/query.csv
+	bench/server_scale.sh $(BUILD_DIR) $(PERF_DIR)/server_scale.csv $(PERF_SIZES)
+	bench/restart_bench.sh $(BUILD_DIR) 1000000 | tee $(PERF_DIR)/restart.txt
 	bench/plot_perf.py $(PERF_DIR)
 
 CLANG_FORMAT ?= $(shell command -v clang-format || command -v clang-format-14)
