@@ -62,6 +62,9 @@ class ExactIndex final : public engine::PlaceIndex {
   // Grows the storage to hold `count` vectors (doubling); may throw
   // std::bad_alloc and then leaves the stored vectors unchanged.
   void Reserve(size_t count);
+  // Moves the stored vectors into storage for `capacity` (>= size()); may
+  // throw std::bad_alloc and then leaves them where they are.
+  void Reallocate(size_t capacity);
   // Returns storage once less than a quarter of it is used (a tiered
   // index's tail after the graph took its vectors: 1 GB at 1,000,000 256-d
   // codes). Keeps room for twice the vectors held.
@@ -84,9 +87,12 @@ class ExactIndex final : public engine::PlaceIndex {
 void ExactIndex::Reserve(size_t count) {
   const size_t capacity = static_cast<size_t>(vectors_.cols());
   if (count <= capacity) return;
-  const size_t new_capacity = std::max<size_t>({count, 2 * capacity, 16});
-  Eigen::MatrixXf vectors(dimension_, new_capacity);
-  Eigen::VectorXf squared_norms(new_capacity);
+  Reallocate(std::max<size_t>({count, 2 * capacity, 16}));
+}
+
+void ExactIndex::Reallocate(size_t capacity) {
+  Eigen::MatrixXf vectors(dimension_, capacity);
+  Eigen::VectorXf squared_norms(capacity);
   const size_t used = ids_.size();
   vectors.leftCols(used) = vectors_.leftCols(used);
   squared_norms.head(used) = squared_norms_.head(used);
@@ -152,13 +158,9 @@ void ExactIndex::MaybeShrink() {
   const size_t used = ids_.size();
   if (capacity < 1024 || used >= capacity / 4) return;
   try {
-    const size_t new_capacity = std::max<size_t>(2 * used, 16);
-    Eigen::MatrixXf vectors(dimension_, new_capacity);
-    Eigen::VectorXf squared_norms(new_capacity);
-    vectors.leftCols(used) = vectors_.leftCols(used);
-    squared_norms.head(used) = squared_norms_.head(used);
-    vectors_.swap(vectors);
-    squared_norms_.swap(squared_norms);
+    Reallocate(std::max<size_t>(2 * used, 16));
+    ids_.shrink_to_fit();
+    column_of_.rehash(0);  // to the size held
   } catch (const std::bad_alloc&) {
     // Keeps the larger storage: correct, only not returned yet.
   }

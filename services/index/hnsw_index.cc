@@ -370,11 +370,8 @@ absl::Status TieredIndex::MoveToGraph(size_t count) {
   ForEachExactVector(*tail_, moved.Collector(), size - count, size);
   absl::Status status = graph_->Add(moved.ids, moved.vectors);
   if (!status.ok()) return status;
-  status = tail_->Remove(moved.ids);
-  if (!status.ok()) return status;
-  // A drained tail gives its storage back (it doubled while it filled).
-  if (tail_->size() == 0) tail_ = NewExactIndex(dimension_);
-  return absl::OkStatus();
+  // The tail gives its storage back as it drains (the exact index shrinks).
+  return tail_->Remove(moved.ids);
 }
 
 absl::Status TieredIndex::DropGraph() {
