@@ -148,9 +148,11 @@ perf: build
 	  --benchmark_out=$(PERF_DIR)/memory_scale.json --benchmark_out_format=json
 	$(BUILD_DIR)/bin/fleetmem_ann_bench --benchmark_min_time=1 \
 	  --benchmark_out=$(PERF_DIR)/ann.json --benchmark_out_format=json
-	bench/load_bench.sh $(BUILD_DIR) $(PERF_DIR)/load.csv $(PERF_DIR)/query.csv
+	bench/load_bench.sh $(BUILD_DIR) $(PERF_DIR)/load.csv $(PERF_DIR)/query.csv \
+	  >$(PERF_DIR)/load.txt && cat $(PERF_DIR)/load.txt
 	bench/server_scale.sh $(BUILD_DIR) $(PERF_DIR)/server_scale.csv $(PERF_SIZES)
-	bench/restart_bench.sh $(BUILD_DIR) 1000000 | tee $(PERF_DIR)/restart.txt
+	bench/restart_bench.sh $(BUILD_DIR) 1000000 >$(PERF_DIR)/restart.txt && \
+	  cat $(PERF_DIR)/restart.txt
 	bench/plot_perf.py $(PERF_DIR)
 
 CLANG_FORMAT ?= $(shell command -v clang-format || command -v clang-format-14)
