@@ -14,7 +14,8 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libtorch-dev gnuplot-nox \
   libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
   libssl-dev curl python3 python3-numpy prometheus chromium \
-  debootstrap docker-compose libceres-dev libhnswlib-dev libfaiss-dev
+  debootstrap docker-compose libceres-dev libhnswlib-dev libfaiss-dev \
+  libxxhash-dev
 
 empty :=
 space := $(empty) $(empty)

@@ -70,12 +70,7 @@ echo "restart_seconds_at_$largest,$restart" | tee -a "$out"
 # Where the restart went (the engine logs each fleet's load).
 grep -o 'fleet "scale" loaded.*' "$work/restart.log" >&2 || true
 SERVER_ADDR=$(sed -n 's/^fleetmem-server listening on \(.*\)$/\1/p' "$work/restart.log" | head -1)
-unindexed() {  # protobuf JSON leaves a zero out
-  local n
-  n=$("$build/bin/fleetmem" --server "$SERVER_ADDR" --json stats --fleet scale |
-    sed -n 's/.*"unindexedCodes":"\{0,1\}\([0-9]*\).*/\1/p')
-  echo "${n:-0}"
-}
+unindexed() { unindexed_codes "$build" scale; }
 echo "restart_unindexed_codes_at_open,$(unindexed)" | tee -a "$out"
 "$load" bench --server "$SERVER_ADDR" --fleet scale --dimension 256 \
   --robots 0 --seconds 5 --query-rate 20 --csv "$work/calls.csv" >/dev/null 2>&1

@@ -21,7 +21,7 @@ RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y \
       libabsl-dev librocksdb-dev libflann-dev liblz4-dev libeigen3-dev \
       libopencv-dev libsodium-dev libcli11-dev libbz2-dev libtorch-dev \
       libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
-      libssl-dev libceres-dev libhnswlib-dev >/dev/null \
+      libssl-dev libceres-dev libhnswlib-dev libxxhash-dev >/dev/null \
  && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 COPY CMakeLists.txt ./
@@ -44,7 +44,7 @@ RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y \
       libprotobuf32 libabsl20220623 libopencv-core406 libopencv-imgproc406 \
       libopencv-imgcodecs406 libopencv-objdetect406 libopencv-calib3d406 \
       libopencv-video406 libtorch1.13 libbz2-1.0 \
-      liblz4-1 libsnappy1v5 libzstd1 libgoogle-glog0v6 libcholmod3 \
+      liblz4-1 libsnappy1v5 libzstd1 libxxhash0 libgoogle-glog0v6 libcholmod3 \
       libcxsparse3 libatlas3-base >/dev/null \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --system --uid 10002 --user-group \

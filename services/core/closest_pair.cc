@@ -1,8 +1,11 @@
 #include "services/core/closest_pair.h"
 
 #include <algorithm>
+#include <cmath>
 #include <limits>
+#include <new>
 
+#include "absl/strings/str_cat.h"
 #include "services/core/hnsw_graph.h"
 
 namespace fleetmem::core {
@@ -191,6 +194,135 @@ void ClosestPairTracker::AddToGraph(uint64_t id, Entry& entry) {
     graph_->slot_id.resize(entry.slot + 1);
   }
   graph_->slot_id[entry.slot] = id;
+}
+
+const Eigen::VectorXf* ClosestPairTracker::point(uint64_t id) const {
+  auto it = points_.find(id);
+  return it == points_.end() ? nullptr : &it->second.point;
+}
+
+// Version and kind of the layout Save writes.
+constexpr uint32_t kTrackerFormat = 0x43505431;  // "CPT1"
+
+void ClosestPairTracker::Save(ByteWriter& out) const {
+  out.Put<uint32_t>(kTrackerFormat);
+  const uint64_t dimension =
+      points_.empty() ? 0 : points_.begin()->second.point.size();
+  out.Put<uint64_t>(dimension);
+  out.Put<uint64_t>(points_.size());
+  for (const auto& [id, entry] : points_) {
+    out.Put<uint64_t>(id);
+    out.Put<uint8_t>(entry.has_neighbour ? 1 : 0);
+    out.Put<uint64_t>(entry.neighbour);
+    out.Put<double>(entry.distance);
+    out.Put<uint32_t>(entry.slot);
+    out.PutBytes(entry.point.data(), dimension * sizeof(float));
+    out.Put<uint64_t>(entry.keepers.size());
+    out.PutBytes(entry.keepers.data(), entry.keepers.size() * sizeof(uint64_t));
+  }
+  out.Put<uint8_t>(graph_ != nullptr ? 1 : 0);
+  if (graph_ == nullptr) return;
+  graph_->hnsw.Save(out);
+  out.Put<uint64_t>(graph_->slot_id.size());
+  out.PutBytes(graph_->slot_id.data(),
+               graph_->slot_id.size() * sizeof(uint64_t));
+}
+
+absl::Status ClosestPairTracker::Load(ByteReader& in) {
+  if (!points_.empty()) {
+    return absl::FailedPreconditionError(
+        "closest-pair tracker: Load into a used tracker");
+  }
+  absl::Status status;
+  try {
+    status = LoadOrThrow(in);
+  } catch (const std::bad_alloc&) {
+    status = absl::ResourceExhaustedError(
+        "out of memory while loading the closest-pair tracker");
+  }
+  if (!status.ok()) {
+    points_.clear();
+    by_distance_.clear();
+    graph_.reset();
+  }
+  return status;
+}
+
+absl::Status ClosestPairTracker::LoadOrThrow(ByteReader& in) {
+  auto malformed = [](auto... what) {
+    return absl::DataLossError(
+        absl::StrCat("closest-pair tracker snapshot: ", what...));
+  };
+  uint32_t format = 0;
+  uint64_t dimension = 0, count = 0;
+  if (!in.Get(&format) || format != kTrackerFormat || !in.Get(&dimension) ||
+      !in.Get(&count) ||
+      count > in.remaining() / (41 + dimension * sizeof(float))) {
+    return malformed("bad header");
+  }
+  points_.reserve(count);
+  size_t keeper_links = 0;
+  for (uint64_t i = 0; i < count; ++i) {
+    uint64_t id = 0, keepers = 0;
+    uint8_t has_neighbour = 0;
+    Entry entry;
+    entry.point.resize(static_cast<Eigen::Index>(dimension));
+    if (!in.Get(&id) || !in.Get(&has_neighbour) || !in.Get(&entry.neighbour) ||
+        !in.Get(&entry.distance) || !in.Get(&entry.slot) ||
+        !in.GetBytes(entry.point.data(), dimension * sizeof(float)) ||
+        !in.Get(&keepers) || keepers > in.remaining() / sizeof(uint64_t)) {
+      return malformed("truncated point ", i);
+    }
+    entry.keepers.resize(keepers);
+    in.GetBytes(entry.keepers.data(), keepers * sizeof(uint64_t));
+    entry.has_neighbour = has_neighbour != 0;
+    keeper_links += keepers;
+    if (!points_.emplace(id, std::move(entry)).second) {
+      return malformed("point ", id, " twice");
+    }
+  }
+  // Each neighbour link has its keeper entry at the other end, and no
+  // keeper entry is without its link.
+  size_t neighbour_links = 0;
+  for (const auto& [id, entry] : points_) {
+    for (uint64_t keeper : entry.keepers) {
+      auto it = points_.find(keeper);
+      if (it == points_.end() || !it->second.has_neighbour ||
+          it->second.neighbour != id) {
+        return malformed("point ", id, " has a stray keeper");
+      }
+    }
+    if (!entry.has_neighbour) continue;
+    if (entry.neighbour == id || !points_.contains(entry.neighbour) ||
+        !(entry.distance >= 0.0) || !std::isfinite(entry.distance)) {
+      return malformed("point ", id, " has a bad neighbour");
+    }
+    ++neighbour_links;
+    by_distance_.insert({entry.distance, id});
+  }
+  if (neighbour_links != keeper_links) return malformed("unpaired keepers");
+  uint8_t has_graph = 0;
+  if (!in.Get(&has_graph)) return malformed("truncated");
+  if (has_graph == 0) return absl::OkStatus();
+  if (count == 0) return malformed("a graph without points");
+  graph_ = std::make_unique<Graph>(dimension, options_);
+  absl::StatusOr<std::unique_ptr<HnswGraph>> graph =
+      HnswGraph::Load(dimension, options_.graph, in);
+  if (!graph.ok()) return graph.status();
+  uint64_t slots = 0;
+  if (!in.Get(&slots) || slots != (*graph)->slot_count() ||
+      (*graph)->size() != count) {
+    return malformed("the graph does not hold the points");
+  }
+  graph_->slot_id.resize(slots);
+  in.GetBytes(graph_->slot_id.data(), slots * sizeof(uint64_t));
+  for (const auto& [id, entry] : points_) {
+    if (!(*graph)->contains(entry.slot) || graph_->slot_id[entry.slot] != id) {
+      return malformed("point ", id, " is not in its graph slot");
+    }
+  }
+  graph_->hnsw = std::move(**graph);
+  return absl::OkStatus();
 }
 
 }  // namespace fleetmem::core

@@ -24,6 +24,8 @@
 #include <vector>
 
 #include "Eigen/Core"
+#include "absl/status/status.h"
+#include "services/core/byte_stream.h"
 #include "services/core/hnsw_graph.h"
 
 namespace fleetmem::core {
@@ -66,6 +68,19 @@ class ClosestPairTracker {
   size_t size() const { return points_.size(); }
   // True while neighbours are found through the HNSW graph.
   bool approximate() const { return graph_ != nullptr; }
+  // The point of `id`, or nullptr.
+  const Eigen::VectorXf* point(uint64_t id) const;
+
+  // Writes every point with its neighbour bookkeeping, and the graph, for
+  // Load: a restart that skips rebuilding them (100,000 centroids take
+  // seconds to insert).
+  void Save(ByteWriter& out) const;
+  // Restores what Save wrote into this empty tracker, whose options must be
+  // those of the saved one: the same pair, the same later answers.
+  // DATA_LOSS when the bytes are malformed or inconsistent (every
+  // neighbour, keeper and graph slot is checked); the tracker is then
+  // empty. RESOURCE_EXHAUSTED when out of memory.
+  absl::Status Load(ByteReader& in);
 
  private:
   struct Graph;  // hnswlib, kept out of this header
@@ -90,6 +105,8 @@ class ClosestPairTracker {
                                    size_t count) const;
   void BuildGraph();
   void AddToGraph(uint64_t id, Entry& entry);
+  // Load without its clean-up on failure.
+  absl::Status LoadOrThrow(ByteReader& in);
 
   ClosestPairOptions options_;
   std::unordered_map<uint64_t, Entry> points_;

@@ -2,8 +2,11 @@
 
 #include <map>
 #include <random>
+#include <string>
+#include <string_view>
 #include <tuple>
 
+#include "absl/status/status.h"
 #include "gtest/gtest.h"
 
 namespace fleetmem::core {
@@ -175,6 +178,99 @@ TEST(ClosestPairTrackerTest, GraphModeAgreesWithBruteForceMostly) {
   // A copy answers like the original.
   ClosestPairTracker copy = tracker;
   ExpectSame(copy.Closest(), tracker.Closest(), -2);
+}
+
+std::string Saved(const ClosestPairTracker& tracker) {
+  std::string bytes;
+  ByteWriter out([&bytes](std::span<const char> data) {
+    bytes.append(data.data(), data.size());
+  });
+  tracker.Save(out);
+  return bytes;
+}
+
+// A loaded tracker gives the same pairs as the saved one through the same
+// later inserts and removals, exact and in graph mode.
+TEST(ClosestPairTrackerTest, SavedTrackerLoadsToTheSamePairs) {
+  for (size_t exact_below : {size_t{1000}, size_t{16}}) {
+    ClosestPairOptions options;
+    options.exact_below = exact_below;
+    ClosestPairTracker tracker(options);
+    std::mt19937_64 rng(29);
+    std::normal_distribution<float> gauss(0.0f, 1.0f);
+    auto point = [&] {
+      Eigen::VectorXf p(8);
+      for (int d = 0; d < 8; ++d) p[d] = gauss(rng);
+      return p;
+    };
+    for (uint64_t id = 1; id <= 120; ++id) tracker.Insert(id, point());
+    for (uint64_t id = 3; id <= 120; id += 9) tracker.Remove(id);
+    ClosestPairTracker loaded(options);
+    const std::string bytes = Saved(tracker);
+    ByteReader in(bytes);
+    ASSERT_TRUE(loaded.Load(in).ok());
+    EXPECT_EQ(in.remaining(), 0u);
+    EXPECT_EQ(loaded.size(), tracker.size());
+    EXPECT_EQ(loaded.approximate(), tracker.approximate());
+    for (int step = 0; step < 60; ++step) {
+      ExpectSame(loaded.Closest(), tracker.Closest(), step);
+      const auto pair = tracker.Closest();
+      ASSERT_TRUE(pair.has_value());
+      tracker.Remove(pair->a);
+      loaded.Remove(pair->a);
+      const Eigen::VectorXf p = point();
+      tracker.Insert(1000 + step, p);
+      loaded.Insert(1000 + step, p);
+    }
+    // Into a used tracker, or from cut bytes: an error, nothing kept.
+    ByteReader again(bytes);
+    EXPECT_FALSE(loaded.Load(again).ok());
+    for (size_t cut :
+         {size_t{0}, size_t{10}, bytes.size() / 2, bytes.size() - 1}) {
+      ClosestPairTracker cut_tracker(options);
+      ByteReader part(std::string_view(bytes).substr(0, cut));
+      EXPECT_EQ(cut_tracker.Load(part).code(), absl::StatusCode::kDataLoss)
+          << "cut at " << cut;
+      EXPECT_EQ(cut_tracker.size(), 0u);
+    }
+  }
+}
+
+// Whatever byte is damaged, Load refuses it or the tracker stays usable
+// (ASan runs this): neighbours, keepers and graph slots are checked.
+TEST(ClosestPairTrackerTest, DamagedSnapshotIsRefusedOrSafeToUse) {
+  ClosestPairOptions options;
+  options.exact_below = 16;
+  ClosestPairTracker tracker(options);
+  std::mt19937_64 rng(31);
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  for (uint64_t id = 1; id <= 60; ++id) {
+    Eigen::VectorXf p(4);
+    for (int d = 0; d < 4; ++d) p[d] = gauss(rng);
+    tracker.Insert(id, p);
+  }
+  tracker.Remove(7);
+  const std::string bytes = Saved(tracker);
+  std::uniform_int_distribution<size_t> position(0, bytes.size() - 1);
+  std::uniform_int_distribution<int> value(0, 255);
+  int refused = 0;
+  for (int trial = 0; trial < 300; ++trial) {
+    std::string damaged = bytes;
+    damaged[position(rng)] = static_cast<char>(value(rng));
+    ClosestPairTracker loaded(options);
+    ByteReader in(damaged);
+    if (!loaded.Load(in).ok()) {
+      ++refused;
+      continue;
+    }
+    for (int step = 0; step < 5; ++step) {
+      const auto pair = loaded.Closest();
+      if (!pair) break;
+      loaded.Remove(pair->a);
+      loaded.Insert(500 + step, Eigen::VectorXf::Zero(4));
+    }
+  }
+  EXPECT_GT(refused, 0);
 }
 
 }  // namespace

@@ -1,7 +1,14 @@
 #include "services/core/hnsw_graph.h"
 
 #include <algorithm>
+#include <cstdlib>
+#include <exception>
+#include <new>
+#include <sstream>
+#include <string>
 
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/str_cat.h"
 #include "hnswlib/hnswlib.h"
 
 namespace fleetmem::core {
@@ -23,6 +30,8 @@ HnswGraph::HnswGraph(size_t dimension, HnswGraphOptions options)
       impl_(std::make_unique<Impl>(dimension, 1024, options)) {}
 
 HnswGraph::~HnswGraph() = default;
+HnswGraph::HnswGraph(HnswGraph&&) noexcept = default;
+HnswGraph& HnswGraph::operator=(HnswGraph&&) noexcept = default;
 
 void HnswGraph::Reserve(size_t count) {
   if (count > impl_->hnsw.max_elements_) {
@@ -73,9 +82,181 @@ float HnswGraph::SquaredDistance(const float* query, uint32_t slot) const {
                                   impl_->hnsw.dist_func_param_);
 }
 
+bool HnswGraph::contains(uint32_t slot) const {
+  auto it = impl_->hnsw.label_lookup_.find(slot);
+  return it != impl_->hnsw.label_lookup_.end() &&
+         !impl_->hnsw.isMarkedDeleted(it->second);
+}
+
 const float* HnswGraph::Vector(uint32_t slot) const {
   return reinterpret_cast<const float*>(
       impl_->hnsw.getDataByInternalId(impl_->hnsw.label_lookup_.at(slot)));
+}
+
+namespace {
+
+// Version and kind of the layout Save writes (each index kind its own, so
+// one kind never parses another's bytes).
+constexpr uint32_t kGraphFormat = 0x47524631;  // "GRF1"
+
+template <typename Engine>
+std::string EngineState(const Engine& engine) {
+  std::ostringstream text;
+  text << engine;
+  return text.str();
+}
+
+template <typename Engine>
+bool SetEngineState(const std::string& state, Engine* engine) {
+  std::istringstream text(state);
+  text >> *engine;
+  return !text.fail();
+}
+
+absl::Status Malformed(absl::string_view what) {
+  return absl::DataLossError(absl::StrCat("HNSW graph snapshot: ", what));
+}
+
+}  // namespace
+
+void HnswGraph::Save(ByteWriter& out) const {
+  const auto& hnsw = impl_->hnsw;
+  out.Put<uint32_t>(kGraphFormat);
+  out.Put<uint64_t>(dimension_);
+  out.Put<uint64_t>(hnsw.M_);
+  out.Put<uint64_t>(hnsw.ef_construction_);
+  out.Put<uint32_t>(next_slot_);
+  out.Put<uint64_t>(free_slots_.size());
+  out.PutBytes(free_slots_.data(), free_slots_.size() * sizeof(uint32_t));
+  out.PutString(EngineState(hnsw.level_generator_));
+  out.PutString(EngineState(hnsw.update_probability_generator_));
+  const uint64_t count = hnsw.cur_element_count;
+  out.Put<uint64_t>(count);
+  out.Put<int32_t>(hnsw.maxlevel_);
+  out.Put<uint32_t>(hnsw.enterpoint_node_);
+  out.PutBytes(hnsw.data_level0_memory_, count * hnsw.size_data_per_element_);
+  for (size_t i = 0; i < count; ++i) {
+    const int32_t level = hnsw.element_levels_[i];
+    out.Put<int32_t>(level);
+    if (level > 0) {
+      out.PutBytes(hnsw.linkLists_[i], level * hnsw.size_links_per_element_);
+    }
+  }
+}
+
+absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::Load(
+    size_t dimension, HnswGraphOptions options, ByteReader& in) {
+  try {
+    return LoadOrThrow(dimension, options, in);
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError(
+        "out of memory while loading an HNSW graph");
+  } catch (const std::exception& e) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("loading an HNSW graph: ", e.what()));
+  }
+}
+
+absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
+    size_t dimension, HnswGraphOptions options, ByteReader& in) {
+  uint32_t format = 0;
+  uint64_t saved_dimension = 0, m = 0, ef_construction = 0, free_count = 0;
+  if (!in.Get(&format) || format != kGraphFormat) {
+    return Malformed("unknown format");
+  }
+  if (!in.Get(&saved_dimension) || !in.Get(&m) || !in.Get(&ef_construction)) {
+    return Malformed("truncated header");
+  }
+  auto graph = std::make_unique<HnswGraph>(dimension, options);
+  auto& hnsw = graph->impl_->hnsw;
+  if (saved_dimension != dimension || m != hnsw.M_ ||
+      ef_construction != hnsw.ef_construction_) {
+    return Malformed(
+        absl::StrCat("built with dimension ", saved_dimension, ", m ", m,
+                     ", ef_construction ", ef_construction, "; this graph has ",
+                     dimension, ", ", hnsw.M_, ", ", hnsw.ef_construction_));
+  }
+  if (!in.Get(&graph->next_slot_) || !in.Get(&free_count) ||
+      free_count > graph->next_slot_) {
+    return Malformed("bad slot counts");
+  }
+  graph->free_slots_.resize(free_count);
+  std::string level_state, update_state;
+  uint64_t count = 0;
+  int32_t max_level = 0;
+  uint32_t entry = 0;
+  if (!in.GetBytes(graph->free_slots_.data(), free_count * sizeof(uint32_t)) ||
+      !in.GetString(&level_state, 64) || !in.GetString(&update_state, 64) ||
+      !SetEngineState(level_state, &hnsw.level_generator_) ||
+      !SetEngineState(update_state, &hnsw.update_probability_generator_) ||
+      !in.Get(&count) || !in.Get(&max_level) || !in.Get(&entry)) {
+    return Malformed("truncated header");
+  }
+  const size_t element_bytes = hnsw.size_data_per_element_;
+  if (count != graph->next_slot_ || count > in.remaining() / element_bytes ||
+      (count == 0) != (max_level < 0) || (count > 0 && entry >= count)) {
+    return Malformed("bad element count or entry point");
+  }
+  {
+    graph->Reserve(count);
+    in.GetBytes(hnsw.data_level0_memory_, count * element_bytes);
+    hnsw.cur_element_count = count;  // element_levels_ are 0 until read
+    hnsw.maxlevel_ = max_level;
+    hnsw.enterpoint_node_ = entry;
+    for (size_t i = 0; i < count; ++i) {
+      int32_t level = 0;
+      if (!in.Get(&level) || level < 0 || level > max_level) {
+        return Malformed(absl::StrCat("bad level of element ", i));
+      }
+      if (level == 0) continue;
+      const size_t bytes = level * hnsw.size_links_per_element_;
+      if (in.remaining() < bytes) return Malformed("truncated links");
+      hnsw.linkLists_[i] = static_cast<char*>(malloc(bytes));
+      if (hnsw.linkLists_[i] == nullptr) throw std::bad_alloc();
+      in.GetBytes(hnsw.linkLists_[i], bytes);
+      hnsw.element_levels_[i] = level;
+    }
+    if (count > 0 && hnsw.element_levels_[entry] != max_level) {
+      return Malformed("the entry point is not on the top level");
+    }
+    // Every link must name an element, every slot must be held once, and
+    // the removed slots must be the nodes marked deleted.
+    absl::flat_hash_set<uint32_t> removed(graph->free_slots_.begin(),
+                                          graph->free_slots_.end());
+    if (removed.size() != free_count ||
+        std::any_of(removed.begin(), removed.end(),
+                    [&](uint32_t slot) { return slot >= count; })) {
+      return Malformed("bad removed slots");
+    }
+    hnsw.label_lookup_.reserve(count);
+    auto links_ok = [&](hnswlib::linklistsizeint* list, size_t most) {
+      const size_t size = hnsw.getListCount(list);
+      const auto* neighbors = reinterpret_cast<const uint32_t*>(list + 1);
+      return size <= most && std::all_of(neighbors, neighbors + size,
+                                         [&](uint32_t n) { return n < count; });
+    };
+    for (uint32_t i = 0; i < count; ++i) {
+      const hnswlib::labeltype slot = hnsw.getExternalLabel(i);
+      if (slot >= count || !hnsw.label_lookup_.emplace(slot, i).second) {
+        return Malformed(absl::StrCat("bad slot of element ", i));
+      }
+      if (hnsw.isMarkedDeleted(i) != removed.contains(slot)) {
+        return Malformed(
+            absl::StrCat("slot ", slot, " removed inconsistently"));
+      }
+      if (!links_ok(hnsw.get_linklist0(i), hnsw.maxM0_)) {
+        return Malformed(absl::StrCat("bad links of element ", i));
+      }
+      for (int level = 1; level <= hnsw.element_levels_[i]; ++level) {
+        if (!links_ok(hnsw.get_linklist(i, level), hnsw.maxM_)) {
+          return Malformed(absl::StrCat("bad links of element ", i));
+        }
+      }
+    }
+    hnsw.num_deleted_ = free_count;
+  }
+  graph->live_ = count - free_count;
+  return graph;
 }
 
 }  // namespace fleetmem::core

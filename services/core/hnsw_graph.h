@@ -15,6 +15,9 @@
 #include <utility>
 #include <vector>
 
+#include "absl/status/statusor.h"
+#include "services/core/byte_stream.h"
+
 namespace fleetmem::core {
 
 struct HnswGraphOptions {
@@ -36,6 +39,9 @@ class HnswGraph {
   ~HnswGraph();
   HnswGraph(const HnswGraph&) = delete;
   HnswGraph& operator=(const HnswGraph&) = delete;
+  // hnswlib's state lives behind a pointer, so a move keeps it in place.
+  HnswGraph(HnswGraph&&) noexcept;
+  HnswGraph& operator=(HnswGraph&&) noexcept;
 
   // Room for `count` live vectors without reallocation. May throw
   // std::bad_alloc (the graph is unchanged then).
@@ -55,11 +61,31 @@ class HnswGraph {
   float SquaredDistance(const float* query, uint32_t slot) const;
   // The stored vector of a live slot.
   const float* Vector(uint32_t slot) const;
+
+  // Writes the whole graph (vectors, links, removed slots and the level
+  // generator's state) for Load. O(size); the graph is only read.
+  void Save(ByteWriter& out) const;
+  // A graph equal to the one Save wrote: the same searches give the same
+  // results and the same later calls build the same graph. `dimension`,
+  // options.m and options.ef_construction must be those it was built with
+  // (options.ef_search may differ). DATA_LOSS names what does not fit (a
+  // truncated or inconsistent graph, other build options: every link and
+  // slot is checked, so a bad snapshot cannot make a search read out of
+  // bounds); RESOURCE_EXHAUSTED when out of memory.
+  static absl::StatusOr<std::unique_ptr<HnswGraph>> Load(
+      size_t dimension, HnswGraphOptions options, ByteReader& in);
+  // True if `slot` holds a vector (added and not removed).
+  bool contains(uint32_t slot) const;
+  // Slots ever handed out (the live ones and the removed ones).
+  uint32_t slot_count() const { return next_slot_; }
   size_t size() const { return live_; }
   size_t dimension() const { return dimension_; }
 
  private:
   struct Impl;
+  // Load without its handlers for hnswlib's exceptions.
+  static absl::StatusOr<std::unique_ptr<HnswGraph>> LoadOrThrow(
+      size_t dimension, HnswGraphOptions options, ByteReader& in);
   size_t dimension_;
   HnswGraphOptions options_;
   std::unique_ptr<Impl> impl_;

@@ -4,6 +4,7 @@
 #include <limits>
 #include <utility>
 
+#include "absl/strings/str_cat.h"
 #include "services/core/downsampler.h"
 #include "services/core/feature_space.h"
 #include "services/core/importance_sampler.h"
@@ -151,9 +152,44 @@ void Count(std::map<std::string, uint64_t, std::less<>>& counts,
 
 }  // namespace
 
-void StaticMemory::Insert(Cluster cluster) {
+absl::Status StaticMemory::RestoreAll(std::vector<Cluster> clusters,
+                                      ByteReader& centroids) {
+  for (Cluster& cluster : clusters) {
+    if (cluster.centroid.empty() && !cluster.traces.empty()) {
+      cluster.centroid = Centroid(cluster.traces, options_.spatial_scale_m);
+    }
+  }
+  ClosestPairTracker loaded(ClosestPairOptionsFor(options_));
+  absl::Status status =
+      clusters_.empty()
+          ? loaded.Load(centroids)
+          : absl::FailedPreconditionError("RestoreAll into a used memory");
+  if (status.ok() && loaded.size() != clusters.size()) {
+    status = absl::DataLossError(
+        absl::StrCat("the centroid snapshot holds ", loaded.size(),
+                     " centroids, the memory ", clusters.size(), " clusters"));
+  }
+  for (size_t i = 0; status.ok() && i < clusters.size(); ++i) {
+    const Eigen::VectorXf* point = loaded.point(clusters[i].id);
+    if (point == nullptr ||
+        static_cast<size_t>(point->size()) != clusters[i].centroid.size() ||
+        !std::equal(clusters[i].centroid.begin(), clusters[i].centroid.end(),
+                    point->data())) {
+      status = absl::DataLossError(absl::StrCat(
+          "the centroid snapshot does not hold cluster ", clusters[i].id));
+    }
+  }
+  if (status.ok()) centroids_ = std::move(loaded);
+  for (Cluster& cluster : clusters) {
+    if (clusters_.contains(cluster.id)) Erase(cluster.id);  // id must be new
+    Insert(std::move(cluster), /*with_centroid=*/!status.ok());
+  }
+  return status;
+}
+
+void StaticMemory::Insert(Cluster cluster, bool with_centroid) {
   const uint64_t id = cluster.id;
-  centroids_.Insert(id, ToVector(cluster.centroid));
+  if (with_centroid) centroids_.Insert(id, ToVector(cluster.centroid));
   Cluster& stored = clusters_.emplace(id, std::move(cluster)).first->second;
   trace_count_ += stored.traces.size();
   for (MemoryTrace& trace : stored.traces) {

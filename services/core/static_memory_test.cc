@@ -361,5 +361,68 @@ TEST(StaticMemoryTest, DecayLowersChanceOfReplayedTraces) {
   EXPECT_NEAR(ShareOfReplayedTraceDrawnFirst(1.0), 0.5, 0.03);
 }
 
+// A memory restored with its saved centroid bookkeeping forgets as the
+// memory it was saved from; another memory's bookkeeping is refused and
+// rebuilt, and the memory is complete either way.
+TEST(StaticMemoryTest, RestoreAllUsesSavedCentroidsOnlyWhenTheyMatch) {
+  MemoryOptions options;
+  options.clusters_per_batch = 8;
+  options.max_traces_per_cluster = 5;
+  options.max_clusters = 40;
+  options.forgetting_exact_below = 16;  // the centroid graph is in use
+  StaticMemory memory(options);
+  std::mt19937_64 rng(33);
+  uint64_t next_cluster = 1;
+  for (int b = 0; b < 12; ++b) {
+    next_cluster +=
+        memory.Consolidate(Segment("r1", 1000 * b, 50, rng), next_cluster, rng)
+            .added.size();
+  }
+  std::string bytes;
+  ByteWriter out([&bytes](std::span<const char> data) {
+    bytes.append(data.data(), data.size());
+  });
+  memory.SaveCentroids(out);
+  auto copies = [&] {
+    std::vector<Cluster> clusters;
+    for (const auto& [id, cluster] : memory.clusters()) {
+      clusters.push_back(cluster);
+    }
+    return clusters;
+  };
+
+  StaticMemory restored(options);
+  ByteReader in(bytes);
+  ASSERT_TRUE(restored.RestoreAll(copies(), in).ok());
+  EXPECT_EQ(restored.trace_count(), memory.trace_count());
+  ExpectInvariants(restored);
+  // The same next consolidations forget the same clusters.
+  std::mt19937_64 rng_a(35), rng_b(35);
+  for (int b = 12; b < 16; ++b) {
+    std::mt19937_64 segment_rng(b);
+    const std::vector<MemoryTrace> segment =
+        Segment("r2", 1000 * b, 50, segment_rng);
+    const ConsolidationResult a =
+        memory.Consolidate(segment, next_cluster, rng_a);
+    const ConsolidationResult c =
+        restored.Consolidate(segment, next_cluster, rng_b);
+    next_cluster += a.added.size();
+    ASSERT_EQ(a.forgotten.size(), c.forgotten.size());
+    for (size_t i = 0; i < a.forgotten.size(); ++i) {
+      EXPECT_EQ(a.forgotten[i].id, c.forgotten[i].id);
+    }
+  }
+
+  // Another memory's bookkeeping: refused, rebuilt, memory complete.
+  StaticMemory other(options);
+  std::vector<Cluster> clusters = copies();
+  clusters.pop_back();
+  ByteReader stale(bytes);
+  const absl::Status status = other.RestoreAll(clusters, stale);
+  EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
+  EXPECT_EQ(other.clusters().size(), clusters.size());
+  ExpectInvariants(other);
+}
+
 }  // namespace
 }  // namespace fleetmem::core

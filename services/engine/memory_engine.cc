@@ -164,6 +164,34 @@ absl::Status ValidateEngineOptions(const EngineOptions& options) {
   return ValidateQuotaOptions(options.limits);
 }
 
+namespace {
+
+// Runs `first` on this thread and `second` beside it on another one when
+// `items` makes that pay off (a restart: each is seconds long at 1,000,000
+// traces), else one after the other; returns once both are done. `first`
+// may be empty.
+void RunBeside(const std::function<void()>& first, size_t items,
+               const std::function<void()>& second) {
+  // A second thread pays off from about this many items.
+  constexpr size_t kParallelFrom = 10'000;
+  std::thread beside;
+  if (first && items >= kParallelFrom) {
+    try {
+      beside = std::thread(second);
+    } catch (const std::system_error&) {
+      // No thread: one after the other.
+    }
+  }
+  if (first) first();
+  if (beside.joinable()) {
+    beside.join();
+  } else {
+    second();
+  }
+}
+
+}  // namespace
+
 // One fleet's state. Every member but `id`, `engine` and the two mutexes is
 // guarded by `mu`.
 struct MemoryEngine::Fleet {
@@ -194,6 +222,20 @@ struct MemoryEngine::Fleet {
   absl::Status IndexTraces(const std::vector<const core::MemoryTrace*>& traces,
                            const std::function<void()>& meanwhile = nullptr)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // A load from the store's index snapshot of the fleet (written by
+  // SaveIndexSnapshot at the last clean shutdown), if it is valid and holds
+  // exactly `traces`: the index and the handles are loaded instead of
+  // rebuilt, and memory restores `clusters` with forgetting's centroid
+  // bookkeeping from it, beside the index's load. On an error before
+  // memory was touched `*restored` stays false; on one after, memory is
+  // complete and only the index must be rebuilt. The index and the handles
+  // change only on success.
+  absl::Status LoadFromSnapshot(
+      std::vector<core::Cluster>& clusters,
+      const std::vector<const core::MemoryTrace*>& traces, bool* restored)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Writes the index and the handles through the store (SaveIndexSnapshots).
+  absl::Status SaveIndexSnapshot() const ABSL_SHARED_LOCKS_REQUIRED(mu);
   absl::Status UnindexTraces(const std::vector<core::TraceKey>& keys)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Appends a pending trace of its robot.
@@ -379,6 +421,27 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
       traces.push_back(&trace);
     }
   }
+  bool restored = false;
+  if (!traces.empty()) {
+    const absl::Time start = absl::Now();
+    absl::Status status = LoadFromSnapshot(record.clusters, traces, &restored);
+    if (status.ok()) {
+      FLEETMEM_LOG(kInfo) << "fleet \"" << id
+                          << "\": loaded from its index snapshot in "
+                          << absl::ToDoubleSeconds(absl::Now() - start) << " s";
+      return status;
+    }
+    // No snapshot is the normal case after a crash or a first start.
+    if (absl::IsNotFound(status)) {
+      FLEETMEM_LOG(kInfo) << "fleet \"" << id << "\": rebuilding the index ("
+                          << status << ")";
+    } else {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << id
+          << "\": rebuilding the index, its snapshot is unusable: " << status;
+    }
+  }
+  if (restored) return IndexTraces(traces);
   return IndexTraces(traces, [&] {
     for (core::Cluster& cluster : record.clusters) {
       memory.Restore(std::move(cluster));
@@ -420,24 +483,8 @@ absl::Status MemoryEngine::Fleet::IndexTraces(
     codes.push_back(trace->code);
   }
   absl::Status status;
-  // A second thread pays off from about this many traces (a restart).
-  constexpr size_t kParallelFrom = 10'000;
-  std::thread adder;
-  if (meanwhile && traces.size() >= kParallelFrom) {
-    try {
-      adder = std::thread([&status, &ids, &codes, target = index.get()] {
-        status = target->AddNormalized(ids, codes);
-      });
-    } catch (const std::system_error&) {
-      // No thread: one after the other.
-    }
-  }
-  if (meanwhile) meanwhile();
-  if (adder.joinable()) {
-    adder.join();
-  } else {
-    status = index->AddNormalized(ids, codes);
-  }
+  RunBeside(meanwhile, traces.size(),
+            [&] { status = index->AddNormalized(ids, codes); });
   if (!status.ok()) return status;
   handle_of.reserve(handle_of.size() + traces.size());
   key_of.reserve(key_of.size() + traces.size());
@@ -445,6 +492,132 @@ absl::Status MemoryEngine::Fleet::IndexTraces(
     handle_of[traces[i]->key()] = ids[i];
     key_of[ids[i]] = traces[i]->key();
   }
+  return absl::OkStatus();
+}
+
+// Version of the engine's part of an index snapshot.
+constexpr uint32_t kIndexSnapshotFormat = 0x454e4731;  // "ENG1"
+
+absl::Status MemoryEngine::Fleet::SaveIndexSnapshot() const {
+  return engine->store_->SaveIndexSnapshot(id, [this](core::ByteWriter& out) {
+    // The handles under (robot number, seq), with each robot id once.
+    absl::flat_hash_map<std::string_view, uint32_t> robot_number;
+    std::vector<std::string_view> robot_ids;
+    out.Put<uint32_t>(kIndexSnapshotFormat);
+    out.Put<uint32_t>(meta.code_dimension);
+    out.Put<uint64_t>(next_handle);
+    for (const auto& [handle, key] : key_of) {
+      if (robot_number.try_emplace(key.robot_id, robot_ids.size()).second) {
+        robot_ids.push_back(key.robot_id);
+      }
+    }
+    out.Put<uint64_t>(robot_ids.size());
+    for (std::string_view robot_id : robot_ids) out.PutString(robot_id);
+    out.Put<uint64_t>(key_of.size());
+    for (const auto& [handle, key] : key_of) {
+      out.Put<uint32_t>(robot_number[key.robot_id]);
+      out.Put<uint64_t>(key.seq);
+      out.Put<uint64_t>(handle);
+    }
+    // Forgetting's centroid bookkeeping, length first so that a load can
+    // hand it to memory while the index reads what follows.
+    core::ByteWriter counter([](std::span<const char>) {});
+    memory.SaveCentroids(counter);
+    out.Put<uint64_t>(counter.written());
+    memory.SaveCentroids(out);
+    return index->Save(out);
+  });
+}
+
+absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
+    std::vector<core::Cluster>& clusters,
+    const std::vector<const core::MemoryTrace*>& traces, bool* restored) {
+  std::unique_ptr<PlaceIndex> loaded;
+  absl::flat_hash_map<core::TraceKey, uint64_t> saved;
+  uint64_t saved_next_handle = 0;
+  absl::Status status = engine->store_->TakeIndexSnapshot(
+      id, [&](std::span<const char> bytes) -> absl::Status {
+        core::ByteReader in(bytes);
+        uint32_t format = 0, dimension = 0;
+        uint64_t robot_count = 0, count = 0;
+        if (!in.Get(&format) || format != kIndexSnapshotFormat ||
+            !in.Get(&dimension) || dimension != meta.code_dimension ||
+            !in.Get(&saved_next_handle) || !in.Get(&robot_count) ||
+            robot_count > in.remaining()) {
+          return absl::DataLossError("bad header");
+        }
+        std::vector<std::string> robot_ids(robot_count);
+        for (std::string& robot_id : robot_ids) {
+          if (!in.GetString(&robot_id, core::kMaxIdLength)) {
+            return absl::DataLossError("bad robot id");
+          }
+        }
+        if (!in.Get(&count) || count != traces.size()) {
+          return absl::DataLossError(absl::StrCat(
+              "it holds ", count, " traces, the store ", traces.size()));
+        }
+        saved.reserve(count);
+        absl::flat_hash_set<uint64_t> handles;
+        handles.reserve(count);
+        for (uint64_t i = 0; i < count; ++i) {
+          uint32_t robot = 0;
+          uint64_t seq = 0, handle = 0;
+          if (!in.Get(&robot) || !in.Get(&seq) || !in.Get(&handle) ||
+              robot >= robot_count || handle == 0 ||
+              handle >= saved_next_handle || !handles.insert(handle).second ||
+              !saved.try_emplace(core::TraceKey{robot_ids[robot], seq}, handle)
+                   .second) {
+            return absl::DataLossError(absl::StrCat("bad handle entry ", i));
+          }
+        }
+        // As many distinct keys as traces, each trace's among them: the same
+        // set of traces.
+        for (const core::MemoryTrace* trace : traces) {
+          if (!saved.contains(trace->key())) {
+            return absl::DataLossError(absl::StrCat(
+                "it lacks trace (", trace->robot_id, ", ", trace->seq, ")"));
+          }
+        }
+        uint64_t centroid_size = 0;
+        std::span<const char> centroid_bytes;
+        if (!in.Get(&centroid_size) ||
+            !in.GetSpan(centroid_size, &centroid_bytes)) {
+          return absl::DataLossError("truncated centroids");
+        }
+        loaded = engine->index_factory_(meta.code_dimension);
+        if (loaded == nullptr) return absl::InternalError("no index made");
+        // The index loads (the larger part) while memory restores.
+        absl::Status index_status;
+        auto load_index = [&] {
+          index_status = loaded->Load(in);
+          if (index_status.ok() &&
+              (loaded->size() != count || in.remaining() != 0)) {
+            index_status =
+                absl::DataLossError("the index does not match its handles");
+          }
+        };
+        RunBeside(
+            [&] {
+              core::ByteReader centroids(centroid_bytes);
+              absl::Status kept =
+                  memory.RestoreAll(std::move(clusters), centroids);
+              *restored = true;
+              if (!kept.ok()) {
+                FLEETMEM_LOG(kWarning) << "fleet \"" << id
+                                       << "\": forgetting's centroid graph "
+                                          "rebuilt: "
+                                       << kept;
+              }
+            },
+            traces.size(), load_index);
+        return index_status;
+      });
+  if (!status.ok()) return status;
+  index = std::move(loaded);
+  handle_of = std::move(saved);
+  next_handle = saved_next_handle;
+  key_of.reserve(handle_of.size());
+  for (const auto& [key, handle] : handle_of) key_of.emplace(handle, key);
   return absl::OkStatus();
 }
 
@@ -851,6 +1024,35 @@ absl::StatusOr<std::unique_ptr<MemoryEngine>> MemoryEngine::Open(
   FLEETMEM_LOG(kInfo) << "memory engine opened with " << fleet_ids->size()
                       << " fleet(s)";
   return engine;
+}
+
+absl::Status MemoryEngine::SaveIndexSnapshots() {
+  std::vector<Fleet*> fleets;
+  {
+    absl::ReaderMutexLock lock(&fleets_mu_);
+    for (const auto& [fleet_id, fleet] : fleets_) fleets.push_back(fleet.get());
+  }
+  absl::Status first;
+  for (Fleet* fleet : fleets) {
+    absl::MutexLock writer(&fleet->writer_mu);
+    absl::ReaderMutexLock lock(&fleet->mu);
+    if (!fleet->stale.ok() || !fleet->exists() || fleet->index == nullptr) {
+      continue;
+    }
+    const absl::Time start = absl::Now();
+    absl::Status status = fleet->SaveIndexSnapshot();
+    if (absl::IsUnimplemented(status)) continue;  // this kind of index
+    if (!status.ok()) {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << fleet->id << "\": no index snapshot: " << status;
+      first.Update(status);
+      continue;
+    }
+    FLEETMEM_LOG(kInfo) << "fleet \"" << fleet->id << "\": index snapshot of "
+                        << fleet->key_of.size() << " codes saved in "
+                        << absl::ToDoubleSeconds(absl::Now() - start) << " s";
+  }
+  return first;
 }
 
 MemoryEngine::Fleet* MemoryEngine::Fleet::Find(const MemoryEngine& engine,

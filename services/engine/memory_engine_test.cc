@@ -971,6 +971,185 @@ TEST_F(MemoryEngineTest, ReopeningALargeFleetFindsEveryTrace) {
   }
 }
 
+// Forwards to a tiered index and counts the Loads that succeed.
+class CountingIndex : public PlaceIndex {
+ public:
+  CountingIndex(size_t dimension, std::atomic<int>* loads)
+      : inner_(index::NewTieredIndex(dimension, Options())), loads_(loads) {}
+  static index::TieredIndexOptions Options() {
+    index::TieredIndexOptions options;
+    options.hnsw_from = 300;
+    options.background = false;  // the same calls give the same graph
+    return options;
+  }
+  absl::Status Add(std::span<const uint64_t> ids,
+                   std::span<const std::vector<float>> vectors) override {
+    return inner_->Add(ids, vectors);
+  }
+  absl::Status AddNormalized(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) override {
+    return inner_->AddNormalized(ids, codes);
+  }
+  absl::Status Remove(std::span<const uint64_t> ids) override {
+    return inner_->Remove(ids);
+  }
+  absl::StatusOr<std::vector<Neighbor>> Search(
+      std::span<const float> query, const SearchParams& params) const override {
+    return inner_->Search(query, params);
+  }
+  size_t size() const override { return inner_->size(); }
+  size_t dimension() const override { return inner_->dimension(); }
+  absl::Status Save(core::ByteWriter& out) const override {
+    return inner_->Save(out);
+  }
+  absl::Status Load(core::ByteReader& in) override {
+    absl::Status status = inner_->Load(in);
+    if (status.ok()) ++*loads_;
+    return status;
+  }
+
+ private:
+  std::unique_ptr<PlaceIndex> inner_;
+  std::atomic<int>* loads_;
+};
+
+class IndexSnapshotTest : public MemoryEngineTest {
+ protected:
+  void SetUp() override {
+    MemoryEngineTest::SetUp();
+    options_.memory.clusters_per_batch = 10;
+    options_.memory.max_traces_per_cluster = 20;
+    options_.memory.max_clusters = 60;
+    options_.memory.forgetting_exact_below = 16;  // the centroid graph too
+    options_.segment_size = 100;
+    options_.max_traces_per_upload = 100;
+    options_.max_query_k = 5000;
+    engine_ = Open();
+    ASSERT_NE(engine_, nullptr);
+  }
+
+  std::unique_ptr<MemoryEngine> Open(PlaceIndexFactory factory = nullptr) {
+    engine_.reset();
+    if (!factory) {
+      factory = [this](size_t dimension) {
+        return std::make_unique<CountingIndex>(dimension, &loads_);
+      };
+    }
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
+        MemoryEngine::Open(options_, store_.get(), factory);
+    EXPECT_TRUE(engine.ok()) << engine.status();
+    return engine.ok() ? *std::move(engine) : nullptr;
+  }
+
+  // Every trace's nearest match is itself, at distance 0.
+  void ExpectEveryTraceFindsItself() {
+    const std::vector<core::MemoryTrace> traces =
+        AllTraces(*engine_, "f1", 5000);
+    ASSERT_FALSE(traces.empty());
+    const FleetStats stats = Stats();
+    EXPECT_EQ(traces.size(), stats.traces + stats.pending_traces);
+    for (const core::MemoryTrace& trace : traces) {
+      PlaceQuery query;
+      query.code = trace.code;
+      absl::StatusOr<std::vector<PlaceMatch>> matches =
+          engine_->QueryPlace("f1", query);
+      ASSERT_TRUE(matches.ok()) << matches.status();
+      ASSERT_EQ(matches->size(), 1u);
+      EXPECT_EQ(matches->front().trace.key(), trace.key());
+      EXPECT_EQ(matches->front().distance, 0.0f);
+    }
+  }
+
+  // The five nearest keys to each of `queries`.
+  std::vector<std::vector<core::TraceKey>> Nearest(
+      const std::vector<core::MemoryTrace>& queries) {
+    std::vector<std::vector<core::TraceKey>> nearest;
+    for (const core::MemoryTrace& trace : queries) {
+      PlaceQuery query;
+      query.code = trace.code;
+      query.k = 5;
+      absl::StatusOr<std::vector<PlaceMatch>> matches =
+          engine_->QueryPlace("f1", query);
+      EXPECT_TRUE(matches.ok()) << matches.status();
+      nearest.emplace_back();
+      if (!matches.ok()) continue;
+      for (const PlaceMatch& match : *matches) {
+        nearest.back().push_back(match.trace.key());
+      }
+    }
+    return nearest;
+  }
+
+  std::atomic<int> loads_{0};
+};
+
+TEST_F(IndexSnapshotTest, CleanShutdownSkipsTheRebuildAndKeepsEveryHandle) {
+  for (uint64_t first = 1; first <= 900; first += 100) {
+    MustUpload(MakeTraces("r1", first, 100, rng_));
+    MustUpload(MakeTraces("r2", first, 100, rng_));
+  }
+  MustUpload(MakeTraces("r3", 1, 70, rng_));  // stays pending
+  const FleetStats stats = Stats();
+  ASSERT_GT(stats.clusters_forgotten, 0u);  // handles were removed too
+  const std::vector<core::MemoryTrace> queries = MakeTraces("q", 1, 30, rng_);
+  const auto before = Nearest(queries);
+
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  engine_ = Open();
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(loads_.load(), 1);
+  ExpectSameStats(Stats(), stats);
+  EXPECT_EQ(Nearest(queries), before);  // the same graph
+  ExpectEveryTraceFindsItself();
+
+  // Consolidation and forgetting reach the loaded index through the loaded
+  // handles.
+  for (uint64_t first = 901; first <= 1300; first += 100) {
+    MustUpload(MakeTraces("r1", first, 100, rng_));
+  }
+  MustUpload(MakeTraces("r3", 71, 30, rng_));
+  ASSERT_GT(Stats().clusters_forgotten, stats.clusters_forgotten);
+  ExpectEveryTraceFindsItself();
+
+  // A snapshot is used once: a restart after a crash rebuilds.
+  engine_ = Open();
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(loads_.load(), 1);
+  ExpectEveryTraceFindsItself();
+}
+
+// A snapshot of another kind of index: memory takes its part (the
+// centroids), the index is rebuilt from the restored memory's traces.
+TEST_F(IndexSnapshotTest, IndexOfAnotherKindIsRebuiltBesideTheRestoredMemory) {
+  for (uint64_t first = 1; first <= 600; first += 100) {
+    MustUpload(MakeTraces("r1", first, 100, rng_));
+  }
+  MustUpload(MakeTraces("r2", 1, 30, rng_));  // pending
+  const FleetStats stats = Stats();
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  engine_ = Open(ExactFactory());
+  ASSERT_NE(engine_, nullptr);
+  ExpectSameStats(Stats(), stats);
+  ExpectEveryTraceFindsItself();
+  MustUpload(MakeTraces("r1", 601, 100, rng_));  // forgetting goes on
+  MustUpload(MakeTraces("r1", 701, 100, rng_));
+  EXPECT_GT(Stats().clusters_forgotten, stats.clusters_forgotten);
+  ExpectEveryTraceFindsItself();
+}
+
+TEST_F(IndexSnapshotTest, WriteAfterTheSnapshotMakesTheLoadRebuild) {
+  for (uint64_t first = 1; first <= 400; first += 100) {
+    MustUpload(MakeTraces("r1", first, 100, rng_));
+  }
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  MustUpload(MakeTraces("r2", 1, 10, rng_));
+  engine_ = Open();
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(loads_.load(), 0);
+  ExpectEveryTraceFindsItself();
+}
+
 TEST_F(MemoryEngineTest, ListenersFireAfterEventsAreDurable) {
   std::vector<uint64_t> f1_calls;
   std::vector<uint64_t> f2_calls;

@@ -5,6 +5,8 @@
 #define FLEETMEM_SERVICES_ENGINE_MEMORY_STORE_H_
 
 #include <cstdint>
+#include <functional>
+#include <span>
 #include <string>
 #include <string_view>
 #include <utility>
@@ -12,6 +14,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "services/core/byte_stream.h"
 #include "services/core/seq_set.h"
 #include "services/core/types.h"
 
@@ -111,6 +114,33 @@ class MemoryStore {
   virtual absl::Status Checkpoint(const std::string& directory) {
     return absl::UnimplementedError(
         "this store keeps nothing on disk and cannot take snapshots");
+  }
+
+  // Index snapshots (MemoryEngine::SaveIndexSnapshots): bytes that let the
+  // next load of a fleet skip rebuilding its place index. A snapshot is
+  // valid only for the stored state it was written against: any Apply after
+  // it (to any fleet), writes lost in a crash, or damage to it makes
+  // TakeIndexSnapshot refuse it. Stores that keep nothing on disk may hold
+  // them in memory.
+  //
+  // Stores what `write` writes as the fleet's snapshot, replacing any
+  // earlier one. If `write` or the store fails, no snapshot is left for the
+  // fleet and the error is returned. UNIMPLEMENTED by default.
+  virtual absl::Status SaveIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(core::ByteWriter&)>& write) {
+    return absl::UnimplementedError("this store keeps no index snapshots");
+  }
+  // Calls `read` with the fleet's snapshot and returns its status, if the
+  // snapshot is valid for the stored state now. The snapshot is discarded
+  // in any case (it is used once; the next is written at the next clean
+  // shutdown). NOT_FOUND when there is none or it is stale (the message
+  // says which), DATA_LOSS when it fails its checksum; `read` is not called
+  // then.
+  virtual absl::Status TakeIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(std::span<const char>)>& read) {
+    return absl::NotFoundError("this store keeps no index snapshots");
   }
 
   // Approximate bytes the store takes on disk (0 when it keeps nothing

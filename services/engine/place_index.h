@@ -13,6 +13,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "services/core/byte_stream.h"
 #include "services/core/feature_space.h"
 
 namespace fleetmem::engine {
@@ -63,6 +64,22 @@ class PlaceIndex {
   // Vectors held but not yet in the index's search structure (searched by
   // an exact scan meanwhile), e.g. a graph index's backlog; 0 by default.
   virtual size_t unindexed() const { return 0; }
+
+  // Writes everything the index holds (ids, vectors, a graph's links) so
+  // that Load into an empty index of the same kind, dimension and build
+  // options gives the same answers: a restart that skips rebuilding a
+  // graph. Counts as a reader (concurrent Search calls are fine).
+  // UNIMPLEMENTED, writing nothing, for an index that cannot.
+  virtual absl::Status Save(core::ByteWriter& out) const {
+    return absl::UnimplementedError("this index cannot be saved");
+  }
+  // Restores what Save wrote into this empty index (a writer). DATA_LOSS
+  // when the bytes are malformed or come from another kind of index or other
+  // options (the index is then unusable: discard it); UNIMPLEMENTED for an
+  // index that cannot.
+  virtual absl::Status Load(core::ByteReader& in) {
+    return absl::UnimplementedError("this index cannot be loaded");
+  }
 };
 
 // Makes an empty index of `dimension` for one fleet.

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
+#include "absl/strings/str_cat.h"
 #include "services/core/feature_space.h"
 #include "services/index/index_input.h"
 
@@ -44,6 +45,8 @@ class ExactIndex final : public engine::PlaceIndex {
       std::span<const float> query, const SearchParams& params) const override;
   size_t size() const override { return ids_.size(); }
   size_t dimension() const override { return dimension_; }
+  absl::Status Save(core::ByteWriter& out) const override;
+  absl::Status Load(core::ByteReader& in) override;
 
   void ForEach(
       const std::function<void(uint64_t, std::span<const float>)>& visit,
@@ -130,6 +133,59 @@ absl::Status ExactIndex::Store(std::span<const uint64_t> ids,
     squared_norms_(column) = vectors_.col(column).squaredNorm();
     ids_.push_back(ids[i]);
     column_of_.emplace(ids[i], column);
+  }
+  return absl::OkStatus();
+}
+
+// Version and kind of the layout Save writes (each index kind its own, so
+// one kind never parses another's bytes).
+constexpr uint32_t kExactFormat = 0x45584331;  // "EXC1"
+
+absl::Status ExactIndex::Save(core::ByteWriter& out) const {
+  out.Put<uint32_t>(kExactFormat);
+  out.Put<uint64_t>(dimension_);
+  out.Put<uint64_t>(ids_.size());
+  out.PutBytes(ids_.data(), ids_.size() * sizeof(uint64_t));
+  // The first size() columns are contiguous.
+  out.PutBytes(vectors_.data(), ids_.size() * dimension_ * sizeof(float));
+  return absl::OkStatus();
+}
+
+absl::Status ExactIndex::Load(core::ByteReader& in) {
+  if (!ids_.empty()) {
+    return absl::FailedPreconditionError("exact index: Load into a used index");
+  }
+  uint32_t format = 0;
+  uint64_t dimension = 0, count = 0;
+  if (!in.Get(&format) || format != kExactFormat) {
+    return absl::DataLossError("not an exact index's snapshot");
+  }
+  if (!in.Get(&dimension) || dimension != dimension_ || !in.Get(&count) ||
+      count >
+          in.remaining() / (sizeof(uint64_t) + dimension_ * sizeof(float))) {
+    return absl::DataLossError(
+        absl::StrCat("exact index snapshot: bad header (dimension ", dimension,
+                     ", this index ", dimension_, ")"));
+  }
+  try {
+    Reserve(count);
+    ids_.resize(count);
+    column_of_.reserve(count);
+  } catch (const std::bad_alloc&) {
+    ids_.clear();
+    return absl::ResourceExhaustedError("exact index: out of memory in Load");
+  }
+  in.GetBytes(ids_.data(), count * sizeof(uint64_t));
+  in.GetBytes(vectors_.data(), count * dimension_ * sizeof(float));
+  for (size_t column = 0; column < count; ++column) {
+    squared_norms_(column) = vectors_.col(column).squaredNorm();
+    if (!std::isfinite(squared_norms_(column)) ||
+        !column_of_.emplace(ids_[column], column).second) {
+      ids_.clear();
+      column_of_.clear();
+      return absl::DataLossError(absl::StrCat(
+          "exact index snapshot: bad vector or repeated id at ", column));
+    }
   }
   return absl::OkStatus();
 }

@@ -45,13 +45,8 @@ class HnswIndex final : public engine::PlaceIndex {
  public:
   HnswIndex(size_t dimension, HnswIndexOptions options)
       : options_(options),
-        graph_(dimension,
-               core::HnswGraphOptions{
-                   .m = options.m,
-                   .ef_construction = options.ef_construction,
-                   .ef_search = options.ef_search,
-                   .seed = options.seed,
-                   .repair_probability = options.repair_probability}) {}
+        graph_(std::make_unique<core::HnswGraph>(dimension,
+                                                 GraphOptions(options))) {}
 
   absl::Status Add(std::span<const uint64_t> ids,
                    std::span<const std::vector<float>> vectors) override;
@@ -59,16 +54,18 @@ class HnswIndex final : public engine::PlaceIndex {
   absl::StatusOr<std::vector<Neighbor>> Search(
       std::span<const float> query, const SearchParams& params) const override;
   size_t size() const override { return slot_of_.size(); }
-  size_t dimension() const override { return graph_.dimension(); }
+  size_t dimension() const override { return graph_->dimension(); }
+  absl::Status Save(core::ByteWriter& out) const override;
+  absl::Status Load(core::ByteReader& in) override;
   bool contains(uint64_t id) const { return slot_of_.contains(id); }
 
-  void set_ef_search(size_t ef) { graph_.set_ef_search(ef); }
+  void set_ef_search(size_t ef) { graph_->set_ef_search(ef); }
 
   // Calls visit(id, vector) for every stored vector.
   void ForEach(const std::function<void(uint64_t, std::span<const float>)>&
                    visit) const {
     for (const auto& [id, slot] : slot_of_) {
-      visit(id, std::span<const float>(graph_.Vector(slot), dimension()));
+      visit(id, std::span<const float>(graph_->Vector(slot), dimension()));
     }
   }
 
@@ -77,8 +74,16 @@ class HnswIndex final : public engine::PlaceIndex {
   std::vector<Neighbor> Scan(std::span<const float> query,
                              const SearchParams& params) const;
 
+  static core::HnswGraphOptions GraphOptions(const HnswIndexOptions& options) {
+    return {.m = options.m,
+            .ef_construction = options.ef_construction,
+            .ef_search = options.ef_search,
+            .seed = options.seed,
+            .repair_probability = options.repair_probability};
+  }
+
   const HnswIndexOptions options_;
-  core::HnswGraph graph_;
+  std::unique_ptr<core::HnswGraph> graph_;
   absl::flat_hash_map<uint64_t, uint32_t> slot_of_;  // id -> slot
   std::vector<uint64_t> id_of_;                      // slot -> id
 };
@@ -92,14 +97,14 @@ absl::Status HnswIndex::Add(std::span<const uint64_t> ids,
     return status;
   }
   try {
-    graph_.Reserve(slot_of_.size() + ids.size());
+    graph_->Reserve(slot_of_.size() + ids.size());
     slot_of_.reserve(slot_of_.size() + ids.size());
     id_of_.reserve(slot_of_.size() + ids.size());
   } catch (const std::bad_alloc&) {
     return absl::ResourceExhaustedError("HNSW index: out of memory in Add");
   }
   for (size_t i = 0; i < ids.size(); ++i) {
-    const uint32_t slot = graph_.Add(vectors[i].data());
+    const uint32_t slot = graph_->Add(vectors[i].data());
     if (slot >= id_of_.size()) id_of_.resize(slot + 1);
     id_of_[slot] = ids[i];
     slot_of_.emplace(ids[i], slot);
@@ -111,8 +116,56 @@ absl::Status HnswIndex::Remove(std::span<const uint64_t> ids) {
   for (uint64_t id : ids) {
     auto it = slot_of_.find(id);
     if (it == slot_of_.end()) continue;
-    graph_.Remove(it->second);
+    graph_->Remove(it->second);
     slot_of_.erase(it);
+  }
+  return absl::OkStatus();
+}
+
+// Versions and kinds of the layouts Save writes.
+constexpr uint32_t kHnswFormat = 0x484e5731;    // "HNW1"
+constexpr uint32_t kTieredFormat = 0x54524431;  // "TRD1"
+
+absl::Status HnswIndex::Save(core::ByteWriter& out) const {
+  out.Put<uint32_t>(kHnswFormat);
+  graph_->Save(out);
+  out.Put<uint64_t>(id_of_.size());
+  out.PutBytes(id_of_.data(), id_of_.size() * sizeof(uint64_t));
+  return absl::OkStatus();
+}
+
+absl::Status HnswIndex::Load(core::ByteReader& in) {
+  if (!slot_of_.empty()) {
+    return absl::FailedPreconditionError("HNSW index: Load into a used index");
+  }
+  uint32_t format = 0;
+  if (!in.Get(&format) || format != kHnswFormat) {
+    return absl::DataLossError("HNSW index snapshot: unknown format");
+  }
+  absl::StatusOr<std::unique_ptr<core::HnswGraph>> graph =
+      core::HnswGraph::Load(dimension(), GraphOptions(options_), in);
+  if (!graph.ok()) return graph.status();
+  uint64_t slots = 0;
+  if (!in.Get(&slots) || slots != (*graph)->slot_count()) {
+    return absl::DataLossError("HNSW index snapshot: bad slot count");
+  }
+  try {
+    std::vector<uint64_t> id_of(slots);
+    in.GetBytes(id_of.data(), slots * sizeof(uint64_t));
+    absl::flat_hash_map<uint64_t, uint32_t> slot_of;
+    slot_of.reserve((*graph)->size());
+    for (uint32_t slot = 0; slot < slots; ++slot) {
+      if ((*graph)->contains(slot) &&
+          !slot_of.emplace(id_of[slot], slot).second) {
+        return absl::DataLossError(absl::StrCat("HNSW index snapshot: id ",
+                                                id_of[slot], " held twice"));
+      }
+    }
+    graph_ = *std::move(graph);
+    id_of_ = std::move(id_of);
+    slot_of_ = std::move(slot_of);
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError("HNSW index: out of memory in Load");
   }
   return absl::OkStatus();
 }
@@ -123,7 +176,7 @@ std::vector<Neighbor> HnswIndex::Scan(std::span<const float> query,
   all.reserve(slot_of_.size());
   for (const auto& [id, slot] : slot_of_) {
     if (params.accept && !params.accept(id)) continue;
-    const float squared = graph_.SquaredDistance(query.data(), slot);
+    const float squared = graph_->SquaredDistance(query.data(), slot);
     all.push_back({id, std::sqrt(std::max(0.0f, squared))});
   }
   return all;
@@ -150,7 +203,7 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
       }
       std::vector<Neighbor> neighbors;
       for (const auto& [squared, slot] :
-           graph_.Search(query.data(), std::min(asked, live))) {
+           graph_->Search(query.data(), std::min(asked, live))) {
         const uint64_t id = id_of_[slot];
         if (params.accept && !params.accept(id)) continue;
         neighbors.push_back({id, std::sqrt(std::max(0.0f, squared))});
@@ -251,6 +304,9 @@ class TieredIndex final : public engine::PlaceIndex {
     std::shared_lock lock(mu_);
     return graph_ ? tail_->size() : 0;
   }
+  // The tail and the graph as they are: a backlog is saved as a backlog.
+  absl::Status Save(core::ByteWriter& out) const override;
+  absl::Status Load(core::ByteReader& in) override;
 
  private:
   // Add and AddNormalized: `add` stores the batch in the tail (it checks
@@ -324,6 +380,52 @@ absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
   if (!options_.background) return MoveToGraph(tail_->size());
   changed_.notify_all();
   if (waiting > options_.max_unindexed) return MoveToGraph(ids.size());
+  return absl::OkStatus();
+}
+
+absl::Status TieredIndex::Save(core::ByteWriter& out) const {
+  std::shared_lock lock(mu_);
+  out.Put<uint32_t>(kTieredFormat);
+  absl::Status status = tail_->Save(out);
+  if (!status.ok()) return status;
+  out.Put<uint8_t>(graph_ ? 1 : 0);
+  return graph_ ? graph_->Save(out) : absl::OkStatus();
+}
+
+absl::Status TieredIndex::Load(core::ByteReader& in) {
+  std::unique_lock lock(mu_);
+  if (SizeLocked() != 0) {
+    return absl::FailedPreconditionError(
+        "tiered index: Load into a used index");
+  }
+  uint32_t format = 0;
+  uint8_t has_graph = 0;
+  if (!in.Get(&format) || format != kTieredFormat) {
+    return absl::DataLossError("tiered index snapshot: unknown format");
+  }
+  absl::Status status = tail_->Load(in);
+  if (status.ok() && !in.Get(&has_graph)) {
+    status = absl::DataLossError("tiered index snapshot: truncated");
+  }
+  if (status.ok() && has_graph != 0) {
+    graph_ = std::make_unique<HnswIndex>(dimension_, options_.hnsw);
+    status = graph_->Load(in);
+    ForEachExactVector(*tail_, [&](uint64_t id, std::span<const float>) {
+      if (status.ok() && graph_->contains(id)) {
+        status = absl::DataLossError(absl::StrCat(
+            "tiered index snapshot: id ", id, " in the tail and the graph"));
+      }
+    });
+  }
+  if (!status.ok()) {
+    tail_ = NewExactIndex(dimension_);
+    graph_.reset();
+    return status;
+  }
+  if (graph_ && options_.background && !indexer_.joinable()) {
+    indexer_ = std::thread([this] { IndexerLoop(); });
+  }
+  changed_.notify_all();
   return absl::OkStatus();
 }
 

@@ -70,6 +70,16 @@ class TimedMemoryStore final : public engine::MemoryStore {
   absl::Status Checkpoint(const std::string& directory) override {
     return store_->Checkpoint(directory);
   }
+  absl::Status SaveIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(core::ByteWriter&)>& write) override {
+    return store_->SaveIndexSnapshot(fleet_id, write);
+  }
+  absl::Status TakeIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(std::span<const char>)>& read) override {
+    return store_->TakeIndexSnapshot(fleet_id, read);
+  }
   uint64_t ApproximateDiskBytes() override {
     return store_->ApproximateDiskBytes();
   }

@@ -69,5 +69,30 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
                               "histogram"));
 }
 
+// The timed store is what the server runs on: it must pass on every part of
+// the port, index snapshots included.
+TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
+  Metrics metrics;
+  std::unique_ptr<engine::MemoryStore> store =
+      metrics.TimedStore(storage::NewInMemoryStore());
+  ASSERT_TRUE(store
+                  ->SaveIndexSnapshot("f1",
+                                      [](core::ByteWriter& out) {
+                                        out.Put<uint32_t>(42);
+                                        return absl::OkStatus();
+                                      })
+                  .ok());
+  uint32_t read = 0;
+  ASSERT_TRUE(store
+                  ->TakeIndexSnapshot("f1",
+                                      [&read](std::span<const char> bytes) {
+                                        core::ByteReader in(bytes);
+                                        in.Get(&read);
+                                        return absl::OkStatus();
+                                      })
+                  .ok());
+  EXPECT_EQ(read, 42u);
+}
+
 }  // namespace
 }  // namespace fleetmem::observability

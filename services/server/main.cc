@@ -357,6 +357,9 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   server->Shutdown(std::chrono::system_clock::now());
   work.Stop();
   server.reset();
+  // Nothing changes memory any more: the next start loads the place
+  // indexes instead of rebuilding them (a failure only costs that).
+  (*engine)->SaveIndexSnapshots().IgnoreError();
   engine->reset();
   store.reset();
   FLEETMEM_LOG(kInfo) << "stopped";

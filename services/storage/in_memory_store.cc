@@ -9,6 +9,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "services/storage/mutation_checks.h"
 
@@ -161,7 +162,51 @@ class InMemoryStore final : public engine::MemoryStore {
     fleet.events.erase(fleet.events.begin(),
                        fleet.events.lower_bound(m.erase_events_before));
     if (fleet.empty()) fleets_.erase(it);
+    ++version_;
     return absl::OkStatus();
+  }
+
+  absl::Status SaveIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(core::ByteWriter&)>& write) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    Snapshot snapshot;
+    {
+      absl::MutexLock lock(&mu_);
+      snapshot.version = version_;
+      snapshots_.erase(std::string(fleet_id));
+    }
+    core::ByteWriter out([&snapshot](std::span<const char> bytes) {
+      snapshot.bytes.insert(snapshot.bytes.end(), bytes.begin(), bytes.end());
+    });
+    if (absl::Status status = write(out); !status.ok()) return status;
+    absl::MutexLock lock(&mu_);
+    snapshots_[std::string(fleet_id)] = std::move(snapshot);
+    return absl::OkStatus();
+  }
+
+  absl::Status TakeIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(std::span<const char>)>& read) override {
+    Snapshot snapshot;
+    {
+      absl::MutexLock lock(&mu_);
+      auto it = snapshots_.find(fleet_id);
+      if (it == snapshots_.end()) {
+        return absl::NotFoundError(absl::StrCat("no index snapshot of fleet \"",
+                                                std::string(fleet_id), "\""));
+      }
+      snapshot = std::move(it->second);
+      snapshots_.erase(it);
+      if (snapshot.version != version_) {
+        return absl::NotFoundError(absl::StrCat(
+            "the index snapshot of fleet \"", std::string(fleet_id),
+            "\" is stale: the store changed after it was written"));
+      }
+    }
+    return read(snapshot.bytes);
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
@@ -182,8 +227,16 @@ class InMemoryStore final : public engine::MemoryStore {
   }
 
  private:
+  struct Snapshot {
+    uint64_t version = 0;  // of the store when it was written
+    std::vector<char> bytes;
+  };
+
   absl::Mutex mu_;
   std::map<std::string, Fleet, std::less<>> fleets_ ABSL_GUARDED_BY(mu_);
+  // Applies so far: a snapshot is valid while this is unchanged.
+  uint64_t version_ ABSL_GUARDED_BY(mu_) = 0;
+  std::map<std::string, Snapshot, std::less<>> snapshots_ ABSL_GUARDED_BY(mu_);
 };
 
 }  // namespace

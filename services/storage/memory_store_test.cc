@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/storage/in_memory_store.h"
 #include "services/storage/rocksdb_store.h"
@@ -488,6 +489,76 @@ TEST_P(StoreTest, ScriptedWorkloadMatchesInMemoryReference) {
     EXPECT_EQ(Dump(Load(store(), want.fleet_id)), Dump(want));
     EXPECT_EQ(Dump(Events(store(), want.fleet_id, 0, 1000)), Dump(want_events));
   }
+}
+
+// Writes `payload` as the fleet's index snapshot.
+absl::Status SaveSnapshot(engine::MemoryStore& store, std::string_view fleet,
+                          const std::string& payload) {
+  return store.SaveIndexSnapshot(fleet, [&](core::ByteWriter& out) {
+    out.PutBytes(payload.data(), payload.size());
+    return absl::OkStatus();
+  });
+}
+
+// The fleet's snapshot as a string, or the status of TakeIndexSnapshot.
+absl::StatusOr<std::string> TakeSnapshot(engine::MemoryStore& store,
+                                         std::string_view fleet) {
+  std::string payload;
+  absl::Status status =
+      store.TakeIndexSnapshot(fleet, [&](std::span<const char> bytes) {
+        payload.assign(bytes.begin(), bytes.end());
+        return absl::OkStatus();
+      });
+  if (!status.ok()) return status;
+  return payload;
+}
+
+TEST_P(StoreTest, IndexSnapshotIsReadOnceWhileTheStoreIsUnchanged) {
+  FleetMutation first;
+  first.put_meta = true;
+  first.meta = MakeMeta(1);
+  ASSERT_TRUE(store().Apply("f1", first).ok());
+  const std::string payload(3 << 20, 'x');  // several write buffers
+  ASSERT_TRUE(SaveSnapshot(store(), "f1", payload).ok());
+  ASSERT_TRUE(SaveSnapshot(store(), "f/2", "other fleet").ok());
+  const std::string longest(128, 'z');  // core::kMaxIdLength
+  ASSERT_TRUE(SaveSnapshot(store(), longest, "long id").ok());
+  harness_.Reopen();  // RocksDB: the stamp survives a clean close
+  absl::StatusOr<std::string> taken = TakeSnapshot(store(), "f1");
+  ASSERT_TRUE(taken.ok()) << taken.status();
+  EXPECT_EQ(*taken, payload);
+  // Used once.
+  EXPECT_TRUE(absl::IsNotFound(TakeSnapshot(store(), "f1").status()));
+  taken = TakeSnapshot(store(), "f/2");
+  ASSERT_TRUE(taken.ok()) << taken.status();
+  EXPECT_EQ(*taken, "other fleet");
+  taken = TakeSnapshot(store(), longest);
+  ASSERT_TRUE(taken.ok()) << taken.status();
+  EXPECT_EQ(*taken, "long id");
+}
+
+TEST_P(StoreTest, AnyWriteAfterAnIndexSnapshotMakesItStale) {
+  ASSERT_TRUE(SaveSnapshot(store(), "f1", "index").ok());
+  FleetMutation other;
+  other.put_pending.push_back(MakeTrace("r1", 1));
+  ASSERT_TRUE(store().Apply("f2", other).ok());  // another fleet
+  harness_.Reopen();
+  absl::Status status = TakeSnapshot(store(), "f1").status();
+  EXPECT_TRUE(absl::IsNotFound(status)) << status;
+  EXPECT_THAT(std::string(status.message()), ::testing::HasSubstr("stale"));
+}
+
+TEST_P(StoreTest, FailedIndexSnapshotWriteLeavesNone) {
+  ASSERT_TRUE(SaveSnapshot(store(), "f1", "old").ok());
+  absl::Status status =
+      store().SaveIndexSnapshot("f1", [](core::ByteWriter& out) {
+        out.Put<uint64_t>(7);
+        return absl::InternalError("the index failed");
+      });
+  EXPECT_EQ(status.code(), absl::StatusCode::kInternal);
+  EXPECT_TRUE(absl::IsNotFound(TakeSnapshot(store(), "f1").status()));
+  EXPECT_EQ(store().SaveIndexSnapshot("", nullptr).code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 INSTANTIATE_TEST_SUITE_P(BothStores, StoreTest,

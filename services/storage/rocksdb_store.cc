@@ -35,6 +35,7 @@
 #include "services/storage/keys.h"
 #include "services/storage/mutation_checks.h"
 #include "services/storage/record_codec.h"
+#include "services/storage/snapshot_file.h"
 
 namespace fleetmem::storage {
 namespace {
@@ -356,6 +357,35 @@ class RocksDbStore final : public engine::MemoryStore {
     return FromRocksDb(status, absl::StrCat("checkpoint to ", directory));
   }
 
+  absl::Status SaveIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(core::ByteWriter&)>& write) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    std::error_code error;
+    std::filesystem::create_directories(SnapshotDirectory(), error);
+    if (error) {
+      return absl::UnavailableError(
+          absl::StrCat("no index snapshot written: cannot create '",
+                       SnapshotDirectory(), "': ", error.message()));
+    }
+    // Stamped with the state before `write` reads memory: a later write
+    // makes the stamp older than the store, so the snapshot is refused.
+    return WriteSnapshotFile(SnapshotDirectory(), fleet_id,
+                             db_->GetLatestSequenceNumber(), write);
+  }
+
+  absl::Status TakeIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(std::span<const char>)>& read) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    return TakeSnapshotFile(SnapshotDirectory(), fleet_id,
+                            db_->GetLatestSequenceNumber(), read);
+  }
+
   uint64_t ApproximateDiskBytes() override {
     uint64_t sst = 0;
     uint64_t memtables = 0;
@@ -542,6 +572,9 @@ class RocksDbStore final : public engine::MemoryStore {
   }
 
  private:
+  // Index snapshots live beside RocksDB's files, one per fleet.
+  std::string SnapshotDirectory() const { return path_ + "/index-snapshots"; }
+
   template <typename T>
   static absl::Status Append(absl::StatusOr<T> value, std::vector<T>* out) {
     if (!value.ok()) return value.status();

@@ -22,6 +22,7 @@
 #include "services/storage/in_memory_store.h"
 #include "services/storage/keys.h"
 #include "services/storage/record_codec.h"
+#include "services/storage/snapshot_file.h"
 #include "services/storage/store_test_util.h"
 
 extern char** environ;
@@ -387,6 +388,42 @@ TEST(RocksDbStoreTest, BelowTheDiskReserveWritesAreRefusedAndReadsServed) {
   free_bytes = uint64_t{1} << 30;  // space returns
   EXPECT_TRUE((*store)->Apply("f", script[1]).ok());
   EXPECT_EQ(DumpFleet(**store, "f"), ReferenceDump(script, 2, "f"));
+}
+
+// A damaged index snapshot is refused (never handed to the engine) and
+// removed; the store itself is untouched.
+TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
+  TempDir dir;
+  RocksDbStoreOptions options;
+  options.path = absl::StrCat(dir.path(), "/db");
+  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+      OpenRocksDbStore(options);
+  ASSERT_TRUE(store.ok()) << store.status();
+  ASSERT_TRUE((*store)
+                  ->SaveIndexSnapshot("f1",
+                                      [](core::ByteWriter& out) {
+                                        out.PutString(std::string(4096, 'a'));
+                                        return absl::OkStatus();
+                                      })
+                  .ok());
+  const std::string path =
+      SnapshotFilePath(absl::StrCat(options.path, "/index-snapshots"), "f1");
+  {
+    std::fstream file(path, std::ios::in | std::ios::out | std::ios::binary);
+    ASSERT_TRUE(file.is_open());
+    file.seekp(1000);
+    file.put('b');
+  }
+  bool read = false;
+  absl::Status status =
+      (*store)->TakeIndexSnapshot("f1", [&read](std::span<const char>) {
+        read = true;
+        return absl::OkStatus();
+      });
+  EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
+  EXPECT_THAT(std::string(status.message()), HasSubstr("checksum"));
+  EXPECT_FALSE(read);
+  EXPECT_FALSE(std::ifstream(path).is_open());
 }
 
 }  // namespace

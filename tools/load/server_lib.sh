@@ -30,3 +30,12 @@ stop_server() {
     return 1
   fi
 }
+
+# unindexed_codes BUILD FLEET: the fleet's codes outside the HNSW graph
+# (GetStats unindexed_codes; protobuf JSON leaves a zero out).
+unindexed_codes() {
+  local n
+  n=$("$1/bin/fleetmem" --server "$SERVER_ADDR" --json stats --fleet "$2" |
+    sed -n 's/.*"unindexedCodes":"\{0,1\}\([0-9]*\).*/\1/p')
+  echo "${n:-0}"
+}

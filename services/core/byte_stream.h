@@ -1,0 +1,93 @@
+// Plain binary encoding for snapshots of in-memory structures (an index's
+// graph, the engine's handle table): fixed-width values in the machine's byte
+// order and runs of bytes. No I/O: a ByteWriter hands its bytes to a sink
+// function, a ByteReader reads from bytes it is given. The snapshots are
+// caches written and read by the same build on the same machine (a format
+// version guards them), not an exchange format.
+#ifndef FLEETMEM_SERVICES_CORE_BYTE_STREAM_H_
+#define FLEETMEM_SERVICES_CORE_BYTE_STREAM_H_
+
+#include <cstddef>
+#include <cstdint>
+#include <cstring>
+#include <functional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <type_traits>
+#include <utility>
+
+namespace fleetmem::core {
+
+// Receives bytes in order. The sink's owner records its own errors (a full
+// disk) and reports them once the writing is done.
+using ByteSink = std::function<void(std::span<const char>)>;
+
+class ByteWriter {
+ public:
+  explicit ByteWriter(ByteSink sink) : sink_(std::move(sink)) {}
+
+  template <typename T>
+  void Put(const T& value) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    PutBytes(&value, sizeof(T));
+  }
+  void PutBytes(const void* data, size_t size) {
+    if (size == 0) return;
+    sink_(std::span<const char>(static_cast<const char*>(data), size));
+    written_ += size;
+  }
+  // Length (uint64) then the characters.
+  void PutString(std::string_view text) {
+    Put<uint64_t>(text.size());
+    PutBytes(text.data(), text.size());
+  }
+  uint64_t written() const { return written_; }
+
+ private:
+  ByteSink sink_;
+  uint64_t written_ = 0;
+};
+
+// Reads what a ByteWriter wrote. Every Get returns false, and reads nothing,
+// when fewer bytes remain than it needs; callers turn that into DATA_LOSS.
+class ByteReader {
+ public:
+  explicit ByteReader(std::span<const char> bytes) : bytes_(bytes) {}
+
+  template <typename T>
+  bool Get(T* value) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    return GetBytes(value, sizeof(T));
+  }
+  bool GetBytes(void* out, size_t size) {
+    if (size > remaining()) return false;
+    if (size > 0) std::memcpy(out, bytes_.data() + position_, size);
+    position_ += size;
+    return true;
+  }
+  // At most `max_size` characters (a corrupt length must not allocate).
+  bool GetString(std::string* text, size_t max_size) {
+    uint64_t size = 0;
+    if (!Get(&size) || size > max_size || size > remaining()) return false;
+    text->assign(bytes_.data() + position_, size);
+    position_ += size;
+    return true;
+  }
+  // The next `size` bytes as they are (no copy), skipped over.
+  bool GetSpan(size_t size, std::span<const char>* out) {
+    if (size > remaining()) return false;
+    *out = bytes_.subspan(position_, size);
+    position_ += size;
+    return true;
+  }
+  size_t remaining() const { return bytes_.size() - position_; }
+
+ private:
+  std::span<const char> bytes_;
+  size_t position_ = 0;
+};
+
+}  // namespace fleetmem::core
+
+#endif  // FLEETMEM_SERVICES_CORE_BYTE_STREAM_H_

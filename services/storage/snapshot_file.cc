@@ -1,0 +1,260 @@
+#include "services/storage/snapshot_file.h"
+
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+#include <xxhash.h>
+
+#include <cerrno>
+#include <cstring>
+#include <filesystem>
+#include <memory>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
+
+namespace fleetmem::storage {
+namespace {
+
+constexpr std::string_view kMagic = "FMIDXSN1";
+// Magic and stamp before the payload; size and checksum after it.
+constexpr size_t kHeaderBytes = 16;
+constexpr size_t kTrailerBytes = 16;
+constexpr size_t kBufferBytes = 1 << 20;
+
+std::string ErrnoText(int error) { return std::strerror(error); }
+
+struct HashState {
+  void operator()(XXH3_state_t* state) const { XXH3_freeState(state); }
+};
+
+// Buffered writes to a file descriptor that keep the first error and a
+// running checksum of everything after the magic.
+class FileWriter {
+ public:
+  explicit FileWriter(int fd) : fd_(fd), hash_(XXH3_createState()) {
+    buffer_.reserve(kBufferBytes);
+    if (hash_ == nullptr || XXH3_64bits_reset(hash_.get()) != XXH_OK) {
+      error_ = "cannot allocate the checksum state";
+    }
+  }
+  void Append(std::span<const char> bytes, bool hashed) {
+    if (hashed && hash_ != nullptr) {
+      XXH3_64bits_update(hash_.get(), bytes.data(), bytes.size());
+    }
+    while (!bytes.empty() && error_.empty()) {
+      const size_t room = kBufferBytes - buffer_.size();
+      const size_t take = std::min(room, bytes.size());
+      buffer_.insert(buffer_.end(), bytes.begin(), bytes.begin() + take);
+      bytes = bytes.subspan(take);
+      if (buffer_.size() == kBufferBytes) Flush();
+    }
+  }
+  void Flush() {
+    size_t done = 0;
+    while (done < buffer_.size() && error_.empty()) {
+      const ssize_t n =
+          ::write(fd_, buffer_.data() + done, buffer_.size() - done);
+      if (n < 0 && errno == EINTR) continue;
+      if (n <= 0) {
+        error_ = absl::StrCat("write: ", ErrnoText(n < 0 ? errno : EIO));
+        break;
+      }
+      done += static_cast<size_t>(n);
+    }
+    buffer_.clear();
+  }
+  uint64_t digest() const { return XXH3_64bits_digest(hash_.get()); }
+  const std::string& error() const { return error_; }
+
+ private:
+  int fd_;
+  std::unique_ptr<XXH3_state_t, HashState> hash_;
+  std::vector<char> buffer_;
+  std::string error_;
+};
+
+absl::Status SyncDirectory(const std::string& path) {
+  const std::string directory =
+      std::filesystem::path(path).parent_path().string();
+  const int fd = ::open(directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) {
+    return absl::UnavailableError(
+        absl::StrCat("open directory '", directory, "': ", ErrnoText(errno)));
+  }
+  const int synced = ::fsync(fd);
+  const int error = errno;
+  ::close(fd);
+  if (synced != 0) {
+    return absl::UnavailableError(
+        absl::StrCat("fsync directory '", directory, "': ", ErrnoText(error)));
+  }
+  return absl::OkStatus();
+}
+
+// A read-only mapping of a whole file, unmapped on destruction.
+class Mapping {
+ public:
+  Mapping(const char* data, size_t size) : data_(data), size_(size) {}
+  ~Mapping() {
+    if (size_ > 0) ::munmap(const_cast<char*>(data_), size_);
+  }
+  Mapping(const Mapping&) = delete;
+  Mapping& operator=(const Mapping&) = delete;
+  std::span<const char> bytes() const { return {data_, size_}; }
+
+ private:
+  const char* data_;
+  size_t size_;
+};
+
+// Opens and maps the snapshot at `path`: NOT_FOUND when absent.
+absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    const int error = errno;
+    if (error == ENOENT) {
+      return absl::NotFoundError(
+          absl::StrCat("no index snapshot at '", path, "'"));
+    }
+    return absl::DataLossError(
+        absl::StrCat("open '", path, "': ", ErrnoText(error)));
+  }
+  struct stat info;
+  if (::fstat(fd, &info) != 0 ||
+      static_cast<size_t>(info.st_size) < kHeaderBytes + kTrailerBytes) {
+    ::close(fd);
+    return absl::DataLossError(
+        absl::StrCat("index snapshot '", path, "' is truncated"));
+  }
+  const size_t size = static_cast<size_t>(info.st_size);
+  void* data = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
+  const int error = errno;
+  ::close(fd);
+  if (data == MAP_FAILED) {
+    return absl::DataLossError(
+        absl::StrCat("mmap '", path, "': ", ErrnoText(error)));
+  }
+  ::madvise(data, size, MADV_SEQUENTIAL);
+  return std::make_unique<Mapping>(static_cast<const char*>(data), size);
+}
+
+template <typename T>
+T ReadAt(std::span<const char> bytes, size_t offset) {
+  T value;
+  std::memcpy(&value, bytes.data() + offset, sizeof(T));
+  return value;
+}
+
+}  // namespace
+
+std::string SnapshotFilePath(const std::string& directory,
+                             std::string_view key) {
+  return absl::StrCat(
+      directory, "/",
+      absl::Hex(XXH3_64bits(key.data(), key.size()), absl::kZeroPad16),
+      ".snapshot");
+}
+
+absl::Status WriteSnapshotFile(
+    const std::string& directory, std::string_view key, uint64_t stamp,
+    const std::function<absl::Status(core::ByteWriter&)>& write) {
+  const std::string path = SnapshotFilePath(directory, key);
+  const std::string temporary = path + ".tmp";
+  std::error_code ignored;
+  std::filesystem::remove(path, ignored);
+  const int fd =
+      ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) {
+    return absl::UnavailableError(
+        absl::StrCat("no index snapshot written: open '", temporary,
+                     "': ", ErrnoText(errno)));
+  }
+  FileWriter file(fd);
+  file.Append(kMagic, /*hashed=*/false);
+  file.Append({reinterpret_cast<const char*>(&stamp), sizeof(stamp)}, true);
+  const uint64_t key_size = key.size();
+  file.Append({reinterpret_cast<const char*>(&key_size), sizeof(key_size)},
+              true);
+  file.Append(key, true);
+  uint64_t payload = 0;
+  absl::Status status;
+  {
+    core::ByteWriter out([&file, &payload](std::span<const char> bytes) {
+      file.Append(bytes, /*hashed=*/true);
+      payload += bytes.size();
+    });
+    status = write(out);
+  }
+  const uint64_t digest = file.digest();
+  file.Append({reinterpret_cast<const char*>(&payload), sizeof(payload)},
+              false);
+  file.Append({reinterpret_cast<const char*>(&digest), sizeof(digest)}, false);
+  file.Flush();
+  if (status.ok() && !file.error().empty()) {
+    status = absl::UnavailableError(file.error());
+  }
+  if (status.ok() && ::fsync(fd) != 0) {
+    status = absl::UnavailableError(absl::StrCat("fsync: ", ErrnoText(errno)));
+  }
+  ::close(fd);
+  if (status.ok() && ::rename(temporary.c_str(), path.c_str()) != 0) {
+    status = absl::UnavailableError(absl::StrCat("rename: ", ErrnoText(errno)));
+  }
+  if (status.ok()) status = SyncDirectory(path);
+  if (!status.ok()) {
+    std::filesystem::remove(temporary, ignored);
+    std::filesystem::remove(path, ignored);
+    return absl::Status(status.code(),
+                        absl::StrCat("no index snapshot written to '", path,
+                                     "': ", status.message()));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status TakeSnapshotFile(
+    const std::string& directory, std::string_view key, uint64_t stamp,
+    const std::function<absl::Status(std::span<const char>)>& read) {
+  const std::string path = SnapshotFilePath(directory, key);
+  absl::StatusOr<std::unique_ptr<Mapping>> mapping = Map(path);
+  std::error_code ignored;
+  // Used once: gone before anything else can fail (the mapping stays
+  // readable after the unlink).
+  std::filesystem::remove(path, ignored);
+  if (!mapping.ok()) return mapping.status();
+  const std::span<const char> bytes = (*mapping)->bytes();
+  // Everything between the header and the trailer: the key, then the
+  // payload.
+  const size_t body_size = bytes.size() - kHeaderBytes - kTrailerBytes;
+  const uint64_t payload_size = ReadAt<uint64_t>(bytes, bytes.size() - 16);
+  const uint64_t key_size =
+      body_size >= 8 ? ReadAt<uint64_t>(bytes, kHeaderBytes) : 0;
+  if (std::string_view(bytes.data(), kMagic.size()) != kMagic ||
+      body_size < 8 || key_size > body_size - 8 ||
+      payload_size != body_size - 8 - key_size) {
+    return absl::DataLossError(
+        absl::StrCat("index snapshot '", path, "' has a damaged frame"));
+  }
+  const uint64_t saved_stamp = ReadAt<uint64_t>(bytes, kMagic.size());
+  if (saved_stamp != stamp) {
+    return absl::NotFoundError(absl::StrCat(
+        "the index snapshot '", path, "' is stale: written at store sequence ",
+        saved_stamp, ", the store is at ", stamp));
+  }
+  const uint64_t digest =
+      XXH3_64bits(bytes.data() + kMagic.size(), 8 + body_size);
+  if (digest != ReadAt<uint64_t>(bytes, bytes.size() - 8)) {
+    return absl::DataLossError(
+        absl::StrCat("index snapshot '", path, "' fails its checksum"));
+  }
+  if (std::string_view(bytes.data() + kHeaderBytes + 8, key_size) != key) {
+    return absl::NotFoundError(
+        absl::StrCat("index snapshot '", path, "' belongs to another key"));
+  }
+  return read(bytes.subspan(kHeaderBytes + 8 + key_size, payload_size));
+}
+
+}  // namespace fleetmem::storage

@@ -1,0 +1,47 @@
+// Index snapshots on disk (the file side of MemoryStore::SaveIndexSnapshot):
+// one file per key (a fleet id) in a directory, named after the key's
+// XXH3-64 in hex (a fixed length whatever the key), framed as
+//   "FMIDXSN1" | stamp (uint64) | key (uint64 length, bytes) | payload |
+//   payload size (uint64) | XXH3-64 of everything after the magic
+//   (uint64)
+// and written atomically (a temporary file, fsync, rename, fsync of the
+// directory). The stamp ties the file to the state of the store that wrote
+// it (RocksDB's latest sequence number).
+#ifndef FLEETMEM_SERVICES_STORAGE_SNAPSHOT_FILE_H_
+#define FLEETMEM_SERVICES_STORAGE_SNAPSHOT_FILE_H_
+
+#include <cstdint>
+#include <functional>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include "absl/status/status.h"
+#include "services/core/byte_stream.h"
+
+namespace fleetmem::storage {
+
+// Writes the payload `write` produces as the snapshot of `key` in
+// `directory` (which must exist), replacing the one there. On any error
+// (`write`'s, or I/O: a full disk, a failed fsync) none is left for `key`
+// and the status says so.
+absl::Status WriteSnapshotFile(
+    const std::string& directory, std::string_view key, uint64_t stamp,
+    const std::function<absl::Status(core::ByteWriter&)>& write);
+
+// Calls `read` with the payload of `key`'s snapshot in `directory` and
+// returns its status if the frame and checksum are intact, the key is `key`
+// and the stamp equals `stamp`; removes the file in every case. NOT_FOUND
+// when there is none or its stamp differs (stale), DATA_LOSS when it is
+// damaged; `read` is not called then.
+absl::Status TakeSnapshotFile(
+    const std::string& directory, std::string_view key, uint64_t stamp,
+    const std::function<absl::Status(std::span<const char>)>& read);
+
+// The file that holds `key`'s snapshot in `directory`.
+std::string SnapshotFilePath(const std::string& directory,
+                             std::string_view key);
+
+}  // namespace fleetmem::storage
+
+#endif  // FLEETMEM_SERVICES_STORAGE_SNAPSHOT_FILE_H_
