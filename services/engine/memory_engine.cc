@@ -1036,7 +1036,9 @@ absl::Status MemoryEngine::SaveIndexSnapshots() {
   for (Fleet* fleet : fleets) {
     absl::MutexLock writer(&fleet->writer_mu);
     absl::ReaderMutexLock lock(&fleet->mu);
-    if (!fleet->stale.ok() || !fleet->exists() || fleet->index == nullptr) {
+    // A fleet without traces loads fast and would never take its file.
+    if (!fleet->stale.ok() || !fleet->exists() || fleet->index == nullptr ||
+        fleet->key_of.empty()) {
       continue;
     }
     const absl::Time start = absl::Now();

@@ -1078,7 +1078,6 @@ TEST(TieredIndexTest, SearchesDuringBackgroundIndexingSeeEachVectorOnce) {
   EXPECT_EQ(tiered->size(), 6000u - removed_below.load());
 }
 
-}  // namespace
 // Whatever byte of a graph snapshot is damaged, Load refuses it or the
 // loaded graph is safe to search (ASan runs this): links, levels, slots and
 // counts are all checked. (On disk a checksum refuses damage first.)
@@ -1129,4 +1128,5 @@ TEST(IndexSnapshotTest, AnotherKindsBytesAreDataLoss) {
             absl::StatusCode::kUnimplemented);
 }
 
+}  // namespace
 }  // namespace fleetmem::index

@@ -372,8 +372,21 @@ class RocksDbStore final : public engine::MemoryStore {
     }
     // Stamped with the state before `write` reads memory: a later write
     // makes the stamp older than the store, so the snapshot is refused.
+    // A snapshot must not eat into the reserve that keeps the database
+    // writable (its next open may need to flush the write-ahead log).
+    auto check_room = [this]() -> absl::Status {
+      if (min_free_bytes_ == 0) return absl::OkStatus();
+      absl::StatusOr<uint64_t> free = free_bytes_(path_);
+      if (!free.ok()) return free.status();
+      if (*free < min_free_bytes_ + (uint64_t{2} << 20)) {
+        return absl::ResourceExhaustedError(
+            absl::StrCat("disk nearly full: ", *free,
+                         " bytes free, the reserve is ", min_free_bytes_));
+      }
+      return absl::OkStatus();
+    };
     return WriteSnapshotFile(SnapshotDirectory(), fleet_id,
-                             db_->GetLatestSequenceNumber(), write);
+                             db_->GetLatestSequenceNumber(), write, check_room);
   }
 
   absl::Status TakeIndexSnapshot(

@@ -10,6 +10,7 @@
 
 #include <atomic>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <memory>
 #include <string>
@@ -388,6 +389,36 @@ TEST(RocksDbStoreTest, BelowTheDiskReserveWritesAreRefusedAndReadsServed) {
   free_bytes = uint64_t{1} << 30;  // space returns
   EXPECT_TRUE((*store)->Apply("f", script[1]).ok());
   EXPECT_EQ(DumpFleet(**store, "f"), ReferenceDump(script, 2, "f"));
+}
+
+// An index snapshot stops at the disk reserve and leaves nothing behind.
+TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
+  testing::TempDir dir;
+  std::atomic<uint64_t> free_bytes{uint64_t{8} << 20};
+  RocksDbStoreOptions options;
+  options.path = dir.path();
+  options.min_free_bytes = 1 << 20;
+  options.free_bytes = [&](const std::string&) -> absl::StatusOr<uint64_t> {
+    return free_bytes.load();
+  };
+  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+      OpenRocksDbStore(options);
+  ASSERT_TRUE(store.ok()) << store.status();
+  // Each MiB written takes a MiB of the free space.
+  const absl::Status status =
+      (*store)->SaveIndexSnapshot("f1", [&](core::ByteWriter& out) {
+        const std::string mib(1 << 20, 'x');
+        for (int i = 0; i < 16; ++i) {
+          out.PutBytes(mib.data(), mib.size());
+          free_bytes -= mib.size();
+        }
+        return absl::OkStatus();
+      });
+  EXPECT_EQ(status.code(), absl::StatusCode::kResourceExhausted) << status;
+  EXPECT_THAT(status.message(), HasSubstr("disk nearly full"));
+  EXPECT_THAT(status.message(), HasSubstr("no index snapshot written"));
+  EXPECT_TRUE(std::filesystem::is_empty(
+      absl::StrCat(options.path, "/index-snapshots")));
 }
 
 // A damaged index snapshot is refused (never handed to the engine) and

@@ -35,17 +35,18 @@ struct HashState {
 // running checksum of everything after the magic.
 class FileWriter {
  public:
-  explicit FileWriter(int fd) : fd_(fd), hash_(XXH3_createState()) {
+  FileWriter(int fd, std::function<absl::Status()> check_room)
+      : fd_(fd), check_room_(std::move(check_room)), hash_(XXH3_createState()) {
     buffer_.reserve(kBufferBytes);
     if (hash_ == nullptr || XXH3_64bits_reset(hash_.get()) != XXH_OK) {
-      error_ = "cannot allocate the checksum state";
+      error_ = absl::ResourceExhaustedError("no memory for the checksum");
     }
   }
   void Append(std::span<const char> bytes, bool hashed) {
     if (hashed && hash_ != nullptr) {
       XXH3_64bits_update(hash_.get(), bytes.data(), bytes.size());
     }
-    while (!bytes.empty() && error_.empty()) {
+    while (!bytes.empty() && error_.ok()) {
       const size_t room = kBufferBytes - buffer_.size();
       const size_t take = std::min(room, bytes.size());
       buffer_.insert(buffer_.end(), bytes.begin(), bytes.begin() + take);
@@ -54,13 +55,17 @@ class FileWriter {
     }
   }
   void Flush() {
+    if (check_room_ && error_.ok() && !buffer_.empty()) {
+      error_ = check_room_();
+    }
     size_t done = 0;
-    while (done < buffer_.size() && error_.empty()) {
+    while (done < buffer_.size() && error_.ok()) {
       const ssize_t n =
           ::write(fd_, buffer_.data() + done, buffer_.size() - done);
       if (n < 0 && errno == EINTR) continue;
       if (n <= 0) {
-        error_ = absl::StrCat("write: ", ErrnoText(n < 0 ? errno : EIO));
+        error_ = absl::UnavailableError(
+            absl::StrCat("write: ", ErrnoText(n < 0 ? errno : EIO)));
         break;
       }
       done += static_cast<size_t>(n);
@@ -68,13 +73,14 @@ class FileWriter {
     buffer_.clear();
   }
   uint64_t digest() const { return XXH3_64bits_digest(hash_.get()); }
-  const std::string& error() const { return error_; }
+  const absl::Status& error() const { return error_; }
 
  private:
   int fd_;
+  std::function<absl::Status()> check_room_;
   std::unique_ptr<XXH3_state_t, HashState> hash_;
   std::vector<char> buffer_;
-  std::string error_;
+  absl::Status error_;  // the first error
 };
 
 absl::Status SyncDirectory(const std::string& path) {
@@ -161,7 +167,8 @@ std::string SnapshotFilePath(const std::string& directory,
 
 absl::Status WriteSnapshotFile(
     const std::string& directory, std::string_view key, uint64_t stamp,
-    const std::function<absl::Status(core::ByteWriter&)>& write) {
+    const std::function<absl::Status(core::ByteWriter&)>& write,
+    const std::function<absl::Status()>& check_room) {
   const std::string path = SnapshotFilePath(directory, key);
   const std::string temporary = path + ".tmp";
   std::error_code ignored;
@@ -173,7 +180,7 @@ absl::Status WriteSnapshotFile(
         absl::StrCat("no index snapshot written: open '", temporary,
                      "': ", ErrnoText(errno)));
   }
-  FileWriter file(fd);
+  FileWriter file(fd, check_room);
   file.Append(kMagic, /*hashed=*/false);
   file.Append({reinterpret_cast<const char*>(&stamp), sizeof(stamp)}, true);
   const uint64_t key_size = key.size();
@@ -194,9 +201,7 @@ absl::Status WriteSnapshotFile(
               false);
   file.Append({reinterpret_cast<const char*>(&digest), sizeof(digest)}, false);
   file.Flush();
-  if (status.ok() && !file.error().empty()) {
-    status = absl::UnavailableError(file.error());
-  }
+  if (status.ok()) status = file.error();
   if (status.ok() && ::fsync(fd) != 0) {
     status = absl::UnavailableError(absl::StrCat("fsync: ", ErrnoText(errno)));
   }

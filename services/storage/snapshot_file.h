@@ -22,12 +22,15 @@
 namespace fleetmem::storage {
 
 // Writes the payload `write` produces as the snapshot of `key` in
-// `directory` (which must exist), replacing the one there. On any error
-// (`write`'s, or I/O: a full disk, a failed fsync) none is left for `key`
-// and the status says so.
+// `directory` (which must exist), replacing the one there. `check_room`,
+// if set, is asked before each 1 MiB written and stops the write with its
+// error (a disk reserve). On any error (`write`'s, `check_room`'s, or I/O:
+// a full disk, a failed fsync) none is left for `key` and the status says
+// so.
 absl::Status WriteSnapshotFile(
     const std::string& directory, std::string_view key, uint64_t stamp,
-    const std::function<absl::Status(core::ByteWriter&)>& write);
+    const std::function<absl::Status(core::ByteWriter&)>& write,
+    const std::function<absl::Status()>& check_room = nullptr);
 
 // Calls `read` with the payload of `key`'s snapshot in `directory` and
 // returns its status if the frame and checksum are intact, the key is `key`
