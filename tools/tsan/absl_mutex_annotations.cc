@@ -5,7 +5,7 @@
 // orders two accesses: every absl::Mutex-protected access would be reported
 // as a race. Linked into the TSan build's test binaries only (`make
 // test-tsan`), this file defines Mutex::Lock/Unlock/ReaderLock/ReaderUnlock/
-// TryLock/ReaderTryLock and the destructor in the executable: they tell TSan about the lock
+// TryLock/ReaderTryLock in the executable: they tell TSan about the lock
 // (sanitizer/tsan_interface.h) around the real functions, found with
 // dlsym(RTLD_NEXT). Await/LockWhen/CondVar are not annotated: code that waits
 // on a condition (the transport's work queue and shutdown) is not run under
@@ -38,15 +38,6 @@ using TryMethod = bool (*)(absl::Mutex*);
 
 namespace absl {
 ABSL_NAMESPACE_BEGIN
-
-// Without this, TSan keeps a destroyed mutex's lock-order history at its
-// address, and a new mutex allocated there (a fleet reloaded by a new
-// engine) inherits it: false lock-order inversions between unrelated locks.
-Mutex::~Mutex() {
-  static const Method real = Real<Method>("_ZN4absl7debian35MutexD1Ev");
-  __tsan_mutex_destroy(this, 0);
-  real(this);
-}
 
 void Mutex::Lock() {
   static const Method real = Real<Method>("_ZN4absl7debian35Mutex4LockEv");
