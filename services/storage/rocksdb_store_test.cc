@@ -362,15 +362,24 @@ TEST_F(RocksDbCorruptionTest, OtherKeyLayoutVersionIsRefused) {
   EXPECT_THAT(status.message(), HasSubstr("fleetmem.storage/99"));
 }
 
-TEST(RocksDbStoreTest, BelowTheDiskReserveWritesAreRefusedAndReadsServed) {
-  testing::TempDir dir;
-  std::atomic<uint64_t> free_bytes{uint64_t{1} << 30};
+// Options for a store in `dir` with a 1 MiB disk reserve whose free space
+// is what `free_bytes` holds.
+RocksDbStoreOptions ReserveOptions(const testing::TempDir& dir,
+                                   std::atomic<uint64_t>* free_bytes) {
   RocksDbStoreOptions options;
   options.path = dir.path();
   options.min_free_bytes = 1 << 20;
-  options.free_bytes = [&](const std::string&) -> absl::StatusOr<uint64_t> {
-    return free_bytes.load();
+  options.free_bytes =
+      [free_bytes](const std::string&) -> absl::StatusOr<uint64_t> {
+    return free_bytes->load();
   };
+  return options;
+}
+
+TEST(RocksDbStoreTest, BelowTheDiskReserveWritesAreRefusedAndReadsServed) {
+  testing::TempDir dir;
+  std::atomic<uint64_t> free_bytes{uint64_t{1} << 30};
+  const RocksDbStoreOptions options = ReserveOptions(dir, &free_bytes);
   absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
       OpenRocksDbStore(options);
   ASSERT_TRUE(store.ok()) << store.status();
@@ -395,12 +404,7 @@ TEST(RocksDbStoreTest, BelowTheDiskReserveWritesAreRefusedAndReadsServed) {
 TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
   testing::TempDir dir;
   std::atomic<uint64_t> free_bytes{uint64_t{8} << 20};
-  RocksDbStoreOptions options;
-  options.path = dir.path();
-  options.min_free_bytes = 1 << 20;
-  options.free_bytes = [&](const std::string&) -> absl::StatusOr<uint64_t> {
-    return free_bytes.load();
-  };
+  const RocksDbStoreOptions options = ReserveOptions(dir, &free_bytes);
   absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
       OpenRocksDbStore(options);
   ASSERT_TRUE(store.ok()) << store.status();
