@@ -190,6 +190,76 @@ void RunBeside(const std::function<void()>& first, size_t items,
   }
 }
 
+// Version of the engine's part of an index snapshot.
+constexpr uint32_t kIndexSnapshotFormat = 0x454e4731;  // "ENG1"
+
+// The handle table of an index snapshot: each robot id once, then (robot
+// number, seq, handle) per trace.
+void WriteHandles(const absl::flat_hash_map<uint64_t, core::TraceKey>& key_of,
+                  core::ByteWriter& out) {
+  absl::flat_hash_map<std::string_view, uint32_t> robot_number;
+  std::vector<std::string_view> robot_ids;
+  for (const auto& [handle, key] : key_of) {
+    if (robot_number.try_emplace(key.robot_id, robot_ids.size()).second) {
+      robot_ids.push_back(key.robot_id);
+    }
+  }
+  out.Put<uint64_t>(robot_ids.size());
+  for (std::string_view robot_id : robot_ids) out.PutString(robot_id);
+  out.Put<uint64_t>(key_of.size());
+  for (const auto& [handle, key] : key_of) {
+    out.Put<uint32_t>(robot_number[key.robot_id]);
+    out.Put<uint64_t>(key.seq);
+    out.Put<uint64_t>(handle);
+  }
+}
+
+// Reads what WriteHandles wrote into both maps. DATA_LOSS unless it holds
+// exactly `traces` (as many distinct keys, each trace's among them) under
+// distinct handles in [1, next_handle).
+absl::Status ReadHandles(
+    core::ByteReader& in, const std::vector<const core::MemoryTrace*>& traces,
+    uint64_t next_handle,
+    absl::flat_hash_map<core::TraceKey, uint64_t>* handle_of,
+    absl::flat_hash_map<uint64_t, core::TraceKey>* key_of) {
+  uint64_t robot_count = 0, count = 0;
+  if (!in.Get(&robot_count) || robot_count > in.remaining()) {
+    return absl::DataLossError("bad robot count");
+  }
+  std::vector<std::string> robot_ids(robot_count);
+  for (std::string& robot_id : robot_ids) {
+    if (!in.GetString(&robot_id, core::kMaxIdLength)) {
+      return absl::DataLossError("bad robot id");
+    }
+  }
+  if (!in.Get(&count) || count != traces.size()) {
+    return absl::DataLossError(
+        absl::StrCat("it holds ", count, " traces, the store ", traces.size()));
+  }
+  handle_of->reserve(count);
+  key_of->reserve(count);
+  for (uint64_t i = 0; i < count; ++i) {
+    uint32_t robot = 0;
+    uint64_t seq = 0, handle = 0;
+    if (!in.Get(&robot) || !in.Get(&seq) || !in.Get(&handle) ||
+        robot >= robot_count || handle == 0 || handle >= next_handle) {
+      return absl::DataLossError(absl::StrCat("bad handle entry ", i));
+    }
+    core::TraceKey key{robot_ids[robot], seq};
+    if (!handle_of->try_emplace(key, handle).second ||
+        !key_of->try_emplace(handle, std::move(key)).second) {
+      return absl::DataLossError(absl::StrCat("repeated handle entry ", i));
+    }
+  }
+  for (const core::MemoryTrace* trace : traces) {
+    if (!handle_of->contains(trace->key())) {
+      return absl::DataLossError(absl::StrCat(
+          "it lacks trace (", trace->robot_id, ", ", trace->seq, ")"));
+    }
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 // One fleet's state. Every member but `id`, `engine` and the two mutexes is
@@ -495,30 +565,12 @@ absl::Status MemoryEngine::Fleet::IndexTraces(
   return absl::OkStatus();
 }
 
-// Version of the engine's part of an index snapshot.
-constexpr uint32_t kIndexSnapshotFormat = 0x454e4731;  // "ENG1"
-
 absl::Status MemoryEngine::Fleet::SaveIndexSnapshot() const {
   return engine->store_->SaveIndexSnapshot(id, [this](core::ByteWriter& out) {
-    // The handles under (robot number, seq), with each robot id once.
-    absl::flat_hash_map<std::string_view, uint32_t> robot_number;
-    std::vector<std::string_view> robot_ids;
     out.Put<uint32_t>(kIndexSnapshotFormat);
     out.Put<uint32_t>(meta.code_dimension);
     out.Put<uint64_t>(next_handle);
-    for (const auto& [handle, key] : key_of) {
-      if (robot_number.try_emplace(key.robot_id, robot_ids.size()).second) {
-        robot_ids.push_back(key.robot_id);
-      }
-    }
-    out.Put<uint64_t>(robot_ids.size());
-    for (std::string_view robot_id : robot_ids) out.PutString(robot_id);
-    out.Put<uint64_t>(key_of.size());
-    for (const auto& [handle, key] : key_of) {
-      out.Put<uint32_t>(robot_number[key.robot_id]);
-      out.Put<uint64_t>(key.seq);
-      out.Put<uint64_t>(handle);
-    }
+    WriteHandles(key_of, out);
     // Forgetting's centroid bookkeeping, length first so that a load can
     // hand it to memory while the index reads what follows.
     core::ByteWriter counter([](std::span<const char>) {});
@@ -533,51 +585,21 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
     std::vector<core::Cluster>& clusters,
     const std::vector<const core::MemoryTrace*>& traces, bool* restored) {
   std::unique_ptr<PlaceIndex> loaded;
-  absl::flat_hash_map<core::TraceKey, uint64_t> saved;
+  absl::flat_hash_map<core::TraceKey, uint64_t> saved_handle_of;
+  absl::flat_hash_map<uint64_t, core::TraceKey> saved_key_of;
   uint64_t saved_next_handle = 0;
   absl::Status status = engine->store_->TakeIndexSnapshot(
       id, [&](std::span<const char> bytes) -> absl::Status {
         core::ByteReader in(bytes);
         uint32_t format = 0, dimension = 0;
-        uint64_t robot_count = 0, count = 0;
         if (!in.Get(&format) || format != kIndexSnapshotFormat ||
             !in.Get(&dimension) || dimension != meta.code_dimension ||
-            !in.Get(&saved_next_handle) || !in.Get(&robot_count) ||
-            robot_count > in.remaining()) {
+            !in.Get(&saved_next_handle)) {
           return absl::DataLossError("bad header");
         }
-        std::vector<std::string> robot_ids(robot_count);
-        for (std::string& robot_id : robot_ids) {
-          if (!in.GetString(&robot_id, core::kMaxIdLength)) {
-            return absl::DataLossError("bad robot id");
-          }
-        }
-        if (!in.Get(&count) || count != traces.size()) {
-          return absl::DataLossError(absl::StrCat(
-              "it holds ", count, " traces, the store ", traces.size()));
-        }
-        saved.reserve(count);
-        absl::flat_hash_set<uint64_t> handles;
-        handles.reserve(count);
-        for (uint64_t i = 0; i < count; ++i) {
-          uint32_t robot = 0;
-          uint64_t seq = 0, handle = 0;
-          if (!in.Get(&robot) || !in.Get(&seq) || !in.Get(&handle) ||
-              robot >= robot_count || handle == 0 ||
-              handle >= saved_next_handle || !handles.insert(handle).second ||
-              !saved.try_emplace(core::TraceKey{robot_ids[robot], seq}, handle)
-                   .second) {
-            return absl::DataLossError(absl::StrCat("bad handle entry ", i));
-          }
-        }
-        // As many distinct keys as traces, each trace's among them: the same
-        // set of traces.
-        for (const core::MemoryTrace* trace : traces) {
-          if (!saved.contains(trace->key())) {
-            return absl::DataLossError(absl::StrCat(
-                "it lacks trace (", trace->robot_id, ", ", trace->seq, ")"));
-          }
-        }
+        absl::Status handles = ReadHandles(in, traces, saved_next_handle,
+                                           &saved_handle_of, &saved_key_of);
+        if (!handles.ok()) return handles;
         uint64_t centroid_size = 0;
         std::span<const char> centroid_bytes;
         if (!in.Get(&centroid_size) ||
@@ -591,7 +613,7 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
         auto load_index = [&] {
           index_status = loaded->Load(in);
           if (index_status.ok() &&
-              (loaded->size() != count || in.remaining() != 0)) {
+              (loaded->size() != traces.size() || in.remaining() != 0)) {
             index_status =
                 absl::DataLossError("the index does not match its handles");
           }
@@ -614,10 +636,9 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
       });
   if (!status.ok()) return status;
   index = std::move(loaded);
-  handle_of = std::move(saved);
+  handle_of = std::move(saved_handle_of);
+  key_of = std::move(saved_key_of);
   next_handle = saved_next_handle;
-  key_of.reserve(handle_of.size());
-  for (const auto& [key, handle] : handle_of) key_of.emplace(handle, key);
   return absl::OkStatus();
 }
 
