@@ -1,6 +1,10 @@
 #include "services/index/exact_index.h"
 
 #include <Eigen/Core>
+#if defined(__SSE__)
+#include <xmmintrin.h>
+#endif
+
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
@@ -27,9 +31,57 @@ void ReserveGeometric(std::vector<T>& v, size_t needed) {
   if (needed > v.capacity()) v.reserve(std::max(needed, 2 * v.capacity()));
 }
 
+// scores[c] = squared_norms[c] - 2 * <column c, query> + query_norm for the
+// first `count` columns of `vectors` (dimension × count, column-major), in
+// one pass: one column at a time with four SSE accumulators, prefetching
+// about 8 KiB ahead (the hardware prefetcher alone leaves a third of the
+// bandwidth unused). The summation order differs from a sequential sum,
+// which the error bound in Search covers (it holds for any order).
+void StreamScores(const float* vectors, size_t dimension, size_t count,
+                  const float* query, const float* squared_norms,
+                  float query_norm, float* scores) {
+  const size_t column_bytes = dimension * sizeof(float);
+  const size_t ahead =
+      std::max<size_t>(1, 8192 / std::max<size_t>(column_bytes, 1));
+  for (size_t c = 0; c < count; ++c) {
+    const float* v = vectors + c * dimension;
+    size_t i = 0;
+    float dot = 0.0f;
+#if defined(__SSE__)
+    if (c + ahead < count) {
+      const char* next = reinterpret_cast<const char*>(v + ahead * dimension);
+      for (size_t b = 0; b < column_bytes; b += 64) {
+        _mm_prefetch(next + b, _MM_HINT_T0);
+      }
+    }
+    __m128 a0 = _mm_setzero_ps(), a1 = a0, a2 = a0, a3 = a0;
+    for (; i + 16 <= dimension; i += 16) {
+      a0 = _mm_add_ps(a0,
+                      _mm_mul_ps(_mm_loadu_ps(v + i), _mm_loadu_ps(query + i)));
+      a1 = _mm_add_ps(
+          a1, _mm_mul_ps(_mm_loadu_ps(v + i + 4), _mm_loadu_ps(query + i + 4)));
+      a2 = _mm_add_ps(
+          a2, _mm_mul_ps(_mm_loadu_ps(v + i + 8), _mm_loadu_ps(query + i + 8)));
+      a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(v + i + 12),
+                                     _mm_loadu_ps(query + i + 12)));
+    }
+    for (; i + 4 <= dimension; i += 4) {
+      a0 = _mm_add_ps(a0,
+                      _mm_mul_ps(_mm_loadu_ps(v + i), _mm_loadu_ps(query + i)));
+    }
+    float lanes[4];
+    _mm_storeu_ps(lanes, _mm_add_ps(_mm_add_ps(a0, a1), _mm_add_ps(a2, a3)));
+    dot = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+#endif
+    for (; i < dimension; ++i) dot += v[i] * query[i];
+    scores[c] = squared_norms[c] - 2.0f * dot + query_norm;
+  }
+}
+
 class ExactIndex final : public engine::PlaceIndex {
  public:
-  explicit ExactIndex(size_t dimension) : dimension_(dimension) {}
+  ExactIndex(size_t dimension, ExactIndexOptions options)
+      : dimension_(dimension), options_(options) {}
 
   absl::Status Add(std::span<const uint64_t> ids,
                    std::span<const std::vector<float>> vectors) override {
@@ -77,6 +129,7 @@ class ExactIndex final : public engine::PlaceIndex {
       size_t column, const Eigen::Map<const Eigen::VectorXf>& query) const;
 
   const size_t dimension_;
+  const ExactIndexOptions options_;
   // dimension_ × capacity; the first size() columns are the stored vectors.
   Eigen::MatrixXf vectors_;
   // Squared norm of each column (same capacity).
@@ -238,9 +291,16 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
   try {
     const Eigen::Map<const Eigen::VectorXf> q(query.data(), dimension_);
     const float query_norm = q.squaredNorm();
-    // Squared distances up to float rounding, in one matrix-vector product.
-    Eigen::VectorXf scores = vectors_.leftCols(count).transpose() * q;
-    scores = (squared_norms_.head(count) - 2.0f * scores).array() + query_norm;
+    // Squared distances up to float rounding, in one pass over the vectors.
+    Eigen::VectorXf scores(count);
+    if (count * dimension_ * sizeof(float) < options_.streaming_scan_bytes) {
+      scores.noalias() = vectors_.leftCols(count).transpose() * q;
+      scores =
+          (squared_norms_.head(count) - 2.0f * scores).array() + query_norm;
+    } else {
+      StreamScores(vectors_.data(), dimension_, count, query.data(),
+                   squared_norms_.data(), query_norm, scores.data());
+    }
 
     // Each score is within `bound` of the true squared distance, so every
     // true k-nearest vector scores at most kth + 2 * bound. Twice the
@@ -307,8 +367,9 @@ void ForEachExactVector(
   }
 }
 
-std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension) {
-  return std::make_unique<ExactIndex>(dimension);
+std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension,
+                                                  ExactIndexOptions options) {
+  return std::make_unique<ExactIndex>(dimension, options);
 }
 
 }  // namespace fleetmem::index

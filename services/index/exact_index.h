@@ -13,12 +13,22 @@
 
 namespace fleetmem::index {
 
+struct ExactIndexOptions {
+  // From this many bytes of stored vectors on, Search scores them with a
+  // streaming loop that prefetches ahead instead of Eigen's matrix-vector
+  // product. Eigen's kernel is faster while the vectors sit in the cache,
+  // the streaming loop beyond it. The default is half the 32 MiB L3 of the
+  // project's VM, where ann_bench measured both (docs/performance.md); 0
+  // streams always, SIZE_MAX never.
+  size_t streaming_scan_bytes = size_t{16} << 20;
+};
+
 // Returns an empty exact index for vectors of `dimension` (> 0; with 0 every
 // Add is INVALID_ARGUMENT).
 //
 // Vectors are the columns of one contiguous float matrix; Remove moves the
 // last column into the hole (O(dimension) per id). Search scores all stored
-// vectors with one matrix-vector product (‖x‖² − 2xᵀq + ‖q‖²), then
+// vectors in one pass (‖x‖² − 2xᵀq + ‖q‖²), then
 // re-scores in double precision every candidate that float rounding could
 // place among the k nearest, so the result is the exact k nearest accepted
 // vectors, ties broken by the smaller id. Cost per Search: O(size ×
@@ -28,7 +38,8 @@ namespace fleetmem::index {
 // (INVALID_ARGUMENT), and Add refuses a batch with a repeated id or with
 // ids.size() != vectors.size(). Out of memory is RESOURCE_EXHAUSTED and
 // changes nothing. Thread-safety as in engine::PlaceIndex.
-std::unique_ptr<engine::PlaceIndex> NewExactIndex(size_t dimension);
+std::unique_ptr<engine::PlaceIndex> NewExactIndex(
+    size_t dimension, ExactIndexOptions options = {});
 
 // Calls visit(id, vector) for the vectors of an index made by NewExactIndex
 // at storage positions [begin, end) (clamped to its size), in storage order;

@@ -738,6 +738,35 @@ TEST(ExactIndexTest, MatchesDoublePrecisionScanAfterManyRemoves) {
   EXPECT_EQ(index->size(), 500u);
 }
 
+// The streaming scan takes 16, then 4 values at a time and finishes with
+// single ones: every dimension's tail must count, on both scans.
+TEST(ExactIndexTest, BothScansMatchDoublePrecisionAtEveryTailLength) {
+  std::mt19937 rng(11);
+  for (size_t streaming_scan_bytes : {size_t{0}, SIZE_MAX}) {
+    for (size_t dimension : {1u, 3u, 4u, 7u, 17u, 30u, 259u}) {
+      SCOPED_TRACE(testing::Message()
+                   << "dimension " << dimension << ", streaming from "
+                   << streaming_scan_bytes << " bytes");
+      std::unique_ptr<PlaceIndex> index = NewExactIndex(
+          dimension, {.streaming_scan_bytes = streaming_scan_bytes});
+      NaiveIndex reference;
+      std::vector<uint64_t> ids;
+      std::vector<Vector> vectors;
+      for (uint64_t id = 0; id < 700; ++id) {
+        ids.push_back(id);
+        vectors.push_back(RandomGaussian(dimension, rng));
+      }
+      ASSERT_TRUE(index->Add(ids, vectors).ok());
+      reference.Add(ids, vectors);
+      for (int q = 0; q < 10; ++q) {
+        const Vector query = RandomGaussian(dimension, rng);
+        ExpectSameAnswer(SearchOk(*index, query, 10),
+                         reference.Search(query, 10));
+      }
+    }
+  }
+}
+
 // Near-duplicates differ by less than the rounding error of
 // ‖x‖² − 2xᵀq + ‖q‖² in float; the order must still be the exact one.
 TEST(ExactIndexTest, OrdersNearDuplicatesExactly) {
