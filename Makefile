@@ -153,6 +153,9 @@ perf: build
 	  --benchmark_out=$(PERF_DIR)/memory_scale.json --benchmark_out_format=json
 	$(BUILD_DIR)/bin/fleetmem_ann_bench --benchmark_min_time=1 \
 	  --benchmark_out=$(PERF_DIR)/ann.json --benchmark_out_format=json
+	$(BUILD_DIR)/bin/fleetmem_ann_bench --benchmark_min_time=1 \
+	  --benchmark_filter='BM_Query/(0|5|6)/(20000|50000|1000000)/0|BM_Query/0/(2000|5000|10000)/0' \
+	  --benchmark_out=$(PERF_DIR)/ann_exact.json --benchmark_out_format=json
 	bench/load_bench.sh $(BUILD_DIR) $(PERF_DIR)/load.csv $(PERF_DIR)/query.csv \
 	  >$(PERF_DIR)/load.txt && cat $(PERF_DIR)/load.txt
 	bench/server_scale.sh $(BUILD_DIR) $(PERF_DIR)/server_scale.csv $(PERF_SIZES)

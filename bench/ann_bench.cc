@@ -6,12 +6,15 @@
 //       --benchmark_out=ann.json --benchmark_out_format=json
 //
 // Query/<kind>/<size>/<ef_search or 0 for the default 128>, kinds:
-//   0 fleetmem exact index (Eigen scan + exact re-rank)
+//   0 fleetmem exact index (Eigen scan in the cache, streaming scan beyond it,
+//     + exact re-rank)
 //   1 fleetmem tiered index (the server's default, "auto")
 //   2 fleetmem HNSW index (hnswlib through core::HnswGraph)
 //   3 hnswlib used directly, same M, ef_construction, ef_search, seed
 //   4 faiss IndexHNSWFlat, same M, ef_construction, ef_search
 //   5 faiss IndexFlatL2 (exact)
+//   6 fleetmem exact index with Eigen's scan at every size (the previous
+//     implementation, the streaming scan's peer)
 // HNSW kinds use M = 16 and ef_search = 128 (the third argument, where
 // given); ef_construction 100, but 40 at 1,000,000 (build time). Counters:
 // recall@10 against the exact answer (200 queries), p50/p99 in ms, and for the
@@ -116,8 +119,12 @@ Searcher Make(int kind, Data& data) {
   std::vector<uint64_t> ids(size);
   for (size_t i = 0; i < size; ++i) ids[i] = i;
   switch (kind) {
-    case 0: {
-      std::shared_ptr<engine::PlaceIndex> index(NewExactIndex(kDimension));
+    case 0:
+    case 6: {
+      ExactIndexOptions options;
+      if (kind == 6) options.streaming_scan_bytes = SIZE_MAX;
+      std::shared_ptr<engine::PlaceIndex> index(
+          NewExactIndex(kDimension, options));
       (void)index->Add(ids, data.vectors);
       return PlaceIndexSearcher(index);
     }
@@ -240,7 +247,7 @@ void BM_Query(benchmark::State& state) {
   state.counters["p99_ms"] = ms[ms.size() * 99 / 100];
   state.counters["qps"] = benchmark::Counter(
       static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
-  if ((kind == 0 || kind == 5) && copy_bandwidth > 0) {
+  if ((kind == 0 || kind == 5 || kind == 6) && copy_bandwidth > 0) {
     double mean = 0;
     for (double x : ms) mean += x;
     mean /= static_cast<double>(ms.size());
@@ -272,7 +279,7 @@ BENCHMARK(BM_Query)
     ->ArgsProduct({{0, 2}, {2'000, 5'000, 10'000, 20'000}, {0}})
     ->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Query)
-    ->ArgsProduct({{0, 2, 3, 4, 5}, {50'000}, {0}})
+    ->ArgsProduct({{0, 2, 3, 4, 5, 6}, {50'000}, {0}})
     ->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Query)->Args({1, 5'000, 0})->Unit(benchmark::kMillisecond);
 // P3 at 1,000,000: fleetmem's HNSW and hnswlib at ef_search 128 to 512
@@ -282,7 +289,7 @@ BENCHMARK(BM_Query)
     ->ArgsProduct({{2, 3}, {1'000'000}, {128, 256, 512}})
     ->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Query)
-    ->ArgsProduct({{0, 5}, {1'000'000}, {0}})
+    ->ArgsProduct({{0, 5, 6}, {1'000'000}, {0}})
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace
