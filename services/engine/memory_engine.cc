@@ -319,9 +319,28 @@ struct MemoryEngine::Fleet {
   // caller makes it durable (shared lock still held: the store's fsync does
   // not block queries); CommitUpload applies it to memory and consolidates
   // full segments (exclusive lock). The caller holds writer_mu throughout.
+  //
+  // An upload that fills a robot's segment is not stored first: CommitUpload
+  // writes it together with the segment's consolidation, in one atomic
+  // store write (one fsync instead of two, and the segment's traces are
+  // written once, in their clusters, instead of as pending traces that the
+  // consolidation then erases).
   struct PreparedUpload {
     FleetMutation mutation;
     std::unique_ptr<PlaceIndex> new_index;  // for a new fleet
+    // Some robot's pending traces reach the segment size with this upload.
+    bool fills_segment = false;
+    // The caller stored `mutation` before CommitUpload.
+    bool stored = false;
+  };
+  // An upload's writes that ride on the store write of the consolidation it
+  // triggered (ConsolidateRobot).
+  struct CarriedUpload {
+    // The upload's writes other than the consolidated robot's traces.
+    FleetMutation mutation;
+    // The consolidated robot's traces of this upload: never stored as
+    // pending, so the consolidation erases no pending key for them.
+    absl::flat_hash_set<core::TraceKey> unstored;
   };
   absl::Status PrepareUpload(std::span<const core::MemoryTrace> traces,
                              UploadResult* result, PreparedUpload* prepared)
@@ -329,8 +348,11 @@ struct MemoryEngine::Fleet {
   absl::Status CommitUpload(PreparedUpload prepared, UploadResult* result,
                             Notices* notices) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
-  // and 2) and persists the outcome in one mutation.
-  absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices)
+  // and 2) and persists the outcome in one mutation, together with
+  // `carried`'s writes if given. On a failed write the fleet is reloaded
+  // from the store, which then holds neither.
+  absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices,
+                                CarriedUpload* carried = nullptr)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Eq. 18 draw with the replay counts incremented in memory (exclusive
   // lock). `mutation` gets what must be stored and `record` the robot's new
@@ -714,6 +736,18 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
     if (record.received.size() != before) mutation.put_robots.push_back(record);
   }
 
+  absl::flat_hash_map<std::string_view, size_t> arriving;
+  for (const core::MemoryTrace& trace : mutation.put_pending) {
+    ++arriving[trace.robot_id];
+  }
+  for (const auto& [robot_id, count] : arriving) {
+    auto held = pending.find(robot_id);
+    const size_t before = held == pending.end() ? 0 : held->second.size();
+    if (before + count >= engine->options_.segment_size) {
+      prepared->fills_segment = true;
+    }
+  }
+
   if (is_new) {
     mutation.put_meta = true;
     mutation.meta = meta;
@@ -733,7 +767,15 @@ absl::Status MemoryEngine::Fleet::CommitUpload(PreparedUpload prepared,
                                                UploadResult* result,
                                                Notices* notices) {
   FleetMutation& mutation = prepared.mutation;
-  // Durable: now the in-memory state follows.
+  const bool stored = prepared.stored;
+  // Not stored yet: memory runs ahead of the store until the write below,
+  // under the exclusive lock, and a failure reloads the fleet.
+  CarriedUpload carried;
+  if (!stored) {
+    carried.mutation.put_meta = mutation.put_meta;
+    carried.mutation.meta = mutation.meta;
+    carried.mutation.put_robots = mutation.put_robots;
+  }
   if (mutation.put_meta) {
     meta = mutation.meta;
     index = std::move(prepared.new_index);
@@ -757,8 +799,13 @@ absl::Status MemoryEngine::Fleet::CommitUpload(PreparedUpload prepared,
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": index update failed, rebuilding: " << status;
-    status = Reload();
-    if (!status.ok()) return status;
+    absl::Status reloaded = Reload();
+    if (!stored) {
+      return absl::InternalError(absl::StrCat(
+          "fleet \"", id, "\": index update failed (", status.message(),
+          "); nothing of this upload was stored"));
+    }
+    if (!reloaded.ok()) return reloaded;
   }
 
   std::vector<std::string> full;
@@ -767,8 +814,27 @@ absl::Status MemoryEngine::Fleet::CommitUpload(PreparedUpload prepared,
       full.push_back(robot_id);
     }
   }
-  for (const std::string& robot_id : full) {
-    status = ConsolidateRobot(robot_id, notices);
+  if (!stored) {
+    const std::string carrier = full.empty() ? std::string() : full.front();
+    for (const core::TraceKey& key : fresh_keys) {
+      if (key.robot_id == carrier) {
+        carried.unstored.insert(key);
+      } else {
+        carried.mutation.put_pending.push_back(*FindTrace(key));
+      }
+    }
+    if (full.empty()) {
+      // PrepareUpload's count and memory disagree; store the upload alone.
+      status = engine->store_->Apply(id, carried.mutation);
+      if (!status.ok()) {
+        Reload().IgnoreError();
+        return status;
+      }
+    }
+  }
+  for (size_t i = 0; i < full.size(); ++i) {
+    status = ConsolidateRobot(full[i], notices,
+                              !stored && i == 0 ? &carried : nullptr);
     if (!status.ok()) return status;
     ++result->consolidations;
   }
@@ -776,7 +842,8 @@ absl::Status MemoryEngine::Fleet::CommitUpload(PreparedUpload prepared,
 }
 
 absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
-                                                   Notices* notices) {
+                                                   Notices* notices,
+                                                   CarriedUpload* carried) {
   auto found = pending.find(robot_id);
   if (found == pending.end() || found->second.empty()) return absl::OkStatus();
   const absl::Time start = absl::Now();
@@ -791,8 +858,12 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
   }
 
   FleetMutation mutation;
+  if (carried != nullptr) mutation = std::move(carried->mutation);
   mutation.erase_pending.reserve(batch.size());
   for (const core::MemoryTrace& trace : batch) {
+    if (carried != nullptr && carried->unstored.contains(trace.key())) {
+      continue;
+    }
     mutation.erase_pending.push_back(trace.key());
   }
   const size_t batch_size = batch.size();
@@ -852,7 +923,11 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
   if (!status.ok()) {
     // The static memory already ran ahead of the store: drop it.
     FLEETMEM_LOG(kError) << "fleet \"" << id << "\": consolidation of robot \""
-                         << robot_id << "\" not stored: " << status;
+                         << robot_id << "\""
+                         << (carried != nullptr
+                                 ? " and the upload that filled its segment"
+                                 : "")
+                         << " not stored: " << status;
     Reload().IgnoreError();
     return status;
   }
@@ -1138,8 +1213,10 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
     if (status.ok()) {
       absl::ReaderMutexLock lock(&fleet->mu);
       status = fleet->PrepareUpload(traces, &result, &prepared);
-      if (status.ok() && !prepared.mutation.put_pending.empty()) {
+      if (status.ok() && !prepared.mutation.put_pending.empty() &&
+          !prepared.fills_segment) {
         status = store_->Apply(fleet->id, prepared.mutation);
+        prepared.stored = true;
       }
     }
     absl::MutexLock lock(&fleet->mu);

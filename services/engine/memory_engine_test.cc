@@ -1382,37 +1382,103 @@ TEST_F(MemoryEngineTest, StoreFailureDuringUploadStoresNothing) {
   EXPECT_EQ(result->accepted, 5u);
 }
 
-TEST_F(MemoryEngineTest, StoreFailureDuringConsolidationKeepsTheUpload) {
+// An upload that fills a segment is stored together with the segment's
+// consolidation, in one write: when that write fails, nothing of the upload
+// is stored and the fleet is as before it.
+TEST_F(MemoryEngineTest, StoreFailureOfAConsolidatingUploadStoresNothing) {
   FlakyStore flaky(store_.get());
   absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
       MemoryEngine::Open(options_, &flaky, ExactFactory());
   ASSERT_TRUE(opened.ok());
   MemoryEngine& engine = **opened;
   std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 20, rng_);
-  // The upload's own mutation succeeds, the consolidation's fails.
-  flaky.fail_after = flaky.applies + 1;
-  absl::StatusOr<UploadResult> result = engine.Upload("f1", traces);
+  const std::vector<core::MemoryTrace> first(traces.begin(),
+                                             traces.begin() + 5);
+  const std::vector<core::MemoryTrace> rest(traces.begin() + 5, traces.end());
+  ASSERT_TRUE(engine.Upload("f1", first).ok());
+  flaky.fail_after = flaky.applies;
+  absl::StatusOr<UploadResult> result = engine.Upload("f1", rest);
   EXPECT_EQ(result.status().code(), absl::StatusCode::kInternal);
+  EXPECT_EQ(flaky.applies, flaky.fail_after + 1);  // one write was tried
 
-  // Memory was reloaded from the store: all 20 traces pending, none lost.
+  // Memory was reloaded from the store: the first 5 traces, pending.
   absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
   ASSERT_TRUE(stats.ok()) << stats.status();
-  EXPECT_EQ(stats->pending_traces, 20u);
+  EXPECT_EQ(stats->pending_traces, 5u);
   EXPECT_EQ(stats->traces, 0u);
   EXPECT_EQ(stats->clusters, 0u);
   EXPECT_EQ(stats->last_event_id, 0u);
 
-  // A retry finds duplicates; Consolidate then succeeds.
+  // The retry is no duplicate: it is stored and consolidated.
   flaky.fail_after = -1;
-  result = engine.Upload("f1", traces);
-  ASSERT_TRUE(result.ok());
-  EXPECT_EQ(result->duplicates, 20u);
-  ASSERT_TRUE(engine.Consolidate("f1").ok());
+  result = engine.Upload("f1", rest);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->accepted, 15u);
+  EXPECT_EQ(result->duplicates, 0u);
+  EXPECT_EQ(result->consolidations, 1u);
   stats = engine.GetStats("f1");
   ASSERT_TRUE(stats.ok());
   EXPECT_EQ(stats->pending_traces, 0u);
   EXPECT_EQ(stats->clusters, 4u);
   EXPECT_EQ(stats->last_event_id, 4u);
+}
+
+// The write of an upload that fills a segment: one store write for the
+// upload and its consolidation; the other robots' traces of the same upload
+// stay pending; after a reopen everything is where it was.
+TEST_F(MemoryEngineTest, AnUploadThatFillsASegmentIsOneWrite) {
+  FlakyStore counting(store_.get());
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options_, &counting, ExactFactory());
+  ASSERT_TRUE(opened.ok());
+  MemoryEngine& engine = **opened;
+  ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", 1, 12, rng_)).ok());
+  const int before = counting.applies;
+  // r1 fills its segment (12 + 8 = 20); r2's 6 traces stay pending.
+  std::vector<core::MemoryTrace> mixed = MakeTraces("r1", 13, 8, rng_);
+  for (core::MemoryTrace& trace : MakeTraces("r2", 1, 6, rng_)) {
+    mixed.push_back(std::move(trace));
+  }
+  absl::StatusOr<UploadResult> result = engine.Upload("f1", mixed);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->accepted, 14u);
+  EXPECT_EQ(result->consolidations, 1u);
+  EXPECT_EQ(counting.applies, before + 1);
+  absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(stats->pending_traces, 6u);
+  EXPECT_EQ(stats->clusters, 4u);
+
+  // Two robots filling their segments at once: both consolidate.
+  std::vector<core::MemoryTrace> both = MakeTraces("r2", 7, 14, rng_);
+  for (core::MemoryTrace& trace : MakeTraces("r3", 1, 20, rng_)) {
+    both.push_back(std::move(trace));
+  }
+  result = engine.Upload("f1", both);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->consolidations, 2u);
+
+  stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok());
+  const std::vector<core::MemoryTrace> traces = AllTraces(engine, "f1", 200);
+  opened->reset();
+  engine_.reset();
+  engine_ = OpenEngine();
+  ASSERT_NE(engine_, nullptr);
+  ExpectSameStats(Stats(), *stats);
+  EXPECT_EQ(Stats().pending_traces, 0u);
+  const std::vector<core::MemoryTrace> reopened =
+      AllTraces(*engine_, "f1", 200);
+  ASSERT_EQ(reopened.size(), traces.size());
+  for (size_t i = 0; i < traces.size(); ++i) {
+    EXPECT_EQ(reopened[i].key(), traces[i].key());
+    EXPECT_EQ(reopened[i].cluster_id, traces[i].cluster_id);
+    EXPECT_EQ(reopened[i].code, traces[i].code);
+  }
+  // Every received sequence number survived: retries are duplicates.
+  result = engine_->Upload("f1", mixed);
+  ASSERT_TRUE(result.ok());
+  EXPECT_EQ(result->duplicates, 14u);
 }
 
 TEST_F(MemoryEngineTest, StoreFailureDuringReplayKeepsCounts) {
