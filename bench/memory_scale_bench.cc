@@ -18,6 +18,10 @@
 // Stats/<traces>: per-robot and per-domain counts from the kept counts; the
 // peer StatsScan walks every trace (as GetStats did).
 // Restore/<traces>: the static memory's share of a restart.
+// KMeansSegment: k-means alone (Eq. 14, K = 20, at most 50 iterations) on
+// one 200-trace segment shaped as fleetmem-load uploads it (gaussian 256-d
+// codes, places 2 m apart on a line): the share of P1's upload path that
+// Algorithm 1 fixes. Counters: Lloyd iterations and microseconds per trace.
 #include <benchmark/benchmark.h>
 
 #include <cstdint>
@@ -29,7 +33,9 @@
 #include <vector>
 
 #include "bench/bench_data.h"
+#include "services/core/feature_space.h"
 #include "services/core/importance_sampler.h"
+#include "services/core/kmeans.h"
 #include "services/core/memory_options.h"
 #include "services/core/static_memory.h"
 
@@ -175,6 +181,40 @@ void BM_Restore(benchmark::State& state) {
   }
 }
 
+void BM_KMeansSegment(benchmark::State& state) {
+  const MemoryOptions options;
+  std::mt19937_64 data(5);
+  std::normal_distribution<float> normal;
+  std::vector<Eigen::MatrixXf> segments;
+  for (int s = 0; s < 16; ++s) {
+    Eigen::MatrixXf points(256 + 3, static_cast<Eigen::Index>(kSegment));
+    for (size_t i = 0; i < kSegment; ++i) {
+      MemoryTrace trace;
+      trace.code.resize(256);
+      for (float& v : trace.code) v = normal(data);
+      trace.place.x = 2.0 * static_cast<double>(s * kSegment + i);
+      points.col(static_cast<Eigen::Index>(i)) =
+          FeatureSpatialCode(trace, options.spatial_scale_m);
+    }
+    segments.push_back(std::move(points));
+  }
+  std::mt19937_64 rng(3);
+  size_t next = 0;
+  double iterations = 0;
+  for (auto _ : state) {
+    const KMeansResult result =
+        KMeans(segments[next++ % segments.size()], options.clusters_per_batch,
+               options.kmeans_max_iterations, rng);
+    iterations += result.iterations;
+  }
+  state.counters["iterations"] =
+      iterations / static_cast<double>(state.iterations());
+  state.counters["us_per_trace"] = benchmark::Counter(
+      static_cast<double>(state.iterations() * kSegment),
+      benchmark::Counter::kIsRate | benchmark::Counter::kInvert);
+}
+
+BENCHMARK(BM_KMeansSegment)->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Consolidate)
     ->ArgsProduct({{5'000, 100'000, 1'000'000}, {0}})
     ->Unit(benchmark::kMillisecond);
