@@ -14,6 +14,11 @@ namespace fleetmem::core {
 // Returns the dropped traces; `traces` keeps the survivors.
 std::vector<MemoryTrace> DownsampleByReward(std::vector<MemoryTrace>& traces,
                                             int max_traces);
+// The same over `positions` into `traces`: `positions` keeps the survivors'
+// positions in the order above; returns the dropped ones'.
+std::vector<size_t> DownsampleByReward(const std::vector<MemoryTrace>& traces,
+                                       std::vector<size_t>& positions,
+                                       int max_traces);
 
 }  // namespace fleetmem::core
 

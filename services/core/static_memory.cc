@@ -1,7 +1,9 @@
 #include "services/core/static_memory.h"
 
 #include <algorithm>
+#include <cassert>
 #include <limits>
+#include <numeric>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -66,50 +68,84 @@ void StaticMemory::Restore(Cluster cluster) {
   Insert(std::move(cluster));
 }
 
+ConsolidationPlan PlanConsolidation(const MemoryOptions& options,
+                                    const std::vector<MemoryTrace>& batch,
+                                    std::mt19937_64& rng) {
+  ConsolidationPlan plan;
+  if (batch.empty()) return plan;
+  plan.keys.reserve(batch.size());
+  for (const MemoryTrace& trace : batch) plan.keys.push_back(trace.key());
+  const Eigen::Index n = static_cast<Eigen::Index>(batch.size());
+  Eigen::MatrixXf points(
+      static_cast<Eigen::Index>(batch.front().code.size() + 3), n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    points.col(i) = FeatureSpatialCode(batch[static_cast<size_t>(i)],
+                                       options.spatial_scale_m);
+  }
+  if (!options.clustering) {
+    plan.kept.emplace_back(batch.size());
+    std::iota(plan.kept.back().begin(), plan.kept.back().end(), size_t{0});
+  } else {
+    const int k = static_cast<int>(std::min<size_t>(
+        static_cast<size_t>(options.clusters_per_batch), batch.size()));
+    const KMeansResult kmeans =
+        KMeans(points, k, options.kmeans_max_iterations, rng);
+    std::vector<std::vector<size_t>> groups(
+        static_cast<size_t>(kmeans.centroids.cols()));
+    for (size_t i = 0; i < batch.size(); ++i) {
+      groups[static_cast<size_t>(kmeans.assignment[i])].push_back(i);
+    }
+    for (std::vector<size_t>& group : groups) {
+      std::vector<size_t> dropped =
+          DownsampleByReward(batch, group, options.max_traces_per_cluster);
+      plan.dropped.insert(plan.dropped.end(), dropped.begin(), dropped.end());
+      plan.kept.push_back(std::move(group));
+    }
+  }
+  for (const std::vector<size_t>& kept : plan.kept) {
+    // Mean feature-spatial code of the kept traces, summed in double.
+    Eigen::VectorXd sum = Eigen::VectorXd::Zero(points.rows());
+    for (size_t i : kept) {
+      sum += points.col(static_cast<Eigen::Index>(i)).cast<double>();
+    }
+    std::vector<float> centroid(static_cast<size_t>(sum.size()));
+    for (Eigen::Index d = 0; d < sum.size(); ++d) {
+      centroid[static_cast<size_t>(d)] =
+          static_cast<float>(sum[d] / static_cast<double>(kept.size()));
+    }
+    plan.centroids.push_back(std::move(centroid));
+  }
+  return plan;
+}
+
 ConsolidationResult StaticMemory::Consolidate(std::vector<MemoryTrace> batch,
                                               uint64_t first_cluster_id,
                                               std::mt19937_64& rng) {
+  const ConsolidationPlan plan = PlanConsolidation(options_, batch, rng);
+  return Consolidate(std::move(batch), first_cluster_id, plan);
+}
+
+ConsolidationResult StaticMemory::Consolidate(std::vector<MemoryTrace> batch,
+                                              uint64_t first_cluster_id,
+                                              const ConsolidationPlan& plan) {
   ConsolidationResult result;
   if (batch.empty()) return result;
+  assert(plan.keys.size() == batch.size());
   const std::string robot_id = batch.front().robot_id;
-
-  std::vector<std::vector<MemoryTrace>> groups;
-  if (!options_.clustering) {
-    groups.push_back(std::move(batch));
-  } else {
-    const Eigen::Index n = static_cast<Eigen::Index>(batch.size());
-    Eigen::MatrixXf points(
-        static_cast<Eigen::Index>(batch.front().code.size() + 3), n);
-    for (Eigen::Index i = 0; i < n; ++i) {
-      points.col(i) = FeatureSpatialCode(batch[static_cast<size_t>(i)],
-                                         options_.spatial_scale_m);
-    }
-    const int k = static_cast<int>(std::min<size_t>(
-        static_cast<size_t>(options_.clusters_per_batch), batch.size()));
-    const KMeansResult kmeans =
-        KMeans(points, k, options_.kmeans_max_iterations, rng);
-    groups.resize(static_cast<size_t>(kmeans.centroids.cols()));
-    for (size_t i = 0; i < batch.size(); ++i) {
-      groups[static_cast<size_t>(kmeans.assignment[i])].push_back(
-          std::move(batch[i]));
-    }
-    for (std::vector<MemoryTrace>& group : groups) {
-      std::vector<MemoryTrace> dropped =
-          DownsampleByReward(group, options_.max_traces_per_cluster);
-      for (MemoryTrace& trace : dropped) {
-        trace.cluster_id = 0;
-        result.downsampled.push_back(std::move(trace));
-      }
-    }
+  for (size_t i : plan.dropped) {
+    batch[i].cluster_id = 0;
+    result.downsampled.push_back(std::move(batch[i]));
   }
-
-  for (size_t i = 0; i < groups.size(); ++i) {
+  for (size_t c = 0; c < plan.kept.size(); ++c) {
     Cluster cluster;
-    cluster.id = first_cluster_id + i;
+    cluster.id = first_cluster_id + c;
     cluster.robot_id = robot_id;
-    cluster.centroid = Centroid(groups[i], options_.spatial_scale_m);
-    cluster.traces = std::move(groups[i]);
-    for (MemoryTrace& trace : cluster.traces) trace.cluster_id = cluster.id;
+    cluster.centroid = plan.centroids[c];
+    cluster.traces.reserve(plan.kept[c].size());
+    for (size_t i : plan.kept[c]) {
+      cluster.traces.push_back(std::move(batch[i]));
+      cluster.traces.back().cluster_id = cluster.id;
+    }
     result.added.push_back(cluster);
     Insert(std::move(cluster));
   }

@@ -33,6 +33,29 @@ struct ConsolidationResult {
   std::vector<Cluster> forgotten;
 };
 
+// The part of Algorithm 1 that depends on the batch alone (feature-spatial
+// codes, k-means, downsampling, the kept traces' centroids): pure, so a
+// caller may compute it without holding the memory's lock and hand it to
+// Consolidate.
+struct ConsolidationPlan {
+  // Per new cluster, the positions in the batch of the traces it keeps.
+  std::vector<std::vector<size_t>> kept;
+  // Positions of the traces downsampling dropped (Eq. 15).
+  std::vector<size_t> dropped;
+  // Per new cluster, the mean feature-spatial code of its kept traces.
+  std::vector<std::vector<float>> centroids;
+  // The batch's trace keys, in order: the plan fits only this batch.
+  std::vector<TraceKey> keys;
+};
+
+// Plans the consolidation of `batch` (one robot's segment) under `options`:
+// k-means++ into min(K, |batch|) clusters with randomness from `rng`, then
+// downsampling of each to N_max traces by reward; with clustering off, one
+// cluster of the whole batch. An empty batch gives an empty plan.
+ConsolidationPlan PlanConsolidation(const MemoryOptions& options,
+                                    const std::vector<MemoryTrace>& batch,
+                                    std::mt19937_64& rng);
+
 class StaticMemory {
  public:
   // `options` must pass ValidateMemoryOptions.
@@ -66,6 +89,12 @@ class StaticMemory {
   ConsolidationResult Consolidate(std::vector<MemoryTrace> batch,
                                   uint64_t first_cluster_id,
                                   std::mt19937_64& rng);
+  // The same with the plan already made by PlanConsolidation for exactly
+  // this batch (plan.keys are the batch's keys, in order; the caller
+  // checks).
+  ConsolidationResult Consolidate(std::vector<MemoryTrace> batch,
+                                  uint64_t first_cluster_id,
+                                  const ConsolidationPlan& plan);
 
   // Refresh (Eq. 18): draws up to `count` distinct traces with weight
   // gamma^n * R, increments their replay_count and returns copies of them

@@ -174,6 +174,52 @@ TEST(StaticMemoryTest, ConsolidateIsReproducible) {
   }
 }
 
+// A plan made apart from the memory (as the engine makes it outside the
+// fleet's lock) consolidates exactly as Consolidate with the same
+// randomness does, forgetting included.
+TEST(StaticMemoryTest, APlanMadeApartConsolidatesTheSame) {
+  MemoryOptions options;
+  options.clusters_per_batch = 6;
+  options.max_traces_per_cluster = 5;
+  options.max_clusters = 20;
+  StaticMemory direct(options), planned(options);
+  std::mt19937_64 data_rng(7), rng_direct(9), rng_planned(9);
+  uint64_t next_cluster = 1;
+  for (int b = 0; b < 12; ++b) {
+    const std::vector<MemoryTrace> batch =
+        Segment("r" + std::to_string(b % 3), 100 * b, 40, data_rng);
+    const ConsolidationResult a =
+        direct.Consolidate(batch, next_cluster, rng_direct);
+    const ConsolidationPlan plan =
+        PlanConsolidation(options, batch, rng_planned);
+    ASSERT_EQ(plan.keys.size(), batch.size());
+    const ConsolidationResult p =
+        planned.Consolidate(batch, next_cluster, plan);
+    ASSERT_EQ(a.added.size(), p.added.size());
+    for (size_t i = 0; i < a.added.size(); ++i) {
+      EXPECT_EQ(a.added[i].id, p.added[i].id);
+      EXPECT_EQ(a.added[i].centroid, p.added[i].centroid);
+      ASSERT_EQ(a.added[i].traces.size(), p.added[i].traces.size());
+      for (size_t j = 0; j < a.added[i].traces.size(); ++j) {
+        EXPECT_EQ(a.added[i].traces[j].key(), p.added[i].traces[j].key());
+        EXPECT_EQ(p.added[i].traces[j].cluster_id, p.added[i].id);
+      }
+    }
+    ASSERT_EQ(a.downsampled.size(), p.downsampled.size());
+    for (size_t i = 0; i < a.downsampled.size(); ++i) {
+      EXPECT_EQ(a.downsampled[i].key(), p.downsampled[i].key());
+    }
+    ASSERT_EQ(a.forgotten.size(), p.forgotten.size());
+    for (size_t i = 0; i < a.forgotten.size(); ++i) {
+      EXPECT_EQ(a.forgotten[i].id, p.forgotten[i].id);
+    }
+    next_cluster += a.added.size();
+    ExpectInvariants(planned);
+  }
+  EXPECT_EQ(rng_direct(), rng_planned());
+  EXPECT_EQ(direct.trace_count(), planned.trace_count());
+}
+
 TEST(StaticMemoryTest, SmallBatchGetsOneClusterPerTrace) {
   StaticMemory memory(MemoryOptions{});  // K = 20
   std::mt19937_64 rng(3);
