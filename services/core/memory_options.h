@@ -28,7 +28,9 @@ struct MemoryOptions {
   bool clustering = true;
   // Lloyd iterations of k-means after k-means++ seeding.
   int kmeans_max_iterations = 50;
-  // Seed of the k-means++ random generator (runs are reproducible).
+  // Seed of the random generators (runs are reproducible). The engine
+  // mixes it with the fleet id for replay draws, and with the fleet id, the
+  // robot id and the segment's first seq for each segment's k-means++.
   uint64_t seed = 42;
   // Forgetting's closest pair of centroids is found by exact scans while
   // fewer clusters than this are held, and through an HNSW graph over the

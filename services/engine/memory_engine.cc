@@ -40,6 +40,19 @@ uint64_t FleetSeed(uint64_t seed, std::string_view fleet_id) {
   return z ^ (z >> 31);
 }
 
+// Seed of the k-means of one robot's segment: the fleet's seed mixed with
+// the robot id and the segment's first sequence number, so that a segment
+// is clustered the same way whatever else the fleet did before it (and
+// whether it was planned outside the fleet's lock or not).
+uint64_t SegmentSeed(uint64_t fleet_seed, std::string_view robot_id,
+                     uint64_t first_seq) {
+  uint64_t z = FleetSeed(fleet_seed ^ first_seq, robot_id);
+  z += 0x9e3779b97f4a7c15ull;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
 absl::Status FleetNotFound(std::string_view fleet_id) {
   return absl::NotFoundError(
       absl::StrCat("fleet \"", V(fleet_id),
@@ -269,7 +282,8 @@ struct MemoryEngine::Fleet {
       : id(std::move(fleet_id)),
         engine(owner),
         memory(owner->MemoryOptionsFor(id)),
-        rng(FleetSeed(memory.options().seed, id)) {}
+        seed(FleetSeed(memory.options().seed, id)),
+        rng(seed) {}
 
   // True once the fleet's first upload is durable.
   bool exists() const ABSL_SHARED_LOCKS_REQUIRED(mu) {
@@ -345,14 +359,31 @@ struct MemoryEngine::Fleet {
   absl::Status PrepareUpload(std::span<const core::MemoryTrace> traces,
                              UploadResult* result, PreparedUpload* prepared)
       ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // `plan`, if given, is PlanAhead's for the first robot this upload
+  // fills; it is used if it fits that robot's segment.
   absl::Status CommitUpload(PreparedUpload prepared, UploadResult* result,
-                            Notices* notices) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+                            Notices* notices,
+                            const core::ConsolidationPlan* plan = nullptr)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // For an upload of one robot that fills its segment: the consolidation
+  // plan of that segment as it stands now (k-means and downsampling), made
+  // under the shared lock's snapshot but computed without any lock, so that
+  // uploads of different robots cluster their segments on different cores.
+  // Nothing if the upload fills no segment. Called without writer_mu; the
+  // plan may be stale by the time the upload holds it (ConsolidateRobot
+  // then plans again).
+  std::optional<core::ConsolidationPlan> PlanAhead(
+      std::span<const core::MemoryTrace> traces) ABSL_LOCKS_EXCLUDED(mu);
+  // The plan of `batch`, one robot's segment, with its own seed.
+  core::ConsolidationPlan Plan(
+      const std::vector<core::MemoryTrace>& batch) const;
   // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
   // and 2) and persists the outcome in one mutation, together with
   // `carried`'s writes if given. On a failed write the fleet is reloaded
   // from the store, which then holds neither.
   absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices,
-                                CarriedUpload* carried = nullptr)
+                                CarriedUpload* carried = nullptr,
+                                const core::ConsolidationPlan* plan = nullptr)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Eq. 18 draw with the replay counts incremented in memory (exclusive
   // lock). `mutation` gets what must be stored and `record` the robot's new
@@ -423,6 +454,9 @@ struct MemoryEngine::Fleet {
   absl::flat_hash_map<core::TraceKey, uint64_t> handle_of ABSL_GUARDED_BY(mu);
   absl::flat_hash_map<uint64_t, core::TraceKey> key_of ABSL_GUARDED_BY(mu);
   uint64_t next_handle ABSL_GUARDED_BY(mu) = 1;
+  // The fleet's seed; replay draws from `rng`, and each segment's k-means
+  // from a generator of its own (SegmentSeed).
+  const uint64_t seed;
   std::mt19937_64 rng ABSL_GUARDED_BY(mu);
 };
 
@@ -763,9 +797,9 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
   return absl::OkStatus();
 }
 
-absl::Status MemoryEngine::Fleet::CommitUpload(PreparedUpload prepared,
-                                               UploadResult* result,
-                                               Notices* notices) {
+absl::Status MemoryEngine::Fleet::CommitUpload(
+    PreparedUpload prepared, UploadResult* result, Notices* notices,
+    const core::ConsolidationPlan* plan) {
   FleetMutation& mutation = prepared.mutation;
   const bool stored = prepared.stored;
   // Not stored yet: memory runs ahead of the store until the write below,
@@ -834,16 +868,57 @@ absl::Status MemoryEngine::Fleet::CommitUpload(PreparedUpload prepared,
   }
   for (size_t i = 0; i < full.size(); ++i) {
     status = ConsolidateRobot(full[i], notices,
-                              !stored && i == 0 ? &carried : nullptr);
+                              !stored && i == 0 ? &carried : nullptr,
+                              i == 0 ? plan : nullptr);
     if (!status.ok()) return status;
     ++result->consolidations;
   }
   return absl::OkStatus();
 }
 
-absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
-                                                   Notices* notices,
-                                                   CarriedUpload* carried) {
+core::ConsolidationPlan MemoryEngine::Fleet::Plan(
+    const std::vector<core::MemoryTrace>& batch) const {
+  if (batch.empty()) return {};
+  std::mt19937_64 segment_rng(
+      SegmentSeed(seed, batch.front().robot_id, batch.front().seq));
+  // The engine's options, not memory's: PlanAhead runs without the lock
+  // that guards memory (the two hold the same options).
+  return core::PlanConsolidation(engine->MemoryOptionsFor(id), batch,
+                                 segment_rng);
+}
+
+std::optional<core::ConsolidationPlan> MemoryEngine::Fleet::PlanAhead(
+    std::span<const core::MemoryTrace> traces) {
+  if (traces.empty()) return std::nullopt;
+  const std::string& robot_id = traces.front().robot_id;
+  for (const core::MemoryTrace& trace : traces) {
+    if (trace.robot_id != robot_id) return std::nullopt;
+  }
+  std::vector<core::MemoryTrace> segment;
+  core::SeqSet received;
+  {
+    absl::ReaderMutexLock lock(&mu);
+    if (!stale.ok() || !exists()) return std::nullopt;
+    auto known = robots.find(robot_id);
+    if (known != robots.end()) received = known->second.received;
+    auto held = pending.find(robot_id);
+    const size_t before = held == pending.end() ? 0 : held->second.size();
+    if (before + traces.size() < engine->options_.segment_size) {
+      return std::nullopt;
+    }
+    if (held != pending.end()) segment = held->second;
+  }
+  // As PrepareUpload accepts them (duplicates, also within the upload, out).
+  for (const core::MemoryTrace& trace : traces) {
+    if (received.Insert(trace.seq)) segment.push_back(trace);
+  }
+  if (segment.size() < engine->options_.segment_size) return std::nullopt;
+  return Plan(segment);
+}
+
+absl::Status MemoryEngine::Fleet::ConsolidateRobot(
+    const std::string& robot_id, Notices* notices, CarriedUpload* carried,
+    const core::ConsolidationPlan* plan) {
   auto found = pending.find(robot_id);
   if (found == pending.end() || found->second.empty()) return absl::OkStatus();
   const absl::Time start = absl::Now();
@@ -868,8 +943,14 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(const std::string& robot_id,
   }
   const size_t batch_size = batch.size();
   const uint64_t first_cluster_id = meta.next_cluster_id;
-  core::ConsolidationResult outcome =
-      memory.Consolidate(std::move(batch), first_cluster_id, rng);
+  bool fits = plan != nullptr && plan->keys.size() == batch.size();
+  for (size_t i = 0; fits && i < batch.size(); ++i) {
+    fits = plan->keys[i] == batch[i].key();
+  }
+  std::optional<core::ConsolidationPlan> own;
+  if (!fits) own = Plan(batch);
+  core::ConsolidationResult outcome = memory.Consolidate(
+      std::move(batch), first_cluster_id, fits ? *plan : *own);
 
   FleetMeta new_meta = meta;
   new_meta.next_cluster_id = first_cluster_id + outcome.added.size();
@@ -1201,6 +1282,8 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
     if (!added.ok()) return added.status();
     fleet = *added;
   }
+  // Outside the writer lock, so that robots' segments cluster in parallel.
+  const std::optional<core::ConsolidationPlan> plan = fleet->PlanAhead(traces);
   UploadResult result;
   Notices notices;
   {
@@ -1221,7 +1304,8 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
     }
     absl::MutexLock lock(&fleet->mu);
     if (status.ok() && !prepared.mutation.put_pending.empty()) {
-      status = fleet->CommitUpload(std::move(prepared), &result, &notices);
+      status = fleet->CommitUpload(std::move(prepared), &result, &notices,
+                                   plan ? &*plan : nullptr);
     }
     notices.consolidated.clusters = fleet->memory.clusters().size();
     notices.consolidated.traces = fleet->memory.trace_count();

@@ -1481,6 +1481,63 @@ TEST_F(MemoryEngineTest, AnUploadThatFillsASegmentIsOneWrite) {
   EXPECT_EQ(result->duplicates, 14u);
 }
 
+// A segment's k-means has a seed of its own (the fleet's, the robot's, the
+// segment's first seq): it clusters the same whether it was planned ahead
+// of the fleet's lock (an upload that fills it), in an explicit Consolidate,
+// or after other robots' segments.
+TEST(SegmentPlanTest, ASegmentClustersTheSameHoweverItIsConsolidated) {
+  EngineOptions options = SmallOptions();
+  options.memory.max_clusters = 100;  // nothing forgotten
+  std::mt19937_64 data(17);
+  std::vector<core::MemoryTrace> r1 = MakeTraces("r1", 1, 20, data);
+  for (size_t i = 0; i < r1.size(); ++i) r1[i].reward = 0.1f * (i % 7);
+  const std::vector<core::MemoryTrace> r2 = MakeTraces("r2", 1, 20, data);
+  // Per cluster of r1's segment, the seqs it kept.
+  auto membership = [](const MemoryEngine& engine) {
+    std::vector<std::vector<uint64_t>> clusters;
+    absl::StatusOr<ClusterListing> listing = engine.ListClusters("f1", true);
+    EXPECT_TRUE(listing.ok()) << listing.status();
+    if (!listing.ok()) return clusters;
+    for (const ClusterSummary& cluster : listing->clusters) {
+      if (cluster.robot_id != "r1") continue;
+      std::vector<uint64_t> seqs;
+      for (const TracePlace& place : cluster.places) seqs.push_back(place.seq);
+      std::sort(seqs.begin(), seqs.end());
+      clusters.push_back(std::move(seqs));
+    }
+    std::sort(clusters.begin(), clusters.end());
+    return clusters;
+  };
+  auto open = [](const EngineOptions& engine_options, MemoryStore* store) {
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
+        MemoryEngine::Open(engine_options, store, ExactFactory());
+    EXPECT_TRUE(engine.ok()) << engine.status();
+    return engine.ok() ? *std::move(engine) : nullptr;
+  };
+
+  std::unique_ptr<MemoryStore> store_a = storage::NewInMemoryStore();
+  std::unique_ptr<MemoryEngine> a = open(options, store_a.get());
+  ASSERT_TRUE(a->Upload("f1", r1).ok());
+
+  std::unique_ptr<MemoryStore> store_b = storage::NewInMemoryStore();
+  std::unique_ptr<MemoryEngine> b = open(options, store_b.get());
+  ASSERT_TRUE(b->Upload("f1", r2).ok());
+  ASSERT_TRUE(b->Upload("f1", std::span(r1).first(10)).ok());
+  ASSERT_TRUE(b->Upload("f1", std::span(r1).subspan(10)).ok());
+
+  EngineOptions long_segments = options;
+  long_segments.segment_size = 1000;
+  std::unique_ptr<MemoryStore> store_c = storage::NewInMemoryStore();
+  std::unique_ptr<MemoryEngine> c = open(long_segments, store_c.get());
+  ASSERT_TRUE(c->Upload("f1", r1).ok());
+  ASSERT_TRUE(c->Consolidate("f1").ok());
+
+  const std::vector<std::vector<uint64_t>> expected = membership(*a);
+  EXPECT_EQ(expected.size(), 4u);
+  EXPECT_EQ(membership(*b), expected);
+  EXPECT_EQ(membership(*c), expected);
+}
+
 TEST_F(MemoryEngineTest, StoreFailureDuringReplayKeepsCounts) {
   FlakyStore flaky(store_.get());
   absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
