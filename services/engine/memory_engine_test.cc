@@ -1282,6 +1282,39 @@ TEST_F(MemoryEngineTest, ConcurrentCallsOnSeveralFleets) {
   }
 }
 
+// Uploads of one robot racing each other: plans made ahead go stale (a
+// segment another upload filled first) and are made again under the lock;
+// every trace is received once and every segment consolidated once.
+TEST_F(MemoryEngineTest, RacingUploadsOfOneRobotConsolidateEachSegmentOnce) {
+  constexpr int kThreads = 4;
+  std::mt19937_64 rng(31);
+  const std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 60, rng);
+  std::vector<std::thread> threads;
+  for (int t = 0; t < kThreads; ++t) {
+    threads.emplace_back([this, t, &traces] {
+      for (int i = 0; i < 3; ++i) {
+        const size_t segment = static_cast<size_t>((i + t) % 3);
+        EXPECT_TRUE(
+            engine_->Upload("f1", std::span(traces).subspan(20 * segment, 20))
+                .ok());
+      }
+    });
+  }
+  for (std::thread& thread : threads) thread.join();
+  const FleetStats stats = Stats();
+  EXPECT_EQ(stats.consolidations, 3u);
+  EXPECT_EQ(stats.pending_traces, 0u);
+  ASSERT_THAT(stats.robots, SizeIs(1));
+  EXPECT_EQ(stats.robots[0].received, 60u);
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine_->ReadEvents("f1", 0);
+  ASSERT_TRUE(events.ok());
+  ASSERT_EQ(events->size(), stats.last_event_id);
+  for (size_t i = 0; i < events->size(); ++i) {
+    EXPECT_EQ((*events)[i].id, i + 1);
+  }
+}
+
 // Queries and stats run while an upload's or a sample's store write is in
 // flight (they do not wait for its fsync); a second upload waits for the
 // first, so writes reach the store in order; the blocked upload's traces
