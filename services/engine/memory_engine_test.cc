@@ -53,6 +53,28 @@ PlaceIndexFactory ExactFactory() {
   return [](size_t dimension) { return index::NewExactIndex(dimension); };
 }
 
+// The fleet's events are exactly those with ids 1..last, in order.
+void ExpectEventIds1To(const MemoryEngine& engine, std::string_view fleet_id,
+                       uint64_t last) {
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine.ReadEvents(fleet_id, 0);
+  ASSERT_TRUE(events.ok()) << events.status();
+  ASSERT_EQ(events->size(), last);
+  for (size_t i = 0; i < events->size(); ++i) {
+    EXPECT_EQ((*events)[i].id, i + 1);
+  }
+}
+
+// An engine with exact indexes on `store`; null (and a test failure) if it
+// does not open.
+std::unique_ptr<MemoryEngine> OpenOn(const EngineOptions& options,
+                                     MemoryStore* store) {
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
+      MemoryEngine::Open(options, store, ExactFactory());
+  EXPECT_TRUE(engine.ok()) << engine.status();
+  return engine.ok() ? *std::move(engine) : nullptr;
+}
+
 // A trace with a random code whose place lies on the x axis at 5 m * seq.
 core::MemoryTrace MakeTrace(std::string robot_id, uint64_t seq,
                             std::mt19937_64& rng, float reward = 1.0f,
@@ -1273,13 +1295,7 @@ TEST_F(MemoryEngineTest, ConcurrentCallsOnSeveralFleets) {
     EXPECT_EQ(robot.received, 20u * kSegments);
     EXPECT_EQ(robot.replayed, 3u * kSegments);
   }
-  absl::StatusOr<std::vector<core::MemoryEvent>> events =
-      engine_->ReadEvents("shared", 0);
-  ASSERT_TRUE(events.ok());
-  ASSERT_EQ(events->size(), shared.last_event_id);
-  for (size_t i = 0; i < events->size(); ++i) {
-    EXPECT_EQ((*events)[i].id, i + 1);
-  }
+  ExpectEventIds1To(*engine_, "shared", shared.last_event_id);
 }
 
 // Uploads of one robot racing each other: plans made ahead go stale (a
@@ -1306,13 +1322,7 @@ TEST_F(MemoryEngineTest, RacingUploadsOfOneRobotConsolidateEachSegmentOnce) {
   EXPECT_EQ(stats.pending_traces, 0u);
   ASSERT_THAT(stats.robots, SizeIs(1));
   EXPECT_EQ(stats.robots[0].received, 60u);
-  absl::StatusOr<std::vector<core::MemoryEvent>> events =
-      engine_->ReadEvents("f1", 0);
-  ASSERT_TRUE(events.ok());
-  ASSERT_EQ(events->size(), stats.last_event_id);
-  for (size_t i = 0; i < events->size(); ++i) {
-    EXPECT_EQ((*events)[i].id, i + 1);
-  }
+  ExpectEventIds1To(*engine_, "f1", stats.last_event_id);
 }
 
 // Queries and stats run while an upload's or a sample's store write is in
@@ -1420,10 +1430,9 @@ TEST_F(MemoryEngineTest, StoreFailureDuringUploadStoresNothing) {
 // is stored and the fleet is as before it.
 TEST_F(MemoryEngineTest, StoreFailureOfAConsolidatingUploadStoresNothing) {
   FlakyStore flaky(store_.get());
-  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
-      MemoryEngine::Open(options_, &flaky, ExactFactory());
-  ASSERT_TRUE(opened.ok());
-  MemoryEngine& engine = **opened;
+  std::unique_ptr<MemoryEngine> opened = OpenOn(options_, &flaky);
+  ASSERT_NE(opened, nullptr);
+  MemoryEngine& engine = *opened;
   std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 20, rng_);
   const std::vector<core::MemoryTrace> first(traces.begin(),
                                              traces.begin() + 5);
@@ -1461,10 +1470,9 @@ TEST_F(MemoryEngineTest, StoreFailureOfAConsolidatingUploadStoresNothing) {
 // stay pending; after a reopen everything is where it was.
 TEST_F(MemoryEngineTest, AnUploadThatFillsASegmentIsOneWrite) {
   FlakyStore counting(store_.get());
-  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
-      MemoryEngine::Open(options_, &counting, ExactFactory());
-  ASSERT_TRUE(opened.ok());
-  MemoryEngine& engine = **opened;
+  std::unique_ptr<MemoryEngine> opened = OpenOn(options_, &counting);
+  ASSERT_NE(opened, nullptr);
+  MemoryEngine& engine = *opened;
   ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", 1, 12, rng_)).ok());
   const int before = counting.applies;
   // r1 fills its segment (12 + 8 = 20); r2's 6 traces stay pending.
@@ -1494,7 +1502,7 @@ TEST_F(MemoryEngineTest, AnUploadThatFillsASegmentIsOneWrite) {
   stats = engine.GetStats("f1");
   ASSERT_TRUE(stats.ok());
   const std::vector<core::MemoryTrace> traces = AllTraces(engine, "f1", 200);
-  opened->reset();
+  opened.reset();
   engine_.reset();
   engine_ = OpenEngine();
   ASSERT_NE(engine_, nullptr);
@@ -1541,19 +1549,14 @@ TEST(SegmentPlanTest, ASegmentClustersTheSameHoweverItIsConsolidated) {
     std::sort(clusters.begin(), clusters.end());
     return clusters;
   };
-  auto open = [](const EngineOptions& engine_options, MemoryStore* store) {
-    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
-        MemoryEngine::Open(engine_options, store, ExactFactory());
-    EXPECT_TRUE(engine.ok()) << engine.status();
-    return engine.ok() ? *std::move(engine) : nullptr;
-  };
-
   std::unique_ptr<MemoryStore> store_a = storage::NewInMemoryStore();
-  std::unique_ptr<MemoryEngine> a = open(options, store_a.get());
+  std::unique_ptr<MemoryEngine> a = OpenOn(options, store_a.get());
+  ASSERT_NE(a, nullptr);
   ASSERT_TRUE(a->Upload("f1", r1).ok());
 
   std::unique_ptr<MemoryStore> store_b = storage::NewInMemoryStore();
-  std::unique_ptr<MemoryEngine> b = open(options, store_b.get());
+  std::unique_ptr<MemoryEngine> b = OpenOn(options, store_b.get());
+  ASSERT_NE(b, nullptr);
   ASSERT_TRUE(b->Upload("f1", r2).ok());
   ASSERT_TRUE(b->Upload("f1", std::span(r1).first(10)).ok());
   ASSERT_TRUE(b->Upload("f1", std::span(r1).subspan(10)).ok());
@@ -1561,7 +1564,8 @@ TEST(SegmentPlanTest, ASegmentClustersTheSameHoweverItIsConsolidated) {
   EngineOptions long_segments = options;
   long_segments.segment_size = 1000;
   std::unique_ptr<MemoryStore> store_c = storage::NewInMemoryStore();
-  std::unique_ptr<MemoryEngine> c = open(long_segments, store_c.get());
+  std::unique_ptr<MemoryEngine> c = OpenOn(long_segments, store_c.get());
+  ASSERT_NE(c, nullptr);
   ASSERT_TRUE(c->Upload("f1", r1).ok());
   ASSERT_TRUE(c->Consolidate("f1").ok());
 
