@@ -899,6 +899,13 @@ std::optional<core::ConsolidationPlan> MemoryEngine::Fleet::PlanAhead(
   {
     absl::ReaderMutexLock lock(&mu);
     if (!stale.ok() || !exists()) return std::nullopt;
+    // Planning runs before PrepareUpload's checks: a refused upload (a code
+    // of another dimension would overrun the plan's matrix) plans nothing.
+    if (!ValidateUpload(id, traces, &meta,
+                        engine->options_.max_traces_per_upload)
+             .ok()) {
+      return std::nullopt;
+    }
     auto known = robots.find(robot_id);
     if (known != robots.end()) received = known->second.received;
     auto held = pending.find(robot_id);

@@ -1575,6 +1575,23 @@ TEST(SegmentPlanTest, ASegmentClustersTheSameHoweverItIsConsolidated) {
   EXPECT_EQ(membership(*c), expected);
 }
 
+// An upload that would fill a segment but is refused is never planned: a
+// code of another dimension must not reach k-means (it would overrun the
+// plan's matrix before PrepareUpload refuses the upload).
+TEST_F(MemoryEngineTest, ARefusedUploadThatWouldFillASegmentIsNotPlanned) {
+  MustUpload(MakeTraces("r1", 1, 5, rng_));
+  std::vector<core::MemoryTrace> bad = MakeTraces("r1", 6, 15, rng_);
+  // The segment's last column: past it, the overrun leaves the matrix.
+  bad.back().code.resize(kDimension + 9, 1.0f);
+  absl::StatusOr<UploadResult> result = engine_->Upload("f1", bad);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  bad.back().code.resize(kDimension - 3);
+  result = engine_->Upload("f1", bad);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(Stats().pending_traces, 5u);
+  EXPECT_EQ(Stats().clusters, 0u);
+}
+
 TEST_F(MemoryEngineTest, StoreFailureDuringReplayKeepsCounts) {
   FlakyStore flaky(store_.get());
   absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
