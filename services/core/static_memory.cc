@@ -15,6 +15,17 @@
 namespace fleetmem::core {
 namespace {
 
+// `sum` / `count` in float (a centroid summed in double).
+std::vector<float> Mean(const Eigen::VectorXd& sum, size_t count) {
+  std::vector<float> mean(static_cast<size_t>(sum.size()));
+  if (count == 0) return mean;
+  for (Eigen::Index i = 0; i < sum.size(); ++i) {
+    mean[static_cast<size_t>(i)] =
+        static_cast<float>(sum[i] / static_cast<double>(count));
+  }
+  return mean;
+}
+
 // Mean feature-spatial code of `traces` (non-empty, equal code sizes).
 std::vector<float> Centroid(const std::vector<MemoryTrace>& traces,
                             double spatial_scale_m) {
@@ -28,13 +39,7 @@ std::vector<float> Centroid(const std::vector<MemoryTrace>& traces,
       sum += c;
     }
   }
-  std::vector<float> centroid(static_cast<size_t>(sum.size()));
-  if (traces.empty()) return centroid;
-  for (Eigen::Index i = 0; i < sum.size(); ++i) {
-    centroid[static_cast<size_t>(i)] =
-        static_cast<float>(sum[i] / static_cast<double>(traces.size()));
-  }
-  return centroid;
+  return Mean(sum, traces.size());
 }
 
 Eigen::VectorXf ToVector(const std::vector<float>& values) {
@@ -108,12 +113,7 @@ ConsolidationPlan PlanConsolidation(const MemoryOptions& options,
     for (size_t i : kept) {
       sum += points.col(static_cast<Eigen::Index>(i)).cast<double>();
     }
-    std::vector<float> centroid(static_cast<size_t>(sum.size()));
-    for (Eigen::Index d = 0; d < sum.size(); ++d) {
-      centroid[static_cast<size_t>(d)] =
-          static_cast<float>(sum[d] / static_cast<double>(kept.size()));
-    }
-    plan.centroids.push_back(std::move(centroid));
+    plan.centroids.push_back(Mean(sum, kept.size()));
   }
   return plan;
 }
