@@ -13,9 +13,23 @@
 # fleetmem-server`. The load generator is B's.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
+if [ $# -lt 2 ]; then
+  echo "usage: $0 A_BUILD_DIR B_BUILD_DIR [ROUNDS]" >&2
+  exit 2
+fi
 a=$1
 b=$2
 rounds=${3:-3}
+for dir in "$a" "$b"; do
+  if [ ! -x "$dir/bin/fleetmem-server" ]; then
+    echo "$dir/bin/fleetmem-server: no such executable (build it first)" >&2
+    exit 2
+  fi
+done
+if ! [[ $rounds =~ ^[1-9][0-9]*$ ]]; then
+  echo "ROUNDS must be a positive integer, not '$rounds'" >&2
+  exit 2
+fi
 work=$(mktemp -d)
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"

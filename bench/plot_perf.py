@@ -97,7 +97,8 @@ def main():
     ann = load(ann_path) if os.path.exists(ann_path) else []
     kinds = {0: "fleetmem exact", 2: "fleetmem HNSW (ef 128)",
              3: "hnswlib direct", 4: "faiss HNSW", 5: "faiss flat",
-             6: "peer: exact with Eigen's scan (previous)"}
+             6: "peer: exact with Eigen's scan (previous)",
+             7: "exact, streaming scan at every size"}
     curves = []
     for kind, label in kinds.items():
         points = []
@@ -166,7 +167,8 @@ def tables(out):
     print()
     names = {0: "fleetmem exact", 1: "fleetmem tiered (auto)",
              2: "fleetmem HNSW", 3: "hnswlib direct", 4: "faiss HNSW",
-             5: "faiss flat", 6: "fleetmem exact, Eigen's scan (previous)"}
+             5: "faiss flat", 6: "fleetmem exact, Eigen's scan (previous)",
+             7: "fleetmem exact, streaming scan at every size"}
     ann = []
     path = os.path.join(out, "ann.json")
     if os.path.exists(path):
@@ -179,7 +181,7 @@ def tables(out):
         if parts[0] != "BM_Query":
             continue
         kind, size = int(parts[1]), int(parts[2])
-        ef = "—" if kind in (0, 5, 6) or (kind == 1 and size < 20000) else \
+        ef = "—" if kind in (0, 5, 6, 7) or (kind == 1 and size < 20000) else \
             str(int(b.get("ef_search", 128)))
         bw = f"{b['bw_fraction']:.2f}" if "bw_fraction" in b else ""
         print(f"| {size:,} | {names[kind]} | {ef} | {b['recall@10']:.3f} | "

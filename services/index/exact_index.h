@@ -17,10 +17,11 @@ struct ExactIndexOptions {
   // From this many bytes of stored vectors on, Search scores them with a
   // streaming loop that prefetches ahead instead of Eigen's matrix-vector
   // product. Eigen's kernel is faster while the vectors sit in the cache,
-  // the streaming loop beyond it. The default is half the 32 MiB L3 of the
-  // project's VM, where ann_bench measured both (docs/performance.md); 0
-  // streams always, SIZE_MAX never.
-  size_t streaming_scan_bytes = size_t{16} << 20;
+  // the streaming loop beyond it. The default is the 32 MiB L3 of the
+  // project's VM: ann_bench measured Eigen's kernel faster at 20 MB and the
+  // streaming loop faster at 50 MB (docs/performance.md); 0 streams always,
+  // SIZE_MAX never.
+  size_t streaming_scan_bytes = size_t{32} << 20;
 };
 
 // Returns an empty exact index for vectors of `dimension` (> 0; with 0 every
