@@ -22,6 +22,11 @@ std::vector<float> NormalizedCode(std::span<const float> code) {
   return out;
 }
 
+float UnitScale(std::span<const float> code) {
+  const double norm = Norm(code);
+  return norm > 0.0 ? static_cast<float>(1.0 / norm) : 0.0f;
+}
+
 void NormalizeInto(std::span<const float> code, std::span<float> out) {
   assert(out.size() == code.size());
   const double norm = Norm(code);

@@ -18,6 +18,12 @@ std::vector<float> NormalizedCode(std::span<const float> code);
 // allocating; the same values, bit for bit.
 void NormalizeInto(std::span<const float> code, std::span<float> out);
 
+// 1 / |code| (the norm in double precision), 0 for an all-zero code: the
+// scale under which an index keeps a code as uploaded and searches its unit
+// version (UnitScale(code) * code is NormalizedCode(code) up to float
+// rounding).
+float UnitScale(std::span<const float> code);
+
 // Feature-spatial code of `trace`: its normalised code followed by
 // (x, y, z) / spatial_scale_m. Dimension = code size + 3.
 Eigen::VectorXf FeatureSpatialCode(const MemoryTrace& trace,

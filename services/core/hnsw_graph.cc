@@ -11,16 +11,81 @@
 #include "absl/strings/str_cat.h"
 #include "hnswlib/hnswlib.h"
 
+#if defined(__SSE__)
+#include <xmmintrin.h>
+#endif
+
 namespace fleetmem::core {
+namespace {
+
+// Squared Euclidean distance between sx * x and sy * y, where x and y are
+// `dimension` floats followed by their scales sx and sy. Four SSE
+// accumulators, as hnswlib's own L2 kernels.
+float ScaledSquaredL2(const void* a, const void* b, const void* param) {
+  const size_t dimension = *static_cast<const size_t*>(param);
+  const float* x = static_cast<const float*>(a);
+  const float* y = static_cast<const float*>(b);
+  const float sx = x[dimension], sy = y[dimension];
+  size_t i = 0;
+  float sum = 0.0f;
+#if defined(__SSE__)
+  const __m128 vx = _mm_set1_ps(sx), vy = _mm_set1_ps(sy);
+  __m128 acc[4] = {_mm_setzero_ps(), _mm_setzero_ps(), _mm_setzero_ps(),
+                   _mm_setzero_ps()};
+  for (; i + 16 <= dimension; i += 16) {
+    for (int lane = 0; lane < 4; ++lane) {
+      const __m128 d =
+          _mm_sub_ps(_mm_mul_ps(vx, _mm_loadu_ps(x + i + 4 * lane)),
+                     _mm_mul_ps(vy, _mm_loadu_ps(y + i + 4 * lane)));
+      acc[lane] = _mm_add_ps(acc[lane], _mm_mul_ps(d, d));
+    }
+  }
+  for (; i + 4 <= dimension; i += 4) {
+    const __m128 d = _mm_sub_ps(_mm_mul_ps(vx, _mm_loadu_ps(x + i)),
+                                _mm_mul_ps(vy, _mm_loadu_ps(y + i)));
+    acc[0] = _mm_add_ps(acc[0], _mm_mul_ps(d, d));
+  }
+  float lanes[4];
+  _mm_storeu_ps(lanes,
+                _mm_add_ps(_mm_add_ps(acc[0], acc[1]), _mm_add_ps(acc[2], acc[3])));
+  sum = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+#endif
+  for (; i < dimension; ++i) {
+    const float d = sx * x[i] - sy * y[i];
+    sum += d * d;
+  }
+  return sum;
+}
+
+// hnswlib space of `dimension` floats plus a scale (HnswGraphOptions::
+// scaled).
+class ScaledL2Space final : public hnswlib::SpaceInterface<float> {
+ public:
+  explicit ScaledL2Space(size_t dimension) : dimension_(dimension) {}
+  size_t get_data_size() override { return (dimension_ + 1) * sizeof(float); }
+  hnswlib::DISTFUNC<float> get_dist_func() override { return ScaledSquaredL2; }
+  void* get_dist_func_param() override { return &dimension_; }
+
+ private:
+  size_t dimension_;
+};
+
+std::unique_ptr<hnswlib::SpaceInterface<float>> MakeSpace(
+    size_t dimension, const HnswGraphOptions& options) {
+  if (options.scaled) return std::make_unique<ScaledL2Space>(dimension);
+  return std::make_unique<hnswlib::L2Space>(dimension);
+}
+
+}  // namespace
 
 struct HnswGraph::Impl {
   Impl(size_t dimension, size_t capacity, const HnswGraphOptions& options)
-      : space(dimension),
-        hnsw(&space, capacity, options.m, options.ef_construction,
+      : space(MakeSpace(dimension, options)),
+        hnsw(space.get(), capacity, options.m, options.ef_construction,
              options.seed) {
     hnsw.setEf(options.ef_search);
   }
-  hnswlib::L2Space space;
+  std::unique_ptr<hnswlib::SpaceInterface<float>> space;
   hnswlib::HierarchicalNSW<float> hnsw;
 };
 
@@ -39,7 +104,18 @@ void HnswGraph::Reserve(size_t count) {
   }
 }
 
-uint32_t HnswGraph::Add(const float* vector) {
+const float* HnswGraph::Stored(const float* vector, float scale,
+                               std::vector<float>& buffer) const {
+  if (!options_.scaled) return vector;
+  buffer.resize(dimension_ + 1);
+  std::copy(vector, vector + dimension_, buffer.begin());
+  buffer[dimension_] = scale;
+  return buffer.data();
+}
+
+uint32_t HnswGraph::Add(const float* raw, float scale) {
+  std::vector<float> buffer;
+  const float* vector = Stored(raw, scale, buffer);
   if (!free_slots_.empty()) {
     const uint32_t slot = free_slots_.back();
     const hnswlib::tableint internal = impl_->hnsw.label_lookup_.at(slot);
@@ -64,10 +140,13 @@ void HnswGraph::Remove(uint32_t slot) {
 }
 
 std::vector<std::pair<float, uint32_t>> HnswGraph::Search(const float* query,
-                                                          size_t k) const {
+                                                          size_t k,
+                                                          float scale) const {
   std::vector<std::pair<float, uint32_t>> out;
   if (live_ == 0 || k == 0) return out;
-  auto found = impl_->hnsw.searchKnn(query, std::min(k, live_));
+  std::vector<float> buffer;
+  auto found = impl_->hnsw.searchKnn(Stored(query, scale, buffer),
+                                     std::min(k, live_));
   out.resize(found.size());
   for (size_t i = found.size(); i-- > 0; found.pop()) {
     out[i] = {found.top().first, static_cast<uint32_t>(found.top().second)};
@@ -77,9 +156,15 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::Search(const float* query,
 
 void HnswGraph::set_ef_search(size_t ef) { impl_->hnsw.setEf(ef); }
 
-float HnswGraph::SquaredDistance(const float* query, uint32_t slot) const {
-  return impl_->hnsw.fstdistfunc_(query, Vector(slot),
+float HnswGraph::SquaredDistance(const float* query, uint32_t slot,
+                                 float scale) const {
+  std::vector<float> buffer;
+  return impl_->hnsw.fstdistfunc_(Stored(query, scale, buffer), Vector(slot),
                                   impl_->hnsw.dist_func_param_);
+}
+
+float HnswGraph::Scale(uint32_t slot) const {
+  return options_.scaled ? Vector(slot)[dimension_] : 1.0f;
 }
 
 bool HnswGraph::contains(uint32_t slot) const {
@@ -97,7 +182,8 @@ namespace {
 
 // Version and kind of the layout Save writes (each index kind its own, so
 // one kind never parses another's bytes).
-constexpr uint32_t kGraphFormat = 0x47524631;  // "GRF1"
+// GRF2 added the scaled flag.
+constexpr uint32_t kGraphFormat = 0x47524632;  // "GRF2"
 
 template <typename Engine>
 std::string EngineState(const Engine& engine) {
@@ -125,6 +211,7 @@ void HnswGraph::Save(ByteWriter& out) const {
   out.Put<uint64_t>(dimension_);
   out.Put<uint64_t>(hnsw.M_);
   out.Put<uint64_t>(hnsw.ef_construction_);
+  out.Put<uint8_t>(options_.scaled ? 1 : 0);
   out.Put<uint32_t>(next_slot_);
   out.Put<uint64_t>(free_slots_.size());
   out.PutBytes(free_slots_.data(), free_slots_.size() * sizeof(uint32_t));
@@ -161,20 +248,24 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
     size_t dimension, HnswGraphOptions options, ByteReader& in) {
   uint32_t format = 0;
   uint64_t saved_dimension = 0, m = 0, ef_construction = 0, free_count = 0;
+  uint8_t scaled = 0;
   if (!in.Get(&format) || format != kGraphFormat) {
     return Malformed("unknown format");
   }
-  if (!in.Get(&saved_dimension) || !in.Get(&m) || !in.Get(&ef_construction)) {
+  if (!in.Get(&saved_dimension) || !in.Get(&m) || !in.Get(&ef_construction) ||
+      !in.Get(&scaled)) {
     return Malformed("truncated header");
   }
   auto graph = std::make_unique<HnswGraph>(dimension, options);
   auto& hnsw = graph->impl_->hnsw;
   if (saved_dimension != dimension || m != hnsw.M_ ||
-      ef_construction != hnsw.ef_construction_) {
-    return Malformed(
-        absl::StrCat("built with dimension ", saved_dimension, ", m ", m,
-                     ", ef_construction ", ef_construction, "; this graph has ",
-                     dimension, ", ", hnsw.M_, ", ", hnsw.ef_construction_));
+      ef_construction != hnsw.ef_construction_ ||
+      (scaled != 0) != options.scaled) {
+    return Malformed(absl::StrCat(
+        "built with dimension ", saved_dimension, ", m ", m,
+        ", ef_construction ", ef_construction, ", scaled ", scaled != 0,
+        "; this graph has ", dimension, ", ", hnsw.M_, ", ",
+        hnsw.ef_construction_, ", ", options.scaled));
   }
   if (!in.Get(&graph->next_slot_) || !in.Get(&free_count) ||
       free_count > graph->next_slot_) {

@@ -31,6 +31,13 @@ struct HnswGraphOptions {
   // Share of a reused node's old neighbours whose links are recomputed
   // (hnswlib's replace-deleted repairs all of them, at ~30x an insert's cost).
   float repair_probability = 0.1f;
+  // Each node stores its vector as given plus a scale factor, and distances
+  // are between the scaled vectors (Add's `scale`): a place index keeps a
+  // code exactly as uploaded and searches its unit-length version, with
+  // one copy. Costs one float per node and two multiplications per
+  // coordinate. false: plain vectors (hnswlib's L2 space), Add's scale
+  // must be 1.
+  bool scaled = false;
 };
 
 class HnswGraph {
@@ -46,21 +53,26 @@ class HnswGraph {
   // Room for `count` live vectors without reallocation. May throw
   // std::bad_alloc (the graph is unchanged then).
   void Reserve(size_t count);
-  // Adds `dimension` floats; returns the slot (a removed one if any, last
+  // Adds `dimension` floats, standing for `scale` times them (options.scaled;
+  // otherwise scale must be 1); returns the slot (a removed one if any, last
   // removed first). May throw std::bad_alloc.
-  uint32_t Add(const float* vector);
+  uint32_t Add(const float* vector, float scale = 1.0f);
   // Removes a live slot.
   void Remove(uint32_t slot);
-  // Up to k nearest live slots as (squared Euclidean distance, slot),
-  // nearest first.
-  std::vector<std::pair<float, uint32_t>> Search(const float* query,
-                                                 size_t k) const;
+  // Up to k nearest live slots to `scale` times `query` (1 unless
+  // options.scaled) as (squared Euclidean distance, slot), nearest first.
+  std::vector<std::pair<float, uint32_t>> Search(const float* query, size_t k,
+                                                 float scale = 1.0f) const;
   // Changes the search candidate list (no rebuild; not while searching).
   void set_ef_search(size_t ef);
-  // Squared Euclidean distance between `query` and the vector of `slot`.
-  float SquaredDistance(const float* query, uint32_t slot) const;
-  // The stored vector of a live slot.
+  // Squared Euclidean distance between `scale` times `query` and the
+  // (scaled) vector of `slot`.
+  float SquaredDistance(const float* query, uint32_t slot,
+                        float scale = 1.0f) const;
+  // The stored vector of a live slot, as given to Add (unscaled).
   const float* Vector(uint32_t slot) const;
+  // The scale given with it (1 unless options.scaled).
+  float Scale(uint32_t slot) const;
 
   // Writes the whole graph (vectors, links, removed slots and the level
   // generator's state) for Load. O(size); the graph is only read.
@@ -83,6 +95,10 @@ class HnswGraph {
 
  private:
   struct Impl;
+  // `vector` in the layout the graph stores (with its scale when scaled);
+  // points into `buffer` or at `vector` itself.
+  const float* Stored(const float* vector, float scale,
+                      std::vector<float>& buffer) const;
   // Load without its handlers for hnswlib's exceptions.
   static absl::StatusOr<std::unique_ptr<HnswGraph>> LoadOrThrow(
       size_t dimension, HnswGraphOptions options, ByteReader& in);

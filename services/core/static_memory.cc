@@ -177,6 +177,13 @@ const MemoryTrace* StaticMemory::Find(const TraceKey& key) const {
   return slot_trace_[found->second.slot];
 }
 
+bool StaticMemory::DropCode(const TraceKey& key) {
+  auto found = location_.find(key);
+  if (found == location_.end()) return false;
+  std::vector<float>().swap(slot_trace_[found->second.slot]->code);
+  return true;
+}
+
 namespace {
 
 void Count(std::map<std::string, uint64_t, std::less<>>& counts,

@@ -105,6 +105,13 @@ class StaticMemory {
   // The trace with this key, or nullptr. Valid until the next mutation.
   const MemoryTrace* Find(const TraceKey& key) const;
 
+  // Frees the code of the trace with `key` (false if there is none), for a
+  // caller that keeps the codes elsewhere (the engine's place index): the
+  // memory's algorithms read the codes of the batch they consolidate, never
+  // those of the traces they hold. Find, clusters() and SampleForReplay
+  // then show the trace with an empty code.
+  bool DropCode(const TraceKey& key);
+
   // Clusters by id (ascending = oldest first).
   const std::map<uint64_t, Cluster>& clusters() const { return clusters_; }
   size_t trace_count() const { return trace_count_; }

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <deque>
 #include <functional>
 #include <map>
 #include <random>
@@ -10,6 +11,10 @@
 #include <thread>
 #include <tuple>
 #include <utility>
+
+#if __has_include(<malloc.h>)
+#include <malloc.h>
+#endif
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
@@ -179,6 +184,15 @@ absl::Status ValidateEngineOptions(const EngineOptions& options) {
 
 namespace {
 
+// Gives freed heap pages back to the system, which glibc does not do by
+// itself for pages amid the heap: after a load dropped a million codes of
+// 1 KB each (ReleaseAllIndexedCodes).
+void ReturnFreedMemory() {
+#if defined(__GLIBC__)
+  malloc_trim(0);
+#endif
+}
+
 // Runs `first` on this thread and `second` beside it on another one when
 // `items` makes that pay off (a restart: each is seconds long at 1,000,000
 // traces), else one after the other; returns once both are done. `first`
@@ -325,8 +339,25 @@ struct MemoryEngine::Fleet {
   // Appends a pending trace of its robot.
   void AddPending(core::MemoryTrace trace) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // The trace with `key` in the static memory or among the pending traces.
+  // Its code may be empty (ReleaseIndexedCodes): copies that leave the
+  // engine go through WithCode.
   const core::MemoryTrace* FindTrace(const core::TraceKey& key) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // `trace` with its code: a static-memory trace whose code memory dropped
+  // gets it from the index. INTERNAL if neither has it (a bug).
+  absl::StatusOr<core::MemoryTrace> WithCode(core::MemoryTrace trace) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  absl::Status FillCodes(std::vector<core::MemoryTrace>& traces) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // One copy of each code: frees the codes of static-memory traces that the
+  // index now keeps itself (PlaceIndex::HoldsCode; a graph does, an exact
+  // segment does not), looking at up to `budget` traces of
+  // codes_to_release and sending those not yet held to its back. Returns
+  // the codes freed.
+  size_t ReleaseIndexedCodes(size_t budget) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Queues every static-memory trace for ReleaseIndexedCodes and runs it
+  // over all of them (after a load).
+  void ReleaseAllIndexedCodes() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
 
   // An upload in three steps, so that readers wait only for the last:
   // PrepareUpload checks it and builds the store mutation (shared lock); the
@@ -454,6 +485,9 @@ struct MemoryEngine::Fleet {
   absl::flat_hash_map<core::TraceKey, uint64_t> handle_of ABSL_GUARDED_BY(mu);
   absl::flat_hash_map<uint64_t, core::TraceKey> key_of ABSL_GUARDED_BY(mu);
   uint64_t next_handle ABSL_GUARDED_BY(mu) = 1;
+  // Static-memory traces whose codes memory still holds although the index
+  // may keep them (ReleaseIndexedCodes); some may be gone since.
+  std::deque<uint64_t> codes_to_release ABSL_GUARDED_BY(mu);  // handles
   // The fleet's seed; replay draws from `rng`, and each segment's k-means
   // from a generator of its own (SegmentSeed).
   const uint64_t seed;
@@ -510,6 +544,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   handle_of.clear();
   key_of.clear();
   next_handle = 1;
+  codes_to_release.clear();
   if (meta.code_dimension == 0) {
     if (!record.clusters.empty() || !record.pending.empty()) {
       return absl::DataLossError(absl::StrCat(
@@ -555,6 +590,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
       FLEETMEM_LOG(kInfo) << "fleet \"" << id
                           << "\": loaded from its index snapshot in "
                           << absl::ToDoubleSeconds(absl::Now() - start) << " s";
+      ReleaseAllIndexedCodes();
       return status;
     }
     // No snapshot is the normal case after a crash or a first start.
@@ -567,12 +603,66 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
           << "\": rebuilding the index, its snapshot is unusable: " << status;
     }
   }
-  if (restored) return IndexTraces(traces);
-  return IndexTraces(traces, [&] {
-    for (core::Cluster& cluster : record.clusters) {
-      memory.Restore(std::move(cluster));
+  absl::Status status =
+      restored ? IndexTraces(traces) : IndexTraces(traces, [&] {
+        for (core::Cluster& cluster : record.clusters) {
+          memory.Restore(std::move(cluster));
+        }
+      });
+  if (status.ok()) ReleaseAllIndexedCodes();
+  return status;
+}
+
+size_t MemoryEngine::Fleet::ReleaseIndexedCodes(size_t budget) {
+  size_t released = 0;
+  if (index == nullptr) return released;
+  for (size_t n = std::min(budget, codes_to_release.size()); n > 0; --n) {
+    const uint64_t handle = codes_to_release.front();
+    codes_to_release.pop_front();
+    auto key = key_of.find(handle);
+    if (key == key_of.end()) continue;  // left the index (forgotten)
+    if (!index->HoldsCode(handle)) {
+      codes_to_release.push_back(handle);
+      continue;
     }
-  });
+    if (memory.DropCode(key->second)) ++released;
+  }
+  return released;
+}
+
+void MemoryEngine::Fleet::ReleaseAllIndexedCodes() {
+  codes_to_release.clear();
+  for (const auto& [cluster_id, cluster] : memory.clusters()) {
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      auto handle = handle_of.find(trace.key());
+      if (handle != handle_of.end()) codes_to_release.push_back(handle->second);
+    }
+  }
+  if (ReleaseIndexedCodes(codes_to_release.size()) > 0) ReturnFreedMemory();
+}
+
+absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(
+    core::MemoryTrace trace) const {
+  if (!trace.code.empty()) return trace;
+  auto handle = handle_of.find(trace.key());
+  if (handle == handle_of.end() || index == nullptr ||
+      !index->CopyCode(handle->second, &trace.code)) {
+    return absl::InternalError(absl::StrCat(
+        "fleet \"", id, "\": the code of trace (\"", trace.robot_id, "\", ",
+        trace.seq, ") is neither in memory nor in the index"));
+  }
+  return trace;
+}
+
+absl::Status MemoryEngine::Fleet::FillCodes(
+    std::vector<core::MemoryTrace>& traces) const {
+  for (core::MemoryTrace& trace : traces) {
+    if (!trace.code.empty()) continue;
+    absl::StatusOr<core::MemoryTrace> filled = WithCode(std::move(trace));
+    if (!filled.ok()) return filled.status();
+    trace = *std::move(filled);
+  }
+  return absl::OkStatus();
 }
 
 void MemoryEngine::Fleet::AddPending(core::MemoryTrace trace) {
@@ -1007,7 +1097,14 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   mutation.put_meta = true;
   mutation.meta = new_meta;
 
-  absl::Status status = engine->store_->Apply(id, mutation);
+  // The new clusters' traces came from the batch and still hold their codes
+  // (their release comes below); FillCodes only guards the store against a
+  // trace without one.
+  absl::Status status;
+  for (core::Cluster& cluster : mutation.put_clusters) {
+    if (status.ok()) status = FillCodes(cluster.traces);
+  }
+  if (status.ok()) status = engine->store_->Apply(id, mutation);
   if (!status.ok()) {
     // The static memory already ran ahead of the store: drop it.
     FLEETMEM_LOG(kError) << "fleet \"" << id << "\": consolidation of robot \""
@@ -1042,6 +1139,19 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
                          << "\": index update failed, rebuilding: " << status;
     absl::Status reloaded = Reload();
     if (!reloaded.ok()) return reloaded;
+  } else {
+    for (const core::Cluster& cluster : outcome.added) {
+      if (forgotten_ids.contains(cluster.id)) continue;
+      for (const core::MemoryTrace& trace : cluster.traces) {
+        auto handle = handle_of.find(trace.key());
+        if (handle != handle_of.end()) {
+          codes_to_release.push_back(handle->second);
+        }
+      }
+    }
+    // Twice what a batch adds, so the queue does not grow while the index
+    // keeps up.
+    ReleaseIndexedCodes(2 * batch_size + 64);
   }
 
   ConsolidateResult batch_result;
@@ -1072,10 +1182,16 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
       const core::MemoryTrace* trace = FindTrace(key);
       if (trace != nullptr && trace->cluster_id != 0) again.push_back(*trace);
     }
+    absl::Status status = FillCodes(again);
+    if (!status.ok()) return status;
     return again;
   }
   std::vector<core::MemoryTrace> traces = memory.SampleForReplay(count, rng);
   if (traces.empty()) return traces;
+  if (absl::Status status = FillCodes(traces); !status.ok()) {
+    Reload().IgnoreError();  // drops the incremented counts
+    return status;
+  }
   record.replayed += traces.size();
   if (!request_id.empty()) {
     record.last_sample_request_id = std::string(request_id);
@@ -1208,6 +1324,33 @@ absl::StatusOr<std::unique_ptr<MemoryEngine>> MemoryEngine::Open(
   FLEETMEM_LOG(kInfo) << "memory engine opened with " << fleet_ids->size()
                       << " fleet(s)";
   return engine;
+}
+
+size_t MemoryEngine::ReleaseIndexedCodes() {
+  std::vector<Fleet*> fleets;
+  {
+    absl::ReaderMutexLock lock(&fleets_mu_);
+    for (const auto& [fleet_id, fleet] : fleets_) fleets.push_back(fleet.get());
+  }
+  // Short turns under each fleet's lock, so that queries wait little.
+  constexpr size_t kTurn = 4096;
+  size_t released = 0;
+  for (Fleet* fleet : fleets) {
+    size_t left = 0;
+    {
+      absl::ReaderMutexLock lock(&fleet->mu);
+      left = fleet->codes_to_release.size();
+    }
+    while (left > 0) {
+      absl::MutexLock lock(&fleet->mu);
+      const size_t turn = std::min(left, kTurn);
+      released += fleet->ReleaseIndexedCodes(turn);
+      left -= turn;
+    }
+  }
+  // Large releases leave holes amid the heap that glibc keeps.
+  if (released >= 10'000) ReturnFreedMemory();
+  return released;
 }
 
 absl::Status MemoryEngine::SaveIndexSnapshots() {
@@ -1448,9 +1591,9 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
       return absl::InternalError(
           absl::StrCat("fleet \"", V(fleet_id), "\" has no index"));
     }
-    const std::vector<float> normalized = core::NormalizedCode(query.code);
     SearchParams params;
     params.k = std::max<size_t>(query.k, 1);
+    params.unit_query = true;  // as the codes were added (AddNormalized)
     if (use_prior) {
       params.accept = [fleet, &query](uint64_t handle) {
         auto key = fleet->key_of.find(handle);
@@ -1461,7 +1604,7 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
       };
     }
     absl::StatusOr<std::vector<Neighbor>> neighbors =
-        fleet->index->Search(normalized, params);
+        fleet->index->Search(query.code, params);
     if (!neighbors.ok()) return neighbors.status();
     matches.reserve(neighbors->size());
     for (const Neighbor& neighbor : *neighbors) {
@@ -1469,7 +1612,9 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
       if (key == fleet->key_of.end()) continue;
       const core::MemoryTrace* trace = fleet->FindTrace(key->second);
       if (trace == nullptr) continue;
-      matches.push_back(PlaceMatch{*trace, neighbor.distance});
+      absl::StatusOr<core::MemoryTrace> copy = fleet->WithCode(*trace);
+      if (!copy.ok()) return copy.status();
+      matches.push_back(PlaceMatch{*std::move(copy), neighbor.distance});
     }
   }
   if (hooks_.on_query) {
@@ -1622,7 +1767,10 @@ absl::StatusOr<TracePage> MemoryEngine::ListTraces(
             });
         page.traces.reserve(taken);
         for (size_t i = 0; i < taken; ++i) {
-          page.traces.push_back(*candidates[i]);
+          absl::StatusOr<core::MemoryTrace> copy =
+              fleet.WithCode(*candidates[i]);
+          if (!copy.ok()) return copy.status();
+          page.traces.push_back(*std::move(copy));
         }
         page.more = candidates.size() > taken;
         return page;

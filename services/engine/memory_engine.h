@@ -267,6 +267,15 @@ class MemoryEngine {
   // fleets are still saved); a fleet with an error just rebuilds next time.
   absl::Status SaveIndexSnapshots();
 
+  // One copy of each code: frees the engine's copies of static-memory codes
+  // that the place index now keeps itself (PlaceIndex::HoldsCode; the
+  // tiered index's graph does, its exact segment does not). Consolidations
+  // do this as they go; a server calls it now and then so that codes the
+  // index takes in the background (the graph's backlog after a restart
+  // without an index snapshot) are freed without further uploads. Returns
+  // the number of codes freed. Holds each fleet's lock for short turns.
+  size_t ReleaseIndexedCodes();
+
   // The memory parameters in force for `fleet_id`.
   const core::MemoryOptions& MemoryOptionsFor(std::string_view fleet_id) const;
 

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <condition_variable>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <map>
 #include <memory>
@@ -17,6 +18,7 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "gmock/gmock.h"
@@ -102,6 +104,66 @@ std::vector<core::MemoryTrace> MakeTraces(const std::string& robot_id,
   }
   return traces;
 }
+
+// Forwards every call to an inner index.
+class ForwardingIndex : public PlaceIndex {
+ public:
+  explicit ForwardingIndex(std::unique_ptr<PlaceIndex> inner)
+      : inner_(std::move(inner)) {}
+  absl::Status Add(std::span<const uint64_t> ids,
+                   std::span<const std::vector<float>> vectors) override {
+    return inner_->Add(ids, vectors);
+  }
+  absl::Status AddNormalized(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) override {
+    return inner_->AddNormalized(ids, codes);
+  }
+  absl::Status Remove(std::span<const uint64_t> ids) override {
+    return inner_->Remove(ids);
+  }
+  absl::StatusOr<std::vector<Neighbor>> Search(
+      std::span<const float> query, const SearchParams& params) const override {
+    return inner_->Search(query, params);
+  }
+  size_t size() const override { return inner_->size(); }
+  size_t dimension() const override { return inner_->dimension(); }
+  bool HoldsCode(uint64_t id) const override { return inner_->HoldsCode(id); }
+  bool CopyCode(uint64_t id, std::vector<float>* code) const override {
+    return inner_->CopyCode(id, code);
+  }
+  absl::Status Save(core::ByteWriter& out) const override {
+    return inner_->Save(out);
+  }
+  absl::Status Load(core::ByteReader& in) override { return inner_->Load(in); }
+
+ protected:
+  std::unique_ptr<PlaceIndex> inner_;
+};
+
+// An HNSW index (which keeps every code it is given) whose HoldsCode the
+// test switches on, counting the codes the engine reads back.
+class SwitchedCodeIndex final : public ForwardingIndex {
+ public:
+  struct Switch {
+    std::atomic<bool> holds{false};
+    std::atomic<int> copies{0};
+  };
+  SwitchedCodeIndex(size_t dimension, std::shared_ptr<Switch> control)
+      : ForwardingIndex(index::NewHnswIndex(dimension)),
+        control_(std::move(control)) {}
+  bool HoldsCode(uint64_t id) const override {
+    return control_->holds && inner_->HoldsCode(id);
+  }
+  bool CopyCode(uint64_t id, std::vector<float>* code) const override {
+    if (!control_->holds) return false;
+    ++control_->copies;
+    return inner_->CopyCode(id, code);
+  }
+
+ private:
+  std::shared_ptr<Switch> control_;
+};
 
 // Every trace of the static memory (QueryPlace with the largest k).
 std::vector<core::MemoryTrace> AllTraces(const MemoryEngine& engine,
@@ -1000,36 +1062,16 @@ TEST_F(MemoryEngineTest, ReopeningALargeFleetFindsEveryTrace) {
 }
 
 // Forwards to a tiered index and counts the Loads that succeed.
-class CountingIndex : public PlaceIndex {
+class CountingIndex : public ForwardingIndex {
  public:
   CountingIndex(size_t dimension, std::atomic<int>* loads)
-      : inner_(index::NewTieredIndex(dimension, Options())), loads_(loads) {}
+      : ForwardingIndex(index::NewTieredIndex(dimension, Options())),
+        loads_(loads) {}
   static index::TieredIndexOptions Options() {
     index::TieredIndexOptions options;
     options.hnsw_from = 300;
     options.background = false;  // the same calls give the same graph
     return options;
-  }
-  absl::Status Add(std::span<const uint64_t> ids,
-                   std::span<const std::vector<float>> vectors) override {
-    return inner_->Add(ids, vectors);
-  }
-  absl::Status AddNormalized(
-      std::span<const uint64_t> ids,
-      std::span<const std::span<const float>> codes) override {
-    return inner_->AddNormalized(ids, codes);
-  }
-  absl::Status Remove(std::span<const uint64_t> ids) override {
-    return inner_->Remove(ids);
-  }
-  absl::StatusOr<std::vector<Neighbor>> Search(
-      std::span<const float> query, const SearchParams& params) const override {
-    return inner_->Search(query, params);
-  }
-  size_t size() const override { return inner_->size(); }
-  size_t dimension() const override { return inner_->dimension(); }
-  absl::Status Save(core::ByteWriter& out) const override {
-    return inner_->Save(out);
   }
   absl::Status Load(core::ByteReader& in) override {
     absl::Status status = inner_->Load(in);
@@ -1038,7 +1080,6 @@ class CountingIndex : public PlaceIndex {
   }
 
  private:
-  std::unique_ptr<PlaceIndex> inner_;
   std::atomic<int>* loads_;
 };
 
@@ -1609,6 +1650,86 @@ TEST_F(MemoryEngineTest, StoreFailureDuringReplayKeepsCounts) {
   absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
   ASSERT_TRUE(stats.ok());
   EXPECT_EQ(FindRobot(*stats, "r1")->replayed, 0u);
+}
+
+// One copy of each code: once the index holds a static-memory trace's code,
+// memory frees its own, and every way a trace leaves the engine (queries,
+// listings, samples and the store write of their counts, a reload) still
+// gives the code bit for bit.
+TEST_F(MemoryEngineTest, CodesTheIndexHoldsAreFreedAndStillReturnedExactly) {
+  auto control = std::make_shared<SwitchedCodeIndex::Switch>();
+  auto open = [&]() -> std::unique_ptr<MemoryEngine> {
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
+        options_, store_.get(), [control](size_t dimension) {
+          return std::make_unique<SwitchedCodeIndex>(dimension, control);
+        });
+    EXPECT_TRUE(engine.ok()) << engine.status();
+    return engine.ok() ? *std::move(engine) : nullptr;
+  };
+  engine_ = open();
+  std::map<core::TraceKey, std::vector<float>> uploaded;
+  auto upload = [&](const std::string& robot, uint64_t first, size_t count) {
+    std::vector<core::MemoryTrace> traces =
+        MakeTraces(robot, first, count, rng_);
+    for (const core::MemoryTrace& trace : traces) {
+      uploaded[trace.key()] = trace.code;
+    }
+    MustUpload(traces);
+  };
+  auto expect_uploaded_codes = [&](const std::vector<core::MemoryTrace>& got) {
+    for (const core::MemoryTrace& trace : got) {
+      auto it = uploaded.find(trace.key());
+      ASSERT_NE(it, uploaded.end());
+      ASSERT_EQ(trace.code.size(), kDimension) << trace.seq;
+      EXPECT_EQ(std::memcmp(trace.code.data(), it->second.data(),
+                            kDimension * sizeof(float)),
+                0)
+          << trace.robot_id << " " << trace.seq;
+    }
+  };
+  int samples = 0;
+  auto expect_codes_every_way = [&] {
+    expect_uploaded_codes(AllTraces(*engine_, "f1", 200));
+    absl::StatusOr<TracePage> page =
+        engine_->ListTraces("f1", std::nullopt, 1000);
+    ASSERT_TRUE(page.ok()) << page.status();
+    expect_uploaded_codes(page->traces);
+    const std::string request = absl::StrCat("sample-", ++samples);
+    for (int call = 0; call < 2; ++call) {  // the second is a retry
+      absl::StatusOr<std::vector<core::MemoryTrace>> sample =
+          engine_->SampleReplay("f1", "r1", 5, request);
+      ASSERT_TRUE(sample.ok()) << sample.status();
+      ASSERT_FALSE(sample->empty());
+      expect_uploaded_codes(*sample);
+    }
+  };
+
+  upload("r1", 1, 40);
+  upload("r2", 1, 45);  // four segments and five pending traces
+  const uint64_t clustered = Stats().traces;
+  ASSERT_GT(clustered, 0u);
+  expect_codes_every_way();
+  EXPECT_EQ(control->copies, 0);  // memory kept every code
+
+  control->holds = true;
+  EXPECT_EQ(engine_->ReleaseIndexedCodes(), clustered);
+  expect_codes_every_way();
+  EXPECT_GT(control->copies, 0);
+
+  // A consolidation frees the codes of its clusters itself.
+  upload("r1", 41, 20);
+  EXPECT_EQ(engine_->ReleaseIndexedCodes(), 0u);
+  expect_codes_every_way();
+
+  // A load frees them at once; the counts were stored with their codes.
+  const int copies_before = control->copies;
+  const FleetStats before = Stats();
+  engine_.reset();
+  engine_ = open();
+  ExpectSameStats(Stats(), before);
+  EXPECT_EQ(engine_->ReleaseIndexedCodes(), 0u);
+  expect_codes_every_way();
+  EXPECT_GT(control->copies, copies_before);
 }
 
 }  // namespace

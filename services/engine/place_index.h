@@ -28,6 +28,10 @@ struct SearchParams {
   size_t k = 1;
   // When set, only ids it accepts are returned (e.g. a position prior).
   std::function<bool(uint64_t)> accept;
+  // The query is a code compared as a unit vector, as AddNormalized's codes
+  // are: distances are to core::UnitScale(query) times it, so a code
+  // finds a stored copy of itself at distance exactly 0.
+  bool unit_query = false;
 };
 
 // Not thread-safe for writers: the caller serialises Add/Remove against each
@@ -53,6 +57,17 @@ class PlaceIndex {
       vectors.push_back(core::NormalizedCode(code));
     }
     return Add(ids, vectors);
+  }
+  // True if the index keeps the code or vector it was given under `id` bit
+  // for bit (for AddNormalized, the code before scaling), so that the caller
+  // may drop its own copy and read it back with CopyCode. Once true it stays
+  // true until Remove(id). false by default: the caller keeps its codes.
+  // Counts as a reader.
+  virtual bool HoldsCode(uint64_t id) const { return false; }
+  // Sets *code to what HoldsCode promises; false, changing nothing, when
+  // the index does not hold it. Counts as a reader.
+  virtual bool CopyCode(uint64_t id, std::vector<float>* code) const {
+    return false;
   }
   // Removes ids; unknown ids are ignored.
   virtual absl::Status Remove(std::span<const uint64_t> ids) = 0;

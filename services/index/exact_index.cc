@@ -31,15 +31,16 @@ void ReserveGeometric(std::vector<T>& v, size_t needed) {
   if (needed > v.capacity()) v.reserve(std::max(needed, 2 * v.capacity()));
 }
 
-// scores[c] = squared_norms[c] - 2 * <column c, query> + query_norm for the
-// first `count` columns of `vectors` (dimension × count, column-major), in
-// one pass: one column at a time with four SSE accumulators, prefetching
+// scores[c] = squared_norms[c] - 2 * query_scale * scales[c] * <column c,
+// query> + query_norm for the first `count` columns of `vectors` (dimension × count,
+// column-major), in one pass: one column at a time with four SSE accumulators, prefetching
 // about 8 KiB ahead (the hardware prefetcher alone leaves a third of the
 // bandwidth unused). The summation order differs from a sequential sum,
 // which the error bound in Search covers (it holds for any order).
 void StreamScores(const float* vectors, size_t dimension, size_t count,
                   const float* query, const float* squared_norms,
-                  float query_norm, float* scores) {
+                  const float* scales, float query_scale, float query_norm,
+                  float* scores) {
   const size_t column_bytes = dimension * sizeof(float);
   const size_t ahead =
       std::max<size_t>(1, 8192 / std::max<size_t>(column_bytes, 1));
@@ -74,7 +75,8 @@ void StreamScores(const float* vectors, size_t dimension, size_t count,
     dot = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
 #endif
     for (; i < dimension; ++i) dot += v[i] * query[i];
-    scores[c] = squared_norms[c] - 2.0f * dot + query_norm;
+    scores[c] =
+        squared_norms[c] - (2.0f * query_scale) * (scales[c] * dot) + query_norm;
   }
 }
 
@@ -97,20 +99,30 @@ class ExactIndex final : public engine::PlaceIndex {
       std::span<const float> query, const SearchParams& params) const override;
   size_t size() const override { return ids_.size(); }
   size_t dimension() const override { return dimension_; }
+  bool HoldsCode(uint64_t id) const override { return column_of_.contains(id); }
+  bool CopyCode(uint64_t id, std::vector<float>* code) const override {
+    auto it = column_of_.find(id);
+    if (it == column_of_.end()) return false;
+    const float* stored = vectors_.col(it->second).data();
+    code->assign(stored, stored + dimension_);
+    return true;
+  }
   absl::Status Save(core::ByteWriter& out) const override;
   absl::Status Load(core::ByteReader& in) override;
 
   void ForEach(
-      const std::function<void(uint64_t, std::span<const float>)>& visit,
+      const std::function<void(uint64_t, std::span<const float>, float)>& visit,
       size_t begin, size_t end) const {
     for (size_t column = begin; column < std::min(end, ids_.size()); ++column) {
       visit(ids_[column],
-            std::span<const float>(vectors_.col(column).data(), dimension_));
+            std::span<const float>(vectors_.col(column).data(), dimension_),
+            scales_(column));
     }
   }
 
  private:
-  // Add, scaling each vector to unit length as it is copied if `normalize`.
+  // Add; with `normalize` each code is kept as given with the scale that
+  // makes it unit length (core::UnitScale).
   template <typename Vector>
   absl::Status Store(std::span<const uint64_t> ids,
                      std::span<const Vector> vectors, bool normalize);
@@ -124,15 +136,23 @@ class ExactIndex final : public engine::PlaceIndex {
   // index's tail after the graph took its vectors: 1 GB at 1,000,000 256-d
   // codes). Keeps room for twice the vectors held.
   void MaybeShrink();
-  // Squared Euclidean distance of column `column` to `query`, in double.
-  double ExactSquaredDistance(
-      size_t column, const Eigen::Map<const Eigen::VectorXf>& query) const;
+  // (Re)computes the squared norm of the scaled column.
+  void SetSquaredNorm(size_t column);
+  // Squared Euclidean distance of scaled column `column` to `query`, in
+  // double.
+  double ExactSquaredDistance(size_t column,
+                              const Eigen::Map<const Eigen::VectorXf>& query,
+                              float query_scale) const;
 
   const size_t dimension_;
   const ExactIndexOptions options_;
-  // dimension_ × capacity; the first size() columns are the stored vectors.
+  // dimension_ × capacity; the first size() columns are the stored vectors,
+  // as given. Column c stands for scales_(c) times itself: 1 for Add, the
+  // inverse norm for AddNormalized, so that a code is held once, as
+  // uploaded, and searched as a unit vector.
   Eigen::MatrixXf vectors_;
-  // Squared norm of each column (same capacity).
+  Eigen::VectorXf scales_;
+  // Squared norm of each scaled column (same capacity).
   Eigen::VectorXf squared_norms_;
   // Column → id; its size is the number of stored vectors.
   std::vector<uint64_t> ids_;
@@ -148,11 +168,14 @@ void ExactIndex::Reserve(size_t count) {
 
 void ExactIndex::Reallocate(size_t capacity) {
   Eigen::MatrixXf vectors(dimension_, capacity);
+  Eigen::VectorXf scales(capacity);
   Eigen::VectorXf squared_norms(capacity);
   const size_t used = ids_.size();
   vectors.leftCols(used) = vectors_.leftCols(used);
+  scales.head(used) = scales_.head(used);
   squared_norms.head(used) = squared_norms_.head(used);
   vectors_.swap(vectors);
+  scales_.swap(scales);
   squared_norms_.swap(squared_norms);
 }
 
@@ -176,29 +199,35 @@ absl::Status ExactIndex::Store(std::span<const uint64_t> ids,
   for (size_t i = 0; i < ids.size(); ++i) {
     const size_t column = ids_.size();
     const std::span<const float> vector(vectors[i]);
-    if (normalize) {
-      core::NormalizeInto(
-          vector, std::span<float>(vectors_.col(column).data(), dimension_));
-    } else {
-      vectors_.col(column) =
-          Eigen::Map<const Eigen::VectorXf>(vector.data(), dimension_);
-    }
-    squared_norms_(column) = vectors_.col(column).squaredNorm();
+    vectors_.col(column) =
+        Eigen::Map<const Eigen::VectorXf>(vector.data(), dimension_);
+    scales_(column) = normalize ? core::UnitScale(vector) : 1.0f;
+    SetSquaredNorm(column);
     ids_.push_back(ids[i]);
     column_of_.emplace(ids[i], column);
   }
   return absl::OkStatus();
 }
 
+void ExactIndex::SetSquaredNorm(size_t column) {
+  const float scale = scales_(column);
+  squared_norms_(column) =
+      scale == 1.0f ? vectors_.col(column).squaredNorm()
+                    : static_cast<float>(
+                          (vectors_.col(column).cast<double>() * scale)
+                              .squaredNorm());
+}
+
 // Version and kind of the layout Save writes (each index kind its own, so
-// one kind never parses another's bytes).
-constexpr uint32_t kExactFormat = 0x45584331;  // "EXC1"
+// one kind never parses another's bytes). EXC2 added the scales.
+constexpr uint32_t kExactFormat = 0x45584332;  // "EXC2"
 
 absl::Status ExactIndex::Save(core::ByteWriter& out) const {
   out.Put<uint32_t>(kExactFormat);
   out.Put<uint64_t>(dimension_);
   out.Put<uint64_t>(ids_.size());
   out.PutBytes(ids_.data(), ids_.size() * sizeof(uint64_t));
+  out.PutBytes(scales_.data(), ids_.size() * sizeof(float));
   // The first size() columns are contiguous.
   out.PutBytes(vectors_.data(), ids_.size() * dimension_ * sizeof(float));
   return absl::OkStatus();
@@ -214,8 +243,8 @@ absl::Status ExactIndex::Load(core::ByteReader& in) {
     return absl::DataLossError("not an exact index's snapshot");
   }
   if (!in.Get(&dimension) || dimension != dimension_ || !in.Get(&count) ||
-      count >
-          in.remaining() / (sizeof(uint64_t) + dimension_ * sizeof(float))) {
+      count > in.remaining() /
+                  (sizeof(uint64_t) + (dimension_ + 1) * sizeof(float))) {
     return absl::DataLossError(
         absl::StrCat("exact index snapshot: bad header (dimension ", dimension,
                      ", this index ", dimension_, ")"));
@@ -229,10 +258,12 @@ absl::Status ExactIndex::Load(core::ByteReader& in) {
     return absl::ResourceExhaustedError("exact index: out of memory in Load");
   }
   in.GetBytes(ids_.data(), count * sizeof(uint64_t));
+  in.GetBytes(scales_.data(), count * sizeof(float));
   in.GetBytes(vectors_.data(), count * dimension_ * sizeof(float));
   for (size_t column = 0; column < count; ++column) {
-    squared_norms_(column) = vectors_.col(column).squaredNorm();
+    SetSquaredNorm(column);
     if (!std::isfinite(squared_norms_(column)) ||
+        !std::isfinite(scales_(column)) || scales_(column) < 0.0f ||
         !column_of_.emplace(ids_[column], column).second) {
       ids_.clear();
       column_of_.clear();
@@ -252,6 +283,7 @@ absl::Status ExactIndex::Remove(std::span<const uint64_t> ids) {
     column_of_.erase(it);
     if (column != last) {
       vectors_.col(column) = vectors_.col(last);
+      scales_(column) = scales_(last);
       squared_norms_(column) = squared_norms_(last);
       ids_[column] = ids_[last];
       column_of_[ids_[column]] = column;
@@ -276,8 +308,10 @@ void ExactIndex::MaybeShrink() {
 }
 
 double ExactIndex::ExactSquaredDistance(
-    size_t column, const Eigen::Map<const Eigen::VectorXf>& query) const {
-  return (vectors_.col(column).cast<double>() - query.cast<double>())
+    size_t column, const Eigen::Map<const Eigen::VectorXf>& query,
+    float query_scale) const {
+  return (vectors_.col(column).cast<double>() * double{scales_(column)} -
+          query.cast<double>() * double{query_scale})
       .squaredNorm();
 }
 
@@ -290,24 +324,35 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
   if (count == 0 || params.k == 0) return std::vector<Neighbor>();
   try {
     const Eigen::Map<const Eigen::VectorXf> q(query.data(), dimension_);
-    const float query_norm = q.squaredNorm();
+    // A unit query is scored as query_scale times the query.
+    const float query_scale =
+        params.unit_query ? core::UnitScale(query) : 1.0f;
+    const float query_norm =
+        query_scale == 1.0f
+            ? q.squaredNorm()
+            : static_cast<float>((q.cast<double>() * query_scale).squaredNorm());
     // Squared distances up to float rounding, in one pass over the vectors.
     Eigen::VectorXf scores(count);
     if (count * dimension_ * sizeof(float) < options_.streaming_scan_bytes) {
       scores.noalias() = vectors_.leftCols(count).transpose() * q;
-      scores =
-          (squared_norms_.head(count) - 2.0f * scores).array() + query_norm;
+      scores = (squared_norms_.head(count).array() -
+                (2.0f * query_scale) *
+                    (scales_.head(count).array() * scores.array())) +
+               query_norm;
     } else {
       StreamScores(vectors_.data(), dimension_, count, query.data(),
-                   squared_norms_.data(), query_norm, scores.data());
+                   squared_norms_.data(), scales_.data(), query_scale,
+                   query_norm, scores.data());
     }
 
-    // Each score is within `bound` of the true squared distance, so every
-    // true k-nearest vector scores at most kth + 2 * bound. Twice the
-    // textbook bound on the float dot-product and sum errors.
+    // Each score is within `bound` of the true squared distance (of the
+    // scaled vector), so every true k-nearest vector scores at most kth + 2
+    // * bound. Twice the textbook bound on the float dot-product, its
+    // scalings and the sum's errors: the dot product's error is at most
+    // gamma |x| |q|, and times the scales gamma |scaled x| |scaled q|.
     const double unit = dimension_ * static_cast<double>(FLT_EPSILON);
     const double gamma = unit / (1.0 - unit);
-    const double bound = 2.0 * (2.0 * gamma + 4.0 * FLT_EPSILON) *
+    const double bound = 2.0 * (2.0 * gamma + 8.0 * FLT_EPSILON) *
                          (squared_norms_.head(count).maxCoeff() + query_norm);
     // The k-th smallest accepted score, in one pass with a bounded max-heap
     // (O(size log k); no per-vector allocation).
@@ -339,7 +384,8 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
     std::vector<std::pair<double, uint64_t>> exact;
     exact.reserve(candidates.size());
     for (size_t column : candidates) {
-      exact.emplace_back(ExactSquaredDistance(column, q), ids_[column]);
+      exact.emplace_back(ExactSquaredDistance(column, q, query_scale),
+                         ids_[column]);
     }
     const size_t wanted = std::min(params.k, exact.size());
     std::partial_sort(exact.begin(), exact.begin() + wanted, exact.end());
@@ -360,7 +406,7 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
 
 void ForEachExactVector(
     const engine::PlaceIndex& index,
-    const std::function<void(uint64_t, std::span<const float>)>& visit,
+    const std::function<void(uint64_t, std::span<const float>, float)>& visit,
     size_t begin, size_t end) {
   if (const auto* exact = dynamic_cast<const ExactIndex*>(&index)) {
     exact->ForEach(visit, begin, end);

@@ -27,7 +27,9 @@ struct ExactIndexOptions {
 // Returns an empty exact index for vectors of `dimension` (> 0; with 0 every
 // Add is INVALID_ARGUMENT).
 //
-// Vectors are the columns of one contiguous float matrix; Remove moves the
+// Vectors are the columns of one contiguous float matrix, as given (a code
+// added by AddNormalized is kept as uploaded, with the scale that makes it
+// unit length: HoldsCode is true for every stored id); Remove moves the
 // last column into the hole (O(dimension) per id). Search scores all stored
 // vectors in one pass (‖x‖² − 2xᵀq + ‖q‖²), then
 // re-scores in double precision every candidate that float rounding could
@@ -42,13 +44,14 @@ struct ExactIndexOptions {
 std::unique_ptr<engine::PlaceIndex> NewExactIndex(
     size_t dimension, ExactIndexOptions options = {});
 
-// Calls visit(id, vector) for the vectors of an index made by NewExactIndex
-// at storage positions [begin, end) (clamped to its size), in storage order;
+// Calls visit(id, vector as given, its scale) for the vectors of an index
+// made by NewExactIndex at storage positions [begin, end) (clamped to its
+// size), in storage order;
 // does nothing for another kind of index. Removing the vectors at the last
 // positions moves no other vector.
 void ForEachExactVector(
     const engine::PlaceIndex& index,
-    const std::function<void(uint64_t, std::span<const float>)>& visit,
+    const std::function<void(uint64_t, std::span<const float>, float)>& visit,
     size_t begin = 0, size_t end = SIZE_MAX);
 
 }  // namespace fleetmem::index

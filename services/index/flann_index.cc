@@ -1,3 +1,4 @@
+#include "services/core/feature_space.h"
 #include "services/index/flann_index.h"
 
 #include <algorithm>
@@ -255,6 +256,12 @@ absl::StatusOr<std::vector<Neighbor>> FlannIndex::Search(
     std::span<const float> query, const SearchParams& params) const {
   if (absl::Status status = CheckQuery(dimension_, query); !status.ok()) {
     return status;
+  }
+  // FLANN holds normalised copies: the query is normalised the same way.
+  std::vector<float> unit;
+  if (params.unit_query) {
+    unit = core::NormalizedCode(query);
+    query = unit;
   }
   const size_t count = size();
   if (count == 0 || params.k == 0) return std::vector<Neighbor>();

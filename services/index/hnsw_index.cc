@@ -17,6 +17,7 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "services/common/log.h"
+#include "services/core/feature_space.h"
 #include "services/core/hnsw_graph.h"
 #include "services/index/exact_index.h"
 #include "services/index/index_input.h"
@@ -49,29 +50,56 @@ class HnswIndex final : public engine::PlaceIndex {
                                                  GraphOptions(options))) {}
 
   absl::Status Add(std::span<const uint64_t> ids,
-                   std::span<const std::vector<float>> vectors) override;
+                   std::span<const std::vector<float>> vectors) override {
+    return AddScaled(ids, vectors,
+                     [](size_t, std::span<const float>) { return 1.0f; });
+  }
+  // Keeps each code as given, with the scale that makes it unit length: one
+  // copy serves both Search and CopyCode.
+  absl::Status AddNormalized(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) override {
+    return AddScaled(ids, codes, [](size_t, std::span<const float> code) {
+      return core::UnitScale(code);
+    });
+  }
+  // Adds each vectors[i] standing for scale(i, vectors[i]) times it.
+  template <typename Vector>
+  absl::Status AddScaled(
+      std::span<const uint64_t> ids, std::span<const Vector> vectors,
+      const std::function<float(size_t, std::span<const float>)>& scale);
   absl::Status Remove(std::span<const uint64_t> ids) override;
   absl::StatusOr<std::vector<Neighbor>> Search(
       std::span<const float> query, const SearchParams& params) const override;
   size_t size() const override { return slot_of_.size(); }
   size_t dimension() const override { return graph_->dimension(); }
+  bool HoldsCode(uint64_t id) const override { return contains(id); }
+  bool CopyCode(uint64_t id, std::vector<float>* code) const override {
+    auto it = slot_of_.find(id);
+    if (it == slot_of_.end()) return false;
+    const float* stored = graph_->Vector(it->second);
+    code->assign(stored, stored + dimension());
+    return true;
+  }
   absl::Status Save(core::ByteWriter& out) const override;
   absl::Status Load(core::ByteReader& in) override;
   bool contains(uint64_t id) const { return slot_of_.contains(id); }
 
   void set_ef_search(size_t ef) { graph_->set_ef_search(ef); }
 
-  // Calls visit(id, vector) for every stored vector.
-  void ForEach(const std::function<void(uint64_t, std::span<const float>)>&
-                   visit) const {
+  // Calls visit(id, vector as given, its scale) for every stored vector.
+  void ForEach(
+      const std::function<void(uint64_t, std::span<const float>, float)>& visit)
+      const {
     for (const auto& [id, slot] : slot_of_) {
-      visit(id, std::span<const float>(graph_->Vector(slot), dimension()));
+      visit(id, std::span<const float>(graph_->Vector(slot), dimension()),
+            graph_->Scale(slot));
     }
   }
 
  private:
-  // Every accepted vector's distance to `query`, by scanning.
-  std::vector<Neighbor> Scan(std::span<const float> query,
+  // Every accepted vector's distance to `scale` times `query`, by scanning.
+  std::vector<Neighbor> Scan(std::span<const float> query, float scale,
                              const SearchParams& params) const;
 
   static core::HnswGraphOptions GraphOptions(const HnswIndexOptions& options) {
@@ -79,7 +107,8 @@ class HnswIndex final : public engine::PlaceIndex {
             .ef_construction = options.ef_construction,
             .ef_search = options.ef_search,
             .seed = options.seed,
-            .repair_probability = options.repair_probability};
+            .repair_probability = options.repair_probability,
+            .scaled = true};
   }
 
   const HnswIndexOptions options_;
@@ -88,8 +117,10 @@ class HnswIndex final : public engine::PlaceIndex {
   std::vector<uint64_t> id_of_;                      // slot -> id
 };
 
-absl::Status HnswIndex::Add(std::span<const uint64_t> ids,
-                            std::span<const std::vector<float>> vectors) {
+template <typename Vector>
+absl::Status HnswIndex::AddScaled(
+    std::span<const uint64_t> ids, std::span<const Vector> vectors,
+    const std::function<float(size_t, std::span<const float>)>& scale) {
   if (absl::Status status =
           CheckAddBatch(dimension(), ids, vectors,
                         [this](uint64_t id) { return slot_of_.contains(id); });
@@ -104,7 +135,8 @@ absl::Status HnswIndex::Add(std::span<const uint64_t> ids,
     return absl::ResourceExhaustedError("HNSW index: out of memory in Add");
   }
   for (size_t i = 0; i < ids.size(); ++i) {
-    const uint32_t slot = graph_->Add(vectors[i].data());
+    const std::span<const float> vector(vectors[i]);
+    const uint32_t slot = graph_->Add(vector.data(), scale(i, vector));
     if (slot >= id_of_.size()) id_of_.resize(slot + 1);
     id_of_[slot] = ids[i];
     slot_of_.emplace(ids[i], slot);
@@ -171,12 +203,13 @@ absl::Status HnswIndex::Load(core::ByteReader& in) {
 }
 
 std::vector<Neighbor> HnswIndex::Scan(std::span<const float> query,
+                                      float scale,
                                       const SearchParams& params) const {
   std::vector<Neighbor> all;
   all.reserve(slot_of_.size());
   for (const auto& [id, slot] : slot_of_) {
     if (params.accept && !params.accept(id)) continue;
-    const float squared = graph_->SquaredDistance(query.data(), slot);
+    const float squared = graph_->SquaredDistance(query.data(), slot, scale);
     all.push_back({id, std::sqrt(std::max(0.0f, squared))});
   }
   return all;
@@ -189,6 +222,7 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
   }
   const size_t live = slot_of_.size();
   if (live == 0 || params.k == 0) return std::vector<Neighbor>();
+  const float scale = params.unit_query ? core::UnitScale(query) : 1.0f;
   try {
     size_t asked =
         params.accept ? params.k * options_.accept_oversample : params.k;
@@ -197,13 +231,13 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
       // search and, unlike it, reaches every vector (a graph can leave a
       // node unreachable).
       if (asked >= live / 2) {
-        std::vector<Neighbor> all = Scan(query, params);
+        std::vector<Neighbor> all = Scan(query, scale, params);
         KeepNearest(all, params.k);
         return all;
       }
       std::vector<Neighbor> neighbors;
       for (const auto& [squared, slot] :
-           graph_->Search(query.data(), std::min(asked, live))) {
+           graph_->Search(query.data(), std::min(asked, live), scale)) {
         const uint64_t id = id_of_[slot];
         if (params.accept && !params.accept(id)) continue;
         neighbors.push_back({id, std::sqrt(std::max(0.0f, squared))});
@@ -219,14 +253,16 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
   }
 }
 
-// Vectors copied out of one index for another, with their ids.
+// Vectors copied out of one index for another, with their ids and scales.
 struct IdVectors {
   std::vector<uint64_t> ids;
   std::vector<std::vector<float>> vectors;
-  std::function<void(uint64_t, std::span<const float>)> Collector() {
-    return [this](uint64_t id, std::span<const float> vector) {
+  std::vector<float> scales;
+  std::function<void(uint64_t, std::span<const float>, float)> Collector() {
+    return [this](uint64_t id, std::span<const float> vector, float scale) {
       ids.push_back(id);
       vectors.emplace_back(vector.begin(), vector.end());
+      scales.push_back(scale);
     };
   }
 };
@@ -303,6 +339,15 @@ class TieredIndex final : public engine::PlaceIndex {
   size_t unindexed() const override {
     std::shared_lock lock(mu_);
     return graph_ ? tail_->size() : 0;
+  }
+  // Both tiers keep codes as given, and move them between each other so.
+  bool HoldsCode(uint64_t id) const override {
+    std::shared_lock lock(mu_);
+    return tail_->HoldsCode(id) || (graph_ && graph_->contains(id));
+  }
+  bool CopyCode(uint64_t id, std::vector<float>* code) const override {
+    std::shared_lock lock(mu_);
+    return tail_->CopyCode(id, code) || (graph_ && graph_->CopyCode(id, code));
   }
   // The tail and the graph as they are: a backlog is saved as a backlog.
   absl::Status Save(core::ByteWriter& out) const override;
@@ -410,7 +455,7 @@ absl::Status TieredIndex::Load(core::ByteReader& in) {
   if (status.ok() && has_graph != 0) {
     graph_ = std::make_unique<HnswIndex>(dimension_, options_.hnsw);
     status = graph_->Load(in);
-    ForEachExactVector(*tail_, [&](uint64_t id, std::span<const float>) {
+    ForEachExactVector(*tail_, [&](uint64_t id, std::span<const float>, float) {
       if (status.ok() && graph_->contains(id)) {
         status = absl::DataLossError(absl::StrCat(
             "tiered index snapshot: id ", id, " in the tail and the graph"));
@@ -468,19 +513,33 @@ absl::Status TieredIndex::MoveToGraph(size_t count) {
   const size_t size = tail_->size();
   count = std::min(count, size);
   if (count == 0) return absl::OkStatus();
+  // Codes move as given, with their scales.
   IdVectors moved;
   ForEachExactVector(*tail_, moved.Collector(), size - count, size);
-  absl::Status status = graph_->Add(moved.ids, moved.vectors);
+  absl::Status status = graph_->AddScaled<std::vector<float>>(
+      moved.ids, moved.vectors,
+      [&](size_t i, std::span<const float>) { return moved.scales[i]; });
   if (!status.ok()) return status;
   // The tail gives its storage back as it drains (the exact index shrinks).
   return tail_->Remove(moved.ids);
 }
 
 absl::Status TieredIndex::DropGraph() {
-  IdVectors moved;
-  graph_->ForEach(moved.Collector());
-  absl::Status status = tail_->Add(moved.ids, moved.vectors);
-  if (!status.ok()) return status;
+  // Codes go back as given: plain vectors (scale 1) through Add, scaled
+  // ones through AddNormalized, which gives them the same scale again.
+  IdVectors plain, scaled;
+  graph_->ForEach(
+      [&](uint64_t id, std::span<const float> vector, float scale) {
+        (scale == 1.0f ? plain : scaled).Collector()(id, vector, scale);
+      });
+  std::vector<std::span<const float>> codes(scaled.vectors.begin(),
+                                            scaled.vectors.end());
+  absl::Status status = tail_->Add(plain.ids, plain.vectors);
+  if (status.ok()) status = tail_->AddNormalized(scaled.ids, codes);
+  if (!status.ok()) {
+    (void)tail_->Remove(plain.ids);
+    return status;
+  }
   graph_.reset();
   return absl::OkStatus();
 }

@@ -40,8 +40,11 @@ struct HnswIndexOptions {
 // bounded by the most vectors ever held at once. Add costs O(log n)
 // distance computations (0.1-1 ms at 256-d on the reference machine,
 // docs/performance.md), Search O(ef log n).
-// Distances are Euclidean, computed in float. Thread-safety as in
-// engine::PlaceIndex (concurrent Search calls are safe).
+// Distances are Euclidean, computed in float. Each node keeps its vector
+// as given, with a scale (AddNormalized's codes as uploaded, with the
+// inverse of their norm), so HoldsCode is true for every id held and the
+// engine needs no copy of its own. Thread-safety as in engine::PlaceIndex
+// (concurrent Search calls are safe).
 std::unique_ptr<engine::PlaceIndex> NewHnswIndex(size_t dimension,
                                                  HnswIndexOptions options = {});
 

@@ -450,6 +450,13 @@ TEST_P(StoreTest, InvalidMutationsChangeNothing) {
                                             MakeCluster(2, "r", {2})};
   add("trace in two clusters", "f").put_clusters = {MakeCluster(2, "r", {1}),
                                                     MakeCluster(3, "r", {1})};
+  core::MemoryTrace codeless = MakeTrace("r", 3);
+  codeless.code.clear();
+  add("pending trace without code", "f").put_pending.push_back(codeless);
+  add("updated trace without code", "f").update_traces = {codeless};
+  core::Cluster codeless_cluster = MakeCluster(4, "r", {1, 2});
+  codeless_cluster.traces[1].code.clear();
+  add("clustered trace without code", "f").put_clusters = {codeless_cluster};
   add("event id 0", "f").append_events = {
       MakeEvent(0, EventType::kClusterAdded, 1)};
   for (const Case& c : cases) {
