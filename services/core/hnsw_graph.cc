@@ -19,50 +19,50 @@ namespace fleetmem::core {
 namespace {
 
 // Squared Euclidean distance between sx * x and sy * y, where x and y are
-// `dimension` floats followed by their scales sx and sy. Four SSE
-// accumulators, as hnswlib's own L2 kernels.
+// `dimension` floats followed by their scales sx, sy and the squared norms
+// nx = |sx x|², ny = |sy y|²: nx + ny - 2 sx sy <x, y>, so that the loop
+// is a dot product (two operations per coordinate, as hnswlib's inner
+// product; its L2 kernel takes three). Rounding leaves an absolute error
+// of about 1e-7 (nx + ny): enough to walk the graph; HnswGraph::
+// PreciseSquaredDistance scores the answers.
 float ScaledSquaredL2(const void* a, const void* b, const void* param) {
   const size_t dimension = *static_cast<const size_t*>(param);
   const float* x = static_cast<const float*>(a);
   const float* y = static_cast<const float*>(b);
-  const float sx = x[dimension], sy = y[dimension];
   size_t i = 0;
-  float sum = 0.0f;
+  float dot = 0.0f;
 #if defined(__SSE__)
-  const __m128 vx = _mm_set1_ps(sx), vy = _mm_set1_ps(sy);
-  __m128 acc[4] = {_mm_setzero_ps(), _mm_setzero_ps(), _mm_setzero_ps(),
-                   _mm_setzero_ps()};
+  // Four named accumulators: -O2 does not unroll a loop over an array of
+  // them, which then lives on the stack.
+  __m128 a0 = _mm_setzero_ps(), a1 = a0, a2 = a0, a3 = a0;
   for (; i + 16 <= dimension; i += 16) {
-    for (int lane = 0; lane < 4; ++lane) {
-      const __m128 d =
-          _mm_sub_ps(_mm_mul_ps(vx, _mm_loadu_ps(x + i + 4 * lane)),
-                     _mm_mul_ps(vy, _mm_loadu_ps(y + i + 4 * lane)));
-      acc[lane] = _mm_add_ps(acc[lane], _mm_mul_ps(d, d));
-    }
+    a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(x + i), _mm_loadu_ps(y + i)));
+    a1 = _mm_add_ps(
+        a1, _mm_mul_ps(_mm_loadu_ps(x + i + 4), _mm_loadu_ps(y + i + 4)));
+    a2 = _mm_add_ps(
+        a2, _mm_mul_ps(_mm_loadu_ps(x + i + 8), _mm_loadu_ps(y + i + 8)));
+    a3 = _mm_add_ps(
+        a3, _mm_mul_ps(_mm_loadu_ps(x + i + 12), _mm_loadu_ps(y + i + 12)));
   }
   for (; i + 4 <= dimension; i += 4) {
-    const __m128 d = _mm_sub_ps(_mm_mul_ps(vx, _mm_loadu_ps(x + i)),
-                                _mm_mul_ps(vy, _mm_loadu_ps(y + i)));
-    acc[0] = _mm_add_ps(acc[0], _mm_mul_ps(d, d));
+    a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(x + i), _mm_loadu_ps(y + i)));
   }
   float lanes[4];
-  _mm_storeu_ps(lanes,
-                _mm_add_ps(_mm_add_ps(acc[0], acc[1]), _mm_add_ps(acc[2], acc[3])));
-  sum = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+  _mm_storeu_ps(lanes, _mm_add_ps(_mm_add_ps(a0, a1), _mm_add_ps(a2, a3)));
+  dot = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
 #endif
-  for (; i < dimension; ++i) {
-    const float d = sx * x[i] - sy * y[i];
-    sum += d * d;
-  }
-  return sum;
+  for (; i < dimension; ++i) dot += x[i] * y[i];
+  const float squared = x[dimension + 1] + y[dimension + 1] -
+                        2.0f * (x[dimension] * y[dimension]) * dot;
+  return std::max(0.0f, squared);
 }
 
-// hnswlib space of `dimension` floats plus a scale (HnswGraphOptions::
-// scaled).
+// hnswlib space of `dimension` floats plus a scale and the scaled
+// vector's squared norm (HnswGraphOptions::scaled).
 class ScaledL2Space final : public hnswlib::SpaceInterface<float> {
  public:
   explicit ScaledL2Space(size_t dimension) : dimension_(dimension) {}
-  size_t get_data_size() override { return (dimension_ + 1) * sizeof(float); }
+  size_t get_data_size() override { return (dimension_ + 2) * sizeof(float); }
   hnswlib::DISTFUNC<float> get_dist_func() override { return ScaledSquaredL2; }
   void* get_dist_func_param() override { return &dimension_; }
 
@@ -107,9 +107,15 @@ void HnswGraph::Reserve(size_t count) {
 const float* HnswGraph::Stored(const float* vector, float scale,
                                std::vector<float>& buffer) const {
   if (!options_.scaled) return vector;
-  buffer.resize(dimension_ + 1);
+  buffer.resize(dimension_ + 2);
   std::copy(vector, vector + dimension_, buffer.begin());
+  double squared = 0.0;
+  for (size_t i = 0; i < dimension_; ++i) {
+    const double v = static_cast<double>(scale) * vector[i];
+    squared += v * v;
+  }
   buffer[dimension_] = scale;
+  buffer[dimension_ + 1] = static_cast<float>(squared);
   return buffer.data();
 }
 
@@ -145,8 +151,8 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::Search(const float* query,
   std::vector<std::pair<float, uint32_t>> out;
   if (live_ == 0 || k == 0) return out;
   std::vector<float> buffer;
-  auto found = impl_->hnsw.searchKnn(Stored(query, scale, buffer),
-                                     std::min(k, live_));
+  auto found =
+      impl_->hnsw.searchKnn(Stored(query, scale, buffer), std::min(k, live_));
   out.resize(found.size());
   for (size_t i = found.size(); i-- > 0; found.pop()) {
     out[i] = {found.top().first, static_cast<uint32_t>(found.top().second)};
@@ -161,6 +167,19 @@ float HnswGraph::SquaredDistance(const float* query, uint32_t slot,
   std::vector<float> buffer;
   return impl_->hnsw.fstdistfunc_(Stored(query, scale, buffer), Vector(slot),
                                   impl_->hnsw.dist_func_param_);
+}
+
+double HnswGraph::PreciseSquaredDistance(const float* query, uint32_t slot,
+                                         float scale) const {
+  const float* stored = Vector(slot);
+  const double stored_scale = Scale(slot);
+  double squared = 0.0;
+  for (size_t i = 0; i < dimension_; ++i) {
+    const double d =
+        static_cast<double>(scale) * query[i] - stored_scale * stored[i];
+    squared += d * d;
+  }
+  return squared;
 }
 
 float HnswGraph::Scale(uint32_t slot) const {
@@ -182,8 +201,9 @@ namespace {
 
 // Version and kind of the layout Save writes (each index kind its own, so
 // one kind never parses another's bytes).
-// GRF2 added the scaled flag.
-constexpr uint32_t kGraphFormat = 0x47524632;  // "GRF2"
+// GRF3: the scaled flag, and scaled nodes holding their scale and squared
+// norm after the vector.
+constexpr uint32_t kGraphFormat = 0x47524633;  // "GRF3"
 
 template <typename Engine>
 std::string EngineState(const Engine& engine) {
@@ -261,11 +281,11 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
   if (saved_dimension != dimension || m != hnsw.M_ ||
       ef_construction != hnsw.ef_construction_ ||
       (scaled != 0) != options.scaled) {
-    return Malformed(absl::StrCat(
-        "built with dimension ", saved_dimension, ", m ", m,
-        ", ef_construction ", ef_construction, ", scaled ", scaled != 0,
-        "; this graph has ", dimension, ", ", hnsw.M_, ", ",
-        hnsw.ef_construction_, ", ", options.scaled));
+    return Malformed(
+        absl::StrCat("built with dimension ", saved_dimension, ", m ", m,
+                     ", ef_construction ", ef_construction, ", scaled ",
+                     scaled != 0, "; this graph has ", dimension, ", ", hnsw.M_,
+                     ", ", hnsw.ef_construction_, ", ", options.scaled));
   }
   if (!in.Get(&graph->next_slot_) || !in.Get(&free_count) ||
       free_count > graph->next_slot_) {

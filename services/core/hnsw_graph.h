@@ -34,9 +34,9 @@ struct HnswGraphOptions {
   // Each node stores its vector as given plus a scale factor, and distances
   // are between the scaled vectors (Add's `scale`): a place index keeps a
   // code exactly as uploaded and searches its unit-length version, with
-  // one copy. Costs one float per node and two multiplications per
-  // coordinate. false: plain vectors (hnswlib's L2 space), Add's scale
-  // must be 1.
+  // one copy. Costs two floats per node (the scale and the scaled squared
+  // norm; distances are norms minus twice the dot product). false: plain
+  // vectors (hnswlib's L2 space), Add's scale must be 1.
   bool scaled = false;
 };
 
@@ -69,6 +69,11 @@ class HnswGraph {
   // (scaled) vector of `slot`.
   float SquaredDistance(const float* query, uint32_t slot,
                         float scale = 1.0f) const;
+  // The same in double precision, term by term (exact to rounding, where
+  // the scaled graph's own distance loses about 1e-7 to cancellation): for
+  // scoring a search's answers.
+  double PreciseSquaredDistance(const float* query, uint32_t slot,
+                                float scale = 1.0f) const;
   // The stored vector of a live slot, as given to Add (unscaled).
   const float* Vector(uint32_t slot) const;
   // The scale given with it (1 unless options.scaled).

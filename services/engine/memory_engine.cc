@@ -616,16 +616,20 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
 size_t MemoryEngine::Fleet::ReleaseIndexedCodes(size_t budget) {
   size_t released = 0;
   if (index == nullptr) return released;
-  for (size_t n = std::min(budget, codes_to_release.size()); n > 0; --n) {
-    const uint64_t handle = codes_to_release.front();
-    codes_to_release.pop_front();
-    auto key = key_of.find(handle);
+  const size_t count = std::min(budget, codes_to_release.size());
+  std::vector<uint64_t> handles(codes_to_release.begin(),
+                                codes_to_release.begin() + count);
+  codes_to_release.erase(codes_to_release.begin(),
+                         codes_to_release.begin() + count);
+  const std::vector<bool> held = index->HoldsCodes(handles);
+  for (size_t i = 0; i < count; ++i) {
+    auto key = key_of.find(handles[i]);
     if (key == key_of.end()) continue;  // left the index (forgotten)
-    if (!index->HoldsCode(handle)) {
-      codes_to_release.push_back(handle);
-      continue;
+    if (!held[i]) {
+      codes_to_release.push_back(handles[i]);
+    } else if (memory.DropCode(key->second)) {
+      ++released;
     }
-    if (memory.DropCode(key->second)) ++released;
   }
   return released;
 }

@@ -1659,8 +1659,8 @@ TEST_F(MemoryEngineTest, StoreFailureDuringReplayKeepsCounts) {
 TEST_F(MemoryEngineTest, CodesTheIndexHoldsAreFreedAndStillReturnedExactly) {
   auto control = std::make_shared<SwitchedCodeIndex::Switch>();
   auto open = [&]() -> std::unique_ptr<MemoryEngine> {
-    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
-        options_, store_.get(), [control](size_t dimension) {
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
+        MemoryEngine::Open(options_, store_.get(), [control](size_t dimension) {
           return std::make_unique<SwitchedCodeIndex>(dimension, control);
         });
     EXPECT_TRUE(engine.ok()) << engine.status();

@@ -64,6 +64,13 @@ class PlaceIndex {
   // true until Remove(id). false by default: the caller keeps its codes.
   // Counts as a reader.
   virtual bool HoldsCode(uint64_t id) const { return false; }
+  // HoldsCode of each of `ids` (held[i] for ids[i]), in one turn of the
+  // index's lock where it has one.
+  virtual std::vector<bool> HoldsCodes(std::span<const uint64_t> ids) const {
+    std::vector<bool> held(ids.size());
+    for (size_t i = 0; i < ids.size(); ++i) held[i] = HoldsCode(ids[i]);
+    return held;
+  }
   // Sets *code to what HoldsCode promises; false, changing nothing, when
   // the index does not hold it. Counts as a reader.
   virtual bool CopyCode(uint64_t id, std::vector<float>* code) const {

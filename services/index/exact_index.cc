@@ -32,11 +32,12 @@ void ReserveGeometric(std::vector<T>& v, size_t needed) {
 }
 
 // scores[c] = squared_norms[c] - 2 * query_scale * scales[c] * <column c,
-// query> + query_norm for the first `count` columns of `vectors` (dimension × count,
-// column-major), in one pass: one column at a time with four SSE accumulators, prefetching
-// about 8 KiB ahead (the hardware prefetcher alone leaves a third of the
-// bandwidth unused). The summation order differs from a sequential sum,
-// which the error bound in Search covers (it holds for any order).
+// query> + query_norm for the first `count` columns of `vectors` (dimension ×
+// count, column-major), in one pass: one column at a time with four SSE
+// accumulators, prefetching about 8 KiB ahead (the hardware prefetcher alone
+// leaves a third of the bandwidth unused). The summation order differs from a
+// sequential sum, which the error bound in Search covers (it holds for any
+// order).
 void StreamScores(const float* vectors, size_t dimension, size_t count,
                   const float* query, const float* squared_norms,
                   const float* scales, float query_scale, float query_norm,
@@ -75,8 +76,8 @@ void StreamScores(const float* vectors, size_t dimension, size_t count,
     dot = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
 #endif
     for (; i < dimension; ++i) dot += v[i] * query[i];
-    scores[c] =
-        squared_norms[c] - (2.0f * query_scale) * (scales[c] * dot) + query_norm;
+    scores[c] = squared_norms[c] - (2.0f * query_scale) * (scales[c] * dot) +
+                query_norm;
   }
 }
 
@@ -212,10 +213,10 @@ absl::Status ExactIndex::Store(std::span<const uint64_t> ids,
 void ExactIndex::SetSquaredNorm(size_t column) {
   const float scale = scales_(column);
   squared_norms_(column) =
-      scale == 1.0f ? vectors_.col(column).squaredNorm()
-                    : static_cast<float>(
-                          (vectors_.col(column).cast<double>() * scale)
-                              .squaredNorm());
+      scale == 1.0f
+          ? vectors_.col(column).squaredNorm()
+          : static_cast<float>(
+                (vectors_.col(column).cast<double>() * scale).squaredNorm());
 }
 
 // Version and kind of the layout Save writes (each index kind its own, so
@@ -325,12 +326,12 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
   try {
     const Eigen::Map<const Eigen::VectorXf> q(query.data(), dimension_);
     // A unit query is scored as query_scale times the query.
-    const float query_scale =
-        params.unit_query ? core::UnitScale(query) : 1.0f;
+    const float query_scale = params.unit_query ? core::UnitScale(query) : 1.0f;
     const float query_norm =
         query_scale == 1.0f
             ? q.squaredNorm()
-            : static_cast<float>((q.cast<double>() * query_scale).squaredNorm());
+            : static_cast<float>(
+                  (q.cast<double>() * query_scale).squaredNorm());
     // Squared distances up to float rounding, in one pass over the vectors.
     Eigen::VectorXf scores(count);
     if (count * dimension_ * sizeof(float) < options_.streaming_scan_bytes) {

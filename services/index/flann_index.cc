@@ -1,4 +1,3 @@
-#include "services/core/feature_space.h"
 #include "services/index/flann_index.h"
 
 #include <algorithm>
@@ -13,6 +12,7 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/strings/str_cat.h"
 #include "services/common/log.h"
+#include "services/core/feature_space.h"
 #include "services/index/index_input.h"
 
 namespace fleetmem::index {

@@ -88,9 +88,8 @@ class HnswIndex final : public engine::PlaceIndex {
   void set_ef_search(size_t ef) { graph_->set_ef_search(ef); }
 
   // Calls visit(id, vector as given, its scale) for every stored vector.
-  void ForEach(
-      const std::function<void(uint64_t, std::span<const float>, float)>& visit)
-      const {
+  void ForEach(const std::function<void(uint64_t, std::span<const float>,
+                                        float)>& visit) const {
     for (const auto& [id, slot] : slot_of_) {
       visit(id, std::span<const float>(graph_->Vector(slot), dimension()),
             graph_->Scale(slot));
@@ -202,15 +201,15 @@ absl::Status HnswIndex::Load(core::ByteReader& in) {
   return absl::OkStatus();
 }
 
-std::vector<Neighbor> HnswIndex::Scan(std::span<const float> query,
-                                      float scale,
+std::vector<Neighbor> HnswIndex::Scan(std::span<const float> query, float scale,
                                       const SearchParams& params) const {
   std::vector<Neighbor> all;
   all.reserve(slot_of_.size());
   for (const auto& [id, slot] : slot_of_) {
     if (params.accept && !params.accept(id)) continue;
-    const float squared = graph_->SquaredDistance(query.data(), slot, scale);
-    all.push_back({id, std::sqrt(std::max(0.0f, squared))});
+    const double squared =
+        graph_->PreciseSquaredDistance(query.data(), slot, scale);
+    all.push_back({id, static_cast<float>(std::sqrt(squared))});
   }
   return all;
 }
@@ -236,11 +235,14 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
         return all;
       }
       std::vector<Neighbor> neighbors;
-      for (const auto& [squared, slot] :
+      // The graph's distances walk it; the answers are scored precisely.
+      for (const auto& [approximate, slot] :
            graph_->Search(query.data(), std::min(asked, live), scale)) {
         const uint64_t id = id_of_[slot];
         if (params.accept && !params.accept(id)) continue;
-        neighbors.push_back({id, std::sqrt(std::max(0.0f, squared))});
+        const double squared =
+            graph_->PreciseSquaredDistance(query.data(), slot, scale);
+        neighbors.push_back({id, static_cast<float>(std::sqrt(squared))});
       }
       if (neighbors.size() >= params.k || asked >= live || !params.accept) {
         KeepNearest(neighbors, params.k);
@@ -343,7 +345,15 @@ class TieredIndex final : public engine::PlaceIndex {
   // Both tiers keep codes as given, and move them between each other so.
   bool HoldsCode(uint64_t id) const override {
     std::shared_lock lock(mu_);
-    return tail_->HoldsCode(id) || (graph_ && graph_->contains(id));
+    return HoldsCodeLocked(id);
+  }
+  // One turn of the lock for all: the engine asks for a million ids after
+  // a load, while the background thread takes the lock between steps.
+  std::vector<bool> HoldsCodes(std::span<const uint64_t> ids) const override {
+    std::vector<bool> held(ids.size());
+    std::shared_lock lock(mu_);
+    for (size_t i = 0; i < ids.size(); ++i) held[i] = HoldsCodeLocked(ids[i]);
+    return held;
   }
   bool CopyCode(uint64_t id, std::vector<float>* code) const override {
     std::shared_lock lock(mu_);
@@ -365,6 +375,9 @@ class TieredIndex final : public engine::PlaceIndex {
   // test-tsan`; Debian's absl is not instrumented).
   size_t SizeLocked() const {
     return tail_->size() + (graph_ ? graph_->size() : 0);
+  }
+  bool HoldsCodeLocked(uint64_t id) const {
+    return tail_->HoldsCode(id) || (graph_ && graph_->contains(id));
   }
   // Nothing for the background thread to do.
   bool Idle() const {
@@ -528,10 +541,9 @@ absl::Status TieredIndex::DropGraph() {
   // Codes go back as given: plain vectors (scale 1) through Add, scaled
   // ones through AddNormalized, which gives them the same scale again.
   IdVectors plain, scaled;
-  graph_->ForEach(
-      [&](uint64_t id, std::span<const float> vector, float scale) {
-        (scale == 1.0f ? plain : scaled).Collector()(id, vector, scale);
-      });
+  graph_->ForEach([&](uint64_t id, std::span<const float> vector, float scale) {
+    (scale == 1.0f ? plain : scaled).Collector()(id, vector, scale);
+  });
   std::vector<std::span<const float>> codes(scaled.vectors.begin(),
                                             scaled.vectors.end());
   absl::Status status = tail_->Add(plain.ids, plain.vectors);

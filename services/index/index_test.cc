@@ -668,9 +668,9 @@ TEST_P(PlaceIndexTest, UnitQueryFindsItsCodeAtDistanceZero) {
     EXPECT_EQ(got->front().id, ids[i]);
     EXPECT_EQ(got->front().distance, 0.0f) << i;
     for (const Neighbor& n : *got) {
-      EXPECT_NEAR(n.distance,
-                  core::CodeDistance(codes[i], codes[static_cast<size_t>(n.id)]),
-                  1e-5)
+      EXPECT_NEAR(
+          n.distance,
+          core::CodeDistance(codes[i], codes[static_cast<size_t>(n.id)]), 1e-5)
           << i << " " << n.id;
     }
   }
@@ -724,8 +724,7 @@ TEST_P(PlaceIndexTest, HeldCodesComeBackAsGivenUntilRemoved) {
       if (!holds) continue;
       held.insert(id);
       ASSERT_EQ(copy.size(), v.size());
-      EXPECT_EQ(std::memcmp(copy.data(), v.data(), v.size() * sizeof(float)),
-                0)
+      EXPECT_EQ(std::memcmp(copy.data(), v.data(), v.size() * sizeof(float)), 0)
           << step << ": " << id;
     }
   };

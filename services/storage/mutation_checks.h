@@ -34,9 +34,9 @@ inline absl::Status CheckRobotId(const std::string& what,
   return absl::OkStatus();
 }
 
-// INVALID_ARGUMENT if a stored trace has no code, a robot id holds 0x00, a put cluster or an appended
-// event has id 0, two put clusters share an id, or a trace key occurs twice
-// among the put clusters' traces.
+// INVALID_ARGUMENT if a stored trace has no code, a robot id holds 0x00, a put
+// cluster or an appended event has id 0, two put clusters share an id, or a
+// trace key occurs twice among the put clusters' traces.
 inline absl::Status CheckMutation(const engine::FleetMutation& m) {
   absl::Status status;
   auto check_traces = [&](const std::string& what, const auto& traces) {
