@@ -13,6 +13,9 @@
 // Uploaded traces and consolidations become visible only once durable; a
 // sample's incremented replay counts are visible while they are being
 // stored, and a store failure reverts them (by the reload).
+// Each static-memory code is held once: by the place index where it keeps
+// codes as given (PlaceIndex::HoldsCode), memory's copy freed; every trace
+// the engine returns or stores carries its code.
 #ifndef FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_H_
 #define FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_H_
 
