@@ -262,9 +262,26 @@ TEST_F(RobotIntegrationTest,
   const std::vector<RobotCase> cases = CameraAndLaser("robot-kill");
   std::vector<std::unique_ptr<RobotProcess>> robots = StartRobots(cases, 300);
   std::mt19937 rng(std::random_device{}());
+  // Each kill comes once every robot has observed more than before it (a
+  // slow start, e.g. a VM that allocates slowly, would otherwise kill a
+  // robot before it observed anything, and there is nothing to resume).
+  std::vector<uint64_t> observed(cases.size(), 0);
+  auto wait_for_progress = [&] {
+    for (size_t i = 0; i < cases.size(); ++i) {
+      const absl::Time deadline = absl::Now() + absl::Seconds(120);
+      while (absl::Now() < deadline &&
+             ReadStatus(dir_.Join(cases[i].robot)).counters().observations() <=
+                 observed[i]) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      }
+      observed[i] =
+          ReadStatus(dir_.Join(cases[i].robot)).counters().observations();
+    }
+  };
   for (int kill = 0; kill < 2; ++kill) {
+    wait_for_progress();
     std::this_thread::sleep_for(std::chrono::milliseconds(
-        std::uniform_int_distribution<int>(1000, 2000)(rng)));
+        std::uniform_int_distribution<int>(0, 1000)(rng)));
     for (auto& robot : robots) {
       robot->Kill();
       ASSERT_NO_FATAL_FAILURE(robot->Start());
