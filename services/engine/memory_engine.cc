@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <deque>
 #include <functional>
 #include <map>
 #include <random>
@@ -186,7 +185,7 @@ namespace {
 
 // Gives freed heap pages back to the system, which glibc does not do by
 // itself for pages amid the heap: after a load dropped a million codes of
-// 1 KB each (ReleaseAllIndexedCodes).
+// 1 KB each (ReleaseCodes).
 void ReturnFreedMemory() {
 #if defined(__GLIBC__)
   malloc_trim(0);
@@ -339,7 +338,7 @@ struct MemoryEngine::Fleet {
   // Appends a pending trace of its robot.
   void AddPending(core::MemoryTrace trace) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // The trace with `key` in the static memory or among the pending traces.
-  // Its code may be empty (ReleaseIndexedCodes): copies that leave the
+  // Its code may be empty (ReleaseCodes): copies that leave the
   // engine go through WithCode.
   const core::MemoryTrace* FindTrace(const core::TraceKey& key) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
@@ -349,15 +348,15 @@ struct MemoryEngine::Fleet {
       ABSL_SHARED_LOCKS_REQUIRED(mu);
   absl::Status FillCodes(std::vector<core::MemoryTrace>& traces) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
-  // One copy of each code: frees the codes of static-memory traces that the
-  // index now keeps itself (PlaceIndex::HoldsCode; a graph does, an exact
-  // segment does not), looking at up to `budget` traces of
-  // codes_to_release and sending those not yet held to its back. Returns
-  // the codes freed.
-  size_t ReleaseIndexedCodes(size_t budget) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
-  // Queues every static-memory trace for ReleaseIndexedCodes and runs it
-  // over all of them (after a load).
-  void ReleaseAllIndexedCodes() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // One copy of each code: frees memory's codes of those of `keys`
+  // (static-memory traces) that the index keeps itself (PlaceIndex::
+  // HoldsCodes: the exact, HNSW and tiered indexes do, FLANN does not).
+  // Returns the codes freed.
+  size_t ReleaseCodes(const std::vector<core::TraceKey>& keys)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // ReleaseCodes of every static-memory trace that still has its code,
+  // then the freed pages go back to the system.
+  size_t ReleaseAllCodes() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
 
   // An upload in three steps, so that readers wait only for the last:
   // PrepareUpload checks it and builds the store mutation (shared lock); the
@@ -485,9 +484,6 @@ struct MemoryEngine::Fleet {
   absl::flat_hash_map<core::TraceKey, uint64_t> handle_of ABSL_GUARDED_BY(mu);
   absl::flat_hash_map<uint64_t, core::TraceKey> key_of ABSL_GUARDED_BY(mu);
   uint64_t next_handle ABSL_GUARDED_BY(mu) = 1;
-  // Static-memory traces whose codes memory still holds although the index
-  // may keep them (ReleaseIndexedCodes); some may be gone since.
-  std::deque<uint64_t> codes_to_release ABSL_GUARDED_BY(mu);  // handles
   // The fleet's seed; replay draws from `rng`, and each segment's k-means
   // from a generator of its own (SegmentSeed).
   const uint64_t seed;
@@ -544,7 +540,6 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   handle_of.clear();
   key_of.clear();
   next_handle = 1;
-  codes_to_release.clear();
   if (meta.code_dimension == 0) {
     if (!record.clusters.empty() || !record.pending.empty()) {
       return absl::DataLossError(absl::StrCat(
@@ -590,7 +585,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
       FLEETMEM_LOG(kInfo) << "fleet \"" << id
                           << "\": loaded from its index snapshot in "
                           << absl::ToDoubleSeconds(absl::Now() - start) << " s";
-      ReleaseAllIndexedCodes();
+      ReleaseAllCodes();
       return status;
     }
     // No snapshot is the normal case after a crash or a first start.
@@ -609,40 +604,42 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
           memory.Restore(std::move(cluster));
         }
       });
-  if (status.ok()) ReleaseAllIndexedCodes();
+  if (status.ok()) ReleaseAllCodes();
   return status;
 }
 
-size_t MemoryEngine::Fleet::ReleaseIndexedCodes(size_t budget) {
-  size_t released = 0;
-  if (index == nullptr) return released;
-  const size_t count = std::min(budget, codes_to_release.size());
-  std::vector<uint64_t> handles(codes_to_release.begin(),
-                                codes_to_release.begin() + count);
-  codes_to_release.erase(codes_to_release.begin(),
-                         codes_to_release.begin() + count);
+size_t MemoryEngine::Fleet::ReleaseCodes(
+    const std::vector<core::TraceKey>& keys) {
+  if (index == nullptr || keys.empty()) return 0;
+  std::vector<uint64_t> handles;
+  std::vector<const core::TraceKey*> indexed;
+  handles.reserve(keys.size());
+  indexed.reserve(keys.size());
+  for (const core::TraceKey& key : keys) {
+    auto handle = handle_of.find(key);
+    if (handle == handle_of.end()) continue;
+    handles.push_back(handle->second);
+    indexed.push_back(&key);
+  }
   const std::vector<bool> held = index->HoldsCodes(handles);
-  for (size_t i = 0; i < count; ++i) {
-    auto key = key_of.find(handles[i]);
-    if (key == key_of.end()) continue;  // left the index (forgotten)
-    if (!held[i]) {
-      codes_to_release.push_back(handles[i]);
-    } else if (memory.DropCode(key->second)) {
-      ++released;
-    }
+  size_t released = 0;
+  for (size_t i = 0; i < handles.size(); ++i) {
+    if (held[i] && memory.DropCode(*indexed[i])) ++released;
   }
   return released;
 }
 
-void MemoryEngine::Fleet::ReleaseAllIndexedCodes() {
-  codes_to_release.clear();
+size_t MemoryEngine::Fleet::ReleaseAllCodes() {
+  std::vector<core::TraceKey> keys;
   for (const auto& [cluster_id, cluster] : memory.clusters()) {
     for (const core::MemoryTrace& trace : cluster.traces) {
-      auto handle = handle_of.find(trace.key());
-      if (handle != handle_of.end()) codes_to_release.push_back(handle->second);
+      if (!trace.code.empty()) keys.push_back(trace.key());
     }
   }
-  if (ReleaseIndexedCodes(codes_to_release.size()) > 0) ReturnFreedMemory();
+  const size_t released = ReleaseCodes(keys);
+  // Large releases leave holes amid the heap that glibc keeps.
+  if (released >= 10'000) ReturnFreedMemory();
+  return released;
 }
 
 absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(
@@ -1144,18 +1141,14 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     absl::Status reloaded = Reload();
     if (!reloaded.ok()) return reloaded;
   } else {
+    std::vector<core::TraceKey> kept;
     for (const core::Cluster& cluster : outcome.added) {
       if (forgotten_ids.contains(cluster.id)) continue;
       for (const core::MemoryTrace& trace : cluster.traces) {
-        auto handle = handle_of.find(trace.key());
-        if (handle != handle_of.end()) {
-          codes_to_release.push_back(handle->second);
-        }
+        kept.push_back(trace.key());
       }
     }
-    // Twice what a batch adds, so the queue does not grow while the index
-    // keeps up.
-    ReleaseIndexedCodes(2 * batch_size + 64);
+    ReleaseCodes(kept);
   }
 
   ConsolidateResult batch_result;
@@ -1336,24 +1329,11 @@ size_t MemoryEngine::ReleaseIndexedCodes() {
     absl::ReaderMutexLock lock(&fleets_mu_);
     for (const auto& [fleet_id, fleet] : fleets_) fleets.push_back(fleet.get());
   }
-  // Short turns under each fleet's lock, so that queries wait little.
-  constexpr size_t kTurn = 4096;
   size_t released = 0;
   for (Fleet* fleet : fleets) {
-    size_t left = 0;
-    {
-      absl::ReaderMutexLock lock(&fleet->mu);
-      left = fleet->codes_to_release.size();
-    }
-    while (left > 0) {
-      absl::MutexLock lock(&fleet->mu);
-      const size_t turn = std::min(left, kTurn);
-      released += fleet->ReleaseIndexedCodes(turn);
-      left -= turn;
-    }
+    absl::MutexLock lock(&fleet->mu);
+    released += fleet->ReleaseAllCodes();
   }
-  // Large releases leave holes amid the heap that glibc keeps.
-  if (released >= 10'000) ReturnFreedMemory();
   return released;
 }
 

@@ -271,12 +271,12 @@ class MemoryEngine {
   absl::Status SaveIndexSnapshots();
 
   // One copy of each code: frees the engine's copies of static-memory codes
-  // that the place index now keeps itself (PlaceIndex::HoldsCode; the
-  // tiered index's graph does, its exact segment does not). Consolidations
-  // do this as they go; a server calls it now and then so that codes the
-  // index takes in the background (the graph's backlog after a restart
-  // without an index snapshot) are freed without further uploads. Returns
-  // the number of codes freed. Holds each fleet's lock for short turns.
+  // that the place index keeps itself (PlaceIndex::HoldsCode: the exact,
+  // HNSW and tiered indexes do from Add on; FLANN never does). Each
+  // consolidation does this for its new clusters and each load for every
+  // trace, so fleetmem's indexes need no more; an index that takes codes
+  // over only later would need this called now and then. O(traces) under
+  // each fleet's exclusive lock. Returns the number of codes freed.
   size_t ReleaseIndexedCodes();
 
   // The memory parameters in force for `fleet_id`.

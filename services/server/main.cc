@@ -19,13 +19,11 @@
 #include <sstream>
 #include <string>
 #include <system_error>
-#include <thread>
 #include <utility>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
-#include "absl/synchronization/notification.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
@@ -333,16 +331,6 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address;
   std::cout << "fleetmem-server listening on " << address << std::endl;
 
-  // Codes the place index took in the background (its graph's backlog) are
-  // freed from memory's copies here too, not only by later uploads
-  // (MemoryEngine::ReleaseIndexedCodes).
-  absl::Notification stop_release;
-  std::thread release_codes([&stop_release, &engine] {
-    while (!stop_release.WaitForNotificationWithTimeout(absl::Seconds(10))) {
-      (*engine)->ReleaseIndexedCodes();
-    }
-  });
-
   int signal = 0;
   while (true) {
     sigwait(&signals, &signal);
@@ -369,8 +357,6 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   server->Shutdown(std::chrono::system_clock::now());
   work.Stop();
   server.reset();
-  stop_release.Notify();
-  release_codes.join();
   // Nothing changes memory any more: the next start loads the place
   // indexes instead of rebuilding them (a failure only costs that).
   (*engine)->SaveIndexSnapshots().IgnoreError();
