@@ -27,6 +27,15 @@ float UnitScale(std::span<const float> code) {
   return norm > 0.0 ? static_cast<float>(1.0 / norm) : 0.0f;
 }
 
+double ScaledSquaredNorm(std::span<const float> vector, float scale) {
+  double sum = 0.0;
+  for (float v : vector) {
+    const double scaled = static_cast<double>(scale) * v;
+    sum += scaled * scaled;
+  }
+  return sum;
+}
+
 void NormalizeInto(std::span<const float> code, std::span<float> out) {
   assert(out.size() == code.size());
   const double norm = Norm(code);

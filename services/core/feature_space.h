@@ -24,6 +24,9 @@ void NormalizeInto(std::span<const float> code, std::span<float> out);
 // rounding).
 float UnitScale(std::span<const float> code);
 
+// |scale * vector|², summed in double precision.
+double ScaledSquaredNorm(std::span<const float> vector, float scale);
+
 // Feature-spatial code of `trace`: its normalised code followed by
 // (x, y, z) / spatial_scale_m. Dimension = code size + 3.
 Eigen::VectorXf FeatureSpatialCode(const MemoryTrace& trace,

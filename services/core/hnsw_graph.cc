@@ -10,6 +10,7 @@
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
 #include "hnswlib/hnswlib.h"
+#include "services/core/feature_space.h"
 
 #if defined(__SSE__)
 #include <xmmintrin.h>
@@ -109,13 +110,9 @@ const float* HnswGraph::Stored(const float* vector, float scale,
   if (!options_.scaled) return vector;
   buffer.resize(dimension_ + 2);
   std::copy(vector, vector + dimension_, buffer.begin());
-  double squared = 0.0;
-  for (size_t i = 0; i < dimension_; ++i) {
-    const double v = static_cast<double>(scale) * vector[i];
-    squared += v * v;
-  }
   buffer[dimension_] = scale;
-  buffer[dimension_ + 1] = static_cast<float>(squared);
+  buffer[dimension_ + 1] = static_cast<float>(
+      ScaledSquaredNorm(std::span<const float>(vector, dimension_), scale));
   return buffer.data();
 }
 
@@ -161,13 +158,6 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::Search(const float* query,
 }
 
 void HnswGraph::set_ef_search(size_t ef) { impl_->hnsw.setEf(ef); }
-
-float HnswGraph::SquaredDistance(const float* query, uint32_t slot,
-                                 float scale) const {
-  std::vector<float> buffer;
-  return impl_->hnsw.fstdistfunc_(Stored(query, scale, buffer), Vector(slot),
-                                  impl_->hnsw.dist_func_param_);
-}
 
 double HnswGraph::PreciseSquaredDistance(const float* query, uint32_t slot,
                                          float scale) const {

@@ -66,12 +66,9 @@ class HnswGraph {
   // Changes the search candidate list (no rebuild; not while searching).
   void set_ef_search(size_t ef);
   // Squared Euclidean distance between `scale` times `query` and the
-  // (scaled) vector of `slot`.
-  float SquaredDistance(const float* query, uint32_t slot,
-                        float scale = 1.0f) const;
-  // The same in double precision, term by term (exact to rounding, where
-  // the scaled graph's own distance loses about 1e-7 to cancellation): for
-  // scoring a search's answers.
+  // (scaled) vector of `slot`, in double precision, term by term (exact to
+  // rounding, where the scaled graph's own distance loses about 1e-7 to
+  // cancellation): for scoring a search's answers.
   double PreciseSquaredDistance(const float* query, uint32_t slot,
                                 float scale = 1.0f) const;
   // The stored vector of a live slot, as given to Add (unscaled).

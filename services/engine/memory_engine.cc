@@ -1099,13 +1099,8 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   mutation.meta = new_meta;
 
   // The new clusters' traces came from the batch and still hold their codes
-  // (their release comes below); FillCodes only guards the store against a
-  // trace without one.
-  absl::Status status;
-  for (core::Cluster& cluster : mutation.put_clusters) {
-    if (status.ok()) status = FillCodes(cluster.traces);
-  }
-  if (status.ok()) status = engine->store_->Apply(id, mutation);
+  // (their release comes below).
+  absl::Status status = engine->store_->Apply(id, mutation);
   if (!status.ok()) {
     // The static memory already ran ahead of the store: drop it.
     FLEETMEM_LOG(kError) << "fleet \"" << id << "\": consolidation of robot \""

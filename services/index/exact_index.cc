@@ -215,8 +215,9 @@ void ExactIndex::SetSquaredNorm(size_t column) {
   squared_norms_(column) =
       scale == 1.0f
           ? vectors_.col(column).squaredNorm()
-          : static_cast<float>(
-                (vectors_.col(column).cast<double>() * scale).squaredNorm());
+          : static_cast<float>(core::ScaledSquaredNorm(
+                std::span<const float>(vectors_.col(column).data(), dimension_),
+                scale));
 }
 
 // Version and kind of the layout Save writes (each index kind its own, so
@@ -330,8 +331,7 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
     const float query_norm =
         query_scale == 1.0f
             ? q.squaredNorm()
-            : static_cast<float>(
-                  (q.cast<double>() * query_scale).squaredNorm());
+            : static_cast<float>(core::ScaledSquaredNorm(query, query_scale));
     // Squared distances up to float rounding, in one pass over the vectors.
     Eigen::VectorXf scores(count);
     if (count * dimension_ * sizeof(float) < options_.streaming_scan_bytes) {
