@@ -26,6 +26,13 @@ SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
 SANITIZER_FLAGS_tsan := -fsanitize=thread -fno-omit-frame-pointer
+# The sanitizer and fuzzer builds' optimisation and debug level (in place
+# of RelWithDebInfo's -O2 -g): -O1, as the sanitizers' and libFuzzer's
+# documentation advise, and line tables only (-g1; clang's
+# -gline-tables-only), which is all a report's file:line needs. It compiles
+# in half the time (memory_engine.cc under ASan: 26 s, against 54 s at
+# -O2 -g), and the ASan build is most of CI's sanitizer stage.
+SANITIZER_OPT := -O1 -g1 -DNDEBUG
 # The tests that run under ThreadSanitizer: the pure core, the engine on the
 # in-memory store and the in-memory store (GTEST_FILTER leaves out the
 # RocksDB cases: Debian's RocksDB is not instrumented and its lock-free
@@ -66,12 +73,14 @@ test: build
 # quick lifelong evaluation (label "eval": a compute job in an uninstrumented
 # libtorch; its code paths run in the GPL unit and robot tests) and the
 # container and manifest tests (labels "docker", "k8s": they build their own
-# uninstrumented images, or run no C++).
+# uninstrumented images, or run no C++). Benchmarks and the demo are not
+# built: no test runs them.
 test-asan: deps
 	@cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_asan)" \
+	  -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="$(SANITIZER_OPT)" \
 	  -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZER_FLAGS_asan)" \
-	  -DFLEETMEM_BUILD_BENCH=OFF >/dev/null
+	  -DFLEETMEM_BUILD_BENCH=OFF -DFLEETMEM_BUILD_DEMO=OFF >/dev/null
 	@cmake --build build-asan -j $(JOBS)
 	@cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
 	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
@@ -92,6 +101,7 @@ test-k8s:
 test-tsan: deps
 	@cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_tsan)" \
+	  -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="$(SANITIZER_OPT)" \
 	  -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZER_FLAGS_tsan)" \
 	  -DFLEETMEM_BUILD_BENCH=OFF -DFLEETMEM_BUILD_DEMO=OFF \
 	  -DFLEETMEM_TSAN_ABSL_ANNOTATIONS=ON >/dev/null
@@ -103,11 +113,12 @@ test-tsan: deps
 # The libFuzzer harnesses (clang, ASan + UBSan; build-fuzz/), FUZZ_SECONDS
 # each from their seed corpora in the tree.
 FUZZ_SECONDS ?= 20
-FUZZ_FLAGS := -fsanitize=fuzzer-no-link,address,undefined -fno-omit-frame-pointer -gline-tables-only
+FUZZ_FLAGS := -fsanitize=fuzzer-no-link,address,undefined -fno-omit-frame-pointer
 fuzz: deps
 	@cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 \
 	  -DCMAKE_CXX_FLAGS="$(FUZZ_FLAGS)" \
+	  -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="$(SANITIZER_OPT)" \
 	  -DCMAKE_EXE_LINKER_FLAGS="-fsanitize=address,undefined" \
 	  -DFLEETMEM_BUILD_FUZZ=ON -DFLEETMEM_BUILD_TESTS=OFF \
 	  -DFLEETMEM_BUILD_BENCH=OFF >/dev/null
