@@ -1,6 +1,7 @@
 #include "services/core/hnsw_graph.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdlib>
 #include <exception>
 #include <new>
@@ -213,6 +214,16 @@ absl::Status Malformed(absl::string_view what) {
   return absl::DataLossError(absl::StrCat("HNSW graph snapshot: ", what));
 }
 
+// A scaled node's scale and the scaled vector's squared norm are finite and
+// not negative (a zero code's scale is 0).
+bool ScaleAndNormOk(const char* node, size_t dimension) {
+  const auto* values = reinterpret_cast<const float*>(node);
+  const float scale = values[dimension];
+  const float norm = values[dimension + 1];
+  return std::isfinite(scale) && scale >= 0.0f && std::isfinite(norm) &&
+         norm >= 0.0f;
+}
+
 }  // namespace
 
 void HnswGraph::Save(ByteWriter& out) const {
@@ -352,6 +363,10 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
         if (!links_ok(hnsw.get_linklist(i, level), hnsw.maxM_)) {
           return Malformed(absl::StrCat("bad links of element ", i));
         }
+      }
+      if (options.scaled && !hnsw.isMarkedDeleted(i) &&
+          !ScaleAndNormOk(hnsw.getDataByInternalId(i), dimension)) {
+        return Malformed(absl::StrCat("bad scale or norm of element ", i));
       }
     }
     hnsw.num_deleted_ = free_count;

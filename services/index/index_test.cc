@@ -6,6 +6,7 @@
 #include <cstring>
 #include <functional>
 #include <iostream>
+#include <limits>
 #include <map>
 #include <memory>
 #include <random>
@@ -1245,6 +1246,40 @@ TEST(HnswIndexTest, DamagedSnapshotIsRefusedOrSafeToSearch) {
   std::cout << "[ measured ] damaged HNSW snapshots refused: " << refused
             << " / 300\n";
   EXPECT_GT(refused, 0);
+}
+
+// A graph node holds its code as given with its scale and the scaled
+// squared norm the walk uses; a snapshot whose scale or norm is not a
+// finite, non-negative number is refused rather than searched with
+// distances that mean nothing.
+TEST(HnswIndexTest, SnapshotWithABadScaleOrNormIsRefused) {
+  constexpr size_t kDimension = 4;
+  std::mt19937 rng(29);
+  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension);
+  Dataset data = GaussianDataset(50, kDimension, rng);
+  // One node whose bytes are easy to find: (2, 0, 0, 0), scale 1 (Add takes
+  // vectors as they are), squared norm 4.
+  data.ids.push_back(1000);
+  data.vectors.push_back({2.0f, 0.0f, 0.0f, 0.0f});
+  ASSERT_TRUE(index->Add(data.ids, data.vectors).ok());
+  absl::StatusOr<std::string> bytes = Saved(*index);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  const float node[] = {2.0f, 0.0f, 0.0f, 0.0f, 1.0f, 4.0f};
+  const size_t at = bytes->find(
+      std::string(reinterpret_cast<const char*>(node), sizeof node));
+  ASSERT_NE(at, std::string::npos);
+  ASSERT_TRUE(LoadFrom(*NewHnswIndex(kDimension), *bytes).ok());
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  for (const auto& [field, value] : std::vector<std::pair<int, float>>{
+           {4, nan}, {4, inf}, {4, -0.5f}, {5, nan}, {5, -1.0f}, {5, inf}}) {
+    std::string damaged = *bytes;
+    std::memcpy(damaged.data() + at + field * sizeof(float), &value,
+                sizeof value);
+    EXPECT_EQ(LoadFrom(*NewHnswIndex(kDimension), damaged).code(),
+              absl::StatusCode::kDataLoss)
+        << (field == 4 ? "scale " : "norm ") << value;
+  }
 }
 
 // Each kind of index refuses another kind's bytes (a server restarted with
