@@ -15,13 +15,13 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
   libssl-dev curl python3 python3-numpy prometheus chromium \
   debootstrap docker-compose libceres-dev libhnswlib-dev libfaiss-dev \
-  libxxhash-dev
+  libxxhash-dev nats-server libnats-dev
 
 empty :=
 space := $(empty) $(empty)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all deps configure build test test-asan test-tsan test-docker test-k8s \
+.PHONY: all deps configure build test test-asan test-tsan test-docker test-k8s test-cluster \
   fuzz soak crash robot-crash demo bench perf format clean
 
 SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
@@ -92,6 +92,13 @@ test-asan: deps
 # runs it too when a Docker engine answers; it is skipped otherwise.
 test-docker: deps
 	@tests/docker/fault_tests.py
+
+# Distributed mode in containers (docker/cluster.compose.yaml): a replica
+# killed, a NATS server killed, a replica partitioned, under load from this
+# host; prints the recovery times and 0 lost, 0 duplicated
+# (tests/docker/cluster_fault_tests.py; docs/distributed.md).
+test-cluster: build
+	@tests/docker/cluster_fault_tests.py
 
 # The Kubernetes manifests (k8s/) against the real API types (Go, k8s.io/api).
 test-k8s:

@@ -5,9 +5,13 @@
 #   server.pem, server.key       the server's certificate for the names
 #                                fleetmem-server, server, localhost, 127.0.0.1
 #   credentials.textproto        the server's --auth-file: principals ops
-#                                (ADMIN), grafana (READER) and robot-1..N
-#                                (ROBOT, fleet FLEET), Argon2id hashes only
-#   ops.token, grafana.token, robot-K.token   the clients' tokens NAME:SECRET
+#                                and replicas (ADMIN; replicas is what the
+#                                replicas of docker/cluster.compose.yaml
+#                                forward calls with), grafana (READER) and
+#                                robot-1..N (ROBOT, fleet FLEET), Argon2id
+#                                hashes only
+#   ops.token, replicas.token, grafana.token, robot-K.token
+#                                the clients' tokens NAME:SECRET
 # Tokens come from fleetmem-credential: $FLEETMEM_CREDENTIAL if set (e.g.
 # build/bin/fleetmem-credential), else the one in the server image
 # ($FLEETMEM_SERVER_IMAGE, default fleetmem/server:0.1.0, run with docker).
@@ -57,6 +61,7 @@ credential() {
 if [ ! -f "$dir/credentials.textproto" ]; then
   {
     credential ops admin
+    credential replicas admin
     credential grafana reader --fleet '*'
     for k in $(seq 1 "$robots"); do
       credential "robot-$k" robot --fleet "$fleet"

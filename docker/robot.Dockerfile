@@ -21,7 +21,8 @@ RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y \
       libabsl-dev librocksdb-dev libflann-dev liblz4-dev libeigen3-dev \
       libopencv-dev libsodium-dev libcli11-dev libbz2-dev libtorch-dev \
       libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
-      libssl-dev libceres-dev libhnswlib-dev libxxhash-dev >/dev/null \
+      libssl-dev libceres-dev libhnswlib-dev libxxhash-dev libnats-dev \
+      >/dev/null \
  && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 COPY CMakeLists.txt ./

@@ -18,7 +18,8 @@ RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y \
       libabsl-dev librocksdb-dev libflann-dev liblz4-dev libeigen3-dev \
       libopencv-dev libsodium-dev libcli11-dev libbz2-dev libtorch-dev \
       libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
-      libssl-dev libceres-dev libhnswlib-dev libxxhash-dev >/dev/null \
+      libssl-dev libceres-dev libhnswlib-dev libxxhash-dev libnats-dev \
+      >/dev/null \
  && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 COPY CMakeLists.txt ./
@@ -44,6 +45,7 @@ RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y \
       -qq --no-install-recommends ca-certificates curl libgrpc++1.51 \
       libprotobuf32 libabsl20220623 libsodium23 libprometheus-cpp-core1.0 \
       libcpp-httplib0.11 libssl3 libbz2-1.0 liblz4-1 libsnappy1v5 libzstd1 libxxhash0 \
+      libnats3.4 \
       >/dev/null \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --system --uid 10001 --user-group --home-dir /var/lib/fleetmem \

@@ -67,7 +67,10 @@ upload_fleet() { # upload_fleet FLEET ROBOTS PER_ROBOT
 
 case "$MODE" in
 rest)
-  start_server main "$WORK/data"
+  # Index snapshots every second, of any fleet: the pause metric is served.
+  printf 'index_snapshot_interval_seconds: 1\nindex_snapshot_min_codes: 0\n' \
+    > "$WORK/snapshots.textproto"
+  start_server main "$WORK/data" --config "$WORK/snapshots.textproto"
   upload_fleet alpha 6 150   # 6 x 20 clusters > K_max = 100: forgetting runs
   cli consolidate --fleet alpha > /dev/null  # clusters and events
   for route in "GET /v1/fleets" "GET /v1/fleets/alpha/stats" \
@@ -106,6 +109,11 @@ rest)
   check "unknown route is 404" [ "$(http_code GET /v1/nothing)" = 404 ]
   check "healthz" [ "$(http_code GET /healthz)" = 200 ]
   check "readyz" [ "$(http_code GET /readyz)" = 200 ]
+  for _ in $(seq 1 100); do
+    grep -q 'codes saved in' "$WORK/main.log" && break
+    sleep 0.1
+  done
+  check "a periodic index snapshot was written" grep -q 'codes saved in' "$WORK/main.log"
   curl -s "http://$HTTP_ADDR/metrics" > "$WORK/metrics.txt"
   check "metrics has the fleet's traces" grep -q 'fleetmem_fleet_traces{fleet="alpha"}' "$WORK/metrics.txt"
   SOURCE=$(cd "$(dirname "$0")/.." && pwd)

@@ -48,6 +48,7 @@ void ServerTest::StartServer() {
   ServerOptions options;
   options.data_dir = data_dir_;
   options.log_file = dir_.Join("server.log");
+  options.extra_args = server_args_;
   server_ = std::make_unique<ServerProcess>(options);
   ++runs_;
   {

@@ -5,6 +5,8 @@
 
 #include <memory>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "fleetmem/v1/memory.grpc.pb.h"
 #include "gtest/gtest.h"
@@ -30,6 +32,10 @@ class ServerTest : public ::testing::Test {
   void StopAndRestart();
   // Drops stub() (closing its channel), then SIGTERM; expects exit code 0.
   void StopServer();
+  // Arguments every later StartServer() appends (e.g. --config FILE).
+  void set_server_args(std::vector<std::string> args) {
+    server_args_ = std::move(args);
+  }
 
   v1::MemoryService::Stub& stub() { return *stub_; }
   ServerProcess& server() { return *server_; }
@@ -40,6 +46,7 @@ class ServerTest : public ::testing::Test {
   TempDir dir_;
   std::string data_dir_;
   int runs_ = 0;
+  std::vector<std::string> server_args_;
   std::unique_ptr<ServerProcess> server_;
   std::unique_ptr<v1::MemoryService::Stub> stub_;
 };

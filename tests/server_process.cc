@@ -22,8 +22,6 @@
 namespace fleetmem::testing {
 namespace {
 
-constexpr char kListeningMarker[] = "fleetmem-server listening on ";
-
 std::string ErrnoText(const char* what) {
   return absl::StrCat(what, ": ", std::strerror(errno));
 }
@@ -36,6 +34,20 @@ std::string DefaultServerBinary() {
 #else
   return "fleetmem-server";
 #endif
+}
+
+ServerOptions NatsServerOptions(const std::string& store_dir,
+                                const std::string& log_file) {
+  ServerOptions options;
+  options.binary = access("/usr/sbin/nats-server", X_OK) == 0
+                       ? "/usr/sbin/nats-server"
+                       : "/usr/bin/nats-server";
+  options.fleetmem_flags = false;
+  options.listening_marker = "Listening for client connections on ";
+  options.log_file = log_file;
+  // -p -1: a random free port, which the server logs.
+  options.extra_args = {"-a", "127.0.0.1", "-p", "-1", "-js", "-sd", store_dir};
+  return options;
 }
 
 absl::StatusOr<std::string> MakeTempDir(const std::string& prefix) {
@@ -81,10 +93,11 @@ std::string TempDir::Join(const std::string& name) const {
   return absl::StrCat(path_, "/", name);
 }
 
-std::optional<int> ParseListeningPort(const std::string& output) {
-  size_t at = output.find(kListeningMarker);
+std::optional<int> ParseListeningPort(const std::string& output,
+                                      const std::string& marker) {
+  size_t at = output.find(marker);
   if (at == std::string::npos) return std::nullopt;
-  size_t begin = at + std::strlen(kListeningMarker);
+  size_t begin = at + marker.size();
   size_t end = output.find_first_of("\r\n", begin);
   if (end == std::string::npos) return std::nullopt;  // line not complete
   std::string address = output.substr(begin, end - begin);
@@ -142,9 +155,12 @@ absl::Status ServerProcess::Start() {
 
   // Everything the child needs is prepared before fork(): after fork() in a
   // threaded process only async-signal-safe calls are allowed.
-  std::vector<std::string> args = {options_.binary, "--listen", options_.listen,
-                                   "--data-dir", options_.data_dir};
-  if (!options_.config_file.empty()) {
+  std::vector<std::string> args = {options_.binary};
+  if (options_.fleetmem_flags) {
+    args.insert(args.end(),
+                {"--listen", options_.listen, "--data-dir", options_.data_dir});
+  }
+  if (options_.fleetmem_flags && !options_.config_file.empty()) {
     args.push_back("--config");
     args.push_back(options_.config_file);
   }
@@ -230,7 +246,7 @@ void ServerProcess::ReadOutput(int fd) {
     std::lock_guard<std::mutex> lock(mu_);
     output_.append(buffer, static_cast<size_t>(n));
     if (!listening_port_.has_value()) {
-      listening_port_ = ParseListeningPort(output_);
+      listening_port_ = ParseListeningPort(output_, options_.listening_marker);
       if (listening_port_.has_value()) cv_.notify_all();
     }
   }

@@ -64,7 +64,16 @@ struct ServerOptions {
   std::chrono::milliseconds start_timeout{30000};
   // Extra command-line arguments, appended last.
   std::vector<std::string> extra_args;
+  // Another server (nats-server): only `binary` and `extra_args` make its
+  // command line, and the port is read after `listening_marker`.
+  bool fleetmem_flags = true;
+  std::string listening_marker = "fleetmem-server listening on ";
 };
+
+// nats-server with JetStream on a random loopback port, storing under
+// `store_dir`: `/usr/sbin/nats-server` or `/usr/bin/nats-server`, Debian's.
+ServerOptions NatsServerOptions(const std::string& store_dir,
+                                const std::string& log_file);
 
 // One run of fleetmem-server, started with fork/exec. Its stdout and stderr
 // go through one pipe that a reader thread drains into options.log_file (so
@@ -129,9 +138,11 @@ class ServerProcess {
   std::optional<int> listening_port_;  // guarded by mu_
 };
 
-// The listening port from a line "fleetmem-server listening on HOST:PORT"
-// anywhere in `output`, if there is one.
-std::optional<int> ParseListeningPort(const std::string& output);
+// The listening port from a line "`marker`HOST:PORT" anywhere in `output`,
+// if there is one.
+std::optional<int> ParseListeningPort(
+    const std::string& output,
+    const std::string& marker = "fleetmem-server listening on ");
 
 // The contents of `path`, or "" if it cannot be read.
 std::string ReadFileOrEmpty(const std::string& path);

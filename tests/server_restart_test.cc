@@ -5,6 +5,7 @@
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <fstream>
 #include <iostream>
 #include <map>
 #include <mutex>
@@ -235,6 +236,60 @@ TEST_F(RestartTest, KilledServerKeepsEverythingAcknowledged) {
   }
   EXPECT_GT(checked, 0u);
   EXPECT_GT(replayed_before, 0u) << "precondition: some matches were replayed";
+}
+
+// A server that saves index snapshots while serving (every second here)
+// and is then killed restarts from its last snapshot, reconciled with what
+// was stored after it, instead of rebuilding its place index; a client sees
+// the same state as before the kill.
+TEST_F(RestartTest, KilledServerRestartsFromItsPeriodicIndexSnapshot) {
+  const std::string config = temp_dir().Join("snapshots.textproto");
+  {
+    std::ofstream file(config);
+    file << "index_snapshot_interval_seconds: 1\n"
+            "index_snapshot_min_codes: 0\n";
+  }
+  set_server_args({"--config", config});
+  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  const std::string fleet = "fleet-periodic-snapshot";
+  ASSERT_TRUE(
+      UploadTraces(stub(), fleet, MakeTraces(SpecOf({"robot-a", 230}))).ok());
+  // The first periodic snapshot.
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::seconds(20);
+  while (server().Output().find("index snapshot of") == std::string::npos) {
+    ASSERT_LT(std::chrono::steady_clock::now(), deadline)
+        << "no periodic index snapshot within 20 s";
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  // Stored after it: another robot's segment and more pending traces.
+  ASSERT_TRUE(
+      UploadTraces(stub(), fleet, MakeTraces(SpecOf({"robot-b", 260}))).ok());
+  std::vector<v1::QueryPlaceRequest> queries;
+  for (const RobotPlan& plan : {RobotPlan{"robot-a", 230}, {"robot-b", 260}}) {
+    for (uint64_t seq : {1, 99, 201, 230}) {
+      v1::QueryPlaceRequest& request = queries.emplace_back();
+      request.set_fleet_id(fleet);
+      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
+      for (float value : trace.code()) request.add_code(value);
+      request.set_k(10);
+    }
+  }
+  Observation before;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &before));
+
+  ASSERT_NO_FATAL_FAILURE(KillAndRestart());
+
+  EXPECT_NE(server().Output().find("index snapshot reconciled"),
+            std::string::npos)
+      << "the restart did not use the periodic snapshot";
+  Observation after;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &after));
+  ExpectSameMessage(before.stats, after.stats, "GetStats");
+  for (size_t i = 0; i < before.queries.size(); ++i) {
+    ExpectSameMessage(before.queries[i], after.queries[i],
+                      "QueryPlace " + std::to_string(i));
+  }
 }
 
 TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {

@@ -24,17 +24,17 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-bool Retryable(absl::StatusCode code) {
+using api::PlaceFromProto;
+using api::TraceFromProto;
+
+}  // namespace
+
+bool IsRetryable(absl::StatusCode code) {
   return code == absl::StatusCode::kUnavailable ||
          code == absl::StatusCode::kDeadlineExceeded ||
          code == absl::StatusCode::kResourceExhausted ||
          code == absl::StatusCode::kAborted;
 }
-
-using api::PlaceFromProto;
-using api::TraceFromProto;
-
-}  // namespace
 
 Agent::Agent(AgentOptions options, client::Client* client,
              client::Client* query_client, const ObservationSource* source,
@@ -507,7 +507,7 @@ void Agent::UploadLoop() {
       backoff = options_.initial_backoff;
       continue;
     }
-    if (!Retryable(response.status().code())) {
+    if (!IsRetryable(response.status().code())) {
       SetFatal(absl::Status(
           response.status().code(),
           absl::StrFormat("the server refused traces seq %d..%d: %s; every "

@@ -48,6 +48,11 @@
 
 namespace fleetmem::robot {
 
+// True for the server errors a robot waits out and retries (UNAVAILABLE,
+// DEADLINE_EXCEEDED, RESOURCE_EXHAUSTED, ABORTED); any other error is an
+// answer.
+bool IsRetryable(absl::StatusCode code);
+
 // Where the next step's learned model trains (Algorithm 3's inner loop).
 class Learner {
  public:

@@ -18,6 +18,7 @@
 // SIGINT stopped it cleanly; 1 an error (the message says what was kept);
 // 2 bad flags; 3 the source was observed but the queue did not drain within
 // --drain-timeout (it is kept for the next start).
+#include <algorithm>
 #include <csignal>
 #include <cstdlib>
 #include <filesystem>
@@ -29,6 +30,8 @@
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "clients/cpp/fleetmem_client.h"
 #include "clients/robot/agent.h"
 #include "clients/robot/encoder.h"
@@ -76,6 +79,7 @@ struct Flags {
   double disk_reserve_mb = 64.0;
   std::string queue_full_policy = "refuse";
   double drain_timeout_s = 120.0;
+  double first_contact_timeout_s = 60.0;
   double deadline_s = 10.0;
   uint64_t seed = 1;
   bool slam = false;
@@ -192,6 +196,11 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "seconds to wait for the queue to drain at the end")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
+  app.add_option("--first-contact-timeout", flags.first_contact_timeout_s,
+                 "seconds a first start on an empty data dir waits for an "
+                 "unreachable server before it gives up")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
   app.add_option("--deadline", flags.deadline_s, "seconds per server call")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
@@ -261,11 +270,24 @@ absl::StatusOr<std::unique_ptr<fleetmem::robot::gpl::SharedModel>> LoadGplModel(
 
 // The highest seq the fleet holds of this robot (0 if none, or if the fleet
 // does not exist yet). A robot that has not given a seq yet starts after it,
-// so that a robot whose disk was wiped does not reuse them.
+// so that a robot whose disk was wiped does not reuse them. A server that
+// cannot be reached (it may be restarting) is asked again, with backoff, for
+// up to --first-contact-timeout seconds; any other error ends at once.
 absl::StatusOr<uint64_t> ServerMaxSeq(fleetmem::client::Client& client,
                                       const Flags& flags) {
+  const absl::Time give_up =
+      absl::Now() + absl::Seconds(flags.first_contact_timeout_s);
+  absl::Duration backoff = absl::Milliseconds(200);
   absl::StatusOr<fleetmem::v1::GetStatsResponse> stats =
       client.GetStats(flags.fleet);
+  while (!stats.ok() && fleetmem::robot::IsRetryable(stats.status().code()) &&
+         absl::Now() + backoff < give_up) {
+    std::cerr << "[" << flags.robot_id << "] waiting for the server before a "
+              << "first start (" << stats.status().message() << ")\n";
+    absl::SleepFor(backoff);
+    backoff = std::min(backoff * 2, absl::Seconds(5));
+    stats = client.GetStats(flags.fleet);
+  }
   if (!stats.ok() && stats.status().code() == absl::StatusCode::kNotFound) {
     return 0;  // a new fleet
   }

@@ -27,7 +27,7 @@ import (
 )
 
 // The kustomizations a user applies.
-var kustomizations = []string{"../base", "../overlays/example"}
+var kustomizations = []string{"../base", "../overlays/example", "../overlays/cluster"}
 
 // Secrets and claims the operator creates before applying
 // (docs/deployment.md); anything else referenced must be in the manifests.
@@ -35,6 +35,7 @@ var external = map[string]bool{
 	"Secret/fleetmem-server-tls":                true,
 	"Secret/fleetmem-credentials":               true,
 	"Secret/fleetmem-robot-1-token":             true,
+	"Secret/fleetmem-peer-token":                true,
 	"PersistentVolumeClaim/fleetmem-recordings": true,
 }
 
@@ -193,7 +194,10 @@ func consistencyErrors(objects []runtime.Object) []string {
 			for _, c := range ss.Spec.VolumeClaimTemplates {
 				volumes[c.Name] = true
 			}
-			serverPods = append(serverPods, w.template.Labels)
+			// The NATS StatefulSet of the cluster overlay is not a server.
+			if ss.Name == "fleetmem-server" {
+				serverPods = append(serverPods, w.template.Labels)
+			}
 			if !exists("Service/" + ss.Spec.ServiceName) {
 				errorf("%s: serviceName %s is not a Service", w.name, ss.Spec.ServiceName)
 			}

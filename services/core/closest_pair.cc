@@ -17,7 +17,8 @@ constexpr double kInfinity = std::numeric_limits<double>::infinity();
 // forgetting) and symmetric bit for bit — (a - b) and (b - a) differ only in
 // sign, and Eigen reduces both in the same order — so ties are seen the same
 // way from both ends. Points of different dimension are infinitely far apart.
-double Distance(const Eigen::VectorXf& a, const Eigen::VectorXf& b) {
+double Distance(Eigen::Map<const Eigen::VectorXf> a,
+                Eigen::Map<const Eigen::VectorXf> b) {
   if (a.size() != b.size()) return kInfinity;
   return static_cast<double>((a - b).norm());
 }
@@ -53,7 +54,9 @@ ClosestPairTracker::ClosestPairTracker(const ClosestPairTracker& other)
     : options_(other.options_),
       points_(other.points_),
       by_distance_(other.by_distance_) {
-  if (other.graph_ != nullptr) BuildGraph();
+  if (other.graph_ == nullptr) return;
+  for (auto& [id, entry] : points_) entry.point = other.PointOf(entry);
+  BuildGraph();
 }
 
 ClosestPairTracker& ClosestPairTracker::operator=(
@@ -82,8 +85,16 @@ void ClosestPairTracker::ClearNeighbour(uint64_t id, Entry& entry) {
   entry.distance = kInfinity;
 }
 
-std::vector<uint64_t> ClosestPairTracker::Candidates(
-    const Eigen::VectorXf& point, size_t count) const {
+ClosestPairTracker::PointView ClosestPairTracker::PointOf(
+    const Entry& entry) const {
+  if (graph_ == nullptr)
+    return PointView(entry.point.data(), entry.point.size());
+  return PointView(graph_->hnsw.Vector(entry.slot),
+                   static_cast<Eigen::Index>(graph_->hnsw.dimension()));
+}
+
+std::vector<uint64_t> ClosestPairTracker::Candidates(PointView point,
+                                                     size_t count) const {
   std::vector<uint64_t> ids;
   if (graph_ == nullptr) {
     ids.reserve(points_.size());
@@ -98,14 +109,16 @@ std::vector<uint64_t> ClosestPairTracker::Candidates(
 
 void ClosestPairTracker::Insert(uint64_t id, const Eigen::VectorXf& point) {
   Remove(id);  // contract says absent; stay consistent if not
-  Entry& entry = points_.emplace(id, Entry{point}).first->second;
+  Entry& entry = points_[id];
+  entry.point = point;
+  const PointView view(entry.point.data(), entry.point.size());
   uint64_t best = 0;
   double best_distance = kInfinity;
   bool found = false;
-  for (uint64_t other_id : Candidates(point, options_.reverse_candidates)) {
+  for (uint64_t other_id : Candidates(view, options_.reverse_candidates)) {
     if (other_id == id) continue;
     Entry& other = points_.at(other_id);
-    const double d = Distance(point, other.point);
+    const double d = Distance(view, PointOf(other));
     if (!found || Better(d, other_id, best_distance, best)) {
       best = other_id;
       best_distance = d;
@@ -135,7 +148,7 @@ void ClosestPairTracker::Remove(uint64_t id) {
   }
   points_.erase(it);
   if (graph_ != nullptr && points_.size() < options_.exact_below / 2) {
-    graph_.reset();
+    DropGraph();
   }
   for (uint64_t keeper : keepers) {
     Entry& other = points_.at(keeper);
@@ -159,10 +172,11 @@ void ClosestPairTracker::Recompute(uint64_t id, Entry& entry) {
   double best_distance = kInfinity;
   bool found = false;
   // Two candidates at least: the point itself is among them.
+  const PointView point = PointOf(entry);
   for (uint64_t other_id : Candidates(
-           entry.point, std::max<size_t>(options_.reverse_candidates / 4, 2))) {
+           point, std::max<size_t>(options_.reverse_candidates / 4, 2))) {
     if (other_id == id) continue;
-    const double d = Distance(entry.point, points_.at(other_id).point);
+    const double d = Distance(point, PointOf(points_.at(other_id)));
     if (!found || Better(d, other_id, best_distance, best)) {
       best = other_id;
       best_distance = d;
@@ -173,7 +187,7 @@ void ClosestPairTracker::Recompute(uint64_t id, Entry& entry) {
 }
 
 void ClosestPairTracker::BuildGraph() {
-  graph_.reset();
+  if (graph_ != nullptr) DropGraph();
   if (points_.empty()) return;
   const size_t dimension =
       static_cast<size_t>(points_.begin()->second.point.size());
@@ -188,17 +202,33 @@ void ClosestPairTracker::BuildGraph() {
   for (uint64_t id : ids) AddToGraph(id, points_.at(id));
 }
 
+void ClosestPairTracker::DropGraph() {
+  for (auto& [id, entry] : points_) entry.point = PointOf(entry);
+  graph_.reset();
+}
+
 void ClosestPairTracker::AddToGraph(uint64_t id, Entry& entry) {
   entry.slot = graph_->hnsw.Add(entry.point.data());
   if (entry.slot >= graph_->slot_id.size()) {
     graph_->slot_id.resize(entry.slot + 1);
   }
   graph_->slot_id[entry.slot] = id;
+  entry.point = Eigen::VectorXf();  // the graph holds it now
 }
 
-const Eigen::VectorXf* ClosestPairTracker::point(uint64_t id) const {
+std::span<const float> ClosestPairTracker::point(uint64_t id) const {
   auto it = points_.find(id);
-  return it == points_.end() ? nullptr : &it->second.point;
+  if (it == points_.end()) return {};
+  const PointView view = PointOf(it->second);
+  return {view.data(), static_cast<size_t>(view.size())};
+}
+
+std::vector<uint64_t> ClosestPairTracker::ids() const {
+  std::vector<uint64_t> out;
+  out.reserve(points_.size());
+  for (const auto& [id, entry] : points_) out.push_back(id);
+  std::sort(out.begin(), out.end());
+  return out;
 }
 
 // Version and kind of the layout Save writes.
@@ -207,7 +237,7 @@ constexpr uint32_t kTrackerFormat = 0x43505431;  // "CPT1"
 void ClosestPairTracker::Save(ByteWriter& out) const {
   out.Put<uint32_t>(kTrackerFormat);
   const uint64_t dimension =
-      points_.empty() ? 0 : points_.begin()->second.point.size();
+      points_.empty() ? 0 : PointOf(points_.begin()->second).size();
   out.Put<uint64_t>(dimension);
   out.Put<uint64_t>(points_.size());
   for (const auto& [id, entry] : points_) {
@@ -216,7 +246,7 @@ void ClosestPairTracker::Save(ByteWriter& out) const {
     out.Put<uint64_t>(entry.neighbour);
     out.Put<double>(entry.distance);
     out.Put<uint32_t>(entry.slot);
-    out.PutBytes(entry.point.data(), dimension * sizeof(float));
+    out.PutBytes(PointOf(entry).data(), dimension * sizeof(float));
     out.Put<uint64_t>(entry.keepers.size());
     out.PutBytes(entry.keepers.data(), entry.keepers.size() * sizeof(uint64_t));
   }
@@ -317,11 +347,15 @@ absl::Status ClosestPairTracker::LoadOrThrow(ByteReader& in) {
   graph_->slot_id.resize(slots);
   in.GetBytes(graph_->slot_id.data(), slots * sizeof(uint64_t));
   for (const auto& [id, entry] : points_) {
-    if (!(*graph)->contains(entry.slot) || graph_->slot_id[entry.slot] != id) {
+    if (!(*graph)->contains(entry.slot) || graph_->slot_id[entry.slot] != id ||
+        !std::equal(entry.point.begin(), entry.point.end(),
+                    (*graph)->Vector(entry.slot))) {
       return malformed("point ", id, " is not in its graph slot");
     }
   }
   graph_->hnsw = std::move(**graph);
+  // The graph holds each point: one copy.
+  for (auto& [id, entry] : points_) entry.point = Eigen::VectorXf();
   return absl::OkStatus();
 }
 

@@ -19,6 +19,7 @@
 #include <memory>
 #include <optional>
 #include <set>
+#include <span>
 #include <unordered_map>
 #include <utility>
 #include <vector>
@@ -68,8 +69,10 @@ class ClosestPairTracker {
   size_t size() const { return points_.size(); }
   // True while neighbours are found through the HNSW graph.
   bool approximate() const { return graph_ != nullptr; }
-  // The point of `id`, or nullptr.
-  const Eigen::VectorXf* point(uint64_t id) const;
+  // The point of `id` (valid until the next change), or an empty span.
+  std::span<const float> point(uint64_t id) const;
+  // The ids of every point, ascending.
+  std::vector<uint64_t> ids() const;
 
   // Writes every point with its neighbour bookkeeping, and the graph, for
   // Load: a restart that skips rebuilding them (100,000 centroids take
@@ -84,7 +87,10 @@ class ClosestPairTracker {
 
  private:
   struct Graph;  // hnswlib, kept out of this header
+  using PointView = Eigen::Map<const Eigen::VectorXf>;
   struct Entry {
+    // The point while there is no graph; empty while the graph holds it
+    // (one copy of each centroid: 259-d points cost about 1 KB each).
     Eigen::VectorXf point;
     uint64_t neighbour = 0;
     double distance = 0.0;
@@ -101,9 +107,14 @@ class ClosestPairTracker {
   void Recompute(uint64_t id, Entry& entry);
   // Candidate neighbours of `point` among the other points: all of them, or
   // the graph's `count` approximate nearest.
-  std::vector<uint64_t> Candidates(const Eigen::VectorXf& point,
-                                   size_t count) const;
+  std::vector<uint64_t> Candidates(PointView point, size_t count) const;
+  // The entry's point, in the entry or in the graph.
+  PointView PointOf(const Entry& entry) const;
+  // Builds the graph from the entries' points, which it then holds.
   void BuildGraph();
+  // Moves the points back into the entries and drops the graph.
+  void DropGraph();
+  // Adds the entry's point to the graph, which then holds it.
   void AddToGraph(uint64_t id, Entry& entry);
   // Load without its clean-up on failure.
   absl::Status LoadOrThrow(ByteReader& in);

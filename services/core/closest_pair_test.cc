@@ -1,7 +1,9 @@
 #include "services/core/closest_pair.h"
 
+#include <algorithm>
 #include <map>
 #include <random>
+#include <span>
 #include <string>
 #include <string_view>
 #include <tuple>
@@ -36,6 +38,14 @@ void ExpectSame(const std::optional<ClosestPairTracker::Pair>& got,
   EXPECT_EQ(got->a, want->a) << "step " << step;
   EXPECT_EQ(got->b, want->b) << "step " << step;
   EXPECT_EQ(got->distance, want->distance) << "step " << step;
+}
+
+// A point of `dimension` standard normal coordinates.
+Eigen::VectorXf Gaussian(std::mt19937_64& rng, int dimension) {
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  Eigen::VectorXf p(dimension);
+  for (int d = 0; d < dimension; ++d) p[d] = gauss(rng);
+  return p;
 }
 
 TEST(ClosestPairTrackerTest, FewerThanTwoPoints) {
@@ -111,10 +121,8 @@ TEST(ClosestPairTrackerTest, RemovingDownToEmpty) {
   ClosestPairTracker tracker;
   std::map<uint64_t, Eigen::VectorXf> reference;
   std::mt19937_64 rng(5);
-  std::normal_distribution<float> gauss(0.0f, 1.0f);
   for (uint64_t id = 0; id < 60; ++id) {
-    Eigen::VectorXf p(3);
-    for (int d = 0; d < 3; ++d) p[d] = gauss(rng);
+    const Eigen::VectorXf p = Gaussian(rng, 3);
     tracker.Insert(id, p);
     reference[id] = p;
   }
@@ -139,11 +147,9 @@ TEST(ClosestPairTrackerTest, GraphModeAgreesWithBruteForceMostly) {
   ClosestPairTracker tracker(options);
   std::map<uint64_t, Eigen::VectorXf> reference;
   std::mt19937_64 rng(23);
-  std::normal_distribution<float> gauss(0.0f, 1.0f);
   uint64_t next_id = 1;
   auto insert = [&] {
-    Eigen::VectorXf p(16);
-    for (int d = 0; d < 16; ++d) p[d] = gauss(rng);
+    const Eigen::VectorXf p = Gaussian(rng, 16);
     tracker.Insert(next_id, p);
     reference[next_id++] = p;
   };
@@ -180,6 +186,49 @@ TEST(ClosestPairTrackerTest, GraphModeAgreesWithBruteForceMostly) {
   ExpectSame(copy.Closest(), tracker.Closest(), -2);
 }
 
+// In graph mode the graph holds each point (the entries keep none); every
+// way in and out of that mode gives the points back as inserted, and a copy
+// made in graph mode answers like the original through later changes.
+TEST(ClosestPairTrackerTest, PointsSurviveEveryModeChangeAndCopy) {
+  ClosestPairOptions options;
+  options.exact_below = 32;
+  ClosestPairTracker tracker(options);
+  std::map<uint64_t, Eigen::VectorXf> reference;
+  std::mt19937_64 rng(37);
+  auto expect_points = [&](const ClosestPairTracker& t, int step) {
+    for (const auto& [id, p] : reference) {
+      const std::span<const float> got = t.point(id);
+      ASSERT_EQ(got.size(), static_cast<size_t>(p.size())) << step;
+      EXPECT_TRUE(std::equal(got.begin(), got.end(), p.begin())) << step;
+    }
+    EXPECT_TRUE(t.point(999999).empty());
+  };
+  for (uint64_t id = 1; id <= 80; ++id) {
+    const Eigen::VectorXf p = Gaussian(rng, 12);
+    tracker.Insert(id, p);
+    reference[id] = p;
+  }
+  ASSERT_TRUE(tracker.approximate());
+  expect_points(tracker, 0);
+  ClosestPairTracker copy = tracker;
+  EXPECT_TRUE(copy.approximate());
+  expect_points(copy, 1);
+  for (int step = 0; step < 70; ++step) {
+    ExpectSame(copy.Closest(), tracker.Closest(), step);
+    const auto pair = tracker.Closest();
+    ASSERT_TRUE(pair.has_value());
+    tracker.Remove(pair->a);
+    copy.Remove(pair->a);
+    reference.erase(pair->a);
+  }
+  // 10 points left: the graph was dropped and the points moved back.
+  EXPECT_FALSE(tracker.approximate());
+  EXPECT_FALSE(copy.approximate());
+  expect_points(tracker, 2);
+  expect_points(copy, 3);
+  ExpectSame(tracker.Closest(), BruteForce(reference), 4);
+}
+
 std::string Saved(const ClosestPairTracker& tracker) {
   std::string bytes;
   ByteWriter out([&bytes](std::span<const char> data) {
@@ -197,12 +246,7 @@ TEST(ClosestPairTrackerTest, SavedTrackerLoadsToTheSamePairs) {
     options.exact_below = exact_below;
     ClosestPairTracker tracker(options);
     std::mt19937_64 rng(29);
-    std::normal_distribution<float> gauss(0.0f, 1.0f);
-    auto point = [&] {
-      Eigen::VectorXf p(8);
-      for (int d = 0; d < 8; ++d) p[d] = gauss(rng);
-      return p;
-    };
+    auto point = [&] { return Gaussian(rng, 8); };
     for (uint64_t id = 1; id <= 120; ++id) tracker.Insert(id, point());
     for (uint64_t id = 3; id <= 120; id += 9) tracker.Remove(id);
     ClosestPairTracker loaded(options);
@@ -243,10 +287,8 @@ TEST(ClosestPairTrackerTest, DamagedSnapshotIsRefusedOrSafeToUse) {
   options.exact_below = 16;
   ClosestPairTracker tracker(options);
   std::mt19937_64 rng(31);
-  std::normal_distribution<float> gauss(0.0f, 1.0f);
   for (uint64_t id = 1; id <= 60; ++id) {
-    Eigen::VectorXf p(4);
-    for (int d = 0; d < 4; ++d) p[d] = gauss(rng);
+    const Eigen::VectorXf p = Gaussian(rng, 4);
     tracker.Insert(id, p);
   }
   tracker.Remove(7);

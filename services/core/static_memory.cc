@@ -6,6 +6,7 @@
 #include <numeric>
 #include <utility>
 
+#include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
 #include "services/core/downsampler.h"
 #include "services/core/feature_space.h"
@@ -172,13 +173,19 @@ std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
 }
 
 const MemoryTrace* StaticMemory::Find(const TraceKey& key) const {
-  auto found = location_.find(key);
+  const std::optional<PackedTraceKey> packed =
+      robots_.Find(key.robot_id, key.seq);
+  if (!packed.has_value()) return nullptr;
+  auto found = location_.find(*packed);
   if (found == location_.end()) return nullptr;
   return slot_trace_[found->second.slot];
 }
 
 bool StaticMemory::DropCode(const TraceKey& key) {
-  auto found = location_.find(key);
+  const std::optional<PackedTraceKey> packed =
+      robots_.Find(key.robot_id, key.seq);
+  if (!packed.has_value()) return false;
+  auto found = location_.find(*packed);
   if (found == location_.end()) return false;
   std::vector<float>().swap(slot_trace_[found->second.slot]->code);
   return true;
@@ -196,7 +203,8 @@ void Count(std::map<std::string, uint64_t, std::less<>>& counts,
 }  // namespace
 
 absl::Status StaticMemory::RestoreAll(std::vector<Cluster> clusters,
-                                      ByteReader& centroids) {
+                                      ByteReader& centroids,
+                                      size_t* reconciled) {
   for (Cluster& cluster : clusters) {
     if (cluster.centroid.empty() && !cluster.traces.empty()) {
       cluster.centroid = Centroid(cluster.traces, options_.spatial_scale_m);
@@ -207,22 +215,41 @@ absl::Status StaticMemory::RestoreAll(std::vector<Cluster> clusters,
       clusters_.empty()
           ? loaded.Load(centroids)
           : absl::FailedPreconditionError("RestoreAll into a used memory");
-  if (status.ok() && loaded.size() != clusters.size()) {
-    status = absl::DataLossError(
-        absl::StrCat("the centroid snapshot holds ", loaded.size(),
-                     " centroids, the memory ", clusters.size(), " clusters"));
-  }
-  for (size_t i = 0; status.ok() && i < clusters.size(); ++i) {
-    const Eigen::VectorXf* point = loaded.point(clusters[i].id);
-    if (point == nullptr ||
-        static_cast<size_t>(point->size()) != clusters[i].centroid.size() ||
-        !std::equal(clusters[i].centroid.begin(), clusters[i].centroid.end(),
-                    point->data())) {
+  // Every centroid of one memory has one dimension; a point of another
+  // means the bytes are not this memory's.
+  for (const Cluster& cluster : clusters) {
+    const std::span<const float> point =
+        status.ok() ? loaded.point(cluster.id) : std::span<const float>();
+    if (!point.empty() && point.size() != cluster.centroid.size()) {
       status = absl::DataLossError(absl::StrCat(
-          "the centroid snapshot does not hold cluster ", clusters[i].id));
+          "the centroid snapshot holds cluster ", cluster.id, " with ",
+          point.size(), " dimensions, the memory ", cluster.centroid.size()));
     }
   }
-  if (status.ok()) centroids_ = std::move(loaded);
+  size_t changes = 0;
+  if (status.ok()) {
+    absl::flat_hash_set<uint64_t> held;
+    held.reserve(clusters.size());
+    for (const Cluster& cluster : clusters) held.insert(cluster.id);
+    for (uint64_t id : loaded.ids()) {
+      if (held.contains(id)) continue;
+      loaded.Remove(id);
+      ++changes;
+    }
+    for (const Cluster& cluster : clusters) {
+      const std::span<const float> point = loaded.point(cluster.id);
+      if (!point.empty() &&
+          std::equal(cluster.centroid.begin(), cluster.centroid.end(),
+                     point.begin(), point.end())) {
+        continue;
+      }
+      if (!point.empty()) loaded.Remove(cluster.id);
+      loaded.Insert(cluster.id, ToVector(cluster.centroid));
+      ++changes;
+    }
+    centroids_ = std::move(loaded);
+  }
+  if (reconciled != nullptr) *reconciled = changes;
   for (Cluster& cluster : clusters) {
     if (clusters_.contains(cluster.id)) Erase(cluster.id);  // id must be new
     Insert(std::move(cluster), /*with_centroid=*/!status.ok());
@@ -233,6 +260,8 @@ absl::Status StaticMemory::RestoreAll(std::vector<Cluster> clusters,
 void StaticMemory::Insert(Cluster cluster, bool with_centroid) {
   const uint64_t id = cluster.id;
   if (with_centroid) centroids_.Insert(id, ToVector(cluster.centroid));
+  // The tracker holds the centroid; one copy (WithCentroid).
+  cluster.centroid = std::vector<float>();
   Cluster& stored = clusters_.emplace(id, std::move(cluster)).first->second;
   trace_count_ += stored.traces.size();
   for (MemoryTrace& trace : stored.traces) {
@@ -248,7 +277,7 @@ void StaticMemory::Insert(Cluster cluster, bool with_centroid) {
     replay_.Set(slot,
                 ReplayWeight(trace.reward, trace.replay_count,
                              options_.replay_decay, options_.reward_floor));
-    location_[trace.key()] = Location{id, slot};
+    location_[robots_.Pack(trace.robot_id, trace.seq)] = Location{id, slot};
     Count(traces_by_robot_, trace.robot_id, 1);
     Count(traces_by_domain_, trace.domain, 1);
   }
@@ -258,9 +287,13 @@ Cluster StaticMemory::Erase(uint64_t cluster_id) {
   auto node = clusters_.extract(cluster_id);
   if (node.empty()) return Cluster{};
   Cluster cluster = std::move(node.mapped());
+  const std::span<const float> centroid = centroids_.point(cluster_id);
+  cluster.centroid.assign(centroid.begin(), centroid.end());
   trace_count_ -= cluster.traces.size();
   for (const MemoryTrace& trace : cluster.traces) {
-    auto it = location_.find(trace.key());
+    const std::optional<PackedTraceKey> packed =
+        robots_.Find(trace.robot_id, trace.seq);
+    auto it = packed.has_value() ? location_.find(*packed) : location_.end();
     if (it != location_.end() && it->second.cluster_id == cluster_id) {
       replay_.Clear(it->second.slot);
       slot_trace_[it->second.slot] = nullptr;
@@ -272,6 +305,15 @@ Cluster StaticMemory::Erase(uint64_t cluster_id) {
   }
   centroids_.Remove(cluster_id);
   return cluster;
+}
+
+std::optional<Cluster> StaticMemory::WithCentroid(uint64_t id) const {
+  auto it = clusters_.find(id);
+  if (it == clusters_.end()) return std::nullopt;
+  Cluster whole = it->second;
+  const std::span<const float> centroid = centroids_.point(id);
+  whole.centroid.assign(centroid.begin(), centroid.end());
+  return whole;
 }
 
 std::vector<Cluster> StaticMemory::Forget() {

@@ -7,6 +7,7 @@
 
 #include <cstdint>
 #include <map>
+#include <optional>
 #include <random>
 #include <string>
 #include <vector>
@@ -17,6 +18,7 @@
 #include "services/core/closest_pair.h"
 #include "services/core/importance_sampler.h"
 #include "services/core/memory_options.h"
+#include "services/core/robot_numbers.h"
 #include "services/core/types.h"
 
 namespace fleetmem::core {
@@ -71,11 +73,17 @@ class StaticMemory {
   void Restore(Cluster cluster);
   // Restore of each of `clusters` into this empty memory, with forgetting's
   // centroid bookkeeping loaded from what SaveCentroids wrote instead of
-  // rebuilt (at 100,000 clusters that saves seconds), if it holds exactly
-  // these clusters' centroids. OK when it was used; otherwise the
-  // bookkeeping is rebuilt as Restore does and the status says why. The
-  // memory is complete either way. The clusters' traces do not move.
-  absl::Status RestoreAll(std::vector<Cluster> clusters, ByteReader& centroids);
+  // rebuilt (at 100,000 clusters that saves seconds), then reconciled with
+  // `clusters`: the bookkeeping may come from an earlier state of the
+  // memory (a periodic snapshot before a crash), so centroids of clusters
+  // no longer held are removed and those of clusters it lacks, or holds
+  // with another centroid, are inserted (`*reconciled`, if given, counts
+  // them). OK when the snapshot was used; otherwise (malformed, or of
+  // another dimension) the bookkeeping is rebuilt as Restore does and the
+  // status says why. The memory is complete either way. The clusters'
+  // traces do not move.
+  absl::Status RestoreAll(std::vector<Cluster> clusters, ByteReader& centroids,
+                          size_t* reconciled = nullptr);
   // Writes forgetting's centroid bookkeeping for RestoreAll.
   void SaveCentroids(ByteWriter& out) const { centroids_.Save(out); }
 
@@ -112,8 +120,13 @@ class StaticMemory {
   // then show the trace with an empty code.
   bool DropCode(const TraceKey& key);
 
-  // Clusters by id (ascending = oldest first).
+  // Clusters by id (ascending = oldest first). Their `centroid` is empty:
+  // forgetting's tracker holds each centroid, once; WithCentroid gives a
+  // cluster whole.
   const std::map<uint64_t, Cluster>& clusters() const { return clusters_; }
+  // A copy of the held cluster `id` with its centroid (the store's record),
+  // or nullopt.
+  std::optional<Cluster> WithCentroid(uint64_t id) const;
   size_t trace_count() const { return trace_count_; }
   // Traces held per robot and per domain (kept up to date by every change,
   // so statistics cost O(robots + domains), not O(traces)).
@@ -141,7 +154,9 @@ class StaticMemory {
 
   MemoryOptions options_;
   std::map<uint64_t, Cluster> clusters_;
-  absl::flat_hash_map<TraceKey, Location> location_;
+  // Keyed by (robot number, seq): each robot id once, in robots_.
+  RobotNumbers robots_;
+  absl::flat_hash_map<PackedTraceKey, Location> location_;
   ClosestPairTracker centroids_;
   size_t trace_count_ = 0;
   // Replay weights by slot; slot_trace_[slot] is the trace (nodes of

@@ -144,7 +144,15 @@ TEST(StaticMemoryTest, ConsolidateClustersAndDownsamples) {
     for (int d = 0; d < kDim + 3; ++d) {
       EXPECT_NEAR(c.centroid[d], mean[d], 1e-5);
     }
+    // The memory holds the centroid once (forgetting's tracker): the held
+    // cluster has none, and comes out whole.
+    EXPECT_TRUE(memory.clusters().at(c.id).centroid.empty());
+    const std::optional<Cluster> whole = memory.WithCentroid(c.id);
+    ASSERT_TRUE(whole.has_value());
+    EXPECT_EQ(whole->centroid, c.centroid);
+    EXPECT_EQ(whole->traces.size(), c.traces.size());
   }
+  EXPECT_FALSE(memory.WithCentroid(39).has_value());
   EXPECT_EQ(kept, 20u);
   EXPECT_EQ(r.downsampled.size(), 40u);
   EXPECT_EQ(memory.trace_count(), 20u);
@@ -285,6 +293,9 @@ TEST(StaticMemoryTest, ForgettingRemovesLowerRewardOfClosestPair) {
   ASSERT_EQ(r.forgotten.size(), 1u);
   EXPECT_EQ(r.forgotten[0].id, 3u);
   EXPECT_EQ(r.added[0].id, 3u);  // reported as added and forgotten
+  // A forgotten cluster comes out whole, centroid included.
+  EXPECT_EQ(r.forgotten[0].centroid, r.added[0].centroid);
+  EXPECT_FALSE(r.forgotten[0].centroid.empty());
   EXPECT_EQ(memory.Find(near1.key()), nullptr);
 
   // A new trace close to cluster 1 with a higher reward: cluster 1 goes.
@@ -459,15 +470,77 @@ TEST(StaticMemoryTest, RestoreAllUsesSavedCentroidsOnlyWhenTheyMatch) {
     }
   }
 
-  // Another memory's bookkeeping: refused, rebuilt, memory complete.
+  // Damaged bookkeeping: refused, rebuilt, memory complete.
   StaticMemory other(options);
   std::vector<Cluster> clusters = copies();
-  clusters.pop_back();
-  ByteReader stale(bytes);
-  const absl::Status status = other.RestoreAll(clusters, stale);
+  ByteReader damaged(std::span<const char>(bytes).first(bytes.size() / 2));
+  const absl::Status status = other.RestoreAll(clusters, damaged);
   EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
   EXPECT_EQ(other.clusters().size(), clusters.size());
   ExpectInvariants(other);
+}
+
+// Bookkeeping saved at an earlier state of the memory (a periodic snapshot
+// before a crash) is reconciled with the clusters made and forgotten since:
+// with exact neighbours the restored memory then forgets exactly as the
+// memory that never stopped; with the centroid graph it forgets only
+// clusters it holds and keeps its bounds.
+TEST(StaticMemoryTest, RestoreAllReconcilesCentroidsSavedEarlier) {
+  for (const size_t exact_below : {size_t{1000}, size_t{16}}) {
+    SCOPED_TRACE(exact_below);
+    MemoryOptions options;
+    options.clusters_per_batch = 8;
+    options.max_traces_per_cluster = 5;
+    options.max_clusters = 40;
+    options.forgetting_exact_below = exact_below;
+    StaticMemory memory(options);
+    std::mt19937_64 rng(33);
+    uint64_t next_cluster = 1;
+    std::string earlier;
+    ByteWriter out([&earlier](std::span<const char> data) {
+      earlier.append(data.data(), data.size());
+    });
+    for (int b = 0; b < 12; ++b) {
+      // Saved after 8 segments; 4 more add and forget 32 clusters.
+      if (b == 8) memory.SaveCentroids(out);
+      next_cluster +=
+          memory
+              .Consolidate(Segment("r1", 1000 * b, 50, rng), next_cluster, rng)
+              .added.size();
+    }
+    std::vector<Cluster> clusters;
+    for (const auto& [id, cluster] : memory.clusters()) {
+      clusters.push_back(cluster);
+    }
+    StaticMemory restored(options);
+    ByteReader in(earlier);
+    size_t reconciled = 0;
+    ASSERT_TRUE(restored.RestoreAll(clusters, in, &reconciled).ok());
+    EXPECT_GT(reconciled, 0u);  // clusters made and forgotten since
+    ExpectInvariants(restored);
+    std::mt19937_64 rng_a(35), rng_b(35);
+    for (int b = 12; b < 16; ++b) {
+      std::mt19937_64 segment_rng(b);
+      const std::vector<MemoryTrace> segment =
+          Segment("r2", 1000 * b, 50, segment_rng);
+      std::set<uint64_t> held;
+      for (const auto& [id, cluster] : restored.clusters()) held.insert(id);
+      const ConsolidationResult a =
+          memory.Consolidate(segment, next_cluster, rng_a);
+      const ConsolidationResult c =
+          restored.Consolidate(segment, next_cluster, rng_b);
+      for (const Cluster& cluster : c.added) held.insert(cluster.id);
+      next_cluster += a.added.size();
+      ASSERT_EQ(a.forgotten.size(), c.forgotten.size());
+      for (size_t i = 0; i < c.forgotten.size(); ++i) {
+        EXPECT_TRUE(held.erase(c.forgotten[i].id)) << c.forgotten[i].id;
+        if (exact_below == 1000) {
+          EXPECT_EQ(a.forgotten[i].id, c.forgotten[i].id);
+        }
+      }
+      ExpectInvariants(restored);
+    }
+  }
 }
 
 }  // namespace

@@ -5,12 +5,10 @@
 
 #include "absl/strings/escaping.h"
 #include "absl/strings/str_cat.h"
+#include "services/core/absl_view.h"
 
 namespace fleetmem::core {
 namespace {
-
-// Debian's absl has its own string_view type, distinct from std::string_view.
-absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
 
 // Values quoted in messages are escaped and cut to a readable length.
 std::string Quote(std::string_view value) {

@@ -6,6 +6,7 @@
 #include <functional>
 #include <map>
 #include <random>
+#include <string>
 #include <system_error>
 #include <thread>
 #include <tuple>
@@ -15,20 +16,20 @@
 #include <malloc.h>
 #endif
 
+#include "absl/cleanup/cleanup.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "services/common/log.h"
+#include "services/core/absl_view.h"
 #include "services/core/feature_space.h"
 #include "services/core/static_memory.h"
 #include "services/core/validation.h"
+#include "services/engine/trace_handles.h"
 
 namespace fleetmem::engine {
 namespace {
-
-// Debian's absl has its own string_view type, distinct from std::string_view.
-absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
 
 // Seed of a fleet's generator: the configured seed mixed with a stable
 // (FNV-1a) hash of the fleet id, finalised by splitmix64.
@@ -219,71 +220,73 @@ void RunBeside(const std::function<void()>& first, size_t items,
 // Version of the engine's part of an index snapshot.
 constexpr uint32_t kIndexSnapshotFormat = 0x454e4731;  // "ENG1"
 
-// The handle table of an index snapshot: each robot id once, then (robot
-// number, seq, handle) per trace.
-void WriteHandles(const absl::flat_hash_map<uint64_t, core::TraceKey>& key_of,
-                  core::ByteWriter& out) {
-  absl::flat_hash_map<std::string_view, uint32_t> robot_number;
-  std::vector<std::string_view> robot_ids;
-  for (const auto& [handle, key] : key_of) {
-    if (robot_number.try_emplace(key.robot_id, robot_ids.size()).second) {
-      robot_ids.push_back(key.robot_id);
-    }
-  }
-  out.Put<uint64_t>(robot_ids.size());
-  for (std::string_view robot_id : robot_ids) out.PutString(robot_id);
-  out.Put<uint64_t>(key_of.size());
-  for (const auto& [handle, key] : key_of) {
-    out.Put<uint32_t>(robot_number[key.robot_id]);
-    out.Put<uint64_t>(key.seq);
-    out.Put<uint64_t>(handle);
-  }
-}
+// Stored traces whose codes a reconciled snapshot must hold as the store
+// does (a sample: a trace's code never changes under its key, so a
+// difference means the snapshot is of another history of the fleet).
+constexpr size_t kCodesCheckedOnLoad = 1024;
 
-// Reads what WriteHandles wrote into both maps. DATA_LOSS unless it holds
-// exactly `traces` (as many distinct keys, each trace's among them) under
-// distinct handles in [1, next_handle).
-absl::Status ReadHandles(
-    core::ByteReader& in, const std::vector<const core::MemoryTrace*>& traces,
-    uint64_t next_handle,
-    absl::flat_hash_map<core::TraceKey, uint64_t>* handle_of,
-    absl::flat_hash_map<uint64_t, core::TraceKey>* key_of) {
-  uint64_t robot_count = 0, count = 0;
-  if (!in.Get(&robot_count) || robot_count > in.remaining()) {
-    return absl::DataLossError("bad robot count");
-  }
-  std::vector<std::string> robot_ids(robot_count);
-  for (std::string& robot_id : robot_ids) {
-    if (!in.GetString(&robot_id, core::kMaxIdLength)) {
-      return absl::DataLossError("bad robot id");
-    }
-  }
-  if (!in.Get(&count) || count != traces.size()) {
-    return absl::DataLossError(
-        absl::StrCat("it holds ", count, " traces, the store ", traces.size()));
-  }
-  handle_of->reserve(count);
-  key_of->reserve(count);
-  for (uint64_t i = 0; i < count; ++i) {
-    uint32_t robot = 0;
-    uint64_t seq = 0, handle = 0;
-    if (!in.Get(&robot) || !in.Get(&seq) || !in.Get(&handle) ||
-        robot >= robot_count || handle == 0 || handle >= next_handle) {
-      return absl::DataLossError(absl::StrCat("bad handle entry ", i));
-    }
-    core::TraceKey key{robot_ids[robot], seq};
-    if (!handle_of->try_emplace(key, handle).second ||
-        !key_of->try_emplace(handle, std::move(key)).second) {
-      return absl::DataLossError(absl::StrCat("repeated handle entry ", i));
-    }
-  }
-  for (const core::MemoryTrace* trace : traces) {
-    if (!handle_of->contains(trace->key())) {
-      return absl::DataLossError(absl::StrCat(
-          "it lacks trace (", trace->robot_id, ", ", trace->seq, ")"));
-    }
-  }
-  return absl::OkStatus();
+// A fleet's index snapshot as read from the store, before it meets the
+// fleet's stored traces: the index loaded, its handle table, and
+// forgetting's centroid bookkeeping still as bytes.
+struct LoadedSnapshot {
+  // NOT_FOUND when there is none; why it is unusable otherwise.
+  absl::Status status = absl::NotFoundError("no index snapshot read");
+  // The index part alone (e.g. of another index kind): forgetting's
+  // centroids may still be used.
+  absl::Status index_status;
+  uint32_t dimension = 0;
+  uint64_t next_handle = 0;
+  std::unique_ptr<PlaceIndex> index;
+  TraceHandles handles;
+  std::string centroids;  // what StaticMemory::SaveCentroids wrote
+  double handles_seconds = 0;
+  double index_seconds = 0;
+};
+
+// Reads `fleet_id`'s index snapshot through `store` and loads its index
+// (made by `factory` for the snapshot's dimension). Needs nothing of the
+// fleet, so it runs beside the store's LoadFleet (each is seconds long at
+// 1,000,000 traces).
+LoadedSnapshot ReadSnapshot(MemoryStore& store,
+                            const PlaceIndexFactory& factory,
+                            std::string_view fleet_id) {
+  LoadedSnapshot loaded;
+  const absl::Time start = absl::Now();
+  loaded.status = store.ReadIndexSnapshot(
+      fleet_id, [&](std::span<const char> bytes) -> absl::Status {
+        core::ByteReader in(bytes);
+        uint32_t format = 0;
+        if (!in.Get(&format) || format != kIndexSnapshotFormat ||
+            !in.Get(&loaded.dimension) || loaded.dimension == 0 ||
+            !in.Get(&loaded.next_handle)) {
+          return absl::DataLossError("bad header");
+        }
+        absl::Status handles = loaded.handles.Load(in, loaded.next_handle);
+        if (!handles.ok()) return handles;
+        loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
+        uint64_t centroid_size = 0;
+        std::span<const char> centroid_bytes;
+        if (!in.Get(&centroid_size) ||
+            !in.GetSpan(centroid_size, &centroid_bytes)) {
+          return absl::DataLossError("truncated centroids");
+        }
+        loaded.centroids.assign(centroid_bytes.begin(), centroid_bytes.end());
+        loaded.index = factory(loaded.dimension);
+        if (loaded.index == nullptr) {
+          return absl::InternalError("no index made");
+        }
+        const absl::Time index_start = absl::Now();
+        absl::Status status = loaded.index->Load(in);
+        loaded.index_seconds = absl::ToDoubleSeconds(absl::Now() - index_start);
+        if (status.ok() && (loaded.index->size() != loaded.handles.size() ||
+                            in.remaining() != 0)) {
+          status = absl::DataLossError("the index does not match its handles");
+        }
+        loaded.index_status = status;
+        return absl::OkStatus();
+      });
+  if (!loaded.status.ok() || !loaded.index_status.ok()) loaded.index.reset();
+  return loaded;
 }
 
 }  // namespace
@@ -310,29 +313,40 @@ struct MemoryEngine::Fleet {
   absl::Status EnsureLoaded() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // For readers: OK unless a reload failed.
   absl::Status CheckLoaded() const ABSL_SHARED_LOCKS_REQUIRED(mu);
-  absl::Status Rebuild(FleetRecord record) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // `snapshot`, if given, is the fleet's index snapshot read beside the
+  // store's load (ReadSnapshot); without one the index is rebuilt.
+  absl::Status Rebuild(FleetRecord record, LoadedSnapshot* snapshot = nullptr)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Adds `traces` to the index under new handles. `meanwhile`, if given,
   // runs on this thread while another thread fills the index (a restart:
   // memory restores its clusters and the index copies the codes, each
   // seconds long at 1,000,000 traces); the traces' codes must not change
   // or move meanwhile.
+  // `on_load`: the adds of a load, never held up by the index's
+  // back-pressure (PlaceIndex::AddNormalizedOnLoad).
   absl::Status IndexTraces(const std::vector<const core::MemoryTrace*>& traces,
-                           const std::function<void()>& meanwhile = nullptr)
+                           const std::function<void()>& meanwhile = nullptr,
+                           bool on_load = false)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
-  // A load from the store's index snapshot of the fleet (written by
-  // SaveIndexSnapshot at the last clean shutdown), if it is valid and holds
-  // exactly `traces`: the index and the handles are loaded instead of
-  // rebuilt, and memory restores `clusters` with forgetting's centroid
-  // bookkeeping from it, beside the index's load. On an error before
-  // memory was touched `*restored` stays false; on one after, memory is
-  // complete and only the index must be rebuilt. The index and the handles
-  // change only on success.
+  // A load from the fleet's index snapshot (written by SaveIndexSnapshot
+  // at a clean shutdown or periodically while serving), read and its index
+  // loaded beside the store's read (ReadSnapshot): memory restores
+  // `clusters` with forgetting's centroid bookkeeping from it; then both
+  // are reconciled with `traces`, the stored ones: what the snapshot holds
+  // that the store no longer does is removed, what it lacks is added under
+  // new handles (the tiered index's background thread catches up). On an
+  // error before memory was touched `*restored` stays false; on one after,
+  // memory is complete and only the index must be rebuilt. The index and
+  // the handles change only on success.
   absl::Status LoadFromSnapshot(
-      std::vector<core::Cluster>& clusters,
+      LoadedSnapshot snapshot, std::vector<core::Cluster>& clusters,
       const std::vector<const core::MemoryTrace*>& traces, bool* restored)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
-  // Writes the index and the handles through the store (SaveIndexSnapshots).
-  absl::Status SaveIndexSnapshot() const ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // Writes the index and the handles through the store (SaveIndexSnapshots);
+  // `written` is the store's (MemoryStore::SaveIndexSnapshot): called once
+  // nothing of the fleet is read any more, before the bytes are synced.
+  absl::Status SaveIndexSnapshot(const std::function<void()>& written) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
   absl::Status UnindexTraces(const std::vector<core::TraceKey>& keys)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Appends a pending trace of its robot.
@@ -387,7 +401,8 @@ struct MemoryEngine::Fleet {
     absl::flat_hash_set<core::TraceKey> unstored;
   };
   absl::Status PrepareUpload(std::span<const core::MemoryTrace> traces,
-                             UploadResult* result, PreparedUpload* prepared)
+                             uint64_t log_position, UploadResult* result,
+                             PreparedUpload* prepared)
       ABSL_SHARED_LOCKS_REQUIRED(mu);
   // `plan`, if given, is PlanAhead's for the first robot this upload
   // fills; it is used if it fits that robot's segment.
@@ -420,9 +435,11 @@ struct MemoryEngine::Fleet {
   // record; a retry of the previous request returns its traces and leaves
   // `mutation` empty. The caller stores the mutation under the shared lock,
   // then calls FinishSample (or Reload on failure).
+  // A non-zero `log_position` seeds the draw from it and stores it.
   absl::StatusOr<std::vector<core::MemoryTrace>> DrawSample(
       std::string_view robot_id, size_t count, std::string_view request_id,
-      FleetMutation* mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+      uint64_t log_position, FleetMutation* mutation)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   void FinishSample(FleetMutation mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   FleetStats Stats() const ABSL_SHARED_LOCKS_REQUIRED(mu);
 
@@ -464,6 +481,9 @@ struct MemoryEngine::Fleet {
   // Writers hold `mu` exclusively only while they change memory; their
   // store writes (and fsyncs) run under `mu`'s shared lock, beside readers.
   absl::Mutex writer_mu ABSL_ACQUIRED_BEFORE(mu);
+  // Serialises the fleet's index snapshots (SaveIndexSnapshots), which
+  // release writer_mu before their file is synced. Taken before writer_mu.
+  absl::Mutex snapshot_mu ABSL_ACQUIRED_BEFORE(writer_mu);
   mutable absl::Mutex mu;
   absl::Status stale ABSL_GUARDED_BY(mu);
   FleetMeta meta ABSL_GUARDED_BY(mu);
@@ -481,9 +501,13 @@ struct MemoryEngine::Fleet {
   // Index of the normalised codes of the static memory's and the pending
   // traces under handles; null until the code dimension is known.
   std::unique_ptr<PlaceIndex> index ABSL_GUARDED_BY(mu);
-  absl::flat_hash_map<core::TraceKey, uint64_t> handle_of ABSL_GUARDED_BY(mu);
-  absl::flat_hash_map<uint64_t, core::TraceKey> key_of ABSL_GUARDED_BY(mu);
+  TraceHandles handles ABSL_GUARDED_BY(mu);
   uint64_t next_handle ABSL_GUARDED_BY(mu) = 1;
+  // Changes to what an index snapshot holds (the index, the handles,
+  // forgetting's centroids) since the fleet was loaded, and their count
+  // when the store's snapshot last matched them (nullopt: it does not).
+  uint64_t snapshot_changes ABSL_GUARDED_BY(mu) = 0;
+  std::optional<uint64_t> snapshot_saved_at ABSL_GUARDED_BY(mu);
   // The fleet's seed; replay draws from `rng`, and each segment's k-means
   // from a generator of its own (SegmentSeed).
   const uint64_t seed;
@@ -492,10 +516,27 @@ struct MemoryEngine::Fleet {
 
 absl::Status MemoryEngine::Fleet::Reload() {
   const absl::Time start = absl::Now();
+  // The index snapshot is read and its index loaded on a second thread
+  // while this one reads the fleet's traces.
+  LoadedSnapshot snapshot;
+  auto read_snapshot = [&] {
+    snapshot = ReadSnapshot(*engine->store_, engine->index_factory_, id);
+  };
+  std::thread beside;
+  try {
+    beside = std::thread(read_snapshot);
+  } catch (const std::system_error&) {
+    // No thread: one after the other.
+  }
   absl::StatusOr<FleetRecord> record = engine->store_->LoadFleet(id);
+  if (beside.joinable()) {
+    beside.join();
+  } else {
+    read_snapshot();
+  }
   const absl::Time read = absl::Now();
   absl::Status status =
-      record.ok() ? Rebuild(*std::move(record)) : record.status();
+      record.ok() ? Rebuild(*std::move(record), &snapshot) : record.status();
   if (status.ok() && exists()) {
     FLEETMEM_LOG(kInfo) << "fleet \"" << id
                         << "\" loaded: " << memory.trace_count()
@@ -529,7 +570,8 @@ absl::Status MemoryEngine::Fleet::CheckLoaded() const {
                    stale.message(), "); retry later"));
 }
 
-absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
+absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
+                                          LoadedSnapshot* snapshot) {
   meta = record.meta;
   memory = core::StaticMemory(engine->MemoryOptionsFor(id));
   pending.clear();
@@ -537,9 +579,10 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   pending_by_domain.clear();
   robots.clear();
   index.reset();
-  handle_of.clear();
-  key_of.clear();
+  handles.Clear();
   next_handle = 1;
+  snapshot_changes = 0;
+  snapshot_saved_at.reset();
   if (meta.code_dimension == 0) {
     if (!record.clusters.empty() || !record.pending.empty()) {
       return absl::DataLossError(absl::StrCat(
@@ -580,7 +623,11 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
   bool restored = false;
   if (!traces.empty()) {
     const absl::Time start = absl::Now();
-    absl::Status status = LoadFromSnapshot(record.clusters, traces, &restored);
+    absl::Status status =
+        snapshot == nullptr
+            ? absl::NotFoundError("no index snapshot read")
+            : LoadFromSnapshot(std::move(*snapshot), record.clusters, traces,
+                               &restored);
     if (status.ok()) {
       FLEETMEM_LOG(kInfo) << "fleet \"" << id
                           << "\": loaded from its index snapshot in "
@@ -611,19 +658,19 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record) {
 size_t MemoryEngine::Fleet::ReleaseCodes(
     const std::vector<core::TraceKey>& keys) {
   if (index == nullptr || keys.empty()) return 0;
-  std::vector<uint64_t> handles;
+  std::vector<uint64_t> ids;
   std::vector<const core::TraceKey*> indexed;
-  handles.reserve(keys.size());
+  ids.reserve(keys.size());
   indexed.reserve(keys.size());
   for (const core::TraceKey& key : keys) {
-    auto handle = handle_of.find(key);
-    if (handle == handle_of.end()) continue;
-    handles.push_back(handle->second);
+    const uint64_t handle = handles.Find(key);
+    if (handle == 0) continue;
+    ids.push_back(handle);
     indexed.push_back(&key);
   }
-  const std::vector<bool> held = index->HoldsCodes(handles);
+  const std::vector<bool> held = index->HoldsCodes(ids);
   size_t released = 0;
-  for (size_t i = 0; i < handles.size(); ++i) {
+  for (size_t i = 0; i < ids.size(); ++i) {
     if (held[i] && memory.DropCode(*indexed[i])) ++released;
   }
   return released;
@@ -645,9 +692,9 @@ size_t MemoryEngine::Fleet::ReleaseAllCodes() {
 absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(
     core::MemoryTrace trace) const {
   if (!trace.code.empty()) return trace;
-  auto handle = handle_of.find(trace.key());
-  if (handle == handle_of.end() || index == nullptr ||
-      !index->CopyCode(handle->second, &trace.code)) {
+  const uint64_t handle = handles.Find(trace.key());
+  if (handle == 0 || index == nullptr ||
+      !index->CopyCode(handle, &trace.code)) {
     return absl::InternalError(absl::StrCat(
         "fleet \"", id, "\": the code of trace (\"", trace.robot_id, "\", ",
         trace.seq, ") is neither in memory nor in the index"));
@@ -683,7 +730,7 @@ const core::MemoryTrace* MemoryEngine::Fleet::FindTrace(
 
 absl::Status MemoryEngine::Fleet::IndexTraces(
     const std::vector<const core::MemoryTrace*>& traces,
-    const std::function<void()>& meanwhile) {
+    const std::function<void()>& meanwhile, bool on_load) {
   if (traces.empty()) {
     if (meanwhile) meanwhile();
     return absl::OkStatus();
@@ -700,92 +747,130 @@ absl::Status MemoryEngine::Fleet::IndexTraces(
     codes.push_back(trace->code);
   }
   absl::Status status;
-  RunBeside(meanwhile, traces.size(),
-            [&] { status = index->AddNormalized(ids, codes); });
+  RunBeside(meanwhile, traces.size(), [&] {
+    status = on_load ? index->AddNormalizedOnLoad(ids, codes)
+                     : index->AddNormalized(ids, codes);
+  });
+  ++snapshot_changes;
   if (!status.ok()) return status;
-  handle_of.reserve(handle_of.size() + traces.size());
-  key_of.reserve(key_of.size() + traces.size());
+  handles.Reserve(handles.size() + traces.size());
   for (size_t i = 0; i < traces.size(); ++i) {
-    handle_of[traces[i]->key()] = ids[i];
-    key_of[ids[i]] = traces[i]->key();
+    handles.Assign(traces[i]->key(), ids[i]);
   }
   return absl::OkStatus();
 }
 
-absl::Status MemoryEngine::Fleet::SaveIndexSnapshot() const {
-  return engine->store_->SaveIndexSnapshot(id, [this](core::ByteWriter& out) {
-    out.Put<uint32_t>(kIndexSnapshotFormat);
-    out.Put<uint32_t>(meta.code_dimension);
-    out.Put<uint64_t>(next_handle);
-    WriteHandles(key_of, out);
-    // Forgetting's centroid bookkeeping, length first so that a load can
-    // hand it to memory while the index reads what follows.
-    core::ByteWriter counter([](std::span<const char>) {});
-    memory.SaveCentroids(counter);
-    out.Put<uint64_t>(counter.written());
-    memory.SaveCentroids(out);
-    return index->Save(out);
-  });
+absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
+    const std::function<void()>& written) const {
+  return engine->store_->SaveIndexSnapshot(
+      id,
+      [this](core::ByteWriter& out) {
+        out.Put<uint32_t>(kIndexSnapshotFormat);
+        out.Put<uint32_t>(meta.code_dimension);
+        out.Put<uint64_t>(next_handle);
+        handles.Save(out);
+        // Forgetting's centroid bookkeeping, length first so that a load
+        // can hand it to memory while the index reads what follows.
+        core::ByteWriter counter([](std::span<const char>) {});
+        memory.SaveCentroids(counter);
+        out.Put<uint64_t>(counter.written());
+        memory.SaveCentroids(out);
+        return index->Save(out);
+      },
+      written);
 }
 
 absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
-    std::vector<core::Cluster>& clusters,
+    LoadedSnapshot snapshot, std::vector<core::Cluster>& clusters,
     const std::vector<const core::MemoryTrace*>& traces, bool* restored) {
-  std::unique_ptr<PlaceIndex> loaded;
-  absl::flat_hash_map<core::TraceKey, uint64_t> saved_handle_of;
-  absl::flat_hash_map<uint64_t, core::TraceKey> saved_key_of;
-  uint64_t saved_next_handle = 0;
-  absl::Status status = engine->store_->TakeIndexSnapshot(
-      id, [&](std::span<const char> bytes) -> absl::Status {
-        core::ByteReader in(bytes);
-        uint32_t format = 0, dimension = 0;
-        if (!in.Get(&format) || format != kIndexSnapshotFormat ||
-            !in.Get(&dimension) || dimension != meta.code_dimension ||
-            !in.Get(&saved_next_handle)) {
-          return absl::DataLossError("bad header");
-        }
-        absl::Status handles = ReadHandles(in, traces, saved_next_handle,
-                                           &saved_handle_of, &saved_key_of);
-        if (!handles.ok()) return handles;
-        uint64_t centroid_size = 0;
-        std::span<const char> centroid_bytes;
-        if (!in.Get(&centroid_size) ||
-            !in.GetSpan(centroid_size, &centroid_bytes)) {
-          return absl::DataLossError("truncated centroids");
-        }
-        loaded = engine->index_factory_(meta.code_dimension);
-        if (loaded == nullptr) return absl::InternalError("no index made");
-        // The index loads (the larger part) while memory restores.
-        absl::Status index_status;
-        auto load_index = [&] {
-          index_status = loaded->Load(in);
-          if (index_status.ok() &&
-              (loaded->size() != traces.size() || in.remaining() != 0)) {
-            index_status =
-                absl::DataLossError("the index does not match its handles");
-          }
-        };
-        RunBeside(
-            [&] {
-              core::ByteReader centroids(centroid_bytes);
-              absl::Status kept =
-                  memory.RestoreAll(std::move(clusters), centroids);
-              *restored = true;
-              if (!kept.ok()) {
-                FLEETMEM_LOG(kWarning) << "fleet \"" << id
-                                       << "\": forgetting's centroid graph "
-                                          "rebuilt: "
-                                       << kept;
-              }
-            },
-            traces.size(), load_index);
-        return index_status;
-      });
+  if (!snapshot.status.ok()) return snapshot.status;
+  if (snapshot.dimension != meta.code_dimension) {
+    return absl::DataLossError(
+        absl::StrCat("the snapshot's codes have ", snapshot.dimension,
+                     " dimensions, the fleet's ", meta.code_dimension));
+  }
+  std::unique_ptr<PlaceIndex> loaded = std::move(snapshot.index);
+  TraceHandles& saved = snapshot.handles;
+  const absl::Time memory_start = absl::Now();
+  size_t centroids_reconciled = 0;
+  core::ByteReader centroids(snapshot.centroids);
+  absl::Status kept_centroids =
+      memory.RestoreAll(std::move(clusters), centroids, &centroids_reconciled);
+  *restored = true;
+  if (!kept_centroids.ok()) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << id
+                           << "\": forgetting's centroid graph rebuilt: "
+                           << kept_centroids;
+  }
+  const double memory_seconds =
+      absl::ToDoubleSeconds(absl::Now() - memory_start);
+  absl::Status status = snapshot.index_status;
   if (!status.ok()) return status;
+
+  // Reconcile with the store: traces stored since the snapshot are added,
+  // traces forgotten or downsampled since are removed.
+  const absl::Time reconcile_start = absl::Now();
+  std::vector<const core::MemoryTrace*> missing;
+  std::vector<const core::MemoryTrace*> kept;
+  kept.reserve(std::min(traces.size(), saved.size()));
+  for (const core::MemoryTrace* trace : traces) {
+    (saved.contains(trace->key()) ? kept : missing).push_back(trace);
+  }
+  // A sample of the kept traces, spread over all of them, must have the
+  // codes the store has.
+  std::vector<float> code;
+  const size_t step = std::max<size_t>(1, kept.size() / kCodesCheckedOnLoad);
+  for (size_t i = 0; i < kept.size(); i += step) {
+    const core::MemoryTrace& trace = *kept[i];
+    if (!loaded->CopyCode(saved.Find(trace.key()), &code) ||
+        code != trace.code) {
+      return absl::DataLossError(
+          absl::StrCat("the snapshot's code of trace (\"", trace.robot_id,
+                       "\", ", trace.seq, ") differs from the store's"));
+    }
+  }
+  std::vector<uint64_t> gone;
+  if (kept.size() < saved.size()) {
+    absl::flat_hash_set<core::TraceKey> stored;
+    stored.reserve(traces.size());
+    for (const core::MemoryTrace* trace : traces) stored.insert(trace->key());
+    saved.ForEach(
+        [&](uint64_t handle, std::string_view robot_id, uint64_t seq) {
+          if (!stored.contains(core::TraceKey{std::string(robot_id), seq})) {
+            gone.push_back(handle);
+          }
+        });
+  }
+  status = loaded->Remove(gone);
+  if (!status.ok()) return status;
+  for (uint64_t handle : gone) saved.EraseHandle(handle);
   index = std::move(loaded);
-  handle_of = std::move(saved_handle_of);
-  key_of = std::move(saved_key_of);
-  next_handle = saved_next_handle;
+  handles = std::move(saved);
+  next_handle = snapshot.next_handle;
+  if (!missing.empty()) {
+    status = IndexTraces(missing, nullptr, /*on_load=*/true);
+    if (!status.ok()) {
+      index = engine->index_factory_(meta.code_dimension);
+      handles.Clear();
+      next_handle = 1;
+      return status;
+    }
+  }
+  snapshot_changes = 0;
+  if (missing.empty() && gone.empty() && centroids_reconciled == 0) {
+    snapshot_saved_at = 0;  // the snapshot on disk is this state
+  }
+  FLEETMEM_LOG(kInfo) << "fleet \"" << id
+                      << "\": index snapshot reconciled: " << kept.size()
+                      << " codes kept, " << missing.size() << " added, "
+                      << gone.size() << " removed; " << centroids_reconciled
+                      << " centroids changed (handles "
+                      << snapshot.handles_seconds << " s and index "
+                      << snapshot.index_seconds
+                      << " s beside the store's read, memory " << memory_seconds
+                      << " s, reconciling "
+                      << absl::ToDoubleSeconds(absl::Now() - reconcile_start)
+                      << " s)";
   return absl::OkStatus();
 }
 
@@ -793,19 +878,17 @@ absl::Status MemoryEngine::Fleet::UnindexTraces(
     const std::vector<core::TraceKey>& keys) {
   std::vector<uint64_t> ids;
   for (const core::TraceKey& key : keys) {
-    auto it = handle_of.find(key);
-    if (it == handle_of.end()) continue;
-    ids.push_back(it->second);
-    key_of.erase(it->second);
-    handle_of.erase(it);
+    const uint64_t handle = handles.Erase(key);
+    if (handle != 0) ids.push_back(handle);
   }
   if (ids.empty() || index == nullptr) return absl::OkStatus();
+  ++snapshot_changes;
   return index->Remove(ids);
 }
 
 absl::Status MemoryEngine::Fleet::PrepareUpload(
-    std::span<const core::MemoryTrace> traces, UploadResult* result,
-    PreparedUpload* prepared) {
+    std::span<const core::MemoryTrace> traces, uint64_t log_position,
+    UploadResult* result, PreparedUpload* prepared) {
   absl::Status status = CheckLoaded();
   if (!status.ok()) return status;
   const bool is_new = !exists();
@@ -885,6 +968,11 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
           "the index factory made no index for fleet \"", id, "\""));
     }
   }
+  if (log_position > meta.log_position) {
+    if (!mutation.put_meta) mutation.meta = meta;
+    mutation.put_meta = true;
+    mutation.meta.log_position = log_position;
+  }
   return absl::OkStatus();
 }
 
@@ -901,10 +989,8 @@ absl::Status MemoryEngine::Fleet::CommitUpload(
     carried.mutation.meta = mutation.meta;
     carried.mutation.put_robots = mutation.put_robots;
   }
-  if (mutation.put_meta) {
-    meta = mutation.meta;
-    index = std::move(prepared.new_index);
-  }
+  if (mutation.put_meta) meta = mutation.meta;
+  if (prepared.new_index != nullptr) index = std::move(prepared.new_index);
   for (RobotRecord& record : mutation.put_robots) {
     std::string robot_id = record.robot_id;
     robots[robot_id] = std::move(record);
@@ -1049,6 +1135,7 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   if (!fits) own = Plan(batch);
   core::ConsolidationResult outcome = memory.Consolidate(
       std::move(batch), first_cluster_id, fits ? *plan : *own);
+  ++snapshot_changes;  // forgetting's centroids
 
   FleetMeta new_meta = meta;
   new_meta.next_cluster_id = first_cluster_id + outcome.added.size();
@@ -1064,9 +1151,9 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   }
   for (const core::Cluster& cluster : outcome.added) {
     if (forgotten_ids.contains(cluster.id)) continue;
-    auto held = memory.clusters().find(cluster.id);
-    mutation.put_clusters.push_back(
-        held != memory.clusters().end() ? held->second : cluster);
+    std::optional<core::Cluster> held = memory.WithCentroid(cluster.id);
+    mutation.put_clusters.push_back(held.has_value() ? std::move(*held)
+                                                     : cluster);
   }
   for (const core::Cluster& cluster : outcome.forgotten) {
     if (!added_ids.contains(cluster.id)) {
@@ -1159,7 +1246,7 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
 
 absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
     std::string_view robot_id, size_t count, std::string_view request_id,
-    FleetMutation* mutation) {
+    uint64_t log_position, FleetMutation* mutation) {
   RobotRecord record;
   auto known = robots.find(robot_id);
   if (known != robots.end()) {
@@ -1178,7 +1265,14 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
     if (!status.ok()) return status;
     return again;
   }
-  std::vector<core::MemoryTrace> traces = memory.SampleForReplay(count, rng);
+  std::vector<core::MemoryTrace> traces;
+  if (log_position == 0) {
+    traces = memory.SampleForReplay(count, rng);
+  } else {
+    // The same draw on every replica that applies the log entry.
+    std::mt19937_64 logged_rng(SegmentSeed(seed, "log", log_position));
+    traces = memory.SampleForReplay(count, logged_rng);
+  }
   if (traces.empty()) return traces;
   if (absl::Status status = FillCodes(traces); !status.ok()) {
     Reload().IgnoreError();  // drops the incremented counts
@@ -1194,10 +1288,16 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
   }
   mutation->update_traces = traces;
   mutation->put_robots.push_back(std::move(record));
+  if (log_position > meta.log_position) {
+    mutation->put_meta = true;
+    mutation->meta = meta;
+    mutation->meta.log_position = log_position;
+  }
   return traces;
 }
 
 void MemoryEngine::Fleet::FinishSample(FleetMutation mutation) {
+  if (mutation.put_meta) meta = std::move(mutation.meta);
   for (RobotRecord& record : mutation.put_robots) {
     std::string robot_id = record.robot_id;
     robots[robot_id] = std::move(record);
@@ -1332,7 +1432,8 @@ size_t MemoryEngine::ReleaseIndexedCodes() {
   return released;
 }
 
-absl::Status MemoryEngine::SaveIndexSnapshots() {
+absl::Status MemoryEngine::SaveIndexSnapshots(
+    const IndexSnapshotSelection& which) {
   std::vector<Fleet*> fleets;
   {
     absl::ReaderMutexLock lock(&fleets_mu_);
@@ -1340,15 +1441,36 @@ absl::Status MemoryEngine::SaveIndexSnapshots() {
   }
   absl::Status first;
   for (Fleet* fleet : fleets) {
-    absl::MutexLock writer(&fleet->writer_mu);
-    absl::ReaderMutexLock lock(&fleet->mu);
+    // One snapshot of a fleet at a time (they share the store's file).
+    absl::MutexLock one_at_a_time(&fleet->snapshot_mu);
+    // writer_mu keeps every change out while the snapshot is written;
+    // queries go on beside the shared lock (no writer waits for `mu`
+    // without holding writer_mu first). Both are released once the store
+    // holds the bytes, before it syncs them.
+    fleet->writer_mu.Lock();
+    fleet->mu.ReaderLock();
+    bool locked = true;
+    absl::Time released;
+    auto release = [&]() ABSL_NO_THREAD_SAFETY_ANALYSIS {
+      if (!locked) return;
+      locked = false;
+      fleet->mu.ReaderUnlock();
+      fleet->writer_mu.Unlock();
+      released = absl::Now();
+    };
+    absl::Cleanup release_on_exit = [&] { release(); };  // every way out
     // A fleet without traces loads fast and would never take its file.
     if (!fleet->stale.ok() || !fleet->exists() || fleet->index == nullptr ||
-        fleet->key_of.empty()) {
+        fleet->handles.empty() || fleet->handles.size() < which.min_codes ||
+        (which.only_changed &&
+         fleet->snapshot_saved_at == fleet->snapshot_changes)) {
       continue;
     }
+    const uint64_t changes = fleet->snapshot_changes;
+    const size_t codes = fleet->handles.size();
     const absl::Time start = absl::Now();
-    absl::Status status = fleet->SaveIndexSnapshot();
+    absl::Status status = fleet->SaveIndexSnapshot(release);
+    release();  // the store did not call it (an error, or nothing to sync)
     if (absl::IsUnimplemented(status)) continue;  // this kind of index
     if (!status.ok()) {
       FLEETMEM_LOG(kWarning)
@@ -1356,9 +1478,17 @@ absl::Status MemoryEngine::SaveIndexSnapshots() {
       first.Update(status);
       continue;
     }
+    {
+      absl::MutexLock writer(&fleet->writer_mu);
+      absl::MutexLock lock(&fleet->mu);
+      fleet->snapshot_saved_at = changes;
+    }
+    const double held = absl::ToDoubleSeconds(released - start);
     FLEETMEM_LOG(kInfo) << "fleet \"" << fleet->id << "\": index snapshot of "
-                        << fleet->key_of.size() << " codes saved in "
-                        << absl::ToDoubleSeconds(absl::Now() - start) << " s";
+                        << codes << " codes saved in "
+                        << absl::ToDoubleSeconds(absl::Now() - start)
+                        << " s (uploads waited " << held << " s)";
+    if (hooks_.on_index_snapshot) hooks_.on_index_snapshot(fleet->id, held);
   }
   return first;
 }
@@ -1394,7 +1524,8 @@ void MemoryEngine::Fleet::Notify(MemoryEngine& engine,
 }
 
 absl::StatusOr<UploadResult> MemoryEngine::Upload(
-    std::string_view fleet_id, std::span<const core::MemoryTrace> traces) {
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+    uint64_t log_position) {
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
   if (!status.ok()) return status;
   Fleet* fleet = Fleet::Find(*this, fleet_id);
@@ -1424,7 +1555,7 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
     Fleet::PreparedUpload prepared;
     if (status.ok()) {
       absl::ReaderMutexLock lock(&fleet->mu);
-      status = fleet->PrepareUpload(traces, &result, &prepared);
+      status = fleet->PrepareUpload(traces, log_position, &result, &prepared);
       if (status.ok() && !prepared.mutation.put_pending.empty() &&
           !prepared.fills_segment) {
         status = store_->Apply(fleet->id, prepared.mutation);
@@ -1447,6 +1578,32 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
   if (!status.ok()) return status;
   if (hooks_.on_upload) hooks_.on_upload(fleet_id, result);
   return result;
+}
+
+absl::Status MemoryEngine::CheckUpload(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+    const FleetShape* shape) const {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet != nullptr) {
+    absl::MutexLock lock(&fleet->mu);
+    status = fleet->EnsureLoaded();
+    if (!status.ok()) return status;
+    if (fleet->exists()) {
+      return ValidateUpload(fleet_id, traces, &fleet->meta,
+                            options_.max_traces_per_upload);
+    }
+  }
+  if (shape != nullptr) {
+    FleetMeta meta;
+    meta.code_dimension = shape->code_dimension;
+    meta.encoder_version = shape->encoder_version;
+    return ValidateUpload(fleet_id, traces, &meta,
+                          options_.max_traces_per_upload);
+  }
+  return ValidateUpload(fleet_id, traces, nullptr,
+                        options_.max_traces_per_upload);
 }
 
 absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
@@ -1485,7 +1642,7 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
 
 absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, size_t count,
-    std::string_view request_id) {
+    std::string_view request_id, uint64_t log_position) {
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
   if (status.ok()) status = core::ValidateId("robot_id", robot_id);
   if (status.ok() && !request_id.empty()) {
@@ -1511,7 +1668,8 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
       status = fleet->EnsureLoaded();
       if (!status.ok()) return status;
       if (!fleet->exists()) return FleetNotFound(fleet_id);
-      traces = fleet->DrawSample(robot_id, count, request_id, &mutation);
+      traces = fleet->DrawSample(robot_id, count, request_id, log_position,
+                                 &mutation);
     }
     if (traces.ok() && !mutation.put_robots.empty()) {
       // Readers may see the incremented counts while they are stored; if
@@ -1575,9 +1733,9 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     params.unit_query = true;  // as the codes were added (AddNormalized)
     if (use_prior) {
       params.accept = [fleet, &query](uint64_t handle) {
-        auto key = fleet->key_of.find(handle);
-        if (key == fleet->key_of.end()) return false;
-        const core::MemoryTrace* trace = fleet->FindTrace(key->second);
+        const std::optional<core::TraceKey> key = fleet->handles.Key(handle);
+        if (!key.has_value()) return false;
+        const core::MemoryTrace* trace = fleet->FindTrace(*key);
         return trace != nullptr &&
                PlaceDistance(trace->place, query.near) <= query.radius_m;
       };
@@ -1587,9 +1745,9 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     if (!neighbors.ok()) return neighbors.status();
     matches.reserve(neighbors->size());
     for (const Neighbor& neighbor : *neighbors) {
-      auto key = fleet->key_of.find(neighbor.id);
-      if (key == fleet->key_of.end()) continue;
-      const core::MemoryTrace* trace = fleet->FindTrace(key->second);
+      const std::optional<core::TraceKey> key = fleet->handles.Key(neighbor.id);
+      if (!key.has_value()) continue;
+      const core::MemoryTrace* trace = fleet->FindTrace(*key);
       if (trace == nullptr) continue;
       absl::StatusOr<core::MemoryTrace> copy = fleet->WithCode(*trace);
       if (!copy.ok()) return copy.status();
@@ -1608,6 +1766,16 @@ absl::StatusOr<FleetStats> MemoryEngine::GetStats(
       *this, fleet_id, [](const Fleet& fleet) -> absl::StatusOr<FleetStats> {
         return fleet.Stats();
       });
+}
+
+absl::StatusOr<uint64_t> MemoryEngine::LogPosition(
+    std::string_view fleet_id) const {
+  absl::StatusOr<uint64_t> position = Fleet::ReadExisting(
+      *this, fleet_id, [](const Fleet& fleet) -> absl::StatusOr<uint64_t> {
+        return fleet.meta.log_position;
+      });
+  if (absl::IsNotFound(position.status())) return 0;
+  return position;
 }
 
 absl::Status MemoryEngine::CheckFleetExists(std::string_view fleet_id) const {

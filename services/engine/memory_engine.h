@@ -79,6 +79,12 @@ struct UploadResult {
   uint64_t consolidations = 0;
 };
 
+// What every upload to a fleet must match; fixed by its first upload.
+struct FleetShape {
+  uint32_t code_dimension = 0;
+  std::string encoder_version;
+};
+
 struct ConsolidateResult {
   uint64_t consolidated_traces = 0;
   uint64_t downsampled_traces = 0;
@@ -170,6 +176,17 @@ struct TracePage {
   uint64_t total = 0;                     // static + pending traces now
 };
 
+// Which fleets MemoryEngine::SaveIndexSnapshots saves.
+struct IndexSnapshotSelection {
+  // Only fleets whose place index holds at least this many codes (a small
+  // index rebuilds in moments; 0: every fleet with codes).
+  size_t min_codes = 0;
+  // Only fleets that changed since the store's snapshot last matched them:
+  // traces indexed or removed, or clusters consolidated, since it was
+  // written or loaded (replay counts are not in a snapshot).
+  bool only_changed = false;
+};
+
 // Observers of the engine (metrics); every member may be empty. Called
 // outside fleet locks.
 struct EngineHooks {
@@ -179,6 +196,10 @@ struct EngineHooks {
       on_consolidate;
   std::function<void(std::string_view fleet, size_t count)> on_sample;
   std::function<void(std::string_view fleet, double seconds)> on_query;
+  // An index snapshot of the fleet was saved; its mutating calls waited
+  // `paused_seconds` for it (the write, not the sync that follows).
+  std::function<void(std::string_view fleet, double paused_seconds)>
+      on_index_snapshot;
 };
 
 class MemoryEngine {
@@ -198,8 +219,27 @@ class MemoryEngine {
   // duplicates, and consolidates each robot whose pending traces reached
   // segment_size. The first upload to an unknown fleet creates it with the
   // dimension and encoder version of its traces.
-  absl::StatusOr<UploadResult> Upload(
-      std::string_view fleet_id, std::span<const core::MemoryTrace> traces);
+  //
+  // `log_position` (distributed mode, services/cluster): the sequence of
+  // the fleet's log entry this upload is; stored in the same write as the
+  // traces it adds (LogPosition), unless it adds none.
+  absl::StatusOr<UploadResult> Upload(std::string_view fleet_id,
+                                      std::span<const core::MemoryTrace> traces,
+                                      uint64_t log_position = 0);
+
+  // Upload's validation alone (INVALID_ARGUMENT as Upload says it), against
+  // the fleet as this engine holds it (a fleet it does not hold is checked
+  // as a new one). Changes nothing. Distributed mode validates an upload
+  // this way before appending it to the log.
+  // `shape` (distributed mode): the fleet's code dimension and encoder
+  // version as its owner holds them, for a fleet this engine does not hold.
+  absl::Status CheckUpload(std::string_view fleet_id,
+                           std::span<const core::MemoryTrace> traces,
+                           const FleetShape* shape = nullptr) const;
+
+  // Distributed mode: the last log entry stored with an upload's traces
+  // (0 for an unknown fleet, or none).
+  absl::StatusOr<uint64_t> LogPosition(std::string_view fleet_id) const;
 
   // Consolidates every robot's pending traces (one batch per robot).
   // NOT_FOUND for an unknown fleet.
@@ -211,9 +251,15 @@ class MemoryEngine {
   // of that call are returned again (as they are now; forgotten ones are
   // left out) and no replay count changes. The id and the traces drawn are
   // stored atomically with the counts they incremented.
+  //
+  // `log_position` (distributed mode): the sequence of the fleet's log
+  // entry this call is. The draw is then seeded from the fleet's seed and
+  // the position, not from the fleet's running generator, so every replica
+  // applying the entry draws the same traces; the position is stored with
+  // the counts.
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, size_t count,
-      std::string_view request_id = {});
+      std::string_view request_id = {}, uint64_t log_position = 0);
 
   // Nearest traces to query.code among the static memory's and the pending
   // ones (cluster_id 0), nearest first.
@@ -260,15 +306,21 @@ class MemoryEngine {
   // Serving goes on meanwhile.
   absl::Status Checkpoint(const std::string& directory);
 
-  // Saves each fleet's place index and trace handles through the store
-  // (MemoryStore::SaveIndexSnapshot), so that the next Open loads them
-  // instead of rebuilding the index: at 1,000,000 traces the HNSW graph
-  // takes minutes to rebuild (docs/performance.md). For a clean shutdown,
-  // once no call runs any more: any later mutation makes the snapshots
-  // stale, and the next Open rebuilds as after a crash. Fleets whose index
+  // Saves each fleet's place index, trace handles and forgetting's centroid
+  // bookkeeping through the store (MemoryStore::SaveIndexSnapshot), so that
+  // the next Open loads them instead of rebuilding the index: at 1,000,000
+  // traces the HNSW graph takes minutes to rebuild (docs/performance.md).
+  // A fleet's mutating calls wait while its snapshot is written (seconds at
+  // 1,000,000 256-d traces; the store's sync of the file follows without
+  // the wait); its queries do not. Open reconciles a
+  // snapshot with the store, so one taken while serving (periodically, the
+  // server's `index_snapshot_interval_seconds`) shortens the rebuild after a
+  // crash to the traces stored since; one taken at a clean shutdown, once
+  // no call runs any more, leaves nothing to rebuild. Fleets whose index
   // cannot be saved (FLANN) are skipped. Returns the first error (the other
-  // fleets are still saved); a fleet with an error just rebuilds next time.
-  absl::Status SaveIndexSnapshots();
+  // fleets are still saved); a fleet with an error keeps its earlier
+  // snapshot, if any.
+  absl::Status SaveIndexSnapshots(const IndexSnapshotSelection& which = {});
 
   // One copy of each code: frees the engine's copies of static-memory codes
   // that the place index keeps itself (PlaceIndex::HoldsCode: the exact,

@@ -1,15 +1,19 @@
 #include "services/engine/memory_engine.h"
 
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <condition_variable>
 #include <cstdint>
 #include <cstring>
+#include <functional>
+#include <future>
 #include <limits>
 #include <map>
 #include <memory>
 #include <mutex>
 #include <random>
+#include <set>
 #include <string>
 #include <thread>
 #include <utility>
@@ -182,6 +186,21 @@ std::vector<core::MemoryTrace> AllTraces(const MemoryEngine& engine,
 }
 
 // Forwards every call to another store; the stores below override Apply.
+// Each of `traces` is its own nearest match in fleet "f1", at distance 0.
+void ExpectEachTraceFindsItself(const MemoryEngine& engine,
+                                const std::vector<core::MemoryTrace>& traces) {
+  for (const core::MemoryTrace& trace : traces) {
+    PlaceQuery query;
+    query.code = trace.code;
+    absl::StatusOr<std::vector<PlaceMatch>> matches =
+        engine.QueryPlace("f1", query);
+    ASSERT_TRUE(matches.ok()) << matches.status();
+    ASSERT_EQ(matches->size(), 1u);
+    EXPECT_EQ(matches->front().trace.key(), trace.key());
+    EXPECT_EQ(matches->front().distance, 0.0f);
+  }
+}
+
 class ForwardingStore : public MemoryStore {
  public:
   explicit ForwardingStore(MemoryStore* inner) : inner_(inner) {}
@@ -202,6 +221,43 @@ class ForwardingStore : public MemoryStore {
 
  private:
   MemoryStore* inner_;
+};
+
+// A store whose index snapshots, once written and before their (simulated)
+// sync, run `during_sync` on another thread and wait for it: the engine
+// must let the fleet change by then.
+class SlowSyncStore : public ForwardingStore {
+ public:
+  SlowSyncStore(MemoryStore* inner, std::function<void()> during_sync)
+      : ForwardingStore(inner),
+        inner_(inner),
+        during_sync_(std::move(during_sync)) {}
+  absl::Status SaveIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(core::ByteWriter&)>& write,
+      const std::function<void()>& written) override {
+    return inner_->SaveIndexSnapshot(fleet_id, write, [&] {
+      if (written) written();
+      std::packaged_task<void()> task(during_sync_);
+      std::future<void> done = task.get_future();
+      std::thread thread(std::move(task));
+      if (done.wait_for(std::chrono::seconds(20)) !=
+          std::future_status::ready) {
+        ADD_FAILURE() << "the fleet stayed locked while its snapshot synced";
+        std::abort();  // the thread cannot be joined: fail loudly
+      }
+      thread.join();
+    });
+  }
+  absl::Status ReadIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(std::span<const char>)>& read) override {
+    return inner_->ReadIndexSnapshot(fleet_id, read);
+  }
+
+ private:
+  MemoryStore* inner_;
+  std::function<void()> during_sync_;
 };
 
 // A store that fails Apply after `fail_after` successful calls.
@@ -442,6 +498,47 @@ TEST_F(MemoryEngineTest, ConsolidatesAutomaticallyAtSegmentSize) {
     }
   }
   EXPECT_EQ(pending_matches, 5u);
+}
+
+// Distributed mode: an upload's log position is stored in the same write as
+// the traces it adds, also when it fills a segment; one that adds nothing,
+// or an older position, leaves it; a reopened engine reads it back.
+TEST_F(MemoryEngineTest, LogPositionIsStoredWithTheTracesItAdds) {
+  EXPECT_EQ(*engine_->LogPosition("f1"), 0u);  // no fleet yet
+  const std::vector<core::MemoryTrace> first = MakeTraces("r1", 1, 10, rng_);
+  ASSERT_TRUE(engine_->Upload("f1", first, 5).ok());
+  EXPECT_EQ(*engine_->LogPosition("f1"), 5u);
+  ASSERT_TRUE(engine_->Upload("f1", first, 9).ok());  // duplicates only
+  EXPECT_EQ(*engine_->LogPosition("f1"), 5u);
+  ASSERT_TRUE(engine_->Upload("f1", MakeTraces("r2", 1, 5, rng_), 3).ok());
+  EXPECT_EQ(*engine_->LogPosition("f1"), 5u);  // older: kept
+  ASSERT_TRUE(engine_->Upload("f1", MakeTraces("r2", 6, 5, rng_)).ok());
+  EXPECT_EQ(*engine_->LogPosition("f1"), 5u);  // none given
+  // Fills r1's segment: stored with its consolidation.
+  absl::StatusOr<UploadResult> filled =
+      engine_->Upload("f1", MakeTraces("r1", 11, 10, rng_), 12);
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  EXPECT_EQ(filled->consolidations, 1u);
+  EXPECT_EQ(*engine_->LogPosition("f1"), 12u);
+  engine_.reset();
+  engine_ = OpenEngine();
+  EXPECT_EQ(*engine_->LogPosition("f1"), 12u);
+  EXPECT_EQ(Stats().consolidations, 1u);
+}
+
+// Every consolidated cluster reaches the store with its centroid (memory
+// holds each centroid once, in forgetting's tracker, and hands it over).
+TEST_F(MemoryEngineTest, StoredClustersCarryTheirCentroids) {
+  MustUpload(MakeTraces("r1", 1, 20, rng_));
+  absl::StatusOr<FleetRecord> record = store_->LoadFleet("f1");
+  ASSERT_TRUE(record.ok()) << record.status();
+  ASSERT_EQ(record->clusters.size(), 4u);
+  for (const core::Cluster& cluster : record->clusters) {
+    // A code's dimensions plus the place's three.
+    EXPECT_EQ(cluster.centroid.size(),
+              record->clusters.front().traces.front().code.size() + 3)
+        << cluster.id;
+  }
 }
 
 TEST_F(MemoryEngineTest, ConsolidateTakesEveryRobotsPendingTraces) {
@@ -1098,17 +1195,27 @@ class IndexSnapshotTest : public MemoryEngineTest {
     ASSERT_NE(engine_, nullptr);
   }
 
-  std::unique_ptr<MemoryEngine> Open(PlaceIndexFactory factory = nullptr) {
+  std::unique_ptr<MemoryEngine> Open(PlaceIndexFactory factory = nullptr,
+                                     MemoryStore* store = nullptr) {
     engine_.reset();
     if (!factory) {
       factory = [this](size_t dimension) {
         return std::make_unique<CountingIndex>(dimension, &loads_);
       };
     }
-    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine =
-        MemoryEngine::Open(options_, store_.get(), factory);
+    EngineHooks hooks;
+    hooks.on_index_snapshot = [this](std::string_view, double) { ++saves_; };
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
+        options_, store != nullptr ? store : store_.get(), factory, hooks);
     EXPECT_TRUE(engine.ok()) << engine.status();
     return engine.ok() ? *std::move(engine) : nullptr;
+  }
+
+  // Uploads `robot`'s traces first..last in messages of 100 (a segment).
+  void UploadSegments(const std::string& robot, uint64_t first, uint64_t last) {
+    for (; first <= last; first += 100) {
+      MustUpload(MakeTraces(robot, first, 100, rng_));
+    }
   }
 
   // Every trace's nearest match is itself, at distance 0.
@@ -1118,16 +1225,7 @@ class IndexSnapshotTest : public MemoryEngineTest {
     ASSERT_FALSE(traces.empty());
     const FleetStats stats = Stats();
     EXPECT_EQ(traces.size(), stats.traces + stats.pending_traces);
-    for (const core::MemoryTrace& trace : traces) {
-      PlaceQuery query;
-      query.code = trace.code;
-      absl::StatusOr<std::vector<PlaceMatch>> matches =
-          engine_->QueryPlace("f1", query);
-      ASSERT_TRUE(matches.ok()) << matches.status();
-      ASSERT_EQ(matches->size(), 1u);
-      EXPECT_EQ(matches->front().trace.key(), trace.key());
-      EXPECT_EQ(matches->front().distance, 0.0f);
-    }
+    ExpectEachTraceFindsItself(*engine_, traces);
   }
 
   // The five nearest keys to each of `queries`.
@@ -1150,7 +1248,22 @@ class IndexSnapshotTest : public MemoryEngineTest {
     return nearest;
   }
 
+  // Every key in `nearest` is one of the fleet's traces now.
+  void ExpectOnlyHeldKeys(
+      const std::vector<std::vector<core::TraceKey>>& nearest) {
+    std::set<core::TraceKey> held;
+    for (const core::MemoryTrace& trace : AllTraces(*engine_, "f1", 5000)) {
+      held.insert(trace.key());
+    }
+    for (const auto& keys : nearest) {
+      for (const core::TraceKey& key : keys) {
+        EXPECT_TRUE(held.contains(key)) << key.robot_id << " " << key.seq;
+      }
+    }
+  }
+
   std::atomic<int> loads_{0};
+  std::atomic<int> saves_{0};
 };
 
 TEST_F(IndexSnapshotTest, CleanShutdownSkipsTheRebuildAndKeepsEveryHandle) {
@@ -1174,26 +1287,27 @@ TEST_F(IndexSnapshotTest, CleanShutdownSkipsTheRebuildAndKeepsEveryHandle) {
 
   // Consolidation and forgetting reach the loaded index through the loaded
   // handles.
-  for (uint64_t first = 901; first <= 1300; first += 100) {
-    MustUpload(MakeTraces("r1", first, 100, rng_));
-  }
+  UploadSegments("r1", 901, 1300);
   MustUpload(MakeTraces("r3", 71, 30, rng_));
   ASSERT_GT(Stats().clusters_forgotten, stats.clusters_forgotten);
   ExpectEveryTraceFindsItself();
 
-  // A snapshot is used once: a restart after a crash rebuilds.
+  // The snapshot is kept: a restart after a crash loads it again and
+  // reconciles it with what was stored since (uploads, consolidations,
+  // forgetting).
+  const FleetStats later = Stats();
   engine_ = Open();
   ASSERT_NE(engine_, nullptr);
-  EXPECT_EQ(loads_.load(), 1);
+  EXPECT_EQ(loads_.load(), 2);
+  ExpectSameStats(Stats(), later);
   ExpectEveryTraceFindsItself();
+  ExpectOnlyHeldKeys(Nearest(queries));
 }
 
 // A snapshot of another kind of index: memory takes its part (the
 // centroids), the index is rebuilt from the restored memory's traces.
 TEST_F(IndexSnapshotTest, IndexOfAnotherKindIsRebuiltBesideTheRestoredMemory) {
-  for (uint64_t first = 1; first <= 600; first += 100) {
-    MustUpload(MakeTraces("r1", first, 100, rng_));
-  }
+  UploadSegments("r1", 1, 600);
   MustUpload(MakeTraces("r2", 1, 30, rng_));  // pending
   const FleetStats stats = Stats();
   ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
@@ -1207,16 +1321,195 @@ TEST_F(IndexSnapshotTest, IndexOfAnotherKindIsRebuiltBesideTheRestoredMemory) {
   ExpectEveryTraceFindsItself();
 }
 
-TEST_F(IndexSnapshotTest, WriteAfterTheSnapshotMakesTheLoadRebuild) {
-  for (uint64_t first = 1; first <= 400; first += 100) {
+// A periodic snapshot while serving, then uploads that add, consolidate
+// and forget, then a crash: the next start loads the snapshot and
+// reconciles it (adds what is new, removes what was forgotten) instead of
+// rebuilding: every trace finds itself, no answer names a forgotten trace,
+// and forgetting goes on.
+TEST_F(IndexSnapshotTest, CrashAfterAPeriodicSnapshotReconcilesIt) {
+  UploadSegments("r1", 1, 400);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  ASSERT_EQ(saves_.load(), 1);
+  const uint64_t forgotten = Stats().clusters_forgotten;
+  for (uint64_t first = 401; first <= 900; first += 100) {
     MustUpload(MakeTraces("r1", first, 100, rng_));
+    MustUpload(MakeTraces("r2", first, 100, rng_));
   }
-  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  MustUpload(MakeTraces("r3", 1, 40, rng_));  // pending
+  const FleetStats stats = Stats();
+  ASSERT_GT(stats.clusters_forgotten, forgotten);  // handles to remove
+  const std::vector<core::MemoryTrace> queries = MakeTraces("q", 1, 30, rng_);
+
+  engine_ = Open();  // no snapshot at the end: a crash
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(loads_.load(), 1);
+  ExpectSameStats(Stats(), stats);
+  ExpectEveryTraceFindsItself();
+  const auto reconciled = Nearest(queries);
+  ExpectOnlyHeldKeys(reconciled);
+  // Consolidation and forgetting go on from the reconciled state.
+  MustUpload(MakeTraces("r1", 901, 100, rng_));
+  MustUpload(MakeTraces("r2", 901, 100, rng_));
+  EXPECT_GT(Stats().clusters_forgotten, stats.clusters_forgotten);
+  ExpectEveryTraceFindsItself();
+}
+
+// Periodic snapshots skip fleets that did not change since their last one
+// (a snapshot loaded unchanged counts as one) and fleets below min_codes.
+TEST_F(IndexSnapshotTest, PeriodicSnapshotsSkipUnchangedAndSmallFleets) {
+  UploadSegments("r1", 1, 300);
+  const size_t codes = Stats().traces + Stats().pending_traces;
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.min_codes = codes + 1}).ok());
+  EXPECT_EQ(saves_.load(), 0);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.min_codes = codes}).ok());
+  EXPECT_EQ(saves_.load(), 1);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  EXPECT_EQ(saves_.load(), 1);
+  // A sample changes replay counts only, which no snapshot holds.
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r1", 10).ok());
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  EXPECT_EQ(saves_.load(), 1);
   MustUpload(MakeTraces("r2", 1, 10, rng_));
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  EXPECT_EQ(saves_.load(), 2);
+  // Loaded unchanged: the file on disk is the state, nothing to write.
+  saves_ = 0;
   engine_ = Open();
   ASSERT_NE(engine_, nullptr);
-  EXPECT_EQ(loads_.load(), 0);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  EXPECT_EQ(saves_.load(), 0);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  EXPECT_EQ(saves_.load(), 1);
+}
+
+// A snapshot whose codes differ from the store's under the same keys (the
+// fleet of another server's history) is refused and the index rebuilt.
+TEST_F(IndexSnapshotTest, SnapshotOfAnotherHistoryIsRebuilt) {
+  UploadSegments("r1", 1, 400);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  std::vector<char> bytes;
+  ASSERT_TRUE(store_
+                  ->ReadIndexSnapshot("f1",
+                                      [&bytes](std::span<const char> read) {
+                                        bytes.assign(read.begin(), read.end());
+                                        return absl::OkStatus();
+                                      })
+                  .ok());
+  // The same keys with other codes, in another store, with the snapshot.
+  std::unique_ptr<MemoryStore> other = storage::NewInMemoryStore();
+  engine_ = Open(nullptr, other.get());
+  ASSERT_NE(engine_, nullptr);
+  UploadSegments("r1", 1, 400);
+  engine_.reset();
+  ASSERT_TRUE(other
+                  ->SaveIndexSnapshot("f1",
+                                      [&bytes](core::ByteWriter& out) {
+                                        out.PutBytes(bytes.data(),
+                                                     bytes.size());
+                                        return absl::OkStatus();
+                                      })
+                  .ok());
+  engine_ = Open(nullptr, other.get());
+  ASSERT_NE(engine_, nullptr);
   ExpectEveryTraceFindsItself();
+  engine_.reset();
+}
+
+// The server's periodic snapshots run beside the fleet's uploads, samples
+// and queries: each snapshot is of one consistent state (uploads wait,
+// queries do not), and after a crash the last one loads and is reconciled
+// with everything stored after it. Run under ThreadSanitizer too.
+TEST_F(MemoryEngineTest, SnapshotsBesideUploadsAndQueriesReloadAfterACrash) {
+  MustUpload(MakeTraces("r0", 1, 20, rng_));  // the fleet exists
+  std::atomic<bool> uploading{true};
+  std::atomic<int> snapshots{0};
+  std::vector<std::thread> threads;
+  for (int robot = 1; robot <= 2; ++robot) {
+    threads.emplace_back([this, robot] {
+      std::mt19937_64 rng(robot);
+      const std::string robot_id = absl::StrCat("r", robot);
+      for (uint64_t first = 1; first <= 400; first += 25) {
+        absl::StatusOr<UploadResult> result =
+            engine_->Upload("f1", MakeTraces(robot_id, first, 25, rng));
+        EXPECT_TRUE(result.ok()) << result.status();
+      }
+      if (robot == 1) {
+        EXPECT_TRUE(engine_->SampleReplay("f1", robot_id, 5).ok());
+      }
+    });
+  }
+  threads.emplace_back([this, &uploading] {
+    std::mt19937_64 rng(9);
+    do {
+      PlaceQuery query;
+      query.code = MakeTraces("q", 1, 1, rng)[0].code;
+      query.k = 3;
+      EXPECT_TRUE(engine_->QueryPlace("f1", query).ok());
+    } while (uploading);
+  });
+  threads.emplace_back([this, &uploading, &snapshots] {
+    do {
+      EXPECT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+      ++snapshots;
+    } while (uploading);
+  });
+  threads[0].join();
+  threads[1].join();
+  uploading = false;
+  threads[2].join();
+  threads[3].join();
+  EXPECT_GT(snapshots.load(), 0);
+  // The last state, then one more upload after the last snapshot.
+  MustUpload(MakeTraces("r3", 1, 30, rng_));
+  const FleetStats stats = Stats();
+  const std::vector<core::MemoryTrace> traces = AllTraces(*engine_, "f1", 200);
+  ASSERT_EQ(traces.size(), stats.traces + stats.pending_traces);
+
+  engine_ = OpenEngine();  // a crash: no snapshot at the end
+  ASSERT_NE(engine_, nullptr);
+  ExpectSameStats(Stats(), stats);
+  EXPECT_EQ(AllTraces(*engine_, "f1", 200).size(), traces.size());
+  ExpectEachTraceFindsItself(*engine_, traces);
+}
+
+// A snapshot's file is synced after the fleet's locks are released: an
+// upload and a query made while it syncs complete, and the snapshot still
+// loads (it holds the state before that upload, which the load adds).
+TEST_F(MemoryEngineTest, UploadsGoOnWhileASnapshotSyncs) {
+  MustUpload(MakeTraces("r1", 1, 20, rng_));
+  const std::vector<core::MemoryTrace> later = MakeTraces("r2", 1, 15, rng_);
+  SlowSyncStore slow(store_.get(), [this, &later] {
+    absl::StatusOr<UploadResult> uploaded = engine_->Upload("f1", later);
+    EXPECT_TRUE(uploaded.ok()) << uploaded.status();
+    PlaceQuery query;
+    query.code = later[0].code;
+    EXPECT_TRUE(engine_->QueryPlace("f1", query).ok());
+  });
+  engine_.reset();
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options_, &slow, ExactFactory());
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  engine_ = *std::move(opened);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  const FleetStats stats = Stats();
+  EXPECT_EQ(stats.pending_traces, 15u);  // r2's upload went in meanwhile
+  // The next snapshot is due: the upload came after the last one's write.
+  int saved = 0;
+  engine_.reset();
+  EngineHooks hooks;
+  hooks.on_index_snapshot = [&saved](std::string_view, double) { ++saved; };
+  engine_ = OpenEngine(hooks);
+  ASSERT_NE(engine_, nullptr);
+  ExpectSameStats(Stats(), stats);
+  PlaceQuery query;
+  query.code = later[3].code;
+  absl::StatusOr<std::vector<PlaceMatch>> matches =
+      engine_->QueryPlace("f1", query);
+  ASSERT_TRUE(matches.ok()) << matches.status();
+  ASSERT_FALSE(matches->empty());
+  EXPECT_EQ(matches->front().trace.key(), later[3].key());
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  EXPECT_EQ(saved, 1);  // the load added r2's traces: changed
 }
 
 TEST_F(MemoryEngineTest, ListenersFireAfterEventsAreDurable) {

@@ -31,6 +31,10 @@ struct FleetMeta {
   // Oldest event still stored (older ones were dropped by the retention
   // bound); 0 or 1 when none ever was.
   uint64_t first_event_id = 1;
+  // Distributed mode: the last entry of the fleet's log whose upload is in
+  // this state (0: none, and always in the embedded mode). Entries after it
+  // may be applied too (uploads are idempotent); none before it is missing.
+  uint64_t log_position = 0;
 };
 
 // Counters kept per robot (stats), persisted with the robot's SeqSet.
@@ -116,28 +120,32 @@ class MemoryStore {
         "this store keeps nothing on disk and cannot take snapshots");
   }
 
-  // Index snapshots (MemoryEngine::SaveIndexSnapshots): bytes that let the
-  // next load of a fleet skip rebuilding its place index. A snapshot is
-  // valid only for the stored state it was written against: any Apply after
-  // it (to any fleet), writes lost in a crash, or damage to it makes
-  // TakeIndexSnapshot refuse it. Stores that keep nothing on disk may hold
-  // them in memory.
+  // Index snapshots (MemoryEngine::SaveIndexSnapshots): bytes that let a
+  // load of a fleet skip rebuilding its place index. A snapshot describes
+  // the fleet as it was when written; the engine reconciles it with the
+  // stored state at load (traces added or removed since), so a snapshot
+  // stays usable after later writes and after a crash. Stores that keep
+  // nothing on disk may hold them in memory.
   //
-  // Stores what `write` writes as the fleet's snapshot, replacing any
-  // earlier one. If `write` or the store fails, no snapshot is left for the
-  // fleet and the error is returned. UNIMPLEMENTED by default.
+  // Stores what `write` writes as the fleet's snapshot, replacing the
+  // earlier one once it is complete (durably, for a store on disk). If
+  // `write` or the store fails, the earlier snapshot, if any, is kept and
+  // the error is returned. `written`, if set, is called once `write` has
+  // returned OK and the store holds every byte it wrote, before they are
+  // made durable (fsync, rename): from then on the caller may change what
+  // `write` read. Calls for one fleet must not overlap. UNIMPLEMENTED by
+  // default.
   virtual absl::Status SaveIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteWriter&)>& write) {
+      const std::function<absl::Status(core::ByteWriter&)>& write,
+      const std::function<void()>& written = nullptr) {
     return absl::UnimplementedError("this store keeps no index snapshots");
   }
-  // Calls `read` with the fleet's snapshot and returns its status, if the
-  // snapshot is valid for the stored state now. The snapshot is discarded
-  // in any case (it is used once; the next is written at the next clean
-  // shutdown). NOT_FOUND when there is none or it is stale (the message
-  // says which), DATA_LOSS when it fails its checksum; `read` is not called
-  // then.
-  virtual absl::Status TakeIndexSnapshot(
+  // Calls `read` with the fleet's latest snapshot and returns its status;
+  // the snapshot is kept. NOT_FOUND when there is none; DATA_LOSS when it is
+  // damaged (it fails its checksum: it is then discarded); `read` is not
+  // called then.
+  virtual absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
       const std::function<absl::Status(std::span<const char>)>& read) {
     return absl::NotFoundError("this store keeps no index snapshots");

@@ -58,6 +58,15 @@ class PlaceIndex {
     }
     return Add(ids, vectors);
   }
+  // AddNormalized for a load (a restart adding what its index snapshot
+  // lacks): an index that throttles adds while its search structure lags
+  // behind (the tiered index's back-pressure) takes these at once and
+  // catches up in the background.
+  virtual absl::Status AddNormalizedOnLoad(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) {
+    return AddNormalized(ids, codes);
+  }
   // True if the index keeps the code or vector it was given under `id` bit
   // for bit (for AddNormalized, the code before scaling), so that the caller
   // may drop its own copy and read it back with CopyCode. Once true it stays

@@ -7,14 +7,9 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "services/core/absl_view.h"
 
 namespace fleetmem::engine {
-namespace {
-
-absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
-
-}  // namespace
-
 absl::Status ValidateQuotaOptions(const QuotaOptions& options) {
   const std::pair<const char*, double> rates[] = {
       {"fleet_traces_per_second", options.fleet_traces_per_second},

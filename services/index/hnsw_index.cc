@@ -319,6 +319,13 @@ class TieredIndex final : public engine::PlaceIndex {
       std::span<const std::span<const float>> codes) override {
     return AddToTail(ids, [&] { return tail_->AddNormalized(ids, codes); });
   }
+  absl::Status AddNormalizedOnLoad(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) override {
+    return AddToTail(
+        ids, [&] { return tail_->AddNormalized(ids, codes); },
+        /*back_pressure=*/false);
+  }
   absl::Status Remove(std::span<const uint64_t> ids) override;
   absl::StatusOr<std::vector<Neighbor>> Search(
       std::span<const float> query, const SearchParams& params) const override;
@@ -366,9 +373,10 @@ class TieredIndex final : public engine::PlaceIndex {
  private:
   // Add and AddNormalized: `add` stores the batch in the tail (it checks
   // the batch and the tail's ids; AddToTail the graph's); then the graph
-  // starts, or the backlog is bounded.
+  // starts, or, with `back_pressure`, the backlog is bounded.
   absl::Status AddToTail(std::span<const uint64_t> ids,
-                         const std::function<absl::Status()>& add);
+                         const std::function<absl::Status()>& add,
+                         bool back_pressure = true);
   // The members below mu_ and the functions up to IndexerLoop need mu_
   // (shared for reading). std::shared_mutex and a condition variable rather
   // than absl::Mutex::Await: ThreadSanitizer sees these waits (`make
@@ -410,7 +418,8 @@ class TieredIndex final : public engine::PlaceIndex {
 };
 
 absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
-                                    const std::function<absl::Status()>& add) {
+                                    const std::function<absl::Status()>& add,
+                                    bool back_pressure) {
   const WaiterCount turn(waiters_);
   const WaiterCount writer(writers_);
   std::unique_lock lock(mu_);
@@ -437,7 +446,9 @@ absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
   paused_ = false;
   if (!options_.background) return MoveToGraph(tail_->size());
   changed_.notify_all();
-  if (waiting > options_.max_unindexed) return MoveToGraph(ids.size());
+  if (back_pressure && waiting > options_.max_unindexed) {
+    return MoveToGraph(ids.size());
+  }
   return absl::OkStatus();
 }
 

@@ -1161,6 +1161,31 @@ TEST(TieredIndexTest, BulkAddReturnsBeforeTheGraphIsBuilt) {
   EXPECT_EQ(tiered->size(), 5000u);
 }
 
+// A load's add (what a restart puts back beside its index snapshot) is not
+// held up by back-pressure, however large the backlog: the background
+// thread catches up. An upload's add with the same backlog would move as
+// many vectors into the graph as it adds before returning.
+TEST(TieredIndexTest, LoadAddIsNotThrottledByTheBacklog) {
+  constexpr size_t kDimension = 256;
+  std::mt19937 rng(59);
+  TieredIndexOptions options;
+  options.hnsw_from = 100;
+  options.max_unindexed = 100;
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  const Dataset first = GaussianDataset(3000, kDimension, rng);
+  ASSERT_TRUE(tiered->Add(first.ids, first.vectors).ok());
+  const Dataset second = GaussianDataset(3000, kDimension, rng, 3000);
+  std::vector<std::span<const float>> codes(second.vectors.begin(),
+                                            second.vectors.end());
+  ASSERT_TRUE(tiered->AddNormalizedOnLoad(second.ids, codes).ok());
+  // Throttled, at most 3000 could still wait; the graph inserts a few
+  // thousand 256-d vectors per second here.
+  EXPECT_GT(tiered->unindexed(), 4500u);
+  EXPECT_EQ(tiered->size(), 6000u);
+  EXPECT_EQ(WaitForIndexing(*tiered), 0u);
+  EXPECT_TRUE(tiered->HoldsCode(5999));
+}
+
 // Searches from several threads while the engine's single writer adds and
 // removes and the background thread moves vectors: every answer is sorted,
 // holds no id twice and no id removed before the search began.

@@ -1,5 +1,6 @@
 #include "services/observability/metrics.h"
 
+#include <algorithm>
 #include <sstream>
 #include <utility>
 #include <vector>
@@ -72,13 +73,14 @@ class TimedMemoryStore final : public engine::MemoryStore {
   }
   absl::Status SaveIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteWriter&)>& write) override {
-    return store_->SaveIndexSnapshot(fleet_id, write);
+      const std::function<absl::Status(core::ByteWriter&)>& write,
+      const std::function<void()>& written) override {
+    return store_->SaveIndexSnapshot(fleet_id, write, written);
   }
-  absl::Status TakeIndexSnapshot(
+  absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
       const std::function<absl::Status(std::span<const char>)>& read) override {
-    return store_->TakeIndexSnapshot(fleet_id, read);
+    return store_->ReadIndexSnapshot(fleet_id, read);
   }
   uint64_t ApproximateDiskBytes() override {
     return store_->ApproximateDiskBytes();
@@ -156,6 +158,13 @@ struct Metrics::Families {
                           .Name("fleetmem_query_duration_seconds")
                           .Help("QueryPlace search time in the engine")
                           .Register(r)),
+        index_snapshot_seconds(
+            BuildHistogram()
+                .Name("fleetmem_index_snapshot_pause_seconds")
+                .Help("Time one fleet's uploads waited while its index "
+                      "snapshot was written (periodic or at shutdown; the "
+                      "file's sync follows without the wait)")
+                .Register(r)),
         store_write_seconds(BuildHistogram()
                                 .Name("fleetmem_store_write_duration_seconds")
                                 .Help("Durable write (RocksDB WriteBatch with "
@@ -195,6 +204,11 @@ struct Metrics::Families {
                             .Help("Codes waiting outside the fleet's HNSW "
                                   "graph (scanned exactly until indexed)")
                             .Register(r)),
+        log_lag(BuildGauge()
+                    .Name("fleetmem_cluster_log_lag_entries")
+                    .Help("Distributed mode: entries of the fleet's log not "
+                          "applied yet by this replica, its owner")
+                    .Register(r)),
         fleets(BuildGauge()
                    .Name("fleetmem_fleets")
                    .Help("Fleets held by the server")
@@ -222,6 +236,7 @@ struct Metrics::Families {
   Family<Histogram>& consolidation_seconds;
   Family<Counter>& sampled_traces;
   Family<Histogram>& query_seconds;
+  Family<Histogram>& index_snapshot_seconds;
   Family<Histogram>& store_write_seconds;
   Family<Counter>& store_write_errors;
   Family<Gauge>& fleet_traces;
@@ -231,6 +246,7 @@ struct Metrics::Families {
   Family<Gauge>& fleet_last_event;
   Family<Gauge>& index_entries;
   Family<Gauge>& index_unindexed;
+  Family<Gauge>& log_lag;
   Family<Gauge>& fleets;
   Family<Gauge>& store_bytes;
   Family<Gauge>& queue_depth;
@@ -282,6 +298,13 @@ engine::EngineHooks Metrics::EngineHooks() {
     f->query_seconds.Add({{"fleet", std::string(fleet)}}, LatencyBuckets())
         .Observe(seconds);
   };
+  hooks.on_index_snapshot = [f](std::string_view fleet, double seconds) {
+    f->index_snapshot_seconds
+        .Add({{"fleet", std::string(fleet)}},
+             prometheus::Histogram::BucketBoundaries{0.01, 0.1, 0.5, 1, 2, 5,
+                                                     10, 30, 60})
+        .Observe(seconds);
+  };
   return hooks;
 }
 
@@ -322,7 +345,27 @@ void Metrics::RefreshGauges() {
   absl::MutexLock lock(&sources_mu_);
   Families& f = *families_;
   if (sources_.engine != nullptr) {
-    const std::vector<std::string> fleet_ids = sources_.engine->ListFleets();
+    std::vector<std::string> fleet_ids = sources_.engine->ListFleets();
+    if (sources_.serves_fleet) {
+      std::erase_if(fleet_ids, [this](const std::string& fleet_id) {
+        return !sources_.serves_fleet(fleet_id);
+      });
+    }
+    // Gauges of fleets no longer served here go.
+    for (const std::string& fleet_id : exported_) {
+      if (std::find(fleet_ids.begin(), fleet_ids.end(), fleet_id) !=
+          fleet_ids.end()) {
+        continue;
+      }
+      const prometheus::Labels labels{{"fleet", fleet_id}};
+      for (prometheus::Family<prometheus::Gauge>* family :
+           {&f.fleet_traces, &f.fleet_pending, &f.fleet_clusters,
+            &f.fleet_robots, &f.fleet_last_event, &f.index_entries,
+            &f.index_unindexed}) {
+        family->Remove(&family->Add(labels));
+      }
+    }
+    exported_ = fleet_ids;
     f.fleets.Add({}).Set(static_cast<double>(fleet_ids.size()));
     for (const std::string& fleet_id : fleet_ids) {
       absl::StatusOr<engine::FleetStats> stats =
@@ -341,6 +384,19 @@ void Metrics::RefreshGauges() {
       f.index_unindexed.Add(labels).Set(
           static_cast<double>(stats->unindexed_codes));
     }
+  }
+  if (sources_.log_lag) {
+    std::vector<std::string> fleets;
+    for (const auto& [fleet_id, lag] : sources_.log_lag()) {
+      f.log_lag.Add({{"fleet", fleet_id}}).Set(lag);
+      fleets.push_back(fleet_id);
+    }
+    for (const std::string& fleet_id : lag_exported_) {
+      if (std::find(fleets.begin(), fleets.end(), fleet_id) == fleets.end()) {
+        f.log_lag.Remove(&f.log_lag.Add({{"fleet", fleet_id}}));
+      }
+    }
+    lag_exported_ = std::move(fleets);
   }
   if (sources_.store != nullptr) {
     f.store_bytes.Add({}).Set(

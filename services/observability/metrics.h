@@ -31,6 +31,14 @@ struct ScrapeSources {
   const engine::MemoryEngine* engine = nullptr;
   engine::MemoryStore* store = nullptr;
   std::function<size_t()> work_queue_depth;
+  // Distributed mode: whether this replica serves (owns) a fleet. The
+  // per-fleet gauges show only those, so that summing over replicas counts
+  // each fleet once; a fleet's gauges go when it moves away. Null: every
+  // fleet the engine holds.
+  std::function<bool(const std::string& fleet_id)> serves_fleet;
+  // Distributed mode: entries of each owned fleet's log not applied yet
+  // (fleetmem_cluster_log_lag_entries).
+  std::function<std::vector<std::pair<std::string, double>>()> log_lag;
 };
 
 // Thread-safe.
@@ -71,6 +79,9 @@ class Metrics {
   std::unique_ptr<Families> families_;
   absl::Mutex sources_mu_;
   ScrapeSources sources_ ABSL_GUARDED_BY(sources_mu_);
+  // Fleets whose gauges the last scrape set.
+  std::vector<std::string> exported_ ABSL_GUARDED_BY(sources_mu_);
+  std::vector<std::string> lag_exported_ ABSL_GUARDED_BY(sources_mu_);
 };
 
 }  // namespace fleetmem::observability

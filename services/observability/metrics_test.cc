@@ -69,6 +69,56 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
                               "histogram"));
 }
 
+// Distributed mode: a replica shows the gauges of the fleets it serves, and
+// a fleet's go when it moves to another replica.
+TEST(MetricsTest, AReplicaShowsOnlyTheFleetsItServes) {
+  Metrics metrics;
+  std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
+  auto engine = engine::MemoryEngine::Open(
+      {}, store.get(),
+      [](size_t dimension) { return index::NewExactIndex(dimension); });
+  ASSERT_TRUE(engine.ok());
+  for (const std::string fleet : {"alpha", "beta"}) {
+    core::MemoryTrace trace;
+    trace.robot_id = "r1";
+    trace.seq = 1;
+    trace.code = {1.0f, 2.0f};
+    ASSERT_TRUE((*engine)->Upload(fleet, {&trace, 1}).ok());
+  }
+  bool serves_beta = true;
+  metrics.SetScrapeSources({engine->get(), store.get(), nullptr,
+                            [&serves_beta](const std::string& fleet) {
+                              return fleet == "alpha" || serves_beta;
+                            }});
+  std::string text = metrics.Render();
+  EXPECT_THAT(text, HasSubstr("fleetmem_fleets 2"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_fleet_traces{fleet=\"beta\"}"));
+  serves_beta = false;
+  text = metrics.Render();
+  EXPECT_THAT(text, HasSubstr("fleetmem_fleets 1"));
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_fleet_pending_traces{fleet=\"alpha\"}"));
+  EXPECT_THAT(text, ::testing::Not(HasSubstr("fleet=\"beta\"")));
+}
+
+TEST(MetricsTest, TheLogLagOfEachOwnedFleet) {
+  Metrics metrics;
+  std::vector<std::pair<std::string, double>> lag = {{"alpha", 3}, {"beta", 0}};
+  ScrapeSources sources;
+  sources.log_lag = [&lag] { return lag; };
+  metrics.SetScrapeSources(sources);
+  std::string text = metrics.Render();
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_cluster_log_lag_entries{fleet=\"alpha\"} 3"));
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_cluster_log_lag_entries{fleet=\"beta\"} 0"));
+  lag = {{"alpha", 0}};  // beta moved away
+  text = metrics.Render();
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_cluster_log_lag_entries{fleet=\"alpha\"} 0"));
+  EXPECT_THAT(text, ::testing::Not(HasSubstr("fleet=\"beta\"")));
+}
+
 // The timed store is what the server runs on: it must pass on every part of
 // the port, index snapshots included.
 TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
@@ -84,7 +134,7 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
                   .ok());
   uint32_t read = 0;
   ASSERT_TRUE(store
-                  ->TakeIndexSnapshot("f1",
+                  ->ReadIndexSnapshot("f1",
                                       [&read](std::span<const char> bytes) {
                                         core::ByteReader in(bytes);
                                         in.Get(&read);

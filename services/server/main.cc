@@ -19,11 +19,14 @@
 #include <sstream>
 #include <string>
 #include <system_error>
+#include <thread>
 #include <utility>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/synchronization/notification.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
@@ -41,6 +44,7 @@
 #include "services/index/flann_index.h"
 #include "services/index/hnsw_index.h"
 #include "services/observability/metrics.h"
+#include "services/server/cluster_mode.h"
 #include "services/server/server_config.h"
 #include "services/storage/rocksdb_store.h"
 #include "services/transport/memory_service.h"
@@ -48,6 +52,41 @@
 
 namespace fleetmem::server {
 namespace {
+
+// Index snapshots while serving: every `interval` the fleets whose index
+// changed (and holds at least `min_codes` codes) save one, so that a
+// restart after a crash re-adds only the traces stored since instead of
+// rebuilding every graph. Errors are logged by the engine; the next turn
+// tries again.
+class IndexSnapshotter {
+ public:
+  IndexSnapshotter(engine::MemoryEngine* engine, int interval_seconds,
+                   size_t min_codes) {
+    if (interval_seconds <= 0) return;
+    const absl::Duration interval = absl::Seconds(interval_seconds);
+    thread_ = std::thread([this, engine, interval, min_codes] {
+      while (!stop_.WaitForNotificationWithTimeout(interval)) {
+        engine
+            ->SaveIndexSnapshots({.min_codes = min_codes, .only_changed = true})
+            .IgnoreError();
+      }
+    });
+  }
+  ~IndexSnapshotter() { Stop(); }
+  IndexSnapshotter(const IndexSnapshotter&) = delete;
+  IndexSnapshotter& operator=(const IndexSnapshotter&) = delete;
+
+  // Waits for a snapshot being written, then stops.
+  void Stop() {
+    if (!thread_.joinable()) return;
+    stop_.Notify();
+    thread_.join();
+  }
+
+ private:
+  absl::Notification stop_;
+  std::thread thread_;
+};
 
 constexpr char kServiceName[] = "fleetmem.v1.MemoryService";
 
@@ -206,6 +245,8 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   }
   storage::RocksDbStoreOptions store_options = config.storage;
   store_options.path = (std::filesystem::path(config.data_dir) / "db").string();
+  // Distributed mode: the log is the durable copy (ClusterConfig::sync_store).
+  if (config.cluster.enabled()) store_options.sync = config.cluster.sync_store;
   absl::StatusOr<std::unique_ptr<engine::MemoryStore>> opened =
       storage::OpenRocksDbStore(store_options);
   if (!opened.ok()) {
@@ -225,6 +266,9 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     FLEETMEM_LOG(kError) << "cannot load fleets: " << engine.status();
     return 1;
   }
+  IndexSnapshotter snapshotter(engine->get(),
+                               config.index_snapshot_interval_seconds,
+                               config.index_snapshot_min_codes);
   transport::WorkQueue work(config.work);
   metrics.SetScrapeSources(
       {engine->get(), store.get(), [&work] { return work.queued(); }});
@@ -242,6 +286,26 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                                                size_t bytes) {
     metrics.ObserveUploadBytes(fleet, bytes);
   };
+  // Distributed mode: this replica materialises the fleets it owns from
+  // their logs and routes every other fleet's calls to its owner.
+  std::unique_ptr<ClusterMode> cluster;
+  if (config.cluster.enabled()) {
+    absl::StatusOr<std::unique_ptr<ClusterMode>> started =
+        ClusterMode::Start(config, engine->get());
+    if (!started.ok()) {
+      FLEETMEM_LOG(kError) << "cluster: " << started.status();
+      work.Stop();
+      return 1;
+    }
+    cluster = *std::move(started);
+    service_options.api.distribution = cluster.get();
+    // Each fleet's gauges come from the replica that serves it.
+    ClusterMode* serving = cluster.get();
+    metrics.SetScrapeSources(
+        {engine->get(), store.get(), [&work] { return work.queued(); },
+         [serving](const std::string& fleet) { return serving->Serves(fleet); },
+         [serving] { return serving->LogLag(); }});
+  }
   transport::MemoryServiceImpl service(engine->get(), &work,
                                        authenticator.get(), service_options);
 
@@ -328,6 +392,19 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                         << ", re-read every " << security.tls_reload_seconds
                         << " s";
   }
+  if (cluster != nullptr) {
+    cluster->Run([&service](const std::string& fleet) {
+      FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet
+                          << "\" is no longer owned here";
+      service.EndWatches(fleet);
+    });
+    FLEETMEM_LOG(kInfo) << "cluster: replica " << config.cluster.advertise
+                        << " on NATS "
+                        << absl::StrJoin(config.cluster.nats.servers, ",")
+                        << " (lease " << config.cluster.nats.lease_ttl << ", "
+                        << config.cluster.nats.replicas
+                        << " copies of each log)";
+  }
   FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address;
   std::cout << "fleetmem-server listening on " << address << std::endl;
 
@@ -357,9 +434,13 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   server->Shutdown(std::chrono::system_clock::now());
   work.Stop();
   server.reset();
+  // The other replicas take this one's fleets at once.
+  if (cluster != nullptr) cluster->Shutdown();
   // Nothing changes memory any more: the next start loads the place
-  // indexes instead of rebuilding them (a failure only costs that).
-  (*engine)->SaveIndexSnapshots().IgnoreError();
+  // indexes instead of rebuilding them (a failure only costs that). Fleets
+  // whose periodic snapshot is current are not written again.
+  snapshotter.Stop();
+  (*engine)->SaveIndexSnapshots({.only_changed = true}).IgnoreError();
   engine->reset();
   store.reset();
   FLEETMEM_LOG(kInfo) << "stopped";

@@ -10,6 +10,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "services/common/text_format.h"
 #include "services/server/server_config.pb.h"
 
@@ -141,6 +142,36 @@ void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
   }
 }
 
+void ApplyCluster(const ClusterConfigFile& in, ClusterConfig* out) {
+  if (in.servers_size() > 0) {
+    out->nats.servers.assign(in.servers().begin(), in.servers().end());
+  }
+  if (in.has_advertise()) out->advertise = in.advertise();
+  if (in.has_replicas()) out->nats.replicas = in.replicas();
+  if (in.has_lease_ttl_ms()) {
+    out->nats.lease_ttl = absl::Milliseconds(in.lease_ttl_ms());
+  }
+  if (in.has_round_interval_ms()) {
+    out->round_interval = absl::Milliseconds(in.round_interval_ms());
+  }
+  if (in.has_max_entry_bytes()) out->max_entry_bytes = in.max_entry_bytes();
+  if (in.has_nats_credentials_file()) {
+    out->nats.credentials_file = in.nats_credentials_file();
+  }
+  if (in.has_nats_ca_file()) out->nats.ca_file = in.nats_ca_file();
+  if (in.has_nats_cert_file()) out->nats.cert_file = in.nats_cert_file();
+  if (in.has_nats_key_file()) out->nats.key_file = in.nats_key_file();
+  if (in.has_peer_token_file()) out->peer_token_file = in.peer_token_file();
+  if (in.has_peer_ca_file()) out->peer_ca_file = in.peer_ca_file();
+  if (in.has_sync_store()) out->sync_store = in.sync_store();
+  if (in.has_peer_tls_server_name()) {
+    out->peer_tls_server_name = in.peer_tls_server_name();
+  }
+  if (in.has_connect_timeout_seconds()) {
+    out->connect_timeout = absl::Seconds(in.connect_timeout_seconds());
+  }
+}
+
 void ApplySecurity(const SecurityConfigFile& in, SecurityConfig* out) {
   if (in.has_auth_file()) out->auth_file = in.auth_file();
   if (in.has_allow_unauthenticated()) {
@@ -198,6 +229,11 @@ const FlagSpec kFlags[] = {
      "dashboard at /; same auth and TLS as gRPC (default off)"},
     {"snapshot-dir", &CommandLine::snapshot_dir, "DIR",
      "where CreateSnapshot writes DIR/NAME (default DATA_DIR/snapshots)"},
+    {"cluster", &CommandLine::cluster, "URL,...",
+     "distributed mode on NATS JetStream (nats://HOST:PORT,...; "
+     "docs/distributed.md); needs --advertise"},
+    {"advertise", &CommandLine::advertise, "HOST:PORT",
+     "where the other replicas reach this one (its replica id)"},
 };
 
 constexpr std::string_view kAllowUnauthenticated = "allow-unauthenticated";
@@ -211,6 +247,44 @@ std::optional<int> ListenPort(std::string_view listen) {
     return std::nullopt;
   if (port < 0 || port > 65535) return std::nullopt;
   return port;
+}
+
+absl::Status ValidateCluster(const ServerConfig& config) {
+  const ClusterConfig& cluster = config.cluster;
+  if (!cluster.enabled()) return absl::OkStatus();
+  // Its messages begin with "cluster: ".
+  absl::Status status = cluster::ValidateNatsOptions(cluster.nats);
+  if (!status.ok()) return status;
+  const std::optional<int> port = ListenPort(cluster.advertise);
+  if (!port.has_value() || *port == 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "cluster.advertise: \"", cluster.advertise,
+        "\" is not HOST:PORT with a fixed port (the other replicas forward "
+        "calls there; give --advertise)"));
+  }
+  if (cluster.nats.lease_ttl < absl::Seconds(1) ||
+      cluster.round_interval <= absl::ZeroDuration() ||
+      cluster.round_interval * 3 > cluster.nats.lease_ttl) {
+    return absl::InvalidArgumentError(
+        "cluster: lease_ttl_ms must be at least 1000 and at least three "
+        "round_interval_ms (a lease is renewed every third of it)");
+  }
+  if (cluster.max_entry_bytes < 4096) {
+    return absl::InvalidArgumentError("cluster.max_entry_bytes: at least 4096");
+  }
+  if (!config.security.auth_file.empty() && cluster.peer_token_file.empty()) {
+    return absl::InvalidArgumentError(
+        "cluster.peer_token_file: required with auth on (the token of an "
+        "admin principal replicas forward calls with)");
+  }
+  const engine::QuotaOptions& limits = config.engine.limits;
+  if (limits.fleet_traces_per_second > 0 || limits.fleet_bytes_per_second > 0 ||
+      limits.robot_traces_per_second > 0 || limits.robot_bytes_per_second > 0) {
+    return absl::InvalidArgumentError(
+        "limits: upload rates (*_per_second) are not supported in distributed "
+        "mode yet (a rate refusal at the owner would make replicas differ)");
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -340,6 +414,18 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
     config->shutdown_grace_seconds =
         static_cast<int>(file.shutdown_grace_seconds());
   }
+  if (file.has_index_snapshot_interval_seconds()) {
+    if (file.index_snapshot_interval_seconds() > 86400) {
+      return absl::InvalidArgumentError(
+          "index_snapshot_interval_seconds: at most 86400 (0 = only at a "
+          "clean shutdown)");
+    }
+    config->index_snapshot_interval_seconds =
+        static_cast<int>(file.index_snapshot_interval_seconds());
+  }
+  if (file.has_index_snapshot_min_codes()) {
+    config->index_snapshot_min_codes = file.index_snapshot_min_codes();
+  }
   ApplyMemory(file.memory(), &config->engine.memory);
   for (const FleetMemoryConfig& fleet : file.fleets()) {
     core::MemoryOptions memory = config->engine.memory;
@@ -354,6 +440,7 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   ApplyFlann(file.flann(), &config->flann);
   ApplyHnsw(file.hnsw(), &config->tiered);
   ApplySecurity(file.security(), &config->security);
+  ApplyCluster(file.cluster(), &config->cluster);
   ApplyLimits(file.limits(), &config->engine.limits, &config->service);
   return absl::OkStatus();
 }
@@ -365,6 +452,12 @@ absl::Status ApplyCommandLine(const CommandLine& command_line,
   if (command_line.http_listen) {
     config->http_listen = *command_line.http_listen;
   }
+  if (command_line.cluster) {
+    config->cluster.nats.servers =
+        absl::StrSplit(*command_line.cluster, ',', absl::SkipEmpty());
+  }
+  if (command_line.advertise)
+    config->cluster.advertise = *command_line.advertise;
   if (command_line.snapshot_dir) {
     config->snapshot_dir = *command_line.snapshot_dir;
   }
@@ -432,6 +525,10 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
     return absl::InvalidArgumentError(
         "shutdown_grace_seconds: must not be negative");
   }
+  if (config.index_snapshot_interval_seconds < 0) {
+    return absl::InvalidArgumentError(
+        "index_snapshot_interval_seconds: must not be negative");
+  }
   const SecurityConfig& security = config.security;
   if (security.tls_cert_file.empty() != security.tls_key_file.empty()) {
     return absl::InvalidArgumentError(
@@ -477,6 +574,8 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
         "--allow-unauthenticated if anyone who reaches the port may read "
         "and write every fleet"));
   }
+  absl::Status cluster = ValidateCluster(config);
+  if (!cluster.ok()) return cluster;
   return engine::ValidateEngineOptions(config.engine);
 }
 
@@ -545,6 +644,9 @@ std::string DescribeConfig(const ServerConfig& config) {
       " rocksdb_sync=", config.storage.sync ? "true" : "false",
       " min_free_bytes=", config.storage.min_free_bytes,
       " shutdown_grace_seconds=", config.shutdown_grace_seconds,
+      " index_snapshot_interval_seconds=",
+      config.index_snapshot_interval_seconds,
+      " index_snapshot_min_codes=", config.index_snapshot_min_codes,
       " auth=", config.security.auth_file.empty() ? "off" : "on",
       " tls=", config.security.tls_cert_file.empty() ? "off" : "on",
       " client_certificates=",

@@ -8,9 +8,12 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/time/time.h"
+#include "services/cluster/nats_fleet_log.h"
 #include "services/common/log.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/flann_index.h"
@@ -56,6 +59,37 @@ struct SecurityConfig {
   bool reflection_with_auth = false;
 };
 
+// Distributed mode (docs/distributed.md); off when nats.servers is empty.
+struct ClusterConfig {
+  // servers, credentials, TLS, replicas, lease_ttl; nats.servers empty =
+  // the embedded mode.
+  cluster::NatsOptions nats;
+  // HOST:PORT the other replicas reach this one at; its replica id.
+  std::string advertise;
+  // Between two rounds of the ownership loop.
+  absl::Duration round_interval = absl::Milliseconds(200);
+  // At start, how long NATS is retried while it cannot be reached or its
+  // JetStream is not ready (a cluster still electing its leader).
+  absl::Duration connect_timeout = absl::Seconds(60);
+  // Largest log entry (under NATS's max_payload, 1 MiB by default).
+  size_t max_entry_bytes = size_t{512} << 10;
+  // File with the NAME:SECRET token replicas present to each other.
+  std::string peer_token_file;
+  // CA bundle of the other replicas' certificates (default: the client CA).
+  std::string peer_ca_file;
+  // The name the other replicas' certificates are issued for, when it is
+  // not the host of their address (e.g. "fleetmem-server" for every pod).
+  std::string peer_tls_server_name;
+  // Whether the replica's own store syncs each write. Off by default: the
+  // log is the durable copy, and the store keeps each write's log position
+  // with it, so a replica that loses its last writes in a crash of its
+  // machine re-applies them from the log (RocksDB recovers a consistent
+  // prefix of its write-ahead log). Replaces storage.sync in this mode.
+  bool sync_store = false;
+
+  bool enabled() const { return !nats.servers.empty(); }
+};
+
 struct ServerConfig {
   // HOST:PORT to listen on; port 0 picks a free port.
   std::string listen = "127.0.0.1:50051";
@@ -80,6 +114,14 @@ struct ServerConfig {
   size_t max_receive_message_bytes = size_t{16} << 20;
   // On SIGTERM/SIGINT, calls in flight get this long to finish.
   int shutdown_grace_seconds = 10;
+  // Index snapshots while serving: every this many seconds, each changed
+  // fleet with at least index_snapshot_min_codes codes in its index saves
+  // one (MemoryEngine::SaveIndexSnapshots); a restart after a crash then
+  // re-adds only what came after it. 0 = only at a clean shutdown. A
+  // fleet's uploads wait while its snapshot is written (seconds at
+  // 1,000,000 256-d traces; not while the file is synced), queries do not.
+  int index_snapshot_interval_seconds = 300;
+  size_t index_snapshot_min_codes = 20'000;
   SecurityConfig security;
   // HOST:PORT of the HTTP port (REST/JSON, /metrics, /healthz, /readyz,
   // dashboard); empty = off. Same auth and TLS as gRPC.
@@ -89,6 +131,7 @@ struct ServerConfig {
   // Where CreateSnapshot writes (SNAPSHOT_DIR/NAME/db); empty =
   // DATA_DIR/snapshots.
   std::string snapshot_dir;
+  ClusterConfig cluster;
 };
 
 // True for 127.0.0.0/8, ::1 and "localhost" (the host part of HOST:PORT).
@@ -109,12 +152,14 @@ struct CommandLine {
   std::optional<std::string> tls_client_ca;
   std::optional<std::string> http_listen;
   std::optional<std::string> snapshot_dir;
+  std::optional<std::string> cluster;  // comma-separated NATS URLs
+  std::optional<std::string> advertise;
   bool allow_unauthenticated = false;
 };
 
 // Parses argv[1..argc): --listen, --data-dir, --config, --log-level,
 // --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca,
-// --http-listen, --snapshot-dir as
+// --http-listen, --snapshot-dir, --cluster, --advertise as
 // "--name=value" or "--name value"; --allow-unauthenticated; --help or -h.
 // INVALID_ARGUMENT for an unknown flag, a missing value or a positional
 // argument.

@@ -185,6 +185,9 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
   EXPECT_EQ(config.max_receive_message_bytes,
             defaults.max_receive_message_bytes);
   EXPECT_EQ(config.shutdown_grace_seconds, defaults.shutdown_grace_seconds);
+  EXPECT_EQ(config.index_snapshot_interval_seconds,
+            defaults.index_snapshot_interval_seconds);
+  EXPECT_EQ(config.index_snapshot_min_codes, defaults.index_snapshot_min_codes);
   EXPECT_EQ(config.index, defaults.index);
   EXPECT_EQ(config.tiered.hnsw_from, defaults.tiered.hnsw_from);
   EXPECT_EQ(config.tiered.max_unindexed, defaults.tiered.max_unindexed);
@@ -197,11 +200,12 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
 
 TEST(ServerConfigTest, BadFileText) {
   const char* cases[] = {
-      "listen: ",                     // syntax
-      "no_such_field: 1",             // unknown field
-      "memory { max_clusters: -x }",  // bad value
-      "index: \"annoy\"",             // unknown index
-      "log_level: \"loud\"",          // unknown level
+      "listen: ",                                // syntax
+      "no_such_field: 1",                        // unknown field
+      "memory { max_clusters: -x }",             // bad value
+      "index: \"annoy\"",                        // unknown index
+      "log_level: \"loud\"",                     // unknown level
+      "index_snapshot_interval_seconds: 90000",  // over a day
   };
   for (const char* text : cases) {
     ServerConfig config;
@@ -361,6 +365,64 @@ TEST(ServerConfigTest, HttpPortFlagsFileAndValidation) {
   EXPECT_TRUE(ValidateServerConfig(open).ok());
 }
 
+TEST(ServerConfigTest, ClusterModeFromFlagsAndFileIsValidated) {
+  absl::StatusOr<CommandLine> flags =
+      Parse({"--data-dir", "/tmp/x", "--cluster",
+             "nats://10.0.0.1:4222,nats://10.0.0.2:4222", "--advertise",
+             "fleetmem-0.fleetmem:50051"});
+  ASSERT_TRUE(flags.ok()) << flags.status();
+  absl::StatusOr<ServerConfig> config = LoadServerConfig(*flags);
+  ASSERT_TRUE(config.ok()) << config.status();
+  EXPECT_TRUE(config->cluster.enabled());
+  EXPECT_EQ(config->cluster.nats.servers,
+            (std::vector<std::string>{"nats://10.0.0.1:4222",
+                                      "nats://10.0.0.2:4222"}));
+  EXPECT_EQ(config->cluster.advertise, "fleetmem-0.fleetmem:50051");
+  EXPECT_EQ(config->cluster.nats.replicas, 3);
+  EXPECT_EQ(config->cluster.nats.lease_ttl, absl::Seconds(5));
+
+  ServerConfig file_config;
+  ASSERT_TRUE(
+      ApplyConfigText("cluster { servers: \"nats://n:4222\" advertise: \"r:1\" "
+                      "replicas: 1 lease_ttl_ms: 2000 round_interval_ms: 50 "
+                      "max_entry_bytes: 65536 peer_token_file: \"/t\" }",
+                      &file_config)
+          .ok());
+  EXPECT_EQ(file_config.cluster.nats.replicas, 1);
+  EXPECT_EQ(file_config.cluster.nats.lease_ttl, absl::Seconds(2));
+  EXPECT_EQ(file_config.cluster.round_interval, absl::Milliseconds(50));
+  EXPECT_EQ(file_config.cluster.max_entry_bytes, 65536u);
+  EXPECT_EQ(file_config.cluster.peer_token_file, "/t");
+  EXPECT_FALSE(ServerConfig().cluster.enabled());
+
+  const auto refused = [&](ServerConfig bad, const std::string& says) {
+    absl::Status status = ValidateServerConfig(bad);
+    EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << says;
+    EXPECT_NE(status.message().find(says), std::string::npos) << status;
+  };
+  ServerConfig bad = *config;
+  bad.cluster.advertise = "";
+  refused(bad, "cluster.advertise");
+  bad = *config;
+  bad.cluster.advertise = "host:0";
+  refused(bad, "cluster.advertise");
+  bad = *config;
+  bad.cluster.nats.lease_ttl = absl::Milliseconds(500);
+  refused(bad, "lease TTL must be at least 1 s");
+  bad = *config;
+  bad.cluster.round_interval = absl::Seconds(2);
+  refused(bad, "round_interval_ms");
+  bad = *config;
+  bad.cluster.nats.servers = {"http://x"};
+  refused(bad, "cluster:");
+  bad = *config;
+  bad.security.auth_file = "/creds";
+  refused(bad, "peer_token_file");
+  bad = *config;
+  bad.engine.limits.robot_traces_per_second = 10;
+  refused(bad, "not supported in distributed mode");
+}
+
 // The configuration files shipped with the images, the compose fleet, the
 // Docker tests and Kubernetes parse and validate: a typo there is caught
 // here, not when a container starts.
@@ -403,6 +465,10 @@ TEST(ShippedConfigTest, EveryShippedServerConfigIsValid) {
       {"k8s/base/server-configmap.yaml",
        YamlBlock(ReadSourceFile("k8s/base/server-configmap.yaml"),
                  "server.textproto")},
+      {"docker/cluster/server.textproto",
+       ReadSourceFile("docker/cluster/server.textproto")},
+      {"k8s/overlays/cluster/server.textproto",
+       ReadSourceFile("k8s/overlays/cluster/server.textproto")},
   };
   for (const auto& [name, text] : files) {
     SCOPED_TRACE(name);
@@ -412,6 +478,11 @@ TEST(ShippedConfigTest, EveryShippedServerConfigIsValid) {
         << ApplyConfigText(text, &config);
     EXPECT_EQ(config.listen, "0.0.0.0:50051");
     EXPECT_EQ(config.http_listen, "0.0.0.0:8080");
+    // A replica's address comes from its command line (--advertise).
+    if (name.find("cluster/") != std::string::npos) {
+      EXPECT_TRUE(config.cluster.enabled());
+      config.cluster.advertise = "fleetmem-0:50051";
+    }
     // The image's own file has no credentials: it must be refused on
     // 0.0.0.0 (the server will not start open on a network); the others
     // turn auth and TLS on and are valid as they are.

@@ -162,35 +162,31 @@ class InMemoryStore final : public engine::MemoryStore {
     fleet.events.erase(fleet.events.begin(),
                        fleet.events.lower_bound(m.erase_events_before));
     if (fleet.empty()) fleets_.erase(it);
-    ++version_;
     return absl::OkStatus();
   }
 
   absl::Status SaveIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteWriter&)>& write) override {
+      const std::function<absl::Status(core::ByteWriter&)>& write,
+      const std::function<void()>& written) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }
-    Snapshot snapshot;
-    {
-      absl::MutexLock lock(&mu_);
-      snapshot.version = version_;
-      snapshots_.erase(std::string(fleet_id));
-    }
-    core::ByteWriter out([&snapshot](std::span<const char> bytes) {
-      snapshot.bytes.insert(snapshot.bytes.end(), bytes.begin(), bytes.end());
+    std::vector<char> bytes;
+    core::ByteWriter out([&bytes](std::span<const char> chunk) {
+      bytes.insert(bytes.end(), chunk.begin(), chunk.end());
     });
     if (absl::Status status = write(out); !status.ok()) return status;
+    if (written) written();
     absl::MutexLock lock(&mu_);
-    snapshots_[std::string(fleet_id)] = std::move(snapshot);
+    snapshots_[std::string(fleet_id)] = std::move(bytes);
     return absl::OkStatus();
   }
 
-  absl::Status TakeIndexSnapshot(
+  absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
       const std::function<absl::Status(std::span<const char>)>& read) override {
-    Snapshot snapshot;
+    std::vector<char> bytes;
     {
       absl::MutexLock lock(&mu_);
       auto it = snapshots_.find(fleet_id);
@@ -198,15 +194,9 @@ class InMemoryStore final : public engine::MemoryStore {
         return absl::NotFoundError(absl::StrCat("no index snapshot of fleet \"",
                                                 std::string(fleet_id), "\""));
       }
-      snapshot = std::move(it->second);
-      snapshots_.erase(it);
-      if (snapshot.version != version_) {
-        return absl::NotFoundError(absl::StrCat(
-            "the index snapshot of fleet \"", std::string(fleet_id),
-            "\" is stale: the store changed after it was written"));
-      }
+      bytes = it->second;  // a copy: `read` runs outside the lock
     }
-    return read(snapshot.bytes);
+    return read(bytes);
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
@@ -227,16 +217,11 @@ class InMemoryStore final : public engine::MemoryStore {
   }
 
  private:
-  struct Snapshot {
-    uint64_t version = 0;  // of the store when it was written
-    std::vector<char> bytes;
-  };
-
   absl::Mutex mu_;
   std::map<std::string, Fleet, std::less<>> fleets_ ABSL_GUARDED_BY(mu_);
-  // Applies so far: a snapshot is valid while this is unchanged.
-  uint64_t version_ ABSL_GUARDED_BY(mu_) = 0;
-  std::map<std::string, Snapshot, std::less<>> snapshots_ ABSL_GUARDED_BY(mu_);
+  // Index snapshots by fleet id.
+  std::map<std::string, std::vector<char>, std::less<>> snapshots_
+      ABSL_GUARDED_BY(mu_);
 };
 
 }  // namespace

@@ -2,12 +2,10 @@
 
 #include "absl/strings/escaping.h"
 #include "absl/strings/str_cat.h"
+#include "services/core/absl_view.h"
 
 namespace fleetmem::storage::keys {
 namespace {
-
-// Debian's absl has its own string_view type, distinct from std::string_view.
-absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
 
 void AppendBigEndian(uint64_t value, std::string* out) {
   for (int shift = 56; shift >= 0; shift -= 8) {

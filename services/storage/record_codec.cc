@@ -5,15 +5,13 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
+#include "services/core/absl_view.h"
 #include "services/core/seq_set.h"
 #include "services/storage/keys.h"
 #include "services/storage/records.pb.h"
 
 namespace fleetmem::storage {
 namespace {
-
-// Debian's absl has its own string_view type, distinct from std::string_view.
-absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
 
 absl::Status Corrupt(std::string_view key, std::string_view what) {
   return absl::DataLossError(
@@ -59,6 +57,7 @@ std::string EncodeMeta(const engine::FleetMeta& meta) {
   record.set_consolidations(meta.consolidations);
   record.set_clusters_forgotten(meta.clusters_forgotten);
   record.set_first_event_id(meta.first_event_id);
+  record.set_log_position(meta.log_position);
   return record.SerializeAsString();
 }
 
@@ -76,6 +75,7 @@ absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
   meta.consolidations = record.consolidations();
   meta.clusters_forgotten = record.clusters_forgotten();
   meta.first_event_id = std::max<uint64_t>(1, record.first_event_id());
+  meta.log_position = record.log_position();
   return meta;
 }
 

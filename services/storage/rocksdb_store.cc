@@ -32,6 +32,7 @@
 #include "rocksdb/utilities/checkpoint.h"
 #include "rocksdb/write_batch.h"
 #include "services/common/log.h"
+#include "services/core/absl_view.h"
 #include "services/storage/keys.h"
 #include "services/storage/mutation_checks.h"
 #include "services/storage/record_codec.h"
@@ -41,9 +42,6 @@ namespace fleetmem::storage {
 namespace {
 
 using core::TraceKey;
-
-// Debian's absl has its own string_view type, distinct from std::string_view.
-absl::string_view V(std::string_view s) { return {s.data(), s.size()}; }
 
 rocksdb::Slice ToSlice(std::string_view bytes) {
   return rocksdb::Slice(bytes.data(), bytes.size());
@@ -359,7 +357,8 @@ class RocksDbStore final : public engine::MemoryStore {
 
   absl::Status SaveIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteWriter&)>& write) override {
+      const std::function<absl::Status(core::ByteWriter&)>& write,
+      const std::function<void()>& written) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }
@@ -370,8 +369,8 @@ class RocksDbStore final : public engine::MemoryStore {
           absl::StrCat("no index snapshot written: cannot create '",
                        SnapshotDirectory(), "': ", error.message()));
     }
-    // Stamped with the state before `write` reads memory: a later write
-    // makes the stamp older than the store, so the snapshot is refused.
+    // Stamped with the state before `write` reads memory (for the log: the
+    // engine reconciles the snapshot with what the store holds at load).
     // A snapshot must not eat into the reserve that keeps the database
     // writable (its next open may need to flush the write-ahead log).
     auto check_room = [this]() -> absl::Status {
@@ -386,17 +385,26 @@ class RocksDbStore final : public engine::MemoryStore {
       return absl::OkStatus();
     };
     return WriteSnapshotFile(SnapshotDirectory(), fleet_id,
-                             db_->GetLatestSequenceNumber(), write, check_room);
+                             db_->GetLatestSequenceNumber(), write, check_room,
+                             written);
   }
 
-  absl::Status TakeIndexSnapshot(
+  absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
       const std::function<absl::Status(std::span<const char>)>& read) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }
-    return TakeSnapshotFile(SnapshotDirectory(), fleet_id,
-                            db_->GetLatestSequenceNumber(), read);
+    uint64_t stamp = 0;
+    absl::Status status =
+        ReadSnapshotFile(SnapshotDirectory(), fleet_id, read, &stamp);
+    if (status.ok()) {
+      const uint64_t now = db_->GetLatestSequenceNumber();
+      FLEETMEM_LOG(kInfo) << "index snapshot of fleet \"" << fleet_id
+                          << "\" was written at store sequence " << stamp
+                          << " (now " << now << ")";
+    }
+    return status;
   }
 
   uint64_t ApproximateDiskBytes() override {

@@ -400,7 +400,8 @@ TEST(RocksDbStoreTest, BelowTheDiskReserveWritesAreRefusedAndReadsServed) {
   EXPECT_EQ(DumpFleet(**store, "f"), ReferenceDump(script, 2, "f"));
 }
 
-// An index snapshot stops at the disk reserve and leaves nothing behind.
+// An index snapshot stops at the disk reserve, leaves no partial file and
+// keeps the earlier snapshot.
 TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
   testing::TempDir dir;
   std::atomic<uint64_t> free_bytes{uint64_t{8} << 20};
@@ -408,6 +409,13 @@ TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
   absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
       OpenRocksDbStore(options);
   ASSERT_TRUE(store.ok()) << store.status();
+  ASSERT_TRUE((*store)
+                  ->SaveIndexSnapshot("f1",
+                                      [](core::ByteWriter& out) {
+                                        out.PutString("earlier");
+                                        return absl::OkStatus();
+                                      })
+                  .ok());
   // Each MiB written takes a MiB of the free space.
   const absl::Status status =
       (*store)->SaveIndexSnapshot("f1", [&](core::ByteWriter& out) {
@@ -421,8 +429,20 @@ TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
   EXPECT_EQ(status.code(), absl::StatusCode::kResourceExhausted) << status;
   EXPECT_THAT(status.message(), HasSubstr("disk nearly full"));
   EXPECT_THAT(status.message(), HasSubstr("no index snapshot written"));
-  EXPECT_TRUE(std::filesystem::is_empty(
-      absl::StrCat(options.path, "/index-snapshots")));
+  const std::string directory = absl::StrCat(options.path, "/index-snapshots");
+  EXPECT_EQ(std::distance(std::filesystem::directory_iterator(directory),
+                          std::filesystem::directory_iterator()),
+            1);  // the earlier one, no temporary file
+  std::string earlier;
+  ASSERT_TRUE((*store)
+                  ->ReadIndexSnapshot("f1",
+                                      [&earlier](std::span<const char> bytes) {
+                                        core::ByteReader in(bytes);
+                                        in.GetString(&earlier, 100);
+                                        return absl::OkStatus();
+                                      })
+                  .ok());
+  EXPECT_EQ(earlier, "earlier");
 }
 
 // A damaged index snapshot is refused (never handed to the engine) and
@@ -451,7 +471,7 @@ TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
   }
   bool read = false;
   absl::Status status =
-      (*store)->TakeIndexSnapshot("f1", [&read](std::span<const char>) {
+      (*store)->ReadIndexSnapshot("f1", [&read](std::span<const char>) {
         read = true;
         return absl::OkStatus();
       });

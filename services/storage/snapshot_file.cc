@@ -168,11 +168,11 @@ std::string SnapshotFilePath(const std::string& directory,
 absl::Status WriteSnapshotFile(
     const std::string& directory, std::string_view key, uint64_t stamp,
     const std::function<absl::Status(core::ByteWriter&)>& write,
-    const std::function<absl::Status()>& check_room) {
+    const std::function<absl::Status()>& check_room,
+    const std::function<void()>& written) {
   const std::string path = SnapshotFilePath(directory, key);
   const std::string temporary = path + ".tmp";
   std::error_code ignored;
-  std::filesystem::remove(path, ignored);
   const int fd =
       ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
   if (fd < 0) {
@@ -202,6 +202,7 @@ absl::Status WriteSnapshotFile(
   file.Append({reinterpret_cast<const char*>(&digest), sizeof(digest)}, false);
   file.Flush();
   if (status.ok()) status = file.error();
+  if (status.ok() && written) written();
   if (status.ok() && ::fsync(fd) != 0) {
     status = absl::UnavailableError(absl::StrCat("fsync: ", ErrnoText(errno)));
   }
@@ -211,8 +212,9 @@ absl::Status WriteSnapshotFile(
   }
   if (status.ok()) status = SyncDirectory(path);
   if (!status.ok()) {
+    // The rename is the commit point: before it the earlier snapshot is
+    // whole, after it the new one (only the directory's fsync failed).
     std::filesystem::remove(temporary, ignored);
-    std::filesystem::remove(path, ignored);
     return absl::Status(status.code(),
                         absl::StrCat("no index snapshot written to '", path,
                                      "': ", status.message()));
@@ -220,16 +222,27 @@ absl::Status WriteSnapshotFile(
   return absl::OkStatus();
 }
 
-absl::Status TakeSnapshotFile(
-    const std::string& directory, std::string_view key, uint64_t stamp,
-    const std::function<absl::Status(std::span<const char>)>& read) {
+absl::Status ReadSnapshotFile(
+    const std::string& directory, std::string_view key,
+    const std::function<absl::Status(std::span<const char>)>& read,
+    uint64_t* stamp) {
   const std::string path = SnapshotFilePath(directory, key);
   absl::StatusOr<std::unique_ptr<Mapping>> mapping = Map(path);
-  std::error_code ignored;
-  // Used once: gone before anything else can fail (the mapping stays
-  // readable after the unlink).
-  std::filesystem::remove(path, ignored);
-  if (!mapping.ok()) return mapping.status();
+  if (!mapping.ok()) {
+    std::error_code ignored;
+    if (absl::IsDataLoss(mapping.status())) {
+      std::filesystem::remove(path, ignored);
+    }
+    return mapping.status();
+  }
+  // A damaged file is removed (the mapping stays readable after the
+  // unlink): it could never be used.
+  auto damaged = [&path](std::string_view what) {
+    std::error_code ignored;
+    std::filesystem::remove(path, ignored);
+    return absl::DataLossError(
+        absl::StrCat("index snapshot '", path, "' ", std::string(what)));
+  };
   const std::span<const char> bytes = (*mapping)->bytes();
   // Everything between the header and the trailer: the key, then the
   // payload.
@@ -240,25 +253,18 @@ absl::Status TakeSnapshotFile(
   if (std::string_view(bytes.data(), kMagic.size()) != kMagic ||
       body_size < 8 || key_size > body_size - 8 ||
       payload_size != body_size - 8 - key_size) {
-    return absl::DataLossError(
-        absl::StrCat("index snapshot '", path, "' has a damaged frame"));
-  }
-  const uint64_t saved_stamp = ReadAt<uint64_t>(bytes, kMagic.size());
-  if (saved_stamp != stamp) {
-    return absl::NotFoundError(absl::StrCat(
-        "the index snapshot '", path, "' is stale: written at store sequence ",
-        saved_stamp, ", the store is at ", stamp));
+    return damaged("has a damaged frame");
   }
   const uint64_t digest =
       XXH3_64bits(bytes.data() + kMagic.size(), 8 + body_size);
   if (digest != ReadAt<uint64_t>(bytes, bytes.size() - 8)) {
-    return absl::DataLossError(
-        absl::StrCat("index snapshot '", path, "' fails its checksum"));
+    return damaged("fails its checksum");
   }
   if (std::string_view(bytes.data() + kHeaderBytes + 8, key_size) != key) {
     return absl::NotFoundError(
         absl::StrCat("index snapshot '", path, "' belongs to another key"));
   }
+  if (stamp != nullptr) *stamp = ReadAt<uint64_t>(bytes, kMagic.size());
   return read(bytes.subspan(kHeaderBytes + 8 + key_size, payload_size));
 }
 

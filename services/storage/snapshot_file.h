@@ -5,8 +5,10 @@
 //   payload size (uint64) | XXH3-64 of everything after the magic
 //   (uint64)
 // and written atomically (a temporary file, fsync, rename, fsync of the
-// directory). The stamp ties the file to the state of the store that wrote
-// it (RocksDB's latest sequence number).
+// directory), so a crash leaves the earlier file or the new one, whole. The
+// stamp records the state of the store that wrote it (RocksDB's latest
+// sequence number); readers reconcile a snapshot with the store instead of
+// requiring the stamp to be current.
 #ifndef FLEETMEM_SERVICES_STORAGE_SNAPSHOT_FILE_H_
 #define FLEETMEM_SERVICES_STORAGE_SNAPSHOT_FILE_H_
 
@@ -24,22 +26,28 @@ namespace fleetmem::storage {
 // Writes the payload `write` produces as the snapshot of `key` in
 // `directory` (which must exist), replacing the one there. `check_room`,
 // if set, is asked before each 1 MiB written and stops the write with its
-// error (a disk reserve). On any error (`write`'s, `check_room`'s, or I/O:
-// a full disk, a failed fsync) none is left for `key` and the status says
-// so.
+// error (a disk reserve). `written`, if set, is called once `write` has
+// returned OK and its bytes are in the file (not yet synced): the caller
+// may change what `write` read from then on. On any error (`write`'s,
+// `check_room`'s, or I/O: a full disk, a failed fsync) the earlier snapshot
+// of `key`, if any, is left as it was, no temporary file remains, and the
+// status says so. Calls for one key must not overlap (they share the
+// temporary file).
 absl::Status WriteSnapshotFile(
     const std::string& directory, std::string_view key, uint64_t stamp,
     const std::function<absl::Status(core::ByteWriter&)>& write,
-    const std::function<absl::Status()>& check_room = nullptr);
+    const std::function<absl::Status()>& check_room = nullptr,
+    const std::function<void()>& written = nullptr);
 
 // Calls `read` with the payload of `key`'s snapshot in `directory` and
-// returns its status if the frame and checksum are intact, the key is `key`
-// and the stamp equals `stamp`; removes the file in every case. NOT_FOUND
-// when there is none or its stamp differs (stale), DATA_LOSS when it is
-// damaged; `read` is not called then.
-absl::Status TakeSnapshotFile(
-    const std::string& directory, std::string_view key, uint64_t stamp,
-    const std::function<absl::Status(std::span<const char>)>& read);
+// returns its status if the frame and checksum are intact and the key is
+// `key`; the file stays. NOT_FOUND when there is none, DATA_LOSS when it is
+// damaged (the file is then removed); `read` is not called then. `*stamp`,
+// if given, gets the stamp the file was written with.
+absl::Status ReadSnapshotFile(
+    const std::string& directory, std::string_view key,
+    const std::function<absl::Status(std::span<const char>)>& read,
+    uint64_t* stamp = nullptr);
 
 // The file that holds `key`'s snapshot in `directory`.
 std::string SnapshotFilePath(const std::string& directory,

@@ -106,6 +106,7 @@ engine::FleetMeta MakeMeta(uint64_t consolidations) {
   meta.next_event_id = 20 + consolidations;
   meta.consolidations = consolidations;
   meta.clusters_forgotten = consolidations / 2;
+  meta.log_position = 30 + consolidations;
   return meta;
 }
 
@@ -115,7 +116,8 @@ std::string Dump(const engine::FleetRecord& record) {
       "fleet ", record.fleet_id, "\nmeta dim=", m.code_dimension,
       " enc=", m.encoder_version, " next_cluster=", m.next_cluster_id,
       " next_event=", m.next_event_id, " consolidations=", m.consolidations,
-      " forgotten=", m.clusters_forgotten, "\npending\n");
+      " forgotten=", m.clusters_forgotten, " log_position=", m.log_position,
+      "\npending\n");
   for (const core::MemoryTrace& trace : record.pending) DumpTrace(trace, &out);
   for (const core::Cluster& cluster : record.clusters) {
     absl::StrAppend(&out, "cluster ", cluster.id, " robot=", cluster.robot_id,

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <filesystem>
+#include <map>
+#include <set>
 #include <system_error>
 #include <utility>
 #include <vector>
@@ -88,13 +90,112 @@ bool MemoryApi::Serves(absl::string_view method_name) const {
 
 absl::Status MemoryApi::Call(absl::string_view method_name,
                              const auth::Principal& caller,
-                             const Message& request, Message* response) {
+                             const Message& request, Message* response,
+                             bool forwarded) {
   auto it = methods_.find(method_name);
   if (it == methods_.end()) {
     return absl::UnimplementedError(
         absl::StrCat("method ", method_name, " is not served here"));
   }
+  if (options_.distribution != nullptr) {
+    if (method_name == "ListFleets") {
+      return ListClusterFleets(
+          caller, static_cast<v1::ListFleetsResponse*>(response), forwarded);
+    }
+    absl::Status status;
+    if (RouteToOwner(method_name, caller, request, response, forwarded,
+                     &status)) {
+      return status;
+    }
+  }
   return it->second(this, caller, request, response);
+}
+
+bool MemoryApi::RouteToOwner(absl::string_view method_name,
+                             const auth::Principal& caller,
+                             const Message& request, Message* response,
+                             bool forwarded, absl::Status* status) {
+  // Every fleet's request names it in `fleet_id`; CreateSnapshot names
+  // none and is this replica's own.
+  const google::protobuf::FieldDescriptor* field =
+      request.GetDescriptor()->FindFieldByName("fleet_id");
+  if (field == nullptr) return false;
+  const std::string fleet_id =
+      request.GetReflection()->GetString(request, field);
+  // Authorised here: the owner serves the forwarded call as this replica's
+  // (an admin of the cluster's credentials).
+  auth::Action action = auth::Action::kStats;
+  std::string robot_id;
+  if (method_name == "Consolidate") {
+    action = auth::Action::kConsolidate;
+  } else if (method_name == "SampleReplay") {
+    action = auth::Action::kSample;
+    robot_id = static_cast<const v1::SampleReplayRequest&>(request).robot_id();
+  } else if (method_name == "QueryPlace") {
+    action = auth::Action::kQuery;
+  }
+  *status = auth::Authorize(caller, action, fleet_id, robot_id);
+  if (!status->ok()) return true;
+  absl::StatusOr<std::optional<std::string>> owner =
+      options_.distribution->Owner(fleet_id);
+  if (!owner.ok()) {
+    *status = owner.status();
+    return true;
+  }
+  if (!owner->has_value()) return false;
+  if (forwarded) {
+    *status = absl::UnavailableError(
+        absl::StrCat("fleet \"", fleet_id, "\" is owned by replica \"", **owner,
+                     "\", not by \"", options_.distribution->self(),
+                     "\" (ownership moved); retry"));
+    return true;
+  }
+  *status = options_.distribution->Forward(
+      **owner, std::string_view(method_name.data(), method_name.size()),
+      request, response);
+  return true;
+}
+
+absl::Status MemoryApi::ListClusterFleets(const auth::Principal& caller,
+                                          v1::ListFleetsResponse* response,
+                                          bool forwarded) {
+  absl::StatusOr<std::vector<std::pair<std::string, std::string>>> fleets =
+      options_.distribution->Fleets();
+  if (!fleets.ok()) return fleets.status();
+  const std::string& self = options_.distribution->self();
+  std::map<std::string, v1::FleetSummary> summaries;
+  std::set<std::string> owners;
+  for (const auto& [fleet_id, owner] : *fleets) {
+    if (!auth::MaySeeFleet(caller, fleet_id)) continue;
+    // A forwarded ListFleets answers for this replica's fleets only.
+    if (forwarded && owner != self) continue;
+    v1::FleetSummary& summary = summaries[fleet_id];
+    summary.set_fleet_id(fleet_id);
+    if (owner == self) {
+      absl::StatusOr<engine::FleetStats> stats = engine_->GetStats(fleet_id);
+      if (stats.ok()) FleetSummaryToProto(fleet_id, *stats, &summary);
+    }
+    summary.set_replica(owner);
+    if (owner != self && !owner.empty()) owners.insert(owner);
+  }
+  if (!forwarded) {
+    for (const std::string& owner : owners) {
+      v1::ListFleetsResponse theirs;
+      absl::Status asked = options_.distribution->Forward(
+          owner, "ListFleets", v1::ListFleetsRequest(), &theirs);
+      if (!asked.ok()) continue;  // their fleets listed by id alone
+      for (const v1::FleetSummary& summary : theirs.fleets()) {
+        auto it = summaries.find(summary.fleet_id());
+        if (it != summaries.end() && summary.replica() == owner) {
+          it->second = summary;
+        }
+      }
+    }
+  }
+  for (auto& [fleet_id, summary] : summaries) {
+    *response->add_fleets() = std::move(summary);
+  }
+  return absl::OkStatus();
 }
 
 absl::Status MemoryApi::Consolidate(const auth::Principal& caller,
@@ -104,7 +205,9 @@ absl::Status MemoryApi::Consolidate(const auth::Principal& caller,
       auth::Authorize(caller, auth::Action::kConsolidate, request.fleet_id());
   if (!allowed.ok()) return allowed;
   absl::StatusOr<engine::ConsolidateResult> result =
-      engine_->Consolidate(request.fleet_id());
+      options_.distribution != nullptr
+          ? options_.distribution->Consolidate(request.fleet_id())
+          : engine_->Consolidate(request.fleet_id());
   if (!result.ok()) return result.status();
   ConsolidateResultToProto(*result, response);
   return absl::OkStatus();
@@ -117,8 +220,12 @@ absl::Status MemoryApi::SampleReplay(const auth::Principal& caller,
       caller, auth::Action::kSample, request.fleet_id(), request.robot_id());
   if (!allowed.ok()) return allowed;
   absl::StatusOr<std::vector<core::MemoryTrace>> traces =
-      engine_->SampleReplay(request.fleet_id(), request.robot_id(),
-                            request.count(), request.request_id());
+      options_.distribution != nullptr
+          ? options_.distribution->SampleReplay(
+                request.fleet_id(), request.robot_id(), request.count(),
+                request.request_id())
+          : engine_->SampleReplay(request.fleet_id(), request.robot_id(),
+                                  request.count(), request.request_id());
   if (!traces.ok()) return traces.status();
   SampledTracesToProto(*traces, response);
   return absl::OkStatus();

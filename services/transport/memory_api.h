@@ -21,6 +21,7 @@
 #include "google/protobuf/message.h"
 #include "services/auth/access_policy.h"
 #include "services/engine/memory_engine.h"
+#include "services/transport/distribution.h"
 
 namespace fleetmem::transport {
 
@@ -33,6 +34,12 @@ struct ApiOptions {
   // ListTraces pages: the default and the most one page may ask for.
   size_t default_page_size = 1000;
   size_t max_page_size = 10000;
+  // Distributed mode (null: embedded). A fleet's calls are served by the
+  // replica that owns it: another replica forwards them there after
+  // authorising the caller; Consolidate and SampleReplay go through the
+  // fleet's log at the owner; ListFleets gathers every owner's fleets.
+  // Must outlive the API.
+  Distribution* distribution = nullptr;
 };
 
 // Thread-safe.
@@ -76,10 +83,16 @@ class MemoryApi {
   // Generic form for the HTTP gateway: the unary method `method_name` (e.g.
   // "GetStats") with messages of its request and response types.
   // UNIMPLEMENTED for a method that is not unary or not known here.
+  //
+  // In distributed mode this is where a fleet's call is routed to its
+  // owner. `forwarded`: the call came from another replica
+  // (kForwardedHeader); it is served here or refused with UNAVAILABLE,
+  // never forwarded again.
   absl::Status Call(absl::string_view method_name,
                     const auth::Principal& caller,
                     const google::protobuf::Message& request,
-                    google::protobuf::Message* response);
+                    google::protobuf::Message* response,
+                    bool forwarded = false);
   // True if Call serves `method_name`.
   bool Serves(absl::string_view method_name) const;
 
@@ -87,6 +100,18 @@ class MemoryApi {
   using Generic = std::function<absl::Status(MemoryApi*, const auth::Principal&,
                                              const google::protobuf::Message&,
                                              google::protobuf::Message*)>;
+
+  // Distributed mode: forwards a fleet's call to its owner (true, with the
+  // call's status in *status) or leaves it to this replica (false).
+  bool RouteToOwner(absl::string_view method_name,
+                    const auth::Principal& caller,
+                    const google::protobuf::Message& request,
+                    google::protobuf::Message* response, bool forwarded,
+                    absl::Status* status);
+  // Distributed ListFleets: this replica's fleets and every other owner's.
+  absl::Status ListClusterFleets(const auth::Principal& caller,
+                                 v1::ListFleetsResponse* response,
+                                 bool forwarded);
 
   engine::MemoryEngine* const engine_;
   const ApiOptions options_;

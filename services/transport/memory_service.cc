@@ -48,8 +48,10 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
           absl::StatusOr<auth::Principal> caller =
               AuthenticateCall(state_.authenticator(), *context);
           if (!caller.ok()) return ToGrpcStatus(caller.status());
-          return ToGrpcStatus(
-              state_.api().Call(method, *caller, *request, response));
+          const bool forwarded =
+              context->client_metadata().count(kForwardedHeader) > 0;
+          return ToGrpcStatus(state_.api().Call(method, *caller, *request,
+                                                response, forwarded));
         }());
         state_.EndWork();
       });

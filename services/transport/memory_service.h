@@ -48,6 +48,8 @@ class MemoryServiceImpl final
   // UNAVAILABLE, and every watch finishes at once with UNAVAILABLE. Calls
   // already on the pool complete. Idempotent.
   void Shutdown();
+  // Distributed mode: ends the watches of a fleet this replica lost.
+  void EndWatches(std::string_view fleet_id) { state_.EndWatches(fleet_id); }
 
   // After Shutdown: blocks until no call is being worked on (a unary call
   // queued or running, an upload message being stored) or until `deadline`;

@@ -2,6 +2,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
+#include "services/core/absl_view.h"
 #include "services/transport/watch_reactor.h"
 
 namespace fleetmem::transport {
@@ -31,6 +32,19 @@ void ServiceState::Shutdown() {
   absl::MutexLock lock(&watches_mu_);
   shutting_down_.store(true, std::memory_order_release);
   for (WatchReactor* watch : watches_) watch->Stop();
+}
+
+void ServiceState::EndWatches(std::string_view fleet_id) {
+  absl::MutexLock lock(&watches_mu_);
+  for (WatchReactor* watch : watches_) {
+    if (watch->fleet_id() == fleet_id) {
+      watch->End(grpc::Status(
+          grpc::StatusCode::UNAVAILABLE,
+          absl::StrCat("fleet \"", V(fleet_id),
+                       "\" moved to another replica: watch it again from "
+                       "your last event id")));
+    }
+  }
 }
 
 absl::Status ServiceState::AcquireStream(const std::string& client) {

@@ -83,6 +83,10 @@ class ServiceState {
   // New calls are refused from now on, and every live watch is finished.
   // Idempotent.
   void Shutdown();
+  // Distributed mode: this replica no longer owns `fleet_id`; its watches
+  // end with UNAVAILABLE, and their clients watch again (from their last
+  // event id) through the fleet's new owner.
+  void EndWatches(std::string_view fleet_id);
 
   // Work in flight: a unary call from submission to its answer, an upload
   // message from submission to its storage. Shutdown waits for these (up to

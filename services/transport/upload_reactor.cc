@@ -155,8 +155,10 @@ void UploadReactor::Store() {
   }
   std::vector<core::MemoryTrace> traces =
       UploadedTracesFromProto(request_.traces());
+  Distribution* distribution = state_->options().api.distribution;
   absl::StatusOr<engine::UploadResult> result =
-      state_->engine().Upload(fleet_id_, traces);
+      distribution != nullptr ? distribution->Upload(fleet_id_, traces)
+                              : state_->engine().Upload(fleet_id_, traces);
   if (!result.ok()) {
     Fail(result.status());
     return;

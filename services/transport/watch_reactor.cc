@@ -2,6 +2,7 @@
 
 #include <utility>
 
+#include "absl/strings/str_cat.h"
 #include "services/common/log.h"
 #include "services/core/validation.h"
 #include "services/transport/call_auth.h"
@@ -22,6 +23,19 @@ WatchReactor::WatchReactor(ServiceState* state,
     valid = AuthorizeCall(state_->authenticator(), context,
                           auth::Action::kWatch, fleet_id_)
                 .status();
+  }
+  Distribution* distribution = state_->options().api.distribution;
+  if (valid.ok() && distribution != nullptr) {
+    // A watch is served by the fleet's owner: the client is sent there
+    // (a stream is not forwarded).
+    absl::StatusOr<std::optional<std::string>> owner =
+        distribution->Owner(fleet_id_);
+    valid = owner.status();
+    if (valid.ok() && owner->has_value()) {
+      valid = absl::UnavailableError(
+          absl::StrCat("fleet \"", fleet_id_, "\" is served by replica \"",
+                       **owner, "\": watch it there"));
+    }
   }
   std::string client;
   if (valid.ok()) {
@@ -55,9 +69,11 @@ WatchReactor::WatchReactor(ServiceState* state,
   ScheduleReadLocked();  // does nothing if Stop() came first
 }
 
-void WatchReactor::Stop() {
+void WatchReactor::Stop() { End(ShuttingDownStatus()); }
+
+void WatchReactor::End(const grpc::Status& status) {
   absl::MutexLock lock(&shared_->mu);
-  FinishLocked(ShuttingDownStatus());
+  FinishLocked(status);
 }
 
 void WatchReactor::ScheduleReadLocked() {

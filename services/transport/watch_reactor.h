@@ -41,6 +41,10 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
   // Finishes the call with UNAVAILABLE (server shutdown) once the write in
   // flight, if any, is done. Thread-safe.
   void Stop();
+  // Finishes the call with `status` the same way (e.g. UNAVAILABLE when
+  // this replica no longer owns the fleet). Thread-safe.
+  void End(const grpc::Status& status);
+  const std::string& fleet_id() const { return fleet_id_; }
 
   void OnWriteDone(bool ok) override;
   void OnCancel() override;

@@ -1,0 +1,56 @@
+#!/bin/bash
+# Footprint and restart of two server builds on the same data, alternating:
+# a fleet of TRACES 256-d traces (the restart benchmark's shape: 4 robots,
+# clusters of 10) is filled and its HNSW graph built and saved (index
+# snapshot, clean stop) with B's build; then ROUNDS rounds each start A's
+# server and B's on that data dir, timed until the port answers, and print
+# the RSS 3 s after (the load is done when the port opens) and the
+# engine's snapshot load line. Each is stopped with kill -9, so the snapshot
+# on disk stays the one B wrote. A's build must read B's snapshot layout.
+#
+#   bench/compare_rss.sh A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS]
+#   (default: 200000 traces, 2 rounds)
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+if [ $# -lt 2 ]; then
+  echo "usage: $0 A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS]" >&2
+  exit 2
+fi
+a=$1
+b=$2
+traces=${3:-200000}
+rounds=${4:-2}
+for dir in "$a" "$b"; do
+  if [ ! -x "$dir/bin/fleetmem-server" ]; then
+    echo "$dir/bin/fleetmem-server: no such executable (build it first)" >&2
+    exit 2
+  fi
+done
+work=$(mktemp -d)
+trap 'kill $(jobs -p) 2>/dev/null || true; wait; rm -rf "$work"' EXIT
+source "$here/tools/load/server_lib.sh"
+fill_scale_fleet "$b" "$work" "$traces"
+start_server "$b" "$work/data" "$work/build.log" --config "$work/restart.textproto"
+while [ "$(unindexed_codes "$b" scale)" -gt 0 ]; do sleep 2; done
+stop_server
+
+payload_mib=$(awk -v n="$FILLED" 'BEGIN { print n * 1024 / 1048576 }')
+echo "build,round,rss_mib,rss_over_payload,port_seconds,snapshot_load"
+for round in $(seq 1 "$rounds"); do
+  for build in "$a" "$b"; do
+    start=$(date +%s.%N)
+    SERVER_START_TRIES=12000 start_server "$build" "$work/data" \
+      "$work/restart.log" --config "$work/restart.textproto"
+    port_s=$(awk "BEGIN { printf \"%.2f\", $(date +%s.%N) - $start }")
+    sleep 3
+    rss=$(server_rss_mib "$SERVER_PID")
+    load=$(sed -n 's/.*loaded from its index snapshot in \([0-9.]*\) s.*/\1 s/p' \
+      "$work/restart.log")
+    awk -v b="$build" -v r="$round" -v m="$rss" -v p="$payload_mib" \
+      -v s="$port_s" -v l="$load" \
+      'BEGIN { printf "%s,%d,%d,%.2f,%s,%s\n", b, r, m, m / p, s,
+               l == "" ? "rebuilt" : l }'
+    kill -9 "$SERVER_PID"
+    wait "$SERVER_PID" 2>/dev/null || true
+  done
+done

@@ -1,0 +1,75 @@
+// One replica's ownership loop in distributed mode (docs/distributed.md):
+// every `interval` it lists the fleets that have a log, steps the
+// Materialiser for each (taking the leases that are free, renewing its own,
+// applying what its fleets' logs hold), and leaves the fleets other
+// replicas own. A replica that stops (Stop, a crash) keeps its leases until
+// they expire; the others then take its fleets.
+#ifndef FLEETMEM_SERVICES_CLUSTER_CLUSTER_NODE_H_
+#define FLEETMEM_SERVICES_CLUSTER_CLUSTER_NODE_H_
+
+#include <atomic>
+#include <functional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/synchronization/notification.h"
+#include "absl/time/time.h"
+#include "services/cluster/fleet_log.h"
+#include "services/cluster/materialiser.h"
+#include "services/engine/memory_engine.h"
+
+namespace fleetmem::cluster {
+
+struct ClusterNodeOptions {
+  MaterialiserOptions materialiser;
+  // Between two rounds over the fleets.
+  absl::Duration interval = absl::Milliseconds(200);
+};
+
+class ClusterNode {
+ public:
+  // `log`, `leases` and `engine` must outlive it.
+  ClusterNode(ClusterNodeOptions options, FleetLog* log, LeaseTable* leases,
+              engine::MemoryEngine* engine);
+  // Stops the loop (the leases are kept until they expire).
+  ~ClusterNode();
+
+  // Called (on the loop's thread) for each fleet this replica owned after
+  // one round and not after the next. Set before Start.
+  void OnFleetLost(std::function<void(const std::string&)> lost) {
+    on_lost_ = std::move(lost);
+  }
+  // Runs rounds on a thread of its own until Stop.
+  void Start();
+  // Ends the loop after its round; the leases are not given up.
+  void Stop();
+  // Gives up every lease held (a clean shutdown: others take the fleets at
+  // once). Call after Stop.
+  void ReleaseAll();
+
+  // One round: every fleet in the log stepped once. Returns the fleets this
+  // replica owns after it; the log's error if it cannot list them.
+  absl::StatusOr<std::vector<std::string>> RunOnce();
+  // The fleets owned after the last round.
+  std::vector<std::string> owned() const;
+  // The materialiser the loop steps (for the calls an owner derives).
+  Materialiser& materialiser() { return materialiser_; }
+
+ private:
+  const ClusterNodeOptions options_;
+  FleetLog* const log_;
+  Materialiser materialiser_;
+  mutable absl::Mutex mu_;
+  std::vector<std::string> owned_ ABSL_GUARDED_BY(mu_);
+  std::function<void(const std::string&)> on_lost_;
+  absl::Notification stop_;
+  std::thread thread_;
+};
+
+}  // namespace fleetmem::cluster
+
+#endif  // FLEETMEM_SERVICES_CLUSTER_CLUSTER_NODE_H_

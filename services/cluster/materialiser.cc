@@ -1,0 +1,355 @@
+#include "services/cluster/materialiser.h"
+
+#include <algorithm>
+#include <map>
+#include <utility>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "proto/convert/trace_convert.h"
+#include "services/cluster/log_record.pb.h"
+#include "services/common/log.h"
+#include "services/core/absl_view.h"
+
+namespace fleetmem::cluster {
+namespace {
+
+// Deterministic refusals: every replica applying the entry to the same
+// state refuses it the same way. Not RESOURCE_EXHAUSTED: a full disk (the
+// store's reserve) says it too, and passing the entry then would lose it
+// on this replica; such an entry stops the fleet's step until it applies.
+bool RefusedByState(const absl::Status& status) {
+  return absl::IsInvalidArgument(status) ||
+         absl::IsFailedPrecondition(status) || absl::IsNotFound(status);
+}
+
+}  // namespace
+
+absl::StatusOr<EncodedUpload> EncodeUpload(
+    std::span<const core::MemoryTrace> traces) {
+  if (traces.empty()) {
+    return absl::InvalidArgumentError("cluster: an empty upload");
+  }
+  cluster::v1::LogRecord record;
+  uint64_t first = traces.front().seq, last = first;
+  for (const core::MemoryTrace& trace : traces) {
+    if (trace.robot_id != traces.front().robot_id) {
+      return absl::InvalidArgumentError(
+          "cluster: one log entry holds one robot's traces");
+    }
+    first = std::min(first, trace.seq);
+    last = std::max(last, trace.seq);
+    api::TraceToProto(trace, record.mutable_upload()->add_traces());
+  }
+  // Robot ids are [A-Za-z0-9._:-]; the length keeps "a:1" + seqs apart
+  // from "a" + ":1…".
+  EncodedUpload encoded;
+  encoded.id = absl::StrCat("upload/", traces.front().robot_id.size(), "/",
+                            traces.front().robot_id, "/", first, "-", last);
+  if (!record.SerializeToString(&encoded.data)) {
+    return absl::InternalError("cluster: cannot serialise an upload");
+  }
+  return encoded;
+}
+
+absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
+                                std::span<const core::MemoryTrace> traces,
+                                size_t max_entry_bytes) {
+  // Each robot's traces in the order given, robots in order of first sight.
+  std::vector<std::string> robots;
+  std::map<std::string, std::vector<const core::MemoryTrace*>, std::less<>>
+      by_robot;
+  for (const core::MemoryTrace& trace : traces) {
+    auto [it, added] = by_robot.try_emplace(trace.robot_id);
+    if (added) robots.push_back(trace.robot_id);
+    it->second.push_back(&trace);
+  }
+  // Entries cut before anything is appended, so a trace too large for one
+  // changes nothing.
+  std::vector<std::vector<core::MemoryTrace>> entries;
+  for (const std::string& robot : robots) {
+    std::vector<core::MemoryTrace> entry;
+    size_t bytes = 0;
+    for (const core::MemoryTrace* trace : by_robot[robot]) {
+      ::fleetmem::v1::MemoryTrace encoded;
+      api::TraceToProto(*trace, &encoded);
+      // A repeated field's element: its size, a tag and a length prefix.
+      const size_t size = encoded.ByteSizeLong() + 8;
+      if (size + 16 > max_entry_bytes) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("cluster: trace (\"", robot, "\", ", trace->seq,
+                         ") takes ", size, " bytes, more than a log entry's ",
+                         max_entry_bytes, "; nothing was appended"));
+      }
+      if (!entry.empty() && bytes + size + 16 > max_entry_bytes) {
+        entries.push_back(std::move(entry));
+        entry.clear();
+        bytes = 0;
+      }
+      entry.push_back(*trace);
+      bytes += size;
+    }
+    if (!entry.empty()) entries.push_back(std::move(entry));
+  }
+  Ingested ingested;
+  for (const std::vector<core::MemoryTrace>& entry : entries) {
+    absl::StatusOr<EncodedUpload> encoded = EncodeUpload(entry);
+    if (!encoded.ok()) return encoded.status();
+    absl::StatusOr<Appended> appended =
+        log.Append(fleet_id, encoded->id, encoded->data);
+    if (!appended.ok()) {
+      return absl::Status(
+          appended.status().code(),
+          absl::StrCat(appended.status().message(), "; the log holds ",
+                       ingested.entries, " of this upload's ", entries.size(),
+                       " entries (", ingested.traces,
+                       " traces); retrying the upload appends the rest"));
+    }
+    ++ingested.entries;
+    if (appended->duplicate) {
+      ++ingested.duplicate_entries;
+      ingested.duplicate_traces += entry.size();
+    }
+    ingested.traces += entry.size();
+    ingested.last_sequence = appended->sequence;
+  }
+  return ingested;
+}
+
+absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
+    FleetLog& log, std::string_view fleet_id) {
+  absl::StatusOr<std::vector<LogEntry>> first = log.Read(fleet_id, 1, 1);
+  if (!first.ok()) return first.status();
+  if (first->empty()) return std::nullopt;
+  cluster::v1::LogRecord record;
+  if (!record.ParseFromString(first->front().data) || !record.has_upload() ||
+      record.upload().traces_size() == 0) {
+    return absl::DataLossError(
+        absl::StrCat("cluster: the first entry of the log of fleet \"",
+                     V(fleet_id), "\" is not an upload"));
+  }
+  const ::fleetmem::v1::MemoryTrace& trace = record.upload().traces(0);
+  return engine::FleetShape{static_cast<uint32_t>(trace.code_size()),
+                            trace.encoder_version()};
+}
+
+Materialiser::Materialiser(MaterialiserOptions options, FleetLog* log,
+                           LeaseTable* leases, engine::MemoryEngine* engine)
+    : options_(std::move(options)),
+      log_(log),
+      leases_(leases),
+      engine_(engine) {}
+
+absl::Status Materialiser::Apply(std::string_view fleet_id,
+                                 const LogEntry& entry, uint64_t capture,
+                                 CallOutcome* outcome) {
+  cluster::v1::LogRecord record;
+  if (!record.ParseFromString(entry.data)) {
+    return absl::DataLossError(absl::StrCat("cluster: entry ", entry.sequence,
+                                            " of the log of fleet \"",
+                                            V(fleet_id), "\" is malformed"));
+  }
+  CallOutcome applied;
+  switch (record.kind_case()) {
+    case cluster::v1::LogRecord::kUpload: {
+      std::vector<core::MemoryTrace> traces;
+      traces.reserve(record.upload().traces_size());
+      for (const ::fleetmem::v1::MemoryTrace& trace :
+           record.upload().traces()) {
+        traces.push_back(api::TraceFromProto(trace));
+      }
+      applied.status =
+          engine_->Upload(fleet_id, traces, entry.sequence).status();
+      break;
+    }
+    case cluster::v1::LogRecord::kConsolidate: {
+      absl::StatusOr<engine::ConsolidateResult> result =
+          engine_->Consolidate(fleet_id);
+      if (result.ok()) applied.consolidated = *result;
+      applied.status = result.status();
+      break;
+    }
+    case cluster::v1::LogRecord::kSampleReplay: {
+      const cluster::v1::SampleReplay& call = record.sample_replay();
+      absl::StatusOr<std::vector<core::MemoryTrace>> sample =
+          engine_->SampleReplay(fleet_id, call.robot_id(), call.count(),
+                                call.request_id(), entry.sequence);
+      if (sample.ok()) applied.sample = *std::move(sample);
+      applied.status = sample.status();
+      break;
+    }
+    case cluster::v1::LogRecord::KIND_NOT_SET:
+      return absl::FailedPreconditionError(
+          absl::StrCat("cluster: entry ", entry.sequence,
+                       " of the log of fleet \"", V(fleet_id),
+                       "\" is of a kind this replica does not know (a newer "
+                       "version wrote it)"));
+  }
+  if (!applied.status.ok() && !RefusedByState(applied.status)) {
+    return applied.status;
+  }
+  if (!applied.status.ok()) {
+    // Every replica refuses it alike; the log moves on.
+    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id << "\": log entry "
+                           << entry.sequence << " (" << entry.id
+                           << ") refused: " << applied.status;
+  }
+  if (entry.sequence == capture && outcome != nullptr) {
+    *outcome = std::move(applied);
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<StepResult> Materialiser::Step(std::string_view fleet_id) {
+  absl::MutexLock lock(&mu_);
+  return StepLocked(fleet_id, 0, nullptr);
+}
+
+absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
+                                                    uint64_t capture,
+                                                    CallOutcome* outcome) {
+  auto it = owned_.find(fleet_id);
+  if (it == owned_.end()) {
+    // Where this replica's own store stands: entries up to it are in its
+    // state (an earlier ownership, or before a restart).
+    absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
+    if (!position.ok()) return position.status();
+    absl::StatusOr<Lease> lease =
+        leases_->Acquire(fleet_id, options_.replica_id);
+    if (!lease.ok()) return lease.status();
+    it = owned_
+             .emplace(std::string(fleet_id),
+                      Owned{*std::move(lease), absl::Now(), *position})
+             .first;
+  } else if (absl::Now() - it->second.renewed_at >= options_.renew_interval) {
+    // Fencing: no entry is applied under a lease this replica lost.
+    const absl::Time now = absl::Now();
+    absl::StatusOr<Lease> renewed = leases_->Renew(it->second.lease);
+    if (absl::IsFailedPrecondition(renewed.status())) owned_.erase(it);
+    if (!renewed.ok()) return renewed.status();
+    it->second.lease = *std::move(renewed);
+    it->second.renewed_at = now;
+  }
+  Owned& owned = it->second;
+  StepResult result{0, owned.position, owned.lease.revision};
+  absl::StatusOr<std::vector<LogEntry>> entries =
+      log_->Read(fleet_id, owned.position + 1, options_.batch);
+  if (!entries.ok()) return entries.status();
+  for (const LogEntry& entry : *entries) {
+    if (absl::Status applied = Apply(fleet_id, entry, capture, outcome);
+        !applied.ok()) {
+      return applied;
+    }
+    owned.position = entry.sequence;
+    ++result.applied;
+  }
+  result.position = owned.position;
+  return result;
+}
+
+absl::StatusOr<StepResult> Materialiser::CatchUp(std::string_view fleet_id) {
+  absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
+  if (!last.ok()) return last.status();
+  absl::MutexLock lock(&mu_);
+  return StepThroughLocked(fleet_id, *last, nullptr);
+}
+
+absl::StatusOr<StepResult> Materialiser::StepThroughLocked(
+    std::string_view fleet_id, uint64_t target, CallOutcome* outcome) {
+  StepResult total;
+  while (true) {
+    absl::StatusOr<StepResult> step = StepLocked(fleet_id, target, outcome);
+    if (!step.ok()) return step.status();
+    total.applied += step->applied;
+    total.position = step->position;
+    total.revision = step->revision;
+    if (step->position >= target) return total;
+    if (step->applied == 0) {
+      return absl::DataLossError(absl::StrCat(
+          "cluster: the log of fleet \"", V(fleet_id), "\" ends at ",
+          step->position, ", before sequence ", target));
+    }
+  }
+}
+
+absl::StatusOr<CallOutcome> Materialiser::Call(std::string_view fleet_id,
+                                               std::string_view kind,
+                                               const std::string& data) {
+  // Held from the append to the entry's application, so that no step
+  // applies the entry before this call can capture what it did.
+  absl::MutexLock lock(&mu_);
+  if (!owned_.contains(fleet_id)) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("cluster: replica \"", options_.replica_id,
+                     "\" does not own fleet \"", V(fleet_id), "\""));
+  }
+  // Unique: a call is never a retry of another at the log's level.
+  const std::string id =
+      absl::StrCat(V(kind), "/", options_.replica_id, "/",
+                   absl::ToUnixNanos(absl::Now()), "/", ++calls_);
+  absl::StatusOr<Appended> appended = log_->Append(fleet_id, id, data);
+  if (!appended.ok()) return appended.status();
+  CallOutcome outcome;
+  absl::StatusOr<StepResult> applied =
+      StepThroughLocked(fleet_id, appended->sequence, &outcome);
+  if (!applied.ok()) return applied.status();
+  if (!outcome.status.ok()) return outcome.status;
+  return outcome;
+}
+
+absl::StatusOr<engine::ConsolidateResult> Materialiser::Consolidate(
+    std::string_view fleet_id) {
+  cluster::v1::LogRecord record;
+  record.mutable_consolidate();
+  absl::StatusOr<CallOutcome> outcome =
+      Call(fleet_id, "consolidate", record.SerializeAsString());
+  if (!outcome.ok()) return outcome.status();
+  return outcome->consolidated;
+}
+
+absl::StatusOr<std::vector<core::MemoryTrace>> Materialiser::SampleReplay(
+    std::string_view fleet_id, std::string_view robot_id, uint64_t count,
+    std::string_view request_id) {
+  cluster::v1::LogRecord record;
+  cluster::v1::SampleReplay* call = record.mutable_sample_replay();
+  call->set_robot_id(std::string(robot_id));
+  call->set_count(count);
+  call->set_request_id(std::string(request_id));
+  absl::StatusOr<CallOutcome> outcome =
+      Call(fleet_id, "sample", record.SerializeAsString());
+  if (!outcome.ok()) return outcome.status();
+  return std::move(outcome->sample);
+}
+
+std::vector<std::pair<std::string, uint64_t>> Materialiser::Positions() const {
+  absl::MutexLock lock(&mu_);
+  std::vector<std::pair<std::string, uint64_t>> positions;
+  for (const auto& [fleet_id, owned] : owned_) {
+    positions.emplace_back(fleet_id, owned.position);
+  }
+  return positions;
+}
+
+bool Materialiser::Owns(std::string_view fleet_id) const {
+  absl::MutexLock lock(&mu_);
+  return owned_.contains(fleet_id);
+}
+
+absl::Status Materialiser::Release(std::string_view fleet_id) {
+  absl::MutexLock lock(&mu_);
+  auto it = owned_.find(fleet_id);
+  if (it == owned_.end()) return absl::OkStatus();
+  const Lease lease = it->second.lease;
+  owned_.erase(it);
+  return leases_->Release(lease);
+}
+
+std::optional<Lease> Materialiser::lease(std::string_view fleet_id) const {
+  absl::MutexLock lock(&mu_);
+  auto it = owned_.find(fleet_id);
+  if (it == owned_.end()) return std::nullopt;
+  return it->second.lease;
+}
+
+}  // namespace fleetmem::cluster

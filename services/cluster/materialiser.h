@@ -1,0 +1,182 @@
+// Distributed mode's materialisation (docs/distributed.md): a replica owns a
+// fleet while it holds the fleet's lease, and applies the fleet's log, in
+// order, to its own MemoryEngine, each upload stored with its entry's
+// sequence (MemoryEngine::LogPosition); a new owner, or one restarted,
+// resumes after the position its own store holds. Uploads are idempotent
+// by (robot_id, seq) and consolidation is seeded per segment, so any
+// replica that applies the same log reaches the same memory, and entries
+// applied again change nothing.
+//
+// Fencing: before a batch of entries the owner renews its lease (when
+// options.renew_interval has passed since the last renewal); a replica
+// that lost it (it stopped renewing, or NATS expired it) stops
+// applying that fleet at once and answers FAILED_PRECONDITION.
+//
+// The engine it applies to must run without upload rate limits (quota
+// rates 0): refusing an entry by the clock would make replicas differ.
+// Rates belong to the replica that receives an upload.
+#ifndef FLEETMEM_SERVICES_CLUSTER_MATERIALISER_H_
+#define FLEETMEM_SERVICES_CLUSTER_MATERIALISER_H_
+
+#include <cstddef>
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
+#include "services/cluster/fleet_log.h"
+#include "services/core/types.h"
+#include "services/engine/memory_engine.h"
+
+namespace fleetmem::cluster {
+
+struct MaterialiserOptions {
+  // This replica's id in the leases (its advertised address in a cluster).
+  std::string replica_id;
+  // Entries read and applied per step and fleet.
+  size_t batch = 256;
+  // A step renews the lease first once this long has passed since its last
+  // renewal (0: before every step). Keep it well under the lease's
+  // time-to-live (a third of it): entries are applied only within this
+  // time of a successful renewal.
+  absl::Duration renew_interval = absl::ZeroDuration();
+};
+
+// What one step did for a fleet.
+struct StepResult {
+  uint64_t applied = 0;   // entries applied in this step
+  uint64_t position = 0;  // the last sequence applied so far
+  uint64_t revision = 0;  // the lease's revision the step ran under
+};
+
+// The entry an upload becomes, and its id: the robot and its seq range
+// (a retried upload of the same traces has the same id).
+struct EncodedUpload {
+  std::string id;
+  std::string data;
+};
+// INVALID_ARGUMENT for an empty upload or one of several robots.
+absl::StatusOr<EncodedUpload> EncodeUpload(
+    std::span<const core::MemoryTrace> traces);
+
+// What Ingest appended.
+struct Ingested {
+  uint64_t entries = 0;            // entries the log stored
+  uint64_t duplicate_entries = 0;  // entries it already held (a retry)
+  uint64_t traces = 0;             // traces in the stored entries
+  uint64_t duplicate_traces = 0;   // ... of which in entries held already
+  uint64_t last_sequence = 0;      // the log's sequence of the last entry
+};
+
+// The receiving replica's side of an upload in distributed mode: appends
+// the traces (of one robot or several, as a client sent them) to the
+// fleet's log as one entry per robot and run of consecutive traces whose
+// encoding fits in `max_entry_bytes` (keep it under NATS's max_payload),
+// each under EncodeUpload's id, and returns once the log holds them all.
+// INVALID_ARGUMENT, with nothing appended, if a single trace does not fit.
+// On a failed append the status says which entries the log holds already
+// (a retry of the whole upload appends only the rest: ids repeat).
+absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
+                                std::span<const core::MemoryTrace> traces,
+                                size_t max_entry_bytes);
+
+// What applying an entry a call appended did (Materialiser::Consolidate,
+// SampleReplay).
+struct CallOutcome {
+  // The engine's refusal (the entry was passed), or OK.
+  absl::Status status;
+  engine::ConsolidateResult consolidated;  // a Consolidate entry
+  std::vector<core::MemoryTrace> sample;   // a SampleReplay entry
+};
+
+// The shape every upload to the fleet must match: its first upload's (the
+// first entry of its log), whichever replica applies it. nullopt for a
+// fleet without a log.
+absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
+    FleetLog& log, std::string_view fleet_id);
+
+class Materialiser {
+ public:
+  // `log`, `leases` and `engine` must outlive it.
+  Materialiser(MaterialiserOptions options, FleetLog* log, LeaseTable* leases,
+               engine::MemoryEngine* engine);
+
+  // Takes or renews the fleet's lease, then applies up to options.batch
+  // entries after the last one applied. FAILED_PRECONDITION when another
+  // replica owns the fleet (or took it: this replica stops applying it);
+  // the log's or engine's error otherwise (nothing after the failing entry
+  // is applied; the next step retries it). An entry the memory refuses
+  // (INVALID_ARGUMENT, FAILED_PRECONDITION) is passed; RESOURCE_EXHAUSTED
+  // (a full disk, a limit) is not. Steps run one at a time (a lock is held
+  // through the calls to NATS).
+  absl::StatusOr<StepResult> Step(std::string_view fleet_id);
+  // Steps until the fleet's whole log as it is now is applied.
+  absl::StatusOr<StepResult> CatchUp(std::string_view fleet_id);
+  // The writes the owner derives from calls (distributed mode): the call
+  // is appended to the fleet's log like every other write, the log is
+  // applied through it, and the answer is what applying it did, so every
+  // replica that applies the log does the same. FAILED_PRECONDITION if this
+  // replica does not hold the fleet's lease (the caller forwards to the
+  // owner); the engine's refusal as it says it (the entry is then passed on
+  // every replica alike); the log's error otherwise (appended or not: a
+  // retry is a new entry; SampleReplay's request_id keeps it from counting
+  // twice).
+  absl::StatusOr<engine::ConsolidateResult> Consolidate(
+      std::string_view fleet_id);
+  absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
+      std::string_view fleet_id, std::string_view robot_id, uint64_t count,
+      std::string_view request_id);
+  // True if this replica holds the fleet's lease (as of its last step).
+  bool Owns(std::string_view fleet_id) const;
+  // The fleets it holds and the last sequence applied of each.
+  std::vector<std::pair<std::string, uint64_t>> Positions() const;
+
+  // Gives the fleet's lease up (if held) and forgets its position.
+  absl::Status Release(std::string_view fleet_id);
+  // The lease held on the fleet, if any.
+  std::optional<Lease> lease(std::string_view fleet_id) const;
+
+ private:
+  struct Owned {
+    Lease lease;
+    absl::Time renewed_at;  // of `lease`
+    uint64_t position = 0;  // last sequence applied
+  };
+  // Applies `entry`; its outcome goes to `outcome` when the entry is
+  // `capture`'s.
+  absl::Status Apply(std::string_view fleet_id, const LogEntry& entry,
+                     uint64_t capture, CallOutcome* outcome);
+  absl::StatusOr<StepResult> StepLocked(std::string_view fleet_id,
+                                        uint64_t capture, CallOutcome* outcome)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Steps until the entry at `target` (or the first after it) is applied;
+  // DATA_LOSS if the log ends before it. What the entry at `target` did
+  // goes to `outcome` (may be null).
+  absl::StatusOr<StepResult> StepThroughLocked(std::string_view fleet_id,
+                                               uint64_t target,
+                                               CallOutcome* outcome)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Appends a call's entry and applies the log through it.
+  absl::StatusOr<CallOutcome> Call(std::string_view fleet_id,
+                                   std::string_view kind,
+                                   const std::string& data);
+
+  const MaterialiserOptions options_;
+  FleetLog* const log_;
+  LeaseTable* const leases_;
+  engine::MemoryEngine* const engine_;
+  mutable absl::Mutex mu_;
+  std::map<std::string, Owned, std::less<>> owned_ ABSL_GUARDED_BY(mu_);
+  uint64_t calls_ ABSL_GUARDED_BY(mu_) = 0;  // for unique call entry ids
+};
+
+}  // namespace fleetmem::cluster
+
+#endif  // FLEETMEM_SERVICES_CLUSTER_MATERIALISER_H_

@@ -1,0 +1,320 @@
+// The materialiser against a real nats-server: replicas that apply one
+// fleet's log reach the memory the embedded mode reaches with the same
+// uploads, a replica that stops renewing is fenced, and another takes over
+// from the log alone.
+#include "services/cluster/materialiser.h"
+
+#include <chrono>
+#include <random>
+#include <string>
+#include <thread>
+#include <tuple>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "services/cluster/cluster_test_util.h"
+#include "services/cluster/nats_fixture.h"
+
+namespace fleetmem::cluster {
+namespace {
+
+using testing_util::AppendUploads;
+using testing_util::ExpectSameState;
+using testing_util::Replica;
+using testing_util::State;
+using testing_util::StateOf;
+using testing_util::Uploads;
+
+using MaterialiserTest = NatsFixture;
+
+TEST_F(MaterialiserTest, ReplicasReachTheEmbeddedModesMemoryAndFailOver) {
+  const std::string fleet = "fleet-a";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  Replica embedded;
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  for (const std::vector<core::MemoryTrace>& batch : uploads) {
+    ASSERT_TRUE(embedded.engine->Upload(fleet, batch).ok());
+    absl::StatusOr<EncodedUpload> entry = EncodeUpload(batch);
+    ASSERT_TRUE(entry.ok()) << entry.status();
+    ASSERT_TRUE(log->Append(fleet, entry->id, entry->data).ok());
+  }
+  // A robot's retry with the same batch: JetStream drops it by its id.
+  absl::StatusOr<EncodedUpload> retry = EncodeUpload(uploads[4]);
+  EXPECT_TRUE(log->Append(fleet, retry->id, retry->data)->duplicate);
+  // A retry cut differently (a new id): the replicas drop its traces by
+  // (robot_id, seq), as the embedded mode does.
+  std::vector<core::MemoryTrace> recut(uploads[4].begin() + 2,
+                                       uploads[4].end());
+  recut.insert(recut.end(), uploads[7].begin(), uploads[7].begin() + 3);
+  ASSERT_TRUE(embedded.engine->Upload(fleet, recut).ok());
+  absl::StatusOr<EncodedUpload> recut_entry = EncodeUpload(recut);
+  ASSERT_TRUE(recut_entry.ok()) << recut_entry.status();
+  ASSERT_TRUE(log->Append(fleet, recut_entry->id, recut_entry->data).ok());
+  const State want = StateOf(*embedded.engine, fleet);
+  ASSERT_GT(want.stats.consolidations, 0u);
+  ASSERT_GT(want.stats.clusters_forgotten, 0u);
+
+  Replica a, b;
+  std::unique_ptr<NatsFleetLog> log_b = Connect();
+  auto materialiser_a = std::make_unique<Materialiser>(
+      MaterialiserOptions{.replica_id = "replica-a", .batch = 7}, log.get(),
+      log.get(), a.engine.get());
+  Materialiser materialiser_b({.replica_id = "replica-b"}, log_b.get(),
+                              log_b.get(), b.engine.get());
+  absl::StatusOr<StepResult> caught_up = materialiser_a->CatchUp(fleet);
+  ASSERT_TRUE(caught_up.ok()) << caught_up.status();
+  EXPECT_EQ(caught_up->position, uploads.size() + 1);
+  ExpectSameState(StateOf(*a.engine, fleet), want);
+
+  // One owner: B is refused while A renews.
+  absl::StatusOr<StepResult> refused = materialiser_b.Step(fleet);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(refused.status().message(), ::testing::HasSubstr("replica-a"));
+
+  // A stops renewing (it hangs); after the lease's 1 s, B takes the fleet
+  // and rebuilds it from the log alone.
+  const auto start = std::chrono::steady_clock::now();
+  absl::StatusOr<StepResult> taken = materialiser_b.CatchUp(fleet);
+  while (!taken.ok() &&
+         std::chrono::steady_clock::now() - start < std::chrono::seconds(10)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    taken = materialiser_b.CatchUp(fleet);
+  }
+  ASSERT_TRUE(taken.ok()) << taken.status();
+  EXPECT_GT(taken->revision, materialiser_a->lease(fleet)->revision);
+  ExpectSameState(StateOf(*b.engine, fleet), want);
+
+  // A wakes up: fenced, it applies nothing more and drops the fleet.
+  ASSERT_TRUE(log->Append(fleet, "late", EncodeUpload(uploads[0])->data).ok());
+  EXPECT_EQ(materialiser_a->Step(fleet).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_FALSE(materialiser_a->lease(fleet).has_value());
+  ExpectSameState(StateOf(*a.engine, fleet), want);
+}
+
+// A restarted owner (same replica id, same store) takes its lease back at
+// once and resumes after the position its store holds: the entries before
+// it are not applied again.
+TEST_F(MaterialiserTest, ARestartedOwnerResumesAfterItsStoredPosition) {
+  const std::string fleet = "fleet-d";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  Replica embedded, a;
+  for (size_t i = 0; i < 4; ++i) {
+    ASSERT_TRUE(embedded.engine->Upload(fleet, uploads[i]).ok());
+  }
+  AppendUploads(*log, fleet, {uploads[0], uploads[1], uploads[2]});
+  {
+    Materialiser before({.replica_id = "replica-a"}, log.get(), log.get(),
+                        a.engine.get());
+    absl::StatusOr<StepResult> done = before.CatchUp(fleet);
+    ASSERT_TRUE(done.ok()) << done.status();
+    EXPECT_EQ(done->applied, 3u);
+  }
+  // Restart: a new engine on the same store, the lease still held.
+  a.engine.reset();
+  absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> reopened =
+      engine::MemoryEngine::Open(
+          testing_util::SmallOptions(), a.store.get(),
+          [](size_t dimension) { return index::NewExactIndex(dimension); });
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  a.engine = *std::move(reopened);
+  EXPECT_EQ(*a.engine->LogPosition(fleet), 3u);
+  AppendUploads(*log, fleet, {uploads[3]});
+  Materialiser after({.replica_id = "replica-a"}, log.get(), log.get(),
+                     a.engine.get());
+  absl::StatusOr<StepResult> resumed = after.CatchUp(fleet);
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  EXPECT_EQ(resumed->applied, 1u);
+  EXPECT_EQ(resumed->position, 4u);
+  ExpectSameState(StateOf(*a.engine, fleet), StateOf(*embedded.engine, fleet));
+}
+
+// An entry the memory refuses (another code dimension than the fleet's) is
+// refused alike by every replica, and the log moves past it.
+TEST_F(MaterialiserTest, AnEntryTheMemoryRefusesIsSkippedAlike) {
+  const std::string fleet = "fleet-b";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  std::vector<core::MemoryTrace> wrong = uploads[1];
+  for (core::MemoryTrace& trace : wrong) trace.code.resize(4);
+  for (const auto& batch : {uploads[0], wrong, uploads[2]}) {
+    absl::StatusOr<EncodedUpload> entry = EncodeUpload(batch);
+    ASSERT_TRUE(entry.ok());
+    ASSERT_TRUE(log->Append(fleet, entry->id, entry->data).ok());
+  }
+  Replica a;
+  Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
+                            a.engine.get());
+  absl::StatusOr<StepResult> done = materialiser.CatchUp(fleet);
+  ASSERT_TRUE(done.ok()) << done.status();
+  EXPECT_EQ(done->position, 3u);
+  const State state = StateOf(*a.engine, fleet);
+  EXPECT_EQ(state.stats.traces + state.stats.pending_traces, 20u);
+  ASSERT_TRUE(materialiser.Release(fleet).ok());
+  EXPECT_FALSE(log->Holder(fleet)->has_value());
+}
+
+// The receiving replica's side: one entry per robot (cut to the entry size),
+// a retry appends nothing new, and a replica materialises the same memory.
+// RESOURCE_EXHAUSTED (here the fleet's trace limit; a full disk says the
+// same) is not passed: the step stops at the entry and retries it.
+TEST_F(MaterialiserTest, AnEntryRefusedForWantOfRoomIsNotPassed) {
+  const std::string fleet = "fleet-e";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  AppendUploads(*log, fleet, {uploads[0], uploads[1], uploads[2]});
+  auto store = storage::NewInMemoryStore();
+  engine::EngineOptions options = testing_util::SmallOptions();
+  options.limits.max_traces_per_fleet = 15;
+  absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
+      engine::MemoryEngine::Open(options, store.get(), [](size_t dimension) {
+        return index::NewExactIndex(dimension);
+      });
+  ASSERT_TRUE(engine.ok()) << engine.status();
+  Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
+                            engine->get());
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    absl::StatusOr<StepResult> step = materialiser.Step(fleet);
+    EXPECT_EQ(step.status().code(), absl::StatusCode::kResourceExhausted);
+  }
+  EXPECT_EQ(*(*engine)->LogPosition(fleet), 1u);
+}
+
+TEST_F(MaterialiserTest, IngestCutsEntriesPerRobotAndSizeAndRetriesAreFree) {
+  const std::string fleet = "fleet-c";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  // One client message with two robots' traces, interleaved.
+  std::vector<core::MemoryTrace> mixed;
+  for (size_t i = 0; i < 10; ++i) {
+    mixed.push_back(uploads[0][i]);
+    mixed.push_back(uploads[1][i]);
+  }
+  absl::StatusOr<Ingested> whole = Ingest(*log, fleet, mixed, 1 << 20);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  EXPECT_EQ(whole->entries, 2u);
+  EXPECT_EQ(whole->traces, 20u);
+  absl::StatusOr<std::vector<LogEntry>> entries = log->Read(fleet, 1, 10);
+  ASSERT_TRUE(entries.ok());
+  ASSERT_EQ(entries->size(), 2u);
+  EXPECT_EQ((*entries)[0].id, "upload/2/r1/1-10");
+  EXPECT_EQ((*entries)[1].id, "upload/2/r2/1-10");
+  // The client's retry: the log holds both entries already.
+  absl::StatusOr<Ingested> retry = Ingest(*log, fleet, mixed, 1 << 20);
+  ASSERT_TRUE(retry.ok()) << retry.status();
+  EXPECT_EQ(retry->duplicate_entries, 2u);
+  EXPECT_EQ(*log->LastSequence(fleet), 2u);
+
+  // Entries of at most 400 bytes: r3's next 10 traces take several, each
+  // within the bound.
+  absl::StatusOr<Ingested> small = Ingest(*log, fleet, uploads[2], 400);
+  ASSERT_TRUE(small.ok()) << small.status();
+  EXPECT_GT(small->entries, 2u);
+  EXPECT_EQ(small->traces, 10u);
+  absl::StatusOr<std::vector<LogEntry>> cut = log->Read(fleet, 3, 100);
+  ASSERT_TRUE(cut.ok());
+  ASSERT_EQ(cut->size(), small->entries);
+  for (const LogEntry& entry : *cut) EXPECT_LE(entry.data.size(), 400u);
+  // A trace larger than an entry: refused, nothing appended.
+  EXPECT_EQ(Ingest(*log, fleet, uploads[3], 50).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(*log->LastSequence(fleet), 2 + small->entries);
+
+  Replica embedded, a;
+  for (const auto& batch : {uploads[0], uploads[1], uploads[2]}) {
+    ASSERT_TRUE(embedded.engine->Upload(fleet, batch).ok());
+  }
+  Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
+                            a.engine.get());
+  ASSERT_TRUE(materialiser.CatchUp(fleet).ok());
+  ExpectSameState(StateOf(*a.engine, fleet), StateOf(*embedded.engine, fleet));
+}
+
+TEST(EncodeUploadTest, OneRobotPerEntryAndAStableId) {
+  std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  absl::StatusOr<EncodedUpload> entry = EncodeUpload(uploads[0]);
+  ASSERT_TRUE(entry.ok());
+  EXPECT_EQ(entry->id, "upload/2/r1/1-10");
+  EXPECT_EQ(EncodeUpload(uploads[0])->data, entry->data);
+  std::vector<core::MemoryTrace> mixed = uploads[0];
+  mixed.push_back(uploads[1].front());
+  EXPECT_EQ(EncodeUpload(mixed).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(EncodeUpload({}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+// Consolidate and SampleReplay go through the log at the owner: the answer
+// is what applying the entry did, a non-owner is refused, and a replica that
+// rebuilds the fleet from the log draws the same samples and counts them
+// once.
+TEST_F(MaterialiserTest, CallsGoThroughTheLogAndEveryReplicaAppliesThemAlike) {
+  const std::string fleet = "fleet-calls";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  AppendUploads(*log, fleet, uploads);
+  Replica a, b, c;
+  Materialiser owner({.replica_id = "replica-a"}, log.get(), log.get(),
+                     a.engine.get());
+  Materialiser other({.replica_id = "replica-b"}, log.get(), log.get(),
+                     b.engine.get());
+  EXPECT_EQ(owner.Consolidate(fleet).status().code(),
+            absl::StatusCode::kFailedPrecondition);  // not taken yet
+  // Pending traces for Consolidate: r1's 61..65 (a segment is 20).
+  std::vector<core::MemoryTrace> pending(uploads[0].begin(),
+                                         uploads[0].begin() + 5);
+  for (size_t i = 0; i < pending.size(); ++i) pending[i].seq = 61 + i;
+  AppendUploads(*log, fleet, {pending});
+  ASSERT_TRUE(owner.CatchUp(fleet).ok());
+  EXPECT_TRUE(owner.Owns(fleet));
+  ASSERT_EQ(a.engine->GetStats(fleet)->pending_traces, 5u);
+
+  absl::StatusOr<std::vector<core::MemoryTrace>> drawn =
+      owner.SampleReplay(fleet, "r1", 5, "req-1");
+  ASSERT_TRUE(drawn.ok()) << drawn.status();
+  ASSERT_EQ(drawn->size(), 5u);
+  // A retry of the same request: the same traces, counted once.
+  absl::StatusOr<std::vector<core::MemoryTrace>> again =
+      owner.SampleReplay(fleet, "r1", 5, "req-1");
+  ASSERT_TRUE(again.ok()) << again.status();
+  ASSERT_EQ(again->size(), drawn->size());
+  for (size_t i = 0; i < drawn->size(); ++i) {
+    EXPECT_EQ((*again)[i].key(), (*drawn)[i].key());
+    EXPECT_EQ((*again)[i].replay_count, (*drawn)[i].replay_count);
+  }
+  ASSERT_TRUE(owner.SampleReplay(fleet, "r2", 7, "").ok());
+  absl::StatusOr<engine::ConsolidateResult> consolidated =
+      owner.Consolidate(fleet);
+  ASSERT_TRUE(consolidated.ok()) << consolidated.status();
+  EXPECT_GT(consolidated->consolidated_traces, 0u);
+  EXPECT_EQ(a.engine->GetStats(fleet)->pending_traces, 0u);
+  // The engine's refusal comes back; the entry is passed alike everywhere.
+  EXPECT_EQ(owner.SampleReplay(fleet, "r1", 0, "").status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(other.SampleReplay(fleet, "r1", 5, "").status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  // A sample's position is stored with the counts it changed (the retry
+  // changed none; Consolidate applied again consolidates nothing).
+  EXPECT_EQ(*a.engine->LogPosition(fleet), uploads.size() + 4);
+
+  const State want = StateOf(*a.engine, fleet);
+  ASSERT_TRUE(owner.Release(fleet).ok());
+  Materialiser rebuilt({.replica_id = "replica-c"}, log.get(), log.get(),
+                       c.engine.get());
+  absl::StatusOr<StepResult> done = rebuilt.CatchUp(fleet);
+  ASSERT_TRUE(done.ok()) << done.status();
+  EXPECT_EQ(done->position, uploads.size() + 6);
+  ExpectSameState(StateOf(*c.engine, fleet), want);
+}
+
+}  // namespace
+}  // namespace fleetmem::cluster

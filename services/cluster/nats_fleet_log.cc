@@ -1,0 +1,471 @@
+#include "services/cluster/nats_fleet_log.h"
+
+#include <xxhash.h>
+
+#include <algorithm>
+#include <climits>
+#include <memory>
+#include <utility>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "absl/synchronization/mutex.h"
+#include "nats/nats.h"
+#include "services/core/absl_view.h"
+
+namespace fleetmem::cluster {
+namespace {
+
+// True for the nats.c errors that say nothing of the request's outcome.
+bool Unreachable(natsStatus status) {
+  return status == NATS_TIMEOUT || status == NATS_NO_SERVER ||
+         status == NATS_NO_RESPONDERS || status == NATS_CONNECTION_CLOSED ||
+         status == NATS_CONNECTION_DISCONNECTED ||
+         status == NATS_STALE_CONNECTION || status == NATS_NOT_YET_CONNECTED;
+}
+
+std::string Hash(std::string_view fleet_id) {
+  return absl::StrFormat("%016x",
+                         XXH3_64bits(fleet_id.data(), fleet_id.size()));
+}
+
+// A status for a failed nats.c call: UNAVAILABLE when NATS cannot be
+// reached, DEADLINE_EXCEEDED on a timeout (the outcome is unknown), NOT_FOUND,
+// else INTERNAL; the message has nats.c's own words and JetStream's code.
+absl::Status FromNats(natsStatus status, int code, std::string_view what) {
+  std::string text = absl::StrCat(V(what), ": ", natsStatus_GetText(status));
+  const char* detail = nats_GetLastError(nullptr);
+  if (detail != nullptr && *detail != '\0') {
+    absl::StrAppend(&text, " (", detail, ")");
+  }
+  if (code != 0) absl::StrAppend(&text, " [JetStream error ", code, "]");
+  if (status == NATS_TIMEOUT) return absl::DeadlineExceededError(text);
+  if (Unreachable(status)) return absl::UnavailableError(text);
+  if (status == NATS_NOT_FOUND) return absl::NotFoundError(text);
+  return absl::InternalError(text);
+}
+
+int64_t Nanoseconds(absl::Duration d) { return absl::ToInt64Nanoseconds(d); }
+int64_t Milliseconds(absl::Duration d) { return absl::ToInt64Milliseconds(d); }
+
+}  // namespace
+
+std::string FleetStreamName(std::string_view fleet_id) {
+  return absl::StrCat("FLEETMEM_", Hash(fleet_id));
+}
+std::string FleetSubject(std::string_view fleet_id) {
+  return absl::StrCat("fleetmem.log.", Hash(fleet_id));
+}
+std::string FleetLeaseKey(std::string_view fleet_id) {
+  return absl::StrCat("fleet.", Hash(fleet_id));
+}
+
+absl::Status ValidateNatsOptions(const NatsOptions& options) {
+  if (options.servers.empty()) {
+    return absl::InvalidArgumentError("cluster: no NATS server given");
+  }
+  for (const std::string& server : options.servers) {
+    if (server.find(',') != std::string::npos ||
+        !(absl::StartsWith(server, "nats://") ||
+          absl::StartsWith(server, "tls://"))) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("cluster: bad NATS server URL '", server, "'"));
+    }
+  }
+  if (options.replicas < 1 || options.replicas > 5) {
+    return absl::InvalidArgumentError(
+        "cluster: replicas must be 1 to 5 (JetStream's limit)");
+  }
+  if (options.cert_file.empty() != options.key_file.empty()) {
+    return absl::InvalidArgumentError(
+        "cluster: a client certificate needs both its file and its key");
+  }
+  if (!options.cert_file.empty() && options.ca_file.empty()) {
+    return absl::InvalidArgumentError(
+        "cluster: a client certificate needs the CA file (TLS)");
+  }
+  if (options.duplicate_window < absl::Seconds(1) ||
+      options.lease_ttl < absl::Seconds(1) ||
+      options.timeout < absl::Milliseconds(10)) {
+    return absl::InvalidArgumentError(
+        "cluster: duplicate window and lease TTL must be at least 1 s, the "
+        "timeout at least 10 ms");
+  }
+  if (options.lease_bucket.empty() ||
+      options.lease_bucket.find_first_not_of(
+          "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_") !=
+          std::string::npos) {
+    return absl::InvalidArgumentError(
+        "cluster: the lease bucket's name may hold letters, digits, - and _");
+  }
+  return absl::OkStatus();
+}
+
+struct NatsFleetLog::Handles {
+  ~Handles() {
+    if (kv != nullptr) kvStore_Destroy(kv);
+    if (js != nullptr) jsCtx_Destroy(js);
+    if (nc != nullptr) natsConnection_Destroy(nc);
+  }
+  natsConnection* nc = nullptr;
+  jsCtx* js = nullptr;
+  kvStore* kv = nullptr;
+  absl::Mutex mu;
+  absl::flat_hash_set<std::string> streams ABSL_GUARDED_BY(mu);  // made
+};
+
+NatsFleetLog::NatsFleetLog(NatsOptions options,
+                           std::unique_ptr<Handles> handles)
+    : options_(std::move(options)), handles_(std::move(handles)) {}
+NatsFleetLog::~NatsFleetLog() = default;
+
+absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
+    NatsOptions options) {
+  if (absl::Status valid = ValidateNatsOptions(options); !valid.ok()) {
+    return valid;
+  }
+  natsOptions* raw = nullptr;
+  if (natsStatus s = natsOptions_Create(&raw); s != NATS_OK) {
+    return FromNats(s, 0, "cluster: NATS options");
+  }
+  std::unique_ptr<natsOptions, void (*)(natsOptions*)> opts(
+      raw, natsOptions_Destroy);
+  std::vector<const char*> servers;
+  for (const std::string& server : options.servers) {
+    servers.push_back(server.c_str());
+  }
+  natsStatus s = natsOptions_SetServers(opts.get(), servers.data(),
+                                        static_cast<int>(servers.size()));
+  if (s == NATS_OK) {
+    s = natsOptions_SetTimeout(opts.get(), Milliseconds(options.timeout));
+  }
+  if (s == NATS_OK) s = natsOptions_SetMaxReconnect(opts.get(), -1);
+  // The next server at once when one is lost, then every 250 ms: a lease
+  // is renewed every third of its time-to-live (nats.c waits 2 s by
+  // default).
+  if (s == NATS_OK) s = natsOptions_SetReconnectWait(opts.get(), 250);
+  if (s == NATS_OK) s = natsOptions_SetReconnectJitter(opts.get(), 100, 500);
+  if (s == NATS_OK) s = natsOptions_SetName(opts.get(), "fleetmem-server");
+  if (s == NATS_OK && !options.credentials_file.empty()) {
+    s = natsOptions_SetUserCredentialsFromFiles(
+        opts.get(), options.credentials_file.c_str(), nullptr);
+  }
+  if (s == NATS_OK && !options.ca_file.empty()) {
+    s = natsOptions_SetSecure(opts.get(), true);
+    if (s == NATS_OK) {
+      s = natsOptions_LoadCATrustedCertificates(opts.get(),
+                                                options.ca_file.c_str());
+    }
+    if (s == NATS_OK && !options.cert_file.empty()) {
+      s = natsOptions_LoadCertificatesChain(
+          opts.get(), options.cert_file.c_str(), options.key_file.c_str());
+    }
+  }
+  if (s != NATS_OK) return FromNats(s, 0, "cluster: NATS options");
+
+  auto handles = std::make_unique<Handles>();
+  if (s = natsConnection_Connect(&handles->nc, opts.get()); s != NATS_OK) {
+    return FromNats(s, 0,
+                    absl::StrCat("cluster: connecting to ",
+                                 absl::StrJoin(options.servers, ",")));
+  }
+  jsOptions js_options;
+  jsOptions_Init(&js_options);
+  js_options.Wait = Milliseconds(options.timeout);
+  if (s = natsConnection_JetStream(&handles->js, handles->nc, &js_options);
+      s != NATS_OK) {
+    return FromNats(s, 0, "cluster: JetStream");
+  }
+  s = js_KeyValue(&handles->kv, handles->js, options.lease_bucket.c_str());
+  if (s == NATS_NOT_FOUND) {
+    kvConfig config;
+    kvConfig_Init(&config);
+    config.Bucket = options.lease_bucket.c_str();
+    config.Description = "fleetmem: which replica owns each fleet";
+    config.History = 1;
+    config.TTL = Nanoseconds(options.lease_ttl);
+    config.Replicas = options.replicas;
+    config.StorageType = js_FileStorage;
+    s = js_CreateKeyValue(&handles->kv, handles->js, &config);
+    if (s != NATS_OK) {  // made by another replica meanwhile?
+      s = js_KeyValue(&handles->kv, handles->js, options.lease_bucket.c_str());
+    }
+  }
+  if (s != NATS_OK) {
+    return FromNats(
+        s, 0,
+        absl::StrCat("cluster: the lease bucket '", options.lease_bucket, "'"));
+  }
+  return std::unique_ptr<NatsFleetLog>(
+      new NatsFleetLog(std::move(options), std::move(handles)));
+}
+
+absl::Status NatsFleetLog::EnsureStream(std::string_view fleet_id) {
+  {
+    absl::MutexLock lock(&handles_->mu);
+    if (handles_->streams.contains(V(fleet_id))) return absl::OkStatus();
+  }
+  const std::string name = FleetStreamName(fleet_id);
+  const std::string subject = FleetSubject(fleet_id);
+  const std::string description(fleet_id);
+  jsStreamInfo* info = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  natsStatus s =
+      js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code);
+  if (s == NATS_NOT_FOUND || code == JSStreamNotFoundErr) {
+    jsStreamConfig config;
+    jsStreamConfig_Init(&config);
+    const char* subjects[] = {subject.c_str()};
+    config.Name = name.c_str();
+    config.Description = description.c_str();
+    config.Subjects = subjects;
+    config.SubjectsLen = 1;
+    config.Storage = js_FileStorage;
+    config.Replicas = options_.replicas;
+    config.Duplicates = Nanoseconds(options_.duplicate_window);
+    config.DenyDelete = true;  // a log loses no entry in its middle
+    code = static_cast<jsErrCode>(0);
+    s = js_AddStream(&info, handles_->js, &config, nullptr, &code);
+    if (s != NATS_OK && code == JSStreamNameExistErr) {  // a race: re-read
+      code = static_cast<jsErrCode>(0);
+      s = js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code);
+    }
+  }
+  if (s != NATS_OK) {
+    return FromNats(s, code,
+                    absl::StrCat("cluster: the log of fleet \"", V(fleet_id),
+                                 "\" (stream ", name, ")"));
+  }
+  const bool ours = info != nullptr && info->Config != nullptr &&
+                    info->Config->Description != nullptr &&
+                    description == info->Config->Description;
+  jsStreamInfo_Destroy(info);
+  if (!ours) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("cluster: stream ", name, " is not the log of fleet \"",
+                     V(fleet_id), "\" (another fleet id with the same hash)"));
+  }
+  absl::MutexLock lock(&handles_->mu);
+  handles_->streams.insert(description);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<Appended> NatsFleetLog::Append(std::string_view fleet_id,
+                                              std::string_view id,
+                                              std::string_view data) {
+  if (id.empty()) {
+    return absl::InvalidArgumentError("cluster: an entry needs an id");
+  }
+  const int64_t max_payload = natsConnection_GetMaxPayload(handles_->nc);
+  if (max_payload > 0 && static_cast<int64_t>(data.size()) > max_payload) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "cluster: an entry of ", data.size(), " bytes exceeds NATS's ",
+        max_payload,
+        "-byte message limit (max_payload); send smaller batches"));
+  }
+  if (absl::Status ready = EnsureStream(fleet_id); !ready.ok()) return ready;
+  const std::string subject = FleetSubject(fleet_id);
+  const std::string stream = FleetStreamName(fleet_id);
+  const std::string msg_id(id);
+  jsPubOptions publish;
+  jsPubOptions_Init(&publish);
+  publish.MsgId = msg_id.c_str();
+  publish.ExpectStream = stream.c_str();
+  publish.MaxWait = Milliseconds(options_.timeout);
+  jsPubAck* ack = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  const natsStatus s =
+      js_Publish(&ack, handles_->js, subject.c_str(), data.data(),
+                 static_cast<int>(data.size()), &publish, &code);
+  if (s != NATS_OK) {
+    return FromNats(s, code,
+                    absl::StrCat("cluster: appending to the log of "
+                                 "fleet \"",
+                                 V(fleet_id), "\""));
+  }
+  const Appended appended{ack->Sequence, ack->Duplicate};
+  jsPubAck_Destroy(ack);
+  return appended;
+}
+
+absl::StatusOr<uint64_t> NatsFleetLog::LastSequence(std::string_view fleet_id) {
+  jsStreamInfo* info = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  const std::string name = FleetStreamName(fleet_id);
+  const natsStatus s =
+      js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code);
+  if (s == NATS_NOT_FOUND || code == JSStreamNotFoundErr) return 0;
+  if (s != NATS_OK) {
+    return FromNats(
+        s, code,
+        absl::StrCat("cluster: the log of fleet \"", V(fleet_id), "\""));
+  }
+  const uint64_t last = info->State.LastSeq;
+  jsStreamInfo_Destroy(info);
+  return last;
+}
+
+absl::StatusOr<std::vector<std::string>> NatsFleetLog::Fleets() {
+  jsStreamInfoList* list = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  const natsStatus s = js_Streams(&list, handles_->js, nullptr, &code);
+  std::vector<std::string> fleets;
+  if (s == NATS_NOT_FOUND) return fleets;  // no stream at all
+  if (s != NATS_OK) return FromNats(s, code, "cluster: listing the logs");
+  for (int i = 0; i < list->Count; ++i) {
+    const jsStreamInfo* info = list->List[i];
+    if (info == nullptr || info->Config == nullptr ||
+        info->Config->Name == nullptr || info->Config->Description == nullptr) {
+      continue;
+    }
+    // Only the streams this module made: the name is the description's.
+    const std::string description = info->Config->Description;
+    if (FleetStreamName(description) == info->Config->Name) {
+      fleets.push_back(description);
+    }
+  }
+  jsStreamInfoList_Destroy(list);
+  std::sort(fleets.begin(), fleets.end());
+  return fleets;
+}
+
+absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
+    std::string_view fleet_id, uint64_t from, size_t max) {
+  if (from == 0) {
+    return absl::InvalidArgumentError("cluster: log sequences start at 1");
+  }
+  absl::StatusOr<uint64_t> last = LastSequence(fleet_id);
+  if (!last.ok()) return last.status();
+  // One get per entry from the stream's leader (JetStream's STREAM.MSG.GET:
+  // it sees every acknowledged entry) up to the last sequence. No consumer:
+  // creating one per read costs a round of the cluster's consensus. A
+  // clustered stream may skip a sequence (a proposal that failed when its
+  // leader changed): a sequence up to the last with no entry is passed.
+  const std::string stream = FleetStreamName(fleet_id);
+  std::vector<LogEntry> entries;
+  for (uint64_t sequence = from; sequence <= *last && entries.size() < max;
+       ++sequence) {
+    natsMsg* msg = nullptr;
+    jsErrCode code = static_cast<jsErrCode>(0);
+    natsStatus s =
+        js_GetMsg(&msg, handles_->js, stream.c_str(), sequence, nullptr, &code);
+    if (s == NATS_NOT_FOUND || code == JSNoMessageFoundErr) continue;
+    if (s != NATS_OK) {
+      if (!entries.empty()) break;  // what was read; the next read retries
+      return FromNats(
+          s, code,
+          absl::StrCat("cluster: reading entry ", sequence,
+                       " of the log of fleet \"", V(fleet_id), "\""));
+    }
+    LogEntry entry;
+    entry.sequence = sequence;
+    const char* id = nullptr;
+    if (natsMsgHeader_Get(msg, "Nats-Msg-Id", &id) == NATS_OK &&
+        id != nullptr) {
+      entry.id = id;
+    }
+    entry.data.assign(natsMsg_GetData(msg), natsMsg_GetDataLength(msg));
+    natsMsg_Destroy(msg);
+    entries.push_back(std::move(entry));
+  }
+  return entries;
+}
+
+absl::StatusOr<Lease> NatsFleetLog::Acquire(std::string_view fleet_id,
+                                            std::string_view owner) {
+  if (owner.empty()) {
+    return absl::InvalidArgumentError("cluster: a lease needs an owner");
+  }
+  const std::string key = FleetLeaseKey(fleet_id);
+  const std::string value = absl::StrCat(V(owner), "\n", V(fleet_id));
+  uint64_t revision = 0;
+  natsStatus s = kvStore_Create(&revision, handles_->kv, key.c_str(),
+                                value.data(), static_cast<int>(value.size()));
+  if (s == NATS_OK) {
+    return Lease{std::string(fleet_id), std::string(owner), revision};
+  }
+  if (Unreachable(s)) return FromNats(s, 0, "cluster: taking a lease");
+  // The key exists: held, or released (an empty value, which is taken over
+  // at its revision, so two replicas cannot both take it).
+  kvEntry* entry = nullptr;
+  s = kvStore_Get(&entry, handles_->kv, key.c_str());
+  if (s != NATS_OK) {
+    return FromNats(
+        s, 0,
+        absl::StrCat("cluster: the lease of fleet \"", V(fleet_id), "\""));
+  }
+  const std::string held(static_cast<const char*>(kvEntry_Value(entry)),
+                         kvEntry_ValueLen(entry));
+  const uint64_t last = kvEntry_Revision(entry);
+  kvEntry_Destroy(entry);
+  // Held by this owner (a restarted replica: its id is its own): taken
+  // over at its revision, without waiting for it to expire.
+  if (!held.empty() && held != value) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "cluster: fleet \"", V(fleet_id), "\" is owned by ",
+        held.substr(0, held.find('\n')), " (lease revision ", last, ")"));
+  }
+  s = kvStore_Update(&revision, handles_->kv, key.c_str(), value.data(),
+                     static_cast<int>(value.size()), last);
+  if (s == NATS_OK) {
+    return Lease{std::string(fleet_id), std::string(owner), revision};
+  }
+  if (Unreachable(s)) return FromNats(s, 0, "cluster: taking a lease");
+  return absl::FailedPreconditionError(
+      absl::StrCat("cluster: fleet \"", V(fleet_id),
+                   "\" was taken by another replica meanwhile"));
+}
+
+absl::StatusOr<Lease> NatsFleetLog::Renew(const Lease& lease) {
+  const std::string key = FleetLeaseKey(lease.fleet_id);
+  const std::string value = absl::StrCat(lease.owner, "\n", lease.fleet_id);
+  uint64_t revision = 0;
+  const natsStatus s =
+      kvStore_Update(&revision, handles_->kv, key.c_str(), value.data(),
+                     static_cast<int>(value.size()), lease.revision);
+  if (s == NATS_OK) return Lease{lease.fleet_id, lease.owner, revision};
+  if (Unreachable(s)) return FromNats(s, 0, "cluster: renewing a lease");
+  return absl::FailedPreconditionError(
+      absl::StrCat("cluster: the lease of fleet \"", lease.fleet_id,
+                   "\" at revision ", lease.revision, " was lost"));
+}
+
+absl::Status NatsFleetLog::Release(const Lease& lease) {
+  // An empty value at the lease's revision: released, and no one else's
+  // lease can be dropped by a late Release.
+  const std::string key = FleetLeaseKey(lease.fleet_id);
+  uint64_t revision = 0;
+  const natsStatus s = kvStore_Update(&revision, handles_->kv, key.c_str(), "",
+                                      0, lease.revision);
+  if (s == NATS_OK) return absl::OkStatus();
+  if (Unreachable(s)) return FromNats(s, 0, "cluster: releasing a lease");
+  return absl::FailedPreconditionError(
+      absl::StrCat("cluster: the lease of fleet \"", lease.fleet_id,
+                   "\" at revision ", lease.revision, " was lost already"));
+}
+
+absl::StatusOr<std::optional<Lease>> NatsFleetLog::Holder(
+    std::string_view fleet_id) {
+  const std::string key = FleetLeaseKey(fleet_id);
+  kvEntry* entry = nullptr;
+  const natsStatus s = kvStore_Get(&entry, handles_->kv, key.c_str());
+  if (s == NATS_NOT_FOUND) return std::optional<Lease>();
+  if (s != NATS_OK) {
+    return FromNats(
+        s, 0,
+        absl::StrCat("cluster: the lease of fleet \"", V(fleet_id), "\""));
+  }
+  const std::string value(static_cast<const char*>(kvEntry_Value(entry)),
+                          kvEntry_ValueLen(entry));
+  Lease lease{std::string(fleet_id), value.substr(0, value.find('\n')),
+              kvEntry_Revision(entry)};
+  kvEntry_Destroy(entry);
+  if (lease.owner.empty()) return std::optional<Lease>();  // released
+  return std::optional<Lease>(std::move(lease));
+}
+
+}  // namespace fleetmem::cluster

@@ -1,0 +1,97 @@
+// FleetLog and LeaseTable on NATS JetStream (Debian's libnats, nats.c):
+//  - each fleet's log is a stream, FLEETMEM_<XXH3-64 of the fleet id in
+//    hex> on subject fleetmem.log.<same>, replicated `replicas` times, with
+//    JetStream's deduplication by message id (Nats-Msg-Id) over
+//    `duplicate_window`; the fleet id is the stream's description, checked
+//    on use, so two ids with one hash cannot share a log;
+//  - leases are keys of one key-value bucket whose entries expire after
+//    `lease_ttl` unless renewed: Acquire creates the key (only if absent),
+//    Renew and Release update or delete it only at the revision the lease
+//    holds, so a replica that lost its lease cannot renew it.
+// Thread-safe: nats.c connections and JetStream contexts are.
+#ifndef FLEETMEM_SERVICES_CLUSTER_NATS_FLEET_LOG_H_
+#define FLEETMEM_SERVICES_CLUSTER_NATS_FLEET_LOG_H_
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/time/time.h"
+#include "services/cluster/fleet_log.h"
+
+namespace fleetmem::cluster {
+
+struct NatsOptions {
+  // nats://HOST:PORT (tls://… with TLS), at least one.
+  std::vector<std::string> servers;
+  // A NATS credentials file (user JWT and nkey seed); empty: none.
+  std::string credentials_file;
+  // TLS to NATS: the CA bundle to trust (setting it turns TLS on), and a
+  // client certificate and key (both or neither).
+  std::string ca_file;
+  std::string cert_file;
+  std::string key_file;
+  // Copies of each fleet's stream and of the lease bucket (3 in production;
+  // at most the number of NATS servers).
+  int replicas = 3;
+  // JetStream drops a repeat of a message id within this window.
+  absl::Duration duplicate_window = absl::Minutes(2);
+  // A lease not renewed within this time is free: a dead owner's fleets
+  // are taken over after at most this long (plus a round of the takers'
+  // loop and the catch-up), inside the 10 s the design allows.
+  absl::Duration lease_ttl = absl::Seconds(5);
+  // Each request to NATS (publish acknowledgement, stream and key
+  // operations, reads) waits at most this long.
+  absl::Duration timeout = absl::Seconds(5);
+  // The lease bucket.
+  std::string lease_bucket = "fleetmem-leases";
+};
+
+// INVALID_ARGUMENT naming the first bad field.
+absl::Status ValidateNatsOptions(const NatsOptions& options);
+
+class NatsFleetLog final : public FleetLog, public LeaseTable {
+ public:
+  // Connects and makes the lease bucket if missing. UNAVAILABLE when no
+  // server answers; the error of the first failing step otherwise.
+  static absl::StatusOr<std::unique_ptr<NatsFleetLog>> Connect(
+      NatsOptions options);
+  ~NatsFleetLog() override;
+
+  absl::StatusOr<Appended> Append(std::string_view fleet_id,
+                                  std::string_view id,
+                                  std::string_view data) override;
+  absl::StatusOr<std::vector<LogEntry>> Read(std::string_view fleet_id,
+                                             uint64_t from,
+                                             size_t max) override;
+  absl::StatusOr<uint64_t> LastSequence(std::string_view fleet_id) override;
+  absl::StatusOr<std::vector<std::string>> Fleets() override;
+
+  absl::StatusOr<Lease> Acquire(std::string_view fleet_id,
+                                std::string_view owner) override;
+  absl::StatusOr<Lease> Renew(const Lease& lease) override;
+  absl::Status Release(const Lease& lease) override;
+  absl::StatusOr<std::optional<Lease>> Holder(
+      std::string_view fleet_id) override;
+
+ private:
+  struct Handles;  // nats.c's, kept out of this header
+  NatsFleetLog(NatsOptions options, std::unique_ptr<Handles> handles);
+  // Makes the fleet's stream if missing (once per fleet and process);
+  // FAILED_PRECONDITION if the stream of its hash holds another fleet.
+  absl::Status EnsureStream(std::string_view fleet_id);
+
+  const NatsOptions options_;
+  std::unique_ptr<Handles> handles_;
+};
+
+// The stream and subject of a fleet's log, and the key of its lease.
+std::string FleetStreamName(std::string_view fleet_id);
+std::string FleetSubject(std::string_view fleet_id);
+std::string FleetLeaseKey(std::string_view fleet_id);
+
+}  // namespace fleetmem::cluster
+
+#endif  // FLEETMEM_SERVICES_CLUSTER_NATS_FLEET_LOG_H_

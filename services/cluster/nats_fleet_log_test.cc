@@ -1,0 +1,184 @@
+// NatsFleetLog against a real nats-server with JetStream (Debian's), started
+// on a random loopback port in a temporary store directory.
+#include "services/cluster/nats_fleet_log.h"
+
+#include <chrono>
+#include <string>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "services/cluster/nats_fixture.h"
+#include "tests/server_process.h"
+
+namespace fleetmem::cluster {
+namespace {
+
+using ::testing::HasSubstr;
+using testing::NatsServerOptions;
+using testing::ServerOptions;
+
+using NatsFleetLogTest = NatsFixture;
+
+TEST_F(NatsFleetLogTest, AppendsInOrderAndDropsARepeatedId) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::string fleet = "city fleet/1.a*";  // not a NATS token
+  for (const auto& [id, data, sequence] :
+       std::vector<std::tuple<std::string, std::string, uint64_t>>{
+           {"r1:1-100", "first", 1},
+           {"r2:1-50", std::string("with\0zero", 9), 2},
+           {"r1:101-200", "third", 3}}) {
+    absl::StatusOr<Appended> appended = log->Append(fleet, id, data);
+    ASSERT_TRUE(appended.ok()) << appended.status();
+    EXPECT_EQ(appended->sequence, sequence);
+    EXPECT_FALSE(appended->duplicate);
+  }
+  // The same id again (a retried upload): not stored twice.
+  absl::StatusOr<Appended> again = log->Append(fleet, "r2:1-50", "retried");
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_TRUE(again->duplicate);
+  EXPECT_EQ(again->sequence, 2u);
+  EXPECT_EQ(*log->LastSequence(fleet), 3u);
+
+  absl::StatusOr<std::vector<LogEntry>> all = log->Read(fleet, 1, 100);
+  ASSERT_TRUE(all.ok()) << all.status();
+  ASSERT_EQ(all->size(), 3u);
+  EXPECT_EQ((*all)[1].sequence, 2u);
+  EXPECT_EQ((*all)[1].id, "r2:1-50");
+  EXPECT_EQ((*all)[1].data, std::string("with\0zero", 9));
+  absl::StatusOr<std::vector<LogEntry>> one = log->Read(fleet, 3, 1);
+  ASSERT_TRUE(one.ok()) << one.status();
+  ASSERT_EQ(one->size(), 1u);
+  EXPECT_EQ(one->front().data, "third");
+  EXPECT_TRUE(log->Read(fleet, 4, 10)->empty());
+  EXPECT_EQ(log->Read(fleet, 0, 10).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(log->Append(fleet, "", "x").status().code(),
+            absl::StatusCode::kInvalidArgument);
+
+  // Each fleet has its own log; a fleet without one reads as empty.
+  EXPECT_EQ(log->Append("other", "r1:1-100", "x")->sequence, 1u);
+  EXPECT_EQ(*log->LastSequence("never written"), 0u);
+  EXPECT_TRUE(log->Read("never written", 1, 10)->empty());
+}
+
+TEST_F(NatsFleetLogTest, AnEntryAboveNatsMaxPayloadIsRefusedClearly) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  absl::StatusOr<Appended> big =
+      log->Append("f", "r:1", std::string(2 * 1024 * 1024, 'x'));
+  EXPECT_EQ(big.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(big.status().message(), HasSubstr("max_payload"));
+  EXPECT_EQ(*log->LastSequence("f"), 0u);
+}
+
+// Acknowledged entries survive nats-server being killed: a client of the
+// restarted server (same store, same port) reads them all.
+TEST_F(NatsFleetLogTest, AcknowledgedEntriesSurviveAKilledServer) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  for (int i = 1; i <= 50; ++i) {
+    ASSERT_TRUE(log->Append("f", absl::StrCat("r:", i), absl::StrCat(i)).ok());
+  }
+  const int port = nats_->port();
+  log.reset();
+  nats_->Kill();
+  ServerOptions options =
+      NatsServerOptions(dir_.Join("jetstream"), dir_.Join("nats.log"));
+  options.extra_args[3] = absl::StrCat(port);  // "-p", PORT
+  StartNats(options);
+  log = Connect();
+  ASSERT_NE(log, nullptr);
+  absl::StatusOr<std::vector<LogEntry>> all = log->Read("f", 1, 100);
+  ASSERT_TRUE(all.ok()) << all.status();
+  ASSERT_EQ(all->size(), 50u);
+  for (int i = 0; i < 50; ++i) EXPECT_EQ((*all)[i].data, absl::StrCat(i + 1));
+}
+
+TEST_F(NatsFleetLogTest, ALeaseHasOneHolderAndFencesALateOne) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  absl::StatusOr<Lease> a = log->Acquire("f", "replica-a");
+  ASSERT_TRUE(a.ok()) << a.status();
+  absl::StatusOr<Lease> b = log->Acquire("f", "replica-b");
+  EXPECT_EQ(b.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(b.status().message(), HasSubstr("replica-a"));
+
+  // The same replica again (restarted): it takes its lease back at once,
+  // and the lease its earlier run held is fenced.
+  absl::StatusOr<Lease> again = log->Acquire("f", "replica-a");
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_GT(again->revision, a->revision);
+  EXPECT_EQ(log->Renew(*a).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  a = again;
+
+  absl::StatusOr<Lease> renewed = log->Renew(*a);
+  ASSERT_TRUE(renewed.ok()) << renewed.status();
+  EXPECT_GT(renewed->revision, a->revision);
+  // The revision it held before is stale: a second renewal from it fails.
+  EXPECT_EQ(log->Renew(*a).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  absl::StatusOr<std::optional<Lease>> holder = log->Holder("f");
+  ASSERT_TRUE(holder.ok() && holder->has_value());
+  EXPECT_EQ((*holder)->owner, "replica-a");
+  EXPECT_EQ((*holder)->revision, renewed->revision);
+
+  ASSERT_TRUE(log->Release(*renewed).ok());
+  EXPECT_FALSE(log->Holder("f")->has_value());
+  b = log->Acquire("f", "replica-b");
+  ASSERT_TRUE(b.ok()) << b.status();
+  EXPECT_GT(b->revision, renewed->revision);
+  // A late release from the old holder does not drop the new one's lease.
+  EXPECT_EQ(log->Release(*renewed).code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ((*log->Holder("f"))->owner, "replica-b");
+  EXPECT_FALSE(log->Holder("another fleet")->has_value());
+}
+
+TEST_F(NatsFleetLogTest, ALeaseNotRenewedExpiresAndAnotherReplicaTakesIt) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  absl::StatusOr<Lease> a = log->Acquire("f", "replica-a");
+  ASSERT_TRUE(a.ok()) << a.status();
+  // lease_ttl is 1 s here.
+  const auto start = std::chrono::steady_clock::now();
+  absl::StatusOr<Lease> b = log->Acquire("f", "replica-b");
+  while (!b.ok() &&
+         std::chrono::steady_clock::now() - start < std::chrono::seconds(10)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    b = log->Acquire("f", "replica-b");
+  }
+  ASSERT_TRUE(b.ok()) << b.status();
+  EXPECT_GE(std::chrono::steady_clock::now() - start,
+            std::chrono::milliseconds(900));
+  EXPECT_GT(b->revision, a->revision);
+  EXPECT_EQ(log->Renew(*a).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+}
+
+TEST(NatsFleetLogOptionsTest, BadOptionsAndNoServerAreClearErrors) {
+  NatsOptions options;
+  EXPECT_EQ(NatsFleetLog::Connect(options).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  options.servers = {"nats://127.0.0.1:1"};
+  options.replicas = 0;
+  EXPECT_EQ(NatsFleetLog::Connect(options).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  options.replicas = 1;
+  options.cert_file = "client.pem";
+  EXPECT_EQ(NatsFleetLog::Connect(options).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  options.cert_file.clear();
+  options.timeout = absl::Milliseconds(500);
+  absl::StatusOr<std::unique_ptr<NatsFleetLog>> none =
+      NatsFleetLog::Connect(options);
+  EXPECT_EQ(none.status().code(), absl::StatusCode::kUnavailable)
+      << none.status();
+  EXPECT_THAT(none.status().message(), HasSubstr("127.0.0.1:1"));
+}
+
+}  // namespace
+}  // namespace fleetmem::cluster

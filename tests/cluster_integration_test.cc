@@ -1,0 +1,625 @@
+// Distributed mode end to end (docs/distributed.md): three real
+// fleetmem-server replicas on one real nats-server with JetStream, each on
+// its own data dir. Uploads go to any replica; every fleet is owned and
+// served by one; the loss of an owner (kill -9) hands its fleets to the
+// others within the lease, with nothing lost or counted twice; and a replica
+// that rebuilds the fleets from the log alone reaches the same memory.
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/cleanup/cleanup.h"
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+#include "gtest/gtest.h"
+#include "tests/api_helpers.h"
+#include "tests/server_process.h"
+#include "tests/synthetic_traces.h"
+
+namespace fleetmem::testing {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr int kFleets = 4;
+constexpr int kRobots = 2;
+constexpr size_t kTraces = 250;  // per robot: one segment and a pending part
+
+std::string FleetId(int fleet) { return absl::StrCat("fleet-", fleet); }
+std::string RobotId(int robot) { return absl::StrCat("robot-", robot); }
+
+TraceSpec Spec(int fleet, int robot, uint64_t first_seq, size_t count) {
+  TraceSpec spec;
+  spec.robot_id = RobotId(robot);
+  spec.first_seq = first_seq;
+  spec.count = count;
+  spec.seed = 100 + fleet;
+  return spec;
+}
+
+// A loopback port that was free a moment ago (the replicas need fixed
+// ports: their addresses are their ids).
+int FreePort() {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  address.sin_port = 0;
+  socklen_t size = sizeof(address);
+  int port = 0;
+  if (bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
+      getsockname(fd, reinterpret_cast<sockaddr*>(&address), &size) == 0) {
+    port = ntohs(address.sin_port);
+  }
+  close(fd);
+  return port;
+}
+
+// Traces the fleet has received, each (robot_id, seq) once (consolidation
+// may downsample what it holds).
+// The body of GET /metrics on the HTTP port (plain HTTP/1.0), or "".
+std::string Metrics(int port) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  address.sin_port = htons(static_cast<uint16_t>(port));
+  std::string text;
+  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) ==
+      0) {
+    const std::string request = "GET /metrics HTTP/1.0\r\n\r\n";
+    if (write(fd, request.data(), request.size()) ==
+        static_cast<ssize_t>(request.size())) {
+      char buffer[4096];
+      ssize_t n;
+      while ((n = read(fd, buffer, sizeof(buffer))) > 0) text.append(buffer, n);
+    }
+  }
+  close(fd);
+  const size_t body = text.find("\r\n\r\n");
+  return body == std::string::npos ? "" : text.substr(body + 4);
+}
+
+// fleet -> value of each `name{fleet="..."} value` line of `text`.
+std::map<std::string, double> FleetGauge(const std::string& text,
+                                         const std::string& name) {
+  std::map<std::string, double> values;
+  const std::string prefix = name + "{fleet=\"";
+  for (absl::string_view line : absl::StrSplit(text, '\n')) {
+    if (!absl::StartsWith(line, prefix)) continue;
+    line.remove_prefix(prefix.size());
+    const size_t quote = line.find('"');
+    const size_t space = line.rfind(' ');
+    double value = 0;
+    if (quote == absl::string_view::npos || space == absl::string_view::npos ||
+        !absl::SimpleAtod(line.substr(space + 1), &value)) {
+      continue;
+    }
+    values[std::string(line.substr(0, quote))] = value;
+  }
+  return values;
+}
+
+uint64_t Received(const v1::GetStatsResponse& stats) {
+  uint64_t received = 0;
+  for (const v1::RobotStats& robot : stats.robots()) {
+    received += robot.received();
+  }
+  return received;
+}
+
+// Every trace of a fleet as "robot/seq cluster replay", for comparing two
+// replicas' memories.
+std::vector<std::string> Listing(v1::MemoryService::Stub& stub,
+                                 const std::string& fleet_id,
+                                 grpc::Status* status) {
+  std::vector<std::string> lines;
+  std::string token;
+  do {
+    v1::ListTracesRequest request;
+    request.set_fleet_id(fleet_id);
+    request.set_page_size(10000);
+    request.set_page_token(token);
+    v1::ListTracesResponse response;
+    *status = stub.ListTraces(MakeContext().get(), request, &response);
+    if (!status->ok()) return {};
+    for (const v1::MemoryTrace& trace : response.traces()) {
+      lines.push_back(absl::StrCat(trace.robot_id(), "/", trace.seq(), " ",
+                                   trace.cluster_id(), " ",
+                                   trace.replay_count()));
+    }
+    token = response.next_page_token();
+  } while (!token.empty());
+  return lines;
+}
+
+class ClusterIntegrationTest : public ::testing::Test {
+ protected:
+  void SetUp() override { ASSERT_FALSE(dir_.path().empty()); }
+
+  // One nats-server with JetStream: one copy of each log.
+  void StartNats() {
+    nats_.push_back(std::make_unique<ServerProcess>(
+        NatsServerOptions(dir_.Join("jetstream"), dir_.Join("nats.log"))));
+    absl::Status started = nats_.back()->Start();
+    ASSERT_TRUE(started.ok()) << started;
+    nats_urls_ = absl::StrCat("nats://", nats_.back()->address());
+  }
+
+  // A JetStream cluster of three nats-servers routed to each other on
+  // loopback: three copies of each log, a quorum of two.
+  void StartNatsCluster() {
+    std::vector<int> routes;
+    for (int i = 0; i < 3; ++i) routes.push_back(FreePort());
+    std::string all_routes;
+    for (int port : routes) {
+      absl::StrAppend(&all_routes, all_routes.empty() ? "" : ",",
+                      "nats://127.0.0.1:", port);
+    }
+    for (int i = 0; i < 3; ++i) {
+      ServerOptions options =
+          NatsServerOptions(dir_.Join(absl::StrCat("jetstream-", i)),
+                            dir_.Join(absl::StrCat("nats-", i, ".log")));
+      options.extra_args.insert(
+          options.extra_args.end(),
+          {"-n", absl::StrCat("nats-", i), "--cluster_name", "fleetmem",
+           "--cluster", absl::StrCat("nats://127.0.0.1:", routes[i]),
+           "--routes", all_routes});
+      nats_.push_back(std::make_unique<ServerProcess>(options));
+    }
+    // Each waits for its routes only after it listens: start all, then
+    // wait for each.
+    for (auto& nats : nats_) {
+      absl::Status started = nats->Start();
+      ASSERT_TRUE(started.ok()) << started;
+    }
+    nats_urls_.clear();
+    for (auto& nats : nats_) {
+      absl::StrAppend(&nats_urls_, nats_urls_.empty() ? "" : ",", "nats://",
+                      nats->address());
+    }
+  }
+
+  void TearDown() override {
+    if (!HasFailure()) return;
+    for (size_t i = 0; i < replicas_.size(); ++i) {
+      std::cerr << "---- replica " << i << " ----\n"
+                << ReadFileOrEmpty(
+                       dir_.Join(absl::StrCat("replica-", i, ".log")))
+                << "\n";
+    }
+  }
+
+  // Starts replica `i` (a new one when i == replicas_.size()) on its own
+  // data dir and a fixed port; leases of 1 s, rounds of 100 ms, a copy of
+  // each log on each NATS server (at most three).
+  void StartReplica(size_t i) {
+    if (i == replicas_.size()) {
+      replicas_.emplace_back();
+      ports_.push_back(FreePort());
+      http_ports_.push_back(FreePort());
+    }
+    const std::string data = dir_.Join(absl::StrCat("replica-", i));
+    std::filesystem::create_directories(data);
+    const std::string config = dir_.Join(absl::StrCat("replica-", i, ".cfg"));
+    std::ofstream out(config);
+    out << "cluster { ";
+    for (absl::string_view url : absl::StrSplit(nats_urls_, ',')) {
+      out << "servers: \"" << url << "\" ";
+    }
+    out << "advertise: \"127.0.0.1:" << ports_[i]
+        << "\" replicas: " << (nats_.size() >= 3 ? 3 : 1)
+        << " lease_ttl_ms: 1000 round_interval_ms: 100 }\n";
+    out.close();
+    ServerOptions options;
+    options.data_dir = data;
+    options.config_file = config;
+    options.listen = absl::StrCat("127.0.0.1:", ports_[i]);
+    options.extra_args = {"--http-listen",
+                          absl::StrCat("127.0.0.1:", http_ports_[i])};
+    options.log_file = dir_.Join(absl::StrCat("replica-", i, ".log"));
+    // A JetStream cluster elects its leaders some seconds after it listens;
+    // the replica waits for it before it listens (longer on a loaded
+    // machine, under a sanitizer).
+    options.start_timeout = std::chrono::milliseconds(120000);
+    replicas_[i] = std::make_unique<ServerProcess>(options);
+    absl::Status started = replicas_[i]->Start();
+    ASSERT_TRUE(started.ok()) << started;
+  }
+
+  std::unique_ptr<v1::MemoryService::Stub> Stub(size_t i) {
+    return MakeStub(absl::StrCat("127.0.0.1:", ports_[i]));
+  }
+
+  // Uploads through replica `via`, retrying a failed stream (the ids
+  // repeat, so a retry adds nothing twice) for up to 20 s.
+  v1::UploadTracesResponse UploadVia(size_t via, int fleet, int robot,
+                                     uint64_t first_seq, size_t count) {
+    const std::vector<v1::MemoryTrace> traces =
+        MakeTraces(Spec(fleet, robot, first_seq, count));
+    const auto deadline = Clock::now() + std::chrono::seconds(20);
+    Reply<v1::UploadTracesResponse> reply;
+    do {
+      reply = UploadTraces(*Stub(via), FleetId(fleet), traces, 100);
+      if (reply.ok()) return reply.response;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    } while (Clock::now() < deadline);
+    ADD_FAILURE() << "upload via replica " << via << ": "
+                  << Describe(reply.status);
+    return {};
+  }
+
+  // Polls GetStats through replica `via` until the fleet has received
+  // `traces`; the time it took, or nullopt after `timeout`.
+  std::optional<double> WaitForTraces(size_t via, int fleet, uint64_t traces,
+                                      std::chrono::seconds timeout) {
+    const auto start = Clock::now();
+    Reply<v1::GetStatsResponse> stats;
+    do {
+      stats = GetStats(*Stub(via), FleetId(fleet));
+      if (stats.ok() && Received(stats.response) == traces) {
+        return std::chrono::duration<double>(Clock::now() - start).count();
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    } while (Clock::now() - start < timeout);
+    ADD_FAILURE() << FleetId(fleet) << " via replica " << via << ": "
+                  << (stats.ok() ? absl::StrCat(Received(stats.response),
+                                                " traces, not ", traces)
+                                 : Describe(stats.status));
+    return std::nullopt;
+  }
+
+  // Fleet id -> the address of its owner, from ListFleets through `via`.
+  std::map<std::string, std::string> Owners(size_t via) {
+    v1::ListFleetsResponse listed;
+    grpc::Status status = Stub(via)->ListFleets(
+        MakeContext().get(), v1::ListFleetsRequest(), &listed);
+    EXPECT_TRUE(status.ok()) << Describe(status);
+    std::map<std::string, std::string> owners;
+    for (const v1::FleetSummary& fleet : listed.fleets()) {
+      owners[fleet.fleet_id()] = fleet.replica();
+    }
+    return owners;
+  }
+
+  size_t ReplicaAt(const std::string& address) const {
+    for (size_t i = 0; i < ports_.size(); ++i) {
+      if (address == absl::StrCat("127.0.0.1:", ports_[i])) return i;
+    }
+    return ports_.size();
+  }
+
+  TempDir dir_{"fleetmem-cluster-"};
+  std::vector<std::unique_ptr<ServerProcess>> nats_;
+  std::string nats_urls_;  // nats://HOST:PORT,...
+  std::vector<std::unique_ptr<ServerProcess>> replicas_;
+  std::vector<int> ports_;
+  std::vector<int> http_ports_;
+};
+
+TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
+  StartNats();
+  for (size_t i = 0; i < 3; ++i) StartReplica(i);
+
+  // Uploads through every replica; a retry of the same traces is
+  // recognised by the log.
+  for (int fleet = 0; fleet < kFleets; ++fleet) {
+    for (int robot = 0; robot < kRobots; ++robot) {
+      const size_t via = static_cast<size_t>(fleet + robot) % 3;
+      v1::UploadTracesResponse first = UploadVia(via, fleet, robot, 1, kTraces);
+      EXPECT_EQ(first.accepted(), kTraces);
+      v1::UploadTracesResponse again =
+          UploadVia((via + 1) % 3, fleet, robot, 1, kTraces);
+      EXPECT_EQ(again.accepted(), 0u);
+      EXPECT_EQ(again.duplicates(), kTraces);
+    }
+  }
+  for (int fleet = 0; fleet < kFleets; ++fleet) {
+    ASSERT_TRUE(
+        WaitForTraces(0, fleet, kRobots * kTraces, std::chrono::seconds(30)));
+  }
+
+  // One owner per fleet, the same seen from every replica.
+  const std::map<std::string, std::string> owners = Owners(1);
+  ASSERT_EQ(owners.size(), static_cast<size_t>(kFleets));
+  for (const auto& [fleet, owner] : owners) {
+    EXPECT_LT(ReplicaAt(owner), 3u) << fleet << " owned by \"" << owner << "\"";
+  }
+  EXPECT_EQ(Owners(2), owners);
+
+  // Each fleet's gauges come from its owner alone, its log applied.
+  std::map<std::string, int> shown;
+  for (size_t i = 0; i < 3; ++i) {
+    const std::string text = Metrics(http_ports_[i]);
+    ASSERT_FALSE(text.empty()) << "replica " << i;
+    for (const auto& [fleet, lag] :
+         FleetGauge(text, "fleetmem_cluster_log_lag_entries")) {
+      ++shown[fleet];
+      EXPECT_EQ(lag, 0) << fleet << " on replica " << i;
+      EXPECT_EQ(ReplicaAt(owners.at(fleet)), i) << fleet;
+    }
+    for (const auto& [fleet, traces] :
+         FleetGauge(text, "fleetmem_fleet_traces")) {
+      EXPECT_EQ(ReplicaAt(owners.at(fleet)), i) << fleet;
+    }
+  }
+  EXPECT_EQ(shown.size(), static_cast<size_t>(kFleets));
+  for (const auto& [fleet, replicas] : shown) EXPECT_EQ(replicas, 1) << fleet;
+
+  // Queries answer alike through every replica (forwarded to the owner).
+  const v1::MemoryTrace probe = MakeTrace(Spec(2, 1, 1, 1), 7);
+  std::vector<std::string> answers;
+  for (size_t via = 0; via < 3; ++via) {
+    Reply<v1::QueryPlaceResponse> found = QueryCode(
+        *Stub(via), FleetId(2),
+        std::vector<float>(probe.code().begin(), probe.code().end()), 3);
+    ASSERT_TRUE(found.ok()) << Describe(found.status);
+    ASSERT_GE(found.response.matches_size(), 1);
+    EXPECT_EQ(found.response.matches(0).trace().robot_id(), RobotId(1));
+    EXPECT_EQ(found.response.matches(0).trace().seq(), 7u);
+    answers.push_back(found.response.DebugString());
+  }
+  EXPECT_EQ(answers[0], answers[1]);
+  EXPECT_EQ(answers[0], answers[2]);
+
+  // An upload the owner would refuse is refused by whichever replica
+  // receives it, before anything is appended (here: another dimension).
+  TraceSpec other_dimension = Spec(2, 0, 5000, 1);
+  other_dimension.dimension = 16;
+  const std::vector<v1::MemoryTrace> wrong = MakeTraces(other_dimension);
+  for (size_t via = 0; via < 3; ++via) {
+    Reply<v1::UploadTracesResponse> refused =
+        UploadTraces(*Stub(via), FleetId(2), wrong);
+    EXPECT_EQ(refused.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+        << "replica " << via << ": " << Describe(refused.status);
+  }
+
+  // SampleReplay through a replica that does not own the fleet: appended
+  // to the log by the owner, counted once.
+  const std::string owner0 = owners.at(FleetId(0));
+  const size_t not_owner = (ReplicaAt(owner0) + 1) % 3;
+  Reply<v1::SampleReplayResponse> sample =
+      SampleReplay(*Stub(not_owner), FleetId(0), RobotId(0), 20);
+  ASSERT_TRUE(sample.ok()) << Describe(sample.status);
+  EXPECT_EQ(sample.response.traces_size(), 20);
+  Reply<v1::ConsolidateResponse> consolidated =
+      Consolidate(*Stub(not_owner), FleetId(1));
+  ASSERT_TRUE(consolidated.ok()) << Describe(consolidated.status);
+  ASSERT_TRUE(
+      WaitForTraces(not_owner, 1, kRobots * kTraces, std::chrono::seconds(5)));
+  Reply<v1::GetStatsResponse> after_consolidation =
+      GetStats(*Stub(not_owner), FleetId(1));
+  EXPECT_EQ(after_consolidation.response.pending_traces(), 0u);
+
+  // kill -9 the owner of fleet-0 while uploads go on through the others:
+  // they are acknowledged (the log takes them), and fleet-0 is served again
+  // once its lease expired and another replica caught up.
+  const size_t killed = ReplicaAt(owner0);
+  const size_t survivor = (killed + 1) % 3;
+  replicas_[killed]->Kill();
+  const auto killed_at = Clock::now();
+  v1::UploadTracesResponse during = UploadVia(survivor, 0, 0, kTraces + 1, 100);
+  EXPECT_EQ(during.accepted(), 100u);
+  ASSERT_TRUE(WaitForTraces(survivor, 0, kRobots * kTraces + 100,
+                            std::chrono::seconds(20)));
+  const double recovered =
+      std::chrono::duration<double>(Clock::now() - killed_at).count();
+  std::cout << "fleet-0 served again " << recovered
+            << " s after its owner was killed (lease 1 s)" << std::endl;
+  EXPECT_LT(recovered, 10.0);
+  for (int fleet = 1; fleet < kFleets; ++fleet) {
+    ASSERT_TRUE(WaitForTraces(survivor, fleet, kRobots * kTraces,
+                              std::chrono::seconds(10)));
+  }
+  const std::map<std::string, std::string> after = Owners(survivor);
+  for (const auto& [fleet, owner] : after) {
+    EXPECT_NE(ReplicaAt(owner), killed) << fleet;
+    EXPECT_LT(ReplicaAt(owner), 3u) << fleet;
+  }
+
+  // What the survivors hold, trace by trace, against a new replica that
+  // rebuilds every fleet from the log alone (the survivors stop cleanly
+  // and hand their fleets over).
+  std::map<int, std::vector<std::string>> before;
+  for (int fleet = 0; fleet < kFleets; ++fleet) {
+    grpc::Status listed;
+    before[fleet] = Listing(*Stub(survivor), FleetId(fleet), &listed);
+    ASSERT_TRUE(listed.ok()) << Describe(listed);
+  }
+  std::set<std::string> distinct(before[0].begin(), before[0].end());
+  EXPECT_EQ(distinct.size(), before[0].size());
+  for (size_t i = 0; i < 3; ++i) {
+    if (i == killed) continue;
+    absl::StatusOr<int> stopped = replicas_[i]->Stop();
+    ASSERT_TRUE(stopped.ok()) << stopped.status();
+    EXPECT_EQ(*stopped, 0);
+  }
+  StartReplica(3);
+  for (int fleet = 0; fleet < kFleets; ++fleet) {
+    ASSERT_TRUE(WaitForTraces(3, fleet,
+                              kRobots * kTraces + (fleet == 0 ? 100 : 0),
+                              std::chrono::seconds(20)));
+    // The count is reached at the last upload; a Consolidate or a sample
+    // after it may still be applying.
+    const auto deadline = Clock::now() + std::chrono::seconds(10);
+    grpc::Status listed;
+    std::vector<std::string> rebuilt;
+    do {
+      rebuilt = Listing(*Stub(3), FleetId(fleet), &listed);
+      if (rebuilt == before[fleet]) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    } while (Clock::now() < deadline);
+    EXPECT_EQ(rebuilt, before[fleet]) << FleetId(fleet);
+    EXPECT_TRUE(listed.ok()) << Describe(listed);
+  }
+}
+
+// Seconds until GetStats of every fleet answers through replica `via`
+// (calls of 1 s), or -1 after `timeout`.
+double UntilServed(const std::string& address, int fleets,
+                   std::chrono::seconds timeout) {
+  const auto start = Clock::now();
+  std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(address);
+  for (int fleet = 0; fleet < fleets; ++fleet) {
+    while (true) {
+      v1::GetStatsRequest request;
+      request.set_fleet_id(FleetId(fleet));
+      v1::GetStatsResponse response;
+      if (stub->GetStats(MakeContext(std::chrono::seconds(1)).get(), request,
+                         &response)
+              .ok()) {
+        break;
+      }
+      if (Clock::now() - start > timeout) return -1;
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+  }
+  return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+// The faults of a cluster under load: three NATS servers (three copies of
+// each log) and three replicas; a robot per fleet uploads through the
+// replicas in turn, retrying a failed batch through the next. One NATS
+// server is killed, then the owner of fleet-0 is paused (SIGSTOP: it can
+// neither renew its leases nor answer) for 4 s and resumed. Every
+// acknowledged trace is held exactly once afterwards, and every fleet is
+// served again within 10 s of each fault.
+TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
+  StartNatsCluster();
+  for (size_t i = 0; i < 3; ++i) StartReplica(i);
+  std::atomic<bool> stop{false};
+  std::vector<std::atomic<uint64_t>> acknowledged(kFleets);
+  std::vector<std::thread> robots;
+  for (int fleet = 0; fleet < kFleets; ++fleet) {
+    robots.emplace_back([&, fleet] {
+      uint64_t seq = 1;
+      size_t via = static_cast<size_t>(fleet);
+      while (!stop.load()) {
+        const std::vector<v1::MemoryTrace> batch =
+            MakeTraces(Spec(fleet, 0, seq, 20));
+        Reply<v1::UploadTracesResponse> reply = UploadTraces(
+            *Stub(via % 3), FleetId(fleet), batch, 20, std::chrono::seconds(2));
+        ++via;
+        if (reply.ok()) {
+          seq += 20;
+          acknowledged[fleet].store(seq - 1);
+        }
+        // About 200 traces/s per fleet, or a retry 100 ms after a failure.
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      }
+    });
+  }
+  const auto stop_robots = [&] {
+    stop.store(true);
+    for (std::thread& robot : robots) {
+      if (robot.joinable()) robot.join();
+    }
+  };
+  // Joined also when an assertion returns early.
+  absl::Cleanup join_robots = stop_robots;
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+
+  nats_[1]->Kill();
+  const double after_nats = UntilServed(absl::StrCat("127.0.0.1:", ports_[0]),
+                                        kFleets, std::chrono::seconds(20));
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+
+  const std::string owner0 = Owners(0).at(FleetId(0));
+  const size_t paused = ReplicaAt(owner0);
+  ASSERT_LT(paused, 3u);
+  const size_t other = (paused + 1) % 3;
+  // A watch of fleet-0 on its owner: it must end, not stall, once the owner
+  // has lost the fleet.
+  grpc::Status watch_end;
+  std::atomic<bool> watch_ended{false};
+  std::unique_ptr<v1::MemoryService::Stub> watch_stub = Stub(paused);
+  grpc::ClientContext watch_context;
+  watch_context.set_deadline(std::chrono::system_clock::now() +
+                             std::chrono::seconds(90));
+  std::thread watcher([&] {
+    v1::WatchMemoryRequest request;
+    request.set_fleet_id(FleetId(0));
+    std::unique_ptr<grpc::ClientReader<v1::MemoryEvent>> reader =
+        watch_stub->WatchMemory(&watch_context, request);
+    v1::MemoryEvent event;
+    while (reader->Read(&event)) {
+    }
+    watch_end = reader->Finish();
+    watch_ended.store(true);
+  });
+  absl::Cleanup join_watcher = [&] {
+    watch_context.TryCancel();
+    watcher.join();
+  };
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  replicas_[paused]->Signal(SIGSTOP);
+  const double after_pause =
+      UntilServed(absl::StrCat("127.0.0.1:", ports_[other]), kFleets,
+                  std::chrono::seconds(20));
+  std::this_thread::sleep_for(std::chrono::seconds(4) -
+                              std::chrono::milliseconds(static_cast<int>(
+                                  std::max(0.0, after_pause) * 1000)));
+  replicas_[paused]->Signal(SIGCONT);
+  const auto resumed = Clock::now();
+  while (!watch_ended.load() &&
+         Clock::now() - resumed < std::chrono::seconds(15)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  ASSERT_TRUE(watch_ended.load()) << "the watch on the old owner goes on";
+  EXPECT_EQ(watch_end.error_code(), grpc::StatusCode::UNAVAILABLE)
+      << Describe(watch_end);
+  EXPECT_NE(watch_end.error_message().find("moved to another replica"),
+            std::string::npos)
+      << Describe(watch_end);
+  std::this_thread::sleep_for(std::chrono::seconds(1));
+  stop_robots();
+
+  std::cout << "fault                 served again after\n"
+            << "NATS server killed    " << after_nats << " s\n"
+            << "owner paused 4 s      " << after_pause << " s\n";
+  // A lost NATS server costs JetStream's election of new leaders for the
+  // streams and the lease bucket it led (seconds in nats-server 2.9); the
+  // issue's 10 s is for the loss of a fleet's owner.
+  EXPECT_GE(after_nats, 0.0);
+  EXPECT_LT(after_nats, 15.0);
+  EXPECT_GE(after_pause, 0.0);
+  EXPECT_LT(after_pause, 10.0);
+
+  // Every acknowledged trace, once, through every replica (the resumed one
+  // forwards to the new owners).
+  for (int fleet = 0; fleet < kFleets; ++fleet) {
+    const uint64_t want = acknowledged[fleet].load();
+    EXPECT_GT(want, 0u) << FleetId(fleet);
+    for (size_t via = 0; via < 3; ++via) {
+      ASSERT_TRUE(WaitForTraces(via, fleet, want, std::chrono::seconds(20)))
+          << "replica " << via;
+    }
+    grpc::Status listed;
+    const std::vector<std::string> traces =
+        Listing(*Stub(paused), FleetId(fleet), &listed);
+    ASSERT_TRUE(listed.ok()) << Describe(listed);
+    std::set<std::string> distinct(traces.begin(), traces.end());
+    EXPECT_EQ(distinct.size(), traces.size()) << FleetId(fleet);
+  }
+  const std::map<std::string, std::string> owners = Owners(other);
+  EXPECT_EQ(Owners(paused), owners);
+}
+
+}  // namespace
+}  // namespace fleetmem::testing
