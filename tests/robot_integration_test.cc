@@ -12,6 +12,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <filesystem>
 #include <fstream>
 #include <random>
 #include <sstream>
@@ -338,6 +339,42 @@ TEST_F(RobotIntegrationTest, ServerDownFor30SecondsTheQueueGrowsThenDrains) {
               HasSubstr("server reachable again"));
 }
 
+// A robot's first start asks the server for its last seq: it waits for a
+// server that is restarting, and gives up after --first-contact-timeout
+// without having observed or written anything.
+TEST_F(RobotIntegrationTest, AFirstStartWaitsForTheServerThenGivesUpCleanly) {
+  server_->Kill();
+  RobotProcess waiting(
+      RobotArgs("f-first", "r1", kSummer, 200, 0.0, dir_.Join("r1")),
+      dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(waiting.Start());
+  // Start the server once the robot has found it missing, not after a fixed
+  // delay: under the sanitizers a robot can take longer than that to load.
+  constexpr char kWaiting[] = "waiting for the server before a first start";
+  const auto deadline = Clock::now() + std::chrono::seconds(120);
+  while (ReadFileOrEmpty(dir_.Join("robot.log")).find(kWaiting) ==
+         std::string::npos) {
+    ASSERT_LT(Clock::now(), deadline) << "the robot never waited";
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  ASSERT_NO_FATAL_FAILURE(StartServer());
+  EXPECT_EQ(waiting.Wait(), 0);
+  EXPECT_EQ(Stats("f-first", "r1").received(), 200u);
+
+  server_->Kill();
+  std::vector<std::string> args =
+      RobotArgs("f-first", "r2", kSummer, 200, 0.0, dir_.Join("r2"));
+  args.insert(args.end(), {"--first-contact-timeout", "1"});
+  RobotProcess gives_up(args, dir_.Join("robot2.log"));
+  ASSERT_NO_FATAL_FAILURE(gives_up.Start());
+  EXPECT_EQ(gives_up.Wait(), 1);
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("robot2.log")),
+              HasSubstr("nothing was observed or written"));
+  EXPECT_FALSE(std::filesystem::exists(dir_.Join("r2") + "/queue"));
+  ASSERT_NO_FATAL_FAILURE(StartServer());
+  EXPECT_EQ(Stats("f-first", "r2").received(), 0u);
+}
+
 TEST_F(RobotIntegrationTest, TwoRobotsReplayEachOthersTracesAfterRefresh) {
   // Different stretches of the route, the same fleet, at the same time.
   std::vector<std::string> a =
@@ -540,7 +577,12 @@ TEST_F(RobotIntegrationTest, AFullRobotDiskStopsItCleanlyAndLosesNothing) {
   args.insert(args.end(), {"--disk-reserve-mb", "16"});
   RobotProcess robot(args, dir_.Join("robot.log"));
   ASSERT_NO_FATAL_FAILURE(robot.Start());
-  std::this_thread::sleep_for(std::chrono::seconds(2));
+  // Fill the disk once the robot records, not after a fixed delay.
+  const auto deadline = Clock::now() + std::chrono::seconds(120);
+  while (ReadStatus(data_dir).counters().next_index() == 0) {
+    ASSERT_LT(Clock::now(), deadline) << "the robot never recorded";
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
   const std::string filler = mount_point + "/filler";
   Fill(filler, FreeBytes(mount_point) - 15 * kMiB);
   EXPECT_EQ(robot.Wait(), 1);
