@@ -225,7 +225,8 @@ class ClusterIntegrationTest : public ::testing::Test {
     }
     out << "advertise: \"127.0.0.1:" << ports_[i]
         << "\" replicas: " << (nats_.size() >= 3 ? 3 : 1)
-        << " lease_ttl_ms: 1000 round_interval_ms: 100 }\n";
+        << " lease_ttl_ms: 1000 round_interval_ms: 100"
+        << " snapshot_every_entries: " << snapshot_every_ << " }\n";
     out.close();
     ServerOptions options;
     options.data_dir = data;
@@ -286,11 +287,13 @@ class ClusterIntegrationTest : public ::testing::Test {
   }
 
   // Fleet id -> the address of its owner, from ListFleets through `via`.
-  std::map<std::string, std::string> Owners(size_t via) {
+  // `must_answer`: a failed call fails the test (else it lists nothing).
+  std::map<std::string, std::string> Owners(size_t via,
+                                            bool must_answer = true) {
     v1::ListFleetsResponse listed;
     grpc::Status status = Stub(via)->ListFleets(
         MakeContext().get(), v1::ListFleetsRequest(), &listed);
-    EXPECT_TRUE(status.ok()) << Describe(status);
+    if (must_answer) EXPECT_TRUE(status.ok()) << Describe(status);
     std::map<std::string, std::string> owners;
     for (const v1::FleetSummary& fleet : listed.fleets()) {
       owners[fleet.fleet_id()] = fleet.replica();
@@ -308,12 +311,17 @@ class ClusterIntegrationTest : public ::testing::Test {
   TempDir dir_{"fleetmem-cluster-"};
   std::vector<std::unique_ptr<ServerProcess>> nats_;
   std::string nats_urls_;  // nats://HOST:PORT,...
+  // Each fleet's owner stores a snapshot (and trims the log) this often.
+  uint64_t snapshot_every_ = 1000;
   std::vector<std::unique_ptr<ServerProcess>> replicas_;
   std::vector<int> ports_;
   std::vector<int> http_ports_;
 };
 
 TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
+  // A snapshot every two entries: owners trim the logs as they go, so a
+  // new owner restores the latest snapshot and applies the tail.
+  snapshot_every_ = 2;
   StartNats();
   for (size_t i = 0; i < 3; ++i) StartReplica(i);
 
@@ -434,8 +442,9 @@ TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
   }
 
   // What the survivors hold, trace by trace, against a new replica that
-  // rebuilds every fleet from the log alone (the survivors stop cleanly
-  // and hand their fleets over).
+  // rebuilds every fleet from its latest snapshot and the log after it (the
+  // survivors stop cleanly and hand their fleets over; the logs were
+  // trimmed, so the snapshots are needed).
   std::map<int, std::vector<std::string>> before;
   for (int fleet = 0; fleet < kFleets; ++fleet) {
     grpc::Status listed;
@@ -468,6 +477,14 @@ TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
     EXPECT_EQ(rebuilt, before[fleet]) << FleetId(fleet);
     EXPECT_TRUE(listed.ok()) << Describe(listed);
   }
+  // Each fleet came from a snapshot there, not from a whole log.
+  const std::string log = ReadFileOrEmpty(dir_.Join("replica-3.log"));
+  for (int fleet = 0; fleet < kFleets; ++fleet) {
+    EXPECT_TRUE(
+        absl::StrContains(log, absl::StrCat("fleet \"", FleetId(fleet),
+                                            "\" restored from its snapshot")))
+        << FleetId(fleet);
+  }
 }
 
 // Seconds until GetStats of every fleet answers through replica `via`
@@ -499,8 +516,10 @@ double UntilServed(const std::string& address, int fleets,
 // server is killed, then the owner of fleet-0 is paused (SIGSTOP: it can
 // neither renew its leases nor answer) for 4 s and resumed. Every
 // acknowledged trace is held exactly once afterwards, and every fleet is
-// served again within 10 s of each fault.
+// served again within 10 s of each fault. Owners store snapshots and trim
+// the logs throughout (every 10 entries).
 TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
+  snapshot_every_ = 10;
   StartNatsCluster();
   for (size_t i = 0; i < 3; ++i) StartReplica(i);
   std::atomic<bool> stop{false};
@@ -540,9 +559,26 @@ TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
                                         kFleets, std::chrono::seconds(20));
   std::this_thread::sleep_for(std::chrono::seconds(2));
 
-  const std::string owner0 = Owners(0).at(FleetId(0));
-  const size_t paused = ReplicaAt(owner0);
-  ASSERT_LT(paused, 3u);
+  // The owner of fleet-0 once the cluster settled: the same in two looks
+  // a second apart (with 1 s leases, some may have expired while JetStream
+  // elected the lease bucket's new leader, and moved).
+  const auto owner_of_fleet0 = [&] {
+    // While JetStream elects its leaders ListFleets may fail: asked again.
+    const std::map<std::string, std::string> owners = Owners(0, false);
+    auto found = owners.find(FleetId(0));
+    return found == owners.end() ? size_t{3} : ReplicaAt(found->second);
+  };
+  size_t paused = 3;
+  for (const auto settle = Clock::now() + std::chrono::seconds(30);
+       Clock::now() < settle;) {
+    const size_t seen = owner_of_fleet0();
+    std::this_thread::sleep_for(std::chrono::seconds(1));
+    if (seen < 3 && owner_of_fleet0() == seen) {
+      paused = seen;
+      break;
+    }
+  }
+  ASSERT_LT(paused, 3u) << "fleet-0 has no settled owner";
   const size_t other = (paused + 1) % 3;
   // A watch of fleet-0 on its owner: it must end, not stall, once the owner
   // has lost the fleet.

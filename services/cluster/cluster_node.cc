@@ -8,10 +8,11 @@
 namespace fleetmem::cluster {
 
 ClusterNode::ClusterNode(ClusterNodeOptions options, FleetLog* log,
-                         LeaseTable* leases, engine::MemoryEngine* engine)
+                         LeaseTable* leases, SnapshotStore* snapshots,
+                         engine::MemoryEngine* engine)
     : options_(std::move(options)),
       log_(log),
-      materialiser_(options_.materialiser, log, leases, engine) {}
+      materialiser_(options_.materialiser, log, leases, snapshots, engine) {}
 
 ClusterNode::~ClusterNode() { Stop(); }
 

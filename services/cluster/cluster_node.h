@@ -32,9 +32,10 @@ struct ClusterNodeOptions {
 
 class ClusterNode {
  public:
-  // `log`, `leases` and `engine` must outlive it.
+  // `log`, `leases`, `snapshots` and `engine` must outlive it; `snapshots`
+  // may be null (Materialiser).
   ClusterNode(ClusterNodeOptions options, FleetLog* log, LeaseTable* leases,
-              engine::MemoryEngine* engine);
+              SnapshotStore* snapshots, engine::MemoryEngine* engine);
   // Stops the loop (the leases are kept until they expire).
   ~ClusterNode();
 

@@ -66,10 +66,11 @@ TEST_F(ClusterNodeTest, OneOwnerPerFleetAndTakeoverAfterAReplicaStops) {
   }
 
   Replica a, b;
-  auto node_a = std::make_unique<ClusterNode>(
-      NodeOptions("replica-a"), log_a.get(), log_a.get(), a.engine.get());
+  auto node_a =
+      std::make_unique<ClusterNode>(NodeOptions("replica-a"), log_a.get(),
+                                    log_a.get(), log_a.get(), a.engine.get());
   ClusterNode node_b(NodeOptions("replica-b"), log_b.get(), log_b.get(),
-                     b.engine.get());
+                     log_b.get(), b.engine.get());
   node_a->Start();
   node_b.Start();
   // Each fleet ends up owned by exactly one of them and materialised there.

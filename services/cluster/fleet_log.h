@@ -11,6 +11,7 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -45,14 +46,53 @@ class FleetLog {
                                           std::string_view data) = 0;
   // Up to `max` entries in order from sequence `from` (>= 1), skipping
   // numbers the log skipped; fewer at the end of the log (or after a failed
-  // read), none past it or for a fleet without a log.
+  // read), none past it or for a fleet without a log. OUT_OF_RANGE if
+  // `from` is before FirstSequence: those entries are gone (trimmed, and a
+  // snapshot covers them).
   virtual absl::StatusOr<std::vector<LogEntry>> Read(std::string_view fleet_id,
                                                      uint64_t from,
                                                      size_t max) = 0;
   // The fleet's last sequence; 0 for an empty log or none.
   virtual absl::StatusOr<uint64_t> LastSequence(std::string_view fleet_id) = 0;
-  // The ids of the fleets that have a log, sorted.
+  // The first sequence Read can return: 1 until Trim removed entries (0 for
+  // a fleet without a log).
+  virtual absl::StatusOr<uint64_t> FirstSequence(std::string_view fleet_id) = 0;
+  // Removes the entries before `sequence`, which a snapshot covers.
+  virtual absl::Status Trim(std::string_view fleet_id, uint64_t sequence) = 0;
+  // The ids of the fleets that have a log, sorted. While the log cannot
+  // list them (NATS electing a leader), those it listed before, if any.
   virtual absl::StatusOr<std::vector<std::string>> Fleets() = 0;
+};
+
+// A snapshot of a fleet's materialised state (storage's fleet image) and
+// the last log entry it covers: a replica restores it and applies only the
+// entries after `sequence`.
+struct SnapshotInfo {
+  uint64_t sequence = 0;
+  uint64_t bytes = 0;  // of the image
+  // The fleet's shape (its first upload's), for uploads checked by replicas
+  // that do not hold the fleet once its first entry is trimmed.
+  uint32_t code_dimension = 0;
+  std::string encoder_version;
+};
+
+class SnapshotStore {
+ public:
+  virtual ~SnapshotStore() = default;
+  // Stores `image` as the fleet's latest snapshot, and returns once it is
+  // whole on the store's replicas; the earlier one is dropped then.
+  // FAILED_PRECONDITION, with nothing replaced, if a snapshot covering as
+  // much or more was stored meanwhile (by a replica that owned the fleet
+  // before or after this one).
+  virtual absl::Status Put(std::string_view fleet_id, const SnapshotInfo& info,
+                           std::string_view image) = 0;
+  // The latest snapshot's description; nullopt if the fleet has none.
+  virtual absl::StatusOr<std::optional<SnapshotInfo>> Latest(
+      std::string_view fleet_id) = 0;
+  // The latest snapshot with its image; nullopt if the fleet has none.
+  // DATA_LOSS if its image is incomplete or fails its checksum.
+  virtual absl::StatusOr<std::optional<std::pair<SnapshotInfo, std::string>>>
+  Fetch(std::string_view fleet_id) = 0;
 };
 
 // One replica's hold on a fleet. `revision` grows with every acquisition

@@ -11,6 +11,7 @@
 #include "services/cluster/log_record.pb.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
+#include "services/storage/fleet_image.h"
 
 namespace fleetmem::cluster {
 namespace {
@@ -118,12 +119,22 @@ absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
 }
 
 absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
-    FleetLog& log, std::string_view fleet_id) {
+    FleetLog& log, SnapshotStore* snapshots, std::string_view fleet_id) {
+  if (snapshots != nullptr) {
+    absl::StatusOr<std::optional<SnapshotInfo>> latest =
+        snapshots->Latest(fleet_id);
+    if (!latest.ok()) return latest.status();
+    if (latest->has_value() && (*latest)->code_dimension > 0) {
+      return engine::FleetShape{(*latest)->code_dimension,
+                                (*latest)->encoder_version};
+    }
+  }
   absl::StatusOr<std::vector<LogEntry>> first = log.Read(fleet_id, 1, 1);
   if (!first.ok()) return first.status();
   if (first->empty()) return std::nullopt;
   cluster::v1::LogRecord record;
-  if (!record.ParseFromString(first->front().data) || !record.has_upload() ||
+  if (first->front().sequence != 1 ||
+      !record.ParseFromString(first->front().data) || !record.has_upload() ||
       record.upload().traces_size() == 0) {
     return absl::DataLossError(
         absl::StrCat("cluster: the first entry of the log of fleet \"",
@@ -135,11 +146,66 @@ absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
 }
 
 Materialiser::Materialiser(MaterialiserOptions options, FleetLog* log,
-                           LeaseTable* leases, engine::MemoryEngine* engine)
+                           LeaseTable* leases, SnapshotStore* snapshots,
+                           engine::MemoryEngine* engine)
     : options_(std::move(options)),
       log_(log),
       leases_(leases),
-      engine_(engine) {}
+      snapshots_(snapshots),
+      engine_(engine) {
+  if (snapshots_ != nullptr && options_.snapshot_every > 0) {
+    writer_ = std::thread([this] { WriteSnapshots(); });
+  }
+}
+
+Materialiser::~Materialiser() {
+  {
+    absl::MutexLock lock(&pending_mu_);
+    stopping_ = true;
+  }
+  if (writer_.joinable()) writer_.join();
+}
+
+void Materialiser::WriteSnapshots() {
+  while (true) {
+    std::string fleet_id;
+    Pending pending;
+    {
+      absl::MutexLock lock(&pending_mu_);
+      pending_mu_.Await(absl::Condition(this, &Materialiser::HasWork));
+      if (stopping_) return;
+      auto next = pending_.begin();
+      fleet_id = next->first;
+      pending = std::move(next->second);
+      pending_.erase(next);
+      writing_ = true;
+    }
+    Store(fleet_id, pending);
+    absl::MutexLock lock(&pending_mu_);
+    writing_ = false;
+  }
+}
+
+void Materialiser::Store(const std::string& fleet_id, const Pending& pending) {
+  if (absl::Status stored =
+          snapshots_->Put(fleet_id, pending.info, pending.image);
+      !stored.ok()) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                           << "\": no snapshot through entry "
+                           << pending.info.sequence << ": " << stored;
+    return;
+  }
+  if (!options_.trim_log) return;
+  if (absl::Status trimmed = log_->Trim(fleet_id, pending.info.sequence + 1);
+      !trimmed.ok()) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id << "\": " << trimmed;
+  }
+}
+
+void Materialiser::WaitForSnapshots() {
+  absl::MutexLock lock(&pending_mu_);
+  pending_mu_.Await(absl::Condition(this, &Materialiser::Idle));
+}
 
 absl::Status Materialiser::Apply(std::string_view fleet_id,
                                  const LogEntry& entry, uint64_t capture,
@@ -218,10 +284,13 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
     absl::StatusOr<Lease> lease =
         leases_->Acquire(fleet_id, options_.replica_id);
     if (!lease.ok()) return lease.status();
-    it = owned_
-             .emplace(std::string(fleet_id),
-                      Owned{*std::move(lease), absl::Now(), *position})
-             .first;
+    Owned taken{*std::move(lease), absl::Now(), *position};
+    // Under the lease: a restore is a write like any other.
+    if (absl::Status restored = RestoreIfBehind(fleet_id, taken);
+        !restored.ok()) {
+      return restored;  // not owned yet: the next step retries
+    }
+    it = owned_.emplace(std::string(fleet_id), std::move(taken)).first;
   } else if (absl::Now() - it->second.renewed_at >= options_.renew_interval) {
     // Fencing: no entry is applied under a lease this replica lost.
     const absl::Time now = absl::Now();
@@ -232,9 +301,21 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
     it->second.renewed_at = now;
   }
   Owned& owned = it->second;
-  StepResult result{0, owned.position, owned.lease.revision};
+  StepResult result{0, owned.position, owned.lease.revision,
+                    std::exchange(owned.restored, 0), 0};
   absl::StatusOr<std::vector<LogEntry>> entries =
       log_->Read(fleet_id, owned.position + 1, options_.batch);
+  if (absl::IsOutOfRange(entries.status())) {
+    // Trimmed past this replica's position since it took the fleet (the
+    // previous owner's snapshot writer, late): restore, then read on.
+    if (absl::Status restored = RestoreIfBehind(fleet_id, owned);
+        !restored.ok()) {
+      return restored;
+    }
+    result.restored = std::exchange(owned.restored, 0);
+    result.position = owned.position;
+    entries = log_->Read(fleet_id, owned.position + 1, options_.batch);
+  }
   if (!entries.ok()) return entries.status();
   for (const LogEntry& entry : *entries) {
     if (absl::Status applied = Apply(fleet_id, entry, capture, outcome);
@@ -245,7 +326,121 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
     ++result.applied;
   }
   result.position = owned.position;
+  SnapshotIfDue(fleet_id, owned, result);
   return result;
+}
+
+absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,
+                                           Owned& owned) {
+  if (snapshots_ == nullptr) return absl::OkStatus();
+  absl::StatusOr<uint64_t> first = log_->FirstSequence(fleet_id);
+  if (!first.ok()) return first.status();
+  // The log no longer holds every entry after this replica's position.
+  const bool trimmed = *first > owned.position + 1;
+  absl::StatusOr<std::optional<SnapshotInfo>> latest =
+      snapshots_->Latest(fleet_id);
+  if (!latest.ok()) {
+    if (trimmed) return latest.status();
+    // The log holds what is needed: apply it (the snapshot's stream may be
+    // electing its leader).
+    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                           << "\": its snapshot cannot be read ("
+                           << latest.status() << "); applying its log from "
+                           << "entry " << owned.position + 1;
+    return absl::OkStatus();
+  }
+  if (!latest->has_value() || (trimmed && (*latest)->sequence + 1 < *first)) {
+    if (trimmed) {
+      // Not trimmed by fleetmem (it trims only what a snapshot covers): a
+      // clustered stream skipped its first numbers (proposals that failed
+      // as its leader changed: never acknowledged), or an operator purged
+      // the log.
+      FLEETMEM_LOG(kError)
+          << "fleet \"" << fleet_id << "\": its log starts at entry " << *first
+          << ", after entry " << owned.position
+          << " of this replica, and no snapshot covers the entries between; "
+          << "going on from entry " << *first;
+      owned.position = *first - 1;
+    }
+    return absl::OkStatus();
+  }
+  owned.snapshot = (*latest)->sequence;
+  if (owned.snapshot <= owned.position ||
+      (!trimmed && owned.snapshot - owned.position < options_.restore_after)) {
+    return absl::OkStatus();
+  }
+  const absl::Time start = absl::Now();
+  absl::StatusOr<std::optional<std::pair<SnapshotInfo, std::string>>> fetched =
+      snapshots_->Fetch(fleet_id);
+  absl::Status status = fetched.status();
+  if (status.ok() && !fetched->has_value()) {
+    status = absl::DataLossError("the snapshot vanished");
+  }
+  if (status.ok()) {
+    absl::StatusOr<engine::FleetImage> image =
+        storage::DecodeFleetImage(fleet_id, (*fetched)->second);
+    status = image.ok() ? engine_->RestoreFleet(fleet_id, *std::move(image))
+                        : image.status();
+  }
+  if (!status.ok()) {
+    if (!trimmed) {
+      // The log still holds everything: apply it instead.
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << fleet_id << "\": not restored from its snapshot ("
+          << status << "); applying its log from entry " << owned.position + 1;
+      return absl::OkStatus();
+    }
+    return absl::Status(
+        status.code(),
+        absl::StrCat("cluster: fleet \"", V(fleet_id),
+                     "\" needs its snapshot (its log starts at ", *first,
+                     ") and it cannot be restored: ", status.message()));
+  }
+  const SnapshotInfo& info = (*fetched)->first;
+  FLEETMEM_LOG(kInfo) << "fleet \"" << fleet_id
+                      << "\" restored from its snapshot through entry "
+                      << info.sequence << " (" << info.bytes << " bytes, "
+                      << absl::ToDoubleSeconds(absl::Now() - start)
+                      << " s); this replica's store was at entry "
+                      << owned.position;
+  owned.position = info.sequence;
+  owned.snapshot = info.sequence;
+  owned.restored = info.sequence;
+  return absl::OkStatus();
+}
+
+void Materialiser::SnapshotIfDue(std::string_view fleet_id, Owned& owned,
+                                 StepResult& result) {
+  if (!writer_.joinable() ||
+      owned.position < owned.snapshot + options_.snapshot_every) {
+    return;
+  }
+  const uint64_t through = owned.position;
+  // Tried once per snapshot_every entries, whatever the outcome.
+  owned.snapshot = through;
+  absl::StatusOr<engine::FleetImage> image =
+      engine_->ExportFleet(fleet_id, through);
+  absl::Status status = image.status();
+  Pending pending;
+  if (status.ok()) {
+    absl::StatusOr<std::string> bytes = storage::EncodeFleetImage(*image);
+    status = bytes.status();
+    if (status.ok()) {
+      pending.info = SnapshotInfo{through, bytes->size(),
+                                  image->record.meta.code_dimension,
+                                  image->record.meta.encoder_version};
+      pending.image = *std::move(bytes);
+    }
+  }
+  if (!status.ok()) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                           << "\": no snapshot through entry " << through
+                           << ": " << status;
+    return;
+  }
+  result.snapshot = through;
+  absl::MutexLock lock(&pending_mu_);
+  pending_[std::string(fleet_id)] = std::move(pending);
 }
 
 absl::StatusOr<StepResult> Materialiser::CatchUp(std::string_view fleet_id) {

@@ -2,7 +2,10 @@
 // fleet while it holds the fleet's lease, and applies the fleet's log, in
 // order, to its own MemoryEngine, each upload stored with its entry's
 // sequence (MemoryEngine::LogPosition); a new owner, or one restarted,
-// resumes after the position its own store holds. Uploads are idempotent
+// resumes after the position its own store holds, or restores the fleet's
+// latest snapshot first when that is far ahead of it. The owner stores a
+// snapshot every options.snapshot_every entries and trims the log it
+// covers. Uploads are idempotent
 // by (robot_id, seq) and consolidation is seeded per segment, so any
 // replica that applies the same log reaches the same memory, and entries
 // applied again change nothing.
@@ -25,6 +28,7 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <thread>
 
 #include "absl/base/thread_annotations.h"
 #include "absl/status/status.h"
@@ -47,6 +51,17 @@ struct MaterialiserOptions {
   // time-to-live (a third of it): entries are applied only within this
   // time of a successful renewal.
   absl::Duration renew_interval = absl::ZeroDuration();
+  // Snapshots (with a SnapshotStore): the owner stores one of a fleet once
+  // this many log entries were applied since the fleet's latest (0: never).
+  uint64_t snapshot_every = 1000;
+  // A replica taking a fleet restores its latest snapshot, instead of
+  // applying the entries it covers, when it covers at least this many more
+  // entries than the replica's own store holds, and always when the log no
+  // longer holds them.
+  uint64_t restore_after = 256;
+  // Once a snapshot is stored, the log entries it covers are trimmed
+  // (FleetLog::Trim), so that logs do not grow without bound.
+  bool trim_log = true;
 };
 
 // What one step did for a fleet.
@@ -54,6 +69,12 @@ struct StepResult {
   uint64_t applied = 0;   // entries applied in this step
   uint64_t position = 0;  // the last sequence applied so far
   uint64_t revision = 0;  // the lease's revision the step ran under
+  // The step began by restoring the fleet from a snapshot through this
+  // entry (0: it did not).
+  uint64_t restored = 0;
+  // The step took a snapshot through this entry, for the writer to store
+  // (0: it did not).
+  uint64_t snapshot = 0;
 };
 
 // The entry an upload becomes, and its id: the robot and its seq range
@@ -97,16 +118,22 @@ struct CallOutcome {
 };
 
 // The shape every upload to the fleet must match: its first upload's (the
-// first entry of its log), whichever replica applies it. nullopt for a
-// fleet without a log.
+// first entry of its log, or its latest snapshot's once that entry may be
+// trimmed), whichever replica applies it. nullopt for a fleet without a
+// log. `snapshots` may be null.
 absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
-    FleetLog& log, std::string_view fleet_id);
+    FleetLog& log, SnapshotStore* snapshots, std::string_view fleet_id);
 
 class Materialiser {
  public:
-  // `log`, `leases` and `engine` must outlive it.
+  // `log`, `leases`, `snapshots` and `engine` must outlive it;
+  // `snapshots` may be null (no snapshots: new owners replay whole logs).
   Materialiser(MaterialiserOptions options, FleetLog* log, LeaseTable* leases,
-               engine::MemoryEngine* engine);
+               SnapshotStore* snapshots, engine::MemoryEngine* engine);
+  // Ends the snapshot writer after the snapshot it is storing, if any.
+  ~Materialiser();
+  Materialiser(const Materialiser&) = delete;
+  Materialiser& operator=(const Materialiser&) = delete;
 
   // Takes or renews the fleet's lease, then applies up to options.batch
   // entries after the last one applied. FAILED_PRECONDITION when another
@@ -138,6 +165,10 @@ class Materialiser {
   // The fleets it holds and the last sequence applied of each.
   std::vector<std::pair<std::string, uint64_t>> Positions() const;
 
+  // Returns once every snapshot taken so far is stored (or failed) and its
+  // log trimmed.
+  void WaitForSnapshots();
+
   // Gives the fleet's lease up (if held) and forgets its position.
   absl::Status Release(std::string_view fleet_id);
   // The lease held on the fleet, if any.
@@ -148,7 +179,33 @@ class Materialiser {
     Lease lease;
     absl::Time renewed_at;  // of `lease`
     uint64_t position = 0;  // last sequence applied
+    uint64_t snapshot = 0;  // the sequence the latest snapshot covers
+    uint64_t restored = 0;  // restored through this at acquisition (or 0)
   };
+  // At acquisition, with the lease held: restores the fleet's latest
+  // snapshot if it covers enough more than `owned.position` (or the log no
+  // longer holds the entries after it); learns the latest's sequence.
+  absl::Status RestoreIfBehind(std::string_view fleet_id, Owned& owned);
+  // Takes a snapshot through `owned.position` if snapshot_every entries
+  // were applied since the latest: the fleet's image is read here, between
+  // two entries, and stored by the writer thread (then the log is trimmed),
+  // so that a slow or unavailable NATS does not hold up the steps and the
+  // lease renewals. Failures are logged (the log keeps its entries).
+  void SnapshotIfDue(std::string_view fleet_id, Owned& owned,
+                     StepResult& result);
+  // A snapshot read and waiting for the writer.
+  struct Pending {
+    SnapshotInfo info;
+    std::string image;
+  };
+  void WriteSnapshots();
+  bool HasWork() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(pending_mu_) {
+    return stopping_ || !pending_.empty();
+  }
+  bool Idle() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(pending_mu_) {
+    return stopping_ || (pending_.empty() && !writing_);
+  }
+  void Store(const std::string& fleet_id, const Pending& pending);
   // Applies `entry`; its outcome goes to `outcome` when the entry is
   // `capture`'s.
   absl::Status Apply(std::string_view fleet_id, const LogEntry& entry,
@@ -171,10 +228,20 @@ class Materialiser {
   const MaterialiserOptions options_;
   FleetLog* const log_;
   LeaseTable* const leases_;
+  SnapshotStore* const snapshots_;
   engine::MemoryEngine* const engine_;
   mutable absl::Mutex mu_;
   std::map<std::string, Owned, std::less<>> owned_ ABSL_GUARDED_BY(mu_);
   uint64_t calls_ ABSL_GUARDED_BY(mu_) = 0;  // for unique call entry ids
+
+  // The snapshot writer: at most one snapshot per fleet waits (a newer one
+  // replaces it).
+  absl::Mutex pending_mu_;
+  std::map<std::string, Pending, std::less<>> pending_
+      ABSL_GUARDED_BY(pending_mu_);
+  bool writing_ ABSL_GUARDED_BY(pending_mu_) = false;
+  bool stopping_ ABSL_GUARDED_BY(pending_mu_) = false;
+  std::thread writer_;
 };
 
 }  // namespace fleetmem::cluster

@@ -16,6 +16,7 @@
 #include "gtest/gtest.h"
 #include "services/cluster/cluster_test_util.h"
 #include "services/cluster/nats_fixture.h"
+#include "services/storage/fleet_image.h"
 
 namespace fleetmem::cluster {
 namespace {
@@ -61,9 +62,9 @@ TEST_F(MaterialiserTest, ReplicasReachTheEmbeddedModesMemoryAndFailOver) {
   std::unique_ptr<NatsFleetLog> log_b = Connect();
   auto materialiser_a = std::make_unique<Materialiser>(
       MaterialiserOptions{.replica_id = "replica-a", .batch = 7}, log.get(),
-      log.get(), a.engine.get());
+      log.get(), log.get(), a.engine.get());
   Materialiser materialiser_b({.replica_id = "replica-b"}, log_b.get(),
-                              log_b.get(), b.engine.get());
+                              log_b.get(), log_b.get(), b.engine.get());
   absl::StatusOr<StepResult> caught_up = materialiser_a->CatchUp(fleet);
   ASSERT_TRUE(caught_up.ok()) << caught_up.status();
   EXPECT_EQ(caught_up->position, uploads.size() + 1);
@@ -110,7 +111,7 @@ TEST_F(MaterialiserTest, ARestartedOwnerResumesAfterItsStoredPosition) {
   AppendUploads(*log, fleet, {uploads[0], uploads[1], uploads[2]});
   {
     Materialiser before({.replica_id = "replica-a"}, log.get(), log.get(),
-                        a.engine.get());
+                        log.get(), a.engine.get());
     absl::StatusOr<StepResult> done = before.CatchUp(fleet);
     ASSERT_TRUE(done.ok()) << done.status();
     EXPECT_EQ(done->applied, 3u);
@@ -126,7 +127,7 @@ TEST_F(MaterialiserTest, ARestartedOwnerResumesAfterItsStoredPosition) {
   EXPECT_EQ(*a.engine->LogPosition(fleet), 3u);
   AppendUploads(*log, fleet, {uploads[3]});
   Materialiser after({.replica_id = "replica-a"}, log.get(), log.get(),
-                     a.engine.get());
+                     log.get(), a.engine.get());
   absl::StatusOr<StepResult> resumed = after.CatchUp(fleet);
   ASSERT_TRUE(resumed.ok()) << resumed.status();
   EXPECT_EQ(resumed->applied, 1u);
@@ -150,7 +151,7 @@ TEST_F(MaterialiserTest, AnEntryTheMemoryRefusesIsSkippedAlike) {
   }
   Replica a;
   Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
-                            a.engine.get());
+                            log.get(), a.engine.get());
   absl::StatusOr<StepResult> done = materialiser.CatchUp(fleet);
   ASSERT_TRUE(done.ok()) << done.status();
   EXPECT_EQ(done->position, 3u);
@@ -179,7 +180,7 @@ TEST_F(MaterialiserTest, AnEntryRefusedForWantOfRoomIsNotPassed) {
       });
   ASSERT_TRUE(engine.ok()) << engine.status();
   Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
-                            engine->get());
+                            log.get(), engine->get());
   for (int attempt = 0; attempt < 2; ++attempt) {
     absl::StatusOr<StepResult> step = materialiser.Step(fleet);
     EXPECT_EQ(step.status().code(), absl::StatusCode::kResourceExhausted);
@@ -233,7 +234,7 @@ TEST_F(MaterialiserTest, IngestCutsEntriesPerRobotAndSizeAndRetriesAreFree) {
     ASSERT_TRUE(embedded.engine->Upload(fleet, batch).ok());
   }
   Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
-                            a.engine.get());
+                            log.get(), a.engine.get());
   ASSERT_TRUE(materialiser.CatchUp(fleet).ok());
   ExpectSameState(StateOf(*a.engine, fleet), StateOf(*embedded.engine, fleet));
 }
@@ -264,9 +265,9 @@ TEST_F(MaterialiserTest, CallsGoThroughTheLogAndEveryReplicaAppliesThemAlike) {
   AppendUploads(*log, fleet, uploads);
   Replica a, b, c;
   Materialiser owner({.replica_id = "replica-a"}, log.get(), log.get(),
-                     a.engine.get());
+                     log.get(), a.engine.get());
   Materialiser other({.replica_id = "replica-b"}, log.get(), log.get(),
-                     b.engine.get());
+                     log.get(), b.engine.get());
   EXPECT_EQ(owner.Consolidate(fleet).status().code(),
             absl::StatusCode::kFailedPrecondition);  // not taken yet
   // Pending traces for Consolidate: r1's 61..65 (a segment is 20).
@@ -309,11 +310,126 @@ TEST_F(MaterialiserTest, CallsGoThroughTheLogAndEveryReplicaAppliesThemAlike) {
   const State want = StateOf(*a.engine, fleet);
   ASSERT_TRUE(owner.Release(fleet).ok());
   Materialiser rebuilt({.replica_id = "replica-c"}, log.get(), log.get(),
-                       c.engine.get());
+                       log.get(), c.engine.get());
   absl::StatusOr<StepResult> done = rebuilt.CatchUp(fleet);
   ASSERT_TRUE(done.ok()) << done.status();
   EXPECT_EQ(done->position, uploads.size() + 6);
   ExpectSameState(StateOf(*c.engine, fleet), want);
+}
+
+// Snapshots: the owner stores one every `snapshot_every` entries and trims
+// the log it covers; a replica with an empty store, and one whose store is
+// behind the trimmed head, restore the latest and apply only the tail, and
+// reach the owner's state exactly. The fleet's shape survives its first
+// entry's trimming.
+TEST_F(MaterialiserTest, SnapshotsLetNewOwnersSkipTheTrimmedLog) {
+  const std::string fleet = "fleet-snap";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  const std::vector<std::vector<core::MemoryTrace>> head(uploads.begin(),
+                                                         uploads.begin() + 9);
+  const std::vector<std::vector<core::MemoryTrace>> tail(uploads.begin() + 9,
+                                                         uploads.end());
+  const MaterialiserOptions options{.replica_id = "replica-a",
+                                    .batch = 5,
+                                    .snapshot_every = 8,
+                                    .restore_after = 1};
+  Replica a, b, c;
+  // B holds the first three uploads, applied before (its own position).
+  for (uint64_t i = 0; i < 3; ++i) {
+    ASSERT_TRUE(b.engine->Upload(fleet, uploads[i], i + 1).ok());
+  }
+  Materialiser owner(options, log.get(), log.get(), log.get(), a.engine.get());
+  AppendUploads(*log, fleet, head);
+  ASSERT_TRUE(owner.CatchUp(fleet).ok());
+  owner.WaitForSnapshots();
+  absl::StatusOr<std::optional<SnapshotInfo>> first = log->Latest(fleet);
+  ASSERT_TRUE(first.ok() && first->has_value()) << first.status();
+  EXPECT_EQ((*first)->sequence, 9u);  // the step that passed 8
+  EXPECT_EQ((*first)->code_dimension, 8u);
+  EXPECT_EQ(*log->FirstSequence(fleet), 10u);  // trimmed through it
+  // An older snapshot never replaces a newer one.
+  EXPECT_EQ(log->Put(fleet, SnapshotInfo{5, 1, 8, "enc-v1"}, "x").code(),
+            absl::StatusCode::kFailedPrecondition);
+
+  AppendUploads(*log, fleet, tail);
+  ASSERT_TRUE(owner.CatchUp(fleet).ok());
+  ASSERT_TRUE(owner.SampleReplay(fleet, "r2", 6, "req-9").ok());
+  ASSERT_TRUE(owner.Consolidate(fleet).ok());
+  owner.WaitForSnapshots();
+  const State want = StateOf(*a.engine, fleet);
+  ASSERT_GT(want.stats.clusters_forgotten, 0u);
+  absl::StatusOr<std::optional<SnapshotInfo>> latest = log->Latest(fleet);
+  ASSERT_TRUE(latest.ok() && latest->has_value());
+  // 9 + 8 = 17 passed at 18; the sample (19) and Consolidate (20) follow.
+  EXPECT_EQ((*latest)->sequence, 18u);
+  EXPECT_EQ(*log->FirstSequence(fleet), (*latest)->sequence + 1);
+
+  absl::StatusOr<std::optional<engine::FleetShape>> shape =
+      FleetShapeFromLog(*log, log.get(), fleet);
+  ASSERT_TRUE(shape.ok() && shape->has_value()) << shape.status();
+  EXPECT_EQ((*shape)->code_dimension, 8u);
+  EXPECT_EQ((*shape)->encoder_version, "enc-v1");
+
+  ASSERT_TRUE(owner.Release(fleet).ok());
+  for (Replica* replica : {&b, &c}) {
+    Materialiser taker({.replica_id = "replica-t", .restore_after = 1},
+                       log.get(), log.get(), log.get(), replica->engine.get());
+    absl::StatusOr<StepResult> step = taker.Step(fleet);
+    ASSERT_TRUE(step.ok()) << step.status();
+    EXPECT_EQ(step->restored, (*latest)->sequence);
+    ASSERT_TRUE(taker.CatchUp(fleet).ok());
+    ExpectSameState(StateOf(*replica->engine, fleet), want);
+    EXPECT_EQ(*replica->engine->LogPosition(fleet),
+              *a.engine->LogPosition(fleet));
+    ASSERT_TRUE(taker.Release(fleet).ok());
+  }
+}
+
+// A previous owner's snapshot writer may trim the log after another replica
+// took the fleet and began applying it: that replica's next read finds its
+// entries gone and restores the snapshot instead of passing them.
+TEST_F(MaterialiserTest, ALogTrimmedUnderANewOwnerIsRestoredNotSkipped) {
+  const std::string fleet = "fleet-late";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  const std::vector<std::vector<core::MemoryTrace>> first(uploads.begin(),
+                                                          uploads.begin() + 6);
+  AppendUploads(*log, fleet, first);
+  Replica a, d;
+  Materialiser old_owner({.replica_id = "replica-a", .snapshot_every = 0},
+                         log.get(), log.get(), log.get(), a.engine.get());
+  ASSERT_TRUE(old_owner.CatchUp(fleet).ok());
+  const State want = StateOf(*a.engine, fleet);
+  ASSERT_TRUE(old_owner.Release(fleet).ok());
+
+  Materialiser taker({.replica_id = "replica-d",
+                      .batch = 2,
+                      .snapshot_every = 0,
+                      .restore_after = 1000},
+                     log.get(), log.get(), log.get(), d.engine.get());
+  absl::StatusOr<StepResult> step = taker.Step(fleet);
+  ASSERT_TRUE(step.ok()) << step.status();
+  ASSERT_EQ(step->position, 2u);
+  // The old owner's late snapshot through 6, and its trim.
+  absl::StatusOr<engine::FleetImage> image = a.engine->ExportFleet(fleet, 6);
+  ASSERT_TRUE(image.ok()) << image.status();
+  absl::StatusOr<std::string> bytes = storage::EncodeFleetImage(*image);
+  ASSERT_TRUE(bytes.ok());
+  ASSERT_TRUE(
+      log->Put(fleet, SnapshotInfo{6, bytes->size(), 8, "enc-v1"}, *bytes)
+          .ok());
+  ASSERT_TRUE(log->Trim(fleet, 7).ok());
+  EXPECT_EQ(log->Read(fleet, 3, 1).status().code(),
+            absl::StatusCode::kOutOfRange);
+
+  step = taker.Step(fleet);
+  ASSERT_TRUE(step.ok()) << step.status();
+  EXPECT_EQ(step->restored, 6u);
+  EXPECT_EQ(step->position, 6u);
+  ExpectSameState(StateOf(*d.engine, fleet), want);
 }
 
 }  // namespace

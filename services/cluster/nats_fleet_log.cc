@@ -8,13 +8,16 @@
 #include <utility>
 
 #include "absl/base/thread_annotations.h"
+#include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/synchronization/mutex.h"
+#include "absl/time/clock.h"
 #include "nats/nats.h"
+#include "services/cluster/log_record.pb.h"
 #include "services/core/absl_view.h"
 
 namespace fleetmem::cluster {
@@ -52,6 +55,10 @@ absl::Status FromNats(natsStatus status, int code, std::string_view what) {
 int64_t Nanoseconds(absl::Duration d) { return absl::ToInt64Nanoseconds(d); }
 int64_t Milliseconds(absl::Duration d) { return absl::ToInt64Milliseconds(d); }
 
+std::string SnapshotSubject(std::string_view fleet_id) {
+  return absl::StrCat("fleetmem.snap.", Hash(fleet_id));
+}
+
 }  // namespace
 
 std::string FleetStreamName(std::string_view fleet_id) {
@@ -62,6 +69,9 @@ std::string FleetSubject(std::string_view fleet_id) {
 }
 std::string FleetLeaseKey(std::string_view fleet_id) {
   return absl::StrCat("fleet.", Hash(fleet_id));
+}
+std::string SnapshotStreamName(std::string_view fleet_id) {
+  return absl::StrCat("FLEETMEM_SNAP_", Hash(fleet_id));
 }
 
 absl::Status ValidateNatsOptions(const NatsOptions& options) {
@@ -115,7 +125,10 @@ struct NatsFleetLog::Handles {
   jsCtx* js = nullptr;
   kvStore* kv = nullptr;
   absl::Mutex mu;
-  absl::flat_hash_set<std::string> streams ABSL_GUARDED_BY(mu);  // made
+  absl::flat_hash_set<std::string> streams ABSL_GUARDED_BY(mu);  // by name
+  // The fleet id of each log stream seen (its description).
+  absl::flat_hash_map<std::string, std::string> fleet_of_log
+      ABSL_GUARDED_BY(mu);
 };
 
 NatsFleetLog::NatsFleetLog(NatsOptions options,
@@ -205,12 +218,24 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
 }
 
 absl::Status NatsFleetLog::EnsureStream(std::string_view fleet_id) {
+  return EnsureFleetStream(fleet_id, FleetStreamName(fleet_id),
+                           FleetSubject(fleet_id), /*is_log=*/true);
+}
+
+absl::Status NatsFleetLog::EnsureSnapshotStream(std::string_view fleet_id) {
+  return EnsureFleetStream(fleet_id, SnapshotStreamName(fleet_id),
+                           absl::StrCat(SnapshotSubject(fleet_id), ".*"),
+                           /*is_log=*/false);
+}
+
+absl::Status NatsFleetLog::EnsureFleetStream(std::string_view fleet_id,
+                                             const std::string& name,
+                                             const std::string& subject_pattern,
+                                             bool is_log) {
   {
     absl::MutexLock lock(&handles_->mu);
-    if (handles_->streams.contains(V(fleet_id))) return absl::OkStatus();
+    if (handles_->streams.contains(name)) return absl::OkStatus();
   }
-  const std::string name = FleetStreamName(fleet_id);
-  const std::string subject = FleetSubject(fleet_id);
   const std::string description(fleet_id);
   jsStreamInfo* info = nullptr;
   jsErrCode code = static_cast<jsErrCode>(0);
@@ -219,7 +244,7 @@ absl::Status NatsFleetLog::EnsureStream(std::string_view fleet_id) {
   if (s == NATS_NOT_FOUND || code == JSStreamNotFoundErr) {
     jsStreamConfig config;
     jsStreamConfig_Init(&config);
-    const char* subjects[] = {subject.c_str()};
+    const char* subjects[] = {subject_pattern.c_str()};
     config.Name = name.c_str();
     config.Description = description.c_str();
     config.Subjects = subjects;
@@ -227,7 +252,8 @@ absl::Status NatsFleetLog::EnsureStream(std::string_view fleet_id) {
     config.Storage = js_FileStorage;
     config.Replicas = options_.replicas;
     config.Duplicates = Nanoseconds(options_.duplicate_window);
-    config.DenyDelete = true;  // a log loses no entry in its middle
+    // A log loses no entry in its middle (Trim purges its head only).
+    config.DenyDelete = is_log;
     code = static_cast<jsErrCode>(0);
     s = js_AddStream(&info, handles_->js, &config, nullptr, &code);
     if (s != NATS_OK && code == JSStreamNameExistErr) {  // a race: re-read
@@ -236,9 +262,10 @@ absl::Status NatsFleetLog::EnsureStream(std::string_view fleet_id) {
     }
   }
   if (s != NATS_OK) {
-    return FromNats(s, code,
-                    absl::StrCat("cluster: the log of fleet \"", V(fleet_id),
-                                 "\" (stream ", name, ")"));
+    return FromNats(
+        s, code,
+        absl::StrCat("cluster: the ", is_log ? "log" : "snapshots",
+                     " of fleet \"", V(fleet_id), "\" (stream ", name, ")"));
   }
   const bool ours = info != nullptr && info->Config != nullptr &&
                     info->Config->Description != nullptr &&
@@ -246,11 +273,11 @@ absl::Status NatsFleetLog::EnsureStream(std::string_view fleet_id) {
   jsStreamInfo_Destroy(info);
   if (!ours) {
     return absl::FailedPreconditionError(
-        absl::StrCat("cluster: stream ", name, " is not the log of fleet \"",
-                     V(fleet_id), "\" (another fleet id with the same hash)"));
+        absl::StrCat("cluster: stream ", name, " is not fleet \"", V(fleet_id),
+                     "\"'s (another fleet id with the same hash)"));
   }
   absl::MutexLock lock(&handles_->mu);
-  handles_->streams.insert(description);
+  handles_->streams.insert(name);
   return absl::OkStatus();
 }
 
@@ -292,43 +319,138 @@ absl::StatusOr<Appended> NatsFleetLog::Append(std::string_view fleet_id,
   return appended;
 }
 
-absl::StatusOr<uint64_t> NatsFleetLog::LastSequence(std::string_view fleet_id) {
+absl::StatusOr<std::pair<uint64_t, uint64_t>> NatsFleetLog::Bounds(
+    std::string_view fleet_id) {
   jsStreamInfo* info = nullptr;
   jsErrCode code = static_cast<jsErrCode>(0);
   const std::string name = FleetStreamName(fleet_id);
   const natsStatus s =
       js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code);
-  if (s == NATS_NOT_FOUND || code == JSStreamNotFoundErr) return 0;
+  if (s == NATS_NOT_FOUND || code == JSStreamNotFoundErr) {
+    return std::pair<uint64_t, uint64_t>(0, 0);
+  }
   if (s != NATS_OK) {
     return FromNats(
         s, code,
         absl::StrCat("cluster: the log of fleet \"", V(fleet_id), "\""));
   }
+  const std::pair<uint64_t, uint64_t> bounds(info->State.FirstSeq,
+                                             info->State.LastSeq);
+  jsStreamInfo_Destroy(info);
+  return bounds;
+}
+
+absl::StatusOr<uint64_t> NatsFleetLog::LastSequence(std::string_view fleet_id) {
+  absl::StatusOr<std::pair<uint64_t, uint64_t>> bounds = Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
+  return bounds->second;
+}
+
+absl::StatusOr<uint64_t> NatsFleetLog::FirstSequence(
+    std::string_view fleet_id) {
+  absl::StatusOr<std::pair<uint64_t, uint64_t>> bounds = Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
+  // JetStream reports 0 for a stream that never held a message.
+  if (bounds->first == 0 && bounds->second == 0) return 1;
+  return bounds->first;
+}
+
+absl::Status NatsFleetLog::PurgeBelow(const std::string& stream,
+                                      uint64_t sequence) {
+  jsStreamInfo* info = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  natsStatus s =
+      js_GetStreamInfo(&info, handles_->js, stream.c_str(), nullptr, &code);
+  if (s != NATS_OK) {
+    return FromNats(s, code, absl::StrCat("cluster: stream ", stream));
+  }
+  const uint64_t first = info->State.FirstSeq;
   const uint64_t last = info->State.LastSeq;
   jsStreamInfo_Destroy(info);
-  return last;
+  // Nothing below it, or past the end: JetStream 2.9 purges every message
+  // when asked to purge below its first sequence (seen with 1).
+  if (sequence <= first || sequence > last + 1) return absl::OkStatus();
+  jsOptions options;
+  jsOptions_Init(&options);
+  options.Wait = Milliseconds(options_.timeout);
+  options.Stream.Purge.Sequence = sequence;  // up to, not including
+  code = static_cast<jsErrCode>(0);
+  s = js_PurgeStream(handles_->js, stream.c_str(), &options, &code);
+  if (s != NATS_OK) {
+    return FromNats(
+        s, code,
+        absl::StrCat("cluster: purging stream ", stream, " below ", sequence));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status NatsFleetLog::Trim(std::string_view fleet_id, uint64_t sequence) {
+  absl::Status status = PurgeBelow(FleetStreamName(fleet_id), sequence);
+  if (status.ok()) return status;
+  return absl::Status(status.code(),
+                      absl::StrCat("trimming the log of fleet \"", V(fleet_id),
+                                   "\": ", status.message()));
 }
 
 absl::StatusOr<std::vector<std::string>> NatsFleetLog::Fleets() {
-  jsStreamInfoList* list = nullptr;
+  // Names only (the meta leader answers them alone; listing every stream's
+  // info waits on each stream's leader, and times out while one is being
+  // elected); a log's fleet id is read from its description once.
+  jsStreamNamesList* list = nullptr;
   jsErrCode code = static_cast<jsErrCode>(0);
-  const natsStatus s = js_Streams(&list, handles_->js, nullptr, &code);
+  const natsStatus s = js_StreamNames(&list, handles_->js, nullptr, &code);
   std::vector<std::string> fleets;
   if (s == NATS_NOT_FOUND) return fleets;  // no stream at all
-  if (s != NATS_OK) return FromNats(s, code, "cluster: listing the logs");
-  for (int i = 0; i < list->Count; ++i) {
-    const jsStreamInfo* info = list->List[i];
-    if (info == nullptr || info->Config == nullptr ||
-        info->Config->Name == nullptr || info->Config->Description == nullptr) {
-      continue;
+  if (s != NATS_OK) {
+    // JetStream electing its meta leader (seconds after a server is lost):
+    // the logs seen so far (a log is never deleted by fleetmem).
+    absl::MutexLock lock(&handles_->mu);
+    if (!Unreachable(s) || handles_->fleet_of_log.empty()) {
+      return FromNats(s, code, "cluster: listing the logs");
     }
-    // Only the streams this module made: the name is the description's.
-    const std::string description = info->Config->Description;
-    if (FleetStreamName(description) == info->Config->Name) {
-      fleets.push_back(description);
+    for (const auto& [name, fleet] : handles_->fleet_of_log) {
+      fleets.push_back(fleet);
+    }
+    std::sort(fleets.begin(), fleets.end());
+    return fleets;
+  }
+  std::vector<std::string> names;
+  const size_t log_name_size = FleetStreamName("").size();
+  for (int i = 0; i < list->Count; ++i) {
+    const std::string name = list->List[i] != nullptr ? list->List[i] : "";
+    // Logs only: FLEETMEM_ and 16 hex digits (not FLEETMEM_SNAP_...).
+    if (name.size() == log_name_size && absl::StartsWith(name, "FLEETMEM_") &&
+        name.find_first_not_of("0123456789abcdef", 9) == std::string::npos) {
+      names.push_back(name);
     }
   }
-  jsStreamInfoList_Destroy(list);
+  jsStreamNamesList_Destroy(list);
+  for (const std::string& name : names) {
+    {
+      absl::MutexLock lock(&handles_->mu);
+      auto known = handles_->fleet_of_log.find(name);
+      if (known != handles_->fleet_of_log.end()) {
+        fleets.push_back(known->second);
+        continue;
+      }
+    }
+    jsStreamInfo* info = nullptr;
+    code = static_cast<jsErrCode>(0);
+    if (js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code) !=
+        NATS_OK) {
+      continue;  // its leader is being elected: next round
+    }
+    const std::string description =
+        info->Config != nullptr && info->Config->Description != nullptr
+            ? info->Config->Description
+            : "";
+    jsStreamInfo_Destroy(info);
+    // Only the streams this module made: the name is the description's.
+    if (description.empty() || FleetStreamName(description) != name) continue;
+    absl::MutexLock lock(&handles_->mu);
+    handles_->fleet_of_log[name] = description;
+    fleets.push_back(description);
+  }
   std::sort(fleets.begin(), fleets.end());
   return fleets;
 }
@@ -338,8 +460,16 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
   if (from == 0) {
     return absl::InvalidArgumentError("cluster: log sequences start at 1");
   }
-  absl::StatusOr<uint64_t> last = LastSequence(fleet_id);
-  if (!last.ok()) return last.status();
+  absl::StatusOr<std::pair<uint64_t, uint64_t>> bounds = Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
+  const uint64_t* last = &bounds->second;
+  // Entries before the first held were trimmed (a snapshot holds them) or
+  // never stored (a failed proposal): never passed silently.
+  if (bounds->second > 0 && from < bounds->first) {
+    return absl::OutOfRangeError(absl::StrCat(
+        "cluster: the log of fleet \"", V(fleet_id), "\" starts at entry ",
+        bounds->first, ", after entry ", from));
+  }
   // One get per entry from the stream's leader (JetStream's STREAM.MSG.GET:
   // it sees every acknowledged entry) up to the last sequence. No consumer:
   // creating one per read costs a round of the cluster's consensus. A
@@ -466,6 +596,206 @@ absl::StatusOr<std::optional<Lease>> NatsFleetLog::Holder(
   kvEntry_Destroy(entry);
   if (lease.owner.empty()) return std::optional<Lease>();  // released
   return std::optional<Lease>(std::move(lease));
+}
+
+struct NatsFleetLog::LatestMeta {
+  cluster::v1::SnapshotMeta meta;
+  uint64_t stream_sequence = 0;
+};
+
+absl::StatusOr<std::optional<NatsFleetLog::LatestMeta>> NatsFleetLog::ReadMeta(
+    std::string_view fleet_id) {
+  const std::string stream = SnapshotStreamName(fleet_id);
+  const std::string subject = absl::StrCat(SnapshotSubject(fleet_id), ".meta");
+  natsMsg* msg = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  const natsStatus s = js_GetLastMsg(&msg, handles_->js, stream.c_str(),
+                                     subject.c_str(), nullptr, &code);
+  if (s == NATS_NOT_FOUND || code == JSNoMessageFoundErr ||
+      code == JSStreamNotFoundErr) {
+    return std::optional<LatestMeta>();
+  }
+  if (s != NATS_OK) {
+    return FromNats(
+        s, code,
+        absl::StrCat("cluster: the snapshot of fleet \"", V(fleet_id), "\""));
+  }
+  LatestMeta latest;
+  latest.stream_sequence = natsMsg_GetSequence(msg);
+  const bool parsed = latest.meta.ParseFromArray(natsMsg_GetData(msg),
+                                                 natsMsg_GetDataLength(msg));
+  natsMsg_Destroy(msg);
+  if (!parsed) {
+    return absl::DataLossError(
+        absl::StrCat("cluster: the snapshot description of fleet \"",
+                     V(fleet_id), "\" does not parse"));
+  }
+  return std::optional<LatestMeta>(std::move(latest));
+}
+
+absl::Status NatsFleetLog::Put(std::string_view fleet_id,
+                               const SnapshotInfo& info,
+                               std::string_view image) {
+  if (absl::Status ready = EnsureSnapshotStream(fleet_id); !ready.ok()) {
+    return ready;
+  }
+  absl::StatusOr<std::optional<LatestMeta>> before = ReadMeta(fleet_id);
+  if (!before.ok() && !absl::IsDataLoss(before.status())) {
+    return before.status();
+  }
+  const bool has_before = before.ok() && before->has_value();
+  if (has_before && (*before)->meta.sequence() >= info.sequence) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "cluster: fleet \"", V(fleet_id), "\" has a snapshot through ",
+        (*before)->meta.sequence(), " already"));
+  }
+  const std::string stream = SnapshotStreamName(fleet_id);
+  const std::string chunk_subject =
+      absl::StrCat(SnapshotSubject(fleet_id), ".chunk");
+  const std::string meta_subject =
+      absl::StrCat(SnapshotSubject(fleet_id), ".meta");
+  cluster::v1::SnapshotMeta meta;
+  meta.set_sequence(info.sequence);
+  meta.set_bytes(image.size());
+  meta.set_code_dimension(info.code_dimension);
+  meta.set_encoder_version(info.encoder_version);
+  meta.set_id(absl::StrCat(info.sequence, "-", absl::ToUnixNanos(absl::Now())));
+  meta.set_xxh3(XXH3_64bits(image.data(), image.size()));
+  // Chunks well under NATS's max_payload (1 MiB by default).
+  const int64_t max_payload = natsConnection_GetMaxPayload(handles_->nc);
+  const size_t chunk_bytes = static_cast<size_t>(std::clamp<int64_t>(
+      max_payload > 0 ? max_payload - 4096 : 0, 4096, 512 * 1024));
+  auto publish = [&](const std::string& subject, std::string_view data,
+                     jsPubOptions options, uint64_t* sequence) -> absl::Status {
+    natsMsg* msg = nullptr;
+    natsStatus s = natsMsg_Create(&msg, subject.c_str(), nullptr, data.data(),
+                                  static_cast<int>(data.size()));
+    if (s == NATS_OK) {
+      s = natsMsgHeader_Set(msg, "Fleetmem-Snapshot", meta.id().c_str());
+    }
+    jsPubAck* ack = nullptr;
+    jsErrCode code = static_cast<jsErrCode>(0);
+    if (s == NATS_OK) {
+      s = js_PublishMsg(&ack, handles_->js, msg, &options, &code);
+    }
+    natsMsg_Destroy(msg);
+    if (s != NATS_OK) {
+      if (code == JSStreamWrongLastSequenceErr) {
+        return absl::FailedPreconditionError(
+            absl::StrCat("cluster: another snapshot of fleet \"", V(fleet_id),
+                         "\" was stored meanwhile"));
+      }
+      return FromNats(s, code,
+                      absl::StrCat("cluster: storing a snapshot of fleet \"",
+                                   V(fleet_id), "\""));
+    }
+    *sequence = ack->Sequence;
+    jsPubAck_Destroy(ack);
+    return absl::OkStatus();
+  };
+  jsPubOptions chunk_options;
+  jsPubOptions_Init(&chunk_options);
+  chunk_options.ExpectStream = stream.c_str();
+  chunk_options.MaxWait = Milliseconds(options_.timeout);
+  size_t offset = 0;
+  do {
+    const std::string_view chunk = image.substr(offset, chunk_bytes);
+    uint64_t sequence = 0;
+    if (absl::Status sent =
+            publish(chunk_subject, chunk, chunk_options, &sequence);
+        !sent.ok()) {
+      return sent;
+    }
+    if (meta.chunks() == 0) meta.set_first_chunk(sequence);
+    meta.set_last_chunk(sequence);
+    meta.set_chunks(meta.chunks() + 1);
+    offset += chunk.size();
+  } while (offset < image.size());
+  // The description last, and only over the one read above.
+  jsPubOptions meta_options = chunk_options;
+  if (has_before) {
+    meta_options.ExpectLastSubjectSeq = (*before)->stream_sequence;
+  } else if (before.ok()) {
+    meta_options.ExpectNoMessage = true;
+  }  // else a damaged description: replaced unconditionally
+  uint64_t meta_sequence = 0;
+  if (absl::Status sent = publish(meta_subject, meta.SerializeAsString(),
+                                  meta_options, &meta_sequence);
+      !sent.ok()) {
+    return sent;
+  }
+  // Earlier snapshots (and chunks of failed ones) go.
+  if (absl::Status purged = PurgeBelow(stream, meta.first_chunk());
+      !purged.ok()) {
+    return absl::Status(
+        purged.code(),
+        absl::StrCat(
+            "cluster: the snapshot of fleet \"", V(fleet_id),
+            "\" is stored; dropping the earlier one: ", purged.message()));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::optional<SnapshotInfo>> NatsFleetLog::Latest(
+    std::string_view fleet_id) {
+  absl::StatusOr<std::optional<LatestMeta>> latest = ReadMeta(fleet_id);
+  if (!latest.ok()) return latest.status();
+  if (!latest->has_value()) return std::optional<SnapshotInfo>();
+  const cluster::v1::SnapshotMeta& meta = (*latest)->meta;
+  return std::optional<SnapshotInfo>(SnapshotInfo{meta.sequence(), meta.bytes(),
+                                                  meta.code_dimension(),
+                                                  meta.encoder_version()});
+}
+
+absl::StatusOr<std::optional<std::pair<SnapshotInfo, std::string>>>
+NatsFleetLog::Fetch(std::string_view fleet_id) {
+  absl::StatusOr<std::optional<LatestMeta>> latest = ReadMeta(fleet_id);
+  if (!latest.ok()) return latest.status();
+  if (!latest->has_value()) {
+    return std::optional<std::pair<SnapshotInfo, std::string>>();
+  }
+  const cluster::v1::SnapshotMeta& meta = (*latest)->meta;
+  const std::string stream = SnapshotStreamName(fleet_id);
+  const std::string chunk_subject =
+      absl::StrCat(SnapshotSubject(fleet_id), ".chunk");
+  std::string image;
+  image.reserve(meta.bytes());
+  uint32_t chunks = 0;
+  for (uint64_t sequence = meta.first_chunk();
+       sequence <= meta.last_chunk() && chunks < meta.chunks(); ++sequence) {
+    natsMsg* msg = nullptr;
+    jsErrCode code = static_cast<jsErrCode>(0);
+    const natsStatus s =
+        js_GetMsg(&msg, handles_->js, stream.c_str(), sequence, nullptr, &code);
+    if (s == NATS_NOT_FOUND || code == JSNoMessageFoundErr) continue;
+    if (s != NATS_OK) {
+      return FromNats(s, code,
+                      absl::StrCat("cluster: reading the snapshot of fleet \"",
+                                   V(fleet_id), "\""));
+    }
+    const char* id = nullptr;
+    // Only this snapshot's chunks (another replica's may sit between).
+    if (chunk_subject == natsMsg_GetSubject(msg) &&
+        natsMsgHeader_Get(msg, "Fleetmem-Snapshot", &id) == NATS_OK &&
+        id != nullptr && meta.id() == id) {
+      image.append(natsMsg_GetData(msg), natsMsg_GetDataLength(msg));
+      ++chunks;
+    }
+    natsMsg_Destroy(msg);
+  }
+  if (chunks != meta.chunks() || image.size() != meta.bytes() ||
+      XXH3_64bits(image.data(), image.size()) != meta.xxh3()) {
+    return absl::DataLossError(absl::StrCat(
+        "cluster: the snapshot of fleet \"", V(fleet_id), "\" through entry ",
+        meta.sequence(), " is incomplete or damaged (", chunks, " of ",
+        meta.chunks(), " chunks, ", image.size(), " of ", meta.bytes(),
+        " bytes)"));
+  }
+  return std::optional<std::pair<SnapshotInfo, std::string>>(
+      std::pair<SnapshotInfo, std::string>(
+          SnapshotInfo{meta.sequence(), meta.bytes(), meta.code_dimension(),
+                       meta.encoder_version()},
+          std::move(image)));
 }
 
 }  // namespace fleetmem::cluster

@@ -4,6 +4,12 @@
 //    JetStream's deduplication by message id (Nats-Msg-Id) over
 //    `duplicate_window`; the fleet id is the stream's description, checked
 //    on use, so two ids with one hash cannot share a log;
+//  - each fleet's snapshots are a second stream, FLEETMEM_SNAP_<same>:
+//    an image in chunks on fleetmem.snap.<same>.chunk, then its description
+//    (log_record.proto's SnapshotMeta) on fleetmem.snap.<same>.meta,
+//    published only if the meta subject has not changed since it was read
+//    (so of two replicas storing snapshots at once one wins); the stream is
+//    then purged below the new image's first chunk;
 //  - leases are keys of one key-value bucket whose entries expire after
 //    `lease_ttl` unless renewed: Acquire creates the key (only if absent),
 //    Renew and Release update or delete it only at the revision the lease
@@ -13,7 +19,9 @@
 #define FLEETMEM_SERVICES_CLUSTER_NATS_FLEET_LOG_H_
 
 #include <memory>
+#include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -52,7 +60,9 @@ struct NatsOptions {
 // INVALID_ARGUMENT naming the first bad field.
 absl::Status ValidateNatsOptions(const NatsOptions& options);
 
-class NatsFleetLog final : public FleetLog, public LeaseTable {
+class NatsFleetLog final : public FleetLog,
+                           public LeaseTable,
+                           public SnapshotStore {
  public:
   // Connects and makes the lease bucket if missing. UNAVAILABLE when no
   // server answers; the error of the first failing step otherwise.
@@ -67,7 +77,16 @@ class NatsFleetLog final : public FleetLog, public LeaseTable {
                                              uint64_t from,
                                              size_t max) override;
   absl::StatusOr<uint64_t> LastSequence(std::string_view fleet_id) override;
+  absl::StatusOr<uint64_t> FirstSequence(std::string_view fleet_id) override;
+  absl::Status Trim(std::string_view fleet_id, uint64_t sequence) override;
   absl::StatusOr<std::vector<std::string>> Fleets() override;
+
+  absl::Status Put(std::string_view fleet_id, const SnapshotInfo& info,
+                   std::string_view image) override;
+  absl::StatusOr<std::optional<SnapshotInfo>> Latest(
+      std::string_view fleet_id) override;
+  absl::StatusOr<std::optional<std::pair<SnapshotInfo, std::string>>> Fetch(
+      std::string_view fleet_id) override;
 
   absl::StatusOr<Lease> Acquire(std::string_view fleet_id,
                                 std::string_view owner) override;
@@ -82,6 +101,24 @@ class NatsFleetLog final : public FleetLog, public LeaseTable {
   // Makes the fleet's stream if missing (once per fleet and process);
   // FAILED_PRECONDITION if the stream of its hash holds another fleet.
   absl::Status EnsureStream(std::string_view fleet_id);
+  // The same for the fleet's snapshot stream.
+  absl::Status EnsureSnapshotStream(std::string_view fleet_id);
+  // Makes stream `name` on `subject_pattern` if missing, described by the
+  // fleet id; `is_log` denies deleting single messages.
+  absl::Status EnsureFleetStream(std::string_view fleet_id,
+                                 const std::string& name,
+                                 const std::string& subject_pattern,
+                                 bool is_log);
+  // Removes the messages of `stream` before `sequence` (none if there are
+  // none before it).
+  absl::Status PurgeBelow(const std::string& stream, uint64_t sequence);
+  // The first and last sequence of the fleet's log ({0, 0}: none).
+  absl::StatusOr<std::pair<uint64_t, uint64_t>> Bounds(
+      std::string_view fleet_id);
+  // The latest snapshot's description and the stream sequence of its
+  // message (nullopt: none).
+  struct LatestMeta;
+  absl::StatusOr<std::optional<LatestMeta>> ReadMeta(std::string_view fleet_id);
 
   const NatsOptions options_;
   std::unique_ptr<Handles> handles_;
@@ -91,6 +128,7 @@ class NatsFleetLog final : public FleetLog, public LeaseTable {
 std::string FleetStreamName(std::string_view fleet_id);
 std::string FleetSubject(std::string_view fleet_id);
 std::string FleetLeaseKey(std::string_view fleet_id);
+std::string SnapshotStreamName(std::string_view fleet_id);
 
 }  // namespace fleetmem::cluster
 

@@ -172,6 +172,39 @@ std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
   return out;
 }
 
+std::vector<MemoryTrace> StaticMemory::SampleForReplayInMemoryOrder(
+    size_t count, std::mt19937_64& rng) {
+  std::vector<MemoryTrace*> order;
+  std::vector<double> weights;
+  order.reserve(trace_count_);
+  weights.reserve(trace_count_);
+  for (auto& [id, cluster] : clusters_) {
+    for (MemoryTrace& trace : cluster.traces) {
+      order.push_back(&trace);
+      weights.push_back(ReplayWeight(trace.reward, trace.replay_count,
+                                     options_.replay_decay,
+                                     options_.reward_floor));
+    }
+  }
+  std::vector<MemoryTrace> out;
+  const std::vector<size_t> drawn =
+      SampleWithoutReplacement(weights, count, rng);
+  out.reserve(drawn.size());
+  for (size_t index : drawn) {
+    MemoryTrace& trace = *order[index];
+    if (trace.replay_count < std::numeric_limits<uint32_t>::max()) {
+      ++trace.replay_count;
+    }
+    const std::optional<PackedTraceKey> packed =
+        robots_.Find(trace.robot_id, trace.seq);
+    replay_.Set(location_.at(*packed).slot,
+                ReplayWeight(trace.reward, trace.replay_count,
+                             options_.replay_decay, options_.reward_floor));
+    out.push_back(trace);
+  }
+  return out;
+}
+
 const MemoryTrace* StaticMemory::Find(const TraceKey& key) const {
   const std::optional<PackedTraceKey> packed =
       robots_.Find(key.robot_id, key.seq);

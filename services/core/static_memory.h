@@ -109,6 +109,14 @@ class StaticMemory {
   // (with the new counts), in draw order. O(count log trace_count()): the
   // weights live in a sum tree kept up to date by every change.
   std::vector<MemoryTrace> SampleForReplay(size_t count, std::mt19937_64& rng);
+  // The same draw over the traces in an order that depends only on what
+  // memory holds (clusters by id, each cluster's traces in order), not on
+  // the history of the sampler's slots: memories that hold the same traces
+  // draw the same ones from equal generators, however each was built (one
+  // consolidated live, another restored). Distributed mode draws this way.
+  // O(trace_count() log count) (SampleWithoutReplacement).
+  std::vector<MemoryTrace> SampleForReplayInMemoryOrder(size_t count,
+                                                        std::mt19937_64& rng);
 
   // The trace with this key, or nullptr. Valid until the next mutation.
   const MemoryTrace* Find(const TraceKey& key) const;

@@ -391,6 +391,44 @@ TEST(StaticMemoryTest, SampleForReplayIncrementsCounts) {
   EXPECT_TRUE(memory.SampleForReplay(0, rng).empty());
 }
 
+// Distributed mode's draw: a memory restored from another's clusters (its
+// sampler slots in another order once forgetting freed and reused some)
+// draws what the original draws from an equal generator.
+TEST(StaticMemoryTest, InMemoryOrderDrawsDependOnlyOnWhatIsHeld) {
+  MemoryOptions options;
+  options.clusters_per_batch = 4;
+  options.max_traces_per_cluster = 3;
+  options.max_clusters = 5;
+  StaticMemory live(options);
+  std::mt19937_64 rng(5);
+  uint64_t next_id = 1;
+  for (uint64_t first = 0; first < 120; first += 20) {
+    ConsolidationResult result =
+        live.Consolidate(Segment("r1", first, 20, rng), next_id, rng);
+    next_id += result.added.size();
+  }
+  ASSERT_FALSE(live.SampleForReplay(4, rng).empty());  // counts differ
+  StaticMemory restored(options);
+  for (const auto& [id, cluster] : live.clusters()) {
+    restored.Restore(*live.WithCentroid(id));
+  }
+  for (uint64_t seed = 1; seed <= 5; ++seed) {
+    std::mt19937_64 a(seed), b(seed);
+    const std::vector<MemoryTrace> from_live =
+        live.SampleForReplayInMemoryOrder(6, a);
+    const std::vector<MemoryTrace> from_restored =
+        restored.SampleForReplayInMemoryOrder(6, b);
+    ASSERT_EQ(from_live.size(), 6u);
+    ASSERT_EQ(from_live.size(), from_restored.size());
+    for (size_t i = 0; i < from_live.size(); ++i) {
+      EXPECT_EQ(from_live[i].key(), from_restored[i].key()) << seed;
+      EXPECT_EQ(from_live[i].replay_count, from_restored[i].replay_count);
+      EXPECT_EQ(live.Find(from_live[i].key())->replay_count,
+                from_live[i].replay_count);
+    }
+  }
+}
+
 // First draw from a fresh memory of two equal-reward traces, one of which
 // was replayed 20 times: decay makes it unlikely; gamma = 1 ignores n.
 double ShareOfReplayedTraceDrawnFirst(double gamma) {

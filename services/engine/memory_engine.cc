@@ -1270,8 +1270,11 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
     traces = memory.SampleForReplay(count, rng);
   } else {
     // The same draw on every replica that applies the log entry.
+    // The same draw on every replica that applies the log entry, whatever
+    // order its sampler's slots are in (a restored or restarted replica's
+    // differs from one that applied the log all along).
     std::mt19937_64 logged_rng(SegmentSeed(seed, "log", log_position));
-    traces = memory.SampleForReplay(count, logged_rng);
+    traces = memory.SampleForReplayInMemoryOrder(count, logged_rng);
   }
   if (traces.empty()) return traces;
   if (absl::Status status = FillCodes(traces); !status.ok()) {
@@ -1604,6 +1607,102 @@ absl::Status MemoryEngine::CheckUpload(
   }
   return ValidateUpload(fleet_id, traces, nullptr,
                         options_.max_traces_per_upload);
+}
+
+absl::StatusOr<FleetImage> MemoryEngine::ExportFleet(std::string_view fleet_id,
+                                                     uint64_t log_position) {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return FleetNotFound(fleet_id);
+  absl::MutexLock writer(&fleet->writer_mu);
+  {
+    absl::MutexLock lock(&fleet->mu);
+    status = fleet->EnsureLoaded();
+    if (!status.ok()) return status;
+    if (!fleet->exists()) return FleetNotFound(fleet_id);
+    if (log_position > fleet->meta.log_position) {
+      FleetMutation mutation;
+      mutation.put_meta = true;
+      mutation.meta = fleet->meta;
+      mutation.meta.log_position = log_position;
+      status = store_->Apply(fleet->id, mutation);
+      if (!status.ok()) return status;
+      fleet->meta.log_position = log_position;
+    }
+  }
+  // The writer lock keeps every change out; readers go on.
+  FleetImage image;
+  absl::StatusOr<FleetRecord> record = store_->LoadFleet(fleet_id);
+  if (!record.ok()) return record.status();
+  image.record = *std::move(record);
+  constexpr size_t kEventsPerRead = 10000;
+  uint64_t after = 0;
+  while (true) {
+    absl::StatusOr<std::vector<core::MemoryEvent>> events =
+        store_->ReadEvents(fleet_id, after, kEventsPerRead);
+    if (!events.ok()) return events.status();
+    if (events->empty()) break;
+    after = events->back().id;
+    const bool last = events->size() < kEventsPerRead;
+    image.events.insert(image.events.end(),
+                        std::make_move_iterator(events->begin()),
+                        std::make_move_iterator(events->end()));
+    if (last) break;
+  }
+  return image;
+}
+
+absl::Status MemoryEngine::RestoreFleet(std::string_view fleet_id,
+                                        FleetImage image) {
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  if (image.record.fleet_id != fleet_id) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("an image of fleet \"", image.record.fleet_id,
+                     "\" cannot restore fleet \"", V(fleet_id), "\""));
+  }
+  if (image.record.meta.code_dimension == 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the image of fleet \"", V(fleet_id),
+                     "\" holds no upload (no code dimension)"));
+  }
+  absl::StatusOr<Fleet*> found = Fleet::FindOrAdd(*this, fleet_id);
+  if (!found.ok()) return found.status();
+  Fleet* fleet = *found;
+  uint64_t last_event_id = 0;
+  {
+    absl::MutexLock writer(&fleet->writer_mu);
+    // What the store holds is erased, whatever memory holds.
+    absl::StatusOr<FleetRecord> stored = store_->LoadFleet(fleet_id);
+    if (!stored.ok()) return stored.status();
+    FleetMutation mutation;
+    for (const core::MemoryTrace& trace : stored->pending) {
+      mutation.erase_pending.push_back(trace.key());
+    }
+    for (const core::Cluster& cluster : stored->clusters) {
+      mutation.erase_clusters.push_back(cluster.id);
+    }
+    // Events are put over the stored ones of the same ids (a replica's
+    // state is a prefix of the image's). Erasure applies after the puts:
+    // only the events the image's retention dropped.
+    if (image.record.meta.first_event_id > 1) {
+      mutation.erase_events_before = image.record.meta.first_event_id;
+    }
+    mutation.put_meta = true;
+    mutation.meta = image.record.meta;
+    mutation.put_pending = std::move(image.record.pending);
+    mutation.put_clusters = std::move(image.record.clusters);
+    mutation.put_robots = std::move(image.record.robots);
+    mutation.append_events = std::move(image.events);
+    last_event_id = mutation.meta.next_event_id - 1;
+    absl::MutexLock lock(&fleet->mu);
+    status = store_->Apply(fleet->id, mutation);
+    if (!status.ok()) return status;
+    status = fleet->Reload();
+  }
+  if (status.ok()) Fleet::Notify(*this, fleet_id, last_event_id);
+  return status;
 }
 
 absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(

@@ -241,6 +241,21 @@ class MemoryEngine {
   // (0 for an unknown fleet, or none).
   absl::StatusOr<uint64_t> LogPosition(std::string_view fleet_id) const;
 
+  // Distributed mode's snapshots (services/cluster): the fleet's whole
+  // stored state, events included, read while none of its writes runs.
+  // `log_position`, if greater than the fleet's, is recorded first (in the
+  // store and in the image) as the last log entry applied: the caller has
+  // applied every entry through it. NOT_FOUND for an unknown fleet.
+  absl::StatusOr<FleetImage> ExportFleet(std::string_view fleet_id,
+                                         uint64_t log_position = 0);
+  // Replaces whatever this engine holds of the fleet with `image` (one
+  // atomic store write: its stored records are erased, the image's put)
+  // and reloads it; a fleet it does not hold is added. INVALID_ARGUMENT,
+  // with nothing changed, for an image of another fleet or of a fleet
+  // without its first upload; the store's error, with nothing changed, if
+  // the write fails.
+  absl::Status RestoreFleet(std::string_view fleet_id, FleetImage image);
+
   // Consolidates every robot's pending traces (one batch per robot).
   // NOT_FOUND for an unknown fleet.
   absl::StatusOr<ConsolidateResult> Consolidate(std::string_view fleet_id);

@@ -526,6 +526,76 @@ TEST_F(MemoryEngineTest, LogPositionIsStoredWithTheTracesItAdds) {
   EXPECT_EQ(Stats().consolidations, 1u);
 }
 
+// Distributed mode's snapshots: a fleet exported from one engine and
+// restored into another, over an older state of the same fleet there, is
+// the same fleet: traces, clusters, counts, robots, events and position.
+TEST_F(MemoryEngineTest, AnExportedFleetRestoresExactlyOverAnOlderState) {
+  std::vector<std::vector<core::MemoryTrace>> uploads;
+  for (uint64_t first = 1; first <= 80; first += 10) {
+    uploads.push_back(MakeTraces("r1", first, 10, rng_));
+    uploads.push_back(MakeTraces("r2", first, 10, rng_));
+  }
+  std::unique_ptr<MemoryStore> other_store = storage::NewInMemoryStore();
+  std::unique_ptr<MemoryEngine> other = OpenOn(options_, other_store.get());
+  ASSERT_NE(other, nullptr);
+  for (size_t i = 0; i < uploads.size(); ++i) {
+    ASSERT_TRUE(engine_->Upload("f1", uploads[i], i + 1).ok());
+    // The other engine stopped a third of the way (its own position).
+    if (i < uploads.size() / 3) {
+      ASSERT_TRUE(other->Upload("f1", uploads[i], i + 1).ok());
+    }
+  }
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r1", 7, "req-1", 40).ok());
+  ASSERT_GT(Stats().clusters_forgotten, 0u);
+
+  absl::StatusOr<FleetImage> image = engine_->ExportFleet("f1", 42);
+  ASSERT_TRUE(image.ok()) << image.status();
+  EXPECT_EQ(image->record.meta.log_position, 42u);
+  EXPECT_EQ(*engine_->LogPosition("f1"), 42u);  // recorded by the export
+  ASSERT_TRUE(other->RestoreFleet("f1", *image).ok());
+
+  const FleetStats want = Stats();
+  absl::StatusOr<FleetStats> got = other->GetStats("f1");
+  ASSERT_TRUE(got.ok()) << got.status();
+  EXPECT_EQ(got->traces, want.traces);
+  EXPECT_EQ(got->pending_traces, want.pending_traces);
+  EXPECT_EQ(got->clusters, want.clusters);
+  EXPECT_EQ(got->consolidations, want.consolidations);
+  EXPECT_EQ(got->clusters_forgotten, want.clusters_forgotten);
+  EXPECT_EQ(got->last_event_id, want.last_event_id);
+  EXPECT_EQ(*other->LogPosition("f1"), 42u);
+  absl::StatusOr<TracePage> a = engine_->ListTraces("f1", std::nullopt, 1000);
+  absl::StatusOr<TracePage> b = other->ListTraces("f1", std::nullopt, 1000);
+  ASSERT_TRUE(a.ok() && b.ok());
+  ASSERT_EQ(a->traces.size(), b->traces.size());
+  for (size_t i = 0; i < a->traces.size(); ++i) {
+    EXPECT_EQ(a->traces[i].key(), b->traces[i].key());
+    EXPECT_EQ(a->traces[i].cluster_id, b->traces[i].cluster_id);
+    EXPECT_EQ(a->traces[i].replay_count, b->traces[i].replay_count);
+    EXPECT_EQ(a->traces[i].code, b->traces[i].code);
+  }
+  ExpectEventIds1To(*other, "f1", want.last_event_id);
+  // The retried sample is recognised on the restored fleet.
+  absl::StatusOr<std::vector<core::MemoryTrace>> again =
+      other->SampleReplay("f1", "r1", 7, "req-1", 43);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(other->GetStats("f1")->robots.front().replayed,
+            Stats().robots.front().replayed);
+  // And it survives a restart of its engine: the store holds it.
+  other.reset();
+  other = OpenOn(options_, other_store.get());
+  ASSERT_NE(other, nullptr);
+  EXPECT_EQ(other->GetStats("f1")->traces, want.traces);
+
+  // Another fleet's image, or one without an upload, changes nothing.
+  EXPECT_TRUE(absl::IsInvalidArgument(other->RestoreFleet("f2", *image)));
+  FleetImage empty;
+  empty.record.fleet_id = "f1";
+  EXPECT_TRUE(absl::IsInvalidArgument(other->RestoreFleet("f1", empty)));
+  EXPECT_EQ(other->GetStats("f1")->traces, want.traces);
+  EXPECT_TRUE(absl::IsNotFound(engine_->ExportFleet("f9").status()));
+}
+
 // Every consolidated cluster reaches the store with its centroid (memory
 // holds each centroid once, in forgetting's tracker, and hands it over).
 TEST_F(MemoryEngineTest, StoredClustersCarryTheirCentroids) {

@@ -57,6 +57,14 @@ struct FleetRecord {
   std::vector<RobotRecord> robots;
 };
 
+// A fleet's whole state: what LoadFleet gives and its events (distributed
+// mode's snapshots, MemoryEngine::ExportFleet and RestoreFleet; encoded by
+// services/storage/fleet_image.h).
+struct FleetImage {
+  FleetRecord record;
+  std::vector<core::MemoryEvent> events;  // ascending by id
+};
+
 // One atomic change of a fleet. Applied in this order: erasures, then puts.
 struct FleetMutation {
   bool put_meta = false;

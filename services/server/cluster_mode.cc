@@ -80,6 +80,8 @@ absl::StatusOr<std::unique_ptr<ClusterMode>> ClusterMode::Start(
   node.interval = cluster.round_interval;
   node.materialiser.replica_id = cluster.advertise;
   node.materialiser.renew_interval = cluster.nats.lease_ttl / 3;
+  node.materialiser.snapshot_every = cluster.snapshot_every_entries;
+  node.materialiser.trim_log = cluster.trim_log;
   return std::unique_ptr<ClusterMode>(
       new ClusterMode(cluster.advertise, cluster.max_entry_bytes,
                       *std::move(log), std::move(peers), engine, node));
@@ -95,7 +97,7 @@ ClusterMode::ClusterMode(std::string self, size_t max_entry_bytes,
       engine_(engine),
       log_(std::move(log)),
       forwarder_(std::move(peers)),
-      node_(std::move(node), log_.get(), log_.get(), engine) {}
+      node_(std::move(node), log_.get(), log_.get(), log_.get(), engine) {}
 
 ClusterMode::~ClusterMode() { Shutdown(); }
 
@@ -139,7 +141,7 @@ absl::StatusOr<std::optional<engine::FleetShape>> ClusterMode::ShapeOf(
     if (it != shapes_.end()) return it->second;
   }
   absl::StatusOr<std::optional<engine::FleetShape>> shape =
-      cluster::FleetShapeFromLog(*log_, fleet_id);
+      cluster::FleetShapeFromLog(*log_, log_.get(), fleet_id);
   if (!shape.ok() || !shape->has_value()) return shape;
   absl::MutexLock lock(&owners_mu_);
   shapes_[std::string(fleet_id)] = **shape;
@@ -182,7 +184,17 @@ absl::StatusOr<std::optional<std::string>> ClusterMode::Owner(
 
 absl::StatusOr<std::vector<std::pair<std::string, std::string>>>
 ClusterMode::Fleets() {
+  // While NATS cannot answer (a JetStream leader election), the last
+  // listing and the last owners seen answer, as Owner does.
   absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
+  {
+    absl::MutexLock lock(&owners_mu_);
+    if (fleets.ok()) {
+      known_fleets_ = *fleets;
+    } else if (!known_fleets_.empty()) {
+      fleets = known_fleets_;
+    }
+  }
   if (!fleets.ok()) return fleets.status();
   std::vector<std::pair<std::string, std::string>> owners;
   for (const std::string& fleet : *fleets) {
@@ -192,8 +204,15 @@ ClusterMode::Fleets() {
     } else {
       absl::StatusOr<std::optional<cluster::Lease>> holder =
           log_->Holder(fleet);
-      if (!holder.ok()) return holder.status();
-      if (holder->has_value()) owner = (*holder)->owner;
+      absl::MutexLock lock(&owners_mu_);
+      if (holder.ok() && holder->has_value()) {
+        owner = (*holder)->owner;
+        last_owner_[fleet] = owner;
+      } else if (!holder.ok()) {
+        auto last = last_owner_.find(fleet);
+        if (last == last_owner_.end()) return holder.status();
+        owner = last->second;
+      }
     }
     owners.emplace_back(fleet, std::move(owner));
   }

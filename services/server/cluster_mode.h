@@ -79,6 +79,8 @@ class ClusterMode final : public transport::Distribution {
   absl::Mutex owners_mu_;
   absl::flat_hash_map<std::string, std::string> last_owner_
       ABSL_GUARDED_BY(owners_mu_);
+  // The fleets of the last listing that NATS answered.
+  std::vector<std::string> known_fleets_ ABSL_GUARDED_BY(owners_mu_);
 
   // The shape of each fleet, read from the first entry of its log (it
   // never changes once a fleet exists).

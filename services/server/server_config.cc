@@ -164,6 +164,10 @@ void ApplyCluster(const ClusterConfigFile& in, ClusterConfig* out) {
   if (in.has_peer_token_file()) out->peer_token_file = in.peer_token_file();
   if (in.has_peer_ca_file()) out->peer_ca_file = in.peer_ca_file();
   if (in.has_sync_store()) out->sync_store = in.sync_store();
+  if (in.has_snapshot_every_entries()) {
+    out->snapshot_every_entries = in.snapshot_every_entries();
+  }
+  if (in.has_trim_log()) out->trim_log = in.trim_log();
   if (in.has_peer_tls_server_name()) {
     out->peer_tls_server_name = in.peer_tls_server_name();
   }

@@ -86,6 +86,12 @@ struct ClusterConfig {
   // machine re-applies them from the log (RocksDB recovers a consistent
   // prefix of its write-ahead log). Replaces storage.sync in this mode.
   bool sync_store = false;
+  // The owner of a fleet stores a snapshot of it in JetStream every this
+  // many log entries (0: never; a new owner then replays the whole log).
+  uint64_t snapshot_every_entries = 1000;
+  // Whether the log entries a stored snapshot covers are removed from the
+  // log (JetStream purge), so that logs stay bounded.
+  bool trim_log = true;
 
   bool enabled() const { return !nats.servers.empty(); }
 };

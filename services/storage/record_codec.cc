@@ -266,4 +266,27 @@ absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
   return event;
 }
 
+absl::Status AssembleCluster(
+    std::string_view key, StoredCluster stored,
+    std::map<core::TraceKey, core::MemoryTrace>* traces,
+    std::vector<core::Cluster>* clusters) {
+  core::Cluster cluster;
+  cluster.id = stored.id;
+  cluster.robot_id = std::move(stored.robot_id);
+  cluster.centroid = std::move(stored.centroid);
+  cluster.traces.reserve(stored.members.size());
+  for (const core::TraceKey& member : stored.members) {
+    auto trace = traces->find(member);
+    if (trace == traces->end() || trace->second.cluster_id != stored.id) {
+      return Corrupt(key,
+                     absl::StrCat("member ", member.robot_id, "/", member.seq,
+                                  " has no trace of this cluster"));
+    }
+    cluster.traces.push_back(std::move(trace->second));
+    traces->erase(trace);
+  }
+  clusters->push_back(std::move(cluster));
+  return absl::OkStatus();
+}
+
 }  // namespace fleetmem::storage

@@ -7,6 +7,7 @@
 #define FLEETMEM_SERVICES_STORAGE_RECORD_CODEC_H_
 
 #include <cstdint>
+#include <map>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -46,6 +47,14 @@ absl::StatusOr<engine::RobotRecord> DecodeRobot(std::string_view key,
 std::string EncodeEvent(const core::MemoryEvent& event);
 absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
                                               std::string_view value);
+
+// Moves the member traces of `stored` (read at `key`) out of `traces` into
+// a new cluster at the end of `clusters`; DATA_LOSS if a member has no
+// trace of this cluster there.
+absl::Status AssembleCluster(
+    std::string_view key, StoredCluster stored,
+    std::map<core::TraceKey, core::MemoryTrace>* traces,
+    std::vector<core::Cluster>* clusters);
 
 }  // namespace fleetmem::storage
 

@@ -494,13 +494,14 @@ class RocksDbStore final : public engine::MemoryStore {
                     return absl::OkStatus();
                   });
     if (!status.ok()) return status;
-    status = Scan(
-        read, keys::Tag::kCluster, fleet_id,
-        [&](std::string_view key, std::string_view v) {
-          absl::StatusOr<StoredCluster> stored = DecodeCluster(key, v);
-          if (!stored.ok()) return stored.status();
-          return Assemble(key, std::move(*stored), &traces, &record.clusters);
-        });
+    status = Scan(read, keys::Tag::kCluster, fleet_id,
+                  [&](std::string_view key, std::string_view v) {
+                    absl::StatusOr<StoredCluster> stored =
+                        DecodeCluster(key, v);
+                    if (!stored.ok()) return stored.status();
+                    return AssembleCluster(key, std::move(*stored), &traces,
+                                           &record.clusters);
+                  });
     if (!status.ok()) return status;
     if (!traces.empty()) {
       const TraceKey& orphan = traces.begin()->first;
@@ -622,29 +623,6 @@ class RocksDbStore final : public engine::MemoryStore {
                             }
                             return true;
                           });
-  }
-
-  // Moves the member traces of `stored` out of `traces` into a new cluster.
-  static absl::Status Assemble(std::string_view key, StoredCluster stored,
-                               std::map<TraceKey, core::MemoryTrace>* traces,
-                               std::vector<core::Cluster>* clusters) {
-    core::Cluster cluster;
-    cluster.id = stored.id;
-    cluster.robot_id = std::move(stored.robot_id);
-    cluster.centroid = std::move(stored.centroid);
-    cluster.traces.reserve(stored.members.size());
-    for (const TraceKey& member : stored.members) {
-      auto trace = traces->find(member);
-      if (trace == traces->end() || trace->second.cluster_id != stored.id) {
-        return absl::DataLossError(absl::StrCat(
-            "corrupt record at ", keys::Describe(key), ": member ",
-            member.robot_id, "/", member.seq, " has no trace of this cluster"));
-      }
-      cluster.traces.push_back(std::move(trace->second));
-      traces->erase(trace);
-    }
-    clusters->push_back(std::move(cluster));
-    return absl::OkStatus();
   }
 
   // RESOURCE_EXHAUSTED if writing `bytes` would leave less than the

@@ -1,0 +1,75 @@
+#include "services/storage/fleet_image.h"
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "services/storage/in_memory_store.h"
+#include "services/storage/store_test_util.h"
+
+namespace fleetmem::storage {
+namespace {
+
+using ::testing::HasSubstr;
+
+// A fleet's state after the scripted workload (every kind of record).
+engine::FleetImage ScriptedImage() {
+  std::unique_ptr<engine::MemoryStore> store = NewInMemoryStore();
+  for (const engine::FleetMutation& mutation : testing::ScriptedMutations(40)) {
+    EXPECT_TRUE(store->Apply("f1", mutation).ok());
+  }
+  engine::FleetImage image;
+  absl::StatusOr<engine::FleetRecord> record = store->LoadFleet("f1");
+  EXPECT_TRUE(record.ok()) << record.status();
+  if (record.ok()) image.record = *std::move(record);
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      store->ReadEvents("f1", 0, 100000);
+  EXPECT_TRUE(events.ok()) << events.status();
+  if (events.ok()) image.events = *std::move(events);
+  return image;
+}
+
+TEST(FleetImageTest, EveryRecordComesBackExactly) {
+  const engine::FleetImage image = ScriptedImage();
+  ASSERT_FALSE(image.record.clusters.empty());
+  ASSERT_FALSE(image.record.pending.empty());
+  ASSERT_FALSE(image.record.robots.empty());
+  ASSERT_FALSE(image.events.empty());
+  absl::StatusOr<std::string> bytes = EncodeFleetImage(image);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  absl::StatusOr<engine::FleetImage> decoded = DecodeFleetImage("f1", *bytes);
+  ASSERT_TRUE(decoded.ok()) << decoded.status();
+  EXPECT_EQ(testing::Dump(decoded->record), testing::Dump(image.record));
+  EXPECT_EQ(testing::Dump(decoded->events), testing::Dump(image.events));
+}
+
+TEST(FleetImageTest, DamagedOrForeignImagesAreRefused) {
+  engine::FleetImage image = ScriptedImage();
+  absl::StatusOr<std::string> bytes = EncodeFleetImage(image);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+
+  absl::StatusOr<engine::FleetImage> other = DecodeFleetImage("f2", *bytes);
+  EXPECT_TRUE(absl::IsDataLoss(other.status())) << other.status();
+  EXPECT_THAT(other.status().message(), HasSubstr("holds fleet \"f1\""));
+
+  const std::string cut = bytes->substr(0, bytes->size() / 2);
+  EXPECT_TRUE(absl::IsDataLoss(DecodeFleetImage("f1", cut).status()));
+  EXPECT_TRUE(absl::IsDataLoss(DecodeFleetImage("f1", "").status()));
+
+  // A cluster that lists a trace of another cluster.
+  core::Cluster& first = image.record.clusters.front();
+  core::MemoryTrace stray = first.traces.front();
+  stray.seq += 1000000;
+  first.traces.push_back(stray);
+  first.traces.back().cluster_id = first.id + 1000;  // claims another cluster
+  bytes = EncodeFleetImage(image);
+  ASSERT_TRUE(bytes.ok());
+  absl::StatusOr<engine::FleetImage> damaged = DecodeFleetImage("f1", *bytes);
+  EXPECT_TRUE(absl::IsDataLoss(damaged.status())) << damaged.status();
+  EXPECT_THAT(damaged.status().message(), HasSubstr("has no trace"));
+}
+
+}  // namespace
+}  // namespace fleetmem::storage
