@@ -343,7 +343,24 @@ TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
         WaitForTraces(0, fleet, kRobots * kTraces, std::chrono::seconds(30)));
   }
 
-  // One owner per fleet, the same seen from every replica.
+  // The fleets spread over the three replicas (balancing: the first replica
+  // up took them all), then one owner per fleet, the same seen from every
+  // replica.
+  std::map<size_t, int> per_replica;
+  const auto spread_deadline = Clock::now() + std::chrono::seconds(20);
+  do {
+    per_replica.clear();
+    for (const auto& [fleet, owner] : Owners(1, false)) {
+      ++per_replica[ReplicaAt(owner)];
+    }
+    if (per_replica.size() == 3 && !per_replica.contains(3)) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  } while (Clock::now() < spread_deadline);
+  EXPECT_EQ(per_replica.size(), 3u) << "the fleets are not spread";
+  for (const auto& [replica, count] : per_replica) {
+    EXPECT_GE(count, 1) << "replica " << replica;
+    EXPECT_LE(count, 2) << "replica " << replica;
+  }
   const std::map<std::string, std::string> owners = Owners(1);
   ASSERT_EQ(owners.size(), static_cast<size_t>(kFleets));
   for (const auto& [fleet, owner] : owners) {

@@ -12,6 +12,7 @@ ClusterNode::ClusterNode(ClusterNodeOptions options, FleetLog* log,
                          engine::MemoryEngine* engine)
     : options_(std::move(options)),
       log_(log),
+      leases_(leases),
       materialiser_(options_.materialiser, log, leases, snapshots, engine) {}
 
 ClusterNode::~ClusterNode() { Stop(); }
@@ -48,19 +49,63 @@ void ClusterNode::ReleaseAll() {
   }
 }
 
+std::optional<uint64_t> ClusterNode::LeastLoadedOther(size_t owned) {
+  const std::string& self = options_.materialiser.replica_id;
+  const absl::Time now = absl::Now();
+  if (now - announced_at_ >= options_.materialiser.renew_interval) {
+    if (absl::Status announced = leases_->Announce(self, owned);
+        !announced.ok()) {
+      FLEETMEM_LOG(kWarning) << "cluster: " << announced;
+    } else {
+      announced_at_ = now;
+    }
+  }
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> replicas =
+      leases_->Replicas();
+  if (!replicas.ok()) return std::nullopt;
+  std::optional<uint64_t> least;
+  for (const auto& [replica, fleets] : *replicas) {
+    if (replica == self) continue;
+    least = least.has_value() ? std::min(*least, fleets) : fleets;
+  }
+  return least;
+}
+
 absl::StatusOr<std::vector<std::string>> ClusterNode::RunOnce() {
   absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
   if (!fleets.ok()) return fleets.status();
+  size_t mine = 0;
+  for (const std::string& fleet : *fleets) {
+    if (materialiser_.Owns(fleet)) ++mine;
+  }
+  const std::optional<uint64_t> least =
+      options_.balance ? LeastLoadedOther(mine) : std::nullopt;
   std::vector<std::string> owned;
   for (const std::string& fleet : *fleets) {
+    const bool held = materialiser_.Owns(fleet);
+    // A free fleet is left to a less loaded replica.
+    if (!held && least.has_value() && mine > *least) continue;
     absl::StatusOr<StepResult> step = materialiser_.Step(fleet);
     if (step.ok()) {
       owned.push_back(fleet);
+      if (!held) ++mine;
     } else if (!absl::IsFailedPrecondition(step.status())) {
       // Still this replica's (unless its lease is gone); retried next round.
       if (materialiser_.lease(fleet).has_value()) owned.push_back(fleet);
       FLEETMEM_LOG(kWarning)
           << "cluster: fleet \"" << fleet << "\": " << step.status();
+    }
+  }
+  if (least.has_value() && owned.size() > *least + 1) {
+    // Hand one fleet over (the last by id): a less loaded replica takes it.
+    const std::string fleet = owned.back();
+    if (absl::Status released = materialiser_.Release(fleet); released.ok()) {
+      FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet
+                          << "\" handed over (this replica owned "
+                          << owned.size() << ", another " << *least << ")";
+      owned.pop_back();
+    } else {
+      FLEETMEM_LOG(kWarning) << "cluster: " << released;
     }
   }
   std::vector<std::string> before;

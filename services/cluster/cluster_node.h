@@ -9,6 +9,7 @@
 
 #include <atomic>
 #include <functional>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -28,6 +29,15 @@ struct ClusterNodeOptions {
   MaterialiserOptions materialiser;
   // Between two rounds over the fleets.
   absl::Duration interval = absl::Milliseconds(200);
+  // Spreads the fleets over the live replicas. Each replica announces
+  // itself and how many fleets it owns (LeaseTable::Announce, every
+  // materialiser.renew_interval); it takes a free fleet only while it owns
+  // no more than every other live replica, and while it owns two more than
+  // the least loaded it hands one fleet over per round (releases its
+  // lease: the taker restores its snapshot). A replica that joins thus
+  // gets its share within a few rounds, and a lost replica's fleets go to
+  // the least loaded survivors. Off: a replica takes every free fleet.
+  bool balance = true;
 };
 
 class ClusterNode {
@@ -52,8 +62,10 @@ class ClusterNode {
   // once). Call after Stop.
   void ReleaseAll();
 
-  // One round: every fleet in the log stepped once. Returns the fleets this
-  // replica owns after it; the log's error if it cannot list them.
+  // One round: every fleet in the log stepped once (with balancing: the
+  // free ones only while this replica is among the least loaded), then at
+  // most one fleet handed over. Returns the fleets this replica owns after
+  // it; the log's error if it cannot list them.
   absl::StatusOr<std::vector<std::string>> RunOnce();
   // The fleets owned after the last round.
   std::vector<std::string> owned() const;
@@ -61,9 +73,16 @@ class ClusterNode {
   Materialiser& materialiser() { return materialiser_; }
 
  private:
+  // With balancing: the fewest fleets another live replica announced
+  // (nullopt: no other replica, or the announcements cannot be read now:
+  // then this replica takes every free fleet, so that none waits).
+  std::optional<uint64_t> LeastLoadedOther(size_t owned);
+
   const ClusterNodeOptions options_;
   FleetLog* const log_;
+  LeaseTable* const leases_;
   Materialiser materialiser_;
+  absl::Time announced_at_ = absl::InfinitePast();  // loop thread only
   mutable absl::Mutex mu_;
   std::vector<std::string> owned_ ABSL_GUARDED_BY(mu_);
   std::function<void(const std::string&)> on_lost_;

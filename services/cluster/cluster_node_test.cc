@@ -6,10 +6,13 @@
 
 #include <algorithm>
 #include <chrono>
+#include <iostream>
+#include <memory>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "gtest/gtest.h"
 #include "services/cluster/cluster_test_util.h"
 #include "services/cluster/nats_fixture.h"
@@ -126,6 +129,71 @@ TEST_F(ClusterNodeTest, OneOwnerPerFleetAndTakeoverAfterAReplicaStops) {
   for (const std::string& fleet : fleets) {
     EXPECT_FALSE(log_a->Holder(fleet)->has_value()) << fleet;
   }
+}
+
+// Balancing: a replica alone takes every fleet; two that join get their
+// share (the first hands fleets over, one per round), and every fleet is
+// materialised where it ends up as in the embedded mode.
+TEST_F(ClusterNodeTest, ReplicasThatJoinGetTheirShareOfTheFleets) {
+  std::vector<std::unique_ptr<NatsFleetLog>> logs;
+  for (int i = 0; i < 3; ++i) {
+    logs.push_back(Connect());
+    ASSERT_NE(logs.back(), nullptr);
+  }
+  const std::vector<std::string> fleets = {"f1", "f2", "f3", "f4", "f5", "f6"};
+  Replica embedded;
+  for (const std::string& fleet : fleets) {
+    for (const auto& batch : Uploads()) {
+      ASSERT_TRUE(embedded.engine->Upload(fleet, batch).ok());
+    }
+    AppendUploads(*logs[0], fleet, Uploads());
+  }
+  Replica replicas[3];
+  std::vector<std::unique_ptr<ClusterNode>> nodes;
+  for (int i = 0; i < 3; ++i) {
+    nodes.push_back(std::make_unique<ClusterNode>(
+        NodeOptions(absl::StrCat("replica-", i)), logs[i].get(), logs[i].get(),
+        logs[i].get(), replicas[i].engine.get()));
+  }
+  nodes[0]->Start();
+  auto wait_for = [&](auto done) {
+    const Clock::time_point start = Clock::now();
+    while (!done() && Clock::now() - start < std::chrono::seconds(20)) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return std::chrono::duration<double>(Clock::now() - start).count();
+  };
+  wait_for([&] { return nodes[0]->owned().size() == fleets.size(); });
+  ASSERT_EQ(nodes[0]->owned().size(), fleets.size());
+
+  nodes[1]->Start();
+  nodes[2]->Start();
+  const double spread_s = wait_for([&] {
+    size_t total = 0;
+    for (int i = 0; i < 3; ++i) {
+      const std::vector<std::string> owned = nodes[i]->owned();
+      if (owned.size() != 2 || !Materialised(replicas[i], embedded, owned)) {
+        return false;
+      }
+      total += owned.size();
+    }
+    return total == fleets.size();
+  });
+  std::vector<std::string> all;
+  for (int i = 0; i < 3; ++i) {
+    const std::vector<std::string> owned = nodes[i]->owned();
+    EXPECT_EQ(owned.size(), 2u) << "replica-" << i;
+    all.insert(all.end(), owned.begin(), owned.end());
+    for (const std::string& fleet : owned) {
+      ExpectSameState(StateOf(*replicas[i].engine, fleet),
+                      StateOf(*embedded.engine, fleet));
+    }
+  }
+  std::sort(all.begin(), all.end());
+  EXPECT_EQ(all, fleets);
+  std::cout << "6 fleets spread over 3 replicas " << spread_s
+            << " s after two joined\n";
+  for (auto& node : nodes) node->Stop();
 }
 
 }  // namespace

@@ -121,6 +121,15 @@ class LeaseTable {
   // The fleet's current lease, if anyone holds it.
   virtual absl::StatusOr<std::optional<Lease>> Holder(
       std::string_view fleet_id) = 0;
+
+  // Says that `replica` is alive and owns `fleets` fleets; an announcement
+  // not repeated within the leases' time-to-live expires (ClusterNode's
+  // balancing).
+  virtual absl::Status Announce(std::string_view replica, uint64_t fleets) = 0;
+  // The replicas whose announcement has not expired, with the number of
+  // fleets each announced, sorted by replica.
+  virtual absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>>
+  Replicas() = 0;
 };
 
 }  // namespace fleetmem::cluster

@@ -11,6 +11,7 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
@@ -796,6 +797,72 @@ NatsFleetLog::Fetch(std::string_view fleet_id) {
           SnapshotInfo{meta.sequence(), meta.bytes(), meta.code_dimension(),
                        meta.encoder_version()},
           std::move(image)));
+}
+
+absl::Status NatsFleetLog::Announce(std::string_view replica, uint64_t fleets) {
+  if (replica.empty() || replica.find('\n') != std::string_view::npos) {
+    return absl::InvalidArgumentError("cluster: a bad replica id");
+  }
+  const std::string key = absl::StrCat("replica.", Hash(replica));
+  const std::string value = absl::StrCat(V(replica), "\n", fleets);
+  uint64_t revision = 0;
+  const natsStatus s =
+      kvStore_Put(&revision, handles_->kv, key.c_str(), value.data(),
+                  static_cast<int>(value.size()));
+  if (s != NATS_OK) return FromNats(s, 0, "cluster: announcing this replica");
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>>
+NatsFleetLog::Replicas() {
+  // The bucket's subjects under replica.: from its stream's state (the
+  // stream leader answers; listing keys would create a consumer).
+  const std::string stream = absl::StrCat("KV_", options_.lease_bucket);
+  const std::string prefix =
+      absl::StrCat("$KV.", options_.lease_bucket, ".replica.");
+  const std::string filter = absl::StrCat(prefix, ">");
+  jsOptions options;
+  jsOptions_Init(&options);
+  options.Wait = Milliseconds(options_.timeout);
+  options.Stream.Info.SubjectsFilter = filter.c_str();
+  jsStreamInfo* info = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  const natsStatus s =
+      js_GetStreamInfo(&info, handles_->js, stream.c_str(), &options, &code);
+  if (s != NATS_OK) {
+    return FromNats(s, code, "cluster: listing the replicas");
+  }
+  std::vector<std::string> keys;
+  if (info->State.Subjects != nullptr) {
+    for (int i = 0; i < info->State.Subjects->Count; ++i) {
+      const char* subject = info->State.Subjects->List[i].Subject;
+      if (subject != nullptr && absl::StartsWith(subject, prefix)) {
+        keys.push_back(
+            std::string(subject).substr(std::string_view("$KV.").size() +
+                                        options_.lease_bucket.size() + 1));
+      }
+    }
+  }
+  jsStreamInfo_Destroy(info);
+  std::vector<std::pair<std::string, uint64_t>> replicas;
+  for (const std::string& key : keys) {
+    kvEntry* entry = nullptr;
+    const natsStatus got = kvStore_Get(&entry, handles_->kv, key.c_str());
+    if (got == NATS_NOT_FOUND) continue;  // expired meanwhile
+    if (got != NATS_OK) return FromNats(got, 0, "cluster: reading a replica");
+    const std::string value(static_cast<const char*>(kvEntry_Value(entry)),
+                            kvEntry_ValueLen(entry));
+    kvEntry_Destroy(entry);
+    const size_t newline = value.find('\n');
+    uint64_t fleets = 0;
+    if (newline == std::string::npos ||
+        !absl::SimpleAtoi(value.substr(newline + 1), &fleets)) {
+      continue;  // not an announcement of this version
+    }
+    replicas.emplace_back(value.substr(0, newline), fleets);
+  }
+  std::sort(replicas.begin(), replicas.end());
+  return replicas;
 }
 
 }  // namespace fleetmem::cluster

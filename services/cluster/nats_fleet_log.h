@@ -13,7 +13,10 @@
 //  - leases are keys of one key-value bucket whose entries expire after
 //    `lease_ttl` unless renewed: Acquire creates the key (only if absent),
 //    Renew and Release update or delete it only at the revision the lease
-//    holds, so a replica that lost its lease cannot renew it.
+//    holds, so a replica that lost its lease cannot renew it; each
+//    replica's announcement (Announce) is a key of the same bucket,
+//    replica.<hash of its id>, listed from the bucket's stream state
+//    (no consumer).
 // Thread-safe: nats.c connections and JetStream contexts are.
 #ifndef FLEETMEM_SERVICES_CLUSTER_NATS_FLEET_LOG_H_
 #define FLEETMEM_SERVICES_CLUSTER_NATS_FLEET_LOG_H_
@@ -94,6 +97,9 @@ class NatsFleetLog final : public FleetLog,
   absl::Status Release(const Lease& lease) override;
   absl::StatusOr<std::optional<Lease>> Holder(
       std::string_view fleet_id) override;
+  absl::Status Announce(std::string_view replica, uint64_t fleets) override;
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Replicas()
+      override;
 
  private:
   struct Handles;  // nats.c's, kept out of this header

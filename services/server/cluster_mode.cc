@@ -78,6 +78,7 @@ absl::StatusOr<std::unique_ptr<ClusterMode>> ClusterMode::Start(
   if (!log.ok()) return log.status();
   cluster::ClusterNodeOptions node;
   node.interval = cluster.round_interval;
+  node.balance = cluster.balance_fleets;
   node.materialiser.replica_id = cluster.advertise;
   node.materialiser.renew_interval = cluster.nats.lease_ttl / 3;
   node.materialiser.snapshot_every = cluster.snapshot_every_entries;

@@ -168,6 +168,7 @@ void ApplyCluster(const ClusterConfigFile& in, ClusterConfig* out) {
     out->snapshot_every_entries = in.snapshot_every_entries();
   }
   if (in.has_trim_log()) out->trim_log = in.trim_log();
+  if (in.has_balance_fleets()) out->balance_fleets = in.balance_fleets();
   if (in.has_peer_tls_server_name()) {
     out->peer_tls_server_name = in.peer_tls_server_name();
   }

@@ -92,6 +92,9 @@ struct ClusterConfig {
   // Whether the log entries a stored snapshot covers are removed from the
   // log (JetStream purge), so that logs stay bounded.
   bool trim_log = true;
+  // Whether fleets are spread over the live replicas (a joining replica
+  // gets its share; cluster::ClusterNodeOptions::balance).
+  bool balance_fleets = true;
 
   bool enabled() const { return !nats.servers.empty(); }
 };

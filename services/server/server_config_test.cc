@@ -386,7 +386,8 @@ TEST(ServerConfigTest, ClusterModeFromFlagsAndFileIsValidated) {
       ApplyConfigText("cluster { servers: \"nats://n:4222\" advertise: \"r:1\" "
                       "replicas: 1 lease_ttl_ms: 2000 round_interval_ms: 50 "
                       "max_entry_bytes: 65536 peer_token_file: \"/t\" "
-                      "snapshot_every_entries: 50 trim_log: false }",
+                      "snapshot_every_entries: 50 trim_log: false "
+                      "balance_fleets: false }",
                       &file_config)
           .ok());
   EXPECT_EQ(file_config.cluster.nats.replicas, 1);
@@ -396,6 +397,8 @@ TEST(ServerConfigTest, ClusterModeFromFlagsAndFileIsValidated) {
   EXPECT_EQ(file_config.cluster.peer_token_file, "/t");
   EXPECT_EQ(file_config.cluster.snapshot_every_entries, 50u);
   EXPECT_FALSE(file_config.cluster.trim_log);
+  EXPECT_FALSE(file_config.cluster.balance_fleets);
+  EXPECT_TRUE(ServerConfig().cluster.balance_fleets);
   EXPECT_EQ(ServerConfig().cluster.snapshot_every_entries, 1000u);
   EXPECT_TRUE(ServerConfig().cluster.trim_log);
   EXPECT_FALSE(ServerConfig().cluster.enabled());
