@@ -226,7 +226,8 @@ class ClusterIntegrationTest : public ::testing::Test {
     out << "advertise: \"127.0.0.1:" << ports_[i]
         << "\" replicas: " << (nats_.size() >= 3 ? 3 : 1)
         << " lease_ttl_ms: 1000 round_interval_ms: 100"
-        << " snapshot_every_entries: " << snapshot_every_ << " }\n";
+        << " snapshot_every_entries: " << snapshot_every_ << " }\n"
+        << extra_config_ << "\n";
     out.close();
     ServerOptions options;
     options.data_dir = data;
@@ -313,6 +314,7 @@ class ClusterIntegrationTest : public ::testing::Test {
   std::string nats_urls_;  // nats://HOST:PORT,...
   // Each fleet's owner stores a snapshot (and trims the log) this often.
   uint64_t snapshot_every_ = 1000;
+  std::string extra_config_;  // more of the replicas' config files
   std::vector<std::unique_ptr<ServerProcess>> replicas_;
   std::vector<int> ports_;
   std::vector<int> http_ports_;
@@ -502,6 +504,34 @@ TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
                                             "\" restored from its snapshot")))
         << FleetId(fleet);
   }
+}
+
+// Upload rates are the receiving replica's: a robot over its rate is
+// refused there (RESOURCE_EXHAUSTED naming the limit) and nothing of the
+// refused upload reaches the log; the owner applies what was accepted.
+TEST_F(ClusterIntegrationTest, TheReceivingReplicaAppliesUploadRates) {
+  extra_config_ = "limits { robot_traces_per_second: 50 burst_seconds: 2 }";
+  StartNats();
+  StartReplica(0);
+  // The burst: 2 s of 50 traces/s.
+  const std::vector<v1::MemoryTrace> first = MakeTraces(Spec(0, 0, 1, 100));
+  Reply<v1::UploadTracesResponse> accepted =
+      UploadTraces(*Stub(0), FleetId(0), first, 100);
+  ASSERT_TRUE(accepted.ok()) << Describe(accepted.status);
+  EXPECT_EQ(accepted.response.accepted(), 100u);
+  const std::vector<v1::MemoryTrace> more = MakeTraces(Spec(0, 0, 101, 100));
+  Reply<v1::UploadTracesResponse> refused =
+      UploadTraces(*Stub(0), FleetId(0), more, 100);
+  EXPECT_EQ(refused.status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED)
+      << Describe(refused.status);
+  EXPECT_NE(refused.status.error_message().find("robot_traces_per_second"),
+            std::string::npos)
+      << Describe(refused.status);
+  ASSERT_TRUE(WaitForTraces(0, 0, 100, std::chrono::seconds(20)));
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  Reply<v1::GetStatsResponse> stats = GetStats(*Stub(0), FleetId(0));
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(Received(stats.response), 100u);
 }
 
 // Seconds until GetStats of every fleet answers through replica `via`

@@ -1,6 +1,7 @@
 #include "services/server/cluster_mode.h"
 
 #include <algorithm>
+#include <chrono>
 #include <fstream>
 #include <sstream>
 #include <utility>
@@ -83,18 +84,31 @@ absl::StatusOr<std::unique_ptr<ClusterMode>> ClusterMode::Start(
   node.materialiser.renew_interval = cluster.nats.lease_ttl / 3;
   node.materialiser.snapshot_every = cluster.snapshot_every_entries;
   node.materialiser.trim_log = cluster.trim_log;
+  engine::QuotaOptions rates;  // the rates only; the engine has the rest
+  rates.fleet_traces_per_second = config.engine.limits.fleet_traces_per_second;
+  rates.fleet_bytes_per_second = config.engine.limits.fleet_bytes_per_second;
+  rates.robot_traces_per_second = config.engine.limits.robot_traces_per_second;
+  rates.robot_bytes_per_second = config.engine.limits.robot_bytes_per_second;
+  rates.burst_seconds = config.engine.limits.burst_seconds;
   return std::unique_ptr<ClusterMode>(
-      new ClusterMode(cluster.advertise, cluster.max_entry_bytes,
+      new ClusterMode(cluster.advertise, cluster.max_entry_bytes, rates,
                       *std::move(log), std::move(peers), engine, node));
 }
 
 ClusterMode::ClusterMode(std::string self, size_t max_entry_bytes,
+                         engine::QuotaOptions rates,
                          std::unique_ptr<cluster::NatsFleetLog> log,
                          transport::PeerOptions peers,
                          engine::MemoryEngine* engine,
                          cluster::ClusterNodeOptions node)
     : self_(std::move(self)),
       max_entry_bytes_(max_entry_bytes),
+      rates_(std::move(rates),
+             [] {
+               return std::chrono::duration<double>(
+                          std::chrono::steady_clock::now().time_since_epoch())
+                   .count();
+             }),
       engine_(engine),
       log_(std::move(log)),
       forwarder_(std::move(peers)),
@@ -125,6 +139,10 @@ absl::StatusOr<engine::UploadResult> ClusterMode::Upload(
       fleet_id, traces, shape->has_value() ? &**shape : nullptr);
   if (!valid.ok()) return valid;
   if (traces.empty()) return engine::UploadResult{};
+  if (absl::Status admitted = rates_.AdmitRates(fleet_id, traces);
+      !admitted.ok()) {
+    return admitted;
+  }
   absl::StatusOr<cluster::Ingested> ingested =
       cluster::Ingest(*log_, fleet_id, traces, max_entry_bytes_);
   if (!ingested.ok()) return ingested.status();

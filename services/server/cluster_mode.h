@@ -20,6 +20,7 @@
 #include "services/cluster/cluster_node.h"
 #include "services/cluster/nats_fleet_log.h"
 #include "services/engine/memory_engine.h"
+#include "services/engine/upload_quota.h"
 #include "services/server/server_config.h"
 #include "services/transport/distribution.h"
 #include "services/transport/peer_forwarder.h"
@@ -70,6 +71,7 @@ class ClusterMode final : public transport::Distribution {
 
  private:
   ClusterMode(std::string self, size_t max_entry_bytes,
+              engine::QuotaOptions rates,
               std::unique_ptr<cluster::NatsFleetLog> log,
               transport::PeerOptions peers, engine::MemoryEngine* engine,
               cluster::ClusterNodeOptions node);
@@ -93,6 +95,11 @@ class ClusterMode final : public transport::Distribution {
 
   const std::string self_;
   const size_t max_entry_bytes_;
+  // Upload rates (limits.*_per_second), applied by the replica that
+  // receives an upload, per replica: a robot uploading through several
+  // replicas gets each one's rate. The engine applying the log runs
+  // without them.
+  engine::UploadQuota rates_;
   engine::MemoryEngine* const engine_;
   std::unique_ptr<cluster::NatsFleetLog> log_;
   transport::PeerForwarder forwarder_;

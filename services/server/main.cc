@@ -258,8 +258,18 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   observability::Metrics metrics;
   std::unique_ptr<engine::MemoryStore> store =
       metrics.TimedStore(std::move(*opened));
+  // Distributed mode: upload rates are the receiving replica's
+  // (ClusterMode); the engine applying the log must refuse nothing by the
+  // clock, or replicas would differ.
+  engine::EngineOptions engine_options = config.engine;
+  if (config.cluster.enabled()) {
+    engine_options.limits.fleet_traces_per_second = 0;
+    engine_options.limits.fleet_bytes_per_second = 0;
+    engine_options.limits.robot_traces_per_second = 0;
+    engine_options.limits.robot_bytes_per_second = 0;
+  }
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
-      engine::MemoryEngine::Open(config.engine, store.get(),
+      engine::MemoryEngine::Open(engine_options, store.get(),
                                  MakeIndexFactory(config),
                                  metrics.EngineHooks());
   if (!engine.ok()) {

@@ -282,13 +282,6 @@ absl::Status ValidateCluster(const ServerConfig& config) {
         "cluster.peer_token_file: required with auth on (the token of an "
         "admin principal replicas forward calls with)");
   }
-  const engine::QuotaOptions& limits = config.engine.limits;
-  if (limits.fleet_traces_per_second > 0 || limits.fleet_bytes_per_second > 0 ||
-      limits.robot_traces_per_second > 0 || limits.robot_bytes_per_second > 0) {
-    return absl::InvalidArgumentError(
-        "limits: upload rates (*_per_second) are not supported in distributed "
-        "mode yet (a rate refusal at the owner would make replicas differ)");
-  }
   return absl::OkStatus();
 }
 

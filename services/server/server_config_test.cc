@@ -426,9 +426,10 @@ TEST(ServerConfigTest, ClusterModeFromFlagsAndFileIsValidated) {
   bad = *config;
   bad.security.auth_file = "/creds";
   refused(bad, "peer_token_file");
-  bad = *config;
-  bad.engine.limits.robot_traces_per_second = 10;
-  refused(bad, "not supported in distributed mode");
+  // Upload rates are the receiving replica's (ClusterMode).
+  ServerConfig rates = *config;
+  rates.engine.limits.robot_traces_per_second = 10;
+  EXPECT_TRUE(ValidateServerConfig(rates).ok());
 }
 
 // The configuration files shipped with the images, the compose fleet, the
