@@ -112,6 +112,7 @@ absl::StatusOr<std::vector<std::string>> ClusterNode::RunOnce() {
   {
     absl::MutexLock lock(&mu_);
     before = std::exchange(owned_, owned);
+    fleets_seen_ = fleets->size();
   }
   if (on_lost_) {
     for (const std::string& fleet : before) {
@@ -126,6 +127,11 @@ absl::StatusOr<std::vector<std::string>> ClusterNode::RunOnce() {
 std::vector<std::string> ClusterNode::owned() const {
   absl::MutexLock lock(&mu_);
   return owned_;
+}
+
+size_t ClusterNode::fleets_seen() const {
+  absl::MutexLock lock(&mu_);
+  return fleets_seen_;
 }
 
 }  // namespace fleetmem::cluster

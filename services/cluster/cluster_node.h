@@ -69,6 +69,8 @@ class ClusterNode {
   absl::StatusOr<std::vector<std::string>> RunOnce();
   // The fleets owned after the last round.
   std::vector<std::string> owned() const;
+  // The fleets that had a log in the last round.
+  size_t fleets_seen() const;
   // The materialiser the loop steps (for the calls an owner derives).
   Materialiser& materialiser() { return materialiser_; }
 
@@ -85,6 +87,7 @@ class ClusterNode {
   absl::Time announced_at_ = absl::InfinitePast();  // loop thread only
   mutable absl::Mutex mu_;
   std::vector<std::string> owned_ ABSL_GUARDED_BY(mu_);
+  size_t fleets_seen_ ABSL_GUARDED_BY(mu_) = 0;
   std::function<void(const std::string&)> on_lost_;
   absl::Notification stop_;
   std::thread thread_;

@@ -209,6 +209,16 @@ struct Metrics::Families {
                     .Help("Distributed mode: entries of the fleet's log not "
                           "applied yet by this replica, its owner")
                     .Register(r)),
+        cluster_fleets(BuildGauge()
+                           .Name("fleetmem_cluster_fleets")
+                           .Help("Distributed mode: fleets that have a log, "
+                                 "as this replica last listed them")
+                           .Register(r)),
+        cluster_owned(BuildGauge()
+                          .Name("fleetmem_cluster_owned_fleets")
+                          .Help("Distributed mode: fleets this replica owns "
+                                "(holds the lease of)")
+                          .Register(r)),
         fleets(BuildGauge()
                    .Name("fleetmem_fleets")
                    .Help("Fleets held by the server")
@@ -247,6 +257,8 @@ struct Metrics::Families {
   Family<Gauge>& index_entries;
   Family<Gauge>& index_unindexed;
   Family<Gauge>& log_lag;
+  Family<Gauge>& cluster_fleets;
+  Family<Gauge>& cluster_owned;
   Family<Gauge>& fleets;
   Family<Gauge>& store_bytes;
   Family<Gauge>& queue_depth;
@@ -397,6 +409,11 @@ void Metrics::RefreshGauges() {
       }
     }
     lag_exported_ = std::move(fleets);
+  }
+  if (sources_.cluster_fleets) {
+    const auto [with_log, owned] = sources_.cluster_fleets();
+    f.cluster_fleets.Add({}).Set(with_log);
+    f.cluster_owned.Add({}).Set(owned);
   }
   if (sources_.store != nullptr) {
     f.store_bytes.Add({}).Set(

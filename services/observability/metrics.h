@@ -39,6 +39,10 @@ struct ScrapeSources {
   // Distributed mode: entries of each owned fleet's log not applied yet
   // (fleetmem_cluster_log_lag_entries).
   std::function<std::vector<std::pair<std::string, double>>()> log_lag;
+  // Distributed mode: the fleets that have a log and those this replica
+  // owns, as of its last round (fleetmem_cluster_fleets,
+  // fleetmem_cluster_owned_fleets: alerts compare them over replicas).
+  std::function<std::pair<double, double>()> cluster_fleets;
 };
 
 // Thread-safe.

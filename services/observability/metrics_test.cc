@@ -106,8 +106,11 @@ TEST(MetricsTest, TheLogLagOfEachOwnedFleet) {
   std::vector<std::pair<std::string, double>> lag = {{"alpha", 3}, {"beta", 0}};
   ScrapeSources sources;
   sources.log_lag = [&lag] { return lag; };
+  sources.cluster_fleets = [] { return std::pair<double, double>(5, 2); };
   metrics.SetScrapeSources(sources);
   std::string text = metrics.Render();
+  EXPECT_THAT(text, HasSubstr("fleetmem_cluster_fleets 5"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_cluster_owned_fleets 2"));
   EXPECT_THAT(text,
               HasSubstr("fleetmem_cluster_log_lag_entries{fleet=\"alpha\"} 3"));
   EXPECT_THAT(text,

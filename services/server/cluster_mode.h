@@ -55,6 +55,11 @@ class ClusterMode final : public transport::Distribution {
   // Entries of each owned fleet's log not applied yet (one call to NATS
   // per fleet; a fleet whose log cannot be read now is left out).
   std::vector<std::pair<std::string, double>> LogLag();
+  // Fleets that have a log, and fleets owned here, as of the last round.
+  std::pair<double, double> FleetCounts() const {
+    return {static_cast<double>(node_.fleets_seen()),
+            static_cast<double>(node_.owned().size())};
+  }
   // True if this replica holds the fleet's lease (as of its last round);
   // no call to NATS.
   bool Serves(std::string_view fleet_id) {

@@ -314,7 +314,8 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     metrics.SetScrapeSources(
         {engine->get(), store.get(), [&work] { return work.queued(); },
          [serving](const std::string& fleet) { return serving->Serves(fleet); },
-         [serving] { return serving->LogLag(); }});
+         [serving] { return serving->LogLag(); },
+         [serving] { return serving->FleetCounts(); }});
   }
   transport::MemoryServiceImpl service(engine->get(), &work,
                                        authenticator.get(), service_options);
