@@ -534,6 +534,40 @@ TEST_F(ClusterIntegrationTest, TheReceivingReplicaAppliesUploadRates) {
   EXPECT_EQ(Received(stats.response), 100u);
 }
 
+// Two robots create one fleet at once through two replicas with different
+// code dimensions: exactly one is acknowledged, the other refused
+// (INVALID_ARGUMENT), never both (the creating upload is appended only as
+// the log's first entry).
+TEST_F(ClusterIntegrationTest, OneOfTwoUploadsCreatingAFleetAtOnceWins) {
+  StartNats();
+  StartReplica(0);
+  StartReplica(1);
+  int both = 0, one = 0;
+  for (int attempt = 0; attempt < 12; ++attempt) {
+    const std::string fleet = absl::StrCat("race-", attempt);
+    TraceSpec narrow = Spec(0, 0, 1, 50);
+    TraceSpec wide = Spec(0, 1, 1, 50);
+    wide.dimension = 16;
+    const std::vector<v1::MemoryTrace> a = MakeTraces(narrow);
+    const std::vector<v1::MemoryTrace> b = MakeTraces(wide);
+    Reply<v1::UploadTracesResponse> reply_a, reply_b;
+    std::thread other([&] { reply_b = UploadTraces(*Stub(1), fleet, b, 50); });
+    reply_a = UploadTraces(*Stub(0), fleet, a, 50);
+    other.join();
+    if (reply_a.ok() && reply_b.ok()) ++both;
+    if (reply_a.ok() != reply_b.ok()) ++one;
+    for (const Reply<v1::UploadTracesResponse>* reply : {&reply_a, &reply_b}) {
+      if (!reply->ok()) {
+        EXPECT_EQ(reply->status.error_code(),
+                  grpc::StatusCode::INVALID_ARGUMENT)
+            << Describe(reply->status);
+      }
+    }
+  }
+  EXPECT_EQ(both, 0) << "both uploads creating a fleet were acknowledged";
+  EXPECT_EQ(one, 12);
+}
+
 // Seconds until GetStats of every fleet answers through replica `via`
 // (calls of 1 s), or -1 after `timeout`.
 double UntilServed(const std::string& address, int fleets,

@@ -41,9 +41,13 @@ class FleetLog {
   // returns once the log has stored it on its replicas. UNAVAILABLE or
   // DEADLINE_EXCEEDED: unknown whether it was stored; appending again
   // under the same id cannot store it twice within the window.
+  // `only_first`: only as the log's first entry (a fleet's creation);
+  // FAILED_PRECONDITION, with nothing appended, if the log holds one
+  // already (a repeat of the same id is still answered as a duplicate).
   virtual absl::StatusOr<Appended> Append(std::string_view fleet_id,
                                           std::string_view id,
-                                          std::string_view data) = 0;
+                                          std::string_view data,
+                                          bool only_first = false) = 0;
   // Up to `max` entries in order from sequence `from` (>= 1), skipping
   // numbers the log skipped; fewer at the end of the log (or after a failed
   // read), none past it or for a fleet without a log. OUT_OF_RANGE if

@@ -56,7 +56,7 @@ absl::StatusOr<EncodedUpload> EncodeUpload(
 
 absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
                                 std::span<const core::MemoryTrace> traces,
-                                size_t max_entry_bytes) {
+                                size_t max_entry_bytes, bool creates_fleet) {
   // Each robot's traces in the order given, robots in order of first sight.
   std::vector<std::string> robots;
   std::map<std::string, std::vector<const core::MemoryTrace*>, std::less<>>
@@ -98,7 +98,11 @@ absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
     absl::StatusOr<EncodedUpload> encoded = EncodeUpload(entry);
     if (!encoded.ok()) return encoded.status();
     absl::StatusOr<Appended> appended =
-        log.Append(fleet_id, encoded->id, encoded->data);
+        log.Append(fleet_id, encoded->id, encoded->data,
+                   creates_fleet && ingested.entries == 0);
+    if (absl::IsFailedPrecondition(appended.status())) {
+      return appended.status();  // the first entry: nothing appended
+    }
     if (!appended.ok()) {
       return absl::Status(
           appended.status().code(),

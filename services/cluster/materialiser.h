@@ -104,9 +104,15 @@ struct Ingested {
 // INVALID_ARGUMENT, with nothing appended, if a single trace does not fit.
 // On a failed append the status says which entries the log holds already
 // (a retry of the whole upload appends only the rest: ids repeat).
+// `creates_fleet`: the receiving replica found no log for the fleet, so
+// this upload fixes its shape: its first entry is appended only as the
+// log's first (FleetLog::Append's only_first), and FAILED_PRECONDITION,
+// with nothing appended, says another upload created the fleet meanwhile
+// (check the upload against that one's shape, then ingest it again).
 absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
                                 std::span<const core::MemoryTrace> traces,
-                                size_t max_entry_bytes);
+                                size_t max_entry_bytes,
+                                bool creates_fleet = false);
 
 // What applying an entry a call appended did (Materialiser::Consolidate,
 // SampleReplay).

@@ -432,5 +432,29 @@ TEST_F(MaterialiserTest, ALogTrimmedUnderANewOwnerIsRestoredNotSkipped) {
   ExpectSameState(StateOf(*d.engine, fleet), want);
 }
 
+// An upload that creates a fleet is appended only as its log's first
+// entry: a second upload that also believed it creates the fleet is
+// refused with nothing appended (the receiving replica then checks it
+// against the first one's shape).
+TEST_F(MaterialiserTest, OnlyOneUploadCreatesAFleet) {
+  const std::string fleet = "fleet-new";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  absl::StatusOr<Ingested> first =
+      Ingest(*log, fleet, uploads[0], 1 << 20, /*creates_fleet=*/true);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(first->last_sequence, 1u);
+  absl::StatusOr<Ingested> second =
+      Ingest(*log, fleet, uploads[1], 1 << 20, /*creates_fleet=*/true);
+  EXPECT_EQ(second.status().code(), absl::StatusCode::kFailedPrecondition)
+      << second.status();
+  EXPECT_EQ(*log->LastSequence(fleet), 1u);
+  // As an ordinary upload it is appended.
+  second = Ingest(*log, fleet, uploads[1], 1 << 20);
+  ASSERT_TRUE(second.ok()) << second.status();
+  EXPECT_EQ(*log->LastSequence(fleet), 2u);
+}
+
 }  // namespace
 }  // namespace fleetmem::cluster

@@ -284,7 +284,8 @@ absl::Status NatsFleetLog::EnsureFleetStream(std::string_view fleet_id,
 
 absl::StatusOr<Appended> NatsFleetLog::Append(std::string_view fleet_id,
                                               std::string_view id,
-                                              std::string_view data) {
+                                              std::string_view data,
+                                              bool only_first) {
   if (id.empty()) {
     return absl::InvalidArgumentError("cluster: an entry needs an id");
   }
@@ -304,11 +305,18 @@ absl::StatusOr<Appended> NatsFleetLog::Append(std::string_view fleet_id,
   publish.MsgId = msg_id.c_str();
   publish.ExpectStream = stream.c_str();
   publish.MaxWait = Milliseconds(options_.timeout);
+  // The log has one subject: no message on it means an empty log.
+  publish.ExpectNoMessage = only_first;
   jsPubAck* ack = nullptr;
   jsErrCode code = static_cast<jsErrCode>(0);
   const natsStatus s =
       js_Publish(&ack, handles_->js, subject.c_str(), data.data(),
                  static_cast<int>(data.size()), &publish, &code);
+  if (s != NATS_OK && only_first && code == JSStreamWrongLastSequenceErr) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("cluster: the log of fleet \"", V(fleet_id),
+                     "\" has entries already (created meanwhile)"));
+  }
   if (s != NATS_OK) {
     return FromNats(s, code,
                     absl::StrCat("cluster: appending to the log of "

@@ -74,8 +74,8 @@ class NatsFleetLog final : public FleetLog,
   ~NatsFleetLog() override;
 
   absl::StatusOr<Appended> Append(std::string_view fleet_id,
-                                  std::string_view id,
-                                  std::string_view data) override;
+                                  std::string_view id, std::string_view data,
+                                  bool only_first = false) override;
   absl::StatusOr<std::vector<LogEntry>> Read(std::string_view fleet_id,
                                              uint64_t from,
                                              size_t max) override;

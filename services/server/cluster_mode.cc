@@ -143,8 +143,20 @@ absl::StatusOr<engine::UploadResult> ClusterMode::Upload(
       !admitted.ok()) {
     return admitted;
   }
-  absl::StatusOr<cluster::Ingested> ingested =
-      cluster::Ingest(*log_, fleet_id, traces, max_entry_bytes_);
+  // An upload that creates the fleet is appended only as its log's first
+  // entry: of two creating it at once with different shapes, the second
+  // is checked against the first's shape instead of being acknowledged
+  // and refused when applied.
+  absl::StatusOr<cluster::Ingested> ingested = cluster::Ingest(
+      *log_, fleet_id, traces, max_entry_bytes_, !shape->has_value());
+  if (absl::IsFailedPrecondition(ingested.status()) && !shape->has_value()) {
+    shape = ShapeOf(fleet_id);
+    if (!shape.ok()) return shape.status();
+    valid = engine_->CheckUpload(fleet_id, traces,
+                                 shape->has_value() ? &**shape : nullptr);
+    if (!valid.ok()) return valid;
+    ingested = cluster::Ingest(*log_, fleet_id, traces, max_entry_bytes_);
+  }
   if (!ingested.ok()) return ingested.status();
   engine::UploadResult result;
   result.accepted = ingested->traces - ingested->duplicate_traces;
