@@ -1,5 +1,7 @@
 #include "services/storage/fleet_image.h"
 
+#include <fstream>
+#include <iterator>
 #include <memory>
 #include <string>
 #include <vector>
@@ -69,6 +71,23 @@ TEST(FleetImageTest, DamagedOrForeignImagesAreRefused) {
   absl::StatusOr<engine::FleetImage> damaged = DecodeFleetImage("f1", *bytes);
   EXPECT_TRUE(absl::IsDataLoss(damaged.status())) << damaged.status();
   EXPECT_THAT(damaged.status().message(), HasSubstr("has no trace"));
+}
+
+// The fuzzer's seed (fuzz_corpus/fleet_image_fuzz) is a valid image, so
+// the fuzzer starts past the parser's first checks.
+TEST(FleetImageTest, TheFuzzSeedDecodes) {
+  std::ifstream in(std::string(FLEETMEM_SOURCE_DIR) +
+                       "/services/storage/fuzz_corpus/fleet_image_fuzz/"
+                       "meta_and_pending.bin",
+                   std::ios::binary);
+  ASSERT_TRUE(in.good());
+  const std::string bytes((std::istreambuf_iterator<char>(in)),
+                          std::istreambuf_iterator<char>());
+  absl::StatusOr<engine::FleetImage> image = DecodeFleetImage("f1", bytes);
+  ASSERT_TRUE(image.ok()) << image.status();
+  EXPECT_EQ(image->record.meta.code_dimension, 8u);
+  ASSERT_EQ(image->record.pending.size(), 1u);
+  EXPECT_EQ(image->record.pending[0].code.size(), 8u);
 }
 
 }  // namespace
