@@ -25,30 +25,7 @@ fleets=${FLEETS:-6}
 robots=${ROBOTS:-2}
 seconds=${SECONDS_UPLOAD:-10}
 replica_counts=${REPLICAS:-"embedded 1 2 3"}
-nats=$(command -v nats-server || echo /usr/sbin/nats-server)
-work=$(mktemp -d /tmp/fleetmem-cluster-scaling-XXXXXX)
-pids=()
-cleanup() {
-  for pid in "${pids[@]}"; do kill -9 "$pid" 2>/dev/null || true; done
-  rm -rf "$work"
-}
-trap cleanup EXIT
-
-free_port() {
-  python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'
-}
-
-# received FLEET ADDRESS: traces the fleet has received (its robots'), or -1.
-received() {
-  "$build/bin/fleetmem" --server "$2" --deadline-ms 2000 --json stats \
-    --fleet "$1" 2>/dev/null |
-    python3 -c 'import json,sys
-try:
-    s = json.loads(sys.stdin.read())
-    print(sum(int(r.get("received", 0)) for r in s.get("robots", [])))
-except Exception:
-    print(-1)'
-}
+source "$(dirname "$0")/cluster_common.sh"
 
 results=()
 for r in $replica_counts; do

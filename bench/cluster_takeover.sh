@@ -17,29 +17,7 @@ build=$(cd "${1:-build}" && pwd)
 out=${2:-/dev/stdout}
 traces=${TRACES:-200000}
 settings=${SNAPSHOTS:-"0 1000"}
-nats=$(command -v nats-server || echo /usr/sbin/nats-server)
-work=$(mktemp -d /tmp/fleetmem-cluster-takeover-XXXXXX)
-pids=()
-cleanup() {
-  for pid in "${pids[@]}"; do kill -9 "$pid" 2>/dev/null || true; done
-  rm -rf "$work"
-}
-trap cleanup EXIT
-
-free_port() {
-  python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'
-}
-# received ADDRESS: traces fleet "f" has received through ADDRESS, or -1.
-received() {
-  "$build/bin/fleetmem" --server "$1" --deadline-ms 2000 --json stats \
-    --fleet f 2>/dev/null |
-    python3 -c 'import json,sys
-try:
-    s = json.loads(sys.stdin.read())
-    print(sum(int(r.get("received", 0)) for r in s.get("robots", [])))
-except Exception:
-    print(-1)'
-}
+source "$(dirname "$0")/cluster_common.sh"
 # start NAME PORT: a replica on the run's nats-server.
 start() {
   mkdir -p "$dir/$1"
@@ -73,7 +51,7 @@ for snap in $settings; do
     --seconds 600 >"$dir/upload.txt" 2>&1
   acked=$(grep '^acknowledged' "$dir/upload.txt" | awk '{print $2}')
   for _ in $(seq 1 2400); do
-    [ "$(received "127.0.0.1:$port_a")" = "$acked" ] && break
+    [ "$(received f "127.0.0.1:$port_a")" = "$acked" ] && break
     sleep 0.25
   done
   port_b=$(free_port)
@@ -82,7 +60,7 @@ for snap in $settings; do
   t0=$(date +%s.%N)
   kill -TERM "$pid_a"
   for _ in $(seq 1 12000); do
-    [ "$(received "127.0.0.1:$port_b")" = "$acked" ] && break
+    [ "$(received f "127.0.0.1:$port_b")" = "$acked" ] && break
     sleep 0.05
   done
   took=$(python3 -c "import time; print(f'{time.time() - $t0:.2f}')")
