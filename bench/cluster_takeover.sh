@@ -8,7 +8,7 @@
 # replica B starts with an empty store; A stops cleanly (SIGTERM: it hands
 # its lease over) and the clock runs until B answers the fleet's stats with
 # every trace received. Per setting of cluster.snapshot_every_entries
-# (SNAPSHOTS, "0 1000": 0 = no snapshots) it reports the takeover time and
+# (SNAPSHOTS, "0 1000 250": 0 = no snapshots) it reports the takeover time and
 # the log entry through which B restored a snapshot, if it did.
 #
 #   bench/cluster_takeover.sh [BUILD_DIR] [OUT_FILE]
@@ -16,7 +16,7 @@ set -euo pipefail
 build=$(cd "${1:-build}" && pwd)
 out=${2:-/dev/stdout}
 traces=${TRACES:-200000}
-settings=${SNAPSHOTS:-"0 1000"}
+settings=${SNAPSHOTS:-"0 1000 250"}
 source "$(dirname "$0")/cluster_common.sh"
 # start NAME PORT: a replica on the run's nats-server.
 start() {

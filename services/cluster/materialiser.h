@@ -53,7 +53,7 @@ struct MaterialiserOptions {
   absl::Duration renew_interval = absl::ZeroDuration();
   // Snapshots (with a SnapshotStore): the owner stores one of a fleet once
   // this many log entries were applied since the fleet's latest (0: never).
-  uint64_t snapshot_every = 1000;
+  uint64_t snapshot_every = 250;
   // A replica taking a fleet restores its latest snapshot, instead of
   // applying the entries it covers, when it covers at least this many more
   // entries than the replica's own store holds, and always when the log no

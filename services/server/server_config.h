@@ -88,7 +88,7 @@ struct ClusterConfig {
   bool sync_store = false;
   // The owner of a fleet stores a snapshot of it in JetStream every this
   // many log entries (0: never; a new owner then replays the whole log).
-  uint64_t snapshot_every_entries = 1000;
+  uint64_t snapshot_every_entries = 250;
   // Whether the log entries a stored snapshot covers are removed from the
   // log (JetStream purge), so that logs stay bounded.
   bool trim_log = true;

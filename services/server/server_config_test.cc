@@ -399,7 +399,7 @@ TEST(ServerConfigTest, ClusterModeFromFlagsAndFileIsValidated) {
   EXPECT_FALSE(file_config.cluster.trim_log);
   EXPECT_FALSE(file_config.cluster.balance_fleets);
   EXPECT_TRUE(ServerConfig().cluster.balance_fleets);
-  EXPECT_EQ(ServerConfig().cluster.snapshot_every_entries, 1000u);
+  EXPECT_EQ(ServerConfig().cluster.snapshot_every_entries, 250u);
   EXPECT_TRUE(ServerConfig().cluster.trim_log);
   EXPECT_FALSE(ServerConfig().cluster.enabled());
 
