@@ -311,6 +311,10 @@ class ClusterIntegrationTest : public ::testing::Test {
 
   TempDir dir_{"fleetmem-cluster-"};
   std::vector<std::unique_ptr<ServerProcess>> nats_;
+  // Uploads, calls, the owner of fleet-0 killed, and a new replica whose
+  // fleets are compared trace by trace with the survivors' (below).
+  void OwnerLossScenario(bool snapshots);
+
   std::string nats_urls_;  // nats://HOST:PORT,...
   // Each fleet's owner stores a snapshot (and trims the log) this often.
   uint64_t snapshot_every_ = 1000;
@@ -320,10 +324,11 @@ class ClusterIntegrationTest : public ::testing::Test {
   std::vector<int> http_ports_;
 };
 
-TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
-  // A snapshot every two entries: owners trim the logs as they go, so a
-  // new owner restores the latest snapshot and applies the tail.
-  snapshot_every_ = 2;
+// With `snapshots`, owners store one every two entries and trim the logs
+// as they go, so the new replica restores each fleet's latest snapshot and
+// applies the tail; without, it rebuilds every fleet from the log alone.
+void ClusterIntegrationTest::OwnerLossScenario(bool snapshots) {
+  snapshot_every_ = snapshots ? 2 : 0;
   StartNats();
   for (size_t i = 0; i < 3; ++i) StartReplica(i);
 
@@ -496,14 +501,24 @@ TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
     EXPECT_EQ(rebuilt, before[fleet]) << FleetId(fleet);
     EXPECT_TRUE(listed.ok()) << Describe(listed);
   }
-  // Each fleet came from a snapshot there, not from a whole log.
+  // Each fleet came from a snapshot there (with snapshots), or from its
+  // whole log (without).
   const std::string log = ReadFileOrEmpty(dir_.Join("replica-3.log"));
   for (int fleet = 0; fleet < kFleets; ++fleet) {
-    EXPECT_TRUE(
+    EXPECT_EQ(
         absl::StrContains(log, absl::StrCat("fleet \"", FleetId(fleet),
-                                            "\" restored from its snapshot")))
+                                            "\" restored from its snapshot")),
+        snapshots)
         << FleetId(fleet);
   }
+}
+
+TEST_F(ClusterIntegrationTest, FleetsServedByOneOwnerSurviveItsLoss) {
+  OwnerLossScenario(/*snapshots=*/true);
+}
+
+TEST_F(ClusterIntegrationTest, AFleetRebuiltFromTheLogAloneIsTheSame) {
+  OwnerLossScenario(/*snapshots=*/false);
 }
 
 // Upload rates are the receiving replica's: a robot over its rate is
