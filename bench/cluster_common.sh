@@ -6,7 +6,7 @@ work=$(mktemp -d "/tmp/fleetmem-$(basename "$0" .sh)-XXXXXX")
 pids=()
 cleanup() {
   for pid in "${pids[@]}"; do kill -9 "$pid" 2>/dev/null || true; done
-  rm -rf "$work"
+  [ -n "${KEEP_WORK:-}" ] && echo "kept $work" >&2 || rm -rf "$work"
 }
 trap cleanup EXIT
 

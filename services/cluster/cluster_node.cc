@@ -28,11 +28,20 @@ void ClusterNode::Start() {
       stop_.WaitForNotificationWithTimeout(options_.interval);
     }
   });
+  if (options_.materialiser.renew_interval > absl::ZeroDuration()) {
+    renewer_ = std::thread([this] {
+      while (!stop_.WaitForNotificationWithTimeout(
+          options_.materialiser.renew_interval / 2)) {
+        materialiser_.RenewLeases();
+      }
+    });
+  }
 }
 
 void ClusterNode::Stop() {
   if (!stop_.HasBeenNotified()) stop_.Notify();
   if (thread_.joinable()) thread_.join();
+  if (renewer_.joinable()) renewer_.join();
 }
 
 void ClusterNode::ReleaseAll() {

@@ -54,7 +54,8 @@ class ClusterNode {
   void OnFleetLost(std::function<void(const std::string&)> lost) {
     on_lost_ = std::move(lost);
   }
-  // Runs rounds on a thread of its own until Stop.
+  // Runs rounds on a thread of its own until Stop, and renews the leases
+  // held on another.
   void Start();
   // Ends the loop after its round; the leases are not given up.
   void Stop();
@@ -91,6 +92,9 @@ class ClusterNode {
   std::function<void(const std::string&)> on_lost_;
   absl::Notification stop_;
   std::thread thread_;
+  // Renews the leases held (Materialiser::RenewLeases) every half
+  // renew_interval, whatever the steps are doing.
+  std::thread renewer_;
 };
 
 }  // namespace fleetmem::cluster

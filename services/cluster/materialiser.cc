@@ -280,6 +280,7 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
                                                     uint64_t capture,
                                                     CallOutcome* outcome) {
   auto it = owned_.find(fleet_id);
+  absl::Time renewed_at;
   if (it == owned_.end()) {
     // Where this replica's own store stands: entries up to it are in its
     // state (an earlier ownership, or before a restart).
@@ -288,25 +289,34 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
     absl::StatusOr<Lease> lease =
         leases_->Acquire(fleet_id, options_.replica_id);
     if (!lease.ok()) return lease.status();
-    Owned taken{*std::move(lease), absl::Now(), *position};
+    renewed_at = absl::Now();
+    {
+      absl::MutexLock held(&lease_mu_);
+      held_[std::string(fleet_id)] = Held{*lease, renewed_at, *position};
+    }
+    Owned taken{*position};
     // Under the lease: a restore is a write like any other.
     if (absl::Status restored = RestoreIfBehind(fleet_id, taken);
         !restored.ok()) {
-      return restored;  // not owned yet: the next step retries
+      // Not owned yet (the lease is kept: the next step takes it again at
+      // once, as its holder).
+      absl::MutexLock held(&lease_mu_);
+      held_.erase(std::string(fleet_id));
+      return restored;
     }
     it = owned_.emplace(std::string(fleet_id), std::move(taken)).first;
-  } else if (absl::Now() - it->second.renewed_at >= options_.renew_interval) {
+  } else {
     // Fencing: no entry is applied under a lease this replica lost.
-    const absl::Time now = absl::Now();
-    absl::StatusOr<Lease> renewed = leases_->Renew(it->second.lease);
+    absl::StatusOr<absl::Time> renewed = RenewIfDue(fleet_id, false);
     if (absl::IsFailedPrecondition(renewed.status())) owned_.erase(it);
     if (!renewed.ok()) return renewed.status();
-    it->second.lease = *std::move(renewed);
-    it->second.renewed_at = now;
+    renewed_at = *renewed;
   }
   Owned& owned = it->second;
-  StepResult result{0, owned.position, owned.lease.revision,
-                    std::exchange(owned.restored, 0), 0};
+  StepResult result{0, owned.position, 0, std::exchange(owned.restored, 0), 0};
+  if (std::optional<Lease> held = lease(fleet_id)) {
+    result.revision = held->revision;
+  }
   absl::StatusOr<std::vector<LogEntry>> entries =
       log_->Read(fleet_id, owned.position + 1, options_.batch);
   if (absl::IsOutOfRange(entries.status())) {
@@ -322,6 +332,14 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
   }
   if (!entries.ok()) return entries.status();
   for (const LogEntry& entry : *entries) {
+    // Entries are applied only within two renew intervals of a successful
+    // renewal (the lease has a third of its time left then); a longer
+    // step ends here and the next renews first.
+    if (options_.renew_interval > absl::ZeroDuration() &&
+        absl::Now() - renewed_at >= 2 * options_.renew_interval &&
+        entry.sequence > capture) {
+      break;
+    }
     if (absl::Status applied = Apply(fleet_id, entry, capture, outcome);
         !applied.ok()) {
       return applied;
@@ -331,7 +349,62 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
   }
   result.position = owned.position;
   SnapshotIfDue(fleet_id, owned, result);
+  absl::MutexLock held(&lease_mu_);
+  if (auto h = held_.find(fleet_id); h != held_.end()) {
+    h->second.position = owned.position;
+  }
   return result;
+}
+
+absl::StatusOr<absl::Time> Materialiser::RenewIfDue(std::string_view fleet_id,
+                                                    bool always) {
+  absl::MutexLock renewing(&renew_mu_);
+  Lease lease;
+  {
+    absl::MutexLock held(&lease_mu_);
+    auto it = held_.find(fleet_id);
+    if (it == held_.end()) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "cluster: the lease of fleet \"", V(fleet_id), "\" was lost"));
+    }
+    if (!always &&
+        absl::Now() - it->second.renewed_at < options_.renew_interval) {
+      return it->second.renewed_at;
+    }
+    lease = it->second.lease;
+  }
+  const absl::Time now = absl::Now();
+  absl::StatusOr<Lease> renewed = leases_->Renew(lease);
+  absl::MutexLock held(&lease_mu_);
+  auto it = held_.find(fleet_id);
+  if (absl::IsFailedPrecondition(renewed.status())) {
+    if (it != held_.end()) held_.erase(it);
+    return renewed.status();
+  }
+  if (!renewed.ok()) return renewed.status();
+  if (it == held_.end()) {  // released meanwhile
+    return absl::FailedPreconditionError(absl::StrCat(
+        "cluster: the lease of fleet \"", V(fleet_id), "\" was released"));
+  }
+  it->second.lease = *std::move(renewed);
+  it->second.renewed_at = now;
+  return now;
+}
+
+void Materialiser::RenewLeases() {
+  std::vector<std::string> fleets;
+  {
+    absl::MutexLock held(&lease_mu_);
+    for (const auto& [fleet_id, held_lease] : held_) {
+      fleets.push_back(fleet_id);
+    }
+  }
+  for (const std::string& fleet_id : fleets) {
+    absl::StatusOr<absl::Time> renewed = RenewIfDue(fleet_id, false);
+    if (!renewed.ok() && !absl::IsFailedPrecondition(renewed.status())) {
+      FLEETMEM_LOG(kWarning) << "cluster: " << renewed.status();
+    }
+  }
 }
 
 absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,
@@ -522,32 +595,38 @@ absl::StatusOr<std::vector<core::MemoryTrace>> Materialiser::SampleReplay(
 }
 
 std::vector<std::pair<std::string, uint64_t>> Materialiser::Positions() const {
-  absl::MutexLock lock(&mu_);
+  absl::MutexLock lock(&lease_mu_);
   std::vector<std::pair<std::string, uint64_t>> positions;
-  for (const auto& [fleet_id, owned] : owned_) {
-    positions.emplace_back(fleet_id, owned.position);
+  for (const auto& [fleet_id, held] : held_) {
+    positions.emplace_back(fleet_id, held.position);
   }
   return positions;
 }
 
 bool Materialiser::Owns(std::string_view fleet_id) const {
-  absl::MutexLock lock(&mu_);
-  return owned_.contains(fleet_id);
+  absl::MutexLock lock(&lease_mu_);
+  return held_.contains(fleet_id);
 }
 
 absl::Status Materialiser::Release(std::string_view fleet_id) {
   absl::MutexLock lock(&mu_);
-  auto it = owned_.find(fleet_id);
-  if (it == owned_.end()) return absl::OkStatus();
-  const Lease lease = it->second.lease;
-  owned_.erase(it);
-  return leases_->Release(lease);
+  absl::MutexLock renewing(&renew_mu_);
+  owned_.erase(std::string(fleet_id));
+  std::optional<Lease> lease;
+  {
+    absl::MutexLock held(&lease_mu_);
+    auto it = held_.find(fleet_id);
+    if (it == held_.end()) return absl::OkStatus();
+    lease = it->second.lease;
+    held_.erase(it);
+  }
+  return leases_->Release(*lease);
 }
 
 std::optional<Lease> Materialiser::lease(std::string_view fleet_id) const {
-  absl::MutexLock lock(&mu_);
-  auto it = owned_.find(fleet_id);
-  if (it == owned_.end()) return std::nullopt;
+  absl::MutexLock lock(&lease_mu_);
+  auto it = held_.find(fleet_id);
+  if (it == held_.end()) return std::nullopt;
   return it->second.lease;
 }
 

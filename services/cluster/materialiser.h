@@ -166,7 +166,8 @@ class Materialiser {
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint64_t count,
       std::string_view request_id);
-  // True if this replica holds the fleet's lease (as of its last step).
+  // True if this replica holds the fleet's lease (as of its last step or
+  // renewal). Does not wait for a step.
   bool Owns(std::string_view fleet_id) const;
   // The fleets it holds and the last sequence applied of each.
   std::vector<std::pair<std::string, uint64_t>> Positions() const;
@@ -175,6 +176,14 @@ class Materialiser {
   // log trimmed.
   void WaitForSnapshots();
 
+  // Renews every lease held whose renew_interval has passed, without
+  // waiting for the steps (which may run long: a batch of consolidations
+  // on a loaded machine): ClusterNode calls it from a thread of its own,
+  // so that a fleet's lease does not expire while another fleet's step
+  // runs. A lease found lost is forgotten; its fleet's next step answers
+  // FAILED_PRECONDITION.
+  void RenewLeases();
+
   // Gives the fleet's lease up (if held) and forgets its position.
   absl::Status Release(std::string_view fleet_id);
   // The lease held on the fleet, if any.
@@ -182,12 +191,22 @@ class Materialiser {
 
  private:
   struct Owned {
-    Lease lease;
-    absl::Time renewed_at;  // of `lease`
     uint64_t position = 0;  // last sequence applied
     uint64_t snapshot = 0;  // the sequence the latest snapshot covers
     uint64_t restored = 0;  // restored through this at acquisition (or 0)
   };
+  // A lease this replica holds, renewed by steps and RenewLeases alike.
+  struct Held {
+    Lease lease;
+    absl::Time renewed_at;  // of `lease`
+    uint64_t position = 0;  // Owned::position as of the last step's end
+  };
+  // Renews the fleet's lease if renew_interval has passed since its last
+  // renewal (or `always`). FAILED_PRECONDITION once it is lost (it is
+  // forgotten then); NATS's error otherwise (the lease is kept: the next
+  // renewal retries it). Returns when the lease was last renewed.
+  absl::StatusOr<absl::Time> RenewIfDue(std::string_view fleet_id, bool always)
+      ABSL_LOCKS_EXCLUDED(lease_mu_);
   // At acquisition, with the lease held: restores the fleet's latest
   // snapshot if it covers enough more than `owned.position` (or the log no
   // longer holds the entries after it); learns the latest's sequence.
@@ -236,8 +255,15 @@ class Materialiser {
   LeaseTable* const leases_;
   SnapshotStore* const snapshots_;
   engine::MemoryEngine* const engine_;
-  mutable absl::Mutex mu_;
+  mutable absl::Mutex mu_ ABSL_ACQUIRED_BEFORE(renew_mu_);
   std::map<std::string, Owned, std::less<>> owned_ ABSL_GUARDED_BY(mu_);
+  // Renewals one at a time (two at once at one revision would make the
+  // second look lost); held through the call to NATS.
+  absl::Mutex renew_mu_ ABSL_ACQUIRED_BEFORE(lease_mu_);
+  // The leases held: read by Owns, lease and Positions without waiting for
+  // a step (mu_ is held through a whole step).
+  mutable absl::Mutex lease_mu_;
+  std::map<std::string, Held, std::less<>> held_ ABSL_GUARDED_BY(lease_mu_);
   uint64_t calls_ ABSL_GUARDED_BY(mu_) = 0;  // for unique call entry ids
 
   // The snapshot writer: at most one snapshot per fleet waits (a newer one
