@@ -453,12 +453,23 @@ absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,
   if (status.ok() && !fetched->has_value()) {
     status = absl::DataLossError("the snapshot vanished");
   }
-  if (status.ok()) {
-    absl::StatusOr<engine::FleetImage> image =
-        storage::DecodeFleetImage(fleet_id, (*fetched)->second);
-    status = image.ok() ? engine_->RestoreFleet(fleet_id, *std::move(image))
-                        : image.status();
+  absl::StatusOr<engine::FleetImage> image =
+      status.ok() ? storage::DecodeFleetImage(fleet_id, (*fetched)->second)
+                  : absl::StatusOr<engine::FleetImage>(status);
+  if (image.ok()) {
+    // A failed restore may have written the image (its reload failed):
+    // the log is not applied over it from the old position; the next step
+    // restores again.
+    if (absl::Status restored =
+            engine_->RestoreFleet(fleet_id, *std::move(image));
+        !restored.ok()) {
+      return absl::Status(
+          restored.code(),
+          absl::StrCat("cluster: restoring fleet \"", V(fleet_id),
+                       "\" from its snapshot: ", restored.message()));
+    }
   }
+  status = image.status();
   if (!status.ok()) {
     if (!trimmed) {
       // The log still holds everything: apply it instead.
