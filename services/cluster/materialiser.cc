@@ -124,7 +124,13 @@ absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
 
 absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
     FleetLog& log, SnapshotStore* snapshots, std::string_view fleet_id) {
-  if (snapshots != nullptr) {
+  // The log's first entry while the log holds it: no call to the snapshot
+  // stream on the upload path.
+  absl::StatusOr<std::vector<LogEntry>> first = log.Read(fleet_id, 1, 1);
+  const bool trimmed =
+      absl::IsOutOfRange(first.status()) ||
+      (first.ok() && !first->empty() && first->front().sequence != 1);
+  if (trimmed && snapshots != nullptr) {
     absl::StatusOr<std::optional<SnapshotInfo>> latest =
         snapshots->Latest(fleet_id);
     if (!latest.ok()) return latest.status();
@@ -133,16 +139,15 @@ absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
                                 (*latest)->encoder_version};
     }
   }
-  absl::StatusOr<std::vector<LogEntry>> first = log.Read(fleet_id, 1, 1);
-  if (!first.ok()) return first.status();
-  if (first->empty()) return std::nullopt;
+  if (!first.ok() && !trimmed) return first.status();
+  if (first.ok() && first->empty()) return std::nullopt;
   cluster::v1::LogRecord record;
-  if (first->front().sequence != 1 ||
-      !record.ParseFromString(first->front().data) || !record.has_upload() ||
-      record.upload().traces_size() == 0) {
-    return absl::DataLossError(
-        absl::StrCat("cluster: the first entry of the log of fleet \"",
-                     V(fleet_id), "\" is not an upload"));
+  if (trimmed || !record.ParseFromString(first->front().data) ||
+      !record.has_upload() || record.upload().traces_size() == 0) {
+    return absl::DataLossError(absl::StrCat(
+        "cluster: the first entry of the log of fleet \"", V(fleet_id),
+        "\" is not an upload",
+        trimmed ? " (trimmed, and no snapshot gives its shape)" : ""));
   }
   const ::fleetmem::v1::MemoryTrace& trace = record.upload().traces(0);
   return engine::FleetShape{static_cast<uint32_t>(trace.code_size()),
