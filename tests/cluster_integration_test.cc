@@ -565,9 +565,22 @@ TEST_F(ClusterIntegrationTest, OneOfTwoUploadsCreatingAFleetAtOnceWins) {
     wide.dimension = 16;
     const std::vector<v1::MemoryTrace> a = MakeTraces(narrow);
     const std::vector<v1::MemoryTrace> b = MakeTraces(wide);
+    // As a robot does, an upload is retried while UNAVAILABLE (a stream
+    // JetStream is still making answers "no responders").
+    const auto upload = [&](size_t via,
+                            const std::vector<v1::MemoryTrace>& traces) {
+      Reply<v1::UploadTracesResponse> reply;
+      const auto deadline = Clock::now() + std::chrono::seconds(20);
+      do {
+        reply = UploadTraces(*Stub(via), fleet, traces, 50);
+        if (reply.status.error_code() != grpc::StatusCode::UNAVAILABLE) break;
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      } while (Clock::now() < deadline);
+      return reply;
+    };
     Reply<v1::UploadTracesResponse> reply_a, reply_b;
-    std::thread other([&] { reply_b = UploadTraces(*Stub(1), fleet, b, 50); });
-    reply_a = UploadTraces(*Stub(0), fleet, a, 50);
+    std::thread other([&] { reply_b = upload(1, b); });
+    reply_a = upload(0, a);
     other.join();
     if (reply_a.ok() && reply_b.ok()) ++both;
     if (reply_a.ok() != reply_b.ok()) ++one;
