@@ -59,25 +59,29 @@ void ClusterNode::ReleaseAll() {
 }
 
 std::optional<uint64_t> ClusterNode::LeastLoadedOther(size_t owned) {
-  const std::string& self = options_.materialiser.replica_id;
+  // Announcements change once per renew_interval: read with this replica's
+  // own, not every round.
   const absl::Time now = absl::Now();
-  if (now - announced_at_ >= options_.materialiser.renew_interval) {
-    if (absl::Status announced = leases_->Announce(self, owned);
-        !announced.ok()) {
-      FLEETMEM_LOG(kWarning) << "cluster: " << announced;
-    } else {
-      announced_at_ = now;
-    }
+  if (now - announced_at_ < options_.materialiser.renew_interval) {
+    return least_other_;
   }
+  const std::string& self = options_.materialiser.replica_id;
+  if (absl::Status announced = leases_->Announce(self, owned);
+      !announced.ok()) {
+    FLEETMEM_LOG(kWarning) << "cluster: " << announced;
+    return least_other_ = std::nullopt;  // asked again next round
+  }
+  announced_at_ = now;
   absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> replicas =
       leases_->Replicas();
-  if (!replicas.ok()) return std::nullopt;
-  std::optional<uint64_t> least;
+  least_other_ = std::nullopt;
+  if (!replicas.ok()) return least_other_;
   for (const auto& [replica, fleets] : *replicas) {
     if (replica == self) continue;
-    least = least.has_value() ? std::min(*least, fleets) : fleets;
+    least_other_ =
+        least_other_.has_value() ? std::min(*least_other_, fleets) : fleets;
   }
-  return least;
+  return least_other_;
 }
 
 absl::StatusOr<std::vector<std::string>> ClusterNode::RunOnce() {

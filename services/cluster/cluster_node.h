@@ -85,7 +85,10 @@ class ClusterNode {
   FleetLog* const log_;
   LeaseTable* const leases_;
   Materialiser materialiser_;
-  absl::Time announced_at_ = absl::InfinitePast();  // loop thread only
+  // Loop thread only: the last announcement, and what LeastLoadedOther
+  // read with it.
+  absl::Time announced_at_ = absl::InfinitePast();
+  std::optional<uint64_t> least_other_;
   mutable absl::Mutex mu_;
   std::vector<std::string> owned_ ABSL_GUARDED_BY(mu_);
   size_t fleets_seen_ ABSL_GUARDED_BY(mu_) = 0;
