@@ -17,11 +17,19 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   debootstrap docker-compose libceres-dev libhnswlib-dev libfaiss-dev \
   libxxhash-dev nats-server libnats-dev
 
+# ccache serves a fresh clone in another folder too: paths under the
+# checkout are hashed relative to it, and the working directory is not
+# hashed (debug info may then name the first clone's folder). A cache big
+# enough for the three builds (normal, ASan, fuzz) of a few revisions.
+export CCACHE_BASEDIR ?= $(CURDIR)
+export CCACHE_NOHASHDIR ?= 1
+export CCACHE_MAXSIZE ?= 20G
+
 empty :=
 space := $(empty) $(empty)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all deps configure build test test-asan test-tsan test-docker test-k8s test-cluster \
+.PHONY: all deps configure build test test-slow test-asan test-tsan test-docker test-k8s test-cluster \
   fuzz soak crash robot-crash demo bench perf format clean
 
 SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
@@ -63,18 +71,25 @@ configure: deps
 build: configure
 	@cmake --build $(BUILD_DIR) -j $(JOBS)
 
-# Every test: unit tests beside the code and the integration tests that start
-# the real server binary.
+# The tiers (docs/testing.md has what each protects and its times).
+# `make test`: unit tests beside the code, integration tests against the
+# real server binary, and a smoke run of every command and evaluation on a
+# few inputs, checked against numbers computed independently: every test
+# but the label "slow". About 10 minutes after the build on 2 cores.
 test: build
-	@cd $(BUILD_DIR) && ctest --output-on-failure -j $(JOBS) $(CTEST_ARGS)
+	@cd $(BUILD_DIR) && ctest --output-on-failure -j $(JOBS) -LE slow $(CTEST_ARGS)
 
-# The whole suite under AddressSanitizer + UndefinedBehaviorSanitizer
+# `make test-slow`: the evaluations on the real data with their figures'
+# claims, the Docker fleet and its faults, distributed mode in containers,
+# the Kubernetes manifests (label "slow"; each holds both cores).
+test-slow: build
+	@cd $(BUILD_DIR) && ctest --output-on-failure -j $(JOBS) -L slow $(CTEST_ARGS)
+
+# `make test`'s tests under AddressSanitizer + UndefinedBehaviorSanitizer
 # (build-asan/; the integration tests run the instrumented server), but the
-# quick lifelong evaluation (label "eval": a compute job in an uninstrumented
-# libtorch; its code paths run in the GPL unit and robot tests) and the
-# container and manifest tests (labels "docker", "k8s": they build their own
-# uninstrumented images, or run no C++). Benchmarks and the demo are not
-# built: no test runs them.
+# evaluations' smoke runs (label "eval": compute jobs in an uninstrumented
+# libtorch; their code paths run in the GPL, VO and robot tests here).
+# Benchmarks and the demo are not built: no test runs them.
 test-asan: deps
 	@cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_asan)" \
@@ -84,23 +99,25 @@ test-asan: deps
 	@cmake --build build-asan -j $(JOBS)
 	@cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
 	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-	  ctest --output-on-failure -j $(JOBS) -LE 'eval|docker|k8s' $(CTEST_ARGS)
+	  ctest --output-on-failure -j $(JOBS) -LE 'slow|eval' $(CTEST_ARGS)
 
-# The containers (tests/docker/fault_tests.py): builds the images from
-# docker/*.Dockerfile on a local debootstrap of bookworm, runs the compose
-# fleet and every fault, prints the table (docs/deployment.md). `make test`
-# runs it too when a Docker engine answers; it is skipped otherwise.
-test-docker: deps
+# The containers (tests/docker/fault_tests.py, also in `make test-slow`):
+# builds the images from docker/*.Dockerfile on a local debootstrap of
+# bookworm (over the host's build where that is sound), runs the compose
+# fleet and every fault, prints the table (docs/deployment.md).
+test-docker: build
 	@tests/docker/fault_tests.py
 
 # Distributed mode in containers (docker/cluster.compose.yaml): a replica
 # killed, a NATS server killed, a replica partitioned, under load from this
 # host; prints the recovery times and 0 lost, 0 duplicated
-# (tests/docker/cluster_fault_tests.py; docs/distributed.md).
+# (tests/docker/cluster_fault_tests.py; docs/distributed.md; also in
+# `make test-slow`).
 test-cluster: build
 	@tests/docker/cluster_fault_tests.py
 
-# The Kubernetes manifests (k8s/) against the real API types (Go, k8s.io/api).
+# The Kubernetes manifests (k8s/) against the real API types (Go, k8s.io/api;
+# also in `make test-slow`).
 test-k8s:
 	@k8s/validate/run.sh
 

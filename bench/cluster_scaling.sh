@@ -26,6 +26,7 @@ robots=${ROBOTS:-2}
 seconds=${SECONDS_UPLOAD:-10}
 replica_counts=${REPLICAS:-"embedded 1 2 3"}
 source "$(dirname "$0")/cluster_common.sh"
+source "$(dirname "$0")/../tools/process/server.sh"
 
 results=()
 for r in $replica_counts; do
@@ -34,37 +35,25 @@ for r in $replica_counts; do
   addresses=()
   if [ "$r" = embedded ]; then
     port=$(free_port)
-    mkdir -p "$dir/replica-0"
-    "$build/bin/fleetmem-server" --listen "127.0.0.1:$port" \
-      --data-dir "$dir/replica-0" >"$dir/replica-0.log" 2>&1 &
-    pids+=($!)
+    SERVER_LISTEN=127.0.0.1:$port start_server "$build" "$dir/replica-0" \
+      "$dir/replica-0.log"
+    pids+=("$SERVER_PID")
     addresses+=("127.0.0.1:$port")
     r=1
   else
-    nats_port=$(free_port)
-    "$nats" -a 127.0.0.1 -p "$nats_port" -js -sd "$dir/js" >"$dir/nats.log" 2>&1 &
-    pids+=($!)
-    sleep 1
+    start_nats "$dir"
+    echo 'cluster { replicas: 1 }' >"$dir/replica.textproto"
     for i in $(seq 0 $((r - 1))); do
       port=$(free_port)
-      mkdir -p "$dir/replica-$i"
-      "$build/bin/fleetmem-server" --listen "127.0.0.1:$port" \
-        --data-dir "$dir/replica-$i" --cluster "nats://127.0.0.1:$nats_port" \
-        --advertise "127.0.0.1:$port" \
-        --config <(echo 'cluster { replicas: 1 }') >"$dir/replica-$i.log" 2>&1 &
-      pids+=($!)
+      SERVER_LISTEN=127.0.0.1:$port start_server "$build" "$dir/replica-$i" \
+        "$dir/replica-$i.log" --cluster "nats://127.0.0.1:$nats_port" \
+        --advertise "127.0.0.1:$port" --config "$dir/replica.textproto"
+      pids+=("$SERVER_PID")
       addresses+=("127.0.0.1:$port")
     done
   fi
   label=$r
   [ -f "$dir/nats.log" ] || label=embedded
-  for a in "${addresses[@]}"; do
-    for _ in $(seq 1 100); do
-      grep -q "listening on $a" "$dir"/replica-*.log && break
-      sleep 0.1
-    done
-  done
-
   # Ingest: every fleet's robots at once, each fleet through one replica.
   start=$(date +%s.%N)
   upload_pids=()

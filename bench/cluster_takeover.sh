@@ -18,31 +18,23 @@ out=${2:-/dev/stdout}
 traces=${TRACES:-200000}
 settings=${SNAPSHOTS:-"0 1000 250"}
 source "$(dirname "$0")/cluster_common.sh"
+source "$(dirname "$0")/../tools/process/server.sh"
 # start NAME PORT: a replica on the run's nats-server.
 start() {
-  mkdir -p "$dir/$1"
-  "$build/bin/fleetmem-server" --listen "127.0.0.1:$2" --data-dir "$dir/$1" \
+  echo "cluster { replicas: 1 snapshot_every_entries: $snap }" \
+    >"$dir/$1.textproto"
+  SERVER_LISTEN=127.0.0.1:$2 start_server "$build" "$dir/$1" "$dir/$1.log" \
     --cluster "nats://127.0.0.1:$nats_port" --advertise "127.0.0.1:$2" \
-    --config <(echo "cluster { replicas: 1 snapshot_every_entries: $snap }") \
-    >"$dir/$1.log" 2>&1 &
-  pids+=($!)
-  last_pid=$!
-  for _ in $(seq 1 200); do
-    grep -q "listening on 127.0.0.1:$2" "$dir/$1.log" && return
-    sleep 0.1
-  done
-  echo "replica $1 did not start" >&2
-  exit 1
+    --config "$dir/$1.textproto" || exit 1
+  pids+=("$SERVER_PID")
+  last_pid=$SERVER_PID
 }
 
 rows=()
 for snap in $settings; do
   dir="$work/s$snap"
   mkdir -p "$dir/js"
-  nats_port=$(free_port)
-  "$nats" -a 127.0.0.1 -p "$nats_port" -js -sd "$dir/js" >"$dir/nats.log" 2>&1 &
-  pids+=($!)
-  sleep 1
+  start_nats "$dir"
   port_a=$(free_port)
   start a "$port_a"
   pid_a=$last_pid

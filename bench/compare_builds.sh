@@ -10,7 +10,8 @@
 #
 # A build directory is one with bin/fleetmem-server, e.g. a worktree of an
 # earlier commit built with `cmake -S . -B build && ninja -C build
-# fleetmem-server`. The load generator is B's.
+# fleetmem-server`. The load generator is B's. Both servers must take
+# --ready-file (the readiness signal tools/process/server.sh waits for).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 if [ $# -lt 2 ]; then

@@ -39,7 +39,7 @@ echo "build,round,rss_mib,rss_over_payload,port_seconds,snapshot_load"
 for round in $(seq 1 "$rounds"); do
   for build in "$a" "$b"; do
     start=$(date +%s.%N)
-    SERVER_START_TRIES=12000 start_server "$build" "$work/data" \
+    SERVER_START_SECONDS=1200 start_server "$build" "$work/data" \
       "$work/restart.log" --config "$work/restart.textproto"
     port_s=$(awk "BEGIN { printf \"%.2f\", $(date +%s.%N) - $start }")
     sleep 3

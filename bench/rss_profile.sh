@@ -32,7 +32,7 @@ while [ "$(unindexed_codes "$build" scale)" -gt 0 ]; do sleep 2; done
 stop_server
 
 # Loaded from the snapshot under heaptrack: the port opens after the load.
-SERVER_WRAPPER="heaptrack -o $out/server" SERVER_START_TRIES=12000 \
+SERVER_WRAPPER="heaptrack -o $out/server" SERVER_START_SECONDS=1200 \
   start_server "$build" "$work/data" "$work/profiled.log" \
   --config "$work/restart.textproto"
 grep -o 'fleet "scale" loaded.*' "$work/profiled.log"

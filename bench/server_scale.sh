@@ -57,19 +57,13 @@ for size in "${sizes[@]}"; do
 done
 stop_server
 start=$(date +%s.%N)
-"$build/bin/fleetmem-server" --listen 127.0.0.1:0 --data-dir "$work/data" \
-  --config "$config" >"$work/restart.log" 2>&1 &
-SERVER_PID=$!
-until grep -q "listening on" "$work/restart.log"; do
-  kill -0 "$SERVER_PID" 2>/dev/null || { cat "$work/restart.log" >&2; exit 1; }
-  sleep 0.05
-done
+SERVER_START_SECONDS=3600 start_server "$build" "$work/data" \
+  "$work/restart.log" --config "$config"
 end=$(date +%s.%N)
 restart=$(awk "BEGIN { printf \"%.2f\", $end - $start }")
 echo "restart_seconds_at_$largest,$restart" | tee -a "$out"
 # Where the restart went (the engine logs each fleet's load).
 grep -o 'fleet "scale" loaded.*' "$work/restart.log" >&2 || true
-SERVER_ADDR=$(sed -n 's/^fleetmem-server listening on \(.*\)$/\1/p' "$work/restart.log" | head -1)
 unindexed() { unindexed_codes "$build" scale; }
 echo "restart_unindexed_codes_at_open,$(unindexed)" | tee -a "$out"
 "$load" bench --server "$SERVER_ADDR" --fleet scale --dimension 256 \

@@ -11,18 +11,24 @@ function(fleetmem_library name)
   target_compile_options(${name} PRIVATE -Wall -Wextra -Wno-unused-parameter)
 endfunction()
 
-# fleetmem_test(NAME SOURCES ... DEPS ... [LABELS ...] [TIMEOUT seconds])
+# fleetmem_test(NAME SOURCES ... DEPS ... [LABELS ...] [TIMEOUT seconds]
+#               [PROCESSORS n] [RESOURCE_LOCK ...] [ENVIRONMENT ...])
 # A GoogleTest binary registered with CTest (tests sit beside the code).
+# LABELS name its tier and kind (docs/testing.md): "unit" when none is given.
+# TIMEOUT defaults to 300 s; PROCESSORS (default 1) is how many cores it
+# keeps busy, so that `ctest -j` never runs more than the machine has.
 function(fleetmem_test name)
   if(NOT FLEETMEM_BUILD_TESTS)
     return()
   endif()
-  cmake_parse_arguments(ARG "" "TIMEOUT" "SOURCES;DEPS;LABELS" ${ARGN})
+  cmake_parse_arguments(ARG "" "TIMEOUT;PROCESSORS"
+                        "SOURCES;DEPS;LABELS;RESOURCE_LOCK;ENVIRONMENT" ${ARGN})
   add_executable(${name} ${ARG_SOURCES})
   set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY
                         "${CMAKE_BINARY_DIR}/tests")
   target_include_directories(${name} PRIVATE ${PROJECT_SOURCE_DIR})
-  target_link_libraries(${name} PRIVATE ${ARG_DEPS} GTest::gmock GTest::gtest_main)
+  target_link_libraries(${name} PRIVATE ${ARG_DEPS} fleetmem_paths GTest::gmock
+                        GTest::gtest_main)
   if(FLEETMEM_TSAN_ABSL_ANNOTATIONS)
     # ThreadSanitizer build: tell TSan about Debian's uninstrumented
     # absl::Mutex (tools/tsan/absl_mutex_annotations.cc).
@@ -30,15 +36,39 @@ function(fleetmem_test name)
                    ${PROJECT_SOURCE_DIR}/tools/tsan/absl_mutex_annotations.cc)
     target_link_libraries(${name} PRIVATE ${CMAKE_DL_LIBS})
   endif()
-  target_compile_definitions(${name} PRIVATE
-    FLEETMEM_DATA_DIR="${FLEETMEM_DATA_DIR}"
-    FLEETMEM_BIN_DIR="${CMAKE_BINARY_DIR}/bin"
-    FLEETMEM_SOURCE_DIR="${PROJECT_SOURCE_DIR}")
   add_test(NAME ${name} COMMAND ${name})
+  fleetmem_test_properties(${name} TIMEOUT ${ARG_TIMEOUT}
+    PROCESSORS ${ARG_PROCESSORS} LABELS ${ARG_LABELS}
+    RESOURCE_LOCK ${ARG_RESOURCE_LOCK} ENVIRONMENT ${ARG_ENVIRONMENT})
+endfunction()
+
+# fleetmem_test_properties(NAME [TIMEOUT s] [PROCESSORS n] [LABELS ...]
+#                          [RESOURCE_LOCK ...] [ENVIRONMENT ...] [COST c])
+# The properties every test gets, with fleetmem_test's defaults; also for
+# tests added with add_test (scripts).
+function(fleetmem_test_properties name)
+  cmake_parse_arguments(ARG "" "TIMEOUT;PROCESSORS;COST"
+                        "LABELS;RESOURCE_LOCK;ENVIRONMENT" ${ARGN})
   if(NOT ARG_TIMEOUT)
     set(ARG_TIMEOUT 300)
   endif()
-  set_tests_properties(${name} PROPERTIES TIMEOUT ${ARG_TIMEOUT} LABELS "${ARG_LABELS}")
+  if(NOT ARG_PROCESSORS)
+    set(ARG_PROCESSORS 1)
+  endif()
+  if(NOT ARG_LABELS)
+    set(ARG_LABELS unit)
+  endif()
+  set_tests_properties(${name} PROPERTIES TIMEOUT ${ARG_TIMEOUT}
+                       PROCESSORS ${ARG_PROCESSORS} LABELS "${ARG_LABELS}")
+  if(ARG_RESOURCE_LOCK)
+    set_tests_properties(${name} PROPERTIES RESOURCE_LOCK "${ARG_RESOURCE_LOCK}")
+  endif()
+  if(ARG_ENVIRONMENT)
+    set_tests_properties(${name} PROPERTIES ENVIRONMENT "${ARG_ENVIRONMENT}")
+  endif()
+  if(ARG_COST)
+    set_tests_properties(${name} PROPERTIES COST ${ARG_COST})
+  endif()
 endfunction()
 
 # fleetmem_fuzzer(NAME SOURCES ... DEPS ...)

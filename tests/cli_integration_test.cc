@@ -35,6 +35,7 @@
 #include "google/protobuf/util/message_differencer.h"
 #include "gtest/gtest.h"
 #include "tests/server_process.h"
+#include "fleetmem_paths.h"
 
 extern char** environ;
 

@@ -30,22 +30,20 @@ check() { # check DESCRIPTION COMMAND...
   if "$@"; then echo "ok: $what"; else fail "$what"; fi
 }
 
-# start_server NAME DATA_DIR [extra flags]: sets GRPC_ADDR and HTTP_ADDR.
-start_server() {
+# shellcheck source=../tools/process/server.sh
+source "$(dirname "$0")/../tools/process/server.sh"
+# serve NAME DATA_DIR [extra flags]: a server with an HTTP port (the
+# project's start_server); sets GRPC_ADDR and HTTP_ADDR, and MAIN_ADDR for
+# the server named main.
+serve() {
   local name=$1 data=$2; shift 2
-  "$BIN/fleetmem-server" --data-dir "$data" --listen 127.0.0.1:0 \
-    --http-listen 127.0.0.1:0 "$@" > "$WORK/$name.log" 2>&1 &
-  PIDS+=($!)
-  disown $!
-  for _ in $(seq 1 300); do
-    if grep -q "^fleetmem-server listening on" "$WORK/$name.log" &&
-       grep -q "^fleetmem-server http on" "$WORK/$name.log"; then break; fi
-    sleep 0.1
-  done
-  GRPC_ADDR=$(sed -n 's/^fleetmem-server listening on //p' "$WORK/$name.log")
-  HTTP_ADDR=$(sed -n 's/^fleetmem-server http on //p' "$WORK/$name.log")
-  [ -n "$GRPC_ADDR" ] && [ -n "$HTTP_ADDR" ] ||
-    { cat "$WORK/$name.log" >&2; fail "server $name did not start"; }
+  start_server "$BUILD" "$data" "$WORK/$name.log" --http-listen 127.0.0.1:0 \
+    "$@" || fail "server $name did not start"
+  PIDS+=("$SERVER_PID")
+  disown "$SERVER_PID"
+  GRPC_ADDR=$SERVER_ADDR
+  HTTP_ADDR=$SERVER_HTTP_ADDR
+  if [ "$name" = main ]; then MAIN_ADDR=$SERVER_ADDR; fi
 }
 
 cli() { "$BIN/fleetmem" --server "$GRPC_ADDR" "$@"; }
@@ -70,7 +68,7 @@ rest)
   # Index snapshots every second, of any fleet: the pause metric is served.
   printf 'index_snapshot_interval_seconds: 1\nindex_snapshot_min_codes: 0\n' \
     > "$WORK/snapshots.textproto"
-  start_server main "$WORK/data" --config "$WORK/snapshots.textproto"
+  serve main "$WORK/data" --config "$WORK/snapshots.textproto"
   upload_fleet alpha 6 150   # 6 x 20 clusters > K_max = 100: forgetting runs
   cli consolidate --fleet alpha > /dev/null  # clusters and events
   for route in "GET /v1/fleets" "GET /v1/fleets/alpha/stats" \
@@ -147,7 +145,7 @@ EOF
   ;;
 
 snapshot)
-  start_server main "$WORK/data"
+  serve main "$WORK/data"
   cli gen-traces --robots 40 --per-robot 100 --dim 32 --out "$WORK/all.jsonl" > /dev/null
   # One upload per robot, one after another, logging each acknowledgement.
   (
@@ -166,7 +164,7 @@ snapshot)
   snap=$(sed -n 's/^restore: fleetmem-server --data-dir //p' "$WORK/snapshot.out")
   check "snapshot directory exists" [ -d "$snap/db" ]
   echo "acknowledged before the snapshot: $(wc -l < "$WORK/acked-before") robots"
-  start_server restored "$snap"
+  serve restored "$snap"
   cli --json stats --fleet load > "$WORK/restored.json"
   check "every trace acknowledged before the snapshot is in it" /usr/bin/python3 - "$WORK/restored.json" "$WORK/acked-before" <<'EOF'
 import json, sys
@@ -179,15 +177,15 @@ EOF
   check "the live server kept serving and has all 40 robots" /usr/bin/python3 -c '
 import json, subprocess, sys
 s = json.loads(subprocess.check_output(sys.argv[1:]))
-assert len(s["robots"]) == 40, len(s["robots"])' "$BIN/fleetmem" --server "$(sed -n 's/^fleetmem-server listening on //p' "$WORK/main.log")" --json stats --fleet load
-  GRPC_ADDR=$(sed -n 's/^fleetmem-server listening on //p' "$WORK/main.log")
+assert len(s["robots"]) == 40, len(s["robots"])' "$BIN/fleetmem" --server "$MAIN_ADDR" --json stats --fleet load
+  GRPC_ADDR=$MAIN_ADDR
   cli snapshot --name under-load > "$WORK/again.out" 2>&1 || true
   check "a taken name is refused" grep -q ALREADY_EXISTS "$WORK/again.out"
   ;;
 
 prometheus)
   command -v prometheus > /dev/null || fail "prometheus is not installed (make deps)"
-  start_server main "$WORK/data"
+  serve main "$WORK/data"
   upload_fleet scraped 2 250   # 200 per robot consolidate automatically
   traces=$(cli --json stats --fleet scraped | /usr/bin/python3 -c 'import json,sys; print(json.load(sys.stdin)["traces"])')
   port=$(/usr/bin/python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
@@ -218,7 +216,7 @@ EOF
 
 dashboard)
   command -v chromium > /dev/null || fail "chromium is not installed (make deps)"
-  start_server main "$WORK/data"
+  serve main "$WORK/data"
   upload_fleet dashfleet 3 300
   ARTIFACTS=$BUILD/test-artifacts
   mkdir -p "$ARTIFACTS"
@@ -248,7 +246,7 @@ dashboard)
     "$BIN/fleetmem-credential" --name "$1" --role "$2" --fleet '*' \
       --token-file "$WORK/auth/$1.token" >> "$WORK/auth/credentials.textproto"
   done
-  start_server secured "$WORK/data-secured" --auth-file "$WORK/auth/credentials.textproto"
+  serve secured "$WORK/data-secured" --auth-file "$WORK/auth/credentials.textproto"
   cli --token-file "$WORK/auth/admin.token" upload --fleet securefleet \
     --file "$WORK/traces.jsonl" > /dev/null
   check "the API refuses the dashboard's calls without a token" \

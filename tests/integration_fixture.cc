@@ -2,6 +2,7 @@
 
 #include <sys/stat.h>
 
+#include <fstream>
 #include <iostream>
 
 #include "absl/strings/str_cat.h"

@@ -29,6 +29,7 @@
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
 #include "tests/small_filesystem.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::testing {
 namespace {
@@ -435,7 +436,7 @@ TEST_F(RobotIntegrationTest, AGplRobotLearnsAndItsCodesCarryTheModelVersion) {
   std::vector<std::string> args =
       RobotArgs("f-gpl", "g1", kSummer, 250, 0.0, dir_.Join("g1"));
   args.insert(args.end(), {"--gpl-model", dir_.Join("fleet.pt"), "--learn",
-                           "--learn-steps", "5"});
+                           "--learn-steps", "5", "--torch-threads", "1"});
   RobotProcess robot(args, dir_.Join("gpl.log"));
   ASSERT_NO_FATAL_FAILURE(robot.Start());
   ASSERT_EQ(robot.Wait(), 0) << ReadFileOrEmpty(dir_.Join("gpl.log"));

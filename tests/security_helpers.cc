@@ -11,6 +11,7 @@
 #include "grpcpp/security/credentials.h"
 #include "grpcpp/support/client_interceptor.h"
 #include "tests/server_process.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::testing {
 namespace {

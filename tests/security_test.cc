@@ -15,6 +15,7 @@
 #include "tests/security_helpers.h"
 #include "tests/server_process.h"
 #include "tests/synthetic_traces.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::testing {
 namespace {

@@ -14,33 +14,62 @@
 namespace fleetmem::testing {
 namespace {
 
+using process::ReadyFile;
+
+TEST(ParseReadyFileTest, ReadsTheAddressesAndRefusesWhatIsNotOne) {
+  absl::StatusOr<ReadyFile> ready =
+      ParseReadyFile("grpc=127.0.0.1:4242\nhttp=[::1]:8080\npid=77\n");
+  ASSERT_TRUE(ready.ok()) << ready.status();
+  EXPECT_EQ(ready->grpc_address, "127.0.0.1:4242");
+  EXPECT_EQ(ready->grpc_port, 4242);
+  EXPECT_EQ(ready->http_address, "[::1]:8080");
+  EXPECT_EQ(ready->http_port, 8080);
+  EXPECT_EQ(ready->pid, 77);
+  ready = ParseReadyFile("pid=1\ngrpc=h:1");
+  ASSERT_TRUE(ready.ok()) << ready.status();
+  EXPECT_TRUE(ready->http_address.empty());
+  for (const char* bad : {"", "pid=3\n", "grpc=127.0.0.1:0\n",
+                          "grpc=127.0.0.1:http\n", "grpc=h:70000\n",
+                          "grpc=h:1\nhttp=h\n", "grpc=h:1\npid=x\n"}) {
+    EXPECT_EQ(ParseReadyFile(bad).status().code(),
+              absl::StatusCode::kInvalidArgument)
+        << bad;
+  }
+}
+
 TEST(ParseListeningPortTest, FindsThePortOfACompleteLine) {
+  const std::string marker = "Listening for client connections on ";
   struct Case {
     std::string output;
     std::optional<int> port;
   };
   const Case cases[] = {
-      {"fleetmem-server listening on 127.0.0.1:4242\n", 4242},
-      {"I0101 log\nfleetmem-server listening on [::1]:50051\r\nmore", 50051},
-      {"prefix: fleetmem-server listening on 0.0.0.0:1 \n", 1},
-      {"fleetmem-server listening on 127.0.0.1:4242", std::nullopt},
-      {"fleetmem-server listening on 127.0.0.1:0\n", std::nullopt},
-      {"fleetmem-server listening on 127.0.0.1:http\n", std::nullopt},
-      {"fleetmem-server listening on 127.0.0.1:70000\n", std::nullopt},
-      {"server listening on 127.0.0.1:4242\n", std::nullopt},
+      {marker + "127.0.0.1:4242\n", 4242},
+      {"I0101 log\n[1] " + marker + "[::1]:50051\r\nmore", 50051},
+      {marker + "0.0.0.0:1 \n", 1},
+      {marker + "127.0.0.1:4242", std::nullopt},
+      {marker + "127.0.0.1:0\n", std::nullopt},
+      {marker + "127.0.0.1:70000\n", std::nullopt},
+      {"Listening on 127.0.0.1:4242\n", std::nullopt},
       {"", std::nullopt},
   };
   for (const Case& c : cases) {
-    EXPECT_EQ(ParseListeningPort(c.output), c.port) << c.output;
+    EXPECT_EQ(ParseListeningPort(c.output, marker), c.port) << c.output;
   }
 }
 
 class ServerProcessTest : public ::testing::Test {
  protected:
-  // An executable shell script `name` in the temporary directory.
+  // An executable shell script `name` in the temporary directory. `body`
+  // may call `ready ADDRESS` to write the --ready-file as the server does.
   std::string Script(const std::string& name, const std::string& body) {
     std::string path = dir_.Join(name);
-    std::ofstream(path) << "#!/bin/sh\n" << body << "\n";
+    std::ofstream(path) << "#!/bin/sh\n"
+                        << "for a; do [ \"$prev\" = --ready-file ] && "
+                           "file=$a; prev=$a; done\n"
+                        << "ready() { echo \"grpc=$1\" >\"$file.tmp\" && "
+                           "mv \"$file.tmp\" \"$file\"; }\n"
+                        << body << "\n";
     EXPECT_EQ(chmod(path.c_str(), 0755), 0);
     return path;
   }
@@ -59,8 +88,7 @@ TEST_F(ServerProcessTest, StartsStopsAndLogs) {
   ServerProcess server(Options(Script("ok.sh",
                                       "trap 'echo bye; exit 0' TERM\n"
                                       "echo \"args: $*\"\n"
-                                      "echo 'fleetmem-server listening on "
-                                      "127.0.0.1:4242' >&2\n"
+                                      "ready 127.0.0.1:4242\n"
                                       "while true; do sleep 0.05; done")));
   ASSERT_TRUE(server.Start().ok());
   EXPECT_TRUE(server.running());
@@ -72,7 +100,8 @@ TEST_F(ServerProcessTest, StartsStopsAndLogs) {
   EXPECT_FALSE(server.running());
   const std::string log = ReadFileOrEmpty(dir_.Join("server.log"));
   EXPECT_TRUE(absl::StrContains(
-      log, "args: --listen 127.0.0.1:0 --data-dir " + dir_.Join("data")))
+      log, "args: --listen 127.0.0.1:0 --data-dir " + dir_.Join("data") +
+               " --ready-file "))
       << log;
   EXPECT_TRUE(absl::StrContains(log, "bye")) << log;
   EXPECT_EQ(server.Output(), log);
@@ -81,8 +110,7 @@ TEST_F(ServerProcessTest, StartsStopsAndLogs) {
 TEST_F(ServerProcessTest, PassesTheConfigFile) {
   ServerOptions options =
       Options(Script("config.sh",
-                     "echo \"args: $*\"; echo 'fleetmem-server listening on "
-                     "h:7'; exec sleep 30"));
+                     "echo \"args: $*\"; ready h:7; exec sleep 30"));
   options.config_file = "/some/config.yaml";
   ServerProcess server(options);
   ASSERT_TRUE(server.Start().ok());
@@ -101,9 +129,12 @@ TEST_F(ServerProcessTest, ReportsAServerThatExitsBeforeListening) {
   EXPECT_FALSE(server.running());
 }
 
-TEST_F(ServerProcessTest, TimesOutOnASilentServer) {
-  ServerOptions options =
-      Options(Script("silent.sh", "echo 'starting'; exec sleep 30"));
+TEST_F(ServerProcessTest, TimesOutOnAServerThatNeverGetsReady) {
+  // A log line is no readiness signal: only the ready file is.
+  ServerOptions options = Options(Script(
+      "silent.sh",
+      "echo 'starting'; echo 'fleetmem-server listening on 127.0.0.1:1'; "
+      "exec sleep 30"));
   options.start_timeout = std::chrono::milliseconds(300);
   ServerProcess server(options);
   absl::Status status = server.Start();
@@ -116,7 +147,7 @@ TEST_F(ServerProcessTest, StopGivesUpOnAServerIgnoringSigterm) {
   ServerProcess server(
       Options(Script("stubborn.sh",
                      "trap '' TERM\n"
-                     "echo 'fleetmem-server listening on [::1]:5151'\n"
+                     "ready [::1]:5151\n"
                      "exec sleep 30")));
   ASSERT_TRUE(server.Start().ok());
   EXPECT_EQ(server.port(), 5151);
@@ -128,6 +159,20 @@ TEST_F(ServerProcessTest, StopGivesUpOnAServerIgnoringSigterm) {
 TEST_F(ServerProcessTest, MissingBinaryIsNotFound) {
   ServerProcess server(Options(dir_.Join("no-such-binary")));
   EXPECT_EQ(server.Start().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(ServerProcessTest, StartsTheRealServerAndReadsItsPorts) {
+  ServerOptions options = Options(DefaultServerBinary());
+  options.extra_args = {"--http-listen", "127.0.0.1:0"};
+  ServerProcess server(options);
+  ASSERT_TRUE(server.Start().ok());
+  EXPECT_GT(server.port(), 0);
+  EXPECT_TRUE(absl::StartsWith(server.http_address(), "127.0.0.1:"))
+      << server.http_address();
+  EXPECT_NE(server.http_address(), "127.0.0.1:0");
+  absl::StatusOr<int> code = server.Stop();
+  ASSERT_TRUE(code.ok()) << code.status();
+  EXPECT_EQ(*code, 0);
 }
 
 TEST(TempDirTest, MakesAndRemovesADirectory) {

@@ -16,6 +16,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/security/credentials.h"
+#include "services/common/files.h"
 
 namespace fleetmem::client {
 namespace {
@@ -51,14 +52,12 @@ void SetDeadline(const ClientOptions& options, grpc::ClientContext* context) {
 
 absl::StatusOr<std::string> ReadFile(const std::string& what,
                                      const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) {
-    return absl::NotFoundError(
-        absl::StrCat(what, " file ", path, ": cannot be read"));
+  absl::StatusOr<std::string> text = files::ReadFile(path);
+  if (!text.ok()) {
+    return absl::Status(text.status().code(),
+                        absl::StrCat(what, " file ", path, ": cannot be read"));
   }
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
+  return text;
 }
 
 std::shared_ptr<grpc::ChannelCredentials> ChannelCredentialsFor(

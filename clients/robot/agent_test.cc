@@ -12,6 +12,8 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "services/common/files.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -41,13 +43,7 @@ class RecordingLearner : public Learner {
 class AgentTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ =
-        (std::filesystem::temp_directory_path() /
-         absl::StrCat(
-             "fleetmem-agent-", getpid(), "-",
-             ::testing::UnitTest::GetInstance()->current_test_info()->name()))
-            .string();
-    std::filesystem::remove_all(dir_);
+    dir_ = temp_.Join("robot");  // made by the code under test
     absl::StatusOr<std::unique_ptr<ObservationSource>> source =
         OpenNordlandFolder(kSummer);
     ASSERT_TRUE(source.ok()) << source.status();
@@ -62,7 +58,6 @@ class AgentTest : public ::testing::Test {
     client_options.deadline = std::chrono::milliseconds(500);
     client_ = client::Client::Create(client_options);
   }
-  void TearDown() override { std::filesystem::remove_all(dir_); }
 
   std::unique_ptr<RobotStore> OpenStore(RobotStoreOptions options = {}) {
     absl::StatusOr<std::unique_ptr<RobotStore>> store = RobotStore::Open(
@@ -86,6 +81,7 @@ class AgentTest : public ::testing::Test {
     return options;
   }
 
+  files::TempDir temp_{"fleetmem-agent-"};
   std::string dir_;
   std::unique_ptr<ObservationSource> source_;
   std::unique_ptr<Encoder> encoder_;

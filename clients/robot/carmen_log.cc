@@ -11,7 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/string_view.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -90,7 +90,7 @@ absl::StatusOr<std::vector<Observation>> ParseCarmenLog(
 }
 
 absl::StatusOr<std::string> ReadMaybeBzip2(const std::string& path) {
-  if (!absl::EndsWith(path, ".bz2")) return ReadFile(path);
+  if (!absl::EndsWith(path, ".bz2")) return files::ReadFile(path);
   std::unique_ptr<FILE, int (*)(FILE*)> file(std::fopen(path.c_str(), "rb"),
                                              &std::fclose);
   if (file == nullptr) {

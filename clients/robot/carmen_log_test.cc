@@ -6,6 +6,8 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "services/common/files.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -78,13 +80,10 @@ TEST(CarmenLogTest, ATruncatedBzip2FileIsDataLossNamingIt) {
   std::string bytes((std::istreambuf_iterator<char>(in)),
                     std::istreambuf_iterator<char>());
   ASSERT_GT(bytes.size(), 1000u);
-  const std::string path =
-      (std::filesystem::temp_directory_path() /
-       absl::StrCat("fleetmem-truncated-", getpid(), ".clf.bz2"))
-          .string();
+  files::TempDir dir("fleetmem-truncated-");
+  const std::string path = dir.Join("aces.clf.bz2");
   std::ofstream(path, std::ios::binary) << bytes.substr(0, bytes.size() / 2);
   absl::StatusOr<std::string> text = ReadMaybeBzip2(path);
-  std::filesystem::remove(path);
   ASSERT_EQ(text.status().code(), absl::StatusCode::kDataLoss);
   EXPECT_THAT(text.status().message(), HasSubstr(path));
   EXPECT_THAT(text.status().message(), HasSubstr("truncated"));

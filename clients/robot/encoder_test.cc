@@ -8,6 +8,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "opencv2/core.hpp"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::robot {
 namespace {

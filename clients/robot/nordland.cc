@@ -10,7 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/strip.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "opencv2/imgcodecs.hpp"
 
 namespace fleetmem::robot {
@@ -56,7 +56,7 @@ absl::StatusOr<cv::Mat> LoadNordlandGrey(const std::string& season_dir,
 }
 
 absl::StatusOr<cv::Mat> LoadGrey(const std::string& path) {
-  absl::StatusOr<std::string> bytes = ReadFile(path);
+  absl::StatusOr<std::string> bytes = files::ReadFile(path);
   if (!bytes.ok()) return bytes.status();
   return DecodeGrey(*bytes, path);
 }

@@ -4,6 +4,7 @@
 #include <string>
 
 #include "gtest/gtest.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::robot {
 namespace {

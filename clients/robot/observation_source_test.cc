@@ -8,7 +8,9 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "services/common/files.h"
 #include "opencv2/imgcodecs.hpp"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -17,22 +19,11 @@ using ::testing::HasSubstr;
 
 const std::string kData = FLEETMEM_DATA_DIR;
 
-class TempFolder {
+// Image folders the tests make (the project's one temporary-directory
+// helper).
+class TempFolder : public files::TempDir {
  public:
-  TempFolder()
-      : path_(std::filesystem::temp_directory_path() /
-              absl::StrCat("fleetmem-source-", getpid(), "-", counter_++)) {
-    std::filesystem::create_directories(path_);
-  }
-  ~TempFolder() { std::filesystem::remove_all(path_); }
-  std::string Join(const std::string& name) const {
-    return (path_ / name).string();
-  }
-  std::string path() const { return path_.string(); }
-
- private:
-  static inline int counter_ = 0;
-  std::filesystem::path path_;
+  TempFolder() : files::TempDir("fleetmem-source-") {}
 };
 
 TEST(ObservationSourceTest, NordlandFolderPlacesFramesByNumber) {

@@ -60,6 +60,7 @@ struct Flags {
   std::string gpl_model;
   bool learn = false;
   int learn_steps = 60;
+  int torch_threads = 2;
   std::string domain;
   size_t segment_size = 200;
   double rate_hz = 0.0;
@@ -131,6 +132,10 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "place-head gradient steps per segment")
       ->capture_default_str()
       ->check(CLI::Range(1, 100000));
+  app.add_option("--torch-threads", flags.torch_threads,
+                 "intra-op threads of the learned models (--gpl-model, --vo)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 64));
   app.add_option("--domain", flags.domain,
                  "domain of the traces (default: the Nordland folder's name, "
                  "\"images\" or \"lidar\")");
@@ -333,7 +338,7 @@ int RunVo(const Flags& flags) {
   options.method = *method;
   options.vo.update_steps = flags.vo_update_steps;
   options.vo.seed = flags.seed;
-  fleetmem::robot::gpl::SetTorchThreads(2);
+  fleetmem::robot::gpl::SetTorchThreads(flags.torch_threads);
   absl::StatusOr<vo::VoDeploymentReport> report =
       vo::RunVoDeployment(options, [](size_t frame, size_t frames) {
         if (frame % 10 == 0 || frame + 1 == frames) {
@@ -403,6 +408,7 @@ int Run(const Flags& flags) {
   std::unique_ptr<robot::gpl::GplLearner> learner;
   absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder;
   if (!flags.gpl_model.empty()) {
+    robot::gpl::SetTorchThreads(flags.torch_threads);
     absl::StatusOr<std::unique_ptr<robot::gpl::SharedModel>> model =
         LoadGplModel(flags.gpl_model, flags.data_dir + "/gpl-learned.pt",
                      flags.learn);

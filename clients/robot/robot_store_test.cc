@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "services/common/files.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -24,15 +25,8 @@ const RobotIdentity kIdentity{
 class RobotStoreTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ =
-        (std::filesystem::temp_directory_path() /
-         absl::StrCat(
-             "fleetmem-robot-store-", getpid(), "-",
-             ::testing::UnitTest::GetInstance()->current_test_info()->name()))
-            .string();
-    std::filesystem::remove_all(dir_);
+    dir_ = temp_.Join("store");  // made by the code under test
   }
-  void TearDown() override { std::filesystem::remove_all(dir_); }
 
   std::unique_ptr<RobotStore> Open(RobotStoreOptions options = {}) {
     absl::StatusOr<std::unique_ptr<RobotStore>> store =
@@ -60,6 +54,7 @@ class RobotStoreTest : public ::testing::Test {
     ASSERT_TRUE(store.SealSegment(traces).ok());
   }
 
+  files::TempDir temp_{"fleetmem-robot-store-"};
   std::string dir_;
 };
 

@@ -10,6 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
 #include "services/cluster/materialiser.h"
+#include "services/common/files.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
 
@@ -18,14 +19,12 @@ namespace {
 
 absl::StatusOr<std::string> ReadWhole(const std::string& what,
                                       const std::string& path) {
-  std::ifstream in(path);
-  if (!in) {
-    return absl::NotFoundError(
-        absl::StrCat(what, " ", path, ": cannot be read"));
+  absl::StatusOr<std::string> text = files::ReadFile(path);
+  if (!text.ok()) {
+    return absl::Status(text.status().code(),
+                        absl::StrCat(what, " ", path, ": cannot be read"));
   }
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
+  return text;
 }
 
 }  // namespace

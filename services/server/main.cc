@@ -5,9 +5,10 @@
 // credentials file on SIGHUP, and shuts down cleanly on SIGTERM or SIGINT.
 //
 // Exit codes: 0 after a clean shutdown or --help; 2 for bad flags or config;
-// 1 if the server cannot start (storage, engine, address).
+// 1 if the server cannot start (storage, engine, address, --ready-file).
 #include <pthread.h>
 #include <signal.h>
+#include <unistd.h>
 
 #include <atomic>
 #include <chrono>
@@ -36,6 +37,7 @@
 #include "grpcpp/security/tls_certificate_provider.h"
 #include "grpcpp/security/tls_credentials_options.h"
 #include "services/auth/authenticator.h"
+#include "services/common/files.h"
 #include "services/common/log.h"
 #include "services/engine/memory_engine.h"
 #include "services/http/http_server.h"
@@ -142,15 +144,14 @@ sigset_t BlockShutdownSignals() {
 
 absl::StatusOr<std::vector<auth::CredentialEntry>> ReadCredentials(
     const std::string& path) {
-  std::ifstream in(path);
-  if (!in) {
-    return absl::NotFoundError(
+  absl::StatusOr<std::string> text = files::ReadFile(path);
+  if (!text.ok()) {
+    return absl::Status(
+        text.status().code(),
         absl::StrCat("credentials file ", path, ": cannot be read"));
   }
-  std::stringstream text;
-  text << in.rdbuf();
   absl::StatusOr<std::vector<auth::CredentialEntry>> entries =
-      auth::ParseCredentials(text.str());
+      auth::ParseCredentials(*text);
   if (!entries.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(
         "credentials file ", path, ": ", entries.status().message()));
@@ -220,8 +221,51 @@ void ReloadCredentials(const std::string& path,
                       << path;
 }
 
+// Writes the --ready-file (ServerConfig::ready_file): a temporary file
+// beside it, synced, then renamed over it, so a reader sees all of it or
+// nothing.
+absl::Status WriteReadyFile(const std::string& path,
+                            const std::string& grpc_address,
+                            const std::string& http_address) {
+  std::string text = absl::StrCat("grpc=", grpc_address, "\n");
+  if (!http_address.empty()) absl::StrAppend(&text, "http=", http_address, "\n");
+  absl::StrAppend(&text, "pid=", getpid(), "\n");
+  const std::string temporary = absl::StrCat(path, ".tmp");
+  {
+    std::ofstream out(temporary, std::ios::trunc);
+    out << text;
+    out.flush();
+    if (!out) {
+      return absl::InternalError(
+          absl::StrCat("ready file: cannot write ", temporary));
+    }
+  }
+  std::error_code error;
+  std::filesystem::rename(temporary, path, error);
+  if (error) {
+    std::filesystem::remove(temporary, error);
+    return absl::InternalError(absl::StrCat("ready file: cannot rename ",
+                                            temporary, " to ", path, ": ",
+                                            error.message()));
+  }
+  return absl::OkStatus();
+}
+
+// Removes the --ready-file if there is one (a missing file is fine).
+void RemoveReadyFile(const std::string& path) {
+  if (path.empty()) return;
+  std::error_code error;
+  std::filesystem::remove(path, error);
+  if (error) {
+    FLEETMEM_LOG(kWarning) << "ready file " << path
+                           << ": cannot remove: " << error.message();
+  }
+}
+
 int Serve(const ServerConfig& config, const sigset_t& signals) {
   const SecurityConfig& security = config.security;
+  // A ready file from an earlier run must not announce this one.
+  RemoveReadyFile(config.ready_file);
   std::unique_ptr<auth::Authenticator> authenticator;
   if (!security.auth_file.empty()) {
     absl::StatusOr<std::vector<auth::CredentialEntry>> entries =
@@ -352,6 +396,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   std::atomic<bool> ready{true};
   std::unique_ptr<http::RestGateway> gateway;
   std::unique_ptr<http::HttpServer> http_server;
+  std::string http_address;
   if (!config.http_listen.empty()) {
     absl::StatusOr<std::unique_ptr<http::RestGateway>> made =
         http::RestGateway::Create(
@@ -372,8 +417,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     }
     gateway = std::move(*made);
     http_server = std::move(*started);
-    const std::string http_address =
-        WithPort(config.http_listen, http_server->port());
+    http_address = WithPort(config.http_listen, http_server->port());
     FLEETMEM_LOG(kInfo) << "HTTP on " << http_address << " (dashboard at /, "
                         << "REST under /v1/, /metrics, /healthz, /readyz)";
     std::cout << "fleetmem-server http on " << http_address << std::endl;
@@ -418,17 +462,30 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   }
   FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address;
   std::cout << "fleetmem-server listening on " << address << std::endl;
-
+  int exit_code = 0;
   int signal = 0;
-  while (true) {
+  if (!config.ready_file.empty()) {
+    absl::Status written =
+        WriteReadyFile(config.ready_file, address, http_address);
+    if (!written.ok()) {
+      // Whoever started the server waits for the file: stop rather than
+      // serve unannounced.
+      FLEETMEM_LOG(kError) << written.message() << "; shutting down";
+      exit_code = 1;
+    }
+  }
+  while (exit_code == 0) {
     sigwait(&signals, &signal);
     if (signal != SIGHUP) break;
     ReloadCredentials(security.auth_file, authenticator.get());
   }
-  FLEETMEM_LOG(kInfo) << "received "
-                      << (signal == SIGINT ? "SIGINT" : "SIGTERM")
-                      << ", shutting down (grace "
-                      << config.shutdown_grace_seconds << " s)";
+  RemoveReadyFile(config.ready_file);
+  if (exit_code == 0) {
+    FLEETMEM_LOG(kInfo) << "received "
+                        << (signal == SIGINT ? "SIGINT" : "SIGTERM")
+                        << ", shutting down (grace "
+                        << config.shutdown_grace_seconds << " s)";
+  }
   health->SetServingStatus(kServiceName, false);
   health->SetServingStatus(false);
   ready.store(false);
@@ -455,7 +512,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   engine->reset();
   store.reset();
   FLEETMEM_LOG(kInfo) << "stopped";
-  return 0;
+  return exit_code;
 }
 
 }  // namespace

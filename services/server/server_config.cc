@@ -11,6 +11,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "services/common/files.h"
 #include "services/common/text_format.h"
 #include "services/server/server_config.pb.h"
 
@@ -239,6 +240,10 @@ const FlagSpec kFlags[] = {
      "docs/distributed.md); needs --advertise"},
     {"advertise", &CommandLine::advertise, "HOST:PORT",
      "where the other replicas reach this one (its replica id)"},
+    {"ready-file", &CommandLine::ready_file, "FILE",
+     "written once the server serves: grpc=HOST:PORT, http=HOST:PORT (with "
+     "--http-listen) and pid=PID, one per line; removed at shutdown (the "
+     "readiness signal for whoever starts the server)"},
 };
 
 constexpr std::string_view kAllowUnauthenticated = "allow-unauthenticated";
@@ -459,6 +464,7 @@ absl::Status ApplyCommandLine(const CommandLine& command_line,
   if (command_line.snapshot_dir) {
     config->snapshot_dir = *command_line.snapshot_dir;
   }
+  if (command_line.ready_file) config->ready_file = *command_line.ready_file;
   if (command_line.log_level) {
     absl::Status status =
         ApplyLogLevel("--log-level", *command_line.log_level, config);
@@ -592,14 +598,13 @@ absl::StatusOr<ServerConfig> LoadServerConfig(const CommandLine& command_line) {
   ServerConfig config;
   if (command_line.config_file) {
     const std::string& path = *command_line.config_file;
-    std::ifstream in(path);
-    if (!in) {
-      return absl::NotFoundError(
+    absl::StatusOr<std::string> text = files::ReadFile(path);
+    if (!text.ok()) {
+      return absl::Status(
+          text.status().code(),
           absl::StrCat("config file ", path, ": cannot be read"));
     }
-    std::stringstream text;
-    text << in.rdbuf();
-    absl::Status status = ApplyConfigText(text.str(), &config);
+    absl::Status status = ApplyConfigText(*text, &config);
     if (!status.ok()) {
       return absl::InvalidArgumentError(
           absl::StrCat("config file ", path, ": ", status.message()));

@@ -140,6 +140,19 @@ struct ServerConfig {
   // Where CreateSnapshot writes (SNAPSHOT_DIR/NAME/db); empty =
   // DATA_DIR/snapshots.
   std::string snapshot_dir;
+  // The readiness signal for programs that start the server (tests, the
+  // demo, supervisors): once every port is bound and the service answers,
+  // the server writes this file (a temporary file renamed into place, so a
+  // reader never sees half of it) with one "key=value" line each:
+  //   grpc=HOST:PORT   the bound gRPC address (the port a --listen of 0
+  //                    picked)
+  //   http=HOST:PORT   the bound HTTP address (only with http_listen)
+  //   pid=PID          the server's process id
+  // A file left by an earlier run is removed at start, and the file is
+  // removed again when shutdown begins. Empty = none. Flag only
+  // (--ready-file), not in the config file: it belongs to whoever starts
+  // this process.
+  std::string ready_file;
   ClusterConfig cluster;
 };
 
@@ -163,12 +176,13 @@ struct CommandLine {
   std::optional<std::string> snapshot_dir;
   std::optional<std::string> cluster;  // comma-separated NATS URLs
   std::optional<std::string> advertise;
+  std::optional<std::string> ready_file;
   bool allow_unauthenticated = false;
 };
 
 // Parses argv[1..argc): --listen, --data-dir, --config, --log-level,
 // --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca,
-// --http-listen, --snapshot-dir, --cluster, --advertise as
+// --http-listen, --snapshot-dir, --cluster, --advertise, --ready-file as
 // "--name=value" or "--name value"; --allow-unauthenticated; --help or -h.
 // INVALID_ARGUMENT for an unknown flag, a missing value or a positional
 // argument.

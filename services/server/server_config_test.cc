@@ -6,6 +6,7 @@
 #include <vector>
 
 #include "gtest/gtest.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::server {
 namespace {
@@ -331,12 +332,13 @@ TEST(ServerConfigTest, LoopbackAddresses) {
 TEST(ServerConfigTest, HttpPortFlagsFileAndValidation) {
   absl::StatusOr<CommandLine> flags =
       Parse({"--data-dir", "/tmp/x", "--http-listen", "127.0.0.1:8080",
-             "--snapshot-dir", "/backups"});
+             "--snapshot-dir", "/backups", "--ready-file", "/run/fm.ready"});
   ASSERT_TRUE(flags.ok()) << flags.status();
   absl::StatusOr<ServerConfig> config = LoadServerConfig(*flags);
   ASSERT_TRUE(config.ok()) << config.status();
   EXPECT_EQ(config->http_listen, "127.0.0.1:8080");
   EXPECT_EQ(config->snapshot_dir, "/backups");
+  EXPECT_EQ(config->ready_file, "/run/fm.ready");
 
   ServerConfig file_config;
   ASSERT_TRUE(ApplyConfigText("http_listen: \"127.0.0.1:0\" "

@@ -10,6 +10,7 @@
 #include "gtest/gtest.h"
 #include "services/storage/in_memory_store.h"
 #include "services/storage/store_test_util.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::storage {
 namespace {

@@ -230,20 +230,4 @@ std::vector<engine::FleetMutation> ScriptedMutations(int count) {
   return mutations;
 }
 
-TempDir::TempDir() {
-  const char* base = std::getenv("TMPDIR");
-  std::string pattern =
-      absl::StrCat(base != nullptr && *base != '\0' ? base : "/tmp",
-                   "/fleetmem_storage_XXXXXX");
-  if (mkdtemp(pattern.data()) == nullptr) {
-    throw std::runtime_error(absl::StrCat("mkdtemp failed for ", pattern));
-  }
-  path_ = pattern;
-}
-
-TempDir::~TempDir() {
-  std::error_code error;
-  std::filesystem::remove_all(path_, error);
-}
-
 }  // namespace fleetmem::storage::testing

@@ -7,6 +7,7 @@
 #include <string>
 #include <vector>
 
+#include "services/common/files.h"
 #include "services/core/seq_set.h"
 #include "services/core/types.h"
 #include "services/engine/memory_store.h"
@@ -40,19 +41,8 @@ std::string Dump(const std::vector<core::MemoryEvent>& events);
 std::vector<engine::FleetMutation> ScriptedMutations(int count);
 
 // A fresh directory under $TMPDIR (or /tmp), removed with its contents on
-// destruction.
-class TempDir {
- public:
-  TempDir();
-  ~TempDir();
-  TempDir(const TempDir&) = delete;
-  TempDir& operator=(const TempDir&) = delete;
-
-  const std::string& path() const { return path_; }
-
- private:
-  std::string path_;
-};
+// destruction (the project's one helper, services/common/files.h).
+using TempDir = files::TempDir;
 
 }  // namespace fleetmem::storage::testing
 

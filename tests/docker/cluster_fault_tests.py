@@ -55,11 +55,8 @@ def build_images():
     run([os.path.join(HERE, "base_image.sh"), BASE_IMAGE], capture=False)
     for relative, tag in [("docker/server.Dockerfile", f"fleetmem/server:{VERSION}"),
                           ("docker/nats.Dockerfile", "fleetmem/nats:2.9")]:
-        log(f"docker build -f {relative} -t {tag}")
-        run(["docker", "build", "--force-rm", "-f", os.path.join(ROOT, relative),
-             "--build-arg", f"BASE_IMAGE={BASE_IMAGE}",
-             "--build-arg", f"FLEETMEM_VERSION={VERSION}", "-t", tag, ROOT],
-            capture=False)
+        common.docker_build(relative, tag, {"BASE_IMAGE": BASE_IMAGE,
+                                            "FLEETMEM_VERSION": VERSION})
     log(f"images built in {time.time() - t0:.0f} s")
 
 

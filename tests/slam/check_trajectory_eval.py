@@ -19,6 +19,8 @@ import tempfile
 
 import numpy as np
 
+import reference_metrics
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 FIELDS = ['poses', 'ate_rmse_m', 'alignment_scale', 'rpe_trans_rmse_m',
           'kitti_segments', 'kitti_t_err_percent', 'kitti_r_err_deg_per_100m']
@@ -79,27 +81,8 @@ def check_relations(bin_dir, laser):
         n = int(f[1])
         x, y, th = map(float, f[2 + n:5 + n])
         poses.append((float(f[8 + n]), x, y, th))
-    times = np.array([p[0] for p in poses])
-    errors_t, errors_r = [], []
-    for line in open(os.path.join(laser, 'aces.relations')):
-        v = line.split()
-        if len(v) != 8:
-            continue
-        t1, t2, rx, ry, ryaw = float(v[0]), float(v[1]), float(v[2]), float(v[3]), float(v[7])
-        i, j = int(np.argmin(abs(times - t1))), int(np.argmin(abs(times - t2)))
-        if abs(times[i] - t1) > 1e-3 or abs(times[j] - t2) > 1e-3:
-            continue
-        _, xa, ya, ta = poses[i]
-        _, xb, yb, tb = poses[j]
-        # The estimate's relative pose, then its difference from the relation.
-        dx, dy = xb - xa, yb - ya
-        ex = math.cos(ta) * dx + math.sin(ta) * dy
-        ey = -math.sin(ta) * dx + math.cos(ta) * dy
-        ddx, ddy = ex - rx, ey - ry
-        errors_t.append(math.hypot(math.cos(ryaw) * ddx + math.sin(ryaw) * ddy,
-                                   -math.sin(ryaw) * ddx + math.cos(ryaw) * ddy))
-        d = (tb - ta) - ryaw
-        errors_r.append(abs(math.degrees(math.atan2(math.sin(d), math.cos(d)))))
+    errors_t, errors_r = reference_metrics.relations_errors(
+        poses, os.path.join(laser, 'aces.relations'))
     with tempfile.NamedTemporaryFile('w', suffix='.tum', delete=False) as tum:
         for t, x, y, th in poses:
             tum.write(f'{t:.6f} {x!r} {y!r} 0 0 0 {math.sin(th / 2)!r} {math.cos(th / 2)!r}\n')

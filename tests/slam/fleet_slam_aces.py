@@ -21,7 +21,6 @@ usage: fleet_slam_aces.py BIN_DIR DATA_DIR OUT_DIR
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -29,27 +28,30 @@ import time
 KEYFRAMES_FIRST_HALF = 373  # of ACES' 746 keyframes at 0.5 m
 
 
-def free_port():
-    with socket.socket() as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
-
-
 class Server:
+    """fleetmem-server on a free port, ready once its --ready-file appears
+    (the readiness signal tools/process/server.sh waits for too)."""
+
     def __init__(self, bin_dir, data_dir):
-        self.port = free_port()
         self.log = open(data_dir + '.log', 'w')
+        ready = data_dir + '.ready'
+        if os.path.exists(ready):
+            os.unlink(ready)
         self.proc = subprocess.Popen(
             [os.path.join(bin_dir, 'fleetmem-server'), '--listen',
-             f'127.0.0.1:{self.port}', '--data-dir', data_dir],
+             '127.0.0.1:0', '--data-dir', data_dir, '--ready-file', ready],
             stdout=self.log, stderr=subprocess.STDOUT)
-        deadline = time.time() + 20
+        deadline = time.time() + 60
         while time.time() < deadline:
-            with socket.socket() as s:
-                if s.connect_ex(('127.0.0.1', self.port)) == 0:
-                    return
-            time.sleep(0.1)
-        raise RuntimeError('fleetmem-server did not start')
+            if os.path.exists(ready):  # renamed into place: complete
+                lines = dict(l.split('=', 1) for l in open(ready).read().split())
+                self.port = int(lines['grpc'].rsplit(':', 1)[1])
+                return
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        self.proc.kill()
+        raise RuntimeError(f'fleetmem-server was not ready; its log: {data_dir}.log')
 
     def stop(self):
         self.proc.terminate()

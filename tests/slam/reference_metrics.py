@@ -8,9 +8,50 @@ usage: reference_metrics.py REFERENCE ESTIMATE ALIGN(se3|sim3) RPE_DELTA_M
        (RPE_DELTA_M 0: pairs of consecutive frames)
 """
 import json
+import math
 import sys
 
 import numpy as np
+
+
+def relations_errors(poses, relations_path):
+    """The Freiburg relations metric (Kuemmerle et al. 2009) of a 2-D
+    estimate: poses is a list of (t, x, y, theta); every relation whose two
+    stamps have a pose within 1 ms is scored. Returns the translation
+    errors (m) and rotation errors (deg), one per scored relation."""
+    times = np.array([p[0] for p in poses])
+    errors_t, errors_r = [], []
+    for line in open(relations_path):
+        v = line.split()
+        if len(v) != 8:
+            continue
+        t1, t2, rx, ry, ryaw = float(v[0]), float(v[1]), float(v[2]), float(v[3]), float(v[7])
+        i, j = int(np.argmin(abs(times - t1))), int(np.argmin(abs(times - t2)))
+        if abs(times[i] - t1) > 1e-3 or abs(times[j] - t2) > 1e-3:
+            continue
+        _, xa, ya, ta = poses[i]
+        _, xb, yb, tb = poses[j]
+        # The estimate's relative pose, then its difference from the relation.
+        dx, dy = xb - xa, yb - ya
+        ex = math.cos(ta) * dx + math.sin(ta) * dy
+        ey = -math.sin(ta) * dx + math.cos(ta) * dy
+        ddx, ddy = ex - rx, ey - ry
+        errors_t.append(math.hypot(math.cos(ryaw) * ddx + math.sin(ryaw) * ddy,
+                                   -math.sin(ryaw) * ddx + math.cos(ryaw) * ddy))
+        d = (tb - ta) - ryaw
+        errors_r.append(abs(math.degrees(math.atan2(math.sin(d), math.cos(d)))))
+    return errors_t, errors_r
+
+
+def load_tum_2d(path):
+    """(t, x, y, yaw) of every pose of a planar TUM trajectory."""
+    out = []
+    for line in open(path):
+        if not line.strip() or line.startswith('#'):
+            continue
+        t, x, y, _, qx, qy, qz, qw = map(float, line.split()[:8])
+        out.append((t, x, y, 2 * math.atan2(qz, qw)))
+    return out
 
 
 def load(path):

@@ -1,29 +1,50 @@
 #!/usr/bin/python3
 """`fleetmem-eval continual-vo --quick` on the real KITTI clips.
 
-Checks that the summary holds every method on every deployment with finite
-metrics, that AQ and RQ were computed for every learned method, that the
-trajectories, weights and plots were written, and the issue's two claims:
-cl_slam's ATE after adapting on the new clip is lower than the same
-network's before adaptation (fixed), and cl_slam's retention RQ_trans is no
-worse than expert_only's.
+Both runs check that the summary holds every method on every deployment
+with finite metrics, that AQ and RQ were computed for every learned method,
+and that the trajectories, weights and plots were written.
 
-usage: check_continual_vo.py BIN_DIR DATA_DIR OUT_DIR
+Quick run (ctest fleetmem_continual_vo_test, slow tier): the issue's two
+claims as well: cl_slam's ATE after adapting on the new clip is lower than
+the same network's before adaptation (fixed), and cl_slam's retention
+RQ_trans is no worse than expert_only's.
+
+Smoke run (--smoke, ctest fleetmem_continual_vo_smoke_test, `make test`):
+SMOKE_FRAMES frames per clip and a few steps; every learned deployment's
+ATE (SE(3)) in summary.csv must equal the one computed here in numpy
+(tests/slam/reference_metrics.py) from the trajectory it wrote and the
+clip's ground truth. It proves the code paths and the report's numbers, not
+the learning.
+
+usage: check_continual_vo.py BIN_DIR DATA_DIR OUT_DIR [--smoke]
 """
 import csv
+import json
 import math
 import os
 import shutil
 import subprocess
 import sys
+import tempfile
+
+SMOKE_FRAMES = 24
+REFERENCE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                         'slam', 'reference_metrics.py')
 
 
 def main():
     bin_dir, data_dir, out_dir = sys.argv[1:4]
+    smoke = "--smoke" in sys.argv[4:]
     shutil.rmtree(out_dir, ignore_errors=True)
-    subprocess.run([os.path.join(bin_dir, "fleetmem-eval"), "continual-vo",
-                    "--data-root", data_dir, "--out", out_dir, "--quick"],
-                   check=True)
+    command = [os.path.join(bin_dir, "fleetmem-eval"), "continual-vo",
+               "--data-root", data_dir, "--out", out_dir, "--quick"]
+    if smoke:
+        command += ["--frames", str(SMOKE_FRAMES), "--threads", "1",
+                    "--pretrain-steps", "10",
+                    "--update-steps", "1"]
+    subprocess.run(command, check=True)
+    frames = SMOKE_FRAMES if smoke else 51
     with open(os.path.join(out_dir, "summary.csv")) as f:
         rows = list(csv.DictReader(f))
     methods = {"fixed", "expert_only", "generalizer_only", "cl_slam"}
@@ -35,7 +56,7 @@ def main():
     assert {r["sequence"] for r in rows if r["method"] == "classical"} == {
         "clip1", "clip2"}, "classical baseline rows"
     for r in rows:
-        assert int(r["frames"]) == 51, r
+        assert int(r["frames"]) == frames, r
         for key in ("ate_se3_m", "ate_sim3_m", "rpe_frame_trans_m",
                     "rpe_10m_trans_m", "t_err_10_40m_pct"):
             assert math.isfinite(float(r[key])) and float(r[key]) >= 0, (key, r)
@@ -63,6 +84,11 @@ def main():
                  "weights/pretrained.pt", "weights/pre_clip1_clip2_cl_slam.pt"):
         assert os.path.getsize(os.path.join(order, name)) > 0, name
 
+    if smoke:
+        check_ate(rows, data_dir, order)
+        print("continual-vo smoke: OK")
+        return
+
     before = ate("fixed", "pre>clip1>clip2")
     after = ate("cl_slam", "pre>clip1>clip2")
     print(f"clip2 ATE (SE(3)): before adaptation {before:.3f} m, "
@@ -73,6 +99,31 @@ def main():
     print(f"RQ_trans: cl_slam {rq_cl:.5f}, expert_only {rq_ex:.5f}")
     assert rq_cl >= rq_ex, "cl_slam retains less than expert_only"
     print("continual-vo quick: OK")
+
+
+def check_ate(rows, data_dir, order):
+    """Every learned deployment's reported ATE against numpy's on the
+    trajectory it wrote (summary.csv prints 4 decimals)."""
+    checked = 0
+    for r in rows:
+        if r["method"] == "classical":
+            continue
+        clip = r["sequence"].split(">")[-1]
+        stem = r["sequence"].replace(">", "_") + "_" + r["method"]
+        estimate = os.path.join(order, stem + ".kitti")
+        with tempfile.NamedTemporaryFile("w", suffix=".txt", delete=False) as ref:
+            with open(os.path.join(data_dir, "kitti", clip, "poses.txt")) as f:
+                ref.writelines(f.readlines()[:int(r["frames"])])
+        want = json.loads(subprocess.check_output(
+            [sys.executable, REFERENCE, ref.name, estimate, "se3", "0"]))
+        os.unlink(ref.name)
+        got = float(r["ate_se3_m"])
+        print(f'{r["method"]:17s} {r["sequence"]:24s} ATE {got:.4f} m, '
+              f'numpy {want["ate_rmse_m"]:.6f} m')
+        assert abs(got - want["ate_rmse_m"]) <= 2e-4 + 1e-4 * want["ate_rmse_m"], (
+            r, want)
+        checked += 1
+    assert checked == 12, checked
 
 
 if __name__ == "__main__":

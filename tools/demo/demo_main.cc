@@ -56,8 +56,10 @@
 #include "clients/robot/nordland.h"
 #include "clients/robot/robot_store.h"
 #include "google/protobuf/util/json_util.h"
+#include "services/common/files.h"
 #include "services/core/place_metrics.h"
 #include "tools/demo/command_line.h"
+#include "fleetmem_paths.h"
 
 ABSL_FLAG(std::string, server, "127.0.0.1:50051", "fleetmem server, HOST:PORT");
 ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
@@ -202,12 +204,10 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
   if (!result.ok()) return result;
   for (Drive& drive : drives) {
     const std::string path = StatusPath(setup, drive, season);
-    std::ifstream in(path);
-    std::stringstream json;
-    json << in.rdbuf();
+    absl::StatusOr<std::string> json = files::ReadFile(path);
     RobotStatus& status = season == "summer" ? drive.summer : drive.winter;
-    if (!in || !google::protobuf::util::JsonStringToMessage(json.str(), &status)
-                    .ok()) {
+    if (!json.ok() ||
+        !google::protobuf::util::JsonStringToMessage(*json, &status).ok()) {
       return absl::InternalError(absl::StrCat("cannot read ", path));
     }
   }

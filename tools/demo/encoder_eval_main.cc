@@ -26,6 +26,7 @@
 #include "clients/robot/rewards.h"
 #include "services/core/place_metrics.h"
 #include "tools/demo/command_line.h"
+#include "fleetmem_paths.h"
 
 ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
           "shared data folder (holds nordland/summer and nordland/winter)");

@@ -2,7 +2,7 @@
 # Runs the Nordland fleet demo end to end (`make demo`):
 #   1. starts BUILD_DIR/bin/fleetmem-server on a free local port with its
 #      embedded RocksDB under .demo/data (logs in .demo/server.log),
-#   2. waits until it logs "listening",
+#   2. waits until it is ready (its --ready-file, tools/process/server.sh),
 #   3. runs BUILD_DIR/bin/fleetmem-demo against it, which runs the fleet as
 #      fleetmem-robot processes (their data dirs under .demo/robots) and
 #      prints the results table (also in .demo/results.md),
@@ -43,7 +43,7 @@ server_pid=""
 server_status=0
 # Stops the server (SIGTERM, then SIGKILL after stop_timeout) and records
 # its exit status in server_status. Safe to call twice.
-stop_server() {
+stop_demo_server() {
   [[ -n "$server_pid" ]] || return 0
   local pid="$server_pid"
   server_pid=""
@@ -75,46 +75,27 @@ stop_all() {
   fi
   exit "$1"
 }
-trap stop_server EXIT
+trap stop_demo_server EXIT
 trap 'stop_all 130' INT
 trap 'stop_all 143' TERM
 
-# Port 0: the server picks a free port and logs the address it listens on.
-# The log is emptied here, not by the background job's redirection, so the
-# wait below cannot read the previous run's address.
-: >"$log"
+# Port 0: the server picks a free port; its ready file gives the address.
 # The HTTP port (dashboard, REST, metrics): FLEETMEM_DEMO_HTTP_PORT, else a
 # free port, printed below.
-"$server_bin" --listen 127.0.0.1:0 --data-dir "$demo_dir/data" \
-  --http-listen "127.0.0.1:${FLEETMEM_DEMO_HTTP_PORT:-0}" >>"$log" 2>&1 &
-server_pid=$!
-echo "run_demo.sh: started fleetmem-server (pid $server_pid), log $log"
-
-address=""
-deadline=$((SECONDS + startup_timeout))
-while [[ -z "$address" ]]; do
-  if ! kill -0 "$server_pid" 2>/dev/null; then
-    status=0
-    wait "$server_pid" || status=$?
-    server_pid=""
-    echo "run_demo.sh: fleetmem-server exited during start-up (status" \
-      "$status); last lines of $log:" >&2
-    tail -n 20 "$log" >&2
-    exit 1
-  fi
-  address="$(grep -m1 -o 'listening on [^ ]*' "$log" | cut -d' ' -f3 || true)"
-  if [[ -z "$address" ]]; then
-    if ((SECONDS >= deadline)); then
-      echo "run_demo.sh: fleetmem-server did not log \"listening\" within" \
-        "${startup_timeout}s; last lines of $log:" >&2
-      tail -n 20 "$log" >&2
-      exit 1
-    fi
-    sleep 0.1
-  fi
-done
-echo "run_demo.sh: fleetmem-server listening on $address"
-http_address="$(grep -m1 -o 'http on [^ ]*' "$log" | cut -d' ' -f3 || true)"
+# shellcheck source=../process/server.sh
+source "$root/tools/process/server.sh"
+echo "run_demo.sh: starting fleetmem-server, log $log"
+if ! SERVER_START_SECONDS=$startup_timeout start_server "$build_dir" \
+  "$demo_dir/data" "$log" \
+  --http-listen "127.0.0.1:${FLEETMEM_DEMO_HTTP_PORT:-0}"; then
+  kill -KILL "$SERVER_PID" 2>/dev/null || true
+  echo "run_demo.sh: fleetmem-server did not start" >&2
+  exit 1
+fi
+server_pid=$SERVER_PID
+address=$SERVER_ADDR
+http_address=$SERVER_HTTP_ADDR
+echo "run_demo.sh: fleetmem-server (pid $server_pid) listening on $address"
 echo "run_demo.sh: watch the fleet's memory live at http://$http_address/"
 
 # The fleet's GPL model: its encoder pre-trained once on the first summer
@@ -136,7 +117,7 @@ demo_pid=$!
 wait "$demo_pid" || demo_status=$?
 demo_pid=""
 
-stop_server
+stop_demo_server
 if ((server_status != 0)); then
   echo "run_demo.sh: fleetmem-server exited with status $server_status;" \
     "see $log" >&2

@@ -17,7 +17,7 @@
 #include "absl/strings/str_split.h"
 #include "clients/robot/learning/depth_pose_model.h"
 #include "clients/robot/learning/gpl_model.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "clients/robot/slam/trajectory_metrics.h"
 #include "clients/robot/vo/classical_vo.h"
 #include "clients/robot/vo/continual_vo.h"
@@ -25,7 +25,7 @@
 namespace fleetmem::eval {
 namespace {
 
-using robot::WriteFile;
+using files::WriteFile;
 
 constexpr int kWidth = 192;
 constexpr int kHeight = 64;
@@ -307,6 +307,9 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
   if (options.update_steps < 0 || options.pretrain_steps < 0) {
     return absl::InvalidArgumentError("step counts must be >= 0");
   }
+  if (options.frames != 0 && options.frames < 3) {
+    return absl::InvalidArgumentError("--frames: 0 (all) or at least 3");
+  }
   robot::gpl::SetTorchThreads(options.threads);
   std::error_code ec;
   std::filesystem::create_directories(options.out_dir, ec);
@@ -319,7 +322,11 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
     absl::StatusOr<vo::KittiClip> clip = vo::LoadKittiClip(
         absl::StrCat(options.data_root, "/kitti/", name), kWidth, kHeight);
     if (!clip.ok()) return clip.status();
-    clips.push_back(*std::move(clip));
+    if (options.frames > 0 && clip->left.size() > size_t(options.frames)) {
+      clips.push_back(vo::SubClip(*clip, 0, options.frames));
+    } else {
+      clips.push_back(*std::move(clip));
+    }
   }
   const int pretrain_steps = options.pretrain_steps > 0 ? options.pretrain_steps
                              : options.quick            ? 1500

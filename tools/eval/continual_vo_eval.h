@@ -36,6 +36,10 @@ struct ContinualVoEvalOptions {
   int update_steps = 5;
   int threads = 2;
   uint64_t seed = 1;
+  // Only the first this many frames of each clip (0 = all): the smoke run of
+  // the test suite, which proves the code paths and outputs, not the
+  // figures. At least 3.
+  int frames = 0;
 };
 absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options);
 

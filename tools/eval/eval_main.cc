@@ -1,6 +1,6 @@
 // fleetmem-eval: evaluations of the robot side on recorded data.
 //
-//   fleetmem-eval lifelong --data-root DIR --out DIR [--quick]
+//   fleetmem-eval lifelong --data-root DIR --out DIR [--quick] [--places N]
 //       BioSLAM's lifelong place-recognition protocol, every method
 //       (tools/eval/lifelong.h, docs/results.md).
 //   fleetmem-eval pretrain --images DIR --out FILE [--first N --count N]
@@ -15,10 +15,10 @@
 //       The Freiburg relations metric of a 2-D SLAM estimate.
 //   fleetmem-eval continual --table FILE [--json]
 //       CL-SLAM's AQ/RQ from a table of deployments.
-//   fleetmem-eval continual-vo --data-root DIR --out DIR [--quick]
+//   fleetmem-eval continual-vo --data-root DIR --out DIR [--quick] [--frames N]
 //       CL-SLAM's continual visual odometry on the KITTI clips, every
 //       method, AQ/RQ (tools/eval/continual_vo_eval.h).
-//   fleetmem-eval slam --log FILE --relations FILE --out DIR
+//   fleetmem-eval slam --log FILE --relations FILE --out DIR [--scans N]
 //       The laser SLAM back end on a CARMEN log, scored by the relations
 //       metric (tools/eval/slam_eval.h).
 //
@@ -103,6 +103,11 @@ int main(int argc, char** argv) {
                        "override: Adam learning rate of the place head");
   lifelong->add_option("--gan-weight", options.gan_weight,
                        "override: weight of L_gan in the decoder's loss");
+  lifelong
+      ->add_option("--places", options.max_places,
+                   "only the first N places of the route (0 = all; the test "
+                   "suite's smoke run uses a few dozen)")
+      ->check(CLI::NonNegativeNumber);
   struct {
     std::string images, out, version = "gpl-64x32-d256-v1";
     size_t first = 0, count = 0;
@@ -211,6 +216,9 @@ int main(int argc, char** argv) {
   slam->add_option("--prior-radius", slam_options.prior_radius_m,
                    "position prior of own candidates (m)")
       ->capture_default_str();
+  slam->add_option("--scans", slam_options.max_scans,
+                   "only the first N scans of the log (0 = all)")
+      ->check(CLI::NonNegativeNumber);
   fleetmem::eval::ContinualVoEvalOptions vo_options;
   CLI::App* continual_vo = app.add_subcommand(
       "continual-vo",
@@ -242,6 +250,11 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber);
   continual_vo->add_option("--seed", vo_options.seed, "seed")
       ->capture_default_str();
+  continual_vo
+      ->add_option("--frames", vo_options.frames,
+                   "only the first N frames of each clip (0 = all; the test "
+                   "suite's smoke run uses two dozen)")
+      ->check(CLI::NonNegativeNumber);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

@@ -31,8 +31,9 @@
 #include "clients/robot/rewards.h"
 #include "opencv2/imgproc.hpp"
 #include "proto/convert/trace_convert.h"
+#include "services/common/files.h"
 #include "services/core/place_metrics.h"
-#include "tools/eval/server_child.h"
+#include "tools/process/server_process.h"
 
 namespace fleetmem::eval {
 namespace {
@@ -42,6 +43,7 @@ using robot::gpl::LearnSample;
 using robot::gpl::ReplayInput;
 using robot::gpl::SegmentLearner;
 using Clock = std::chrono::steady_clock;
+using ServerChild = process::ServerProcess;
 
 constexpr int kAreas = 3;
 constexpr int kDomains = 2 * kAreas;
@@ -94,7 +96,7 @@ struct Data {
   }
 };
 
-absl::StatusOr<Data> LoadData(const std::string& root) {
+absl::StatusOr<Data> LoadData(const std::string& root, int max_places) {
   Data data;
   std::vector<int> lists[kSeasons];
   for (int s = 0; s < kSeasons; ++s) {
@@ -105,6 +107,9 @@ absl::StatusOr<Data> LoadData(const std::string& root) {
   }
   std::set_intersection(lists[0].begin(), lists[0].end(), lists[1].begin(),
                         lists[1].end(), std::back_inserter(data.numbers));
+  if (max_places > 0 && data.numbers.size() > size_t(max_places)) {
+    data.numbers.resize(max_places);
+  }
   if (data.numbers.size() < 8 * kAreas) {
     return absl::InvalidArgumentError(absl::StrFormat(
         "%s/nordland: %d frames are present in both summer and winter; the "
@@ -538,12 +543,27 @@ absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
   if (ec)
     return absl::InternalError(
         absl::StrCat("cannot create ", dir, ": ", ec.message()));
-  auto server = std::make_unique<ServerChild>();
-  absl::Status started = server->Start(
-      ctx.server_binary, dir + "/data",
-      ctx.config_file[spec.clustering][spec.decay], dir + "/server.log");
+  process::ServerOptions options;
+  options.binary = ctx.server_binary;
+  options.data_dir = dir + "/data";
+  options.config_file = ctx.config_file[spec.clustering][spec.decay];
+  options.log_file = dir + "/server.log";
+  auto server = std::make_unique<ServerChild>(options);
+  absl::Status started = server->Start();
   if (!started.ok()) return started;
   return server;
+}
+
+// Stops a server child; INTERNAL unless it exits cleanly on SIGTERM.
+absl::Status StopServer(ServerChild& server) {
+  absl::StatusOr<int> code = server.Stop();
+  if (!code.ok()) return code.status();
+  if (*code != 0) {
+    return absl::InternalError(absl::StrCat(
+        "the server exited with ", *code, " on SIGTERM; its log: ",
+        server.options().log_file));
+  }
+  return absl::OkStatus();
 }
 
 std::unique_ptr<client::Client> Connect(const ServerChild& server) {
@@ -625,7 +645,7 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
         (*scores)[t].wr, SeenWr(*scores, t), Seconds(start)));
   }
   if (server) {
-    if (absl::Status s = server->Stop(); !s.ok()) return s;
+    if (absl::Status s = StopServer(*server); !s.ok()) return s;
   }
   result.Summarise();
   result.seconds = Seconds(start);
@@ -687,7 +707,7 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
         "[%s] %s done for both robots (and each alone) (%.0f s)", spec.name,
         kSeasonNames[season], Seconds(start)));
   }
-  if (absl::Status s = (*server)->Stop(); !s.ok()) return s;
+  if (absl::Status s = StopServer(**server); !s.ok()) return s;
   std::vector<DomainScore> s_shared[2], s_alone[2];
   for (int k = 0; k < 2; ++k) {
     absl::StatusOr<std::vector<DomainScore>> a =
@@ -735,21 +755,13 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
   return result;
 }
 
-absl::Status WriteFile(const std::string& path, const std::string& text) {
-  std::ofstream out(path);
-  out << text;
-  out.close();
-  if (!out) return absl::InternalError(absl::StrCat("cannot write ", path));
-  return absl::OkStatus();
-}
-
 absl::Status WriteConfigs(Context& ctx) {
   for (int clustering = 0; clustering < 2; ++clustering) {
     for (int decay = 0; decay < 2; ++decay) {
       const std::string path =
           absl::StrFormat("%s/server-c%d-d%d.textproto", ctx.options->out_dir,
                           clustering, decay);
-      absl::Status s = WriteFile(
+      absl::Status s = files::WriteFile(
           path,
           absl::StrFormat("log_level: \"warning\"\nmemory {\n  clustering: %s\n"
                           "  replay_decay: %s\n  seed: %d\n}\n",
@@ -829,7 +841,7 @@ absl::Status WriteOutputs(const Context& ctx,
            {"curves.csv", curves},
            {"curves.dat", plot},
            {"fleet.csv", fleet_csv}}) {
-    if (absl::Status s = WriteFile(dir + "/" + name, text); !s.ok()) return s;
+    if (absl::Status s = files::WriteFile(dir + "/" + name, text); !s.ok()) return s;
   }
   // curves.png with gnuplot: three panels over the course of training.
   const std::string script = absl::StrFormat(
@@ -856,7 +868,7 @@ absl::Status WriteOutputs(const Context& ctx,
       "unset multiplot\n",
       dir, plot_titles, ctx.options->data_root, block - 1, dir, block - 1, dir,
       block - 1, dir);
-  if (absl::Status s = WriteFile(dir + "/curves.gp", script); !s.ok()) return s;
+  if (absl::Status s = files::WriteFile(dir + "/curves.gp", script); !s.ok()) return s;
   const std::string command =
       absl::StrCat("gnuplot '", dir, "/curves.gp' 2>'", dir, "/gnuplot.log'");
   if (block > 0 && std::system(command.c_str()) != 0) {
@@ -912,7 +924,7 @@ absl::Status RunLifelong(const LifelongOptions& options) {
   }
   ctx.server_binary = options.server_binary;
   const auto start = Clock::now();
-  absl::StatusOr<Data> data = LoadData(options.data_root);
+  absl::StatusOr<Data> data = LoadData(options.data_root, options.max_places);
   if (!data.ok()) return data.status();
   ctx.data = *std::move(data);
   // The output folder only once the input is known to be good.

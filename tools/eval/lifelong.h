@@ -50,6 +50,10 @@ struct LifelongOptions {
   double gan_weight = -1;
   // D of the GPL codes (memory.md's 256 by default).
   int code_dimension = 256;
+  // Only the first this many places of the route (0 = all): the smoke runs
+  // of the test suite (a few dozen places prove the code paths and outputs,
+  // not the figures). At least 24.
+  int max_places = 0;
 };
 
 absl::Status RunLifelong(const LifelongOptions& options);

@@ -8,7 +8,7 @@
 #include "absl/strings/str_format.h"
 #include "clients/robot/carmen_log.h"
 #include "clients/robot/code_search.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "clients/robot/scan_encoder.h"
 #include "clients/robot/slam/laser_slam.h"
 #include "clients/robot/slam/trajectory_metrics.h"
@@ -31,7 +31,10 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
   absl::StatusOr<std::vector<robot::Observation>> scans =
       robot::ParseCarmenLog(*log, options.log);
   if (!scans.ok()) return scans.status();
-  absl::StatusOr<std::string> rel_text = robot::ReadFile(options.relations);
+  if (options.max_scans > 0 && scans->size() > size_t(options.max_scans)) {
+    scans->resize(options.max_scans);
+  }
+  absl::StatusOr<std::string> rel_text = files::ReadFile(options.relations);
   if (!rel_text.ok()) return rel_text.status();
   absl::StatusOr<std::vector<slam::Relation>> relations =
       slam::ParseRelations(*rel_text, options.relations);
@@ -90,7 +93,7 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
         slam::RelationsError(trajectory, *relations, 1e-3);
     if (!r.ok()) return r.status();
     const std::string stem = absl::StrCat(options.out_dir, "/", variant);
-    if (absl::Status s = robot::WriteFile(
+    if (absl::Status s = files::WriteFile(
             stem + ".tum",
             slam::FormatTrajectory(trajectory, slam::TrajectoryFormat::kTum));
         !s.ok()) {
@@ -146,7 +149,7 @@ absl::Status RunSlamEval(const SlamEvalOptions& options) {
         static_cast<unsigned long long>(c.loops_rejected_graph),
         v.ms_per_keyframe);
   }
-  return robot::WriteFile(options.out_dir + "/summary.csv", csv);
+  return files::WriteFile(options.out_dir + "/summary.csv", csv);
 }
 
 }  // namespace fleetmem::eval

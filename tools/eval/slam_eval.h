@@ -22,6 +22,9 @@ struct SlamEvalOptions {
   // Loop candidates per keyframe and the position prior's radius.
   int candidates = 3;
   double prior_radius_m = 8.0;
+  // Only the first this many scans of the log (0 = all): the smoke run of
+  // the test suite (relations outside them are not scored).
+  int max_scans = 0;
 };
 absl::Status RunSlamEval(const SlamEvalOptions& options);
 

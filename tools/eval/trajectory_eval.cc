@@ -5,7 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "clients/robot/slam/trajectory.h"
 #include "clients/robot/slam/trajectory_metrics.h"
 #include "google/protobuf/util/json_util.h"
@@ -132,7 +132,7 @@ absl::Status RunRelationsEval(const RelationsEvalOptions& options) {
   absl::StatusOr<slam::Trajectory> estimate =
       slam::ReadTrajectoryFile(options.estimate, std::nullopt);
   if (!estimate.ok()) return estimate.status();
-  absl::StatusOr<std::string> text = robot::ReadFile(options.relations);
+  absl::StatusOr<std::string> text = files::ReadFile(options.relations);
   if (!text.ok()) return text.status();
   absl::StatusOr<std::vector<slam::Relation>> relations =
       slam::ParseRelations(*text, options.relations);
@@ -166,7 +166,7 @@ absl::Status RunRelationsEval(const RelationsEvalOptions& options) {
 }
 
 absl::Status RunContinualScores(const std::string& table, bool json) {
-  absl::StatusOr<std::string> text = robot::ReadFile(table);
+  absl::StatusOr<std::string> text = files::ReadFile(table);
   if (!text.ok()) return text.status();
   absl::StatusOr<std::vector<slam::Deployment>> deployments =
       slam::ParseDeployments(*text, table);

@@ -26,27 +26,16 @@ server_pid="" camera_pid="" laser_pid="" server_starts=0
 trap 'kill -9 $server_pid $camera_pid $laser_pid 2>/dev/null || true; rm -rf "$dir"' EXIT
 RANDOM=7  # repeatable kill times
 
+# shellcheck source=../process/server.sh
+source "$root/tools/process/server.sh"
 # The first start picks a free port; every restart keeps it, so the robots
 # find the server again.
 addr=""
-start_server() {
-  local log="$dir/server-$((++server_starts)).log"
-  : >"$log"
-  "$build/bin/fleetmem-server" --listen "${addr:-127.0.0.1:0}" \
-    --data-dir "$dir/server" >"$log" 2>&1 &
-  server_pid=$!
-  for _ in $(seq 1 300); do
-    local listening
-    listening=$(sed -n 's/^fleetmem-server listening on \(.*\)$/\1/p' "$log")
-    if [ -n "$listening" ]; then
-      addr=$listening
-      return 0
-    fi
-    sleep 0.1
-  done
-  echo "fleetmem-server did not start (${addr:-new port})" >&2
-  tail -20 "$log" >&2
-  return 1
+restart_server() {
+  SERVER_LISTEN=${addr:-127.0.0.1:0} start_server "$build" "$dir/server" \
+    "$dir/server-$((++server_starts)).log" || return 1
+  server_pid=$SERVER_PID
+  addr=$SERVER_ADDR
 }
 # start_robot NAME FLEET SOURCE LAST RATE: sets ${NAME}_pid.
 start_robot() {
@@ -68,7 +57,7 @@ check() {
 }
 
 mkdir -p "$dir/server"
-start_server
+restart_server
 failed=0
 printf '%5s %-28s %18s %18s %s\n' trial kills "camera recv/max" "laser recv/max" result
 for trial in $(seq 1 "$trials"); do
@@ -80,7 +69,7 @@ for trial in $(seq 1 "$trials"); do
     case $((RANDOM % 3)) in
       0) kill -9 "$server_pid"; wait "$server_pid" 2>/dev/null || true
          sleep "$(awk -v ms=$((RANDOM % 1500)) 'BEGIN {print ms / 1000}')"
-         start_server; done_kills="$done_kills server" ;;
+         restart_server; done_kills="$done_kills server" ;;
       1) kill -9 "$camera_pid" 2>/dev/null || true
          wait "$camera_pid" 2>/dev/null || true
          start_camera; done_kills="$done_kills camera" ;;

@@ -4,7 +4,7 @@
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "clients/robot/slam/trajectory.h"
 #include "google/protobuf/struct.pb.h"
 #include "google/protobuf/util/json_util.h"
@@ -207,13 +207,13 @@ absl::Status FleetSlam::FinishSession(size_t end_keyframe) {
 absl::Status FleetSlam::WriteOutputs(const std::string& dir) const {
   if (slam_.num_keyframes() == 0) return absl::OkStatus();
   const Trajectory trajectory = slam_.ScanTrajectory();
-  if (absl::Status s = robot::WriteFile(
+  if (absl::Status s = files::WriteFile(
           dir + "/trajectory.tum",
           FormatTrajectory(trajectory, TrajectoryFormat::kTum));
       !s.ok()) {
     return s;
   }
-  if (absl::Status s = robot::WriteFile(
+  if (absl::Status s = files::WriteFile(
           dir + "/odometry.tum",
           FormatTrajectory(slam_.OdometryTrajectory(), TrajectoryFormat::kTum));
       !s.ok()) {
@@ -260,7 +260,7 @@ absl::Status FleetSlam::WriteOutputs(const std::string& dir) const {
     const Eigen::Isometry3d t = PlanarPose(frame->x, frame->y, frame->yaw);
     for (StampedPose& p : in_peer) p.pose = t * p.pose;
     if (absl::Status s =
-            robot::WriteFile(absl::StrCat(dir, "/trajectory_in_", peer, ".tum"),
+            files::WriteFile(absl::StrCat(dir, "/trajectory_in_", peer, ".tum"),
                              FormatTrajectory(in_peer, TrajectoryFormat::kTum));
         !s.ok()) {
       return s;
@@ -272,7 +272,7 @@ absl::Status FleetSlam::WriteOutputs(const std::string& dir) const {
   if (!google::protobuf::util::MessageToJsonString(report, &json, print).ok()) {
     return absl::InternalError("cannot print slam.json");
   }
-  return robot::WriteFile(dir + "/slam.json", json);
+  return files::WriteFile(dir + "/slam.json", json);
 }
 
 }  // namespace fleetmem::slam

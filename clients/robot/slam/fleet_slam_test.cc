@@ -1,6 +1,7 @@
 #include "clients/robot/slam/fleet_slam.h"
 
 #include "gtest/gtest.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::slam {
 namespace {

@@ -7,7 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 
 namespace fleetmem::slam {
 namespace {
@@ -122,7 +122,7 @@ absl::StatusOr<Trajectory> ParseTrajectory(std::string_view text,
 absl::StatusOr<Trajectory> ReadTrajectoryFile(
     const std::string& path, std::optional<TrajectoryFormat> format,
     TrajectoryFormat* used) {
-  absl::StatusOr<std::string> read = robot::ReadFile(path);
+  absl::StatusOr<std::string> read = files::ReadFile(path);
   if (!read.ok()) return read.status();
   const std::string& text = *read;
   if (!format) {

@@ -4,6 +4,7 @@
 
 #include "clients/robot/slam/trajectory_metrics.h"
 #include "gtest/gtest.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::vo {
 namespace {

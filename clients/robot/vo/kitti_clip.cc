@@ -6,7 +6,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "opencv2/imgcodecs.hpp"
 #include "opencv2/imgproc.hpp"
 
@@ -112,7 +112,7 @@ absl::StatusOr<KittiClip> LoadKittiClip(const std::string& dir, int width,
   clip.name = root.filename().string();
   if (clip.name.empty()) clip.name = root.parent_path().filename().string();
   absl::StatusOr<std::string> calib =
-      robot::ReadFile((root / "calib.txt").string());
+      files::ReadFile((root / "calib.txt").string());
   if (!calib.ok()) return calib.status();
   absl::StatusOr<Camera> camera =
       ParseKittiCalibration(*calib, (root / "calib.txt").string());

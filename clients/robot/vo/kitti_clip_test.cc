@@ -3,6 +3,7 @@
 #include <string>
 
 #include "gtest/gtest.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::vo {
 namespace {

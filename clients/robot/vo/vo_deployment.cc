@@ -4,7 +4,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "clients/robot/slam/trajectory_metrics.h"
 
 namespace fleetmem::vo {
@@ -13,13 +13,13 @@ namespace {
 namespace fs = std::filesystem;
 
 absl::Status WriteBoth(const std::string& stem, const slam::Trajectory& t) {
-  if (absl::Status s = robot::WriteFile(
+  if (absl::Status s = files::WriteFile(
           stem + ".kitti",
           slam::FormatTrajectory(t, slam::TrajectoryFormat::kKitti));
       !s.ok()) {
     return s;
   }
-  return robot::WriteFile(
+  return files::WriteFile(
       stem + ".tum", slam::FormatTrajectory(t, slam::TrajectoryFormat::kTum));
 }
 
@@ -88,7 +88,7 @@ absl::StatusOr<VoDeploymentReport> RunVoDeployment(
       result->adapted_frames, result->skipped_frames, result->update_steps,
       result->loops, result->seconds, report.ate_se3_m,
       resume ? weights_path : options.initial_model);
-  if (absl::Status s = robot::WriteFile(report.out_dir + "/vo.json", json);
+  if (absl::Status s = files::WriteFile(report.out_dir + "/vo.json", json);
       !s.ok()) {
     return s;
   }

@@ -3,8 +3,9 @@
 #include <filesystem>
 #include <string>
 
-#include "clients/robot/read_file.h"
+#include "services/common/files.h"
 #include "gtest/gtest.h"
+#include "fleetmem_paths.h"
 
 namespace fleetmem::vo {
 namespace {
@@ -44,7 +45,7 @@ TEST(RunVoDeployment, WritesTrajectoriesAndCarriesTheWeights) {
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_EQ(second->out_dir, o.data_dir + "/vo/clip1-2");
   absl::StatusOr<std::string> json =
-      robot::ReadFile(second->out_dir + "/vo.json");
+      files::ReadFile(second->out_dir + "/vo.json");
   ASSERT_TRUE(json.ok());
   EXPECT_NE(json->find("vo-weights.pt"), std::string::npos) << *json;
   // A missing sequence changes nothing.

@@ -1,0 +1,51 @@
+// Whole files in and out: config and credentials files, the robot's sources
+// (images, logs), the evaluations' text outputs, test inputs. The one copy
+// of this for the whole project (servers, clients, tools and tests): it has
+// no project dependency, so clients may link it as they link core.
+#ifndef FLEETMEM_SERVICES_COMMON_FILES_H_
+#define FLEETMEM_SERVICES_COMMON_FILES_H_
+
+#include <string>
+
+#include "absl/status/statusor.h"
+
+namespace fleetmem::files {
+
+// NOT_FOUND naming `path` if it cannot be opened, DATA_LOSS if reading
+// fails part-way.
+absl::StatusOr<std::string> ReadFile(const std::string& path);
+
+// Replaces `path` with `text`. INTERNAL naming `path` if it cannot be
+// written in full (a full disk included).
+absl::Status WriteFile(const std::string& path, const std::string& text);
+
+// A new empty directory under $TMPDIR (or /tmp) named `prefix`XXXXXX.
+absl::StatusOr<std::string> MakeTempDir(const std::string& prefix);
+
+// Removes `path` and everything below it; a missing path is OK.
+absl::Status RemoveTree(const std::string& path);
+
+// A temporary directory (MakeTempDir) removed with everything below it by
+// the destructor, unless the environment variable FLEETMEM_KEEP_TEST_DIRS is
+// set. The project's one temporary-directory helper (tests, evaluations).
+class TempDir {
+ public:
+  // If the directory cannot be made, path() is empty and status() says why.
+  explicit TempDir(const std::string& prefix = "fleetmem-");
+  ~TempDir();
+  TempDir(const TempDir&) = delete;
+  TempDir& operator=(const TempDir&) = delete;
+
+  const std::string& path() const { return path_; }
+  const absl::Status& status() const { return status_; }
+  // path() + "/" + name.
+  std::string Join(const std::string& name) const;
+
+ private:
+  std::string path_;
+  absl::Status status_;
+};
+
+}  // namespace fleetmem::files
+
+#endif  // FLEETMEM_SERVICES_COMMON_FILES_H_

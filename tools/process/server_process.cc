@@ -1,0 +1,317 @@
+#include "tools/process/server_process.h"
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/prctl.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <fstream>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/string_view.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "absl/strings/strip.h"
+#include "fleetmem_paths.h"
+
+namespace fleetmem::process {
+namespace {
+
+std::string ErrnoText(const char* what) {
+  return absl::StrCat(what, ": ", std::strerror(errno));
+}
+
+// The port of "HOST:PORT" if it is in 1..65535.
+std::optional<int> PortOf(absl::string_view address) {
+  size_t colon = address.rfind(':');
+  if (colon == absl::string_view::npos) return std::nullopt;
+  int port = 0;
+  if (!absl::SimpleAtoi(address.substr(colon + 1), &port) || port <= 0 ||
+      port > 65535) {
+    return std::nullopt;
+  }
+  return port;
+}
+
+constexpr std::chrono::milliseconds kPoll{20};
+
+}  // namespace
+
+std::string DefaultServerBinary() {
+#ifdef FLEETMEM_BIN_DIR
+  return std::string(FLEETMEM_BIN_DIR) + "/fleetmem-server";
+#else
+  return "fleetmem-server";
+#endif
+}
+
+absl::StatusOr<ReadyFile> ParseReadyFile(const std::string& text) {
+  ReadyFile ready;
+  for (absl::string_view line : absl::StrSplit(text, '\n', absl::SkipEmpty())) {
+    std::pair<absl::string_view, absl::string_view> kv =
+        absl::StrSplit(line, absl::MaxSplits('=', 1));
+    if (kv.first == "grpc" || kv.first == "http") {
+      std::optional<int> port = PortOf(kv.second);
+      if (!port.has_value()) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("ready file: bad address in \"", line, "\""));
+      }
+      (kv.first == "grpc" ? ready.grpc_address : ready.http_address) =
+          std::string(kv.second);
+      (kv.first == "grpc" ? ready.grpc_port : ready.http_port) = *port;
+    } else if (kv.first == "pid") {
+      if (!absl::SimpleAtoi(kv.second, &ready.pid)) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("ready file: bad pid in \"", line, "\""));
+      }
+    }
+  }
+  if (ready.grpc_port == 0) {
+    return absl::InvalidArgumentError("ready file: no grpc=HOST:PORT line");
+  }
+  return ready;
+}
+
+ServerOptions NatsServerOptions(const std::string& store_dir,
+                                const std::string& log_file) {
+  ServerOptions options;
+  options.binary = access("/usr/sbin/nats-server", X_OK) == 0
+                       ? "/usr/sbin/nats-server"
+                       : "/usr/bin/nats-server";
+  options.fleetmem_flags = false;
+  options.listening_marker = "Listening for client connections on ";
+  options.log_file = log_file;
+  // -p -1: a random free port, which the server logs.
+  options.extra_args = {"-a", "127.0.0.1", "-p", "-1", "-js", "-sd", store_dir};
+  return options;
+}
+
+std::optional<int> ParseListeningPort(const std::string& output,
+                                      const std::string& marker) {
+  size_t at = output.find(marker);
+  if (at == std::string::npos) return std::nullopt;
+  size_t begin = at + marker.size();
+  size_t end = output.find_first_of("\r\n", begin);
+  if (end == std::string::npos) return std::nullopt;  // line not complete
+  const std::string line = output.substr(begin, end - begin);
+  return PortOf(absl::StripTrailingAsciiWhitespace(line));
+}
+
+ServerProcess::ServerProcess(ServerOptions options)
+    : options_(std::move(options)) {}
+
+ServerProcess::~ServerProcess() {
+  if (running()) Kill();
+  JoinReader();
+}
+
+std::string ServerProcess::address() const {
+  return absl::StrCat("127.0.0.1:", port_);
+}
+
+std::string ServerProcess::Output() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return output_;
+}
+
+std::optional<int> ServerProcess::ReadyPort() {
+  if (!options_.fleetmem_flags) {
+    std::lock_guard<std::mutex> lock(mu_);
+    return listening_port_;
+  }
+  absl::StatusOr<std::string> text = files::ReadFile(ready_dir_.Join("ready"));
+  if (!text.ok()) return std::nullopt;
+  // Written by rename: complete whenever it exists.
+  absl::StatusOr<ReadyFile> ready = ParseReadyFile(*text);
+  if (!ready.ok()) return std::nullopt;
+  http_address_ = ready->http_address;
+  return ready->grpc_port;
+}
+
+absl::Status ServerProcess::Start() {
+  if (running()) return absl::FailedPreconditionError("already running");
+  if (access(options_.binary.c_str(), X_OK) != 0) {
+    return absl::NotFoundError(absl::StrCat(
+        "server binary not found or not executable: ", options_.binary,
+        " (build target fleetmem-server)"));
+  }
+  if (!ready_dir_.status().ok()) return ready_dir_.status();
+  JoinReader();  // from an earlier run
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    output_.clear();
+    reader_done_ = false;
+    listening_port_.reset();
+  }
+  port_ = 0;
+  http_address_.clear();
+  const std::string ready_file = ready_dir_.Join("ready");
+  files::RemoveTree(ready_file).IgnoreError();
+
+  // Everything the child needs is prepared before fork(): after fork() in a
+  // threaded process only async-signal-safe calls are allowed.
+  std::vector<std::string> args = {options_.binary};
+  if (options_.fleetmem_flags) {
+    args.insert(args.end(), {"--listen", options_.listen, "--data-dir",
+                             options_.data_dir, "--ready-file", ready_file});
+    if (!options_.config_file.empty()) {
+      args.insert(args.end(), {"--config", options_.config_file});
+    }
+  }
+  args.insert(args.end(), options_.extra_args.begin(),
+              options_.extra_args.end());
+  std::vector<char*> argv;
+  for (std::string& arg : args) argv.push_back(arg.data());
+  argv.push_back(nullptr);
+
+  int fds[2];
+  if (pipe2(fds, O_CLOEXEC) != 0)
+    return absl::InternalError(ErrnoText("pipe2"));
+  const pid_t parent = getpid();
+  pid_t pid = fork();
+  if (pid < 0) {
+    close(fds[0]);
+    close(fds[1]);
+    return absl::InternalError(ErrnoText("fork"));
+  }
+  if (pid == 0) {
+    // Child: stdout and stderr into the pipe; die with the caller. Own
+    // process group, so that Kill() also ends anything it started.
+    setpgid(0, 0);
+    prctl(PR_SET_PDEATHSIG, SIGKILL);
+    if (getppid() != parent) _exit(127);
+    dup2(fds[1], STDOUT_FILENO);
+    dup2(fds[1], STDERR_FILENO);
+    int devnull = open("/dev/null", O_RDONLY);
+    if (devnull >= 0) dup2(devnull, STDIN_FILENO);
+    execv(argv[0], argv.data());
+    static const char kExecFailed[] = "exec of the server failed\n";
+    ssize_t ignored =
+        write(STDERR_FILENO, kExecFailed, sizeof(kExecFailed) - 1);
+    (void)ignored;
+    _exit(127);
+  }
+  close(fds[1]);
+  pid_ = pid;
+  reader_ = std::thread([this, fd = fds[0]] { ReadOutput(fd); });
+
+  const auto give_up = std::chrono::steady_clock::now() + options_.start_timeout;
+  bool exited = false;
+  while (true) {
+    if (std::optional<int> port = ReadyPort(); port.has_value()) {
+      port_ = *port;
+      return absl::OkStatus();
+    }
+    if (exited || std::chrono::steady_clock::now() >= give_up) break;
+    std::unique_lock<std::mutex> lock(mu_);
+    // Woken early by output (a marker line) or the end of output.
+    cv_.wait_for(lock, kPoll);
+    // One more look for the file after the output ended: a server may
+    // write it and exit at once.
+    exited = reader_done_;
+  }
+  // Either the process closed its output (it exited) or it was too slow.
+  const bool timed_out = !exited;
+  if (timed_out) {
+    Kill();
+  } else {
+    absl::StatusOr<int> code = WaitForExit(std::chrono::milliseconds(5000));
+    if (!code.ok()) Kill();
+  }
+  JoinReader();
+  std::string message = absl::StrCat(
+      timed_out ? "the server was not ready within "
+                : "the server ended its output before it was ready; ",
+      timed_out ? absl::StrCat(options_.start_timeout.count(), " ms; ") : "",
+      "command: ", absl::StrJoin(args, " "), "\n--- server output ---\n",
+      Output());
+  return timed_out ? absl::DeadlineExceededError(message)
+                   : absl::InternalError(message);
+}
+
+void ServerProcess::ReadOutput(int fd) {
+  std::ofstream log;
+  if (!options_.log_file.empty()) {
+    log.open(options_.log_file, std::ios::app | std::ios::binary);
+  }
+  char buffer[4096];
+  while (true) {
+    ssize_t n = read(fd, buffer, sizeof(buffer));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) break;
+    if (log.is_open()) {
+      log.write(buffer, n);
+      log.flush();
+    }
+    std::lock_guard<std::mutex> lock(mu_);
+    output_.append(buffer, static_cast<size_t>(n));
+    if (!options_.fleetmem_flags && !listening_port_.has_value()) {
+      listening_port_ = ParseListeningPort(output_, options_.listening_marker);
+      if (listening_port_.has_value()) cv_.notify_all();
+    }
+  }
+  close(fd);
+  std::lock_guard<std::mutex> lock(mu_);
+  reader_done_ = true;
+  cv_.notify_all();
+}
+
+void ServerProcess::JoinReader() {
+  if (reader_.joinable()) reader_.join();
+}
+
+absl::StatusOr<int> ServerProcess::WaitForExit(
+    std::chrono::milliseconds timeout) {
+  if (!running()) return absl::FailedPreconditionError("not running");
+  const auto give_up = std::chrono::steady_clock::now() + timeout;
+  while (true) {
+    int status = 0;
+    pid_t done = waitpid(pid_, &status, WNOHANG);
+    if (done == pid_) {
+      pid_ = -1;
+      if (WIFEXITED(status)) return WEXITSTATUS(status);
+      if (WIFSIGNALED(status)) return -WTERMSIG(status);
+      return absl::InternalError("unexpected wait status");
+    }
+    if (done < 0 && errno != EINTR) {
+      pid_ = -1;
+      return absl::InternalError(ErrnoText("waitpid"));
+    }
+    if (std::chrono::steady_clock::now() >= give_up) {
+      return absl::DeadlineExceededError(absl::StrCat("the server (pid ", pid_,
+                                                      ") did not exit within ",
+                                                      timeout.count(), " ms"));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+}
+
+absl::StatusOr<int> ServerProcess::Stop(std::chrono::milliseconds timeout) {
+  if (!running()) return absl::FailedPreconditionError("not running");
+  kill(pid_, SIGTERM);
+  absl::StatusOr<int> code = WaitForExit(timeout);
+  if (!code.ok() && running()) Kill();
+  JoinReader();
+  return code;
+}
+
+void ServerProcess::Kill() {
+  if (!running()) return;
+  kill(-pid_, SIGKILL);  // the server's process group (see Start)
+  kill(pid_, SIGKILL);
+  int status = 0;
+  while (waitpid(pid_, &status, 0) < 0 && errno == EINTR) {
+  }
+  pid_ = -1;
+  JoinReader();
+}
+
+void ServerProcess::Signal(int signal) {
+  if (running()) kill(pid_, signal);
+}
+
+}  // namespace fleetmem::process
