@@ -6,7 +6,8 @@
 #ifndef FLEETMEM_CLIENTS_ROBOT_LEARNING_TORCH_ARCHIVE_H_
 #define FLEETMEM_CLIENTS_ROBOT_LEARNING_TORCH_ARCHIVE_H_
 
-#include <torch/torch.h>
+#include <torch/nn/module.h>
+#include <torch/serialize/archive.h>
 
 #include <cstdint>
 #include <functional>
