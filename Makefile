@@ -102,7 +102,8 @@ test-asan: deps
 	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_asan)" \
 	  -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="$(SANITIZER_OPT)" \
 	  -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZER_FLAGS_asan)" \
-	  -DFLEETMEM_BUILD_BENCH=OFF -DFLEETMEM_BUILD_DEMO=OFF >/dev/null
+	  -DFLEETMEM_BUILD_BENCH=OFF -DFLEETMEM_BUILD_DEMO=OFF \
+	  -DFLEETMEM_TEST_OPT=-O0 >/dev/null
 	@cmake --build build-asan -j $(JOBS)
 	@cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
 	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \

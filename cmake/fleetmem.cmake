@@ -29,10 +29,11 @@ function(fleetmem_test name)
   target_include_directories(${name} PRIVATE ${PROJECT_SOURCE_DIR})
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} fleetmem_paths GTest::gmock
                         GTest::gtest_main)
-  # The tests' own files at -O1 (the libraries they test keep the build's
-  # -O2): test code is compiled far more than it runs, and -O1 compiles in
-  # about three quarters of -O2's time (docs/testing.md).
-  target_compile_options(${name} PRIVATE $<$<CONFIG:RelWithDebInfo,Release>:-O1>)
+  # The tests' own files at FLEETMEM_TEST_OPT (the libraries they test keep
+  # the build's -O2, or the sanitizer build's -O1): test code is compiled far
+  # more than it runs (docs/testing.md has the compile times).
+  target_compile_options(${name} PRIVATE
+                         $<$<CONFIG:RelWithDebInfo,Release>:${FLEETMEM_TEST_OPT}>)
   if(FLEETMEM_TSAN_ABSL_ANNOTATIONS)
     # ThreadSanitizer build: tell TSan about Debian's uninstrumented
     # absl::Mutex (tools/tsan/absl_mutex_annotations.cc).

@@ -204,9 +204,25 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
     config.TTL = Nanoseconds(options.lease_ttl);
     config.Replicas = options.replicas;
     config.StorageType = js_FileStorage;
-    s = js_CreateKeyValue(&handles->kv, handles->js, &config);
-    if (s != NATS_OK) {  // made by another replica meanwhile?
+    const natsStatus created =
+        js_CreateKeyValue(&handles->kv, handles->js, &config);
+    s = created;
+    if (created != NATS_OK) {
+      const absl::Status not_made =
+          FromNats(created, 0,
+                   absl::StrCat("cluster: making the lease bucket '",
+                                options.lease_bucket, "'"));
+      // Made by another replica meanwhile?
       s = js_KeyValue(&handles->kv, handles->js, options.lease_bucket.c_str());
+      if (s == NATS_NOT_FOUND) {
+        // Neither there nor made: a JetStream cluster that is still
+        // electing its leaders, or has too few servers up for the bucket's
+        // copies, refuses to make it. Worth retrying (the server's start
+        // retries UNAVAILABLE until cluster.connect_timeout).
+        return absl::UnavailableError(absl::StrCat(
+            not_made.message(), "; it is still missing, JetStream may not "
+            "be ready yet"));
+      }
     }
   }
   if (s != NATS_OK) {

@@ -1,18 +1,23 @@
 #!/usr/bin/env python3
 """`fleetmem-eval lifelong` end to end on the real data: every method runs
 (the memory methods through real fleetmem-server children) and writes the
-files the protocol promises, with numbers that agree with their definitions
-as computed here (docs/results.md):
+files protocol v2 promises, with numbers that agree with their definitions
+as computed here (docs/results.md, tools/eval/lifelong_protocol.h):
 
-  - every curves.csv row: WR = 0.5 r1 + 0.1 (r2 + ... + r6) (BioSLAM's
-    weighted recall), recall@k non-decreasing in k, each recall a multiple
-    of 1 / (queries per domain);
-  - summary.csv from curves.csv: WR final = the mean WR over the six domains
-    after the last one, AE = the mean over t of WR of domain t after
-    learning it, RA = the mean over t >= 2 of the mean WR of the domains
-    before t;
-  - the methods that do not learn (classical, gpl_pretrained) score the
-    same after every domain.
+  - every curves.csv row (method, seed, after domain t, area a: the winter
+    queries of area a's held-out places against the summer map): WR = 0.5 r1
+    + 0.1 (r2 + ... + r6), recall@k non-decreasing in k, each recall a
+    multiple of 1 / (queries of the area);
+  - summary.csv from curves.csv, per seed and then the mean over seeds:
+    WR final = the mean WR over the three areas after the last domain, AE =
+    the mean over the winter domains of the WR on the area just learned, RA
+    = the mean over the later winter domains of the mean WR on the winter
+    areas learned before;
+  - the chance row from the count of correct map entries per query;
+  - the methods that do not learn over the domains (classical,
+    classical_seq, joint, gpl_pretrained, gpl_joint) score the same after
+    every domain;
+  - uniform_replay never holds more traces than bioslam (memory.csv).
 
 --quick (ctest fleetmem_eval_quick_test, slow tier): the quick settings on
 the whole route. --smoke (ctest fleetmem_eval_smoke_test, `make test`): the
@@ -27,12 +32,13 @@ import shutil
 import subprocess
 import sys
 
-SMOKE_PLACES = 48  # 3 areas of 16 places, every 4th a query: 4 per domain
-METHODS = ["classical", "gpl_pretrained", "finetune", "uniform_replay", "bioslam",
-           "no_rex", "no_rin", "no_clustering", "no_decay", "bioslam_decoded",
-           "fleet_shared"]
-STATIC = ["classical", "gpl_pretrained"]
-DOMAINS = 6
+SMOKE_PLACES = 48  # 3 areas of 16 places, every 4th held out: 4 queries each
+METHODS = ["classical", "classical_seq", "joint", "finetune", "bioslam",
+           "uniform_replay", "no_rex", "no_rin", "no_clustering", "no_decay",
+           "fleet_shared", "gpl_pretrained", "gpl_joint", "gpl_finetune",
+           "gpl_bioslam", "gpl_bioslam_decoded"]
+STATIC = ["classical", "classical_seq", "joint", "gpl_pretrained", "gpl_joint"]
+DOMAINS, AREAS, TOLERANCE = 6, 3, 2
 TOL = 2e-4  # the files print 4 decimals
 
 
@@ -54,45 +60,87 @@ def main():
 
     with open(os.path.join(out, "summary.csv")) as f:
         summary = {r["method"]: r for r in csv.DictReader(f)}
-    assert list(summary) == METHODS, list(summary)
+    assert list(summary) == ["chance"] + METHODS, list(summary)
     for m, r in summary.items():
         for k in ("wr_final", "ae", "ra"):
             assert 0 <= float(r[k]) <= 1, (m, k, r[k])
+
+    n = SMOKE_PLACES if smoke else None
+    if n is not None:  # the chance level, counted here
+        queries = [q for q in range(n) if held_out(q, n)]
+        recall = []
+        for k in range(1, 7):
+            found = 0.0
+            for q in queries:
+                m = min(n - 1, q + TOLERANCE) - max(0, q - TOLERANCE) + 1
+                none = 1.0
+                for i in range(k):
+                    none *= (n - m - i) / (n - i)
+                found += 1 - none
+            recall.append(found / len(queries))
+        chance = 0.5 * recall[0] + 0.1 * sum(recall[1:])
+        assert close(float(summary["chance"]["wr_final"]), chance), (
+            summary["chance"], chance)
+
     with open(os.path.join(out, "curves.csv")) as f:
         rows = list(csv.DictReader(f))
-    wr = {}  # (method, after, domain) -> WR
+    wr = {}  # (method, seed, after, area) -> WR
     for r in rows:
         recall = [float(r[f"r{k}"]) for k in range(1, 7)]
         assert all(a <= b + 1e-9 for a, b in zip(recall, recall[1:])), r
         assert close(float(r["wr"]), 0.5 * recall[0] + 0.1 * sum(recall[1:])), r
         if smoke:
-            for x in recall:  # 4 queries per domain
+            for x in recall:  # 4 queries per area
                 assert close(x * 4, round(x * 4)), r
-        wr[(r["method"], int(r["after_domain"]), int(r["domain"]))] = float(r["wr"])
-    for m in METHODS[:-1]:  # fleet_shared reports per robot (fleet.csv)
-        cells = [k for k in wr if k[0] == m]
-        assert len(cells) == DOMAINS * DOMAINS, (m, len(cells))
-        w = lambda t, d: wr[(m, t, d)]
-        wr_final = sum(w(DOMAINS, d) for d in range(1, DOMAINS + 1)) / DOMAINS
-        ae = sum(w(t, t) for t in range(1, DOMAINS + 1)) / DOMAINS
-        ra = sum(sum(w(t, d) for d in range(1, t)) / (t - 1)
-                 for t in range(2, DOMAINS + 1)) / (DOMAINS - 1)
-        for name, value in (("wr_final", wr_final), ("ae", ae), ("ra", ra)):
-            assert abs(float(summary[m][name]) - value) <= 1e-3, (
-                m, name, summary[m][name], value)
-        if m in STATIC:
-            for t in range(2, DOMAINS + 1):
-                for d in range(1, DOMAINS + 1):
-                    assert w(t, d) == w(1, d), (m, t, d)
+        wr[(r["method"], int(r["seed"]), int(r["after_domain"]),
+            int(r["area"]))] = float(r["wr"])
+    for m in METHODS:
+        if m == "fleet_shared":  # reports per robot (fleet.csv)
+            continue
+        seeds = sorted({k[1] for k in wr if k[0] == m})
+        assert seeds, m
+        per_seed = {"wr_final": [], "ae": [], "ra": []}
+        for seed in seeds:
+            cells = [k for k in wr if k[0] == m and k[1] == seed]
+            assert len(cells) == DOMAINS * AREAS, (m, seed, len(cells))
+            w = lambda t, a: wr[(m, seed, t, a)]
+            per_seed["wr_final"].append(
+                sum(w(DOMAINS, a) for a in range(1, AREAS + 1)) / AREAS)
+            # winter domain t (4..6) learns area t - 3
+            per_seed["ae"].append(
+                sum(w(t, t - AREAS) for t in range(AREAS + 1, DOMAINS + 1)) / AREAS)
+            per_seed["ra"].append(
+                sum(sum(w(t, a) for a in range(1, t - AREAS)) / (t - AREAS - 1)
+                    for t in range(AREAS + 2, DOMAINS + 1)) / (AREAS - 1))
+            if m in STATIC:
+                for t in range(2, DOMAINS + 1):
+                    for a in range(1, AREAS + 1):
+                        assert w(t, a) == w(1, a), (m, t, a)
+        for name, values in per_seed.items():
+            mean = sum(values) / len(values)
+            assert abs(float(summary[m][name]) - mean) <= 1e-3, (
+                m, name, summary[m][name], mean)
+    with open(os.path.join(out, "memory.csv")) as f:
+        memory = {(r["method"], r["seed"]): r for r in csv.DictReader(f)}
+    for (m, seed), r in memory.items():
+        if m == "uniform_replay":
+            bioslam = memory[("bioslam", seed)]
+            assert int(r["peak_traces"]) <= int(bioslam["peak_traces"]), (r, bioslam)
     with open(os.path.join(out, "curves.png"), "rb") as f:
         assert f.read(4) == b"\x89PNG", "curves.png is not a PNG"
     with open(os.path.join(out, "fleet.csv")) as f:
-        assert len(f.readlines()) == 3, "fleet.csv should have 2 robot rows"
-    assert os.path.getsize(os.path.join(out, "encoder.pt")) > 0, "no encoder.pt"
-    for m in METHODS:
-        print(f"{m:16s} WR final {summary[m]['wr_final']}, AE {summary[m]['ae']}, "
+        assert len(f.readlines()) >= 3, "fleet.csv should have 2 robot rows a seed"
+    for m in ["chance"] + METHODS:
+        print(f"{m:20s} WR final {summary[m]['wr_final']}, AE {summary[m]['ae']}, "
               f"RA {summary[m]['ra']}")
     print("lifelong: outputs present, numbers agree with their definitions")
+
+
+def held_out(q, n):
+    """Protocol v2's split: the 4th, 8th, ... place of each area."""
+    area = q * AREAS // n
+    first = next(i for i in range(n) if i * AREAS // n == area)
+    return (q - first) % 4 == 3
 
 
 if __name__ == "__main__":

@@ -62,8 +62,10 @@ int main(int argc, char** argv) {
       app.add_subcommand("lifelong",
                          "BioSLAM's lifelong protocol on a Nordland-layout "
                          "data root (summer areas 1-3, then "
-                         "winter areas 1-3); writes summary.csv, curves.csv, "
-                         "curves.png, fleet.csv");
+                         "winter areas 1-3; protocol v2: winter queries of "
+                         "held-out places against the summer map); writes "
+                         "summary.csv, summary.md, curves.csv, curves.png, "
+                         "memory.csv, fleet.csv");
   lifelong
       ->add_option("--data-root", options.data_root,
                    "folder with nordland/{summer,winter}/images-NNNNN.png")
@@ -107,6 +109,23 @@ int main(int argc, char** argv) {
       ->add_option("--places", options.max_places,
                    "only the first N places of the route (0 = all; the test "
                    "suite's smoke run uses a few dozen)")
+      ->check(CLI::NonNegativeNumber);
+  lifelong
+      ->add_option("--skip-places", options.skip_places,
+                   "places skipped at the start of the route (a stretch no "
+                   "setting was tuned on: the hold-out route)")
+      ->check(CLI::NonNegativeNumber);
+  lifelong->add_option("--metric-update-rate", options.metric_update_rate,
+                       "override: the metric head's update rate per segment");
+  lifelong->add_option("--metric-partners", options.metric_partners,
+                       "override: the metric head's partners per sample");
+  lifelong->add_option("--spatial-scale", options.spatial_scale,
+                       "override: the fleet memory's spatial_scale_m (place "
+                       "units that weigh like one unit of code distance)");
+  lifelong
+      ->add_option("--seeds", options.seeds,
+                   "runs of every method with seeds --seed, --seed+1, ... "
+                   "(0 = 1 quick, 3 full); the report gives mean and spread")
       ->check(CLI::NonNegativeNumber);
   struct {
     std::string images, out, version = "gpl-64x32-d256-v1";

@@ -7,7 +7,6 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
 #include <map>
 #include <memory>
 #include <random>
@@ -25,49 +24,59 @@
 #include "clients/robot/dynamic_memory.h"
 #include "clients/robot/encoder.h"
 #include "clients/robot/learning/gpl_model.h"
+#include "clients/robot/learning/place_learner.h"
 #include "clients/robot/learning/pretrain.h"
 #include "clients/robot/learning/segment_learner.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/rewards.h"
-#include "opencv2/imgproc.hpp"
 #include "proto/convert/trace_convert.h"
 #include "services/common/files.h"
-#include "services/core/place_metrics.h"
+#include "tools/eval/lifelong_protocol.h"
 #include "tools/process/server_process.h"
 
 namespace fleetmem::eval {
 namespace {
 
+using lifelong::kAreas;
+using lifelong::kDomains;
+using lifelong::Score;
 using robot::gpl::GplModel;
 using robot::gpl::LearnSample;
+using robot::gpl::PlaceLearner;
 using robot::gpl::ReplayInput;
-using robot::gpl::SegmentLearner;
 using Clock = std::chrono::steady_clock;
 using ServerChild = process::ServerProcess;
+using Codes = std::vector<std::vector<float>>;
 
-constexpr int kAreas = 3;
-constexpr int kDomains = 2 * kAreas;
 constexpr int kSeasons = 2;
 constexpr const char* kSeasonNames[kSeasons] = {"summer", "winter"};
-constexpr int kMaxK = 6;
+// The fleet code of design (a): the HOG code robots upload (image_encoder.h).
+constexpr const char* kFleetCode = "hog-64x32-c8-s8-b6";
 
 // Step budgets, sized for 2 CPU cores (docs/results.md gives the costs).
 struct Settings {
   int pretrain_steps;
   int steps_per_segment;
   int generative_steps;
+  int seeds;
   int batch_size = 32;
   size_t segment_size = 200;
   size_t replay_per_segment = 128;
   size_t memory_capacity = 1000;
+  // classical_seq: the robot's last this many frames.
+  int sequence_length = 10;
 };
 
 Settings SettingsFor(bool quick) {
   if (quick)
-    return Settings{
-        .pretrain_steps = 300, .steps_per_segment = 40, .generative_steps = 2};
-  return Settings{
-      .pretrain_steps = 300, .steps_per_segment = 100, .generative_steps = 10};
+    return Settings{.pretrain_steps = 300,
+                    .steps_per_segment = 40,
+                    .generative_steps = 2,
+                    .seeds = 1};
+  return Settings{.pretrain_steps = 300,
+                  .steps_per_segment = 100,
+                  .generative_steps = 10,
+                  .seeds = 3};
 }
 
 std::string DomainName(int d) {
@@ -78,8 +87,7 @@ std::string DomainName(int d) {
 struct Data {
   std::vector<int> numbers;
   std::vector<cv::Mat> images[kSeasons];
-  std::vector<int> area;
-  std::vector<bool> query;
+  lifelong::Split split;
   double spacing = 10.0;  // place units between consecutive files
 
   core::Place PlaceOf(size_t i) const {
@@ -87,16 +95,10 @@ struct Data {
     p.x = numbers[i];
     return p;
   }
-  std::vector<size_t> Indices(int area_id, bool queries) const {
-    std::vector<size_t> out;
-    for (size_t i = 0; i < numbers.size(); ++i) {
-      if (area[i] == area_id && query[i] == queries) out.push_back(i);
-    }
-    return out;
-  }
 };
 
-absl::StatusOr<Data> LoadData(const std::string& root, int max_places) {
+absl::StatusOr<Data> LoadData(const std::string& root, int skip_places,
+                              int max_places) {
   Data data;
   std::vector<int> lists[kSeasons];
   for (int s = 0; s < kSeasons; ++s) {
@@ -107,14 +109,16 @@ absl::StatusOr<Data> LoadData(const std::string& root, int max_places) {
   }
   std::set_intersection(lists[0].begin(), lists[0].end(), lists[1].begin(),
                         lists[1].end(), std::back_inserter(data.numbers));
+  const size_t skip = std::min(data.numbers.size(), size_t(skip_places));
+  data.numbers.erase(data.numbers.begin(), data.numbers.begin() + skip);
   if (max_places > 0 && data.numbers.size() > size_t(max_places)) {
     data.numbers.resize(max_places);
   }
   if (data.numbers.size() < 8 * kAreas) {
     return absl::InvalidArgumentError(absl::StrFormat(
-        "%s/nordland: %d frames are present in both summer and winter; the "
-        "protocol needs at least %d",
-        root, data.numbers.size(), 8 * kAreas));
+        "%s/nordland: %d frames are present in both summer and winter (after "
+        "skipping %d); the protocol needs at least %d",
+        root, data.numbers.size(), skip, 8 * kAreas));
   }
   for (int s = 0; s < kSeasons; ++s) {
     const std::string dir = absl::StrCat(root, "/nordland/", kSeasonNames[s]);
@@ -124,147 +128,93 @@ absl::StatusOr<Data> LoadData(const std::string& root, int max_places) {
       data.images[s].push_back(*std::move(image));
     }
   }
-  const size_t n = data.numbers.size();
+  data.split = lifelong::SplitRoute(data.numbers.size());
   std::vector<int> gaps;
-  for (size_t i = 0; i < n; ++i) {
-    data.area.push_back(int(i * kAreas / n));
-    data.query.push_back(i % 4 == 3);
-    if (i > 0) gaps.push_back(data.numbers[i] - data.numbers[i - 1]);
-  }
+  for (size_t i = 1; i < data.numbers.size(); ++i)
+    gaps.push_back(data.numbers[i] - data.numbers[i - 1]);
   std::nth_element(gaps.begin(), gaps.begin() + gaps.size() / 2, gaps.end());
   data.spacing = std::max(1, gaps[gaps.size() / 2]);
   return data;
 }
 
-// Unit rows for cosine search.
-Eigen::MatrixXf Normalised(const std::vector<std::vector<float>>& rows,
-                           const std::vector<size_t>& pick) {
+Eigen::MatrixXf Matrix(const Codes& rows) {
   const size_t dim = rows.empty() ? 0 : rows[0].size();
-  Eigen::MatrixXf m(pick.size(), dim);
-  for (size_t r = 0; r < pick.size(); ++r) {
-    const std::vector<float>& v = rows[pick[r]];
-    for (size_t c = 0; c < dim; ++c) m(r, c) = v[c];
-    const float norm = m.row(r).norm();
-    if (norm > 0) m.row(r) /= norm;
-  }
+  Eigen::MatrixXf m(rows.size(), dim);
+  for (size_t r = 0; r < rows.size(); ++r)
+    for (size_t c = 0; c < dim; ++c) m(r, c) = rows[r][c];
   return m;
 }
 
-struct DomainScore {
-  double recall[kMaxK] = {};
-  double wr = 0.0;
-};
-
-// Recall@1..6 and WR of every domain's queries against the summer training
-// frames; descriptors[s][i] for season s and route index i.
-std::vector<DomainScore> Evaluate(
-    const Data& data,
-    const std::vector<std::vector<float>> (&descriptors)[kSeasons]) {
-  std::vector<size_t> db;
-  for (int a = 0; a < kAreas; ++a) {
-    for (size_t i : data.Indices(a, false)) db.push_back(i);
-  }
-  const Eigen::MatrixXf database = Normalised(descriptors[0], db);
-  std::vector<DomainScore> scores(kDomains);
-  for (int d = 0; d < kDomains; ++d) {
-    const std::vector<size_t> queries = data.Indices(d % kAreas, true);
-    const Eigen::MatrixXf q = Normalised(descriptors[d / kAreas], queries);
-    const Eigen::MatrixXf sim = q * database.transpose();
-    core::FirstCorrectRanks ranks;
-    std::vector<int> order(db.size());
-    for (size_t r = 0; r < queries.size(); ++r) {
-      for (size_t j = 0; j < db.size(); ++j) order[j] = int(j);
-      const size_t k = std::min<size_t>(kMaxK, db.size());
-      std::partial_sort(
-          order.begin(), order.begin() + k, order.end(), [&](int a, int b) {
-            return sim(r, a) > sim(r, b) || (sim(r, a) == sim(r, b) && a < b);
-          });
-      int first = 0;
-      for (size_t j = 0; j < k && first == 0; ++j) {
-        const long gap = long(db[order[j]]) - long(queries[r]);
-        if (std::abs(gap) <= 2) first = int(j) + 1;  // within +-2 files
-      }
-      ranks.push_back(first);
-    }
-    for (int k = 1; k <= kMaxK; ++k)
-      scores[d].recall[k - 1] = core::RecallAtK(ranks, k);
-    scores[d].wr = core::WeightedRecall(ranks);
-  }
-  return scores;
-}
-
-// What one method reports.
+// What one method reports for one seed.
 struct MethodResult {
   std::string name;
-  // scores[t][d]: after learning domain t, WR etc. of domain d.
-  std::vector<std::vector<DomainScore>> scores;
-  double wr_final = 0, ae = 0, ra = 0, generalisation = 0;
+  uint64_t seed = 0;
+  // areas[t][a]: area a's winter queries after domain t.
+  std::vector<std::vector<Score>> areas;
+  lifelong::Summary summary;
   double seconds = 0;
-
-  void Summarise() {
-    const size_t t_end = scores.size();
-    if (t_end == 0) return;
-    double sum = 0;
-    for (const DomainScore& s : scores.back()) sum += s.wr;
-    wr_final = sum / scores.back().size();
-    double ae_sum = 0, ra_sum = 0, gen_sum = 0;
-    int ra_n = 0, gen_n = 0;
-    for (size_t t = 0; t < t_end; ++t) {
-      ae_sum += scores[t][t].wr;
-      if (t > 0) {
-        double earlier = 0;
-        for (size_t d = 0; d < t; ++d) earlier += scores[t][d].wr;
-        ra_sum += earlier / t;
-        ++ra_n;
-      }
-      if (t + 1 < scores[t].size()) {
-        double later = 0;
-        for (size_t d = t + 1; d < scores[t].size(); ++d)
-          later += scores[t][d].wr;
-        gen_sum += later / (scores[t].size() - t - 1);
-        ++gen_n;
-      }
-    }
-    ae = ae_sum / t_end;
-    ra = ra_n ? ra_sum / ra_n : 0;
-    generalisation = gen_n ? gen_sum / gen_n : 0;
-  }
+  // Memory methods: the most traces the memory held, and at the end.
+  uint64_t peak_traces = 0, final_traces = 0;
 };
 
+enum class LearnerKind { kNone, kMetric, kGpl };
+enum class MemoryKind { kNone, kFleet, kReservoir };
 enum class RewardMode { kFull, kNoExternal, kNoInternal, kUniform };
 
 struct MethodSpec {
   std::string name;
+  LearnerKind learner = LearnerKind::kMetric;
   bool learn = true;
-  bool remember = false;  // a fleet memory on the server, replay from M_D
+  // joint: the same learner on every domain's training data at once.
+  bool offline = false;
+  // classical_seq: sequence matching over the robot's last frames.
+  bool sequence = false;
+  MemoryKind memory = MemoryKind::kNone;
   bool clustering = true;
   bool decay = true;
   RewardMode rewards = RewardMode::kFull;
   ReplayInput replay_input = ReplayInput::kCode;
 };
 
+// Report order. bioslam runs before uniform_replay, whose trace budget is
+// bioslam's (the same seed's memory, segment by segment).
 std::vector<MethodSpec> Specs() {
+  using L = LearnerKind;
+  using M = MemoryKind;
   std::vector<MethodSpec> specs;
-  specs.push_back({.name = "classical", .learn = false});
-  specs.push_back({.name = "gpl_pretrained", .learn = false});
+  specs.push_back({.name = "classical", .learner = L::kNone, .learn = false});
+  specs.push_back({.name = "classical_seq",
+                   .learner = L::kNone,
+                   .learn = false,
+                   .sequence = true});
+  specs.push_back({.name = "joint", .offline = true});
   specs.push_back({.name = "finetune"});
+  specs.push_back({.name = "bioslam", .memory = M::kFleet});
   specs.push_back({.name = "uniform_replay",
-                   .remember = true,
+                   .memory = M::kReservoir,
                    .clustering = false,
                    .decay = false,
                    .rewards = RewardMode::kUniform});
-  specs.push_back({.name = "bioslam", .remember = true});
+  specs.push_back({.name = "no_rex",
+                   .memory = M::kFleet,
+                   .rewards = RewardMode::kNoExternal});
+  specs.push_back({.name = "no_rin",
+                   .memory = M::kFleet,
+                   .rewards = RewardMode::kNoInternal});
   specs.push_back(
-      {.name = "no_rex", .remember = true, .rewards = RewardMode::kNoExternal});
+      {.name = "no_clustering", .memory = M::kFleet, .clustering = false});
+  specs.push_back({.name = "no_decay", .memory = M::kFleet, .decay = false});
+  specs.push_back({.name = "fleet_shared", .memory = M::kFleet});
   specs.push_back(
-      {.name = "no_rin", .remember = true, .rewards = RewardMode::kNoInternal});
+      {.name = "gpl_pretrained", .learner = L::kGpl, .learn = false});
+  specs.push_back({.name = "gpl_joint", .learner = L::kGpl, .offline = true});
+  specs.push_back({.name = "gpl_finetune", .learner = L::kGpl});
   specs.push_back(
-      {.name = "no_clustering", .remember = true, .clustering = false});
-  specs.push_back({.name = "no_decay", .remember = true, .decay = false});
-  specs.push_back({.name = "bioslam_decoded",
-                   .remember = true,
+      {.name = "gpl_bioslam", .learner = L::kGpl, .memory = M::kFleet});
+  specs.push_back({.name = "gpl_bioslam_decoded",
+                   .learner = L::kGpl,
+                   .memory = M::kFleet,
                    .replay_input = ReplayInput::kDecoded});
-  specs.push_back({.name = "fleet_shared", .remember = true});
   return specs;
 }
 
@@ -273,54 +223,70 @@ void Progress(const std::string& line) {
   std::fflush(stderr);
 }
 
-// Everything the methods share: the data, the pre-trained fleet encoder,
-// every frame's code and R_in, the settings.
+double Seconds(Clock::time_point since) {
+  return std::chrono::duration<double>(Clock::now() - since).count();
+}
+
+// Every frame's code and R_in (Eq. 12, A = a random shift-crop) under one
+// code.
+struct CodeSet {
+  Codes codes[kSeasons];
+  std::vector<float> internal[kSeasons];
+};
+
+// Everything one seed's methods share.
 struct Context {
   const LifelongOptions* options;
   Settings settings;
-  Data data;
+  const Data* data;
+  uint64_t seed = 1;
+  CodeSet hog;
   std::unique_ptr<GplModel> pretrained;
-  std::vector<std::vector<float>> codes[kSeasons];
-  std::vector<float> internal[kSeasons];
+  CodeSet gpl;
   robot::gpl::TripletMiningOptions mining;
   // Traces recalled from the fleet memory per new observation (0 = none).
   uint32_t recall_per_observation = 4;
   std::string server_binary;
   std::string config_file[2][2];  // [clustering][decay]
+  // bioslam's static memory after each segment: uniform_replay's budget.
+  std::vector<uint64_t> bioslam_traces;
+
+  const CodeSet& CodesOf(const MethodSpec& spec) const {
+    return spec.learner == LearnerKind::kGpl ? gpl : hog;
+  }
 };
 
-absl::StatusOr<std::vector<std::vector<float>>> DescribeAll(
-    GplModel& model, const std::vector<std::vector<float>>& codes) {
-  std::vector<std::vector<float>> out;
-  for (size_t begin = 0; begin < codes.size(); begin += 1024) {
-    const size_t end = std::min(codes.size(), begin + 1024);
-    absl::StatusOr<std::vector<std::vector<float>>> d = model.Describe(
-        std::span<const std::vector<float>>(codes.data() + begin, end - begin));
-    if (!d.ok()) return d.status();
-    for (auto& row : *d) out.push_back(std::move(row));
-  }
-  return out;
-}
-
-absl::StatusOr<std::vector<DomainScore>> EvaluateModel(Context& ctx,
-                                                       GplModel& model) {
-  std::vector<std::vector<float>> descriptors[kSeasons];
+absl::StatusOr<CodeSet> HogCodes(const Data& data, uint64_t seed) {
+  absl::StatusOr<std::unique_ptr<robot::Encoder>> hog =
+      robot::NewEncoderByName(kFleetCode);
+  if (!hog.ok()) return hog.status();
+  CodeSet set;
+  std::mt19937_64 rng(seed);
   for (int s = 0; s < kSeasons; ++s) {
-    absl::StatusOr<std::vector<std::vector<float>>> d =
-        DescribeAll(model, ctx.codes[s]);
-    if (!d.ok()) return d.status();
-    descriptors[s] = *std::move(d);
+    for (const cv::Mat& image : data.images[s]) {
+      robot::Observation o;
+      o.image = image;
+      absl::StatusOr<std::vector<float>> z = (*hog)->Encode(o);
+      if (!z.ok()) return z.status();
+      absl::StatusOr<cv::Mat> moved = robot::RandomShiftCrop(image, {}, rng);
+      if (!moved.ok()) return moved.status();
+      o.image = *moved;
+      absl::StatusOr<std::vector<float>> zm = (*hog)->Encode(o);
+      if (!zm.ok()) return zm.status();
+      set.internal[s].push_back(robot::InternalReward(*z, *zm));
+      set.codes[s].push_back(*std::move(z));
+    }
   }
-  return Evaluate(ctx.data, descriptors);
+  return set;
 }
 
-// Pre-training of the fleet encoder (learning.md: trained once on the
+// Pre-training of the GPL fleet encoder (learning.md: trained once on the
 // initial domain, then frozen): L_joint (Eq. 10) on summer area 1's
 // training frames, then every frame is encoded once.
-absl::Status Pretrain(Context& ctx) {
-  const Data& data = ctx.data;
+absl::Status PretrainGpl(Context& ctx) {
+  const Data& data = *ctx.data;
   robot::gpl::PretrainOptions options;
-  options.model.seed = ctx.options->seed;
+  options.model.seed = ctx.seed;
   options.model.code_dimension = ctx.options->code_dimension;
   if (ctx.options->head_learning_rate > 0) {
     options.model.head_learning_rate = ctx.options->head_learning_rate;
@@ -329,16 +295,16 @@ absl::Status Pretrain(Context& ctx) {
     options.model.gan_weight = float(ctx.options->gan_weight);
   options.version =
       absl::StrFormat("gpl-64x32-d%d-s%d-p%d-v1", options.model.code_dimension,
-                      ctx.options->seed, ctx.settings.pretrain_steps);
+                      ctx.seed, ctx.settings.pretrain_steps);
   options.steps = ctx.settings.pretrain_steps;
   options.batch_size = ctx.settings.batch_size / 2;
   options.positive_radius = ctx.mining.positive_radius;
   options.negative_radius = ctx.mining.negative_radius;
-  options.seed = ctx.options->seed;
+  options.seed = ctx.seed;
   options.log = [](std::string_view line) { Progress(std::string(line)); };
   std::vector<cv::Mat> images;
   std::vector<double> positions;
-  for (size_t i : data.Indices(0, false)) {
+  for (size_t i : data.split.Places(0, false)) {
     images.push_back(data.images[0][i]);
     positions.push_back(data.numbers[i]);
   }
@@ -346,58 +312,121 @@ absl::Status Pretrain(Context& ctx) {
   absl::StatusOr<std::unique_ptr<GplModel>> model =
       robot::gpl::PretrainFleetEncoder(images, positions, options);
   if (!model.ok()) return model.status();
-  std::mt19937_64 rng(ctx.options->seed);
+  std::mt19937_64 rng(ctx.seed);
   ctx.pretrained = *std::move(model);
-  if (absl::Status s =
-          ctx.pretrained->Save(ctx.options->out_dir + "/encoder.pt");
+  if (absl::Status s = ctx.pretrained->Save(
+          absl::StrFormat("%s/encoder-seed%d.pt", ctx.options->out_dir,
+                          ctx.seed));
       !s.ok()) {
     return s;
   }
-  // Codes and R_in (Eq. 12, A = a random shift-crop) of every frame.
   for (int s = 0; s < kSeasons; ++s) {
-    absl::StatusOr<std::vector<std::vector<float>>> z =
-        ctx.pretrained->Encode(data.images[s]);
+    absl::StatusOr<Codes> z = ctx.pretrained->Encode(data.images[s]);
     if (!z.ok()) return z.status();
-    ctx.codes[s] = *std::move(z);
+    ctx.gpl.codes[s] = *std::move(z);
     std::vector<cv::Mat> moved;
     for (const cv::Mat& image : data.images[s]) {
       absl::StatusOr<cv::Mat> m = robot::RandomShiftCrop(image, {}, rng);
       if (!m.ok()) return m.status();
       moved.push_back(*std::move(m));
     }
-    absl::StatusOr<std::vector<std::vector<float>>> zm =
-        ctx.pretrained->Encode(moved);
+    absl::StatusOr<Codes> zm = ctx.pretrained->Encode(moved);
     if (!zm.ok()) return zm.status();
     for (size_t i = 0; i < moved.size(); ++i) {
-      ctx.internal[s].push_back(
-          robot::InternalReward(ctx.codes[s][i], (*zm)[i]));
+      ctx.gpl.internal[s].push_back(
+          robot::InternalReward(ctx.gpl.codes[s][i], (*zm)[i]));
     }
   }
   Progress(absl::StrFormat(
-      "[pretrain] fleet encoder %s frozen: %d parameters, %.0f s",
+      "[pretrain] GPL fleet encoder %s frozen: %d parameters, %.0f s",
       ctx.pretrained->version(), ctx.pretrained->ParameterCount(),
-      std::chrono::duration<double>(Clock::now() - start).count()));
+      Seconds(start)));
   return absl::OkStatus();
 }
 
-// One robot of a method: its model, learner and dynamic memory.
-struct Robot {
-  std::string id;
-  std::unique_ptr<GplModel> model;
-  std::unique_ptr<SegmentLearner> learner;
-  std::unique_ptr<robot::DynamicMemory> memory;
-  uint64_t next_seq = 1;
-  std::mt19937_64 rng;
-  robot::gpl::SegmentLearnStats last;
+// uniform_replay's memory: a uniform sample of every trace the robot made
+// (reservoir sampling), held to a budget that may change between segments.
+class Reservoir {
+ public:
+  explicit Reservoir(uint64_t seed) : rng_(seed) {}
+
+  void Add(const core::MemoryTrace& t, size_t budget) {
+    ++seen_;
+    if (traces_.size() < budget) {
+      traces_.push_back(t);
+    } else if (budget > 0) {
+      const uint64_t j = std::uniform_int_distribution<uint64_t>(0, seen_ - 1)(rng_);
+      if (j < budget) traces_[j % traces_.size()] = t;
+    }
+    Shrink(budget);
+  }
+  void Shrink(size_t budget) {
+    while (traces_.size() > budget) {
+      const size_t j =
+          std::uniform_int_distribution<size_t>(0, traces_.size() - 1)(rng_);
+      traces_[j] = traces_.back();
+      traces_.pop_back();
+    }
+  }
+  // Up to `count` distinct traces, uniformly.
+  std::vector<core::MemoryTrace> Sample(size_t count) {
+    std::vector<size_t> order(traces_.size());
+    for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+    std::shuffle(order.begin(), order.end(), rng_);
+    order.resize(std::min(count, order.size()));
+    std::vector<core::MemoryTrace> out;
+    for (size_t i : order) out.push_back(traces_[i]);
+    return out;
+  }
+  // The k traces nearest to `code` (cosine) within `radius` of `place`: the
+  // same recall QueryPlace gives the fleet's memory.
+  std::vector<core::MemoryTrace> Recall(const std::vector<float>& code,
+                                        const core::Place& place, size_t k,
+                                        double radius) const {
+    std::vector<std::pair<double, size_t>> near;
+    for (size_t i = 0; i < traces_.size(); ++i) {
+      const core::Place& p = traces_[i].place;
+      const double dx = p.x - place.x, dy = p.y - place.y, dz = p.z - place.z;
+      if (dx * dx + dy * dy + dz * dz > radius * radius) continue;
+      double dot = 0, a = 0, b = 0;
+      for (size_t c = 0; c < code.size(); ++c) {
+        dot += code[c] * traces_[i].code[c];
+        a += code[c] * code[c];
+        b += traces_[i].code[c] * traces_[i].code[c];
+      }
+      near.push_back({-dot / std::sqrt(std::max(a * b, 1e-30)), i});
+    }
+    const size_t n = std::min(k, near.size());
+    std::partial_sort(near.begin(), near.begin() + n, near.end());
+    std::vector<core::MemoryTrace> out;
+    for (size_t j = 0; j < n; ++j) out.push_back(traces_[near[j].second]);
+    return out;
+  }
+  size_t size() const { return traces_.size(); }
+
+ private:
+  std::vector<core::MemoryTrace> traces_;
+  uint64_t seen_ = 0;
+  std::mt19937_64 rng_;
 };
 
-absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
-                               const std::string& id, uint64_t seed) {
-  Robot r;
-  r.id = id;
-  absl::StatusOr<std::unique_ptr<GplModel>> model = ctx.pretrained->Clone();
-  if (!model.ok()) return model.status();
-  r.model = *std::move(model);
+// One robot of a method: its learner and dynamic memory.
+struct Robot {
+  std::string id;
+  std::string code_version;
+  std::unique_ptr<PlaceLearner> learner;
+  std::unique_ptr<robot::DynamicMemory> memory;
+  std::unique_ptr<Reservoir> reservoir;
+  uint64_t next_seq = 1;
+  size_t segments = 0;
+  std::mt19937_64 rng;
+  std::string last;
+  uint64_t peak_traces = 0, traces = 0;
+};
+
+robot::gpl::SegmentLearnerOptions GplLearnerOptions(const Context& ctx,
+                                                    const MethodSpec& spec,
+                                                    uint64_t seed) {
   robot::gpl::SegmentLearnerOptions lo;
   lo.steps_per_segment = ctx.settings.steps_per_segment;
   lo.batch_size = ctx.settings.batch_size;
@@ -407,11 +436,36 @@ absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
                                         : 0;
   lo.mining = ctx.mining;
   lo.seed = seed;
-  r.learner = std::make_unique<SegmentLearner>(r.model.get(), lo);
+  return lo;
+}
+
+absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
+                               const std::string& id, uint64_t seed) {
+  Robot r;
+  r.id = id;
+  if (spec.learner == LearnerKind::kGpl) {
+    absl::StatusOr<std::unique_ptr<GplModel>> model = ctx.pretrained->Clone();
+    if (!model.ok()) return model.status();
+    r.code_version = (*model)->version();
+    r.learner = robot::gpl::NewGplLearner(*std::move(model),
+                                          GplLearnerOptions(ctx, spec, seed));
+  } else {
+    robot::gpl::MetricHeadOptions mo;
+    mo.pair_radius = ctx.mining.positive_radius;
+    mo.mining = ctx.mining;
+    if (ctx.options->metric_update_rate > 0)
+      mo.update_rate = ctx.options->metric_update_rate;
+    if (ctx.options->metric_partners > 0)
+      mo.max_partners = ctx.options->metric_partners;
+    r.code_version = kFleetCode;
+    r.learner = robot::gpl::NewMetricLearner(
+        int(ctx.hog.codes[0].front().size()), mo);
+  }
   robot::DynamicMemoryOptions mo;
   mo.capacity = ctx.settings.memory_capacity;
   mo.gamma = spec.decay ? 0.9 : 1.0;
   r.memory = std::make_unique<robot::DynamicMemory>(id, mo);
+  r.reservoir = std::make_unique<Reservoir>(seed + 101);
   r.rng.seed(seed);
   return r;
 }
@@ -421,57 +475,67 @@ LearnSample FromTrace(const core::MemoryTrace& t) {
 }
 
 // Algorithm 3 for one segment of one robot: replay and learn, rewards,
-// upload and consolidate, refresh M_D.
+// upload and consolidate (or, for uniform_replay, keep a uniform sample),
+// refresh M_D.
 absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
                         int season, const std::vector<size_t>& segment,
                         client::Client* client, const std::string& fleet) {
+  const CodeSet& codes = ctx.CodesOf(spec);
   std::vector<LearnSample> real;
   for (size_t i : segment)
-    real.push_back({ctx.codes[season][i], ctx.data.PlaceOf(i), season});
+    real.push_back({codes.codes[season][i], ctx.data->PlaceOf(i), season});
   std::vector<LearnSample> memory;
   for (const robot::ReplayEntry& e : r.memory->entries())
     memory.push_back(FromTrace(e.trace));
-  if (spec.learn && spec.remember && ctx.recall_per_observation > 0) {
-    // Place recall: the fleet's remembered traces of each new observation's
-    // place (QueryPlace with a position prior), the partners of Eq. 7.
+  if (spec.memory != MemoryKind::kNone && ctx.recall_per_observation > 0) {
+    // Place recall: the remembered traces of each new observation's place
+    // (QueryPlace with a position prior), the partners of Eq. 7.
     std::set<std::pair<std::string, uint64_t>> seen;
     for (const LearnSample& x : real) {
-      v1::QueryPlaceRequest request;
-      request.set_fleet_id(fleet);
-      request.mutable_code()->Add(x.code.begin(), x.code.end());
-      request.set_k(ctx.recall_per_observation);
-      api::PlaceToProto(x.place, request.mutable_near());
-      request.set_radius_m(ctx.mining.positive_radius);
-      absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
-          client->QueryPlace(request);
-      if (absl::IsNotFound(matches.status())) break;  // no fleet memory yet
-      if (!matches.ok()) return matches.status();
-      for (const v1::PlaceMatch& m : *matches) {
-        if (seen.insert({m.trace().robot_id(), m.trace().seq()}).second) {
-          memory.push_back(FromTrace(api::TraceFromProto(m.trace())));
-        }
+      std::vector<core::MemoryTrace> recalled;
+      if (spec.memory == MemoryKind::kReservoir) {
+        recalled = r.reservoir->Recall(x.code, x.place,
+                                       ctx.recall_per_observation,
+                                       ctx.mining.positive_radius);
+      } else {
+        v1::QueryPlaceRequest request;
+        request.set_fleet_id(fleet);
+        request.mutable_code()->Add(x.code.begin(), x.code.end());
+        request.set_k(ctx.recall_per_observation);
+        api::PlaceToProto(x.place, request.mutable_near());
+        request.set_radius_m(ctx.mining.positive_radius);
+        absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
+            client->QueryPlace(request);
+        if (absl::IsNotFound(matches.status())) break;  // no fleet memory yet
+        if (!matches.ok()) return matches.status();
+        for (const v1::PlaceMatch& m : *matches)
+          recalled.push_back(api::TraceFromProto(m.trace()));
+      }
+      for (const core::MemoryTrace& t : recalled) {
+        if (seen.insert({t.robot_id, t.seq}).second)
+          memory.push_back(FromTrace(t));
       }
     }
   }
-  if (spec.learn) {
-    std::vector<LearnSample> replayed;
-    if (spec.remember) {
-      for (const core::MemoryTrace& t :
-           r.memory->Replay(ctx.settings.replay_per_segment, r.rng)) {
-        replayed.push_back(FromTrace(t));
-      }
-    }
-    absl::StatusOr<robot::gpl::SegmentLearnStats> stats =
-        r.learner->Learn(real, replayed, memory);
-    if (!stats.ok()) return stats.status();
-    r.last = *stats;
-    if (spec.replay_input == ReplayInput::kDecoded) {
-      std::vector<cv::Mat> images;
-      for (size_t i : segment) images.push_back(ctx.data.images[season][i]);
-      if (absl::Status s = r.learner->LearnImages(images); !s.ok()) return s;
+  std::vector<LearnSample> replayed;
+  if (spec.memory != MemoryKind::kNone) {
+    for (const core::MemoryTrace& t :
+         r.memory->Replay(ctx.settings.replay_per_segment, r.rng)) {
+      replayed.push_back(FromTrace(t));
     }
   }
-  if (!spec.remember) return absl::OkStatus();
+  absl::StatusOr<std::string> report =
+      r.learner->Learn(real, replayed, memory);
+  if (!report.ok()) return report.status();
+  r.last = *report;
+  if (spec.replay_input == ReplayInput::kDecoded) {
+    std::vector<cv::Mat> images;
+    for (size_t i : segment) images.push_back(ctx.data->images[season][i]);
+    if (absl::Status s = r.learner->LearnObservations(images); !s.ok())
+      return s;
+  }
+  const size_t segment_index = r.segments++;
+  if (spec.memory == MemoryKind::kNone) return absl::OkStatus();
   absl::StatusOr<std::vector<float>> external =
       r.learner->ExternalRewards(real, memory);
   if (!external.ok()) return external.status();
@@ -485,7 +549,7 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
     t.code = real[k].code;
     t.place = real[k].place;
     t.reward_external = (*external)[k];
-    t.reward_internal = ctx.internal[season][segment[k]];
+    t.reward_internal = codes.internal[season][segment[k]];
     switch (spec.rewards) {
       case RewardMode::kFull:
         t.reward = t.reward_external + t.reward_internal;
@@ -501,23 +565,38 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
         break;
     }
     t.timestamp_ns = int64_t(t.seq);
-    t.encoder_version = r.model->version();
+    t.encoder_version = r.code_version;
     own.push_back(t);
     api::TraceToProto(t, &traces.emplace_back());
   }
-  absl::StatusOr<v1::UploadTracesResponse> uploaded =
-      client->Upload(fleet, traces);
-  if (!uploaded.ok()) return uploaded.status();
-  absl::StatusOr<v1::ConsolidateResponse> consolidated =
-      client->Consolidate(fleet);
-  if (!consolidated.ok()) return consolidated.status();
-  for (const core::MemoryTrace& t : own) r.memory->AddOwn(t);
-  absl::StatusOr<std::vector<v1::MemoryTrace>> sampled =
-      client->SampleReplay(fleet, r.id, uint32_t(ctx.settings.memory_capacity));
-  if (!sampled.ok()) return sampled.status();
   std::vector<core::MemoryTrace> refreshed;
-  for (const v1::MemoryTrace& t : *sampled)
-    refreshed.push_back(api::TraceFromProto(t));
+  if (spec.memory == MemoryKind::kReservoir) {
+    if (ctx.bioslam_traces.empty()) {
+      return absl::FailedPreconditionError(
+          "uniform_replay's budget is bioslam's memory: run bioslam first");
+    }
+    const size_t budget = ctx.bioslam_traces[std::min(
+        segment_index, ctx.bioslam_traces.size() - 1)];
+    for (const core::MemoryTrace& t : own) r.reservoir->Add(t, budget);
+    r.reservoir->Shrink(budget);
+    r.traces = r.reservoir->size();
+    refreshed = r.reservoir->Sample(ctx.settings.memory_capacity);
+  } else {
+    absl::StatusOr<v1::UploadTracesResponse> uploaded =
+        client->Upload(fleet, traces);
+    if (!uploaded.ok()) return uploaded.status();
+    absl::StatusOr<v1::ConsolidateResponse> consolidated =
+        client->Consolidate(fleet);
+    if (!consolidated.ok()) return consolidated.status();
+    r.traces = consolidated->traces();
+    absl::StatusOr<std::vector<v1::MemoryTrace>> sampled = client->SampleReplay(
+        fleet, r.id, uint32_t(ctx.settings.memory_capacity));
+    if (!sampled.ok()) return sampled.status();
+    for (const v1::MemoryTrace& t : *sampled)
+      refreshed.push_back(api::TraceFromProto(t));
+  }
+  r.peak_traces = std::max(r.peak_traces, r.traces);
+  for (const core::MemoryTrace& t : own) r.memory->AddOwn(t);
   r.memory->Refresh(refreshed);
   return absl::OkStatus();
 }
@@ -535,8 +614,9 @@ std::vector<std::vector<size_t>> Segments(const std::vector<size_t>& indices,
 // A server child with the method's memory configuration.
 absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
     Context& ctx, const MethodSpec& spec) {
-  const std::string dir =
-      absl::StrCat(ctx.options->out_dir, "/servers/", spec.name);
+  const std::string dir = absl::StrFormat("%s/servers/%s-seed%d",
+                                          ctx.options->out_dir, spec.name,
+                                          ctx.seed);
   std::error_code ec;
   std::filesystem::remove_all(dir, ec);
   std::filesystem::create_directories(dir + "/data", ec);
@@ -573,81 +653,144 @@ std::unique_ptr<client::Client> Connect(const ServerChild& server) {
   return client::Client::Create(o);
 }
 
-double Seconds(Clock::time_point since) {
-  return std::chrono::duration<double>(Clock::now() - since).count();
+// Every area's winter queries against the summer map, both described by
+// `learner` (or the raw codes when it is null).
+absl::StatusOr<std::vector<Score>> Evaluate(const Context& ctx,
+                                            const CodeSet& codes,
+                                            PlaceLearner* learner) {
+  Eigen::MatrixXf rows[kSeasons];
+  for (int s = 0; s < kSeasons; ++s) {
+    if (learner == nullptr) {
+      rows[s] = lifelong::UnitRows(Matrix(codes.codes[s]));
+      continue;
+    }
+    absl::StatusOr<Codes> d = learner->Describe(codes.codes[s]);
+    if (!d.ok()) return d.status();
+    rows[s] = lifelong::UnitRows(Matrix(*d));
+  }
+  return lifelong::ScoreAreas(ctx.data->split, rows[0], rows[1]);
 }
 
-double SeenWr(const std::vector<DomainScore>& scores, size_t t) {
-  double sum = 0;
-  for (size_t d = 0; d <= t; ++d) sum += scores[d].wr;
-  return sum / (t + 1);
+// classical_seq: the HOG code's single-frame similarities, matched as
+// sequences of the robot's last frames.
+std::vector<Score> EvaluateSequences(const Context& ctx) {
+  const Eigen::MatrixXf summer = lifelong::UnitRows(Matrix(ctx.hog.codes[0]));
+  const Eigen::MatrixXf winter = lifelong::UnitRows(Matrix(ctx.hog.codes[1]));
+  const Eigen::MatrixXf seq = lifelong::SequenceSimilarity(
+      winter * summer.transpose(), ctx.settings.sequence_length);
+  std::vector<Score> scores;
+  for (int a = 0; a < kAreas; ++a) {
+    const std::vector<size_t> places = ctx.data->split.Places(a, true);
+    Eigen::MatrixXf rows(places.size(), seq.cols());
+    for (size_t r = 0; r < places.size(); ++r) rows.row(r) = seq.row(places[r]);
+    scores.push_back(lifelong::ScoreQueries(rows, places));
+  }
+  return scores;
+}
+
+// Methods that do not learn over the domains (classical, classical_seq,
+// gpl_pretrained, joint): one score, the same after every domain.
+absl::StatusOr<MethodResult> RunStatic(Context& ctx, const MethodSpec& spec) {
+  MethodResult result;
+  result.name = spec.name;
+  result.seed = ctx.seed;
+  const auto start = Clock::now();
+  const CodeSet& codes = ctx.CodesOf(spec);
+  std::vector<Score> scores;
+  if (spec.sequence) {
+    scores = EvaluateSequences(ctx);
+  } else if (spec.learner == LearnerKind::kNone) {
+    absl::StatusOr<std::vector<Score>> s = Evaluate(ctx, codes, nullptr);
+    if (!s.ok()) return s.status();
+    scores = *s;
+  } else {
+    absl::StatusOr<Robot> robot = NewRobot(ctx, spec, "robot-1", ctx.seed + 17);
+    if (!robot.ok()) return robot.status();
+    if (spec.offline) {
+      // joint: every domain's training samples at once, with the step
+      // budget of all the segments the continual methods see.
+      std::vector<LearnSample> all;
+      size_t segments = 0;
+      for (int t = 0; t < kDomains; ++t) {
+        const int season = t / kAreas;
+        const std::vector<size_t> places =
+            ctx.data->split.Places(t % kAreas, false);
+        segments += Segments(places, ctx.settings.segment_size).size();
+        for (size_t i : places)
+          all.push_back({codes.codes[season][i], ctx.data->PlaceOf(i), season});
+      }
+      if (spec.learner == LearnerKind::kGpl) {
+        robot::gpl::SegmentLearnerOptions lo =
+            GplLearnerOptions(ctx, spec, ctx.seed + 17);
+        lo.steps_per_segment = int(segments) * ctx.settings.steps_per_segment;
+        absl::StatusOr<std::unique_ptr<GplModel>> model =
+            ctx.pretrained->Clone();
+        if (!model.ok()) return model.status();
+        robot->learner = robot::gpl::NewGplLearner(*std::move(model), lo);
+      }
+      absl::StatusOr<std::string> report = robot->learner->Learn(all, {}, {});
+      if (!report.ok()) return report.status();
+      Progress(absl::StrFormat("[%s] offline on %d samples: %s", spec.name,
+                               all.size(), *report));
+    }
+    absl::StatusOr<std::vector<Score>> s =
+        Evaluate(ctx, codes, robot->learner.get());
+    if (!s.ok()) return s.status();
+    scores = *s;
+  }
+  result.areas.assign(kDomains, scores);
+  result.summary = lifelong::Summarise(result.areas);
+  result.seconds = Seconds(start);
+  return result;
 }
 
 absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
                                             const MethodSpec& spec) {
+  if (!spec.learn || spec.offline) return RunStatic(ctx, spec);
   MethodResult result;
   result.name = spec.name;
+  result.seed = ctx.seed;
   const auto start = Clock::now();
-  if (spec.name == "classical") {
-    absl::StatusOr<std::unique_ptr<robot::Encoder>> hog =
-        robot::NewEncoderByName("hog-64x32-c8-s8-b6");
-    if (!hog.ok()) return hog.status();
-    std::vector<std::vector<float>> codes[kSeasons];
-    for (int s = 0; s < kSeasons; ++s) {
-      for (const cv::Mat& image : ctx.data.images[s]) {
-        robot::Observation o;
-        o.image = image;
-        absl::StatusOr<std::vector<float>> z = (*hog)->Encode(o);
-        if (!z.ok()) return z.status();
-        codes[s].push_back(*std::move(z));
-      }
-    }
-    const std::vector<DomainScore> scores = Evaluate(ctx.data, codes);
-    result.scores.assign(
-        kDomains, scores);  // nothing learns: the same after every domain
-    result.Summarise();
-    result.seconds = Seconds(start);
-    return result;
-  }
   std::unique_ptr<ServerChild> server;
   std::unique_ptr<client::Client> client;
-  if (spec.remember) {
+  if (spec.memory == MemoryKind::kFleet) {
     absl::StatusOr<std::unique_ptr<ServerChild>> s = StartServer(ctx, spec);
     if (!s.ok()) return s.status();
     server = *std::move(s);
     client = Connect(*server);
   }
   absl::StatusOr<Robot> robot =
-      NewRobot(ctx, spec, "robot-1", ctx.options->seed + 17);
+      NewRobot(ctx, spec, "robot-1", ctx.seed + 17);
   if (!robot.ok()) return robot.status();
+  std::vector<uint64_t> traces_after_segment;
   for (int t = 0; t < kDomains; ++t) {
     const int season = t / kAreas;
-    const auto segments = Segments(ctx.data.Indices(t % kAreas, false),
+    const auto segments = Segments(ctx.data->split.Places(t % kAreas, false),
                                    ctx.settings.segment_size);
-    if (spec.learn) {
-      for (const auto& segment : segments) {
-        absl::Status s = RunSegment(ctx, spec, *robot, season, segment,
-                                    client.get(), spec.name);
-        if (!s.ok()) return s;
-      }
+    for (const auto& segment : segments) {
+      absl::Status s = RunSegment(ctx, spec, *robot, season, segment,
+                                  client.get(), spec.name);
+      if (!s.ok()) return s;
+      traces_after_segment.push_back(robot->traces);
     }
-    absl::StatusOr<std::vector<DomainScore>> scores =
-        EvaluateModel(ctx, *robot->model);
+    absl::StatusOr<std::vector<Score>> scores =
+        Evaluate(ctx, ctx.CodesOf(spec), robot->learner.get());
     if (!scores.ok()) return scores.status();
-    result.scores.push_back(*scores);
-    const auto counts = robot->memory->CountByRobot();
+    result.areas.push_back(*scores);
     Progress(absl::StrFormat(
-        "[%s] domain %d/%d (%s): %d segments, last loss %.3f -> %.3f, M_D %d, "
-        "WR "
-        "here %.3f, seen %.3f (%.0f s)",
-        spec.name, t + 1, kDomains, DomainName(t), segments.size(),
-        robot->last.first_loss, robot->last.last_loss, robot->memory->size(),
-        (*scores)[t].wr, SeenWr(*scores, t), Seconds(start)));
+        "[%s seed %d] domain %d/%d (%s): %d segments, last: %s; memory %d "
+        "traces, M_D %d; winter WR by area %.3f %.3f %.3f (%.0f s)",
+        spec.name, ctx.seed, t + 1, kDomains, DomainName(t), segments.size(),
+        robot->last, robot->traces, robot->memory->size(), (*scores)[0].wr,
+        (*scores)[1].wr, (*scores)[2].wr, Seconds(start)));
   }
   if (server) {
     if (absl::Status s = StopServer(*server); !s.ok()) return s;
   }
-  result.Summarise();
+  if (spec.name == "bioslam") ctx.bioslam_traces = traces_after_segment;
+  result.summary = lifelong::Summarise(result.areas);
+  result.peak_traces = robot->peak_traces;
+  result.final_traces = robot->traces;
   result.seconds = Seconds(start);
   return result;
 }
@@ -656,11 +799,10 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
 // segments interleaved, through one fleet memory; each is compared with
 // itself driving alone (a fleet of its own) on the area only the peer drove.
 struct FleetRow {
+  uint64_t seed = 0;
   std::string robot;
   int own_area = 0, peer_area = 0;
   double own_wr = 0, peer_wr_shared = 0, peer_wr_alone = 0, peer_own_wr = 0;
-  double peer_winter_shared = 0, peer_winter_alone = 0,
-         peer_winter_peer_own = 0;
 };
 
 absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
@@ -668,6 +810,7 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
                                             std::vector<FleetRow>* rows) {
   MethodResult result;
   result.name = spec.name;
+  result.seed = ctx.seed;
   const auto start = Clock::now();
   absl::StatusOr<std::unique_ptr<ServerChild>> server = StartServer(ctx, spec);
   if (!server.ok()) return server.status();
@@ -675,21 +818,18 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
   const int areas[2] = {0, 1};
   std::vector<Robot> shared, alone;
   for (int k = 0; k < 2; ++k) {
-    absl::StatusOr<Robot> a =
-        NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
-                 ctx.options->seed + 31 + k);
-    absl::StatusOr<Robot> b =
-        NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
-                 ctx.options->seed + 31 + k);
-    if (!a.ok()) return a.status();
-    if (!b.ok()) return b.status();
-    shared.push_back(*std::move(a));
-    alone.push_back(*std::move(b));
+    for (std::vector<Robot>* group : {&shared, &alone}) {
+      absl::StatusOr<Robot> r =
+          NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
+                   ctx.seed + 31 + k);
+      if (!r.ok()) return r.status();
+      group->push_back(*std::move(r));
+    }
   }
   for (int season = 0; season < kSeasons; ++season) {
     std::vector<std::vector<size_t>> segs[2];
     for (int k = 0; k < 2; ++k) {
-      segs[k] = Segments(ctx.data.Indices(areas[k], false),
+      segs[k] = Segments(ctx.data->split.Places(areas[k], false),
                          ctx.settings.segment_size);
     }
     for (size_t j = 0; j < std::max(segs[0].size(), segs[1].size()); ++j) {
@@ -704,53 +844,47 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
       }
     }
     Progress(absl::StrFormat(
-        "[%s] %s done for both robots (and each alone) (%.0f s)", spec.name,
-        kSeasonNames[season], Seconds(start)));
+        "[%s seed %d] %s done for both robots (and each alone) (%.0f s)",
+        spec.name, ctx.seed, kSeasonNames[season], Seconds(start)));
   }
   if (absl::Status s = StopServer(**server); !s.ok()) return s;
-  std::vector<DomainScore> s_shared[2], s_alone[2];
+  std::vector<Score> s_shared[2], s_alone[2];
   for (int k = 0; k < 2; ++k) {
-    absl::StatusOr<std::vector<DomainScore>> a =
-        EvaluateModel(ctx, *shared[k].model);
-    absl::StatusOr<std::vector<DomainScore>> b =
-        EvaluateModel(ctx, *alone[k].model);
+    absl::StatusOr<std::vector<Score>> a =
+        Evaluate(ctx, ctx.CodesOf(spec), shared[k].learner.get());
+    absl::StatusOr<std::vector<Score>> b =
+        Evaluate(ctx, ctx.CodesOf(spec), alone[k].learner.get());
     if (!a.ok()) return a.status();
     if (!b.ok()) return b.status();
     s_shared[k] = *a;
     s_alone[k] = *b;
   }
-  auto area_wr = [](const std::vector<DomainScore>& s, int area) {
-    return (s[area].wr + s[kAreas + area].wr) / 2;
-  };
   double wr_sum = 0, own_sum = 0, peer_sum = 0;
   for (int k = 0; k < 2; ++k) {
     const int p = 1 - k;
     FleetRow row;
+    row.seed = ctx.seed;
     row.robot = shared[k].id;
     row.own_area = areas[k] + 1;
     row.peer_area = areas[p] + 1;
-    row.own_wr = area_wr(s_shared[k], areas[k]);
-    row.peer_wr_shared = area_wr(s_shared[k], areas[p]);
-    row.peer_wr_alone = area_wr(s_alone[k], areas[p]);
-    row.peer_own_wr = area_wr(s_shared[p], areas[p]);
-    row.peer_winter_shared = s_shared[k][kAreas + areas[p]].wr;
-    row.peer_winter_alone = s_alone[k][kAreas + areas[p]].wr;
-    row.peer_winter_peer_own = s_shared[p][kAreas + areas[p]].wr;
+    row.own_wr = s_shared[k][areas[k]].wr;
+    row.peer_wr_shared = s_shared[k][areas[p]].wr;
+    row.peer_wr_alone = s_alone[k][areas[p]].wr;
+    row.peer_own_wr = s_shared[p][areas[p]].wr;
     rows->push_back(row);
     wr_sum += (row.own_wr + row.peer_wr_shared) / 2;
     own_sum += row.own_wr;
     peer_sum += row.peer_wr_shared;
     Progress(absl::StrFormat(
-        "[%s] %s: own area %d WR %.3f; peer's area %d WR %.3f shared vs %.3f "
-        "alone "
-        "(peer's own %.3f: %.0f%%)",
-        spec.name, row.robot, row.own_area, row.own_wr, row.peer_area,
-        row.peer_wr_shared, row.peer_wr_alone, row.peer_own_wr,
+        "[%s seed %d] %s: own area %d WR %.3f; peer's area %d WR %.3f shared "
+        "vs %.3f alone (peer's own %.3f: %.0f%%)",
+        spec.name, ctx.seed, row.robot, row.own_area, row.own_wr,
+        row.peer_area, row.peer_wr_shared, row.peer_wr_alone, row.peer_own_wr,
         100 * row.peer_wr_shared / std::max(1e-9, row.peer_own_wr)));
   }
-  result.wr_final = wr_sum / 2;
-  result.ae = own_sum / 2;
-  result.ra = peer_sum / 2;
+  result.summary.wr_final = wr_sum / 2;
+  result.summary.ae = own_sum / 2;
+  result.summary.ra = peer_sum / 2;
   result.seconds = Seconds(start);
   return result;
 }
@@ -758,15 +892,19 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
 absl::Status WriteConfigs(Context& ctx) {
   for (int clustering = 0; clustering < 2; ++clustering) {
     for (int decay = 0; decay < 2; ++decay) {
-      const std::string path =
-          absl::StrFormat("%s/server-c%d-d%d.textproto", ctx.options->out_dir,
-                          clustering, decay);
+      const std::string path = absl::StrFormat(
+          "%s/server-c%d-d%d-seed%d.textproto", ctx.options->out_dir,
+          clustering, decay, ctx.seed);
       absl::Status s = files::WriteFile(
           path,
           absl::StrFormat("log_level: \"warning\"\nmemory {\n  clustering: %s\n"
-                          "  replay_decay: %s\n  seed: %d\n}\n",
+                          "  replay_decay: %s\n  seed: %d\n%s}\n",
                           clustering ? "true" : "false", decay ? "0.9" : "1",
-                          ctx.options->seed));
+                          ctx.seed,
+                          ctx.options->spatial_scale > 0
+                              ? absl::StrFormat("  spatial_scale_m: %g\n",
+                                                ctx.options->spatial_scale)
+                              : ""));
       if (!s.ok()) return s;
       ctx.config_file[clustering][decay] = path;
     }
@@ -774,65 +912,140 @@ absl::Status WriteConfigs(Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status WriteOutputs(const Context& ctx,
-                          const std::vector<MethodResult>& results,
-                          const std::vector<FleetRow>& fleet) {
-  const std::string& dir = ctx.options->out_dir;
-  std::string summary = "method,wr_final,ae,ra\n";
-  std::string table =
-      "| method | WR final | AE | RA | WR on domains not yet learned | time "
-      "(s) |\n"
-      "|---|---:|---:|---:|---:|---:|\n";
-  std::string curves = "method,after_domain,domain,r1,r2,r3,r4,r5,r6,wr\n";
-  std::string plot;
+// Mean and sample standard deviation.
+std::pair<double, double> MeanSd(const std::vector<double>& v) {
+  if (v.empty()) return {0, 0};
+  double mean = 0;
+  for (double x : v) mean += x;
+  mean /= v.size();
+  if (v.size() < 2) return {mean, 0};
+  double ss = 0;
+  for (double x : v) ss += (x - mean) * (x - mean);
+  return {mean, std::sqrt(ss / (v.size() - 1))};
+}
+
+struct Aggregate {
+  std::string name;
+  std::string learner;
+  int seeds = 0;
+  std::pair<double, double> wr_final, ae, ra, unseen;
+  double seconds = 0;
+  // Mean over seeds of areas[t][a].wr and of the mean over areas.
+  std::vector<std::vector<double>> wr;
+};
+
+Aggregate AggregateSeeds(const MethodSpec& spec,
+                         const std::vector<MethodResult>& runs) {
+  Aggregate a;
+  a.name = spec.name;
+  a.learner = spec.learner == LearnerKind::kGpl      ? "gpl"
+              : spec.learner == LearnerKind::kMetric ? "metric"
+                                                     : "-";
+  a.seeds = int(runs.size());
+  std::vector<double> wr, ae, ra, unseen;
+  for (const MethodResult& r : runs) {
+    wr.push_back(r.summary.wr_final);
+    ae.push_back(r.summary.ae);
+    ra.push_back(r.summary.ra);
+    unseen.push_back(r.summary.unseen);
+    a.seconds += r.seconds;
+  }
+  a.wr_final = MeanSd(wr);
+  a.ae = MeanSd(ae);
+  a.ra = MeanSd(ra);
+  a.unseen = MeanSd(unseen);
+  if (!runs.empty() && !runs[0].areas.empty()) {
+    a.wr.assign(kDomains, std::vector<double>(kAreas, 0.0));
+    for (const MethodResult& r : runs)
+      for (int t = 0; t < kDomains; ++t)
+        for (int d = 0; d < kAreas; ++d)
+          a.wr[t][d] += r.areas[t][d].wr / runs.size();
+  }
+  return a;
+}
+
+absl::Status WriteOutputs(const LifelongOptions& options, const Data& data,
+                          const std::vector<MethodSpec>& specs,
+                          const std::map<std::string, std::vector<MethodResult>>&
+                              results,
+                          const std::vector<FleetRow>& fleet,
+                          std::string* table_out) {
+  const std::string& dir = options.out_dir;
+  const Score chance = lifelong::ChanceScore(data.split);
+  std::string summary =
+      "method,learner,seeds,wr_final,wr_final_sd,ae,ae_sd,ra,ra_sd,unseen,"
+      "unseen_sd,seconds\n";
+  summary += absl::StrFormat("chance,-,0,%.4f,0,%.4f,0,%.4f,0,%.4f,0,0\n",
+                             chance.wr, chance.wr, chance.wr, chance.wr);
+  std::string table = absl::StrFormat(
+      "| method | learner | seeds | WR final | AE | RA | WR on areas not yet "
+      "learned | time (s) |\n|---|---|---:|---:|---:|---:|---:|---:|\n"
+      "| chance | - | - | %.3f | %.3f | %.3f | %.3f | 0 |\n",
+      chance.wr, chance.wr, chance.wr, chance.wr);
+  std::string curves = "method,seed,after_domain,area,r1,r2,r3,r4,r5,r6,wr\n";
+  std::string memory = "method,seed,peak_traces,final_traces\n";
+  std::string plot, plot_titles;
   int block = 0;
-  std::string plot_titles;
-  for (const MethodResult& r : results) {
-    summary +=
-        absl::StrFormat("%s,%.4f,%.4f,%.4f\n", r.name, r.wr_final, r.ae, r.ra);
+  auto pm = [](const std::pair<double, double>& v, int seeds) {
+    return seeds > 1 ? absl::StrFormat("%.3f ± %.3f", v.first, v.second)
+                     : absl::StrFormat("%.3f", v.first);
+  };
+  for (const MethodSpec& spec : specs) {
+    const auto it = results.find(spec.name);
+    if (it == results.end()) continue;
+    const Aggregate a = AggregateSeeds(spec, it->second);
+    summary += absl::StrFormat(
+        "%s,%s,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.0f\n", a.name,
+        a.learner, a.seeds, a.wr_final.first, a.wr_final.second, a.ae.first,
+        a.ae.second, a.ra.first, a.ra.second, a.unseen.first, a.unseen.second,
+        a.seconds);
     table += absl::StrFormat(
-        "| %s | %.3f | %.3f | %.3f | %s | %.0f |\n", r.name, r.wr_final, r.ae,
-        r.ra,
-        r.scores.empty() ? "-" : absl::StrFormat("%.3f", r.generalisation),
-        r.seconds);
-    if (r.scores.empty()) continue;
-    for (size_t t = 0; t < r.scores.size(); ++t) {
-      for (size_t d = 0; d < r.scores[t].size(); ++d) {
-        const DomainScore& s = r.scores[t][d];
-        curves += absl::StrFormat(
-            "%s,%d,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", r.name, t + 1,
-            d + 1, s.recall[0], s.recall[1], s.recall[2], s.recall[3],
-            s.recall[4], s.recall[5], s.wr);
+        "| %s | %s | %d | %s | %s | %s | %s | %.0f |\n", a.name, a.learner,
+        a.seeds, pm(a.wr_final, a.seeds), pm(a.ae, a.seeds),
+        pm(a.ra, a.seeds), a.wr.empty() ? "-" : pm(a.unseen, a.seeds),
+        a.seconds);
+    for (const MethodResult& r : it->second) {
+      if (spec.memory != MemoryKind::kNone && spec.name != "fleet_shared") {
+        memory += absl::StrFormat("%s,%d,%d,%d\n", r.name, r.seed,
+                                  r.peak_traces, r.final_traces);
+      }
+      for (size_t t = 0; t < r.areas.size(); ++t) {
+        for (size_t d = 0; d < r.areas[t].size(); ++d) {
+          const Score& s = r.areas[t][d];
+          curves += absl::StrFormat(
+              "%s,%d,%d,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", r.name,
+              r.seed, t + 1, d + 1, s.recall[0], s.recall[1], s.recall[2],
+              s.recall[3], s.recall[4], s.recall[5], s.wr);
+        }
       }
     }
-    // Plot data: after domain t, WR of each domain (learned or not), the
-    // mean over learned domains, and the mean over earlier ones.
-    for (size_t t = 0; t < r.scores.size(); ++t) {
+    if (a.wr.empty()) continue;
+    // Plot data, mean over seeds: after domain t, the mean WR over the three
+    // areas, the WR of the area just learned (winter domains) and the mean
+    // over the winter areas learned before.
+    for (int t = 0; t < kDomains; ++t) {
+      double mean = 0;
+      for (double w : a.wr[t]) mean += w / kAreas;
+      const int w_area = t - kAreas;
       double earlier = 0;
-      for (size_t d = 0; d < t; ++d) earlier += r.scores[t][d].wr;
+      for (int d = 0; d < w_area; ++d) earlier += a.wr[t][d];
       plot += absl::StrFormat(
-          "%d %.4f %.4f %s", t + 1, SeenWr(r.scores[t], t), r.scores[t][t].wr,
-          t == 0 ? "NaN" : absl::StrFormat("%.4f", earlier / t));
-      for (size_t d = 0; d < r.scores[t].size(); ++d) {
-        plot += absl::StrFormat(" %.4f", r.scores[t][d].wr);
-      }
-      plot += "\n";
+          "%d %.4f %s %s\n", t + 1, mean,
+          w_area >= 0 ? absl::StrFormat("%.4f", a.wr[t][w_area]) : "NaN",
+          w_area > 0 ? absl::StrFormat("%.4f", earlier / w_area) : "NaN");
     }
     plot += "\n\n";
-    plot_titles += absl::StrFormat("%s\"%s\"", block ? " " : "", r.name);
+    plot_titles += absl::StrFormat("%s\"%s\"", block ? " " : "", a.name);
     ++block;
   }
   std::string fleet_csv =
-      "robot,own_area,own_wr,peer_area,peer_wr_shared,peer_wr_alone,peer_own_"
-      "wr,"
-      "ratio_to_peer,peer_winter_wr_shared,peer_winter_wr_alone,peer_winter_"
-      "own_wr\n";
+      "seed,robot,own_area,own_wr,peer_area,peer_wr_shared,peer_wr_alone,"
+      "peer_own_wr,ratio_to_peer\n";
   for (const FleetRow& f : fleet) {
     fleet_csv += absl::StrFormat(
-        "%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", f.robot,
-        f.own_area, f.own_wr, f.peer_area, f.peer_wr_shared, f.peer_wr_alone,
-        f.peer_own_wr, f.peer_wr_shared / std::max(1e-9, f.peer_own_wr),
-        f.peer_winter_shared, f.peer_winter_alone, f.peer_winter_peer_own);
+        "%d,%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f\n", f.seed, f.robot, f.own_area,
+        f.own_wr, f.peer_area, f.peer_wr_shared, f.peer_wr_alone,
+        f.peer_own_wr, f.peer_wr_shared / std::max(1e-9, f.peer_own_wr));
   }
   for (const auto& [name, text] :
        std::vector<std::pair<std::string, std::string>>{
@@ -840,35 +1053,39 @@ absl::Status WriteOutputs(const Context& ctx,
            {"summary.md", table},
            {"curves.csv", curves},
            {"curves.dat", plot},
+           {"memory.csv", memory},
            {"fleet.csv", fleet_csv}}) {
-    if (absl::Status s = files::WriteFile(dir + "/" + name, text); !s.ok()) return s;
+    if (absl::Status s = files::WriteFile(dir + "/" + name, text); !s.ok())
+      return s;
   }
+  *table_out = table;
   // curves.png with gnuplot: three panels over the course of training.
   const std::string script = absl::StrFormat(
       "set terminal pngcairo size 1500,480 font 'sans,10'\n"
       "set output '%s/curves.png'\n"
       "titles = '%s'\n"
-      "set multiplot layout 1,3 title 'Lifelong place recognition on %s (WR, "
-      "Nordland "
-      "protocol: summer areas 1-3, then winter areas 1-3)'\n"
+      "set multiplot layout 1,3 title 'Lifelong place recognition on %s "
+      "(protocol v2: winter queries of held-out places against the summer "
+      "map; domains summer areas 1-3, then winter areas 1-3)'\n"
       "set termoption noenhanced\n"
       "set xrange [0.8:6.2]; set yrange [0:*]; set grid\n"
-      "set key top right font ',8'\n"
+      "set key top left font ',8'\n"
       "set xtics ('S1' 1, 'S2' 2, 'S3' 3, 'W1' 4, 'W2' 5, 'W3' 6)\n"
       "set xlabel 'after learning domain'\n"
-      "set title 'WR over the domains learned so far'\n"
+      "set title 'WR, mean over the three areas'\n"
       "plot for [i=0:%d] '%s/curves.dat' index i using 1:2 with linespoints "
       "title word(titles, i+1)\n"
-      "set title 'AE: WR on the domain just learned'\n"
+      "set title 'AE: WR on the winter area just learned'\n"
       "plot for [i=0:%d] '%s/curves.dat' index i using 1:3 with linespoints "
       "title word(titles, i+1)\n"
-      "set title 'RA: WR on the earlier domains'\n"
+      "set title 'RA: WR on the winter areas learned before'\n"
       "plot for [i=0:%d] '%s/curves.dat' index i using 1:4 with linespoints "
       "title word(titles, i+1)\n"
       "unset multiplot\n",
-      dir, plot_titles, ctx.options->data_root, block - 1, dir, block - 1, dir,
+      dir, plot_titles, options.data_root, block - 1, dir, block - 1, dir,
       block - 1, dir);
-  if (absl::Status s = files::WriteFile(dir + "/curves.gp", script); !s.ok()) return s;
+  if (absl::Status s = files::WriteFile(dir + "/curves.gp", script); !s.ok())
+    return s;
   const std::string command =
       absl::StrCat("gnuplot '", dir, "/curves.gp' 2>'", dir, "/gnuplot.log'");
   if (block > 0 && std::system(command.c_str()) != 0) {
@@ -888,45 +1105,50 @@ std::vector<std::string> LifelongMethodNames() {
 }
 
 absl::Status RunLifelong(const LifelongOptions& options) {
-  std::vector<MethodSpec> specs;
-  for (const MethodSpec& s : Specs()) {
-    if (options.methods.empty() ||
-        std::find(options.methods.begin(), options.methods.end(), s.name) !=
-            options.methods.end()) {
-      specs.push_back(s);
-    }
-  }
+  const std::vector<std::string> names = LifelongMethodNames();
   for (const std::string& m : options.methods) {
-    const auto names = LifelongMethodNames();
     if (std::find(names.begin(), names.end(), m) == names.end()) {
       return absl::InvalidArgumentError(absl::StrCat(
           "unknown method '", m, "'; methods: ", absl::StrJoin(names, ", ")));
     }
   }
+  auto selected = [&](const std::string& name) {
+    return options.methods.empty() ||
+           std::find(options.methods.begin(), options.methods.end(), name) !=
+               options.methods.end();
+  };
+  std::vector<MethodSpec> specs;
+  for (const MethodSpec& s : Specs()) {
+    if (selected(s.name)) specs.push_back(s);
+  }
+  if (selected("uniform_replay") && !selected("bioslam")) {
+    return absl::InvalidArgumentError(
+        "uniform_replay keeps as many traces as bioslam's memory holds, "
+        "segment by segment: select bioslam too");
+  }
   // A memory method needs the server: say so now, not after pre-training.
   if (std::any_of(specs.begin(), specs.end(),
-                  [](const MethodSpec& s) { return s.remember; }) &&
+                  [](const MethodSpec& s) {
+                    return s.memory == MemoryKind::kFleet;
+                  }) &&
       ::access(options.server_binary.c_str(), X_OK) != 0) {
     return absl::NotFoundError(absl::StrCat("no fleetmem-server binary at ",
                                             options.server_binary,
                                             " (--server-binary)"));
   }
+  const bool any_gpl = std::any_of(
+      specs.begin(), specs.end(),
+      [](const MethodSpec& s) { return s.learner == LearnerKind::kGpl; });
   robot::gpl::SetTorchThreads(options.threads);
-  Context ctx;
-  ctx.options = &options;
-  ctx.settings = SettingsFor(options.quick);
-  if (options.pretrain_steps > 0)
-    ctx.settings.pretrain_steps = options.pretrain_steps;
+  Settings settings = SettingsFor(options.quick);
+  if (options.pretrain_steps > 0) settings.pretrain_steps = options.pretrain_steps;
   if (options.steps_per_segment > 0)
-    ctx.settings.steps_per_segment = options.steps_per_segment;
-  if (options.negative_candidates > 0) {
-    ctx.mining.negative_candidates = options.negative_candidates;
-  }
-  ctx.server_binary = options.server_binary;
+    settings.steps_per_segment = options.steps_per_segment;
+  if (options.seeds > 0) settings.seeds = options.seeds;
   const auto start = Clock::now();
-  absl::StatusOr<Data> data = LoadData(options.data_root, options.max_places);
+  absl::StatusOr<Data> data =
+      LoadData(options.data_root, options.skip_places, options.max_places);
   if (!data.ok()) return data.status();
-  ctx.data = *std::move(data);
   // The output folder only once the input is known to be good.
   std::error_code ec;
   std::filesystem::create_directories(options.out_dir, ec);
@@ -934,47 +1156,63 @@ absl::Status RunLifelong(const LifelongOptions& options) {
     return absl::InvalidArgumentError(
         absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
   }
-  // Positives within +-2 files (the tolerance of a correct match), negatives
-  // beyond 10 files.
-  ctx.mining.positive_radius = 2 * ctx.data.spacing;
-  ctx.mining.negative_radius = 10 * ctx.data.spacing;
+  const size_t queries =
+      std::count(data->split.held_out.begin(), data->split.held_out.end(), true);
   Progress(absl::StrFormat(
-      "[data] %s: %d places in both seasons, 3 areas, %d queries per season, "
-      "%d database "
-      "frames; %s settings",
-      options.data_root, ctx.data.numbers.size(),
-      std::count(ctx.data.query.begin(), ctx.data.query.end(), true),
-      ctx.data.numbers.size() -
-          std::count(ctx.data.query.begin(), ctx.data.query.end(), true),
-      options.quick ? "quick" : "full"));
-  if (absl::Status s = WriteConfigs(ctx); !s.ok()) return s;
-  if (absl::Status s = Pretrain(ctx); !s.ok()) return s;
-  std::vector<MethodResult> results;
+      "[data] %s: %d places in both seasons (from file %d), 3 areas; map: the "
+      "summer frame of every place; queries: the winter frames of %d held-out "
+      "places; %s settings, %d seed(s)",
+      options.data_root, data->numbers.size(), data->numbers.front(), queries,
+      options.quick ? "quick" : "full", settings.seeds));
+  std::map<std::string, std::vector<MethodResult>> results;
   std::vector<FleetRow> fleet;
-  for (const MethodSpec& spec : specs) {
-    Progress(absl::StrFormat("[%s] start (%.0f s into the run)", spec.name,
-                             Seconds(start)));
-    absl::StatusOr<MethodResult> r = spec.name == "fleet_shared"
-                                         ? RunFleetShared(ctx, spec, &fleet)
-                                         : RunSingleRobot(ctx, spec);
-    if (!r.ok()) {
-      return absl::Status(
-          r.status().code(),
-          absl::StrCat("method ", spec.name, ": ", r.status().message()));
+  for (int k = 0; k < settings.seeds; ++k) {
+    Context ctx;
+    ctx.options = &options;
+    ctx.settings = settings;
+    ctx.data = &*data;
+    ctx.seed = options.seed + uint64_t(k);
+    ctx.server_binary = options.server_binary;
+    if (options.negative_candidates > 0)
+      ctx.mining.negative_candidates = options.negative_candidates;
+    // Positives within +-2 files (the tolerance of a correct match),
+    // negatives beyond 10 files.
+    ctx.mining.positive_radius = lifelong::kTolerance * data->spacing;
+    ctx.mining.negative_radius = 10 * data->spacing;
+    if (absl::Status s = WriteConfigs(ctx); !s.ok()) return s;
+    absl::StatusOr<CodeSet> hog = HogCodes(*data, ctx.seed);
+    if (!hog.ok()) return hog.status();
+    ctx.hog = *std::move(hog);
+    if (any_gpl) {
+      if (absl::Status s = PretrainGpl(ctx); !s.ok()) return s;
     }
-    Progress(absl::StrFormat("[%s] WR final %.3f, AE %.3f, RA %.3f (%.0f s)",
-                             r->name, r->wr_final, r->ae, r->ra, r->seconds));
-    results.push_back(*std::move(r));
+    for (const MethodSpec& spec : specs) {
+      Progress(absl::StrFormat("[%s seed %d] start (%.0f s into the run)",
+                               spec.name, ctx.seed, Seconds(start)));
+      absl::StatusOr<MethodResult> r = spec.name == "fleet_shared"
+                                           ? RunFleetShared(ctx, spec, &fleet)
+                                           : RunSingleRobot(ctx, spec);
+      if (!r.ok()) {
+        return absl::Status(r.status().code(),
+                            absl::StrCat("method ", spec.name, ", seed ",
+                                         ctx.seed, ": ", r.status().message()));
+      }
+      Progress(absl::StrFormat(
+          "[%s seed %d] WR final %.3f, AE %.3f, RA %.3f (%.0f s)", r->name,
+          ctx.seed, r->summary.wr_final, r->summary.ae, r->summary.ra,
+          r->seconds));
+      results[spec.name].push_back(*std::move(r));
+    }
   }
-  if (absl::Status s = WriteOutputs(ctx, results, fleet); !s.ok()) return s;
-  std::string table = "\nmethod             WR final   AE      RA\n";
-  for (const MethodResult& r : results) {
-    table += absl::StrFormat("%-18s %.3f     %.3f   %.3f\n", r.name, r.wr_final,
-                             r.ae, r.ra);
+  std::string table;
+  if (absl::Status s =
+          WriteOutputs(options, *data, specs, results, fleet, &table);
+      !s.ok()) {
+    return s;
   }
   std::printf(
-      "%s\nwritten: "
-      "%s/{summary.csv,summary.md,curves.csv,curves.png,fleet.csv} (%.0f s)\n",
+      "\n%s\nwritten: %s/{summary.csv,summary.md,curves.csv,curves.png,"
+      "memory.csv,fleet.csv} (%.0f s)\n",
       table.c_str(), options.out_dir.c_str(), Seconds(start));
   return absl::OkStatus();
 }

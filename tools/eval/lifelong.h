@@ -2,21 +2,23 @@
 // on a Nordland-layout data root, every method in one run with the same
 // seeds (docs/results.md, "Lifelong learning").
 //
-// Protocol (fixed): the route (frames present in both seasons, in file
-// order) is split into 3 areas; domains are summer areas 1-3 then winter
-// areas 1-3, each observation arriving once, in route order, in segments.
-// Every 4th frame of the route is a held-out query, never trained on. The
-// database is the summer training frames of the whole route (the fleet's
-// map); a query is correct when a retrieved frame is within +-2 files.
-// After each domain: Recall@1..6 and WR of every domain's queries; AE = WR
-// on the domain just learned, RA = mean WR on the earlier domains; WR on the
-// domains not yet learned is the generalisation.
+// Protocol v2 (lifelong_protocol.h): the route (frames present in both
+// seasons, in file order) is split into 3 areas; within each area every 4th
+// place is held out and never trained on, in either season. The map is the
+// summer frame of every place, held-out places included; the queries are
+// the winter frames of the held-out places; correct within +-2 files.
+// Domains: summer areas 1-3, then winter areas 1-3, each frame arriving
+// once, in route order, in segments; learning only from training places.
+// After each domain: Recall@1..6 and WR of each area's queries; AE, RA and
+// WR final as lifelong_protocol.h's Summarise; the chance level.
 //
-// Methods: classical (HOG, no learning), gpl_pretrained (the fleet encoder
-// and head after pre-training, no lifelong learning), finetune,
-// uniform_replay, bioslam, no_rex, no_rin, no_clustering, no_decay,
-// bioslam_decoded (replay through the decoder) and fleet_shared. Every
-// method that remembers runs through a real fleetmem-server child.
+// Methods (LifelongMethodNames): classical (HOG cosine), classical_seq (HOG
+// with sequence matching), and two learners (place_learner.h): the metric
+// head on the HOG fleet code (joint, finetune, bioslam, uniform_replay with
+// bioslam's trace budget, no_rex, no_rin, no_clustering, no_decay,
+// fleet_shared) and the GPL head on the frozen GPL encoder (gpl_pretrained,
+// gpl_joint, gpl_finetune, gpl_bioslam, gpl_bioslam_decoded). Every method
+// that remembers through the fleet runs a real fleetmem-server child.
 #ifndef FLEETMEM_TOOLS_EVAL_LIFELONG_H_
 #define FLEETMEM_TOOLS_EVAL_LIFELONG_H_
 
@@ -31,8 +33,9 @@ namespace fleetmem::eval {
 struct LifelongOptions {
   // Folder with nordland/{summer,winter}/images-NNNNN.png.
   std::string data_root;
-  // Output folder (created): summary.csv, curves.csv, curves.png, fleet.csv,
-  // encoder.pt, servers/, logs.
+  // Output folder (created): summary.csv, summary.md, curves.csv,
+  // curves.png, memory.csv, fleet.csv, encoder-seedN.pt (GPL methods),
+  // servers/, logs.
   std::string out_dir;
   // The fleetmem-server binary (default: beside this program).
   std::string server_binary;
@@ -40,7 +43,11 @@ struct LifelongOptions {
   std::vector<std::string> methods;
   // Quick settings (under 10 minutes on 2 cores) instead of the full ones.
   bool quick = false;
+  // Seeds options.seed, options.seed + 1, ...: `seeds` runs of every
+  // method (0 = the settings' 1 quick, 3 full); the report gives mean and
+  // standard deviation.
   uint64_t seed = 1;
+  int seeds = 0;
   int threads = 2;
   // Overrides of the settings (0 or negative = the quick/full default).
   int pretrain_steps = 0;
@@ -54,6 +61,14 @@ struct LifelongOptions {
   // of the test suite (a few dozen places prove the code paths and outputs,
   // not the figures). At least 24.
   int max_places = 0;
+  // Overrides of the metric head's update rate and partners per sample, and
+  // of the fleet memory's spatial scale (0 = their defaults).
+  double metric_update_rate = 0;
+  int metric_partners = 0;
+  double spatial_scale = 0;
+  // Places skipped at the start of the route (the rest is the route): a
+  // stretch of the data no setting was tuned on.
+  int skip_places = 0;
 };
 
 absl::Status RunLifelong(const LifelongOptions& options);

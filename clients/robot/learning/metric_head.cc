@@ -1,0 +1,190 @@
+#include "clients/robot/learning/metric_head.h"
+
+#include <algorithm>
+#include <cmath>
+#include <utility>
+
+#include "absl/strings/str_format.h"
+
+namespace fleetmem::robot::gpl {
+namespace {
+
+double PlaceDistance(const core::Place& a, const core::Place& b) {
+  const double dx = a.x - b.x, dy = a.y - b.y, dz = a.z - b.z;
+  return std::sqrt(dx * dx + dy * dy + dz * dz);
+}
+
+// Each sample's partners: the nearest (in place) within `radius`, of
+// another domain where there is one, of its own otherwise.
+std::vector<std::pair<size_t, size_t>> Pairs(
+    std::span<const LearnSample> samples, double radius, int max_partners) {
+  std::vector<std::pair<size_t, size_t>> pairs;
+  std::vector<std::pair<double, size_t>> other, same;
+  for (size_t i = 0; i < samples.size(); ++i) {
+    other.clear();
+    same.clear();
+    for (size_t j = 0; j < samples.size(); ++j) {
+      if (j == i) continue;
+      const double d = PlaceDistance(samples[i].place, samples[j].place);
+      if (d > radius) continue;
+      (samples[j].domain != samples[i].domain ? other : same).push_back({d, j});
+    }
+    std::vector<std::pair<double, size_t>>& pick = other.empty() ? same : other;
+    const size_t n = std::min(pick.size(), size_t(std::max(0, max_partners)));
+    std::partial_sort(pick.begin(), pick.begin() + n, pick.end());
+    for (size_t k = 0; k < n; ++k) pairs.push_back({i, pick[k].second});
+  }
+  return pairs;
+}
+
+}  // namespace
+
+MetricHead::MetricHead(int code_dimension, MetricHeadOptions options)
+    : code_dimension_(code_dimension), options_(std::move(options)) {}
+
+int MetricHead::descriptor_dimension() const {
+  return fitted_ ? int(projection_.rows()) : code_dimension_;
+}
+
+absl::Status MetricHead::CheckDimension(const std::vector<float>& code) const {
+  if (code_dimension_ < 1) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("metric head: code dimension %d", code_dimension_));
+  }
+  if (int(code.size()) != code_dimension_) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("metric head: a code of %d values, expected %d",
+                        code.size(), code_dimension_));
+  }
+  return absl::OkStatus();
+}
+
+Eigen::VectorXd MetricHead::Unit(const std::vector<float>& code) const {
+  Eigen::VectorXd x(code.size());
+  for (size_t c = 0; c < code.size(); ++c) x(c) = code[c];
+  const double norm = x.norm();
+  if (norm > 0) x /= norm;
+  return x;
+}
+
+absl::StatusOr<MetricLearnStats> MetricHead::Learn(
+    std::span<const LearnSample> samples) {
+  for (const LearnSample& s : samples) {
+    if (absl::Status st = CheckDimension(s.code); !st.ok()) return st;
+  }
+  MetricLearnStats stats;
+  stats.samples = samples.size();
+  if (samples.size() < 2) return stats;
+  const int d = code_dimension_;
+  Eigen::MatrixXd x(samples.size(), d);
+  for (size_t i = 0; i < samples.size(); ++i)
+    x.row(i) = Unit(samples[i].code).transpose();
+  const double n = double(samples.size());
+  const Eigen::VectorXd mean = x.colwise().mean().transpose();
+  const Eigen::MatrixXd second = (x.transpose() * x) / n;
+  const auto pairs = Pairs(samples, options_.pair_radius, options_.max_partners);
+  Eigen::MatrixXd difference;
+  if (!pairs.empty()) {
+    Eigen::MatrixXd diffs(pairs.size(), d);
+    for (size_t p = 0; p < pairs.size(); ++p) {
+      diffs.row(p) = x.row(pairs[p].first) - x.row(pairs[p].second);
+      if (samples[pairs[p].first].domain != samples[pairs[p].second].domain)
+        ++stats.cross_domain_pairs;
+    }
+    difference = (diffs.transpose() * diffs) / double(pairs.size());
+  }
+  stats.pairs = pairs.size();
+  const double eta = fitted_ ? std::clamp(options_.update_rate, 0.0, 1.0) : 1.0;
+  if (!fitted_) {
+    mean_ = mean;
+    second_moment_ = second;
+  } else {
+    mean_ = (1 - eta) * mean_ + eta * mean;
+    second_moment_ = (1 - eta) * second_moment_ + eta * second;
+  }
+  if (!pairs.empty()) {
+    difference_moment_ = has_pairs_
+                             ? Eigen::MatrixXd((1 - eta) * difference_moment_ +
+                                               eta * difference)
+                             : difference;
+    has_pairs_ = true;
+  }
+  fitted_ = true;
+  Refit();
+  return stats;
+}
+
+void MetricHead::Refit() {
+  const int d = code_dimension_;
+  const int k = std::clamp(options_.dimension, 1, d);
+  const Eigen::MatrixXd covariance =
+      second_moment_ - mean_ * mean_.transpose();
+  // Eigenvalues ascending: the principal components are the last k.
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> pca(covariance);
+  const Eigen::MatrixXd basis = pca.eigenvectors().rightCols(k);  // d x k
+  if (!has_pairs_) {
+    projection_ = basis.transpose();
+    return;
+  }
+  const Eigen::MatrixXd within =
+      basis.transpose() * difference_moment_ * basis;  // k x k
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> white(within);
+  const Eigen::VectorXd values = white.eigenvalues().cwiseMax(0.0);
+  const double floor = options_.ridge * std::max(values.mean(), 1e-12);
+  const Eigen::VectorXd scale =
+      (values.array() + floor).rsqrt().matrix();  // k
+  projection_ = scale.asDiagonal() * white.eigenvectors().transpose() *
+                basis.transpose();  // k x d
+}
+
+absl::StatusOr<std::vector<std::vector<float>>> MetricHead::Describe(
+    std::span<const std::vector<float>> codes) const {
+  std::vector<std::vector<float>> out;
+  out.reserve(codes.size());
+  for (const std::vector<float>& code : codes) {
+    if (absl::Status st = CheckDimension(code); !st.ok()) return st;
+    Eigen::VectorXd y = Unit(code);
+    if (fitted_) y = projection_ * (y - mean_);
+    const double norm = y.norm();
+    if (norm > 0) y /= norm;
+    out.emplace_back(y.data(), y.data() + y.size());
+  }
+  return out;
+}
+
+absl::StatusOr<std::vector<float>> MetricHead::ExternalRewards(
+    std::span<const LearnSample> segment,
+    std::span<const LearnSample> memory) const {
+  std::vector<float> rewards(segment.size(), 0.0f);
+  if (segment.empty()) return rewards;
+  std::vector<TripletSample> pool;
+  std::vector<std::vector<float>> codes;
+  for (std::span<const LearnSample> part : {segment, memory}) {
+    for (const LearnSample& s : part) {
+      pool.push_back({s.place, s.domain});
+      codes.push_back(s.code);
+    }
+  }
+  absl::StatusOr<std::vector<std::vector<float>>> descriptors =
+      Describe(codes);
+  if (!descriptors.ok()) return descriptors.status();
+  std::vector<size_t> anchors(segment.size());
+  for (size_t i = 0; i < anchors.size(); ++i) anchors[i] = i;
+  for (const TripletIndex& t :
+       HardestTriplets(pool, anchors, *descriptors, options_.mining)) {
+    auto squared = [&](size_t a, size_t b) {
+      double sum = 0;
+      for (size_t c = 0; c < (*descriptors)[a].size(); ++c) {
+        const double diff = (*descriptors)[a][c] - (*descriptors)[b][c];
+        sum += diff * diff;
+      }
+      return sum;
+    };
+    rewards[t.anchor] = float(std::max(
+        0.0, squared(t.anchor, t.positive) + options_.margin -
+                 squared(t.anchor, t.negative)));
+  }
+  return rewards;
+}
+
+}  // namespace fleetmem::robot::gpl
