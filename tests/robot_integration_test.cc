@@ -22,6 +22,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "clients/robot/learning/gpl_model.h"
+#include "clients/robot/learning/metric_head.h"
 #include "clients/robot/robot_state.pb.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"
@@ -471,6 +472,44 @@ TEST_F(RobotIntegrationTest, AGplRobotLearnsAndItsCodesCarryTheModelVersion) {
   EXPECT_THAT(ReadFileOrEmpty(dir_.Join("gpl2.log")),
               HasSubstr("a new fleet encoder needs a new data dir"));
   EXPECT_EQ(Stats("f-gpl", "g1").received(), 250u);
+}
+
+// --learn without a GPL model: the metric head on the HOG fleet code. The
+// robot learns every segment, uploads HOG codes and R_ex from its head,
+// keeps the head in its data dir and resumes from it; a head that is not
+// one is refused at start.
+TEST_F(RobotIntegrationTest, ARobotLearnsAMetricHeadOnTheFleetCode) {
+  std::vector<std::string> args =
+      RobotArgs("f-metric", "m1", kSummer, 250, 0.0, dir_.Join("m1"));
+  args.insert(args.end(), {"--learn"});
+  RobotProcess robot(args, dir_.Join("metric.log"));
+  ASSERT_NO_FATAL_FAILURE(robot.Start());
+  ASSERT_EQ(robot.Wait(), 0) << ReadFileOrEmpty(dir_.Join("metric.log"));
+  EXPECT_EQ(Stats("f-metric", "m1").received(), 250u);
+  std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
+  Reply<v1::SampleReplayResponse> sample =
+      SampleReplay(*stub, "f-metric", "m1", 10);
+  ASSERT_TRUE(sample.ok()) << Describe(sample.status);
+  ASSERT_FALSE(sample.response.traces().empty());
+  for (const v1::MemoryTrace& trace : sample.response.traces()) {
+    EXPECT_EQ(trace.encoder_version(), "hog-64x32-c8-s8-b6-v1");
+    EXPECT_GE(trace.reward_external(), 0.0f);
+  }
+  const std::string head = dir_.Join("m1") + "/metric-head.bin";
+  auto loaded = robot::gpl::MetricHead::Deserialize(ReadFileOrEmpty(head), 504);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_TRUE(loaded->fitted());
+
+  std::ofstream(head, std::ios::binary | std::ios::trunc) << "garbage";
+  std::vector<std::string> again =
+      RobotArgs("f-metric", "m1", kSummer, 300, 0.0, dir_.Join("m1"));
+  again.push_back("--learn");
+  RobotProcess corrupt(again, dir_.Join("metric2.log"));
+  ASSERT_NO_FATAL_FAILURE(corrupt.Start());
+  EXPECT_EQ(corrupt.Wait(), 2);
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("metric2.log")),
+              HasSubstr("the robot's learned head"));
+  EXPECT_EQ(Stats("f-metric", "m1").received(), 250u);
 }
 
 TEST_F(RobotIntegrationTest, BadSourcesGiveAClearMessage) {

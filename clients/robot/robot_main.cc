@@ -36,6 +36,7 @@
 #include "clients/robot/agent.h"
 #include "clients/robot/encoder.h"
 #include "clients/robot/learning/gpl_robot.h"
+#include "clients/robot/learning/metric_robot.h"
 #include "clients/robot/observation_source.h"
 #include "clients/robot/robot_store.h"
 #include "clients/robot/slam/fleet_slam.h"
@@ -125,11 +126,12 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "GPL model file (fleetmem-eval pretrain): its frozen encoder "
                  "makes the codes (instead of --encoder)");
   app.add_flag("--learn", flags.learn,
-               "train the GPL place head every segment on the segment and the "
-               "traces replayed from the dynamic memory (needs --gpl-model); "
-               "the learned model is kept in DATA_DIR/gpl-learned.pt");
+               "learn a place head every segment from the segment and the "
+               "traces replayed from the dynamic memory: a metric head on "
+               "the --encoder code (kept in DATA_DIR/metric-head.bin), or "
+               "with --gpl-model the GPL place head (DATA_DIR/gpl-learned.pt)");
   app.add_option("--learn-steps", flags.learn_steps,
-                 "place-head gradient steps per segment")
+                 "GPL place-head gradient steps per segment (--gpl-model)")
       ->capture_default_str()
       ->check(CLI::Range(1, 100000));
   app.add_option("--torch-threads", flags.torch_threads,
@@ -396,16 +398,12 @@ int Run(const Flags& flags) {
     keyframes = k->get();
     source = std::unique_ptr<robot::ObservationSource>(std::move(*k));
   }
-  if (flags.learn && flags.gpl_model.empty()) {
-    std::cerr << "fleetmem-robot: --learn needs --gpl-model\n";
-    return 2;
-  }
   if (!flags.gpl_model.empty() && !flags.encoder.empty()) {
     std::cerr << "fleetmem-robot: give --encoder or --gpl-model, not both\n";
     return 2;
   }
   std::unique_ptr<robot::gpl::SharedModel> gpl;
-  std::unique_ptr<robot::gpl::GplLearner> learner;
+  std::unique_ptr<robot::Learner> learner;
   absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder;
   if (!flags.gpl_model.empty()) {
     robot::gpl::SetTorchThreads(flags.torch_threads);
@@ -535,7 +533,26 @@ int Run(const Flags& flags) {
       flags.robot_id, flags.fleet, flags.server, (*source)->description(),
       (*source)->size(), (*encoder)->version(), (*encoder)->dimension(),
       options.domain, flags.data_dir, flags.query_only ? ", query only" : "");
-  if (flags.learn) {
+  if (flags.learn && gpl == nullptr) {
+    // The metric head on the fleet code (docs/results.md: the better of the
+    // two learners on the lifelong protocol). Pairs within the match radius,
+    // R_ex's negatives beyond the triplet radius, as the GPL learner's.
+    robot::gpl::MetricHeadOptions head;
+    head.pair_radius = options.match_radius;
+    head.mining.positive_radius = options.match_radius;
+    head.mining.negative_radius = options.triplet.negative_radius;
+    const std::string path = flags.data_dir + "/metric-head.bin";
+    absl::StatusOr<robot::gpl::MetricHead> loaded =
+        robot::gpl::MetricRobotLearner::LoadOrNew(
+            path, int((*encoder)->dimension()), head);
+    if (!loaded.ok()) {
+      std::cerr << "fleetmem-robot: the robot's learned head: "
+                << loaded.status().message() << "\n";
+      return 2;
+    }
+    learner = std::make_unique<robot::gpl::MetricRobotLearner>(
+        encoder->get(), options.domain, *std::move(loaded), path);
+  } else if (flags.learn) {
     robot::gpl::SegmentLearnerOptions learn;
     learn.steps_per_segment = flags.learn_steps;
     learn.seed = flags.seed;

@@ -17,6 +17,7 @@
 
 #include "Eigen/Dense"
 #include "absl/status/statusor.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
@@ -155,6 +156,8 @@ struct MethodResult {
   double seconds = 0;
   // Memory methods: the most traces the memory held, and at the end.
   uint64_t peak_traces = 0, final_traces = 0;
+  // Segments after which the learner reported a collapsed head.
+  int collapses = 0;
 };
 
 enum class LearnerKind { kNone, kMetric, kGpl };
@@ -230,6 +233,7 @@ double Seconds(Clock::time_point since) {
 // Every frame's code and R_in (Eq. 12, A = a random shift-crop) under one
 // code.
 struct CodeSet {
+  std::string version;  // the encoder's, carried by every trace
   Codes codes[kSeasons];
   std::vector<float> internal[kSeasons];
 };
@@ -261,6 +265,7 @@ absl::StatusOr<CodeSet> HogCodes(const Data& data, uint64_t seed) {
       robot::NewEncoderByName(kFleetCode);
   if (!hog.ok()) return hog.status();
   CodeSet set;
+  set.version = (*hog)->version();
   std::mt19937_64 rng(seed);
   for (int s = 0; s < kSeasons; ++s) {
     for (const cv::Mat& image : data.images[s]) {
@@ -457,7 +462,7 @@ absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
       mo.update_rate = ctx.options->metric_update_rate;
     if (ctx.options->metric_partners > 0)
       mo.max_partners = ctx.options->metric_partners;
-    r.code_version = kFleetCode;
+    r.code_version = ctx.hog.version;
     r.learner = robot::gpl::NewMetricLearner(
         int(ctx.hog.codes[0].front().size()), mo);
   }
@@ -772,6 +777,7 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
                                   client.get(), spec.name);
       if (!s.ok()) return s;
       traces_after_segment.push_back(robot->traces);
+      if (absl::StrContains(robot->last, "COLLAPSED")) ++result.collapses;
     }
     absl::StatusOr<std::vector<Score>> scores =
         Evaluate(ctx, ctx.CodesOf(spec), robot->learner.get());
@@ -930,6 +936,7 @@ struct Aggregate {
   int seeds = 0;
   std::pair<double, double> wr_final, ae, ra, unseen;
   double seconds = 0;
+  int collapses = 0;  // over every seed's segments
   // Mean over seeds of areas[t][a].wr and of the mean over areas.
   std::vector<std::vector<double>> wr;
 };
@@ -949,6 +956,7 @@ Aggregate AggregateSeeds(const MethodSpec& spec,
     ra.push_back(r.summary.ra);
     unseen.push_back(r.summary.unseen);
     a.seconds += r.seconds;
+    a.collapses += r.collapses;
   }
   a.wr_final = MeanSd(wr);
   a.ae = MeanSd(ae);
@@ -974,13 +982,14 @@ absl::Status WriteOutputs(const LifelongOptions& options, const Data& data,
   const Score chance = lifelong::ChanceScore(data.split);
   std::string summary =
       "method,learner,seeds,wr_final,wr_final_sd,ae,ae_sd,ra,ra_sd,unseen,"
-      "unseen_sd,seconds\n";
-  summary += absl::StrFormat("chance,-,0,%.4f,0,%.4f,0,%.4f,0,%.4f,0,0\n",
+      "unseen_sd,seconds,collapses\n";
+  summary += absl::StrFormat("chance,-,0,%.4f,0,%.4f,0,%.4f,0,%.4f,0,0,0\n",
                              chance.wr, chance.wr, chance.wr, chance.wr);
   std::string table = absl::StrFormat(
       "| method | learner | seeds | WR final | AE | RA | WR on areas not yet "
-      "learned | time (s) |\n|---|---|---:|---:|---:|---:|---:|---:|\n"
-      "| chance | - | - | %.3f | %.3f | %.3f | %.3f | 0 |\n",
+      "learned | time (s) | collapsed segments |\n"
+      "|---|---|---:|---:|---:|---:|---:|---:|---:|\n"
+      "| chance | - | - | %.3f | %.3f | %.3f | %.3f | 0 | - |\n",
       chance.wr, chance.wr, chance.wr, chance.wr);
   std::string curves = "method,seed,after_domain,area,r1,r2,r3,r4,r5,r6,wr\n";
   std::string memory = "method,seed,peak_traces,final_traces\n";
@@ -995,15 +1004,15 @@ absl::Status WriteOutputs(const LifelongOptions& options, const Data& data,
     if (it == results.end()) continue;
     const Aggregate a = AggregateSeeds(spec, it->second);
     summary += absl::StrFormat(
-        "%s,%s,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.0f\n", a.name,
+        "%s,%s,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.0f,%d\n", a.name,
         a.learner, a.seeds, a.wr_final.first, a.wr_final.second, a.ae.first,
         a.ae.second, a.ra.first, a.ra.second, a.unseen.first, a.unseen.second,
-        a.seconds);
+        a.seconds, a.collapses);
     table += absl::StrFormat(
-        "| %s | %s | %d | %s | %s | %s | %s | %.0f |\n", a.name, a.learner,
-        a.seeds, pm(a.wr_final, a.seeds), pm(a.ae, a.seeds),
+        "| %s | %s | %d | %s | %s | %s | %s | %.0f | %d |\n", a.name,
+        a.learner, a.seeds, pm(a.wr_final, a.seeds), pm(a.ae, a.seeds),
         pm(a.ra, a.seeds), a.wr.empty() ? "-" : pm(a.unseen, a.seeds),
-        a.seconds);
+        a.seconds, a.collapses);
     for (const MethodResult& r : it->second) {
       if (spec.memory != MemoryKind::kNone && spec.name != "fleet_shared") {
         memory += absl::StrFormat("%s,%d,%d,%d\n", r.name, r.seed,

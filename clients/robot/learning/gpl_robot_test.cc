@@ -138,6 +138,10 @@ TEST(GplRobotTest, LearnerPairsNewObservationsWithRememberedPlaces) {
     sum_after += (*after)[i];
   }
   EXPECT_LT(sum_after, sum_before * 0.5) << sum_before << " -> " << sum_after;
+  // A head that tells the places apart is not reported collapsed: its
+  // descriptors spread (1 - |mean|^2 well above the threshold).
+  EXPECT_GT(learner.last().descriptor_spread, 0.1f);
+  EXPECT_FALSE(learner.last().collapsed);
   // Codes do not move: the encoder is frozen.
   EXPECT_EQ(*encoder.Encode(winter[0]), codes[0]);
 }

@@ -2,8 +2,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <utility>
 
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 
 namespace fleetmem::robot::gpl {
@@ -37,7 +39,121 @@ std::vector<std::pair<size_t, size_t>> Pairs(
   return pairs;
 }
 
+constexpr char kMagic[8] = {'F', 'M', 'H', 'E', 'A', 'D', '0', '1'};
+
+template <typename T>
+void Put(std::string& out, T value) {
+  out.append(reinterpret_cast<const char*>(&value), sizeof(T));
+}
+
+void PutMatrix(std::string& out, const Eigen::MatrixXd& m) {
+  Put<int64_t>(out, m.rows());
+  Put<int64_t>(out, m.cols());
+  out.append(reinterpret_cast<const char*>(m.data()),
+             sizeof(double) * size_t(m.size()));
+}
+
+// Reads what Put/PutMatrix wrote; false once the bytes run out.
+class Reader {
+ public:
+  explicit Reader(std::string_view bytes) : bytes_(bytes) {}
+  template <typename T>
+  bool Get(T* value) {
+    if (bytes_.size() < sizeof(T)) return false;
+    std::memcpy(value, bytes_.data(), sizeof(T));
+    bytes_.remove_prefix(sizeof(T));
+    return true;
+  }
+  bool GetMatrix(Eigen::MatrixXd* m, int64_t max_side) {
+    int64_t rows = 0, cols = 0;
+    if (!Get(&rows) || !Get(&cols) || rows < 0 || cols < 0 ||
+        rows > max_side || cols > max_side ||
+        bytes_.size() < sizeof(double) * size_t(rows * cols)) {
+      return false;
+    }
+    m->resize(rows, cols);
+    std::memcpy(m->data(), bytes_.data(), sizeof(double) * size_t(rows * cols));
+    bytes_.remove_prefix(sizeof(double) * size_t(rows * cols));
+    return true;
+  }
+  bool done() const { return bytes_.empty(); }
+
+ private:
+  std::string_view bytes_;
+};
+
 }  // namespace
+
+std::string MetricHead::Serialize() const {
+  std::string out(kMagic, sizeof(kMagic));
+  Put<int32_t>(out, code_dimension_);
+  Put<int32_t>(out, options_.dimension);
+  Put<double>(out, options_.update_rate);
+  Put<double>(out, options_.ridge);
+  Put<double>(out, options_.pair_radius);
+  Put<int32_t>(out, options_.max_partners);
+  Put<float>(out, options_.margin);
+  Put<double>(out, options_.mining.positive_radius);
+  Put<double>(out, options_.mining.negative_radius);
+  Put<uint8_t>(out, fitted_ ? 1 : 0);
+  Put<uint8_t>(out, has_pairs_ ? 1 : 0);
+  if (fitted_) {
+    PutMatrix(out, mean_);
+    PutMatrix(out, second_moment_);
+  }
+  if (has_pairs_) PutMatrix(out, difference_moment_);
+  return out;
+}
+
+absl::StatusOr<MetricHead> MetricHead::Deserialize(std::string_view bytes,
+                                                   int code_dimension) {
+  auto lost = [](const char* what) {
+    return absl::DataLossError(absl::StrCat("metric head: ", what));
+  };
+  if (bytes.size() < sizeof(kMagic) ||
+      std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
+    return lost("not a metric head (magic)");
+  }
+  Reader in(bytes.substr(sizeof(kMagic)));
+  int32_t dim = 0;
+  MetricHeadOptions o;
+  uint8_t fitted = 0, has_pairs = 0;
+  if (!in.Get(&dim) || !in.Get(&o.dimension) || !in.Get(&o.update_rate) ||
+      !in.Get(&o.ridge) || !in.Get(&o.pair_radius) ||
+      !in.Get(&o.max_partners) || !in.Get(&o.margin) ||
+      !in.Get(&o.mining.positive_radius) ||
+      !in.Get(&o.mining.negative_radius) || !in.Get(&fitted) ||
+      !in.Get(&has_pairs) || dim < 1 || dim > (1 << 16)) {
+    return lost("truncated or malformed header");
+  }
+  if (code_dimension > 0 && dim != code_dimension) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "metric head: made for codes of %d values, the encoder gives %d", dim,
+        code_dimension));
+  }
+  MetricHead head(dim, o);
+  head.fitted_ = fitted != 0;
+  head.has_pairs_ = has_pairs != 0;
+  Eigen::MatrixXd mean;
+  if (head.fitted_ &&
+      (!in.GetMatrix(&mean, dim) || mean.rows() != dim || mean.cols() != 1 ||
+       !in.GetMatrix(&head.second_moment_, dim) ||
+       head.second_moment_.rows() != dim || head.second_moment_.cols() != dim)) {
+    return lost("truncated or malformed estimates");
+  }
+  if (head.has_pairs_ && (!in.GetMatrix(&head.difference_moment_, dim) ||
+                          head.difference_moment_.rows() != dim ||
+                          head.difference_moment_.cols() != dim)) {
+    return lost("truncated or malformed pair estimates");
+  }
+  if (!in.done()) return lost("trailing bytes");
+  if (head.has_pairs_ && !head.fitted_) return lost("pairs without a fit");
+  if (head.fitted_) {
+    head.mean_ = mean.col(0);
+    head.Refit();
+  }
+  return head;
+}
 
 MetricHead::MetricHead(int code_dimension, MetricHeadOptions options)
     : code_dimension_(code_dimension), options_(std::move(options)) {}

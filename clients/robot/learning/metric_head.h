@@ -31,6 +31,8 @@
 
 #include <cstddef>
 #include <span>
+#include <string>
+#include <string_view>
 #include <vector>
 
 #include "Eigen/Dense"
@@ -91,6 +93,15 @@ class MetricHead {
   absl::StatusOr<std::vector<float>> ExternalRewards(
       std::span<const LearnSample> segment,
       std::span<const LearnSample> memory) const;
+
+  // The head's options, running estimates and fit, as bytes (a robot keeps
+  // its head across restarts); Deserialize refits from the estimates.
+  std::string Serialize() const;
+  // DATA_LOSS for bytes that Serialize did not write (wrong magic, sizes
+  // or length); INVALID_ARGUMENT for a head of another code dimension than
+  // `code_dimension` (when positive).
+  static absl::StatusOr<MetricHead> Deserialize(std::string_view bytes,
+                                                int code_dimension = 0);
 
   bool fitted() const { return fitted_; }
   int code_dimension() const { return code_dimension_; }

@@ -52,8 +52,10 @@ class GplLearner : public PlaceLearner {
     absl::StatusOr<SegmentLearnStats> stats =
         learner_.Learn(segment, replayed, memory);
     if (!stats.ok()) return stats.status();
-    return absl::StrFormat("%d steps, loss %.3f -> %.3f", stats->steps,
-                           stats->first_loss, stats->last_loss);
+    return absl::StrFormat(
+        "%d steps, loss %.3f -> %.3f, descriptor spread %.3f%s", stats->steps,
+        stats->first_loss, stats->last_loss, stats->descriptor_spread,
+        stats->collapsed ? " COLLAPSED" : "");
   }
   absl::Status LearnObservations(std::span<const cv::Mat> images) override {
     return learner_.LearnImages(images);

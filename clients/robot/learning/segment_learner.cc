@@ -87,6 +87,19 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
     stats.steps += 1;
     stats.triplets += int(triplets.size());
   }
+  // Collapse check: how far the pool's descriptors are from being one.
+  absl::StatusOr<std::vector<std::vector<float>>> after =
+      model_->Describe(codes);
+  if (!after.ok()) return after.status();
+  if (!after->empty()) {
+    std::vector<double> mean((*after)[0].size(), 0.0);
+    for (const std::vector<float>& d : *after)
+      for (size_t c = 0; c < d.size(); ++c) mean[c] += d[c] / after->size();
+    double squared = 0;
+    for (double m : mean) squared += m * m;
+    stats.descriptor_spread = float(1.0 - squared);
+    stats.collapsed = stats.descriptor_spread < options_.collapse_spread;
+  }
   return stats;
 }
 

@@ -56,6 +56,9 @@ struct SegmentLearnerOptions {
   // Decoder/discriminator steps per segment on the segment's images
   // (LearnImages only; 0 = the decoder does not learn).
   int generative_steps_per_segment = 0;
+  // A descriptor spread below this after a segment is reported as a
+  // collapse (SegmentLearnStats::collapsed).
+  float collapse_spread = 0.01f;
   uint64_t seed = 1;
 };
 
@@ -64,6 +67,12 @@ struct SegmentLearnStats {
   int triplets = 0;
   float first_loss = 0.0f;
   float last_loss = 0.0f;
+  // After the segment: 1 - |mean descriptor|^2 over the pool (the mean
+  // squared distance of its unit descriptors to their mean; 0 when every
+  // descriptor is the same). Below SegmentLearnerOptions::collapse_spread
+  // the head has collapsed (loss stuck at the margin, every place alike).
+  float descriptor_spread = 0.0f;
+  bool collapsed = false;
 };
 
 class SegmentLearner {
