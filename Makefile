@@ -29,10 +29,9 @@ empty :=
 space := $(empty) $(empty)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all deps configure build test test-slow test-asan test-tsan test-docker test-k8s test-cluster \
+.PHONY: all deps configure configure-asan build test test-slow test-asan test-tsan test-docker test-k8s test-cluster \
   fuzz soak crash robot-crash demo bench perf format clean
 
-SANITIZER_FLAGS_asan := -fsanitize=address,undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer
 SANITIZER_FLAGS_tsan := -fsanitize=thread -fno-omit-frame-pointer
 # The sanitizer and fuzzer builds' optimisation and debug level (in place
 # of RelWithDebInfo's -O2 -g): -O1, as the sanitizers' and libFuzzer's
@@ -92,18 +91,31 @@ test: build
 test-slow: build
 	@cd $(BUILD_DIR) && ctest --output-on-failure -j $(JOBS) -L slow $(CTEST_ARGS)
 
-# `make test`'s tests under AddressSanitizer + UndefinedBehaviorSanitizer
-# (build-asan/; the integration tests run the instrumented server), but the
-# evaluations' smoke runs (label "eval": compute jobs in an uninstrumented
-# libtorch; their code paths run in the GPL, VO and robot tests here).
-# Benchmarks and the demo are not built: no test runs them.
-test-asan: deps
+# One instrumented build (build-asan/, clang) serves `make test-asan` and
+# `make fuzz`: every file is compiled once with AddressSanitizer, UBSan and
+# libFuzzer's coverage hooks (-fsanitize=fuzzer-no-link; in a test binary the
+# sanitizer runtime's own no-op hooks take them), the tests' own files at
+# -O0 (FLEETMEM_TEST_OPT), the libraries at SANITIZER_OPT. Two builds (gcc
+# ASan for the tests, clang for the fuzzers) compiled most of the server
+# twice: 8 of CI's minutes (docs/testing.md). Benchmarks and the demo are
+# not built: no test runs them.
+SANITIZE_FLAGS := -fsanitize=fuzzer-no-link,address,undefined \
+  -fno-sanitize-recover=undefined -fno-omit-frame-pointer
+configure-asan: deps
 	@cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
-	  -DCMAKE_CXX_FLAGS="$(SANITIZER_FLAGS_asan)" \
+	  -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 \
+	  -DCMAKE_CXX_FLAGS="$(SANITIZE_FLAGS)" \
 	  -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="$(SANITIZER_OPT)" \
-	  -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZER_FLAGS_asan)" \
-	  -DFLEETMEM_BUILD_BENCH=OFF -DFLEETMEM_BUILD_DEMO=OFF \
-	  -DFLEETMEM_TEST_OPT=-O0 >/dev/null
+	  -DCMAKE_EXE_LINKER_FLAGS="-fsanitize=address,undefined" \
+	  -DFLEETMEM_BUILD_FUZZ=ON -DFLEETMEM_BUILD_BENCH=OFF \
+	  -DFLEETMEM_BUILD_DEMO=OFF -DFLEETMEM_TEST_OPT=-O0 >/dev/null
+
+# `make test`'s tests under AddressSanitizer + UndefinedBehaviorSanitizer
+# (the integration tests run the instrumented server), but the evaluations'
+# smoke runs (label "eval": compute jobs in an uninstrumented libtorch;
+# their code paths run in the GPL, VO and robot tests here). Builds the
+# fuzzers too, so that `make fuzz` after it only runs them.
+test-asan: configure-asan
 	@cmake --build build-asan -j $(JOBS)
 	@cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
 	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
@@ -142,20 +154,12 @@ test-tsan: deps
 	  GTEST_FILTER='-RocksDb*:*/RocksDb:Kill/*:IndexSnapshotTest.*' \
 	  ctest --output-on-failure -j $(JOBS) -R '^($(subst $(space),|,$(TSAN_TESTS)))$$' $(CTEST_ARGS)
 
-# The libFuzzer harnesses (clang, ASan + UBSan; build-fuzz/), FUZZ_SECONDS
-# each from their seed corpora in the tree.
+# The libFuzzer harnesses (the instrumented build of test-asan, which
+# compiles them), FUZZ_SECONDS each from their seed corpora in the tree.
 FUZZ_SECONDS ?= 20
-FUZZ_FLAGS := -fsanitize=fuzzer-no-link,address,undefined -fno-omit-frame-pointer
-fuzz: deps
-	@cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
-	  -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 \
-	  -DCMAKE_CXX_FLAGS="$(FUZZ_FLAGS)" \
-	  -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="$(SANITIZER_OPT)" \
-	  -DCMAKE_EXE_LINKER_FLAGS="-fsanitize=address,undefined" \
-	  -DFLEETMEM_BUILD_FUZZ=ON -DFLEETMEM_BUILD_TESTS=OFF \
-	  -DFLEETMEM_BUILD_BENCH=OFF >/dev/null
-	@cmake --build build-fuzz -j $(JOBS) --target fleetmem_fuzzers
-	@tools/fuzz/run_fuzzers.sh build-fuzz $(FUZZ_SECONDS)
+fuzz: configure-asan
+	@cmake --build build-asan -j $(JOBS) --target fleetmem_fuzzers
+	@tools/fuzz/run_fuzzers.sh build-asan $(FUZZ_SECONDS)
 
 # 20 SIGKILLs of the server under concurrent uploads; every acknowledged
 # trace is checked after each restart (docs/reliability.md).
@@ -211,4 +215,4 @@ format:
 	@git ls-files '*.h' '*.cc' | xargs $(CLANG_FORMAT) -i
 
 clean:
-	rm -rf $(BUILD_DIR) build-asan build-tsan build-fuzz .demo
+	rm -rf $(BUILD_DIR) build-asan build-tsan .demo

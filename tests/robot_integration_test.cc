@@ -24,13 +24,13 @@
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/metric_head.h"
 #include "clients/robot/robot_state.pb.h"
+#include "fleetmem_paths.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"
 #include "gtest/gtest.h"
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
 #include "tests/small_filesystem.h"
-#include "fleetmem_paths.h"
 
 namespace fleetmem::testing {
 namespace {
@@ -118,6 +118,14 @@ std::vector<RobotCase> CameraAndLaser(const std::string& prefix) {
 class RobotIntegrationTest : public ::testing::Test {
  protected:
   void SetUp() override {
+    // Without the recordings every robot would stop at once and each check
+    // would wait out its deadline: fail here instead, saying what is missing.
+    for (const std::string& needed :
+         {kData + "/nordland/summer", kData + "/laser/aces.clf.bz2"}) {
+      ASSERT_TRUE(std::filesystem::exists(needed))
+          << needed << " is missing: this test runs robots on the real data "
+          << "(FLEETMEM_DATA_DIR, the checkout's ../shared/data by default)";
+    }
     ASSERT_FALSE(dir_.path().empty());
     ASSERT_EQ(mkdir(dir_.Join("server").c_str(), 0755), 0);
     ASSERT_NO_FATAL_FAILURE(StartServer());

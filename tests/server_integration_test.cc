@@ -414,6 +414,15 @@ TEST_F(MemoryApiTest, ConcurrentRobotsKeepMemoryBounded) {
       traces_in_events -= event.trace_count();
       EXPECT_EQ(live_clusters.erase(event.cluster_id()), 1u)
           << "forgotten cluster " << event.cluster_id() << " was not live";
+    } else if (event.type() == v1::MemoryEvent::CLUSTER_MERGED) {
+      // The server's default forgetting: the traces live on in the
+      // survivor but for those the merge dropped.
+      ++forgotten;
+      traces_in_events -= event.traces_dropped();
+      EXPECT_EQ(live_clusters.erase(event.cluster_id()), 1u)
+          << "merged cluster " << event.cluster_id() << " was not live";
+      EXPECT_TRUE(live_clusters.contains(event.merged_into()))
+          << "merged into " << event.merged_into() << ", not live";
     } else {
       ADD_FAILURE() << "event of unknown type: " << event.ShortDebugString();
     }

@@ -162,14 +162,17 @@ void PrintTraces(std::span<const v1::MemoryTrace> traces, std::ostream& out) {
 
 void PrintEvent(const v1::MemoryEvent& event, std::ostream& out) {
   out << absl::StrFormat(
-             "%d %s cluster=%d traces=%d robot=%s domain=%s "
-             "at=(%.2f, %.2f, %.2f) mean_reward=%.4f",
-             event.id(), v1::MemoryEvent::Type_Name(event.type()),
-             event.cluster_id(), event.trace_count(), Or(event.robot_id(), "-"),
-             Or(event.domain(), "-"), event.centroid_pose().x(),
-             event.centroid_pose().y(), event.centroid_pose().z(),
-             event.mean_reward())
-      << std::endl;  // Flushed: a watch is often piped.
+      "%d %s cluster=%d traces=%d robot=%s domain=%s "
+      "at=(%.2f, %.2f, %.2f) mean_reward=%.4f",
+      event.id(), v1::MemoryEvent::Type_Name(event.type()), event.cluster_id(),
+      event.trace_count(), Or(event.robot_id(), "-"), Or(event.domain(), "-"),
+      event.centroid_pose().x(), event.centroid_pose().y(),
+      event.centroid_pose().z(), event.mean_reward());
+  if (event.type() == v1::MemoryEvent::CLUSTER_MERGED) {
+    out << absl::StrFormat(" merged_into=%d traces_dropped=%d",
+                           event.merged_into(), event.traces_dropped());
+  }
+  out << std::endl;  // Flushed: a watch is often piped.
 }
 
 void PrintFleets(const v1::ListFleetsResponse& fleets, std::ostream& out) {

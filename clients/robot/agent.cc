@@ -553,7 +553,8 @@ void Agent::WatchLoop() {
             if (event.type() == v1::MemoryEvent::CLUSTER_ADDED &&
                 event.robot_id() != options_.robot_id) {
               state.set_peer_clusters_added(state.peer_clusters_added() + 1);
-            } else if (event.type() == v1::MemoryEvent::CLUSTER_FORGOTTEN) {
+            } else if (event.type() == v1::MemoryEvent::CLUSTER_FORGOTTEN ||
+                       event.type() == v1::MemoryEvent::CLUSTER_MERGED) {
               state.set_clusters_forgotten(state.clusters_forgotten() + 1);
             }
           });

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <limits>
 #include <set>
+#include <string>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -79,6 +80,46 @@ TEST(DownsampleByRewardTest, KeptAndDroppedPartitionTheInput) {
     all.insert(t.seq);
   }
   EXPECT_EQ(all.size(), 100u);
+}
+
+MemoryTrace At(uint64_t seq, const std::string& domain, double x,
+               float reward) {
+  MemoryTrace trace = Trace(seq, reward, 0);
+  trace.domain = domain;
+  trace.place.x = x;
+  return trace;
+}
+
+// Hand-worked: the best reward first (seq 3 at x = 9), then the other
+// domain's best (seq 11), then the farthest from what each domain keeps:
+// seq 1 (9 m from seq 3) before seq 12 (8 m from seq 11).
+TEST(DownsampleAlongPlacesTest, SpreadsOverPlacesAndDomains) {
+  std::vector<MemoryTrace> traces = {
+      At(1, "summer", 0, 0.1f),  At(2, "summer", 1, 0.2f),
+      At(3, "summer", 9, 0.9f),  At(4, "summer", 8, 0.5f),
+      At(11, "winter", 2, 0.4f), At(12, "winter", 10, 0.3f)};
+  const std::vector<MemoryTrace> dropped = DownsampleAlongPlaces(traces, 4);
+  EXPECT_THAT(Seqs(traces), ElementsAre(3, 11, 1, 12));
+  EXPECT_THAT(Seqs(dropped), UnorderedElementsAre(2, 4));
+}
+
+TEST(DownsampleAlongPlacesTest, TheSurvivorsDoNotDependOnTheInputOrder) {
+  std::vector<MemoryTrace> traces;
+  for (uint64_t i = 0; i < 30; ++i) {
+    traces.push_back(At(i, i % 3 == 0 ? "winter" : "summer",
+                        static_cast<double>((i * 7) % 13), 0.5f));
+  }
+  std::vector<MemoryTrace> reversed(traces.rbegin(), traces.rend());
+  DownsampleAlongPlaces(traces, 10);
+  DownsampleAlongPlaces(reversed, 10);
+  EXPECT_EQ(Seqs(traces), Seqs(reversed));
+  EXPECT_EQ(traces.size(), 10u);
+}
+
+TEST(DownsampleAlongPlacesTest, NothingDroppedWhenSmallEnough) {
+  std::vector<MemoryTrace> traces = {At(1, "a", 0, 1), At(2, "a", 5, 1)};
+  EXPECT_TRUE(DownsampleAlongPlaces(traces, 2).empty());
+  EXPECT_THAT(Seqs(traces), ElementsAre(1, 2));
 }
 
 }  // namespace

@@ -26,6 +26,14 @@ struct MemoryOptions {
   // Ablation "w/o consolidation-clustering": store every trace of a batch in
   // one cluster, no k-means and no downsampling.
   bool clustering = true;
+  // How forgetting (Algorithm 2) removes one cluster of the closest pair.
+  // true (memory.md's revised decision): the survivor takes the other's
+  // traces, downsampled along the places to N_max when they do not fit
+  // (DownsampleAlongPlaces), so the bound K_max limits clusters, not places:
+  // a stretch's summer and winter clusters, each other's closest pair, end
+  // up as one cluster holding both seasons. false: the paper's Algorithm 2,
+  // the other cluster goes with all its traces.
+  bool merge_on_forget = true;
   // Lloyd iterations of k-means after k-means++ seeding.
   int kmeans_max_iterations = 50;
   // Seed of the random generators (runs are reproducible). The engine

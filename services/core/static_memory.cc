@@ -4,6 +4,8 @@
 #include <cassert>
 #include <limits>
 #include <numeric>
+#include <set>
+#include <string_view>
 #include <utility>
 
 #include "absl/container/flat_hash_set.h"
@@ -150,7 +152,7 @@ ConsolidationResult StaticMemory::Consolidate(std::vector<MemoryTrace> batch,
     result.added.push_back(cluster);
     Insert(std::move(cluster));
   }
-  result.forgotten = Forget();
+  Forget(result);
   return result;
 }
 
@@ -349,21 +351,56 @@ std::optional<Cluster> StaticMemory::WithCentroid(uint64_t id) const {
   return whole;
 }
 
-std::vector<Cluster> StaticMemory::Forget() {
-  std::vector<Cluster> forgotten;
+void StaticMemory::Forget(ConsolidationResult& result) {
   const size_t max_clusters =
       static_cast<size_t>(std::max(options_.max_clusters, 1));
+  std::set<uint64_t> changed;
   while (clusters_.size() > max_clusters) {
     const std::optional<ClosestPairTracker::Pair> pair = centroids_.Closest();
     if (!pair) break;
     const double reward_a = clusters_.at(pair->a).MeanReward();
     const double reward_b = clusters_.at(pair->b).MeanReward();
-    // Keep what is hard: drop the lower mean reward; ties drop the older
+    // Keep what is hard: the lower mean reward goes; ties: the older
     // (smaller id, pair->a).
     const uint64_t victim = reward_b < reward_a ? pair->b : pair->a;
-    forgotten.push_back(Erase(victim));
+    const uint64_t survivor = victim == pair->a ? pair->b : pair->a;
+    if (!options_.merge_on_forget) {
+      result.forgotten.push_back(Erase(victim));
+      continue;
+    }
+    result.merged.push_back(Merge(victim, survivor));
+    changed.erase(victim);
+    changed.insert(survivor);
   }
-  return forgotten;
+  result.changed.assign(changed.begin(), changed.end());
+}
+
+ClusterMerge StaticMemory::Merge(uint64_t from, uint64_t into) {
+  ClusterMerge merge;
+  merge.into = into;
+  merge.from = Erase(from);
+  Cluster survivor = Erase(into);
+  // The centroid of the union, from the two centroids weighted by their
+  // traces (the codes themselves may be with the caller's index only).
+  const size_t n_into = survivor.traces.size();
+  const size_t n_from = merge.from.traces.size();
+  const double total =
+      static_cast<double>(std::max<size_t>(n_into + n_from, 1));
+  for (size_t d = 0; d < survivor.centroid.size(); ++d) {
+    survivor.centroid[d] = static_cast<float>(
+        (static_cast<double>(survivor.centroid[d]) * n_into +
+         static_cast<double>(merge.from.centroid[d]) * n_from) /
+        total);
+  }
+  for (const MemoryTrace& trace : merge.from.traces) {
+    survivor.traces.push_back(trace);
+    survivor.traces.back().cluster_id = into;
+  }
+  merge.dropped =
+      DownsampleAlongPlaces(survivor.traces, options_.max_traces_per_cluster);
+  for (MemoryTrace& trace : merge.dropped) trace.cluster_id = 0;
+  Insert(std::move(survivor));
+  return merge;
 }
 
 }  // namespace fleetmem::core

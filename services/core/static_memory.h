@@ -23,6 +23,17 @@
 
 namespace fleetmem::core {
 
+// One merge of forgetting (MemoryOptions::merge_on_forget): cluster `from`
+// is no longer held; `into`, which is, holds the traces of both that the
+// merge's downsampling kept.
+struct ClusterMerge {
+  Cluster from;  // as it was before the merge, with its centroid
+  uint64_t into = 0;
+  // Traces of either cluster that the merge's downsampling dropped
+  // (DownsampleAlongPlaces), cluster_id 0.
+  std::vector<MemoryTrace> dropped;
+};
+
 // What one consolidation changed; the caller persists it.
 struct ConsolidationResult {
   // Clusters appended to the memory (after downsampling), oldest first.
@@ -31,8 +42,15 @@ struct ConsolidationResult {
   std::vector<Cluster> added;
   // Traces dropped by downsampling (Eq. 15).
   std::vector<MemoryTrace> downsampled;
-  // Clusters removed by forgetting (Algorithm 2), in removal order.
+  // Clusters removed by forgetting (Algorithm 2) with their traces, in
+  // removal order (merge_on_forget false).
   std::vector<Cluster> forgotten;
+  // Merges of forgetting, in order (merge_on_forget true). No `from` id is
+  // held afterwards; an `into` may itself be merged away by a later merge.
+  std::vector<ClusterMerge> merged;
+  // Ids of the clusters held after the call whose traces or centroid a
+  // merge changed (each once, ascending); added clusters may be among them.
+  std::vector<uint64_t> changed;
 };
 
 // The part of Algorithm 1 that depends on the batch alone (feature-spatial
@@ -151,8 +169,10 @@ class StaticMemory {
   // too unless `with_centroid` is false (RestoreAll loads the tracker).
   void Insert(Cluster cluster, bool with_centroid = true);
   Cluster Erase(uint64_t cluster_id);
-  // Algorithm 2: removes clusters until at most K_max remain.
-  std::vector<Cluster> Forget();
+  // Algorithm 2: removes or merges clusters until at most K_max remain.
+  void Forget(ConsolidationResult& result);
+  // Merges cluster `from` into `into` (both held): see ClusterMerge.
+  ClusterMerge Merge(uint64_t from, uint64_t into);
 
   // Where a trace is: its cluster and its slot in the replay sampler.
   struct Location {

@@ -238,16 +238,19 @@ TEST(StaticMemoryTest, SmallBatchGetsOneClusterPerTrace) {
   ExpectInvariants(memory);
 }
 
-TEST(StaticMemoryTest, BoundsHoldOverManyBatches) {
+class BoundsTest : public ::testing::TestWithParam<bool> {};
+
+TEST_P(BoundsTest, BoundsHoldOverManyBatches) {
   MemoryOptions options;
   options.clusters_per_batch = 8;
   options.max_traces_per_cluster = 5;
   options.max_clusters = 30;
+  options.merge_on_forget = GetParam();
   StaticMemory memory(options);
   std::mt19937_64 rng(21);
   uint64_t next_cluster = 1;
-  size_t added = 0, forgotten = 0;
-  std::set<uint64_t> forgotten_ids;
+  size_t added = 0, removed = 0;
+  std::set<uint64_t> removed_ids;
   for (int b = 0; b < 40; ++b) {
     const std::string robot = "r" + std::to_string(b % 4);
     const ConsolidationResult r = memory.Consolidate(
@@ -255,25 +258,124 @@ TEST(StaticMemoryTest, BoundsHoldOverManyBatches) {
     ASSERT_EQ(r.added.size(), 8u);
     next_cluster += r.added.size();
     added += r.added.size();
-    forgotten += r.forgotten.size();
+    removed += r.forgotten.size() + r.merged.size();
+    EXPECT_TRUE(options.merge_on_forget ? r.forgotten.empty()
+                                        : r.merged.empty());
     for (const Cluster& c : r.forgotten) {
-      EXPECT_TRUE(forgotten_ids.insert(c.id).second);
+      EXPECT_TRUE(removed_ids.insert(c.id).second);
       EXPECT_FALSE(memory.clusters().contains(c.id));
       for (const MemoryTrace& t : c.traces) {
         EXPECT_EQ(memory.Find(t.key()), nullptr);
       }
     }
+    for (const ClusterMerge& m : r.merged) {
+      EXPECT_TRUE(removed_ids.insert(m.from.id).second);
+      EXPECT_FALSE(memory.clusters().contains(m.from.id));
+      for (const MemoryTrace& t : m.dropped) {
+        EXPECT_EQ(memory.Find(t.key()), nullptr);
+        EXPECT_EQ(t.cluster_id, 0u);
+      }
+    }
+    for (uint64_t id : r.changed) EXPECT_TRUE(memory.clusters().contains(id));
     ASSERT_LE(memory.clusters().size(), 30u) << "batch " << b;
     ExpectInvariants(memory);
     if (HasFailure()) return;
   }
   EXPECT_EQ(memory.clusters().size(), 30u);
-  EXPECT_EQ(added - forgotten, 30u);
+  EXPECT_EQ(added - removed, 30u);
+}
+
+INSTANTIATE_TEST_SUITE_P(DropAndMerge, BoundsTest, ::testing::Bool());
+
+// Merging (the default): the survivor of the closest pair is the one the
+// paper's forgetting keeps, and it takes the other's traces.
+TEST(StaticMemoryTest, ForgettingMergesTheClosestPairIntoItsSurvivor) {
+  MemoryOptions options;
+  options.max_clusters = 2;
+  StaticMemory memory(options);
+  const double s = options.spatial_scale_m;
+  memory.Restore(OneTraceCluster(1, {1, 0, 0, 0}, 5.0f, s));
+  memory.Restore(OneTraceCluster(2, {0, 0, 0, 1}, 1.0f, s));
+  const std::vector<float> centroid1 = memory.WithCentroid(1)->centroid;
+  MemoryTrace near1;
+  near1.robot_id = "r";
+  near1.seq = 10;
+  near1.code = {1, 0.1f, 0, 0};
+  near1.reward = 2.0f;
+  near1.domain = "winter";
+  std::mt19937_64 rng(1);
+  const ConsolidationResult r = memory.Consolidate({near1}, 3, rng);
+  ASSERT_EQ(r.added.size(), 1u);
+  EXPECT_TRUE(r.forgotten.empty());
+  ASSERT_EQ(r.merged.size(), 1u);
+  EXPECT_EQ(r.merged[0].from.id, 3u);  // lower mean reward than cluster 1
+  EXPECT_EQ(r.merged[0].into, 1u);
+  EXPECT_TRUE(r.merged[0].dropped.empty());
+  EXPECT_EQ(r.merged[0].from.centroid, r.added[0].centroid);
+  EXPECT_EQ(r.changed, std::vector<uint64_t>{1});
+  // Cluster 1 holds both traces, and its centroid is the mean of the two.
+  const std::optional<Cluster> one = memory.WithCentroid(1);
+  ASSERT_TRUE(one.has_value());
+  ASSERT_EQ(one->traces.size(), 2u);
+  const MemoryTrace* moved = memory.Find(near1.key());
+  ASSERT_NE(moved, nullptr);
+  EXPECT_EQ(moved->cluster_id, 1u);
+  ASSERT_EQ(one->centroid.size(), centroid1.size());
+  for (size_t d = 0; d < centroid1.size(); ++d) {
+    EXPECT_FLOAT_EQ(one->centroid[d],
+                    (centroid1[d] + r.added[0].centroid[d]) / 2.0f)
+        << d;
+  }
+  EXPECT_EQ(memory.trace_count(), 3u);
+  EXPECT_EQ(memory.traces_by_domain().at("winter"), 1u);
+  ExpectInvariants(memory);
+}
+
+// A merge that does not fit N_max keeps traces spread over the places, and
+// every domain of the two clusters.
+TEST(StaticMemoryTest, AMergeThatOverflowsKeepsPlacesAndDomains) {
+  MemoryOptions options;
+  options.max_clusters = 1;
+  options.max_traces_per_cluster = 4;
+  options.clusters_per_batch = 1;
+  options.spatial_scale_m = 1e6;  // places barely move the centroids
+  StaticMemory memory(options);
+  auto batch = [](const std::string& domain, uint64_t first_seq) {
+    std::vector<MemoryTrace> traces;
+    for (int i = 0; i < 4; ++i) {
+      MemoryTrace t;
+      t.robot_id = "r";
+      t.seq = first_seq + static_cast<uint64_t>(i);
+      t.domain = domain;
+      t.code = {1, 0, 0};
+      t.place.x = 10.0 * i;  // 0, 10, 20, 30 m
+      t.reward = 1.0f + 0.1f * static_cast<float>(i);
+      traces.push_back(std::move(t));
+    }
+    return traces;
+  };
+  std::mt19937_64 rng(3);
+  memory.Consolidate(batch("summer", 0), 1, rng);
+  const ConsolidationResult r =
+      memory.Consolidate(batch("winter", 100), 2, rng);
+  ASSERT_EQ(r.merged.size(), 1u);
+  ASSERT_EQ(r.merged[0].dropped.size(), 4u);
+  ASSERT_EQ(memory.clusters().size(), 1u);
+  const Cluster& kept = memory.clusters().begin()->second;
+  // Both seasons keep the two ends of the stretch (farthest points).
+  std::set<std::pair<std::string, double>> held;
+  for (const MemoryTrace& t : kept.traces) held.insert({t.domain, t.place.x});
+  EXPECT_EQ(held, (std::set<std::pair<std::string, double>>{{"summer", 0.0},
+                                                            {"summer", 30.0},
+                                                            {"winter", 0.0},
+                                                            {"winter", 30.0}}));
+  ExpectInvariants(memory);
 }
 
 TEST(StaticMemoryTest, ForgettingRemovesLowerRewardOfClosestPair) {
   MemoryOptions options;
   options.max_clusters = 2;
+  options.merge_on_forget = false;  // the paper's Algorithm 2
   StaticMemory memory(options);
   const double s = options.spatial_scale_m;
   // Cluster 1 (reward 5) and cluster 2 (reward 1) are far apart.
@@ -324,6 +426,7 @@ TEST(StaticMemoryTest, ForgettingRemovesLowerRewardOfClosestPair) {
 TEST(StaticMemoryTest, RestoredClustersTakePartInForgetting) {
   MemoryOptions options;
   options.max_clusters = 3;
+  options.merge_on_forget = false;
   StaticMemory memory(options);
   const double s = options.spatial_scale_m;
   memory.Restore(OneTraceCluster(1, {1, 0, 0}, 1.0f, s));

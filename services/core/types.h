@@ -64,7 +64,13 @@ struct Cluster {
   double MeanReward() const;
 };
 
-enum class EventType { kClusterAdded = 1, kClusterForgotten = 2 };
+// kClusterMerged: forgetting merged the cluster into `merged_into`
+// (MemoryOptions::merge_on_forget); its id is no longer held.
+enum class EventType {
+  kClusterAdded = 1,
+  kClusterForgotten = 2,
+  kClusterMerged = 3,
+};
 
 // A change of a fleet's static memory that robots and dashboards can watch.
 struct MemoryEvent {
@@ -77,6 +83,11 @@ struct MemoryEvent {
   Place centroid_place;
   float mean_reward = 0.0f;
   int64_t timestamp_ns = 0;
+  // kClusterMerged: the cluster that took this one's traces, and how many
+  // traces of the two the merge dropped (trace_count is this cluster's
+  // before the merge; the memory holds traces_dropped fewer traces after).
+  uint64_t merged_into = 0;
+  uint32_t traces_dropped = 0;
 };
 
 // Summary event for `cluster` (id and timestamp left for the caller).

@@ -1145,37 +1145,71 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     new_meta.next_cluster_id =
         std::max(new_meta.next_cluster_id, cluster.id + 1);
   }
-  absl::flat_hash_set<uint64_t> forgotten_ids;
+  // Clusters no longer held: forgotten whole, or merged into another.
+  absl::flat_hash_set<uint64_t> removed_ids;
   for (const core::Cluster& cluster : outcome.forgotten) {
-    forgotten_ids.insert(cluster.id);
+    removed_ids.insert(cluster.id);
   }
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    removed_ids.insert(merge.from.id);
+  }
+  // Erasures come first in the store: a merged cluster's moved traces are
+  // written again with their survivor.
+  for (uint64_t removed : removed_ids) {
+    if (!added_ids.contains(removed))
+      mutation.erase_clusters.push_back(removed);
+  }
+  std::sort(mutation.erase_clusters.begin(), mutation.erase_clusters.end());
+  // Held clusters that are new or that a merge changed, with every code
+  // (a survivor's older traces may have theirs in the index only).
+  std::vector<uint64_t> put_ids;
   for (const core::Cluster& cluster : outcome.added) {
-    if (forgotten_ids.contains(cluster.id)) continue;
-    std::optional<core::Cluster> held = memory.WithCentroid(cluster.id);
-    mutation.put_clusters.push_back(held.has_value() ? std::move(*held)
-                                                     : cluster);
+    if (!removed_ids.contains(cluster.id)) put_ids.push_back(cluster.id);
   }
-  for (const core::Cluster& cluster : outcome.forgotten) {
-    if (!added_ids.contains(cluster.id)) {
-      mutation.erase_clusters.push_back(cluster.id);
+  for (uint64_t changed : outcome.changed) {
+    if (!added_ids.contains(changed)) put_ids.push_back(changed);
+  }
+  std::vector<core::TraceKey> kept;
+  for (uint64_t put : put_ids) {
+    std::optional<core::Cluster> held = memory.WithCentroid(put);
+    if (!held.has_value()) continue;
+    for (const core::MemoryTrace& trace : held->traces) {
+      kept.push_back(trace.key());
     }
+    if (absl::Status filled = FillCodes(held->traces); !filled.ok()) {
+      FLEETMEM_LOG(kError) << "fleet \"" << id << "\": " << filled;
+      Reload().IgnoreError();
+      return filled;
+    }
+    mutation.put_clusters.push_back(*std::move(held));
   }
 
   const int64_t now_ns = engine->options_.now_ns();
-  auto append_event = [&](const core::Cluster& cluster, core::EventType type) {
-    core::MemoryEvent event = core::DescribeCluster(cluster, type);
+  auto append_event = [&](core::MemoryEvent event) {
     event.id = new_meta.next_event_id++;
     event.timestamp_ns = now_ns;
     mutation.append_events.push_back(std::move(event));
   };
   for (const core::Cluster& cluster : outcome.added) {
-    append_event(cluster, core::EventType::kClusterAdded);
+    append_event(
+        core::DescribeCluster(cluster, core::EventType::kClusterAdded));
   }
   for (const core::Cluster& cluster : outcome.forgotten) {
-    append_event(cluster, core::EventType::kClusterForgotten);
+    append_event(
+        core::DescribeCluster(cluster, core::EventType::kClusterForgotten));
+  }
+  size_t merge_dropped = 0;
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    core::MemoryEvent event =
+        core::DescribeCluster(merge.from, core::EventType::kClusterMerged);
+    event.merged_into = merge.into;
+    event.traces_dropped = static_cast<uint32_t>(merge.dropped.size());
+    append_event(std::move(event));
+    merge_dropped += merge.dropped.size();
   }
   new_meta.consolidations += 1;
-  new_meta.clusters_forgotten += outcome.forgotten.size();
+  new_meta.clusters_forgotten +=
+      outcome.forgotten.size() + outcome.merged.size();
   const size_t retained = engine->options_.max_events_per_fleet;
   if (retained > 0 &&
       new_meta.next_event_id - new_meta.first_event_id > retained) {
@@ -1205,14 +1239,19 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   }
 
   // The batch was indexed while pending and its codes do not change: only
-  // what downsampling dropped and what forgetting removed (including
-  // clusters of this batch) leaves the index.
+  // what downsampling dropped, what forgetting removed (including clusters
+  // of this batch) and what merges dropped leave the index.
   std::vector<core::TraceKey> removed;
   for (const core::MemoryTrace& trace : outcome.downsampled) {
     removed.push_back(trace.key());
   }
   for (const core::Cluster& cluster : outcome.forgotten) {
     for (const core::MemoryTrace& trace : cluster.traces) {
+      removed.push_back(trace.key());
+    }
+  }
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    for (const core::MemoryTrace& trace : merge.dropped) {
       removed.push_back(trace.key());
     }
   }
@@ -1223,21 +1262,15 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     absl::Status reloaded = Reload();
     if (!reloaded.ok()) return reloaded;
   } else {
-    std::vector<core::TraceKey> kept;
-    for (const core::Cluster& cluster : outcome.added) {
-      if (forgotten_ids.contains(cluster.id)) continue;
-      for (const core::MemoryTrace& trace : cluster.traces) {
-        kept.push_back(trace.key());
-      }
-    }
     ReleaseCodes(kept);
   }
 
   ConsolidateResult batch_result;
   batch_result.consolidated_traces = batch_size;
-  batch_result.downsampled_traces = outcome.downsampled.size();
+  batch_result.downsampled_traces = outcome.downsampled.size() + merge_dropped;
   batch_result.clusters_added = outcome.added.size();
-  batch_result.clusters_forgotten = outcome.forgotten.size();
+  batch_result.clusters_forgotten =
+      outcome.forgotten.size() + outcome.merged.size();
   Accumulate(batch_result, &notices->consolidated);
   ++notices->consolidations;
   notices->consolidation_seconds += absl::ToDoubleSeconds(absl::Now() - start);

@@ -620,19 +620,25 @@ TEST_F(MemoryEngineTest, ConsolidateTakesEveryRobotsPendingTraces) {
   EXPECT_EQ(result->clusters_added, 4u + 2u);  // min(K, batch) per robot
   EXPECT_EQ(result->clusters_forgotten, 1u);   // 6 > K_max = 5
   EXPECT_EQ(result->clusters, 5u);
-  // 6 traces in 4 clusters and 2 in 2 never exceed N_max = 3.
-  EXPECT_EQ(result->downsampled_traces, 0u);
   absl::StatusOr<std::vector<core::MemoryEvent>> events =
       engine_->ReadEvents("f1", 0);
   ASSERT_TRUE(events.ok());
-  uint64_t forgotten_traces = 0;
+  // Forgetting merged the closest pair (the default): the survivor holds
+  // both clusters' traces, at most N_max = 3, and the memory every trace
+  // the merge did not drop.
+  uint64_t dropped_traces = 0, merges = 0;
   for (const core::MemoryEvent& event : *events) {
-    if (event.type == core::EventType::kClusterForgotten) {
-      forgotten_traces += event.trace_count;
+    EXPECT_NE(event.type, core::EventType::kClusterForgotten);
+    if (event.type == core::EventType::kClusterMerged) {
+      ++merges;
+      dropped_traces += event.traces_dropped;
+      EXPECT_NE(event.merged_into, 0u);
+      EXPECT_NE(event.merged_into, event.cluster_id);
     }
   }
-  EXPECT_GE(forgotten_traces, 1u);
-  EXPECT_EQ(result->traces, 8u - forgotten_traces);
+  EXPECT_EQ(merges, 1u);
+  EXPECT_EQ(result->traces, 8u - dropped_traces);
+  EXPECT_EQ(result->downsampled_traces, dropped_traces);
 
   FleetStats stats = Stats();
   EXPECT_EQ(stats.pending_traces, 0u);

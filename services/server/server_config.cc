@@ -58,6 +58,7 @@ void ApplyMemory(const MemoryConfig& in, core::MemoryOptions* out) {
   if (in.has_forgetting_exact_below()) {
     out->forgetting_exact_below = in.forgetting_exact_below();
   }
+  if (in.has_merge_on_forget()) out->merge_on_forget = in.merge_on_forget();
 }
 
 void ApplyEngine(const EngineConfig& in, engine::EngineOptions* out) {
@@ -631,6 +632,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       " reward_floor=", memory.reward_floor,
       " spatial_scale_m=", memory.spatial_scale_m,
       " clustering=", memory.clustering ? "true" : "false",
+      " merge_on_forget=", memory.merge_on_forget ? "true" : "false",
       " kmeans_max_iterations=", memory.kmeans_max_iterations,
       " seed=", memory.seed, " segment_size=", config.engine.segment_size,
       " max_traces_per_upload=", config.engine.max_traces_per_upload,

@@ -304,6 +304,11 @@ TEST_P(StoreTest, EventsAfterCursorWithLimit) {
         id,
         id % 4 == 0 ? EventType::kClusterForgotten : EventType::kClusterAdded,
         id / 2));
+    if (id % 7 == 0) {  // a merge, with its own fields
+      all.back().type = EventType::kClusterMerged;
+      all.back().merged_into = id + 1;
+      all.back().traces_dropped = static_cast<uint32_t>(id % 5);
+    }
   }
   FleetMutation first;
   first.append_events.assign(all.begin(), all.begin() + 200);

@@ -218,9 +218,19 @@ absl::StatusOr<engine::RobotRecord> DecodeRobot(std::string_view key,
 std::string EncodeEvent(const core::MemoryEvent& event) {
   Event record;
   record.set_id(event.id);
-  record.set_type(event.type == core::EventType::kClusterForgotten
-                      ? EVENT_TYPE_CLUSTER_FORGOTTEN
-                      : EVENT_TYPE_CLUSTER_ADDED);
+  switch (event.type) {
+    case core::EventType::kClusterAdded:
+      record.set_type(EVENT_TYPE_CLUSTER_ADDED);
+      break;
+    case core::EventType::kClusterForgotten:
+      record.set_type(EVENT_TYPE_CLUSTER_FORGOTTEN);
+      break;
+    case core::EventType::kClusterMerged:
+      record.set_type(EVENT_TYPE_CLUSTER_MERGED);
+      record.set_merged_into(event.merged_into);
+      record.set_traces_dropped(event.traces_dropped);
+      break;
+  }
   record.set_cluster_id(event.cluster_id);
   record.set_trace_count(event.trace_count);
   record.set_robot_id(event.robot_id);
@@ -251,6 +261,11 @@ absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
       break;
     case EVENT_TYPE_CLUSTER_FORGOTTEN:
       event.type = core::EventType::kClusterForgotten;
+      break;
+    case EVENT_TYPE_CLUSTER_MERGED:
+      event.type = core::EventType::kClusterMerged;
+      event.merged_into = record.merged_into();
+      event.traces_dropped = record.traces_dropped();
       break;
     default:
       return Corrupt(key, absl::StrCat("unknown event type ", record.type()));

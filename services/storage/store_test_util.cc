@@ -146,7 +146,8 @@ std::string Dump(const std::vector<core::MemoryEvent>& events) {
     absl::StrAppend(&out, "event ", e.id, " type=", static_cast<int>(e.type),
                     " cluster=", e.cluster_id, " traces=", e.trace_count,
                     " robot=", e.robot_id, " domain=", e.domain,
-                    " ts=", e.timestamp_ns);
+                    " ts=", e.timestamp_ns, " into=", e.merged_into,
+                    " dropped=", e.traces_dropped);
     absl::StrAppendFormat(&out, " reward=%a place=", e.mean_reward);
     DumpPlace(e.centroid_place, &out);
     out.append("\n");

@@ -22,6 +22,8 @@ v1::MemoryEvent::Type EventTypeToProto(core::EventType type) {
       return v1::MemoryEvent::CLUSTER_ADDED;
     case core::EventType::kClusterForgotten:
       return v1::MemoryEvent::CLUSTER_FORGOTTEN;
+    case core::EventType::kClusterMerged:
+      return v1::MemoryEvent::CLUSTER_MERGED;
   }
   return v1::MemoryEvent::TYPE_UNSPECIFIED;
 }
@@ -38,6 +40,8 @@ void EventToProto(const core::MemoryEvent& event, v1::MemoryEvent* out) {
   PlaceToProto(event.centroid_place, out->mutable_centroid_pose());
   out->set_mean_reward(event.mean_reward);
   out->set_timestamp_ns(event.timestamp_ns);
+  out->set_merged_into(event.merged_into);
+  out->set_traces_dropped(event.traces_dropped);
 }
 
 engine::PlaceQuery QueryFromProto(const v1::QueryPlaceRequest& request) {

@@ -26,7 +26,7 @@ using api::TraceToProto;
 std::vector<core::MemoryTrace> UploadedTracesFromProto(
     const google::protobuf::RepeatedPtrField<v1::MemoryTrace>& traces);
 
-// CLUSTER_ADDED / CLUSTER_FORGOTTEN.
+// CLUSTER_ADDED / CLUSTER_FORGOTTEN / CLUSTER_MERGED.
 void EventToProto(const core::MemoryEvent& event, v1::MemoryEvent* out);
 
 engine::PlaceQuery QueryFromProto(const v1::QueryPlaceRequest& request);

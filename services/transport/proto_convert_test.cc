@@ -100,6 +100,7 @@ TEST(ProtoConvertTest, EventToProto) {
   const Case cases[] = {
       {core::EventType::kClusterAdded, v1::MemoryEvent::CLUSTER_ADDED},
       {core::EventType::kClusterForgotten, v1::MemoryEvent::CLUSTER_FORGOTTEN},
+      {core::EventType::kClusterMerged, v1::MemoryEvent::CLUSTER_MERGED},
   };
   for (const Case& c : cases) {
     core::MemoryEvent event;
@@ -112,6 +113,8 @@ TEST(ProtoConvertTest, EventToProto) {
     event.centroid_place = core::Place{.x = 1, .y = 2, .z = 3, .yaw = 0};
     event.mean_reward = 0.5f;
     event.timestamp_ns = 77;
+    event.merged_into = 9;
+    event.traces_dropped = 4;
     v1::MemoryEvent proto;
     EventToProto(event, &proto);
     EXPECT_EQ(proto.id(), 17u);
@@ -123,6 +126,8 @@ TEST(ProtoConvertTest, EventToProto) {
     EXPECT_EQ(proto.centroid_pose().z(), 3.0);
     EXPECT_EQ(proto.mean_reward(), 0.5f);
     EXPECT_EQ(proto.timestamp_ns(), 77);
+    EXPECT_EQ(proto.merged_into(), 9u);
+    EXPECT_EQ(proto.traces_dropped(), 4u);
   }
 }
 

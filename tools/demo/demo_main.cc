@@ -31,6 +31,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <memory>
@@ -51,15 +52,16 @@
 #include "absl/time/time.h"
 #include "clients/cpp/fleetmem_client.h"
 #include "clients/robot/code_search.h"
-#include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/image_encoder.h"
+#include "clients/robot/learning/gpl_model.h"
+#include "clients/robot/learning/metric_head.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/robot_store.h"
+#include "fleetmem_paths.h"
 #include "google/protobuf/util/json_util.h"
 #include "services/common/files.h"
 #include "services/core/place_metrics.h"
 #include "tools/demo/command_line.h"
-#include "fleetmem_paths.h"
 
 ABSL_FLAG(std::string, server, "127.0.0.1:50051", "fleetmem server, HOST:PORT");
 ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
@@ -84,6 +86,11 @@ ABSL_FLAG(std::string, gpl_model, "",
           "shows the learned model beside the classical code");
 ABSL_FLAG(int, learn_steps, 30,
           "place-head steps per segment of the GPL robots");
+ABSL_FLAG(bool, learn, true,
+          "the same robots drive again in a fleet of their own that learns "
+          "(fleetmem-robot --learn: the metric head on the fleet code), and "
+          "the table shows each robot's learned head beside the classical "
+          "code on the same map");
 ABSL_FLAG(bool, sequential_robots, false,
           "run the robots one after another instead of side by side: the "
           "server then receives their segments in a fixed order, so a run "
@@ -119,9 +126,27 @@ struct Setup {
   std::unique_ptr<robot::ImageEncoder> encoder;
   std::string encoder_name;
   int segment_size = 200;
-  // Non-empty: the robots run the GPL model and learn (second pass).
+  // The robots learn the metric head on the fleet code (--learn).
+  bool learn_metric = false;
+  // Non-empty: the robots run the GPL model and learn.
   std::string gpl_model;
 };
+
+// `classical`'s setup for a fleet of its own, `suffix` on its id and work
+// dir (no encoder: the learning passes encode with the classical one).
+Setup LearningSetup(const Setup& classical, const std::string& suffix) {
+  Setup setup;
+  setup.fleet_id = classical.fleet_id + suffix;
+  setup.server = classical.server;
+  setup.summer_dir = classical.summer_dir;
+  setup.winter_dir = classical.winter_dir;
+  setup.robot_binary = classical.robot_binary;
+  setup.work_dir = classical.work_dir + suffix;
+  setup.numbers = classical.numbers;
+  setup.encoder_name = classical.encoder_name;
+  setup.segment_size = classical.segment_size;
+  return setup;
+}
 
 struct Drive {
   std::string robot_id;
@@ -167,6 +192,7 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
         absl::StrCat(setup.segment_size)};
     if (setup.gpl_model.empty()) {
       args.insert(args.end(), {"--encoder", setup.encoder_name});
+      if (setup.learn_metric) args.push_back("--learn");
     } else {
       args.insert(args.end(),
                   {"--gpl-model", setup.gpl_model, "--learn", "--learn-steps",
@@ -245,6 +271,17 @@ absl::StatusOr<EventSummary> ReadEvents(client::Client& client,
         } else if (event.type() == v1::MemoryEvent::CLUSTER_FORGOTTEN) {
           ++summary.forgotten;
           summary.live.erase(event.cluster_id());
+        } else if (event.type() == v1::MemoryEvent::CLUSTER_MERGED) {
+          // The survivor's mean reward is kept as it was (events do not
+          // say which traces the merge dropped).
+          ++summary.forgotten;
+          auto from = summary.live.find(event.cluster_id());
+          auto into = summary.live.find(event.merged_into());
+          if (from != summary.live.end() && into != summary.live.end()) {
+            const uint32_t both = from->second.first + into->second.first;
+            into->second.first = both - std::min(both, event.traces_dropped());
+          }
+          summary.live.erase(event.cluster_id());
         }
         return event.id() < last_event_id;
       });
@@ -311,24 +348,149 @@ absl::StatusOr<std::vector<float>> EncodeFrame(const Setup& setup,
   return setup.encoder->EncodeImage(*grey);
 }
 
-// The GPL pass: the same drives in a fleet of their own with the fleet's
-// GPL model, learning every segment (summer uploads; winter query-only, its
-// segments paired with the summer traces in each robot's dynamic memory).
-// Rows: the frozen fleet model and each robot's learned model after winter,
-// scored like the baseline (winter frames against every summer frame of the
-// stretches, descriptors F(E(q))).
+// Runs `drives` again in the fleet of `setup`, whose robots learn: summer
+// uploads, a Consolidate, then winter query-only (each winter segment is
+// paired with the summer traces in the robot's dynamic memory, refreshed
+// from the whole fleet).
+absl::Status RunLearningFleet(const Setup& setup, std::vector<Drive>& drives,
+                              client::Client& observer) {
+  absl::Status ran = RunRobots(setup, drives, "summer", /*query_only=*/false);
+  if (!ran.ok()) return ran;
+  absl::StatusOr<v1::ConsolidateResponse> consolidated =
+      observer.Consolidate(setup.fleet_id);
+  if (!consolidated.ok()) return consolidated.status();
+  return RunRobots(setup, drives, "winter", /*query_only=*/true);
+}
+
+// Codes of every frame of the drives' stretches in both seasons, and where
+// each frame is.
+struct SeasonCodes {
+  std::vector<std::vector<float>> summer, winter;
+  std::vector<double> summer_x, winter_x;
+  std::vector<size_t> owner;  // drive of each winter frame
+};
+
+absl::StatusOr<SeasonCodes> CodesOf(
+    const Setup& setup, const std::vector<Drive>& drives,
+    const std::function<absl::StatusOr<std::vector<float>>(const cv::Mat&)>&
+        encode) {
+  SeasonCodes codes;
+  for (size_t d = 0; d < drives.size(); ++d) {
+    for (size_t i = drives[d].stretch.begin; i < drives[d].stretch.end; ++i) {
+      for (const bool winter : {false, true}) {
+        absl::StatusOr<cv::Mat> grey = robot::LoadNordlandGrey(
+            winter ? setup.winter_dir : setup.summer_dir, setup.numbers[i]);
+        if (!grey.ok()) return grey.status();
+        absl::StatusOr<std::vector<float>> z = encode(*grey);
+        if (!z.ok()) return z.status();
+        (winter ? codes.winter : codes.summer).push_back(*std::move(z));
+        (winter ? codes.winter_x : codes.summer_x).push_back(setup.numbers[i]);
+      }
+      codes.owner.push_back(d);
+    }
+  }
+  return codes;
+}
+
+using DescribeFn =
+    std::function<absl::StatusOr<std::vector<std::vector<float>>>(
+        std::span<const std::vector<float>>)>;
+
+// Scores the winter frames of drive `only` (or all, -1) against every summer
+// frame of the stretches, both described by `describe`, like the baseline
+// row. Time per query: the winter code's descriptor plus the brute-force
+// search (the map's descriptors are made once).
+absl::Status ScoreWinter(const DescribeFn& describe, const SeasonCodes& codes,
+                         int only, core::FirstCorrectRanks& ranks, double& ms) {
+  absl::StatusOr<std::vector<std::vector<float>>> map = describe(codes.summer);
+  if (!map.ok()) return map.status();
+  if (map->empty()) return absl::OkStatus();
+  robot::BruteForceIndex index(map->front().size());
+  for (size_t j = 0; j < map->size(); ++j) {
+    index.Add((*map)[j], codes.summer_x[j]);
+  }
+  for (size_t j = 0; j < codes.winter.size(); ++j) {
+    if (only >= 0 && codes.owner[j] != size_t(only)) continue;
+    const auto start = Clock::now();
+    absl::StatusOr<std::vector<std::vector<float>>> q =
+        describe(std::span<const std::vector<float>>(&codes.winter[j], 1));
+    if (!q.ok()) return q.status();
+    std::vector<core::Place> found;
+    for (double x : index.Search((*q)[0], kQueryK)) found.push_back({.x = x});
+    ms += MillisSince(start);
+    ranks.push_back(robot::FirstCorrectRank(found, {.x = codes.winter_x[j]},
+                                            kToleranceUnits));
+  }
+  return absl::OkStatus();
+}
+
+// The learning pass (default learner): the same drives in a fleet of their
+// own whose robots learn the metric head on the fleet code. Row: each
+// robot's head after its winter drive, scored on the baseline's map (every
+// summer frame of the stretches) with its own winter frames as queries.
+absl::StatusOr<Row> MetricPass(const Setup& classical,
+                               std::vector<Drive> drives,
+                               client::Client& observer) {
+  Setup setup = LearningSetup(classical, "-learned");
+  setup.learn_metric = true;
+  std::printf(
+      "\nLearning pass: fleet %s, the robots learn the metric head on the "
+      "%s code (fleetmem-robot --learn)\n",
+      setup.fleet_id.c_str(), classical.encoder->version().c_str());
+  std::fflush(stdout);
+  if (absl::Status ran = RunLearningFleet(setup, drives, observer); !ran.ok()) {
+    return ran;
+  }
+  absl::StatusOr<SeasonCodes> codes =
+      CodesOf(setup, drives, [&](const cv::Mat& grey) {
+        return classical.encoder->EncodeImage(grey);
+      });
+  if (!codes.ok()) return codes.status();
+  Row learned;
+  learned.system =
+      "HOG + metric head learned by each robot (summer + winter drives; all "
+      "summer frames)";
+  learned.traces = absl::StrCat(codes->summer.size());
+  learned.clusters = "-";
+  learned.consolidation_ms = "-";
+  double ms = 0.0;
+  for (size_t d = 0; d < drives.size(); ++d) {
+    const std::string path = absl::StrCat(
+        setup.work_dir, "/", drives[d].robot_id, "-winter/metric-head.bin");
+    absl::StatusOr<std::string> bytes = files::ReadFile(path);
+    if (!bytes.ok()) return bytes.status();
+    absl::StatusOr<robot::gpl::MetricHead> head =
+        robot::gpl::MetricHead::Deserialize(
+            *bytes, int(classical.encoder->dimension()));
+    if (!head.ok()) {
+      return absl::DataLossError(
+          absl::StrCat(path, ": ", head.status().message()));
+    }
+    if (!head->fitted()) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(path, ": the robot's head was never fitted"));
+    }
+    const DescribeFn describe = [&](std::span<const std::vector<float>> z) {
+      return head->Describe(z);
+    };
+    if (absl::Status s =
+            ScoreWinter(describe, *codes, int(d), learned.ranks, ms);
+        !s.ok()) {
+      return s;
+    }
+  }
+  learned.query_ms = ms / std::max<size_t>(learned.ranks.size(), 1);
+  return learned;
+}
+
+// The GPL pass (--gpl-model): the same drives in a fleet of their own with
+// the fleet's GPL model, learning every segment. Rows: the frozen fleet
+// model and each robot's learned model after winter, scored like the
+// baseline (descriptors F(E(q))).
 absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
                                          std::vector<Drive> drives,
                                          client::Client& observer) {
-  Setup setup;
-  setup.fleet_id = classical.fleet_id + "-gpl";
-  setup.server = classical.server;
-  setup.summer_dir = classical.summer_dir;
-  setup.winter_dir = classical.winter_dir;
-  setup.robot_binary = classical.robot_binary;
-  setup.work_dir = classical.work_dir + "-gpl";
-  setup.numbers = classical.numbers;
-  setup.segment_size = classical.segment_size;
+  Setup setup = LearningSetup(classical, "-gpl");
   setup.gpl_model = absl::GetFlag(FLAGS_gpl_model);
   std::printf(
       "\nGPL pass: fleet %s, model %s, the robots learn (%d steps per "
@@ -336,60 +498,27 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
       setup.fleet_id.c_str(), setup.gpl_model.c_str(),
       absl::GetFlag(FLAGS_learn_steps));
   std::fflush(stdout);
-  absl::Status ran = RunRobots(setup, drives, "summer", /*query_only=*/false);
-  if (!ran.ok()) return ran;
-  absl::StatusOr<v1::ConsolidateResponse> consolidated =
-      observer.Consolidate(setup.fleet_id);
-  if (!consolidated.ok()) return consolidated.status();
-  ran = RunRobots(setup, drives, "winter", /*query_only=*/true);
-  if (!ran.ok()) return ran;
-
-  // Codes of every frame of the stretches (the encoder is frozen: the same
-  // for the fleet model and every robot's learned copy).
+  if (absl::Status ran = RunLearningFleet(setup, drives, observer); !ran.ok()) {
+    return ran;
+  }
+  // The encoder is frozen: the same codes for the fleet model and every
+  // robot's learned copy.
   absl::StatusOr<std::unique_ptr<robot::gpl::GplModel>> fleet_model =
       robot::gpl::GplModel::Load(setup.gpl_model);
   if (!fleet_model.ok()) return fleet_model.status();
-  std::vector<std::vector<float>> summer_codes, winter_codes;
-  std::vector<double> summer_x, winter_x;
-  std::vector<size_t> owner;  // drive of each winter frame
-  for (size_t d = 0; d < drives.size(); ++d) {
-    for (size_t i = drives[d].stretch.begin; i < drives[d].stretch.end; ++i) {
-      for (const bool winter : {false, true}) {
-        absl::StatusOr<cv::Mat> grey = robot::LoadNordlandGrey(
-            winter ? setup.winter_dir : setup.summer_dir, setup.numbers[i]);
-        if (!grey.ok()) return grey.status();
-        absl::StatusOr<std::vector<std::vector<float>>> z =
-            (*fleet_model)->Encode(std::span<const cv::Mat>(&*grey, 1));
-        if (!z.ok()) return z.status();
-        (winter ? winter_codes : summer_codes).push_back(std::move((*z)[0]));
-        (winter ? winter_x : summer_x).push_back(setup.numbers[i]);
-      }
-      owner.push_back(d);
-    }
-  }
-  // Scores winter frames (of drive `only`, or all) under `model`.
-  // Time per query: the head's descriptor of the winter code plus the
-  // brute-force search (the database's descriptors are made once).
-  auto score = [&](robot::gpl::GplModel& model, int only,
-                   core::FirstCorrectRanks& ranks, double& ms) -> absl::Status {
-    absl::StatusOr<std::vector<std::vector<float>>> db =
-        model.Describe(summer_codes);
-    if (!db.ok()) return db.status();
-    robot::BruteForceIndex index(model.descriptor_dimension());
-    for (size_t j = 0; j < db->size(); ++j) index.Add((*db)[j], summer_x[j]);
-    for (size_t j = 0; j < winter_codes.size(); ++j) {
-      if (only >= 0 && owner[j] != size_t(only)) continue;
-      const auto start = Clock::now();
-      absl::StatusOr<std::vector<std::vector<float>>> q = model.Describe(
-          std::span<const std::vector<float>>(&winter_codes[j], 1));
-      if (!q.ok()) return q.status();
-      std::vector<core::Place> found;
-      for (double x : index.Search((*q)[0], kQueryK)) found.push_back({.x = x});
-      ms += MillisSince(start);
-      ranks.push_back(
-          robot::FirstCorrectRank(found, {.x = winter_x[j]}, kToleranceUnits));
-    }
-    return absl::OkStatus();
+  absl::StatusOr<SeasonCodes> codes =
+      CodesOf(setup, drives,
+              [&](const cv::Mat& grey) -> absl::StatusOr<std::vector<float>> {
+                absl::StatusOr<std::vector<std::vector<float>>> z =
+                    (*fleet_model)->Encode(std::span<const cv::Mat>(&grey, 1));
+                if (!z.ok()) return z.status();
+                return std::move((*z)[0]);
+              });
+  if (!codes.ok()) return codes.status();
+  auto describe_with = [](robot::gpl::GplModel& model) -> DescribeFn {
+    return [&model](std::span<const std::vector<float>> z) {
+      return model.Describe(z);
+    };
   };
   Row frozen, learned;
   frozen.system = absl::StrCat("GPL fleet model ", (*fleet_model)->version(),
@@ -397,21 +526,24 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
   learned.system =
       "GPL learned by each robot (summer + winter drives; all summer frames)";
   for (Row* row : {&frozen, &learned}) {
-    row->traces = absl::StrCat(summer_codes.size());
+    row->traces = absl::StrCat(codes->summer.size());
     row->clusters = "-";
     row->consolidation_ms = "-";
   }
   double frozen_ms = 0.0, learned_ms = 0.0;
-  if (absl::Status s = score(**fleet_model, -1, frozen.ranks, frozen_ms);
-      !s.ok())
+  if (absl::Status s = ScoreWinter(describe_with(**fleet_model), *codes, -1,
+                                   frozen.ranks, frozen_ms);
+      !s.ok()) {
     return s;
+  }
   for (size_t d = 0; d < drives.size(); ++d) {
     const std::string path = absl::StrCat(
         setup.work_dir, "/", drives[d].robot_id, "-winter/gpl-learned.pt");
     absl::StatusOr<std::unique_ptr<robot::gpl::GplModel>> own =
         robot::gpl::GplModel::Load(path);
     if (!own.ok()) return own.status();
-    if (absl::Status s = score(**own, int(d), learned.ranks, learned_ms);
+    if (absl::Status s = ScoreWinter(describe_with(**own), *codes, int(d),
+                                     learned.ranks, learned_ms);
         !s.ok()) {
       return s;
     }
@@ -600,6 +732,11 @@ absl::Status Run() {
       std::max<size_t>(local_ms.size(), 1);
 
   std::vector<Row> rows = {memory_row, baseline_row};
+  if (absl::GetFlag(FLAGS_learn)) {
+    absl::StatusOr<Row> learned = MetricPass(setup, drives, *observer);
+    if (!learned.ok()) return learned.status();
+    rows.push_back(*std::move(learned));
+  }
   if (!absl::GetFlag(FLAGS_gpl_model).empty()) {
     absl::StatusOr<std::vector<Row>> gpl = GplPass(setup, drives, *observer);
     if (!gpl.ok()) return gpl.status();

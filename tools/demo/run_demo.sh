@@ -12,7 +12,9 @@
 # Usage: tools/demo/run_demo.sh [BUILD_DIR] [fleetmem-demo flags...]
 #   BUILD_DIR defaults to "build" (relative to the project root).
 # Environment: FLEETMEM_DEMO_STARTUP_TIMEOUT (seconds, default 30),
-#   FLEETMEM_DEMO_STOP_TIMEOUT (seconds, default 30).
+#   FLEETMEM_DEMO_STOP_TIMEOUT (seconds, default 30), FLEETMEM_DEMO_GPL=1
+#   (add the GPL model's rows), FLEETMEM_DEMO_SERVER_ARGS (more server
+#   flags), FLEETMEM_DEMO_DIR (instead of .demo/).
 set -euo pipefail
 
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
@@ -32,7 +34,7 @@ for bin in "$server_bin" "$demo_bin" "$robot_bin"; do
   fi
 done
 
-demo_dir="$root/.demo"
+demo_dir="${FLEETMEM_DEMO_DIR:-$root/.demo}"
 log="$demo_dir/server.log"
 results="$demo_dir/results.md"
 startup_timeout="${FLEETMEM_DEMO_STARTUP_TIMEOUT:-30}"
@@ -85,9 +87,14 @@ trap 'stop_all 143' TERM
 # shellcheck source=../process/server.sh
 source "$root/tools/process/server.sh"
 echo "run_demo.sh: starting fleetmem-server, log $log"
+# FLEETMEM_DEMO_SERVER_ARGS: more server flags, e.g. "--config FILE" for
+# other memory options (docs/results.md compares forgetting by merging and
+# by dropping this way).
+# shellcheck disable=SC2086
 if ! SERVER_START_SECONDS=$startup_timeout start_server "$build_dir" \
   "$demo_dir/data" "$log" \
-  --http-listen "127.0.0.1:${FLEETMEM_DEMO_HTTP_PORT:-0}"; then
+  --http-listen "127.0.0.1:${FLEETMEM_DEMO_HTTP_PORT:-0}" \
+  ${FLEETMEM_DEMO_SERVER_ARGS:-}; then
   kill -KILL "$SERVER_PID" 2>/dev/null || true
   echo "run_demo.sh: fleetmem-server did not start" >&2
   exit 1
@@ -98,21 +105,26 @@ http_address=$SERVER_HTTP_ADDR
 echo "run_demo.sh: fleetmem-server (pid $server_pid) listening on $address"
 echo "run_demo.sh: watch the fleet's memory live at http://$http_address/"
 
-# The fleet's GPL model: its encoder pre-trained once on the first summer
-# stretch (300 frames, quick settings), then frozen; the robots' second pass
-# learns with it. Kept in .demo/ and reused by later demos.
-eval_bin="$build_dir/bin/fleetmem-eval"
-gpl_model="$demo_dir/gpl-fleet.pt"
-if [[ ! -f "$gpl_model" ]]; then
-  echo "run_demo.sh: pre-training the fleet's GPL model on 300 summer frames (about a minute)"
-  "$eval_bin" pretrain --images "${FLEETMEM_DATA:-$root/../shared/data}/nordland/summer" \
-    --count 300 --steps 300 --version gpl-demo-64x32-d256-v1 --out "$gpl_model"
+# The learned row is the robots' default learner, the metric head on the
+# HOG code (fleetmem-demo --learn). FLEETMEM_DEMO_GPL=1 adds the GPL
+# model's rows: its encoder pre-trained once on the first summer stretch
+# (300 frames, quick settings), then frozen; kept in .demo/ and reused.
+gpl_args=()
+if [[ "${FLEETMEM_DEMO_GPL:-0}" == 1 ]]; then
+  eval_bin="$build_dir/bin/fleetmem-eval"
+  gpl_model="$demo_dir/gpl-fleet.pt"
+  if [[ ! -f "$gpl_model" ]]; then
+    echo "run_demo.sh: pre-training the fleet's GPL model on 300 summer frames (about a minute)"
+    "$eval_bin" pretrain --images "${FLEETMEM_DATA:-$root/../shared/data}/nordland/summer" \
+      --count 300 --steps 300 --version gpl-demo-64x32-d256-v1 --out "$gpl_model"
+  fi
+  gpl_args=(--gpl-model "$gpl_model")
 fi
 
 demo_status=0
 "$demo_bin" --server "$address" --results-md "$results" \
   --robot-binary "$robot_bin" --work-dir "$demo_dir/robots" \
-  --gpl-model "$gpl_model" "$@" &
+  "${gpl_args[@]}" "$@" &
 demo_pid=$!
 wait "$demo_pid" || demo_status=$?
 demo_pid=""

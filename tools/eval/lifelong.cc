@@ -175,6 +175,9 @@ struct MethodSpec {
   MemoryKind memory = MemoryKind::kNone;
   bool clustering = true;
   bool decay = true;
+  // Forgetting merges the closest pair (the server's default) or drops one
+  // whole (bioslam_drop: the paper's Algorithm 2).
+  bool merge = true;
   RewardMode rewards = RewardMode::kFull;
   ReplayInput replay_input = ReplayInput::kCode;
 };
@@ -193,6 +196,8 @@ std::vector<MethodSpec> Specs() {
   specs.push_back({.name = "joint", .offline = true});
   specs.push_back({.name = "finetune"});
   specs.push_back({.name = "bioslam", .memory = M::kFleet});
+  specs.push_back(
+      {.name = "bioslam_drop", .memory = M::kFleet, .merge = false});
   specs.push_back({.name = "uniform_replay",
                    .memory = M::kReservoir,
                    .clustering = false,
@@ -251,7 +256,7 @@ struct Context {
   // Traces recalled from the fleet memory per new observation (0 = none).
   uint32_t recall_per_observation = 4;
   std::string server_binary;
-  std::string config_file[2][2];  // [clustering][decay]
+  std::string config_file[2][2][2];  // [clustering][decay][merge]
   // bioslam's static memory after each segment: uniform_replay's budget.
   std::vector<uint64_t> bioslam_traces;
 
@@ -319,9 +324,8 @@ absl::Status PretrainGpl(Context& ctx) {
   if (!model.ok()) return model.status();
   std::mt19937_64 rng(ctx.seed);
   ctx.pretrained = *std::move(model);
-  if (absl::Status s = ctx.pretrained->Save(
-          absl::StrFormat("%s/encoder-seed%d.pt", ctx.options->out_dir,
-                          ctx.seed));
+  if (absl::Status s = ctx.pretrained->Save(absl::StrFormat(
+          "%s/encoder-seed%d.pt", ctx.options->out_dir, ctx.seed));
       !s.ok()) {
     return s;
   }
@@ -360,7 +364,8 @@ class Reservoir {
     if (traces_.size() < budget) {
       traces_.push_back(t);
     } else if (budget > 0) {
-      const uint64_t j = std::uniform_int_distribution<uint64_t>(0, seen_ - 1)(rng_);
+      const uint64_t j =
+          std::uniform_int_distribution<uint64_t>(0, seen_ - 1)(rng_);
       if (j < budget) traces_[j % traces_.size()] = t;
     }
     Shrink(budget);
@@ -463,8 +468,8 @@ absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
     if (ctx.options->metric_partners > 0)
       mo.max_partners = ctx.options->metric_partners;
     r.code_version = ctx.hog.version;
-    r.learner = robot::gpl::NewMetricLearner(
-        int(ctx.hog.codes[0].front().size()), mo);
+    r.learner =
+        robot::gpl::NewMetricLearner(int(ctx.hog.codes[0].front().size()), mo);
   }
   robot::DynamicMemoryOptions mo;
   mo.capacity = ctx.settings.memory_capacity;
@@ -499,9 +504,9 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
     for (const LearnSample& x : real) {
       std::vector<core::MemoryTrace> recalled;
       if (spec.memory == MemoryKind::kReservoir) {
-        recalled = r.reservoir->Recall(x.code, x.place,
-                                       ctx.recall_per_observation,
-                                       ctx.mining.positive_radius);
+        recalled =
+            r.reservoir->Recall(x.code, x.place, ctx.recall_per_observation,
+                                ctx.mining.positive_radius);
       } else {
         v1::QueryPlaceRequest request;
         request.set_fleet_id(fleet);
@@ -529,8 +534,7 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
       replayed.push_back(FromTrace(t));
     }
   }
-  absl::StatusOr<std::string> report =
-      r.learner->Learn(real, replayed, memory);
+  absl::StatusOr<std::string> report = r.learner->Learn(real, replayed, memory);
   if (!report.ok()) return report.status();
   r.last = *report;
   if (spec.replay_input == ReplayInput::kDecoded) {
@@ -619,9 +623,8 @@ std::vector<std::vector<size_t>> Segments(const std::vector<size_t>& indices,
 // A server child with the method's memory configuration.
 absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
     Context& ctx, const MethodSpec& spec) {
-  const std::string dir = absl::StrFormat("%s/servers/%s-seed%d",
-                                          ctx.options->out_dir, spec.name,
-                                          ctx.seed);
+  const std::string dir = absl::StrFormat(
+      "%s/servers/%s-seed%d", ctx.options->out_dir, spec.name, ctx.seed);
   std::error_code ec;
   std::filesystem::remove_all(dir, ec);
   std::filesystem::create_directories(dir + "/data", ec);
@@ -631,7 +634,8 @@ absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
   process::ServerOptions options;
   options.binary = ctx.server_binary;
   options.data_dir = dir + "/data";
-  options.config_file = ctx.config_file[spec.clustering][spec.decay];
+  options.config_file =
+      ctx.config_file[spec.clustering][spec.decay][spec.merge];
   options.log_file = dir + "/server.log";
   auto server = std::make_unique<ServerChild>(options);
   absl::Status started = server->Start();
@@ -644,9 +648,9 @@ absl::Status StopServer(ServerChild& server) {
   absl::StatusOr<int> code = server.Stop();
   if (!code.ok()) return code.status();
   if (*code != 0) {
-    return absl::InternalError(absl::StrCat(
-        "the server exited with ", *code, " on SIGTERM; its log: ",
-        server.options().log_file));
+    return absl::InternalError(
+        absl::StrCat("the server exited with ", *code,
+                     " on SIGTERM; its log: ", server.options().log_file));
   }
   return absl::OkStatus();
 }
@@ -764,8 +768,7 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
     server = *std::move(s);
     client = Connect(*server);
   }
-  absl::StatusOr<Robot> robot =
-      NewRobot(ctx, spec, "robot-1", ctx.seed + 17);
+  absl::StatusOr<Robot> robot = NewRobot(ctx, spec, "robot-1", ctx.seed + 17);
   if (!robot.ok()) return robot.status();
   std::vector<uint64_t> traces_after_segment;
   for (int t = 0; t < kDomains; ++t) {
@@ -825,9 +828,8 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
   std::vector<Robot> shared, alone;
   for (int k = 0; k < 2; ++k) {
     for (std::vector<Robot>* group : {&shared, &alone}) {
-      absl::StatusOr<Robot> r =
-          NewRobot(ctx, spec, std::string("robot-") + char('a' + k),
-                   ctx.seed + 31 + k);
+      absl::StatusOr<Robot> r = NewRobot(
+          ctx, spec, std::string("robot-") + char('a' + k), ctx.seed + 31 + k);
       if (!r.ok()) return r.status();
       group->push_back(*std::move(r));
     }
@@ -884,8 +886,8 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
     Progress(absl::StrFormat(
         "[%s seed %d] %s: own area %d WR %.3f; peer's area %d WR %.3f shared "
         "vs %.3f alone (peer's own %.3f: %.0f%%)",
-        spec.name, ctx.seed, row.robot, row.own_area, row.own_wr,
-        row.peer_area, row.peer_wr_shared, row.peer_wr_alone, row.peer_own_wr,
+        spec.name, ctx.seed, row.robot, row.own_area, row.own_wr, row.peer_area,
+        row.peer_wr_shared, row.peer_wr_alone, row.peer_own_wr,
         100 * row.peer_wr_shared / std::max(1e-9, row.peer_own_wr)));
   }
   result.summary.wr_final = wr_sum / 2;
@@ -898,21 +900,24 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
 absl::Status WriteConfigs(Context& ctx) {
   for (int clustering = 0; clustering < 2; ++clustering) {
     for (int decay = 0; decay < 2; ++decay) {
-      const std::string path = absl::StrFormat(
-          "%s/server-c%d-d%d-seed%d.textproto", ctx.options->out_dir,
-          clustering, decay, ctx.seed);
-      absl::Status s = files::WriteFile(
-          path,
-          absl::StrFormat("log_level: \"warning\"\nmemory {\n  clustering: %s\n"
-                          "  replay_decay: %s\n  seed: %d\n%s}\n",
-                          clustering ? "true" : "false", decay ? "0.9" : "1",
-                          ctx.seed,
-                          ctx.options->spatial_scale > 0
-                              ? absl::StrFormat("  spatial_scale_m: %g\n",
-                                                ctx.options->spatial_scale)
-                              : ""));
-      if (!s.ok()) return s;
-      ctx.config_file[clustering][decay] = path;
+      for (int merge = 0; merge < 2; ++merge) {
+        const std::string path = absl::StrFormat(
+            "%s/server-c%d-d%d-m%d-seed%d.textproto", ctx.options->out_dir,
+            clustering, decay, merge, ctx.seed);
+        absl::Status s = files::WriteFile(
+            path,
+            absl::StrFormat(
+                "log_level: \"warning\"\nmemory {\n  clustering: %s\n"
+                "  replay_decay: %s\n  merge_on_forget: %s\n  seed: %d\n%s}\n",
+                clustering ? "true" : "false", decay ? "0.9" : "1",
+                merge ? "true" : "false", ctx.seed,
+                ctx.options->spatial_scale > 0
+                    ? absl::StrFormat("  spatial_scale_m: %g\n",
+                                      ctx.options->spatial_scale)
+                    : ""));
+        if (!s.ok()) return s;
+        ctx.config_file[clustering][decay][merge] = path;
+      }
     }
   }
   return absl::OkStatus();
@@ -972,12 +977,11 @@ Aggregate AggregateSeeds(const MethodSpec& spec,
   return a;
 }
 
-absl::Status WriteOutputs(const LifelongOptions& options, const Data& data,
-                          const std::vector<MethodSpec>& specs,
-                          const std::map<std::string, std::vector<MethodResult>>&
-                              results,
-                          const std::vector<FleetRow>& fleet,
-                          std::string* table_out) {
+absl::Status WriteOutputs(
+    const LifelongOptions& options, const Data& data,
+    const std::vector<MethodSpec>& specs,
+    const std::map<std::string, std::vector<MethodResult>>& results,
+    const std::vector<FleetRow>& fleet, std::string* table_out) {
   const std::string& dir = options.out_dir;
   const Score chance = lifelong::ChanceScore(data.split);
   std::string summary =
@@ -1009,10 +1013,9 @@ absl::Status WriteOutputs(const LifelongOptions& options, const Data& data,
         a.ae.second, a.ra.first, a.ra.second, a.unseen.first, a.unseen.second,
         a.seconds, a.collapses);
     table += absl::StrFormat(
-        "| %s | %s | %d | %s | %s | %s | %s | %.0f | %d |\n", a.name,
-        a.learner, a.seeds, pm(a.wr_final, a.seeds), pm(a.ae, a.seeds),
-        pm(a.ra, a.seeds), a.wr.empty() ? "-" : pm(a.unseen, a.seeds),
-        a.seconds, a.collapses);
+        "| %s | %s | %d | %s | %s | %s | %s | %.0f | %d |\n", a.name, a.learner,
+        a.seeds, pm(a.wr_final, a.seeds), pm(a.ae, a.seeds), pm(a.ra, a.seeds),
+        a.wr.empty() ? "-" : pm(a.unseen, a.seeds), a.seconds, a.collapses);
     for (const MethodResult& r : it->second) {
       if (spec.memory != MemoryKind::kNone && spec.name != "fleet_shared") {
         memory += absl::StrFormat("%s,%d,%d,%d\n", r.name, r.seed,
@@ -1053,8 +1056,8 @@ absl::Status WriteOutputs(const LifelongOptions& options, const Data& data,
   for (const FleetRow& f : fleet) {
     fleet_csv += absl::StrFormat(
         "%d,%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f\n", f.seed, f.robot, f.own_area,
-        f.own_wr, f.peer_area, f.peer_wr_shared, f.peer_wr_alone,
-        f.peer_own_wr, f.peer_wr_shared / std::max(1e-9, f.peer_own_wr));
+        f.own_wr, f.peer_area, f.peer_wr_shared, f.peer_wr_alone, f.peer_own_wr,
+        f.peer_wr_shared / std::max(1e-9, f.peer_own_wr));
   }
   for (const auto& [name, text] :
        std::vector<std::pair<std::string, std::string>>{
@@ -1136,10 +1139,9 @@ absl::Status RunLifelong(const LifelongOptions& options) {
         "segment by segment: select bioslam too");
   }
   // A memory method needs the server: say so now, not after pre-training.
-  if (std::any_of(specs.begin(), specs.end(),
-                  [](const MethodSpec& s) {
-                    return s.memory == MemoryKind::kFleet;
-                  }) &&
+  if (std::any_of(
+          specs.begin(), specs.end(),
+          [](const MethodSpec& s) { return s.memory == MemoryKind::kFleet; }) &&
       ::access(options.server_binary.c_str(), X_OK) != 0) {
     return absl::NotFoundError(absl::StrCat("no fleetmem-server binary at ",
                                             options.server_binary,
@@ -1150,7 +1152,8 @@ absl::Status RunLifelong(const LifelongOptions& options) {
       [](const MethodSpec& s) { return s.learner == LearnerKind::kGpl; });
   robot::gpl::SetTorchThreads(options.threads);
   Settings settings = SettingsFor(options.quick);
-  if (options.pretrain_steps > 0) settings.pretrain_steps = options.pretrain_steps;
+  if (options.pretrain_steps > 0)
+    settings.pretrain_steps = options.pretrain_steps;
   if (options.steps_per_segment > 0)
     settings.steps_per_segment = options.steps_per_segment;
   if (options.seeds > 0) settings.seeds = options.seeds;
@@ -1165,8 +1168,8 @@ absl::Status RunLifelong(const LifelongOptions& options) {
     return absl::InvalidArgumentError(
         absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
   }
-  const size_t queries =
-      std::count(data->split.held_out.begin(), data->split.held_out.end(), true);
+  const size_t queries = std::count(data->split.held_out.begin(),
+                                    data->split.held_out.end(), true);
   Progress(absl::StrFormat(
       "[data] %s: %d places in both seasons (from file %d), 3 areas; map: the "
       "summer frame of every place; queries: the winter frames of %d held-out "

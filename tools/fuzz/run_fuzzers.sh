@@ -4,9 +4,9 @@
 # changed). Prints one summary line per fuzzer; exits 1 if any fuzzer found
 # a crash, leak or timeout (its reproducer stays under BUILD/fuzz/artifacts).
 #
-#   tools/fuzz/run_fuzzers.sh build-fuzz 30
+#   tools/fuzz/run_fuzzers.sh build-asan 30
 set -euo pipefail
-build=${1:-build-fuzz}
+build=${1:-build-asan}
 seconds=${2:-30}
 list="$build/fuzz/fuzzers.txt"
 [ -s "$list" ] || { echo "run_fuzzers: no $list (configure with -DFLEETMEM_BUILD_FUZZ=ON)" >&2; exit 2; }

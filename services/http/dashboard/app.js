@@ -153,16 +153,20 @@ async function readEvents(fleet) {
 }
 
 function addEvent(event, live) {
-  const forgotten = event.type === 'CLUSTER_FORGOTTEN';
+  const merged = event.type === 'CLUSTER_MERGED';
+  // A cluster leaves the memory: forgotten whole, or merged into another.
+  const forgotten = event.type === 'CLUSTER_FORGOTTEN' || merged;
   state.events.push(event);
   if (state.events.length > MAX_EVENTS) state.events.shift();
   const last = state.history.length ? state.history[state.history.length - 1]
     : { traces: 0, clusters: 0, forgotten: 0 };
-  const sign = forgotten ? -1 : 1;
+  // A merge removes only what it dropped; its traces live on in merged_into.
+  const traceChange = merged ? -num(event.tracesDropped)
+    : (forgotten ? -1 : 1) * num(event.traceCount);
   state.history.push({
     t: num(event.timestampNs) / 1e6,
-    traces: last.traces + sign * num(event.traceCount),
-    clusters: last.clusters + sign,
+    traces: last.traces + traceChange,
+    clusters: last.clusters + (forgotten ? -1 : 1),
     forgotten: last.forgotten + (forgotten ? 1 : 0),
   });
   if (forgotten && live && event.centroidPose) {
@@ -174,8 +178,12 @@ function addEvent(event, live) {
   item.className = (forgotten ? 'forgotten' : 'added') + (live ? ' fresh' : '');
   const when = new Date(num(event.timestampNs) / 1e6).toLocaleTimeString();
   const pose = event.centroidPose || {};
-  item.textContent = `${when} ${forgotten ? 'forgot' : 'added'} cluster ${event.clusterId}` +
-    ` · ${event.traceCount} traces · robot ${event.robotId}` +
+  const verb = merged ? `merged cluster ${event.clusterId} into ${event.mergedInto}`
+    : `${forgotten ? 'forgot' : 'added'} cluster ${event.clusterId}`;
+  item.textContent = `${when} ${verb}` +
+    ` · ${event.traceCount} traces` +
+    (merged ? ` (${num(event.tracesDropped)} dropped)` : '') +
+    ` · robot ${event.robotId}` +
     (event.domain ? ` · ${event.domain}` : '') +
     ` · at (${num(pose.x).toFixed(0)}, ${num(pose.y).toFixed(0)})`;
   const list = $('events');
