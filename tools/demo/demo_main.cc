@@ -396,12 +396,17 @@ using DescribeFn =
     std::function<absl::StatusOr<std::vector<std::vector<float>>>(
         std::span<const std::vector<float>>)>;
 
-// Scores the winter frames of drive `only` (or all, -1) against every summer
+// Which drives' winter frames ScoreWinter takes as queries.
+enum class Queries { kAll, kOwn, kPeers };
+
+// Scores the winter frames of drive `drive` (kOwn), of every other drive
+// (kPeers) or of all (kAll) against every summer
 // frame of the stretches, both described by `describe`, like the baseline
 // row. Time per query: the winter code's descriptor plus the brute-force
 // search (the map's descriptors are made once).
 absl::Status ScoreWinter(const DescribeFn& describe, const SeasonCodes& codes,
-                         int only, core::FirstCorrectRanks& ranks, double& ms) {
+                         Queries queries, size_t drive,
+                         core::FirstCorrectRanks& ranks, double& ms) {
   absl::StatusOr<std::vector<std::vector<float>>> map = describe(codes.summer);
   if (!map.ok()) return map.status();
   if (map->empty()) return absl::OkStatus();
@@ -410,7 +415,10 @@ absl::Status ScoreWinter(const DescribeFn& describe, const SeasonCodes& codes,
     index.Add((*map)[j], codes.summer_x[j]);
   }
   for (size_t j = 0; j < codes.winter.size(); ++j) {
-    if (only >= 0 && codes.owner[j] != size_t(only)) continue;
+    if ((queries == Queries::kOwn && codes.owner[j] != drive) ||
+        (queries == Queries::kPeers && codes.owner[j] == drive)) {
+      continue;
+    }
     const auto start = Clock::now();
     absl::StatusOr<std::vector<std::vector<float>>> q =
         describe(std::span<const std::vector<float>>(&codes.winter[j], 1));
@@ -425,12 +433,15 @@ absl::Status ScoreWinter(const DescribeFn& describe, const SeasonCodes& codes,
 }
 
 // The learning pass (default learner): the same drives in a fleet of their
-// own whose robots learn the metric head on the fleet code. Row: each
+// own whose robots learn the metric head on the fleet code. Rows: each
 // robot's head after its winter drive, scored on the baseline's map (every
-// summer frame of the stretches) with its own winter frames as queries.
-absl::StatusOr<Row> MetricPass(const Setup& classical,
-                               std::vector<Drive> drives,
-                               client::Client& observer) {
+// summer frame of the stretches), once with its own winter frames as
+// queries (frames it learned from) and once with its peers' (places whose
+// winter it never saw: each query frame counts once per robot that scores
+// it, so HOG on these queries is the baseline row).
+absl::StatusOr<std::vector<Row>> MetricPass(const Setup& classical,
+                                            std::vector<Drive> drives,
+                                            client::Client& observer) {
   Setup setup = LearningSetup(classical, "-learned");
   setup.learn_metric = true;
   std::printf(
@@ -446,14 +457,19 @@ absl::StatusOr<Row> MetricPass(const Setup& classical,
         return classical.encoder->EncodeImage(grey);
       });
   if (!codes.ok()) return codes.status();
-  Row learned;
-  learned.system =
-      "HOG + metric head learned by each robot (summer + winter drives; all "
-      "summer frames)";
-  learned.traces = absl::StrCat(codes->summer.size());
-  learned.clusters = "-";
-  learned.consolidation_ms = "-";
-  double ms = 0.0;
+  Row own, peers;
+  own.system =
+      "HOG + metric head learned by each robot, its own winter frames "
+      "(learned from; all summer frames)";
+  peers.system =
+      "HOG + metric head learned by each robot, its peers' winter frames "
+      "(never seen; all summer frames)";
+  for (Row* row : {&own, &peers}) {
+    row->traces = absl::StrCat(codes->summer.size());
+    row->clusters = "-";
+    row->consolidation_ms = "-";
+  }
+  double own_ms = 0.0, peers_ms = 0.0;
   for (size_t d = 0; d < drives.size(); ++d) {
     const std::string path = absl::StrCat(
         setup.work_dir, "/", drives[d].robot_id, "-winter/metric-head.bin");
@@ -473,14 +489,16 @@ absl::StatusOr<Row> MetricPass(const Setup& classical,
     const DescribeFn describe = [&](std::span<const std::vector<float>> z) {
       return head->Describe(z);
     };
-    if (absl::Status s =
-            ScoreWinter(describe, *codes, int(d), learned.ranks, ms);
-        !s.ok()) {
-      return s;
+    for (absl::Status s :
+         {ScoreWinter(describe, *codes, Queries::kOwn, d, own.ranks, own_ms),
+          ScoreWinter(describe, *codes, Queries::kPeers, d, peers.ranks,
+                      peers_ms)}) {
+      if (!s.ok()) return s;
     }
   }
-  learned.query_ms = ms / std::max<size_t>(learned.ranks.size(), 1);
-  return learned;
+  own.query_ms = own_ms / std::max<size_t>(own.ranks.size(), 1);
+  peers.query_ms = peers_ms / std::max<size_t>(peers.ranks.size(), 1);
+  return std::vector<Row>{own, peers};
 }
 
 // The GPL pass (--gpl-model): the same drives in a fleet of their own with
@@ -531,8 +549,8 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
     row->consolidation_ms = "-";
   }
   double frozen_ms = 0.0, learned_ms = 0.0;
-  if (absl::Status s = ScoreWinter(describe_with(**fleet_model), *codes, -1,
-                                   frozen.ranks, frozen_ms);
+  if (absl::Status s = ScoreWinter(describe_with(**fleet_model), *codes,
+                                   Queries::kAll, 0, frozen.ranks, frozen_ms);
       !s.ok()) {
     return s;
   }
@@ -542,8 +560,9 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
     absl::StatusOr<std::unique_ptr<robot::gpl::GplModel>> own =
         robot::gpl::GplModel::Load(path);
     if (!own.ok()) return own.status();
-    if (absl::Status s = ScoreWinter(describe_with(**own), *codes, int(d),
-                                     learned.ranks, learned_ms);
+    if (absl::Status s =
+            ScoreWinter(describe_with(**own), *codes, Queries::kOwn, d,
+                        learned.ranks, learned_ms);
         !s.ok()) {
       return s;
     }
@@ -733,9 +752,10 @@ absl::Status Run() {
 
   std::vector<Row> rows = {memory_row, baseline_row};
   if (absl::GetFlag(FLAGS_learn)) {
-    absl::StatusOr<Row> learned = MetricPass(setup, drives, *observer);
+    absl::StatusOr<std::vector<Row>> learned =
+        MetricPass(setup, drives, *observer);
     if (!learned.ok()) return learned.status();
-    rows.push_back(*std::move(learned));
+    rows.insert(rows.end(), learned->begin(), learned->end());
   }
   if (!absl::GetFlag(FLAGS_gpl_model).empty()) {
     absl::StatusOr<std::vector<Row>> gpl = GplPass(setup, drives, *observer);
@@ -744,7 +764,7 @@ absl::Status Run() {
   }
   const std::string table = Table(rows);
   const std::string robots = RobotTable(setup, drives);
-  const std::string notes = absl::StrFormat(
+  std::string notes = absl::StrFormat(
       "- %zu winter relocalisations by %zu fleetmem-robot processes (query "
       "only) over the stretches the same robots drove in summer; correct if "
       "a match is within +-2 files (+-%.0f units).\n"
@@ -787,6 +807,17 @@ absl::Status Run() {
       kQueryK, baseline.size(), covered, queries,
       100.0 * covered / std::max<size_t>(queries, 1));
 
+  if (absl::GetFlag(FLAGS_learn)) {
+    notes +=
+        "- Learned rows: the same robots drove again in a fleet of their own "
+        "with fleetmem-robot --learn; each robot's metric head on the HOG "
+        "code (after its winter drive) describes every summer frame (the "
+        "baseline's map) and the winter queries. Its own winter frames are "
+        "frames it fitted its head on (pairs with the fleet's summer traces "
+        "of the same places); its peers' winter frames are places whose "
+        "winter it never saw. docs/results.md holds the held-out protocol "
+        "(fleetmem-eval lifelong).\n";
+  }
   std::printf("\nResults (fleet %s)\n\n%s\n%s\n%s\n%s\n",
               setup.fleet_id.c_str(), table.c_str(), robots.c_str(),
               notes.c_str(), kAttribution);

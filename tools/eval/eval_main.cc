@@ -115,13 +115,20 @@ int main(int argc, char** argv) {
                    "places skipped at the start of the route (a stretch no "
                    "setting was tuned on: the hold-out route)")
       ->check(CLI::NonNegativeNumber);
-  lifelong->add_option("--metric-update-rate", options.metric_update_rate,
-                       "override: the metric head's update rate per segment");
-  lifelong->add_option("--metric-partners", options.metric_partners,
-                       "override: the metric head's partners per sample");
-  lifelong->add_option("--spatial-scale", options.spatial_scale,
-                       "override: the fleet memory's spatial_scale_m (place "
-                       "units that weigh like one unit of code distance)");
+  lifelong
+      ->add_option("--metric-update-rate", options.metric_update_rate,
+                   "override: the metric head's update rate per segment, in "
+                   "(0, 1]")
+      ->check(CLI::Range(1e-9, 1.0));
+  lifelong
+      ->add_option("--metric-partners", options.metric_partners,
+                   "override: the metric head's partners per sample (>= 1)")
+      ->check(CLI::PositiveNumber);
+  lifelong
+      ->add_option("--spatial-scale", options.spatial_scale,
+                   "override: the fleet memory's spatial_scale_m (place "
+                   "units that weigh like one unit of code distance; > 0)")
+      ->check(CLI::PositiveNumber);
   lifelong
       ->add_option("--seeds", options.seeds,
                    "runs of every method with seeds --seed, --seed+1, ... "

@@ -587,6 +587,7 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
     const size_t budget = ctx.bioslam_traces[std::min(
         segment_index, ctx.bioslam_traces.size() - 1)];
     for (const core::MemoryTrace& t : own) r.reservoir->Add(t, budget);
+    // Also without new traces: bioslam's memory may have shrunk.
     r.reservoir->Shrink(budget);
     r.traces = r.reservoir->size();
     refreshed = r.reservoir->Sample(ctx.settings.memory_capacity);
