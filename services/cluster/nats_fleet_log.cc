@@ -273,7 +273,12 @@ absl::Status NatsFleetLog::EnsureFleetStream(std::string_view fleet_id,
     config.DenyDelete = is_log;
     code = static_cast<jsErrCode>(0);
     s = js_AddStream(&info, handles_->js, &config, nullptr, &code);
-    if (s != NATS_OK && code == JSStreamNameExistErr) {  // a race: re-read
+    // A race with another replica creating the same stream: re-read it. A
+    // clustered JetStream may report the loser's create as "subjects
+    // overlap" rather than "name in use"; the re-read then finds the stream
+    // (or, for a stranger's stream on these subjects, NOT_FOUND).
+    if (s != NATS_OK && (code == JSStreamNameExistErr ||
+                         code == JSStreamSubjectOverlapErr)) {
       code = static_cast<jsErrCode>(0);
       s = js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code);
     }
