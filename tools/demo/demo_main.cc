@@ -298,6 +298,17 @@ struct Row {
   double query_ms = 0.0;
 };
 
+// A learned model's row, scored on the baseline's map of `map_size` summer
+// frames (no clusters, no consolidation).
+Row MapRow(std::string system, size_t map_size) {
+  Row row;
+  row.system = std::move(system);
+  row.traces = absl::StrCat(map_size);
+  row.clusters = "-";
+  row.consolidation_ms = "-";
+  return row;
+}
+
 std::string Table(const std::vector<Row>& rows) {
   std::string out =
       "| system | recall@1 | recall@5 | WR | traces held | clusters held | "
@@ -457,18 +468,14 @@ absl::StatusOr<std::vector<Row>> MetricPass(const Setup& classical,
         return classical.encoder->EncodeImage(grey);
       });
   if (!codes.ok()) return codes.status();
-  Row own, peers;
-  own.system =
+  Row own = MapRow(
       "HOG + metric head learned by each robot, its own winter frames "
-      "(learned from; all summer frames)";
-  peers.system =
+      "(learned from; all summer frames)",
+      codes->summer.size());
+  Row peers = MapRow(
       "HOG + metric head learned by each robot, its peers' winter frames "
-      "(never seen; all summer frames)";
-  for (Row* row : {&own, &peers}) {
-    row->traces = absl::StrCat(codes->summer.size());
-    row->clusters = "-";
-    row->consolidation_ms = "-";
-  }
+      "(never seen; all summer frames)",
+      codes->summer.size());
   double own_ms = 0.0, peers_ms = 0.0;
   for (size_t d = 0; d < drives.size(); ++d) {
     const std::string path = absl::StrCat(
@@ -538,16 +545,13 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
       return model.Describe(z);
     };
   };
-  Row frozen, learned;
-  frozen.system = absl::StrCat("GPL fleet model ", (*fleet_model)->version(),
-                               ", before learning (all summer frames)");
-  learned.system =
-      "GPL learned by each robot (summer + winter drives; all summer frames)";
-  for (Row* row : {&frozen, &learned}) {
-    row->traces = absl::StrCat(codes->summer.size());
-    row->clusters = "-";
-    row->consolidation_ms = "-";
-  }
+  Row frozen =
+      MapRow(absl::StrCat("GPL fleet model ", (*fleet_model)->version(),
+                          ", before learning (all summer frames)"),
+             codes->summer.size());
+  Row learned = MapRow(
+      "GPL learned by each robot (summer + winter drives; all summer frames)",
+      codes->summer.size());
   double frozen_ms = 0.0, learned_ms = 0.0;
   if (absl::Status s = ScoreWinter(describe_with(**fleet_model), *codes,
                                    Queries::kAll, 0, frozen.ranks, frozen_ms);
