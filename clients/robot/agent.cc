@@ -27,6 +27,11 @@ using Clock = std::chrono::steady_clock;
 using api::PlaceFromProto;
 using api::TraceFromProto;
 
+// A learner's one-line report as a log line's tail ("" without one).
+std::string Reported(const std::string& report) {
+  return report.empty() ? "" : absl::StrCat("; learner: ", report);
+}
+
 }  // namespace
 
 bool IsRetryable(absl::StatusCode code) {
@@ -146,9 +151,6 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
     if (!status.ok()) break;
     status = ObserveOne(index, stop);
     if (!status.ok()) break;
-    if (!options_.upload && store_->state().next_index() == index + 1) {
-      query_segment_.push_back(index);
-    }
     if (store_->queue().open_segment >= options_.segment_size ||
         query_segment_.size() >= options_.segment_size) {
       status = SealSegment();
@@ -222,8 +224,16 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
       state.set_observations(state.observations() + 1);
       update(state);
     });
-    if (moved_on.ok()) ++observed_this_run_;
-    return moved_on;
+    if (!moved_on.ok()) return moved_on;
+    ++observed_this_run_;
+    core::MemoryTrace& trace = query_segment_.emplace_back();
+    trace.robot_id = options_.robot_id;
+    trace.domain = options_.domain;
+    trace.code = *std::move(code);
+    trace.place = observation->place;
+    trace.encoder_version = encoder_->version();
+    query_indices_.push_back(index);
+    return absl::OkStatus();
   }
   // R_in (Eq. 12); the generator is seeded per observation so that a
   // repeated observation after a crash gets the same reward.
@@ -331,43 +341,70 @@ void Agent::Relocalisation::CountIn(RobotState& state) const {
   if (empty) state.set_relocalisation_empty(state.relocalisation_empty() + 1);
 }
 
-absl::StatusOr<Agent::Replayed> Agent::ReplayAndLearn(
+absl::StatusOr<SegmentStepResult> Agent::StepSegment(
+    std::vector<core::MemoryTrace> segment,
     const std::vector<size_t>& indices) {
-  Replayed result;
-  const std::vector<core::MemoryTrace> replayed =
-      memory_.Replay(options_.replay_per_segment, rng_);
-  for (const core::MemoryTrace& trace : replayed) {
-    (trace.robot_id == options_.robot_id ? result.own : result.peer) += 1;
-  }
+  std::vector<Observation> observations;
   if (learner_ != nullptr) {
-    std::vector<Observation> segment;
     for (size_t index : indices) {
       absl::StatusOr<Observation> observation = source_->Read(index);
       if (!observation.ok()) return observation.status();
-      segment.push_back(*std::move(observation));
+      observations.push_back(*std::move(observation));
     }
-    absl::Status learned =
-        learner_->Learn(segment, replayed, memory_.entries());
-    if (!learned.ok()) return learned;
   }
-  return result;
+  // Recall through the query client (short deadline): a server that does
+  // not answer leaves the segment without recalled partners, as a refresh
+  // it cannot make leaves M_D as it is.
+  bool unanswered = false;
+  const PlaceRecall recall =
+      [&](const core::MemoryTrace& observed,
+          size_t k) -> absl::StatusOr<std::vector<core::MemoryTrace>> {
+    v1::QueryPlaceRequest request;
+    request.set_fleet_id(options_.fleet_id);
+    request.mutable_code()->Assign(observed.code.begin(), observed.code.end());
+    request.set_k(static_cast<uint32_t>(k));
+    api::PlaceToProto(observed.place, request.mutable_near());
+    request.set_radius_m(options_.match_radius);
+    absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
+        query_client_->QueryPlace(request);
+    if (!matches.ok()) {
+      if (absl::IsNotFound(matches.status())) return matches.status();
+      unanswered = true;
+      return absl::NotFoundError("recall unanswered");  // stops recall
+    }
+    std::vector<core::MemoryTrace> recalled;
+    for (const v1::PlaceMatch& m : *matches) {
+      if (m.trace().code_size() != static_cast<int>(observed.code.size()))
+        continue;
+      recalled.push_back(TraceFromProto(m.trace()));
+    }
+    return recalled;
+  };
+  absl::StatusOr<SegmentStepResult> step =
+      RunSegmentStep(options_.step, std::move(segment), observations, memory_,
+                     rng_, learner_, recall);
+  if (unanswered) Log("place recall skipped: the server did not answer");
+  return step;
 }
 
 absl::Status Agent::SealSegment() {
   if (!options_.upload) {
     // A query-only robot still replays, learns and refreshes per segment.
-    absl::StatusOr<Replayed> replayed = ReplayAndLearn(query_segment_);
-    if (!replayed.ok()) return replayed.status();
+    absl::StatusOr<SegmentStepResult> step =
+        StepSegment(std::move(query_segment_), query_indices_);
     query_segment_.clear();
+    query_indices_.clear();
+    if (!step.ok()) return step.status();
     absl::Status counted = store_->Update([&](RobotState& state) {
       state.set_segments(state.segments() + 1);
-      state.set_replayed_own(state.replayed_own() + replayed->own);
-      state.set_replayed_peer(state.replayed_peer() + replayed->peer);
+      state.set_replayed_own(state.replayed_own() + step->replayed_own);
+      state.set_replayed_peer(state.replayed_peer() + step->replayed_peer);
     });
     if (!counted.ok()) return counted;
-    Log(absl::StrFormat("segment %d: replayed %d traces (%d of peers)",
+    Log(absl::StrFormat("segment %d: replayed %d traces (%d of peers)%s",
                         store_->state().segments(),
-                        replayed->own + replayed->peer, replayed->peer));
+                        step->replayed_own + step->replayed_peer,
+                        step->replayed_peer, Reported(step->report)));
     Refresh();
     Progress(true);
     return absl::OkStatus();
@@ -376,45 +413,27 @@ absl::Status Agent::SealSegment() {
   if (!open.ok()) return open.status();
   if (open->empty()) return absl::OkStatus();
 
-  // Replay (Eq. 19) and the learner hook, on the segment's observations.
+  // Replay, recall, learn and rewards (segment_step.h) on the segment.
   std::vector<size_t> indices;
-  for (const StoredTrace& stored : *open) {
-    indices.push_back(stored.source_index());
-  }
-  absl::StatusOr<Replayed> replayed = ReplayAndLearn(indices);
-  if (!replayed.ok()) return replayed.status();
-
-  // R_ex within the segment, R = R_ex + R_in (Eqs. 11-13).
-  std::vector<std::vector<float>> codes;
-  std::vector<core::Place> places;
+  std::vector<core::MemoryTrace> segment;
   std::vector<v1::MemoryTrace> traces;
   for (StoredTrace& stored : *open) {
-    codes.emplace_back(stored.trace().code().begin(),
-                       stored.trace().code().end());
-    places.push_back(PlaceFromProto(stored.trace().pose()));
+    indices.push_back(stored.source_index());
+    segment.push_back(TraceFromProto(stored.trace()));
     traces.push_back(std::move(*stored.mutable_trace()));
   }
-  std::vector<float> external;
-  if (learner_ != nullptr) {
-    absl::StatusOr<std::vector<float>> learned =
-        learner_->ExternalRewards(codes, places, memory_.entries());
-    if (learned.ok() && learned->size() == codes.size()) {
-      external = *std::move(learned);
-    } else if (!learned.ok() && !absl::IsUnimplemented(learned.status())) {
-      return learned.status();
-    }
-  }
-  if (external.empty())
-    external = ExternalRewards(codes, places, options_.triplet);
+  absl::StatusOr<SegmentStepResult> step =
+      StepSegment(std::move(segment), indices);
+  if (!step.ok()) return step.status();
   for (size_t k = 0; k < traces.size(); ++k) {
-    traces[k].set_reward_external(external[k]);
-    traces[k].set_reward(external[k] + traces[k].reward_internal());
+    traces[k].set_reward_external(step->traces[k].reward_external);
+    traces[k].set_reward(step->traces[k].reward);
   }
   const uint64_t dropped_before = store_->state().traces_dropped();
   absl::StatusOr<uint64_t> first_seq =
       store_->SealSegment(traces, [&](RobotState& state) {
-        state.set_replayed_own(state.replayed_own() + replayed->own);
-        state.set_replayed_peer(state.replayed_peer() + replayed->peer);
+        state.set_replayed_own(state.replayed_own() + step->replayed_own);
+        state.set_replayed_peer(state.replayed_peer() + step->replayed_peer);
       });
   if (!first_seq.ok()) return first_seq.status();
   const RobotState state = store_->state();
@@ -430,7 +449,7 @@ absl::Status Agent::SealSegment() {
   }
   Log(absl::StrFormat(
       "segment %d sealed: %d traces (seq %d..%d, mean R %.3f), replayed %d "
-      "(%d of peers)",
+      "(%d of peers), recalled %d%s",
       state.segments(), traces.size(), *first_seq,
       *first_seq + traces.size() - 1,
       [&] {
@@ -438,7 +457,8 @@ absl::Status Agent::SealSegment() {
         for (const v1::MemoryTrace& trace : traces) sum += trace.reward();
         return sum / traces.size();
       }(),
-      replayed->own + replayed->peer, replayed->peer));
+      step->replayed_own + step->replayed_peer, step->replayed_peer,
+      step->recalled, Reported(step->report)));
   Refresh();
   Progress(true);
   return absl::OkStatus();

@@ -7,10 +7,13 @@
 //       observation's known place
 //     record (z, p, R_in) durably with the source position  (robot_store.h)
 //   at the end of each segment (200 observations by default, and at the
-//   end of the source):
+//   end of the source), the step fleetmem-eval measures (segment_step.h):
 //     replay: draw from the dynamic memory M_D                (Eq. 19)
-//     learner hook: train on the segment + the replayed traces
-//     R_ex = triplet loss within the segment; R = R_ex + R_in (Eqs. 11, 13)
+//     recall: the fleet's traces of each new observation's place
+//     learner: train on the segment, the replayed and remembered traces
+//     R_ex under the learner (or the triplet loss in code space);
+//       R = R_ex + R_in                                      (Eqs. 11, 13)
+//   then:
 //     seal the segment into the upload queue (seqs given here, durably)
 //     add the robot's own traces to M_D; refresh M_D from the fleet
 //       (SampleReplay, Eq. 18)
@@ -45,6 +48,7 @@
 #include "clients/robot/observation_source.h"
 #include "clients/robot/rewards.h"
 #include "clients/robot/robot_store.h"
+#include "clients/robot/segment_step.h"
 
 namespace fleetmem::robot {
 
@@ -52,30 +56,6 @@ namespace fleetmem::robot {
 // DEADLINE_EXCEEDED, RESOURCE_EXHAUSTED, ABORTED); any other error is an
 // answer.
 bool IsRetryable(absl::StatusCode code);
-
-// Where the next step's learned model trains (Algorithm 3's inner loop).
-class Learner {
- public:
-  virtual ~Learner() = default;
-  // Called once per segment before its rewards: the segment's real
-  // observations (re-read from the source), the traces replayed from the
-  // dynamic memory for it (Eq. 19) and the whole dynamic memory (where a
-  // learner finds remembered traces of the same places). An error stops the
-  // robot.
-  virtual absl::Status Learn(std::span<const Observation> segment,
-                             std::span<const core::MemoryTrace> replayed,
-                             std::span<const ReplayEntry> memory) = 0;
-  // R_ex (Eq. 11) of each of the segment's traces, codes[i] observed at
-  // places[i], under the learner's own model, after Learn. UNIMPLEMENTED (the
-  // default) makes the agent use the triplet loss in code space
-  // (rewards.h's ExternalRewards). Any other error stops the robot.
-  virtual absl::StatusOr<std::vector<float>> ExternalRewards(
-      std::span<const std::vector<float>> codes,
-      std::span<const core::Place> places,
-      std::span<const ReplayEntry> memory) {
-    return absl::UnimplementedError("no learned external reward");
-  }
-};
 
 // Sees every observation of an uploading robot after it is encoded and
 // before its trace is recorded, and may change that trace: the SLAM back end
@@ -114,13 +94,13 @@ struct AgentOptions {
   // Score relocalisations (only where the source's places are ground truth;
   // a laser log's are odometry).
   bool score_relocalisation = true;
-  // R_ex (Eq. 7) within a segment.
-  TripletOptions triplet;
+  // The end-of-segment step (segment_step.h): replay draws, place recall
+  // through `query_client` (QueryPlace within match_radius of each new
+  // observation's place: the traces a learner pairs it with), rewards.
+  SegmentStepOptions step;
   DynamicMemoryOptions dynamic_memory;
   // Traces asked of the fleet per refresh (Eq. 18); 0 = the capacity of M_D.
   uint32_t refresh_count = 0;
-  // Traces drawn from M_D per segment for replay (Eq. 19).
-  size_t replay_per_segment = 64;
   // Traces per upload call.
   size_t upload_batch = 200;
   // Backoff of the uploader while the server cannot take traces.
@@ -193,12 +173,11 @@ class Agent {
   // Ends a segment: replay, learner, rewards, seal (uploading robot), then
   // refresh.
   absl::Status SealSegment();
-  struct Replayed {
-    uint64_t own = 0;
-    uint64_t peer = 0;
-  };
-  // Replay draws (Eq. 19) and the learner hook over source `indices`.
-  absl::StatusOr<Replayed> ReplayAndLearn(const std::vector<size_t>& indices);
+  // The segment step (segment_step.h) over `segment`, observed at source
+  // `indices`.
+  absl::StatusOr<SegmentStepResult> StepSegment(
+      std::vector<core::MemoryTrace> segment,
+      const std::vector<size_t>& indices);
   void Refresh();
   void UploadLoop();
   void WatchLoop();
@@ -224,7 +203,9 @@ class Agent {
   size_t end_ = 0;
   // Source indices of a query-only robot's open segment (not durable: only
   // replay depends on it).
-  std::vector<size_t> query_segment_;
+  // A query-only robot's open segment: source indices and their traces.
+  std::vector<size_t> query_indices_;
+  std::vector<core::MemoryTrace> query_segment_;
   uint64_t observed_this_run_ = 0;
   bool source_finished_ = false;
   bool drained_ = false;

@@ -10,10 +10,10 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "fleetmem_paths.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/common/files.h"
-#include "fleetmem_paths.h"
 
 namespace fleetmem::robot {
 namespace {
@@ -24,17 +24,23 @@ const std::string kSummer = std::string(FLEETMEM_DATA_DIR) + "/nordland/summer";
 
 class RecordingLearner : public Learner {
  public:
-  absl::Status Learn(std::span<const Observation> segment,
-                     std::span<const core::MemoryTrace> replayed,
-                     std::span<const ReplayEntry>) override {
+  absl::StatusOr<std::string> Learn(
+      std::span<const core::MemoryTrace> segment,
+      std::span<const Observation> observations,
+      std::span<const core::MemoryTrace> replayed,
+      std::span<const core::MemoryTrace>) override {
     std::vector<size_t> indices;
-    for (const Observation& observation : segment) {
-      indices.push_back(observation.index);
-      EXPECT_FALSE(observation.image.empty());
+    EXPECT_EQ(segment.size(), observations.size());
+    for (size_t i = 0; i < observations.size(); ++i) {
+      indices.push_back(observations[i].index);
+      EXPECT_FALSE(observations[i].image.empty());
+      // The trace is the observation's: its place and its code.
+      EXPECT_EQ(segment[i].place.x, observations[i].place.x);
+      EXPECT_FALSE(segment[i].code.empty());
     }
     segments.push_back(indices);
     replayed_sizes.push_back(replayed.size());
-    return absl::OkStatus();
+    return std::string("learned");
   }
   std::vector<std::vector<size_t>> segments;
   std::vector<size_t> replayed_sizes;
@@ -177,9 +183,10 @@ TEST_F(AgentTest, TheUploaderReopensItsConnectionAfterFailuresInARow) {
 
 TEST_F(AgentTest, ALearnerErrorStopsTheRobotAndKeepsTheSegmentOpen) {
   class FailingLearner : public Learner {
-    absl::Status Learn(std::span<const Observation>,
-                       std::span<const core::MemoryTrace>,
-                       std::span<const ReplayEntry>) override {
+    absl::StatusOr<std::string> Learn(
+        std::span<const core::MemoryTrace>, std::span<const Observation>,
+        std::span<const core::MemoryTrace>,
+        std::span<const core::MemoryTrace>) override {
       return absl::InternalError("out of memory in training");
     }
   } learner;

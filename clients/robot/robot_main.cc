@@ -76,6 +76,7 @@ struct Flags {
   double gamma = 0.9;
   uint32_t refresh_count = 0;
   size_t replay_per_segment = 64;
+  size_t recall_per_observation = 4;
   size_t upload_batch = 200;
   double queue_max_mb = 256.0;
   double disk_reserve_mb = 64.0;
@@ -182,6 +183,11 @@ void AddFlags(CLI::App& app, Flags& flags) {
       ->capture_default_str();
   app.add_option("--replay-per-segment", flags.replay_per_segment,
                  "traces replayed from M_D per segment")
+      ->capture_default_str();
+  app.add_option("--recall-per-observation", flags.recall_per_observation,
+                 "fleet traces recalled per new observation at the end of a "
+                 "segment (QueryPlace near its place), the learner's partners "
+                 "(0 = none)")
       ->capture_default_str();
   app.add_option("--upload-batch", flags.upload_batch, "traces per upload")
       ->capture_default_str()
@@ -515,12 +521,13 @@ int Run(const Flags& flags) {
                              : (*source)->default_match_radius();
   // Triplet radii scale with the match radius: Nordland's 20 units give the
   // demo's positives within 10 (adjacent files) and negatives beyond 100.
-  options.triplet.positive_radius = options.match_radius / 2.0;
-  options.triplet.negative_radius = options.match_radius * 5.0;
+  options.step.triplet.positive_radius = options.match_radius / 2.0;
+  options.step.triplet.negative_radius = options.match_radius * 5.0;
   options.dynamic_memory.capacity = flags.dynamic_memory;
   options.dynamic_memory.gamma = flags.gamma;
   options.refresh_count = flags.refresh_count;
-  options.replay_per_segment = flags.replay_per_segment;
+  options.step.replay_per_segment = flags.replay_per_segment;
+  options.step.recall_per_observation = flags.recall_per_observation;
   options.upload_batch = flags.upload_batch;
   options.drain_timeout = std::chrono::milliseconds(
       static_cast<int64_t>(flags.drain_timeout_s * 1000));
@@ -540,7 +547,7 @@ int Run(const Flags& flags) {
     robot::gpl::MetricHeadOptions head;
     head.pair_radius = options.match_radius;
     head.mining.positive_radius = options.match_radius;
-    head.mining.negative_radius = options.triplet.negative_radius;
+    head.mining.negative_radius = options.step.triplet.negative_radius;
     const std::string path = flags.data_dir + "/metric-head.bin";
     absl::StatusOr<robot::gpl::MetricHead> loaded =
         robot::gpl::MetricRobotLearner::LoadOrNew(
@@ -551,7 +558,7 @@ int Run(const Flags& flags) {
       return 2;
     }
     learner = std::make_unique<robot::gpl::MetricRobotLearner>(
-        encoder->get(), options.domain, *std::move(loaded), path);
+        *std::move(loaded), path);
   } else if (flags.learn) {
     robot::gpl::SegmentLearnerOptions learn;
     learn.steps_per_segment = flags.learn_steps;
@@ -559,9 +566,9 @@ int Run(const Flags& flags) {
     // Positives within the match radius (a correct match), negatives beyond
     // five of it (as the code-space R_ex, rewards.h).
     learn.mining.positive_radius = options.match_radius;
-    learn.mining.negative_radius = options.triplet.negative_radius;
+    learn.mining.negative_radius = options.step.triplet.negative_radius;
     learner = std::make_unique<robot::gpl::GplLearner>(
-        gpl.get(), options.domain, learn, flags.data_dir + "/gpl-learned.pt");
+        gpl.get(), learn, flags.data_dir + "/gpl-learned.pt");
   }
   options.new_upload_client = [upload_options] {
     return fleetmem::client::Client::Create(upload_options);

@@ -34,6 +34,7 @@ import sys
 
 SMOKE_PLACES = 48  # 3 areas of 16 places, every 4th held out: 4 queries each
 METHODS = ["classical", "classical_seq", "joint", "finetune", "bioslam", "bioslam_drop",
+           "bioslam_iw",
            "uniform_replay", "no_rex", "no_rin", "no_clustering", "no_decay",
            "fleet_shared", "gpl_pretrained", "gpl_joint", "gpl_finetune",
            "gpl_bioslam", "gpl_bioslam_decoded"]

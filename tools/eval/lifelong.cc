@@ -25,11 +25,13 @@
 #include "clients/robot/dynamic_memory.h"
 #include "clients/robot/encoder.h"
 #include "clients/robot/learning/gpl_model.h"
-#include "clients/robot/learning/place_learner.h"
+#include "clients/robot/learning/gpl_robot.h"
+#include "clients/robot/learning/metric_robot.h"
 #include "clients/robot/learning/pretrain.h"
 #include "clients/robot/learning/segment_learner.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/rewards.h"
+#include "clients/robot/segment_step.h"
 #include "proto/convert/trace_convert.h"
 #include "services/common/files.h"
 #include "tools/eval/lifelong_protocol.h"
@@ -42,8 +44,6 @@ using lifelong::kAreas;
 using lifelong::kDomains;
 using lifelong::Score;
 using robot::gpl::GplModel;
-using robot::gpl::LearnSample;
-using robot::gpl::PlaceLearner;
 using robot::gpl::ReplayInput;
 using Clock = std::chrono::steady_clock;
 using ServerChild = process::ServerProcess;
@@ -162,7 +162,7 @@ struct MethodResult {
 
 enum class LearnerKind { kNone, kMetric, kGpl };
 enum class MemoryKind { kNone, kFleet, kReservoir };
-enum class RewardMode { kFull, kNoExternal, kNoInternal, kUniform };
+using robot::RewardMode;
 
 struct MethodSpec {
   std::string name;
@@ -180,6 +180,9 @@ struct MethodSpec {
   bool merge = true;
   RewardMode rewards = RewardMode::kFull;
   ReplayInput replay_input = ReplayInput::kCode;
+  // bioslam_iw: the metric head weighs remembered traces by 1 / R
+  // (MetricRobotLearner's importance weights).
+  bool importance_weights = false;
 };
 
 // Report order. bioslam runs before uniform_replay, whose trace budget is
@@ -198,6 +201,8 @@ std::vector<MethodSpec> Specs() {
   specs.push_back({.name = "bioslam", .memory = M::kFleet});
   specs.push_back(
       {.name = "bioslam_drop", .memory = M::kFleet, .merge = false});
+  specs.push_back(
+      {.name = "bioslam_iw", .memory = M::kFleet, .importance_weights = true});
   specs.push_back({.name = "uniform_replay",
                    .memory = M::kReservoir,
                    .clustering = false,
@@ -424,7 +429,9 @@ class Reservoir {
 struct Robot {
   std::string id;
   std::string code_version;
-  std::unique_ptr<PlaceLearner> learner;
+  // The GPL learner's model (null for the metric head).
+  std::unique_ptr<robot::gpl::SharedModel> model;
+  std::unique_ptr<robot::Learner> learner;
   std::unique_ptr<robot::DynamicMemory> memory;
   std::unique_ptr<Reservoir> reservoir;
   uint64_t next_seq = 1;
@@ -449,16 +456,30 @@ robot::gpl::SegmentLearnerOptions GplLearnerOptions(const Context& ctx,
   return lo;
 }
 
+// The GPL learner on a copy of the fleet's frozen encoder and its head.
+absl::Status UseGplLearner(Context& ctx,
+                           const robot::gpl::SegmentLearnerOptions& options,
+                           Robot& r) {
+  absl::StatusOr<std::unique_ptr<GplModel>> model = ctx.pretrained->Clone();
+  if (!model.ok()) return model.status();
+  r.code_version = (*model)->version();
+  r.learner.reset();
+  r.model = std::make_unique<robot::gpl::SharedModel>();
+  {
+    absl::MutexLock lock(&r.model->mu);
+    r.model->model = *std::move(model);
+  }
+  r.learner = std::make_unique<robot::gpl::GplLearner>(r.model.get(), options);
+  return absl::OkStatus();
+}
+
 absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
                                const std::string& id, uint64_t seed) {
   Robot r;
   r.id = id;
   if (spec.learner == LearnerKind::kGpl) {
-    absl::StatusOr<std::unique_ptr<GplModel>> model = ctx.pretrained->Clone();
-    if (!model.ok()) return model.status();
-    r.code_version = (*model)->version();
-    r.learner = robot::gpl::NewGplLearner(*std::move(model),
-                                          GplLearnerOptions(ctx, spec, seed));
+    absl::Status s = UseGplLearner(ctx, GplLearnerOptions(ctx, spec, seed), r);
+    if (!s.ok()) return s;
   } else {
     robot::gpl::MetricHeadOptions mo;
     mo.pair_radius = ctx.mining.positive_radius;
@@ -468,8 +489,9 @@ absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
     if (ctx.options->metric_partners > 0)
       mo.max_partners = ctx.options->metric_partners;
     r.code_version = ctx.hog.version;
-    r.learner =
-        robot::gpl::NewMetricLearner(int(ctx.hog.codes[0].front().size()), mo);
+    r.learner = std::make_unique<robot::gpl::MetricRobotLearner>(
+        robot::gpl::MetricHead(int(ctx.hog.codes[0].front().size()), mo), "",
+        spec.importance_weights);
   }
   robot::DynamicMemoryOptions mo;
   mo.capacity = ctx.settings.memory_capacity;
@@ -480,104 +502,85 @@ absl::StatusOr<Robot> NewRobot(Context& ctx, const MethodSpec& spec,
   return r;
 }
 
-LearnSample FromTrace(const core::MemoryTrace& t) {
-  return {t.code, t.place, t.domain == kSeasonNames[1] ? 1 : 0};
+// The place recall of RunSegment's step: the k remembered traces nearest
+// to an observation's code within the pair radius of its place, from the
+// fleet's memory (QueryPlace with a position prior) or the reservoir.
+robot::PlaceRecall RecallFor(const Context& ctx, const MethodSpec& spec,
+                             Robot& r, client::Client* client,
+                             const std::string& fleet) {
+  const double radius = ctx.mining.positive_radius;
+  if (spec.memory == MemoryKind::kReservoir) {
+    return [&r, radius](
+               const core::MemoryTrace& x,
+               size_t k) -> absl::StatusOr<std::vector<core::MemoryTrace>> {
+      return r.reservoir->Recall(x.code, x.place, k, radius);
+    };
+  }
+  return [client, fleet, radius](
+             const core::MemoryTrace& x,
+             size_t k) -> absl::StatusOr<std::vector<core::MemoryTrace>> {
+    v1::QueryPlaceRequest request;
+    request.set_fleet_id(fleet);
+    request.mutable_code()->Add(x.code.begin(), x.code.end());
+    request.set_k(uint32_t(k));
+    api::PlaceToProto(x.place, request.mutable_near());
+    request.set_radius_m(radius);
+    absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
+        client->QueryPlace(request);
+    if (!matches.ok()) return matches.status();  // NOT_FOUND: no memory yet
+    std::vector<core::MemoryTrace> recalled;
+    for (const v1::PlaceMatch& m : *matches)
+      recalled.push_back(api::TraceFromProto(m.trace()));
+    return recalled;
+  };
 }
 
-// Algorithm 3 for one segment of one robot: replay and learn, rewards,
-// upload and consolidate (or, for uniform_replay, keep a uniform sample),
-// refresh M_D.
+// Algorithm 3 for one segment of one robot: the robot's own segment step
+// (clients/robot/segment_step.h: replay, recall, learn, rewards), then
+// upload and consolidate (or, for uniform_replay, keep a uniform sample)
+// and refresh M_D.
 absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
                         int season, const std::vector<size_t>& segment,
                         client::Client* client, const std::string& fleet) {
   const CodeSet& codes = ctx.CodesOf(spec);
-  std::vector<LearnSample> real;
-  for (size_t i : segment)
-    real.push_back({codes.codes[season][i], ctx.data->PlaceOf(i), season});
-  std::vector<LearnSample> memory;
-  for (const robot::ReplayEntry& e : r.memory->entries())
-    memory.push_back(FromTrace(e.trace));
-  if (spec.memory != MemoryKind::kNone && ctx.recall_per_observation > 0) {
-    // Place recall: the remembered traces of each new observation's place
-    // (QueryPlace with a position prior), the partners of Eq. 7.
-    std::set<std::pair<std::string, uint64_t>> seen;
-    for (const LearnSample& x : real) {
-      std::vector<core::MemoryTrace> recalled;
-      if (spec.memory == MemoryKind::kReservoir) {
-        recalled =
-            r.reservoir->Recall(x.code, x.place, ctx.recall_per_observation,
-                                ctx.mining.positive_radius);
-      } else {
-        v1::QueryPlaceRequest request;
-        request.set_fleet_id(fleet);
-        request.mutable_code()->Add(x.code.begin(), x.code.end());
-        request.set_k(ctx.recall_per_observation);
-        api::PlaceToProto(x.place, request.mutable_near());
-        request.set_radius_m(ctx.mining.positive_radius);
-        absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
-            client->QueryPlace(request);
-        if (absl::IsNotFound(matches.status())) break;  // no fleet memory yet
-        if (!matches.ok()) return matches.status();
-        for (const v1::PlaceMatch& m : *matches)
-          recalled.push_back(api::TraceFromProto(m.trace()));
-      }
-      for (const core::MemoryTrace& t : recalled) {
-        if (seen.insert({t.robot_id, t.seq}).second)
-          memory.push_back(FromTrace(t));
-      }
-    }
-  }
-  std::vector<LearnSample> replayed;
-  if (spec.memory != MemoryKind::kNone) {
-    for (const core::MemoryTrace& t :
-         r.memory->Replay(ctx.settings.replay_per_segment, r.rng)) {
-      replayed.push_back(FromTrace(t));
-    }
-  }
-  absl::StatusOr<std::string> report = r.learner->Learn(real, replayed, memory);
-  if (!report.ok()) return report.status();
-  r.last = *report;
-  if (spec.replay_input == ReplayInput::kDecoded) {
-    std::vector<cv::Mat> images;
-    for (size_t i : segment) images.push_back(ctx.data->images[season][i]);
-    if (absl::Status s = r.learner->LearnObservations(images); !s.ok())
-      return s;
-  }
-  const size_t segment_index = r.segments++;
-  if (spec.memory == MemoryKind::kNone) return absl::OkStatus();
-  absl::StatusOr<std::vector<float>> external =
-      r.learner->ExternalRewards(real, memory);
-  if (!external.ok()) return external.status();
-  std::vector<v1::MemoryTrace> traces;
-  std::vector<core::MemoryTrace> own;
-  for (size_t k = 0; k < segment.size(); ++k) {
-    core::MemoryTrace t;
+  std::vector<core::MemoryTrace> fresh;
+  std::vector<robot::Observation> observations;
+  for (size_t i : segment) {
+    core::MemoryTrace& t = fresh.emplace_back();
     t.robot_id = r.id;
     t.seq = r.next_seq++;
     t.domain = kSeasonNames[season];
-    t.code = real[k].code;
-    t.place = real[k].place;
-    t.reward_external = (*external)[k];
-    t.reward_internal = codes.internal[season][segment[k]];
-    switch (spec.rewards) {
-      case RewardMode::kFull:
-        t.reward = t.reward_external + t.reward_internal;
-        break;
-      case RewardMode::kNoExternal:
-        t.reward = t.reward_internal;
-        break;
-      case RewardMode::kNoInternal:
-        t.reward = t.reward_external;
-        break;
-      case RewardMode::kUniform:
-        t.reward = 1.0f;
-        break;
-    }
+    t.code = codes.codes[season][i];
+    t.place = ctx.data->PlaceOf(i);
+    t.reward_internal = codes.internal[season][i];
     t.timestamp_ns = int64_t(t.seq);
     t.encoder_version = r.code_version;
-    own.push_back(t);
-    api::TraceToProto(t, &traces.emplace_back());
+    if (spec.replay_input == ReplayInput::kDecoded) {
+      robot::Observation& o = observations.emplace_back();
+      o.index = i;
+      o.place = t.place;
+      o.image = ctx.data->images[season][i];
+    }
   }
+  robot::SegmentStepOptions step_options;
+  step_options.replay_per_segment = ctx.settings.replay_per_segment;
+  step_options.rewards = spec.rewards;
+  step_options.recall_per_observation =
+      spec.memory == MemoryKind::kNone ? 0 : ctx.recall_per_observation;
+  const robot::PlaceRecall recall =
+      spec.memory == MemoryKind::kNone ? robot::PlaceRecall()
+                                       : RecallFor(ctx, spec, r, client, fleet);
+  absl::StatusOr<robot::SegmentStepResult> step =
+      robot::RunSegmentStep(step_options, std::move(fresh), observations,
+                            *r.memory, r.rng, r.learner.get(), recall);
+  if (!step.ok()) return step.status();
+  r.last = step->report;
+  const size_t segment_index = r.segments++;
+  if (spec.memory == MemoryKind::kNone) return absl::OkStatus();
+  const std::vector<core::MemoryTrace>& own = step->traces;
+  std::vector<v1::MemoryTrace> traces;
+  for (const core::MemoryTrace& t : own)
+    api::TraceToProto(t, &traces.emplace_back());
   std::vector<core::MemoryTrace> refreshed;
   if (spec.memory == MemoryKind::kReservoir) {
     if (ctx.bioslam_traces.empty()) {
@@ -667,7 +670,7 @@ std::unique_ptr<client::Client> Connect(const ServerChild& server) {
 // `learner` (or the raw codes when it is null).
 absl::StatusOr<std::vector<Score>> Evaluate(const Context& ctx,
                                             const CodeSet& codes,
-                                            PlaceLearner* learner) {
+                                            robot::Learner* learner) {
   Eigen::MatrixXf rows[kSeasons];
   for (int s = 0; s < kSeasons; ++s) {
     if (learner == nullptr) {
@@ -719,26 +722,30 @@ absl::StatusOr<MethodResult> RunStatic(Context& ctx, const MethodSpec& spec) {
     if (spec.offline) {
       // joint: every domain's training samples at once, with the step
       // budget of all the segments the continual methods see.
-      std::vector<LearnSample> all;
+      std::vector<core::MemoryTrace> all;
       size_t segments = 0;
       for (int t = 0; t < kDomains; ++t) {
         const int season = t / kAreas;
         const std::vector<size_t> places =
             ctx.data->split.Places(t % kAreas, false);
         segments += Segments(places, ctx.settings.segment_size).size();
-        for (size_t i : places)
-          all.push_back({codes.codes[season][i], ctx.data->PlaceOf(i), season});
+        for (size_t i : places) {
+          core::MemoryTrace& x = all.emplace_back();
+          x.robot_id = robot->id;
+          x.seq = all.size();
+          x.domain = kSeasonNames[season];
+          x.code = codes.codes[season][i];
+          x.place = ctx.data->PlaceOf(i);
+        }
       }
       if (spec.learner == LearnerKind::kGpl) {
         robot::gpl::SegmentLearnerOptions lo =
             GplLearnerOptions(ctx, spec, ctx.seed + 17);
         lo.steps_per_segment = int(segments) * ctx.settings.steps_per_segment;
-        absl::StatusOr<std::unique_ptr<GplModel>> model =
-            ctx.pretrained->Clone();
-        if (!model.ok()) return model.status();
-        robot->learner = robot::gpl::NewGplLearner(*std::move(model), lo);
+        if (absl::Status s = UseGplLearner(ctx, lo, *robot); !s.ok()) return s;
       }
-      absl::StatusOr<std::string> report = robot->learner->Learn(all, {}, {});
+      absl::StatusOr<std::string> report =
+          robot->learner->Learn(all, {}, {}, {});
       if (!report.ok()) return report.status();
       Progress(absl::StrFormat("[%s] offline on %d samples: %s", spec.name,
                                all.size(), *report));

@@ -13,12 +13,14 @@
 // WR final as lifelong_protocol.h's Summarise; the chance level.
 //
 // Methods (LifelongMethodNames): classical (HOG cosine), classical_seq (HOG
-// with sequence matching), and two learners (place_learner.h): the metric
-// head on the HOG fleet code (joint, finetune, bioslam, uniform_replay with
-// bioslam's trace budget, no_rex, no_rin, no_clustering, no_decay,
-// fleet_shared) and the GPL head on the frozen GPL encoder (gpl_pretrained,
-// gpl_joint, gpl_finetune, gpl_bioslam, gpl_bioslam_decoded). Every method
-// that remembers through the fleet runs a real fleetmem-server child.
+// with sequence matching), and the robot's two learners, each run through
+// the robot's own segment step (clients/robot/segment_step.h): the metric
+// head on the HOG fleet code (metric_robot.h: joint, finetune, bioslam,
+// uniform_replay with bioslam's trace budget, no_rex, no_rin,
+// no_clustering, no_decay, fleet_shared) and the GPL head on the frozen GPL
+// encoder (gpl_robot.h: gpl_pretrained, gpl_joint, gpl_finetune,
+// gpl_bioslam, gpl_bioslam_decoded). Every method that remembers through
+// the fleet runs a real fleetmem-server child.
 #ifndef FLEETMEM_TOOLS_EVAL_LIFELONG_H_
 #define FLEETMEM_TOOLS_EVAL_LIFELONG_H_
 

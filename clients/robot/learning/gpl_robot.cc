@@ -1,8 +1,10 @@
 #include "clients/robot/learning/gpl_robot.h"
 
+#include <algorithm>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "clients/robot/rewards.h"
 
 namespace fleetmem::robot::gpl {
@@ -69,77 +71,68 @@ absl::StatusOr<Observation> GplEncoder::Perturb(const Observation& observation,
   return perturbed;
 }
 
-GplLearner::GplLearner(SharedModel* shared, std::string domain,
-                       SegmentLearnerOptions options, std::string save_path)
-    : shared_(shared),
-      domain_(std::move(domain)),
-      save_path_(std::move(save_path)) {
+GplLearner::GplLearner(SharedModel* shared, SegmentLearnerOptions options,
+                       std::string save_path)
+    : shared_(shared), save_path_(std::move(save_path)) {
   absl::MutexLock lock(&shared_->mu);
   learner_ = std::make_unique<SegmentLearner>(shared_->model.get(),
                                               std::move(options));
 }
 
-int GplLearner::DomainId(const std::string& domain) {
-  return domains_.try_emplace(domain, int(domains_.size())).first->second;
-}
-
-std::vector<LearnSample> GplLearner::MemorySamples(
-    std::span<const ReplayEntry> memory) {
-  std::vector<LearnSample> samples;
-  samples.reserve(memory.size());
-  for (const ReplayEntry& entry : memory) {
-    samples.push_back(
-        {entry.trace.code, entry.trace.place, DomainId(entry.trace.domain)});
-  }
-  return samples;
-}
-
-absl::Status GplLearner::Learn(std::span<const Observation> segment,
-                               std::span<const core::MemoryTrace> replayed,
-                               std::span<const ReplayEntry> memory) {
+absl::StatusOr<std::string> GplLearner::Learn(
+    std::span<const core::MemoryTrace> segment,
+    std::span<const Observation> observations,
+    std::span<const core::MemoryTrace> replayed,
+    std::span<const core::MemoryTrace> memory) {
   absl::MutexLock lock(&shared_->mu);
-  std::vector<cv::Mat> images;
-  for (const Observation& o : segment) images.push_back(o.image);
-  absl::StatusOr<std::vector<std::vector<float>>> codes =
-      shared_->model->Encode(images);
-  if (!codes.ok()) return codes.status();
-  const int own = DomainId(domain_);
-  std::vector<LearnSample> real;
-  for (size_t i = 0; i < segment.size(); ++i) {
-    real.push_back({std::move((*codes)[i]), segment[i].place, own});
-  }
-  std::vector<LearnSample> replay;
-  for (const core::MemoryTrace& t : replayed) {
-    if (t.code.size() != size_t(shared_->model->code_dimension())) continue;
-    replay.push_back({t.code, t.place, DomainId(t.domain)});
-  }
-  std::vector<LearnSample> remembered = MemorySamples(memory);
-  std::erase_if(remembered, [&](const LearnSample& s) {
-    return s.code.size() != size_t(shared_->model->code_dimension());
-  });
+  const size_t dimension = size_t(shared_->model->code_dimension());
+  std::vector<LearnSample> real, replay, remembered;
+  AppendSamples(segment, dimension, domains_, real);
+  AppendSamples(replayed, dimension, domains_, replay);
+  AppendSamples(memory, dimension, domains_, remembered);
   absl::StatusOr<SegmentLearnStats> stats =
       learner_->Learn(real, replay, remembered);
   if (!stats.ok()) return stats.status();
   last_ = *stats;
-  if (absl::Status g = learner_->LearnImages(images); !g.ok()) return g;
-  if (!save_path_.empty()) return shared_->model->Save(save_path_);
-  return absl::OkStatus();
+  if (!observations.empty()) {
+    std::vector<cv::Mat> images;
+    for (const Observation& o : observations) images.push_back(o.image);
+    if (absl::Status g = learner_->LearnImages(images); !g.ok()) return g;
+  }
+  if (!save_path_.empty()) {
+    if (absl::Status s = shared_->model->Save(save_path_); !s.ok()) return s;
+  }
+  return absl::StrFormat(
+      "%d steps, loss %.3f -> %.3f, descriptor spread %.3f%s", stats->steps,
+      stats->first_loss, stats->last_loss, stats->descriptor_spread,
+      stats->collapsed ? " COLLAPSED" : "");
 }
 
 absl::StatusOr<std::vector<float>> GplLearner::ExternalRewards(
-    std::span<const std::vector<float>> codes,
-    std::span<const core::Place> places, std::span<const ReplayEntry> memory) {
+    std::span<const core::MemoryTrace> segment,
+    std::span<const core::MemoryTrace> memory) {
   absl::MutexLock lock(&shared_->mu);
-  const int own = DomainId(domain_);
-  std::vector<LearnSample> segment;
-  for (size_t i = 0; i < codes.size() && i < places.size(); ++i) {
-    segment.push_back({codes[i], places[i], own});
+  std::vector<LearnSample> own, remembered;
+  for (const core::MemoryTrace& t : segment) {
+    own.push_back({t.code, t.place, domains_.Of(t.domain)});
   }
-  std::vector<LearnSample> remembered = MemorySamples(memory);
-  std::erase_if(remembered, [&](const LearnSample& s) {
-    return s.code.size() != size_t(shared_->model->code_dimension());
-  });
-  return learner_->ExternalRewards(segment, remembered);
+  AppendSamples(memory, size_t(shared_->model->code_dimension()), domains_,
+                remembered);
+  return learner_->ExternalRewards(own, remembered);
+}
+
+absl::StatusOr<std::vector<std::vector<float>>> GplLearner::Describe(
+    std::span<const std::vector<float>> codes) {
+  absl::MutexLock lock(&shared_->mu);
+  std::vector<std::vector<float>> out;
+  for (size_t begin = 0; begin < codes.size(); begin += 1024) {
+    const size_t n = std::min<size_t>(1024, codes.size() - begin);
+    absl::StatusOr<std::vector<std::vector<float>>> d =
+        shared_->model->Describe(codes.subspan(begin, n));
+    if (!d.ok()) return d.status();
+    for (auto& row : *d) out.push_back(std::move(row));
+  }
+  return out;
 }
 
 SegmentLearnStats GplLearner::last() const { return last_; }

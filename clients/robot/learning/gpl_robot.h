@@ -10,7 +10,6 @@
 #ifndef FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_ROBOT_H_
 #define FLEETMEM_CLIENTS_ROBOT_LEARNING_GPL_ROBOT_H_
 
-#include <map>
 #include <memory>
 #include <random>
 #include <span>
@@ -19,10 +18,10 @@
 
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
-#include "clients/robot/agent.h"
 #include "clients/robot/encoder.h"
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/segment_learner.h"
+#include "clients/robot/segment_step.h"
 
 namespace fleetmem::robot::gpl {
 
@@ -59,28 +58,31 @@ class GplEncoder : public Encoder {
 
 class GplLearner : public Learner {
  public:
-  // `domain` is the robot's (AgentOptions::domain). `save_path`, if not
-  // empty, receives the model after every segment (Save's atomic rename).
-  GplLearner(SharedModel* shared, std::string domain,
-             SegmentLearnerOptions options, std::string save_path = "");
-  absl::Status Learn(std::span<const Observation> segment,
-                     std::span<const core::MemoryTrace> replayed,
-                     std::span<const ReplayEntry> memory) override;
+  // `save_path`, if not empty, receives the model after every segment
+  // (Save's atomic rename).
+  GplLearner(SharedModel* shared, SegmentLearnerOptions options,
+             std::string save_path = "");
+  // The place head learns from the traces whose codes are the model's
+  // (SegmentLearner::Learn); then, when there are observations, the decoder
+  // takes its generative steps on their images.
+  absl::StatusOr<std::string> Learn(
+      std::span<const core::MemoryTrace> segment,
+      std::span<const Observation> observations,
+      std::span<const core::MemoryTrace> replayed,
+      std::span<const core::MemoryTrace> memory) override;
   absl::StatusOr<std::vector<float>> ExternalRewards(
-      std::span<const std::vector<float>> codes,
-      std::span<const core::Place> places,
-      std::span<const ReplayEntry> memory) override;
+      std::span<const core::MemoryTrace> segment,
+      std::span<const core::MemoryTrace> memory) override;
+  // The place head's unit descriptors F(z) of codes.
+  absl::StatusOr<std::vector<std::vector<float>>> Describe(
+      std::span<const std::vector<float>> codes) override;
   // Steps and loss of the last segment.
   SegmentLearnStats last() const;
 
  private:
-  int DomainId(const std::string& domain);
-  std::vector<LearnSample> MemorySamples(std::span<const ReplayEntry> memory);
-
   SharedModel* shared_;
-  std::string domain_;
   std::string save_path_;
-  std::map<std::string, int> domains_;
+  DomainIds domains_;
   std::unique_ptr<SegmentLearner> learner_;
   SegmentLearnStats last_;
 };

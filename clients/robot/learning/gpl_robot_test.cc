@@ -97,40 +97,40 @@ TEST(GplRobotTest, LearnerPairsNewObservationsWithRememberedPlaces) {
   options.steps_per_segment = 40;
   options.batch_size = 16;
   options.generative_steps_per_segment = 1;
-  GplLearner learner(shared.get(), "winter", options);
+  GplLearner learner(shared.get(), options);
   // 12 places, 10 units apart... spread so that negatives exist.
   std::vector<Observation> winter;
-  std::vector<ReplayEntry> memory;
+  std::vector<core::MemoryTrace> segment, memory;
   for (int i = 0; i < 12; ++i) {
     Observation o;
     o.place.x = 50.0 * i;
     o.image = Place(100 + i, false);
     winter.push_back(o);
+    core::MemoryTrace& w = segment.emplace_back();
+    w.code = *encoder.Encode(o);
+    w.place = o.place;
+    w.domain = "winter";
     Observation s = o;
     s.image = Place(100 + i, true);  // another season's look
-    ReplayEntry e;
-    e.trace.code = *encoder.Encode(s);
-    e.trace.place = s.place;
-    e.trace.domain = "summer";
-    e.trace.robot_id = "peer";
-    memory.push_back(e);
+    core::MemoryTrace& t = memory.emplace_back();
+    t.code = *encoder.Encode(s);
+    t.place = s.place;
+    t.domain = "summer";
+    t.robot_id = "peer";
   }
-  std::vector<core::MemoryTrace> replayed;
-  for (int i = 0; i < 4; ++i) replayed.push_back(memory[i].trace);
+  std::vector<core::MemoryTrace> replayed(memory.begin(), memory.begin() + 4);
   std::vector<std::vector<float>> codes;
-  std::vector<core::Place> places;
-  for (const Observation& o : winter) {
-    codes.push_back(*encoder.Encode(o));
-    places.push_back(o.place);
-  }
-  auto before = learner.ExternalRewards(codes, places, memory);
+  for (const core::MemoryTrace& t : segment) codes.push_back(t.code);
+  auto before = learner.ExternalRewards(segment, memory);
   ASSERT_TRUE(before.ok()) << before.status();
   ASSERT_EQ(before->size(), 12u);
-  for (int segment = 0; segment < 5; ++segment) {
-    ASSERT_TRUE(learner.Learn(winter, replayed, memory).ok());
+  for (int step = 0; step < 5; ++step) {
+    auto report = learner.Learn(segment, winter, replayed, memory);
+    ASSERT_TRUE(report.ok()) << report.status();
+    EXPECT_NE(report->find("steps, loss"), std::string::npos) << *report;
   }
   EXPECT_GT(learner.last().steps, 0);
-  auto after = learner.ExternalRewards(codes, places, memory);
+  auto after = learner.ExternalRewards(segment, memory);
   ASSERT_TRUE(after.ok());
   double sum_before = 0, sum_after = 0;
   for (int i = 0; i < 12; ++i) {

@@ -66,8 +66,8 @@ class Reader {
   }
   bool GetMatrix(Eigen::MatrixXd* m, int64_t max_side) {
     int64_t rows = 0, cols = 0;
-    if (!Get(&rows) || !Get(&cols) || rows < 0 || cols < 0 ||
-        rows > max_side || cols > max_side ||
+    if (!Get(&rows) || !Get(&cols) || rows < 0 || cols < 0 || rows > max_side ||
+        cols > max_side ||
         bytes_.size() < sizeof(double) * size_t(rows * cols)) {
       return false;
     }
@@ -138,7 +138,8 @@ absl::StatusOr<MetricHead> MetricHead::Deserialize(std::string_view bytes,
   if (head.fitted_ &&
       (!in.GetMatrix(&mean, dim) || mean.rows() != dim || mean.cols() != 1 ||
        !in.GetMatrix(&head.second_moment_, dim) ||
-       head.second_moment_.rows() != dim || head.second_moment_.cols() != dim)) {
+       head.second_moment_.rows() != dim ||
+       head.second_moment_.cols() != dim)) {
     return lost("truncated or malformed estimates");
   }
   if (head.has_pairs_ && (!in.GetMatrix(&head.difference_moment_, dim) ||
@@ -195,20 +196,44 @@ absl::StatusOr<MetricLearnStats> MetricHead::Learn(
   Eigen::MatrixXd x(samples.size(), d);
   for (size_t i = 0; i < samples.size(); ++i)
     x.row(i) = Unit(samples[i].code).transpose();
-  const double n = double(samples.size());
-  const Eigen::VectorXd mean = x.colwise().mean().transpose();
-  const Eigen::MatrixXd second = (x.transpose() * x) / n;
-  const auto pairs = Pairs(samples, options_.pair_radius, options_.max_partners);
-  Eigen::MatrixXd difference;
-  if (!pairs.empty()) {
-    Eigen::MatrixXd diffs(pairs.size(), d);
-    for (size_t p = 0; p < pairs.size(); ++p) {
-      diffs.row(p) = x.row(pairs[p].first) - x.row(pairs[p].second);
-      if (samples[pairs[p].first].domain != samples[pairs[p].second].domain)
-        ++stats.cross_domain_pairs;
-    }
-    difference = (diffs.transpose() * diffs) / double(pairs.size());
+  const auto pairs =
+      Pairs(samples, options_.pair_radius, options_.max_partners);
+  Eigen::MatrixXd diffs(pairs.size(), d);
+  for (size_t p = 0; p < pairs.size(); ++p) {
+    diffs.row(p) = x.row(pairs[p].first) - x.row(pairs[p].second);
+    if (samples[pairs[p].first].domain != samples[pairs[p].second].domain)
+      ++stats.cross_domain_pairs;
   }
+  // Weighted statistics: a row scaled by sqrt(w) enters the moments with
+  // weight w; a pair carries its first sample's weight. Unweighted (every
+  // weight 1) the plain means.
+  const bool weighted =
+      std::any_of(samples.begin(), samples.end(),
+                  [](const LearnSample& s) { return s.weight != 1.0; });
+  double n = double(samples.size()), pair_total = double(pairs.size());
+  Eigen::VectorXd mean;
+  if (weighted) {
+    Eigen::VectorXd w(samples.size());
+    for (size_t i = 0; i < samples.size(); ++i)
+      w(i) = std::max(0.0, samples[i].weight);
+    n = w.sum();
+    if (n <= 0)
+      return absl::InvalidArgumentError(
+          "metric head: every sample's weight is 0; nothing learned");
+    mean = (x.transpose() * w) / n;
+    x = w.cwiseSqrt().asDiagonal() * x;
+    pair_total = 0;
+    for (size_t p = 0; p < pairs.size(); ++p) {
+      diffs.row(p) *= std::sqrt(w(pairs[p].first));
+      pair_total += w(pairs[p].first);
+    }
+  } else {
+    mean = x.colwise().mean().transpose();
+  }
+  const Eigen::MatrixXd second = (x.transpose() * x) / n;
+  Eigen::MatrixXd difference;
+  if (!pairs.empty() && pair_total > 0)
+    difference = (diffs.transpose() * diffs) / pair_total;
   stats.pairs = pairs.size();
   const double eta = fitted_ ? std::clamp(options_.update_rate, 0.0, 1.0) : 1.0;
   if (!fitted_) {
@@ -218,11 +243,11 @@ absl::StatusOr<MetricLearnStats> MetricHead::Learn(
     mean_ = (1 - eta) * mean_ + eta * mean;
     second_moment_ = (1 - eta) * second_moment_ + eta * second;
   }
-  if (!pairs.empty()) {
-    difference_moment_ = has_pairs_
-                             ? Eigen::MatrixXd((1 - eta) * difference_moment_ +
-                                               eta * difference)
-                             : difference;
+  if (difference.size() > 0) {
+    difference_moment_ =
+        has_pairs_
+            ? Eigen::MatrixXd((1 - eta) * difference_moment_ + eta * difference)
+            : difference;
     has_pairs_ = true;
   }
   fitted_ = true;
@@ -233,8 +258,7 @@ absl::StatusOr<MetricLearnStats> MetricHead::Learn(
 void MetricHead::Refit() {
   const int d = code_dimension_;
   const int k = std::clamp(options_.dimension, 1, d);
-  const Eigen::MatrixXd covariance =
-      second_moment_ - mean_ * mean_.transpose();
+  const Eigen::MatrixXd covariance = second_moment_ - mean_ * mean_.transpose();
   // Eigenvalues ascending: the principal components are the last k.
   Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> pca(covariance);
   const Eigen::MatrixXd basis = pca.eigenvectors().rightCols(k);  // d x k
@@ -247,8 +271,7 @@ void MetricHead::Refit() {
   Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> white(within);
   const Eigen::VectorXd values = white.eigenvalues().cwiseMax(0.0);
   const double floor = options_.ridge * std::max(values.mean(), 1e-12);
-  const Eigen::VectorXd scale =
-      (values.array() + floor).rsqrt().matrix();  // k
+  const Eigen::VectorXd scale = (values.array() + floor).rsqrt().matrix();  // k
   projection_ = scale.asDiagonal() * white.eigenvectors().transpose() *
                 basis.transpose();  // k x d
 }
@@ -281,8 +304,7 @@ absl::StatusOr<std::vector<float>> MetricHead::ExternalRewards(
       codes.push_back(s.code);
     }
   }
-  absl::StatusOr<std::vector<std::vector<float>>> descriptors =
-      Describe(codes);
+  absl::StatusOr<std::vector<std::vector<float>>> descriptors = Describe(codes);
   if (!descriptors.ok()) return descriptors.status();
   std::vector<size_t> anchors(segment.size());
   for (size_t i = 0; i < anchors.size(); ++i) anchors[i] = i;
@@ -296,9 +318,9 @@ absl::StatusOr<std::vector<float>> MetricHead::ExternalRewards(
       }
       return sum;
     };
-    rewards[t.anchor] = float(std::max(
-        0.0, squared(t.anchor, t.positive) + options_.margin -
-                 squared(t.anchor, t.negative)));
+    rewards[t.anchor] =
+        float(std::max(0.0, squared(t.anchor, t.positive) + options_.margin -
+                                squared(t.anchor, t.negative)));
   }
   return rewards;
 }

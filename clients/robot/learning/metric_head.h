@@ -78,8 +78,10 @@ class MetricHead {
   MetricHead(int code_dimension, MetricHeadOptions options);
 
   // Blends the statistics of `samples` into the running estimates and
-  // refits. INVALID_ARGUMENT for a code of the wrong dimension (nothing
-  // changes). Fewer than two samples change nothing.
+  // refits. Each sample counts with its weight (negative counts as 0; a
+  // pair with its first sample's). INVALID_ARGUMENT for a code of the
+  // wrong dimension or when no sample has weight (nothing changes). Fewer
+  // than two samples change nothing.
   absl::StatusOr<MetricLearnStats> Learn(std::span<const LearnSample> samples);
 
   // Unit descriptors of `codes` (dimension k once fitted, the code's

@@ -18,8 +18,7 @@ constexpr int kDim = 24;
 // the raw cosine. Its strength is random per frame, or, with `smooth`,
 // changes slowly along the route (neighbouring winter frames differ by
 // little: winter frames alone do not show what the season changes).
-std::vector<LearnSample> Route(int places, uint64_t seed,
-                               bool smooth = false) {
+std::vector<LearnSample> Route(int places, uint64_t seed, bool smooth = false) {
   std::mt19937_64 rng(seed);
   std::normal_distribution<float> normal(0.0f, 1.0f);
   std::uniform_real_distribution<float> strength(4.0f, 12.0f);
@@ -33,8 +32,8 @@ std::vector<LearnSample> Route(int places, uint64_t seed,
       x.code = signature[i];
       for (float& v : x.code) v += 0.1f * normal(rng);
       if (domain == 1) {
-        const float s = smooth ? 8.0f + 4.0f * std::sin(i / 8.0f)
-                                : strength(rng);
+        const float s =
+            smooth ? 8.0f + 4.0f * std::sin(i / 8.0f) : strength(rng);
         for (int c = 0; c < 4; ++c) x.code[c] += s * (c % 2 ? -1.0f : 1.0f);
       }
       x.place.x = 10.0 * i;
@@ -153,10 +152,9 @@ TEST(MetricHeadTest, ACodeOfTheWrongDimensionChangesNothing) {
   auto stats = head.Learn(route);
   EXPECT_EQ(stats.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_FALSE(head.fitted());
-  EXPECT_EQ(head.Describe(std::vector<std::vector<float>>{{1.0f}})
-                .status()
-                .code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(
+      head.Describe(std::vector<std::vector<float>>{{1.0f}}).status().code(),
+      absl::StatusCode::kInvalidArgument);
 }
 
 TEST(MetricHeadTest, ExternalRewardIsTheHardestTripletsLoss) {
@@ -167,7 +165,7 @@ TEST(MetricHeadTest, ExternalRewardIsTheHardestTripletsLoss) {
   o.margin = 0.3f;
   MetricHead head(2, o);
   std::vector<LearnSample> segment{{{1, 0}, {0, 0, 0, 0}, 0}};
-  std::vector<LearnSample> memory{{{0, 1}, {1, 0, 0, 0}, 1},    // positive
+  std::vector<LearnSample> memory{{{0, 1}, {1, 0, 0, 0}, 1},        // positive
                                   {{1, 0.1f}, {100, 0, 0, 0}, 0}};  // negative
   auto r = head.ExternalRewards(segment, memory);
   ASSERT_TRUE(r.ok()) << r.status();
@@ -175,6 +173,46 @@ TEST(MetricHeadTest, ExternalRewardIsTheHardestTripletsLoss) {
   const double n = std::sqrt(1.01);
   const double dn = std::pow(1 - 1 / n, 2) + std::pow(0.1 / n, 2);
   EXPECT_NEAR((*r)[0], 2 + 0.3 - dn, 1e-5);
+}
+
+// A sample of weight 2 counts as the sample twice: the head fitted with
+// the weight describes every code as the head fitted with a copy does (no
+// pairs here, so the moments alone decide the fit).
+TEST(MetricHeadTest, AWeightCountsAsCopies) {
+  std::vector<LearnSample> route = Route(6, 11);
+  MetricHeadOptions options;
+  options.dimension = 4;
+  options.pair_radius = -1;  // no pairs
+  std::vector<LearnSample> weighted = route, copied = route;
+  weighted[3].weight = 2.0;
+  copied.push_back(route[3]);
+  copied.back().place.x = 1e6;
+  MetricHead a(kDim, options), b(kDim, options);
+  ASSERT_TRUE(a.Learn(weighted).ok());
+  ASSERT_TRUE(b.Learn(copied).ok());
+  std::vector<std::vector<float>> codes;
+  for (const LearnSample& x : route) codes.push_back(x.code);
+  auto da = a.Describe(codes), db = b.Describe(codes);
+  ASSERT_TRUE(da.ok() && db.ok());
+  // An eigenvector's sign is arbitrary: compare the descriptors' cosines
+  // with one another, which do not depend on it.
+  auto cosine = [](const std::vector<float>& u, const std::vector<float>& v) {
+    double dot = 0;
+    for (size_t c = 0; c < u.size(); ++c) dot += double(u[c]) * v[c];
+    return dot;
+  };
+  for (size_t i = 0; i < codes.size(); ++i) {
+    for (size_t j = 0; j < codes.size(); ++j) {
+      EXPECT_NEAR(cosine((*da)[i], (*da)[j]), cosine((*db)[i], (*db)[j]), 1e-6)
+          << i << " " << j;
+    }
+  }
+  // No weight at all is refused and changes nothing.
+  for (LearnSample& x : weighted) x.weight = 0.0;
+  MetricHead c(kDim, options);
+  EXPECT_EQ(c.Learn(weighted).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_FALSE(c.fitted());
 }
 
 }  // namespace

@@ -1,20 +1,20 @@
 #include "clients/robot/learning/metric_robot.h"
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "services/common/files.h"
 
 namespace fleetmem::robot::gpl {
 
-MetricRobotLearner::MetricRobotLearner(const Encoder* encoder,
-                                       std::string domain, MetricHead head,
-                                       std::string save_path)
-    : encoder_(encoder),
-      domain_(std::move(domain)),
-      save_path_(std::move(save_path)),
+MetricRobotLearner::MetricRobotLearner(MetricHead head, std::string save_path,
+                                       bool importance_weights)
+    : save_path_(std::move(save_path)),
+      importance_weights_(importance_weights),
       head_(std::move(head)) {}
 
 absl::StatusOr<MetricHead> MetricRobotLearner::LoadOrNew(
@@ -35,42 +35,38 @@ absl::StatusOr<MetricHead> MetricRobotLearner::LoadOrNew(
   return head;
 }
 
-int MetricRobotLearner::DomainId(const std::string& domain) {
-  return domains_.try_emplace(domain, int(domains_.size())).first->second;
-}
-
-std::vector<LearnSample> MetricRobotLearner::MemorySamples(
-    std::span<const ReplayEntry> memory) {
-  std::vector<LearnSample> samples;
-  for (const ReplayEntry& e : memory) {
-    if (int(e.trace.code.size()) != head_.code_dimension()) continue;
-    samples.push_back({e.trace.code, e.trace.place, DomainId(e.trace.domain)});
-  }
-  return samples;
-}
-
-absl::Status MetricRobotLearner::Learn(
-    std::span<const Observation> segment,
+absl::StatusOr<std::string> MetricRobotLearner::Learn(
+    std::span<const core::MemoryTrace> segment,
+    std::span<const Observation> /*observations*/,
     std::span<const core::MemoryTrace> replayed,
-    std::span<const ReplayEntry> memory) {
-  std::vector<LearnSample> samples;
-  for (const Observation& o : segment) {
-    absl::StatusOr<std::vector<float>> code = encoder_->Encode(o);
-    if (!code.ok()) return code.status();
-    samples.push_back({*std::move(code), o.place, 0});
-  }
+    std::span<const core::MemoryTrace> memory) {
   absl::MutexLock lock(&mu_);
-  const int own = DomainId(domain_);
-  for (LearnSample& s : samples) s.domain = own;
-  for (const core::MemoryTrace& t : replayed) {
-    if (int(t.code.size()) != head_.code_dimension()) continue;
-    samples.push_back({t.code, t.place, DomainId(t.domain)});
+  const size_t dimension = size_t(head_.code_dimension());
+  std::vector<LearnSample> samples;
+  AppendSamples(segment, dimension, domains_, samples);
+  const size_t own = samples.size();
+  std::vector<float> rewards;
+  for (auto part : {replayed, memory}) {
+    AppendSamples(part, dimension, domains_, samples);
+    for (const core::MemoryTrace& t : part)
+      if (t.code.size() == dimension) rewards.push_back(t.reward);
   }
-  for (LearnSample& s : MemorySamples(memory)) samples.push_back(std::move(s));
+  if (importance_weights_ && samples.size() > own) {
+    double total = 0;
+    for (size_t i = own; i < samples.size(); ++i) {
+      samples[i].weight = 1.0 / std::max(0.001, double(rewards[i - own]));
+      total += samples[i].weight;
+    }
+    const double scale = double(samples.size() - own) / total;
+    for (size_t i = own; i < samples.size(); ++i) samples[i].weight *= scale;
+  }
   absl::StatusOr<MetricLearnStats> stats = head_.Learn(samples);
   if (!stats.ok()) return stats.status();
   last_ = *stats;
-  if (save_path_.empty()) return absl::OkStatus();
+  const std::string report =
+      absl::StrFormat("%d samples, %d pairs (%d across domains)",
+                      stats->samples, stats->pairs, stats->cross_domain_pairs);
+  if (save_path_.empty()) return report;
   // Written beside, then renamed: a crash leaves the old head or the new.
   const std::string temporary = save_path_ + ".tmp";
   if (absl::Status s = files::WriteFile(temporary, head_.Serialize());
@@ -81,18 +77,20 @@ absl::Status MetricRobotLearner::Learn(
     return absl::InternalError(
         absl::StrCat("cannot rename ", temporary, " to ", save_path_));
   }
-  return absl::OkStatus();
+  return report;
 }
 
 absl::StatusOr<std::vector<float>> MetricRobotLearner::ExternalRewards(
-    std::span<const std::vector<float>> codes,
-    std::span<const core::Place> places, std::span<const ReplayEntry> memory) {
+    std::span<const core::MemoryTrace> segment,
+    std::span<const core::MemoryTrace> memory) {
   absl::MutexLock lock(&mu_);
-  const int own = DomainId(domain_);
-  std::vector<LearnSample> segment;
-  for (size_t i = 0; i < codes.size() && i < places.size(); ++i)
-    segment.push_back({codes[i], places[i], own});
-  return head_.ExternalRewards(segment, MemorySamples(memory));
+  const size_t dimension = size_t(head_.code_dimension());
+  std::vector<LearnSample> own, remembered;
+  for (const core::MemoryTrace& t : segment) {
+    own.push_back({t.code, t.place, domains_.Of(t.domain)});
+  }
+  AppendSamples(memory, dimension, domains_, remembered);
+  return head_.ExternalRewards(own, remembered);
 }
 
 MetricLearnStats MetricRobotLearner::last() const {
@@ -101,7 +99,7 @@ MetricLearnStats MetricRobotLearner::last() const {
 }
 
 absl::StatusOr<std::vector<std::vector<float>>> MetricRobotLearner::Describe(
-    std::span<const std::vector<float>> codes) const {
+    std::span<const std::vector<float>> codes) {
   absl::MutexLock lock(&mu_);
   return head_.Describe(codes);
 }

@@ -4,6 +4,7 @@
 #include <string>
 #include <vector>
 
+#include "clients/robot/encoder.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "opencv2/core.hpp"
@@ -53,29 +54,35 @@ TEST_F(MetricRobotTest, LearnsFromRememberedPlacesAndResumesFromItsFile) {
   auto head = MetricRobotLearner::LoadOrNew(path, dim, {});
   ASSERT_TRUE(head.ok()) << head.status();
   EXPECT_FALSE(head->fitted());
-  MetricRobotLearner learner(encoder_.get(), "winter", *std::move(head), path);
-  std::vector<Observation> segment;
-  std::vector<ReplayEntry> memory;
+  MetricRobotLearner learner(*std::move(head), path);
+  std::vector<core::MemoryTrace> segment, memory;
   std::vector<std::vector<float>> codes;
   for (int i = 0; i < 20; ++i) {
     Observation o;
     o.place.x = 50.0 * i;
     o.image = Frame(100 + i, true);
-    segment.push_back(o);
-    codes.push_back(*encoder_->Encode(o));
+    core::MemoryTrace& w = segment.emplace_back();
+    w.code = *encoder_->Encode(o);
+    w.place = o.place;
+    w.domain = "winter";
+    codes.push_back(w.code);
     Observation s = o;
     s.image = Frame(100 + i, false);
-    ReplayEntry e;
-    e.trace.code = *encoder_->Encode(s);
-    e.trace.place = s.place;
-    e.trace.domain = "summer";
-    memory.push_back(e);
+    core::MemoryTrace& t = memory.emplace_back();
+    t.code = *encoder_->Encode(s);
+    t.place = s.place;
+    t.domain = "summer";
   }
-  ASSERT_TRUE(learner.Learn(segment, {}, memory).ok());
+  // A trace of another encoder is left out, not misread.
+  core::MemoryTrace foreign = memory[0];
+  foreign.code.resize(7);
+  memory.push_back(foreign);
+  auto report = learner.Learn(segment, {}, {}, memory);
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_EQ(*report, "40 samples, 40 pairs (40 across domains)");
   EXPECT_EQ(learner.last().samples, 40u);
   EXPECT_EQ(learner.last().cross_domain_pairs, 40u);  // each with its partner
-  auto rewards = learner.ExternalRewards(
-      codes, std::vector<core::Place>(20, core::Place{}), memory);
+  auto rewards = learner.ExternalRewards(segment, memory);
   ASSERT_TRUE(rewards.ok()) << rewards.status();
   EXPECT_EQ(rewards->size(), 20u);
   // A restart reads the saved head: the same descriptors.

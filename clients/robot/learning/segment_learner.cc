@@ -5,6 +5,18 @@
 
 namespace fleetmem::robot::gpl {
 
+int DomainIds::Of(const std::string& domain) {
+  return ids_.try_emplace(domain, static_cast<int>(ids_.size())).first->second;
+}
+
+void AppendSamples(std::span<const core::MemoryTrace> traces, size_t dimension,
+                   DomainIds& domains, std::vector<LearnSample>& out) {
+  for (const core::MemoryTrace& t : traces) {
+    if (t.code.size() != dimension) continue;
+    out.push_back({t.code, t.place, domains.Of(t.domain)});
+  }
+}
+
 SegmentLearner::SegmentLearner(GplModel* model, SegmentLearnerOptions options)
     : model_(model), options_(std::move(options)), rng_(options_.seed) {}
 

@@ -21,8 +21,10 @@
 
 #include <cstdint>
 #include <initializer_list>
+#include <map>
 #include <random>
 #include <span>
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -36,7 +38,25 @@ struct LearnSample {
   std::vector<float> code;  // z = E(q)
   core::Place place;
   int domain = 0;
+  // Weight of the sample in a learner's statistics (the metric head's
+  // importance weights; the GPL learner ignores it).
+  double weight = 1.0;
 };
+
+// Domain names ("summer", "lidar") as the small integers LearnSample
+// carries, in order of first appearance.
+class DomainIds {
+ public:
+  int Of(const std::string& domain);
+
+ private:
+  std::map<std::string, int> ids_;
+};
+
+// Appends the traces whose codes have `dimension` values (a learner's code
+// size; others come from another encoder) to `out` as samples.
+void AppendSamples(std::span<const core::MemoryTrace> traces, size_t dimension,
+                   DomainIds& domains, std::vector<LearnSample>& out);
 
 enum class ReplayInput { kCode, kDecoded };
 
