@@ -57,14 +57,14 @@ class Learner {
   // model, after Learn. UNIMPLEMENTED (the default) makes the step use the
   // triplet loss in code space (rewards.h's ExternalRewards).
   virtual absl::StatusOr<std::vector<float>> ExternalRewards(
-      std::span<const core::MemoryTrace> segment,
-      std::span<const core::MemoryTrace> memory) {
+      std::span<const core::MemoryTrace> /*segment*/,
+      std::span<const core::MemoryTrace> /*memory*/) {
     return absl::UnimplementedError("no learned external reward");
   }
   // Unit descriptors of codes under the current model (what a map is
   // searched with). UNIMPLEMENTED (the default): the codes themselves.
   virtual absl::StatusOr<std::vector<std::vector<float>>> Describe(
-      std::span<const std::vector<float>> codes) {
+      std::span<const std::vector<float>> /*codes*/) {
     return absl::UnimplementedError("no learned descriptor");
   }
 };

@@ -15,8 +15,8 @@ as computed here (docs/results.md, tools/eval/lifelong_protocol.h):
     areas learned before;
   - the chance row from the count of correct map entries per query;
   - the methods that do not learn over the domains (classical,
-    classical_seq, joint, gpl_pretrained, gpl_joint) score the same after
-    every domain;
+    classical_seq, joint, gpl_pretrained, gpl_joint, gpl_e2e_joint) score
+    the same after every domain;
   - uniform_replay never holds more traces than bioslam (memory.csv).
 
 --quick (ctest fleetmem_eval_quick_test, slow tier): the quick settings on
@@ -36,9 +36,11 @@ SMOKE_PLACES = 48  # 3 areas of 16 places, every 4th held out: 4 queries each
 METHODS = ["classical", "classical_seq", "joint", "finetune", "bioslam", "bioslam_drop",
            "bioslam_iw",
            "uniform_replay", "no_rex", "no_rin", "no_clustering", "no_decay",
-           "fleet_shared", "gpl_pretrained", "gpl_joint", "gpl_finetune",
+           "fleet_shared", "gpl_pretrained", "gpl_joint", "gpl_e2e_joint",
+           "gpl_finetune",
            "gpl_bioslam", "gpl_bioslam_decoded"]
-STATIC = ["classical", "classical_seq", "joint", "gpl_pretrained", "gpl_joint"]
+STATIC = ["classical", "classical_seq", "joint", "gpl_pretrained", "gpl_joint",
+          "gpl_e2e_joint"]
 DOMAINS, AREAS, TOLERANCE = 6, 3, 2
 TOL = 2e-4  # the files print 4 decimals
 
@@ -55,7 +57,7 @@ def main():
                "--data-root", data_root, "--out", out, "--quick"]
     if smoke:
         command += ["--places", str(SMOKE_PLACES), "--threads", "1",
-                    "--pretrain-steps", "3",
+                    "--pretrain-steps", "3", "--end-to-end-steps", "3",
                     "--steps-per-segment", "2"]
     subprocess.run(command, check=True)
 

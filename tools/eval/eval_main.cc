@@ -98,6 +98,11 @@ int main(int argc, char** argv) {
                        "override: L_joint steps of the encoder's pre-training");
   lifelong->add_option("--steps-per-segment", options.steps_per_segment,
                        "override: place-head steps per segment");
+  lifelong
+      ->add_option("--end-to-end-steps", options.end_to_end_steps,
+                   "override: gpl_e2e_joint's L_joint steps (150 quick, "
+                   "1200 full)")
+      ->check(CLI::PositiveNumber);
   lifelong->add_option(
       "--negative-candidates", options.negative_candidates,
       "override: negatives drawn per anchor (the nearest is used)");

@@ -53,6 +53,7 @@ struct LifelongOptions {
   int threads = 2;
   // Overrides of the settings (0 or negative = the quick/full default).
   int pretrain_steps = 0;
+  int end_to_end_steps = 0;
   int steps_per_segment = 0;
   int negative_candidates = 0;
   double head_learning_rate = 0;

@@ -532,6 +532,28 @@ absl::StatusOr<std::unique_ptr<GplModel>> GplModel::Clone() const {
   return copy;
 }
 
+absl::StatusOr<std::string> GplModel::SavePlaceHead() const {
+  return Guarded<std::string>("save the place head", [&] {
+    torch::serialize::OutputArchive archive;
+    impl_->head->save(archive);
+    std::ostringstream out;
+    archive.save_to(out);
+    return out.str();
+  });
+}
+
+absl::Status GplModel::RestorePlaceHead(const std::string& bytes) {
+  return Guarded<bool>("restore the place head",
+                       [&] {
+                         std::istringstream in(bytes);
+                         torch::serialize::InputArchive archive;
+                         archive.load_from(in);
+                         impl_->head->load(archive);
+                         return true;
+                       })
+      .status();
+}
+
 const GplOptions& GplModel::options() const { return impl_->options; }
 const std::string& GplModel::version() const { return impl_->version; }
 void GplModel::set_version(std::string version) {

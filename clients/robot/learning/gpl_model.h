@@ -115,6 +115,11 @@ class GplModel {
   absl::Status Save(const std::string& path) const;
   // A deep copy (weights, optimiser state not included).
   absl::StatusOr<std::unique_ptr<GplModel>> Clone() const;
+  // The place head's weights as bytes, and back (a learner's checkpoint:
+  // SegmentLearner rolls a collapsed head back). The optimiser's state is
+  // not included. INTERNAL / DATA_LOSS from torch's serialisation.
+  absl::StatusOr<std::string> SavePlaceHead() const;
+  absl::Status RestorePlaceHead(const std::string& bytes);
 
   const GplOptions& options() const;
   // The encoder's version, carried by every code.

@@ -105,7 +105,9 @@ absl::StatusOr<std::string> GplLearner::Learn(
   return absl::StrFormat(
       "%d steps, loss %.3f -> %.3f, descriptor spread %.3f%s", stats->steps,
       stats->first_loss, stats->last_loss, stats->descriptor_spread,
-      stats->collapsed ? " COLLAPSED" : "");
+      stats->rolled_back ? " COLLAPSED, rolled back"
+      : stats->collapsed ? " COLLAPSED"
+                         : "");
 }
 
 absl::StatusOr<std::vector<float>> GplLearner::ExternalRewards(

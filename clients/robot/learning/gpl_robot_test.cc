@@ -2,6 +2,8 @@
 
 #include <unistd.h>
 
+#include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <random>
 #include <string>
@@ -144,6 +146,56 @@ TEST(GplRobotTest, LearnerPairsNewObservationsWithRememberedPlaces) {
   EXPECT_FALSE(learner.last().collapsed);
   // Codes do not move: the encoder is frozen.
   EXPECT_EQ(*encoder.Encode(winter[0]), codes[0]);
+}
+
+// A segment after which the head counts as collapsed is rolled back: the
+// head describes every code as before the segment. (A spread threshold
+// above any possible spread, 1, makes every segment a collapse.) Without
+// the rollback the same segment moves the descriptors.
+TEST(GplRobotTest, ACollapsedHeadIsRolledBack) {
+  for (bool roll_back : {true, false}) {
+    auto shared = SavedAndLoaded();
+    ASSERT_NE(shared, nullptr);
+    GplEncoder encoder(shared.get());
+    SegmentLearnerOptions options;
+    options.steps_per_segment = 10;
+    options.batch_size = 8;
+    options.collapse_spread = 2.0f;
+    options.roll_back_collapse = roll_back;
+    GplLearner learner(shared.get(), options);
+    std::vector<core::MemoryTrace> segment;
+    std::vector<std::vector<float>> codes;
+    for (int i = 0; i < 8; ++i) {
+      Observation o;
+      o.image = Place(200 + i, i % 2 == 1);
+      core::MemoryTrace& t = segment.emplace_back();
+      t.code = *encoder.Encode(o);
+      t.place.x = 200.0 * (i / 2);  // pairs of one place, 200 apart
+      t.domain = i % 2 ? "winter" : "summer";
+      codes.push_back(t.code);
+    }
+    auto before = learner.Describe(codes);
+    ASSERT_TRUE(before.ok()) << before.status();
+    auto report = learner.Learn(segment, {}, {}, {});
+    ASSERT_TRUE(report.ok()) << report.status();
+    EXPECT_GT(learner.last().steps, 0);
+    EXPECT_TRUE(learner.last().collapsed);
+    EXPECT_EQ(learner.last().rolled_back, roll_back);
+    EXPECT_EQ(report->find("rolled back") != std::string::npos, roll_back)
+        << *report;
+    auto after = learner.Describe(codes);
+    ASSERT_TRUE(after.ok());
+    double moved = 0;
+    for (size_t i = 0; i < codes.size(); ++i)
+      for (size_t c = 0; c < (*after)[i].size(); ++c)
+        moved =
+            std::max(moved, double(std::abs((*after)[i][c] - (*before)[i][c])));
+    if (roll_back) {
+      EXPECT_EQ(moved, 0.0);
+    } else {
+      EXPECT_GT(moved, 1e-4);
+    }
+  }
 }
 
 }  // namespace

@@ -67,6 +67,9 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
                    options_.batch_size,
                    size_t(options_.batch_size * options_.replay_share + 0.5));
   const size_t real_anchors = s == 0 ? 0 : options_.batch_size - replay_anchors;
+  absl::StatusOr<std::string> checkpoint = std::string();
+  if (options_.roll_back_collapse) checkpoint = model_->SavePlaceHead();
+  if (!checkpoint.ok()) return checkpoint.status();
   std::vector<std::vector<float>> descriptors;
   for (int step = 0; step < options_.steps_per_segment; ++step) {
     if (step % std::max(1, options_.mining_interval) == 0) {
@@ -111,6 +114,11 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
     for (double m : mean) squared += m * m;
     stats.descriptor_spread = float(1.0 - squared);
     stats.collapsed = stats.descriptor_spread < options_.collapse_spread;
+  }
+  if (stats.collapsed && options_.roll_back_collapse) {
+    if (absl::Status s = model_->RestorePlaceHead(*checkpoint); !s.ok())
+      return s;
+    stats.rolled_back = true;
   }
   return stats;
 }

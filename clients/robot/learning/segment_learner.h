@@ -79,6 +79,10 @@ struct SegmentLearnerOptions {
   // A descriptor spread below this after a segment is reported as a
   // collapse (SegmentLearnStats::collapsed).
   float collapse_spread = 0.01f;
+  // On a collapse, the place head goes back to its weights before the
+  // segment (its optimiser's state is kept): the segment's steps are lost,
+  // the head's ability to tell places apart is not.
+  bool roll_back_collapse = true;
   uint64_t seed = 1;
 };
 
@@ -93,6 +97,9 @@ struct SegmentLearnStats {
   // the head has collapsed (loss stuck at the margin, every place alike).
   float descriptor_spread = 0.0f;
   bool collapsed = false;
+  // The collapsed head was rolled back (descriptor_spread is the spread
+  // that was measured before the rollback).
+  bool rolled_back = false;
 };
 
 class SegmentLearner {
