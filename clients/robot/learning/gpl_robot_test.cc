@@ -148,54 +148,133 @@ TEST(GplRobotTest, LearnerPairsNewObservationsWithRememberedPlaces) {
   EXPECT_EQ(*encoder.Encode(winter[0]), codes[0]);
 }
 
-// A segment after which the head counts as collapsed is rolled back: the
-// head describes every code as before the segment. (A spread threshold
-// above any possible spread, 1, makes every segment a collapse.) Without
-// the rollback the same segment moves the descriptors.
-TEST(GplRobotTest, ACollapsedHeadIsRolledBack) {
-  for (bool roll_back : {true, false}) {
-    auto shared = SavedAndLoaded();
-    ASSERT_NE(shared, nullptr);
-    GplEncoder encoder(shared.get());
-    SegmentLearnerOptions options;
-    options.steps_per_segment = 10;
-    options.batch_size = 8;
-    options.collapse_spread = 2.0f;
-    options.roll_back_collapse = roll_back;
-    GplLearner learner(shared.get(), options);
-    std::vector<core::MemoryTrace> segment;
-    std::vector<std::vector<float>> codes;
-    for (int i = 0; i < 8; ++i) {
+// Eight frames, pairs of one place 200 apart, in two domains.
+std::vector<core::MemoryTrace> PairedSegment(GplEncoder& encoder) {
+  std::vector<core::MemoryTrace> segment;
+  for (int i = 0; i < 8; ++i) {
+    Observation o;
+    o.image = Place(200 + i / 2, i % 2 == 1);
+    core::MemoryTrace& t = segment.emplace_back();
+    t.code = *encoder.Encode(o);
+    t.place.x = 200.0 * (i / 2);
+    t.domain = i % 2 ? "winter" : "summer";
+  }
+  return segment;
+}
+
+// Contradictory labels: two looks of one frame far apart (negatives of
+// each other at code distance 0) and different frames at one place
+// (positives). The triplet loss is lowest when every descriptor is the
+// same: training on it collapses the head.
+std::vector<core::MemoryTrace> PoisonedSegment(GplEncoder& encoder) {
+  std::vector<core::MemoryTrace> segment;
+  for (int copy = 0; copy < 2; ++copy) {
+    for (int i = 0; i < 4; ++i) {
       Observation o;
-      o.image = Place(200 + i, i % 2 == 1);
+      o.image = Place(300 + i, false);
       core::MemoryTrace& t = segment.emplace_back();
       t.code = *encoder.Encode(o);
-      t.place.x = 200.0 * (i / 2);  // pairs of one place, 200 apart
-      t.domain = i % 2 ? "winter" : "summer";
-      codes.push_back(t.code);
-    }
-    auto before = learner.Describe(codes);
-    ASSERT_TRUE(before.ok()) << before.status();
-    auto report = learner.Learn(segment, {}, {}, {});
-    ASSERT_TRUE(report.ok()) << report.status();
-    EXPECT_GT(learner.last().steps, 0);
-    EXPECT_TRUE(learner.last().collapsed);
-    EXPECT_EQ(learner.last().rolled_back, roll_back);
-    EXPECT_EQ(report->find("rolled back") != std::string::npos, roll_back)
-        << *report;
-    auto after = learner.Describe(codes);
-    ASSERT_TRUE(after.ok());
-    double moved = 0;
-    for (size_t i = 0; i < codes.size(); ++i)
-      for (size_t c = 0; c < (*after)[i].size(); ++c)
-        moved =
-            std::max(moved, double(std::abs((*after)[i][c] - (*before)[i][c])));
-    if (roll_back) {
-      EXPECT_EQ(moved, 0.0);
-    } else {
-      EXPECT_GT(moved, 1e-4);
+      t.place.x = 1000.0 * copy;
+      t.domain = "summer";
     }
   }
+  return segment;
+}
+
+std::vector<std::vector<float>> Codes(
+    const std::vector<core::MemoryTrace>& traces) {
+  std::vector<std::vector<float>> codes;
+  for (const core::MemoryTrace& t : traces) codes.push_back(t.code);
+  return codes;
+}
+
+// A model whose head has learned the paired segment (healthy), and a
+// second segment on it with the guard set at `collapse_spread`.
+struct GuardRun {
+  float start_spread = 0;  // the second segment's pool, before it
+  SegmentLearnStats stats;
+  std::string report;
+};
+
+float SpreadOf(const std::vector<std::vector<float>>& descriptors) {
+  std::vector<double> mean(descriptors[0].size(), 0.0);
+  for (const auto& d : descriptors)
+    for (size_t c = 0; c < d.size(); ++c) mean[c] += d[c] / descriptors.size();
+  double squared = 0;
+  for (double m : mean) squared += m * m;
+  return float(1.0 - squared);
+}
+GuardRun RunGuarded(float collapse_spread, bool roll_back, int steps) {
+  GuardRun run;
+  auto shared = SavedAndLoaded();
+  EXPECT_NE(shared, nullptr);
+  GplEncoder encoder(shared.get());
+  SegmentLearnerOptions options;
+  options.steps_per_segment = 60;
+  options.batch_size = 8;
+  options.mining_interval = 5;
+  GplLearner first(shared.get(), options);
+  EXPECT_TRUE(first.Learn(PairedSegment(encoder), {}, {}, {}).ok());
+  options.steps_per_segment = steps;
+  options.collapse_spread = collapse_spread;
+  options.roll_back_collapse = roll_back;
+  GplLearner second(shared.get(), options);
+  const std::vector<core::MemoryTrace> poisoned = PoisonedSegment(encoder);
+  auto start = second.Describe(Codes(poisoned));
+  EXPECT_TRUE(start.ok());
+  if (start.ok()) run.start_spread = SpreadOf(*start);
+  auto report = second.Learn(poisoned, {}, {}, {});
+  EXPECT_TRUE(report.ok()) << report.status();
+  if (report.ok()) run.report = *report;
+  run.stats = second.last();
+  return run;
+}
+
+// The collapse guard: a head whose descriptors draw together past the
+// threshold during a segment goes back to its last healthy weights and the
+// segment stops there; without the guard it trains on into the collapse.
+TEST(GplRobotTest, TheCollapseGuardKeepsTheLastHealthyHead) {
+  const int steps = 200;
+  const GuardRun unguarded = RunGuarded(0.0f, false, steps);
+  const float healthy = unguarded.start_spread;
+  const float collapsed = unguarded.stats.descriptor_spread;
+  ASSERT_EQ(unguarded.stats.steps, steps);
+  ASSERT_LT(collapsed, healthy / 4)
+      << "the poisoned segment must draw the descriptors together";
+  const float threshold = healthy / 2;
+
+  const GuardRun guarded = RunGuarded(threshold, true, steps);
+  EXPECT_FLOAT_EQ(guarded.start_spread, healthy);
+  EXPECT_TRUE(guarded.stats.rolled_back);
+  EXPECT_LT(guarded.stats.steps, steps);
+  EXPECT_GE(guarded.stats.descriptor_spread, threshold);
+  EXPECT_FALSE(guarded.stats.collapsed);
+  EXPECT_NE(guarded.report.find("COLLAPSED, rolled back"), std::string::npos)
+      << guarded.report;
+}
+
+// A head below the threshold before any healthy state was seen trains on:
+// there is nothing to go back to (a fresh head of this fixture starts with
+// its descriptors together).
+TEST(GplRobotTest, AHeadNeverSeenHealthyTrainsOn) {
+  auto shared = SavedAndLoaded();
+  ASSERT_NE(shared, nullptr);
+  GplEncoder encoder(shared.get());
+  SegmentLearnerOptions options;
+  options.steps_per_segment = 20;
+  options.batch_size = 8;
+  options.collapse_spread = 2.0f;  // above any spread
+  GplLearner learner(shared.get(), options);
+  const std::vector<core::MemoryTrace> segment = PairedSegment(encoder);
+  auto before = learner.Describe(Codes(segment));
+  ASSERT_TRUE(before.ok());
+  ASSERT_TRUE(learner.Learn(segment, {}, {}, {}).ok());
+  EXPECT_EQ(learner.last().steps, 20);
+  EXPECT_TRUE(learner.last().collapsed);
+  EXPECT_FALSE(learner.last().rolled_back);
+  auto after = learner.Describe(Codes(segment));
+  ASSERT_TRUE(after.ok());
+  EXPECT_NE(*after, *before);
 }
 
 }  // namespace

@@ -4,6 +4,21 @@
 #include <utility>
 
 namespace fleetmem::robot::gpl {
+namespace {
+
+// 1 - |mean descriptor|^2: the mean squared distance of unit descriptors
+// to their mean (0 when they are all the same).
+float Spread(const std::vector<std::vector<float>>& descriptors) {
+  if (descriptors.empty()) return 0.0f;
+  std::vector<double> mean(descriptors[0].size(), 0.0);
+  for (const std::vector<float>& d : descriptors)
+    for (size_t c = 0; c < d.size(); ++c) mean[c] += d[c] / descriptors.size();
+  double squared = 0;
+  for (double m : mean) squared += m * m;
+  return float(1.0 - squared);
+}
+
+}  // namespace
 
 int DomainIds::Of(const std::string& domain) {
   return ids_.try_emplace(domain, static_cast<int>(ids_.size())).first->second;
@@ -67,9 +82,11 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
                    options_.batch_size,
                    size_t(options_.batch_size * options_.replay_share + 0.5));
   const size_t real_anchors = s == 0 ? 0 : options_.batch_size - replay_anchors;
-  absl::StatusOr<std::string> checkpoint = std::string();
-  if (options_.roll_back_collapse) checkpoint = model_->SavePlaceHead();
-  if (!checkpoint.ok()) return checkpoint.status();
+  // The collapse guard: at every refresh of the descriptors the head is
+  // checked; a healthy head is kept as the checkpoint, a collapsed one is
+  // replaced by the last checkpoint and the segment's steps end there.
+  std::string checkpoint;
+  bool has_checkpoint = false;
   std::vector<std::vector<float>> descriptors;
   for (int step = 0; step < options_.steps_per_segment; ++step) {
     if (step % std::max(1, options_.mining_interval) == 0) {
@@ -77,6 +94,21 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
           model_->Describe(codes);
       if (!d.ok()) return d.status();
       descriptors = *std::move(d);
+      if (options_.roll_back_collapse) {
+        if (Spread(descriptors) >= options_.collapse_spread) {
+          absl::StatusOr<std::string> saved = model_->SavePlaceHead();
+          if (!saved.ok()) return saved.status();
+          checkpoint = *std::move(saved);
+          has_checkpoint = true;
+        } else if (has_checkpoint) {
+          if (absl::Status r = model_->RestorePlaceHead(checkpoint); !r.ok())
+            return r;
+          stats.rolled_back = true;
+          break;
+        }
+        // (A head collapsed before any healthy state was seen trains on:
+        // there is nothing to go back to.)
+      }
     }
     std::vector<size_t> anchors;
     for (size_t i = 0; i < real_anchors; ++i) {
@@ -102,23 +134,21 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
     stats.steps += 1;
     stats.triplets += int(triplets.size());
   }
-  // Collapse check: how far the pool's descriptors are from being one.
+  // After the segment: how far the pool's descriptors are from being one.
   absl::StatusOr<std::vector<std::vector<float>>> after =
       model_->Describe(codes);
   if (!after.ok()) return after.status();
-  if (!after->empty()) {
-    std::vector<double> mean((*after)[0].size(), 0.0);
-    for (const std::vector<float>& d : *after)
-      for (size_t c = 0; c < d.size(); ++c) mean[c] += d[c] / after->size();
-    double squared = 0;
-    for (double m : mean) squared += m * m;
-    stats.descriptor_spread = float(1.0 - squared);
-    stats.collapsed = stats.descriptor_spread < options_.collapse_spread;
-  }
-  if (stats.collapsed && options_.roll_back_collapse) {
-    if (absl::Status s = model_->RestorePlaceHead(*checkpoint); !s.ok())
-      return s;
+  stats.descriptor_spread = Spread(*after);
+  stats.collapsed = stats.descriptor_spread < options_.collapse_spread;
+  if (stats.collapsed && options_.roll_back_collapse && has_checkpoint) {
+    if (absl::Status r = model_->RestorePlaceHead(checkpoint); !r.ok())
+      return r;
     stats.rolled_back = true;
+    absl::StatusOr<std::vector<std::vector<float>>> restored =
+        model_->Describe(codes);
+    if (!restored.ok()) return restored.status();
+    stats.descriptor_spread = Spread(*restored);
+    stats.collapsed = stats.descriptor_spread < options_.collapse_spread;
   }
   return stats;
 }

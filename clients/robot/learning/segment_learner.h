@@ -79,9 +79,11 @@ struct SegmentLearnerOptions {
   // A descriptor spread below this after a segment is reported as a
   // collapse (SegmentLearnStats::collapsed).
   float collapse_spread = 0.01f;
-  // On a collapse, the place head goes back to its weights before the
-  // segment (its optimiser's state is kept): the segment's steps are lost,
-  // the head's ability to tell places apart is not.
+  // The collapse guard: the pool's descriptor spread is checked at every
+  // refresh of the descriptors (mining_interval) and after the segment; a
+  // head that falls below collapse_spread goes back to its last healthy
+  // weights (the optimiser's state is kept) and the segment's steps end
+  // there. A head never seen healthy trains on.
   bool roll_back_collapse = true;
   uint64_t seed = 1;
 };
@@ -91,14 +93,15 @@ struct SegmentLearnStats {
   int triplets = 0;
   float first_loss = 0.0f;
   float last_loss = 0.0f;
-  // After the segment: 1 - |mean descriptor|^2 over the pool (the mean
+  // After the segment (and a rollback): 1 - |mean descriptor|^2 over the
+  // pool (the mean
   // squared distance of its unit descriptors to their mean; 0 when every
   // descriptor is the same). Below SegmentLearnerOptions::collapse_spread
   // the head has collapsed (loss stuck at the margin, every place alike).
   float descriptor_spread = 0.0f;
   bool collapsed = false;
-  // The collapsed head was rolled back (descriptor_spread is the spread
-  // that was measured before the rollback).
+  // A collapse was caught and the head rolled back to its last healthy
+  // weights; descriptor_spread and collapsed describe the head kept.
   bool rolled_back = false;
 };
 
