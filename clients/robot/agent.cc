@@ -380,9 +380,10 @@ absl::StatusOr<SegmentStepResult> Agent::StepSegment(
     }
     return recalled;
   };
-  absl::StatusOr<SegmentStepResult> step =
-      RunSegmentStep(options_.step, std::move(segment), observations, memory_,
-                     rng_, learner_, recall);
+  // Recalled traces feed the learner only: without one, no queries.
+  absl::StatusOr<SegmentStepResult> step = RunSegmentStep(
+      options_.step, std::move(segment), observations, memory_, rng_, learner_,
+      learner_ != nullptr ? recall : PlaceRecall());
   if (unanswered) Log("place recall skipped: the server did not answer");
   return step;
 }

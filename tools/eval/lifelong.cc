@@ -10,7 +10,6 @@
 #include <map>
 #include <memory>
 #include <random>
-#include <set>
 #include <string>
 #include <utility>
 #include <vector>
@@ -826,6 +825,7 @@ absl::StatusOr<MethodResult> RunStatic(Context& ctx, const MethodSpec& spec) {
       absl::StatusOr<std::string> report =
           robot->learner->Learn(all, {}, {}, {});
       if (!report.ok()) return report.status();
+      if (absl::StrContains(*report, "COLLAPSED")) ++result.collapses;
       Progress(absl::StrFormat("[%s] offline on %d samples: %s", spec.name,
                                all.size(), *report));
     }
