@@ -204,6 +204,7 @@ float SpreadOf(const std::vector<std::vector<float>>& descriptors) {
   for (double m : mean) squared += m * m;
   return float(1.0 - squared);
 }
+
 GuardRun RunGuarded(float collapse_spread, bool roll_back, int steps) {
   GuardRun run;
   auto shared = SavedAndLoaded();
