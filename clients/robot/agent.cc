@@ -14,6 +14,7 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "clients/robot/code_search.h"
+#include "clients/robot/fleet_recall.h"
 #include "google/protobuf/util/json_util.h"
 #include "proto/convert/trace_convert.h"
 #include "services/core/place_metrics.h"
@@ -356,29 +357,16 @@ absl::StatusOr<SegmentStepResult> Agent::StepSegment(
   // not answer leaves the segment without recalled partners, as a refresh
   // it cannot make leaves M_D as it is.
   bool unanswered = false;
+  const PlaceRecall fleet =
+      NewFleetRecall(query_client_, options_.fleet_id, options_.match_radius);
   const PlaceRecall recall =
       [&](const core::MemoryTrace& observed,
           size_t k) -> absl::StatusOr<std::vector<core::MemoryTrace>> {
-    v1::QueryPlaceRequest request;
-    request.set_fleet_id(options_.fleet_id);
-    request.mutable_code()->Assign(observed.code.begin(), observed.code.end());
-    request.set_k(static_cast<uint32_t>(k));
-    api::PlaceToProto(observed.place, request.mutable_near());
-    request.set_radius_m(options_.match_radius);
-    absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
-        query_client_->QueryPlace(request);
-    if (!matches.ok()) {
-      if (absl::IsNotFound(matches.status())) return matches.status();
-      unanswered = true;
-      return absl::NotFoundError("recall unanswered");  // stops recall
-    }
-    std::vector<core::MemoryTrace> recalled;
-    for (const v1::PlaceMatch& m : *matches) {
-      if (m.trace().code_size() != static_cast<int>(observed.code.size()))
-        continue;
-      recalled.push_back(TraceFromProto(m.trace()));
-    }
-    return recalled;
+    absl::StatusOr<std::vector<core::MemoryTrace>> recalled =
+        fleet(observed, k);
+    if (recalled.ok() || absl::IsNotFound(recalled.status())) return recalled;
+    unanswered = true;
+    return absl::NotFoundError("recall unanswered");  // stops recall
   };
   // Recalled traces feed the learner only: without one, no queries.
   absl::StatusOr<SegmentStepResult> step = RunSegmentStep(

@@ -23,6 +23,7 @@
 #include "clients/cpp/fleetmem_client.h"
 #include "clients/robot/dynamic_memory.h"
 #include "clients/robot/encoder.h"
+#include "clients/robot/fleet_recall.h"
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/gpl_robot.h"
 #include "clients/robot/learning/metric_robot.h"
@@ -531,23 +532,7 @@ robot::PlaceRecall RecallFor(const Context& ctx, const MethodSpec& spec,
       return r.reservoir->Recall(x.code, x.place, k, radius);
     };
   }
-  return [client, fleet, radius](
-             const core::MemoryTrace& x,
-             size_t k) -> absl::StatusOr<std::vector<core::MemoryTrace>> {
-    v1::QueryPlaceRequest request;
-    request.set_fleet_id(fleet);
-    request.mutable_code()->Add(x.code.begin(), x.code.end());
-    request.set_k(uint32_t(k));
-    api::PlaceToProto(x.place, request.mutable_near());
-    request.set_radius_m(radius);
-    absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
-        client->QueryPlace(request);
-    if (!matches.ok()) return matches.status();  // NOT_FOUND: no memory yet
-    std::vector<core::MemoryTrace> recalled;
-    for (const v1::PlaceMatch& m : *matches)
-      recalled.push_back(api::TraceFromProto(m.trace()));
-    return recalled;
-  };
+  return robot::NewFleetRecall(client, fleet, radius);
 }
 
 // Algorithm 3 for one segment of one robot: the robot's own segment step
