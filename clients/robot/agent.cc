@@ -356,7 +356,7 @@ absl::StatusOr<SegmentStepResult> Agent::StepSegment(
   // Recall through the query client (short deadline): a server that does
   // not answer leaves the segment without recalled partners, as a refresh
   // it cannot make leaves M_D as it is.
-  bool unanswered = false;
+  absl::Status unanswered;
   const PlaceRecall fleet =
       NewFleetRecall(query_client_, options_.fleet_id, options_.match_radius);
   const PlaceRecall recall =
@@ -365,14 +365,17 @@ absl::StatusOr<SegmentStepResult> Agent::StepSegment(
     absl::StatusOr<std::vector<core::MemoryTrace>> recalled =
         fleet(observed, k);
     if (recalled.ok() || absl::IsNotFound(recalled.status())) return recalled;
-    unanswered = true;
+    unanswered = recalled.status();
     return absl::NotFoundError("recall unanswered");  // stops recall
   };
   // Recalled traces feed the learner only: without one, no queries.
   absl::StatusOr<SegmentStepResult> step = RunSegmentStep(
       options_.step, std::move(segment), observations, memory_, rng_, learner_,
       learner_ != nullptr ? recall : PlaceRecall());
-  if (unanswered) Log("place recall skipped: the server did not answer");
+  if (!unanswered.ok()) {
+    Log(absl::StrCat("place recall skipped for this segment (",
+                     unanswered.ToString(), ")"));
+  }
   return step;
 }
 

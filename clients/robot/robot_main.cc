@@ -187,8 +187,10 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--recall-per-observation", flags.recall_per_observation,
                  "fleet traces recalled per new observation at the end of a "
                  "segment (QueryPlace near its place), the learner's partners "
-                 "(0 = none)")
-      ->capture_default_str();
+                 "(0 = none; at most the server's max_query_k, 1000 by "
+                 "default)")
+      ->capture_default_str()
+      ->check(CLI::Range(size_t{0}, size_t{1000}));
   app.add_option("--upload-batch", flags.upload_batch, "traces per upload")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
