@@ -80,7 +80,12 @@ Reply<v1::UploadTracesResponse> Upload(
   auto context = MakeContext(timeout);
   std::unique_ptr<grpc::ClientWriterInterface<v1::UploadTracesRequest>> writer =
       stub.UploadTraces(context.get(), &reply.response);
-  for (const v1::UploadTracesRequest& request : requests) {
+  for (v1::UploadTracesRequest request : requests) {
+    // Read-your-writes unless the test says otherwise: these tests read
+    // what they uploaded.
+    if (request.ack() == v1::UPLOAD_ACK_UNSPECIFIED) {
+      request.set_ack(v1::UPLOAD_ACK_APPLIED);
+    }
     if (!writer->Write(request)) break;
   }
   writer->WritesDone();

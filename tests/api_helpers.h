@@ -40,8 +40,9 @@ std::string Describe(const grpc::Status& status);
 std::unique_ptr<v1::MemoryService::Stub> MakeStub(const std::string& address);
 std::shared_ptr<grpc::Channel> MakeChannel(const std::string& address);
 
-// One UploadTraces stream carrying `requests` in order. Stops writing at the
-// first failed Write (the status then tells why).
+// One UploadTraces stream carrying `requests` in order, each applied before
+// its answer unless it sets `ack` (UPLOAD_ACK_APPLIED for UNSPECIFIED). Stops
+// writing at the first failed Write (the status then tells why).
 Reply<v1::UploadTracesResponse> Upload(
     v1::MemoryService::StubInterface& stub,
     std::span<const v1::UploadTracesRequest> requests,

@@ -203,13 +203,15 @@ class StopWatcher {
 grpc::Status UploadOnce(v1::MemoryService::StubInterface& stub,
                         grpc::ClientContext* context, std::string_view fleet_id,
                         std::span<const v1::MemoryTrace> traces,
-                        size_t batch_size, v1::UploadTracesResponse* response) {
+                        size_t batch_size, v1::UploadAck ack,
+                        v1::UploadTracesResponse* response) {
   std::unique_ptr<grpc::ClientWriterInterface<v1::UploadTracesRequest>> writer =
       stub.UploadTraces(context, response);
   for (size_t begin = 0; begin < traces.size(); begin += batch_size) {
     const size_t end = std::min(traces.size(), begin + batch_size);
     v1::UploadTracesRequest request;
     request.set_fleet_id(std::string(fleet_id));
+    request.set_ack(ack);
     request.mutable_traces()->Reserve(static_cast<int>(end - begin));
     for (size_t i = begin; i < end; ++i) *request.add_traces() = traces[i];
     // A failed write means the stream is broken; Finish() says why.
@@ -325,13 +327,13 @@ absl::StatusOr<v1::UploadTracesResponse> Client::Upload(
   v1::UploadTracesResponse response;
   if (traces.empty()) return response;
   const size_t batch_size = std::max<size_t>(1, options_.upload_batch_size);
-  grpc::Status status =
-      CallWithRetry(options_, channel_.get(), /*retry=*/true,
-                    [&](grpc::ClientContext* context) {
-                      response.Clear();
-                      return UploadOnce(*stub_, context, fleet_id, traces,
-                                        batch_size, &response);
-                    });
+  grpc::Status status = CallWithRetry(
+      options_, channel_.get(), /*retry=*/true,
+      [&](grpc::ClientContext* context) {
+        response.Clear();
+        return UploadOnce(*stub_, context, fleet_id, traces, batch_size,
+                          options_.upload_ack, &response);
+      });
   if (!status.ok()) return FromGrpcStatus(status);
   return response;
 }

@@ -51,6 +51,14 @@ struct ClientOptions {
   std::chrono::milliseconds keepalive_timeout{10000};
   // Traces per UploadTracesRequest message of an upload stream (0 acts as 1).
   size_t upload_batch_size = 500;
+  // When the server answers an upload (docs/api.md): UPLOAD_ACK_APPLIED
+  // (the default here: a query or stats call after Upload sees its traces,
+  // and the response counts the consolidations) or UPLOAD_ACK_DURABLE (the
+  // answer comes at the durable append, before consolidation: the fast
+  // path for robots and bulk loads, which fleetmem-robot and fleetmem-load
+  // use). The server's own default, for a request that does not say, is
+  // durable.
+  v1::UploadAck upload_ack = v1::UPLOAD_ACK_APPLIED;
   // Credentials. `token` ("NAME:SECRET", from fleetmem-credential) is sent
   // as "authorization: Bearer TOKEN" with every call; empty sends none.
   std::string token;

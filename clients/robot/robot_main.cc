@@ -451,6 +451,10 @@ int Run(const Flags& flags) {
       fleetmem::client::Client::Create(client_options);
   client_options.max_attempts = 1;
   client_options.upload_batch_size = flags.upload_batch;
+  // Answered at the durable append: the robot's queue is freed as soon as
+  // the server holds its traces; replay (SampleReplay) waits on the server
+  // for them to be applied.
+  client_options.upload_ack = fleetmem::v1::UPLOAD_ACK_DURABLE;
   std::unique_ptr<fleetmem::client::Client> client =
       fleetmem::client::Client::Create(client_options);
   // The uploader's own channel, reopened after failures (agent.h).

@@ -1,6 +1,7 @@
 #include "services/engine/memory_engine.h"
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <functional>
@@ -441,6 +442,11 @@ struct MemoryEngine::Fleet {
       uint64_t log_position, FleetMutation* mutation)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   void FinishSample(FleetMutation mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Sets `held` from memory (after every change of its trace count).
+  void PublishHeld() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
+    held.store(memory.trace_count() + pending_position.size(),
+               std::memory_order_relaxed);
+  }
   FleetStats Stats() const ABSL_SHARED_LOCKS_REQUIRED(mu);
 
   // Fleet is nested in MemoryEngine and so reaches its private members; these
@@ -508,6 +514,9 @@ struct MemoryEngine::Fleet {
   // when the store's snapshot last matched them (nullopt: it does not).
   uint64_t snapshot_changes ABSL_GUARDED_BY(mu) = 0;
   std::optional<uint64_t> snapshot_saved_at ABSL_GUARDED_BY(mu);
+  // Traces held (static memory and pending), for readers that must not
+  // wait for the fleet's lock (MemoryEngine::HeldTraces).
+  std::atomic<uint64_t> held{0};
   // The fleet's seed; replay draws from `rng`, and each segment's k-means
   // from a generator of its own (SegmentSeed).
   const uint64_t seed;
@@ -555,6 +564,7 @@ absl::Status MemoryEngine::Fleet::Reload() {
     return status;
   }
   stale = absl::OkStatus();
+  PublishHeld();
   return absl::OkStatus();
 }
 
@@ -901,8 +911,14 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
     status = quota.AdmitDimension(id, traces[0].code.size());
     if (!status.ok()) return status;
   }
-  status = quota.AdmitRates(id, traces);
-  if (!status.ok()) return status;
+  // Rates refuse by the clock: only a direct call is rated. An entry of a
+  // log (log_position != 0) was rated when it was appended (WritePath, or
+  // the receiving replica in distributed mode), and applying it again after
+  // a restart must not be refused.
+  if (log_position == 0) {
+    status = quota.AdmitRates(id, traces);
+    if (!status.ok()) return status;
+  }
 
   // Duplicates are seqs already received or repeated within this upload:
   // inserting into a copy of the robot's SeqSet detects both.
@@ -1603,8 +1619,10 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
       status = fleet->CommitUpload(std::move(prepared), &result, &notices,
                                    plan ? &*plan : nullptr);
     }
+    fleet->PublishHeld();
     notices.consolidated.clusters = fleet->memory.clusters().size();
     notices.consolidated.traces = fleet->memory.trace_count();
+    fleet->PublishHeld();
   }
   Fleet::Notify(*this, fleet_id, notices.last_event_id);
   if (notices.consolidations > 0 && hooks_.on_consolidate) {
@@ -1762,6 +1780,7 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
     }
     notices.consolidated.clusters = fleet->memory.clusters().size();
     notices.consolidated.traces = fleet->memory.trace_count();
+    fleet->PublishHeld();
   }
   Fleet::Notify(*this, fleet_id, notices.last_event_id);
   if (!status.ok()) return status;
@@ -1908,6 +1927,40 @@ absl::StatusOr<uint64_t> MemoryEngine::LogPosition(
       });
   if (absl::IsNotFound(position.status())) return 0;
   return position;
+}
+
+absl::Status CheckTraces(std::string_view fleet_id,
+                         std::span<const core::MemoryTrace> traces,
+                         const FleetShape* shape, size_t max_traces) {
+  if (shape == nullptr) {
+    return ValidateUpload(fleet_id, traces, nullptr, max_traces);
+  }
+  FleetMeta meta;
+  meta.code_dimension = shape->code_dimension;
+  meta.encoder_version = shape->encoder_version;
+  return ValidateUpload(fleet_id, traces, &meta, max_traces);
+}
+
+std::optional<FleetShape> MemoryEngine::Shape(std::string_view fleet_id) const {
+  const Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return std::nullopt;
+  absl::ReaderMutexLock lock(&fleet->mu);
+  if (!fleet->exists()) return std::nullopt;
+  return FleetShape{fleet->meta.code_dimension, fleet->meta.encoder_version};
+}
+
+uint64_t MemoryEngine::HeldTraces(std::string_view fleet_id) const {
+  const Fleet* fleet = Fleet::Find(*this, fleet_id);
+  return fleet == nullptr ? 0 : fleet->held.load(std::memory_order_relaxed);
+}
+
+core::SeqSet MemoryEngine::Received(std::string_view fleet_id,
+                                    std::string_view robot_id) const {
+  const Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return {};
+  absl::ReaderMutexLock lock(&fleet->mu);
+  auto it = fleet->robots.find(robot_id);
+  return it == fleet->robots.end() ? core::SeqSet() : it->second.received;
 }
 
 absl::Status MemoryEngine::CheckFleetExists(std::string_view fleet_id) const {

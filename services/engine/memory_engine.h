@@ -85,6 +85,14 @@ struct FleetShape {
   std::string encoder_version;
 };
 
+// Checks a whole upload as MemoryEngine::Upload does (INVALID_ARGUMENT
+// naming the trace and field): at most `max_traces`, each trace valid and of
+// the fleet's `shape`; `shape` null for a fleet that does not exist yet (its
+// first upload then fixes the shape from traces[0]).
+absl::Status CheckTraces(std::string_view fleet_id,
+                         std::span<const core::MemoryTrace> traces,
+                         const FleetShape* shape, size_t max_traces);
+
 struct ConsolidateResult {
   uint64_t consolidated_traces = 0;
   uint64_t downsampled_traces = 0;
@@ -220,9 +228,11 @@ class MemoryEngine {
   // segment_size. The first upload to an unknown fleet creates it with the
   // dimension and encoder version of its traces.
   //
-  // `log_position` (distributed mode, services/cluster): the sequence of
-  // the fleet's log entry this upload is; stored in the same write as the
-  // traces it adds (LogPosition), unless it adds none.
+  // `log_position`: the sequence of the fleet's log entry this upload is
+  // (WritePath's local log, or distributed mode's replicated log); stored in
+  // the same write as the traces it adds (LogPosition), unless it adds none.
+  // An entry of a log is not rated (its rates were checked when it was
+  // appended): only a direct call (0) passes the rate limits here.
   absl::StatusOr<UploadResult> Upload(std::string_view fleet_id,
                                       std::span<const core::MemoryTrace> traces,
                                       uint64_t log_position = 0);
@@ -237,9 +247,25 @@ class MemoryEngine {
                            std::span<const core::MemoryTrace> traces,
                            const FleetShape* shape = nullptr) const;
 
-  // Distributed mode: the last log entry stored with an upload's traces
-  // (0 for an unknown fleet, or none).
+  // The last log entry stored with an upload's traces (0 for an unknown
+  // fleet, or none): the fleet's log is applied through it (WritePath's
+  // local log in embedded mode, the replicated log in distributed mode).
   absl::StatusOr<uint64_t> LogPosition(std::string_view fleet_id) const;
+
+  // For a write path that admits uploads before they are applied (WritePath):
+  // cheap views of a fleet that wait for no consolidation, except Received
+  // and Shape, which wait for the fleet's reader lock.
+  // The fleet's shape, or nullopt if it does not exist yet.
+  std::optional<FleetShape> Shape(std::string_view fleet_id) const;
+  // Traces the fleet holds (static memory and pending), as of its last
+  // change; 0 for an unknown fleet.
+  uint64_t HeldTraces(std::string_view fleet_id) const;
+  // Every seq the fleet has received from `robot_id` (empty if none).
+  core::SeqSet Received(std::string_view fleet_id,
+                        std::string_view robot_id) const;
+  // The quotas every upload passes (rates, stored traces, fleets, dimension).
+  UploadQuota& quota() { return *quota_; }
+  const EngineOptions& options() const { return options_; }
 
   // Distributed mode's snapshots (services/cluster): the fleet's whole
   // stored state, events included, read while none of its writes runs.

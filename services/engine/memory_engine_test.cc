@@ -27,6 +27,7 @@
 #include "absl/time/time.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "services/engine/forwarding_store.h"
 #include "services/index/exact_index.h"
 #include "services/index/hnsw_index.h"
 #include "services/storage/in_memory_store.h"
@@ -200,28 +201,6 @@ void ExpectEachTraceFindsItself(const MemoryEngine& engine,
     EXPECT_EQ(matches->front().distance, 0.0f);
   }
 }
-
-class ForwardingStore : public MemoryStore {
- public:
-  explicit ForwardingStore(MemoryStore* inner) : inner_(inner) {}
-  absl::StatusOr<std::vector<std::string>> ListFleets() override {
-    return inner_->ListFleets();
-  }
-  absl::StatusOr<FleetRecord> LoadFleet(std::string_view fleet_id) override {
-    return inner_->LoadFleet(fleet_id);
-  }
-  absl::Status Apply(std::string_view fleet_id,
-                     const FleetMutation& mutation) override {
-    return inner_->Apply(fleet_id, mutation);
-  }
-  absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
-      std::string_view fleet_id, uint64_t after_event, size_t limit) override {
-    return inner_->ReadEvents(fleet_id, after_event, limit);
-  }
-
- private:
-  MemoryStore* inner_;
-};
 
 // A store whose index snapshots, once written and before their (simulated)
 // sync, run `during_sync` on another thread and wait for it: the engine

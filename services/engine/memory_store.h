@@ -97,6 +97,18 @@ struct FleetMutation {
   }
 };
 
+// One entry of a fleet's ingest log (engine/write_path.h): an upload as it
+// was acknowledged, under its sequence in the fleet's log.
+struct LoggedUpload {
+  uint64_t sequence = 0;
+  std::vector<core::MemoryTrace> traces;
+};
+// An entry to append (MemoryStore::AppendLog), its traces not copied.
+struct LogAppend {
+  uint64_t sequence = 0;
+  std::span<const core::MemoryTrace> traces;
+};
+
 // Thread-safe. Every method returns a non-OK status on storage failure,
 // never throws.
 class MemoryStore {
@@ -158,6 +170,29 @@ class MemoryStore {
       const std::function<absl::Status(std::span<const char>)>& read) {
     return absl::NotFoundError("this store keeps no index snapshots");
   }
+
+  // The ingest log (embedded mode's write path, engine/write_path.h): the
+  // uploads a fleet acknowledged and has not applied yet. Kept apart from
+  // the fleet's state: ListFleets and LoadFleet do not see it.
+  //
+  // Appends `entries` (each sequence greater than every one the fleet's log
+  // held) in one atomic write and returns once they are durable: synced,
+  // whatever the store's sync option, in the same write-ahead log as Apply,
+  // so an entry appended after an Apply is never durable without it.
+  virtual absl::Status AppendLog(std::string_view fleet_id,
+                                 std::span<const LogAppend> entries) = 0;
+  // Up to `max_entries` entries of the fleet's log with sequence > `after`,
+  // ascending (none for a fleet without a log).
+  virtual absl::StatusOr<std::vector<LoggedUpload>> ReadLog(
+      std::string_view fleet_id, uint64_t after, size_t max_entries) = 0;
+  // Erases the fleet's log entries with sequence <= `through`, once what
+  // they carry is applied (stored by Apply). Need not be synced: the
+  // entries are applied again, idempotently, if the erasure is lost.
+  virtual absl::Status TrimLog(std::string_view fleet_id, uint64_t through) = 0;
+  // The fleets whose log holds entries, each with its last sequence; sorted
+  // by fleet.
+  virtual absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>>
+  LogTails() = 0;
 
   // Approximate bytes the store takes on disk (0 when it keeps nothing
   // there), for metrics.

@@ -10,6 +10,7 @@
 #include "services/http/dashboard_assets.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
+#include "services/transport/embedded_memory.h"
 
 namespace fleetmem::http {
 namespace {
@@ -24,7 +25,10 @@ class HttpServerTest : public ::testing::Test {
         [](size_t dimension) { return index::NewExactIndex(dimension); });
     ASSERT_TRUE(engine.ok());
     engine_ = std::move(*engine);
-    api_ = std::make_unique<transport::MemoryApi>(engine_.get());
+    auto memory = transport::EmbeddedMemory::Open(engine_.get(), store_.get());
+    ASSERT_TRUE(memory.ok()) << memory.status();
+    memory_ = std::move(*memory);
+    api_ = std::make_unique<transport::MemoryApi>(engine_.get(), memory_.get());
     auto gateway = RestGateway::Create(api_.get(), nullptr, nullptr);
     ASSERT_TRUE(gateway.ok());
     gateway_ = std::move(*gateway);
@@ -41,6 +45,7 @@ class HttpServerTest : public ::testing::Test {
 
   std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
   std::unique_ptr<engine::MemoryEngine> engine_;
+  std::unique_ptr<transport::EmbeddedMemory> memory_;
   std::unique_ptr<transport::MemoryApi> api_;
   std::unique_ptr<RestGateway> gateway_;
   std::unique_ptr<HttpServer> server_;
@@ -94,7 +99,9 @@ TEST(HttpServerStartTest, BadAddressAndTlsFiles) {
       {}, store.get(),
       [](size_t dimension) { return index::NewExactIndex(dimension); });
   ASSERT_TRUE(engine.ok());
-  transport::MemoryApi api(engine->get());
+  auto memory = transport::EmbeddedMemory::Open(engine->get(), store.get());
+  ASSERT_TRUE(memory.ok()) << memory.status();
+  transport::MemoryApi api(engine->get(), memory->get());
   auto gateway = RestGateway::Create(&api, nullptr, nullptr);
   ASSERT_TRUE(gateway.ok());
   HttpServerOptions options;

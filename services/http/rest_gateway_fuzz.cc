@@ -16,6 +16,7 @@
 #include "services/http/rest_gateway.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
+#include "services/transport/embedded_memory.h"
 
 namespace {
 
@@ -41,13 +42,17 @@ struct World {
       traces.push_back(trace);
     }
     engine->Upload("f", traces).IgnoreError();
-    api = std::make_unique<fm::transport::MemoryApi>(engine.get());
+    memory = std::move(
+        *fm::transport::EmbeddedMemory::Open(engine.get(), store.get()));
+    api =
+        std::make_unique<fm::transport::MemoryApi>(engine.get(), memory.get());
     gateway = std::move(*fm::http::RestGateway::Create(
         api.get(), nullptr, nullptr, {.max_body_bytes = 1 << 16}));
   }
   std::unique_ptr<fm::engine::MemoryStore> store =
       fm::storage::NewInMemoryStore();
   std::unique_ptr<fm::engine::MemoryEngine> engine;
+  std::unique_ptr<fm::transport::EmbeddedMemory> memory;
   std::unique_ptr<fm::transport::MemoryApi> api;
   std::unique_ptr<fm::http::RestGateway> gateway;
 };

@@ -13,6 +13,7 @@
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
+#include "services/transport/embedded_memory.h"
 
 namespace fleetmem::http {
 namespace {
@@ -45,7 +46,10 @@ class RestGatewayTest : public ::testing::Test {
     std::vector<core::MemoryTrace> traces;
     for (uint64_t seq = 1; seq <= 6; ++seq) traces.push_back(Trace("r1", seq));
     ASSERT_TRUE(engine_->Upload("alpha", traces).ok());
-    api_ = std::make_unique<transport::MemoryApi>(engine_.get());
+    auto memory = transport::EmbeddedMemory::Open(engine_.get(), store_.get());
+    ASSERT_TRUE(memory.ok()) << memory.status();
+    memory_ = std::move(*memory);
+    api_ = std::make_unique<transport::MemoryApi>(engine_.get(), memory_.get());
     auto gateway = RestGateway::Create(
         api_.get(), nullptr,
         [this](std::string_view transport, std::string_view method,
@@ -70,6 +74,7 @@ class RestGatewayTest : public ::testing::Test {
 
   std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
   std::unique_ptr<engine::MemoryEngine> engine_;
+  std::unique_ptr<transport::EmbeddedMemory> memory_;
   std::unique_ptr<transport::MemoryApi> api_;
   std::unique_ptr<RestGateway> gateway_;
   std::vector<std::string> calls_;
@@ -229,7 +234,9 @@ TEST(RestGatewayAuthTest, TokensAndRoles) {
       {auth::Principal{"viewer", auth::Role::kReader, "", {"alpha"}}, *hash,
        ""});
   auth::Authenticator authenticator(std::move(entries));
-  transport::MemoryApi api(engine->get());
+  auto memory = transport::EmbeddedMemory::Open(engine->get(), store.get());
+  ASSERT_TRUE(memory.ok()) << memory.status();
+  transport::MemoryApi api(engine->get(), memory->get());
   auto gateway = RestGateway::Create(&api, &authenticator, nullptr);
   ASSERT_TRUE(gateway.ok());
   HttpRequest request{.method = "GET", .path = "/v1/fleets/alpha/stats"};

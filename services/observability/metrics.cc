@@ -40,7 +40,7 @@ std::string CodeName(absl::StatusCode code) {
   return absl::StatusCodeToString(code);
 }
 
-// Times every Apply of the wrapped store.
+// Times every Apply and log append of the wrapped store.
 class TimedMemoryStore final : public engine::MemoryStore {
  public:
   TimedMemoryStore(std::unique_ptr<engine::MemoryStore> store,
@@ -84,6 +84,26 @@ class TimedMemoryStore final : public engine::MemoryStore {
   }
   uint64_t ApproximateDiskBytes() override {
     return store_->ApproximateDiskBytes();
+  }
+  // The write path's log: its appends are writes too.
+  absl::Status AppendLog(std::string_view fleet_id,
+                         std::span<const engine::LogAppend> entries) override {
+    const absl::Time start = absl::Now();
+    absl::Status status = store_->AppendLog(fleet_id, entries);
+    writes_->Observe(absl::ToDoubleSeconds(absl::Now() - start));
+    if (!status.ok()) write_errors_->Increment();
+    return status;
+  }
+  absl::StatusOr<std::vector<engine::LoggedUpload>> ReadLog(
+      std::string_view fleet_id, uint64_t after, size_t max_entries) override {
+    return store_->ReadLog(fleet_id, after, max_entries);
+  }
+  absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
+    return store_->TrimLog(fleet_id, through);
+  }
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
+      override {
+    return store_->LogTails();
   }
 
  private:
@@ -204,6 +224,22 @@ struct Metrics::Families {
                             .Help("Codes waiting outside the fleet's HNSW "
                                   "graph (scanned exactly until indexed)")
                             .Register(r)),
+        backlog_entries(BuildGauge()
+                            .Name("fleetmem_write_backlog_entries")
+                            .Help("Uploads acknowledged (durable in the "
+                                  "fleet's log) and not applied yet")
+                            .Register(r)),
+        backlog_traces(BuildGauge()
+                           .Name("fleetmem_write_backlog_traces")
+                           .Help("Traces of the fleet's acknowledged uploads "
+                                 "not applied yet (bounded: "
+                                 "write_path.max_backlog_traces)")
+                           .Register(r)),
+        backlog_age(BuildGauge()
+                        .Name("fleetmem_write_backlog_age_seconds")
+                        .Help("Age of the fleet's oldest acknowledged upload "
+                              "not applied yet (0 with none)")
+                        .Register(r)),
         log_lag(BuildGauge()
                     .Name("fleetmem_cluster_log_lag_entries")
                     .Help("Distributed mode: entries of the fleet's log not "
@@ -256,6 +292,9 @@ struct Metrics::Families {
   Family<Gauge>& fleet_last_event;
   Family<Gauge>& index_entries;
   Family<Gauge>& index_unindexed;
+  Family<Gauge>& backlog_entries;
+  Family<Gauge>& backlog_traces;
+  Family<Gauge>& backlog_age;
   Family<Gauge>& log_lag;
   Family<Gauge>& cluster_fleets;
   Family<Gauge>& cluster_owned;
@@ -409,6 +448,15 @@ void Metrics::RefreshGauges() {
       }
     }
     lag_exported_ = std::move(fleets);
+  }
+  if (sources_.backlogs) {
+    // Fleets are never removed in embedded mode: no series goes away.
+    for (const auto& [fleet_id, backlog] : sources_.backlogs()) {
+      const prometheus::Labels labels{{"fleet", fleet_id}};
+      f.backlog_entries.Add(labels).Set(static_cast<double>(backlog.entries));
+      f.backlog_traces.Add(labels).Set(static_cast<double>(backlog.traces));
+      f.backlog_age.Add(labels).Set(backlog.oldest_seconds);
+    }
   }
   if (sources_.cluster_fleets) {
     const auto [with_log, owned] = sources_.cluster_fleets();

@@ -19,6 +19,7 @@
 #include "absl/synchronization/mutex.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/memory_store.h"
+#include "services/engine/write_path.h"
 
 namespace prometheus {
 class Registry;
@@ -43,6 +44,10 @@ struct ScrapeSources {
   // owns, as of its last round (fleetmem_cluster_fleets,
   // fleetmem_cluster_owned_fleets: alerts compare them over replicas).
   std::function<std::pair<double, double>()> cluster_fleets;
+  // Embedded mode: each fleet's write backlog (engine::WritePath):
+  // fleetmem_write_backlog_entries, _traces and _age_seconds.
+  std::function<std::vector<std::pair<std::string, engine::Backlog>>()>
+      backlogs;
 };
 
 // Thread-safe.

@@ -1,116 +1,25 @@
-// fleetmem-server's distributed mode (docs/distributed.md): the connection
-// to NATS JetStream, this replica's ownership loop (cluster::ClusterNode)
-// and the transport's Distribution over them: uploads appended to the
-// fleets' logs, calls served by the owner of their fleet (forwarded there
-// by PeerForwarder), Consolidate and SampleReplay through the log.
+// fleetmem-server's distributed mode (docs/distributed.md), started from
+// the server's configuration: reads the peer token and CA files and
+// connects to NATS JetStream for cluster::ReplicatedMemory, the transport's
+// FleetMemory in that mode.
 #ifndef FLEETMEM_SERVICES_SERVER_CLUSTER_MODE_H_
 #define FLEETMEM_SERVICES_SERVER_CLUSTER_MODE_H_
 
 #include <memory>
-#include <optional>
-#include <string>
-#include <string_view>
-#include <utility>
-#include <vector>
 
-#include "absl/base/thread_annotations.h"
-#include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
-#include "absl/synchronization/mutex.h"
-#include "services/cluster/cluster_node.h"
-#include "services/cluster/nats_fleet_log.h"
+#include "services/cluster/replicated_memory.h"
 #include "services/engine/memory_engine.h"
-#include "services/engine/upload_quota.h"
 #include "services/server/server_config.h"
-#include "services/transport/distribution.h"
-#include "services/transport/peer_forwarder.h"
 
 namespace fleetmem::server {
 
-class ClusterMode final : public transport::Distribution {
- public:
-  // Connects to NATS (UNAVAILABLE when no server answers) and reads the
-  // peer token and CA files (NOT_FOUND / INVALID_ARGUMENT). `engine` must
-  // outlive the object and run without upload rate limits.
-  static absl::StatusOr<std::unique_ptr<ClusterMode>> Start(
-      const ServerConfig& config, engine::MemoryEngine* engine);
-  // Stops the loop and hands this replica's fleets over (Shutdown).
-  ~ClusterMode() override;
-
-  // Starts the ownership loop; `lost` is called for each fleet this
-  // replica stops owning (its watches end).
-  void Run(std::function<void(const std::string&)> lost = nullptr);
-  // Stops the loop and releases every lease, so that the other replicas
-  // take this one's fleets at once (a clean shutdown).
-  void Shutdown();
-
-  absl::StatusOr<engine::UploadResult> Upload(
-      std::string_view fleet_id,
-      std::span<const core::MemoryTrace> traces) override;
-  absl::StatusOr<std::optional<std::string>> Owner(
-      std::string_view fleet_id) override;
-  absl::StatusOr<std::vector<std::pair<std::string, std::string>>> Fleets()
-      override;
-  const std::string& self() const override { return self_; }
-  // Entries of each owned fleet's log not applied yet (one call to NATS
-  // per fleet; a fleet whose log cannot be read now is left out).
-  std::vector<std::pair<std::string, double>> LogLag();
-  // Fleets that have a log, and fleets owned here, as of the last round.
-  std::pair<double, double> FleetCounts() const {
-    return {static_cast<double>(node_.fleets_seen()),
-            static_cast<double>(node_.owned().size())};
-  }
-  // True if this replica holds the fleet's lease (as of its last round);
-  // no call to NATS.
-  bool Serves(std::string_view fleet_id) {
-    return node_.materialiser().Owns(fleet_id);
-  }
-  absl::Status Forward(const std::string& address, std::string_view method,
-                       const google::protobuf::Message& request,
-                       google::protobuf::Message* response) override;
-  absl::StatusOr<engine::ConsolidateResult> Consolidate(
-      std::string_view fleet_id) override;
-  absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
-      std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-      std::string_view request_id) override;
-
- private:
-  ClusterMode(std::string self, size_t max_entry_bytes,
-              engine::QuotaOptions rates,
-              std::unique_ptr<cluster::NatsFleetLog> log,
-              transport::PeerOptions peers, engine::MemoryEngine* engine,
-              cluster::ClusterNodeOptions node);
-
-  // The last holder read for each fleet: used while the lease table cannot
-  // be read (NATS electing a leader), so that reads go on.
-  absl::Mutex owners_mu_;
-  absl::flat_hash_map<std::string, std::string> last_owner_
-      ABSL_GUARDED_BY(owners_mu_);
-  // The fleets of the last listing that NATS answered.
-  std::vector<std::string> known_fleets_ ABSL_GUARDED_BY(owners_mu_);
-
-  // The shape of each fleet, read from the first entry of its log (it
-  // never changes once a fleet exists).
-  absl::flat_hash_map<std::string, engine::FleetShape> shapes_
-      ABSL_GUARDED_BY(owners_mu_);
-  // What uploads to the fleet must match: its first upload's, from its
-  // log; nullopt for a fleet without a log (this upload fixes it).
-  absl::StatusOr<std::optional<engine::FleetShape>> ShapeOf(
-      std::string_view fleet_id);
-
-  const std::string self_;
-  const size_t max_entry_bytes_;
-  // Upload rates (limits.*_per_second), applied by the replica that
-  // receives an upload, per replica: a robot uploading through several
-  // replicas gets each one's rate. The engine applying the log runs
-  // without them.
-  engine::UploadQuota rates_;
-  engine::MemoryEngine* const engine_;
-  std::unique_ptr<cluster::NatsFleetLog> log_;
-  transport::PeerForwarder forwarder_;
-  cluster::ClusterNode node_;
-  bool shut_down_ = false;
-};
+// Connects to NATS (UNAVAILABLE when no server answers within
+// cluster.connect_timeout) and reads the peer token and CA files
+// (NOT_FOUND / INVALID_ARGUMENT). `engine` must outlive the result and run
+// without upload rate limits.
+absl::StatusOr<std::unique_ptr<cluster::ReplicatedMemory>> StartClusterMode(
+    const ServerConfig& config, engine::MemoryEngine* engine);
 
 }  // namespace fleetmem::server
 

@@ -40,6 +40,7 @@
 #include "services/common/files.h"
 #include "services/common/log.h"
 #include "services/engine/memory_engine.h"
+#include "services/engine/write_path.h"
 #include "services/http/http_server.h"
 #include "services/http/rest_gateway.h"
 #include "services/index/exact_index.h"
@@ -49,6 +50,7 @@
 #include "services/server/cluster_mode.h"
 #include "services/server/server_config.h"
 #include "services/storage/rocksdb_store.h"
+#include "services/transport/embedded_memory.h"
 #include "services/transport/memory_service.h"
 #include "services/transport/work_queue.h"
 
@@ -228,7 +230,8 @@ absl::Status WriteReadyFile(const std::string& path,
                             const std::string& grpc_address,
                             const std::string& http_address) {
   std::string text = absl::StrCat("grpc=", grpc_address, "\n");
-  if (!http_address.empty()) absl::StrAppend(&text, "http=", http_address, "\n");
+  if (!http_address.empty())
+    absl::StrAppend(&text, "http=", http_address, "\n");
   absl::StrAppend(&text, "pid=", getpid(), "\n");
   const std::string temporary = absl::StrCat(path, ".tmp");
   {
@@ -302,18 +305,10 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   observability::Metrics metrics;
   std::unique_ptr<engine::MemoryStore> store =
       metrics.TimedStore(std::move(*opened));
-  // Distributed mode: upload rates are the receiving replica's
-  // (ClusterMode); the engine applying the log must refuse nothing by the
-  // clock, or replicas would differ.
-  engine::EngineOptions engine_options = config.engine;
-  if (config.cluster.enabled()) {
-    engine_options.limits.fleet_traces_per_second = 0;
-    engine_options.limits.fleet_bytes_per_second = 0;
-    engine_options.limits.robot_traces_per_second = 0;
-    engine_options.limits.robot_bytes_per_second = 0;
-  }
+  // Upload rates are checked where an upload is appended (the write path,
+  // or the receiving replica); the engine applies log entries unrated.
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
-      engine::MemoryEngine::Open(engine_options, store.get(),
+      engine::MemoryEngine::Open(config.engine, store.get(),
                                  MakeIndexFactory(config),
                                  metrics.EngineHooks());
   if (!engine.ok()) {
@@ -324,8 +319,6 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                                config.index_snapshot_interval_seconds,
                                config.index_snapshot_min_codes);
   transport::WorkQueue work(config.work);
-  metrics.SetScrapeSources(
-      {engine->get(), store.get(), [&work] { return work.queued(); }});
   transport::ServiceOptions service_options = config.service;
   service_options.api.snapshot_root =
       config.snapshot_dir.empty()
@@ -340,28 +333,54 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                                                size_t bytes) {
     metrics.ObserveUploadBytes(fleet, bytes);
   };
-  // Distributed mode: this replica materialises the fleets it owns from
-  // their logs and routes every other fleet's calls to its owner.
-  std::unique_ptr<ClusterMode> cluster;
+  // The mode, chosen once (services/transport/fleet_memory.h). Embedded:
+  // uploads acknowledged at the durable append to each fleet's log in this
+  // RocksDB and applied behind it (engine::WritePath). Distributed: this
+  // replica materialises the fleets it owns from their replicated logs and
+  // routes every other fleet's calls to its owner.
+  std::unique_ptr<cluster::ReplicatedMemory> replicated;
+  std::unique_ptr<transport::EmbeddedMemory> embedded;
+  transport::FleetMemory* memory = nullptr;
   if (config.cluster.enabled()) {
-    absl::StatusOr<std::unique_ptr<ClusterMode>> started =
-        ClusterMode::Start(config, engine->get());
+    absl::StatusOr<std::unique_ptr<cluster::ReplicatedMemory>> started =
+        StartClusterMode(config, engine->get());
     if (!started.ok()) {
       FLEETMEM_LOG(kError) << "cluster: " << started.status();
       work.Stop();
       return 1;
     }
-    cluster = *std::move(started);
-    service_options.api.distribution = cluster.get();
+    replicated = *std::move(started);
+    memory = replicated.get();
     // Each fleet's gauges come from the replica that serves it.
-    ClusterMode* serving = cluster.get();
+    cluster::ReplicatedMemory* serving = replicated.get();
     metrics.SetScrapeSources(
         {engine->get(), store.get(), [&work] { return work.queued(); },
          [serving](const std::string& fleet) { return serving->Serves(fleet); },
          [serving] { return serving->LogLag(); },
-         [serving] { return serving->FleetCounts(); }});
+         [serving] { return serving->FleetCounts(); }, nullptr});
+  } else {
+    absl::StatusOr<std::unique_ptr<transport::EmbeddedMemory>> opened =
+        transport::EmbeddedMemory::Open(
+            engine->get(), store.get(),
+            {.write_path = config.write_path,
+             .max_apply_wait = config.write_path_max_apply_wait});
+    if (!opened.ok()) {
+      FLEETMEM_LOG(kError) << "cannot recover the fleets' logs: "
+                           << opened.status();
+      work.Stop();
+      return 1;
+    }
+    embedded = *std::move(opened);
+    memory = embedded.get();
+    engine::WritePath* writes = &embedded->writes();
+    observability::ScrapeSources sources;
+    sources.engine = engine->get();
+    sources.store = store.get();
+    sources.work_queue_depth = [&work] { return work.queued(); };
+    sources.backlogs = [writes] { return writes->Backlogs(); };
+    metrics.SetScrapeSources(std::move(sources));
   }
-  transport::MemoryServiceImpl service(engine->get(), &work,
+  transport::MemoryServiceImpl service(engine->get(), memory, &work,
                                        authenticator.get(), service_options);
 
   grpc::EnableDefaultHealthCheckService(true);
@@ -447,8 +466,8 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                         << ", re-read every " << security.tls_reload_seconds
                         << " s";
   }
-  if (cluster != nullptr) {
-    cluster->Run([&service](const std::string& fleet) {
+  if (replicated != nullptr) {
+    replicated->Run([&service](const std::string& fleet) {
       FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet
                           << "\" is no longer owned here";
       service.EndWatches(fleet);
@@ -503,7 +522,14 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   work.Stop();
   server.reset();
   // The other replicas take this one's fleets at once.
-  if (cluster != nullptr) cluster->Shutdown();
+  if (replicated != nullptr) replicated->Shutdown();
+  // What was acknowledged is applied now if it can be within the grace
+  // period; the rest stays in the logs for the next start.
+  if (embedded != nullptr) {
+    embedded->writes().Drain(absl::Now() +
+                             absl::Seconds(config.shutdown_grace_seconds));
+    embedded.reset();
+  }
   // Nothing changes memory any more: the next start loads the place
   // indexes instead of rebuilding them (a failure only costs that). Fleets
   // whose periodic snapshot is current are not written again.

@@ -4,6 +4,7 @@
 #include <climits>
 #include <cstdint>
 #include <fstream>
+#include <limits>
 #include <sstream>
 #include <utility>
 #include <vector>
@@ -119,6 +120,19 @@ void ApplyStorage(const StorageConfig& in, storage::RocksDbStoreOptions* out) {
   if (in.has_background_jobs()) out->background_jobs = in.background_jobs();
   if (in.has_compress()) out->compress = in.compress();
   if (in.has_min_free_bytes()) out->min_free_bytes = in.min_free_bytes();
+}
+
+void ApplyWritePath(const WritePathConfig& in, ServerConfig* out) {
+  if (in.has_max_backlog_traces()) {
+    out->write_path.max_backlog_traces = in.max_backlog_traces();
+  }
+  if (in.has_appliers()) {
+    out->write_path.appliers = static_cast<int>(
+        std::min<uint32_t>(in.appliers(), std::numeric_limits<int>::max()));
+  }
+  if (in.has_max_apply_wait_seconds()) {
+    out->write_path_max_apply_wait = absl::Seconds(in.max_apply_wait_seconds());
+  }
 }
 
 void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
@@ -445,6 +459,7 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   ApplyHnsw(file.hnsw(), &config->tiered);
   ApplySecurity(file.security(), &config->security);
   ApplyCluster(file.cluster(), &config->cluster);
+  ApplyWritePath(file.write_path(), config);
   ApplyLimits(file.limits(), &config->engine.limits, &config->service);
   return absl::OkStatus();
 }
@@ -579,6 +594,16 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
         "--allow-unauthenticated if anyone who reaches the port may read "
         "and write every fleet"));
   }
+  if (absl::Status write_path =
+          engine::ValidateWritePathOptions(config.write_path);
+      !write_path.ok()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("write_path: ", write_path.message()));
+  }
+  if (config.write_path_max_apply_wait <= absl::ZeroDuration()) {
+    return absl::InvalidArgumentError(
+        "write_path.max_apply_wait_seconds must be at least 1");
+  }
   absl::Status cluster = ValidateCluster(config);
   if (!cluster.ok()) return cluster;
   return engine::ValidateEngineOptions(config.engine);
@@ -652,6 +677,8 @@ std::string DescribeConfig(const ServerConfig& config) {
       " index_snapshot_interval_seconds=",
       config.index_snapshot_interval_seconds,
       " index_snapshot_min_codes=", config.index_snapshot_min_codes,
+      " max_backlog_traces=", config.write_path.max_backlog_traces,
+      " appliers=", config.write_path.appliers,
       " auth=", config.security.auth_file.empty() ? "off" : "on",
       " tls=", config.security.tls_cert_file.empty() ? "off" : "on",
       " client_certificates=",

@@ -119,6 +119,12 @@ struct ServerConfig {
   transport::WorkQueueOptions work;
   // Per-client stream limit of the gRPC service.
   transport::ServiceOptions service;
+  // Embedded mode's write path (engine::WritePath): the backlog bound and
+  // the appliers.
+  engine::WritePathOptions write_path;
+  // Consolidate and SampleReplay wait this long at most for the uploads
+  // acknowledged before them to be applied (transport::EmbeddedOptions).
+  absl::Duration write_path_max_apply_wait = absl::Seconds(30);
   // Largest request message accepted (gRPC answers RESOURCE_EXHAUSTED).
   size_t max_receive_message_bytes = size_t{16} << 20;
   // On SIGTERM/SIGINT, calls in flight get this long to finish.

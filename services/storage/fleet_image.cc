@@ -129,6 +129,12 @@ absl::StatusOr<engine::FleetImage> DecodeFleetImage(std::string_view fleet_id,
         status =
             AppendTo(DecodeEvent(record.key(), record.value()), &image.events);
         break;
+      case keys::Tag::kLog:
+        status = absl::DataLossError(
+            absl::StrCat("fleet image of \"", V(fleet_id), "\": record ",
+                         keys::Describe(record.key()),
+                         " is an ingest-log entry, which no image holds"));
+        break;
     }
     if (!status.ok()) return status;
   }

@@ -24,7 +24,7 @@ bool IsTag(char c) {
   for (Tag tag : kFleetTags) {
     if (static_cast<char>(tag) == c) return true;
   }
-  return false;
+  return c == static_cast<char>(Tag::kLog);
 }
 
 std::string_view TagName(Tag tag) {
@@ -41,6 +41,8 @@ std::string_view TagName(Tag tag) {
       return "robot";
     case Tag::kEvent:
       return "event";
+    case Tag::kLog:
+      return "log";
   }
   return "?";
 }
@@ -103,6 +105,10 @@ std::string EventKey(std::string_view fleet_id, uint64_t event_id) {
   return KeyWithIdSuffix(Tag::kEvent, fleet_id, event_id);
 }
 
+std::string LogKey(std::string_view fleet_id, uint64_t sequence) {
+  return KeyWithIdSuffix(Tag::kLog, fleet_id, sequence);
+}
+
 std::optional<ParsedKey> Parse(std::string_view key) {
   if (key.empty() || !IsTag(key.front())) return std::nullopt;
   const size_t separator = key.find(kSeparator, 1);
@@ -149,7 +155,8 @@ std::string Describe(std::string_view key) {
         break;
       }
       case Tag::kCluster:
-      case Tag::kEvent: {
+      case Tag::kEvent:
+      case Tag::kLog: {
         const std::optional<uint64_t> id = ParseIdSuffix(parsed->suffix);
         ok = id.has_value();
         if (ok) detail = absl::StrCat("/", *id);

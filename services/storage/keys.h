@@ -7,6 +7,8 @@
 //   trace    't'  robot id | 0x00 | seq (8 bytes, big-endian)
 //   robot    'r'  robot id
 //   event    'e'  event id (8 bytes, big-endian)
+//   log      'l'  sequence (8 bytes, big-endian): the ingest log, apart
+//                 from the fleet's state (not in kFleetTags)
 // Ids are restricted upstream to [A-Za-z0-9._:-], so 0x00 never occurs in
 // them: all keys of one (tag, fleet) form one contiguous range, a fleet id
 // that is a prefix of another ("f", "f1") cannot alias it, and big-endian
@@ -31,9 +33,10 @@ enum class Tag : char {
   kTrace = 't',
   kRobot = 'r',
   kEvent = 'e',
+  kLog = 'l',
 };
 
-// Every tag that holds per-fleet records.
+// Every tag that holds a fleet's state (not its ingest log).
 inline constexpr Tag kFleetTags[] = {Tag::kMeta,  Tag::kPending, Tag::kCluster,
                                      Tag::kTrace, Tag::kRobot,   Tag::kEvent};
 
@@ -52,6 +55,7 @@ std::string TraceKey(std::string_view fleet_id, const core::TraceKey& key);
 std::string ClusterKey(std::string_view fleet_id, uint64_t cluster_id);
 std::string RobotKey(std::string_view fleet_id, std::string_view robot_id);
 std::string EventKey(std::string_view fleet_id, uint64_t event_id);
+std::string LogKey(std::string_view fleet_id, uint64_t sequence);
 
 // The parts of a key; nullopt if `key` does not follow the layout.
 struct ParsedKey {

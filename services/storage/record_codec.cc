@@ -79,21 +79,47 @@ absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
   return meta;
 }
 
+namespace {
+
+void ToRecord(const core::MemoryTrace& trace, Trace* record) {
+  record->set_robot_id(trace.robot_id);
+  record->set_seq(trace.seq);
+  record->set_domain(trace.domain);
+  record->mutable_code()->Add(trace.code.begin(), trace.code.end());
+  ToProto(trace.place, record->mutable_place());
+  record->set_reward(trace.reward);
+  record->set_reward_external(trace.reward_external);
+  record->set_reward_internal(trace.reward_internal);
+  record->set_timestamp_ns(trace.timestamp_ns);
+  record->set_replay_count(trace.replay_count);
+  record->set_encoder_version(trace.encoder_version);
+  record->set_cluster_id(trace.cluster_id);
+  record->set_attachment(trace.attachment);
+}
+
+core::MemoryTrace FromRecord(const Trace& record) {
+  core::MemoryTrace trace;
+  trace.robot_id = record.robot_id();
+  trace.seq = record.seq();
+  trace.domain = record.domain();
+  trace.code.assign(record.code().begin(), record.code().end());
+  trace.place = FromProto(record.place());
+  trace.reward = record.reward();
+  trace.reward_external = record.reward_external();
+  trace.reward_internal = record.reward_internal();
+  trace.timestamp_ns = record.timestamp_ns();
+  trace.replay_count = record.replay_count();
+  trace.encoder_version = record.encoder_version();
+  trace.cluster_id = record.cluster_id();
+  trace.attachment = record.attachment();
+  return trace;
+}
+
+}  // namespace
+
 std::string EncodeTrace(const core::MemoryTrace& trace) {
   Trace record;
-  record.set_robot_id(trace.robot_id);
-  record.set_seq(trace.seq);
-  record.set_domain(trace.domain);
-  record.mutable_code()->Add(trace.code.begin(), trace.code.end());
-  ToProto(trace.place, record.mutable_place());
-  record.set_reward(trace.reward);
-  record.set_reward_external(trace.reward_external);
-  record.set_reward_internal(trace.reward_internal);
-  record.set_timestamp_ns(trace.timestamp_ns);
-  record.set_replay_count(trace.replay_count);
-  record.set_encoder_version(trace.encoder_version);
-  record.set_cluster_id(trace.cluster_id);
-  record.set_attachment(trace.attachment);
+  ToRecord(trace, &record);
   return record.SerializeAsString();
 }
 
@@ -111,21 +137,37 @@ absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
       key_of_record->seq != record.seq()) {
     return Corrupt(key, "trace does not match its key");
   }
-  core::MemoryTrace trace;
-  trace.robot_id = record.robot_id();
-  trace.seq = record.seq();
-  trace.domain = record.domain();
-  trace.code.assign(record.code().begin(), record.code().end());
-  trace.place = FromProto(record.place());
-  trace.reward = record.reward();
-  trace.reward_external = record.reward_external();
-  trace.reward_internal = record.reward_internal();
-  trace.timestamp_ns = record.timestamp_ns();
-  trace.replay_count = record.replay_count();
-  trace.encoder_version = record.encoder_version();
-  trace.cluster_id = record.cluster_id();
-  trace.attachment = record.attachment();
-  return trace;
+  return FromRecord(record);
+}
+
+std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces) {
+  LoggedUpload record;
+  record.mutable_traces()->Reserve(static_cast<int>(traces.size()));
+  for (const core::MemoryTrace& trace : traces) {
+    ToRecord(trace, record.add_traces());
+  }
+  return record.SerializeAsString();
+}
+
+absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(
+    std::string_view key, std::string_view value) {
+  LoggedUpload record;
+  if (absl::Status status = Parse(key, value, &record); !status.ok()) {
+    return status;
+  }
+  const std::optional<std::string_view> suffix = SuffixOf(key, keys::Tag::kLog);
+  const std::optional<uint64_t> sequence =
+      suffix ? keys::ParseIdSuffix(*suffix) : std::nullopt;
+  if (!sequence || *sequence == 0 || record.traces().empty()) {
+    return Corrupt(key, "log entry does not match its key or holds no trace");
+  }
+  engine::LoggedUpload entry;
+  entry.sequence = *sequence;
+  entry.traces.reserve(record.traces_size());
+  for (const Trace& trace : record.traces()) {
+    entry.traces.push_back(FromRecord(trace));
+  }
+  return entry;
 }
 
 std::string EncodeCluster(const StoredCluster& cluster) {

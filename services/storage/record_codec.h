@@ -8,6 +8,7 @@
 
 #include <cstdint>
 #include <map>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -47,6 +48,12 @@ absl::StatusOr<engine::RobotRecord> DecodeRobot(std::string_view key,
 std::string EncodeEvent(const core::MemoryEvent& event);
 absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
                                               std::string_view value);
+
+// An ingest-log entry (MemoryStore::AppendLog): its traces. Decoding
+// checks every trace as DecodeTrace would.
+std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces);
+absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(std::string_view key,
+                                                        std::string_view value);
 
 // Moves the member traces of `stored` (read at `key`) out of `traces` into
 // a new cluster at the end of `clusters`; DATA_LOSS if a member has no

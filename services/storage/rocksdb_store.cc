@@ -3,6 +3,7 @@
 #include <sys/statvfs.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cerrno>
 #include <cstring>
 #include <exception>
@@ -332,6 +333,7 @@ class RocksDbStore final : public engine::MemoryStore {
         free_bytes_(options.free_bytes ? options.free_bytes
                                        : StatvfsFreeBytes) {
     write_options_.sync = options.sync;
+    synced_write_options_.sync = true;
   }
 
   ~RocksDbStore() override {
@@ -538,40 +540,99 @@ class RocksDbStore final : public engine::MemoryStore {
           ToSlice(keys::EventKey(fleet_id, mutation.erase_events_before)));
     }
     if (batch.Count() == 0) return absl::OkStatus();
-    if (absl::Status room = CheckRoom(fleet_id, batch.GetDataSize());
-        !room.ok()) {
-      return room;
+    return Write(fleet_id, batch, write_options_, "write fleet");
+  }
+
+  absl::Status AppendLog(std::string_view fleet_id,
+                         std::span<const engine::LogAppend> entries) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
     }
-    if (absl::Status resumed = ResumeAfterError(); !resumed.ok()) {
-      return resumed;
+    rocksdb::WriteBatch batch;
+    for (const engine::LogAppend& entry : entries) {
+      batch.Put(ToSlice(keys::LogKey(fleet_id, entry.sequence)),
+                ToSlice(EncodeLoggedUpload(entry.traces)));
     }
-    rocksdb::Status written = db_->Write(write_options_, &batch);
-    if (!written.ok()) {
-      // A background error (e.g. a flush that met a disk someone else
-      // filled) stops every write until RocksDB has recovered, which its own
-      // auto-resume retries every kResumeInterval. While there is room
-      // (CheckRoom), wait for that or resume ourselves, and retry: a
-      // WriteBatch applied twice leaves the same state, so a retry cannot
-      // double anything.
-      FLEETMEM_LOG(kWarning) << "RocksDB write of fleet " << fleet_id
-                             << " failed: " << written.ToString()
-                             << "; waiting for RocksDB to resume";
-      write_failed_ = true;
-      for (int attempt = 0; attempt < kResumeAttempts && !written.ok();
-           ++attempt) {
-        absl::SleepFor(kResumeInterval);
-        if (!CheckRoom(fleet_id, batch.GetDataSize()).ok()) break;
-        if (!ResumeAfterError().ok()) continue;  // busy: auto-resume running
-        written = db_->Write(write_options_, &batch);
+    // Always synced, whatever the store's sync option: the entry is the
+    // acknowledged copy of an upload until it is applied. Not under
+    // apply_mu_: appends of several streams group-commit in RocksDB's
+    // write queue (one WAL sync for all), beside the applier's writes.
+    return Write(fleet_id, batch, synced_write_options_,
+                 "append to the log of fleet");
+  }
+
+  absl::StatusOr<std::vector<engine::LoggedUpload>> ReadLog(
+      std::string_view fleet_id, uint64_t after, size_t max_entries) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    std::vector<engine::LoggedUpload> entries;
+    if (max_entries == 0 || after == UINT64_MAX) return entries;
+    const absl::Status status = ForEachInRange(
+        db_.get(), rocksdb::ReadOptions(), keys::LogKey(fleet_id, after + 1),
+        keys::PrefixEnd(keys::Tag::kLog, fleet_id),
+        [&](std::string_view key,
+            std::string_view value) -> absl::StatusOr<bool> {
+          absl::StatusOr<engine::LoggedUpload> entry =
+              DecodeLoggedUpload(key, value);
+          if (!entry.ok()) return entry.status();
+          entries.push_back(*std::move(entry));
+          return entries.size() < max_entries;
+        });
+    if (!status.ok()) return status;
+    return entries;
+  }
+
+  absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    if (through == 0) return absl::OkStatus();
+    rocksdb::WriteBatch batch;
+    batch.DeleteRange(ToSlice(keys::LogKey(fleet_id, 0)),
+                      ToSlice(through == UINT64_MAX
+                                  ? keys::PrefixEnd(keys::Tag::kLog, fleet_id)
+                                  : keys::LogKey(fleet_id, through + 1)));
+    rocksdb::WriteOptions unsynced;
+    unsynced.sync = false;
+    return Write(fleet_id, batch, unsynced, "trim the log of fleet");
+  }
+
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
+      override {
+    std::vector<std::pair<std::string, uint64_t>> tails;
+    std::unique_ptr<rocksdb::Iterator> it(
+        db_->NewIterator(rocksdb::ReadOptions()));
+    const char tag = static_cast<char>(keys::Tag::kLog);
+    it->Seek(ToSlice(std::string(1, tag)));
+    while (it->Valid() && it->key().size() > 0 && it->key()[0] == tag) {
+      const std::optional<keys::ParsedKey> parsed =
+          keys::Parse(ToView(it->key()));
+      if (!parsed) {
+        return absl::DataLossError(
+            absl::StrCat("malformed key in RocksDB at ", path_, ": ",
+                         keys::Describe(ToView(it->key()))));
       }
+      const std::string fleet(parsed->fleet_id);
+      // The fleet's last entry: the one before the end of its range.
+      it->SeekForPrev(ToSlice(keys::LogKey(fleet, UINT64_MAX)));
+      const std::optional<keys::ParsedKey> last =
+          it->Valid() ? keys::Parse(ToView(it->key())) : std::nullopt;
+      const std::optional<uint64_t> sequence =
+          last ? keys::ParseIdSuffix(last->suffix) : std::nullopt;
+      if (!sequence || last->fleet_id != fleet) {
+        return absl::DataLossError(
+            absl::StrCat("malformed log key in RocksDB at ", path_, " (fleet ",
+                         V(fleet), ")"));
+      }
+      tails.emplace_back(fleet, *sequence);
+      it->Seek(ToSlice(keys::PrefixEnd(keys::Tag::kLog, fleet)));
     }
-    if (!written.ok()) {
-      write_failed_ = true;
-      FLEETMEM_LOG(kError) << "RocksDB write of fleet " << fleet_id
-                           << " failed: " << written.ToString();
+    if (absl::Status status = FromRocksDb(it->status(), "list ingest logs");
+        !status.ok()) {
+      return status;
     }
-    return FromRocksDb(written, absl::StrCat("write fleet ", V(fleet_id),
-                                             " (nothing of it was stored)"));
+    return tails;
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
@@ -625,8 +686,50 @@ class RocksDbStore final : public engine::MemoryStore {
                           });
   }
 
+  // Writes `batch` of the fleet: refused without room (CheckRoom); a
+  // failed write waits for RocksDB to resume and is retried (a batch
+  // applied twice leaves the same state). `what` names it in the error.
+  absl::Status Write(std::string_view fleet_id, rocksdb::WriteBatch& batch,
+                     const rocksdb::WriteOptions& options,
+                     std::string_view what) {
+    if (absl::Status room = CheckRoom(fleet_id, batch.GetDataSize());
+        !room.ok()) {
+      return room;
+    }
+    if (absl::Status resumed = ResumeAfterError(); !resumed.ok()) {
+      return resumed;
+    }
+    rocksdb::Status written = db_->Write(options, &batch);
+    if (!written.ok()) {
+      // A background error (e.g. a flush that met a disk someone else
+      // filled) stops every write until RocksDB has recovered, which its own
+      // auto-resume retries every kResumeInterval. While there is room
+      // (CheckRoom), wait for that or resume ourselves, and retry: a
+      // WriteBatch applied twice leaves the same state, so a retry cannot
+      // double anything.
+      FLEETMEM_LOG(kWarning) << "RocksDB " << what << " " << fleet_id
+                             << " failed: " << written.ToString()
+                             << "; waiting for RocksDB to resume";
+      write_failed_ = true;
+      for (int attempt = 0; attempt < kResumeAttempts && !written.ok();
+           ++attempt) {
+        absl::SleepFor(kResumeInterval);
+        if (!CheckRoom(fleet_id, batch.GetDataSize()).ok()) break;
+        if (!ResumeAfterError().ok()) continue;  // busy: auto-resume running
+        written = db_->Write(options, &batch);
+      }
+    }
+    if (!written.ok()) {
+      write_failed_ = true;
+      FLEETMEM_LOG(kError) << "RocksDB " << what << " " << fleet_id
+                           << " failed: " << written.ToString();
+    }
+    return FromRocksDb(written, absl::StrCat(V(what), " ", V(fleet_id),
+                                             " (nothing of it was stored)"));
+  }
+
   // RESOURCE_EXHAUSTED if writing `bytes` would leave less than the
-  // reserve free. Called under apply_mu_.
+  // reserve free.
   absl::Status CheckRoom(std::string_view fleet_id, size_t bytes) {
     if (min_free_bytes_ == 0) return absl::OkStatus();
     absl::StatusOr<uint64_t> free = free_bytes_(path_);
@@ -656,8 +759,7 @@ class RocksDbStore final : public engine::MemoryStore {
   }
 
   // After a failed write RocksDB may hold a background error that stops
-  // every later write; ask it to resume (it re-checks the files). Called
-  // under apply_mu_.
+  // every later write; ask it to resume (it re-checks the files).
   absl::Status ResumeAfterError() {
     if (!write_failed_) return absl::OkStatus();
     const rocksdb::Status resumed = db_->Resume();
@@ -676,9 +778,12 @@ class RocksDbStore final : public engine::MemoryStore {
   const uint64_t min_free_bytes_;
   const std::function<absl::StatusOr<uint64_t>(const std::string&)> free_bytes_;
   rocksdb::WriteOptions write_options_;
+  rocksdb::WriteOptions synced_write_options_;
   absl::Mutex apply_mu_;
-  bool low_space_ ABSL_GUARDED_BY(apply_mu_) = false;
-  bool write_failed_ ABSL_GUARDED_BY(apply_mu_) = false;
+  // Written by Apply (under apply_mu_) and by the log's appends and trims
+  // (not under it).
+  std::atomic<bool> low_space_ = false;
+  std::atomic<bool> write_failed_ = false;
 };
 
 rocksdb::Options MakeOptions(const RocksDbStoreOptions& options) {

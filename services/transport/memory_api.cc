@@ -71,8 +71,9 @@ std::string MakePageToken(const core::TraceKey& key) {
   return absl::StrCat(key.robot_id, "/", key.seq);
 }
 
-MemoryApi::MemoryApi(engine::MemoryEngine* engine, ApiOptions options)
-    : engine_(engine), options_(std::move(options)) {
+MemoryApi::MemoryApi(engine::MemoryEngine* engine, FleetMemory* memory,
+                     ApiOptions options)
+    : engine_(engine), memory_(memory), options_(std::move(options)) {
   methods_["Consolidate"] = Typed(&MemoryApi::Consolidate);
   methods_["SampleReplay"] = Typed(&MemoryApi::SampleReplay);
   methods_["QueryPlace"] = Typed(&MemoryApi::QueryPlace);
@@ -97,16 +98,14 @@ absl::Status MemoryApi::Call(absl::string_view method_name,
     return absl::UnimplementedError(
         absl::StrCat("method ", method_name, " is not served here"));
   }
-  if (options_.distribution != nullptr) {
-    if (method_name == "ListFleets") {
-      return ListClusterFleets(
-          caller, static_cast<v1::ListFleetsResponse*>(response), forwarded);
-    }
-    absl::Status status;
-    if (RouteToOwner(method_name, caller, request, response, forwarded,
-                     &status)) {
-      return status;
-    }
+  if (method_name == "ListFleets") {
+    return ListAllFleets(caller, static_cast<v1::ListFleetsResponse*>(response),
+                         forwarded);
+  }
+  absl::Status status;
+  if (RouteToOwner(method_name, caller, request, response, forwarded,
+                   &status)) {
+    return status;
   }
   return it->second(this, caller, request, response);
 }
@@ -136,33 +135,31 @@ bool MemoryApi::RouteToOwner(absl::string_view method_name,
   }
   *status = auth::Authorize(caller, action, fleet_id, robot_id);
   if (!status->ok()) return true;
-  absl::StatusOr<std::optional<std::string>> owner =
-      options_.distribution->Owner(fleet_id);
+  absl::StatusOr<std::optional<std::string>> owner = memory_->Owner(fleet_id);
   if (!owner.ok()) {
     *status = owner.status();
     return true;
   }
   if (!owner->has_value()) return false;
   if (forwarded) {
-    *status = absl::UnavailableError(
-        absl::StrCat("fleet \"", fleet_id, "\" is owned by replica \"", **owner,
-                     "\", not by \"", options_.distribution->self(),
-                     "\" (ownership moved); retry"));
+    *status = absl::UnavailableError(absl::StrCat(
+        "fleet \"", fleet_id, "\" is owned by replica \"", **owner,
+        "\", not by \"", memory_->self(), "\" (ownership moved); retry"));
     return true;
   }
-  *status = options_.distribution->Forward(
+  *status = memory_->Forward(
       **owner, std::string_view(method_name.data(), method_name.size()),
       request, response);
   return true;
 }
 
-absl::Status MemoryApi::ListClusterFleets(const auth::Principal& caller,
-                                          v1::ListFleetsResponse* response,
-                                          bool forwarded) {
+absl::Status MemoryApi::ListAllFleets(const auth::Principal& caller,
+                                      v1::ListFleetsResponse* response,
+                                      bool forwarded) {
   absl::StatusOr<std::vector<std::pair<std::string, std::string>>> fleets =
-      options_.distribution->Fleets();
+      memory_->Fleets();
   if (!fleets.ok()) return fleets.status();
-  const std::string& self = options_.distribution->self();
+  const std::string& self = memory_->self();
   std::map<std::string, v1::FleetSummary> summaries;
   std::set<std::string> owners;
   for (const auto& [fleet_id, owner] : *fleets) {
@@ -181,8 +178,8 @@ absl::Status MemoryApi::ListClusterFleets(const auth::Principal& caller,
   if (!forwarded) {
     for (const std::string& owner : owners) {
       v1::ListFleetsResponse theirs;
-      absl::Status asked = options_.distribution->Forward(
-          owner, "ListFleets", v1::ListFleetsRequest(), &theirs);
+      absl::Status asked = memory_->Forward(owner, "ListFleets",
+                                            v1::ListFleetsRequest(), &theirs);
       if (!asked.ok()) continue;  // their fleets listed by id alone
       for (const v1::FleetSummary& summary : theirs.fleets()) {
         auto it = summaries.find(summary.fleet_id());
@@ -205,9 +202,7 @@ absl::Status MemoryApi::Consolidate(const auth::Principal& caller,
       auth::Authorize(caller, auth::Action::kConsolidate, request.fleet_id());
   if (!allowed.ok()) return allowed;
   absl::StatusOr<engine::ConsolidateResult> result =
-      options_.distribution != nullptr
-          ? options_.distribution->Consolidate(request.fleet_id())
-          : engine_->Consolidate(request.fleet_id());
+      memory_->Consolidate(request.fleet_id());
   if (!result.ok()) return result.status();
   ConsolidateResultToProto(*result, response);
   return absl::OkStatus();
@@ -220,12 +215,8 @@ absl::Status MemoryApi::SampleReplay(const auth::Principal& caller,
       caller, auth::Action::kSample, request.fleet_id(), request.robot_id());
   if (!allowed.ok()) return allowed;
   absl::StatusOr<std::vector<core::MemoryTrace>> traces =
-      options_.distribution != nullptr
-          ? options_.distribution->SampleReplay(
-                request.fleet_id(), request.robot_id(), request.count(),
-                request.request_id())
-          : engine_->SampleReplay(request.fleet_id(), request.robot_id(),
-                                  request.count(), request.request_id());
+      memory_->SampleReplay(request.fleet_id(), request.robot_id(),
+                            request.count(), request.request_id());
   if (!traces.ok()) return traces.status();
   SampledTracesToProto(*traces, response);
   return absl::OkStatus();
@@ -250,23 +241,24 @@ absl::Status MemoryApi::GetStats(const auth::Principal& caller,
   absl::Status allowed =
       auth::Authorize(caller, auth::Action::kStats, request.fleet_id());
   if (!allowed.ok()) return allowed;
+  const engine::Backlog backlog = memory_->Backlog(request.fleet_id());
   absl::StatusOr<engine::FleetStats> stats =
       engine_->GetStats(request.fleet_id());
+  // A fleet whose first uploads are acknowledged but not applied yet exists
+  // in its log only: its stats are its backlog.
+  if (absl::IsNotFound(stats.status()) && backlog.traces > 0) {
+    stats = engine::FleetStats{};
+  }
   if (!stats.ok()) return stats.status();
   StatsToProto(*stats, response);
+  BacklogToProto(backlog, response);
   return absl::OkStatus();
 }
 
 absl::Status MemoryApi::ListFleets(const auth::Principal& caller,
                                    const v1::ListFleetsRequest& request,
                                    v1::ListFleetsResponse* response) {
-  for (const std::string& fleet_id : engine_->ListFleets()) {
-    if (!auth::MaySeeFleet(caller, fleet_id)) continue;
-    absl::StatusOr<engine::FleetStats> stats = engine_->GetStats(fleet_id);
-    if (!stats.ok()) return stats.status();  // fleets are never removed
-    FleetSummaryToProto(fleet_id, *stats, response->add_fleets());
-  }
-  return absl::OkStatus();
+  return ListAllFleets(caller, response, /*forwarded=*/false);
 }
 
 absl::Status MemoryApi::ListClusters(const auth::Principal& caller,

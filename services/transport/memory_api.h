@@ -21,7 +21,7 @@
 #include "google/protobuf/message.h"
 #include "services/auth/access_policy.h"
 #include "services/engine/memory_engine.h"
-#include "services/transport/distribution.h"
+#include "services/transport/fleet_memory.h"
 
 namespace fleetmem::transport {
 
@@ -34,19 +34,18 @@ struct ApiOptions {
   // ListTraces pages: the default and the most one page may ask for.
   size_t default_page_size = 1000;
   size_t max_page_size = 10000;
-  // Distributed mode (null: embedded). A fleet's calls are served by the
-  // replica that owns it: another replica forwards them there after
-  // authorising the caller; Consolidate and SampleReplay go through the
-  // fleet's log at the owner; ListFleets gathers every owner's fleets.
-  // Must outlive the API.
-  Distribution* distribution = nullptr;
 };
 
 // Thread-safe.
 class MemoryApi {
  public:
-  // `engine` must outlive the API.
-  MemoryApi(engine::MemoryEngine* engine, ApiOptions options = {});
+  // `engine` and `memory` must outlive the API. `memory` is the mode
+  // (fleet_memory.h): a fleet's calls are served where it says (another
+  // replica's are forwarded there after authorising the caller), and
+  // Consolidate and SampleReplay go through it; ListFleets gathers every
+  // server's fleets.
+  MemoryApi(engine::MemoryEngine* engine, FleetMemory* memory,
+            ApiOptions options = {});
 
   absl::Status Consolidate(const auth::Principal& caller,
                            const v1::ConsolidateRequest& request,
@@ -84,8 +83,8 @@ class MemoryApi {
   // "GetStats") with messages of its request and response types.
   // UNIMPLEMENTED for a method that is not unary or not known here.
   //
-  // In distributed mode this is where a fleet's call is routed to its
-  // owner. `forwarded`: the call came from another replica
+  // This is where a fleet's call is routed to its owner (distributed
+  // mode). `forwarded`: the call came from another replica
   // (kForwardedHeader); it is served here or refused with UNAVAILABLE,
   // never forwarded again.
   absl::Status Call(absl::string_view method_name,
@@ -101,19 +100,20 @@ class MemoryApi {
                                              const google::protobuf::Message&,
                                              google::protobuf::Message*)>;
 
-  // Distributed mode: forwards a fleet's call to its owner (true, with the
-  // call's status in *status) or leaves it to this replica (false).
+  // Forwards a fleet's call to its owner (true, with the call's status in
+  // *status) or leaves it to this server (false; always, embedded).
   bool RouteToOwner(absl::string_view method_name,
                     const auth::Principal& caller,
                     const google::protobuf::Message& request,
                     google::protobuf::Message* response, bool forwarded,
                     absl::Status* status);
-  // Distributed ListFleets: this replica's fleets and every other owner's.
-  absl::Status ListClusterFleets(const auth::Principal& caller,
-                                 v1::ListFleetsResponse* response,
-                                 bool forwarded);
+  // ListFleets: this server's fleets and every other owner's (a forwarded
+  // call: this server's only).
+  absl::Status ListAllFleets(const auth::Principal& caller,
+                             v1::ListFleetsResponse* response, bool forwarded);
 
   engine::MemoryEngine* const engine_;
+  FleetMemory* const memory_;
   const ApiOptions options_;
   absl::flat_hash_map<std::string, Generic> methods_;
 };

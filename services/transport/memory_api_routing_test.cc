@@ -1,7 +1,7 @@
 // MemoryApi's routing in distributed mode, against a recording
-// Distribution: a fleet's calls go to its owner after the caller is
+// FleetMemory: a fleet's calls go to its owner after the caller is
 // authorised here, a forwarded call is never forwarded again, Consolidate
-// and SampleReplay go through the Distribution (the log) at the owner, and
+// and SampleReplay go through the FleetMemory (the log) at the owner, and
 // ListFleets gathers every owner's fleets.
 #include <map>
 #include <memory>
@@ -18,12 +18,14 @@
 namespace fleetmem::transport {
 namespace {
 
-class RecordingDistribution final : public Distribution {
+class RecordingDistribution final : public FleetMemory {
  public:
-  absl::StatusOr<engine::UploadResult> Upload(
-      std::string_view, std::span<const core::MemoryTrace>) override {
-    return engine::UploadResult{};
+  absl::StatusOr<Uploaded> Upload(std::string_view,
+                                  std::span<const core::MemoryTrace>,
+                                  const UploadOptions&) override {
+    return Uploaded{};
   }
+  engine::Backlog Backlog(std::string_view) override { return {}; }
   absl::StatusOr<std::optional<std::string>> Owner(
       std::string_view fleet_id) override {
     auto it = owners.find(std::string(fleet_id));
@@ -81,8 +83,7 @@ class MemoryApiRoutingTest : public ::testing::Test {
     engine_ = *std::move(opened);
     distribution_.owners = {
         {"mine", "me:1"}, {"theirs", "other:2"}, {"orphan", ""}};
-    api_ = std::make_unique<MemoryApi>(
-        engine_.get(), ApiOptions{.distribution = &distribution_});
+    api_ = std::make_unique<MemoryApi>(engine_.get(), &distribution_);
   }
 
   std::unique_ptr<engine::MemoryStore> store_;

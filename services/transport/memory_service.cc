@@ -13,10 +13,10 @@
 namespace fleetmem::transport {
 
 MemoryServiceImpl::MemoryServiceImpl(engine::MemoryEngine* engine,
-                                     WorkQueue* work,
+                                     FleetMemory* memory, WorkQueue* work,
                                      const auth::Authenticator* authenticator,
                                      ServiceOptions options)
-    : state_(engine, work, authenticator, options) {}
+    : state_(engine, memory, work, authenticator, options) {}
 
 void MemoryServiceImpl::Shutdown() { state_.Shutdown(); }
 

@@ -38,9 +38,11 @@ class MemoryServiceImpl final
     : public v1::MemoryService::WithRawCallbackMethod_UploadTraces<
           v1::MemoryService::CallbackService> {
  public:
-  // `engine`, `work` and `authenticator` must outlive the service; a null
-  // `authenticator` turns auth off.
-  MemoryServiceImpl(engine::MemoryEngine* engine, WorkQueue* work,
+  // `engine`, `memory` (the mode: fleet_memory.h), `work` and
+  // `authenticator` must outlive the service; a null `authenticator` turns
+  // auth off.
+  MemoryServiceImpl(engine::MemoryEngine* engine, FleetMemory* memory,
+                    WorkQueue* work,
                     const auth::Authenticator* authenticator = nullptr,
                     ServiceOptions options = {});
 

@@ -14,6 +14,7 @@
 #include "gtest/gtest.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
+#include "services/transport/embedded_memory.h"
 
 namespace fleetmem::transport {
 namespace {
@@ -39,6 +40,8 @@ v1::UploadTracesRequest Batch(const std::string& fleet, uint64_t first,
                               uint64_t count) {
   v1::UploadTracesRequest request;
   request.set_fleet_id(fleet);
+  // Applied before the answer: these tests read what they uploaded.
+  request.set_ack(v1::UPLOAD_ACK_APPLIED);
   for (uint64_t seq = first; seq < first + count; ++seq) {
     *request.add_traces() = Trace("r1", seq);
   }
@@ -58,8 +61,12 @@ class MemoryServiceTest : public ::testing::Test {
         [](size_t dimension) { return index::NewExactIndex(dimension); });
     ASSERT_TRUE(engine.ok()) << engine.status();
     engine_ = std::move(*engine);
+    auto memory = EmbeddedMemory::Open(engine_.get(), store_.get());
+    ASSERT_TRUE(memory.ok()) << memory.status();
+    memory_ = std::move(*memory);
     work_ = std::make_unique<WorkQueue>(work_options);
-    service_ = std::make_unique<MemoryServiceImpl>(engine_.get(), work_.get());
+    service_ = std::make_unique<MemoryServiceImpl>(engine_.get(), memory_.get(),
+                                                   work_.get());
     grpc::ServerBuilder builder;
     builder.RegisterService(service_.get());
     server_ = builder.BuildAndStart();
@@ -75,6 +82,7 @@ class MemoryServiceTest : public ::testing::Test {
     server_->Shutdown(std::chrono::system_clock::now() +
                       std::chrono::seconds(5));
     work_->Stop();
+    memory_.reset();
   }
 
   grpc::Status Upload(const std::vector<v1::UploadTracesRequest>& messages,
@@ -97,11 +105,44 @@ class MemoryServiceTest : public ::testing::Test {
 
   std::unique_ptr<engine::MemoryStore> store_;
   std::unique_ptr<engine::MemoryEngine> engine_;
+  std::unique_ptr<EmbeddedMemory> memory_;
   std::unique_ptr<WorkQueue> work_;
   std::unique_ptr<MemoryServiceImpl> service_;
   std::unique_ptr<grpc::Server> server_;
   std::unique_ptr<v1::MemoryService::Stub> stub_;
 };
+
+TEST_F(MemoryServiceTest, ADurableAckAnswersBeforeApplyingAndSaysWhere) {
+  v1::UploadTracesRequest first = Batch("f", 0, 6);
+  first.set_ack(v1::UPLOAD_ACK_UNSPECIFIED);  // the default: durable
+  v1::UploadTracesRequest second = Batch("f", 6, 6);
+  second.set_ack(v1::UPLOAD_ACK_DURABLE);
+  v1::UploadTracesResponse response;
+  ASSERT_TRUE(Upload({first, second}, &response).ok());
+  EXPECT_EQ(response.accepted(), 12u);
+  EXPECT_EQ(response.consolidations(), 0u);  // counted only when applied
+  EXPECT_FALSE(response.applied());
+  EXPECT_EQ(response.last_sequence(), 2u);  // one log entry per message
+  // Applied behind the answer: stats say how far.
+  ASSERT_TRUE(
+      memory_->writes()
+          .WaitApplied("f", response.last_sequence(), absl::InfiniteFuture())
+          .ok());
+  v1::GetStatsResponse stats;
+  ASSERT_TRUE(Stats("f", &stats).ok());
+  EXPECT_EQ(stats.acknowledged_through(), 2u);
+  EXPECT_EQ(stats.applied_through(), 2u);
+  EXPECT_EQ(stats.backlog_traces(), 0u);
+  EXPECT_EQ(stats.traces() + stats.pending_traces(), 12u);
+  EXPECT_EQ(stats.consolidations(), 1u);  // segment_size 10 reached
+
+  // A resent message is a duplicate at the append: nothing new in the log.
+  v1::UploadTracesResponse again;
+  ASSERT_TRUE(Upload({second}, &again).ok());
+  EXPECT_EQ(again.accepted(), 0u);
+  EXPECT_EQ(again.duplicates(), 6u);
+  EXPECT_EQ(again.last_sequence(), 0u);
+}
 
 TEST_F(MemoryServiceTest, UploadSumsMessagesAndCountsDuplicates) {
   v1::UploadTracesResponse response;
@@ -109,6 +150,7 @@ TEST_F(MemoryServiceTest, UploadSumsMessagesAndCountsDuplicates) {
   EXPECT_EQ(response.accepted(), 12u);
   EXPECT_EQ(response.duplicates(), 0u);
   EXPECT_EQ(response.consolidations(), 1u);  // segment_size 10 reached
+  EXPECT_TRUE(response.applied());
 
   v1::UploadTracesResponse again;
   ASSERT_TRUE(Upload({Batch("f", 10, 4)}, &again).ok());

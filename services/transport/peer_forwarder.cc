@@ -10,7 +10,7 @@
 #include "grpcpp/security/credentials.h"
 #include "grpcpp/support/channel_arguments.h"
 #include "services/core/absl_view.h"
-#include "services/transport/distribution.h"
+#include "services/transport/fleet_memory.h"
 
 namespace fleetmem::transport {
 

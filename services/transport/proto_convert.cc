@@ -88,6 +88,17 @@ void MatchesToProto(std::span<const engine::PlaceMatch> matches,
   }
 }
 
+void BacklogToProto(const engine::Backlog& backlog, v1::GetStatsResponse* out) {
+  out->set_backlog_entries(backlog.entries);
+  out->set_backlog_traces(backlog.traces);
+  out->set_backlog_age_seconds(backlog.oldest_seconds);
+  out->set_acknowledged_through(backlog.appended_through);
+  out->set_applied_through(backlog.applied_through);
+  out->set_apply_error(backlog.apply_error.ok()
+                           ? std::string()
+                           : backlog.apply_error.ToString());
+}
+
 void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out) {
   out->set_traces(stats.traces);
   out->set_pending_traces(stats.pending_traces);

@@ -12,6 +12,7 @@
 #include "proto/convert/trace_convert.h"
 #include "services/core/types.h"
 #include "services/engine/memory_engine.h"
+#include "services/engine/write_path.h"
 
 namespace fleetmem::transport {
 
@@ -42,6 +43,7 @@ void SampledTracesToProto(std::span<const core::MemoryTrace> traces,
 void MatchesToProto(std::span<const engine::PlaceMatch> matches,
                     v1::QueryPlaceResponse* out);
 void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out);
+void BacklogToProto(const engine::Backlog& backlog, v1::GetStatsResponse* out);
 void FleetSummaryToProto(std::string_view fleet_id,
                          const engine::FleetStats& stats,
                          v1::FleetSummary* out);

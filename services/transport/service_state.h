@@ -49,18 +49,22 @@ struct ServiceOptions {
 // Shutdown waits for all calls to end before the service is destroyed).
 class ServiceState {
  public:
-  // `engine`, `work` and `authenticator` must outlive this object; a null
-  // `authenticator` means auth is off (every caller is an admin).
-  ServiceState(engine::MemoryEngine* engine, WorkQueue* work,
-               const auth::Authenticator* authenticator,
+  // `engine`, `memory`, `work` and `authenticator` must outlive this
+  // object; a null `authenticator` means auth is off (every caller is an
+  // admin).
+  ServiceState(engine::MemoryEngine* engine, FleetMemory* memory,
+               WorkQueue* work, const auth::Authenticator* authenticator,
                ServiceOptions options = {})
       : engine_(engine),
+        memory_(memory),
         work_(work),
         authenticator_(authenticator),
         options_(options),
-        api_(engine, options.api) {}
+        api_(engine, memory, options.api) {}
 
   engine::MemoryEngine& engine() const { return *engine_; }
+  // The mode: where uploads go, which server serves a fleet.
+  FleetMemory& memory() const { return *memory_; }
   WorkQueue& work() const { return *work_; }
   const auth::Authenticator* authenticator() const { return authenticator_; }
   MemoryApi& api() { return api_; }
@@ -104,6 +108,7 @@ class ServiceState {
 
  private:
   engine::MemoryEngine* const engine_;
+  FleetMemory* const memory_;
   WorkQueue* const work_;
   const auth::Authenticator* const authenticator_;
   const ServiceOptions options_;

@@ -155,15 +155,19 @@ void UploadReactor::Store() {
   }
   std::vector<core::MemoryTrace> traces =
       UploadedTracesFromProto(request_.traces());
-  Distribution* distribution = state_->options().api.distribution;
-  absl::StatusOr<engine::UploadResult> result =
-      distribution != nullptr ? distribution->Upload(fleet_id_, traces)
-                              : state_->engine().Upload(fleet_id_, traces);
-  if (!result.ok()) {
-    Fail(result.status());
+  UploadOptions options;
+  options.wait_applied = request_.ack() == v1::UPLOAD_ACK_APPLIED;
+  options.deadline = absl::FromChrono(context_->deadline());
+  absl::StatusOr<Uploaded> uploaded =
+      state_->memory().Upload(fleet_id_, traces, options);
+  if (!uploaded.ok()) {
+    Fail(uploaded.status());
     return;
   }
-  AddUploadResult(*result, &totals_);
+  AddUploadResult(uploaded->result, &totals_);
+  if (uploaded->sequence != 0) totals_.set_last_sequence(uploaded->sequence);
+  // Every message so far applied before its answer.
+  totals_.set_applied((index_ == 1 || totals_.applied()) && uploaded->applied);
   if (state_->options().on_upload_bytes) {
     state_->options().on_upload_bytes(fleet_id_, message_bytes_);
   }

@@ -24,12 +24,11 @@ WatchReactor::WatchReactor(ServiceState* state,
                           auth::Action::kWatch, fleet_id_)
                 .status();
   }
-  Distribution* distribution = state_->options().api.distribution;
-  if (valid.ok() && distribution != nullptr) {
+  if (valid.ok()) {
     // A watch is served by the fleet's owner: the client is sent there
     // (a stream is not forwarded).
     absl::StatusOr<std::optional<std::string>> owner =
-        distribution->Owner(fleet_id_);
+        state_->memory().Owner(fleet_id_);
     valid = owner.status();
     if (valid.ok() && owner->has_value()) {
       valid = absl::UnavailableError(

@@ -49,6 +49,9 @@ struct Common {
   std::string fleet = "load";
   int dimension = 128;
   fleetmem::client::CredentialSources credentials;
+  // When uploads are answered: at the durable append (the load a robot
+  // fleet makes) or once applied.
+  std::string ack = "durable";
 };
 
 void AddCommon(CLI::App* app, Common* common) {
@@ -61,6 +64,9 @@ void AddCommon(CLI::App* app, Common* common) {
   app->add_option("--tls-cert", common->credentials.cert_file,
                   "client certificate (PEM)");
   app->add_option("--tls-key", common->credentials.key_file, "client key");
+  app->add_option("--ack", common->ack,
+                  "uploads answered when durable (default) or applied")
+      ->check(CLI::IsMember({"durable", "applied"}));
 }
 
 absl::StatusOr<fleetmem::client::ClientOptions> ClientFor(const Common& common,
@@ -68,6 +74,9 @@ absl::StatusOr<fleetmem::client::ClientOptions> ClientFor(const Common& common,
   fleetmem::client::ClientOptions options;
   options.target = common.server;
   options.max_attempts = attempts;
+  options.upload_ack = common.ack == "applied"
+                           ? fleetmem::v1::UPLOAD_ACK_APPLIED
+                           : fleetmem::v1::UPLOAD_ACK_DURABLE;
   if (absl::Status loaded =
           fleetmem::client::LoadCredentials(common.credentials, &options);
       !loaded.ok()) {

@@ -1,0 +1,216 @@
+#include "services/cluster/replicated_memory.h"
+
+#include <algorithm>
+#include <chrono>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "services/cluster/materialiser.h"
+#include "services/common/log.h"
+#include "services/core/absl_view.h"
+
+namespace fleetmem::cluster {
+
+ReplicatedMemory::ReplicatedMemory(std::string self, size_t max_entry_bytes,
+                                   engine::QuotaOptions rates,
+                                   std::unique_ptr<NatsFleetLog> log,
+                                   transport::PeerOptions peers,
+                                   engine::MemoryEngine* engine,
+                                   ClusterNodeOptions node)
+    : self_(std::move(self)),
+      max_entry_bytes_(max_entry_bytes),
+      rates_(std::move(rates),
+             [] {
+               return std::chrono::duration<double>(
+                          std::chrono::steady_clock::now().time_since_epoch())
+                   .count();
+             }),
+      engine_(engine),
+      log_(std::move(log)),
+      forwarder_(std::move(peers)),
+      node_(std::move(node), log_.get(), log_.get(), log_.get(), engine) {}
+
+ReplicatedMemory::~ReplicatedMemory() { Shutdown(); }
+
+void ReplicatedMemory::Run(std::function<void(const std::string&)> lost) {
+  if (lost) node_.OnFleetLost(std::move(lost));
+  node_.Start();
+}
+
+void ReplicatedMemory::Shutdown() {
+  if (shut_down_) return;
+  shut_down_ = true;
+  node_.Stop();
+  node_.ReleaseAll();
+}
+
+absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+    const transport::UploadOptions& options) {
+  // Checked here against the fleet's shape (from this replica's store, or
+  // asked of the owner), so that an acknowledged upload is not refused when
+  // the owner applies it; the owner checks it again then.
+  absl::StatusOr<std::optional<engine::FleetShape>> shape = ShapeOf(fleet_id);
+  if (!shape.ok()) return shape.status();
+  absl::Status valid = engine_->CheckUpload(
+      fleet_id, traces, shape->has_value() ? &**shape : nullptr);
+  if (!valid.ok()) return valid;
+  if (traces.empty()) return transport::Uploaded{};
+  if (absl::Status admitted = rates_.AdmitRates(fleet_id, traces);
+      !admitted.ok()) {
+    return admitted;
+  }
+  // An upload that creates the fleet is appended only as its log's first
+  // entry: of two creating it at once with different shapes, the second
+  // is checked against the first's shape instead of being acknowledged
+  // and refused when applied.
+  // Acknowledged at the replicated append: options.wait_applied is not
+  // served here (the answer says so: Uploaded::applied stays false).
+  absl::StatusOr<Ingested> ingested =
+      Ingest(*log_, fleet_id, traces, max_entry_bytes_, !shape->has_value());
+  if (absl::IsFailedPrecondition(ingested.status()) && !shape->has_value()) {
+    shape = ShapeOf(fleet_id);
+    if (!shape.ok()) return shape.status();
+    valid = engine_->CheckUpload(fleet_id, traces,
+                                 shape->has_value() ? &**shape : nullptr);
+    if (!valid.ok()) return valid;
+    ingested = Ingest(*log_, fleet_id, traces, max_entry_bytes_);
+  }
+  if (!ingested.ok()) return ingested.status();
+  transport::Uploaded uploaded;
+  uploaded.result.accepted = ingested->traces - ingested->duplicate_traces;
+  uploaded.result.duplicates = ingested->duplicate_traces;
+  uploaded.sequence = ingested->last_sequence;
+  return uploaded;
+}
+
+absl::StatusOr<std::optional<engine::FleetShape>> ReplicatedMemory::ShapeOf(
+    std::string_view fleet_id) {
+  {
+    absl::MutexLock lock(&owners_mu_);
+    auto it = shapes_.find(std::string(fleet_id));
+    if (it != shapes_.end()) return it->second;
+  }
+  absl::StatusOr<std::optional<engine::FleetShape>> shape =
+      FleetShapeFromLog(*log_, log_.get(), fleet_id);
+  if (!shape.ok() || !shape->has_value()) return shape;
+  absl::MutexLock lock(&owners_mu_);
+  shapes_[std::string(fleet_id)] = **shape;
+  return shape;
+}
+
+absl::StatusOr<std::optional<std::string>> ReplicatedMemory::Owner(
+    std::string_view fleet_id) {
+  if (node_.materialiser().Owns(fleet_id)) return std::nullopt;
+  absl::StatusOr<std::optional<Lease>> holder = log_->Holder(fleet_id);
+  if (!holder.ok()) {
+    // NATS cannot say now (a JetStream leader election): the last owner
+    // seen answers, or says the fleet moved.
+    absl::MutexLock lock(&owners_mu_);
+    auto it = last_owner_.find(std::string(fleet_id));
+    if (it != last_owner_.end() && it->second != self_) return it->second;
+    return holder.status();
+  }
+  if (holder->has_value()) {
+    {
+      absl::MutexLock lock(&owners_mu_);
+      last_owner_[std::string(fleet_id)] = (*holder)->owner;
+    }
+    if ((*holder)->owner == self_) {
+      // Taken by this replica's loop a moment ago.
+      return std::nullopt;
+    }
+    return (*holder)->owner;
+  }
+  absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
+  if (!last.ok()) return last.status();
+  // No log: the fleet does not exist, which this replica says as well as
+  // any.
+  if (*last == 0) return std::nullopt;
+  return absl::UnavailableError(absl::StrCat(
+      "fleet \"", V(fleet_id),
+      "\" has no owner right now (its owner was lost; another replica takes "
+      "it once the lease expires); retry"));
+}
+
+absl::StatusOr<std::vector<std::pair<std::string, std::string>>>
+ReplicatedMemory::Fleets() {
+  // While NATS cannot answer (a JetStream leader election), the last
+  // listing and the last owners seen answer, as Owner does.
+  absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
+  {
+    absl::MutexLock lock(&owners_mu_);
+    if (fleets.ok()) {
+      known_fleets_ = *fleets;
+    } else if (!known_fleets_.empty()) {
+      fleets = known_fleets_;
+    }
+  }
+  if (!fleets.ok()) return fleets.status();
+  std::vector<std::pair<std::string, std::string>> owners;
+  for (const std::string& fleet : *fleets) {
+    std::string owner;
+    if (node_.materialiser().Owns(fleet)) {
+      owner = self_;
+    } else {
+      absl::StatusOr<std::optional<Lease>> holder = log_->Holder(fleet);
+      absl::MutexLock lock(&owners_mu_);
+      if (holder.ok() && holder->has_value()) {
+        owner = (*holder)->owner;
+        last_owner_[fleet] = owner;
+      } else if (!holder.ok()) {
+        auto last = last_owner_.find(fleet);
+        if (last == last_owner_.end()) return holder.status();
+        owner = last->second;
+      }
+    }
+    owners.emplace_back(fleet, std::move(owner));
+  }
+  return owners;
+}
+
+absl::Status ReplicatedMemory::Forward(const std::string& address,
+                                       std::string_view method,
+                                       const google::protobuf::Message& request,
+                                       google::protobuf::Message* response) {
+  return forwarder_.Forward(address, method, request, response);
+}
+
+engine::Backlog ReplicatedMemory::Backlog(std::string_view fleet_id) {
+  engine::Backlog backlog;
+  for (const auto& [owned, position] : node_.materialiser().Positions()) {
+    if (owned != fleet_id) continue;
+    absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
+    if (!last.ok()) break;
+    backlog.applied_through = position;
+    backlog.appended_through = std::max(*last, position);
+    backlog.entries = backlog.appended_through - position;
+  }
+  return backlog;
+}
+
+std::vector<std::pair<std::string, double>> ReplicatedMemory::LogLag() {
+  std::vector<std::pair<std::string, double>> lag;
+  for (const auto& [fleet_id, position] : node_.materialiser().Positions()) {
+    absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
+    if (!last.ok()) continue;
+    lag.emplace_back(
+        fleet_id, static_cast<double>(*last > position ? *last - position : 0));
+  }
+  return lag;
+}
+
+absl::StatusOr<engine::ConsolidateResult> ReplicatedMemory::Consolidate(
+    std::string_view fleet_id) {
+  return node_.materialiser().Consolidate(fleet_id);
+}
+
+absl::StatusOr<std::vector<core::MemoryTrace>> ReplicatedMemory::SampleReplay(
+    std::string_view fleet_id, std::string_view robot_id, uint64_t count,
+    std::string_view request_id) {
+  return node_.materialiser().SampleReplay(fleet_id, robot_id, count,
+                                           request_id);
+}
+
+}  // namespace fleetmem::cluster

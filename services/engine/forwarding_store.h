@@ -1,0 +1,58 @@
+// For tests: a MemoryStore that forwards every call to another, for test
+// doubles to override the calls they watch or fail.
+#ifndef FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_
+#define FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_
+
+#include <cstdint>
+#include <span>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "services/engine/memory_store.h"
+
+namespace fleetmem::engine {
+
+class ForwardingStore : public MemoryStore {
+ public:
+  explicit ForwardingStore(MemoryStore* inner) : inner_(inner) {}
+  absl::StatusOr<std::vector<std::string>> ListFleets() override {
+    return inner_->ListFleets();
+  }
+  absl::StatusOr<FleetRecord> LoadFleet(std::string_view fleet_id) override {
+    return inner_->LoadFleet(fleet_id);
+  }
+  absl::Status Apply(std::string_view fleet_id,
+                     const FleetMutation& mutation) override {
+    return inner_->Apply(fleet_id, mutation);
+  }
+  absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
+      std::string_view fleet_id, uint64_t after_event, size_t limit) override {
+    return inner_->ReadEvents(fleet_id, after_event, limit);
+  }
+  absl::Status AppendLog(std::string_view fleet_id,
+                         std::span<const LogAppend> entries) override {
+    return inner_->AppendLog(fleet_id, entries);
+  }
+  absl::StatusOr<std::vector<LoggedUpload>> ReadLog(
+      std::string_view fleet_id, uint64_t after, size_t max_entries) override {
+    return inner_->ReadLog(fleet_id, after, max_entries);
+  }
+  absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
+    return inner_->TrimLog(fleet_id, through);
+  }
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
+      override {
+    return inner_->LogTails();
+  }
+
+ private:
+  MemoryStore* inner_;
+};
+
+}  // namespace fleetmem::engine
+
+#endif  // FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_

@@ -1,0 +1,656 @@
+#include "services/engine/write_path.h"
+
+#include <algorithm>
+#include <optional>
+#include <utility>
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "services/common/log.h"
+#include "services/core/absl_view.h"
+#include "services/core/validation.h"
+
+namespace fleetmem::engine {
+namespace {
+
+// Log entries read per page while recovering a log's tail.
+constexpr size_t kRecoveryPage = 256;
+
+}  // namespace
+
+absl::Status ValidateWritePathOptions(const WritePathOptions& options) {
+  if (options.appliers < 1 || options.appliers > 64) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("appliers must be 1..64, got ", options.appliers));
+  }
+  if (options.apply_batch < 1) {
+    return absl::InvalidArgumentError("apply_batch must be at least 1");
+  }
+  if (options.retry_interval <= absl::ZeroDuration()) {
+    return absl::InvalidArgumentError("retry_interval must be positive");
+  }
+  return absl::OkStatus();
+}
+
+// One upload waiting for the group commit.
+struct WritePath::Request {
+  std::span<const core::MemoryTrace> traces;
+  bool track = false;
+  // The traces appended: `traces`, or the copies in `kept` when some were
+  // duplicates.
+  std::span<const core::MemoryTrace> accepted;
+  std::vector<core::MemoryTrace> kept;
+  absl::StatusOr<Appended> result = absl::UnknownError("not admitted");
+  bool done = false;
+};
+
+struct WritePath::FleetLog {
+  explicit FleetLog(std::string fleet_id) : id(std::move(fleet_id)) {}
+
+  const std::string id;
+  absl::Mutex mu;
+  // Signalled when applied_through grows, a group commit ends, or on Stop.
+  absl::CondVar changed;
+
+  // The group commit: uploads waiting, and whether one of them leads.
+  std::vector<Request*> queue ABSL_GUARDED_BY(mu);
+  bool leading ABSL_GUARDED_BY(mu) = false;
+  bool stopped ABSL_GUARDED_BY(mu) = false;
+
+  // The log's acknowledged entries not applied yet, in order.
+  struct Entry {
+    uint64_t sequence = 0;
+    uint64_t traces = 0;
+    absl::Time appended;
+    std::shared_ptr<AppliedEntry> applied;  // for a caller that waits
+  };
+  std::deque<Entry> unapplied ABSL_GUARDED_BY(mu);
+  uint64_t backlog_traces ABSL_GUARDED_BY(mu) = 0;
+  uint64_t appended_through ABSL_GUARDED_BY(mu) = 0;
+  uint64_t applied_through ABSL_GUARDED_BY(mu) = 0;
+  absl::Status apply_error ABSL_GUARDED_BY(mu);
+  // In the appliers' queue, or being applied.
+  bool scheduled ABSL_GUARDED_BY(mu) = false;
+
+  // The admission's state: read and written by the group's leader only
+  // (one at a time; `mu` orders one leader after the next) and by Recover
+  // before any leader.
+  std::optional<FleetShape> shape;
+  uint64_t next_sequence = 1;
+  // Every seq admitted per robot (received by the engine or in the log),
+  // loaded at a robot's first upload since Open.
+  absl::flat_hash_map<std::string, core::SeqSet> admitted;
+  // The seqs of the log's tail found at Open, per robot, until the robot's
+  // set is loaded.
+  absl::flat_hash_map<std::string, core::SeqSet> recovered;
+};
+
+WritePath::WritePath(WritePathOptions options, MemoryEngine* engine,
+                     MemoryStore* store)
+    : options_(std::move(options)), engine_(engine), store_(store) {}
+
+WritePath::~WritePath() { Stop(); }
+
+absl::StatusOr<std::unique_ptr<WritePath>> WritePath::Open(
+    WritePathOptions options, MemoryEngine* engine, MemoryStore* store) {
+  if (absl::Status valid = ValidateWritePathOptions(options); !valid.ok()) {
+    return valid;
+  }
+  std::unique_ptr<WritePath> path(
+      new WritePath(std::move(options), engine, store));
+  if (absl::Status recovered = path->Recover(); !recovered.ok()) {
+    return recovered;
+  }
+  for (int i = 0; i < path->options_.appliers; ++i) {
+    path->appliers_.emplace_back([p = path.get()] { p->RunApplier(); });
+  }
+  std::vector<FleetLog*> waiting;
+  {
+    absl::MutexLock lock(&path->logs_mu_);
+    for (auto& [fleet_id, log] : path->logs_) waiting.push_back(log.get());
+  }
+  for (FleetLog* log : waiting) path->Schedule(*log);
+  return path;
+}
+
+absl::Status WritePath::Recover() {
+  const std::vector<std::string> fleets = engine_->ListFleets();
+  for (const std::string& fleet_id : fleets) {
+    absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
+    if (!position.ok()) return position.status();
+    FleetLog& log = *Log(fleet_id);
+    log.shape = engine_->Shape(fleet_id);
+    log.next_sequence = *position + 1;
+    absl::MutexLock lock(&log.mu);
+    log.appended_through = log.applied_through = *position;
+  }
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> tails =
+      store_->LogTails();
+  if (!tails.ok()) return tails.status();
+  uint64_t created = 0;  // fleets whose first upload waits in their log
+  const absl::Time now = absl::Now();
+  for (const auto& [fleet_id, last] : *tails) {
+    absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
+    if (!position.ok()) return position.status();
+    FleetLog& log = *Log(fleet_id);
+    uint64_t after = *position;
+    uint64_t traces = 0;
+    std::deque<FleetLog::Entry> entries;
+    while (true) {
+      absl::StatusOr<std::vector<LoggedUpload>> page =
+          store_->ReadLog(fleet_id, after, kRecoveryPage);
+      if (!page.ok()) return page.status();
+      for (const LoggedUpload& entry : *page) {
+        if (!log.shape.has_value() && !entry.traces.empty()) {
+          log.shape =
+              FleetShape{static_cast<uint32_t>(entry.traces[0].code.size()),
+                         entry.traces[0].encoder_version};
+          ++created;
+        }
+        for (const core::MemoryTrace& trace : entry.traces) {
+          log.recovered[trace.robot_id].Insert(trace.seq);
+        }
+        entries.push_back({entry.sequence, entry.traces.size(), now, nullptr});
+        traces += entry.traces.size();
+        after = entry.sequence;
+      }
+      if (page->size() < kRecoveryPage) break;
+    }
+    // Entries the engine applied before the crash, but not trimmed yet.
+    if (absl::Status trimmed = store_->TrimLog(fleet_id, *position);
+        !trimmed.ok()) {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << fleet_id
+          << "\": applied log entries not trimmed: " << trimmed;
+    }
+    log.next_sequence = std::max(last, *position) + 1;
+    FLEETMEM_LOG(kInfo) << "fleet \"" << fleet_id << "\": " << entries.size()
+                        << " acknowledged log entries (" << traces
+                        << " traces) after position " << *position
+                        << " to apply";
+    absl::MutexLock lock(&log.mu);
+    log.unapplied = std::move(entries);
+    log.backlog_traces = traces;
+    log.applied_through = *position;
+    log.appended_through = log.next_sequence - 1;
+  }
+  absl::MutexLock lock(&logs_mu_);
+  fleets_ = fleets.size() + created;
+  return absl::OkStatus();
+}
+
+WritePath::FleetLog* WritePath::Log(std::string_view fleet_id) {
+  {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    auto it = logs_.find(V(fleet_id));
+    if (it != logs_.end()) return it->second.get();
+  }
+  absl::MutexLock lock(&logs_mu_);
+  auto& log = logs_[std::string(fleet_id)];
+  if (log == nullptr) log = std::make_unique<FleetLog>(std::string(fleet_id));
+  return log.get();
+}
+
+absl::StatusOr<Appended> WritePath::Append(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+    bool track) {
+  if (absl::Status valid = core::ValidateId("fleet_id", fleet_id);
+      !valid.ok()) {
+    return valid;
+  }
+  if (traces.empty()) return Appended{};
+  {
+    absl::MutexLock lock(&ready_mu_);
+    if (stopping_) {
+      return absl::UnavailableError(
+          "the server is shutting down; nothing of this upload was stored");
+    }
+  }
+  // A fleet is made by its first valid upload: checked before its log is
+  // made, so that bad uploads to made-up fleets leave nothing behind.
+  FleetLog* log = nullptr;
+  {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    auto it = logs_.find(V(fleet_id));
+    if (it != logs_.end()) log = it->second.get();
+  }
+  if (log == nullptr) {
+    absl::Status valid = CheckTraces(fleet_id, traces, nullptr,
+                                     engine_->options().max_traces_per_upload);
+    if (!valid.ok()) return valid;
+    log = Log(fleet_id);
+  }
+
+  Request request;
+  request.traces = traces;
+  request.track = track;
+  absl::MutexLock lock(&log->mu);
+  log->queue.push_back(&request);
+  while (!request.done) {
+    // After Stop no one leads; an upload a leader took is finished by it.
+    if (log->stopped && std::find(log->queue.begin(), log->queue.end(),
+                                  &request) != log->queue.end()) {
+      std::erase(log->queue, &request);
+      return absl::UnavailableError(
+          "the server is shutting down; nothing of this upload was stored");
+    }
+    if (log->leading) {
+      log->changed.Wait(&log->mu);
+      continue;
+    }
+    // Lead: every upload queued so far goes into one store write.
+    log->leading = true;
+    std::vector<Request*> group;
+    group.swap(log->queue);
+    log->mu.Unlock();
+    Lead(*log, group);
+    log->mu.Lock();
+    const absl::Time now = absl::Now();
+    for (Request* member : group) {
+      if (member->result.ok() && member->result->sequence != 0) {
+        FleetLog::Entry entry;
+        entry.sequence = member->result->sequence;
+        entry.traces = member->result->accepted;
+        entry.appended = now;
+        if (member->track) {
+          auto applied = std::make_shared<AppliedEntry>();
+          entry.applied = applied;
+          member->result->applied = std::move(applied);
+        }
+        log->backlog_traces += entry.traces;
+        log->appended_through = entry.sequence;
+        log->unapplied.push_back(std::move(entry));
+      }
+      member->done = true;
+    }
+    log->leading = false;
+    log->changed.SignalAll();
+    if (!log->scheduled && !log->unapplied.empty()) {
+      log->scheduled = true;
+      absl::MutexLock ready(&ready_mu_);
+      ready_.push_back(log);
+      ready_cv_.Signal();
+    }
+  }
+  return std::move(request.result);
+}
+
+void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {
+  uint64_t backlog = 0;
+  double oldest_seconds = 0;
+  {
+    absl::MutexLock lock(&log.mu);
+    backlog = log.backlog_traces;
+    if (!log.unapplied.empty()) {
+      oldest_seconds =
+          absl::ToDoubleSeconds(absl::Now() - log.unapplied.front().appended);
+    }
+  }
+  UploadQuota& quota = engine_->quota();
+  const size_t max_traces = engine_->options().max_traces_per_upload;
+  std::optional<FleetShape> shape = log.shape;
+  bool created = false;  // this group's first upload makes the fleet
+  // The robots' seq sets as this group leaves them; kept only if the write
+  // succeeds.
+  absl::flat_hash_map<std::string, core::SeqSet> group_sets;
+  auto seqs_of = [&](const std::string& robot_id) -> const core::SeqSet& {
+    auto [it, inserted] = group_sets.try_emplace(robot_id);
+    if (inserted) {
+      auto known = log.admitted.find(robot_id);
+      if (known != log.admitted.end()) {
+        it->second = known->second;
+      } else {
+        it->second = engine_->Received(log.id, robot_id);
+        auto tail = log.recovered.find(robot_id);
+        if (tail != log.recovered.end()) {
+          std::vector<core::SeqSet::Interval> both = it->second.Intervals();
+          const std::vector<core::SeqSet::Interval> logged =
+              tail->second.Intervals();
+          both.insert(both.end(), logged.begin(), logged.end());
+          it->second = core::SeqSet::FromIntervals(both);
+        }
+      }
+    }
+    return it->second;
+  };
+
+  std::vector<LogAppend> appends;
+  uint64_t sequence = log.next_sequence;
+  uint64_t adding = 0;
+  for (Request* request : group) {
+    const std::span<const core::MemoryTrace> traces = request->traces;
+    absl::Status status =
+        CheckTraces(log.id, traces, shape ? &*shape : nullptr, max_traces);
+    const bool is_new = !shape.has_value();
+    bool reserved = false;  // counted in fleets_ by this upload
+    if (status.ok() && is_new) {
+      status = quota.AdmitDimension(log.id, traces[0].code.size());
+    }
+    if (status.ok() && is_new) {
+      absl::MutexLock lock(&logs_mu_);
+      status = quota.AdmitNewFleet(log.id, fleets_);
+      if (status.ok()) {
+        ++fleets_;
+        reserved = true;
+      }
+    }
+    if (status.ok()) status = quota.AdmitRates(log.id, traces);
+    // Duplicates: seqs admitted before, or repeated within the upload.
+    absl::flat_hash_map<std::string_view, core::SeqSet> trial;
+    std::vector<bool> accept(traces.size(), false);
+    uint64_t accepted = 0;
+    if (status.ok()) {
+      for (size_t i = 0; i < traces.size(); ++i) {
+        auto [it, inserted] = trial.try_emplace(traces[i].robot_id);
+        if (inserted) it->second = seqs_of(traces[i].robot_id);
+        accept[i] = it->second.Insert(traces[i].seq);
+        accepted += accept[i] ? 1 : 0;
+      }
+    }
+    if (status.ok() && accepted > 0) {
+      status = quota.AdmitStored(
+          log.id, engine_->HeldTraces(log.id) + backlog + adding, accepted);
+    }
+    if (status.ok() && accepted > 0 && options_.max_backlog_traces > 0 &&
+        backlog + adding + accepted > options_.max_backlog_traces) {
+      status = absl::ResourceExhaustedError(absl::StrFormat(
+          "fleet \"%s\": the apply backlog holds %d traces (oldest %.1f s), "
+          "%d more would pass its bound of %d (write_path.max_backlog_traces);"
+          " nothing of this upload was stored: retry with backoff",
+          V(log.id), backlog + adding, oldest_seconds, accepted,
+          options_.max_backlog_traces));
+    }
+    if (!status.ok()) {
+      if (reserved) {
+        absl::MutexLock lock(&logs_mu_);
+        --fleets_;
+      }
+      request->result = status;
+      continue;
+    }
+    if (is_new) {
+      shape = FleetShape{static_cast<uint32_t>(traces[0].code.size()),
+                         traces[0].encoder_version};
+      created = true;
+    }
+    request->result = Appended{accepted, traces.size() - accepted, 0, nullptr};
+    if (accepted == 0) continue;
+    for (auto& [robot_id, seqs] : trial) {
+      group_sets[std::string(robot_id)] = std::move(seqs);
+    }
+    if (accepted == traces.size()) {
+      request->accepted = traces;
+    } else {
+      request->kept.reserve(accepted);
+      for (size_t i = 0; i < traces.size(); ++i) {
+        if (accept[i]) request->kept.push_back(traces[i]);
+      }
+      request->accepted = request->kept;
+    }
+    request->result->sequence = sequence;
+    appends.push_back({sequence, request->accepted});
+    ++sequence;
+    adding += accepted;
+  }
+  if (appends.empty()) return;
+  absl::Status written = store_->AppendLog(log.id, appends);
+  if (!written.ok()) {
+    for (Request* request : group) {
+      if (request->result.ok() && request->result->sequence != 0) {
+        request->result = written;
+      }
+    }
+    if (created) {
+      absl::MutexLock lock(&logs_mu_);
+      --fleets_;
+    }
+    return;
+  }
+  log.next_sequence = sequence;
+  log.shape = std::move(shape);
+  for (auto& [robot_id, seqs] : group_sets) {
+    log.recovered.erase(robot_id);
+    log.admitted[robot_id] = std::move(seqs);
+  }
+}
+
+absl::Status WritePath::WaitApplied(std::string_view fleet_id,
+                                    uint64_t sequence, absl::Time deadline) {
+  if (sequence == 0) return absl::OkStatus();
+  FleetLog* log = nullptr;
+  {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    auto it = logs_.find(V(fleet_id));
+    if (it != logs_.end()) log = it->second.get();
+  }
+  if (log == nullptr) return absl::OkStatus();
+  absl::MutexLock lock(&log->mu);
+  while (log->applied_through < sequence) {
+    if (log->stopped) {
+      return absl::UnavailableError(absl::StrCat(
+          "the server is shutting down; log entry ", sequence, " of fleet \"",
+          V(fleet_id),
+          "\" is durable and will be applied when the server starts again"));
+    }
+    if (log->changed.WaitWithDeadline(&log->mu, deadline) &&
+        log->applied_through < sequence) {
+      return absl::DeadlineExceededError(absl::StrCat(
+          "log entry ", sequence, " of fleet \"", V(fleet_id),
+          "\" is durable but not applied yet (applied through ",
+          log->applied_through, ", ", log->backlog_traces, " traces waiting",
+          log->apply_error.ok() ? "" : ": ",
+          log->apply_error.ok() ? "" : log->apply_error.ToString(), ")"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status WritePath::WaitAppliedAll(std::string_view fleet_id,
+                                       absl::Time deadline) {
+  return WaitApplied(fleet_id, GetBacklog(fleet_id).appended_through, deadline);
+}
+
+Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
+  FleetLog* log = nullptr;
+  {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    auto it = logs_.find(V(fleet_id));
+    if (it != logs_.end()) log = it->second.get();
+  }
+  Backlog backlog;
+  if (log == nullptr) return backlog;
+  absl::MutexLock lock(&log->mu);
+  backlog.entries = log->unapplied.size();
+  backlog.traces = log->backlog_traces;
+  if (!log->unapplied.empty()) {
+    backlog.oldest_seconds =
+        absl::ToDoubleSeconds(absl::Now() - log->unapplied.front().appended);
+  }
+  backlog.appended_through = log->appended_through;
+  backlog.applied_through = log->applied_through;
+  backlog.apply_error = log->apply_error;
+  return backlog;
+}
+
+size_t WritePath::QueuedUploads(std::string_view fleet_id) const {
+  FleetLog* log = nullptr;
+  {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    auto it = logs_.find(V(fleet_id));
+    if (it != logs_.end()) log = it->second.get();
+  }
+  if (log == nullptr) return 0;
+  absl::MutexLock lock(&log->mu);
+  return log->queue.size();
+}
+
+std::vector<std::pair<std::string, Backlog>> WritePath::Backlogs() const {
+  std::vector<std::string> fleet_ids;
+  {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    for (const auto& [fleet_id, log] : logs_) fleet_ids.push_back(fleet_id);
+  }
+  std::sort(fleet_ids.begin(), fleet_ids.end());
+  std::vector<std::pair<std::string, Backlog>> backlogs;
+  backlogs.reserve(fleet_ids.size());
+  for (std::string& fleet_id : fleet_ids) {
+    Backlog backlog = GetBacklog(fleet_id);
+    backlogs.emplace_back(std::move(fleet_id), std::move(backlog));
+  }
+  return backlogs;
+}
+
+void WritePath::Schedule(FleetLog& log) {
+  absl::MutexLock lock(&log.mu);
+  if (log.scheduled || log.unapplied.empty()) return;
+  log.scheduled = true;
+  absl::MutexLock ready(&ready_mu_);
+  ready_.push_back(&log);
+  ready_cv_.Signal();
+}
+
+void WritePath::RunApplier() {
+  while (true) {
+    FleetLog* log = nullptr;
+    {
+      absl::MutexLock lock(&ready_mu_);
+      while (!stopping_ && ready_.empty()) ready_cv_.Wait(&ready_mu_);
+      if (stopping_) return;
+      log = ready_.front();
+      ready_.pop_front();
+    }
+    ApplyTurn(*log);
+    absl::MutexLock lock(&log->mu);
+    // Entries appended during the turn found the fleet scheduled: its turn
+    // comes again for them too.
+    if (!log->unapplied.empty()) {
+      // Round robin: the fleet goes to the back of the queue.
+      absl::MutexLock ready(&ready_mu_);
+      ready_.push_back(log);
+      ready_cv_.Signal();
+    } else {
+      log->scheduled = false;
+    }
+  }
+}
+
+void WritePath::ApplyTurn(FleetLog& log) {
+  uint64_t from = 0;
+  uint64_t through = 0;
+  {
+    absl::MutexLock lock(&log.mu);
+    from = log.applied_through;
+    through = log.appended_through;
+  }
+  if (through <= from) return;
+  auto fail = [&](const absl::Status& status) {
+    FLEETMEM_LOG(kError) << "fleet \"" << log.id
+                         << "\": applying the log after entry " << from
+                         << " failed (retried in " << options_.retry_interval
+                         << "): " << status;
+    {
+      absl::MutexLock lock(&log.mu);
+      log.apply_error = status;
+    }
+    absl::MutexLock lock(&ready_mu_);
+    if (!stopping_)
+      stop_cv_.WaitWithTimeout(&ready_mu_, options_.retry_interval);
+  };
+  absl::StatusOr<std::vector<LoggedUpload>> entries =
+      store_->ReadLog(log.id, from, options_.apply_batch);
+  if (!entries.ok()) return fail(entries.status());
+  if (entries->empty() || entries->front().sequence > through) {
+    return fail(absl::DataLossError(absl::StrCat(
+        "the log holds no entry after ", from, " though entries through ",
+        through, " were acknowledged")));
+  }
+  uint64_t applied = from;
+  for (const LoggedUpload& entry : *entries) {
+    if (entry.sequence > through || stop_.load(std::memory_order_relaxed)) {
+      break;
+    }
+    absl::StatusOr<UploadResult> result =
+        engine_->Upload(log.id, entry.traces, entry.sequence);
+    AppliedEntry outcome;
+    if (result.ok()) {
+      outcome.consolidations = result->consolidations;
+    } else if (absl::IsInvalidArgument(result.status())) {
+      // Append checked it as the engine does: only a change of the checks
+      // between two versions can make the engine refuse it now.
+      FLEETMEM_LOG(kError) << "fleet \"" << log.id << "\": acknowledged log "
+                           << "entry " << entry.sequence << " ("
+                           << entry.traces.size()
+                           << " traces) refused when applied, passed over: "
+                           << result.status();
+      outcome.status = result.status();
+    } else {
+      // The store (a full disk) or a limit lowered since it was
+      // acknowledged: retried until it applies; never dropped.
+      if (applied > from) store_->TrimLog(log.id, applied).IgnoreError();
+      return fail(result.status());
+    }
+    absl::MutexLock lock(&log.mu);
+    while (!log.unapplied.empty() &&
+           log.unapplied.front().sequence <= entry.sequence) {
+      FleetLog::Entry& done = log.unapplied.front();
+      log.backlog_traces -= std::min(log.backlog_traces, done.traces);
+      if (done.applied != nullptr && done.sequence == entry.sequence) {
+        *done.applied = outcome;
+      }
+      log.unapplied.pop_front();
+    }
+    log.applied_through = entry.sequence;
+    log.apply_error = absl::OkStatus();
+    log.changed.SignalAll();
+    applied = entry.sequence;
+  }
+  if (absl::Status trimmed = store_->TrimLog(log.id, applied); !trimmed.ok()) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << log.id
+                           << "\": applied log entries through " << applied
+                           << " not trimmed (the next turn or Open does): "
+                           << trimmed;
+  }
+}
+
+bool WritePath::Drain(absl::Time deadline) {
+  bool drained = true;
+  for (const auto& [fleet_id, backlog] : Backlogs()) {
+    if (backlog.entries == 0) continue;
+    const absl::Status waited =
+        WaitApplied(fleet_id, backlog.appended_through, deadline);
+    if (!waited.ok()) {
+      FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                             << "\": log not applied before shutdown, the "
+                                "next start applies the rest: "
+                             << waited;
+      drained = false;
+    }
+  }
+  return drained;
+}
+
+void WritePath::Stop() {
+  {
+    absl::MutexLock lock(&ready_mu_);
+    if (stopping_ && appliers_.empty()) return;
+    stopping_ = true;
+    stop_.store(true, std::memory_order_relaxed);
+    ready_cv_.SignalAll();
+    stop_cv_.SignalAll();
+  }
+  std::vector<FleetLog*> logs;
+  {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    for (auto& [fleet_id, log] : logs_) logs.push_back(log.get());
+  }
+  for (FleetLog* log : logs) {
+    absl::MutexLock lock(&log->mu);
+    log->stopped = true;
+    log->changed.SignalAll();
+  }
+  for (std::thread& applier : appliers_) applier.join();
+  appliers_.clear();
+}
+
+}  // namespace fleetmem::engine

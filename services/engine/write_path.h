@@ -1,0 +1,189 @@
+// The write path of embedded mode: a fleet's uploads are acknowledged at the
+// durable append to its ingest log, and applied behind it.
+//
+// Append admits an upload (validated once against the fleet's shape,
+// deduplicated by (robot_id, seq) against everything the fleet received or
+// holds in its log, rated, bounded by the stored-traces quota and by the
+// backlog), appends its accepted traces to the fleet's log in the store as
+// one entry under the next sequence, and returns once the entry is synced.
+// Concurrent appends to one fleet are committed together: one leader writes
+// every upload that queued while the previous write ran, in one synced
+// store write (group commit).
+//
+// Appliers (a few threads shared by every fleet; a fleet's log is applied by
+// one at a time, in order) apply the log through MemoryEngine::Upload with
+// the entry's sequence: the same deterministic apply that distributed mode's
+// cluster::Materialiser runs on the replicated log's entries, which stores
+// the sequence with the traces it adds (MemoryEngine::LogPosition), so that
+// an entry applied again after a crash changes nothing. Consolidation,
+// forgetting and indexing happen there, off the acknowledgement. Applied
+// entries are trimmed from the log.
+//
+// Open replays the unapplied tail of every fleet's log: nothing acknowledged
+// is lost, and nothing is applied twice.
+#ifndef FLEETMEM_SERVICES_ENGINE_WRITE_PATH_H_
+#define FLEETMEM_SERVICES_ENGINE_WRITE_PATH_H_
+
+#include <atomic>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <thread>
+#include <utility>
+#include <vector>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
+#include "services/core/seq_set.h"
+#include "services/core/types.h"
+#include "services/engine/memory_engine.h"
+#include "services/engine/memory_store.h"
+
+namespace fleetmem::engine {
+
+struct WritePathOptions {
+  // Traces a fleet's log may hold unapplied. An upload that would take the
+  // backlog past it is refused with RESOURCE_EXHAUSTED naming the backlog
+  // and its age (robots retry it with backoff); 0: unbounded. The backlog
+  // lives in the store (on disk), not in memory: the bound is how far the
+  // applier may fall behind a burst (500,000 traces: at the applier's
+  // 30-60 k traces/s on 2 cores, 10-20 s of catching up).
+  uint64_t max_backlog_traces = 500'000;
+  // Applier threads shared by every fleet.
+  int appliers = 2;
+  // Log entries one applier reads and applies per turn of a fleet before it
+  // trims them and lets the next fleet have a turn.
+  size_t apply_batch = 64;
+  // After an apply fails on the store (a full disk), its fleet's log is
+  // tried again this much later; the backlog meanwhile grows to its bound.
+  absl::Duration retry_interval = absl::Seconds(1);
+};
+
+absl::Status ValidateWritePathOptions(const WritePathOptions& options);
+
+// What applying one entry did, for a caller that waits for it.
+struct AppliedEntry {
+  uint64_t consolidations = 0;
+  // The engine's refusal of the entry, which Append's checks make
+  // impossible; logged as an error if it happens.
+  absl::Status status;
+};
+
+// An upload as Append admitted it.
+struct Appended {
+  uint64_t accepted = 0;
+  uint64_t duplicates = 0;
+  // The log entry holding the accepted traces (0: none, every trace was a
+  // duplicate).
+  uint64_t sequence = 0;
+  // With Append's `track`, and an entry: what applying it did, filled in
+  // before WaitApplied(sequence) returns OK.
+  std::shared_ptr<const AppliedEntry> applied;
+};
+
+// A fleet's log as it stands (GetStats, /metrics).
+struct Backlog {
+  uint64_t entries = 0;  // acknowledged, not applied yet
+  uint64_t traces = 0;
+  // Age of the oldest unapplied entry (0 with none).
+  double oldest_seconds = 0;
+  uint64_t appended_through = 0;  // last sequence acknowledged
+  uint64_t applied_through = 0;   // last sequence applied
+  // Why the applier waits, while it does (a store error); OK otherwise.
+  absl::Status apply_error;
+};
+
+// Thread-safe.
+class WritePath {
+ public:
+  // Recovers every fleet's log from `store` (the entries after the
+  // position the engine holds, MemoryEngine::LogPosition) and starts the
+  // appliers, which apply that tail first. `engine` and `store` must
+  // outlive the write path.
+  static absl::StatusOr<std::unique_ptr<WritePath>> Open(
+      WritePathOptions options, MemoryEngine* engine, MemoryStore* store);
+  // Stop().
+  ~WritePath();
+  WritePath(const WritePath&) = delete;
+  WritePath& operator=(const WritePath&) = delete;
+
+  // Admits and appends `traces`, returning once they are durable in the
+  // fleet's log. Errors change nothing: INVALID_ARGUMENT (as
+  // MemoryEngine::Upload validates), RESOURCE_EXHAUSTED (a quota, the
+  // backlog bound, a full disk), the store's error (nothing appended),
+  // UNAVAILABLE after Stop. `track`: the result says what applying the
+  // entry did (Appended::applied).
+  absl::StatusOr<Appended> Append(std::string_view fleet_id,
+                                  std::span<const core::MemoryTrace> traces,
+                                  bool track = false);
+
+  // Returns once the fleet's log is applied through `sequence` (at once for
+  // 0). DEADLINE_EXCEEDED at `deadline`, UNAVAILABLE after Stop.
+  absl::Status WaitApplied(std::string_view fleet_id, uint64_t sequence,
+                           absl::Time deadline);
+  // WaitApplied through everything acknowledged so far (Consolidate: a call
+  // sees every upload acknowledged before it).
+  absl::Status WaitAppliedAll(std::string_view fleet_id, absl::Time deadline);
+
+  // The fleet's backlog (zeros for a fleet it has not seen).
+  Backlog GetBacklog(std::string_view fleet_id) const;
+  // Uploads of the fleet waiting for the group commit's next write.
+  size_t QueuedUploads(std::string_view fleet_id) const;
+  // Every fleet's backlog, sorted by fleet (metrics).
+  std::vector<std::pair<std::string, Backlog>> Backlogs() const;
+
+  // Waits until every fleet's log is applied through what was acknowledged
+  // when it is called, or until `deadline`; true if it was. A clean
+  // shutdown calls it before Stop.
+  bool Drain(absl::Time deadline);
+
+  // Stops admitting, wakes every waiter (UNAVAILABLE), and ends the appliers
+  // after the entry each is applying; the rest of the logs is applied at the
+  // next Open. Idempotent.
+  void Stop();
+
+ private:
+  struct FleetLog;
+  struct Request;
+  WritePath(WritePathOptions options, MemoryEngine* engine, MemoryStore* store);
+
+  // The fleet's log, made on first use.
+  FleetLog* Log(std::string_view fleet_id);
+  absl::Status Recover();
+  // The group commit's leader: admits `group`'s uploads and appends the
+  // accepted ones in one store write.
+  void Lead(FleetLog& log, std::span<Request* const> group);
+  void Schedule(FleetLog& log);
+  void RunApplier();
+  // Applies up to apply_batch entries of the fleet (fewer after Stop, or
+  // when one fails: the fleet's applier then waits retry_interval).
+  void ApplyTurn(FleetLog& log);
+
+  const WritePathOptions options_;
+  MemoryEngine* const engine_;
+  MemoryStore* const store_;
+
+  mutable absl::Mutex logs_mu_;
+  absl::flat_hash_map<std::string, std::unique_ptr<FleetLog>> logs_
+      ABSL_GUARDED_BY(logs_mu_);
+  // Fleets that exist or whose first upload is in a log (max_fleets).
+  uint64_t fleets_ ABSL_GUARDED_BY(logs_mu_) = 0;
+
+  absl::Mutex ready_mu_;
+  absl::CondVar ready_cv_;
+  absl::CondVar stop_cv_;  // wakes an applier waiting to retry
+  std::atomic<bool> stop_{false};
+  std::deque<FleetLog*> ready_ ABSL_GUARDED_BY(ready_mu_);
+  bool stopping_ ABSL_GUARDED_BY(ready_mu_) = false;
+  std::vector<std::thread> appliers_;
+};
+
+}  // namespace fleetmem::engine
+
+#endif  // FLEETMEM_SERVICES_ENGINE_WRITE_PATH_H_

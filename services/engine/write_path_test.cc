@@ -1,0 +1,328 @@
+#include "services/engine/write_path.h"
+
+#include <memory>
+#include <random>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/synchronization/mutex.h"
+#include "absl/synchronization/notification.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "services/engine/forwarding_store.h"
+#include "services/engine/memory_engine.h"
+#include "services/index/exact_index.h"
+#include "services/storage/in_memory_store.h"
+
+namespace fleetmem::engine {
+namespace {
+
+using ::testing::HasSubstr;
+
+constexpr size_t kDimension = 4;
+constexpr absl::Duration kWait = absl::Seconds(20);
+
+EngineOptions SmallOptions() {
+  EngineOptions options;
+  options.memory.clusters_per_batch = 2;
+  options.segment_size = 10;
+  return options;
+}
+
+std::vector<core::MemoryTrace> Traces(const std::string& robot_id,
+                                      uint64_t first_seq, size_t count) {
+  std::mt19937_64 rng(first_seq);
+  std::normal_distribution<float> normal;
+  std::vector<core::MemoryTrace> traces;
+  for (size_t i = 0; i < count; ++i) {
+    core::MemoryTrace trace;
+    trace.robot_id = robot_id;
+    trace.seq = first_seq + i;
+    trace.code.resize(kDimension);
+    for (float& value : trace.code) value = normal(rng);
+    trace.place = core::Place{static_cast<double>(trace.seq), 0, 0, 0};
+    trace.reward = 1.0f;
+    trace.encoder_version = "v1";
+    traces.push_back(std::move(trace));
+  }
+  return traces;
+}
+
+// A store whose applies (the appliers' writes) wait while the gate is
+// closed, and whose log appends can be made to fail or counted.
+class GatedStore : public ForwardingStore {
+ public:
+  explicit GatedStore(MemoryStore* inner) : ForwardingStore(inner) {}
+
+  absl::Status Apply(std::string_view fleet_id,
+                     const FleetMutation& mutation) override {
+    {
+      absl::MutexLock lock(&mu_);
+      mu_.Await(absl::Condition(
+          +[](bool* open) { return *open; }, &applies_open_));
+    }
+    return ForwardingStore::Apply(fleet_id, mutation);
+  }
+  absl::Status AppendLog(std::string_view fleet_id,
+                         std::span<const LogAppend> entries) override {
+    {
+      absl::MutexLock lock(&mu_);
+      ++appends_;
+      appended_entries_.push_back(entries.size());
+      if (!append_error_.ok()) return append_error_;
+      mu_.Await(absl::Condition(
+          +[](bool* open) { return *open; }, &appends_open_));
+    }
+    return ForwardingStore::AppendLog(fleet_id, entries);
+  }
+
+  void SetApplies(bool open) {
+    absl::MutexLock lock(&mu_);
+    applies_open_ = open;
+  }
+  void SetAppends(bool open) {
+    absl::MutexLock lock(&mu_);
+    appends_open_ = open;
+  }
+  void FailAppends(absl::Status error) {
+    absl::MutexLock lock(&mu_);
+    append_error_ = std::move(error);
+  }
+  int appends() {
+    absl::MutexLock lock(&mu_);
+    return appends_;
+  }
+  std::vector<size_t> appended_entries() {
+    absl::MutexLock lock(&mu_);
+    return appended_entries_;
+  }
+
+ private:
+  absl::Mutex mu_;
+  bool applies_open_ ABSL_GUARDED_BY(mu_) = true;
+  bool appends_open_ ABSL_GUARDED_BY(mu_) = true;
+  absl::Status append_error_ ABSL_GUARDED_BY(mu_);
+  int appends_ ABSL_GUARDED_BY(mu_) = 0;
+  std::vector<size_t> appended_entries_ ABSL_GUARDED_BY(mu_);
+};
+
+class WritePathTest : public ::testing::Test {
+ protected:
+  void Open(WritePathOptions options = {}) {
+    path_.reset();
+    engine_.reset();
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
+        SmallOptions(), &store_,
+        [](size_t dimension) { return index::NewExactIndex(dimension); });
+    ASSERT_TRUE(engine.ok()) << engine.status();
+    engine_ = *std::move(engine);
+    absl::StatusOr<std::unique_ptr<WritePath>> path =
+        WritePath::Open(options, engine_.get(), &store_);
+    ASSERT_TRUE(path.ok()) << path.status();
+    path_ = *std::move(path);
+  }
+  void TearDown() override {
+    store_.SetApplies(true);
+    store_.SetAppends(true);
+  }
+  uint64_t Held(const std::string& fleet) {
+    absl::StatusOr<FleetStats> stats = engine_->GetStats(fleet);
+    return stats.ok() ? stats->traces + stats->pending_traces : 0;
+  }
+
+  std::unique_ptr<MemoryStore> memory_ = storage::NewInMemoryStore();
+  GatedStore store_{memory_.get()};
+  std::unique_ptr<MemoryEngine> engine_;
+  std::unique_ptr<WritePath> path_;
+};
+
+TEST_F(WritePathTest, AcknowledgesAtTheAppendAndAppliesBehindIt) {
+  Open();
+  store_.SetApplies(false);  // the applier cannot store anything yet
+  const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 12);
+  absl::StatusOr<Appended> appended = path_->Append("f", traces, true);
+  ASSERT_TRUE(appended.ok()) << appended.status();
+  EXPECT_EQ(appended->accepted, 12u);
+  EXPECT_EQ(appended->sequence, 1u);
+  Backlog backlog = path_->GetBacklog("f");
+  EXPECT_EQ(backlog.entries, 1u);
+  EXPECT_EQ(backlog.traces, 12u);
+  EXPECT_EQ(backlog.appended_through, 1u);
+  EXPECT_EQ(backlog.applied_through, 0u);
+  EXPECT_EQ(
+      path_->WaitApplied("f", 1, absl::Now() + absl::Milliseconds(50)).code(),
+      absl::StatusCode::kDeadlineExceeded);
+
+  store_.SetApplies(true);
+  ASSERT_TRUE(path_->WaitApplied("f", 1, absl::Now() + kWait).ok());
+  EXPECT_EQ(appended->applied->consolidations, 1u);  // segment_size 10
+  EXPECT_EQ(Held("f"), 12u);
+  backlog = path_->GetBacklog("f");
+  EXPECT_EQ(backlog.traces, 0u);
+  EXPECT_EQ(backlog.applied_through, 1u);
+  EXPECT_EQ(*engine_->LogPosition("f"), 1u);
+  // Applied entries leave the log (trimmed after their turn).
+  const absl::Time give_up = absl::Now() + kWait;
+  while (!store_.ReadLog("f", 0, 10)->empty() && absl::Now() < give_up) {
+    absl::SleepFor(absl::Milliseconds(1));
+  }
+  EXPECT_TRUE(store_.ReadLog("f", 0, 10)->empty());
+}
+
+TEST_F(WritePathTest, DuplicatesAreCountedAtTheAppendAgainstTheBacklogToo) {
+  Open();
+  store_.SetApplies(false);
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 5)).ok());
+  // Not applied yet: the engine has not seen seqs 1..5, the log has.
+  std::vector<core::MemoryTrace> again = Traces("r1", 4, 4);  // 4..7
+  again.push_back(again.back());                              // 7 twice
+  absl::StatusOr<Appended> appended = path_->Append("f", again);
+  ASSERT_TRUE(appended.ok()) << appended.status();
+  EXPECT_EQ(appended->accepted, 2u);    // 6, 7
+  EXPECT_EQ(appended->duplicates, 3u);  // 4, 5, and 7 again
+  absl::StatusOr<Appended> none = path_->Append("f", Traces("r1", 1, 2));
+  ASSERT_TRUE(none.ok());
+  EXPECT_EQ(none->sequence, 0u);  // nothing appended
+  store_.SetApplies(true);
+  ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("f"), 7u);
+}
+
+TEST_F(WritePathTest, InvalidUploadsChangeNothingAndMakeNoFleet) {
+  Open();
+  std::vector<core::MemoryTrace> bad = Traces("r1", 1, 3);
+  bad[2].code.push_back(1.0f);  // another dimension
+  EXPECT_EQ(path_->Append("f", bad).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(path_->GetBacklog("f").appended_through, 0u);
+  EXPECT_TRUE(store_.LogTails()->empty());
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 3)).ok());
+  // The fleet's shape is fixed by its first upload, before it is applied.
+  std::vector<core::MemoryTrace> wider = Traces("r2", 1, 1);
+  wider[0].code.push_back(1.0f);
+  absl::StatusOr<Appended> refused = path_->Append("f", wider);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(refused.status().message(), HasSubstr("dimension"));
+}
+
+TEST_F(WritePathTest, AFullBacklogRefusesWithItsSizeAndAgeAndRecovers) {
+  WritePathOptions options;
+  options.max_backlog_traces = 20;
+  Open(options);
+  store_.SetApplies(false);
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 15)).ok());
+  absl::StatusOr<Appended> refused = path_->Append("f", Traces("r1", 16, 10));
+  ASSERT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(refused.status().message(), HasSubstr("backlog holds 15 traces"));
+  EXPECT_THAT(refused.status().message(), HasSubstr("max_backlog_traces"));
+  // Refused: its seqs are not taken (a retry is not a duplicate).
+  store_.SetApplies(true);
+  ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
+  absl::StatusOr<Appended> retried = path_->Append("f", Traces("r1", 16, 10));
+  ASSERT_TRUE(retried.ok()) << retried.status();
+  EXPECT_EQ(retried->accepted, 10u);
+}
+
+TEST_F(WritePathTest, AFailedAppendStoresNothingAndTakesNoSeq) {
+  Open();
+  store_.FailAppends(absl::ResourceExhaustedError("disk nearly full"));
+  EXPECT_EQ(path_->Append("f", Traces("r1", 1, 4)).status().code(),
+            absl::StatusCode::kResourceExhausted);
+  store_.FailAppends(absl::OkStatus());
+  absl::StatusOr<Appended> retried = path_->Append("f", Traces("r1", 1, 4));
+  ASSERT_TRUE(retried.ok()) << retried.status();
+  EXPECT_EQ(retried->accepted, 4u);
+  EXPECT_EQ(retried->sequence, 1u);
+}
+
+TEST_F(WritePathTest, ConcurrentUploadsShareOneStoreWrite) {
+  Open();
+  store_.SetAppends(false);  // the first write waits: the rest queue
+  std::vector<std::thread> uploads;
+  std::vector<absl::StatusOr<Appended>> results(5, Appended{});
+  uploads.emplace_back(
+      [&] { results[0] = path_->Append("f", Traces("r0", 1, 3)); });
+  while (store_.appends() < 1) absl::SleepFor(absl::Milliseconds(1));
+  for (int i = 1; i < 5; ++i) {
+    uploads.emplace_back([&, i] {
+      results[i] = path_->Append("f", Traces("r" + std::to_string(i), 1, 3));
+    });
+  }
+  // The followers queue behind the leader's write.
+  while (path_->QueuedUploads("f") < 4) absl::SleepFor(absl::Milliseconds(1));
+  store_.SetAppends(true);
+  for (std::thread& upload : uploads) upload.join();
+  for (const auto& result : results)
+    ASSERT_TRUE(result.ok()) << result.status();
+  // Two writes: the first upload's, then the four that queued behind it.
+  EXPECT_THAT(store_.appended_entries(), ::testing::ElementsAre(1u, 4u));
+  ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("f"), 15u);
+}
+
+TEST_F(WritePathTest, OpenAppliesTheAcknowledgedTailOnceAfterACrash) {
+  // What a crashed server leaves: the log holds entries 1..3, of which the
+  // engine had applied 1 (stored with its position) but not trimmed it.
+  Open();
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 4), true).ok());
+  ASSERT_TRUE(path_->WaitApplied("f", 1, absl::Now() + kWait).ok());
+  path_.reset();
+  engine_.reset();
+  const std::vector<core::MemoryTrace> first = Traces("r1", 1, 4);
+  const std::vector<core::MemoryTrace> second = Traces("r1", 5, 4);
+  const std::vector<core::MemoryTrace> third = Traces("r2", 1, 3);
+  const LogAppend entries[] = {{1, first}, {2, second}, {3, third}};
+  ASSERT_TRUE(memory_->AppendLog("f", entries).ok());
+
+  Open();
+  ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("f"), 11u);  // 1..4 once, 5..8, r2's 1..3
+  EXPECT_EQ(*engine_->LogPosition("f"), 3u);
+  // The recovered tail's seqs are duplicates for new uploads, and new
+  // entries follow the recovered ones.
+  absl::StatusOr<Appended> again = path_->Append("f", Traces("r2", 1, 4));
+  ASSERT_TRUE(again.ok());
+  EXPECT_EQ(again->accepted, 1u);
+  EXPECT_EQ(again->sequence, 4u);
+}
+
+TEST_F(WritePathTest, AFleetOnlyInItsLogIsMadeWhenApplied) {
+  // The first upload of a fleet, acknowledged, then the server crashed.
+  const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 3);
+  const LogAppend entries[] = {{1, traces}};
+  ASSERT_TRUE(memory_->AppendLog("new", entries).ok());
+  store_.SetApplies(false);
+  Open();
+  // Its shape is known before it is applied.
+  std::vector<core::MemoryTrace> wider = Traces("r2", 1, 1);
+  wider[0].code.push_back(0.5f);
+  EXPECT_EQ(path_->Append("new", wider).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(path_->GetBacklog("new").traces, 3u);
+  store_.SetApplies(true);
+  ASSERT_TRUE(path_->WaitAppliedAll("new", absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("new"), 3u);
+}
+
+TEST_F(WritePathTest, StopAnswersWaitersAndRefusesUploads) {
+  Open();
+  store_.SetApplies(false);
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 2)).ok());
+  absl::Status waited;
+  std::thread waiter(
+      [&] { waited = path_->WaitApplied("f", 1, absl::InfiniteFuture()); });
+  absl::SleepFor(absl::Milliseconds(50));
+  std::thread stopper([&] { path_->Stop(); });
+  absl::SleepFor(absl::Milliseconds(50));
+  store_.SetApplies(true);  // the applier finishes its entry and ends
+  stopper.join();
+  waiter.join();
+  // Either applied before the stop, or told it will be at the next start.
+  EXPECT_TRUE(waited.ok() || absl::IsUnavailable(waited)) << waited;
+  EXPECT_EQ(path_->Append("f", Traces("r1", 3, 1)).status().code(),
+            absl::StatusCode::kUnavailable);
+}
+
+}  // namespace
+}  // namespace fleetmem::engine

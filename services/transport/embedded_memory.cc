@@ -1,0 +1,119 @@
+#include "services/transport/embedded_memory.h"
+
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "services/core/absl_view.h"
+
+namespace fleetmem::transport {
+
+absl::StatusOr<std::unique_ptr<EmbeddedMemory>> EmbeddedMemory::Open(
+    engine::MemoryEngine* engine, engine::MemoryStore* store,
+    EmbeddedOptions options) {
+  if (options.max_apply_wait <= absl::ZeroDuration()) {
+    return absl::InvalidArgumentError("max_apply_wait must be positive");
+  }
+  absl::StatusOr<std::unique_ptr<engine::WritePath>> writes =
+      engine::WritePath::Open(options.write_path, engine, store);
+  if (!writes.ok()) return writes.status();
+  return std::unique_ptr<EmbeddedMemory>(
+      new EmbeddedMemory(engine, *std::move(writes), std::move(options)));
+}
+
+EmbeddedMemory::EmbeddedMemory(engine::MemoryEngine* engine,
+                               std::unique_ptr<engine::WritePath> writes,
+                               EmbeddedOptions options)
+    : engine_(engine),
+      writes_(std::move(writes)),
+      options_(std::move(options)) {}
+
+EmbeddedMemory::~EmbeddedMemory() { writes_->Stop(); }
+
+absl::StatusOr<Uploaded> EmbeddedMemory::Upload(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+    const UploadOptions& options) {
+  absl::StatusOr<engine::Appended> appended =
+      writes_->Append(fleet_id, traces, options.wait_applied);
+  if (!appended.ok()) return appended.status();
+  Uploaded uploaded;
+  uploaded.result.accepted = appended->accepted;
+  uploaded.result.duplicates = appended->duplicates;
+  uploaded.sequence = appended->sequence;
+  if (!options.wait_applied) return uploaded;
+  absl::Status waited =
+      writes_->WaitApplied(fleet_id, appended->sequence, options.deadline);
+  if (!waited.ok()) {
+    // Durable, and applied later: the client must not store it again as if
+    // it were lost, but needs to know it did not wait.
+    return absl::Status(
+        waited.code(),
+        absl::StrCat(waited.message(), " (", appended->accepted,
+                     " traces of this message are durable and acknowledged)"));
+  }
+  if (appended->applied != nullptr) {
+    if (!appended->applied->status.ok()) return appended->applied->status;
+    uploaded.result.consolidations = appended->applied->consolidations;
+  }
+  uploaded.applied = true;
+  return uploaded;
+}
+
+absl::Status EmbeddedMemory::CatchUp(std::string_view fleet_id) {
+  absl::Status waited =
+      writes_->WaitAppliedAll(fleet_id, absl::Now() + options_.max_apply_wait);
+  if (absl::IsDeadlineExceeded(waited)) {
+    return absl::UnavailableError(
+        absl::StrCat("fleet \"", V(fleet_id),
+                     "\": the uploads acknowledged before this "
+                     "call are not all applied after ",
+                     absl::FormatDuration(options_.max_apply_wait), " (",
+                     waited.message(), "); nothing was changed: retry"));
+  }
+  return waited;
+}
+
+absl::StatusOr<engine::ConsolidateResult> EmbeddedMemory::Consolidate(
+    std::string_view fleet_id) {
+  if (absl::Status caught_up = CatchUp(fleet_id); !caught_up.ok()) {
+    return caught_up;
+  }
+  return engine_->Consolidate(fleet_id);
+}
+
+absl::StatusOr<std::vector<core::MemoryTrace>> EmbeddedMemory::SampleReplay(
+    std::string_view fleet_id, std::string_view robot_id, uint64_t count,
+    std::string_view request_id) {
+  if (absl::Status caught_up = CatchUp(fleet_id); !caught_up.ok()) {
+    return caught_up;
+  }
+  return engine_->SampleReplay(fleet_id, robot_id, count, request_id);
+}
+
+engine::Backlog EmbeddedMemory::Backlog(std::string_view fleet_id) {
+  return writes_->GetBacklog(fleet_id);
+}
+
+absl::StatusOr<std::optional<std::string>> EmbeddedMemory::Owner(
+    std::string_view) {
+  return std::nullopt;
+}
+
+absl::StatusOr<std::vector<std::pair<std::string, std::string>>>
+EmbeddedMemory::Fleets() {
+  std::vector<std::pair<std::string, std::string>> fleets;
+  for (std::string& fleet_id : engine_->ListFleets()) {
+    fleets.emplace_back(std::move(fleet_id), self_);
+  }
+  return fleets;
+}
+
+absl::Status EmbeddedMemory::Forward(const std::string& address,
+                                     std::string_view method,
+                                     const google::protobuf::Message&,
+                                     google::protobuf::Message*) {
+  return absl::InternalError(absl::StrCat(
+      "an embedded server serves every fleet itself; asked to forward ",
+      V(method), " to \"", address, "\""));
+}
+
+}  // namespace fleetmem::transport

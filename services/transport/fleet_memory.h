@@ -1,0 +1,108 @@
+// The transport's one seam between the calls it serves and the mode the
+// server runs in (docs/architecture.md): where an upload goes and when it is
+// acknowledged, how Consolidate and SampleReplay are applied, which replica
+// serves a fleet's calls. Picked once, in main.cc:
+//   - embedded (EmbeddedMemory, embedded_memory.h): one server; uploads are
+//     acknowledged at the durable append to the fleet's ingest log in its
+//     RocksDB and applied behind it (engine::WritePath); every fleet is
+//     served here;
+//   - replicated (cluster::ReplicatedMemory, services/cluster): uploads
+//     are acknowledged at the append to the fleet's replicated log
+//     (JetStream) and applied by the fleet's owner; calls are served by the
+//     owner, forwarded there by the others.
+// Both apply a fleet's log through the same MemoryEngine::Upload with the
+// entry's sequence.
+#ifndef FLEETMEM_SERVICES_TRANSPORT_FLEET_MEMORY_H_
+#define FLEETMEM_SERVICES_TRANSPORT_FLEET_MEMORY_H_
+
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/time/time.h"
+#include "google/protobuf/message.h"
+#include "services/core/types.h"
+#include "services/engine/memory_engine.h"
+#include "services/engine/write_path.h"
+
+namespace fleetmem::transport {
+
+struct UploadOptions {
+  // Return once the upload is applied (consolidated where it fills a
+  // segment, and searchable), not only durable; the result then counts the
+  // consolidations it triggered. Read-your-writes for the callers that need
+  // it; uploads are acknowledged at the durable append otherwise.
+  bool wait_applied = false;
+  absl::Time deadline = absl::InfiniteFuture();
+};
+
+// What an upload did.
+struct Uploaded {
+  engine::UploadResult result;
+  // The sequence of the fleet's log entry holding the last accepted trace
+  // (0: none accepted). GetStats' applied_through reaching it means the
+  // upload is applied.
+  uint64_t sequence = 0;
+  // The upload was applied before the answer (wait_applied, where the mode
+  // supports it).
+  bool applied = false;
+};
+
+// Thread-safe.
+class FleetMemory {
+ public:
+  virtual ~FleetMemory() = default;
+
+  // Validates an upload (once) and makes it durable in the fleet's log;
+  // returns then, or once applied with options.wait_applied. `accepted`
+  // counts the traces appended, `duplicates` those the fleet had received
+  // (or, replicated, those of log entries it already held).
+  virtual absl::StatusOr<Uploaded> Upload(
+      std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+      const UploadOptions& options) = 0;
+
+  // The calls that change memory besides uploads, applied after every
+  // upload acknowledged before them.
+  virtual absl::StatusOr<engine::ConsolidateResult> Consolidate(
+      std::string_view fleet_id) = 0;
+  virtual absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
+      std::string_view fleet_id, std::string_view robot_id, uint64_t count,
+      std::string_view request_id) = 0;
+
+  // The fleet's acknowledged uploads not applied yet, as this server sees
+  // them (GetStats, /metrics).
+  virtual engine::Backlog Backlog(std::string_view fleet_id) = 0;
+
+  // Where the fleet's calls are served: nullopt for this server (always,
+  // embedded), else the owner's address. UNAVAILABLE when no replica holds
+  // the fleet right now (an owner was lost and its lease has not expired).
+  virtual absl::StatusOr<std::optional<std::string>> Owner(
+      std::string_view fleet_id) = 0;
+  // The fleets, and the address of the server that serves each (self():
+  // this one; empty: none now).
+  virtual absl::StatusOr<std::vector<std::pair<std::string, std::string>>>
+  Fleets() = 0;
+  // This server's address among its replicas (empty, embedded).
+  virtual const std::string& self() const = 0;
+
+  // Calls the unary `method` ("QueryPlace") of fleetmem.v1.MemoryService
+  // on the replica at `address` (an Owner), marked as forwarded (that
+  // replica serves it or answers UNAVAILABLE; it never forwards it again).
+  virtual absl::Status Forward(const std::string& address,
+                               std::string_view method,
+                               const google::protobuf::Message& request,
+                               google::protobuf::Message* response) = 0;
+};
+
+// The metadata key that marks a forwarded call.
+inline constexpr char kForwardedHeader[] = "x-fleetmem-forwarded";
+
+}  // namespace fleetmem::transport
+
+#endif  // FLEETMEM_SERVICES_TRANSPORT_FLEET_MEMORY_H_
