@@ -1,0 +1,495 @@
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <functional>
+#include <map>
+#include <random>
+#include <string>
+#include <system_error>
+#include <thread>
+#include <tuple>
+#include <utility>
+
+#include "services/engine/memory_engine.h"
+
+#if __has_include(<malloc.h>)
+#include <malloc.h>
+#endif
+
+#include "absl/cleanup/cleanup.h"
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "services/common/log.h"
+#include "services/core/absl_view.h"
+#include "services/core/feature_space.h"
+#include "services/core/static_memory.h"
+#include "services/core/validation.h"
+#include "services/engine/memory_engine_fleet.h"
+#include "services/engine/trace_handles.h"
+
+namespace fleetmem::engine {
+
+absl::Status MemoryEngine::Fleet::PrepareUpload(
+    std::span<const core::MemoryTrace> traces, uint64_t log_position,
+    UploadResult* result, PreparedUpload* prepared) {
+  absl::Status status = CheckLoaded();
+  if (!status.ok()) return status;
+  const bool is_new = !exists();
+  status = ValidateUpload(id, traces, is_new ? nullptr : &meta,
+                          engine->options_.max_traces_per_upload);
+  if (!status.ok()) return status;
+  if (traces.empty()) return absl::OkStatus();
+  UploadQuota& quota = *engine->quota_;
+  if (is_new) {
+    status = quota.AdmitDimension(id, traces[0].code.size());
+    if (!status.ok()) return status;
+  }
+  // Rates refuse by the clock: only a direct call is rated. An entry of a
+  // log (log_position != 0) was rated when it was appended (WritePath, or
+  // the receiving replica in distributed mode), and applying it again after
+  // a restart must not be refused.
+  if (log_position == 0) {
+    status = quota.AdmitRates(id, traces);
+    if (!status.ok()) return status;
+  }
+
+  // Duplicates are seqs already received or repeated within this upload:
+  // inserting into a copy of the robot's SeqSet detects both.
+  FleetMutation& mutation = prepared->mutation;
+  std::map<std::string, RobotRecord> changed_robots;
+  for (const core::MemoryTrace& trace : traces) {
+    auto [it, inserted] = changed_robots.try_emplace(trace.robot_id);
+    RobotRecord& record = it->second;
+    if (inserted) {
+      auto known = robots.find(trace.robot_id);
+      if (known != robots.end()) {
+        record = known->second;
+      } else {
+        record.robot_id = trace.robot_id;
+      }
+    }
+    if (!record.received.Insert(trace.seq)) {
+      ++result->duplicates;
+      continue;
+    }
+    core::MemoryTrace accepted = trace;
+    accepted.replay_count = 0;
+    accepted.cluster_id = 0;
+    mutation.put_pending.push_back(std::move(accepted));
+  }
+  result->accepted = mutation.put_pending.size();
+  if (mutation.put_pending.empty()) return absl::OkStatus();
+  status = quota.AdmitStored(id, memory.trace_count() + pending_position.size(),
+                             mutation.put_pending.size());
+  if (!status.ok()) {
+    *result = UploadResult{};
+    mutation = FleetMutation{};
+    return status;
+  }
+  for (auto& [robot_id, record] : changed_robots) {
+    auto known = robots.find(robot_id);
+    const uint64_t before =
+        known == robots.end() ? 0 : known->second.received.size();
+    if (record.received.size() != before) mutation.put_robots.push_back(record);
+  }
+
+  absl::flat_hash_map<std::string_view, size_t> arriving;
+  for (const core::MemoryTrace& trace : mutation.put_pending) {
+    ++arriving[trace.robot_id];
+  }
+  for (const auto& [robot_id, count] : arriving) {
+    auto held = pending.find(robot_id);
+    const size_t before = held == pending.end() ? 0 : held->second.size();
+    if (before + count >= engine->options_.segment_size) {
+      prepared->fills_segment = true;
+    }
+  }
+
+  if (is_new) {
+    mutation.put_meta = true;
+    mutation.meta = meta;
+    mutation.meta.code_dimension = static_cast<uint32_t>(traces[0].code.size());
+    mutation.meta.encoder_version = traces[0].encoder_version;
+    prepared->new_index = engine->index_factory_(mutation.meta.code_dimension);
+    if (prepared->new_index == nullptr) {
+      mutation = FleetMutation{};
+      return absl::InternalError(absl::StrCat(
+          "the index factory made no index for fleet \"", id, "\""));
+    }
+  }
+  if (log_position > meta.log_position) {
+    if (!mutation.put_meta) mutation.meta = meta;
+    mutation.put_meta = true;
+    mutation.meta.log_position = log_position;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::CommitUpload(
+    PreparedUpload prepared, UploadResult* result, Notices* notices,
+    const core::ConsolidationPlan* plan) {
+  FleetMutation& mutation = prepared.mutation;
+  const bool stored = prepared.stored;
+  // Not stored yet: memory runs ahead of the store until the write below,
+  // under the exclusive lock, and a failure reloads the fleet.
+  CarriedUpload carried;
+  if (!stored) {
+    carried.mutation.put_meta = mutation.put_meta;
+    carried.mutation.meta = mutation.meta;
+    carried.mutation.put_robots = mutation.put_robots;
+  }
+  if (mutation.put_meta) meta = mutation.meta;
+  if (prepared.new_index != nullptr) index = std::move(prepared.new_index);
+  for (RobotRecord& record : mutation.put_robots) {
+    std::string robot_id = record.robot_id;
+    robots[robot_id] = std::move(record);
+  }
+  std::vector<core::TraceKey> fresh_keys;
+  fresh_keys.reserve(mutation.put_pending.size());
+  for (core::MemoryTrace& trace : mutation.put_pending) {
+    fresh_keys.push_back(trace.key());
+    AddPending(std::move(trace));
+  }
+  // Pending traces are searchable at once (a robot relocalises against what
+  // the fleet uploaded a moment ago, not only what is consolidated).
+  std::vector<const core::MemoryTrace*> fresh;
+  fresh.reserve(fresh_keys.size());
+  for (const core::TraceKey& key : fresh_keys) fresh.push_back(FindTrace(key));
+  absl::Status status = IndexTraces(fresh);
+  if (!status.ok()) {
+    FLEETMEM_LOG(kError) << "fleet \"" << id
+                         << "\": index update failed, rebuilding: " << status;
+    absl::Status reloaded = Reload();
+    if (!stored) {
+      return absl::InternalError(absl::StrCat(
+          "fleet \"", id, "\": index update failed (", status.message(),
+          "); nothing of this upload was stored"));
+    }
+    if (!reloaded.ok()) return reloaded;
+  }
+
+  std::vector<std::string> full;
+  for (const auto& [robot_id, robot_pending] : pending) {
+    if (robot_pending.size() >= engine->options_.segment_size) {
+      full.push_back(robot_id);
+    }
+  }
+  if (!stored) {
+    const std::string carrier = full.empty() ? std::string() : full.front();
+    for (const core::TraceKey& key : fresh_keys) {
+      if (key.robot_id == carrier) {
+        carried.unstored.insert(key);
+      } else {
+        carried.mutation.put_pending.push_back(*FindTrace(key));
+      }
+    }
+    if (full.empty()) {
+      // PrepareUpload's count and memory disagree; store the upload alone.
+      status = engine->store_->Apply(id, carried.mutation);
+      if (!status.ok()) {
+        Reload().IgnoreError();
+        return status;
+      }
+    }
+  }
+  for (size_t i = 0; i < full.size(); ++i) {
+    status = ConsolidateRobot(full[i], notices,
+                              !stored && i == 0 ? &carried : nullptr,
+                              i == 0 ? plan : nullptr);
+    if (!status.ok()) return status;
+    ++result->consolidations;
+  }
+  return absl::OkStatus();
+}
+
+core::ConsolidationPlan MemoryEngine::Fleet::Plan(
+    const std::vector<core::MemoryTrace>& batch) const {
+  if (batch.empty()) return {};
+  std::mt19937_64 segment_rng(
+      SegmentSeed(seed, batch.front().robot_id, batch.front().seq));
+  // The engine's options, not memory's: PlanAhead runs without the lock
+  // that guards memory (the two hold the same options).
+  return core::PlanConsolidation(engine->MemoryOptionsFor(id), batch,
+                                 segment_rng);
+}
+
+std::optional<core::ConsolidationPlan> MemoryEngine::Fleet::PlanAhead(
+    std::span<const core::MemoryTrace> traces) {
+  if (traces.empty()) return std::nullopt;
+  const std::string& robot_id = traces.front().robot_id;
+  for (const core::MemoryTrace& trace : traces) {
+    if (trace.robot_id != robot_id) return std::nullopt;
+  }
+  std::vector<core::MemoryTrace> segment;
+  core::SeqSet received;
+  {
+    absl::ReaderMutexLock lock(&mu);
+    if (!stale.ok() || !exists()) return std::nullopt;
+    // Planning runs before PrepareUpload's checks: a refused upload (a code
+    // of another dimension would overrun the plan's matrix) plans nothing.
+    if (!ValidateUpload(id, traces, &meta,
+                        engine->options_.max_traces_per_upload)
+             .ok()) {
+      return std::nullopt;
+    }
+    auto known = robots.find(robot_id);
+    if (known != robots.end()) received = known->second.received;
+    auto held = pending.find(robot_id);
+    const size_t before = held == pending.end() ? 0 : held->second.size();
+    if (before + traces.size() < engine->options_.segment_size) {
+      return std::nullopt;
+    }
+    if (held != pending.end()) segment = held->second;
+  }
+  // As PrepareUpload accepts them (duplicates, also within the upload, out).
+  for (const core::MemoryTrace& trace : traces) {
+    if (received.Insert(trace.seq)) segment.push_back(trace);
+  }
+  if (segment.size() < engine->options_.segment_size) return std::nullopt;
+  return Plan(segment);
+}
+
+absl::Status MemoryEngine::Fleet::ConsolidateRobot(
+    const std::string& robot_id, Notices* notices, CarriedUpload* carried,
+    const core::ConsolidationPlan* plan) {
+  auto found = pending.find(robot_id);
+  if (found == pending.end() || found->second.empty()) return absl::OkStatus();
+  const absl::Time start = absl::Now();
+  std::vector<core::MemoryTrace> batch = std::move(found->second);
+  pending.erase(found);
+  for (const core::MemoryTrace& trace : batch) {
+    pending_position.erase(trace.key());
+    auto domain = pending_by_domain.find(trace.domain);
+    if (domain != pending_by_domain.end() && --domain->second == 0) {
+      pending_by_domain.erase(domain);
+    }
+  }
+
+  FleetMutation mutation;
+  if (carried != nullptr) mutation = std::move(carried->mutation);
+  mutation.erase_pending.reserve(batch.size());
+  for (const core::MemoryTrace& trace : batch) {
+    if (carried != nullptr && carried->unstored.contains(trace.key())) {
+      continue;
+    }
+    mutation.erase_pending.push_back(trace.key());
+  }
+  const size_t batch_size = batch.size();
+  const uint64_t first_cluster_id = meta.next_cluster_id;
+  bool fits = plan != nullptr && plan->keys.size() == batch.size();
+  for (size_t i = 0; fits && i < batch.size(); ++i) {
+    fits = plan->keys[i] == batch[i].key();
+  }
+  std::optional<core::ConsolidationPlan> own;
+  if (!fits) own = Plan(batch);
+  core::ConsolidationResult outcome = memory.Consolidate(
+      std::move(batch), first_cluster_id, fits ? *plan : *own);
+  ++snapshot_changes;  // forgetting's centroids
+
+  FleetMeta new_meta = meta;
+  new_meta.next_cluster_id = first_cluster_id + outcome.added.size();
+  absl::flat_hash_set<uint64_t> added_ids;
+  for (const core::Cluster& cluster : outcome.added) {
+    added_ids.insert(cluster.id);
+    new_meta.next_cluster_id =
+        std::max(new_meta.next_cluster_id, cluster.id + 1);
+  }
+  // Clusters no longer held: forgotten whole, or merged into another.
+  absl::flat_hash_set<uint64_t> removed_ids;
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    removed_ids.insert(cluster.id);
+  }
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    removed_ids.insert(merge.from.id);
+  }
+  // Erasures come first in the store: a merged cluster's moved traces are
+  // written again with their survivor.
+  for (uint64_t removed : removed_ids) {
+    if (!added_ids.contains(removed))
+      mutation.erase_clusters.push_back(removed);
+  }
+  std::sort(mutation.erase_clusters.begin(), mutation.erase_clusters.end());
+  // Held clusters that are new or that a merge changed, with every code
+  // (a survivor's older traces may have theirs in the index only).
+  std::vector<uint64_t> put_ids;
+  for (const core::Cluster& cluster : outcome.added) {
+    if (!removed_ids.contains(cluster.id)) put_ids.push_back(cluster.id);
+  }
+  for (uint64_t changed : outcome.changed) {
+    if (!added_ids.contains(changed)) put_ids.push_back(changed);
+  }
+  std::vector<core::TraceKey> kept;
+  for (uint64_t put : put_ids) {
+    std::optional<core::Cluster> held = memory.WithCentroid(put);
+    if (!held.has_value()) continue;
+    for (const core::MemoryTrace& trace : held->traces) {
+      kept.push_back(trace.key());
+    }
+    if (absl::Status filled = FillCodes(held->traces); !filled.ok()) {
+      FLEETMEM_LOG(kError) << "fleet \"" << id << "\": " << filled;
+      Reload().IgnoreError();
+      return filled;
+    }
+    mutation.put_clusters.push_back(*std::move(held));
+  }
+
+  const int64_t now_ns = engine->options_.now_ns();
+  auto append_event = [&](core::MemoryEvent event) {
+    event.id = new_meta.next_event_id++;
+    event.timestamp_ns = now_ns;
+    mutation.append_events.push_back(std::move(event));
+  };
+  for (const core::Cluster& cluster : outcome.added) {
+    append_event(
+        core::DescribeCluster(cluster, core::EventType::kClusterAdded));
+  }
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    append_event(
+        core::DescribeCluster(cluster, core::EventType::kClusterForgotten));
+  }
+  size_t merge_dropped = 0;
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    core::MemoryEvent event =
+        core::DescribeCluster(merge.from, core::EventType::kClusterMerged);
+    event.merged_into = merge.into;
+    event.traces_dropped = static_cast<uint32_t>(merge.dropped.size());
+    append_event(std::move(event));
+    merge_dropped += merge.dropped.size();
+  }
+  new_meta.consolidations += 1;
+  new_meta.clusters_forgotten +=
+      outcome.forgotten.size() + outcome.merged.size();
+  const size_t retained = engine->options_.max_events_per_fleet;
+  if (retained > 0 &&
+      new_meta.next_event_id - new_meta.first_event_id > retained) {
+    new_meta.first_event_id = new_meta.next_event_id - retained;
+    mutation.erase_events_before = new_meta.first_event_id;
+  }
+  mutation.put_meta = true;
+  mutation.meta = new_meta;
+
+  // The new clusters' traces came from the batch and still hold their codes
+  // (their release comes below).
+  absl::Status status = engine->store_->Apply(id, mutation);
+  if (!status.ok()) {
+    // The static memory already ran ahead of the store: drop it.
+    FLEETMEM_LOG(kError) << "fleet \"" << id << "\": consolidation of robot \""
+                         << robot_id << "\""
+                         << (carried != nullptr
+                                 ? " and the upload that filled its segment"
+                                 : "")
+                         << " not stored: " << status;
+    Reload().IgnoreError();
+    return status;
+  }
+  meta = new_meta;
+  if (!mutation.append_events.empty()) {
+    notices->last_event_id = mutation.append_events.back().id;
+  }
+
+  // The batch was indexed while pending and its codes do not change: only
+  // what downsampling dropped, what forgetting removed (including clusters
+  // of this batch) and what merges dropped leave the index.
+  std::vector<core::TraceKey> removed;
+  for (const core::MemoryTrace& trace : outcome.downsampled) {
+    removed.push_back(trace.key());
+  }
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      removed.push_back(trace.key());
+    }
+  }
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    for (const core::MemoryTrace& trace : merge.dropped) {
+      removed.push_back(trace.key());
+    }
+  }
+  status = UnindexTraces(removed);
+  if (!status.ok()) {
+    FLEETMEM_LOG(kError) << "fleet \"" << id
+                         << "\": index update failed, rebuilding: " << status;
+    absl::Status reloaded = Reload();
+    if (!reloaded.ok()) return reloaded;
+  } else {
+    ReleaseCodes(kept);
+  }
+
+  ConsolidateResult batch_result;
+  batch_result.consolidated_traces = batch_size;
+  batch_result.downsampled_traces = outcome.downsampled.size() + merge_dropped;
+  batch_result.clusters_added = outcome.added.size();
+  batch_result.clusters_forgotten =
+      outcome.forgotten.size() + outcome.merged.size();
+  Accumulate(batch_result, &notices->consolidated);
+  ++notices->consolidations;
+  notices->consolidation_seconds += absl::ToDoubleSeconds(absl::Now() - start);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
+    std::string_view robot_id, size_t count, std::string_view request_id,
+    uint64_t log_position, FleetMutation* mutation) {
+  RobotRecord record;
+  auto known = robots.find(robot_id);
+  if (known != robots.end()) {
+    record = known->second;
+  } else {
+    record.robot_id = std::string(robot_id);
+  }
+  if (!request_id.empty() && request_id == record.last_sample_request_id) {
+    // A retry: the same traces again, as they are now, counted once.
+    std::vector<core::MemoryTrace> again;
+    for (const core::TraceKey& key : record.last_sample) {
+      const core::MemoryTrace* trace = FindTrace(key);
+      if (trace != nullptr && trace->cluster_id != 0) again.push_back(*trace);
+    }
+    absl::Status status = FillCodes(again);
+    if (!status.ok()) return status;
+    return again;
+  }
+  std::vector<core::MemoryTrace> traces;
+  if (log_position == 0) {
+    traces = memory.SampleForReplay(count, rng);
+  } else {
+    // The same draw on every replica that applies the log entry.
+    // The same draw on every replica that applies the log entry, whatever
+    // order its sampler's slots are in (a restored or restarted replica's
+    // differs from one that applied the log all along).
+    std::mt19937_64 logged_rng(SegmentSeed(seed, "log", log_position));
+    traces = memory.SampleForReplayInMemoryOrder(count, logged_rng);
+  }
+  if (traces.empty()) return traces;
+  if (absl::Status status = FillCodes(traces); !status.ok()) {
+    Reload().IgnoreError();  // drops the incremented counts
+    return status;
+  }
+  record.replayed += traces.size();
+  if (!request_id.empty()) {
+    record.last_sample_request_id = std::string(request_id);
+    record.last_sample.clear();
+    for (const core::MemoryTrace& trace : traces) {
+      record.last_sample.push_back(trace.key());
+    }
+  }
+  mutation->update_traces = traces;
+  mutation->put_robots.push_back(std::move(record));
+  if (log_position > meta.log_position) {
+    mutation->put_meta = true;
+    mutation->meta = meta;
+    mutation->meta.log_position = log_position;
+  }
+  return traces;
+}
+
+void MemoryEngine::Fleet::FinishSample(FleetMutation mutation) {
+  if (mutation.put_meta) meta = std::move(mutation.meta);
+  for (RobotRecord& record : mutation.put_robots) {
+    std::string robot_id = record.robot_id;
+    robots[robot_id] = std::move(record);
+  }
+}
+
+}  // namespace fleetmem::engine

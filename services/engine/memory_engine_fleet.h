@@ -1,0 +1,401 @@
+// Private to services/engine: MemoryEngine's per-fleet state
+// (MemoryEngine::Fleet) and the helpers the engine's files share. The
+// engine is split along its seams (docs/architecture.md):
+//   memory_engine.cc            options, Open, the fleet table, the public
+//                               write calls (Upload: a log entry's apply,
+//                               Consolidate, SampleReplay), listeners;
+//   memory_engine_load.cc       a fleet's load and rebuild, its place index
+//                               and index snapshot, the codes held once;
+//   memory_engine_apply.cc      an upload's three steps, consolidation
+//                               (Algorithms 1 and 2) and the replay draw;
+//   memory_engine_reads.cc      queries, stats, events and listings;
+//   memory_engine_snapshots.cc  index snapshots, fleet images (export,
+//                               restore) and checkpoints.
+#ifndef FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_FLEET_H_
+#define FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_FLEET_H_
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <functional>
+#include <map>
+#include <random>
+#include <string>
+#include <system_error>
+#include <thread>
+#include <tuple>
+#include <utility>
+
+#include "absl/cleanup/cleanup.h"
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "services/common/log.h"
+#include "services/core/absl_view.h"
+#include "services/core/feature_space.h"
+#include "services/core/static_memory.h"
+#include "services/core/validation.h"
+#include "services/engine/memory_engine.h"
+#include "services/engine/trace_handles.h"
+
+namespace fleetmem::engine {
+
+// Seed of a fleet's generator: the configured seed mixed with a stable
+// (FNV-1a) hash of the fleet id, finalised by splitmix64.
+inline uint64_t FleetSeed(uint64_t seed, std::string_view fleet_id) {
+  uint64_t hash = 1469598103934665603ull;
+  for (unsigned char c : fleet_id) {
+    hash ^= c;
+    hash *= 1099511628211ull;
+  }
+  uint64_t z = seed ^ (hash + 0x9e3779b97f4a7c15ull);
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
+// Seed of the k-means of one robot's segment: the fleet's seed mixed with
+// the robot id and the segment's first sequence number, so that a segment
+// is clustered the same way whatever else the fleet did before it (and
+// whether it was planned outside the fleet's lock or not).
+inline uint64_t SegmentSeed(uint64_t fleet_seed, std::string_view robot_id,
+                            uint64_t first_seq) {
+  uint64_t z = FleetSeed(fleet_seed ^ first_seq, robot_id);
+  z += 0x9e3779b97f4a7c15ull;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
+inline absl::Status FleetNotFound(std::string_view fleet_id) {
+  return absl::NotFoundError(
+      absl::StrCat("fleet \"", V(fleet_id),
+                   "\" does not exist (it is created by its first upload)"));
+}
+
+// Checks a whole upload against the fleet's shape; `meta` is null for a fleet
+// that does not exist yet (its first upload then fixes the shape from
+// traces[0]).
+inline absl::Status ValidateUpload(std::string_view fleet_id,
+                                   std::span<const core::MemoryTrace> traces,
+                                   const FleetMeta* meta, size_t max_traces) {
+  if (traces.size() > max_traces) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("upload has ", traces.size(), " traces but at most ",
+                     max_traces, " are allowed per upload"));
+  }
+  if (traces.empty()) return absl::OkStatus();
+  const size_t dimension =
+      meta != nullptr ? meta->code_dimension : traces[0].code.size();
+  const std::string_view encoder = meta != nullptr
+                                       ? std::string_view(meta->encoder_version)
+                                       : traces[0].encoder_version;
+  for (size_t i = 0; i < traces.size(); ++i) {
+    const core::MemoryTrace& trace = traces[i];
+    const std::string what = absl::StrCat("traces[", i, "]");
+    // The encoder first: another encoder is the cause, a different
+    // dimension only its consequence.
+    if (trace.encoder_version != encoder) {
+      if (meta != nullptr) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ".encoder_version \"", trace.encoder_version,
+                         "\" differs from fleet \"", V(fleet_id), "\"'s \"",
+                         V(encoder), "\""));
+      }
+      return absl::InvalidArgumentError(absl::StrCat(
+          what, ".encoder_version \"", trace.encoder_version,
+          "\" differs from traces[0]'s \"", V(encoder), "\" (fleet \"",
+          V(fleet_id),
+          "\" is new and takes its encoder version from its first upload)"));
+    }
+    if (trace.code.size() != dimension) {
+      if (meta != nullptr) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ".code has dimension ", trace.code.size(),
+                         " but fleet \"", V(fleet_id), "\" uses ", dimension));
+      }
+      return absl::InvalidArgumentError(absl::StrCat(
+          what, ".code has dimension ", trace.code.size(),
+          " but traces[0].code has ", dimension, " (fleet \"", V(fleet_id),
+          "\" is new and takes its dimension from its first upload)"));
+    }
+    core::TraceShape shape;
+    shape.code_dimension = dimension;
+    shape.encoder_version = encoder;
+    shape.fleet_id = fleet_id;
+    absl::Status status = core::ValidateTrace(what, trace, shape);
+    if (!status.ok()) return status;
+  }
+  return absl::OkStatus();
+}
+
+inline void Accumulate(const ConsolidateResult& batch,
+                       ConsolidateResult* total) {
+  total->consolidated_traces += batch.consolidated_traces;
+  total->downsampled_traces += batch.downsampled_traces;
+  total->clusters_added += batch.clusters_added;
+  total->clusters_forgotten += batch.clusters_forgotten;
+}
+
+// What a fleet operation leaves for after the fleet lock is released.
+struct Notices {
+  uint64_t last_event_id = 0;  // newest durable event, 0 if none
+  ConsolidateResult consolidated;
+  uint64_t consolidations = 0;
+  double consolidation_seconds = 0.0;
+};
+
+// A fleet's index snapshot as read from the store, before it meets the
+// fleet's stored traces: the index loaded, its handle table, and
+// forgetting's centroid bookkeeping still as bytes.
+struct LoadedSnapshot {
+  // NOT_FOUND when there is none; why it is unusable otherwise.
+  absl::Status status = absl::NotFoundError("no index snapshot read");
+  // The index part alone (e.g. of another index kind): forgetting's
+  // centroids may still be used.
+  absl::Status index_status;
+  uint32_t dimension = 0;
+  uint64_t next_handle = 0;
+  std::unique_ptr<PlaceIndex> index;
+  TraceHandles handles;
+  std::string centroids;  // what StaticMemory::SaveCentroids wrote
+  double handles_seconds = 0;
+  double index_seconds = 0;
+};
+
+// One fleet's state. Every member but `id`, `engine` and the two mutexes is
+// guarded by `mu`.
+struct MemoryEngine::Fleet {
+  Fleet(std::string fleet_id, const MemoryEngine* owner)
+      : id(std::move(fleet_id)),
+        engine(owner),
+        memory(owner->MemoryOptionsFor(id)),
+        seed(FleetSeed(memory.options().seed, id)),
+        rng(seed) {}
+
+  // True once the fleet's first upload is durable.
+  bool exists() const ABSL_SHARED_LOCKS_REQUIRED(mu) {
+    return meta.code_dimension != 0;
+  }
+
+  // Rebuilds every member from the store. On failure the fleet is left empty
+  // and `stale` holds the error; the next mutating call retries.
+  absl::Status Reload() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Reloads if a previous reload failed.
+  absl::Status EnsureLoaded() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // For readers: OK unless a reload failed.
+  absl::Status CheckLoaded() const ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // `snapshot`, if given, is the fleet's index snapshot read beside the
+  // store's load (ReadSnapshot); without one the index is rebuilt.
+  absl::Status Rebuild(FleetRecord record, LoadedSnapshot* snapshot = nullptr)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Adds `traces` to the index under new handles. `meanwhile`, if given,
+  // runs on this thread while another thread fills the index (a restart:
+  // memory restores its clusters and the index copies the codes, each
+  // seconds long at 1,000,000 traces); the traces' codes must not change
+  // or move meanwhile.
+  // `on_load`: the adds of a load, never held up by the index's
+  // back-pressure (PlaceIndex::AddNormalizedOnLoad).
+  absl::Status IndexTraces(const std::vector<const core::MemoryTrace*>& traces,
+                           const std::function<void()>& meanwhile = nullptr,
+                           bool on_load = false)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // A load from the fleet's index snapshot (written by SaveIndexSnapshot
+  // at a clean shutdown or periodically while serving), read and its index
+  // loaded beside the store's read (ReadSnapshot): memory restores
+  // `clusters` with forgetting's centroid bookkeeping from it; then both
+  // are reconciled with `traces`, the stored ones: what the snapshot holds
+  // that the store no longer does is removed, what it lacks is added under
+  // new handles (the tiered index's background thread catches up). On an
+  // error before memory was touched `*restored` stays false; on one after,
+  // memory is complete and only the index must be rebuilt. The index and
+  // the handles change only on success.
+  absl::Status LoadFromSnapshot(
+      LoadedSnapshot snapshot, std::vector<core::Cluster>& clusters,
+      const std::vector<const core::MemoryTrace*>& traces, bool* restored)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Writes the index and the handles through the store (SaveIndexSnapshots);
+  // `written` is the store's (MemoryStore::SaveIndexSnapshot): called once
+  // nothing of the fleet is read any more, before the bytes are synced.
+  absl::Status SaveIndexSnapshot(const std::function<void()>& written) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  absl::Status UnindexTraces(const std::vector<core::TraceKey>& keys)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Appends a pending trace of its robot.
+  void AddPending(core::MemoryTrace trace) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // The trace with `key` in the static memory or among the pending traces.
+  // Its code may be empty (ReleaseCodes): copies that leave the
+  // engine go through WithCode.
+  const core::MemoryTrace* FindTrace(const core::TraceKey& key) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // `trace` with its code: a static-memory trace whose code memory dropped
+  // gets it from the index. INTERNAL if neither has it (a bug).
+  absl::StatusOr<core::MemoryTrace> WithCode(core::MemoryTrace trace) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  absl::Status FillCodes(std::vector<core::MemoryTrace>& traces) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // One copy of each code: frees memory's codes of those of `keys`
+  // (static-memory traces) that the index keeps itself (PlaceIndex::
+  // HoldsCodes: the exact, HNSW and tiered indexes do, FLANN does not).
+  // Returns the codes freed.
+  size_t ReleaseCodes(const std::vector<core::TraceKey>& keys)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // ReleaseCodes of every static-memory trace that still has its code,
+  // then the freed pages go back to the system.
+  size_t ReleaseAllCodes() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+
+  // An upload in three steps, so that readers wait only for the last:
+  // PrepareUpload checks it and builds the store mutation (shared lock); the
+  // caller makes it durable (shared lock still held: the store's fsync does
+  // not block queries); CommitUpload applies it to memory and consolidates
+  // full segments (exclusive lock). The caller holds writer_mu throughout.
+  //
+  // An upload that fills a robot's segment is not stored first: CommitUpload
+  // writes it together with the segment's consolidation, in one atomic
+  // store write (one fsync instead of two, and the segment's traces are
+  // written once, in their clusters, instead of as pending traces that the
+  // consolidation then erases).
+  struct PreparedUpload {
+    FleetMutation mutation;
+    std::unique_ptr<PlaceIndex> new_index;  // for a new fleet
+    // Some robot's pending traces reach the segment size with this upload.
+    bool fills_segment = false;
+    // The caller stored `mutation` before CommitUpload.
+    bool stored = false;
+  };
+  // An upload's writes that ride on the store write of the consolidation it
+  // triggered (ConsolidateRobot).
+  struct CarriedUpload {
+    // The upload's writes other than the consolidated robot's traces.
+    FleetMutation mutation;
+    // The consolidated robot's traces of this upload: never stored as
+    // pending, so the consolidation erases no pending key for them.
+    absl::flat_hash_set<core::TraceKey> unstored;
+  };
+  absl::Status PrepareUpload(std::span<const core::MemoryTrace> traces,
+                             uint64_t log_position, UploadResult* result,
+                             PreparedUpload* prepared)
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // `plan`, if given, is PlanAhead's for the first robot this upload
+  // fills; it is used if it fits that robot's segment.
+  absl::Status CommitUpload(PreparedUpload prepared, UploadResult* result,
+                            Notices* notices,
+                            const core::ConsolidationPlan* plan = nullptr)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // For an upload of one robot that fills its segment: the consolidation
+  // plan of that segment as it stands now (k-means and downsampling), made
+  // under the shared lock's snapshot but computed without any lock, so that
+  // uploads of different robots cluster their segments on different cores.
+  // Nothing if the upload fills no segment. Called without writer_mu; the
+  // plan may be stale by the time the upload holds it (ConsolidateRobot
+  // then plans again).
+  std::optional<core::ConsolidationPlan> PlanAhead(
+      std::span<const core::MemoryTrace> traces) ABSL_LOCKS_EXCLUDED(mu);
+  // The plan of `batch`, one robot's segment, with its own seed.
+  core::ConsolidationPlan Plan(
+      const std::vector<core::MemoryTrace>& batch) const;
+  // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
+  // and 2) and persists the outcome in one mutation, together with
+  // `carried`'s writes if given. On a failed write the fleet is reloaded
+  // from the store, which then holds neither.
+  absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices,
+                                CarriedUpload* carried = nullptr,
+                                const core::ConsolidationPlan* plan = nullptr)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Eq. 18 draw with the replay counts incremented in memory (exclusive
+  // lock). `mutation` gets what must be stored and `record` the robot's new
+  // record; a retry of the previous request returns its traces and leaves
+  // `mutation` empty. The caller stores the mutation under the shared lock,
+  // then calls FinishSample (or Reload on failure).
+  // A non-zero `log_position` seeds the draw from it and stores it.
+  absl::StatusOr<std::vector<core::MemoryTrace>> DrawSample(
+      std::string_view robot_id, size_t count, std::string_view request_id,
+      uint64_t log_position, FleetMutation* mutation)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  void FinishSample(FleetMutation mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Sets `held` from memory (after every change of its trace count).
+  void PublishHeld() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
+    held.store(memory.trace_count() + pending_position.size(),
+               std::memory_order_relaxed);
+  }
+  FleetStats Stats() const ABSL_SHARED_LOCKS_REQUIRED(mu);
+
+  // Fleet is nested in MemoryEngine and so reaches its private members; these
+  // helpers keep private declarations out of the public header. Fleets are
+  // never removed from the map, so a returned pointer lives as long as the
+  // engine.
+  static Fleet* Find(const MemoryEngine& engine, std::string_view fleet_id);
+  // RESOURCE_EXHAUSTED (limit max_fleets) instead of adding a fleet beyond
+  // the limit.
+  static absl::StatusOr<Fleet*> FindOrAdd(MemoryEngine& engine,
+                                          std::string_view fleet_id);
+  // For readers of an existing fleet: validates `fleet_id`, finds the fleet
+  // and runs `read(fleet)` under its reader lock. INVALID_ARGUMENT,
+  // NOT_FOUND, or the status of a failed reload instead.
+  template <typename Read>
+  static auto ReadExisting(const MemoryEngine& engine,
+                           std::string_view fleet_id, Read read)
+      -> decltype(read(std::declval<const Fleet&>())) {
+    absl::Status status = core::ValidateId("fleet_id", fleet_id);
+    if (!status.ok()) return status;
+    const Fleet* fleet = Find(engine, fleet_id);
+    if (fleet == nullptr) return FleetNotFound(fleet_id);
+    absl::ReaderMutexLock lock(&fleet->mu);
+    status = fleet->CheckLoaded();
+    if (!status.ok()) return status;
+    if (!fleet->exists()) return FleetNotFound(fleet_id);
+    return read(*fleet);
+  }
+  // Calls the fleet's listeners (the caller holds no fleet lock).
+  static void Notify(MemoryEngine& engine, std::string_view fleet_id,
+                     uint64_t last_event_id);
+
+  const std::string id;
+  const MemoryEngine* const engine;
+
+  // Serialises the fleet's mutating calls from start to end, so that they
+  // reach the store in the order they change memory. Taken before `mu`.
+  // Writers hold `mu` exclusively only while they change memory; their
+  // store writes (and fsyncs) run under `mu`'s shared lock, beside readers.
+  absl::Mutex writer_mu ABSL_ACQUIRED_BEFORE(mu);
+  // Serialises the fleet's index snapshots (SaveIndexSnapshots), which
+  // release writer_mu before their file is synced. Taken before writer_mu.
+  absl::Mutex snapshot_mu ABSL_ACQUIRED_BEFORE(writer_mu);
+  mutable absl::Mutex mu;
+  absl::Status stale ABSL_GUARDED_BY(mu);
+  FleetMeta meta ABSL_GUARDED_BY(mu);
+  core::StaticMemory memory ABSL_GUARDED_BY(mu);
+  // Pending traces per robot, in arrival order. A robot's vector only grows
+  // until it is consolidated as a whole, so positions in it are stable.
+  std::map<std::string, std::vector<core::MemoryTrace>, std::less<>> pending
+      ABSL_GUARDED_BY(mu);
+  absl::flat_hash_map<core::TraceKey, size_t> pending_position
+      ABSL_GUARDED_BY(mu);
+  // Pending traces per domain (statistics without walking the traces).
+  std::map<std::string, uint64_t, std::less<>> pending_by_domain
+      ABSL_GUARDED_BY(mu);
+  std::map<std::string, RobotRecord, std::less<>> robots ABSL_GUARDED_BY(mu);
+  // Index of the normalised codes of the static memory's and the pending
+  // traces under handles; null until the code dimension is known.
+  std::unique_ptr<PlaceIndex> index ABSL_GUARDED_BY(mu);
+  TraceHandles handles ABSL_GUARDED_BY(mu);
+  uint64_t next_handle ABSL_GUARDED_BY(mu) = 1;
+  // Changes to what an index snapshot holds (the index, the handles,
+  // forgetting's centroids) since the fleet was loaded, and their count
+  // when the store's snapshot last matched them (nullopt: it does not).
+  uint64_t snapshot_changes ABSL_GUARDED_BY(mu) = 0;
+  std::optional<uint64_t> snapshot_saved_at ABSL_GUARDED_BY(mu);
+  // Traces held (static memory and pending), for readers that must not
+  // wait for the fleet's lock (MemoryEngine::HeldTraces).
+  std::atomic<uint64_t> held{0};
+  // The fleet's seed; replay draws from `rng`, and each segment's k-means
+  // from a generator of its own (SegmentSeed).
+  const uint64_t seed;
+  std::mt19937_64 rng ABSL_GUARDED_BY(mu);
+};
+
+}  // namespace fleetmem::engine
+
+#endif  // FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_FLEET_H_

@@ -1,0 +1,499 @@
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <functional>
+#include <map>
+#include <random>
+#include <string>
+#include <system_error>
+#include <thread>
+#include <tuple>
+#include <utility>
+
+#include "services/engine/memory_engine.h"
+
+#if __has_include(<malloc.h>)
+#include <malloc.h>
+#endif
+
+#include "absl/cleanup/cleanup.h"
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "services/common/log.h"
+#include "services/core/absl_view.h"
+#include "services/core/feature_space.h"
+#include "services/core/static_memory.h"
+#include "services/core/validation.h"
+#include "services/engine/memory_engine_fleet.h"
+#include "services/engine/trace_handles.h"
+
+namespace fleetmem::engine {
+
+namespace {
+
+// Gives freed heap pages back to the system, which glibc does not do by
+// itself for pages amid the heap: after a load dropped a million codes of
+// 1 KB each (ReleaseCodes).
+void ReturnFreedMemory() {
+#if defined(__GLIBC__)
+  malloc_trim(0);
+#endif
+}
+
+// Runs `first` on this thread and `second` beside it on another one when
+// `items` makes that pay off (a restart: each is seconds long at 1,000,000
+// traces), else one after the other; returns once both are done. `first`
+// may be empty.
+void RunBeside(const std::function<void()>& first, size_t items,
+               const std::function<void()>& second) {
+  // A second thread pays off from about this many items.
+  constexpr size_t kParallelFrom = 10'000;
+  std::thread beside;
+  if (first && items >= kParallelFrom) {
+    try {
+      beside = std::thread(second);
+    } catch (const std::system_error&) {
+      // No thread: one after the other.
+    }
+  }
+  if (first) first();
+  if (beside.joinable()) {
+    beside.join();
+  } else {
+    second();
+  }
+}
+
+// Version of the engine's part of an index snapshot.
+constexpr uint32_t kIndexSnapshotFormat = 0x454e4731;  // "ENG1"
+
+// Stored traces whose codes a reconciled snapshot must hold as the store
+// does (a sample: a trace's code never changes under its key, so a
+// difference means the snapshot is of another history of the fleet).
+constexpr size_t kCodesCheckedOnLoad = 1024;
+
+// Reads `fleet_id`'s index snapshot through `store` and loads its index
+// (made by `factory` for the snapshot's dimension). Needs nothing of the
+// fleet, so it runs beside the store's LoadFleet (each is seconds long at
+// 1,000,000 traces).
+LoadedSnapshot ReadSnapshot(MemoryStore& store,
+                            const PlaceIndexFactory& factory,
+                            std::string_view fleet_id) {
+  LoadedSnapshot loaded;
+  const absl::Time start = absl::Now();
+  loaded.status = store.ReadIndexSnapshot(
+      fleet_id, [&](std::span<const char> bytes) -> absl::Status {
+        core::ByteReader in(bytes);
+        uint32_t format = 0;
+        if (!in.Get(&format) || format != kIndexSnapshotFormat ||
+            !in.Get(&loaded.dimension) || loaded.dimension == 0 ||
+            !in.Get(&loaded.next_handle)) {
+          return absl::DataLossError("bad header");
+        }
+        absl::Status handles = loaded.handles.Load(in, loaded.next_handle);
+        if (!handles.ok()) return handles;
+        loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
+        uint64_t centroid_size = 0;
+        std::span<const char> centroid_bytes;
+        if (!in.Get(&centroid_size) ||
+            !in.GetSpan(centroid_size, &centroid_bytes)) {
+          return absl::DataLossError("truncated centroids");
+        }
+        loaded.centroids.assign(centroid_bytes.begin(), centroid_bytes.end());
+        loaded.index = factory(loaded.dimension);
+        if (loaded.index == nullptr) {
+          return absl::InternalError("no index made");
+        }
+        const absl::Time index_start = absl::Now();
+        absl::Status status = loaded.index->Load(in);
+        loaded.index_seconds = absl::ToDoubleSeconds(absl::Now() - index_start);
+        if (status.ok() && (loaded.index->size() != loaded.handles.size() ||
+                            in.remaining() != 0)) {
+          status = absl::DataLossError("the index does not match its handles");
+        }
+        loaded.index_status = status;
+        return absl::OkStatus();
+      });
+  if (!loaded.status.ok() || !loaded.index_status.ok()) loaded.index.reset();
+  return loaded;
+}
+
+}  // namespace
+
+absl::Status MemoryEngine::Fleet::Reload() {
+  const absl::Time start = absl::Now();
+  // The index snapshot is read and its index loaded on a second thread
+  // while this one reads the fleet's traces.
+  LoadedSnapshot snapshot;
+  auto read_snapshot = [&] {
+    snapshot = ReadSnapshot(*engine->store_, engine->index_factory_, id);
+  };
+  std::thread beside;
+  try {
+    beside = std::thread(read_snapshot);
+  } catch (const std::system_error&) {
+    // No thread: one after the other.
+  }
+  absl::StatusOr<FleetRecord> record = engine->store_->LoadFleet(id);
+  if (beside.joinable()) {
+    beside.join();
+  } else {
+    read_snapshot();
+  }
+  const absl::Time read = absl::Now();
+  absl::Status status =
+      record.ok() ? Rebuild(*std::move(record), &snapshot) : record.status();
+  if (status.ok() && exists()) {
+    FLEETMEM_LOG(kInfo) << "fleet \"" << id
+                        << "\" loaded: " << memory.trace_count()
+                        << " traces in " << memory.clusters().size()
+                        << " clusters, " << pending_position.size()
+                        << " pending; store read "
+                        << absl::ToDoubleSeconds(read - start)
+                        << " s, memory and index "
+                        << absl::ToDoubleSeconds(absl::Now() - read) << " s";
+  }
+  if (!status.ok()) {
+    FLEETMEM_LOG(kError) << "fleet \"" << id
+                         << "\" could not be reloaded: " << status;
+    Rebuild(FleetRecord{}).IgnoreError();
+    stale = status;
+    return status;
+  }
+  stale = absl::OkStatus();
+  PublishHeld();
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::EnsureLoaded() {
+  if (stale.ok()) return absl::OkStatus();
+  return Reload();
+}
+
+absl::Status MemoryEngine::Fleet::CheckLoaded() const {
+  if (stale.ok()) return absl::OkStatus();
+  return absl::UnavailableError(
+      absl::StrCat("fleet \"", id, "\" is not loaded after a storage error (",
+                   stale.message(), "); retry later"));
+}
+
+absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
+                                          LoadedSnapshot* snapshot) {
+  meta = record.meta;
+  memory = core::StaticMemory(engine->MemoryOptionsFor(id));
+  pending.clear();
+  pending_position.clear();
+  pending_by_domain.clear();
+  robots.clear();
+  index.reset();
+  handles.Clear();
+  next_handle = 1;
+  snapshot_changes = 0;
+  snapshot_saved_at.reset();
+  if (meta.code_dimension == 0) {
+    if (!record.clusters.empty() || !record.pending.empty()) {
+      return absl::DataLossError(absl::StrCat(
+          "fleet \"", id, "\" has stored traces but no code dimension"));
+    }
+    return absl::OkStatus();
+  }
+  for (core::MemoryTrace& trace : record.pending) AddPending(std::move(trace));
+  for (RobotRecord& robot : record.robots) {
+    std::string robot_id = robot.robot_id;
+    robots[robot_id] = std::move(robot);
+  }
+  index = engine->index_factory_(meta.code_dimension);
+  if (index == nullptr) {
+    return absl::InternalError(
+        absl::StrCat("the index factory made no index for fleet \"", id, "\""));
+  }
+  // The traces stay in their clusters' vectors when the clusters move into
+  // memory, so the index can read them while memory restores.
+  std::vector<const core::MemoryTrace*> traces;
+  absl::flat_hash_set<uint64_t> cluster_ids;
+  cluster_ids.reserve(record.clusters.size());
+  for (core::Cluster& cluster : record.clusters) {
+    if (!cluster_ids.insert(cluster.id).second) {
+      return absl::DataLossError(absl::StrCat("fleet \"", id, "\" has cluster ",
+                                              cluster.id, " twice"));
+    }
+    for (core::MemoryTrace& trace : cluster.traces) {
+      trace.cluster_id = cluster.id;
+      traces.push_back(&trace);
+    }
+  }
+  for (const auto& [robot_id, robot_pending] : pending) {
+    for (const core::MemoryTrace& trace : robot_pending) {
+      traces.push_back(&trace);
+    }
+  }
+  bool restored = false;
+  if (!traces.empty()) {
+    const absl::Time start = absl::Now();
+    absl::Status status =
+        snapshot == nullptr
+            ? absl::NotFoundError("no index snapshot read")
+            : LoadFromSnapshot(std::move(*snapshot), record.clusters, traces,
+                               &restored);
+    if (status.ok()) {
+      FLEETMEM_LOG(kInfo) << "fleet \"" << id
+                          << "\": loaded from its index snapshot in "
+                          << absl::ToDoubleSeconds(absl::Now() - start) << " s";
+      ReleaseAllCodes();
+      return status;
+    }
+    // No snapshot is the normal case after a crash or a first start.
+    if (absl::IsNotFound(status)) {
+      FLEETMEM_LOG(kInfo) << "fleet \"" << id << "\": rebuilding the index ("
+                          << status << ")";
+    } else {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << id
+          << "\": rebuilding the index, its snapshot is unusable: " << status;
+    }
+  }
+  absl::Status status =
+      restored ? IndexTraces(traces) : IndexTraces(traces, [&] {
+        for (core::Cluster& cluster : record.clusters) {
+          memory.Restore(std::move(cluster));
+        }
+      });
+  if (status.ok()) ReleaseAllCodes();
+  return status;
+}
+
+size_t MemoryEngine::Fleet::ReleaseCodes(
+    const std::vector<core::TraceKey>& keys) {
+  if (index == nullptr || keys.empty()) return 0;
+  std::vector<uint64_t> ids;
+  std::vector<const core::TraceKey*> indexed;
+  ids.reserve(keys.size());
+  indexed.reserve(keys.size());
+  for (const core::TraceKey& key : keys) {
+    const uint64_t handle = handles.Find(key);
+    if (handle == 0) continue;
+    ids.push_back(handle);
+    indexed.push_back(&key);
+  }
+  const std::vector<bool> held = index->HoldsCodes(ids);
+  size_t released = 0;
+  for (size_t i = 0; i < ids.size(); ++i) {
+    if (held[i] && memory.DropCode(*indexed[i])) ++released;
+  }
+  return released;
+}
+
+size_t MemoryEngine::Fleet::ReleaseAllCodes() {
+  std::vector<core::TraceKey> keys;
+  for (const auto& [cluster_id, cluster] : memory.clusters()) {
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      if (!trace.code.empty()) keys.push_back(trace.key());
+    }
+  }
+  const size_t released = ReleaseCodes(keys);
+  // Large releases leave holes amid the heap that glibc keeps.
+  if (released >= 10'000) ReturnFreedMemory();
+  return released;
+}
+
+absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(
+    core::MemoryTrace trace) const {
+  if (!trace.code.empty()) return trace;
+  const uint64_t handle = handles.Find(trace.key());
+  if (handle == 0 || index == nullptr ||
+      !index->CopyCode(handle, &trace.code)) {
+    return absl::InternalError(absl::StrCat(
+        "fleet \"", id, "\": the code of trace (\"", trace.robot_id, "\", ",
+        trace.seq, ") is neither in memory nor in the index"));
+  }
+  return trace;
+}
+
+absl::Status MemoryEngine::Fleet::FillCodes(
+    std::vector<core::MemoryTrace>& traces) const {
+  for (core::MemoryTrace& trace : traces) {
+    if (!trace.code.empty()) continue;
+    absl::StatusOr<core::MemoryTrace> filled = WithCode(std::move(trace));
+    if (!filled.ok()) return filled.status();
+    trace = *std::move(filled);
+  }
+  return absl::OkStatus();
+}
+
+void MemoryEngine::Fleet::AddPending(core::MemoryTrace trace) {
+  std::vector<core::MemoryTrace>& robot_pending = pending[trace.robot_id];
+  pending_position[trace.key()] = robot_pending.size();
+  ++pending_by_domain[trace.domain];
+  robot_pending.push_back(std::move(trace));
+}
+
+const core::MemoryTrace* MemoryEngine::Fleet::FindTrace(
+    const core::TraceKey& key) const {
+  if (const core::MemoryTrace* trace = memory.Find(key)) return trace;
+  auto position = pending_position.find(key);
+  if (position == pending_position.end()) return nullptr;
+  return &pending.find(key.robot_id)->second[position->second];
+}
+
+absl::Status MemoryEngine::Fleet::IndexTraces(
+    const std::vector<const core::MemoryTrace*>& traces,
+    const std::function<void()>& meanwhile, bool on_load) {
+  if (traces.empty()) {
+    if (meanwhile) meanwhile();
+    return absl::OkStatus();
+  }
+  if (index == nullptr) {
+    return absl::InternalError(absl::StrCat("fleet \"", id, "\" has no index"));
+  }
+  std::vector<uint64_t> ids;
+  std::vector<std::span<const float>> codes;
+  ids.reserve(traces.size());
+  codes.reserve(traces.size());
+  for (const core::MemoryTrace* trace : traces) {
+    ids.push_back(next_handle++);
+    codes.push_back(trace->code);
+  }
+  absl::Status status;
+  RunBeside(meanwhile, traces.size(), [&] {
+    status = on_load ? index->AddNormalizedOnLoad(ids, codes)
+                     : index->AddNormalized(ids, codes);
+  });
+  ++snapshot_changes;
+  if (!status.ok()) return status;
+  handles.Reserve(handles.size() + traces.size());
+  for (size_t i = 0; i < traces.size(); ++i) {
+    handles.Assign(traces[i]->key(), ids[i]);
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
+    const std::function<void()>& written) const {
+  return engine->store_->SaveIndexSnapshot(
+      id,
+      [this](core::ByteWriter& out) {
+        out.Put<uint32_t>(kIndexSnapshotFormat);
+        out.Put<uint32_t>(meta.code_dimension);
+        out.Put<uint64_t>(next_handle);
+        handles.Save(out);
+        // Forgetting's centroid bookkeeping, length first so that a load
+        // can hand it to memory while the index reads what follows.
+        core::ByteWriter counter([](std::span<const char>) {});
+        memory.SaveCentroids(counter);
+        out.Put<uint64_t>(counter.written());
+        memory.SaveCentroids(out);
+        return index->Save(out);
+      },
+      written);
+}
+
+absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
+    LoadedSnapshot snapshot, std::vector<core::Cluster>& clusters,
+    const std::vector<const core::MemoryTrace*>& traces, bool* restored) {
+  if (!snapshot.status.ok()) return snapshot.status;
+  if (snapshot.dimension != meta.code_dimension) {
+    return absl::DataLossError(
+        absl::StrCat("the snapshot's codes have ", snapshot.dimension,
+                     " dimensions, the fleet's ", meta.code_dimension));
+  }
+  std::unique_ptr<PlaceIndex> loaded = std::move(snapshot.index);
+  TraceHandles& saved = snapshot.handles;
+  const absl::Time memory_start = absl::Now();
+  size_t centroids_reconciled = 0;
+  core::ByteReader centroids(snapshot.centroids);
+  absl::Status kept_centroids =
+      memory.RestoreAll(std::move(clusters), centroids, &centroids_reconciled);
+  *restored = true;
+  if (!kept_centroids.ok()) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << id
+                           << "\": forgetting's centroid graph rebuilt: "
+                           << kept_centroids;
+  }
+  const double memory_seconds =
+      absl::ToDoubleSeconds(absl::Now() - memory_start);
+  absl::Status status = snapshot.index_status;
+  if (!status.ok()) return status;
+
+  // Reconcile with the store: traces stored since the snapshot are added,
+  // traces forgotten or downsampled since are removed.
+  const absl::Time reconcile_start = absl::Now();
+  std::vector<const core::MemoryTrace*> missing;
+  std::vector<const core::MemoryTrace*> kept;
+  kept.reserve(std::min(traces.size(), saved.size()));
+  for (const core::MemoryTrace* trace : traces) {
+    (saved.contains(trace->key()) ? kept : missing).push_back(trace);
+  }
+  // A sample of the kept traces, spread over all of them, must have the
+  // codes the store has.
+  std::vector<float> code;
+  const size_t step = std::max<size_t>(1, kept.size() / kCodesCheckedOnLoad);
+  for (size_t i = 0; i < kept.size(); i += step) {
+    const core::MemoryTrace& trace = *kept[i];
+    if (!loaded->CopyCode(saved.Find(trace.key()), &code) ||
+        code != trace.code) {
+      return absl::DataLossError(
+          absl::StrCat("the snapshot's code of trace (\"", trace.robot_id,
+                       "\", ", trace.seq, ") differs from the store's"));
+    }
+  }
+  std::vector<uint64_t> gone;
+  if (kept.size() < saved.size()) {
+    absl::flat_hash_set<core::TraceKey> stored;
+    stored.reserve(traces.size());
+    for (const core::MemoryTrace* trace : traces) stored.insert(trace->key());
+    saved.ForEach(
+        [&](uint64_t handle, std::string_view robot_id, uint64_t seq) {
+          if (!stored.contains(core::TraceKey{std::string(robot_id), seq})) {
+            gone.push_back(handle);
+          }
+        });
+  }
+  status = loaded->Remove(gone);
+  if (!status.ok()) return status;
+  for (uint64_t handle : gone) saved.EraseHandle(handle);
+  index = std::move(loaded);
+  handles = std::move(saved);
+  next_handle = snapshot.next_handle;
+  if (!missing.empty()) {
+    status = IndexTraces(missing, nullptr, /*on_load=*/true);
+    if (!status.ok()) {
+      index = engine->index_factory_(meta.code_dimension);
+      handles.Clear();
+      next_handle = 1;
+      return status;
+    }
+  }
+  snapshot_changes = 0;
+  if (missing.empty() && gone.empty() && centroids_reconciled == 0) {
+    snapshot_saved_at = 0;  // the snapshot on disk is this state
+  }
+  FLEETMEM_LOG(kInfo) << "fleet \"" << id
+                      << "\": index snapshot reconciled: " << kept.size()
+                      << " codes kept, " << missing.size() << " added, "
+                      << gone.size() << " removed; " << centroids_reconciled
+                      << " centroids changed (handles "
+                      << snapshot.handles_seconds << " s and index "
+                      << snapshot.index_seconds
+                      << " s beside the store's read, memory " << memory_seconds
+                      << " s, reconciling "
+                      << absl::ToDoubleSeconds(absl::Now() - reconcile_start)
+                      << " s)";
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::UnindexTraces(
+    const std::vector<core::TraceKey>& keys) {
+  std::vector<uint64_t> ids;
+  for (const core::TraceKey& key : keys) {
+    const uint64_t handle = handles.Erase(key);
+    if (handle != 0) ids.push_back(handle);
+  }
+  if (ids.empty() || index == nullptr) return absl::OkStatus();
+  ++snapshot_changes;
+  return index->Remove(ids);
+}
+
+}  // namespace fleetmem::engine
