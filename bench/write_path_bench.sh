@@ -15,11 +15,12 @@
 #           append, and the time until GetStats says all are applied
 #           (backlog 0); the build before acknowledges only once applied:
 #           its rate is the same number;
-#   burst   10 s of one upload stream (batches of 200, a code pool of 1,000:
+#   burst   10 s of one upload stream (batches of 200, a code pool of 100,000:
 #           the client's cost stays small), durable acknowledgement, with
-#           QueryPlace (k = 10) at 20/s beside it; then the same against
-#           the bare gRPC peer (fleetmem-load bench); then the time until
-#           the burst is applied.
+#           QueryPlace (k = 10) at 20/s beside it (fleetmem-load bench), and
+#           the time until the burst is applied;
+#   peer    then, with the server idle, the same stream for 10 s against the
+#           bare gRPC peer of the same proto (fleetmem-load peer).
 # The load generator is AFTER's (the build before ignores the `ack` field).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
@@ -80,14 +81,22 @@ CONFIG
     # Burst: one stream for 10 s, queries beside, the peer after it.
     "$load" bench --server "$SERVER_ADDR" --fleet w --dimension 256 \
       --robots 1 --batch 200 --seconds 10 --query-rate 20 \
-      --first-seq 2000000 --csv "$work/burst.csv" >/dev/null 2>&1
+      --first-seq 2000000 --code-pool 100000 --csv "$work/burst.csv" \
+      >/dev/null 2>&1
     drain=$(wait_applied w)
     stop_server
+    "$load" peer --listen 127.0.0.1:0 >"$work/peer.txt" &
+    peer_pid=$!
+    until grep -q "listening on" "$work/peer.txt" 2>/dev/null; do sleep 0.05; done
+    peer_addr=$(sed -n 's/.*listening on //p' "$work/peer.txt")
+    peer_rate=$("$load" upload --server "$peer_addr" --fleet w --dimension 256 \
+      --robots 1 --batch 200 --seconds 10 --code-pool 100000 |
+      sed -n 's/.*traces in .* s (\([0-9]*\)\/s).*/\1/p')
+    kill "$peer_pid"
+    wait "$peer_pid" 2>/dev/null || true
     row=$(sed -n 2p "$work/burst.csv")
-    peer=$(sed -n 3p "$work/burst.csv")
     col() { echo "$1" | cut -d, -f"$2"; }
     acked=$(col "$row" 6)
-    peer_rate=$(col "$peer" 6)
     printf '%s,%s,%.0f,%s,%s,%.3f,%s,%s,%.2f,%.0f\n' "$size" "$which" \
       "$applied" "$acked" "$peer_rate" \
       "$(calc "$acked / $peer_rate")" "$(col "$row" 13)" \

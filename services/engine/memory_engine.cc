@@ -158,11 +158,14 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
   if (!status.ok()) return status;
   Fleet* fleet = Fleet::Find(*this, fleet_id);
+  // A log entry's traces were checked whole where it was appended: its
+  // apply checks their shape (ValidateUpload's check_values).
+  const bool check_values = log_position == 0;
   if (fleet == nullptr) {
     // Validated before a fleet object exists, so a bad first upload leaves
     // nothing behind.
     status = ValidateUpload(fleet_id, traces, nullptr,
-                            options_.max_traces_per_upload);
+                            options_.max_traces_per_upload, check_values);
     if (!status.ok()) return status;
     if (traces.empty()) return UploadResult{};
     status = quota_->AdmitDimension(fleet_id, traces[0].code.size());
@@ -196,7 +199,6 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
       status = fleet->CommitUpload(std::move(prepared), &result, &notices,
                                    plan ? &*plan : nullptr);
     }
-    fleet->PublishHeld();
     notices.consolidated.clusters = fleet->memory.clusters().size();
     notices.consolidated.traces = fleet->memory.trace_count();
     fleet->PublishHeld();

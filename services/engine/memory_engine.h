@@ -232,7 +232,10 @@ class MemoryEngine {
   // (WritePath's local log, or distributed mode's replicated log); stored in
   // the same write as the traces it adds (LogPosition), unless it adds none.
   // An entry of a log is not rated (its rates were checked when it was
-  // appended): only a direct call (0) passes the rate limits here.
+  // appended): only a direct call (0) passes the rate limits here; and its
+  // traces were checked whole where it was appended, so its apply checks
+  // their shape (count, dimension, encoder version) and not every value
+  // again: a batch is validated once.
   absl::StatusOr<UploadResult> Upload(std::string_view fleet_id,
                                       std::span<const core::MemoryTrace> traces,
                                       uint64_t log_position = 0);

@@ -39,7 +39,8 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
   if (!status.ok()) return status;
   const bool is_new = !exists();
   status = ValidateUpload(id, traces, is_new ? nullptr : &meta,
-                          engine->options_.max_traces_per_upload);
+                          engine->options_.max_traces_per_upload,
+                          /*check_values=*/log_position == 0);
   if (!status.ok()) return status;
   if (traces.empty()) return absl::OkStatus();
   UploadQuota& quota = *engine->quota_;
@@ -228,10 +229,13 @@ std::optional<core::ConsolidationPlan> MemoryEngine::Fleet::PlanAhead(
   {
     absl::ReaderMutexLock lock(&mu);
     if (!stale.ok() || !exists()) return std::nullopt;
-    // Planning runs before PrepareUpload's checks: a refused upload (a code
-    // of another dimension would overrun the plan's matrix) plans nothing.
+    // Planning runs before PrepareUpload's checks: an upload of another
+    // shape (a code of another dimension would overrun the plan's matrix)
+    // plans nothing. Its values are PrepareUpload's to check (a plan of a
+    // refused upload is dropped).
     if (!ValidateUpload(id, traces, &meta,
-                        engine->options_.max_traces_per_upload)
+                        engine->options_.max_traces_per_upload,
+                        /*check_values=*/false)
              .ok()) {
       return std::nullopt;
     }

@@ -78,9 +78,17 @@ inline absl::Status FleetNotFound(std::string_view fleet_id) {
 // Checks a whole upload against the fleet's shape; `meta` is null for a fleet
 // that does not exist yet (its first upload then fixes the shape from
 // traces[0]).
+//
+// `check_values` false checks the shape alone (count, encoder version and
+// dimension of every trace), not each trace's ids and values: for an entry
+// of a log, whose traces were checked whole where it was appended
+// (WritePath::Append, or the receiving replica in distributed mode), and
+// for a plan made ahead of the full check. The shape guards what memory
+// and the index hold (a code of another length would overrun them).
 inline absl::Status ValidateUpload(std::string_view fleet_id,
                                    std::span<const core::MemoryTrace> traces,
-                                   const FleetMeta* meta, size_t max_traces) {
+                                   const FleetMeta* meta, size_t max_traces,
+                                   bool check_values = true) {
   if (traces.size() > max_traces) {
     return absl::InvalidArgumentError(
         absl::StrCat("upload has ", traces.size(), " traces but at most ",
@@ -121,6 +129,7 @@ inline absl::Status ValidateUpload(std::string_view fleet_id,
           " but traces[0].code has ", dimension, " (fleet \"", V(fleet_id),
           "\" is new and takes its dimension from its first upload)"));
     }
+    if (!check_values) continue;
     core::TraceShape shape;
     shape.code_dimension = dimension;
     shape.encoder_version = encoder;
