@@ -126,6 +126,8 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
     mutation.put_meta = true;
     mutation.meta.log_position = log_position;
   }
+  // A log entry's apply: the log is the durable copy (FleetMutation::sync).
+  if (log_position != 0) mutation.sync = false;
   return absl::OkStatus();
 }
 
@@ -141,6 +143,7 @@ absl::Status MemoryEngine::Fleet::CommitUpload(
     carried.mutation.put_meta = mutation.put_meta;
     carried.mutation.meta = mutation.meta;
     carried.mutation.put_robots = mutation.put_robots;
+    carried.mutation.sync = mutation.sync;
   }
   if (mutation.put_meta) meta = mutation.meta;
   if (prepared.new_index != nullptr) index = std::move(prepared.new_index);

@@ -85,6 +85,12 @@ struct FleetMutation {
   std::vector<core::MemoryEvent> append_events;
   // Events with id < this are erased (event retention); 0 erases none.
   uint64_t erase_events_before = 0;
+  // False: the write need not be synced before Apply returns (it is still
+  // in the write-ahead log, so a process crash keeps it; a machine crash
+  // may lose it with everything written after it). For the apply of a log
+  // entry: the log is the durable copy, and applying it again after such
+  // a loss changes nothing.
+  bool sync = true;
 
   // True if applying the mutation would change nothing. Inline: the ports
   // target is header-only.

@@ -575,6 +575,14 @@ void WritePath::ApplyTurn(FleetLog& log) {
     AppliedEntry outcome;
     if (result.ok()) {
       outcome.consolidations = result->consolidations;
+      if (result->duplicates > 0) {
+        // Append admits only seqs the fleet has not received: a duplicate
+        // here is an entry applied twice (the crash trials count this line).
+        FLEETMEM_LOG(kError)
+            << "fleet \"" << log.id << "\": " << result->duplicates
+            << " traces of log entry " << entry.sequence
+            << " were applied twice";
+      }
     } else if (absl::IsInvalidArgument(result.status())) {
       // Append checked it as the engine does: only a change of the checks
       // between two versions can make the engine refuse it now.

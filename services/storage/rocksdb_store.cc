@@ -334,6 +334,7 @@ class RocksDbStore final : public engine::MemoryStore {
                                        : StatvfsFreeBytes) {
     write_options_.sync = options.sync;
     synced_write_options_.sync = true;
+    unsynced_write_options_.sync = false;
   }
 
   ~RocksDbStore() override {
@@ -540,7 +541,9 @@ class RocksDbStore final : public engine::MemoryStore {
           ToSlice(keys::EventKey(fleet_id, mutation.erase_events_before)));
     }
     if (batch.Count() == 0) return absl::OkStatus();
-    return Write(fleet_id, batch, write_options_, "write fleet");
+    return Write(fleet_id, batch,
+                 mutation.sync ? write_options_ : unsynced_write_options_,
+                 "write fleet");
   }
 
   absl::Status AppendLog(std::string_view fleet_id,
@@ -593,9 +596,8 @@ class RocksDbStore final : public engine::MemoryStore {
                       ToSlice(through == UINT64_MAX
                                   ? keys::PrefixEnd(keys::Tag::kLog, fleet_id)
                                   : keys::LogKey(fleet_id, through + 1)));
-    rocksdb::WriteOptions unsynced;
-    unsynced.sync = false;
-    return Write(fleet_id, batch, unsynced, "trim the log of fleet");
+    return Write(fleet_id, batch, unsynced_write_options_,
+                 "trim the log of fleet");
   }
 
   absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
@@ -779,6 +781,7 @@ class RocksDbStore final : public engine::MemoryStore {
   const std::function<absl::StatusOr<uint64_t>(const std::string&)> free_bytes_;
   rocksdb::WriteOptions write_options_;
   rocksdb::WriteOptions synced_write_options_;
+  rocksdb::WriteOptions unsynced_write_options_;
   absl::Mutex apply_mu_;
   // Written by Apply (under apply_mu_) and by the log's appends and trims
   // (not under it).
