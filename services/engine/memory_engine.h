@@ -8,7 +8,9 @@
 // waits while a mutation changes memory (an upload's commit, a replay draw)
 // and during a consolidation (k-means and its store write), not for an
 // upload's or a sample's fsync.
-// Every mutation is durable in the store before the call returns OK; if the
+// Every mutation is durable in the store before the call returns OK (the
+// apply of a log entry: written to the store's write-ahead log, synced
+// later, since the log is the durable copy: FleetMutation::sync); if the
 // store fails, the fleet is reloaded from the store and the error returned.
 // Uploaded traces and consolidations become visible only once durable; a
 // sample's incremented replay counts are visible while they are being
