@@ -5,8 +5,9 @@
 #include <string>
 #include <vector>
 
-#include "gtest/gtest.h"
 #include "fleetmem_paths.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
 
 namespace fleetmem::server {
 namespace {
@@ -197,6 +198,36 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
   EXPECT_EQ(
       config.engine.fleet_memory.at("ablation-no-time-decay").replay_decay,
       1.0);
+  EXPECT_EQ(config.write_path.max_backlog_traces,
+            defaults.write_path.max_backlog_traces);
+  EXPECT_EQ(config.write_path.appliers, defaults.write_path.appliers);
+  EXPECT_EQ(config.write_path_max_apply_wait,
+            defaults.write_path_max_apply_wait);
+}
+
+TEST(ServerConfigTest, WritePathFromTheFileIsValidated) {
+  ServerConfig config;
+  config.data_dir = "/tmp/d";
+  ASSERT_TRUE(ApplyConfigText("write_path { max_backlog_traces: 1234 "
+                              "appliers: 3 max_apply_wait_seconds: 7 }",
+                              &config)
+                  .ok());
+  EXPECT_EQ(config.write_path.max_backlog_traces, 1234u);
+  EXPECT_EQ(config.write_path.appliers, 3);
+  EXPECT_EQ(config.write_path_max_apply_wait, absl::Seconds(7));
+  EXPECT_TRUE(ValidateServerConfig(config).ok());
+  for (const char* bad :
+       {"write_path { appliers: 0 }", "write_path { appliers: 65 }",
+        "write_path { max_apply_wait_seconds: 0 }"}) {
+    ServerConfig refused;
+    refused.data_dir = "/tmp/d";
+    ASSERT_TRUE(ApplyConfigText(bad, &refused).ok()) << bad;
+    const absl::Status status = ValidateServerConfig(refused);
+    EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << bad;
+    EXPECT_THAT(std::string(status.message()),
+                ::testing::HasSubstr("write_path"))
+        << bad;
+  }
 }
 
 TEST(ServerConfigTest, BadFileText) {
