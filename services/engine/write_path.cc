@@ -219,6 +219,13 @@ absl::StatusOr<Appended> WritePath::Append(
     absl::Status valid = CheckTraces(fleet_id, traces, nullptr,
                                      engine_->options().max_traces_per_upload);
     if (!valid.ok()) return valid;
+    {
+      // Nor do uploads to fleets past max_fleets (the leader admits the
+      // fleet again, counting it, when it appends its first entry).
+      absl::ReaderMutexLock lock(&logs_mu_);
+      valid = engine_->quota().AdmitNewFleet(fleet_id, fleets_);
+    }
+    if (!valid.ok()) return valid;
     log = Log(fleet_id);
   }
 

@@ -206,6 +206,28 @@ TEST_F(WritePathTest, InvalidUploadsChangeNothingAndMakeNoFleet) {
   EXPECT_THAT(refused.status().message(), HasSubstr("dimension"));
 }
 
+TEST_F(WritePathTest, FleetsPastMaxFleetsLeaveNothingBehind) {
+  EngineOptions options = SmallOptions();
+  options.limits.max_fleets = 1;
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
+      options, &store_,
+      [](size_t dimension) { return index::NewExactIndex(dimension); });
+  ASSERT_TRUE(engine.ok());
+  engine_ = *std::move(engine);
+  absl::StatusOr<std::unique_ptr<WritePath>> path =
+      WritePath::Open({}, engine_.get(), &store_);
+  ASSERT_TRUE(path.ok());
+  path_ = *std::move(path);
+  ASSERT_TRUE(path_->Append("first", Traces("r1", 1, 2)).ok());
+  for (int i = 0; i < 3; ++i) {
+    absl::StatusOr<Appended> refused =
+        path_->Append("extra-" + std::to_string(i), Traces("r1", 1, 2));
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+    EXPECT_THAT(refused.status().message(), HasSubstr("max_fleets"));
+  }
+  EXPECT_EQ(path_->Backlogs().size(), 1u);  // no log kept for them
+}
+
 TEST_F(WritePathTest, AFullBacklogRefusesWithItsSizeAndAgeAndRecovers) {
   WritePathOptions options;
   options.max_backlog_traces = 20;
