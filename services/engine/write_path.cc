@@ -273,6 +273,13 @@ absl::StatusOr<Appended> WritePath::Append(
     }
     log->leading = false;
     log->changed.SignalAll();
+    if (options_.on_duplicates) {
+      for (const Request* member : group) {
+        if (member->result.ok() && member->result->duplicates > 0) {
+          options_.on_duplicates(log->id, member->result->duplicates);
+        }
+      }
+    }
     if (!log->scheduled && !log->unapplied.empty()) {
       log->scheduled = true;
       absl::MutexLock ready(&ready_mu_);

@@ -27,6 +27,7 @@
 #include <atomic>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <span>
 #include <string>
@@ -63,6 +64,10 @@ struct WritePathOptions {
   // After an apply fails on the store (a full disk), its fleet's log is
   // tried again this much later; the backlog meanwhile grows to its bound.
   absl::Duration retry_interval = absl::Seconds(1);
+  // Observer of the duplicates each upload had (found here, at the append,
+  // so the engine's apply meets none; metrics). May be empty.
+  std::function<void(std::string_view fleet_id, uint64_t duplicates)>
+      on_duplicates;
 };
 
 absl::Status ValidateWritePathOptions(const WritePathOptions& options);

@@ -1,5 +1,6 @@
 #include "services/engine/write_path.h"
 
+#include <atomic>
 #include <memory>
 #include <random>
 #include <string>
@@ -171,7 +172,14 @@ TEST_F(WritePathTest, AcknowledgesAtTheAppendAndAppliesBehindIt) {
 }
 
 TEST_F(WritePathTest, DuplicatesAreCountedAtTheAppendAgainstTheBacklogToo) {
-  Open();
+  std::atomic<uint64_t> observed{0};
+  WritePathOptions options;
+  options.on_duplicates = [&observed](std::string_view fleet,
+                                      uint64_t duplicates) {
+    EXPECT_EQ(fleet, "f");
+    observed += duplicates;
+  };
+  Open(options);
   store_.SetApplies(false);
   ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 5)).ok());
   // Not applied yet: the engine has not seen seqs 1..5, the log has.
@@ -187,6 +195,7 @@ TEST_F(WritePathTest, DuplicatesAreCountedAtTheAppendAgainstTheBacklogToo) {
   store_.SetApplies(true);
   ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
   EXPECT_EQ(Held("f"), 7u);
+  EXPECT_EQ(observed.load(), 5u);  // 3, then 2 (the metrics' duplicates)
 }
 
 TEST_F(WritePathTest, InvalidUploadsChangeNothingAndMakeNoFleet) {

@@ -359,10 +359,20 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
          [serving] { return serving->LogLag(); },
          [serving] { return serving->FleetCounts(); }, nullptr});
   } else {
+    // Duplicates are found at the append (the apply meets none): counted
+    // by the same metric as the engine's.
+    engine::WritePathOptions write_path = config.write_path;
+    write_path.on_duplicates = [on_upload = metrics.EngineHooks().on_upload](
+                                   std::string_view fleet,
+                                   uint64_t duplicates) {
+      engine::UploadResult result;
+      result.duplicates = duplicates;
+      if (on_upload) on_upload(fleet, result);
+    };
     absl::StatusOr<std::unique_ptr<transport::EmbeddedMemory>> opened =
         transport::EmbeddedMemory::Open(
             engine->get(), store.get(),
-            {.write_path = config.write_path,
+            {.write_path = write_path,
              .max_apply_wait = config.write_path_max_apply_wait});
     if (!opened.ok()) {
       FLEETMEM_LOG(kError) << "cannot recover the fleets' logs: "
