@@ -97,6 +97,21 @@ void PrintStats(const v1::GetStatsResponse& stats, std::ostream& out) {
               {"clusters forgotten", absl::StrCat(stats.clusters_forgotten())},
               {"last event id", absl::StrCat(stats.last_event_id())}},
              out);
+  if (stats.acknowledged_through() > 0) {
+    // The write path: uploads acknowledged and not applied yet.
+    PrintPairs(
+        {{"log applied through",
+          absl::StrCat(stats.applied_through(), " of ",
+                       stats.acknowledged_through(), " acknowledged")},
+         {"write backlog",
+          absl::StrFormat("%d traces in %d uploads, oldest %.1f s",
+                          stats.backlog_traces(), stats.backlog_entries(),
+                          stats.backlog_age_seconds())}},
+        out);
+  }
+  if (!stats.apply_error().empty()) {
+    PrintPairs({{"apply error", stats.apply_error()}}, out);
+  }
   if (!stats.robots().empty()) {
     out << '\n';
     Table robots;
