@@ -250,6 +250,22 @@ class Fleet:
         received = {r["robotId"]: int(r.get("received", 0)) for r in stats.get("robots", [])}
         return {robot: n for robot, n in received.items() if n > 0}
 
+    def wait_applied(self, timeout=120):
+        """Waits until the fleet's log is applied through every upload
+        acknowledged (robots upload with durable acknowledgement: a robot
+        that has finished may have traces still waiting to be applied)."""
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            try:
+                stats = self.rest(f"/v1/fleets/{FLEET}/stats")
+            except (urllib.error.URLError, OSError, ValueError):
+                stats = None
+            if stats is not None and int(stats.get("appliedThrough", 0)) >= int(
+                    stats.get("acknowledgedThrough", 0)):
+                return
+            time.sleep(0.2)
+        raise RuntimeError(f"the fleet's log was not applied within {timeout} s")
+
     def stored(self):
         """[(robot_id, seq)] of every trace ListTraces returns, all pages."""
         keys, token = [], ""
@@ -414,6 +430,7 @@ def main():
         log(f"restarts by the restart policy: {restarts}")
         reopened = fleet.logs(robots["robot-2"]).count("opened a new connection")
         observed = {r: fleet.observed(r)[0] for r in ROBOTS}
+        fleet.wait_applied()
         received = fleet.received() or {}
         keys = fleet.stored()
         report_sizing(fleet, server, robots, len(keys))
