@@ -38,6 +38,7 @@
 #include <numeric>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -644,8 +645,17 @@ absl::Status Run() {
   const double summer_s = MillisSince(summer_start) / 1000.0;
 
   // 2. Consolidate the rest, then look at the memory. ------------------------
+  // The robots' uploads were acknowledged when durable: the memory is read
+  // once the fleet's log is applied through them.
   absl::StatusOr<v1::GetStatsResponse> before =
       observer->GetStats(setup.fleet_id);
+  const auto give_up = Clock::now() + std::chrono::seconds(120);
+  while (before.ok() &&
+         before->applied_through() < before->acknowledged_through() &&
+         Clock::now() < give_up) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    before = observer->GetStats(setup.fleet_id);
+  }
   if (!before.ok()) return before.status();
   const auto consolidate_start = Clock::now();
   absl::StatusOr<v1::ConsolidateResponse> consolidated =
