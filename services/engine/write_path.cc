@@ -180,12 +180,14 @@ absl::Status WritePath::Recover() {
   return absl::OkStatus();
 }
 
+WritePath::FleetLog* WritePath::Find(std::string_view fleet_id) const {
+  absl::ReaderMutexLock lock(&logs_mu_);
+  auto it = logs_.find(V(fleet_id));
+  return it == logs_.end() ? nullptr : it->second.get();
+}
+
 WritePath::FleetLog* WritePath::Log(std::string_view fleet_id) {
-  {
-    absl::ReaderMutexLock lock(&logs_mu_);
-    auto it = logs_.find(V(fleet_id));
-    if (it != logs_.end()) return it->second.get();
-  }
+  if (FleetLog* log = Find(fleet_id); log != nullptr) return log;
   absl::MutexLock lock(&logs_mu_);
   auto& log = logs_[std::string(fleet_id)];
   if (log == nullptr) log = std::make_unique<FleetLog>(std::string(fleet_id));
@@ -209,12 +211,7 @@ absl::StatusOr<Appended> WritePath::Append(
   }
   // A fleet is made by its first valid upload: checked before its log is
   // made, so that bad uploads to made-up fleets leave nothing behind.
-  FleetLog* log = nullptr;
-  {
-    absl::ReaderMutexLock lock(&logs_mu_);
-    auto it = logs_.find(V(fleet_id));
-    if (it != logs_.end()) log = it->second.get();
-  }
+  FleetLog* log = Find(fleet_id);
   if (log == nullptr) {
     absl::Status valid = CheckTraces(fleet_id, traces, nullptr,
                                      engine_->options().max_traces_per_upload);
@@ -432,12 +429,7 @@ void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {
 absl::Status WritePath::WaitApplied(std::string_view fleet_id,
                                     uint64_t sequence, absl::Time deadline) {
   if (sequence == 0) return absl::OkStatus();
-  FleetLog* log = nullptr;
-  {
-    absl::ReaderMutexLock lock(&logs_mu_);
-    auto it = logs_.find(V(fleet_id));
-    if (it != logs_.end()) log = it->second.get();
-  }
+  FleetLog* log = Find(fleet_id);
   if (log == nullptr) return absl::OkStatus();
   absl::MutexLock lock(&log->mu);
   while (log->applied_through < sequence) {
@@ -466,12 +458,7 @@ absl::Status WritePath::WaitAppliedAll(std::string_view fleet_id,
 }
 
 Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
-  FleetLog* log = nullptr;
-  {
-    absl::ReaderMutexLock lock(&logs_mu_);
-    auto it = logs_.find(V(fleet_id));
-    if (it != logs_.end()) log = it->second.get();
-  }
+  FleetLog* log = Find(fleet_id);
   Backlog backlog;
   if (log == nullptr) return backlog;
   absl::MutexLock lock(&log->mu);
@@ -488,12 +475,7 @@ Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
 }
 
 size_t WritePath::QueuedUploads(std::string_view fleet_id) const {
-  FleetLog* log = nullptr;
-  {
-    absl::ReaderMutexLock lock(&logs_mu_);
-    auto it = logs_.find(V(fleet_id));
-    if (it != logs_.end()) log = it->second.get();
-  }
+  FleetLog* log = Find(fleet_id);
   if (log == nullptr) return 0;
   absl::MutexLock lock(&log->mu);
   return log->queue.size();

@@ -158,8 +158,9 @@ class WritePath {
   struct Request;
   WritePath(WritePathOptions options, MemoryEngine* engine, MemoryStore* store);
 
-  // The fleet's log, made on first use.
+  // The fleet's log, made on first use; Find: null if there is none.
   FleetLog* Log(std::string_view fleet_id);
+  FleetLog* Find(std::string_view fleet_id) const;
   absl::Status Recover();
   // The group commit's leader: admits `group`'s uploads and appends the
   // accepted ones in one store write.
