@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <exception>
 #include <new>
 #include <sstream>
@@ -135,6 +136,114 @@ uint32_t HnswGraph::Add(const float* raw, float scale) {
   ++next_slot_;
   ++live_;
   return slot;
+}
+
+HnswGraph::Staged HnswGraph::Stage(std::span<const float* const> vectors,
+                                   std::span<const float> scales) {
+  Staged staged;
+  staged.slots.reserve(vectors.size());
+  Reserve(static_cast<size_t>(next_slot_) + vectors.size());
+  auto& hnsw = impl_->hnsw;
+  size_t i = 0;
+  // Removed slots first, as Add refills them (updatePoint repairs the old
+  // node's neighbours: one at a time), then an empty graph's entry point.
+  for (; i < vectors.size() &&
+         (!free_slots_.empty() || hnsw.cur_element_count == 0);
+       ++i) {
+    staged.slots.push_back(Add(vectors[i], scales[i]));
+  }
+  staged.linked = staged.slots.size();
+  const size_t fresh = vectors.size() - i;
+  // The levels, drawn in Add's order, and the upper layers' link lists,
+  // allocated before the nodes are stored.
+  std::vector<int> levels(fresh);
+  std::vector<char*> upper(fresh, nullptr);
+  for (size_t k = 0; k < fresh; ++k) {
+    levels[k] = hnsw.getRandomLevel(hnsw.mult_);
+    if (levels[k] == 0) continue;
+    const size_t bytes = hnsw.size_links_per_element_ * levels[k] + 1;
+    upper[k] = static_cast<char*>(std::calloc(1, bytes));
+    if (upper[k] == nullptr) {
+      for (char* list : upper) std::free(list);
+      staged.complete = false;
+      return staged;
+    }
+  }
+  std::vector<float> buffer;
+  for (size_t k = 0; k < fresh; ++k) {
+    const uint32_t slot = next_slot_++;
+    const hnswlib::tableint internal = hnsw.cur_element_count++;
+    hnsw.label_lookup_[slot] = internal;
+    hnsw.element_levels_[internal] = levels[k];
+    std::memset(hnsw.data_level0_memory_ +
+                    internal * hnsw.size_data_per_element_ + hnsw.offsetLevel0_,
+                0, hnsw.size_data_per_element_);
+    const hnswlib::labeltype label = slot;
+    std::memcpy(hnsw.getExternalLabeLp(internal), &label, sizeof(label));
+    std::memcpy(hnsw.getDataByInternalId(internal),
+                Stored(vectors[i + k], scales[i + k], buffer), hnsw.data_size_);
+    hnsw.linkLists_[internal] = upper[k];
+    staged.slots.push_back(slot);
+    ++live_;
+  }
+  return staged;
+}
+
+// hnswlib's addPoint after its level is drawn and its node stored (0.6's
+// insertion: a greedy descent through the layers above the node's, then a
+// search and a link on each of its layers), for a node that Stage stored.
+// Holds the node's lock throughout, as addPoint does, and reads the entry
+// point under hnswlib's `global` lock.
+void HnswGraph::Link(const Staged& staged, size_t i) {
+  auto& hnsw = impl_->hnsw;
+  const hnswlib::tableint node = hnsw.label_lookup_.at(staged.slots[i]);
+  const int level = hnsw.element_levels_[node];
+  const void* data = hnsw.getDataByInternalId(node);
+  const auto distance = [&](hnswlib::tableint other) {
+    return hnsw.fstdistfunc_(data, hnsw.getDataByInternalId(other),
+                             hnsw.dist_func_param_);
+  };
+  std::unique_lock node_lock(hnsw.link_list_locks_[node]);
+  std::unique_lock top_lock(hnsw.global);
+  const int top = hnsw.maxlevel_;
+  const hnswlib::tableint entry = hnsw.enterpoint_node_;
+  if (level <= top) top_lock.unlock();  // else held until it is the entry
+  hnswlib::tableint current = entry;
+  if (level < top) {
+    float nearest = distance(current);
+    for (int layer = top; layer > level; --layer) {
+      for (bool moved = true; moved;) {
+        moved = false;
+        std::unique_lock lock(hnsw.link_list_locks_[current]);
+        unsigned int* list = hnsw.get_linklist(current, layer);
+        const int count = hnsw.getListCount(list);
+        const auto* neighbours =
+            reinterpret_cast<const hnswlib::tableint*>(list + 1);
+        for (int j = 0; j < count; ++j) {
+          const float d = distance(neighbours[j]);
+          if (d < nearest) {
+            nearest = d;
+            current = neighbours[j];
+            moved = true;
+          }
+        }
+      }
+    }
+  }
+  const bool entry_deleted = hnsw.isMarkedDeleted(entry);
+  for (int layer = std::min(level, top); layer >= 0; --layer) {
+    auto candidates = hnsw.searchBaseLayer(current, data, layer);
+    if (entry_deleted) {
+      candidates.emplace(distance(entry), entry);
+      if (candidates.size() > hnsw.ef_construction_) candidates.pop();
+    }
+    current =
+        hnsw.mutuallyConnectNewElement(data, node, candidates, layer, false);
+  }
+  if (level > top) {
+    hnsw.enterpoint_node_ = node;
+    hnsw.maxlevel_ = level;
+  }
 }
 
 void HnswGraph::Remove(uint32_t slot) {

@@ -4,14 +4,15 @@
 // bounded by the most vectors held at once. The one translation unit that
 // includes hnswlib (its 0.6 headers define non-inline functions), shared by
 // forgetting's ClosestPairTracker and services/index's HNSW place index.
-// Deterministic: the same calls give the same graph. Not thread-safe for
-// writers; concurrent Search calls are safe.
+// Deterministic: the same calls give the same graph (Link in order, not
+// concurrently). Not thread-safe for writers; concurrent Search calls are safe.
 #ifndef FLEETMEM_SERVICES_CORE_HNSW_GRAPH_H_
 #define FLEETMEM_SERVICES_CORE_HNSW_GRAPH_H_
 
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <utility>
 #include <vector>
 
@@ -57,6 +58,29 @@ class HnswGraph {
   // otherwise scale must be 1); returns the slot (a removed one if any, last
   // removed first). May throw std::bad_alloc.
   uint32_t Add(const float* vector, float scale = 1.0f);
+  // Insertion in two steps, for linking new nodes on several threads (the
+  // caller's: this library starts none). Stage adds vectors[i] standing
+  // for scales[i] times it as Add would one after the other: the same
+  // slots, levels and stored vectors. It refills removed slots and an empty
+  // graph's first node at once (Add itself; `linked` counts them, they come
+  // first) and leaves the others staged: stored but not linked, so a Search
+  // does not find them yet. May throw std::bad_alloc before it changes
+  // anything; out of memory later, it stages nothing more and says so in
+  // `complete` (the vectors past `slots` are not added).
+  struct Staged {
+    std::vector<uint32_t> slots;  // of the vectors added, in order
+    size_t linked = 0;            // slots[0, linked) are linked already
+    bool complete = true;         // slots holds every vector
+  };
+  Staged Stage(std::span<const float* const> vectors,
+               std::span<const float> scales);
+  // Links staged node slots[i] (linked <= i) into the graph. Calls for
+  // different i may run concurrently (hnswlib's per-node locks); no other
+  // call may run until every staged node is linked. Linked one after the
+  // other in order, the graph is the one the same Adds build; concurrently,
+  // the links depend on how the threads interleave, so two runs may build
+  // different graphs and an approximate search may answer differently.
+  void Link(const Staged& staged, size_t i);
   // Removes a live slot.
   void Remove(uint32_t slot);
   // Up to k nearest live slots to `scale` times `query` (1 unless

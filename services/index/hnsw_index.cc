@@ -4,10 +4,12 @@
 #include <atomic>
 #include <cmath>
 #include <condition_variable>
+#include <exception>
 #include <functional>
 #include <mutex>
 #include <new>
 #include <shared_mutex>
+#include <system_error>
 #include <thread>
 #include <utility>
 #include <vector>
@@ -40,6 +42,40 @@ void KeepNearest(std::vector<Neighbor>& neighbors, size_t k) {
   } else {
     std::sort(neighbors.begin(), neighbors.end(), closer);
   }
+}
+
+// Links the staged nodes of `staged` on up to `threads` threads: the
+// caller's and threads - 1 started for the call (about 20 us each, against
+// 0.3-1 ms per insert at 256-d). One thread links them in order, which
+// builds the graph the same Adds would.
+void LinkStaged(core::HnswGraph& graph, const core::HnswGraph::Staged& staged,
+                size_t threads) {
+  const size_t count = staged.slots.size();
+  std::atomic<size_t> next{staged.linked};
+  std::mutex error_mu;
+  std::exception_ptr error;
+  const auto link = [&] {
+    for (size_t i; (i = next.fetch_add(1)) < count;) {
+      try {
+        graph.Link(staged, i);
+      } catch (...) {
+        const std::lock_guard lock(error_mu);
+        if (!error) error = std::current_exception();
+      }
+    }
+  };
+  std::vector<std::thread> helpers;
+  const size_t pending = count - staged.linked;
+  for (size_t t = 1; t < std::min(threads, pending); ++t) {
+    try {
+      helpers.emplace_back(link);
+    } catch (const std::system_error&) {
+      break;  // no thread to be had: fewer do the work
+    }
+  }
+  link();
+  for (std::thread& helper : helpers) helper.join();
+  if (error) std::rethrow_exception(error);
 }
 
 class HnswIndex final : public engine::PlaceIndex {
@@ -133,12 +169,30 @@ absl::Status HnswIndex::AddScaled(
   } catch (const std::bad_alloc&) {
     return absl::ResourceExhaustedError("HNSW index: out of memory in Add");
   }
+  std::vector<const float*> data(ids.size());
+  std::vector<float> scales(ids.size());
   for (size_t i = 0; i < ids.size(); ++i) {
     const std::span<const float> vector(vectors[i]);
-    const uint32_t slot = graph_->Add(vector.data(), scale(i, vector));
+    data[i] = vector.data();
+    scales[i] = scale(i, vector);
+  }
+  core::HnswGraph::Staged staged;
+  try {
+    staged = graph_->Stage(data, scales);
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError("HNSW index: out of memory in Add");
+  }
+  for (size_t i = 0; i < staged.slots.size(); ++i) {
+    const uint32_t slot = staged.slots[i];
     if (slot >= id_of_.size()) id_of_.resize(slot + 1);
     id_of_[slot] = ids[i];
     slot_of_.emplace(ids[i], slot);
+  }
+  LinkStaged(*graph_, staged, options_.insert_threads);
+  if (!staged.complete) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("HNSW index: out of memory in Add after ",
+                     staged.slots.size(), " of ", ids.size(), " vectors"));
   }
   return absl::OkStatus();
 }
@@ -300,6 +354,8 @@ class TieredIndex final : public engine::PlaceIndex {
         options_(options),
         tail_(NewExactIndex(dimension)) {
     options_.indexer_batch = std::max<size_t>(1, options_.indexer_batch);
+    options_.hnsw.insert_threads =
+        std::max<size_t>(1, options_.hnsw.insert_threads);
   }
   ~TieredIndex() override {
     {
@@ -393,6 +449,12 @@ class TieredIndex final : public engine::PlaceIndex {
   }
   // Moves up to `count` vectors from the end of the tail into the graph.
   absl::Status MoveToGraph(size_t count);
+  // Vectors moved into the graph per step under the lock.
+  size_t StepSize() const {
+    return options_.indexer_batch * options_.hnsw.insert_threads;
+  }
+  // Unlocks, waits until no caller is waiting for mu_, and locks again.
+  void YieldToWaiters(std::unique_lock<std::shared_mutex>& lock);
   // Moves every graph vector back into the tail and drops the graph.
   absl::Status DropGraph();
   void IndexerLoop();
@@ -446,10 +508,29 @@ absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
   paused_ = false;
   if (!options_.background) return MoveToGraph(tail_->size());
   changed_.notify_all();
-  if (back_pressure && waiting > options_.max_unindexed) {
-    return MoveToGraph(ids.size());
+  if (!back_pressure || waiting <= options_.max_unindexed) {
+    return absl::OkStatus();
+  }
+  // Back-pressure: as many vectors as were added move into the graph, a
+  // step at a time with every waiting caller let in between steps, so that
+  // a Search waits for one step, not for the whole batch.
+  for (size_t left = ids.size(); left > 0 && graph_;) {
+    const size_t step = std::min(left, StepSize());
+    status = MoveToGraph(step);
+    if (!status.ok()) return status;
+    left -= step;
+    if (left > 0) YieldToWaiters(lock);
   }
   return absl::OkStatus();
+}
+
+void TieredIndex::YieldToWaiters(std::unique_lock<std::shared_mutex>& lock) {
+  // The lock is not fair: a thread that re-locks at once would starve them.
+  lock.unlock();
+  do {
+    absl::SleepFor(absl::Microseconds(50));
+  } while (waiters_.load(std::memory_order_acquire) > 0);
+  lock.lock();
 }
 
 absl::Status TieredIndex::Save(core::ByteWriter& out) const {
@@ -572,20 +653,14 @@ void TieredIndex::IndexerLoop() {
   while (true) {
     changed_.wait(lock, [this] { return stop_ || !Idle(); });
     if (stop_) break;
-    absl::Status status = MoveToGraph(options_.indexer_batch);
+    absl::Status status = MoveToGraph(StepSize());
     if (!status.ok()) {
       FLEETMEM_LOG(kError) << "tiered index: " << tail_->size()
                            << " vectors stay in the exact segment: " << status;
       paused_ = true;
     }
     changed_.notify_all();  // progress or a pause, for WaitIdle
-    // Searches and writers go first: the lock is not fair, and a thread
-    // that re-locks at once would starve them.
-    lock.unlock();
-    do {
-      absl::SleepFor(absl::Microseconds(50));
-    } while (waiters_.load(std::memory_order_acquire) > 0);
-    lock.lock();
+    YieldToWaiters(lock);   // searches and writers go first
   }
 }
 

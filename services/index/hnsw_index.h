@@ -23,11 +23,22 @@ struct HnswIndexOptions {
   // recall@10 >= 0.95 on 1,000,000 x 256-d codes (docs/performance.md).
   size_t ef_search = 128;
   // Seed of the level generator (a graph built from the same inserts is the
-  // same graph).
+  // same graph with insert_threads = 1).
   uint64_t seed = 42;
   // Share of a removed node's old neighbours whose links are recomputed when
   // its node is reused for a new vector.
   float repair_probability = 0.1f;
+  // Threads that link a batch of new vectors into the graph (Add's caller
+  // and insert_threads - 1 started for the batch; the tiered index's
+  // background steps too). Inserting is bound by memory latency (hnswlib
+  // reads each visited neighbour's vector), so two threads insert about
+  // twice as fast on the 2-core machine (docs/performance.md). With more
+  // than one the links depend on how the threads interleave: the same Adds
+  // may build different graphs, and an approximate search may answer
+  // differently from run to run (the slots, levels and vectors are the
+  // same; what the engine stores never depends on the place index). 1: the
+  // same Adds always build the same graph.
+  size_t insert_threads = 2;
   // A filtered search (SearchParams::accept) first asks for k x this many
   // candidates, then four times more until k are accepted. A search asking
   // for half the index or more (filtered or not) scans every vector
@@ -69,13 +80,15 @@ struct TieredIndexOptions {
   // calls made).
   bool background = true;
   // Back-pressure: an Add that finds more than this many vectors waiting
-  // inserts as many vectors into the graph itself as it adds, so the
+  // inserts as many vectors into the graph itself as it adds (a step at a
+  // time, as the background thread, letting searches in between), so the
   // growing segment (scanned by every Search) stops growing. A restart's
   // single bulk Add is not held up: the backlog is drained in the background.
   size_t max_unindexed = 20'000;
-  // Vectors the background thread moves per step under the index's writer
-  // lock. A Search waits at most one step (batch x one insert, 0.3-1 ms at
-  // 256-d here); between steps every waiting caller goes first.
+  // Vectors the background thread moves per step and insert thread
+  // (hnsw.insert_threads of them link a step's vectors) under the index's
+  // writer lock. A Search waits at most one step (batch x one insert,
+  // 0.3-1 ms at 256-d here); between steps every waiting caller goes first.
   size_t indexer_batch = 4;
 };
 

@@ -142,6 +142,7 @@ void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
   if (in.has_ef_search()) out->hnsw.ef_search = in.ef_search();
   if (in.has_hnsw_from()) out->hnsw_from = in.hnsw_from();
   if (in.has_max_unindexed()) out->max_unindexed = in.max_unindexed();
+  if (in.has_insert_threads()) out->hnsw.insert_threads = in.insert_threads();
 }
 
 void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
@@ -530,6 +531,10 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
   if (config.tiered.hnsw_from < 2) {
     return absl::InvalidArgumentError("hnsw.hnsw_from: must be at least 2");
   }
+  if (config.tiered.hnsw.insert_threads < 1 ||
+      config.tiered.hnsw.insert_threads > 64) {
+    return absl::InvalidArgumentError("hnsw.insert_threads: must be in 1..64");
+  }
   if (config.work.threads > 1024) {
     return absl::InvalidArgumentError("worker_threads: at most 1024");
   }
@@ -688,7 +693,8 @@ std::string DescribeConfig(const ServerConfig& config) {
                                                         : "optional"));
   if (config.index == IndexKind::kAuto || config.index == IndexKind::kHnsw) {
     absl::StrAppend(&out, " hnsw_m=", config.tiered.hnsw.m,
-                    " hnsw_ef_search=", config.tiered.hnsw.ef_search);
+                    " hnsw_ef_search=", config.tiered.hnsw.ef_search,
+                    " hnsw_insert_threads=", config.tiered.hnsw.insert_threads);
     if (config.index == IndexKind::kAuto) {
       absl::StrAppend(&out, " hnsw_from=", config.tiered.hnsw_from,
                       " max_unindexed=", config.tiered.max_unindexed);

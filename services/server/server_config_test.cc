@@ -195,6 +195,8 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
   EXPECT_EQ(config.tiered.max_unindexed, defaults.tiered.max_unindexed);
   EXPECT_EQ(config.tiered.hnsw.ef_construction,
             defaults.tiered.hnsw.ef_construction);
+  EXPECT_EQ(config.tiered.hnsw.insert_threads,
+            defaults.tiered.hnsw.insert_threads);
   EXPECT_EQ(
       config.engine.fleet_memory.at("ablation-no-time-decay").replay_decay,
       1.0);
@@ -273,6 +275,10 @@ TEST(ServerConfigTest, Validation) {
       {"engine", [](ServerConfig& c) { c.engine.memory.max_clusters = 0; }},
       {"segment", [](ServerConfig& c) { c.engine.segment_size = 0; }},
       {"gamma", [](ServerConfig& c) { c.engine.memory.replay_decay = 1.5; }},
+      {"no insert thread",
+       [](ServerConfig& c) { c.tiered.hnsw.insert_threads = 0; }},
+      {"insert threads",
+       [](ServerConfig& c) { c.tiered.hnsw.insert_threads = 65; }},
   };
   for (const Case& c : cases) {
     ServerConfig config = valid();
