@@ -194,14 +194,29 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
         prepared.stored = true;
       }
     }
-    absl::MutexLock lock(&fleet->mu);
-    if (status.ok() && !prepared.mutation.put_pending.empty()) {
-      status = fleet->CommitUpload(std::move(prepared), &result, &notices,
-                                   plan ? &*plan : nullptr);
+    const size_t added = prepared.mutation.put_pending.size();
+    PlaceIndex* index = nullptr;
+    {
+      absl::MutexLock lock(&fleet->mu);
+      if (status.ok() && added > 0) {
+        status = fleet->CommitUpload(std::move(prepared), &result, &notices,
+                                     plan ? &*plan : nullptr);
+      }
+      notices.consolidated.clusters = fleet->memory.clusters().size();
+      notices.consolidated.traces = fleet->memory.trace_count();
+      fleet->PublishHeld();
+      index = fleet->index.get();
     }
-    notices.consolidated.clusters = fleet->memory.clusters().size();
-    notices.consolidated.traces = fleet->memory.trace_count();
-    fleet->PublishHeld();
+    // The index's back-pressure, outside the fleet's lock: queries go on
+    // while the uploader pays for the graph inserts. The index is replaced
+    // only under writer_mu, held here.
+    if (status.ok() && added > 0 && index != nullptr) {
+      if (absl::Status caught = index->CatchUp(added); !caught.ok()) {
+        FLEETMEM_LOG(kWarning)
+            << "fleet \"" << fleet_id << "\": place index catching up: "
+            << caught;  // the codes stay searchable in its exact segment
+      }
+    }
   }
   Fleet::Notify(*this, fleet_id, notices.last_event_id);
   if (notices.consolidations > 0 && hooks_.on_consolidate) {

@@ -205,11 +205,11 @@ struct MemoryEngine::Fleet {
   // memory restores its clusters and the index copies the codes, each
   // seconds long at 1,000,000 traces); the traces' codes must not change
   // or move meanwhile.
-  // `on_load`: the adds of a load, never held up by the index's
-  // back-pressure (PlaceIndex::AddNormalizedOnLoad).
+  // Never held up by the index's back-pressure
+  // (PlaceIndex::AddNormalizedUnthrottled): an upload catches up after it
+  // releases `mu` (MemoryEngine::Upload), a load in the background.
   absl::Status IndexTraces(const std::vector<const core::MemoryTrace*>& traces,
-                           const std::function<void()>& meanwhile = nullptr,
-                           bool on_load = false)
+                           const std::function<void()>& meanwhile = nullptr)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // A load from the fleet's index snapshot (written by SaveIndexSnapshot
   // at a clean shutdown or periodically while serving), read and its index

@@ -340,7 +340,7 @@ const core::MemoryTrace* MemoryEngine::Fleet::FindTrace(
 
 absl::Status MemoryEngine::Fleet::IndexTraces(
     const std::vector<const core::MemoryTrace*>& traces,
-    const std::function<void()>& meanwhile, bool on_load) {
+    const std::function<void()>& meanwhile) {
   if (traces.empty()) {
     if (meanwhile) meanwhile();
     return absl::OkStatus();
@@ -357,10 +357,8 @@ absl::Status MemoryEngine::Fleet::IndexTraces(
     codes.push_back(trace->code);
   }
   absl::Status status;
-  RunBeside(meanwhile, traces.size(), [&] {
-    status = on_load ? index->AddNormalizedOnLoad(ids, codes)
-                     : index->AddNormalized(ids, codes);
-  });
+  RunBeside(meanwhile, traces.size(),
+            [&] { status = index->AddNormalizedUnthrottled(ids, codes); });
   ++snapshot_changes;
   if (!status.ok()) return status;
   handles.Reserve(handles.size() + traces.size());
@@ -458,7 +456,7 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
   handles = std::move(saved);
   next_handle = snapshot.next_handle;
   if (!missing.empty()) {
-    status = IndexTraces(missing, nullptr, /*on_load=*/true);
+    status = IndexTraces(missing);
     if (!status.ok()) {
       index = engine->index_factory_(meta.code_dimension);
       handles.Clear();

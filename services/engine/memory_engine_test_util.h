@@ -129,6 +129,12 @@ class ForwardingIndex : public PlaceIndex {
       std::span<const std::span<const float>> codes) override {
     return inner_->AddNormalized(ids, codes);
   }
+  absl::Status AddNormalizedUnthrottled(
+      std::span<const uint64_t> ids,
+      std::span<const std::span<const float>> codes) override {
+    return inner_->AddNormalizedUnthrottled(ids, codes);
+  }
+  absl::Status CatchUp(size_t added) override { return inner_->CatchUp(added); }
   absl::Status Remove(std::span<const uint64_t> ids) override {
     return inner_->Remove(ids);
   }

@@ -58,15 +58,23 @@ class PlaceIndex {
     }
     return Add(ids, vectors);
   }
-  // AddNormalized for a load (a restart adding what its index snapshot
-  // lacks): an index that throttles adds while its search structure lags
-  // behind (the tiered index's back-pressure) takes these at once and
-  // catches up in the background.
-  virtual absl::Status AddNormalizedOnLoad(
+  // AddNormalized without the throttling an index may apply while its
+  // search structure lags behind (the tiered index's back-pressure): it
+  // takes these at once. The caller then either does that work itself with
+  // CatchUp, outside its own locks so that its readers go on meanwhile
+  // (the engine's uploads), or leaves the index to catch up in the
+  // background (a restart's load).
+  virtual absl::Status AddNormalizedUnthrottled(
       std::span<const uint64_t> ids,
       std::span<const std::span<const float>> codes) {
     return AddNormalized(ids, codes);
   }
+  // The throttling AddNormalized would have applied to the `added` vectors
+  // just given to AddNormalizedUnthrottled (the tiered index: while more
+  // than max_unindexed vectors wait for its graph, up to `added` of them
+  // move in, a step at a time). Searches may run meanwhile. Default:
+  // nothing to do.
+  virtual absl::Status CatchUp(size_t added) { return absl::OkStatus(); }
   // True if the index keeps the code or vector it was given under `id` bit
   // for bit (for AddNormalized, the code before scaling), so that the caller
   // may drop its own copy and read it back with CopyCode. Once true it stays

@@ -7,6 +7,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "services/common/background_thread.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
 #include "services/core/validation.h"
@@ -23,6 +24,10 @@ absl::Status ValidateWritePathOptions(const WritePathOptions& options) {
   if (options.appliers < 1 || options.appliers > 64) {
     return absl::InvalidArgumentError(
         absl::StrCat("appliers must be 1..64, got ", options.appliers));
+  }
+  if (options.applier_nice < 0 || options.applier_nice > 19) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("applier_nice must be 0..19, got ", options.applier_nice));
   }
   if (options.apply_batch < 1) {
     return absl::InvalidArgumentError("apply_batch must be at least 1");
@@ -507,6 +512,11 @@ void WritePath::Schedule(FleetLog& log) {
 }
 
 void WritePath::RunApplier() {
+  if (absl::Status marked =
+          common::MarkBackgroundThread("fleetmem-apply", options_.applier_nice);
+      !marked.ok()) {
+    FLEETMEM_LOG(kWarning) << "applier thread: " << marked;
+  }
   while (true) {
     FleetLog* log = nullptr;
     {

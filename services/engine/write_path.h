@@ -58,6 +58,12 @@ struct WritePathOptions {
   uint64_t max_backlog_traces = 500'000;
   // Applier threads shared by every fleet.
   int appliers = 2;
+  // Their nice value (0..19; common::MarkBackgroundThread), and so that of
+  // the graph-linking threads an applier starts: 10 gives the threads that
+  // answer calls about ten times the appliers' CPU share when both want it,
+  // so a burst's acknowledgements and concurrent queries are not slowed by
+  // applying it; the backlog takes up the difference. 0: the calls' own.
+  int applier_nice = 10;
   // Log entries one applier reads and applies per turn of a fleet before it
   // trims them and lets the next fleet have a turn.
   size_t apply_batch = 64;

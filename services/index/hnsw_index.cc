@@ -18,6 +18,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
+#include "services/common/background_thread.h"
 #include "services/common/log.h"
 #include "services/core/feature_space.h"
 #include "services/core/hnsw_graph.h"
@@ -375,13 +376,14 @@ class TieredIndex final : public engine::PlaceIndex {
       std::span<const std::span<const float>> codes) override {
     return AddToTail(ids, [&] { return tail_->AddNormalized(ids, codes); });
   }
-  absl::Status AddNormalizedOnLoad(
+  absl::Status AddNormalizedUnthrottled(
       std::span<const uint64_t> ids,
       std::span<const std::span<const float>> codes) override {
     return AddToTail(
         ids, [&] { return tail_->AddNormalized(ids, codes); },
         /*back_pressure=*/false);
   }
+  absl::Status CatchUp(size_t added) override;
   absl::Status Remove(std::span<const uint64_t> ids) override;
   absl::StatusOr<std::vector<Neighbor>> Search(
       std::span<const float> query, const SearchParams& params) const override;
@@ -453,6 +455,9 @@ class TieredIndex final : public engine::PlaceIndex {
   size_t StepSize() const {
     return options_.indexer_batch * options_.hnsw.insert_threads;
   }
+  // CatchUp's work, under `lock` (of mu_).
+  absl::Status CatchUpLocked(size_t count,
+                             std::unique_lock<std::shared_mutex>& lock);
   // Unlocks, waits until no caller is waiting for mu_, and locks again.
   void YieldToWaiters(std::unique_lock<std::shared_mutex>& lock);
   // Moves every graph vector back into the tail and drops the graph.
@@ -511,12 +516,30 @@ absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
   if (!back_pressure || waiting <= options_.max_unindexed) {
     return absl::OkStatus();
   }
-  // Back-pressure: as many vectors as were added move into the graph, a
-  // step at a time with every waiting caller let in between steps, so that
-  // a Search waits for one step, not for the whole batch.
-  for (size_t left = ids.size(); left > 0 && graph_;) {
+  return CatchUpLocked(ids.size(), lock);
+}
+
+absl::Status TieredIndex::CatchUp(size_t added) {
+  const WaiterCount turn(waiters_);
+  const WaiterCount writer(writers_);
+  std::unique_lock lock(mu_);
+  turn.Acquired();
+  writer.Acquired();
+  if (!graph_ || tail_->size() <= options_.max_unindexed) {
+    return absl::OkStatus();
+  }
+  return CatchUpLocked(added, lock);
+}
+
+absl::Status TieredIndex::CatchUpLocked(
+    size_t count, std::unique_lock<std::shared_mutex>& lock) {
+  // Back-pressure: up to `count` vectors move into the graph while more
+  // than max_unindexed wait, a step at a time with every waiting caller let
+  // in between steps, so that a Search waits for one step, not the batch.
+  for (size_t left = count;
+       left > 0 && graph_ && tail_->size() > options_.max_unindexed;) {
     const size_t step = std::min(left, StepSize());
-    status = MoveToGraph(step);
+    absl::Status status = MoveToGraph(step);
     if (!status.ok()) return status;
     left -= step;
     if (left > 0) YieldToWaiters(lock);
@@ -649,6 +672,11 @@ absl::Status TieredIndex::DropGraph() {
 }
 
 void TieredIndex::IndexerLoop() {
+  if (absl::Status marked =
+          common::MarkBackgroundThread("fleetmem-graph", options_.indexer_nice);
+      !marked.ok()) {
+    FLEETMEM_LOG(kWarning) << "tiered index: " << marked;
+  }
   std::unique_lock lock(mu_);
   while (true) {
     changed_.wait(lock, [this] { return stop_ || !Idle(); });

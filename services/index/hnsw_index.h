@@ -90,6 +90,10 @@ struct TieredIndexOptions {
   // writer lock. A Search waits at most one step (batch x one insert,
   // 0.3-1 ms at 256-d here); between steps every waiting caller goes first.
   size_t indexer_batch = 4;
+  // The background thread's nice value (0..19; common::MarkBackgroundThread,
+  // as the write path's appliers): the threads answering calls get the
+  // larger CPU share while it catches up. 0: theirs.
+  int indexer_nice = 10;
 };
 
 // Exact below options.hnsw_from vectors, HNSW (plus the growing segment)

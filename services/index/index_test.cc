@@ -1149,6 +1149,30 @@ TEST(TieredIndexTest, GrowingSegmentStaysBounded) {
   EXPECT_EQ(tiered->size(), 2000u);
 }
 
+// The engine's way: an unthrottled add under its own lock, then CatchUp
+// outside it does the same back-pressure.
+TEST(TieredIndexTest, CatchUpAfterAnUnthrottledAddKeepsTheSegmentBounded) {
+  constexpr size_t kDimension = 16;
+  std::mt19937 rng(43);
+  TieredIndexOptions options;
+  options.hnsw_from = 50;
+  options.max_unindexed = 20;
+  options.indexer_batch = 1;
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  size_t most = 0;
+  for (uint64_t first = 0; first < 2000; first += 10) {
+    const Dataset batch = GaussianDataset(10, kDimension, rng, first);
+    const std::vector<std::span<const float>> codes(batch.vectors.begin(),
+                                                    batch.vectors.end());
+    ASSERT_TRUE(tiered->AddNormalizedUnthrottled(batch.ids, codes).ok());
+    most = std::max(most, tiered->unindexed());
+    ASSERT_TRUE(tiered->CatchUp(batch.ids.size()).ok());
+    EXPECT_LE(tiered->unindexed(), 50u + 10u);
+  }
+  EXPECT_GT(most, options.max_unindexed);  // the add itself was not held up
+  EXPECT_EQ(tiered->size(), 2000u);
+}
+
 // A bulk load (a restart) goes into the growing segment in one call without
 // waiting for the graph; a used id is refused whichever part holds it.
 TEST(TieredIndexTest, BulkAddReturnsBeforeTheGraphIsBuilt) {
@@ -1185,7 +1209,7 @@ TEST(TieredIndexTest, LoadAddIsNotThrottledByTheBacklog) {
   const Dataset second = GaussianDataset(3000, kDimension, rng, 3000);
   std::vector<std::span<const float>> codes(second.vectors.begin(),
                                             second.vectors.end());
-  ASSERT_TRUE(tiered->AddNormalizedOnLoad(second.ids, codes).ok());
+  ASSERT_TRUE(tiered->AddNormalizedUnthrottled(second.ids, codes).ok());
   // Throttled, at most 3000 could still wait; the graph inserts a few
   // thousand 256-d vectors per second here.
   EXPECT_GT(tiered->unindexed(), 4500u);

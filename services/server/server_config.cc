@@ -133,6 +133,12 @@ void ApplyWritePath(const WritePathConfig& in, ServerConfig* out) {
   if (in.has_max_apply_wait_seconds()) {
     out->write_path_max_apply_wait = absl::Seconds(in.max_apply_wait_seconds());
   }
+  if (in.has_background_nice()) {
+    const int nice = static_cast<int>(
+        std::min<uint32_t>(in.background_nice(), 1000));  // validated below
+    out->write_path.applier_nice = nice;
+    out->tiered.indexer_nice = nice;
+  }
 }
 
 void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
@@ -684,6 +690,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       " index_snapshot_min_codes=", config.index_snapshot_min_codes,
       " max_backlog_traces=", config.write_path.max_backlog_traces,
       " appliers=", config.write_path.appliers,
+      " background_nice=", config.write_path.applier_nice,
       " auth=", config.security.auth_file.empty() ? "off" : "on",
       " tls=", config.security.tls_cert_file.empty() ? "off" : "on",
       " client_certificates=",

@@ -211,16 +211,20 @@ TEST(ServerConfigTest, WritePathFromTheFileIsValidated) {
   ServerConfig config;
   config.data_dir = "/tmp/d";
   ASSERT_TRUE(ApplyConfigText("write_path { max_backlog_traces: 1234 "
-                              "appliers: 3 max_apply_wait_seconds: 7 }",
+                              "appliers: 3 max_apply_wait_seconds: 7 "
+                              "background_nice: 5 }",
                               &config)
                   .ok());
   EXPECT_EQ(config.write_path.max_backlog_traces, 1234u);
   EXPECT_EQ(config.write_path.appliers, 3);
   EXPECT_EQ(config.write_path_max_apply_wait, absl::Seconds(7));
+  EXPECT_EQ(config.write_path.applier_nice, 5);
+  EXPECT_EQ(config.tiered.indexer_nice, 5);
   EXPECT_TRUE(ValidateServerConfig(config).ok());
   for (const char* bad :
        {"write_path { appliers: 0 }", "write_path { appliers: 65 }",
-        "write_path { max_apply_wait_seconds: 0 }"}) {
+        "write_path { max_apply_wait_seconds: 0 }",
+        "write_path { background_nice: 20 }"}) {
     ServerConfig refused;
     refused.data_dir = "/tmp/d";
     ASSERT_TRUE(ApplyConfigText(bad, &refused).ok()) << bad;
