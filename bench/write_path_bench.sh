@@ -17,8 +17,11 @@
 #           its rate is the same number;
 #   burst   10 s of one upload stream (batches of 200, a code pool of 100,000:
 #           the client's cost stays small), durable acknowledgement, with
-#           QueryPlace (k = 10) at 20/s beside it (fleetmem-load bench), and
-#           the time until the burst is applied;
+#           QueryPlace (k = 10) at 20/s beside it (fleetmem-load bench);
+#   drain   right after the burst, 10 s of QueryPlace (k = 10) at 50/s and
+#           no upload, while the applier works through the burst's backlog
+#           (the build before has none: its queries meet an idle server),
+#           then the time until the burst is applied;
 #   peer    then, with the server idle, the same stream for 10 s against the
 #           bare gRPC peer of the same proto (fleetmem-load peer).
 # The load generator is AFTER's (the build before ignores the `ack` field).
@@ -55,7 +58,7 @@ wait_applied() {
 }
 calc() { awk "BEGIN { printf \"%.6f\", $1 }"; }
 
-echo "size,build,applied_traces_per_s,burst_acked_per_s,peer_per_s,ratio_to_peer,burst_query_p50_ms,burst_query_p99_ms,burst_drain_s,burst_traces" >"$out"
+echo "size,build,applied_traces_per_s,burst_acked_per_s,peer_per_s,ratio_to_peer,burst_query_p50_ms,burst_query_p99_ms,burst_drain_s,burst_traces,drain_query_p50_ms,drain_query_p99_ms" >"$out"
 for size in "$@"; do
   cat >"$work/config.textproto" <<CONFIG
 memory { max_clusters: $((size / 10 + 2100)) }
@@ -83,7 +86,12 @@ CONFIG
       --robots 1 --batch 200 --seconds 10 --query-rate 20 \
       --first-seq 2000000 --code-pool 100000 --csv "$work/burst.csv" \
       >/dev/null 2>&1
-    drain=$(wait_applied w)
+    drain_start=$(date +%s.%N)
+    "$load" bench --server "$SERVER_ADDR" --fleet w --dimension 256 \
+      --robots 0 --seconds 10 --query-rate 50 --csv "$work/drain.csv" \
+      >/dev/null 2>&1
+    wait_applied w >/dev/null
+    drain=$(calc "$(date +%s.%N) - $drain_start")
     stop_server
     "$load" peer --listen 127.0.0.1:0 >"$work/peer.txt" &
     peer_pid=$!
@@ -95,12 +103,14 @@ CONFIG
     kill "$peer_pid"
     wait "$peer_pid" 2>/dev/null || true
     row=$(sed -n 2p "$work/burst.csv")
+    drain_row=$(sed -n 2p "$work/drain.csv")
     col() { echo "$1" | cut -d, -f"$2"; }
     acked=$(col "$row" 6)
-    printf '%s,%s,%.0f,%s,%s,%.3f,%s,%s,%.2f,%.0f\n' "$size" "$which" \
+    printf '%s,%s,%.0f,%s,%s,%.3f,%s,%s,%.2f,%.0f,%s,%s\n' "$size" "$which" \
       "$applied" "$acked" "$peer_rate" \
       "$(calc "$acked / $peer_rate")" "$(col "$row" 13)" \
-      "$(col "$row" 14)" "$drain" "$(calc "$acked * 10")" |
+      "$(col "$row" 14)" "$drain" "$(calc "$acked * 10")" \
+      "$(col "$drain_row" 13)" "$(col "$drain_row" 14)" |
       tee -a "$out"
   done
 done
