@@ -20,8 +20,9 @@
 #           QueryPlace (k = 10) at 20/s beside it (fleetmem-load bench);
 #   drain   right after the burst, 10 s of QueryPlace (k = 10) at 50/s and
 #           no upload, while the applier works through the burst's backlog
-#           (the build before has none: its queries meet an idle server),
-#           then the time until the burst is applied;
+#           (the build before has none: its queries meet an idle server;
+#           then 10 s of the same against the load generator's own peer),
+#           and beside them the time until the burst is applied;
 #   peer    then, with the server idle, the same stream for 10 s against the
 #           bare gRPC peer of the same proto (fleetmem-load peer).
 # The load generator is AFTER's (the build before ignores the `ack` field).
@@ -86,12 +87,12 @@ CONFIG
       --robots 1 --batch 200 --seconds 10 --query-rate 20 \
       --first-seq 2000000 --code-pool 100000 --csv "$work/burst.csv" \
       >/dev/null 2>&1
-    drain_start=$(date +%s.%N)
     "$load" bench --server "$SERVER_ADDR" --fleet w --dimension 256 \
       --robots 0 --seconds 10 --query-rate 50 --csv "$work/drain.csv" \
-      >/dev/null 2>&1
-    wait_applied w >/dev/null
-    drain=$(calc "$(date +%s.%N) - $drain_start")
+      >/dev/null 2>&1 &
+    queries=$!
+    drain=$(wait_applied w)
+    wait "$queries"
     stop_server
     "$load" peer --listen 127.0.0.1:0 >"$work/peer.txt" &
     peer_pid=$!

@@ -84,17 +84,18 @@ struct TieredIndexOptions {
   // time, as the background thread, letting searches in between), so the
   // growing segment (scanned by every Search) stops growing. A restart's
   // single bulk Add is not held up: the backlog is drained in the background.
-  // Every Search scans the waiting vectors exactly: 2,000 keeps that under
-  // a millisecond while the graph catches up (queries beside a drain of the
-  // write path's backlog: p50 0.56 ms, p99 4.3 ms at 2,000, 10.9 and 59 ms
-  // at the earlier 20,000; docs/performance.md). A burst is absorbed by the
-  // write path's log (engine::WritePath), not by this segment.
+  // Every Search scans the waiting vectors exactly (about 0.1 ms per 2,000
+  // 256-d codes on an idle machine). A burst is absorbed by the write
+  // path's log (engine::WritePath), not by this segment, so it stays small
+  // (it was 20,000 before that log existed; docs/performance.md).
   size_t max_unindexed = 2'000;
-  // Vectors the background thread moves per step and insert thread
-  // (hnsw.insert_threads of them link a step's vectors) under the index's
-  // writer lock. A Search waits at most one step (batch x one insert,
-  // 0.3-1 ms at 256-d here); between steps every waiting caller goes first.
-  size_t indexer_batch = 4;
+  // Vectors moved into the graph per step and insert thread (the
+  // background thread's and back-pressure's steps; hnsw.insert_threads
+  // link a step's vectors) under the index's writer lock. A Search waits
+  // for at most one step (one insert per thread: 0.3-1 ms at 256-d here);
+  // between steps every waiting caller goes first. 1 (it was 4): a query
+  // beside a drain of the write backlog waits for fewer inserts.
+  size_t indexer_batch = 1;
   // The background thread's nice value (0..19; common::MarkBackgroundThread,
   // as the write path's appliers): the threads answering calls get the
   // larger CPU share while it catches up. 0: theirs.
