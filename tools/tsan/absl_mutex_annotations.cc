@@ -5,11 +5,12 @@
 // orders two accesses: every absl::Mutex-protected access would be reported
 // as a race. Linked into the TSan build's test binaries only (`make
 // test-tsan`), this file defines Mutex::Lock/Unlock/ReaderLock/ReaderUnlock/
-// TryLock/ReaderTryLock in the executable: they tell TSan about the lock
-// (sanitizer/tsan_interface.h) around the real functions, found with
-// dlsym(RTLD_NEXT). Await/LockWhen/CondVar are not annotated: code that waits
-// on a condition (the transport's work queue and shutdown) is not run under
-// TSan (docs/reliability.md).
+// TryLock/ReaderTryLock and CondVar::Wait/WaitWithDeadline/WaitWithTimeout
+// in the executable: they tell TSan about the lock (sanitizer/
+// tsan_interface.h) around the real functions, found with dlsym(RTLD_NEXT).
+// Await/LockWhen are not annotated: code that waits on a Condition (the
+// transport's work queue and shutdown) is not run under TSan
+// (docs/reliability.md).
 #include <dlfcn.h>
 #include <sanitizer/tsan_interface.h>
 
@@ -89,6 +90,50 @@ bool Mutex::ReaderTryLock() {
   __tsan_mutex_post_lock(
       this, flags | (locked ? 0 : __tsan_mutex_try_lock_failed), 0);
   return locked;
+}
+
+// A CondVar wait releases the (exclusively held) mutex inside the library
+// and holds it again before it returns: TSan is told of both, or it would
+// take the waiter for the mutex's holder throughout (a "double lock" when
+// the signaller locks it).
+namespace {
+
+void WaitReleases(Mutex* mu) {
+  __tsan_mutex_pre_unlock(mu, 0);
+  __tsan_mutex_post_unlock(mu, 0);
+}
+
+void WaitReacquires(Mutex* mu) {
+  __tsan_mutex_pre_lock(mu, 0);
+  __tsan_mutex_post_lock(mu, 0, 0);
+}
+
+}  // namespace
+
+void CondVar::Wait(Mutex* mu) {
+  static const auto real = Real<void (*)(CondVar*, Mutex*)>(
+      "_ZN4absl7debian37CondVar4WaitEPNS0_5MutexE");
+  WaitReleases(mu);
+  real(this, mu);
+  WaitReacquires(mu);
+}
+
+bool CondVar::WaitWithDeadline(Mutex* mu, absl::Time deadline) {
+  static const auto real = Real<bool (*)(CondVar*, Mutex*, absl::Time)>(
+      "_ZN4absl7debian37CondVar16WaitWithDeadlineEPNS0_5MutexENS0_4TimeE");
+  WaitReleases(mu);
+  const bool timed_out = real(this, mu, deadline);
+  WaitReacquires(mu);
+  return timed_out;
+}
+
+bool CondVar::WaitWithTimeout(Mutex* mu, absl::Duration timeout) {
+  static const auto real = Real<bool (*)(CondVar*, Mutex*, absl::Duration)>(
+      "_ZN4absl7debian37CondVar15WaitWithTimeoutEPNS0_5MutexENS0_8DurationE");
+  WaitReleases(mu);
+  const bool timed_out = real(this, mu, timeout);
+  WaitReacquires(mu);
+  return timed_out;
 }
 
 ABSL_NAMESPACE_END
