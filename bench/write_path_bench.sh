@@ -40,21 +40,12 @@ work=$(mktemp -d)
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
 load="$after/bin/fleetmem-load"
-cli="$after/bin/fleetmem"
 
-# backlog_traces FLEET: traces acknowledged and not applied (0 where the
-# server does not say: the build before applies before it acknowledges).
-backlog_traces() {
-  local n
-  n=$("$cli" --server "$SERVER_ADDR" --json stats --fleet "$1" |
-    sed -n 's/.*"backlogTraces":"\{0,1\}\([0-9]*\).*/\1/p')
-  echo "${n:-0}"
-}
 # wait_applied FLEET: seconds until the fleet's backlog is empty.
 wait_applied() {
   local start
   start=$(date +%s.%N)
-  while [ "$(backlog_traces "$1")" != 0 ]; do sleep 0.05; done
+  while [ "$(backlog_traces "$after" "$1")" != 0 ]; do sleep 0.05; done
   awk -v a="$(date +%s.%N)" -v b="$start" 'BEGIN { printf "%.3f", a - b }'
 }
 calc() { awk "BEGIN { printf \"%.6f\", $1 }"; }

@@ -30,12 +30,6 @@ work=$(mktemp -d)
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
 load="$build/bin/fleetmem-load"
-backlog() {
-  local n
-  n=$("$build/bin/fleetmem" --server "$SERVER_ADDR" --json stats --fleet w |
-    sed -n 's/.*"backlogTraces":"\{0,1\}\([0-9]*\).*/\1/p')
-  echo "${n:-0}"
-}
 echo "config,held,fill_traces_per_s,burst_acked_per_s,burst_query_p50_ms,burst_query_p99_ms,drain_query_p50_ms,drain_query_p99_ms,drain_applied_per_s" >"$out"
 for spec in "$@"; do
   name=${spec%%=*}
@@ -52,14 +46,14 @@ for spec in "$@"; do
     --robots 1 --batch 200 --seconds 10 --query-rate 20 \
     --first-seq 2000000 --code-pool 100000 --csv "$work/burst.csv" \
     >/dev/null 2>&1
-  before=$(backlog)
+  before=$(backlog_traces "$build" w)
   start=$(date +%s.%N)
   "$load" bench --server "$SERVER_ADDR" --fleet w --dimension 256 \
     --robots 0 --seconds 10 --query-rate 50 --csv "$work/drain.csv" \
     >/dev/null 2>&1 &
   queries=$!
   sleep 10
-  after=$(backlog)
+  after=$(backlog_traces "$build" w)
   seconds=$(awk -v a="$(date +%s.%N)" -v b="$start" 'BEGIN { print a - b }')
   wait "$queries"
   stop_server

@@ -13,6 +13,16 @@ unindexed_codes() {
   echo "${n:-0}"
 }
 
+# backlog_traces BUILD FLEET: the fleet's traces acknowledged and not
+# applied (GetStats backlog_traces; 0 where the server does not say: a
+# build before the write path applies before it acknowledges).
+backlog_traces() {
+  local n
+  n=$("$1/bin/fleetmem" --server "$SERVER_ADDR" --json stats --fleet "$2" |
+    sed -n 's/.*"backlogTraces":"\{0,1\}\([0-9]*\).*/\1/p')
+  echo "${n:-0}"
+}
+
 # fill_scale_fleet BUILD WORK TRACES: the restart and footprint benchmarks'
 # fleet. Writes WORK/fill.textproto (the exact index) and
 # WORK/restart.textproto (no periodic snapshot: the snapshot a restart
