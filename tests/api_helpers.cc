@@ -1,5 +1,8 @@
 #include "tests/api_helpers.h"
 
+#include <chrono>
+#include <thread>
+
 #include "absl/strings/str_cat.h"
 
 namespace fleetmem::testing {
@@ -117,6 +120,21 @@ Reply<v1::GetStatsResponse> GetStats(v1::MemoryService::StubInterface& stub,
   auto context = MakeContext();
   reply.status = stub.GetStats(context.get(), request, &reply.response);
   return reply;
+}
+
+Reply<v1::GetStatsResponse> GetStatsApplied(
+    v1::MemoryService::StubInterface& stub, const std::string& fleet_id,
+    std::chrono::milliseconds wait) {
+  const auto give_up = std::chrono::steady_clock::now() + wait;
+  Reply<v1::GetStatsResponse> stats = GetStats(stub, fleet_id);
+  while (stats.ok() &&
+         stats.response.applied_through() <
+             stats.response.acknowledged_through() &&
+         std::chrono::steady_clock::now() < give_up) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    stats = GetStats(stub, fleet_id);
+  }
+  return stats;
 }
 
 Reply<v1::ConsolidateResponse> Consolidate(

@@ -56,6 +56,12 @@ Reply<v1::UploadTracesResponse> UploadTraces(
 
 Reply<v1::GetStatsResponse> GetStats(v1::MemoryService::StubInterface& stub,
                                      const std::string& fleet_id);
+// GetStats once the fleet's log is applied through every upload it has
+// acknowledged (uploads acknowledged as durable are applied a moment
+// later), or after `wait` with what it had then (backlog_traces > 0).
+Reply<v1::GetStatsResponse> GetStatsApplied(
+    v1::MemoryService::StubInterface& stub, const std::string& fleet_id,
+    std::chrono::milliseconds wait = std::chrono::seconds(120));
 Reply<v1::ConsolidateResponse> Consolidate(
     v1::MemoryService::StubInterface& stub, const std::string& fleet_id);
 Reply<v1::SampleReplayResponse> SampleReplay(

@@ -180,15 +180,7 @@ class RobotIntegrationTest : public ::testing::Test {
   // that has finished may still have traces waiting to be applied.
   v1::RobotStats Stats(const std::string& fleet, const std::string& robot) {
     std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
-    Reply<v1::GetStatsResponse> stats = GetStats(*stub, fleet);
-    const auto give_up = Clock::now() + std::chrono::seconds(120);
-    while (stats.ok() &&
-           stats.response.applied_through() <
-               stats.response.acknowledged_through() &&
-           Clock::now() < give_up) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-      stats = GetStats(*stub, fleet);
-    }
+    Reply<v1::GetStatsResponse> stats = GetStatsApplied(*stub, fleet);
     EXPECT_TRUE(stats.ok()) << Describe(stats.status);
     EXPECT_EQ(stats.response.backlog_traces(), 0u)
         << "the fleet's log was not applied within 120 s";

@@ -542,7 +542,8 @@ TEST_F(BadInputTest, UnparseableUploadMessageFailsTheStream) {
     EXPECT_TRUE(absl::StrContains(status.error_message(), words))
         << status.error_message();
   }
-  Reply<v1::GetStatsResponse> stats = GetStats(stub(), kFleet);
+  // The stream's uploads are acknowledged as durable: applied a moment later.
+  Reply<v1::GetStatsResponse> stats = GetStatsApplied(stub(), kFleet);
   ASSERT_TRUE(stats.ok()) << Describe(stats.status);
   EXPECT_EQ(stats.response.pending_traces(), before_.pending_traces() + 10)
       << "message 1 is durable; the call failed before message 3";
