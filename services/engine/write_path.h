@@ -53,9 +53,9 @@ struct WritePathOptions {
   // backlog past it is refused with RESOURCE_EXHAUSTED naming the backlog
   // and its age (robots retry it with backoff); 0: unbounded. The backlog
   // lives in the store (on disk), not in memory: the bound is how far the
-  // applier may fall behind a burst (500,000 traces of 256-d: 3 minutes of
-  // catching up at the 2,700-3,300 traces/s measured past 100,000 held on
-  // 2 cores, docs/performance.md).
+  // applier may fall behind a burst (500,000 traces of 256-d: 209-275 s of
+  // catching up on 2 cores in bench/write_path_bench.sh at 5,000 and
+  // 100,000 held, docs/performance.md).
   uint64_t max_backlog_traces = 500'000;
   // Applier threads shared by every fleet.
   int appliers = 2;

@@ -46,9 +46,9 @@ void KeepNearest(std::vector<Neighbor>& neighbors, size_t k) {
 }
 
 // Links the staged nodes of `staged` on up to `threads` threads: the
-// caller's and threads - 1 started for the call (about 20 us each, against
-// 0.3-1 ms per insert at 256-d). One thread links them in order, which
-// builds the graph the same Adds would.
+// caller's and threads - 1 started for the call (a thread start is small
+// against a step's inserts, 0.3-1 ms each at 256-d). One thread links them in
+// order, which builds the graph the same Adds would.
 void LinkStaged(core::HnswGraph& graph, const core::HnswGraph::Staged& staged,
                 size_t threads) {
   const size_t count = staged.slots.size();
