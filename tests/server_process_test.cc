@@ -114,9 +114,9 @@ TEST_F(ServerProcessTest, PassesTheConfigFile) {
   options.config_file = "/some/config.yaml";
   ServerProcess server(options);
   ASSERT_TRUE(server.Start().ok());
-  EXPECT_TRUE(absl::StrContains(server.Output(), "--config /some/config.yaml"));
-  server.Kill();
+  server.Kill();  // joins the output's reader: Output() is complete after it
   EXPECT_FALSE(server.running());
+  EXPECT_TRUE(absl::StrContains(server.Output(), "--config /some/config.yaml"));
 }
 
 TEST_F(ServerProcessTest, ReportsAServerThatExitsBeforeListening) {
