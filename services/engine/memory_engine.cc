@@ -207,6 +207,11 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
       fleet->PublishHeld();
       index = fleet->index.get();
     }
+    // The consolidation's store write, beside queries.
+    if (status.ok()) {
+      status = fleet->StoreStaged(&notices);
+      if (!status.ok()) index = nullptr;  // reloaded: a new index
+    }
     // The index's back-pressure, outside the fleet's lock: queries go on
     // while the uploader pays for the graph inserts. The index is replaced
     // only under writer_mu, held here.
@@ -264,18 +269,22 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
   Notices notices;
   {
     absl::MutexLock writer(&fleet->writer_mu);
+    {
+      absl::MutexLock lock(&fleet->mu);
+      status = fleet->EnsureLoaded();
+      if (!status.ok()) return status;
+      if (!fleet->exists()) return FleetNotFound(fleet_id);
+      std::vector<std::string> robot_ids;
+      for (const auto& [robot_id, traces] : fleet->pending) {
+        if (!traces.empty()) robot_ids.push_back(robot_id);
+      }
+      for (const std::string& robot_id : robot_ids) {
+        status = fleet->ConsolidateRobot(robot_id, &notices);
+        if (!status.ok()) break;
+      }
+    }
+    if (status.ok()) status = fleet->StoreStaged(&notices);
     absl::MutexLock lock(&fleet->mu);
-    status = fleet->EnsureLoaded();
-    if (!status.ok()) return status;
-    if (!fleet->exists()) return FleetNotFound(fleet_id);
-    std::vector<std::string> robot_ids;
-    for (const auto& [robot_id, traces] : fleet->pending) {
-      if (!traces.empty()) robot_ids.push_back(robot_id);
-    }
-    for (const std::string& robot_id : robot_ids) {
-      status = fleet->ConsolidateRobot(robot_id, &notices);
-      if (!status.ok()) break;
-    }
     notices.consolidated.clusters = fleet->memory.clusters().size();
     notices.consolidated.traces = fleet->memory.trace_count();
     fleet->PublishHeld();

@@ -136,8 +136,9 @@ absl::Status MemoryEngine::Fleet::CommitUpload(
     const core::ConsolidationPlan* plan) {
   FleetMutation& mutation = prepared.mutation;
   const bool stored = prepared.stored;
-  // Not stored yet: memory runs ahead of the store until the write below,
-  // under the exclusive lock, and a failure reloads the fleet.
+  // Not stored yet: memory runs ahead of the store until the write of the
+  // consolidation this upload triggers (StoreStaged), and a failure reloads
+  // the fleet.
   CarriedUpload carried;
   if (!stored) {
     carried.mutation.put_meta = mutation.put_meta;
@@ -285,7 +286,10 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     mutation.erase_pending.push_back(trace.key());
   }
   const size_t batch_size = batch.size();
-  const uint64_t first_cluster_id = meta.next_cluster_id;
+  // The meta as the consolidations staged before this one leave it.
+  const FleetMeta& base =
+      notices->staged.empty() ? meta : notices->staged.back().meta;
+  const uint64_t first_cluster_id = base.next_cluster_id;
   bool fits = plan != nullptr && plan->keys.size() == batch.size();
   for (size_t i = 0; fits && i < batch.size(); ++i) {
     fits = plan->keys[i] == batch[i].key();
@@ -296,7 +300,7 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
       std::move(batch), first_cluster_id, fits ? *plan : *own);
   ++snapshot_changes;  // forgetting's centroids
 
-  FleetMeta new_meta = meta;
+  FleetMeta new_meta = base;
   new_meta.next_cluster_id = first_cluster_id + outcome.added.size();
   absl::flat_hash_set<uint64_t> added_ids;
   for (const core::Cluster& cluster : outcome.added) {
@@ -337,6 +341,7 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     }
     if (absl::Status filled = FillCodes(held->traces); !filled.ok()) {
       FLEETMEM_LOG(kError) << "fleet \"" << id << "\": " << filled;
+      notices->staged.clear();
       Reload().IgnoreError();
       return filled;
     }
@@ -378,25 +383,8 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   mutation.put_meta = true;
   mutation.meta = new_meta;
 
-  // The new clusters' traces came from the batch and still hold their codes
-  // (their release comes below).
-  absl::Status status = engine->store_->Apply(id, mutation);
-  if (!status.ok()) {
-    // The static memory already ran ahead of the store: drop it.
-    FLEETMEM_LOG(kError) << "fleet \"" << id << "\": consolidation of robot \""
-                         << robot_id << "\""
-                         << (carried != nullptr
-                                 ? " and the upload that filled its segment"
-                                 : "")
-                         << " not stored: " << status;
-    Reload().IgnoreError();
-    return status;
-  }
-  meta = new_meta;
-  if (!mutation.append_events.empty()) {
-    notices->last_event_id = mutation.append_events.back().id;
-  }
-
+  // The mutation holds copies of the new clusters' codes: the index may
+  // drop its own below.
   // The batch was indexed while pending and its codes do not change: only
   // what downsampling dropped, what forgetting removed (including clusters
   // of this batch) and what merges dropped leave the index.
@@ -414,15 +402,19 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
       removed.push_back(trace.key());
     }
   }
-  status = UnindexTraces(removed);
+  absl::Status status = UnindexTraces(removed);
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": index update failed, rebuilding: " << status;
-    absl::Status reloaded = Reload();
-    if (!reloaded.ok()) return reloaded;
-  } else {
-    ReleaseCodes(kept);
+    notices->staged.clear();
+    Reload().IgnoreError();
+    return absl::InternalError(absl::StrCat(
+        "fleet \"", id, "\": index update failed (", status.message(),
+        "); the consolidation of robot \"", robot_id, "\" was not stored"));
   }
+  ReleaseCodes(kept);
+  notices->staged.push_back(
+      StagedConsolidation{std::move(mutation), std::move(new_meta)});
 
   ConsolidateResult batch_result;
   batch_result.consolidated_traces = batch_size;
@@ -433,6 +425,41 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   Accumulate(batch_result, &notices->consolidated);
   ++notices->consolidations;
   notices->consolidation_seconds += absl::ToDoubleSeconds(absl::Now() - start);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryEngine::Fleet::StoreStaged(Notices* notices) {
+  if (notices->staged.empty()) return absl::OkStatus();
+  absl::Status status;
+  size_t stored = 0;
+  {
+    absl::ReaderMutexLock lock(&mu);
+    for (const StagedConsolidation& staged : notices->staged) {
+      status = engine->store_->Apply(id, staged.mutation);
+      if (!status.ok()) break;
+      ++stored;
+    }
+  }
+  absl::MutexLock lock(&mu);
+  if (!status.ok()) {
+    // Memory and the index ran ahead of the store: back to what it holds.
+    FLEETMEM_LOG(kError) << "fleet \"" << id
+                         << "\": " << notices->staged.size() - stored << " of "
+                         << notices->staged.size()
+                         << " consolidations not stored: " << status;
+    notices->staged.clear();
+    notices->consolidations = 0;
+    notices->consolidated = ConsolidateResult{};
+    Reload().IgnoreError();
+    return status;
+  }
+  meta = notices->staged.back().meta;
+  for (const StagedConsolidation& staged : notices->staged) {
+    const std::vector<core::MemoryEvent>& events =
+        staged.mutation.append_events;
+    if (!events.empty()) notices->last_event_id = events.back().id;
+  }
+  notices->staged.clear();
   return absl::OkStatus();
 }
 

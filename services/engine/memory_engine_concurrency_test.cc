@@ -235,6 +235,104 @@ TEST_F(MemoryEngineTest, ReadersDoNotWaitForStoreWrites) {
   ExpectSameStats(stats, *again);
 }
 
+// A consolidation is written to the store under the shared lock: queries,
+// stats and event reads go on while its write waits, and already see the
+// consolidation in memory; its events are read once they are stored.
+TEST_F(MemoryEngineTest, ReadersDoNotWaitForAConsolidationsStoreWrite) {
+  GatedStore gated(store_.get());
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options_, &gated, ExactFactory());
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  MemoryEngine& engine = **opened;
+  const std::vector<core::MemoryTrace> traces =
+      MakeTraces("r1", 1, options_.segment_size, rng_);
+  const std::vector<core::MemoryTrace> first(traces.begin(),
+                                             traces.begin() + 5);
+  const std::vector<core::MemoryTrace> rest(traces.begin() + 5, traces.end());
+  ASSERT_TRUE(engine.Upload("f1", first).ok());
+
+  gated.Hold();
+  std::thread uploader([&] {
+    absl::StatusOr<UploadResult> result = engine.Upload("f1", rest);
+    ASSERT_TRUE(result.ok()) << result.status();
+    EXPECT_EQ(result->consolidations, 1u);
+  });
+  gated.AwaitWaiting(1);
+  for (int i = 0; i < 5; ++i) {
+    absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
+    ASSERT_TRUE(stats.ok()) << stats.status();
+    EXPECT_EQ(stats->pending_traces, 0u);  // consolidated in memory
+    EXPECT_GT(stats->clusters, 0u);
+    EXPECT_EQ(stats->last_event_id, 0u);  // none stored yet
+    PlaceQuery query;
+    query.code = rest[0].code;
+    query.k = 1;
+    absl::StatusOr<std::vector<PlaceMatch>> found =
+        engine.QueryPlace("f1", query);
+    ASSERT_TRUE(found.ok()) << found.status();
+    ASSERT_EQ(found->size(), 1u);
+    EXPECT_EQ(found->front().trace.code.size(), rest[0].code.size());
+    absl::StatusOr<std::vector<core::MemoryEvent>> events =
+        engine.ReadEvents("f1", 0);
+    ASSERT_TRUE(events.ok()) << events.status();
+    EXPECT_TRUE(events->empty());
+  }
+  gated.Release();
+  uploader.join();
+  absl::StatusOr<FleetStats> after = engine.GetStats("f1");
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_GT(after->last_event_id, 0u);
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      engine.ReadEvents("f1", 0);
+  ASSERT_TRUE(events.ok()) << events.status();
+  EXPECT_EQ(events->size(), after->last_event_id);
+  // And the store agrees after a reopen.
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> reopened =
+      MemoryEngine::Open(options_, store_.get(), ExactFactory());
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  absl::StatusOr<FleetStats> again = (*reopened)->GetStats("f1");
+  ASSERT_TRUE(again.ok()) << again.status();
+  ExpectSameStats(*after, *again);
+}
+
+// Retention erases events in a consolidation's store write, before the
+// fleet's meta says so (StoreStaged publishes it after the write): a reader
+// whose cursor fell behind meanwhile gets OUT_OF_RANGE, never a silent gap.
+TEST_F(MemoryEngineTest, EventsErasedBesideAReaderAreReportedAsErased) {
+  options_.max_events_per_fleet = 5;
+  GatedStore gated(store_.get());
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options_, &gated, ExactFactory());
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  MemoryEngine& engine = **opened;
+  const size_t segment = options_.segment_size;
+  ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", 1, segment, rng_)).ok());
+  absl::StatusOr<FleetStats> before = engine.GetStats("f1");
+  ASSERT_TRUE(before.ok()) << before.status();
+  ASSERT_EQ(before->first_event_id, 1u);
+  ASSERT_GT(before->last_event_id, 1u);
+
+  gated.Hold(/*after_write=*/true);
+  std::thread uploader([&] {
+    EXPECT_TRUE(
+        engine.Upload("f1", MakeTraces("r1", 1 + segment, segment, rng_)).ok());
+  });
+  gated.AwaitWaiting(1);  // written, events 1.. erased; meta not yet
+  absl::StatusOr<FleetStats> during = engine.GetStats("f1");
+  ASSERT_TRUE(during.ok()) << during.status();
+  EXPECT_EQ(during->first_event_id, 1u);
+  const absl::Status gone = engine.ReadEvents("f1", 1).status();
+  EXPECT_EQ(gone.code(), absl::StatusCode::kOutOfRange) << gone;
+  EXPECT_THAT(gone.message(), HasSubstr("retention"));
+  gated.Release();
+  uploader.join();
+  absl::StatusOr<FleetStats> after = engine.GetStats("f1");
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_GT(after->first_event_id, 2u);
+  EXPECT_EQ(engine.ReadEvents("f1", 1).status().code(),
+            absl::StatusCode::kOutOfRange);
+}
+
 // GetStats reports the place index's backlog: with the tiered index, whose
 // graph fills in the background, the codes not yet in the graph, until the
 // background thread has moved them all; with the exact index, none.

@@ -26,6 +26,7 @@
 #include <thread>
 #include <tuple>
 #include <utility>
+#include <vector>
 
 #include "absl/cleanup/cleanup.h"
 #include "absl/container/flat_hash_set.h"
@@ -148,12 +149,22 @@ inline void Accumulate(const ConsolidateResult& batch,
   total->clusters_forgotten += batch.clusters_forgotten;
 }
 
+// A consolidation as ConsolidateRobot left it: applied to memory and the
+// index under the exclusive lock, its store write still to be made
+// (Fleet::StoreStaged, under the shared lock).
+struct StagedConsolidation {
+  FleetMutation mutation;
+  FleetMeta meta;  // the fleet's meta once the mutation is stored
+};
+
 // What a fleet operation leaves for after the fleet lock is released.
 struct Notices {
   uint64_t last_event_id = 0;  // newest durable event, 0 if none
   ConsolidateResult consolidated;
   uint64_t consolidations = 0;
   double consolidation_seconds = 0.0;
+  // Consolidations not stored yet, in order (each builds on the one before).
+  std::vector<StagedConsolidation> staged;
 };
 
 // A fleet's index snapshot as read from the store, before it meets the
@@ -306,13 +317,22 @@ struct MemoryEngine::Fleet {
   core::ConsolidationPlan Plan(
       const std::vector<core::MemoryTrace>& batch) const;
   // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
-  // and 2) and persists the outcome in one mutation, together with
-  // `carried`'s writes if given. On a failed write the fleet is reloaded
-  // from the store, which then holds neither.
+  // and 2) in memory and the index, and stages the outcome's store write,
+  // together with `carried`'s writes if given, in notices->staged for
+  // StoreStaged. On an error the fleet is reloaded from the store, which
+  // holds neither, and notices->staged is emptied.
   absl::Status ConsolidateRobot(const std::string& robot_id, Notices* notices,
                                 CarriedUpload* carried = nullptr,
                                 const core::ConsolidationPlan* plan = nullptr)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Stores notices->staged in order under the shared lock, so that queries
+  // go on while the consolidations are written (they already see them:
+  // memory and the index ran ahead), then publishes the fleet's meta under
+  // the exclusive lock. A failed write reloads the fleet from the store
+  // (the consolidations stored before it stay) and is returned, with
+  // notices' consolidation counts reset. The caller holds writer_mu, so
+  // that nothing else changes the fleet meanwhile.
+  absl::Status StoreStaged(Notices* notices) ABSL_LOCKS_EXCLUDED(mu);
   // Eq. 18 draw with the replay counts incremented in memory (exclusive
   // lock). `mutation` gets what must be stored and `record` the robot's new
   // record; a retry of the previous request returns its traces and leaves

@@ -155,15 +155,22 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     absl::StatusOr<std::vector<Neighbor>> neighbors =
         fleet->index->Search(query.code, params);
     if (!neighbors.ok()) return neighbors.status();
-    matches.reserve(neighbors->size());
+    std::vector<core::MemoryTrace> found;
+    std::vector<float> distances;
+    found.reserve(neighbors->size());
     for (const Neighbor& neighbor : *neighbors) {
       const std::optional<core::TraceKey> key = fleet->handles.Key(neighbor.id);
       if (!key.has_value()) continue;
       const core::MemoryTrace* trace = fleet->FindTrace(*key);
       if (trace == nullptr) continue;
-      absl::StatusOr<core::MemoryTrace> copy = fleet->WithCode(*trace);
-      if (!copy.ok()) return copy.status();
-      matches.push_back(PlaceMatch{*std::move(copy), neighbor.distance});
+      found.push_back(*trace);
+      distances.push_back(neighbor.distance);
+    }
+    status = fleet->FillCodes(found);
+    if (!status.ok()) return status;
+    matches.reserve(found.size());
+    for (size_t i = 0; i < found.size(); ++i) {
+      matches.push_back(PlaceMatch{std::move(found[i]), distances[i]});
     }
   }
   if (hooks_.on_query) {
@@ -237,11 +244,7 @@ absl::StatusOr<std::vector<core::MemoryEvent>> MemoryEngine::ReadEvents(
   if (!status.ok()) return status;
   Fleet* fleet = Fleet::Find(*this, fleet_id);
   if (fleet == nullptr) return std::vector<core::MemoryEvent>();
-  // Under the reader lock: retention erases events only under the writer
-  // lock, so none can vanish between the check and the read.
-  absl::ReaderMutexLock lock(&fleet->mu);
-  const uint64_t first = std::max<uint64_t>(1, fleet->meta.first_event_id);
-  if (after_event > 0 && after_event + 1 < first) {
+  auto erased = [&](uint64_t first) {
     return absl::OutOfRangeError(absl::StrCat(
         "events ", after_event + 1, "..", first - 1, " of fleet \"",
         V(fleet_id), "\" were erased by the retention bound (",
@@ -249,9 +252,20 @@ absl::StatusOr<std::vector<core::MemoryEvent>> MemoryEngine::ReadEvents(
         " events, max_events_per_fleet); the oldest kept is ", first,
         ": re-read the fleet's state (GetStats, queries) and watch again from "
         "after_event 0"));
+  };
+  absl::ReaderMutexLock lock(&fleet->mu);
+  const uint64_t first = std::max<uint64_t>(1, fleet->meta.first_event_id);
+  if (after_event > 0 && after_event < first - 1) return erased(first);
+  absl::StatusOr<std::vector<core::MemoryEvent>> events =
+      store_->ReadEvents(fleet_id, after_event, options_.max_events_per_read);
+  // A consolidation's store write (StoreStaged) may erase events beside
+  // this reader, before the fleet's meta says so: event ids have no holes,
+  // so a first event past after_event + 1 means the rest was erased.
+  if (events.ok() && after_event > 0 && !events->empty() &&
+      events->front().id - 1 > after_event) {
+    return erased(events->front().id);
   }
-  return store_->ReadEvents(fleet_id, after_event,
-                            options_.max_events_per_read);
+  return events;
 }
 
 std::vector<std::string> MemoryEngine::ListFleets() const {
@@ -347,11 +361,10 @@ absl::StatusOr<TracePage> MemoryEngine::ListTraces(
             });
         page.traces.reserve(taken);
         for (size_t i = 0; i < taken; ++i) {
-          absl::StatusOr<core::MemoryTrace> copy =
-              fleet.WithCode(*candidates[i]);
-          if (!copy.ok()) return copy.status();
-          page.traces.push_back(*std::move(copy));
+          page.traces.push_back(*candidates[i]);
         }
+        absl::Status filled = fleet.FillCodes(page.traces);
+        if (!filled.ok()) return filled;
         page.more = candidates.size() > taken;
         return page;
       });

@@ -274,20 +274,17 @@ class GatedStore : public ForwardingStore {
   using ForwardingStore::ForwardingStore;
   absl::Status Apply(std::string_view fleet_id,
                      const FleetMutation& mutation) override {
-    {
-      std::unique_lock lock(mu_);
-      if (hold_) {
-        ++waiting_;
-        changed_.notify_all();
-        changed_.wait(lock, [this] { return !hold_; });
-        --waiting_;
-      }
-    }
-    return ForwardingStore::Apply(fleet_id, mutation);
+    if (!hold_after_write_) Wait();
+    absl::Status status = ForwardingStore::Apply(fleet_id, mutation);
+    if (hold_after_write_) Wait();
+    return status;
   }
-  void Hold() {
+  // Apply calls wait from now until Release; with `after_write`, once the
+  // write is made (the store holds it, its caller has not heard yet).
+  void Hold(bool after_write = false) {
     std::unique_lock lock(mu_);
     hold_ = true;
+    hold_after_write_ = after_write;
   }
   // Blocks until `count` Apply calls are waiting.
   void AwaitWaiting(int count) {
@@ -305,9 +302,19 @@ class GatedStore : public ForwardingStore {
  private:
   // std::mutex rather than absl::Mutex::Await, which ThreadSanitizer does
   // not see (Debian's absl is not instrumented).
+  void Wait() {
+    std::unique_lock lock(mu_);
+    if (!hold_) return;
+    ++waiting_;
+    changed_.notify_all();
+    changed_.wait(lock, [this] { return !hold_; });
+    --waiting_;
+  }
+
   std::mutex mu_;
   std::condition_variable changed_;
   bool hold_ = false;
+  std::atomic<bool> hold_after_write_ = false;
   int waiting_ = 0;
 };
 

@@ -93,6 +93,17 @@ class PlaceIndex {
   virtual bool CopyCode(uint64_t id, std::vector<float>* code) const {
     return false;
   }
+  // CopyCode of each of `ids` into *codes[i], in one turn of the index's
+  // lock where it has one (a query's k matches, a cluster's codes); false
+  // if any is not held. Counts as a reader.
+  virtual bool CopyCodes(std::span<const uint64_t> ids,
+                         std::span<std::vector<float>* const> codes) const {
+    bool all = true;
+    for (size_t i = 0; i < ids.size(); ++i) {
+      all = CopyCode(ids[i], codes[i]) && all;
+    }
+    return all;
+  }
   // Removes ids; unknown ids are ignored.
   virtual absl::Status Remove(std::span<const uint64_t> ids) = 0;
   // Up to params.k nearest accepted vectors, nearest first (ties: smaller id).

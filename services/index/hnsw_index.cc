@@ -422,7 +422,16 @@ class TieredIndex final : public engine::PlaceIndex {
   }
   bool CopyCode(uint64_t id, std::vector<float>* code) const override {
     std::shared_lock lock(mu_);
-    return tail_->CopyCode(id, code) || (graph_ && graph_->CopyCode(id, code));
+    return CopyCodeLocked(id, code);
+  }
+  bool CopyCodes(std::span<const uint64_t> ids,
+                 std::span<std::vector<float>* const> codes) const override {
+    std::shared_lock lock(mu_);
+    bool all = true;
+    for (size_t i = 0; i < ids.size(); ++i) {
+      all = CopyCodeLocked(ids[i], codes[i]) && all;
+    }
+    return all;
   }
   // The tail and the graph as they are: a backlog is saved as a backlog.
   absl::Status Save(core::ByteWriter& out) const override;
@@ -441,6 +450,9 @@ class TieredIndex final : public engine::PlaceIndex {
   // test-tsan`; Debian's absl is not instrumented).
   size_t SizeLocked() const {
     return tail_->size() + (graph_ ? graph_->size() : 0);
+  }
+  bool CopyCodeLocked(uint64_t id, std::vector<float>* code) const {
+    return tail_->CopyCode(id, code) || (graph_ && graph_->CopyCode(id, code));
   }
   bool HoldsCodeLocked(uint64_t id) const {
     return tail_->HoldsCode(id) || (graph_ && graph_->contains(id));
