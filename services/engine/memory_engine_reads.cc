@@ -152,18 +152,25 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
                PlaceDistance(trace->place, query.near) <= query.radius_m;
       };
     }
+    std::vector<std::vector<float>> codes;  // the index's, where it can
+    params.codes = &codes;
     absl::StatusOr<std::vector<Neighbor>> neighbors =
         fleet->index->Search(query.code, params);
     if (!neighbors.ok()) return neighbors.status();
+    const bool with_codes = codes.size() == neighbors->size();
     std::vector<core::MemoryTrace> found;
     std::vector<float> distances;
     found.reserve(neighbors->size());
-    for (const Neighbor& neighbor : *neighbors) {
+    for (size_t i = 0; i < neighbors->size(); ++i) {
+      const Neighbor& neighbor = (*neighbors)[i];
       const std::optional<core::TraceKey> key = fleet->handles.Key(neighbor.id);
       if (!key.has_value()) continue;
       const core::MemoryTrace* trace = fleet->FindTrace(*key);
       if (trace == nullptr) continue;
       found.push_back(*trace);
+      if (found.back().code.empty() && with_codes) {
+        found.back().code = std::move(codes[i]);
+      }
       distances.push_back(neighbor.distance);
     }
     status = fleet->FillCodes(found);

@@ -32,6 +32,11 @@ struct SearchParams {
   // are: distances are to core::UnitScale(query) times it, so a code
   // finds a stored copy of itself at distance exactly 0.
   bool unit_query = false;
+  // When set, an index that can also copies the code of each neighbour it
+  // returns (as CopyCode) into it, in order, in the same turn of its lock
+  // (a query waits for that lock once); one that cannot leaves it empty,
+  // and the caller reads them with CopyCodes.
+  std::vector<std::vector<float>>* codes = nullptr;
 };
 
 // Not thread-safe for writers: the caller serialises Add/Remove against each

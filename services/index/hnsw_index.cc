@@ -640,12 +640,27 @@ absl::StatusOr<std::vector<Neighbor>> TieredIndex::Search(
   const WaiterCount turn(waiters_);
   std::shared_lock lock(mu_);
   turn.Acquired();
-  absl::StatusOr<std::vector<Neighbor>> found = tail_->Search(query, params);
-  if (!found.ok() || !graph_) return found;
-  absl::StatusOr<std::vector<Neighbor>> graphed = graph_->Search(query, params);
-  if (!graphed.ok()) return graphed;
-  found->insert(found->end(), graphed->begin(), graphed->end());
-  KeepNearest(*found, params.k);
+  SearchParams tier_params = params;
+  tier_params.codes = nullptr;
+  absl::StatusOr<std::vector<Neighbor>> found =
+      tail_->Search(query, tier_params);
+  if (!found.ok()) return found;
+  if (graph_) {
+    absl::StatusOr<std::vector<Neighbor>> graphed =
+        graph_->Search(query, tier_params);
+    if (!graphed.ok()) return graphed;
+    found->insert(found->end(), graphed->begin(), graphed->end());
+    KeepNearest(*found, params.k);
+  }
+  if (params.codes != nullptr) {
+    params.codes->assign(found->size(), {});
+    for (size_t i = 0; i < found->size(); ++i) {
+      if (!CopyCodeLocked((*found)[i].id, &(*params.codes)[i])) {
+        params.codes->clear();  // the caller's CopyCodes says which
+        break;
+      }
+    }
+  }
   return found;
 }
 

@@ -1130,6 +1130,36 @@ TEST(TieredIndexTest, AddedVectorsAreFoundAtOnceAndDrainIntoTheGraph) {
   }
 }
 
+// SearchParams::codes: the tiered index returns each neighbour's code as
+// given (CopyCode), whichever tier holds it, in the search's turn of its
+// lock.
+TEST(TieredIndexTest, SearchReturnsTheCodesOfItsNeighbours) {
+  constexpr size_t kDimension = 32;
+  std::mt19937 rng(43);
+  const LowRankSource source(kDimension, 8, rng);
+  TieredIndexOptions options;
+  options.hnsw_from = 200;
+  options.max_unindexed = 100;
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  const Dataset data = LowRankDataset(0, 1000, source, rng);
+  ASSERT_TRUE(tiered->AddNormalized(data.ids, Views(data.vectors)).ok());
+  for (size_t q = 0; q < 20; ++q) {
+    std::vector<std::vector<float>> codes;
+    SearchParams params;
+    params.k = 5;
+    params.unit_query = true;
+    params.codes = &codes;
+    absl::StatusOr<std::vector<Neighbor>> found =
+        tiered->Search(data.vectors[q * 50], params);
+    ASSERT_TRUE(found.ok()) << found.status();
+    ASSERT_EQ(found->size(), 5u);
+    ASSERT_EQ(codes.size(), 5u);
+    for (size_t i = 0; i < found->size(); ++i) {
+      EXPECT_EQ(codes[i], data.vectors[(*found)[i].id]);
+    }
+  }
+}
+
 // Back-pressure: however slow the background thread is, an Add that finds
 // more than max_unindexed vectors waiting moves as many into the graph as it
 // adds, so the growing segment never exceeds the switch size or the bound
