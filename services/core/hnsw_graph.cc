@@ -5,7 +5,10 @@
 #include <cstdlib>
 #include <cstring>
 #include <exception>
+#include <limits>
+#include <mutex>
 #include <new>
+#include <queue>
 #include <sstream>
 #include <string>
 
@@ -263,6 +266,106 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::Search(const float* query,
   out.resize(found.size());
   for (size_t i = found.size(); i-- > 0; found.pop()) {
     out[i] = {found.top().first, static_cast<uint32_t>(found.top().second)};
+  }
+  return out;
+}
+
+std::vector<std::pair<float, uint32_t>> HnswGraph::SearchBesideLinks(
+    const float* raw, size_t k, float scale) const {
+  // hnswlib's searchKnn and searchBaseLayerST (0.6.2), step for step, with
+  // each link list copied under its node's lock.
+  using Entry = std::pair<float, hnswlib::tableint>;
+  using Queue =
+      std::priority_queue<Entry, std::vector<Entry>,
+                          hnswlib::HierarchicalNSW<float>::CompareByFirst>;
+  auto& hnsw = impl_->hnsw;
+  std::vector<std::pair<float, uint32_t>> out;
+  if (live_ == 0 || k == 0) return out;
+  k = std::min(k, live_);
+  std::vector<float> buffer;
+  const float* query = Stored(raw, scale, buffer);
+  const auto distance = [&](hnswlib::tableint node) {
+    return hnsw.fstdistfunc_(query, hnsw.getDataByInternalId(node),
+                             hnsw.dist_func_param_);
+  };
+  hnswlib::tableint current;
+  int top;
+  {
+    std::unique_lock lock(hnsw.global);  // a Link raising the top holds it
+    current = hnsw.enterpoint_node_;
+    top = hnsw.maxlevel_;
+  }
+  // Copies node's list on `layer` (0: the base layer) under its lock.
+  std::vector<hnswlib::tableint> links;
+  const auto read_links = [&](hnswlib::tableint node, int layer) {
+    std::unique_lock lock(hnsw.link_list_locks_[node]);
+    unsigned int* list =
+        layer == 0 ? hnsw.get_linklist0(node) : hnsw.get_linklist(node, layer);
+    const int count = hnsw.getListCount(list);
+    const auto* first = reinterpret_cast<const hnswlib::tableint*>(list + 1);
+    links.assign(first, first + count);
+  };
+  float nearest = distance(current);
+  for (int layer = top; layer > 0; --layer) {
+    for (bool moved = true; moved;) {
+      moved = false;
+      read_links(current, layer);
+      for (hnswlib::tableint candidate : links) {
+        const float d = distance(candidate);
+        if (d < nearest) {
+          nearest = d;
+          current = candidate;
+          moved = true;
+        }
+      }
+    }
+  }
+  const size_t ef = std::max(hnsw.ef_, k);
+  const bool has_deletions = hnsw.num_deleted_ > 0;
+  hnswlib::VisitedList* visited = hnsw.visited_list_pool_->getFreeVisitedList();
+  const hnswlib::vl_type tag = visited->curV;
+  Queue top_candidates;
+  Queue candidates;
+  float lower_bound;
+  if (!has_deletions || !hnsw.isMarkedDeleted(current)) {
+    const float d = distance(current);
+    lower_bound = d;
+    top_candidates.emplace(d, current);
+    candidates.emplace(-d, current);
+  } else {
+    lower_bound = std::numeric_limits<float>::max();
+    candidates.emplace(-lower_bound, current);
+  }
+  visited->mass[current] = tag;
+  while (!candidates.empty()) {
+    const Entry closest = candidates.top();
+    if (-closest.first > lower_bound &&
+        (top_candidates.size() == ef || !has_deletions)) {
+      break;
+    }
+    candidates.pop();
+    read_links(closest.second, 0);
+    for (hnswlib::tableint candidate : links) {
+      if (visited->mass[candidate] == tag) continue;
+      visited->mass[candidate] = tag;
+      const float d = distance(candidate);
+      if (top_candidates.size() < ef || lower_bound > d) {
+        candidates.emplace(-d, candidate);
+        if (!has_deletions || !hnsw.isMarkedDeleted(candidate)) {
+          top_candidates.emplace(d, candidate);
+        }
+        if (top_candidates.size() > ef) top_candidates.pop();
+        if (!top_candidates.empty()) lower_bound = top_candidates.top().first;
+      }
+    }
+  }
+  hnsw.visited_list_pool_->releaseVisitedList(visited);
+  while (top_candidates.size() > k) top_candidates.pop();
+  out.resize(top_candidates.size());
+  for (size_t i = out.size(); i-- > 0; top_candidates.pop()) {
+    out[i] = {top_candidates.top().first,
+              static_cast<uint32_t>(
+                  hnsw.getExternalLabel(top_candidates.top().second))};
   }
   return out;
 }

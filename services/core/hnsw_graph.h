@@ -5,7 +5,8 @@
 // includes hnswlib (its 0.6 headers define non-inline functions), shared by
 // forgetting's ClosestPairTracker and services/index's HNSW place index.
 // Deterministic: the same calls give the same graph (Link in order, not
-// concurrently). Not thread-safe for writers; concurrent Search calls are safe.
+// concurrently). Not thread-safe for writers; concurrent Search calls are
+// safe, and SearchBesideLinks may also run beside Link.
 #ifndef FLEETMEM_SERVICES_CORE_HNSW_GRAPH_H_
 #define FLEETMEM_SERVICES_CORE_HNSW_GRAPH_H_
 
@@ -75,11 +76,13 @@ class HnswGraph {
   Staged Stage(std::span<const float* const> vectors,
                std::span<const float> scales);
   // Links staged node slots[i] (linked <= i) into the graph. Calls for
-  // different i may run concurrently (hnswlib's per-node locks); no other
-  // call may run until every staged node is linked. Linked one after the
-  // other in order, the graph is the one the same Adds build; concurrently,
-  // the links depend on how the threads interleave, so two runs may build
-  // different graphs and an approximate search may answer differently.
+  // different i may run concurrently (hnswlib's per-node locks), and so may
+  // SearchBesideLinks and the reads of stored vectors (Vector, Scale,
+  // contains); no other call may run until every staged node is linked. Linked
+  // one after the other in order, the graph is the one the same Adds build;
+  // concurrently, the links depend on how the threads interleave, so two runs
+  // may build different graphs and an approximate search may answer
+  // differently.
   void Link(const Staged& staged, size_t i);
   // Removes a live slot.
   void Remove(uint32_t slot);
@@ -87,6 +90,15 @@ class HnswGraph {
   // options.scaled) as (squared Euclidean distance, slot), nearest first.
   std::vector<std::pair<float, uint32_t>> Search(const float* query, size_t k,
                                                  float scale = 1.0f) const;
+  // Search, safe to call while Link calls run (not beside any other
+  // writer; hnswlib's own search is not): it reads each node's links under
+  // hnswlib's per-node lock and the entry point under its global lock,
+  // holding one lock at a time (no deadlock with Link, which never waits
+  // for a lock a search holds for long). On a graph that does not change it
+  // answers exactly as Search (the same walk); a lock per visited node
+  // makes it a little slower. Nodes staged but not linked are not found.
+  std::vector<std::pair<float, uint32_t>> SearchBesideLinks(
+      const float* query, size_t k, float scale = 1.0f) const;
   // Changes the search candidate list (no rebuild; not while searching).
   void set_ef_search(size_t ef);
   // Squared Euclidean distance between `scale` times `query` and the

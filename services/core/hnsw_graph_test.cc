@@ -139,6 +139,85 @@ TEST_P(HnswGraphStageTest, ConcurrentlyLinkedNodesAreFoundAndSaveWhole) {
   }
 }
 
+// On a graph that does not change, SearchBesideLinks walks as hnswlib's
+// search does: the same answers, with removed nodes and without.
+TEST_P(HnswGraphStageTest, SearchBesideLinksAnswersAsSearch) {
+  constexpr size_t kDimension = 16;
+  const auto vectors = Gaussian(2000, kDimension, 13);
+  const auto queries = Gaussian(50, kDimension, 17);
+  HnswGraph graph(kDimension, Options());
+  StageAndLink(graph, vectors, 0, 2000, GetParam(), 1);
+  for (int round = 0; round < 2; ++round) {
+    for (const auto& query : queries) {
+      for (size_t k : {1, 10, 40}) {
+        const float scale = GetParam() ? 1.5f : 1.0f;
+        EXPECT_EQ(graph.SearchBesideLinks(query.data(), k, scale),
+                  graph.Search(query.data(), k, scale));
+      }
+    }
+    for (uint32_t slot = 0; slot < 2000; slot += 3) {
+      if (round == 0) graph.Remove(slot);
+    }
+  }
+  EXPECT_TRUE(HnswGraph(kDimension, Options())
+                  .SearchBesideLinks(queries[0].data(), 5)
+                  .empty());
+}
+
+// Searches beside concurrent Link calls (ThreadSanitizer: make test-tsan)
+// find only stored slots, nearest first, and every node once it is linked.
+// (Stage changes the graph's storage: nothing may run beside it.)
+TEST_P(HnswGraphStageTest, SearchBesideLinksRunsWhileNodesAreLinked) {
+  constexpr size_t kDimension = 16;
+  constexpr size_t kCount = 2000;
+  const auto vectors = Gaussian(kCount, kDimension, 19);
+  const bool scaled = GetParam();
+  HnswGraph graph(kDimension, Options());
+  StageAndLink(graph, vectors, 0, 500, scaled, 1);
+  size_t searches = 0;
+  for (size_t first = 500; first < kCount; first += 250) {
+    std::vector<const float*> data;
+    std::vector<float> scales;
+    for (size_t i = first; i < first + 250; ++i) {
+      data.push_back(vectors[i].data());
+      scales.push_back(scaled ? 1.0f + static_cast<float>(i) / 1000.0f : 1.0f);
+    }
+    const HnswGraph::Staged staged = graph.Stage(data, scales);
+    std::atomic<bool> linked{false};
+    std::thread searcher([&, seed = first] {
+      std::mt19937 rng(seed);
+      do {
+        const auto& query = vectors[rng() % kCount];
+        const auto found = graph.SearchBesideLinks(query.data(), 5);
+        for (size_t i = 0; i < found.size(); ++i) {
+          EXPECT_LT(found[i].second, graph.slot_count());
+          if (i > 0) EXPECT_LE(found[i - 1].first, found[i].first);
+        }
+        ++searches;
+      } while (!linked.load());
+    });
+    std::atomic<size_t> next{staged.linked};
+    auto link = [&] {
+      for (size_t i; (i = next.fetch_add(1)) < staged.slots.size();) {
+        graph.Link(staged, i);
+      }
+    };
+    std::thread helper(link);
+    link();
+    helper.join();
+    linked.store(true);
+    searcher.join();
+  }
+  EXPECT_GT(searches, 0u);
+  size_t found = 0;
+  for (uint32_t slot = 0; slot < graph.slot_count(); ++slot) {
+    const auto nearest =
+        graph.SearchBesideLinks(graph.Vector(slot), 1, graph.Scale(slot));
+    found += !nearest.empty() && nearest[0].second == slot;
+  }
+  EXPECT_GE(found, kCount * 995 / 1000);
+}
+
 INSTANTIATE_TEST_SUITE_P(PlainAndScaled, HnswGraphStageTest, ::testing::Bool());
 
 }  // namespace

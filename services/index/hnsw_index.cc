@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
+#include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
@@ -32,6 +33,21 @@ using engine::Neighbor;
 using engine::SearchParams;
 
 // Sorts by (distance, id) and keeps the first k.
+void KeepNearest(std::vector<Neighbor>& neighbors, size_t k);
+
+// KeepNearest of two lists that may both hold an id (the tiered index while
+// a step's vectors are linked into its graph: they are still in its tail),
+// each id once, at its smaller distance.
+void KeepNearestOnce(std::vector<Neighbor>& neighbors, size_t k) {
+  KeepNearest(neighbors, neighbors.size());
+  absl::flat_hash_set<uint64_t> seen;
+  size_t kept = 0;
+  for (size_t i = 0; i < neighbors.size() && kept < k; ++i) {
+    if (seen.insert(neighbors[i].id).second) neighbors[kept++] = neighbors[i];
+  }
+  neighbors.resize(kept);
+}
+
 void KeepNearest(std::vector<Neighbor>& neighbors, size_t k) {
   auto closer = [](const Neighbor& a, const Neighbor& b) {
     return a.distance < b.distance || (a.distance == b.distance && a.id < b.id);
@@ -49,8 +65,8 @@ void KeepNearest(std::vector<Neighbor>& neighbors, size_t k) {
 // caller's and threads - 1 started for the call (a thread start is small
 // against a step's inserts, 0.3-1 ms each at 256-d). One thread links them in
 // order, which builds the graph the same Adds would.
-void LinkStaged(core::HnswGraph& graph, const core::HnswGraph::Staged& staged,
-                size_t threads) {
+void LinkOnThreads(core::HnswGraph& graph,
+                   const core::HnswGraph::Staged& staged, size_t threads) {
   const size_t count = staged.slots.size();
   std::atomic<size_t> next{staged.linked};
   std::mutex error_mu;
@@ -104,7 +120,27 @@ class HnswIndex final : public engine::PlaceIndex {
   template <typename Vector>
   absl::Status AddScaled(
       std::span<const uint64_t> ids, std::span<const Vector> vectors,
+      const std::function<float(size_t, std::span<const float>)>& scale) {
+    absl::StatusOr<core::HnswGraph::Staged> staged =
+        StageScaled(ids, vectors, scale);
+    if (!staged.ok()) return staged.status();
+    return LinkStaged(*staged, ids.size());
+  }
+  // AddScaled in two steps, so that searches go on while the new nodes are
+  // linked (the tiered index): StageScaled checks the batch and stores its
+  // vectors, found by CopyCode and a scan but not by the graph's search
+  // yet; LinkStaged links them. Nothing else may change the index from one
+  // to the end of the other; Search may run beside LinkStaged once
+  // set_linking(true).
+  template <typename Vector>
+  absl::StatusOr<core::HnswGraph::Staged> StageScaled(
+      std::span<const uint64_t> ids, std::span<const Vector> vectors,
       const std::function<float(size_t, std::span<const float>)>& scale);
+  // RESOURCE_EXHAUSTED if StageScaled could store only staged.slots.size()
+  // of the `asked` vectors (the others are not added).
+  absl::Status LinkStaged(const core::HnswGraph::Staged& staged, size_t asked);
+  // While true, Search walks the graph with HnswGraph::SearchBesideLinks.
+  void set_linking(bool linking) { linking_ = linking; }
   absl::Status Remove(std::span<const uint64_t> ids) override;
   absl::StatusOr<std::vector<Neighbor>> Search(
       std::span<const float> query, const SearchParams& params) const override;
@@ -149,12 +185,13 @@ class HnswIndex final : public engine::PlaceIndex {
 
   const HnswIndexOptions options_;
   std::unique_ptr<core::HnswGraph> graph_;
+  bool linking_ = false;
   absl::flat_hash_map<uint64_t, uint32_t> slot_of_;  // id -> slot
   std::vector<uint64_t> id_of_;                      // slot -> id
 };
 
 template <typename Vector>
-absl::Status HnswIndex::AddScaled(
+absl::StatusOr<core::HnswGraph::Staged> HnswIndex::StageScaled(
     std::span<const uint64_t> ids, std::span<const Vector> vectors,
     const std::function<float(size_t, std::span<const float>)>& scale) {
   if (absl::Status status =
@@ -189,11 +226,16 @@ absl::Status HnswIndex::AddScaled(
     id_of_[slot] = ids[i];
     slot_of_.emplace(ids[i], slot);
   }
-  LinkStaged(*graph_, staged, options_.insert_threads);
+  return staged;
+}
+
+absl::Status HnswIndex::LinkStaged(const core::HnswGraph::Staged& staged,
+                                   size_t asked) {
+  LinkOnThreads(*graph_, staged, options_.insert_threads);
   if (!staged.complete) {
     return absl::ResourceExhaustedError(
         absl::StrCat("HNSW index: out of memory in Add after ",
-                     staged.slots.size(), " of ", ids.size(), " vectors"));
+                     staged.slots.size(), " of ", asked, " vectors"));
   }
   return absl::OkStatus();
 }
@@ -291,8 +333,10 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
       }
       std::vector<Neighbor> neighbors;
       // The graph's distances walk it; the answers are scored precisely.
+      const size_t wanted = std::min(asked, live);
       for (const auto& [approximate, slot] :
-           graph_->Search(query.data(), std::min(asked, live), scale)) {
+           linking_ ? graph_->SearchBesideLinks(query.data(), wanted, scale)
+                    : graph_->Search(query.data(), wanted, scale)) {
         const uint64_t id = id_of_[slot];
         if (params.accept && !params.accept(id)) continue;
         const double squared =
@@ -449,7 +493,8 @@ class TieredIndex final : public engine::PlaceIndex {
   // than absl::Mutex::Await: ThreadSanitizer sees these waits (`make
   // test-tsan`; Debian's absl is not instrumented).
   size_t SizeLocked() const {
-    return tail_->size() + (graph_ ? graph_->size() : 0);
+    // A linking step's vectors are in both tiers.
+    return tail_->size() + (graph_ ? graph_->size() : 0) - linking_count_;
   }
   bool CopyCodeLocked(uint64_t id, std::vector<float>* code) const {
     return tail_->CopyCode(id, code) || (graph_ && graph_->CopyCode(id, code));
@@ -461,8 +506,19 @@ class TieredIndex final : public engine::PlaceIndex {
   bool Idle() const {
     return stop_ || !graph_ || tail_->size() == 0 || paused_;
   }
-  // Moves up to `count` vectors from the end of the tail into the graph.
-  absl::Status MoveToGraph(size_t count);
+  // Moves up to `count` vectors from the end of the tail into the graph,
+  // under `lock` (of mu_), which it gives up while the new nodes are linked:
+  // searches and readers go on under the shared lock meanwhile, and the
+  // moved vectors stay in the tail until they are linked (Search keeps
+  // each id once). Waits for another caller's move first.
+  absl::Status MoveToGraph(size_t count,
+                           std::unique_lock<std::shared_mutex>& lock);
+  // Waits, under `lock` (of mu_, exclusive or shared), until no move is
+  // linking: writers that change the graph or the tail's moved vectors.
+  template <typename Lock>
+  void AwaitLinked(Lock& lock) const {
+    changed_.wait(lock, [this] { return !linking_; });
+  }
   // Vectors moved into the graph per step under the lock.
   size_t StepSize() const {
     return options_.indexer_batch * options_.hnsw.insert_threads;
@@ -480,11 +536,15 @@ class TieredIndex final : public engine::PlaceIndex {
   mutable std::shared_mutex mu_;
   // Signalled when there is work for the background thread or it made
   // progress, stopped or paused.
-  std::condition_variable_any changed_;
+  mutable std::condition_variable_any changed_;
   TieredIndexOptions options_;
   // Vectors not in the graph (all of them while there is no graph).
   std::unique_ptr<engine::PlaceIndex> tail_;
   std::unique_ptr<HnswIndex> graph_;
+  // A MoveToGraph is linking its step beside readers (mu_ shared), of
+  // linking_count_ vectors (in the tail and the graph meanwhile).
+  bool linking_ = false;
+  size_t linking_count_ = 0;
   // The background thread stopped on an error; the next Add resumes it.
   bool paused_ = false;
   bool stop_ = false;
@@ -523,7 +583,7 @@ absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
   }
   if (!graph_) return absl::OkStatus();
   paused_ = false;
-  if (!options_.background) return MoveToGraph(tail_->size());
+  if (!options_.background) return MoveToGraph(tail_->size(), lock);
   changed_.notify_all();
   if (!back_pressure || waiting <= options_.max_unindexed) {
     return absl::OkStatus();
@@ -551,7 +611,7 @@ absl::Status TieredIndex::CatchUpLocked(
   for (size_t left = count;
        left > 0 && graph_ && tail_->size() > options_.max_unindexed;) {
     const size_t step = std::min(left, StepSize());
-    absl::Status status = MoveToGraph(step);
+    absl::Status status = MoveToGraph(step, lock);
     if (!status.ok()) return status;
     left -= step;
     if (left > 0) YieldToWaiters(lock);
@@ -570,6 +630,7 @@ void TieredIndex::YieldToWaiters(std::unique_lock<std::shared_mutex>& lock) {
 
 absl::Status TieredIndex::Save(core::ByteWriter& out) const {
   std::shared_lock lock(mu_);
+  AwaitLinked(lock);  // a graph with every link written
   out.Put<uint32_t>(kTieredFormat);
   absl::Status status = tail_->Save(out);
   if (!status.ok()) return status;
@@ -620,6 +681,7 @@ absl::Status TieredIndex::Remove(std::span<const uint64_t> ids) {
   std::unique_lock lock(mu_);
   turn.Acquired();
   writer.Acquired();
+  AwaitLinked(lock);
   absl::Status status = tail_->Remove(ids);
   if (status.ok() && graph_) status = graph_->Remove(ids);
   if (status.ok() && graph_ && SizeLocked() < options_.hnsw_from / 2) {
@@ -650,7 +712,7 @@ absl::StatusOr<std::vector<Neighbor>> TieredIndex::Search(
         graph_->Search(query, tier_params);
     if (!graphed.ok()) return graphed;
     found->insert(found->end(), graphed->begin(), graphed->end());
-    KeepNearest(*found, params.k);
+    KeepNearestOnce(*found, params.k);
   }
   if (params.codes != nullptr) {
     params.codes->assign(found->size(), {});
@@ -664,19 +726,40 @@ absl::StatusOr<std::vector<Neighbor>> TieredIndex::Search(
   return found;
 }
 
-absl::Status TieredIndex::MoveToGraph(size_t count) {
+absl::Status TieredIndex::MoveToGraph(
+    size_t count, std::unique_lock<std::shared_mutex>& lock) {
+  AwaitLinked(lock);
   const size_t size = tail_->size();
   count = std::min(count, size);
-  if (count == 0) return absl::OkStatus();
+  if (count == 0 || !graph_) return absl::OkStatus();
   // Codes move as given, with their scales.
   IdVectors moved;
   ForEachExactVector(*tail_, moved.Collector(), size - count, size);
-  absl::Status status = graph_->AddScaled<std::vector<float>>(
-      moved.ids, moved.vectors,
-      [&](size_t i, std::span<const float>) { return moved.scales[i]; });
-  if (!status.ok()) return status;
-  // The tail gives its storage back as it drains (the exact index shrinks).
-  return tail_->Remove(moved.ids);
+  absl::StatusOr<core::HnswGraph::Staged> staged =
+      graph_->StageScaled<std::vector<float>>(
+          moved.ids, moved.vectors,
+          [&](size_t i, std::span<const float>) { return moved.scales[i]; });
+  if (!staged.ok()) return staged.status();
+  // Linking is most of a step's cost: readers go on beside it.
+  linking_ = true;
+  linking_count_ = staged->slots.size();
+  graph_->set_linking(true);
+  lock.unlock();
+  absl::Status status;
+  {
+    std::shared_lock shared(mu_);
+    status = graph_->LinkStaged(*staged, moved.ids.size());
+  }
+  lock.lock();
+  graph_->set_linking(false);
+  linking_ = false;
+  linking_count_ = 0;
+  changed_.notify_all();
+  // The tail gives its storage back as it drains (the exact index shrinks);
+  // vectors the graph could not take stay in it.
+  moved.ids.resize(staged->slots.size());
+  absl::Status removed = tail_->Remove(moved.ids);
+  return status.ok() ? removed : status;
 }
 
 absl::Status TieredIndex::DropGraph() {
@@ -708,7 +791,7 @@ void TieredIndex::IndexerLoop() {
   while (true) {
     changed_.wait(lock, [this] { return stop_ || !Idle(); });
     if (stop_) break;
-    absl::Status status = MoveToGraph(StepSize());
+    absl::Status status = MoveToGraph(StepSize(), lock);
     if (!status.ok()) {
       FLEETMEM_LOG(kError) << "tiered index: " << tail_->size()
                            << " vectors stay in the exact segment: " << status;
