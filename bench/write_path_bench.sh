@@ -17,7 +17,10 @@
 #           its rate is the same number;
 #   burst   10 s of one upload stream (batches of 200, a code pool of 100,000:
 #           the client's cost stays small), durable acknowledgement, with
-#           QueryPlace (k = 10) at 20/s beside it (fleetmem-load bench);
+#           QueryPlace (k = 10) at 20/s beside it (fleetmem-load bench; it
+#           then runs the same 10 s against its in-process bare peer, while
+#           the server applies the burst: the peer's query latency is what
+#           gRPC alone gives on this machine under that load);
 #   drain   right after the burst, 10 s of QueryPlace (k = 10) at 50/s and
 #           no upload, while the applier works through the burst's backlog
 #           (the build before has none: its queries meet an idle server;
@@ -50,7 +53,7 @@ wait_applied() {
 }
 calc() { awk "BEGIN { printf \"%.6f\", $1 }"; }
 
-echo "size,build,applied_traces_per_s,burst_acked_per_s,peer_per_s,ratio_to_peer,burst_query_p50_ms,burst_query_p99_ms,burst_drain_s,burst_traces,drain_query_p50_ms,drain_query_p99_ms" >"$out"
+echo "size,build,applied_traces_per_s,burst_acked_per_s,peer_per_s,ratio_to_peer,burst_query_p50_ms,burst_query_p99_ms,burst_drain_s,burst_traces,drain_query_p50_ms,drain_query_p99_ms,peer_query_p50_ms,peer_query_p99_ms" >"$out"
 for size in "$@"; do
   cat >"$work/config.textproto" <<CONFIG
 memory { max_clusters: $((size / 10 + 2100)) }
@@ -95,14 +98,16 @@ CONFIG
     kill "$peer_pid"
     wait "$peer_pid" 2>/dev/null || true
     row=$(sed -n 2p "$work/burst.csv")
+    peer_row=$(sed -n 3p "$work/burst.csv")
     drain_row=$(sed -n 2p "$work/drain.csv")
     col() { echo "$1" | cut -d, -f"$2"; }
     acked=$(col "$row" 6)
-    printf '%s,%s,%.0f,%s,%s,%.3f,%s,%s,%.2f,%.0f,%s,%s\n' "$size" "$which" \
+    printf '%s,%s,%.0f,%s,%s,%.3f,%s,%s,%.2f,%.0f,%s,%s,%s,%s\n' "$size" "$which" \
       "$applied" "$acked" "$peer_rate" \
       "$(calc "$acked / $peer_rate")" "$(col "$row" 13)" \
       "$(col "$row" 14)" "$drain" "$(calc "$acked * 10")" \
-      "$(col "$drain_row" 13)" "$(col "$drain_row" 14)" |
+      "$(col "$drain_row" 13)" "$(col "$drain_row" 14)" \
+      "$(col "$peer_row" 13)" "$(col "$peer_row" 14)" |
       tee -a "$out"
   done
 done
