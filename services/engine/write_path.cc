@@ -75,6 +75,9 @@ struct WritePath::FleetLog {
   uint64_t appended_through ABSL_GUARDED_BY(mu) = 0;
   uint64_t applied_through ABSL_GUARDED_BY(mu) = 0;
   absl::Status apply_error ABSL_GUARDED_BY(mu);
+  // Applies that failed on the store (a caller of WaitApplied hears of
+  // those made after it began to wait).
+  uint64_t apply_failures ABSL_GUARDED_BY(mu) = 0;
   // In the appliers' queue, or being applied.
   bool scheduled ABSL_GUARDED_BY(mu) = false;
 
@@ -437,7 +440,18 @@ absl::Status WritePath::WaitApplied(std::string_view fleet_id,
   FleetLog* log = Find(fleet_id);
   if (log == nullptr) return absl::OkStatus();
   absl::MutexLock lock(&log->mu);
+  const uint64_t failures = log->apply_failures;
   while (log->applied_through < sequence) {
+    // The store refuses the apply (a full disk): tell the caller now rather
+    // than at its deadline; the entry is applied once writes resume.
+    if (log->apply_failures > failures &&
+        absl::IsResourceExhausted(log->apply_error)) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "log entry ", sequence, " of fleet \"", V(fleet_id),
+          "\" is durable but cannot be applied while the store refuses "
+          "writes (",
+          log->apply_error.message(), "); it is applied once they resume"));
+    }
     if (log->stopped) {
       return absl::UnavailableError(absl::StrCat(
           "the server is shutting down; log entry ", sequence, " of fleet \"",
@@ -558,6 +572,8 @@ void WritePath::ApplyTurn(FleetLog& log) {
     {
       absl::MutexLock lock(&log.mu);
       log.apply_error = status;
+      ++log.apply_failures;
+      log.changed.SignalAll();
     }
     absl::MutexLock lock(&ready_mu_);
     if (!stopping_)

@@ -136,7 +136,10 @@ class WritePath {
                                   bool track = false);
 
   // Returns once the fleet's log is applied through `sequence` (at once for
-  // 0). DEADLINE_EXCEEDED at `deadline`, UNAVAILABLE after Stop.
+  // 0). DEADLINE_EXCEEDED at `deadline`, UNAVAILABLE after Stop,
+  // RESOURCE_EXHAUSTED as soon as an apply tried after the call began is
+  // refused by the store (a full disk; the entry stays durable and is
+  // applied once writes resume).
   absl::Status WaitApplied(std::string_view fleet_id, uint64_t sequence,
                            absl::Time deadline);
   // WaitApplied through everything acknowledged so far (Consolidate: a call

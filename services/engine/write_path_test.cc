@@ -61,6 +61,7 @@ class GatedStore : public ForwardingStore {
     {
       absl::MutexLock lock(&mu_);
       while (!applies_open_) changed_.Wait(&mu_);
+      if (!apply_error_.ok()) return apply_error_;
     }
     return ForwardingStore::Apply(fleet_id, mutation);
   }
@@ -90,6 +91,10 @@ class GatedStore : public ForwardingStore {
     absl::MutexLock lock(&mu_);
     append_error_ = std::move(error);
   }
+  void FailApplies(absl::Status error) {
+    absl::MutexLock lock(&mu_);
+    apply_error_ = std::move(error);
+  }
   int appends() {
     absl::MutexLock lock(&mu_);
     return appends_;
@@ -107,6 +112,7 @@ class GatedStore : public ForwardingStore {
   bool applies_open_ ABSL_GUARDED_BY(mu_) = true;
   bool appends_open_ ABSL_GUARDED_BY(mu_) = true;
   absl::Status append_error_ ABSL_GUARDED_BY(mu_);
+  absl::Status apply_error_ ABSL_GUARDED_BY(mu_);
   int appends_ ABSL_GUARDED_BY(mu_) = 0;
   std::vector<size_t> appended_entries_ ABSL_GUARDED_BY(mu_);
 };
@@ -256,6 +262,27 @@ TEST_F(WritePathTest, AFullBacklogRefusesWithItsSizeAndAgeAndRecovers) {
   absl::StatusOr<Appended> retried = path_->Append("f", Traces("r1", 16, 10));
   ASSERT_TRUE(retried.ok()) << retried.status();
   EXPECT_EQ(retried->accepted, 10u);
+}
+
+// A caller waiting for its entry to be applied hears at once when the store
+// refuses the apply (a full disk), not at its deadline; the entry stays
+// durable and is applied once writes resume.
+TEST_F(WritePathTest, AWaiterHearsOfAnApplyTheStoreRefuses) {
+  WritePathOptions options;
+  options.retry_interval = absl::Milliseconds(20);
+  Open(options);
+  store_.FailApplies(absl::ResourceExhaustedError("disk nearly full"));
+  absl::StatusOr<Appended> appended = path_->Append("f", Traces("r1", 1, 4));
+  ASSERT_TRUE(appended.ok()) << appended.status();
+  const absl::Status waited = path_->WaitApplied(
+      "f", appended->sequence, absl::Now() + absl::Seconds(60));
+  EXPECT_EQ(waited.code(), absl::StatusCode::kResourceExhausted) << waited;
+  EXPECT_THAT(waited.message(), HasSubstr("is durable"));
+  EXPECT_THAT(waited.message(), HasSubstr("disk nearly full"));
+  store_.FailApplies(absl::OkStatus());
+  ASSERT_TRUE(
+      path_->WaitApplied("f", appended->sequence, absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("f"), 4u);
 }
 
 TEST_F(WritePathTest, AFailedAppendStoresNothingAndTakesNoSeq) {
