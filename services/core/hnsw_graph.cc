@@ -82,6 +82,42 @@ std::unique_ptr<hnswlib::SpaceInterface<float>> MakeSpace(
   return std::make_unique<hnswlib::L2Space>(dimension);
 }
 
+// The copy of `node`'s link list on `layer` (0: the base layer), read
+// under the node's lock: Link may rewrite it meanwhile.
+void CopyLinks(hnswlib::HierarchicalNSW<float>& hnsw, hnswlib::tableint node,
+               int layer, std::vector<hnswlib::tableint>& links) {
+  std::unique_lock lock(hnsw.link_list_locks_[node]);
+  unsigned int* list =
+      layer == 0 ? hnsw.get_linklist0(node) : hnsw.get_linklist(node, layer);
+  const auto* first = reinterpret_cast<const hnswlib::tableint*>(list + 1);
+  links.assign(first, first + hnsw.getListCount(list));
+}
+
+// hnswlib's greedy walk from `current` (at squared distance *nearest from
+// `data`) down the layers from `top` to bottom + 1: the nearest node it
+// reaches. Each list is read under its node's lock.
+hnswlib::tableint Descend(hnswlib::HierarchicalNSW<float>& hnsw,
+                          const void* data, hnswlib::tableint current,
+                          float* nearest, int top, int bottom) {
+  std::vector<hnswlib::tableint> links;
+  for (int layer = top; layer > bottom; --layer) {
+    for (bool moved = true; moved;) {
+      moved = false;
+      CopyLinks(hnsw, current, layer, links);
+      for (hnswlib::tableint candidate : links) {
+        const float d = hnsw.fstdistfunc_(
+            data, hnsw.getDataByInternalId(candidate), hnsw.dist_func_param_);
+        if (d < *nearest) {
+          *nearest = d;
+          current = candidate;
+          moved = true;
+        }
+      }
+    }
+  }
+  return current;
+}
+
 }  // namespace
 
 struct HnswGraph::Impl {
@@ -214,24 +250,7 @@ void HnswGraph::Link(const Staged& staged, size_t i) {
   hnswlib::tableint current = entry;
   if (level < top) {
     float nearest = distance(current);
-    for (int layer = top; layer > level; --layer) {
-      for (bool moved = true; moved;) {
-        moved = false;
-        std::unique_lock lock(hnsw.link_list_locks_[current]);
-        unsigned int* list = hnsw.get_linklist(current, layer);
-        const int count = hnsw.getListCount(list);
-        const auto* neighbours =
-            reinterpret_cast<const hnswlib::tableint*>(list + 1);
-        for (int j = 0; j < count; ++j) {
-          const float d = distance(neighbours[j]);
-          if (d < nearest) {
-            nearest = d;
-            current = neighbours[j];
-            moved = true;
-          }
-        }
-      }
-    }
+    current = Descend(hnsw, data, current, &nearest, top, level);
   }
   const bool entry_deleted = hnsw.isMarkedDeleted(entry);
   for (int layer = std::min(level, top); layer >= 0; --layer) {
@@ -295,31 +314,9 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::SearchBesideLinks(
     current = hnsw.enterpoint_node_;
     top = hnsw.maxlevel_;
   }
-  // Copies node's list on `layer` (0: the base layer) under its lock.
-  std::vector<hnswlib::tableint> links;
-  const auto read_links = [&](hnswlib::tableint node, int layer) {
-    std::unique_lock lock(hnsw.link_list_locks_[node]);
-    unsigned int* list =
-        layer == 0 ? hnsw.get_linklist0(node) : hnsw.get_linklist(node, layer);
-    const int count = hnsw.getListCount(list);
-    const auto* first = reinterpret_cast<const hnswlib::tableint*>(list + 1);
-    links.assign(first, first + count);
-  };
   float nearest = distance(current);
-  for (int layer = top; layer > 0; --layer) {
-    for (bool moved = true; moved;) {
-      moved = false;
-      read_links(current, layer);
-      for (hnswlib::tableint candidate : links) {
-        const float d = distance(candidate);
-        if (d < nearest) {
-          nearest = d;
-          current = candidate;
-          moved = true;
-        }
-      }
-    }
-  }
+  current = Descend(hnsw, query, current, &nearest, top, 0);
+  std::vector<hnswlib::tableint> links;
   const size_t ef = std::max(hnsw.ef_, k);
   const bool has_deletions = hnsw.num_deleted_ > 0;
   hnswlib::VisitedList* visited = hnsw.visited_list_pool_->getFreeVisitedList();
@@ -344,7 +341,7 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::SearchBesideLinks(
       break;
     }
     candidates.pop();
-    read_links(closest.second, 0);
+    CopyLinks(hnsw, closest.second, 0, links);
     for (hnswlib::tableint candidate : links) {
       if (visited->mass[candidate] == tag) continue;
       visited->mass[candidate] = tag;

@@ -33,7 +33,18 @@ using engine::Neighbor;
 using engine::SearchParams;
 
 // Sorts by (distance, id) and keeps the first k.
-void KeepNearest(std::vector<Neighbor>& neighbors, size_t k);
+void KeepNearest(std::vector<Neighbor>& neighbors, size_t k) {
+  auto closer = [](const Neighbor& a, const Neighbor& b) {
+    return a.distance < b.distance || (a.distance == b.distance && a.id < b.id);
+  };
+  if (neighbors.size() > k) {
+    std::partial_sort(neighbors.begin(), neighbors.begin() + k, neighbors.end(),
+                      closer);
+    neighbors.resize(k);
+  } else {
+    std::sort(neighbors.begin(), neighbors.end(), closer);
+  }
+}
 
 // KeepNearest of two lists that may both hold an id (the tiered index while
 // a step's vectors are linked into its graph: they are still in its tail),
@@ -46,19 +57,6 @@ void KeepNearestOnce(std::vector<Neighbor>& neighbors, size_t k) {
     if (seen.insert(neighbors[i].id).second) neighbors[kept++] = neighbors[i];
   }
   neighbors.resize(kept);
-}
-
-void KeepNearest(std::vector<Neighbor>& neighbors, size_t k) {
-  auto closer = [](const Neighbor& a, const Neighbor& b) {
-    return a.distance < b.distance || (a.distance == b.distance && a.id < b.id);
-  };
-  if (neighbors.size() > k) {
-    std::partial_sort(neighbors.begin(), neighbors.begin() + k, neighbors.end(),
-                      closer);
-    neighbors.resize(k);
-  } else {
-    std::sort(neighbors.begin(), neighbors.end(), closer);
-  }
 }
 
 // Links the staged nodes of `staged` on up to `threads` threads: the
@@ -702,14 +700,12 @@ absl::StatusOr<std::vector<Neighbor>> TieredIndex::Search(
   const WaiterCount turn(waiters_);
   std::shared_lock lock(mu_);
   turn.Acquired();
-  SearchParams tier_params = params;
-  tier_params.codes = nullptr;
-  absl::StatusOr<std::vector<Neighbor>> found =
-      tail_->Search(query, tier_params);
+  // The tiers leave params.codes alone; the codes are copied below.
+  absl::StatusOr<std::vector<Neighbor>> found = tail_->Search(query, params);
   if (!found.ok()) return found;
   if (graph_) {
     absl::StatusOr<std::vector<Neighbor>> graphed =
-        graph_->Search(query, tier_params);
+        graph_->Search(query, params);
     if (!graphed.ok()) return graphed;
     found->insert(found->end(), graphed->begin(), graphed->end());
     KeepNearestOnce(*found, params.k);
