@@ -170,6 +170,21 @@ absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(
   return entry;
 }
 
+absl::StatusOr<std::vector<core::MemoryTrace>> DecodeLoggedTraces(
+    std::string_view where, std::string_view value) {
+  LoggedUpload record;
+  if (!record.ParseFromArray(value.data(), static_cast<int>(value.size())) ||
+      record.traces().empty()) {
+    return absl::DataLossError(
+        absl::StrCat(V(where), ": the entry does not parse or holds no trace"));
+  }
+  std::vector<core::MemoryTrace> traces;
+  traces.reserve(record.traces_size());
+  for (const Trace& trace : record.traces())
+    traces.push_back(FromRecord(trace));
+  return traces;
+}
+
 std::string EncodeCluster(const StoredCluster& cluster) {
   Cluster record;
   record.set_id(cluster.id);

@@ -54,6 +54,10 @@ absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
 std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces);
 absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(std::string_view key,
                                                         std::string_view value);
+// The traces of a logged upload's bytes outside RocksDB (segment_log.h);
+// DATA_LOSS naming `where` when they do not parse or hold no trace.
+absl::StatusOr<std::vector<core::MemoryTrace>> DecodeLoggedTraces(
+    std::string_view where, std::string_view value);
 
 // Moves the member traces of `stored` (read at `key`) out of `traces` into
 // a new cluster at the end of `clusters`; DATA_LOSS if a member has no

@@ -37,6 +37,7 @@
 #include "services/storage/keys.h"
 #include "services/storage/mutation_checks.h"
 #include "services/storage/record_codec.h"
+#include "services/storage/segment_log.h"
 #include "services/storage/snapshot_file.h"
 
 namespace fleetmem::storage {
@@ -312,6 +313,8 @@ class MutationWriter {
 // space every 5 s; other retryable errors are resumed every kResumeInterval
 // (see MakeOptions).
 constexpr int kResumeAttempts = 40;
+// Entries per read when moving an earlier build's log out of RocksDB.
+constexpr size_t kLegacyPage = 64;
 constexpr absl::Duration kResumeInterval = absl::Milliseconds(200);
 
 absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
@@ -354,8 +357,21 @@ class RocksDbStore final : public engine::MemoryStore {
     // log_size_for_flush 0: the memtables are flushed first, so the copy is
     // SST files (hard links where possible) and needs no WAL replay. RocksDB
     // removes its temporary directory itself when this fails.
-    status = checkpoint->CreateCheckpoint(directory, /*log_size_for_flush=*/0);
-    return FromRocksDb(status, absl::StrCat("checkpoint to ", directory));
+    // The ingest log is copied after RocksDB, no trim between: the copy
+    // holds every entry the checkpoint has not applied.
+    bool created = false;
+    absl::Status copied = log_->CopyTo(directory + "/ingest-log", [&] {
+      absl::Status made = FromRocksDb(
+          checkpoint->CreateCheckpoint(directory, /*log_size_for_flush=*/0),
+          absl::StrCat("checkpoint to ", directory));
+      created = made.ok();
+      return made;
+    });
+    if (!copied.ok() && created) {
+      std::error_code ignored;
+      std::filesystem::remove_all(directory, ignored);
+    }
+    return copied;
   }
 
   absl::Status SaveIndexSnapshot(
@@ -546,22 +562,14 @@ class RocksDbStore final : public engine::MemoryStore {
                  "write fleet");
   }
 
+  // The ingest log lives in segment files beside RocksDB's (segment_log.h
+  // says why).
   absl::Status AppendLog(std::string_view fleet_id,
                          std::span<const engine::LogAppend> entries) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }
-    rocksdb::WriteBatch batch;
-    for (const engine::LogAppend& entry : entries) {
-      batch.Put(ToSlice(keys::LogKey(fleet_id, entry.sequence)),
-                ToSlice(EncodeLoggedUpload(entry.traces)));
-    }
-    // Always synced, whatever the store's sync option: the entry is the
-    // acknowledged copy of an upload until it is applied. Not under
-    // apply_mu_: appends of several streams group-commit in RocksDB's
-    // write queue (one WAL sync for all), beside the applier's writes.
-    return Write(fleet_id, batch, synced_write_options_,
-                 "append to the log of fleet");
+    return log_->Append(fleet_id, entries);
   }
 
   absl::StatusOr<std::vector<engine::LoggedUpload>> ReadLog(
@@ -569,72 +577,42 @@ class RocksDbStore final : public engine::MemoryStore {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }
-    std::vector<engine::LoggedUpload> entries;
-    if (max_entries == 0 || after == UINT64_MAX) return entries;
-    const absl::Status status = ForEachInRange(
-        db_.get(), rocksdb::ReadOptions(), keys::LogKey(fleet_id, after + 1),
-        keys::PrefixEnd(keys::Tag::kLog, fleet_id),
-        [&](std::string_view key,
-            std::string_view value) -> absl::StatusOr<bool> {
-          absl::StatusOr<engine::LoggedUpload> entry =
-              DecodeLoggedUpload(key, value);
-          if (!entry.ok()) return entry.status();
-          entries.push_back(*std::move(entry));
-          return entries.size() < max_entries;
-        });
-    if (!status.ok()) return status;
-    return entries;
+    return log_->Read(fleet_id, after, max_entries);
   }
 
   absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }
-    if (through == 0) return absl::OkStatus();
-    rocksdb::WriteBatch batch;
-    batch.DeleteRange(ToSlice(keys::LogKey(fleet_id, 0)),
-                      ToSlice(through == UINT64_MAX
-                                  ? keys::PrefixEnd(keys::Tag::kLog, fleet_id)
-                                  : keys::LogKey(fleet_id, through + 1)));
-    return Write(fleet_id, batch, unsynced_write_options_,
-                 "trim the log of fleet");
+    return log_->Trim(fleet_id, through);
   }
 
   absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
       override {
-    std::vector<std::pair<std::string, uint64_t>> tails;
-    std::unique_ptr<rocksdb::Iterator> it(
-        db_->NewIterator(rocksdb::ReadOptions()));
-    const char tag = static_cast<char>(keys::Tag::kLog);
-    it->Seek(ToSlice(std::string(1, tag)));
-    while (it->Valid() && it->key().size() > 0 && it->key()[0] == tag) {
-      const std::optional<keys::ParsedKey> parsed =
-          keys::Parse(ToView(it->key()));
-      if (!parsed) {
-        return absl::DataLossError(
-            absl::StrCat("malformed key in RocksDB at ", path_, ": ",
-                         keys::Describe(ToView(it->key()))));
-      }
-      const std::string fleet(parsed->fleet_id);
-      // The fleet's last entry: the one before the end of its range.
-      it->SeekForPrev(ToSlice(keys::LogKey(fleet, UINT64_MAX)));
-      const std::optional<keys::ParsedKey> last =
-          it->Valid() ? keys::Parse(ToView(it->key())) : std::nullopt;
-      const std::optional<uint64_t> sequence =
-          last ? keys::ParseIdSuffix(last->suffix) : std::nullopt;
-      if (!sequence || last->fleet_id != fleet) {
-        return absl::DataLossError(
-            absl::StrCat("malformed log key in RocksDB at ", path_, " (fleet ",
-                         V(fleet), ")"));
-      }
-      tails.emplace_back(fleet, *sequence);
-      it->Seek(ToSlice(keys::PrefixEnd(keys::Tag::kLog, fleet)));
-    }
-    if (absl::Status status = FromRocksDb(it->status(), "list ingest logs");
-        !status.ok()) {
-      return status;
-    }
-    return tails;
+    return log_->Tails();
+  }
+
+  // Opens the ingest log at PATH/ingest-log and moves into it the entries
+  // that builds before it kept in RocksDB (their keys are then erased).
+  absl::Status OpenLog() {
+    SegmentLogOptions options;
+    options.directory = path_ + "/ingest-log";
+    options.check_room = [this](std::string_view fleet_id, uint64_t bytes) {
+      return CheckRoom(fleet_id, bytes);
+    };
+    // A trimmed entry must not outlive what it was applied to: with sync
+    // off, Apply's writes are durable only once the WAL is synced.
+    options.before_trim = [this]() -> absl::Status {
+      if (write_options_.sync) return absl::OkStatus();
+      return FromRocksDb(db_->FlushWAL(/*sync=*/true),
+                         "sync the write-ahead log before trimming the "
+                         "ingest log");
+    };
+    absl::StatusOr<std::unique_ptr<SegmentLog>> log =
+        SegmentLog::Open(std::move(options));
+    if (!log.ok()) return log.status();
+    log_ = *std::move(log);
+    return MoveLegacyLog();
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
@@ -660,6 +638,78 @@ class RocksDbStore final : public engine::MemoryStore {
   }
 
  private:
+  // Moves log entries that an earlier build kept in RocksDB (keys::LogKey)
+  // into the segment log, each fleet's then erased from RocksDB (synced). A
+  // crash in between leaves them in both: the entries already moved are
+  // skipped when this runs again.
+  absl::Status MoveLegacyLog() {
+    std::map<std::string, uint64_t, std::less<>> moved;
+    for (const auto& [fleet, last] : log_->Tails()) moved[fleet] = last;
+    const char tag = static_cast<char>(keys::Tag::kLog);
+    std::vector<std::string> fleets;
+    std::unique_ptr<rocksdb::Iterator> it(
+        db_->NewIterator(rocksdb::ReadOptions()));
+    for (it->Seek(ToSlice(std::string(1, tag)));
+         it->Valid() && it->key().size() > 0 && it->key()[0] == tag;
+         it->Seek(ToSlice(keys::PrefixEnd(keys::Tag::kLog, fleets.back())))) {
+      const std::optional<keys::ParsedKey> parsed =
+          keys::Parse(ToView(it->key()));
+      if (!parsed) {
+        return absl::DataLossError(
+            absl::StrCat("malformed key in RocksDB at ", path_, ": ",
+                         keys::Describe(ToView(it->key()))));
+      }
+      fleets.emplace_back(parsed->fleet_id);
+    }
+    if (absl::Status status = FromRocksDb(it->status(), "list ingest logs");
+        !status.ok()) {
+      return status;
+    }
+    it.reset();
+    for (const std::string& fleet : fleets) {
+      uint64_t after = moved.contains(fleet) ? moved[fleet] : 0;
+      uint64_t entries = 0;
+      while (true) {
+        std::vector<engine::LoggedUpload> page;
+        const absl::Status read = ForEachInRange(
+            db_.get(), rocksdb::ReadOptions(), keys::LogKey(fleet, after + 1),
+            keys::PrefixEnd(keys::Tag::kLog, fleet),
+            [&](std::string_view key,
+                std::string_view value) -> absl::StatusOr<bool> {
+              absl::StatusOr<engine::LoggedUpload> entry =
+                  DecodeLoggedUpload(key, value);
+              if (!entry.ok()) return entry.status();
+              page.push_back(*std::move(entry));
+              return page.size() < kLegacyPage;
+            });
+        if (!read.ok()) return read;
+        if (page.empty()) break;
+        std::vector<engine::LogAppend> appends;
+        for (const engine::LoggedUpload& entry : page) {
+          appends.push_back({entry.sequence, entry.traces});
+        }
+        if (absl::Status appended = log_->Append(fleet, appends);
+            !appended.ok()) {
+          return appended;
+        }
+        entries += page.size();
+        after = page.back().sequence;
+      }
+      rocksdb::WriteBatch batch;
+      batch.DeleteRange(ToSlice(keys::LogKey(fleet, 0)),
+                        ToSlice(keys::PrefixEnd(keys::Tag::kLog, fleet)));
+      if (absl::Status erased = Write(fleet, batch, synced_write_options_,
+                                      "erase the moved ingest log of fleet");
+          !erased.ok()) {
+        return erased;
+      }
+      FLEETMEM_LOG(kInfo) << "fleet \"" << fleet << "\": moved " << entries
+                          << " ingest log entries from RocksDB into " << path_
+                          << "/ingest-log";
+    }
+    return absl::OkStatus();
+  }
+
   // Index snapshots live beside RocksDB's files, one per fleet.
   std::string SnapshotDirectory() const { return path_ + "/index-snapshots"; }
 
@@ -694,7 +744,8 @@ class RocksDbStore final : public engine::MemoryStore {
   absl::Status Write(std::string_view fleet_id, rocksdb::WriteBatch& batch,
                      const rocksdb::WriteOptions& options,
                      std::string_view what) {
-    if (absl::Status room = CheckRoom(fleet_id, batch.GetDataSize());
+    // The batch goes to the write-ahead log now and to a table file later.
+    if (absl::Status room = CheckRoom(fleet_id, 2 * batch.GetDataSize());
         !room.ok()) {
       return room;
     }
@@ -716,7 +767,7 @@ class RocksDbStore final : public engine::MemoryStore {
       for (int attempt = 0; attempt < kResumeAttempts && !written.ok();
            ++attempt) {
         absl::SleepFor(kResumeInterval);
-        if (!CheckRoom(fleet_id, batch.GetDataSize()).ok()) break;
+        if (!CheckRoom(fleet_id, 2 * batch.GetDataSize()).ok()) break;
         if (!ResumeAfterError().ok()) continue;  // busy: auto-resume running
         written = db_->Write(options, &batch);
       }
@@ -732,12 +783,11 @@ class RocksDbStore final : public engine::MemoryStore {
 
   // RESOURCE_EXHAUSTED if writing `bytes` would leave less than the
   // reserve free.
-  absl::Status CheckRoom(std::string_view fleet_id, size_t bytes) {
+  absl::Status CheckRoom(std::string_view fleet_id, uint64_t bytes) {
     if (min_free_bytes_ == 0) return absl::OkStatus();
     absl::StatusOr<uint64_t> free = free_bytes_(path_);
     if (!free.ok()) return free.status();
-    // The batch goes to the write-ahead log now and to a table file later.
-    const uint64_t needed = min_free_bytes_ + 2 * uint64_t{bytes};
+    const uint64_t needed = min_free_bytes_ + bytes;
     if (*free >= needed) {
       if (low_space_) {
         FLEETMEM_LOG(kInfo) << "disk space is back under " << path_ << " ("
@@ -754,7 +804,7 @@ class RocksDbStore final : public engine::MemoryStore {
     }
     return absl::ResourceExhaustedError(absl::StrCat(
         "disk nearly full: ", *free, " bytes free under ", path_,
-        ", a write of fleet ", V(fleet_id), " needs ", 2 * uint64_t{bytes},
+        ", a write of fleet ", V(fleet_id), " needs ", bytes,
         " above the reserve of ", min_free_bytes_,
         " (storage.min_free_bytes); nothing was stored. Reads are served; "
         "writes resume once space is freed"));
@@ -776,6 +826,7 @@ class RocksDbStore final : public engine::MemoryStore {
   }
 
   std::unique_ptr<rocksdb::DB> db_;
+  std::unique_ptr<SegmentLog> log_;
   const std::string path_;
   const uint64_t min_free_bytes_;
   const std::function<absl::StatusOr<uint64_t>(const std::string&)> free_bytes_;
@@ -888,7 +939,9 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
   }
   FLEETMEM_LOG(kInfo) << "opened RocksDB store at " << options.path
                       << (options.sync ? " (sync writes)" : " (async writes)");
-  return std::make_unique<RocksDbStore>(std::move(db), options);
+  auto store = std::make_unique<RocksDbStore>(std::move(db), options);
+  if (absl::Status log = store->OpenLog(); !log.ok()) return log;
+  return store;
 }
 
 }  // namespace

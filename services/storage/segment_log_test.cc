@@ -1,0 +1,290 @@
+#include "services/storage/segment_log.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "rocksdb/db.h"
+#include "services/storage/keys.h"
+#include "services/storage/record_codec.h"
+#include "services/storage/rocksdb_store.h"
+#include "services/storage/store_test_util.h"
+
+namespace fleetmem::storage {
+namespace {
+
+using ::testing::HasSubstr;
+using testing::MakeTrace;
+using testing::TempDir;
+
+// Entry `sequence` holds `size` traces of robot "r" from seq 10 * sequence.
+std::vector<core::MemoryTrace> EntryTraces(uint64_t sequence, int size = 3) {
+  std::vector<core::MemoryTrace> traces;
+  for (int i = 0; i < size; ++i) {
+    traces.push_back(MakeTrace("r", sequence * 10 + i));
+  }
+  return traces;
+}
+
+absl::Status AppendEntries(SegmentLog& log, const std::string& fleet,
+                           uint64_t first, uint64_t last) {
+  std::vector<std::vector<core::MemoryTrace>> held;
+  std::vector<engine::LogAppend> appends;
+  for (uint64_t s = first; s <= last; ++s) held.push_back(EntryTraces(s));
+  for (uint64_t s = first; s <= last; ++s) {
+    appends.push_back({s, held[s - first]});
+  }
+  return log.Append(fleet, appends);
+}
+
+// The sequences Read gives after `after`, in pages of 4; each entry's
+// traces checked.
+std::vector<uint64_t> ReadAll(SegmentLog& log, const std::string& fleet,
+                              uint64_t after = 0) {
+  std::vector<uint64_t> sequences;
+  while (true) {
+    absl::StatusOr<std::vector<engine::LoggedUpload>> page =
+        log.Read(fleet, after, 4);
+    EXPECT_TRUE(page.ok()) << page.status();
+    if (!page.ok() || page->empty()) break;
+    for (const engine::LoggedUpload& entry : *page) {
+      const std::vector<core::MemoryTrace> expected =
+          EntryTraces(entry.sequence);
+      EXPECT_EQ(entry.traces.size(), expected.size());
+      for (size_t i = 0; i < expected.size() && i < entry.traces.size(); ++i) {
+        EXPECT_EQ(entry.traces[i].seq, expected[i].seq);
+        EXPECT_EQ(entry.traces[i].code, expected[i].code);
+      }
+      sequences.push_back(entry.sequence);
+      after = entry.sequence;
+    }
+  }
+  return sequences;
+}
+
+std::vector<uint64_t> Range(uint64_t first, uint64_t last) {
+  std::vector<uint64_t> out;
+  for (uint64_t s = first; s <= last; ++s) out.push_back(s);
+  return out;
+}
+
+std::unique_ptr<SegmentLog> OpenLog(const std::string& directory,
+                                    uint64_t segment_bytes = 1000) {
+  SegmentLogOptions options;
+  options.directory = directory;
+  options.segment_bytes = segment_bytes;  // a few entries per segment
+  absl::StatusOr<std::unique_ptr<SegmentLog>> log =
+      SegmentLog::Open(std::move(options));
+  EXPECT_TRUE(log.ok()) << log.status();
+  return log.ok() ? std::move(*log) : nullptr;
+}
+
+size_t CountFiles(const std::string& directory, std::string_view prefix) {
+  size_t count = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(directory)) {
+    if (entry.path().filename().string().starts_with(prefix)) ++count;
+  }
+  return count;
+}
+
+TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
+  TempDir dir;
+  const std::string path = dir.path() + "/log";
+  {
+    std::unique_ptr<SegmentLog> log = OpenLog(path);
+    ASSERT_NE(log, nullptr);
+    for (uint64_t s = 1; s <= 30; s += 3) {
+      ASSERT_TRUE(AppendEntries(*log, "fleet-a", s, s + 2).ok());
+    }
+    ASSERT_TRUE(AppendEntries(*log, "b", 1, 2).ok());
+    EXPECT_EQ(ReadAll(*log, "fleet-a"), Range(1, 30));
+    EXPECT_EQ(ReadAll(*log, "fleet-a", 17), Range(18, 30));
+    EXPECT_EQ(ReadAll(*log, "nobody"), std::vector<uint64_t>());
+    EXPECT_EQ(log->Tails(), (std::vector<std::pair<std::string, uint64_t>>{
+                                {"b", 2}, {"fleet-a", 30}}));
+    EXPECT_GT(CountFiles(path + "/f-fleet-a", "0"), 3u);
+    ASSERT_TRUE(log->Trim("fleet-a", 20).ok());
+    // Whole segments at or below 20 are gone, kept for reuse up to 2.
+    EXPECT_EQ(CountFiles(path + "/f-fleet-a", "spare-"), 2u);
+    EXPECT_EQ(ReadAll(*log, "fleet-a", 20), Range(21, 30));
+  }
+  std::unique_ptr<SegmentLog> log = OpenLog(path);
+  ASSERT_NE(log, nullptr);
+  std::vector<uint64_t> kept = ReadAll(*log, "fleet-a");
+  ASSERT_FALSE(kept.empty());
+  EXPECT_LE(kept.front(), 21u);
+  EXPECT_EQ(kept.back(), 30u);
+  EXPECT_EQ(ReadAll(*log, "fleet-a", 20), Range(21, 30));
+  EXPECT_EQ(ReadAll(*log, "b"), Range(1, 2));
+  // Appends go on after a reopen, into reused segments: nothing of what
+  // those files held before is read back.
+  for (uint64_t s = 31; s <= 60; s += 3) {
+    ASSERT_TRUE(AppendEntries(*log, "fleet-a", s, s + 2).ok());
+  }
+  ASSERT_TRUE(log->Trim("fleet-a", 45).ok());
+  EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 60));
+  log = OpenLog(path);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 60));
+  EXPECT_EQ(log->Tails().back(),
+            std::make_pair(std::string("fleet-a"), uint64_t{60}));
+}
+
+// Appends entries 1..2, then 3 (its own append), and returns the segment
+// and where entry 3 begins in it.
+std::pair<std::string, uintmax_t> TwoAppends(const std::string& path,
+                                             std::unique_ptr<SegmentLog>& log) {
+  log = OpenLog(path, 1 << 20);
+  EXPECT_NE(log, nullptr);
+  EXPECT_TRUE(AppendEntries(*log, "f", 1, 2).ok());
+  const std::string segment =
+      std::filesystem::directory_iterator(path + "/f-f")->path();
+  const uintmax_t third = std::filesystem::file_size(segment);
+  EXPECT_TRUE(AppendEntries(*log, "f", 3, 3).ok());
+  return {segment, third};
+}
+
+TEST(SegmentLogTest, ATornTailIsCutAtReopenAndAppendsGoOnAfterIt) {
+  TempDir dir;
+  const std::string path = dir.path() + "/log";
+  std::unique_ptr<SegmentLog> log;
+  const auto [segment, third] = TwoAppends(path, log);
+  log.reset();
+  // A crash in the middle of entry 3's write.
+  std::filesystem::resize_file(segment, third + 40);
+  log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
+  EXPECT_EQ(log->Tails().front().second, 2u);
+  ASSERT_TRUE(AppendEntries(*log, "f", 3, 4).ok());
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
+  log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
+}
+
+TEST(SegmentLogTest, ADamagedEntryIsDataLoss) {
+  TempDir dir;
+  const std::string path = dir.path() + "/log";
+  std::unique_ptr<SegmentLog> log;
+  const auto [segment, third] = TwoAppends(path, log);
+  {
+    // One byte of entry 3's payload, flipped on disk.
+    const int fd = ::open(segment.c_str(), O_RDWR);
+    ASSERT_GE(fd, 0);
+    const off_t at = static_cast<off_t>(third + 40);
+    char byte = 0;
+    ASSERT_EQ(::pread(fd, &byte, 1, at), 1);
+    byte = static_cast<char>(byte ^ 0x40);
+    ASSERT_EQ(::pwrite(fd, &byte, 1, at), 1);
+    ::close(fd);
+  }
+  absl::StatusOr<std::vector<engine::LoggedUpload>> read =
+      log->Read("f", 2, 10);
+  EXPECT_EQ(read.status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_THAT(read.status().message(), HasSubstr("entry 3"));
+  // After a restart the segment ends before it.
+  log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
+}
+
+TEST(SegmentLogTest, ARefusedAppendStoresNothing) {
+  TempDir dir;
+  SegmentLogOptions options;
+  options.directory = dir.path() + "/log";
+  bool full = false;
+  options.check_room = [&](std::string_view, uint64_t) {
+    return full ? absl::ResourceExhaustedError("disk nearly full")
+                : absl::OkStatus();
+  };
+  absl::StatusOr<std::unique_ptr<SegmentLog>> log =
+      SegmentLog::Open(std::move(options));
+  ASSERT_TRUE(log.ok()) << log.status();
+  ASSERT_TRUE(AppendEntries(**log, "f", 1, 1).ok());
+  full = true;
+  EXPECT_EQ(AppendEntries(**log, "f", 2, 2).code(),
+            absl::StatusCode::kResourceExhausted);
+  full = false;
+  EXPECT_EQ(ReadAll(**log, "f"), Range(1, 1));
+  ASSERT_TRUE(AppendEntries(**log, "f", 2, 2).ok());
+  EXPECT_EQ(ReadAll(**log, "f"), Range(1, 2));
+}
+
+TEST(SegmentLogTest, ACopyHoldsEveryEntryAndNoTrimRunsBesideIt) {
+  TempDir dir;
+  std::unique_ptr<SegmentLog> log = OpenLog(dir.path() + "/log");
+  ASSERT_NE(log, nullptr);
+  ASSERT_TRUE(AppendEntries(*log, "f", 1, 12).ok());
+  ASSERT_TRUE(AppendEntries(*log, "g", 1, 2).ok());
+  bool first_ran = false;
+  ASSERT_TRUE(log->CopyTo(dir.path() + "/copy",
+                          [&] {
+                            first_ran = true;
+                            return absl::OkStatus();
+                          })
+                  .ok());
+  EXPECT_TRUE(first_ran);
+  std::unique_ptr<SegmentLog> copy = OpenLog(dir.path() + "/copy");
+  ASSERT_NE(copy, nullptr);
+  EXPECT_EQ(ReadAll(*copy, "f"), Range(1, 12));
+  EXPECT_EQ(ReadAll(*copy, "g"), Range(1, 2));
+  // A failing first step copies nothing.
+  EXPECT_FALSE(log->CopyTo(dir.path() + "/copy2",
+                           [] { return absl::UnavailableError("no"); })
+                   .ok());
+  EXPECT_FALSE(std::filesystem::exists(dir.path() + "/copy2"));
+}
+
+// The RocksDB store moves the log entries that builds before the segment
+// log kept in RocksDB into it, once.
+TEST(SegmentLogTest, TheStoreMovesAnEarlierBuildsLogOutOfRocksDb) {
+  TempDir dir;
+  const std::string path = dir.path() + "/db";
+  {
+    RocksDbStoreOptions options;
+    options.path = path;
+    ASSERT_TRUE(OpenRocksDbStore(options).ok());  // the format key
+    rocksdb::Options raw_options;
+    rocksdb::DB* raw = nullptr;
+    ASSERT_TRUE(rocksdb::DB::Open(raw_options, path, &raw).ok());
+    std::unique_ptr<rocksdb::DB> db(raw);
+    for (uint64_t s = 4; s <= 9; ++s) {
+      const std::string key = keys::LogKey("f", s);
+      ASSERT_TRUE(db->Put(rocksdb::WriteOptions(), key,
+                          EncodeLoggedUpload(EntryTraces(s)))
+                      .ok());
+    }
+  }
+  for (int open = 0; open < 2; ++open) {
+    RocksDbStoreOptions options;
+    options.path = path;
+    absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+        OpenRocksDbStore(options);
+    ASSERT_TRUE(store.ok()) << store.status();
+    absl::StatusOr<std::vector<engine::LoggedUpload>> read =
+        (*store)->ReadLog("f", 0, 100);
+    ASSERT_TRUE(read.ok()) << read.status();
+    ASSERT_EQ(read->size(), 6u);
+    EXPECT_EQ(read->front().sequence, 4u);
+    EXPECT_EQ(read->back().traces[2].seq, 92u);
+    EXPECT_EQ((*store)->LogTails()->size(), 1u);
+  }
+  rocksdb::DB* raw = nullptr;
+  ASSERT_TRUE(
+      rocksdb::DB::OpenForReadOnly(rocksdb::Options(), path, &raw).ok());
+  std::unique_ptr<rocksdb::DB> db(raw);
+  std::string value;
+  EXPECT_TRUE(db->Get(rocksdb::ReadOptions(), keys::LogKey("f", 4), &value)
+                  .IsNotFound());
+}
+
+}  // namespace
+}  // namespace fleetmem::storage
