@@ -183,8 +183,7 @@ class MemoryStore {
   //
   // Appends `entries` (each sequence greater than every one the fleet's log
   // held) in one atomic write and returns once they are durable: synced,
-  // whatever the store's sync option, in the same write-ahead log as Apply,
-  // so an entry appended after an Apply is never durable without it.
+  // whatever the store's sync option.
   virtual absl::Status AppendLog(std::string_view fleet_id,
                                  std::span<const LogAppend> entries) = 0;
   // Up to `max_entries` entries of the fleet's log with sequence > `after`,
@@ -192,8 +191,11 @@ class MemoryStore {
   virtual absl::StatusOr<std::vector<LoggedUpload>> ReadLog(
       std::string_view fleet_id, uint64_t after, size_t max_entries) = 0;
   // Erases the fleet's log entries with sequence <= `through`, once what
-  // they carry is applied (stored by Apply). Need not be synced: the
-  // entries are applied again, idempotently, if the erasure is lost.
+  // they carry is applied (stored by Apply). The erasure need not be
+  // synced (the entries are applied again, idempotently, if it is lost),
+  // but an entry must not be erased durably before the Apply writes made
+  // before the call are durable: those of log entries are unsynced
+  // (FleetMutation::sync). A store may keep entries at or below `through`.
   virtual absl::Status TrimLog(std::string_view fleet_id, uint64_t through) = 0;
   // The fleets whose log holds entries, each with its last sequence; sorted
   // by fleet.

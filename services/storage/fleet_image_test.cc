@@ -6,11 +6,11 @@
 #include <string>
 #include <vector>
 
+#include "fleetmem_paths.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/storage/in_memory_store.h"
 #include "services/storage/store_test_util.h"
-#include "fleetmem_paths.h"
 
 namespace fleetmem::storage {
 namespace {

@@ -600,10 +600,10 @@ class RocksDbStore final : public engine::MemoryStore {
     options.check_room = [this](std::string_view fleet_id, uint64_t bytes) {
       return CheckRoom(fleet_id, bytes);
     };
-    // A trimmed entry must not outlive what it was applied to: with sync
-    // off, Apply's writes are durable only once the WAL is synced.
+    // A trimmed entry must not outlive what it was applied to, and the
+    // applies of log entries are written unsynced (FleetMutation::sync):
+    // sync RocksDB's write-ahead log before segments go (once a segment).
     options.before_trim = [this]() -> absl::Status {
-      if (write_options_.sync) return absl::OkStatus();
       return FromRocksDb(db_->FlushWAL(/*sync=*/true),
                          "sync the write-ahead log before trimming the "
                          "ingest log");

@@ -218,6 +218,37 @@ TEST(SegmentLogTest, ARefusedAppendStoresNothing) {
   EXPECT_EQ(ReadAll(**log, "f"), Range(1, 2));
 }
 
+// Trim makes the store's applies durable (before_trim) before any segment
+// goes, and removes nothing if it cannot.
+TEST(SegmentLogTest, TrimRemovesNothingUntilTheAppliedStateIsDurable) {
+  TempDir dir;
+  SegmentLogOptions options;
+  options.directory = dir.path() + "/log";
+  options.segment_bytes = 1000;
+  int calls = 0;
+  absl::Status durable = absl::UnavailableError("fsync failed");
+  options.before_trim = [&] {
+    ++calls;
+    return durable;
+  };
+  absl::StatusOr<std::unique_ptr<SegmentLog>> log =
+      SegmentLog::Open(std::move(options));
+  ASSERT_TRUE(log.ok()) << log.status();
+  for (uint64_t s = 1; s <= 12; s += 3) {
+    ASSERT_TRUE(AppendEntries(**log, "f", s, s + 2).ok());
+  }
+  EXPECT_EQ((*log)->Trim("f", 12).code(), absl::StatusCode::kUnavailable);
+  EXPECT_EQ(ReadAll(**log, "f"), Range(1, 12));
+  durable = absl::OkStatus();
+  ASSERT_TRUE((*log)->Trim("f", 12).ok());
+  EXPECT_EQ(calls, 2);
+  EXPECT_EQ(ReadAll(**log, "f", 12), std::vector<uint64_t>());
+  EXPECT_LT(ReadAll(**log, "f").size(), 12u);
+  // Nothing more to remove: not called.
+  ASSERT_TRUE((*log)->Trim("f", 12).ok());
+  EXPECT_EQ(calls, 2);
+}
+
 TEST(SegmentLogTest, ACopyHoldsEveryEntryAndNoTrimRunsBesideIt) {
   TempDir dir;
   std::unique_ptr<SegmentLog> log = OpenLog(dir.path() + "/log");
