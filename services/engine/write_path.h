@@ -52,11 +52,14 @@ struct WritePathOptions {
   // Traces a fleet's log may hold unapplied. An upload that would take the
   // backlog past it is refused with RESOURCE_EXHAUSTED naming the backlog
   // and its age (robots retry it with backoff); 0: unbounded. The backlog
-  // lives in the store (on disk), not in memory: the bound is how far the
-  // applier may fall behind a burst (500,000 traces of 256-d: 209-275 s of
-  // catching up on 2 cores in bench/write_path_bench.sh at 5,000 and
-  // 100,000 held, docs/performance.md).
-  uint64_t max_backlog_traces = 500'000;
+  // lives in the store (on disk, about 1.1 KB per 256-d trace), not in
+  // memory: the bound is how far the applier may fall behind a burst. The
+  // default takes a burst of one stream for 10 s on this project's 2-core
+  // machine (160,000 traces/s acknowledged, docs/performance.md) and costs
+  // up to 2.2 GB of disk per fleet at 256-d; the applier catches up at its
+  // own rate (1,200-2,900 traces/s there: minutes, during which queries do
+  // not see the backlog).
+  uint64_t max_backlog_traces = 2'000'000;
   // Applier threads shared by every fleet.
   int appliers = 2;
   // Their nice value (0..19; common::MarkBackgroundThread), and so that of

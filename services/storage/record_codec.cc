@@ -5,6 +5,7 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
+#include "google/protobuf/arena.h"
 #include "services/core/absl_view.h"
 #include "services/core/seq_set.h"
 #include "services/storage/keys.h"
@@ -140,13 +141,40 @@ absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
   return FromRecord(record);
 }
 
-std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces) {
-  LoggedUpload record;
-  record.mutable_traces()->Reserve(static_cast<int>(traces.size()));
+struct LoggedUploadBytes::Impl {
+  google::protobuf::Arena arena;
+  LoggedUpload* record = nullptr;
+  size_t size = 0;
+};
+
+LoggedUploadBytes::LoggedUploadBytes(std::span<const core::MemoryTrace> traces)
+    : impl_(std::make_unique<Impl>()) {
+  impl_->record =
+      google::protobuf::Arena::CreateMessage<LoggedUpload>(&impl_->arena);
+  impl_->record->mutable_traces()->Reserve(static_cast<int>(traces.size()));
   for (const core::MemoryTrace& trace : traces) {
-    ToRecord(trace, record.add_traces());
+    ToRecord(trace, impl_->record->add_traces());
   }
-  return record.SerializeAsString();
+  impl_->size = impl_->record->ByteSizeLong();
+}
+
+LoggedUploadBytes::~LoggedUploadBytes() = default;
+LoggedUploadBytes::LoggedUploadBytes(LoggedUploadBytes&&) noexcept = default;
+LoggedUploadBytes& LoggedUploadBytes::operator=(LoggedUploadBytes&&) noexcept =
+    default;
+
+size_t LoggedUploadBytes::size() const { return impl_->size; }
+
+void LoggedUploadBytes::WriteTo(char* out) const {
+  impl_->record->SerializeWithCachedSizesToArray(
+      reinterpret_cast<uint8_t*>(out));
+}
+
+std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces) {
+  const LoggedUploadBytes bytes(traces);
+  std::string out(bytes.size(), '\0');
+  bytes.WriteTo(out.data());
+  return out;
 }
 
 absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(

@@ -8,6 +8,7 @@
 
 #include <cstdint>
 #include <map>
+#include <memory>
 #include <span>
 #include <string>
 #include <string_view>
@@ -52,6 +53,23 @@ absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
 // An ingest-log entry (MemoryStore::AppendLog): its traces. Decoding
 // checks every trace as DecodeTrace would.
 std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces);
+// The same bytes, sized before they are written, so that they can go
+// straight into a caller's buffer (the ingest log's appends; its messages
+// live on an arena: one allocation, not one per trace and field).
+class LoggedUploadBytes {
+ public:
+  explicit LoggedUploadBytes(std::span<const core::MemoryTrace> traces);
+  ~LoggedUploadBytes();
+  LoggedUploadBytes(LoggedUploadBytes&&) noexcept;
+  LoggedUploadBytes& operator=(LoggedUploadBytes&&) noexcept;
+  size_t size() const;
+  // Writes exactly size() bytes at `out`.
+  void WriteTo(char* out) const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
 absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(std::string_view key,
                                                         std::string_view value);
 // The traces of a logged upload's bytes outside RocksDB (segment_log.h);

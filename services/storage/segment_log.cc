@@ -397,11 +397,11 @@ absl::StatusOr<std::shared_ptr<SegmentLog::Segment>> SegmentLog::StartSegment(
 absl::Status SegmentLog::Append(std::string_view fleet_id,
                                 std::span<const engine::LogAppend> entries) {
   if (entries.empty()) return absl::OkStatus();
-  std::vector<std::string> payloads;
+  std::vector<LoggedUploadBytes> payloads;
   payloads.reserve(entries.size());
   uint64_t bytes = 0;
   for (const engine::LogAppend& entry : entries) {
-    payloads.push_back(EncodeLoggedUpload(entry.traces));
+    payloads.emplace_back(entry.traces);
     bytes += kHeaderBytes + payloads.back().size();
   }
   if (options_.check_room) {
@@ -458,11 +458,10 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
   std::vector<Segment::Record> records;
   size_t at = 0;
   for (size_t i = 0; i < entries.size(); ++i) {
-    const std::string& payload = payloads[i];
+    const LoggedUploadBytes& payload = payloads[i];
     records.push_back(
         {entries[i].sequence, offset + at, kHeaderBytes + payload.size()});
-    std::memcpy(buffer.get() + at + kHeaderBytes, payload.data(),
-                payload.size());
+    payload.WriteTo(buffer.get() + at + kHeaderBytes);
     WriteHeader(buffer.get() + at, segment->first, entries[i].sequence,
                 static_cast<uint32_t>(payload.size()));
     at += kHeaderBytes + payload.size();
