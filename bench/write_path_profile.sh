@@ -11,7 +11,9 @@
 #
 #   bench/write_path_profile.sh BUILD [SIZE]   (SIZE 5000 by default)
 # The load generator is LOAD_BUILD's (default BUILD): an older server build
-# may have none.
+# may have none. BATCH (200) sets the traces per call; the client sends a
+# call in messages of 500, so BATCH=10000 is a stream of 20 messages, as a
+# robot draining its queue sends it.
 # Needs perf (Debian's linux-perf) and perf_event_paranoid <= 1 or root.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
@@ -33,7 +35,7 @@ start_server "$build" "$work/data" "$work/server.log" \
   --dimension 256 --robots 4 --batch 200 --seconds 100000 --traces "$size" \
   --ack applied >/dev/null
 "$load" bench --server "$SERVER_ADDR" --fleet w \
-  --dimension 256 --robots 1 --batch 200 --seconds 10 --query-rate 20 \
+  --dimension 256 --robots 1 --batch "${BATCH:-200}" --seconds 10 --query-rate 20 \
   --first-seq 2000000 --code-pool 100000 --csv "$work/burst.csv" \
   >/dev/null 2>&1 &
 bench=$!
