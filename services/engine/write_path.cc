@@ -1,6 +1,7 @@
 #include "services/engine/write_path.h"
 
 #include <algorithm>
+#include <iterator>
 #include <optional>
 #include <utility>
 
@@ -205,47 +206,96 @@ WritePath::FleetLog* WritePath::Log(std::string_view fleet_id) {
 absl::StatusOr<Appended> WritePath::Append(
     std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
     bool track) {
+  const std::span<const core::MemoryTrace> uploads[] = {traces};
+  return std::move(AppendMany(fleet_id, uploads, track).front());
+}
+
+std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
+    std::string_view fleet_id,
+    std::span<const std::span<const core::MemoryTrace>> uploads, bool track) {
+  std::vector<absl::StatusOr<Appended>> results;
+  if (uploads.empty()) return results;
+  auto all = [&](const absl::Status& status) {
+    results.assign(uploads.size(), status);
+    return results;
+  };
   if (absl::Status valid = core::ValidateId("fleet_id", fleet_id);
       !valid.ok()) {
-    return valid;
+    return all(valid);
   }
-  if (traces.empty()) return Appended{};
   {
     absl::MutexLock lock(&ready_mu_);
     if (stopping_) {
-      return absl::UnavailableError(
-          "the server is shutting down; nothing of this upload was stored");
+      return all(absl::UnavailableError(
+          "the server is shutting down; nothing of this upload was stored"));
     }
   }
   // A fleet is made by its first valid upload: checked before its log is
   // made, so that bad uploads to made-up fleets leave nothing behind.
   FleetLog* log = Find(fleet_id);
   if (log == nullptr) {
-    absl::Status valid = CheckTraces(fleet_id, traces, nullptr,
+    const auto first =
+        std::find_if(uploads.begin(), uploads.end(),
+                     [](std::span<const core::MemoryTrace> traces) {
+                       return !traces.empty();
+                     });
+    if (first == uploads.end()) {
+      results.assign(uploads.size(), Appended{});
+      return results;
+    }
+    if (uploads.size() > 1) {
+      // The first upload alone makes the fleet (or is refused); the rest
+      // follow it.
+      const size_t made = static_cast<size_t>(first - uploads.begin()) + 1;
+      results = AppendMany(fleet_id, uploads.first(made), track);
+      std::vector<absl::StatusOr<Appended>> rest =
+          AppendMany(fleet_id, uploads.subspan(made), track);
+      std::move(rest.begin(), rest.end(), std::back_inserter(results));
+      return results;
+    }
+    absl::Status valid = CheckTraces(fleet_id, *first, nullptr,
                                      engine_->options().max_traces_per_upload);
-    if (!valid.ok()) return valid;
+    if (!valid.ok()) return all(valid);
     {
       // Nor do uploads to fleets past max_fleets (the leader admits the
       // fleet again, counting it, when it appends its first entry).
       absl::ReaderMutexLock lock(&logs_mu_);
       valid = engine_->quota().AdmitNewFleet(fleet_id, fleets_);
     }
-    if (!valid.ok()) return valid;
+    if (!valid.ok()) return all(valid);
     log = Log(fleet_id);
   }
 
-  Request request;
-  request.traces = traces;
-  request.track = track;
+  std::vector<Request> requests(uploads.size());
   absl::MutexLock lock(&log->mu);
-  log->queue.push_back(&request);
-  while (!request.done) {
+  for (size_t i = 0; i < uploads.size(); ++i) {
+    requests[i].traces = uploads[i];
+    requests[i].track = track;
+    if (uploads[i].empty()) {
+      requests[i].result = Appended{};
+      requests[i].done = true;
+    } else {
+      log->queue.push_back(&requests[i]);
+    }
+  }
+  auto all_done = [&] {
+    return std::all_of(requests.begin(), requests.end(),
+                       [](const Request& request) { return request.done; });
+  };
+  while (!all_done()) {
     // After Stop no one leads; an upload a leader took is finished by it.
-    if (log->stopped && std::find(log->queue.begin(), log->queue.end(),
-                                  &request) != log->queue.end()) {
-      std::erase(log->queue, &request);
-      return absl::UnavailableError(
-          "the server is shutting down; nothing of this upload was stored");
+    if (log->stopped) {
+      for (Request& request : requests) {
+        if (!request.done && std::find(log->queue.begin(), log->queue.end(),
+                                       &request) != log->queue.end()) {
+          std::erase(log->queue, &request);
+          request.result = absl::UnavailableError(
+              "the server is shutting down; nothing of this upload was "
+              "stored");
+          request.done = true;
+        }
+      }
+      if (all_done()) break;
     }
     if (log->leading) {
       log->changed.Wait(&log->mu);
@@ -292,7 +342,10 @@ absl::StatusOr<Appended> WritePath::Append(
       ready_cv_.Signal();
     }
   }
-  return std::move(request.result);
+  results.reserve(requests.size());
+  for (Request& request : requests)
+    results.push_back(std::move(request.result));
+  return results;
 }
 
 void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {

@@ -137,6 +137,14 @@ class WritePath {
   absl::StatusOr<Appended> Append(std::string_view fleet_id,
                                   std::span<const core::MemoryTrace> traces,
                                   bool track = false);
+  // Append for several uploads of one caller (the messages of one upload
+  // stream read while the previous ones were written), in order, in one
+  // group commit where they meet no other leader: one result each, as
+  // Append's. An upload's refusal does not stop the others.
+  std::vector<absl::StatusOr<Appended>> AppendMany(
+      std::string_view fleet_id,
+      std::span<const std::span<const core::MemoryTrace>> uploads,
+      bool track = false);
 
   // Returns once the fleet's log is applied through `sequence` (at once for
   // 0). DEADLINE_EXCEEDED at `deadline`, UNAVAILABLE after Stop,

@@ -32,30 +32,52 @@ EmbeddedMemory::~EmbeddedMemory() { writes_->Stop(); }
 absl::StatusOr<Uploaded> EmbeddedMemory::Upload(
     std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
     const UploadOptions& options) {
-  absl::StatusOr<engine::Appended> appended =
-      writes_->Append(fleet_id, traces, options.wait_applied);
-  if (!appended.ok()) return appended.status();
-  Uploaded uploaded;
-  uploaded.result.accepted = appended->accepted;
-  uploaded.result.duplicates = appended->duplicates;
-  uploaded.sequence = appended->sequence;
-  if (!options.wait_applied) return uploaded;
-  absl::Status waited =
-      writes_->WaitApplied(fleet_id, appended->sequence, options.deadline);
-  if (!waited.ok()) {
-    // Durable, and applied later: the client must not store it again as if
-    // it were lost, but needs to know it did not wait.
-    return absl::Status(
-        waited.code(),
-        absl::StrCat(waited.message(), " (", appended->accepted,
-                     " traces of this message are durable and acknowledged)"));
+  const std::span<const core::MemoryTrace> messages[] = {traces};
+  return std::move(UploadMany(fleet_id, messages, options).front());
+}
+
+std::vector<absl::StatusOr<Uploaded>> EmbeddedMemory::UploadMany(
+    std::string_view fleet_id,
+    std::span<const std::span<const core::MemoryTrace>> messages,
+    const UploadOptions& options) {
+  std::vector<absl::StatusOr<engine::Appended>> appended =
+      writes_->AppendMany(fleet_id, messages, options.wait_applied);
+  std::vector<absl::StatusOr<Uploaded>> results;
+  results.reserve(appended.size());
+  for (absl::StatusOr<engine::Appended>& one : appended) {
+    if (!one.ok()) {
+      results.push_back(one.status());
+      continue;
+    }
+    Uploaded uploaded;
+    uploaded.result.accepted = one->accepted;
+    uploaded.result.duplicates = one->duplicates;
+    uploaded.sequence = one->sequence;
+    if (options.wait_applied) {
+      absl::Status waited =
+          writes_->WaitApplied(fleet_id, one->sequence, options.deadline);
+      if (!waited.ok()) {
+        // Durable, and applied later: the client must not store it again
+        // as if it were lost, but needs to know it did not wait.
+        results.push_back(
+            absl::Status(waited.code(),
+                         absl::StrCat(waited.message(), " (", one->accepted,
+                                      " traces of this message are durable and "
+                                      "acknowledged)")));
+        continue;
+      }
+      if (one->applied != nullptr) {
+        if (!one->applied->status.ok()) {
+          results.push_back(one->applied->status);
+          continue;
+        }
+        uploaded.result.consolidations = one->applied->consolidations;
+      }
+      uploaded.applied = true;
+    }
+    results.push_back(std::move(uploaded));
   }
-  if (appended->applied != nullptr) {
-    if (!appended->applied->status.ok()) return appended->applied->status;
-    uploaded.result.consolidations = appended->applied->consolidations;
-  }
-  uploaded.applied = true;
-  return uploaded;
+  return results;
 }
 
 absl::Status EmbeddedMemory::CatchUp(std::string_view fleet_id) {

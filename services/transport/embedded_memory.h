@@ -41,6 +41,11 @@ class EmbeddedMemory final : public FleetMemory {
   absl::StatusOr<Uploaded> Upload(std::string_view fleet_id,
                                   std::span<const core::MemoryTrace> traces,
                                   const UploadOptions& options) override;
+  // One group commit for all of them (WritePath::AppendMany).
+  std::vector<absl::StatusOr<Uploaded>> UploadMany(
+      std::string_view fleet_id,
+      std::span<const std::span<const core::MemoryTrace>> messages,
+      const UploadOptions& options) override;
   absl::StatusOr<engine::ConsolidateResult> Consolidate(
       std::string_view fleet_id) override;
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(

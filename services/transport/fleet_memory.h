@@ -66,6 +66,15 @@ class FleetMemory {
   virtual absl::StatusOr<Uploaded> Upload(
       std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
       const UploadOptions& options) = 0;
+  // Upload for the messages of one stream that arrived while the earlier
+  // ones were stored: one result each, in order. The mode may store them
+  // together (embedded: one group commit); by default one after another,
+  // stopping at the first refusal (the rest then get ABORTED, nothing of
+  // them stored).
+  virtual std::vector<absl::StatusOr<Uploaded>> UploadMany(
+      std::string_view fleet_id,
+      std::span<const std::span<const core::MemoryTrace>> messages,
+      const UploadOptions& options);
 
   // The calls that change memory besides uploads, applied after every
   // upload acknowledged before them.

@@ -10,6 +10,7 @@
 
 #include "absl/synchronization/notification.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
+#include "gmock/gmock.h"
 #include "grpcpp/grpcpp.h"
 #include "gtest/gtest.h"
 #include "services/index/exact_index.h"
@@ -173,6 +174,51 @@ TEST_F(MemoryServiceTest, UploadStreamMustNameOneFleet) {
   ASSERT_TRUE(Stats("f", &stats).ok());
   EXPECT_EQ(stats.pending_traces(), 2u);
   EXPECT_EQ(Stats("g", &stats).error_code(), grpc::StatusCode::NOT_FOUND);
+}
+
+// The messages of one stream are read while earlier ones are written, and
+// written together: each stays its own log entry, and a refusal names its
+// message and what the others did.
+TEST_F(MemoryServiceTest, AStreamsMessagesAreWrittenTogetherInOrder) {
+  std::vector<v1::UploadTracesRequest> messages;
+  for (int m = 0; m < 40; ++m) {
+    messages.push_back(Batch("f", static_cast<uint64_t>(m) * 5, 5));
+    messages.back().set_ack(v1::UPLOAD_ACK_DURABLE);
+  }
+  v1::UploadTracesResponse response;
+  ASSERT_TRUE(Upload(messages, &response).ok());
+  EXPECT_EQ(response.accepted(), 200u);
+  EXPECT_EQ(response.last_sequence(), 40u);
+  ASSERT_TRUE(
+      memory_->writes().WaitApplied("f", 40, absl::InfiniteFuture()).ok());
+  v1::GetStatsResponse stats;
+  ASSERT_TRUE(Stats("f", &stats).ok());
+  EXPECT_EQ(stats.traces() + stats.pending_traces(), 200u);
+
+  // Message 25 of the next stream is refused.
+  messages.clear();
+  for (int m = 0; m < 40; ++m) {
+    messages.push_back(Batch("f", 1000 + static_cast<uint64_t>(m) * 5, 5));
+    messages.back().set_ack(v1::UPLOAD_ACK_DURABLE);
+  }
+  messages[24].mutable_traces(2)->set_robot_id("");
+  grpc::Status status = Upload(messages, &response);
+  ASSERT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(),
+              ::testing::HasSubstr("message 25 of the stream: "));
+  EXPECT_THAT(status.error_message(),
+              ::testing::HasSubstr("messages 1..24 are durable (120 accepted"));
+  // Messages after it written in the same store write are said to be.
+  uint64_t later = 0;
+  const size_t said = status.error_message().find(" messages after it were");
+  if (said != std::string::npos) {
+    const size_t begin = status.error_message().rfind("; ", said) + 2;
+    later = std::stoull(status.error_message().substr(begin, said - begin));
+  }
+  ASSERT_TRUE(
+      memory_->writes().WaitAppliedAll("f", absl::InfiniteFuture()).ok());
+  ASSERT_TRUE(Stats("f", &stats).ok());
+  EXPECT_EQ(stats.traces() + stats.pending_traces(), 200u + 120u + 5 * later);
 }
 
 TEST_F(MemoryServiceTest, EngineErrorsKeepTheirCode) {

@@ -1,10 +1,12 @@
 #include "services/transport/upload_reactor.h"
 
+#include <span>
 #include <utility>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
 #include "services/common/log.h"
+#include "services/core/absl_view.h"
 #include "services/core/validation.h"
 #include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
@@ -52,17 +54,19 @@ UploadReactor::UploadReactor(ServiceState* state,
     return;
   }
   client_ = std::move(client);
-  StartRead(&buffer_);
+  absl::MutexLock lock(&mu_);
+  MaybeRead();
 }
 
-std::string UploadReactor::Earlier() const {
-  if (index_ <= 1) return "; nothing of the stream was stored";
-  return absl::StrCat("; messages 1..", index_ - 1, " are durable (",
+std::string UploadReactor::Earlier(uint64_t index) const {
+  if (index <= 1) return "; nothing of the stream was stored";
+  return absl::StrCat("; messages 1..", index - 1, " are durable (",
                       totals_.accepted(), " accepted, ", totals_.duplicates(),
                       " duplicates)");
 }
 
-void UploadReactor::Fail(const absl::Status& status) {
+void UploadReactor::Fail(uint64_t index, const absl::Status& status,
+                         std::string_view after) {
   // A refusal (bad traces, another encoder version, a robot id outside the
   // caller's rights, a quota) is the operator's business too: the client's
   // log is on the robot. Once per stream (the stream ends here).
@@ -76,52 +80,79 @@ void UploadReactor::Fail(const absl::Status& status) {
                            << " at " << context_->peer() << ": " << status;
   }
   Done(ToGrpcStatus(absl::Status(
-      status.code(), absl::StrCat("message ", index_, " of the stream: ",
-                                  status.message(), Earlier()))));
+      status.code(), absl::StrCat("message ", index, " of the stream: ",
+                                  status.message(), Earlier(index), V(after)))));
+}
+
+void UploadReactor::MaybeRead() {
+  if (reading_ || closed_ || stop_reading_ || finished_ ||
+      queue_.size() >= kReadAhead || queued_bytes_ >= kReadAheadBytes) {
+    return;
+  }
+  reading_ = true;
+  StartRead(&buffer_);
 }
 
 void UploadReactor::OnReadDone(bool ok) {
   if (!ok) {
-    // The client closed its side (or the call broke): every message read so
-    // far is durable, so report the totals.
-    std::string answer = totals_.SerializeAsString();
-    grpc::Slice slice(answer);
-    *response_ = grpc::ByteBuffer(&slice, 1);
-    Done(grpc::Status::OK);
-    return;
-  }
-  ++index_;
-  if (state_->shutting_down()) {
-    Done(ShuttingDownStatus());
-    return;
-  }
-  const std::string bytes = Flatten(buffer_);
-  message_bytes_ = bytes.size();
-  absl::StatusOr<v1::UploadTracesRequest> parsed = ParseUploadMessage(bytes);
-  buffer_.Clear();
-  if (!parsed.ok()) {
-    Fail(parsed.status());
-    return;
-  }
-  request_ = std::move(*parsed);
-  if (fleet_id_.empty()) {
-    absl::Status valid = core::ValidateId("fleet_id", request_.fleet_id());
-    if (!valid.ok()) {
-      Fail(valid);
-      return;
+    // The client closed its side (or the call broke): once every message
+    // read so far is stored, report the totals.
+    bool finish = false;
+    {
+      absl::MutexLock lock(&mu_);
+      reading_ = false;
+      closed_ = true;
+      finish = !storing_ && queue_.empty() && !finished_;
     }
-    fleet_id_ = request_.fleet_id();
-  } else if (request_.fleet_id() != fleet_id_) {
-    Fail(absl::InvalidArgumentError(
-        absl::StrCat("fleet_id: every message of an UploadTraces stream must "
-                     "name the same fleet; got \"",
-                     request_.fleet_id(), "\" after \"", fleet_id_, "\"")));
+    if (finish) {
+      std::string answer = totals_.SerializeAsString();
+      grpc::Slice slice(answer);
+      *response_ = grpc::ByteBuffer(&slice, 1);
+      Done(grpc::Status::OK);
+    }
     return;
   }
+  Message message;
+  message.index = ++read_;
+  const std::string bytes = Flatten(buffer_);
+  buffer_.Clear();
+  message.bytes = bytes.size();
+  if (state_->shutting_down()) {
+    message.error = absl::UnavailableError(
+        "the server is shutting down; nothing of this message was stored");
+  } else if (absl::StatusOr<v1::UploadTracesRequest> parsed =
+                 ParseUploadMessage(bytes);
+             !parsed.ok()) {
+    message.error = parsed.status();
+  } else {
+    message.request = *std::move(parsed);
+    if (fleet_id_.empty()) {
+      message.error = core::ValidateId("fleet_id", message.request.fleet_id());
+      if (message.error.ok()) fleet_id_ = message.request.fleet_id();
+    } else if (message.request.fleet_id() != fleet_id_) {
+      message.error = absl::InvalidArgumentError(absl::StrCat(
+          "fleet_id: every message of an UploadTraces stream must name the "
+          "same fleet; got \"",
+          message.request.fleet_id(), "\" after \"", fleet_id_, "\""));
+    }
+  }
+  bool submit = false;
+  {
+    absl::MutexLock lock(&mu_);
+    reading_ = false;
+    if (finished_) return;
+    if (!message.error.ok()) stop_reading_ = true;
+    queued_bytes_ += message.bytes;
+    queue_.push_back(std::move(message));
+    MaybeRead();
+    submit = !storing_;
+    storing_ = true;
+  }
+  if (!submit) return;
   state_->BeginWork();
   if (!state_->work().TrySubmit([this] {
-        ServiceState* state = state_;  // `this` may be gone after Store()
-        Store();
+        ServiceState* state = state_;  // `this` may be gone after it
+        StoreQueued();
         state->EndWork();
       })) {
     state_->EndWork();
@@ -129,52 +160,124 @@ void UploadReactor::OnReadDone(bool ok) {
   }
 }
 
-void UploadReactor::Store() {
-  grpc::Status live = CheckCallLive(*context_);
-  if (!live.ok()) {
+void UploadReactor::StoreQueued() {
+  while (true) {
+    std::deque<Message> batch;
+    {
+      absl::MutexLock lock(&mu_);
+      if (finished_) return;  // Done was called beside this task
+      if (queue_.empty()) {
+        storing_ = false;
+        if (!closed_ || reading_) {
+          MaybeRead();
+          return;
+        }
+        // The client's side is done and everything is stored.
+      } else {
+        batch.swap(queue_);
+        queued_bytes_ = 0;
+        MaybeRead();
+      }
+    }
+    if (batch.empty()) {
+      std::string answer = totals_.SerializeAsString();
+      grpc::Slice slice(answer);
+      *response_ = grpc::ByteBuffer(&slice, 1);
+      Done(grpc::Status::OK);
+      return;
+    }
+    if (!StoreBatch(batch)) return;
+  }
+}
+
+bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
+  if (grpc::Status live = CheckCallLive(*context_); !live.ok()) {
     Done(live);
-    return;
+    return false;
   }
-  if (!principal_.has_value()) {
-    absl::StatusOr<auth::Principal> principal = AuthorizeCall(
-        state_->authenticator(), *context_, auth::Action::kUpload, fleet_id_);
-    if (!principal.ok()) {
-      Fail(principal.status());
-      return;
+  // The messages to store: those before the first that failed (read,
+  // authorisation), which then fails the stream once they are stored.
+  std::vector<std::vector<core::MemoryTrace>> traces;
+  std::vector<std::span<const core::MemoryTrace>> messages;
+  size_t count = 0;
+  uint64_t failed_index = 0;
+  absl::Status failed;
+  bool wait_applied = false;
+  for (; count < batch.size(); ++count) {
+    Message& message = batch[count];
+    failed = message.error;
+    if (failed.ok() && !principal_.has_value()) {
+      absl::StatusOr<auth::Principal> principal = AuthorizeCall(
+          state_->authenticator(), *context_, auth::Action::kUpload, fleet_id_);
+      if (principal.ok()) {
+        principal_ = *std::move(principal);
+      } else {
+        failed = principal.status();
+      }
     }
-    principal_ = std::move(*principal);
-  }
-  for (int i = 0; i < request_.traces_size(); ++i) {
-    absl::Status allowed =
-        auth::AuthorizeUploadAs(*principal_, request_.traces(i).robot_id());
-    if (!allowed.ok()) {
-      Fail(absl::PermissionDeniedError(
-          absl::StrCat("traces[", i, "]: ", allowed.message())));
-      return;
+    for (int i = 0; failed.ok() && i < message.request.traces_size(); ++i) {
+      absl::Status allowed = auth::AuthorizeUploadAs(
+          *principal_, message.request.traces(i).robot_id());
+      if (!allowed.ok()) {
+        failed = absl::PermissionDeniedError(
+            absl::StrCat("traces[", i, "]: ", allowed.message()));
+      }
     }
+    if (!failed.ok()) {
+      failed_index = message.index;
+      break;
+    }
+    traces.push_back(UploadedTracesFromProto(message.request.traces()));
+    wait_applied |= message.request.ack() == v1::UPLOAD_ACK_APPLIED;
   }
-  std::vector<core::MemoryTrace> traces =
-      UploadedTracesFromProto(request_.traces());
+  for (const std::vector<core::MemoryTrace>& one : traces) {
+    messages.emplace_back(one);
+  }
   UploadOptions options;
-  options.wait_applied = request_.ack() == v1::UPLOAD_ACK_APPLIED;
+  options.wait_applied = wait_applied;
   options.deadline = absl::FromChrono(context_->deadline());
-  absl::StatusOr<Uploaded> uploaded =
-      state_->memory().Upload(fleet_id_, traces, options);
-  if (!uploaded.ok()) {
-    Fail(uploaded.status());
-    return;
+  std::vector<absl::StatusOr<Uploaded>> results;
+  if (!messages.empty()) {
+    results = state_->memory().UploadMany(fleet_id_, messages, options);
   }
-  AddUploadResult(uploaded->result, &totals_);
-  if (uploaded->sequence != 0) totals_.set_last_sequence(uploaded->sequence);
-  // Every message so far applied before its answer.
-  totals_.set_applied((index_ == 1 || totals_.applied()) && uploaded->applied);
-  if (state_->options().on_upload_bytes) {
-    state_->options().on_upload_bytes(fleet_id_, message_bytes_);
+  for (size_t i = 0; i < results.size(); ++i) {
+    if (!results[i].ok()) {
+      // Messages after it in the same write may be stored too.
+      uint64_t later = 0;
+      for (size_t j = i + 1; j < results.size(); ++j) {
+        if (results[j].ok()) ++later;
+      }
+      Fail(batch[i].index, results[i].status(),
+           later == 0 ? ""
+                      : absl::StrCat("; ", later,
+                                     " messages after it were stored with it "
+                                     "(duplicates when retried)"));
+      return false;
+    }
+    const Uploaded& uploaded = *results[i];
+    AddUploadResult(uploaded.result, &totals_);
+    if (uploaded.sequence != 0) totals_.set_last_sequence(uploaded.sequence);
+    // Every message so far applied before its answer.
+    totals_.set_applied((stored_ == 0 || totals_.applied()) &&
+                        uploaded.applied);
+    ++stored_;
+    if (state_->options().on_upload_bytes) {
+      state_->options().on_upload_bytes(fleet_id_, batch[i].bytes);
+    }
   }
-  StartRead(&buffer_);
+  if (!failed.ok()) {
+    Fail(failed_index, failed);
+    return false;
+  }
+  return true;
 }
 
 void UploadReactor::Done(const grpc::Status& status) {
+  {
+    absl::MutexLock lock(&mu_);
+    if (finished_) return;
+    finished_ = true;
+  }
   state_->ObserveCall("UploadTraces",
                       static_cast<absl::StatusCode>(status.error_code()),
                       started_);
