@@ -47,10 +47,12 @@ struct SegmentLogOptions {
   // Where the fleets' segments live; created if missing.
   std::string directory;
   // A segment takes no more appends once it holds this many bytes (an
-  // append may take it past; 64 MiB: about 60,000 traces of 256-d).
-  uint64_t segment_bytes = uint64_t{64} << 20;
-  // Trimmed segments a fleet keeps for reuse; more are deleted.
-  size_t spare_segments = 2;
+  // append may take it past; 16 MiB: about 15,000 traces of 256-d).
+  uint64_t segment_bytes = uint64_t{16} << 20;
+  // Trimmed segments a fleet keeps for reuse; more are deleted. A fleet
+  // whose log is applied keeps its last segment and these on disk (up to
+  // 32 MiB by default).
+  size_t spare_segments = 1;
   // Asked before each append with the bytes it writes: a non-OK status
   // (e.g. RESOURCE_EXHAUSTED, a disk reserve) refuses the append. May be
   // empty.

@@ -82,6 +82,7 @@ std::unique_ptr<SegmentLog> OpenLog(const std::string& directory,
   SegmentLogOptions options;
   options.directory = directory;
   options.segment_bytes = segment_bytes;  // a few entries per segment
+  options.spare_segments = 2;
   absl::StatusOr<std::unique_ptr<SegmentLog>> log =
       SegmentLog::Open(std::move(options));
   EXPECT_TRUE(log.ok()) << log.status();
