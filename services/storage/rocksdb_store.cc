@@ -437,27 +437,10 @@ class RocksDbStore final : public engine::MemoryStore {
 
   absl::StatusOr<std::vector<std::string>> ListFleets() override {
     std::set<std::string> fleets;
-    std::unique_ptr<rocksdb::Iterator> it(
-        db_->NewIterator(rocksdb::ReadOptions()));
-    // Skip scan: one seek per (tag, fleet), not one step per record.
     for (keys::Tag tag : keys::kFleetTags) {
-      it->Seek(ToSlice(std::string(1, static_cast<char>(tag))));
-      while (it->Valid() && it->key().size() > 0 &&
-             it->key()[0] == static_cast<char>(tag)) {
-        const std::optional<keys::ParsedKey> parsed =
-            keys::Parse(ToView(it->key()));
-        if (!parsed) {
-          return absl::DataLossError(
-              absl::StrCat("malformed key in RocksDB at ", path_, ": ",
-                           keys::Describe(ToView(it->key()))));
-        }
-        fleets.emplace(parsed->fleet_id);
-        it->Seek(ToSlice(keys::PrefixEnd(tag, parsed->fleet_id)));
-      }
-      if (absl::Status status = FromRocksDb(it->status(), "list fleets");
-          !status.ok()) {
-        return status;
-      }
+      absl::Status listed = ForEachFleet(
+          tag, [&](std::string_view fleet_id) { fleets.emplace(fleet_id); });
+      if (!listed.ok()) return listed;
     }
     return std::vector<std::string>(fleets.begin(), fleets.end());
   }
@@ -645,27 +628,13 @@ class RocksDbStore final : public engine::MemoryStore {
   absl::Status MoveLegacyLog() {
     std::map<std::string, uint64_t, std::less<>> moved;
     for (const auto& [fleet, last] : log_->Tails()) moved[fleet] = last;
-    const char tag = static_cast<char>(keys::Tag::kLog);
     std::vector<std::string> fleets;
-    std::unique_ptr<rocksdb::Iterator> it(
-        db_->NewIterator(rocksdb::ReadOptions()));
-    for (it->Seek(ToSlice(std::string(1, tag)));
-         it->Valid() && it->key().size() > 0 && it->key()[0] == tag;
-         it->Seek(ToSlice(keys::PrefixEnd(keys::Tag::kLog, fleets.back())))) {
-      const std::optional<keys::ParsedKey> parsed =
-          keys::Parse(ToView(it->key()));
-      if (!parsed) {
-        return absl::DataLossError(
-            absl::StrCat("malformed key in RocksDB at ", path_, ": ",
-                         keys::Describe(ToView(it->key()))));
-      }
-      fleets.emplace_back(parsed->fleet_id);
+    if (absl::Status listed = ForEachFleet(
+            keys::Tag::kLog,
+            [&](std::string_view fleet_id) { fleets.emplace_back(fleet_id); });
+        !listed.ok()) {
+      return listed;
     }
-    if (absl::Status status = FromRocksDb(it->status(), "list ingest logs");
-        !status.ok()) {
-      return status;
-    }
-    it.reset();
     for (const std::string& fleet : fleets) {
       uint64_t after = moved.contains(fleet) ? moved[fleet] : 0;
       uint64_t entries = 0;
@@ -708,6 +677,29 @@ class RocksDbStore final : public engine::MemoryStore {
                           << "/ingest-log";
     }
     return absl::OkStatus();
+  }
+
+  // Calls `visit` with each fleet that has records of `tag`, ascending: a
+  // skip scan, one seek per fleet, not one step per record.
+  absl::Status ForEachFleet(keys::Tag tag,
+                            absl::FunctionRef<void(std::string_view)> visit) {
+    const char first = static_cast<char>(tag);
+    std::unique_ptr<rocksdb::Iterator> it(
+        db_->NewIterator(rocksdb::ReadOptions()));
+    it->Seek(ToSlice(std::string(1, first)));
+    while (it->Valid() && it->key().size() > 0 && it->key()[0] == first) {
+      const std::optional<keys::ParsedKey> parsed =
+          keys::Parse(ToView(it->key()));
+      if (!parsed) {
+        return absl::DataLossError(
+            absl::StrCat("malformed key in RocksDB at ", path_, ": ",
+                         keys::Describe(ToView(it->key()))));
+      }
+      const std::string fleet_id(parsed->fleet_id);
+      visit(fleet_id);
+      it->Seek(ToSlice(keys::PrefixEnd(tag, fleet_id)));
+    }
+    return FromRocksDb(it->status(), "list fleets");
   }
 
   // Index snapshots live beside RocksDB's files, one per fleet.
