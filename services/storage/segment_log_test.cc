@@ -1,6 +1,8 @@
 #include "services/storage/segment_log.h"
 
 #include <fcntl.h>
+#include <signal.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -219,6 +221,40 @@ TEST(SegmentLogTest, ARefusedAppendStoresNothing) {
   EXPECT_EQ(ReadAll(**log, "f"), Range(1, 1));
   ASSERT_TRUE(AppendEntries(**log, "f", 2, 2).ok());
   EXPECT_EQ(ReadAll(**log, "f"), Range(1, 2));
+}
+
+// A write that fails half-way (here: past RLIMIT_FSIZE, as a full disk
+// would) stores nothing of the append, now or after a restart, and the
+// next append goes on in a new segment.
+TEST(SegmentLogTest, AFailedWriteStoresNothingOfItsAppend) {
+  TempDir dir;
+  const std::string path = dir.path() + "/log";
+  std::unique_ptr<SegmentLog> log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  ASSERT_TRUE(AppendEntries(*log, "f", 1, 2).ok());
+  const std::string segment =
+      std::filesystem::directory_iterator(path + "/f-f")->path();
+  const uintmax_t size = std::filesystem::file_size(segment);
+  struct sigaction ignore = {}, previous = {};
+  ignore.sa_handler = SIG_IGN;
+  ASSERT_EQ(::sigaction(SIGXFSZ, &ignore, &previous), 0);
+  struct rlimit limit = {}, before = {};
+  ASSERT_EQ(::getrlimit(RLIMIT_FSIZE, &before), 0);
+  limit = before;
+  limit.rlim_cur = size + 4096;  // entries 3..200 do not fit
+  ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &limit), 0);
+  const absl::Status failed = AppendEntries(*log, "f", 3, 200);
+  ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &before), 0);
+  ASSERT_EQ(::sigaction(SIGXFSZ, &previous, nullptr), 0);
+  EXPECT_FALSE(failed.ok());
+  EXPECT_THAT(failed.message(), HasSubstr("nothing of it was stored"));
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
+  EXPECT_EQ(log->Tails().front().second, 2u);
+  ASSERT_TRUE(AppendEntries(*log, "f", 3, 4).ok());
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
+  log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
 }
 
 // Trim makes the store's applies durable (before_trim) before any segment
