@@ -171,10 +171,10 @@ bool Intact(std::string_view record, uint64_t segment, uint64_t sequence) {
 struct SegmentLog::Segment {
   uint64_t first = 0;  // its first sequence: its name
   std::string path;
+  // The descriptor appends write through (O_DIRECT where the filesystem
+  // has it), held by the segment appends go to only: a fleet's backlog may
+  // span a hundred segments, and readers open the file for each read.
   std::shared_ptr<const File> file;
-  // Appends write through `file` (O_DIRECT where the filesystem has it),
-  // reads go through `reader` (the page cache).
-  std::shared_ptr<const File> reader;
   bool direct = false;
   uint64_t end = 0;  // bytes of whole records and padding (fleet's mu)
   struct Record {
@@ -188,10 +188,9 @@ struct SegmentLog::Segment {
 };
 
 // Opens the segment's file for appends (O_DIRECT where the filesystem
-// allows it: the page cache's copy was 40 % of the append's CPU) and for
-// reads.
-absl::Status SegmentLog::OpenFiles(Segment& segment, bool create) {
-  const int flags = O_RDWR | O_CLOEXEC | (create ? O_CREAT : 0);
+// allows it: the page cache's copy was 40 % of the append's CPU).
+absl::Status SegmentLog::OpenForAppends(Segment& segment) {
+  const int flags = O_RDWR | O_CLOEXEC | O_CREAT;
   int fd = ::open(segment.path.c_str(), flags | O_DIRECT, 0644);
   segment.direct = fd >= 0;
   if (fd < 0 && errno == EINVAL) {
@@ -201,13 +200,19 @@ absl::Status SegmentLog::OpenFiles(Segment& segment, bool create) {
     return IoError(errno, absl::StrCat("open '", segment.path, "'"));
   }
   segment.file = std::make_shared<File>(fd);
-  const int reader = ::open(segment.path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (reader < 0) {
-    return IoError(errno, absl::StrCat("open '", segment.path, "'"));
-  }
-  segment.reader = std::make_shared<File>(reader);
   return absl::OkStatus();
 }
+
+namespace {
+
+// Opens `path` for reading (through the page cache).
+absl::StatusOr<std::unique_ptr<File>> OpenForReads(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return IoError(errno, absl::StrCat("open '", path, "'"));
+  return std::make_unique<File>(fd);
+}
+
+}  // namespace
 
 struct SegmentLog::Fleet {
   std::string id;
@@ -307,10 +312,9 @@ absl::Status SegmentLog::LoadFleet(const std::string& fleet_id,
     auto segment = std::make_shared<Segment>();
     segment->first = first;
     segment->path = file_path;
-    if (absl::Status opened = OpenFiles(*segment, false); !opened.ok()) {
-      return opened;
-    }
-    const int fd = segment->reader->fd;
+    absl::StatusOr<std::unique_ptr<File>> reader = OpenForReads(file_path);
+    if (!reader.ok()) return reader.status();
+    const int fd = (*reader)->fd;
     struct stat info;
     if (::fstat(fd, &info) != 0) {
       return IoError(errno, absl::StrCat("stat '", file_path, "'"));
@@ -385,7 +389,7 @@ absl::StatusOr<std::shared_ptr<SegmentLog::Segment>> SegmentLog::StartSegment(
   // Not truncated: a reused file (or a segment that a failed first append
   // left) holds no record of this segment, and overwriting is what keeps
   // fdatasync cheap.
-  if (absl::Status opened = OpenFiles(*segment, true); !opened.ok()) {
+  if (absl::Status opened = OpenForAppends(*segment); !opened.ok()) {
     return opened;
   }
   if (absl::Status synced = SyncDirectory(fleet.path); !synced.ok()) {
@@ -427,9 +431,21 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
                  last->first == entries.front().sequence) {
         // A failed first append left it empty: start it again.
         segment = last;
-        fleet.sealed = false;
       }
     }
+  }
+  if (segment != nullptr && segment->file == nullptr) {
+    // A segment found at Open: no descriptor for appends yet.
+    if (absl::Status opened = OpenForAppends(*segment); !opened.ok()) {
+      return absl::Status(opened.code(),
+                          absl::StrCat("append to the ingest log of fleet \"",
+                                       V(fleet_id), "\": ", opened.message(),
+                                       " (nothing of it was stored)"));
+    }
+  }
+  if (segment != nullptr) {
+    absl::MutexLock lock(&fleet.mu);
+    fleet.sealed = false;
   }
   const bool started = segment == nullptr;
   if (started) {
@@ -503,7 +519,11 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
                      "after a restart, as if acknowledged)"));
   }
   absl::MutexLock lock(&fleet.mu);
-  if (started) fleet.segments.push_back(segment);
+  if (started) {
+    // The segment before takes no more appends: its descriptor goes.
+    if (!fleet.segments.empty()) fleet.segments.back()->file.reset();
+    fleet.segments.push_back(segment);
+  }
   segment->end = offset + size;
   segment->records.insert(segment->records.end(), records.begin(),
                           records.end());
@@ -517,7 +537,6 @@ absl::StatusOr<std::vector<engine::LoggedUpload>> SegmentLog::Read(
   if (fleet == nullptr || max_entries == 0) return out;
   struct Wanted {
     std::shared_ptr<const Segment> segment;
-    std::shared_ptr<const File> file;
     uint64_t sequence, offset, size;
   };
   std::vector<Wanted> wanted;
@@ -532,16 +551,24 @@ absl::StatusOr<std::vector<engine::LoggedUpload>> SegmentLog::Read(
                              return value < record.sequence;
                            });
       for (; it != records.end() && wanted.size() < max_entries; ++it) {
-        wanted.push_back(
-            {segment, segment->reader, it->sequence, it->offset, it->size});
+        wanted.push_back({segment, it->sequence, it->offset, it->size});
       }
       if (wanted.size() == max_entries) break;
     }
   }
   out.reserve(wanted.size());
+  std::unique_ptr<File> reader;  // of the segment read last
+  const Segment* open = nullptr;
   for (const Wanted& want : wanted) {
+    if (open != want.segment.get()) {
+      absl::StatusOr<std::unique_ptr<File>> opened =
+          OpenForReads(want.segment->path);
+      if (!opened.ok()) return opened.status();
+      reader = *std::move(opened);
+      open = want.segment.get();
+    }
     absl::StatusOr<std::string> record =
-        ReadAt(want.file->fd, want.offset, want.size, want.segment->path);
+        ReadAt(reader->fd, want.offset, want.size, want.segment->path);
     if (!record.ok()) return record.status();
     const std::string where =
         absl::StrCat("ingest log of fleet \"", V(fleet_id), "\", entry ",
@@ -666,9 +693,11 @@ absl::Status SegmentLog::CopyTo(const std::string& directory,
           ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
       if (fd < 0) return IoError(errno, absl::StrCat("create '", path, "'"));
       const File out(fd);
+      absl::StatusOr<std::unique_ptr<File>> in = OpenForReads(segment->path);
+      if (!in.ok()) return in.status();
       for (uint64_t at = 0; at < end; at += kCopyChunk) {
         absl::StatusOr<std::string> chunk = ReadAt(
-            segment->reader->fd, at,
+            (*in)->fd, at,
             static_cast<size_t>(std::min<uint64_t>(kCopyChunk, end - at)),
             segment->path);
         if (!chunk.ok()) return chunk.status();

@@ -109,7 +109,7 @@ class SegmentLog {
   absl::Status LoadFleet(const std::string& fleet_id, const std::string& path);
   absl::StatusOr<std::shared_ptr<Segment>> StartSegment(Fleet& fleet,
                                                         uint64_t first);
-  static absl::Status OpenFiles(Segment& segment, bool create);
+  static absl::Status OpenForAppends(Segment& segment);
 
   const SegmentLogOptions options_;
   absl::Mutex trim_mu_;  // held by Trim and CopyTo

@@ -156,6 +156,27 @@ std::pair<std::string, uintmax_t> TwoAppends(const std::string& path,
   return {segment, third};
 }
 
+// A backlog of many segments holds one descriptor (the segment appends go
+// to), not one per segment: many fleets' bursts must not exhaust the
+// process's files.
+TEST(SegmentLogTest, ABacklogOfManySegmentsHoldsOneDescriptor) {
+  TempDir dir;
+  auto open_files = [] {
+    return std::distance(std::filesystem::directory_iterator("/proc/self/fd"),
+                         std::filesystem::directory_iterator());
+  };
+  const auto before = open_files();
+  std::unique_ptr<SegmentLog> log = OpenLog(dir.path() + "/log", 1000);
+  ASSERT_NE(log, nullptr);
+  for (uint64_t s = 1; s <= 120; s += 3) {
+    ASSERT_TRUE(AppendEntries(*log, "f", s, s + 2).ok());
+  }
+  EXPECT_GT(CountFiles(dir.path() + "/log/f-f", "0"), 30u);
+  EXPECT_LE(open_files(), before + 1);
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 120));
+  EXPECT_LE(open_files(), before + 1);
+}
+
 TEST(SegmentLogTest, ATornTailIsCutAtReopenAndAppendsGoOnAfterIt) {
   TempDir dir;
   const std::string path = dir.path() + "/log";
