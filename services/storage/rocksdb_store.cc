@@ -432,7 +432,7 @@ class RocksDbStore final : public engine::MemoryStore {
     db_->GetIntProperty(rocksdb::DB::Properties::kLiveSstFilesSize, &sst);
     db_->GetIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables,
                         &memtables);
-    return sst + memtables;
+    return sst + memtables + log_->Bytes();
   }
 
   absl::StatusOr<std::vector<std::string>> ListFleets() override {

@@ -660,6 +660,22 @@ std::vector<std::pair<std::string, uint64_t>> SegmentLog::Tails() {
   return tails;
 }
 
+uint64_t SegmentLog::Bytes() {
+  std::vector<Fleet*> fleets;
+  {
+    absl::MutexLock lock(&mu_);
+    for (const auto& [id, fleet] : fleets_) fleets.push_back(fleet.get());
+  }
+  uint64_t bytes = 0;
+  for (Fleet* fleet : fleets) {
+    absl::MutexLock lock(&fleet->mu);
+    for (const std::shared_ptr<Segment>& segment : fleet->segments) {
+      bytes += segment->end;
+    }
+  }
+  return bytes;
+}
+
 absl::Status SegmentLog::CopyTo(const std::string& directory,
                                 const std::function<absl::Status()>& first) {
   absl::MutexLock trims(&trim_mu_);

@@ -91,6 +91,9 @@ class SegmentLog {
   absl::Status Trim(std::string_view fleet_id, uint64_t through);
   // Each fleet with entries and its last sequence, sorted by fleet.
   std::vector<std::pair<std::string, uint64_t>> Tails();
+  // Bytes of records in every fleet's segments (not counting the spares
+  // kept for reuse, at most spare_segments * segment_bytes a fleet).
+  uint64_t Bytes();
 
   // Calls `first` (may be empty), then copies every fleet's segments, as far
   // as they hold records, into a new log at `directory`, synced; no Trim

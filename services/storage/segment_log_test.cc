@@ -110,6 +110,8 @@ TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
     }
     ASSERT_TRUE(AppendEntries(*log, "b", 1, 2).ok());
     EXPECT_EQ(ReadAll(*log, "fleet-a"), Range(1, 30));
+    const uint64_t bytes = log->Bytes();
+    EXPECT_GT(bytes, 32u * 32);  // 32 entries of 3 traces
     EXPECT_EQ(ReadAll(*log, "fleet-a", 17), Range(18, 30));
     EXPECT_EQ(ReadAll(*log, "nobody"), std::vector<uint64_t>());
     EXPECT_EQ(log->Tails(), (std::vector<std::pair<std::string, uint64_t>>{
@@ -119,6 +121,7 @@ TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
     // Whole segments at or below 20 are gone, kept for reuse up to 2.
     EXPECT_EQ(CountFiles(path + "/f-fleet-a", "spare-"), 2u);
     EXPECT_EQ(ReadAll(*log, "fleet-a", 20), Range(21, 30));
+    EXPECT_LT(log->Bytes(), bytes);
   }
   std::unique_ptr<SegmentLog> log = OpenLog(path);
   ASSERT_NE(log, nullptr);
