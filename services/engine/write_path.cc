@@ -244,12 +244,14 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
       return results;
     }
     if (uploads.size() > 1) {
-      // The first upload alone makes the fleet (or is refused); the rest
-      // follow it.
-      const size_t made = static_cast<size_t>(first - uploads.begin()) + 1;
-      results = AppendMany(fleet_id, uploads.first(made), track);
+      // The first upload with traces alone makes the fleet (or is
+      // refused); the rest follow it.
+      const size_t at = static_cast<size_t>(first - uploads.begin());
+      results.assign(at, Appended{});  // the empty ones before it
+      results.push_back(
+          std::move(AppendMany(fleet_id, uploads.subspan(at, 1), track)[0]));
       std::vector<absl::StatusOr<Appended>> rest =
-          AppendMany(fleet_id, uploads.subspan(made), track);
+          AppendMany(fleet_id, uploads.subspan(at + 1), track);
       std::move(rest.begin(), rest.end(), std::back_inserter(results));
       return results;
     }

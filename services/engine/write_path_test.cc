@@ -322,6 +322,43 @@ TEST_F(WritePathTest, ConcurrentUploadsShareOneStoreWrite) {
   EXPECT_EQ(Held("f"), 15u);
 }
 
+// One caller's uploads (a stream's messages) go into one store write, each
+// its own entry with its own result, in order; empty ones and a refused one
+// change nothing of the others, also for a fleet they make.
+TEST_F(WritePathTest, ManyUploadsOfOneCallerShareOneStoreWrite) {
+  Open();
+  const std::vector<core::MemoryTrace> a = Traces("r1", 1, 3);
+  const std::vector<core::MemoryTrace> b = Traces("r1", 4, 2);
+  std::vector<core::MemoryTrace> bad = Traces("r2", 1, 1);
+  bad[0].code.push_back(1.0f);  // another dimension
+  const std::vector<core::MemoryTrace> c = Traces("r2", 1, 4);
+  const std::span<const core::MemoryTrace> uploads[] = {{}, a, {}, b, bad, c};
+  std::vector<absl::StatusOr<Appended>> results =
+      path_->AppendMany("f", uploads);
+  ASSERT_EQ(results.size(), 6u);
+  EXPECT_TRUE(results[0].ok() && results[0]->sequence == 0);
+  ASSERT_TRUE(results[1].ok()) << results[1].status();
+  EXPECT_EQ(results[1]->sequence, 1u);  // made the fleet, alone
+  EXPECT_TRUE(results[2].ok() && results[2]->sequence == 0);
+  ASSERT_TRUE(results[3].ok()) << results[3].status();
+  EXPECT_EQ(results[3]->sequence, 2u);
+  EXPECT_EQ(results[4].status().code(), absl::StatusCode::kInvalidArgument);
+  ASSERT_TRUE(results[5].ok()) << results[5].status();
+  EXPECT_EQ(results[5]->sequence, 3u);
+  EXPECT_EQ(results[5]->accepted, 4u);
+  // The first write made the fleet; the rest went in one.
+  EXPECT_THAT(store_.appended_entries(), ::testing::ElementsAre(1u, 2u));
+  // Only empty uploads, or none, to a fleet that does not exist: nothing.
+  const std::span<const core::MemoryTrace> empty[] = {{}, {}};
+  results = path_->AppendMany("g", empty);
+  ASSERT_EQ(results.size(), 2u);
+  EXPECT_TRUE(results[0].ok() && results[1].ok());
+  EXPECT_TRUE(path_->AppendMany("g", {}).empty());
+  EXPECT_EQ(path_->GetBacklog("g").appended_through, 0u);
+  ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("f"), 9u);
+}
+
 TEST_F(WritePathTest, OpenAppliesTheAcknowledgedTailOnceAfterACrash) {
   // What a crashed server leaves: the log holds entries 1..3, of which the
   // engine had applied 1 (stored with its position) but not trimmed it.
