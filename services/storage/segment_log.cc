@@ -356,6 +356,13 @@ SegmentLog::Fleet* SegmentLog::Find(std::string_view fleet_id) {
   return it == fleets_.end() ? nullptr : it->second.get();
 }
 
+std::vector<SegmentLog::Fleet*> SegmentLog::Fleets() {
+  absl::MutexLock lock(&mu_);
+  std::vector<Fleet*> fleets;
+  for (const auto& [id, fleet] : fleets_) fleets.push_back(fleet.get());
+  return fleets;
+}
+
 SegmentLog::Fleet& SegmentLog::FindOrMake(std::string_view fleet_id) {
   absl::MutexLock lock(&mu_);
   auto [it, inserted] = fleets_.try_emplace(std::string(fleet_id));
@@ -641,11 +648,7 @@ absl::Status SegmentLog::Trim(std::string_view fleet_id, uint64_t through) {
 }
 
 std::vector<std::pair<std::string, uint64_t>> SegmentLog::Tails() {
-  std::vector<Fleet*> fleets;
-  {
-    absl::MutexLock lock(&mu_);
-    for (const auto& [id, fleet] : fleets_) fleets.push_back(fleet.get());
-  }
+  const std::vector<Fleet*> fleets = Fleets();
   std::vector<std::pair<std::string, uint64_t>> tails;
   for (Fleet* fleet : fleets) {
     absl::MutexLock lock(&fleet->mu);
@@ -661,11 +664,7 @@ std::vector<std::pair<std::string, uint64_t>> SegmentLog::Tails() {
 }
 
 uint64_t SegmentLog::Bytes() {
-  std::vector<Fleet*> fleets;
-  {
-    absl::MutexLock lock(&mu_);
-    for (const auto& [id, fleet] : fleets_) fleets.push_back(fleet.get());
-  }
+  const std::vector<Fleet*> fleets = Fleets();
   uint64_t bytes = 0;
   for (Fleet* fleet : fleets) {
     absl::MutexLock lock(&fleet->mu);
@@ -683,11 +682,7 @@ absl::Status SegmentLog::CopyTo(const std::string& directory,
     if (absl::Status done = first(); !done.ok()) return done;
   }
   if (absl::Status made = MakeDirectory(directory); !made.ok()) return made;
-  std::vector<Fleet*> fleets;
-  {
-    absl::MutexLock lock(&mu_);
-    for (const auto& [id, fleet] : fleets_) fleets.push_back(fleet.get());
-  }
+  const std::vector<Fleet*> fleets = Fleets();
   for (Fleet* fleet : fleets) {
     std::vector<std::pair<std::shared_ptr<Segment>, uint64_t>> segments;
     {

@@ -109,6 +109,8 @@ class SegmentLog {
   explicit SegmentLog(SegmentLogOptions options);
   Fleet* Find(std::string_view fleet_id);
   Fleet& FindOrMake(std::string_view fleet_id);
+  // Every fleet, sorted by id (a Fleet is never erased).
+  std::vector<Fleet*> Fleets();
   absl::Status LoadFleet(const std::string& fleet_id, const std::string& path);
   absl::StatusOr<std::shared_ptr<Segment>> StartSegment(Fleet& fleet,
                                                         uint64_t first);

@@ -180,6 +180,19 @@ TEST(SegmentLogTest, ABacklogOfManySegmentsHoldsOneDescriptor) {
   EXPECT_LE(open_files(), before + 1);
 }
 
+// The log at `path` holds entries 1..2 of fleet "f" and nothing after them;
+// appends go on with 3, and a reopen reads 1..4.
+void ExpectEntries1And2ThenAppendsGoOn(const std::string& path,
+                                       std::unique_ptr<SegmentLog>& log) {
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
+  EXPECT_EQ(log->Tails().front().second, 2u);
+  ASSERT_TRUE(AppendEntries(*log, "f", 3, 4).ok());
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
+  log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
+}
+
 TEST(SegmentLogTest, ATornTailIsCutAtReopenAndAppendsGoOnAfterIt) {
   TempDir dir;
   const std::string path = dir.path() + "/log";
@@ -190,13 +203,7 @@ TEST(SegmentLogTest, ATornTailIsCutAtReopenAndAppendsGoOnAfterIt) {
   std::filesystem::resize_file(segment, third + 40);
   log = OpenLog(path, 1 << 20);
   ASSERT_NE(log, nullptr);
-  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
-  EXPECT_EQ(log->Tails().front().second, 2u);
-  ASSERT_TRUE(AppendEntries(*log, "f", 3, 4).ok());
-  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
-  log = OpenLog(path, 1 << 20);
-  ASSERT_NE(log, nullptr);
-  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
+  ExpectEntries1And2ThenAppendsGoOn(path, log);
 }
 
 TEST(SegmentLogTest, ADamagedEntryIsDataLoss) {
@@ -272,13 +279,7 @@ TEST(SegmentLogTest, AFailedWriteStoresNothingOfItsAppend) {
   ASSERT_EQ(::sigaction(SIGXFSZ, &previous, nullptr), 0);
   EXPECT_FALSE(failed.ok());
   EXPECT_THAT(failed.message(), HasSubstr("nothing of it was stored"));
-  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
-  EXPECT_EQ(log->Tails().front().second, 2u);
-  ASSERT_TRUE(AppendEntries(*log, "f", 3, 4).ok());
-  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
-  log = OpenLog(path, 1 << 20);
-  ASSERT_NE(log, nullptr);
-  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
+  ExpectEntries1And2ThenAppendsGoOn(path, log);
 }
 
 // Trim makes the store's applies durable (before_trim) before any segment
