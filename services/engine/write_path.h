@@ -55,10 +55,10 @@ struct WritePathOptions {
   // lives in the store (on disk, about 1.1 KB per 256-d trace), not in
   // memory: the bound is how far the applier may fall behind a burst. The
   // default takes a burst of one stream for 10 s on this project's 2-core
-  // machine (160,000 traces/s acknowledged, docs/performance.md) and costs
-  // up to 2.2 GB of disk per fleet at 256-d; the applier catches up at its
-  // own rate (1,200-2,900 traces/s there: minutes, during which queries do
-  // not see the backlog).
+  // machine (129,000-166,000 traces/s acknowledged, docs/performance.md,
+  // fourth round) and costs up to 2.2 GB of disk per fleet at 256-d; the
+  // applier catches up at its own rate (2,600-3,200 traces/s while a burst
+  // drains there: minutes, during which queries do not see the backlog).
   uint64_t max_backlog_traces = 2'000'000;
   // Applier threads shared by every fleet.
   int appliers = 2;

@@ -5,18 +5,18 @@
 //
 // Why not in RocksDB, where it was until 2026-11: an entry lives from its
 // acknowledgement until the applier has applied it, and in RocksDB it was
-// written to the write-ahead log, copied into a memtable, flushed to a table
-// file and compacted (zstd at the bottom level) before its deletion reached
-// it. In a burst of one upload stream (bench/write_path_bench.sh, 5,000
-// held) compaction took 0.7 of this machine's two cores and the WAL's
-// software CRC 0.17 ms of each 200-trace append; here an entry is written
-// once, checksummed with XXH3 and read back by the applier, usually from the
-// page cache.
+// written to the write-ahead log (software CRC in Debian's build), copied
+// into a memtable, flushed to a table file and compacted (zstd at the
+// bottom level) before its deletion reached it. During a burst of one
+// upload stream compaction took 0.68 of this machine's two cores
+// (bench/write_path_profile.sh); here an entry is written once, checksummed
+// with XXH3, and read back once by the applier. An append of 200 traces
+// takes 0.62x the time of the synced RocksDB batch it replaced
+// (bench/ingest_log_bench.cc).
 //
 // Layout: DIRECTORY/f-<fleet id>/<first sequence, 20 digits>.seg, and
 // spare-<n>.seg: trimmed segments kept for reuse, because fdatasync of a
-// write that does not grow a file need not journal its size (0.16 against
-// 0.4-1.1 ms for 200 KiB on this machine's ext4).
+// write that does not grow a file need not journal its size.
 // Record: magic "FMLG" | XXH3-64 of the rest (uint64) | segment (its first
 //   sequence, uint64) | sequence (uint64) | payload bytes (uint32) |
 //   payload (record_codec's logged upload)
