@@ -17,6 +17,7 @@
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
 #include "services/core/validation.h"
+#include "services/storage/file_io.h"
 #include "services/storage/record_codec.h"
 
 namespace fleetmem::storage {
@@ -41,17 +42,9 @@ constexpr size_t RoundUp(size_t bytes) {
   return (bytes + kBlock - 1) / kBlock * kBlock;
 }
 
-std::string ErrnoText(int error) { return std::strerror(error); }
-
-// ENOSPC and EDQUOT are a full disk (RESOURCE_EXHAUSTED, as the store's
-// reserve says it), anything else UNAVAILABLE.
-absl::Status IoError(int error, std::string_view what) {
-  const std::string message = absl::StrCat(V(what), ": ", ErrnoText(error));
-  if (error == ENOSPC || error == EDQUOT) {
-    return absl::ResourceExhaustedError(message);
-  }
-  return absl::UnavailableError(message);
-}
+using file_io::ErrnoText;
+using file_io::IoError;
+using file_io::SyncDirectory;
 
 template <typename T>
 T Load(const char* at) {
@@ -76,19 +69,6 @@ struct File {
   File& operator=(const File&) = delete;
   const int fd;
 };
-
-absl::Status SyncDirectory(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (fd < 0)
-    return IoError(errno, absl::StrCat("open directory '", path, "'"));
-  const int synced = ::fsync(fd);
-  const int error = errno;
-  ::close(fd);
-  if (synced != 0) {
-    return IoError(error, absl::StrCat("fsync directory '", path, "'"));
-  }
-  return absl::OkStatus();
-}
 
 // Creates `path` (not its parents) and syncs its parent; OK if it exists.
 absl::Status MakeDirectory(const std::string& path) {

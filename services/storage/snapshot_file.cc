@@ -15,6 +15,7 @@
 
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
+#include "services/storage/file_io.h"
 
 namespace fleetmem::storage {
 namespace {
@@ -25,7 +26,7 @@ constexpr size_t kHeaderBytes = 16;
 constexpr size_t kTrailerBytes = 16;
 constexpr size_t kBufferBytes = 1 << 20;
 
-std::string ErrnoText(int error) { return std::strerror(error); }
+using file_io::ErrnoText;
 
 struct HashState {
   void operator()(XXH3_state_t* state) const { XXH3_freeState(state); }
@@ -83,22 +84,10 @@ class FileWriter {
   absl::Status error_;  // the first error
 };
 
-absl::Status SyncDirectory(const std::string& path) {
-  const std::string directory =
-      std::filesystem::path(path).parent_path().string();
-  const int fd = ::open(directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (fd < 0) {
-    return absl::UnavailableError(
-        absl::StrCat("open directory '", directory, "': ", ErrnoText(errno)));
-  }
-  const int synced = ::fsync(fd);
-  const int error = errno;
-  ::close(fd);
-  if (synced != 0) {
-    return absl::UnavailableError(
-        absl::StrCat("fsync directory '", directory, "': ", ErrnoText(error)));
-  }
-  return absl::OkStatus();
+// Syncs the directory that holds `path`.
+absl::Status SyncParent(const std::string& path) {
+  return file_io::SyncDirectory(
+      std::filesystem::path(path).parent_path().string());
 }
 
 // A read-only mapping of a whole file, unmapped on destruction.
@@ -210,7 +199,7 @@ absl::Status WriteSnapshotFile(
   if (status.ok() && ::rename(temporary.c_str(), path.c_str()) != 0) {
     status = absl::UnavailableError(absl::StrCat("rename: ", ErrnoText(errno)));
   }
-  if (status.ok()) status = SyncDirectory(path);
+  if (status.ok()) status = SyncParent(path);
   if (!status.ok()) {
     // The rename is the commit point: before it the earlier snapshot is
     // whole, after it the new one (only the directory's fsync failed).

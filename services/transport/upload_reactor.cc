@@ -80,8 +80,9 @@ void UploadReactor::Fail(uint64_t index, const absl::Status& status,
                            << " at " << context_->peer() << ": " << status;
   }
   Done(ToGrpcStatus(absl::Status(
-      status.code(), absl::StrCat("message ", index, " of the stream: ",
-                                  status.message(), Earlier(index), V(after)))));
+      status.code(),
+      absl::StrCat("message ", index, " of the stream: ", status.message(),
+                   Earlier(index), V(after)))));
 }
 
 void UploadReactor::MaybeRead() {
@@ -165,7 +166,8 @@ void UploadReactor::StoreQueued() {
     std::deque<Message> batch;
     {
       absl::MutexLock lock(&mu_);
-      if (finished_) return;  // Done was called beside this task
+      // Nothing but this task finishes the call while it runs (OnReadDone
+      // finishes only when no task stores).
       if (queue_.empty()) {
         storing_ = false;
         if (!closed_ || reading_) {
