@@ -14,6 +14,8 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   libtorch-dev gnuplot-nox \
   libcpp-httplib-dev prometheus-cpp-dev golang-github-gogo-googleapis-dev \
   libssl-dev curl python3 python3-numpy prometheus chromium \
+  python3-venv python3-pip python3-setuptools python3-wheel python3-grpcio \
+  python3-protobuf python3-pytest python3-pil \
   debootstrap docker-compose libceres-dev libhnswlib-dev libfaiss-dev \
   libxxhash-dev nats-server libnats-dev
 

@@ -565,5 +565,22 @@ TEST_F(StandardServicesTest, ReflectionListsTheMemoryService) {
       << "reflection does not list fleetmem.v1.MemoryService";
 }
 
+// grpcurl ... grpc.health.v1.Health/Check without -proto: reflection must
+// describe the health service, not only list it.
+TEST_F(StandardServicesTest, ReflectionDescribesTheHealthService) {
+  const std::string symbol = "grpc.health.v1.Health";
+  // ServerReflectionRequest{file_containing_symbol: symbol}: field 4.
+  const std::string request =
+      std::string("\x22") + static_cast<char>(symbol.size()) + symbol;
+  std::string response;
+  grpc::Status status = GenericStreamCall(
+      MakeChannel(server().address()),
+      "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+      {request}, &response);
+  ASSERT_TRUE(status.ok()) << Describe(status);
+  EXPECT_TRUE(absl::StrContains(response, "grpc/health/v1/health.proto"))
+      << "reflection cannot describe " << symbol << ": " << response;
+}
+
 }  // namespace
 }  // namespace fleetmem::testing

@@ -225,8 +225,8 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
   }
   Fleet::Notify(*this, fleet_id, notices.last_event_id);
   if (notices.consolidations > 0 && hooks_.on_consolidate) {
-    hooks_.on_consolidate(fleet_id, notices.consolidated,
-                          notices.consolidation_seconds);
+    hooks_.on_consolidate(fleet_id, notices.consolidations,
+                          notices.consolidated, notices.consolidation_seconds);
   }
   if (!status.ok()) return status;
   if (hooks_.on_upload) hooks_.on_upload(fleet_id, result);
@@ -292,7 +292,8 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
   Fleet::Notify(*this, fleet_id, notices.last_event_id);
   if (!status.ok()) return status;
   if (hooks_.on_consolidate) {
-    hooks_.on_consolidate(fleet_id, notices.consolidated,
+    hooks_.on_consolidate(fleet_id, notices.consolidations,
+                          notices.consolidated,
                           absl::ToDoubleSeconds(absl::Now() - start));
   }
   return notices.consolidated;

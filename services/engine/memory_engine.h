@@ -201,8 +201,11 @@ struct IndexSnapshotSelection {
 // outside fleet locks.
 struct EngineHooks {
   std::function<void(std::string_view fleet, const UploadResult&)> on_upload;
-  std::function<void(std::string_view fleet, const ConsolidateResult&,
-                     double seconds)>
+  // `consolidations` robot batches (as GetStats' `consolidations` counts
+  // them; 0 for a Consolidate call that found nothing pending), their
+  // summed result and the time they took.
+  std::function<void(std::string_view fleet, size_t consolidations,
+                     const ConsolidateResult&, double seconds)>
       on_consolidate;
   std::function<void(std::string_view fleet, size_t count)> on_sample;
   std::function<void(std::string_view fleet, double seconds)> on_query;

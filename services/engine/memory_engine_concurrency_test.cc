@@ -74,8 +74,8 @@ TEST_F(MemoryEngineTest, HooksSeeUploadsConsolidationsSamplesAndQueries) {
     EXPECT_EQ(fleet, "f1");
     ++uploads;
   };
-  hooks.on_consolidate = [&](std::string_view, const ConsolidateResult& result,
-                             double seconds) {
+  hooks.on_consolidate = [&](std::string_view, size_t,
+                             const ConsolidateResult& result, double seconds) {
     EXPECT_GE(seconds, 0.0);
     ++consolidations;
     consolidated_traces += result.consolidated_traces;

@@ -5,21 +5,51 @@
 #include <openssl/x509.h>
 
 #include <fstream>
+#include <string_view>
 #include <utility>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "httplib.h"
 #include "services/http/dashboard_assets.h"
+#include "services/http/openapi.h"
 
 namespace fleetmem::http {
 namespace {
 
-void Answer(const HttpResponse& from, httplib::Response& to) {
+void Answer(HttpResponse from, httplib::Response& to) {
   to.status = from.status;
   for (const auto& [name, value] : from.headers) to.set_header(name, value);
-  to.set_content(from.body, from.content_type.c_str());
+  if (!from.stream) {
+    to.set_content(from.body, from.content_type.c_str());
+    return;
+  }
+  to.set_chunked_content_provider(
+      from.content_type,
+      [stream = std::move(from.stream)](size_t, httplib::DataSink& sink) {
+        stream([&sink](std::string_view piece) {
+          return sink.is_writable() && sink.write(piece.data(), piece.size());
+        });
+        sink.done();
+        return true;
+      });
 }
+
+}  // namespace
+
+// The dashboard's files are not an API and are left out.
+const std::vector<PlainEndpoint>& PlainEndpoints() {
+  static const auto* endpoints = new std::vector<PlainEndpoint>{
+      {"/healthz", "text/plain", "liveness: the process answers"},
+      {"/readyz", "text/plain",
+       "readiness: the store is open and the server serves (503 otherwise)"},
+      {"/metrics", "text/plain",
+       "Prometheus text format (docs/operations.md lists the metrics)"},
+      {"/openapi.json", "application/json", "this description"}};
+  return *endpoints;
+}
+
+namespace {
 
 // The common name of the client certificate TLS verified, if any.
 std::optional<std::string> CertificateCommonName(const httplib::Request& req) {
@@ -50,6 +80,9 @@ HttpRequest FromHttplib(const httplib::Request& req) {
   request.body = req.body;
   if (req.has_header("Authorization")) {
     request.authorization = req.get_header_value("Authorization");
+  }
+  if (req.has_header("Last-Event-ID")) {
+    request.last_event_id = req.get_header_value("Last-Event-ID");
   }
   request.certificate_common_name = CertificateCommonName(req);
   return request;
@@ -149,6 +182,12 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   http.set_keep_alive_max_count(100);
 
   HttpEndpoints* e = &server->endpoints_;
+  const std::string openapi =
+      OpenApiJson(e->gateway->routes(), PlainEndpoints(), options.version);
+  http.Get("/openapi.json",
+           [openapi](const httplib::Request&, httplib::Response& res) {
+             res.set_content(openapi, "application/json");
+           });
   http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) {
     res.set_content("ok\n", "text/plain");
   });

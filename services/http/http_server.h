@@ -1,14 +1,15 @@
 // The server's one HTTP port (--http-listen), on cpp-httplib: the REST/JSON
 // gateway under /v1/, /metrics (Prometheus text format), /healthz and
-// /readyz (Kubernetes probes) and the dashboard (/ and its files, embedded
-// in the binary). TLS, when the server has a certificate, with the same
+// /readyz (Kubernetes probes), /openapi.json (openapi.h: the routes and the
+// endpoints as served) and the dashboard (/ and its files, embedded in the
+// binary). TLS, when the server has a certificate, with the same
 // certificate, key and client CA as gRPC.
 //
 // Access: /v1/ applies the server's identity and roles (401, 403 as for
-// gRPC). /healthz, /readyz, /metrics and the dashboard's static files need no
-// credentials: the probes and Prometheus scrape without them, /metrics holds
-// counts per fleet id but no codes or places, and the page holds no data (it
-// asks the person for a reader token when the API answers 401).
+// gRPC). /healthz, /readyz, /metrics, /openapi.json and the dashboard's static
+// files need no credentials: the probes and Prometheus scrape without them,
+// /metrics holds counts per fleet id but no codes or places, and the page holds
+// no data (it asks the person for a reader token when the API answers 401).
 #ifndef FLEETMEM_SERVICES_HTTP_HTTP_SERVER_H_
 #define FLEETMEM_SERVICES_HTTP_HTTP_SERVER_H_
 
@@ -16,8 +17,10 @@
 #include <memory>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "absl/status/statusor.h"
+#include "services/http/openapi.h"
 #include "services/http/rest_gateway.h"
 
 namespace httplib {
@@ -39,8 +42,10 @@ struct HttpServerOptions {
   // Largest request body; larger ones get 413 before they are read.
   size_t max_body_bytes = 4 << 20;
   // Threads serving connections (each call runs on one; engine calls block
-  // on fsync). 0 = 8.
+  // on fsync; a watch holds one for its duration). 0 = 8.
   size_t threads = 0;
+  // The server's version, for /openapi.json.
+  std::string version = "unknown";
 };
 
 // What the server answers besides the REST routes.
@@ -52,6 +57,10 @@ struct HttpEndpoints {
   // shutdown begins).
   std::function<bool()> ready;
 };
+
+// The endpoints served besides the REST routes and the dashboard's files
+// (/healthz, /readyz, /metrics, /openapi.json), as /openapi.json lists them.
+const std::vector<PlainEndpoint>& PlainEndpoints();
 
 class HttpServer {
  public:

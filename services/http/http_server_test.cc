@@ -1,9 +1,14 @@
 #include "services/http/http_server.h"
 
 #include <memory>
+#include <set>
 #include <string>
 
+#include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
+#include "google/api/annotations.pb.h"
+#include "google/protobuf/struct.pb.h"
+#include "google/protobuf/util/json_util.h"
 #include "gtest/gtest.h"
 #include "httplib.h"
 #include "services/engine/memory_engine.h"
@@ -29,7 +34,9 @@ class HttpServerTest : public ::testing::Test {
     ASSERT_TRUE(memory.ok()) << memory.status();
     memory_ = std::move(*memory);
     api_ = std::make_unique<transport::MemoryApi>(engine_.get(), memory_.get());
-    auto gateway = RestGateway::Create(api_.get(), nullptr, nullptr);
+    auto gateway =
+        RestGateway::Create(api_.get(), nullptr, nullptr,
+                            {.watch_heartbeat = absl::Milliseconds(100)});
     ASSERT_TRUE(gateway.ok());
     gateway_ = std::move(*gateway);
     HttpServerOptions options;
@@ -41,6 +48,10 @@ class HttpServerTest : public ::testing::Test {
     ASSERT_TRUE(server.ok()) << server.status();
     server_ = std::move(*server);
     client_ = std::make_unique<httplib::Client>("127.0.0.1", server_->port());
+  }
+  void TearDown() override {
+    gateway_->Shutdown();  // as the server does: watches end first
+    server_->Stop();
   }
 
   std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
@@ -90,6 +101,91 @@ TEST_F(HttpServerTest, EveryDashboardFileIsServed) {
     ASSERT_TRUE(response) << file.path;
     EXPECT_EQ(response->status, 200) << file.path;
     EXPECT_EQ(response->body.size(), file.size) << file.path;
+  }
+}
+
+// The routes memory.proto's google.api.http options name, and the plain
+// endpoints: what the server must serve and describe.
+std::set<std::string> RoutesToServe() {
+  std::set<std::string> routes;
+  const google::protobuf::ServiceDescriptor& service =
+      *google::protobuf::DescriptorPool::generated_pool()->FindServiceByName(
+          "fleetmem.v1.MemoryService");
+  for (int i = 0; i < service.method_count(); ++i) {
+    const auto& options = service.method(i)->options();
+    if (!options.HasExtension(google::api::http)) continue;
+    const google::api::HttpRule& rule = options.GetExtension(google::api::http);
+    routes.insert(rule.has_get() ? "get " + rule.get() : "post " + rule.post());
+  }
+  for (const PlainEndpoint& endpoint : PlainEndpoints()) {
+    routes.insert(absl::StrCat("get ", endpoint.path));
+  }
+  return routes;
+}
+
+TEST_F(HttpServerTest, OpenApiDescribesExactlyTheRoutesThatAnswer) {
+  core::MemoryTrace trace;
+  trace.robot_id = "r1";
+  trace.code = {1, 2, 3};
+  trace.reward = 1;
+  ASSERT_TRUE(
+      engine_->Upload("f1", std::vector<core::MemoryTrace>{trace}).ok());
+  auto answer = client_->Get("/openapi.json");
+  ASSERT_TRUE(answer);
+  ASSERT_EQ(answer->status, 200);
+  google::protobuf::Struct document;
+  ASSERT_TRUE(
+      google::protobuf::util::JsonStringToMessage(answer->body, &document)
+          .ok());
+  const auto& top = document.fields();
+  EXPECT_EQ(top.at("openapi").string_value(), "3.0.3");
+  std::set<std::string> described;
+  for (const auto& [path, item] : top.at("paths").struct_value().fields()) {
+    for (const auto& [verb, operation] : item.struct_value().fields()) {
+      described.insert(verb + " " + path);
+    }
+  }
+  EXPECT_EQ(described, RoutesToServe());
+  // Every request and answer schema is there.
+  const auto& schemas = top.at("components")
+                            .struct_value()
+                            .fields()
+                            .at("schemas")
+                            .struct_value()
+                            .fields();
+  EXPECT_TRUE(schemas.contains("fleetmem.v1.UploadTracesRequest"));
+  EXPECT_TRUE(schemas.contains("fleetmem.v1.Pose"));
+  EXPECT_TRUE(schemas.contains("fleetmem.v1.MemoryEvent"));
+
+  // Each described route answers (with its answer or the call's own error,
+  // never "no route" or "method not allowed"); streams are left after the
+  // status line.
+  for (const std::string& route : described) {
+    const size_t space = route.find(' ');
+    std::string path = route.substr(space + 1);
+    if (const size_t variable = path.find("{fleet_id}");
+        variable != std::string::npos) {
+      path.replace(variable, 10, "f1");
+    }
+    int status = 0;
+    std::string type;
+    auto head = [&](const httplib::Response& response) {
+      status = response.status;
+      type = response.get_header_value("Content-Type");
+      return type != "text/event-stream";
+    };
+    auto body = [](const char*, size_t) { return true; };
+    if (route.starts_with("get ")) {
+      client_->Get(path, head, body);
+    } else {
+      auto posted = client_->Post(path, "{}", "application/json");
+      ASSERT_TRUE(posted) << route;
+      status = posted->status;
+    }
+    EXPECT_NE(status, 0) << route;
+    EXPECT_NE(status, 404) << route;
+    EXPECT_NE(status, 405) << route;
+    if (route.ends_with("/watch")) EXPECT_EQ(type, "text/event-stream");
   }
 }
 

@@ -199,6 +199,7 @@ absl::StatusOr<std::vector<Route>> RoutesFromProto(
         method->options().GetExtension(google::api::http);
     Route route;
     route.method = method;
+    route.server_sent_events = method->server_streaming();
     switch (rule.pattern_case()) {
       case google::api::HttpRule::kGet:
         route.verb = "GET";
@@ -217,6 +218,10 @@ absl::StatusOr<std::vector<Route>> RoutesFromProto(
           absl::StrCat(method->full_name(), ": body must be \"*\" or empty"));
     }
     route.body = rule.body() == "*";
+    if (route.server_sent_events && (route.verb != "GET" || route.body)) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          method->full_name(), ": a streaming answer is served on GET only"));
+    }
     route.segments = Segments(route.pattern);
     for (const std::string& segment : route.segments) {
       if (!IsVariable(segment)) continue;
@@ -368,6 +373,15 @@ HttpResponse RestGateway::Serve(
     if (!set.ok()) return fail(set);
   }
 
+  if (route.server_sent_events) {
+    if (route.method->name() != "WatchMemory") {
+      return fail(absl::UnimplementedError(
+          absl::StrCat(route.method->full_name(), " is not served over HTTP")));
+    }
+    return ServeWatch(*caller,
+                      static_cast<const v1::WatchMemoryRequest&>(*message),
+                      request, code);
+  }
   const google::protobuf::Message* response_prototype =
       google::protobuf::MessageFactory::generated_factory()->GetPrototype(
           route.method->output_type());
@@ -386,6 +400,70 @@ HttpResponse RestGateway::Serve(
         " (the call itself succeeded)")));
   }
   return JsonResponse(200, std::move(body));
+}
+
+HttpResponse RestGateway::ServeWatch(const auth::Principal& caller,
+                                     v1::WatchMemoryRequest request,
+                                     const HttpRequest& http,
+                                     absl::StatusCode* code) const {
+  auto fail = [code](const absl::Status& status) -> HttpResponse {
+    *code = status.code();
+    return ErrorResponse(status);
+  };
+  // An EventSource that reconnects says where it stopped.
+  if (http.last_event_id.has_value()) {
+    uint64_t resume = 0;
+    if (!absl::SimpleAtoi(*http.last_event_id, &resume)) {
+      return fail(absl::InvalidArgumentError(absl::StrCat(
+          "Last-Event-ID: \"", *http.last_event_id, "\" is not an event id")));
+    }
+    request.set_after_event(std::max(request.after_event(), resume));
+  }
+  if (absl::Status allowed = api_->CheckWatch(caller, request); !allowed.ok()) {
+    return fail(allowed);
+  }
+  if (stopping_.load()) {
+    return fail(absl::UnavailableError(
+        "the server is shutting down; watch again from your last event id"));
+  }
+  // The slot is taken here and given back when the stream ends (or when a
+  // stream that never ran is destroyed).
+  if (watches_->fetch_add(1) >= options_.max_watches) {
+    watches_->fetch_sub(1);
+    return fail(absl::ResourceExhaustedError(absl::StrCat(
+        "limit max_watches (", options_.max_watches,
+        ") of watches over HTTP reached; retry later or watch over gRPC")));
+  }
+  auto slot = std::shared_ptr<void>(
+      nullptr, [watches = watches_](void*) { watches->fetch_sub(1); });
+  HttpResponse response;
+  response.content_type = "text/event-stream";
+  response.headers.emplace_back("Cache-Control", "no-cache");
+  response.headers.emplace_back("X-Accel-Buffering", "no");
+  response.stream = [this, caller, request = std::move(request),
+                     slot](const std::function<bool(std::string_view)>& write) {
+    google::protobuf::util::JsonPrintOptions print;
+    print.always_print_primitive_fields = true;
+    // EventSource waits this long (ms) before it reconnects.
+    if (!write("retry: 1000\n\n")) return;
+    absl::Status ended = api_->Watch(
+        caller, request, absl::Now() + options_.max_watch,
+        options_.watch_heartbeat, &stopping_,
+        [&](const v1::MemoryEvent* event) {
+          if (event == nullptr) return write(": keep-alive\n\n");
+          std::string json;
+          (void)google::protobuf::util::MessageToJsonString(*event, &json,
+                                                            print);
+          return write(absl::StrCat("id: ", event->id(), "\nevent: ",
+                                    v1::MemoryEvent::Type_Name(event->type()),
+                                    "\ndata: ", json, "\n\n"));
+        });
+    if (!ended.ok()) {
+      write(absl::StrCat("event: error\ndata: ", ErrorResponse(ended).body,
+                         "\n\n"));
+    }
+  };
+  return response;
 }
 
 }  // namespace fleetmem::http

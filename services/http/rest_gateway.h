@@ -5,6 +5,11 @@
 // MessageToJsonString). Transport-free: HttpServer adapts cpp-httplib to
 // Handle, and tests and the fuzzer call Handle directly.
 //
+// Streaming RPCs: UploadTraces takes one message per POST; WatchMemory
+// answers with server-sent events (text/event-stream): per memory event
+// "id: ID", "event: TYPE" and "data: JSON"; an error after the stream began
+// is an "event: error" whose data is the error body below, and ends it.
+//
 // Request building, per route: the JSON body (routes with body "*": an
 // object of the request message; unknown fields and wrong types are 400
 // naming the field), then the path variables ({fleet_id}), then the query
@@ -14,15 +19,21 @@
 #ifndef FLEETMEM_SERVICES_HTTP_REST_GATEWAY_H_
 #define FLEETMEM_SERVICES_HTTP_REST_GATEWAY_H_
 
+#include <atomic>
 #include <cstddef>
+#include <functional>
 #include <map>
+#include <memory>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/time/time.h"
+#include "fleetmem/v1/memory.pb.h"
 #include "google/protobuf/descriptor.h"
 #include "services/auth/authenticator.h"
 #include "services/transport/memory_api.h"
@@ -39,6 +50,8 @@ struct HttpRequest {
   std::optional<std::string> authorization;
   // The common name of a client certificate verified by TLS.
   std::optional<std::string> certificate_common_name;
+  // The Last-Event-ID header (an EventSource resuming a watch), if sent.
+  std::optional<std::string> last_event_id;
 };
 
 struct HttpResponse {
@@ -46,12 +59,25 @@ struct HttpResponse {
   std::string content_type = "application/json";
   std::string body;
   std::vector<std::pair<std::string, std::string>> headers;
+  // A streamed body instead of `body` (server-sent events): called once, on
+  // the connection's thread, with a function that writes one piece (false
+  // once the client is gone); the body ends when it returns.
+  std::function<void(const std::function<bool(std::string_view)>& write)>
+      stream;
 };
 
 struct RestOptions {
   // Largest request body accepted; a larger one is 413 (the HTTP server
   // refuses it before reading it all).
   size_t max_body_bytes = 4 << 20;
+  // Watches over HTTP (server-sent events) each hold one of the HTTP
+  // server's threads (8 by default): at most max_watches at once (429
+  // beyond), each ended after max_watch (the client resumes from its
+  // Last-Event-ID), with a comment line every watch_heartbeat while the
+  // fleet is quiet (how a closed connection is noticed).
+  size_t max_watches = 4;
+  absl::Duration max_watch = absl::Minutes(5);
+  absl::Duration watch_heartbeat = absl::Seconds(15);
 };
 
 // One route of the table.
@@ -61,6 +87,8 @@ struct Route {
   std::vector<std::string> segments;  // of the pattern, split once
   bool body = false;                  // the request message is the JSON body
   const google::protobuf::MethodDescriptor* method = nullptr;
+  // The RPC streams its answers: served as server-sent events.
+  bool server_sent_events = false;
 };
 
 // The routes of every MemoryService RPC with a google.api.http option that
@@ -94,6 +122,10 @@ class RestGateway {
 
   const std::vector<Route>& routes() const { return routes_; }
 
+  // Ends the watches being streamed (within a quarter second) and refuses
+  // new ones with UNAVAILABLE: for shutdown, before the HTTP server stops.
+  void Shutdown() { stopping_.store(true); }
+
  private:
   RestGateway(transport::MemoryApi* api,
               const auth::Authenticator* authenticator,
@@ -104,12 +136,22 @@ class RestGateway {
   HttpResponse Serve(const Route& route,
                      const std::map<std::string, std::string>& variables,
                      const HttpRequest& request, absl::StatusCode* code) const;
+  // WatchMemory as server-sent events.
+  HttpResponse ServeWatch(const auth::Principal& caller,
+                          v1::WatchMemoryRequest request,
+                          const HttpRequest& http,
+                          absl::StatusCode* code) const;
 
   transport::MemoryApi* const api_;
   const auth::Authenticator* const authenticator_;
   const transport::CallObserver on_call_;
   const RestOptions options_;
   const std::vector<Route> routes_;
+  std::atomic<bool> stopping_{false};
+  // Watches being streamed (shared with their streams, which may outlive
+  // the gateway's call).
+  const std::shared_ptr<std::atomic<size_t>> watches_ =
+      std::make_shared<std::atomic<size_t>>(0);
 };
 
 }  // namespace fleetmem::http

@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"
 #include "gtest/gtest.h"
@@ -19,6 +20,7 @@ namespace fleetmem::http {
 namespace {
 
 using ::testing::HasSubstr;
+using ::testing::Not;
 
 core::MemoryTrace Trace(const std::string& robot, uint64_t seq) {
   core::MemoryTrace trace;
@@ -57,7 +59,10 @@ class RestGatewayTest : public ::testing::Test {
           calls_.push_back(std::string(transport) + " " + std::string(method) +
                            " " + absl::StatusCodeToString(code));
         },
-        RestOptions{.max_body_bytes = 1024});
+        RestOptions{.max_body_bytes = 1024,
+                    .max_watches = 1,
+                    .max_watch = absl::Milliseconds(300),
+                    .watch_heartbeat = absl::Milliseconds(50)});
     ASSERT_TRUE(gateway.ok()) << gateway.status();
     gateway_ = std::move(*gateway);
   }
@@ -263,6 +268,90 @@ TEST(RestGatewayAuthTest, TokensAndRoles) {
                      .path = "/v1/fleets",
                      .authorization = "Bearer viewer:s3cret"};
   EXPECT_THAT((*gateway)->Handle(fleets).body, HasSubstr("alpha"));
+}
+
+// What a watch's stream writes until it ends (or until `pieces` pieces,
+// when the writer says the client is gone).
+std::string Streamed(const HttpResponse& response, size_t pieces = SIZE_MAX) {
+  std::string text;
+  size_t written = 0;
+  response.stream([&](std::string_view piece) {
+    text += piece;
+    return ++written < pieces;
+  });
+  return text;
+}
+
+TEST_F(RestGatewayTest, UploadOverRestIsOneMessageOfAStream) {
+  const std::string body = R"({"traces": [
+      {"robotId": "r2", "seq": "1", "code": [1, 0, 0], "reward": 1,
+       "encoderVersion": "v1"},
+      {"robotId": "r2", "seq": "2", "code": [0, 1, 0], "reward": 1,
+       "encoderVersion": "v1",
+       "pose": {"x": 5}}],
+      "ack": "UPLOAD_ACK_APPLIED"})";
+  HttpResponse stored = Post("/v1/fleets/alpha/traces", body);
+  ASSERT_EQ(stored.status, 200) << stored.body;
+  EXPECT_THAT(stored.body, HasSubstr("\"accepted\":\"2\""));
+  EXPECT_THAT(stored.body, HasSubstr("\"applied\":true"));
+  HttpResponse again = Post("/v1/fleets/alpha/traces", body);
+  EXPECT_THAT(again.body, HasSubstr("\"duplicates\":\"2\""));
+  // The engine's checks, with nothing stored.
+  HttpResponse wrong = Post("/v1/fleets/alpha/traces",
+                            R"({"traces": [{"robotId": "r2", "seq": "3",
+                                "code": [1, 0], "reward": 1,
+                                "encoderVersion": "v1"}]})");
+  EXPECT_EQ(wrong.status, 400);
+  EXPECT_THAT(wrong.body, HasSubstr("dimension"));
+  const std::vector<engine::RobotStats> robots =
+      engine_->GetStats("alpha")->robots;
+  ASSERT_EQ(robots.back().robot_id, "r2");
+  EXPECT_EQ(robots.back().received, 2u);
+  EXPECT_THAT(calls_, testing::Contains("http UploadTraces OK"));
+}
+
+TEST_F(RestGatewayTest, WatchIsServerSentEventsResumedByLastEventId) {
+  ASSERT_EQ(Post("/v1/fleets/alpha/consolidate", "").status, 200);
+  const uint64_t last = engine_->GetStats("alpha")->last_event_id;
+  ASSERT_GE(last, 2u);
+  HttpResponse watch = Get("/v1/fleets/alpha/watch");
+  ASSERT_EQ(watch.status, 200) << watch.body;
+  EXPECT_EQ(watch.content_type, "text/event-stream");
+  ASSERT_TRUE(watch.stream);
+  // Every event, then heartbeats until max_watch ends the stream.
+  const std::string all = Streamed(watch);
+  EXPECT_THAT(all, HasSubstr("retry: 1000\n\nid: 1\nevent: CLUSTER_ADDED\n"
+                             "data: {\"id\":\"1\""));
+  EXPECT_THAT(all, HasSubstr(absl::StrCat("id: ", last, "\n")));
+  EXPECT_THAT(all, HasSubstr(": keep-alive\n\n"));
+  watch = {};  // gives its slot back
+
+  // An EventSource that reconnects sends the last id it saw.
+  HttpRequest resume{
+      .method = "GET", .path = "/v1/fleets/alpha/watch", .last_event_id = "1"};
+  const std::string rest = Streamed(gateway_->Handle(resume));
+  EXPECT_THAT(rest, Not(HasSubstr("id: 1\n")));
+  EXPECT_THAT(rest, HasSubstr("id: 2\n"));
+  // A writer that fails (the client went away) ends the stream at once.
+  const std::string one = Streamed(Get("/v1/fleets/alpha/watch"), 2);
+  EXPECT_THAT(one, HasSubstr("id: 1\n"));
+  EXPECT_THAT(one, Not(HasSubstr("id: 2\n")));
+}
+
+TEST_F(RestGatewayTest, WatchChecksComeBeforeTheStreamAndSlotsAreBounded) {
+  EXPECT_EQ(Get("/v1/fleets/no such/watch").status, 400);
+  HttpRequest bad_id{
+      .method = "GET", .path = "/v1/fleets/alpha/watch", .last_event_id = "x"};
+  EXPECT_EQ(gateway_->Handle(bad_id).status, 400);
+  HttpResponse first = Get("/v1/fleets/alpha/watch");
+  ASSERT_EQ(first.status, 200);
+  HttpResponse second = Get("/v1/fleets/alpha/watch");
+  EXPECT_EQ(second.status, 429);
+  EXPECT_THAT(second.body, HasSubstr("max_watches"));
+  first = {};
+  EXPECT_EQ(Get("/v1/fleets/alpha/watch").status, 200);
+  gateway_->Shutdown();
+  EXPECT_EQ(Get("/v1/fleets/alpha/watch").status, 503);
 }
 
 }  // namespace

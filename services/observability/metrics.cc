@@ -326,11 +326,14 @@ engine::EngineHooks Metrics::EngineHooks() {
     f->duplicate_traces.Add(labels).Increment(
         static_cast<double>(result.duplicates));
   };
-  hooks.on_consolidate = [f](std::string_view fleet,
+  hooks.on_consolidate = [f](std::string_view fleet, size_t consolidations,
                              const engine::ConsolidateResult& result,
                              double seconds) {
     const prometheus::Labels labels{{"fleet", std::string(fleet)}};
-    f->consolidations.Add(labels).Increment();
+    // As GetStats counts them: one per robot batch (an upload may fill
+    // several robots' segments at once).
+    f->consolidations.Add(labels).Increment(
+        static_cast<double>(consolidations));
     f->clusters_added.Add(labels).Increment(
         static_cast<double>(result.clusters_added));
     f->clusters_forgotten.Add(labels).Increment(

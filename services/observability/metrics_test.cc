@@ -39,6 +39,15 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
     traces.push_back(trace);
   }
   ASSERT_TRUE((*engine)->Upload("alpha", traces).ok());
+  // One upload that fills two robots' segments: two consolidations.
+  std::vector<core::MemoryTrace> two_robots;
+  for (uint64_t seq = 1; seq <= 8; ++seq) {
+    core::MemoryTrace trace = traces[seq - 1];
+    trace.robot_id = seq <= 4 ? "r2" : "r3";
+    two_robots.push_back(trace);
+  }
+  ASSERT_EQ((*engine)->Upload("beta", two_robots)->consolidations, 2u);
+  ASSERT_EQ((*engine)->GetStats("beta")->consolidations, 2u);
   metrics.ObserveCall("grpc", "GetStats", absl::StatusCode::kOk, 0.002);
   metrics.ObserveCall("http", "GetStats", absl::StatusCode::kNotFound, 0.001);
   metrics.ObserveUploadBytes("alpha", 1234);
@@ -49,6 +58,8 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
               HasSubstr("fleetmem_uploaded_traces_total{fleet=\"alpha\"} 8"));
   EXPECT_THAT(text,
               HasSubstr("fleetmem_consolidations_total{fleet=\"alpha\"} 1"));
+  EXPECT_THAT(text,
+              HasSubstr("fleetmem_consolidations_total{fleet=\"beta\"} 2"));
   EXPECT_THAT(
       text, HasSubstr("fleetmem_clusters_forgotten_total{fleet=\"alpha\"} 1"));
   EXPECT_THAT(text, HasSubstr("fleetmem_fleet_clusters{fleet=\"alpha\"} 1"));

@@ -30,6 +30,8 @@
 #include "absl/synchronization/notification.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
+#include "fleetmem_version.h"
+#include "grpc/health/v1/health.pb.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
@@ -128,6 +130,7 @@ http::HttpServerOptions HttpOptions(const ServerConfig& config) {
   options.require_client_certificate =
       config.security.require_client_certificate;
   options.max_body_bytes = config.max_http_body_bytes;
+  options.version = FLEETMEM_VERSION;
   return options;
 }
 
@@ -394,6 +397,11 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                                        authenticator.get(), service_options);
 
   grpc::EnableDefaultHealthCheckService(true);
+  // gRPC's default health service has no C++ descriptor of its own:
+  // grpc.health.v1's generated code (proto/grpc/health/v1) puts health.proto
+  // into the descriptor pool, so that reflection can describe the service
+  // (grpcurl ... grpc.health.v1.Health/Check without -proto).
+  (void)grpc::health::v1::HealthCheckRequest::descriptor();
   const bool reflection =
       authenticator == nullptr || security.reflection_with_auth;
   if (reflection) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
@@ -527,6 +535,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     FLEETMEM_LOG(kWarning) << "calls still running after the grace period "
                               "are cancelled";
   }
+  if (gateway != nullptr) gateway->Shutdown();      // ends watches over HTTP
   if (http_server != nullptr) http_server->Stop();  // finishes its calls
   server->Shutdown(std::chrono::system_clock::now());
   work.Stop();
@@ -566,6 +575,10 @@ int main(int argc, char** argv) {
   }
   if (command_line->help) {
     std::cout << server::Usage();
+    return 0;
+  }
+  if (command_line->version) {
+    std::cout << "fleetmem-server " << FLEETMEM_VERSION << "\n";
     return 0;
   }
   absl::StatusOr<server::ServerConfig> config =

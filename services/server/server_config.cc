@@ -352,6 +352,10 @@ absl::StatusOr<CommandLine> ParseCommandLine(int argc,
       out.help = true;
       continue;
     }
+    if (arg == "--version") {
+      out.version = true;
+      continue;
+    }
     if (arg.substr(0, 2) != "--" || arg.size() == 2) {
       return absl::InvalidArgumentError(
           absl::StrCat("unexpected argument \"", std::string(arg), "\""));
@@ -402,6 +406,7 @@ std::string Usage() {
                   "\n      serve without --auth-file on a non-loopback "
                   "address (anyone who reaches the port may do anything)\n");
   absl::StrAppend(&out, "  --help\n      print this text and exit\n");
+  absl::StrAppend(&out, "  --version\n      print the version and exit\n");
   return out;
 }
 

@@ -169,6 +169,7 @@ bool IsLoopbackListen(std::string_view listen);
 // default value.
 struct CommandLine {
   bool help = false;
+  bool version = false;
   std::optional<std::string> config_file;
   std::optional<std::string> listen;
   std::optional<std::string> data_dir;
@@ -189,7 +190,8 @@ struct CommandLine {
 // Parses argv[1..argc): --listen, --data-dir, --config, --log-level,
 // --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca,
 // --http-listen, --snapshot-dir, --cluster, --advertise, --ready-file as
-// "--name=value" or "--name value"; --allow-unauthenticated; --help or -h.
+// "--name=value" or "--name value"; --allow-unauthenticated; --help or -h;
+// --version.
 // INVALID_ARGUMENT for an unknown flag, a missing value or a positional
 // argument.
 absl::StatusOr<CommandLine> ParseCommandLine(int argc, const char* const* argv);

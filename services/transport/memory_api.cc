@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <filesystem>
 #include <map>
+#include <memory>
+#include <optional>
 #include <set>
 #include <system_error>
 #include <utility>
@@ -11,6 +13,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
 #include "absl/time/clock.h"
 #include "services/core/validation.h"
 #include "services/transport/proto_convert.h"
@@ -83,10 +86,11 @@ MemoryApi::MemoryApi(engine::MemoryEngine* engine, FleetMemory* memory,
   methods_["ListEvents"] = Typed(&MemoryApi::ListEvents);
   methods_["ListTraces"] = Typed(&MemoryApi::ListTraces);
   methods_["CreateSnapshot"] = Typed(&MemoryApi::CreateSnapshot);
+  methods_["UploadTraces"] = Typed(&MemoryApi::UploadTraces);
 }
 
 bool MemoryApi::Serves(absl::string_view method_name) const {
-  return methods_.contains(method_name);
+  return methods_.contains(method_name) || method_name == "WatchMemory";
 }
 
 absl::Status MemoryApi::Call(absl::string_view method_name,
@@ -101,6 +105,9 @@ absl::Status MemoryApi::Call(absl::string_view method_name,
   if (method_name == "ListFleets") {
     return ListAllFleets(caller, static_cast<v1::ListFleetsResponse*>(response),
                          forwarded);
+  }
+  if (method_name == "UploadTraces") {  // FleetMemory routes uploads itself
+    return it->second(this, caller, request, response);
   }
   absl::Status status;
   if (RouteToOwner(method_name, caller, request, response, forwarded,
@@ -272,6 +279,114 @@ absl::Status MemoryApi::ListClusters(const auth::Principal& caller,
   if (!listing.ok()) return listing.status();
   ClustersToProto(*listing, response);
   return absl::OkStatus();
+}
+
+absl::Status MemoryApi::UploadTraces(const auth::Principal& caller,
+                                     const v1::UploadTracesRequest& request,
+                                     v1::UploadTracesResponse* response) {
+  if (absl::Status id = core::ValidateId("fleet_id", request.fleet_id());
+      !id.ok()) {
+    return id;
+  }
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kUpload, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  for (int i = 0; i < request.traces_size(); ++i) {
+    allowed = auth::AuthorizeUploadAs(caller, request.traces(i).robot_id());
+    if (!allowed.ok()) {
+      return absl::PermissionDeniedError(
+          absl::StrCat("traces[", i, "]: ", allowed.message()));
+    }
+  }
+  const std::vector<core::MemoryTrace> traces =
+      UploadedTracesFromProto(request.traces());
+  UploadOptions options;
+  options.wait_applied = request.ack() == v1::UPLOAD_ACK_APPLIED;
+  absl::StatusOr<Uploaded> uploaded =
+      memory_->Upload(request.fleet_id(), traces, options);
+  if (!uploaded.ok()) return uploaded.status();
+  AddUploadResult(uploaded->result, response);
+  response->set_last_sequence(uploaded->sequence);
+  response->set_applied(uploaded->applied);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::CheckWatch(const auth::Principal& caller,
+                                   const v1::WatchMemoryRequest& request) {
+  const std::string& fleet_id = request.fleet_id();
+  if (absl::Status id = core::ValidateId("fleet_id", fleet_id); !id.ok()) {
+    return id;
+  }
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kWatch, fleet_id);
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<std::optional<std::string>> owner = memory_->Owner(fleet_id);
+  if (!owner.ok()) return owner.status();
+  if (owner->has_value()) {
+    return absl::UnavailableError(absl::StrCat("fleet \"", fleet_id,
+                                               "\" is served by replica \"",
+                                               **owner, "\": watch it there"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::Watch(
+    const auth::Principal& caller, const v1::WatchMemoryRequest& request,
+    absl::Time until, absl::Duration heartbeat, const std::atomic<bool>* stop,
+    const std::function<bool(const v1::MemoryEvent*)>& on_event) {
+  if (absl::Status allowed = CheckWatch(caller, request); !allowed.ok()) {
+    return allowed;
+  }
+  const std::string& fleet_id = request.fleet_id();
+  // Subscribed before the first read, so that no event falls between them
+  // (as WatchReactor).
+  struct Wakeup {
+    absl::Mutex mu;
+    uint64_t newest ABSL_GUARDED_BY(mu) = 0;
+  };
+  auto wakeup = std::make_shared<Wakeup>();
+  const uint64_t subscription =
+      engine_->Subscribe(fleet_id, [wakeup](uint64_t last_event_id) {
+        absl::MutexLock lock(&wakeup->mu);
+        wakeup->newest = std::max(wakeup->newest, last_event_id);
+      });
+  uint64_t cursor = request.after_event();
+  absl::Status ended = absl::OkStatus();
+  auto stopped = [&] {
+    return (stop != nullptr && stop->load()) || absl::Now() >= until;
+  };
+  while (!stopped()) {
+    absl::StatusOr<std::vector<core::MemoryEvent>> events =
+        engine_->ReadEvents(fleet_id, cursor);
+    if (!events.ok()) {  // a fleet that does not exist yet reads empty
+      ended = events.status();
+      break;
+    }
+    bool open = true;
+    for (const core::MemoryEvent& event : *events) {
+      v1::MemoryEvent proto;
+      EventToProto(event, &proto);
+      cursor = event.id;
+      if (!(open = on_event(&proto))) break;
+    }
+    if (!open) break;
+    if (!events->empty()) continue;  // a full page: read on
+    // Caught up: wait for a newer event, the end, or the next heartbeat.
+    const absl::Time beat = std::min(until, absl::Now() + heartbeat);
+    bool woken = false;
+    while (!woken && !stopped() && absl::Now() < beat) {
+      absl::MutexLock lock(&wakeup->mu);
+      auto newer = [&wakeup, cursor]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(
+                       wakeup->mu) { return wakeup->newest > cursor; };
+      // In slices, so that `stop` is seen within a quarter second.
+      woken = wakeup->mu.AwaitWithDeadline(
+          absl::Condition(&newer),
+          std::min(beat, absl::Now() + absl::Milliseconds(250)));
+    }
+    if (!woken && !stopped() && !on_event(nullptr)) break;
+  }
+  engine_->Unsubscribe(subscription);
+  return ended;
 }
 
 absl::Status MemoryApi::ListEvents(const auth::Principal& caller,

@@ -10,6 +10,7 @@
 #ifndef FLEETMEM_SERVICES_TRANSPORT_MEMORY_API_H_
 #define FLEETMEM_SERVICES_TRANSPORT_MEMORY_API_H_
 
+#include <atomic>
 #include <functional>
 #include <memory>
 #include <string>
@@ -17,6 +18,7 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/status.h"
 #include "absl/strings/string_view.h"
+#include "absl/time/time.h"
 #include "fleetmem/v1/memory.pb.h"
 #include "google/protobuf/message.h"
 #include "services/auth/access_policy.h"
@@ -73,6 +75,14 @@ class MemoryApi {
   absl::Status ListTraces(const auth::Principal& caller,
                           const v1::ListTracesRequest& request,
                           v1::ListTracesResponse* response);
+  // One message of an upload (the REST route; gRPC streams go through
+  // UploadReactor): the same checks (fleet id, the caller's rights, every
+  // trace's robot id) and the same FleetMemory::Upload, so the same answer
+  // and errors as a one-message stream. Not forwarded in distributed mode:
+  // any replica appends to the fleet's log.
+  absl::Status UploadTraces(const auth::Principal& caller,
+                            const v1::UploadTracesRequest& request,
+                            v1::UploadTracesResponse* response);
   // Admin only. ALREADY_EXISTS if the name is taken; on any error nothing is
   // left under the name.
   absl::Status CreateSnapshot(const auth::Principal& caller,
@@ -92,8 +102,26 @@ class MemoryApi {
                     const google::protobuf::Message& request,
                     google::protobuf::Message* response,
                     bool forwarded = false);
-  // True if Call serves `method_name`.
+  // True if Call serves `method_name`, or Watch for "WatchMemory".
   bool Serves(absl::string_view method_name) const;
+
+  // WatchMemory for the HTTP gateway, on the calling thread: authorises
+  // (auth::Action::kWatch), then hands `on_event` the fleet's events after
+  // request.after_event, then live ones, until `on_event` returns false,
+  // `until` passes or `*stop` becomes true. While no event comes it calls
+  // `on_event(nullptr)` every `heartbeat` (the caller's chance to find a
+  // closed connection). A fleet that does not exist yet is watched for its
+  // first events. OK when it ended so; INVALID_ARGUMENT, OUT_OF_RANGE (the
+  // cursor's events are erased; also later, if retention overtakes a slow
+  // reader), UNAVAILABLE (another replica owns the fleet: watch it there),
+  // the access policy's errors and a failed read.
+  // Watch's checks alone (before a transport commits to a stream).
+  absl::Status CheckWatch(const auth::Principal& caller,
+                          const v1::WatchMemoryRequest& request);
+  absl::Status Watch(
+      const auth::Principal& caller, const v1::WatchMemoryRequest& request,
+      absl::Time until, absl::Duration heartbeat, const std::atomic<bool>* stop,
+      const std::function<bool(const v1::MemoryEvent*)>& on_event);
 
  private:
   using Generic = std::function<absl::Status(MemoryApi*, const auth::Principal&,

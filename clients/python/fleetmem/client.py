@@ -1,0 +1,410 @@
+"""fleetmem.Client: the fleet's shared place memory from Python.
+
+Every call of a Client is safe to repeat and is retried, like the C++
+client's (clients/cpp/fleetmem_client.h), on UNAVAILABLE, DEADLINE_EXCEEDED
+and RESOURCE_EXHAUSTED with exponential backoff: before attempt n + 1 it
+waits a uniformly random time in [b/2, b], b = min(initial_backoff *
+2**(n-1), max_backoff). Uploads are idempotent by (robot_id, seq), a
+repeated consolidate finds less pending, and sample_replay carries one
+request id over its attempts, so the server counts the replay once.
+Errors are raised as FleetMemError with the server's status and message.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import random
+import threading
+import time
+import uuid
+from typing import Iterator, Optional, Sequence
+
+import grpc
+import numpy as np
+
+from fleetmem import _wire
+from fleetmem.v1 import memory_pb2 as pb
+from fleetmem.v1 import memory_pb2_grpc as pb_grpc
+
+_RETRYABLE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED,
+              grpc.StatusCode.RESOURCE_EXHAUSTED)
+_UPLOAD_METHOD = "/fleetmem.v1.MemoryService/UploadTraces"
+_ACKS = {"durable": pb.UPLOAD_ACK_DURABLE, "applied": pb.UPLOAD_ACK_APPLIED}
+
+
+class FleetMemError(Exception):
+    """A call failed: `code` (grpc.StatusCode), `status` (its name, e.g.
+    "NOT_FOUND") and `message` (the server's, which says what was and was
+    not done; docs/api.md)."""
+
+    def __init__(self, code: grpc.StatusCode, message: str, method: str = ""):
+        self.code = code
+        self.status = code.name
+        self.message = message
+        self.method = method
+        super().__init__(f"{method}: {code.name}: {message}" if method else f"{code.name}: {message}")
+
+
+@dataclasses.dataclass
+class UploadResult:
+    """What the server answered an upload (UploadTracesResponse).
+
+    accepted + duplicates == the traces given; after a retry, duplicates may
+    count traces an earlier failed attempt of the same call stored."""
+    accepted: int
+    duplicates: int
+    consolidations: int
+    last_sequence: int
+    applied: bool
+
+
+@dataclasses.dataclass
+class Traces:
+    """Memory traces as arrays, row i one trace (sample_replay, export).
+
+    codes: n x d float32; places: n x 4 float64 (x, y, z, yaw, in the
+    fleet's place unit); rewards: n float32; seqs, cluster_ids: n uint64
+    (cluster 0: pending); replay_counts: n uint32; timestamps_ns: n int64;
+    robot_ids, domains: lists of n str; attachments: list of n bytes."""
+    codes: np.ndarray
+    places: np.ndarray
+    rewards: np.ndarray
+    seqs: np.ndarray
+    cluster_ids: np.ndarray
+    replay_counts: np.ndarray
+    timestamps_ns: np.ndarray
+    robot_ids: list
+    domains: list
+    attachments: list = dataclasses.field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.seqs)
+
+
+@dataclasses.dataclass
+class Matches:
+    """query_place's answer, nearest first: `distances` (n float32, between
+    L2-normalised codes, 0..2) beside the matched traces."""
+    distances: np.ndarray
+    traces: Traces
+
+    def __len__(self) -> int:
+        return len(self.distances)
+
+
+def traces_from_messages(messages: Sequence[pb.MemoryTrace], dim: int = 0) -> Traces:
+    """Traces (arrays) from MemoryTrace messages."""
+    n = len(messages)
+    dim = dim or (len(messages[0].code) if n else 0)
+    codes = np.empty((n, dim), np.float32)
+    places = np.empty((n, 4), np.float64)
+    for i, m in enumerate(messages):
+        codes[i] = m.code
+        places[i] = (m.pose.x, m.pose.y, m.pose.z, m.pose.yaw)
+    return Traces(
+        codes=codes, places=places,
+        rewards=np.fromiter((m.reward for m in messages), np.float32, n),
+        seqs=np.fromiter((m.seq for m in messages), np.uint64, n),
+        cluster_ids=np.fromiter((m.cluster_id for m in messages), np.uint64, n),
+        replay_counts=np.fromiter((m.replay_count for m in messages), np.uint32, n),
+        timestamps_ns=np.fromiter((m.timestamp_ns for m in messages), np.int64, n),
+        robot_ids=[m.robot_id for m in messages], domains=[m.domain for m in messages],
+        attachments=[m.attachment for m in messages])
+
+
+def _places_array(places, n: int) -> np.ndarray:
+    """n x 4 (x, y, z, yaw) from None, n, n x 2, n x 3 or n x 4."""
+    out = np.zeros((n, 4), np.float64)
+    if places is None:
+        return out
+    p = np.asarray(places, np.float64)
+    if p.ndim == 1:
+        p = p[:, None]
+    if p.ndim != 2 or p.shape[0] != n or not 1 <= p.shape[1] <= 4:
+        raise ValueError(f"places: want {n} rows of 1 to 4 numbers (x, y, z, yaw), got shape {np.shape(places)}")
+    out[:, :p.shape[1]] = p
+    return out
+
+
+def _per_trace(name: str, values, n: int, dtype, default=None) -> Optional[np.ndarray]:
+    if values is None:
+        return None if default is None else np.full(n, default, dtype)
+    a = np.asarray(values, dtype)
+    if a.ndim == 0:
+        return np.full(n, a, dtype)
+    if a.shape != (n,):
+        raise ValueError(f"{name}: want {n} values, got shape {a.shape}")
+    return a
+
+
+class Watch:
+    """Iterator over a fleet's memory events (MemoryEvent messages), resumed
+    after a broken stream or a server restart from the last event delivered,
+    so none is missed or repeated. `last_event_id` is the cursor; close()
+    (from any thread) ends the iteration."""
+
+    def __init__(self, client: "Client", fleet: str, after_event: int, idle_timeout: Optional[float]):
+        self._client = client
+        self._fleet = fleet
+        self.last_event_id = after_event
+        self._idle_timeout = idle_timeout
+        self._closed = threading.Event()
+        self._call = None
+        self._lock = threading.Lock()
+
+    def close(self) -> None:
+        self._closed.set()
+        with self._lock:
+            if self._call is not None:
+                self._call.cancel()
+
+    def __iter__(self) -> Iterator[pb.MemoryEvent]:
+        client = self._client
+        failures = 0
+        idle_since = time.monotonic()
+        while not self._closed.is_set():
+            # One stream per attempt, with a deadline so that an idle fleet
+            # re-opens it (and idle_timeout is checked) now and then.
+            window = client.timeout
+            if self._idle_timeout is not None:
+                window = max(0.05, min(window, self._idle_timeout - (time.monotonic() - idle_since)))
+            request = pb.WatchMemoryRequest(fleet_id=self._fleet, after_event=self.last_event_id)
+            with self._lock:
+                if self._closed.is_set():
+                    return
+                self._call = client._stub.WatchMemory(request, timeout=window, metadata=client._metadata,
+                                                      wait_for_ready=True)
+            try:
+                for event in self._call:
+                    if event.id <= self.last_event_id:
+                        continue
+                    self.last_event_id = event.id
+                    failures = 0
+                    idle_since = time.monotonic()
+                    yield event
+                    if self._closed.is_set():
+                        return
+                failures += 1  # the server ended the stream (shutting down)
+                code, message = grpc.StatusCode.UNAVAILABLE, "the server ended the watch"
+            except grpc.RpcError as error:
+                code, message = error.code(), error.details() or ""
+                if self._closed.is_set() or code == grpc.StatusCode.CANCELLED:
+                    return
+                if code == grpc.StatusCode.DEADLINE_EXCEEDED:
+                    failures = 0
+                elif code in _RETRYABLE:
+                    failures += 1
+                else:
+                    raise FleetMemError(code, message, "WatchMemory") from None
+            finally:
+                with self._lock:
+                    self._call = None
+            if self._idle_timeout is not None and time.monotonic() - idle_since >= self._idle_timeout:
+                return
+            if failures >= client.max_attempts:
+                raise FleetMemError(code, message, "WatchMemory")
+            if failures:
+                self._closed.wait(client._backoff(failures))
+
+
+class Client:
+    """A connection to fleetmem-server (gRPC). Thread-safe; close() or use
+    as a context manager.
+
+    address: "host:port". Credentials: `token` ("NAME:SECRET") or
+    `token_file` (the file fleetmem-credential wrote); neither: the
+    FLEETMEM_TOKEN_FILE or FLEETMEM_TOKEN environment variable, else none.
+    TLS: tls=True (system roots) or ca_file (the server's CA, PEM); cert_file
+    and key_file for mutual TLS; server_name overrides the name expected in
+    the server's certificate. timeout: seconds per attempt of a call
+    (uploads: upload_timeout). batch_size: traces per upload message (the
+    server takes up to 1,000 by default)."""
+
+    def __init__(self, address: str = "127.0.0.1:50051", *, token: Optional[str] = None,
+                 token_file: Optional[str] = None, tls: bool = False, ca_file: Optional[str] = None,
+                 cert_file: Optional[str] = None, key_file: Optional[str] = None,
+                 server_name: Optional[str] = None, timeout: float = 10.0,
+                 upload_timeout: float = 120.0, max_attempts: int = 5,
+                 initial_backoff: float = 0.1, max_backoff: float = 5.0, batch_size: int = 500):
+        self.timeout = timeout
+        self.upload_timeout = upload_timeout
+        self.max_attempts = max(1, max_attempts)
+        self.initial_backoff = initial_backoff
+        self.max_backoff = max_backoff
+        self.batch_size = max(1, batch_size)
+        token = token or self._token_from(token_file)
+        self._metadata = (("authorization", f"Bearer {token}"),) if token else ()
+        options = [("grpc.max_receive_message_length", 64 << 20),
+                   ("grpc.keepalive_time_ms", 20000), ("grpc.keepalive_timeout_ms", 10000)]
+        if server_name:
+            options.append(("grpc.ssl_target_name_override", server_name))
+        if tls or ca_file or cert_file:
+            if bool(cert_file) != bool(key_file):
+                raise ValueError("cert_file and key_file go together (mutual TLS)")
+            read = lambda path: open(path, "rb").read() if path else None  # noqa: E731
+            credentials = grpc.ssl_channel_credentials(read(ca_file), read(key_file), read(cert_file))
+            self._channel = grpc.secure_channel(address, credentials, options)
+        else:
+            self._channel = grpc.insecure_channel(address, options)
+        self._stub = pb_grpc.MemoryServiceStub(self._channel)
+        self._upload = self._channel.stream_unary(
+            _UPLOAD_METHOD, request_serializer=None,
+            response_deserializer=pb.UploadTracesResponse.FromString)
+
+    @staticmethod
+    def _token_from(token_file: Optional[str]) -> Optional[str]:
+        path = token_file or os.environ.get("FLEETMEM_TOKEN_FILE")
+        if path:
+            with open(path, encoding="utf-8") as f:
+                token = f.read().strip()
+            if not token:
+                raise ValueError(f"token file {path} is empty")
+            return token
+        return os.environ.get("FLEETMEM_TOKEN") or None
+
+    def close(self) -> None:
+        self._channel.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _backoff(self, failures: int) -> float:
+        nominal = min(self.initial_backoff * 2 ** (failures - 1), self.max_backoff)
+        return random.uniform(nominal / 2, nominal)
+
+    def _call(self, name: str, call, *, retry: bool = True, timeout: Optional[float] = None):
+        attempts = self.max_attempts if retry else 1
+        for attempt in range(1, attempts + 1):
+            try:
+                return call(timeout or self.timeout)
+            except grpc.RpcError as error:
+                code = error.code()
+                if code not in _RETRYABLE or attempt == attempts:
+                    raise FleetMemError(code, error.details() or "", name) from None
+            time.sleep(self._backoff(attempt))
+        raise AssertionError("unreachable")
+
+    def _unary(self, name: str, request, **kwargs):
+        method = getattr(self._stub, name)
+        return self._call(name, lambda t: method(request, timeout=t, metadata=self._metadata), **kwargs)
+
+    # ---- writes -------------------------------------------------------
+    def upload(self, fleet: str, codes, places=None, rewards=None, *, robot_id: str, seqs=None,
+               domain: str = "", encoder_version: str = "", timestamps_ns=None,
+               rewards_external=None, rewards_internal=None, attachments=None,
+               ack: str = "applied") -> UploadResult:
+        """Uploads n traces of one robot in one stream of batch_size-trace
+        messages; a retry repeats the stream (idempotent by (robot_id, seq)).
+
+        codes: n x d; places: None, n, n x 2, n x 3 or n x 4 (x, y, z, yaw);
+        rewards: n or a scalar (default 1.0); seqs: n distinct per-robot
+        sequence numbers (default 0..n-1; give your own for later uploads:
+        a (robot_id, seq) already received is a duplicate and not stored
+        again); timestamps_ns, rewards_external, rewards_internal: n or None.
+        ack: "applied" (the default: the answer comes once the traces are
+        consolidated and searchable) or "durable" (once they are on the
+        server's disk: faster; searchable a moment later)."""
+        codes = np.asarray(codes)
+        if codes.ndim != 2:
+            raise ValueError(f"codes: want an n x d array, got shape {codes.shape}")
+        n = codes.shape[0]
+        if ack not in _ACKS:
+            raise ValueError(f"ack: want one of {sorted(_ACKS)}, got {ack!r}")
+        if n == 0:
+            return UploadResult(0, 0, 0, 0, False)
+        if seqs is None:
+            seqs = np.arange(n, dtype=np.uint64)
+        seqs = np.asarray(seqs)
+        if seqs.shape != (n,) or (seqs.dtype.kind == "i" and (seqs < 0).any()) or seqs.dtype.kind not in "iu":
+            raise ValueError(f"seqs: want {n} non-negative integers, got {seqs.dtype} of shape {seqs.shape}")
+        places = _places_array(places, n)
+        rewards = _per_trace("rewards", rewards, n, np.float32, default=1.0)
+        extras = dict(
+            rewards_external=_per_trace("rewards_external", rewards_external, n, np.float32),
+            rewards_internal=_per_trace("rewards_internal", rewards_internal, n, np.float32),
+            timestamps_ns=_per_trace("timestamps_ns", timestamps_ns, n, np.int64))
+        if attachments is not None:
+            attachments = np.ascontiguousarray(attachments)
+            if attachments.ndim != 2 or attachments.shape[0] != n:
+                raise ValueError(f"attachments: want {n} rows, got shape {attachments.shape}")
+            attachments = attachments.view(np.uint8).reshape(n, -1)
+        extras["attachments"] = attachments
+        codes = np.ascontiguousarray(codes, np.float32)
+        step = self.batch_size
+
+        def messages():
+            for start in range(0, n, step):
+                end = min(n, start + step)
+                yield _wire.encode_request(
+                    fleet, robot_id, codes[start:end], places[start:end], rewards[start:end],
+                    seqs[start:end], _ACKS[ack], domain, encoder_version,
+                    **{k: (None if v is None else v[start:end]) for k, v in extras.items()})
+
+        answer = self._call("UploadTraces", lambda t: self._upload(messages(), timeout=t, metadata=self._metadata),
+                            timeout=self.upload_timeout)
+        return UploadResult(answer.accepted, answer.duplicates, answer.consolidations,
+                            answer.last_sequence, answer.applied)
+
+    def consolidate(self, fleet: str) -> pb.ConsolidateResponse:
+        """Consolidates every robot's pending traces now (Algorithm 1 + 2)."""
+        return self._unary("Consolidate", pb.ConsolidateRequest(fleet_id=fleet))
+
+    # ---- reads --------------------------------------------------------
+    def query_place(self, fleet: str, code, k: int = 1, near=None, radius_m: float = 0.0) -> Matches:
+        """The k traces nearest to `code` (d values), nearest first; with
+        `near` (x, y[, z]) and radius_m > 0 only those within radius_m."""
+        request = pb.QueryPlaceRequest(fleet_id=fleet, k=k, radius_m=radius_m)
+        request.code.extend(np.asarray(code, np.float32).ravel().tolist())
+        if near is not None:
+            x, y, z = (list(near) + [0.0, 0.0])[:3]
+            request.near.x, request.near.y, request.near.z = x, y, z
+        matches = self._unary("QueryPlace", request).matches
+        return Matches(np.fromiter((m.distance for m in matches), np.float32, len(matches)),
+                       traces_from_messages([m.trace for m in matches], len(request.code)))
+
+    def sample_replay(self, fleet: str, robot_id: str, count: int) -> Traces:
+        """`count` distinct traces drawn with weight gamma^n * R (Eq. 18) to
+        refresh robot_id's dynamic memory; replay_counts shows n after this
+        draw. A retry carries the same request id: counted once."""
+        request = pb.SampleReplayRequest(fleet_id=fleet, robot_id=robot_id, count=count,
+                                         request_id=uuid.uuid4().hex)
+        return traces_from_messages(self._unary("SampleReplay", request).traces)
+
+    def stats(self, fleet: str) -> pb.GetStatsResponse:
+        """The fleet's counts (GetStatsResponse: traces, clusters, robots, ...)."""
+        return self._unary("GetStats", pb.GetStatsRequest(fleet_id=fleet))
+
+    def fleets(self) -> list:
+        """The fleets the caller may see (FleetSummary messages)."""
+        return list(self._unary("ListFleets", pb.ListFleetsRequest()).fleets)
+
+    def clusters(self, fleet: str, include_places: bool = False) -> pb.ListClustersResponse:
+        return self._unary("ListClusters", pb.ListClustersRequest(fleet_id=fleet, include_places=include_places))
+
+    def export(self, fleet: str, page_size: int = 1000) -> Traces:
+        """Every trace of the fleet with its code (static memory and
+        pending, by robot and seq), read page by page."""
+        messages, token = [], ""
+        while True:
+            page = self._unary("ListTraces", pb.ListTracesRequest(
+                fleet_id=fleet, page_size=page_size, page_token=token))
+            messages.extend(page.traces)
+            token = page.next_page_token
+            if not token:
+                return traces_from_messages(messages)
+
+    def watch(self, fleet: str, after_event: int = 0, *, idle_timeout: Optional[float] = None) -> Watch:
+        """The fleet's memory events after `after_event` (0: from the oldest
+        kept), then live ones; reconnects across broken streams and server
+        restarts. Iteration ends after idle_timeout seconds without an event
+        (None: never; break or close() to stop)."""
+        return Watch(self, fleet, after_event, idle_timeout)
+
+    def snapshot(self, name: str) -> pb.CreateSnapshotResponse:
+        """Admin: a consistent copy of the store under the snapshot root.
+        Not retried (a retry would find the name taken)."""
+        return self._unary("CreateSnapshot", pb.CreateSnapshotRequest(name=name), retry=False)

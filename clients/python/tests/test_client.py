@@ -1,0 +1,135 @@
+"""fleetmem.Client against the real fleetmem-server binary."""
+
+import threading
+
+import numpy as np
+import pytest
+
+import fleetmem
+from conftest import BIN_DIR, Server
+
+
+def codes_of(seed, n, dim=64):
+    codes = np.random.default_rng(seed).standard_normal((n, dim)).astype(np.float32)
+    return codes / np.linalg.norm(codes, axis=1, keepdims=True)
+
+
+def test_two_robots_upload_query_sample_and_export(server):
+    a, b = codes_of(1, 1200), codes_of(2, 800)
+    places_a = np.stack([np.arange(1200) * 10.0, np.zeros(1200)], axis=1)
+    with fleetmem.Client(server.address) as fm:
+        first = fm.upload("f1", a, places_a, rewards=np.linspace(0.1, 1, 1200), robot_id="robot-a")
+        assert (first.accepted, first.duplicates, first.applied) == (1200, 0, True)
+        notes = np.random.default_rng(3).integers(0, 256, (800, 24), dtype=np.uint8)
+        second = fm.upload("f1", b, np.arange(800) * 10.0, 0.5, robot_id="robot-b", seqs=np.arange(1000, 1800),
+                           domain="winter", attachments=notes, ack="durable")
+        assert (second.accepted, second.duplicates) == (800, 0) and second.last_sequence > 0
+        again = fm.upload("f1", a[:100], robot_id="robot-a")
+        assert (again.accepted, again.duplicates) == (0, 100)
+
+        stats = fm.stats("f1")
+        while stats.applied_through < second.last_sequence:  # durable: applied a moment later
+            stats = fm.stats("f1")
+        assert stats.traces + stats.pending_traces == 2000 and stats.code_dimension == 64
+        assert sorted(r.robot_id for r in stats.robots) == ["robot-a", "robot-b"]
+
+        for i in (0, 599, 1199):
+            match = fm.query_place("f1", a[i], k=3)
+            assert len(match) == 3 and match.distances[0] < 1e-3
+            assert (match.traces.robot_ids[0], int(match.traces.seqs[0])) == ("robot-a", i)
+            np.testing.assert_allclose(match.traces.places[0, :2], places_a[i])
+        near = fm.query_place("f1", b[5], k=5, near=(50.0, 0.0), radius_m=25.0)
+        assert np.all(np.abs(near.traces.places[:, 0] - 50.0) <= 25.0)
+
+        replay = fm.sample_replay("f1", "robot-a", 64)
+        assert replay.codes.shape == (64, 64) and replay.places.shape == (64, 4)
+        assert len(set(zip(replay.robot_ids, replay.seqs.tolist()))) == 64
+        assert np.all(replay.replay_counts >= 1) and replay.codes.dtype == np.float32
+
+        exported = fm.export("f1", page_size=300)
+        assert len(exported) == 2000
+        rows = {(r, int(s)): i for i, (r, s) in enumerate(zip(exported.robot_ids, exported.seqs))}
+        np.testing.assert_array_equal(exported.codes[[rows[("robot-a", i)] for i in range(1200)]], a)
+        np.testing.assert_array_equal(exported.codes[[rows[("robot-b", 1000 + i)] for i in range(800)]], b)
+        assert {d for r, d in zip(exported.robot_ids, exported.domains) if r == "robot-b"} == {"winter"}
+        assert [exported.attachments[rows[("robot-b", 1000 + i)]] for i in range(800)] == [x.tobytes() for x in notes]
+
+
+def test_the_cli_export_loads(server, cli, tmp_path):
+    codes = codes_of(3, 300)
+    with fleetmem.Client(server.address) as fm:
+        fm.upload("f2", codes, np.arange(300.0), robot_id="robot-a", seqs=np.arange(300) + 7)
+    cli("--server", server.address, "export", "--fleet", "f2", "--out", str(tmp_path / "out"))
+    loaded = fleetmem.load_export(tmp_path / "out")
+    order = np.argsort(loaded.seqs)
+    np.testing.assert_array_equal(loaded.codes[order], codes)
+    np.testing.assert_array_equal(loaded.seqs[order], np.arange(300) + 7)
+    np.testing.assert_array_equal(loaded.places[order, 0], np.arange(300.0))
+
+
+def test_errors_carry_the_servers_status(server):
+    with fleetmem.Client(server.address, max_attempts=1) as fm:
+        with pytest.raises(fleetmem.FleetMemError) as missing:
+            fm.stats("no-such-fleet")
+        assert missing.value.status == "NOT_FOUND" and "no-such-fleet" in missing.value.message
+        fm.upload("f3", codes_of(4, 10), robot_id="r1")
+        with pytest.raises(fleetmem.FleetMemError) as wrong:
+            fm.query_place("f3", np.ones(7))
+        assert wrong.value.status == "INVALID_ARGUMENT" and "dimension" in wrong.value.message
+        with pytest.raises(fleetmem.FleetMemError) as bad:
+            fm.upload("f3", codes_of(5, 3, dim=64) * np.nan, robot_id="r1", seqs=[100, 101, 102])
+        assert bad.value.status == "INVALID_ARGUMENT"
+        assert fm.stats("f3").traces + fm.stats("f3").pending_traces == 10  # nothing of it stored
+        with pytest.raises(ValueError, match="places"):
+            fm.upload("f3", codes_of(6, 3), np.zeros((2, 3)), robot_id="r1")
+        with pytest.raises(ValueError, match="seqs"):
+            fm.upload("f3", codes_of(6, 3), robot_id="r1", seqs=[-1, 0, 1])
+
+
+def test_watch_resumes_across_a_server_restart(server):
+    with fleetmem.Client(server.address) as fm:
+        fm.upload("w", codes_of(7, 300), robot_id="r1")
+        fm.consolidate("w")
+        watch = fm.watch("w", idle_timeout=30)
+        events = iter(watch)
+        before = [next(events) for _ in range(fm.stats("w").last_event_id)]
+        assert [e.id for e in before] == list(range(1, len(before) + 1))
+
+        server.stop()
+        server.start()
+        fm.upload("w", codes_of(8, 300), robot_id="r2")
+        fm.consolidate("w")
+        last = fm.stats("w").last_event_id
+        after = [next(events) for _ in range(last - len(before))]
+        assert [e.id for e in after] == list(range(len(before) + 1, last + 1))
+        assert {e.robot_id for e in after} == {"r2"}
+
+        closer = threading.Timer(0.5, watch.close)
+        closer.start()
+        assert list(events) == []  # close() ends the iteration
+        closer.join()
+
+
+def test_tokens_from_files(tmp_path):
+    credentials = tmp_path / "credentials.textproto"
+    import subprocess
+    for name, role in (("robot-7", "robot"), ("ops", "reader")):
+        with open(credentials, "a") as out:
+            subprocess.run([str(BIN_DIR / "fleetmem-credential"), "--name", name, "--role", role,
+                            "--fleet", "f1", "--token-file", str(tmp_path / f"{name}.token")],
+                           stdout=out, check=True)
+    server = Server(tmp_path / "data", "--auth-file", str(credentials)).start()
+    try:
+        with fleetmem.Client(server.address, token_file=str(tmp_path / "robot-7.token")) as robot:
+            assert robot.upload("f1", codes_of(9, 20), robot_id="robot-7").accepted == 20
+            with pytest.raises(fleetmem.FleetMemError) as other:
+                robot.upload("f1", codes_of(9, 20), robot_id="robot-8")
+            assert other.value.status == "PERMISSION_DENIED"
+        with fleetmem.Client(server.address, token_file=str(tmp_path / "ops.token")) as reader:
+            assert reader.stats("f1").traces + reader.stats("f1").pending_traces == 20
+        with fleetmem.Client(server.address, token="ops:wrong", max_attempts=1) as wrong:
+            with pytest.raises(fleetmem.FleetMemError) as refused:
+                wrong.stats("f1")
+            assert refused.value.status == "UNAUTHENTICATED"
+    finally:
+        server.stop()
