@@ -464,8 +464,12 @@ void Agent::Refresh() {
   absl::StatusOr<std::vector<v1::MemoryTrace>> sampled =
       query_client_->SampleReplay(options_.fleet_id, options_.robot_id, count);
   if (!sampled.ok()) {
-    Log(absl::StrCat("refresh skipped (", sampled.status().ToString(),
-                     "); the dynamic memory keeps what it has"));
+    // A fleet nobody has uploaded to yet (the first robot) is no error.
+    Log(absl::IsNotFound(sampled.status())
+            ? std::string("refresh: the fleet holds no memory yet; the "
+                          "dynamic memory keeps what it has")
+            : absl::StrCat("refresh skipped (", sampled.status().ToString(),
+                           "); the dynamic memory keeps what it has"));
     return;
   }
   std::vector<core::MemoryTrace> traces;
@@ -667,11 +671,14 @@ void Agent::Progress(bool force) {
   Log(absl::StrFormat(
       "%s: observed %d/%d | queue %d (oldest %.1f s) | uploaded %d | "
       "refreshed %d (M_D %d, %d traces from peers) | replayed %d from "
-      "peers | relocalisation r@1 %.3f over %d%s",
+      "peers | relocalisation %s%s",
       phase_, state.next_index(), end_, queue.depth, age,
       state.traces_uploaded(), state.refreshes(), memory_.size(),
       state.refreshed_peer_traces(), state.replayed_peer(),
-      core::RecallAtK(ranks, 1), ranks.size(),
+      // Nothing scored yet (no query, or none with ground truth): no rate.
+      ranks.empty() ? std::string("not scored yet")
+                    : absl::StrFormat("r@1 %.3f over %d",
+                                      core::RecallAtK(ranks, 1), ranks.size()),
       state.relocalisation_unscored() == 0
           ? std::string()
           : absl::StrFormat(" (%d more without ground truth)",

@@ -41,6 +41,7 @@
 #include "clients/robot/robot_store.h"
 #include "clients/robot/slam/fleet_slam.h"
 #include "clients/robot/vo/vo_deployment.h"
+#include "fleetmem_version.h"
 #include "services/core/validation.h"
 
 namespace {
@@ -638,6 +639,7 @@ int Run(const Flags& flags) {
 
 int main(int argc, char** argv) {
   CLI::App app{"fleetmem-robot: one robot of a fleet (docs/robot.md)."};
+  app.set_version_flag("--version", "fleetmem-robot " FLEETMEM_VERSION);
   Flags flags;
   AddFlags(app, flags);
   try {

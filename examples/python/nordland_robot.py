@@ -62,6 +62,8 @@ class LinearEncoder:
         same = (np.abs(places[:, None] - places[None, :]) <= TOLERANCE) & (domains[:, None] != domains[None, :])
         anchors = np.flatnonzero(same.any(axis=1))
         losses = []
+        if len(anchors) == 0:  # the replay holds no place seen in both seasons
+            return losses
         for _ in range(steps):
             a = rng.choice(anchors, batch)
             p = np.array([rng.choice(np.flatnonzero(same[i])) for i in a])
@@ -135,8 +137,11 @@ def main() -> None:
               f"{np.sum(domains == 'winter')} winter), mean reward {replay.rewards.mean():.3f}")
         started = time.monotonic()
         losses = model.train_triplets(features, replay.places[:, 0], domains, args.steps, args.seed)
-        print(f"trained {args.steps} steps in {time.monotonic() - started:.1f} s: "
-              f"triplet loss {np.mean(losses[:20]):.3f} -> {np.mean(losses[-20:]):.3f}")
+        if not losses:
+            print("the replay holds no place seen in both seasons: nothing to train on")
+        else:
+            print(f"trained {args.steps} steps in {time.monotonic() - started:.1f} s: "
+                  f"triplet loss {np.mean(losses[:20]):.3f} -> {np.mean(losses[-20:]):.3f}")
 
         # A new encoder version is a new fleet: everything the old one holds
         # is re-encoded from its attachment (other robots' traces too).

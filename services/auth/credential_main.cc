@@ -22,6 +22,7 @@
 #include "CLI/CLI.hpp"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
+#include "fleetmem_version.h"
 #include "services/auth/authenticator.h"
 #include "services/auth/secret.h"
 
@@ -55,6 +56,7 @@ int main(int argc, char** argv) {
   CLI::App app{
       "Makes a principal for fleetmem-server's --auth-file: prints its entry "
       "and writes its token file."};
+  app.set_version_flag("--version", "fleetmem-credential " FLEETMEM_VERSION);
   std::string name, role, robot_id, common_name, token_file;
   std::vector<std::string> fleets;
   app.add_option("--name", name, "principal name, e.g. robot-7")->required();

@@ -8,12 +8,14 @@
 #include "absl/status/statusor.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
+#include "fleetmem_version.h"
 #include "prometheus/counter.h"
 #include "prometheus/family.h"
 #include "prometheus/gauge.h"
 #include "prometheus/histogram.h"
 #include "prometheus/registry.h"
 #include "prometheus/text_serializer.h"
+#include "services/observability/process_stats.h"
 
 namespace fleetmem::observability {
 namespace {
@@ -194,6 +196,35 @@ struct Metrics::Families {
                                .Name("fleetmem_store_write_errors_total")
                                .Help("Durable writes that failed")
                                .Register(r)),
+        build_info(BuildGauge()
+                       .Name("fleetmem_build_info")
+                       .Help("1, labelled with the server's version")
+                       .Register(r)),
+        process_cpu(BuildCounter()
+                        .Name("process_cpu_seconds_total")
+                        .Help("User and system CPU time of the process")
+                        .Register(r)),
+        process_resident(BuildGauge()
+                             .Name("process_resident_memory_bytes")
+                             .Help("Resident memory of the process")
+                             .Register(r)),
+        process_virtual(BuildGauge()
+                            .Name("process_virtual_memory_bytes")
+                            .Help("Virtual memory of the process")
+                            .Register(r)),
+        process_open_fds(BuildGauge()
+                             .Name("process_open_fds")
+                             .Help("Open file descriptors")
+                             .Register(r)),
+        process_max_fds(BuildGauge()
+                            .Name("process_max_fds")
+                            .Help("The limit of open file descriptors")
+                            .Register(r)),
+        process_start(BuildGauge()
+                          .Name("process_start_time_seconds")
+                          .Help("Start time of the process, since the Unix "
+                                "epoch")
+                          .Register(r)),
         fleet_traces(BuildGauge()
                          .Name("fleetmem_fleet_traces")
                          .Help("Traces in the fleet's static memory")
@@ -285,6 +316,13 @@ struct Metrics::Families {
   Family<Histogram>& index_snapshot_seconds;
   Family<Histogram>& store_write_seconds;
   Family<Counter>& store_write_errors;
+  Family<Gauge>& build_info;
+  Family<Counter>& process_cpu;
+  Family<Gauge>& process_resident;
+  Family<Gauge>& process_virtual;
+  Family<Gauge>& process_open_fds;
+  Family<Gauge>& process_max_fds;
+  Family<Gauge>& process_start;
   Family<Gauge>& fleet_traces;
   Family<Gauge>& fleet_pending;
   Family<Gauge>& fleet_clusters;
@@ -311,6 +349,7 @@ Metrics::Metrics()
   families_->fleets.Add({});
   families_->store_bytes.Add({});
   families_->queue_depth.Add({});
+  families_->build_info.Add({{"version", FLEETMEM_VERSION}}).Set(1);
 }
 
 Metrics::~Metrics() = default;
@@ -475,8 +514,25 @@ void Metrics::RefreshGauges() {
   }
 }
 
+void Metrics::RefreshProcessGauges() {
+  absl::StatusOr<ProcessStats> process = ReadProcessStats();
+  if (!process.ok()) return;  // no /proc: the process_* series stay empty
+  Families& f = *families_;
+  prometheus::Counter& cpu = f.process_cpu.Add({});
+  cpu.Increment(std::max(0.0, process->cpu_seconds - cpu.Value()));
+  f.process_resident.Add({}).Set(process->resident_bytes);
+  f.process_virtual.Add({}).Set(process->virtual_bytes);
+  f.process_open_fds.Add({}).Set(process->open_fds);
+  f.process_max_fds.Add({}).Set(process->max_fds);
+  f.process_start.Add({}).Set(process->start_time_seconds);
+}
+
 std::string Metrics::Render() {
   RefreshGauges();
+  {
+    absl::MutexLock lock(&sources_mu_);  // one scrape's reads at a time
+    RefreshProcessGauges();
+  }
   std::ostringstream out;
   prometheus::TextSerializer().Serialize(out, registry_->Collect());
   return out.str();

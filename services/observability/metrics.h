@@ -83,6 +83,8 @@ class Metrics {
  private:
   struct Families;
   void RefreshGauges();
+  // process_* from /proc (ReadProcessStats). Requires sources_mu_.
+  void RefreshProcessGauges() ABSL_EXCLUSIVE_LOCKS_REQUIRED(sources_mu_);
 
   std::shared_ptr<prometheus::Registry> registry_;
   std::unique_ptr<Families> families_;

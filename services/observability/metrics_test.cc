@@ -1,5 +1,7 @@
 #include "services/observability/metrics.h"
 
+#include <cstdio>
+#include <ctime>
 #include <memory>
 #include <string>
 #include <vector>
@@ -8,6 +10,7 @@
 #include "gtest/gtest.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
+#include "services/observability/process_stats.h"
 #include "services/storage/in_memory_store.h"
 
 namespace fleetmem::observability {
@@ -63,6 +66,13 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
   EXPECT_THAT(
       text, HasSubstr("fleetmem_clusters_forgotten_total{fleet=\"alpha\"} 1"));
   EXPECT_THAT(text, HasSubstr("fleetmem_fleet_clusters{fleet=\"alpha\"} 1"));
+  EXPECT_THAT(text, HasSubstr("fleetmem_build_info{version=\""));
+  for (const char* name :
+       {"process_cpu_seconds_total ", "process_resident_memory_bytes ",
+        "process_open_fds ", "process_max_fds ", "process_start_time_seconds ",
+        "process_virtual_memory_bytes "}) {
+    EXPECT_THAT(text, HasSubstr(std::string("\n") + name)) << name;
+  }
   EXPECT_THAT(text, HasSubstr("fleetmem_rpc_requests_total{code=\"NOT_FOUND\","
                               "method=\"GetStats\",transport=\"http\"} 1"));
   EXPECT_THAT(text, HasSubstr("fleetmem_rpc_errors_total{method=\"GetStats\","
@@ -156,6 +166,25 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
                                       })
                   .ok());
   EXPECT_EQ(read, 42u);
+}
+
+TEST(ProcessStatsTest, ReadsThisProcess) {
+  absl::StatusOr<ProcessStats> before = ReadProcessStats();
+  ASSERT_TRUE(before.ok()) << before.status();
+  EXPECT_GT(before->resident_bytes, 1 << 20);
+  EXPECT_GE(before->virtual_bytes, before->resident_bytes);
+  EXPECT_GE(before->open_fds, 3);
+  EXPECT_GE(before->max_fds, before->open_fds);
+  const double now = static_cast<double>(std::time(nullptr));
+  EXPECT_LE(before->start_time_seconds, now + 1);
+  EXPECT_GT(before->start_time_seconds, now - 3600);  // a test's process
+  std::FILE* file = std::tmpfile();
+  ASSERT_NE(file, nullptr);
+  absl::StatusOr<ProcessStats> after = ReadProcessStats();
+  std::fclose(file);
+  ASSERT_TRUE(after.ok());
+  EXPECT_EQ(after->open_fds, before->open_fds + 1);
+  EXPECT_GE(after->cpu_seconds, before->cpu_seconds);
 }
 
 }  // namespace

@@ -44,6 +44,7 @@
 
 #include "absl/flags/flag.h"
 #include "absl/flags/usage.h"
+#include "absl/flags/usage_config.h"
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
@@ -59,6 +60,7 @@
 #include "clients/robot/nordland.h"
 #include "clients/robot/robot_store.h"
 #include "fleetmem_paths.h"
+#include "fleetmem_version.h"
 #include "google/protobuf/util/json_util.h"
 #include "services/common/files.h"
 #include "services/core/place_metrics.h"
@@ -857,6 +859,11 @@ int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
       "Fleet memory demo on Nordland: three fleetmem-robot processes share "
       "one memory of the summer route and recognise its places in winter.");
+  absl::FlagsUsageConfig usage;
+  usage.version_string = [] {
+    return std::string("fleetmem-demo " FLEETMEM_VERSION "\n");
+  };
+  absl::SetFlagsUsageConfig(usage);
   fleetmem::demo::ParseDashedCommandLine(argc, argv);
   const absl::Status status = fleetmem::demo::Run();
   if (!status.ok()) {

@@ -35,6 +35,7 @@
 #include "absl/strings/str_join.h"
 #include "clients/robot/learning/pretrain.h"
 #include "clients/robot/nordland.h"
+#include "fleetmem_version.h"
 #include "tools/eval/continual_vo_eval.h"
 #include "tools/eval/lifelong.h"
 #include "tools/eval/slam_eval.h"
@@ -55,6 +56,7 @@ std::string BesideThisProgram(const std::string& name) {
 int main(int argc, char** argv) {
   CLI::App app{
       "fleetmem-eval: evaluations of fleetmem's robot side on recorded data"};
+  app.set_version_flag("--version", "fleetmem-eval " FLEETMEM_VERSION);
   app.require_subcommand(1);
   fleetmem::eval::LifelongOptions options;
   options.server_binary = BesideThisProgram("fleetmem-server");

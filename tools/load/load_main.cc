@@ -36,6 +36,7 @@
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_format.h"
 #include "clients/cpp/fleetmem_client.h"
+#include "fleetmem_version.h"
 #include "tools/load/load_generator.h"
 #include "tools/load/peer_server.h"
 
@@ -377,6 +378,7 @@ int Bench(const Common& common, UploadLoadOptions load, double seconds,
 
 int main(int argc, char** argv) {
   CLI::App app{"Load for a running fleetmem-server (crash trials, soak)."};
+  app.set_version_flag("--version", "fleetmem-load " FLEETMEM_VERSION);
   app.require_subcommand(1);
   Common common;
 

@@ -133,3 +133,24 @@ def test_tokens_from_files(tmp_path):
             assert refused.value.status == "UNAUTHENTICATED"
     finally:
         server.stop()
+
+
+def test_every_program_says_its_version():
+    import subprocess
+    for program in ("fleetmem", "fleetmem-server", "fleetmem-robot", "fleetmem-credential",
+                    "fleetmem-demo", "fleetmem-eval", "fleetmem-load"):
+        done = subprocess.run([str(BIN_DIR / program), "--version"], capture_output=True, text=True)
+        assert done.returncode == 0 and done.stdout.startswith(f"{program} {fleetmem.__version__}"), \
+            (program, done.stdout, done.stderr)
+
+
+def test_read_calls_create_no_fleet(server):
+    with fleetmem.Client(server.address, max_attempts=1) as fm:
+        for call in (lambda: fm.stats("ghost"), lambda: fm.query_place("ghost", np.ones(4)),
+                     lambda: fm.clusters("ghost"), lambda: fm.export("ghost")):
+            try:
+                call()
+            except fleetmem.FleetMemError as error:
+                assert error.status == "NOT_FOUND", error
+        assert list(fm.watch("ghost", idle_timeout=0.3)) == []
+        assert [f.fleet_id for f in fm.fleets()] == []

@@ -1,0 +1,27 @@
+// This process's CPU time, memory, descriptors and start time from /proc,
+// for the standard process_* metrics (the names Prometheus's own client
+// libraries export, so that dashboards made for them work).
+#ifndef FLEETMEM_SERVICES_OBSERVABILITY_PROCESS_STATS_H_
+#define FLEETMEM_SERVICES_OBSERVABILITY_PROCESS_STATS_H_
+
+#include "absl/status/statusor.h"
+
+namespace fleetmem::observability {
+
+struct ProcessStats {
+  double cpu_seconds = 0;         // user + system
+  double resident_bytes = 0;      // RSS
+  double virtual_bytes = 0;       // address space
+  double open_fds = 0;            // entries of /proc/self/fd
+  double max_fds = 0;             // the soft RLIMIT_NOFILE
+  double start_time_seconds = 0;  // since the Unix epoch
+};
+
+// Reads /proc/self/stat, /proc/stat (boot time), /proc/self/fd and the
+// descriptor limit. UNAVAILABLE naming the file that cannot be read or
+// parsed (e.g. no /proc).
+absl::StatusOr<ProcessStats> ReadProcessStats();
+
+}  // namespace fleetmem::observability
+
+#endif  // FLEETMEM_SERVICES_OBSERVABILITY_PROCESS_STATS_H_
