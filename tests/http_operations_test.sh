@@ -237,6 +237,17 @@ dashboard)
   check "the map drew clusters" grep -qE 'data-clusters="[1-9][0-9]*"' "$WORK/dom.html"
   check "the screenshot was saved" [ -s "$ARTIFACTS/dashboard.png" ]
   echo "screenshot: $ARTIFACTS/dashboard.png"
+  check "the chart has its ticks" grep -q 'data-ticks="15"' "$WORK/dom.html"
+  check "the map does not claim metres unless told" grep -q 'data-unit="units"' "$WORK/dom.html"
+  # Each fleet has its own address, which also names the place unit.
+  upload_fleet otherfleet 1 100
+  timeout 120 chromium --headless --no-sandbox --disable-gpu \
+    --user-data-dir="$WORK/chromium3" --virtual-time-budget=8000 --dump-dom \
+    "http://$HTTP_ADDR/#fleet=otherfleet&unit=route%20index" > "$WORK/dom-link.html" 2> /dev/null
+  check "#fleet= selects that fleet" \
+    grep -q 'data-fleet="otherfleet" class="active"' "$WORK/dom-link.html"
+  check "#unit= labels the map" grep -q 'data-unit="route index"' "$WORK/dom-link.html"
+  check "the map drew the other fleet's 100 places" grep -q 'data-points="100"' "$WORK/dom-link.html"
 
   # With auth on, the page asks for a reader token; given one, it shows the
   # fleet.

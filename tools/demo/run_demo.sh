@@ -103,7 +103,7 @@ server_pid=$SERVER_PID
 address=$SERVER_ADDR
 http_address=$SERVER_HTTP_ADDR
 echo "run_demo.sh: fleetmem-server (pid $server_pid) listening on $address"
-echo "run_demo.sh: watch the fleet's memory live at http://$http_address/"
+echo "run_demo.sh: watch the fleet's memory live at http://$http_address/#unit=route%20index"
 
 # The learned row is the robots' default learner, the metric head on the
 # HOG code (fleetmem-demo --learn). FLEETMEM_DEMO_GPL=1 adds the GPL

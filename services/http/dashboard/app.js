@@ -18,18 +18,40 @@ const state = {
 };
 const MAX_EVENTS = 500;
 const FADE_MS = 12000;
+const LANE_PX = 4;
 const PALETTE = ['#2b6cb0', '#dd6b20', '#2f855a', '#805ad5', '#d53f8c', '#319795',
   '#b7791f', '#4a5568', '#e53e3e', '#38a169', '#3182ce', '#975a16'];
 
-// #token=NAME:SECRET in the address (for scripts) is taken once, then removed.
+// The address's #fragment: fleet=ID (each fleet has its own link),
+// unit=NAME (what a place's x, y are: "m" for a metric map, "route index"
+// for Nordland; "units" if not said) and token=NAME:SECRET (for scripts;
+// taken once, then removed from the address).
+function hashParams() {
+  return new URLSearchParams(location.hash.replace(/^#/, ''));
+}
 (function tokenFromHash() {
-  const match = location.hash.match(/token=([^&]+)/);
-  if (match) {
-    state.token = decodeURIComponent(match[1]);
+  const params = hashParams();
+  if (params.has('token')) {
+    state.token = params.get('token');
     sessionStorage.setItem('fleetmem-token', state.token);
-    history.replaceState(null, '', location.pathname);
+    params.delete('token');
+    const rest = params.toString();
+    history.replaceState(null, '', location.pathname + (rest ? '#' + rest : ''));
   }
 })();
+const placeUnit = () => hashParams().get('unit') || 'units';
+
+function fleetLink(fleetId) {
+  const params = hashParams();
+  params.set('fleet', fleetId);
+  return '#' + params.toString();
+}
+
+window.addEventListener('hashchange', () => {
+  const wanted = hashParams().get('fleet');
+  if (wanted && wanted !== state.fleet) selectFleet(wanted);
+  drawMap();
+});
 
 class AuthError extends Error {}
 
@@ -79,6 +101,9 @@ $('colour-by').addEventListener('change', (event) => {
 function selectFleet(fleetId) {
   if (state.fleet === fleetId) return;
   state.fleet = fleetId;
+  if (hashParams().get('fleet') !== fleetId) {
+    history.replaceState(null, '', location.pathname + fleetLink(fleetId));
+  }
   state.stats = null;
   state.clusters = null;
   state.events = [];
@@ -96,11 +121,11 @@ function renderFleetList() {
   nav.innerHTML = '';
   for (const fleet of state.fleets) {
     const link = document.createElement('a');
-    link.href = '#';
+    link.href = fleetLink(fleet.fleetId);
     link.dataset.fleet = fleet.fleetId;
     link.textContent = `${fleet.fleetId} (${fmt(fleet.traces)} traces, ${fleet.robots} robots)`;
     if (fleet.fleetId === state.fleet) link.className = 'active';
-    link.addEventListener('click', (e) => { e.preventDefault(); selectFleet(fleet.fleetId); });
+    // A plain link: the hashchange selects it (and it opens in a new tab).
     nav.appendChild(link);
   }
 }
@@ -112,7 +137,10 @@ async function refreshFleets() {
     $('login').hidden = true;
     $('empty').hidden = state.fleets.length > 0;
     $('main').hidden = state.fleets.length === 0;
-    if (!state.fleet && state.fleets.length > 0) selectFleet(state.fleets[0].fleetId);
+    const wanted = hashParams().get('fleet');
+    if (!state.fleet && state.fleets.length > 0) {
+      selectFleet(state.fleets.some((f) => f.fleetId === wanted) ? wanted : state.fleets[0].fleetId);
+    }
     renderFleetList();
     setStatus('live · ' + new Date().toLocaleTimeString());
   } catch (error) {
@@ -271,12 +299,20 @@ function drawMap() {
   const sx = (x) => pad + (x - extent.x0) * scale + ((canvas.width - 2 * pad) - spanX * scale) / 2;
   const sy = (y) => canvas.height - pad - (y - extent.y0) * scale - ((canvas.height - 2 * pad) - spanY * scale) / 2;
   const keyOf = (p) => (state.colourBy === 'robot' ? p.robotId : (p.domain || '(none)'));
+  // Robots that pass the same places (the same route, a shared corridor)
+  // would hide each other: each robot's dots are drawn in its own lane,
+  // LANE_PX apart across the map, when colouring by robot.
+  const robots = [...new Set(all.map((p) => p.robotId))].sort();
+  const lane = (p) => (state.colourBy === 'robot'
+    ? (robots.indexOf(p.robotId) - (robots.length - 1) / 2) * LANE_PX : 0);
 
-  // Scale bar: a round number of metres.
-  const metres = Math.pow(10, Math.floor(Math.log10(spanX / 4 || 1)));
+  // Scale bar: a round number of the fleet's place unit.
+  const length = Math.pow(10, Math.floor(Math.log10(spanX / 4 || 1)));
   ctx.strokeStyle = '#4a5568'; ctx.fillStyle = '#4a5568'; ctx.lineWidth = 2;
-  ctx.beginPath(); ctx.moveTo(pad, canvas.height - 10); ctx.lineTo(pad + metres * scale, canvas.height - 10); ctx.stroke();
-  ctx.font = '12px system-ui'; ctx.fillText(`${metres} m`, pad + metres * scale + 6, canvas.height - 6);
+  ctx.beginPath(); ctx.moveTo(pad, canvas.height - 10); ctx.lineTo(pad + length * scale, canvas.height - 10); ctx.stroke();
+  ctx.font = '12px system-ui';
+  ctx.fillText(`${fmt(length)} ${placeUnit()}`, pad + length * scale + 6, canvas.height - 6);
+  canvas.dataset.unit = placeUnit();
 
   const keys = new Map();
   for (const p of points) {
@@ -284,14 +320,14 @@ function drawMap() {
     keys.set(keyOf(p), colour);
     ctx.fillStyle = colour;
     ctx.globalAlpha = 0.75;
-    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)), 2.5, 0, 2 * Math.PI); ctx.fill();
+    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)) + lane(p), 2.5, 0, 2 * Math.PI); ctx.fill();
   }
   ctx.globalAlpha = 1;
   for (const p of pending) {
     const colour = colourOf(keyOf(p));
     keys.set(keyOf(p), colour);
     ctx.strokeStyle = colour; ctx.lineWidth = 1;
-    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)), 2.5, 0, 2 * Math.PI); ctx.stroke();
+    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)) + lane(p), 2.5, 0, 2 * Math.PI); ctx.stroke();
   }
   for (const c of clusters) {
     const pose = c.centroidPose || {};
@@ -344,6 +380,24 @@ function drawChart() {
   };
   ctx.strokeStyle = '#e2e8f0'; ctx.lineWidth = 1;
   ctx.strokeRect(pad.l, pad.t, canvas.width - pad.l - pad.r, canvas.height - pad.t - pad.b);
+  // Ticks: quarters of both value axes, five times along the bottom.
+  ctx.fillStyle = '#4a5568'; ctx.font = '11px system-ui';
+  let ticks = 0;
+  for (let i = 0; i <= 4; ++i) {
+    const yPixel = canvas.height - pad.b - i / 4 * (canvas.height - pad.t - pad.b);
+    ctx.beginPath(); ctx.moveTo(pad.l - 4, yPixel); ctx.lineTo(canvas.width - pad.r + 4, yPixel); ctx.stroke();
+    if (i > 0 && i < 4) {
+      ctx.textAlign = 'right'; ctx.fillText(fmt(Math.round(maxTraces * i / 4)), pad.l - 6, yPixel + 4);
+      ctx.textAlign = 'left'; ctx.fillText(fmt(Math.round(maxCount * i / 4)), canvas.width - pad.r + 6, yPixel + 4);
+    }
+    const t = t0 + (t1 - t0) * i / 4;
+    ctx.beginPath(); ctx.moveTo(x(t), canvas.height - pad.b); ctx.lineTo(x(t), canvas.height - pad.b + 4); ctx.stroke();
+    ctx.textAlign = i === 0 ? 'left' : (i === 4 ? 'right' : 'center');
+    ctx.fillText(new Date(t).toLocaleTimeString(), x(t), canvas.height - 6);
+    ticks += 3;
+  }
+  ctx.textAlign = 'left';
+  canvas.dataset.ticks = String(ticks);
   line('#2b6cb0', yl, 'traces');
   line('#2f855a', yr, 'clusters');
   line('#c53030', yr, 'forgotten');
@@ -352,8 +406,6 @@ function drawChart() {
   ctx.fillText('traces', 4, pad.t + 24);
   ctx.fillText(fmt(maxCount), canvas.width - pad.r + 4, pad.t + 10);
   ctx.fillText('clusters', canvas.width - pad.r + 4, pad.t + 24);
-  ctx.fillText(new Date(t0).toLocaleTimeString(), pad.l, canvas.height - 6);
-  ctx.fillText('now', canvas.width - pad.r - 20, canvas.height - 6);
 }
 
 refreshFleets();
