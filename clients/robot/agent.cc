@@ -635,7 +635,8 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   google::protobuf::util::JsonPrintOptions print;
   print.add_whitespace = true;
   print.always_print_primitive_fields = true;
-  print.preserve_proto_field_names = true;
+  // The canonical JSON mapping (lowerCamelCase), as the REST API and
+  // `fleetmem --json` write it.
   if (!google::protobuf::util::MessageToJsonString(status, &json, print).ok()) {
     return;
   }

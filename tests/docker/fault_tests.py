@@ -296,7 +296,7 @@ class Fleet:
     def observed(self, service):
         status = self.robot_status(service) or {}
         counters = status.get("counters", {})
-        return int(counters.get("next_seq", 1)) - 1, int(counters.get("observations", 0))
+        return int(counters.get("nextSeq", 1)) - 1, int(counters.get("observations", 0))
 
     def logs(self, container):
         return run(["docker", "logs", container], check=False).stdout
@@ -409,7 +409,7 @@ def main():
         # The backlog: every trace robot-2 had sealed when it came back. The
         # recovery ends when the server has all of it (uploads go in seq
         # order, once each, so "received" is the highest seq stored).
-        backlog = int(fleet.robot_status("robot-2")["counters"]["next_seq"]) - 1
+        backlog = int(fleet.robot_status("robot-2")["counters"]["nextSeq"]) - 1
         queued_at_reconnect = backlog - (fleet.received() or {}).get("robot-2", 0)
         wait_until("robot-2's backlog on the server",
                    lambda: (fleet.received() or {}).get("robot-2", 0) >= backlog, 300)
@@ -593,7 +593,7 @@ def refused_robots(fleet, observed, failures):
         # Traces it queued (not next_seq - 1: a robot starting as robot-1
         # continues robot-1's sequence from the server's max_seq).
         status = container_status(name) or {}
-        queued = int(status.get("counters", {}).get("traces_queued", 0))
+        queued = int(status.get("counters", {}).get("tracesQueued", 0))
         run(["docker", "rm", "-v", name], check=False)
         server_log = fleet.logs(server)[server_log_before:]
         after_keys = fleet.stored()
