@@ -42,9 +42,7 @@
 #include <utility>
 #include <vector>
 
-#include "absl/flags/flag.h"
-#include "absl/flags/usage.h"
-#include "absl/flags/usage_config.h"
+#include "CLI/CLI.hpp"
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
@@ -64,40 +62,35 @@
 #include "google/protobuf/util/json_util.h"
 #include "services/common/files.h"
 #include "services/core/place_metrics.h"
-#include "tools/demo/command_line.h"
 
-ABSL_FLAG(std::string, server, "127.0.0.1:50051", "fleetmem server, HOST:PORT");
-ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
-          "shared data folder (holds nordland/summer and nordland/winter)");
-ABSL_FLAG(std::string, fleet, "",
-          "fleet id (default: nordland-demo-<UTC time>, so reruns do not "
-          "collide)");
-ABSL_FLAG(int, robots, 3, "robots, each driving its own stretch");
-ABSL_FLAG(int, stretch_length, 300, "frames per robot stretch");
-ABSL_FLAG(std::string, results_md, "",
-          "also write the results table as Markdown to this file");
-ABSL_FLAG(std::string, encoder, "hog-64x32-c8-s8-b6",
-          "image code (see fleetmem-encoder-eval for the variants)");
-ABSL_FLAG(int, segment_size, 200, "observations per robot segment");
-ABSL_FLAG(std::string, work_dir, ".demo/robots",
-          "the robots' data dirs go below (one per robot and season)");
-ABSL_FLAG(std::string, robot_binary, "",
-          "fleetmem-robot (default: beside this program)");
-ABSL_FLAG(std::string, gpl_model, "",
-          "a fleet GPL model (fleetmem-eval pretrain): the same robots drive "
-          "again in a second fleet with it and learn (--learn), and the table "
-          "shows the learned model beside the classical code");
-ABSL_FLAG(int, learn_steps, 30,
-          "place-head steps per segment of the GPL robots");
-ABSL_FLAG(bool, learn, true,
-          "the same robots drive again in a fleet of their own that learns "
-          "(fleetmem-robot --learn: the metric head on the fleet code), and "
-          "the table shows each robot's learned head beside the classical "
-          "code on the same map");
-ABSL_FLAG(bool, sequential_robots, false,
-          "run the robots one after another instead of side by side: the "
-          "server then receives their segments in a fixed order, so a run "
-          "with a fixed --fleet repeats exactly");
+namespace fleetmem::demo {
+namespace {
+
+// The command line (CLI11; --name-with-dashes or --name_with_underscores).
+struct DemoFlags {
+  std::string server = "127.0.0.1:50051";
+  std::string data = FLEETMEM_DATA_DIR;
+  std::string fleet;
+  int robots = 3;
+  int stretch_length = 300;
+  std::string results_md;
+  std::string encoder = "hog-64x32-c8-s8-b6";
+  int segment_size = 200;
+  std::string work_dir = ".demo/robots";
+  std::string robot_binary;
+  std::string gpl_model;
+  int learn_steps = 30;
+  bool learn = true;
+  bool sequential_robots = false;
+};
+
+DemoFlags& Flags() {
+  static DemoFlags* flags = new DemoFlags;
+  return *flags;
+}
+
+}  // namespace
+}  // namespace fleetmem::demo
 
 namespace fleetmem::demo {
 namespace {
@@ -168,7 +161,7 @@ std::string StatusPath(const Setup& setup, const Drive& drive,
 // progress goes to this program's stderr.
 absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
                        const std::string& season, bool query_only) {
-  const bool sequential = absl::GetFlag(FLAGS_sequential_robots);
+  const bool sequential = Flags().sequential_robots;
   std::vector<pid_t> pids;
   std::vector<int> exit_statuses(drives.size(), 0);
   for (const Drive& drive : drives) {
@@ -199,7 +192,7 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
     } else {
       args.insert(args.end(),
                   {"--gpl-model", setup.gpl_model, "--learn", "--learn-steps",
-                   absl::StrCat(absl::GetFlag(FLAGS_learn_steps))});
+                   absl::StrCat(Flags().learn_steps)});
     }
     if (query_only) args.push_back("--query-only");
     std::vector<char*> argv;
@@ -519,12 +512,11 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
                                          std::vector<Drive> drives,
                                          client::Client& observer) {
   Setup setup = LearningSetup(classical, "-gpl");
-  setup.gpl_model = absl::GetFlag(FLAGS_gpl_model);
+  setup.gpl_model = Flags().gpl_model;
   std::printf(
       "\nGPL pass: fleet %s, model %s, the robots learn (%d steps per "
       "segment)\n",
-      setup.fleet_id.c_str(), setup.gpl_model.c_str(),
-      absl::GetFlag(FLAGS_learn_steps));
+      setup.fleet_id.c_str(), setup.gpl_model.c_str(), Flags().learn_steps);
   std::fflush(stdout);
   if (absl::Status ran = RunLearningFleet(setup, drives, observer); !ran.ok()) {
     return ran;
@@ -581,14 +573,14 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
 
 absl::Status Run() {
   Setup setup;
-  setup.fleet_id = absl::GetFlag(FLAGS_fleet);
+  setup.fleet_id = Flags().fleet;
   if (setup.fleet_id.empty()) {
     setup.fleet_id = absl::StrCat(
         "nordland-demo-",
         absl::FormatTime("%Y%m%d-%H%M%S", absl::Now(), absl::UTCTimeZone()));
   }
-  setup.server = absl::GetFlag(FLAGS_server);
-  const std::string root = absl::GetFlag(FLAGS_data) + "/nordland";
+  setup.server = Flags().server;
+  const std::string root = Flags().data + "/nordland";
   setup.summer_dir = root + "/summer";
   setup.winter_dir = root + "/winter";
   absl::StatusOr<std::vector<int>> summer =
@@ -603,24 +595,23 @@ absl::Status Run() {
                      " do not hold the same frames"));
   }
   setup.numbers = *std::move(summer);
-  setup.encoder_name = absl::GetFlag(FLAGS_encoder);
+  setup.encoder_name = Flags().encoder;
   absl::StatusOr<std::unique_ptr<robot::ImageEncoder>> encoder =
       robot::NewImageEncoderByName(setup.encoder_name);
   if (!encoder.ok()) return encoder.status();
   setup.encoder = *std::move(encoder);
-  setup.segment_size = std::max(1, absl::GetFlag(FLAGS_segment_size));
-  setup.robot_binary = absl::GetFlag(FLAGS_robot_binary);
+  setup.segment_size = std::max(1, Flags().segment_size);
+  setup.robot_binary = Flags().robot_binary;
   if (setup.robot_binary.empty()) {
     setup.robot_binary =
         (std::filesystem::canonical("/proc/self/exe").parent_path() /
          "fleetmem-robot")
             .string();
   }
-  setup.work_dir =
-      absl::StrCat(absl::GetFlag(FLAGS_work_dir), "/", setup.fleet_id);
+  setup.work_dir = absl::StrCat(Flags().work_dir, "/", setup.fleet_id);
   absl::StatusOr<std::vector<robot::Stretch>> stretches =
-      robot::SpreadStretches(setup.numbers.size(), absl::GetFlag(FLAGS_robots),
-                             absl::GetFlag(FLAGS_stretch_length));
+      robot::SpreadStretches(setup.numbers.size(), Flags().robots,
+                             Flags().stretch_length);
   if (!stretches.ok()) return stretches.status();
   std::vector<Drive> drives(stretches->size());
   for (size_t r = 0; r < drives.size(); ++r) {
@@ -636,7 +627,7 @@ absl::Status Run() {
       "summer frames, then the same stretches in winter; encoder %s (%zu "
       "dims), data %s, robot data dirs under %s\n",
       setup.fleet_id.c_str(), setup.server.c_str(), drives.size(),
-      absl::GetFlag(FLAGS_stretch_length), setup.encoder->version().c_str(),
+      Flags().stretch_length, setup.encoder->version().c_str(),
       setup.encoder->dimension(), root.c_str(), setup.work_dir.c_str());
   std::fflush(stdout);
 
@@ -767,13 +758,13 @@ absl::Status Run() {
       std::max<size_t>(local_ms.size(), 1);
 
   std::vector<Row> rows = {memory_row, baseline_row};
-  if (absl::GetFlag(FLAGS_learn)) {
+  if (Flags().learn) {
     absl::StatusOr<std::vector<Row>> learned =
         MetricPass(setup, drives, *observer);
     if (!learned.ok()) return learned.status();
     rows.insert(rows.end(), learned->begin(), learned->end());
   }
-  if (!absl::GetFlag(FLAGS_gpl_model).empty()) {
+  if (!Flags().gpl_model.empty()) {
     absl::StatusOr<std::vector<Row>> gpl = GplPass(setup, drives, *observer);
     if (!gpl.ok()) return gpl.status();
     rows.insert(rows.end(), gpl->begin(), gpl->end());
@@ -823,7 +814,7 @@ absl::Status Run() {
       kQueryK, baseline.size(), covered, queries,
       100.0 * covered / std::max<size_t>(queries, 1));
 
-  if (absl::GetFlag(FLAGS_learn)) {
+  if (Flags().learn) {
     notes +=
         "- Learned rows: the same robots drove again in a fleet of their own "
         "with fleetmem-robot --learn; each robot's metric head on the HOG "
@@ -837,7 +828,7 @@ absl::Status Run() {
   std::printf("\nResults (fleet %s)\n\n%s\n%s\n%s\n%s\n",
               setup.fleet_id.c_str(), table.c_str(), robots.c_str(),
               notes.c_str(), kAttribution);
-  const std::string md_path = absl::GetFlag(FLAGS_results_md);
+  const std::string md_path = Flags().results_md;
   if (!md_path.empty()) {
     std::ofstream md(md_path);
     md << "# fleetmem demo: Nordland summer -> winter, fleet of "
@@ -856,15 +847,64 @@ absl::Status Run() {
 }  // namespace fleetmem::demo
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
+  CLI::App app{
       "Fleet memory demo on Nordland: three fleetmem-robot processes share "
-      "one memory of the summer route and recognise its places in winter.");
-  absl::FlagsUsageConfig usage;
-  usage.version_string = [] {
-    return std::string("fleetmem-demo " FLEETMEM_VERSION "\n");
-  };
-  absl::SetFlagsUsageConfig(usage);
-  fleetmem::demo::ParseDashedCommandLine(argc, argv);
+      "one memory of the summer route and recognise its places in winter."};
+  app.set_version_flag("--version", "fleetmem-demo " FLEETMEM_VERSION);
+  fleetmem::demo::DemoFlags& flags = fleetmem::demo::Flags();
+  app.add_option("--server", flags.server, "fleetmem server, HOST:PORT")
+      ->capture_default_str();
+  app.add_option(
+         "--data", flags.data,
+         "shared data folder (holds nordland/summer and nordland/winter)")
+      ->capture_default_str();
+  app.add_option(
+         "--fleet", flags.fleet,
+         "fleet id (default: nordland-demo-<UTC time>, so reruns do not "
+         "collide)")
+      ->capture_default_str();
+  app.add_option("--robots", flags.robots,
+                 "robots, each driving its own stretch")
+      ->capture_default_str();
+  app.add_option("--stretch-length,--stretch_length", flags.stretch_length,
+                 "frames per robot stretch")
+      ->capture_default_str();
+  app.add_option("--results-md,--results_md", flags.results_md,
+                 "also write the results table as Markdown to this file")
+      ->capture_default_str();
+  app.add_option("--encoder", flags.encoder,
+                 "image code (see fleetmem-encoder-eval for the variants)")
+      ->capture_default_str();
+  app.add_option("--segment-size,--segment_size", flags.segment_size,
+                 "observations per robot segment")
+      ->capture_default_str();
+  app.add_option("--work-dir,--work_dir", flags.work_dir,
+                 "the robots' data dirs go below (one per robot and season)")
+      ->capture_default_str();
+  app.add_option("--robot-binary,--robot_binary", flags.robot_binary,
+                 "fleetmem-robot (default: beside this program)")
+      ->capture_default_str();
+  app.add_option(
+         "--gpl-model,--gpl_model", flags.gpl_model,
+         "a fleet GPL model (fleetmem-eval pretrain): the same robots drive "
+         "again in a second fleet with it and learn (--learn), and the table "
+         "shows the learned model beside the classical code")
+      ->capture_default_str();
+  app.add_option("--learn-steps,--learn_steps", flags.learn_steps,
+                 "place-head steps per segment of the GPL robots")
+      ->capture_default_str();
+  app.add_flag(
+      "--learn", flags.learn,
+      "the same robots drive again in a fleet of their own that learns "
+      "(fleetmem-robot --learn: the metric head on the fleet code), and "
+      "the table shows each robot's learned head beside the classical "
+      "code on the same map");
+  app.add_flag("--sequential-robots,--sequential_robots",
+               flags.sequential_robots,
+               "run the robots one after another instead of side by side: the "
+               "server then receives their segments in a fixed order, so a run "
+               "with a fixed --fleet repeats exactly");
+  CLI11_PARSE(app, argc, argv);
   const absl::Status status = fleetmem::demo::Run();
   if (!status.ok()) {
     std::cerr << "fleetmem-demo: " << status << "\n";

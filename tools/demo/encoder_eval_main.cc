@@ -13,8 +13,7 @@
 #include <string>
 #include <vector>
 
-#include "absl/flags/flag.h"
-#include "absl/flags/usage.h"
+#include "CLI/CLI.hpp"
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_format.h"
@@ -24,16 +23,28 @@
 #include "clients/robot/image_encoder.h"
 #include "clients/robot/nordland.h"
 #include "clients/robot/rewards.h"
-#include "services/core/place_metrics.h"
-#include "tools/demo/command_line.h"
 #include "fleetmem_paths.h"
+#include "fleetmem_version.h"
+#include "services/core/place_metrics.h"
 
-ABSL_FLAG(std::string, data, FLEETMEM_DATA_DIR,
-          "shared data folder (holds nordland/summer and nordland/winter)");
-ABSL_FLAG(int, robots, 3, "robot stretches of the demo");
-ABSL_FLAG(int, stretch_length, 300, "frames per robot stretch");
-ABSL_FLAG(std::string, encoders, "",
-          "comma-separated encoder names (default: all)");
+namespace fleetmem::demo {
+namespace {
+
+// The command line (CLI11; --name-with-dashes or --name_with_underscores).
+struct EncoderEvalFlags {
+  std::string data = FLEETMEM_DATA_DIR;
+  int robots = 3;
+  int stretch_length = 300;
+  std::string encoders;
+};
+
+EncoderEvalFlags& Flags() {
+  static EncoderEvalFlags* flags = new EncoderEvalFlags;
+  return *flags;
+}
+
+}  // namespace
+}  // namespace fleetmem::demo
 
 namespace fleetmem::demo {
 namespace {
@@ -96,7 +107,7 @@ core::FirstCorrectRanks Ranks(const std::vector<std::vector<float>>& summer,
 }
 
 absl::Status Run() {
-  const std::string root = absl::GetFlag(FLAGS_data) + "/nordland";
+  const std::string root = Flags().data + "/nordland";
   absl::StatusOr<Season> summer = LoadSeason(root + "/summer");
   if (!summer.ok()) return summer.status();
   absl::StatusOr<Season> winter = LoadSeason(root + "/winter");
@@ -105,9 +116,8 @@ absl::Status Run() {
     return absl::FailedPreconditionError(
         "summer and winter hold different frame numbers");
   }
-  absl::StatusOr<std::vector<Stretch>> stretches =
-      SpreadStretches(summer->numbers.size(), absl::GetFlag(FLAGS_robots),
-                      absl::GetFlag(FLAGS_stretch_length));
+  absl::StatusOr<std::vector<Stretch>> stretches = SpreadStretches(
+      summer->numbers.size(), Flags().robots, Flags().stretch_length);
   if (!stretches.ok()) return stretches.status();
   std::vector<size_t> all_rows, stretch_rows;
   for (size_t i = 0; i < summer->numbers.size(); ++i) all_rows.push_back(i);
@@ -116,8 +126,8 @@ absl::Status Run() {
   }
 
   std::vector<std::string> names = ImageEncoderNames();
-  if (!absl::GetFlag(FLAGS_encoders).empty()) {
-    names = absl::StrSplit(absl::GetFlag(FLAGS_encoders), ',');
+  if (!Flags().encoders.empty()) {
+    names = absl::StrSplit(Flags().encoders, ',');
   }
   std::printf(
       "Nordland summer -> winter, exact search, correct within +-2 "
@@ -197,9 +207,23 @@ absl::Status Run() {
 }  // namespace fleetmem::demo
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
-      "Compares the demo's image encoders on Nordland summer -> winter.");
-  fleetmem::demo::ParseDashedCommandLine(argc, argv);
+  CLI::App app{
+      "Compares the demo's image encoders on Nordland summer -> winter."};
+  app.set_version_flag("--version", "fleetmem-encoder-eval " FLEETMEM_VERSION);
+  fleetmem::demo::EncoderEvalFlags& flags = fleetmem::demo::Flags();
+  app.add_option(
+         "--data", flags.data,
+         "shared data folder (holds nordland/summer and nordland/winter)")
+      ->capture_default_str();
+  app.add_option("--robots", flags.robots, "robot stretches of the demo")
+      ->capture_default_str();
+  app.add_option("--stretch-length,--stretch_length", flags.stretch_length,
+                 "frames per robot stretch")
+      ->capture_default_str();
+  app.add_option("--encoders", flags.encoders,
+                 "comma-separated encoder names (default: all)")
+      ->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
   const absl::Status status = fleetmem::demo::Run();
   if (!status.ok()) {
     std::cerr << "fleetmem-encoder-eval: " << status << "\n";
