@@ -370,7 +370,7 @@ absl::Status MemoryApi::Watch(
       if (!(open = on_event(&proto))) break;
     }
     if (!open) break;
-    if (!events->empty()) continue;  // a full page: read on
+    if (!events->empty()) continue;  // read again until none are left
     // Caught up: wait for a newer event, the end, or the next heartbeat.
     const absl::Time beat = std::min(until, absl::Now() + heartbeat);
     bool woken = false;

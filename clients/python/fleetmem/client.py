@@ -189,11 +189,12 @@ class Watch:
                 code, message = grpc.StatusCode.UNAVAILABLE, "the server ended the watch"
             except grpc.RpcError as error:
                 code, message = error.code(), error.details() or ""
-                if self._closed.is_set() or code == grpc.StatusCode.CANCELLED:
+                if self._closed.is_set():
                     return
                 if code == grpc.StatusCode.DEADLINE_EXCEEDED:
-                    failures = 0
-                elif code in _RETRYABLE:
+                    failures = 0  # the window ended: reopen from the cursor
+                elif code in _RETRYABLE or code == grpc.StatusCode.CANCELLED:
+                    # (not by close(): a server shutting down cancels streams)
                     failures += 1
                 else:
                     raise FleetMemError(code, message, "WatchMemory") from None
