@@ -1,5 +1,6 @@
 #include "services/http/rest_gateway.h"
 
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -51,7 +52,12 @@ class RestGatewayTest : public ::testing::Test {
     auto memory = transport::EmbeddedMemory::Open(engine_.get(), store_.get());
     ASSERT_TRUE(memory.ok()) << memory.status();
     memory_ = std::move(*memory);
-    api_ = std::make_unique<transport::MemoryApi>(engine_.get(), memory_.get());
+    transport::ApiOptions api_options;
+    api_options.on_upload_bytes = [this](std::string_view fleet, size_t bytes) {
+      uploaded_bytes_[std::string(fleet)] += bytes;
+    };
+    api_ = std::make_unique<transport::MemoryApi>(engine_.get(), memory_.get(),
+                                                  api_options);
     auto gateway = RestGateway::Create(
         api_.get(), nullptr,
         [this](std::string_view transport, std::string_view method,
@@ -83,6 +89,7 @@ class RestGatewayTest : public ::testing::Test {
   std::unique_ptr<transport::MemoryApi> api_;
   std::unique_ptr<RestGateway> gateway_;
   std::vector<std::string> calls_;
+  std::map<std::string, size_t> uploaded_bytes_;
 };
 
 TEST_F(RestGatewayTest, RoutesComeFromTheProto) {
@@ -308,6 +315,11 @@ TEST_F(RestGatewayTest, UploadOverRestIsOneMessageOfAStream) {
   ASSERT_EQ(robots.back().robot_id, "r2");
   EXPECT_EQ(robots.back().received, 2u);
   EXPECT_THAT(calls_, testing::Contains("http UploadTraces OK"));
+  // Both stored messages are counted (as gRPC's are), the refused one not.
+  v1::UploadTracesRequest parsed;
+  ASSERT_TRUE(google::protobuf::util::JsonStringToMessage(body, &parsed).ok());
+  parsed.set_fleet_id("alpha");
+  EXPECT_EQ(uploaded_bytes_["alpha"], 2 * parsed.ByteSizeLong());
 }
 
 TEST_F(RestGatewayTest, WatchIsServerSentEventsResumedByLastEventId) {

@@ -336,6 +336,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                                                size_t bytes) {
     metrics.ObserveUploadBytes(fleet, bytes);
   };
+  service_options.api.on_upload_bytes = service_options.on_upload_bytes;
   // The mode, chosen once (services/transport/fleet_memory.h). Embedded:
   // uploads acknowledged at the durable append to each fleet's log in this
   // RocksDB and applied behind it (engine::WritePath). Distributed: this

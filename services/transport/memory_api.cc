@@ -308,6 +308,9 @@ absl::Status MemoryApi::UploadTraces(const auth::Principal& caller,
   AddUploadResult(uploaded->result, response);
   response->set_last_sequence(uploaded->sequence);
   response->set_applied(uploaded->applied);
+  if (options_.on_upload_bytes) {
+    options_.on_upload_bytes(request.fleet_id(), request.ByteSizeLong());
+  }
   return absl::OkStatus();
 }
 

@@ -14,6 +14,7 @@
 #include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/status.h"
@@ -36,6 +37,10 @@ struct ApiOptions {
   // ListTraces pages: the default and the most one page may ask for.
   size_t default_page_size = 1000;
   size_t max_page_size = 10000;
+  // Called with the size of each upload message UploadTraces stored (the
+  // REST route; gRPC streams report theirs through ServiceOptions); may be
+  // empty.
+  std::function<void(std::string_view fleet_id, size_t bytes)> on_upload_bytes;
 };
 
 // Thread-safe.
