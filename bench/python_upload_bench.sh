@@ -44,7 +44,8 @@ n = len(codes)
 with fleetmem.Client(server, batch_size=batch) as fm:
     start = time.monotonic()
     # What a Python robot has: its codes and places as arrays.
-    result = fm.upload(fleet, codes, np.arange(n, dtype=np.float64), 1.0, robot_id="r1", ack="durable")
+    result = fm.upload(fleet, codes, np.arange(n, dtype=np.float64), 1.0, robot_id="r1",
+                       seqs=np.arange(n), ack="durable")
     seconds = time.monotonic() - start
 print(json.dumps({"client": "python", "traces": n, "accepted": result.accepted,
                   "seconds": seconds, "traces_per_s": n / seconds}))

@@ -294,7 +294,7 @@ class Client:
         return self._call(name, lambda t: method(request, timeout=t, metadata=self._metadata), **kwargs)
 
     # ---- writes -------------------------------------------------------
-    def upload(self, fleet: str, codes, places=None, rewards=None, *, robot_id: str, seqs=None,
+    def upload(self, fleet: str, codes, places=None, rewards=None, *, robot_id: str, seqs,
                domain: str = "", encoder_version: str = "", timestamps_ns=None,
                rewards_external=None, rewards_internal=None, attachments=None,
                ack: str = "applied") -> UploadResult:
@@ -303,9 +303,10 @@ class Client:
 
         codes: n x d; places: None, n, n x 2, n x 3 or n x 4 (x, y, z, yaw);
         rewards: n or a scalar (default 1.0); seqs: n distinct per-robot
-        sequence numbers (default 0..n-1; give your own for later uploads:
-        a (robot_id, seq) already received is a duplicate and not stored
-        again); timestamps_ns, rewards_external, rewards_internal: n or None.
+        sequence numbers, required: (robot_id, seq) is a trace's identity,
+        and one already received is counted as a duplicate and not stored
+        again (what makes a retry safe), so each new trace needs a new seq
+        (e.g. a counter the robot keeps); timestamps_ns, rewards_external, rewards_internal: n or None.
         ack: "applied" (the default: the answer comes once the traces are
         consolidated and searchable) or "durable" (once they are on the
         server's disk: faster; searchable a moment later)."""
@@ -317,11 +318,11 @@ class Client:
             raise ValueError(f"ack: want one of {sorted(_ACKS)}, got {ack!r}")
         if n == 0:
             return UploadResult(0, 0, 0, 0, False)
-        if seqs is None:
-            seqs = np.arange(n, dtype=np.uint64)
         seqs = np.asarray(seqs)
-        if seqs.shape != (n,) or (seqs.dtype.kind == "i" and (seqs < 0).any()) or seqs.dtype.kind not in "iu":
+        if seqs.shape != (n,) or seqs.dtype.kind not in "iu" or (seqs.dtype.kind == "i" and (seqs < 0).any()):
             raise ValueError(f"seqs: want {n} non-negative integers, got {seqs.dtype} of shape {seqs.shape}")
+        if len(np.unique(seqs)) != n:
+            raise ValueError("seqs: the same seq twice in one upload (each trace needs its own)")
         places = _places_array(places, n)
         rewards = _per_trace("rewards", rewards, n, np.float32, default=1.0)
         extras = dict(

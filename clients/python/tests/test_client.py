@@ -18,13 +18,14 @@ def test_two_robots_upload_query_sample_and_export(server):
     a, b = codes_of(1, 1200), codes_of(2, 800)
     places_a = np.stack([np.arange(1200) * 10.0, np.zeros(1200)], axis=1)
     with fleetmem.Client(server.address) as fm:
-        first = fm.upload("f1", a, places_a, rewards=np.linspace(0.1, 1, 1200), robot_id="robot-a")
+        first = fm.upload("f1", a, places_a, rewards=np.linspace(0.1, 1, 1200), robot_id="robot-a",
+                          seqs=np.arange(1200))
         assert (first.accepted, first.duplicates, first.applied) == (1200, 0, True)
         notes = np.random.default_rng(3).integers(0, 256, (800, 24), dtype=np.uint8)
         second = fm.upload("f1", b, np.arange(800) * 10.0, 0.5, robot_id="robot-b", seqs=np.arange(1000, 1800),
                            domain="winter", attachments=notes, ack="durable")
         assert (second.accepted, second.duplicates) == (800, 0) and second.last_sequence > 0
-        again = fm.upload("f1", a[:100], robot_id="robot-a")
+        again = fm.upload("f1", a[:100], robot_id="robot-a", seqs=np.arange(100))
         assert (again.accepted, again.duplicates) == (0, 100)
 
         stats = fm.stats("f1")
@@ -72,7 +73,7 @@ def test_errors_carry_the_servers_status(server):
         with pytest.raises(fleetmem.FleetMemError) as missing:
             fm.stats("no-such-fleet")
         assert missing.value.status == "NOT_FOUND" and "no-such-fleet" in missing.value.message
-        fm.upload("f3", codes_of(4, 10), robot_id="r1")
+        fm.upload("f3", codes_of(4, 10), robot_id="r1", seqs=np.arange(10))
         with pytest.raises(fleetmem.FleetMemError) as wrong:
             fm.query_place("f3", np.ones(7))
         assert wrong.value.status == "INVALID_ARGUMENT" and "dimension" in wrong.value.message
@@ -81,14 +82,16 @@ def test_errors_carry_the_servers_status(server):
         assert bad.value.status == "INVALID_ARGUMENT"
         assert fm.stats("f3").traces + fm.stats("f3").pending_traces == 10  # nothing of it stored
         with pytest.raises(ValueError, match="places"):
-            fm.upload("f3", codes_of(6, 3), np.zeros((2, 3)), robot_id="r1")
+            fm.upload("f3", codes_of(6, 3), np.zeros((2, 3)), robot_id="r1", seqs=[0, 1, 2])
         with pytest.raises(ValueError, match="seqs"):
             fm.upload("f3", codes_of(6, 3), robot_id="r1", seqs=[-1, 0, 1])
+        with pytest.raises(ValueError, match="seqs"):
+            fm.upload("f3", codes_of(6, 3), robot_id="r1", seqs=[5, 6, 5])  # not distinct
 
 
 def test_watch_resumes_across_a_server_restart(server):
     with fleetmem.Client(server.address) as fm:
-        fm.upload("w", codes_of(7, 300), robot_id="r1")
+        fm.upload("w", codes_of(7, 300), robot_id="r1", seqs=np.arange(300))
         fm.consolidate("w")
         watch = fm.watch("w", idle_timeout=30)
         events = iter(watch)
@@ -97,7 +100,7 @@ def test_watch_resumes_across_a_server_restart(server):
 
         server.stop()
         server.start()
-        fm.upload("w", codes_of(8, 300), robot_id="r2")
+        fm.upload("w", codes_of(8, 300), robot_id="r2", seqs=np.arange(300))
         fm.consolidate("w")
         last = fm.stats("w").last_event_id
         after = [next(events) for _ in range(last - len(before))]
@@ -121,9 +124,9 @@ def test_tokens_from_files(tmp_path):
     server = Server(tmp_path / "data", "--auth-file", str(credentials)).start()
     try:
         with fleetmem.Client(server.address, token_file=str(tmp_path / "robot-7.token")) as robot:
-            assert robot.upload("f1", codes_of(9, 20), robot_id="robot-7").accepted == 20
+            assert robot.upload("f1", codes_of(9, 20), robot_id="robot-7", seqs=np.arange(20)).accepted == 20
             with pytest.raises(fleetmem.FleetMemError) as other:
-                robot.upload("f1", codes_of(9, 20), robot_id="robot-8")
+                robot.upload("f1", codes_of(9, 20), robot_id="robot-8", seqs=np.arange(20))
             assert other.value.status == "PERMISSION_DENIED"
         with fleetmem.Client(server.address, token_file=str(tmp_path / "ops.token")) as reader:
             assert reader.stats("f1").traces + reader.stats("f1").pending_traces == 20
