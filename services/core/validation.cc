@@ -74,11 +74,24 @@ absl::Status ValidateCode(std::string_view what, std::span<const float> code) {
     return Invalid(absl::StrCat(V(what), " has dimension ", code.size(),
                                 "; at most ", kMaxCodeDimension, " allowed"));
   }
+  double squared = 0;
+  size_t largest = 0;
   for (size_t i = 0; i < code.size(); ++i) {
     if (!std::isfinite(code[i])) {
       return Invalid(
           absl::StrCat(V(what), "[", i, "] is ", code[i], "; must be finite"));
     }
+    squared += static_cast<double>(code[i]) * code[i];
+    if (std::fabs(code[i]) > std::fabs(code[largest])) largest = i;
+  }
+  if (squared == 0) return absl::OkStatus();
+  const double norm = std::sqrt(squared);
+  if (norm > kMaxCodeNorm || norm < kMinCodeNorm) {
+    return Invalid(absl::StrCat(
+        V(what), " has norm ", norm, " (largest value: [", largest, "] = ",
+        code[largest], "); a code's norm must be in ", kMinCodeNorm, " .. ",
+        kMaxCodeNorm, " (or the code all zeros) for single-precision "
+        "distances to hold it: scale the codes"));
   }
   return absl::OkStatus();
 }

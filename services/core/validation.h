@@ -17,6 +17,15 @@ inline constexpr size_t kMaxDomainLength = 64;
 inline constexpr size_t kMaxEncoderVersionLength = 64;
 inline constexpr size_t kMaxCodeDimension = 65536;
 inline constexpr size_t kMaxAttachmentBytes = 16384;
+// A code's Euclidean norm, unless the code is all zeros: what single-precision
+// distance arithmetic holds. Squared norms and dot products of codes are
+// summed in float32 (up to ~3.4e38): a norm of 1e18 leaves a wide margin at
+// any dimension, while codes of ±3e38 overflow and are then found by nothing
+// (or displace every other code). Below 1e-18 a code's unit vector is lost
+// to underflow (values like 1e-45 are denormal). Real encoders' codes have
+// norms near 1 (0.01 .. 1e6 covers every code the project makes).
+inline constexpr double kMaxCodeNorm = 1e18;
+inline constexpr double kMinCodeNorm = 1e-18;
 // Largest |x|, |y|, |z| of a place, in metres: far beyond any map frame, and
 // small enough that the feature-spatial code (single precision) stays finite.
 inline constexpr double kMaxCoordinateM = 1e9;
@@ -25,7 +34,9 @@ inline constexpr double kMaxCoordinateM = 1e9;
 // field in the message ("fleet_id", "traces[3].robot_id").
 absl::Status ValidateId(std::string_view what, std::string_view id);
 
-// Every value finite; size in 1..kMaxCodeDimension.
+// Every value finite; size in 1..kMaxCodeDimension; the norm, computed in
+// double, within [kMinCodeNorm, kMaxCodeNorm] unless every value is 0 (a
+// black frame's code; kept as before).
 absl::Status ValidateCode(std::string_view what, std::span<const float> code);
 
 // What the fleet expects of a trace; 0 / empty means "not fixed yet".

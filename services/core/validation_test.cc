@@ -61,6 +61,24 @@ TEST(ValidateCodeTest, ChecksSizeAndFiniteness) {
       absl::StatusCode::kInvalidArgument);
 }
 
+// Issue 32's query poisoning: finite values whose squared norm overflows
+// float32, and values too small for a unit vector.
+TEST(ValidateCodeTest, RefusesNormsTheDistanceArithmeticCannotHold) {
+  std::vector<float> huge(64);
+  for (size_t i = 0; i < huge.size(); ++i) huge[i] = i % 2 ? -3e38f : 3e38f;
+  const absl::Status refused = ValidateCode("traces[4].code", huge);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(refused.message()),
+              HasSubstr("traces[4].code has norm"));
+  EXPECT_THAT(std::string(refused.message()), HasSubstr("[0] = 3e+38"));
+  EXPECT_EQ(ValidateCode("c", std::vector<float>(64, 1e-45f)).code(),
+            absl::StatusCode::kInvalidArgument);
+  // All zeros (a black frame) and everyday norms stay accepted.
+  EXPECT_TRUE(ValidateCode("c", std::vector<float>(64, 0.0f)).ok());
+  EXPECT_TRUE(ValidateCode("c", std::vector<float>(4096, 1e3f)).ok());
+  EXPECT_TRUE(ValidateCode("c", std::vector<float>(8, 1e-6f)).ok());
+}
+
 MemoryTrace GoodTrace() {
   MemoryTrace trace;
   trace.robot_id = "robot-1";

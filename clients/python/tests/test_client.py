@@ -81,6 +81,14 @@ def test_errors_carry_the_servers_status(server):
             fm.upload("f3", codes_of(5, 3, dim=64) * np.nan, robot_id="r1", seqs=[100, 101, 102])
         assert bad.value.status == "INVALID_ARGUMENT"
         assert fm.stats("f3").traces + fm.stats("f3").pending_traces == 10  # nothing of it stored
+        # Issue 32's poisoning batch: finite values whose squared norm
+        # overflows float32 are refused, naming the trace.
+        poison = np.tile(np.array([3e38, -3e38], np.float32), 32)[None, :]
+        with pytest.raises(fleetmem.FleetMemError) as poisoned:
+            fm.upload("f3", poison, robot_id="r2", seqs=[1])
+        assert poisoned.value.status == "INVALID_ARGUMENT" and "traces[0].code has norm" in poisoned.value.message
+        own = codes_of(4, 10)
+        assert all(int(fm.query_place("f3", own[i]).traces.seqs[0]) == i for i in range(10))
         with pytest.raises(ValueError, match="places"):
             fm.upload("f3", codes_of(6, 3), np.zeros((2, 3)), robot_id="r1", seqs=[0, 1, 2])
         with pytest.raises(ValueError, match="seqs"):
