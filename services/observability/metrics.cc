@@ -512,6 +512,7 @@ void Metrics::RefreshGauges() {
   if (sources_.work_queue_depth) {
     f.queue_depth.Add({}).Set(static_cast<double>(sources_.work_queue_depth()));
   }
+  RefreshProcessGauges();
 }
 
 void Metrics::RefreshProcessGauges() {
@@ -529,10 +530,6 @@ void Metrics::RefreshProcessGauges() {
 
 std::string Metrics::Render() {
   RefreshGauges();
-  {
-    absl::MutexLock lock(&sources_mu_);  // one scrape's reads at a time
-    RefreshProcessGauges();
-  }
   std::ostringstream out;
   prometheus::TextSerializer().Serialize(out, registry_->Collect());
   return out.str();

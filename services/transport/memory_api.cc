@@ -70,6 +70,19 @@ absl::StatusOr<core::TraceKey> ParsePageToken(absl::string_view token) {
   return key;
 }
 
+absl::Status AuthorizeUploadMessage(const auth::Principal& caller,
+                                    const v1::UploadTracesRequest& request) {
+  for (int i = 0; i < request.traces_size(); ++i) {
+    absl::Status allowed =
+        auth::AuthorizeUploadAs(caller, request.traces(i).robot_id());
+    if (!allowed.ok()) {
+      return absl::PermissionDeniedError(
+          absl::StrCat("traces[", i, "]: ", allowed.message()));
+    }
+  }
+  return absl::OkStatus();
+}
+
 std::string MakePageToken(const core::TraceKey& key) {
   return absl::StrCat(key.robot_id, "/", key.seq);
 }
@@ -291,13 +304,8 @@ absl::Status MemoryApi::UploadTraces(const auth::Principal& caller,
   absl::Status allowed =
       auth::Authorize(caller, auth::Action::kUpload, request.fleet_id());
   if (!allowed.ok()) return allowed;
-  for (int i = 0; i < request.traces_size(); ++i) {
-    allowed = auth::AuthorizeUploadAs(caller, request.traces(i).robot_id());
-    if (!allowed.ok()) {
-      return absl::PermissionDeniedError(
-          absl::StrCat("traces[", i, "]: ", allowed.message()));
-    }
-  }
+  allowed = AuthorizeUploadMessage(caller, request);
+  if (!allowed.ok()) return allowed;
   const std::vector<core::MemoryTrace> traces =
       UploadedTracesFromProto(request.traces());
   UploadOptions options;

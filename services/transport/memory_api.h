@@ -151,6 +151,12 @@ class MemoryApi {
   absl::flat_hash_map<std::string, Generic> methods_;
 };
 
+// Every trace of an upload message is the caller's to upload
+// (auth::AuthorizeUploadAs); PERMISSION_DENIED naming the first that is not.
+// The gRPC stream and the REST route both check with it.
+absl::Status AuthorizeUploadMessage(const auth::Principal& caller,
+                                    const v1::UploadTracesRequest& request);
+
 // The (robot_id, seq) cursor of a ListTraces page token; INVALID_ARGUMENT
 // naming page_token when it is malformed.
 absl::StatusOr<core::TraceKey> ParsePageToken(absl::string_view token);

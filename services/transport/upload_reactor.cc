@@ -10,6 +10,7 @@
 #include "services/core/validation.h"
 #include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
+#include "services/transport/memory_api.h"
 #include "services/transport/proto_convert.h"
 
 namespace fleetmem::transport {
@@ -217,14 +218,8 @@ bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
         failed = principal.status();
       }
     }
-    for (int i = 0; failed.ok() && i < message.request.traces_size(); ++i) {
-      absl::Status allowed = auth::AuthorizeUploadAs(
-          *principal_, message.request.traces(i).robot_id());
-      if (!allowed.ok()) {
-        failed = absl::PermissionDeniedError(
-            absl::StrCat("traces[", i, "]: ", allowed.message()));
-      }
-    }
+    if (failed.ok())
+      failed = AuthorizeUploadMessage(*principal_, message.request);
     if (!failed.ok()) {
       failed_index = message.index;
       break;

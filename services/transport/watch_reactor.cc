@@ -2,9 +2,7 @@
 
 #include <utility>
 
-#include "absl/strings/str_cat.h"
 #include "services/common/log.h"
-#include "services/core/validation.h"
 #include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
 #include "services/transport/proto_convert.h"
@@ -18,24 +16,13 @@ WatchReactor::WatchReactor(ServiceState* state,
       fleet_id_(request.fleet_id()),
       shared_(std::make_shared<Shared>()),
       read_cursor_(request.after_event()) {
-  absl::Status valid = core::ValidateId("fleet_id", fleet_id_);
-  if (valid.ok()) {
-    valid = AuthorizeCall(state_->authenticator(), context,
-                          auth::Action::kWatch, fleet_id_)
-                .status();
-  }
-  if (valid.ok()) {
-    // A watch is served by the fleet's owner: the client is sent there
-    // (a stream is not forwarded).
-    absl::StatusOr<std::optional<std::string>> owner =
-        state_->memory().Owner(fleet_id_);
-    valid = owner.status();
-    if (valid.ok() && owner->has_value()) {
-      valid = absl::UnavailableError(
-          absl::StrCat("fleet \"", fleet_id_, "\" is served by replica \"",
-                       **owner, "\": watch it there"));
-    }
-  }
+  // The checks of a watch over HTTP too (MemoryApi::CheckWatch): the fleet
+  // id, the caller's rights, and the owner (a stream is not forwarded: the
+  // client is sent to the replica that owns the fleet).
+  absl::StatusOr<auth::Principal> caller =
+      AuthenticateCall(state_->authenticator(), context);
+  absl::Status valid = caller.status();
+  if (valid.ok()) valid = state_->api().CheckWatch(*caller, request);
   std::string client;
   if (valid.ok()) {
     client = ClientName(context);
