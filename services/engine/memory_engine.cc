@@ -54,6 +54,7 @@ absl::Status ValidateEngineOptions(const EngineOptions& options) {
       {"max_traces_per_upload", options.max_traces_per_upload},
       {"max_sample_count", options.max_sample_count},
       {"max_query_k", options.max_query_k},
+      {"max_read_bytes", options.max_read_bytes},
       {"max_events_per_read", options.max_events_per_read},
   };
   for (const auto& [name, value] : positive) {
@@ -327,6 +328,11 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
       status = fleet->EnsureLoaded();
       if (!status.ok()) return status;
       if (!fleet->exists()) return FleetNotFound(fleet_id);
+      status = CheckReadSize(
+          "count", count,
+          4 * size_t{fleet->meta.code_dimension} + fleet->largest_attachment,
+          options_.max_read_bytes);
+      if (!status.ok()) return status;
       traces = fleet->DrawSample(robot_id, count, request_id, log_position,
                                  &mutation);
     }

@@ -58,6 +58,15 @@ struct EngineOptions {
   size_t max_sample_count = 10000;
   // Most matches one QueryPlace may ask for.
   size_t max_query_k = 1000;
+  // Most bytes of traces one read returns, so that no call can make the
+  // server hold an unbounded answer (a REST answer's JSON is about 3.5 times
+  // this, gRPC's serialised copy once more). A trace counts 4 bytes per code
+  // element plus its attachment. A ListTraces page ends early (with a next
+  // page); a QueryPlace whose matches hold more is refused; a SampleReplay
+  // is refused before its draw when count x (4 x dimension + the largest
+  // attachment the fleet holds) is over it (the message names the most that
+  // fit).
+  size_t max_read_bytes = 32 << 20;
   // Events returned by one ReadEvents call at most.
   size_t max_events_per_read = 1000;
   // Event retention: a fleet keeps its newest this-many events; older ones
@@ -345,7 +354,8 @@ class MemoryEngine {
 
   // Up to `page_size` (>= 1) traces of the static memory and the pending
   // ones, with codes, whose key is after `after` (all when nullopt), by
-  // (robot_id, seq). NOT_FOUND for an unknown fleet.
+  // (robot_id, seq); fewer (at least one) where more would be over
+  // max_read_bytes. NOT_FOUND for an unknown fleet.
   absl::StatusOr<TracePage> ListTraces(
       std::string_view fleet_id, const std::optional<core::TraceKey>& after,
       size_t page_size) const;

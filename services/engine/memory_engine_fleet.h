@@ -76,6 +76,20 @@ inline absl::Status FleetNotFound(std::string_view fleet_id) {
                    "\" does not exist (it is created by its first upload)"));
 }
 
+// INVALID_ARGUMENT if `count` traces of `trace_bytes` each (at most) may be
+// over `max_read_bytes` (EngineOptions::max_read_bytes), naming the most
+// that fit.
+inline absl::Status CheckReadSize(absl::string_view what, size_t count,
+                                  size_t trace_bytes, size_t max_read_bytes) {
+  const size_t fits =
+      std::max<size_t>(1, max_read_bytes / std::max<size_t>(1, trace_bytes));
+  if (count <= fits) return absl::OkStatus();
+  return absl::InvalidArgumentError(absl::StrCat(
+      what, " is ", count, " but at most ", fits, " traces of up to ",
+      trace_bytes, " bytes (code and attachment) fit in one answer (",
+      "max_read_bytes ", max_read_bytes, "); ask in parts"));
+}
+
 // Checks a whole upload against the fleet's shape; `meta` is null for a fleet
 // that does not exist yet (its first upload then fixes the shape from
 // traces[0]).
@@ -405,6 +419,9 @@ struct MemoryEngine::Fleet {
   // Pending traces per domain (statistics without walking the traces).
   std::map<std::string, uint64_t, std::less<>> pending_by_domain
       ABSL_GUARDED_BY(mu);
+  // The largest attachment of any trace held since the fleet was loaded
+  // (never shrinks): what a sample's traces may carry besides their codes.
+  size_t largest_attachment ABSL_GUARDED_BY(mu) = 0;
   std::map<std::string, RobotRecord, std::less<>> robots ABSL_GUARDED_BY(mu);
   // Index of the normalised codes of the static memory's and the pending
   // traces under handles; null until the code dimension is known.

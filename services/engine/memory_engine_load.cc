@@ -187,6 +187,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
   pending.clear();
   pending_position.clear();
   pending_by_domain.clear();
+  largest_attachment = 0;
   robots.clear();
   index.reset();
   handles.Clear();
@@ -222,6 +223,8 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
     }
     for (core::MemoryTrace& trace : cluster.traces) {
       trace.cluster_id = cluster.id;
+      largest_attachment =
+          std::max(largest_attachment, trace.attachment.size());
       traces.push_back(&trace);
     }
   }
@@ -339,6 +342,7 @@ void MemoryEngine::Fleet::AddPending(core::MemoryTrace trace) {
   std::vector<core::MemoryTrace>& robot_pending = pending[trace.robot_id];
   pending_position[trace.key()] = robot_pending.size();
   ++pending_by_domain[trace.domain];
+  largest_attachment = std::max(largest_attachment, trace.attachment.size());
   robot_pending.push_back(std::move(trace));
 }
 

@@ -160,18 +160,33 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     const bool with_codes = codes.size() == neighbors->size();
     std::vector<core::MemoryTrace> found;
     std::vector<float> distances;
-    found.reserve(neighbors->size());
+    // The matches' traces, counted against max_read_bytes before any is
+    // copied: a query changes nothing, so it is refused whole.
+    std::vector<std::pair<const core::MemoryTrace*, size_t>> hits;
+    const size_t code_bytes = 4 * size_t{fleet->meta.code_dimension};
+    size_t bytes = 0;
     for (size_t i = 0; i < neighbors->size(); ++i) {
-      const Neighbor& neighbor = (*neighbors)[i];
-      const std::optional<core::TraceKey> key = fleet->handles.Key(neighbor.id);
+      const std::optional<core::TraceKey> key =
+          fleet->handles.Key((*neighbors)[i].id);
       if (!key.has_value()) continue;
       const core::MemoryTrace* trace = fleet->FindTrace(*key);
       if (trace == nullptr) continue;
+      hits.emplace_back(trace, i);
+      bytes += code_bytes + trace->attachment.size();
+    }
+    if (bytes > options_.max_read_bytes) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "the ", hits.size(), " nearest traces (k ", query.k, ") hold ", bytes,
+          " bytes of codes and attachments, over max_read_bytes ",
+          options_.max_read_bytes, "; ask for fewer"));
+    }
+    found.reserve(hits.size());
+    for (const auto& [trace, i] : hits) {
       found.push_back(*trace);
       if (found.back().code.empty() && with_codes) {
         found.back().code = std::move(codes[i]);
       }
-      distances.push_back(neighbor.distance);
+      distances.push_back((*neighbors)[i].distance);
     }
     status = fleet->FillCodes(found);
     if (!status.ok()) return status;
@@ -366,13 +381,17 @@ absl::StatusOr<TracePage> MemoryEngine::ListTraces(
               return std::tie(a->robot_id, a->seq) <
                      std::tie(b->robot_id, b->seq);
             });
-        page.traces.reserve(taken);
+        // Then as many of them as max_read_bytes holds (at least one).
+        const size_t code_bytes = 4 * size_t{fleet.meta.code_dimension};
+        size_t bytes = 0;
         for (size_t i = 0; i < taken; ++i) {
+          bytes += code_bytes + candidates[i]->attachment.size();
+          if (i > 0 && bytes > options_.max_read_bytes) break;
           page.traces.push_back(*candidates[i]);
         }
         absl::Status filled = fleet.FillCodes(page.traces);
         if (!filled.ok()) return filled;
-        page.more = candidates.size() > taken;
+        page.more = candidates.size() > page.traces.size();
         return page;
       });
 }

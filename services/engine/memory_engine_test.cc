@@ -709,6 +709,68 @@ TEST_F(MemoryEngineTest, ReadEventsReturnsAtMostMaxEventsPerRead) {
   EXPECT_EQ((*events)[0].id, 4u);
 }
 
+// No read returns more than max_read_bytes of traces: a page ends early, a
+// sample or query that might be over it is refused before anything changes.
+TEST_F(MemoryEngineTest, ReadsStayWithinMaxReadBytes) {
+  // Each trace: 4 x 8 code bytes + its attachment.
+  options_.max_read_bytes = 3 * (32 + 100);
+  engine_ = OpenEngine();
+  std::vector<core::MemoryTrace> traces = MakeTraces("r1", 1, 10, rng_);
+  for (core::MemoryTrace& trace : traces) trace.attachment.assign(100, 'a');
+  MustUpload(traces);
+
+  std::vector<uint64_t> seqs;
+  std::optional<core::TraceKey> after;
+  for (bool more = true; more;) {
+    absl::StatusOr<TracePage> page = engine_->ListTraces("f1", after, 1000);
+    ASSERT_TRUE(page.ok()) << page.status();
+    ASSERT_THAT(page->traces, SizeIs(::testing::Le(3u)));
+    for (const core::MemoryTrace& trace : page->traces) {
+      seqs.push_back(trace.seq);
+    }
+    after = page->traces.back().key();
+    more = page->more;
+  }
+  EXPECT_THAT(seqs, SizeIs(10));  // every trace once, in order
+  EXPECT_TRUE(std::is_sorted(seqs.begin(), seqs.end()));
+  EXPECT_EQ(std::adjacent_find(seqs.begin(), seqs.end()), seqs.end());
+
+  // A trace larger than the bound alone still comes, one per page.
+  options_.max_read_bytes = 10;
+  engine_ = OpenEngine();
+  absl::StatusOr<TracePage> one = engine_->ListTraces("f1", std::nullopt, 5);
+  ASSERT_TRUE(one.ok()) << one.status();
+  EXPECT_THAT(one->traces, SizeIs(1));
+  EXPECT_TRUE(one->more);
+
+  // A query counts its matches' bytes: two fit, three do not.
+  PlaceQuery query;
+  query.code = traces[0].code;
+  query.k = 3;
+  options_.max_read_bytes = 2 * (32 + 100);
+  engine_ = OpenEngine();
+  absl::StatusOr<std::vector<PlaceMatch>> matches =
+      engine_->QueryPlace("f1", query);
+  ASSERT_TRUE(absl::IsInvalidArgument(matches.status())) << matches.status();
+  EXPECT_THAT(matches.status().message(), HasSubstr("max_read_bytes"));
+  query.k = 2;
+  EXPECT_TRUE(engine_->QueryPlace("f1", query).ok());
+
+  // A sample, drawn before its traces are known, counts the largest
+  // attachment of the fleet's traces, and is refused before anything
+  // changes.
+  options_.max_read_bytes = 2 * (32 + 100);
+  engine_ = OpenEngine();
+  const FleetStats before = Stats();
+  absl::StatusOr<std::vector<core::MemoryTrace>> sample =
+      engine_->SampleReplay("f1", "r1", 3);
+  ASSERT_TRUE(absl::IsInvalidArgument(sample.status())) << sample.status();
+  EXPECT_THAT(sample.status().message(), HasSubstr("at most 2 traces"));
+  EXPECT_THAT(sample.status().message(), HasSubstr("max_read_bytes"));
+  EXPECT_EQ(Stats().robots.front().replayed, before.robots.front().replayed);
+  EXPECT_TRUE(engine_->SampleReplay("f1", "r1", 2).ok());
+}
+
 TEST_F(MemoryEngineTest, EventRetentionKeepsTheNewestEvents) {
   options_.max_events_per_fleet = 5;
   engine_ = OpenEngine();

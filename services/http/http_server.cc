@@ -21,7 +21,9 @@ void Answer(HttpResponse from, httplib::Response& to) {
   to.status = from.status;
   for (const auto& [name, value] : from.headers) to.set_header(name, value);
   if (!from.stream) {
-    to.set_content(from.body, from.content_type.c_str());
+    // Moved, not copied (set_content copies): an answer may be tens of MB.
+    to.body = std::move(from.body);
+    to.set_header("Content-Type", from.content_type);
     return;
   }
   to.set_chunked_content_provider(

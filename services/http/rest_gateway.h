@@ -100,6 +100,11 @@ absl::StatusOr<std::vector<Route>> RoutesFromProto(
 // google.rpc code -> HTTP status (grpc-gateway's mapping).
 int HttpStatusFor(absl::StatusCode code);
 
+// `answer` as protobuf's JSON mapping with every field present, printed
+// element by element so that its size, not a multiple of it, is what the
+// printing holds. Moves the top level's repeated messages out of `answer`.
+absl::StatusOr<std::string> AnswerJson(google::protobuf::Message* answer);
+
 // The error body for `status`, from the HttpError message (JSON).
 HttpResponse ErrorResponse(const absl::Status& status);
 

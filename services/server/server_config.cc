@@ -77,6 +77,7 @@ void ApplyEngine(const EngineConfig& in, engine::EngineOptions* out) {
   if (in.has_max_events_per_fleet()) {
     out->max_events_per_fleet = in.max_events_per_fleet();
   }
+  if (in.has_max_read_bytes()) out->max_read_bytes = in.max_read_bytes();
 }
 
 void ApplyLimits(const LimitsConfig& in, engine::QuotaOptions* out,
@@ -679,6 +680,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       " max_traces_per_upload=", config.engine.max_traces_per_upload,
       " max_sample_count=", config.engine.max_sample_count,
       " max_query_k=", config.engine.max_query_k,
+      " max_read_bytes=", config.engine.max_read_bytes,
       " max_events_per_read=", config.engine.max_events_per_read,
       " max_events_per_fleet=", config.engine.max_events_per_fleet,
       " max_fleets=", config.engine.limits.max_fleets,
