@@ -2,6 +2,7 @@
 
 #include <sodium.h>
 
+#include <algorithm>
 #include <utility>
 
 #include "absl/container/flat_hash_map.h"
@@ -16,8 +17,9 @@
 namespace fleetmem::auth {
 namespace {
 
-// Most distinct tokens whose check is cached; the cache is emptied when full
-// (a flood of wrong tokens costs Argon2 time, never unbounded memory).
+// Most distinct wrong tokens whose check is cached; that cache is emptied
+// when full (a flood of wrong tokens never costs unbounded memory, and never
+// evicts the valid tokens' checks).
 constexpr size_t kMaxCachedTokens = 4096;
 
 absl::Status Bad(int index, absl::string_view name, absl::string_view why) {
@@ -131,10 +133,11 @@ struct Authenticator::Set {
   std::vector<CredentialEntry> entries;
   absl::flat_hash_map<std::string, size_t> by_name;
   absl::flat_hash_map<std::string, size_t> by_common_name;
-  // Keyed BLAKE2b of a token -> index into `entries`, or -1 (wrong token).
-  unsigned char digest_key[crypto_generichash_KEYBYTES];
   mutable absl::Mutex mu;
-  mutable absl::flat_hash_map<std::string, int> checked ABSL_GUARDED_BY(mu);
+  // Keyed BLAKE2b of a token -> index into `entries`: at most one per entry.
+  mutable absl::flat_hash_map<std::string, size_t> valid ABSL_GUARDED_BY(mu);
+  // Keyed BLAKE2b of tokens found wrong; emptied when full.
+  mutable absl::flat_hash_set<std::string> wrong ABSL_GUARDED_BY(mu);
 
   explicit Set(std::vector<CredentialEntry> all) : entries(std::move(all)) {
     for (size_t i = 0; i < entries.size(); ++i) {
@@ -143,27 +146,49 @@ struct Authenticator::Set {
         by_common_name.emplace(entries[i].certificate_common_name, i);
       }
     }
-    if (sodium_init() >= 0) {
-      randombytes_buf(digest_key, sizeof digest_key);
-    } else {
-      sodium_memzero(digest_key, sizeof digest_key);
-    }
-  }
-
-  std::string Digest(const std::string& token) const {
-    unsigned char out[crypto_generichash_BYTES];
-    crypto_generichash(out, sizeof out,
-                       reinterpret_cast<const unsigned char*>(token.data()),
-                       token.size(), digest_key, sizeof digest_key);
-    return std::string(reinterpret_cast<const char*>(out), sizeof out);
   }
 };
 
-Authenticator::Authenticator(std::vector<CredentialEntry> entries)
-    : set_(std::make_shared<const Set>(std::move(entries))) {}
+namespace {
+
+bool SamePrincipal(const CredentialEntry& a, const CredentialEntry& b) {
+  return a.secret_hash == b.secret_hash &&
+         a.principal.name == b.principal.name &&
+         a.principal.role == b.principal.role &&
+         a.principal.robot_id == b.principal.robot_id &&
+         a.principal.fleets == b.principal.fleets;
+}
+
+}  // namespace
+
+Authenticator::Authenticator(std::vector<CredentialEntry> entries,
+                             AuthenticatorOptions options)
+    : options_(std::move(options)),
+      set_(std::make_shared<const Set>(std::move(entries))) {
+  static_assert(sizeof digest_key_ == crypto_generichash_KEYBYTES);
+  if (sodium_init() >= 0) {
+    randombytes_buf(digest_key_, sizeof digest_key_);
+  } else {
+    sodium_memzero(digest_key_, sizeof digest_key_);
+  }
+  all_.tokens = options_.check_burst;
+}
 
 void Authenticator::Replace(std::vector<CredentialEntry> entries) {
-  auto set = std::make_shared<const Set>(std::move(entries));
+  auto set = std::make_shared<Set>(std::move(entries));
+  const std::shared_ptr<const Set> old = Current();
+  {
+    absl::MutexLock old_lock(&old->mu);
+    absl::MutexLock new_lock(&set->mu);
+    for (const auto& [digest, index] : old->valid) {
+      const CredentialEntry& was = old->entries[index];
+      auto now = set->by_name.find(was.principal.name);
+      if (now != set->by_name.end() &&
+          SamePrincipal(was, set->entries[now->second])) {
+        set->valid.emplace(digest, now->second);
+      }
+    }
+  }
   absl::MutexLock lock(&mu_);
   set_ = std::move(set);
 }
@@ -175,38 +200,74 @@ std::shared_ptr<const Authenticator::Set> Authenticator::Current() const {
 
 size_t Authenticator::size() const { return Current()->entries.size(); }
 
+bool Authenticator::TakeCheck(const std::string& name) const {
+  const absl::Time now = options_.now();
+  auto refill = [now](Bucket& bucket, double rate, double burst) {
+    if (bucket.refilled == absl::InfinitePast()) {
+      bucket.tokens = burst;
+    } else {
+      bucket.tokens = std::min(
+          burst,
+          bucket.tokens + rate * absl::ToDoubleSeconds(now - bucket.refilled));
+    }
+    bucket.refilled = now;
+  };
+  absl::MutexLock lock(&budget_mu_);
+  refill(all_, options_.checks_per_second, options_.check_burst);
+  Bucket& mine = by_name_[name];  // names of the file only: bounded
+  refill(mine, options_.checks_per_second_per_name,
+         options_.check_burst_per_name);
+  if (all_.tokens < 1.0 || mine.tokens < 1.0) return false;
+  all_.tokens -= 1.0;
+  mine.tokens -= 1.0;
+  return true;
+}
+
 absl::StatusOr<Principal> Authenticator::CheckToken(
     const std::shared_ptr<const Set>& set, const std::string& token) const {
   const absl::Status wrong = absl::UnauthenticatedError(
       "unknown or wrong token (expected \"authorization: Bearer NAME:SECRET\" "
       "for a principal of the server's credentials file)");
-  const std::string digest = set->Digest(token);
+  unsigned char out[crypto_generichash_BYTES];
+  crypto_generichash(out, sizeof out,
+                     reinterpret_cast<const unsigned char*>(token.data()),
+                     token.size(), digest_key_, sizeof digest_key_);
+  const std::string digest(reinterpret_cast<const char*>(out), sizeof out);
   {
     absl::MutexLock lock(&set->mu);
-    if (auto it = set->checked.find(digest); it != set->checked.end()) {
-      if (it->second < 0) return wrong;
+    if (auto it = set->valid.find(digest); it != set->valid.end()) {
       return set->entries[it->second].principal;
     }
+    if (set->wrong.contains(digest)) return wrong;
   }
-  int found = -1;
   const size_t colon = token.rfind(':');
-  if (colon != std::string::npos) {
-    auto named = set->by_name.find(token.substr(0, colon));
-    if (named != set->by_name.end()) {
-      const CredentialEntry& entry = set->entries[named->second];
-      if (!entry.secret_hash.empty() &&
-          VerifySecret(entry.secret_hash, token.substr(colon + 1))) {
-        found = static_cast<int>(named->second);
-      }
+  auto named = colon == std::string::npos
+                   ? set->by_name.end()
+                   : set->by_name.find(token.substr(0, colon));
+  bool found = false;
+  if (named != set->by_name.end() &&
+      !set->entries[named->second].secret_hash.empty()) {
+    // The one costly case: a known name with a secret not seen before.
+    if (!TakeCheck(named->first)) {
+      return absl::UnavailableError(absl::StrCat(
+          "the token of \"", named->first,
+          "\" was not checked: more new tokens are presented for it than the "
+          "server checks (",
+          options_.checks_per_second_per_name, " a second for a name, ",
+          options_.checks_per_second, " in all); retry later"));
     }
+    absl::MutexLock one_at_a_time(&check_mu_);
+    found = VerifySecret(set->entries[named->second].secret_hash,
+                         token.substr(colon + 1));
   }
-  {
-    absl::MutexLock lock(&set->mu);
-    if (set->checked.size() >= kMaxCachedTokens) set->checked.clear();
-    set->checked.emplace(digest, found);
+  absl::MutexLock lock(&set->mu);
+  if (found) {
+    set->valid[digest] = named->second;
+    return set->entries[named->second].principal;
   }
-  if (found < 0) return wrong;
-  return set->entries[found].principal;
+  if (set->wrong.size() >= kMaxCachedTokens) set->wrong.clear();
+  set->wrong.insert(digest);
+  return wrong;
 }
 
 absl::StatusOr<Principal> Authenticator::Authenticate(

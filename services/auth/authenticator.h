@@ -6,16 +6,20 @@
 #define FLEETMEM_SERVICES_AUTH_AUTHENTICATOR_H_
 
 #include <cstddef>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/base/thread_annotations.h"
+#include "absl/container/flat_hash_map.h"
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 #include "absl/synchronization/mutex.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "services/auth/access_policy.h"
 
 namespace fleetmem::auth {
@@ -51,21 +55,44 @@ struct PresentedCredentials {
   std::optional<std::string> certificate_common_name;
 };
 
-// Thread-safe. A token is checked with Argon2id (about 0.1 s) the first time
-// it is seen after a (re)load; the outcome is then cached under a keyed
-// BLAKE2b digest of the token (never the token itself), so later calls cost
-// a hash lookup.
+// What failed token checks may cost. A token for a known name is checked
+// with Argon2id (about 0.1 s of a core and 64 MiB) the first time it is seen;
+// without a bound, wrong secrets for a robot's name would each cost that
+// much, and a few clients could take the server's CPU and memory.
+struct AuthenticatorOptions {
+  // Argon2id checks per second (token bucket) for one principal name, and
+  // the burst it may use at once. A token of a name over its rate gets
+  // UNAVAILABLE without a check (clients retry it); other names go on.
+  double checks_per_second_per_name = 1.0;
+  double check_burst_per_name = 3.0;
+  // The same for all names together.
+  double checks_per_second = 4.0;
+  double check_burst = 8.0;
+  // The clock (tests inject one).
+  std::function<absl::Time()> now = [] { return absl::Now(); };
+};
+
+// Thread-safe. A token is checked with Argon2id the first time it is seen
+// (one check at a time, within AuthenticatorOptions' rates); the outcome is
+// then cached under a keyed BLAKE2b digest of the token (never the token
+// itself), so later calls cost a hash lookup. Valid tokens (one per
+// principal) and refused ones are cached apart: a flood of junk tokens
+// empties only the latter's bounded cache.
 class Authenticator {
  public:
-  explicit Authenticator(std::vector<CredentialEntry> entries);
+  explicit Authenticator(std::vector<CredentialEntry> entries,
+                         AuthenticatorOptions options = {});
 
-  // Swaps in a new credentials set (SIGHUP) and forgets every cached check.
+  // Swaps in a new credentials set (SIGHUP). Cached checks of principals
+  // whose name, secret hash and rights are unchanged are kept; every other
+  // check is forgotten.
   void Replace(std::vector<CredentialEntry> entries);
 
   // The principal of a valid token (preferred when both are present) or of
   // the client certificate. UNAUTHENTICATED when neither is presented, or
   // for an unknown or wrong token or an unknown certificate name (the
-  // message does not say which part was wrong).
+  // message does not say which part was wrong); UNAVAILABLE for a token
+  // not yet checked when its name's (or the server's) check rate is spent.
   absl::StatusOr<Principal> Authenticate(
       const PresentedCredentials& presented) const;
 
@@ -73,14 +100,32 @@ class Authenticator {
 
  private:
   struct Set;
+  // A token bucket.
+  struct Bucket {
+    double tokens = 0;
+    absl::Time refilled = absl::InfinitePast();
+  };
   absl::StatusOr<Principal> CheckToken(const std::shared_ptr<const Set>& set,
                                        const std::string& token) const;
+  // Takes one check from `name`'s and the server's buckets; false (nothing
+  // taken) when either is empty.
+  bool TakeCheck(const std::string& name) const;
   std::shared_ptr<const Set> Current() const;
 
+  const AuthenticatorOptions options_;
+  // The key of the cached tokens' digests, for the authenticator's life (so
+  // that Replace can keep unchanged principals' checks).
+  unsigned char digest_key_[32];
   mutable absl::Mutex mu_;
   // Each set carries its own cache of checked tokens, so a check that ran
   // against an older set can never be cached for a newer one.
   std::shared_ptr<const Set> set_ ABSL_GUARDED_BY(mu_);
+  mutable absl::Mutex budget_mu_;
+  mutable Bucket all_ ABSL_GUARDED_BY(budget_mu_);
+  mutable absl::flat_hash_map<std::string, Bucket> by_name_
+      ABSL_GUARDED_BY(budget_mu_);
+  // Held while Argon2id runs: one check at a time.
+  mutable absl::Mutex check_mu_;
 };
 
 }  // namespace fleetmem::auth
