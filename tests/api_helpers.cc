@@ -1,9 +1,13 @@
 #include "tests/api_helpers.h"
 
 #include <chrono>
+#include <condition_variable>
+#include <mutex>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "grpcpp/generic/generic_stub.h"
+#include "grpcpp/support/byte_buffer.h"
 
 namespace fleetmem::testing {
 namespace {
@@ -217,6 +221,105 @@ const v1::RobotStats* FindRobot(const v1::GetStatsResponse& stats,
 
 std::vector<float> CodeOf(const v1::MemoryTrace& trace) {
   return std::vector<float>(trace.code().begin(), trace.code().end());
+}
+
+grpc::Status GenericUnaryCall(grpc::Channel* channel, const std::string& method,
+                              const std::string& request,
+                              std::string* response) {
+  grpc::GenericStub generic(channel->shared_from_this());
+  grpc::Slice slice(request);
+  grpc::ByteBuffer request_buffer(&slice, 1);
+  grpc::ByteBuffer response_buffer;
+  auto context = MakeContext();
+  std::mutex mu;
+  std::condition_variable cv;
+  bool done = false;
+  grpc::Status status;
+  generic.UnaryCall(context.get(), method, grpc::StubOptions(), &request_buffer,
+                    &response_buffer, [&](grpc::Status s) {
+                      std::lock_guard<std::mutex> lock(mu);
+                      status = std::move(s);
+                      done = true;
+                      cv.notify_all();
+                    });
+  std::unique_lock<std::mutex> lock(mu);
+  cv.wait(lock, [&] { return done; });  // the context's deadline bounds this
+  if (status.ok()) {
+    std::vector<grpc::Slice> slices;
+    response_buffer.Dump(&slices);
+    response->clear();
+    for (const grpc::Slice& s : slices) {
+      response->append(reinterpret_cast<const char*>(s.begin()), s.size());
+    }
+  }
+  return status;
+}
+
+grpc::Status GenericStreamCall(std::shared_ptr<grpc::Channel> channel,
+                               const std::string& method,
+                               const std::vector<std::string>& messages,
+                               std::string* response) {
+  grpc::GenericStub generic(channel);
+  grpc::CompletionQueue queue;
+  auto context = MakeContext();
+  std::unique_ptr<grpc::GenericClientAsyncReaderWriter> call =
+      generic.PrepareCall(context.get(), method, &queue);
+  // Each step is started and then awaited; the deadline bounds every wait.
+  auto await = [&queue](intptr_t expected) {
+    void* tag = nullptr;
+    bool ok = false;
+    if (!queue.Next(&tag, &ok)) return false;
+    return ok && reinterpret_cast<intptr_t>(tag) == expected;
+  };
+  grpc::ByteBuffer reply;
+  call->StartCall(reinterpret_cast<void*>(1));
+  bool ok = await(1);
+  for (const std::string& message : messages) {
+    if (!ok) break;
+    grpc::Slice slice(message);
+    grpc::ByteBuffer request(&slice, 1);
+    call->Write(request, reinterpret_cast<void*>(2));
+    ok = await(2);
+  }
+  if (ok) {
+    call->WritesDone(reinterpret_cast<void*>(3));
+    ok = await(3);
+  }
+  bool got_reply = false;
+  if (ok) {
+    call->Read(&reply, reinterpret_cast<void*>(4));
+    got_reply = await(4);
+  }
+  grpc::Status status;
+  call->Finish(&status, reinterpret_cast<void*>(5));
+  void* tag = nullptr;
+  bool finished = false;
+  while (queue.Next(&tag, &finished)) {
+    if (reinterpret_cast<intptr_t>(tag) == 5) break;
+  }
+  queue.Shutdown();
+  while (queue.Next(&tag, &finished)) {
+  }
+  response->clear();
+  if (got_reply) {
+    std::vector<grpc::Slice> slices;
+    reply.Dump(&slices);
+    for (const grpc::Slice& s : slices) {
+      response->append(reinterpret_cast<const char*>(s.begin()), s.size());
+    }
+  }
+  if (status.ok() && !got_reply) {
+    return grpc::Status(grpc::StatusCode::UNKNOWN, "no response");
+  }
+  return status;
+}
+
+grpc::Status ListServicesByReflection(std::shared_ptr<grpc::Channel> channel,
+                                      const std::string& method,
+                                      std::string* response) {
+  // ServerReflectionRequest{list_services: ""}: field 7, length 0.
+  return GenericStreamCall(channel, method, {std::string("\x3a\x00", 2)},
+                           response);
 }
 
 }  // namespace fleetmem::testing

@@ -91,6 +91,25 @@ const v1::RobotStats* FindRobot(const v1::GetStatsResponse& stats,
 // code as a vector.
 std::vector<float> CodeOf(const v1::MemoryTrace& trace);
 
+// Calls `method` ("/pkg.Service/Method") with the serialised `request`
+// through the generic stub; the raw answer goes to `response`.
+grpc::Status GenericUnaryCall(grpc::Channel* channel, const std::string& method,
+                              const std::string& request,
+                              std::string* response);
+
+// One streaming call of `method` through the generic stub: writes `messages`
+// (raw bytes) in order, half-closes, reads one response into `response`.
+grpc::Status GenericStreamCall(std::shared_ptr<grpc::Channel> channel,
+                               const std::string& method,
+                               const std::vector<std::string>& messages,
+                               std::string* response);
+
+// One ServerReflectionInfo exchange (`method` names v1alpha or v1) with a
+// list_services request.
+grpc::Status ListServicesByReflection(std::shared_ptr<grpc::Channel> channel,
+                                      const std::string& method,
+                                      std::string* response);
+
 }  // namespace fleetmem::testing
 
 namespace grpc {

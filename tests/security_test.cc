@@ -9,13 +9,13 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "fleetmem_paths.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/api_helpers.h"
 #include "tests/security_helpers.h"
 #include "tests/server_process.h"
 #include "tests/synthetic_traces.h"
-#include "fleetmem_paths.h"
 
 namespace fleetmem::testing {
 namespace {
@@ -104,6 +104,52 @@ TEST_F(AuthTest, NoOrWrongCredentialsAreUnauthenticated) {
   }
   EXPECT_THAT(GetStats(*As(""), kFleet).status.error_message(),
               HasSubstr("Bearer"));
+}
+
+// Issue 32: with auth on, reflection (which takes no credentials) must be
+// off unless reflection_with_auth says otherwise.
+TEST_F(AuthTest, ReflectionIsOffWithAuth) {
+  ASSERT_NO_FATAL_FAILURE(Start());
+  std::string response;
+  for (const char* method :
+       {"/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+        "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo"}) {
+    grpc::Status status = ListServicesByReflection(
+        MakeChannel(server_->address()), method, &response);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::UNIMPLEMENTED)
+        << method << ": " << Describe(status);
+  }
+  EXPECT_THAT(server_->Output(), HasSubstr("reflection off"));
+}
+
+// Issue 32: 64 idle upload streams presenting robot-7's name with a wrong
+// secret took every stream slot of "robot-7", and the real robot-7's uploads
+// and watches were refused. Slots are now taken after authentication.
+TEST_F(AuthTest, WrongSecretsTakeNoStreamSlotsOfTheRobot) {
+  ASSERT_NO_FATAL_FAILURE(Start());
+  constexpr int kStreams = 100;  // over max_streams_per_client (64)
+  auto impostor = As("robot-7:WRONG");
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
+  std::vector<std::unique_ptr<grpc::ClientWriter<v1::UploadTracesRequest>>>
+      streams;
+  std::vector<v1::UploadTracesResponse> responses(kStreams);
+  for (int i = 0; i < kStreams; ++i) {
+    contexts.push_back(MakeContext(std::chrono::seconds(30)));
+    streams.push_back(
+        impostor->UploadTraces(contexts.back().get(), &responses[i]));
+  }
+  auto robot = As(robot7_);
+  Reply<v1::UploadTracesResponse> uploaded =
+      UploadTraces(*robot, kFleet, Traces("robot-7", 1, 5));
+  ASSERT_TRUE(uploaded.ok()) << Describe(uploaded.status);
+  EXPECT_EQ(uploaded.response.accepted(), 5u);
+  EXPECT_TRUE(ReadEvents(*robot, kFleet, 0, 0, 0).ok());
+  for (auto& stream : streams) {
+    const grpc::Status status = stream->Finish();
+    EXPECT_TRUE(status.error_code() == grpc::StatusCode::UNAUTHENTICATED ||
+                status.error_code() == grpc::StatusCode::UNAVAILABLE)
+        << Describe(status);
+  }
 }
 
 TEST_F(AuthTest, RobotActsOnlyAsItselfInItsFleets) {

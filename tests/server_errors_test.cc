@@ -13,6 +13,7 @@
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
 #include "fleetmem/v1/memory.pb.h"
@@ -404,39 +405,6 @@ TEST_F(DeadlineTest, UnfinishedUploadStreamEndsAtItsDeadline) {
   EXPECT_EQ(stats.response.pending_traces(), 10u);
 }
 
-// Calls `method` with the serialised `request` through the generic stub.
-grpc::Status GenericUnaryCall(grpc::Channel* channel, const std::string& method,
-                              const std::string& request,
-                              std::string* response) {
-  grpc::GenericStub generic(channel->shared_from_this());
-  grpc::Slice slice(request);
-  grpc::ByteBuffer request_buffer(&slice, 1);
-  grpc::ByteBuffer response_buffer;
-  auto context = MakeContext();
-  std::mutex mu;
-  std::condition_variable cv;
-  bool done = false;
-  grpc::Status status;
-  generic.UnaryCall(context.get(), method, grpc::StubOptions(), &request_buffer,
-                    &response_buffer, [&](grpc::Status s) {
-                      std::lock_guard<std::mutex> lock(mu);
-                      status = std::move(s);
-                      done = true;
-                      cv.notify_all();
-                    });
-  std::unique_lock<std::mutex> lock(mu);
-  cv.wait(lock, [&] { return done; });  // the context's deadline bounds this
-  if (status.ok()) {
-    std::vector<grpc::Slice> slices;
-    response_buffer.Dump(&slices);
-    response->clear();
-    for (const grpc::Slice& s : slices) {
-      response->append(reinterpret_cast<const char*>(s.begin()), s.size());
-    }
-  }
-  return status;
-}
-
 class StandardServicesTest : public ServerTest {};
 
 TEST_F(StandardServicesTest, HealthCheckIsServing) {
@@ -450,75 +418,38 @@ TEST_F(StandardServicesTest, HealthCheckIsServing) {
   EXPECT_EQ(response, std::string("\x08\x01", 2)) << "status is not SERVING";
 }
 
-// One streaming call of `method` through the generic stub and a completion
-// queue: writes `messages` (raw bytes) in order, half-closes, reads one
-// response; its raw bytes go to `response`.
-grpc::Status GenericStreamCall(std::shared_ptr<grpc::Channel> channel,
-                               const std::string& method,
-                               const std::vector<std::string>& messages,
-                               std::string* response) {
-  grpc::GenericStub generic(channel);
-  grpc::CompletionQueue queue;
-  auto context = MakeContext();
-  std::unique_ptr<grpc::GenericClientAsyncReaderWriter> call =
-      generic.PrepareCall(context.get(), method, &queue);
-  // Each step is started and then awaited; the deadline bounds every wait.
-  auto await = [&queue](intptr_t expected) {
-    void* tag = nullptr;
-    bool ok = false;
-    if (!queue.Next(&tag, &ok)) return false;
-    return ok && reinterpret_cast<intptr_t>(tag) == expected;
-  };
-  grpc::ByteBuffer reply;
-  call->StartCall(reinterpret_cast<void*>(1));
-  bool ok = await(1);
-  for (const std::string& message : messages) {
-    if (!ok) break;
-    grpc::Slice slice(message);
-    grpc::ByteBuffer request(&slice, 1);
-    call->Write(request, reinterpret_cast<void*>(2));
-    ok = await(2);
+// Issue 32: gRPC's generated handler answered UNIMPLEMENTED with no message.
+TEST_F(BadInputTest, UnparseableUnaryRequestIsInvalidArgument) {
+  std::shared_ptr<grpc::Channel> channel = MakeChannel(server().address());
+  for (const char* method : {"GetStats", "QueryPlace", "SampleReplay"}) {
+    std::string response;
+    grpc::Status status = GenericUnaryCall(
+        channel.get(), absl::StrCat("/fleetmem.v1.MemoryService/", method),
+        std::string("\x0a\xff\xff\xff\x0f", 5), &response);
+    ExpectError(method, status, grpc::StatusCode::INVALID_ARGUMENT,
+                {"do not parse"});
   }
-  if (ok) {
-    call->WritesDone(reinterpret_cast<void*>(3));
-    ok = await(3);
-  }
-  bool got_reply = false;
-  if (ok) {
-    call->Read(&reply, reinterpret_cast<void*>(4));
-    got_reply = await(4);
-  }
-  grpc::Status status;
-  call->Finish(&status, reinterpret_cast<void*>(5));
-  void* tag = nullptr;
-  bool finished = false;
-  while (queue.Next(&tag, &finished)) {
-    if (reinterpret_cast<intptr_t>(tag) == 5) break;
-  }
-  queue.Shutdown();
-  while (queue.Next(&tag, &finished)) {
-  }
-  response->clear();
-  if (got_reply) {
-    std::vector<grpc::Slice> slices;
-    reply.Dump(&slices);
-    for (const grpc::Slice& s : slices) {
-      response->append(reinterpret_cast<const char*>(s.begin()), s.size());
-    }
-  }
-  if (status.ok() && !got_reply) {
-    return grpc::Status(grpc::StatusCode::UNKNOWN, "no response");
-  }
-  return status;
+  ExpectStatsUnchanged("unparseable requests");
 }
 
-// One ServerReflectionInfo exchange with a list_services request.
-grpc::Status ListServicesByReflection(std::shared_ptr<grpc::Channel> channel,
-                                      const std::string& method,
-                                      std::string* response) {
-  // ServerReflectionRequest{list_services: ""}: field 7, length 0.
-  return GenericStreamCall(channel, method, {std::string("\x3a\x00", 2)},
-                           response);
+// Issue 32: after_event = 2^64 - 1 was answered OUT_OF_RANGE "events 0..0
+// erased". No event comes after it: nothing is read, and a watch waits.
+TEST_F(BadInputTest, TheLargestCursorReadsNoEvents) {
+  constexpr uint64_t kLast = std::numeric_limits<uint64_t>::max();
+  v1::ListEventsRequest request;
+  request.set_fleet_id(kFleet);
+  request.set_after(kLast);
+  v1::ListEventsResponse listed;
+  auto context = MakeContext();
+  grpc::Status status = stub().ListEvents(context.get(), request, &listed);
+  ASSERT_TRUE(status.ok()) << Describe(status);
+  EXPECT_EQ(listed.events_size(), 0);
+  EXPECT_EQ(listed.last_event_id(), kLast);
+  Reply<std::vector<v1::MemoryEvent>> watched = ReadEvents(
+      stub(), kFleet, kLast, 0, SIZE_MAX, std::chrono::milliseconds(500));
+  EXPECT_EQ(watched.status.error_code(), grpc::StatusCode::DEADLINE_EXCEEDED)
+      << Describe(watched.status);
+  EXPECT_TRUE(watched.response.empty());
 }
 
 TEST_F(BadInputTest, UnparseableUploadMessageFailsTheStream) {

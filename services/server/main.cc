@@ -6,6 +6,7 @@
 //
 // Exit codes: 0 after a clean shutdown or --help; 2 for bad flags or config;
 // 1 if the server cannot start (storage, engine, address, --ready-file).
+#include <dlfcn.h>
 #include <pthread.h>
 #include <signal.h>
 #include <unistd.h>
@@ -32,7 +33,6 @@
 #include "absl/time/time.h"
 #include "fleetmem_version.h"
 #include "grpc/health/v1/health.pb.h"
-#include "grpcpp/ext/proto_server_reflection_plugin.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
 #include "grpcpp/security/server_credentials.h"
@@ -58,6 +58,20 @@
 
 namespace fleetmem::server {
 namespace {
+
+// gRPC's reflection library registers its server plugin from a static
+// initializer when it is loaded, and every server built afterwards then
+// answers reflection without credentials. So it is not linked: it is loaded
+// here, only where reflection is wanted (auth off, or reflection_with_auth).
+bool LoadReflection() {
+  if (dlopen(FLEETMEM_REFLECTION_LIBRARY, RTLD_NOW | RTLD_GLOBAL) != nullptr) {
+    return true;
+  }
+  FLEETMEM_LOG(kWarning) << "gRPC reflection is off: "
+                         << FLEETMEM_REFLECTION_LIBRARY << " cannot be loaded ("
+                         << dlerror() << ")";
+  return false;
+}
 
 // Index snapshots while serving: every `interval` the fleets whose index
 // changed (and holds at least `min_codes` codes) save one, so that a
@@ -404,8 +418,8 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   // (grpcurl ... grpc.health.v1.Health/Check without -proto).
   (void)grpc::health::v1::HealthCheckRequest::descriptor();
   const bool reflection =
-      authenticator == nullptr || security.reflection_with_auth;
-  if (reflection) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+      (authenticator == nullptr || security.reflection_with_auth) &&
+      LoadReflection();
   grpc::ServerBuilder builder;
   int port = 0;
   builder.AddListeningPort(config.listen, MakeServerCredentials(security),

@@ -29,7 +29,10 @@ auth::PresentedCredentials PresentedBy(
   return presented;
 }
 
-std::string ClientName(const grpc::CallbackServerContext& context) {
+std::string ClientName(const auth::Authenticator* authenticator,
+                       const grpc::CallbackServerContext& context,
+                       const auth::Principal& caller) {
+  if (authenticator != nullptr) return "principal:" + caller.name;
   auth::PresentedCredentials presented = PresentedBy(context);
   if (presented.token.has_value()) {
     const size_t colon = presented.token->rfind(':');

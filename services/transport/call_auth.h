@@ -20,10 +20,15 @@ namespace fleetmem::transport {
 auth::PresentedCredentials PresentedBy(
     const grpc::CallbackServerContext& context);
 
-// Who a call comes from, for per-client limits, without verifying it: the
-// name part of its token, else its certificate's common name, else its
-// address without the port ("ipv4:10.0.0.7").
-std::string ClientName(const grpc::CallbackServerContext& context);
+// Who a call comes from, for per-client limits. With auth on, the
+// authenticated `caller`'s name ("principal:robot-7"): only a caller holding
+// the secret can use that principal's slots. With auth off (`authenticator`
+// null) nothing is verified: the name part of its token, else its
+// certificate's common name, else its address without the port
+// ("ipv4:10.0.0.7").
+std::string ClientName(const auth::Authenticator* authenticator,
+                       const grpc::CallbackServerContext& context,
+                       const auth::Principal& caller);
 
 // The caller's principal: auth::Principal::Anonymous() when `authenticator`
 // is null (auth off), else Authenticate's (UNAUTHENTICATED on failure).

@@ -1,9 +1,15 @@
 #include "services/transport/memory_service.h"
 
+#include <memory>
+#include <string>
 #include <utility>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
+#include "google/protobuf/descriptor.h"
+#include "google/protobuf/message.h"
+#include "grpcpp/support/proto_buffer_reader.h"
 #include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
 #include "services/transport/proto_convert.h"
@@ -16,7 +22,24 @@ MemoryServiceImpl::MemoryServiceImpl(engine::MemoryEngine* engine,
                                      FleetMemory* memory, WorkQueue* work,
                                      const auth::Authenticator* authenticator,
                                      ServiceOptions options)
-    : state_(engine, memory, work, authenticator, options) {}
+    : state_(engine, memory, work, authenticator, options) {
+  // The generated service registered its methods in the proto's order.
+  const google::protobuf::ServiceDescriptor* service =
+      google::protobuf::DescriptorPool::generated_pool()->FindServiceByName(
+          v1::MemoryService::service_full_name());
+  for (int i = 0; i < service->method_count(); ++i) {
+    const google::protobuf::MethodDescriptor* method = service->method(i);
+    if (method->client_streaming() || method->server_streaming()) continue;
+    MarkMethodRawCallback(
+        i, new grpc::internal::CallbackUnaryHandler<grpc::ByteBuffer,
+                                                    grpc::ByteBuffer>(
+               [this, method](grpc::CallbackServerContext* context,
+                              const grpc::ByteBuffer* request,
+                              grpc::ByteBuffer* response) {
+                 return RunUnary(context, method, request, response);
+               }));
+  }
+}
 
 void MemoryServiceImpl::Shutdown() { state_.Shutdown(); }
 
@@ -25,14 +48,15 @@ bool MemoryServiceImpl::WaitIdle(absl::Time deadline) {
 }
 
 grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
-    grpc::CallbackServerContext* context, const char* method,
-    const google::protobuf::Message* request,
-    google::protobuf::Message* response) {
+    grpc::CallbackServerContext* context,
+    const google::protobuf::MethodDescriptor* method,
+    const grpc::ByteBuffer* request, grpc::ByteBuffer* response) {
   const absl::Time started = absl::Now();
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-  auto finish = [this, reactor, method, started](const grpc::Status& status) {
-    state_.ObserveCall(
-        method, static_cast<absl::StatusCode>(status.error_code()), started);
+  const std::string& name = method->name();
+  auto finish = [this, reactor, &name, started](const grpc::Status& status) {
+    state_.ObserveCall(name, static_cast<absl::StatusCode>(status.error_code()),
+                       started);
     reactor->Finish(status);
   };
   if (state_.shutting_down()) {
@@ -45,13 +69,31 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
         finish([&] {
           grpc::Status live = CheckCallLive(*context);
           if (!live.ok()) return live;
+          google::protobuf::MessageFactory* factory =
+              google::protobuf::MessageFactory::generated_factory();
+          std::unique_ptr<google::protobuf::Message> in(
+              factory->GetPrototype(method->input_type())->New());
+          grpc::ByteBuffer bytes(*request);  // shares the slices
+          grpc::ProtoBufferReader reader(&bytes);
+          if (!in->ParseFromZeroCopyStream(&reader)) {
+            return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
+                "request: ", request->Length(), " bytes do not parse as ",
+                method->input_type()->full_name(), "; nothing was done")));
+          }
           absl::StatusOr<auth::Principal> caller =
               AuthenticateCall(state_.authenticator(), *context);
           if (!caller.ok()) return ToGrpcStatus(caller.status());
           const bool forwarded =
               context->client_metadata().count(kForwardedHeader) > 0;
-          return ToGrpcStatus(state_.api().Call(method, *caller, *request,
-                                                response, forwarded));
+          std::unique_ptr<google::protobuf::Message> out(
+              factory->GetPrototype(method->output_type())->New());
+          grpc::Status status = ToGrpcStatus(state_.api().Call(
+              method->name(), *caller, *in, out.get(), forwarded));
+          if (status.ok()) {
+            grpc::Slice slice(out->SerializeAsString());
+            *response = grpc::ByteBuffer(&slice, 1);
+          }
+          return status;
         }());
         state_.EndWork();
       });
@@ -65,63 +107,6 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
 grpc::ServerReadReactor<grpc::ByteBuffer>* MemoryServiceImpl::UploadTraces(
     grpc::CallbackServerContext* context, grpc::ByteBuffer* response) {
   return new UploadReactor(&state_, context, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::Consolidate(
-    grpc::CallbackServerContext* context, const v1::ConsolidateRequest* request,
-    v1::ConsolidateResponse* response) {
-  return RunUnary(context, "Consolidate", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::SampleReplay(
-    grpc::CallbackServerContext* context,
-    const v1::SampleReplayRequest* request,
-    v1::SampleReplayResponse* response) {
-  return RunUnary(context, "SampleReplay", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::QueryPlace(
-    grpc::CallbackServerContext* context, const v1::QueryPlaceRequest* request,
-    v1::QueryPlaceResponse* response) {
-  return RunUnary(context, "QueryPlace", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::GetStats(
-    grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
-    v1::GetStatsResponse* response) {
-  return RunUnary(context, "GetStats", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::ListFleets(
-    grpc::CallbackServerContext* context, const v1::ListFleetsRequest* request,
-    v1::ListFleetsResponse* response) {
-  return RunUnary(context, "ListFleets", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::ListClusters(
-    grpc::CallbackServerContext* context,
-    const v1::ListClustersRequest* request,
-    v1::ListClustersResponse* response) {
-  return RunUnary(context, "ListClusters", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::ListEvents(
-    grpc::CallbackServerContext* context, const v1::ListEventsRequest* request,
-    v1::ListEventsResponse* response) {
-  return RunUnary(context, "ListEvents", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::ListTraces(
-    grpc::CallbackServerContext* context, const v1::ListTracesRequest* request,
-    v1::ListTracesResponse* response) {
-  return RunUnary(context, "ListTraces", request, response);
-}
-
-grpc::ServerUnaryReactor* MemoryServiceImpl::CreateSnapshot(
-    grpc::CallbackServerContext* context,
-    const v1::CreateSnapshotRequest* request,
-    v1::CreateSnapshotResponse* response) {
-  return RunUnary(context, "CreateSnapshot", request, response);
 }
 
 grpc::ServerWriteReactor<v1::MemoryEvent>* MemoryServiceImpl::WatchMemory(

@@ -67,54 +67,24 @@ class MemoryServiceImpl final
   grpc::ServerReadReactor<grpc::ByteBuffer>* UploadTraces(
       grpc::CallbackServerContext* context,
       grpc::ByteBuffer* response) override;
-  grpc::ServerUnaryReactor* Consolidate(
-      grpc::CallbackServerContext* context,
-      const v1::ConsolidateRequest* request,
-      v1::ConsolidateResponse* response) override;
-  grpc::ServerUnaryReactor* SampleReplay(
-      grpc::CallbackServerContext* context,
-      const v1::SampleReplayRequest* request,
-      v1::SampleReplayResponse* response) override;
-  grpc::ServerUnaryReactor* QueryPlace(
-      grpc::CallbackServerContext* context,
-      const v1::QueryPlaceRequest* request,
-      v1::QueryPlaceResponse* response) override;
   grpc::ServerWriteReactor<v1::MemoryEvent>* WatchMemory(
       grpc::CallbackServerContext* context,
       const v1::WatchMemoryRequest* request) override;
-  grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context,
-                                     const v1::GetStatsRequest* request,
-                                     v1::GetStatsResponse* response) override;
-  grpc::ServerUnaryReactor* ListFleets(
-      grpc::CallbackServerContext* context,
-      const v1::ListFleetsRequest* request,
-      v1::ListFleetsResponse* response) override;
-  grpc::ServerUnaryReactor* ListClusters(
-      grpc::CallbackServerContext* context,
-      const v1::ListClustersRequest* request,
-      v1::ListClustersResponse* response) override;
-  grpc::ServerUnaryReactor* ListEvents(
-      grpc::CallbackServerContext* context,
-      const v1::ListEventsRequest* request,
-      v1::ListEventsResponse* response) override;
-  grpc::ServerUnaryReactor* ListTraces(
-      grpc::CallbackServerContext* context,
-      const v1::ListTracesRequest* request,
-      v1::ListTracesResponse* response) override;
-  grpc::ServerUnaryReactor* CreateSnapshot(
-      grpc::CallbackServerContext* context,
-      const v1::CreateSnapshotRequest* request,
-      v1::CreateSnapshotResponse* response) override;
 
  private:
-  // On the pool: authenticates the caller, then finishes the call's default
-  // reactor with the status of MemoryApi::`method` (which authorises and
-  // works); or at once with UNAVAILABLE / RESOURCE_EXHAUSTED. Every answer
-  // is reported to ServiceOptions::on_call.
-  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
-                                     const char* method,
-                                     const google::protobuf::Message* request,
-                                     google::protobuf::Message* response);
+  // The unary methods are served raw (bytes in, bytes out), so that a
+  // request that does not parse is answered INVALID_ARGUMENT by RunUnary,
+  // not UNIMPLEMENTED with no message by gRPC's generated handler.
+  //
+  // On the pool: parses the request as `method`'s input type, authenticates
+  // the caller, then finishes the call's default reactor with the status of
+  // MemoryApi::Call (which authorises and works); or at once with
+  // UNAVAILABLE / RESOURCE_EXHAUSTED. Every answer is reported to
+  // ServiceOptions::on_call.
+  grpc::ServerUnaryReactor* RunUnary(
+      grpc::CallbackServerContext* context,
+      const google::protobuf::MethodDescriptor* method,
+      const grpc::ByteBuffer* request, grpc::ByteBuffer* response);
 
   ServiceState state_;
 };

@@ -49,12 +49,21 @@ UploadReactor::UploadReactor(ServiceState* state,
     Done(ShuttingDownStatus());
     return;
   }
-  std::string client = ClientName(*context);
+  // Authenticated before a stream slot is taken, so that presenting a
+  // robot's name without its secret cannot use up that robot's slots.
+  absl::StatusOr<auth::Principal> caller =
+      AuthenticateCall(state_->authenticator(), *context);
+  if (!caller.ok()) {
+    Done(ToGrpcStatus(caller.status()));
+    return;
+  }
+  std::string client = ClientName(state_->authenticator(), *context, *caller);
   if (absl::Status slot = state_->AcquireStream(client); !slot.ok()) {
     Done(ToGrpcStatus(slot));
     return;
   }
   client_ = std::move(client);
+  caller_ = *std::move(caller);
   absl::MutexLock lock(&mu_);
   MaybeRead();
 }
@@ -210,13 +219,9 @@ bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
     Message& message = batch[count];
     failed = message.error;
     if (failed.ok() && !principal_.has_value()) {
-      absl::StatusOr<auth::Principal> principal = AuthorizeCall(
-          state_->authenticator(), *context_, auth::Action::kUpload, fleet_id_);
-      if (principal.ok()) {
-        principal_ = *std::move(principal);
-      } else {
-        failed = principal.status();
-      }
+      // The fleet is known from the first message on.
+      failed = auth::Authorize(caller_, auth::Action::kUpload, fleet_id_);
+      if (failed.ok()) principal_ = caller_;
     }
     if (failed.ok())
       failed = AuthorizeUploadMessage(*principal_, message.request);

@@ -96,6 +96,7 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   uint64_t read_ = 0;        // messages read (gRPC's reactions only)
   std::string fleet_id_;     // of the first message, set before any store
   std::string client_;       // holds a stream slot if set
+  auth::Principal caller_;   // authenticated before the slot is taken
   const absl::Time started_ = absl::Now();
 
   absl::Mutex mu_;
@@ -110,7 +111,7 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   // The store task's.
   v1::UploadTracesResponse totals_;           // the running totals
   uint64_t stored_ = 0;                       // messages stored so far
-  std::optional<auth::Principal> principal_;  // once authenticated
+  std::optional<auth::Principal> principal_;  // once allowed on the fleet
 };
 
 }  // namespace fleetmem::transport

@@ -25,7 +25,7 @@ WatchReactor::WatchReactor(ServiceState* state,
   if (valid.ok()) valid = state_->api().CheckWatch(*caller, request);
   std::string client;
   if (valid.ok()) {
-    client = ClientName(context);
+    client = ClientName(state_->authenticator(), context, *caller);
     valid = state_->AcquireStream(client);
   }
   if (!valid.ok()) {
