@@ -3,7 +3,9 @@
 #include <openssl/err.h>
 #include <openssl/ssl.h>
 #include <openssl/x509.h>
+#include <sys/socket.h>
 
+#include <chrono>
 #include <fstream>
 #include <string_view>
 #include <utility>
@@ -11,6 +13,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "httplib.h"
+#include "services/http/connection_guard.h"
 #include "services/http/dashboard_assets.h"
 #include "services/http/openapi.h"
 
@@ -178,27 +181,44 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   std::unique_ptr<HttpServer> server(
       new HttpServer(std::move(*made), std::move(endpoints)));
   httplib::Server& http = *server->server_;
-  const size_t threads = options.threads == 0 ? 8 : options.threads;
-  http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
+  http.new_task_queue = [limits = options.connections] {
+    return new ConnectionGuard(limits);
+  };
   http.set_payload_max_length(options.max_body_bytes);
   http.set_keep_alive_max_count(100);
+  // The guard's deadlines run from these marks (connection_guard.h).
+  http.set_pre_routing_handler([](const httplib::Request&, httplib::Response&) {
+    ConnectionGuard::HeadRead();
+    return httplib::Server::HandlerResponse::Unhandled;
+  });
+  http.set_logger([](const httplib::Request&, const httplib::Response&) {
+    ConnectionGuard::AnswerSent();
+  });
+  // Every handler: no deadline while it runs (a watch streams for minutes).
+  auto get = [&http](const std::string& pattern, httplib::Server::Handler h) {
+    http.Get(pattern, [h = std::move(h)](const httplib::Request& req,
+                                         httplib::Response& res) {
+      ConnectionGuard::Handling();
+      h(req, res);
+    });
+  };
 
   HttpEndpoints* e = &server->endpoints_;
   const std::string openapi =
       OpenApiJson(e->gateway->routes(), PlainEndpoints(), options.version);
-  http.Get("/openapi.json",
-           [openapi](const httplib::Request&, httplib::Response& res) {
-             res.set_content(openapi, "application/json");
-           });
-  http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) {
+  get("/openapi.json",
+      [openapi](const httplib::Request&, httplib::Response& res) {
+        res.set_content(openapi, "application/json");
+      });
+  get("/healthz", [](const httplib::Request&, httplib::Response& res) {
     res.set_content("ok\n", "text/plain");
   });
-  http.Get("/readyz", [e](const httplib::Request&, httplib::Response& res) {
+  get("/readyz", [e](const httplib::Request&, httplib::Response& res) {
     const bool ready = !e->ready || e->ready();
     res.status = ready ? 200 : 503;
     res.set_content(ready ? "ready\n" : "not ready\n", "text/plain");
   });
-  http.Get("/metrics", [e](const httplib::Request&, httplib::Response& res) {
+  get("/metrics", [e](const httplib::Request&, httplib::Response& res) {
     if (!e->metrics) {
       res.status = 404;
       return;
@@ -211,10 +231,11 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
                       file.content_type);
       res.set_header("Cache-Control", "no-cache");
     };
-    http.Get(file.path, serve);
-    if (std::string(file.path) == "/index.html") http.Get("/", serve);
+    get(file.path, serve);
+    if (std::string(file.path) == "/index.html") get("/", serve);
   }
   auto api = [e](const httplib::Request& req, httplib::Response& res) {
+    ConnectionGuard::Handling();
     Answer(e->gateway->Handle(FromHttplib(req)), res);
   };
   http.Get("/v1/.*", api);
@@ -245,6 +266,14 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
     res.set_content(error.body, error.content_type.c_str());
   });
 
+  // httplib listens with a backlog of 5: a burst of clients (or of slow
+  // ones) would leave new connections waiting for SYN retries of 1 s and
+  // more. The listening socket is remembered here and given the system's.
+  int listening = -1;
+  http.set_socket_options([&listening](socket_t socket) {
+    httplib::default_socket_options(socket);
+    listening = socket;
+  });
   if (port == 0) {
     server->port_ = http.bind_to_any_port(host);
   } else {
@@ -254,7 +283,13 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
     return absl::UnavailableError(
         absl::StrCat("cannot listen for HTTP on ", options.listen));
   }
+  if (listening >= 0) ::listen(listening, SOMAXCONN);
   server->thread_ = std::thread([&http] { http.listen_after_bind(); });
+  // Until it listens: httplib's stop() does nothing before that, and a Stop
+  // right after Start would then wait for ever.
+  for (int waited_ms = 0; !http.is_running() && waited_ms < 5000; ++waited_ms) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
   return server;
 }
 

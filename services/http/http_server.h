@@ -3,7 +3,9 @@
 // /readyz (Kubernetes probes), /openapi.json (openapi.h: the routes and the
 // endpoints as served) and the dashboard (/ and its files, embedded in the
 // binary). TLS, when the server has a certificate, with the same
-// certificate, key and client CA as gRPC.
+// certificate, key and client CA as gRPC. Connections are bounded per client
+// and in all, and a request's head and body have deadlines
+// (connection_guard.h), so slow clients cannot starve the probes.
 //
 // Access: /v1/ applies the server's identity and roles (401, 403 as for
 // gRPC). /healthz, /readyz, /metrics, /openapi.json and the dashboard's static
@@ -20,6 +22,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "services/http/connection_limits.h"
 #include "services/http/openapi.h"
 #include "services/http/rest_gateway.h"
 
@@ -41,9 +44,9 @@ struct HttpServerOptions {
   bool require_client_certificate = false;
   // Largest request body; larger ones get 413 before they are read.
   size_t max_body_bytes = 4 << 20;
-  // Threads serving connections (each call runs on one; engine calls block
-  // on fsync; a watch holds one for its duration). 0 = 8.
-  size_t threads = 0;
+  // Connections, per client and in all, and the deadlines of a request
+  // (connection_guard.h). Each open connection holds a thread.
+  ConnectionLimits connections;
   // The server's version, for /openapi.json.
   std::string version = "unknown";
 };

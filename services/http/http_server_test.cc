@@ -1,8 +1,18 @@
 #include "services/http/http_server.h"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
 #include <memory>
 #include <set>
 #include <string>
+#include <thread>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
@@ -210,6 +220,136 @@ TEST(HttpServerStartTest, BadAddressAndTlsFiles) {
   absl::Status status = HttpServer::Start(options, {gateway->get()}).status();
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(status.message(), HasSubstr("/nonexistent/cert.pem"));
+}
+
+// A TCP connection to 127.0.0.1:`port`; -1 if it cannot be made.
+int Connect(int port) {
+  const int socket = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<uint16_t>(port));
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (connect(socket, reinterpret_cast<sockaddr*>(&address), sizeof(address)) !=
+      0) {
+    close(socket);
+    return -1;
+  }
+  return socket;
+}
+
+// What the server sent on `socket` within `timeout`, until it closed ("" if
+// nothing came); `closed` says whether it closed.
+std::string ReadUntilClosed(int socket, std::chrono::milliseconds timeout,
+                            bool* closed) {
+  std::string got;
+  *closed = false;
+  const auto end = std::chrono::steady_clock::now() + timeout;
+  while (std::chrono::steady_clock::now() < end) {
+    pollfd wait{socket, POLLIN, 0};
+    if (poll(&wait, 1, 50) <= 0) continue;
+    char buffer[4096];
+    const ssize_t n = recv(socket, buffer, sizeof(buffer), 0);
+    if (n <= 0) {
+      *closed = true;
+      break;
+    }
+    got.append(buffer, static_cast<size_t>(n));
+  }
+  return got;
+}
+
+class HttpConnectionLimitsTest : public HttpServerTest {
+ protected:
+  void Restart(ConnectionLimits limits) {
+    server_->Stop();
+    HttpServerOptions options;
+    options.listen = "127.0.0.1:0";
+    options.connections = std::move(limits);
+    auto server = HttpServer::Start(
+        options, {gateway_.get(), [] { return std::string("up 1\n"); },
+                  [] { return true; }});
+    ASSERT_TRUE(server.ok()) << server.status();
+    server_ = std::move(*server);
+    client_ = std::make_unique<httplib::Client>("127.0.0.1", server_->port());
+    client_->set_read_timeout(3, 0);
+  }
+};
+
+// Issue 32: eight connections sending a header line every 3 s held all eight
+// threads; /readyz went unanswered. Now 50 such connections leave the
+// probes and the API answering, and each is closed at its head deadline.
+TEST_F(HttpConnectionLimitsTest, SlowClientsDoNotStarveTheProbes) {
+  ConnectionLimits limits;
+  limits.head_timeout = absl::Seconds(1);
+  ASSERT_NO_FATAL_FAILURE(Restart(limits));
+  std::vector<int> slow;
+  for (int i = 0; i < 50; ++i) {
+    const int socket = Connect(server_->port());
+    ASSERT_GE(socket, 0);
+    const std::string line = "GET /readyz HTTP/1.1\r\n";
+    ASSERT_EQ(send(socket, line.data(), line.size(), MSG_NOSIGNAL),
+              static_cast<ssize_t>(line.size()));
+    slow.push_back(socket);
+  }
+  std::atomic<bool> stop = false;
+  std::thread trickle([&] {  // one header line every 300 ms on each
+    while (!stop.load()) {
+      for (int socket : slow) {
+        (void)send(socket, "X-Slow: 1\r\n", 11, MSG_NOSIGNAL | MSG_DONTWAIT);
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    }
+  });
+  for (int i = 0; i < 5; ++i) {
+    auto ready = client_->Get("/readyz");
+    ASSERT_TRUE(ready) << "probe " << i << ": "
+                       << httplib::to_string(ready.error());
+    EXPECT_EQ(ready->status, 200);
+    auto fleets = client_->Get("/v1/fleets");
+    ASSERT_TRUE(fleets);
+    EXPECT_EQ(fleets->status, 200);
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  // Past the head deadline every slow connection is closed, unanswered.
+  for (int socket : slow) {
+    bool closed = false;
+    const std::string got =
+        ReadUntilClosed(socket, std::chrono::milliseconds(3000), &closed);
+    EXPECT_TRUE(closed);
+    EXPECT_EQ(got, "");
+  }
+  stop = true;
+  trickle.join();
+  for (int socket : slow) close(socket);
+}
+
+TEST_F(HttpConnectionLimitsTest, AClientsConnectionsAreCapped) {
+  ConnectionLimits limits;
+  limits.max_connections_per_client = 4;
+  std::atomic<int> refused = 0;
+  limits.on_refused = [&refused](const std::string&) { ++refused; };
+  ASSERT_NO_FATAL_FAILURE(Restart(limits));
+  std::vector<int> idle;
+  for (int i = 0; i < 4; ++i) idle.push_back(Connect(server_->port()));
+  const int over = Connect(server_->port());
+  ASSERT_GE(over, 0);
+  bool closed = false;
+  const std::string got =
+      ReadUntilClosed(over, std::chrono::milliseconds(2000), &closed);
+  EXPECT_TRUE(closed);
+  EXPECT_THAT(got, HasSubstr("503"));
+  EXPECT_THAT(got, HasSubstr("max_connections_per_client"));
+  EXPECT_EQ(refused.load(), 1);
+  close(over);
+  for (int socket : idle) close(socket);
+  // Their slots come back when they close.
+  bool answered = false;
+  for (int attempt = 0; attempt < 50 && !answered; ++attempt) {
+    auto ready = client_->Get("/readyz");
+    answered = ready && ready->status == 200;
+    if (!answered) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_TRUE(answered);
 }
 
 }  // namespace

@@ -144,6 +144,30 @@ http::HttpServerOptions HttpOptions(const ServerConfig& config) {
   options.require_client_certificate =
       config.security.require_client_certificate;
   options.max_body_bytes = config.max_http_body_bytes;
+  options.connections.max_connections = config.http_max_connections;
+  options.connections.max_connections_per_client =
+      config.http_max_connections_per_client;
+  options.connections.head_timeout =
+      absl::Seconds(config.http_head_timeout_seconds);
+  // Logged at most every 10 s (a flood of slow clients must not flood the
+  // log), with the count since the last line.
+  struct Refusals {
+    absl::Mutex mu;
+    absl::Time logged = absl::InfinitePast();
+    uint64_t unlogged = 0;
+  };
+  options.connections.on_refused =
+      [refusals = std::make_shared<Refusals>()](const std::string& why) {
+        absl::MutexLock lock(&refusals->mu);
+        ++refusals->unlogged;
+        if (absl::Now() - refusals->logged < absl::Seconds(10)) return;
+        FLEETMEM_LOG(kWarning) << refusals->unlogged
+                               << " HTTP connection(s) refused or closed by a "
+                                  "limit since the last report; the latest: "
+                               << why;
+        refusals->unlogged = 0;
+        refusals->logged = absl::Now();
+      };
   options.version = FLEETMEM_VERSION;
   return options;
 }

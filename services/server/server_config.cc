@@ -422,6 +422,16 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   if (file.has_max_http_body_bytes()) {
     config->max_http_body_bytes = file.max_http_body_bytes();
   }
+  if (file.has_http_max_connections()) {
+    config->http_max_connections = file.http_max_connections();
+  }
+  if (file.has_http_max_connections_per_client()) {
+    config->http_max_connections_per_client =
+        file.http_max_connections_per_client();
+  }
+  if (file.has_http_head_timeout_seconds()) {
+    config->http_head_timeout_seconds = file.http_head_timeout_seconds();
+  }
   if (file.has_snapshot_dir()) config->snapshot_dir = file.snapshot_dir();
   if (file.has_log_level()) {
     absl::Status status = ApplyLogLevel("log_level", file.log_level(), config);
@@ -594,6 +604,13 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
   if (config.max_http_body_bytes < 1024) {
     return absl::InvalidArgumentError(
         "max_http_body_bytes: must be at least 1024");
+  }
+  if (config.http_max_connections == 0 ||
+      config.http_max_connections_per_client == 0 ||
+      config.http_head_timeout_seconds == 0) {
+    return absl::InvalidArgumentError(
+        "http_max_connections, http_max_connections_per_client and "
+        "http_head_timeout_seconds must be at least 1");
   }
   if (security.auth_file.empty() && !security.allow_unauthenticated &&
       !config.http_listen.empty() && !IsLoopbackListen(config.http_listen)) {

@@ -143,6 +143,11 @@ struct ServerConfig {
   std::string http_listen;
   // Largest HTTP request body; larger ones get 413.
   size_t max_http_body_bytes = size_t{4} << 20;
+  // HTTP connections in all and per client IP address, and how long a
+  // request's head may take (http::ConnectionLimits).
+  size_t http_max_connections = 256;
+  size_t http_max_connections_per_client = 64;
+  uint32_t http_head_timeout_seconds = 10;
   // Where CreateSnapshot writes (SNAPSHOT_DIR/NAME/db); empty =
   // DATA_DIR/snapshots.
   std::string snapshot_dir;

@@ -1,0 +1,229 @@
+#include "services/http/connection_guard.h"
+
+#include <arpa/inet.h>
+#include <dlfcn.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+
+namespace {
+
+// The socket accept() returned last on this thread.
+thread_local int last_accepted = -1;
+
+}  // namespace
+
+// Interposes the C library's accept() for the whole process (see the
+// header): the same call, and the socket is remembered for the guard.
+extern "C" int accept(int socket, struct sockaddr* address, socklen_t* length) {
+  using Accept = int (*)(int, struct sockaddr*, socklen_t*);
+  static const Accept next =
+      reinterpret_cast<Accept>(dlsym(RTLD_NEXT, "accept"));
+  const int accepted = next(socket, address, length);
+  last_accepted = accepted;
+  return accepted;
+}
+
+namespace fleetmem::http {
+namespace {
+
+// The connection the calling thread serves, if it is a guard's.
+thread_local void* current = nullptr;
+
+std::string PeerAddress(int socket) {
+  sockaddr_storage address{};
+  socklen_t length = sizeof(address);
+  if (getpeername(socket, reinterpret_cast<sockaddr*>(&address), &length) !=
+      0) {
+    return "unknown";
+  }
+  char text[INET6_ADDRSTRLEN] = {0};
+  if (address.ss_family == AF_INET) {
+    inet_ntop(AF_INET, &reinterpret_cast<sockaddr_in*>(&address)->sin_addr,
+              text, sizeof(text));
+  } else if (address.ss_family == AF_INET6) {
+    inet_ntop(AF_INET6, &reinterpret_cast<sockaddr_in6*>(&address)->sin6_addr,
+              text, sizeof(text));
+  } else {
+    return "local";
+  }
+  return text;
+}
+
+// A short answer for a connection refused before httplib reads it (plain
+// HTTP; a TLS client sees a failed handshake).
+void Refuse(int socket, const std::string& why) {
+  const std::string body = absl::StrCat(
+      "{\"code\":8,\"status\":\"RESOURCE_EXHAUSTED\",\"message\":\"", why,
+      "\"}");
+  const std::string answer = absl::StrCat(
+      "HTTP/1.1 503 Service Unavailable\r\nConnection: close\r\n"
+      "Content-Type: application/json\r\nRetry-After: 1\r\n"
+      "Content-Length: ",
+      body.size(), "\r\n\r\n", body);
+  (void)send(socket, answer.data(), answer.size(), MSG_DONTWAIT | MSG_NOSIGNAL);
+  shutdown(socket, SHUT_RDWR);
+}
+
+}  // namespace
+
+ConnectionGuard::ConnectionGuard(ConnectionLimits limits)
+    : limits_(std::move(limits)) {
+  deadlines_ = std::thread([this] {
+    std::unique_lock<std::mutex> lock(mu_);
+    while (!stopping_) {
+      wake_.wait_for(lock, absl::ToChronoMilliseconds(limits_.check_every));
+      if (!stopping_) {
+        lock.unlock();
+        CheckDeadlines();
+        lock.lock();
+      }
+    }
+  });
+}
+
+ConnectionGuard::~ConnectionGuard() { shutdown(); }
+
+void ConnectionGuard::enqueue(std::function<void()> fn) {
+  const int socket = std::exchange(last_accepted, -1);
+  auto connection = std::make_shared<Connection>();
+  connection->guard = this;
+  connection->since = absl::Now();
+  std::string refused;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (socket >= 0) {
+      connection->client = PeerAddress(socket);
+      if (open_.size() >= limits_.max_connections) {
+        refused = absl::StrCat("the server holds max_connections (",
+                               limits_.max_connections, ") connections");
+      } else if (per_client_[connection->client] >=
+                 limits_.max_connections_per_client) {
+        refused = absl::StrCat(
+            connection->client, " holds max_connections_per_client (",
+            limits_.max_connections_per_client, ") connections");
+      } else {
+        connection->socket = dup(socket);
+        ++per_client_[connection->client];
+        open_.push_back(connection);
+      }
+    }
+  }
+  if (!refused.empty()) {
+    if (limits_.on_refused) limits_.on_refused(refused);
+    Refuse(socket, refused);
+    fn();  // reads nothing from the shut socket, and closes it
+    return;
+  }
+  std::lock_guard<std::mutex> lock(mu_);
+  tasks_.push_back([this, connection, fn = std::move(fn)]() mutable {
+    Serve(std::move(connection), std::move(fn));
+  });
+  // A thread for every connection waiting (idle threads are counted until
+  // they take a task).
+  if (tasks_.size() > idle_workers_) {
+    workers_.emplace_back([this] { Worker(); });
+  } else {
+    wake_.notify_all();
+  }
+}
+
+void ConnectionGuard::Serve(std::shared_ptr<Connection> connection,
+                            std::function<void()> fn) {
+  current = connection->socket >= 0 ? connection.get() : nullptr;
+  fn();
+  current = nullptr;
+  std::lock_guard<std::mutex> lock(mu_);
+  if (connection->socket < 0) return;
+  close(connection->socket);
+  if (--per_client_[connection->client] == 0) {
+    per_client_.erase(connection->client);
+  }
+  open_.erase(std::find(open_.begin(), open_.end(), connection));
+}
+
+void ConnectionGuard::Worker() {
+  std::unique_lock<std::mutex> lock(mu_);
+  while (true) {
+    ++idle_workers_;
+    wake_.wait(lock, [this] { return stopping_ || !tasks_.empty(); });
+    --idle_workers_;
+    if (tasks_.empty()) return;  // stopping, nothing left
+    std::function<void()> task = std::move(tasks_.front());
+    tasks_.pop_front();
+    lock.unlock();
+    task();
+    lock.lock();
+  }
+}
+
+void ConnectionGuard::CheckDeadlines() {
+  const absl::Time now = absl::Now();
+  std::vector<std::string> closed;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (const std::shared_ptr<Connection>& connection : open_) {
+      const absl::Duration waited = now - connection->since;
+      const bool late =
+          (connection->phase == Phase::kHead &&
+           waited > limits_.head_timeout) ||
+          (connection->phase == Phase::kBody && waited > limits_.body_timeout);
+      if (!late) continue;
+      closed.push_back(absl::StrCat(
+          connection->client, ": no complete request ",
+          connection->phase == Phase::kHead ? "head" : "body", " within ",
+          absl::FormatDuration(connection->phase == Phase::kHead
+                                   ? limits_.head_timeout
+                                   : limits_.body_timeout)));
+      connection->phase = Phase::kClosed;
+      // The thread serving it sees the end of the stream and closes.
+      ::shutdown(connection->socket, SHUT_RDWR);
+    }
+  }
+  if (limits_.on_refused) {
+    for (const std::string& reason : closed) limits_.on_refused(reason);
+  }
+}
+
+void ConnectionGuard::shutdown() {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (stopping_ && !deadlines_.joinable()) return;
+    stopping_ = true;
+    // Connections still waiting for a request are ended; handlers finish.
+    for (const std::shared_ptr<Connection>& connection : open_) {
+      if (connection->phase == Phase::kHead) {
+        ::shutdown(connection->socket, SHUT_RDWR);
+      }
+    }
+  }
+  wake_.notify_all();
+  if (deadlines_.joinable()) deadlines_.join();
+  std::vector<std::thread> workers;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    workers.swap(workers_);
+  }
+  for (std::thread& worker : workers) worker.join();
+}
+
+void ConnectionGuard::Mark(Phase phase) {
+  auto* connection = static_cast<Connection*>(current);
+  if (connection == nullptr) return;
+  std::lock_guard<std::mutex> lock(connection->guard->mu_);
+  if (connection->phase == Phase::kClosed) return;
+  connection->since = absl::Now();
+  connection->phase = phase;
+}
+
+void ConnectionGuard::HeadRead() { Mark(Phase::kBody); }
+void ConnectionGuard::Handling() { Mark(Phase::kHandling); }
+void ConnectionGuard::AnswerSent() { Mark(Phase::kHead); }
+
+}  // namespace fleetmem::http

@@ -1,0 +1,34 @@
+// What one client may hold of the HTTP port, and the deadlines of a
+// request: the options of ConnectionGuard (connection_guard.h), apart from it
+// so that users need not see httplib.
+#ifndef FLEETMEM_SERVICES_HTTP_CONNECTION_LIMITS_H_
+#define FLEETMEM_SERVICES_HTTP_CONNECTION_LIMITS_H_
+
+#include <cstddef>
+#include <functional>
+#include <string>
+
+#include "absl/time/time.h"
+
+namespace fleetmem::http {
+
+struct ConnectionLimits {
+  // Connections served at once (each holds a thread while open).
+  size_t max_connections = 256;
+  // Connections one IP address may hold at once.
+  size_t max_connections_per_client = 64;
+  // From a connection's start (or its previous answer) to the end of the
+  // next request's head; the TLS handshake counts.
+  absl::Duration head_timeout = absl::Seconds(10);
+  // From the end of a request's head to the end of its body.
+  absl::Duration body_timeout = absl::Seconds(60);
+  // How often deadlines are checked.
+  absl::Duration check_every = absl::Milliseconds(100);
+  // Called with the client's address for each connection refused or closed
+  // by a limit (for a metric or a log; may be empty).
+  std::function<void(const std::string& reason)> on_refused;
+};
+
+}  // namespace fleetmem::http
+
+#endif  // FLEETMEM_SERVICES_HTTP_CONNECTION_LIMITS_H_
