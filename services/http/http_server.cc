@@ -90,6 +90,9 @@ HttpRequest FromHttplib(const httplib::Request& req) {
     request.last_event_id = req.get_header_value("Last-Event-ID");
   }
   request.certificate_common_name = CertificateCommonName(req);
+  request.host = req.get_header_value("Host");
+  request.origin = req.get_header_value("Origin");
+  request.content_type = req.get_header_value("Content-Type");
   return request;
 }
 
@@ -218,9 +221,16 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
     res.status = ready ? 200 : 503;
     res.set_content(ready ? "ready\n" : "not ready\n", "text/plain");
   });
-  get("/metrics", [e](const httplib::Request&, httplib::Response& res) {
+  get("/metrics", [e](const httplib::Request& req, httplib::Response& res) {
     if (!e->metrics) {
       res.status = 404;
+      return;
+    }
+    if (absl::Status site = e->gateway->CheckSite(FromHttplib(req));
+        !site.ok()) {
+      HttpResponse refused = ErrorResponse(site);
+      res.status = refused.status;
+      res.set_content(refused.body, refused.content_type.c_str());
       return;
     }
     res.set_content(e->metrics(), "text/plain; version=0.0.4; charset=utf-8");

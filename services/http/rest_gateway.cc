@@ -343,7 +343,74 @@ absl::StatusOr<auth::Principal> RestGateway::Authenticate(
   return authenticator_->Authenticate(presented);
 }
 
+namespace {
+
+// `host` without its port ("[::1]:8080" -> "::1", "a:80" -> "a").
+std::string HostName(absl::string_view host) {
+  if (absl::StartsWith(host, "[")) {
+    const size_t end = host.find(']');
+    return std::string(host.substr(
+        1, end == absl::string_view::npos ? absl::string_view::npos : end - 1));
+  }
+  return std::string(host.substr(0, host.find(':')));
+}
+
+bool IsLoopbackName(absl::string_view host) {
+  const std::string name = absl::AsciiStrToLower(HostName(host));
+  return name == "localhost" || absl::EndsWith(name, ".localhost") ||
+         name == "::1" ||
+         (absl::StartsWith(name, "127.") &&
+          std::all_of(name.begin(), name.end(), [](char c) {
+            return absl::ascii_isdigit(static_cast<unsigned char>(c)) ||
+                   c == '.';
+          }));
+}
+
+}  // namespace
+
+absl::Status RestGateway::CheckSite(const HttpRequest& request) const {
+  if (options_.loopback_hosts_only && !IsLoopbackName(request.host)) {
+    return absl::PermissionDeniedError(absl::StrCat(
+        "Host \"", request.host,
+        "\" is not a loopback name: this server has no auth and answers only "
+        "requests addressed to localhost or 127.0.0.1 (a page's own name that "
+        "resolves here, DNS rebinding, cannot read it)"));
+  }
+  if (request.method != "POST") return absl::OkStatus();
+  if (!request.origin.empty()) {
+    const bool own = request.origin == absl::StrCat("http://", request.host) ||
+                     request.origin == absl::StrCat("https://", request.host);
+    const bool allowed =
+        std::find(options_.allowed_origins.begin(),
+                  options_.allowed_origins.end(),
+                  request.origin) != options_.allowed_origins.end();
+    if (!own && !allowed) {
+      return absl::PermissionDeniedError(absl::StrCat(
+          "a POST from a page of ", request.origin,
+          " is refused: only the server's own pages (and allowed origins) may "
+          "change its state"));
+    }
+  }
+  const std::string type = absl::AsciiStrToLower(
+      request.content_type.substr(0, request.content_type.find(';')));
+  const std::string bare(absl::StripAsciiWhitespace(type));
+  if (!request.authorization.has_value() &&
+      (bare == "text/plain" || bare == "application/x-www-form-urlencoded" ||
+       bare == "multipart/form-data")) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "a POST without credentials must be Content-Type: application/json, "
+        "not ",
+        bare, " (which any web page's form may send to this server)"));
+  }
+  return absl::OkStatus();
+}
+
 HttpResponse RestGateway::Handle(const HttpRequest& request) const {
+  if (absl::Status site = CheckSite(request); !site.ok()) {
+    HttpResponse refused = ErrorResponse(site);
+    if (absl::IsInvalidArgument(site)) refused.status = 415;
+    return refused;
+  }
   const std::vector<std::string> path = Segments(request.path);
   bool path_known = false;
   for (const Route& route : routes_) {

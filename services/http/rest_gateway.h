@@ -52,6 +52,11 @@ struct HttpRequest {
   std::optional<std::string> certificate_common_name;
   // The Last-Event-ID header (an EventSource resuming a watch), if sent.
   std::optional<std::string> last_event_id;
+  // The Host, Origin and Content-Type headers ("" when not sent): the
+  // cross-site checks (RestGateway::CheckSite).
+  std::string host;
+  std::string origin;
+  std::string content_type;
 };
 
 struct HttpResponse {
@@ -70,14 +75,22 @@ struct RestOptions {
   // Largest request body accepted; a larger one is 413 (the HTTP server
   // refuses it before reading it all).
   size_t max_body_bytes = 4 << 20;
-  // Watches over HTTP (server-sent events) each hold one of the HTTP
-  // server's threads (8 by default): at most max_watches at once (429
-  // beyond), each ended after max_watch (the client resumes from its
-  // Last-Event-ID), with a comment line every watch_heartbeat while the
-  // fleet is quiet (how a closed connection is noticed).
+  // Watches over HTTP (server-sent events) each hold a connection and its
+  // thread: at most max_watches at once (429 beyond), each ended after
+  // max_watch (the client resumes from its Last-Event-ID), with a comment line
+  // every watch_heartbeat while the fleet is quiet (how a closed connection is
+  // noticed).
   size_t max_watches = 4;
   absl::Duration max_watch = absl::Minutes(5);
   absl::Duration watch_heartbeat = absl::Seconds(15);
+  // Only requests addressed to a loopback name (Host localhost, 127.x.x.x,
+  // [::1], any port) are answered: a server without auth on a loopback
+  // port, which a web page could otherwise read through DNS rebinding (a
+  // name of the page's that resolves to 127.0.0.1).
+  bool loopback_hosts_only = false;
+  // Origins (scheme://host[:port]) besides the server's own whose pages may
+  // make state-changing calls (POST); others are refused.
+  std::vector<std::string> allowed_origins;
 };
 
 // One route of the table.
@@ -121,9 +134,18 @@ class RestGateway {
   // True if `path` is under the API prefix /v1/ (Handle answers it).
   static bool IsApiPath(const std::string& path);
 
-  // The answer to one request under /v1/: 404 for an unknown path, 405 for
-  // a known path with another verb, else the call's answer.
+  // The answer to one request under /v1/: CheckSite's refusal, 404 for an
+  // unknown path, 405 for a known path with another verb, else the call's
+  // answer.
   HttpResponse Handle(const HttpRequest& request) const;
+
+  // The cross-site checks, for the API and /metrics: PERMISSION_DENIED for a
+  // Host that is not a loopback name (with loopback_hosts_only) and for a
+  // POST from another site's page (an Origin that is neither the server's
+  // own nor allowed); INVALID_ARGUMENT for a POST without credentials whose
+  // Content-Type a cross-site form could send (text/plain, form encodings):
+  // such a POST must say application/json.
+  absl::Status CheckSite(const HttpRequest& request) const;
 
   const std::vector<Route>& routes() const { return routes_; }
 

@@ -373,6 +373,56 @@ TEST_F(RestGatewayTest, WatchChecksComeBeforeTheStreamAndSlotsAreBounded) {
   EXPECT_EQ(Get("/v1/fleets/alpha/watch").status, 503);
 }
 
+// Issue 32: on an open loopback port (the demo's), a page of any site could
+// POST (text/plain, Origin http://evil.example) and run consolidate or take a
+// snapshot, and any Host was answered, so DNS rebinding could read it all.
+TEST_F(RestGatewayTest, CrossSiteRequestsAreRefused) {
+  auto gateway = RestGateway::Create(
+      api_.get(), nullptr, nullptr,
+      RestOptions{.loopback_hosts_only = true,
+                  .allowed_origins = {"https://ops.example"}});
+  ASSERT_TRUE(gateway.ok()) << gateway.status();
+  auto call = [&](const std::string& method, const std::string& path,
+                  const std::string& host, const std::string& origin,
+                  const std::string& type) {
+    return (*gateway)
+        ->Handle({.method = method,
+                  .path = path,
+                  .body = method == "POST" ? "{}" : "",
+                  .host = host,
+                  .origin = origin,
+                  .content_type = type})
+        .status;
+  };
+  const std::string consolidate = "/v1/fleets/alpha/consolidate";
+  const uint64_t before = engine_->GetStats("alpha")->consolidations;
+  EXPECT_EQ(call("POST", consolidate, "127.0.0.1:8080", "http://evil.example",
+                 "text/plain"),
+            403);
+  EXPECT_EQ(call("POST", consolidate, "127.0.0.1:8080", "http://evil.example",
+                 "application/json"),
+            403);
+  EXPECT_EQ(call("POST", consolidate, "127.0.0.1:8080", "", "text/plain"), 415);
+  EXPECT_EQ(engine_->GetStats("alpha")->consolidations, before);
+  // DNS rebinding: the page's own name, resolved to 127.0.0.1.
+  EXPECT_EQ(call("GET", "/v1/fleets/alpha/stats", "evil.example:8080", "", ""),
+            403);
+  EXPECT_EQ(call("POST", consolidate, "evil.example:8080",
+                 "http://evil.example:8080", "application/json"),
+            403);
+  // The server's own pages, curl, and an allowed origin.
+  EXPECT_EQ(call("GET", "/v1/fleets/alpha/stats", "localhost:8080", "", ""),
+            200);
+  EXPECT_EQ(call("GET", "/v1/fleets/alpha/stats", "[::1]:8080", "", ""), 200);
+  EXPECT_EQ(call("POST", consolidate, "127.0.0.1:8080",
+                 "http://127.0.0.1:8080", "application/json"),
+            200);
+  EXPECT_EQ(call("POST", consolidate, "127.0.0.1:8080", "", ""), 200);
+  EXPECT_EQ(call("POST", consolidate, "127.0.0.1:8080", "https://ops.example",
+                 "application/json; charset=utf-8"),
+            200);
+}
+
 // The process's resident bytes now.
 size_t ResidentBytes() {
   std::ifstream statm("/proc/self/statm");

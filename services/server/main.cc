@@ -477,7 +477,10 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     absl::StatusOr<std::unique_ptr<http::RestGateway>> made =
         http::RestGateway::Create(
             &service.api(), authenticator.get(), service_options.on_call,
-            {.max_body_bytes = config.max_http_body_bytes});
+            {.max_body_bytes = config.max_http_body_bytes,
+             .loopback_hosts_only = authenticator == nullptr &&
+                                    IsLoopbackListen(config.http_listen),
+             .allowed_origins = config.http_allowed_origins});
     absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
         made.ok() ? http::HttpServer::Start(
                         HttpOptions(config),

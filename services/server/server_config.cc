@@ -432,6 +432,10 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   if (file.has_http_head_timeout_seconds()) {
     config->http_head_timeout_seconds = file.http_head_timeout_seconds();
   }
+  if (file.http_allowed_origins_size() > 0) {
+    config->http_allowed_origins.assign(file.http_allowed_origins().begin(),
+                                        file.http_allowed_origins().end());
+  }
   if (file.has_snapshot_dir()) config->snapshot_dir = file.snapshot_dir();
   if (file.has_log_level()) {
     absl::Status status = ApplyLogLevel("log_level", file.log_level(), config);

@@ -148,6 +148,9 @@ struct ServerConfig {
   size_t http_max_connections = 256;
   size_t http_max_connections_per_client = 64;
   uint32_t http_head_timeout_seconds = 10;
+  // Origins (scheme://host[:port]) besides the server's own whose pages may
+  // POST to the REST API (e.g. a dashboard served elsewhere).
+  std::vector<std::string> http_allowed_origins;
   // Where CreateSnapshot writes (SNAPSHOT_DIR/NAME/db); empty =
   // DATA_DIR/snapshots.
   std::string snapshot_dir;
