@@ -226,10 +226,17 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
       res.status = 404;
       return;
     }
-    if (absl::Status site = e->gateway->CheckSite(FromHttplib(req));
-        !site.ok()) {
+    const HttpRequest request = FromHttplib(req);
+    absl::Status site = e->gateway->CheckSite(request);
+    if (site.ok() && !e->metrics_without_auth) {
+      site = e->gateway->Authenticate(request).status();
+    }
+    if (!site.ok()) {
       HttpResponse refused = ErrorResponse(site);
       res.status = refused.status;
+      for (const auto& [name, value] : refused.headers) {
+        res.set_header(name, value);
+      }
       res.set_content(refused.body, refused.content_type.c_str());
       return;
     }

@@ -59,6 +59,9 @@ struct HttpEndpoints {
   // /readyz: true once the store is open and the server serves (and until
   // shutdown begins).
   std::function<bool()> ready;
+  // /metrics answers without credentials even with auth on (otherwise it
+  // needs a principal's, any role: it holds fleet ids).
+  bool metrics_without_auth = false;
 };
 
 // The endpoints served besides the REST routes and the dashboard's files

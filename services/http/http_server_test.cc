@@ -21,6 +21,8 @@
 #include "google/protobuf/util/json_util.h"
 #include "gtest/gtest.h"
 #include "httplib.h"
+#include "services/auth/authenticator.h"
+#include "services/auth/secret.h"
 #include "services/engine/memory_engine.h"
 #include "services/http/dashboard_assets.h"
 #include "services/index/exact_index.h"
@@ -220,6 +222,49 @@ TEST(HttpServerStartTest, BadAddressAndTlsFiles) {
   absl::Status status = HttpServer::Start(options, {gateway->get()}).status();
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(status.message(), HasSubstr("/nonexistent/cert.pem"));
+}
+
+// Issue 32: /metrics answered without credentials with auth on, fleet ids
+// and all. Decided: it follows auth (any principal), unless the operator
+// sets metrics_without_auth for a scraper on a private network.
+TEST(HttpMetricsAuthTest, MetricsFollowAuthUnlessSaidOtherwise) {
+  std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
+  auto engine = engine::MemoryEngine::Open(
+      {}, store.get(),
+      [](size_t dimension) { return index::NewExactIndex(dimension); });
+  ASSERT_TRUE(engine.ok());
+  auto memory = transport::EmbeddedMemory::Open(engine->get(), store.get());
+  ASSERT_TRUE(memory.ok());
+  transport::MemoryApi api(engine->get(), memory->get());
+  absl::StatusOr<std::string> hash = auth::HashSecret("s3cret");
+  ASSERT_TRUE(hash.ok());
+  auth::Authenticator authenticator(
+      {{auth::Principal{"scraper", auth::Role::kReader, "", {"*"}}, *hash,
+        ""}});
+  auto gateway = RestGateway::Create(&api, &authenticator, nullptr);
+  ASSERT_TRUE(gateway.ok());
+  for (const bool without_auth : {false, true}) {
+    HttpServerOptions options;
+    options.listen = "127.0.0.1:0";
+    auto server = HttpServer::Start(
+        options, {gateway->get(), [] { return std::string("up 1\n"); },
+                  [] { return true; }, without_auth});
+    ASSERT_TRUE(server.ok()) << server.status();
+    httplib::Client client("127.0.0.1", (*server)->port());
+    auto anonymous = client.Get("/metrics");
+    ASSERT_TRUE(anonymous);
+    EXPECT_EQ(anonymous->status, without_auth ? 200 : 401);
+    auto wrong =
+        client.Get("/metrics", {{"Authorization", "Bearer scraper:x"}});
+    ASSERT_TRUE(wrong);
+    EXPECT_EQ(wrong->status, without_auth ? 200 : 401);
+    auto scraped =
+        client.Get("/metrics", {{"Authorization", "Bearer scraper:s3cret"}});
+    ASSERT_TRUE(scraped);
+    EXPECT_EQ(scraped->status, 200);
+    EXPECT_EQ(scraped->body, "up 1\n");
+    EXPECT_EQ(client.Get("/healthz")->status, 200);  // probes stay open
+  }
 }
 
 // A TCP connection to 127.0.0.1:`port`; -1 if it cannot be made.

@@ -149,6 +149,11 @@ class RestGateway {
 
   const std::vector<Route>& routes() const { return routes_; }
 
+  // The caller's principal (anonymous with auth off); UNAUTHENTICATED for
+  // missing or wrong credentials.
+  absl::StatusOr<auth::Principal> Authenticate(
+      const HttpRequest& request) const;
+
   // Ends the watches being streamed (within a quarter second) and refuses
   // new ones with UNAVAILABLE: for shutdown, before the HTTP server stops.
   void Shutdown() { stopping_.store(true); }
@@ -158,8 +163,6 @@ class RestGateway {
               const auth::Authenticator* authenticator,
               transport::CallObserver on_call, RestOptions options,
               std::vector<Route> routes);
-  absl::StatusOr<auth::Principal> Authenticate(
-      const HttpRequest& request) const;
   HttpResponse Serve(const Route& route,
                      const std::map<std::string, std::string>& variables,
                      const HttpRequest& request, absl::StatusCode* code) const;

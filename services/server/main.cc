@@ -485,7 +485,8 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
         made.ok() ? http::HttpServer::Start(
                         HttpOptions(config),
                         {made->get(), [&metrics] { return metrics.Render(); },
-                         [&ready] { return ready.load(); }})
+                         [&ready] { return ready.load(); },
+                         security.metrics_without_auth})
                   : made.status();
     if (!started.ok()) {
       FLEETMEM_LOG(kError) << "HTTP: " << started.status().message();

@@ -218,6 +218,9 @@ void ApplySecurity(const SecurityConfigFile& in, SecurityConfig* out) {
     out->tls_reload_seconds =
         static_cast<int>(std::min<uint32_t>(in.tls_reload_seconds(), 86400));
   }
+  if (in.has_metrics_without_auth()) {
+    out->metrics_without_auth = in.metrics_without_auth();
+  }
   if (in.has_reflection_with_auth()) {
     out->reflection_with_auth = in.reflection_with_auth();
   }

@@ -57,6 +57,9 @@ struct SecurityConfig {
   // Server reflection with auth on (off by default then: reflection would be
   // answered without credentials). Without auth it is always on.
   bool reflection_with_auth = false;
+  // With auth on, /metrics needs a principal's credentials (any role) unless
+  // this is set (a scraper on a private network that sends no token).
+  bool metrics_without_auth = false;
 };
 
 // Distributed mode (docs/distributed.md); off when nats.servers is empty.
