@@ -91,6 +91,20 @@ absl::StatusOr<CredentialEntry> ToEntry(int index, const file::Principal& in) {
 
 }  // namespace
 
+namespace {
+
+bool SharesAFleet(const Principal& a, const Principal& b) {
+  for (const std::string& fleet : a.fleets) {
+    if (fleet == "*") return true;
+    for (const std::string& other : b.fleets) {
+      if (other == "*" || other == fleet) return true;
+    }
+  }
+  return false;
+}
+
+}  // namespace
+
 absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
     absl::string_view text) {
   file::CredentialsFile parsed;
@@ -113,6 +127,23 @@ absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
         !common_names.insert(entry->certificate_common_name).second) {
       return Bad(i, entry->principal.name,
                  "certificate_common_name: used by an earlier principal");
+    }
+    // Two robots acting as one robot id in a fleet would share its sequence
+    // numbers: the first to upload a seq takes it, the other's come back as
+    // duplicates.
+    if (entry->principal.role == Role::kRobot) {
+      for (const CredentialEntry& earlier : entries) {
+        if (earlier.principal.role == Role::kRobot &&
+            earlier.principal.robot_id == entry->principal.robot_id &&
+            SharesAFleet(earlier.principal, entry->principal)) {
+          return Bad(
+              i, entry->principal.name,
+              absl::StrCat("robot id \"", entry->principal.robot_id,
+                           "\" is already principal \"", earlier.principal.name,
+                           "\"'s in a fleet they share; a robot id "
+                           "belongs to one principal"));
+        }
+      }
     }
     entries.push_back(std::move(*entry));
   }

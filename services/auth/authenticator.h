@@ -35,7 +35,8 @@ struct CredentialEntry {
 // naming line and column for a syntax error, or the principal and field for
 // a bad value: invalid or repeated name, no role, a robot without a valid
 // robot id, a bad fleet id, neither secret_hash nor certificate, a malformed
-// secret hash, a certificate name used twice.
+// secret hash, a certificate name used twice, a robot id held by two robot
+// principals that share a fleet.
 absl::StatusOr<std::vector<CredentialEntry>> ParseCredentials(
     absl::string_view text);
 

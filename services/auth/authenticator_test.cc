@@ -84,6 +84,27 @@ TEST(ParseCredentialsTest, RejectsBadEntries) {
   }
 }
 
+// Issue 32: a second principal acting as robot-7 uploaded robot-7's seqs
+// first, and the real robot-7's came back as duplicates.
+TEST(ParseCredentialsTest, ARobotIdBelongsToOnePrincipal) {
+  const std::string hash = Hash("s");
+  auto robot = [&](const std::string& name, const std::string& robot_id,
+                   const std::string& fleet) {
+    return absl::StrCat(
+        "principal { name: \"", name, "\" role: ROBOT robot_id: \"", robot_id,
+        "\" fleets: \"", fleet, "\" secret_hash: \"", hash, "\" }\n");
+  };
+  absl::StatusOr<std::vector<CredentialEntry>> twins = ParseCredentials(
+      robot("robot-7", "robot-7", "f1") + robot("twin", "robot-7", "*"));
+  ASSERT_FALSE(twins.ok());
+  EXPECT_THAT(twins.status().message(), HasSubstr("robot id \"robot-7\""));
+  EXPECT_THAT(twins.status().message(), HasSubstr("twin"));
+  // The same id in fleets that do not meet is two robots.
+  EXPECT_TRUE(ParseCredentials(robot("robot-7", "robot-7", "f1") +
+                               robot("other-7", "robot-7", "f2"))
+                  .ok());
+}
+
 class AuthenticatorTest : public ::testing::Test {
  protected:
   std::vector<CredentialEntry> Entries(const std::string& secret) {
