@@ -30,6 +30,12 @@ namespace {
 constexpr char kFleet[] = "full";
 constexpr size_t kBatch = 200;
 
+// The store's reserve file (storage/rocksdb_store.cc) under `data_dir`.
+bool HasReserveFile(const std::string& data_dir) {
+  struct stat info;
+  return stat((data_dir + "/db.reserve").c_str(), &info) == 0;
+}
+
 TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   TempDir dir("fleetmem-diskfull-");
   const std::string mount_point = dir.Join("fs");
@@ -133,6 +139,26 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   std::cout << "acknowledged " << acknowledged
             << " traces before the disk filled\n";
 
+  // A crash while the filesystem is full: the restart in place opens (it
+  // aborted in RocksDB's open before the reserve file, issue 32), serves
+  // reads and refuses writes.
+  EXPECT_TRUE(HasReserveFile(options.data_dir));
+  stub.reset();
+  server->Kill();
+  server = std::make_unique<ServerProcess>(options);
+  ASSERT_TRUE(server->Start().ok()) << server->Output();
+  stub = MakeStub(server->address());
+  stats = GetStats(*stub, kFleet);
+  ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+  EXPECT_EQ(stats.response.traces() + stats.response.pending_traces() +
+                stats.response.backlog_traces(),
+            acknowledged);
+  EXPECT_TRUE(QueryCode(*stub, kFleet, code, 3).ok());
+  const grpc::Status after_crash =
+      UploadTraces(*stub, kFleet, MakeTraces(spec)).status;
+  ASSERT_FALSE(after_crash.ok());
+  refusal(after_crash);
+
   // Space returns: writes resume by themselves.
   ASSERT_EQ(unlink(filler.c_str()), 0);
   ASSERT_EQ(unlink(last_bytes.c_str()), 0);
@@ -141,6 +167,7 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
       UploadTraces(*stub, kFleet, MakeTraces(spec));
   ASSERT_TRUE(resumed.ok()) << Describe(resumed.status);
   acknowledged += resumed.response.accepted();
+  EXPECT_TRUE(HasReserveFile(options.data_dir));  // taken again
 
   // Every acknowledged trace survives a kill -9 and a restart in place.
   stub.reset();

@@ -1,6 +1,8 @@
 #include "services/storage/rocksdb_store.h"
 
+#include <fcntl.h>
 #include <sys/statvfs.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
@@ -326,6 +328,30 @@ absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
   return static_cast<uint64_t>(info.f_bavail) * info.f_frsize;
 }
 
+// The reserve file (PATH.reserve): half of min_free_bytes, held as a file
+// from the first write that finds room, for an open on a filesystem another
+// process has filled: Open gives it back first, so that RocksDB's recovery
+// (a new write-ahead log, the manifest, a flush) finds room. Debian's
+// RocksDB asserts on a failed write-ahead-log write: such a restart aborted
+// at open before. While it is held, our writes stop at min_free_bytes minus
+// its size (the reserve in all is unchanged); once given back, writes wait
+// until min_free_bytes is free and it can be taken again.
+std::string ReservePath(const std::string& path) { return path + ".reserve"; }
+
+bool CreateReserve(const std::string& file, uint64_t bytes) {
+  const int fd = open(file.c_str(), O_WRONLY | O_CREAT | O_CLOEXEC, 0600);
+  if (fd < 0) return false;
+  const bool made = posix_fallocate(fd, 0, static_cast<off_t>(bytes)) == 0 &&
+                    fdatasync(fd) == 0;
+  close(fd);
+  if (!made) unlink(file.c_str());
+  return made;
+}
+
+bool HasReserve(const std::string& file) {
+  return access(file.c_str(), F_OK) == 0;
+}
+
 class RocksDbStore final : public engine::MemoryStore {
  public:
   RocksDbStore(std::unique_ptr<rocksdb::DB> db,
@@ -333,8 +359,11 @@ class RocksDbStore final : public engine::MemoryStore {
       : db_(std::move(db)),
         path_(options.path),
         min_free_bytes_(options.min_free_bytes),
-        free_bytes_(options.free_bytes ? options.free_bytes
-                                       : StatvfsFreeBytes) {
+        free_bytes_(options.free_bytes ? options.free_bytes : StatvfsFreeBytes),
+        // Only on a real filesystem: an injected free-space count would not
+        // see the file.
+        reserve_bytes_(options.free_bytes ? 0 : options.min_free_bytes / 2),
+        reserve_held_(reserve_bytes_ > 0 && HasReserve(ReservePath(path_))) {
     write_options_.sync = options.sync;
     synced_write_options_.sync = true;
     unsynced_write_options_.sync = false;
@@ -779,8 +808,14 @@ class RocksDbStore final : public engine::MemoryStore {
     if (min_free_bytes_ == 0) return absl::OkStatus();
     absl::StatusOr<uint64_t> free = free_bytes_(path_);
     if (!free.ok()) return free.status();
-    const uint64_t needed = min_free_bytes_ + bytes;
+    absl::MutexLock reserve(&reserve_mu_);
+    // The reserve file holds part of the reserve while it exists.
+    const uint64_t needed =
+        min_free_bytes_ - (reserve_held_ ? reserve_bytes_ : 0) + bytes;
     if (*free >= needed) {
+      if (!reserve_held_ && reserve_bytes_ > 0) {
+        reserve_held_ = CreateReserve(ReservePath(path_), reserve_bytes_);
+      }
       if (low_space_) {
         FLEETMEM_LOG(kInfo) << "disk space is back under " << path_ << " ("
                             << *free << " bytes free); writes resume";
@@ -829,6 +864,9 @@ class RocksDbStore final : public engine::MemoryStore {
   // Written by Apply (under apply_mu_) and by the log's appends and trims
   // (not under it).
   std::atomic<bool> low_space_ = false;
+  const uint64_t reserve_bytes_;  // 0: no reserve file
+  absl::Mutex reserve_mu_;
+  bool reserve_held_ ABSL_GUARDED_BY(reserve_mu_);
   std::atomic<bool> write_failed_ = false;
 };
 
@@ -915,6 +953,21 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
       return absl::UnavailableError(
           absl::StrCat("cannot create RocksDB directory '", options.path,
                        "': ", error.message()));
+    }
+  }
+  // On a nearly full filesystem the reserve file goes first: opening writes
+  // (a new write-ahead log, the manifest, a flush of the recovered one).
+  const std::string reserve = ReservePath(options.path);
+  if (!options.free_bytes && options.min_free_bytes > 0 &&
+      HasReserve(reserve)) {
+    absl::StatusOr<uint64_t> free = StatvfsFreeBytes(options.path);
+    if (!free.ok() || *free < options.min_free_bytes) {
+      unlink(reserve.c_str());
+      FLEETMEM_LOG(kWarning)
+          << "disk nearly full under " << options.path
+          << (free.ok() ? absl::StrCat(" (", *free, " bytes free)") : "")
+          << ": reserve file given back so that the store can open; writes "
+             "are refused until space is freed";
     }
   }
   rocksdb::DB* raw = nullptr;
