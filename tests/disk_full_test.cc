@@ -41,16 +41,12 @@ bool HasReserveFile(const std::string& data_dir) {
   return stat((data_dir + "/db.reserve").c_str(), &info) == 0;
 }
 
-TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
-  TempDir dir("fleetmem-diskfull-");
-  const std::string mount_point = dir.Join("fs");
-  ASSERT_EQ(mkdir(mount_point.c_str(), 0700), 0);
-  SmallFilesystem filesystem(mount_point, 48);
-  if (!filesystem.mounted()) GTEST_SKIP() << filesystem.why_not();
-
+// A server whose data lives on the small filesystem at `mount_point`: a
+// reserve of 6 MiB, small memtables, and nothing consolidated (so nothing is
+// forgotten: every acknowledged trace must stay in the fleet).
+ServerOptions SmallDiskServer(const TempDir& dir,
+                              const std::string& mount_point) {
   const std::string config = dir.Join("server.textproto");
-  // Nothing is consolidated (so nothing is forgotten): every acknowledged
-  // trace must stay in the fleet.
   std::ofstream(config) << "storage { min_free_bytes: " << 6 * kMiB
                         << " write_buffer_bytes: " << 2 * kMiB << " }\n"
                         << "engine { segment_size: 1000000 }\n";
@@ -58,6 +54,17 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   options.data_dir = mount_point + "/data";
   options.config_file = config;
   options.log_file = dir.Join("server.log");
+  return options;
+}
+
+TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
+  TempDir dir("fleetmem-diskfull-");
+  const std::string mount_point = dir.Join("fs");
+  ASSERT_EQ(mkdir(mount_point.c_str(), 0700), 0);
+  SmallFilesystem filesystem(mount_point, 48);
+  if (!filesystem.mounted()) GTEST_SKIP() << filesystem.why_not();
+
+  const ServerOptions options = SmallDiskServer(dir, mount_point);
   auto server = std::make_unique<ServerProcess>(options);
   // On failure, show what the server said (a crash names its cause there).
   struct PrintLogOnFailure {
@@ -214,14 +221,7 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
     ASSERT_EQ(mkdir(mount_point.c_str(), 0700), 0);
     SmallFilesystem filesystem(mount_point, 48);
     if (!filesystem.mounted()) GTEST_SKIP() << filesystem.why_not();
-    const std::string config = dir.Join("server.textproto");
-    std::ofstream(config) << "storage { min_free_bytes: " << 6 * kMiB
-                          << " write_buffer_bytes: " << 2 * kMiB << " }\n"
-                          << "engine { segment_size: 1000000 }\n";
-    ServerOptions options;
-    options.data_dir = mount_point + "/data";
-    options.config_file = config;
-    options.log_file = dir.Join("server.log");
+    const ServerOptions options = SmallDiskServer(dir, mount_point);
     auto server = std::make_unique<ServerProcess>(options);
     ASSERT_TRUE(server->Start().ok()) << server->Output();
     // Leave 12 MiB or so, so that the fill comes within a second or two.

@@ -201,15 +201,30 @@ TEST_F(HttpServerTest, OpenApiDescribesExactlyTheRoutesThatAnswer) {
   }
 }
 
-TEST(HttpServerStartTest, BadAddressAndTlsFiles) {
+// An engine on the in-memory store and the API over it.
+struct InMemoryApi {
+  absl::Status Open() {
+    auto opened = engine::MemoryEngine::Open(
+        {}, store.get(),
+        [](size_t dimension) { return index::NewExactIndex(dimension); });
+    if (!opened.ok()) return opened.status();
+    engine = std::move(*opened);
+    auto embedded = transport::EmbeddedMemory::Open(engine.get(), store.get());
+    if (!embedded.ok()) return embedded.status();
+    memory = std::move(*embedded);
+    api = std::make_unique<transport::MemoryApi>(engine.get(), memory.get());
+    return absl::OkStatus();
+  }
   std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
-  auto engine = engine::MemoryEngine::Open(
-      {}, store.get(),
-      [](size_t dimension) { return index::NewExactIndex(dimension); });
-  ASSERT_TRUE(engine.ok());
-  auto memory = transport::EmbeddedMemory::Open(engine->get(), store.get());
-  ASSERT_TRUE(memory.ok()) << memory.status();
-  transport::MemoryApi api(engine->get(), memory->get());
+  std::unique_ptr<engine::MemoryEngine> engine;
+  std::unique_ptr<transport::EmbeddedMemory> memory;
+  std::unique_ptr<transport::MemoryApi> api;
+};
+
+TEST(HttpServerStartTest, BadAddressAndTlsFiles) {
+  InMemoryApi in_memory;
+  ASSERT_TRUE(in_memory.Open().ok());
+  transport::MemoryApi& api = *in_memory.api;
   auto gateway = RestGateway::Create(&api, nullptr, nullptr);
   ASSERT_TRUE(gateway.ok());
   HttpServerOptions options;
@@ -228,14 +243,9 @@ TEST(HttpServerStartTest, BadAddressAndTlsFiles) {
 // and all. Decided: it follows auth (any principal), unless the operator
 // sets metrics_without_auth for a scraper on a private network.
 TEST(HttpMetricsAuthTest, MetricsFollowAuthUnlessSaidOtherwise) {
-  std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
-  auto engine = engine::MemoryEngine::Open(
-      {}, store.get(),
-      [](size_t dimension) { return index::NewExactIndex(dimension); });
-  ASSERT_TRUE(engine.ok());
-  auto memory = transport::EmbeddedMemory::Open(engine->get(), store.get());
-  ASSERT_TRUE(memory.ok());
-  transport::MemoryApi api(engine->get(), memory->get());
+  InMemoryApi in_memory;
+  ASSERT_TRUE(in_memory.Open().ok());
+  transport::MemoryApi& api = *in_memory.api;
   absl::StatusOr<std::string> hash = auth::HashSecret("s3cret");
   ASSERT_TRUE(hash.ok());
   auth::Authenticator authenticator(
