@@ -115,6 +115,26 @@ TEST_F(LimitsTest, StreamsPerClient) {
   EXPECT_TRUE(again.ok()) << Describe(again);
 }
 
+// Issue 32: an upload stream that never sends held its slot for good.
+TEST_F(LimitsTest, IdleUploadStreamsAreCancelled) {
+  ASSERT_NO_FATAL_FAILURE(
+      Start("limits { max_streams_per_client: 1 stream_idle_seconds: 1 }\n"));
+  auto context = MakeContext(std::chrono::seconds(30));
+  v1::UploadTracesResponse response;
+  auto idle = stub_->UploadTraces(context.get(), &response);
+  // It holds the client's one slot until the server cancels it.
+  TraceSpec spec{.robot_id = "r1", .count = 10, .dimension = 8};
+  grpc::Status status;
+  const auto start = std::chrono::steady_clock::now();
+  do {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    status = UploadTraces(*stub_, kFleet, MakeTraces(spec)).status;
+  } while (!status.ok() &&
+           std::chrono::steady_clock::now() - start < std::chrono::seconds(10));
+  EXPECT_TRUE(status.ok()) << Describe(status);
+  EXPECT_EQ(idle->Finish().error_code(), grpc::StatusCode::CANCELLED);
+}
+
 TEST_F(LimitsTest, CompactedCursorIsOutOfRange) {
   ASSERT_NO_FATAL_FAILURE(
       Start("engine { max_events_per_fleet: 5 segment_size: 20 }\n"

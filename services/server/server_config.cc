@@ -102,6 +102,9 @@ void ApplyLimits(const LimitsConfig& in, engine::QuotaOptions* out,
   if (in.has_max_code_dimension()) {
     out->max_code_dimension = in.max_code_dimension();
   }
+  if (in.has_stream_idle_seconds()) {
+    service->stream_idle_timeout = absl::Seconds(in.stream_idle_seconds());
+  }
   if (in.has_max_streams_per_client()) {
     service->max_streams_per_client = in.max_streams_per_client();
   }
@@ -607,6 +610,10 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
     return absl::InvalidArgumentError(
         absl::StrCat("http_listen: \"", config.http_listen,
                      "\" is not HOST:PORT with a port in 0..65535"));
+  }
+  if (config.service.stream_idle_timeout < absl::Seconds(1)) {
+    return absl::InvalidArgumentError(
+        "limits.stream_idle_seconds: must be at least 1");
   }
   if (config.max_http_body_bytes < 1024) {
     return absl::InvalidArgumentError(

@@ -55,19 +55,4 @@ absl::StatusOr<auth::Principal> AuthenticateCall(
   return authenticator->Authenticate(PresentedBy(context));
 }
 
-absl::StatusOr<auth::Principal> AuthorizeCall(
-    const auth::Authenticator* authenticator,
-    const grpc::CallbackServerContext& context, auth::Action action,
-    absl::string_view fleet_id, absl::string_view robot_id) {
-  absl::StatusOr<auth::Principal> principal =
-      AuthenticateCall(authenticator, context);
-  if (!principal.ok()) return principal.status();
-  if (absl::Status allowed =
-          auth::Authorize(*principal, action, fleet_id, robot_id);
-      !allowed.ok()) {
-    return allowed;
-  }
-  return principal;
-}
-
 }  // namespace fleetmem::transport

@@ -1,8 +1,7 @@
 // The gRPC side of the access policy: what a call presents (the
 // `authorization: Bearer NAME:SECRET` header, the common name of a client
 // certificate verified by TLS) goes to auth::Authenticator, and the
-// principal to auth::Authorize. Every handler of the service calls
-// AuthorizeCall before its work.
+// principal to auth::Authorize (by MemoryApi, after AuthenticateCall).
 #ifndef FLEETMEM_SERVICES_TRANSPORT_CALL_AUTH_H_
 #define FLEETMEM_SERVICES_TRANSPORT_CALL_AUTH_H_
 
@@ -35,12 +34,6 @@ std::string ClientName(const auth::Authenticator* authenticator,
 absl::StatusOr<auth::Principal> AuthenticateCall(
     const auth::Authenticator* authenticator,
     const grpc::CallbackServerContext& context);
-
-// AuthenticateCall, then auth::Authorize(principal, action, fleet, robot).
-absl::StatusOr<auth::Principal> AuthorizeCall(
-    const auth::Authenticator* authenticator,
-    const grpc::CallbackServerContext& context, auth::Action action,
-    absl::string_view fleet_id, absl::string_view robot_id = {});
 
 }  // namespace fleetmem::transport
 

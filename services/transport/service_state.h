@@ -43,6 +43,9 @@ struct ServiceOptions {
   // 0 = unlimited. One more is refused with RESOURCE_EXHAUSTED naming the
   // limit max_streams_per_client.
   size_t max_streams_per_client = 64;
+  // An upload stream whose client sends neither a message nor the end of
+  // the stream for this long is cancelled (its slot and memory come back).
+  absl::Duration stream_idle_timeout = absl::Seconds(60);
 };
 
 // Thread-safe. Owned by the service; outlives every call (the server's

@@ -1,5 +1,6 @@
 #include "services/transport/upload_reactor.h"
 
+#include <chrono>
 #include <span>
 #include <utility>
 #include <vector>
@@ -45,6 +46,7 @@ UploadReactor::UploadReactor(ServiceState* state,
                              grpc::CallbackServerContext* context,
                              grpc::ByteBuffer* response)
     : state_(state), context_(context), response_(response) {
+  idle_->context = context;
   if (state_->shutting_down()) {
     Done(ShuttingDownStatus());
     return;
@@ -64,6 +66,7 @@ UploadReactor::UploadReactor(ServiceState* state,
   }
   client_ = std::move(client);
   caller_ = *std::move(caller);
+  idle_->client = client_;
   absl::MutexLock lock(&mu_);
   MaybeRead();
 }
@@ -101,10 +104,29 @@ void UploadReactor::MaybeRead() {
     return;
   }
   reading_ = true;
+  // The client has stream_idle_timeout to send its next message (or close
+  // its side); a stream that sends nothing holds a slot and memory.
+  idle_alarm_ = std::make_unique<grpc::Alarm>();
+  idle_alarm_->Set(
+      std::chrono::system_clock::now() +
+          absl::ToChronoMilliseconds(state_->options().stream_idle_timeout),
+      [idle = idle_](bool fired) {
+        if (!fired) return;  // cancelled: the message came
+        absl::MutexLock lock(&idle->mu);
+        if (idle->done) return;
+        FLEETMEM_LOG(kWarning) << "UploadTraces stream of " << idle->client
+                               << " cancelled: no message for "
+                               << "stream_idle_timeout";
+        idle->context->TryCancel();
+      });
   StartRead(&buffer_);
 }
 
 void UploadReactor::OnReadDone(bool ok) {
+  {
+    absl::MutexLock lock(&mu_);
+    idle_alarm_.reset();  // cancels it
+  }
   if (!ok) {
     // The client closed its side (or the call broke): once every message
     // read so far is stored, report the totals.
@@ -287,6 +309,11 @@ void UploadReactor::Done(const grpc::Status& status) {
 }
 
 void UploadReactor::OnDone() {
+  {
+    absl::MutexLock lock(&idle_->mu);
+    idle_->done = true;  // the context goes with this reactor
+  }
+  idle_alarm_.reset();
   if (!client_.empty()) state_->ReleaseStream(client_);
   delete this;
 }

@@ -4,6 +4,7 @@
 
 #include <cstdint>
 #include <deque>
+#include <memory>
 #include <optional>
 #include <string>
 
@@ -14,6 +15,7 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
+#include "grpcpp/alarm.h"
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/server_callback.h"
 #include "services/auth/access_policy.h"
@@ -45,6 +47,8 @@ absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
 //   RESOURCE_EXHAUSTED  a full pool, the client's open streams
 //                       (max_streams_per_client) or an upload quota;
 //   DEADLINE_EXCEEDED   a passed deadline;
+//   CANCELLED           no message (nor the end of the stream) within
+//                       ServiceOptions::stream_idle_timeout;
 //   UNAVAILABLE         a message arriving after shutdown began;
 //   the engine's error otherwise (e.g. a failed write: nothing of that
 //   message is stored).
@@ -96,7 +100,15 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   uint64_t read_ = 0;        // messages read (gRPC's reactions only)
   std::string fleet_id_;     // of the first message, set before any store
   std::string client_;       // holds a stream slot if set
-  auth::Principal caller_;   // authenticated before the slot is taken
+  // What the idle alarm's callback may touch, which can outlive the reactor.
+  struct Idle {
+    absl::Mutex mu;
+    grpc::CallbackServerContext* context = nullptr;
+    bool done ABSL_GUARDED_BY(mu) = false;  // OnDone ran: context is gone
+    std::string client;
+  };
+  const std::shared_ptr<Idle> idle_ = std::make_shared<Idle>();
+  auth::Principal caller_;  // authenticated before the slot is taken
   const absl::Time started_ = absl::Now();
 
   absl::Mutex mu_;
@@ -107,6 +119,8 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   bool storing_ ABSL_GUARDED_BY(mu_) = false;       // a store task runs
   bool stop_reading_ ABSL_GUARDED_BY(mu_) = false;  // a message failed
   bool finished_ ABSL_GUARDED_BY(mu_) = false;      // Finish was called
+  // Armed while a read waits for the client (stream_idle_timeout).
+  std::unique_ptr<grpc::Alarm> idle_alarm_ ABSL_GUARDED_BY(mu_);
 
   // The store task's.
   v1::UploadTracesResponse totals_;           // the running totals
