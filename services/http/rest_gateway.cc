@@ -369,7 +369,10 @@ bool IsLoopbackName(absl::string_view host) {
 }  // namespace
 
 absl::Status RestGateway::CheckSite(const HttpRequest& request) const {
-  if (options_.loopback_hosts_only && !IsLoopbackName(request.host)) {
+  // A request without Host (HTTP/1.0 tools) is no browser's: browsers
+  // always send the name they resolved.
+  if (options_.loopback_hosts_only && !request.host.empty() &&
+      !IsLoopbackName(request.host)) {
     return absl::PermissionDeniedError(absl::StrCat(
         "Host \"", request.host,
         "\" is not a loopback name: this server has no auth and answers only "

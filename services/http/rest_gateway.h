@@ -84,7 +84,7 @@ struct RestOptions {
   absl::Duration max_watch = absl::Minutes(5);
   absl::Duration watch_heartbeat = absl::Seconds(15);
   // Only requests addressed to a loopback name (Host localhost, 127.x.x.x,
-  // [::1], any port) are answered: a server without auth on a loopback
+  // [::1], any port; or no Host, which browsers always send) are answered: a server without auth on a loopback
   // port, which a web page could otherwise read through DNS rebinding (a
   // name of the page's that resolves to 127.0.0.1).
   bool loopback_hosts_only = false;

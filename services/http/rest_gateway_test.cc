@@ -414,6 +414,7 @@ TEST_F(RestGatewayTest, CrossSiteRequestsAreRefused) {
   EXPECT_EQ(call("GET", "/v1/fleets/alpha/stats", "localhost:8080", "", ""),
             200);
   EXPECT_EQ(call("GET", "/v1/fleets/alpha/stats", "[::1]:8080", "", ""), 200);
+  EXPECT_EQ(call("GET", "/v1/fleets/alpha/stats", "", "", ""), 200);  // 1.0
   EXPECT_EQ(call("POST", consolidate, "127.0.0.1:8080", "http://127.0.0.1:8080",
                  "application/json"),
             200);
