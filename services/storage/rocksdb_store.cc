@@ -328,14 +328,14 @@ absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
   return static_cast<uint64_t>(info.f_bavail) * info.f_frsize;
 }
 
-// The reserve file (PATH.reserve): half of min_free_bytes, held as a file
-// from the first write that finds room, for an open on a filesystem another
-// process has filled: Open gives it back first, so that RocksDB's recovery
-// (a new write-ahead log, the manifest, a flush) finds room. Debian's
-// RocksDB asserts on a failed write-ahead-log write: such a restart aborted
-// at open before. While it is held, our writes stop at min_free_bytes minus
-// its size (the reserve in all is unchanged); once given back, writes wait
-// until min_free_bytes is free and it can be taken again.
+// The reserve file (PATH.reserve): half of min_free_bytes more, held as a
+// file from the first write that finds room for it above min_free_bytes,
+// for an open on a filesystem another process has filled: Open gives it
+// back first, so that RocksDB's recovery (a new write-ahead log, the
+// manifest, a flush) finds room. Debian's RocksDB asserts on a failed
+// write-ahead-log write: such a restart aborted at open before. Writes
+// still stop at min_free_bytes free; the file is taken again once there is
+// room for it above that.
 std::string ReservePath(const std::string& path) { return path + ".reserve"; }
 
 bool CreateReserve(const std::string& file, uint64_t bytes) {
@@ -809,11 +809,13 @@ class RocksDbStore final : public engine::MemoryStore {
     absl::StatusOr<uint64_t> free = free_bytes_(path_);
     if (!free.ok()) return free.status();
     absl::MutexLock reserve(&reserve_mu_);
-    // The reserve file holds part of the reserve while it exists.
-    const uint64_t needed =
-        min_free_bytes_ - (reserve_held_ ? reserve_bytes_ : 0) + bytes;
+    const uint64_t needed = min_free_bytes_ + bytes;
     if (*free >= needed) {
-      if (!reserve_held_ && reserve_bytes_ > 0) {
+      // The reserve file comes on top of min_free_bytes: RocksDB's flushes
+      // need all of that while serving (with half of it, a flush met a full
+      // disk and RocksDB aborted).
+      if (!reserve_held_ && reserve_bytes_ > 0 &&
+          *free >= needed + reserve_bytes_) {
         reserve_held_ = CreateReserve(ReservePath(path_), reserve_bytes_);
       }
       if (low_space_) {
