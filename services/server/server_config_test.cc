@@ -171,6 +171,14 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
   EXPECT_EQ(config.engine.max_sample_count, defaults.engine.max_sample_count);
   EXPECT_EQ(config.storage.sync, defaults.storage.sync);
   EXPECT_EQ(config.storage.min_free_bytes, defaults.storage.min_free_bytes);
+  EXPECT_EQ(config.http_max_connections, defaults.http_max_connections);
+  EXPECT_EQ(config.http_max_connections_per_client,
+            defaults.http_max_connections_per_client);
+  EXPECT_EQ(config.http_head_timeout_seconds,
+            defaults.http_head_timeout_seconds);
+  EXPECT_EQ(config.service.stream_idle_timeout,
+            defaults.service.stream_idle_timeout);
+  EXPECT_EQ(config.engine.max_read_bytes, defaults.engine.max_read_bytes);
   EXPECT_EQ(config.engine.max_events_per_fleet,
             defaults.engine.max_events_per_fleet);
   EXPECT_EQ(config.engine.limits.max_fleets, defaults.engine.limits.max_fleets);
