@@ -24,8 +24,9 @@ struct ConnectionLimits {
   absl::Duration body_timeout = absl::Seconds(60);
   // How often deadlines are checked.
   absl::Duration check_every = absl::Milliseconds(100);
-  // Called with the client's address for each connection refused or closed
-  // by a limit (for a metric or a log; may be empty).
+  // Called with the reason (naming the client's address) for each
+  // connection refused or closed by a limit (for a metric or a log; may be
+  // empty).
   std::function<void(const std::string& reason)> on_refused;
 };
 

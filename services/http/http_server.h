@@ -8,10 +8,11 @@
 // (connection_guard.h), so slow clients cannot starve the probes.
 //
 // Access: /v1/ applies the server's identity and roles (401, 403 as for
-// gRPC). /healthz, /readyz, /metrics, /openapi.json and the dashboard's static
-// files need no credentials: the probes and Prometheus scrape without them,
-// /metrics holds counts per fleet id but no codes or places, and the page holds
-// no data (it asks the person for a reader token when the API answers 401).
+// gRPC). /healthz, /readyz, /openapi.json and the dashboard's static files
+// need no credentials: the probes carry none, and the page holds no data (it
+// asks the person for a reader token when the API answers 401). /metrics
+// holds fleet ids and follows auth unless HttpEndpoints::metrics_without_auth.
+// RestGateway::CheckSite's cross-site rules apply to /v1/ and /metrics.
 #ifndef FLEETMEM_SERVICES_HTTP_HTTP_SERVER_H_
 #define FLEETMEM_SERVICES_HTTP_HTTP_SERVER_H_
 
