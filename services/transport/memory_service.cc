@@ -53,9 +53,11 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
     const grpc::ByteBuffer* request, grpc::ByteBuffer* response) {
   const absl::Time started = absl::Now();
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-  const std::string& name = method->name();
-  auto finish = [this, reactor, &name, started](const grpc::Status& status) {
-    state_.ObserveCall(name, static_cast<absl::StatusCode>(status.error_code()),
+  // `method` (a descriptor of the generated pool) outlives the call; a
+  // reference to a local would not outlive RunUnary.
+  auto finish = [this, reactor, method, started](const grpc::Status& status) {
+    state_.ObserveCall(method->name(),
+                       static_cast<absl::StatusCode>(status.error_code()),
                        started);
     reactor->Finish(status);
   };
