@@ -200,6 +200,75 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   if (HasFailure()) std::cerr << server->Output();
 }
 
+// Takes every free byte under `mount_point` (RocksDB may free files
+// meanwhile: topped up a few times), in files named `prefix`N.
+void FillUp(const std::string& mount_point, const std::string& prefix) {
+  for (int i = 0; i < 5 && FreeBytes(mount_point) > 0; ++i) {
+    Fill(mount_point + "/" + prefix + std::to_string(i),
+         FreeBytes(mount_point));
+  }
+}
+
+// Issue 32: a store never written to, on a filesystem another process has
+// filled. The reserve file is taken at the first open, so the restart opens
+// (reads served, writes refused); once that file has been given back and
+// the space taken too, the open is refused with a clear error (no abort in
+// RocksDB's open); space freed, the server starts and writes again.
+TEST(DiskFullTest, AStoreNeverWrittenToRestartsOnAFilledDisk) {
+  TempDir dir("fleetmem-diskopen-");
+  const std::string mount_point = dir.Join("fs");
+  ASSERT_EQ(mkdir(mount_point.c_str(), 0700), 0);
+  SmallFilesystem filesystem(mount_point, 48);
+  if (!filesystem.mounted()) GTEST_SKIP() << filesystem.why_not();
+  const ServerOptions options = SmallDiskServer(dir, mount_point);
+  {
+    ServerProcess server(options);
+    ASSERT_TRUE(server.Start().ok()) << server.Output();
+    EXPECT_EQ(server.Stop().value_or(-1), 0);
+  }
+  EXPECT_TRUE(HasReserveFile(options.data_dir));
+
+  FillUp(mount_point, "first");
+  TraceSpec spec{.robot_id = "robot-1", .count = 10, .dimension = 256};
+  {
+    ServerProcess server(options);
+    ASSERT_TRUE(server.Start().ok()) << server.Output();
+    const grpc::Status refused =
+        UploadTraces(*MakeStub(server.address()), kFleet, MakeTraces(spec))
+            .status;
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED)
+        << Describe(refused);
+    EXPECT_EQ(server.Stop().value_or(-1), 0) << server.Output();
+  }
+  EXPECT_FALSE(HasReserveFile(options.data_dir));  // given back at open
+
+  FillUp(mount_point, "second");
+  {
+    ServerProcess server(options);
+    const absl::Status started = server.Start();
+    ASSERT_FALSE(started.ok());
+    EXPECT_TRUE(absl::StrContains(started.message(), "disk nearly full"))
+        << started;
+    EXPECT_TRUE(absl::StrContains(started.message(), "nothing was opened"))
+        << started;
+    EXPECT_FALSE(absl::StrContains(started.message(), "Assertion")) << started;
+  }
+
+  for (const char* prefix : {"first", "second"}) {
+    for (int i = 0; i < 5; ++i) {
+      unlink((mount_point + "/" + prefix + std::to_string(i)).c_str());
+    }
+  }
+  ServerProcess server(options);
+  ASSERT_TRUE(server.Start().ok()) << server.Output();
+  Reply<v1::UploadTracesResponse> written =
+      UploadTraces(*MakeStub(server.address()), kFleet, MakeTraces(spec));
+  ASSERT_TRUE(written.ok()) << Describe(written.status);
+  EXPECT_EQ(written.response.accepted(), spec.count);
+  EXPECT_TRUE(HasReserveFile(options.data_dir));
+  EXPECT_EQ(server.Stop().value_or(-1), 0);
+}
+
 // Issue 32: another process filling the filesystem *during* uploads (the
 // test above fills it between them). Each trial: a robot uploads without
 // pause; another writer takes every free byte at a seeded moment; the server

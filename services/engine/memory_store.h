@@ -205,6 +205,13 @@ class MemoryStore {
   // Approximate bytes the store takes on disk (0 when it keeps nothing
   // there), for metrics.
   virtual uint64_t ApproximateDiskBytes() { return 0; }
+
+  // The store's own memory outside the traces it serves, by kind (e.g.
+  // RocksDB's "memtables", "table_readers", "block_cache"), for metrics;
+  // empty where the store reports none.
+  virtual std::vector<std::pair<std::string, uint64_t>> MemoryUsage() {
+    return {};
+  }
 };
 
 }  // namespace fleetmem::engine

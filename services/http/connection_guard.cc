@@ -11,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
+#include "services/http/socket_bytes.h"
 
 namespace {
 
@@ -174,13 +175,24 @@ void ConnectionGuard::CheckDeadlines() {
           (connection->phase == Phase::kHead &&
            waited > limits_.head_timeout) ||
           (connection->phase == Phase::kBody && waited > limits_.body_timeout);
-      if (!late) continue;
-      closed.push_back(absl::StrCat(
-          connection->client, ": no complete request ",
-          connection->phase == Phase::kHead ? "head" : "body", " within ",
-          absl::FormatDuration(connection->phase == Phase::kHead
-                                   ? limits_.head_timeout
-                                   : limits_.body_timeout)));
+      uint64_t head_bytes = 0;
+      if (connection->phase == Phase::kHead) {
+        const uint64_t read = BytesReadFrom(connection->socket).value_or(0);
+        head_bytes = read - std::min(connection->read_at_phase, read);
+      }
+      const bool too_long = head_bytes > limits_.max_head_bytes;
+      if (!late && !too_long) continue;
+      closed.push_back(
+          too_long ? absl::StrCat(connection->client, ": a request head over ",
+                                  limits_.max_head_bytes, " bytes (",
+                                  head_bytes, " read)")
+                   : absl::StrCat(
+                         connection->client, ": no complete request ",
+                         connection->phase == Phase::kHead ? "head" : "body",
+                         " within ",
+                         absl::FormatDuration(connection->phase == Phase::kHead
+                                                  ? limits_.head_timeout
+                                                  : limits_.body_timeout)));
       connection->phase = Phase::kClosed;
       // The thread serving it sees the end of the stream and closes.
       ::shutdown(connection->socket, SHUT_RDWR);
@@ -220,6 +232,9 @@ void ConnectionGuard::Mark(Phase phase) {
   if (connection->phase == Phase::kClosed) return;
   connection->since = absl::Now();
   connection->phase = phase;
+  if (phase == Phase::kHead) {
+    connection->read_at_phase = BytesReadFrom(connection->socket).value_or(0);
+  }
 }
 
 void ConnectionGuard::HeadRead() { Mark(Phase::kBody); }

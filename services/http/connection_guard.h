@@ -11,7 +11,9 @@
 //   - a connection whose request head (request line and headers; the TLS
 //     handshake too) has not arrived within head_timeout of its start or of
 //     the previous answer, or whose body has not within body_timeout, is
-//     closed; a handler (a watch) has no deadline of its own.
+//     closed; a handler (a watch) has no deadline of its own;
+//   - a connection that has sent more than max_head_bytes for one request
+//     head is closed (httplib 0.11 bounds a header line, not their count).
 // Connections over a limit are answered 503 and closed at once.
 //
 // httplib hides a connection's socket from its task queue, so the guard
@@ -65,6 +67,9 @@ class ConnectionGuard final : public httplib::TaskQueue {
     std::string client;
     Phase phase = Phase::kHead;
     absl::Time since;
+    // Bytes read from the socket when the phase began (0 where the kernel
+    // does not say).
+    uint64_t read_at_phase = 0;
   };
 
   void Serve(std::shared_ptr<Connection> connection, std::function<void()> fn);

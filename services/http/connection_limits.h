@@ -22,6 +22,13 @@ struct ConnectionLimits {
   absl::Duration head_timeout = absl::Seconds(10);
   // From the end of a request's head to the end of its body.
   absl::Duration body_timeout = absl::Seconds(60);
+  // Bytes a connection may send for one request head (request line and
+  // headers; the TLS handshake too): httplib bounds each line (8 KiB) but
+  // not their number, so a client could send headers for head_timeout at
+  // the network's speed. Checked every check_every from the bytes the
+  // server has read, so a connection is closed within one read buffer
+  // (4 KiB) and one check of going over.
+  size_t max_head_bytes = 64 * 1024;
   // How often deadlines are checked.
   absl::Duration check_every = absl::Milliseconds(100);
   // Called with the reason (naming the client's address) for each

@@ -7,8 +7,10 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cerrno>
 #include <chrono>
 #include <memory>
+#include <mutex>
 #include <set>
 #include <string>
 #include <thread>
@@ -405,6 +407,67 @@ TEST_F(HttpConnectionLimitsTest, AClientsConnectionsAreCapped) {
     if (!answered) std::this_thread::sleep_for(std::chrono::milliseconds(20));
   }
   EXPECT_TRUE(answered);
+}
+
+// httplib bounds a header line (8 KiB), not their number: a client sending
+// header lines as fast as it can, within the head deadline, grew the
+// server's memory without bound. The head is now capped at max_head_bytes;
+// an ordinary request with a few kilobytes of headers is still served.
+TEST_F(HttpConnectionLimitsTest, AnEndlessRequestHeadIsCut) {
+  ConnectionLimits limits;
+  limits.max_head_bytes = 64 * 1024;
+  std::mutex mu;
+  std::vector<std::string> reasons;
+  limits.on_refused = [&](const std::string& reason) {
+    std::lock_guard<std::mutex> lock(mu);
+    reasons.push_back(reason);
+  };
+  ASSERT_NO_FATAL_FAILURE(Restart(limits));
+  httplib::Headers headers;
+  for (int i = 0; i < 8; ++i) {
+    headers.emplace(absl::StrCat("X-Big-", i), std::string(1000, 'a'));
+  }
+  auto ready = client_->Get("/readyz", headers);
+  ASSERT_TRUE(ready) << httplib::to_string(ready.error());
+  EXPECT_EQ(ready->status, 200);
+
+  const int socket = Connect(server_->port());
+  ASSERT_GE(socket, 0);
+  const std::string start = "GET /readyz HTTP/1.1\r\nHost: 127.0.0.1\r\n";
+  ASSERT_EQ(send(socket, start.data(), start.size(), MSG_NOSIGNAL),
+            static_cast<ssize_t>(start.size()));
+  const std::string line =
+      absl::StrCat("X-More: ", std::string(4000, 'b'), "\r\n");
+  // Header lines as fast as the server takes them, until it cuts the
+  // connection (64 MiB or 10 s at most).
+  auto cut = [&] {
+    std::lock_guard<std::mutex> lock(mu);
+    return !reasons.empty();
+  };
+  size_t sent = 0;
+  const auto give_up =
+      std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (!cut() && sent < (size_t{64} << 20) &&
+         std::chrono::steady_clock::now() < give_up) {
+    pollfd wait{socket, POLLOUT, 0};
+    if (poll(&wait, 1, 50) <= 0) continue;
+    const ssize_t n =
+        send(socket, line.data(), line.size(), MSG_NOSIGNAL | MSG_DONTWAIT);
+    if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) continue;
+    if (n <= 0) break;  // reset by the server
+    sent += static_cast<size_t>(n);
+  }
+  // The server shut the connection down (its side ends unanswered).
+  bool closed = false;
+  const std::string got =
+      ReadUntilClosed(socket, std::chrono::milliseconds(3000), &closed);
+  EXPECT_TRUE(closed);
+  EXPECT_EQ(got, "");
+  close(socket);
+  std::lock_guard<std::mutex> lock(mu);
+  ASSERT_EQ(reasons.size(), 1u) << "sent " << sent << " bytes, not cut";
+  EXPECT_THAT(reasons[0], HasSubstr("a request head over 65536 bytes"));
+  std::cout << reasons[0] << "; " << sent << " bytes sent\n";
 }
 
 }  // namespace

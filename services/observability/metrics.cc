@@ -87,6 +87,9 @@ class TimedMemoryStore final : public engine::MemoryStore {
   uint64_t ApproximateDiskBytes() override {
     return store_->ApproximateDiskBytes();
   }
+  std::vector<std::pair<std::string, uint64_t>> MemoryUsage() override {
+    return store_->MemoryUsage();
+  }
   // The write path's log: its appends are writes too.
   absl::Status AppendLog(std::string_view fleet_id,
                          std::span<const engine::LogAppend> entries) override {
@@ -294,6 +297,20 @@ struct Metrics::Families {
                         .Name("fleetmem_store_disk_bytes")
                         .Help("RocksDB live SST files plus memtables, bytes")
                         .Register(r)),
+        store_memory(BuildGauge()
+                         .Name("fleetmem_store_memory_bytes")
+                         .Help("RocksDB's own memory by kind: memtables, "
+                               "table_readers (index and filter blocks of "
+                               "open table files), block_cache, "
+                               "block_cache_pinned")
+                         .Register(r)),
+        heap(BuildGauge()
+                 .Name("fleetmem_heap_bytes")
+                 .Help("The C library's heap (glibc mallinfo2) by kind: "
+                       "in_use (allocated), free (held by malloc, not "
+                       "returned to the system), mmapped (large blocks, "
+                       "part of in_use)")
+                 .Register(r)),
         queue_depth(BuildGauge()
                         .Name("fleetmem_work_queue_depth")
                         .Help("Calls waiting for a worker thread")
@@ -323,6 +340,8 @@ struct Metrics::Families {
   Family<Gauge>& process_open_fds;
   Family<Gauge>& process_max_fds;
   Family<Gauge>& process_start;
+  Family<Gauge>& store_memory;
+  Family<Gauge>& heap;
   Family<Gauge>& fleet_traces;
   Family<Gauge>& fleet_pending;
   Family<Gauge>& fleet_clusters;
@@ -508,6 +527,9 @@ void Metrics::RefreshGauges() {
   if (sources_.store != nullptr) {
     f.store_bytes.Add({}).Set(
         static_cast<double>(sources_.store->ApproximateDiskBytes()));
+    for (const auto& [kind, bytes] : sources_.store->MemoryUsage()) {
+      f.store_memory.Add({{"kind", kind}}).Set(static_cast<double>(bytes));
+    }
   }
   if (sources_.work_queue_depth) {
     f.queue_depth.Add({}).Set(static_cast<double>(sources_.work_queue_depth()));
@@ -526,6 +548,10 @@ void Metrics::RefreshProcessGauges() {
   f.process_open_fds.Add({}).Set(process->open_fds);
   f.process_max_fds.Add({}).Set(process->max_fds);
   f.process_start.Add({}).Set(process->start_time_seconds);
+  const HeapStats heap = ReadHeapStats();
+  f.heap.Add({{"kind", "in_use"}}).Set(heap.in_use_bytes);
+  f.heap.Add({{"kind", "free"}}).Set(heap.free_bytes);
+  f.heap.Add({{"kind", "mmapped"}}).Set(heap.mmapped_bytes);
 }
 
 std::string Metrics::Render() {

@@ -4,10 +4,13 @@
 #include <ctime>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "services/engine/forwarding_store.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/observability/process_stats.h"
@@ -88,6 +91,34 @@ TEST(MetricsTest, EngineTransportAndStoreAreObserved) {
                         "fleetmem_store_write_duration_seconds_count 0")));
   EXPECT_THAT(text, HasSubstr("# TYPE fleetmem_consolidation_duration_seconds "
                               "histogram"));
+  for (const char* kind : {"in_use", "free", "mmapped"}) {
+    EXPECT_THAT(text, HasSubstr(absl::StrCat("\nfleetmem_heap_bytes{kind=\"",
+                                             kind, "\"} ")))
+        << kind;
+  }
+}
+
+// A store's memory report becomes fleetmem_store_memory_bytes by kind,
+// through the timing decorator.
+TEST(MetricsTest, TheStoresMemoryByKind) {
+  class ReportingStore : public engine::ForwardingStore {
+   public:
+    using ForwardingStore::ForwardingStore;
+    std::vector<std::pair<std::string, uint64_t>> MemoryUsage() override {
+      return {{"memtables", 1234}, {"block_cache", 5678}};
+    }
+  };
+  Metrics metrics;
+  std::unique_ptr<engine::MemoryStore> inner = storage::NewInMemoryStore();
+  std::unique_ptr<engine::MemoryStore> store =
+      metrics.TimedStore(std::make_unique<ReportingStore>(inner.get()));
+  metrics.SetScrapeSources({nullptr, store.get()});
+  const std::string text = metrics.Render();
+  EXPECT_THAT(
+      text, HasSubstr("fleetmem_store_memory_bytes{kind=\"memtables\"} 1234"));
+  EXPECT_THAT(
+      text,
+      HasSubstr("fleetmem_store_memory_bytes{kind=\"block_cache\"} 5678"));
 }
 
 // Distributed mode: a replica shows the gauges of the fleets it serves, and
@@ -166,6 +197,38 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
                                       })
                   .ok());
   EXPECT_EQ(read, 42u);
+}
+
+#if defined(__SANITIZE_ADDRESS__)
+constexpr bool kSanitizerAllocator = true;
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
+constexpr bool kSanitizerAllocator = true;
+#else
+constexpr bool kSanitizerAllocator = false;
+#endif
+#else
+constexpr bool kSanitizerAllocator = false;
+#endif
+
+// Blocks allocated show in in_use (large ones in mmapped too) and leave it
+// when freed.
+TEST(ProcessStatsTest, HeapStatsFollowAllocations) {
+  if (kSanitizerAllocator) GTEST_SKIP() << "the sanitizer's allocator";
+  const HeapStats before = ReadHeapStats();
+  std::vector<std::unique_ptr<char[]>> small;
+  for (int i = 0; i < 1000; ++i) {
+    small.emplace_back(new char[4096]);
+    small.back()[0] = 1;
+  }
+  auto large = std::make_unique<char[]>(size_t{64} << 20);
+  const HeapStats held = ReadHeapStats();
+  EXPECT_GE(held.in_use_bytes - before.in_use_bytes, (64 << 20) + 1000 * 4096);
+  EXPECT_GE(held.mmapped_bytes - before.mmapped_bytes, 64 << 20);
+  small.clear();
+  large.reset();
+  const HeapStats after = ReadHeapStats();
+  EXPECT_LE(after.in_use_bytes, held.in_use_bytes - (64 << 20));
 }
 
 TEST(ProcessStatsTest, ReadsThisProcess) {

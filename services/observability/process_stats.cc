@@ -1,5 +1,6 @@
 #include "services/observability/process_stats.h"
 
+#include <malloc.h>
 #include <sys/resource.h>
 #include <unistd.h>
 
@@ -79,6 +80,19 @@ absl::StatusOr<ProcessStats> ReadProcessStats() {
   if (getrlimit(RLIMIT_NOFILE, &limit) == 0) {
     out.max_fds = static_cast<double>(limit.rlim_cur);
   }
+  return out;
+}
+
+HeapStats ReadHeapStats() {
+  HeapStats out;
+#if defined(__GLIBC__)
+  // Sums over every arena (glibc 2.33+; bookworm has 2.36). uordblks and
+  // fordblks count the arenas' blocks; hblkhd the separately mmapped ones.
+  const struct mallinfo2 info = mallinfo2();
+  out.in_use_bytes = static_cast<double>(info.uordblks + info.hblkhd);
+  out.free_bytes = static_cast<double>(info.fordblks);
+  out.mmapped_bytes = static_cast<double>(info.hblkhd);
+#endif
   return out;
 }
 

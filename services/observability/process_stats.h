@@ -22,6 +22,19 @@ struct ProcessStats {
 // parsed (e.g. no /proc).
 absl::StatusOr<ProcessStats> ReadProcessStats();
 
+// The C library's heap, over all malloc arenas (glibc's mallinfo2): what
+// tells a leak (in_use grows) from memory malloc keeps after it was freed
+// (free grows; RSS holds it until malloc trims or reuses it).
+struct HeapStats {
+  double in_use_bytes = 0;   // allocated blocks, mmapped ones included
+  double free_bytes = 0;     // free blocks malloc holds in its arenas
+  double mmapped_bytes = 0;  // blocks mmapped on their own (large ones)
+};
+
+// Zeros where the C library does not say (not glibc, or a sanitizer's
+// allocator).
+HeapStats ReadHeapStats();
+
 }  // namespace fleetmem::observability
 
 #endif  // FLEETMEM_SERVICES_OBSERVABILITY_PROCESS_STATS_H_

@@ -329,7 +329,8 @@ absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
 }
 
 // The reserve file (PATH.reserve): half of min_free_bytes more, held as a
-// file from the first write that finds room for it above min_free_bytes,
+// file from the first open or write that finds room for it above
+// min_free_bytes,
 // for an open on a filesystem another process has filled: Open gives it
 // back first, so that RocksDB's recovery (a new write-ahead log, the
 // manifest, a flush) finds room. Debian's RocksDB asserts on a failed
@@ -462,6 +463,23 @@ class RocksDbStore final : public engine::MemoryStore {
     db_->GetIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables,
                         &memtables);
     return sst + memtables + log_->Bytes();
+  }
+
+  std::vector<std::pair<std::string, uint64_t>> MemoryUsage() override {
+    std::vector<std::pair<std::string, uint64_t>> usage;
+    auto add = [&](const char* kind, const std::string& property) {
+      uint64_t bytes = 0;
+      if (db_->GetIntProperty(property, &bytes))
+        usage.emplace_back(kind, bytes);
+    };
+    // Active, unflushed and pinned memtables.
+    add("memtables", rocksdb::DB::Properties::kSizeAllMemTables);
+    // Index and filter blocks of the open table files (not in the block
+    // cache: cache_index_and_filter_blocks is off), growing with the data.
+    add("table_readers", rocksdb::DB::Properties::kEstimateTableReadersMem);
+    add("block_cache", rocksdb::DB::Properties::kBlockCacheUsage);
+    add("block_cache_pinned", rocksdb::DB::Properties::kBlockCachePinnedUsage);
+    return usage;
   }
 
   absl::StatusOr<std::vector<std::string>> ListFleets() override {
@@ -649,6 +667,16 @@ class RocksDbStore final : public engine::MemoryStore {
     return events;
   }
 
+  // At open: the reserve file is taken now if there is room, so that a
+  // store never written to can open again on a filesystem filled since.
+  void TakeReserveAtOpen() {
+    if (reserve_bytes_ == 0) return;
+    absl::StatusOr<uint64_t> free = free_bytes_(path_);
+    if (!free.ok()) return;
+    absl::MutexLock reserve(&reserve_mu_);
+    TakeReserve(*free);
+  }
+
  private:
   // Moves log entries that an earlier build kept in RocksDB (keys::LogKey)
   // into the segment log, each fleet's then erased from RocksDB (synced). A
@@ -814,10 +842,7 @@ class RocksDbStore final : public engine::MemoryStore {
       // The reserve file comes on top of min_free_bytes: RocksDB's flushes
       // need all of that while serving (with half of it, a flush met a full
       // disk and RocksDB aborted).
-      if (!reserve_held_ && reserve_bytes_ > 0 &&
-          *free >= needed + reserve_bytes_) {
-        reserve_held_ = CreateReserve(ReservePath(path_), reserve_bytes_);
-      }
+      TakeReserve(*free - bytes);
       if (low_space_) {
         FLEETMEM_LOG(kInfo) << "disk space is back under " << path_ << " ("
                             << *free << " bytes free); writes resume";
@@ -837,6 +862,15 @@ class RocksDbStore final : public engine::MemoryStore {
         " above the reserve of ", min_free_bytes_,
         " (storage.min_free_bytes); nothing was stored. Reads are served; "
         "writes resume once space is freed"));
+  }
+
+  // Creates the reserve file if it is not held and `free` bytes leave room
+  // for it above min_free_bytes.
+  void TakeReserve(uint64_t free) ABSL_EXCLUSIVE_LOCKS_REQUIRED(reserve_mu_) {
+    if (!reserve_held_ && reserve_bytes_ > 0 &&
+        free >= min_free_bytes_ + reserve_bytes_) {
+      reserve_held_ = CreateReserve(ReservePath(path_), reserve_bytes_);
+    }
   }
 
   // After a failed write RocksDB may hold a background error that stops
@@ -972,6 +1006,22 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
              "are refused until space is freed";
     }
   }
+  // Without the reserve file (none was ever made: the filesystem was short
+  // at every open and write), an open on a filesystem with less than the
+  // reserve file's size free is refused here: RocksDB's open writes, and
+  // Debian's build aborts on a failed write-ahead-log write.
+  if (!options.free_bytes && options.min_free_bytes > 0) {
+    absl::StatusOr<uint64_t> free = StatvfsFreeBytes(options.path);
+    const uint64_t needed = options.min_free_bytes / 2;
+    if (free.ok() && *free < needed) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "disk nearly full: ", *free, " bytes free under ", options.path,
+          "; opening the store needs ", needed,
+          " (half of storage.min_free_bytes) and it holds no reserve file "
+          "to give back; nothing was opened or changed. Free space and "
+          "start again"));
+    }
+  }
   rocksdb::DB* raw = nullptr;
   const rocksdb::Status status =
       rocksdb::DB::Open(MakeOptions(options), options.path, &raw);
@@ -988,6 +1038,7 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
                       << (options.sync ? " (sync writes)" : " (async writes)");
   auto store = std::make_unique<RocksDbStore>(std::move(db), options);
   if (absl::Status log = store->OpenLog(); !log.ok()) return log;
+  store->TakeReserveAtOpen();
   return store;
 }
 

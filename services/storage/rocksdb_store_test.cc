@@ -12,6 +12,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -95,7 +96,29 @@ TEST(RocksDbStoreTest, ReopenGivesExactlyTheSameRecords) {
   }
 }
 
-// --- Crash: a child process applies mutations and is killed with SIGKILL.
+// The memory report names RocksDB's own memory; what is written sits in the
+// memtables until a flush, what is read in the block cache.
+TEST(RocksDbStoreTest, MemoryUsageNamesMemtablesTableReadersAndCache) {
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+  ASSERT_NE(store, nullptr);
+  auto usage = [&store] {
+    std::map<std::string, uint64_t> by_kind;
+    for (const auto& [kind, bytes] : store->MemoryUsage())
+      by_kind[kind] = bytes;
+    return by_kind;
+  };
+  const std::map<std::string, uint64_t> empty = usage();
+  for (const char* kind :
+       {"memtables", "table_readers", "block_cache", "block_cache_pinned"}) {
+    EXPECT_TRUE(empty.contains(kind)) << kind;
+  }
+  for (const FleetMutation& m : ScriptedMutations(40)) {
+    ASSERT_TRUE(store->Apply("f", m).ok());
+  }
+  EXPECT_GT(usage()["memtables"], empty.at("memtables"));
+}
 
 constexpr char kChildDirEnv[] = "FLEETMEM_STORAGE_CRASH_DIR";
 constexpr char kChildCountEnv[] = "FLEETMEM_STORAGE_CRASH_COUNT";

@@ -11,7 +11,10 @@
 #include <thread>
 #include <utility>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+#include "httplib.h"
 
 namespace fleetmem::load {
 namespace {
@@ -212,6 +215,40 @@ absl::StatusOr<ProcessSample> SampleProcess(int pid) {
     closedir(dir);
   }
   return sample;
+}
+
+absl::StatusOr<std::map<std::string, double>> ScrapeMetrics(
+    const std::string& http_address) {
+  const size_t colon = http_address.rfind(':');
+  int port = 0;
+  if (colon == std::string::npos ||
+      !absl::SimpleAtoi(http_address.substr(colon + 1), &port)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("not HOST:PORT: \"", http_address, "\""));
+  }
+  httplib::Client client(http_address.substr(0, colon), port);
+  client.set_read_timeout(10);
+  const httplib::Result got = client.Get("/metrics");
+  if (!got || got->status != 200) {
+    return absl::UnavailableError(
+        absl::StrCat("GET http://", http_address, "/metrics: ",
+                     got ? absl::StrCat("status ", got->status)
+                         : httplib::to_string(got.error())));
+  }
+  std::map<std::string, double> samples;
+  for (absl::string_view line : absl::StrSplit(got->body, '\n')) {
+    if (line.empty() || line[0] == '#') continue;
+    // "series value": label values never hold a space here (fleet ids,
+    // methods, kinds), so the value follows the last space.
+    const size_t space = line.rfind(' ');
+    double value = 0;
+    if (space == absl::string_view::npos ||
+        !absl::SimpleAtod(line.substr(space + 1), &value)) {
+      continue;
+    }
+    samples[std::string(line.substr(0, space))] = value;
+  }
+  return samples;
 }
 
 }  // namespace fleetmem::load

@@ -8,6 +8,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <map>
 #include <mutex>
 #include <string>
 #include <vector>
@@ -102,6 +103,13 @@ struct ProcessSample {
   int open_fds = 0;
 };
 absl::StatusOr<ProcessSample> SampleProcess(int pid);
+
+// Every sample of http://HTTP_ADDRESS/metrics (the Prometheus text format),
+// keyed by the series as it is written there: a name and its labels, e.g.
+// `fleetmem_heap_bytes{kind="free"}`. UNAVAILABLE if the server does not
+// answer 200.
+absl::StatusOr<std::map<std::string, double>> ScrapeMetrics(
+    const std::string& http_address);
 
 }  // namespace fleetmem::load
 

@@ -17,10 +17,12 @@
 //   fleetmem-load peer [--listen ADDR]
 //       serves the peer alone.
 //   fleetmem-load soak --server ADDR --pid PID [--seconds S --interval S
-//                      --rate T/s --peak-seconds S --report FILE]
+//                      --rate T/s --peak-seconds S --report FILE
+//                      --metrics HTTP_ADDR]
 //       measures the peak upload rate (when --rate is 0), then runs at half
 //       of it with queries beside, printing RSS, open files and latencies
-//       every interval (CSV to --report).
+//       every interval (CSV to --report); with --metrics, also the heap and
+//       RocksDB's memory from the server's /metrics (what RSS is made of).
 //
 // Credentials as for `fleetmem`: --token-file / $FLEETMEM_TOKEN_FILE /
 // $FLEETMEM_TOKEN, --tls-ca/--tls-cert/--tls-key.
@@ -29,12 +31,17 @@
 #include <cstdio>
 #include <fstream>
 #include <iostream>
+#include <map>
 #include <random>
 #include <string>
+#include <string_view>
 #include <thread>
+#include <utility>
 
 #include "CLI/CLI.hpp"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_replace.h"
 #include "clients/cpp/fleetmem_client.h"
 #include "fleetmem_version.h"
 #include "tools/load/load_generator.h"
@@ -131,9 +138,34 @@ void CallLoop(const fleetmem::client::ClientOptions& options,
   }
 }
 
-int Soak(const Common& common, int pid, double seconds, double interval,
-         double rate, double peak_seconds, int robots,
-         const std::string& report) {
+struct SoakOptions {
+  int pid = 0;               // the server's process
+  double seconds = 3600;     // duration of the soak
+  double interval = 60;      // seconds between samples
+  double rate = 0;           // traces/s; 0: half the measured peak
+  double peak_seconds = 10;  // peak measurement time
+  int robots = 4;
+  std::string report;   // CSV of the samples; empty: none
+  std::string metrics;  // the server's HTTP HOST:PORT; empty: no scrape
+};
+
+// The memory series of the server's /metrics that a soak sample shows, in
+// MiB, with their CSV column names.
+constexpr std::pair<const char*, const char*> kMemorySeries[] = {
+    {"heap_in_use_mib", "fleetmem_heap_bytes{kind=\"in_use\"}"},
+    {"heap_free_mib", "fleetmem_heap_bytes{kind=\"free\"}"},
+    {"memtables_mib", "fleetmem_store_memory_bytes{kind=\"memtables\"}"},
+    {"table_readers_mib",
+     "fleetmem_store_memory_bytes{kind=\"table_readers\"}"},
+    {"block_cache_mib", "fleetmem_store_memory_bytes{kind=\"block_cache\"}"},
+    {"store_disk_mib", "fleetmem_store_disk_bytes"},
+};
+
+int Soak(const Common& common, const SoakOptions& soak) {
+  const int pid = soak.pid;
+  const double seconds = soak.seconds, interval = soak.interval;
+  const int robots = soak.robots;
+  double rate = soak.rate;
   absl::StatusOr<fleetmem::client::ClientOptions> options =
       ClientFor(common, 5);
   if (!options.ok()) return Fail(options.status());
@@ -143,8 +175,8 @@ int Soak(const Common& common, int pid, double seconds, double interval,
   load.robots = robots;
   uint64_t next_seq = 1;
   if (rate <= 0) {
-    load.duration =
-        std::chrono::milliseconds(static_cast<int64_t>(peak_seconds * 1000));
+    load.duration = std::chrono::milliseconds(
+        static_cast<int64_t>(soak.peak_seconds * 1000));
     absl::StatusOr<fleetmem::load::UploadLoadResult> peak =
         fleetmem::load::RunUploads(*options, load, "", nullptr, nullptr);
     if (!peak.ok()) return Fail(peak.status());
@@ -176,14 +208,22 @@ int Soak(const Common& common, int pid, double seconds, double interval,
              &queries);
   });
   std::ofstream csv;
-  if (!report.empty()) {
-    csv.open(report);
+  std::string memory_header;
+  if (!soak.metrics.empty()) {
+    for (const auto& [column, series] : kMemorySeries) {
+      absl::StrAppend(&memory_header, ",", column);
+    }
+  }
+  if (!soak.report.empty()) {
+    csv.open(soak.report);
     csv << "elapsed_s,rss_mib,open_fds,upload_calls,upload_p50_ms,"
            "upload_p99_ms,upload_max_ms,query_calls,query_p50_ms,"
-           "query_p99_ms\n";
+           "query_p99_ms"
+        << memory_header << "\n";
   }
   std::cout << "elapsed_s  rss_mib  fds  uploads  up_p50  up_p99  up_max  "
-               "queries  q_p50  q_p99\n";
+               "queries  q_p50  q_p99"
+            << absl::StrReplaceAll(memory_header, {{",", "  "}}) << "\n";
   const auto start = std::chrono::steady_clock::now();
   int exit_code = 0;
   for (double elapsed = 0; elapsed < seconds;) {
@@ -202,15 +242,35 @@ int Soak(const Common& common, int pid, double seconds, double interval,
     }
     const LatencyLog::Summary up = uploads.Take();
     const LatencyLog::Summary q = queries.Take();
+    std::string memory_row, memory_line;
+    if (!soak.metrics.empty()) {
+      absl::StatusOr<std::map<std::string, double>> scraped =
+          fleetmem::load::ScrapeMetrics(soak.metrics);
+      if (!scraped.ok()) {
+        std::cerr << "fleetmem-load: " << scraped.status() << "\n";
+        exit_code = 1;
+        break;
+      }
+      for (const auto& [column, series] : kMemorySeries) {
+        const auto found = scraped->find(series);
+        const double mib =
+            found == scraped->end() ? -1 : found->second / 1048576.0;
+        absl::StrAppendFormat(&memory_row, ",%.1f", mib);
+        absl::StrAppendFormat(&memory_line, "  %*.1f",
+                              static_cast<int>(std::string_view(column).size()),
+                              mib);
+      }
+    }
     const std::string row = absl::StrFormat(
-        "%.0f,%.1f,%d,%zu,%.2f,%.2f,%.2f,%zu,%.2f,%.2f", elapsed,
+        "%.0f,%.1f,%d,%zu,%.2f,%.2f,%.2f,%zu,%.2f,%.2f%s", elapsed,
         sample->rss_bytes / 1048576.0, sample->open_fds, up.count, up.p50,
-        up.p99, up.max, q.count, q.p50, q.p99);
+        up.p99, up.max, q.count, q.p50, q.p99, memory_row);
     std::cout << absl::StrFormat(
                      "%9.0f  %7.1f  %3d  %7zu  %6.2f  %6.2f  %6.2f  %7zu  "
-                     "%5.2f  %5.2f\n",
+                     "%5.2f  %5.2f%s\n",
                      elapsed, sample->rss_bytes / 1048576.0, sample->open_fds,
-                     up.count, up.p50, up.p99, up.max, q.count, q.p50, q.p99)
+                     up.count, up.p50, up.p99, up.max, q.count, q.p50, q.p99,
+                     memory_line)
               << std::flush;
     if (csv.is_open()) csv << row << "\n" << std::flush;
   }
@@ -408,16 +468,21 @@ int main(int argc, char** argv) {
 
   CLI::App* soak = app.add_subcommand("soak", "steady load with samples");
   AddCommon(soak, &common);
-  int pid = 0, robots = 4;
-  double soak_seconds = 3600, interval = 60, rate = 0, peak_seconds = 10;
-  std::string report;
-  soak->add_option("--pid", pid, "server process to sample")->required();
-  soak->add_option("--seconds", soak_seconds, "duration (default 3600)");
-  soak->add_option("--interval", interval, "seconds between samples");
-  soak->add_option("--rate", rate, "traces/s; 0 = half the measured peak");
-  soak->add_option("--peak-seconds", peak_seconds, "peak measurement time");
-  soak->add_option("--robots", robots, "uploading robots");
-  soak->add_option("--report", report, "CSV of the samples");
+  SoakOptions soak_options;
+  soak->add_option("--pid", soak_options.pid, "server process to sample")
+      ->required();
+  soak->add_option("--seconds", soak_options.seconds,
+                   "duration (default 3600)");
+  soak->add_option("--interval", soak_options.interval,
+                   "seconds between samples");
+  soak->add_option("--rate", soak_options.rate,
+                   "traces/s; 0 = half the measured peak");
+  soak->add_option("--peak-seconds", soak_options.peak_seconds,
+                   "peak measurement time");
+  soak->add_option("--robots", soak_options.robots, "uploading robots");
+  soak->add_option("--report", soak_options.report, "CSV of the samples");
+  soak->add_option("--metrics", soak_options.metrics,
+                   "the server's HTTP HOST:PORT: sample its memory series");
 
   CLI::App* bench =
       app.add_subcommand("bench", "throughput and latency against the peer");
@@ -506,6 +571,5 @@ int main(int argc, char** argv) {
         static_cast<unsigned long long>(result->lost));
     return result->lost == 0 && result->present == result->acknowledged ? 0 : 1;
   }
-  return Soak(common, pid, soak_seconds, interval, rate, peak_seconds, robots,
-              report);
+  return Soak(common, soak_options);
 }

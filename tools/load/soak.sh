@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # Soak: a server under half of its measured peak upload load (plus 20
 # queries/s) for SECONDS, sampled every INTERVAL: RSS, open files, upload
-# and query latency. Ends with a clean SIGTERM. The CSV goes to REPORT.
+# and query latency, and what RSS is made of (the heap's in-use and free
+# bytes, RocksDB's memtables, table readers and block cache, from the
+# server's /metrics). Ends with a clean SIGTERM. The CSV goes to REPORT.
+# SERVER_ARGS: more arguments for the server (e.g. "--config FILE").
 #
 #   tools/load/soak.sh [BUILD_DIR] [SECONDS] [INTERVAL] [REPORT]   (make soak)
 set -euo pipefail
@@ -13,9 +16,12 @@ interval=${3:-60}
 report=${4:-soak.csv}
 dir=$(mktemp -d "${TMPDIR:-/tmp}/fleetmem-soak-XXXXXX")
 trap 'kill -9 ${SERVER_PID:-0} 2>/dev/null || true; rm -rf "$dir"' EXIT
-start_server "$build" "$dir/data" "$dir/server.log"
+# shellcheck disable=SC2086  # SERVER_ARGS is a list of words
+start_server "$build" "$dir/data" "$dir/server.log" \
+  --http-listen 127.0.0.1:0 ${SERVER_ARGS:-}
 echo "soak: server $SERVER_ADDR (pid $SERVER_PID), $seconds s, samples every $interval s"
 "$build/bin/fleetmem-load" soak --server "$SERVER_ADDR" --pid "$SERVER_PID" \
-  --seconds "$seconds" --interval "$interval" --report "$report"
+  --seconds "$seconds" --interval "$interval" --report "$report" \
+  --metrics "$SERVER_HTTP_ADDR"
 stop_server
 echo "soak: clean shutdown; samples in $report"
