@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "absl/strings/match.h"
+#include "grpcpp/grpcpp.h"
 #include "gtest/gtest.h"
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
@@ -133,6 +134,57 @@ TEST_F(LimitsTest, IdleUploadStreamsAreCancelled) {
            std::chrono::steady_clock::now() - start < std::chrono::seconds(10));
   EXPECT_TRUE(status.ok()) << Describe(status);
   EXPECT_EQ(idle->Finish().error_code(), grpc::StatusCode::CANCELLED);
+}
+
+// Issue 32: a watch whose client stops reading kept its write in flight and
+// its stream slot for good. It is now cancelled after stream_idle_seconds
+// without an event taken.
+TEST_F(LimitsTest, AWatchWhoseClientStopsReadingIsCancelled) {
+  ASSERT_NO_FATAL_FAILURE(
+      Start("limits { max_streams_per_client: 2 stream_idle_seconds: 1 }\n"
+            "engine { segment_size: 10 }\n"
+            "memory { clusters_per_batch: 5 max_clusters: 50 }\n"));
+  // A client that never reads, with a small receive window so that the
+  // server's writes stall soon.
+  grpc::ChannelArguments args;
+  args.SetInt(GRPC_ARG_HTTP2_BDP_PROBE, 0);
+  args.SetInt(GRPC_ARG_HTTP2_STREAM_LOOKAHEAD_BYTES, 1024);
+  auto stalled_stub = v1::MemoryService::NewStub(grpc::CreateCustomChannel(
+      server_->address(), grpc::InsecureChannelCredentials(), args));
+  auto context = MakeContext(std::chrono::seconds(60));
+  v1::WatchMemoryRequest request;
+  request.set_fleet_id(kFleet);
+  auto stalled = stalled_stub->WatchMemory(context.get(), request);
+  // Events (a segment of 10 traces makes 5 clusters) until the server gives
+  // up on the watch.
+  constexpr char kCancelled[] = "cancelled: the client took no event";
+  TraceSpec spec{.robot_id = "r1", .count = 200, .dimension = 8};
+  const auto start = std::chrono::steady_clock::now();
+  while (!absl::StrContains(server_->Output(), kCancelled) &&
+         std::chrono::steady_clock::now() - start < std::chrono::seconds(30)) {
+    Reply<v1::UploadTracesResponse> uploaded =
+        UploadTraces(*stub_, kFleet, MakeTraces(spec), 10);
+    ASSERT_TRUE(uploaded.ok()) << Describe(uploaded.status);
+    spec.first_seq += spec.count;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_TRUE(absl::StrContains(server_->Output(), kCancelled))
+      << spec.first_seq - 1 << " traces uploaded";
+  // Its slot came back: the client's two slots serve two new watches.
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
+  std::vector<std::unique_ptr<grpc::ClientReader<v1::MemoryEvent>>> watches;
+  for (int i = 0; i < 2; ++i) {
+    contexts.push_back(MakeContext(std::chrono::seconds(5)));
+    watches.push_back(stub_->WatchMemory(contexts.back().get(), request));
+    v1::MemoryEvent event;
+    EXPECT_TRUE(watches.back()->Read(&event)) << "watch " << i;
+  }
+  for (size_t i = 0; i < watches.size(); ++i) {
+    contexts[i]->TryCancel();
+    (void)watches[i]->Finish();
+  }
+  context->TryCancel();
+  (void)stalled->Finish();
 }
 
 TEST_F(LimitsTest, CompactedCursorIsOutOfRange) {

@@ -114,7 +114,7 @@ grpc::ServerReadReactor<grpc::ByteBuffer>* MemoryServiceImpl::UploadTraces(
 grpc::ServerWriteReactor<v1::MemoryEvent>* MemoryServiceImpl::WatchMemory(
     grpc::CallbackServerContext* context,
     const v1::WatchMemoryRequest* request) {
-  return new WatchReactor(&state_, *context, *request);
+  return new WatchReactor(&state_, context, *request);
 }
 
 }  // namespace fleetmem::transport

@@ -44,7 +44,9 @@ struct ServiceOptions {
   // limit max_streams_per_client.
   size_t max_streams_per_client = 64;
   // An upload stream whose client sends neither a message nor the end of
-  // the stream for this long is cancelled (its slot and memory come back).
+  // the stream for this long is cancelled (its slot and memory come back);
+  // so is a watch whose client takes no event for this long (it stopped
+  // reading: the event's write stays in flight).
   absl::Duration stream_idle_timeout = absl::Seconds(60);
 };
 

@@ -1,7 +1,10 @@
 #include "services/transport/watch_reactor.h"
 
+#include <chrono>
+#include <memory>
 #include <utility>
 
+#include "absl/time/time.h"
 #include "services/common/log.h"
 #include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
@@ -10,12 +13,15 @@
 namespace fleetmem::transport {
 
 WatchReactor::WatchReactor(ServiceState* state,
-                           const grpc::CallbackServerContext& context,
+                           grpc::CallbackServerContext* call,
                            const v1::WatchMemoryRequest& request)
     : state_(state),
       fleet_id_(request.fleet_id()),
       shared_(std::make_shared<Shared>()),
       read_cursor_(request.after_event()) {
+  const grpc::CallbackServerContext& context = *call;
+  stall_->context = call;
+  stall_->fleet_id = fleet_id_;
   // The checks of a watch over HTTP too (MemoryApi::CheckWatch): the fleet
   // id, the caller's rights, and the owner (a stream is not forwarded: the
   // client is sent to the replica that owns the fleet).
@@ -34,6 +40,7 @@ WatchReactor::WatchReactor(ServiceState* state,
     return;
   }
   client_ = std::move(client);
+  stall_->client = client_;
   if (!state_->AddWatch(this)) {
     absl::MutexLock lock(&shared_->mu);
     FinishLocked(ShuttingDownStatus());
@@ -125,12 +132,29 @@ void WatchReactor::MaybeWriteLocked() {
   EventToProto(unsent_.front(), &event_);
   unsent_.pop_front();
   write_in_flight_ = true;
+  // The client has stream_idle_timeout to take it; a watch whose client
+  // stopped reading holds a stream slot.
+  stall_alarm_ = std::make_unique<grpc::Alarm>();
+  stall_alarm_->Set(
+      std::chrono::system_clock::now() +
+          absl::ToChronoMilliseconds(state_->options().stream_idle_timeout),
+      [stall = stall_](bool fired) {
+        if (!fired) return;  // cancelled: the write completed
+        absl::MutexLock lock(&stall->mu);
+        if (stall->done) return;
+        FLEETMEM_LOG(kWarning)
+            << "WatchMemory of fleet \"" << stall->fleet_id << "\" by "
+            << stall->client << " cancelled: the client took no event for "
+            << "stream_idle_timeout";
+        stall->context->TryCancel();
+      });
   StartWrite(&event_);
 }
 
 void WatchReactor::OnWriteDone(bool ok) {
   absl::MutexLock lock(&shared_->mu);
   write_in_flight_ = false;
+  stall_alarm_.reset();  // cancels it
   if (finish_requested_) {
     Finish(final_status_);  // deferred until the write was done
     return;
@@ -160,8 +184,13 @@ void WatchReactor::FinishLocked(grpc::Status status) {
 void WatchReactor::OnDone() {
   if (registered_) state_->RemoveWatch(this);
   {
+    absl::MutexLock lock(&stall_->mu);
+    stall_->done = true;  // the context goes with this reactor
+  }
+  {
     absl::MutexLock lock(&shared_->mu);
     shared_->reactor = nullptr;
+    stall_alarm_.reset();
   }
   if (subscribed_) state_->engine().Unsubscribe(subscription_);
   if (!client_.empty()) state_->ReleaseStream(client_);

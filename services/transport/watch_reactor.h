@@ -12,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
+#include "grpcpp/alarm.h"
 #include "grpcpp/support/server_callback.h"
 #include "services/core/types.h"
 #include "services/transport/service_state.h"
@@ -26,7 +27,10 @@ namespace fleetmem::transport {
 // when the server shuts down (Stop), so that clients resume from their cursor
 // elsewhere or later; INVALID_ARGUMENT for a bad fleet id;
 // UNAUTHENTICATED / PERMISSION_DENIED from the access policy; the engine's
-// error if a read fails; RESOURCE_EXHAUSTED if the pool is full.
+// error if a read fails; RESOURCE_EXHAUSTED if the pool is full. A watch
+// whose client takes no event for ServiceOptions::stream_idle_timeout (its
+// write stays in flight: the client stopped reading) is cancelled, so that
+// it gives back its stream slot.
 //
 // Lifetime: created by the service, deleted in OnDone. The pool task and the
 // engine listener do not point at the reactor directly but at a Shared block
@@ -35,7 +39,7 @@ namespace fleetmem::transport {
 class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
  public:
   // Authenticates and authorises the caller (auth::Action::kWatch) first.
-  WatchReactor(ServiceState* state, const grpc::CallbackServerContext& context,
+  WatchReactor(ServiceState* state, grpc::CallbackServerContext* context,
                const v1::WatchMemoryRequest& request);
 
   // Finishes the call with UNAVAILABLE (server shutdown) once the write in
@@ -55,6 +59,15 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
     absl::Mutex mu;
     WatchReactor* reactor ABSL_GUARDED_BY(mu) = nullptr;
   };
+  // What the stall alarm's callback may touch, which can outlive the
+  // reactor.
+  struct Stall {
+    absl::Mutex mu;
+    grpc::CallbackServerContext* context = nullptr;
+    bool done ABSL_GUARDED_BY(mu) = false;  // OnDone ran: context is gone
+    std::string client;
+    std::string fleet_id;
+  };
 
   // Each *Locked method requires shared_->mu.
   void ScheduleReadLocked();
@@ -71,6 +84,7 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
   bool subscribed_ = false;
   uint64_t subscription_ = 0;
   std::string client_;  // holds a stream slot if set
+  const std::shared_ptr<Stall> stall_ = std::make_shared<Stall>();
 
   // Guarded by shared_->mu.
   uint64_t read_cursor_ = 0;  // id of the newest event read
@@ -79,6 +93,8 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
   std::deque<core::MemoryEvent> unsent_;
   bool write_in_flight_ = false;
   v1::MemoryEvent event_;  // the message being written
+  // Armed while a write waits for the client (stream_idle_timeout).
+  std::unique_ptr<grpc::Alarm> stall_alarm_;
   bool finish_requested_ = false;
   grpc::Status final_status_;  // sent once no write is in flight
 };
