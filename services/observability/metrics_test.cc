@@ -1,5 +1,6 @@
 #include "services/observability/metrics.h"
 
+#include <algorithm>
 #include <cstdio>
 #include <ctime>
 #include <memory>
@@ -229,6 +230,26 @@ TEST(ProcessStatsTest, HeapStatsFollowAllocations) {
   large.reset();
   const HeapStats after = ReadHeapStats();
   EXPECT_LE(after.in_use_bytes, held.in_use_bytes - (64 << 20));
+}
+
+// Freed blocks below one still held stay resident (malloc keeps them; only
+// free memory at the top of a heap is returned by itself) until TrimHeap.
+TEST(ProcessStatsTest, TrimHeapReturnsFreePages) {
+  if (kSanitizerAllocator) GTEST_SKIP() << "the sanitizer's allocator";
+  constexpr size_t kBlocks = 16384;  // 64 MiB of 4 KiB blocks
+  std::vector<std::unique_ptr<char[]>> blocks;
+  for (size_t i = 0; i < kBlocks; ++i) {
+    blocks.emplace_back(new char[4096]);
+    std::fill_n(blocks.back().get(), 4096, 1);  // resident
+  }
+  for (size_t i = 0; i + 1 < kBlocks; ++i) blocks[i].reset();  // last held
+  absl::StatusOr<ProcessStats> before = ReadProcessStats();
+  ASSERT_TRUE(before.ok());
+  TrimHeap();
+  absl::StatusOr<ProcessStats> after = ReadProcessStats();
+  ASSERT_TRUE(after.ok());
+  EXPECT_GE(before->resident_bytes - after->resident_bytes, 32 << 20)
+      << "RSS " << before->resident_bytes << " -> " << after->resident_bytes;
 }
 
 TEST(ProcessStatsTest, ReadsThisProcess) {

@@ -96,4 +96,10 @@ HeapStats ReadHeapStats() {
   return out;
 }
 
+void TrimHeap() {
+#if defined(__GLIBC__)
+  malloc_trim(0);
+#endif
+}
+
 }  // namespace fleetmem::observability

@@ -16,6 +16,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <memory>
 #include <sstream>
@@ -49,6 +50,7 @@
 #include "services/index/flann_index.h"
 #include "services/index/hnsw_index.h"
 #include "services/observability/metrics.h"
+#include "services/observability/process_stats.h"
 #include "services/server/cluster_mode.h"
 #include "services/server/server_config.h"
 #include "services/storage/rocksdb_store.h"
@@ -73,30 +75,22 @@ bool LoadReflection() {
   return false;
 }
 
-// Index snapshots while serving: every `interval` the fleets whose index
-// changed (and holds at least `min_codes` codes) save one, so that a
-// restart after a crash re-adds only the traces stored since instead of
-// rebuilding every graph. Errors are logged by the engine; the next turn
-// tries again.
-class IndexSnapshotter {
+// Runs `task` every `interval_seconds` on a thread of its own until Stop()
+// (none if the interval is not positive).
+class PeriodicTask {
  public:
-  IndexSnapshotter(engine::MemoryEngine* engine, int interval_seconds,
-                   size_t min_codes) {
+  PeriodicTask(int interval_seconds, std::function<void()> task) {
     if (interval_seconds <= 0) return;
     const absl::Duration interval = absl::Seconds(interval_seconds);
-    thread_ = std::thread([this, engine, interval, min_codes] {
-      while (!stop_.WaitForNotificationWithTimeout(interval)) {
-        engine
-            ->SaveIndexSnapshots({.min_codes = min_codes, .only_changed = true})
-            .IgnoreError();
-      }
+    thread_ = std::thread([this, interval, task = std::move(task)] {
+      while (!stop_.WaitForNotificationWithTimeout(interval)) task();
     });
   }
-  ~IndexSnapshotter() { Stop(); }
-  IndexSnapshotter(const IndexSnapshotter&) = delete;
-  IndexSnapshotter& operator=(const IndexSnapshotter&) = delete;
+  ~PeriodicTask() { Stop(); }
+  PeriodicTask(const PeriodicTask&) = delete;
+  PeriodicTask& operator=(const PeriodicTask&) = delete;
 
-  // Waits for a snapshot being written, then stops.
+  // Waits for a turn in progress, then stops.
   void Stop() {
     if (!thread_.joinable()) return;
     stop_.Notify();
@@ -356,9 +350,21 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     FLEETMEM_LOG(kError) << "cannot load fleets: " << engine.status();
     return 1;
   }
-  IndexSnapshotter snapshotter(engine->get(),
-                               config.index_snapshot_interval_seconds,
-                               config.index_snapshot_min_codes);
+  // Index snapshots while serving: every interval the fleets whose index
+  // changed (and holds at least index_snapshot_min_codes codes) save one, so
+  // that a restart after a crash re-adds only the traces stored since
+  // instead of rebuilding every graph. Errors are logged by the engine; the
+  // next turn tries again.
+  PeriodicTask snapshotter(
+      config.index_snapshot_interval_seconds,
+      [engine = engine->get(), min_codes = config.index_snapshot_min_codes] {
+        engine
+            ->SaveIndexSnapshots({.min_codes = min_codes, .only_changed = true})
+            .IgnoreError();
+      });
+  // The heap's free pages back to the system (docs/reliability.md, "Soak").
+  PeriodicTask heap_trimmer(config.heap_trim_interval_seconds,
+                            observability::TrimHeap);
   transport::WorkQueue work(config.work);
   transport::ServiceOptions service_options = config.service;
   service_options.api.snapshot_root =
@@ -596,6 +602,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   // indexes instead of rebuilding them (a failure only costs that). Fleets
   // whose periodic snapshot is current are not written again.
   snapshotter.Stop();
+  heap_trimmer.Stop();
   (*engine)->SaveIndexSnapshots({.only_changed = true}).IgnoreError();
   engine->reset();
   store.reset();

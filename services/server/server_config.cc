@@ -477,6 +477,14 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   if (file.has_index_snapshot_min_codes()) {
     config->index_snapshot_min_codes = file.index_snapshot_min_codes();
   }
+  if (file.has_heap_trim_interval_seconds()) {
+    if (file.heap_trim_interval_seconds() > 86400) {
+      return absl::InvalidArgumentError(
+          "heap_trim_interval_seconds: at most 86400 (0 = never)");
+    }
+    config->heap_trim_interval_seconds =
+        static_cast<int>(file.heap_trim_interval_seconds());
+  }
   ApplyMemory(file.memory(), &config->engine.memory);
   for (const FleetMemoryConfig& fleet : file.fleets()) {
     core::MemoryOptions memory = config->engine.memory;
@@ -726,6 +734,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       " index_snapshot_interval_seconds=",
       config.index_snapshot_interval_seconds,
       " index_snapshot_min_codes=", config.index_snapshot_min_codes,
+      " heap_trim_interval_seconds=", config.heap_trim_interval_seconds,
       " max_backlog_traces=", config.write_path.max_backlog_traces,
       " appliers=", config.write_path.appliers,
       " background_nice=", config.write_path.applier_nice,

@@ -140,6 +140,10 @@ struct ServerConfig {
   // 1,000,000 256-d traces; not while the file is synced), queries do not.
   int index_snapshot_interval_seconds = 300;
   size_t index_snapshot_min_codes = 20'000;
+  // Every this many seconds the C library's free heap pages go back to the
+  // system (observability::TrimHeap: memory malloc kept after calls freed
+  // it, otherwise resident); 0 = never.
+  int heap_trim_interval_seconds = 60;
   SecurityConfig security;
   // HOST:PORT of the HTTP port (REST/JSON, /metrics, /healthz, /readyz,
   // dashboard); empty = off. Same auth and TLS as gRPC.

@@ -198,6 +198,8 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
   EXPECT_EQ(config.index_snapshot_interval_seconds,
             defaults.index_snapshot_interval_seconds);
   EXPECT_EQ(config.index_snapshot_min_codes, defaults.index_snapshot_min_codes);
+  EXPECT_EQ(config.heap_trim_interval_seconds,
+            defaults.heap_trim_interval_seconds);
   EXPECT_EQ(config.index, defaults.index);
   EXPECT_EQ(config.tiered.hnsw_from, defaults.tiered.hnsw_from);
   EXPECT_EQ(config.tiered.max_unindexed, defaults.tiered.max_unindexed);
@@ -252,6 +254,7 @@ TEST(ServerConfigTest, BadFileText) {
       "index: \"annoy\"",                        // unknown index
       "log_level: \"loud\"",                     // unknown level
       "index_snapshot_interval_seconds: 90000",  // over a day
+      "heap_trim_interval_seconds: 90000",       // over a day
   };
   for (const char* text : cases) {
     ServerConfig config;
