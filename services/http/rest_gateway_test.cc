@@ -19,6 +19,7 @@
 #include "gtest/gtest.h"
 #include "services/auth/authenticator.h"
 #include "services/auth/secret.h"
+#include "services/common/sanitizers.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
@@ -424,18 +425,6 @@ TEST_F(RestGatewayTest, CrossSiteRequestsAreRefused) {
             200);
 }
 
-#if defined(__SANITIZE_ADDRESS__)
-constexpr bool kAddressSanitizer = true;
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer)
-constexpr bool kAddressSanitizer = true;
-#else
-constexpr bool kAddressSanitizer = false;
-#endif
-#else
-constexpr bool kAddressSanitizer = false;
-#endif
-
 // The process's resident bytes now.
 size_t ResidentBytes() {
   std::ifstream statm("/proc/self/statm");
@@ -530,7 +519,7 @@ TEST(RestGatewayMemoryTest, TheLargestPageOfALargeFleetStaysBounded) {
   EXPECT_EQ(listed, kTraces);
   RecordProperty("largest_rss_rise_mib", std::to_string(largest_rise >> 20));
   // Not under AddressSanitizer, whose quarantine holds freed memory.
-  if (!kAddressSanitizer) EXPECT_LT(largest_rise, size_t{256} << 20);
+  if (!common::kSanitizerAllocator) EXPECT_LT(largest_rise, size_t{256} << 20);
 }
 
 }  // namespace

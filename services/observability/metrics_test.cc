@@ -11,6 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "services/common/sanitizers.h"
 #include "services/engine/forwarding_store.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
@@ -200,22 +201,10 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
   EXPECT_EQ(read, 42u);
 }
 
-#if defined(__SANITIZE_ADDRESS__)
-constexpr bool kSanitizerAllocator = true;
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
-constexpr bool kSanitizerAllocator = true;
-#else
-constexpr bool kSanitizerAllocator = false;
-#endif
-#else
-constexpr bool kSanitizerAllocator = false;
-#endif
-
 // Blocks allocated show in in_use (large ones in mmapped too) and leave it
 // when freed.
 TEST(ProcessStatsTest, HeapStatsFollowAllocations) {
-  if (kSanitizerAllocator) GTEST_SKIP() << "the sanitizer's allocator";
+  if (common::kSanitizerAllocator) GTEST_SKIP() << "the sanitizer's allocator";
   const HeapStats before = ReadHeapStats();
   std::vector<std::unique_ptr<char[]>> small;
   for (int i = 0; i < 1000; ++i) {
@@ -235,7 +224,7 @@ TEST(ProcessStatsTest, HeapStatsFollowAllocations) {
 // Freed blocks below one still held stay resident (malloc keeps them; only
 // free memory at the top of a heap is returned by itself) until TrimHeap.
 TEST(ProcessStatsTest, TrimHeapReturnsFreePages) {
-  if (kSanitizerAllocator) GTEST_SKIP() << "the sanitizer's allocator";
+  if (common::kSanitizerAllocator) GTEST_SKIP() << "the sanitizer's allocator";
   constexpr size_t kBlocks = 16384;  // 64 MiB of 4 KiB blocks
   std::vector<std::unique_ptr<char[]>> blocks;
   for (size_t i = 0; i < kBlocks; ++i) {

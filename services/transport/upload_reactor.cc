@@ -46,7 +46,6 @@ UploadReactor::UploadReactor(ServiceState* state,
                              grpc::CallbackServerContext* context,
                              grpc::ByteBuffer* response)
     : state_(state), context_(context), response_(response) {
-  idle_->context = context;
   if (state_->shutting_down()) {
     Done(ShuttingDownStatus());
     return;
@@ -66,7 +65,6 @@ UploadReactor::UploadReactor(ServiceState* state,
   }
   client_ = std::move(client);
   caller_ = *std::move(caller);
-  idle_->client = client_;
   absl::MutexLock lock(&mu_);
   MaybeRead();
 }
@@ -106,26 +104,16 @@ void UploadReactor::MaybeRead() {
   reading_ = true;
   // The client has stream_idle_timeout to send its next message (or close
   // its side); a stream that sends nothing holds a slot and memory.
-  idle_alarm_ = std::make_unique<grpc::Alarm>();
-  idle_alarm_->Set(
-      std::chrono::system_clock::now() +
-          absl::ToChronoMilliseconds(state_->options().stream_idle_timeout),
-      [idle = idle_](bool fired) {
-        if (!fired) return;  // cancelled: the message came
-        absl::MutexLock lock(&idle->mu);
-        if (idle->done) return;
-        FLEETMEM_LOG(kWarning) << "UploadTraces stream of " << idle->client
-                               << " cancelled: no message for "
-                               << "stream_idle_timeout";
-        idle->context->TryCancel();
-      });
+  idle_.Arm(state_->options().stream_idle_timeout,
+            absl::StrCat("UploadTraces stream of ", client_),
+            "no message for stream_idle_timeout");
   StartRead(&buffer_);
 }
 
 void UploadReactor::OnReadDone(bool ok) {
   {
     absl::MutexLock lock(&mu_);
-    idle_alarm_.reset();  // cancels it
+    idle_.Disarm();
   }
   if (!ok) {
     // The client closed its side (or the call broke): once every message
@@ -310,10 +298,10 @@ void UploadReactor::Done(const grpc::Status& status) {
 
 void UploadReactor::OnDone() {
   {
-    absl::MutexLock lock(&idle_->mu);
-    idle_->done = true;  // the context goes with this reactor
+    absl::MutexLock lock(&mu_);
+    idle_.Detach();  // the context goes with this reactor
+    idle_.Disarm();
   }
-  idle_alarm_.reset();
   if (!client_.empty()) state_->ReleaseStream(client_);
   delete this;
 }

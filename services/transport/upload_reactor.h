@@ -15,11 +15,11 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
-#include "grpcpp/alarm.h"
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/server_callback.h"
 #include "services/auth/access_policy.h"
 #include "services/transport/service_state.h"
+#include "services/transport/stream_watchdog.h"
 
 namespace fleetmem::transport {
 
@@ -100,15 +100,7 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   uint64_t read_ = 0;        // messages read (gRPC's reactions only)
   std::string fleet_id_;     // of the first message, set before any store
   std::string client_;       // holds a stream slot if set
-  // What the idle alarm's callback may touch, which can outlive the reactor.
-  struct Idle {
-    absl::Mutex mu;
-    grpc::CallbackServerContext* context = nullptr;
-    bool done ABSL_GUARDED_BY(mu) = false;  // OnDone ran: context is gone
-    std::string client;
-  };
-  const std::shared_ptr<Idle> idle_ = std::make_shared<Idle>();
-  auth::Principal caller_;  // authenticated before the slot is taken
+  auth::Principal caller_;   // authenticated before the slot is taken
   const absl::Time started_ = absl::Now();
 
   absl::Mutex mu_;
@@ -120,7 +112,7 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   bool stop_reading_ ABSL_GUARDED_BY(mu_) = false;  // a message failed
   bool finished_ ABSL_GUARDED_BY(mu_) = false;      // Finish was called
   // Armed while a read waits for the client (stream_idle_timeout).
-  std::unique_ptr<grpc::Alarm> idle_alarm_ ABSL_GUARDED_BY(mu_);
+  StreamWatchdog idle_ ABSL_GUARDED_BY(mu_){context_};
 
   // The store task's.
   v1::UploadTracesResponse totals_;           // the running totals

@@ -1,10 +1,8 @@
 #include "services/transport/watch_reactor.h"
 
-#include <chrono>
-#include <memory>
 #include <utility>
 
-#include "absl/time/time.h"
+#include "absl/strings/str_cat.h"
 #include "services/common/log.h"
 #include "services/transport/call_auth.h"
 #include "services/transport/grpc_status.h"
@@ -18,10 +16,9 @@ WatchReactor::WatchReactor(ServiceState* state,
     : state_(state),
       fleet_id_(request.fleet_id()),
       shared_(std::make_shared<Shared>()),
-      read_cursor_(request.after_event()) {
+      read_cursor_(request.after_event()),
+      stall_(call) {
   const grpc::CallbackServerContext& context = *call;
-  stall_->context = call;
-  stall_->fleet_id = fleet_id_;
   // The checks of a watch over HTTP too (MemoryApi::CheckWatch): the fleet
   // id, the caller's rights, and the owner (a stream is not forwarded: the
   // client is sent to the replica that owns the fleet).
@@ -40,7 +37,6 @@ WatchReactor::WatchReactor(ServiceState* state,
     return;
   }
   client_ = std::move(client);
-  stall_->client = client_;
   if (!state_->AddWatch(this)) {
     absl::MutexLock lock(&shared_->mu);
     FinishLocked(ShuttingDownStatus());
@@ -134,27 +130,17 @@ void WatchReactor::MaybeWriteLocked() {
   write_in_flight_ = true;
   // The client has stream_idle_timeout to take it; a watch whose client
   // stopped reading holds a stream slot.
-  stall_alarm_ = std::make_unique<grpc::Alarm>();
-  stall_alarm_->Set(
-      std::chrono::system_clock::now() +
-          absl::ToChronoMilliseconds(state_->options().stream_idle_timeout),
-      [stall = stall_](bool fired) {
-        if (!fired) return;  // cancelled: the write completed
-        absl::MutexLock lock(&stall->mu);
-        if (stall->done) return;
-        FLEETMEM_LOG(kWarning)
-            << "WatchMemory of fleet \"" << stall->fleet_id << "\" by "
-            << stall->client << " cancelled: the client took no event for "
-            << "stream_idle_timeout";
-        stall->context->TryCancel();
-      });
+  stall_.Arm(
+      state_->options().stream_idle_timeout,
+      absl::StrCat("WatchMemory of fleet \"", fleet_id_, "\" by ", client_),
+      "the client took no event for stream_idle_timeout");
   StartWrite(&event_);
 }
 
 void WatchReactor::OnWriteDone(bool ok) {
   absl::MutexLock lock(&shared_->mu);
   write_in_flight_ = false;
-  stall_alarm_.reset();  // cancels it
+  stall_.Disarm();
   if (finish_requested_) {
     Finish(final_status_);  // deferred until the write was done
     return;
@@ -184,13 +170,10 @@ void WatchReactor::FinishLocked(grpc::Status status) {
 void WatchReactor::OnDone() {
   if (registered_) state_->RemoveWatch(this);
   {
-    absl::MutexLock lock(&stall_->mu);
-    stall_->done = true;  // the context goes with this reactor
-  }
-  {
     absl::MutexLock lock(&shared_->mu);
     shared_->reactor = nullptr;
-    stall_alarm_.reset();
+    stall_.Detach();  // the context goes with this reactor
+    stall_.Disarm();
   }
   if (subscribed_) state_->engine().Unsubscribe(subscription_);
   if (!client_.empty()) state_->ReleaseStream(client_);

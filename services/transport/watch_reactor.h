@@ -12,10 +12,10 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
-#include "grpcpp/alarm.h"
 #include "grpcpp/support/server_callback.h"
 #include "services/core/types.h"
 #include "services/transport/service_state.h"
+#include "services/transport/stream_watchdog.h"
 
 namespace fleetmem::transport {
 
@@ -59,15 +59,6 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
     absl::Mutex mu;
     WatchReactor* reactor ABSL_GUARDED_BY(mu) = nullptr;
   };
-  // What the stall alarm's callback may touch, which can outlive the
-  // reactor.
-  struct Stall {
-    absl::Mutex mu;
-    grpc::CallbackServerContext* context = nullptr;
-    bool done ABSL_GUARDED_BY(mu) = false;  // OnDone ran: context is gone
-    std::string client;
-    std::string fleet_id;
-  };
 
   // Each *Locked method requires shared_->mu.
   void ScheduleReadLocked();
@@ -84,7 +75,6 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
   bool subscribed_ = false;
   uint64_t subscription_ = 0;
   std::string client_;  // holds a stream slot if set
-  const std::shared_ptr<Stall> stall_ = std::make_shared<Stall>();
 
   // Guarded by shared_->mu.
   uint64_t read_cursor_ = 0;  // id of the newest event read
@@ -94,7 +84,7 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
   bool write_in_flight_ = false;
   v1::MemoryEvent event_;  // the message being written
   // Armed while a write waits for the client (stream_idle_timeout).
-  std::unique_ptr<grpc::Alarm> stall_alarm_;
+  StreamWatchdog stall_;
   bool finish_requested_ = false;
   grpc::Status final_status_;  // sent once no write is in flight
 };
