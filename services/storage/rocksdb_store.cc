@@ -1017,7 +1017,7 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
       return absl::ResourceExhaustedError(absl::StrCat(
           "disk nearly full: ", *free, " bytes free under ", options.path,
           "; opening the store needs ", needed,
-          " (half of storage.min_free_bytes) and it holds no reserve file "
+          " (half of storage.min_free_bytes) and it has no reserve file left "
           "to give back; nothing was opened or changed. Free space and "
           "start again"));
     }
