@@ -175,6 +175,45 @@ TEST_F(ServerProcessTest, StartsTheRealServerAndReadsItsPorts) {
   EXPECT_EQ(*code, 0);
 }
 
+// A second server on a port in use, or on a data directory in use, exits
+// with a clear error and leaves the first one alone (the outside sweep: a
+// second server bound the port too, SO_REUSEPORT, and the kernel split the
+// calls between the two).
+TEST_F(ServerProcessTest, ASecondServerOnAPortOrDataDirInUseExits) {
+  ServerOptions first_options = Options(DefaultServerBinary());
+  first_options.extra_args = {"--http-listen", "127.0.0.1:0"};
+  ServerProcess first(first_options);
+  ASSERT_TRUE(first.Start().ok()) << first.Output();
+  struct Case {
+    std::string name, data_dir, listen, http_listen, expected;
+  };
+  const std::vector<Case> cases = {
+      {"grpc port", dir_.Join("data-2"), first.address(), "127.0.0.1:0",
+       "cannot listen on " + first.address()},
+      {"http port", dir_.Join("data-3"), "127.0.0.1:0", first.http_address(),
+       "cannot listen for HTTP on " + first.http_address()},
+      {"data dir", first_options.data_dir, "127.0.0.1:0", "127.0.0.1:0",
+       "is in use by another process"},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    ServerOptions options = Options(DefaultServerBinary());
+    options.data_dir = c.data_dir;
+    options.listen = c.listen;
+    options.log_file = dir_.Join("second.log");
+    options.extra_args = {"--http-listen", c.http_listen};
+    ServerProcess second(options);
+    const absl::Status started = second.Start();
+    EXPECT_EQ(started.code(), absl::StatusCode::kInternal) << started;
+    EXPECT_TRUE(absl::StrContains(started.message(), c.expected)) << started;
+    EXPECT_FALSE(second.running());
+  }
+  EXPECT_TRUE(first.running());
+  absl::StatusOr<int> code = first.Stop();
+  ASSERT_TRUE(code.ok()) << code.status();
+  EXPECT_EQ(*code, 0);
+}
+
 TEST(TempDirTest, MakesAndRemovesADirectory) {
   std::string path;
   {

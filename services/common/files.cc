@@ -1,6 +1,9 @@
 #include "services/common/files.h"
 
+#include <fcntl.h>
 #include <stdlib.h>
+#include <sys/file.h>
+#include <unistd.h>
 
 #include <cerrno>
 #include <cstdlib>
@@ -55,6 +58,43 @@ absl::Status RemoveTree(const std::string& path) {
   }
   return absl::OkStatus();
 }
+
+absl::StatusOr<std::unique_ptr<DirectoryLock>> DirectoryLock::Take(
+    const std::string& directory, const std::string& lock_name) {
+  const std::string path = absl::StrCat(directory, "/", lock_name);
+  const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (fd < 0) {
+    return absl::UnavailableError(
+        absl::StrCat("cannot open ", path, ": ", std::strerror(errno)));
+  }
+  if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+    const int error = errno;
+    char holder[32] = {};
+    const ssize_t n = ::pread(fd, holder, sizeof(holder) - 1, 0);
+    ::close(fd);
+    std::string pid(holder, n > 0 ? static_cast<size_t>(n) : 0);
+    while (!pid.empty() && (pid.back() == '\n' || pid.back() == '\0')) {
+      pid.pop_back();
+    }
+    if (error == EWOULDBLOCK) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "directory ", directory, " is in use by another process",
+          pid.empty() ? "" : absl::StrCat(" (pid ", pid, ")"), ": ", path,
+          " is locked; nothing was changed"));
+    }
+    return absl::UnavailableError(
+        absl::StrCat("cannot lock ", path, ": ", std::strerror(error)));
+  }
+  const std::string pid = absl::StrCat(::getpid(), "\n");
+  if (::ftruncate(fd, 0) != 0 ||
+      ::pwrite(fd, pid.data(), pid.size(), 0) !=
+          static_cast<ssize_t>(pid.size())) {
+    // The pid is for people reading the refusal; the lock holds without it.
+  }
+  return std::unique_ptr<DirectoryLock>(new DirectoryLock(fd));
+}
+
+DirectoryLock::~DirectoryLock() { ::close(fd_); }
 
 TempDir::TempDir(const std::string& prefix) {
   absl::StatusOr<std::string> path = MakeTempDir(prefix);

@@ -5,6 +5,7 @@
 #ifndef FLEETMEM_SERVICES_COMMON_FILES_H_
 #define FLEETMEM_SERVICES_COMMON_FILES_H_
 
+#include <memory>
 #include <string>
 
 #include "absl/status/statusor.h"
@@ -24,6 +25,25 @@ absl::StatusOr<std::string> MakeTempDir(const std::string& prefix);
 
 // Removes `path` and everything below it; a missing path is OK.
 absl::Status RemoveTree(const std::string& path);
+
+// An exclusive lock on a directory, held while the object lives (flock on
+// DIRECTORY/LOCK_NAME, released by the kernel when the process ends, also
+// by kill -9): one process at a time uses the directory.
+class DirectoryLock {
+ public:
+  // FAILED_PRECONDITION naming the directory and the holder's pid (written
+  // into the lock file) if another process holds it; UNAVAILABLE if the
+  // file cannot be made.
+  static absl::StatusOr<std::unique_ptr<DirectoryLock>> Take(
+      const std::string& directory, const std::string& lock_name);
+  ~DirectoryLock();
+  DirectoryLock(const DirectoryLock&) = delete;
+  DirectoryLock& operator=(const DirectoryLock&) = delete;
+
+ private:
+  explicit DirectoryLock(int fd) : fd_(fd) {}
+  const int fd_;
+};
 
 // A temporary directory (MakeTempDir) removed with everything below it by
 // the destructor, unless the environment variable FLEETMEM_KEEP_TEST_DIRS is

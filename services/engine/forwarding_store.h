@@ -48,6 +48,9 @@ class ForwardingStore : public MemoryStore {
       override {
     return inner_->LogTails();
   }
+  std::vector<LostLogEntries> LogLosses(std::string_view fleet_id) override {
+    return inner_->LogLosses(fleet_id);
+  }
 
  private:
   MemoryStore* inner_;

@@ -109,6 +109,14 @@ struct LoggedUpload {
   uint64_t sequence = 0;
   std::vector<core::MemoryTrace> traces;
 };
+// Acknowledged log entries that a store found damaged (they fail their
+// checksum or frame) and passed over: lost, never applied. The entries
+// after them are applied.
+struct LostLogEntries {
+  uint64_t first = 0;  // sequences, inclusive
+  uint64_t last = 0;
+  std::string detail;  // where and how, for the log and GetStats
+};
 // An entry to append (MemoryStore::AppendLog), its traces not copied.
 struct LogAppend {
   uint64_t sequence = 0;
@@ -201,6 +209,12 @@ class MemoryStore {
   // by fleet.
   virtual absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>>
   LogTails() = 0;
+  // The fleet's log entries found damaged since the store opened (at open,
+  // or when ReadLog met them: ReadLog passes over them), in the order
+  // found. Empty for a store whose log cannot be damaged (in memory).
+  virtual std::vector<LostLogEntries> LogLosses(std::string_view fleet_id) {
+    return {};
+  }
 
   // Approximate bytes the store takes on disk (0 when it keeps nothing
   // there), for metrics.

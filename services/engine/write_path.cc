@@ -19,6 +19,19 @@ namespace {
 // Log entries read per page while recovering a log's tail.
 constexpr size_t kRecoveryPage = 256;
 
+// The last sequence s such that every entry in (after, s] is in `lost`.
+uint64_t LostFrom(std::vector<LostLogEntries> lost, uint64_t after) {
+  std::sort(lost.begin(), lost.end(),
+            [](const LostLogEntries& a, const LostLogEntries& b) {
+              return a.first < b.first;
+            });
+  for (const LostLogEntries& range : lost) {
+    if (range.first > after + 1) break;
+    after = std::max(after, range.last);
+  }
+  return after;
+}
+
 }  // namespace
 
 absl::Status ValidateWritePathOptions(const WritePathOptions& options) {
@@ -94,6 +107,28 @@ struct WritePath::FleetLog {
   // set is loaded.
   absl::flat_hash_map<std::string, core::SeqSet> recovered;
 };
+
+std::vector<std::string> BacklogWarnings(
+    const std::vector<std::pair<std::string, Backlog>>& backlogs) {
+  std::vector<std::string> lines;
+  for (const auto& [fleet_id, backlog] : backlogs) {
+    for (const LostLogEntries& lost : backlog.lost) {
+      lines.push_back(absl::StrFormat(
+          "DATA_LOSS fleet \"%s\": acknowledged log entries %d..%d are "
+          "lost (%s)",
+          fleet_id, lost.first, lost.last, lost.detail));
+    }
+    if (!backlog.apply_error.ok() && backlog.entries > 0) {
+      lines.push_back(absl::StrFormat(
+          "STUCK fleet \"%s\": %d acknowledged traces (%d log entries, the "
+          "oldest %.0f s old) wait to be applied and are not seen by reads: "
+          "%s",
+          fleet_id, backlog.traces, backlog.entries, backlog.oldest_seconds,
+          backlog.apply_error.ToString()));
+    }
+  }
+  return lines;
+}
 
 WritePath::WritePath(WritePathOptions options, MemoryEngine* engine,
                      MemoryStore* store)
@@ -178,6 +213,13 @@ absl::Status WritePath::Recover() {
                         << " acknowledged log entries (" << traces
                         << " traces) after position " << *position
                         << " to apply";
+    for (const LostLogEntries& lost : store_->LogLosses(fleet_id)) {
+      FLEETMEM_LOG(kError) << "fleet \"" << fleet_id
+                           << "\": DATA_LOSS, acknowledged log entries "
+                           << lost.first << ".." << lost.last
+                           << " are damaged and will not be applied: "
+                           << lost.detail;
+    }
     absl::MutexLock lock(&log.mu);
     log.unapplied = std::move(entries);
     log.backlog_traces = traces;
@@ -535,6 +577,7 @@ Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
   FleetLog* log = Find(fleet_id);
   Backlog backlog;
   if (log == nullptr) return backlog;
+  backlog.lost = store_->LogLosses(fleet_id);
   absl::MutexLock lock(&log->mu);
   backlog.entries = log->unapplied.size();
   backlog.traces = log->backlog_traces;
@@ -638,6 +681,19 @@ void WritePath::ApplyTurn(FleetLog& log) {
       store_->ReadLog(log.id, from, options_.apply_batch);
   if (!entries.ok()) return fail(entries.status());
   if (entries->empty() || entries->front().sequence > through) {
+    if (LostFrom(store_->LogLosses(log.id), from) >= through) {
+      // Every entry left was found damaged (reported as it was found).
+      absl::MutexLock lock(&log.mu);
+      while (!log.unapplied.empty() &&
+             log.unapplied.front().sequence <= through) {
+        log.backlog_traces -=
+            std::min(log.backlog_traces, log.unapplied.front().traces);
+        log.unapplied.pop_front();
+      }
+      log.applied_through = through;
+      log.changed.SignalAll();
+      return;
+    }
     return fail(absl::DataLossError(absl::StrCat(
         "the log holds no entry after ", from, " though entries through ",
         through, " were acknowledged")));

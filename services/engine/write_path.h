@@ -112,7 +112,26 @@ struct Backlog {
   uint64_t applied_through = 0;   // last sequence applied
   // Why the applier waits, while it does (a store error); OK otherwise.
   absl::Status apply_error;
+  // Acknowledged entries the store found damaged and passed over since it
+  // opened (MemoryStore::LogLosses): lost, never applied.
+  std::vector<LostLogEntries> lost;
+  // Entries in `lost`.
+  uint64_t lost_entries() const {
+    uint64_t entries = 0;
+    for (const LostLogEntries& range : lost) {
+      entries += range.last - range.first + 1;
+    }
+    return entries;
+  }
 };
+
+// What an operator must hear about the fleets' logs (/readyz), a line each:
+// acknowledged entries lost to damage (DATA_LOSS), and logs whose applier
+// waits on a store error (e.g. the disk below its reserve: acknowledged
+// uploads stay unapplied, and unseen by reads, until it is resolved). Empty
+// when all is well.
+std::vector<std::string> BacklogWarnings(
+    const std::vector<std::pair<std::string, Backlog>>& backlogs);
 
 // Thread-safe.
 class WritePath {

@@ -219,7 +219,13 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   get("/readyz", [e](const httplib::Request&, httplib::Response& res) {
     const bool ready = !e->ready || e->ready();
     res.status = ready ? 200 : 503;
-    res.set_content(ready ? "ready\n" : "not ready\n", "text/plain");
+    std::string body = ready ? "ready\n" : "not ready\n";
+    if (e->warnings) {
+      for (const std::string& line : e->warnings()) {
+        absl::StrAppend(&body, line, "\n");
+      }
+    }
+    res.set_content(body, "text/plain");
   });
   get("/metrics", [e](const httplib::Request& req, httplib::Response& res) {
     if (!e->metrics) {
@@ -288,7 +294,12 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   // more. The listening socket is remembered here and given the system's.
   int listening = -1;
   http.set_socket_options([&listening](socket_t socket) {
-    httplib::default_socket_options(socket);
+    // httplib's defaults set SO_REUSEPORT too: a second server on a port in
+    // use then bound it as well and the kernel split the connections
+    // between the two. SO_REUSEADDR alone lets a restart rebind at once
+    // and refuses a port another process listens on.
+    const int yes = 1;
+    ::setsockopt(socket, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
     listening = socket;
   });
   if (port == 0) {

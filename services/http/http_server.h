@@ -63,6 +63,9 @@ struct HttpEndpoints {
   // /metrics answers without credentials even with auth on (otherwise it
   // needs a principal's, any role: it holds fleet ids).
   bool metrics_without_auth = false;
+  // Lines /readyz adds to its answer (its status stays 200: the server
+  // serves), e.g. engine::BacklogWarnings. May be empty.
+  std::function<std::vector<std::string>()> warnings;
 };
 
 // The endpoints served besides the REST routes and the dashboard's files

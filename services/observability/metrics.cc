@@ -110,6 +110,10 @@ class TimedMemoryStore final : public engine::MemoryStore {
       override {
     return store_->LogTails();
   }
+  std::vector<engine::LostLogEntries> LogLosses(
+      std::string_view fleet_id) override {
+    return store_->LogLosses(fleet_id);
+  }
 
  private:
   const std::unique_ptr<engine::MemoryStore> store_;
@@ -274,6 +278,20 @@ struct Metrics::Families {
                         .Help("Age of the fleet's oldest acknowledged upload "
                               "not applied yet (0 with none)")
                         .Register(r)),
+        apply_blocked(BuildGauge()
+                          .Name("fleetmem_write_apply_blocked")
+                          .Help("1 while the fleet's acknowledged uploads "
+                                "wait to be applied because the store "
+                                "refuses the apply (e.g. the disk below its "
+                                "reserve): reads do not see them")
+                          .Register(r)),
+        log_entries_lost(BuildGauge()
+                             .Name("fleetmem_log_entries_lost")
+                             .Help("Acknowledged entries of the fleet's "
+                                   "ingest log found damaged since the "
+                                   "server started (DATA_LOSS: never "
+                                   "applied; GetStats names them)")
+                             .Register(r)),
         log_lag(BuildGauge()
                     .Name("fleetmem_cluster_log_lag_entries")
                     .Help("Distributed mode: entries of the fleet's log not "
@@ -352,6 +370,8 @@ struct Metrics::Families {
   Family<Gauge>& backlog_entries;
   Family<Gauge>& backlog_traces;
   Family<Gauge>& backlog_age;
+  Family<Gauge>& apply_blocked;
+  Family<Gauge>& log_entries_lost;
   Family<Gauge>& log_lag;
   Family<Gauge>& cluster_fleets;
   Family<Gauge>& cluster_owned;
@@ -517,6 +537,10 @@ void Metrics::RefreshGauges() {
       f.backlog_entries.Add(labels).Set(static_cast<double>(backlog.entries));
       f.backlog_traces.Add(labels).Set(static_cast<double>(backlog.traces));
       f.backlog_age.Add(labels).Set(backlog.oldest_seconds);
+      f.apply_blocked.Add(labels).Set(
+          !backlog.apply_error.ok() && backlog.entries > 0 ? 1 : 0);
+      f.log_entries_lost.Add(labels).Set(
+          static_cast<double>(backlog.lost_entries()));
     }
   }
   if (sources_.cluster_fleets) {

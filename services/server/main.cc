@@ -302,6 +302,22 @@ void RemoveReadyFile(const std::string& path) {
 
 int Serve(const ServerConfig& config, const sigset_t& signals) {
   const SecurityConfig& security = config.security;
+  std::error_code error;
+  std::filesystem::create_directories(config.data_dir, error);
+  if (error) {
+    FLEETMEM_LOG(kError) << "cannot create data dir " << config.data_dir << ": "
+                         << error.message();
+    return 1;
+  }
+  // One server per data directory, taken before anything is changed (the
+  // ready file, the store's reserve file): a second server exits here.
+  absl::StatusOr<std::unique_ptr<files::DirectoryLock>> data_dir_lock =
+      files::DirectoryLock::Take(config.data_dir, "fleetmem-server.lock");
+  if (!data_dir_lock.ok()) {
+    FLEETMEM_LOG(kError) << "cannot use data dir: "
+                         << data_dir_lock.status().message();
+    return 1;
+  }
   // A ready file from an earlier run must not announce this one.
   RemoveReadyFile(config.ready_file);
   std::unique_ptr<auth::Authenticator> authenticator;
@@ -317,13 +333,6 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   if (absl::Status readable = CheckReadable(security); !readable.ok()) {
     FLEETMEM_LOG(kError) << readable.message();
     return 2;
-  }
-  std::error_code error;
-  std::filesystem::create_directories(config.data_dir, error);
-  if (error) {
-    FLEETMEM_LOG(kError) << "cannot create data dir " << config.data_dir << ": "
-                         << error.message();
-    return 1;
   }
   storage::RocksDbStoreOptions store_options = config.storage;
   store_options.path = (std::filesystem::path(config.data_dir) / "db").string();
@@ -463,10 +472,14 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
   builder.AddChannelArgument(
       GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 10000);
+  // gRPC sets SO_REUSEPORT by default: a second server on a port in use
+  // then started, and the kernel split calls between the two.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.RegisterService(&service);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (server == nullptr || port == 0) {
-    FLEETMEM_LOG(kError) << "cannot listen on " << config.listen;
+    FLEETMEM_LOG(kError) << "cannot listen on " << config.listen
+                         << " (is another process listening there?)";
     work.Stop();
     return 1;
   }
@@ -476,6 +489,13 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
 
   // The HTTP port: the gRPC service's MemoryApi behind the REST gateway.
   std::atomic<bool> ready{true};
+  // /readyz names lost log entries and logs that cannot be applied.
+  std::function<std::vector<std::string>()> ready_warnings;
+  if (embedded != nullptr) {
+    ready_warnings = [writes = &embedded->writes()] {
+      return engine::BacklogWarnings(writes->Backlogs());
+    };
+  }
   std::unique_ptr<http::RestGateway> gateway;
   std::unique_ptr<http::HttpServer> http_server;
   std::string http_address;
@@ -492,7 +512,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
                         HttpOptions(config),
                         {made->get(), [&metrics] { return metrics.Render(); },
                          [&ready] { return ready.load(); },
-                         security.metrics_without_auth})
+                         security.metrics_without_auth, ready_warnings})
                   : made.status();
     if (!started.ok()) {
       FLEETMEM_LOG(kError) << "HTTP: " << started.status().message();

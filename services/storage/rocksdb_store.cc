@@ -40,6 +40,7 @@
 #include "services/storage/mutation_checks.h"
 #include "services/storage/record_codec.h"
 #include "services/storage/segment_log.h"
+#include "services/storage/wal_room.h"
 #include "services/storage/snapshot_file.h"
 
 namespace fleetmem::storage {
@@ -353,11 +354,35 @@ bool HasReserve(const std::string& file) {
   return access(file.c_str(), F_OK) == 0;
 }
 
+// The Env RocksDB writes through (wal_room.h): a write-ahead-log or
+// manifest append that meets a full disk gives back the reserve file and,
+// if that is not enough, waits for space rather than failing (a failed
+// append is what made Debian's RocksDB abort later). `given_back` is set
+// when it took the reserve file.
+std::unique_ptr<rocksdb::Env> MakeEnv(
+    const std::string& path, std::shared_ptr<std::atomic<bool>> given_back) {
+  WalRoomOptions room;
+  room.give_back = [reserve = ReservePath(path), given_back] {
+    if (unlink(reserve.c_str()) != 0) return false;
+    given_back->store(true);
+    FLEETMEM_LOG(kError) << "disk full under a RocksDB write: reserve file "
+                         << reserve
+                         << " given back so that it completes; writes are "
+                            "refused until space is freed";
+    return true;
+  };
+  return rocksdb::NewCompositeEnv(NewWalRoomFileSystem(std::move(room)));
+}
+
 class RocksDbStore final : public engine::MemoryStore {
  public:
-  RocksDbStore(std::unique_ptr<rocksdb::DB> db,
+  RocksDbStore(std::unique_ptr<rocksdb::Env> env,
+               std::shared_ptr<std::atomic<bool>> reserve_given_back,
+               std::unique_ptr<rocksdb::DB> db,
                const RocksDbStoreOptions& options)
-      : db_(std::move(db)),
+      : env_(std::move(env)),
+        reserve_given_back_(std::move(reserve_given_back)),
+        db_(std::move(db)),
         path_(options.path),
         min_free_bytes_(options.min_free_bytes),
         free_bytes_(options.free_bytes ? options.free_bytes : StatvfsFreeBytes),
@@ -622,6 +647,11 @@ class RocksDbStore final : public engine::MemoryStore {
     return log_->Tails();
   }
 
+  std::vector<engine::LostLogEntries> LogLosses(
+      std::string_view fleet_id) override {
+    return log_->Losses(fleet_id);
+  }
+
   // Opens the ingest log at PATH/ingest-log and moves into it the entries
   // that builds before it kept in RocksDB (their keys are then erased).
   absl::Status OpenLog() {
@@ -867,6 +897,7 @@ class RocksDbStore final : public engine::MemoryStore {
   // Creates the reserve file if it is not held and `free` bytes leave room
   // for it above min_free_bytes.
   void TakeReserve(uint64_t free) ABSL_EXCLUSIVE_LOCKS_REQUIRED(reserve_mu_) {
+    if (reserve_given_back_->exchange(false)) reserve_held_ = false;
     if (!reserve_held_ && reserve_bytes_ > 0 &&
         free >= min_free_bytes_ + reserve_bytes_) {
       reserve_held_ = CreateReserve(ReservePath(path_), reserve_bytes_);
@@ -888,6 +919,9 @@ class RocksDbStore final : public engine::MemoryStore {
     return absl::OkStatus();
   }
 
+  // Outlives db_ (declared first, destroyed last).
+  const std::unique_ptr<rocksdb::Env> env_;
+  const std::shared_ptr<std::atomic<bool>> reserve_given_back_;
   std::unique_ptr<rocksdb::DB> db_;
   std::unique_ptr<SegmentLog> log_;
   const std::string path_;
@@ -906,8 +940,10 @@ class RocksDbStore final : public engine::MemoryStore {
   std::atomic<bool> write_failed_ = false;
 };
 
-rocksdb::Options MakeOptions(const RocksDbStoreOptions& options) {
+rocksdb::Options MakeOptions(const RocksDbStoreOptions& options,
+                             rocksdb::Env* env) {
   rocksdb::Options db_options;
+  db_options.env = env;
   db_options.create_if_missing = options.create_if_missing;
   db_options.max_background_jobs = std::max(1, options.background_jobs);
   db_options.write_buffer_size = options.write_buffer_bytes;
@@ -949,7 +985,7 @@ rocksdb::Options MakeOptions(const RocksDbStoreOptions& options) {
   // watches the free space and resumes the database); it also makes RocksDB
   // check the free space before a compaction.
   db_options.sst_file_manager.reset(
-      rocksdb::NewSstFileManager(rocksdb::Env::Default()));
+      rocksdb::NewSstFileManager(env));
   return db_options;
 }
 
@@ -1022,9 +1058,12 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
           "start again"));
     }
   }
+  auto reserve_given_back = std::make_shared<std::atomic<bool>>(false);
+  std::unique_ptr<rocksdb::Env> env =
+      MakeEnv(options.path, reserve_given_back);
   rocksdb::DB* raw = nullptr;
   const rocksdb::Status status =
-      rocksdb::DB::Open(MakeOptions(options), options.path, &raw);
+      rocksdb::DB::Open(MakeOptions(options, env.get()), options.path, &raw);
   if (!status.ok()) {
     delete raw;
     return FromRocksDb(status, absl::StrCat("open '", options.path, "'"));
@@ -1036,7 +1075,8 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
   }
   FLEETMEM_LOG(kInfo) << "opened RocksDB store at " << options.path
                       << (options.sync ? " (sync writes)" : " (async writes)");
-  auto store = std::make_unique<RocksDbStore>(std::move(db), options);
+  auto store = std::make_unique<RocksDbStore>(
+      std::move(env), std::move(reserve_given_back), std::move(db), options);
   if (absl::Status log = store->OpenLog(); !log.ok()) return log;
   store->TakeReserveAtOpen();
   return store;

@@ -11,6 +11,7 @@
 #include <charconv>
 #include <cstring>
 #include <filesystem>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -146,6 +147,135 @@ bool Intact(std::string_view record, uint64_t segment, uint64_t sequence) {
          Load<uint64_t>(record.data() + kHashAt);
 }
 
+// The record at `at` in `data`, if it is whole, intact and of `segment`,
+// and a padding record or entry `expected` (with `or_later`: any entry from
+// `expected` on): its sequence (0: padding) and size.
+struct Found {
+  uint64_t sequence = 0;
+  uint64_t offset = 0;
+  uint64_t size = 0;
+};
+std::optional<Found> RecordAt(std::string_view data, uint64_t at,
+                              uint64_t segment, uint64_t expected,
+                              bool or_later) {
+  if (at + kHeaderBytes > data.size()) return std::nullopt;
+  const char* header = data.data() + at;
+  if (std::memcmp(header, kMagic, sizeof(kMagic)) != 0 ||
+      Load<uint64_t>(header + 12) != segment) {
+    return std::nullopt;
+  }
+  const uint64_t sequence = Load<uint64_t>(header + 20);
+  if (sequence != 0 &&
+      (or_later ? sequence < expected : sequence != expected)) {
+    return std::nullopt;
+  }
+  const uint64_t size = kHeaderBytes + Load<uint32_t>(header + 28);
+  if (at + size > data.size() ||
+      !Intact(data.substr(at, size), segment, sequence)) {
+    return std::nullopt;
+  }
+  return Found{sequence, at, size};
+}
+
+// The first intact record of `segment` (padding, or an entry from
+// `expected` on) that starts after `at`.
+std::optional<Found> NextRecordAfter(std::string_view data, uint64_t at,
+                                     uint64_t segment, uint64_t expected) {
+  for (uint64_t from = at + 1; from + kHeaderBytes <= data.size();) {
+    const void* hit = ::memmem(data.data() + from, data.size() - from, kMagic,
+                               sizeof(kMagic));
+    if (hit == nullptr) break;
+    const uint64_t candidate =
+        static_cast<uint64_t>(static_cast<const char*>(hit) - data.data());
+    if (std::optional<Found> found =
+            RecordAt(data, candidate, segment, expected, /*or_later=*/true)) {
+      return found;
+    }
+    from = candidate + 1;
+  }
+  return std::nullopt;
+}
+
+// What a segment file holds: its entries in order, where its whole records
+// end, and the entries missing between two intact records (damage).
+struct ScannedSegment {
+  struct Gap {
+    uint64_t first, last;  // sequences
+    uint64_t offset;       // where the damage begins
+  };
+  std::vector<Found> entries;
+  uint64_t end = 0;
+  std::vector<Gap> gaps;
+  // The entry whose record the segment ends in, cut short or failing its
+  // checksum (0: it ends cleanly): a write torn by a crash, never
+  // acknowledged, or damage to the last record, which cannot be told apart.
+  uint64_t cut_entry = 0;
+};
+
+// The largest entry from `expected` on that a header of `segment` in
+// data[from, to) names (whole or not), or 0.
+uint64_t LastNamedEntry(std::string_view data, uint64_t from, uint64_t to,
+                        uint64_t segment, uint64_t expected) {
+  uint64_t named = 0;
+  // A region of n bytes holds at most n / 32 records.
+  const uint64_t most = expected + (to - from) / kHeaderBytes;
+  while (from + kHeaderBytes <= to) {
+    const void* hit =
+        ::memmem(data.data() + from, to - from, kMagic, sizeof(kMagic));
+    if (hit == nullptr) break;
+    const uint64_t at =
+        static_cast<uint64_t>(static_cast<const char*>(hit) - data.data());
+    if (at + kHeaderBytes <= data.size() &&
+        Load<uint64_t>(data.data() + at + 12) == segment) {
+      const uint64_t sequence = Load<uint64_t>(data.data() + at + 20);
+      if (sequence >= expected && sequence <= most) {
+        named = std::max(named, sequence);
+      }
+    }
+    from = at + 1;
+  }
+  return named;
+}
+ScannedSegment ScanSegment(std::string_view data, uint64_t first) {
+  ScannedSegment out;
+  uint64_t at = 0;
+  uint64_t expected = first;
+  while (true) {
+    std::optional<Found> record =
+        RecordAt(data, at, first, expected, /*or_later=*/false);
+    if (!record) {
+      // A torn tail (nothing intact follows: the segment ends here), or
+      // damage followed by intact records.
+      record = NextRecordAfter(data, at, first, expected);
+      if (!record) {
+        if (LastNamedEntry(data, at, std::min<uint64_t>(data.size(),
+                                                        at + kHeaderBytes),
+                           first, expected) == expected) {
+          out.cut_entry = expected;
+        }
+        break;
+      }
+      if (record->sequence > expected) {
+        out.gaps.push_back({expected, record->sequence - 1, at});
+      } else if (record->sequence == 0) {
+        // The padding that ends an append (O_DIRECT): the append was
+        // written whole, so the record before it that fails is damaged,
+        // not torn. (Were more records damaged, the next entry found
+        // reports the rest.)
+        out.gaps.push_back({expected, expected, at});
+        ++expected;
+      }
+    }
+    if (record->sequence != 0) {
+      out.entries.push_back(*record);
+      expected = record->sequence + 1;
+    }
+    at = record->offset + record->size;
+    out.end = at;
+  }
+  return out;
+}
+
 }  // namespace
 
 struct SegmentLog::Segment {
@@ -206,7 +336,27 @@ struct SegmentLog::Fleet {
   bool sealed ABSL_GUARDED_BY(mu) = false;
   std::vector<std::string> spares ABSL_GUARDED_BY(mu);
   uint64_t next_spare ABSL_GUARDED_BY(mu) = 0;
+  // Entries found damaged and passed over.
+  std::vector<engine::LostLogEntries> losses ABSL_GUARDED_BY(mu);
+
+  // Records and logs (an error) the loss of entries first..last.
+  void Lose(uint64_t first, uint64_t last, std::string detail)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
+    FLEETMEM_LOG(kError) << "DATA_LOSS: ingest log of fleet \"" << id
+                         << "\": acknowledged entries " << first << ".."
+                         << last << " are lost (" << detail
+                         << "); the entries after them are applied";
+    losses.push_back({first, last, std::move(detail)});
+  }
 };
+
+std::vector<engine::LostLogEntries> SegmentLog::Losses(
+    std::string_view fleet_id) {
+  Fleet* fleet = Find(fleet_id);
+  if (fleet == nullptr) return {};
+  absl::MutexLock lock(&fleet->mu);
+  return fleet->losses;
+}
 
 SegmentLog::SegmentLog(SegmentLogOptions options)
     : options_(std::move(options)) {}
@@ -278,18 +428,8 @@ absl::Status SegmentLog::LoadFleet(const std::string& fleet_id,
         absl::StrCat("list '", path, "': ", error.message()));
   }
   std::sort(files.begin(), files.end());
-  // Sequences run on across segments: each segment starts right after the
-  // last record before it.
-  uint64_t last = 0;
+  std::vector<std::vector<ScannedSegment::Gap>> gaps;
   for (const auto& [first, file_path] : files) {
-    if (last != 0 && first != last + 1) {
-      FLEETMEM_LOG(kError)
-          << "ingest log of fleet \"" << fleet_id << "\": segment '"
-          << file_path << "' starts at entry " << first
-          << " but the segments before it end at " << last
-          << ": the entries between are lost (a segment damaged before its "
-             "end)";
-    }
     auto segment = std::make_shared<Segment>();
     segment->first = first;
     segment->path = file_path;
@@ -300,30 +440,55 @@ absl::Status SegmentLog::LoadFleet(const std::string& fleet_id,
     if (::fstat(fd, &info) != 0) {
       return IoError(errno, absl::StrCat("stat '", file_path, "'"));
     }
-    const uint64_t size = static_cast<uint64_t>(info.st_size);
-    uint64_t expected = first;
-    while (segment->end + kHeaderBytes <= size) {
-      absl::StatusOr<std::string> header =
-          ReadAt(fd, segment->end, kHeaderBytes, file_path);
-      if (!header.ok()) return header.status();
-      const uint32_t payload = Load<uint32_t>(header->data() + 28);
-      if (std::memcmp(header->data(), kMagic, sizeof(kMagic)) != 0 ||
-          segment->end + kHeaderBytes + payload > size) {
-        break;
-      }
-      absl::StatusOr<std::string> record =
-          ReadAt(fd, segment->end, kHeaderBytes + payload, file_path);
-      if (!record.ok()) return record.status();
-      const uint64_t sequence = Load<uint64_t>(record->data() + 20);
-      if (!Intact(*record, first, sequence == 0 ? 0 : expected)) break;
-      if (sequence != 0) {
-        segment->records.push_back({expected, segment->end, record->size()});
-        ++expected;
-      }
-      segment->end += record->size();
+    absl::StatusOr<std::string> data =
+        ReadAt(fd, 0, static_cast<size_t>(info.st_size), file_path);
+    if (!data.ok()) return data.status();
+    ScannedSegment scanned = ScanSegment(*data, first);
+    for (const Found& entry : scanned.entries) {
+      segment->records.push_back({entry.sequence, entry.offset, entry.size});
     }
-    last = segment->records.empty() ? first - 1 : segment->last();
+    segment->end = scanned.end;
+    // (Where a later segment follows, the gap before it is reported below.)
+    if (scanned.cut_entry != 0 && file_path == files.back().second) {
+      FLEETMEM_LOG(kWarning)
+          << "ingest log of fleet \"" << fleet_id << "\": '" << file_path
+          << "' ends in entry " << scanned.cut_entry
+          << ", cut short or failing its checksum: the write in flight at a "
+             "crash (never acknowledged), or damage to the segment's last "
+             "record (which cannot be told apart there); it is not applied";
+    }
+    gaps.push_back(std::move(scanned.gaps));
     fleet.segments.push_back(std::move(segment));
+  }
+  // Sequences run on across segments: each segment starts right after the
+  // last entry before it. A write that failed was undone and written again
+  // at the start of the next segment: what the failed one left (if its undo
+  // did not reach the disk) is not read.
+  uint64_t last = 0;
+  for (size_t i = 0; i < fleet.segments.size(); ++i) {
+    Segment& segment = *fleet.segments[i];
+    const uint64_t next = i + 1 < fleet.segments.size()
+                              ? fleet.segments[i + 1]->first
+                              : UINT64_MAX;
+    while (!segment.records.empty() && segment.last() >= next) {
+      segment.records.pop_back();
+    }
+    if (last != 0 && segment.first > last + 1) {
+      fleet.Lose(last + 1, segment.first - 1,
+           absl::StrCat("the end of the segment before '", segment.path,
+                        "' is damaged"));
+    }
+    last = segment.records.empty() ? segment.first - 1 : segment.last();
+    for (const ScannedSegment::Gap& gap : gaps[i]) {
+      if (gap.first >= next) continue;
+      const uint64_t lost_through = std::min(gap.last, next - 1);
+      fleet.Lose(gap.first, lost_through,
+                 absl::StrCat("'", segment.path, "' is damaged at byte ",
+                              gap.offset,
+                              ": the records there fail their checksum or "
+                              "frame"));
+      last = std::max(last, lost_through);
+    }
   }
   // The last segment may end in a torn write: appends after a restart start
   // a new segment.
@@ -482,13 +647,24 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
     written = IoError(errno, absl::StrCat("fdatasync '", segment->path, "'"));
   }
   if (!written.ok()) {
-    // Undo: a zero block where the first record began ends the segment
-    // there for readers after a restart. The next append starts another.
-    std::memset(buffer.get(), 0, kBlock);
-    const bool undone = WriteAll(fd, std::string_view(buffer.get(), kBlock),
-                                 offset, segment->path)
-                            .ok() &&
-                        ::fdatasync(fd) == 0;
+    // Undo: zeros over what of it reached the file, so that a reader after
+    // a restart finds none of its records (the segment ends where it
+    // began; a record of it found later would read as damage before it).
+    // The next append starts another segment.
+    struct stat info;
+    uint64_t reached = size;
+    if (::fstat(fd, &info) == 0) {
+      const uint64_t file_size = static_cast<uint64_t>(info.st_size);
+      reached = file_size > offset ? std::min<uint64_t>(size, file_size - offset)
+                                   : 0;
+    }
+    if (segment->direct) reached = RoundUp(reached);
+    std::memset(buffer.get(), 0, size);
+    const bool undone =
+        WriteAll(fd, std::string_view(buffer.get(), reached), offset,
+                 segment->path)
+            .ok() &&
+        ::fdatasync(fd) == 0;
     {
       absl::MutexLock lock(&fleet.mu);
       fleet.sealed = true;
@@ -524,7 +700,7 @@ absl::StatusOr<std::vector<engine::LoggedUpload>> SegmentLog::Read(
   Fleet* fleet = Find(fleet_id);
   if (fleet == nullptr || max_entries == 0) return out;
   struct Wanted {
-    std::shared_ptr<const Segment> segment;
+    std::shared_ptr<Segment> segment;
     uint64_t sequence, offset, size;
   };
   std::vector<Wanted> wanted;
@@ -562,8 +738,21 @@ absl::StatusOr<std::vector<engine::LoggedUpload>> SegmentLog::Read(
         absl::StrCat("ingest log of fleet \"", V(fleet_id), "\", entry ",
                      want.sequence, " in '", want.segment->path, "'");
     if (!Intact(*record, want.segment->first, want.sequence)) {
-      return absl::DataLossError(
-          absl::StrCat(where, " fails its checksum or frame"));
+      // Damaged since Open read it: passed over, reported, and taken out of
+      // the segment's index so that it is reported once.
+      absl::MutexLock lock(&fleet->mu);
+      auto& records = want.segment->records;
+      auto it = std::lower_bound(
+          records.begin(), records.end(), want.sequence,
+          [](const Segment::Record& record, uint64_t value) {
+            return record.sequence < value;
+          });
+      if (it != records.end() && it->sequence == want.sequence) {
+        records.erase(it);
+        fleet->Lose(want.sequence, want.sequence,
+             absl::StrCat(where, " fails its checksum or frame when read"));
+      }
+      continue;
     }
     absl::StatusOr<std::vector<core::MemoryTrace>> traces = DecodeLoggedTraces(
         where, std::string_view(*record).substr(kHeaderBytes));

@@ -20,9 +20,15 @@
 // Record: magic "FMLG" | XXH3-64 of the rest (uint64) | segment (its first
 //   sequence, uint64) | sequence (uint64) | payload bytes (uint32) |
 //   payload (record_codec's logged upload)
-// all little-endian. Reading a segment stops at the first record that is
-// not whole, not intact, not of this segment or not the next sequence: a
-// torn tail, or what a reused file held before.
+// all little-endian. Where a segment holds bytes that are not the next
+// whole, intact record of this segment, the reader looks for the next
+// intact record of this segment after them: none means a torn tail (the
+// write in flight at a crash, never acknowledged) or what a reused file
+// held before, and the segment ends there; one means a damaged middle
+// (a flipped bit, a bad sector): the entries between are lost, reported
+// (Losses, an error in the log), and the records after the damage are
+// read as usual. A write that failed is undone by zeroing what it wrote,
+// so that no record of it is found later.
 #ifndef FLEETMEM_SERVICES_STORAGE_SEGMENT_LOG_H_
 #define FLEETMEM_SERVICES_STORAGE_SEGMENT_LOG_H_
 
@@ -69,8 +75,8 @@ struct SegmentLogOptions {
 class SegmentLog {
  public:
   // Opens the log at options.directory, reading every fleet's segments
-  // (checksums included): DATA_LOSS if a fleet's records have a gap (a
-  // segment that is damaged before its end).
+  // (checksums included). Damaged entries are passed over and reported
+  // (Losses), never an error of Open.
   static absl::StatusOr<std::unique_ptr<SegmentLog>> Open(
       SegmentLogOptions options);
   ~SegmentLog();
@@ -85,6 +91,9 @@ class SegmentLog {
   // Up to `max_entries` entries with sequence > `after`, ascending.
   absl::StatusOr<std::vector<engine::LoggedUpload>> Read(
       std::string_view fleet_id, uint64_t after, size_t max_entries);
+  // The fleet's entries found damaged, at Open or by Read (which passes
+  // over them), in the order found.
+  std::vector<engine::LostLogEntries> Losses(std::string_view fleet_id);
   // Removes the segments whose entries all have sequence <= `through`
   // (but not the one appends go to). Entries at or below `through` in the
   // rest stay readable; callers read past them.

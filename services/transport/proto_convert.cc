@@ -97,6 +97,12 @@ void BacklogToProto(const engine::Backlog& backlog, v1::GetStatsResponse* out) {
   out->set_apply_error(backlog.apply_error.ok()
                            ? std::string()
                            : backlog.apply_error.ToString());
+  for (const engine::LostLogEntries& lost : backlog.lost) {
+    v1::LostLogEntries* added = out->add_log_entries_lost();
+    added->set_first_sequence(lost.first);
+    added->set_last_sequence(lost.last);
+    added->set_detail(lost.detail);
+  }
 }
 
 void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out) {
