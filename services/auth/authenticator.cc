@@ -202,7 +202,6 @@ Authenticator::Authenticator(std::vector<CredentialEntry> entries,
   } else {
     sodium_memzero(digest_key_, sizeof digest_key_);
   }
-  all_.tokens = options_.check_burst;
 }
 
 void Authenticator::Replace(std::vector<CredentialEntry> entries) {
@@ -231,7 +230,21 @@ std::shared_ptr<const Authenticator::Set> Authenticator::Current() const {
 
 size_t Authenticator::size() const { return Current()->entries.size(); }
 
-bool Authenticator::TakeCheck(const std::string& name) const {
+namespace {
+
+// Connections and addresses remembered for throttling; beyond, the ones not
+// seen for a minute are forgotten.
+constexpr size_t kMaxTrackedPeers = 16384;
+
+// "ipv4:127.0.0.1:50212" -> "ipv4:127.0.0.1"; "[::1]:80" -> "[::1]".
+std::string AddressOf(const std::string& peer) {
+  const size_t colon = peer.rfind(':');
+  return colon == std::string::npos ? peer : peer.substr(0, colon);
+}
+
+}  // namespace
+
+bool Authenticator::TakeCheck(const std::string& peer) const {
   const absl::Time now = options_.now();
   auto refill = [now](Bucket& bucket, double rate, double burst) {
     if (bucket.refilled == absl::InfinitePast()) {
@@ -244,18 +257,44 @@ bool Authenticator::TakeCheck(const std::string& name) const {
     bucket.refilled = now;
   };
   absl::MutexLock lock(&budget_mu_);
-  refill(all_, options_.checks_per_second, options_.check_burst);
-  Bucket& mine = by_name_[name];  // names of the file only: bounded
-  refill(mine, options_.checks_per_second_per_name,
-         options_.check_burst_per_name);
-  if (all_.tokens < 1.0 || mine.tokens < 1.0) return false;
-  all_.tokens -= 1.0;
-  mine.tokens -= 1.0;
+  if (connections_.size() >= kMaxTrackedPeers) {
+    absl::erase_if(connections_, [now](const auto& entry) {
+      return now - entry.second.seen > absl::Minutes(1);
+    });
+  }
+  if (clean_by_address_.size() >= kMaxTrackedPeers) {
+    absl::erase_if(clean_by_address_, [now](const auto& entry) {
+      return now - entry.second.refilled > absl::Minutes(1);
+    });
+  }
+  Connection& connection = connections_[peer];
+  connection.seen = now;
+  refill(connection.bucket, options_.checks_per_second_per_connection,
+         options_.check_burst_per_connection);
+  Bucket& shared = connection.suspect ? suspects_
+                                      : clean_by_address_[AddressOf(peer)];
+  if (connection.suspect) {
+    refill(shared, options_.checks_per_second, options_.check_burst);
+  } else {
+    refill(shared, options_.clean_checks_per_second_per_address,
+           options_.clean_check_burst_per_address);
+  }
+  if (connection.bucket.tokens < 1.0 || shared.tokens < 1.0) return false;
+  connection.bucket.tokens -= 1.0;
+  shared.tokens -= 1.0;
   return true;
 }
 
+void Authenticator::MarkSuspect(const std::string& peer) const {
+  absl::MutexLock lock(&budget_mu_);
+  if (auto it = connections_.find(peer); it != connections_.end()) {
+    it->second.suspect = true;
+  }
+}
+
 absl::StatusOr<Principal> Authenticator::CheckToken(
-    const std::shared_ptr<const Set>& set, const std::string& token) const {
+    const std::shared_ptr<const Set>& set, const std::string& token,
+    const std::string& peer) const {
   const absl::Status wrong = absl::UnauthenticatedError(
       "unknown or wrong token (expected \"authorization: Bearer NAME:SECRET\" "
       "for a principal of the server's credentials file)");
@@ -279,17 +318,19 @@ absl::StatusOr<Principal> Authenticator::CheckToken(
   if (named != set->by_name.end() &&
       !set->entries[named->second].secret_hash.empty()) {
     // The one costly case: a known name with a secret not seen before.
-    if (!TakeCheck(named->first)) {
+    if (!TakeCheck(peer)) {
       return absl::UnavailableError(absl::StrCat(
           "the token of \"", named->first,
-          "\" was not checked: more new tokens are presented for it than the "
-          "server checks (",
-          options_.checks_per_second_per_name, " a second for a name, ",
-          options_.checks_per_second, " in all); retry later"));
+          "\" was not checked: this connection presents more new tokens than "
+          "the server checks (",
+          options_.checks_per_second_per_connection,
+          " a second for a connection, fewer once it has presented a wrong "
+          "one); retry later"));
     }
     absl::MutexLock one_at_a_time(&check_mu_);
     found = VerifySecret(set->entries[named->second].secret_hash,
                          token.substr(colon + 1));
+    if (!found) MarkSuspect(peer);
   }
   absl::MutexLock lock(&set->mu);
   if (found) {
@@ -304,7 +345,9 @@ absl::StatusOr<Principal> Authenticator::CheckToken(
 absl::StatusOr<Principal> Authenticator::Authenticate(
     const PresentedCredentials& presented) const {
   const std::shared_ptr<const Set> set = Current();
-  if (presented.token.has_value()) return CheckToken(set, *presented.token);
+  if (presented.token.has_value()) {
+    return CheckToken(set, *presented.token, presented.peer);
+  }
   if (presented.certificate_common_name.has_value()) {
     auto it = set->by_common_name.find(*presented.certificate_common_name);
     if (it == set->by_common_name.end()) {

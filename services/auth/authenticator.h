@@ -54,21 +54,38 @@ struct PresentedCredentials {
   std::optional<std::string> token;
   // The common name of a client certificate the TLS layer has verified.
   std::optional<std::string> certificate_common_name;
+  // The connection it came over, "ADDRESS:PORT" (gRPC's peer, e.g.
+  // "ipv4:127.0.0.1:50212"): what costly checks are throttled by. Empty:
+  // one unnamed connection.
+  std::string peer;
 };
 
 // What failed token checks may cost. A token for a known name is checked
 // with Argon2id (about 0.1 s of a core and 64 MiB) the first time it is seen;
 // without a bound, wrong secrets for a robot's name would each cost that
 // much, and a few clients could take the server's CPU and memory.
+//
+// Throttling falls on the connections that present wrong secrets, never on
+// the principal whose name they carry (the third outside sweep: wrong
+// secrets under robot-8's name kept robot-8's own valid token out, 120 of
+// 120 calls, when the checks were rationed per name).
 struct AuthenticatorOptions {
-  // Argon2id checks per second (token bucket) for one principal name, and
-  // the burst it may use at once. A token of a name over its rate gets
-  // UNAVAILABLE without a check (clients retry it); other names go on.
-  double checks_per_second_per_name = 1.0;
-  double check_burst_per_name = 3.0;
-  // The same for all names together.
+  // Argon2id checks per second (token bucket) for one connection
+  // (PresentedCredentials::peer), and the burst it may use at once. A new
+  // token over its connection's rate gets UNAVAILABLE without a check
+  // (clients retry it); other connections go on.
+  double checks_per_second_per_connection = 1.0;
+  double check_burst_per_connection = 3.0;
+  // The connections that have presented a wrong token, all together: once
+  // spent, their new tokens get UNAVAILABLE.
   double checks_per_second = 4.0;
   double check_burst = 8.0;
+  // The connections of one address (the peer without its port) that have
+  // not presented a wrong token, together: bounds a client that opens a new
+  // connection for every wrong secret. A robot's first call after a restart
+  // is such a check.
+  double clean_checks_per_second_per_address = 8.0;
+  double clean_check_burst_per_address = 32.0;
   // The clock (tests inject one).
   std::function<absl::Time()> now = [] { return absl::Now(); };
 };
@@ -107,10 +124,14 @@ class Authenticator {
     absl::Time refilled = absl::InfinitePast();
   };
   absl::StatusOr<Principal> CheckToken(const std::shared_ptr<const Set>& set,
-                                       const std::string& token) const;
-  // Takes one check from `name`'s and the server's buckets; false (nothing
-  // taken) when either is empty.
-  bool TakeCheck(const std::string& name) const;
+                                       const std::string& token,
+                                       const std::string& peer) const;
+  // Takes one check for a token from connection `peer` (its bucket, and
+  // the suspects' or its address's); false (nothing taken) when one is
+  // empty.
+  bool TakeCheck(const std::string& peer) const;
+  // Marks `peer` as a connection that presented a wrong token.
+  void MarkSuspect(const std::string& peer) const;
   std::shared_ptr<const Set> Current() const;
 
   const AuthenticatorOptions options_;
@@ -121,9 +142,16 @@ class Authenticator {
   // Each set carries its own cache of checked tokens, so a check that ran
   // against an older set can never be cached for a newer one.
   std::shared_ptr<const Set> set_ ABSL_GUARDED_BY(mu_);
+  struct Connection {
+    Bucket bucket;
+    bool suspect = false;
+    absl::Time seen = absl::InfinitePast();
+  };
   mutable absl::Mutex budget_mu_;
-  mutable Bucket all_ ABSL_GUARDED_BY(budget_mu_);
-  mutable absl::flat_hash_map<std::string, Bucket> by_name_
+  mutable Bucket suspects_ ABSL_GUARDED_BY(budget_mu_);
+  mutable absl::flat_hash_map<std::string, Connection> connections_
+      ABSL_GUARDED_BY(budget_mu_);
+  mutable absl::flat_hash_map<std::string, Bucket> clean_by_address_
       ABSL_GUARDED_BY(budget_mu_);
   // Held while Argon2id runs: one check at a time.
   mutable absl::Mutex check_mu_;

@@ -90,6 +90,7 @@ HttpRequest FromHttplib(const httplib::Request& req) {
     request.last_event_id = req.get_header_value("Last-Event-ID");
   }
   request.certificate_common_name = CertificateCommonName(req);
+  request.peer = absl::StrCat(req.remote_addr, ":", req.remote_port);
   request.host = req.get_header_value("Host");
   request.origin = req.get_header_value("Origin");
   request.content_type = req.get_header_value("Content-Type");

@@ -340,6 +340,7 @@ absl::StatusOr<auth::Principal> RestGateway::Authenticate(
     presented.token = auth::TokenFromAuthorization(*request.authorization);
   }
   presented.certificate_common_name = request.certificate_common_name;
+  presented.peer = request.peer;
   return authenticator_->Authenticate(presented);
 }
 

@@ -50,6 +50,8 @@ struct HttpRequest {
   std::optional<std::string> authorization;
   // The common name of a client certificate verified by TLS.
   std::optional<std::string> certificate_common_name;
+  // The connection, "ADDRESS:PORT" (throttles costly token checks).
+  std::string peer;
   // The Last-Event-ID header (an EventSource resuming a watch), if sent.
   std::optional<std::string> last_event_id;
   // The Host, Origin and Content-Type headers ("" when not sent): the

@@ -487,7 +487,7 @@ class RocksDbStore final : public engine::MemoryStore {
     db_->GetIntProperty(rocksdb::DB::Properties::kLiveSstFilesSize, &sst);
     db_->GetIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables,
                         &memtables);
-    return sst + memtables + log_->Bytes();
+    return sst + memtables + log_->Bytes() + log_->SpareBytes();
   }
 
   std::vector<std::pair<std::string, uint64_t>> MemoryUsage() override {
@@ -879,6 +879,12 @@ class RocksDbStore final : public engine::MemoryStore {
         low_space_ = false;
       }
       return absl::OkStatus();
+    }
+    // The ingest log's spare segments (kept so that a segment's appends
+    // overwrite rather than grow a file) go first when space is short.
+    if (log_ != nullptr && log_->DropSpares() > 0) {
+      absl::StatusOr<uint64_t> after = free_bytes_(path_);
+      if (after.ok() && *after >= needed) return absl::OkStatus();
     }
     if (!low_space_) {
       FLEETMEM_LOG(kError) << "disk nearly full under " << path_ << ": "

@@ -845,6 +845,41 @@ uint64_t SegmentLog::Bytes() {
   return bytes;
 }
 
+uint64_t SegmentLog::SpareBytes() {
+  uint64_t bytes = 0;
+  for (Fleet* fleet : Fleets()) {
+    absl::MutexLock lock(&fleet->mu);
+    for (const std::string& spare : fleet->spares) {
+      std::error_code error;
+      const uintmax_t size = std::filesystem::file_size(spare, error);
+      if (!error) bytes += size;
+    }
+  }
+  return bytes;
+}
+
+uint64_t SegmentLog::DropSpares() {
+  uint64_t freed = 0;
+  for (Fleet* fleet : Fleets()) {
+    std::vector<std::string> spares;
+    {
+      absl::MutexLock lock(&fleet->mu);
+      spares.swap(fleet->spares);
+    }
+    for (const std::string& spare : spares) {
+      std::error_code error;
+      const uintmax_t size = std::filesystem::file_size(spare, error);
+      if (::unlink(spare.c_str()) == 0 && !error) freed += size;
+    }
+  }
+  if (freed > 0) {
+    FLEETMEM_LOG(kWarning) << "disk short: deleted the ingest log's spare "
+                              "segments ("
+                           << freed << " bytes)";
+  }
+  return freed;
+}
+
 absl::Status SegmentLog::CopyTo(const std::string& directory,
                                 const std::function<absl::Status()>& first) {
   absl::MutexLock trims(&trim_mu_);

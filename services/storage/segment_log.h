@@ -103,6 +103,11 @@ class SegmentLog {
   // Bytes of records in every fleet's segments (not counting the spares
   // kept for reuse, at most spare_segments * segment_bytes a fleet).
   uint64_t Bytes();
+  // Bytes of the spares kept for reuse.
+  uint64_t SpareBytes();
+  // Deletes every fleet's spares (the disk is short: a spare only pays
+  // where space is plenty); returns the bytes freed.
+  uint64_t DropSpares();
 
   // Calls `first` (may be empty), then copies every fleet's segments, as far
   // as they hold records, into a new log at `directory`, synced; no Trim

@@ -144,11 +144,20 @@ TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
   }
   ASSERT_TRUE(log->Trim("fleet-a", 45).ok());
   EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 60));
+  // A short disk: the spares go, and appends go on without them.
+  const uint64_t spare = log->SpareBytes();
+  EXPECT_GT(spare, 0u);
+  EXPECT_EQ(log->DropSpares(), spare);
+  EXPECT_EQ(CountFiles(path + "/f-fleet-a", "spare-"), 0u);
+  EXPECT_EQ(log->SpareBytes(), 0u);
+  ASSERT_TRUE(AppendEntries(*log, "fleet-a", 61, 66).ok());
+  ASSERT_TRUE(log->Trim("fleet-a", 45).ok());
+  EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 66));
   log = OpenLog(path);
   ASSERT_NE(log, nullptr);
-  EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 60));
+  EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 66));
   EXPECT_EQ(log->Tails().back(),
-            std::make_pair(std::string("fleet-a"), uint64_t{60}));
+            std::make_pair(std::string("fleet-a"), uint64_t{66}));
 }
 
 // Appends entries 1..2, then 3 (its own append), and returns the segment

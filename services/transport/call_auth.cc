@@ -12,6 +12,7 @@ namespace fleetmem::transport {
 auth::PresentedCredentials PresentedBy(
     const grpc::CallbackServerContext& context) {
   auth::PresentedCredentials presented;
+  presented.peer = context.peer();
   const auto& metadata = context.client_metadata();
   if (auto it = metadata.find("authorization"); it != metadata.end()) {
     presented.token = auth::TokenFromAuthorization(
