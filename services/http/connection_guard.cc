@@ -3,6 +3,7 @@
 #include <arpa/inet.h>
 #include <dlfcn.h>
 #include <netinet/in.h>
+#include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
@@ -239,6 +240,14 @@ void ConnectionGuard::Mark(Phase phase) {
 
 void ConnectionGuard::HeadRead() { Mark(Phase::kBody); }
 void ConnectionGuard::Handling() { Mark(Phase::kHandling); }
+
+bool ConnectionGuard::PeerClosed() {
+  auto* connection = static_cast<Connection*>(current);
+  if (connection == nullptr || connection->socket < 0) return false;
+  pollfd poll_fd{connection->socket, POLLRDHUP, 0};
+  return ::poll(&poll_fd, 1, 0) > 0 &&
+         (poll_fd.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
+}
 void ConnectionGuard::AnswerSent() { Mark(Phase::kHead); }
 
 }  // namespace fleetmem::http

@@ -58,6 +58,11 @@ class ConnectionGuard final : public httplib::TaskQueue {
   static void HeadRead();
   static void Handling();
   static void AnswerSent();
+  // On the connection's thread: true once the client has closed the
+  // connection (or reset it); false elsewhere. A watch asks this between
+  // its events, so that a closed watcher gives back its slot at once
+  // instead of at the next write.
+  static bool PeerClosed();
 
  private:
   enum class Phase { kHead, kBody, kHandling, kClosed };

@@ -33,6 +33,9 @@ void Answer(HttpResponse from, httplib::Response& to) {
       from.content_type,
       [stream = std::move(from.stream)](size_t, httplib::DataSink& sink) {
         stream([&sink](std::string_view piece) {
+          if (piece.empty()) {
+            return !ConnectionGuard::PeerClosed() && sink.is_writable();
+          }
           return sink.is_writable() && sink.write(piece.data(), piece.size());
         });
         sink.done();

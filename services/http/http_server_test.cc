@@ -16,6 +16,7 @@
 #include <thread>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "google/api/annotations.pb.h"
@@ -468,6 +469,61 @@ TEST_F(HttpConnectionLimitsTest, AnEndlessRequestHeadIsCut) {
   ASSERT_EQ(reasons.size(), 1u) << "sent " << sent << " bytes, not cut";
   EXPECT_THAT(reasons[0], HasSubstr("a request head over 65536 bytes"));
   std::cout << reasons[0] << "; " << sent << " bytes sent\n";
+}
+
+// The outside sweep: 4 watch slots for all clients; after 4 watchers had
+// closed, new ones got 429 for 13.7 s (a closed connection was noticed at
+// the next keep-alive, every 15 s), and over 200 connect/close cycles 188
+// got 429. A closed connection now gives back its slot within
+// watch_liveness: 200 cycles, each opening a watch, reading its first
+// bytes and closing, with the keep-alive at its 15 s default, are all
+// served.
+TEST_F(HttpServerTest, AClosedWatchGivesBackItsSlotAtOnce) {
+  std::vector<core::MemoryTrace> traces;
+  core::MemoryTrace trace;
+  trace.robot_id = "r";
+  trace.seq = 1;
+  trace.code = {1, 0, 0};
+  traces.push_back(trace);
+  ASSERT_TRUE(engine_->Upload("alpha", traces).ok());
+  auto gateway = RestGateway::Create(api_.get(), nullptr, nullptr,
+                                     {.max_watches = 4});
+  ASSERT_TRUE(gateway.ok());
+  HttpServerOptions options;
+  options.listen = "127.0.0.1:0";
+  auto server = HttpServer::Start(options, {gateway->get(), nullptr, nullptr});
+  ASSERT_TRUE(server.ok()) << server.status();
+  const std::string request =
+      "GET /v1/fleets/alpha/watch HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n";
+  int refused = 0;
+  int served = 0;
+  for (int cycle = 0; cycle < 200; ++cycle) {
+    const int socket = Connect((*server)->port());
+    ASSERT_GE(socket, 0);
+    ASSERT_EQ(send(socket, request.data(), request.size(), 0),
+              static_cast<ssize_t>(request.size()));
+    std::string got;
+    const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    while (got.find("\r\n\r\n") == std::string::npos &&
+           std::chrono::steady_clock::now() < end) {
+      pollfd wait{socket, POLLIN, 0};
+      if (poll(&wait, 1, 50) <= 0) continue;
+      char buffer[4096];
+      const ssize_t n = recv(socket, buffer, sizeof(buffer), 0);
+      if (n <= 0) break;
+      got.append(buffer, static_cast<size_t>(n));
+    }
+    close(socket);
+    if (absl::StartsWith(got, "HTTP/1.1 200")) ++served;
+    if (absl::StartsWith(got, "HTTP/1.1 429")) ++refused;
+    // A watcher that comes back at once, as an EventSource does.
+    std::this_thread::sleep_for(std::chrono::milliseconds(
+        cycle % 4 == 3 ? 100 : 0));
+  }
+  EXPECT_EQ(refused, 0);
+  EXPECT_EQ(served, 200);
+  (*gateway)->Shutdown();
+  (*server)->Stop();
 }
 
 }  // namespace

@@ -582,11 +582,22 @@ HttpResponse RestGateway::ServeWatch(const auth::Principal& caller,
     const google::protobuf::util::JsonPrintOptions print = PrintOptions();
     // EventSource waits this long (ms) before it reconnects.
     if (!write("retry: 1000\n\n")) return;
+    // While the fleet is quiet the watch wakes every watch_liveness to see
+    // whether the client has gone (its slot then goes back at once; it
+    // went at the next keep-alive write before, up to 15 s later), and
+    // writes a keep-alive every watch_heartbeat.
+    absl::Time written = absl::Now();
     absl::Status ended = api_->Watch(
         caller, request, absl::Now() + options_.max_watch,
-        options_.watch_heartbeat, &stopping_,
-        [&](const v1::MemoryEvent* event) {
-          if (event == nullptr) return write(": keep-alive\n\n");
+        std::min(options_.watch_liveness, options_.watch_heartbeat),
+        &stopping_, [&](const v1::MemoryEvent* event) {
+          if (event == nullptr) {
+            if (!write("")) return false;  // the client has gone
+            if (absl::Now() - written < options_.watch_heartbeat) return true;
+            written = absl::Now();
+            return write(": keep-alive\n\n");
+          }
+          written = absl::Now();
           std::string json;
           (void)google::protobuf::util::MessageToJsonString(*event, &json,
                                                             print);

@@ -68,7 +68,8 @@ struct HttpResponse {
   std::vector<std::pair<std::string, std::string>> headers;
   // A streamed body instead of `body` (server-sent events): called once, on
   // the connection's thread, with a function that writes one piece (false
-  // once the client is gone); the body ends when it returns.
+  // once the client is gone; an empty piece writes nothing and says
+  // whether the client is still there); the body ends when it returns.
   std::function<void(const std::function<bool(std::string_view)>& write)>
       stream;
 };
@@ -85,6 +86,10 @@ struct RestOptions {
   size_t max_watches = 4;
   absl::Duration max_watch = absl::Minutes(5);
   absl::Duration watch_heartbeat = absl::Seconds(15);
+  // How often a quiet watch looks whether its client has gone (a closed
+  // connection gives back its slot within this; it took up to
+  // watch_heartbeat before: the outside sweep's 429s for 13.7 s).
+  absl::Duration watch_liveness = absl::Milliseconds(50);
   // Only requests addressed to a loopback name (Host localhost, 127.x.x.x,
   // [::1], any port; or no Host, which browsers always send) are answered: a server without auth on a loopback
   // port, which a web page could otherwise read through DNS rebinding (a

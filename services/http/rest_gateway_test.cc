@@ -291,6 +291,7 @@ std::string Streamed(const HttpResponse& response, size_t pieces = SIZE_MAX) {
   std::string text;
   size_t written = 0;
   response.stream([&](std::string_view piece) {
+    if (piece.empty()) return written < pieces;  // is the client there?
     text += piece;
     return ++written < pieces;
   });
