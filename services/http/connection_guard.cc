@@ -8,9 +8,13 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <chrono>
+#include <string_view>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "absl/time/clock.h"
 #include "services/http/socket_bytes.h"
 
@@ -37,6 +41,11 @@ namespace {
 
 // The connection the calling thread serves, if it is a guard's.
 thread_local void* current = nullptr;
+
+// Connections over a limit that the overflow loop holds at most (more are
+// refused at once), and the bytes of a request line it reads.
+constexpr size_t kMaxOverflow = 1024;
+constexpr size_t kMaxOverflowHead = 2048;
 
 std::string PeerAddress(int socket) {
   sockaddr_storage address{};
@@ -118,6 +127,19 @@ void ConnectionGuard::enqueue(std::function<void()> fn) {
     }
   }
   if (!refused.empty()) {
+    if (limits_.probe && socket >= 0) {
+      std::lock_guard<std::mutex> lock(mu_);
+      if (!stopping_ && incoming_.size() < kMaxOverflow) {
+        incoming_.push_back({dup(socket), std::move(fn), std::move(refused),
+                             std::string(),
+                             absl::Now() + limits_.probe_wait});
+        if (!overflow_.joinable()) {
+          overflow_ = std::thread([this] { OverflowLoop(); });
+        }
+        overflow_wake_.notify_one();
+        return;
+      }
+    }
     if (limits_.on_refused) limits_.on_refused(refused);
     Refuse(socket, refused);
     fn();  // reads nothing from the shut socket, and closes it
@@ -134,6 +156,82 @@ void ConnectionGuard::enqueue(std::function<void()> fn) {
   } else {
     wake_.notify_all();
   }
+}
+
+void ConnectionGuard::OverflowLoop() {
+  std::vector<Overflow> pending;
+  while (true) {
+    {
+      std::unique_lock<std::mutex> lock(mu_);
+      if (pending.empty()) {
+        overflow_wake_.wait(
+            lock, [this] { return stopping_ || !incoming_.empty(); });
+      }
+      for (Overflow& overflow : incoming_) pending.push_back(std::move(overflow));
+      incoming_.clear();
+      if (stopping_) {
+        lock.unlock();
+        for (Overflow& overflow : pending) Finish(overflow);
+        return;
+      }
+    }
+    std::vector<pollfd> wait;
+    for (const Overflow& overflow : pending) {
+      wait.push_back({overflow.socket, POLLIN, 0});
+    }
+    ::poll(wait.data(), wait.size(), 10);
+    const absl::Time now = absl::Now();
+    std::vector<Overflow> still;
+    for (size_t i = 0; i < pending.size(); ++i) {
+      Overflow& overflow = pending[i];
+      bool done = now >= overflow.deadline;
+      if (wait[i].revents != 0) {
+        char buffer[1024];
+        const ssize_t n =
+            recv(overflow.socket, buffer, sizeof(buffer), MSG_DONTWAIT);
+        if (n > 0) overflow.head.append(buffer, static_cast<size_t>(n));
+        done = done || n == 0 ||
+               (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK) ||
+               overflow.head.find("\r\n") != std::string::npos ||
+               overflow.head.size() >= kMaxOverflowHead;
+      }
+      if (done) {
+        Finish(overflow);
+      } else {
+        still.push_back(std::move(overflow));
+      }
+    }
+    pending = std::move(still);
+  }
+}
+
+void ConnectionGuard::Finish(Overflow& overflow) {
+  // "GET /readyz HTTP/1.1": a probe is answered, anything else refused.
+  std::optional<std::pair<int, std::string>> answer;
+  const size_t line_end = overflow.head.find("\r\n");
+  if (line_end != std::string::npos) {
+    const std::vector<absl::string_view> words = absl::StrSplit(
+        absl::string_view(overflow.head).substr(0, line_end), ' ');
+    if (words.size() == 3 && (words[0] == "GET" || words[0] == "HEAD")) {
+      const absl::string_view path = words[1].substr(0, words[1].find('?'));
+      answer = limits_.probe(std::string_view(path.data(), path.size()));
+    }
+  }
+  if (answer.has_value()) {
+    const std::string response = absl::StrCat(
+        "HTTP/1.1 ", answer->first, answer->first == 200 ? " OK" : " Error",
+        "\r\nConnection: close\r\nContent-Type: text/plain\r\n"
+        "Content-Length: ",
+        answer->second.size(), "\r\n\r\n", answer->second);
+    (void)send(overflow.socket, response.data(), response.size(),
+               MSG_DONTWAIT | MSG_NOSIGNAL);
+    ::shutdown(overflow.socket, SHUT_RDWR);
+  } else {
+    if (limits_.on_refused) limits_.on_refused(overflow.refused);
+    Refuse(overflow.socket, overflow.refused);
+  }
+  close(overflow.socket);
+  overflow.fn();  // reads nothing from the shut socket, and closes it
 }
 
 void ConnectionGuard::Serve(std::shared_ptr<Connection> connection,
@@ -224,6 +322,13 @@ void ConnectionGuard::shutdown() {
     workers.swap(workers_);
   }
   for (std::thread& worker : workers) worker.join();
+  overflow_wake_.notify_all();
+  std::thread overflow;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    overflow.swap(overflow_);
+  }
+  if (overflow.joinable()) overflow.join();
 }
 
 void ConnectionGuard::Mark(Phase phase) {

@@ -77,7 +77,19 @@ class ConnectionGuard final : public httplib::TaskQueue {
     uint64_t read_at_phase = 0;
   };
 
+  // A connection over a limit, waiting in the overflow loop for its
+  // request line (ConnectionLimits::probe).
+  struct Overflow {
+    int socket = -1;  // our duplicate
+    std::function<void()> fn;
+    std::string refused;  // why it is over a limit
+    std::string head;
+    absl::Time deadline;
+  };
   void Serve(std::shared_ptr<Connection> connection, std::function<void()> fn);
+  void OverflowLoop();
+  // Answers (a probe) or refuses the connection, then lets httplib close it.
+  void Finish(Overflow& overflow);
   void Worker();
   void CheckDeadlines();
   static void Mark(Phase phase);
@@ -92,6 +104,10 @@ class ConnectionGuard final : public httplib::TaskQueue {
   std::vector<std::shared_ptr<Connection>> open_;
   std::map<std::string, size_t> per_client_;
   std::thread deadlines_;
+  // Connections over a limit handed to the overflow loop (guarded by mu_).
+  std::vector<Overflow> incoming_;
+  std::condition_variable overflow_wake_;
+  std::thread overflow_;
 };
 
 }  // namespace fleetmem::http

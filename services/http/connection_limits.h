@@ -6,7 +6,10 @@
 
 #include <cstddef>
 #include <functional>
+#include <optional>
 #include <string>
+#include <string_view>
+#include <utility>
 
 #include "absl/time/time.h"
 
@@ -35,6 +38,18 @@ struct ConnectionLimits {
   // connection refused or closed by a limit (for a metric or a log; may be
   // empty).
   std::function<void(const std::string& reason)> on_refused;
+  // Over a limit, a connection's request line is still read, for up to
+  // probe_wait and without a thread of its own (one thread polls them
+  // all), and a probe is answered: `probe` gets the path ("/readyz") and
+  // returns the status and body, or nullopt for every other path (those
+  // get 503). So probes keep their answer whatever slow clients hold (the
+  // third outside sweep: /readyz answered 503 to 33 of 60 probes beside
+  // 300 slow connections). Empty (and over TLS, whose handshake this does
+  // not do): over a limit every connection is refused at once.
+  std::function<std::optional<std::pair<int, std::string>>(
+      std::string_view path)>
+      probe;
+  absl::Duration probe_wait = absl::Seconds(1);
 };
 
 }  // namespace fleetmem::http

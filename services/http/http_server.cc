@@ -7,6 +7,8 @@
 
 #include <chrono>
 #include <fstream>
+#include <optional>
+#include <string>
 #include <string_view>
 #include <utility>
 
@@ -19,6 +21,18 @@
 
 namespace fleetmem::http {
 namespace {
+
+// /readyz: 200 "ready" (with the warnings' lines) or 503 "not ready".
+std::pair<int, std::string> ReadyAnswer(const HttpEndpoints& e) {
+  const bool ready = !e.ready || e.ready();
+  std::string body = ready ? "ready\n" : "not ready\n";
+  if (e.warnings) {
+    for (const std::string& line : e.warnings()) {
+      absl::StrAppend(&body, line, "\n");
+    }
+  }
+  return {ready ? 200 : 503, std::move(body)};
+}
 
 void Answer(HttpResponse from, httplib::Response& to) {
   to.status = from.status;
@@ -188,9 +202,18 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   std::unique_ptr<HttpServer> server(
       new HttpServer(std::move(*made), std::move(endpoints)));
   httplib::Server& http = *server->server_;
-  http.new_task_queue = [limits = options.connections] {
-    return new ConnectionGuard(limits);
-  };
+  HttpEndpoints* e = &server->endpoints_;
+  ConnectionLimits limits = options.connections;
+  if (options.tls_cert_file.empty()) {
+    // Over a connection limit the probes are still answered.
+    limits.probe = [e](std::string_view path)
+        -> std::optional<std::pair<int, std::string>> {
+      if (path == "/healthz") return std::make_pair(200, std::string("ok\n"));
+      if (path == "/readyz") return ReadyAnswer(*e);
+      return std::nullopt;
+    };
+  }
+  http.new_task_queue = [limits] { return new ConnectionGuard(limits); };
   http.set_payload_max_length(options.max_body_bytes);
   http.set_keep_alive_max_count(100);
   // The guard's deadlines run from these marks (connection_guard.h).
@@ -210,7 +233,6 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
     });
   };
 
-  HttpEndpoints* e = &server->endpoints_;
   const std::string openapi =
       OpenApiJson(e->gateway->routes(), PlainEndpoints(), options.version);
   get("/openapi.json",
@@ -221,14 +243,8 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
     res.set_content("ok\n", "text/plain");
   });
   get("/readyz", [e](const httplib::Request&, httplib::Response& res) {
-    const bool ready = !e->ready || e->ready();
-    res.status = ready ? 200 : 503;
-    std::string body = ready ? "ready\n" : "not ready\n";
-    if (e->warnings) {
-      for (const std::string& line : e->warnings()) {
-        absl::StrAppend(&body, line, "\n");
-      }
-    }
+    auto [status, body] = ReadyAnswer(*e);
+    res.status = status;
     res.set_content(body, "text/plain");
   });
   get("/metrics", [e](const httplib::Request& req, httplib::Response& res) {

@@ -381,6 +381,66 @@ TEST_F(HttpConnectionLimitsTest, SlowClientsDoNotStarveTheProbes) {
   for (int socket : slow) close(socket);
 }
 
+// The outside sweep: past the 256-connection limit (300 slow connections
+// from 5 addresses), /readyz answered 503 to 33 of 60 probes. Over a limit
+// a connection's request line is still read and a probe answered: with
+// every slot held by slow connections (a header line every 300 ms), 20
+// probes on new connections are all answered 200 within 1 s, while an API
+// call over the limit gets 503.
+TEST_F(HttpConnectionLimitsTest, ProbesAreAnsweredPastTheConnectionLimit) {
+  ConnectionLimits limits;
+  limits.max_connections = 16;
+  limits.max_connections_per_client = 16;
+  limits.head_timeout = absl::Seconds(30);
+  ASSERT_NO_FATAL_FAILURE(Restart(limits));
+  std::vector<int> slow;
+  for (int i = 0; i < 40; ++i) {  // 16 held, 24 more waiting to be refused
+    const int socket = Connect(server_->port());
+    ASSERT_GE(socket, 0);
+    const std::string line = "GET /v1/fleets HTTP/1.1\r\n";
+    (void)send(socket, line.data(), line.size(), MSG_NOSIGNAL);
+    slow.push_back(socket);
+  }
+  std::atomic<bool> stop = false;
+  std::thread trickle([&] {
+    while (!stop.load()) {
+      for (int socket : slow) {
+        (void)send(socket, "X-Slow: 1\r\n", 11, MSG_NOSIGNAL | MSG_DONTWAIT);
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    }
+  });
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  auto ask = [&](const std::string& path) {
+    const int socket = Connect(server_->port());
+    const std::string request =
+        absl::StrCat("GET ", path, " HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
+    (void)send(socket, request.data(), request.size(), MSG_NOSIGNAL);
+    bool closed = false;
+    std::string got =
+        ReadUntilClosed(socket, std::chrono::milliseconds(1000), &closed);
+    close(socket);
+    return got;
+  };
+  int answered = 0;
+  for (int i = 0; i < 20; ++i) {
+    const auto sent = std::chrono::steady_clock::now();
+    const std::string got = ask("/readyz");
+    const bool fast = std::chrono::steady_clock::now() - sent <
+                      std::chrono::milliseconds(1000);
+    if (absl::StartsWith(got, "HTTP/1.1 200") &&
+        absl::StrContains(got, "ready") && fast) {
+      ++answered;
+    }
+  }
+  EXPECT_EQ(answered, 20);
+  EXPECT_THAT(ask("/healthz"), HasSubstr("200"));
+  EXPECT_THAT(ask("/v1/fleets"), HasSubstr("503"));
+  stop = true;
+  trickle.join();
+  for (int socket : slow) close(socket);
+}
+
 TEST_F(HttpConnectionLimitsTest, AClientsConnectionsAreCapped) {
   ConnectionLimits limits;
   limits.max_connections_per_client = 4;
