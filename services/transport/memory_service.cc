@@ -111,10 +111,29 @@ grpc::ServerReadReactor<grpc::ByteBuffer>* MemoryServiceImpl::UploadTraces(
   return new UploadReactor(&state_, context, response);
 }
 
-grpc::ServerWriteReactor<v1::MemoryEvent>* MemoryServiceImpl::WatchMemory(
-    grpc::CallbackServerContext* context,
-    const v1::WatchMemoryRequest* request) {
-  return new WatchReactor(&state_, context, *request);
+namespace {
+
+// A watch refused before it starts: finishes at once with `status`.
+class RefusedWatch : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
+ public:
+  explicit RefusedWatch(const grpc::Status& status) { Finish(status); }
+  void OnDone() override { delete this; }
+};
+
+}  // namespace
+
+grpc::ServerWriteReactor<grpc::ByteBuffer>* MemoryServiceImpl::WatchMemory(
+    grpc::CallbackServerContext* context, const grpc::ByteBuffer* request) {
+  v1::WatchMemoryRequest parsed;
+  grpc::ByteBuffer bytes(*request);  // shares the slices
+  grpc::ProtoBufferReader reader(&bytes);
+  if (!parsed.ParseFromZeroCopyStream(&reader)) {
+    return new RefusedWatch(ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("request: ", request->Length(),
+                     " bytes do not parse as fleetmem.v1.WatchMemoryRequest; "
+                     "nothing was done"))));
+  }
+  return new WatchReactor(&state_, context, parsed);
 }
 
 }  // namespace fleetmem::transport

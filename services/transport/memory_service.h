@@ -31,12 +31,14 @@ namespace fleetmem::transport {
 // for their GOAWAY handshake), WorkQueue::Stop(), then destroy the service,
 // the engine and the store.
 //
-// UploadTraces is registered raw (bytes in, bytes out) so that a message
-// that does not parse fails the call with INVALID_ARGUMENT naming it, where
-// gRPC's own parsing would end the stream as if the client had closed it.
+// UploadTraces and WatchMemory are registered raw (bytes in, bytes out) so
+// that a message that does not parse fails the call with INVALID_ARGUMENT
+// naming it, where gRPC's own parsing would end the stream as if the client
+// had closed it (an upload) or answer UNIMPLEMENTED (a watch).
 class MemoryServiceImpl final
     : public v1::MemoryService::WithRawCallbackMethod_UploadTraces<
-          v1::MemoryService::CallbackService> {
+          v1::MemoryService::WithRawCallbackMethod_WatchMemory<
+              v1::MemoryService::CallbackService>> {
  public:
   // `engine`, `memory` (the mode: fleet_memory.h), `work` and
   // `authenticator` must outlive the service; a null `authenticator` turns
@@ -67,9 +69,11 @@ class MemoryServiceImpl final
   grpc::ServerReadReactor<grpc::ByteBuffer>* UploadTraces(
       grpc::CallbackServerContext* context,
       grpc::ByteBuffer* response) override;
-  grpc::ServerWriteReactor<v1::MemoryEvent>* WatchMemory(
+  // Raw too: a request that does not parse is INVALID_ARGUMENT (gRPC's
+  // generated handler answered UNIMPLEMENTED).
+  grpc::ServerWriteReactor<grpc::ByteBuffer>* WatchMemory(
       grpc::CallbackServerContext* context,
-      const v1::WatchMemoryRequest* request) override;
+      const grpc::ByteBuffer* request) override;
 
  private:
   // The unary methods are served raw (bytes in, bytes out), so that a

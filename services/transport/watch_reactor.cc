@@ -124,8 +124,10 @@ void WatchReactor::MaybeWriteLocked() {
     if (notified_) ScheduleReadLocked();
     return;
   }
-  event_.Clear();
-  EventToProto(unsent_.front(), &event_);
+  v1::MemoryEvent event;
+  EventToProto(unsent_.front(), &event);
+  grpc::Slice slice(event.SerializeAsString());
+  event_ = grpc::ByteBuffer(&slice, 1);
   unsent_.pop_front();
   write_in_flight_ = true;
   // The client has stream_idle_timeout to take it; a watch whose client

@@ -12,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
+#include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/server_callback.h"
 #include "services/core/types.h"
 #include "services/transport/service_state.h"
@@ -36,7 +37,7 @@ namespace fleetmem::transport {
 // engine listener do not point at the reactor directly but at a Shared block
 // they co-own; OnDone clears Shared::reactor under Shared::mu, so a late task
 // or notification finds nullptr instead of a deleted reactor.
-class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
+class WatchReactor : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
  public:
   // Authenticates and authorises the caller (auth::Action::kWatch) first.
   WatchReactor(ServiceState* state, grpc::CallbackServerContext* context,
@@ -82,7 +83,7 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::MemoryEvent> {
   bool notified_ = false;     // events may exist beyond read_cursor_
   std::deque<core::MemoryEvent> unsent_;
   bool write_in_flight_ = false;
-  v1::MemoryEvent event_;  // the message being written
+  grpc::ByteBuffer event_;  // the message being written (serialised)
   // Armed while a write waits for the client (stream_idle_timeout).
   StreamWatchdog stall_;
   bool finish_requested_ = false;
