@@ -451,7 +451,9 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
       ASSERT_TRUE(server->Start().ok()) << server->Output();
       auto stub = MakeStub(server->address());
       // Once the restart has applied what its log holds.
-      Reply<v1::GetStatsResponse> stats = GetStatsApplied(*stub, kFleet);
+      Reply<v1::GetStatsResponse> stats = GetStatsApplied(
+          *stub, kFleet,
+          own_data_fills_it ? std::chrono::seconds(5) : std::chrono::seconds(120));
       ASSERT_TRUE(stats.ok()) << Describe(stats.status);
       const v1::RobotStats* robot_stats =
           FindRobot(stats.response, "robot-1");

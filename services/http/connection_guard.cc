@@ -353,6 +353,17 @@ bool ConnectionGuard::PeerClosed() {
   return ::poll(&poll_fd, 1, 0) > 0 &&
          (poll_fd.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
 }
-void ConnectionGuard::AnswerSent() { Mark(Phase::kHead); }
+void ConnectionGuard::AnswerSent() {
+  Mark(Phase::kHead);
+  auto* connection = static_cast<Connection*>(current);
+  if (connection != nullptr && connection->close_after_answer) {
+    ::shutdown(connection->socket, SHUT_RDWR);
+  }
+}
+
+void ConnectionGuard::CloseAfterAnswer() {
+  auto* connection = static_cast<Connection*>(current);
+  if (connection != nullptr) connection->close_after_answer = true;
+}
 
 }  // namespace fleetmem::http

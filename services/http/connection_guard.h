@@ -63,6 +63,10 @@ class ConnectionGuard final : public httplib::TaskQueue {
   // its events, so that a closed watcher gives back its slot at once
   // instead of at the next write.
   static bool PeerClosed();
+  // On the connection's thread: the connection is shut once the answer
+  // being made is sent (httplib closes a connection only when the request
+  // asks to).
+  static void CloseAfterAnswer();
 
  private:
   enum class Phase { kHead, kBody, kHandling, kClosed };
@@ -75,6 +79,7 @@ class ConnectionGuard final : public httplib::TaskQueue {
     // Bytes read from the socket when the phase began (0 where the kernel
     // does not say).
     uint64_t read_at_phase = 0;
+    bool close_after_answer = false;
   };
 
   // A connection over a limit, waiting in the overflow loop for its

@@ -316,6 +316,45 @@ std::string ReadUntilClosed(int socket, std::chrono::milliseconds timeout,
   return got;
 }
 
+// The outside sweep: httplib took the first of two different
+// Content-Length headers (how requests are smuggled past a proxy that
+// takes the other). Refused with 400, and the connection closed.
+TEST_F(HttpServerTest, AmbiguousRequestLengthsAreRefused) {
+  for (const std::string& headers :
+       {std::string("Content-Length: 2\r\nContent-Length: 30\r\n"),
+        std::string("Content-Length: 2\r\nTransfer-Encoding: chunked\r\n")}) {
+    SCOPED_TRACE(headers);
+    const int socket = Connect(server_->port());
+    ASSERT_GE(socket, 0);
+    const std::string request = absl::StrCat(
+        "POST /v1/fleets/alpha/consolidate HTTP/1.1\r\nHost: 127.0.0.1\r\n",
+        headers, "\r\n{}GET /readyz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
+    ASSERT_EQ(send(socket, request.data(), request.size(), MSG_NOSIGNAL),
+              static_cast<ssize_t>(request.size()));
+    bool closed = false;
+    const std::string got =
+        ReadUntilClosed(socket, std::chrono::milliseconds(2000), &closed);
+    close(socket);
+    EXPECT_TRUE(absl::StartsWith(got, "HTTP/1.1 400")) << got;
+    EXPECT_THAT(got, HasSubstr("ambiguous"));
+    EXPECT_TRUE(closed);
+    // Nothing after it was read as a request of its own.
+    EXPECT_THAT(got, ::testing::Not(HasSubstr("ready")));
+  }
+  // One length, given twice alike, is fine.
+  const int socket = Connect(server_->port());
+  const std::string request =
+      "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n"
+      "Content-Length: 0\r\nConnection: close\r\n\r\n";
+  ASSERT_EQ(send(socket, request.data(), request.size(), MSG_NOSIGNAL),
+            static_cast<ssize_t>(request.size()));
+  bool closed = false;
+  EXPECT_TRUE(absl::StartsWith(
+      ReadUntilClosed(socket, std::chrono::milliseconds(2000), &closed),
+      "HTTP/1.1 200"));
+  close(socket);
+}
+
 class HttpConnectionLimitsTest : public HttpServerTest {
  protected:
   void Restart(ConnectionLimits limits) {

@@ -16,6 +16,7 @@
 #include "google/protobuf/message.h"
 #include "google/protobuf/util/json_util.h"
 #include "services/http/http_error.pb.h"
+#include "services/http/strict_json.h"
 
 namespace fleetmem::http {
 namespace {
@@ -473,6 +474,10 @@ HttpResponse RestGateway::Serve(
           return absl::ascii_isspace(static_cast<unsigned char>(c));
         });
     if (!blank) {
+      if (absl::Status strict = CheckStrictJson(request.body, type);
+          !strict.ok()) {
+        return fail(strict);
+      }
       google::protobuf::util::JsonParseOptions options;
       options.ignore_unknown_fields = false;
       const auto parsed = google::protobuf::util::JsonStringToMessage(

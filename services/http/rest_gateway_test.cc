@@ -205,6 +205,46 @@ TEST_F(RestGatewayTest, WrongTypeIs400NamingTheField) {
   EXPECT_THAT(query.body, HasSubstr("after"));
 }
 
+// Issue 44 (the outside sweep): protobuf's JSON parser took nested code
+// arrays (flattened), duplicate keys (the last one kept) and enum numbers
+// the API does not define. Each is now 400 naming the field, and nothing
+// is stored.
+TEST_F(RestGatewayTest, LenientJsonIsRefused) {
+  struct Case {
+    std::string path, body, expected;
+  };
+  const std::vector<Case> cases = {
+      {"/v1/fleets/alpha/query", R"({"code": [[1, 1], [1]], "k": 2})",
+       "code[0] is an array"},
+      {"/v1/fleets/alpha/query", R"({"code": [1, 1, 1], "k": 2, "k": 3})",
+       "k\\\" appears twice in the request"},
+      {"/v1/fleets/alpha/traces",
+       R"({"traces": [{"robotId": "r9", "seq": 1, "robotId": "r8",
+                       "code": [1, 1, 1]}]})",
+       "robotId\\\" appears twice in traces[0]"},
+      {"/v1/fleets/alpha/traces",
+       R"({"traces": [{"robotId": "r9", "seq": 1, "code": [1, 1, 1]}],
+           "ack": 7})",
+       "7 is not a value of UploadAck"},
+      {"/v1/fleets/alpha/traces",
+       R"({"traces": [{"robotId": "r9", "seq": 1, "code": [1, 1, 1]}],
+           "ack": "UPLOAD_ACK_SOMETIMES"})",
+       "UPLOAD_ACK_SOMETIMES is not a value of UploadAck"},
+  };
+  const uint64_t before = engine_->GetStats("alpha")->pending_traces;
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.body);
+    HttpResponse response = Post(c.path, c.body);
+    EXPECT_EQ(response.status, 400) << response.body;
+    EXPECT_THAT(response.body, HasSubstr(c.expected));
+  }
+  EXPECT_EQ(engine_->GetStats("alpha")->pending_traces, before);
+  // Well-formed ones still pass.
+  EXPECT_EQ(Post("/v1/fleets/alpha/query", R"({"code": [1, 1, 1], "k": 2})")
+                .status,
+            200);
+}
+
 TEST_F(RestGatewayTest, UnknownQueryParameterIs400) {
   HttpResponse response = Get("/v1/fleets/alpha/stats", {{"verbose", "1"}});
   EXPECT_EQ(response.status, 400);
