@@ -11,6 +11,7 @@
 #include <utility>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "grpc/health/v1/health.grpc.pb.h"
@@ -25,10 +26,17 @@ namespace {
 // dimension 256 is ~11 MB, above gRPC's default of 4 MB.
 constexpr int kMaxReceiveMessageBytes = 64 << 20;
 
-bool IsRetryable(grpc::StatusCode code) {
+// Transient: UNAVAILABLE, DEADLINE_EXCEEDED, and RESOURCE_EXHAUSTED but for
+// a standing limit of the server's, whose message names "limit max_"
+// (max_fleets, max_code_dimension, max_traces_per_fleet: docs/api.md): a
+// retry meets the same limit.
+bool IsRetryable(const grpc::Status& status) {
+  const grpc::StatusCode code = status.error_code();
+  if (code == grpc::StatusCode::RESOURCE_EXHAUSTED) {
+    return !absl::StrContains(status.error_message(), "limit max_");
+  }
   return code == grpc::StatusCode::UNAVAILABLE ||
-         code == grpc::StatusCode::DEADLINE_EXCEEDED ||
-         code == grpc::StatusCode::RESOURCE_EXHAUSTED;
+         code == grpc::StatusCode::DEADLINE_EXCEEDED;
 }
 
 bool Stopped(const std::atomic<bool>* stop) {
@@ -154,7 +162,7 @@ grpc::Status CallWithRetry(
     grpc::ClientContext context;
     SetDeadline(options, &context);
     grpc::Status status = call(&context);
-    if (status.ok() || !IsRetryable(status.error_code()) ||
+    if (status.ok() || !IsRetryable(status) ||
         attempt >= max_attempts) {
       return status;
     }
@@ -522,7 +530,7 @@ absl::StatusOr<uint64_t> Client::Watch(
     }
     // We did not cancel, so CANCELLED means the server dropped the stream
     // (e.g. while shutting down): reconnect like for UNAVAILABLE.
-    if (!status.ok() && !IsRetryable(status.error_code()) &&
+    if (!status.ok() && !IsRetryable(status) &&
         status.error_code() != grpc::StatusCode::CANCELLED) {
       return FromGrpcStatus(status);
     }

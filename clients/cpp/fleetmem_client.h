@@ -2,7 +2,9 @@
 // the generated API and gRPC. Every attempt of a call carries a deadline of
 // now + options.deadline (and the token, if any). Every call is safe to
 // repeat and is retried with exponential backoff on UNAVAILABLE,
-// DEADLINE_EXCEEDED and RESOURCE_EXHAUSTED: uploads are idempotent by
+// DEADLINE_EXCEEDED and RESOURCE_EXHAUSTED (but for a standing limit,
+// whose message names "limit max_...": a retry meets it again): uploads are
+// idempotent by
 // (robot_id, seq), a repeated Consolidate only finds less (or nothing)
 // pending, and a SampleReplay carries one request id over its attempts, so
 // the server counts the replay once. Other codes are returned at once.

@@ -30,10 +30,12 @@ using Millis = std::chrono::milliseconds;
 // `failure_code` and records what it sees. Thread-safe.
 class FakeMemoryService final : public v1::MemoryService::Service {
  public:
-  void FailNext(int calls, grpc::StatusCode code) {
+  void FailNext(int calls, grpc::StatusCode code,
+                std::string message = "injected failure") {
     std::lock_guard<std::mutex> lock(mutex_);
     failures_left_ = calls;
     failure_code_ = code;
+    failure_message_ = std::move(message);
   }
   // Watch streams serve events 1..`count`; the first stream ends with
   // `break_code` after `break_after` events (0: never broken). With
@@ -89,7 +91,7 @@ class FakeMemoryService final : public v1::MemoryService::Service {
         }
       }
       // A failing upload fails after storing its first message.
-      if (fail) return grpc::Status(failure_code_, "injected failure");
+      if (fail) return grpc::Status(failure_code_, failure_message_);
     }
     return grpc::Status::OK;
   }
@@ -188,12 +190,13 @@ class FakeMemoryService final : public v1::MemoryService::Service {
   }
   grpc::Status Failure() {
     std::lock_guard<std::mutex> lock(mutex_);
-    return grpc::Status(failure_code_, "injected failure");
+    return grpc::Status(failure_code_, failure_message_);
   }
 
   std::mutex mutex_;
   int failures_left_ = 0;
   grpc::StatusCode failure_code_ = grpc::StatusCode::UNAVAILABLE;
+  std::string failure_message_ = "injected failure";
   int calls_ = 0;
   std::vector<std::string> sample_request_ids_;
   std::vector<Millis> deadlines_left_;
@@ -268,6 +271,7 @@ std::vector<v1::MemoryTrace> MakeTraces(const std::string& robot, int count) {
 struct RetryCase {
   grpc::StatusCode code;
   bool retried;
+  std::string message = "injected failure";
 };
 
 class RetryTest : public ClientTest,
@@ -276,7 +280,7 @@ class RetryTest : public ClientTest,
 TEST_P(RetryTest, RetriesOnlyTransientCodes) {
   const RetryCase& param = GetParam();
   std::unique_ptr<Client> client = Client::Create(Options());
-  service_.FailNext(2, param.code);
+  service_.FailNext(2, param.code, param.message);
 
   absl::StatusOr<v1::GetStatsResponse> stats = client->GetStats("fleet");
 
@@ -287,7 +291,7 @@ TEST_P(RetryTest, RetriesOnlyTransientCodes) {
     EXPECT_THAT(sleeps_.delays(), SizeIs(2));
   } else {
     EXPECT_EQ(stats.status().code(), static_cast<absl::StatusCode>(param.code));
-    EXPECT_EQ(stats.status().message(), "injected failure");
+    EXPECT_EQ(stats.status().message(), param.message);
     EXPECT_EQ(service_.calls(), 1);
     EXPECT_THAT(sleeps_.delays(), SizeIs(0));
   }
@@ -298,6 +302,13 @@ INSTANTIATE_TEST_SUITE_P(
     ::testing::Values(RetryCase{grpc::StatusCode::UNAVAILABLE, true},
                       RetryCase{grpc::StatusCode::DEADLINE_EXCEEDED, true},
                       RetryCase{grpc::StatusCode::RESOURCE_EXHAUSTED, true},
+                      // A standing limit of the server: a retry meets it
+                      // again (issue 44: it was retried).
+                      RetryCase{grpc::StatusCode::RESOURCE_EXHAUSTED, false,
+                                "limit max_fleets (2) reached: fleet \"f\" is "
+                                "not created; nothing was stored"},
+                      RetryCase{grpc::StatusCode::RESOURCE_EXHAUSTED, true,
+                                "limit robot_traces_per_second (10) ..."},
                       RetryCase{grpc::StatusCode::INVALID_ARGUMENT, false},
                       RetryCase{grpc::StatusCode::NOT_FOUND, false},
                       RetryCase{grpc::StatusCode::INTERNAL, false},

@@ -2,7 +2,9 @@
 
 Every call of a Client is safe to repeat and is retried, like the C++
 client's (clients/cpp/fleetmem_client.h), on UNAVAILABLE, DEADLINE_EXCEEDED
-and RESOURCE_EXHAUSTED with exponential backoff: before attempt n + 1 it
+and RESOURCE_EXHAUSTED (but for a standing limit of the server's, whose
+message names "limit max_...": a retry meets it again) with exponential
+backoff: before attempt n + 1 it
 waits a uniformly random time in [b/2, b], b = min(initial_backoff *
 2**(n-1), max_backoff). Uploads are idempotent by (robot_id, seq), a
 repeated consolidate finds less pending, and sample_replay carries one
@@ -31,6 +33,31 @@ _RETRYABLE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED,
               grpc.StatusCode.RESOURCE_EXHAUSTED)
 _UPLOAD_METHOD = "/fleetmem.v1.MemoryService/UploadTraces"
 _ACKS = {"durable": pb.UPLOAD_ACK_DURABLE, "applied": pb.UPLOAD_ACK_APPLIED}
+
+
+def _retryable(code, message: str) -> bool:
+    """Transient failures; a standing limit (max_fleets, max_code_dimension,
+    max_traces_per_fleet: docs/api.md) is not, though RESOURCE_EXHAUSTED."""
+    if code == grpc.StatusCode.RESOURCE_EXHAUSTED and "limit max_" in message:
+        return False
+    return code in _RETRYABLE
+
+
+def _text(name: str, value) -> str:
+    """`value` if it is a str; TypeError naming the argument otherwise (an id
+    of another type failed deep in gRPC's request iterator)."""
+    if not isinstance(value, str):
+        raise TypeError(f"{name}: want a str, got {type(value).__name__} {value!r}")
+    return value
+
+
+def _real(name: str, values) -> np.ndarray:
+    """`values` as an array of real numbers; TypeError for complex (numpy
+    drops the imaginary part when casting) or non-numeric values."""
+    array = np.asarray(values)
+    if array.dtype.kind not in "biuf":
+        raise TypeError(f"{name}: want real numbers, got {array.dtype}")
+    return array
 
 
 class FleetMemError(Exception):
@@ -118,7 +145,7 @@ def _places_array(places, n: int) -> np.ndarray:
     out = np.zeros((n, 4), np.float64)
     if places is None:
         return out
-    p = np.asarray(places, np.float64)
+    p = _real("places", places).astype(np.float64)
     if p.ndim == 1:
         p = p[:, None]
     if p.ndim != 2 or p.shape[0] != n or not 1 <= p.shape[1] <= 4:
@@ -130,7 +157,7 @@ def _places_array(places, n: int) -> np.ndarray:
 def _per_trace(name: str, values, n: int, dtype, default=None) -> Optional[np.ndarray]:
     if values is None:
         return None if default is None else np.full(n, default, dtype)
-    a = np.asarray(values, dtype)
+    a = _real(name, values).astype(dtype)
     if a.ndim == 0:
         return np.full(n, a, dtype)
     if a.shape != (n,):
@@ -193,7 +220,7 @@ class Watch:
                     return
                 if code == grpc.StatusCode.DEADLINE_EXCEEDED:
                     failures = 0  # the window ended: reopen from the cursor
-                elif code in _RETRYABLE or code == grpc.StatusCode.CANCELLED:
+                elif _retryable(code, message) or code == grpc.StatusCode.CANCELLED:
                     # (not by close(): a server shutting down cancels streams)
                     failures += 1
                 else:
@@ -284,7 +311,7 @@ class Client:
                 return call(timeout or self.timeout)
             except grpc.RpcError as error:
                 code = error.code()
-                if code not in _RETRYABLE or attempt == attempts:
+                if not _retryable(code, error.details() or "") or attempt == attempts:
                     raise FleetMemError(code, error.details() or "", name) from None
             time.sleep(self._backoff(attempt))
         raise AssertionError("unreachable")
@@ -310,7 +337,9 @@ class Client:
         ack: "applied" (the default: the answer comes once the traces are
         consolidated and searchable) or "durable" (once they are on the
         server's disk: faster; searchable a moment later)."""
-        codes = np.asarray(codes)
+        fleet, robot_id = _text("fleet", fleet), _text("robot_id", robot_id)
+        domain, encoder_version = _text("domain", domain), _text("encoder_version", encoder_version)
+        codes = _real("codes", codes)
         if codes.ndim != 2:
             raise ValueError(f"codes: want an n x d array, got shape {codes.shape}")
         n = codes.shape[0]
@@ -359,8 +388,8 @@ class Client:
     def query_place(self, fleet: str, code, k: int = 1, near=None, radius_m: float = 0.0) -> Matches:
         """The k traces nearest to `code` (d values), nearest first; with
         `near` (x, y[, z]) and radius_m > 0 only those within radius_m."""
-        request = pb.QueryPlaceRequest(fleet_id=fleet, k=k, radius_m=radius_m)
-        request.code.extend(np.asarray(code, np.float32).ravel().tolist())
+        request = pb.QueryPlaceRequest(fleet_id=_text("fleet", fleet), k=k, radius_m=radius_m)
+        request.code.extend(_real("code", code).astype(np.float32).ravel().tolist())
         if near is not None:
             x, y, z = (list(near) + [0.0, 0.0])[:3]
             request.near.x, request.near.y, request.near.z = x, y, z

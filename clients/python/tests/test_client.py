@@ -1,6 +1,7 @@
 """fleetmem.Client against the real fleetmem-server binary."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -167,3 +168,33 @@ def test_read_calls_create_no_fleet(server):
                 assert error.status == "NOT_FOUND", error
         assert list(fm.watch("ghost", idle_timeout=0.3)) == []
         assert [f.fleet_id for f in fm.fleets()] == []
+
+
+def test_bad_arguments_are_python_errors_and_standing_limits_are_not_retried(tmp_path):
+    """Issue 44 (the outside sweep): a non-str id raised UNKNOWN "Exception
+    iterating requests!" from deep in gRPC, complex codes lost their
+    imaginary part silently, and a standing limit (RESOURCE_EXHAUSTED
+    "limit max_fleets ...") was retried max_attempts times."""
+    config = tmp_path / "server.textproto"
+    config.write_text("limits { max_fleets: 1 }\n")
+    server = Server(tmp_path / "data", "--config", str(config)).start()
+    try:
+        with fleetmem.Client(server.address, max_attempts=4, initial_backoff=0.5) as fm:
+            with pytest.raises(TypeError, match="robot_id"):
+                fm.upload("f1", codes_of(1, 2), robot_id=7, seqs=[0, 1])
+            with pytest.raises(TypeError, match="fleet"):
+                fm.upload(b"f1", codes_of(1, 2), robot_id="r1", seqs=[0, 1])
+            with pytest.raises(TypeError, match="codes"):
+                fm.upload("f1", codes_of(1, 2) * (1 + 1j), robot_id="r1", seqs=[0, 1])
+            with pytest.raises(TypeError, match="code"):
+                fm.query_place("f1", np.ones(64) * 1j)
+            fm.upload("f1", codes_of(1, 2), robot_id="r1", seqs=[0, 1])
+            started = time.monotonic()
+            with pytest.raises(fleetmem.FleetMemError) as limit:
+                fm.upload("f2", codes_of(2, 2), robot_id="r1", seqs=[0, 1])
+            assert limit.value.status == "RESOURCE_EXHAUSTED"
+            assert "limit max_fleets" in limit.value.message
+            # Three retries would have waited at least 0.25 + 0.5 + 1 s.
+            assert time.monotonic() - started < 0.5
+    finally:
+        server.stop()
