@@ -106,6 +106,9 @@ struct WritePath::FleetLog {
   // The seqs of the log's tail found at Open, per robot, until the robot's
   // set is loaded.
   absl::flat_hash_map<std::string, core::SeqSet> recovered;
+  // The engine's position in the log at Open: entries through it were
+  // applied before (damage to them loses nothing). Set by Recover only.
+  uint64_t opened_at = 0;
 };
 
 std::vector<std::string> BacklogWarnings(
@@ -166,6 +169,7 @@ absl::Status WritePath::Recover() {
     FleetLog& log = *Log(fleet_id);
     log.shape = engine_->Shape(fleet_id);
     log.next_sequence = *position + 1;
+    log.opened_at = *position;
     absl::MutexLock lock(&log.mu);
     log.appended_through = log.applied_through = *position;
   }
@@ -213,10 +217,19 @@ absl::Status WritePath::Recover() {
                         << " acknowledged log entries (" << traces
                         << " traces) after position " << *position
                         << " to apply";
+    log.opened_at = *position;
     for (const LostLogEntries& lost : store_->LogLosses(fleet_id)) {
+      if (lost.last <= *position) {
+        FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id << "\": log entries "
+                               << lost.first << ".." << lost.last
+                               << " are damaged but were applied before: "
+                               << "nothing is lost (" << lost.detail << ")";
+        continue;
+      }
       FLEETMEM_LOG(kError) << "fleet \"" << fleet_id
                            << "\": DATA_LOSS, acknowledged log entries "
-                           << lost.first << ".." << lost.last
+                           << std::max(lost.first, *position + 1) << ".."
+                           << lost.last
                            << " are damaged and will not be applied: "
                            << lost.detail;
     }
@@ -577,7 +590,12 @@ Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
   FleetLog* log = Find(fleet_id);
   Backlog backlog;
   if (log == nullptr) return backlog;
-  backlog.lost = store_->LogLosses(fleet_id);
+  // Damage to entries applied before the store opened lost nothing.
+  for (LostLogEntries lost : store_->LogLosses(fleet_id)) {
+    if (lost.last <= log->opened_at) continue;
+    lost.first = std::max(lost.first, log->opened_at + 1);
+    backlog.lost.push_back(std::move(lost));
+  }
   absl::MutexLock lock(&log->mu);
   backlog.entries = log->unapplied.size();
   backlog.traces = log->backlog_traces;

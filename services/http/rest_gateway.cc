@@ -143,15 +143,8 @@ google::protobuf::util::JsonPrintOptions PrintOptions() {
 
 }  // namespace
 
-// Protobuf's printer with always_print_primitive_fields builds a tree of the
-// whole message before it writes a byte (about 200 bytes per number: a
-// 4,096-d page of 1,000 traces took 1.2 GB). So the top level's repeated
-// messages are printed one element at a time and spliced into the rest,
-// whose JSON holds each of them as `"name":[]`: a key cannot appear so inside
-// a string, where its quotes are escaped.
-absl::StatusOr<std::string> AnswerJson(Message* answer) {
-  const google::protobuf::util::JsonPrintOptions print = PrintOptions();
-  const Descriptor& type = *answer->GetDescriptor();
+// The top-level repeated message fields of `type` (an answer's lists).
+std::vector<const FieldDescriptor*> ListFields(const Descriptor& type) {
   std::vector<const FieldDescriptor*> parts;
   for (int i = 0; i < type.field_count(); ++i) {
     const FieldDescriptor* field = type.field(i);
@@ -160,11 +153,50 @@ absl::StatusOr<std::string> AnswerJson(Message* answer) {
       parts.push_back(field);
     }
   }
-  std::unique_ptr<Message> elements(answer->New());
-  answer->GetReflection()->SwapFields(answer, elements.get(), parts);
+  return parts;
+}
+
+// True if a message of `type` may hold traces (fleetmem.v1.MemoryTrace)
+// in a list, at any depth: its answers may be as large as max_read_bytes.
+bool HoldsTraces(const Descriptor& type,
+                 std::vector<const Descriptor*>* seen = nullptr) {
+  std::vector<const Descriptor*> mine;
+  if (seen == nullptr) seen = &mine;
+  if (std::find(seen->begin(), seen->end(), &type) != seen->end()) {
+    return false;
+  }
+  seen->push_back(&type);
+  for (int i = 0; i < type.field_count(); ++i) {
+    const FieldDescriptor* field = type.field(i);
+    if (field->cpp_type() != FieldDescriptor::CPPTYPE_MESSAGE) continue;
+    if (field->is_repeated() &&
+        field->message_type()->full_name() == "fleetmem.v1.MemoryTrace") {
+      return true;
+    }
+    if (HoldsTraces(*field->message_type(), seen)) return true;
+  }
+  return false;
+}
+
+// Protobuf's printer with always_print_primitive_fields builds a tree of the
+// whole message before it writes a byte (about 200 bytes per number: a
+// 4,096-d page of 1,000 traces took 1.2 GB). So the top level's repeated
+// messages are printed one element at a time and spliced into the rest,
+// whose JSON holds each of them as `"name":[]`: a key cannot appear so inside
+// a string, where its quotes are escaped. `write` takes the JSON in pieces
+// of about kAnswerPiece bytes, as printed; false from it (the client is
+// gone) ends the printing.
+constexpr size_t kAnswerPiece = 256 << 10;
+absl::Status WriteAnswerJson(
+    Message& answer, const std::function<bool(std::string_view)>& write) {
+  const google::protobuf::util::JsonPrintOptions print = PrintOptions();
+  const std::vector<const FieldDescriptor*> parts =
+      ListFields(*answer.GetDescriptor());
+  std::unique_ptr<Message> elements(answer.New());
+  answer.GetReflection()->SwapFields(&answer, elements.get(), parts);
   std::string envelope;
-  if (auto printed = google::protobuf::util::MessageToJsonString(
-          *answer, &envelope, print);
+  if (auto printed =
+          google::protobuf::util::MessageToJsonString(answer, &envelope, print);
       !printed.ok()) {
     return absl::InternalError(std::string(printed.message()));
   }
@@ -182,6 +214,12 @@ absl::StatusOr<std::string> AnswerJson(Message* answer) {
   std::sort(places.begin(), places.end());
   const Reflection& reflection = *elements->GetReflection();
   std::string json;
+  auto flush = [&](bool always) {
+    if (!always && json.size() < kAnswerPiece) return true;
+    const bool written = json.empty() || write(json);
+    json.clear();
+    return written;
+  };
   size_t copied = 0;
   for (const auto& [at, field] : places) {
     const size_t key_end = at + field->json_name().size() + 4;  // "name":[
@@ -198,10 +236,23 @@ absl::StatusOr<std::string> AnswerJson(Message* answer) {
         return absl::InternalError(std::string(printed.message()));
       }
       json += element;
+      if (!flush(false)) return absl::CancelledError("the client has gone");
     }
     copied = key_end;  // at the list's "]"
   }
   json.append(envelope, copied);
+  if (!flush(true)) return absl::CancelledError("the client has gone");
+  return absl::OkStatus();
+}
+
+// The whole answer as JSON (small answers, and tests).
+absl::StatusOr<std::string> AnswerJson(Message* answer) {
+  std::string json;
+  absl::Status written = WriteAnswerJson(*answer, [&](std::string_view piece) {
+    json.append(piece);
+    return true;
+  });
+  if (!written.ok()) return written;
   return json;
 }
 
@@ -319,6 +370,53 @@ absl::StatusOr<std::unique_ptr<RestGateway>> RestGateway::Create(
       api, authenticator, std::move(on_call), options, std::move(*routes)));
 }
 
+// Bytes of answers held by REST calls: Reserve before an answer is read,
+// Shrink to its size once it is, released when the last holder lets go.
+struct RestGateway::AnswerBudget
+    : public std::enable_shared_from_this<AnswerBudget> {
+  explicit AnswerBudget(uint64_t limit) : limit(limit) {}
+
+  // A hold of `bytes` (at most the whole limit), or null if there was no
+  // room within `wait`.
+  std::shared_ptr<const uint64_t> Reserve(uint64_t bytes, absl::Duration wait) {
+    bytes = std::min(bytes, limit);
+    absl::MutexLock lock(&mu);
+    auto room = [this, bytes]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
+      return held + bytes <= limit;
+    };
+    if (!mu.AwaitWithTimeout(absl::Condition(&room), wait)) return nullptr;
+    held += bytes;
+    return Hold(bytes);
+  }
+
+  // `hold` replaced by one of `bytes` (no more than it held).
+  std::shared_ptr<const uint64_t> Shrink(std::shared_ptr<const uint64_t> hold,
+                                         uint64_t bytes) {
+    bytes = std::min(bytes, *hold);
+    {
+      absl::MutexLock lock(&mu);
+      held += bytes;  // the old hold is released below
+    }
+    hold.reset();
+    return Hold(bytes);
+  }
+
+  std::shared_ptr<const uint64_t> Hold(uint64_t bytes) {
+    return std::shared_ptr<const uint64_t>(
+        new uint64_t(bytes), [budget = shared_from_this()](const uint64_t* b) {
+          {
+            absl::MutexLock lock(&budget->mu);
+            budget->held -= *b;
+          }
+          delete b;
+        });
+  }
+
+  const uint64_t limit;
+  absl::Mutex mu;
+  uint64_t held ABSL_GUARDED_BY(mu) = 0;
+};
+
 RestGateway::RestGateway(transport::MemoryApi* api,
                          const auth::Authenticator* authenticator,
                          transport::CallObserver on_call, RestOptions options,
@@ -327,7 +425,9 @@ RestGateway::RestGateway(transport::MemoryApi* api,
       authenticator_(authenticator),
       on_call_(std::move(on_call)),
       options_(options),
-      routes_(std::move(routes)) {}
+      routes_(std::move(routes)),
+      budget_(std::make_shared<AnswerBudget>(
+          std::max(options.max_answer_bytes_in_flight, uint64_t{1}))) {}
 
 bool RestGateway::IsApiPath(const std::string& path) {
   return absl::StartsWith(path, kApiPrefix);
@@ -532,16 +632,48 @@ HttpResponse RestGateway::Serve(
       google::protobuf::MessageFactory::generated_factory()->GetPrototype(
           route.method->output_type());
   std::unique_ptr<Message> answer(response_prototype->New());
+  if (ListFields(*route.method->output_type()).empty()) {
+    // A small answer: written whole.
+    absl::Status status =
+        api_->Call(route.method->name(), *caller, *message, answer.get());
+    if (!status.ok()) return fail(status);
+    absl::StatusOr<std::string> body = AnswerJson(answer.get());
+    if (!body.ok()) {
+      return fail(absl::InternalError(absl::StrCat(
+          "answer cannot be written as JSON: ", body.status().message(),
+          " (the call itself succeeded)")));
+    }
+    return JsonResponse(200, *std::move(body));
+  }
+  // An answer with lists is written as printed. One that may hold traces
+  // has its room reserved before it is read, and keeps its real size while
+  // the client takes it.
+  std::shared_ptr<const uint64_t> held;
+  if (HoldsTraces(*route.method->output_type())) {
+    held = budget_->Reserve(options_.max_answer_bytes, options_.answer_wait);
+    if (held == nullptr) {
+      return fail(absl::UnavailableError(absl::StrCat(
+          "the server holds max_answer_bytes_in_flight (",
+          options_.max_answer_bytes_in_flight,
+          " bytes) of REST answers not yet taken by their clients; nothing "
+          "was read: retry with backoff")));
+    }
+  }
   absl::Status status =
       api_->Call(route.method->name(), *caller, *message, answer.get());
   if (!status.ok()) return fail(status);
-  absl::StatusOr<std::string> body = AnswerJson(answer.get());
-  if (!body.ok()) {
-    return fail(absl::InternalError(absl::StrCat(
-        "answer cannot be written as JSON: ", body.status().message(),
-        " (the call itself succeeded)")));
+  if (held != nullptr) {
+    held = budget_->Shrink(std::move(held), answer->ByteSizeLong());
   }
-  return JsonResponse(200, *std::move(body));
+  HttpResponse response;
+  response.content_type = "application/json";
+  response.stream = [answer = std::shared_ptr<Message>(std::move(answer)),
+                     held](const std::function<bool(std::string_view)>& write) {
+    // The status (200) is sent: a failure here can only end the body
+    // early, which the client sees as JSON cut short.
+    (void)WriteAnswerJson(*answer, write);
+  };
+  return response;
 }
 
 HttpResponse RestGateway::ServeWatch(const auth::Principal& caller,

@@ -43,6 +43,19 @@ core::MemoryTrace Trace(const std::string& robot, uint64_t seq) {
   return trace;
 }
 
+// `response` with a streamed JSON answer written into its body (as the
+// HTTP server sends it); watches (event streams) are left as they are.
+HttpResponse Whole(HttpResponse response) {
+  if (response.stream && response.content_type == "application/json") {
+    response.stream([&](std::string_view piece) {
+      response.body.append(piece);
+      return true;
+    });
+    response.stream = nullptr;
+  }
+  return response;
+}
+
 class RestGatewayTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -84,11 +97,11 @@ class RestGatewayTest : public ::testing::Test {
   HttpResponse Get(const std::string& path,
                    std::multimap<std::string, std::string> query = {}) {
     HttpRequest request{.method = "GET", .path = path, .query = query};
-    return gateway_->Handle(request);
+    return Whole(gateway_->Handle(request));
   }
   HttpResponse Post(const std::string& path, const std::string& body) {
     HttpRequest request{.method = "POST", .path = path, .body = body};
-    return gateway_->Handle(request);
+    return Whole(gateway_->Handle(request));
   }
 
   std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
@@ -245,6 +258,35 @@ TEST_F(RestGatewayTest, LenientJsonIsRefused) {
             200);
 }
 
+// Issue 44: answers that may hold traces keep their room in a budget of
+// bytes in flight until their client has taken them; past it a call waits
+// answer_wait, then gets 503 having read nothing. Answers without traces
+// (stats) are not held back.
+TEST_F(RestGatewayTest, AnswersNotYetTakenAreBoundedInBytes) {
+  auto gateway = RestGateway::Create(
+      api_.get(), nullptr, nullptr,
+      RestOptions{.max_answer_bytes_in_flight = 1 << 20,
+                  .max_answer_bytes = 1 << 20,
+                  .answer_wait = absl::Milliseconds(100)});
+  ASSERT_TRUE(gateway.ok()) << gateway.status();
+  const HttpRequest list{.method = "GET", .path = "/v1/fleets/alpha/traces"};
+  HttpResponse taken_slowly = (*gateway)->Handle(list);
+  ASSERT_EQ(taken_slowly.status, 200);
+  ASSERT_TRUE(taken_slowly.stream);
+  // The first answer's bytes are held until its stream goes: a second
+  // reservation of max_answer_bytes does not fit beside them.
+  HttpResponse refused = (*gateway)->Handle(list);
+  EXPECT_EQ(refused.status, 503) << refused.body;
+  EXPECT_THAT(refused.body, HasSubstr("max_answer_bytes_in_flight"));
+  EXPECT_EQ(Whole((*gateway)->Handle(
+                      {.method = "GET", .path = "/v1/fleets/alpha/stats"}))
+                .status,
+            200);
+  EXPECT_THAT(Whole(std::move(taken_slowly)).body, HasSubstr("traces"));
+  HttpResponse again = Whole((*gateway)->Handle(list));
+  EXPECT_EQ(again.status, 200) << again.body;
+}
+
 TEST_F(RestGatewayTest, UnknownQueryParameterIs400) {
   HttpResponse response = Get("/v1/fleets/alpha/stats", {{"verbose", "1"}});
   EXPECT_EQ(response.status, 400);
@@ -322,7 +364,7 @@ TEST(RestGatewayAuthTest, TokensAndRoles) {
   HttpRequest fleets{.method = "GET",
                      .path = "/v1/fleets",
                      .authorization = "Bearer viewer:s3cret"};
-  EXPECT_THAT((*gateway)->Handle(fleets).body, HasSubstr("alpha"));
+  EXPECT_THAT(Whole((*gateway)->Handle(fleets)).body, HasSubstr("alpha"));
 }
 
 // What a watch's stream writes until it ends (or until `pieces` pieces,
@@ -500,7 +542,9 @@ TEST(AnswerJsonTest, IsProtobufsJsonOfTheWholeAnswer) {
 
 // Issue 32: a page of 10,000 traces of 4,096 dimensions once built 257 MB of
 // JSON through a tree of several GB. Now a page ends at max_read_bytes and
-// is printed a trace at a time; the call's peak stays under 256 MiB.
+// is printed a trace at a time; issue 44: and written as printed, never
+// held whole (8 such pages at once took +793 MiB): the call's peak stays
+// under 96 MiB.
 TEST(RestGatewayMemoryTest, TheLargestPageOfALargeFleetStaysBounded) {
   constexpr size_t kDimension = 4096;
   constexpr size_t kTraces = 1200;
@@ -542,12 +586,25 @@ TEST(RestGatewayMemoryTest, TheLargestPageOfALargeFleetStaysBounded) {
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     });
-    HttpResponse response = (*gateway)->Handle(
+    // The answer goes out as printed, to a client that takes every piece
+    // (its bytes counted, not kept: what the server holds is measured).
+    HttpResponse streamed = (*gateway)->Handle(
         {.method = "GET", .path = "/v1/fleets/big/traces", .query = query});
+    size_t sent = 0;
+    ASSERT_TRUE(streamed.stream);
+    streamed.stream([&sent](std::string_view piece) {
+      sent += piece.size();
+      return true;
+    });
+    streamed = HttpResponse();
     done = true;
     sampler.join();
     largest_rise = std::max(largest_rise, peak - before);
+    // The same page whole, to read it.
+    HttpResponse response = Whole((*gateway)->Handle(
+        {.method = "GET", .path = "/v1/fleets/big/traces", .query = query}));
     ASSERT_EQ(response.status, 200) << response.body.substr(0, 300);
+    EXPECT_EQ(response.body.size(), sent);
     v1::ListTracesResponse page;
     ASSERT_TRUE(
         google::protobuf::util::JsonStringToMessage(response.body, &page).ok());
@@ -559,8 +616,10 @@ TEST(RestGatewayMemoryTest, TheLargestPageOfALargeFleetStaysBounded) {
   } while (!token.empty());
   EXPECT_EQ(listed, kTraces);
   RecordProperty("largest_rss_rise_mib", std::to_string(largest_rise >> 20));
-  // Not under AddressSanitizer, whose quarantine holds freed memory.
-  if (!common::kSanitizerAllocator) EXPECT_LT(largest_rise, size_t{256} << 20);
+  // Not under AddressSanitizer, whose quarantine holds freed memory. The
+  // page itself is at most max_read_bytes (32 MiB); its JSON (about three
+  // times that) is never held whole.
+  if (!common::kSanitizerAllocator) EXPECT_LT(largest_rise, size_t{96} << 20);
 }
 
 }  // namespace

@@ -506,7 +506,8 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
             {.max_body_bytes = config.max_http_body_bytes,
              .loopback_hosts_only = authenticator == nullptr &&
                                     IsLoopbackListen(config.http_listen),
-             .allowed_origins = config.http_allowed_origins});
+             .allowed_origins = config.http_allowed_origins,
+             .max_answer_bytes = config.engine.max_read_bytes});
     absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
         made.ok() ? http::HttpServer::Start(
                         HttpOptions(config),

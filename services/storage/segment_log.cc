@@ -36,8 +36,8 @@ constexpr std::string_view kFleetPrefix = "f-";
 constexpr std::string_view kSparePrefix = "spare-";
 constexpr std::string_view kSuffix = ".seg";
 constexpr size_t kCopyChunk = size_t{1} << 20;
-// O_DIRECT writes whole blocks at block offsets: each append ends with a
-// padding record (sequence 0) to the next block.
+// O_DIRECT writes whole blocks at block offsets. Each append ends with a
+// padding record (sequence 0): to the next block where O_DIRECT is used.
 constexpr size_t kBlock = 4096;
 constexpr size_t RoundUp(size_t bytes) {
   return (bytes + kBlock - 1) / kBlock * kBlock;
@@ -613,12 +613,12 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
     }
     segment = *std::move(made);
   }
-  // Records, then (O_DIRECT) a padding record to the next block.
-  size_t size = bytes;
-  if (segment->direct) {
-    size = RoundUp(bytes);
-    if (size != bytes && size - bytes < kHeaderBytes) size += kBlock;
-  }
+  // Records, then a padding record (sequence 0) that ends the append: to
+  // the next block with O_DIRECT, bare otherwise. A reader that finds it
+  // after a record failing its checksum knows the append was written whole
+  // (so the record is damaged, not torn).
+  size_t size = bytes + kHeaderBytes;
+  if (segment->direct) size = RoundUp(size);
   AlignedBuffer buffer = Allocate(size);
   if (buffer == nullptr) {
     return absl::ResourceExhaustedError(absl::StrCat(

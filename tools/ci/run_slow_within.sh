@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# Runs the slow tier's tests (ctest label "slow") that fit in SECONDS_LEFT,
-# in the order of tools/ci/slow_tests.txt (most valuable first), each only
-# if its cost there fits in what is left; names those left out. Used by
-# .ci/run after the tiers that always run.
+# Runs the slow tier's tests (ctest label "slow") in the order of
+# tools/ci/slow_tests.txt: those marked "always" whatever the time, the
+# others only if their cost there fits in what is left of SECONDS_LEFT;
+# names those left out. Used by .ci/run after the tiers that always run.
 #
 #   tools/ci/run_slow_within.sh BUILD_DIR SECONDS_LEFT
 set -euo pipefail
@@ -11,7 +11,7 @@ build=$1
 left=$2
 deadline=$((SECONDS + left))
 ran=() skipped=()
-while read -r name warm cold; do
+while read -r name warm cold always; do
   case $name in '#'* | '') continue ;; esac
   cost=$warm
   # Image builds are paid once per machine: the cold cost until the base
@@ -21,7 +21,7 @@ while read -r name warm cold; do
     cost=$cold
   fi
   now_left=$((deadline - SECONDS))
-  if [ "$cost" -gt "$now_left" ]; then
+  if [ "$always" != always ] && [ "$cost" -gt "$now_left" ]; then
     skipped+=("$name (~${cost} s, ${now_left} s left)")
     continue
   fi

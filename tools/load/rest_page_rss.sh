@@ -4,15 +4,20 @@
 # Fills fleet "wide" with TRACES traces of DIMENSION (not consolidated, so
 # all are listed), then GETs /v1/fleets/wide/traces?pageSize=10000 while
 # sampling the server's VmRSS every 20 ms; prints the page's size and
-# traces, the RSS before, and the largest rise during the read.
+# traces, the RSS before, and the largest rise during the read. With
+# READERS > 1, that many read the page at once; with STALLED, that many
+# more ask for it and never read (issue 44: 8 at once took +793 MiB, 16
+# readers that never read +2,758 MiB; the goal with 8 and 32: <= 512 MiB).
 #
-#   tools/load/rest_page_rss.sh [BUILD_DIR] [TRACES] [DIMENSION]
+#   tools/load/rest_page_rss.sh [BUILD_DIR] [TRACES] [DIMENSION] [READERS] [STALLED]
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 source "$here/server_lib.sh"
 build=${1:-build}
 traces=${2:-5200}
 dimension=${3:-4096}
+readers=${4:-1}
+stalled=${5:-0}
 dir=$(mktemp -d "${TMPDIR:-/tmp}/fleetmem-restrss-XXXXXX")
 trap 'kill -9 ${SERVER_PID:-0} ${sampler:-0} 2>/dev/null || true; rm -rf "$dir"' EXIT
 printf 'engine { segment_size: 1000000 }\nlimits { max_traces_per_fleet: %d }\n' \
@@ -32,13 +37,39 @@ before=$(rss_kib)
   done ) &
 sampler=$!
 echo "$before" >"$dir/peak"
-curl -sS -o "$dir/page.json" -w 'HTTP %{http_code}, %{size_download} bytes in %{time_total} s\n' \
-  "http://$SERVER_HTTP_ADDR/v1/fleets/wide/traces?pageSize=10000"
+url="http://$SERVER_HTTP_ADDR/v1/fleets/wide/traces?pageSize=10000"
+if [ "$stalled" -gt 0 ]; then
+  # Readers that send the request and never read (a small receive buffer),
+  # until the server cuts them.
+  /usr/bin/python3 - "$SERVER_HTTP_ADDR" "$stalled" >"$dir/stalled.txt" <<'PY' &
+import socket, sys, time
+host, port = sys.argv[1].rsplit(":", 1)
+socks = []
+for _ in range(int(sys.argv[2])):
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.connect((host, int(port)))
+    s.sendall(f"GET /v1/fleets/wide/traces?pageSize=10000 HTTP/1.1\r\nHost: {sys.argv[1]}\r\n\r\n".encode())
+    socks.append(s)
+time.sleep(20)
+print(f"{len(socks)} stalled readers held 20 s")
+PY
+  stalled_pid=$!
+  sleep 1
+fi
+readers_pids=()
+for i in $(seq 2 "$readers"); do
+  curl -sS -o /dev/null -w "reader $i: HTTP %{http_code}, %{size_download} bytes in %{time_total} s\n" "$url" &
+  readers_pids+=($!)
+done
+curl -sS -o "$dir/page.json" -w 'HTTP %{http_code}, %{size_download} bytes in %{time_total} s\n' "$url"
+for pid in "${readers_pids[@]}"; do wait "$pid" || true; done
+if [ -n "${stalled_pid:-}" ]; then wait "$stalled_pid" || true; cat "$dir/stalled.txt"; fi
 sleep 0.2
 kill "$sampler" 2>/dev/null || true
 wait "$sampler" 2>/dev/null || true
 listed=$(/usr/bin/python3 -c 'import json,sys; d=json.load(open(sys.argv[1])); print(len(d.get("traces",[])), "traces in the page;", "next page token" if d.get("nextPageToken") else "no next page")' "$dir/page.json")
 peak=$(cat "$dir/peak")
 echo "$listed"
-echo "server RSS before the read $((before / 1024)) MiB; largest rise during it $(((peak - before) / 1024)) MiB"
+echo "$readers reader(s), $stalled stalled: server RSS before the reads $((before / 1024)) MiB; largest rise during them $(((peak - before) / 1024)) MiB"
 stop_server

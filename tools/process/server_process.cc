@@ -7,6 +7,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <cstdlib>
 #include <cstring>
 #include <fstream>
 
@@ -42,6 +43,12 @@ constexpr std::chrono::milliseconds kPoll{20};
 }  // namespace
 
 std::string DefaultServerBinary() {
+  // Another build's server (e.g. a copy that a rebuild cannot replace
+  // while long trials run).
+  if (const char* binary = std::getenv("FLEETMEM_SERVER_BINARY");
+      binary != nullptr && *binary != '\0') {
+    return binary;
+  }
 #ifdef FLEETMEM_BIN_DIR
   return std::string(FLEETMEM_BIN_DIR) + "/fleetmem-server";
 #else

@@ -23,8 +23,8 @@
 
 namespace fleetmem::process {
 
-// Path of the server binary of this build (FLEETMEM_BIN_DIR
-// "/fleetmem-server").
+// Path of the server binary: $FLEETMEM_SERVER_BINARY if set, else this
+// build's (FLEETMEM_BIN_DIR "/fleetmem-server").
 std::string DefaultServerBinary();
 
 // What a fleetmem-server's --ready-file says.
