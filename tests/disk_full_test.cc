@@ -27,8 +27,8 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "httplib.h"
 #include "tests/api_helpers.h"
+#include "tests/http_get.h"
 #include "tests/server_process.h"
 #include "tests/small_filesystem.h"
 #include "tests/synthetic_traces.h"
@@ -292,14 +292,6 @@ std::vector<int> TrialSizes() {
   return sizes;
 }
 
-// GET `path` of the server's HTTP port: the body, "" if it does not answer.
-std::string HttpGet(const ServerProcess& server, const std::string& path) {
-  httplib::Client client("http://" + server.http_address());
-  client.set_read_timeout(5, 0);
-  httplib::Result got = client.Get(path.c_str());
-  return got ? got->body : std::string();
-}
-
 // Another process fills the filesystem while a robot uploads without pause
 // (the outside sweep: RocksDB aborted in 3 of 30 such trials, its
 // write-ahead log written again after a failed append). Each trial: the
@@ -392,8 +384,8 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
           const auto asked = std::chrono::steady_clock::now();
           while (std::chrono::steady_clock::now() - asked <
                  std::chrono::seconds(10)) {
-            ready = HttpGet(*server, "/readyz");
-            metrics = HttpGet(*server, "/metrics");
+            ready = HttpGet(server->http_address(), "/readyz");
+            metrics = HttpGet(server->http_address(), "/metrics");
             if (absl::StrContains(ready, "STUCK fleet \"full\"")) break;
             std::this_thread::sleep_for(std::chrono::milliseconds(200));
           }
@@ -471,7 +463,7 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
         ++waiting_after_restart;
         EXPECT_THAT(stats.response.apply_error(),
                     ::testing::HasSubstr("disk nearly full"));
-        EXPECT_TRUE(absl::StrContains(HttpGet(*server, "/readyz"),
+        EXPECT_TRUE(absl::StrContains(HttpGet(server->http_address(), "/readyz"),
                                       "STUCK fleet \"full\""));
       }
       EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(),

@@ -24,8 +24,8 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "gtest/gtest.h"
-#include "httplib.h"
 #include "tests/api_helpers.h"
+#include "tests/http_get.h"
 #include "tests/server_process.h"
 #include "tests/synthetic_traces.h"
 
@@ -34,13 +34,6 @@ namespace {
 
 constexpr char kFleet[] = "damaged";
 constexpr size_t kMessage = 200;  // traces per upload message: one log entry
-
-std::string HttpBody(const ServerProcess& server, const std::string& path) {
-  httplib::Client client("http://" + server.http_address());
-  client.set_read_timeout(5, 0);
-  httplib::Result got = client.Get(path.c_str());
-  return got ? got->body : std::string();
-}
 
 TEST(LogDamageTest, AFlippedByteLosesAtMostTheEntryItIsInAndSaysSo) {
   int trials = 2;
@@ -135,8 +128,8 @@ TEST(LogDamageTest, AFlippedByteLosesAtMostTheEntryItIsInAndSaysSo) {
     EXPECT_LE(lost_entries, 1u);
     EXPECT_LE(missing, lost_entries * kMessage);
     if (missing > 0) EXPECT_GT(lost_entries, 0u) << "a silent loss";
-    const std::string ready = HttpBody(*server, "/readyz");
-    const std::string metrics = HttpBody(*server, "/metrics");
+    const std::string ready = HttpGet(server->http_address(), "/readyz");
+    const std::string metrics = HttpGet(server->http_address(), "/metrics");
     if (lost_entries > 0) {
       ++reported;
       EXPECT_TRUE(absl::StrContains(ready, "DATA_LOSS fleet")) << ready;
