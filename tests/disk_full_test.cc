@@ -23,8 +23,8 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
-#include "absl/strings/str_split.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/api_helpers.h"
@@ -434,8 +434,8 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
                                   std::chrono::steady_clock::now() - freed)
                                   .count();
         slowest_resume = std::max(slowest_resume, resume);
-        EXPECT_LE(resume, 8.0) << "writes came back " << resume
-                               << " s after space was freed";
+        EXPECT_LE(resume, 8.0)
+            << "writes came back " << resume << " s after space was freed";
         if (HasFailure()) std::cerr << server->Output();
         stop = true;
         robot.join();
@@ -445,33 +445,35 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
       // Every acknowledged trace survives a kill -9 and a restart in place
       // (a lambda: a failed check ends this trial, not the run).
       [&] {
-      server = std::make_unique<ServerProcess>(options);
-      ASSERT_TRUE(server->Start().ok()) << server->Output();
-      auto stub = MakeStub(server->address());
-      // Once the restart has applied what its log holds.
-      Reply<v1::GetStatsResponse> stats = GetStatsApplied(
-          *stub, kFleet,
-          own_data_fills_it ? std::chrono::seconds(5) : std::chrono::seconds(120));
-      ASSERT_TRUE(stats.ok()) << Describe(stats.status);
-      const v1::RobotStats* robot_stats =
-          FindRobot(stats.response, "robot-1");
-      ASSERT_NE(robot_stats, nullptr);
-      // Applied, or waiting (durable, reported) for space to apply them.
-      EXPECT_GE(robot_stats->received() + stats.response.backlog_traces(),
-                acknowledged.load());
-      if (stats.response.backlog_traces() > 0) {
-        ++waiting_after_restart;
-        EXPECT_THAT(stats.response.apply_error(),
-                    ::testing::HasSubstr("disk nearly full"));
-        EXPECT_TRUE(absl::StrContains(HttpGet(server->http_address(), "/readyz"),
-                                      "STUCK fleet \"full\""));
-      }
-      EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(),
-                robot_stats->received());
-      EXPECT_EQ(stats.response.log_entries_lost_size(), 0);
-      if (HasFailure()) std::cerr << server->Output();
-      stub.reset();
-      (void)server->Stop();
+        server = std::make_unique<ServerProcess>(options);
+        ASSERT_TRUE(server->Start().ok()) << server->Output();
+        auto stub = MakeStub(server->address());
+        // Once the restart has applied what its log holds.
+        Reply<v1::GetStatsResponse> stats =
+            GetStatsApplied(*stub, kFleet,
+                            own_data_fills_it ? std::chrono::seconds(5)
+                                              : std::chrono::seconds(120));
+        ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+        const v1::RobotStats* robot_stats =
+            FindRobot(stats.response, "robot-1");
+        ASSERT_NE(robot_stats, nullptr);
+        // Applied, or waiting (durable, reported) for space to apply them.
+        EXPECT_GE(robot_stats->received() + stats.response.backlog_traces(),
+                  acknowledged.load());
+        if (stats.response.backlog_traces() > 0) {
+          ++waiting_after_restart;
+          EXPECT_THAT(stats.response.apply_error(),
+                      ::testing::HasSubstr("disk nearly full"));
+          EXPECT_TRUE(
+              absl::StrContains(HttpGet(server->http_address(), "/readyz"),
+                                "STUCK fleet \"full\""));
+        }
+        EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(),
+                  robot_stats->received());
+        EXPECT_EQ(stats.response.log_entries_lost_size(), 0);
+        if (HasFailure()) std::cerr << server->Output();
+        stub.reset();
+        (void)server->Stop();
       }();
     }
   }

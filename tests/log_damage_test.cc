@@ -63,8 +63,8 @@ TEST(LogDamageTest, AFlippedByteLosesAtMostTheEntryItIsInAndSaysSo) {
     uint64_t acknowledged = 0;
     {
       auto stub = MakeStub(server->address());
-      TraceSpec spec{.robot_id = "robot-1", .count = 10 * kMessage,
-                     .dimension = 64};
+      TraceSpec spec{
+          .robot_id = "robot-1", .count = 10 * kMessage, .dimension = 64};
       for (uint64_t next = 1; acknowledged < 40000; next += spec.count) {
         spec.first_seq = next;
         const std::vector<v1::MemoryTrace> traces = MakeTraces(spec);

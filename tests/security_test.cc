@@ -256,9 +256,8 @@ TEST_F(AuthTest, AWrongSecretFloodLeavesTheRobotsCallsFast) {
       50, flood_seconds, std::chrono::milliseconds(0),
       [&](int i, int n) {
         // A new secret every call: no cache can answer it.
-        auto impostor =
-            As(absl::StrCat(i % 2 == 0 ? "robot-7" : "ops", ":WRONG-", i, "-",
-                            n));
+        auto impostor = As(
+            absl::StrCat(i % 2 == 0 ? "robot-7" : "ops", ":WRONG-", i, "-", n));
         return GetStats(*impostor, kFleet).status.error_code();
       },
       [&] { return GetStats(*robot, kFleet).status.error_code(); });
@@ -327,13 +326,14 @@ TEST_F(AuthTest, WrongSecretsUnderTheRobotsNameNeverLockItOut) {
         },
         [&] { return StatsWithToken(*robot, robot7_); });
     ASSERT_GE(flood.robot_ms.size(), 100u);
-    std::cout << (restarted ? "after" : "before") << " a restart: "
-              << flood.wrong_calls << " wrong-secret calls under robot-7's "
+    std::cout << (restarted ? "after" : "before")
+              << " a restart: " << flood.wrong_calls
+              << " wrong-secret calls under robot-7's "
               << "name (" << flood.wrong_refused << " refused); robot-7's "
               << flood.robot_ms.size() << " calls: " << flood.robot_refused
               << " refused, p50 " << flood.Percentile(0.5) << " ms, p99 "
-              << flood.Percentile(0.99) << " ms, max "
-              << flood.robot_ms.back() << " ms\n";
+              << flood.Percentile(0.99) << " ms, max " << flood.robot_ms.back()
+              << " ms\n";
     EXPECT_EQ(flood.robot_refused, 0);
     EXPECT_EQ(flood.wrong_refused, flood.wrong_calls);
     EXPECT_LT(flood.Percentile(0.99), 50.0);

@@ -431,9 +431,9 @@ TEST_F(BadInputTest, UnparseableUnaryRequestIsInvalidArgument) {
   }
   // The watch too (issue 44: it answered UNIMPLEMENTED).
   std::string response;
-  const grpc::Status watch = GenericStreamCall(
-      channel, "/fleetmem.v1.MemoryService/WatchMemory",
-      {std::string("\x0a\xff\xff\xff\x0f", 5)}, &response);
+  const grpc::Status watch =
+      GenericStreamCall(channel, "/fleetmem.v1.MemoryService/WatchMemory",
+                        {std::string("\x0a\xff\xff\xff\x0f", 5)}, &response);
   ExpectError("WatchMemory", watch, grpc::StatusCode::INVALID_ARGUMENT,
               {"do not parse"});
   ExpectStatsUnchanged("unparseable requests");

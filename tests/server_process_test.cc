@@ -28,9 +28,9 @@ TEST(ParseReadyFileTest, ReadsTheAddressesAndRefusesWhatIsNotOne) {
   ready = ParseReadyFile("pid=1\ngrpc=h:1");
   ASSERT_TRUE(ready.ok()) << ready.status();
   EXPECT_TRUE(ready->http_address.empty());
-  for (const char* bad : {"", "pid=3\n", "grpc=127.0.0.1:0\n",
-                          "grpc=127.0.0.1:http\n", "grpc=h:70000\n",
-                          "grpc=h:1\nhttp=h\n", "grpc=h:1\npid=x\n"}) {
+  for (const char* bad :
+       {"", "pid=3\n", "grpc=127.0.0.1:0\n", "grpc=127.0.0.1:http\n",
+        "grpc=h:70000\n", "grpc=h:1\nhttp=h\n", "grpc=h:1\npid=x\n"}) {
     EXPECT_EQ(ParseReadyFile(bad).status().code(),
               absl::StatusCode::kInvalidArgument)
         << bad;
@@ -99,18 +99,16 @@ TEST_F(ServerProcessTest, StartsStopsAndLogs) {
   EXPECT_EQ(*code, 0);
   EXPECT_FALSE(server.running());
   const std::string log = ReadFileOrEmpty(dir_.Join("server.log"));
-  EXPECT_TRUE(absl::StrContains(
-      log, "args: --listen 127.0.0.1:0 --data-dir " + dir_.Join("data") +
-               " --ready-file "))
+  EXPECT_TRUE(absl::StrContains(log, "args: --listen 127.0.0.1:0 --data-dir " +
+                                         dir_.Join("data") + " --ready-file "))
       << log;
   EXPECT_TRUE(absl::StrContains(log, "bye")) << log;
   EXPECT_EQ(server.Output(), log);
 }
 
 TEST_F(ServerProcessTest, PassesTheConfigFile) {
-  ServerOptions options =
-      Options(Script("config.sh",
-                     "echo \"args: $*\"; ready h:7; exec sleep 30"));
+  ServerOptions options = Options(
+      Script("config.sh", "echo \"args: $*\"; ready h:7; exec sleep 30"));
   options.config_file = "/some/config.yaml";
   ServerProcess server(options);
   ASSERT_TRUE(server.Start().ok());
@@ -144,11 +142,10 @@ TEST_F(ServerProcessTest, TimesOutOnAServerThatNeverGetsReady) {
 }
 
 TEST_F(ServerProcessTest, StopGivesUpOnAServerIgnoringSigterm) {
-  ServerProcess server(
-      Options(Script("stubborn.sh",
-                     "trap '' TERM\n"
-                     "ready [::1]:5151\n"
-                     "exec sleep 30")));
+  ServerProcess server(Options(Script("stubborn.sh",
+                                      "trap '' TERM\n"
+                                      "ready [::1]:5151\n"
+                                      "exec sleep 30")));
   ASSERT_TRUE(server.Start().ok());
   EXPECT_EQ(server.port(), 5151);
   absl::StatusOr<int> code = server.Stop(std::chrono::milliseconds(200));

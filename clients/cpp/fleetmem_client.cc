@@ -162,8 +162,7 @@ grpc::Status CallWithRetry(
     grpc::ClientContext context;
     SetDeadline(options, &context);
     grpc::Status status = call(&context);
-    if (status.ok() || !IsRetryable(status) ||
-        attempt >= max_attempts) {
+    if (status.ok() || !IsRetryable(status) || attempt >= max_attempts) {
       return status;
     }
     WaitBeforeRetry(options, channel, attempt);

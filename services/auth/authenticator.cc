@@ -271,8 +271,8 @@ bool Authenticator::TakeCheck(const std::string& peer) const {
   connection.seen = now;
   refill(connection.bucket, options_.checks_per_second_per_connection,
          options_.check_burst_per_connection);
-  Bucket& shared = connection.suspect ? suspects_
-                                      : clean_by_address_[AddressOf(peer)];
+  Bucket& shared =
+      connection.suspect ? suspects_ : clean_by_address_[AddressOf(peer)];
   if (connection.suspect) {
     refill(shared, options_.checks_per_second, options_.check_burst);
   } else {

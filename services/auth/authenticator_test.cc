@@ -226,10 +226,10 @@ TEST_F(AuthenticatorTest, FailedChecksAreBoundedPerConnection) {
   // The checked tokens answer from the cache, whatever the rates and from
   // whichever connection.
   for (int i = 0; i < 10; ++i) {
-    EXPECT_TRUE(authenticator.Authenticate(from("robot-7:secret1", attacker))
-                    .ok());
-    EXPECT_TRUE(authenticator.Authenticate(from("robot-8:secret8", second))
-                    .ok());
+    EXPECT_TRUE(
+        authenticator.Authenticate(from("robot-7:secret1", attacker)).ok());
+    EXPECT_TRUE(
+        authenticator.Authenticate(from("robot-8:secret8", second)).ok());
   }
 }
 
@@ -254,18 +254,19 @@ TEST_F(AuthenticatorTest, WrongSecretsUnderARobotsNameDoNotLockItOut) {
     for (int a = 0; a < 8; ++a) {
       const absl::Status status =
           authenticator
-              .Authenticate({absl::StrCat("robot-8:junk-", tick, "-", a), {},
+              .Authenticate({absl::StrCat("robot-8:junk-", tick, "-", a),
+                             {},
                              absl::StrCat("ipv4:127.0.0.1:", 40000 + a)})
               .status();
       checked += absl::IsUnauthenticated(status) ? 1 : 0;
     }
     if (tick % 25 == 0) {  // robot-8, 4 calls a second on its connection
-      refused += authenticator
-                         .Authenticate({"robot-8:secret8", {},
-                                        "ipv4:127.0.0.1:39999"})
-                         .ok()
-                     ? 0
-                     : 1;
+      refused +=
+          authenticator
+                  .Authenticate({"robot-8:secret8", {}, "ipv4:127.0.0.1:39999"})
+                  .ok()
+              ? 0
+              : 1;
     }
   }
   EXPECT_EQ(refused, 0);

@@ -77,18 +77,17 @@ absl::StatusOr<std::unique_ptr<DirectoryLock>> DirectoryLock::Take(
       pid.pop_back();
     }
     if (error == EWOULDBLOCK) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          "directory ", directory, " is in use by another process",
-          pid.empty() ? "" : absl::StrCat(" (pid ", pid, ")"), ": ", path,
-          " is locked; nothing was changed"));
+      return absl::FailedPreconditionError(
+          absl::StrCat("directory ", directory, " is in use by another process",
+                       pid.empty() ? "" : absl::StrCat(" (pid ", pid, ")"),
+                       ": ", path, " is locked; nothing was changed"));
     }
     return absl::UnavailableError(
         absl::StrCat("cannot lock ", path, ": ", std::strerror(error)));
   }
   const std::string pid = absl::StrCat(::getpid(), "\n");
-  if (::ftruncate(fd, 0) != 0 ||
-      ::pwrite(fd, pid.data(), pid.size(), 0) !=
-          static_cast<ssize_t>(pid.size())) {
+  if (::ftruncate(fd, 0) != 0 || ::pwrite(fd, pid.data(), pid.size(), 0) !=
+                                     static_cast<ssize_t>(pid.size())) {
     // The pid is for people reading the refusal; the lock holds without it.
   }
   return std::unique_ptr<DirectoryLock>(new DirectoryLock(fd));

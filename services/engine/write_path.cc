@@ -220,10 +220,10 @@ absl::Status WritePath::Recover() {
     log.opened_at = *position;
     for (const LostLogEntries& lost : store_->LogLosses(fleet_id)) {
       if (lost.last <= *position) {
-        FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id << "\": log entries "
-                               << lost.first << ".." << lost.last
-                               << " are damaged but were applied before: "
-                               << "nothing is lost (" << lost.detail << ")";
+        FLEETMEM_LOG(kWarning)
+            << "fleet \"" << fleet_id << "\": log entries " << lost.first
+            << ".." << lost.last << " are damaged but were applied before: "
+            << "nothing is lost (" << lost.detail << ")";
         continue;
       }
       FLEETMEM_LOG(kError) << "fleet \"" << fleet_id

@@ -131,8 +131,7 @@ void ConnectionGuard::enqueue(std::function<void()> fn) {
       std::lock_guard<std::mutex> lock(mu_);
       if (!stopping_ && incoming_.size() < kMaxOverflow) {
         incoming_.push_back({dup(socket), std::move(fn), std::move(refused),
-                             std::string(),
-                             absl::Now() + limits_.probe_wait});
+                             std::string(), absl::Now() + limits_.probe_wait});
         if (!overflow_.joinable()) {
           overflow_ = std::thread([this] { OverflowLoop(); });
         }
@@ -164,10 +163,11 @@ void ConnectionGuard::OverflowLoop() {
     {
       std::unique_lock<std::mutex> lock(mu_);
       if (pending.empty()) {
-        overflow_wake_.wait(
-            lock, [this] { return stopping_ || !incoming_.empty(); });
+        overflow_wake_.wait(lock,
+                            [this] { return stopping_ || !incoming_.empty(); });
       }
-      for (Overflow& overflow : incoming_) pending.push_back(std::move(overflow));
+      for (Overflow& overflow : incoming_)
+        pending.push_back(std::move(overflow));
       incoming_.clear();
       if (stopping_) {
         lock.unlock();

@@ -217,31 +217,30 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   http.set_payload_max_length(options.max_body_bytes);
   http.set_keep_alive_max_count(100);
   // The guard's deadlines run from these marks (connection_guard.h).
-  http.set_pre_routing_handler([](const httplib::Request& req,
-                                   httplib::Response& res) {
-    ConnectionGuard::HeadRead();
-    // Two Content-Length headers that differ, or one beside
-    // Transfer-Encoding, frame the body two ways: a proxy in front may
-    // read another request into it (request smuggling). httplib takes the
-    // first; refuse, and close the connection.
-    const size_t lengths = req.get_header_value_count("Content-Length");
-    bool ambiguous =
-        lengths > 0 && req.has_header("Transfer-Encoding");
-    for (size_t i = 1; i < lengths && !ambiguous; ++i) {
-      ambiguous = req.get_header_value("Content-Length", i) !=
-                  req.get_header_value("Content-Length", 0);
-    }
-    if (!ambiguous) return httplib::Server::HandlerResponse::Unhandled;
-    res.status = 400;
-    res.set_header("Connection", "close");
-    ConnectionGuard::CloseAfterAnswer();
-    res.set_content(
-        "{\"code\":3,\"status\":\"INVALID_ARGUMENT\",\"message\":\"the "
-        "request's length is ambiguous: Content-Length given twice with "
-        "different values, or beside Transfer-Encoding\"}",
-        "application/json");
-    return httplib::Server::HandlerResponse::Handled;
-  });
+  http.set_pre_routing_handler(
+      [](const httplib::Request& req, httplib::Response& res) {
+        ConnectionGuard::HeadRead();
+        // Two Content-Length headers that differ, or one beside
+        // Transfer-Encoding, frame the body two ways: a proxy in front may
+        // read another request into it (request smuggling). httplib takes the
+        // first; refuse, and close the connection.
+        const size_t lengths = req.get_header_value_count("Content-Length");
+        bool ambiguous = lengths > 0 && req.has_header("Transfer-Encoding");
+        for (size_t i = 1; i < lengths && !ambiguous; ++i) {
+          ambiguous = req.get_header_value("Content-Length", i) !=
+                      req.get_header_value("Content-Length", 0);
+        }
+        if (!ambiguous) return httplib::Server::HandlerResponse::Unhandled;
+        res.status = 400;
+        res.set_header("Connection", "close");
+        ConnectionGuard::CloseAfterAnswer();
+        res.set_content(
+            "{\"code\":3,\"status\":\"INVALID_ARGUMENT\",\"message\":\"the "
+            "request's length is ambiguous: Content-Length given twice with "
+            "different values, or beside Transfer-Encoding\"}",
+            "application/json");
+        return httplib::Server::HandlerResponse::Handled;
+      });
   http.set_logger([](const httplib::Request&, const httplib::Response&) {
     ConnectionGuard::AnswerSent();
   });

@@ -585,8 +585,8 @@ TEST_F(HttpServerTest, AClosedWatchGivesBackItsSlotAtOnce) {
   trace.code = {1, 0, 0};
   traces.push_back(trace);
   ASSERT_TRUE(engine_->Upload("alpha", traces).ok());
-  auto gateway = RestGateway::Create(api_.get(), nullptr, nullptr,
-                                     {.max_watches = 4});
+  auto gateway =
+      RestGateway::Create(api_.get(), nullptr, nullptr, {.max_watches = 4});
   ASSERT_TRUE(gateway.ok());
   HttpServerOptions options;
   options.listen = "127.0.0.1:0";
@@ -616,8 +616,8 @@ TEST_F(HttpServerTest, AClosedWatchGivesBackItsSlotAtOnce) {
     if (absl::StartsWith(got, "HTTP/1.1 200")) ++served;
     if (absl::StartsWith(got, "HTTP/1.1 429")) ++refused;
     // A watcher that comes back at once, as an EventSource does.
-    std::this_thread::sleep_for(std::chrono::milliseconds(
-        cycle % 4 == 3 ? 100 : 0));
+    std::this_thread::sleep_for(
+        std::chrono::milliseconds(cycle % 4 == 3 ? 100 : 0));
   }
   EXPECT_EQ(refused, 0);
   EXPECT_EQ(served, 200);

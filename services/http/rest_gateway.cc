@@ -726,8 +726,8 @@ HttpResponse RestGateway::ServeWatch(const auth::Principal& caller,
     absl::Time written = absl::Now();
     absl::Status ended = api_->Watch(
         caller, request, absl::Now() + options_.max_watch,
-        std::min(options_.watch_liveness, options_.watch_heartbeat),
-        &stopping_, [&](const v1::MemoryEvent* event) {
+        std::min(options_.watch_liveness, options_.watch_heartbeat), &stopping_,
+        [&](const v1::MemoryEvent* event) {
           if (event == nullptr) {
             if (!write("")) return false;  // the client has gone
             if (absl::Now() - written < options_.watch_heartbeat) return true;

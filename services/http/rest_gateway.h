@@ -91,9 +91,10 @@ struct RestOptions {
   // watch_heartbeat before: the outside sweep's 429s for 13.7 s).
   absl::Duration watch_liveness = absl::Milliseconds(50);
   // Only requests addressed to a loopback name (Host localhost, 127.x.x.x,
-  // [::1], any port; or no Host, which browsers always send) are answered: a server without auth on a loopback
-  // port, which a web page could otherwise read through DNS rebinding (a
-  // name of the page's that resolves to 127.0.0.1).
+  // [::1], any port; or no Host, which browsers always send) are answered: a
+  // server without auth on a loopback port, which a web page could otherwise
+  // read through DNS rebinding (a name of the page's that resolves to
+  // 127.0.0.1).
   bool loopback_hosts_only = false;
   // Origins (scheme://host[:port]) besides the server's own whose pages may
   // make state-changing calls (POST); others are refused.

@@ -253,9 +253,9 @@ TEST_F(RestGatewayTest, LenientJsonIsRefused) {
   }
   EXPECT_EQ(engine_->GetStats("alpha")->pending_traces, before);
   // Well-formed ones still pass.
-  EXPECT_EQ(Post("/v1/fleets/alpha/query", R"({"code": [1, 1, 1], "k": 2})")
-                .status,
-            200);
+  EXPECT_EQ(
+      Post("/v1/fleets/alpha/query", R"({"code": [1, 1, 1], "k": 2})").status,
+      200);
 }
 
 // Issue 44: answers that may hold traces keep their room in a budget of
@@ -263,11 +263,11 @@ TEST_F(RestGatewayTest, LenientJsonIsRefused) {
 // answer_wait, then gets 503 having read nothing. Answers without traces
 // (stats) are not held back.
 TEST_F(RestGatewayTest, AnswersNotYetTakenAreBoundedInBytes) {
-  auto gateway = RestGateway::Create(
-      api_.get(), nullptr, nullptr,
-      RestOptions{.max_answer_bytes_in_flight = 1 << 20,
-                  .max_answer_bytes = 1 << 20,
-                  .answer_wait = absl::Milliseconds(100)});
+  auto gateway =
+      RestGateway::Create(api_.get(), nullptr, nullptr,
+                          RestOptions{.max_answer_bytes_in_flight = 1 << 20,
+                                      .max_answer_bytes = 1 << 20,
+                                      .answer_wait = absl::Milliseconds(100)});
   ASSERT_TRUE(gateway.ok()) << gateway.status();
   const HttpRequest list{.method = "GET", .path = "/v1/fleets/alpha/traces"};
   HttpResponse taken_slowly = (*gateway)->Handle(list);

@@ -80,8 +80,8 @@ class Checker {
         const std::string element = absl::StrCat(path, "[", i, "]");
         if (Peek() == '[') {
           return absl::InvalidArgumentError(absl::StrCat(
-              "request body: ", element,
-              " is an array: ", path, " is a list of ",
+              "request body: ", element, " is an array: ", path,
+              " is a list of ",
               field->type() == FieldDescriptor::TYPE_MESSAGE ? "objects"
                                                              : "values",
               ", not of lists"));
@@ -121,7 +121,8 @@ class Checker {
     if (Peek() == '"') {
       if (!ReadString(&name)) return Malformed();
       known = type->FindValueByName(name) != nullptr;
-    } else if (Peek() == '-' || std::isdigit(static_cast<unsigned char>(Peek()))) {
+    } else if (Peek() == '-' ||
+               std::isdigit(static_cast<unsigned char>(Peek()))) {
       while (at_ < text_.size() &&
              (text_[at_] == '-' ||
               std::isdigit(static_cast<unsigned char>(text_[at_])))) {
@@ -139,9 +140,9 @@ class Checker {
     for (int i = 0; i < type->value_count(); ++i) {
       absl::StrAppend(&names, i == 0 ? "" : ", ", type->value(i)->name());
     }
-    return absl::InvalidArgumentError(absl::StrCat(
-        "request body: ", path, ": ", name, " is not a value of ",
-        type->name(), " (one of ", names, ")"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("request body: ", path, ": ", name, " is not a value of ",
+                     type->name(), " (one of ", names, ")"));
   }
 
   // Any value, checked only for duplicate keys in its objects.

@@ -40,8 +40,8 @@
 #include "services/storage/mutation_checks.h"
 #include "services/storage/record_codec.h"
 #include "services/storage/segment_log.h"
-#include "services/storage/wal_room.h"
 #include "services/storage/snapshot_file.h"
+#include "services/storage/wal_room.h"
 
 namespace fleetmem::storage {
 namespace {
@@ -990,8 +990,7 @@ rocksdb::Options MakeOptions(const RocksDbStoreOptions& options,
   // Recovery from a no-space background error needs an SstFileManager (it
   // watches the free space and resumes the database); it also makes RocksDB
   // check the free space before a compaction.
-  db_options.sst_file_manager.reset(
-      rocksdb::NewSstFileManager(env));
+  db_options.sst_file_manager.reset(rocksdb::NewSstFileManager(env));
   return db_options;
 }
 
@@ -1065,8 +1064,7 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
     }
   }
   auto reserve_given_back = std::make_shared<std::atomic<bool>>(false);
-  std::unique_ptr<rocksdb::Env> env =
-      MakeEnv(options.path, reserve_given_back);
+  std::unique_ptr<rocksdb::Env> env = MakeEnv(options.path, reserve_given_back);
   rocksdb::DB* raw = nullptr;
   const rocksdb::Status status =
       rocksdb::DB::Open(MakeOptions(options, env.get()), options.path, &raw);

@@ -248,8 +248,8 @@ ScannedSegment ScanSegment(std::string_view data, uint64_t first) {
       // damage followed by intact records.
       record = NextRecordAfter(data, at, first, expected);
       if (!record) {
-        if (LastNamedEntry(data, at, std::min<uint64_t>(data.size(),
-                                                        at + kHeaderBytes),
+        if (LastNamedEntry(data, at,
+                           std::min<uint64_t>(data.size(), at + kHeaderBytes),
                            first, expected) == expected) {
           out.cut_entry = expected;
         }
@@ -343,8 +343,8 @@ struct SegmentLog::Fleet {
   void Lose(uint64_t first, uint64_t last, std::string detail)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
     FLEETMEM_LOG(kError) << "DATA_LOSS: ingest log of fleet \"" << id
-                         << "\": acknowledged entries " << first << ".."
-                         << last << " are lost (" << detail
+                         << "\": acknowledged entries " << first << ".." << last
+                         << " are lost (" << detail
                          << "); the entries after them are applied";
     losses.push_back({first, last, std::move(detail)});
   }
@@ -475,18 +475,18 @@ absl::Status SegmentLog::LoadFleet(const std::string& fleet_id,
     }
     if (last != 0 && segment.first > last + 1) {
       fleet.Lose(last + 1, segment.first - 1,
-           absl::StrCat("the end of the segment before '", segment.path,
-                        "' is damaged"));
+                 absl::StrCat("the end of the segment before '", segment.path,
+                              "' is damaged"));
     }
     last = segment.records.empty() ? segment.first - 1 : segment.last();
     for (const ScannedSegment::Gap& gap : gaps[i]) {
       if (gap.first >= next) continue;
       const uint64_t lost_through = std::min(gap.last, next - 1);
-      fleet.Lose(gap.first, lost_through,
-                 absl::StrCat("'", segment.path, "' is damaged at byte ",
-                              gap.offset,
-                              ": the records there fail their checksum or "
-                              "frame"));
+      fleet.Lose(
+          gap.first, lost_through,
+          absl::StrCat("'", segment.path, "' is damaged at byte ", gap.offset,
+                       ": the records there fail their checksum or "
+                       "frame"));
       last = std::max(last, lost_through);
     }
   }
@@ -655,16 +655,15 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
     uint64_t reached = size;
     if (::fstat(fd, &info) == 0) {
       const uint64_t file_size = static_cast<uint64_t>(info.st_size);
-      reached = file_size > offset ? std::min<uint64_t>(size, file_size - offset)
-                                   : 0;
+      reached =
+          file_size > offset ? std::min<uint64_t>(size, file_size - offset) : 0;
     }
     if (segment->direct) reached = RoundUp(reached);
     std::memset(buffer.get(), 0, size);
-    const bool undone =
-        WriteAll(fd, std::string_view(buffer.get(), reached), offset,
-                 segment->path)
-            .ok() &&
-        ::fdatasync(fd) == 0;
+    const bool undone = WriteAll(fd, std::string_view(buffer.get(), reached),
+                                 offset, segment->path)
+                            .ok() &&
+                        ::fdatasync(fd) == 0;
     {
       absl::MutexLock lock(&fleet.mu);
       fleet.sealed = true;
@@ -742,15 +741,16 @@ absl::StatusOr<std::vector<engine::LoggedUpload>> SegmentLog::Read(
       // the segment's index so that it is reported once.
       absl::MutexLock lock(&fleet->mu);
       auto& records = want.segment->records;
-      auto it = std::lower_bound(
-          records.begin(), records.end(), want.sequence,
-          [](const Segment::Record& record, uint64_t value) {
-            return record.sequence < value;
-          });
+      auto it =
+          std::lower_bound(records.begin(), records.end(), want.sequence,
+                           [](const Segment::Record& record, uint64_t value) {
+                             return record.sequence < value;
+                           });
       if (it != records.end() && it->sequence == want.sequence) {
         records.erase(it);
-        fleet->Lose(want.sequence, want.sequence,
-             absl::StrCat(where, " fails its checksum or frame when read"));
+        fleet->Lose(
+            want.sequence, want.sequence,
+            absl::StrCat(where, " fails its checksum or frame when read"));
       }
       continue;
     }

@@ -21,10 +21,10 @@
 //   sequence, uint64) | sequence (uint64) | payload bytes (uint32) |
 //   payload (record_codec's logged upload)
 // all little-endian. Each append's records end with a padding record
-// (sequence 0; to the next 4 KiB with O_DIRECT). Where a segment holds bytes that are not the next
-// whole, intact record of this segment, the reader looks for the next
-// intact record of this segment after them: none means a torn tail (the
-// write in flight at a crash, never acknowledged) or what a reused file
+// (sequence 0; to the next 4 KiB with O_DIRECT). Where a segment holds bytes
+// that are not the next whole, intact record of this segment, the reader looks
+// for the next intact record of this segment after them: none means a torn tail
+// (the write in flight at a crash, never acknowledged) or what a reused file
 // held before, and the segment ends there; one means a damaged middle
 // (a flipped bit, a bad sector): the entries between are lost, reported
 // (Losses, an error in the log), and the records after the damage are

@@ -88,7 +88,8 @@ class WalRoomFileSystem : public rocksdb::FileSystemWrapper {
       const std::string& path, const rocksdb::FileOptions& file_options,
       std::unique_ptr<rocksdb::FSWritableFile>* result,
       rocksdb::IODebugContext* dbg) override {
-    return Wrap(path, target()->NewWritableFile(path, file_options, result, dbg),
+    return Wrap(path,
+                target()->NewWritableFile(path, file_options, result, dbg),
                 result);
   }
   rocksdb::IOStatus ReopenWritableFile(
@@ -104,10 +105,10 @@ class WalRoomFileSystem : public rocksdb::FileSystemWrapper {
       const rocksdb::FileOptions& file_options,
       std::unique_ptr<rocksdb::FSWritableFile>* result,
       rocksdb::IODebugContext* dbg) override {
-    return Wrap(path,
-                target()->ReuseWritableFile(path, old_path, file_options,
-                                            result, dbg),
-                result);
+    return Wrap(
+        path,
+        target()->ReuseWritableFile(path, old_path, file_options, result, dbg),
+        result);
   }
 
  private:

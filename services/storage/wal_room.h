@@ -35,7 +35,8 @@ struct WalRoomOptions {
 
 // Wraps `base` (rocksdb::FileSystem::Default() when null).
 std::shared_ptr<rocksdb::FileSystem> NewWalRoomFileSystem(
-    WalRoomOptions options, std::shared_ptr<rocksdb::FileSystem> base = nullptr);
+    WalRoomOptions options,
+    std::shared_ptr<rocksdb::FileSystem> base = nullptr);
 
 }  // namespace fleetmem::storage
 

@@ -12,10 +12,10 @@
 #include <fstream>
 
 #include "absl/strings/numbers.h"
-#include "absl/strings/string_view.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "absl/strings/string_view.h"
 #include "absl/strings/strip.h"
 #include "fleetmem_paths.h"
 
@@ -206,7 +206,8 @@ absl::Status ServerProcess::Start() {
   pid_ = pid;
   reader_ = std::thread([this, fd = fds[0]] { ReadOutput(fd); });
 
-  const auto give_up = std::chrono::steady_clock::now() + options_.start_timeout;
+  const auto give_up =
+      std::chrono::steady_clock::now() + options_.start_timeout;
   bool exited = false;
   while (true) {
     if (std::optional<int> port = ReadyPort(); port.has_value()) {
