@@ -41,6 +41,10 @@ struct ChannelSecurity {
   std::string ca_pem;
   std::string cert_pem;
   std::string key_pem;
+  // A connection of the stub's own, as another process would have (gRPC
+  // shares one between channels with the same arguments; the server
+  // rations token checks per connection).
+  bool own_connection = false;
 };
 
 std::unique_ptr<v1::MemoryService::Stub> MakeSecureStub(

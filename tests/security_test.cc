@@ -152,7 +152,10 @@ TEST_F(AuthTest, WrongSecretsTakeNoStreamSlotsOfTheRobot) {
     streams.push_back(
         impostor->UploadTraces(contexts.back().get(), &responses[i]));
   }
-  auto robot = As(robot7_);
+  // The robot calls over a connection of its own, as a robot's process
+  // does (token checks are rationed per connection; docs/security.md).
+  auto robot = MakeSecureStub(server_->address(),
+                              {.token = robot7_, .own_connection = true});
   const auto sent = std::chrono::steady_clock::now();
   Reply<v1::UploadTracesResponse> uploaded =
       UploadTraces(*robot, kFleet, Traces("robot-7", 1, 5));
@@ -317,9 +320,10 @@ TEST_F(AuthTest, WrongSecretsUnderTheRobotsNameNeverLockItOut) {
       attackers.push_back(StubOnItsOwnConnection(server_->address()));
     }
     auto robot = StubOnItsOwnConnection(server_->address());
-    // The flood runs before the robot's first call of the phase.
+    // The flood runs before the robot's first call of the phase (its
+    // connections' first checks, one at a time, are done by then).
     const Flood flood = RunFlood(
-        100, FloodSeconds(), std::chrono::milliseconds(500),
+        100, FloodSeconds(), std::chrono::milliseconds(1500),
         [&](int i, int n) {
           return StatsWithToken(*attackers[i],
                                 absl::StrCat("robot-7:WRONG-", i, "-", n));

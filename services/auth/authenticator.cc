@@ -244,7 +244,7 @@ std::string AddressOf(const std::string& peer) {
 
 }  // namespace
 
-bool Authenticator::TakeCheck(const std::string& peer) const {
+Authenticator::Check Authenticator::TakeCheck(const std::string& peer) const {
   const absl::Time now = options_.now();
   auto refill = [now](Bucket& bucket, double rate, double burst) {
     if (bucket.refilled == absl::InfinitePast()) {
@@ -279,10 +279,12 @@ bool Authenticator::TakeCheck(const std::string& peer) const {
     refill(shared, options_.clean_checks_per_second_per_address,
            options_.clean_check_burst_per_address);
   }
-  if (connection.bucket.tokens < 1.0 || shared.tokens < 1.0) return false;
+  if (connection.bucket.tokens < 1.0 || shared.tokens < 1.0) {
+    return Check::kRefused;
+  }
   connection.bucket.tokens -= 1.0;
   shared.tokens -= 1.0;
-  return true;
+  return connection.suspect ? Check::kSuspect : Check::kClean;
 }
 
 void Authenticator::MarkSuspect(const std::string& peer) const {
@@ -318,7 +320,12 @@ absl::StatusOr<Principal> Authenticator::CheckToken(
   if (named != set->by_name.end() &&
       !set->entries[named->second].secret_hash.empty()) {
     // The one costly case: a known name with a secret not seen before.
-    if (!TakeCheck(peer)) {
+    const Check check = TakeCheck(peer);
+    // A connection that has presented a wrong token does not queue for the
+    // check (its call would hold a worker thread while it waits): it is
+    // checked only when no other check runs.
+    if (check == Check::kRefused ||
+        (check == Check::kSuspect && !check_mu_.TryLock())) {
       return absl::UnavailableError(absl::StrCat(
           "the token of \"", named->first,
           "\" was not checked: this connection presents more new tokens than "
@@ -327,9 +334,10 @@ absl::StatusOr<Principal> Authenticator::CheckToken(
           " a second for a connection, fewer once it has presented a wrong "
           "one); retry later"));
     }
-    absl::MutexLock one_at_a_time(&check_mu_);
+    if (check == Check::kClean) check_mu_.Lock();
     found = VerifySecret(set->entries[named->second].secret_hash,
                          token.substr(colon + 1));
+    check_mu_.Unlock();
     if (!found) MarkSuspect(peer);
   }
   absl::MutexLock lock(&set->mu);

@@ -127,9 +127,10 @@ class Authenticator {
                                        const std::string& token,
                                        const std::string& peer) const;
   // Takes one check for a token from connection `peer` (its bucket, and
-  // the suspects' or its address's); false (nothing taken) when one is
+  // the suspects' or its address's); kRefused (nothing taken) when one is
   // empty.
-  bool TakeCheck(const std::string& peer) const;
+  enum class Check { kRefused, kClean, kSuspect };
+  Check TakeCheck(const std::string& peer) const;
   // Marks `peer` as a connection that presented a wrong token.
   void MarkSuspect(const std::string& peer) const;
   std::shared_ptr<const Set> Current() const;
