@@ -103,15 +103,17 @@ struct RestOptions {
   // they are printed, never whole; the messages they are printed from are
   // held until the client has taken them. Those held by every REST call
   // together stay under max_answer_bytes_in_flight: a call that would
-  // pass it reserves max_answer_bytes (the engine's max_read_bytes, the
-  // most one answer holds) before it runs, keeps the answer's real size
+  // pass it reserves max_answer_bytes (what one answer holds while it is
+  // built: the server sets twice the engine's max_read_bytes, for the
+  // engine's copy and the message) before it runs, keeps the answer's
+  // real size
   // while it is written, and waits up to answer_wait for room, then gets
   // 503 (retry). A client that stops reading is cut at the HTTP server's
   // write timeout (5 s), which frees its share. (The third outside sweep:
   // 8 largest pages at once took +793 MiB, 32 readers that never read a
   // 3.36 GB peak.)
   uint64_t max_answer_bytes_in_flight = uint64_t{256} << 20;
-  uint64_t max_answer_bytes = uint64_t{32} << 20;
+  uint64_t max_answer_bytes = uint64_t{64} << 20;
   absl::Duration answer_wait = absl::Seconds(10);
 };
 

@@ -507,7 +507,9 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
              .loopback_hosts_only = authenticator == nullptr &&
                                     IsLoopbackListen(config.http_listen),
              .allowed_origins = config.http_allowed_origins,
-             .max_answer_bytes = config.engine.max_read_bytes});
+             // While an answer is built it is held twice (the engine's
+             // copy of the traces, then the message).
+             .max_answer_bytes = 2 * config.engine.max_read_bytes});
     absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
         made.ok() ? http::HttpServer::Start(
                         HttpOptions(config),
