@@ -403,6 +403,8 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
       if (kill_while_full) {
         stop = true;
         robot.join();
+        EXPECT_TRUE(server->running()) << server->Output();
+        if (!server->running()) ++died;
         server->Kill();
       }
       // Space returns (the test's ballast too: the robot may have filled the
@@ -420,6 +422,7 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
         stop = true;
         robot.join();
         EXPECT_TRUE(server->running()) << server->Output();
+        if (!server->running()) ++died;
         server->Kill();
       } else if (!kill_while_full) {
         // Time until an upload succeeds again.
@@ -440,6 +443,7 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
         stop = true;
         robot.join();
         EXPECT_TRUE(server->running()) << server->Output();
+        if (!server->running()) ++died;
         server->Kill();
       }
       // Every acknowledged trace survives a kill -9 and a restart in place
