@@ -141,8 +141,6 @@ google::protobuf::util::JsonPrintOptions PrintOptions() {
   return print;
 }
 
-}  // namespace
-
 // The top-level repeated message fields of `type` (an answer's lists).
 std::vector<const FieldDescriptor*> ListFields(const Descriptor& type) {
   std::vector<const FieldDescriptor*> parts;
@@ -245,6 +243,8 @@ absl::Status WriteAnswerJson(
   return absl::OkStatus();
 }
 
+}  // namespace
+
 // The whole answer as JSON (small answers, and tests).
 absl::StatusOr<std::string> AnswerJson(Message* answer) {
   std::string json;
@@ -322,6 +322,8 @@ absl::StatusOr<std::vector<Route>> RoutesFromProto(
     Route route;
     route.method = method;
     route.server_sent_events = method->server_streaming();
+    route.answer_has_lists = !ListFields(*method->output_type()).empty();
+    route.answer_holds_traces = HoldsTraces(*method->output_type());
     switch (rule.pattern_case()) {
       case google::api::HttpRule::kGet:
         route.verb = "GET";
@@ -632,7 +634,7 @@ HttpResponse RestGateway::Serve(
       google::protobuf::MessageFactory::generated_factory()->GetPrototype(
           route.method->output_type());
   std::unique_ptr<Message> answer(response_prototype->New());
-  if (ListFields(*route.method->output_type()).empty()) {
+  if (!route.answer_has_lists) {
     // A small answer: written whole.
     absl::Status status =
         api_->Call(route.method->name(), *caller, *message, answer.get());
@@ -649,7 +651,7 @@ HttpResponse RestGateway::Serve(
   // has its room reserved before it is read, and keeps its real size while
   // the client takes it.
   std::shared_ptr<const uint64_t> held;
-  if (HoldsTraces(*route.method->output_type())) {
+  if (route.answer_holds_traces) {
     held = budget_->Reserve(options_.max_answer_bytes, options_.answer_wait);
     if (held == nullptr) {
       return fail(absl::UnavailableError(absl::StrCat(

@@ -126,6 +126,10 @@ struct Route {
   const google::protobuf::MethodDescriptor* method = nullptr;
   // The RPC streams its answers: served as server-sent events.
   bool server_sent_events = false;
+  // Its answer has lists (written as printed), and may hold traces (held
+  // within RestOptions::max_answer_bytes_in_flight).
+  bool answer_has_lists = false;
+  bool answer_holds_traces = false;
 };
 
 // The routes of every MemoryService RPC with a google.api.http option that

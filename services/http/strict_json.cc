@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "absl/container/flat_hash_set.h"
+#include "absl/functional/function_ref.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 
@@ -72,11 +73,7 @@ class Checker {
     SkipSpace();
     if (field == nullptr || field->is_map()) return SkipValue();
     if (field->is_repeated() && Peek() == '[') {
-      Take('[');
-      SkipSpace();
-      if (Take(']')) return absl::OkStatus();
-      for (int i = 0;; ++i) {
-        SkipSpace();
+      return CheckArray([&](int i) {
         const std::string element = absl::StrCat(path, "[", i, "]");
         if (Peek() == '[') {
           return absl::InvalidArgumentError(absl::StrCat(
@@ -86,15 +83,8 @@ class Checker {
                                                              : "values",
               ", not of lists"));
         }
-        if (absl::Status value = CheckSingle(field, element); !value.ok()) {
-          return value;
-        }
-        if (malformed_) return absl::OkStatus();
-        SkipSpace();
-        if (Take(',')) continue;
-        if (Take(']')) return absl::OkStatus();
-        return Malformed();
-      }
+        return CheckSingle(field, element);
+      });
     }
     return CheckSingle(field, path);
   }
@@ -145,24 +135,29 @@ class Checker {
                      type->name(), " (one of ", names, ")"));
   }
 
+  // An array at the cursor: `element(i)` checks its i-th value, the cursor
+  // on it.
+  absl::Status CheckArray(absl::FunctionRef<absl::Status(int)> element) {
+    Take('[');
+    SkipSpace();
+    if (Take(']')) return absl::OkStatus();
+    for (int i = 0;; ++i) {
+      SkipSpace();
+      if (absl::Status value = element(i); !value.ok()) return value;
+      if (malformed_) return absl::OkStatus();
+      SkipSpace();
+      if (Take(',')) continue;
+      if (Take(']')) return absl::OkStatus();
+      return Malformed();
+    }
+  }
+
   // Any value, checked only for duplicate keys in its objects.
   absl::Status SkipValue() {
     SkipSpace();
     const char c = Peek();
     if (c == '{') return CheckMessage(nullptr, "an object");
-    if (c == '[') {
-      Take('[');
-      SkipSpace();
-      if (Take(']')) return absl::OkStatus();
-      while (true) {
-        if (absl::Status value = SkipValue(); !value.ok()) return value;
-        if (malformed_) return absl::OkStatus();
-        SkipSpace();
-        if (Take(',')) continue;
-        if (Take(']')) return absl::OkStatus();
-        return Malformed();
-      }
-    }
+    if (c == '[') return CheckArray([&](int) { return SkipValue(); });
     if (c == '"') {
       std::string ignored;
       return ReadString(&ignored) ? absl::OkStatus() : Malformed();

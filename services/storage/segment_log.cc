@@ -212,30 +212,16 @@ struct ScannedSegment {
   uint64_t cut_entry = 0;
 };
 
-// The largest entry from `expected` on that a header of `segment` in
-// data[from, to) names (whole or not), or 0.
-uint64_t LastNamedEntry(std::string_view data, uint64_t from, uint64_t to,
-                        uint64_t segment, uint64_t expected) {
-  uint64_t named = 0;
-  // A region of n bytes holds at most n / 32 records.
-  const uint64_t most = expected + (to - from) / kHeaderBytes;
-  while (from + kHeaderBytes <= to) {
-    const void* hit =
-        ::memmem(data.data() + from, to - from, kMagic, sizeof(kMagic));
-    if (hit == nullptr) break;
-    const uint64_t at =
-        static_cast<uint64_t>(static_cast<const char*>(hit) - data.data());
-    if (at + kHeaderBytes <= data.size() &&
-        Load<uint64_t>(data.data() + at + 12) == segment) {
-      const uint64_t sequence = Load<uint64_t>(data.data() + at + 20);
-      if (sequence >= expected && sequence <= most) {
-        named = std::max(named, sequence);
-      }
-    }
-    from = at + 1;
-  }
-  return named;
+// True if a record header of `segment` naming entry `sequence` starts at
+// `at` (whatever follows it).
+bool HeaderNames(std::string_view data, uint64_t at, uint64_t segment,
+                 uint64_t sequence) {
+  return at + kHeaderBytes <= data.size() &&
+         std::memcmp(data.data() + at, kMagic, sizeof(kMagic)) == 0 &&
+         Load<uint64_t>(data.data() + at + 12) == segment &&
+         Load<uint64_t>(data.data() + at + 20) == sequence;
 }
+
 ScannedSegment ScanSegment(std::string_view data, uint64_t first) {
   ScannedSegment out;
   uint64_t at = 0;
@@ -248,17 +234,13 @@ ScannedSegment ScanSegment(std::string_view data, uint64_t first) {
       // damage followed by intact records.
       record = NextRecordAfter(data, at, first, expected);
       if (!record) {
-        if (LastNamedEntry(data, at,
-                           std::min<uint64_t>(data.size(), at + kHeaderBytes),
-                           first, expected) == expected) {
-          out.cut_entry = expected;
-        }
+        if (HeaderNames(data, at, first, expected)) out.cut_entry = expected;
         break;
       }
       if (record->sequence > expected) {
         out.gaps.push_back({expected, record->sequence - 1, at});
       } else if (record->sequence == 0) {
-        // The padding that ends an append (O_DIRECT): the append was
+        // The padding record that ends every append: the append was
         // written whole, so the record before it that fails is damaged,
         // not torn. (Were more records damaged, the next entry found
         // reports the rest.)
