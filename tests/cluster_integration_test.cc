@@ -14,6 +14,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <memory>
@@ -440,8 +441,10 @@ void ClusterIntegrationTest::OwnerLossScenario(bool snapshots) {
   EXPECT_EQ(after_consolidation.response.pending_traces(), 0u);
 
   // kill -9 the owner of fleet-0 while uploads go on through the others:
-  // they are acknowledged (the log takes them), and fleet-0 is served again
-  // once its lease expired and another replica caught up.
+  // they are acknowledged once another replica took fleet-0 (until then
+  // they are refused, UNAVAILABLE, and UploadVia retries: the owner admits
+  // a fleet's uploads), and fleet-0 is served again once its lease expired
+  // and another replica caught up.
   const size_t killed = ReplicaAt(owner0);
   const size_t survivor = (killed + 1) % 3;
   replicas_[killed]->Kill();
@@ -547,6 +550,103 @@ TEST_F(ClusterIntegrationTest, TheReceivingReplicaAppliesUploadRates) {
   Reply<v1::GetStatsResponse> stats = GetStats(*Stub(0), FleetId(0));
   ASSERT_TRUE(stats.ok()) << Describe(stats.status);
   EXPECT_EQ(Received(stats.response), 100u);
+}
+
+// The limits on what a fleet holds refuse an upload before it is
+// acknowledged, in distributed mode as in embedded mode (engine/
+// admission.h): the same uploads get the same answers, naming the same
+// limit, whichever replica receives them (the fleet's owner admits its
+// load: the other replicas forward to it), and nothing refused reaches a
+// log. Before, distributed mode checked them only when the owner applied
+// an entry, and an entry past max_traces_per_fleet stopped its fleet's log.
+TEST_F(ClusterIntegrationTest, LimitsRefuseTheSameUploadsAsEmbeddedMode) {
+  const std::string limits =
+      "limits { max_traces_per_fleet: 50 max_fleets: 2 }";
+  using StubFor =
+      std::function<std::unique_ptr<v1::MemoryService::Stub>(size_t)>;
+  // What each upload of the scenario was answered ("OK 40", or the code and
+  // the limit named), against the servers `stub(0)` and `stub(1)`.
+  const auto scenario = [](const StubFor& stub) {
+    std::vector<std::string> answers;
+    const auto upload = [&](size_t via, int fleet, uint64_t first,
+                            size_t count) {
+      const std::vector<v1::MemoryTrace> traces =
+          MakeTraces(Spec(fleet, 0, first, count));
+      // UNAVAILABLE (a fleet between owners) is retried, as robots do.
+      Reply<v1::UploadTracesResponse> reply;
+      const auto give_up = Clock::now() + std::chrono::seconds(20);
+      do {
+        reply = UploadTraces(*stub(via), FleetId(fleet), traces, count);
+        if (reply.status.error_code() != grpc::StatusCode::UNAVAILABLE) break;
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      } while (Clock::now() < give_up);
+      std::string answer = reply.ok()
+                               ? absl::StrCat("OK ", reply.response.accepted())
+                               : absl::StrCat(reply.status.error_code());
+      for (const char* limit : {"max_traces_per_fleet", "max_fleets"}) {
+        if (reply.status.error_message().find(limit) != std::string::npos) {
+          absl::StrAppend(&answer, " ", limit);
+        }
+      }
+      answers.push_back(answer);
+    };
+    // Waits until `fleet` holds `traces`, applied (GetStats through via).
+    const auto applied = [&](size_t via, int fleet, uint64_t traces) {
+      const auto give_up = Clock::now() + std::chrono::seconds(20);
+      Reply<v1::GetStatsResponse> stats;
+      do {
+        stats = GetStats(*stub(via), FleetId(fleet));
+        if (stats.ok() && Received(stats.response) == traces) return;
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      } while (Clock::now() < give_up);
+      ADD_FAILURE() << FleetId(fleet) << ": "
+                    << (stats.ok() ? absl::StrCat(Received(stats.response))
+                                   : Describe(stats.status));
+    };
+    upload(0, 0, 1, 40);
+    applied(1, 0, 40);
+    upload(1, 0, 41, 20);  // 60 > 50
+    upload(0, 0, 41, 20);
+    upload(1, 0, 41, 10);  // 50: at the limit
+    upload(1, 1, 1, 5);    // a second fleet
+    applied(0, 1, 5);
+    upload(0, 2, 1, 5);  // a third: max_fleets
+    upload(1, 2, 1, 5);
+    applied(0, 0, 50);
+    return answers;
+  };
+  const std::vector<std::string> expected = {
+      "OK 40",
+      "8 max_traces_per_fleet",  // RESOURCE_EXHAUSTED
+      "8 max_traces_per_fleet",
+      "OK 10",
+      "OK 5",
+      "8 max_fleets",
+      "8 max_fleets"};
+
+  extra_config_ = limits;
+  StartNats();
+  StartReplica(0);
+  StartReplica(1);
+  const std::vector<std::string> distributed =
+      scenario([this](size_t i) { return Stub(i); });
+  EXPECT_EQ(distributed, expected);
+
+  const std::string data = dir_.Join("embedded");
+  std::filesystem::create_directories(data);
+  const std::string config = dir_.Join("embedded.cfg");
+  std::ofstream(config) << limits << "\n";
+  ServerOptions options;
+  options.data_dir = data;
+  options.config_file = config;
+  const int port = FreePort();
+  options.listen = absl::StrCat("127.0.0.1:", port);
+  options.log_file = dir_.Join("embedded.log");
+  ServerProcess embedded_server(options);
+  ASSERT_TRUE(embedded_server.Start().ok());
+  const std::vector<std::string> embedded = scenario(
+      [port](size_t) { return MakeStub(absl::StrCat("127.0.0.1:", port)); });
+  EXPECT_EQ(embedded, expected);
 }
 
 // Two robots create one fleet at once through two replicas with different

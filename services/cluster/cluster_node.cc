@@ -7,7 +7,7 @@
 
 namespace fleetmem::cluster {
 
-ClusterNode::ClusterNode(ClusterNodeOptions options, FleetLog* log,
+ClusterNode::ClusterNode(ClusterNodeOptions options, ReplicatedLog* log,
                          LeaseTable* leases, SnapshotStore* snapshots,
                          engine::MemoryEngine* engine)
     : options_(std::move(options)),

@@ -10,8 +10,8 @@
 #include <vector>
 
 #include "gtest/gtest.h"
-#include "services/cluster/fleet_log.h"
 #include "services/cluster/materialiser.h"
+#include "services/cluster/replicated_log.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
@@ -108,7 +108,7 @@ inline void ExpectSameState(const State& a, const State& b) {
 
 // Appends every upload to the fleet's log.
 inline void AppendUploads(
-    FleetLog& log, const std::string& fleet,
+    ReplicatedLog& log, const std::string& fleet,
     const std::vector<std::vector<core::MemoryTrace>>& uploads) {
   for (const std::vector<core::MemoryTrace>& batch : uploads) {
     absl::StatusOr<EncodedUpload> entry = EncodeUpload(batch);

@@ -54,7 +54,7 @@ absl::StatusOr<EncodedUpload> EncodeUpload(
   return encoded;
 }
 
-absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
+absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
                                 std::span<const core::MemoryTrace> traces,
                                 size_t max_entry_bytes, bool creates_fleet) {
   // Each robot's traces in the order given, robots in order of first sight.
@@ -123,7 +123,7 @@ absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
 }
 
 absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
-    FleetLog& log, SnapshotStore* snapshots, std::string_view fleet_id) {
+    ReplicatedLog& log, SnapshotStore* snapshots, std::string_view fleet_id) {
   // The log's first entry while the log holds it: no call to the snapshot
   // stream on the upload path.
   absl::StatusOr<std::vector<LogEntry>> first = log.Read(fleet_id, 1, 1);
@@ -154,7 +154,7 @@ absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
                             trace.encoder_version()};
 }
 
-Materialiser::Materialiser(MaterialiserOptions options, FleetLog* log,
+Materialiser::Materialiser(MaterialiserOptions options, ReplicatedLog* log,
                            LeaseTable* leases, SnapshotStore* snapshots,
                            engine::MemoryEngine* engine)
     : options_(std::move(options)),
@@ -617,6 +617,14 @@ std::vector<std::pair<std::string, uint64_t>> Materialiser::Positions() const {
     positions.emplace_back(fleet_id, held.position);
   }
   return positions;
+}
+
+std::optional<uint64_t> Materialiser::Position(
+    std::string_view fleet_id) const {
+  absl::MutexLock lock(&lease_mu_);
+  auto it = held_.find(fleet_id);
+  if (it == held_.end()) return std::nullopt;
+  return it->second.position;
 }
 
 bool Materialiser::Owns(std::string_view fleet_id) const {

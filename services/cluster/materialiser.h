@@ -35,7 +35,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
-#include "services/cluster/fleet_log.h"
+#include "services/cluster/replicated_log.h"
 #include "services/core/types.h"
 #include "services/engine/memory_engine.h"
 
@@ -60,7 +60,7 @@ struct MaterialiserOptions {
   // longer holds them.
   uint64_t restore_after = 256;
   // Once a snapshot is stored, the log entries it covers are trimmed
-  // (FleetLog::Trim), so that logs do not grow without bound.
+  // (ReplicatedLog::Trim), so that logs do not grow without bound.
   bool trim_log = true;
 };
 
@@ -106,10 +106,10 @@ struct Ingested {
 // (a retry of the whole upload appends only the rest: ids repeat).
 // `creates_fleet`: the receiving replica found no log for the fleet, so
 // this upload fixes its shape: its first entry is appended only as the
-// log's first (FleetLog::Append's only_first), and FAILED_PRECONDITION,
+// log's first (ReplicatedLog::Append's only_first), and FAILED_PRECONDITION,
 // with nothing appended, says another upload created the fleet meanwhile
 // (check the upload against that one's shape, then ingest it again).
-absl::StatusOr<Ingested> Ingest(FleetLog& log, std::string_view fleet_id,
+absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
                                 std::span<const core::MemoryTrace> traces,
                                 size_t max_entry_bytes,
                                 bool creates_fleet = false);
@@ -128,14 +128,15 @@ struct CallOutcome {
 // trimmed), whichever replica applies it. nullopt for a fleet without a
 // log. `snapshots` may be null.
 absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
-    FleetLog& log, SnapshotStore* snapshots, std::string_view fleet_id);
+    ReplicatedLog& log, SnapshotStore* snapshots, std::string_view fleet_id);
 
 class Materialiser {
  public:
   // `log`, `leases`, `snapshots` and `engine` must outlive it;
   // `snapshots` may be null (no snapshots: new owners replay whole logs).
-  Materialiser(MaterialiserOptions options, FleetLog* log, LeaseTable* leases,
-               SnapshotStore* snapshots, engine::MemoryEngine* engine);
+  Materialiser(MaterialiserOptions options, ReplicatedLog* log,
+               LeaseTable* leases, SnapshotStore* snapshots,
+               engine::MemoryEngine* engine);
   // Ends the snapshot writer after the snapshot it is storing, if any.
   ~Materialiser();
   Materialiser(const Materialiser&) = delete;
@@ -147,7 +148,8 @@ class Materialiser {
   // the log's or engine's error otherwise (nothing after the failing entry
   // is applied; the next step retries it). An entry the memory refuses
   // (INVALID_ARGUMENT, FAILED_PRECONDITION) is passed; RESOURCE_EXHAUSTED
-  // (a full disk, a limit) is not. Steps run one at a time (a lock is held
+  // (a full disk) is not. No limit refuses an entry: the owner admitted it
+  // (engine/admission.h). Steps run one at a time (a lock is held
   // through the calls to NATS).
   absl::StatusOr<StepResult> Step(std::string_view fleet_id);
   // Steps until the fleet's whole log as it is now is applied.
@@ -171,6 +173,8 @@ class Materialiser {
   bool Owns(std::string_view fleet_id) const;
   // The fleets it holds and the last sequence applied of each.
   std::vector<std::pair<std::string, uint64_t>> Positions() const;
+  // The last sequence applied of a fleet it holds (nullopt for another).
+  std::optional<uint64_t> Position(std::string_view fleet_id) const;
 
   // Returns once every snapshot taken so far is stored (or failed) and its
   // log trimmed.
@@ -251,7 +255,7 @@ class Materialiser {
                                    const std::string& data);
 
   const MaterialiserOptions options_;
-  FleetLog* const log_;
+  ReplicatedLog* const log_;
   LeaseTable* const leases_;
   SnapshotStore* const snapshots_;
   engine::MemoryEngine* const engine_;

@@ -16,6 +16,7 @@
 #include "gtest/gtest.h"
 #include "services/cluster/cluster_test_util.h"
 #include "services/cluster/nats_fixture.h"
+#include "services/engine/memory_engine_test_util.h"
 #include "services/storage/fleet_image.h"
 
 namespace fleetmem::cluster {
@@ -161,31 +162,42 @@ TEST_F(MaterialiserTest, AnEntryTheMemoryRefusesIsSkippedAlike) {
   EXPECT_FALSE(log->Holder(fleet)->has_value());
 }
 
-// The receiving replica's side: one entry per robot (cut to the entry size),
-// a retry appends nothing new, and a replica materialises the same memory.
-// RESOURCE_EXHAUSTED (here the fleet's trace limit; a full disk says the
-// same) is not passed: the step stops at the entry and retries it.
+// RESOURCE_EXHAUSTED (a full disk: the store refuses writes) is not
+// passed: the step stops at the entry and retries it; the entry applies
+// once the store writes again. No limit refuses an entry (its upload was
+// admitted before the log took it): a fleet's trace limit lowered below
+// what its log holds applies the log whole.
 TEST_F(MaterialiserTest, AnEntryRefusedForWantOfRoomIsNotPassed) {
   const std::string fleet = "fleet-e";
   std::unique_ptr<NatsFleetLog> log = Connect();
   ASSERT_NE(log, nullptr);
   const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
-  AppendUploads(*log, fleet, {uploads[0], uploads[1], uploads[2]});
-  auto store = storage::NewInMemoryStore();
+  AppendUploads(*log, fleet, {uploads[0]});
+  auto memory = storage::NewInMemoryStore();
+  engine::FlakyStore store(memory.get());
   engine::EngineOptions options = testing_util::SmallOptions();
   options.limits.max_traces_per_fleet = 15;
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
-      engine::MemoryEngine::Open(options, store.get(), [](size_t dimension) {
+      engine::MemoryEngine::Open(options, &store, [](size_t dimension) {
         return index::NewExactIndex(dimension);
       });
   ASSERT_TRUE(engine.ok()) << engine.status();
   Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
                             log.get(), engine->get());
+  ASSERT_TRUE(materialiser.CatchUp(fleet).ok());
+  AppendUploads(*log, fleet, {uploads[1], uploads[2]});
+  store.fail_after = store.applies;
+  store.failure = absl::ResourceExhaustedError("disk nearly full");
   for (int attempt = 0; attempt < 2; ++attempt) {
     absl::StatusOr<StepResult> step = materialiser.Step(fleet);
     EXPECT_EQ(step.status().code(), absl::StatusCode::kResourceExhausted);
   }
   EXPECT_EQ(*(*engine)->LogPosition(fleet), 1u);
+  store.fail_after = -1;
+  absl::StatusOr<StepResult> step = materialiser.CatchUp(fleet);
+  ASSERT_TRUE(step.ok()) << step.status();
+  EXPECT_EQ(step->position, 3u);
+  EXPECT_EQ((*engine)->HeldTraces(fleet), 30u);  // past the limit of 15
 }
 
 TEST_F(MaterialiserTest, IngestCutsEntriesPerRobotAndSizeAndRetriesAreFree) {

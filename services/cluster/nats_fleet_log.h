@@ -1,4 +1,4 @@
-// FleetLog and LeaseTable on NATS JetStream (Debian's libnats, nats.c):
+// ReplicatedLog and LeaseTable on NATS JetStream (Debian's libnats, nats.c):
 //  - each fleet's log is a stream, FLEETMEM_<XXH3-64 of the fleet id in
 //    hex> on subject fleetmem.log.<same>, replicated `replicas` times, with
 //    JetStream's deduplication by message id (Nats-Msg-Id) over
@@ -30,7 +30,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/time/time.h"
-#include "services/cluster/fleet_log.h"
+#include "services/cluster/replicated_log.h"
 
 namespace fleetmem::cluster {
 
@@ -63,7 +63,7 @@ struct NatsOptions {
 // INVALID_ARGUMENT naming the first bad field.
 absl::Status ValidateNatsOptions(const NatsOptions& options);
 
-class NatsFleetLog final : public FleetLog,
+class NatsFleetLog final : public ReplicatedLog,
                            public LeaseTable,
                            public SnapshotStore {
  public:

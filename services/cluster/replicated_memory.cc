@@ -6,13 +6,16 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
+#include "proto/convert/trace_convert.h"
 #include "services/cluster/materialiser.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
+#include "services/engine/admission.h"
 
 namespace fleetmem::cluster {
 
 ReplicatedMemory::ReplicatedMemory(std::string self, size_t max_entry_bytes,
+                                   uint64_t max_backlog_traces,
                                    engine::QuotaOptions rates,
                                    std::unique_ptr<NatsFleetLog> log,
                                    transport::PeerOptions peers,
@@ -20,6 +23,7 @@ ReplicatedMemory::ReplicatedMemory(std::string self, size_t max_entry_bytes,
                                    ClusterNodeOptions node)
     : self_(std::move(self)),
       max_entry_bytes_(max_entry_bytes),
+      max_backlog_traces_(max_backlog_traces),
       rates_(std::move(rates),
              [] {
                return std::chrono::duration<double>(
@@ -48,19 +52,43 @@ void ReplicatedMemory::Shutdown() {
 absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
     std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
     const transport::UploadOptions& options) {
-  // Checked here against the fleet's shape (from this replica's store, or
-  // asked of the owner), so that an acknowledged upload is not refused when
-  // the owner applies it; the owner checks it again then.
+  // The fleet's shape (from its log), so that an acknowledged upload is
+  // never one its owner cannot apply.
   absl::StatusOr<std::optional<engine::FleetShape>> shape = ShapeOf(fleet_id);
   if (!shape.ok()) return shape.status();
-  absl::Status valid = engine_->CheckUpload(
-      fleet_id, traces, shape->has_value() ? &**shape : nullptr);
+  engine::UploadQuota& limits = engine_->quota();
+  const size_t max_traces = engine_->options().max_traces_per_upload;
+  absl::Status valid =
+      engine::AdmitShape(limits, fleet_id, traces,
+                         shape->has_value() ? &**shape : nullptr, max_traces);
   if (!valid.ok()) return valid;
   if (traces.empty()) return transport::Uploaded{};
-  if (absl::Status admitted = rates_.AdmitRates(fleet_id, traces);
-      !admitted.ok()) {
-    return admitted;
+  // Rates are the receiving replica's (a forwarded upload was rated there).
+  if (!options.forwarded) {
+    if (absl::Status admitted = rates_.AdmitRates(fleet_id, traces);
+        !admitted.ok()) {
+      return admitted;
+    }
   }
+  // The fleet's load is its owner's to admit: it alone knows what the fleet
+  // holds and what of its log is not applied yet. A fleet without an owner
+  // (just created, or its owner's lease expired) is taken here.
+  if (shape->has_value() && !Serves(fleet_id) && !TakeIfFree(fleet_id)) {
+    return ForwardUpload(fleet_id, traces, options);
+  }
+  if (!shape->has_value()) {
+    // The fleets as the log lists them now (creations are rare; the last
+    // round's listing may be a round old). Two replicas creating fleets at
+    // the same moment may both pass: max_fleets can be passed by as many
+    // fleets as are created at once.
+    absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
+    valid = limits.AdmitNewFleet(
+        fleet_id, fleets.ok() ? fleets->size() : node_.fleets_seen());
+  } else {
+    valid = engine::AdmitLoad(limits, fleet_id, Load(fleet_id),
+                              NewTraces(fleet_id, traces), max_backlog_traces_);
+  }
+  if (!valid.ok()) return valid;
   // An upload that creates the fleet is appended only as its log's first
   // entry: of two creating it at once with different shapes, the second
   // is checked against the first's shape instead of being acknowledged
@@ -72,8 +100,9 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
   if (absl::IsFailedPrecondition(ingested.status()) && !shape->has_value()) {
     shape = ShapeOf(fleet_id);
     if (!shape.ok()) return shape.status();
-    valid = engine_->CheckUpload(fleet_id, traces,
-                                 shape->has_value() ? &**shape : nullptr);
+    valid =
+        engine::AdmitShape(limits, fleet_id, traces,
+                           shape->has_value() ? &**shape : nullptr, max_traces);
     if (!valid.ok()) return valid;
     ingested = Ingest(*log_, fleet_id, traces, max_entry_bytes_);
   }
@@ -82,7 +111,85 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
   uploaded.result.accepted = ingested->traces - ingested->duplicate_traces;
   uploaded.result.duplicates = ingested->duplicate_traces;
   uploaded.sequence = ingested->last_sequence;
+  if (uploaded.result.accepted > 0) {
+    absl::MutexLock lock(&load_mu_);
+    appended_[std::string(fleet_id)].push_back(
+        {ingested->last_sequence, uploaded.result.accepted});
+  }
   return uploaded;
+}
+
+absl::StatusOr<transport::Uploaded> ReplicatedMemory::ForwardUpload(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+    const transport::UploadOptions& options) {
+  if (options.forwarded) {
+    return absl::UnavailableError(absl::StrCat(
+        "fleet \"", V(fleet_id), "\" is not owned by \"", self_,
+        "\" (ownership moved); nothing of this upload was stored: retry"));
+  }
+  absl::StatusOr<std::optional<std::string>> owner = Owner(fleet_id);
+  if (!owner.ok()) return owner.status();
+  if (!owner->has_value()) {
+    return absl::UnavailableError(absl::StrCat(
+        "fleet \"", V(fleet_id),
+        "\" is being taken by this replica; nothing of this upload was "
+        "stored: retry"));
+  }
+  v1::UploadTracesRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  for (const core::MemoryTrace& trace : traces) {
+    api::TraceToProto(trace, request.add_traces());
+  }
+  v1::UploadTracesResponse response;
+  if (absl::Status forwarded =
+          forwarder_.Forward(**owner, "UploadTraces", request, &response);
+      !forwarded.ok()) {
+    return forwarded;
+  }
+  transport::Uploaded uploaded;
+  uploaded.result.accepted = response.accepted();
+  uploaded.result.duplicates = response.duplicates();
+  uploaded.sequence = response.last_sequence();
+  return uploaded;
+}
+
+bool ReplicatedMemory::TakeIfFree(std::string_view fleet_id) {
+  absl::StatusOr<std::optional<Lease>> holder = log_->Holder(fleet_id);
+  if (!holder.ok() || holder->has_value()) return false;
+  // Takes the lease and applies a first batch of the log, as the ownership
+  // loop does for a free fleet (which balances the fleets later).
+  return node_.materialiser().Step(fleet_id).ok();
+}
+
+engine::FleetLoad ReplicatedMemory::Load(std::string_view fleet_id) {
+  engine::FleetLoad load;
+  load.held = engine_->HeldTraces(fleet_id);
+  const uint64_t position = node_.materialiser().Position(fleet_id).value_or(0);
+  absl::MutexLock lock(&load_mu_);
+  auto it = appended_.find(V(fleet_id));
+  if (it == appended_.end()) return load;
+  std::deque<AppendedEntry>& entries = it->second;
+  while (!entries.empty() && entries.front().sequence <= position) {
+    entries.pop_front();
+  }
+  for (const AppendedEntry& entry : entries) load.backlog += entry.traces;
+  if (entries.empty()) appended_.erase(it);
+  return load;
+}
+
+uint64_t ReplicatedMemory::NewTraces(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces) {
+  // Against what the fleet holds applied: a trace still in the log's
+  // unapplied tail counts as new here (the owner's limit errs on the safe
+  // side) and is a duplicate when applied.
+  absl::flat_hash_map<std::string_view, core::SeqSet> seen;
+  uint64_t fresh = 0;
+  for (const core::MemoryTrace& trace : traces) {
+    auto [it, inserted] = seen.try_emplace(trace.robot_id);
+    if (inserted) it->second = engine_->Received(fleet_id, trace.robot_id);
+    if (it->second.Insert(trace.seq)) ++fresh;
+  }
+  return fresh;
 }
 
 absl::StatusOr<std::optional<engine::FleetShape>> ReplicatedMemory::ShapeOf(

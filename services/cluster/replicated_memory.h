@@ -8,6 +8,7 @@
 #ifndef FLEETMEM_SERVICES_CLUSTER_REPLICATED_MEMORY_H_
 #define FLEETMEM_SERVICES_CLUSTER_REPLICATED_MEMORY_H_
 
+#include <deque>
 #include <functional>
 #include <memory>
 #include <optional>
@@ -23,6 +24,7 @@
 #include "absl/synchronization/mutex.h"
 #include "services/cluster/cluster_node.h"
 #include "services/cluster/nats_fleet_log.h"
+#include "services/engine/admission.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/upload_quota.h"
 #include "services/transport/fleet_memory.h"
@@ -33,11 +35,14 @@ namespace fleetmem::cluster {
 class ReplicatedMemory final : public transport::FleetMemory {
  public:
   // `self`: this replica's advertised address; `max_entry_bytes`: the
-  // largest log entry (under NATS's max_payload); `rates`: the upload rate
-  // limits this replica applies to what it receives (the engine applying
-  // the log runs without them). `engine` must outlive the object.
+  // largest log entry (under NATS's max_payload); `max_backlog_traces`:
+  // the bound on a fleet's acknowledged, unapplied traces its owner admits
+  // (write_path.max_backlog_traces, as in embedded mode; 0: none);
+  // `rates`: the upload rate limits this replica applies to what it
+  // receives (the engine applying the log runs without them). `engine`
+  // must outlive the object.
   ReplicatedMemory(std::string self, size_t max_entry_bytes,
-                   engine::QuotaOptions rates,
+                   uint64_t max_backlog_traces, engine::QuotaOptions rates,
                    std::unique_ptr<NatsFleetLog> log,
                    transport::PeerOptions peers, engine::MemoryEngine* engine,
                    ClusterNodeOptions node);
@@ -51,8 +56,13 @@ class ReplicatedMemory final : public transport::FleetMemory {
   // take this one's fleets at once (a clean shutdown).
   void Shutdown();
 
-  // Acknowledged once the log holds the upload on its replicas;
-  // options.wait_applied is not served (the answer's `applied` is false).
+  // Admitted as embedded mode admits (engine/admission.h): the shape and
+  // the rates by the replica that receives the upload, the fleet's load
+  // (max_traces_per_fleet, the backlog bound) by the fleet's owner, to
+  // which the upload is forwarded, and a new fleet (max_fleets) by the
+  // replica that creates it. Acknowledged once the log holds the upload on
+  // its replicas; options.wait_applied is not served (the answer's
+  // `applied` is false). UNAVAILABLE (retry) while the fleet has no owner.
   absl::StatusOr<transport::Uploaded> Upload(
       std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
       const transport::UploadOptions& options) override;
@@ -104,8 +114,33 @@ class ReplicatedMemory final : public transport::FleetMemory {
   absl::StatusOr<std::optional<engine::FleetShape>> ShapeOf(
       std::string_view fleet_id);
 
+  // Forwards an upload to the fleet's owner (once: a forwarded upload
+  // that meets no owner here is UNAVAILABLE).
+  absl::StatusOr<transport::Uploaded> ForwardUpload(
+      std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
+      const transport::UploadOptions& options);
+  // Takes the fleet's lease if no replica holds it; true if this replica
+  // holds it then.
+  bool TakeIfFree(std::string_view fleet_id);
+  // An owned fleet's load: the traces it holds, and those this replica
+  // appended and has not applied yet (an owner takes every upload of its
+  // fleets; entries appended before it took the fleet are not counted).
+  engine::FleetLoad Load(std::string_view fleet_id);
+  // The traces of `traces` the fleet has not received (as applied).
+  uint64_t NewTraces(std::string_view fleet_id,
+                     std::span<const core::MemoryTrace> traces);
+
+  struct AppendedEntry {
+    uint64_t sequence = 0;  // the last entry of an upload
+    uint64_t traces = 0;    // accepted
+  };
+  absl::Mutex load_mu_;
+  absl::flat_hash_map<std::string, std::deque<AppendedEntry>> appended_
+      ABSL_GUARDED_BY(load_mu_);
+
   const std::string self_;
   const size_t max_entry_bytes_;
+  const uint64_t max_backlog_traces_;
   // Upload rates (limits.*_per_second), applied by the replica that
   // receives an upload, per replica: a robot uploading through several
   // replicas gets each one's rate. The engine applying the log runs

@@ -1,5 +1,5 @@
-// For tests: a MemoryStore that forwards every call to another, for test
-// doubles to override the calls they watch or fail.
+// For tests: a MemoryStore and a FleetLog that forward every call to
+// another, for test doubles to override the calls they watch or fail.
 #ifndef FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_
 #define FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_
 
@@ -12,6 +12,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_store.h"
 
 namespace fleetmem::engine {
@@ -33,27 +34,36 @@ class ForwardingStore : public MemoryStore {
       std::string_view fleet_id, uint64_t after_event, size_t limit) override {
     return inner_->ReadEvents(fleet_id, after_event, limit);
   }
-  absl::Status AppendLog(std::string_view fleet_id,
-                         std::span<const LogAppend> entries) override {
-    return inner_->AppendLog(fleet_id, entries);
-  }
-  absl::StatusOr<std::vector<LoggedUpload>> ReadLog(
-      std::string_view fleet_id, uint64_t after, size_t max_entries) override {
-    return inner_->ReadLog(fleet_id, after, max_entries);
-  }
-  absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
-    return inner_->TrimLog(fleet_id, through);
-  }
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
-      override {
-    return inner_->LogTails();
-  }
-  std::vector<LostLogEntries> LogLosses(std::string_view fleet_id) override {
-    return inner_->LogLosses(fleet_id);
-  }
 
  private:
   MemoryStore* inner_;
+};
+
+class ForwardingLog : public FleetLog {
+ public:
+  explicit ForwardingLog(FleetLog* inner) : inner_(inner) {}
+  absl::Status Append(std::string_view fleet_id,
+                      std::span<const LogAppend> entries) override {
+    return inner_->Append(fleet_id, entries);
+  }
+  absl::StatusOr<std::vector<LoggedUpload>> Read(std::string_view fleet_id,
+                                                 uint64_t after,
+                                                 size_t max_entries) override {
+    return inner_->Read(fleet_id, after, max_entries);
+  }
+  absl::Status Trim(std::string_view fleet_id, uint64_t through) override {
+    return inner_->Trim(fleet_id, through);
+  }
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Tails()
+      override {
+    return inner_->Tails();
+  }
+  std::vector<LostLogEntries> Losses(std::string_view fleet_id) override {
+    return inner_->Losses(fleet_id);
+  }
+
+ private:
+  FleetLog* inner_;
 };
 
 }  // namespace fleetmem::engine

@@ -131,13 +131,15 @@ MemoryEngine::Fleet* MemoryEngine::Fleet::Find(const MemoryEngine& engine,
 }
 
 absl::StatusOr<MemoryEngine::Fleet*> MemoryEngine::Fleet::FindOrAdd(
-    MemoryEngine& engine, std::string_view fleet_id) {
+    MemoryEngine& engine, std::string_view fleet_id, bool admit) {
   absl::MutexLock lock(&engine.fleets_mu_);
   auto it = engine.fleets_.find(std::string(fleet_id));
   if (it != engine.fleets_.end()) return it->second.get();
-  absl::Status admitted =
-      engine.quota_->AdmitNewFleet(fleet_id, engine.fleets_.size());
-  if (!admitted.ok()) return admitted;
+  if (admit) {
+    absl::Status admitted =
+        engine.quota_->AdmitNewFleet(fleet_id, engine.fleets_.size());
+    if (!admitted.ok()) return admitted;
+  }
   auto& fleet = engine.fleets_[std::string(fleet_id)];
   fleet = std::make_unique<Fleet>(std::string(fleet_id), &engine);
   return fleet.get();
@@ -169,9 +171,14 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
                             options_.max_traces_per_upload, check_values);
     if (!status.ok()) return status;
     if (traces.empty()) return UploadResult{};
-    status = quota_->AdmitDimension(fleet_id, traces[0].code.size());
-    if (!status.ok()) return status;
-    absl::StatusOr<Fleet*> added = Fleet::FindOrAdd(*this, fleet_id);
+    // A log entry's fleet was admitted before it was acknowledged
+    // (engine/admission.h): its apply is refused by no limit.
+    if (check_values) {
+      status = quota_->AdmitDimension(fleet_id, traces[0].code.size());
+      if (!status.ok()) return status;
+    }
+    absl::StatusOr<Fleet*> added =
+        Fleet::FindOrAdd(*this, fleet_id, /*admit=*/check_values);
     if (!added.ok()) return added.status();
     fleet = *added;
   }
@@ -232,32 +239,6 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
   if (!status.ok()) return status;
   if (hooks_.on_upload) hooks_.on_upload(fleet_id, result);
   return result;
-}
-
-absl::Status MemoryEngine::CheckUpload(
-    std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
-    const FleetShape* shape) const {
-  absl::Status status = core::ValidateId("fleet_id", fleet_id);
-  if (!status.ok()) return status;
-  Fleet* fleet = Fleet::Find(*this, fleet_id);
-  if (fleet != nullptr) {
-    absl::MutexLock lock(&fleet->mu);
-    status = fleet->EnsureLoaded();
-    if (!status.ok()) return status;
-    if (fleet->exists()) {
-      return ValidateUpload(fleet_id, traces, &fleet->meta,
-                            options_.max_traces_per_upload);
-    }
-  }
-  if (shape != nullptr) {
-    FleetMeta meta;
-    meta.code_dimension = shape->code_dimension;
-    meta.encoder_version = shape->encoder_version;
-    return ValidateUpload(fleet_id, traces, &meta,
-                          options_.max_traces_per_upload);
-  }
-  return ValidateUpload(fleet_id, traces, nullptr,
-                        options_.max_traces_per_upload);
 }
 
 absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(

@@ -245,24 +245,16 @@ class MemoryEngine {
   // `log_position`: the sequence of the fleet's log entry this upload is
   // (WritePath's local log, or distributed mode's replicated log); stored in
   // the same write as the traces it adds (LogPosition), unless it adds none.
-  // An entry of a log is not rated (its rates were checked when it was
-  // appended): only a direct call (0) passes the rate limits here; and its
+  // An entry of a log meets no limit (rates, stored traces, fleets, code
+  // dimension: it was admitted by them before it was acknowledged,
+  // engine/admission.h, and must apply even past a limit lowered since):
+  // only a direct call (0) passes the limits here; and its
   // traces were checked whole where it was appended, so its apply checks
   // their shape (count, dimension, encoder version) and not every value
   // again: a batch is validated once.
   absl::StatusOr<UploadResult> Upload(std::string_view fleet_id,
                                       std::span<const core::MemoryTrace> traces,
                                       uint64_t log_position = 0);
-
-  // Upload's validation alone (INVALID_ARGUMENT as Upload says it), against
-  // the fleet as this engine holds it (a fleet it does not hold is checked
-  // as a new one). Changes nothing. Distributed mode validates an upload
-  // this way before appending it to the log.
-  // `shape` (distributed mode): the fleet's code dimension and encoder
-  // version as its owner holds them, for a fleet this engine does not hold.
-  absl::Status CheckUpload(std::string_view fleet_id,
-                           std::span<const core::MemoryTrace> traces,
-                           const FleetShape* shape = nullptr) const;
 
   // The last log entry stored with an upload's traces (0 for an unknown
   // fleet, or none): the fleet's log is applied through it (WritePath's

@@ -44,7 +44,7 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
   if (!status.ok()) return status;
   if (traces.empty()) return absl::OkStatus();
   UploadQuota& quota = *engine->quota_;
-  if (is_new) {
+  if (is_new && log_position == 0) {
     status = quota.AdmitDimension(id, traces[0].code.size());
     if (!status.ok()) return status;
   }
@@ -83,12 +83,19 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
   }
   result->accepted = mutation.put_pending.size();
   if (mutation.put_pending.empty()) return absl::OkStatus();
-  status = quota.AdmitStored(id, memory.trace_count() + pending_position.size(),
-                             mutation.put_pending.size());
-  if (!status.ok()) {
-    *result = UploadResult{};
-    mutation = FleetMutation{};
-    return status;
+  // The stored-traces limit refuses a direct call; an entry of a log was
+  // admitted by it before it was acknowledged (engine/admission.h), and is
+  // applied even past a limit lowered since: a log never stalls behind an
+  // entry it acknowledged.
+  if (log_position == 0) {
+    status =
+        quota.AdmitStored(id, memory.trace_count() + pending_position.size(),
+                          mutation.put_pending.size());
+    if (!status.ok()) {
+      *result = UploadResult{};
+      mutation = FleetMutation{};
+      return status;
+    }
   }
   for (auto& [robot_id, record] : changed_robots) {
     auto known = robots.find(robot_id);

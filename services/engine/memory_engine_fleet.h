@@ -370,10 +370,12 @@ struct MemoryEngine::Fleet {
   // never removed from the map, so a returned pointer lives as long as the
   // engine.
   static Fleet* Find(const MemoryEngine& engine, std::string_view fleet_id);
-  // RESOURCE_EXHAUSTED (limit max_fleets) instead of adding a fleet beyond
-  // the limit.
+  // With `admit`: RESOURCE_EXHAUSTED (limit max_fleets) instead of adding
+  // a fleet beyond the limit (without: the apply of a log entry, admitted
+  // before its acknowledgement).
   static absl::StatusOr<Fleet*> FindOrAdd(MemoryEngine& engine,
-                                          std::string_view fleet_id);
+                                          std::string_view fleet_id,
+                                          bool admit = true);
   // For readers of an existing fleet: validates `fleet_id`, finds the fleet
   // and runs `read(fleet)` under its reader lock. INVALID_ARGUMENT,
   // NOT_FOUND, or the status of a failed reload instead.

@@ -257,14 +257,13 @@ class FlakyStore : public ForwardingStore {
   absl::Status Apply(std::string_view fleet_id,
                      const FleetMutation& mutation) override {
     ++applies;
-    if (fail_after >= 0 && applies > fail_after) {
-      return absl::InternalError("disk on fire");
-    }
+    if (fail_after >= 0 && applies > fail_after) return failure;
     return ForwardingStore::Apply(fleet_id, mutation);
   }
 
   int applies = 0;
   int fail_after = -1;  // Apply calls that succeed before failures; -1: never
+  absl::Status failure = absl::InternalError("disk on fire");
 };
 
 // A store whose Apply, while held, waits until Release(): a slow fsync that

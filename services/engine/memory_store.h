@@ -1,6 +1,8 @@
 // The storage port of the engine: where a fleet's static memory, pending
-// traces, received sequence numbers and events live durably. Implementations:
-// services/storage (RocksDB; in-memory for tests).
+// traces, received sequence numbers and events live durably: the applied
+// state, and nothing else (the uploads acknowledged and not applied yet are
+// in the log port, fleet_log.h). Implementations: services/storage
+// (RocksDB; in-memory for tests).
 #ifndef FLEETMEM_SERVICES_ENGINE_MEMORY_STORE_H_
 #define FLEETMEM_SERVICES_ENGINE_MEMORY_STORE_H_
 
@@ -103,26 +105,6 @@ struct FleetMutation {
   }
 };
 
-// One entry of a fleet's ingest log (engine/write_path.h): an upload as it
-// was acknowledged, under its sequence in the fleet's log.
-struct LoggedUpload {
-  uint64_t sequence = 0;
-  std::vector<core::MemoryTrace> traces;
-};
-// Acknowledged log entries that a store found damaged (they fail their
-// checksum or frame) and passed over: lost, never applied. The entries
-// after them are applied.
-struct LostLogEntries {
-  uint64_t first = 0;  // sequences, inclusive
-  uint64_t last = 0;
-  std::string detail;  // where and how, for the log and GetStats
-};
-// An entry to append (MemoryStore::AppendLog), its traces not copied.
-struct LogAppend {
-  uint64_t sequence = 0;
-  std::span<const core::MemoryTrace> traces;
-};
-
 // Thread-safe. Every method returns a non-OK status on storage failure,
 // never throws.
 class MemoryStore {
@@ -183,37 +165,6 @@ class MemoryStore {
       std::string_view fleet_id,
       const std::function<absl::Status(std::span<const char>)>& read) {
     return absl::NotFoundError("this store keeps no index snapshots");
-  }
-
-  // The ingest log (embedded mode's write path, engine/write_path.h): the
-  // uploads a fleet acknowledged and has not applied yet. Kept apart from
-  // the fleet's state: ListFleets and LoadFleet do not see it.
-  //
-  // Appends `entries` (each sequence greater than every one the fleet's log
-  // held) in one atomic write and returns once they are durable: synced,
-  // whatever the store's sync option.
-  virtual absl::Status AppendLog(std::string_view fleet_id,
-                                 std::span<const LogAppend> entries) = 0;
-  // Up to `max_entries` entries of the fleet's log with sequence > `after`,
-  // ascending (none for a fleet without a log).
-  virtual absl::StatusOr<std::vector<LoggedUpload>> ReadLog(
-      std::string_view fleet_id, uint64_t after, size_t max_entries) = 0;
-  // Erases the fleet's log entries with sequence <= `through`, once what
-  // they carry is applied (stored by Apply). The erasure need not be
-  // synced (the entries are applied again, idempotently, if it is lost),
-  // but an entry must not be erased durably before the Apply writes made
-  // before the call are durable: those of log entries are unsynced
-  // (FleetMutation::sync). A store may keep entries at or below `through`.
-  virtual absl::Status TrimLog(std::string_view fleet_id, uint64_t through) = 0;
-  // The fleets whose log holds entries, each with its last sequence; sorted
-  // by fleet.
-  virtual absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>>
-  LogTails() = 0;
-  // The fleet's log entries found damaged since the store opened (at open,
-  // or when ReadLog met them: ReadLog passes over them), in the order
-  // found. Empty for a store whose log cannot be damaged (in memory).
-  virtual std::vector<LostLogEntries> LogLosses(std::string_view fleet_id) {
-    return {};
   }
 
   // Approximate bytes the store takes on disk (0 when it keeps nothing

@@ -11,7 +11,7 @@
 #include "services/common/background_thread.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
-#include "services/core/validation.h"
+#include "services/engine/admission.h"
 
 namespace fleetmem::engine {
 namespace {
@@ -64,8 +64,8 @@ struct WritePath::Request {
   bool done = false;
 };
 
-struct WritePath::FleetLog {
-  explicit FleetLog(std::string fleet_id) : id(std::move(fleet_id)) {}
+struct WritePath::FleetWrites {
+  explicit FleetWrites(std::string fleet_id) : id(std::move(fleet_id)) {}
 
   const std::string id;
   absl::Mutex mu;
@@ -134,30 +134,30 @@ std::vector<std::string> BacklogWarnings(
 }
 
 WritePath::WritePath(WritePathOptions options, MemoryEngine* engine,
-                     MemoryStore* store)
-    : options_(std::move(options)), engine_(engine), store_(store) {}
+                     FleetLog* log)
+    : options_(std::move(options)), engine_(engine), log_(log) {}
 
 WritePath::~WritePath() { Stop(); }
 
 absl::StatusOr<std::unique_ptr<WritePath>> WritePath::Open(
-    WritePathOptions options, MemoryEngine* engine, MemoryStore* store) {
+    WritePathOptions options, MemoryEngine* engine, FleetLog* log) {
   if (absl::Status valid = ValidateWritePathOptions(options); !valid.ok()) {
     return valid;
   }
   std::unique_ptr<WritePath> path(
-      new WritePath(std::move(options), engine, store));
+      new WritePath(std::move(options), engine, log));
   if (absl::Status recovered = path->Recover(); !recovered.ok()) {
     return recovered;
   }
   for (int i = 0; i < path->options_.appliers; ++i) {
     path->appliers_.emplace_back([p = path.get()] { p->RunApplier(); });
   }
-  std::vector<FleetLog*> waiting;
+  std::vector<FleetWrites*> waiting;
   {
     absl::MutexLock lock(&path->logs_mu_);
     for (auto& [fleet_id, log] : path->logs_) waiting.push_back(log.get());
   }
-  for (FleetLog* log : waiting) path->Schedule(*log);
+  for (FleetWrites* log : waiting) path->Schedule(*log);
   return path;
 }
 
@@ -166,7 +166,7 @@ absl::Status WritePath::Recover() {
   for (const std::string& fleet_id : fleets) {
     absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
     if (!position.ok()) return position.status();
-    FleetLog& log = *Log(fleet_id);
+    FleetWrites& log = *Log(fleet_id);
     log.shape = engine_->Shape(fleet_id);
     log.next_sequence = *position + 1;
     log.opened_at = *position;
@@ -174,20 +174,20 @@ absl::Status WritePath::Recover() {
     log.appended_through = log.applied_through = *position;
   }
   absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> tails =
-      store_->LogTails();
+      log_->Tails();
   if (!tails.ok()) return tails.status();
   uint64_t created = 0;  // fleets whose first upload waits in their log
   const absl::Time now = absl::Now();
   for (const auto& [fleet_id, last] : *tails) {
     absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
     if (!position.ok()) return position.status();
-    FleetLog& log = *Log(fleet_id);
+    FleetWrites& log = *Log(fleet_id);
     uint64_t after = *position;
     uint64_t traces = 0;
-    std::deque<FleetLog::Entry> entries;
+    std::deque<FleetWrites::Entry> entries;
     while (true) {
       absl::StatusOr<std::vector<LoggedUpload>> page =
-          store_->ReadLog(fleet_id, after, kRecoveryPage);
+          log_->Read(fleet_id, after, kRecoveryPage);
       if (!page.ok()) return page.status();
       for (const LoggedUpload& entry : *page) {
         if (!log.shape.has_value() && !entry.traces.empty()) {
@@ -206,8 +206,7 @@ absl::Status WritePath::Recover() {
       if (page->size() < kRecoveryPage) break;
     }
     // Entries the engine applied before the crash, but not trimmed yet.
-    if (absl::Status trimmed = store_->TrimLog(fleet_id, *position);
-        !trimmed.ok()) {
+    if (absl::Status trimmed = log_->Trim(fleet_id, *position); !trimmed.ok()) {
       FLEETMEM_LOG(kWarning)
           << "fleet \"" << fleet_id
           << "\": applied log entries not trimmed: " << trimmed;
@@ -218,7 +217,7 @@ absl::Status WritePath::Recover() {
                         << " traces) after position " << *position
                         << " to apply";
     log.opened_at = *position;
-    for (const LostLogEntries& lost : store_->LogLosses(fleet_id)) {
+    for (const LostLogEntries& lost : log_->Losses(fleet_id)) {
       if (lost.last <= *position) {
         FLEETMEM_LOG(kWarning)
             << "fleet \"" << fleet_id << "\": log entries " << lost.first
@@ -244,17 +243,18 @@ absl::Status WritePath::Recover() {
   return absl::OkStatus();
 }
 
-WritePath::FleetLog* WritePath::Find(std::string_view fleet_id) const {
+WritePath::FleetWrites* WritePath::Find(std::string_view fleet_id) const {
   absl::ReaderMutexLock lock(&logs_mu_);
   auto it = logs_.find(V(fleet_id));
   return it == logs_.end() ? nullptr : it->second.get();
 }
 
-WritePath::FleetLog* WritePath::Log(std::string_view fleet_id) {
-  if (FleetLog* log = Find(fleet_id); log != nullptr) return log;
+WritePath::FleetWrites* WritePath::Log(std::string_view fleet_id) {
+  if (FleetWrites* log = Find(fleet_id); log != nullptr) return log;
   absl::MutexLock lock(&logs_mu_);
   auto& log = logs_[std::string(fleet_id)];
-  if (log == nullptr) log = std::make_unique<FleetLog>(std::string(fleet_id));
+  if (log == nullptr)
+    log = std::make_unique<FleetWrites>(std::string(fleet_id));
   return log.get();
 }
 
@@ -274,10 +274,6 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
     results.assign(uploads.size(), status);
     return results;
   };
-  if (absl::Status valid = core::ValidateId("fleet_id", fleet_id);
-      !valid.ok()) {
-    return all(valid);
-  }
   {
     absl::MutexLock lock(&ready_mu_);
     if (stopping_) {
@@ -287,7 +283,7 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
   }
   // A fleet is made by its first valid upload: checked before its log is
   // made, so that bad uploads to made-up fleets leave nothing behind.
-  FleetLog* log = Find(fleet_id);
+  FleetWrites* log = Find(fleet_id);
   if (log == nullptr) {
     const auto first =
         std::find_if(uploads.begin(), uploads.end(),
@@ -310,8 +306,8 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
       std::move(rest.begin(), rest.end(), std::back_inserter(results));
       return results;
     }
-    absl::Status valid = CheckTraces(fleet_id, *first, nullptr,
-                                     engine_->options().max_traces_per_upload);
+    absl::Status valid = AdmitShape(engine_->quota(), fleet_id, *first, nullptr,
+                                    engine_->options().max_traces_per_upload);
     if (!valid.ok()) return all(valid);
     {
       // Nor do uploads to fleets past max_fleets (the leader admits the
@@ -358,7 +354,7 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
       log->changed.Wait(&log->mu);
       continue;
     }
-    // Lead: every upload queued so far goes into one store write.
+    // Lead: every upload queued so far goes into one log write.
     log->leading = true;
     std::vector<Request*> group;
     group.swap(log->queue);
@@ -368,7 +364,7 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
     const absl::Time now = absl::Now();
     for (Request* member : group) {
       if (member->result.ok() && member->result->sequence != 0) {
-        FleetLog::Entry entry;
+        FleetWrites::Entry entry;
         entry.sequence = member->result->sequence;
         entry.traces = member->result->accepted;
         entry.appended = now;
@@ -405,7 +401,7 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
   return results;
 }
 
-void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {
+void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
   uint64_t backlog = 0;
   double oldest_seconds = 0;
   {
@@ -449,13 +445,10 @@ void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {
   uint64_t adding = 0;
   for (Request* request : group) {
     const std::span<const core::MemoryTrace> traces = request->traces;
-    absl::Status status =
-        CheckTraces(log.id, traces, shape ? &*shape : nullptr, max_traces);
+    absl::Status status = AdmitShape(quota, log.id, traces,
+                                     shape ? &*shape : nullptr, max_traces);
     const bool is_new = !shape.has_value();
     bool reserved = false;  // counted in fleets_ by this upload
-    if (status.ok() && is_new) {
-      status = quota.AdmitDimension(log.id, traces[0].code.size());
-    }
     if (status.ok() && is_new) {
       absl::MutexLock lock(&logs_mu_);
       status = quota.AdmitNewFleet(log.id, fleets_);
@@ -477,18 +470,12 @@ void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {
         accepted += accept[i] ? 1 : 0;
       }
     }
-    if (status.ok() && accepted > 0) {
-      status = quota.AdmitStored(
-          log.id, engine_->HeldTraces(log.id) + backlog + adding, accepted);
-    }
-    if (status.ok() && accepted > 0 && options_.max_backlog_traces > 0 &&
-        backlog + adding + accepted > options_.max_backlog_traces) {
-      status = absl::ResourceExhaustedError(absl::StrFormat(
-          "fleet \"%s\": the apply backlog holds %d traces (oldest %.1f s), "
-          "%d more would pass its bound of %d (write_path.max_backlog_traces);"
-          " nothing of this upload was stored: retry with backoff",
-          V(log.id), backlog + adding, oldest_seconds, accepted,
-          options_.max_backlog_traces));
+    if (status.ok()) {
+      status = AdmitLoad(quota, log.id,
+                         {.held = engine_->HeldTraces(log.id),
+                          .backlog = backlog + adding,
+                          .oldest_seconds = oldest_seconds},
+                         accepted, options_.max_backlog_traces);
     }
     if (!status.ok()) {
       if (reserved) {
@@ -523,7 +510,7 @@ void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {
     adding += accepted;
   }
   if (appends.empty()) return;
-  absl::Status written = store_->AppendLog(log.id, appends);
+  absl::Status written = log_->Append(log.id, appends);
   if (!written.ok()) {
     for (Request* request : group) {
       if (request->result.ok() && request->result->sequence != 0) {
@@ -547,7 +534,7 @@ void WritePath::Lead(FleetLog& log, std::span<Request* const> group) {
 absl::Status WritePath::WaitApplied(std::string_view fleet_id,
                                     uint64_t sequence, absl::Time deadline) {
   if (sequence == 0) return absl::OkStatus();
-  FleetLog* log = Find(fleet_id);
+  FleetWrites* log = Find(fleet_id);
   if (log == nullptr) return absl::OkStatus();
   absl::MutexLock lock(&log->mu);
   const uint64_t failures = log->apply_failures;
@@ -587,11 +574,11 @@ absl::Status WritePath::WaitAppliedAll(std::string_view fleet_id,
 }
 
 Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
-  FleetLog* log = Find(fleet_id);
+  FleetWrites* log = Find(fleet_id);
   Backlog backlog;
   if (log == nullptr) return backlog;
-  // Damage to entries applied before the store opened lost nothing.
-  for (LostLogEntries lost : store_->LogLosses(fleet_id)) {
+  // Damage to entries applied before the log opened lost nothing.
+  for (LostLogEntries lost : log_->Losses(fleet_id)) {
     if (lost.last <= log->opened_at) continue;
     lost.first = std::max(lost.first, log->opened_at + 1);
     backlog.lost.push_back(std::move(lost));
@@ -610,7 +597,7 @@ Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
 }
 
 size_t WritePath::QueuedUploads(std::string_view fleet_id) const {
-  FleetLog* log = Find(fleet_id);
+  FleetWrites* log = Find(fleet_id);
   if (log == nullptr) return 0;
   absl::MutexLock lock(&log->mu);
   return log->queue.size();
@@ -632,7 +619,7 @@ std::vector<std::pair<std::string, Backlog>> WritePath::Backlogs() const {
   return backlogs;
 }
 
-void WritePath::Schedule(FleetLog& log) {
+void WritePath::Schedule(FleetWrites& log) {
   absl::MutexLock lock(&log.mu);
   if (log.scheduled || log.unapplied.empty()) return;
   log.scheduled = true;
@@ -648,7 +635,7 @@ void WritePath::RunApplier() {
     FLEETMEM_LOG(kWarning) << "applier thread: " << marked;
   }
   while (true) {
-    FleetLog* log = nullptr;
+    FleetWrites* log = nullptr;
     {
       absl::MutexLock lock(&ready_mu_);
       while (!stopping_ && ready_.empty()) ready_cv_.Wait(&ready_mu_);
@@ -671,7 +658,7 @@ void WritePath::RunApplier() {
   }
 }
 
-void WritePath::ApplyTurn(FleetLog& log) {
+void WritePath::ApplyTurn(FleetWrites& log) {
   uint64_t from = 0;
   uint64_t through = 0;
   {
@@ -696,10 +683,10 @@ void WritePath::ApplyTurn(FleetLog& log) {
       stop_cv_.WaitWithTimeout(&ready_mu_, options_.retry_interval);
   };
   absl::StatusOr<std::vector<LoggedUpload>> entries =
-      store_->ReadLog(log.id, from, options_.apply_batch);
+      log_->Read(log.id, from, options_.apply_batch);
   if (!entries.ok()) return fail(entries.status());
   if (entries->empty() || entries->front().sequence > through) {
-    if (LostFrom(store_->LogLosses(log.id), from) >= through) {
+    if (LostFrom(log_->Losses(log.id), from) >= through) {
       // Every entry left was found damaged (reported as it was found).
       absl::MutexLock lock(&log.mu);
       while (!log.unapplied.empty() &&
@@ -744,15 +731,15 @@ void WritePath::ApplyTurn(FleetLog& log) {
                            << result.status();
       outcome.status = result.status();
     } else {
-      // The store (a full disk) or a limit lowered since it was
-      // acknowledged: retried until it applies; never dropped.
-      if (applied > from) store_->TrimLog(log.id, applied).IgnoreError();
+      // The store (a full disk): retried until it applies; never dropped.
+      // (No limit refuses an acknowledged entry: engine/admission.h.)
+      if (applied > from) log_->Trim(log.id, applied).IgnoreError();
       return fail(result.status());
     }
     absl::MutexLock lock(&log.mu);
     while (!log.unapplied.empty() &&
            log.unapplied.front().sequence <= entry.sequence) {
-      FleetLog::Entry& done = log.unapplied.front();
+      FleetWrites::Entry& done = log.unapplied.front();
       log.backlog_traces -= std::min(log.backlog_traces, done.traces);
       if (done.applied != nullptr && done.sequence == entry.sequence) {
         *done.applied = outcome;
@@ -764,7 +751,7 @@ void WritePath::ApplyTurn(FleetLog& log) {
     log.changed.SignalAll();
     applied = entry.sequence;
   }
-  if (absl::Status trimmed = store_->TrimLog(log.id, applied); !trimmed.ok()) {
+  if (absl::Status trimmed = log_->Trim(log.id, applied); !trimmed.ok()) {
     FLEETMEM_LOG(kWarning) << "fleet \"" << log.id
                            << "\": applied log entries through " << applied
                            << " not trimmed (the next turn or Open does): "
@@ -798,12 +785,12 @@ void WritePath::Stop() {
     ready_cv_.SignalAll();
     stop_cv_.SignalAll();
   }
-  std::vector<FleetLog*> logs;
+  std::vector<FleetWrites*> logs;
   {
     absl::ReaderMutexLock lock(&logs_mu_);
     for (auto& [fleet_id, log] : logs_) logs.push_back(log.get());
   }
-  for (FleetLog* log : logs) {
+  for (FleetWrites* log : logs) {
     absl::MutexLock lock(&log->mu);
     log->stopped = true;
     log->changed.SignalAll();

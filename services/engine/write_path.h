@@ -4,11 +4,11 @@
 // Append admits an upload (validated once against the fleet's shape,
 // deduplicated by (robot_id, seq) against everything the fleet received or
 // holds in its log, rated, bounded by the stored-traces quota and by the
-// backlog), appends its accepted traces to the fleet's log in the store as
-// one entry under the next sequence, and returns once the entry is synced.
-// Concurrent appends to one fleet are committed together: one leader writes
-// every upload that queued while the previous write ran, in one synced
-// store write (group commit).
+// backlog), appends its accepted traces to the fleet's log (the log port,
+// fleet_log.h) as one entry under the next sequence, and returns once the entry
+// is synced. Concurrent appends to one fleet are committed together: one leader
+// writes every upload that queued while the previous write ran, in one synced
+// log write (group commit).
 //
 // Appliers (a few threads shared by every fleet; a fleet's log is applied by
 // one at a time, in order) apply the log through MemoryEngine::Upload with
@@ -43,8 +43,8 @@
 #include "absl/time/time.h"
 #include "services/core/seq_set.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_engine.h"
-#include "services/engine/memory_store.h"
 
 namespace fleetmem::engine {
 
@@ -52,7 +52,7 @@ struct WritePathOptions {
   // Traces a fleet's log may hold unapplied. An upload that would take the
   // backlog past it is refused with RESOURCE_EXHAUSTED naming the backlog
   // and its age (robots retry it with backoff); 0: unbounded. The backlog
-  // lives in the store (on disk, about 1.1 KB per 256-d trace), not in
+  // lives in the log (on disk, about 1.1 KB per 256-d trace), not in
   // memory: the bound is how far the applier may fall behind a burst. The
   // default takes a burst of one stream for 10 s on this project's 2-core
   // machine (129,000-166,000 traces/s acknowledged, docs/performance.md,
@@ -112,8 +112,8 @@ struct Backlog {
   uint64_t applied_through = 0;   // last sequence applied
   // Why the applier waits, while it does (a store error); OK otherwise.
   absl::Status apply_error;
-  // Acknowledged entries the store found damaged and passed over since it
-  // opened (MemoryStore::LogLosses): lost, never applied.
+  // Acknowledged entries the log found damaged and passed over since it
+  // opened (FleetWrites::Losses): lost, never applied.
   std::vector<LostLogEntries> lost;
   // Entries in `lost`.
   uint64_t lost_entries() const {
@@ -136,21 +136,22 @@ std::vector<std::string> BacklogWarnings(
 // Thread-safe.
 class WritePath {
  public:
-  // Recovers every fleet's log from `store` (the entries after the
+  // Recovers every fleet's log from `log` (the entries after the
   // position the engine holds, MemoryEngine::LogPosition) and starts the
-  // appliers, which apply that tail first. `engine` and `store` must
+  // appliers, which apply that tail first. `engine` and `log` must
   // outlive the write path.
   static absl::StatusOr<std::unique_ptr<WritePath>> Open(
-      WritePathOptions options, MemoryEngine* engine, MemoryStore* store);
+      WritePathOptions options, MemoryEngine* engine, FleetLog* log);
   // Stop().
   ~WritePath();
   WritePath(const WritePath&) = delete;
   WritePath& operator=(const WritePath&) = delete;
 
   // Admits and appends `traces`, returning once they are durable in the
-  // fleet's log. Errors change nothing: INVALID_ARGUMENT (as
-  // MemoryEngine::Upload validates), RESOURCE_EXHAUSTED (a quota, the
-  // backlog bound, a full disk), the store's error (nothing appended),
+  // fleet's log. `fleet_id` is trusted: checked at the edge
+  // (transport/upload_checks.h), not here. Errors change nothing:
+  // INVALID_ARGUMENT (as MemoryEngine::Upload validates), RESOURCE_EXHAUSTED (a
+  // quota, the backlog bound, a full disk), the log's error (nothing appended),
   // UNAVAILABLE after Stop. `track`: the result says what applying the
   // entry did (Appended::applied).
   absl::StatusOr<Appended> Append(std::string_view fleet_id,
@@ -194,29 +195,31 @@ class WritePath {
   void Stop();
 
  private:
-  struct FleetLog;
+  // A fleet's side of the write path: its group commit, admission state
+  // and the entries of its log not applied yet.
+  struct FleetWrites;
   struct Request;
-  WritePath(WritePathOptions options, MemoryEngine* engine, MemoryStore* store);
+  WritePath(WritePathOptions options, MemoryEngine* engine, FleetLog* log);
 
   // The fleet's log, made on first use; Find: null if there is none.
-  FleetLog* Log(std::string_view fleet_id);
-  FleetLog* Find(std::string_view fleet_id) const;
+  FleetWrites* Log(std::string_view fleet_id);
+  FleetWrites* Find(std::string_view fleet_id) const;
   absl::Status Recover();
   // The group commit's leader: admits `group`'s uploads and appends the
-  // accepted ones in one store write.
-  void Lead(FleetLog& log, std::span<Request* const> group);
-  void Schedule(FleetLog& log);
+  // accepted ones in one log write.
+  void Lead(FleetWrites& log, std::span<Request* const> group);
+  void Schedule(FleetWrites& log);
   void RunApplier();
   // Applies up to apply_batch entries of the fleet (fewer after Stop, or
   // when one fails: the fleet's applier then waits retry_interval).
-  void ApplyTurn(FleetLog& log);
+  void ApplyTurn(FleetWrites& log);
 
   const WritePathOptions options_;
   MemoryEngine* const engine_;
-  MemoryStore* const store_;
+  FleetLog* const log_;
 
   mutable absl::Mutex logs_mu_;
-  absl::flat_hash_map<std::string, std::unique_ptr<FleetLog>> logs_
+  absl::flat_hash_map<std::string, std::unique_ptr<FleetWrites>> logs_
       ABSL_GUARDED_BY(logs_mu_);
   // Fleets that exist or whose first upload is in a log (max_fleets).
   uint64_t fleets_ ABSL_GUARDED_BY(logs_mu_) = 0;
@@ -225,7 +228,7 @@ class WritePath {
   absl::CondVar ready_cv_;
   absl::CondVar stop_cv_;  // wakes an applier waiting to retry
   std::atomic<bool> stop_{false};
-  std::deque<FleetLog*> ready_ ABSL_GUARDED_BY(ready_mu_);
+  std::deque<FleetWrites*> ready_ ABSL_GUARDED_BY(ready_mu_);
   bool stopping_ ABSL_GUARDED_BY(ready_mu_) = false;
   std::vector<std::thread> appliers_;
 };

@@ -14,6 +14,7 @@
 #include "services/engine/forwarding_store.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
+#include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
 
 namespace fleetmem::engine {
@@ -50,11 +51,13 @@ std::vector<core::MemoryTrace> Traces(const std::string& robot_id,
   return traces;
 }
 
-// A store whose applies (the appliers' writes) wait while the gate is
-// closed, and whose log appends can be made to fail or counted.
-class GatedStore : public ForwardingStore {
+// A store and its log: the store's applies (the appliers' writes) wait
+// while the gate is closed, and the log's appends can be made to fail or
+// counted.
+class GatedStorage : public ForwardingStore, public ForwardingLog {
  public:
-  explicit GatedStore(MemoryStore* inner) : ForwardingStore(inner) {}
+  GatedStorage(MemoryStore* store, FleetLog* log)
+      : ForwardingStore(store), ForwardingLog(log) {}
 
   absl::Status Apply(std::string_view fleet_id,
                      const FleetMutation& mutation) override {
@@ -65,8 +68,8 @@ class GatedStore : public ForwardingStore {
     }
     return ForwardingStore::Apply(fleet_id, mutation);
   }
-  absl::Status AppendLog(std::string_view fleet_id,
-                         std::span<const LogAppend> entries) override {
+  absl::Status Append(std::string_view fleet_id,
+                      std::span<const LogAppend> entries) override {
     {
       absl::MutexLock lock(&mu_);
       ++appends_;
@@ -74,7 +77,7 @@ class GatedStore : public ForwardingStore {
       if (!append_error_.ok()) return append_error_;
       while (!appends_open_) changed_.Wait(&mu_);
     }
-    return ForwardingStore::AppendLog(fleet_id, entries);
+    return ForwardingLog::Append(fleet_id, entries);
   }
 
   void SetApplies(bool open) {
@@ -142,7 +145,8 @@ class WritePathTest : public ::testing::Test {
   }
 
   std::unique_ptr<MemoryStore> memory_ = storage::NewInMemoryStore();
-  GatedStore store_{memory_.get()};
+  std::unique_ptr<FleetLog> log_ = storage::NewInMemoryLog();
+  GatedStorage store_{memory_.get(), log_.get()};
   std::unique_ptr<MemoryEngine> engine_;
   std::unique_ptr<WritePath> path_;
 };
@@ -174,10 +178,10 @@ TEST_F(WritePathTest, AcknowledgesAtTheAppendAndAppliesBehindIt) {
   EXPECT_EQ(*engine_->LogPosition("f"), 1u);
   // Applied entries leave the log (trimmed after their turn).
   const absl::Time give_up = absl::Now() + kWait;
-  while (!store_.ReadLog("f", 0, 10)->empty() && absl::Now() < give_up) {
+  while (!store_.Read("f", 0, 10)->empty() && absl::Now() < give_up) {
     absl::SleepFor(absl::Milliseconds(1));
   }
-  EXPECT_TRUE(store_.ReadLog("f", 0, 10)->empty());
+  EXPECT_TRUE(store_.Read("f", 0, 10)->empty());
 }
 
 TEST_F(WritePathTest, DuplicatesAreCountedAtTheAppendAgainstTheBacklogToo) {
@@ -214,7 +218,7 @@ TEST_F(WritePathTest, InvalidUploadsChangeNothingAndMakeNoFleet) {
   EXPECT_EQ(path_->Append("f", bad).status().code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(path_->GetBacklog("f").appended_through, 0u);
-  EXPECT_TRUE(store_.LogTails()->empty());
+  EXPECT_TRUE(store_.Tails()->empty());
   ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 3)).ok());
   // The fleet's shape is fixed by its first upload, before it is applied.
   std::vector<core::MemoryTrace> wider = Traces("r2", 1, 1);
@@ -371,7 +375,7 @@ TEST_F(WritePathTest, OpenAppliesTheAcknowledgedTailOnceAfterACrash) {
   const std::vector<core::MemoryTrace> second = Traces("r1", 5, 4);
   const std::vector<core::MemoryTrace> third = Traces("r2", 1, 3);
   const LogAppend entries[] = {{1, first}, {2, second}, {3, third}};
-  ASSERT_TRUE(memory_->AppendLog("f", entries).ok());
+  ASSERT_TRUE(log_->Append("f", entries).ok());
 
   Open();
   ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
@@ -389,7 +393,7 @@ TEST_F(WritePathTest, AFleetOnlyInItsLogIsMadeWhenApplied) {
   // The first upload of a fleet, acknowledged, then the server crashed.
   const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 3);
   const LogAppend entries[] = {{1, traces}};
-  ASSERT_TRUE(memory_->AppendLog("new", entries).ok());
+  ASSERT_TRUE(log_->Append("new", entries).ok());
   store_.SetApplies(false);
   Open();
   // Its shape is known before it is applied.

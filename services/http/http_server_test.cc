@@ -29,6 +29,7 @@
 #include "services/engine/memory_engine.h"
 #include "services/http/dashboard_assets.h"
 #include "services/index/exact_index.h"
+#include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
 #include "services/transport/embedded_memory.h"
 
@@ -45,7 +46,7 @@ class HttpServerTest : public ::testing::Test {
         [](size_t dimension) { return index::NewExactIndex(dimension); });
     ASSERT_TRUE(engine.ok());
     engine_ = std::move(*engine);
-    auto memory = transport::EmbeddedMemory::Open(engine_.get(), store_.get());
+    auto memory = transport::EmbeddedMemory::Open(engine_.get(), log_.get());
     ASSERT_TRUE(memory.ok()) << memory.status();
     memory_ = std::move(*memory);
     api_ = std::make_unique<transport::MemoryApi>(engine_.get(), memory_.get());
@@ -70,6 +71,7 @@ class HttpServerTest : public ::testing::Test {
   }
 
   std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
+  std::unique_ptr<engine::FleetLog> log_ = storage::NewInMemoryLog();
   std::unique_ptr<engine::MemoryEngine> engine_;
   std::unique_ptr<transport::EmbeddedMemory> memory_;
   std::unique_ptr<transport::MemoryApi> api_;
@@ -212,13 +214,14 @@ struct InMemoryApi {
         [](size_t dimension) { return index::NewExactIndex(dimension); });
     if (!opened.ok()) return opened.status();
     engine = std::move(*opened);
-    auto embedded = transport::EmbeddedMemory::Open(engine.get(), store.get());
+    auto embedded = transport::EmbeddedMemory::Open(engine.get(), log.get());
     if (!embedded.ok()) return embedded.status();
     memory = std::move(*embedded);
     api = std::make_unique<transport::MemoryApi>(engine.get(), memory.get());
     return absl::OkStatus();
   }
   std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
+  std::unique_ptr<engine::FleetLog> log = storage::NewInMemoryLog();
   std::unique_ptr<engine::MemoryEngine> engine;
   std::unique_ptr<transport::EmbeddedMemory> memory;
   std::unique_ptr<transport::MemoryApi> api;

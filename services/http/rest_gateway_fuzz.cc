@@ -15,6 +15,7 @@
 #include "services/engine/memory_engine.h"
 #include "services/http/rest_gateway.h"
 #include "services/index/exact_index.h"
+#include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
 #include "services/transport/embedded_memory.h"
 
@@ -43,7 +44,7 @@ struct World {
     }
     engine->Upload("f", traces).IgnoreError();
     memory = std::move(
-        *fm::transport::EmbeddedMemory::Open(engine.get(), store.get()));
+        *fm::transport::EmbeddedMemory::Open(engine.get(), log.get()));
     api =
         std::make_unique<fm::transport::MemoryApi>(engine.get(), memory.get());
     gateway = std::move(*fm::http::RestGateway::Create(
@@ -51,6 +52,7 @@ struct World {
   }
   std::unique_ptr<fm::engine::MemoryStore> store =
       fm::storage::NewInMemoryStore();
+  std::unique_ptr<fm::engine::FleetLog> log = fm::storage::NewInMemoryLog();
   std::unique_ptr<fm::engine::MemoryEngine> engine;
   std::unique_ptr<fm::transport::EmbeddedMemory> memory;
   std::unique_ptr<fm::transport::MemoryApi> api;

@@ -22,6 +22,7 @@
 #include "services/common/sanitizers.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
+#include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
 #include "services/transport/embedded_memory.h"
 
@@ -70,7 +71,7 @@ class RestGatewayTest : public ::testing::Test {
     std::vector<core::MemoryTrace> traces;
     for (uint64_t seq = 1; seq <= 6; ++seq) traces.push_back(Trace("r1", seq));
     ASSERT_TRUE(engine_->Upload("alpha", traces).ok());
-    auto memory = transport::EmbeddedMemory::Open(engine_.get(), store_.get());
+    auto memory = transport::EmbeddedMemory::Open(engine_.get(), log_.get());
     ASSERT_TRUE(memory.ok()) << memory.status();
     memory_ = std::move(*memory);
     transport::ApiOptions api_options;
@@ -105,6 +106,7 @@ class RestGatewayTest : public ::testing::Test {
   }
 
   std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
+  std::unique_ptr<engine::FleetLog> log_ = storage::NewInMemoryLog();
   std::unique_ptr<engine::MemoryEngine> engine_;
   std::unique_ptr<transport::EmbeddedMemory> memory_;
   std::unique_ptr<transport::MemoryApi> api_;
@@ -323,6 +325,7 @@ TEST_F(RestGatewayTest, SnapshotsNeedASnapshotRoot) {
 
 TEST(RestGatewayAuthTest, TokensAndRoles) {
   std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
+  std::unique_ptr<engine::FleetLog> log = storage::NewInMemoryLog();
   auto engine = engine::MemoryEngine::Open(
       {}, store.get(),
       [](size_t dimension) { return index::NewExactIndex(dimension); });
@@ -336,7 +339,7 @@ TEST(RestGatewayAuthTest, TokensAndRoles) {
       {auth::Principal{"viewer", auth::Role::kReader, "", {"alpha"}}, *hash,
        ""});
   auth::Authenticator authenticator(std::move(entries));
-  auto memory = transport::EmbeddedMemory::Open(engine->get(), store.get());
+  auto memory = transport::EmbeddedMemory::Open(engine->get(), log.get());
   ASSERT_TRUE(memory.ok()) << memory.status();
   transport::MemoryApi api(engine->get(), memory->get());
   auto gateway = RestGateway::Create(&api, &authenticator, nullptr);
@@ -549,6 +552,7 @@ TEST(RestGatewayMemoryTest, TheLargestPageOfALargeFleetStaysBounded) {
   constexpr size_t kDimension = 4096;
   constexpr size_t kTraces = 1200;
   std::unique_ptr<engine::MemoryStore> store = storage::NewInMemoryStore();
+  std::unique_ptr<engine::FleetLog> log = storage::NewInMemoryLog();
   auto engine = engine::MemoryEngine::Open(
       engine::EngineOptions{}, store.get(),
       [](size_t dimension) { return index::NewExactIndex(dimension); });
@@ -565,7 +569,7 @@ TEST(RestGatewayMemoryTest, TheLargestPageOfALargeFleetStaysBounded) {
     }
     ASSERT_TRUE((*engine)->Upload("big", traces).ok());
   }
-  auto memory = transport::EmbeddedMemory::Open(engine->get(), store.get());
+  auto memory = transport::EmbeddedMemory::Open(engine->get(), log.get());
   ASSERT_TRUE(memory.ok()) << memory.status();
   transport::MemoryApi api(engine->get(), memory->get());
   auto gateway = RestGateway::Create(&api, nullptr, nullptr, RestOptions{});

@@ -42,7 +42,7 @@ std::string CodeName(absl::StatusCode code) {
   return absl::StatusCodeToString(code);
 }
 
-// Times every Apply and log append of the wrapped store.
+// Times every Apply of the wrapped store.
 class TimedMemoryStore final : public engine::MemoryStore {
  public:
   TimedMemoryStore(std::unique_ptr<engine::MemoryStore> store,
@@ -90,33 +90,46 @@ class TimedMemoryStore final : public engine::MemoryStore {
   std::vector<std::pair<std::string, uint64_t>> MemoryUsage() override {
     return store_->MemoryUsage();
   }
-  // The write path's log: its appends are writes too.
-  absl::Status AppendLog(std::string_view fleet_id,
-                         std::span<const engine::LogAppend> entries) override {
+
+ private:
+  const std::unique_ptr<engine::MemoryStore> store_;
+  Histogram* const writes_;
+  Counter* const write_errors_;
+};
+
+// Times every append of the wrapped log: acknowledged uploads are writes
+// too.
+class TimedFleetLog final : public engine::FleetLog {
+ public:
+  TimedFleetLog(engine::FleetLog* log, Histogram* writes, Counter* write_errors)
+      : log_(log), writes_(writes), write_errors_(write_errors) {}
+
+  absl::Status Append(std::string_view fleet_id,
+                      std::span<const engine::LogAppend> entries) override {
     const absl::Time start = absl::Now();
-    absl::Status status = store_->AppendLog(fleet_id, entries);
+    absl::Status status = log_->Append(fleet_id, entries);
     writes_->Observe(absl::ToDoubleSeconds(absl::Now() - start));
     if (!status.ok()) write_errors_->Increment();
     return status;
   }
-  absl::StatusOr<std::vector<engine::LoggedUpload>> ReadLog(
+  absl::StatusOr<std::vector<engine::LoggedUpload>> Read(
       std::string_view fleet_id, uint64_t after, size_t max_entries) override {
-    return store_->ReadLog(fleet_id, after, max_entries);
+    return log_->Read(fleet_id, after, max_entries);
   }
-  absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
-    return store_->TrimLog(fleet_id, through);
+  absl::Status Trim(std::string_view fleet_id, uint64_t through) override {
+    return log_->Trim(fleet_id, through);
   }
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Tails()
       override {
-    return store_->LogTails();
+    return log_->Tails();
   }
-  std::vector<engine::LostLogEntries> LogLosses(
+  std::vector<engine::LostLogEntries> Losses(
       std::string_view fleet_id) override {
-    return store_->LogLosses(fleet_id);
+    return log_->Losses(fleet_id);
   }
 
  private:
-  const std::unique_ptr<engine::MemoryStore> store_;
+  engine::FleetLog* const log_;
   Histogram* const writes_;
   Counter* const write_errors_;
 };
@@ -465,6 +478,12 @@ std::unique_ptr<engine::MemoryStore> Metrics::TimedStore(
   return std::make_unique<TimedMemoryStore>(
       std::move(store),
       &families_->store_write_seconds.Add({}, LatencyBuckets()),
+      &families_->store_write_errors.Add({}));
+}
+
+std::unique_ptr<engine::FleetLog> Metrics::TimedLog(engine::FleetLog* log) {
+  return std::make_unique<TimedFleetLog>(
+      log, &families_->store_write_seconds.Add({}, LatencyBuckets()),
       &families_->store_write_errors.Add({}));
 }
 

@@ -17,6 +17,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/status/status.h"
 #include "absl/synchronization/mutex.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/memory_store.h"
 #include "services/engine/write_path.h"
@@ -71,6 +72,9 @@ class Metrics {
   // `store` with every Apply timed (fleetmem_store_write_duration_seconds).
   std::unique_ptr<engine::MemoryStore> TimedStore(
       std::unique_ptr<engine::MemoryStore> store);
+  // `log` with every Append timed by the same metric (an acknowledged
+  // upload's write); `log` must outlive the result.
+  std::unique_ptr<engine::FleetLog> TimedLog(engine::FleetLog* log);
 
   // Set once the engine and the pool exist (before the first scrape that
   // should show them).

@@ -90,7 +90,8 @@ absl::StatusOr<std::unique_ptr<cluster::ReplicatedMemory>> StartClusterMode(
   rates.robot_bytes_per_second = config.engine.limits.robot_bytes_per_second;
   rates.burst_seconds = config.engine.limits.burst_seconds;
   return std::make_unique<cluster::ReplicatedMemory>(
-      cluster.advertise, cluster.max_entry_bytes, rates, *std::move(log),
+      cluster.advertise, cluster.max_entry_bytes,
+      config.write_path.max_backlog_traces, rates, *std::move(log),
       std::move(peers), engine, node);
 }
 

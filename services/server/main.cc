@@ -338,17 +338,18 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   store_options.path = (std::filesystem::path(config.data_dir) / "db").string();
   // Distributed mode: the log is the durable copy (ClusterConfig::sync_store).
   if (config.cluster.enabled()) store_options.sync = config.cluster.sync_store;
-  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> opened =
-      storage::OpenRocksDbStore(store_options);
+  absl::StatusOr<storage::LocalStorage> opened =
+      storage::OpenLocalStorage(store_options);
   if (!opened.ok()) {
     FLEETMEM_LOG(kError) << "cannot open store: " << opened.status();
     return 1;
   }
-  // Metrics observe the store, the engine and both transports through
-  // hooks (services/observability).
+  // Metrics observe the store, the log, the engine and both transports
+  // through hooks (services/observability).
   observability::Metrics metrics;
+  std::unique_ptr<engine::FleetLog> log = metrics.TimedLog(opened->log);
   std::unique_ptr<engine::MemoryStore> store =
-      metrics.TimedStore(std::move(*opened));
+      metrics.TimedStore(std::move(opened->store));
   // Upload rates are checked where an upload is appended (the write path,
   // or the receiving replica); the engine applies log entries unrated.
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
@@ -428,7 +429,7 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     };
     absl::StatusOr<std::unique_ptr<transport::EmbeddedMemory>> opened =
         transport::EmbeddedMemory::Open(
-            engine->get(), store.get(),
+            engine->get(), log.get(),
             {.write_path = write_path,
              .max_apply_wait = config.write_path_max_apply_wait});
     if (!opened.ok()) {

@@ -216,60 +216,9 @@ class InMemoryStore final : public engine::MemoryStore {
     return events;
   }
 
-  absl::Status AppendLog(std::string_view fleet_id,
-                         std::span<const engine::LogAppend> entries) override {
-    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
-      return status;
-    }
-    absl::MutexLock lock(&mu_);
-    auto& log = logs_[std::string(fleet_id)];
-    for (const engine::LogAppend& entry : entries) {
-      log[entry.sequence] = std::vector<core::MemoryTrace>(entry.traces.begin(),
-                                                           entry.traces.end());
-    }
-    return absl::OkStatus();
-  }
-
-  absl::StatusOr<std::vector<engine::LoggedUpload>> ReadLog(
-      std::string_view fleet_id, uint64_t after, size_t max_entries) override {
-    std::vector<engine::LoggedUpload> entries;
-    absl::MutexLock lock(&mu_);
-    auto it = logs_.find(fleet_id);
-    if (it == logs_.end()) return entries;
-    for (auto entry = it->second.upper_bound(after);
-         entry != it->second.end() && entries.size() < max_entries; ++entry) {
-      entries.push_back({entry->first, entry->second});
-    }
-    return entries;
-  }
-
-  absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
-    absl::MutexLock lock(&mu_);
-    auto it = logs_.find(fleet_id);
-    if (it == logs_.end()) return absl::OkStatus();
-    auto& log = it->second;
-    log.erase(log.begin(), log.upper_bound(through));
-    if (log.empty()) logs_.erase(it);
-    return absl::OkStatus();
-  }
-
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
-      override {
-    std::vector<std::pair<std::string, uint64_t>> tails;
-    absl::MutexLock lock(&mu_);
-    for (const auto& [fleet_id, log] : logs_) {
-      if (!log.empty()) tails.emplace_back(fleet_id, log.rbegin()->first);
-    }
-    return tails;
-  }
-
  private:
   absl::Mutex mu_;
   std::map<std::string, Fleet, std::less<>> fleets_ ABSL_GUARDED_BY(mu_);
-  // Ingest logs by fleet id, then sequence.
-  std::map<std::string, std::map<uint64_t, std::vector<core::MemoryTrace>>,
-           std::less<>>
-      logs_ ABSL_GUARDED_BY(mu_);
   // Index snapshots by fleet id.
   std::map<std::string, std::vector<char>, std::less<>> snapshots_
       ABSL_GUARDED_BY(mu_);

@@ -16,6 +16,7 @@
 
 #include "absl/status/statusor.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_store.h"
 
 namespace fleetmem::storage {

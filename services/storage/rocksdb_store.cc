@@ -617,40 +617,11 @@ class RocksDbStore final : public engine::MemoryStore {
                  "write fleet");
   }
 
-  // The ingest log lives in segment files beside RocksDB's (segment_log.h
-  // says why).
-  absl::Status AppendLog(std::string_view fleet_id,
-                         std::span<const engine::LogAppend> entries) override {
-    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
-      return status;
-    }
-    return log_->Append(fleet_id, entries);
-  }
-
-  absl::StatusOr<std::vector<engine::LoggedUpload>> ReadLog(
-      std::string_view fleet_id, uint64_t after, size_t max_entries) override {
-    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
-      return status;
-    }
-    return log_->Read(fleet_id, after, max_entries);
-  }
-
-  absl::Status TrimLog(std::string_view fleet_id, uint64_t through) override {
-    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
-      return status;
-    }
-    return log_->Trim(fleet_id, through);
-  }
-
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> LogTails()
-      override {
-    return log_->Tails();
-  }
-
-  std::vector<engine::LostLogEntries> LogLosses(
-      std::string_view fleet_id) override {
-    return log_->Losses(fleet_id);
-  }
+  // The ingest log: segment files beside RocksDB's (segment_log.h says
+  // why), owned by the store because the two keep each other's rules: a
+  // trim syncs the store's write-ahead log first, an append keeps the
+  // store's disk reserve, and a checkpoint copies both.
+  engine::FleetLog* log() { return log_.get(); }
 
   // Opens the ingest log at PATH/ingest-log and moves into it the entries
   // that builds before it kept in RocksDB (their keys are then erased).
@@ -714,7 +685,10 @@ class RocksDbStore final : public engine::MemoryStore {
   // skipped when this runs again.
   absl::Status MoveLegacyLog() {
     std::map<std::string, uint64_t, std::less<>> moved;
-    for (const auto& [fleet, last] : log_->Tails()) moved[fleet] = last;
+    absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> tails =
+        log_->Tails();
+    if (!tails.ok()) return tails.status();
+    for (const auto& [fleet, last] : *tails) moved[fleet] = last;
     std::vector<std::string> fleets;
     if (absl::Status listed = ForEachFleet(
             keys::Tag::kLog,
@@ -1018,7 +992,7 @@ absl::Status CheckFormat(rocksdb::DB* db, const std::string& path) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
+absl::StatusOr<std::unique_ptr<RocksDbStore>> Open(
     const RocksDbStoreOptions& options) {
   if (options.path.empty()) {
     return absl::InvalidArgumentError("RocksDbStoreOptions.path is empty");
@@ -1088,14 +1062,26 @@ absl::StatusOr<std::unique_ptr<engine::MemoryStore>> Open(
 
 }  // namespace
 
-absl::StatusOr<std::unique_ptr<engine::MemoryStore>> OpenRocksDbStore(
+absl::StatusOr<LocalStorage> OpenLocalStorage(
     const RocksDbStoreOptions& options) {
   try {
-    return Open(options);
+    absl::StatusOr<std::unique_ptr<RocksDbStore>> opened = Open(options);
+    if (!opened.ok()) return opened.status();
+    LocalStorage storage;
+    storage.log = (*opened)->log();
+    storage.store = *std::move(opened);
+    return storage;
   } catch (const std::exception& e) {
     return absl::InternalError(
         absl::StrCat("opening RocksDB at '", options.path, "': ", e.what()));
   }
+}
+
+absl::StatusOr<std::unique_ptr<engine::MemoryStore>> OpenRocksDbStore(
+    const RocksDbStoreOptions& options) {
+  absl::StatusOr<LocalStorage> opened = OpenLocalStorage(options);
+  if (!opened.ok()) return opened.status();
+  return std::move(opened->store);
 }
 
 }  // namespace fleetmem::storage

@@ -31,6 +31,7 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_store.h"
 
 namespace fleetmem::storage {
@@ -86,6 +87,23 @@ struct RocksDbStoreOptions {
 // naming the key for a record that does not decode. A failed write never
 // ends the process.
 absl::StatusOr<std::unique_ptr<engine::MemoryStore>> OpenRocksDbStore(
+    const RocksDbStoreOptions& options);
+
+// The engine's two ports over one data directory: the store, and the
+// fleets' ingest log (segment_log.h) in PATH/ingest-log beside it.
+struct LocalStorage {
+  std::unique_ptr<engine::MemoryStore> store;
+  // Owned by `store`, valid while it lives: the two keep each other's
+  // rules (a trim first syncs the store's write-ahead log, since the
+  // applies of log entries are unsynced; an append keeps the store's disk
+  // reserve, dropping the log's spare segments when it is short; a
+  // Checkpoint copies the log with the store).
+  engine::FleetLog* log = nullptr;
+};
+
+// OpenRocksDbStore, with the ingest log it opens (OpenRocksDbStore alone:
+// a store whose log is still opened, recovered and kept, unused).
+absl::StatusOr<LocalStorage> OpenLocalStorage(
     const RocksDbStoreOptions& options);
 
 }  // namespace fleetmem::storage

@@ -536,6 +536,12 @@ absl::StatusOr<std::shared_ptr<SegmentLog::Segment>> SegmentLog::StartSegment(
 absl::Status SegmentLog::Append(std::string_view fleet_id,
                                 std::span<const engine::LogAppend> entries) {
   if (entries.empty()) return absl::OkStatus();
+  // Checked at the edge already; here because the id names a directory,
+  // and Open reads back only the fleets whose directory names a valid id.
+  if (absl::Status valid = core::ValidateId("fleet_id", fleet_id);
+      !valid.ok()) {
+    return valid;
+  }
   std::vector<LoggedUploadBytes> payloads;
   payloads.reserve(entries.size());
   uint64_t bytes = 0;
@@ -799,7 +805,8 @@ absl::Status SegmentLog::Trim(std::string_view fleet_id, uint64_t through) {
   return absl::OkStatus();
 }
 
-std::vector<std::pair<std::string, uint64_t>> SegmentLog::Tails() {
+absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>>
+SegmentLog::Tails() {
   const std::vector<Fleet*> fleets = Fleets();
   std::vector<std::pair<std::string, uint64_t>> tails;
   for (Fleet* fleet : fleets) {

@@ -1,7 +1,7 @@
-// The ingest log of the RocksDB store (MemoryStore::AppendLog, ReadLog,
-// TrimLog, LogTails): per fleet, append-only segment files of checksummed
-// records, each append one write and one fdatasync, applied segments
-// deleted or kept for reuse.
+// The ingest log beside the RocksDB store (the engine's FleetLog port,
+// engine/fleet_log.h; opened with the store, OpenLocalStorage): per fleet,
+// append-only segment files of checksummed records, each append one write and
+// one fdatasync, applied segments deleted or kept for reuse.
 //
 // Why not in RocksDB, where it was until 2026-11: an entry lives from its
 // acknowledgement until the applier has applied it, and in RocksDB it was
@@ -46,7 +46,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
-#include "services/engine/memory_store.h"
+#include "services/engine/fleet_log.h"
 
 namespace fleetmem::storage {
 
@@ -73,14 +73,14 @@ struct SegmentLogOptions {
 
 // Thread-safe. Appends of one fleet must not overlap (the write path's
 // leader makes them one at a time); reads and trims may run beside them.
-class SegmentLog {
+class SegmentLog final : public engine::FleetLog {
  public:
   // Opens the log at options.directory, reading every fleet's segments
   // (checksums included). Damaged entries are passed over and reported
   // (Losses), never an error of Open.
   static absl::StatusOr<std::unique_ptr<SegmentLog>> Open(
       SegmentLogOptions options);
-  ~SegmentLog();
+  ~SegmentLog() override;
   SegmentLog(const SegmentLog&) = delete;
   SegmentLog& operator=(const SegmentLog&) = delete;
 
@@ -88,19 +88,21 @@ class SegmentLog {
   // one write and fdatasync. On error nothing of them is read back, now or
   // after a restart, unless the status says it could not be undone.
   absl::Status Append(std::string_view fleet_id,
-                      std::span<const engine::LogAppend> entries);
+                      std::span<const engine::LogAppend> entries) override;
   // Up to `max_entries` entries with sequence > `after`, ascending.
   absl::StatusOr<std::vector<engine::LoggedUpload>> Read(
-      std::string_view fleet_id, uint64_t after, size_t max_entries);
+      std::string_view fleet_id, uint64_t after, size_t max_entries) override;
   // The fleet's entries found damaged, at Open or by Read (which passes
   // over them), in the order found.
-  std::vector<engine::LostLogEntries> Losses(std::string_view fleet_id);
+  std::vector<engine::LostLogEntries> Losses(
+      std::string_view fleet_id) override;
   // Removes the segments whose entries all have sequence <= `through`
   // (but not the one appends go to). Entries at or below `through` in the
   // rest stay readable; callers read past them.
-  absl::Status Trim(std::string_view fleet_id, uint64_t through);
+  absl::Status Trim(std::string_view fleet_id, uint64_t through) override;
   // Each fleet with entries and its last sequence, sorted by fleet.
-  std::vector<std::pair<std::string, uint64_t>> Tails();
+  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Tails()
+      override;
   // Bytes of records in every fleet's segments (not counting the spares
   // kept for reuse, at most spare_segments * segment_bytes a fleet).
   uint64_t Bytes();

@@ -120,8 +120,8 @@ TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
     EXPECT_GT(bytes, 32u * 32);  // 32 entries of 3 traces
     EXPECT_EQ(ReadAll(*log, "fleet-a", 17), Range(18, 30));
     EXPECT_EQ(ReadAll(*log, "nobody"), std::vector<uint64_t>());
-    EXPECT_EQ(log->Tails(), (std::vector<std::pair<std::string, uint64_t>>{
-                                {"b", 2}, {"fleet-a", 30}}));
+    EXPECT_EQ(*log->Tails(), (std::vector<std::pair<std::string, uint64_t>>{
+                                 {"b", 2}, {"fleet-a", 30}}));
     EXPECT_GT(CountFiles(path + "/f-fleet-a", "0"), 3u);
     ASSERT_TRUE(log->Trim("fleet-a", 20).ok());
     // Whole segments at or below 20 are gone, kept for reuse up to 2.
@@ -156,7 +156,7 @@ TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
   log = OpenLog(path);
   ASSERT_NE(log, nullptr);
   EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 66));
-  EXPECT_EQ(log->Tails().back(),
+  EXPECT_EQ(log->Tails()->back(),
             std::make_pair(std::string("fleet-a"), uint64_t{66}));
 }
 
@@ -200,7 +200,7 @@ TEST(SegmentLogTest, ABacklogOfManySegmentsHoldsOneDescriptor) {
 void ExpectEntries1And2ThenAppendsGoOn(const std::string& path,
                                        std::unique_ptr<SegmentLog>& log) {
   EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
-  EXPECT_EQ(log->Tails().front().second, 2u);
+  EXPECT_EQ(log->Tails()->front().second, 2u);
   ASSERT_TRUE(AppendEntries(*log, "f", 3, 4).ok());
   EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
   log = OpenLog(path, 1 << 20);
@@ -298,7 +298,7 @@ TEST(SegmentLogTest, ADamagedEntryIsLostAloneAndReported) {
   EXPECT_EQ(log->Losses("f")[0].first, 5u);
   EXPECT_EQ(log->Losses("f")[0].last, 5u);
   EXPECT_THAT(log->Losses("f")[0].detail, HasSubstr("is damaged at byte"));
-  EXPECT_EQ(log->Tails().front().second, 9u);
+  EXPECT_EQ(log->Tails()->front().second, 9u);
   // Its header damaged too (the length field: the reader cannot step over
   // it), and the last entry of the first append: both found alone.
   FlipByte(segment, records.at(5).first + 29);
@@ -533,16 +533,15 @@ TEST(SegmentLogTest, TheStoreMovesAnEarlierBuildsLogOutOfRocksDb) {
   for (int open = 0; open < 2; ++open) {
     RocksDbStoreOptions options;
     options.path = path;
-    absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
-        OpenRocksDbStore(options);
-    ASSERT_TRUE(store.ok()) << store.status();
+    absl::StatusOr<LocalStorage> storage = OpenLocalStorage(options);
+    ASSERT_TRUE(storage.ok()) << storage.status();
     absl::StatusOr<std::vector<engine::LoggedUpload>> read =
-        (*store)->ReadLog("f", 0, 100);
+        storage->log->Read("f", 0, 100);
     ASSERT_TRUE(read.ok()) << read.status();
     ASSERT_EQ(read->size(), 6u);
     EXPECT_EQ(read->front().sequence, 4u);
     EXPECT_EQ(read->back().traces[2].seq, 92u);
-    EXPECT_EQ((*store)->LogTails()->size(), 1u);
+    EXPECT_EQ(storage->log->Tails()->size(), 1u);
   }
   rocksdb::DB* raw = nullptr;
   ASSERT_TRUE(

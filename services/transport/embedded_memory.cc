@@ -8,13 +8,13 @@
 namespace fleetmem::transport {
 
 absl::StatusOr<std::unique_ptr<EmbeddedMemory>> EmbeddedMemory::Open(
-    engine::MemoryEngine* engine, engine::MemoryStore* store,
+    engine::MemoryEngine* engine, engine::FleetLog* log,
     EmbeddedOptions options) {
   if (options.max_apply_wait <= absl::ZeroDuration()) {
     return absl::InvalidArgumentError("max_apply_wait must be positive");
   }
   absl::StatusOr<std::unique_ptr<engine::WritePath>> writes =
-      engine::WritePath::Open(options.write_path, engine, store);
+      engine::WritePath::Open(options.write_path, engine, log);
   if (!writes.ok()) return writes.status();
   return std::unique_ptr<EmbeddedMemory>(
       new EmbeddedMemory(engine, *std::move(writes), std::move(options)));

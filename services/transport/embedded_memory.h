@@ -27,10 +27,11 @@ struct EmbeddedOptions {
 // Thread-safe.
 class EmbeddedMemory final : public FleetMemory {
  public:
-  // Opens the write path over `engine` and `store` (recovering the fleets'
-  // logs: engine::WritePath::Open). Both must outlive the result.
+  // Opens the write path over `engine` and the fleets' logs in `log`
+  // (recovering them: engine::WritePath::Open). Both must outlive the
+  // result.
   static absl::StatusOr<std::unique_ptr<EmbeddedMemory>> Open(
-      engine::MemoryEngine* engine, engine::MemoryStore* store,
+      engine::MemoryEngine* engine, engine::FleetLog* log,
       EmbeddedOptions options = {});
   // Stops the write path (what is not applied yet is, at the next Open).
   ~EmbeddedMemory() override;

@@ -40,6 +40,10 @@ struct UploadOptions {
   // it; uploads are acknowledged at the durable append otherwise.
   bool wait_applied = false;
   absl::Time deadline = absl::InfiniteFuture();
+  // Forwarded by another replica (distributed mode): admitted there but
+  // for the fleet's load, which is this replica's to admit; not forwarded
+  // again.
+  bool forwarded = false;
 };
 
 // What an upload did.

@@ -17,6 +17,7 @@
 #include "absl/time/clock.h"
 #include "services/core/validation.h"
 #include "services/transport/proto_convert.h"
+#include "services/transport/upload_checks.h"
 
 namespace fleetmem::transport {
 namespace {
@@ -70,19 +71,6 @@ absl::StatusOr<core::TraceKey> ParsePageToken(absl::string_view token) {
   return key;
 }
 
-absl::Status AuthorizeUploadMessage(const auth::Principal& caller,
-                                    const v1::UploadTracesRequest& request) {
-  for (int i = 0; i < request.traces_size(); ++i) {
-    absl::Status allowed =
-        auth::AuthorizeUploadAs(caller, request.traces(i).robot_id());
-    if (!allowed.ok()) {
-      return absl::PermissionDeniedError(
-          absl::StrCat("traces[", i, "]: ", allowed.message()));
-    }
-  }
-  return absl::OkStatus();
-}
-
 std::string MakePageToken(const core::TraceKey& key) {
   return absl::StrCat(key.robot_id, "/", key.seq);
 }
@@ -120,7 +108,8 @@ absl::Status MemoryApi::Call(absl::string_view method_name,
                          forwarded);
   }
   if (method_name == "UploadTraces") {  // FleetMemory routes uploads itself
-    return it->second(this, caller, request, response);
+    return Upload(caller, static_cast<const v1::UploadTracesRequest&>(request),
+                  static_cast<v1::UploadTracesResponse*>(response), forwarded);
   }
   absl::Status status;
   if (RouteToOwner(method_name, caller, request, response, forwarded,
@@ -297,21 +286,20 @@ absl::Status MemoryApi::ListClusters(const auth::Principal& caller,
 absl::Status MemoryApi::UploadTraces(const auth::Principal& caller,
                                      const v1::UploadTracesRequest& request,
                                      v1::UploadTracesResponse* response) {
-  if (absl::Status id = core::ValidateId("fleet_id", request.fleet_id());
-      !id.ok()) {
-    return id;
-  }
-  absl::Status allowed =
-      auth::Authorize(caller, auth::Action::kUpload, request.fleet_id());
-  if (!allowed.ok()) return allowed;
-  allowed = AuthorizeUploadMessage(caller, request);
-  if (!allowed.ok()) return allowed;
-  const std::vector<core::MemoryTrace> traces =
-      UploadedTracesFromProto(request.traces());
+  return Upload(caller, request, response, /*forwarded=*/false);
+}
+
+absl::Status MemoryApi::Upload(const auth::Principal& caller,
+                               const v1::UploadTracesRequest& request,
+                               v1::UploadTracesResponse* response,
+                               bool forwarded) {
+  absl::StatusOr<CheckedUpload> checked = CheckUpload(caller, request);
+  if (!checked.ok()) return checked.status();
   UploadOptions options;
-  options.wait_applied = request.ack() == v1::UPLOAD_ACK_APPLIED;
+  options.wait_applied = checked->wait_applied;
+  options.forwarded = forwarded;
   absl::StatusOr<Uploaded> uploaded =
-      memory_->Upload(request.fleet_id(), traces, options);
+      memory_->Upload(request.fleet_id(), checked->traces, options);
   if (!uploaded.ok()) return uploaded.status();
   AddUploadResult(uploaded->result, response);
   response->set_last_sequence(uploaded->sequence);

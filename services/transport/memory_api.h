@@ -83,8 +83,9 @@ class MemoryApi {
   // One message of an upload (the REST route; gRPC streams go through
   // UploadReactor): the same checks (fleet id, the caller's rights, every
   // trace's robot id) and the same FleetMemory::Upload, so the same answer
-  // and errors as a one-message stream. Not forwarded in distributed mode:
-  // any replica appends to the fleet's log.
+  // and errors as a one-message stream. In distributed mode the
+  // FleetMemory forwards it to the fleet's owner, which admits its load
+  // (engine/admission.h).
   absl::Status UploadTraces(const auth::Principal& caller,
                             const v1::UploadTracesRequest& request,
                             v1::UploadTracesResponse* response);
@@ -145,17 +146,16 @@ class MemoryApi {
   absl::Status ListAllFleets(const auth::Principal& caller,
                              v1::ListFleetsResponse* response, bool forwarded);
 
+  // UploadTraces, `forwarded` by another replica or not.
+  absl::Status Upload(const auth::Principal& caller,
+                      const v1::UploadTracesRequest& request,
+                      v1::UploadTracesResponse* response, bool forwarded);
+
   engine::MemoryEngine* const engine_;
   FleetMemory* const memory_;
   const ApiOptions options_;
   absl::flat_hash_map<std::string, Generic> methods_;
 };
-
-// Every trace of an upload message is the caller's to upload
-// (auth::AuthorizeUploadAs); PERMISSION_DENIED naming the first that is not.
-// The gRPC stream and the REST route both check with it.
-absl::Status AuthorizeUploadMessage(const auth::Principal& caller,
-                                    const v1::UploadTracesRequest& request);
 
 // The (robot_id, seq) cursor of a ListTraces page token; INVALID_ARGUMENT
 // naming page_token when it is malformed.

@@ -14,6 +14,7 @@
 #include "grpcpp/grpcpp.h"
 #include "gtest/gtest.h"
 #include "services/index/exact_index.h"
+#include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
 #include "services/transport/embedded_memory.h"
 
@@ -62,7 +63,7 @@ class MemoryServiceTest : public ::testing::Test {
         [](size_t dimension) { return index::NewExactIndex(dimension); });
     ASSERT_TRUE(engine.ok()) << engine.status();
     engine_ = std::move(*engine);
-    auto memory = EmbeddedMemory::Open(engine_.get(), store_.get());
+    auto memory = EmbeddedMemory::Open(engine_.get(), log_.get());
     ASSERT_TRUE(memory.ok()) << memory.status();
     memory_ = std::move(*memory);
     work_ = std::make_unique<WorkQueue>(work_options);
@@ -105,6 +106,7 @@ class MemoryServiceTest : public ::testing::Test {
   }
 
   std::unique_ptr<engine::MemoryStore> store_;
+  std::unique_ptr<engine::FleetLog> log_ = storage::NewInMemoryLog();
   std::unique_ptr<engine::MemoryEngine> engine_;
   std::unique_ptr<EmbeddedMemory> memory_;
   std::unique_ptr<WorkQueue> work_;

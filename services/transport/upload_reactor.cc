@@ -13,6 +13,7 @@
 #include "services/transport/grpc_status.h"
 #include "services/transport/memory_api.h"
 #include "services/transport/proto_convert.h"
+#include "services/transport/upload_checks.h"
 
 namespace fleetmem::transport {
 namespace {
@@ -84,11 +85,8 @@ void UploadReactor::Fail(uint64_t index, const absl::Status& status,
   if (!absl::IsUnavailable(status) && !absl::IsCancelled(status) &&
       !absl::IsDeadlineExceeded(status)) {
     FLEETMEM_LOG(kWarning) << "UploadTraces refused: fleet \"" << fleet_id_
-                           << "\", "
-                           << (principal_.has_value()
-                                   ? "principal " + principal_->name
-                                   : std::string("unauthenticated"))
-                           << " at " << context_->peer() << ": " << status;
+                           << "\", principal \"" << caller_.name << "\" at "
+                           << context_->peer() << ": " << status;
   }
   Done(ToGrpcStatus(absl::Status(
       status.code(),
@@ -147,15 +145,8 @@ void UploadReactor::OnReadDone(bool ok) {
     message.error = parsed.status();
   } else {
     message.request = *std::move(parsed);
-    if (fleet_id_.empty()) {
-      message.error = core::ValidateId("fleet_id", message.request.fleet_id());
-      if (message.error.ok()) fleet_id_ = message.request.fleet_id();
-    } else if (message.request.fleet_id() != fleet_id_) {
-      message.error = absl::InvalidArgumentError(absl::StrCat(
-          "fleet_id: every message of an UploadTraces stream must name the "
-          "same fleet; got \"",
-          message.request.fleet_id(), "\" after \"", fleet_id_, "\""));
-    }
+    message.error = CheckUploadFleet(message.request, fleet_id_);
+    if (message.error.ok()) fleet_id_ = message.request.fleet_id();
   }
   bool submit = false;
   {
@@ -228,19 +219,18 @@ bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
   for (; count < batch.size(); ++count) {
     Message& message = batch[count];
     failed = message.error;
-    if (failed.ok() && !principal_.has_value()) {
-      // The fleet is known from the first message on.
-      failed = auth::Authorize(caller_, auth::Action::kUpload, fleet_id_);
-      if (failed.ok()) principal_ = caller_;
+    if (failed.ok()) {
+      absl::StatusOr<CheckedUpload> checked =
+          CheckUploadTraces(caller_, message.request);
+      if (checked.ok()) {
+        traces.push_back(std::move(checked->traces));
+        wait_applied |= checked->wait_applied;
+        continue;
+      }
+      failed = checked.status();
     }
-    if (failed.ok())
-      failed = AuthorizeUploadMessage(*principal_, message.request);
-    if (!failed.ok()) {
-      failed_index = message.index;
-      break;
-    }
-    traces.push_back(UploadedTracesFromProto(message.request.traces()));
-    wait_applied |= message.request.ack() == v1::UPLOAD_ACK_APPLIED;
+    failed_index = message.index;
+    break;
   }
   for (const std::vector<core::MemoryTrace>& one : traces) {
     messages.emplace_back(one);
@@ -248,6 +238,7 @@ bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
   UploadOptions options;
   options.wait_applied = wait_applied;
   options.deadline = absl::FromChrono(context_->deadline());
+  options.forwarded = context_->client_metadata().count(kForwardedHeader) > 0;
   std::vector<absl::StatusOr<Uploaded>> results;
   if (!messages.empty()) {
     results = state_->memory().UploadMany(fleet_id_, messages, options);

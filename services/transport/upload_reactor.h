@@ -115,9 +115,8 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   StreamWatchdog idle_ ABSL_GUARDED_BY(mu_){context_};
 
   // The store task's.
-  v1::UploadTracesResponse totals_;           // the running totals
-  uint64_t stored_ = 0;                       // messages stored so far
-  std::optional<auth::Principal> principal_;  // once allowed on the fleet
+  v1::UploadTracesResponse totals_;  // the running totals
+  uint64_t stored_ = 0;              // messages stored so far
 };
 
 }  // namespace fleetmem::transport

@@ -3,8 +3,8 @@
 // replicas materialise a fleet's state, and the leases that give each fleet
 // one owner at a time. services/cluster/nats_fleet_log.h implements both on
 // NATS JetStream.
-#ifndef FLEETMEM_SERVICES_CLUSTER_FLEET_LOG_H_
-#define FLEETMEM_SERVICES_CLUSTER_FLEET_LOG_H_
+#ifndef FLEETMEM_SERVICES_CLUSTER_REPLICATED_LOG_H_
+#define FLEETMEM_SERVICES_CLUSTER_REPLICATED_LOG_H_
 
 #include <cstddef>
 #include <cstdint>
@@ -34,9 +34,9 @@ struct Appended {
   bool duplicate = false;
 };
 
-class FleetLog {
+class ReplicatedLog {
  public:
-  virtual ~FleetLog() = default;
+  virtual ~ReplicatedLog() = default;
   // Appends `data` under `id` to the fleet's log (made on first use) and
   // returns once the log has stored it on its replicas. UNAVAILABLE or
   // DEADLINE_EXCEEDED: unknown whether it was stored; appending again
@@ -138,4 +138,4 @@ class LeaseTable {
 
 }  // namespace fleetmem::cluster
 
-#endif  // FLEETMEM_SERVICES_CLUSTER_FLEET_LOG_H_
+#endif  // FLEETMEM_SERVICES_CLUSTER_REPLICATED_LOG_H_
