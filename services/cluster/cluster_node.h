@@ -50,10 +50,14 @@ class ClusterNode {
   // Stops the loop (the leases are kept until they expire).
   ~ClusterNode();
 
-  // Called (on the loop's thread) for each fleet this replica owned after
-  // one round and not after the next. Set before Start.
+  // Called for each fleet this replica owned after one round and not after
+  // the next (on the loop's thread), and as soon as a lease is found lost
+  // (Materialiser::OnLeaseLost: on the renewing thread too, so that a round
+  // held up by other fleets' calls to NATS does not keep the fleet's
+  // watches open). May be called twice for one loss. Set before Start.
   void OnFleetLost(std::function<void(const std::string&)> lost) {
-    on_lost_ = std::move(lost);
+    on_lost_ = lost;
+    materialiser_.OnLeaseLost(std::move(lost));
   }
   // Runs rounds on a thread of its own until Stop, and renews the leases
   // held on another.

@@ -294,6 +294,10 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
     absl::StatusOr<Lease> lease =
         leases_->Acquire(fleet_id, options_.replica_id);
     if (!lease.ok()) return lease.status();
+    FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet_id
+                        << "\" taken (lease revision " << lease->revision
+                        << ", this replica's store at entry " << *position
+                        << ")";
     renewed_at = absl::Now();
     {
       absl::MutexLock held(&lease_mu_);
@@ -380,20 +384,33 @@ absl::StatusOr<absl::Time> Materialiser::RenewIfDue(std::string_view fleet_id,
   }
   const absl::Time now = absl::Now();
   absl::StatusOr<Lease> renewed = leases_->Renew(lease);
-  absl::MutexLock held(&lease_mu_);
-  auto it = held_.find(fleet_id);
-  if (absl::IsFailedPrecondition(renewed.status())) {
-    if (it != held_.end()) held_.erase(it);
-    return renewed.status();
+  bool lost = false;
+  {
+    absl::MutexLock held(&lease_mu_);
+    auto it = held_.find(fleet_id);
+    if (absl::IsFailedPrecondition(renewed.status())) {
+      if (it != held_.end()) {
+        held_.erase(it);
+        lost = true;
+      }
+    } else if (renewed.ok()) {
+      if (it == held_.end()) {  // released meanwhile
+        return absl::FailedPreconditionError(absl::StrCat(
+            "cluster: the lease of fleet \"", V(fleet_id), "\" was released"));
+      }
+      it->second.lease = *std::move(renewed);
+      it->second.renewed_at = now;
+      return now;
+    }
   }
-  if (!renewed.ok()) return renewed.status();
-  if (it == held_.end()) {  // released meanwhile
-    return absl::FailedPreconditionError(absl::StrCat(
-        "cluster: the lease of fleet \"", V(fleet_id), "\" was released"));
-  }
-  it->second.lease = *std::move(renewed);
-  it->second.renewed_at = now;
-  return now;
+  if (lost) Lost(fleet_id, renewed.status());
+  return renewed.status();
+}
+
+void Materialiser::Lost(std::string_view fleet_id, const absl::Status& why) {
+  FLEETMEM_LOG(kWarning) << "cluster: fleet \"" << fleet_id
+                         << "\" lost: " << why.message();
+  if (on_lease_lost_) on_lease_lost_(std::string(fleet_id));
 }
 
 void Materialiser::RenewLeases() {

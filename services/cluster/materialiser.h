@@ -23,6 +23,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <optional>
 #include <span>
@@ -188,6 +189,15 @@ class Materialiser {
   // FAILED_PRECONDITION.
   void RenewLeases();
 
+  // Called with a fleet's id as soon as its lease is found lost (a renewal
+  // refused), from the thread that found it
+  // (a step, or RenewLeases): the fleet's watches end then, not at the end
+  // of an ownership round that other fleets' calls to NATS may hold up.
+  // Set before the first step.
+  void OnLeaseLost(std::function<void(const std::string&)> lost) {
+    on_lease_lost_ = std::move(lost);
+  }
+
   // Gives the fleet's lease up (if held) and forgets its position.
   absl::Status Release(std::string_view fleet_id);
   // The lease held on the fleet, if any.
@@ -210,6 +220,9 @@ class Materialiser {
   // forgotten then); NATS's error otherwise (the lease is kept: the next
   // renewal retries it). Returns when the lease was last renewed.
   absl::StatusOr<absl::Time> RenewIfDue(std::string_view fleet_id, bool always)
+      ABSL_LOCKS_EXCLUDED(lease_mu_);
+  // Logs the loss of the fleet's lease and calls on_lease_lost_.
+  void Lost(std::string_view fleet_id, const absl::Status& why)
       ABSL_LOCKS_EXCLUDED(lease_mu_);
   // At acquisition, with the lease held: restores the fleet's latest
   // snapshot if it covers enough more than `owned.position` (or the log no
@@ -255,6 +268,7 @@ class Materialiser {
                                    const std::string& data);
 
   const MaterialiserOptions options_;
+  std::function<void(const std::string&)> on_lease_lost_;
   ReplicatedLog* const log_;
   LeaseTable* const leases_;
   SnapshotStore* const snapshots_;

@@ -270,54 +270,17 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
     std::span<const std::span<const core::MemoryTrace>> uploads, bool track) {
   std::vector<absl::StatusOr<Appended>> results;
   if (uploads.empty()) return results;
-  auto all = [&](const absl::Status& status) {
-    results.assign(uploads.size(), status);
-    return results;
-  };
   {
     absl::MutexLock lock(&ready_mu_);
     if (stopping_) {
-      return all(absl::UnavailableError(
-          "the server is shutting down; nothing of this upload was stored"));
+      results.assign(uploads.size(), absl::UnavailableError(
+                                         "the server is shutting down; "
+                                         "nothing of this upload was stored"));
+      return results;
     }
   }
-  // A fleet is made by its first valid upload: checked before its log is
-  // made, so that bad uploads to made-up fleets leave nothing behind.
   FleetWrites* log = Find(fleet_id);
-  if (log == nullptr) {
-    const auto first =
-        std::find_if(uploads.begin(), uploads.end(),
-                     [](std::span<const core::MemoryTrace> traces) {
-                       return !traces.empty();
-                     });
-    if (first == uploads.end()) {
-      results.assign(uploads.size(), Appended{});
-      return results;
-    }
-    if (uploads.size() > 1) {
-      // The first upload with traces alone makes the fleet (or is
-      // refused); the rest follow it.
-      const size_t at = static_cast<size_t>(first - uploads.begin());
-      results.assign(at, Appended{});  // the empty ones before it
-      results.push_back(
-          std::move(AppendMany(fleet_id, uploads.subspan(at, 1), track)[0]));
-      std::vector<absl::StatusOr<Appended>> rest =
-          AppendMany(fleet_id, uploads.subspan(at + 1), track);
-      std::move(rest.begin(), rest.end(), std::back_inserter(results));
-      return results;
-    }
-    absl::Status valid = AdmitShape(engine_->quota(), fleet_id, *first, nullptr,
-                                    engine_->options().max_traces_per_upload);
-    if (!valid.ok()) return all(valid);
-    {
-      // Nor do uploads to fleets past max_fleets (the leader admits the
-      // fleet again, counting it, when it appends its first entry).
-      absl::ReaderMutexLock lock(&logs_mu_);
-      valid = engine_->quota().AdmitNewFleet(fleet_id, fleets_);
-    }
-    if (!valid.ok()) return all(valid);
-    log = Log(fleet_id);
-  }
+  if (log == nullptr) return AppendToNewFleet(fleet_id, uploads, track);
 
   std::vector<Request> requests(uploads.size());
   absl::MutexLock lock(&log->mu);
@@ -337,195 +300,250 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
   };
   while (!all_done()) {
     // After Stop no one leads; an upload a leader took is finished by it.
-    if (log->stopped) {
-      for (Request& request : requests) {
-        if (!request.done && std::find(log->queue.begin(), log->queue.end(),
-                                       &request) != log->queue.end()) {
-          std::erase(log->queue, &request);
-          request.result = absl::UnavailableError(
-              "the server is shutting down; nothing of this upload was "
-              "stored");
-          request.done = true;
-        }
-      }
-      if (all_done()) break;
-    }
+    if (log->stopped && RefuseQueued(*log, requests)) break;
     if (log->leading) {
       log->changed.Wait(&log->mu);
       continue;
     }
-    // Lead: every upload queued so far goes into one log write.
-    log->leading = true;
-    std::vector<Request*> group;
-    group.swap(log->queue);
-    log->mu.Unlock();
-    Lead(*log, group);
-    log->mu.Lock();
-    const absl::Time now = absl::Now();
-    for (Request* member : group) {
-      if (member->result.ok() && member->result->sequence != 0) {
-        FleetWrites::Entry entry;
-        entry.sequence = member->result->sequence;
-        entry.traces = member->result->accepted;
-        entry.appended = now;
-        if (member->track) {
-          auto applied = std::make_shared<AppliedEntry>();
-          entry.applied = applied;
-          member->result->applied = std::move(applied);
-        }
-        log->backlog_traces += entry.traces;
-        log->appended_through = entry.sequence;
-        log->unapplied.push_back(std::move(entry));
-      }
-      member->done = true;
-    }
-    log->leading = false;
-    log->changed.SignalAll();
-    if (options_.on_duplicates) {
-      for (const Request* member : group) {
-        if (member->result.ok() && member->result->duplicates > 0) {
-          options_.on_duplicates(log->id, member->result->duplicates);
-        }
-      }
-    }
-    if (!log->scheduled && !log->unapplied.empty()) {
-      log->scheduled = true;
-      absl::MutexLock ready(&ready_mu_);
-      ready_.push_back(log);
-      ready_cv_.Signal();
-    }
+    LeadQueued(*log);
   }
   results.reserve(requests.size());
-  for (Request& request : requests)
+  for (Request& request : requests) {
     results.push_back(std::move(request.result));
+  }
   return results;
 }
 
-void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
-  uint64_t backlog = 0;
-  double oldest_seconds = 0;
-  {
-    absl::MutexLock lock(&log.mu);
-    backlog = log.backlog_traces;
-    if (!log.unapplied.empty()) {
-      oldest_seconds =
-          absl::ToDoubleSeconds(absl::Now() - log.unapplied.front().appended);
+std::vector<absl::StatusOr<Appended>> WritePath::AppendToNewFleet(
+    std::string_view fleet_id,
+    std::span<const std::span<const core::MemoryTrace>> uploads, bool track) {
+  std::vector<absl::StatusOr<Appended>> results;
+  // A fleet is made by its first valid upload: checked before its log is
+  // made, so that bad uploads to made-up fleets leave nothing behind.
+  const auto first =
+      std::find_if(uploads.begin(), uploads.end(),
+                   [](std::span<const core::MemoryTrace> traces) {
+                     return !traces.empty();
+                   });
+  if (first == uploads.end()) {
+    results.assign(uploads.size(), Appended{});
+    return results;
+  }
+  if (uploads.size() > 1) {
+    // The first upload with traces alone makes the fleet (or is refused);
+    // the rest follow it.
+    const size_t at = static_cast<size_t>(first - uploads.begin());
+    results.assign(at, Appended{});  // the empty ones before it
+    results.push_back(
+        std::move(AppendMany(fleet_id, uploads.subspan(at, 1), track)[0]));
+    std::vector<absl::StatusOr<Appended>> rest =
+        AppendMany(fleet_id, uploads.subspan(at + 1), track);
+    std::move(rest.begin(), rest.end(), std::back_inserter(results));
+    return results;
+  }
+  absl::Status valid = AdmitShape(engine_->quota(), fleet_id, *first, nullptr,
+                                  engine_->options().max_traces_per_upload);
+  if (valid.ok()) {
+    // Nor do uploads to fleets past max_fleets (the leader admits the fleet
+    // again, counting it, when it appends its first entry).
+    absl::ReaderMutexLock lock(&logs_mu_);
+    valid = engine_->quota().AdmitNewFleet(fleet_id, fleets_);
+  }
+  if (!valid.ok()) {
+    results.assign(uploads.size(), valid);
+    return results;
+  }
+  Log(fleet_id);
+  return AppendMany(fleet_id, uploads, track);
+}
+
+bool WritePath::RefuseQueued(FleetWrites& log, std::span<Request> requests) {
+  for (Request& request : requests) {
+    if (!request.done && std::find(log.queue.begin(), log.queue.end(),
+                                   &request) != log.queue.end()) {
+      std::erase(log.queue, &request);
+      request.result = absl::UnavailableError(
+          "the server is shutting down; nothing of this upload was stored");
+      request.done = true;
     }
   }
-  UploadQuota& quota = engine_->quota();
-  const size_t max_traces = engine_->options().max_traces_per_upload;
-  std::optional<FleetShape> shape = log.shape;
+  return std::all_of(requests.begin(), requests.end(),
+                     [](const Request& request) { return request.done; });
+}
+
+void WritePath::LeadQueued(FleetWrites& log) {
+  // Every upload queued so far goes into one log write.
+  log.leading = true;
+  std::vector<Request*> group;
+  group.swap(log.queue);
+  log.mu.Unlock();
+  Lead(log, group);
+  log.mu.Lock();
+  const absl::Time now = absl::Now();
+  for (Request* member : group) {
+    if (member->result.ok() && member->result->sequence != 0) {
+      FleetWrites::Entry entry;
+      entry.sequence = member->result->sequence;
+      entry.traces = member->result->accepted;
+      entry.appended = now;
+      if (member->track) {
+        auto applied = std::make_shared<AppliedEntry>();
+        entry.applied = applied;
+        member->result->applied = std::move(applied);
+      }
+      log.backlog_traces += entry.traces;
+      log.appended_through = entry.sequence;
+      log.unapplied.push_back(std::move(entry));
+    }
+    member->done = true;
+  }
+  log.leading = false;
+  log.changed.SignalAll();
+  if (options_.on_duplicates) {
+    for (const Request* member : group) {
+      if (member->result.ok() && member->result->duplicates > 0) {
+        options_.on_duplicates(log.id, member->result->duplicates);
+      }
+    }
+  }
+  if (!log.scheduled && !log.unapplied.empty()) {
+    log.scheduled = true;
+    absl::MutexLock ready(&ready_mu_);
+    ready_.push_back(&log);
+    ready_cv_.Signal();
+  }
+}
+
+// What one group commit has admitted so far, as its leader goes through
+// the group's uploads in order.
+struct WritePath::Group {
+  std::optional<FleetShape> shape;
   bool created = false;  // this group's first upload makes the fleet
   // The robots' seq sets as this group leaves them; kept only if the write
   // succeeds.
-  absl::flat_hash_map<std::string, core::SeqSet> group_sets;
-  auto seqs_of = [&](const std::string& robot_id) -> const core::SeqSet& {
-    auto [it, inserted] = group_sets.try_emplace(robot_id);
-    if (inserted) {
-      auto known = log.admitted.find(robot_id);
-      if (known != log.admitted.end()) {
-        it->second = known->second;
-      } else {
-        it->second = engine_->Received(log.id, robot_id);
-        auto tail = log.recovered.find(robot_id);
-        if (tail != log.recovered.end()) {
-          std::vector<core::SeqSet::Interval> both = it->second.Intervals();
-          const std::vector<core::SeqSet::Interval> logged =
-              tail->second.Intervals();
-          both.insert(both.end(), logged.begin(), logged.end());
-          it->second = core::SeqSet::FromIntervals(both);
-        }
-      }
-    }
-    return it->second;
-  };
-
+  absl::flat_hash_map<std::string, core::SeqSet> seqs;
+  FleetLoad load;         // backlog: the log's, and what this group adds
+  uint64_t sequence = 0;  // the next entry's
   std::vector<LogAppend> appends;
-  uint64_t sequence = log.next_sequence;
-  uint64_t adding = 0;
-  for (Request* request : group) {
-    const std::span<const core::MemoryTrace> traces = request->traces;
-    absl::Status status = AdmitShape(quota, log.id, traces,
-                                     shape ? &*shape : nullptr, max_traces);
-    const bool is_new = !shape.has_value();
-    bool reserved = false;  // counted in fleets_ by this upload
-    if (status.ok() && is_new) {
-      absl::MutexLock lock(&logs_mu_);
-      status = quota.AdmitNewFleet(log.id, fleets_);
-      if (status.ok()) {
-        ++fleets_;
-        reserved = true;
-      }
-    }
-    if (status.ok()) status = quota.AdmitRates(log.id, traces);
-    // Duplicates: seqs admitted before, or repeated within the upload.
-    absl::flat_hash_map<std::string_view, core::SeqSet> trial;
-    std::vector<bool> accept(traces.size(), false);
-    uint64_t accepted = 0;
-    if (status.ok()) {
-      for (size_t i = 0; i < traces.size(); ++i) {
-        auto [it, inserted] = trial.try_emplace(traces[i].robot_id);
-        if (inserted) it->second = seqs_of(traces[i].robot_id);
-        accept[i] = it->second.Insert(traces[i].seq);
-        accepted += accept[i] ? 1 : 0;
-      }
-    }
-    if (status.ok()) {
-      status = AdmitLoad(quota, log.id,
-                         {.held = engine_->HeldTraces(log.id),
-                          .backlog = backlog + adding,
-                          .oldest_seconds = oldest_seconds},
-                         accepted, options_.max_backlog_traces);
-    }
-    if (!status.ok()) {
-      if (reserved) {
-        absl::MutexLock lock(&logs_mu_);
-        --fleets_;
-      }
-      request->result = status;
-      continue;
-    }
-    if (is_new) {
-      shape = FleetShape{static_cast<uint32_t>(traces[0].code.size()),
-                         traces[0].encoder_version};
-      created = true;
-    }
-    request->result = Appended{accepted, traces.size() - accepted, 0, nullptr};
-    if (accepted == 0) continue;
-    for (auto& [robot_id, seqs] : trial) {
-      group_sets[std::string(robot_id)] = std::move(seqs);
-    }
-    if (accepted == traces.size()) {
-      request->accepted = traces;
-    } else {
-      request->kept.reserve(accepted);
-      for (size_t i = 0; i < traces.size(); ++i) {
-        if (accept[i]) request->kept.push_back(traces[i]);
-      }
-      request->accepted = request->kept;
-    }
-    request->result->sequence = sequence;
-    appends.push_back({sequence, request->accepted});
-    ++sequence;
-    adding += accepted;
+};
+
+const core::SeqSet& WritePath::SeqsOf(FleetWrites& log, Group& group,
+                                      const std::string& robot_id) {
+  auto [it, inserted] = group.seqs.try_emplace(robot_id);
+  if (!inserted) return it->second;
+  auto known = log.admitted.find(robot_id);
+  if (known != log.admitted.end()) {
+    it->second = known->second;
+    return it->second;
   }
-  if (appends.empty()) return;
-  absl::Status written = log_->Append(log.id, appends);
+  it->second = engine_->Received(log.id, robot_id);
+  auto tail = log.recovered.find(robot_id);
+  if (tail != log.recovered.end()) {
+    std::vector<core::SeqSet::Interval> both = it->second.Intervals();
+    const std::vector<core::SeqSet::Interval> logged = tail->second.Intervals();
+    both.insert(both.end(), logged.begin(), logged.end());
+    it->second = core::SeqSet::FromIntervals(both);
+  }
+  return it->second;
+}
+
+void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
+  UploadQuota& quota = engine_->quota();
+  const std::span<const core::MemoryTrace> traces = request.traces;
+  absl::Status status =
+      AdmitShape(quota, log.id, traces, group.shape ? &*group.shape : nullptr,
+                 engine_->options().max_traces_per_upload);
+  const bool is_new = !group.shape.has_value();
+  bool reserved = false;  // counted in fleets_ by this upload
+  if (status.ok() && is_new) {
+    absl::MutexLock lock(&logs_mu_);
+    status = quota.AdmitNewFleet(log.id, fleets_);
+    if (status.ok()) {
+      ++fleets_;
+      reserved = true;
+    }
+  }
+  if (status.ok()) status = quota.AdmitRates(log.id, traces);
+  // Duplicates: seqs admitted before, or repeated within the upload.
+  absl::flat_hash_map<std::string_view, core::SeqSet> trial;
+  std::vector<bool> accept(traces.size(), false);
+  uint64_t accepted = 0;
+  if (status.ok()) {
+    for (size_t i = 0; i < traces.size(); ++i) {
+      auto [it, inserted] = trial.try_emplace(traces[i].robot_id);
+      if (inserted) it->second = SeqsOf(log, group, traces[i].robot_id);
+      accept[i] = it->second.Insert(traces[i].seq);
+      accepted += accept[i] ? 1 : 0;
+    }
+  }
+  if (status.ok()) {
+    group.load.held = engine_->HeldTraces(log.id);
+    status = AdmitLoad(quota, log.id, group.load, accepted,
+                       options_.max_backlog_traces);
+  }
+  if (!status.ok()) {
+    if (reserved) {
+      absl::MutexLock lock(&logs_mu_);
+      --fleets_;
+    }
+    request.result = status;
+    return;
+  }
+  if (is_new) {
+    group.shape = FleetShape{static_cast<uint32_t>(traces[0].code.size()),
+                             traces[0].encoder_version};
+    group.created = true;
+  }
+  request.result = Appended{accepted, traces.size() - accepted, 0, nullptr};
+  if (accepted == 0) return;
+  for (auto& [robot_id, seqs] : trial) {
+    group.seqs[std::string(robot_id)] = std::move(seqs);
+  }
+  if (accepted == traces.size()) {
+    request.accepted = traces;
+  } else {
+    request.kept.reserve(accepted);
+    for (size_t i = 0; i < traces.size(); ++i) {
+      if (accept[i]) request.kept.push_back(traces[i]);
+    }
+    request.accepted = request.kept;
+  }
+  request.result->sequence = group.sequence;
+  group.appends.push_back({group.sequence, request.accepted});
+  ++group.sequence;
+  group.load.backlog += accepted;
+}
+
+void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
+  Group admitted;
+  {
+    absl::MutexLock lock(&log.mu);
+    admitted.load.backlog = log.backlog_traces;
+    if (!log.unapplied.empty()) {
+      admitted.load.oldest_seconds =
+          absl::ToDoubleSeconds(absl::Now() - log.unapplied.front().appended);
+    }
+  }
+  admitted.shape = log.shape;
+  admitted.sequence = log.next_sequence;
+  for (Request* request : group) Admit(log, admitted, *request);
+  if (admitted.appends.empty()) return;
+  absl::Status written = log_->Append(log.id, admitted.appends);
   if (!written.ok()) {
     for (Request* request : group) {
       if (request->result.ok() && request->result->sequence != 0) {
         request->result = written;
       }
     }
-    if (created) {
+    if (admitted.created) {
       absl::MutexLock lock(&logs_mu_);
       --fleets_;
     }
     return;
   }
-  log.next_sequence = sequence;
-  log.shape = std::move(shape);
-  for (auto& [robot_id, seqs] : group_sets) {
+  log.next_sequence = admitted.sequence;
+  log.shape = std::move(admitted.shape);
+  for (auto& [robot_id, seqs] : admitted.seqs) {
     log.recovered.erase(robot_id);
     log.admitted[robot_id] = std::move(seqs);
   }
@@ -667,88 +685,34 @@ void WritePath::ApplyTurn(FleetWrites& log) {
     through = log.appended_through;
   }
   if (through <= from) return;
-  auto fail = [&](const absl::Status& status) {
-    FLEETMEM_LOG(kError) << "fleet \"" << log.id
-                         << "\": applying the log after entry " << from
-                         << " failed (retried in " << options_.retry_interval
-                         << "): " << status;
-    {
-      absl::MutexLock lock(&log.mu);
-      log.apply_error = status;
-      ++log.apply_failures;
-      log.changed.SignalAll();
-    }
-    absl::MutexLock lock(&ready_mu_);
-    if (!stopping_)
-      stop_cv_.WaitWithTimeout(&ready_mu_, options_.retry_interval);
-  };
   absl::StatusOr<std::vector<LoggedUpload>> entries =
       log_->Read(log.id, from, options_.apply_batch);
-  if (!entries.ok()) return fail(entries.status());
+  if (!entries.ok()) return WaitToRetry(log, from, entries.status());
   if (entries->empty() || entries->front().sequence > through) {
     if (LostFrom(log_->Losses(log.id), from) >= through) {
       // Every entry left was found damaged (reported as it was found).
-      absl::MutexLock lock(&log.mu);
-      while (!log.unapplied.empty() &&
-             log.unapplied.front().sequence <= through) {
-        log.backlog_traces -=
-            std::min(log.backlog_traces, log.unapplied.front().traces);
-        log.unapplied.pop_front();
-      }
-      log.applied_through = through;
-      log.changed.SignalAll();
+      MarkApplied(log, through, AppliedEntry{});
       return;
     }
-    return fail(absl::DataLossError(absl::StrCat(
-        "the log holds no entry after ", from, " though entries through ",
-        through, " were acknowledged")));
+    return WaitToRetry(
+        log, from,
+        absl::DataLossError(absl::StrCat("the log holds no entry after ", from,
+                                         " though entries through ", through,
+                                         " were acknowledged")));
   }
   uint64_t applied = from;
   for (const LoggedUpload& entry : *entries) {
     if (entry.sequence > through || stop_.load(std::memory_order_relaxed)) {
       break;
     }
-    absl::StatusOr<UploadResult> result =
-        engine_->Upload(log.id, entry.traces, entry.sequence);
-    AppliedEntry outcome;
-    if (result.ok()) {
-      outcome.consolidations = result->consolidations;
-      if (result->duplicates > 0) {
-        // Append admits only seqs the fleet has not received: a duplicate
-        // here is an entry applied twice (the crash trials count this line).
-        FLEETMEM_LOG(kError)
-            << "fleet \"" << log.id << "\": " << result->duplicates
-            << " traces of log entry " << entry.sequence
-            << " were applied twice";
-      }
-    } else if (absl::IsInvalidArgument(result.status())) {
-      // Append checked it as the engine does: only a change of the checks
-      // between two versions can make the engine refuse it now.
-      FLEETMEM_LOG(kError) << "fleet \"" << log.id << "\": acknowledged log "
-                           << "entry " << entry.sequence << " ("
-                           << entry.traces.size()
-                           << " traces) refused when applied, passed over: "
-                           << result.status();
-      outcome.status = result.status();
-    } else {
+    absl::StatusOr<AppliedEntry> outcome = ApplyEntry(log, entry);
+    if (!outcome.ok()) {
       // The store (a full disk): retried until it applies; never dropped.
       // (No limit refuses an acknowledged entry: engine/admission.h.)
       if (applied > from) log_->Trim(log.id, applied).IgnoreError();
-      return fail(result.status());
+      return WaitToRetry(log, from, outcome.status());
     }
-    absl::MutexLock lock(&log.mu);
-    while (!log.unapplied.empty() &&
-           log.unapplied.front().sequence <= entry.sequence) {
-      FleetWrites::Entry& done = log.unapplied.front();
-      log.backlog_traces -= std::min(log.backlog_traces, done.traces);
-      if (done.applied != nullptr && done.sequence == entry.sequence) {
-        *done.applied = outcome;
-      }
-      log.unapplied.pop_front();
-    }
-    log.applied_through = entry.sequence;
-    log.apply_error = absl::OkStatus();
-    log.changed.SignalAll();
+    MarkApplied(log, entry.sequence, *outcome);
     applied = entry.sequence;
   }
   if (absl::Status trimmed = log_->Trim(log.id, applied); !trimmed.ok()) {
@@ -757,6 +721,67 @@ void WritePath::ApplyTurn(FleetWrites& log) {
                            << " not trimmed (the next turn or Open does): "
                            << trimmed;
   }
+}
+
+absl::StatusOr<AppliedEntry> WritePath::ApplyEntry(FleetWrites& log,
+                                                   const LoggedUpload& entry) {
+  absl::StatusOr<UploadResult> result =
+      engine_->Upload(log.id, entry.traces, entry.sequence);
+  AppliedEntry outcome;
+  if (result.ok()) {
+    outcome.consolidations = result->consolidations;
+    if (result->duplicates > 0) {
+      // Append admits only seqs the fleet has not received: a duplicate
+      // here is an entry applied twice (the crash trials count this line).
+      FLEETMEM_LOG(kError) << "fleet \"" << log.id
+                           << "\": " << result->duplicates
+                           << " traces of log entry " << entry.sequence
+                           << " were applied twice";
+    }
+    return outcome;
+  }
+  if (!absl::IsInvalidArgument(result.status())) return result.status();
+  // Append checked it as the engine does: only a change of the checks
+  // between two versions can make the engine refuse it now.
+  FLEETMEM_LOG(kError) << "fleet \"" << log.id << "\": acknowledged log "
+                       << "entry " << entry.sequence << " ("
+                       << entry.traces.size()
+                       << " traces) refused when applied, passed over: "
+                       << result.status();
+  outcome.status = result.status();
+  return outcome;
+}
+
+void WritePath::MarkApplied(FleetWrites& log, uint64_t sequence,
+                            const AppliedEntry& outcome) {
+  absl::MutexLock lock(&log.mu);
+  while (!log.unapplied.empty() && log.unapplied.front().sequence <= sequence) {
+    FleetWrites::Entry& done = log.unapplied.front();
+    log.backlog_traces -= std::min(log.backlog_traces, done.traces);
+    if (done.applied != nullptr && done.sequence == sequence) {
+      *done.applied = outcome;
+    }
+    log.unapplied.pop_front();
+  }
+  log.applied_through = sequence;
+  log.apply_error = absl::OkStatus();
+  log.changed.SignalAll();
+}
+
+void WritePath::WaitToRetry(FleetWrites& log, uint64_t from,
+                            const absl::Status& status) {
+  FLEETMEM_LOG(kError) << "fleet \"" << log.id
+                       << "\": applying the log after entry " << from
+                       << " failed (retried in " << options_.retry_interval
+                       << "): " << status;
+  {
+    absl::MutexLock lock(&log.mu);
+    log.apply_error = status;
+    ++log.apply_failures;
+    log.changed.SignalAll();
+  }
+  absl::MutexLock lock(&ready_mu_);
+  if (!stopping_) stop_cv_.WaitWithTimeout(&ready_mu_, options_.retry_interval);
 }
 
 bool WritePath::Drain(absl::Time deadline) {

@@ -205,14 +205,46 @@ class WritePath {
   FleetWrites* Log(std::string_view fleet_id);
   FleetWrites* Find(std::string_view fleet_id) const;
   absl::Status Recover();
+  // AppendMany for a fleet without a log yet: the first upload with traces
+  // is checked (shape, max_fleets) before the log is made.
+  std::vector<absl::StatusOr<Appended>> AppendToNewFleet(
+      std::string_view fleet_id,
+      std::span<const std::span<const core::MemoryTrace>> uploads, bool track);
+  // After Stop: refuses the `requests` still queued (UNAVAILABLE); true if
+  // every one of them is done then. With log.mu held.
+  bool RefuseQueued(FleetWrites& log, std::span<Request> requests);
+  // Leads one group commit: takes the queue, Lead, then records what it
+  // appended as unapplied entries and schedules the fleet's applier. With
+  // log.mu held (released while Lead writes).
+  void LeadQueued(FleetWrites& log);
   // The group commit's leader: admits `group`'s uploads and appends the
   // accepted ones in one log write.
   void Lead(FleetWrites& log, std::span<Request* const> group);
+  struct Group;
+  // Admits one upload of a group (engine/admission.h, and de-duplication
+  // by (robot, seq)): its result, and its entry in `group` if it adds any.
+  void Admit(FleetWrites& log, Group& group, Request& request);
+  // The robot's seqs as `group` leaves them: admitted before, or received
+  // by the engine and found in the log's tail at Open.
+  const core::SeqSet& SeqsOf(FleetWrites& log, Group& group,
+                             const std::string& robot_id);
   void Schedule(FleetWrites& log);
   void RunApplier();
   // Applies up to apply_batch entries of the fleet (fewer after Stop, or
   // when one fails: the fleet's applier then waits retry_interval).
   void ApplyTurn(FleetWrites& log);
+  // Applies one entry (MemoryEngine::Upload with its sequence): what it
+  // did, or the store's error (the entry stays, and is retried). An entry
+  // the engine refuses as invalid is passed over, with that status.
+  absl::StatusOr<AppliedEntry> ApplyEntry(FleetWrites& log,
+                                          const LoggedUpload& entry);
+  // The fleet's log is applied through `sequence` (the entries through it
+  // leave the backlog; a waiter on `sequence` gets `outcome`).
+  void MarkApplied(FleetWrites& log, uint64_t sequence,
+                   const AppliedEntry& outcome);
+  // Reports a failed apply (GetStats' apply_error, waiters) and waits
+  // retry_interval, or until Stop.
+  void WaitToRetry(FleetWrites& log, uint64_t from, const absl::Status& status);
 
   const WritePathOptions options_;
   MemoryEngine* const engine_;
