@@ -14,8 +14,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "gtest/gtest.h"
-#include "services/cluster/cluster_test_util.h"
-#include "services/cluster/nats_fixture.h"
+#include "services/cluster/testing/cluster_test_util.h"
+#include "services/cluster/testing/nats_fixture.h"
 
 namespace fleetmem::cluster {
 namespace {

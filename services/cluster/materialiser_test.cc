@@ -14,9 +14,9 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "services/cluster/cluster_test_util.h"
-#include "services/cluster/nats_fixture.h"
-#include "services/engine/memory_engine_test_util.h"
+#include "services/cluster/testing/cluster_test_util.h"
+#include "services/cluster/testing/nats_fixture.h"
+#include "services/engine/testing/memory_engine_test_util.h"
 #include "services/storage/fleet_image.h"
 
 namespace fleetmem::cluster {

@@ -9,7 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "services/cluster/nats_fixture.h"
+#include "services/cluster/testing/nats_fixture.h"
 #include "tests/server_process.h"
 
 namespace fleetmem::cluster {

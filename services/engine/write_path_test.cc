@@ -11,7 +11,7 @@
 #include "absl/synchronization/notification.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "services/engine/forwarding_store.h"
+#include "services/engine/testing/forwarding_store.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_log.h"

@@ -12,7 +12,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/common/sanitizers.h"
-#include "services/engine/forwarding_store.h"
+#include "services/engine/testing/forwarding_store.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/observability/process_stats.h"

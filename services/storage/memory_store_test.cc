@@ -11,7 +11,7 @@
 #include "gtest/gtest.h"
 #include "services/storage/in_memory_store.h"
 #include "services/storage/rocksdb_store.h"
-#include "services/storage/store_test_util.h"
+#include "services/storage/testing/store_test_util.h"
 
 namespace fleetmem::storage {
 namespace {

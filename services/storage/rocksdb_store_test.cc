@@ -25,7 +25,7 @@
 #include "services/storage/keys.h"
 #include "services/storage/record_codec.h"
 #include "services/storage/snapshot_file.h"
-#include "services/storage/store_test_util.h"
+#include "services/storage/testing/store_test_util.h"
 
 extern char** environ;
 

@@ -9,7 +9,7 @@
 #include "gtest/gtest.h"
 #include "rocksdb/db.h"
 #include "rocksdb/env.h"
-#include "services/storage/store_test_util.h"
+#include "services/storage/testing/store_test_util.h"
 
 namespace fleetmem::storage {
 namespace {

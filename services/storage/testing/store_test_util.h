@@ -1,7 +1,7 @@
 // Helpers for the MemoryStore tests: sample records, a canonical text dump
 // for exact comparison, a scripted workload and a temporary directory.
-#ifndef FLEETMEM_SERVICES_STORAGE_STORE_TEST_UTIL_H_
-#define FLEETMEM_SERVICES_STORAGE_STORE_TEST_UTIL_H_
+#ifndef FLEETMEM_SERVICES_STORAGE_TESTING_STORE_TEST_UTIL_H_
+#define FLEETMEM_SERVICES_STORAGE_TESTING_STORE_TEST_UTIL_H_
 
 #include <cstdint>
 #include <string>
@@ -46,4 +46,4 @@ using TempDir = files::TempDir;
 
 }  // namespace fleetmem::storage::testing
 
-#endif  // FLEETMEM_SERVICES_STORAGE_STORE_TEST_UTIL_H_
+#endif  // FLEETMEM_SERVICES_STORAGE_TESTING_STORE_TEST_UTIL_H_

@@ -1,7 +1,7 @@
 // Test helpers of the cluster module: a replica's engine on its own store,
 // a fleet's uploads, and a fleet's memory as a comparable state.
-#ifndef FLEETMEM_SERVICES_CLUSTER_CLUSTER_TEST_UTIL_H_
-#define FLEETMEM_SERVICES_CLUSTER_CLUSTER_TEST_UTIL_H_
+#ifndef FLEETMEM_SERVICES_CLUSTER_TESTING_CLUSTER_TEST_UTIL_H_
+#define FLEETMEM_SERVICES_CLUSTER_TESTING_CLUSTER_TEST_UTIL_H_
 
 #include <memory>
 #include <random>
@@ -121,4 +121,4 @@ inline void AppendUploads(
 
 }  // namespace fleetmem::cluster::testing_util
 
-#endif  // FLEETMEM_SERVICES_CLUSTER_CLUSTER_TEST_UTIL_H_
+#endif  // FLEETMEM_SERVICES_CLUSTER_TESTING_CLUSTER_TEST_UTIL_H_

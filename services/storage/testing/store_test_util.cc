@@ -1,4 +1,4 @@
-#include "services/storage/store_test_util.h"
+#include "services/storage/testing/store_test_util.h"
 
 #include <stdlib.h>
 

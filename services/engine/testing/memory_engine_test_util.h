@@ -1,8 +1,8 @@
 // Test helpers of the engine's tests (memory_engine*_test.cc): options
 // small enough that a few uploads exercise every path, traces, index and
 // store doubles, and the MemoryEngineTest fixture.
-#ifndef FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_TEST_UTIL_H_
-#define FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_TEST_UTIL_H_
+#ifndef FLEETMEM_SERVICES_ENGINE_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
+#define FLEETMEM_SERVICES_ENGINE_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
 
 #include <atomic>
 #include <chrono>
@@ -31,7 +31,7 @@
 #include "absl/time/time.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "services/engine/forwarding_store.h"
+#include "services/engine/testing/forwarding_store.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/index/hnsw_index.h"
@@ -392,4 +392,4 @@ inline void ExpectSameStats(const FleetStats& a, const FleetStats& b) {
 
 }  // namespace fleetmem::engine
 
-#endif  // FLEETMEM_SERVICES_ENGINE_MEMORY_ENGINE_TEST_UTIL_H_
+#endif  // FLEETMEM_SERVICES_ENGINE_TESTING_MEMORY_ENGINE_TEST_UTIL_H_

@@ -1,8 +1,8 @@
 // Test fixture: a real nats-server with JetStream (Debian's) on a random
 // loopback port in a temporary store directory, and NatsFleetLog clients of
 // it. For the cluster module's tests only.
-#ifndef FLEETMEM_SERVICES_CLUSTER_NATS_FIXTURE_H_
-#define FLEETMEM_SERVICES_CLUSTER_NATS_FIXTURE_H_
+#ifndef FLEETMEM_SERVICES_CLUSTER_TESTING_NATS_FIXTURE_H_
+#define FLEETMEM_SERVICES_CLUSTER_TESTING_NATS_FIXTURE_H_
 
 #include <iostream>
 #include <memory>
@@ -58,4 +58,4 @@ class NatsFixture : public ::testing::Test {
 
 }  // namespace fleetmem::cluster
 
-#endif  // FLEETMEM_SERVICES_CLUSTER_NATS_FIXTURE_H_
+#endif  // FLEETMEM_SERVICES_CLUSTER_TESTING_NATS_FIXTURE_H_

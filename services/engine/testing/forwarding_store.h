@@ -1,7 +1,7 @@
 // For tests: a MemoryStore and a FleetLog that forward every call to
 // another, for test doubles to override the calls they watch or fail.
-#ifndef FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_
-#define FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_
+#ifndef FLEETMEM_SERVICES_ENGINE_TESTING_FORWARDING_STORE_H_
+#define FLEETMEM_SERVICES_ENGINE_TESTING_FORWARDING_STORE_H_
 
 #include <cstdint>
 #include <span>
@@ -68,4 +68,4 @@ class ForwardingLog : public FleetLog {
 
 }  // namespace fleetmem::engine
 
-#endif  // FLEETMEM_SERVICES_ENGINE_FORWARDING_STORE_H_
+#endif  // FLEETMEM_SERVICES_ENGINE_TESTING_FORWARDING_STORE_H_
