@@ -70,12 +70,6 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
       return admitted;
     }
   }
-  // The fleet's load is its owner's to admit: it alone knows what the fleet
-  // holds and what of its log is not applied yet. A fleet without an owner
-  // (just created, or its owner's lease expired) is taken here.
-  if (shape->has_value() && !Serves(fleet_id) && !TakeIfFree(fleet_id)) {
-    return ForwardUpload(fleet_id, traces, options);
-  }
   if (!shape->has_value()) {
     // The fleets as the log lists them now (creations are rare; the last
     // round's listing may be a round old). Two replicas creating fleets at
@@ -84,28 +78,40 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
     absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
     valid = limits.AdmitNewFleet(
         fleet_id, fleets.ok() ? fleets->size() : node_.fleets_seen());
-  } else {
-    valid = engine::AdmitLoad(limits, fleet_id, Load(fleet_id),
-                              NewTraces(fleet_id, traces), max_backlog_traces_);
-  }
-  if (!valid.ok()) return valid;
-  // An upload that creates the fleet is appended only as its log's first
-  // entry: of two creating it at once with different shapes, the second
-  // is checked against the first's shape instead of being acknowledged
-  // and refused when applied.
-  // Acknowledged at the replicated append: options.wait_applied is not
-  // served here (the answer says so: Uploaded::applied stays false).
-  absl::StatusOr<Ingested> ingested =
-      Ingest(*log_, fleet_id, traces, max_entry_bytes_, !shape->has_value());
-  if (absl::IsFailedPrecondition(ingested.status()) && !shape->has_value()) {
+    if (!valid.ok()) return valid;
+    // Appended only as the log's first entry: of two uploads creating the
+    // fleet at once with different shapes, the second is checked against
+    // the first's shape instead of being acknowledged and refused when
+    // applied.
+    absl::StatusOr<Ingested> created = Ingest(
+        *log_, fleet_id, traces, max_entry_bytes_, /*creates_fleet=*/true);
+    if (!absl::IsFailedPrecondition(created.status())) {
+      return Answer(fleet_id, created);
+    }
+    // Created by another upload meanwhile: this one is an upload to it.
     shape = ShapeOf(fleet_id);
     if (!shape.ok()) return shape.status();
     valid =
         engine::AdmitShape(limits, fleet_id, traces,
                            shape->has_value() ? &**shape : nullptr, max_traces);
     if (!valid.ok()) return valid;
-    ingested = Ingest(*log_, fleet_id, traces, max_entry_bytes_);
   }
+  // The fleet's load is its owner's to admit: it alone knows what the fleet
+  // holds and what of its log is not applied yet. A fleet without an owner
+  // (just created, or its owner's lease expired) is taken here.
+  if (!Serves(fleet_id) && !TakeIfFree(fleet_id)) {
+    return ForwardUpload(fleet_id, traces, options);
+  }
+  valid = engine::AdmitLoad(limits, fleet_id, Load(fleet_id),
+                            NewTraces(fleet_id, traces), max_backlog_traces_);
+  if (!valid.ok()) return valid;
+  // Acknowledged at the replicated append: options.wait_applied is not
+  // served here (the answer says so: Uploaded::applied stays false).
+  return Answer(fleet_id, Ingest(*log_, fleet_id, traces, max_entry_bytes_));
+}
+
+absl::StatusOr<transport::Uploaded> ReplicatedMemory::Answer(
+    std::string_view fleet_id, const absl::StatusOr<Ingested>& ingested) {
   if (!ingested.ok()) return ingested.status();
   transport::Uploaded uploaded;
   uploaded.result.accepted = ingested->traces - ingested->duplicate_traces;

@@ -23,6 +23,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "services/cluster/cluster_node.h"
+#include "services/cluster/materialiser.h"
 #include "services/cluster/nats_fleet_log.h"
 #include "services/engine/admission.h"
 #include "services/engine/memory_engine.h"
@@ -114,6 +115,10 @@ class ReplicatedMemory final : public transport::FleetMemory {
   absl::StatusOr<std::optional<engine::FleetShape>> ShapeOf(
       std::string_view fleet_id);
 
+  // The answer to an upload Ingest appended (or its error); what it
+  // appended counts in the fleet's load until it is applied.
+  absl::StatusOr<transport::Uploaded> Answer(
+      std::string_view fleet_id, const absl::StatusOr<Ingested>& ingested);
   // Forwards an upload to the fleet's owner (once: a forwarded upload
   // that meets no owner here is UNAVAILABLE).
   absl::StatusOr<transport::Uploaded> ForwardUpload(
