@@ -11,8 +11,8 @@
 #include "absl/synchronization/notification.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "services/engine/testing/forwarding_store.h"
 #include "services/engine/memory_engine.h"
+#include "services/engine/testing/forwarding_store.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
@@ -126,7 +126,7 @@ class WritePathTest : public ::testing::Test {
     path_.reset();
     engine_.reset();
     absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
-        SmallOptions(), &store_,
+        engine_options_, &store_,
         [](size_t dimension) { return index::NewExactIndex(dimension); });
     ASSERT_TRUE(engine.ok()) << engine.status();
     engine_ = *std::move(engine);
@@ -144,6 +144,7 @@ class WritePathTest : public ::testing::Test {
     return stats.ok() ? stats->traces + stats->pending_traces : 0;
   }
 
+  EngineOptions engine_options_ = SmallOptions();
   std::unique_ptr<MemoryStore> memory_ = storage::NewInMemoryStore();
   std::unique_ptr<FleetLog> log_ = storage::NewInMemoryLog();
   GatedStorage store_{memory_.get(), log_.get()};
@@ -387,6 +388,30 @@ TEST_F(WritePathTest, OpenAppliesTheAcknowledgedTailOnceAfterACrash) {
   ASSERT_TRUE(again.ok());
   EXPECT_EQ(again->accepted, 1u);
   EXPECT_EQ(again->sequence, 4u);
+}
+
+// The limits admit an upload before it is acknowledged (admission.h);
+// applying it meets none of them. An entry acknowledged under a limit that
+// was lowered before it was applied (a restart with a new config) is
+// applied, and the log goes on; before issue 45 the entry was refused at
+// every retry and the fleet's log stood still behind it.
+TEST_F(WritePathTest, AnAcknowledgedEntryAppliesPastALimitLoweredSince) {
+  engine_options_.limits.max_traces_per_fleet = 100;
+  Open();
+  store_.SetApplies(false);
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 30)).ok());
+  path_.reset();  // the server stops before the entry is applied
+  store_.SetApplies(true);
+  engine_options_.limits.max_traces_per_fleet = 10;
+  engine_options_.limits.max_code_dimension = 2;  // the fleet's codes: 4
+  Open();
+  ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("f"), 30u);
+  EXPECT_TRUE(path_->GetBacklog("f").apply_error.ok());
+  // New uploads meet the lowered limit before they are acknowledged.
+  absl::StatusOr<Appended> refused = path_->Append("f", Traces("r1", 31, 1));
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(refused.status().message(), HasSubstr("max_traces_per_fleet"));
 }
 
 TEST_F(WritePathTest, AFleetOnlyInItsLogIsMadeWhenApplied) {
