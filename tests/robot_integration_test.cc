@@ -23,7 +23,7 @@
 #include "absl/strings/str_cat.h"
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/metric_head.h"
-#include "clients/robot/robot_state.pb.h"
+#include "clients/robot/memory/robot_state.pb.h"
 #include "fleetmem_paths.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"

@@ -34,7 +34,7 @@
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_join.h"
 #include "clients/robot/learning/pretrain.h"
-#include "clients/robot/nordland.h"
+#include "clients/robot/sensing/nordland.h"
 #include "fleetmem_version.h"
 #include "tools/eval/continual_vo_eval.h"
 #include "tools/eval/lifelong.h"

@@ -6,12 +6,12 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "clients/robot/carmen_log.h"
-#include "clients/robot/code_search.h"
-#include "services/common/files.h"
-#include "clients/robot/scan_encoder.h"
+#include "clients/robot/sensing/carmen_log.h"
+#include "clients/robot/sensing/code_search.h"
+#include "clients/robot/sensing/scan_encoder.h"
 #include "clients/robot/slam/laser_slam.h"
 #include "clients/robot/slam/trajectory_metrics.h"
+#include "services/common/files.h"
 
 namespace fleetmem::eval {
 namespace {

@@ -5,7 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "clients/robot/rewards.h"
+#include "clients/robot/sensing/rewards.h"
 
 namespace fleetmem::robot::gpl {
 

@@ -18,10 +18,10 @@
 
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
-#include "clients/robot/encoder.h"
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/segment_learner.h"
-#include "clients/robot/segment_step.h"
+#include "clients/robot/runtime/segment_step.h"
+#include "clients/robot/sensing/encoder.h"
 
 namespace fleetmem::robot::gpl {
 

@@ -4,7 +4,7 @@
 #include <string>
 #include <vector>
 
-#include "clients/robot/encoder.h"
+#include "clients/robot/sensing/encoder_factory.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "opencv2/core.hpp"

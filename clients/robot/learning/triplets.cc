@@ -3,7 +3,7 @@
 #include <cmath>
 #include <limits>
 
-#include "clients/robot/code_search.h"
+#include "clients/robot/sensing/code_search.h"
 
 namespace fleetmem::robot::gpl {
 namespace {

@@ -22,7 +22,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "clients/robot/observation.h"
+#include "clients/robot/sensing/observation.h"
 #include "clients/robot/slam/pose_graph.h"
 #include "clients/robot/slam/scan_matcher.h"
 #include "clients/robot/slam/trajectory.h"

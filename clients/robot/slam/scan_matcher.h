@@ -13,7 +13,7 @@
 
 #include "Eigen/Core"
 #include "absl/status/statusor.h"
-#include "clients/robot/observation.h"
+#include "clients/robot/sensing/observation.h"
 #include "clients/robot/slam/pose_graph.h"
 
 namespace fleetmem::slam {
