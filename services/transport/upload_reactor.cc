@@ -59,12 +59,21 @@ UploadReactor::UploadReactor(ServiceState* state,
     Done(ToGrpcStatus(caller.status()));
     return;
   }
-  std::string client = ClientName(state_->authenticator(), *context, *caller);
-  if (absl::Status slot = state_->AcquireStream(client); !slot.ok()) {
-    Done(ToGrpcStatus(slot));
-    return;
+  // An upload another replica forwards to this one (the fleet's owner) is
+  // counted where the robot's stream is (max_streams_per_client), not
+  // again here under the peer's name, which every forwarded upload shares.
+  const bool forwarded =
+      context->client_metadata().count(kForwardedHeader) > 0 &&
+      caller->role == auth::Role::kAdmin;
+  if (!forwarded) {
+    std::string client =
+        ClientName(state_->authenticator(), *context, *caller);
+    if (absl::Status slot = state_->AcquireStream(client); !slot.ok()) {
+      Done(ToGrpcStatus(slot));
+      return;
+    }
+    client_ = std::move(client);
   }
-  client_ = std::move(client);
   caller_ = *std::move(caller);
   absl::MutexLock lock(&mu_);
   MaybeRead();
