@@ -536,7 +536,7 @@ robot::PlaceRecall RecallFor(const Context& ctx, const MethodSpec& spec,
 }
 
 // Algorithm 3 for one segment of one robot: the robot's own segment step
-// (clients/robot/segment_step.h: replay, recall, learn, rewards), then
+// (clients/robot/runtime/segment_step.h: replay, recall, learn, rewards), then
 // upload and consolidate (or, for uniform_replay, keep a uniform sample)
 // and refresh M_D.
 absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,

@@ -17,7 +17,7 @@ struct SlamEvalOptions {
   std::string log;
   std::string relations;
   std::string out_dir;
-  // Scan code for place recognition (clients/robot/scan_encoder.h).
+  // Scan code for place recognition (clients/robot/sensing/scan_encoder.h).
   std::string encoder = "scanring-r32-d32";
   // Loop candidates per keyframe and the position prior's radius.
   int candidates = 3;

@@ -114,14 +114,14 @@ def main():
           'certificate_common_name: "x" }\n'
           'principal { name: "a" role: ADMIN certificate_common_name: "y" }\n')
 
-    img = "clients/robot/fuzz_corpus/image_decode_fuzz"
+    img = "clients/robot/sensing/fuzz_corpus/image_decode_fuzz"
     write(img, "grey-8x4.png", png(8, 4, False, range(32)))
     write(img, "rgb-16x8.png", png(16, 8, True,
                                    [(i * 7) % 256 for i in range(16 * 8 * 3)]))
     write(img, "one-pixel.png", png(1, 1, False, [128]))
 
     # CARMEN logs: the message kinds of a real log, and two broken records.
-    carmen = "clients/robot/fuzz_corpus/carmen_log_fuzz"
+    carmen = "clients/robot/sensing/fuzz_corpus/carmen_log_fuzz"
     write(carmen, "log",
           "# message formats defined: PARAM SYNC ODOM FLASER\n"
           "PARAM robot_use_laser on nohost 0\n"
