@@ -857,9 +857,12 @@ TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
   }
   // A lost NATS server costs JetStream's election of new leaders for the
   // streams and the lease bucket it led (seconds in nats-server 2.9); the
-  // issue's 10 s is for the loss of a fleet's owner.
+  // issue's 10 s is for the loss of a fleet's owner. Measured 0.003-15.6 s
+  // (2026-11-28: 100 runs of this case, 3 over 15 s, one of them on the
+  // code before issue 45; docs/distributed.md): the bound is 20 s, above
+  // the elections' spread, below a cluster that does not recover.
   EXPECT_GE(after_nats, 0.0);
-  EXPECT_LT(after_nats, 15.0);
+  EXPECT_LT(after_nats, 20.0);
   EXPECT_GE(after_pause, 0.0);
   EXPECT_LT(after_pause, 10.0);
 
