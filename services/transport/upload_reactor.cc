@@ -66,8 +66,7 @@ UploadReactor::UploadReactor(ServiceState* state,
       context->client_metadata().count(kForwardedHeader) > 0 &&
       caller->role == auth::Role::kAdmin;
   if (!forwarded) {
-    std::string client =
-        ClientName(state_->authenticator(), *context, *caller);
+    std::string client = ClientName(state_->authenticator(), *context, *caller);
     if (absl::Status slot = state_->AcquireStream(client); !slot.ok()) {
       Done(ToGrpcStatus(slot));
       return;

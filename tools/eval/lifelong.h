@@ -14,8 +14,8 @@
 //
 // Methods (LifelongMethodNames): classical (HOG cosine), classical_seq (HOG
 // with sequence matching), and the robot's two learners, each run through
-// the robot's own segment step (clients/robot/runtime/segment_step.h): the metric
-// head on the HOG fleet code (metric_robot.h: joint, finetune, bioslam,
+// the robot's own segment step (clients/robot/runtime/segment_step.h): the
+// metric head on the HOG fleet code (metric_robot.h: joint, finetune, bioslam,
 // uniform_replay with bioslam's trace budget, no_rex, no_rin,
 // no_clustering, no_decay, fleet_shared) and the GPL head on the frozen GPL
 // encoder (gpl_robot.h: gpl_pretrained, gpl_joint, gpl_finetune,
