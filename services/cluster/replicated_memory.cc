@@ -99,8 +99,9 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
   // The fleet's load is its owner's to admit: it alone knows what the fleet
   // holds and what of its log is not applied yet. A fleet without an owner
   // (just created, or its owner's lease expired) is taken here.
-  if (!Serves(fleet_id) && !TakeIfFree(fleet_id)) {
-    return ForwardUpload(fleet_id, traces, options);
+  std::string holder;
+  if (!Serves(fleet_id) && !TakeIfFree(fleet_id, &holder)) {
+    return ForwardUpload(fleet_id, traces, options, holder);
   }
   valid = engine::AdmitLoad(limits, fleet_id, Load(fleet_id),
                             NewTraces(fleet_id, traces), max_backlog_traces_);
@@ -127,13 +128,17 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Answer(
 
 absl::StatusOr<transport::Uploaded> ReplicatedMemory::ForwardUpload(
     std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
-    const transport::UploadOptions& options) {
+    const transport::UploadOptions& options, const std::string& holder) {
   if (options.forwarded) {
     return absl::UnavailableError(absl::StrCat(
         "fleet \"", V(fleet_id), "\" is not owned by \"", self_,
         "\" (ownership moved); nothing of this upload was stored: retry"));
   }
-  absl::StatusOr<std::optional<std::string>> owner = Owner(fleet_id);
+  // The holder TakeIfFree read; Owner() (the last owner seen) when it could
+  // not read one.
+  absl::StatusOr<std::optional<std::string>> owner =
+      holder.empty() ? Owner(fleet_id)
+                     : absl::StatusOr<std::optional<std::string>>(holder);
   if (!owner.ok()) return owner.status();
   if (!owner->has_value()) {
     return absl::UnavailableError(absl::StrCat(
@@ -159,9 +164,14 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::ForwardUpload(
   return uploaded;
 }
 
-bool ReplicatedMemory::TakeIfFree(std::string_view fleet_id) {
-  absl::StatusOr<std::optional<Lease>> holder = log_->Holder(fleet_id);
-  if (!holder.ok() || holder->has_value()) return false;
+bool ReplicatedMemory::TakeIfFree(std::string_view fleet_id,
+                                  std::string* holder) {
+  absl::StatusOr<std::optional<Lease>> lease = log_->Holder(fleet_id);
+  if (!lease.ok()) return false;
+  if (lease->has_value()) {
+    if ((*lease)->owner != self_) *holder = (*lease)->owner;
+    return false;
+  }
   // Takes the lease and applies a first batch of the log, as the ownership
   // loop does for a free fleet (which balances the fleets later).
   return node_.materialiser().Step(fleet_id).ok();

@@ -119,14 +119,16 @@ class ReplicatedMemory final : public transport::FleetMemory {
   // appended counts in the fleet's load until it is applied.
   absl::StatusOr<transport::Uploaded> Answer(
       std::string_view fleet_id, const absl::StatusOr<Ingested>& ingested);
-  // Forwards an upload to the fleet's owner (once: a forwarded upload
-  // that meets no owner here is UNAVAILABLE).
+  // Forwards an upload to the fleet's owner, `holder` (as TakeIfFree read
+  // it; empty: looked up) (once: a forwarded upload that meets no owner
+  // here is UNAVAILABLE).
   absl::StatusOr<transport::Uploaded> ForwardUpload(
       std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
-      const transport::UploadOptions& options);
+      const transport::UploadOptions& options, const std::string& holder);
   // Takes the fleet's lease if no replica holds it; true if this replica
-  // holds it then.
-  bool TakeIfFree(std::string_view fleet_id);
+  // holds it then. Otherwise `holder` gets the replica that holds it, if
+  // the lease table could say (one read of it per upload).
+  bool TakeIfFree(std::string_view fleet_id, std::string* holder);
   // An owned fleet's load: the traces it holds, and those this replica
   // appended and has not applied yet (an owner takes every upload of its
   // fleets; entries appended before it took the fleet are not counted).
