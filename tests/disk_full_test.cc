@@ -61,6 +61,15 @@ ServerOptions SmallDiskServer(const TempDir& dir,
   return options;
 }
 
+// Takes every free byte under `mount_point` (RocksDB may free files
+// meanwhile: topped up a few times), in files named `prefix`N.
+void FillUp(const std::string& mount_point, const std::string& prefix) {
+  for (int i = 0; i < 5 && FreeBytes(mount_point) > 0; ++i) {
+    Fill(mount_point + "/" + prefix + std::to_string(i),
+         FreeBytes(mount_point));
+  }
+}
+
 TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   TempDir dir("fleetmem-diskfull-");
   const std::string mount_point = dir.Join("fs");
@@ -110,18 +119,25 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
           << Describe(status);
     }
   };
-  grpc::Status refused;
-  for (int i = 0; i < 200 && refused.ok(); ++i) {
-    spec.first_seq = 1 + acknowledged;
-    Reply<v1::UploadTracesResponse> reply =
-        UploadTraces(*stub, kFleet, MakeTraces(spec), kBatch);
-    if (reply.ok()) {
+  // Uploads new batches until one is refused; returns that refusal (OK if
+  // none was in 200). Space the server frees itself (the ingest log's spare
+  // segment, files RocksDB deletes, a log segment trimmed after an apply)
+  // takes a few more batches first, so a full disk is a refusal within the
+  // loop, not at its first upload.
+  auto upload_until_refused = [&]() -> grpc::Status {
+    for (int i = 0; i < 200; ++i) {
+      spec.first_seq = 1 + acknowledged;
+      Reply<v1::UploadTracesResponse> reply =
+          UploadTraces(*stub, kFleet, MakeTraces(spec), kBatch);
+      if (!reply.ok()) {
+        refusal(reply.status);
+        return reply.status;
+      }
       acknowledged += reply.response.accepted();
-    } else {
-      refused = reply.status;
-      refusal(refused);
     }
-  }
+    return grpc::Status::OK;
+  };
+  const grpc::Status refused = upload_until_refused();
   ASSERT_FALSE(refused.ok()) << "the filesystem never filled up";
   ASSERT_GT(acknowledged, 0u);
 
@@ -137,18 +153,10 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   EXPECT_TRUE(QueryCode(*stub, kFleet, code, 3).ok());
   // Another process takes the last byte: still refused, reads still served,
   // the process alive.
-  const std::string last_bytes = mount_point + "/last-bytes";
-  Fill(last_bytes, FreeBytes(mount_point));
-  // RocksDB may free files (compaction) meanwhile: top up.
-  for (int i = 0; i < 5 && FreeBytes(mount_point) >= kMiB; ++i) {
-    Fill(last_bytes + std::to_string(i), FreeBytes(mount_point));
-  }
+  FillUp(mount_point, "last-bytes");
   EXPECT_LT(FreeBytes(mount_point), kMiB);
-  spec.first_seq = 1 + acknowledged;
-  const grpc::Status still =
-      UploadTraces(*stub, kFleet, MakeTraces(spec)).status;
+  const grpc::Status still = upload_until_refused();
   ASSERT_FALSE(still.ok());
-  refusal(still);
   EXPECT_TRUE(GetStats(*stub, kFleet).ok());
   EXPECT_TRUE(QueryCode(*stub, kFleet, code, 3).ok());
   EXPECT_TRUE(server->running());
@@ -170,15 +178,20 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
                 stats.response.backlog_traces(),
             acknowledged);
   EXPECT_TRUE(QueryCode(*stub, kFleet, code, 3).ok());
-  const grpc::Status after_crash =
-      UploadTraces(*stub, kFleet, MakeTraces(spec)).status;
+  // What the killed process held open (files RocksDB had deleted) is free
+  // now: another process takes it.
+  FillUp(mount_point, "after-crash");
+  const grpc::Status after_crash = upload_until_refused();
   ASSERT_FALSE(after_crash.ok());
-  refusal(after_crash);
 
   // Space returns: writes resume by themselves.
+  spec.first_seq = 1 + acknowledged;
   ASSERT_EQ(unlink(filler.c_str()), 0);
-  ASSERT_EQ(unlink(last_bytes.c_str()), 0);
-  for (int i = 0; i < 5; ++i) unlink((last_bytes + std::to_string(i)).c_str());
+  for (const char* prefix : {"/last-bytes", "/after-crash"}) {
+    for (int i = 0; i < 5; ++i) {
+      unlink(absl::StrCat(mount_point, prefix, i).c_str());
+    }
+  }
   Reply<v1::UploadTracesResponse> resumed =
       UploadTraces(*stub, kFleet, MakeTraces(spec));
   ASSERT_TRUE(resumed.ok()) << Describe(resumed.status);
@@ -202,15 +215,6 @@ TEST(DiskFullTest, RefusesWritesServesReadsAndRecovers) {
   absl::StatusOr<int> code_on_stop = server->Stop();
   EXPECT_TRUE(code_on_stop.ok() && *code_on_stop == 0);
   if (HasFailure()) std::cerr << server->Output();
-}
-
-// Takes every free byte under `mount_point` (RocksDB may free files
-// meanwhile: topped up a few times), in files named `prefix`N.
-void FillUp(const std::string& mount_point, const std::string& prefix) {
-  for (int i = 0; i < 5 && FreeBytes(mount_point) > 0; ++i) {
-    Fill(mount_point + "/" + prefix + std::to_string(i),
-         FreeBytes(mount_point));
-  }
 }
 
 // Issue 32: a store never written to, on a filesystem another process has
