@@ -54,26 +54,6 @@ TraceSpec Spec(int fleet, int robot, uint64_t first_seq, size_t count) {
   return spec;
 }
 
-// A loopback port that was free a moment ago (the replicas need fixed
-// ports: their addresses are their ids).
-int FreePort() {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  address.sin_port = 0;
-  socklen_t size = sizeof(address);
-  int port = 0;
-  if (bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
-      getsockname(fd, reinterpret_cast<sockaddr*>(&address), &size) == 0) {
-    port = ntohs(address.sin_port);
-  }
-  close(fd);
-  return port;
-}
-
-// Traces the fleet has received, each (robot_id, seq) once (consolidation
-// may downsample what it holds).
 // The body of GET /metrics on the HTTP port (plain HTTP/1.0), or "".
 std::string Metrics(int port) {
   const int fd = socket(AF_INET, SOCK_STREAM, 0);
@@ -166,23 +146,8 @@ class ClusterIntegrationTest : public ::testing::Test {
   // A JetStream cluster of three nats-servers routed to each other on
   // loopback: three copies of each log, a quorum of two.
   void StartNatsCluster() {
-    std::vector<int> routes;
-    for (int i = 0; i < 3; ++i) routes.push_back(FreePort());
-    std::string all_routes;
-    for (int port : routes) {
-      absl::StrAppend(&all_routes, all_routes.empty() ? "" : ",",
-                      "nats://127.0.0.1:", port);
-    }
-    for (int i = 0; i < 3; ++i) {
-      ServerOptions options =
-          NatsServerOptions(dir_.Join(absl::StrCat("jetstream-", i)),
-                            dir_.Join(absl::StrCat("nats-", i, ".log")));
-      options.extra_args.insert(
-          options.extra_args.end(),
-          {"-n", absl::StrCat("nats-", i), "--cluster_name", "fleetmem",
-           "--cluster", absl::StrCat("nats://127.0.0.1:", routes[i]),
-           "--routes", all_routes});
-      nats_.push_back(std::make_unique<ServerProcess>(options));
+    for (ServerOptions& options : NatsClusterOptions(dir_.path(), 3)) {
+      nats_.push_back(std::make_unique<ServerProcess>(std::move(options)));
     }
     // Each waits for its routes only after it listens: start all, then
     // wait for each.
@@ -830,15 +795,6 @@ TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
          Clock::now() - resumed < std::chrono::seconds(15)) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
-  ASSERT_TRUE(watch_ended.load()) << "the watch on the old owner goes on";
-  EXPECT_EQ(watch_end.error_code(), grpc::StatusCode::UNAVAILABLE)
-      << Describe(watch_end);
-  EXPECT_NE(watch_end.error_message().find("moved to another replica"),
-            std::string::npos)
-      << Describe(watch_end);
-  std::this_thread::sleep_for(std::chrono::seconds(1));
-  stop_robots();
-
   std::cout << "fault                 served again after\n"
             << "NATS server killed    " << after_nats << " s\n"
             << "owner paused 4 s      " << after_pause << " s\n";
@@ -855,6 +811,15 @@ TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
       }
     }
   }
+  ASSERT_TRUE(watch_ended.load()) << "the watch on the old owner goes on";
+  EXPECT_EQ(watch_end.error_code(), grpc::StatusCode::UNAVAILABLE)
+      << Describe(watch_end);
+  EXPECT_NE(watch_end.error_message().find("moved to another replica"),
+            std::string::npos)
+      << Describe(watch_end);
+  std::this_thread::sleep_for(std::chrono::seconds(1));
+  stop_robots();
+
   // A lost NATS server costs JetStream's election of new leaders for the
   // streams and the lease bucket it led (seconds in nats-server 2.9); the
   // issue's 10 s is for the loss of a fleet's owner. Measured 0.003-15.6 s

@@ -14,6 +14,8 @@ namespace fleetmem::testing {
 using files::MakeTempDir;
 using files::RemoveTree;
 using process::DefaultServerBinary;
+using process::FreePort;
+using process::NatsClusterOptions;
 using process::NatsServerOptions;
 using process::ParseListeningPort;
 using process::ParseReadyFile;

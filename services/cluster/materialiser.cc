@@ -298,7 +298,7 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
                         << "\" taken (lease revision " << lease->revision
                         << ", this replica's store at entry " << *position
                         << ")";
-    renewed_at = absl::Now();
+    renewed_at = options_.clock->Now();
     {
       absl::MutexLock held(&lease_mu_);
       held_[std::string(fleet_id)] = Held{*lease, renewed_at, *position};
@@ -345,7 +345,7 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
     // renewal (the lease has a third of its time left then); a longer
     // step ends here and the next renews first.
     if (options_.renew_interval > absl::ZeroDuration() &&
-        absl::Now() - renewed_at >= 2 * options_.renew_interval &&
+        options_.clock->Now() - renewed_at >= 2 * options_.renew_interval &&
         entry.sequence > capture) {
       break;
     }
@@ -369,6 +369,7 @@ absl::StatusOr<absl::Time> Materialiser::RenewIfDue(std::string_view fleet_id,
                                                     bool always) {
   absl::MutexLock renewing(&renew_mu_);
   Lease lease;
+  absl::Status expired;
   {
     absl::MutexLock held(&lease_mu_);
     auto it = held_.find(fleet_id);
@@ -376,13 +377,28 @@ absl::StatusOr<absl::Time> Materialiser::RenewIfDue(std::string_view fleet_id,
       return absl::FailedPreconditionError(absl::StrCat(
           "cluster: the lease of fleet \"", V(fleet_id), "\" was lost"));
     }
-    if (!always &&
-        absl::Now() - it->second.renewed_at < options_.renew_interval) {
+    const absl::Duration since = options_.clock->Now() - it->second.renewed_at;
+    if (!always && since < options_.renew_interval) {
       return it->second.renewed_at;
     }
-    lease = it->second.lease;
+    if (options_.lease_ttl > absl::ZeroDuration() &&
+        since >= options_.lease_ttl) {
+      // Expired as this replica's clock reads: another may hold it by now.
+      held_.erase(it);
+      expired = absl::FailedPreconditionError(absl::StrCat(
+          "cluster: the lease of fleet \"", V(fleet_id), "\" was not renewed ",
+          "for ", absl::FormatDuration(since), ", past its time-to-live of ",
+          absl::FormatDuration(options_.lease_ttl),
+          " (this replica was paused, or NATS did not answer): taken as lost"));
+    } else {
+      lease = it->second.lease;
+    }
   }
-  const absl::Time now = absl::Now();
+  if (!expired.ok()) {
+    Lost(fleet_id, expired);
+    return expired;
+  }
+  const absl::Time now = options_.clock->Now();
   absl::StatusOr<Lease> renewed = leases_->Renew(lease);
   bool lost = false;
   {

@@ -13,7 +13,10 @@
 // Fencing: before a batch of entries the owner renews its lease (when
 // options.renew_interval has passed since the last renewal); a replica
 // that lost it (it stopped renewing, or NATS expired it) stops
-// applying that fleet at once and answers FAILED_PRECONDITION.
+// applying that fleet at once and answers FAILED_PRECONDITION. A lease not
+// renewed within options.lease_ttl by this replica's clock is lost here
+// too, even if NATS never says so (the renewals got no answer, or no other
+// replica took the fleet): the replica's watches of the fleet end then.
 //
 // The engine it applies to must run without upload rate limits (quota
 // rates 0): refusing an entry by the clock would make replicas differ.
@@ -37,6 +40,7 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
 #include "services/cluster/replicated_log.h"
+#include "services/common/clock.h"
 #include "services/core/types.h"
 #include "services/engine/memory_engine.h"
 
@@ -63,6 +67,14 @@ struct MaterialiserOptions {
   // Once a snapshot is stored, the log entries it covers are trimmed
   // (ReplicatedLog::Trim), so that logs do not grow without bound.
   bool trim_log = true;
+  // The leases' time-to-live: a lease this replica has not renewed for this
+  // long, as its own clock reads, is lost here whatever NATS answers later
+  // (a paused replica, or one whose renewals got no answer, stops serving
+  // the fleet at once: RenewLeases). 0: only a refused renewal loses it.
+  absl::Duration lease_ttl = absl::ZeroDuration();
+  // Reads the time for renewals, the fencing window and lease_ttl; not
+  // owned (tests pass a ManualClock).
+  const Clock* clock = &Clock::Real();
 };
 
 // What one step did for a fleet.
@@ -216,9 +228,10 @@ class Materialiser {
     uint64_t position = 0;  // Owned::position as of the last step's end
   };
   // Renews the fleet's lease if renew_interval has passed since its last
-  // renewal (or `always`). FAILED_PRECONDITION once it is lost (it is
-  // forgotten then); NATS's error otherwise (the lease is kept: the next
-  // renewal retries it). Returns when the lease was last renewed.
+  // renewal (or `always`). FAILED_PRECONDITION once it is lost (refused, or
+  // not renewed for lease_ttl; it is forgotten then); NATS's error otherwise
+  // (the lease is kept: the next renewal retries it). Returns when the lease
+  // was last renewed.
   absl::StatusOr<absl::Time> RenewIfDue(std::string_view fleet_id, bool always)
       ABSL_LOCKS_EXCLUDED(lease_mu_);
   // Logs the loss of the fleet's lease and calls on_lease_lost_.

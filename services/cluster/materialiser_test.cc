@@ -16,6 +16,7 @@
 #include "gtest/gtest.h"
 #include "services/cluster/testing/cluster_test_util.h"
 #include "services/cluster/testing/nats_fixture.h"
+#include "services/common/testing/manual_clock.h"
 #include "services/engine/testing/memory_engine_test_util.h"
 #include "services/storage/fleet_image.h"
 
@@ -134,6 +135,56 @@ TEST_F(MaterialiserTest, ARestartedOwnerResumesAfterItsStoredPosition) {
   EXPECT_EQ(resumed->applied, 1u);
   EXPECT_EQ(resumed->position, 4u);
   ExpectSameState(StateOf(*a.engine, fleet), StateOf(*embedded.engine, fleet));
+}
+
+// A lease the owner could not renew within its time-to-live, as the
+// owner's clock reads (it was paused, or NATS did not answer), is lost
+// there although NATS still holds it and would renew it: the fleet's
+// watchers hear of it at once (OnLeaseLost), nothing more is applied under
+// it, and the replica takes the fleet again only through Acquire.
+TEST_F(MaterialiserTest, ALeaseNotRenewedWithinItsTtlIsLostByTheOwnersClock) {
+  const std::string fleet = "fleet-p";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  AppendUploads(*log, fleet, {uploads[0]});
+  Replica a;
+  fleetmem::testing::ManualClock clock;
+  Materialiser owner({.replica_id = "replica-a",
+                      .renew_interval = absl::Milliseconds(300),
+                      .lease_ttl = absl::Seconds(1),
+                      .clock = &clock},
+                     log.get(), log.get(), log.get(), a.engine.get());
+  std::vector<std::string> lost;
+  owner.OnLeaseLost([&](const std::string& id) { lost.push_back(id); });
+  absl::StatusOr<StepResult> first = owner.Step(fleet);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(first->applied, 1u);
+
+  // Renewed while due: kept.
+  clock.Advance(absl::Milliseconds(400));
+  owner.RenewLeases();
+  EXPECT_TRUE(owner.Owns(fleet));
+  EXPECT_TRUE(lost.empty());
+
+  // Not renewed for 1.2 s (the replica was stopped): lost here, though the
+  // lease is still this replica's in NATS.
+  clock.Advance(absl::Milliseconds(1200));
+  owner.RenewLeases();
+  EXPECT_THAT(lost, ::testing::ElementsAre(fleet));
+  absl::StatusOr<std::optional<Lease>> holder = log->Holder(fleet);
+  ASSERT_TRUE(holder.ok()) << holder.status();
+  ASSERT_TRUE(holder->has_value());
+  EXPECT_EQ((*holder)->owner, "replica-a");
+  AppendUploads(*log, fleet, {uploads[1]});
+  absl::StatusOr<StepResult> fenced = owner.Step(fleet);
+  EXPECT_EQ(fenced.status().code(), absl::StatusCode::kFailedPrecondition)
+      << fenced.status();
+  EXPECT_FALSE(owner.Owns(fleet));
+  // The next step takes it again (its own lease, at once) and goes on.
+  absl::StatusOr<StepResult> again = owner.Step(fleet);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->position, 2u);
 }
 
 // An entry the memory refuses (another code dimension than the fleet's) is

@@ -3,10 +3,14 @@
 #include "services/cluster/nats_fleet_log.h"
 
 #include <chrono>
+#include <iostream>
+#include <memory>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/cluster/testing/nats_fixture.h"
@@ -157,6 +161,91 @@ TEST_F(NatsFleetLogTest, ALeaseNotRenewedExpiresAndAnotherReplicaTakesIt) {
   EXPECT_GT(b->revision, a->revision);
   EXPECT_EQ(log->Renew(*a).status().code(),
             absl::StatusCode::kFailedPrecondition);
+}
+
+// Three nats-servers in one JetStream cluster (three copies of the lease
+// bucket), and a lease client per replica.
+class NatsClusterLeaseTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    for (ServerOptions& options : testing::NatsClusterOptions(dir_.path(), 3)) {
+      nats_.push_back(std::make_unique<testing::ServerProcess>(options));
+    }
+    for (auto& nats : nats_) {
+      absl::Status started = nats->Start();
+      ASSERT_TRUE(started.ok()) << started;
+    }
+  }
+
+  std::unique_ptr<NatsFleetLog> Connect() {
+    NatsOptions options;
+    for (auto& nats : nats_) {
+      options.servers.push_back(absl::StrCat("nats://", nats->address()));
+    }
+    options.replicas = 3;
+    options.lease_ttl = absl::Seconds(1);
+    options.timeout = absl::Seconds(2);
+    absl::StatusOr<std::unique_ptr<NatsFleetLog>> log =
+        NatsFleetLog::Connect(options);
+    // The cluster elects its meta leader after the servers start.
+    for (int i = 0; i < 50 && !log.ok(); ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(200));
+      log = NatsFleetLog::Connect(options);
+    }
+    EXPECT_TRUE(log.ok()) << log.status();
+    return log.ok() ? *std::move(log) : nullptr;
+  }
+
+  // Seconds from the moment replica-a takes `fleet` (and stops renewing)
+  // until replica-b takes it, asking every 50 ms; -1 if not in 20 s.
+  static double Takeover(NatsFleetLog& a, NatsFleetLog& b,
+                         const std::string& fleet) {
+    using Clock = std::chrono::steady_clock;
+    auto start = Clock::now();
+    while (!a.Acquire(fleet, "replica-a").ok()) {  // a leader election
+      if (Clock::now() - start > std::chrono::seconds(20)) return -1;
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    start = Clock::now();
+    while (!b.Acquire(fleet, "replica-b").ok()) {
+      if (Clock::now() - start > std::chrono::seconds(20)) return -1;
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return std::chrono::duration<double>(Clock::now() - start).count();
+  }
+
+  testing::TempDir dir_{"fleetmem-nats-cluster-"};
+  std::vector<std::unique_ptr<testing::ServerProcess>> nats_;
+};
+
+// A lease whose holder stopped renewing moves within two TTLs, also once
+// JetStream has lost a server (the lease bucket's leader, or not) and
+// elected new leaders: JetStream expires the key on time (measured for the
+// paused-owner case, docs/distributed.md).
+TEST_F(NatsClusterLeaseTest, ALeaseNotRenewedMovesWithinTwoTtls) {
+  std::unique_ptr<NatsFleetLog> a = Connect();
+  std::unique_ptr<NatsFleetLog> b = Connect();
+  ASSERT_TRUE(a != nullptr && b != nullptr);
+  std::vector<double> before;
+  std::vector<double> after;
+  for (int i = 0; i < 2; ++i) {
+    before.push_back(Takeover(*a, *b, absl::StrCat("before-", i)));
+  }
+  nats_[1]->Kill();
+  for (int i = 0; i < 4; ++i) {
+    after.push_back(Takeover(*a, *b, absl::StrCat("after-", i)));
+  }
+  std::cout << "takeover (s), 3 servers: " << absl::StrJoin(before, " ")
+            << "\ntakeover (s), one server killed: "
+            << absl::StrJoin(after, " ") << "\n";
+  for (const double seconds : before) {
+    EXPECT_GE(seconds, 0.9);
+    EXPECT_LT(seconds, 2.0);
+  }
+  for (const double seconds : after) {
+    EXPECT_GE(seconds, 0.9);
+    EXPECT_LT(seconds, 2.0);
+  }
 }
 
 TEST(NatsFleetLogOptionsTest, BadOptionsAndNoServerAreClearErrors) {

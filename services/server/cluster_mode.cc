@@ -81,6 +81,7 @@ absl::StatusOr<std::unique_ptr<cluster::ReplicatedMemory>> StartClusterMode(
   node.balance = cluster.balance_fleets;
   node.materialiser.replica_id = cluster.advertise;
   node.materialiser.renew_interval = cluster.nats.lease_ttl / 3;
+  node.materialiser.lease_ttl = cluster.nats.lease_ttl;
   node.materialiser.snapshot_every = cluster.snapshot_every_entries;
   node.materialiser.trim_log = cluster.trim_log;
   engine::QuotaOptions rates;  // the rates only; the engine has the rest

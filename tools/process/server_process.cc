@@ -1,8 +1,11 @@
 #include "tools/process/server_process.h"
 
+#include <arpa/inet.h>
 #include <fcntl.h>
+#include <netinet/in.h>
 #include <signal.h>
 #include <sys/prctl.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -95,6 +98,45 @@ ServerOptions NatsServerOptions(const std::string& store_dir,
   // -p -1: a random free port, which the server logs.
   options.extra_args = {"-a", "127.0.0.1", "-p", "-1", "-js", "-sd", store_dir};
   return options;
+}
+
+int FreePort() {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  address.sin_port = 0;
+  socklen_t size = sizeof(address);
+  int port = 0;
+  if (bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
+      getsockname(fd, reinterpret_cast<sockaddr*>(&address), &size) == 0) {
+    port = ntohs(address.sin_port);
+  }
+  close(fd);
+  return port;
+}
+
+std::vector<ServerOptions> NatsClusterOptions(const std::string& dir, int n) {
+  std::vector<int> routes;
+  for (int i = 0; i < n; ++i) routes.push_back(FreePort());
+  std::string all_routes;
+  for (int port : routes) {
+    absl::StrAppend(&all_routes, all_routes.empty() ? "" : ",",
+                    "nats://127.0.0.1:", port);
+  }
+  std::vector<ServerOptions> servers;
+  for (int i = 0; i < n; ++i) {
+    ServerOptions options =
+        NatsServerOptions(absl::StrCat(dir, "/jetstream-", i),
+                          absl::StrCat(dir, "/nats-", i, ".log"));
+    options.extra_args.insert(
+        options.extra_args.end(),
+        {"-n", absl::StrCat("nats-", i), "--cluster_name", "fleetmem",
+         "--cluster", absl::StrCat("nats://127.0.0.1:", routes[i]), "--routes",
+         all_routes});
+    servers.push_back(std::move(options));
+  }
+  return servers;
 }
 
 std::optional<int> ParseListeningPort(const std::string& output,

@@ -68,6 +68,15 @@ struct ServerOptions {
 ServerOptions NatsServerOptions(const std::string& store_dir,
                                 const std::string& log_file);
 
+// A loopback port that was free a moment ago (for servers that need a
+// fixed port: replicas, whose addresses are their ids, and NATS routes).
+int FreePort();
+
+// `n` nats-servers routed into one JetStream cluster ("fleetmem"), server i
+// storing under `dir`/jetstream-i and logging to `dir`/nats-i.log. Start
+// them all, then wait for each (each waits for its routes once it listens).
+std::vector<ServerOptions> NatsClusterOptions(const std::string& dir, int n);
+
 // One run of a server, started with fork/exec. Its stdout and stderr go
 // through one pipe that a reader thread drains into options.log_file (so the
 // server can never block on a full pipe). A fleetmem-server gets
