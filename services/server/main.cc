@@ -300,127 +300,187 @@ void RemoveReadyFile(const std::string& path) {
   }
 }
 
-int Serve(const ServerConfig& config, const sigset_t& signals) {
-  const SecurityConfig& security = config.security;
+// One run of the server, from taking the data directory to the last index
+// snapshot. Its parts are members in the order they are made, so that a
+// start that fails part way tears down what was made in reverse; each step
+// returns 0 to go on, or the process's exit code (the cause logged).
+class ServerRun {
+ public:
+  explicit ServerRun(const ServerConfig& config)
+      : config_(config), security_(config.security) {}
+  ServerRun(const ServerRun&) = delete;
+  ServerRun& operator=(const ServerRun&) = delete;
+
+  // The data directory (made if missing, locked against a second server),
+  // the credentials, the store with its log, and every fleet loaded.
+  int OpenData();
+  // The background tasks, the work queue and the mode: embedded (uploads
+  // acknowledged at the durable append to each fleet's log, applied behind
+  // it: engine::WritePath) or distributed (this replica materialises the
+  // fleets it owns from their replicated logs and routes every other
+  // fleet's calls to its owner); then the service over it.
+  int StartMode();
+  // The gRPC port, with health checking and (where allowed) reflection.
+  int StartGrpc();
+  // The HTTP port: the service's MemoryApi behind the REST gateway, the
+  // dashboard, /metrics and the probes (none without http_listen).
+  int StartHttp();
+  // Logs what serves where and how, and the distributed mode's ownership
+  // loop starts; then the ready file announces the server. 1 if it cannot
+  // be written (whoever started the server waits for it).
+  int Announce();
+  // Until SIGTERM or SIGINT; SIGHUP re-reads the credentials file.
+  void WaitForShutdownSignal(const sigset_t& signals);
+  // New calls refused, running ones given the grace period, what was
+  // acknowledged applied if it can be meanwhile, the indexes saved.
+  void ShutDown();
+  // After a failed step: the ports and the work queue stop at once.
+  void StopEarly();
+
+ private:
+  const ServerConfig& config_;
+  const SecurityConfig& security_;
+  std::unique_ptr<files::DirectoryLock> data_dir_lock_;
+  std::unique_ptr<auth::Authenticator> authenticator_;
+  std::string store_path_;
+  // Metrics observe the store, the log, the engine and both transports
+  // through hooks (services/observability).
+  observability::Metrics metrics_;
+  std::unique_ptr<engine::FleetLog> log_;
+  std::unique_ptr<engine::MemoryStore> store_;
+  std::unique_ptr<engine::MemoryEngine> engine_;
+  std::unique_ptr<PeriodicTask> snapshotter_;
+  std::unique_ptr<PeriodicTask> heap_trimmer_;
+  std::unique_ptr<transport::WorkQueue> work_;
+  transport::ServiceOptions service_options_;
+  // The mode, chosen once (services/transport/fleet_memory.h).
+  std::unique_ptr<cluster::ReplicatedMemory> replicated_;
+  std::unique_ptr<transport::EmbeddedMemory> embedded_;
+  transport::FleetMemory* memory_ = nullptr;
+  std::unique_ptr<transport::MemoryServiceImpl> service_;
+  bool reflection_ = false;
+  int port_ = 0;
+  std::unique_ptr<grpc::Server> server_;
+  std::atomic<bool> ready_{true};
+  std::unique_ptr<http::RestGateway> gateway_;
+  std::unique_ptr<http::HttpServer> http_server_;
+  std::string http_address_;
+};
+
+int ServerRun::OpenData() {
   std::error_code error;
-  std::filesystem::create_directories(config.data_dir, error);
+  std::filesystem::create_directories(config_.data_dir, error);
   if (error) {
-    FLEETMEM_LOG(kError) << "cannot create data dir " << config.data_dir << ": "
-                         << error.message();
+    FLEETMEM_LOG(kError) << "cannot create data dir " << config_.data_dir
+                         << ": " << error.message();
     return 1;
   }
   // One server per data directory, taken before anything is changed (the
   // ready file, the store's reserve file): a second server exits here.
-  absl::StatusOr<std::unique_ptr<files::DirectoryLock>> data_dir_lock =
-      files::DirectoryLock::Take(config.data_dir, "fleetmem-server.lock");
-  if (!data_dir_lock.ok()) {
-    FLEETMEM_LOG(kError) << "cannot use data dir: "
-                         << data_dir_lock.status().message();
+  absl::StatusOr<std::unique_ptr<files::DirectoryLock>> lock =
+      files::DirectoryLock::Take(config_.data_dir, "fleetmem-server.lock");
+  if (!lock.ok()) {
+    FLEETMEM_LOG(kError) << "cannot use data dir: " << lock.status().message();
     return 1;
   }
+  data_dir_lock_ = *std::move(lock);
   // A ready file from an earlier run must not announce this one.
-  RemoveReadyFile(config.ready_file);
-  std::unique_ptr<auth::Authenticator> authenticator;
-  if (!security.auth_file.empty()) {
+  RemoveReadyFile(config_.ready_file);
+  if (!security_.auth_file.empty()) {
     absl::StatusOr<std::vector<auth::CredentialEntry>> entries =
-        ReadCredentials(security.auth_file);
+        ReadCredentials(security_.auth_file);
     if (!entries.ok()) {
       FLEETMEM_LOG(kError) << entries.status().message();
       return 2;
     }
-    authenticator = std::make_unique<auth::Authenticator>(std::move(*entries));
+    authenticator_ = std::make_unique<auth::Authenticator>(std::move(*entries));
   }
-  if (absl::Status readable = CheckReadable(security); !readable.ok()) {
+  if (absl::Status readable = CheckReadable(security_); !readable.ok()) {
     FLEETMEM_LOG(kError) << readable.message();
     return 2;
   }
-  storage::RocksDbStoreOptions store_options = config.storage;
-  store_options.path = (std::filesystem::path(config.data_dir) / "db").string();
+  storage::RocksDbStoreOptions store_options = config_.storage;
+  store_options.path =
+      (std::filesystem::path(config_.data_dir) / "db").string();
+  store_path_ = store_options.path;
   // Distributed mode: the log is the durable copy (ClusterConfig::sync_store).
-  if (config.cluster.enabled()) store_options.sync = config.cluster.sync_store;
+  if (config_.cluster.enabled())
+    store_options.sync = config_.cluster.sync_store;
   absl::StatusOr<storage::LocalStorage> opened =
       storage::OpenLocalStorage(store_options);
   if (!opened.ok()) {
     FLEETMEM_LOG(kError) << "cannot open store: " << opened.status();
     return 1;
   }
-  // Metrics observe the store, the log, the engine and both transports
-  // through hooks (services/observability).
-  observability::Metrics metrics;
-  std::unique_ptr<engine::FleetLog> log = metrics.TimedLog(opened->log);
-  std::unique_ptr<engine::MemoryStore> store =
-      metrics.TimedStore(std::move(opened->store));
+  log_ = metrics_.TimedLog(opened->log);
+  store_ = metrics_.TimedStore(std::move(opened->store));
   // Upload rates are checked where an upload is appended (the write path,
   // or the receiving replica); the engine applies log entries unrated.
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
-      engine::MemoryEngine::Open(config.engine, store.get(),
-                                 MakeIndexFactory(config),
-                                 metrics.EngineHooks());
+      engine::MemoryEngine::Open(config_.engine, store_.get(),
+                                 MakeIndexFactory(config_),
+                                 metrics_.EngineHooks());
   if (!engine.ok()) {
     FLEETMEM_LOG(kError) << "cannot load fleets: " << engine.status();
     return 1;
   }
+  engine_ = *std::move(engine);
+  return 0;
+}
+
+int ServerRun::StartMode() {
   // Index snapshots while serving: every interval the fleets whose index
   // changed (and holds at least index_snapshot_min_codes codes) save one, so
   // that a restart after a crash re-adds only the traces stored since
   // instead of rebuilding every graph. Errors are logged by the engine; the
   // next turn tries again.
-  PeriodicTask snapshotter(
-      config.index_snapshot_interval_seconds,
-      [engine = engine->get(), min_codes = config.index_snapshot_min_codes] {
+  snapshotter_ = std::make_unique<PeriodicTask>(
+      config_.index_snapshot_interval_seconds,
+      [engine = engine_.get(), min_codes = config_.index_snapshot_min_codes] {
         engine
             ->SaveIndexSnapshots({.min_codes = min_codes, .only_changed = true})
             .IgnoreError();
       });
   // The heap's free pages back to the system (docs/reliability.md, "Soak").
-  PeriodicTask heap_trimmer(config.heap_trim_interval_seconds,
-                            observability::TrimHeap);
-  transport::WorkQueue work(config.work);
-  transport::ServiceOptions service_options = config.service;
-  service_options.api.snapshot_root =
-      config.snapshot_dir.empty()
-          ? (std::filesystem::path(config.data_dir) / "snapshots").string()
-          : config.snapshot_dir;
-  service_options.on_call = [&metrics](std::string_view transport,
-                                       std::string_view method,
-                                       absl::StatusCode code, double seconds) {
-    metrics.ObserveCall(transport, method, code, seconds);
+  heap_trimmer_ = std::make_unique<PeriodicTask>(
+      config_.heap_trim_interval_seconds, observability::TrimHeap);
+  work_ = std::make_unique<transport::WorkQueue>(config_.work);
+  service_options_ = config_.service;
+  service_options_.api.snapshot_root =
+      config_.snapshot_dir.empty()
+          ? (std::filesystem::path(config_.data_dir) / "snapshots").string()
+          : config_.snapshot_dir;
+  service_options_.on_call = [this](std::string_view transport,
+                                    std::string_view method,
+                                    absl::StatusCode code, double seconds) {
+    metrics_.ObserveCall(transport, method, code, seconds);
   };
-  service_options.on_upload_bytes = [&metrics](std::string_view fleet,
-                                               size_t bytes) {
-    metrics.ObserveUploadBytes(fleet, bytes);
+  service_options_.on_upload_bytes = [this](std::string_view fleet,
+                                            size_t bytes) {
+    metrics_.ObserveUploadBytes(fleet, bytes);
   };
-  service_options.api.on_upload_bytes = service_options.on_upload_bytes;
-  // The mode, chosen once (services/transport/fleet_memory.h). Embedded:
-  // uploads acknowledged at the durable append to each fleet's log in this
-  // RocksDB and applied behind it (engine::WritePath). Distributed: this
-  // replica materialises the fleets it owns from their replicated logs and
-  // routes every other fleet's calls to its owner.
-  std::unique_ptr<cluster::ReplicatedMemory> replicated;
-  std::unique_ptr<transport::EmbeddedMemory> embedded;
-  transport::FleetMemory* memory = nullptr;
-  if (config.cluster.enabled()) {
+  service_options_.api.on_upload_bytes = service_options_.on_upload_bytes;
+  if (config_.cluster.enabled()) {
     absl::StatusOr<std::unique_ptr<cluster::ReplicatedMemory>> started =
-        StartClusterMode(config, engine->get());
+        StartClusterMode(config_, engine_.get());
     if (!started.ok()) {
       FLEETMEM_LOG(kError) << "cluster: " << started.status();
-      work.Stop();
       return 1;
     }
-    replicated = *std::move(started);
-    memory = replicated.get();
+    replicated_ = *std::move(started);
+    memory_ = replicated_.get();
     // Each fleet's gauges come from the replica that serves it.
-    cluster::ReplicatedMemory* serving = replicated.get();
-    metrics.SetScrapeSources(
-        {engine->get(), store.get(), [&work] { return work.queued(); },
+    cluster::ReplicatedMemory* serving = replicated_.get();
+    metrics_.SetScrapeSources(
+        {engine_.get(), store_.get(), [this] { return work_->queued(); },
          [serving](const std::string& fleet) { return serving->Serves(fleet); },
          [serving] { return serving->LogLag(); },
          [serving] { return serving->FleetCounts(); }, nullptr});
   } else {
     // Duplicates are found at the append (the apply meets none): counted
     // by the same metric as the engine's.
-    engine::WritePathOptions write_path = config.write_path;
-    write_path.on_duplicates = [on_upload = metrics.EngineHooks().on_upload](
+    engine::WritePathOptions write_path = config_.write_path;
+    write_path.on_duplicates = [on_upload = metrics_.EngineHooks().on_upload](
                                    std::string_view fleet,
                                    uint64_t duplicates) {
       engine::UploadResult result;
@@ -429,43 +489,44 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
     };
     absl::StatusOr<std::unique_ptr<transport::EmbeddedMemory>> opened =
         transport::EmbeddedMemory::Open(
-            engine->get(), log.get(),
+            engine_.get(), log_.get(),
             {.write_path = write_path,
-             .max_apply_wait = config.write_path_max_apply_wait});
+             .max_apply_wait = config_.write_path_max_apply_wait});
     if (!opened.ok()) {
       FLEETMEM_LOG(kError) << "cannot recover the fleets' logs: "
                            << opened.status();
-      work.Stop();
       return 1;
     }
-    embedded = *std::move(opened);
-    memory = embedded.get();
-    engine::WritePath* writes = &embedded->writes();
+    embedded_ = *std::move(opened);
+    memory_ = embedded_.get();
+    engine::WritePath* writes = &embedded_->writes();
     observability::ScrapeSources sources;
-    sources.engine = engine->get();
-    sources.store = store.get();
-    sources.work_queue_depth = [&work] { return work.queued(); };
+    sources.engine = engine_.get();
+    sources.store = store_.get();
+    sources.work_queue_depth = [this] { return work_->queued(); };
     sources.backlogs = [writes] { return writes->Backlogs(); };
-    metrics.SetScrapeSources(std::move(sources));
+    metrics_.SetScrapeSources(std::move(sources));
   }
-  transport::MemoryServiceImpl service(engine->get(), memory, &work,
-                                       authenticator.get(), service_options);
+  service_ = std::make_unique<transport::MemoryServiceImpl>(
+      engine_.get(), memory_, work_.get(), authenticator_.get(),
+      service_options_);
+  return 0;
+}
 
+int ServerRun::StartGrpc() {
   grpc::EnableDefaultHealthCheckService(true);
   // gRPC's default health service has no C++ descriptor of its own:
   // grpc.health.v1's generated code (proto/grpc/health/v1) puts health.proto
   // into the descriptor pool, so that reflection can describe the service
   // (grpcurl ... grpc.health.v1.Health/Check without -proto).
   (void)grpc::health::v1::HealthCheckRequest::descriptor();
-  const bool reflection =
-      (authenticator == nullptr || security.reflection_with_auth) &&
-      LoadReflection();
+  reflection_ = (authenticator_ == nullptr || security_.reflection_with_auth) &&
+                LoadReflection();
   grpc::ServerBuilder builder;
-  int port = 0;
-  builder.AddListeningPort(config.listen, MakeServerCredentials(security),
-                           &port);
+  builder.AddListeningPort(config_.listen, MakeServerCredentials(security_),
+                           &port_);
   builder.SetMaxReceiveMessageSize(
-      static_cast<int>(config.max_receive_message_bytes));
+      static_cast<int>(config_.max_receive_message_bytes));
   // Clients ping every 20 s to notice dead paths (ClientOptions::
   // keepalive_time); gRPC's default answers a ping more often than every
   // 5 minutes with GOAWAY "too_many_pings". Accept one every 10 s, also
@@ -476,162 +537,180 @@ int Serve(const ServerConfig& config, const sigset_t& signals) {
   // gRPC sets SO_REUSEPORT by default: a second server on a port in use
   // then started, and the kernel split calls between the two.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
-  builder.RegisterService(&service);
-  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
-  if (server == nullptr || port == 0) {
-    FLEETMEM_LOG(kError) << "cannot listen on " << config.listen
+  builder.RegisterService(service_.get());
+  server_ = builder.BuildAndStart();
+  if (server_ == nullptr || port_ == 0) {
+    FLEETMEM_LOG(kError) << "cannot listen on " << config_.listen
                          << " (is another process listening there?)";
-    work.Stop();
     return 1;
   }
-  grpc::HealthCheckServiceInterface* health = server->GetHealthCheckService();
+  grpc::HealthCheckServiceInterface* health = server_->GetHealthCheckService();
   health->SetServingStatus(kServiceName, true);
   health->SetServingStatus(true);
+  return 0;
+}
 
-  // The HTTP port: the gRPC service's MemoryApi behind the REST gateway.
-  std::atomic<bool> ready{true};
+int ServerRun::StartHttp() {
+  if (config_.http_listen.empty()) return 0;
   // /readyz names lost log entries and logs that cannot be applied.
   std::function<std::vector<std::string>()> ready_warnings;
-  if (embedded != nullptr) {
-    ready_warnings = [writes = &embedded->writes()] {
+  if (embedded_ != nullptr) {
+    ready_warnings = [writes = &embedded_->writes()] {
       return engine::BacklogWarnings(writes->Backlogs());
     };
   }
-  std::unique_ptr<http::RestGateway> gateway;
-  std::unique_ptr<http::HttpServer> http_server;
-  std::string http_address;
-  if (!config.http_listen.empty()) {
-    absl::StatusOr<std::unique_ptr<http::RestGateway>> made =
-        http::RestGateway::Create(
-            &service.api(), authenticator.get(), service_options.on_call,
-            {.max_body_bytes = config.max_http_body_bytes,
-             .loopback_hosts_only = authenticator == nullptr &&
-                                    IsLoopbackListen(config.http_listen),
-             .allowed_origins = config.http_allowed_origins,
-             // While an answer is built it is held twice (the engine's
-             // copy of the traces, then the message).
-             .max_answer_bytes = 2 * config.engine.max_read_bytes});
-    absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
-        made.ok() ? http::HttpServer::Start(
-                        HttpOptions(config),
-                        {made->get(), [&metrics] { return metrics.Render(); },
-                         [&ready] { return ready.load(); },
-                         security.metrics_without_auth, ready_warnings})
-                  : made.status();
-    if (!started.ok()) {
-      FLEETMEM_LOG(kError) << "HTTP: " << started.status().message();
-      server->Shutdown(std::chrono::system_clock::now());
-      work.Stop();
-      return started.status().code() == absl::StatusCode::kInvalidArgument ? 2
-                                                                           : 1;
-    }
-    gateway = std::move(*made);
-    http_server = std::move(*started);
-    http_address = WithPort(config.http_listen, http_server->port());
-    FLEETMEM_LOG(kInfo) << "HTTP on " << http_address << " (dashboard at /, "
-                        << "REST under /v1/, /metrics, /healthz, /readyz)";
-    std::cout << "fleetmem-server http on " << http_address << std::endl;
+  absl::StatusOr<std::unique_ptr<http::RestGateway>> made =
+      http::RestGateway::Create(
+          &service_->api(), authenticator_.get(), service_options_.on_call,
+          {.max_body_bytes = config_.max_http_body_bytes,
+           .loopback_hosts_only = authenticator_ == nullptr &&
+                                  IsLoopbackListen(config_.http_listen),
+           .allowed_origins = config_.http_allowed_origins,
+           // While an answer is built it is held twice (the engine's copy
+           // of the traces, then the message).
+           .max_answer_bytes = 2 * config_.engine.max_read_bytes});
+  absl::StatusOr<std::unique_ptr<http::HttpServer>> started =
+      made.ok() ? http::HttpServer::Start(
+                      HttpOptions(config_),
+                      {made->get(), [this] { return metrics_.Render(); },
+                       [this] { return ready_.load(); },
+                       security_.metrics_without_auth, ready_warnings})
+                : made.status();
+  if (!started.ok()) {
+    FLEETMEM_LOG(kError) << "HTTP: " << started.status().message();
+    return started.status().code() == absl::StatusCode::kInvalidArgument ? 2
+                                                                         : 1;
   }
+  gateway_ = *std::move(made);
+  http_server_ = *std::move(started);
+  http_address_ = WithPort(config_.http_listen, http_server_->port());
+  FLEETMEM_LOG(kInfo) << "HTTP on " << http_address_ << " (dashboard at /, "
+                      << "REST under /v1/, /metrics, /healthz, /readyz)";
+  std::cout << "fleetmem-server http on " << http_address_ << std::endl;
+  return 0;
+}
 
-  const std::string address = WithPort(config.listen, port);
-  FLEETMEM_LOG(kInfo) << "data dir " << config.data_dir << " (store "
-                      << store_options.path << "), "
-                      << (*engine)->ListFleets().size() << " fleets loaded";
-  FLEETMEM_LOG(kInfo) << "options: " << DescribeConfig(config);
-  if (authenticator == nullptr) {
+int ServerRun::Announce() {
+  const std::string address = WithPort(config_.listen, port_);
+  FLEETMEM_LOG(kInfo) << "data dir " << config_.data_dir << " (store "
+                      << store_path_ << "), " << engine_->ListFleets().size()
+                      << " fleets loaded";
+  FLEETMEM_LOG(kInfo) << "options: " << DescribeConfig(config_);
+  if (authenticator_ == nullptr) {
     FLEETMEM_LOG(kWarning)
         << "auth is OFF: every caller may read and write every fleet "
            "(start with --auth-file FILE to require credentials)";
   } else {
-    FLEETMEM_LOG(kInfo) << "auth on: " << authenticator->size()
-                        << " principals from " << security.auth_file
+    FLEETMEM_LOG(kInfo) << "auth on: " << authenticator_->size()
+                        << " principals from " << security_.auth_file
                         << "; reflection "
-                        << (reflection ? "on (without credentials)" : "off");
+                        << (reflection_ ? "on (without credentials)" : "off");
   }
-  if (security.tls_cert_file.empty()) {
+  if (security_.tls_cert_file.empty()) {
     FLEETMEM_LOG(kWarning) << "TLS is off: traffic, tokens included, is "
                               "plaintext";
-  }
-  if (!security.tls_cert_file.empty()) {
-    FLEETMEM_LOG(kInfo) << "TLS on: certificate " << security.tls_cert_file
-                        << ", re-read every " << security.tls_reload_seconds
+  } else {
+    FLEETMEM_LOG(kInfo) << "TLS on: certificate " << security_.tls_cert_file
+                        << ", re-read every " << security_.tls_reload_seconds
                         << " s";
   }
-  if (replicated != nullptr) {
-    replicated->Run([&service](const std::string& fleet) {
+  if (replicated_ != nullptr) {
+    replicated_->Run([service = service_.get()](const std::string& fleet) {
       FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet
                           << "\" is no longer owned here";
-      service.EndWatches(fleet);
+      service->EndWatches(fleet);
     });
-    FLEETMEM_LOG(kInfo) << "cluster: replica " << config.cluster.advertise
+    FLEETMEM_LOG(kInfo) << "cluster: replica " << config_.cluster.advertise
                         << " on NATS "
-                        << absl::StrJoin(config.cluster.nats.servers, ",")
-                        << " (lease " << config.cluster.nats.lease_ttl << ", "
-                        << config.cluster.nats.replicas
+                        << absl::StrJoin(config_.cluster.nats.servers, ",")
+                        << " (lease " << config_.cluster.nats.lease_ttl << ", "
+                        << config_.cluster.nats.replicas
                         << " copies of each log)";
   }
   FLEETMEM_LOG(kInfo) << "fleetmem-server listening on " << address;
   std::cout << "fleetmem-server listening on " << address << std::endl;
-  int exit_code = 0;
+  if (config_.ready_file.empty()) return 0;
+  absl::Status written =
+      WriteReadyFile(config_.ready_file, address, http_address_);
+  if (written.ok()) return 0;
+  // Whoever started the server waits for the file: stop rather than serve
+  // unannounced.
+  FLEETMEM_LOG(kError) << written.message() << "; shutting down";
+  return 1;
+}
+
+void ServerRun::WaitForShutdownSignal(const sigset_t& signals) {
   int signal = 0;
-  if (!config.ready_file.empty()) {
-    absl::Status written =
-        WriteReadyFile(config.ready_file, address, http_address);
-    if (!written.ok()) {
-      // Whoever started the server waits for the file: stop rather than
-      // serve unannounced.
-      FLEETMEM_LOG(kError) << written.message() << "; shutting down";
-      exit_code = 1;
-    }
-  }
-  while (exit_code == 0) {
+  while (true) {
     sigwait(&signals, &signal);
     if (signal != SIGHUP) break;
-    ReloadCredentials(security.auth_file, authenticator.get());
+    ReloadCredentials(security_.auth_file, authenticator_.get());
   }
-  RemoveReadyFile(config.ready_file);
-  if (exit_code == 0) {
-    FLEETMEM_LOG(kInfo) << "received "
-                        << (signal == SIGINT ? "SIGINT" : "SIGTERM")
-                        << ", shutting down (grace "
-                        << config.shutdown_grace_seconds << " s)";
-  }
+  FLEETMEM_LOG(kInfo) << "received "
+                      << (signal == SIGINT ? "SIGINT" : "SIGTERM")
+                      << ", shutting down (grace "
+                      << config_.shutdown_grace_seconds << " s)";
+}
+
+void ServerRun::ShutDown() {
+  RemoveReadyFile(config_.ready_file);
+  grpc::HealthCheckServiceInterface* health = server_->GetHealthCheckService();
   health->SetServingStatus(kServiceName, false);
   health->SetServingStatus(false);
-  ready.store(false);
-  service.Shutdown();  // new calls UNAVAILABLE, watches end
+  ready_.store(false);
+  service_->Shutdown();  // new calls UNAVAILABLE, watches end
   // Calls being worked on get the grace period; then everything left (idle
   // connections, upload streams waiting on their client) is cancelled at
   // once instead of waiting for each client's GOAWAY ping acknowledgement.
-  if (!service.WaitIdle(absl::Now() +
-                        absl::Seconds(config.shutdown_grace_seconds))) {
+  const absl::Duration grace = absl::Seconds(config_.shutdown_grace_seconds);
+  if (!service_->WaitIdle(absl::Now() + grace)) {
     FLEETMEM_LOG(kWarning) << "calls still running after the grace period "
                               "are cancelled";
   }
-  if (gateway != nullptr) gateway->Shutdown();      // ends watches over HTTP
-  if (http_server != nullptr) http_server->Stop();  // finishes its calls
-  server->Shutdown(std::chrono::system_clock::now());
-  work.Stop();
-  server.reset();
+  if (gateway_ != nullptr) gateway_->Shutdown();      // ends watches over HTTP
+  if (http_server_ != nullptr) http_server_->Stop();  // finishes its calls
+  server_->Shutdown(std::chrono::system_clock::now());
+  work_->Stop();
+  server_.reset();
   // The other replicas take this one's fleets at once.
-  if (replicated != nullptr) replicated->Shutdown();
+  if (replicated_ != nullptr) replicated_->Shutdown();
   // What was acknowledged is applied now if it can be within the grace
   // period; the rest stays in the logs for the next start.
-  if (embedded != nullptr) {
-    embedded->writes().Drain(absl::Now() +
-                             absl::Seconds(config.shutdown_grace_seconds));
-    embedded.reset();
+  if (embedded_ != nullptr) {
+    embedded_->writes().Drain(absl::Now() + grace);
+    embedded_.reset();
   }
   // Nothing changes memory any more: the next start loads the place
   // indexes instead of rebuilding them (a failure only costs that). Fleets
   // whose periodic snapshot is current are not written again.
-  snapshotter.Stop();
-  heap_trimmer.Stop();
-  (*engine)->SaveIndexSnapshots({.only_changed = true}).IgnoreError();
-  engine->reset();
-  store.reset();
+  snapshotter_->Stop();
+  heap_trimmer_->Stop();
+  engine_->SaveIndexSnapshots({.only_changed = true}).IgnoreError();
+  engine_.reset();
+  store_.reset();
   FLEETMEM_LOG(kInfo) << "stopped";
-  return exit_code;
+}
+
+void ServerRun::StopEarly() {
+  if (server_ != nullptr) server_->Shutdown(std::chrono::system_clock::now());
+  if (work_ != nullptr) work_->Stop();
+}
+
+int Serve(const ServerConfig& config, const sigset_t& signals) {
+  ServerRun run(config);
+  int code = 0;
+  for (int (ServerRun::*step)() :
+       {&ServerRun::OpenData, &ServerRun::StartMode, &ServerRun::StartGrpc,
+        &ServerRun::StartHttp}) {
+    if (code = (run.*step)(); code != 0) {
+      run.StopEarly();
+      return code;
+    }
+  }
+  code = run.Announce();
+  if (code == 0) run.WaitForShutdownSignal(signals);
+  run.ShutDown();
+  return code;
 }
 
 }  // namespace
