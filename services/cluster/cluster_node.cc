@@ -61,7 +61,7 @@ void ClusterNode::ReleaseAll() {
 std::optional<uint64_t> ClusterNode::LeastLoadedOther(size_t owned) {
   // Announcements change once per renew_interval: read with this replica's
   // own, not every round.
-  const absl::Time now = absl::Now();
+  const absl::Time now = options_.materialiser.clock->Now();
   if (now - announced_at_ < options_.materialiser.renew_interval) {
     return least_other_;
   }

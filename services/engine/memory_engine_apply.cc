@@ -267,12 +267,111 @@ std::optional<core::ConsolidationPlan> MemoryEngine::Fleet::PlanAhead(
   return Plan(segment);
 }
 
-absl::Status MemoryEngine::Fleet::ConsolidateRobot(
-    const std::string& robot_id, Notices* notices, CarriedUpload* carried,
-    const core::ConsolidationPlan* plan) {
+namespace {
+
+// What a consolidation changes among the fleet's clusters, for the store:
+// the clusters no longer held (forgotten whole, or merged into another),
+// sorted, and the held ones that are new or that a merge changed.
+struct ClusterChanges {
+  std::vector<uint64_t> erased;
+  std::vector<uint64_t> put;
+};
+
+ClusterChanges ChangesOf(const core::ConsolidationResult& outcome) {
+  absl::flat_hash_set<uint64_t> added_ids;
+  for (const core::Cluster& cluster : outcome.added) {
+    added_ids.insert(cluster.id);
+  }
+  absl::flat_hash_set<uint64_t> removed_ids;
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    removed_ids.insert(cluster.id);
+  }
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    removed_ids.insert(merge.from.id);
+  }
+  ClusterChanges changes;
+  // Erasures come first in the store: a merged cluster's moved traces are
+  // written again with their survivor.
+  for (uint64_t removed : removed_ids) {
+    if (!added_ids.contains(removed)) changes.erased.push_back(removed);
+  }
+  std::sort(changes.erased.begin(), changes.erased.end());
+  for (const core::Cluster& cluster : outcome.added) {
+    if (!removed_ids.contains(cluster.id)) changes.put.push_back(cluster.id);
+  }
+  for (uint64_t changed : outcome.changed) {
+    if (!added_ids.contains(changed)) changes.put.push_back(changed);
+  }
+  return changes;
+}
+
+// The consolidation's events (clusters added, forgotten, merged) appended
+// to `mutation` under `meta`'s next ids at `now_ns`, and the fleet's
+// counters; events past `retained` (0: all kept) erased. Returns the
+// traces the merges dropped.
+size_t AppendConsolidationEvents(const core::ConsolidationResult& outcome,
+                                 int64_t now_ns, size_t retained,
+                                 FleetMeta& meta, FleetMutation& mutation) {
+  auto append_event = [&](core::MemoryEvent event) {
+    event.id = meta.next_event_id++;
+    event.timestamp_ns = now_ns;
+    mutation.append_events.push_back(std::move(event));
+  };
+  for (const core::Cluster& cluster : outcome.added) {
+    append_event(
+        core::DescribeCluster(cluster, core::EventType::kClusterAdded));
+  }
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    append_event(
+        core::DescribeCluster(cluster, core::EventType::kClusterForgotten));
+  }
+  size_t merge_dropped = 0;
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    core::MemoryEvent event =
+        core::DescribeCluster(merge.from, core::EventType::kClusterMerged);
+    event.merged_into = merge.into;
+    event.traces_dropped = static_cast<uint32_t>(merge.dropped.size());
+    append_event(std::move(event));
+    merge_dropped += merge.dropped.size();
+  }
+  meta.consolidations += 1;
+  meta.clusters_forgotten += outcome.forgotten.size() + outcome.merged.size();
+  if (retained > 0 && meta.next_event_id - meta.first_event_id > retained) {
+    meta.first_event_id = meta.next_event_id - retained;
+    mutation.erase_events_before = meta.first_event_id;
+  }
+  return merge_dropped;
+}
+
+// The traces that leave the index: the batch was indexed while pending and
+// its codes do not change, so only what downsampling dropped, what
+// forgetting removed (clusters of this batch included) and what merges
+// dropped.
+std::vector<core::TraceKey> LeavingTheIndex(
+    const core::ConsolidationResult& outcome) {
+  std::vector<core::TraceKey> removed;
+  for (const core::MemoryTrace& trace : outcome.downsampled) {
+    removed.push_back(trace.key());
+  }
+  for (const core::Cluster& cluster : outcome.forgotten) {
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      removed.push_back(trace.key());
+    }
+  }
+  for (const core::ClusterMerge& merge : outcome.merged) {
+    for (const core::MemoryTrace& trace : merge.dropped) {
+      removed.push_back(trace.key());
+    }
+  }
+  return removed;
+}
+
+}  // namespace
+
+std::vector<core::MemoryTrace> MemoryEngine::Fleet::TakePending(
+    const std::string& robot_id) {
   auto found = pending.find(robot_id);
-  if (found == pending.end() || found->second.empty()) return absl::OkStatus();
-  const absl::Time start = absl::Now();
+  if (found == pending.end()) return {};
   std::vector<core::MemoryTrace> batch = std::move(found->second);
   pending.erase(found);
   for (const core::MemoryTrace& trace : batch) {
@@ -282,7 +381,16 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
       pending_by_domain.erase(domain);
     }
   }
+  return batch;
+}
 
+absl::Status MemoryEngine::Fleet::ConsolidateRobot(
+    const std::string& robot_id, Notices* notices, CarriedUpload* carried,
+    const core::ConsolidationPlan* plan) {
+  auto found = pending.find(robot_id);
+  if (found == pending.end() || found->second.empty()) return absl::OkStatus();
+  const absl::Time start = absl::Now();
+  std::vector<core::MemoryTrace> batch = TakePending(robot_id);
   FleetMutation mutation;
   if (carried != nullptr) mutation = std::move(carried->mutation);
   mutation.erase_pending.reserve(batch.size());
@@ -309,38 +417,19 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
 
   FleetMeta new_meta = base;
   new_meta.next_cluster_id = first_cluster_id + outcome.added.size();
-  absl::flat_hash_set<uint64_t> added_ids;
   for (const core::Cluster& cluster : outcome.added) {
-    added_ids.insert(cluster.id);
     new_meta.next_cluster_id =
         std::max(new_meta.next_cluster_id, cluster.id + 1);
   }
-  // Clusters no longer held: forgotten whole, or merged into another.
-  absl::flat_hash_set<uint64_t> removed_ids;
-  for (const core::Cluster& cluster : outcome.forgotten) {
-    removed_ids.insert(cluster.id);
-  }
-  for (const core::ClusterMerge& merge : outcome.merged) {
-    removed_ids.insert(merge.from.id);
-  }
-  // Erasures come first in the store: a merged cluster's moved traces are
-  // written again with their survivor.
-  for (uint64_t removed : removed_ids) {
-    if (!added_ids.contains(removed))
-      mutation.erase_clusters.push_back(removed);
-  }
+  ClusterChanges changes = ChangesOf(outcome);
+  mutation.erase_clusters.insert(mutation.erase_clusters.end(),
+                                 changes.erased.begin(), changes.erased.end());
   std::sort(mutation.erase_clusters.begin(), mutation.erase_clusters.end());
-  // Held clusters that are new or that a merge changed, with every code
-  // (a survivor's older traces may have theirs in the index only).
-  std::vector<uint64_t> put_ids;
-  for (const core::Cluster& cluster : outcome.added) {
-    if (!removed_ids.contains(cluster.id)) put_ids.push_back(cluster.id);
-  }
-  for (uint64_t changed : outcome.changed) {
-    if (!added_ids.contains(changed)) put_ids.push_back(changed);
-  }
+  // Held clusters with every code (a survivor's older traces may have
+  // theirs in the index only): the mutation holds copies of the new
+  // clusters' codes, and the index may drop its own below.
   std::vector<core::TraceKey> kept;
-  for (uint64_t put : put_ids) {
+  for (uint64_t put : changes.put) {
     std::optional<core::Cluster> held = memory.WithCentroid(put);
     if (!held.has_value()) continue;
     for (const core::MemoryTrace& trace : held->traces) {
@@ -354,63 +443,14 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     }
     mutation.put_clusters.push_back(*std::move(held));
   }
-
-  const int64_t now_ns = engine->options_.now_ns();
-  auto append_event = [&](core::MemoryEvent event) {
-    event.id = new_meta.next_event_id++;
-    event.timestamp_ns = now_ns;
-    mutation.append_events.push_back(std::move(event));
-  };
-  for (const core::Cluster& cluster : outcome.added) {
-    append_event(
-        core::DescribeCluster(cluster, core::EventType::kClusterAdded));
-  }
-  for (const core::Cluster& cluster : outcome.forgotten) {
-    append_event(
-        core::DescribeCluster(cluster, core::EventType::kClusterForgotten));
-  }
-  size_t merge_dropped = 0;
-  for (const core::ClusterMerge& merge : outcome.merged) {
-    core::MemoryEvent event =
-        core::DescribeCluster(merge.from, core::EventType::kClusterMerged);
-    event.merged_into = merge.into;
-    event.traces_dropped = static_cast<uint32_t>(merge.dropped.size());
-    append_event(std::move(event));
-    merge_dropped += merge.dropped.size();
-  }
-  new_meta.consolidations += 1;
-  new_meta.clusters_forgotten +=
-      outcome.forgotten.size() + outcome.merged.size();
-  const size_t retained = engine->options_.max_events_per_fleet;
-  if (retained > 0 &&
-      new_meta.next_event_id - new_meta.first_event_id > retained) {
-    new_meta.first_event_id = new_meta.next_event_id - retained;
-    mutation.erase_events_before = new_meta.first_event_id;
-  }
+  const size_t merge_dropped = AppendConsolidationEvents(
+      outcome, engine->options_.now_ns(), engine->options_.max_events_per_fleet,
+      new_meta, mutation);
   mutation.put_meta = true;
   mutation.meta = new_meta;
 
-  // The mutation holds copies of the new clusters' codes: the index may
-  // drop its own below.
-  // The batch was indexed while pending and its codes do not change: only
-  // what downsampling dropped, what forgetting removed (including clusters
-  // of this batch) and what merges dropped leave the index.
-  std::vector<core::TraceKey> removed;
-  for (const core::MemoryTrace& trace : outcome.downsampled) {
-    removed.push_back(trace.key());
-  }
-  for (const core::Cluster& cluster : outcome.forgotten) {
-    for (const core::MemoryTrace& trace : cluster.traces) {
-      removed.push_back(trace.key());
-    }
-  }
-  for (const core::ClusterMerge& merge : outcome.merged) {
-    for (const core::MemoryTrace& trace : merge.dropped) {
-      removed.push_back(trace.key());
-    }
-  }
-  absl::Status status = UnindexTraces(removed);
-  if (!status.ok()) {
+  if (absl::Status status = UnindexTraces(LeavingTheIndex(outcome));
+      !status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": index update failed, rebuilding: " << status;
     notices->staged.clear();

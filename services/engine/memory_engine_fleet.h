@@ -330,6 +330,10 @@ struct MemoryEngine::Fleet {
   // The plan of `batch`, one robot's segment, with its own seed.
   core::ConsolidationPlan Plan(
       const std::vector<core::MemoryTrace>& batch) const;
+  // Takes `robot_id`'s pending traces out of the pending maps (not the
+  // store); none if it has none.
+  std::vector<core::MemoryTrace> TakePending(const std::string& robot_id)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
   // and 2) in memory and the index, and stages the outcome's store write,
   // together with `carried`'s writes if given, in notices->staged for
