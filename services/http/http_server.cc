@@ -180,23 +180,174 @@ absl::StatusOr<std::unique_ptr<httplib::Server>> MakeServer(
   return server;
 }
 
+// HOST and PORT of "HOST:PORT" (":PORT" is every interface; "[::1]:PORT"
+// an IPv6 host).
+absl::StatusOr<std::pair<std::string, int>> ParseListen(
+    const std::string& listen) {
+  const size_t colon = listen.rfind(':');
+  int port = -1;
+  if (colon == std::string::npos ||
+      !absl::SimpleAtoi(listen.substr(colon + 1), &port) || port < 0 ||
+      port > 65535) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("http listen address \"", listen, "\" is not HOST:PORT"));
+  }
+  std::string host = listen.substr(0, colon);
+  if (host.empty()) host = "0.0.0.0";
+  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
+    host = host.substr(1, host.size() - 2);
+  }
+  return std::make_pair(std::move(host), port);
+}
+
+// Two Content-Length headers that differ, or one beside Transfer-Encoding,
+// frame the body two ways: a proxy in front may read another request into
+// it (request smuggling). httplib takes the first; such a request is
+// refused and its connection closed.
+httplib::Server::HandlerResponse RefuseAmbiguousLength(
+    const httplib::Request& req, httplib::Response& res) {
+  const size_t lengths = req.get_header_value_count("Content-Length");
+  bool ambiguous = lengths > 0 && req.has_header("Transfer-Encoding");
+  for (size_t i = 1; i < lengths && !ambiguous; ++i) {
+    ambiguous = req.get_header_value("Content-Length", i) !=
+                req.get_header_value("Content-Length", 0);
+  }
+  if (!ambiguous) return httplib::Server::HandlerResponse::Unhandled;
+  res.status = 400;
+  res.set_header("Connection", "close");
+  ConnectionGuard::CloseAfterAnswer();
+  res.set_content(
+      "{\"code\":3,\"status\":\"INVALID_ARGUMENT\",\"message\":\"the "
+      "request's length is ambiguous: Content-Length given twice with "
+      "different values, or beside Transfer-Encoding\"}",
+      "application/json");
+  return httplib::Server::HandlerResponse::Handled;
+}
+
+// Bodies over the limit, unknown paths: JSON errors like the API's.
+void AnswerErrorAsJson(const httplib::Request& req, httplib::Response& res) {
+  if (!res.body.empty()) return;
+  absl::Status status;
+  switch (res.status) {
+    case 413:
+      status = absl::ResourceExhaustedError(
+          "request body is over the server's limit (max_body_bytes)");
+      break;
+    case 404:
+      status = absl::NotFoundError(absl::StrCat("no such page: ", req.path));
+      break;
+    case 400:
+      status = absl::InvalidArgumentError("malformed HTTP request");
+      break;
+    default:  // the HTTP status stays as httplib set it
+      status = absl::UnknownError(absl::StrCat("HTTP status ", res.status));
+  }
+  HttpResponse error = ErrorResponse(status);
+  res.set_content(error.body, error.content_type.c_str());
+}
+
+// GET /metrics: the site check, then credentials unless
+// metrics_without_auth.
+void AnswerMetrics(const HttpEndpoints& e, const httplib::Request& req,
+                   httplib::Response& res) {
+  if (!e.metrics) {
+    res.status = 404;
+    return;
+  }
+  const HttpRequest request = FromHttplib(req);
+  absl::Status site = e.gateway->CheckSite(request);
+  if (site.ok() && !e.metrics_without_auth) {
+    site = e.gateway->Authenticate(request).status();
+  }
+  if (!site.ok()) {
+    HttpResponse refused = ErrorResponse(site);
+    res.status = refused.status;
+    for (const auto& [name, value] : refused.headers) {
+      res.set_header(name, value);
+    }
+    res.set_content(refused.body, refused.content_type.c_str());
+    return;
+  }
+  res.set_content(e.metrics(), "text/plain; version=0.0.4; charset=utf-8");
+}
+
+// The pages beside the API: the OpenAPI document, the probes, /metrics and
+// the dashboard's files. No deadline while a handler runs.
+void RoutePages(httplib::Server& http, const HttpEndpoints* e,
+                const std::string& version) {
+  auto get = [&http](const std::string& pattern, httplib::Server::Handler h) {
+    http.Get(pattern, [h = std::move(h)](const httplib::Request& req,
+                                         httplib::Response& res) {
+      ConnectionGuard::Handling();
+      h(req, res);
+    });
+  };
+  const std::string openapi =
+      OpenApiJson(e->gateway->routes(), PlainEndpoints(), version);
+  get("/openapi.json",
+      [openapi](const httplib::Request&, httplib::Response& res) {
+        res.set_content(openapi, "application/json");
+      });
+  get("/healthz", [](const httplib::Request&, httplib::Response& res) {
+    res.set_content("ok\n", "text/plain");
+  });
+  get("/readyz", [e](const httplib::Request&, httplib::Response& res) {
+    auto [status, body] = ReadyAnswer(*e);
+    res.status = status;
+    res.set_content(body, "text/plain");
+  });
+  get("/metrics", [e](const httplib::Request& req, httplib::Response& res) {
+    AnswerMetrics(*e, req, res);
+  });
+  for (const EmbeddedFile& file : DashboardFiles()) {
+    auto serve = [&file](const httplib::Request&, httplib::Response& res) {
+      res.set_content(reinterpret_cast<const char*>(file.data), file.size,
+                      file.content_type);
+      res.set_header("Cache-Control", "no-cache");
+    };
+    get(file.path, serve);
+    if (std::string(file.path) == "/index.html") get("/", serve);
+  }
+  // A watch streams for minutes: no deadline while the gateway answers.
+  auto api = [e](const httplib::Request& req, httplib::Response& res) {
+    ConnectionGuard::Handling();
+    Answer(e->gateway->Handle(FromHttplib(req)), res);
+  };
+  http.Get("/v1/.*", api);
+  http.Post("/v1/.*", api);
+  http.Put("/v1/.*", api);
+  http.Delete("/v1/.*", api);
+  http.Patch("/v1/.*", api);
+}
+
+// Binds HOST:PORT (port 0: any free one) and returns the port, or -1.
+// httplib listens with a backlog of 5: a burst of clients (or of slow
+// ones) would leave new connections waiting for SYN retries of 1 s and
+// more, so the listening socket gets the system's.
+int Bind(httplib::Server& http, const std::string& host, int port) {
+  int listening = -1;
+  http.set_socket_options([&listening](socket_t socket) {
+    // httplib's defaults set SO_REUSEPORT too: a second server on a port in
+    // use then bound it as well and the kernel split the connections
+    // between the two. SO_REUSEADDR alone lets a restart rebind at once
+    // and refuses a port another process listens on.
+    const int yes = 1;
+    ::setsockopt(socket, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
+    listening = socket;
+  });
+  const int bound = port == 0 ? http.bind_to_any_port(host)
+                              : (http.bind_to_port(host, port) ? port : -1);
+  if (bound > 0 && listening >= 0) ::listen(listening, SOMAXCONN);
+  return bound;
+}
+
 }  // namespace
 
 absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
     const HttpServerOptions& options, HttpEndpoints endpoints) {
-  const size_t colon = options.listen.rfind(':');
-  int port = -1;
-  if (colon == std::string::npos ||
-      !absl::SimpleAtoi(options.listen.substr(colon + 1), &port) || port < 0 ||
-      port > 65535) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "http listen address \"", options.listen, "\" is not HOST:PORT"));
-  }
-  std::string host = options.listen.substr(0, colon);
-  if (host.empty()) host = "0.0.0.0";  // ":8080" is every interface
-  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
-    host = host.substr(1, host.size() - 2);
-  }
+  absl::StatusOr<std::pair<std::string, int>> address =
+      ParseListen(options.listen);
+  if (!address.ok()) return address.status();
   absl::StatusOr<std::unique_ptr<httplib::Server>> made = MakeServer(options);
   if (!made.ok()) return made.status();
   std::unique_ptr<HttpServer> server(
@@ -220,138 +371,18 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   http.set_pre_routing_handler(
       [](const httplib::Request& req, httplib::Response& res) {
         ConnectionGuard::HeadRead();
-        // Two Content-Length headers that differ, or one beside
-        // Transfer-Encoding, frame the body two ways: a proxy in front may
-        // read another request into it (request smuggling). httplib takes the
-        // first; refuse, and close the connection.
-        const size_t lengths = req.get_header_value_count("Content-Length");
-        bool ambiguous = lengths > 0 && req.has_header("Transfer-Encoding");
-        for (size_t i = 1; i < lengths && !ambiguous; ++i) {
-          ambiguous = req.get_header_value("Content-Length", i) !=
-                      req.get_header_value("Content-Length", 0);
-        }
-        if (!ambiguous) return httplib::Server::HandlerResponse::Unhandled;
-        res.status = 400;
-        res.set_header("Connection", "close");
-        ConnectionGuard::CloseAfterAnswer();
-        res.set_content(
-            "{\"code\":3,\"status\":\"INVALID_ARGUMENT\",\"message\":\"the "
-            "request's length is ambiguous: Content-Length given twice with "
-            "different values, or beside Transfer-Encoding\"}",
-            "application/json");
-        return httplib::Server::HandlerResponse::Handled;
+        return RefuseAmbiguousLength(req, res);
       });
   http.set_logger([](const httplib::Request&, const httplib::Response&) {
     ConnectionGuard::AnswerSent();
   });
-  // Every handler: no deadline while it runs (a watch streams for minutes).
-  auto get = [&http](const std::string& pattern, httplib::Server::Handler h) {
-    http.Get(pattern, [h = std::move(h)](const httplib::Request& req,
-                                         httplib::Response& res) {
-      ConnectionGuard::Handling();
-      h(req, res);
-    });
-  };
-
-  const std::string openapi =
-      OpenApiJson(e->gateway->routes(), PlainEndpoints(), options.version);
-  get("/openapi.json",
-      [openapi](const httplib::Request&, httplib::Response& res) {
-        res.set_content(openapi, "application/json");
-      });
-  get("/healthz", [](const httplib::Request&, httplib::Response& res) {
-    res.set_content("ok\n", "text/plain");
-  });
-  get("/readyz", [e](const httplib::Request&, httplib::Response& res) {
-    auto [status, body] = ReadyAnswer(*e);
-    res.status = status;
-    res.set_content(body, "text/plain");
-  });
-  get("/metrics", [e](const httplib::Request& req, httplib::Response& res) {
-    if (!e->metrics) {
-      res.status = 404;
-      return;
-    }
-    const HttpRequest request = FromHttplib(req);
-    absl::Status site = e->gateway->CheckSite(request);
-    if (site.ok() && !e->metrics_without_auth) {
-      site = e->gateway->Authenticate(request).status();
-    }
-    if (!site.ok()) {
-      HttpResponse refused = ErrorResponse(site);
-      res.status = refused.status;
-      for (const auto& [name, value] : refused.headers) {
-        res.set_header(name, value);
-      }
-      res.set_content(refused.body, refused.content_type.c_str());
-      return;
-    }
-    res.set_content(e->metrics(), "text/plain; version=0.0.4; charset=utf-8");
-  });
-  for (const EmbeddedFile& file : DashboardFiles()) {
-    auto serve = [&file](const httplib::Request&, httplib::Response& res) {
-      res.set_content(reinterpret_cast<const char*>(file.data), file.size,
-                      file.content_type);
-      res.set_header("Cache-Control", "no-cache");
-    };
-    get(file.path, serve);
-    if (std::string(file.path) == "/index.html") get("/", serve);
-  }
-  auto api = [e](const httplib::Request& req, httplib::Response& res) {
-    ConnectionGuard::Handling();
-    Answer(e->gateway->Handle(FromHttplib(req)), res);
-  };
-  http.Get("/v1/.*", api);
-  http.Post("/v1/.*", api);
-  http.Put("/v1/.*", api);
-  http.Delete("/v1/.*", api);
-  http.Patch("/v1/.*", api);
-  // Bodies over the limit, unknown paths: JSON errors like the API's.
-  http.set_error_handler([](const httplib::Request& req,
-                            httplib::Response& res) {
-    if (!res.body.empty()) return;
-    absl::Status status;
-    switch (res.status) {
-      case 413:
-        status = absl::ResourceExhaustedError(
-            "request body is over the server's limit (max_body_bytes)");
-        break;
-      case 404:
-        status = absl::NotFoundError(absl::StrCat("no such page: ", req.path));
-        break;
-      case 400:
-        status = absl::InvalidArgumentError("malformed HTTP request");
-        break;
-      default:  // the HTTP status stays as httplib set it
-        status = absl::UnknownError(absl::StrCat("HTTP status ", res.status));
-    }
-    HttpResponse error = ErrorResponse(status);
-    res.set_content(error.body, error.content_type.c_str());
-  });
-
-  // httplib listens with a backlog of 5: a burst of clients (or of slow
-  // ones) would leave new connections waiting for SYN retries of 1 s and
-  // more. The listening socket is remembered here and given the system's.
-  int listening = -1;
-  http.set_socket_options([&listening](socket_t socket) {
-    // httplib's defaults set SO_REUSEPORT too: a second server on a port in
-    // use then bound it as well and the kernel split the connections
-    // between the two. SO_REUSEADDR alone lets a restart rebind at once
-    // and refuses a port another process listens on.
-    const int yes = 1;
-    ::setsockopt(socket, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
-    listening = socket;
-  });
-  if (port == 0) {
-    server->port_ = http.bind_to_any_port(host);
-  } else {
-    server->port_ = http.bind_to_port(host, port) ? port : -1;
-  }
+  RoutePages(http, e, options.version);
+  http.set_error_handler(AnswerErrorAsJson);
+  server->port_ = Bind(http, address->first, address->second);
   if (server->port_ <= 0) {
     return absl::UnavailableError(
         absl::StrCat("cannot listen for HTTP on ", options.listen));
   }
-  if (listening >= 0) ::listen(listening, SOMAXCONN);
   server->thread_ = std::thread([&http] { http.listen_after_bind(); });
   // Until it listens: httplib's stop() does nothing before that, and a Stop
   // right after Start would then wait for ever.
