@@ -366,7 +366,7 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
 }
 
 absl::StatusOr<absl::Time> Materialiser::RenewIfDue(std::string_view fleet_id,
-                                                    bool always) {
+                                                    bool always, bool stopped) {
   absl::MutexLock renewing(&renew_mu_);
   Lease lease;
   absl::Status expired;
@@ -381,15 +381,14 @@ absl::StatusOr<absl::Time> Materialiser::RenewIfDue(std::string_view fleet_id,
     if (!always && since < options_.renew_interval) {
       return it->second.renewed_at;
     }
-    if (options_.lease_ttl > absl::ZeroDuration() &&
-        since >= options_.lease_ttl) {
-      // Expired as this replica's clock reads: another may hold it by now.
+    if (stopped && since >= options_.lease_ttl) {
+      // Expired while this replica was stopped: another may hold it by now.
       held_.erase(it);
       expired = absl::FailedPreconditionError(absl::StrCat(
           "cluster: the lease of fleet \"", V(fleet_id), "\" was not renewed ",
           "for ", absl::FormatDuration(since), ", past its time-to-live of ",
           absl::FormatDuration(options_.lease_ttl),
-          " (this replica was paused, or NATS did not answer): taken as lost"));
+          " while this replica was stopped: taken as lost"));
     } else {
       lease = it->second.lease;
     }
@@ -437,12 +436,19 @@ void Materialiser::RenewLeases() {
       fleets.push_back(fleet_id);
     }
   }
+  // This thread waits a fraction of the TTL between calls and does nothing
+  // else: a longer gap means the process did not run (it was stopped).
+  const bool stopped =
+      options_.lease_ttl > absl::ZeroDuration() &&
+      renewals_ended_ != absl::InfinitePast() &&
+      options_.clock->Now() - renewals_ended_ > options_.lease_ttl;
   for (const std::string& fleet_id : fleets) {
-    absl::StatusOr<absl::Time> renewed = RenewIfDue(fleet_id, false);
+    absl::StatusOr<absl::Time> renewed = RenewIfDue(fleet_id, false, stopped);
     if (!renewed.ok() && !absl::IsFailedPrecondition(renewed.status())) {
       FLEETMEM_LOG(kWarning) << "cluster: " << renewed.status();
     }
   }
+  renewals_ended_ = options_.clock->Now();
 }
 
 absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,

@@ -13,10 +13,10 @@
 // Fencing: before a batch of entries the owner renews its lease (when
 // options.renew_interval has passed since the last renewal); a replica
 // that lost it (it stopped renewing, or NATS expired it) stops
-// applying that fleet at once and answers FAILED_PRECONDITION. A lease not
-// renewed within options.lease_ttl by this replica's clock is lost here
-// too, even if NATS never says so (the renewals got no answer, or no other
-// replica took the fleet): the replica's watches of the fleet end then.
+// applying that fleet at once and answers FAILED_PRECONDITION. A replica
+// that finds it was stopped for longer than options.lease_ttl takes the
+// leases it could not renew meanwhile as lost at once, before NATS says
+// so: the replica's watches of those fleets end then.
 //
 // The engine it applies to must run without upload rate limits (quota
 // rates 0): refusing an entry by the clock would make replicas differ.
@@ -67,10 +67,14 @@ struct MaterialiserOptions {
   // Once a snapshot is stored, the log entries it covers are trimmed
   // (ReplicatedLog::Trim), so that logs do not grow without bound.
   bool trim_log = true;
-  // The leases' time-to-live: a lease this replica has not renewed for this
-  // long, as its own clock reads, is lost here whatever NATS answers later
-  // (a paused replica, or one whose renewals got no answer, stops serving
-  // the fleet at once: RenewLeases). 0: only a refused renewal loses it.
+  // The leases' time-to-live. When RenewLeases finds that it did not run
+  // for longer than this (the process was stopped: SIGSTOP, a frozen VM),
+  // every lease it has not renewed for this long is lost here at once,
+  // whatever NATS answers later (another replica has likely taken the
+  // fleet, and NATS may not tell soon). Renewals that merely wait on NATS
+  // (a JetStream election) keep the lease until NATS renews or refuses it,
+  // so that the fleet stays served meanwhile. 0: only a refused renewal
+  // loses a lease.
   absl::Duration lease_ttl = absl::ZeroDuration();
   // Reads the time for renewals, the fencing window and lease_ttl; not
   // owned (tests pass a ManualClock).
@@ -198,7 +202,9 @@ class Materialiser {
   // on a loaded machine): ClusterNode calls it from a thread of its own,
   // so that a fleet's lease does not expire while another fleet's step
   // runs. A lease found lost is forgotten; its fleet's next step answers
-  // FAILED_PRECONDITION.
+  // FAILED_PRECONDITION. Called more than lease_ttl after its last return
+  // (the process was stopped), it first drops every lease not renewed
+  // within lease_ttl (MaterialiserOptions::lease_ttl).
   void RenewLeases();
 
   // Called with a fleet's id as soon as its lease is found lost (a renewal
@@ -228,11 +234,13 @@ class Materialiser {
     uint64_t position = 0;  // Owned::position as of the last step's end
   };
   // Renews the fleet's lease if renew_interval has passed since its last
-  // renewal (or `always`). FAILED_PRECONDITION once it is lost (refused, or
-  // not renewed for lease_ttl; it is forgotten then); NATS's error otherwise
+  // renewal (or `always`). FAILED_PRECONDITION once it is lost (refused, or,
+  // after this replica was `stopped`, not renewed for lease_ttl; it is
+  // forgotten then); NATS's error otherwise
   // (the lease is kept: the next renewal retries it). Returns when the lease
   // was last renewed.
-  absl::StatusOr<absl::Time> RenewIfDue(std::string_view fleet_id, bool always)
+  absl::StatusOr<absl::Time> RenewIfDue(std::string_view fleet_id, bool always,
+                                        bool stopped = false)
       ABSL_LOCKS_EXCLUDED(lease_mu_);
   // Logs the loss of the fleet's lease and calls on_lease_lost_.
   void Lost(std::string_view fleet_id, const absl::Status& why)
@@ -295,6 +303,9 @@ class Materialiser {
   // a step (mu_ is held through a whole step).
   mutable absl::Mutex lease_mu_;
   std::map<std::string, Held, std::less<>> held_ ABSL_GUARDED_BY(lease_mu_);
+  // When RenewLeases last returned (one thread calls it: ClusterNode's
+  // renewing thread).
+  absl::Time renewals_ended_ = absl::InfinitePast();
   uint64_t calls_ ABSL_GUARDED_BY(mu_) = 0;  // for unique call entry ids
 
   // The snapshot writer: at most one snapshot per fleet waits (a newer one

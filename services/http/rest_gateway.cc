@@ -547,6 +547,76 @@ HttpResponse RestGateway::Handle(const HttpRequest& request) const {
                    " (docs/operations.md lists the REST routes)")));
 }
 
+namespace {
+
+// The call's request as the route, the path's variables and the query
+// give it: the JSON body (routes with one; strict: no duplicate keys, no
+// unknown fields), then the variables, then query parameters (routes
+// without a body). INVALID_ARGUMENT naming what is wrong.
+absl::StatusOr<std::unique_ptr<Message>> RequestMessage(
+    const Route& route, const std::map<std::string, std::string>& variables,
+    const HttpRequest& request) {
+  const Descriptor& type = *route.method->input_type();
+  std::unique_ptr<Message> message(
+      google::protobuf::MessageFactory::generated_factory()
+          ->GetPrototype(&type)
+          ->New());
+  if (route.body) {
+    const bool blank =
+        std::all_of(request.body.begin(), request.body.end(), [](char c) {
+          return absl::ascii_isspace(static_cast<unsigned char>(c));
+        });
+    if (!blank) {
+      if (absl::Status strict = CheckStrictJson(request.body, type);
+          !strict.ok()) {
+        return strict;
+      }
+      google::protobuf::util::JsonParseOptions options;
+      options.ignore_unknown_fields = false;
+      const auto parsed = google::protobuf::util::JsonStringToMessage(
+          request.body, message.get(), options);
+      if (!parsed.ok()) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("request body: ", std::string(parsed.message())));
+      }
+    }
+  } else if (!request.body.empty()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(request.method, " ", route.pattern,
+                     " takes no body; pass fields as query parameters"));
+  }
+  const Reflection& reflection = *message->GetReflection();
+  for (const auto& [name, value] : variables) {
+    const FieldDescriptor* field = type.FindFieldByName(name);
+    const std::string in_body = reflection.GetString(*message, field);
+    if (!in_body.empty() && in_body != value) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          name, ": the body says \"", in_body, "\", the path \"", value, "\""));
+    }
+    reflection.SetString(message.get(), field, value);
+  }
+  for (const auto& [name, value] : request.query) {
+    const FieldDescriptor* field = FindField(type, name);
+    if (field == nullptr || field->is_repeated() ||
+        variables.contains(field->name())) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "query parameter ", name, ": not a field of ", type.full_name()));
+    }
+    if (route.body) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("query parameter ", name, ": ", route.pattern,
+                       " takes its fields in the JSON body"));
+    }
+    if (absl::Status set = SetScalar(name, value, *field, message.get());
+        !set.ok()) {
+      return set;
+    }
+  }
+  return message;
+}
+
+}  // namespace
+
 HttpResponse RestGateway::Serve(
     const Route& route, const std::map<std::string, std::string>& variables,
     const HttpRequest& request, absl::StatusCode* code) const {
@@ -564,80 +634,26 @@ HttpResponse RestGateway::Serve(
   }
   absl::StatusOr<auth::Principal> caller = Authenticate(request);
   if (!caller.ok()) return fail(caller.status());
-
-  const google::protobuf::Message* prototype =
-      google::protobuf::MessageFactory::generated_factory()->GetPrototype(
-          route.method->input_type());
-  std::unique_ptr<Message> message(prototype->New());
-  const Descriptor& type = *route.method->input_type();
-  if (route.body) {
-    const bool blank =
-        std::all_of(request.body.begin(), request.body.end(), [](char c) {
-          return absl::ascii_isspace(static_cast<unsigned char>(c));
-        });
-    if (!blank) {
-      if (absl::Status strict = CheckStrictJson(request.body, type);
-          !strict.ok()) {
-        return fail(strict);
-      }
-      google::protobuf::util::JsonParseOptions options;
-      options.ignore_unknown_fields = false;
-      const auto parsed = google::protobuf::util::JsonStringToMessage(
-          request.body, message.get(), options);
-      if (!parsed.ok()) {
-        return fail(absl::InvalidArgumentError(
-            absl::StrCat("request body: ", std::string(parsed.message()))));
-      }
-    }
-  } else if (!request.body.empty()) {
-    return fail(absl::InvalidArgumentError(
-        absl::StrCat(request.method, " ", route.pattern,
-                     " takes no body; pass fields as query parameters")));
-  }
-  const Reflection& reflection = *message->GetReflection();
-  for (const auto& [name, value] : variables) {
-    const FieldDescriptor* field = type.FindFieldByName(name);
-    const std::string in_body = reflection.GetString(*message, field);
-    if (!in_body.empty() && in_body != value) {
-      return fail(absl::InvalidArgumentError(
-          absl::StrCat(name, ": the body says \"", in_body, "\", the path \"",
-                       value, "\"")));
-    }
-    reflection.SetString(message.get(), field, value);
-  }
-  for (const auto& [name, value] : request.query) {
-    const FieldDescriptor* field = FindField(type, name);
-    if (field == nullptr || field->is_repeated() ||
-        variables.contains(field->name())) {
-      return fail(absl::InvalidArgumentError(absl::StrCat(
-          "query parameter ", name, ": not a field of ", type.full_name())));
-    }
-    if (route.body) {
-      return fail(absl::InvalidArgumentError(
-          absl::StrCat("query parameter ", name, ": ", route.pattern,
-                       " takes its fields in the JSON body")));
-    }
-    absl::Status set = SetScalar(name, value, *field, message.get());
-    if (!set.ok()) return fail(set);
-  }
-
+  absl::StatusOr<std::unique_ptr<Message>> message =
+      RequestMessage(route, variables, request);
+  if (!message.ok()) return fail(message.status());
   if (route.server_sent_events) {
     if (route.method->name() != "WatchMemory") {
       return fail(absl::UnimplementedError(
           absl::StrCat(route.method->full_name(), " is not served over HTTP")));
     }
     return ServeWatch(*caller,
-                      static_cast<const v1::WatchMemoryRequest&>(*message),
+                      static_cast<const v1::WatchMemoryRequest&>(**message),
                       request, code);
   }
-  const google::protobuf::Message* response_prototype =
-      google::protobuf::MessageFactory::generated_factory()->GetPrototype(
-          route.method->output_type());
-  std::unique_ptr<Message> answer(response_prototype->New());
+  std::unique_ptr<Message> answer(
+      google::protobuf::MessageFactory::generated_factory()
+          ->GetPrototype(route.method->output_type())
+          ->New());
   if (!route.answer_has_lists) {
     // A small answer: written whole.
     absl::Status status =
-        api_->Call(route.method->name(), *caller, *message, answer.get());
+        api_->Call(route.method->name(), *caller, **message, answer.get());
     if (!status.ok()) return fail(status);
     absl::StatusOr<std::string> body = AnswerJson(answer.get());
     if (!body.ok()) {
@@ -662,7 +678,7 @@ HttpResponse RestGateway::Serve(
     }
   }
   absl::Status status =
-      api_->Call(route.method->name(), *caller, *message, answer.get());
+      api_->Call(route.method->name(), *caller, **message, answer.get());
   if (!status.ok()) return fail(status);
   if (held != nullptr) {
     held = budget_->Shrink(std::move(held), answer->ByteSizeLong());
