@@ -258,6 +258,11 @@ ScannedSegment ScanSegment(std::string_view data, uint64_t first) {
   return out;
 }
 
+// Where one record of a segment lies.
+struct SegmentLogRecord {
+  uint64_t sequence, offset, size;
+};
+
 }  // namespace
 
 struct SegmentLog::Segment {
@@ -269,9 +274,7 @@ struct SegmentLog::Segment {
   std::shared_ptr<const File> file;
   bool direct = false;
   uint64_t end = 0;  // bytes of whole records and padding (fleet's mu)
-  struct Record {
-    uint64_t sequence, offset, size;
-  };
+  using Record = SegmentLogRecord;
   std::vector<Record> records;  // ascending (fleet's mu)
 
   uint64_t last() const {
@@ -533,6 +536,119 @@ absl::StatusOr<std::shared_ptr<SegmentLog::Segment>> SegmentLog::StartSegment(
   return segment;
 }
 
+absl::StatusOr<SegmentLog::Target> SegmentLog::TargetOf(
+    Fleet& fleet, std::string_view fleet_id, uint64_t first_sequence) {
+  Target target;
+  {
+    absl::MutexLock lock(&fleet.mu);
+    if (!fleet.segments.empty()) {
+      const std::shared_ptr<Segment>& last = fleet.segments.back();
+      // A segment's records run on from its first sequence.
+      const uint64_t next =
+          last->records.empty() ? last->first : last->last() + 1;
+      if (!fleet.sealed && last->end < options_.segment_bytes &&
+          next == first_sequence) {
+        target.segment = last;
+        target.offset = last->end;
+      } else if (last->records.empty() && last->first == first_sequence) {
+        // A failed first append left it empty: start it again.
+        target.segment = last;
+      }
+    }
+  }
+  const auto not_stored = [fleet_id](const absl::Status& status) {
+    return absl::Status(
+        status.code(),
+        absl::StrCat("append to the ingest log of fleet \"", V(fleet_id),
+                     "\": ", status.message(), " (nothing of it was stored)"));
+  };
+  if (target.segment == nullptr) {
+    absl::StatusOr<std::shared_ptr<Segment>> made =
+        StartSegment(fleet, first_sequence);
+    if (!made.ok()) return not_stored(made.status());
+    target.segment = *std::move(made);
+    target.started = true;
+    return target;
+  }
+  if (target.segment->file == nullptr) {
+    // A segment found at Open: no descriptor for appends yet.
+    if (absl::Status opened = OpenForAppends(*target.segment); !opened.ok()) {
+      return not_stored(opened);
+    }
+  }
+  absl::MutexLock lock(&fleet.mu);
+  fleet.sealed = false;
+  return target;
+}
+
+namespace {
+
+// An append's bytes: its records, then a padding record (sequence 0) that
+// ends it, to the next block with O_DIRECT, bare otherwise. A reader that
+// finds the padding after a record failing its checksum knows the append
+// was written whole (so the record is damaged, not torn).
+struct Encoded {
+  AlignedBuffer buffer;
+  size_t size = 0;
+  std::vector<SegmentLogRecord> records;  // offsets in the segment
+};
+
+absl::StatusOr<Encoded> Encode(std::span<const engine::LogAppend> entries,
+                               const std::vector<LoggedUploadBytes>& payloads,
+                               uint64_t bytes, uint64_t segment_first,
+                               bool direct, uint64_t offset) {
+  Encoded out;
+  out.size = bytes + kHeaderBytes;
+  if (direct) out.size = RoundUp(out.size);
+  out.buffer = Allocate(out.size);
+  if (out.buffer == nullptr) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("no memory for an append of ", out.size,
+                     " bytes (nothing was stored)"));
+  }
+  char* buffer = out.buffer.get();
+  size_t at = 0;
+  for (size_t i = 0; i < entries.size(); ++i) {
+    const LoggedUploadBytes& payload = payloads[i];
+    out.records.push_back(
+        {entries[i].sequence, offset + at, kHeaderBytes + payload.size()});
+    payload.WriteTo(buffer + at + kHeaderBytes);
+    WriteHeader(buffer + at, segment_first, entries[i].sequence,
+                static_cast<uint32_t>(payload.size()));
+    at += kHeaderBytes + payload.size();
+  }
+  if (out.size > at) {
+    std::memset(buffer + at, 0, out.size - at);
+    WriteHeader(buffer + at, segment_first, 0,
+                static_cast<uint32_t>(out.size - at - kHeaderBytes));
+  }
+  return out;
+}
+
+// Undoes an append that failed: zeros over what of it reached the file, so
+// that a reader after a restart finds none of its records (the segment
+// ends where it began; a record of it found later would read as damage
+// before it). True if the zeros are durable.
+bool Unwrite(int fd, const std::string& path, Encoded& append, uint64_t offset,
+             bool direct) {
+  struct stat info;
+  uint64_t reached = append.size;
+  if (::fstat(fd, &info) == 0) {
+    const uint64_t file_size = static_cast<uint64_t>(info.st_size);
+    reached = file_size > offset
+                  ? std::min<uint64_t>(append.size, file_size - offset)
+                  : 0;
+  }
+  if (direct) reached = RoundUp(reached);
+  std::memset(append.buffer.get(), 0, append.size);
+  return WriteAll(fd, std::string_view(append.buffer.get(), reached), offset,
+                  path)
+             .ok() &&
+         ::fdatasync(fd) == 0;
+}
+
+}  // namespace
+
 absl::Status SegmentLog::Append(std::string_view fleet_id,
                                 std::span<const engine::LogAppend> entries) {
   if (entries.empty()) return absl::OkStatus();
@@ -555,107 +671,28 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
     }
   }
   Fleet& fleet = FindOrMake(fleet_id);
-  std::shared_ptr<Segment> segment;
-  uint64_t offset = 0;
-  {
-    absl::MutexLock lock(&fleet.mu);
-    if (!fleet.segments.empty()) {
-      const std::shared_ptr<Segment>& last = fleet.segments.back();
-      // A segment's records run on from its first sequence.
-      const uint64_t next =
-          last->records.empty() ? last->first : last->last() + 1;
-      if (!fleet.sealed && last->end < options_.segment_bytes &&
-          next == entries.front().sequence) {
-        segment = last;
-        offset = last->end;
-      } else if (last->records.empty() &&
-                 last->first == entries.front().sequence) {
-        // A failed first append left it empty: start it again.
-        segment = last;
-      }
-    }
-  }
-  if (segment != nullptr && segment->file == nullptr) {
-    // A segment found at Open: no descriptor for appends yet.
-    if (absl::Status opened = OpenForAppends(*segment); !opened.ok()) {
-      return absl::Status(opened.code(),
-                          absl::StrCat("append to the ingest log of fleet \"",
-                                       V(fleet_id), "\": ", opened.message(),
-                                       " (nothing of it was stored)"));
-    }
-  }
-  if (segment != nullptr) {
-    absl::MutexLock lock(&fleet.mu);
-    fleet.sealed = false;
-  }
-  const bool started = segment == nullptr;
-  if (started) {
-    absl::StatusOr<std::shared_ptr<Segment>> made =
-        StartSegment(fleet, entries.front().sequence);
-    if (!made.ok()) {
-      return absl::Status(
-          made.status().code(),
-          absl::StrCat("append to the ingest log of fleet \"", V(fleet_id),
-                       "\": ", made.status().message(),
-                       " (nothing of it was stored)"));
-    }
-    segment = *std::move(made);
-  }
-  // Records, then a padding record (sequence 0) that ends the append: to
-  // the next block with O_DIRECT, bare otherwise. A reader that finds it
-  // after a record failing its checksum knows the append was written whole
-  // (so the record is damaged, not torn).
-  size_t size = bytes + kHeaderBytes;
-  if (segment->direct) size = RoundUp(size);
-  AlignedBuffer buffer = Allocate(size);
-  if (buffer == nullptr) {
-    return absl::ResourceExhaustedError(absl::StrCat(
-        "no memory for an append of ", size, " bytes (nothing was stored)"));
-  }
-  std::vector<Segment::Record> records;
-  size_t at = 0;
-  for (size_t i = 0; i < entries.size(); ++i) {
-    const LoggedUploadBytes& payload = payloads[i];
-    records.push_back(
-        {entries[i].sequence, offset + at, kHeaderBytes + payload.size()});
-    payload.WriteTo(buffer.get() + at + kHeaderBytes);
-    WriteHeader(buffer.get() + at, segment->first, entries[i].sequence,
-                static_cast<uint32_t>(payload.size()));
-    at += kHeaderBytes + payload.size();
-  }
-  if (size > at) {
-    std::memset(buffer.get() + at, 0, size - at);
-    WriteHeader(buffer.get() + at, segment->first, 0,
-                static_cast<uint32_t>(size - at - kHeaderBytes));
-  }
-  const int fd = segment->file->fd;
+  absl::StatusOr<Target> target =
+      TargetOf(fleet, fleet_id, entries.front().sequence);
+  if (!target.ok()) return target.status();
+  Segment& segment = *target->segment;
+  absl::StatusOr<Encoded> append = Encode(
+      entries, payloads, bytes, segment.first, segment.direct, target->offset);
+  if (!append.ok()) return append.status();
+  const int fd = segment.file->fd;
   absl::Status written =
-      WriteAll(fd, std::string_view(buffer.get(), size), offset, segment->path);
+      WriteAll(fd, std::string_view(append->buffer.get(), append->size),
+               target->offset, segment.path);
   if (written.ok() && ::fdatasync(fd) != 0) {
-    written = IoError(errno, absl::StrCat("fdatasync '", segment->path, "'"));
+    written = IoError(errno, absl::StrCat("fdatasync '", segment.path, "'"));
   }
   if (!written.ok()) {
-    // Undo: zeros over what of it reached the file, so that a reader after
-    // a restart finds none of its records (the segment ends where it
-    // began; a record of it found later would read as damage before it).
-    // The next append starts another segment.
-    struct stat info;
-    uint64_t reached = size;
-    if (::fstat(fd, &info) == 0) {
-      const uint64_t file_size = static_cast<uint64_t>(info.st_size);
-      reached =
-          file_size > offset ? std::min<uint64_t>(size, file_size - offset) : 0;
-    }
-    if (segment->direct) reached = RoundUp(reached);
-    std::memset(buffer.get(), 0, size);
-    const bool undone = WriteAll(fd, std::string_view(buffer.get(), reached),
-                                 offset, segment->path)
-                            .ok() &&
-                        ::fdatasync(fd) == 0;
+    const bool undone =
+        Unwrite(fd, segment.path, *append, target->offset, segment.direct);
     {
+      // The next append starts another segment.
       absl::MutexLock lock(&fleet.mu);
       fleet.sealed = true;
-      if (started) fleet.segments.push_back(segment);
+      if (target->started) fleet.segments.push_back(target->segment);
     }
     FLEETMEM_LOG(kError) << "append to the ingest log of fleet \"" << fleet_id
                          << "\" failed: " << written
@@ -670,14 +707,17 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
                      "after a restart, as if acknowledged)"));
   }
   absl::MutexLock lock(&fleet.mu);
-  if (started) {
-    // The segment before takes no more appends: its descriptor goes.
+  if (target->started) {
+    // The segment before takes no more appends: its descriptor goes. The
+    // new one takes the appends after this one (until now a restart left
+    // the fleet sealed, and every append after it started a segment).
     if (!fleet.segments.empty()) fleet.segments.back()->file.reset();
-    fleet.segments.push_back(segment);
+    fleet.segments.push_back(target->segment);
+    fleet.sealed = false;
   }
-  segment->end = offset + size;
-  segment->records.insert(segment->records.end(), records.begin(),
-                          records.end());
+  segment.end = target->offset + append->size;
+  segment.records.insert(segment.records.end(), append->records.begin(),
+                         append->records.end());
   return absl::OkStatus();
 }
 

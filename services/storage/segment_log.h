@@ -132,6 +132,16 @@ class SegmentLog final : public engine::FleetLog {
   absl::StatusOr<std::shared_ptr<Segment>> StartSegment(Fleet& fleet,
                                                         uint64_t first);
   static absl::Status OpenForAppends(Segment& segment);
+  // The segment an append whose first entry is `first_sequence` goes to:
+  // the fleet's last, at its end, while it takes more; or a new one
+  // (`started`: not yet in the fleet's list). Ready for appends.
+  struct Target {
+    std::shared_ptr<Segment> segment;
+    uint64_t offset = 0;
+    bool started = false;
+  };
+  absl::StatusOr<Target> TargetOf(Fleet& fleet, std::string_view fleet_id,
+                                  uint64_t first_sequence);
 
   const SegmentLogOptions options_;
   absl::Mutex trim_mu_;  // held by Trim and CopyTo

@@ -223,6 +223,27 @@ TEST(SegmentLogTest, ATornTailIsCutAtReopenAndAppendsGoOnAfterIt) {
   ExpectEntries1And2ThenAppendsGoOn(path, log);
 }
 
+// After a reopen the first append starts a segment (the last one may end
+// in a torn write) and the appends after it go on in that segment, not one
+// segment each.
+TEST(SegmentLogTest, AfterAReopenAppendsShareOneNewSegment) {
+  TempDir dir;
+  const std::string path = dir.path() + "/log";
+  std::unique_ptr<SegmentLog> log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  ASSERT_TRUE(AppendEntries(*log, "f", 1, 2).ok());
+  log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  for (uint64_t s = 3; s <= 6; ++s) {
+    ASSERT_TRUE(AppendEntries(*log, "f", s, s).ok());
+  }
+  EXPECT_EQ(CountFiles(path + "/f-f", "0"), 2u);  // the first and one more
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 6));
+  log = OpenLog(path, 1 << 20);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(ReadAll(*log, "f"), Range(1, 6));
+}
+
 // Flips one bit of the byte at `at` of `file`.
 void FlipByte(const std::string& file, uint64_t at) {
   const int fd = ::open(file.c_str(), O_RDWR);
