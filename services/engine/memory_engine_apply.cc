@@ -366,7 +366,34 @@ std::vector<core::TraceKey> LeavingTheIndex(
   return removed;
 }
 
+// Whether `plan` (made ahead, without the lock) is the plan of `batch`.
+bool PlanFits(const core::ConsolidationPlan* plan,
+              const std::vector<core::MemoryTrace>& batch) {
+  if (plan == nullptr || plan->keys.size() != batch.size()) return false;
+  for (size_t i = 0; i < batch.size(); ++i) {
+    if (plan->keys[i] != batch[i].key()) return false;
+  }
+  return true;
+}
+
 }  // namespace
+
+// The store write a consolidation starts from: `carried`'s (the upload that
+// filled the segment), and the batch's pending records erased (those of
+// the upload itself were never stored).
+FleetMutation MemoryEngine::Fleet::ErasingPending(
+    const std::vector<core::MemoryTrace>& batch, CarriedUpload* carried) {
+  FleetMutation mutation;
+  if (carried != nullptr) mutation = std::move(carried->mutation);
+  mutation.erase_pending.reserve(batch.size());
+  for (const core::MemoryTrace& trace : batch) {
+    if (carried != nullptr && carried->unstored.contains(trace.key())) {
+      continue;
+    }
+    mutation.erase_pending.push_back(trace.key());
+  }
+  return mutation;
+}
 
 std::vector<core::MemoryTrace> MemoryEngine::Fleet::TakePending(
     const std::string& robot_id) {
@@ -391,24 +418,13 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   if (found == pending.end() || found->second.empty()) return absl::OkStatus();
   const absl::Time start = absl::Now();
   std::vector<core::MemoryTrace> batch = TakePending(robot_id);
-  FleetMutation mutation;
-  if (carried != nullptr) mutation = std::move(carried->mutation);
-  mutation.erase_pending.reserve(batch.size());
-  for (const core::MemoryTrace& trace : batch) {
-    if (carried != nullptr && carried->unstored.contains(trace.key())) {
-      continue;
-    }
-    mutation.erase_pending.push_back(trace.key());
-  }
+  FleetMutation mutation = ErasingPending(batch, carried);
   const size_t batch_size = batch.size();
   // The meta as the consolidations staged before this one leave it.
   const FleetMeta& base =
       notices->staged.empty() ? meta : notices->staged.back().meta;
   const uint64_t first_cluster_id = base.next_cluster_id;
-  bool fits = plan != nullptr && plan->keys.size() == batch.size();
-  for (size_t i = 0; fits && i < batch.size(); ++i) {
-    fits = plan->keys[i] == batch[i].key();
-  }
+  const bool fits = PlanFits(plan, batch);
   std::optional<core::ConsolidationPlan> own;
   if (!fits) own = Plan(batch);
   core::ConsolidationResult outcome = memory.Consolidate(

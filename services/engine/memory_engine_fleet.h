@@ -330,6 +330,10 @@ struct MemoryEngine::Fleet {
   // The plan of `batch`, one robot's segment, with its own seed.
   core::ConsolidationPlan Plan(
       const std::vector<core::MemoryTrace>& batch) const;
+  // The store write a consolidation of `batch` starts from: `carried`'s,
+  // and the batch's pending records erased.
+  static FleetMutation ErasingPending(
+      const std::vector<core::MemoryTrace>& batch, CarriedUpload* carried);
   // Takes `robot_id`'s pending traces out of the pending maps (not the
   // store); none if it has none.
   std::vector<core::MemoryTrace> TakePending(const std::string& robot_id)
