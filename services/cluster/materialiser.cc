@@ -353,6 +353,9 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
         !applied.ok()) {
       return applied;
     }
+    FLEETMEM_LOG(kDebug) << "cluster: fleet \"" << fleet_id << "\": entry "
+                         << entry.sequence << " (" << entry.id
+                         << ") applied after " << owned.position;
     owned.position = entry.sequence;
     ++result.applied;
   }

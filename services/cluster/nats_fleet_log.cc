@@ -19,6 +19,7 @@
 #include "absl/time/clock.h"
 #include "nats/nats.h"
 #include "services/cluster/log_record.pb.h"
+#include "services/common/log.h"
 #include "services/core/absl_view.h"
 
 namespace fleetmem::cluster {
@@ -219,9 +220,10 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
         // electing its leaders, or has too few servers up for the bucket's
         // copies, refuses to make it. Worth retrying (the server's start
         // retries UNAVAILABLE until cluster.connect_timeout).
-        return absl::UnavailableError(absl::StrCat(
-            not_made.message(), "; it is still missing, JetStream may not "
-            "be ready yet"));
+        return absl::UnavailableError(
+            absl::StrCat(not_made.message(),
+                         "; it is still missing, JetStream may not "
+                         "be ready yet"));
       }
     }
   }
@@ -277,8 +279,8 @@ absl::Status NatsFleetLog::EnsureFleetStream(std::string_view fleet_id,
     // clustered JetStream may report the loser's create as "subjects
     // overlap" rather than "name in use"; the re-read then finds the stream
     // (or, for a stranger's stream on these subjects, NOT_FOUND).
-    if (s != NATS_OK && (code == JSStreamNameExistErr ||
-                         code == JSStreamSubjectOverlapErr)) {
+    if (s != NATS_OK &&
+        (code == JSStreamNameExistErr || code == JSStreamSubjectOverlapErr)) {
       code = static_cast<jsErrCode>(0);
       s = js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code);
     }
@@ -513,7 +515,16 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
     jsErrCode code = static_cast<jsErrCode>(0);
     natsStatus s =
         js_GetMsg(&msg, handles_->js, stream.c_str(), sequence, nullptr, &code);
-    if (s == NATS_NOT_FOUND || code == JSNoMessageFoundErr) continue;
+    if (s == NATS_NOT_FOUND || code == JSNoMessageFoundErr) {
+      // A sequence JetStream skipped (a proposal that failed as its leader
+      // changed): said, never passed silently.
+      FLEETMEM_LOG(kWarning)
+          << "cluster: the log of fleet \"" << fleet_id << "\" has no entry "
+          << sequence << " (of " << bounds->first << ".." << *last
+          << "; JetStream: " << natsStatus_GetText(s) << ", code "
+          << static_cast<int>(code) << "): passed";
+      continue;
+    }
     if (s != NATS_OK) {
       if (!entries.empty()) break;  // what was read; the next read retries
       return FromNats(
