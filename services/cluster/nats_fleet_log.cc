@@ -516,11 +516,24 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
     natsStatus s =
         js_GetMsg(&msg, handles_->js, stream.c_str(), sequence, nullptr, &code);
     if (s == NATS_NOT_FOUND || code == JSNoMessageFoundErr) {
+      // Trimmed since the bounds were read (the previous owner's snapshot
+      // writer, late, purging what its snapshot covers)? Then the entry is
+      // in a snapshot, not skipped: OUT_OF_RANGE, and the caller restores.
+      // Passing it would lose it on this replica (seen: an owner holding
+      // one entry fewer than the log, docs/distributed.md).
+      absl::StatusOr<std::pair<uint64_t, uint64_t>> now = Bounds(fleet_id);
+      if (!now.ok() || sequence < now->first) {
+        if (!entries.empty()) break;  // what was read; the next read says so
+        if (!now.ok()) return now.status();
+        return absl::OutOfRangeError(absl::StrCat(
+            "cluster: the log of fleet \"", V(fleet_id), "\" starts at entry ",
+            now->first, ", after entry ", sequence, " (trimmed meanwhile)"));
+      }
       // A sequence JetStream skipped (a proposal that failed as its leader
       // changed): said, never passed silently.
       FLEETMEM_LOG(kWarning)
           << "cluster: the log of fleet \"" << fleet_id << "\" has no entry "
-          << sequence << " (of " << bounds->first << ".." << *last
+          << sequence << " (of " << now->first << ".." << now->second
           << "; JetStream: " << natsStatus_GetText(s) << ", code "
           << static_cast<int>(code) << "): passed";
       continue;
