@@ -170,6 +170,17 @@ class ClusterIntegrationTest : public ::testing::Test {
                        dir_.Join(absl::StrCat("replica-", i, ".log")))
                 << "\n";
     }
+    // What NATS said (a stream that stops answering: docs/distributed.md,
+    // "The owner-loss case").
+    for (const std::string& name :
+         {std::string("nats.log"), std::string("nats-0.log"),
+          std::string("nats-1.log"), std::string("nats-2.log")}) {
+      const std::string text = ReadFileOrEmpty(dir_.Join(name));
+      if (text.empty()) continue;
+      std::cerr << "---- " << name << " (last 8000 bytes) ----\n"
+                << text.substr(text.size() > 8000 ? text.size() - 8000 : 0)
+                << "\n";
+    }
   }
 
   // Starts replica `i` (a new one when i == replicas_.size()) on its own

@@ -32,34 +32,30 @@
 
 namespace fleetmem::engine {
 
-absl::Status MemoryEngine::Fleet::PrepareUpload(
-    std::span<const core::MemoryTrace> traces, uint64_t log_position,
-    UploadResult* result, PreparedUpload* prepared) {
-  absl::Status status = CheckLoaded();
-  if (!status.ok()) return status;
-  const bool is_new = !exists();
-  status = ValidateUpload(id, traces, is_new ? nullptr : &meta,
-                          engine->options_.max_traces_per_upload,
-                          /*check_values=*/log_position == 0);
-  if (!status.ok()) return status;
-  if (traces.empty()) return absl::OkStatus();
-  UploadQuota& quota = *engine->quota_;
-  if (is_new && log_position == 0) {
-    status = quota.AdmitDimension(id, traces[0].code.size());
-    if (!status.ok()) return status;
+// Rates refuse by the clock, and the code dimension of a new fleet is
+// checked once: only a direct call is admitted here. An entry of a log
+// (log_position != 0) was admitted when it was appended (WritePath, or the
+// fleet's owner in distributed mode), and applying it again after a
+// restart must not be refused.
+absl::Status MemoryEngine::Fleet::AdmitDirectCall(
+    UploadQuota& quota, std::span<const core::MemoryTrace> traces,
+    bool is_new) {
+  if (is_new) {
+    if (absl::Status status = quota.AdmitDimension(id, traces[0].code.size());
+        !status.ok()) {
+      return status;
+    }
   }
-  // Rates refuse by the clock: only a direct call is rated. An entry of a
-  // log (log_position != 0) was rated when it was appended (WritePath, or
-  // the receiving replica in distributed mode), and applying it again after
-  // a restart must not be refused.
-  if (log_position == 0) {
-    status = quota.AdmitRates(id, traces);
-    if (!status.ok()) return status;
-  }
+  return quota.AdmitRates(id, traces);
+}
 
-  // Duplicates are seqs already received or repeated within this upload:
-  // inserting into a copy of the robot's SeqSet detects both.
-  FleetMutation& mutation = prepared->mutation;
+// The traces not received before, as pending records in `mutation`, and
+// the robots' records with them; duplicates (seqs already received or
+// repeated within the upload: inserting into a copy of the robot's SeqSet
+// detects both) counted in `result`.
+std::map<std::string, RobotRecord> MemoryEngine::Fleet::NewTraces(
+    std::span<const core::MemoryTrace> traces, UploadResult* result,
+    FleetMutation& mutation) const {
   std::map<std::string, RobotRecord> changed_robots;
   for (const core::MemoryTrace& trace : traces) {
     auto [it, inserted] = changed_robots.try_emplace(trace.robot_id);
@@ -81,6 +77,42 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
     accepted.cluster_id = 0;
     mutation.put_pending.push_back(std::move(accepted));
   }
+  return changed_robots;
+}
+
+// Whether `arriving` fills some robot's segment (its pending traces reach
+// segment_size): the upload then consolidates that robot.
+bool MemoryEngine::Fleet::FillsSegment(
+    std::span<const core::MemoryTrace> arriving) const {
+  absl::flat_hash_map<std::string_view, size_t> counts;
+  for (const core::MemoryTrace& trace : arriving) ++counts[trace.robot_id];
+  for (const auto& [robot_id, count] : counts) {
+    auto held = pending.find(robot_id);
+    const size_t before = held == pending.end() ? 0 : held->second.size();
+    if (before + count >= engine->options_.segment_size) return true;
+  }
+  return false;
+}
+
+absl::Status MemoryEngine::Fleet::PrepareUpload(
+    std::span<const core::MemoryTrace> traces, uint64_t log_position,
+    UploadResult* result, PreparedUpload* prepared) {
+  absl::Status status = CheckLoaded();
+  if (!status.ok()) return status;
+  const bool is_new = !exists();
+  status = ValidateUpload(id, traces, is_new ? nullptr : &meta,
+                          engine->options_.max_traces_per_upload,
+                          /*check_values=*/log_position == 0);
+  if (!status.ok()) return status;
+  if (traces.empty()) return absl::OkStatus();
+  UploadQuota& quota = *engine->quota_;
+  if (log_position == 0) {
+    status = AdmitDirectCall(quota, traces, is_new);
+    if (!status.ok()) return status;
+  }
+  FleetMutation& mutation = prepared->mutation;
+  std::map<std::string, RobotRecord> changed_robots =
+      NewTraces(traces, result, mutation);
   result->accepted = mutation.put_pending.size();
   if (mutation.put_pending.empty()) return absl::OkStatus();
   // The stored-traces limit refuses a direct call; an entry of a log was
@@ -104,18 +136,7 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
     if (record.received.size() != before) mutation.put_robots.push_back(record);
   }
 
-  absl::flat_hash_map<std::string_view, size_t> arriving;
-  for (const core::MemoryTrace& trace : mutation.put_pending) {
-    ++arriving[trace.robot_id];
-  }
-  for (const auto& [robot_id, count] : arriving) {
-    auto held = pending.find(robot_id);
-    const size_t before = held == pending.end() ? 0 : held->second.size();
-    if (before + count >= engine->options_.segment_size) {
-      prepared->fills_segment = true;
-    }
-  }
-
+  prepared->fills_segment = FillsSegment(mutation.put_pending);
   if (is_new) {
     mutation.put_meta = true;
     mutation.meta = meta;

@@ -312,6 +312,17 @@ struct MemoryEngine::Fleet {
                              uint64_t log_position, UploadResult* result,
                              PreparedUpload* prepared)
       ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // PrepareUpload's steps: the limits only a direct call passes (not an
+  // entry of a log), the traces not received before, and whether they fill
+  // a robot's segment.
+  absl::Status AdmitDirectCall(UploadQuota& quota,
+                               std::span<const core::MemoryTrace> traces,
+                               bool is_new);
+  std::map<std::string, RobotRecord> NewTraces(
+      std::span<const core::MemoryTrace> traces, UploadResult* result,
+      FleetMutation& mutation) const ABSL_SHARED_LOCKS_REQUIRED(mu);
+  bool FillsSegment(std::span<const core::MemoryTrace> arriving) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
   // `plan`, if given, is PlanAhead's for the first robot this upload
   // fills; it is used if it fits that robot's segment.
   absl::Status CommitUpload(PreparedUpload prepared, UploadResult* result,
