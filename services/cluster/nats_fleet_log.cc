@@ -687,6 +687,44 @@ absl::StatusOr<std::optional<NatsFleetLog::LatestMeta>> NatsFleetLog::ReadMeta(
   return std::optional<LatestMeta>(std::move(latest));
 }
 
+namespace {
+
+// Publishes one part of a snapshot (a chunk, or its description last)
+// under `snapshot_id`; FAILED_PRECONDITION if `options` expected another
+// last description (a snapshot stored meanwhile). Sets the part's stream
+// sequence.
+absl::Status PublishSnapshotPart(jsCtx* js, std::string_view fleet_id,
+                                 const std::string& subject,
+                                 std::string_view data,
+                                 const std::string& snapshot_id,
+                                 jsPubOptions options, uint64_t* sequence) {
+  natsMsg* msg = nullptr;
+  natsStatus s = natsMsg_Create(&msg, subject.c_str(), nullptr, data.data(),
+                                static_cast<int>(data.size()));
+  if (s == NATS_OK) {
+    s = natsMsgHeader_Set(msg, "Fleetmem-Snapshot", snapshot_id.c_str());
+  }
+  jsPubAck* ack = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  if (s == NATS_OK) s = js_PublishMsg(&ack, js, msg, &options, &code);
+  natsMsg_Destroy(msg);
+  if (s != NATS_OK) {
+    if (code == JSStreamWrongLastSequenceErr) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("cluster: another snapshot of fleet \"", V(fleet_id),
+                       "\" was stored meanwhile"));
+    }
+    return FromNats(s, code,
+                    absl::StrCat("cluster: storing a snapshot of fleet \"",
+                                 V(fleet_id), "\""));
+  }
+  *sequence = ack->Sequence;
+  jsPubAck_Destroy(ack);
+  return absl::OkStatus();
+}
+
+}  // namespace
+
 absl::Status NatsFleetLog::Put(std::string_view fleet_id,
                                const SnapshotInfo& info,
                                std::string_view image) {
@@ -719,34 +757,6 @@ absl::Status NatsFleetLog::Put(std::string_view fleet_id,
   const int64_t max_payload = natsConnection_GetMaxPayload(handles_->nc);
   const size_t chunk_bytes = static_cast<size_t>(std::clamp<int64_t>(
       max_payload > 0 ? max_payload - 4096 : 0, 4096, 512 * 1024));
-  auto publish = [&](const std::string& subject, std::string_view data,
-                     jsPubOptions options, uint64_t* sequence) -> absl::Status {
-    natsMsg* msg = nullptr;
-    natsStatus s = natsMsg_Create(&msg, subject.c_str(), nullptr, data.data(),
-                                  static_cast<int>(data.size()));
-    if (s == NATS_OK) {
-      s = natsMsgHeader_Set(msg, "Fleetmem-Snapshot", meta.id().c_str());
-    }
-    jsPubAck* ack = nullptr;
-    jsErrCode code = static_cast<jsErrCode>(0);
-    if (s == NATS_OK) {
-      s = js_PublishMsg(&ack, handles_->js, msg, &options, &code);
-    }
-    natsMsg_Destroy(msg);
-    if (s != NATS_OK) {
-      if (code == JSStreamWrongLastSequenceErr) {
-        return absl::FailedPreconditionError(
-            absl::StrCat("cluster: another snapshot of fleet \"", V(fleet_id),
-                         "\" was stored meanwhile"));
-      }
-      return FromNats(s, code,
-                      absl::StrCat("cluster: storing a snapshot of fleet \"",
-                                   V(fleet_id), "\""));
-    }
-    *sequence = ack->Sequence;
-    jsPubAck_Destroy(ack);
-    return absl::OkStatus();
-  };
   jsPubOptions chunk_options;
   jsPubOptions_Init(&chunk_options);
   chunk_options.ExpectStream = stream.c_str();
@@ -756,7 +766,8 @@ absl::Status NatsFleetLog::Put(std::string_view fleet_id,
     const std::string_view chunk = image.substr(offset, chunk_bytes);
     uint64_t sequence = 0;
     if (absl::Status sent =
-            publish(chunk_subject, chunk, chunk_options, &sequence);
+            PublishSnapshotPart(handles_->js, fleet_id, chunk_subject, chunk,
+                                meta.id(), chunk_options, &sequence);
         !sent.ok()) {
       return sent;
     }
@@ -773,8 +784,9 @@ absl::Status NatsFleetLog::Put(std::string_view fleet_id,
     meta_options.ExpectNoMessage = true;
   }  // else a damaged description: replaced unconditionally
   uint64_t meta_sequence = 0;
-  if (absl::Status sent = publish(meta_subject, meta.SerializeAsString(),
-                                  meta_options, &meta_sequence);
+  if (absl::Status sent = PublishSnapshotPart(
+          handles_->js, fleet_id, meta_subject, meta.SerializeAsString(),
+          meta.id(), meta_options, &meta_sequence);
       !sent.ok()) {
     return sent;
   }
