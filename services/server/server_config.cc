@@ -542,7 +542,11 @@ absl::Status ApplyCommandLine(const CommandLine& command_line,
   return absl::OkStatus();
 }
 
-absl::Status ValidateServerConfig(const ServerConfig& config) {
+namespace {
+
+// The server's own settings: where it stores and listens, and the sizes of
+// its queues, threads and index.
+absl::Status ValidateServing(const ServerConfig& config) {
   if (config.data_dir.empty()) {
     return absl::InvalidArgumentError(
         "data_dir: required (--data-dir DIR or data_dir in the config file)");
@@ -594,6 +598,12 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
     return absl::InvalidArgumentError(
         "index_snapshot_interval_seconds: must not be negative");
   }
+  return absl::OkStatus();
+}
+
+// Who may reach it and how: TLS, client certificates, the HTTP port, and
+// no unauthenticated port beyond loopback unless asked for.
+absl::Status ValidateExposure(const ServerConfig& config) {
   const SecurityConfig& security = config.security;
   if (security.tls_cert_file.empty() != security.tls_key_file.empty()) {
     return absl::InvalidArgumentError(
@@ -649,6 +659,18 @@ absl::Status ValidateServerConfig(const ServerConfig& config) {
         " without authentication; give --auth-file FILE, or "
         "--allow-unauthenticated if anyone who reaches the port may read "
         "and write every fleet"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status ValidateServerConfig(const ServerConfig& config) {
+  if (absl::Status serving = ValidateServing(config); !serving.ok()) {
+    return serving;
+  }
+  if (absl::Status exposure = ValidateExposure(config); !exposure.ok()) {
+    return exposure;
   }
   if (absl::Status write_path =
           engine::ValidateWritePathOptions(config.write_path);
