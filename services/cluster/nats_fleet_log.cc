@@ -661,10 +661,28 @@ absl::StatusOr<std::optional<NatsFleetLog::LatestMeta>> NatsFleetLog::ReadMeta(
     std::string_view fleet_id) {
   const std::string stream = SnapshotStreamName(fleet_id);
   const std::string subject = absl::StrCat(SnapshotSubject(fleet_id), ".meta");
-  natsMsg* msg = nullptr;
   jsErrCode code = static_cast<jsErrCode>(0);
-  const natsStatus s = js_GetLastMsg(&msg, handles_->js, stream.c_str(),
-                                     subject.c_str(), nullptr, &code);
+  // The stream's state first: a message get on a stream that another
+  // replica is making (its first snapshot) crashes nats-server 2.9.10 (its
+  // store is not set yet: a nil dereference in jsMsgGetRequest, seen in the
+  // owner-loss case, docs/distributed.md), while its state reads as empty.
+  jsStreamInfo* info = nullptr;
+  natsStatus s =
+      js_GetStreamInfo(&info, handles_->js, stream.c_str(), nullptr, &code);
+  if (s == NATS_NOT_FOUND || code == JSStreamNotFoundErr) {
+    return std::optional<LatestMeta>();
+  }
+  if (s != NATS_OK) {
+    return FromNats(
+        s, code,
+        absl::StrCat("cluster: the snapshot of fleet \"", V(fleet_id), "\""));
+  }
+  const uint64_t messages = info->State.Msgs;
+  jsStreamInfo_Destroy(info);
+  if (messages == 0) return std::optional<LatestMeta>();
+  natsMsg* msg = nullptr;
+  s = js_GetLastMsg(&msg, handles_->js, stream.c_str(), subject.c_str(),
+                    nullptr, &code);
   if (s == NATS_NOT_FOUND || code == JSNoMessageFoundErr ||
       code == JSStreamNotFoundErr) {
     return std::optional<LatestMeta>();
