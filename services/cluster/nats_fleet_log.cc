@@ -487,6 +487,19 @@ absl::StatusOr<std::vector<std::string>> NatsFleetLog::Fleets() {
   return fleets;
 }
 
+namespace {
+
+// OUT_OF_RANGE: entry `wanted` of the fleet's log was trimmed (a snapshot
+// holds it); the log starts at `first`.
+absl::Status TrimmedBefore(std::string_view fleet_id, uint64_t first,
+                           uint64_t wanted) {
+  return absl::OutOfRangeError(absl::StrCat(
+      "cluster: the log of fleet \"", V(fleet_id), "\" starts at entry ", first,
+      ", after entry ", wanted, " (trimmed: a snapshot holds it)"));
+}
+
+}  // namespace
+
 absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
     std::string_view fleet_id, uint64_t from, size_t max) {
   if (from == 0) {
@@ -498,9 +511,7 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
   // Entries before the first held were trimmed (a snapshot holds them) or
   // never stored (a failed proposal): never passed silently.
   if (bounds->second > 0 && from < bounds->first) {
-    return absl::OutOfRangeError(absl::StrCat(
-        "cluster: the log of fleet \"", V(fleet_id), "\" starts at entry ",
-        bounds->first, ", after entry ", from));
+    return TrimmedBefore(fleet_id, bounds->first, from);
   }
   // One get per entry from the stream's leader (JetStream's STREAM.MSG.GET:
   // it sees every acknowledged entry) up to the last sequence. No consumer:
@@ -525,9 +536,7 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
       if (!now.ok() || sequence < now->first) {
         if (!entries.empty()) break;  // what was read; the next read says so
         if (!now.ok()) return now.status();
-        return absl::OutOfRangeError(absl::StrCat(
-            "cluster: the log of fleet \"", V(fleet_id), "\" starts at entry ",
-            now->first, ", after entry ", sequence, " (trimmed meanwhile)"));
+        return TrimmedBefore(fleet_id, now->first, sequence);
       }
       // A sequence JetStream skipped (a proposal that failed as its leader
       // changed): said, never passed silently.
