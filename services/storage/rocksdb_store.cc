@@ -39,6 +39,7 @@
 #include "services/storage/keys.h"
 #include "services/storage/mutation_checks.h"
 #include "services/storage/record_codec.h"
+#include "services/storage/rocksdb_info_log.h"
 #include "services/storage/segment_log.h"
 #include "services/storage/snapshot_file.h"
 #include "services/storage/wal_room.h"
@@ -927,7 +928,10 @@ rocksdb::Options MakeOptions(const RocksDbStoreOptions& options,
   db_options.create_if_missing = options.create_if_missing;
   db_options.max_background_jobs = std::max(1, options.background_jobs);
   db_options.write_buffer_size = options.write_buffer_bytes;
-  db_options.keep_log_file_num = 5;
+  // RocksDB's info log goes to the server's log, not to a LOG file beside
+  // the data: a LOG write that met a full disk aborted the server
+  // (rocksdb_info_log.h).
+  db_options.info_log = NewRocksDbInfoLog();
   if (options.compress) {
     const std::vector<rocksdb::CompressionType> supported =
         rocksdb::GetSupportedCompressions();

@@ -21,9 +21,12 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "rocksdb/db.h"
+#include "rocksdb/env.h"
+#include "services/common/log.h"
 #include "services/storage/in_memory_store.h"
 #include "services/storage/keys.h"
 #include "services/storage/record_codec.h"
+#include "services/storage/rocksdb_info_log.h"
 #include "services/storage/snapshot_file.h"
 #include "services/storage/testing/store_test_util.h"
 
@@ -118,6 +121,38 @@ TEST(RocksDbStoreTest, MemoryUsageNamesMemtablesTableReadersAndCache) {
     ASSERT_TRUE(store->Apply("f", m).ok());
   }
   EXPECT_GT(usage()["memtables"], empty.at("memtables"));
+}
+
+// RocksDB's info log is the server's log: no LOG file is written beside the
+// data (its writes aborted the server on a full disk, rocksdb_info_log.h),
+// and RocksDB's warnings reach stderr while its info lines wait for debug.
+TEST(RocksDbStoreTest, InfoLogGoesToTheServerLogNotToAFile) {
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+    ASSERT_NE(store, nullptr);
+    for (const FleetMutation& m : ScriptedMutations(40)) {
+      ASSERT_TRUE(store->Apply("f", m).ok());
+    }
+  }
+  for (const auto& entry : std::filesystem::directory_iterator(path)) {
+    EXPECT_FALSE(entry.path().filename().string().starts_with("LOG"))
+        << entry.path();
+  }
+
+  const log::Level before = log::GetLevel();
+  log::SetLevel(log::Level::kInfo);
+  std::shared_ptr<rocksdb::Logger> info_log = NewRocksDbInfoLog();
+  ::testing::internal::CaptureStderr();
+  rocksdb::Log(rocksdb::InfoLogLevel::WARN_LEVEL, info_log.get(),
+               "background error %d", 28);
+  rocksdb::Log(rocksdb::InfoLogLevel::INFO_LEVEL, info_log.get(),
+               "compaction stats %d", 1);
+  const std::string printed = ::testing::internal::GetCapturedStderr();
+  log::SetLevel(before);
+  EXPECT_THAT(printed, HasSubstr(" W rocksdb:0] background error 28\n"));
+  EXPECT_THAT(printed, ::testing::Not(HasSubstr("compaction stats")));
 }
 
 constexpr char kChildDirEnv[] = "FLEETMEM_STORAGE_CRASH_DIR";
