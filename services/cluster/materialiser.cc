@@ -11,21 +11,10 @@
 #include "services/cluster/log_record.pb.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
+#include "services/engine/log_apply.h"
 #include "services/storage/fleet_image.h"
 
 namespace fleetmem::cluster {
-namespace {
-
-// Deterministic refusals: every replica applying the entry to the same
-// state refuses it the same way. Not RESOURCE_EXHAUSTED: a full disk (the
-// store's reserve) says it too, and passing the entry then would lose it
-// on this replica; such an entry stops the fleet's step until it applies.
-bool RefusedByState(const absl::Status& status) {
-  return absl::IsInvalidArgument(status) ||
-         absl::IsFailedPrecondition(status) || absl::IsNotFound(status);
-}
-
-}  // namespace
 
 absl::StatusOr<EncodedUpload> EncodeUpload(
     std::span<const core::MemoryTrace> traces) {
@@ -218,42 +207,33 @@ void Materialiser::WaitForSnapshots() {
 
 absl::Status Materialiser::Apply(std::string_view fleet_id,
                                  const LogEntry& entry, uint64_t capture,
-                                 CallOutcome* outcome) {
+                                 engine::AppliedRecord* outcome) {
   cluster::v1::LogRecord record;
   if (!record.ParseFromString(entry.data)) {
     return absl::DataLossError(absl::StrCat("cluster: entry ", entry.sequence,
                                             " of the log of fleet \"",
                                             V(fleet_id), "\" is malformed"));
   }
-  CallOutcome applied;
+  std::vector<core::MemoryTrace> traces;  // an upload's, decoded
+  engine::LogRecord kind;
   switch (record.kind_case()) {
-    case cluster::v1::LogRecord::kUpload: {
-      std::vector<core::MemoryTrace> traces;
+    case cluster::v1::LogRecord::kUpload:
       traces.reserve(record.upload().traces_size());
       for (const ::fleetmem::v1::MemoryTrace& trace :
            record.upload().traces()) {
         traces.push_back(api::TraceFromProto(trace));
       }
-      applied.status =
-          engine_->Upload(fleet_id, traces, entry.sequence).status();
+      kind = engine::UploadRecord{traces};
       break;
-    }
-    case cluster::v1::LogRecord::kConsolidate: {
-      absl::StatusOr<engine::ConsolidateResult> result =
-          engine_->Consolidate(fleet_id);
-      if (result.ok()) applied.consolidated = *result;
-      applied.status = result.status();
+    case cluster::v1::LogRecord::kConsolidate:
+      kind = engine::ConsolidateRecord{};
       break;
-    }
-    case cluster::v1::LogRecord::kSampleReplay: {
-      const cluster::v1::SampleReplay& call = record.sample_replay();
-      absl::StatusOr<std::vector<core::MemoryTrace>> sample =
-          engine_->SampleReplay(fleet_id, call.robot_id(), call.count(),
-                                call.request_id(), entry.sequence);
-      if (sample.ok()) applied.sample = *std::move(sample);
-      applied.status = sample.status();
+    case cluster::v1::LogRecord::kSampleReplay:
+      kind = engine::SampleReplayRecord{
+          .robot_id = record.sample_replay().robot_id(),
+          .count = record.sample_replay().count(),
+          .request_id = record.sample_replay().request_id()};
       break;
-    }
     case cluster::v1::LogRecord::KIND_NOT_SET:
       return absl::FailedPreconditionError(
           absl::StrCat("cluster: entry ", entry.sequence,
@@ -261,17 +241,11 @@ absl::Status Materialiser::Apply(std::string_view fleet_id,
                        "\" is of a kind this replica does not know (a newer "
                        "version wrote it)"));
   }
-  if (!applied.status.ok() && !RefusedByState(applied.status)) {
-    return applied.status;
-  }
-  if (!applied.status.ok()) {
-    // Every replica refuses it alike; the log moves on.
-    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id << "\": log entry "
-                           << entry.sequence << " (" << entry.id
-                           << ") refused: " << applied.status;
-  }
+  absl::StatusOr<engine::AppliedRecord> applied =
+      engine::ApplyLogRecord(*engine_, fleet_id, entry.sequence, kind);
+  if (!applied.ok()) return applied.status();
   if (entry.sequence == capture && outcome != nullptr) {
-    *outcome = std::move(applied);
+    *outcome = *std::move(applied);
   }
   return absl::OkStatus();
 }
@@ -281,9 +255,9 @@ absl::StatusOr<StepResult> Materialiser::Step(std::string_view fleet_id) {
   return StepLocked(fleet_id, 0, nullptr);
 }
 
-absl::StatusOr<StepResult> Materialiser::StepLocked(std::string_view fleet_id,
-                                                    uint64_t capture,
-                                                    CallOutcome* outcome) {
+absl::StatusOr<StepResult> Materialiser::StepLocked(
+    std::string_view fleet_id, uint64_t capture,
+    engine::AppliedRecord* outcome) {
   auto it = owned_.find(fleet_id);
   absl::Time renewed_at;
   if (it == owned_.end()) {
@@ -586,7 +560,8 @@ absl::StatusOr<StepResult> Materialiser::CatchUp(std::string_view fleet_id) {
 }
 
 absl::StatusOr<StepResult> Materialiser::StepThroughLocked(
-    std::string_view fleet_id, uint64_t target, CallOutcome* outcome) {
+    std::string_view fleet_id, uint64_t target,
+    engine::AppliedRecord* outcome) {
   StepResult total;
   while (true) {
     absl::StatusOr<StepResult> step = StepLocked(fleet_id, target, outcome);
@@ -603,9 +578,8 @@ absl::StatusOr<StepResult> Materialiser::StepThroughLocked(
   }
 }
 
-absl::StatusOr<CallOutcome> Materialiser::Call(std::string_view fleet_id,
-                                               std::string_view kind,
-                                               const std::string& data) {
+absl::StatusOr<engine::AppliedRecord> Materialiser::Call(
+    std::string_view fleet_id, std::string_view kind, const std::string& data) {
   // Held from the append to the entry's application, so that no step
   // applies the entry before this call can capture what it did.
   absl::MutexLock lock(&mu_);
@@ -620,11 +594,11 @@ absl::StatusOr<CallOutcome> Materialiser::Call(std::string_view fleet_id,
                    absl::ToUnixNanos(absl::Now()), "/", ++calls_);
   absl::StatusOr<Appended> appended = log_->Append(fleet_id, id, data);
   if (!appended.ok()) return appended.status();
-  CallOutcome outcome;
+  engine::AppliedRecord outcome;
   absl::StatusOr<StepResult> applied =
       StepThroughLocked(fleet_id, appended->sequence, &outcome);
   if (!applied.ok()) return applied.status();
-  if (!outcome.status.ok()) return outcome.status;
+  if (!outcome.refused.ok()) return outcome.refused;
   return outcome;
 }
 
@@ -632,7 +606,7 @@ absl::StatusOr<engine::ConsolidateResult> Materialiser::Consolidate(
     std::string_view fleet_id) {
   cluster::v1::LogRecord record;
   record.mutable_consolidate();
-  absl::StatusOr<CallOutcome> outcome =
+  absl::StatusOr<engine::AppliedRecord> outcome =
       Call(fleet_id, "consolidate", record.SerializeAsString());
   if (!outcome.ok()) return outcome.status();
   return outcome->consolidated;
@@ -646,7 +620,7 @@ absl::StatusOr<std::vector<core::MemoryTrace>> Materialiser::SampleReplay(
   call->set_robot_id(std::string(robot_id));
   call->set_count(count);
   call->set_request_id(std::string(request_id));
-  absl::StatusOr<CallOutcome> outcome =
+  absl::StatusOr<engine::AppliedRecord> outcome =
       Call(fleet_id, "sample", record.SerializeAsString());
   if (!outcome.ok()) return outcome.status();
   return std::move(outcome->sample);

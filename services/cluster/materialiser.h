@@ -42,6 +42,7 @@
 #include "services/cluster/replicated_log.h"
 #include "services/common/clock.h"
 #include "services/core/types.h"
+#include "services/engine/log_apply.h"
 #include "services/engine/memory_engine.h"
 
 namespace fleetmem::cluster {
@@ -130,15 +131,6 @@ absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
                                 std::span<const core::MemoryTrace> traces,
                                 size_t max_entry_bytes,
                                 bool creates_fleet = false);
-
-// What applying an entry a call appended did (Materialiser::Consolidate,
-// SampleReplay).
-struct CallOutcome {
-  // The engine's refusal (the entry was passed), or OK.
-  absl::Status status;
-  engine::ConsolidateResult consolidated;  // a Consolidate entry
-  std::vector<core::MemoryTrace> sample;   // a SampleReplay entry
-};
 
 // The shape every upload to the fleet must match: its first upload's (the
 // first entry of its log, or its latest snapshot's once that entry may be
@@ -269,24 +261,26 @@ class Materialiser {
     return stopping_ || (pending_.empty() && !writing_);
   }
   void Store(const std::string& fleet_id, const Pending& pending);
-  // Applies `entry`; its outcome goes to `outcome` when the entry is
-  // `capture`'s.
+  // Decodes `entry` and applies it (engine::ApplyLogRecord: the apply
+  // embedded mode runs too); what it did goes to `outcome` when the entry
+  // is `capture`'s.
   absl::Status Apply(std::string_view fleet_id, const LogEntry& entry,
-                     uint64_t capture, CallOutcome* outcome);
+                     uint64_t capture, engine::AppliedRecord* outcome);
   absl::StatusOr<StepResult> StepLocked(std::string_view fleet_id,
-                                        uint64_t capture, CallOutcome* outcome)
+                                        uint64_t capture,
+                                        engine::AppliedRecord* outcome)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Steps until the entry at `target` (or the first after it) is applied;
   // DATA_LOSS if the log ends before it. What the entry at `target` did
   // goes to `outcome` (may be null).
   absl::StatusOr<StepResult> StepThroughLocked(std::string_view fleet_id,
                                                uint64_t target,
-                                               CallOutcome* outcome)
+                                               engine::AppliedRecord* outcome)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Appends a call's entry and applies the log through it.
-  absl::StatusOr<CallOutcome> Call(std::string_view fleet_id,
-                                   std::string_view kind,
-                                   const std::string& data);
+  absl::StatusOr<engine::AppliedRecord> Call(std::string_view fleet_id,
+                                             std::string_view kind,
+                                             const std::string& data);
 
   const MaterialiserOptions options_;
   std::function<void(const std::string&)> on_lease_lost_;

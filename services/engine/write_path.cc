@@ -82,7 +82,7 @@ struct WritePath::FleetWrites {
     uint64_t sequence = 0;
     uint64_t traces = 0;
     absl::Time appended;
-    std::shared_ptr<AppliedEntry> applied;  // for a caller that waits
+    std::shared_ptr<AppliedRecord> applied;  // for a caller that waits
   };
   std::deque<Entry> unapplied ABSL_GUARDED_BY(mu);
   uint64_t backlog_traces ABSL_GUARDED_BY(mu) = 0;
@@ -387,7 +387,7 @@ void WritePath::LeadQueued(FleetWrites& log) {
       entry.traces = member->result->accepted;
       entry.appended = now;
       if (member->track) {
-        auto applied = std::make_shared<AppliedEntry>();
+        auto applied = std::make_shared<AppliedRecord>();
         entry.applied = applied;
         member->result->applied = std::move(applied);
       }
@@ -691,7 +691,7 @@ void WritePath::ApplyTurn(FleetWrites& log) {
   if (entries->empty() || entries->front().sequence > through) {
     if (LostFrom(log_->Losses(log.id), from) >= through) {
       // Every entry left was found damaged (reported as it was found).
-      MarkApplied(log, through, AppliedEntry{});
+      MarkApplied(log, through, AppliedRecord{});
       return;
     }
     return WaitToRetry(
@@ -705,12 +705,21 @@ void WritePath::ApplyTurn(FleetWrites& log) {
     if (entry.sequence > through || stop_.load(std::memory_order_relaxed)) {
       break;
     }
-    absl::StatusOr<AppliedEntry> outcome = ApplyEntry(log, entry);
+    absl::StatusOr<AppliedRecord> outcome = ApplyLogRecord(
+        *engine_, log.id, entry.sequence, UploadRecord{entry.traces});
     if (!outcome.ok()) {
       // The store (a full disk): retried until it applies; never dropped.
       // (No limit refuses an acknowledged entry: engine/admission.h.)
       if (applied > from) log_->Trim(log.id, applied).IgnoreError();
       return WaitToRetry(log, from, outcome.status());
+    }
+    if (outcome->duplicates > 0) {
+      // Append admits only seqs the fleet has not received: a duplicate
+      // here is an entry applied twice (the crash trials count this line).
+      FLEETMEM_LOG(kError) << "fleet \"" << log.id
+                           << "\": " << outcome->duplicates
+                           << " traces of log entry " << entry.sequence
+                           << " were applied twice";
     }
     MarkApplied(log, entry.sequence, *outcome);
     applied = entry.sequence;
@@ -723,37 +732,8 @@ void WritePath::ApplyTurn(FleetWrites& log) {
   }
 }
 
-absl::StatusOr<AppliedEntry> WritePath::ApplyEntry(FleetWrites& log,
-                                                   const LoggedUpload& entry) {
-  absl::StatusOr<UploadResult> result =
-      engine_->Upload(log.id, entry.traces, entry.sequence);
-  AppliedEntry outcome;
-  if (result.ok()) {
-    outcome.consolidations = result->consolidations;
-    if (result->duplicates > 0) {
-      // Append admits only seqs the fleet has not received: a duplicate
-      // here is an entry applied twice (the crash trials count this line).
-      FLEETMEM_LOG(kError) << "fleet \"" << log.id
-                           << "\": " << result->duplicates
-                           << " traces of log entry " << entry.sequence
-                           << " were applied twice";
-    }
-    return outcome;
-  }
-  if (!absl::IsInvalidArgument(result.status())) return result.status();
-  // Append checked it as the engine does: only a change of the checks
-  // between two versions can make the engine refuse it now.
-  FLEETMEM_LOG(kError) << "fleet \"" << log.id << "\": acknowledged log "
-                       << "entry " << entry.sequence << " ("
-                       << entry.traces.size()
-                       << " traces) refused when applied, passed over: "
-                       << result.status();
-  outcome.status = result.status();
-  return outcome;
-}
-
 void WritePath::MarkApplied(FleetWrites& log, uint64_t sequence,
-                            const AppliedEntry& outcome) {
+                            const AppliedRecord& outcome) {
   absl::MutexLock lock(&log.mu);
   while (!log.unapplied.empty() && log.unapplied.front().sequence <= sequence) {
     FleetWrites::Entry& done = log.unapplied.front();

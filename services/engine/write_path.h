@@ -11,8 +11,8 @@
 // log write (group commit).
 //
 // Appliers (a few threads shared by every fleet; a fleet's log is applied by
-// one at a time, in order) apply the log through MemoryEngine::Upload with
-// the entry's sequence: the same deterministic apply that distributed mode's
+// one at a time, in order) apply the log through ApplyLogRecord
+// (log_apply.h): the same deterministic apply that distributed mode's
 // cluster::Materialiser runs on the replicated log's entries, which stores
 // the sequence with the traces it adds (MemoryEngine::LogPosition), so that
 // an entry applied again after a crash changes nothing. Consolidation,
@@ -44,6 +44,7 @@
 #include "services/core/seq_set.h"
 #include "services/core/types.h"
 #include "services/engine/fleet_log.h"
+#include "services/engine/log_apply.h"
 #include "services/engine/memory_engine.h"
 
 namespace fleetmem::engine {
@@ -82,14 +83,6 @@ struct WritePathOptions {
 
 absl::Status ValidateWritePathOptions(const WritePathOptions& options);
 
-// What applying one entry did, for a caller that waits for it.
-struct AppliedEntry {
-  uint64_t consolidations = 0;
-  // The engine's refusal of the entry, which Append's checks make
-  // impossible; logged as an error if it happens.
-  absl::Status status;
-};
-
 // An upload as Append admitted it.
 struct Appended {
   uint64_t accepted = 0;
@@ -98,8 +91,9 @@ struct Appended {
   // duplicate).
   uint64_t sequence = 0;
   // With Append's `track`, and an entry: what applying it did, filled in
-  // before WaitApplied(sequence) returns OK.
-  std::shared_ptr<const AppliedEntry> applied;
+  // before WaitApplied(sequence) returns OK (its `refused`: the engine's
+  // refusal, which Append's checks make impossible; logged if it happens).
+  std::shared_ptr<const AppliedRecord> applied;
 };
 
 // A fleet's log as it stands (GetStats, /metrics).
@@ -233,15 +227,10 @@ class WritePath {
   // Applies up to apply_batch entries of the fleet (fewer after Stop, or
   // when one fails: the fleet's applier then waits retry_interval).
   void ApplyTurn(FleetWrites& log);
-  // Applies one entry (MemoryEngine::Upload with its sequence): what it
-  // did, or the store's error (the entry stays, and is retried). An entry
-  // the engine refuses as invalid is passed over, with that status.
-  absl::StatusOr<AppliedEntry> ApplyEntry(FleetWrites& log,
-                                          const LoggedUpload& entry);
   // The fleet's log is applied through `sequence` (the entries through it
   // leave the backlog; a waiter on `sequence` gets `outcome`).
   void MarkApplied(FleetWrites& log, uint64_t sequence,
-                   const AppliedEntry& outcome);
+                   const AppliedRecord& outcome);
   // Reports a failed apply (GetStats' apply_error, waiters) and waits
   // retry_interval, or until Stop.
   void WaitToRetry(FleetWrites& log, uint64_t from, const absl::Status& status);

@@ -67,8 +67,8 @@ std::vector<absl::StatusOr<Uploaded>> EmbeddedMemory::UploadMany(
         continue;
       }
       if (one->applied != nullptr) {
-        if (!one->applied->status.ok()) {
-          results.push_back(one->applied->status);
+        if (!one->applied->refused.ok()) {
+          results.push_back(one->applied->refused);
           continue;
         }
         uploaded.result.consolidations = one->applied->consolidations;

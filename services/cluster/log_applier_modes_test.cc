@@ -1,0 +1,206 @@
+// The same applier tests over both modes' logs: embedded mode's ingest log
+// (engine::FleetLog, here in memory) applied by engine::WritePath's
+// appliers, and distributed mode's JetStream log (a real nats-server)
+// applied by the fleet's owner, cluster::Materialiser. Both apply each
+// entry through engine::ApplyLogRecord; these tests hold what a user of
+// either mode relies on: the log applied is the memory of the same uploads
+// made directly, an entry the fleet's state refuses is passed alike, a
+// store error stops the apply until the entry applies, and an applier
+// started again applies only the rest.
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/time/clock.h"
+#include "gtest/gtest.h"
+#include "services/cluster/materialiser.h"
+#include "services/cluster/testing/cluster_test_util.h"
+#include "services/cluster/testing/nats_fixture.h"
+#include "services/engine/fleet_log.h"
+#include "services/engine/testing/memory_engine_test_util.h"
+#include "services/engine/write_path.h"
+#include "services/index/exact_index.h"
+#include "services/storage/in_memory_log.h"
+#include "services/storage/in_memory_store.h"
+
+namespace fleetmem::cluster {
+namespace {
+
+using testing_util::ExpectSameState;
+using testing_util::State;
+using testing_util::StateOf;
+using testing_util::Uploads;
+
+constexpr char kFleet[] = "fleet-m";
+
+// One mode's log of a fleet and its applier.
+class Mode {
+ public:
+  virtual ~Mode() = default;
+  // Appends an upload to the fleet's log as the mode's log holds it
+  // (admission is not the subject here: a test may log what admission
+  // would refuse).
+  virtual void Append(const std::vector<core::MemoryTrace>& traces) = 0;
+  // Starts the mode's applier over `engine` and applies the fleet's log
+  // through its end: OK, or the error the apply stopped at.
+  virtual absl::Status ApplyAll(engine::MemoryEngine& engine) = 0;
+};
+
+// Embedded mode: entries under the next sequence of the fleet's local log;
+// a WritePath opened over it recovers and applies its tail.
+class EmbeddedMode : public Mode {
+ public:
+  void Append(const std::vector<core::MemoryTrace>& traces) override {
+    const engine::LogAppend entry{.sequence = ++last_, .traces = traces};
+    ASSERT_TRUE(log_->Append(kFleet, {&entry, 1}).ok());
+  }
+  absl::Status ApplyAll(engine::MemoryEngine& engine) override {
+    absl::StatusOr<std::unique_ptr<engine::WritePath>> path =
+        engine::WritePath::Open(
+            {.appliers = 1, .retry_interval = absl::Milliseconds(20)}, &engine,
+            log_.get());
+    if (!path.ok()) return path.status();
+    return (*path)->WaitAppliedAll(kFleet, absl::Now() + absl::Seconds(30));
+  }
+
+ private:
+  std::unique_ptr<engine::FleetLog> log_ = storage::NewInMemoryLog();
+  uint64_t last_ = 0;
+};
+
+// Distributed mode: EncodeUpload's entries on the fleet's JetStream log; a
+// Materialiser (replica "a", its lease on the fleet) catches up with it.
+class DistributedMode : public Mode {
+ public:
+  explicit DistributedMode(std::unique_ptr<NatsFleetLog> log)
+      : log_(std::move(log)) {}
+  void Append(const std::vector<core::MemoryTrace>& traces) override {
+    testing_util::AppendUploads(*log_, kFleet, {traces});
+  }
+  absl::Status ApplyAll(engine::MemoryEngine& engine) override {
+    Materialiser materialiser({.replica_id = "replica-a"}, log_.get(),
+                              log_.get(), /*snapshots=*/nullptr, &engine);
+    return materialiser.CatchUp(kFleet).status();
+  }
+
+ private:
+  std::unique_ptr<NatsFleetLog> log_;
+};
+
+class LogApplierModesTest : public NatsFixture,
+                            public ::testing::WithParamInterface<bool> {
+ protected:
+  void SetUp() override {
+    NatsFixture::SetUp();
+    if (GetParam()) {
+      std::unique_ptr<NatsFleetLog> log = Connect();
+      ASSERT_NE(log, nullptr);
+      mode_ = std::make_unique<DistributedMode>(std::move(log));
+    } else {
+      mode_ = std::make_unique<EmbeddedMode>();
+    }
+  }
+  // An engine over `store` (this replica's, restarted by opening again).
+  std::unique_ptr<engine::MemoryEngine> Open(engine::MemoryStore* store) {
+    absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> opened =
+        engine::MemoryEngine::Open(
+            testing_util::SmallOptions(), store,
+            [](size_t dimension) { return index::NewExactIndex(dimension); });
+    EXPECT_TRUE(opened.ok()) << opened.status();
+    return opened.ok() ? *std::move(opened) : nullptr;
+  }
+  // The memory of `uploads` made directly (no log).
+  State Direct(const std::vector<std::vector<core::MemoryTrace>>& uploads) {
+    testing_util::Replica direct;
+    for (const std::vector<core::MemoryTrace>& batch : uploads) {
+      EXPECT_TRUE(direct.engine->Upload(kFleet, batch).ok());
+    }
+    return StateOf(*direct.engine, kFleet);
+  }
+
+  std::unique_ptr<Mode> mode_;
+  std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
+};
+
+TEST_P(LogApplierModesTest, TheLogAppliedIsTheMemoryOfTheUploadsMadeDirectly) {
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  for (const auto& batch : uploads) mode_->Append(batch);
+  std::unique_ptr<engine::MemoryEngine> engine = Open(store_.get());
+  ASSERT_NE(engine, nullptr);
+  ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
+  const State want = Direct(uploads);
+  ASSERT_GT(want.stats.consolidations, 0u);
+  ASSERT_GT(want.stats.clusters_forgotten, 0u);
+  ExpectSameState(StateOf(*engine, kFleet), want);
+  EXPECT_EQ(engine->LogPosition(kFleet).value_or(0), uploads.size());
+}
+
+TEST_P(LogApplierModesTest, AnEntryTheFleetsStateRefusesIsPassedAlike) {
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  std::vector<core::MemoryTrace> wrong = uploads[1];
+  for (core::MemoryTrace& trace : wrong) trace.code.resize(4);
+  for (const auto& batch : {uploads[0], wrong, uploads[2]}) {
+    mode_->Append(batch);
+  }
+  std::unique_ptr<engine::MemoryEngine> engine = Open(store_.get());
+  ASSERT_NE(engine, nullptr);
+  ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
+  ExpectSameState(StateOf(*engine, kFleet), Direct({uploads[0], uploads[2]}));
+  EXPECT_EQ(engine->LogPosition(kFleet).value_or(0), 3u);
+}
+
+// A full disk (RESOURCE_EXHAUSTED from the store) is never passed: the
+// apply stops at the entry, and the entry applies once the store writes.
+TEST_P(LogApplierModesTest, AStoreErrorStopsTheApplyUntilTheEntryApplies) {
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  engine::FlakyStore flaky(store_.get());
+  std::unique_ptr<engine::MemoryEngine> engine = Open(&flaky);
+  ASSERT_NE(engine, nullptr);
+  mode_->Append(uploads[0]);
+  ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
+  mode_->Append(uploads[1]);
+  mode_->Append(uploads[2]);
+  flaky.fail_after = flaky.applies;
+  flaky.failure = absl::ResourceExhaustedError("disk nearly full");
+  EXPECT_EQ(mode_->ApplyAll(*engine).code(),
+            absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(engine->LogPosition(kFleet).value_or(0), 1u);
+  flaky.fail_after = -1;
+  ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
+  EXPECT_EQ(engine->LogPosition(kFleet).value_or(0), 3u);
+  ExpectSameState(StateOf(*engine, kFleet),
+                  Direct({uploads[0], uploads[1], uploads[2]}));
+}
+
+// A replica restarted on its store applies the entries after the position
+// it holds, none twice.
+TEST_P(LogApplierModesTest, AnApplierStartedAgainAppliesOnlyTheRest) {
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  const size_t half = uploads.size() / 2;
+  for (size_t i = 0; i < half; ++i) mode_->Append(uploads[i]);
+  {
+    std::unique_ptr<engine::MemoryEngine> engine = Open(store_.get());
+    ASSERT_NE(engine, nullptr);
+    ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
+  }
+  for (size_t i = half; i < uploads.size(); ++i) mode_->Append(uploads[i]);
+  engine::FlakyStore counted(store_.get());
+  std::unique_ptr<engine::MemoryEngine> engine = Open(&counted);
+  ASSERT_NE(engine, nullptr);
+  ASSERT_EQ(engine->LogPosition(kFleet).value_or(0), half);
+  ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
+  EXPECT_EQ(engine->LogPosition(kFleet).value_or(0), uploads.size());
+  ExpectSameState(StateOf(*engine, kFleet), Direct(uploads));
+  // Each applied entry writes once or twice (an upload, its consolidation
+  // after it); none of the first half wrote again.
+  EXPECT_LE(counted.applies, static_cast<int>(2 * (uploads.size() - half)));
+}
+
+INSTANTIATE_TEST_SUITE_P(BothModes, LogApplierModesTest, ::testing::Bool(),
+                         [](const ::testing::TestParamInfo<bool>& info) {
+                           return info.param ? "JetStreamLogMaterialiser"
+                                             : "LocalLogWritePath";
+                         });
+
+}  // namespace
+}  // namespace fleetmem::cluster

@@ -1,0 +1,76 @@
+#include "services/engine/log_apply.h"
+
+#include <string>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "services/common/log.h"
+#include "services/core/absl_view.h"
+
+namespace fleetmem::engine {
+namespace {
+
+// Applies one kind of record: the engine's answer, with what it did.
+struct Apply {
+  MemoryEngine& engine;
+  std::string_view fleet_id;
+  uint64_t sequence;
+  AppliedRecord& applied;
+
+  absl::Status operator()(const UploadRecord& upload) const {
+    absl::StatusOr<UploadResult> result =
+        engine.Upload(fleet_id, upload.traces, sequence);
+    if (!result.ok()) return result.status();
+    applied.consolidations = result->consolidations;
+    applied.duplicates = result->duplicates;
+    return absl::OkStatus();
+  }
+  absl::Status operator()(const ConsolidateRecord&) const {
+    absl::StatusOr<ConsolidateResult> result = engine.Consolidate(fleet_id);
+    if (!result.ok()) return result.status();
+    applied.consolidated = *result;
+    return absl::OkStatus();
+  }
+  absl::Status operator()(const SampleReplayRecord& call) const {
+    absl::StatusOr<std::vector<core::MemoryTrace>> sample = engine.SampleReplay(
+        fleet_id, call.robot_id, call.count, call.request_id, sequence);
+    if (!sample.ok()) return sample.status();
+    applied.sample = *std::move(sample);
+    return absl::OkStatus();
+  }
+};
+
+}  // namespace
+
+bool RefusedByState(const absl::Status& status) {
+  return absl::IsInvalidArgument(status) ||
+         absl::IsFailedPrecondition(status) || absl::IsNotFound(status);
+}
+
+absl::StatusOr<AppliedRecord> ApplyLogRecord(MemoryEngine& engine,
+                                             std::string_view fleet_id,
+                                             uint64_t sequence,
+                                             const LogRecord& record) {
+  AppliedRecord applied;
+  const absl::Status status =
+      std::visit(Apply{engine, fleet_id, sequence, applied}, record);
+  if (status.ok()) return applied;
+  if (!RefusedByState(status)) return status;
+  // Every replica refuses it alike; the log moves on. An upload was
+  // admitted as the engine checks it: only a change of the checks between
+  // two versions makes the engine refuse one now.
+  const bool upload = std::holds_alternative<UploadRecord>(record);
+  log::Write(
+      upload ? log::Level::kError : log::Level::kWarning, __FILE__, __LINE__,
+      absl::StrCat(
+          "fleet \"", V(fleet_id), "\": log entry ", sequence,
+          upload ? absl::StrCat(" (an acknowledged upload of ",
+                                std::get<UploadRecord>(record).traces.size(),
+                                " traces)")
+                 : std::string(),
+          " refused when applied, passed over: ", status.ToString()));
+  applied.refused = status;
+  return applied;
+}
+
+}  // namespace fleetmem::engine

@@ -1,0 +1,171 @@
+#include "services/engine/log_apply.h"
+
+#include <memory>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "gtest/gtest.h"
+#include "services/engine/memory_engine.h"
+#include "services/engine/testing/forwarding_store.h"
+#include "services/index/exact_index.h"
+#include "services/storage/in_memory_store.h"
+
+namespace fleetmem::engine {
+namespace {
+
+std::vector<core::MemoryTrace> Traces(const std::string& robot_id,
+                                      uint64_t first_seq, size_t count,
+                                      size_t dimension = 4) {
+  std::mt19937_64 rng(first_seq);
+  std::normal_distribution<float> normal;
+  std::vector<core::MemoryTrace> traces;
+  for (size_t i = 0; i < count; ++i) {
+    core::MemoryTrace trace;
+    trace.robot_id = robot_id;
+    trace.seq = first_seq + i;
+    trace.code.resize(dimension);
+    for (float& value : trace.code) value = normal(rng);
+    trace.place = core::Place{static_cast<double>(trace.seq), 0, 0, 0};
+    trace.reward = 1.0f;
+    trace.encoder_version = "v1";
+    traces.push_back(std::move(trace));
+  }
+  return traces;
+}
+
+// A store whose applies fail with `failure` while it is not OK.
+class FailingStore : public ForwardingStore {
+ public:
+  using ForwardingStore::ForwardingStore;
+  absl::Status Apply(std::string_view fleet_id,
+                     const FleetMutation& mutation) override {
+    if (!failure.ok()) return failure;
+    return ForwardingStore::Apply(fleet_id, mutation);
+  }
+  absl::Status failure;
+};
+
+class LogApplyTest : public ::testing::Test {
+ protected:
+  std::unique_ptr<MemoryEngine> OpenEngine(MemoryStore* store) {
+    EngineOptions options;
+    options.memory.clusters_per_batch = 2;
+    options.segment_size = 10;
+    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
+        options, store,
+        [](size_t dimension) { return index::NewExactIndex(dimension); });
+    EXPECT_TRUE(engine.ok()) << engine.status();
+    return engine.ok() ? *std::move(engine) : nullptr;
+  }
+  uint64_t Held(MemoryEngine& engine) {
+    absl::StatusOr<FleetStats> stats = engine.GetStats("f");
+    return stats.ok() ? stats->traces + stats->pending_traces : 0;
+  }
+
+  std::unique_ptr<MemoryStore> inner_ = storage::NewInMemoryStore();
+  FailingStore store_{inner_.get()};
+};
+
+TEST_F(LogApplyTest, AnUploadIsStoredUnderItsSequenceAndAgainChangesNothing) {
+  std::unique_ptr<MemoryEngine> engine = OpenEngine(&store_);
+  ASSERT_NE(engine, nullptr);
+  const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 12);
+  absl::StatusOr<AppliedRecord> first =
+      ApplyLogRecord(*engine, "f", 7, UploadRecord{traces});
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_TRUE(first->refused.ok());
+  EXPECT_EQ(first->consolidations, 1u);  // 12 traces fill a segment of 10
+  EXPECT_EQ(first->duplicates, 0u);
+  EXPECT_EQ(engine->LogPosition("f").value_or(0), 7u);
+  EXPECT_EQ(Held(*engine), 12u);
+
+  absl::StatusOr<AppliedRecord> again =
+      ApplyLogRecord(*engine, "f", 7, UploadRecord{traces});
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->duplicates, 12u);
+  EXPECT_EQ(again->consolidations, 0u);
+  EXPECT_EQ(Held(*engine), 12u);
+}
+
+// Refused by the fleet's state: every replica refuses it alike, so the
+// entry is passed (OK, with the refusal); the log moves on.
+TEST_F(LogApplyTest, AnEntryTheFleetsStateRefusesIsPassedWithItsRefusal) {
+  std::unique_ptr<MemoryEngine> engine = OpenEngine(&store_);
+  ASSERT_NE(engine, nullptr);
+  absl::StatusOr<AppliedRecord> consolidated =
+      ApplyLogRecord(*engine, "f", 1, ConsolidateRecord{});
+  ASSERT_TRUE(consolidated.ok()) << consolidated.status();
+  EXPECT_EQ(consolidated->refused.code(), absl::StatusCode::kNotFound)
+      << consolidated->refused;
+
+  ASSERT_TRUE(
+      ApplyLogRecord(*engine, "f", 2, UploadRecord{Traces("r1", 1, 4)}).ok());
+  const std::vector<core::MemoryTrace> wider = Traces("r2", 1, 4, 8);
+  absl::StatusOr<AppliedRecord> refused =
+      ApplyLogRecord(*engine, "f", 3, UploadRecord{wider});
+  ASSERT_TRUE(refused.ok()) << refused.status();
+  EXPECT_EQ(refused->refused.code(), absl::StatusCode::kInvalidArgument)
+      << refused->refused;
+  EXPECT_EQ(Held(*engine), 4u);
+}
+
+// The store's errors are returned, not passed: a full disk must not lose
+// the entry on this replica; applied again later, it applies.
+TEST_F(LogApplyTest, TheStoresErrorIsReturnedAndTheEntryAppliesLater) {
+  std::unique_ptr<MemoryEngine> engine = OpenEngine(&store_);
+  ASSERT_NE(engine, nullptr);
+  const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 4);
+  store_.failure = absl::ResourceExhaustedError("disk nearly full");
+  absl::StatusOr<AppliedRecord> failed =
+      ApplyLogRecord(*engine, "f", 1, UploadRecord{traces});
+  EXPECT_EQ(failed.status().code(), absl::StatusCode::kResourceExhausted);
+  store_.failure = absl::OkStatus();
+  absl::StatusOr<AppliedRecord> applied =
+      ApplyLogRecord(*engine, "f", 1, UploadRecord{traces});
+  ASSERT_TRUE(applied.ok()) << applied.status();
+  EXPECT_EQ(applied->duplicates, 0u);
+  EXPECT_EQ(Held(*engine), 4u);
+}
+
+// Two engines that apply the same entries reach the same answers: the
+// consolidation and the sample drawn under the entry's sequence.
+TEST_F(LogApplyTest, TwoEnginesApplyingTheSameEntriesAnswerAlike) {
+  std::unique_ptr<MemoryStore> other_store = storage::NewInMemoryStore();
+  std::unique_ptr<MemoryEngine> a = OpenEngine(&store_);
+  std::unique_ptr<MemoryEngine> b = OpenEngine(other_store.get());
+  ASSERT_NE(a, nullptr);
+  ASSERT_NE(b, nullptr);
+  const std::vector<core::MemoryTrace> r1 = Traces("r1", 1, 12);
+  const std::vector<core::MemoryTrace> r2 = Traces("r2", 1, 7);
+  const std::vector<LogRecord> log = {
+      UploadRecord{r1}, UploadRecord{r2}, ConsolidateRecord{},
+      SampleReplayRecord{.robot_id = "r1", .count = 5, .request_id = "q1"}};
+  std::vector<AppliedRecord> answers[2];
+  for (uint64_t sequence = 1; sequence <= log.size(); ++sequence) {
+    for (int replica = 0; replica < 2; ++replica) {
+      absl::StatusOr<AppliedRecord> applied = ApplyLogRecord(
+          replica == 0 ? *a : *b, "f", sequence, log[sequence - 1]);
+      ASSERT_TRUE(applied.ok()) << applied.status();
+      ASSERT_TRUE(applied->refused.ok()) << applied->refused;
+      answers[replica].push_back(*std::move(applied));
+    }
+  }
+  EXPECT_EQ(answers[0][0].consolidations, 1u);  // a segment of r1's
+  EXPECT_EQ(answers[1][0].consolidations, 1u);
+  EXPECT_GT(answers[0][2].consolidated.consolidated_traces, 0u);
+  EXPECT_EQ(answers[0][2].consolidated.consolidated_traces,
+            answers[1][2].consolidated.consolidated_traces);
+  EXPECT_EQ(answers[0][2].consolidated.clusters,
+            answers[1][2].consolidated.clusters);
+  ASSERT_EQ(answers[0][3].sample.size(), 5u);
+  ASSERT_EQ(answers[1][3].sample.size(), 5u);
+  for (size_t i = 0; i < 5; ++i) {
+    EXPECT_EQ(answers[0][3].sample[i].robot_id,
+              answers[1][3].sample[i].robot_id);
+    EXPECT_EQ(answers[0][3].sample[i].seq, answers[1][3].sample[i].seq);
+  }
+}
+
+}  // namespace
+}  // namespace fleetmem::engine
