@@ -16,6 +16,26 @@
 
 namespace fleetmem::cluster {
 
+namespace {
+
+// The fleet's latest snapshot, decoded: its description and image, or why
+// not (DATA_LOSS for one that vanished or does not decode).
+absl::StatusOr<std::pair<SnapshotInfo, engine::FleetImage>> FetchImage(
+    SnapshotStore& snapshots, std::string_view fleet_id) {
+  absl::StatusOr<std::optional<std::pair<SnapshotInfo, std::string>>> fetched =
+      snapshots.Fetch(fleet_id);
+  if (!fetched.ok()) return fetched.status();
+  if (!fetched->has_value()) {
+    return absl::DataLossError("the snapshot vanished");
+  }
+  absl::StatusOr<engine::FleetImage> image =
+      storage::DecodeFleetImage(fleet_id, (*fetched)->second);
+  if (!image.ok()) return image.status();
+  return std::make_pair((*fetched)->first, *std::move(image));
+}
+
+}  // namespace
+
 absl::StatusOr<EncodedUpload> EncodeUpload(
     std::span<const core::MemoryTrace> traces) {
   if (traces.empty()) {
@@ -255,47 +275,54 @@ absl::StatusOr<StepResult> Materialiser::Step(std::string_view fleet_id) {
   return StepLocked(fleet_id, 0, nullptr);
 }
 
+absl::StatusOr<Materialiser::Owned*> Materialiser::Take(
+    std::string_view fleet_id, absl::Time* renewed_at) {
+  // Where this replica's own store stands: entries up to it are in its
+  // state (an earlier ownership, or before a restart).
+  absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
+  if (!position.ok()) return position.status();
+  absl::StatusOr<Lease> lease = leases_->Acquire(fleet_id, options_.replica_id);
+  if (!lease.ok()) return lease.status();
+  FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet_id
+                      << "\" taken (lease revision " << lease->revision
+                      << ", this replica's store at entry " << *position << ")";
+  *renewed_at = options_.clock->Now();
+  {
+    absl::MutexLock held(&lease_mu_);
+    held_[std::string(fleet_id)] = Held{*lease, *renewed_at, *position};
+  }
+  Owned taken{*position};
+  // Under the lease: a restore is a write like any other.
+  if (absl::Status restored = RestoreIfBehind(fleet_id, taken);
+      !restored.ok()) {
+    // Not owned yet (the lease is kept: the next step takes it again at
+    // once, as its holder).
+    absl::MutexLock held(&lease_mu_);
+    held_.erase(std::string(fleet_id));
+    return restored;
+  }
+  return &owned_.emplace(std::string(fleet_id), std::move(taken)).first->second;
+}
+
+absl::StatusOr<Materialiser::Owned*> Materialiser::Fence(
+    std::string_view fleet_id, absl::Time* renewed_at) {
+  auto it = owned_.find(fleet_id);
+  if (it == owned_.end()) return Take(fleet_id, renewed_at);
+  // No entry is applied under a lease this replica lost.
+  absl::StatusOr<absl::Time> renewed = RenewIfDue(fleet_id, false);
+  if (absl::IsFailedPrecondition(renewed.status())) owned_.erase(it);
+  if (!renewed.ok()) return renewed.status();
+  *renewed_at = *renewed;
+  return &it->second;
+}
+
 absl::StatusOr<StepResult> Materialiser::StepLocked(
     std::string_view fleet_id, uint64_t capture,
     engine::AppliedRecord* outcome) {
-  auto it = owned_.find(fleet_id);
   absl::Time renewed_at;
-  if (it == owned_.end()) {
-    // Where this replica's own store stands: entries up to it are in its
-    // state (an earlier ownership, or before a restart).
-    absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
-    if (!position.ok()) return position.status();
-    absl::StatusOr<Lease> lease =
-        leases_->Acquire(fleet_id, options_.replica_id);
-    if (!lease.ok()) return lease.status();
-    FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet_id
-                        << "\" taken (lease revision " << lease->revision
-                        << ", this replica's store at entry " << *position
-                        << ")";
-    renewed_at = options_.clock->Now();
-    {
-      absl::MutexLock held(&lease_mu_);
-      held_[std::string(fleet_id)] = Held{*lease, renewed_at, *position};
-    }
-    Owned taken{*position};
-    // Under the lease: a restore is a write like any other.
-    if (absl::Status restored = RestoreIfBehind(fleet_id, taken);
-        !restored.ok()) {
-      // Not owned yet (the lease is kept: the next step takes it again at
-      // once, as its holder).
-      absl::MutexLock held(&lease_mu_);
-      held_.erase(std::string(fleet_id));
-      return restored;
-    }
-    it = owned_.emplace(std::string(fleet_id), std::move(taken)).first;
-  } else {
-    // Fencing: no entry is applied under a lease this replica lost.
-    absl::StatusOr<absl::Time> renewed = RenewIfDue(fleet_id, false);
-    if (absl::IsFailedPrecondition(renewed.status())) owned_.erase(it);
-    if (!renewed.ok()) return renewed.status();
-    renewed_at = *renewed;
-  }
-  Owned& owned = it->second;
+  absl::StatusOr<Owned*> fenced = Fence(fleet_id, &renewed_at);
+  if (!fenced.ok()) return fenced.status();
+  Owned& owned = **fenced;
   StepResult result{0, owned.position, 0, std::exchange(owned.restored, 0), 0};
   if (std::optional<Lease> held = lease(fleet_id)) {
     result.revision = held->revision;
@@ -435,17 +462,20 @@ absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,
   if (!first.ok()) return first.status();
   // The log no longer holds every entry after this replica's position.
   const bool trimmed = *first > owned.position + 1;
+  // While the log holds every entry needed, a snapshot that cannot be read
+  // (its stream electing a leader) or restored is not needed: the log is
+  // applied instead.
+  auto apply_the_log = [&](const absl::Status& why) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                           << "\": not restored from its snapshot (" << why
+                           << "); applying its log from entry "
+                           << owned.position + 1;
+    return absl::OkStatus();
+  };
   absl::StatusOr<std::optional<SnapshotInfo>> latest =
       snapshots_->Latest(fleet_id);
   if (!latest.ok()) {
-    if (trimmed) return latest.status();
-    // The log holds what is needed: apply it (the snapshot's stream may be
-    // electing its leader).
-    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
-                           << "\": its snapshot cannot be read ("
-                           << latest.status() << "); applying its log from "
-                           << "entry " << owned.position + 1;
-    return absl::OkStatus();
+    return trimmed ? latest.status() : apply_the_log(latest.status());
   }
   if (!latest->has_value() || (trimmed && (*latest)->sequence + 1 < *first)) {
     if (trimmed) {
@@ -468,44 +498,29 @@ absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,
     return absl::OkStatus();
   }
   const absl::Time start = absl::Now();
-  absl::StatusOr<std::optional<std::pair<SnapshotInfo, std::string>>> fetched =
-      snapshots_->Fetch(fleet_id);
-  absl::Status status = fetched.status();
-  if (status.ok() && !fetched->has_value()) {
-    status = absl::DataLossError("the snapshot vanished");
-  }
-  absl::StatusOr<engine::FleetImage> image =
-      status.ok() ? storage::DecodeFleetImage(fleet_id, (*fetched)->second)
-                  : absl::StatusOr<engine::FleetImage>(status);
-  if (image.ok()) {
-    // A failed restore may have written the image (its reload failed):
-    // the log is not applied over it from the old position; the next step
-    // restores again.
-    if (absl::Status restored =
-            engine_->RestoreFleet(fleet_id, *std::move(image));
-        !restored.ok()) {
-      return absl::Status(
-          restored.code(),
-          absl::StrCat("cluster: restoring fleet \"", V(fleet_id),
-                       "\" from its snapshot: ", restored.message()));
-    }
-  }
-  status = image.status();
-  if (!status.ok()) {
-    if (!trimmed) {
-      // The log still holds everything: apply it instead.
-      FLEETMEM_LOG(kWarning)
-          << "fleet \"" << fleet_id << "\": not restored from its snapshot ("
-          << status << "); applying its log from entry " << owned.position + 1;
-      return absl::OkStatus();
-    }
+  absl::StatusOr<std::pair<SnapshotInfo, engine::FleetImage>> fetched =
+      FetchImage(*snapshots_, fleet_id);
+  if (!fetched.ok()) {
+    if (!trimmed) return apply_the_log(fetched.status());
     return absl::Status(
-        status.code(),
-        absl::StrCat("cluster: fleet \"", V(fleet_id),
-                     "\" needs its snapshot (its log starts at ", *first,
-                     ") and it cannot be restored: ", status.message()));
+        fetched.status().code(),
+        absl::StrCat(
+            "cluster: fleet \"", V(fleet_id),
+            "\" needs its snapshot (its log starts at ", *first,
+            ") and it cannot be restored: ", fetched.status().message()));
   }
-  const SnapshotInfo& info = (*fetched)->first;
+  // A failed restore may have written the image (its reload failed): the
+  // log is not applied over it from the old position; the next step
+  // restores again.
+  if (absl::Status restored =
+          engine_->RestoreFleet(fleet_id, std::move(fetched->second));
+      !restored.ok()) {
+    return absl::Status(
+        restored.code(),
+        absl::StrCat("cluster: restoring fleet \"", V(fleet_id),
+                     "\" from its snapshot: ", restored.message()));
+  }
+  const SnapshotInfo& info = fetched->first;
   FLEETMEM_LOG(kInfo) << "fleet \"" << fleet_id
                       << "\" restored from its snapshot through entry "
                       << info.sequence << " (" << info.bytes << " bytes, "

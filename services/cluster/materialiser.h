@@ -266,6 +266,17 @@ class Materialiser {
   // is `capture`'s.
   absl::Status Apply(std::string_view fleet_id, const LogEntry& entry,
                      uint64_t capture, engine::AppliedRecord* outcome);
+  // Takes the fleet's lease (and restores it if behind: RestoreIfBehind);
+  // the fleet's state, owned from then on. `renewed_at`: when the lease was
+  // taken.
+  absl::StatusOr<Owned*> Take(std::string_view fleet_id, absl::Time* renewed_at)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // The fleet's state if this replica still holds its lease (renewed if
+  // due: fencing) or takes it now (Take); FAILED_PRECONDITION when another
+  // replica holds it.
+  absl::StatusOr<Owned*> Fence(std::string_view fleet_id,
+                               absl::Time* renewed_at)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   absl::StatusOr<StepResult> StepLocked(std::string_view fleet_id,
                                         uint64_t capture,
                                         engine::AppliedRecord* outcome)
