@@ -177,70 +177,81 @@ absl::Status WritePath::Recover() {
       log_->Tails();
   if (!tails.ok()) return tails.status();
   uint64_t created = 0;  // fleets whose first upload waits in their log
-  const absl::Time now = absl::Now();
   for (const auto& [fleet_id, last] : *tails) {
-    absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
-    if (!position.ok()) return position.status();
-    FleetWrites& log = *Log(fleet_id);
-    uint64_t after = *position;
-    uint64_t traces = 0;
-    std::deque<FleetWrites::Entry> entries;
-    while (true) {
-      absl::StatusOr<std::vector<LoggedUpload>> page =
-          log_->Read(fleet_id, after, kRecoveryPage);
-      if (!page.ok()) return page.status();
-      for (const LoggedUpload& entry : *page) {
-        if (!log.shape.has_value() && !entry.traces.empty()) {
-          log.shape =
-              FleetShape{static_cast<uint32_t>(entry.traces[0].code.size()),
-                         entry.traces[0].encoder_version};
-          ++created;
-        }
-        for (const core::MemoryTrace& trace : entry.traces) {
-          log.recovered[trace.robot_id].Insert(trace.seq);
-        }
-        entries.push_back({entry.sequence, entry.traces.size(), now, nullptr});
-        traces += entry.traces.size();
-        after = entry.sequence;
-      }
-      if (page->size() < kRecoveryPage) break;
-    }
-    // Entries the engine applied before the crash, but not trimmed yet.
-    if (absl::Status trimmed = log_->Trim(fleet_id, *position); !trimmed.ok()) {
-      FLEETMEM_LOG(kWarning)
-          << "fleet \"" << fleet_id
-          << "\": applied log entries not trimmed: " << trimmed;
-    }
-    log.next_sequence = std::max(last, *position) + 1;
-    FLEETMEM_LOG(kInfo) << "fleet \"" << fleet_id << "\": " << entries.size()
-                        << " acknowledged log entries (" << traces
-                        << " traces) after position " << *position
-                        << " to apply";
-    log.opened_at = *position;
-    for (const LostLogEntries& lost : log_->Losses(fleet_id)) {
-      if (lost.last <= *position) {
-        FLEETMEM_LOG(kWarning)
-            << "fleet \"" << fleet_id << "\": log entries " << lost.first
-            << ".." << lost.last << " are damaged but were applied before: "
-            << "nothing is lost (" << lost.detail << ")";
-        continue;
-      }
-      FLEETMEM_LOG(kError) << "fleet \"" << fleet_id
-                           << "\": DATA_LOSS, acknowledged log entries "
-                           << std::max(lost.first, *position + 1) << ".."
-                           << lost.last
-                           << " are damaged and will not be applied: "
-                           << lost.detail;
-    }
-    absl::MutexLock lock(&log.mu);
-    log.unapplied = std::move(entries);
-    log.backlog_traces = traces;
-    log.applied_through = *position;
-    log.appended_through = log.next_sequence - 1;
+    absl::StatusOr<bool> recovered = RecoverTail(fleet_id, last);
+    if (!recovered.ok()) return recovered.status();
+    if (*recovered) ++created;
   }
   absl::MutexLock lock(&logs_mu_);
   fleets_ = fleets.size() + created;
   return absl::OkStatus();
+}
+
+absl::StatusOr<bool> WritePath::RecoverTail(const std::string& fleet_id,
+                                            uint64_t last) {
+  absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
+  if (!position.ok()) return position.status();
+  FleetWrites& log = *Log(fleet_id);
+  const bool had_shape = log.shape.has_value();
+  const absl::Time now = absl::Now();
+  uint64_t after = *position;
+  uint64_t traces = 0;
+  std::deque<FleetWrites::Entry> entries;
+  while (true) {
+    absl::StatusOr<std::vector<LoggedUpload>> page =
+        log_->Read(fleet_id, after, kRecoveryPage);
+    if (!page.ok()) return page.status();
+    for (const LoggedUpload& entry : *page) {
+      if (!log.shape.has_value() && !entry.traces.empty()) {
+        log.shape =
+            FleetShape{static_cast<uint32_t>(entry.traces[0].code.size()),
+                       entry.traces[0].encoder_version};
+      }
+      for (const core::MemoryTrace& trace : entry.traces) {
+        log.recovered[trace.robot_id].Insert(trace.seq);
+      }
+      entries.push_back({entry.sequence, entry.traces.size(), now, nullptr});
+      traces += entry.traces.size();
+      after = entry.sequence;
+    }
+    if (page->size() < kRecoveryPage) break;
+  }
+  // Entries the engine applied before the crash, but not trimmed yet.
+  if (absl::Status trimmed = log_->Trim(fleet_id, *position); !trimmed.ok()) {
+    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                           << "\": applied log entries not trimmed: "
+                           << trimmed;
+  }
+  log.next_sequence = std::max(last, *position) + 1;
+  FLEETMEM_LOG(kInfo) << "fleet \"" << fleet_id << "\": " << entries.size()
+                      << " acknowledged log entries (" << traces
+                      << " traces) after position " << *position << " to apply";
+  log.opened_at = *position;
+  ReportLosses(fleet_id, *position);
+  absl::MutexLock lock(&log.mu);
+  log.unapplied = std::move(entries);
+  log.backlog_traces = traces;
+  log.applied_through = *position;
+  log.appended_through = log.next_sequence - 1;
+  return !had_shape && log.shape.has_value();
+}
+
+void WritePath::ReportLosses(const std::string& fleet_id, uint64_t position) {
+  for (const LostLogEntries& lost : log_->Losses(fleet_id)) {
+    if (lost.last <= position) {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << fleet_id << "\": log entries " << lost.first << ".."
+          << lost.last << " are damaged but were applied before: "
+          << "nothing is lost (" << lost.detail << ")";
+      continue;
+    }
+    FLEETMEM_LOG(kError) << "fleet \"" << fleet_id
+                         << "\": DATA_LOSS, acknowledged log entries "
+                         << std::max(lost.first, position + 1) << ".."
+                         << lost.last
+                         << " are damaged and will not be applied: "
+                         << lost.detail;
+  }
 }
 
 WritePath::FleetWrites* WritePath::Find(std::string_view fleet_id) const {

@@ -199,6 +199,13 @@ class WritePath {
   FleetWrites* Log(std::string_view fleet_id);
   FleetWrites* Find(std::string_view fleet_id) const;
   absl::Status Recover();
+  // Recover for one fleet's log, whose last entry is `last`: the entries
+  // after the engine's position become the fleet's backlog. True if the
+  // fleet's first upload is among them (the fleet is made when applied).
+  absl::StatusOr<bool> RecoverTail(const std::string& fleet_id, uint64_t last);
+  // Logs the fleet's damaged log entries: lost (DATA_LOSS) after
+  // `position`, harmless at or before it.
+  void ReportLosses(const std::string& fleet_id, uint64_t position);
   // AppendMany for a fleet without a log yet: the first upload with traces
   // is checked (shape, max_fleets) before the log is made.
   std::vector<absl::StatusOr<Appended>> AppendToNewFleet(
