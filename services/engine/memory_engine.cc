@@ -186,51 +186,8 @@ absl::StatusOr<UploadResult> MemoryEngine::Upload(
   const std::optional<core::ConsolidationPlan> plan = fleet->PlanAhead(traces);
   UploadResult result;
   Notices notices;
-  {
-    absl::MutexLock writer(&fleet->writer_mu);
-    {
-      absl::MutexLock lock(&fleet->mu);
-      status = fleet->EnsureLoaded();
-    }
-    Fleet::PreparedUpload prepared;
-    if (status.ok()) {
-      absl::ReaderMutexLock lock(&fleet->mu);
-      status = fleet->PrepareUpload(traces, log_position, &result, &prepared);
-      if (status.ok() && !prepared.mutation.put_pending.empty() &&
-          !prepared.fills_segment) {
-        status = store_->Apply(fleet->id, prepared.mutation);
-        prepared.stored = true;
-      }
-    }
-    const size_t added = prepared.mutation.put_pending.size();
-    PlaceIndex* index = nullptr;
-    {
-      absl::MutexLock lock(&fleet->mu);
-      if (status.ok() && added > 0) {
-        status = fleet->CommitUpload(std::move(prepared), &result, &notices,
-                                     plan ? &*plan : nullptr);
-      }
-      notices.consolidated.clusters = fleet->memory.clusters().size();
-      notices.consolidated.traces = fleet->memory.trace_count();
-      fleet->PublishHeld();
-      index = fleet->index.get();
-    }
-    // The consolidation's store write, beside queries.
-    if (status.ok()) {
-      status = fleet->StoreStaged(&notices);
-      if (!status.ok()) index = nullptr;  // reloaded: a new index
-    }
-    // The index's back-pressure, outside the fleet's lock: queries go on
-    // while the uploader pays for the graph inserts. The index is replaced
-    // only under writer_mu, held here.
-    if (status.ok() && added > 0 && index != nullptr) {
-      if (absl::Status caught = index->CatchUp(added); !caught.ok()) {
-        FLEETMEM_LOG(kWarning)
-            << "fleet \"" << fleet_id << "\": place index catching up: "
-            << caught;  // the codes stay searchable in its exact segment
-      }
-    }
-  }
+  status = fleet->WriteUpload(traces, log_position, plan ? &*plan : nullptr,
+                              &result, &notices);
   Fleet::Notify(*this, fleet_id, notices.last_event_id);
   if (notices.consolidations > 0 && hooks_.on_consolidate) {
     hooks_.on_consolidate(fleet_id, notices.consolidations,

@@ -94,6 +94,56 @@ bool MemoryEngine::Fleet::FillsSegment(
   return false;
 }
 
+absl::Status MemoryEngine::Fleet::WriteUpload(
+    std::span<const core::MemoryTrace> traces, uint64_t log_position,
+    const core::ConsolidationPlan* plan, UploadResult* result,
+    Notices* notices) {
+  absl::Status status;
+  absl::MutexLock writer(&writer_mu);
+  {
+    absl::MutexLock lock(&mu);
+    status = EnsureLoaded();
+  }
+  PreparedUpload prepared;
+  if (status.ok()) {
+    absl::ReaderMutexLock lock(&mu);
+    status = PrepareUpload(traces, log_position, result, &prepared);
+    if (status.ok() && !prepared.mutation.put_pending.empty() &&
+        !prepared.fills_segment) {
+      status = engine->store_->Apply(id, prepared.mutation);
+      prepared.stored = true;
+    }
+  }
+  const size_t added = prepared.mutation.put_pending.size();
+  PlaceIndex* place_index = nullptr;
+  {
+    absl::MutexLock lock(&mu);
+    if (status.ok() && added > 0) {
+      status = CommitUpload(std::move(prepared), result, notices, plan);
+    }
+    notices->consolidated.clusters = memory.clusters().size();
+    notices->consolidated.traces = memory.trace_count();
+    PublishHeld();
+    place_index = index.get();
+  }
+  // The consolidation's store write, beside queries.
+  if (status.ok()) {
+    status = StoreStaged(notices);
+    if (!status.ok()) place_index = nullptr;  // reloaded: a new index
+  }
+  // The index's back-pressure, outside the fleet's lock: queries go on
+  // while the uploader pays for the graph inserts. The index is replaced
+  // only under writer_mu, held here.
+  if (status.ok() && added > 0 && place_index != nullptr) {
+    if (absl::Status caught = place_index->CatchUp(added); !caught.ok()) {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << id << "\": place index catching up: "
+          << caught;  // the codes stay searchable in its exact segment
+    }
+  }
+  return status;
+}
+
 absl::Status MemoryEngine::Fleet::PrepareUpload(
     std::span<const core::MemoryTrace> traces, uint64_t log_position,
     UploadResult* result, PreparedUpload* prepared) {

@@ -291,6 +291,14 @@ struct MemoryEngine::Fleet {
   // store write (one fsync instead of two, and the segment's traces are
   // written once, in their clusters, instead of as pending traces that the
   // consolidation then erases).
+  // The three steps under writer_mu, then the consolidation's store write
+  // (StoreStaged) and the index's catch-up (its back-pressure, outside the
+  // fleet's lock): MemoryEngine::Upload's writes. `plan` may be null.
+  absl::Status WriteUpload(std::span<const core::MemoryTrace> traces,
+                           uint64_t log_position,
+                           const core::ConsolidationPlan* plan,
+                           UploadResult* result, Notices* notices)
+      ABSL_LOCKS_EXCLUDED(mu, writer_mu);
   struct PreparedUpload {
     FleetMutation mutation;
     std::unique_ptr<PlaceIndex> new_index;  // for a new fleet
