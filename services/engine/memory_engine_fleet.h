@@ -270,6 +270,14 @@ struct MemoryEngine::Fleet {
       ABSL_SHARED_LOCKS_REQUIRED(mu);
   absl::Status FillCodes(std::vector<core::MemoryTrace>& traces) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // A query's matches from the index's `neighbors` (`codes`: the index's
+  // copies of their codes, taken where it gave them), each trace copied
+  // with its code; the query (`k`) is refused whole, INVALID_ARGUMENT,
+  // when they hold more than `max_read_bytes`.
+  absl::StatusOr<std::vector<PlaceMatch>> MatchesOf(
+      std::span<const Neighbor> neighbors,
+      std::vector<std::vector<float>>& codes, size_t k,
+      size_t max_read_bytes) const ABSL_SHARED_LOCKS_REQUIRED(mu);
   // One copy of each code: frees memory's codes of those of `keys`
   // (static-memory traces) that the index keeps itself (PlaceIndex::
   // HoldsCodes: the exact, HNSW and tiered indexes do, FLANN does not).

@@ -46,6 +46,23 @@ double PlaceDistance(const core::Place& a, const core::Place& b) {
   return std::sqrt(dx * dx + dy * dy + dz * dz);
 }
 
+// The query's own fields (not those the fleet decides: the dimension).
+absl::Status ValidateQuery(const PlaceQuery& query, size_t max_k) {
+  absl::Status status = core::ValidateCode("code", query.code);
+  if (!status.ok()) return status;
+  if (query.k > max_k) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("k is ", query.k, " but must be at most ", max_k));
+  }
+  if (!std::isfinite(query.radius_m)) {
+    return absl::InvalidArgumentError("radius_m must be finite");
+  }
+  if (query.radius_m > 0.0 && !IsFinitePlace(query.near)) {
+    return absl::InvalidArgumentError("near must have finite coordinates");
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 FleetStats MemoryEngine::Fleet::Stats() const {
@@ -105,23 +122,55 @@ FleetStats MemoryEngine::Fleet::Stats() const {
   return stats;
 }
 
+absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::Fleet::MatchesOf(
+    std::span<const Neighbor> neighbors, std::vector<std::vector<float>>& codes,
+    size_t k, size_t max_read_bytes) const {
+  const bool with_codes = codes.size() == neighbors.size();
+  std::vector<core::MemoryTrace> found;
+  std::vector<float> distances;
+  // The matches' traces, counted against max_read_bytes before any is
+  // copied: a query changes nothing, so it is refused whole.
+  std::vector<std::pair<const core::MemoryTrace*, size_t>> hits;
+  const size_t code_bytes = 4 * size_t{meta.code_dimension};
+  size_t bytes = 0;
+  for (size_t i = 0; i < neighbors.size(); ++i) {
+    const std::optional<core::TraceKey> key = handles.Key(neighbors[i].id);
+    if (!key.has_value()) continue;
+    const core::MemoryTrace* trace = FindTrace(*key);
+    if (trace == nullptr) continue;
+    hits.emplace_back(trace, i);
+    bytes += code_bytes + trace->attachment.size();
+  }
+  if (bytes > max_read_bytes) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "the ", hits.size(), " nearest traces (k ", k, ") hold ", bytes,
+        " bytes of codes and attachments, over max_read_bytes ", max_read_bytes,
+        "; ask for fewer"));
+  }
+  found.reserve(hits.size());
+  for (const auto& [trace, i] : hits) {
+    found.push_back(*trace);
+    if (found.back().code.empty() && with_codes) {
+      found.back().code = std::move(codes[i]);
+    }
+    distances.push_back(neighbors[i].distance);
+  }
+  if (absl::Status filled = FillCodes(found); !filled.ok()) return filled;
+  std::vector<PlaceMatch> matches;
+  matches.reserve(found.size());
+  for (size_t i = 0; i < found.size(); ++i) {
+    matches.push_back(PlaceMatch{std::move(found[i]), distances[i]});
+  }
+  return matches;
+}
+
 absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     std::string_view fleet_id, const PlaceQuery& query) const {
   const absl::Time start = absl::Now();
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
-  if (status.ok()) status = core::ValidateCode("code", query.code);
+  if (status.ok()) status = ValidateQuery(query, options_.max_query_k);
   if (!status.ok()) return status;
-  if (query.k > options_.max_query_k) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "k is ", query.k, " but must be at most ", options_.max_query_k));
-  }
-  if (!std::isfinite(query.radius_m)) {
-    return absl::InvalidArgumentError("radius_m must be finite");
-  }
   const bool use_prior = query.radius_m > 0.0;
-  if (use_prior && !IsFinitePlace(query.near)) {
-    return absl::InvalidArgumentError("near must have finite coordinates");
-  }
   Fleet* fleet = Fleet::Find(*this, fleet_id);
   if (fleet == nullptr) return FleetNotFound(fleet_id);
 
@@ -157,43 +206,10 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     absl::StatusOr<std::vector<Neighbor>> neighbors =
         fleet->index->Search(query.code, params);
     if (!neighbors.ok()) return neighbors.status();
-    const bool with_codes = codes.size() == neighbors->size();
-    std::vector<core::MemoryTrace> found;
-    std::vector<float> distances;
-    // The matches' traces, counted against max_read_bytes before any is
-    // copied: a query changes nothing, so it is refused whole.
-    std::vector<std::pair<const core::MemoryTrace*, size_t>> hits;
-    const size_t code_bytes = 4 * size_t{fleet->meta.code_dimension};
-    size_t bytes = 0;
-    for (size_t i = 0; i < neighbors->size(); ++i) {
-      const std::optional<core::TraceKey> key =
-          fleet->handles.Key((*neighbors)[i].id);
-      if (!key.has_value()) continue;
-      const core::MemoryTrace* trace = fleet->FindTrace(*key);
-      if (trace == nullptr) continue;
-      hits.emplace_back(trace, i);
-      bytes += code_bytes + trace->attachment.size();
-    }
-    if (bytes > options_.max_read_bytes) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "the ", hits.size(), " nearest traces (k ", query.k, ") hold ", bytes,
-          " bytes of codes and attachments, over max_read_bytes ",
-          options_.max_read_bytes, "; ask for fewer"));
-    }
-    found.reserve(hits.size());
-    for (const auto& [trace, i] : hits) {
-      found.push_back(*trace);
-      if (found.back().code.empty() && with_codes) {
-        found.back().code = std::move(codes[i]);
-      }
-      distances.push_back((*neighbors)[i].distance);
-    }
-    status = fleet->FillCodes(found);
-    if (!status.ok()) return status;
-    matches.reserve(found.size());
-    for (size_t i = 0; i < found.size(); ++i) {
-      matches.push_back(PlaceMatch{std::move(found[i]), distances[i]});
-    }
+    absl::StatusOr<std::vector<PlaceMatch>> found =
+        fleet->MatchesOf(*neighbors, codes, query.k, options_.max_read_bytes);
+    if (!found.ok()) return found.status();
+    matches = *std::move(found);
   }
   if (hooks_.on_query) {
     hooks_.on_query(fleet_id, absl::ToDoubleSeconds(absl::Now() - start));
