@@ -138,17 +138,18 @@ NatsFleetLog::NatsFleetLog(NatsOptions options,
     : options_(std::move(options)), handles_(std::move(handles)) {}
 NatsFleetLog::~NatsFleetLog() = default;
 
-absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
-    NatsOptions options) {
-  if (absl::Status valid = ValidateNatsOptions(options); !valid.ok()) {
-    return valid;
-  }
+namespace {
+
+using NatsOptionsPtr = std::unique_ptr<natsOptions, void (*)(natsOptions*)>;
+
+// nats.c's options for `options`: its servers, timeouts, reconnection,
+// credentials and TLS.
+absl::StatusOr<NatsOptionsPtr> ConnectionOptions(const NatsOptions& options) {
   natsOptions* raw = nullptr;
   if (natsStatus s = natsOptions_Create(&raw); s != NATS_OK) {
     return FromNats(s, 0, "cluster: NATS options");
   }
-  std::unique_ptr<natsOptions, void (*)(natsOptions*)> opts(
-      raw, natsOptions_Destroy);
+  NatsOptionsPtr opts(raw, natsOptions_Destroy);
   std::vector<const char*> servers;
   for (const std::string& server : options.servers) {
     servers.push_back(server.c_str());
@@ -181,21 +182,14 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
     }
   }
   if (s != NATS_OK) return FromNats(s, 0, "cluster: NATS options");
+  return opts;
+}
 
-  auto handles = std::make_unique<Handles>();
-  if (s = natsConnection_Connect(&handles->nc, opts.get()); s != NATS_OK) {
-    return FromNats(s, 0,
-                    absl::StrCat("cluster: connecting to ",
-                                 absl::StrJoin(options.servers, ",")));
-  }
-  jsOptions js_options;
-  jsOptions_Init(&js_options);
-  js_options.Wait = Milliseconds(options.timeout);
-  if (s = natsConnection_JetStream(&handles->js, handles->nc, &js_options);
-      s != NATS_OK) {
-    return FromNats(s, 0, "cluster: JetStream");
-  }
-  s = js_KeyValue(&handles->kv, handles->js, options.lease_bucket.c_str());
+// The lease bucket, made if missing (or found made by another replica
+// meanwhile).
+absl::Status OpenLeaseBucket(jsCtx* js, const NatsOptions& options,
+                             kvStore** kv) {
+  natsStatus s = js_KeyValue(kv, js, options.lease_bucket.c_str());
   if (s == NATS_NOT_FOUND) {
     kvConfig config;
     kvConfig_Init(&config);
@@ -205,8 +199,7 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
     config.TTL = Nanoseconds(options.lease_ttl);
     config.Replicas = options.replicas;
     config.StorageType = js_FileStorage;
-    const natsStatus created =
-        js_CreateKeyValue(&handles->kv, handles->js, &config);
+    const natsStatus created = js_CreateKeyValue(kv, js, &config);
     s = created;
     if (created != NATS_OK) {
       const absl::Status not_made =
@@ -214,7 +207,7 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
                    absl::StrCat("cluster: making the lease bucket '",
                                 options.lease_bucket, "'"));
       // Made by another replica meanwhile?
-      s = js_KeyValue(&handles->kv, handles->js, options.lease_bucket.c_str());
+      s = js_KeyValue(kv, js, options.lease_bucket.c_str());
       if (s == NATS_NOT_FOUND) {
         // Neither there nor made: a JetStream cluster that is still
         // electing its leaders, or has too few servers up for the bucket's
@@ -231,6 +224,37 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
     return FromNats(
         s, 0,
         absl::StrCat("cluster: the lease bucket '", options.lease_bucket, "'"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
+    NatsOptions options) {
+  if (absl::Status valid = ValidateNatsOptions(options); !valid.ok()) {
+    return valid;
+  }
+  absl::StatusOr<NatsOptionsPtr> opts = ConnectionOptions(options);
+  if (!opts.ok()) return opts.status();
+  auto handles = std::make_unique<Handles>();
+  if (natsStatus s = natsConnection_Connect(&handles->nc, opts->get());
+      s != NATS_OK) {
+    return FromNats(s, 0,
+                    absl::StrCat("cluster: connecting to ",
+                                 absl::StrJoin(options.servers, ",")));
+  }
+  jsOptions js_options;
+  jsOptions_Init(&js_options);
+  js_options.Wait = Milliseconds(options.timeout);
+  if (natsStatus s =
+          natsConnection_JetStream(&handles->js, handles->nc, &js_options);
+      s != NATS_OK) {
+    return FromNats(s, 0, "cluster: JetStream");
+  }
+  if (absl::Status bucket = OpenLeaseBucket(handles->js, options, &handles->kv);
+      !bucket.ok()) {
+    return bucket;
   }
   return std::unique_ptr<NatsFleetLog>(
       new NatsFleetLog(std::move(options), std::move(handles)));
