@@ -492,50 +492,50 @@ void Metrics::SetScrapeSources(ScrapeSources sources) {
   sources_ = std::move(sources);
 }
 
-void Metrics::RefreshGauges() {
-  absl::MutexLock lock(&sources_mu_);
+void Metrics::RefreshFleetGauges() {
+  if (sources_.engine == nullptr) return;
   Families& f = *families_;
-  if (sources_.engine != nullptr) {
-    std::vector<std::string> fleet_ids = sources_.engine->ListFleets();
-    if (sources_.serves_fleet) {
-      std::erase_if(fleet_ids, [this](const std::string& fleet_id) {
-        return !sources_.serves_fleet(fleet_id);
-      });
+  std::vector<std::string> fleet_ids = sources_.engine->ListFleets();
+  if (sources_.serves_fleet) {
+    std::erase_if(fleet_ids, [this](const std::string& fleet_id) {
+      return !sources_.serves_fleet(fleet_id);
+    });
+  }
+  // Gauges of fleets no longer served here go.
+  for (const std::string& fleet_id : exported_) {
+    if (std::find(fleet_ids.begin(), fleet_ids.end(), fleet_id) !=
+        fleet_ids.end()) {
+      continue;
     }
-    // Gauges of fleets no longer served here go.
-    for (const std::string& fleet_id : exported_) {
-      if (std::find(fleet_ids.begin(), fleet_ids.end(), fleet_id) !=
-          fleet_ids.end()) {
-        continue;
-      }
-      const prometheus::Labels labels{{"fleet", fleet_id}};
-      for (prometheus::Family<prometheus::Gauge>* family :
-           {&f.fleet_traces, &f.fleet_pending, &f.fleet_clusters,
-            &f.fleet_robots, &f.fleet_last_event, &f.index_entries,
-            &f.index_unindexed}) {
-        family->Remove(&family->Add(labels));
-      }
-    }
-    exported_ = fleet_ids;
-    f.fleets.Add({}).Set(static_cast<double>(fleet_ids.size()));
-    for (const std::string& fleet_id : fleet_ids) {
-      absl::StatusOr<engine::FleetStats> stats =
-          sources_.engine->GetStats(fleet_id);
-      if (!stats.ok()) continue;
-      const prometheus::Labels labels{{"fleet", fleet_id}};
-      f.fleet_traces.Add(labels).Set(static_cast<double>(stats->traces));
-      f.fleet_pending.Add(labels).Set(
-          static_cast<double>(stats->pending_traces));
-      f.fleet_clusters.Add(labels).Set(static_cast<double>(stats->clusters));
-      f.fleet_robots.Add(labels).Set(static_cast<double>(stats->robots.size()));
-      f.fleet_last_event.Add(labels).Set(
-          static_cast<double>(stats->last_event_id));
-      f.index_entries.Add(labels).Set(
-          static_cast<double>(stats->traces + stats->pending_traces));
-      f.index_unindexed.Add(labels).Set(
-          static_cast<double>(stats->unindexed_codes));
+    const prometheus::Labels labels{{"fleet", fleet_id}};
+    for (prometheus::Family<prometheus::Gauge>* family :
+         {&f.fleet_traces, &f.fleet_pending, &f.fleet_clusters, &f.fleet_robots,
+          &f.fleet_last_event, &f.index_entries, &f.index_unindexed}) {
+      family->Remove(&family->Add(labels));
     }
   }
+  exported_ = fleet_ids;
+  f.fleets.Add({}).Set(static_cast<double>(fleet_ids.size()));
+  for (const std::string& fleet_id : fleet_ids) {
+    absl::StatusOr<engine::FleetStats> stats =
+        sources_.engine->GetStats(fleet_id);
+    if (!stats.ok()) continue;
+    const prometheus::Labels labels{{"fleet", fleet_id}};
+    f.fleet_traces.Add(labels).Set(static_cast<double>(stats->traces));
+    f.fleet_pending.Add(labels).Set(static_cast<double>(stats->pending_traces));
+    f.fleet_clusters.Add(labels).Set(static_cast<double>(stats->clusters));
+    f.fleet_robots.Add(labels).Set(static_cast<double>(stats->robots.size()));
+    f.fleet_last_event.Add(labels).Set(
+        static_cast<double>(stats->last_event_id));
+    f.index_entries.Add(labels).Set(
+        static_cast<double>(stats->traces + stats->pending_traces));
+    f.index_unindexed.Add(labels).Set(
+        static_cast<double>(stats->unindexed_codes));
+  }
+}
+
+void Metrics::RefreshLogGauges() {
+  Families& f = *families_;
   if (sources_.log_lag) {
     std::vector<std::string> fleets;
     for (const auto& [fleet_id, lag] : sources_.log_lag()) {
@@ -562,6 +562,13 @@ void Metrics::RefreshGauges() {
           static_cast<double>(backlog.lost_entries()));
     }
   }
+}
+
+void Metrics::RefreshGauges() {
+  absl::MutexLock lock(&sources_mu_);
+  RefreshFleetGauges();
+  RefreshLogGauges();
+  Families& f = *families_;
   if (sources_.cluster_fleets) {
     const auto [with_log, owned] = sources_.cluster_fleets();
     f.cluster_fleets.Add({}).Set(with_log);

@@ -89,6 +89,10 @@ class Metrics {
   void RefreshGauges();
   // process_* from /proc (ReadProcessStats). Requires sources_mu_.
   void RefreshProcessGauges() ABSL_EXCLUSIVE_LOCKS_REQUIRED(sources_mu_);
+  // RefreshGauges' parts: the served fleets' gauges (those of fleets no
+  // longer served go), and their logs' (lag, backlog, losses).
+  void RefreshFleetGauges() ABSL_EXCLUSIVE_LOCKS_REQUIRED(sources_mu_);
+  void RefreshLogGauges() ABSL_EXCLUSIVE_LOCKS_REQUIRED(sources_mu_);
 
   std::shared_ptr<prometheus::Registry> registry_;
   std::unique_ptr<Families> families_;
