@@ -320,6 +320,9 @@ class ServerRun {
   // fleets it owns from their replicated logs and routes every other
   // fleet's calls to its owner); then the service over it.
   int StartMode();
+  // StartMode's two modes: memory_ and the metrics' sources for each.
+  int StartDistributed();
+  int StartEmbedded();
   // The gRPC port, with health checking and (where allowed) reflection.
   int StartGrpc();
   // The HTTP port: the service's MemoryApi behind the REST gateway, the
@@ -460,56 +463,63 @@ int ServerRun::StartMode() {
     metrics_.ObserveUploadBytes(fleet, bytes);
   };
   service_options_.api.on_upload_bytes = service_options_.on_upload_bytes;
-  if (config_.cluster.enabled()) {
-    absl::StatusOr<std::unique_ptr<cluster::ReplicatedMemory>> started =
-        StartClusterMode(config_, engine_.get());
-    if (!started.ok()) {
-      FLEETMEM_LOG(kError) << "cluster: " << started.status();
-      return 1;
-    }
-    replicated_ = *std::move(started);
-    memory_ = replicated_.get();
-    // Each fleet's gauges come from the replica that serves it.
-    cluster::ReplicatedMemory* serving = replicated_.get();
-    metrics_.SetScrapeSources(
-        {engine_.get(), store_.get(), [this] { return work_->queued(); },
-         [serving](const std::string& fleet) { return serving->Serves(fleet); },
-         [serving] { return serving->LogLag(); },
-         [serving] { return serving->FleetCounts(); }, nullptr});
-  } else {
-    // Duplicates are found at the append (the apply meets none): counted
-    // by the same metric as the engine's.
-    engine::WritePathOptions write_path = config_.write_path;
-    write_path.on_duplicates = [on_upload = metrics_.EngineHooks().on_upload](
-                                   std::string_view fleet,
-                                   uint64_t duplicates) {
-      engine::UploadResult result;
-      result.duplicates = duplicates;
-      if (on_upload) on_upload(fleet, result);
-    };
-    absl::StatusOr<std::unique_ptr<transport::EmbeddedMemory>> opened =
-        transport::EmbeddedMemory::Open(
-            engine_.get(), log_.get(),
-            {.write_path = write_path,
-             .max_apply_wait = config_.write_path_max_apply_wait});
-    if (!opened.ok()) {
-      FLEETMEM_LOG(kError) << "cannot recover the fleets' logs: "
-                           << opened.status();
-      return 1;
-    }
-    embedded_ = *std::move(opened);
-    memory_ = embedded_.get();
-    engine::WritePath* writes = &embedded_->writes();
-    observability::ScrapeSources sources;
-    sources.engine = engine_.get();
-    sources.store = store_.get();
-    sources.work_queue_depth = [this] { return work_->queued(); };
-    sources.backlogs = [writes] { return writes->Backlogs(); };
-    metrics_.SetScrapeSources(std::move(sources));
-  }
+  const int started =
+      config_.cluster.enabled() ? StartDistributed() : StartEmbedded();
+  if (started != 0) return started;
   service_ = std::make_unique<transport::MemoryServiceImpl>(
       engine_.get(), memory_, work_.get(), authenticator_.get(),
       service_options_);
+  return 0;
+}
+
+int ServerRun::StartDistributed() {
+  absl::StatusOr<std::unique_ptr<cluster::ReplicatedMemory>> started =
+      StartClusterMode(config_, engine_.get());
+  if (!started.ok()) {
+    FLEETMEM_LOG(kError) << "cluster: " << started.status();
+    return 1;
+  }
+  replicated_ = *std::move(started);
+  memory_ = replicated_.get();
+  // Each fleet's gauges come from the replica that serves it.
+  cluster::ReplicatedMemory* serving = replicated_.get();
+  metrics_.SetScrapeSources(
+      {engine_.get(), store_.get(), [this] { return work_->queued(); },
+       [serving](const std::string& fleet) { return serving->Serves(fleet); },
+       [serving] { return serving->LogLag(); },
+       [serving] { return serving->FleetCounts(); }, nullptr});
+  return 0;
+}
+
+int ServerRun::StartEmbedded() {
+  // Duplicates are found at the append (the apply meets none): counted
+  // by the same metric as the engine's.
+  engine::WritePathOptions write_path = config_.write_path;
+  write_path.on_duplicates = [on_upload = metrics_.EngineHooks().on_upload](
+                                 std::string_view fleet, uint64_t duplicates) {
+    engine::UploadResult result;
+    result.duplicates = duplicates;
+    if (on_upload) on_upload(fleet, result);
+  };
+  absl::StatusOr<std::unique_ptr<transport::EmbeddedMemory>> opened =
+      transport::EmbeddedMemory::Open(
+          engine_.get(), log_.get(),
+          {.write_path = write_path,
+           .max_apply_wait = config_.write_path_max_apply_wait});
+  if (!opened.ok()) {
+    FLEETMEM_LOG(kError) << "cannot recover the fleets' logs: "
+                         << opened.status();
+    return 1;
+  }
+  embedded_ = *std::move(opened);
+  memory_ = embedded_.get();
+  engine::WritePath* writes = &embedded_->writes();
+  observability::ScrapeSources sources;
+  sources.engine = engine_.get();
+  sources.store = store_.get();
+  sources.work_queue_depth = [this] { return work_->queued(); };
+  sources.backlogs = [writes] { return writes->Backlogs(); };
+  metrics_.SetScrapeSources(std::move(sources));
   return 0;
 }
 
