@@ -17,11 +17,11 @@
 #include "services/cluster/testing/cluster_test_util.h"
 #include "services/cluster/testing/nats_fixture.h"
 #include "services/engine/fleet_log.h"
-#include "services/engine/testing/memory_engine_test_util.h"
 #include "services/engine/write_path.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
+#include "services/testing/memory_engine_test_util.h"
 
 namespace fleetmem::cluster {
 namespace {

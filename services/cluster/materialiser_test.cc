@@ -17,8 +17,8 @@
 #include "services/cluster/testing/cluster_test_util.h"
 #include "services/cluster/testing/nats_fixture.h"
 #include "services/common/testing/manual_clock.h"
-#include "services/engine/testing/memory_engine_test_util.h"
 #include "services/storage/fleet_image.h"
+#include "services/testing/memory_engine_test_util.h"
 
 namespace fleetmem::cluster {
 namespace {

@@ -30,10 +30,10 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/engine/testing/forwarding_store.h"
-#include "services/engine/testing/memory_engine_test_util.h"
 #include "services/index/exact_index.h"
 #include "services/index/hnsw_index.h"
 #include "services/storage/in_memory_store.h"
+#include "services/testing/memory_engine_test_util.h"
 
 namespace fleetmem::engine {
 namespace {

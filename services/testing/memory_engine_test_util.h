@@ -1,8 +1,11 @@
-// Test helpers of the engine's tests (memory_engine*_test.cc): options
-// small enough that a few uploads exercise every path, traces, index and
-// store doubles, and the MemoryEngineTest fixture.
-#ifndef FLEETMEM_SERVICES_ENGINE_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
-#define FLEETMEM_SERVICES_ENGINE_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
+// Test helpers of the engine's tests (memory_engine*_test.cc, and the
+// cluster's and metrics' tests that run an engine): options small enough
+// that a few uploads exercise every path, traces, index and store doubles,
+// and the MemoryEngineTest fixture. Here, above the engine, the storage
+// and the index that it assembles (services/testing: fixtures of several
+// modules; no production code includes them).
+#ifndef FLEETMEM_SERVICES_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
+#define FLEETMEM_SERVICES_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
 
 #include <atomic>
 #include <chrono>
@@ -392,4 +395,4 @@ inline void ExpectSameStats(const FleetStats& a, const FleetStats& b) {
 
 }  // namespace fleetmem::engine
 
-#endif  // FLEETMEM_SERVICES_ENGINE_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
+#endif  // FLEETMEM_SERVICES_TESTING_MEMORY_ENGINE_TEST_UTIL_H_
