@@ -371,147 +371,164 @@ int RunVo(const Flags& flags) {
   return 0;
 }
 
-int Run(const Flags& flags) {
-  namespace robot = fleetmem::robot;
+// Run's steps fail with the process's exit code (2: a flag or file the
+// user must fix; 1: the run failed) and what it prints.
+struct Failure {
+  int exit_code = 1;
+  std::string message;
+};
+using Failed = std::optional<Failure>;
+
+Failed Fail(int exit_code, const absl::Status& status) {
+  return Failure{exit_code, std::string(status.message())};
+}
+
+// The flags that cannot go together, and the ids.
+Failed CheckFlags(const Flags& flags) {
   for (const auto& [what, id] : {std::pair{"--fleet", &flags.fleet},
                                  std::pair{"--robot-id", &flags.robot_id}}) {
     absl::Status valid = fleetmem::core::ValidateId(what, *id);
-    if (!valid.ok()) {
-      std::cerr << "fleetmem-robot: " << valid.message() << "\n";
-      return 2;
-    }
+    if (!valid.ok()) return Fail(2, valid);
   }
-  if (flags.vo) return RunVo(flags);
-  absl::StatusOr<std::unique_ptr<robot::ObservationSource>> source =
-      robot::OpenSource(flags.source);
-  if (!source.ok()) {
-    std::cerr << "fleetmem-robot: " << source.status().message() << "\n";
-    return 1;
-  }
-  fleetmem::slam::FleetSlamOptions slam_options;
-  slam_options.slam.keyframe_distance_m = flags.keyframe_distance_m;
-  const fleetmem::slam::KeyframeSource* keyframes = nullptr;
   if (flags.slam && flags.query_only) {
-    std::cerr << "fleetmem-robot: --slam maps and uploads its keyframes; it "
-                 "cannot be --query-only\n";
-    return 2;
-  }
-  if (flags.slam) {
-    absl::StatusOr<std::unique_ptr<fleetmem::slam::KeyframeSource>> k =
-        fleetmem::slam::KeyframeSource::Open(*std::move(source),
-                                             slam_options.slam);
-    if (!k.ok()) {
-      std::cerr << "fleetmem-robot: " << k.status().message() << "\n";
-      return 2;
-    }
-    keyframes = k->get();
-    source = std::unique_ptr<robot::ObservationSource>(std::move(*k));
+    return Failure{2,
+                   "--slam maps and uploads its keyframes; it cannot be "
+                   "--query-only"};
   }
   if (!flags.gpl_model.empty() && !flags.encoder.empty()) {
-    std::cerr << "fleetmem-robot: give --encoder or --gpl-model, not both\n";
-    return 2;
+    return Failure{2, "give --encoder or --gpl-model, not both"};
   }
-  std::unique_ptr<robot::gpl::SharedModel> gpl;
-  std::unique_ptr<robot::Learner> learner;
+  return std::nullopt;
+}
+
+// What the robot senses with: its source (under the SLAM front end's
+// keyframes with --slam), its encoder and the GPL model behind it.
+struct Sensing {
+  std::unique_ptr<fleetmem::robot::ObservationSource> source;
+  const fleetmem::slam::KeyframeSource* keyframes = nullptr;  // --slam
+  std::unique_ptr<fleetmem::robot::gpl::SharedModel> gpl;     // --gpl-model
+  std::unique_ptr<fleetmem::robot::Encoder> encoder;
+};
+
+Failed OpenSensing(const Flags& flags,
+                   const fleetmem::slam::LaserSlamOptions& slam_options,
+                   Sensing& sensing) {
+  namespace robot = fleetmem::robot;
+  absl::StatusOr<std::unique_ptr<robot::ObservationSource>> source =
+      robot::OpenSource(flags.source);
+  if (!source.ok()) return Fail(1, source.status());
+  sensing.source = *std::move(source);
+  if (flags.slam) {
+    absl::StatusOr<std::unique_ptr<fleetmem::slam::KeyframeSource>> k =
+        fleetmem::slam::KeyframeSource::Open(std::move(sensing.source),
+                                             slam_options);
+    if (!k.ok()) return Fail(2, k.status());
+    sensing.keyframes = k->get();
+    sensing.source = *std::move(k);
+  }
   absl::StatusOr<std::unique_ptr<robot::Encoder>> encoder;
   if (!flags.gpl_model.empty()) {
     robot::gpl::SetTorchThreads(flags.torch_threads);
     absl::StatusOr<std::unique_ptr<robot::gpl::SharedModel>> model =
         LoadGplModel(flags.gpl_model, flags.data_dir + "/gpl-learned.pt",
                      flags.learn);
-    if (!model.ok()) {
-      std::cerr << "fleetmem-robot: " << model.status().message() << "\n";
-      return 2;
-    }
-    gpl = *std::move(model);
-    encoder =
-        std::unique_ptr<robot::Encoder>(new robot::gpl::GplEncoder(gpl.get()));
+    if (!model.ok()) return Fail(2, model.status());
+    sensing.gpl = *std::move(model);
+    encoder = std::unique_ptr<robot::Encoder>(
+        new robot::gpl::GplEncoder(sensing.gpl.get()));
   } else {
-    const std::string encoder_name =
-        flags.encoder.empty() ? (*source)->default_encoder() : flags.encoder;
-    encoder = robot::NewEncoderByName(encoder_name);
+    encoder = robot::NewEncoderByName(flags.encoder.empty()
+                                          ? sensing.source->default_encoder()
+                                          : flags.encoder);
   }
-  if (!encoder.ok()) {
-    std::cerr << "fleetmem-robot: " << encoder.status().message() << "\n";
-    return 2;
-  }
-  fleetmem::client::ClientOptions client_options;
-  client_options.target = flags.server;
-  client_options.deadline =
+  if (!encoder.ok()) return Fail(2, encoder.status());
+  sensing.encoder = *std::move(encoder);
+  return std::nullopt;
+}
+
+// The robot's connections: a retrying one for the first-start check, the
+// agent's (one attempt per call: the uploader and watcher retry on their
+// own), a query client with a short deadline, and the options of the
+// uploader's own channel (reopened after failures, agent.h).
+struct Clients {
+  std::unique_ptr<fleetmem::client::Client> setup;
+  std::unique_ptr<fleetmem::client::Client> agent;
+  std::unique_ptr<fleetmem::client::Client> query;
+  fleetmem::client::ClientOptions upload;
+};
+
+Failed Connect(const Flags& flags, Clients& clients) {
+  namespace client = fleetmem::client;
+  client::ClientOptions options;
+  options.target = flags.server;
+  options.deadline =
       std::chrono::milliseconds(static_cast<int64_t>(flags.deadline_s * 1000));
-  client_options.tls_server_name = flags.tls_server_name;
-  absl::Status loaded =
-      fleetmem::client::LoadCredentials(flags.credentials, &client_options);
-  if (!loaded.ok()) {
-    std::cerr << "fleetmem-robot: " << loaded.message() << "\n";
-    return 2;
-  }
-  // Retrying client for the first-start check; the agent's clients make one
-  // attempt per call (the uploader and watcher retry on their own).
-  std::unique_ptr<fleetmem::client::Client> setup_client =
-      fleetmem::client::Client::Create(client_options);
-  client_options.max_attempts = 1;
-  client_options.upload_batch_size = flags.upload_batch;
+  options.tls_server_name = flags.tls_server_name;
+  absl::Status loaded = client::LoadCredentials(flags.credentials, &options);
+  if (!loaded.ok()) return Fail(2, loaded);
+  clients.setup = client::Client::Create(options);
+  options.max_attempts = 1;
+  options.upload_batch_size = flags.upload_batch;
   // Answered at the durable append: the robot's queue is freed as soon as
   // the server holds its traces; replay (SampleReplay) waits on the server
   // for them to be applied.
-  client_options.upload_ack = fleetmem::v1::UPLOAD_ACK_DURABLE;
-  std::unique_ptr<fleetmem::client::Client> client =
-      fleetmem::client::Client::Create(client_options);
-  // The uploader's own channel, reopened after failures (agent.h).
-  const fleetmem::client::ClientOptions upload_options = client_options;
-  client_options.deadline =
-      std::min(client_options.deadline, std::chrono::milliseconds(2000));
-  std::unique_ptr<fleetmem::client::Client> query_client =
-      fleetmem::client::Client::Create(client_options);
+  options.upload_ack = fleetmem::v1::UPLOAD_ACK_DURABLE;
+  clients.agent = client::Client::Create(options);
+  clients.upload = options;
+  options.deadline =
+      std::min(options.deadline, std::chrono::milliseconds(2000));
+  clients.query = client::Client::Create(options);
+  return std::nullopt;
+}
 
+// The robot's store-and-forward queue in its data dir. A first start asks
+// the server for the robot's last seq before anything is written here, and
+// continues after it.
+Failed OpenQueue(const Flags& flags, const Sensing& sensing,
+                 fleetmem::client::Client& setup,
+                 std::unique_ptr<fleetmem::robot::RobotStore>& queue) {
+  namespace robot = fleetmem::robot;
   robot::RobotStoreOptions store_options;
   store_options.max_bytes =
       static_cast<uint64_t>(flags.queue_max_mb * 1024.0 * 1024.0);
   store_options.full_policy = *robot::ParseFullPolicy(flags.queue_full_policy);
   store_options.min_free_bytes =
       static_cast<uint64_t>(flags.disk_reserve_mb * 1024.0 * 1024.0);
-  // A first start asks the server before anything is written here.
   const bool new_dir =
       !std::filesystem::exists(std::filesystem::path(flags.data_dir) / "queue");
   std::optional<absl::StatusOr<uint64_t>> max_seq;
   if (!flags.query_only && new_dir) {
-    max_seq = ServerMaxSeq(*setup_client, flags);
-    if (!max_seq->ok()) {
-      std::cerr << "fleetmem-robot: " << max_seq->status().message() << "\n";
-      return 1;
-    }
+    max_seq = ServerMaxSeq(setup, flags);
+    if (!max_seq->ok()) return Fail(1, max_seq->status());
   }
   absl::StatusOr<std::unique_ptr<robot::RobotStore>> store =
       robot::RobotStore::Open(flags.data_dir,
                               {.robot_id = flags.robot_id,
                                .fleet_id = flags.fleet,
-                               .source = (*source)->description()},
+                               .source = sensing.source->description()},
                               store_options);
-  if (!store.ok()) {
-    std::cerr << "fleetmem-robot: " << store.status().message() << "\n";
-    return 1;
+  if (!store.ok()) return Fail(1, store.status());
+  queue = *std::move(store);
+  if (flags.query_only || !GaveNoSeq(*queue)) return std::nullopt;
+  if (!max_seq.has_value()) max_seq = ServerMaxSeq(setup, flags);
+  absl::Status first = max_seq->status();
+  if (first.ok() && **max_seq > 0) {
+    std::cerr << "[" << flags.robot_id << "] the fleet already holds seqs "
+              << "up to " << **max_seq << " of this robot; continuing after "
+              << "them\n";
+    first = queue->SetFirstSeq(**max_seq + 1);
   }
-  if (!flags.query_only && GaveNoSeq(**store)) {
-    if (!max_seq.has_value()) max_seq = ServerMaxSeq(*setup_client, flags);
-    absl::Status first = max_seq->status();
-    if (first.ok() && **max_seq > 0) {
-      std::cerr << "[" << flags.robot_id << "] the fleet already holds seqs "
-                << "up to " << **max_seq
-                << " of this robot; continuing after them\n";
-      first = (*store)->SetFirstSeq(**max_seq + 1);
-    }
-    if (!first.ok()) {
-      std::cerr << "fleetmem-robot: " << first.message() << "\n";
-      return 1;
-    }
-  }
+  if (!first.ok()) return Fail(1, first);
+  return std::nullopt;
+}
 
-  robot::AgentOptions options;
+fleetmem::robot::AgentOptions MakeAgentOptions(const Flags& flags,
+                                               const Sensing& sensing) {
+  fleetmem::robot::AgentOptions options;
   options.fleet_id = flags.fleet;
   options.robot_id = flags.robot_id;
   options.domain =
-      flags.domain.empty() ? (*source)->default_domain() : flags.domain;
+      flags.domain.empty() ? sensing.source->default_domain() : flags.domain;
   options.segment_size = flags.segment_size;
   options.first = flags.first;
   if (flags.last > 0) options.last = flags.last;
@@ -522,10 +539,10 @@ int Run(const Flags& flags) {
   options.relocalise = !flags.no_relocalise && !flags.slam;
   options.query_k = flags.query_k;
   options.score_relocalisation =
-      (*source)->places_are_ground_truth() || flags.score_odometry;
+      sensing.source->places_are_ground_truth() || flags.score_odometry;
   options.match_radius = flags.match_radius > 0.0
                              ? flags.match_radius
-                             : (*source)->default_match_radius();
+                             : sensing.source->default_match_radius();
   // Triplet radii scale with the match radius: Nordland's 20 units give the
   // demo's positives within 10 (adjacent files) and negatives beyond 100.
   options.step.triplet.positive_radius = options.match_radius / 2.0;
@@ -540,56 +557,117 @@ int Run(const Flags& flags) {
       static_cast<int64_t>(flags.drain_timeout_s * 1000));
   options.status_file = flags.data_dir + "/status.json";
   options.seed = flags.seed;
+  return options;
+}
 
-  std::cerr << absl::StrFormat(
-      "[%s] fleetmem-robot: fleet %s on %s, source %s (%d observations), "
-      "encoder %s (%d dims), domain %s, data dir %s%s\n",
-      flags.robot_id, flags.fleet, flags.server, (*source)->description(),
-      (*source)->size(), (*encoder)->version(), (*encoder)->dimension(),
-      options.domain, flags.data_dir, flags.query_only ? ", query only" : "");
-  if (flags.learn && gpl == nullptr) {
-    // The metric head on the fleet code (docs/results.md: the better of the
-    // two learners on the lifelong protocol). Pairs within the match radius,
-    // R_ex's negatives beyond the triplet radius, as the GPL learner's.
-    robot::gpl::MetricHeadOptions head;
+// With --learn: the metric head on the fleet code (docs/results.md: the
+// better of the two learners on the lifelong protocol), or, with a GPL
+// model, the GPL learner. Null without --learn.
+Failed MakeLearner(const Flags& flags,
+                   const fleetmem::robot::AgentOptions& options,
+                   const Sensing& sensing,
+                   std::unique_ptr<fleetmem::robot::Learner>& learner) {
+  namespace gpl = fleetmem::robot::gpl;
+  if (!flags.learn) return std::nullopt;
+  if (sensing.gpl == nullptr) {
+    // Pairs within the match radius, R_ex's negatives beyond the triplet
+    // radius, as the GPL learner's.
+    gpl::MetricHeadOptions head;
     head.pair_radius = options.match_radius;
     head.mining.positive_radius = options.match_radius;
     head.mining.negative_radius = options.step.triplet.negative_radius;
     const std::string path = flags.data_dir + "/metric-head.bin";
-    absl::StatusOr<robot::gpl::MetricHead> loaded =
-        robot::gpl::MetricRobotLearner::LoadOrNew(
-            path, int((*encoder)->dimension()), head);
+    absl::StatusOr<gpl::MetricHead> loaded = gpl::MetricRobotLearner::LoadOrNew(
+        path, int(sensing.encoder->dimension()), head);
     if (!loaded.ok()) {
-      std::cerr << "fleetmem-robot: the robot's learned head: "
-                << loaded.status().message() << "\n";
-      return 2;
+      return Failure{2, absl::StrCat("the robot's learned head: ",
+                                     loaded.status().message())};
     }
-    learner = std::make_unique<robot::gpl::MetricRobotLearner>(
-        *std::move(loaded), path);
-  } else if (flags.learn) {
-    robot::gpl::SegmentLearnerOptions learn;
-    learn.steps_per_segment = flags.learn_steps;
-    learn.seed = flags.seed;
-    // Positives within the match radius (a correct match), negatives beyond
-    // five of it (as the code-space R_ex, rewards.h).
-    learn.mining.positive_radius = options.match_radius;
-    learn.mining.negative_radius = options.step.triplet.negative_radius;
-    learner = std::make_unique<robot::gpl::GplLearner>(
-        gpl.get(), learn, flags.data_dir + "/gpl-learned.pt");
+    learner =
+        std::make_unique<gpl::MetricRobotLearner>(*std::move(loaded), path);
+    return std::nullopt;
   }
-  options.new_upload_client = [upload_options] {
-    return fleetmem::client::Client::Create(upload_options);
+  gpl::SegmentLearnerOptions learn;
+  learn.steps_per_segment = flags.learn_steps;
+  learn.seed = flags.seed;
+  // Positives within the match radius (a correct match), negatives beyond
+  // five of it (as the code-space R_ex, rewards.h).
+  learn.mining.positive_radius = options.match_radius;
+  learn.mining.negative_radius = options.step.triplet.negative_radius;
+  learner = std::make_unique<gpl::GplLearner>(
+      sensing.gpl.get(), learn, flags.data_dir + "/gpl-learned.pt");
+  return std::nullopt;
+}
+
+// The SLAM back end's counters, and its session written to the data dir
+// (the pose graph closed where the source finished).
+absl::Status FinishSlam(const Flags& flags, const Sensing& sensing,
+                        const fleetmem::robot::AgentSummary& summary,
+                        fleetmem::slam::FleetSlam& slam) {
+  const fleetmem::slam::LaserSlamCounters& c = slam.slam().counters();
+  std::cerr << absl::StrFormat(
+      "[%s] slam: %d scans, %d keyframes, loops %d proposed, %d accepted "
+      "(%d inter-robot), %d rejected by geometry, %d by the graph; "
+      "%.1f ms SLAM + %.1f ms queries per keyframe\n",
+      flags.robot_id, c.scans, c.keyframes, c.loops_proposed, c.loops_accepted,
+      c.inter_robot_loops, c.loops_rejected_geometry, c.loops_rejected_graph,
+      slam.stats().slam_ms / std::max<uint64_t>(1, c.keyframes),
+      slam.stats().query_ms / std::max<uint64_t>(1, c.keyframes));
+  absl::Status written =
+      summary.source_finished
+          ? slam.FinishSession(flags.last > 0 ? flags.last
+                                              : sensing.keyframes->size())
+          : absl::OkStatus();
+  if (written.ok()) written = slam.WriteOutputs(flags.data_dir);
+  return written;
+}
+
+int Run(const Flags& flags) {
+  namespace robot = fleetmem::robot;
+  auto report = [](const Failure& failure) {
+    std::cerr << "fleetmem-robot: " << failure.message << "\n";
+    return failure.exit_code;
+  };
+  if (Failed failed = CheckFlags(flags)) return report(*failed);
+  if (flags.vo) return RunVo(flags);
+  fleetmem::slam::FleetSlamOptions slam_options;
+  slam_options.slam.keyframe_distance_m = flags.keyframe_distance_m;
+  Sensing sensing;
+  Clients clients;
+  std::unique_ptr<robot::RobotStore> queue;
+  if (Failed failed = OpenSensing(flags, slam_options.slam, sensing)) {
+    return report(*failed);
+  }
+  if (Failed failed = Connect(flags, clients)) return report(*failed);
+  if (Failed failed = OpenQueue(flags, sensing, *clients.setup, queue)) {
+    return report(*failed);
+  }
+  robot::AgentOptions options = MakeAgentOptions(flags, sensing);
+  std::cerr << absl::StrFormat(
+      "[%s] fleetmem-robot: fleet %s on %s, source %s (%d observations), "
+      "encoder %s (%d dims), domain %s, data dir %s%s\n",
+      flags.robot_id, flags.fleet, flags.server, sensing.source->description(),
+      sensing.source->size(), sensing.encoder->version(),
+      sensing.encoder->dimension(), options.domain, flags.data_dir,
+      flags.query_only ? ", query only" : "");
+  std::unique_ptr<robot::Learner> learner;
+  if (Failed failed = MakeLearner(flags, options, sensing, learner)) {
+    return report(*failed);
+  }
+  options.new_upload_client = [upload = clients.upload] {
+    return fleetmem::client::Client::Create(upload);
   };
   std::unique_ptr<fleetmem::slam::FleetSlam> slam;
   if (flags.slam) {
     slam_options.fleet_id = flags.fleet;
     slam_options.robot_id = flags.robot_id;
     slam = std::make_unique<fleetmem::slam::FleetSlam>(
-        slam_options, keyframes, encoder->get(), query_client.get(),
-        flags.first);
+        slam_options, sensing.keyframes, sensing.encoder.get(),
+        clients.query.get(), flags.first);
   }
-  robot::Agent agent(options, client.get(), query_client.get(), source->get(),
-                     encoder->get(), store->get(), learner.get(), slam.get());
+  robot::Agent agent(options, clients.agent.get(), clients.query.get(),
+                     sensing.source.get(), sensing.encoder.get(), queue.get(),
+                     learner.get(), slam.get());
   std::signal(SIGTERM, OnSignal);
   std::signal(SIGINT, OnSignal);
   const absl::Status status = agent.Run(g_stop);
@@ -604,23 +682,8 @@ int Run(const Flags& flags) {
       summary.state.segments(), summary.state.replayed_own(),
       summary.state.replayed_peer(), summary.state.refreshes());
   if (slam) {
-    const fleetmem::slam::LaserSlamCounters& c = slam->slam().counters();
-    std::cerr << absl::StrFormat(
-        "[%s] slam: %d scans, %d keyframes, loops %d proposed, %d accepted "
-        "(%d inter-robot), %d rejected by geometry, %d by the graph; "
-        "%.1f ms SLAM + %.1f ms queries per keyframe\n",
-        flags.robot_id, c.scans, c.keyframes, c.loops_proposed,
-        c.loops_accepted, c.inter_robot_loops, c.loops_rejected_geometry,
-        c.loops_rejected_graph,
-        slam->stats().slam_ms / std::max<uint64_t>(1, c.keyframes),
-        slam->stats().query_ms / std::max<uint64_t>(1, c.keyframes));
-    absl::Status written =
-        summary.source_finished
-            ? slam->FinishSession(flags.last > 0 ? flags.last
-                                                 : keyframes->size())
-            : absl::OkStatus();
-    if (written.ok()) written = slam->WriteOutputs(flags.data_dir);
-    if (!written.ok()) {
+    if (absl::Status written = FinishSlam(flags, sensing, summary, *slam);
+        !written.ok()) {
       std::cerr << "fleetmem-robot: " << written.ToString() << "\n";
       if (status.ok()) return 1;
     }
