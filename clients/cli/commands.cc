@@ -29,7 +29,8 @@ constexpr int kWatchMaxAttempts = 60;
 
 FlagSpec FleetFlag() { return {"fleet", "ID", "fleet id (required)"}; }
 
-// The command table (built once, never destroyed).
+// The command table (built once, never destroyed). Long (140 lines) by its
+// nature: one entry per command with its help text, in --help's order.
 const std::vector<Command>& CommandTable() {
   static const auto* const commands = new std::vector<Command>{
       {{"upload",
