@@ -571,7 +571,9 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
   return std::vector<Row>{frozen, learned};
 }
 
-absl::Status Run() {
+// The demo's fleet, data and robots from the flags: the two seasons' frames
+// (the same numbers in both), the encoder, the robot binary beside this one.
+absl::StatusOr<Setup> MakeSetup() {
   Setup setup;
   setup.fleet_id = Flags().fleet;
   if (setup.fleet_id.empty()) {
@@ -609,68 +611,60 @@ absl::Status Run() {
             .string();
   }
   setup.work_dir = absl::StrCat(Flags().work_dir, "/", setup.fleet_id);
-  absl::StatusOr<std::vector<robot::Stretch>> stretches =
-      robot::SpreadStretches(setup.numbers.size(), Flags().robots,
-                             Flags().stretch_length);
-  if (!stretches.ok()) return stretches.status();
-  std::vector<Drive> drives(stretches->size());
-  for (size_t r = 0; r < drives.size(); ++r) {
-    drives[r].robot_id = absl::StrCat("robot-", r + 1);
-    drives[r].stretch = (*stretches)[r];
+  return setup;
+}
+
+// After the summer drives: the fleet's log applied, the rest consolidated,
+// and the memory as it stands.
+struct Consolidated {
+  v1::GetStatsResponse before;  // applied, before the Consolidate call
+  v1::ConsolidateResponse consolidate;
+  double consolidate_ms = 0.0;
+  v1::GetStatsResponse stats;  // after it
+  // Robot batches the Consolidate call consolidated.
+  uint64_t final_batches() const {
+    return stats.consolidations() - before.consolidations();
   }
-  client::ClientOptions client_options;
-  client_options.target = setup.server;
-  std::unique_ptr<client::Client> observer =
-      client::Client::Create(client_options);
-  std::printf(
-      "fleetmem demo: fleet %s on %s, %zu fleetmem-robot processes x %d "
-      "summer frames, then the same stretches in winter; encoder %s (%zu "
-      "dims), data %s, robot data dirs under %s\n",
-      setup.fleet_id.c_str(), setup.server.c_str(), drives.size(),
-      Flags().stretch_length, setup.encoder->version().c_str(),
-      setup.encoder->dimension(), root.c_str(), setup.work_dir.c_str());
-  std::fflush(stdout);
+};
 
-  // 1. Summer: the robots drive and upload, each its own process. ----------
-  const auto summer_start = Clock::now();
-  absl::Status ran = RunRobots(setup, drives, "summer", /*query_only=*/false);
-  if (!ran.ok()) return ran;
-  const double summer_s = MillisSince(summer_start) / 1000.0;
-
-  // 2. Consolidate the rest, then look at the memory. ------------------------
+absl::StatusOr<Consolidated> ConsolidateAndLook(const Setup& setup,
+                                                client::Client& observer) {
+  Consolidated done;
   // The robots' uploads were acknowledged when durable: the memory is read
   // once the fleet's log is applied through them.
   absl::StatusOr<v1::GetStatsResponse> before =
-      observer->GetStats(setup.fleet_id);
+      observer.GetStats(setup.fleet_id);
   const auto give_up = Clock::now() + std::chrono::seconds(120);
   while (before.ok() &&
          before->applied_through() < before->acknowledged_through() &&
          Clock::now() < give_up) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    before = observer->GetStats(setup.fleet_id);
+    before = observer.GetStats(setup.fleet_id);
   }
   if (!before.ok()) return before.status();
+  done.before = *std::move(before);
   const auto consolidate_start = Clock::now();
   absl::StatusOr<v1::ConsolidateResponse> consolidated =
-      observer->Consolidate(setup.fleet_id);
-  const double consolidate_ms = MillisSince(consolidate_start);
+      observer.Consolidate(setup.fleet_id);
+  done.consolidate_ms = MillisSince(consolidate_start);
   if (!consolidated.ok()) return consolidated.status();
+  done.consolidate = *std::move(consolidated);
+  const v1::ConsolidateResponse& c = done.consolidate;
   std::printf(
       "consolidate: %llu pending traces -> %llu clusters added, %llu traces "
       "downsampled, %llu clusters forgotten; memory now %llu clusters, %llu "
       "traces (%.1f ms)\n",
-      static_cast<unsigned long long>(consolidated->consolidated_traces()),
-      static_cast<unsigned long long>(consolidated->clusters_added()),
-      static_cast<unsigned long long>(consolidated->downsampled_traces()),
-      static_cast<unsigned long long>(consolidated->clusters_forgotten()),
-      static_cast<unsigned long long>(consolidated->clusters()),
-      static_cast<unsigned long long>(consolidated->traces()), consolidate_ms);
+      static_cast<unsigned long long>(c.consolidated_traces()),
+      static_cast<unsigned long long>(c.clusters_added()),
+      static_cast<unsigned long long>(c.downsampled_traces()),
+      static_cast<unsigned long long>(c.clusters_forgotten()),
+      static_cast<unsigned long long>(c.clusters()),
+      static_cast<unsigned long long>(c.traces()), done.consolidate_ms);
   absl::StatusOr<v1::GetStatsResponse> stats =
-      observer->GetStats(setup.fleet_id);
+      observer.GetStats(setup.fleet_id);
   if (!stats.ok()) return stats.status();
-  const uint64_t final_batches =
-      stats->consolidations() - before->consolidations();
-  for (const v1::RobotStats& robot : stats->robots()) {
+  done.stats = *std::move(stats);
+  for (const v1::RobotStats& robot : done.stats.robots()) {
     std::printf(
         "stats: %s holds %llu of its %llu uploaded traces (max seq "
         "%llu)\n",
@@ -680,30 +674,30 @@ absl::Status Run() {
         static_cast<unsigned long long>(robot.max_seq()));
   }
   absl::StatusOr<EventSummary> events =
-      ReadEvents(*observer, setup.fleet_id, stats->last_event_id());
+      ReadEvents(observer, setup.fleet_id, done.stats.last_event_id());
   if (!events.ok()) return events.status();
   std::printf("events: %llu clusters added, %llu forgotten\n",
               static_cast<unsigned long long>(events->added),
               static_cast<unsigned long long>(events->forgotten));
   std::fflush(stdout);
+  return done;
+}
 
-  // 3. Winter: the same robots relocalise against the fleet memory. --------
-  const auto winter_start = Clock::now();
-  ran = RunRobots(setup, drives, "winter", /*query_only=*/true);
-  if (!ran.ok()) return ran;
-  const double winter_s = MillisSince(winter_start) / 1000.0;
+// The baseline: every summer code of the drives, searched by brute force
+// with each winter code (its row), and how many winter places the memory
+// still holds a trace near (`covered` of `queries`).
+struct Baseline {
+  Row row;
+  size_t size = 0;  // codes
+  size_t covered = 0;
+  size_t queries = 0;
+};
 
-  // 4. Results: fleet memory vs every summer code by brute force. ----------
-  Row memory_row, baseline_row;
-  memory_row.system = "fleet memory (server, winter fleetmem-robots)";
-  baseline_row.system = "all traces, no memory bound (baseline)";
-  double query_ms_sum = 0.0;
-  for (const Drive& drive : drives) {
-    const core::FirstCorrectRanks ranks =
-        robot::RelocalisationRanks(drive.winter.counters());
-    memory_row.ranks.insert(memory_row.ranks.end(), ranks.begin(), ranks.end());
-    query_ms_sum += drive.winter.counters().relocalisation_ms_total();
-  }
+absl::StatusOr<Baseline> RunBaseline(const Setup& setup,
+                                     const std::vector<Drive>& drives,
+                                     client::Client& observer) {
+  Baseline result;
+  result.row.system = "all traces, no memory bound (baseline)";
   robot::BruteForceIndex baseline(setup.encoder->dimension());
   for (const Drive& drive : drives) {
     for (size_t i = drive.stretch.begin; i < drive.stretch.end; ++i) {
@@ -714,7 +708,6 @@ absl::Status Run() {
     }
   }
   std::vector<double> local_ms;
-  size_t covered = 0, queries = 0;
   for (const Drive& drive : drives) {
     for (size_t i = drive.stretch.begin; i < drive.stretch.end; ++i) {
       const core::Place place{.x = static_cast<double>(setup.numbers[i])};
@@ -726,7 +719,7 @@ absl::Status Run() {
       for (double x : baseline.Search(*code, kQueryK))
         found.push_back({.x = x});
       local_ms.push_back(MillisSince(start));
-      baseline_row.ranks.push_back(
+      result.row.ranks.push_back(
           robot::FirstCorrectRank(found, place, kToleranceUnits));
       // Does the memory still hold the place at all (after forgetting)?
       v1::QueryPlaceRequest near;
@@ -736,41 +729,51 @@ absl::Status Run() {
       near.mutable_near()->set_x(place.x);
       near.set_radius_m(kToleranceUnits);
       absl::StatusOr<std::vector<v1::PlaceMatch>> held =
-          observer->QueryPlace(near);
+          observer.QueryPlace(near);
       if (!held.ok()) return held.status();
-      covered += held->empty() ? 0 : 1;
-      ++queries;
+      result.covered += held->empty() ? 0 : 1;
+      ++result.queries;
     }
   }
-  memory_row.traces = absl::StrCat(stats->traces());
-  memory_row.clusters = absl::StrCat(stats->clusters());
-  memory_row.query_ms =
-      memory_row.ranks.empty() ? 0.0 : query_ms_sum / memory_row.ranks.size();
-  memory_row.consolidation_ms =
-      final_batches > 0
-          ? absl::StrFormat("%.1f", consolidate_ms / final_batches)
-          : "-";
-  baseline_row.traces = absl::StrCat(baseline.size());
-  baseline_row.clusters = "-";
-  baseline_row.consolidation_ms = "-";
-  baseline_row.query_ms =
-      std::accumulate(local_ms.begin(), local_ms.end(), 0.0) /
-      std::max<size_t>(local_ms.size(), 1);
+  result.size = baseline.size();
+  result.row.traces = absl::StrCat(baseline.size());
+  result.row.clusters = "-";
+  result.row.consolidation_ms = "-";
+  result.row.query_ms = std::accumulate(local_ms.begin(), local_ms.end(), 0.0) /
+                        std::max<size_t>(local_ms.size(), 1);
+  return result;
+}
 
-  std::vector<Row> rows = {memory_row, baseline_row};
-  if (Flags().learn) {
-    absl::StatusOr<std::vector<Row>> learned =
-        MetricPass(setup, drives, *observer);
-    if (!learned.ok()) return learned.status();
-    rows.insert(rows.end(), learned->begin(), learned->end());
+// The fleet memory's row: the winter robots' relocalisations.
+Row MemoryRow(const std::vector<Drive>& drives, const Consolidated& done) {
+  Row row;
+  row.system = "fleet memory (server, winter fleetmem-robots)";
+  double query_ms_sum = 0.0;
+  for (const Drive& drive : drives) {
+    const core::FirstCorrectRanks ranks =
+        robot::RelocalisationRanks(drive.winter.counters());
+    row.ranks.insert(row.ranks.end(), ranks.begin(), ranks.end());
+    query_ms_sum += drive.winter.counters().relocalisation_ms_total();
   }
-  if (!Flags().gpl_model.empty()) {
-    absl::StatusOr<std::vector<Row>> gpl = GplPass(setup, drives, *observer);
-    if (!gpl.ok()) return gpl.status();
-    rows.insert(rows.end(), gpl->begin(), gpl->end());
+  row.traces = absl::StrCat(done.stats.traces());
+  row.clusters = absl::StrCat(done.stats.clusters());
+  row.query_ms = row.ranks.empty() ? 0.0 : query_ms_sum / row.ranks.size();
+  row.consolidation_ms =
+      done.final_batches() > 0
+          ? absl::StrFormat("%.1f", done.consolidate_ms / done.final_batches())
+          : "-";
+  return row;
+}
+
+// What the results table's numbers are, under it.
+std::string Notes(const Setup& setup, const std::vector<Drive>& drives,
+                  const Row& memory_row, const Consolidated& done,
+                  const Baseline& baseline, double summer_s, double winter_s) {
+  uint64_t uploaded = 0;
+  for (const Drive& drive : drives) {
+    uploaded += drive.summer.counters().traces_uploaded();
   }
-  const std::string table = Table(rows);
-  const std::string robots = RobotTable(setup, drives);
+  const v1::GetStatsResponse& stats = done.stats;
   std::string notes = absl::StrFormat(
       "- %zu winter relocalisations by %zu fleetmem-robot processes (query "
       "only) over the stretches the same robots drove in summer; correct if "
@@ -791,29 +794,21 @@ absl::Status Run() {
       "every segment (Eq. 18), and every segment replays 64 traces from it "
       "(Eq. 19).\n",
       memory_row.ranks.size(), drives.size(), kToleranceUnits, drives.size(),
-      [&] {
-        uint64_t sum = 0;
-        for (const Drive& drive : drives) {
-          sum += drive.summer.counters().traces_uploaded();
-        }
-        return sum;
-      }(),
-      summer_s, winter_s, setup.encoder->version(), setup.encoder->dimension(),
-      stats->max_traces_per_cluster(), stats->max_clusters(),
-      stats->consolidations(), stats->clusters_forgotten(),
-      final_batches > 0
+      uploaded, summer_s, winter_s, setup.encoder->version(),
+      setup.encoder->dimension(), stats.max_traces_per_cluster(),
+      stats.max_clusters(), stats.consolidations(), stats.clusters_forgotten(),
+      done.final_batches() > 0
           ? absl::StrFormat(
                 "the final Consolidate call (client round trip, %.1f ms) "
                 "divided by the %d robot batches it consolidated (%d traces)",
-                consolidate_ms, final_batches,
-                consolidated->consolidated_traces())
+                done.consolidate_ms, done.final_batches(),
+                done.consolidate.consolidated_traces())
           : std::string("not measured: the robots' uploads consolidated "
                         "every batch (stretches a multiple of the segment "
                         "size), so the final Consolidate call had nothing "
                         "to do"),
-      kQueryK, baseline.size(), covered, queries,
-      100.0 * covered / std::max<size_t>(queries, 1));
-
+      kQueryK, baseline.size, baseline.covered, baseline.queries,
+      100.0 * baseline.covered / std::max<size_t>(baseline.queries, 1));
   if (Flags().learn) {
     notes +=
         "- Learned rows: the same robots drove again in a fleet of their own "
@@ -825,6 +820,71 @@ absl::Status Run() {
         "winter it never saw. docs/results.md holds the held-out protocol "
         "(fleetmem-eval lifelong).\n";
   }
+  return notes;
+}
+
+absl::Status Run() {
+  absl::StatusOr<Setup> made = MakeSetup();
+  if (!made.ok()) return made.status();
+  Setup& setup = *made;
+  absl::StatusOr<std::vector<robot::Stretch>> stretches =
+      robot::SpreadStretches(setup.numbers.size(), Flags().robots,
+                             Flags().stretch_length);
+  if (!stretches.ok()) return stretches.status();
+  std::vector<Drive> drives(stretches->size());
+  for (size_t r = 0; r < drives.size(); ++r) {
+    drives[r].robot_id = absl::StrCat("robot-", r + 1);
+    drives[r].stretch = (*stretches)[r];
+  }
+  client::ClientOptions client_options;
+  client_options.target = setup.server;
+  std::unique_ptr<client::Client> observer =
+      client::Client::Create(client_options);
+  std::printf(
+      "fleetmem demo: fleet %s on %s, %zu fleetmem-robot processes x %d "
+      "summer frames, then the same stretches in winter; encoder %s (%zu "
+      "dims), data %s/nordland, robot data dirs under %s\n",
+      setup.fleet_id.c_str(), setup.server.c_str(), drives.size(),
+      Flags().stretch_length, setup.encoder->version().c_str(),
+      setup.encoder->dimension(), Flags().data.c_str(), setup.work_dir.c_str());
+  std::fflush(stdout);
+
+  // 1. Summer: the robots drive and upload, each its own process. ----------
+  const auto summer_start = Clock::now();
+  absl::Status ran = RunRobots(setup, drives, "summer", /*query_only=*/false);
+  if (!ran.ok()) return ran;
+  const double summer_s = MillisSince(summer_start) / 1000.0;
+
+  // 2. Consolidate the rest, then look at the memory. ------------------------
+  absl::StatusOr<Consolidated> done = ConsolidateAndLook(setup, *observer);
+  if (!done.ok()) return done.status();
+
+  // 3. Winter: the same robots relocalise against the fleet memory. --------
+  const auto winter_start = Clock::now();
+  ran = RunRobots(setup, drives, "winter", /*query_only=*/true);
+  if (!ran.ok()) return ran;
+  const double winter_s = MillisSince(winter_start) / 1000.0;
+
+  // 4. Results: fleet memory vs every summer code by brute force. ----------
+  absl::StatusOr<Baseline> baseline = RunBaseline(setup, drives, *observer);
+  if (!baseline.ok()) return baseline.status();
+  const Row memory_row = MemoryRow(drives, *done);
+  std::vector<Row> rows = {memory_row, baseline->row};
+  if (Flags().learn) {
+    absl::StatusOr<std::vector<Row>> learned =
+        MetricPass(setup, drives, *observer);
+    if (!learned.ok()) return learned.status();
+    rows.insert(rows.end(), learned->begin(), learned->end());
+  }
+  if (!Flags().gpl_model.empty()) {
+    absl::StatusOr<std::vector<Row>> gpl = GplPass(setup, drives, *observer);
+    if (!gpl.ok()) return gpl.status();
+    rows.insert(rows.end(), gpl->begin(), gpl->end());
+  }
+  const std::string table = Table(rows);
+  const std::string robots = RobotTable(setup, drives);
+  const std::string notes =
+      Notes(setup, drives, memory_row, *done, *baseline, summer_s, winter_s);
   std::printf("\nResults (fleet %s)\n\n%s\n%s\n%s\n%s\n",
               setup.fleet_id.c_str(), table.c_str(), robots.c_str(),
               notes.c_str(), kAttribution);
