@@ -333,6 +333,41 @@ struct SegmentLog::Fleet {
                          << "); the entries after them are applied";
     losses.push_back({first, last, std::move(detail)});
   }
+
+  // At load, with `gaps[i]` the damaged runs ScanSegment found in
+  // segments[i]: sequences run on across segments (each starts right after
+  // the last entry before it; a write that failed was undone and written
+  // again at the start of the next segment, so what the failed one left,
+  // if its undo did not reach the disk, is not read), and the entries of
+  // the gaps and of a damaged segment end are lost.
+  void Stitch(const std::vector<std::vector<ScannedSegment::Gap>>& gaps)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
+    uint64_t last = 0;
+    for (size_t i = 0; i < segments.size(); ++i) {
+      Segment& segment = *segments[i];
+      const uint64_t next =
+          i + 1 < segments.size() ? segments[i + 1]->first : UINT64_MAX;
+      while (!segment.records.empty() && segment.last() >= next) {
+        segment.records.pop_back();
+      }
+      if (last != 0 && segment.first > last + 1) {
+        Lose(last + 1, segment.first - 1,
+             absl::StrCat("the end of the segment before '", segment.path,
+                          "' is damaged"));
+      }
+      last = segment.records.empty() ? segment.first - 1 : segment.last();
+      for (const ScannedSegment::Gap& gap : gaps[i]) {
+        if (gap.first >= next) continue;
+        const uint64_t lost_through = std::min(gap.last, next - 1);
+        Lose(
+            gap.first, lost_through,
+            absl::StrCat("'", segment.path, "' is damaged at byte ", gap.offset,
+                         ": the records there fail their checksum or "
+                         "frame"));
+        last = std::max(last, lost_through);
+      }
+    }
+  }
 };
 
 std::vector<engine::LostLogEntries> SegmentLog::Losses(
@@ -382,12 +417,19 @@ absl::StatusOr<std::unique_ptr<SegmentLog>> SegmentLog::Open(
   return log;
 }
 
-absl::Status SegmentLog::LoadFleet(const std::string& fleet_id,
-                                   const std::string& path) {
-  Fleet& fleet = FindOrMake(fleet_id);
-  absl::MutexLock lock(&fleet.mu);
+namespace {
+
+// A fleet's segment files under `path`, by their first sequence, and its
+// spare files (with the number after the highest).
+struct SegmentFiles {
+  std::vector<std::pair<uint64_t, std::string>> segments;  // ascending
+  std::vector<std::string> spares;
+  uint64_t next_spare = 0;
+};
+
+absl::StatusOr<SegmentFiles> ListSegmentFiles(const std::string& path) {
+  SegmentFiles files;
   std::error_code error;
-  std::vector<std::pair<uint64_t, std::string>> files;
   for (const auto& entry : std::filesystem::directory_iterator(path, error)) {
     const std::string name = entry.path().filename().string();
     if (!name.ends_with(kSuffix)) continue;
@@ -402,79 +444,71 @@ absl::Status SegmentLog::LoadFleet(const std::string& fleet_id,
       continue;
     }
     if (spare) {
-      fleet.spares.push_back(entry.path().string());
-      fleet.next_spare = std::max(fleet.next_spare, number + 1);
+      files.spares.push_back(entry.path().string());
+      files.next_spare = std::max(files.next_spare, number + 1);
     } else {
-      files.emplace_back(number, entry.path().string());
+      files.segments.emplace_back(number, entry.path().string());
     }
   }
   if (error) {
     return absl::UnavailableError(
         absl::StrCat("list '", path, "': ", error.message()));
   }
-  std::sort(files.begin(), files.end());
+  std::sort(files.segments.begin(), files.segments.end());
+  return files;
+}
+
+// The records of the segment file at `path`, whose first entry is `first`.
+absl::StatusOr<ScannedSegment> ScanSegmentFile(const std::string& path,
+                                               uint64_t first) {
+  absl::StatusOr<std::unique_ptr<File>> reader = OpenForReads(path);
+  if (!reader.ok()) return reader.status();
+  const int fd = (*reader)->fd;
+  struct stat info;
+  if (::fstat(fd, &info) != 0) {
+    return IoError(errno, absl::StrCat("stat '", path, "'"));
+  }
+  absl::StatusOr<std::string> data =
+      ReadAt(fd, 0, static_cast<size_t>(info.st_size), path);
+  if (!data.ok()) return data.status();
+  return ScanSegment(*data, first);
+}
+
+}  // namespace
+
+absl::Status SegmentLog::LoadFleet(const std::string& fleet_id,
+                                   const std::string& path) {
+  Fleet& fleet = FindOrMake(fleet_id);
+  absl::MutexLock lock(&fleet.mu);
+  absl::StatusOr<SegmentFiles> files = ListSegmentFiles(path);
+  if (!files.ok()) return files.status();
+  fleet.spares = std::move(files->spares);
+  fleet.next_spare = files->next_spare;
   std::vector<std::vector<ScannedSegment::Gap>> gaps;
-  for (const auto& [first, file_path] : files) {
+  for (const auto& [first, file_path] : files->segments) {
+    absl::StatusOr<ScannedSegment> scanned = ScanSegmentFile(file_path, first);
+    if (!scanned.ok()) return scanned.status();
     auto segment = std::make_shared<Segment>();
     segment->first = first;
     segment->path = file_path;
-    absl::StatusOr<std::unique_ptr<File>> reader = OpenForReads(file_path);
-    if (!reader.ok()) return reader.status();
-    const int fd = (*reader)->fd;
-    struct stat info;
-    if (::fstat(fd, &info) != 0) {
-      return IoError(errno, absl::StrCat("stat '", file_path, "'"));
-    }
-    absl::StatusOr<std::string> data =
-        ReadAt(fd, 0, static_cast<size_t>(info.st_size), file_path);
-    if (!data.ok()) return data.status();
-    ScannedSegment scanned = ScanSegment(*data, first);
-    for (const Found& entry : scanned.entries) {
+    for (const Found& entry : scanned->entries) {
       segment->records.push_back({entry.sequence, entry.offset, entry.size});
     }
-    segment->end = scanned.end;
-    // (Where a later segment follows, the gap before it is reported below.)
-    if (scanned.cut_entry != 0 && file_path == files.back().second) {
+    segment->end = scanned->end;
+    // (Where a later segment follows, the gap before it is reported by
+    // Stitch.)
+    if (scanned->cut_entry != 0 && file_path == files->segments.back().second) {
       FLEETMEM_LOG(kWarning)
           << "ingest log of fleet \"" << fleet_id << "\": '" << file_path
-          << "' ends in entry " << scanned.cut_entry
+          << "' ends in entry " << scanned->cut_entry
           << ", cut short or failing its checksum: the write in flight at a "
              "crash (never acknowledged), or damage to the segment's last "
              "record (which cannot be told apart there); it is not applied";
     }
-    gaps.push_back(std::move(scanned.gaps));
+    gaps.push_back(std::move(scanned->gaps));
     fleet.segments.push_back(std::move(segment));
   }
-  // Sequences run on across segments: each segment starts right after the
-  // last entry before it. A write that failed was undone and written again
-  // at the start of the next segment: what the failed one left (if its undo
-  // did not reach the disk) is not read.
-  uint64_t last = 0;
-  for (size_t i = 0; i < fleet.segments.size(); ++i) {
-    Segment& segment = *fleet.segments[i];
-    const uint64_t next = i + 1 < fleet.segments.size()
-                              ? fleet.segments[i + 1]->first
-                              : UINT64_MAX;
-    while (!segment.records.empty() && segment.last() >= next) {
-      segment.records.pop_back();
-    }
-    if (last != 0 && segment.first > last + 1) {
-      fleet.Lose(last + 1, segment.first - 1,
-                 absl::StrCat("the end of the segment before '", segment.path,
-                              "' is damaged"));
-    }
-    last = segment.records.empty() ? segment.first - 1 : segment.last();
-    for (const ScannedSegment::Gap& gap : gaps[i]) {
-      if (gap.first >= next) continue;
-      const uint64_t lost_through = std::min(gap.last, next - 1);
-      fleet.Lose(
-          gap.first, lost_through,
-          absl::StrCat("'", segment.path, "' is damaged at byte ", gap.offset,
-                       ": the records there fail their checksum or "
-                       "frame"));
-      last = std::max(last, lost_through);
-    }
-  }
+  fleet.Stitch(gaps);
   // The last segment may end in a torn write: appends after a restart start
   // a new segment.
   fleet.sealed = true;
