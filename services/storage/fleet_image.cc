@@ -63,6 +63,65 @@ absl::StatusOr<std::string> EncodeFleetImage(const engine::FleetImage& image) {
   return out.SerializeAsString();
 }
 
+namespace {
+
+// A fleet image as its records are decoded: clusters are assembled once
+// every trace is read, so their records wait here.
+struct DecodedImage {
+  engine::FleetImage image;
+  std::map<core::TraceKey, core::MemoryTrace> traces;
+  std::vector<std::pair<std::string_view, StoredCluster>> clusters;
+  bool has_meta = false;
+};
+
+// Decodes one record of the image (of `tag`) into `out`.
+absl::Status DecodeImageRecord(std::string_view fleet_id, keys::Tag tag,
+                               const ImageRecord& record, DecodedImage& out) {
+  switch (tag) {
+    case keys::Tag::kMeta: {
+      absl::StatusOr<engine::FleetMeta> meta =
+          DecodeMeta(record.key(), record.value());
+      if (meta.ok()) out.image.record.meta = *std::move(meta);
+      out.has_meta = true;
+      return meta.status();
+    }
+    case keys::Tag::kPending:
+      return AppendTo(DecodeTrace(record.key(), record.value()),
+                      &out.image.record.pending);
+    case keys::Tag::kTrace: {
+      absl::StatusOr<core::MemoryTrace> trace =
+          DecodeTrace(record.key(), record.value());
+      if (trace.ok()) {
+        core::TraceKey trace_key = trace->key();
+        out.traces.emplace(std::move(trace_key), *std::move(trace));
+      }
+      return trace.status();
+    }
+    case keys::Tag::kCluster: {
+      absl::StatusOr<StoredCluster> cluster =
+          DecodeCluster(record.key(), record.value());
+      if (cluster.ok()) out.clusters.emplace_back(record.key(), *cluster);
+      return cluster.status();
+    }
+    case keys::Tag::kRobot:
+      return AppendTo(DecodeRobot(record.key(), record.value()),
+                      &out.image.record.robots);
+    case keys::Tag::kEvent:
+      return AppendTo(DecodeEvent(record.key(), record.value()),
+                      &out.image.events);
+    case keys::Tag::kLog:
+      return absl::DataLossError(
+          absl::StrCat("fleet image of \"", V(fleet_id), "\": record ",
+                       keys::Describe(record.key()),
+                       " is an ingest-log entry, which no image holds"));
+  }
+  return absl::DataLossError(
+      absl::StrCat("fleet image of \"", V(fleet_id), "\": record ",
+                   keys::Describe(record.key()), " is of an unknown kind"));
+}
+
+}  // namespace
+
 absl::StatusOr<engine::FleetImage> DecodeFleetImage(std::string_view fleet_id,
                                                     std::string_view bytes) {
   FleetImage in;
@@ -77,12 +136,8 @@ absl::StatusOr<engine::FleetImage> DecodeFleetImage(std::string_view fleet_id,
                                             "\" holds fleet \"", in.fleet_id(),
                                             "\""));
   }
-  engine::FleetImage image;
-  image.record.fleet_id = std::string(fleet_id);
-  // Clusters are assembled once every trace is read: keep their records.
-  std::map<core::TraceKey, core::MemoryTrace> traces;
-  std::vector<std::pair<std::string_view, StoredCluster>> clusters;
-  bool has_meta = false;
+  DecodedImage decoded;
+  decoded.image.record.fleet_id = std::string(fleet_id);
   for (const ImageRecord& record : in.records()) {
     const std::optional<keys::ParsedKey> key = keys::Parse(record.key());
     if (!key || key->fleet_id != fleet_id) {
@@ -90,72 +145,31 @@ absl::StatusOr<engine::FleetImage> DecodeFleetImage(std::string_view fleet_id,
           "fleet image of \"", V(fleet_id), "\": record ",
           keys::Describe(record.key()), " is not one of this fleet"));
     }
-    absl::Status status;
-    switch (key->tag) {
-      case keys::Tag::kMeta: {
-        absl::StatusOr<engine::FleetMeta> meta =
-            DecodeMeta(record.key(), record.value());
-        if (meta.ok()) image.record.meta = *std::move(meta);
-        status = meta.status();
-        has_meta = true;
-        break;
-      }
-      case keys::Tag::kPending:
-        status = AppendTo(DecodeTrace(record.key(), record.value()),
-                          &image.record.pending);
-        break;
-      case keys::Tag::kTrace: {
-        absl::StatusOr<core::MemoryTrace> trace =
-            DecodeTrace(record.key(), record.value());
-        if (trace.ok()) {
-          core::TraceKey trace_key = trace->key();
-          traces.emplace(std::move(trace_key), *std::move(trace));
-        }
-        status = trace.status();
-        break;
-      }
-      case keys::Tag::kCluster: {
-        absl::StatusOr<StoredCluster> cluster =
-            DecodeCluster(record.key(), record.value());
-        if (cluster.ok()) clusters.emplace_back(record.key(), *cluster);
-        status = cluster.status();
-        break;
-      }
-      case keys::Tag::kRobot:
-        status = AppendTo(DecodeRobot(record.key(), record.value()),
-                          &image.record.robots);
-        break;
-      case keys::Tag::kEvent:
-        status =
-            AppendTo(DecodeEvent(record.key(), record.value()), &image.events);
-        break;
-      case keys::Tag::kLog:
-        status = absl::DataLossError(
-            absl::StrCat("fleet image of \"", V(fleet_id), "\": record ",
-                         keys::Describe(record.key()),
-                         " is an ingest-log entry, which no image holds"));
-        break;
-    }
-    if (!status.ok()) return status;
-  }
-  if (!has_meta) {
-    return absl::DataLossError(absl::StrCat("fleet image of \"", V(fleet_id),
-                                            "\" has no meta record"));
-  }
-  for (auto& [key, stored] : clusters) {
-    if (absl::Status status = AssembleCluster(key, std::move(stored), &traces,
-                                              &image.record.clusters);
+    if (absl::Status status =
+            DecodeImageRecord(fleet_id, key->tag, record, decoded);
         !status.ok()) {
       return status;
     }
   }
-  if (!traces.empty()) {
-    return absl::DataLossError(
-        absl::StrCat("fleet image of \"", V(fleet_id), "\": trace ",
-                     traces.begin()->first.robot_id, "/",
-                     traces.begin()->first.seq, " belongs to no cluster"));
+  if (!decoded.has_meta) {
+    return absl::DataLossError(absl::StrCat("fleet image of \"", V(fleet_id),
+                                            "\" has no meta record"));
   }
-  return image;
+  for (auto& [key, stored] : decoded.clusters) {
+    if (absl::Status status =
+            AssembleCluster(key, std::move(stored), &decoded.traces,
+                            &decoded.image.record.clusters);
+        !status.ok()) {
+      return status;
+    }
+  }
+  if (!decoded.traces.empty()) {
+    return absl::DataLossError(absl::StrCat(
+        "fleet image of \"", V(fleet_id), "\": trace ",
+        decoded.traces.begin()->first.robot_id, "/",
+        decoded.traces.begin()->first.seq, " belongs to no cluster"));
+  }
+  return std::move(decoded.image);
 }
 
 }  // namespace fleetmem::storage
