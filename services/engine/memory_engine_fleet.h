@@ -225,6 +225,12 @@ struct MemoryEngine::Fleet {
   // store's load (ReadSnapshot); without one the index is rebuilt.
   absl::Status Rebuild(FleetRecord record, LoadedSnapshot* snapshot = nullptr)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Rebuild's steps: the fleet emptied, with `stored` as its meta; the
+  // stored clusters' traces (marked with their cluster) and the pending
+  // ones, for the index (DATA_LOSS for a cluster id stored twice).
+  void Reset(const FleetMeta& stored) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  absl::StatusOr<std::vector<const core::MemoryTrace*>> GatherTraces(
+      std::vector<core::Cluster>& clusters) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Adds `traces` to the index under new handles. `meanwhile`, if given,
   // runs on this thread while another thread fills the index (a restart:
   // memory restores its clusters and the index copies the codes, each

@@ -121,6 +121,42 @@ LoadedSnapshot ReadSnapshot(MemoryStore& store,
   return loaded;
 }
 
+// A sample of the snapshot's `kept` traces, spread over all of them, must
+// have the codes the store has: DATA_LOSS naming the first that does not.
+absl::Status CheckSnapshotCodes(
+    const PlaceIndex& loaded, const TraceHandles& saved,
+    std::span<const core::MemoryTrace* const> kept) {
+  std::vector<float> code;
+  const size_t step = std::max<size_t>(1, kept.size() / kCodesCheckedOnLoad);
+  for (size_t i = 0; i < kept.size(); i += step) {
+    const core::MemoryTrace& trace = *kept[i];
+    if (!loaded.CopyCode(saved.Find(trace.key()), &code) ||
+        code != trace.code) {
+      return absl::DataLossError(
+          absl::StrCat("the snapshot's code of trace (\"", trace.robot_id,
+                       "\", ", trace.seq, ") differs from the store's"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// The snapshot's handles of traces the store no longer holds (forgotten or
+// downsampled since the snapshot).
+std::vector<uint64_t> GoneHandles(
+    const TraceHandles& saved,
+    const std::vector<const core::MemoryTrace*>& traces) {
+  absl::flat_hash_set<core::TraceKey> stored;
+  stored.reserve(traces.size());
+  for (const core::MemoryTrace* trace : traces) stored.insert(trace->key());
+  std::vector<uint64_t> gone;
+  saved.ForEach([&](uint64_t handle, std::string_view robot_id, uint64_t seq) {
+    if (!stored.contains(core::TraceKey{std::string(robot_id), seq})) {
+      gone.push_back(handle);
+    }
+  });
+  return gone;
+}
+
 }  // namespace
 
 absl::Status MemoryEngine::Fleet::Reload() {
@@ -180,9 +216,8 @@ absl::Status MemoryEngine::Fleet::CheckLoaded() const {
                    stale.message(), "); retry later"));
 }
 
-absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
-                                          LoadedSnapshot* snapshot) {
-  meta = record.meta;
+void MemoryEngine::Fleet::Reset(const FleetMeta& stored) {
+  meta = stored;
   memory = core::StaticMemory(engine->MemoryOptionsFor(id));
   pending.clear();
   pending_position.clear();
@@ -194,6 +229,38 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
   next_handle = 1;
   snapshot_changes = 0;
   snapshot_saved_at.reset();
+}
+
+absl::StatusOr<std::vector<const core::MemoryTrace*>>
+MemoryEngine::Fleet::GatherTraces(std::vector<core::Cluster>& clusters) {
+  // The traces stay in their clusters' vectors when the clusters move into
+  // memory, so the index can read them while memory restores.
+  std::vector<const core::MemoryTrace*> traces;
+  absl::flat_hash_set<uint64_t> cluster_ids;
+  cluster_ids.reserve(clusters.size());
+  for (core::Cluster& cluster : clusters) {
+    if (!cluster_ids.insert(cluster.id).second) {
+      return absl::DataLossError(absl::StrCat("fleet \"", id, "\" has cluster ",
+                                              cluster.id, " twice"));
+    }
+    for (core::MemoryTrace& trace : cluster.traces) {
+      trace.cluster_id = cluster.id;
+      largest_attachment =
+          std::max(largest_attachment, trace.attachment.size());
+      traces.push_back(&trace);
+    }
+  }
+  for (const auto& [robot_id, robot_pending] : pending) {
+    for (const core::MemoryTrace& trace : robot_pending) {
+      traces.push_back(&trace);
+    }
+  }
+  return traces;
+}
+
+absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
+                                          LoadedSnapshot* snapshot) {
+  Reset(record.meta);
   if (meta.code_dimension == 0) {
     if (!record.clusters.empty() || !record.pending.empty()) {
       return absl::DataLossError(absl::StrCat(
@@ -211,28 +278,10 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
     return absl::InternalError(
         absl::StrCat("the index factory made no index for fleet \"", id, "\""));
   }
-  // The traces stay in their clusters' vectors when the clusters move into
-  // memory, so the index can read them while memory restores.
-  std::vector<const core::MemoryTrace*> traces;
-  absl::flat_hash_set<uint64_t> cluster_ids;
-  cluster_ids.reserve(record.clusters.size());
-  for (core::Cluster& cluster : record.clusters) {
-    if (!cluster_ids.insert(cluster.id).second) {
-      return absl::DataLossError(absl::StrCat("fleet \"", id, "\" has cluster ",
-                                              cluster.id, " twice"));
-    }
-    for (core::MemoryTrace& trace : cluster.traces) {
-      trace.cluster_id = cluster.id;
-      largest_attachment =
-          std::max(largest_attachment, trace.attachment.size());
-      traces.push_back(&trace);
-    }
-  }
-  for (const auto& [robot_id, robot_pending] : pending) {
-    for (const core::MemoryTrace& trace : robot_pending) {
-      traces.push_back(&trace);
-    }
-  }
+  absl::StatusOr<std::vector<const core::MemoryTrace*>> gathered =
+      GatherTraces(record.clusters);
+  if (!gathered.ok()) return gathered.status();
+  const std::vector<const core::MemoryTrace*>& traces = *gathered;
   bool restored = false;
   if (!traces.empty()) {
     const absl::Time start = absl::Now();
@@ -440,31 +489,11 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
   for (const core::MemoryTrace* trace : traces) {
     (saved.contains(trace->key()) ? kept : missing).push_back(trace);
   }
-  // A sample of the kept traces, spread over all of them, must have the
-  // codes the store has.
-  std::vector<float> code;
-  const size_t step = std::max<size_t>(1, kept.size() / kCodesCheckedOnLoad);
-  for (size_t i = 0; i < kept.size(); i += step) {
-    const core::MemoryTrace& trace = *kept[i];
-    if (!loaded->CopyCode(saved.Find(trace.key()), &code) ||
-        code != trace.code) {
-      return absl::DataLossError(
-          absl::StrCat("the snapshot's code of trace (\"", trace.robot_id,
-                       "\", ", trace.seq, ") differs from the store's"));
-    }
-  }
-  std::vector<uint64_t> gone;
-  if (kept.size() < saved.size()) {
-    absl::flat_hash_set<core::TraceKey> stored;
-    stored.reserve(traces.size());
-    for (const core::MemoryTrace* trace : traces) stored.insert(trace->key());
-    saved.ForEach(
-        [&](uint64_t handle, std::string_view robot_id, uint64_t seq) {
-          if (!stored.contains(core::TraceKey{std::string(robot_id), seq})) {
-            gone.push_back(handle);
-          }
-        });
-  }
+  status = CheckSnapshotCodes(*loaded, saved, kept);
+  if (!status.ok()) return status;
+  const std::vector<uint64_t> gone = kept.size() < saved.size()
+                                         ? GoneHandles(saved, traces)
+                                         : std::vector<uint64_t>{};
   status = loaded->Remove(gone);
   if (!status.ok()) return status;
   for (uint64_t handle : gone) saved.EraseHandle(handle);
