@@ -417,11 +417,9 @@ std::string Usage() {
   return out;
 }
 
-absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
-  ServerConfigFile file;
-  if (absl::Status syntax = ParseTextFormat(text, &file); !syntax.ok()) {
-    return syntax;
-  }
+// ApplyConfigText's parts: the ports and paths; the timed tasks' periods;
+// the fleets' own memory bounds (over the server's).
+void ApplyServing(const ServerConfigFile& file, ServerConfig* config) {
   if (file.has_listen()) config->listen = file.listen();
   if (file.has_data_dir()) config->data_dir = file.data_dir();
   if (file.has_http_listen()) config->http_listen = file.http_listen();
@@ -443,21 +441,9 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
                                         file.http_allowed_origins().end());
   }
   if (file.has_snapshot_dir()) config->snapshot_dir = file.snapshot_dir();
-  if (file.has_log_level()) {
-    absl::Status status = ApplyLogLevel("log_level", file.log_level(), config);
-    if (!status.ok()) return status;
-  }
-  if (file.has_index()) {
-    absl::Status status = ApplyIndex("index", file.index(), config);
-    if (!status.ok()) return status;
-  }
-  if (file.has_worker_threads()) config->work.threads = file.worker_threads();
-  if (file.has_max_queued_calls()) {
-    config->work.max_queued = file.max_queued_calls();
-  }
-  if (file.has_max_receive_message_bytes()) {
-    config->max_receive_message_bytes = file.max_receive_message_bytes();
-  }
+}
+
+absl::Status ApplyPeriods(const ServerConfigFile& file, ServerConfig* config) {
   if (file.has_shutdown_grace_seconds()) {
     if (file.shutdown_grace_seconds() > 3600) {
       return absl::InvalidArgumentError("shutdown_grace_seconds: at most 3600");
@@ -485,7 +471,10 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
     config->heap_trim_interval_seconds =
         static_cast<int>(file.heap_trim_interval_seconds());
   }
-  ApplyMemory(file.memory(), &config->engine.memory);
+  return absl::OkStatus();
+}
+
+absl::Status ApplyFleets(const ServerConfigFile& file, ServerConfig* config) {
   for (const FleetMemoryConfig& fleet : file.fleets()) {
     core::MemoryOptions memory = config->engine.memory;
     ApplyMemory(fleet.memory(), &memory);
@@ -493,6 +482,37 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
       return absl::InvalidArgumentError(absl::StrCat(
           "fleets: fleet_id \"", fleet.fleet_id(), "\" is configured twice"));
     }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
+  ServerConfigFile file;
+  if (absl::Status syntax = ParseTextFormat(text, &file); !syntax.ok()) {
+    return syntax;
+  }
+  ApplyServing(file, config);
+  if (file.has_log_level()) {
+    absl::Status status = ApplyLogLevel("log_level", file.log_level(), config);
+    if (!status.ok()) return status;
+  }
+  if (file.has_index()) {
+    absl::Status status = ApplyIndex("index", file.index(), config);
+    if (!status.ok()) return status;
+  }
+  if (file.has_worker_threads()) config->work.threads = file.worker_threads();
+  if (file.has_max_queued_calls()) {
+    config->work.max_queued = file.max_queued_calls();
+  }
+  if (file.has_max_receive_message_bytes()) {
+    config->max_receive_message_bytes = file.max_receive_message_bytes();
+  }
+  if (absl::Status periods = ApplyPeriods(file, config); !periods.ok()) {
+    return periods;
+  }
+  ApplyMemory(file.memory(), &config->engine.memory);
+  if (absl::Status fleets = ApplyFleets(file, config); !fleets.ok()) {
+    return fleets;
   }
   ApplyEngine(file.engine(), &config->engine);
   ApplyStorage(file.storage(), &config->storage);
