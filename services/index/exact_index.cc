@@ -81,6 +81,42 @@ void StreamScores(const float* vectors, size_t dimension, size_t count,
   }
 }
 
+// The columns whose score is within `slack` of the k-th smallest accepted
+// score (every column accepted, when fewer than k are): with `slack` twice
+// the scores' error bound, a superset of the true k nearest. The k-th
+// smallest in one pass with a bounded max-heap (O(size log k); no
+// per-vector allocation).
+std::vector<size_t> Candidates(const Eigen::VectorXf& scores, double slack,
+                               const SearchParams& params,
+                               const std::vector<uint64_t>& ids) {
+  const size_t count = ids.size();
+  std::vector<float> heap;
+  heap.reserve(params.k + 1);
+  for (size_t column = 0; column < count; ++column) {
+    const float score = scores(column);
+    if (heap.size() == params.k && score >= heap.front()) continue;
+    if (params.accept && !params.accept(ids[column])) continue;
+    heap.push_back(score);
+    std::push_heap(heap.begin(), heap.end());
+    if (heap.size() > params.k) {
+      std::pop_heap(heap.begin(), heap.end());
+      heap.pop_back();
+    }
+  }
+  if (heap.empty()) return {};
+  const double limit = heap.size() < params.k
+                           ? std::numeric_limits<double>::infinity()
+                           : heap.front() + slack;
+  std::vector<size_t> candidates;
+  for (size_t column = 0; column < count; ++column) {
+    if (scores(column) <= limit &&
+        (!params.accept || params.accept(ids[column]))) {
+      candidates.push_back(column);
+    }
+  }
+  return candidates;
+}
+
 class ExactIndex final : public engine::PlaceIndex {
  public:
   ExactIndex(size_t dimension, ExactIndexOptions options)
@@ -355,32 +391,9 @@ absl::StatusOr<std::vector<Neighbor>> ExactIndex::Search(
     const double gamma = unit / (1.0 - unit);
     const double bound = 2.0 * (2.0 * gamma + 8.0 * FLT_EPSILON) *
                          (squared_norms_.head(count).maxCoeff() + query_norm);
-    // The k-th smallest accepted score, in one pass with a bounded max-heap
-    // (O(size log k); no per-vector allocation).
-    std::vector<float> heap;
-    heap.reserve(params.k + 1);
-    for (size_t column = 0; column < count; ++column) {
-      const float score = scores(column);
-      if (heap.size() == params.k && score >= heap.front()) continue;
-      if (params.accept && !params.accept(ids_[column])) continue;
-      heap.push_back(score);
-      std::push_heap(heap.begin(), heap.end());
-      if (heap.size() > params.k) {
-        std::pop_heap(heap.begin(), heap.end());
-        heap.pop_back();
-      }
-    }
-    if (heap.empty()) return std::vector<Neighbor>();
-    const double limit = heap.size() < params.k
-                             ? std::numeric_limits<double>::infinity()
-                             : heap.front() + 2.0 * bound;
-    std::vector<size_t> candidates;
-    for (size_t column = 0; column < count; ++column) {
-      if (scores(column) <= limit &&
-          (!params.accept || params.accept(ids_[column]))) {
-        candidates.push_back(column);
-      }
-    }
+    const std::vector<size_t> candidates =
+        Candidates(scores, 2.0 * bound, params, ids_);
+    if (candidates.empty()) return std::vector<Neighbor>();
 
     std::vector<std::pair<double, uint64_t>> exact;
     exact.reserve(candidates.size());
