@@ -129,6 +129,41 @@ Value MessageSchema(const Descriptor& type,
                  {"properties", Object(std::move(properties))}});
 }
 
+// An operation's responses: its answer (JSON, or server-sent events) and
+// the error every route may give.
+Value Responses(const Route& route, std::set<const Descriptor*>* pending) {
+  const Descriptor& output = *route.method->output_type();
+  pending->insert(&output);
+  Value answer =
+      route.server_sent_events
+          ? Object(
+                {{"description",
+                  Text(absl::StrCat(
+                      "server-sent events: per event `id: ID`, `event: "
+                      "TYPE`, `data: ` ",
+                      output.full_name(),
+                      " as JSON; an `event: error` ends the stream"))},
+                 {"content",
+                  Object({{"text/event-stream",
+                           Object({{"schema",
+                                    Object({{"type", Text("string")}})}})}})}})
+          : Object(
+                {{"description", Text(output.full_name())},
+                 {"content", Object({{"application/json",
+                                      Object({{"schema", Ref(output)}})}})}});
+  pending->insert(HttpError::descriptor());
+  return Object(
+      {{"200", std::move(answer)},
+       {"default",
+        Object(
+            {{"description", Text("an error: google.rpc code, its name and the "
+                                  "server's message")},
+             {"content",
+              Object({{"application/json",
+                       Object({{"schema",
+                                Ref(*HttpError::descriptor())}})}})}})}});
+}
+
 // "GET /v1/fleets/{fleet_id}/stats" -> GET's operation.
 Value Operation(const Route& route, std::set<const Descriptor*>* pending) {
   const Descriptor& input = *route.method->input_type();
@@ -176,39 +211,7 @@ Value Operation(const Route& route, std::set<const Descriptor*>* pending) {
   if (!parameters.empty()) {
     operation.emplace_back("parameters", List(std::move(parameters)));
   }
-  const Descriptor& output = *route.method->output_type();
-  pending->insert(&output);
-  Value answer =
-      route.server_sent_events
-          ? Object(
-                {{"description",
-                  Text(absl::StrCat(
-                      "server-sent events: per event `id: ID`, `event: "
-                      "TYPE`, `data: ` ",
-                      output.full_name(),
-                      " as JSON; an `event: error` ends the stream"))},
-                 {"content",
-                  Object({{"text/event-stream",
-                           Object({{"schema",
-                                    Object({{"type", Text("string")}})}})}})}})
-          : Object(
-                {{"description", Text(output.full_name())},
-                 {"content", Object({{"application/json",
-                                      Object({{"schema", Ref(output)}})}})}});
-  pending->insert(HttpError::descriptor());
-  operation.emplace_back(
-      "responses",
-      Object(
-          {{"200", std::move(answer)},
-           {"default",
-            Object(
-                {{"description",
-                  Text("an error: google.rpc code, its name and the "
-                       "server's message")},
-                 {"content",
-                  Object({{"application/json",
-                           Object({{"schema",
-                                    Ref(*HttpError::descriptor())}})}})}})}}));
+  operation.emplace_back("responses", Responses(route, pending));
   return Object(std::move(operation));
 }
 
