@@ -474,6 +474,47 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::Load(
   }
 }
 
+absl::Status HnswGraph::CheckLoaded(uint32_t count) {
+  auto& hnsw = impl_->hnsw;
+  // Every link must name an element, every slot must be held once, and
+  // the removed slots must be the nodes marked deleted.
+  absl::flat_hash_set<uint32_t> removed(free_slots_.begin(), free_slots_.end());
+  if (removed.size() != free_slots_.size() ||
+      std::any_of(removed.begin(), removed.end(),
+                  [&](uint32_t slot) { return slot >= count; })) {
+    return Malformed("bad removed slots");
+  }
+  hnsw.label_lookup_.reserve(count);
+  auto links_ok = [&](hnswlib::linklistsizeint* list, size_t most) {
+    const size_t size = hnsw.getListCount(list);
+    const auto* neighbors = reinterpret_cast<const uint32_t*>(list + 1);
+    return size <= most && std::all_of(neighbors, neighbors + size,
+                                       [&](uint32_t n) { return n < count; });
+  };
+  for (uint32_t i = 0; i < count; ++i) {
+    const hnswlib::labeltype slot = hnsw.getExternalLabel(i);
+    if (slot >= count || !hnsw.label_lookup_.emplace(slot, i).second) {
+      return Malformed(absl::StrCat("bad slot of element ", i));
+    }
+    if (hnsw.isMarkedDeleted(i) != removed.contains(slot)) {
+      return Malformed(absl::StrCat("slot ", slot, " removed inconsistently"));
+    }
+    if (!links_ok(hnsw.get_linklist0(i), hnsw.maxM0_)) {
+      return Malformed(absl::StrCat("bad links of element ", i));
+    }
+    for (int level = 1; level <= hnsw.element_levels_[i]; ++level) {
+      if (!links_ok(hnsw.get_linklist(i, level), hnsw.maxM_)) {
+        return Malformed(absl::StrCat("bad links of element ", i));
+      }
+    }
+    if (options_.scaled && !hnsw.isMarkedDeleted(i) &&
+        !ScaleAndNormOk(hnsw.getDataByInternalId(i), dimension_)) {
+      return Malformed(absl::StrCat("bad scale or norm of element ", i));
+    }
+  }
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
     size_t dimension, HnswGraphOptions options, ByteReader& in) {
   uint32_t format = 0;
@@ -540,43 +581,8 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
     if (count > 0 && hnsw.element_levels_[entry] != max_level) {
       return Malformed("the entry point is not on the top level");
     }
-    // Every link must name an element, every slot must be held once, and
-    // the removed slots must be the nodes marked deleted.
-    absl::flat_hash_set<uint32_t> removed(graph->free_slots_.begin(),
-                                          graph->free_slots_.end());
-    if (removed.size() != free_count ||
-        std::any_of(removed.begin(), removed.end(),
-                    [&](uint32_t slot) { return slot >= count; })) {
-      return Malformed("bad removed slots");
-    }
-    hnsw.label_lookup_.reserve(count);
-    auto links_ok = [&](hnswlib::linklistsizeint* list, size_t most) {
-      const size_t size = hnsw.getListCount(list);
-      const auto* neighbors = reinterpret_cast<const uint32_t*>(list + 1);
-      return size <= most && std::all_of(neighbors, neighbors + size,
-                                         [&](uint32_t n) { return n < count; });
-    };
-    for (uint32_t i = 0; i < count; ++i) {
-      const hnswlib::labeltype slot = hnsw.getExternalLabel(i);
-      if (slot >= count || !hnsw.label_lookup_.emplace(slot, i).second) {
-        return Malformed(absl::StrCat("bad slot of element ", i));
-      }
-      if (hnsw.isMarkedDeleted(i) != removed.contains(slot)) {
-        return Malformed(
-            absl::StrCat("slot ", slot, " removed inconsistently"));
-      }
-      if (!links_ok(hnsw.get_linklist0(i), hnsw.maxM0_)) {
-        return Malformed(absl::StrCat("bad links of element ", i));
-      }
-      for (int level = 1; level <= hnsw.element_levels_[i]; ++level) {
-        if (!links_ok(hnsw.get_linklist(i, level), hnsw.maxM_)) {
-          return Malformed(absl::StrCat("bad links of element ", i));
-        }
-      }
-      if (options.scaled && !hnsw.isMarkedDeleted(i) &&
-          !ScaleAndNormOk(hnsw.getDataByInternalId(i), dimension)) {
-        return Malformed(absl::StrCat("bad scale or norm of element ", i));
-      }
+    if (absl::Status checked = graph->CheckLoaded(count); !checked.ok()) {
+      return checked;
     }
     hnsw.num_deleted_ = free_count;
   }

@@ -140,6 +140,11 @@ class HnswGraph {
   // Load without its handlers for hnswlib's exceptions.
   static absl::StatusOr<std::unique_ptr<HnswGraph>> LoadOrThrow(
       size_t dimension, HnswGraphOptions options, ByteReader& in);
+  // After a load of `count` elements: every link names an element, every
+  // slot is held once (the slot lookup is built here), the removed slots
+  // are the nodes marked deleted, and (scaled) every scale and norm is
+  // sound.
+  absl::Status CheckLoaded(uint32_t count);
   size_t dimension_;
   HnswGraphOptions options_;
   std::unique_ptr<Impl> impl_;
