@@ -189,8 +189,9 @@ class ClusterIntegrationTest : public ::testing::Test {
   void StartReplica(size_t i) {
     if (i == replicas_.size()) {
       replicas_.emplace_back();
-      ports_.push_back(FreePort());
-      http_ports_.push_back(FreePort());
+      const std::vector<int> ports = FreePorts(2);
+      ports_.push_back(ports[0]);
+      http_ports_.push_back(ports[1]);
     }
     const std::string data = dir_.Join(absl::StrCat("replica-", i));
     std::filesystem::create_directories(data);

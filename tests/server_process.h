@@ -15,6 +15,7 @@ using files::MakeTempDir;
 using files::RemoveTree;
 using process::DefaultServerBinary;
 using process::FreePort;
+using process::FreePorts;
 using process::NatsClusterOptions;
 using process::NatsServerOptions;
 using process::ParseListeningPort;

@@ -100,25 +100,36 @@ ServerOptions NatsServerOptions(const std::string& store_dir,
   return options;
 }
 
-int FreePort() {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  address.sin_port = 0;
-  socklen_t size = sizeof(address);
-  int port = 0;
-  if (bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
-      getsockname(fd, reinterpret_cast<sockaddr*>(&address), &size) == 0) {
-    port = ntohs(address.sin_port);
+std::vector<int> FreePorts(size_t n) {
+  // Every socket stays bound until all are chosen: the kernel hands out
+  // one port twice when a socket is closed before the next is bound (a
+  // NATS route port given to two servers of one cluster did that).
+  std::vector<int> fds;
+  std::vector<int> ports;
+  for (size_t i = 0; i < n; ++i) {
+    const int fd = socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
+    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    address.sin_port = 0;
+    socklen_t size = sizeof(address);
+    int port = 0;
+    if (fd >= 0 &&
+        bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
+        getsockname(fd, reinterpret_cast<sockaddr*>(&address), &size) == 0) {
+      port = ntohs(address.sin_port);
+    }
+    if (fd >= 0) fds.push_back(fd);
+    ports.push_back(port);
   }
-  close(fd);
-  return port;
+  for (int fd : fds) close(fd);
+  return ports;
 }
 
+int FreePort() { return FreePorts(1)[0]; }
+
 std::vector<ServerOptions> NatsClusterOptions(const std::string& dir, int n) {
-  std::vector<int> routes;
-  for (int i = 0; i < n; ++i) routes.push_back(FreePort());
+  const std::vector<int> routes = FreePorts(n);
   std::string all_routes;
   for (int port : routes) {
     absl::StrAppend(&all_routes, all_routes.empty() ? "" : ",",

@@ -71,6 +71,8 @@ ServerOptions NatsServerOptions(const std::string& store_dir,
 // A loopback port that was free a moment ago (for servers that need a
 // fixed port: replicas, whose addresses are their ids, and NATS routes).
 int FreePort();
+// `n` such ports, all different.
+std::vector<int> FreePorts(size_t n);
 
 // `n` nats-servers routed into one JetStream cluster ("fleetmem"), server i
 // storing under `dir`/jetstream-i and logging to `dir`/nats-i.log. Start

@@ -6,8 +6,8 @@
 // fleet. Restarted on the same --data-dir it resumes where it stopped: no
 // observation is made twice or skipped, no seq is reused.
 //
-//   fleetmem-robot --server 127.0.0.1:50051 --fleet nordland \
-//       --robot-id robot-1 --source nordland:../shared/data/nordland/summer \
+//   fleetmem-robot --server 127.0.0.1:50051 --fleet nordland
+//       --robot-id robot-1 --source nordland:../shared/data/nordland/summer
 //       --data-dir /var/lib/fleetmem-robot --first 0 --last 300
 //
 // With --slam (a laser source) it maps: keyframes by travel, loop closure
