@@ -16,17 +16,14 @@ log::Level ServerLevel(rocksdb::InfoLogLevel level) {
     case rocksdb::InfoLogLevel::ERROR_LEVEL:
     case rocksdb::InfoLogLevel::FATAL_LEVEL:
       return log::Level::kError;
-    default:  // DEBUG, INFO, HEADER
+    default:  // DEBUG, INFO, HEADER: below the logger's level, not written
       return log::Level::kDebug;
   }
 }
 
 class ServerLogger : public rocksdb::Logger {
  public:
-  ServerLogger()
-      : rocksdb::Logger(log::GetLevel() == log::Level::kDebug
-                            ? rocksdb::InfoLogLevel::DEBUG_LEVEL
-                            : rocksdb::InfoLogLevel::WARN_LEVEL) {}
+  ServerLogger() : rocksdb::Logger(rocksdb::InfoLogLevel::WARN_LEVEL) {}
 
   void Logv(const char* format, va_list ap) override {
     Write(rocksdb::InfoLogLevel::INFO_LEVEL, format, ap);

@@ -11,9 +11,10 @@
 // the server's own are, on stderr.
 //
 // RocksDB's warnings and errors are logged at the server's warning and
-// error levels; its info, header (the options dump at open) and debug
-// lines at the server's debug level, and only formatted when the server
-// logs at debug (`--log-level debug`) when the store opens.
+// error levels; its info, header and debug lines are not kept (never
+// formatted): they are RocksDB's own diagnostics — the options dump alone is
+// about 1,250 lines at each open — and at the server's debug level they
+// buried what a failing test or an operator looks for.
 #ifndef FLEETMEM_SERVICES_STORAGE_ROCKSDB_INFO_LOG_H_
 #define FLEETMEM_SERVICES_STORAGE_ROCKSDB_INFO_LOG_H_
 
