@@ -7,44 +7,24 @@
 
 #include "gtest/gtest.h"
 #include "services/engine/memory_engine.h"
-#include "services/engine/testing/forwarding_store.h"
-#include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
+#include "services/testing/memory_engine_test_util.h"
 
 namespace fleetmem::engine {
 namespace {
 
+// The robot's traces `first_seq`.. (codes of `dimension`), seeded by
+// `first_seq`.
 std::vector<core::MemoryTrace> Traces(const std::string& robot_id,
                                       uint64_t first_seq, size_t count,
-                                      size_t dimension = 4) {
+                                      size_t dimension = kDimension) {
   std::mt19937_64 rng(first_seq);
-  std::normal_distribution<float> normal;
   std::vector<core::MemoryTrace> traces;
   for (size_t i = 0; i < count; ++i) {
-    core::MemoryTrace trace;
-    trace.robot_id = robot_id;
-    trace.seq = first_seq + i;
-    trace.code.resize(dimension);
-    for (float& value : trace.code) value = normal(rng);
-    trace.place = core::Place{static_cast<double>(trace.seq), 0, 0, 0};
-    trace.reward = 1.0f;
-    trace.encoder_version = "v1";
-    traces.push_back(std::move(trace));
+    traces.push_back(MakeTrace(robot_id, first_seq + i, rng, 1.0f, dimension));
   }
   return traces;
 }
-
-// A store whose applies fail with `failure` while it is not OK.
-class FailingStore : public ForwardingStore {
- public:
-  using ForwardingStore::ForwardingStore;
-  absl::Status Apply(std::string_view fleet_id,
-                     const FleetMutation& mutation) override {
-    if (!failure.ok()) return failure;
-    return ForwardingStore::Apply(fleet_id, mutation);
-  }
-  absl::Status failure;
-};
 
 class LogApplyTest : public ::testing::Test {
  protected:
@@ -52,11 +32,7 @@ class LogApplyTest : public ::testing::Test {
     EngineOptions options;
     options.memory.clusters_per_batch = 2;
     options.segment_size = 10;
-    absl::StatusOr<std::unique_ptr<MemoryEngine>> engine = MemoryEngine::Open(
-        options, store,
-        [](size_t dimension) { return index::NewExactIndex(dimension); });
-    EXPECT_TRUE(engine.ok()) << engine.status();
-    return engine.ok() ? *std::move(engine) : nullptr;
+    return OpenOn(options, store);
   }
   uint64_t Held(MemoryEngine& engine) {
     absl::StatusOr<FleetStats> stats = engine.GetStats("f");
@@ -64,7 +40,7 @@ class LogApplyTest : public ::testing::Test {
   }
 
   std::unique_ptr<MemoryStore> inner_ = storage::NewInMemoryStore();
-  FailingStore store_{inner_.get()};
+  FlakyStore store_{inner_.get()};
 };
 
 TEST_F(LogApplyTest, AnUploadIsStoredUnderItsSequenceAndAgainChangesNothing) {
@@ -101,7 +77,8 @@ TEST_F(LogApplyTest, AnEntryTheFleetsStateRefusesIsPassedWithItsRefusal) {
 
   ASSERT_TRUE(
       ApplyLogRecord(*engine, "f", 2, UploadRecord{Traces("r1", 1, 4)}).ok());
-  const std::vector<core::MemoryTrace> wider = Traces("r2", 1, 4, 8);
+  const std::vector<core::MemoryTrace> wider =
+      Traces("r2", 1, 4, 2 * kDimension);
   absl::StatusOr<AppliedRecord> refused =
       ApplyLogRecord(*engine, "f", 3, UploadRecord{wider});
   ASSERT_TRUE(refused.ok()) << refused.status();
@@ -116,11 +93,12 @@ TEST_F(LogApplyTest, TheStoresErrorIsReturnedAndTheEntryAppliesLater) {
   std::unique_ptr<MemoryEngine> engine = OpenEngine(&store_);
   ASSERT_NE(engine, nullptr);
   const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 4);
+  store_.fail_after = store_.applies;
   store_.failure = absl::ResourceExhaustedError("disk nearly full");
   absl::StatusOr<AppliedRecord> failed =
       ApplyLogRecord(*engine, "f", 1, UploadRecord{traces});
   EXPECT_EQ(failed.status().code(), absl::StatusCode::kResourceExhausted);
-  store_.failure = absl::OkStatus();
+  store_.fail_after = -1;
   absl::StatusOr<AppliedRecord> applied =
       ApplyLogRecord(*engine, "f", 1, UploadRecord{traces});
   ASSERT_TRUE(applied.ok()) << applied.status();

@@ -65,6 +65,38 @@ absl::StatusOr<SegmentLearner::Pool> SegmentLearner::BuildPool(
   return pool;
 }
 
+std::vector<size_t> SegmentLearner::DrawAnchors(size_t s, size_t r,
+                                                size_t real_anchors,
+                                                size_t replay_anchors) {
+  std::vector<size_t> anchors;
+  for (size_t i = 0; i < real_anchors; ++i) {
+    anchors.push_back(std::uniform_int_distribution<size_t>(0, s - 1)(rng_));
+  }
+  for (size_t i = 0; i < replay_anchors; ++i) {
+    anchors.push_back(s +
+                      std::uniform_int_distribution<size_t>(0, r - 1)(rng_));
+  }
+  return anchors;
+}
+
+absl::Status SegmentLearner::TrainOn(
+    const std::vector<TripletIndex>& triplets,
+    const std::vector<std::vector<float>>& codes, SegmentLearnStats& stats) {
+  CodeTriplets batch;
+  for (const TripletIndex& t : triplets) {
+    batch.anchors.push_back(codes[t.anchor]);
+    batch.positives.push_back(codes[t.positive]);
+    batch.negatives.push_back(codes[t.negative]);
+  }
+  absl::StatusOr<StepLosses> losses = model_->TrainPlaceHead(batch);
+  if (!losses.ok()) return losses.status();
+  if (stats.steps == 0) stats.first_loss = losses->loc;
+  stats.last_loss = losses->loc;
+  stats.steps += 1;
+  stats.triplets += int(triplets.size());
+  return absl::OkStatus();
+}
+
 absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
     std::span<const LearnSample> segment, std::span<const LearnSample> replayed,
     std::span<const LearnSample> memory) {
@@ -110,29 +142,14 @@ absl::StatusOr<SegmentLearnStats> SegmentLearner::Learn(
         // there is nothing to go back to.)
       }
     }
-    std::vector<size_t> anchors;
-    for (size_t i = 0; i < real_anchors; ++i) {
-      anchors.push_back(std::uniform_int_distribution<size_t>(0, s - 1)(rng_));
-    }
-    for (size_t i = 0; i < replay_anchors; ++i) {
-      anchors.push_back(s +
-                        std::uniform_int_distribution<size_t>(0, r - 1)(rng_));
-    }
+    const std::vector<size_t> anchors =
+        DrawAnchors(s, r, real_anchors, replay_anchors);
     const std::vector<TripletIndex> triplets =
         MineTriplets(pool, anchors, descriptors, options_.mining, rng_);
     if (triplets.empty()) continue;
-    CodeTriplets batch;
-    for (const TripletIndex& t : triplets) {
-      batch.anchors.push_back(codes[t.anchor]);
-      batch.positives.push_back(codes[t.positive]);
-      batch.negatives.push_back(codes[t.negative]);
+    if (absl::Status trained = TrainOn(triplets, codes, stats); !trained.ok()) {
+      return trained;
     }
-    absl::StatusOr<StepLosses> losses = model_->TrainPlaceHead(batch);
-    if (!losses.ok()) return losses.status();
-    if (stats.steps == 0) stats.first_loss = losses->loc;
-    stats.last_loss = losses->loc;
-    stats.steps += 1;
-    stats.triplets += int(triplets.size());
   }
   // After the segment: how far the pool's descriptors are from being one.
   absl::StatusOr<std::vector<std::vector<float>>> after =

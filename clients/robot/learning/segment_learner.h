@@ -143,6 +143,15 @@ class SegmentLearner {
   absl::StatusOr<Pool> BuildPool(
       std::span<const LearnSample> segment,
       std::initializer_list<std::span<const LearnSample>> remembered);
+  // A step's anchors: `real_anchors` of the segment's `s` samples, then
+  // `replay_anchors` of the `r` replayed ones after them.
+  std::vector<size_t> DrawAnchors(size_t s, size_t r, size_t real_anchors,
+                                  size_t replay_anchors);
+  // One training step of the place head on the mined `triplets` of
+  // `codes`, counted in `stats`.
+  absl::Status TrainOn(const std::vector<TripletIndex>& triplets,
+                       const std::vector<std::vector<float>>& codes,
+                       SegmentLearnStats& stats);
 
   GplModel* model_;
   SegmentLearnerOptions options_;

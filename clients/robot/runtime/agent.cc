@@ -100,19 +100,9 @@ AgentSummary Agent::summary() const {
   return summary;
 }
 
-absl::Status Agent::Run(const std::atomic<bool>& stop) {
-  std::thread uploader;
-  std::thread watcher;
-  if (options_.upload) uploader = std::thread([this] { UploadLoop(); });
-  watcher = std::thread([this] { WatchLoop(); });
-  auto join = [&] {
-    stop_threads_ = true;
-    if (uploader.joinable()) uploader.join();
-    watcher.join();
-  };
-
+absl::StatusOr<size_t> Agent::StartPosition() {
   const RobotState start = store_->state();
-  size_t index = std::max<size_t>(start.next_index(), options_.first);
+  const size_t index = std::max<size_t>(start.next_index(), options_.first);
   if (start.next_index() > options_.first && start.observations() > 0) {
     Log(absl::StrFormat(
         "resuming at observation %d of %s (%d observed before, %d open, "
@@ -124,29 +114,71 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
     // First run with --first beyond 0: the position starts there.
     absl::Status moved = store_->Update(
         [index](RobotState& state) { state.set_next_index(index); });
-    if (!moved.ok()) {
-      join();
-      return moved;
-    }
+    if (!moved.ok()) return moved;
   }
+  return index;
+}
+
+void Agent::Pace(Clock::time_point run_start, const std::atomic<bool>& stop) {
+  if (options_.rate_hz <= 0.0) return;
+  const auto due =
+      run_start +
+      std::chrono::duration_cast<Clock::duration>(
+          std::chrono::duration<double>(observed_this_run_ / options_.rate_hz));
+  if (due > Clock::now()) {
+    SleepUnless(std::chrono::duration_cast<std::chrono::milliseconds>(
+                    due - Clock::now()),
+                stop);
+  }
+}
+
+void Agent::Drain(const std::atomic<bool>& stop) {
+  phase_ = "draining";
+  const auto deadline = Clock::now() + options_.drain_timeout;
+  while (store_->queue().depth > 0 && Clock::now() < deadline && !stop.load() &&
+         fatal().ok()) {
+    WriteStatus(phase_, false);
+    Progress(false);
+    SleepUnless(std::chrono::milliseconds(100), stop);
+  }
+  drained_ = store_->queue().depth == 0;
+  if (!drained_) {
+    Log(absl::StrFormat(
+        "the queue still holds %d traces (oldest %.1f s); they stay in the "
+        "data dir and are uploaded at the next start",
+        store_->queue().depth,
+        store_->queue().oldest_stored_unix_ns == 0
+            ? 0.0
+            : (absl::ToUnixNanos(absl::Now()) -
+               store_->queue().oldest_stored_unix_ns) /
+                  1e9));
+  }
+}
+
+absl::Status Agent::Run(const std::atomic<bool>& stop) {
+  std::thread uploader;
+  std::thread watcher;
+  if (options_.upload) uploader = std::thread([this] { UploadLoop(); });
+  watcher = std::thread([this] { WatchLoop(); });
+  auto join = [&] {
+    stop_threads_ = true;
+    if (uploader.joinable()) uploader.join();
+    watcher.join();
+  };
+  absl::StatusOr<size_t> start = StartPosition();
+  if (!start.ok()) {
+    join();
+    return start.status();
+  }
+  size_t index = *start;
   // Start with the fleet's memory: a restarted robot's M_D is empty.
   Refresh();
   phase_ = "observing";
   const auto run_start = Clock::now();
   absl::Status status;
   for (; index < end_ && !stop.load(); ++index) {
-    if (options_.rate_hz > 0.0) {
-      const auto due =
-          run_start + std::chrono::duration_cast<Clock::duration>(
-                          std::chrono::duration<double>(observed_this_run_ /
-                                                        options_.rate_hz));
-      if (due > Clock::now()) {
-        SleepUnless(std::chrono::duration_cast<std::chrono::milliseconds>(
-                        due - Clock::now()),
-                    stop);
-        if (stop.load()) break;
-      }
-    }
+    Pace(run_start, stop);
+    if (stop.load()) break;
     // A refused upload or a failing disk stops the robot at once.
     status = fatal();
     if (!status.ok()) break;
@@ -170,28 +202,7 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
     phase_ = "stopped";
     Log("stopping: every observation so far is uploaded or durable here");
   }
-  if (status.ok() && source_finished_ && options_.upload) {
-    phase_ = "draining";
-    const auto deadline = Clock::now() + options_.drain_timeout;
-    while (store_->queue().depth > 0 && Clock::now() < deadline &&
-           !stop.load() && fatal().ok()) {
-      WriteStatus(phase_, false);
-      Progress(false);
-      SleepUnless(std::chrono::milliseconds(100), stop);
-    }
-    drained_ = store_->queue().depth == 0;
-    if (!drained_) {
-      Log(absl::StrFormat(
-          "the queue still holds %d traces (oldest %.1f s); they stay in the "
-          "data dir and are uploaded at the next start",
-          store_->queue().depth,
-          store_->queue().oldest_stored_unix_ns == 0
-              ? 0.0
-              : (absl::ToUnixNanos(absl::Now()) -
-                 store_->queue().oldest_stored_unix_ns) /
-                    1e9));
-    }
-  }
+  if (status.ok() && source_finished_ && options_.upload) Drain(stop);
   if (status.ok()) status = fatal();
   join();
   if (status.ok() && source_finished_) {
@@ -206,60 +217,33 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
   return status;
 }
 
-absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
-  absl::StatusOr<Observation> observation = source_->Read(index);
-  if (!observation.ok()) return observation.status();
-  absl::StatusOr<std::vector<float>> code = encoder_->Encode(*observation);
-  if (!code.ok()) return code.status();
-  absl::Status valid =
-      core::ValidateCode(absl::StrCat("code of ", observation->name), *code);
-  if (!valid.ok()) return valid;
-  const Relocalisation relocalisation = Relocalise(*code, observation->place);
+absl::Status Agent::RecordQuery(size_t index, const Observation& observation,
+                                std::vector<float> code,
+                                const Relocalisation& relocalisation) {
+  // A query-only robot records only its position and its scores.
+  absl::Status moved_on = store_->Update([&](RobotState& state) {
+    state.set_next_index(index + 1);
+    state.set_observations(state.observations() + 1);
+    relocalisation.CountIn(state);
+  });
+  if (!moved_on.ok()) return moved_on;
+  ++observed_this_run_;
+  core::MemoryTrace& trace = query_segment_.emplace_back();
+  trace.robot_id = options_.robot_id;
+  trace.domain = options_.domain;
+  trace.code = std::move(code);
+  trace.place = observation.place;
+  trace.encoder_version = encoder_->version();
+  query_indices_.push_back(index);
+  return absl::OkStatus();
+}
+
+absl::Status Agent::Record(size_t index, const v1::MemoryTrace& trace,
+                           const Relocalisation& relocalisation,
+                           const std::atomic<bool>& stop) {
   auto update = [&relocalisation](RobotState& state) {
     relocalisation.CountIn(state);
   };
-  if (!options_.upload) {
-    // A query-only robot records only its position and its scores.
-    absl::Status moved_on = store_->Update([&](RobotState& state) {
-      state.set_next_index(index + 1);
-      state.set_observations(state.observations() + 1);
-      update(state);
-    });
-    if (!moved_on.ok()) return moved_on;
-    ++observed_this_run_;
-    core::MemoryTrace& trace = query_segment_.emplace_back();
-    trace.robot_id = options_.robot_id;
-    trace.domain = options_.domain;
-    trace.code = *std::move(code);
-    trace.place = observation->place;
-    trace.encoder_version = encoder_->version();
-    query_indices_.push_back(index);
-    return absl::OkStatus();
-  }
-  // R_in (Eq. 12); the generator is seeded per observation so that a
-  // repeated observation after a crash gets the same reward.
-  std::mt19937_64 perturb_rng(options_.seed * 1000003u + index);
-  absl::StatusOr<Observation> moved =
-      encoder_->Perturb(*observation, perturb_rng);
-  if (!moved.ok()) return moved.status();
-  absl::StatusOr<std::vector<float>> moved_code = encoder_->Encode(*moved);
-  if (!moved_code.ok()) return moved_code.status();
-  const float internal = InternalReward(*code, *moved_code);
-  v1::MemoryTrace trace;
-  trace.set_robot_id(options_.robot_id);
-  trace.set_domain(options_.domain);
-  trace.mutable_code()->Assign(code->begin(), code->end());
-  api::PlaceToProto(observation->place, trace.mutable_pose());
-  trace.set_reward_internal(internal);
-  trace.set_timestamp_ns(observation->timestamp_ns != 0
-                             ? observation->timestamp_ns
-                             : absl::ToUnixNanos(absl::Now()));
-  trace.set_encoder_version(encoder_->version());
-  if (hook_ != nullptr) {
-    absl::Status hooked =
-        hook_->BeforeRecord(index, *observation, *code, trace);
-    if (!hooked.ok()) return hooked;
-  }
   bool told = false;
   while (true) {
     absl::Status recorded = store_->RecordObservation(index, trace, update);
@@ -289,6 +273,45 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
   phase_ = "observing";
   ++observed_this_run_;
   return absl::OkStatus();
+}
+
+absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
+  absl::StatusOr<Observation> observation = source_->Read(index);
+  if (!observation.ok()) return observation.status();
+  absl::StatusOr<std::vector<float>> code = encoder_->Encode(*observation);
+  if (!code.ok()) return code.status();
+  absl::Status valid =
+      core::ValidateCode(absl::StrCat("code of ", observation->name), *code);
+  if (!valid.ok()) return valid;
+  const Relocalisation relocalisation = Relocalise(*code, observation->place);
+  if (!options_.upload) {
+    return RecordQuery(index, *observation, *std::move(code), relocalisation);
+  }
+  // R_in (Eq. 12); the generator is seeded per observation so that a
+  // repeated observation after a crash gets the same reward.
+  std::mt19937_64 perturb_rng(options_.seed * 1000003u + index);
+  absl::StatusOr<Observation> moved =
+      encoder_->Perturb(*observation, perturb_rng);
+  if (!moved.ok()) return moved.status();
+  absl::StatusOr<std::vector<float>> moved_code = encoder_->Encode(*moved);
+  if (!moved_code.ok()) return moved_code.status();
+  const float internal = InternalReward(*code, *moved_code);
+  v1::MemoryTrace trace;
+  trace.set_robot_id(options_.robot_id);
+  trace.set_domain(options_.domain);
+  trace.mutable_code()->Assign(code->begin(), code->end());
+  api::PlaceToProto(observation->place, trace.mutable_pose());
+  trace.set_reward_internal(internal);
+  trace.set_timestamp_ns(observation->timestamp_ns != 0
+                             ? observation->timestamp_ns
+                             : absl::ToUnixNanos(absl::Now()));
+  trace.set_encoder_version(encoder_->version());
+  if (hook_ != nullptr) {
+    absl::Status hooked =
+        hook_->BeforeRecord(index, *observation, *code, trace);
+    if (!hooked.ok()) return hooked;
+  }
+  return Record(index, trace, relocalisation, stop);
 }
 
 Agent::Relocalisation Agent::Relocalise(const std::vector<float>& code,

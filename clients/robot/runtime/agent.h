@@ -157,6 +157,13 @@ class Agent {
   AgentSummary summary() const;
 
  private:
+  // Run's steps: the source position to start at (where the last run
+  // stopped, or options.first), written to the store; a sleep that keeps
+  // rate_hz; the queue's drain once the source is done (drain_timeout).
+  absl::StatusOr<size_t> StartPosition();
+  void Pace(std::chrono::steady_clock::time_point run_start,
+            const std::atomic<bool>& stop);
+  void Drain(const std::atomic<bool>& stop);
   absl::Status ObserveOne(size_t index, const std::atomic<bool>& stop);
   // One QueryPlace for an observation and how it scored.
   struct Relocalisation {
@@ -170,6 +177,16 @@ class Agent {
   };
   Relocalisation Relocalise(const std::vector<float>& code,
                             const core::Place& place) const;
+  // ObserveOne's ends: a query-only robot's observation (its position and
+  // scores, and its code for the segment's recall); an uploading robot's
+  // trace recorded in its queue, waiting while the queue is full (policy
+  // refuse) until it has room or `stop`.
+  absl::Status RecordQuery(size_t index, const Observation& observation,
+                           std::vector<float> code,
+                           const Relocalisation& relocalisation);
+  absl::Status Record(size_t index, const v1::MemoryTrace& trace,
+                      const Relocalisation& relocalisation,
+                      const std::atomic<bool>& stop);
   // Ends a segment: replay, learner, rewards, seal (uploading robot), then
   // refresh.
   absl::Status SealSegment();

@@ -129,88 +129,100 @@ absl::Status LaserSlam::Optimize() {
   return absl::OkStatus();
 }
 
+bool LaserSlam::CloseOwnLoop(size_t keyframe, const LoopCandidate& c,
+                             const Eigen::Matrix3d& loop_info) {
+  const Keyframe& kf = keyframes_[keyframe];
+  auto it = keyframe_by_time_.find(c.timestamp_ns);
+  if (it == keyframe_by_time_.end()) return false;
+  const size_t other = it->second;
+  if (other >= keyframe ||
+      kf.path_m - keyframes_[other].path_m < options_.min_loop_path_m) {
+    return false;
+  }
+  ++counters_.loops_proposed;
+  const ScanMatcher matcher(LocalMap(other, 2, 2), options_.loop_match);
+  const Pose2 guess =
+      Between(graph_.pose(keyframes_[other].node), graph_.pose(kf.node));
+  const ScanMatch m = matcher.MatchBest(
+      kf.points,
+      InitialGuesses(guess, options_.own_yaw_span_rad, 0.25,
+                     options_.own_xy_span_m, options_.own_xy_span_m));
+  if (!m.accepted) {
+    ++counters_.loops_rejected_geometry;
+    return false;
+  }
+  if (!graph_
+           .AddEdge(keyframes_[other].node, kf.node, m.pose, loop_info,
+                    EdgeKind::kLoop)
+           .ok()) {
+    return false;
+  }
+  return true;
+}
+
+bool LaserSlam::ClosePeerLoop(size_t keyframe, const LoopCandidate& c,
+                              const Eigen::Matrix3d& loop_info) {
+  const Keyframe& kf = keyframes_[keyframe];
+  auto anchor = anchors_.find(c.robot_id);
+  std::vector<Pose2> guesses;
+  if (anchor != anchors_.end() &&
+      anchor_loops_[c.robot_id] >= options_.anchor_loops_for_prior) {
+    // The maps are joined: the anchor predicts where this keyframe is
+    // in the peer's frame. A candidate far from that is another place
+    // that looks alike; a near one is verified around the prediction.
+    const Pose2 predicted =
+        Compose(Inverse(graph_.pose(anchor->second)), graph_.pose(kf.node));
+    if (std::hypot(predicted.x - c.pose.x, predicted.y - c.pose.y) >
+        options_.anchored_peer_radius_m) {
+      return false;
+    }
+    guesses =
+        InitialGuesses(Between(c.pose, predicted), options_.own_yaw_span_rad,
+                       0.25, options_.own_xy_span_m, options_.own_xy_span_m);
+  } else {
+    // Codes are rotation invariant: search every heading near the
+    // peer's keyframe.
+    guesses = InitialGuesses(Pose2{}, M_PI, M_PI / 8, 0.5, 0.5);
+  }
+  ++counters_.loops_proposed;
+  const ScanMatcher matcher(ScanPoints(c.scan, options_.max_range_m),
+                            options_.loop_match);
+  const ScanMatch m = matcher.MatchBest(kf.points, guesses);
+  if (!m.accepted) {
+    ++counters_.loops_rejected_geometry;
+    return false;
+  }
+  const Pose2 in_peer = Compose(c.pose, m.pose);
+  if (anchor == anchors_.end()) {
+    const size_t node =
+        graph_.AddNode(Compose(graph_.pose(kf.node), Inverse(in_peer)));
+    anchor = anchors_.emplace(c.robot_id, node).first;
+  }
+  if (!graph_
+           .AddEdge(anchor->second, kf.node, in_peer, loop_info,
+                    EdgeKind::kLoop)
+           .ok()) {
+    return false;
+  }
+  ++counters_.inter_robot_loops;
+  ++anchor_loops_[c.robot_id];
+  return true;
+}
+
 absl::StatusOr<int> LaserSlam::CloseLoops(
     size_t keyframe, const std::vector<LoopCandidate>& candidates) {
   if (keyframe >= keyframes_.size()) {
     return absl::InvalidArgumentError(
         absl::StrCat("no keyframe ", keyframe, " (", keyframes_.size(), ")"));
   }
-  const Keyframe& kf = keyframes_[keyframe];
   const Eigen::Matrix3d loop_info =
       Information(options_.loop_sigma_m, options_.loop_sigma_rad);
   int accepted = 0;
   for (const LoopCandidate& c : candidates) {
-    if (c.robot_id == robot_id_) {
-      auto it = keyframe_by_time_.find(c.timestamp_ns);
-      if (it == keyframe_by_time_.end()) continue;
-      const size_t other = it->second;
-      if (other >= keyframe ||
-          kf.path_m - keyframes_[other].path_m < options_.min_loop_path_m) {
-        continue;
-      }
-      ++counters_.loops_proposed;
-      const ScanMatcher matcher(LocalMap(other, 2, 2), options_.loop_match);
-      const Pose2 guess =
-          Between(graph_.pose(keyframes_[other].node), graph_.pose(kf.node));
-      const ScanMatch m = matcher.MatchBest(
-          kf.points,
-          InitialGuesses(guess, options_.own_yaw_span_rad, 0.25,
-                         options_.own_xy_span_m, options_.own_xy_span_m));
-      if (!m.accepted) {
-        ++counters_.loops_rejected_geometry;
-        continue;
-      }
-      if (!graph_
-               .AddEdge(keyframes_[other].node, kf.node, m.pose, loop_info,
-                        EdgeKind::kLoop)
-               .ok()) {
-        continue;
-      }
-    } else {
-      auto anchor = anchors_.find(c.robot_id);
-      std::vector<Pose2> guesses;
-      if (anchor != anchors_.end() &&
-          anchor_loops_[c.robot_id] >= options_.anchor_loops_for_prior) {
-        // The maps are joined: the anchor predicts where this keyframe is
-        // in the peer's frame. A candidate far from that is another place
-        // that looks alike; a near one is verified around the prediction.
-        const Pose2 predicted =
-            Compose(Inverse(graph_.pose(anchor->second)), graph_.pose(kf.node));
-        if (std::hypot(predicted.x - c.pose.x, predicted.y - c.pose.y) >
-            options_.anchored_peer_radius_m) {
-          continue;
-        }
-        guesses = InitialGuesses(
-            Between(c.pose, predicted), options_.own_yaw_span_rad, 0.25,
-            options_.own_xy_span_m, options_.own_xy_span_m);
-      } else {
-        // Codes are rotation invariant: search every heading near the
-        // peer's keyframe.
-        guesses = InitialGuesses(Pose2{}, M_PI, M_PI / 8, 0.5, 0.5);
-      }
-      ++counters_.loops_proposed;
-      const ScanMatcher matcher(ScanPoints(c.scan, options_.max_range_m),
-                                options_.loop_match);
-      const ScanMatch m = matcher.MatchBest(kf.points, guesses);
-      if (!m.accepted) {
-        ++counters_.loops_rejected_geometry;
-        continue;
-      }
-      const Pose2 in_peer = Compose(c.pose, m.pose);
-      if (anchor == anchors_.end()) {
-        const size_t node =
-            graph_.AddNode(Compose(graph_.pose(kf.node), Inverse(in_peer)));
-        anchor = anchors_.emplace(c.robot_id, node).first;
-      }
-      if (!graph_
-               .AddEdge(anchor->second, kf.node, in_peer, loop_info,
-                        EdgeKind::kLoop)
-               .ok()) {
-        continue;
-      }
-      ++counters_.inter_robot_loops;
-      ++anchor_loops_[c.robot_id];
-    }
+    const bool closed = c.robot_id == robot_id_
+                            ? CloseOwnLoop(keyframe, c, loop_info)
+                            : ClosePeerLoop(keyframe, c, loop_info);
+    if (!closed) continue;
     ++counters_.loops_accepted;
     ++accepted;
   }

@@ -148,6 +148,14 @@ class LaserSlam {
     size_t keyframe = 0;
     Pose2 odometry;
   };
+  // CloseLoops' two kinds of candidate: one of this robot's keyframes (far
+  // enough back along the path, matched in the local map around it), or a
+  // peer's (matched against its scan, the first accepted one anchoring the
+  // peer's map in this graph). True if the loop's edge was added.
+  bool CloseOwnLoop(size_t keyframe, const LoopCandidate& c,
+                    const Eigen::Matrix3d& loop_info);
+  bool ClosePeerLoop(size_t keyframe, const LoopCandidate& c,
+                     const Eigen::Matrix3d& loop_info);
   Eigen::Matrix3d Information(double sigma_m, double sigma_rad) const;
   // The last keyframes' points in keyframe `k`'s frame.
   Points2 LocalMap(size_t k, int count_before, int count_after) const;

@@ -143,6 +143,52 @@ absl::Status ContinualVo::Remember(const std::string& environment,
   return absl::OkStatus();
 }
 
+absl::Status ContinualVo::Adapt(const std::string& environment,
+                                const Triplet& online, DepthPoseModel* expert,
+                                DepthPoseModel* generalizer,
+                                DeploymentResult& result) {
+  for (int step = 0; step < options_.update_steps; ++step) {
+    if (expert != nullptr) {
+      absl::StatusOr<VoLosses> l = expert->TrainStep({&online, 1});
+      if (!l.ok()) return l.status();
+      result.last_losses = *l;
+    }
+    if (generalizer != nullptr) {
+      std::vector<Triplet> batch = {online};
+      for (Triplet& t : replay_.DrawOthers(environment, rng_)) {
+        batch.push_back(std::move(t));
+      }
+      absl::StatusOr<VoLosses> l = generalizer->TrainStep(batch);
+      if (!l.ok()) return l.status();
+      if (expert == nullptr) result.last_losses = *l;
+    }
+    ++result.update_steps;
+  }
+  ++result.adapted_frames;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<size_t> ContinualVo::AddLoops(
+    const KittiClip& clip, const std::vector<std::vector<float>>& features,
+    size_t i, DepthPoseModel& odometer, slam::PoseGraph3d& graph) const {
+  size_t loops = 0;
+  for (size_t j = 0; j + options_.loop_min_gap_frames <= i; ++j) {
+    double dot = 0.0;
+    for (size_t d = 0; d < features[i].size(); ++d) {
+      dot += double(features[i][d]) * features[j][d];
+    }
+    if (dot < options_.loop_similarity) continue;
+    absl::StatusOr<Eigen::Isometry3d> relative =
+        odometer.PredictMotion(clip.left[j], clip.left[i]);
+    if (!relative.ok()) return relative.status();
+    if (graph.AddEdge(j, i, *relative, EdgeInformation(), slam::EdgeKind::kLoop)
+            .ok()) {
+      ++loops;
+    }
+  }
+  return loops;
+}
+
 absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
     const std::string& environment, const KittiClip& clip,
     const std::function<void(size_t, size_t)>& progress) {
@@ -193,24 +239,11 @@ absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
       const size_t k = accepted.size();
       const Triplet online =
           ClipTriplet(clip, accepted[k - 3], accepted[k - 2], accepted[k - 1]);
-      for (int step = 0; step < options_.update_steps; ++step) {
-        if (expert) {
-          absl::StatusOr<VoLosses> l = expert->TrainStep({&online, 1});
-          if (!l.ok()) return l.status();
-          result.last_losses = *l;
-        }
-        if (generalizer) {
-          std::vector<Triplet> batch = {online};
-          for (Triplet& t : replay_.DrawOthers(environment, rng_)) {
-            batch.push_back(std::move(t));
-          }
-          absl::StatusOr<VoLosses> l = generalizer->TrainStep(batch);
-          if (!l.ok()) return l.status();
-          if (!expert) result.last_losses = *l;
-        }
-        ++result.update_steps;
+      if (absl::Status adapted = Adapt(environment, online, expert.get(),
+                                       generalizer.get(), result);
+          !adapted.ok()) {
+        return adapted;
       }
-      ++result.adapted_frames;
       if (generalizer) {
         replay_.Offer(environment, features[accepted[k - 2]], online);
       }
@@ -233,26 +266,10 @@ absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
         !s.ok()) {
       return s;
     }
-    // Loop candidates among frames far enough back.
-    bool loop = false;
-    for (size_t j = 0; j + options_.loop_min_gap_frames <= i; ++j) {
-      double dot = 0.0;
-      for (size_t d = 0; d < features[i].size(); ++d) {
-        dot += double(features[i][d]) * features[j][d];
-      }
-      if (dot < options_.loop_similarity) continue;
-      absl::StatusOr<Eigen::Isometry3d> relative =
-          odometer.PredictMotion(clip.left[j], clip.left[i]);
-      if (!relative.ok()) return relative.status();
-      if (graph
-              .AddEdge(j, i, *relative, EdgeInformation(),
-                       slam::EdgeKind::kLoop)
-              .ok()) {
-        ++result.loops;
-        loop = true;
-      }
-    }
-    if (loop) {
+    absl::StatusOr<size_t> loops = AddLoops(clip, features, i, odometer, graph);
+    if (!loops.ok()) return loops.status();
+    result.loops += *loops;
+    if (*loops > 0) {
       absl::StatusOr<slam::SolveReport> solved = graph.Optimize();
       if (!solved.ok()) return solved.status();
     }

@@ -43,6 +43,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "clients/robot/learning/depth_pose_model.h"
+#include "clients/robot/slam/pose_graph.h"
 #include "clients/robot/slam/trajectory.h"
 #include "clients/robot/vo/kitti_clip.h"
 #include "clients/robot/vo/replay_buffer.h"
@@ -129,6 +130,17 @@ class ContinualVo {
  private:
   ContinualVo(std::unique_ptr<DepthPoseModel> weights, VoMethod method,
               const ContinualVoOptions& options);
+  // Deploy's steps: update_steps training steps on the `online` triplet
+  // (the expert on it alone, the generalizer with replayed triplets of
+  // other environments; either may be null), counted in `result`; the loop
+  // edges from frame i to frames at least loop_min_gap_frames back whose
+  // features are alike (how many the graph took).
+  absl::Status Adapt(const std::string& environment, const Triplet& online,
+                     DepthPoseModel* expert, DepthPoseModel* generalizer,
+                     DeploymentResult& result);
+  absl::StatusOr<size_t> AddLoops(
+      const KittiClip& clip, const std::vector<std::vector<float>>& features,
+      size_t i, DepthPoseModel& odometer, slam::PoseGraph3d& graph) const;
 
   std::unique_ptr<DepthPoseModel> weights_;
   VoMethod method_;
