@@ -103,6 +103,8 @@ class PoseGraph {
 
   size_t num_nodes() const { return poses_.size(); }
   const PoseT& pose(size_t id) const { return poses_[id]; }
+  // Every node's pose, by id.
+  const std::vector<PoseT>& poses() const { return poses_; }
   const std::vector<Edge>& edges() const { return edges_; }
   // Whitened residual norm of an edge at the current estimate.
   double WhitenedResidual(size_t edge) const;

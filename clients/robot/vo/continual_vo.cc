@@ -189,26 +189,36 @@ absl::StatusOr<size_t> ContinualVo::AddLoops(
   return loops;
 }
 
-absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
-    const std::string& environment, const KittiClip& clip,
-    const std::function<void(size_t, size_t)>& progress) {
-  const auto start = std::chrono::steady_clock::now();
-  const bool has_expert = method_ != VoMethod::kGeneralizerOnly;
-  const bool has_generalizer =
-      method_ == VoMethod::kGeneralizerOnly || method_ == VoMethod::kClSlam;
-  const bool adapts = method_ != VoMethod::kFixed;
-  std::unique_ptr<DepthPoseModel> expert, generalizer;
-  if (has_expert) {
+absl::Status ContinualVo::CloneModels(
+    std::unique_ptr<DepthPoseModel>& expert,
+    std::unique_ptr<DepthPoseModel>& generalizer) const {
+  if (method_ != VoMethod::kGeneralizerOnly) {
     absl::StatusOr<std::unique_ptr<DepthPoseModel>> m = weights_->Clone();
     if (!m.ok()) return m.status();
     expert = std::move(*m);
   }
-  if (has_generalizer) {
+  if (method_ == VoMethod::kGeneralizerOnly || method_ == VoMethod::kClSlam) {
     absl::StatusOr<std::unique_ptr<DepthPoseModel>> m = weights_->Clone();
     if (!m.ok()) return m.status();
     generalizer = std::move(*m);
   }
-  DepthPoseModel& odometer = has_expert ? *expert : *generalizer;
+  return absl::OkStatus();
+}
+
+// Long (90 lines): one frame loop in CL-SLAM's order — adapt on the newest
+// triplet, odometry from the last accepted frame, loop edges — whose state
+// (poses, features, accepted frames, the graph) each step reads; its
+// steps with a state of their own are Adapt and AddLoops.
+absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
+    const std::string& environment, const KittiClip& clip,
+    const std::function<void(size_t, size_t)>& progress) {
+  const auto start = std::chrono::steady_clock::now();
+  const bool adapts = method_ != VoMethod::kFixed;
+  std::unique_ptr<DepthPoseModel> expert, generalizer;
+  if (absl::Status cloned = CloneModels(expert, generalizer); !cloned.ok()) {
+    return cloned;
+  }
+  DepthPoseModel& odometer = expert != nullptr ? *expert : *generalizer;
 
   const size_t n = clip.left.size();
   DeploymentResult result;
@@ -275,9 +285,7 @@ absl::StatusOr<DeploymentResult> ContinualVo::Deploy(
     }
   }
   result.odometry = Stamped(clip, poses);
-  std::vector<Eigen::Isometry3d> optimized;
-  for (size_t i = 0; i < n; ++i) optimized.push_back(graph.pose(i));
-  result.optimized = Stamped(clip, optimized);
+  result.optimized = Stamped(clip, graph.poses());
   if (method_ == VoMethod::kClSlam) {
     result.generalizer_odometry = Stamped(clip, generalizer_poses);
   }

@@ -135,6 +135,10 @@ class ContinualVo {
   // other environments; either may be null), counted in `result`; the loop
   // edges from frame i to frames at least loop_min_gap_frames back whose
   // features are alike (how many the graph took).
+  // The deployment's models, copies of weights_: the expert (every method
+  // but generalizer_only) and the generalizer (cl_slam, generalizer_only).
+  absl::Status CloneModels(std::unique_ptr<DepthPoseModel>& expert,
+                           std::unique_ptr<DepthPoseModel>& generalizer) const;
   absl::Status Adapt(const std::string& environment, const Triplet& online,
                      DepthPoseModel* expert, DepthPoseModel* generalizer,
                      DeploymentResult& result);
