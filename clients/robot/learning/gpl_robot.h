@@ -20,8 +20,8 @@
 #include "absl/synchronization/mutex.h"
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/segment_learner.h"
-#include "clients/robot/runtime/segment_step.h"
 #include "clients/robot/sensing/encoder.h"
+#include "clients/robot/sensing/learner.h"
 
 namespace fleetmem::robot::gpl {
 

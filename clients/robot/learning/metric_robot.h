@@ -22,7 +22,7 @@
 #include "absl/synchronization/mutex.h"
 #include "clients/robot/learning/metric_head.h"
 #include "clients/robot/learning/segment_learner.h"
-#include "clients/robot/runtime/segment_step.h"
+#include "clients/robot/sensing/learner.h"
 
 namespace fleetmem::robot::gpl {
 

@@ -47,6 +47,7 @@
 #include "clients/robot/memory/robot_store.h"
 #include "clients/robot/runtime/segment_step.h"
 #include "clients/robot/sensing/encoder.h"
+#include "clients/robot/sensing/observation_hook.h"
 #include "clients/robot/sensing/observation_source.h"
 #include "clients/robot/sensing/rewards.h"
 
@@ -56,21 +57,6 @@ namespace fleetmem::robot {
 // DEADLINE_EXCEEDED, RESOURCE_EXHAUSTED, ABORTED); any other error is an
 // answer.
 bool IsRetryable(absl::StatusCode code);
-
-// Sees every observation of an uploading robot after it is encoded and
-// before its trace is recorded, and may change that trace: the SLAM back end
-// (clients/robot/slam/fleet_slam.h) puts its pose estimate in `trace.pose`
-// and the keyframe's scan in `trace.attachment`. Called from the agent's
-// loop in source order, from the index the robot starts or resumes at. An
-// error stops the robot (nothing of that observation is recorded).
-class ObservationHook {
- public:
-  virtual ~ObservationHook() = default;
-  virtual absl::Status BeforeRecord(size_t index,
-                                    const Observation& observation,
-                                    std::span<const float> code,
-                                    v1::MemoryTrace& trace) = 0;
-};
 
 struct AgentOptions {
   std::string fleet_id;

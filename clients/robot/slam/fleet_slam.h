@@ -24,8 +24,8 @@
 
 #include "absl/status/statusor.h"
 #include "clients/cpp/fleetmem_client.h"
-#include "clients/robot/runtime/agent.h"
 #include "clients/robot/sensing/encoder.h"
+#include "clients/robot/sensing/observation_hook.h"
 #include "clients/robot/sensing/observation_source.h"
 #include "clients/robot/slam/laser_slam.h"
 
