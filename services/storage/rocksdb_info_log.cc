@@ -25,8 +25,9 @@ class ServerLogger : public rocksdb::Logger {
  public:
   ServerLogger() : rocksdb::Logger(rocksdb::InfoLogLevel::WARN_LEVEL) {}
 
+  // RocksDB's unlevelled lines are info lines: filtered as those are.
   void Logv(const char* format, va_list ap) override {
-    Write(rocksdb::InfoLogLevel::INFO_LEVEL, format, ap);
+    Logv(rocksdb::InfoLogLevel::INFO_LEVEL, format, ap);
   }
   void Logv(const rocksdb::InfoLogLevel level, const char* format,
             va_list ap) override {

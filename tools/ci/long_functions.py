@@ -64,6 +64,15 @@ def main():
                 found.append((length, f"{name}:{line}", function, reason))
     for length, where, function, reason in sorted(found, reverse=True):
         print(length, where, function, "(reason given)" if reason else "")
+    sizes = sorted(
+        len((root / name).read_text(errors="ignore").split("\n")) - 1
+        for name in subprocess.run(
+            ["git", "ls-files", "*.cc", "*.h"], cwd=root, text=True,
+            capture_output=True, check=True).stdout.split()
+        if name.startswith(tuple(d + "/" for d in args.under)))
+    if sizes:
+        print(f"median source file: {sizes[(len(sizes) - 1) // 2]} lines "
+              f"of {len(sizes)} files")
     unexplained = sum(1 for f in found if not f[3])
     print(f"{len(found)} functions over {args.max} lines, "
           f"{unexplained} without a reason")
