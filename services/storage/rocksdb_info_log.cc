@@ -16,7 +16,7 @@ log::Level ServerLevel(rocksdb::InfoLogLevel level) {
     case rocksdb::InfoLogLevel::ERROR_LEVEL:
     case rocksdb::InfoLogLevel::FATAL_LEVEL:
       return log::Level::kError;
-    default:  // DEBUG, INFO, HEADER: below the logger's level, not written
+    default:  // DEBUG, INFO, HEADER: not written (Logv)
       return log::Level::kDebug;
   }
 }
@@ -31,7 +31,12 @@ class ServerLogger : public rocksdb::Logger {
   }
   void Logv(const rocksdb::InfoLogLevel level, const char* format,
             va_list ap) override {
-    if (level < GetInfoLogLevel()) return;
+    // HEADER_LEVEL ranks above FATAL in RocksDB's enum, but its lines are
+    // the options dump at open: kept out like the info lines.
+    if (level < GetInfoLogLevel() ||
+        level == rocksdb::InfoLogLevel::HEADER_LEVEL) {
+      return;
+    }
     Write(level, format, ap);
   }
   void LogHeader(const char* format, va_list ap) override {
