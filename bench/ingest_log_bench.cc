@@ -53,11 +53,12 @@ void BM_SegmentLogAppend(benchmark::State& state) {
     state.SkipWithError(log.status().ToString().c_str());
     return;
   }
-  uint64_t sequence = 0;
   for (auto _ : state) {
-    const engine::LogAppend append{++sequence, traces};
-    if (absl::Status done = (*log)->Append("f", {&append, 1}); !done.ok()) {
-      state.SkipWithError(done.ToString().c_str());
+    const engine::LogAppend append{engine::UploadRecord{traces}};
+    if (absl::StatusOr<std::vector<engine::AppendedEntry>> done =
+            (*log)->Append("f", {&append, 1}, {});
+        !done.ok()) {
+      state.SkipWithError(done.status().ToString().c_str());
       break;
     }
   }
@@ -87,7 +88,7 @@ void BM_RocksDbSyncedAppend(benchmark::State& state) {
     // entry encoded, under a key of its sequence, in one synced batch.
     rocksdb::WriteBatch batch;
     const std::string key = "l/f/" + std::to_string(++sequence);
-    batch.Put(key, EncodeLoggedUpload(traces));
+    batch.Put(key, EncodeLoggedRecord(engine::UploadRecord{traces}));
     if (!db->Write(synced, &batch).ok()) {
       state.SkipWithError("RocksDB write failed");
       break;

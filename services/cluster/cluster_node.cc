@@ -7,7 +7,7 @@
 
 namespace fleetmem::cluster {
 
-ClusterNode::ClusterNode(ClusterNodeOptions options, ReplicatedLog* log,
+ClusterNode::ClusterNode(ClusterNodeOptions options, engine::FleetLog* log,
                          LeaseTable* leases, SnapshotStore* snapshots,
                          engine::MemoryEngine* engine)
     : options_(std::move(options)),

@@ -19,8 +19,8 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/synchronization/notification.h"
 #include "absl/time/time.h"
+#include "services/cluster/cluster_ports.h"
 #include "services/cluster/materialiser.h"
-#include "services/cluster/replicated_log.h"
 #include "services/engine/memory_engine.h"
 
 namespace fleetmem::cluster {
@@ -44,7 +44,7 @@ class ClusterNode {
  public:
   // `log`, `leases`, `snapshots` and `engine` must outlive it; `snapshots`
   // may be null (Materialiser).
-  ClusterNode(ClusterNodeOptions options, ReplicatedLog* log,
+  ClusterNode(ClusterNodeOptions options, engine::FleetLog* log,
               LeaseTable* leases, SnapshotStore* snapshots,
               engine::MemoryEngine* engine);
   // Stops the loop (the leases are kept until they expire).
@@ -87,7 +87,7 @@ class ClusterNode {
   std::optional<uint64_t> LeastLoadedOther(size_t owned);
 
   const ClusterNodeOptions options_;
-  ReplicatedLog* const log_;
+  engine::FleetLog* const log_;
   LeaseTable* const leases_;
   Materialiser materialiser_;
   // Loop thread only: the last announcement, and what LeastLoadedOther

@@ -1,12 +1,13 @@
-// The same applier tests over both modes' logs: embedded mode's ingest log
-// (engine::FleetLog, here in memory) applied by engine::WritePath's
-// appliers, and distributed mode's JetStream log (a real nats-server)
-// applied by the fleet's owner, cluster::Materialiser. Both apply each
-// entry through engine::ApplyLogRecord; these tests hold what a user of
+// The same applier tests over both modes' logs, through the one log port
+// (engine::FleetLog): embedded mode's local segment log applied by
+// engine::WritePath's appliers, and distributed mode's JetStream log (a
+// real nats-server) applied by the fleet's owner, cluster::Materialiser.
+// Both run the one engine::LogApplier; these tests hold what a user of
 // either mode relies on: the log applied is the memory of the same uploads
-// made directly, an entry the fleet's state refuses is passed alike, a
-// store error stops the apply until the entry applies, and an applier
-// started again applies only the rest.
+// made directly, calls are applied in the log's order, an entry the
+// fleet's state refuses is passed alike, a store error stops the apply
+// until the entry applies, and an applier started again applies only the
+// rest.
 #include <memory>
 #include <string>
 #include <vector>
@@ -19,8 +20,8 @@
 #include "services/engine/fleet_log.h"
 #include "services/engine/write_path.h"
 #include "services/index/exact_index.h"
-#include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
+#include "services/storage/segment_log.h"
 #include "services/testing/memory_engine_test_util.h"
 
 namespace fleetmem::cluster {
@@ -33,27 +34,35 @@ using testing_util::Uploads;
 
 constexpr char kFleet[] = "fleet-m";
 
-// One mode's log of a fleet and its applier.
+// One mode's log of a fleet (the one log port, engine::FleetLog) and its
+// applier.
 class Mode {
  public:
   virtual ~Mode() = default;
-  // Appends an upload to the fleet's log as the mode's log holds it
-  // (admission is not the subject here: a test may log what admission
-  // would refuse).
-  virtual void Append(const std::vector<core::MemoryTrace>& traces) = 0;
+  virtual engine::FleetLog& log() = 0;
+  // Appends an upload to the fleet's log, as the receiving replica or the
+  // write path does (admission is not the subject here: a test may log
+  // what admission would refuse).
+  void Append(const std::vector<core::MemoryTrace>& traces) {
+    ASSERT_TRUE(testing_util::AppendUpload(log(), kFleet, traces).ok());
+  }
+  // Appends a call's record.
+  void AppendCall(const engine::LogRecord& record) {
+    const engine::LogAppend append{record};
+    ASSERT_TRUE(log().Append(kFleet, {&append, 1}, {}).ok());
+  }
   // Starts the mode's applier over `engine` and applies the fleet's log
   // through its end: OK, or the error the apply stopped at.
   virtual absl::Status ApplyAll(engine::MemoryEngine& engine) = 0;
 };
 
-// Embedded mode: entries under the next sequence of the fleet's local log;
-// a WritePath opened over it recovers and applies its tail.
+// Embedded mode: the local segment log; a WritePath opened over it
+// recovers and applies its tail.
 class EmbeddedMode : public Mode {
  public:
-  void Append(const std::vector<core::MemoryTrace>& traces) override {
-    const engine::LogAppend entry{.sequence = ++last_, .traces = traces};
-    ASSERT_TRUE(log_->Append(kFleet, {&entry, 1}).ok());
-  }
+  explicit EmbeddedMode(std::unique_ptr<storage::SegmentLog> log)
+      : log_(std::move(log)) {}
+  engine::FleetLog& log() override { return *log_; }
   absl::Status ApplyAll(engine::MemoryEngine& engine) override {
     absl::StatusOr<std::unique_ptr<engine::WritePath>> path =
         engine::WritePath::Open(
@@ -64,19 +73,16 @@ class EmbeddedMode : public Mode {
   }
 
  private:
-  std::unique_ptr<engine::FleetLog> log_ = storage::NewInMemoryLog();
-  uint64_t last_ = 0;
+  std::unique_ptr<storage::SegmentLog> log_;
 };
 
-// Distributed mode: EncodeUpload's entries on the fleet's JetStream log; a
-// Materialiser (replica "a", its lease on the fleet) catches up with it.
+// Distributed mode: the fleet's JetStream log; a Materialiser (replica
+// "a", its lease on the fleet) catches up with it.
 class DistributedMode : public Mode {
  public:
   explicit DistributedMode(std::unique_ptr<NatsFleetLog> log)
       : log_(std::move(log)) {}
-  void Append(const std::vector<core::MemoryTrace>& traces) override {
-    testing_util::AppendUploads(*log_, kFleet, {traces});
-  }
+  engine::FleetLog& log() override { return *log_; }
   absl::Status ApplyAll(engine::MemoryEngine& engine) override {
     Materialiser materialiser({.replica_id = "replica-a"}, log_.get(),
                               log_.get(), /*snapshots=*/nullptr, &engine);
@@ -97,7 +103,10 @@ class LogApplierModesTest : public NatsFixture,
       ASSERT_NE(log, nullptr);
       mode_ = std::make_unique<DistributedMode>(std::move(log));
     } else {
-      mode_ = std::make_unique<EmbeddedMode>();
+      absl::StatusOr<std::unique_ptr<storage::SegmentLog>> log =
+          storage::SegmentLog::Open({.directory = dir_.Join("ingest-log")});
+      ASSERT_TRUE(log.ok()) << log.status();
+      mode_ = std::make_unique<EmbeddedMode>(*std::move(log));
     }
   }
   // An engine over `store` (this replica's, restarted by opening again).
@@ -147,6 +156,35 @@ TEST_P(LogApplierModesTest, AnEntryTheFleetsStateRefusesIsPassedAlike) {
   ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
   ExpectSameState(StateOf(*engine, kFleet), Direct({uploads[0], uploads[2]}));
   EXPECT_EQ(engine->LogPosition(kFleet).value_or(0), 3u);
+}
+
+// Calls whose effect replicas must agree on are entries too, applied in
+// the log's order: a Consolidate between uploads, and a SampleReplay drawn
+// under its entry's sequence, counted once.
+TEST_P(LogApplierModesTest, CallsAreAppliedInTheLogsOrder) {
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  for (size_t i = 0; i < 3; ++i) mode_->Append(uploads[i]);
+  mode_->AppendCall(engine::ConsolidateRecord{});
+  mode_->AppendCall(engine::SampleReplayRecord{"r1", 6, "req-1"});
+  mode_->Append(uploads[3]);
+  std::unique_ptr<engine::MemoryEngine> engine = Open(store_.get());
+  ASSERT_NE(engine, nullptr);
+  ASSERT_TRUE(mode_->ApplyAll(*engine).ok());
+  EXPECT_EQ(engine->LogPosition(kFleet).value_or(0), 6u);
+
+  testing_util::Replica direct;
+  for (size_t i = 0; i < 3; ++i) {
+    ASSERT_TRUE(direct.engine->Upload(kFleet, uploads[i], i + 1).ok());
+  }
+  ASSERT_TRUE(direct.engine->Consolidate(kFleet).ok());
+  absl::StatusOr<std::vector<core::MemoryTrace>> sample =
+      direct.engine->SampleReplay(kFleet, "r1", 6, "req-1", 5);
+  ASSERT_TRUE(sample.ok()) << sample.status();
+  ASSERT_EQ(sample->size(), 6u);
+  ASSERT_TRUE(direct.engine->Upload(kFleet, uploads[3], 6).ok());
+  const State want = StateOf(*direct.engine, kFleet);
+  ExpectSameState(StateOf(*engine, kFleet), want);
+  EXPECT_EQ(StateOf(*engine, kFleet).stats.robots.front().replayed, 6u);
 }
 
 // A full disk (RESOURCE_EXHAUSTED from the store) is never passed: the

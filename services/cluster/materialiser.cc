@@ -8,10 +8,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
 #include "proto/convert/trace_convert.h"
-#include "services/cluster/log_record.pb.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
-#include "services/engine/log_apply.h"
 #include "services/storage/fleet_image.h"
 
 namespace fleetmem::cluster {
@@ -36,12 +34,11 @@ absl::StatusOr<std::pair<SnapshotInfo, engine::FleetImage>> FetchImage(
 
 }  // namespace
 
-absl::StatusOr<EncodedUpload> EncodeUpload(
+absl::StatusOr<std::string> UploadId(
     std::span<const core::MemoryTrace> traces) {
   if (traces.empty()) {
     return absl::InvalidArgumentError("cluster: an empty upload");
   }
-  cluster::v1::LogRecord record;
   uint64_t first = traces.front().seq, last = first;
   for (const core::MemoryTrace& trace : traces) {
     if (trace.robot_id != traces.front().robot_id) {
@@ -50,20 +47,15 @@ absl::StatusOr<EncodedUpload> EncodeUpload(
     }
     first = std::min(first, trace.seq);
     last = std::max(last, trace.seq);
-    api::TraceToProto(trace, record.mutable_upload()->add_traces());
   }
   // Robot ids are [A-Za-z0-9._:-]; the length keeps "a:1" + seqs apart
   // from "a" + ":1…".
-  EncodedUpload encoded;
-  encoded.id = absl::StrCat("upload/", traces.front().robot_id.size(), "/",
-                            traces.front().robot_id, "/", first, "-", last);
-  if (!record.SerializeToString(&encoded.data)) {
-    return absl::InternalError("cluster: cannot serialise an upload");
-  }
-  return encoded;
+  return absl::StrCat("upload/", traces.front().robot_id.size(), "/",
+                      traces.front().robot_id, "/", first, "-", last);
 }
 
-absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
+absl::StatusOr<Ingested> Ingest(engine::FleetLog& log,
+                                std::string_view fleet_id,
                                 std::span<const core::MemoryTrace> traces,
                                 size_t max_entry_bytes, bool creates_fleet) {
   // Each robot's traces in the order given, robots in order of first sight.
@@ -104,11 +96,12 @@ absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
   }
   Ingested ingested;
   for (const std::vector<core::MemoryTrace>& entry : entries) {
-    absl::StatusOr<EncodedUpload> encoded = EncodeUpload(entry);
-    if (!encoded.ok()) return encoded.status();
-    absl::StatusOr<Appended> appended =
-        log.Append(fleet_id, encoded->id, encoded->data,
-                   creates_fleet && ingested.entries == 0);
+    absl::StatusOr<std::string> id = UploadId(entry);
+    if (!id.ok()) return id.status();
+    const engine::LogAppend append{engine::UploadRecord{entry}, *id};
+    absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+        log.Append(fleet_id, {&append, 1},
+                   {.only_first = creates_fleet && ingested.entries == 0});
     if (absl::IsFailedPrecondition(appended.status())) {
       return appended.status();  // the first entry: nothing appended
     }
@@ -121,21 +114,23 @@ absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
                        " traces); retrying the upload appends the rest"));
     }
     ++ingested.entries;
-    if (appended->duplicate) {
+    if (appended->front().duplicate) {
       ++ingested.duplicate_entries;
       ingested.duplicate_traces += entry.size();
     }
     ingested.traces += entry.size();
-    ingested.last_sequence = appended->sequence;
+    ingested.last_sequence = appended->front().sequence;
   }
   return ingested;
 }
 
 absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
-    ReplicatedLog& log, SnapshotStore* snapshots, std::string_view fleet_id) {
+    engine::FleetLog& log, SnapshotStore* snapshots,
+    std::string_view fleet_id) {
   // The log's first entry while the log holds it: no call to the snapshot
   // stream on the upload path.
-  absl::StatusOr<std::vector<LogEntry>> first = log.Read(fleet_id, 1, 1);
+  absl::StatusOr<std::vector<engine::LogEntry>> first =
+      log.Read(fleet_id, 0, 1);
   const bool trimmed =
       absl::IsOutOfRange(first.status()) ||
       (first.ok() && !first->empty() && first->front().sequence != 1);
@@ -150,27 +145,26 @@ absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
   }
   if (!first.ok() && !trimmed) return first.status();
   if (first.ok() && first->empty()) return std::nullopt;
-  cluster::v1::LogRecord record;
-  if (trimmed || !record.ParseFromString(first->front().data) ||
-      !record.has_upload() || record.upload().traces_size() == 0) {
+  if (trimmed || first->front().traces().empty()) {
     return absl::DataLossError(absl::StrCat(
         "cluster: the first entry of the log of fleet \"", V(fleet_id),
         "\" is not an upload",
         trimmed ? " (trimmed, and no snapshot gives its shape)" : ""));
   }
-  const ::fleetmem::v1::MemoryTrace& trace = record.upload().traces(0);
-  return engine::FleetShape{static_cast<uint32_t>(trace.code_size()),
-                            trace.encoder_version()};
+  const core::MemoryTrace& trace = first->front().traces().front();
+  return engine::FleetShape{static_cast<uint32_t>(trace.code.size()),
+                            trace.encoder_version};
 }
 
-Materialiser::Materialiser(MaterialiserOptions options, ReplicatedLog* log,
+Materialiser::Materialiser(MaterialiserOptions options, engine::FleetLog* log,
                            LeaseTable* leases, SnapshotStore* snapshots,
                            engine::MemoryEngine* engine)
     : options_(std::move(options)),
       log_(log),
       leases_(leases),
       snapshots_(snapshots),
-      engine_(engine) {
+      engine_(engine),
+      applier_(log, engine) {
   if (snapshots_ != nullptr && options_.snapshot_every > 0) {
     writer_ = std::thread([this] { WriteSnapshots(); });
   }
@@ -214,7 +208,7 @@ void Materialiser::Store(const std::string& fleet_id, const Pending& pending) {
     return;
   }
   if (!options_.trim_log) return;
-  if (absl::Status trimmed = log_->Trim(fleet_id, pending.info.sequence + 1);
+  if (absl::Status trimmed = log_->Trim(fleet_id, pending.info.sequence);
       !trimmed.ok()) {
     FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id << "\": " << trimmed;
   }
@@ -223,51 +217,6 @@ void Materialiser::Store(const std::string& fleet_id, const Pending& pending) {
 void Materialiser::WaitForSnapshots() {
   absl::MutexLock lock(&pending_mu_);
   pending_mu_.Await(absl::Condition(this, &Materialiser::Idle));
-}
-
-absl::Status Materialiser::Apply(std::string_view fleet_id,
-                                 const LogEntry& entry, uint64_t capture,
-                                 engine::AppliedRecord* outcome) {
-  cluster::v1::LogRecord record;
-  if (!record.ParseFromString(entry.data)) {
-    return absl::DataLossError(absl::StrCat("cluster: entry ", entry.sequence,
-                                            " of the log of fleet \"",
-                                            V(fleet_id), "\" is malformed"));
-  }
-  std::vector<core::MemoryTrace> traces;  // an upload's, decoded
-  engine::LogRecord kind;
-  switch (record.kind_case()) {
-    case cluster::v1::LogRecord::kUpload:
-      traces.reserve(record.upload().traces_size());
-      for (const ::fleetmem::v1::MemoryTrace& trace :
-           record.upload().traces()) {
-        traces.push_back(api::TraceFromProto(trace));
-      }
-      kind = engine::UploadRecord{traces};
-      break;
-    case cluster::v1::LogRecord::kConsolidate:
-      kind = engine::ConsolidateRecord{};
-      break;
-    case cluster::v1::LogRecord::kSampleReplay:
-      kind = engine::SampleReplayRecord{
-          .robot_id = record.sample_replay().robot_id(),
-          .count = record.sample_replay().count(),
-          .request_id = record.sample_replay().request_id()};
-      break;
-    case cluster::v1::LogRecord::KIND_NOT_SET:
-      return absl::FailedPreconditionError(
-          absl::StrCat("cluster: entry ", entry.sequence,
-                       " of the log of fleet \"", V(fleet_id),
-                       "\" is of a kind this replica does not know (a newer "
-                       "version wrote it)"));
-  }
-  absl::StatusOr<engine::AppliedRecord> applied =
-      engine::ApplyLogRecord(*engine_, fleet_id, entry.sequence, kind);
-  if (!applied.ok()) return applied.status();
-  if (entry.sequence == capture && outcome != nullptr) {
-    *outcome = *std::move(applied);
-  }
-  return absl::OkStatus();
 }
 
 absl::StatusOr<StepResult> Materialiser::Step(std::string_view fleet_id) {
@@ -327,9 +276,27 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(
   if (std::optional<Lease> held = lease(fleet_id)) {
     result.revision = held->revision;
   }
-  absl::StatusOr<std::vector<LogEntry>> entries =
-      log_->Read(fleet_id, owned.position + 1, options_.batch);
-  if (absl::IsOutOfRange(entries.status())) {
+  engine::ApplyHooks hooks;
+  // Entries are applied only within two renew intervals of a successful
+  // renewal (the lease has a third of its time left then); a longer step
+  // ends there and the next renews first. The entry a call waits for is
+  // applied in any case.
+  hooks.may_apply = [&](const engine::LogEntry& entry) {
+    return options_.renew_interval <= absl::ZeroDuration() ||
+           options_.clock->Now() - renewed_at < 2 * options_.renew_interval ||
+           entry.sequence <= capture;
+  };
+  hooks.applied = [&](const engine::LogEntry& entry,
+                      const engine::AppliedRecord& applied) {
+    FLEETMEM_LOG(kDebug) << "cluster: fleet \"" << fleet_id << "\": entry "
+                         << entry.sequence << " (" << entry.id
+                         << ") applied after " << owned.position;
+    if (entry.sequence == capture && outcome != nullptr) *outcome = applied;
+    owned.position = entry.sequence;
+  };
+  absl::StatusOr<engine::AppliedTurn> turn =
+      applier_.Turn(fleet_id, owned.position, options_.batch, hooks);
+  if (absl::IsOutOfRange(turn.status())) {
     // Trimmed past this replica's position since it took the fleet (the
     // previous owner's snapshot writer, late): restore, then read on.
     if (absl::Status restored = RestoreIfBehind(fleet_id, owned);
@@ -338,28 +305,11 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(
     }
     result.restored = std::exchange(owned.restored, 0);
     result.position = owned.position;
-    entries = log_->Read(fleet_id, owned.position + 1, options_.batch);
+    turn = applier_.Turn(fleet_id, owned.position, options_.batch, hooks);
   }
-  if (!entries.ok()) return entries.status();
-  for (const LogEntry& entry : *entries) {
-    // Entries are applied only within two renew intervals of a successful
-    // renewal (the lease has a third of its time left then); a longer
-    // step ends here and the next renews first.
-    if (options_.renew_interval > absl::ZeroDuration() &&
-        options_.clock->Now() - renewed_at >= 2 * options_.renew_interval &&
-        entry.sequence > capture) {
-      break;
-    }
-    if (absl::Status applied = Apply(fleet_id, entry, capture, outcome);
-        !applied.ok()) {
-      return applied;
-    }
-    FLEETMEM_LOG(kDebug) << "cluster: fleet \"" << fleet_id << "\": entry "
-                         << entry.sequence << " (" << entry.id
-                         << ") applied after " << owned.position;
-    owned.position = entry.sequence;
-    ++result.applied;
-  }
+  if (!turn.ok()) return turn.status();
+  result.applied = turn->applied;
+  if (!turn->stopped.ok()) return turn->stopped;
   result.position = owned.position;
   SnapshotIfDue(fleet_id, owned, result);
   absl::MutexLock held(&lease_mu_);
@@ -458,8 +408,11 @@ void Materialiser::RenewLeases() {
 absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,
                                            Owned& owned) {
   if (snapshots_ == nullptr) return absl::OkStatus();
-  absl::StatusOr<uint64_t> first = log_->FirstSequence(fleet_id);
-  if (!first.ok()) return first.status();
+  absl::StatusOr<engine::LogBounds> bounds = log_->Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
+  // The first entry Read can return (1 for a log that never held one).
+  const uint64_t* first = &bounds->first;
+  if (bounds->last == 0) bounds->first = 1;
   // The log no longer holds every entry after this replica's position.
   const bool trimmed = *first > owned.position + 1;
   // While the log holds every entry needed, a snapshot that cannot be read
@@ -568,10 +521,10 @@ void Materialiser::SnapshotIfDue(std::string_view fleet_id, Owned& owned,
 }
 
 absl::StatusOr<StepResult> Materialiser::CatchUp(std::string_view fleet_id) {
-  absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
-  if (!last.ok()) return last.status();
+  absl::StatusOr<engine::LogBounds> bounds = log_->Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
   absl::MutexLock lock(&mu_);
-  return StepThroughLocked(fleet_id, *last, nullptr);
+  return StepThroughLocked(fleet_id, bounds->last, nullptr);
 }
 
 absl::StatusOr<StepResult> Materialiser::StepThroughLocked(
@@ -594,7 +547,7 @@ absl::StatusOr<StepResult> Materialiser::StepThroughLocked(
 }
 
 absl::StatusOr<engine::AppliedRecord> Materialiser::Call(
-    std::string_view fleet_id, std::string_view kind, const std::string& data) {
+    std::string_view fleet_id, const engine::LogRecord& record) {
   // Held from the append to the entry's application, so that no step
   // applies the entry before this call can capture what it did.
   absl::MutexLock lock(&mu_);
@@ -603,15 +556,14 @@ absl::StatusOr<engine::AppliedRecord> Materialiser::Call(
         absl::StrCat("cluster: replica \"", options_.replica_id,
                      "\" does not own fleet \"", V(fleet_id), "\""));
   }
-  // Unique: a call is never a retry of another at the log's level.
-  const std::string id =
-      absl::StrCat(V(kind), "/", options_.replica_id, "/",
-                   absl::ToUnixNanos(absl::Now()), "/", ++calls_);
-  absl::StatusOr<Appended> appended = log_->Append(fleet_id, id, data);
+  // No id: a call is never a retry of another at the log's level.
+  const engine::LogAppend append{record};
+  absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+      log_->Append(fleet_id, {&append, 1}, {});
   if (!appended.ok()) return appended.status();
   engine::AppliedRecord outcome;
   absl::StatusOr<StepResult> applied =
-      StepThroughLocked(fleet_id, appended->sequence, &outcome);
+      StepThroughLocked(fleet_id, appended->front().sequence, &outcome);
   if (!applied.ok()) return applied.status();
   if (!outcome.refused.ok()) return outcome.refused;
   return outcome;
@@ -619,10 +571,8 @@ absl::StatusOr<engine::AppliedRecord> Materialiser::Call(
 
 absl::StatusOr<engine::ConsolidateResult> Materialiser::Consolidate(
     std::string_view fleet_id) {
-  cluster::v1::LogRecord record;
-  record.mutable_consolidate();
   absl::StatusOr<engine::AppliedRecord> outcome =
-      Call(fleet_id, "consolidate", record.SerializeAsString());
+      Call(fleet_id, engine::ConsolidateRecord{});
   if (!outcome.ok()) return outcome.status();
   return outcome->consolidated;
 }
@@ -630,13 +580,8 @@ absl::StatusOr<engine::ConsolidateResult> Materialiser::Consolidate(
 absl::StatusOr<std::vector<core::MemoryTrace>> Materialiser::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, uint64_t count,
     std::string_view request_id) {
-  cluster::v1::LogRecord record;
-  cluster::v1::SampleReplay* call = record.mutable_sample_replay();
-  call->set_robot_id(std::string(robot_id));
-  call->set_count(count);
-  call->set_request_id(std::string(request_id));
   absl::StatusOr<engine::AppliedRecord> outcome =
-      Call(fleet_id, "sample", record.SerializeAsString());
+      Call(fleet_id, engine::SampleReplayRecord{robot_id, count, request_id});
   if (!outcome.ok()) return outcome.status();
   return std::move(outcome->sample);
 }

@@ -1,7 +1,8 @@
-// Distributed mode's materialisation (docs/distributed.md): a replica owns a
-// fleet while it holds the fleet's lease, and applies the fleet's log, in
-// order, to its own MemoryEngine, each upload stored with its entry's
-// sequence (MemoryEngine::LogPosition); a new owner, or one restarted,
+// Distributed mode's ownership of a fleet (docs/distributed.md): a replica
+// owns a fleet while it holds the fleet's lease, and runs the one applier
+// (engine::LogApplier, which embedded mode's write path runs too) over the
+// fleet's log, in order, to its own MemoryEngine, each upload stored with its
+// entry's sequence (MemoryEngine::LogPosition); a new owner, or one restarted,
 // resumes after the position its own store holds, or restores the fleet's
 // latest snapshot first when that is far ahead of it. The owner stores a
 // snapshot every options.snapshot_every entries and trims the log it
@@ -39,10 +40,11 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
-#include "services/cluster/replicated_log.h"
+#include "services/cluster/cluster_ports.h"
 #include "services/common/clock.h"
 #include "services/core/types.h"
-#include "services/engine/log_apply.h"
+#include "services/engine/fleet_log.h"
+#include "services/engine/log_applier.h"
 #include "services/engine/memory_engine.h"
 
 namespace fleetmem::cluster {
@@ -66,7 +68,7 @@ struct MaterialiserOptions {
   // longer holds them.
   uint64_t restore_after = 256;
   // Once a snapshot is stored, the log entries it covers are trimmed
-  // (ReplicatedLog::Trim), so that logs do not grow without bound.
+  // (engine::FleetLog::Trim), so that logs do not grow without bound.
   bool trim_log = true;
   // The leases' time-to-live. When RenewLeases finds that it did not run
   // for longer than this (the process was stopped: SIGSTOP, a frozen VM),
@@ -95,15 +97,11 @@ struct StepResult {
   uint64_t snapshot = 0;
 };
 
-// The entry an upload becomes, and its id: the robot and its seq range
-// (a retried upload of the same traces has the same id).
-struct EncodedUpload {
-  std::string id;
-  std::string data;
-};
-// INVALID_ARGUMENT for an empty upload or one of several robots.
-absl::StatusOr<EncodedUpload> EncodeUpload(
-    std::span<const core::MemoryTrace> traces);
+// The id of the log entry an upload's traces (of one robot) become: the
+// robot and its seq range, so that a retried upload of the same traces
+// has the same id (JetStream stores it once). INVALID_ARGUMENT for an
+// empty upload or one of several robots.
+absl::StatusOr<std::string> UploadId(std::span<const core::MemoryTrace> traces);
 
 // What Ingest appended.
 struct Ingested {
@@ -118,16 +116,17 @@ struct Ingested {
 // the traces (of one robot or several, as a client sent them) to the
 // fleet's log as one entry per robot and run of consecutive traces whose
 // encoding fits in `max_entry_bytes` (keep it under NATS's max_payload),
-// each under EncodeUpload's id, and returns once the log holds them all.
+// each under its UploadId, and returns once the log holds them all.
 // INVALID_ARGUMENT, with nothing appended, if a single trace does not fit.
 // On a failed append the status says which entries the log holds already
 // (a retry of the whole upload appends only the rest: ids repeat).
 // `creates_fleet`: the receiving replica found no log for the fleet, so
 // this upload fixes its shape: its first entry is appended only as the
-// log's first (ReplicatedLog::Append's only_first), and FAILED_PRECONDITION,
+// log's first (AppendOptions::only_first), and FAILED_PRECONDITION,
 // with nothing appended, says another upload created the fleet meanwhile
 // (check the upload against that one's shape, then ingest it again).
-absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
+absl::StatusOr<Ingested> Ingest(engine::FleetLog& log,
+                                std::string_view fleet_id,
                                 std::span<const core::MemoryTrace> traces,
                                 size_t max_entry_bytes,
                                 bool creates_fleet = false);
@@ -137,13 +136,13 @@ absl::StatusOr<Ingested> Ingest(ReplicatedLog& log, std::string_view fleet_id,
 // trimmed), whichever replica applies it. nullopt for a fleet without a
 // log. `snapshots` may be null.
 absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
-    ReplicatedLog& log, SnapshotStore* snapshots, std::string_view fleet_id);
+    engine::FleetLog& log, SnapshotStore* snapshots, std::string_view fleet_id);
 
 class Materialiser {
  public:
   // `log`, `leases`, `snapshots` and `engine` must outlive it;
   // `snapshots` may be null (no snapshots: new owners replay whole logs).
-  Materialiser(MaterialiserOptions options, ReplicatedLog* log,
+  Materialiser(MaterialiserOptions options, engine::FleetLog* log,
                LeaseTable* leases, SnapshotStore* snapshots,
                engine::MemoryEngine* engine);
   // Ends the snapshot writer after the snapshot it is storing, if any.
@@ -261,11 +260,6 @@ class Materialiser {
     return stopping_ || (pending_.empty() && !writing_);
   }
   void Store(const std::string& fleet_id, const Pending& pending);
-  // Decodes `entry` and applies it (engine::ApplyLogRecord: the apply
-  // embedded mode runs too); what it did goes to `outcome` when the entry
-  // is `capture`'s.
-  absl::Status Apply(std::string_view fleet_id, const LogEntry& entry,
-                     uint64_t capture, engine::AppliedRecord* outcome);
   // Takes the fleet's lease (and restores it if behind: RestoreIfBehind);
   // the fleet's state, owned from then on. `renewed_at`: when the lease was
   // taken.
@@ -290,15 +284,16 @@ class Materialiser {
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Appends a call's entry and applies the log through it.
   absl::StatusOr<engine::AppliedRecord> Call(std::string_view fleet_id,
-                                             std::string_view kind,
-                                             const std::string& data);
+                                             const engine::LogRecord& record);
 
   const MaterialiserOptions options_;
   std::function<void(const std::string&)> on_lease_lost_;
-  ReplicatedLog* const log_;
+  engine::FleetLog* const log_;
   LeaseTable* const leases_;
   SnapshotStore* const snapshots_;
   engine::MemoryEngine* const engine_;
+  // The one applier (engine/log_applier.h), run here under the lease.
+  engine::LogApplier applier_;
   mutable absl::Mutex mu_ ABSL_ACQUIRED_BEFORE(renew_mu_);
   std::map<std::string, Owned, std::less<>> owned_ ABSL_GUARDED_BY(mu_);
   // Renewals one at a time (two at once at one revision would make the
@@ -311,7 +306,6 @@ class Materialiser {
   // When RenewLeases last returned (one thread calls it: ClusterNode's
   // renewing thread).
   absl::Time renewals_ended_ = absl::InfinitePast();
-  uint64_t calls_ ABSL_GUARDED_BY(mu_) = 0;  // for unique call entry ids
 
   // The snapshot writer: at most one snapshot per fleet waits (a newer one
   // replaces it).

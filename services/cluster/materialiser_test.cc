@@ -23,6 +23,7 @@
 namespace fleetmem::cluster {
 namespace {
 
+using testing_util::AppendUpload;
 using testing_util::AppendUploads;
 using testing_util::ExpectSameState;
 using testing_util::Replica;
@@ -40,22 +41,17 @@ TEST_F(MaterialiserTest, ReplicasReachTheEmbeddedModesMemoryAndFailOver) {
   const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
   for (const std::vector<core::MemoryTrace>& batch : uploads) {
     ASSERT_TRUE(embedded.engine->Upload(fleet, batch).ok());
-    absl::StatusOr<EncodedUpload> entry = EncodeUpload(batch);
-    ASSERT_TRUE(entry.ok()) << entry.status();
-    ASSERT_TRUE(log->Append(fleet, entry->id, entry->data).ok());
+    ASSERT_TRUE(AppendUpload(*log, fleet, batch).ok());
   }
   // A robot's retry with the same batch: JetStream drops it by its id.
-  absl::StatusOr<EncodedUpload> retry = EncodeUpload(uploads[4]);
-  EXPECT_TRUE(log->Append(fleet, retry->id, retry->data)->duplicate);
+  EXPECT_TRUE(AppendUpload(*log, fleet, uploads[4])->duplicate);
   // A retry cut differently (a new id): the replicas drop its traces by
   // (robot_id, seq), as the embedded mode does.
   std::vector<core::MemoryTrace> recut(uploads[4].begin() + 2,
                                        uploads[4].end());
   recut.insert(recut.end(), uploads[7].begin(), uploads[7].begin() + 3);
   ASSERT_TRUE(embedded.engine->Upload(fleet, recut).ok());
-  absl::StatusOr<EncodedUpload> recut_entry = EncodeUpload(recut);
-  ASSERT_TRUE(recut_entry.ok()) << recut_entry.status();
-  ASSERT_TRUE(log->Append(fleet, recut_entry->id, recut_entry->data).ok());
+  ASSERT_TRUE(AppendUpload(*log, fleet, recut).ok());
   const State want = StateOf(*embedded.engine, fleet);
   ASSERT_GT(want.stats.consolidations, 0u);
   ASSERT_GT(want.stats.clusters_forgotten, 0u);
@@ -91,7 +87,7 @@ TEST_F(MaterialiserTest, ReplicasReachTheEmbeddedModesMemoryAndFailOver) {
   ExpectSameState(StateOf(*b.engine, fleet), want);
 
   // A wakes up: fenced, it applies nothing more and drops the fleet.
-  ASSERT_TRUE(log->Append(fleet, "late", EncodeUpload(uploads[0])->data).ok());
+  ASSERT_TRUE(AppendUpload(*log, fleet, uploads[0], "late").ok());
   EXPECT_EQ(materialiser_a->Step(fleet).status().code(),
             absl::StatusCode::kFailedPrecondition);
   EXPECT_FALSE(materialiser_a->lease(fleet).has_value());
@@ -200,9 +196,7 @@ TEST_F(MaterialiserTest, AnEntryTheMemoryRefusesIsSkippedAlike) {
   std::vector<core::MemoryTrace> wrong = uploads[1];
   for (core::MemoryTrace& trace : wrong) trace.code.resize(4);
   for (const auto& batch : {uploads[0], wrong, uploads[2]}) {
-    absl::StatusOr<EncodedUpload> entry = EncodeUpload(batch);
-    ASSERT_TRUE(entry.ok());
-    ASSERT_TRUE(log->Append(fleet, entry->id, entry->data).ok());
+    ASSERT_TRUE(AppendUpload(*log, fleet, batch).ok());
   }
   Replica a;
   Materialiser materialiser({.replica_id = "replica-a"}, log.get(), log.get(),
@@ -269,7 +263,8 @@ TEST_F(MaterialiserTest, IngestCutsEntriesPerRobotAndSizeAndRetriesAreFree) {
   ASSERT_TRUE(whole.ok()) << whole.status();
   EXPECT_EQ(whole->entries, 2u);
   EXPECT_EQ(whole->traces, 20u);
-  absl::StatusOr<std::vector<LogEntry>> entries = log->Read(fleet, 1, 10);
+  absl::StatusOr<std::vector<engine::LogEntry>> entries =
+      log->Read(fleet, 0, 10);
   ASSERT_TRUE(entries.ok());
   ASSERT_EQ(entries->size(), 2u);
   EXPECT_EQ((*entries)[0].id, "upload/2/r1/1-10");
@@ -278,7 +273,7 @@ TEST_F(MaterialiserTest, IngestCutsEntriesPerRobotAndSizeAndRetriesAreFree) {
   absl::StatusOr<Ingested> retry = Ingest(*log, fleet, mixed, 1 << 20);
   ASSERT_TRUE(retry.ok()) << retry.status();
   EXPECT_EQ(retry->duplicate_entries, 2u);
-  EXPECT_EQ(*log->LastSequence(fleet), 2u);
+  EXPECT_EQ(log->Bounds(fleet)->last, 2u);
 
   // Entries of at most 400 bytes: r3's next 10 traces take several, each
   // within the bound.
@@ -286,14 +281,19 @@ TEST_F(MaterialiserTest, IngestCutsEntriesPerRobotAndSizeAndRetriesAreFree) {
   ASSERT_TRUE(small.ok()) << small.status();
   EXPECT_GT(small->entries, 2u);
   EXPECT_EQ(small->traces, 10u);
-  absl::StatusOr<std::vector<LogEntry>> cut = log->Read(fleet, 3, 100);
+  absl::StatusOr<std::vector<engine::LogEntry>> cut = log->Read(fleet, 2, 100);
   ASSERT_TRUE(cut.ok());
   ASSERT_EQ(cut->size(), small->entries);
-  for (const LogEntry& entry : *cut) EXPECT_LE(entry.data.size(), 400u);
+  size_t traces = 0;
+  for (const engine::LogEntry& entry : *cut) {
+    EXPECT_FALSE(entry.traces().empty());
+    traces += entry.traces().size();
+  }
+  EXPECT_EQ(traces, 10u);
   // A trace larger than an entry: refused, nothing appended.
   EXPECT_EQ(Ingest(*log, fleet, uploads[3], 50).status().code(),
             absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(*log->LastSequence(fleet), 2 + small->entries);
+  EXPECT_EQ(log->Bounds(fleet)->last, 2 + small->entries);
 
   Replica embedded, a;
   for (const auto& batch : {uploads[0], uploads[1], uploads[2]}) {
@@ -305,18 +305,17 @@ TEST_F(MaterialiserTest, IngestCutsEntriesPerRobotAndSizeAndRetriesAreFree) {
   ExpectSameState(StateOf(*a.engine, fleet), StateOf(*embedded.engine, fleet));
 }
 
-TEST(EncodeUploadTest, OneRobotPerEntryAndAStableId) {
+TEST(UploadIdTest, OneRobotPerEntryAndAStableId) {
   std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
-  absl::StatusOr<EncodedUpload> entry = EncodeUpload(uploads[0]);
-  ASSERT_TRUE(entry.ok());
-  EXPECT_EQ(entry->id, "upload/2/r1/1-10");
-  EXPECT_EQ(EncodeUpload(uploads[0])->data, entry->data);
+  absl::StatusOr<std::string> id = UploadId(uploads[0]);
+  ASSERT_TRUE(id.ok());
+  EXPECT_EQ(*id, "upload/2/r1/1-10");
+  EXPECT_EQ(*UploadId(uploads[0]), *id);
   std::vector<core::MemoryTrace> mixed = uploads[0];
   mixed.push_back(uploads[1].front());
-  EXPECT_EQ(EncodeUpload(mixed).status().code(),
+  EXPECT_EQ(UploadId(mixed).status().code(),
             absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(EncodeUpload({}).status().code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(UploadId({}).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 // Consolidate and SampleReplay go through the log at the owner: the answer
@@ -414,7 +413,7 @@ TEST_F(MaterialiserTest, SnapshotsLetNewOwnersSkipTheTrimmedLog) {
   ASSERT_TRUE(first.ok() && first->has_value()) << first.status();
   EXPECT_EQ((*first)->sequence, 9u);  // the step that passed 8
   EXPECT_EQ((*first)->code_dimension, 8u);
-  EXPECT_EQ(*log->FirstSequence(fleet), 10u);  // trimmed through it
+  EXPECT_EQ(log->Bounds(fleet)->first, 10u);  // trimmed through it
   // An older snapshot never replaces a newer one.
   EXPECT_EQ(log->Put(fleet, SnapshotInfo{5, 1, 8, "enc-v1"}, "x").code(),
             absl::StatusCode::kFailedPrecondition);
@@ -430,7 +429,7 @@ TEST_F(MaterialiserTest, SnapshotsLetNewOwnersSkipTheTrimmedLog) {
   ASSERT_TRUE(latest.ok() && latest->has_value());
   // 9 + 8 = 17 passed at 18; the sample (19) and Consolidate (20) follow.
   EXPECT_EQ((*latest)->sequence, 18u);
-  EXPECT_EQ(*log->FirstSequence(fleet), (*latest)->sequence + 1);
+  EXPECT_EQ(log->Bounds(fleet)->first, (*latest)->sequence + 1);
 
   absl::StatusOr<std::optional<engine::FleetShape>> shape =
       FleetShapeFromLog(*log, log.get(), fleet);
@@ -487,8 +486,8 @@ TEST_F(MaterialiserTest, ALogTrimmedUnderANewOwnerIsRestoredNotSkipped) {
   ASSERT_TRUE(
       log->Put(fleet, SnapshotInfo{6, bytes->size(), 8, "enc-v1"}, *bytes)
           .ok());
-  ASSERT_TRUE(log->Trim(fleet, 7).ok());
-  EXPECT_EQ(log->Read(fleet, 3, 1).status().code(),
+  ASSERT_TRUE(log->Trim(fleet, 6).ok());
+  EXPECT_EQ(log->Read(fleet, 2, 1).status().code(),
             absl::StatusCode::kOutOfRange);
 
   step = taker.Step(fleet);
@@ -515,11 +514,11 @@ TEST_F(MaterialiserTest, OnlyOneUploadCreatesAFleet) {
       Ingest(*log, fleet, uploads[1], 1 << 20, /*creates_fleet=*/true);
   EXPECT_EQ(second.status().code(), absl::StatusCode::kFailedPrecondition)
       << second.status();
-  EXPECT_EQ(*log->LastSequence(fleet), 1u);
+  EXPECT_EQ(log->Bounds(fleet)->last, 1u);
   // As an ordinary upload it is appended.
   second = Ingest(*log, fleet, uploads[1], 1 << 20);
   ASSERT_TRUE(second.ok()) << second.status();
-  EXPECT_EQ(*log->LastSequence(fleet), 2u);
+  EXPECT_EQ(log->Bounds(fleet)->last, 2u);
 }
 
 }  // namespace

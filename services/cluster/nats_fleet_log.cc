@@ -6,6 +6,7 @@
 #include <climits>
 #include <memory>
 #include <utility>
+#include <variant>
 
 #include "absl/base/thread_annotations.h"
 #include "absl/container/flat_hash_map.h"
@@ -18,6 +19,7 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/time/clock.h"
 #include "nats/nats.h"
+#include "proto/convert/trace_convert.h"
 #include "services/cluster/log_record.pb.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
@@ -329,13 +331,96 @@ absl::Status NatsFleetLog::EnsureFleetStream(std::string_view fleet_id,
   return absl::OkStatus();
 }
 
-absl::StatusOr<Appended> NatsFleetLog::Append(std::string_view fleet_id,
-                                              std::string_view id,
-                                              std::string_view data,
-                                              bool only_first) {
-  if (id.empty()) {
-    return absl::InvalidArgumentError("cluster: an entry needs an id");
+namespace {
+
+// A record as JetStream's entries carry it (log_record.proto's LogRecord).
+struct ToLogRecord {
+  v1::LogRecord* out;
+  void operator()(const engine::UploadRecord& upload) const {
+    for (const core::MemoryTrace& trace : upload.traces) {
+      api::TraceToProto(trace, out->mutable_upload()->add_traces());
+    }
   }
+  void operator()(const engine::ConsolidateRecord&) const {
+    out->mutable_consolidate();
+  }
+  void operator()(const engine::SampleReplayRecord& call) const {
+    v1::SampleReplay* sample = out->mutable_sample_replay();
+    sample->set_robot_id(std::string(call.robot_id));
+    sample->set_count(call.count);
+    sample->set_request_id(std::string(call.request_id));
+  }
+};
+
+// The record of an entry's bytes: DATA_LOSS when they do not parse,
+// FAILED_PRECONDITION for a kind this version does not know (a newer one
+// wrote it).
+absl::StatusOr<engine::StoredRecord> DecodeRecord(std::string_view fleet_id,
+                                                  uint64_t sequence,
+                                                  std::string_view data) {
+  v1::LogRecord record;
+  if (!record.ParseFromArray(data.data(), static_cast<int>(data.size()))) {
+    return absl::DataLossError(absl::StrCat("cluster: entry ", sequence,
+                                            " of the log of fleet \"",
+                                            V(fleet_id), "\" is malformed"));
+  }
+  switch (record.kind_case()) {
+    case v1::LogRecord::kUpload: {
+      std::vector<core::MemoryTrace> traces;
+      traces.reserve(record.upload().traces_size());
+      for (const ::fleetmem::v1::MemoryTrace& trace :
+           record.upload().traces()) {
+        traces.push_back(api::TraceFromProto(trace));
+      }
+      return traces;
+    }
+    case v1::LogRecord::kConsolidate:
+      return engine::ConsolidateRecord{};
+    case v1::LogRecord::kSampleReplay:
+      return engine::SampleReplayCall{record.sample_replay().robot_id(),
+                                      record.sample_replay().count(),
+                                      record.sample_replay().request_id()};
+    case v1::LogRecord::KIND_NOT_SET:
+      break;
+  }
+  return absl::FailedPreconditionError(absl::StrCat(
+      "cluster: entry ", sequence, " of the log of fleet \"", V(fleet_id),
+      "\" is of a kind this replica does not know (a newer version wrote "
+      "it)"));
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<engine::AppendedEntry>> NatsFleetLog::Append(
+    std::string_view fleet_id, std::span<const engine::LogAppend> entries,
+    const engine::AppendOptions& options) {
+  if (options.above != 0) {
+    return absl::InvalidArgumentError(
+        "cluster: JetStream numbers a log's entries itself (no floor)");
+  }
+  std::vector<engine::AppendedEntry> appended;
+  for (const engine::LogAppend& entry : entries) {
+    v1::LogRecord record;
+    std::visit(ToLogRecord{&record}, entry.record);
+    absl::StatusOr<engine::AppendedEntry> one =
+        AppendOne(fleet_id, entry.id, record.SerializeAsString(),
+                  options.only_first && appended.empty());
+    if (!one.ok()) {
+      if (appended.empty()) return one.status();
+      return absl::Status(
+          one.status().code(),
+          absl::StrCat(one.status().message(), "; the log holds the first ",
+                       appended.size(), " of these ", entries.size(),
+                       " entries"));
+    }
+    appended.push_back(*one);
+  }
+  return appended;
+}
+
+absl::StatusOr<engine::AppendedEntry> NatsFleetLog::AppendOne(
+    std::string_view fleet_id, std::string_view id, std::string_view data,
+    bool only_first) {
   const int64_t max_payload = natsConnection_GetMaxPayload(handles_->nc);
   if (max_payload > 0 && static_cast<int64_t>(data.size()) > max_payload) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -349,7 +434,8 @@ absl::StatusOr<Appended> NatsFleetLog::Append(std::string_view fleet_id,
   const std::string msg_id(id);
   jsPubOptions publish;
   jsPubOptions_Init(&publish);
-  publish.MsgId = msg_id.c_str();
+  // No id: no deduplication (a call's entry, never a retry of another).
+  if (!msg_id.empty()) publish.MsgId = msg_id.c_str();
   publish.ExpectStream = stream.c_str();
   publish.MaxWait = Milliseconds(options_.timeout);
   // The log has one subject: no message on it means an empty log.
@@ -370,12 +456,12 @@ absl::StatusOr<Appended> NatsFleetLog::Append(std::string_view fleet_id,
                                  "fleet \"",
                                  V(fleet_id), "\""));
   }
-  const Appended appended{ack->Sequence, ack->Duplicate};
+  const engine::AppendedEntry appended{ack->Sequence, ack->Duplicate};
   jsPubAck_Destroy(ack);
   return appended;
 }
 
-absl::StatusOr<std::pair<uint64_t, uint64_t>> NatsFleetLog::Bounds(
+absl::StatusOr<engine::LogBounds> NatsFleetLog::Bounds(
     std::string_view fleet_id) {
   jsStreamInfo* info = nullptr;
   jsErrCode code = static_cast<jsErrCode>(0);
@@ -383,32 +469,18 @@ absl::StatusOr<std::pair<uint64_t, uint64_t>> NatsFleetLog::Bounds(
   const natsStatus s =
       js_GetStreamInfo(&info, handles_->js, name.c_str(), nullptr, &code);
   if (s == NATS_NOT_FOUND || code == JSStreamNotFoundErr) {
-    return std::pair<uint64_t, uint64_t>(0, 0);
+    return engine::LogBounds{};
   }
   if (s != NATS_OK) {
     return FromNats(
         s, code,
         absl::StrCat("cluster: the log of fleet \"", V(fleet_id), "\""));
   }
-  const std::pair<uint64_t, uint64_t> bounds(info->State.FirstSeq,
-                                             info->State.LastSeq);
+  // JetStream reports {0, 0} for a stream that never held a message, and
+  // {last + 1, last} for one purged whole.
+  const engine::LogBounds bounds{info->State.FirstSeq, info->State.LastSeq};
   jsStreamInfo_Destroy(info);
   return bounds;
-}
-
-absl::StatusOr<uint64_t> NatsFleetLog::LastSequence(std::string_view fleet_id) {
-  absl::StatusOr<std::pair<uint64_t, uint64_t>> bounds = Bounds(fleet_id);
-  if (!bounds.ok()) return bounds.status();
-  return bounds->second;
-}
-
-absl::StatusOr<uint64_t> NatsFleetLog::FirstSequence(
-    std::string_view fleet_id) {
-  absl::StatusOr<std::pair<uint64_t, uint64_t>> bounds = Bounds(fleet_id);
-  if (!bounds.ok()) return bounds.status();
-  // JetStream reports 0 for a stream that never held a message.
-  if (bounds->first == 0 && bounds->second == 0) return 1;
-  return bounds->first;
 }
 
 absl::Status NatsFleetLog::PurgeBelow(const std::string& stream,
@@ -440,8 +512,8 @@ absl::Status NatsFleetLog::PurgeBelow(const std::string& stream,
   return absl::OkStatus();
 }
 
-absl::Status NatsFleetLog::Trim(std::string_view fleet_id, uint64_t sequence) {
-  absl::Status status = PurgeBelow(FleetStreamName(fleet_id), sequence);
+absl::Status NatsFleetLog::Trim(std::string_view fleet_id, uint64_t through) {
+  absl::Status status = PurgeBelow(FleetStreamName(fleet_id), through + 1);
   if (status.ok()) return status;
   return absl::Status(status.code(),
                       absl::StrCat("trimming the log of fleet \"", V(fleet_id),
@@ -524,17 +596,15 @@ absl::Status TrimmedBefore(std::string_view fleet_id, uint64_t first,
 
 }  // namespace
 
-absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
-    std::string_view fleet_id, uint64_t from, size_t max) {
-  if (from == 0) {
-    return absl::InvalidArgumentError("cluster: log sequences start at 1");
-  }
-  absl::StatusOr<std::pair<uint64_t, uint64_t>> bounds = Bounds(fleet_id);
+absl::StatusOr<std::vector<engine::LogEntry>> NatsFleetLog::Read(
+    std::string_view fleet_id, uint64_t after, size_t max) {
+  const uint64_t from = after + 1;
+  absl::StatusOr<engine::LogBounds> bounds = Bounds(fleet_id);
   if (!bounds.ok()) return bounds.status();
-  const uint64_t* last = &bounds->second;
+  const uint64_t* last = &bounds->last;
   // Entries before the first held were trimmed (a snapshot holds them) or
   // never stored (a failed proposal): never passed silently.
-  if (bounds->second > 0 && from < bounds->first) {
+  if (bounds->last > 0 && from < bounds->first) {
     return TrimmedBefore(fleet_id, bounds->first, from);
   }
   // One get per entry from the stream's leader (JetStream's STREAM.MSG.GET:
@@ -543,7 +613,7 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
   // clustered stream may skip a sequence (a proposal that failed when its
   // leader changed): a sequence up to the last with no entry is passed.
   const std::string stream = FleetStreamName(fleet_id);
-  std::vector<LogEntry> entries;
+  std::vector<engine::LogEntry> entries;
   for (uint64_t sequence = from; sequence <= *last && entries.size() < max;
        ++sequence) {
     natsMsg* msg = nullptr;
@@ -556,7 +626,7 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
       // in a snapshot, not skipped: OUT_OF_RANGE, and the caller restores.
       // Passing it would lose it on this replica (seen: an owner holding
       // one entry fewer than the log, docs/distributed.md).
-      absl::StatusOr<std::pair<uint64_t, uint64_t>> now = Bounds(fleet_id);
+      absl::StatusOr<engine::LogBounds> now = Bounds(fleet_id);
       if (!now.ok() || sequence < now->first) {
         if (!entries.empty()) break;  // what was read; the next read says so
         if (!now.ok()) return now.status();
@@ -566,7 +636,7 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
       // changed): said, never passed silently.
       FLEETMEM_LOG(kWarning)
           << "cluster: the log of fleet \"" << fleet_id << "\" has no entry "
-          << sequence << " (of " << now->first << ".." << now->second
+          << sequence << " (of " << now->first << ".." << now->last
           << "; JetStream: " << natsStatus_GetText(s) << ", code "
           << static_cast<int>(code) << "): passed";
       continue;
@@ -578,15 +648,24 @@ absl::StatusOr<std::vector<LogEntry>> NatsFleetLog::Read(
           absl::StrCat("cluster: reading entry ", sequence,
                        " of the log of fleet \"", V(fleet_id), "\""));
     }
-    LogEntry entry;
+    engine::LogEntry entry;
     entry.sequence = sequence;
     const char* id = nullptr;
     if (natsMsgHeader_Get(msg, "Nats-Msg-Id", &id) == NATS_OK &&
         id != nullptr) {
       entry.id = id;
     }
-    entry.data.assign(natsMsg_GetData(msg), natsMsg_GetDataLength(msg));
+    absl::StatusOr<engine::StoredRecord> record = DecodeRecord(
+        fleet_id, sequence,
+        std::string_view(natsMsg_GetData(msg), natsMsg_GetDataLength(msg)));
     natsMsg_Destroy(msg);
+    if (!record.ok()) {
+      // Never passed: the entries before it are applied, then it stops
+      // the fleet's log (said in the log) until a version that knows it.
+      if (!entries.empty()) break;
+      return record.status();
+    }
+    entry.record = *std::move(record);
     entries.push_back(std::move(entry));
   }
   return entries;

@@ -1,4 +1,5 @@
-// ReplicatedLog and LeaseTable on NATS JetStream (Debian's libnats, nats.c):
+// The fleet log (engine/fleet_log.h), the lease table and the snapshot
+// store (cluster_ports.h) on NATS JetStream (Debian's libnats, nats.c):
 //  - each fleet's log is a stream, FLEETMEM_<XXH3-64 of the fleet id in
 //    hex> on subject fleetmem.log.<same>, replicated `replicas` times, with
 //    JetStream's deduplication by message id (Nats-Msg-Id) over
@@ -23,6 +24,7 @@
 
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <utility>
 #include <vector>
@@ -30,7 +32,8 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/time/time.h"
-#include "services/cluster/replicated_log.h"
+#include "services/cluster/cluster_ports.h"
+#include "services/engine/fleet_log.h"
 
 namespace fleetmem::cluster {
 
@@ -63,7 +66,7 @@ struct NatsOptions {
 // INVALID_ARGUMENT naming the first bad field.
 absl::Status ValidateNatsOptions(const NatsOptions& options);
 
-class NatsFleetLog final : public ReplicatedLog,
+class NatsFleetLog final : public engine::FleetLog,
                            public LeaseTable,
                            public SnapshotStore {
  public:
@@ -73,15 +76,26 @@ class NatsFleetLog final : public ReplicatedLog,
       NatsOptions options);
   ~NatsFleetLog() override;
 
-  absl::StatusOr<Appended> Append(std::string_view fleet_id,
-                                  std::string_view id, std::string_view data,
-                                  bool only_first = false) override;
-  absl::StatusOr<std::vector<LogEntry>> Read(std::string_view fleet_id,
-                                             uint64_t from,
-                                             size_t max) override;
-  absl::StatusOr<uint64_t> LastSequence(std::string_view fleet_id) override;
-  absl::StatusOr<uint64_t> FirstSequence(std::string_view fleet_id) override;
-  absl::Status Trim(std::string_view fleet_id, uint64_t sequence) override;
+  // Publishes the entries one at a time (the log's stream made on first
+  // use), each under its id (Nats-Msg-Id; none for an empty id), and
+  // returns once JetStream stored each on its replicas. UNAVAILABLE or
+  // DEADLINE_EXCEEDED: unknown whether the entry that failed was stored;
+  // appending again under the same ids cannot store one twice within
+  // the duplicate window. options.above must be 0.
+  absl::StatusOr<std::vector<engine::AppendedEntry>> Append(
+      std::string_view fleet_id, std::span<const engine::LogAppend> entries,
+      const engine::AppendOptions& options) override;
+  // One get per entry from the stream's leader; numbers the stream skipped
+  // are passed (said in the log). OUT_OF_RANGE when entries after `after`
+  // were trimmed.
+  absl::StatusOr<std::vector<engine::LogEntry>> Read(std::string_view fleet_id,
+                                                     uint64_t after,
+                                                     size_t max) override;
+  absl::StatusOr<engine::LogBounds> Bounds(std::string_view fleet_id) override;
+  // Purges the stream through `through` (entries a snapshot covers).
+  absl::Status Trim(std::string_view fleet_id, uint64_t through) override;
+  // While JetStream cannot list the logs (electing its meta leader), those
+  // it listed before, if any.
   absl::StatusOr<std::vector<std::string>> Fleets() override;
 
   absl::Status Put(std::string_view fleet_id, const SnapshotInfo& info,
@@ -118,9 +132,11 @@ class NatsFleetLog final : public ReplicatedLog,
   // Removes the messages of `stream` before `sequence` (none if there are
   // none before it).
   absl::Status PurgeBelow(const std::string& stream, uint64_t sequence);
-  // The first and last sequence of the fleet's log ({0, 0}: none).
-  absl::StatusOr<std::pair<uint64_t, uint64_t>> Bounds(
-      std::string_view fleet_id);
+  // Appends one entry (Append's), as the log's first if `only_first`.
+  absl::StatusOr<engine::AppendedEntry> AppendOne(std::string_view fleet_id,
+                                                  std::string_view id,
+                                                  std::string_view data,
+                                                  bool only_first);
   // The latest snapshot's description and the stream sequence of its
   // message (nullopt: none).
   struct LatestMeta;

@@ -7,6 +7,8 @@
 #include <memory>
 #include <string>
 #include <thread>
+#include <tuple>
+#include <variant>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -25,6 +27,24 @@ using testing::ServerOptions;
 
 using NatsFleetLogTest = NatsFixture;
 
+// Appends a SampleReplay call naming `robot` (a record that carries any
+// bytes) under `id`.
+absl::StatusOr<engine::AppendedEntry> AppendCall(NatsFleetLog& log,
+                                                 const std::string& fleet,
+                                                 const std::string& id,
+                                                 const std::string& robot) {
+  const engine::LogAppend append{engine::SampleReplayRecord{robot, 1, ""}, id};
+  absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+      log.Append(fleet, {&append, 1}, {});
+  if (!appended.ok()) return appended.status();
+  return appended->front();
+}
+
+std::string RobotOf(const engine::LogEntry& entry) {
+  const auto* call = std::get_if<engine::SampleReplayCall>(&entry.record);
+  return call == nullptr ? "(not a call)" : call->robot_id;
+}
+
 TEST_F(NatsFleetLogTest, AppendsInOrderAndDropsARepeatedId) {
   std::unique_ptr<NatsFleetLog> log = Connect();
   ASSERT_NE(log, nullptr);
@@ -34,48 +54,107 @@ TEST_F(NatsFleetLogTest, AppendsInOrderAndDropsARepeatedId) {
            {"r1:1-100", "first", 1},
            {"r2:1-50", std::string("with\0zero", 9), 2},
            {"r1:101-200", "third", 3}}) {
-    absl::StatusOr<Appended> appended = log->Append(fleet, id, data);
+    absl::StatusOr<engine::AppendedEntry> appended =
+        AppendCall(*log, fleet, id, data);
     ASSERT_TRUE(appended.ok()) << appended.status();
     EXPECT_EQ(appended->sequence, sequence);
     EXPECT_FALSE(appended->duplicate);
   }
   // The same id again (a retried upload): not stored twice.
-  absl::StatusOr<Appended> again = log->Append(fleet, "r2:1-50", "retried");
+  absl::StatusOr<engine::AppendedEntry> again =
+      AppendCall(*log, fleet, "r2:1-50", "retried");
   ASSERT_TRUE(again.ok()) << again.status();
   EXPECT_TRUE(again->duplicate);
   EXPECT_EQ(again->sequence, 2u);
-  EXPECT_EQ(*log->LastSequence(fleet), 3u);
+  EXPECT_EQ(log->Bounds(fleet)->last, 3u);
 
-  absl::StatusOr<std::vector<LogEntry>> all = log->Read(fleet, 1, 100);
+  absl::StatusOr<std::vector<engine::LogEntry>> all = log->Read(fleet, 0, 100);
   ASSERT_TRUE(all.ok()) << all.status();
   ASSERT_EQ(all->size(), 3u);
   EXPECT_EQ((*all)[1].sequence, 2u);
   EXPECT_EQ((*all)[1].id, "r2:1-50");
-  EXPECT_EQ((*all)[1].data, std::string("with\0zero", 9));
-  absl::StatusOr<std::vector<LogEntry>> one = log->Read(fleet, 3, 1);
+  EXPECT_EQ(RobotOf((*all)[1]), std::string("with\0zero", 9));
+  absl::StatusOr<std::vector<engine::LogEntry>> one = log->Read(fleet, 2, 1);
   ASSERT_TRUE(one.ok()) << one.status();
   ASSERT_EQ(one->size(), 1u);
-  EXPECT_EQ(one->front().data, "third");
-  EXPECT_TRUE(log->Read(fleet, 4, 10)->empty());
-  EXPECT_EQ(log->Read(fleet, 0, 10).status().code(),
-            absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(log->Append(fleet, "", "x").status().code(),
+  EXPECT_EQ(RobotOf(one->front()), "third");
+  EXPECT_TRUE(log->Read(fleet, 3, 10)->empty());
+  // No id: no deduplication (a call's entry).
+  EXPECT_EQ(AppendCall(*log, fleet, "", "x")->sequence, 4u);
+  EXPECT_EQ(AppendCall(*log, fleet, "", "x")->sequence, 5u);
+  // JetStream numbers its entries itself.
+  const engine::LogAppend floor{engine::ConsolidateRecord{}};
+  EXPECT_EQ(log->Append(fleet, {&floor, 1}, {.above = 10}).status().code(),
             absl::StatusCode::kInvalidArgument);
 
   // Each fleet has its own log; a fleet without one reads as empty.
-  EXPECT_EQ(log->Append("other", "r1:1-100", "x")->sequence, 1u);
-  EXPECT_EQ(*log->LastSequence("never written"), 0u);
-  EXPECT_TRUE(log->Read("never written", 1, 10)->empty());
+  EXPECT_EQ(AppendCall(*log, "other", "r1:1-100", "x")->sequence, 1u);
+  EXPECT_EQ(log->Bounds("never written")->last, 0u);
+  EXPECT_TRUE(log->Read("never written", 0, 10)->empty());
+}
+
+// Every kind of record reads back as it was appended; `only_first` appends
+// only to an empty log.
+TEST_F(NatsFleetLogTest, RecordsReadBackAsAppended) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  std::vector<core::MemoryTrace> traces(2);
+  for (uint64_t i = 0; i < traces.size(); ++i) {
+    traces[i].robot_id = "r1";
+    traces[i].seq = i + 1;
+    traces[i].code = {0.5f, -1.0f, static_cast<float>(i)};
+    traces[i].place = {1.0, 2.0, 0.0, 0.25};
+    traces[i].encoder_version = "enc-v1";
+  }
+  const std::vector<engine::LogAppend> appends = {
+      {engine::UploadRecord{traces}, "upload/2/r1/1-2"},
+      {engine::ConsolidateRecord{}},
+      {engine::SampleReplayRecord{"r1", 7, "req-1"}}};
+  absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+      log->Append("f", appends, {.only_first = true});
+  ASSERT_TRUE(appended.ok()) << appended.status();
+  ASSERT_EQ(appended->size(), 3u);
+  EXPECT_EQ((*appended)[2].sequence, 3u);
+  // Another upload creating the fleet: refused. (The same first entry
+  // again is a retry: answered as a duplicate, as without the option.)
+  const engine::LogAppend other{engine::UploadRecord{traces}, "other"};
+  EXPECT_EQ(log->Append("f", {&other, 1}, {.only_first = true}).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(log->Append("f", {&appends[0], 1}, {.only_first = true})
+                  ->front()
+                  .duplicate);
+  EXPECT_EQ(log->Bounds("f")->last, 3u);
+
+  absl::StatusOr<std::vector<engine::LogEntry>> all = log->Read("f", 0, 10);
+  ASSERT_TRUE(all.ok()) << all.status();
+  ASSERT_EQ(all->size(), 3u);
+  ASSERT_EQ((*all)[0].traces().size(), 2u);
+  EXPECT_EQ((*all)[0].traces()[1].code, traces[1].code);
+  EXPECT_EQ((*all)[0].traces()[1].seq, 2u);
+  EXPECT_TRUE(
+      std::holds_alternative<engine::ConsolidateRecord>((*all)[1].record));
+  const auto* call = std::get_if<engine::SampleReplayCall>(&(*all)[2].record);
+  ASSERT_NE(call, nullptr);
+  EXPECT_EQ(call->robot_id, "r1");
+  EXPECT_EQ(call->count, 7u);
+  EXPECT_EQ(call->request_id, "req-1");
+  // Trimmed through 2: the bounds say so, and a read from before it is
+  // OUT_OF_RANGE (a snapshot holds those entries).
+  ASSERT_TRUE(log->Trim("f", 2).ok());
+  EXPECT_EQ(log->Bounds("f")->first, 3u);
+  EXPECT_EQ(log->Read("f", 0, 10).status().code(),
+            absl::StatusCode::kOutOfRange);
+  EXPECT_EQ(log->Read("f", 2, 10)->size(), 1u);
 }
 
 TEST_F(NatsFleetLogTest, AnEntryAboveNatsMaxPayloadIsRefusedClearly) {
   std::unique_ptr<NatsFleetLog> log = Connect();
   ASSERT_NE(log, nullptr);
-  absl::StatusOr<Appended> big =
-      log->Append("f", "r:1", std::string(2 * 1024 * 1024, 'x'));
+  absl::StatusOr<engine::AppendedEntry> big =
+      AppendCall(*log, "f", "r:1", std::string(2 * 1024 * 1024, 'x'));
   EXPECT_EQ(big.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(big.status().message(), HasSubstr("max_payload"));
-  EXPECT_EQ(*log->LastSequence("f"), 0u);
+  EXPECT_EQ(log->Bounds("f")->last, 0u);
 }
 
 // Acknowledged entries survive nats-server being killed: a client of the
@@ -84,7 +163,8 @@ TEST_F(NatsFleetLogTest, AcknowledgedEntriesSurviveAKilledServer) {
   std::unique_ptr<NatsFleetLog> log = Connect();
   ASSERT_NE(log, nullptr);
   for (int i = 1; i <= 50; ++i) {
-    ASSERT_TRUE(log->Append("f", absl::StrCat("r:", i), absl::StrCat(i)).ok());
+    ASSERT_TRUE(
+        AppendCall(*log, "f", absl::StrCat("r:", i), absl::StrCat(i)).ok());
   }
   const int port = nats_->port();
   log.reset();
@@ -95,10 +175,11 @@ TEST_F(NatsFleetLogTest, AcknowledgedEntriesSurviveAKilledServer) {
   StartNats(options);
   log = Connect();
   ASSERT_NE(log, nullptr);
-  absl::StatusOr<std::vector<LogEntry>> all = log->Read("f", 1, 100);
+  absl::StatusOr<std::vector<engine::LogEntry>> all = log->Read("f", 0, 100);
   ASSERT_TRUE(all.ok()) << all.status();
   ASSERT_EQ(all->size(), 50u);
-  for (int i = 0; i < 50; ++i) EXPECT_EQ((*all)[i].data, absl::StrCat(i + 1));
+  for (int i = 0; i < 50; ++i)
+    EXPECT_EQ(RobotOf((*all)[i]), absl::StrCat(i + 1));
 }
 
 TEST_F(NatsFleetLogTest, ALeaseHasOneHolderAndFencesALateOne) {

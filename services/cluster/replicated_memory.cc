@@ -246,11 +246,11 @@ absl::StatusOr<std::optional<std::string>> ReplicatedMemory::Owner(
     }
     return (*holder)->owner;
   }
-  absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
-  if (!last.ok()) return last.status();
+  absl::StatusOr<engine::LogBounds> bounds = log_->Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
   // No log: the fleet does not exist, which this replica says as well as
   // any.
-  if (*last == 0) return std::nullopt;
+  if (bounds->last == 0) return std::nullopt;
   return absl::UnavailableError(absl::StrCat(
       "fleet \"", V(fleet_id),
       "\" has no owner right now (its owner was lost; another replica takes "
@@ -304,10 +304,10 @@ engine::Backlog ReplicatedMemory::Backlog(std::string_view fleet_id) {
   engine::Backlog backlog;
   for (const auto& [owned, position] : node_.materialiser().Positions()) {
     if (owned != fleet_id) continue;
-    absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
-    if (!last.ok()) break;
+    absl::StatusOr<engine::LogBounds> bounds = log_->Bounds(fleet_id);
+    if (!bounds.ok()) break;
     backlog.applied_through = position;
-    backlog.appended_through = std::max(*last, position);
+    backlog.appended_through = std::max(bounds->last, position);
     backlog.entries = backlog.appended_through - position;
   }
   return backlog;
@@ -316,10 +316,11 @@ engine::Backlog ReplicatedMemory::Backlog(std::string_view fleet_id) {
 std::vector<std::pair<std::string, double>> ReplicatedMemory::LogLag() {
   std::vector<std::pair<std::string, double>> lag;
   for (const auto& [fleet_id, position] : node_.materialiser().Positions()) {
-    absl::StatusOr<uint64_t> last = log_->LastSequence(fleet_id);
-    if (!last.ok()) continue;
-    lag.emplace_back(
-        fleet_id, static_cast<double>(*last > position ? *last - position : 0));
+    absl::StatusOr<engine::LogBounds> bounds = log_->Bounds(fleet_id);
+    if (!bounds.ok()) continue;
+    lag.emplace_back(fleet_id, static_cast<double>(bounds->last > position
+                                                       ? bounds->last - position
+                                                       : 0));
   }
   return lag;
 }

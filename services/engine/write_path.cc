@@ -135,7 +135,10 @@ std::vector<std::string> BacklogWarnings(
 
 WritePath::WritePath(WritePathOptions options, MemoryEngine* engine,
                      FleetLog* log)
-    : options_(std::move(options)), engine_(engine), log_(log) {}
+    : options_(std::move(options)),
+      engine_(engine),
+      log_(log),
+      applier_(log, engine) {}
 
 WritePath::~WritePath() { Stop(); }
 
@@ -173,12 +176,13 @@ absl::Status WritePath::Recover() {
     absl::MutexLock lock(&log.mu);
     log.appended_through = log.applied_through = *position;
   }
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> tails =
-      log_->Tails();
-  if (!tails.ok()) return tails.status();
+  absl::StatusOr<std::vector<std::string>> logged = log_->Fleets();
+  if (!logged.ok()) return logged.status();
   uint64_t created = 0;  // fleets whose first upload waits in their log
-  for (const auto& [fleet_id, last] : *tails) {
-    absl::StatusOr<bool> recovered = RecoverTail(fleet_id, last);
+  for (const std::string& fleet_id : *logged) {
+    absl::StatusOr<LogBounds> bounds = log_->Bounds(fleet_id);
+    if (!bounds.ok()) return bounds.status();
+    absl::StatusOr<bool> recovered = RecoverTail(fleet_id, bounds->last);
     if (!recovered.ok()) return recovered.status();
     if (*recovered) ++created;
   }
@@ -198,20 +202,20 @@ absl::StatusOr<bool> WritePath::RecoverTail(const std::string& fleet_id,
   uint64_t traces = 0;
   std::deque<FleetWrites::Entry> entries;
   while (true) {
-    absl::StatusOr<std::vector<LoggedUpload>> page =
+    absl::StatusOr<std::vector<LogEntry>> page =
         log_->Read(fleet_id, after, kRecoveryPage);
     if (!page.ok()) return page.status();
-    for (const LoggedUpload& entry : *page) {
-      if (!log.shape.has_value() && !entry.traces.empty()) {
-        log.shape =
-            FleetShape{static_cast<uint32_t>(entry.traces[0].code.size()),
-                       entry.traces[0].encoder_version};
+    for (const LogEntry& entry : *page) {
+      const std::span<const core::MemoryTrace> logged = entry.traces();
+      if (!log.shape.has_value() && !logged.empty()) {
+        log.shape = FleetShape{static_cast<uint32_t>(logged[0].code.size()),
+                               logged[0].encoder_version};
       }
-      for (const core::MemoryTrace& trace : entry.traces) {
+      for (const core::MemoryTrace& trace : logged) {
         log.recovered[trace.robot_id].Insert(trace.seq);
       }
-      entries.push_back({entry.sequence, entry.traces.size(), now, nullptr});
-      traces += entry.traces.size();
+      entries.push_back({entry.sequence, logged.size(), now, nullptr});
+      traces += logged.size();
       after = entry.sequence;
     }
     if (page->size() < kRecoveryPage) break;
@@ -433,9 +437,9 @@ struct WritePath::Group {
   // The robots' seq sets as this group leaves them; kept only if the write
   // succeeds.
   absl::flat_hash_map<std::string, core::SeqSet> seqs;
-  FleetLoad load;         // backlog: the log's, and what this group adds
-  uint64_t sequence = 0;  // the next entry's
+  FleetLoad load;  // backlog: the log's, and what this group adds
   std::vector<LogAppend> appends;
+  std::vector<Request*> appending;  // the request of each append
 };
 
 const core::SeqSet& WritePath::SeqsOf(FleetWrites& log, Group& group,
@@ -519,9 +523,8 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
     }
     request.accepted = request.kept;
   }
-  request.result->sequence = group.sequence;
-  group.appends.push_back({group.sequence, request.accepted});
-  ++group.sequence;
+  group.appends.push_back({UploadRecord{request.accepted}});
+  group.appending.push_back(&request);
   group.load.backlog += accepted;
 }
 
@@ -536,15 +539,15 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
     }
   }
   admitted.shape = log.shape;
-  admitted.sequence = log.next_sequence;
   for (Request* request : group) Admit(log, admitted, *request);
   if (admitted.appends.empty()) return;
-  absl::Status written = log_->Append(log.id, admitted.appends);
+  // Above the sequences this write path gave or found applied: a log that
+  // lost its tail does not give them again.
+  absl::StatusOr<std::vector<AppendedEntry>> written =
+      log_->Append(log.id, admitted.appends, {.above = log.next_sequence - 1});
   if (!written.ok()) {
-    for (Request* request : group) {
-      if (request->result.ok() && request->result->sequence != 0) {
-        request->result = written;
-      }
+    for (Request* request : admitted.appending) {
+      request->result = written.status();
     }
     if (admitted.created) {
       absl::MutexLock lock(&logs_mu_);
@@ -552,7 +555,10 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
     }
     return;
   }
-  log.next_sequence = admitted.sequence;
+  for (size_t i = 0; i < admitted.appending.size(); ++i) {
+    admitted.appending[i]->result->sequence = (*written)[i].sequence;
+  }
+  log.next_sequence = written->back().sequence + 1;
   log.shape = std::move(admitted.shape);
   for (auto& [robot_id, seqs] : admitted.seqs) {
     log.recovered.erase(robot_id);
@@ -696,10 +702,27 @@ void WritePath::ApplyTurn(FleetWrites& log) {
     through = log.appended_through;
   }
   if (through <= from) return;
-  absl::StatusOr<std::vector<LoggedUpload>> entries =
-      log_->Read(log.id, from, options_.apply_batch);
-  if (!entries.ok()) return WaitToRetry(log, from, entries.status());
-  if (entries->empty() || entries->front().sequence > through) {
+  ApplyHooks hooks;
+  hooks.may_apply = [&](const LogEntry& entry) {
+    return entry.sequence <= through && !stop_.load(std::memory_order_relaxed);
+  };
+  hooks.applied = [&](const LogEntry& entry, const AppliedRecord& applied) {
+    if (applied.duplicates > 0) {
+      // Append admits only seqs the fleet has not received: a duplicate
+      // here is an entry applied twice (the crash trials count this line).
+      FLEETMEM_LOG(kError) << "fleet \"" << log.id
+                           << "\": " << applied.duplicates
+                           << " traces of log entry " << entry.sequence
+                           << " were applied twice";
+    }
+    MarkApplied(log, entry.sequence, applied);
+  };
+  absl::StatusOr<AppliedTurn> turn =
+      applier_.Turn(log.id, from, options_.apply_batch, hooks);
+  if (!turn.ok()) return WaitToRetry(log, from, turn.status());
+  if (turn->applied == 0 && turn->stopped.ok() &&
+      !stop_.load(std::memory_order_relaxed)) {
+    // The log holds no entry from `from` through `through`.
     if (LostFrom(log_->Losses(log.id), from) >= through) {
       // Every entry left was found damaged (reported as it was found).
       MarkApplied(log, through, AppliedRecord{});
@@ -711,36 +734,18 @@ void WritePath::ApplyTurn(FleetWrites& log) {
                                          " though entries through ", through,
                                          " were acknowledged")));
   }
-  uint64_t applied = from;
-  for (const LoggedUpload& entry : *entries) {
-    if (entry.sequence > through || stop_.load(std::memory_order_relaxed)) {
-      break;
+  if (turn->position > from) {
+    if (absl::Status trimmed = log_->Trim(log.id, turn->position);
+        !trimmed.ok()) {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << log.id << "\": applied log entries through "
+          << turn->position
+          << " not trimmed (the next turn or Open does): " << trimmed;
     }
-    absl::StatusOr<AppliedRecord> outcome = ApplyLogRecord(
-        *engine_, log.id, entry.sequence, UploadRecord{entry.traces});
-    if (!outcome.ok()) {
-      // The store (a full disk): retried until it applies; never dropped.
-      // (No limit refuses an acknowledged entry: engine/admission.h.)
-      if (applied > from) log_->Trim(log.id, applied).IgnoreError();
-      return WaitToRetry(log, from, outcome.status());
-    }
-    if (outcome->duplicates > 0) {
-      // Append admits only seqs the fleet has not received: a duplicate
-      // here is an entry applied twice (the crash trials count this line).
-      FLEETMEM_LOG(kError) << "fleet \"" << log.id
-                           << "\": " << outcome->duplicates
-                           << " traces of log entry " << entry.sequence
-                           << " were applied twice";
-    }
-    MarkApplied(log, entry.sequence, *outcome);
-    applied = entry.sequence;
   }
-  if (absl::Status trimmed = log_->Trim(log.id, applied); !trimmed.ok()) {
-    FLEETMEM_LOG(kWarning) << "fleet \"" << log.id
-                           << "\": applied log entries through " << applied
-                           << " not trimmed (the next turn or Open does): "
-                           << trimmed;
-  }
+  // The store refused (a full disk): retried until it applies; never
+  // dropped. (No limit refuses an acknowledged entry: engine/admission.h.)
+  if (!turn->stopped.ok()) WaitToRetry(log, turn->position, turn->stopped);
 }
 
 void WritePath::MarkApplied(FleetWrites& log, uint64_t sequence,

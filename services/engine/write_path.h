@@ -11,11 +11,11 @@
 // log write (group commit).
 //
 // Appliers (a few threads shared by every fleet; a fleet's log is applied by
-// one at a time, in order) apply the log through ApplyLogRecord
-// (log_apply.h): the same deterministic apply that distributed mode's
-// cluster::Materialiser runs on the replicated log's entries, which stores
-// the sequence with the traces it adds (MemoryEngine::LogPosition), so that
-// an entry applied again after a crash changes nothing. Consolidation,
+// one at a time, in order) run the fleet's turns of the LogApplier
+// (log_applier.h): the one applier, which distributed mode's
+// cluster::Materialiser runs over the replicated log too, storing each
+// upload with its entry's sequence (MemoryEngine::LogPosition), so that an
+// entry applied again after a crash changes nothing. Consolidation,
 // forgetting and indexing happen there, off the acknowledgement. Applied
 // entries are trimmed from the log.
 //
@@ -44,7 +44,7 @@
 #include "services/core/seq_set.h"
 #include "services/core/types.h"
 #include "services/engine/fleet_log.h"
-#include "services/engine/log_apply.h"
+#include "services/engine/log_applier.h"
 #include "services/engine/memory_engine.h"
 
 namespace fleetmem::engine {
@@ -245,6 +245,7 @@ class WritePath {
   const WritePathOptions options_;
   MemoryEngine* const engine_;
   FleetLog* const log_;
+  LogApplier applier_;
 
   mutable absl::Mutex logs_mu_;
   absl::flat_hash_map<std::string, std::unique_ptr<FleetWrites>> logs_

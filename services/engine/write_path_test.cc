@@ -68,8 +68,9 @@ class GatedStorage : public ForwardingStore, public ForwardingLog {
     }
     return ForwardingStore::Apply(fleet_id, mutation);
   }
-  absl::Status Append(std::string_view fleet_id,
-                      std::span<const LogAppend> entries) override {
+  absl::StatusOr<std::vector<AppendedEntry>> Append(
+      std::string_view fleet_id, std::span<const LogAppend> entries,
+      const AppendOptions& options) override {
     {
       absl::MutexLock lock(&mu_);
       ++appends_;
@@ -77,7 +78,7 @@ class GatedStorage : public ForwardingStore, public ForwardingLog {
       if (!append_error_.ok()) return append_error_;
       while (!appends_open_) changed_.Wait(&mu_);
     }
-    return ForwardingLog::Append(fleet_id, entries);
+    return ForwardingLog::Append(fleet_id, entries, options);
   }
 
   void SetApplies(bool open) {
@@ -219,7 +220,7 @@ TEST_F(WritePathTest, InvalidUploadsChangeNothingAndMakeNoFleet) {
   EXPECT_EQ(path_->Append("f", bad).status().code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(path_->GetBacklog("f").appended_through, 0u);
-  EXPECT_TRUE(store_.Tails()->empty());
+  EXPECT_TRUE(store_.Fleets()->empty());
   ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 3)).ok());
   // The fleet's shape is fixed by its first upload, before it is applied.
   std::vector<core::MemoryTrace> wider = Traces("r2", 1, 1);
@@ -368,15 +369,18 @@ TEST_F(WritePathTest, OpenAppliesTheAcknowledgedTailOnceAfterACrash) {
   // What a crashed server leaves: the log holds entries 1..3, of which the
   // engine had applied 1 (stored with its position) but not trimmed it.
   Open();
-  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 4), true).ok());
-  ASSERT_TRUE(path_->WaitApplied("f", 1, absl::Now() + kWait).ok());
   path_.reset();
-  engine_.reset();
   const std::vector<core::MemoryTrace> first = Traces("r1", 1, 4);
   const std::vector<core::MemoryTrace> second = Traces("r1", 5, 4);
   const std::vector<core::MemoryTrace> third = Traces("r2", 1, 3);
-  const LogAppend entries[] = {{1, first}, {2, second}, {3, third}};
-  ASSERT_TRUE(log_->Append("f", entries).ok());
+  const LogAppend entries[] = {
+      {UploadRecord{first}}, {UploadRecord{second}}, {UploadRecord{third}}};
+  absl::StatusOr<std::vector<AppendedEntry>> logged =
+      log_->Append("f", entries, {});
+  ASSERT_TRUE(logged.ok()) << logged.status();
+  ASSERT_EQ(logged->back().sequence, 3u);
+  // The applier applied entry 1 (stored with its position), then crashed.
+  ASSERT_TRUE(engine_->Upload("f", first, 1).ok());
 
   Open();
   ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
@@ -417,8 +421,8 @@ TEST_F(WritePathTest, AnAcknowledgedEntryAppliesPastALimitLoweredSince) {
 TEST_F(WritePathTest, AFleetOnlyInItsLogIsMadeWhenApplied) {
   // The first upload of a fleet, acknowledged, then the server crashed.
   const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 3);
-  const LogAppend entries[] = {{1, traces}};
-  ASSERT_TRUE(log_->Append("new", entries).ok());
+  const LogAppend entries[] = {{UploadRecord{traces}}};
+  ASSERT_TRUE(log_->Append("new", entries, {}).ok());
   store_.SetApplies(false);
   Open();
   // Its shape is known before it is applied.

@@ -104,24 +104,28 @@ class TimedFleetLog final : public engine::FleetLog {
   TimedFleetLog(engine::FleetLog* log, Histogram* writes, Counter* write_errors)
       : log_(log), writes_(writes), write_errors_(write_errors) {}
 
-  absl::Status Append(std::string_view fleet_id,
-                      std::span<const engine::LogAppend> entries) override {
+  absl::StatusOr<std::vector<engine::AppendedEntry>> Append(
+      std::string_view fleet_id, std::span<const engine::LogAppend> entries,
+      const engine::AppendOptions& options) override {
     const absl::Time start = absl::Now();
-    absl::Status status = log_->Append(fleet_id, entries);
+    absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+        log_->Append(fleet_id, entries, options);
     writes_->Observe(absl::ToDoubleSeconds(absl::Now() - start));
-    if (!status.ok()) write_errors_->Increment();
-    return status;
+    if (!appended.ok()) write_errors_->Increment();
+    return appended;
   }
-  absl::StatusOr<std::vector<engine::LoggedUpload>> Read(
+  absl::StatusOr<std::vector<engine::LogEntry>> Read(
       std::string_view fleet_id, uint64_t after, size_t max_entries) override {
     return log_->Read(fleet_id, after, max_entries);
   }
   absl::Status Trim(std::string_view fleet_id, uint64_t through) override {
     return log_->Trim(fleet_id, through);
   }
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Tails()
-      override {
-    return log_->Tails();
+  absl::StatusOr<engine::LogBounds> Bounds(std::string_view fleet_id) override {
+    return log_->Bounds(fleet_id);
+  }
+  absl::StatusOr<std::vector<std::string>> Fleets() override {
+    return log_->Fleets();
   }
   std::vector<engine::LostLogEntries> Losses(
       std::string_view fleet_id) override {

@@ -1,9 +1,11 @@
 #include "services/storage/in_memory_log.h"
 
+#include <algorithm>
 #include <functional>
 #include <map>
 #include <string>
 #include <utility>
+#include <variant>
 #include <vector>
 
 #include "absl/synchronization/mutex.h"
@@ -13,26 +15,35 @@ namespace {
 
 class InMemoryLog final : public engine::FleetLog {
  public:
-  absl::Status Append(std::string_view fleet_id,
-                      std::span<const engine::LogAppend> entries) override {
+  absl::StatusOr<std::vector<engine::AppendedEntry>> Append(
+      std::string_view fleet_id, std::span<const engine::LogAppend> entries,
+      const engine::AppendOptions& options) override {
+    std::vector<engine::AppendedEntry> appended;
+    if (entries.empty()) return appended;
     absl::MutexLock lock(&mu_);
-    auto& log = logs_[std::string(fleet_id)];
-    for (const engine::LogAppend& entry : entries) {
-      log[entry.sequence] = std::vector<core::MemoryTrace>(entry.traces.begin(),
-                                                           entry.traces.end());
+    Fleet& log = logs_[std::string(fleet_id)];
+    if (options.only_first && log.last > 0) {
+      return absl::FailedPreconditionError(
+          "the fleet's log has entries already (nothing was appended)");
     }
-    return absl::OkStatus();
+    log.last = std::max(log.last, options.above);
+    for (const engine::LogAppend& entry : entries) {
+      log.entries[++log.last] = Own(entry.record);
+      appended.push_back({log.last, false});
+    }
+    return appended;
   }
 
-  absl::StatusOr<std::vector<engine::LoggedUpload>> Read(
+  absl::StatusOr<std::vector<engine::LogEntry>> Read(
       std::string_view fleet_id, uint64_t after, size_t max_entries) override {
-    std::vector<engine::LoggedUpload> entries;
+    std::vector<engine::LogEntry> entries;
     absl::MutexLock lock(&mu_);
     auto it = logs_.find(fleet_id);
     if (it == logs_.end()) return entries;
-    for (auto entry = it->second.upper_bound(after);
-         entry != it->second.end() && entries.size() < max_entries; ++entry) {
-      entries.push_back({entry->first, entry->second});
+    const auto& held = it->second.entries;
+    for (auto entry = held.upper_bound(after);
+         entry != held.end() && entries.size() < max_entries; ++entry) {
+      entries.push_back({entry->first, std::string(), entry->second});
     }
     return entries;
   }
@@ -41,28 +52,50 @@ class InMemoryLog final : public engine::FleetLog {
     absl::MutexLock lock(&mu_);
     auto it = logs_.find(fleet_id);
     if (it == logs_.end()) return absl::OkStatus();
-    auto& log = it->second;
-    log.erase(log.begin(), log.upper_bound(through));
-    if (log.empty()) logs_.erase(it);
+    auto& held = it->second.entries;
+    held.erase(held.begin(), held.upper_bound(through));
     return absl::OkStatus();
   }
 
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Tails()
-      override {
-    std::vector<std::pair<std::string, uint64_t>> tails;
+  absl::StatusOr<engine::LogBounds> Bounds(std::string_view fleet_id) override {
+    absl::MutexLock lock(&mu_);
+    auto it = logs_.find(fleet_id);
+    if (it == logs_.end() || it->second.last == 0) return engine::LogBounds{};
+    const Fleet& log = it->second;
+    return engine::LogBounds{
+        log.entries.empty() ? log.last + 1 : log.entries.begin()->first,
+        log.last};
+  }
+
+  absl::StatusOr<std::vector<std::string>> Fleets() override {
+    std::vector<std::string> fleets;
     absl::MutexLock lock(&mu_);
     for (const auto& [fleet_id, log] : logs_) {
-      if (!log.empty()) tails.emplace_back(fleet_id, log.rbegin()->first);
+      if (log.last > 0) fleets.push_back(fleet_id);
     }
-    return tails;
+    return fleets;
   }
 
  private:
+  struct Fleet {
+    std::map<uint64_t, engine::StoredRecord> entries;  // by sequence
+    uint64_t last = 0;  // kept when every entry is trimmed
+  };
+
+  static engine::StoredRecord Own(const engine::LogRecord& record) {
+    if (const auto* upload = std::get_if<engine::UploadRecord>(&record)) {
+      return std::vector<core::MemoryTrace>(upload->traces.begin(),
+                                            upload->traces.end());
+    }
+    if (const auto* call = std::get_if<engine::SampleReplayRecord>(&record)) {
+      return engine::SampleReplayCall{std::string(call->robot_id), call->count,
+                                      std::string(call->request_id)};
+    }
+    return engine::ConsolidateRecord{};
+  }
+
   absl::Mutex mu_;
-  // By fleet id, then sequence.
-  std::map<std::string, std::map<uint64_t, std::vector<core::MemoryTrace>>,
-           std::less<>>
-      logs_ ABSL_GUARDED_BY(mu_);
+  std::map<std::string, Fleet, std::less<>> logs_ ABSL_GUARDED_BY(mu_);
 };
 
 }  // namespace

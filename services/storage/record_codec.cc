@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <optional>
+#include <variant>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
@@ -141,45 +142,87 @@ absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
   return FromRecord(record);
 }
 
-struct LoggedUploadBytes::Impl {
+struct LoggedRecordBytes::Impl {
   google::protobuf::Arena arena;
-  LoggedUpload* record = nullptr;
+  LoggedRecord* record = nullptr;
   size_t size = 0;
 };
 
-LoggedUploadBytes::LoggedUploadBytes(std::span<const core::MemoryTrace> traces)
+namespace {
+
+// Fills `out` with `record` (the traces copied into the arena's message).
+struct ToLoggedRecord {
+  LoggedRecord* out;
+  void operator()(const engine::UploadRecord& upload) const {
+    out->mutable_traces()->Reserve(static_cast<int>(upload.traces.size()));
+    for (const core::MemoryTrace& trace : upload.traces) {
+      ToRecord(trace, out->add_traces());
+    }
+  }
+  void operator()(const engine::ConsolidateRecord&) const {
+    out->mutable_consolidate();
+  }
+  void operator()(const engine::SampleReplayRecord& call) const {
+    LoggedSampleReplay* sample = out->mutable_sample_replay();
+    sample->set_robot_id(std::string(call.robot_id));
+    sample->set_count(call.count);
+    sample->set_request_id(std::string(call.request_id));
+  }
+};
+
+// The record `logged` holds; nullopt when it holds none (no trace and no
+// call) or both.
+std::optional<engine::StoredRecord> FromLoggedRecord(
+    const LoggedRecord& logged) {
+  const int calls =
+      (logged.has_consolidate() ? 1 : 0) + (logged.has_sample_replay() ? 1 : 0);
+  if (calls + (logged.traces().empty() ? 0 : 1) != 1) return std::nullopt;
+  if (logged.has_consolidate()) return engine::ConsolidateRecord{};
+  if (logged.has_sample_replay()) {
+    const LoggedSampleReplay& call = logged.sample_replay();
+    return engine::SampleReplayCall{call.robot_id(), call.count(),
+                                    call.request_id()};
+  }
+  std::vector<core::MemoryTrace> traces;
+  traces.reserve(logged.traces_size());
+  for (const Trace& trace : logged.traces()) {
+    traces.push_back(FromRecord(trace));
+  }
+  return traces;
+}
+
+}  // namespace
+
+LoggedRecordBytes::LoggedRecordBytes(const engine::LogRecord& record)
     : impl_(std::make_unique<Impl>()) {
   impl_->record =
-      google::protobuf::Arena::CreateMessage<LoggedUpload>(&impl_->arena);
-  impl_->record->mutable_traces()->Reserve(static_cast<int>(traces.size()));
-  for (const core::MemoryTrace& trace : traces) {
-    ToRecord(trace, impl_->record->add_traces());
-  }
+      google::protobuf::Arena::CreateMessage<LoggedRecord>(&impl_->arena);
+  std::visit(ToLoggedRecord{impl_->record}, record);
   impl_->size = impl_->record->ByteSizeLong();
 }
 
-LoggedUploadBytes::~LoggedUploadBytes() = default;
-LoggedUploadBytes::LoggedUploadBytes(LoggedUploadBytes&&) noexcept = default;
-LoggedUploadBytes& LoggedUploadBytes::operator=(LoggedUploadBytes&&) noexcept =
+LoggedRecordBytes::~LoggedRecordBytes() = default;
+LoggedRecordBytes::LoggedRecordBytes(LoggedRecordBytes&&) noexcept = default;
+LoggedRecordBytes& LoggedRecordBytes::operator=(LoggedRecordBytes&&) noexcept =
     default;
 
-size_t LoggedUploadBytes::size() const { return impl_->size; }
+size_t LoggedRecordBytes::size() const { return impl_->size; }
 
-void LoggedUploadBytes::WriteTo(char* out) const {
+void LoggedRecordBytes::WriteTo(char* out) const {
   impl_->record->SerializeWithCachedSizesToArray(
       reinterpret_cast<uint8_t*>(out));
 }
 
-std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces) {
-  const LoggedUploadBytes bytes(traces);
+std::string EncodeLoggedRecord(const engine::LogRecord& record) {
+  const LoggedRecordBytes bytes(record);
   std::string out(bytes.size(), '\0');
   bytes.WriteTo(out.data());
   return out;
 }
 
-absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(
-    std::string_view key, std::string_view value) {
-  LoggedUpload record;
+absl::StatusOr<engine::LogEntry> DecodeLoggedUpload(std::string_view key,
+                                                    std::string_view value) {
+  LoggedRecord record;
   if (absl::Status status = Parse(key, value, &record); !status.ok()) {
     return status;
   }
@@ -189,28 +232,24 @@ absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(
   if (!sequence || *sequence == 0 || record.traces().empty()) {
     return Corrupt(key, "log entry does not match its key or holds no trace");
   }
-  engine::LoggedUpload entry;
+  engine::LogEntry entry;
   entry.sequence = *sequence;
-  entry.traces.reserve(record.traces_size());
-  for (const Trace& trace : record.traces()) {
-    entry.traces.push_back(FromRecord(trace));
-  }
+  entry.record = *FromLoggedRecord(record);
   return entry;
 }
 
-absl::StatusOr<std::vector<core::MemoryTrace>> DecodeLoggedTraces(
+absl::StatusOr<engine::StoredRecord> DecodeLoggedRecord(
     std::string_view where, std::string_view value) {
-  LoggedUpload record;
-  if (!record.ParseFromArray(value.data(), static_cast<int>(value.size())) ||
-      record.traces().empty()) {
-    return absl::DataLossError(
-        absl::StrCat(V(where), ": the entry does not parse or holds no trace"));
+  LoggedRecord record;
+  std::optional<engine::StoredRecord> decoded;
+  if (record.ParseFromArray(value.data(), static_cast<int>(value.size()))) {
+    decoded = FromLoggedRecord(record);
   }
-  std::vector<core::MemoryTrace> traces;
-  traces.reserve(record.traces_size());
-  for (const Trace& trace : record.traces())
-    traces.push_back(FromRecord(trace));
-  return traces;
+  if (!decoded.has_value()) {
+    return absl::DataLossError(absl::StrCat(
+        V(where), ": the entry does not parse or holds no record"));
+  }
+  return *std::move(decoded);
 }
 
 std::string EncodeCluster(const StoredCluster& cluster) {

@@ -51,18 +51,18 @@ std::string EncodeEvent(const core::MemoryEvent& event);
 absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
                                               std::string_view value);
 
-// An ingest-log entry (MemoryStore::AppendLog): its traces. Decoding
-// checks every trace as DecodeTrace would.
-std::string EncodeLoggedUpload(std::span<const core::MemoryTrace> traces);
+// A local log's entry (segment_log.h): its record. Decoding checks every
+// trace as DecodeTrace would.
+std::string EncodeLoggedRecord(const engine::LogRecord& record);
 // The same bytes, sized before they are written, so that they can go
-// straight into a caller's buffer (the ingest log's appends; its messages
-// live on an arena: one allocation, not one per trace and field).
-class LoggedUploadBytes {
+// straight into a caller's buffer (the log's appends; its messages live on
+// an arena: one allocation, not one per trace and field).
+class LoggedRecordBytes {
  public:
-  explicit LoggedUploadBytes(std::span<const core::MemoryTrace> traces);
-  ~LoggedUploadBytes();
-  LoggedUploadBytes(LoggedUploadBytes&&) noexcept;
-  LoggedUploadBytes& operator=(LoggedUploadBytes&&) noexcept;
+  explicit LoggedRecordBytes(const engine::LogRecord& record);
+  ~LoggedRecordBytes();
+  LoggedRecordBytes(LoggedRecordBytes&&) noexcept;
+  LoggedRecordBytes& operator=(LoggedRecordBytes&&) noexcept;
   size_t size() const;
   // Writes exactly size() bytes at `out`.
   void WriteTo(char* out) const;
@@ -71,12 +71,14 @@ class LoggedUploadBytes {
   struct Impl;
   std::unique_ptr<Impl> impl_;
 };
-absl::StatusOr<engine::LoggedUpload> DecodeLoggedUpload(std::string_view key,
+// An upload an earlier build kept in RocksDB under keys::LogKey, as an
+// entry (its sequence from the key).
+absl::StatusOr<engine::LogEntry> DecodeLoggedUpload(std::string_view key,
+                                                    std::string_view value);
+// The record of a local log entry's bytes; DATA_LOSS naming `where` when
+// they do not parse or hold no record (or two).
+absl::StatusOr<engine::StoredRecord> DecodeLoggedRecord(std::string_view where,
                                                         std::string_view value);
-// The traces of a logged upload's bytes outside RocksDB (segment_log.h);
-// DATA_LOSS naming `where` when they do not parse or hold no trace.
-absl::StatusOr<std::vector<core::MemoryTrace>> DecodeLoggedTraces(
-    std::string_view where, std::string_view value);
 
 // Moves the member traces of `stored` (read at `key`) out of `traces` into
 // a new cluster at the end of `clusters`; DATA_LOSS if a member has no

@@ -685,11 +685,6 @@ class RocksDbStore final : public engine::MemoryStore {
   // crash in between leaves them in both: the entries already moved are
   // skipped when this runs again.
   absl::Status MoveLegacyLog() {
-    std::map<std::string, uint64_t, std::less<>> moved;
-    absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> tails =
-        log_->Tails();
-    if (!tails.ok()) return tails.status();
-    for (const auto& [fleet, last] : *tails) moved[fleet] = last;
     std::vector<std::string> fleets;
     if (absl::Status listed = ForEachFleet(
             keys::Tag::kLog,
@@ -698,16 +693,18 @@ class RocksDbStore final : public engine::MemoryStore {
       return listed;
     }
     for (const std::string& fleet : fleets) {
-      uint64_t after = moved.contains(fleet) ? moved[fleet] : 0;
+      absl::StatusOr<engine::LogBounds> moved = log_->Bounds(fleet);
+      if (!moved.ok()) return moved.status();
+      uint64_t after = moved->last;
       uint64_t entries = 0;
       while (true) {
-        std::vector<engine::LoggedUpload> page;
+        std::vector<engine::LogEntry> page;
         const absl::Status read = ForEachInRange(
             db_.get(), rocksdb::ReadOptions(), keys::LogKey(fleet, after + 1),
             keys::PrefixEnd(keys::Tag::kLog, fleet),
             [&](std::string_view key,
                 std::string_view value) -> absl::StatusOr<bool> {
-              absl::StatusOr<engine::LoggedUpload> entry =
+              absl::StatusOr<engine::LogEntry> entry =
                   DecodeLoggedUpload(key, value);
               if (!entry.ok()) return entry.status();
               page.push_back(*std::move(entry));
@@ -715,13 +712,19 @@ class RocksDbStore final : public engine::MemoryStore {
             });
         if (!read.ok()) return read;
         if (page.empty()) break;
-        std::vector<engine::LogAppend> appends;
-        for (const engine::LoggedUpload& entry : page) {
-          appends.push_back({entry.sequence, entry.traces});
-        }
-        if (absl::Status appended = log_->Append(fleet, appends);
-            !appended.ok()) {
-          return appended;
+        // One append per entry, each under its own sequence (the
+        // engine's position counts them; a gap stays a gap).
+        for (const engine::LogEntry& entry : page) {
+          const engine::LogAppend append{entry.view()};
+          absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+              log_->Append(fleet, {&append, 1}, {.above = entry.sequence - 1});
+          if (!appended.ok()) return appended.status();
+          if (appended->front().sequence != entry.sequence) {
+            return absl::DataLossError(absl::StrCat(
+                "moving the ingest log of fleet \"", fleet, "\": entry ",
+                entry.sequence, " would become ", appended->front().sequence,
+                " (the log is ahead of it)"));
+          }
         }
         entries += page.size();
         after = page.back().sequence;

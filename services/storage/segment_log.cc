@@ -324,6 +324,18 @@ struct SegmentLog::Fleet {
   // Entries found damaged and passed over.
   std::vector<engine::LostLogEntries> losses ABSL_GUARDED_BY(mu);
 
+  // The last sequence the fleet's log gave (0: none): its last record's,
+  // or the one before the first of a segment left empty (a failed first
+  // append), so that no sequence is given twice.
+  uint64_t Last() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
+    uint64_t last = 0;
+    for (const std::shared_ptr<Segment>& segment : segments) {
+      last = std::max(last, segment->records.empty() ? segment->first - 1
+                                                     : segment->last());
+    }
+    return last;
+  }
+
   // Records and logs (an error) the loss of entries first..last.
   void Lose(uint64_t first, uint64_t last, std::string detail)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
@@ -521,7 +533,7 @@ SegmentLog::Fleet* SegmentLog::Find(std::string_view fleet_id) {
   return it == fleets_.end() ? nullptr : it->second.get();
 }
 
-std::vector<SegmentLog::Fleet*> SegmentLog::Fleets() {
+std::vector<SegmentLog::Fleet*> SegmentLog::AllFleets() {
   absl::MutexLock lock(&mu_);
   std::vector<Fleet*> fleets;
   for (const auto& [id, fleet] : fleets_) fleets.push_back(fleet.get());
@@ -627,8 +639,8 @@ struct Encoded {
   std::vector<SegmentLogRecord> records;  // offsets in the segment
 };
 
-absl::StatusOr<Encoded> Encode(std::span<const engine::LogAppend> entries,
-                               const std::vector<LoggedUploadBytes>& payloads,
+absl::StatusOr<Encoded> Encode(uint64_t first_sequence,
+                               const std::vector<LoggedRecordBytes>& payloads,
                                uint64_t bytes, uint64_t segment_first,
                                bool direct, uint64_t offset) {
   Encoded out;
@@ -642,12 +654,12 @@ absl::StatusOr<Encoded> Encode(std::span<const engine::LogAppend> entries,
   }
   char* buffer = out.buffer.get();
   size_t at = 0;
-  for (size_t i = 0; i < entries.size(); ++i) {
-    const LoggedUploadBytes& payload = payloads[i];
+  for (size_t i = 0; i < payloads.size(); ++i) {
+    const LoggedRecordBytes& payload = payloads[i];
     out.records.push_back(
-        {entries[i].sequence, offset + at, kHeaderBytes + payload.size()});
+        {first_sequence + i, offset + at, kHeaderBytes + payload.size()});
     payload.WriteTo(buffer + at + kHeaderBytes);
-    WriteHeader(buffer + at, segment_first, entries[i].sequence,
+    WriteHeader(buffer + at, segment_first, first_sequence + i,
                 static_cast<uint32_t>(payload.size()));
     at += kHeaderBytes + payload.size();
   }
@@ -683,20 +695,22 @@ bool Unwrite(int fd, const std::string& path, Encoded& append, uint64_t offset,
 
 }  // namespace
 
-absl::Status SegmentLog::Append(std::string_view fleet_id,
-                                std::span<const engine::LogAppend> entries) {
-  if (entries.empty()) return absl::OkStatus();
+absl::StatusOr<std::vector<engine::AppendedEntry>> SegmentLog::Append(
+    std::string_view fleet_id, std::span<const engine::LogAppend> entries,
+    const engine::AppendOptions& options) {
+  std::vector<engine::AppendedEntry> appended;
+  if (entries.empty()) return appended;
   // Checked at the edge already; here because the id names a directory,
   // and Open reads back only the fleets whose directory names a valid id.
   if (absl::Status valid = core::ValidateId("fleet_id", fleet_id);
       !valid.ok()) {
     return valid;
   }
-  std::vector<LoggedUploadBytes> payloads;
+  std::vector<LoggedRecordBytes> payloads;
   payloads.reserve(entries.size());
   uint64_t bytes = 0;
   for (const engine::LogAppend& entry : entries) {
-    payloads.emplace_back(entry.traces);
+    payloads.emplace_back(entry.record);
     bytes += kHeaderBytes + payloads.back().size();
   }
   if (options_.check_room) {
@@ -705,12 +719,22 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
     }
   }
   Fleet& fleet = FindOrMake(fleet_id);
-  absl::StatusOr<Target> target =
-      TargetOf(fleet, fleet_id, entries.front().sequence);
+  uint64_t last = 0;
+  {
+    absl::MutexLock lock(&fleet.mu);
+    last = fleet.Last();
+  }
+  if (options.only_first && last > 0) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("the log of fleet \"", V(fleet_id),
+                     "\" has entries already (nothing was appended)"));
+  }
+  const uint64_t first = std::max(last, options.above) + 1;
+  absl::StatusOr<Target> target = TargetOf(fleet, fleet_id, first);
   if (!target.ok()) return target.status();
   Segment& segment = *target->segment;
-  absl::StatusOr<Encoded> append = Encode(
-      entries, payloads, bytes, segment.first, segment.direct, target->offset);
+  absl::StatusOr<Encoded> append = Encode(first, payloads, bytes, segment.first,
+                                          segment.direct, target->offset);
   if (!append.ok()) return append.status();
   const int fd = segment.file->fd;
   absl::Status written =
@@ -752,12 +776,15 @@ absl::Status SegmentLog::Append(std::string_view fleet_id,
   segment.end = target->offset + append->size;
   segment.records.insert(segment.records.end(), append->records.begin(),
                          append->records.end());
-  return absl::OkStatus();
+  for (size_t i = 0; i < entries.size(); ++i) {
+    appended.push_back({first + i, false});
+  }
+  return appended;
 }
 
-absl::StatusOr<std::vector<engine::LoggedUpload>> SegmentLog::Read(
+absl::StatusOr<std::vector<engine::LogEntry>> SegmentLog::Read(
     std::string_view fleet_id, uint64_t after, size_t max_entries) {
-  std::vector<engine::LoggedUpload> out;
+  std::vector<engine::LogEntry> out;
   Fleet* fleet = Find(fleet_id);
   if (fleet == nullptr || max_entries == 0) return out;
   struct Wanted {
@@ -816,10 +843,10 @@ absl::StatusOr<std::vector<engine::LoggedUpload>> SegmentLog::Read(
       }
       continue;
     }
-    absl::StatusOr<std::vector<core::MemoryTrace>> traces = DecodeLoggedTraces(
+    absl::StatusOr<engine::StoredRecord> decoded = DecodeLoggedRecord(
         where, std::string_view(*record).substr(kHeaderBytes));
-    if (!traces.ok()) return traces.status();
-    out.push_back({want.sequence, *std::move(traces)});
+    if (!decoded.ok()) return decoded.status();
+    out.push_back({want.sequence, std::string(), *std::move(decoded)});
   }
   return out;
 }
@@ -879,25 +906,35 @@ absl::Status SegmentLog::Trim(std::string_view fleet_id, uint64_t through) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>>
-SegmentLog::Tails() {
-  const std::vector<Fleet*> fleets = Fleets();
-  std::vector<std::pair<std::string, uint64_t>> tails;
-  for (Fleet* fleet : fleets) {
-    absl::MutexLock lock(&fleet->mu);
-    for (auto it = fleet->segments.rbegin(); it != fleet->segments.rend();
-         ++it) {
-      if (!(*it)->records.empty()) {
-        tails.emplace_back(fleet->id, (*it)->last());
-        break;
-      }
+absl::StatusOr<engine::LogBounds> SegmentLog::Bounds(
+    std::string_view fleet_id) {
+  engine::LogBounds bounds;
+  Fleet* fleet = Find(fleet_id);
+  if (fleet == nullptr) return bounds;
+  absl::MutexLock lock(&fleet->mu);
+  bounds.last = fleet->Last();
+  bounds.first = bounds.last + 1;
+  for (const std::shared_ptr<Segment>& segment : fleet->segments) {
+    if (!segment->records.empty()) {
+      bounds.first = segment->records.front().sequence;
+      break;
     }
   }
-  return tails;
+  if (bounds.last == 0) bounds.first = 0;
+  return bounds;
+}
+
+absl::StatusOr<std::vector<std::string>> SegmentLog::Fleets() {
+  std::vector<std::string> fleets;
+  for (Fleet* fleet : AllFleets()) {
+    absl::MutexLock lock(&fleet->mu);
+    if (fleet->Last() > 0) fleets.push_back(fleet->id);
+  }
+  return fleets;
 }
 
 uint64_t SegmentLog::Bytes() {
-  const std::vector<Fleet*> fleets = Fleets();
+  const std::vector<Fleet*> fleets = AllFleets();
   uint64_t bytes = 0;
   for (Fleet* fleet : fleets) {
     absl::MutexLock lock(&fleet->mu);
@@ -910,7 +947,7 @@ uint64_t SegmentLog::Bytes() {
 
 uint64_t SegmentLog::SpareBytes() {
   uint64_t bytes = 0;
-  for (Fleet* fleet : Fleets()) {
+  for (Fleet* fleet : AllFleets()) {
     absl::MutexLock lock(&fleet->mu);
     for (const std::string& spare : fleet->spares) {
       std::error_code error;
@@ -923,7 +960,7 @@ uint64_t SegmentLog::SpareBytes() {
 
 uint64_t SegmentLog::DropSpares() {
   uint64_t freed = 0;
-  for (Fleet* fleet : Fleets()) {
+  for (Fleet* fleet : AllFleets()) {
     std::vector<std::string> spares;
     {
       absl::MutexLock lock(&fleet->mu);
@@ -950,7 +987,7 @@ absl::Status SegmentLog::CopyTo(const std::string& directory,
     if (absl::Status done = first(); !done.ok()) return done;
   }
   if (absl::Status made = MakeDirectory(directory); !made.ok()) return made;
-  const std::vector<Fleet*> fleets = Fleets();
+  const std::vector<Fleet*> fleets = AllFleets();
   for (Fleet* fleet : fleets) {
     std::vector<std::pair<std::shared_ptr<Segment>, uint64_t>> segments;
     {

@@ -19,7 +19,7 @@
 // write that does not grow a file need not journal its size.
 // Record: magic "FMLG" | XXH3-64 of the rest (uint64) | segment (its first
 //   sequence, uint64) | sequence (uint64) | payload bytes (uint32) |
-//   payload (record_codec's logged upload)
+//   payload (record_codec's logged record: an upload or a call)
 // all little-endian. Each append's records end with a padding record
 // (sequence 0; to the next 4 KiB with O_DIRECT). Where a segment holds bytes
 // that are not the next whole, intact record of this segment, the reader looks
@@ -84,25 +84,29 @@ class SegmentLog final : public engine::FleetLog {
   SegmentLog(const SegmentLog&) = delete;
   SegmentLog& operator=(const SegmentLog&) = delete;
 
-  // Appends `entries` (ascending sequences, each above the fleet's last) as
-  // one write and fdatasync. On error nothing of them is read back, now or
-  // after a restart, unless the status says it could not be undone.
-  absl::Status Append(std::string_view fleet_id,
-                      std::span<const engine::LogAppend> entries) override;
+  // Appends `entries` under the sequences after the fleet's last (and
+  // after options.above) as one write and fdatasync. On error nothing of
+  // them is read back, now or after a restart, unless the status says it
+  // could not be undone. Ids are not kept.
+  absl::StatusOr<std::vector<engine::AppendedEntry>> Append(
+      std::string_view fleet_id, std::span<const engine::LogAppend> entries,
+      const engine::AppendOptions& options) override;
   // Up to `max_entries` entries with sequence > `after`, ascending.
-  absl::StatusOr<std::vector<engine::LoggedUpload>> Read(
+  absl::StatusOr<std::vector<engine::LogEntry>> Read(
       std::string_view fleet_id, uint64_t after, size_t max_entries) override;
   // The fleet's entries found damaged, at Open or by Read (which passes
   // over them), in the order found.
   std::vector<engine::LostLogEntries> Losses(
       std::string_view fleet_id) override;
   // Removes the segments whose entries all have sequence <= `through`
-  // (but not the one appends go to). Entries at or below `through` in the
-  // rest stay readable; callers read past them.
+  // (but not the one appends go to, so that the fleet's last sequence is
+  // known after a restart). Entries at or below `through` in the rest stay
+  // readable; callers read past them.
   absl::Status Trim(std::string_view fleet_id, uint64_t through) override;
-  // Each fleet with entries and its last sequence, sorted by fleet.
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Tails()
-      override;
+  // The first entry still held (Trim keeps some) and the last given.
+  absl::StatusOr<engine::LogBounds> Bounds(std::string_view fleet_id) override;
+  // The fleets whose log ever held an entry, sorted.
+  absl::StatusOr<std::vector<std::string>> Fleets() override;
   // Bytes of records in every fleet's segments (not counting the spares
   // kept for reuse, at most spare_segments * segment_bytes a fleet).
   uint64_t Bytes();
@@ -127,7 +131,7 @@ class SegmentLog final : public engine::FleetLog {
   Fleet* Find(std::string_view fleet_id);
   Fleet& FindOrMake(std::string_view fleet_id);
   // Every fleet, sorted by id (a Fleet is never erased).
-  std::vector<Fleet*> Fleets();
+  std::vector<Fleet*> AllFleets();
   absl::Status LoadFleet(const std::string& fleet_id, const std::string& path);
   absl::StatusOr<std::shared_ptr<Segment>> StartSegment(Fleet& fleet,
                                                         uint64_t first);

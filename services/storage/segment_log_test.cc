@@ -16,6 +16,7 @@
 #include <set>
 #include <string>
 #include <thread>
+#include <variant>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -43,15 +44,36 @@ std::vector<core::MemoryTrace> EntryTraces(uint64_t sequence, int size = 3) {
   return traces;
 }
 
+// Appends entries first..last (the log gives the sequences after its last
+// and after first - 1: these, unless its last is later, an error then).
 absl::Status AppendEntries(SegmentLog& log, const std::string& fleet,
                            uint64_t first, uint64_t last) {
   std::vector<std::vector<core::MemoryTrace>> held;
   std::vector<engine::LogAppend> appends;
   for (uint64_t s = first; s <= last; ++s) held.push_back(EntryTraces(s));
   for (uint64_t s = first; s <= last; ++s) {
-    appends.push_back({s, held[s - first]});
+    appends.push_back({engine::UploadRecord{held[s - first]}});
   }
-  return log.Append(fleet, appends);
+  absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+      log.Append(fleet, appends, {.above = first - 1});
+  if (!appended.ok()) return appended.status();
+  for (uint64_t s = first; s <= last; ++s) {
+    if ((*appended)[s - first].sequence != s) {
+      return absl::InternalError(absl::StrCat("entry ", s, " got sequence ",
+                                              (*appended)[s - first].sequence));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Each fleet with entries and its last sequence, sorted by fleet.
+std::vector<std::pair<std::string, uint64_t>> Tails(SegmentLog& log) {
+  std::vector<std::pair<std::string, uint64_t>> tails;
+  const std::vector<std::string> fleets = log.Fleets().value();
+  for (const std::string& fleet : fleets) {
+    tails.emplace_back(fleet, log.Bounds(fleet)->last);
+  }
+  return tails;
 }
 
 // The sequences Read gives after `after`, in pages of 4; each entry's
@@ -60,17 +82,18 @@ std::vector<uint64_t> ReadAll(SegmentLog& log, const std::string& fleet,
                               uint64_t after = 0) {
   std::vector<uint64_t> sequences;
   while (true) {
-    absl::StatusOr<std::vector<engine::LoggedUpload>> page =
+    absl::StatusOr<std::vector<engine::LogEntry>> page =
         log.Read(fleet, after, 4);
     EXPECT_TRUE(page.ok()) << page.status();
     if (!page.ok() || page->empty()) break;
-    for (const engine::LoggedUpload& entry : *page) {
+    for (const engine::LogEntry& entry : *page) {
       const std::vector<core::MemoryTrace> expected =
           EntryTraces(entry.sequence);
-      EXPECT_EQ(entry.traces.size(), expected.size());
-      for (size_t i = 0; i < expected.size() && i < entry.traces.size(); ++i) {
-        EXPECT_EQ(entry.traces[i].seq, expected[i].seq);
-        EXPECT_EQ(entry.traces[i].code, expected[i].code);
+      const std::span<const core::MemoryTrace> traces = entry.traces();
+      EXPECT_EQ(traces.size(), expected.size());
+      for (size_t i = 0; i < expected.size() && i < traces.size(); ++i) {
+        EXPECT_EQ(traces[i].seq, expected[i].seq);
+        EXPECT_EQ(traces[i].code, expected[i].code);
       }
       sequences.push_back(entry.sequence);
       after = entry.sequence;
@@ -120,8 +143,8 @@ TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
     EXPECT_GT(bytes, 32u * 32);  // 32 entries of 3 traces
     EXPECT_EQ(ReadAll(*log, "fleet-a", 17), Range(18, 30));
     EXPECT_EQ(ReadAll(*log, "nobody"), std::vector<uint64_t>());
-    EXPECT_EQ(*log->Tails(), (std::vector<std::pair<std::string, uint64_t>>{
-                                 {"b", 2}, {"fleet-a", 30}}));
+    EXPECT_EQ(Tails(*log), (std::vector<std::pair<std::string, uint64_t>>{
+                               {"b", 2}, {"fleet-a", 30}}));
     EXPECT_GT(CountFiles(path + "/f-fleet-a", "0"), 3u);
     ASSERT_TRUE(log->Trim("fleet-a", 20).ok());
     // Whole segments at or below 20 are gone, kept for reuse up to 2.
@@ -156,7 +179,7 @@ TEST(SegmentLogTest, EntriesReadBackAcrossSegmentsTrimsAndReopens) {
   log = OpenLog(path);
   ASSERT_NE(log, nullptr);
   EXPECT_EQ(ReadAll(*log, "fleet-a", 45), Range(46, 66));
-  EXPECT_EQ(log->Tails()->back(),
+  EXPECT_EQ(Tails(*log).back(),
             std::make_pair(std::string("fleet-a"), uint64_t{66}));
 }
 
@@ -177,6 +200,59 @@ std::pair<std::string, uintmax_t> TwoAppends(const std::string& path,
 // A backlog of many segments holds one descriptor (the segment appends go
 // to), not one per segment: many fleets' bursts must not exhaust the
 // process's files.
+// The log gives the sequences: after its last (kept when every entry is
+// trimmed, and across a reopen) and after the writer's floor. Calls are
+// entries like uploads; `only_first` appends to an empty log only.
+TEST(SegmentLogTest, TheLogGivesSequencesAndKeepsEveryKindOfRecord) {
+  TempDir dir;
+  const std::string path = dir.path() + "/log";
+  const std::vector<core::MemoryTrace> traces = EntryTraces(1);
+  const std::vector<engine::LogAppend> appends = {
+      {engine::UploadRecord{traces}},
+      {engine::ConsolidateRecord{}},
+      {engine::SampleReplayRecord{"r", 4, "req-9"}}};
+  {
+    std::unique_ptr<SegmentLog> log = OpenLog(path);
+    ASSERT_NE(log, nullptr);
+    EXPECT_EQ(log->Bounds("f")->last, 0u);
+    absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+        log->Append("f", appends, {.only_first = true});
+    ASSERT_TRUE(appended.ok()) << appended.status();
+    EXPECT_EQ(appended->back().sequence, 3u);
+    EXPECT_EQ(log->Append("f", appends, {.only_first = true}).status().code(),
+              absl::StatusCode::kFailedPrecondition);
+    appended = log->Append("f", {&appends[1], 1}, {.above = 10});
+    ASSERT_TRUE(appended.ok()) << appended.status();
+    EXPECT_EQ(appended->front().sequence, 11u);
+    absl::StatusOr<std::vector<engine::LogEntry>> read = log->Read("f", 0, 10);
+    ASSERT_TRUE(read.ok()) << read.status();
+    ASSERT_EQ(read->size(), 4u);
+    EXPECT_EQ((*read)[0].traces().size(), 3u);
+    EXPECT_TRUE(
+        std::holds_alternative<engine::ConsolidateRecord>((*read)[1].record));
+    const auto* call =
+        std::get_if<engine::SampleReplayCall>(&(*read)[2].record);
+    ASSERT_NE(call, nullptr);
+    EXPECT_EQ(call->robot_id, "r");
+    EXPECT_EQ(call->count, 4u);
+    EXPECT_EQ(call->request_id, "req-9");
+    EXPECT_EQ((*read)[3].sequence, 11u);
+    // Every entry applied: the segment appends go to stays.
+    ASSERT_TRUE(log->Trim("f", 11).ok());
+  }
+  std::unique_ptr<SegmentLog> log = OpenLog(path);
+  ASSERT_NE(log, nullptr);
+  EXPECT_EQ(log->Bounds("f")->last, 11u);
+  absl::StatusOr<std::vector<engine::LogEntry>> read = log->Read("f", 0, 10);
+  ASSERT_TRUE(read.ok()) << read.status();
+  ASSERT_EQ(read->size(), 1u);
+  EXPECT_EQ(read->front().sequence, 11u);
+  absl::StatusOr<std::vector<engine::AppendedEntry>> next =
+      log->Append("f", {&appends[0], 1}, {});
+  ASSERT_TRUE(next.ok()) << next.status();
+  EXPECT_EQ(next->front().sequence, 12u);
+}
+
 TEST(SegmentLogTest, ABacklogOfManySegmentsHoldsOneDescriptor) {
   TempDir dir;
   auto open_files = [] {
@@ -200,7 +276,7 @@ TEST(SegmentLogTest, ABacklogOfManySegmentsHoldsOneDescriptor) {
 void ExpectEntries1And2ThenAppendsGoOn(const std::string& path,
                                        std::unique_ptr<SegmentLog>& log) {
   EXPECT_EQ(ReadAll(*log, "f"), Range(1, 2));
-  EXPECT_EQ(log->Tails()->front().second, 2u);
+  EXPECT_EQ(Tails(*log).front().second, 2u);
   ASSERT_TRUE(AppendEntries(*log, "f", 3, 4).ok());
   EXPECT_EQ(ReadAll(*log, "f"), Range(1, 4));
   log = OpenLog(path, 1 << 20);
@@ -319,7 +395,7 @@ TEST(SegmentLogTest, ADamagedEntryIsLostAloneAndReported) {
   EXPECT_EQ(log->Losses("f")[0].first, 5u);
   EXPECT_EQ(log->Losses("f")[0].last, 5u);
   EXPECT_THAT(log->Losses("f")[0].detail, HasSubstr("is damaged at byte"));
-  EXPECT_EQ(log->Tails()->front().second, 9u);
+  EXPECT_EQ(Tails(*log).front().second, 9u);
   // Its header damaged too (the length field: the reader cannot step over
   // it), and the last entry of the first append: both found alone.
   FlipByte(segment, records.at(5).first + 29);
@@ -513,13 +589,13 @@ TEST(SegmentLogTest, ReadsAndTrimsRunBesideAppends) {
   uint64_t applied = 0;
   bool failed = false;
   while (applied < kEntries && !failed) {
-    absl::StatusOr<std::vector<engine::LoggedUpload>> page =
+    absl::StatusOr<std::vector<engine::LogEntry>> page =
         log->Read("f", applied, 16);
     failed = !page.ok();
     EXPECT_TRUE(page.ok()) << page.status();
     for (size_t i = 0; page.ok() && i < page->size(); ++i) {
-      const engine::LoggedUpload& entry = (*page)[i];
-      failed |= entry.sequence != applied + 1 || entry.traces.size() != 3;
+      const engine::LogEntry& entry = (*page)[i];
+      failed |= entry.sequence != applied + 1 || entry.traces().size() != 3;
       EXPECT_EQ(entry.sequence, applied + 1);
       applied = entry.sequence;
     }
@@ -546,9 +622,10 @@ TEST(SegmentLogTest, TheStoreMovesAnEarlierBuildsLogOutOfRocksDb) {
     std::unique_ptr<rocksdb::DB> db(raw);
     for (uint64_t s = 4; s <= 9; ++s) {
       const std::string key = keys::LogKey("f", s);
-      ASSERT_TRUE(db->Put(rocksdb::WriteOptions(), key,
-                          EncodeLoggedUpload(EntryTraces(s)))
-                      .ok());
+      ASSERT_TRUE(
+          db->Put(rocksdb::WriteOptions(), key,
+                  EncodeLoggedRecord(engine::UploadRecord{EntryTraces(s)}))
+              .ok());
     }
   }
   for (int open = 0; open < 2; ++open) {
@@ -556,13 +633,13 @@ TEST(SegmentLogTest, TheStoreMovesAnEarlierBuildsLogOutOfRocksDb) {
     options.path = path;
     absl::StatusOr<LocalStorage> storage = OpenLocalStorage(options);
     ASSERT_TRUE(storage.ok()) << storage.status();
-    absl::StatusOr<std::vector<engine::LoggedUpload>> read =
+    absl::StatusOr<std::vector<engine::LogEntry>> read =
         storage->log->Read("f", 0, 100);
     ASSERT_TRUE(read.ok()) << read.status();
     ASSERT_EQ(read->size(), 6u);
     EXPECT_EQ(read->front().sequence, 4u);
-    EXPECT_EQ(read->back().traces[2].seq, 92u);
-    EXPECT_EQ(storage->log->Tails()->size(), 1u);
+    EXPECT_EQ(read->back().traces()[2].seq, 92u);
+    EXPECT_EQ(storage->log->Fleets()->size(), 1u);
   }
   rocksdb::DB* raw = nullptr;
   ASSERT_TRUE(

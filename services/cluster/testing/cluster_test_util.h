@@ -5,13 +5,14 @@
 
 #include <memory>
 #include <random>
+#include <span>
 #include <string>
 #include <tuple>
 #include <vector>
 
 #include "gtest/gtest.h"
 #include "services/cluster/materialiser.h"
-#include "services/cluster/replicated_log.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
@@ -106,15 +107,30 @@ inline void ExpectSameState(const State& a, const State& b) {
   EXPECT_EQ(a.traces, b.traces);
 }
 
+// Appends `traces` (one robot's) to the fleet's log as one upload entry,
+// under their UploadId, or `id` where given.
+inline absl::StatusOr<engine::AppendedEntry> AppendUpload(
+    engine::FleetLog& log, const std::string& fleet,
+    std::span<const core::MemoryTrace> traces, std::string id = "") {
+  if (id.empty()) {
+    absl::StatusOr<std::string> made = UploadId(traces);
+    if (!made.ok()) return made.status();
+    id = *std::move(made);
+  }
+  const engine::LogAppend append{engine::UploadRecord{traces}, id};
+  absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+      log.Append(fleet, {&append, 1}, {});
+  if (!appended.ok()) return appended.status();
+  return appended->front();
+}
+
 // Appends every upload to the fleet's log.
 inline void AppendUploads(
-    ReplicatedLog& log, const std::string& fleet,
+    engine::FleetLog& log, const std::string& fleet,
     const std::vector<std::vector<core::MemoryTrace>>& uploads) {
   for (const std::vector<core::MemoryTrace>& batch : uploads) {
-    absl::StatusOr<EncodedUpload> entry = EncodeUpload(batch);
-    ASSERT_TRUE(entry.ok()) << entry.status();
-    absl::StatusOr<Appended> appended =
-        log.Append(fleet, entry->id, entry->data);
+    absl::StatusOr<engine::AppendedEntry> appended =
+        AppendUpload(log, fleet, batch);
     ASSERT_TRUE(appended.ok()) << appended.status();
   }
 }

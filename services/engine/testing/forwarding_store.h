@@ -42,21 +42,24 @@ class ForwardingStore : public MemoryStore {
 class ForwardingLog : public FleetLog {
  public:
   explicit ForwardingLog(FleetLog* inner) : inner_(inner) {}
-  absl::Status Append(std::string_view fleet_id,
-                      std::span<const LogAppend> entries) override {
-    return inner_->Append(fleet_id, entries);
+  absl::StatusOr<std::vector<AppendedEntry>> Append(
+      std::string_view fleet_id, std::span<const LogAppend> entries,
+      const AppendOptions& options) override {
+    return inner_->Append(fleet_id, entries, options);
   }
-  absl::StatusOr<std::vector<LoggedUpload>> Read(std::string_view fleet_id,
-                                                 uint64_t after,
-                                                 size_t max_entries) override {
+  absl::StatusOr<std::vector<LogEntry>> Read(std::string_view fleet_id,
+                                             uint64_t after,
+                                             size_t max_entries) override {
     return inner_->Read(fleet_id, after, max_entries);
   }
   absl::Status Trim(std::string_view fleet_id, uint64_t through) override {
     return inner_->Trim(fleet_id, through);
   }
-  absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Tails()
-      override {
-    return inner_->Tails();
+  absl::StatusOr<LogBounds> Bounds(std::string_view fleet_id) override {
+    return inner_->Bounds(fleet_id);
+  }
+  absl::StatusOr<std::vector<std::string>> Fleets() override {
+    return inner_->Fleets();
   }
   std::vector<LostLogEntries> Losses(std::string_view fleet_id) override {
     return inner_->Losses(fleet_id);

@@ -1,4 +1,4 @@
-#include "services/engine/log_apply.h"
+#include "services/engine/log_applier.h"
 
 #include <string>
 #include <utility>
@@ -71,6 +71,31 @@ absl::StatusOr<AppliedRecord> ApplyLogRecord(MemoryEngine& engine,
           " refused when applied, passed over: ", status.ToString()));
   applied.refused = status;
   return applied;
+}
+
+absl::StatusOr<AppliedTurn> LogApplier::Turn(std::string_view fleet_id,
+                                             uint64_t position,
+                                             size_t max_entries,
+                                             const ApplyHooks& hooks) {
+  absl::StatusOr<std::vector<LogEntry>> entries =
+      log_->Read(fleet_id, position, max_entries);
+  if (!entries.ok()) return entries.status();
+  AppliedTurn turn;
+  turn.position = position;
+  for (const LogEntry& entry : *entries) {
+    if (hooks.may_apply && !hooks.may_apply(entry)) break;
+    absl::StatusOr<AppliedRecord> applied =
+        ApplyLogRecord(*engine_, fleet_id, entry.sequence, entry.view());
+    if (!applied.ok()) {
+      // The store (a full disk): applied again later, never passed.
+      turn.stopped = applied.status();
+      break;
+    }
+    turn.position = entry.sequence;
+    ++turn.applied;
+    if (hooks.applied) hooks.applied(entry, *applied);
+  }
+  return turn;
 }
 
 }  // namespace fleetmem::engine

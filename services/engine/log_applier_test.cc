@@ -1,4 +1,4 @@
-#include "services/engine/log_apply.h"
+#include "services/engine/log_applier.h"
 
 #include <memory>
 #include <random>
@@ -7,6 +7,7 @@
 
 #include "gtest/gtest.h"
 #include "services/engine/memory_engine.h"
+#include "services/storage/in_memory_log.h"
 #include "services/storage/in_memory_store.h"
 #include "services/testing/memory_engine_test_util.h"
 
@@ -143,6 +144,53 @@ TEST_F(LogApplyTest, TwoEnginesApplyingTheSameEntriesAnswerAlike) {
               answers[1][3].sample[i].robot_id);
     EXPECT_EQ(answers[0][3].sample[i].seq, answers[1][3].sample[i].seq);
   }
+}
+
+// A turn applies the entries after the position in order, stops before an
+// entry its hook refuses and at a store error (the entry stays unapplied),
+// and passes an entry the state refuses; the next turn goes on from the
+// position it returned.
+TEST_F(LogApplyTest, ATurnAppliesInOrderAndStopsWhereItIsTold) {
+  std::unique_ptr<MemoryEngine> engine = OpenEngine(&store_);
+  ASSERT_NE(engine, nullptr);
+  std::unique_ptr<FleetLog> log = storage::NewInMemoryLog();
+  const std::vector<core::MemoryTrace> a = Traces("r1", 1, 4);
+  const std::vector<core::MemoryTrace> wrong = Traces("r1", 5, 2, 3);
+  const std::vector<core::MemoryTrace> b = Traces("r2", 1, 4);
+  const LogAppend appends[] = {
+      {UploadRecord{a}}, {UploadRecord{wrong}}, {UploadRecord{b}}};
+  ASSERT_TRUE(log->Append("f", appends, {}).ok());
+  LogApplier applier(log.get(), engine.get());
+
+  std::vector<uint64_t> told;
+  ApplyHooks hooks;
+  hooks.may_apply = [](const LogEntry& entry) { return entry.sequence < 3; };
+  hooks.applied = [&](const LogEntry& entry, const AppliedRecord& applied) {
+    told.push_back(entry.sequence);
+    if (entry.sequence == 2) {
+      EXPECT_EQ(applied.refused.code(), absl::StatusCode::kInvalidArgument);
+    }
+  };
+  absl::StatusOr<AppliedTurn> turn = applier.Turn("f", 0, 10, hooks);
+  ASSERT_TRUE(turn.ok()) << turn.status();
+  EXPECT_EQ(turn->position, 2u);
+  EXPECT_EQ(turn->applied, 2u);
+  EXPECT_TRUE(turn->stopped.ok());
+  EXPECT_EQ(told, (std::vector<uint64_t>{1, 2}));
+  EXPECT_EQ(Held(*engine), 4u);
+
+  store_.fail_after = store_.applies;
+  store_.failure = absl::ResourceExhaustedError("disk nearly full");
+  turn = applier.Turn("f", 2, 10);
+  ASSERT_TRUE(turn.ok()) << turn.status();
+  EXPECT_EQ(turn->position, 2u);
+  EXPECT_EQ(turn->stopped.code(), absl::StatusCode::kResourceExhausted);
+  store_.fail_after = -1;
+  turn = applier.Turn("f", turn->position, 10);
+  ASSERT_TRUE(turn.ok()) << turn.status();
+  EXPECT_EQ(turn->position, 3u);
+  EXPECT_EQ(Held(*engine), 8u);
+  EXPECT_EQ(engine->LogPosition("f").value_or(0), 3u);
 }
 
 }  // namespace

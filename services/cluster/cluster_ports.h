@@ -1,10 +1,10 @@
-// Distributed mode's ports (docs/distributed.md): the replicated log that
-// holds every fleet's writes in order, the source of truth from which
-// replicas materialise a fleet's state, and the leases that give each fleet
-// one owner at a time. services/cluster/nats_fleet_log.h implements both on
-// NATS JetStream.
-#ifndef FLEETMEM_SERVICES_CLUSTER_REPLICATED_LOG_H_
-#define FLEETMEM_SERVICES_CLUSTER_REPLICATED_LOG_H_
+// Distributed mode's ports beside the fleet log (engine/fleet_log.h, the
+// one log both modes write; docs/distributed.md): the snapshots from which
+// a replica restores a fleet instead of applying its whole log, and the
+// leases that give each fleet one owner at a time.
+// services/cluster/nats_fleet_log.h implements all three on NATS JetStream.
+#ifndef FLEETMEM_SERVICES_CLUSTER_CLUSTER_PORTS_H_
+#define FLEETMEM_SERVICES_CLUSTER_CLUSTER_PORTS_H_
 
 #include <cstddef>
 #include <cstdint>
@@ -18,55 +18,6 @@
 #include "absl/status/statusor.h"
 
 namespace fleetmem::cluster {
-
-struct LogEntry {
-  // From 1, growing; a replicated log may skip a number (JetStream does
-  // when a proposal fails as its leader changes).
-  uint64_t sequence = 0;
-  std::string id;  // the id it was appended under
-  std::string data;
-};
-
-struct Appended {
-  uint64_t sequence = 0;
-  // The log already held an entry under this id (within its deduplication
-  // window): nothing was added; `sequence` is the earlier entry's.
-  bool duplicate = false;
-};
-
-class ReplicatedLog {
- public:
-  virtual ~ReplicatedLog() = default;
-  // Appends `data` under `id` to the fleet's log (made on first use) and
-  // returns once the log has stored it on its replicas. UNAVAILABLE or
-  // DEADLINE_EXCEEDED: unknown whether it was stored; appending again
-  // under the same id cannot store it twice within the window.
-  // `only_first`: only as the log's first entry (a fleet's creation);
-  // FAILED_PRECONDITION, with nothing appended, if the log holds one
-  // already (a repeat of the same id is still answered as a duplicate).
-  virtual absl::StatusOr<Appended> Append(std::string_view fleet_id,
-                                          std::string_view id,
-                                          std::string_view data,
-                                          bool only_first = false) = 0;
-  // Up to `max` entries in order from sequence `from` (>= 1), skipping
-  // numbers the log skipped; fewer at the end of the log (or after a failed
-  // read), none past it or for a fleet without a log. OUT_OF_RANGE if
-  // `from` is before FirstSequence: those entries are gone (trimmed, and a
-  // snapshot covers them).
-  virtual absl::StatusOr<std::vector<LogEntry>> Read(std::string_view fleet_id,
-                                                     uint64_t from,
-                                                     size_t max) = 0;
-  // The fleet's last sequence; 0 for an empty log or none.
-  virtual absl::StatusOr<uint64_t> LastSequence(std::string_view fleet_id) = 0;
-  // The first sequence Read can return: 1 until Trim removed entries (0 for
-  // a fleet without a log).
-  virtual absl::StatusOr<uint64_t> FirstSequence(std::string_view fleet_id) = 0;
-  // Removes the entries before `sequence`, which a snapshot covers.
-  virtual absl::Status Trim(std::string_view fleet_id, uint64_t sequence) = 0;
-  // The ids of the fleets that have a log, sorted. While the log cannot
-  // list them (NATS electing a leader), those it listed before, if any.
-  virtual absl::StatusOr<std::vector<std::string>> Fleets() = 0;
-};
 
 // A snapshot of a fleet's materialised state (storage's fleet image) and
 // the last log entry it covers: a replica restores it and applies only the
@@ -138,4 +89,4 @@ class LeaseTable {
 
 }  // namespace fleetmem::cluster
 
-#endif  // FLEETMEM_SERVICES_CLUSTER_REPLICATED_LOG_H_
+#endif  // FLEETMEM_SERVICES_CLUSTER_CLUSTER_PORTS_H_

@@ -15,10 +15,12 @@
 //    entry again later. RESOURCE_EXHAUSTED is among these: a full disk (the
 //    store's reserve) says it too, and passing the entry then would lose it
 //    on this replica.
-#ifndef FLEETMEM_SERVICES_ENGINE_LOG_APPLY_H_
-#define FLEETMEM_SERVICES_ENGINE_LOG_APPLY_H_
+#ifndef FLEETMEM_SERVICES_ENGINE_LOG_APPLIER_H_
+#define FLEETMEM_SERVICES_ENGINE_LOG_APPLIER_H_
 
+#include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <span>
 #include <string_view>
 #include <variant>
@@ -27,23 +29,10 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_engine.h"
 
 namespace fleetmem::engine {
-
-// The kinds of entry a fleet's log holds (the traces and strings are not
-// copied: they live in the entry read from the log).
-struct UploadRecord {
-  std::span<const core::MemoryTrace> traces;
-};
-struct ConsolidateRecord {};
-struct SampleReplayRecord {
-  std::string_view robot_id;
-  uint64_t count = 0;
-  std::string_view request_id;
-};
-using LogRecord =
-    std::variant<UploadRecord, ConsolidateRecord, SampleReplayRecord>;
 
 // What applying an entry did.
 struct AppliedRecord {
@@ -69,6 +58,56 @@ absl::StatusOr<AppliedRecord> ApplyLogRecord(MemoryEngine& engine,
                                              uint64_t sequence,
                                              const LogRecord& record);
 
+// What LogApplier::Turn did.
+struct AppliedTurn {
+  // The last entry applied (or passed, refused by the state): the
+  // caller's position from now on.
+  uint64_t position = 0;
+  size_t applied = 0;  // entries applied (or passed) in the turn
+  // The store's error that stopped the turn at the entry after `position`
+  // (it stays unapplied: apply it again later); OK otherwise.
+  absl::Status stopped;
+};
+
+// What the caller of a turn hears and decides, entry by entry.
+struct ApplyHooks {
+  // Asked before each entry: false ends the turn before it (an owner's
+  // lease is due for renewal; a stop; an entry past what the caller
+  // knows acknowledged). Empty: every entry read is applied.
+  std::function<bool(const LogEntry& entry)> may_apply;
+  // Told of each entry applied or passed, with what it did.
+  std::function<void(const LogEntry& entry, const AppliedRecord& applied)>
+      applied;
+};
+
+// The one applier of both modes: a fleet's log, read from a position and
+// applied in order to the engine. Embedded mode's write path
+// (write_path.h) runs turns on its applier threads, over the local log,
+// and trims what they applied; distributed mode's owner
+// (cluster/materialiser.h) runs them under its lease, over JetStream, and
+// trims below its snapshots. Thread-safe; turns of one fleet must not
+// overlap (each caller runs a fleet's turns one at a time).
+class LogApplier {
+ public:
+  // `log` and `engine` must outlive it.
+  LogApplier(FleetLog* log, MemoryEngine* engine)
+      : log_(log), engine_(engine) {}
+
+  // Reads up to `max_entries` entries after `position` and applies them in
+  // order (ApplyLogRecord), until a hook ends the turn or the store fails
+  // (AppliedTurn::stopped). The log's read error as it says it
+  // (OUT_OF_RANGE: trimmed past `position`; a snapshot holds the entries).
+  absl::StatusOr<AppliedTurn> Turn(std::string_view fleet_id, uint64_t position,
+                                   size_t max_entries,
+                                   const ApplyHooks& hooks = {});
+
+  FleetLog& log() const { return *log_; }
+
+ private:
+  FleetLog* const log_;
+  MemoryEngine* const engine_;
+};
+
 }  // namespace fleetmem::engine
 
-#endif  // FLEETMEM_SERVICES_ENGINE_LOG_APPLY_H_
+#endif  // FLEETMEM_SERVICES_ENGINE_LOG_APPLIER_H_
