@@ -214,7 +214,7 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
       if (!status.ok()) return status;
       if (!fleet->exists()) return FleetNotFound(fleet_id);
       std::vector<std::string> robot_ids;
-      for (const auto& [robot_id, traces] : fleet->pending) {
+      for (const auto& [robot_id, traces] : fleet->pending.by_robot()) {
         if (!traces.empty()) robot_ids.push_back(robot_id);
       }
       for (const std::string& robot_id : robot_ids) {

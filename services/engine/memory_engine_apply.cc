@@ -87,9 +87,9 @@ bool MemoryEngine::Fleet::FillsSegment(
   absl::flat_hash_map<std::string_view, size_t> counts;
   for (const core::MemoryTrace& trace : arriving) ++counts[trace.robot_id];
   for (const auto& [robot_id, count] : counts) {
-    auto held = pending.find(robot_id);
-    const size_t before = held == pending.end() ? 0 : held->second.size();
-    if (before + count >= engine->options_.segment_size) return true;
+    if (pending.Of(robot_id).size() + count >= engine->options_.segment_size) {
+      return true;
+    }
   }
   return false;
 }
@@ -170,9 +170,8 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
   // applied even past a limit lowered since: a log never stalls behind an
   // entry it acknowledged.
   if (log_position == 0) {
-    status =
-        quota.AdmitStored(id, memory.trace_count() + pending_position.size(),
-                          mutation.put_pending.size());
+    status = quota.AdmitStored(id, memory.trace_count() + pending.size(),
+                               mutation.put_pending.size());
     if (!status.ok()) {
       *result = UploadResult{};
       mutation = FleetMutation{};
@@ -255,7 +254,7 @@ absl::Status MemoryEngine::Fleet::CommitUpload(
   }
 
   std::vector<std::string> full;
-  for (const auto& [robot_id, robot_pending] : pending) {
+  for (const auto& [robot_id, robot_pending] : pending.by_robot()) {
     if (robot_pending.size() >= engine->options_.segment_size) {
       full.push_back(robot_id);
     }
@@ -323,12 +322,11 @@ std::optional<core::ConsolidationPlan> MemoryEngine::Fleet::PlanAhead(
     }
     auto known = robots.find(robot_id);
     if (known != robots.end()) received = known->second.received;
-    auto held = pending.find(robot_id);
-    const size_t before = held == pending.end() ? 0 : held->second.size();
-    if (before + traces.size() < engine->options_.segment_size) {
+    const std::span<const core::MemoryTrace> held = pending.Of(robot_id);
+    if (held.size() + traces.size() < engine->options_.segment_size) {
       return std::nullopt;
     }
-    if (held != pending.end()) segment = held->second;
+    segment.assign(held.begin(), held.end());
   }
   // As PrepareUpload accepts them (duplicates, also within the upload, out).
   for (const core::MemoryTrace& trace : traces) {
@@ -466,29 +464,12 @@ FleetMutation MemoryEngine::Fleet::ErasingPending(
   return mutation;
 }
 
-std::vector<core::MemoryTrace> MemoryEngine::Fleet::TakePending(
-    const std::string& robot_id) {
-  auto found = pending.find(robot_id);
-  if (found == pending.end()) return {};
-  std::vector<core::MemoryTrace> batch = std::move(found->second);
-  pending.erase(found);
-  for (const core::MemoryTrace& trace : batch) {
-    pending_position.erase(trace.key());
-    auto domain = pending_by_domain.find(trace.domain);
-    if (domain != pending_by_domain.end() && --domain->second == 0) {
-      pending_by_domain.erase(domain);
-    }
-  }
-  return batch;
-}
-
 absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     const std::string& robot_id, Notices* notices, CarriedUpload* carried,
     const core::ConsolidationPlan* plan) {
-  auto found = pending.find(robot_id);
-  if (found == pending.end() || found->second.empty()) return absl::OkStatus();
+  if (pending.Of(robot_id).empty()) return absl::OkStatus();
   const absl::Time start = absl::Now();
-  std::vector<core::MemoryTrace> batch = TakePending(robot_id);
+  std::vector<core::MemoryTrace> batch = pending.Take(robot_id);
   FleetMutation mutation = ErasingPending(batch, carried);
   const size_t batch_size = batch.size();
   // The meta as the consolidations staged before this one leave it.

@@ -39,6 +39,7 @@
 #include "services/core/static_memory.h"
 #include "services/core/validation.h"
 #include "services/engine/memory_engine.h"
+#include "services/engine/pending_traces.h"
 #include "services/engine/trace_handles.h"
 
 namespace fleetmem::engine {
@@ -367,10 +368,6 @@ struct MemoryEngine::Fleet {
   // and the batch's pending records erased.
   static FleetMutation ErasingPending(
       const std::vector<core::MemoryTrace>& batch, CarriedUpload* carried);
-  // Takes `robot_id`'s pending traces out of the pending maps (not the
-  // store); none if it has none.
-  std::vector<core::MemoryTrace> TakePending(const std::string& robot_id)
-      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Consolidates all pending traces of `robot_id` as one batch (Algorithm 1
   // and 2) in memory and the index, and stages the outcome's store write,
   // together with `carried`'s writes if given, in notices->staged for
@@ -401,7 +398,7 @@ struct MemoryEngine::Fleet {
   void FinishSample(FleetMutation mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Sets `held` from memory (after every change of its trace count).
   void PublishHeld() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
-    held.store(memory.trace_count() + pending_position.size(),
+    held.store(memory.trace_count() + pending.size(),
                std::memory_order_relaxed);
   }
   FleetStats Stats() const ABSL_SHARED_LOCKS_REQUIRED(mu);
@@ -453,15 +450,8 @@ struct MemoryEngine::Fleet {
   absl::Status stale ABSL_GUARDED_BY(mu);
   FleetMeta meta ABSL_GUARDED_BY(mu);
   core::StaticMemory memory ABSL_GUARDED_BY(mu);
-  // Pending traces per robot, in arrival order. A robot's vector only grows
-  // until it is consolidated as a whole, so positions in it are stable.
-  std::map<std::string, std::vector<core::MemoryTrace>, std::less<>> pending
-      ABSL_GUARDED_BY(mu);
-  absl::flat_hash_map<core::TraceKey, size_t> pending_position
-      ABSL_GUARDED_BY(mu);
-  // Pending traces per domain (statistics without walking the traces).
-  std::map<std::string, uint64_t, std::less<>> pending_by_domain
-      ABSL_GUARDED_BY(mu);
+  // Traces applied and awaiting their robot's consolidation.
+  PendingTraces pending ABSL_GUARDED_BY(mu);
   // The largest attachment of any trace held since the fleet was loaded
   // (never shrinks): what a sample's traces may carry besides their codes.
   size_t largest_attachment ABSL_GUARDED_BY(mu) = 0;

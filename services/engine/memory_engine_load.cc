@@ -186,7 +186,7 @@ absl::Status MemoryEngine::Fleet::Reload() {
     FLEETMEM_LOG(kInfo) << "fleet \"" << id
                         << "\" loaded: " << memory.trace_count()
                         << " traces in " << memory.clusters().size()
-                        << " clusters, " << pending_position.size()
+                        << " clusters, " << pending.size()
                         << " pending; store read "
                         << absl::ToDoubleSeconds(read - start)
                         << " s, memory and index "
@@ -219,9 +219,7 @@ absl::Status MemoryEngine::Fleet::CheckLoaded() const {
 void MemoryEngine::Fleet::Reset(const FleetMeta& stored) {
   meta = stored;
   memory = core::StaticMemory(engine->MemoryOptionsFor(id));
-  pending.clear();
-  pending_position.clear();
-  pending_by_domain.clear();
+  pending.Clear();
   largest_attachment = 0;
   robots.clear();
   index.reset();
@@ -250,7 +248,7 @@ MemoryEngine::Fleet::GatherTraces(std::vector<core::Cluster>& clusters) {
       traces.push_back(&trace);
     }
   }
-  for (const auto& [robot_id, robot_pending] : pending) {
+  for (const auto& [robot_id, robot_pending] : pending.by_robot()) {
     for (const core::MemoryTrace& trace : robot_pending) {
       traces.push_back(&trace);
     }
@@ -388,19 +386,14 @@ absl::Status MemoryEngine::Fleet::FillCodes(
 }
 
 void MemoryEngine::Fleet::AddPending(core::MemoryTrace trace) {
-  std::vector<core::MemoryTrace>& robot_pending = pending[trace.robot_id];
-  pending_position[trace.key()] = robot_pending.size();
-  ++pending_by_domain[trace.domain];
   largest_attachment = std::max(largest_attachment, trace.attachment.size());
-  robot_pending.push_back(std::move(trace));
+  pending.Add(std::move(trace));
 }
 
 const core::MemoryTrace* MemoryEngine::Fleet::FindTrace(
     const core::TraceKey& key) const {
   if (const core::MemoryTrace* trace = memory.Find(key)) return trace;
-  auto position = pending_position.find(key);
-  if (position == pending_position.end()) return nullptr;
-  return &pending.find(key.robot_id)->second[position->second];
+  return pending.Find(key);
 }
 
 absl::Status MemoryEngine::Fleet::IndexTraces(

@@ -106,11 +106,11 @@ FleetStats MemoryEngine::Fleet::Stats() const {
   for (const auto& [domain, count] : memory.traces_by_domain()) {
     domain_stats(domain).traces = count;
   }
-  for (const auto& [robot_id, traces] : pending) {
+  for (const auto& [robot_id, traces] : pending.by_robot()) {
     stats.pending_traces += traces.size();
     robot_stats(robot_id).pending_traces += traces.size();
   }
-  for (const auto& [domain, count] : pending_by_domain) {
+  for (const auto& [domain, count] : pending.by_domain()) {
     domain_stats(domain).pending_traces = count;
   }
   for (auto& [robot_id, robot] : by_robot) {
@@ -358,7 +358,7 @@ absl::StatusOr<ClusterListing> MemoryEngine::ListClusters(
           listing.clusters.push_back(Summarize(cluster, include_places));
         }
         if (!include_places) return listing;
-        for (const auto& [robot_id, traces] : fleet.pending) {
+        for (const auto& [robot_id, traces] : fleet.pending.by_robot()) {
           for (const core::MemoryTrace& trace : traces) {
             listing.pending.push_back(PlaceOf(trace));
           }
@@ -389,7 +389,8 @@ absl::StatusOr<TracePage> MemoryEngine::ListTraces(
         for (const auto& [cluster_id, cluster] : fleet.memory.clusters()) {
           consider(cluster.traces);
         }
-        for (const auto& [robot_id, traces] : fleet.pending) consider(traces);
+        for (const auto& [robot_id, traces] : fleet.pending.by_robot())
+          consider(traces);
         const size_t taken = std::min(page_size, candidates.size());
         std::partial_sort(
             candidates.begin(), candidates.begin() + taken, candidates.end(),
