@@ -695,6 +695,21 @@ bool Unwrite(int fd, const std::string& path, Encoded& append, uint64_t offset,
 
 }  // namespace
 
+absl::StatusOr<uint64_t> SegmentLog::NextSequence(
+    Fleet& fleet, const engine::AppendOptions& options) {
+  uint64_t last = 0;
+  {
+    absl::MutexLock lock(&fleet.mu);
+    last = fleet.Last();
+  }
+  if (options.only_first && last > 0) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("the log of fleet \"", fleet.id,
+                     "\" has entries already (nothing was appended)"));
+  }
+  return std::max(last, options.above) + 1;
+}
+
 absl::StatusOr<std::vector<engine::AppendedEntry>> SegmentLog::Append(
     std::string_view fleet_id, std::span<const engine::LogAppend> entries,
     const engine::AppendOptions& options) {
@@ -719,17 +734,9 @@ absl::StatusOr<std::vector<engine::AppendedEntry>> SegmentLog::Append(
     }
   }
   Fleet& fleet = FindOrMake(fleet_id);
-  uint64_t last = 0;
-  {
-    absl::MutexLock lock(&fleet.mu);
-    last = fleet.Last();
-  }
-  if (options.only_first && last > 0) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("the log of fleet \"", V(fleet_id),
-                     "\" has entries already (nothing was appended)"));
-  }
-  const uint64_t first = std::max(last, options.above) + 1;
+  absl::StatusOr<uint64_t> next = NextSequence(fleet, options);
+  if (!next.ok()) return next.status();
+  const uint64_t first = *next;
   absl::StatusOr<Target> target = TargetOf(fleet, fleet_id, first);
   if (!target.ok()) return target.status();
   Segment& segment = *target->segment;

@@ -146,6 +146,11 @@ class SegmentLog final : public engine::FleetLog {
   };
   absl::StatusOr<Target> TargetOf(Fleet& fleet, std::string_view fleet_id,
                                   uint64_t first_sequence);
+  // The sequence an append's first entry gets: after the fleet's last and
+  // after options.above; FAILED_PRECONDITION for options.only_first on a
+  // log that held an entry.
+  absl::StatusOr<uint64_t> NextSequence(Fleet& fleet,
+                                        const engine::AppendOptions& options);
 
   const SegmentLogOptions options_;
   absl::Mutex trim_mu_;  // held by Trim and CopyTo
