@@ -161,6 +161,89 @@ constexpr std::pair<const char*, const char*> kMemorySeries[] = {
     {"store_disk_mib", "fleetmem_store_disk_bytes"},
 };
 
+// The rate a soak runs at: half the peak that `load` reaches in
+// `peak_seconds` (said on stdout); `next_seq` gets the seq the soak goes
+// on from.
+absl::StatusOr<double> HalfThePeak(
+    const fleetmem::client::ClientOptions& options, UploadLoadOptions load,
+    double peak_seconds, uint64_t* next_seq) {
+  load.duration =
+      std::chrono::milliseconds(static_cast<int64_t>(peak_seconds * 1000));
+  absl::StatusOr<fleetmem::load::UploadLoadResult> peak =
+      fleetmem::load::RunUploads(options, load, "", nullptr, nullptr);
+  if (!peak.ok()) return peak.status();
+  const double peak_rate = peak->acknowledged / peak->seconds;
+  for (uint64_t seq : peak->next_seq) *next_seq = std::max(*next_seq, seq);
+  std::cout << absl::StrFormat(
+                   "peak: %.0f traces/s over %.1f s (%d robots, batch %d, dim "
+                   "%d); soak at half: %.0f traces/s\n",
+                   peak_rate, peak->seconds, load.robots, load.batch,
+                   load.dimension, peak_rate / 2)
+            << std::flush;
+  return peak_rate / 2;
+}
+
+// The server's memory series (kMemorySeries) from its /metrics at
+// `metrics`, in MiB, appended as CSV columns to `row` and as aligned
+// columns to `line`.
+absl::Status ScrapeMemory(const std::string& metrics, std::string* row,
+                          std::string* line) {
+  absl::StatusOr<std::map<std::string, double>> scraped =
+      fleetmem::load::ScrapeMetrics(metrics);
+  if (!scraped.ok()) return scraped.status();
+  for (const auto& [column, series] : kMemorySeries) {
+    const auto found = scraped->find(series);
+    const double mib = found == scraped->end() ? -1 : found->second / 1048576.0;
+    absl::StrAppendFormat(row, ",%.1f", mib);
+    absl::StrAppendFormat(line, "  %*.1f",
+                          static_cast<int>(std::string_view(column).size()),
+                          mib);
+  }
+  return absl::OkStatus();
+}
+
+// The soak's table header on stdout, and its CSV at soak.report (if set)
+// opened in `csv` with its header.
+void StartReport(const SoakOptions& soak, std::ofstream* csv) {
+  std::string memory_header;
+  if (!soak.metrics.empty()) {
+    for (const auto& [column, series] : kMemorySeries) {
+      absl::StrAppend(&memory_header, ",", column);
+    }
+  }
+  if (!soak.report.empty()) {
+    csv->open(soak.report);
+    *csv << "elapsed_s,rss_mib,open_fds,upload_calls,upload_p50_ms,"
+            "upload_p99_ms,upload_max_ms,query_calls,query_p50_ms,"
+            "query_p99_ms"
+         << memory_header << "\n";
+  }
+  std::cout << "elapsed_s  rss_mib  fds  uploads  up_p50  up_p99  up_max  "
+               "queries  q_p50  q_p99"
+            << absl::StrReplaceAll(memory_header, {{",", "  "}}) << "\n";
+}
+
+// One sample of the soak: a line on stdout and a row of `csv` (if open).
+void WriteSample(double elapsed, const fleetmem::load::ProcessSample& sample,
+                 const LatencyLog::Summary& up, const LatencyLog::Summary& q,
+                 const std::string& memory_row, const std::string& memory_line,
+                 std::ofstream& csv) {
+  std::cout << absl::StrFormat(
+                   "%9.0f  %7.1f  %3d  %7zu  %6.2f  %6.2f  %6.2f  %7zu  "
+                   "%5.2f  %5.2f%s\n",
+                   elapsed, sample.rss_bytes / 1048576.0, sample.open_fds,
+                   up.count, up.p50, up.p99, up.max, q.count, q.p50, q.p99,
+                   memory_line)
+            << std::flush;
+  if (!csv.is_open()) return;
+  csv << absl::StrFormat("%.0f,%.1f,%d,%zu,%.2f,%.2f,%.2f,%zu,%.2f,%.2f%s",
+                         elapsed, sample.rss_bytes / 1048576.0, sample.open_fds,
+                         up.count, up.p50, up.p99, up.max, q.count, q.p50,
+                         q.p99, memory_row)
+      << "\n"
+      << std::flush;
+}
+
 int Soak(const Common& common, const SoakOptions& soak) {
   const int pid = soak.pid;
   const double seconds = soak.seconds, interval = soak.interval;
@@ -175,21 +258,10 @@ int Soak(const Common& common, const SoakOptions& soak) {
   load.robots = robots;
   uint64_t next_seq = 1;
   if (rate <= 0) {
-    load.duration = std::chrono::milliseconds(
-        static_cast<int64_t>(soak.peak_seconds * 1000));
-    absl::StatusOr<fleetmem::load::UploadLoadResult> peak =
-        fleetmem::load::RunUploads(*options, load, "", nullptr, nullptr);
+    absl::StatusOr<double> peak =
+        HalfThePeak(*options, load, soak.peak_seconds, &next_seq);
     if (!peak.ok()) return Fail(peak.status());
-    const double peak_rate = peak->acknowledged / peak->seconds;
-    rate = peak_rate / 2;
-    for (uint64_t seq : peak->next_seq) next_seq = std::max(next_seq, seq);
-    std::cout
-        << absl::StrFormat(
-               "peak: %.0f traces/s over %.1f s (%d robots, batch %d, dim %d); "
-               "soak at half: %.0f traces/s\n",
-               peak_rate, peak->seconds, robots, load.batch, load.dimension,
-               rate)
-        << std::flush;
+    rate = *peak;
   }
   load.rate = rate;
   load.first_seq = next_seq;
@@ -208,22 +280,7 @@ int Soak(const Common& common, const SoakOptions& soak) {
              &queries);
   });
   std::ofstream csv;
-  std::string memory_header;
-  if (!soak.metrics.empty()) {
-    for (const auto& [column, series] : kMemorySeries) {
-      absl::StrAppend(&memory_header, ",", column);
-    }
-  }
-  if (!soak.report.empty()) {
-    csv.open(soak.report);
-    csv << "elapsed_s,rss_mib,open_fds,upload_calls,upload_p50_ms,"
-           "upload_p99_ms,upload_max_ms,query_calls,query_p50_ms,"
-           "query_p99_ms"
-        << memory_header << "\n";
-  }
-  std::cout << "elapsed_s  rss_mib  fds  uploads  up_p50  up_p99  up_max  "
-               "queries  q_p50  q_p99"
-            << absl::StrReplaceAll(memory_header, {{",", "  "}}) << "\n";
+  StartReport(soak, &csv);
   const auto start = std::chrono::steady_clock::now();
   int exit_code = 0;
   for (double elapsed = 0; elapsed < seconds;) {
@@ -240,39 +297,18 @@ int Soak(const Common& common, const SoakOptions& soak) {
       exit_code = 1;
       break;
     }
-    const LatencyLog::Summary up = uploads.Take();
-    const LatencyLog::Summary q = queries.Take();
     std::string memory_row, memory_line;
     if (!soak.metrics.empty()) {
-      absl::StatusOr<std::map<std::string, double>> scraped =
-          fleetmem::load::ScrapeMetrics(soak.metrics);
-      if (!scraped.ok()) {
-        std::cerr << "fleetmem-load: " << scraped.status() << "\n";
+      if (absl::Status scraped =
+              ScrapeMemory(soak.metrics, &memory_row, &memory_line);
+          !scraped.ok()) {
+        std::cerr << "fleetmem-load: " << scraped << "\n";
         exit_code = 1;
         break;
       }
-      for (const auto& [column, series] : kMemorySeries) {
-        const auto found = scraped->find(series);
-        const double mib =
-            found == scraped->end() ? -1 : found->second / 1048576.0;
-        absl::StrAppendFormat(&memory_row, ",%.1f", mib);
-        absl::StrAppendFormat(&memory_line, "  %*.1f",
-                              static_cast<int>(std::string_view(column).size()),
-                              mib);
-      }
     }
-    const std::string row = absl::StrFormat(
-        "%.0f,%.1f,%d,%zu,%.2f,%.2f,%.2f,%zu,%.2f,%.2f%s", elapsed,
-        sample->rss_bytes / 1048576.0, sample->open_fds, up.count, up.p50,
-        up.p99, up.max, q.count, q.p50, q.p99, memory_row);
-    std::cout << absl::StrFormat(
-                     "%9.0f  %7.1f  %3d  %7zu  %6.2f  %6.2f  %6.2f  %7zu  "
-                     "%5.2f  %5.2f%s\n",
-                     elapsed, sample->rss_bytes / 1048576.0, sample->open_fds,
-                     up.count, up.p50, up.p99, up.max, q.count, q.p50, q.p99,
-                     memory_line)
-              << std::flush;
-    if (csv.is_open()) csv << row << "\n" << std::flush;
+    WriteSample(elapsed, *sample, uploads.Take(), queries.Take(), memory_row,
+                memory_line, csv);
   }
   stop = true;
   uploader.join();
@@ -348,46 +384,11 @@ absl::StatusOr<PhaseResult> RunPhase(const std::string& name,
   return result;
 }
 
-// fleetmem-load bench: the load against the server, then against the bare
-// gRPC peer (started in this process unless --peer names one), as a table
-// with the ratio, and as CSV.
-int Bench(const Common& common, UploadLoadOptions load, double seconds,
-          double query_rate, double sample_rate, double stats_rate,
-          const std::string& peer_address, const std::string& csv_path) {
-  absl::StatusOr<fleetmem::client::ClientOptions> options =
-      ClientFor(common, 1);
-  if (!options.ok()) return Fail(options.status());
-  load.fleet_id = common.fleet;
-  load.dimension = common.dimension;
-  load.duration =
-      std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
-  if (load.code_pool == 0) load.code_pool = 1000;
-  std::unique_ptr<fleetmem::load::PeerServer> peer;
-  fleetmem::client::ClientOptions peer_options = *options;
-  if (peer_address.empty()) {
-    absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> started =
-        fleetmem::load::PeerServer::Start("127.0.0.1:0");
-    if (!started.ok()) return Fail(started.status());
-    peer = *std::move(started);
-    peer_options.target = peer->address();
-  } else {
-    peer_options.target = peer_address;
-  }
-  std::vector<PhaseResult> results;
-  for (const auto& [name, target] :
-       {std::pair<std::string, fleetmem::client::ClientOptions>{"fleetmem",
-                                                                *options},
-        {"peer", peer_options}}) {
-    std::cerr << "fleetmem-load bench: " << load.robots << " stream(s), batch "
-              << load.batch << ", " << load.dimension << "-d, " << seconds
-              << " s against " << name << " (" << target.target << ")\n";
-    absl::StatusOr<PhaseResult> phase =
-        RunPhase(name, target, load, query_rate, sample_rate, stats_rate);
-    if (!phase.ok()) return Fail(phase.status());
-    results.push_back(*phase);
-    // The next phase continues the robots' seqs (no duplicates).
-    load.first_seq += 100'000'000;
-  }
+// Bench's results: a table with the ratio to the peer, and as CSV at
+// `csv_path` (if set). The exit code.
+int Report(const std::vector<PhaseResult>& results,
+           const UploadLoadOptions& load, double seconds,
+           const std::string& csv_path) {
   std::cout << absl::StrFormat(
       "%-9s %10s %8s %8s %8s %9s %9s %10s %10s %9s %9s\n", "target",
       "uploads/s", "up p50", "up p99", "up p99.9", "query p50", "query p99",
@@ -434,105 +435,74 @@ int Bench(const Common& common, UploadLoadOptions load, double seconds,
   return 0;
 }
 
-}  // namespace
+// fleetmem-load bench: the load against the server, then against the bare
+// gRPC peer (started in this process unless --peer names one), as a table
+// with the ratio, and as CSV.
+int Bench(const Common& common, UploadLoadOptions load, double seconds,
+          double query_rate, double sample_rate, double stats_rate,
+          const std::string& peer_address, const std::string& csv_path) {
+  absl::StatusOr<fleetmem::client::ClientOptions> options =
+      ClientFor(common, 1);
+  if (!options.ok()) return Fail(options.status());
+  load.fleet_id = common.fleet;
+  load.dimension = common.dimension;
+  load.duration =
+      std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
+  if (load.code_pool == 0) load.code_pool = 1000;
+  std::unique_ptr<fleetmem::load::PeerServer> peer;
+  fleetmem::client::ClientOptions peer_options = *options;
+  if (peer_address.empty()) {
+    absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> started =
+        fleetmem::load::PeerServer::Start("127.0.0.1:0");
+    if (!started.ok()) return Fail(started.status());
+    peer = *std::move(started);
+    peer_options.target = peer->address();
+  } else {
+    peer_options.target = peer_address;
+  }
+  std::vector<PhaseResult> results;
+  for (const auto& [name, target] :
+       {std::pair<std::string, fleetmem::client::ClientOptions>{"fleetmem",
+                                                                *options},
+        {"peer", peer_options}}) {
+    std::cerr << "fleetmem-load bench: " << load.robots << " stream(s), batch "
+              << load.batch << ", " << load.dimension << "-d, " << seconds
+              << " s against " << name << " (" << target.target << ")\n";
+    absl::StatusOr<PhaseResult> phase =
+        RunPhase(name, target, load, query_rate, sample_rate, stats_rate);
+    if (!phase.ok()) return Fail(phase.status());
+    results.push_back(*phase);
+    // The next phase continues the robots' seqs (no duplicates).
+    load.first_seq += 100'000'000;
+  }
+  return Report(results, load, seconds, csv_path);
+}
 
-int main(int argc, char** argv) {
-  CLI::App app{"Load for a running fleetmem-server (crash trials, soak)."};
-  app.set_version_flag("--version", "fleetmem-load " FLEETMEM_VERSION);
-  app.require_subcommand(1);
-  Common common;
-
-  CLI::App* upload = app.add_subcommand("upload", "robots upload traces");
-  AddCommon(upload, &common);
+// `upload`: robots upload traces (the crash trials' load).
+struct UploadCommand {
+  CLI::App* app = nullptr;
   UploadLoadOptions load;
   double seconds = 10;
   std::string ack_log;
-  upload->add_option("--robots", load.robots, "robots (threads)");
-  upload->add_option("--batch", load.batch, "traces per call");
-  upload->add_option("--rate", load.rate, "traces/s in all; 0 = max");
-  upload->add_option("--seconds", seconds, "how long");
-  upload->add_option("--first-seq", load.first_seq, "first seq per robot");
-  upload->add_option("--ack-log", ack_log, "append acknowledged batches");
-  upload->add_option("--traces", load.max_traces,
-                     "stop after this many acknowledged traces (all robots)");
-  upload->add_option("--code-pool", load.code_pool,
-                     "distinct codes per robot (0: every trace its own)");
-  upload->add_flag("--stop-on-error", load.stop_on_error,
-                   "stop a robot at its first failed call");
 
-  CLI::App* verify =
-      app.add_subcommand("verify", "every acknowledged trace is stored");
-  AddCommon(verify, &common);
-  verify->add_option("--ack-log", ack_log, "log of acknowledged batches")
-      ->required();
-
-  CLI::App* soak = app.add_subcommand("soak", "steady load with samples");
-  AddCommon(soak, &common);
-  SoakOptions soak_options;
-  soak->add_option("--pid", soak_options.pid, "server process to sample")
-      ->required();
-  soak->add_option("--seconds", soak_options.seconds,
-                   "duration (default 3600)");
-  soak->add_option("--interval", soak_options.interval,
-                   "seconds between samples");
-  soak->add_option("--rate", soak_options.rate,
-                   "traces/s; 0 = half the measured peak");
-  soak->add_option("--peak-seconds", soak_options.peak_seconds,
-                   "peak measurement time");
-  soak->add_option("--robots", soak_options.robots, "uploading robots");
-  soak->add_option("--report", soak_options.report, "CSV of the samples");
-  soak->add_option("--metrics", soak_options.metrics,
-                   "the server's HTTP HOST:PORT: sample its memory series");
-
-  CLI::App* bench =
-      app.add_subcommand("bench", "throughput and latency against the peer");
-  AddCommon(bench, &common);
-  UploadLoadOptions bench_load;
-  double bench_seconds = 10, query_rate = 0, sample_rate = 0, stats_rate = 0;
-  std::string peer_address, csv_path;
-  bench
-      ->add_option("--robots", bench_load.robots,
-                   "upload streams (0: only the other calls)")
-      ->check(CLI::Range(0, 1024));
-  bench->add_option("--batch", bench_load.batch, "traces per call")
-      ->check(CLI::Range(1, 100000));
-  bench->add_option("--seconds", bench_seconds, "per target")
-      ->check(CLI::Range(0.001, 1e6));
-  bench->add_option("--first-seq", bench_load.first_seq, "first seq per robot");
-  bench->add_option("--query-rate", query_rate, "QueryPlace calls/s beside");
-  bench->add_option("--sample-rate", sample_rate,
-                    "SampleReplay calls/s beside");
-  bench->add_option("--stats-rate", stats_rate, "GetStats calls/s beside");
-  bench
-      ->add_option("--code-pool", bench_load.code_pool,
-                   "distinct codes per robot (default 1000)")
-      ->check(CLI::NonNegativeNumber);
-  bench->add_option("--peer", peer_address,
-                    "HOST:PORT of a running `fleetmem-load peer` (default: "
-                    "one started in this process)");
-  bench->add_option("--csv", csv_path, "write the results as CSV");
-
-  CLI::App* peer = app.add_subcommand(
-      "peer", "serve the bare gRPC peer (discards uploads) until killed");
-  std::string peer_listen = "127.0.0.1:50061";
-  peer->add_option("--listen", peer_listen, "HOST:PORT");
-
-  CLI11_PARSE(app, argc, argv);
-
-  if (bench->parsed()) {
-    return Bench(common, bench_load, bench_seconds, query_rate, sample_rate,
-                 stats_rate, peer_address, csv_path);
-  }
-  if (peer->parsed()) {
-    absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> server =
-        fleetmem::load::PeerServer::Start(peer_listen);
-    if (!server.ok()) return Fail(server.status());
-    std::cout << "peer listening on " << (*server)->address() << std::endl;
-    (*server)->Wait();
-    return 0;
+  void Add(CLI::App& parent, Common* common) {
+    app = parent.add_subcommand("upload", "robots upload traces");
+    AddCommon(app, common);
+    app->add_option("--robots", load.robots, "robots (threads)");
+    app->add_option("--batch", load.batch, "traces per call");
+    app->add_option("--rate", load.rate, "traces/s in all; 0 = max");
+    app->add_option("--seconds", seconds, "how long");
+    app->add_option("--first-seq", load.first_seq, "first seq per robot");
+    app->add_option("--ack-log", ack_log, "append acknowledged batches");
+    app->add_option("--traces", load.max_traces,
+                    "stop after this many acknowledged traces (all robots)");
+    app->add_option("--code-pool", load.code_pool,
+                    "distinct codes per robot (0: every trace its own)");
+    app->add_flag("--stop-on-error", load.stop_on_error,
+                  "stop a robot at its first failed call");
   }
 
-  if (upload->parsed()) {
+  int Run(const Common& common) {
     absl::StatusOr<fleetmem::client::ClientOptions> options =
         ClientFor(common, load.stop_on_error ? 1 : 5);
     if (!options.ok()) return Fail(options.status());
@@ -556,7 +526,21 @@ int main(int argc, char** argv) {
                                     : "; first error: " + result->first_error);
     return 0;
   }
-  if (verify->parsed()) {
+};
+
+// `verify`: every acknowledged trace of an upload's log is stored.
+struct VerifyCommand {
+  CLI::App* app = nullptr;
+  std::string ack_log;
+
+  void Add(CLI::App& parent, Common* common) {
+    app = parent.add_subcommand("verify", "every acknowledged trace is stored");
+    AddCommon(app, common);
+    app->add_option("--ack-log", ack_log, "log of acknowledged batches")
+        ->required();
+  }
+
+  int Run(const Common& common) const {
     absl::StatusOr<fleetmem::client::ClientOptions> options =
         ClientFor(common, 5);
     if (!options.ok()) return Fail(options.status());
@@ -571,5 +555,111 @@ int main(int argc, char** argv) {
         static_cast<unsigned long long>(result->lost));
     return result->lost == 0 && result->present == result->acknowledged ? 0 : 1;
   }
-  return Soak(common, soak_options);
+};
+
+// `soak`: steady load with samples of the server's memory.
+struct SoakCommand {
+  CLI::App* app = nullptr;
+  SoakOptions options;
+
+  void Add(CLI::App& parent, Common* common) {
+    app = parent.add_subcommand("soak", "steady load with samples");
+    AddCommon(app, common);
+    app->add_option("--pid", options.pid, "server process to sample")
+        ->required();
+    app->add_option("--seconds", options.seconds, "duration (default 3600)");
+    app->add_option("--interval", options.interval, "seconds between samples");
+    app->add_option("--rate", options.rate,
+                    "traces/s; 0 = half the measured peak");
+    app->add_option("--peak-seconds", options.peak_seconds,
+                    "peak measurement time");
+    app->add_option("--robots", options.robots, "uploading robots");
+    app->add_option("--report", options.report, "CSV of the samples");
+    app->add_option("--metrics", options.metrics,
+                    "the server's HTTP HOST:PORT: sample its memory series");
+  }
+};
+
+// `bench`: throughput and latency against the bare gRPC peer.
+struct BenchCommand {
+  CLI::App* app = nullptr;
+  UploadLoadOptions load;
+  double seconds = 10, query_rate = 0, sample_rate = 0, stats_rate = 0;
+  std::string peer_address, csv_path;
+
+  void Add(CLI::App& parent, Common* common) {
+    app = parent.add_subcommand("bench",
+                                "throughput and latency against the peer");
+    AddCommon(app, common);
+    app->add_option("--robots", load.robots,
+                    "upload streams (0: only the other calls)")
+        ->check(CLI::Range(0, 1024));
+    app->add_option("--batch", load.batch, "traces per call")
+        ->check(CLI::Range(1, 100000));
+    app->add_option("--seconds", seconds, "per target")
+        ->check(CLI::Range(0.001, 1e6));
+    app->add_option("--first-seq", load.first_seq, "first seq per robot");
+    app->add_option("--query-rate", query_rate, "QueryPlace calls/s beside");
+    app->add_option("--sample-rate", sample_rate,
+                    "SampleReplay calls/s beside");
+    app->add_option("--stats-rate", stats_rate, "GetStats calls/s beside");
+    app->add_option("--code-pool", load.code_pool,
+                    "distinct codes per robot (default 1000)")
+        ->check(CLI::NonNegativeNumber);
+    app->add_option("--peer", peer_address,
+                    "HOST:PORT of a running `fleetmem-load peer` (default: "
+                    "one started in this process)");
+    app->add_option("--csv", csv_path, "write the results as CSV");
+  }
+
+  int Run(const Common& common) const {
+    return Bench(common, load, seconds, query_rate, sample_rate, stats_rate,
+                 peer_address, csv_path);
+  }
+};
+
+// `peer`: the bare gRPC peer, until killed.
+struct PeerCommand {
+  CLI::App* app = nullptr;
+  std::string listen = "127.0.0.1:50061";
+
+  void Add(CLI::App& parent) {
+    app = parent.add_subcommand(
+        "peer", "serve the bare gRPC peer (discards uploads) until killed");
+    app->add_option("--listen", listen, "HOST:PORT");
+  }
+
+  int Run() const {
+    absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> server =
+        fleetmem::load::PeerServer::Start(listen);
+    if (!server.ok()) return Fail(server.status());
+    std::cout << "peer listening on " << (*server)->address() << std::endl;
+    (*server)->Wait();
+    return 0;
+  }
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"Load for a running fleetmem-server (crash trials, soak)."};
+  app.set_version_flag("--version", "fleetmem-load " FLEETMEM_VERSION);
+  app.require_subcommand(1);
+  Common common;
+  UploadCommand upload;
+  upload.Add(app, &common);
+  VerifyCommand verify;
+  verify.Add(app, &common);
+  SoakCommand soak;
+  soak.Add(app, &common);
+  BenchCommand bench;
+  bench.Add(app, &common);
+  PeerCommand peer;
+  peer.Add(app);
+  CLI11_PARSE(app, argc, argv);
+  if (bench.app->parsed()) return bench.Run(common);
+  if (peer.app->parsed()) return peer.Run();
+  if (upload.app->parsed()) return upload.Run(common);
+  if (verify.app->parsed()) return verify.Run(common);
+  return Soak(common, soak.options);
 }
