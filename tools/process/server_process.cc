@@ -192,28 +192,8 @@ std::optional<int> ServerProcess::ReadyPort() {
   return ready->grpc_port;
 }
 
-absl::Status ServerProcess::Start() {
-  if (running()) return absl::FailedPreconditionError("already running");
-  if (access(options_.binary.c_str(), X_OK) != 0) {
-    return absl::NotFoundError(absl::StrCat(
-        "server binary not found or not executable: ", options_.binary,
-        " (build target fleetmem-server)"));
-  }
-  if (!ready_dir_.status().ok()) return ready_dir_.status();
-  JoinReader();  // from an earlier run
-  {
-    std::lock_guard<std::mutex> lock(mu_);
-    output_.clear();
-    reader_done_ = false;
-    listening_port_.reset();
-  }
-  port_ = 0;
-  http_address_.clear();
-  const std::string ready_file = ready_dir_.Join("ready");
-  files::RemoveTree(ready_file).IgnoreError();
-
-  // Everything the child needs is prepared before fork(): after fork() in a
-  // threaded process only async-signal-safe calls are allowed.
+std::vector<std::string> ServerProcess::CommandLine(
+    const std::string& ready_file) const {
   std::vector<std::string> args = {options_.binary};
   if (options_.fleetmem_flags) {
     args.insert(args.end(), {"--listen", options_.listen, "--data-dir",
@@ -224,6 +204,12 @@ absl::Status ServerProcess::Start() {
   }
   args.insert(args.end(), options_.extra_args.begin(),
               options_.extra_args.end());
+  return args;
+}
+
+absl::Status ServerProcess::Spawn(std::vector<std::string>& args) {
+  // Everything the child needs is prepared before fork(): after fork() in a
+  // threaded process only async-signal-safe calls are allowed.
   std::vector<char*> argv;
   for (std::string& arg : args) argv.push_back(arg.data());
   argv.push_back(nullptr);
@@ -258,6 +244,31 @@ absl::Status ServerProcess::Start() {
   close(fds[1]);
   pid_ = pid;
   reader_ = std::thread([this, fd = fds[0]] { ReadOutput(fd); });
+  return absl::OkStatus();
+}
+
+absl::Status ServerProcess::Start() {
+  if (running()) return absl::FailedPreconditionError("already running");
+  if (access(options_.binary.c_str(), X_OK) != 0) {
+    return absl::NotFoundError(absl::StrCat(
+        "server binary not found or not executable: ", options_.binary,
+        " (build target fleetmem-server)"));
+  }
+  if (!ready_dir_.status().ok()) return ready_dir_.status();
+  JoinReader();  // from an earlier run
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    output_.clear();
+    reader_done_ = false;
+    listening_port_.reset();
+  }
+  port_ = 0;
+  http_address_.clear();
+  const std::string ready_file = ready_dir_.Join("ready");
+  files::RemoveTree(ready_file).IgnoreError();
+
+  std::vector<std::string> args = CommandLine(ready_file);
+  if (absl::Status spawned = Spawn(args); !spawned.ok()) return spawned;
 
   const auto give_up =
       std::chrono::steady_clock::now() + options_.start_timeout;

@@ -129,6 +129,12 @@ class ServerProcess {
   std::string Output() const;
 
  private:
+  // The server's arguments (argv[0] the binary), its ready file
+  // `ready_file`.
+  std::vector<std::string> CommandLine(const std::string& ready_file) const;
+  // Starts the server with `args` (their bytes become its argv), its
+  // output read by reader_.
+  absl::Status Spawn(std::vector<std::string>& args);
   void ReadOutput(int fd);
   absl::StatusOr<int> WaitForExit(std::chrono::milliseconds timeout);
   void JoinReader();
