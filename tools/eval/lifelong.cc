@@ -1049,6 +1049,81 @@ Aggregate AggregateSeeds(const MethodSpec& spec,
   return a;
 }
 
+// curves.dat's block of one method, mean over seeds: after domain t, the
+// mean WR over the three areas, the WR of the area just learned (winter
+// domains) and the mean over the winter areas learned before.
+std::string PlotBlock(const Aggregate& a) {
+  std::string plot;
+  for (int t = 0; t < kDomains; ++t) {
+    double mean = 0;
+    for (double w : a.wr[t]) mean += w / kAreas;
+    const int w_area = t - kAreas;
+    double earlier = 0;
+    for (int d = 0; d < w_area; ++d) earlier += a.wr[t][d];
+    plot += absl::StrFormat(
+        "%d %.4f %s %s\n", t + 1, mean,
+        w_area >= 0 ? absl::StrFormat("%.4f", a.wr[t][w_area]) : "NaN",
+        w_area > 0 ? absl::StrFormat("%.4f", earlier / w_area) : "NaN");
+  }
+  return plot + "\n\n";
+}
+
+// fleet.csv: each robot of the fleet-shared runs, its own area and its
+// peer's.
+std::string FleetCsv(const std::vector<FleetRow>& fleet) {
+  std::string csv =
+      "seed,robot,own_area,own_wr,peer_area,peer_wr_shared,peer_wr_alone,"
+      "peer_own_wr,ratio_to_peer\n";
+  for (const FleetRow& f : fleet) {
+    csv += absl::StrFormat("%d,%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f\n", f.seed,
+                           f.robot, f.own_area, f.own_wr, f.peer_area,
+                           f.peer_wr_shared, f.peer_wr_alone, f.peer_own_wr,
+                           f.peer_wr_shared / std::max(1e-9, f.peer_own_wr));
+  }
+  return csv;
+}
+
+// curves.gp, and curves.png from curves.dat's `block` blocks (titled
+// `plot_titles`) with gnuplot: three panels over the course of training
+// (none without a block).
+absl::Status DrawCurves(const std::string& dir, const std::string& plot_titles,
+                        const std::string& data_root, int block) {
+  const std::string script = absl::StrFormat(
+      "set terminal pngcairo size 1500,480 font 'sans,10'\n"
+      "set output '%s/curves.png'\n"
+      "titles = '%s'\n"
+      "set multiplot layout 1,3 title 'Lifelong place recognition on %s "
+      "(protocol v2: winter queries of held-out places against the summer "
+      "map; domains summer areas 1-3, then winter areas 1-3)'\n"
+      "set termoption noenhanced\n"
+      "set xrange [0.8:6.2]; set yrange [0:*]; set grid\n"
+      "set key top left font ',8'\n"
+      "set xtics ('S1' 1, 'S2' 2, 'S3' 3, 'W1' 4, 'W2' 5, 'W3' 6)\n"
+      "set xlabel 'after learning domain'\n"
+      "set title 'WR, mean over the three areas'\n"
+      "plot for [i=0:%d] '%s/curves.dat' index i using 1:2 with linespoints "
+      "title word(titles, i+1)\n"
+      "set title 'AE: WR on the winter area just learned'\n"
+      "plot for [i=0:%d] '%s/curves.dat' index i using 1:3 with linespoints "
+      "title word(titles, i+1)\n"
+      "set title 'RA: WR on the winter areas learned before'\n"
+      "plot for [i=0:%d] '%s/curves.dat' index i using 1:4 with linespoints "
+      "title word(titles, i+1)\n"
+      "unset multiplot\n",
+      dir, plot_titles, data_root, block - 1, dir, block - 1, dir, block - 1,
+      dir);
+  if (absl::Status s = files::WriteFile(dir + "/curves.gp", script); !s.ok())
+    return s;
+  const std::string command =
+      absl::StrCat("gnuplot '", dir, "/curves.gp' 2>'", dir, "/gnuplot.log'");
+  if (block > 0 && std::system(command.c_str()) != 0) {
+    return absl::InternalError(absl::StrCat(
+        "gnuplot failed to draw curves.png (the CSVs are written); see ", dir,
+        "/gnuplot.log"));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status WriteOutputs(
     const LifelongOptions& options, const Data& data,
     const std::vector<MethodSpec>& specs,
@@ -1104,33 +1179,11 @@ absl::Status WriteOutputs(
       }
     }
     if (a.wr.empty()) continue;
-    // Plot data, mean over seeds: after domain t, the mean WR over the three
-    // areas, the WR of the area just learned (winter domains) and the mean
-    // over the winter areas learned before.
-    for (int t = 0; t < kDomains; ++t) {
-      double mean = 0;
-      for (double w : a.wr[t]) mean += w / kAreas;
-      const int w_area = t - kAreas;
-      double earlier = 0;
-      for (int d = 0; d < w_area; ++d) earlier += a.wr[t][d];
-      plot += absl::StrFormat(
-          "%d %.4f %s %s\n", t + 1, mean,
-          w_area >= 0 ? absl::StrFormat("%.4f", a.wr[t][w_area]) : "NaN",
-          w_area > 0 ? absl::StrFormat("%.4f", earlier / w_area) : "NaN");
-    }
-    plot += "\n\n";
+    plot += PlotBlock(a);
     plot_titles += absl::StrFormat("%s\"%s\"", block ? " " : "", a.name);
     ++block;
   }
-  std::string fleet_csv =
-      "seed,robot,own_area,own_wr,peer_area,peer_wr_shared,peer_wr_alone,"
-      "peer_own_wr,ratio_to_peer\n";
-  for (const FleetRow& f : fleet) {
-    fleet_csv += absl::StrFormat(
-        "%d,%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f\n", f.seed, f.robot, f.own_area,
-        f.own_wr, f.peer_area, f.peer_wr_shared, f.peer_wr_alone, f.peer_own_wr,
-        f.peer_wr_shared / std::max(1e-9, f.peer_own_wr));
-  }
+  const std::string fleet_csv = FleetCsv(fleet);
   for (const auto& [name, text] :
        std::vector<std::pair<std::string, std::string>>{
            {"summary.csv", summary},
@@ -1143,41 +1196,7 @@ absl::Status WriteOutputs(
       return s;
   }
   *table_out = table;
-  // curves.png with gnuplot: three panels over the course of training.
-  const std::string script = absl::StrFormat(
-      "set terminal pngcairo size 1500,480 font 'sans,10'\n"
-      "set output '%s/curves.png'\n"
-      "titles = '%s'\n"
-      "set multiplot layout 1,3 title 'Lifelong place recognition on %s "
-      "(protocol v2: winter queries of held-out places against the summer "
-      "map; domains summer areas 1-3, then winter areas 1-3)'\n"
-      "set termoption noenhanced\n"
-      "set xrange [0.8:6.2]; set yrange [0:*]; set grid\n"
-      "set key top left font ',8'\n"
-      "set xtics ('S1' 1, 'S2' 2, 'S3' 3, 'W1' 4, 'W2' 5, 'W3' 6)\n"
-      "set xlabel 'after learning domain'\n"
-      "set title 'WR, mean over the three areas'\n"
-      "plot for [i=0:%d] '%s/curves.dat' index i using 1:2 with linespoints "
-      "title word(titles, i+1)\n"
-      "set title 'AE: WR on the winter area just learned'\n"
-      "plot for [i=0:%d] '%s/curves.dat' index i using 1:3 with linespoints "
-      "title word(titles, i+1)\n"
-      "set title 'RA: WR on the winter areas learned before'\n"
-      "plot for [i=0:%d] '%s/curves.dat' index i using 1:4 with linespoints "
-      "title word(titles, i+1)\n"
-      "unset multiplot\n",
-      dir, plot_titles, options.data_root, block - 1, dir, block - 1, dir,
-      block - 1, dir);
-  if (absl::Status s = files::WriteFile(dir + "/curves.gp", script); !s.ok())
-    return s;
-  const std::string command =
-      absl::StrCat("gnuplot '", dir, "/curves.gp' 2>'", dir, "/gnuplot.log'");
-  if (block > 0 && std::system(command.c_str()) != 0) {
-    return absl::InternalError(absl::StrCat(
-        "gnuplot failed to draw curves.png (the CSVs are written); see ", dir,
-        "/gnuplot.log"));
-  }
-  return absl::OkStatus();
+  return DrawCurves(dir, plot_titles, options.data_root, block);
 }
 
 }  // namespace
@@ -1188,7 +1207,12 @@ std::vector<std::string> LifelongMethodNames() {
   return names;
 }
 
-absl::Status RunLifelong(const LifelongOptions& options) {
+namespace {
+
+// The methods `options` selects, checked: known names, bioslam beside
+// uniform_replay, the server binary for a memory method.
+absl::StatusOr<std::vector<MethodSpec>> SelectedSpecs(
+    const LifelongOptions& options) {
   const std::vector<std::string> names = LifelongMethodNames();
   for (const std::string& m : options.methods) {
     if (std::find(names.begin(), names.end(), m) == names.end()) {
@@ -1219,10 +1243,11 @@ absl::Status RunLifelong(const LifelongOptions& options) {
                                             options.server_binary,
                                             " (--server-binary)"));
   }
-  const bool any_gpl = std::any_of(
-      specs.begin(), specs.end(),
-      [](const MethodSpec& s) { return s.learner == LearnerKind::kGpl; });
-  robot::gpl::SetTorchThreads(options.threads);
+  return specs;
+}
+
+// The run's settings: the quick or full ones, with what `options` sets.
+Settings SettingsOf(const LifelongOptions& options) {
   Settings settings = SettingsFor(options.quick);
   if (options.pretrain_steps > 0)
     settings.pretrain_steps = options.pretrain_steps;
@@ -1231,6 +1256,20 @@ absl::Status RunLifelong(const LifelongOptions& options) {
   if (options.steps_per_segment > 0)
     settings.steps_per_segment = options.steps_per_segment;
   if (options.seeds > 0) settings.seeds = options.seeds;
+  return settings;
+}
+
+}  // namespace
+
+absl::Status RunLifelong(const LifelongOptions& options) {
+  absl::StatusOr<std::vector<MethodSpec>> selected = SelectedSpecs(options);
+  if (!selected.ok()) return selected.status();
+  const std::vector<MethodSpec>& specs = *selected;
+  const bool any_gpl = std::any_of(
+      specs.begin(), specs.end(),
+      [](const MethodSpec& s) { return s.learner == LearnerKind::kGpl; });
+  robot::gpl::SetTorchThreads(options.threads);
+  const Settings settings = SettingsOf(options);
   const auto start = Clock::now();
   absl::StatusOr<Data> data =
       LoadData(options.data_root, options.skip_places, options.max_places);
