@@ -79,6 +79,38 @@ LatencyLog::Summary LatencyLog::Take() {
   return summary;
 }
 
+namespace {
+
+// A robot's `size` distinct traces whose codes its batches reuse (none for
+// 0: every trace its own code).
+std::vector<v1::MemoryTrace> CodePool(const std::string& robot, int size,
+                                      int dimension) {
+  std::vector<v1::MemoryTrace> pool;
+  for (int i = 0; i < size; ++i) {
+    pool.push_back(LoadTrace(robot, static_cast<uint64_t>(i) + 1, dimension));
+  }
+  return pool;
+}
+
+double SecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+      .count();
+}
+
+// Seqs first..last with the pool's codes in turn.
+std::vector<v1::MemoryTrace> FromPool(const std::vector<v1::MemoryTrace>& pool,
+                                      uint64_t first, uint64_t last) {
+  std::vector<v1::MemoryTrace> traces;
+  traces.reserve(last - first + 1);
+  for (uint64_t seq = first; seq <= last; ++seq) {
+    traces.push_back(pool[seq % pool.size()]);
+    traces.back().set_seq(seq);
+  }
+  return traces;
+}
+
+}  // namespace
+
 absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
                                             const UploadLoadOptions& options,
                                             const std::string& ack_log,
@@ -88,7 +120,7 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
     return absl::InvalidArgumentError(
         "robots, batch and dimension must be >= 1");
   }
-  std::ofstream log;
+  std::ofstream log;  // the acknowledged batches, when asked for
   if (!ack_log.empty()) {
     log.open(ack_log, std::ios::app);
     if (!log) return absl::NotFoundError("cannot open " + ack_log);
@@ -108,11 +140,8 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
           client::Client::Create(client);
       const std::string robot = RobotName(r);
       uint64_t next = options.first_seq;
-      std::vector<v1::MemoryTrace> pool;
-      for (int i = 0; i < options.code_pool; ++i) {
-        pool.push_back(
-            LoadTrace(robot, static_cast<uint64_t>(i) + 1, options.dimension));
-      }
+      const std::vector<v1::MemoryTrace> pool =
+          CodePool(robot, options.code_pool, options.dimension);
       auto due = std::chrono::steady_clock::now();
       while (std::chrono::steady_clock::now() < end &&
              !(stop != nullptr && stop->load())) {
@@ -127,16 +156,9 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
                   interval);
         }
         const uint64_t last = next + options.batch - 1;
-        std::vector<v1::MemoryTrace> traces;
-        if (pool.empty()) {
-          traces = Batch(robot, next, last, options.dimension);
-        } else {
-          traces.reserve(options.batch);
-          for (uint64_t seq = next; seq <= last; ++seq) {
-            traces.push_back(pool[seq % pool.size()]);
-            traces.back().set_seq(seq);
-          }
-        }
+        const std::vector<v1::MemoryTrace> traces =
+            pool.empty() ? Batch(robot, next, last, options.dimension)
+                         : FromPool(pool, next, last);
         const auto sent = std::chrono::steady_clock::now();
         absl::StatusOr<v1::UploadTracesResponse> reply =
             connection->Upload(options.fleet_id, traces);
@@ -165,9 +187,7 @@ absl::StatusOr<UploadLoadResult> RunUploads(const client::ClientOptions& client,
     });
   }
   for (std::thread& thread : threads) thread.join();
-  result.seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
-          .count();
+  result.seconds = SecondsSince(start);
   return result;
 }
 
