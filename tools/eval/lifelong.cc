@@ -886,6 +886,16 @@ struct FleetRow {
   double own_wr = 0, peer_wr_shared = 0, peer_wr_alone = 0, peer_own_wr = 0;
 };
 
+// The robot's scores on every area, with its learner.
+absl::Status EvaluateRobot(Context& ctx, const MethodSpec& spec,
+                           const Robot& robot, std::vector<Score>* scores) {
+  absl::StatusOr<std::vector<Score>> evaluated =
+      Evaluate(ctx, ctx.CodesOf(spec), robot.learner.get());
+  if (!evaluated.ok()) return evaluated.status();
+  *scores = *std::move(evaluated);
+  return absl::OkStatus();
+}
+
 absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
                                             const MethodSpec& spec,
                                             std::vector<FleetRow>* rows) {
@@ -930,14 +940,11 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
   if (absl::Status s = StopServer(**server); !s.ok()) return s;
   std::vector<Score> s_shared[2], s_alone[2];
   for (int k = 0; k < 2; ++k) {
-    absl::StatusOr<std::vector<Score>> a =
-        Evaluate(ctx, ctx.CodesOf(spec), shared[k].learner.get());
-    absl::StatusOr<std::vector<Score>> b =
-        Evaluate(ctx, ctx.CodesOf(spec), alone[k].learner.get());
-    if (!a.ok()) return a.status();
-    if (!b.ok()) return b.status();
-    s_shared[k] = *a;
-    s_alone[k] = *b;
+    absl::Status evaluated = EvaluateRobot(ctx, spec, shared[k], &s_shared[k]);
+    if (evaluated.ok()) {
+      evaluated = EvaluateRobot(ctx, spec, alone[k], &s_alone[k]);
+    }
+    if (!evaluated.ok()) return evaluated;
   }
   double wr_sum = 0, own_sum = 0, peer_sum = 0;
   for (int k = 0; k < 2; ++k) {
