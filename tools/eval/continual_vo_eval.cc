@@ -17,10 +17,10 @@
 #include "absl/strings/str_split.h"
 #include "clients/robot/learning/depth_pose_model.h"
 #include "clients/robot/learning/gpl_model.h"
-#include "services/common/files.h"
 #include "clients/robot/slam/trajectory_metrics.h"
 #include "clients/robot/vo/classical_vo.h"
 #include "clients/robot/vo/continual_vo.h"
+#include "services/common/files.h"
 
 namespace fleetmem::eval {
 namespace {
@@ -121,17 +121,17 @@ struct Context {
   std::map<std::string, std::vector<std::pair<std::string, std::string>>> plots;
 };
 
-absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
-                      const vo::KittiClip& y, int pretrain_steps) {
+// The model pre-trained on `x` from scratch (no ImageNet weights here) at
+// 1e-3, then copied into one at CL-SLAM's adaptation rate, 1e-4, with its
+// encoders frozen, and saved in `order_dir`/weights/pretrained.pt.
+absl::StatusOr<std::unique_ptr<vo::DepthPoseModel>> Pretrained(
+    Context& ctx, const vo::KittiClip& x, int pretrain_steps,
+    const std::string& order_dir) {
   const ContinualVoEvalOptions& o = *ctx.options;
-  const std::string order_dir = absl::StrCat(ctx.dir, "/", x.name, "_first");
-  std::filesystem::create_directories(order_dir + "/weights");
   vo::DepthPoseOptions model_options;
   model_options.image_width = kWidth;
   model_options.image_height = kHeight;
   model_options.seed = o.seed;
-  // Pre-training from scratch (no ImageNet weights here): 1e-3, then the
-  // paper's 1e-4 for adaptation.
   model_options.learning_rate = 1e-3;
   absl::StatusOr<std::unique_ptr<vo::DepthPoseModel>> model =
       vo::DepthPoseModel::Create(model_options);
@@ -155,11 +155,10 @@ absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
         }
       });
   if (!pre.ok()) return pre.status();
-  const double pretrain_s =
+  std::fprintf(
+      stderr, "\n  pre-trained in %.0f s\n",
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
-          .count();
-  std::fprintf(stderr, "\n  pre-trained in %.0f s\n", pretrain_s);
-  // Adaptation at CL-SLAM's learning rate: a copy with that option.
+          .count());
   vo::DepthPoseOptions adapt_options = model_options;
   adapt_options.learning_rate = 1e-4;
   absl::StatusOr<std::unique_ptr<vo::DepthPoseModel>> pretrained =
@@ -174,7 +173,66 @@ absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
       !s.ok()) {
     return s;
   }
+  return pretrained;
+}
 
+// One deployment of a method's model on a clip, named by the sequence of
+// clips it saw: its row, trajectory, weights and plot block.
+struct Step {
+  vo::ContinualVo* vo;
+  const vo::KittiClip* clip;
+  std::string sequence;
+};
+absl::Status Deploy(Context& ctx, const Step& step, const std::string& name,
+                    const std::string& order, const std::string& order_dir) {
+  const std::string what = absl::StrCat(name, " ", step.sequence);
+  absl::StatusOr<vo::DeploymentResult> d = step.vo->Deploy(
+      step.clip->name, *step.clip, [&](size_t frame, size_t frames) {
+        if (ctx.tty || frame + 1 == frames) {
+          std::fprintf(stderr, "%s", Progress(what, frame, frames).c_str());
+        }
+      });
+  if (!d.ok()) return d.status();
+  absl::StatusOr<Row> row = Score(*step.clip, d->odometry);
+  if (!row.ok()) return row.status();
+  row->order = order;
+  row->sequence = step.sequence;
+  row->scene = step.clip->name;
+  row->method = name;
+  row->seconds = d->seconds;
+  row->update_steps = d->update_steps;
+  for (const auto& [env, buffer] : step.vo->replay().buffers()) {
+    row->replay_samples += buffer.size();
+  }
+  std::fprintf(stderr, "  ATE %.2f m (SE(3)), %.0f s\n", row->ate_se3,
+               d->seconds);
+  std::string stem = step.sequence;
+  std::replace(stem.begin(), stem.end(), '>', '_');
+  if (absl::Status s = WriteTrajectory(
+          absl::StrCat(order_dir, "/", stem, "_", name), d->odometry);
+      !s.ok()) {
+    return s;
+  }
+  if (absl::Status s = step.vo->weights().Save(
+          absl::StrCat(order_dir, "/weights/", stem, "_", name, ".pt"));
+      !s.ok()) {
+    return s;
+  }
+  ctx.plots[name].push_back(
+      {absl::StrCat(step.sequence, " (on ", step.clip->name, ")"),
+       PlotData(step.clip->ground_truth) + PlotData(d->odometry)});
+  ctx.rows.push_back(*row);
+  return absl::OkStatus();
+}
+
+absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
+                      const vo::KittiClip& y, int pretrain_steps) {
+  const ContinualVoEvalOptions& o = *ctx.options;
+  const std::string order_dir = absl::StrCat(ctx.dir, "/", x.name, "_first");
+  std::filesystem::create_directories(order_dir + "/weights");
+  absl::StatusOr<std::unique_ptr<vo::DepthPoseModel>> pretrained =
+      Pretrained(ctx, x, pretrain_steps, order_dir);
+  if (!pretrained.ok()) return pretrained.status();
   vo::ContinualVoOptions vo_options;
   vo_options.update_steps = o.update_steps;
   vo_options.seed = o.seed;
@@ -192,52 +250,14 @@ absl::Status RunOrder(Context& ctx, const vo::KittiClip& x,
     }
     absl::StatusOr<std::unique_ptr<vo::ContinualVo>> branch = (*run)->Clone();
     if (!branch.ok()) return branch.status();
-    struct Step {
-      vo::ContinualVo* vo;
-      const vo::KittiClip* clip;
-      std::string sequence;
-    };
     for (const Step& step :
          {Step{run->get(), &y, pre_x + ">" + y.name},
           Step{run->get(), &x, pre_x + ">" + y.name + ">" + x.name},
           Step{branch->get(), &x, pre_x + ">" + x.name}}) {
-      const std::string what = absl::StrCat(name, " ", step.sequence);
-      absl::StatusOr<vo::DeploymentResult> d = step.vo->Deploy(
-          step.clip->name, *step.clip, [&](size_t frame, size_t frames) {
-            if (ctx.tty || frame + 1 == frames) {
-              std::fprintf(stderr, "%s", Progress(what, frame, frames).c_str());
-            }
-          });
-      if (!d.ok()) return d.status();
-      absl::StatusOr<Row> row = Score(*step.clip, d->odometry);
-      if (!row.ok()) return row.status();
-      row->order = x.name;
-      row->sequence = step.sequence;
-      row->scene = step.clip->name;
-      row->method = name;
-      row->seconds = d->seconds;
-      row->update_steps = d->update_steps;
-      for (const auto& [env, buffer] : step.vo->replay().buffers()) {
-        row->replay_samples += buffer.size();
-      }
-      std::fprintf(stderr, "  ATE %.2f m (SE(3)), %.0f s\n", row->ate_se3,
-                   d->seconds);
-      std::string stem = step.sequence;
-      std::replace(stem.begin(), stem.end(), '>', '_');
-      if (absl::Status s = WriteTrajectory(
-              absl::StrCat(order_dir, "/", stem, "_", name), d->odometry);
+      if (absl::Status s = Deploy(ctx, step, name, x.name, order_dir);
           !s.ok()) {
         return s;
       }
-      if (absl::Status s = step.vo->weights().Save(
-              absl::StrCat(order_dir, "/weights/", stem, "_", name, ".pt"));
-          !s.ok()) {
-        return s;
-      }
-      ctx.plots[name].push_back(
-          {absl::StrCat(step.sequence, " (on ", step.clip->name, ")"),
-           PlotData(step.clip->ground_truth) + PlotData(d->odometry)});
-      ctx.rows.push_back(*row);
     }
   }
   return absl::OkStatus();
@@ -303,20 +323,11 @@ absl::Status WritePlots(const Context& ctx) {
 
 }  // namespace
 
-absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
-  if (options.update_steps < 0 || options.pretrain_steps < 0) {
-    return absl::InvalidArgumentError("step counts must be >= 0");
-  }
-  if (options.frames != 0 && options.frames < 3) {
-    return absl::InvalidArgumentError("--frames: 0 (all) or at least 3");
-  }
-  robot::gpl::SetTorchThreads(options.threads);
-  std::error_code ec;
-  std::filesystem::create_directories(options.out_dir, ec);
-  if (ec) {
-    return absl::InternalError(
-        absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
-  }
+namespace {
+
+// The two KITTI clips (each cut to options.frames, if set).
+absl::StatusOr<std::vector<vo::KittiClip>> LoadClips(
+    const ContinualVoEvalOptions& options) {
   std::vector<vo::KittiClip> clips;
   for (const char* name : {"clip1", "clip2"}) {
     absl::StatusOr<vo::KittiClip> clip = vo::LoadKittiClip(
@@ -328,32 +339,17 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
       clips.push_back(*std::move(clip));
     }
   }
-  const int pretrain_steps = options.pretrain_steps > 0 ? options.pretrain_steps
-                             : options.quick            ? 1500
-                                                        : 4000;
-  Context ctx{&options, options.out_dir, isatty(2) != 0, {}, {}};
-  const auto start = std::chrono::steady_clock::now();
-  for (const vo::KittiClip& clip : clips) {
-    if (absl::Status s = RunClassical(ctx, clip); !s.ok()) return s;
-  }
-  if (absl::Status s = RunOrder(ctx, clips[0], clips[1], pretrain_steps);
-      !s.ok()) {
-    return s;
-  }
-  if (!options.quick) {
-    if (absl::Status s = RunOrder(ctx, clips[1], clips[0], pretrain_steps);
-        !s.ok()) {
-      return s;
-    }
-  }
+  return clips;
+}
 
+// summary.csv: a row per deployment.
+std::string SummaryCsv(const std::vector<Row>& rows) {
   std::string summary =
       "order,sequence,scene,method,frames,ate_se3_m,ate_sim3_m,"
       "rpe_frame_trans_m,rpe_frame_rot_deg,rpe_10m_trans_m,rpe_10m_rot_deg,"
       "t_err_10_40m_pct,r_err_10_40m_deg_per_100m,kitti_t_err_pct,"
       "kitti_r_err_deg_per_100m,update_steps,replay_samples,seconds\n";
-  std::string deployments = "method,sequence,t_err,r_err\n";
-  for (const Row& r : ctx.rows) {
+  for (const Row& r : rows) {
     const std::string kitti_t =
         r.kitti.segments > 0 ? absl::StrFormat("%.4f", r.kitti.t_err_percent)
                              : "n/a";
@@ -370,6 +366,16 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
         r.short_segments.t_err_percent, r.short_segments.r_err_deg_per_100m,
         kitti_t, kitti_r, r.update_steps, r.replay_samples, r.seconds);
   }
+  return summary;
+}
+
+// The results: summary.csv, deployments.csv, continual.csv (AQ and RQ per
+// method), summary.txt (also on stdout) and the plots.
+absl::Status WriteResults(Context& ctx,
+                          std::chrono::steady_clock::time_point start) {
+  const ContinualVoEvalOptions& options = *ctx.options;
+  const std::string summary = SummaryCsv(ctx.rows);
+  std::string deployments = "method,sequence,t_err,r_err\n";
   // AQ and RQ per method (fleetmem-eval continual's computation).
   std::map<std::string, std::vector<slam::Deployment>> by_method;
   for (const Row& r : ctx.rows) {
@@ -425,6 +431,46 @@ absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
           .count(),
       options.out_dir.c_str());
   return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status RunContinualVoEval(const ContinualVoEvalOptions& options) {
+  if (options.update_steps < 0 || options.pretrain_steps < 0) {
+    return absl::InvalidArgumentError("step counts must be >= 0");
+  }
+  if (options.frames != 0 && options.frames < 3) {
+    return absl::InvalidArgumentError("--frames: 0 (all) or at least 3");
+  }
+  robot::gpl::SetTorchThreads(options.threads);
+  std::error_code ec;
+  std::filesystem::create_directories(options.out_dir, ec);
+  if (ec) {
+    return absl::InternalError(
+        absl::StrCat("cannot create ", options.out_dir, ": ", ec.message()));
+  }
+  absl::StatusOr<std::vector<vo::KittiClip>> clips = LoadClips(options);
+  if (!clips.ok()) return clips.status();
+  const int pretrain_steps = options.pretrain_steps > 0 ? options.pretrain_steps
+                             : options.quick            ? 1500
+                                                        : 4000;
+  Context ctx{&options, options.out_dir, isatty(2) != 0, {}, {}};
+  const auto start = std::chrono::steady_clock::now();
+  for (const vo::KittiClip& clip : *clips) {
+    if (absl::Status s = RunClassical(ctx, clip); !s.ok()) return s;
+  }
+  if (absl::Status s = RunOrder(ctx, (*clips)[0], (*clips)[1], pretrain_steps);
+      !s.ok()) {
+    return s;
+  }
+  if (!options.quick) {
+    if (absl::Status s =
+            RunOrder(ctx, (*clips)[1], (*clips)[0], pretrain_steps);
+        !s.ok()) {
+      return s;
+    }
+  }
+  return WriteResults(ctx, start);
 }
 
 }  // namespace fleetmem::eval
