@@ -106,6 +106,57 @@ core::FirstCorrectRanks Ranks(const std::vector<std::vector<float>>& summer,
   return ranks;
 }
 
+// Every frame of both seasons encoded, in row order.
+absl::Status EncodeBoth(ImageEncoder& encoder, const Season& summer,
+                        const Season& winter,
+                        std::vector<std::vector<float>>* summer_codes,
+                        std::vector<std::vector<float>>* winter_codes) {
+  for (size_t i = 0; i < summer.images.size(); ++i) {
+    absl::StatusOr<std::vector<float>> s =
+        encoder.EncodeImage(summer.images[i]);
+    absl::StatusOr<std::vector<float>> w =
+        encoder.EncodeImage(winter.images[i]);
+    if (!s.ok()) return s.status();
+    if (!w.ok()) return w.status();
+    summer_codes->push_back(*std::move(s));
+    winter_codes->push_back(*std::move(w));
+  }
+  return absl::OkStatus();
+}
+
+// The rewards over the robot stretches, as the demo computes them: sums of
+// R_in and R_ex, and how many R_ex were positive.
+struct Rewards {
+  double internal_sum = 0.0, external_sum = 0.0;
+  size_t external_positive = 0;
+};
+absl::StatusOr<Rewards> StretchRewards(
+    ImageEncoder& encoder, const Season& summer,
+    const std::vector<std::vector<float>>& summer_codes,
+    const std::vector<Stretch>& stretches) {
+  std::mt19937_64 rng(7);
+  Rewards rewards;
+  for (const Stretch& s : stretches) {
+    std::vector<std::vector<float>> codes;
+    std::vector<core::Place> x;
+    for (size_t i = s.begin; i < s.end; ++i) {
+      absl::StatusOr<cv::Mat> moved =
+          RandomShiftCrop(summer.images[i], ShiftCropOptions{}, rng);
+      if (!moved.ok()) return moved.status();
+      absl::StatusOr<std::vector<float>> code = encoder.EncodeImage(*moved);
+      if (!code.ok()) return code.status();
+      rewards.internal_sum += InternalReward(summer_codes[i], *code);
+      codes.push_back(summer_codes[i]);
+      x.push_back({.x = static_cast<double>(summer.numbers[i])});
+    }
+    for (float r : ExternalRewards(codes, x, TripletOptions{})) {
+      rewards.external_sum += r;
+      rewards.external_positive += r > 0.0f ? 1 : 0;
+    }
+  }
+  return rewards;
+}
+
 absl::Status Run() {
   const std::string root = Flags().data + "/nordland";
   absl::StatusOr<Season> summer = LoadSeason(root + "/summer");
@@ -142,43 +193,21 @@ absl::Status Run() {
     if (!encoder.ok()) return encoder.status();
     std::vector<std::vector<float>> summer_codes, winter_codes;
     const auto start = std::chrono::steady_clock::now();
-    for (size_t i = 0; i < all_rows.size(); ++i) {
-      absl::StatusOr<std::vector<float>> s =
-          (*encoder)->EncodeImage(summer->images[i]);
-      absl::StatusOr<std::vector<float>> w =
-          (*encoder)->EncodeImage(winter->images[i]);
-      if (!s.ok()) return s.status();
-      if (!w.ok()) return w.status();
-      summer_codes.push_back(*std::move(s));
-      winter_codes.push_back(*std::move(w));
+    if (absl::Status encoded = EncodeBoth(**encoder, *summer, *winter,
+                                          &summer_codes, &winter_codes);
+        !encoded.ok()) {
+      return encoded;
     }
     const double us_per_image = std::chrono::duration<double, std::micro>(
                                     std::chrono::steady_clock::now() - start)
                                     .count() /
                                 (2.0 * all_rows.size());
-    // Rewards over the robot stretches, as the demo computes them.
-    std::mt19937_64 rng(7);
-    double internal_sum = 0.0, external_sum = 0.0;
-    size_t external_positive = 0;
-    for (const Stretch& s : *stretches) {
-      std::vector<std::vector<float>> codes;
-      std::vector<core::Place> x;
-      for (size_t i = s.begin; i < s.end; ++i) {
-        absl::StatusOr<cv::Mat> moved =
-            RandomShiftCrop(summer->images[i], ShiftCropOptions{}, rng);
-        if (!moved.ok()) return moved.status();
-        absl::StatusOr<std::vector<float>> code =
-            (*encoder)->EncodeImage(*moved);
-        if (!code.ok()) return code.status();
-        internal_sum += InternalReward(summer_codes[i], *code);
-        codes.push_back(summer_codes[i]);
-        x.push_back({.x = static_cast<double>(summer->numbers[i])});
-      }
-      for (float r : ExternalRewards(codes, x, TripletOptions{})) {
-        external_sum += r;
-        external_positive += r > 0.0f ? 1 : 0;
-      }
-    }
+    absl::StatusOr<Rewards> rewards =
+        StretchRewards(**encoder, *summer, summer_codes, *stretches);
+    if (!rewards.ok()) return rewards.status();
+    const double internal_sum = rewards->internal_sum;
+    const double external_sum = rewards->external_sum;
+    const size_t external_positive = rewards->external_positive;
     const core::FirstCorrectRanks all =
         Ranks(summer_codes, winter_codes, *summer, all_rows);
     const core::FirstCorrectRanks part =
