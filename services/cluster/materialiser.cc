@@ -246,8 +246,18 @@ absl::StatusOr<Materialiser::Owned*> Materialiser::Take(
       !restored.ok()) {
     // Not owned yet (the lease is kept: the next step takes it again at
     // once, as its holder).
-    absl::MutexLock held(&lease_mu_);
-    held_.erase(std::string(fleet_id));
+    {
+      absl::MutexLock held(&lease_mu_);
+      held_.erase(std::string(fleet_id));
+    }
+    // While the restore ran (seconds, when the snapshot stream elects a
+    // leader) this replica held the lease and Owns() said so: watches of
+    // the fleet were accepted here. They end now, as for a lost lease;
+    // before, they went on unserved (the cluster test's paused owner, 1
+    // run in 50: its restore timed out across the pause).
+    Lost(fleet_id, absl::Status(restored.code(),
+                                absl::StrCat("not restored from its snapshot: ",
+                                             restored.message())));
     return restored;
   }
   return &owned_.emplace(std::string(fleet_id), std::move(taken)).first->second;

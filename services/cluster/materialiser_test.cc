@@ -387,6 +387,32 @@ TEST_F(MaterialiserTest, CallsGoThroughTheLogAndEveryReplicaAppliesThemAlike) {
 // behind the trimmed head, restore the latest and apply only the tail, and
 // reach the owner's state exactly. The fleet's shape survives its first
 // entry's trimming.
+// A replica that takes a fleet whose log is trimmed and whose snapshot it
+// cannot restore does not own the fleet, and says so at once: the watches
+// it accepted while it held the lease end (OnLeaseLost), as for a lost
+// lease. The next step takes the fleet again.
+TEST_F(MaterialiserTest, ATakeWhoseRestoreFailsEndsTheFleetsWatches) {
+  const std::string fleet = "fleet-bad-snap";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  AppendUploads(*log, fleet, Uploads());
+  ASSERT_TRUE(
+      log->Put(fleet, SnapshotInfo{6, 9, 8, "enc-v1"}, "not-image").ok());
+  ASSERT_TRUE(log->Trim(fleet, 6).ok());
+  Replica a;
+  Materialiser taker({.replica_id = "replica-a"}, log.get(), log.get(),
+                     log.get(), a.engine.get());
+  std::vector<std::string> lost;
+  taker.OnLeaseLost([&](const std::string& id) { lost.push_back(id); });
+  absl::StatusOr<StepResult> step = taker.Step(fleet);
+  EXPECT_EQ(step.status().code(), absl::StatusCode::kDataLoss) << step.status();
+  EXPECT_FALSE(taker.Owns(fleet));
+  EXPECT_EQ(lost, std::vector<std::string>{fleet});
+  // Still its lease's holder: the next step takes it again, and fails alike.
+  EXPECT_EQ(taker.Step(fleet).status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_EQ(lost.size(), 2u);
+}
+
 TEST_F(MaterialiserTest, SnapshotsLetNewOwnersSkipTheTrimmedLog) {
   const std::string fleet = "fleet-snap";
   std::unique_ptr<NatsFleetLog> log = Connect();
