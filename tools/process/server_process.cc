@@ -20,6 +20,7 @@
 #include "absl/strings/str_split.h"
 #include "absl/strings/string_view.h"
 #include "absl/strings/strip.h"
+#include "absl/synchronization/mutex.h"
 #include "fleetmem_paths.h"
 
 namespace fleetmem::process {
@@ -100,27 +101,81 @@ ServerOptions NatsServerOptions(const std::string& store_dir,
   return options;
 }
 
+namespace {
+
+// A socket bound to 127.0.0.1:`port` (0: a port the kernel picks), or -1;
+// `port` gets the port bound.
+int BindLoopback(int* port) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  if (fd < 0) return -1;
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  address.sin_port = htons(static_cast<uint16_t>(*port));
+  socklen_t size = sizeof(address);
+  if (bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0 ||
+      getsockname(fd, reinterpret_cast<sockaddr*>(&address), &size) != 0) {
+    close(fd);
+    return -1;
+  }
+  *port = ntohs(address.sin_port);
+  return fd;
+}
+
+// The first port of the kernel's ephemeral range (the source ports of
+// outgoing connections); 32768 if it cannot be read.
+int EphemeralLow() {
+  std::ifstream range("/proc/sys/net/ipv4/ip_local_port_range");
+  int low = 0;
+  if (!(range >> low) || low <= 0) return 32768;
+  return low;
+}
+
+}  // namespace
+
 std::vector<int> FreePorts(size_t n) {
   // Every socket stays bound until all are chosen: the kernel hands out
   // one port twice when a socket is closed before the next is bound (a
   // NATS route port given to two servers of one cluster did that).
+  //
+  // Below the ephemeral range where there is room: a port in it can be
+  // taken, before its server binds it, by the source port of any outgoing
+  // connection — even one to that very port (TCP's self-connect: a NATS
+  // server dialling a peer's route port before the peer listened got that
+  // port as its own source, connected to itself, and the peer could not
+  // bind it; 1 run of the cluster test in 50).
+  //
+  // Calls of one process go on from where the last one stopped (a port
+  // handed out and closed is free again until its server binds it); the
+  // first starts at a point of the process id, so that processes running
+  // at once start apart.
+  ABSL_CONST_INIT static absl::Mutex mu(absl::kConstInit);
+  static int next = 0;  // guarded by mu
   std::vector<int> fds;
   std::vector<int> ports;
-  for (size_t i = 0; i < n; ++i) {
-    const int fd = socket(AF_INET, SOCK_STREAM, 0);
-    sockaddr_in address{};
-    address.sin_family = AF_INET;
-    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    address.sin_port = 0;
-    socklen_t size = sizeof(address);
-    int port = 0;
-    if (fd >= 0 &&
-        bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
-        getsockname(fd, reinterpret_cast<sockaddr*>(&address), &size) == 0) {
-      port = ntohs(address.sin_port);
+  const int high = EphemeralLow() - 1;
+  const int low = 10000;
+  if (high - low >= 1000) {
+    const int span = high - low + 1;
+    absl::MutexLock lock(&mu);
+    if (next < low || next > high) {
+      next = low + static_cast<int>((static_cast<unsigned>(getpid()) * 7919u) %
+                                    static_cast<unsigned>(span));
     }
+    for (int tried = 0; tried < span && ports.size() < n; ++tried) {
+      int port = next;
+      next = next == high ? low : next + 1;
+      const int fd = BindLoopback(&port);
+      if (fd < 0) continue;
+      fds.push_back(fd);
+      ports.push_back(port);
+    }
+  }
+  while (ports.size() < n) {  // no room below the range: the kernel's pick
+    int port = 0;
+    const int fd = BindLoopback(&port);
     if (fd >= 0) fds.push_back(fd);
-    ports.push_back(port);
+    ports.push_back(fd >= 0 ? port : 0);
   }
   for (int fd : fds) close(fd);
   return ports;
