@@ -152,8 +152,8 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::ForwardUpload(
     api::TraceToProto(trace, request.add_traces());
   }
   v1::UploadTracesResponse response;
-  if (absl::Status forwarded =
-          forwarder_.Forward(**owner, "UploadTraces", request, &response);
+  if (absl::Status forwarded = forwarder_.Forward(
+          **owner, "UploadTraces", request, &response, options.deadline);
       !forwarded.ok()) {
     return forwarded;
   }
@@ -296,8 +296,21 @@ ReplicatedMemory::Fleets() {
 absl::Status ReplicatedMemory::Forward(const std::string& address,
                                        std::string_view method,
                                        const google::protobuf::Message& request,
-                                       google::protobuf::Message* response) {
-  return forwarder_.Forward(address, method, request, response);
+                                       google::protobuf::Message* response,
+                                       absl::Time deadline) {
+  return forwarder_.Forward(address, method, request, response, deadline);
+}
+
+std::vector<absl::Status> ReplicatedMemory::ForwardEach(
+    std::span<const std::string> addresses, std::string_view method,
+    const google::protobuf::Message& request,
+    std::span<google::protobuf::Message* const> responses,
+    absl::Time deadline) {
+  std::vector<transport::PeerCall> calls;
+  for (size_t i = 0; i < addresses.size(); ++i) {
+    calls.push_back({addresses[i], responses[i]});
+  }
+  return forwarder_.ForwardEach(calls, method, request, deadline);
 }
 
 engine::Backlog ReplicatedMemory::Backlog(std::string_view fleet_id) {

@@ -90,7 +90,13 @@ class ReplicatedMemory final : public transport::FleetMemory {
   }
   absl::Status Forward(const std::string& address, std::string_view method,
                        const google::protobuf::Message& request,
-                       google::protobuf::Message* response) override;
+                       google::protobuf::Message* response,
+                       absl::Time deadline) override;
+  std::vector<absl::Status> ForwardEach(
+      std::span<const std::string> addresses, std::string_view method,
+      const google::protobuf::Message& request,
+      std::span<google::protobuf::Message* const> responses,
+      absl::Time deadline) override;
   absl::StatusOr<engine::ConsolidateResult> Consolidate(
       std::string_view fleet_id) override;
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(

@@ -7,6 +7,18 @@
 
 namespace fleetmem::transport {
 
+namespace {
+
+// An embedded server serves every fleet itself.
+absl::Status NothingToForward(const std::string& address,
+                              std::string_view method) {
+  return absl::InternalError(absl::StrCat(
+      "an embedded server serves every fleet itself; asked to forward ",
+      V(method), " to \"", address, "\""));
+}
+
+}  // namespace
+
 absl::StatusOr<std::unique_ptr<EmbeddedMemory>> EmbeddedMemory::Open(
     engine::MemoryEngine* engine, engine::FleetLog* log,
     EmbeddedOptions options) {
@@ -132,10 +144,19 @@ EmbeddedMemory::Fleets() {
 absl::Status EmbeddedMemory::Forward(const std::string& address,
                                      std::string_view method,
                                      const google::protobuf::Message&,
-                                     google::protobuf::Message*) {
-  return absl::InternalError(absl::StrCat(
-      "an embedded server serves every fleet itself; asked to forward ",
-      V(method), " to \"", address, "\""));
+                                     google::protobuf::Message*, absl::Time) {
+  return NothingToForward(address, method);
+}
+
+std::vector<absl::Status> EmbeddedMemory::ForwardEach(
+    std::span<const std::string> addresses, std::string_view method,
+    const google::protobuf::Message&,
+    std::span<google::protobuf::Message* const>, absl::Time) {
+  std::vector<absl::Status> statuses;
+  for (const std::string& address : addresses) {
+    statuses.push_back(NothingToForward(address, method));
+  }
+  return statuses;
 }
 
 }  // namespace fleetmem::transport

@@ -60,7 +60,13 @@ class EmbeddedMemory final : public FleetMemory {
   const std::string& self() const override { return self_; }
   absl::Status Forward(const std::string& address, std::string_view method,
                        const google::protobuf::Message& request,
-                       google::protobuf::Message* response) override;
+                       google::protobuf::Message* response,
+                       absl::Time deadline) override;
+  std::vector<absl::Status> ForwardEach(
+      std::span<const std::string> addresses, std::string_view method,
+      const google::protobuf::Message& request,
+      std::span<google::protobuf::Message* const> responses,
+      absl::Time deadline) override;
 
  private:
   // Waits for the fleet's log to be applied through what was acknowledged

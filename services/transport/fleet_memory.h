@@ -106,11 +106,22 @@ class FleetMemory {
 
   // Calls the unary `method` ("QueryPlace") of fleetmem.v1.MemoryService
   // on the replica at `address` (an Owner), marked as forwarded (that
-  // replica serves it or answers UNAVAILABLE; it never forwards it again).
+  // replica serves it or answers UNAVAILABLE; it never forwards it again),
+  // given up at `deadline` (the caller's) or the mode's own limit on a
+  // forwarded call, whichever is first.
   virtual absl::Status Forward(const std::string& address,
                                std::string_view method,
                                const google::protobuf::Message& request,
-                               google::protobuf::Message* response) = 0;
+                               google::protobuf::Message* response,
+                               absl::Time deadline) = 0;
+  // Forward to several replicas at once (ListFleets' fan-out): one status
+  // per address, in order, each response filled where OK; returns by
+  // `deadline` whatever some replicas did not answer.
+  virtual std::vector<absl::Status> ForwardEach(
+      std::span<const std::string> addresses, std::string_view method,
+      const google::protobuf::Message& request,
+      std::span<google::protobuf::Message* const> responses,
+      absl::Time deadline) = 0;
 };
 
 // The metadata key that marks a forwarded call.

@@ -97,7 +97,7 @@ bool MemoryApi::Serves(absl::string_view method_name) const {
 absl::Status MemoryApi::Call(absl::string_view method_name,
                              const auth::Principal& caller,
                              const Message& request, Message* response,
-                             bool forwarded) {
+                             const CallOptions& how) {
   auto it = methods_.find(method_name);
   if (it == methods_.end()) {
     return absl::UnimplementedError(
@@ -105,15 +105,14 @@ absl::Status MemoryApi::Call(absl::string_view method_name,
   }
   if (method_name == "ListFleets") {
     return ListAllFleets(caller, static_cast<v1::ListFleetsResponse*>(response),
-                         forwarded);
+                         how);
   }
   if (method_name == "UploadTraces") {  // FleetMemory routes uploads itself
     return Upload(caller, static_cast<const v1::UploadTracesRequest&>(request),
-                  static_cast<v1::UploadTracesResponse*>(response), forwarded);
+                  static_cast<v1::UploadTracesResponse*>(response), how);
   }
   absl::Status status;
-  if (RouteToOwner(method_name, caller, request, response, forwarded,
-                   &status)) {
+  if (RouteToOwner(method_name, caller, request, response, how, &status)) {
     return status;
   }
   return it->second(this, caller, request, response);
@@ -122,7 +121,7 @@ absl::Status MemoryApi::Call(absl::string_view method_name,
 bool MemoryApi::RouteToOwner(absl::string_view method_name,
                              const auth::Principal& caller,
                              const Message& request, Message* response,
-                             bool forwarded, absl::Status* status) {
+                             const CallOptions& how, absl::Status* status) {
   // Every fleet's request names it in `fleet_id`; CreateSnapshot names
   // none and is this replica's own.
   const google::protobuf::FieldDescriptor* field =
@@ -150,7 +149,7 @@ bool MemoryApi::RouteToOwner(absl::string_view method_name,
     return true;
   }
   if (!owner->has_value()) return false;
-  if (forwarded) {
+  if (how.forwarded) {
     *status = absl::UnavailableError(absl::StrCat(
         "fleet \"", fleet_id, "\" is owned by replica \"", **owner,
         "\", not by \"", memory_->self(), "\" (ownership moved); retry"));
@@ -158,13 +157,13 @@ bool MemoryApi::RouteToOwner(absl::string_view method_name,
   }
   *status = memory_->Forward(
       **owner, std::string_view(method_name.data(), method_name.size()),
-      request, response);
+      request, response, how.deadline);
   return true;
 }
 
 absl::Status MemoryApi::ListAllFleets(const auth::Principal& caller,
                                       v1::ListFleetsResponse* response,
-                                      bool forwarded) {
+                                      const CallOptions& how) {
   absl::StatusOr<std::vector<std::pair<std::string, std::string>>> fleets =
       memory_->Fleets();
   if (!fleets.ok()) return fleets.status();
@@ -174,7 +173,7 @@ absl::Status MemoryApi::ListAllFleets(const auth::Principal& caller,
   for (const auto& [fleet_id, owner] : *fleets) {
     if (!auth::MaySeeFleet(caller, fleet_id)) continue;
     // A forwarded ListFleets answers for this replica's fleets only.
-    if (forwarded && owner != self) continue;
+    if (how.forwarded && owner != self) continue;
     v1::FleetSummary& summary = summaries[fleet_id];
     summary.set_fleet_id(fleet_id);
     if (owner == self) {
@@ -184,24 +183,37 @@ absl::Status MemoryApi::ListAllFleets(const auth::Principal& caller,
     summary.set_replica(owner);
     if (owner != self && !owner.empty()) owners.insert(owner);
   }
-  if (!forwarded) {
-    for (const std::string& owner : owners) {
-      v1::ListFleetsResponse theirs;
-      absl::Status asked = memory_->Forward(owner, "ListFleets",
-                                            v1::ListFleetsRequest(), &theirs);
-      if (!asked.ok()) continue;  // their fleets listed by id alone
-      for (const v1::FleetSummary& summary : theirs.fleets()) {
-        auto it = summaries.find(summary.fleet_id());
-        if (it != summaries.end() && summary.replica() == owner) {
-          it->second = summary;
-        }
-      }
-    }
+  if (!how.forwarded && !owners.empty()) {
+    AddOwnersCounts({owners.begin(), owners.end()}, how.deadline, &summaries);
   }
   for (auto& [fleet_id, summary] : summaries) {
     *response->add_fleets() = std::move(summary);
   }
   return absl::OkStatus();
+}
+
+void MemoryApi::AddOwnersCounts(
+    const std::vector<std::string>& owners, absl::Time deadline,
+    std::map<std::string, v1::FleetSummary>* summaries) {
+  const absl::Time now = absl::Now();
+  const absl::Time by =
+      std::min(now + options_.list_peers_timeout,
+               deadline == absl::InfiniteFuture() ? deadline
+                                                  : now + (deadline - now) / 2);
+  std::vector<v1::ListFleetsResponse> theirs(owners.size());
+  std::vector<google::protobuf::Message*> answers;
+  for (v1::ListFleetsResponse& one : theirs) answers.push_back(&one);
+  const std::vector<absl::Status> asked = memory_->ForwardEach(
+      owners, "ListFleets", v1::ListFleetsRequest(), answers, by);
+  for (size_t i = 0; i < owners.size(); ++i) {
+    if (!asked[i].ok()) continue;  // their fleets listed by id alone
+    for (const v1::FleetSummary& summary : theirs[i].fleets()) {
+      auto it = summaries->find(summary.fleet_id());
+      if (it != summaries->end() && summary.replica() == owners[i]) {
+        it->second = summary;
+      }
+    }
+  }
 }
 
 absl::Status MemoryApi::Consolidate(const auth::Principal& caller,
@@ -267,7 +279,7 @@ absl::Status MemoryApi::GetStats(const auth::Principal& caller,
 absl::Status MemoryApi::ListFleets(const auth::Principal& caller,
                                    const v1::ListFleetsRequest& request,
                                    v1::ListFleetsResponse* response) {
-  return ListAllFleets(caller, response, /*forwarded=*/false);
+  return ListAllFleets(caller, response, CallOptions());
 }
 
 absl::Status MemoryApi::ListClusters(const auth::Principal& caller,
@@ -286,18 +298,19 @@ absl::Status MemoryApi::ListClusters(const auth::Principal& caller,
 absl::Status MemoryApi::UploadTraces(const auth::Principal& caller,
                                      const v1::UploadTracesRequest& request,
                                      v1::UploadTracesResponse* response) {
-  return Upload(caller, request, response, /*forwarded=*/false);
+  return Upload(caller, request, response, CallOptions());
 }
 
 absl::Status MemoryApi::Upload(const auth::Principal& caller,
                                const v1::UploadTracesRequest& request,
                                v1::UploadTracesResponse* response,
-                               bool forwarded) {
+                               const CallOptions& how) {
   absl::StatusOr<CheckedUpload> checked = CheckUpload(caller, request);
   if (!checked.ok()) return checked.status();
   UploadOptions options;
   options.wait_applied = checked->wait_applied;
-  options.forwarded = forwarded;
+  options.forwarded = how.forwarded;
+  options.deadline = how.deadline;
   absl::StatusOr<Uploaded> uploaded =
       memory_->Upload(request.fleet_id(), checked->traces, options);
   if (!uploaded.ok()) return uploaded.status();

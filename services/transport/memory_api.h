@@ -12,9 +12,11 @@
 
 #include <atomic>
 #include <functional>
+#include <map>
 #include <memory>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/status.h"
@@ -28,6 +30,16 @@
 
 namespace fleetmem::transport {
 
+// How a unary call came: from another replica or not, and until when its
+// caller waits.
+struct CallOptions {
+  // The call came from another replica (kForwardedHeader): it is served
+  // here or refused with UNAVAILABLE, never forwarded again.
+  bool forwarded = false;
+  // The caller's deadline; a call this server forwards is given up by then.
+  absl::Time deadline = absl::InfiniteFuture();
+};
+
 struct ApiOptions {
   // Directory CreateSnapshot writes under (each snapshot a new directory
   // SNAPSHOT_ROOT/NAME holding db/); empty refuses snapshots with
@@ -37,6 +49,12 @@ struct ApiOptions {
   // ListTraces pages: the default and the most one page may ask for.
   size_t default_page_size = 1000;
   size_t max_page_size = 10000;
+  // ListFleets asks the other owners for their fleets' counts, all at
+  // once, for at most this long and at most half the caller's remaining
+  // time; an owner that has not answered by then (lost, partitioned) has
+  // its fleets listed by id and replica alone, so the listing still
+  // answers within its caller's deadline.
+  absl::Duration list_peers_timeout = absl::Seconds(2);
   // Called with the size of each upload message UploadTraces stored (the
   // REST route; gRPC streams report theirs through ServiceOptions); may be
   // empty.
@@ -100,14 +118,12 @@ class MemoryApi {
   // UNIMPLEMENTED for a method that is not unary or not known here.
   //
   // This is where a fleet's call is routed to its owner (distributed
-  // mode). `forwarded`: the call came from another replica
-  // (kForwardedHeader); it is served here or refused with UNAVAILABLE,
-  // never forwarded again.
+  // mode), as `how` says (CallOptions).
   absl::Status Call(absl::string_view method_name,
                     const auth::Principal& caller,
                     const google::protobuf::Message& request,
                     google::protobuf::Message* response,
-                    bool forwarded = false);
+                    const CallOptions& how = {});
   // True if Call serves `method_name`, or Watch for "WatchMemory".
   bool Serves(absl::string_view method_name) const;
 
@@ -139,17 +155,24 @@ class MemoryApi {
   bool RouteToOwner(absl::string_view method_name,
                     const auth::Principal& caller,
                     const google::protobuf::Message& request,
-                    google::protobuf::Message* response, bool forwarded,
+                    google::protobuf::Message* response, const CallOptions& how,
                     absl::Status* status);
   // ListFleets: this server's fleets and every other owner's (a forwarded
   // call: this server's only).
   absl::Status ListAllFleets(const auth::Principal& caller,
-                             v1::ListFleetsResponse* response, bool forwarded);
+                             v1::ListFleetsResponse* response,
+                             const CallOptions& how);
+  // Fills the summaries of the fleets `owners` own with their counts,
+  // asking them all at once (ApiOptions::list_peers_timeout).
+  void AddOwnersCounts(const std::vector<std::string>& owners,
+                       absl::Time deadline,
+                       std::map<std::string, v1::FleetSummary>* summaries);
 
-  // UploadTraces, `forwarded` by another replica or not.
+  // UploadTraces, forwarded by another replica or not.
   absl::Status Upload(const auth::Principal& caller,
                       const v1::UploadTracesRequest& request,
-                      v1::UploadTracesResponse* response, bool forwarded);
+                      v1::UploadTracesResponse* response,
+                      const CallOptions& how);
 
   engine::MemoryEngine* const engine_;
   FleetMemory* const memory_;

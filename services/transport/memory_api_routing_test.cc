@@ -6,10 +6,12 @@
 #include <map>
 #include <memory>
 #include <optional>
+#include <set>
 #include <string>
 #include <utility>
 #include <vector>
 
+#include "absl/time/clock.h"
 #include "gtest/gtest.h"
 #include "services/index/exact_index.h"
 #include "services/storage/in_memory_store.h"
@@ -40,17 +42,37 @@ class RecordingDistribution final : public FleetMemory {
   }
   const std::string& self() const override { return self_; }
   absl::Status Forward(const std::string& address, std::string_view method,
-                       const google::protobuf::Message& request,
-                       google::protobuf::Message* response) override {
+                       const google::protobuf::Message&,
+                       google::protobuf::Message* response,
+                       absl::Time deadline) override {
     forwarded.emplace_back(address, std::string(method));
+    deadlines.push_back(deadline);
+    if (silent.contains(address)) {
+      return absl::DeadlineExceededError("replica " + address + ": silent");
+    }
     if (method == "ListFleets") {
       auto* listed = static_cast<v1::ListFleetsResponse*>(response);
-      v1::FleetSummary* fleet = listed->add_fleets();
-      fleet->set_fleet_id("theirs");
-      fleet->set_replica(address);
-      fleet->set_traces(42);
+      for (const auto& [fleet_id, owner] : owners) {
+        if (owner != address) continue;
+        v1::FleetSummary* fleet = listed->add_fleets();
+        fleet->set_fleet_id(fleet_id);
+        fleet->set_replica(address);
+        fleet->set_traces(42);
+      }
     }
     return absl::OkStatus();
+  }
+  std::vector<absl::Status> ForwardEach(
+      std::span<const std::string> addresses, std::string_view method,
+      const google::protobuf::Message& request,
+      std::span<google::protobuf::Message* const> responses,
+      absl::Time deadline) override {
+    std::vector<absl::Status> statuses;
+    for (size_t i = 0; i < addresses.size(); ++i) {
+      statuses.push_back(
+          Forward(addresses[i], method, request, responses[i], deadline));
+    }
+    return statuses;
   }
   absl::StatusOr<engine::ConsolidateResult> Consolidate(
       std::string_view fleet_id) override {
@@ -67,6 +89,8 @@ class RecordingDistribution final : public FleetMemory {
 
   std::map<std::string, std::string> owners;  // fleet -> owner ("" none)
   std::vector<std::pair<std::string, std::string>> forwarded;
+  std::vector<absl::Time> deadlines;  // one per forwarded call
+  std::set<std::string> silent;       // replicas that never answer
   std::vector<std::string> through_log;
 
  private:
@@ -103,8 +127,10 @@ TEST_F(MemoryApiRoutingTest, AFleetsCallsGoToItsOwnerOnce) {
             (std::pair<std::string, std::string>{"other:2", "GetStats"}));
 
   // Forwarded here by another replica: served or refused, never sent on.
+  CallOptions from_a_replica;
+  from_a_replica.forwarded = true;
   absl::Status again =
-      api_->Call("GetStats", admin, request, &response, /*forwarded=*/true);
+      api_->Call("GetStats", admin, request, &response, from_a_replica);
   EXPECT_EQ(again.code(), absl::StatusCode::kUnavailable);
   EXPECT_NE(again.message().find("other:2"), std::string::npos) << again;
   EXPECT_EQ(distribution_.forwarded.size(), 1u);
@@ -179,12 +205,70 @@ TEST_F(MemoryApiRoutingTest, ListFleetsGathersEveryOwnersFleets) {
   ASSERT_EQ(distribution_.forwarded.size(), 1u);  // one ask per owner
 
   // Asked by another replica: this replica's fleets only.
+  CallOptions from_a_replica;
+  from_a_replica.forwarded = true;
   v1::ListFleetsResponse mine;
   ASSERT_TRUE(api_->Call("ListFleets", auth::Principal::Anonymous(),
-                         v1::ListFleetsRequest(), &mine, /*forwarded=*/true)
+                         v1::ListFleetsRequest(), &mine, from_a_replica)
                   .ok());
   ASSERT_EQ(mine.fleets_size(), 1);
   EXPECT_EQ(mine.fleets(0).fleet_id(), "mine");
+}
+
+TEST_F(MemoryApiRoutingTest, AForwardedCallEndsByItsCallersDeadline) {
+  v1::GetStatsRequest request;
+  request.set_fleet_id("theirs");
+  v1::GetStatsResponse response;
+  CallOptions how;
+  how.deadline = absl::Now() + absl::Seconds(3);
+  EXPECT_TRUE(api_->Call("GetStats", auth::Principal::Anonymous(), request,
+                         &response, how)
+                  .ok());
+  ASSERT_EQ(distribution_.deadlines.size(), 1u);
+  EXPECT_EQ(distribution_.deadlines[0], how.deadline);
+}
+
+// A replica that does not answer (partitioned) costs ListFleets at most
+// half its caller's time: its fleets are listed by id and replica, the
+// others' with their counts.
+TEST_F(MemoryApiRoutingTest, ListFleetsAnswersWithinItsCallersDeadline) {
+  distribution_.owners["far"] = "partitioned:3";
+  distribution_.silent.insert("partitioned:3");
+  CallOptions how;
+  const absl::Time now = absl::Now();
+  how.deadline = now + absl::Seconds(1);
+  v1::ListFleetsResponse listed;
+  ASSERT_TRUE(api_->Call("ListFleets", auth::Principal::Anonymous(),
+                         v1::ListFleetsRequest(), &listed, how)
+                  .ok());
+  std::map<std::string, v1::FleetSummary> by_id;
+  for (const v1::FleetSummary& fleet : listed.fleets()) {
+    by_id[fleet.fleet_id()] = fleet;
+  }
+  ASSERT_EQ(by_id.size(), 4u);
+  EXPECT_EQ(by_id["far"].replica(), "partitioned:3");
+  EXPECT_EQ(by_id["far"].traces(), 0u);
+  EXPECT_EQ(by_id["theirs"].traces(), 42u);
+  // Halfway from when it asked (after `now`, before `after`) to the
+  // caller's deadline.
+  const absl::Time after = absl::Now();
+  ASSERT_EQ(distribution_.deadlines.size(), 2u);  // both owners, one ask
+  for (absl::Time asked_until : distribution_.deadlines) {
+    EXPECT_GE(asked_until, now + (how.deadline - now) / 2);
+    EXPECT_LE(asked_until, after + (how.deadline - after) / 2);
+  }
+
+  // Without a deadline (REST): ApiOptions::list_peers_timeout bounds it.
+  distribution_.deadlines.clear();
+  const absl::Time later = absl::Now();
+  ASSERT_TRUE(api_->Call("ListFleets", auth::Principal::Anonymous(),
+                         v1::ListFleetsRequest(), &listed)
+                  .ok());
+  ASSERT_EQ(distribution_.deadlines.size(), 2u);
+  EXPECT_LE(distribution_.deadlines[0],
+            absl::Now() + ApiOptions().list_peers_timeout);
+  EXPECT_GE(distribution_.deadlines[0],
+            later + ApiOptions().list_peers_timeout);
 }
 
 }  // namespace

@@ -68,35 +68,7 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
   state_.BeginWork();
   bool queued = state_.work().TrySubmit(
       [this, context, method, request, response, finish]() mutable {
-        finish([&] {
-          grpc::Status live = CheckCallLive(*context);
-          if (!live.ok()) return live;
-          google::protobuf::MessageFactory* factory =
-              google::protobuf::MessageFactory::generated_factory();
-          std::unique_ptr<google::protobuf::Message> in(
-              factory->GetPrototype(method->input_type())->New());
-          grpc::ByteBuffer bytes(*request);  // shares the slices
-          grpc::ProtoBufferReader reader(&bytes);
-          if (!in->ParseFromZeroCopyStream(&reader)) {
-            return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
-                "request: ", request->Length(), " bytes do not parse as ",
-                method->input_type()->full_name(), "; nothing was done")));
-          }
-          absl::StatusOr<auth::Principal> caller =
-              AuthenticateCall(state_.authenticator(), *context);
-          if (!caller.ok()) return ToGrpcStatus(caller.status());
-          const bool forwarded =
-              context->client_metadata().count(kForwardedHeader) > 0;
-          std::unique_ptr<google::protobuf::Message> out(
-              factory->GetPrototype(method->output_type())->New());
-          grpc::Status status = ToGrpcStatus(state_.api().Call(
-              method->name(), *caller, *in, out.get(), forwarded));
-          if (status.ok()) {
-            grpc::Slice slice(out->SerializeAsString());
-            *response = grpc::ByteBuffer(&slice, 1);
-          }
-          return status;
-        }());
+        finish(ServeUnary(*context, *method, *request, response));
         state_.EndWork();
       });
   if (!queued) {
@@ -104,6 +76,40 @@ grpc::ServerUnaryReactor* MemoryServiceImpl::RunUnary(
     finish(ServerBusyStatus());
   }
   return reactor;
+}
+
+grpc::Status MemoryServiceImpl::ServeUnary(
+    const grpc::CallbackServerContext& context,
+    const google::protobuf::MethodDescriptor& method,
+    const grpc::ByteBuffer& request, grpc::ByteBuffer* response) {
+  grpc::Status live = CheckCallLive(context);
+  if (!live.ok()) return live;
+  google::protobuf::MessageFactory* factory =
+      google::protobuf::MessageFactory::generated_factory();
+  std::unique_ptr<google::protobuf::Message> in(
+      factory->GetPrototype(method.input_type())->New());
+  grpc::ByteBuffer bytes(request);  // shares the slices
+  grpc::ProtoBufferReader reader(&bytes);
+  if (!in->ParseFromZeroCopyStream(&reader)) {
+    return ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("request: ", request.Length(), " bytes do not parse as ",
+                     method.input_type()->full_name(), "; nothing was done")));
+  }
+  absl::StatusOr<auth::Principal> caller =
+      AuthenticateCall(state_.authenticator(), context);
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  CallOptions how;
+  how.forwarded = context.client_metadata().count(kForwardedHeader) > 0;
+  how.deadline = absl::FromChrono(context.deadline());
+  std::unique_ptr<google::protobuf::Message> out(
+      factory->GetPrototype(method.output_type())->New());
+  grpc::Status status = ToGrpcStatus(
+      state_.api().Call(method.name(), *caller, *in, out.get(), how));
+  if (status.ok()) {
+    grpc::Slice slice(out->SerializeAsString());
+    *response = grpc::ByteBuffer(&slice, 1);
+  }
+  return status;
 }
 
 grpc::ServerReadReactor<grpc::ByteBuffer>* MemoryServiceImpl::UploadTraces(

@@ -89,6 +89,12 @@ class MemoryServiceImpl final
       grpc::CallbackServerContext* context,
       const google::protobuf::MethodDescriptor* method,
       const grpc::ByteBuffer* request, grpc::ByteBuffer* response);
+  // RunUnary's work on the pool: the call's status, its answer in
+  // *response when OK.
+  grpc::Status ServeUnary(const grpc::CallbackServerContext& context,
+                          const google::protobuf::MethodDescriptor& method,
+                          const grpc::ByteBuffer& request,
+                          grpc::ByteBuffer* response);
 
   ServiceState state_;
 };

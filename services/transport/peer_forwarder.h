@@ -6,8 +6,10 @@
 #define FLEETMEM_SERVICES_TRANSPORT_PEER_FORWARDER_H_
 
 #include <memory>
+#include <span>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/base/thread_annotations.h"
 #include "absl/container/flat_hash_map.h"
@@ -30,8 +32,15 @@ struct PeerOptions {
   // The name the peers' certificates are checked for instead of the host of
   // their address (one certificate for every replica); empty: the host.
   std::string tls_server_name;
-  // Deadline of one forwarded call.
+  // Deadline of one forwarded call, when its caller gave none sooner.
   absl::Duration timeout = absl::Seconds(10);
+};
+
+// One call of a fan-out (PeerForwarder::ForwardEach): where to, and where
+// its answer goes.
+struct PeerCall {
+  std::string address;
+  google::protobuf::Message* response = nullptr;
 };
 
 // Thread-safe; one channel per peer, kept.
@@ -39,12 +48,22 @@ class PeerForwarder {
  public:
   explicit PeerForwarder(PeerOptions options);
 
-  // Calls fleetmem.v1.MemoryService/`method` at `address` (HOST:PORT).
-  // The peer's status as it answered it; UNAVAILABLE naming the peer when
-  // it cannot be reached.
+  // Calls fleetmem.v1.MemoryService/`method` at `address` (HOST:PORT),
+  // answered by `deadline` (the caller's) or options.timeout from now,
+  // whichever comes first: a peer that does not answer (partitioned, its
+  // connection silently gone) holds the call no longer than its caller
+  // waits. The peer's status as it answered it; UNAVAILABLE or
+  // DEADLINE_EXCEEDED naming the peer when it could not answer.
   absl::Status Forward(const std::string& address, std::string_view method,
                        const google::protobuf::Message& request,
-                       google::protobuf::Message* response);
+                       google::protobuf::Message* response,
+                       absl::Time deadline = absl::InfiniteFuture());
+  // Forward to every call's address at once, each under the same deadline;
+  // returns when all have answered or timed out, one status per call, in
+  // order.
+  std::vector<absl::Status> ForwardEach(
+      std::span<const PeerCall> calls, std::string_view method,
+      const google::protobuf::Message& request, absl::Time deadline);
 
  private:
   std::shared_ptr<grpc::Channel> ChannelTo(const std::string& address);
