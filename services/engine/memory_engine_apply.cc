@@ -224,7 +224,7 @@ absl::Status MemoryEngine::Fleet::CommitUpload(
     carried.mutation.sync = mutation.sync;
   }
   if (mutation.put_meta) meta = mutation.meta;
-  if (prepared.new_index != nullptr) index = std::move(prepared.new_index);
+  if (prepared.new_index != nullptr) index.Start(std::move(prepared.new_index));
   for (RobotRecord& record : mutation.put_robots) {
     std::string robot_id = record.robot_id;
     robots[robot_id] = std::move(record);
@@ -240,7 +240,7 @@ absl::Status MemoryEngine::Fleet::CommitUpload(
   std::vector<const core::MemoryTrace*> fresh;
   fresh.reserve(fresh_keys.size());
   for (const core::TraceKey& key : fresh_keys) fresh.push_back(FindTrace(key));
-  absl::Status status = IndexTraces(fresh);
+  absl::Status status = index.Add(fresh);
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": index update failed, rebuilding: " << status;
@@ -481,7 +481,7 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   if (!fits) own = Plan(batch);
   core::ConsolidationResult outcome = memory.Consolidate(
       std::move(batch), first_cluster_id, fits ? *plan : *own);
-  ++snapshot_changes;  // forgetting's centroids
+  index.MarkChanged();  // forgetting's centroids
 
   FleetMeta new_meta = base;
   new_meta.next_cluster_id = first_cluster_id + outcome.added.size();
@@ -517,7 +517,7 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   mutation.put_meta = true;
   mutation.meta = new_meta;
 
-  if (absl::Status status = UnindexTraces(LeavingTheIndex(outcome));
+  if (absl::Status status = index.Remove(LeavingTheIndex(outcome));
       !status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": index update failed, rebuilding: " << status;

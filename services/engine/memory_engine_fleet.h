@@ -38,9 +38,9 @@
 #include "services/core/feature_space.h"
 #include "services/core/static_memory.h"
 #include "services/core/validation.h"
+#include "services/engine/fleet_index.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/pending_traces.h"
-#include "services/engine/trace_handles.h"
 
 namespace fleetmem::engine {
 
@@ -232,17 +232,6 @@ struct MemoryEngine::Fleet {
   void Reset(const FleetMeta& stored) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   absl::StatusOr<std::vector<const core::MemoryTrace*>> GatherTraces(
       std::vector<core::Cluster>& clusters) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
-  // Adds `traces` to the index under new handles. `meanwhile`, if given,
-  // runs on this thread while another thread fills the index (a restart:
-  // memory restores its clusters and the index copies the codes, each
-  // seconds long at 1,000,000 traces); the traces' codes must not change
-  // or move meanwhile.
-  // Never held up by the index's back-pressure
-  // (PlaceIndex::AddNormalizedUnthrottled): an upload catches up after it
-  // releases `mu` (MemoryEngine::Upload), a load in the background.
-  absl::Status IndexTraces(const std::vector<const core::MemoryTrace*>& traces,
-                           const std::function<void()>& meanwhile = nullptr)
-      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // A load from the fleet's index snapshot (written by SaveIndexSnapshot
   // at a clean shutdown or periodically while serving), read and its index
   // loaded beside the store's read (ReadSnapshot): memory restores
@@ -251,8 +240,8 @@ struct MemoryEngine::Fleet {
   // that the store no longer does is removed, what it lacks is added under
   // new handles (the tiered index's background thread catches up). On an
   // error before memory was touched `*restored` stays false; on one after,
-  // memory is complete and only the index must be rebuilt. The index and
-  // the handles change only on success.
+  // memory is complete and only the index must be rebuilt (it is left
+  // without one then).
   absl::Status LoadFromSnapshot(
       LoadedSnapshot snapshot, std::vector<core::Cluster>& clusters,
       const std::vector<const core::MemoryTrace*>& traces, bool* restored)
@@ -262,8 +251,6 @@ struct MemoryEngine::Fleet {
   // nothing of the fleet is read any more, before the bytes are synced.
   absl::Status SaveIndexSnapshot(const std::function<void()>& written) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
-  absl::Status UnindexTraces(const std::vector<core::TraceKey>& keys)
-      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Appends a pending trace of its robot.
   void AddPending(core::MemoryTrace trace) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // The trace with `key` in the static memory or among the pending traces.
@@ -456,16 +443,10 @@ struct MemoryEngine::Fleet {
   // (never shrinks): what a sample's traces may carry besides their codes.
   size_t largest_attachment ABSL_GUARDED_BY(mu) = 0;
   std::map<std::string, RobotRecord, std::less<>> robots ABSL_GUARDED_BY(mu);
-  // Index of the normalised codes of the static memory's and the pending
-  // traces under handles; null until the code dimension is known.
-  std::unique_ptr<PlaceIndex> index ABSL_GUARDED_BY(mu);
-  TraceHandles handles ABSL_GUARDED_BY(mu);
-  uint64_t next_handle ABSL_GUARDED_BY(mu) = 1;
-  // Changes to what an index snapshot holds (the index, the handles,
-  // forgetting's centroids) since the fleet was loaded, and their count
-  // when the store's snapshot last matched them (nullopt: it does not).
-  uint64_t snapshot_changes ABSL_GUARDED_BY(mu) = 0;
-  std::optional<uint64_t> snapshot_saved_at ABSL_GUARDED_BY(mu);
+  // The normalised codes of the static memory's and the pending traces
+  // under handles (the read side; fleet_index.h); no index until the code
+  // dimension is known.
+  FleetIndex index ABSL_GUARDED_BY(mu);
   // Traces held (static memory and pending), for readers that must not
   // wait for the fleet's lock (MemoryEngine::HeldTraces).
   std::atomic<uint64_t> held{0};

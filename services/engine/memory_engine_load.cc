@@ -43,37 +43,8 @@ void ReturnFreedMemory() {
 #endif
 }
 
-// Runs `first` on this thread and `second` beside it on another one when
-// `items` makes that pay off (a restart: each is seconds long at 1,000,000
-// traces), else one after the other; returns once both are done. `first`
-// may be empty.
-void RunBeside(const std::function<void()>& first, size_t items,
-               const std::function<void()>& second) {
-  // A second thread pays off from about this many items.
-  constexpr size_t kParallelFrom = 10'000;
-  std::thread beside;
-  if (first && items >= kParallelFrom) {
-    try {
-      beside = std::thread(second);
-    } catch (const std::system_error&) {
-      // No thread: one after the other.
-    }
-  }
-  if (first) first();
-  if (beside.joinable()) {
-    beside.join();
-  } else {
-    second();
-  }
-}
-
 // Version of the engine's part of an index snapshot.
 constexpr uint32_t kIndexSnapshotFormat = 0x454e4731;  // "ENG1"
-
-// Stored traces whose codes a reconciled snapshot must hold as the store
-// does (a sample: a trace's code never changes under its key, so a
-// difference means the snapshot is of another history of the fleet).
-constexpr size_t kCodesCheckedOnLoad = 1024;
 
 // Reads `fleet_id`'s index snapshot through `store` and loads its index
 // (made by `factory` for the snapshot's dimension). Needs nothing of the
@@ -119,42 +90,6 @@ LoadedSnapshot ReadSnapshot(MemoryStore& store,
       });
   if (!loaded.status.ok() || !loaded.index_status.ok()) loaded.index.reset();
   return loaded;
-}
-
-// A sample of the snapshot's `kept` traces, spread over all of them, must
-// have the codes the store has: DATA_LOSS naming the first that does not.
-absl::Status CheckSnapshotCodes(
-    const PlaceIndex& loaded, const TraceHandles& saved,
-    std::span<const core::MemoryTrace* const> kept) {
-  std::vector<float> code;
-  const size_t step = std::max<size_t>(1, kept.size() / kCodesCheckedOnLoad);
-  for (size_t i = 0; i < kept.size(); i += step) {
-    const core::MemoryTrace& trace = *kept[i];
-    if (!loaded.CopyCode(saved.Find(trace.key()), &code) ||
-        code != trace.code) {
-      return absl::DataLossError(
-          absl::StrCat("the snapshot's code of trace (\"", trace.robot_id,
-                       "\", ", trace.seq, ") differs from the store's"));
-    }
-  }
-  return absl::OkStatus();
-}
-
-// The snapshot's handles of traces the store no longer holds (forgotten or
-// downsampled since the snapshot).
-std::vector<uint64_t> GoneHandles(
-    const TraceHandles& saved,
-    const std::vector<const core::MemoryTrace*>& traces) {
-  absl::flat_hash_set<core::TraceKey> stored;
-  stored.reserve(traces.size());
-  for (const core::MemoryTrace* trace : traces) stored.insert(trace->key());
-  std::vector<uint64_t> gone;
-  saved.ForEach([&](uint64_t handle, std::string_view robot_id, uint64_t seq) {
-    if (!stored.contains(core::TraceKey{std::string(robot_id), seq})) {
-      gone.push_back(handle);
-    }
-  });
-  return gone;
 }
 
 }  // namespace
@@ -222,11 +157,7 @@ void MemoryEngine::Fleet::Reset(const FleetMeta& stored) {
   pending.Clear();
   largest_attachment = 0;
   robots.clear();
-  index.reset();
-  handles.Clear();
-  next_handle = 1;
-  snapshot_changes = 0;
-  snapshot_saved_at.reset();
+  index.Reset();
 }
 
 absl::StatusOr<std::vector<const core::MemoryTrace*>>
@@ -271,11 +202,15 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
     std::string robot_id = robot.robot_id;
     robots[robot_id] = std::move(robot);
   }
-  index = engine->index_factory_(meta.code_dimension);
-  if (index == nullptr) {
+  // An empty index of the fleet's dimension (also after a snapshot that
+  // could not be reconciled left none).
+  auto start_index = [&] {
+    index.Start(engine->index_factory_(meta.code_dimension));
+    if (index.get() != nullptr) return absl::OkStatus();
     return absl::InternalError(
         absl::StrCat("the index factory made no index for fleet \"", id, "\""));
-  }
+  };
+  if (absl::Status started = start_index(); !started.ok()) return started;
   absl::StatusOr<std::vector<const core::MemoryTrace*>> gathered =
       GatherTraces(record.clusters);
   if (!gathered.ok()) return gathered.status();
@@ -305,33 +240,32 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
           << "\": rebuilding the index, its snapshot is unusable: " << status;
     }
   }
-  absl::Status status =
-      restored ? IndexTraces(traces) : IndexTraces(traces, [&] {
-        for (core::Cluster& cluster : record.clusters) {
-          memory.Restore(std::move(cluster));
-        }
-      });
+  if (index.get() == nullptr) {
+    if (absl::Status started = start_index(); !started.ok()) return started;
+  }
+  absl::Status status = restored ? index.Add(traces) : index.Add(traces, [&] {
+    for (core::Cluster& cluster : record.clusters) {
+      memory.Restore(std::move(cluster));
+    }
+  });
+  if (!status.ok()) {
+    status = absl::Status(
+        status.code(), absl::StrCat("fleet \"", id, "\": ", status.message()));
+  }
   if (status.ok()) ReleaseAllCodes();
   return status;
 }
 
 size_t MemoryEngine::Fleet::ReleaseCodes(
     const std::vector<core::TraceKey>& keys) {
-  if (index == nullptr || keys.empty()) return 0;
-  std::vector<uint64_t> ids;
-  std::vector<const core::TraceKey*> indexed;
-  ids.reserve(keys.size());
-  indexed.reserve(keys.size());
-  for (const core::TraceKey& key : keys) {
-    const uint64_t handle = handles.Find(key);
-    if (handle == 0) continue;
-    ids.push_back(handle);
-    indexed.push_back(&key);
-  }
-  const std::vector<bool> held = index->HoldsCodes(ids);
+  if (index.get() == nullptr || keys.empty()) return 0;
+  std::vector<const core::TraceKey*> asked;
+  asked.reserve(keys.size());
+  for (const core::TraceKey& key : keys) asked.push_back(&key);
+  const std::vector<bool> held = index.HoldsCodes(asked);
   size_t released = 0;
-  for (size_t i = 0; i < ids.size(); ++i) {
-    if (held[i] && memory.DropCode(*indexed[i])) ++released;
+  for (size_t i = 0; i < keys.size(); ++i) {
+    if (held[i] && memory.DropCode(keys[i])) ++released;
   }
   return released;
 }
@@ -352,9 +286,7 @@ size_t MemoryEngine::Fleet::ReleaseAllCodes() {
 absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(
     core::MemoryTrace trace) const {
   if (!trace.code.empty()) return trace;
-  const uint64_t handle = handles.Find(trace.key());
-  if (handle == 0 || index == nullptr ||
-      !index->CopyCode(handle, &trace.code)) {
+  if (!index.CopyCode(trace.key(), &trace.code)) {
     return absl::InternalError(absl::StrCat(
         "fleet \"", id, "\": the code of trace (\"", trace.robot_id, "\", ",
         trace.seq, ") is neither in memory nor in the index"));
@@ -365,17 +297,18 @@ absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(
 absl::Status MemoryEngine::Fleet::FillCodes(
     std::vector<core::MemoryTrace>& traces) const {
   // One turn of the index's lock for all (PlaceIndex::CopyCodes).
-  std::vector<uint64_t> ids;
+  std::vector<core::TraceKey> keys;
   std::vector<std::vector<float>*> codes;
   for (core::MemoryTrace& trace : traces) {
     if (!trace.code.empty()) continue;
-    ids.push_back(handles.Find(trace.key()));
+    keys.push_back(trace.key());
     codes.push_back(&trace.code);
   }
-  if (ids.empty()) return absl::OkStatus();
-  if (index != nullptr && index->CopyCodes(ids, codes)) {
-    return absl::OkStatus();
-  }
+  if (keys.empty()) return absl::OkStatus();
+  std::vector<const core::TraceKey*> asked;
+  asked.reserve(keys.size());
+  for (const core::TraceKey& key : keys) asked.push_back(&key);
+  if (index.CopyCodes(asked, codes)) return absl::OkStatus();
   for (core::MemoryTrace& trace : traces) {  // which one: WithCode says
     if (!trace.code.empty()) continue;
     absl::StatusOr<core::MemoryTrace> filled = WithCode(std::move(trace));
@@ -396,36 +329,6 @@ const core::MemoryTrace* MemoryEngine::Fleet::FindTrace(
   return pending.Find(key);
 }
 
-absl::Status MemoryEngine::Fleet::IndexTraces(
-    const std::vector<const core::MemoryTrace*>& traces,
-    const std::function<void()>& meanwhile) {
-  if (traces.empty()) {
-    if (meanwhile) meanwhile();
-    return absl::OkStatus();
-  }
-  if (index == nullptr) {
-    return absl::InternalError(absl::StrCat("fleet \"", id, "\" has no index"));
-  }
-  std::vector<uint64_t> ids;
-  std::vector<std::span<const float>> codes;
-  ids.reserve(traces.size());
-  codes.reserve(traces.size());
-  for (const core::MemoryTrace* trace : traces) {
-    ids.push_back(next_handle++);
-    codes.push_back(trace->code);
-  }
-  absl::Status status;
-  RunBeside(meanwhile, traces.size(),
-            [&] { status = index->AddNormalizedUnthrottled(ids, codes); });
-  ++snapshot_changes;
-  if (!status.ok()) return status;
-  handles.Reserve(handles.size() + traces.size());
-  for (size_t i = 0; i < traces.size(); ++i) {
-    handles.Assign(traces[i]->key(), ids[i]);
-  }
-  return absl::OkStatus();
-}
-
 absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
     const std::function<void()>& written) const {
   return engine->store_->SaveIndexSnapshot(
@@ -433,15 +336,14 @@ absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
       [this](core::ByteWriter& out) {
         out.Put<uint32_t>(kIndexSnapshotFormat);
         out.Put<uint32_t>(meta.code_dimension);
-        out.Put<uint64_t>(next_handle);
-        handles.Save(out);
+        index.SaveHandles(out);
         // Forgetting's centroid bookkeeping, length first so that a load
         // can hand it to memory while the index reads what follows.
         core::ByteWriter counter([](std::span<const char>) {});
         memory.SaveCentroids(counter);
         out.Put<uint64_t>(counter.written());
         memory.SaveCentroids(out);
-        return index->Save(out);
+        return index.SaveIndex(out);
       },
       written);
 }
@@ -455,8 +357,6 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
         absl::StrCat("the snapshot's codes have ", snapshot.dimension,
                      " dimensions, the fleet's ", meta.code_dimension));
   }
-  std::unique_ptr<PlaceIndex> loaded = std::move(snapshot.index);
-  TraceHandles& saved = snapshot.handles;
   const absl::Time memory_start = absl::Now();
   size_t centroids_reconciled = 0;
   core::ByteReader centroids(snapshot.centroids);
@@ -476,41 +376,19 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
   // Reconcile with the store: traces stored since the snapshot are added,
   // traces forgotten or downsampled since are removed.
   const absl::Time reconcile_start = absl::Now();
-  std::vector<const core::MemoryTrace*> missing;
-  std::vector<const core::MemoryTrace*> kept;
-  kept.reserve(std::min(traces.size(), saved.size()));
-  for (const core::MemoryTrace* trace : traces) {
-    (saved.contains(trace->key()) ? kept : missing).push_back(trace);
-  }
-  status = CheckSnapshotCodes(*loaded, saved, kept);
-  if (!status.ok()) return status;
-  const std::vector<uint64_t> gone = kept.size() < saved.size()
-                                         ? GoneHandles(saved, traces)
-                                         : std::vector<uint64_t>{};
-  status = loaded->Remove(gone);
-  if (!status.ok()) return status;
-  for (uint64_t handle : gone) saved.EraseHandle(handle);
-  index = std::move(loaded);
-  handles = std::move(saved);
-  next_handle = snapshot.next_handle;
-  if (!missing.empty()) {
-    status = IndexTraces(missing);
-    if (!status.ok()) {
-      index = engine->index_factory_(meta.code_dimension);
-      handles.Clear();
-      next_handle = 1;
-      return status;
-    }
-  }
-  snapshot_changes = 0;
-  if (missing.empty() && gone.empty() && centroids_reconciled == 0) {
-    snapshot_saved_at = 0;  // the snapshot on disk is this state
+  absl::StatusOr<FleetIndex::Reconciled> reconciled =
+      index.Reconcile(std::move(snapshot.index), std::move(snapshot.handles),
+                      snapshot.next_handle, traces);
+  if (!reconciled.ok()) return reconciled.status();
+  if (reconciled->added == 0 && reconciled->removed == 0 &&
+      centroids_reconciled == 0) {
+    index.SnapshotWritten(0);  // the snapshot on disk is this state
   }
   FLEETMEM_LOG(kInfo) << "fleet \"" << id
-                      << "\": index snapshot reconciled: " << kept.size()
-                      << " codes kept, " << missing.size() << " added, "
-                      << gone.size() << " removed; " << centroids_reconciled
-                      << " centroids changed (handles "
+                      << "\": index snapshot reconciled: " << reconciled->kept
+                      << " codes kept, " << reconciled->added << " added, "
+                      << reconciled->removed << " removed; "
+                      << centroids_reconciled << " centroids changed (handles "
                       << snapshot.handles_seconds << " s and index "
                       << snapshot.index_seconds
                       << " s beside the store's read, memory " << memory_seconds
@@ -518,18 +396,6 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
                       << absl::ToDoubleSeconds(absl::Now() - reconcile_start)
                       << " s)";
   return absl::OkStatus();
-}
-
-absl::Status MemoryEngine::Fleet::UnindexTraces(
-    const std::vector<core::TraceKey>& keys) {
-  std::vector<uint64_t> ids;
-  for (const core::TraceKey& key : keys) {
-    const uint64_t handle = handles.Erase(key);
-    if (handle != 0) ids.push_back(handle);
-  }
-  if (ids.empty() || index == nullptr) return absl::OkStatus();
-  ++snapshot_changes;
-  return index->Remove(ids);
 }
 
 }  // namespace fleetmem::engine

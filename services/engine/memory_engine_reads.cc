@@ -76,7 +76,7 @@ FleetStats MemoryEngine::Fleet::Stats() const {
   stats.clusters_forgotten = meta.clusters_forgotten;
   stats.first_event_id = std::max<uint64_t>(1, meta.first_event_id);
   stats.quota_rejections = engine->quota_->Rejections(id);
-  stats.unindexed_codes = index != nullptr ? index->unindexed() : 0;
+  stats.unindexed_codes = index.get() != nullptr ? index.get()->unindexed() : 0;
   stats.max_clusters = static_cast<uint32_t>(memory.options().max_clusters);
   stats.max_traces_per_cluster =
       static_cast<uint32_t>(memory.options().max_traces_per_cluster);
@@ -134,7 +134,7 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::Fleet::MatchesOf(
   const size_t code_bytes = 4 * size_t{meta.code_dimension};
   size_t bytes = 0;
   for (size_t i = 0; i < neighbors.size(); ++i) {
-    const std::optional<core::TraceKey> key = handles.Key(neighbors[i].id);
+    const std::optional<core::TraceKey> key = index.KeyOf(neighbors[i].id);
     if (!key.has_value()) continue;
     const core::MemoryTrace* trace = FindTrace(*key);
     if (trace == nullptr) continue;
@@ -185,7 +185,7 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
           "code has dimension ", query.code.size(), " but fleet \"",
           V(fleet_id), "\" uses ", fleet->meta.code_dimension));
     }
-    if (fleet->index == nullptr) {
+    if (fleet->index.get() == nullptr) {
       return absl::InternalError(
           absl::StrCat("fleet \"", V(fleet_id), "\" has no index"));
     }
@@ -194,7 +194,7 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     params.unit_query = true;  // as the codes were added (AddNormalized)
     if (use_prior) {
       params.accept = [fleet, &query](uint64_t handle) {
-        const std::optional<core::TraceKey> key = fleet->handles.Key(handle);
+        const std::optional<core::TraceKey> key = fleet->index.KeyOf(handle);
         if (!key.has_value()) return false;
         const core::MemoryTrace* trace = fleet->FindTrace(*key);
         return trace != nullptr &&
@@ -204,7 +204,7 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     std::vector<std::vector<float>> codes;  // the index's, where it can
     params.codes = &codes;
     absl::StatusOr<std::vector<Neighbor>> neighbors =
-        fleet->index->Search(query.code, params);
+        fleet->index.get()->Search(query.code, params);
     if (!neighbors.ok()) return neighbors.status();
     absl::StatusOr<std::vector<PlaceMatch>> found =
         fleet->MatchesOf(*neighbors, codes, query.k, options_.max_read_bytes);

@@ -74,14 +74,14 @@ absl::Status MemoryEngine::SaveIndexSnapshots(
     };
     absl::Cleanup release_on_exit = [&] { release(); };  // every way out
     // A fleet without traces loads fast and would never take its file.
-    if (!fleet->stale.ok() || !fleet->exists() || fleet->index == nullptr ||
-        fleet->handles.empty() || fleet->handles.size() < which.min_codes ||
-        (which.only_changed &&
-         fleet->snapshot_saved_at == fleet->snapshot_changes)) {
+    const FleetIndex& index = fleet->index;
+    if (!fleet->stale.ok() || !fleet->exists() || index.get() == nullptr ||
+        index.size() == 0 || index.size() < which.min_codes ||
+        (which.only_changed && index.SnapshotCurrent())) {
       continue;
     }
-    const uint64_t changes = fleet->snapshot_changes;
-    const size_t codes = fleet->handles.size();
+    const uint64_t changes = index.changes();
+    const size_t codes = index.size();
     const absl::Time start = absl::Now();
     absl::Status status = fleet->SaveIndexSnapshot(release);
     release();  // the store did not call it (an error, or nothing to sync)
@@ -95,7 +95,7 @@ absl::Status MemoryEngine::SaveIndexSnapshots(
     {
       absl::MutexLock writer(&fleet->writer_mu);
       absl::MutexLock lock(&fleet->mu);
-      fleet->snapshot_saved_at = changes;
+      fleet->index.SnapshotWritten(changes);
     }
     const double held = absl::ToDoubleSeconds(released - start);
     FLEETMEM_LOG(kInfo) << "fleet \"" << fleet->id << "\": index snapshot of "

@@ -402,10 +402,12 @@ TEST_F(WritePathTest, OpenAppliesTheAcknowledgedTailOnceAfterACrash) {
 TEST_F(WritePathTest, AnAcknowledgedEntryAppliesPastALimitLoweredSince) {
   engine_options_.limits.max_traces_per_fleet = 100;
   Open();
-  store_.SetApplies(false);
+  // The store refuses the apply (it does not hold the applier: a closed
+  // gate would, and the stop below would wait for it forever).
+  store_.FailApplies(absl::UnavailableError("store busy"));
   ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 30)).ok());
   path_.reset();  // the server stops before the entry is applied
-  store_.SetApplies(true);
+  store_.FailApplies(absl::OkStatus());
   engine_options_.limits.max_traces_per_fleet = 10;
   engine_options_.limits.max_code_dimension = 2;  // the fleet's codes: 4
   Open();
