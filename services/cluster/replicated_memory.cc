@@ -346,6 +346,12 @@ absl::StatusOr<engine::ConsolidateResult> ReplicatedMemory::Consolidate(
 absl::StatusOr<std::vector<core::MemoryTrace>> ReplicatedMemory::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, uint64_t count,
     std::string_view request_id) {
+  // Checked before it is logged, as in embedded mode (EmbeddedMemory).
+  if (absl::Status valid =
+          engine_->CheckSampleReplay(fleet_id, robot_id, count, request_id);
+      !valid.ok()) {
+    return valid;
+  }
   return node_.materialiser().SampleReplay(fleet_id, robot_id, count,
                                            request_id);
 }

@@ -32,6 +32,12 @@
 
 namespace fleetmem::engine {
 
+absl::Status FleetNotFound(std::string_view fleet_id) {
+  return absl::NotFoundError(
+      absl::StrCat("fleet \"", V(fleet_id),
+                   "\" does not exist (it is created by its first upload)"));
+}
+
 const core::MemoryOptions& MemoryEngine::MemoryOptionsFor(
     std::string_view fleet_id) const {
   auto it = options_.fleet_memory.find(fleet_id);
@@ -238,9 +244,9 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
   return notices.consolidated;
 }
 
-absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
+absl::Status MemoryEngine::CheckSampleReplay(
     std::string_view fleet_id, std::string_view robot_id, size_t count,
-    std::string_view request_id, uint64_t log_position) {
+    std::string_view request_id) const {
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
   if (status.ok()) status = core::ValidateId("robot_id", robot_id);
   if (status.ok() && !request_id.empty()) {
@@ -255,6 +261,15 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
     return absl::InvalidArgumentError(absl::StrCat(
         "count is ", count, " but must be in 1..", options_.max_sample_count));
   }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
+    std::string_view fleet_id, std::string_view robot_id, size_t count,
+    std::string_view request_id, uint64_t log_position) {
+  absl::Status status =
+      CheckSampleReplay(fleet_id, robot_id, count, request_id);
+  if (!status.ok()) return status;
   Fleet* fleet = Fleet::Find(*this, fleet_id);
   if (fleet == nullptr) return FleetNotFound(fleet_id);
   absl::StatusOr<std::vector<core::MemoryTrace>> traces;

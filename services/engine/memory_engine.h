@@ -224,6 +224,9 @@ struct EngineHooks {
       on_index_snapshot;
 };
 
+// NOT_FOUND for a fleet that does not exist, as the engine says it.
+absl::Status FleetNotFound(std::string_view fleet_id);
+
 class MemoryEngine {
  public:
   // Loads every fleet from `store`. The store must outlive the engine.
@@ -302,14 +305,19 @@ class MemoryEngine {
   // left out) and no replay count changes. The id and the traces drawn are
   // stored atomically with the counts they incremented.
   //
-  // `log_position` (distributed mode): the sequence of the fleet's log
-  // entry this call is. The draw is then seeded from the fleet's seed and
-  // the position, not from the fleet's running generator, so every replica
-  // applying the entry draws the same traces; the position is stored with
-  // the counts.
+  // `log_position`: the sequence of the fleet's log entry this call is
+  // (both modes log it: engine/log_applier.h). The draw is then seeded
+  // from the fleet's seed and the position, not from the fleet's running
+  // generator, so every replica applying the entry draws the same traces;
+  // the position is stored with the counts.
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, size_t count,
       std::string_view request_id = {}, uint64_t log_position = 0);
+  // SampleReplay's checks of its arguments alone (ids, count), which need
+  // no fleet: what a writer checks before it logs the call.
+  absl::Status CheckSampleReplay(std::string_view fleet_id,
+                                 std::string_view robot_id, size_t count,
+                                 std::string_view request_id) const;
 
   // Nearest traces to query.code among the static memory's and the pending
   // ones (cluster_id 0), nearest first.

@@ -71,12 +71,6 @@ inline uint64_t SegmentSeed(uint64_t fleet_seed, std::string_view robot_id,
   return z ^ (z >> 31);
 }
 
-inline absl::Status FleetNotFound(std::string_view fleet_id) {
-  return absl::NotFoundError(
-      absl::StrCat("fleet \"", V(fleet_id),
-                   "\" does not exist (it is created by its first upload)"));
-}
-
 // INVALID_ARGUMENT if `count` traces of `trace_bytes` each (at most) may be
 // over `max_read_bytes` (EngineOptions::max_read_bytes), naming the most
 // that fit.

@@ -55,6 +55,8 @@ absl::Status ValidateWritePathOptions(const WritePathOptions& options) {
 // One upload waiting for the group commit.
 struct WritePath::Request {
   std::span<const core::MemoryTrace> traces;
+  // A call's record (AppendCall) instead of traces.
+  std::optional<LogRecord> call;
   bool track = false;
   // The traces appended: `traces`, or the copies in `kept` when some were
   // duplicates.
@@ -191,6 +193,26 @@ absl::Status WritePath::Recover() {
   return absl::OkStatus();
 }
 
+absl::StatusOr<WritePath::FleetWrites*> WritePath::Adopt(
+    std::string_view fleet_id) {
+  const std::optional<FleetShape> shape = engine_->Shape(fleet_id);
+  if (!shape.has_value()) return FleetNotFound(fleet_id);
+  absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
+  if (!position.ok()) return position.status();
+  absl::MutexLock lock(&logs_mu_);
+  std::unique_ptr<FleetWrites>& made = logs_[std::string(fleet_id)];
+  if (made != nullptr) return made.get();  // by another call meanwhile
+  made = std::make_unique<FleetWrites>(std::string(fleet_id));
+  FleetWrites& log = *made;
+  log.shape = shape;
+  log.next_sequence = *position + 1;
+  log.opened_at = *position;
+  ++fleets_;
+  absl::MutexLock writes(&log.mu);
+  log.appended_through = log.applied_through = *position;
+  return &log;
+}
+
 absl::StatusOr<bool> WritePath::RecoverTail(const std::string& fleet_id,
                                             uint64_t last) {
   absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
@@ -233,10 +255,14 @@ absl::StatusOr<bool> WritePath::RecoverTail(const std::string& fleet_id,
   log.opened_at = *position;
   ReportLosses(fleet_id, *position);
   absl::MutexLock lock(&log.mu);
+  log.appended_through = log.next_sequence - 1;
+  // What the log no longer holds after the engine's position was applied
+  // (entries are trimmed only once applied): a call's entry or a refused
+  // upload's, which leave the engine's position where it was.
+  log.applied_through =
+      entries.empty() ? log.appended_through : entries.front().sequence - 1;
   log.unapplied = std::move(entries);
   log.backlog_traces = traces;
-  log.applied_through = *position;
-  log.appended_through = log.next_sequence - 1;
   return !had_shape && log.shape.has_value();
 }
 
@@ -278,6 +304,44 @@ absl::StatusOr<Appended> WritePath::Append(
     bool track) {
   const std::span<const core::MemoryTrace> uploads[] = {traces};
   return std::move(AppendMany(fleet_id, uploads, track).front());
+}
+
+absl::StatusOr<Appended> WritePath::AppendCall(std::string_view fleet_id,
+                                               const LogRecord& call) {
+  if (std::holds_alternative<UploadRecord>(call)) {
+    return absl::InvalidArgumentError(
+        "WritePath::AppendCall takes a call's record, not an upload's");
+  }
+  {
+    absl::MutexLock lock(&ready_mu_);
+    if (stopping_) {
+      return absl::UnavailableError(
+          "the server is shutting down; the call was not logged");
+    }
+  }
+  FleetWrites* log = Find(fleet_id);
+  if (log == nullptr) {
+    // A fleet the engine holds that this write path has not met since it
+    // opened (written into the engine directly: a restored image).
+    absl::StatusOr<FleetWrites*> adopted = Adopt(fleet_id);
+    if (!adopted.ok()) return adopted.status();
+    log = *adopted;
+  }
+  Request request;
+  request.call = call;
+  request.track = true;
+  absl::MutexLock lock(&log->mu);
+  log->queue.push_back(&request);
+  std::span<Request> requests(&request, 1);
+  while (!request.done) {
+    if (log->stopped && RefuseQueued(*log, requests)) break;
+    if (log->leading) {
+      log->changed.Wait(&log->mu);
+      continue;
+    }
+    LeadQueued(*log);
+  }
+  return std::move(request.result);
 }
 
 std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
@@ -463,6 +527,18 @@ const core::SeqSet& WritePath::SeqsOf(FleetWrites& log, Group& group,
 }
 
 void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
+  if (request.call.has_value()) {
+    // A call needs the fleet (its first upload may still be in the log:
+    // the call is applied after it); it adds no traces.
+    if (!group.shape.has_value()) {
+      request.result = FleetNotFound(log.id);
+      return;
+    }
+    request.result = Appended{};
+    group.appends.push_back({*request.call});
+    group.appending.push_back(&request);
+    return;
+  }
   UploadQuota& quota = engine_->quota();
   const std::span<const core::MemoryTrace> traces = request.traces;
   absl::Status status =

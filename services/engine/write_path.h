@@ -160,6 +160,19 @@ class WritePath {
       std::span<const std::span<const core::MemoryTrace>> uploads,
       bool track = false);
 
+  // Appends a call's record (ConsolidateRecord, SampleReplayRecord) to the
+  // fleet's log, after every upload acknowledged before it (the same group
+  // commit), and returns once it is durable: Appended::sequence is its
+  // entry, and Appended::applied what applying it did, filled in before
+  // WaitApplied(sequence) returns OK. The call's arguments are the
+  // caller's to check first (MemoryEngine::CheckSampleReplay): what the
+  // fleet's state refuses is passed when applied, the refusal in
+  // AppliedRecord::refused. NOT_FOUND for a fleet with no upload
+  // acknowledged; the log's error (nothing appended); UNAVAILABLE after
+  // Stop.
+  absl::StatusOr<Appended> AppendCall(std::string_view fleet_id,
+                                      const LogRecord& call);
+
   // Returns once the fleet's log is applied through `sequence` (at once for
   // 0). DEADLINE_EXCEEDED at `deadline`, UNAVAILABLE after Stop,
   // RESOURCE_EXHAUSTED as soon as an apply tried after the call began is
@@ -199,6 +212,10 @@ class WritePath {
   FleetWrites* Log(std::string_view fleet_id);
   FleetWrites* Find(std::string_view fleet_id) const;
   absl::Status Recover();
+  // A fleet the engine holds and this write path has no log of yet: its
+  // log made as Recover makes it (the engine's shape and position).
+  // NOT_FOUND for a fleet the engine does not hold.
+  absl::StatusOr<FleetWrites*> Adopt(std::string_view fleet_id);
   // Recover for one fleet's log, whose last entry is `last`: the entries
   // after the engine's position become the fleet's backlog. True if the
   // fleet's first upload is among them (the fleet is made when applied).

@@ -457,5 +457,92 @@ TEST_F(WritePathTest, StopAnswersWaitersAndRefusesUploads) {
             absl::StatusCode::kUnavailable);
 }
 
+// Consolidate and SampleReplay are log entries in embedded mode too
+// (EmbeddedMemory::Call), ordered after the uploads acknowledged before
+// them, answered with what applying them did.
+TEST_F(WritePathTest, ACallIsLoggedAfterTheUploadsBeforeItAndAnswersWhatItDid) {
+  Open();
+  store_.SetApplies(false);  // the call queues behind the upload
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 6)).ok());
+  absl::StatusOr<Appended> consolidate =
+      path_->AppendCall("f", ConsolidateRecord{});
+  ASSERT_TRUE(consolidate.ok()) << consolidate.status();
+  EXPECT_EQ(consolidate->sequence, 2u);
+  EXPECT_EQ(consolidate->accepted, 0u);
+  EXPECT_EQ(path_->GetBacklog("f").entries, 2u);
+  store_.SetApplies(true);
+  ASSERT_TRUE(path_->WaitApplied("f", 2, absl::Now() + kWait).ok());
+  ASSERT_NE(consolidate->applied, nullptr);
+  EXPECT_TRUE(consolidate->applied->refused.ok());
+  // The upload's 6 pending traces (below segment_size 10) consolidated.
+  EXPECT_EQ(consolidate->applied->consolidated.consolidated_traces, 6u);
+
+  absl::StatusOr<Appended> sample =
+      path_->AppendCall("f", SampleReplayRecord{"r1", 3, "refresh-1"});
+  ASSERT_TRUE(sample.ok()) << sample.status();
+  ASSERT_TRUE(
+      path_->WaitApplied("f", sample->sequence, absl::Now() + kWait).ok());
+  ASSERT_EQ(sample->applied->sample.size(), 3u);
+  // Drawn under the entry's sequence: the draw a replica applying the same
+  // entry makes (the direct call with that position).
+  absl::StatusOr<Appended> again =
+      path_->AppendCall("f", SampleReplayRecord{"r1", 3, "refresh-1"});
+  ASSERT_TRUE(again.ok());
+  ASSERT_TRUE(
+      path_->WaitApplied("f", again->sequence, absl::Now() + kWait).ok());
+  ASSERT_EQ(again->applied->sample.size(), 3u);
+  for (size_t i = 0; i < 3; ++i) {  // a retry: the same traces
+    EXPECT_EQ(again->applied->sample[i].key(),
+              sample->applied->sample[i].key());
+  }
+
+  // A fleet written into the engine directly (a restored image), never
+  // through this write path: its log is made as a restart makes it.
+  ASSERT_TRUE(engine_->Upload("direct", Traces("r9", 1, 2)).ok());
+  absl::StatusOr<Appended> adopted =
+      path_->AppendCall("direct", ConsolidateRecord{});
+  ASSERT_TRUE(adopted.ok()) << adopted.status();
+  ASSERT_TRUE(
+      path_->WaitApplied("direct", adopted->sequence, absl::Now() + kWait)
+          .ok());
+  EXPECT_EQ(adopted->applied->consolidated.consolidated_traces, 2u);
+
+  // A fleet with no upload acknowledged: NOT_FOUND, nothing logged.
+  EXPECT_EQ(path_->AppendCall("g", ConsolidateRecord{}).status().code(),
+            absl::StatusCode::kNotFound);
+  EXPECT_EQ(log_->Bounds("g")->last, 0u);
+  EXPECT_EQ(path_->AppendCall("f", UploadRecord{}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+// A call's entry applied and trimmed leaves the engine's position where it
+// was (it stores no traces): after a restart the write path knows it was
+// applied, so the next call does not wait for it.
+TEST_F(WritePathTest, AfterARestartATrimmedCallEntryIsNotWaitedFor) {
+  Open();
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 1, 4)).ok());
+  absl::StatusOr<Appended> call = path_->AppendCall("f", ConsolidateRecord{});
+  ASSERT_TRUE(call.ok()) << call.status();
+  ASSERT_TRUE(
+      path_->WaitApplied("f", call->sequence, absl::Now() + kWait).ok());
+  const absl::Time give_up = absl::Now() + kWait;
+  while (!store_.Read("f", 0, 10)->empty() && absl::Now() < give_up) {
+    absl::SleepFor(absl::Milliseconds(1));
+  }
+  ASSERT_TRUE(store_.Read("f", 0, 10)->empty());
+  EXPECT_EQ(*engine_->LogPosition("f"), 1u);  // the upload's
+
+  Open();  // a restart
+  const Backlog backlog = path_->GetBacklog("f");
+  EXPECT_EQ(backlog.appended_through, call->sequence);
+  EXPECT_EQ(backlog.applied_through, call->sequence);
+  EXPECT_TRUE(path_->WaitAppliedAll("f", absl::Now()).ok());
+  absl::StatusOr<Appended> next = path_->AppendCall("f", ConsolidateRecord{});
+  ASSERT_TRUE(next.ok());
+  EXPECT_EQ(next->sequence, call->sequence + 1);
+  EXPECT_TRUE(
+      path_->WaitApplied("f", next->sequence, absl::Now() + kWait).ok());
+}
+
 }  // namespace
 }  // namespace fleetmem::engine

@@ -106,21 +106,49 @@ absl::Status EmbeddedMemory::CatchUp(std::string_view fleet_id) {
   return waited;
 }
 
-absl::StatusOr<engine::ConsolidateResult> EmbeddedMemory::Consolidate(
-    std::string_view fleet_id) {
+absl::StatusOr<engine::AppliedRecord> EmbeddedMemory::Call(
+    std::string_view fleet_id, const engine::LogRecord& call) {
+  // The uploads before it applied first, so that a call that cannot be
+  // served soon is refused with nothing logged.
   if (absl::Status caught_up = CatchUp(fleet_id); !caught_up.ok()) {
     return caught_up;
   }
-  return engine_->Consolidate(fleet_id);
+  absl::StatusOr<engine::Appended> logged = writes_->AppendCall(fleet_id, call);
+  if (!logged.ok()) return logged.status();
+  absl::Status applied = writes_->WaitApplied(
+      fleet_id, logged->sequence, absl::Now() + options_.max_apply_wait);
+  if (!applied.ok()) {
+    return absl::Status(
+        applied.code(),
+        absl::StrCat(applied.message(),
+                     "; the call is logged and is applied after the entries "
+                     "before it (a sample retried with the same request_id "
+                     "gets its traces)"));
+  }
+  if (!logged->applied->refused.ok()) return logged->applied->refused;
+  return *logged->applied;
+}
+
+absl::StatusOr<engine::ConsolidateResult> EmbeddedMemory::Consolidate(
+    std::string_view fleet_id) {
+  absl::StatusOr<engine::AppliedRecord> applied =
+      Call(fleet_id, engine::ConsolidateRecord{});
+  if (!applied.ok()) return applied.status();
+  return applied->consolidated;
 }
 
 absl::StatusOr<std::vector<core::MemoryTrace>> EmbeddedMemory::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, uint64_t count,
     std::string_view request_id) {
-  if (absl::Status caught_up = CatchUp(fleet_id); !caught_up.ok()) {
-    return caught_up;
+  if (absl::Status valid =
+          engine_->CheckSampleReplay(fleet_id, robot_id, count, request_id);
+      !valid.ok()) {
+    return valid;
   }
-  return engine_->SampleReplay(fleet_id, robot_id, count, request_id);
+  absl::StatusOr<engine::AppliedRecord> applied =
+      Call(fleet_id, engine::SampleReplayRecord{robot_id, count, request_id});
+  if (!applied.ok()) return applied.status();
+  return std::move(applied->sample);
 }
 
 engine::Backlog EmbeddedMemory::Backlog(std::string_view fleet_id) {

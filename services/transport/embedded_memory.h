@@ -1,6 +1,8 @@
 // Embedded mode's FleetMemory (fleet_memory.h): one server, its fleets'
 // uploads acknowledged at the durable append to their ingest logs and
-// applied behind it by engine::WritePath; every call served here.
+// applied behind it by engine::WritePath; Consolidate and SampleReplay
+// logged and applied there too, as in distributed mode; every call served
+// here.
 #ifndef FLEETMEM_SERVICES_TRANSPORT_EMBEDDED_MEMORY_H_
 #define FLEETMEM_SERVICES_TRANSPORT_EMBEDDED_MEMORY_H_
 
@@ -72,6 +74,12 @@ class EmbeddedMemory final : public FleetMemory {
   // Waits for the fleet's log to be applied through what was acknowledged
   // so far (max_apply_wait); UNAVAILABLE past it.
   absl::Status CatchUp(std::string_view fleet_id);
+  // Consolidate and SampleReplay: the call's record appended to the
+  // fleet's log once the uploads before it are applied (CatchUp), and what
+  // applying it did (as distributed mode's owner: cluster::Materialiser::
+  // Call). The fleet state's refusal as the error.
+  absl::StatusOr<engine::AppliedRecord> Call(std::string_view fleet_id,
+                                             const engine::LogRecord& call);
 
   EmbeddedMemory(engine::MemoryEngine* engine,
                  std::unique_ptr<engine::WritePath> writes,

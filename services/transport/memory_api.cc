@@ -129,6 +129,10 @@ bool MemoryApi::RouteToOwner(absl::string_view method_name,
   if (field == nullptr) return false;
   const std::string fleet_id =
       request.GetReflection()->GetString(request, field);
+  // The edge's check of the fleet id, for every fleet's call in both
+  // modes (uploads: upload_checks.h); trusted inside from here.
+  *status = core::ValidateId("fleet_id", fleet_id);
+  if (!status->ok()) return true;
   // Authorised here: the owner serves the forwarded call as this replica's
   // (an admin of the cluster's credentials).
   auth::Action action = auth::Action::kStats;
