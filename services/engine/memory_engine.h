@@ -56,6 +56,14 @@ struct EngineOptions {
   size_t max_traces_per_upload = 1000;
   // Most traces one SampleReplay may ask for.
   size_t max_sample_count = 10000;
+  // A SampleReplay applied from a log entry is drawn from a generator
+  // seeded by the entry's sequence. With this set (distributed mode) it is
+  // drawn in memory order (StaticMemory::SampleForReplayInMemoryOrder,
+  // O(traces) per draw), so that replicas whose samplers hold their slots
+  // in other orders (one restored from a snapshot, one that applied the
+  // whole log) draw the same traces; off (embedded mode: one server), the
+  // sublinear draw (StaticMemory::SampleForReplay).
+  bool draw_in_memory_order = false;
   // Most matches one QueryPlace may ask for.
   size_t max_query_k = 1000;
   // Most bytes of traces one read returns, so that no call can make the

@@ -603,12 +603,14 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
   if (log_position == 0) {
     traces = memory.SampleForReplay(count, rng);
   } else {
-    // The same draw on every replica that applies the log entry.
-    // The same draw on every replica that applies the log entry, whatever
-    // order its sampler's slots are in (a restored or restarted replica's
-    // differs from one that applied the log all along).
+    // Seeded by the entry. In memory order: the same draw on every replica
+    // that applies the entry, whatever order its sampler's slots are in (a
+    // restored or restarted replica's differs from one that applied the
+    // log all along).
     std::mt19937_64 logged_rng(SegmentSeed(seed, "log", log_position));
-    traces = memory.SampleForReplayInMemoryOrder(count, logged_rng);
+    traces = engine->options_.draw_in_memory_order
+                 ? memory.SampleForReplayInMemoryOrder(count, logged_rng)
+                 : memory.SampleForReplay(count, logged_rng);
   }
   if (traces.empty()) return traces;
   if (absl::Status status = FillCodes(traces); !status.ok()) {

@@ -419,8 +419,11 @@ int ServerRun::OpenData() {
   store_ = metrics_.TimedStore(std::move(opened->store));
   // Upload rates are checked where an upload is appended (the write path,
   // or the receiving replica); the engine applies log entries unrated.
+  // Replicas must draw a logged sample alike (EngineOptions).
+  engine::EngineOptions engine_options = config_.engine;
+  engine_options.draw_in_memory_order = config_.cluster.enabled();
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
-      engine::MemoryEngine::Open(config_.engine, store_.get(),
+      engine::MemoryEngine::Open(engine_options, store_.get(),
                                  MakeIndexFactory(config_),
                                  metrics_.EngineHooks());
   if (!engine.ok()) {

@@ -28,6 +28,7 @@ inline engine::EngineOptions SmallOptions() {
   options.memory.max_clusters = 5;
   options.segment_size = 20;
   options.max_traces_per_upload = 50;
+  options.draw_in_memory_order = true;  // replicas draw alike
   return options;
 }
 
