@@ -332,16 +332,24 @@ absl::StatusOr<Appended> WritePath::AppendCall(std::string_view fleet_id,
   request.track = true;
   absl::MutexLock lock(&log->mu);
   log->queue.push_back(&request);
-  std::span<Request> requests(&request, 1);
-  while (!request.done) {
-    if (log->stopped && RefuseQueued(*log, requests)) break;
-    if (log->leading) {
-      log->changed.Wait(&log->mu);
+  Commit(*log, std::span<Request>(&request, 1));
+  return std::move(request.result);
+}
+
+void WritePath::Commit(FleetWrites& log, std::span<Request> requests) {
+  auto all_done = [&] {
+    return std::all_of(requests.begin(), requests.end(),
+                       [](const Request& request) { return request.done; });
+  };
+  while (!all_done()) {
+    // After Stop no one leads; an upload a leader took is finished by it.
+    if (log.stopped && RefuseQueued(log, requests)) break;
+    if (log.leading) {
+      log.changed.Wait(&log.mu);
       continue;
     }
-    LeadQueued(*log);
+    LeadQueued(log);
   }
-  return std::move(request.result);
 }
 
 std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
@@ -373,19 +381,7 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
       log->queue.push_back(&requests[i]);
     }
   }
-  auto all_done = [&] {
-    return std::all_of(requests.begin(), requests.end(),
-                       [](const Request& request) { return request.done; });
-  };
-  while (!all_done()) {
-    // After Stop no one leads; an upload a leader took is finished by it.
-    if (log->stopped && RefuseQueued(*log, requests)) break;
-    if (log->leading) {
-      log->changed.Wait(&log->mu);
-      continue;
-    }
-    LeadQueued(*log);
-  }
+  Commit(*log, requests);
   results.reserve(requests.size());
   for (Request& request : requests) {
     results.push_back(std::move(request.result));

@@ -231,6 +231,10 @@ class WritePath {
   // After Stop: refuses the `requests` still queued (UNAVAILABLE); true if
   // every one of them is done then. With log.mu held.
   bool RefuseQueued(FleetWrites& log, std::span<Request> requests);
+  // Waits until every one of `requests` (queued by the caller) is done:
+  // leads group commits while no one else does, follows otherwise. With
+  // log.mu held.
+  void Commit(FleetWrites& log, std::span<Request> requests);
   // Leads one group commit: takes the queue, Lead, then records what it
   // appended as unapplied entries and schedules the fleet's applier. With
   // log.mu held (released while Lead writes).
