@@ -54,10 +54,8 @@ absl::StatusOr<std::string> UploadId(
                       traces.front().robot_id, "/", first, "-", last);
 }
 
-absl::StatusOr<Ingested> Ingest(engine::FleetLog& log,
-                                std::string_view fleet_id,
-                                std::span<const core::MemoryTrace> traces,
-                                size_t max_entry_bytes, bool creates_fleet) {
+absl::StatusOr<std::vector<engine::LogPiece>> CutUpload(
+    std::span<const core::MemoryTrace> traces, size_t max_entry_bytes) {
   // Each robot's traces in the order given, robots in order of first sight.
   std::vector<std::string> robots;
   std::map<std::string, std::vector<const core::MemoryTrace*>, std::less<>>
@@ -67,9 +65,7 @@ absl::StatusOr<Ingested> Ingest(engine::FleetLog& log,
     if (added) robots.push_back(trace.robot_id);
     it->second.push_back(&trace);
   }
-  // Entries cut before anything is appended, so a trace too large for one
-  // changes nothing.
-  std::vector<std::vector<core::MemoryTrace>> entries;
+  std::vector<engine::LogPiece> pieces;
   for (const std::string& robot : robots) {
     std::vector<core::MemoryTrace> entry;
     size_t bytes = 0;
@@ -85,20 +81,36 @@ absl::StatusOr<Ingested> Ingest(engine::FleetLog& log,
                          max_entry_bytes, "; nothing was appended"));
       }
       if (!entry.empty() && bytes + size + 16 > max_entry_bytes) {
-        entries.push_back(std::move(entry));
+        pieces.push_back({std::move(entry), ""});
         entry.clear();
         bytes = 0;
       }
       entry.push_back(*trace);
       bytes += size;
     }
-    if (!entry.empty()) entries.push_back(std::move(entry));
+    if (!entry.empty()) pieces.push_back({std::move(entry), ""});
   }
-  Ingested ingested;
-  for (const std::vector<core::MemoryTrace>& entry : entries) {
-    absl::StatusOr<std::string> id = UploadId(entry);
+  for (engine::LogPiece& piece : pieces) {
+    absl::StatusOr<std::string> id = UploadId(piece.traces);
     if (!id.ok()) return id.status();
-    const engine::LogAppend append{engine::UploadRecord{entry}, *id};
+    piece.id = *std::move(id);
+  }
+  return pieces;
+}
+
+absl::StatusOr<Ingested> Ingest(engine::FleetLog& log,
+                                std::string_view fleet_id,
+                                std::span<const core::MemoryTrace> traces,
+                                size_t max_entry_bytes, bool creates_fleet) {
+  // Entries cut before anything is appended, so a trace too large for one
+  // changes nothing.
+  absl::StatusOr<std::vector<engine::LogPiece>> entries =
+      CutUpload(traces, max_entry_bytes);
+  if (!entries.ok()) return entries.status();
+  Ingested ingested;
+  for (const engine::LogPiece& piece : *entries) {
+    const std::vector<core::MemoryTrace>& entry = piece.traces;
+    const engine::LogAppend append{engine::UploadRecord{entry}, piece.id};
     absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
         log.Append(fleet_id, {&append, 1},
                    {.only_first = creates_fleet && ingested.entries == 0});
@@ -109,7 +121,7 @@ absl::StatusOr<Ingested> Ingest(engine::FleetLog& log,
       return absl::Status(
           appended.status().code(),
           absl::StrCat(appended.status().message(), "; the log holds ",
-                       ingested.entries, " of this upload's ", entries.size(),
+                       ingested.entries, " of this upload's ", entries->size(),
                        " entries (", ingested.traces,
                        " traces); retrying the upload appends the rest"));
     }

@@ -103,6 +103,15 @@ struct StepResult {
 // empty upload or one of several robots.
 absl::StatusOr<std::string> UploadId(std::span<const core::MemoryTrace> traces);
 
+// An upload's traces (of one robot or several) as log entries: one per
+// robot and run of consecutive traces whose encoding fits in
+// `max_entry_bytes` (keep it under NATS's max_payload), each under its
+// UploadId. INVALID_ARGUMENT if a single trace does not fit. The owner's
+// write path cuts its uploads with it (engine::WritePathOptions::
+// replicated), Ingest a fleet's first.
+absl::StatusOr<std::vector<engine::LogPiece>> CutUpload(
+    std::span<const core::MemoryTrace> traces, size_t max_entry_bytes);
+
 // What Ingest appended.
 struct Ingested {
   uint64_t entries = 0;            // entries the log stored
@@ -112,11 +121,12 @@ struct Ingested {
   uint64_t last_sequence = 0;      // the log's sequence of the last entry
 };
 
-// The receiving replica's side of an upload in distributed mode: appends
-// the traces (of one robot or several, as a client sent them) to the
-// fleet's log as one entry per robot and run of consecutive traces whose
-// encoding fits in `max_entry_bytes` (keep it under NATS's max_payload),
-// each under its UploadId, and returns once the log holds them all.
+// A fleet's creation in distributed mode (the replica that receives a
+// fleet's first upload, before any replica owns the fleet; every later
+// upload goes through its owner's write path, engine::WritePath), and
+// tests: appends the traces (of one robot or several, as a client sent
+// them) to the fleet's log as CutUpload's entries and returns once the
+// log holds them all.
 // INVALID_ARGUMENT, with nothing appended, if a single trace does not fit.
 // On a failed append the status says which entries the log holds already
 // (a retry of the whole upload appends only the rest: ids repeat).

@@ -14,6 +14,26 @@
 
 namespace fleetmem::cluster {
 
+namespace {
+
+// The owner's write path: embedded mode's, over the replicated log (no
+// appliers: the Materialiser applies).
+std::unique_ptr<engine::WritePath> OwnerWrites(engine::MemoryEngine* engine,
+                                               engine::FleetLog* log,
+                                               uint64_t max_backlog_traces,
+                                               size_t max_entry_bytes) {
+  engine::WritePathOptions options;
+  options.max_backlog_traces = max_backlog_traces;
+  options.replicated = engine::WritePathOptions::Replicated{
+      [max_entry_bytes](std::span<const core::MemoryTrace> traces) {
+        return CutUpload(traces, max_entry_bytes);
+      }};
+  // Only the options above differ from the defaults, which are valid.
+  return *engine::WritePath::Open(std::move(options), engine, log);
+}
+
+}  // namespace
+
 ReplicatedMemory::ReplicatedMemory(std::string self, size_t max_entry_bytes,
                                    uint64_t max_backlog_traces,
                                    engine::QuotaOptions rates,
@@ -23,7 +43,6 @@ ReplicatedMemory::ReplicatedMemory(std::string self, size_t max_entry_bytes,
                                    ClusterNodeOptions node)
     : self_(std::move(self)),
       max_entry_bytes_(max_entry_bytes),
-      max_backlog_traces_(max_backlog_traces),
       rates_(std::move(rates),
              [] {
                return std::chrono::duration<double>(
@@ -32,13 +51,23 @@ ReplicatedMemory::ReplicatedMemory(std::string self, size_t max_entry_bytes,
              }),
       engine_(engine),
       log_(std::move(log)),
+      writes_(
+          OwnerWrites(engine, log_.get(), max_backlog_traces, max_entry_bytes)),
       forwarder_(std::move(peers)),
       node_(std::move(node), log_.get(), log_.get(), log_.get(), engine) {}
 
-ReplicatedMemory::~ReplicatedMemory() { Shutdown(); }
+ReplicatedMemory::~ReplicatedMemory() {
+  Shutdown();
+  writes_->Stop();
+}
 
 void ReplicatedMemory::Run(std::function<void(const std::string&)> lost) {
-  if (lost) node_.OnFleetLost(std::move(lost));
+  // A fleet lost ends its write path here first: uploads queued for it are
+  // refused (retry: the new owner admits them).
+  node_.OnFleetLost([this, lost = std::move(lost)](const std::string& fleet) {
+    writes_->Disown(fleet);
+    if (lost) lost(fleet);
+  });
   node_.Start();
 }
 
@@ -52,8 +81,8 @@ void ReplicatedMemory::Shutdown() {
 absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
     std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
     const transport::UploadOptions& options) {
-  // The fleet's shape (from its log), so that an acknowledged upload is
-  // never one its owner cannot apply.
+  // The fleet's shape (from its log), so that an upload is rated, and
+  // forwarded, only if its owner can admit it.
   absl::StatusOr<std::optional<engine::FleetShape>> shape = ShapeOf(fleet_id);
   if (!shape.ok()) return shape.status();
   engine::UploadQuota& limits = engine_->quota();
@@ -71,23 +100,8 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
     }
   }
   if (!shape->has_value()) {
-    // The fleets as the log lists them now (creations are rare; the last
-    // round's listing may be a round old). Two replicas creating fleets at
-    // the same moment may both pass: max_fleets can be passed by as many
-    // fleets as are created at once.
-    absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
-    valid = limits.AdmitNewFleet(
-        fleet_id, fleets.ok() ? fleets->size() : node_.fleets_seen());
-    if (!valid.ok()) return valid;
-    // Appended only as the log's first entry: of two uploads creating the
-    // fleet at once with different shapes, the second is checked against
-    // the first's shape instead of being acknowledged and refused when
-    // applied.
-    absl::StatusOr<Ingested> created = Ingest(
-        *log_, fleet_id, traces, max_entry_bytes_, /*creates_fleet=*/true);
-    if (!absl::IsFailedPrecondition(created.status())) {
-      return Answer(fleet_id, created);
-    }
+    absl::StatusOr<transport::Uploaded> created = Create(fleet_id, traces);
+    if (!absl::IsFailedPrecondition(created.status())) return created;
     // Created by another upload meanwhile: this one is an upload to it.
     shape = ShapeOf(fleet_id);
     if (!shape.ok()) return shape.status();
@@ -96,33 +110,67 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
                            shape->has_value() ? &**shape : nullptr, max_traces);
     if (!valid.ok()) return valid;
   }
-  // The fleet's load is its owner's to admit: it alone knows what the fleet
+  // The fleet's owner admits and appends: it alone knows what the fleet
   // holds and what of its log is not applied yet. A fleet without an owner
   // (just created, or its owner's lease expired) is taken here.
   std::string holder;
   if (!Serves(fleet_id) && !TakeIfFree(fleet_id, &holder)) {
     return ForwardUpload(fleet_id, traces, options, holder);
   }
-  valid = engine::AdmitLoad(limits, fleet_id, Load(fleet_id),
-                            NewTraces(fleet_id, traces), max_backlog_traces_);
-  if (!valid.ok()) return valid;
-  // Acknowledged at the replicated append: options.wait_applied is not
-  // served here (the answer says so: Uploaded::applied stays false).
-  return Answer(fleet_id, Ingest(*log_, fleet_id, traces, max_entry_bytes_));
+  return Write(fleet_id, traces);
 }
 
-absl::StatusOr<transport::Uploaded> ReplicatedMemory::Answer(
-    std::string_view fleet_id, const absl::StatusOr<Ingested>& ingested) {
+absl::StatusOr<transport::Uploaded> ReplicatedMemory::Create(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces) {
+  // The fleets as the log lists them now (creations are rare; the last
+  // round's listing may be a round old). Two replicas creating fleets at
+  // the same moment may both pass: max_fleets can be passed by as many
+  // fleets as are created at once.
+  absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
+  if (absl::Status valid = engine_->quota().AdmitNewFleet(
+          fleet_id, fleets.ok() ? fleets->size() : node_.fleets_seen());
+      !valid.ok()) {
+    return valid;
+  }
+  // Appended only as the log's first entry: of two uploads creating the
+  // fleet at once with different shapes, the second is checked against
+  // the first's shape instead of being acknowledged and refused when
+  // applied.
+  absl::StatusOr<Ingested> ingested =
+      Ingest(*log_, fleet_id, traces, max_entry_bytes_,
+             /*creates_fleet=*/true);
   if (!ingested.ok()) return ingested.status();
   transport::Uploaded uploaded;
   uploaded.result.accepted = ingested->traces - ingested->duplicate_traces;
   uploaded.result.duplicates = ingested->duplicate_traces;
   uploaded.sequence = ingested->last_sequence;
-  if (uploaded.result.accepted > 0) {
-    absl::MutexLock lock(&load_mu_);
-    appended_[std::string(fleet_id)].push_back(
-        {ingested->last_sequence, uploaded.result.accepted});
+  return uploaded;
+}
+
+absl::StatusOr<transport::Uploaded> ReplicatedMemory::Write(
+    std::string_view fleet_id, std::span<const core::MemoryTrace> traces) {
+  const std::optional<uint64_t> position =
+      node_.materialiser().Position(fleet_id);
+  if (!position.has_value()) {
+    return absl::UnavailableError(absl::StrCat(
+        "fleet \"", V(fleet_id), "\" is not owned by \"", self_,
+        "\" any more (ownership moved); nothing of this upload was stored: "
+        "retry"));
   }
+  // The write path begins with this ownership (the log's unapplied tail
+  // read back once), and learns how far the owner has applied.
+  if (absl::Status owned = writes_->Own(fleet_id, *position); !owned.ok()) {
+    return absl::UnavailableError(
+        absl::StrCat("fleet \"", V(fleet_id), "\": ", owned.message(),
+                     "; nothing of this upload was stored: retry"));
+  }
+  writes_->Applied(fleet_id, *position);
+  absl::StatusOr<engine::Appended> appended = writes_->Append(fleet_id, traces);
+  if (!appended.ok()) return appended.status();
+  transport::Uploaded uploaded;
+  uploaded.result.accepted = appended->accepted;
+  uploaded.result.duplicates = appended->duplicates;
+  uploaded.sequence = appended->sequence;
   return uploaded;
 }
 
@@ -175,37 +223,6 @@ bool ReplicatedMemory::TakeIfFree(std::string_view fleet_id,
   // Takes the lease and applies a first batch of the log, as the ownership
   // loop does for a free fleet (which balances the fleets later).
   return node_.materialiser().Step(fleet_id).ok();
-}
-
-engine::FleetLoad ReplicatedMemory::Load(std::string_view fleet_id) {
-  engine::FleetLoad load;
-  load.held = engine_->HeldTraces(fleet_id);
-  const uint64_t position = node_.materialiser().Position(fleet_id).value_or(0);
-  absl::MutexLock lock(&load_mu_);
-  auto it = appended_.find(V(fleet_id));
-  if (it == appended_.end()) return load;
-  std::deque<AppendedEntry>& entries = it->second;
-  while (!entries.empty() && entries.front().sequence <= position) {
-    entries.pop_front();
-  }
-  for (const AppendedEntry& entry : entries) load.backlog += entry.traces;
-  if (entries.empty()) appended_.erase(it);
-  return load;
-}
-
-uint64_t ReplicatedMemory::NewTraces(
-    std::string_view fleet_id, std::span<const core::MemoryTrace> traces) {
-  // Against what the fleet holds applied: a trace still in the log's
-  // unapplied tail counts as new here (the owner's limit errs on the safe
-  // side) and is a duplicate when applied.
-  absl::flat_hash_map<std::string_view, core::SeqSet> seen;
-  uint64_t fresh = 0;
-  for (const core::MemoryTrace& trace : traces) {
-    auto [it, inserted] = seen.try_emplace(trace.robot_id);
-    if (inserted) it->second = engine_->Received(fleet_id, trace.robot_id);
-    if (it->second.Insert(trace.seq)) ++fresh;
-  }
-  return fresh;
 }
 
 absl::StatusOr<std::optional<engine::FleetShape>> ReplicatedMemory::ShapeOf(

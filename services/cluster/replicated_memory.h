@@ -1,14 +1,15 @@
 // fleetmem-server's distributed mode (docs/distributed.md) as the
 // transport's FleetMemory (services/transport/fleet_memory.h): the
 // connection to NATS JetStream, this replica's ownership loop (ClusterNode),
-// uploads appended to the fleets' replicated logs and applied by their
-// owners (Materialiser, through the same MemoryEngine::Upload as embedded
-// mode's WritePath), calls served by the owner of their fleet (forwarded
-// there by PeerForwarder), Consolidate and SampleReplay through the log.
+// uploads forwarded to their fleet's owner, which admits and appends them
+// through the same write path as embedded mode (engine::WritePath, over
+// the replicated log) and applies the log with the same applier
+// (engine::LogApplier, run by Materialiser under the lease), calls served
+// by the owner of their fleet (forwarded there by PeerForwarder),
+// Consolidate and SampleReplay through the log.
 #ifndef FLEETMEM_SERVICES_CLUSTER_REPLICATED_MEMORY_H_
 #define FLEETMEM_SERVICES_CLUSTER_REPLICATED_MEMORY_H_
 
-#include <deque>
 #include <functional>
 #include <memory>
 #include <optional>
@@ -28,6 +29,7 @@
 #include "services/engine/admission.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/upload_quota.h"
+#include "services/engine/write_path.h"
 #include "services/transport/fleet_memory.h"
 #include "services/transport/peer_forwarder.h"
 
@@ -51,19 +53,21 @@ class ReplicatedMemory final : public transport::FleetMemory {
   ~ReplicatedMemory() override;
 
   // Starts the ownership loop; `lost` is called for each fleet this
-  // replica stops owning (its watches end).
+  // replica stops owning (its watches end; its write path ends before).
   void Run(std::function<void(const std::string&)> lost = nullptr);
   // Stops the loop and releases every lease, so that the other replicas
   // take this one's fleets at once (a clean shutdown).
   void Shutdown();
 
-  // Admitted as embedded mode admits (engine/admission.h): the shape and
-  // the rates by the replica that receives the upload, the fleet's load
-  // (max_traces_per_fleet, the backlog bound) by the fleet's owner, to
-  // which the upload is forwarded, and a new fleet (max_fleets) by the
-  // replica that creates it. Acknowledged once the log holds the upload on
-  // its replicas; options.wait_applied is not served (the answer's
-  // `applied` is false). UNAVAILABLE (retry) while the fleet has no owner.
+  // The receiving replica checks the upload's shape and rates it, then
+  // forwards it to the fleet's owner, whose write path admits it as
+  // embedded mode's does (engine::WritePath: shape, de-duplication by
+  // (robot, seq) against what the fleet holds and its log's unapplied
+  // tail, max_traces_per_fleet, the backlog bound) and appends it; a new
+  // fleet (max_fleets) is created by the replica that receives its first
+  // upload (Ingest). Acknowledged once the log holds the upload on its
+  // replicas; options.wait_applied is not served (the answer's `applied`
+  // is false). UNAVAILABLE (retry) while the fleet has no owner.
   absl::StatusOr<transport::Uploaded> Upload(
       std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
       const transport::UploadOptions& options) override;
@@ -121,10 +125,13 @@ class ReplicatedMemory final : public transport::FleetMemory {
   absl::StatusOr<std::optional<engine::FleetShape>> ShapeOf(
       std::string_view fleet_id);
 
-  // The answer to an upload Ingest appended (or its error); what it
-  // appended counts in the fleet's load until it is applied.
-  absl::StatusOr<transport::Uploaded> Answer(
-      std::string_view fleet_id, const absl::StatusOr<Ingested>& ingested);
+  // A fleet's first upload, by the replica that receives it (Ingest).
+  // FAILED_PRECONDITION: another upload created the fleet meanwhile.
+  absl::StatusOr<transport::Uploaded> Create(
+      std::string_view fleet_id, std::span<const core::MemoryTrace> traces);
+  // An upload to a fleet owned here, through the write path.
+  absl::StatusOr<transport::Uploaded> Write(
+      std::string_view fleet_id, std::span<const core::MemoryTrace> traces);
   // Forwards an upload to the fleet's owner, `holder` (as TakeIfFree read
   // it; empty: looked up) (once: a forwarded upload that meets no owner
   // here is UNAVAILABLE).
@@ -135,25 +142,9 @@ class ReplicatedMemory final : public transport::FleetMemory {
   // holds it then. Otherwise `holder` gets the replica that holds it, if
   // the lease table could say (one read of it per upload).
   bool TakeIfFree(std::string_view fleet_id, std::string* holder);
-  // An owned fleet's load: the traces it holds, and those this replica
-  // appended and has not applied yet (an owner takes every upload of its
-  // fleets; entries appended before it took the fleet are not counted).
-  engine::FleetLoad Load(std::string_view fleet_id);
-  // The traces of `traces` the fleet has not received (as applied).
-  uint64_t NewTraces(std::string_view fleet_id,
-                     std::span<const core::MemoryTrace> traces);
-
-  struct AppendedEntry {
-    uint64_t sequence = 0;  // the last entry of an upload
-    uint64_t traces = 0;    // accepted
-  };
-  absl::Mutex load_mu_;
-  absl::flat_hash_map<std::string, std::deque<AppendedEntry>> appended_
-      ABSL_GUARDED_BY(load_mu_);
 
   const std::string self_;
   const size_t max_entry_bytes_;
-  const uint64_t max_backlog_traces_;
   // Upload rates (limits.*_per_second), applied by the replica that
   // receives an upload, per replica: a robot uploading through several
   // replicas gets each one's rate. The engine applying the log runs
@@ -161,6 +152,9 @@ class ReplicatedMemory final : public transport::FleetMemory {
   engine::UploadQuota rates_;
   engine::MemoryEngine* const engine_;
   std::unique_ptr<NatsFleetLog> log_;
+  // The write path of the fleets owned here: admission and group commit as
+  // in embedded mode, over the replicated log; the Materialiser applies.
+  std::unique_ptr<engine::WritePath> writes_;
   transport::PeerForwarder forwarder_;
   ClusterNode node_;
   bool shut_down_ = false;

@@ -87,6 +87,13 @@ struct LogAppend {
   std::string_view id;
 };
 
+// One log entry's worth of an upload's traces, and the id it is appended
+// under (a replicated log's write path cuts uploads into these).
+struct LogPiece {
+  std::vector<core::MemoryTrace> traces;
+  std::string id;
+};
+
 struct AppendOptions {
   // Only as the log's first entries (a fleet's creation):
   // FAILED_PRECONDITION, with nothing appended, if the log ever held an

@@ -62,6 +62,8 @@ struct WritePath::Request {
   // duplicates.
   std::span<const core::MemoryTrace> accepted;
   std::vector<core::MemoryTrace> kept;
+  // A replicated log's entries of `accepted` (WritePathOptions::replicated).
+  std::vector<LogPiece> pieces;
   absl::StatusOr<Appended> result = absl::UnknownError("not admitted");
   bool done = false;
 };
@@ -78,6 +80,8 @@ struct WritePath::FleetWrites {
   std::vector<Request*> queue ABSL_GUARDED_BY(mu);
   bool leading ABSL_GUARDED_BY(mu) = false;
   bool stopped ABSL_GUARDED_BY(mu) = false;
+  // Why, once stopped: what an upload still queued is answered.
+  absl::Status closed ABSL_GUARDED_BY(mu);
 
   // The log's acknowledged entries not applied yet, in order.
   struct Entry {
@@ -151,6 +155,8 @@ absl::StatusOr<std::unique_ptr<WritePath>> WritePath::Open(
   }
   std::unique_ptr<WritePath> path(
       new WritePath(std::move(options), engine, log));
+  // The owner's logs are applied and recovered by the cluster (Own).
+  if (path->options_.replicated.has_value()) return path;
   if (absl::Status recovered = path->Recover(); !recovered.ok()) {
     return recovered;
   }
@@ -184,9 +190,18 @@ absl::Status WritePath::Recover() {
   for (const std::string& fleet_id : *logged) {
     absl::StatusOr<LogBounds> bounds = log_->Bounds(fleet_id);
     if (!bounds.ok()) return bounds.status();
-    absl::StatusOr<bool> recovered = RecoverTail(fleet_id, bounds->last);
+    absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
+    if (!position.ok()) return position.status();
+    absl::StatusOr<bool> recovered =
+        RecoverTail(*Log(fleet_id), *position, bounds->last);
     if (!recovered.ok()) return recovered.status();
     if (*recovered) ++created;
+    // Entries the engine applied before the crash, but not trimmed yet.
+    if (absl::Status trimmed = log_->Trim(fleet_id, *position); !trimmed.ok()) {
+      FLEETMEM_LOG(kWarning)
+          << "fleet \"" << fleet_id
+          << "\": applied log entries not trimmed: " << trimmed;
+    }
   }
   absl::MutexLock lock(&logs_mu_);
   fleets_ = fleets.size() + created;
@@ -200,9 +215,9 @@ absl::StatusOr<WritePath::FleetWrites*> WritePath::Adopt(
   absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
   if (!position.ok()) return position.status();
   absl::MutexLock lock(&logs_mu_);
-  std::unique_ptr<FleetWrites>& made = logs_[std::string(fleet_id)];
+  std::shared_ptr<FleetWrites>& made = logs_[std::string(fleet_id)];
   if (made != nullptr) return made.get();  // by another call meanwhile
-  made = std::make_unique<FleetWrites>(std::string(fleet_id));
+  made = std::make_shared<FleetWrites>(std::string(fleet_id));
   FleetWrites& log = *made;
   log.shape = shape;
   log.next_sequence = *position + 1;
@@ -213,14 +228,12 @@ absl::StatusOr<WritePath::FleetWrites*> WritePath::Adopt(
   return &log;
 }
 
-absl::StatusOr<bool> WritePath::RecoverTail(const std::string& fleet_id,
+absl::StatusOr<bool> WritePath::RecoverTail(FleetWrites& log, uint64_t position,
                                             uint64_t last) {
-  absl::StatusOr<uint64_t> position = engine_->LogPosition(fleet_id);
-  if (!position.ok()) return position.status();
-  FleetWrites& log = *Log(fleet_id);
+  const std::string& fleet_id = log.id;
   const bool had_shape = log.shape.has_value();
   const absl::Time now = absl::Now();
-  uint64_t after = *position;
+  uint64_t after = position;
   uint64_t traces = 0;
   std::deque<FleetWrites::Entry> entries;
   while (true) {
@@ -242,18 +255,12 @@ absl::StatusOr<bool> WritePath::RecoverTail(const std::string& fleet_id,
     }
     if (page->size() < kRecoveryPage) break;
   }
-  // Entries the engine applied before the crash, but not trimmed yet.
-  if (absl::Status trimmed = log_->Trim(fleet_id, *position); !trimmed.ok()) {
-    FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
-                           << "\": applied log entries not trimmed: "
-                           << trimmed;
-  }
-  log.next_sequence = std::max(last, *position) + 1;
+  log.next_sequence = std::max(last, position) + 1;
   FLEETMEM_LOG(kInfo) << "fleet \"" << fleet_id << "\": " << entries.size()
                       << " acknowledged log entries (" << traces
-                      << " traces) after position " << *position << " to apply";
-  log.opened_at = *position;
-  ReportLosses(fleet_id, *position);
+                      << " traces) after position " << position << " to apply";
+  log.opened_at = position;
+  ReportLosses(fleet_id, position);
   absl::MutexLock lock(&log.mu);
   log.appended_through = log.next_sequence - 1;
   // What the log no longer holds after the engine's position was applied
@@ -284,19 +291,67 @@ void WritePath::ReportLosses(const std::string& fleet_id, uint64_t position) {
   }
 }
 
-WritePath::FleetWrites* WritePath::Find(std::string_view fleet_id) const {
+std::shared_ptr<WritePath::FleetWrites> WritePath::Find(
+    std::string_view fleet_id) const {
   absl::ReaderMutexLock lock(&logs_mu_);
   auto it = logs_.find(V(fleet_id));
-  return it == logs_.end() ? nullptr : it->second.get();
+  return it == logs_.end() ? nullptr : it->second;
 }
 
 WritePath::FleetWrites* WritePath::Log(std::string_view fleet_id) {
-  if (FleetWrites* log = Find(fleet_id); log != nullptr) return log;
+  if (std::shared_ptr<FleetWrites> log = Find(fleet_id)) return log.get();
   absl::MutexLock lock(&logs_mu_);
   auto& log = logs_[std::string(fleet_id)];
-  if (log == nullptr)
-    log = std::make_unique<FleetWrites>(std::string(fleet_id));
+  if (log == nullptr) {
+    log = std::make_shared<FleetWrites>(std::string(fleet_id));
+  }
   return log.get();
+}
+
+absl::Status WritePath::Own(std::string_view fleet_id, uint64_t position) {
+  if (Find(fleet_id) != nullptr) return absl::OkStatus();
+  absl::StatusOr<LogBounds> bounds = log_->Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
+  auto made = std::make_shared<FleetWrites>(std::string(fleet_id));
+  made->shape = engine_->Shape(fleet_id);
+  absl::StatusOr<bool> recovered = RecoverTail(*made, position, bounds->last);
+  if (!recovered.ok()) return recovered.status();
+  if (!made->shape.has_value()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "fleet \"", V(fleet_id), "\" has no upload in its log after entry ",
+        position, " and none applied: it is created by its first upload"));
+  }
+  absl::MutexLock lock(&logs_mu_);
+  logs_.try_emplace(std::string(fleet_id), std::move(made));
+  return absl::OkStatus();
+}
+
+void WritePath::Applied(std::string_view fleet_id, uint64_t sequence) {
+  std::shared_ptr<FleetWrites> log = Find(fleet_id);
+  if (log == nullptr) return;
+  {
+    absl::MutexLock lock(&log->mu);
+    if (sequence <= log->applied_through) return;
+  }
+  MarkApplied(*log, sequence, AppliedRecord{});
+}
+
+void WritePath::Disown(std::string_view fleet_id) {
+  std::shared_ptr<FleetWrites> log;
+  {
+    absl::MutexLock lock(&logs_mu_);
+    auto it = logs_.find(V(fleet_id));
+    if (it == logs_.end()) return;
+    log = std::move(it->second);
+    logs_.erase(it);
+  }
+  absl::MutexLock lock(&log->mu);
+  log->stopped = true;
+  log->closed = absl::UnavailableError(absl::StrCat(
+      "fleet \"", V(fleet_id),
+      "\" is no longer owned here (ownership moved); nothing of this upload "
+      "was stored: retry"));
+  log->changed.SignalAll();
 }
 
 absl::StatusOr<Appended> WritePath::Append(
@@ -319,7 +374,8 @@ absl::StatusOr<Appended> WritePath::AppendCall(std::string_view fleet_id,
           "the server is shutting down; the call was not logged");
     }
   }
-  FleetWrites* log = Find(fleet_id);
+  std::shared_ptr<FleetWrites> held = Find(fleet_id);
+  FleetWrites* log = held.get();
   if (log == nullptr) {
     // A fleet the engine holds that this write path has not met since it
     // opened (written into the engine directly: a restored image).
@@ -366,7 +422,16 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendMany(
       return results;
     }
   }
-  FleetWrites* log = Find(fleet_id);
+  std::shared_ptr<FleetWrites> log = Find(fleet_id);
+  if (log == nullptr && options_.replicated.has_value()) {
+    // The owner's fleets exist (Own); this one was lost meanwhile.
+    results.assign(uploads.size(),
+                   absl::UnavailableError(absl::StrCat(
+                       "fleet \"", V(fleet_id),
+                       "\" is not owned here (ownership moved); nothing of "
+                       "this upload was stored: retry")));
+    return results;
+  }
   if (log == nullptr) return AppendToNewFleet(fleet_id, uploads, track);
 
   std::vector<Request> requests(uploads.size());
@@ -437,8 +502,7 @@ bool WritePath::RefuseQueued(FleetWrites& log, std::span<Request> requests) {
     if (!request.done && std::find(log.queue.begin(), log.queue.end(),
                                    &request) != log.queue.end()) {
       std::erase(log.queue, &request);
-      request.result = absl::UnavailableError(
-          "the server is shutting down; nothing of this upload was stored");
+      request.result = log.closed;
       request.done = true;
     }
   }
@@ -550,7 +614,11 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
       reserved = true;
     }
   }
-  if (status.ok()) status = quota.AdmitRates(log.id, traces);
+  // The receiving replica rates a replicated log's uploads (they may come
+  // from any replica).
+  if (status.ok() && !options_.replicated.has_value()) {
+    status = quota.AdmitRates(log.id, traces);
+  }
   // Duplicates: seqs admitted before, or repeated within the upload.
   absl::flat_hash_map<std::string_view, core::SeqSet> trial;
   std::vector<bool> accept(traces.size(), false);
@@ -583,9 +651,6 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
   }
   request.result = Appended{accepted, traces.size() - accepted, 0, nullptr};
   if (accepted == 0) return;
-  for (auto& [robot_id, seqs] : trial) {
-    group.seqs[std::string(robot_id)] = std::move(seqs);
-  }
   if (accepted == traces.size()) {
     request.accepted = traces;
   } else {
@@ -595,8 +660,26 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
     }
     request.accepted = request.kept;
   }
-  group.appends.push_back({UploadRecord{request.accepted}});
-  group.appending.push_back(&request);
+  if (options_.replicated.has_value()) {
+    // A replicated log's entries: each robot's run, under its id.
+    absl::StatusOr<std::vector<LogPiece>> pieces =
+        options_.replicated->cut(request.accepted);
+    if (!pieces.ok()) {
+      request.result = pieces.status();
+      return;
+    }
+    request.pieces = *std::move(pieces);
+    for (const LogPiece& piece : request.pieces) {
+      group.appends.push_back({UploadRecord{piece.traces}, piece.id});
+      group.appending.push_back(&request);
+    }
+  } else {
+    group.appends.push_back({UploadRecord{request.accepted}});
+    group.appending.push_back(&request);
+  }
+  for (auto& [robot_id, seqs] : trial) {
+    group.seqs[std::string(robot_id)] = std::move(seqs);
+  }
   group.load.backlog += accepted;
 }
 
@@ -614,10 +697,15 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
   for (Request* request : group) Admit(log, admitted, *request);
   if (admitted.appends.empty()) return;
   // Above the sequences this write path gave or found applied: a log that
-  // lost its tail does not give them again.
+  // lost its tail does not give them again. (A replicated log numbers its
+  // own.)
+  const bool replicated = options_.replicated.has_value();
   absl::StatusOr<std::vector<AppendedEntry>> written =
-      log_->Append(log.id, admitted.appends, {.above = log.next_sequence - 1});
+      log_->Append(log.id, admitted.appends,
+                   {.above = replicated ? 0 : log.next_sequence - 1});
   if (!written.ok()) {
+    // A replicated log may hold the first entries (its status says how
+    // many): a retry under the same ids stores only the rest.
     for (Request* request : admitted.appending) {
       request->result = written.status();
     }
@@ -628,7 +716,17 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
     return;
   }
   for (size_t i = 0; i < admitted.appending.size(); ++i) {
-    admitted.appending[i]->result->sequence = (*written)[i].sequence;
+    Appended& result = *admitted.appending[i]->result;
+    result.sequence = (*written)[i].sequence;
+    if ((*written)[i].duplicate) {
+      // A replicated log held the entry already (a retry of an upload
+      // another replica appended before this one read the log's tail).
+      const auto* upload =
+          std::get_if<UploadRecord>(&admitted.appends[i].record);
+      const uint64_t held = upload == nullptr ? 0 : upload->traces.size();
+      result.accepted -= std::min(result.accepted, held);
+      result.duplicates += held;
+    }
   }
   log.next_sequence = written->back().sequence + 1;
   log.shape = std::move(admitted.shape);
@@ -641,7 +739,7 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
 absl::Status WritePath::WaitApplied(std::string_view fleet_id,
                                     uint64_t sequence, absl::Time deadline) {
   if (sequence == 0) return absl::OkStatus();
-  FleetWrites* log = Find(fleet_id);
+  std::shared_ptr<FleetWrites> log = Find(fleet_id);
   if (log == nullptr) return absl::OkStatus();
   absl::MutexLock lock(&log->mu);
   const uint64_t failures = log->apply_failures;
@@ -681,7 +779,7 @@ absl::Status WritePath::WaitAppliedAll(std::string_view fleet_id,
 }
 
 Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
-  FleetWrites* log = Find(fleet_id);
+  std::shared_ptr<FleetWrites> log = Find(fleet_id);
   Backlog backlog;
   if (log == nullptr) return backlog;
   // Damage to entries applied before the log opened lost nothing.
@@ -704,7 +802,7 @@ Backlog WritePath::GetBacklog(std::string_view fleet_id) const {
 }
 
 size_t WritePath::QueuedUploads(std::string_view fleet_id) const {
-  FleetWrites* log = Find(fleet_id);
+  std::shared_ptr<FleetWrites> log = Find(fleet_id);
   if (log == nullptr) return 0;
   absl::MutexLock lock(&log->mu);
   return log->queue.size();
@@ -886,6 +984,8 @@ void WritePath::Stop() {
   for (FleetWrites* log : logs) {
     absl::MutexLock lock(&log->mu);
     log->stopped = true;
+    log->closed = absl::UnavailableError(
+        "the server is shutting down; nothing of this upload was stored");
     log->changed.SignalAll();
   }
   for (std::thread& applier : appliers_) applier.join();

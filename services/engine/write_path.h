@@ -21,6 +21,15 @@
 //
 // Open replays the unapplied tail of every fleet's log: nothing acknowledged
 // is lost, and nothing is applied twice.
+//
+// Distributed mode's fleet owner (cluster::ReplicatedMemory) writes its
+// fleets' replicated logs through a write path too (WritePathOptions::
+// replicated), so that an upload is admitted and appended the same way in
+// both modes; there the log is applied by cluster::Materialiser under the
+// fleet's lease, not here: no appliers, no trims, no recovery at Open. A
+// fleet's writes begin when the owner takes it (Own: the tail after its
+// position is read back, as Open reads every fleet's) and end when it loses
+// it (Disown); Applied says how far the owner has applied.
 #ifndef FLEETMEM_SERVICES_ENGINE_WRITE_PATH_H_
 #define FLEETMEM_SERVICES_ENGINE_WRITE_PATH_H_
 
@@ -29,6 +38,7 @@
 #include <deque>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -79,6 +89,20 @@ struct WritePathOptions {
   // so the engine's apply meets none; metrics). May be empty.
   std::function<void(std::string_view fleet_id, uint64_t duplicates)>
       on_duplicates;
+
+  // Set: the write path of distributed mode's owner over a replicated log
+  // (see above). `cut` makes an upload's accepted traces log entries: one
+  // robot's run each, under an id the log deduplicates a retry by, within
+  // the log's largest entry (cluster::CutUpload); INVALID_ARGUMENT, with
+  // nothing appended, when a trace fits in none. The log numbers its own
+  // entries (AppendOptions::above is not passed). Upload rates are not
+  // checked here: the replica that receives an upload rates it.
+  struct Replicated {
+    std::function<absl::StatusOr<std::vector<LogPiece>>(
+        std::span<const core::MemoryTrace>)>
+        cut;
+  };
+  std::optional<Replicated> replicated;
 };
 
 absl::Status ValidateWritePathOptions(const WritePathOptions& options);
@@ -196,6 +220,22 @@ class WritePath {
   // shutdown calls it before Stop.
   bool Drain(absl::Time deadline);
 
+  // Distributed mode's owner (WritePathOptions::replicated). Own: this
+  // replica holds the fleet's lease and has applied its log through
+  // `position`: its writes begin here, with the entries after `position`
+  // read back as its backlog and its admitted seqs (as Open reads every
+  // fleet's in embedded mode). At once if they began already.
+  // FAILED_PRECONDITION for a fleet whose log holds no upload and that the
+  // engine does not hold (a fleet is created by its first upload,
+  // cluster::Ingest); the log's error otherwise.
+  absl::Status Own(std::string_view fleet_id, uint64_t position);
+  // The owner has applied the fleet's log through `sequence`.
+  void Applied(std::string_view fleet_id, uint64_t sequence);
+  // The fleet's lease is lost: its queued uploads are refused (UNAVAILABLE:
+  // retry, the new owner admits them), its waiters woken, its state
+  // forgotten. An upload a leader is appending finishes.
+  void Disown(std::string_view fleet_id);
+
   // Stops admitting, wakes every waiter (UNAVAILABLE), and ends the appliers
   // after the entry each is applying; the rest of the logs is applied at the
   // next Open. Idempotent.
@@ -208,18 +248,20 @@ class WritePath {
   struct Request;
   WritePath(WritePathOptions options, MemoryEngine* engine, FleetLog* log);
 
-  // The fleet's log, made on first use; Find: null if there is none.
+  // The fleet's log, made on first use; Find: null if there is none. (Held
+  // by callers through a call: Disown may forget it meanwhile.)
   FleetWrites* Log(std::string_view fleet_id);
-  FleetWrites* Find(std::string_view fleet_id) const;
+  std::shared_ptr<FleetWrites> Find(std::string_view fleet_id) const;
   absl::Status Recover();
   // A fleet the engine holds and this write path has no log of yet: its
   // log made as Recover makes it (the engine's shape and position).
   // NOT_FOUND for a fleet the engine does not hold.
   absl::StatusOr<FleetWrites*> Adopt(std::string_view fleet_id);
   // Recover for one fleet's log, whose last entry is `last`: the entries
-  // after the engine's position become the fleet's backlog. True if the
-  // fleet's first upload is among them (the fleet is made when applied).
-  absl::StatusOr<bool> RecoverTail(const std::string& fleet_id, uint64_t last);
+  // after `position` (what is applied) become the fleet's backlog. True if
+  // the fleet's first upload is among them (the fleet is made when applied).
+  absl::StatusOr<bool> RecoverTail(FleetWrites& log, uint64_t position,
+                                   uint64_t last);
   // Logs the fleet's damaged log entries: lost (DATA_LOSS) after
   // `position`, harmless at or before it.
   void ReportLosses(const std::string& fleet_id, uint64_t position);
@@ -269,7 +311,7 @@ class WritePath {
   LogApplier applier_;
 
   mutable absl::Mutex logs_mu_;
-  absl::flat_hash_map<std::string, std::unique_ptr<FleetWrites>> logs_
+  absl::flat_hash_map<std::string, std::shared_ptr<FleetWrites>> logs_
       ABSL_GUARDED_BY(logs_mu_);
   // Fleets that exist or whose first upload is in a log (max_fleets).
   uint64_t fleets_ ABSL_GUARDED_BY(logs_mu_) = 0;

@@ -7,6 +7,7 @@
 #include <thread>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/synchronization/notification.h"
 #include "gmock/gmock.h"
@@ -542,6 +543,84 @@ TEST_F(WritePathTest, AfterARestartATrimmedCallEntryIsNotWaitedFor) {
   EXPECT_EQ(next->sequence, call->sequence + 1);
   EXPECT_TRUE(
       path_->WaitApplied("f", next->sequence, absl::Now() + kWait).ok());
+}
+
+// Distributed mode's owner (WritePathOptions::replicated): the write path
+// admits against the log's tail it reads back when the fleet is taken,
+// cuts uploads into the entries the cut gives, applies nothing itself (the
+// owner's Materialiser does, and says how far: Applied), and refuses
+// uploads once the fleet is lost.
+WritePathOptions OwnerOptions() {
+  WritePathOptions options;
+  options.max_backlog_traces = 8;
+  options.replicated = WritePathOptions::Replicated{[](std::span<
+                                                        const core::MemoryTrace>
+                                                           traces)
+                                                        -> absl::StatusOr<
+                                                            std::vector<
+                                                                LogPiece>> {
+    // One entry per trace, its id the robot and seq.
+    std::vector<LogPiece> pieces;
+    for (const core::MemoryTrace& trace : traces) {
+      pieces.push_back({{trace}, absl::StrCat(trace.robot_id, "/", trace.seq)});
+    }
+    return pieces;
+  }};
+  return options;
+}
+
+TEST_F(WritePathTest, AnOwnersWritePathAdmitsAgainstTheTailItTookOver) {
+  // The fleet's first upload, appended by the replica that created it (as
+  // cluster::Ingest does), before this replica owns the fleet.
+  const std::vector<core::MemoryTrace> first = Traces("r1", 1, 3);
+  const LogAppend created{UploadRecord{first}, "created"};
+  ASSERT_TRUE(log_->Append("f", {&created, 1}, {}).ok());
+  Open(OwnerOptions());
+  EXPECT_EQ(path_->Append("f", Traces("r1", 4, 1)).status().code(),
+            absl::StatusCode::kUnavailable);  // not owned yet
+  EXPECT_EQ(path_->Own("g", 0).code(), absl::StatusCode::kFailedPrecondition);
+
+  ASSERT_TRUE(path_->Own("f", 0).ok());
+  Backlog backlog = path_->GetBacklog("f");
+  EXPECT_EQ(backlog.entries, 1u);  // the creating entry, not applied
+  EXPECT_EQ(backlog.traces, 3u);
+  // 2 and 3 are in the tail: duplicates; 4 and 5 are new, one entry each.
+  absl::StatusOr<Appended> appended = path_->Append("f", Traces("r1", 2, 4));
+  ASSERT_TRUE(appended.ok()) << appended.status();
+  EXPECT_EQ(appended->accepted, 2u);
+  EXPECT_EQ(appended->duplicates, 2u);
+  EXPECT_EQ(appended->sequence, 3u);  // entries 2 and 3
+  EXPECT_EQ(store_.appended_entries().back(), 2u);
+  absl::StatusOr<std::vector<LogEntry>> read = log_->Read("f", 1, 10);
+  ASSERT_TRUE(read.ok());
+  ASSERT_EQ(read->size(), 2u);
+  EXPECT_EQ(read->front().traces().front().seq, 4u);
+  // Nothing is applied here: the owner applies.
+  EXPECT_EQ(Held("f"), 0u);
+  // The backlog bound (8) counts the tail taken over: 5 held unapplied.
+  EXPECT_EQ(path_->Append("f", Traces("r1", 6, 4)).status().code(),
+            absl::StatusCode::kResourceExhausted);
+  // The owner applied entries 1 and 2: an upload's traces count until its
+  // last entry is applied.
+  path_->Applied("f", 2);
+  backlog = path_->GetBacklog("f");
+  EXPECT_EQ(backlog.traces, 2u);
+  EXPECT_EQ(backlog.applied_through, 2u);
+  path_->Applied("f", 3);
+  EXPECT_EQ(path_->GetBacklog("f").traces, 0u);
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 6, 4)).ok());
+
+  // Lost: uploads are refused until the fleet is owned again; the tail is
+  // read back then.
+  path_->Disown("f");
+  EXPECT_EQ(path_->Append("f", Traces("r1", 10, 1)).status().code(),
+            absl::StatusCode::kUnavailable);
+  ASSERT_TRUE(path_->Own("f", 2).ok());
+  absl::StatusOr<Appended> again = path_->Append("f", Traces("r1", 5, 5));
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->accepted, 0u);  // 5..9: all in the tail
+  EXPECT_EQ(again->duplicates, 5u);
+  EXPECT_EQ(path_->GetBacklog("f").traces, 5u);
 }
 
 }  // namespace
