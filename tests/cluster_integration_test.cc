@@ -266,9 +266,15 @@ class ClusterIntegrationTest : public ::testing::Test {
       }
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
     } while (Clock::now() - start < timeout);
+    std::string robots;  // which seqs are missing: each robot's highest
+    for (const v1::RobotStats& robot : stats.response.robots()) {
+      absl::StrAppend(&robots, " ", robot.robot_id(), ": ", robot.received(),
+                      " received, highest seq ", robot.max_seq(), ";");
+    }
     ADD_FAILURE() << FleetId(fleet) << " via replica " << via << ": "
                   << (stats.ok() ? absl::StrCat(Received(stats.response),
-                                                " traces, not ", traces)
+                                                " traces, not ", traces, " (",
+                                                robots, ")")
                                  : Describe(stats.status));
     return std::nullopt;
   }

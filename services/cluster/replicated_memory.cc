@@ -166,6 +166,16 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Write(
   }
   writes_->Applied(fleet_id, *position);
   absl::StatusOr<engine::Appended> appended = writes_->Append(fleet_id, traces);
+  FLEETMEM_LOG(kDebug) << "cluster: fleet \"" << fleet_id << "\": upload of "
+                       << traces.size() << " traces (robot \""
+                       << traces.front().robot_id << "\", seq "
+                       << traces.front().seq << "..) "
+                       << (appended.ok()
+                               ? absl::StrCat("accepted ", appended->accepted,
+                                              ", duplicates ",
+                                              appended->duplicates, ", entry ",
+                                              appended->sequence)
+                               : appended.status().ToString());
   if (!appended.ok()) return appended.status();
   transport::Uploaded uploaded;
   uploaded.result.accepted = appended->accepted;

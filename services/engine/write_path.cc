@@ -704,10 +704,15 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
       log_->Append(log.id, admitted.appends,
                    {.above = replicated ? 0 : log.next_sequence - 1});
   if (!written.ok()) {
-    // A replicated log may hold the first entries (its status says how
-    // many): a retry under the same ids stores only the rest.
-    for (Request* request : admitted.appending) {
-      request->result = written.status();
+    // Every upload the group admitted fails with the write, those that
+    // appended nothing too: their seqs may be duplicates of an upload
+    // earlier in this group (a robot's retry queued behind its first
+    // try), which is not stored now. Answered "duplicates", the robot
+    // would drop traces no log holds. A replicated log may hold the first
+    // entries (its status says how many): a retry under the same ids
+    // stores only the rest.
+    for (Request* request : group) {
+      if (request->result.ok()) request->result = written.status();
     }
     if (admitted.created) {
       absl::MutexLock lock(&logs_mu_);

@@ -545,6 +545,32 @@ TEST_F(WritePathTest, AfterARestartATrimmedCallEntryIsNotWaitedFor) {
       path_->WaitApplied("f", next->sequence, absl::Now() + kWait).ok());
 }
 
+// An upload whose seqs are those of an upload before it in the same group
+// commit (a robot's retry queued behind its first try) is a duplicate only
+// if that write succeeds: when it fails, both fail, and the robot keeps
+// the traces. (Answered "duplicates", the robot dropped traces no log
+// held: the cluster test's lost NATS server, 1 run in 20.)
+TEST_F(WritePathTest, AGroupsFailedWriteFailsTheDuplicatesOfItsOwnUploads) {
+  Open();
+  ASSERT_TRUE(path_->Append("f", Traces("r1", 10, 2)).ok());  // the fleet
+  const std::vector<core::MemoryTrace> traces = Traces("r1", 1, 4);
+  const std::span<const core::MemoryTrace> twice[] = {traces, traces};
+  store_.FailAppends(absl::UnavailableError("the log cannot be written"));
+  std::vector<absl::StatusOr<Appended>> failed = path_->AppendMany("f", twice);
+  ASSERT_EQ(failed.size(), 2u);
+  EXPECT_EQ(failed[0].status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_EQ(failed[1].status().code(), absl::StatusCode::kUnavailable)
+      << "answered as duplicates of an upload that was not stored";
+
+  store_.FailAppends(absl::OkStatus());
+  std::vector<absl::StatusOr<Appended>> stored = path_->AppendMany("f", twice);
+  ASSERT_TRUE(stored[0].ok() && stored[1].ok());
+  EXPECT_EQ(stored[0]->accepted, 4u);
+  EXPECT_EQ(stored[1]->duplicates, 4u);
+  ASSERT_TRUE(path_->WaitAppliedAll("f", absl::Now() + kWait).ok());
+  EXPECT_EQ(Held("f"), 6u);
+}
+
 // Distributed mode's owner (WritePathOptions::replicated): the write path
 // admits against the log's tail it reads back when the fleet is taken,
 // cuts uploads into the entries the cut gives, applies nothing itself (the
