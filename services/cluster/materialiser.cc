@@ -578,17 +578,25 @@ absl::StatusOr<engine::AppliedRecord> Materialiser::Call(
         absl::StrCat("cluster: replica \"", options_.replica_id,
                      "\" does not own fleet \"", V(fleet_id), "\""));
   }
+  absl::StatusOr<uint64_t> sequence = AppendCall(fleet_id, record);
+  if (!sequence.ok()) return sequence.status();
+  engine::AppliedRecord outcome;
+  absl::StatusOr<StepResult> applied =
+      StepThroughLocked(fleet_id, *sequence, &outcome);
+  if (!applied.ok()) return applied.status();
+  if (!outcome.refused.ok()) return outcome.refused;
+  return outcome;
+}
+
+absl::StatusOr<uint64_t> Materialiser::AppendCall(
+    std::string_view fleet_id, const engine::LogRecord& record) {
+  if (options_.append_call) return options_.append_call(fleet_id, record);
   // No id: a call is never a retry of another at the log's level.
   const engine::LogAppend append{record};
   absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
       log_->Append(fleet_id, {&append, 1}, {});
   if (!appended.ok()) return appended.status();
-  engine::AppliedRecord outcome;
-  absl::StatusOr<StepResult> applied =
-      StepThroughLocked(fleet_id, appended->front().sequence, &outcome);
-  if (!applied.ok()) return applied.status();
-  if (!outcome.refused.ok()) return outcome.refused;
-  return outcome;
+  return appended->front().sequence;
 }
 
 absl::StatusOr<engine::ConsolidateResult> Materialiser::Consolidate(

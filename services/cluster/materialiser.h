@@ -82,6 +82,15 @@ struct MaterialiserOptions {
   // Reads the time for renewals, the fencing window and lease_ttl; not
   // owned (tests pass a ManualClock).
   const Clock* clock = &Clock::Real();
+  // How a call's record (Consolidate, SampleReplay) is appended to the
+  // fleet's log: the entry's sequence, or the log's error. Empty: to the
+  // log directly. Distributed mode's owner passes its write path's
+  // (engine::WritePath::AppendCall), so that a call is ordered after the
+  // uploads acknowledged before it in one group commit, as in embedded
+  // mode.
+  std::function<absl::StatusOr<uint64_t>(std::string_view fleet_id,
+                                         const engine::LogRecord& record)>
+      append_call;
 };
 
 // What one step did for a fleet.
@@ -292,6 +301,10 @@ class Materialiser {
                                                uint64_t target,
                                                engine::AppliedRecord* outcome)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Appends a call's record (MaterialiserOptions::append_call): its
+  // entry's sequence.
+  absl::StatusOr<uint64_t> AppendCall(std::string_view fleet_id,
+                                      const engine::LogRecord& record);
   // Appends a call's entry and applies the log through it.
   absl::StatusOr<engine::AppliedRecord> Call(std::string_view fleet_id,
                                              const engine::LogRecord& record);

@@ -54,7 +54,30 @@ ReplicatedMemory::ReplicatedMemory(std::string self, size_t max_entry_bytes,
       writes_(
           OwnerWrites(engine, log_.get(), max_backlog_traces, max_entry_bytes)),
       forwarder_(std::move(peers)),
-      node_(std::move(node), log_.get(), log_.get(), log_.get(), engine) {}
+      node_(WithCallsThroughTheWritePath(std::move(node)), log_.get(),
+            log_.get(), log_.get(), engine) {}
+
+ClusterNodeOptions ReplicatedMemory::WithCallsThroughTheWritePath(
+    ClusterNodeOptions node) {
+  // The Materialiser appends a call (holding the fleet's lease) through
+  // the owner's write path, after the uploads acknowledged before it.
+  node.materialiser.append_call =
+      [this](std::string_view fleet_id,
+             const engine::LogRecord& record) -> absl::StatusOr<uint64_t> {
+    const std::optional<uint64_t> position =
+        node_.materialiser().Position(fleet_id);
+    if (position.has_value()) {
+      if (absl::Status owned = writes_->Own(fleet_id, *position); !owned.ok()) {
+        return owned;
+      }
+    }
+    absl::StatusOr<engine::Appended> appended =
+        writes_->AppendCall(fleet_id, record);
+    if (!appended.ok()) return appended.status();
+    return appended->sequence;
+  };
+  return node;
+}
 
 ReplicatedMemory::~ReplicatedMemory() {
   Shutdown();

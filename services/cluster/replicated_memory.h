@@ -125,6 +125,8 @@ class ReplicatedMemory final : public transport::FleetMemory {
   absl::StatusOr<std::optional<engine::FleetShape>> ShapeOf(
       std::string_view fleet_id);
 
+  // `node` with the Materialiser's calls appended through writes_.
+  ClusterNodeOptions WithCallsThroughTheWritePath(ClusterNodeOptions node);
   // A fleet's first upload, by the replica that receives it (Ingest).
   // FAILED_PRECONDITION: another upload created the fleet meanwhile.
   absl::StatusOr<transport::Uploaded> Create(

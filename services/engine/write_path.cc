@@ -376,6 +376,12 @@ absl::StatusOr<Appended> WritePath::AppendCall(std::string_view fleet_id,
   }
   std::shared_ptr<FleetWrites> held = Find(fleet_id);
   FleetWrites* log = held.get();
+  if (log == nullptr && options_.replicated.has_value()) {
+    return absl::UnavailableError(absl::StrCat(
+        "fleet \"", V(fleet_id),
+        "\" is not owned here (ownership moved); the call was not logged: "
+        "retry"));
+  }
   if (log == nullptr) {
     // A fleet the engine holds that this write path has not met since it
     // opened (written into the engine directly: a restored image).
