@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <climits>
 #include <memory>
+#include <optional>
 #include <utility>
 #include <variant>
 
@@ -16,6 +17,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/clock.h"
 #include "nats/nats.h"
@@ -119,14 +121,68 @@ absl::Status ValidateNatsOptions(const NatsOptions& options) {
   return absl::OkStatus();
 }
 
+namespace {
+
+// Entries in flight (NatsFleetLog::Append publishes several without
+// waiting for each acknowledgement): each message's slot for its outcome,
+// filled in by OnAck on nats.c's thread.
+struct AsyncAcks {
+  struct Slot {
+    std::optional<absl::StatusOr<engine::AppendedEntry>>* outcome;
+    size_t* waiting;  // the append's count of outcomes not in yet
+  };
+  absl::Mutex mu;
+  absl::CondVar acked;
+  // By the message nats.c hands back to OnAck (its original).
+  absl::flat_hash_map<const natsMsg*, Slot> slots ABSL_GUARDED_BY(mu);
+
+  void Acknowledge(const natsMsg* msg,
+                   absl::StatusOr<engine::AppendedEntry> outcome) {
+    absl::MutexLock lock(&mu);
+    auto it = slots.find(msg);
+    if (it == slots.end()) return;  // no longer waited for
+    *it->second.outcome = std::move(outcome);
+    --*it->second.waiting;
+    slots.erase(it);
+    acked.SignalAll();
+  }
+};
+
+// nats.c's acknowledgement handler of the asynchronous context.
+void OnAck(jsCtx*, natsMsg* msg, jsPubAck* ack, jsPubAckErr* error,
+           void* closure) {
+  absl::StatusOr<engine::AppendedEntry> outcome = engine::AppendedEntry{};
+  if (ack != nullptr) {
+    outcome = engine::AppendedEntry{ack->Sequence, ack->Duplicate};
+  } else {
+    const natsStatus failed =
+        error != nullptr && error->Err != NATS_OK ? error->Err : NATS_ERR;
+    outcome =
+        FromNats(failed, error != nullptr ? error->ErrCode : 0,
+                 absl::StrCat("cluster: appending an entry to a fleet's log",
+                              error != nullptr && error->ErrText != nullptr
+                                  ? absl::StrCat(" (", error->ErrText, ")")
+                                  : std::string()));
+  }
+  static_cast<AsyncAcks*>(closure)->Acknowledge(msg, std::move(outcome));
+  natsMsg_Destroy(msg);
+}
+
+}  // namespace
+
 struct NatsFleetLog::Handles {
   ~Handles() {
+    if (async_js != nullptr) jsCtx_Destroy(async_js);
     if (kv != nullptr) kvStore_Destroy(kv);
     if (js != nullptr) jsCtx_Destroy(js);
     if (nc != nullptr) natsConnection_Destroy(nc);
   }
   natsConnection* nc = nullptr;
   jsCtx* js = nullptr;
+  // Appends of several entries: published without waiting for each
+  // acknowledgement (OnAck).
+  jsCtx* async_js = nullptr;
+  AsyncAcks acks;
   kvStore* kv = nullptr;
   absl::Mutex mu;
   absl::flat_hash_set<std::string> streams ABSL_GUARDED_BY(mu);  // by name
@@ -251,6 +307,13 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
   js_options.Wait = Milliseconds(options.timeout);
   if (natsStatus s =
           natsConnection_JetStream(&handles->js, handles->nc, &js_options);
+      s != NATS_OK) {
+    return FromNats(s, 0, "cluster: JetStream");
+  }
+  js_options.PublishAsync.AckHandler = OnAck;
+  js_options.PublishAsync.AckHandlerClosure = &handles->acks;
+  if (natsStatus s = natsConnection_JetStream(&handles->async_js, handles->nc,
+                                              &js_options);
       s != NATS_OK) {
     return FromNats(s, 0, "cluster: JetStream");
   }
@@ -398,24 +461,139 @@ absl::StatusOr<std::vector<engine::AppendedEntry>> NatsFleetLog::Append(
     return absl::InvalidArgumentError(
         "cluster: JetStream numbers a log's entries itself (no floor)");
   }
-  std::vector<engine::AppendedEntry> appended;
+  std::vector<std::string> data;
+  data.reserve(entries.size());
   for (const engine::LogAppend& entry : entries) {
     v1::LogRecord record;
     std::visit(ToLogRecord{&record}, entry.record);
+    data.push_back(record.SerializeAsString());
+  }
+  std::vector<engine::AppendedEntry> appended;
+  if (entries.size() == 1 || options.only_first) {
+    // The first alone, when it must be the log's first: whether it is
+    // decides whether the rest are appended.
     absl::StatusOr<engine::AppendedEntry> one =
-        AppendOne(fleet_id, entry.id, record.SerializeAsString(),
-                  options.only_first && appended.empty());
-    if (!one.ok()) {
-      if (appended.empty()) return one.status();
-      return absl::Status(
-          one.status().code(),
-          absl::StrCat(one.status().message(), "; the log holds the first ",
-                       appended.size(), " of these ", entries.size(),
-                       " entries"));
-    }
+        AppendOne(fleet_id, entries[0].id, data[0], options.only_first);
+    if (!one.ok()) return one.status();
     appended.push_back(*one);
   }
+  if (appended.size() == entries.size()) return appended;
+  absl::StatusOr<std::vector<engine::AppendedEntry>> rest = AppendPipelined(
+      fleet_id, entries.subspan(appended.size()),
+      std::span<const std::string>(data).subspan(appended.size()));
+  if (!rest.ok()) {
+    if (appended.empty()) return rest.status();
+    return absl::Status(rest.status().code(),
+                        absl::StrCat(rest.status().message(),
+                                     " (after the first, which it holds)"));
+  }
+  appended.insert(appended.end(), rest->begin(), rest->end());
   return appended;
+}
+
+absl::StatusOr<std::vector<engine::AppendedEntry>>
+NatsFleetLog::AppendPipelined(std::string_view fleet_id,
+                              std::span<const engine::LogAppend> entries,
+                              std::span<const std::string> data) {
+  const int64_t max_payload = natsConnection_GetMaxPayload(handles_->nc);
+  for (const std::string& one : data) {
+    if (max_payload > 0 && static_cast<int64_t>(one.size()) > max_payload) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "cluster: an entry of ", one.size(), " bytes exceeds NATS's ",
+          max_payload,
+          "-byte message limit (max_payload); send smaller batches; nothing "
+          "was appended"));
+    }
+  }
+  if (absl::Status ready = EnsureStream(fleet_id); !ready.ok()) return ready;
+  const std::string subject = FleetSubject(fleet_id);
+  const std::string stream = FleetStreamName(fleet_id);
+  AsyncAcks& acks = handles_->acks;
+  std::vector<std::optional<absl::StatusOr<engine::AppendedEntry>>> results(
+      entries.size());
+  size_t waiting = 0;  // guarded by acks.mu
+  std::vector<const natsMsg*> sent;
+  // Published in order on one connection: JetStream numbers them so.
+  for (size_t i = 0; i < entries.size(); ++i) {
+    natsMsg* msg = nullptr;
+    natsStatus s =
+        natsMsg_Create(&msg, subject.c_str(), nullptr, data[i].data(),
+                       static_cast<int>(data[i].size()));
+    const std::string msg_id(entries[i].id);
+    jsPubOptions publish;
+    jsPubOptions_Init(&publish);
+    if (!msg_id.empty()) publish.MsgId = msg_id.c_str();
+    publish.ExpectStream = stream.c_str();
+    publish.MaxWait = Milliseconds(options_.timeout);
+    if (s == NATS_OK) {
+      // Its slot before it is sent: the acknowledgement may come first.
+      absl::MutexLock lock(&acks.mu);
+      acks.slots[msg] = AsyncAcks::Slot{&results[i], &waiting};
+      ++waiting;
+      sent.push_back(msg);
+    }
+    const natsMsg* published = msg;
+    if (s == NATS_OK) {
+      s = js_PublishMsgAsync(handles_->async_js, &msg, &publish);
+    }
+    natsMsg_Destroy(msg);  // nothing when nats.c took it
+    if (s != NATS_OK) {
+      // Not sent: this entry and those after it are not appended.
+      absl::MutexLock lock(&acks.mu);
+      auto it = acks.slots.find(published);
+      if (it != acks.slots.end() && it->second.waiting == &waiting) {
+        acks.slots.erase(it);
+        --waiting;
+      }
+      results[i] =
+          FromNats(s, 0,
+                   absl::StrCat("cluster: appending to the log of fleet \"",
+                                V(fleet_id), "\""));
+      break;
+    }
+  }
+  {
+    // Every entry sent is acknowledged or timed out by nats.c (MaxWait);
+    // the deadline is a guard.
+    const absl::Time deadline =
+        absl::Now() + options_.timeout + absl::Seconds(1);
+    absl::MutexLock lock(&acks.mu);
+    while (waiting > 0 && !acks.acked.WaitWithDeadline(&acks.mu, deadline)) {
+    }
+    // Those not acknowledged by now (a message's address may be another
+    // append's by now: only this one's slots go).
+    for (const natsMsg* msg : sent) {
+      auto it = acks.slots.find(msg);
+      if (it != acks.slots.end() && it->second.waiting == &waiting) {
+        acks.slots.erase(it);
+      }
+    }
+  }
+  std::vector<engine::AppendedEntry> appended;
+  std::vector<size_t> held;
+  absl::Status first_error;
+  for (size_t i = 0; i < entries.size(); ++i) {
+    const absl::StatusOr<engine::AppendedEntry> none =
+        absl::DeadlineExceededError(
+            absl::StrCat("cluster: appending to the log of fleet \"",
+                         V(fleet_id), "\": not sent, or no acknowledgement"));
+    const absl::StatusOr<engine::AppendedEntry>& result =
+        results[i].has_value() ? *results[i] : none;
+    if (result.ok()) {
+      appended.push_back(*result);
+      held.push_back(i + 1);
+    } else if (first_error.ok()) {
+      first_error = result.status();
+    }
+  }
+  if (first_error.ok()) return appended;
+  return absl::Status(
+      first_error.code(),
+      absl::StrCat(first_error.message(), "; the log holds ", held.size(),
+                   " of these ", entries.size(), " entries",
+                   held.empty()
+                       ? std::string()
+                       : absl::StrCat(" (", absl::StrJoin(held, ", "), ")")));
 }
 
 absl::StatusOr<engine::AppendedEntry> NatsFleetLog::AppendOne(

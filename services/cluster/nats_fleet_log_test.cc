@@ -93,6 +93,73 @@ TEST_F(NatsFleetLogTest, AppendsInOrderAndDropsARepeatedId) {
   EXPECT_TRUE(log->Read("never written", 0, 10)->empty());
 }
 
+// Several entries in one Append (a write path's group) are published
+// without waiting for each acknowledgement: numbered in order, each
+// deduplicated by its id, several appends at once (other fleets') keep
+// their own outcomes; only_first holds for the first.
+TEST_F(NatsFleetLogTest, SeveralEntriesArePipelinedInOrder) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  auto group = [](const std::string& prefix, int count) {
+    std::vector<std::string> robots;
+    for (int i = 0; i < count; ++i) robots.push_back(absl::StrCat(prefix, i));
+    return robots;
+  };
+  auto append = [&](const std::string& fleet,
+                    const std::vector<std::string>& robots,
+                    engine::AppendOptions options = {}) {
+    std::vector<engine::LogAppend> appends;
+    for (const std::string& robot : robots) {
+      appends.push_back({engine::SampleReplayRecord{robot, 1, ""}, robot});
+    }
+    return log->Append(fleet, appends, options);
+  };
+  absl::StatusOr<std::vector<engine::AppendedEntry>> first =
+      append("p", group("a", 20), {.only_first = true});
+  ASSERT_TRUE(first.ok()) << first.status();
+  ASSERT_EQ(first->size(), 20u);
+  for (size_t i = 0; i < first->size(); ++i) {
+    EXPECT_EQ((*first)[i].sequence, i + 1);
+    EXPECT_FALSE((*first)[i].duplicate);
+  }
+  // Half of them again, and new ones: the repeated ids are duplicates of
+  // the entries that hold them.
+  std::vector<std::string> mixed = group("a", 10);
+  for (const std::string& robot : group("b", 10)) mixed.push_back(robot);
+  absl::StatusOr<std::vector<engine::AppendedEntry>> again = append("p", mixed);
+  ASSERT_TRUE(again.ok()) << again.status();
+  for (size_t i = 0; i < 10; ++i) {
+    EXPECT_TRUE((*again)[i].duplicate);
+    EXPECT_EQ((*again)[i].sequence, i + 1);
+    EXPECT_FALSE((*again)[10 + i].duplicate);
+    EXPECT_EQ((*again)[10 + i].sequence, 21 + i);
+  }
+  absl::StatusOr<std::vector<engine::LogEntry>> all = log->Read("p", 0, 100);
+  ASSERT_TRUE(all.ok()) << all.status();
+  ASSERT_EQ(all->size(), 30u);
+  EXPECT_EQ(RobotOf((*all)[0]), "a0");
+  EXPECT_EQ(RobotOf((*all)[29]), "b9");
+  // The log holds entries: only_first refuses the whole group.
+  EXPECT_EQ(append("p", group("c", 3), {.only_first = true}).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(log->Bounds("p")->last, 30u);
+
+  // Four fleets' groups at once, on one connection.
+  std::vector<std::thread> writers;
+  std::vector<absl::StatusOr<std::vector<engine::AppendedEntry>>> outcomes(
+      4, absl::UnknownError("not run"));
+  for (int f = 0; f < 4; ++f) {
+    writers.emplace_back(
+        [&, f] { outcomes[f] = append(absl::StrCat("q", f), group("r", 25)); });
+  }
+  for (std::thread& writer : writers) writer.join();
+  for (int f = 0; f < 4; ++f) {
+    ASSERT_TRUE(outcomes[f].ok()) << outcomes[f].status();
+    ASSERT_EQ(outcomes[f]->size(), 25u);
+    EXPECT_EQ(outcomes[f]->back().sequence, 25u);
+  }
+}
+
 // Every kind of record reads back as it was appended; `only_first` appends
 // only to an empty log.
 TEST_F(NatsFleetLogTest, RecordsReadBackAsAppended) {
@@ -180,6 +247,24 @@ TEST_F(NatsFleetLogTest, AcknowledgedEntriesSurviveAKilledServer) {
   ASSERT_EQ(all->size(), 50u);
   for (int i = 0; i < 50; ++i)
     EXPECT_EQ(RobotOf((*all)[i]), absl::StrCat(i + 1));
+}
+
+// A group appended while NATS is gone fails, saying how many of its
+// entries the log holds (none here).
+TEST_F(NatsFleetLogTest, AGroupThatCannotBeAppendedSaysWhatTheLogHolds) {
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  ASSERT_TRUE(AppendCall(*log, "g", "r:0", "0").ok());  // its stream
+  nats_->Kill();
+  std::vector<engine::LogAppend> appends;
+  for (int i = 1; i <= 3; ++i) {
+    appends.push_back({engine::ConsolidateRecord{}, absl::StrCat("r:", i)});
+  }
+  absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+      log->Append("g", appends, {});
+  ASSERT_FALSE(appended.ok());
+  EXPECT_THAT(appended.status().message(),
+              HasSubstr("the log holds 0 of these 3 entries"));
 }
 
 TEST_F(NatsFleetLogTest, ALeaseHasOneHolderAndFencesALateOne) {
