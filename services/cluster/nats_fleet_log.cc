@@ -491,6 +491,43 @@ absl::StatusOr<std::vector<engine::AppendedEntry>> NatsFleetLog::Append(
   return appended;
 }
 
+namespace {
+
+// What an append of several entries did: each entry's place in the log, or
+// the first error and which of them the log holds (by position from 1).
+absl::StatusOr<std::vector<engine::AppendedEntry>> Outcomes(
+    std::string_view fleet_id,
+    const std::vector<std::optional<absl::StatusOr<engine::AppendedEntry>>>&
+        results) {
+  std::vector<engine::AppendedEntry> appended;
+  std::vector<size_t> held;
+  absl::Status first_error;
+  for (size_t i = 0; i < results.size(); ++i) {
+    const absl::StatusOr<engine::AppendedEntry> none =
+        absl::DeadlineExceededError(
+            absl::StrCat("cluster: appending to the log of fleet \"",
+                         V(fleet_id), "\": not sent, or no acknowledgement"));
+    const absl::StatusOr<engine::AppendedEntry>& result =
+        results[i].has_value() ? *results[i] : none;
+    if (result.ok()) {
+      appended.push_back(*result);
+      held.push_back(i + 1);
+    } else if (first_error.ok()) {
+      first_error = result.status();
+    }
+  }
+  if (first_error.ok()) return appended;
+  return absl::Status(
+      first_error.code(),
+      absl::StrCat(first_error.message(), "; the log holds ", held.size(),
+                   " of these ", results.size(), " entries",
+                   held.empty()
+                       ? std::string()
+                       : absl::StrCat(" (", absl::StrJoin(held, ", "), ")")));
+}
+
+}  // namespace
+
 absl::StatusOr<std::vector<engine::AppendedEntry>>
 NatsFleetLog::AppendPipelined(std::string_view fleet_id,
                               std::span<const engine::LogAppend> entries,
@@ -569,31 +606,7 @@ NatsFleetLog::AppendPipelined(std::string_view fleet_id,
       }
     }
   }
-  std::vector<engine::AppendedEntry> appended;
-  std::vector<size_t> held;
-  absl::Status first_error;
-  for (size_t i = 0; i < entries.size(); ++i) {
-    const absl::StatusOr<engine::AppendedEntry> none =
-        absl::DeadlineExceededError(
-            absl::StrCat("cluster: appending to the log of fleet \"",
-                         V(fleet_id), "\": not sent, or no acknowledgement"));
-    const absl::StatusOr<engine::AppendedEntry>& result =
-        results[i].has_value() ? *results[i] : none;
-    if (result.ok()) {
-      appended.push_back(*result);
-      held.push_back(i + 1);
-    } else if (first_error.ok()) {
-      first_error = result.status();
-    }
-  }
-  if (first_error.ok()) return appended;
-  return absl::Status(
-      first_error.code(),
-      absl::StrCat(first_error.message(), "; the log holds ", held.size(),
-                   " of these ", entries.size(), " entries",
-                   held.empty()
-                       ? std::string()
-                       : absl::StrCat(" (", absl::StrJoin(held, ", "), ")")));
+  return Outcomes(fleet_id, results);
 }
 
 absl::StatusOr<engine::AppendedEntry> NatsFleetLog::AppendOne(

@@ -140,7 +140,8 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
   if (!Serves(fleet_id) && !TakeIfFree(fleet_id, &holder)) {
     return ForwardUpload(fleet_id, traces, options, holder);
   }
-  return Write(fleet_id, traces);
+  const std::span<const core::MemoryTrace> one[] = {traces};
+  return std::move(Write(fleet_id, one).front());
 }
 
 absl::StatusOr<transport::Uploaded> ReplicatedMemory::Create(
@@ -170,41 +171,89 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Create(
   return uploaded;
 }
 
-absl::StatusOr<transport::Uploaded> ReplicatedMemory::Write(
-    std::string_view fleet_id, std::span<const core::MemoryTrace> traces) {
+std::vector<absl::StatusOr<transport::Uploaded>> ReplicatedMemory::UploadMany(
+    std::string_view fleet_id,
+    std::span<const std::span<const core::MemoryTrace>> messages,
+    const transport::UploadOptions& options) {
+  // The owner writes a stream's waiting messages in one group commit (one
+  // round trip to JetStream for all), as embedded mode does; elsewhere
+  // (forwarding, a fleet's creation) they go one after another.
+  absl::StatusOr<std::optional<engine::FleetShape>> shape = ShapeOf(fleet_id);
+  if (messages.size() < 2 || !Serves(fleet_id) || !shape.ok() ||
+      !shape->has_value()) {
+    return FleetMemory::UploadMany(fleet_id, messages, options);
+  }
+  // Checked and rated here one by one, as Upload does; the first refused
+  // ends the call (the rest ABORTED, as FleetMemory::UploadMany).
+  size_t admitted = 0;
+  absl::Status refused;
+  for (; admitted < messages.size(); ++admitted) {
+    refused =
+        engine::AdmitShape(engine_->quota(), fleet_id, messages[admitted],
+                           &**shape, engine_->options().max_traces_per_upload);
+    if (refused.ok() && !options.forwarded) {
+      refused = rates_.AdmitRates(fleet_id, messages[admitted]);
+    }
+    if (!refused.ok()) break;
+  }
+  std::vector<absl::StatusOr<transport::Uploaded>> results;
+  if (admitted > 0) results = Write(fleet_id, messages.first(admitted));
+  if (admitted < messages.size()) results.push_back(refused);
+  while (results.size() < messages.size()) {
+    results.push_back(absl::AbortedError(
+        "not stored: an upload before it in the same call was refused"));
+  }
+  return results;
+}
+
+std::vector<absl::StatusOr<transport::Uploaded>> ReplicatedMemory::Write(
+    std::string_view fleet_id,
+    std::span<const std::span<const core::MemoryTrace>> messages) {
   const std::optional<uint64_t> position =
       node_.materialiser().Position(fleet_id);
-  if (!position.has_value()) {
-    return absl::UnavailableError(absl::StrCat(
-        "fleet \"", V(fleet_id), "\" is not owned by \"", self_,
-        "\" any more (ownership moved); nothing of this upload was stored: "
-        "retry"));
+  absl::Status owned = position.has_value()
+                           ? writes_->Own(fleet_id, *position)
+                           : absl::FailedPreconditionError(absl::StrCat(
+                                 "not owned by \"", self_, "\" any more"));
+  if (!owned.ok()) {
+    // Lost meanwhile, or its log cannot be read back: another replica or a
+    // retry writes it.
+    return std::vector<absl::StatusOr<transport::Uploaded>>(
+        messages.size(),
+        absl::UnavailableError(absl::StrCat(
+            "fleet \"", V(fleet_id), "\": ", owned.message(),
+            " (ownership moved); nothing of this upload was stored: retry")));
   }
-  // The write path begins with this ownership (the log's unapplied tail
-  // read back once), and learns how far the owner has applied.
-  if (absl::Status owned = writes_->Own(fleet_id, *position); !owned.ok()) {
-    return absl::UnavailableError(
-        absl::StrCat("fleet \"", V(fleet_id), "\": ", owned.message(),
-                     "; nothing of this upload was stored: retry"));
-  }
+  // The write path began with this ownership (the log's unapplied tail
+  // read back once); it learns how far the owner has applied.
   writes_->Applied(fleet_id, *position);
-  absl::StatusOr<engine::Appended> appended = writes_->Append(fleet_id, traces);
-  FLEETMEM_LOG(kDebug) << "cluster: fleet \"" << fleet_id << "\": upload of "
-                       << traces.size() << " traces (robot \""
-                       << traces.front().robot_id << "\", seq "
-                       << traces.front().seq << "..) "
-                       << (appended.ok()
-                               ? absl::StrCat("accepted ", appended->accepted,
-                                              ", duplicates ",
-                                              appended->duplicates, ", entry ",
-                                              appended->sequence)
-                               : appended.status().ToString());
-  if (!appended.ok()) return appended.status();
-  transport::Uploaded uploaded;
-  uploaded.result.accepted = appended->accepted;
-  uploaded.result.duplicates = appended->duplicates;
-  uploaded.sequence = appended->sequence;
-  return uploaded;
+  std::vector<absl::StatusOr<engine::Appended>> appended =
+      writes_->AppendMany(fleet_id, messages);
+  std::vector<absl::StatusOr<transport::Uploaded>> results;
+  for (size_t i = 0; i < messages.size(); ++i) {
+    FLEETMEM_LOG(kDebug) << "cluster: fleet \"" << fleet_id << "\": upload of "
+                         << messages[i].size() << " traces (robot \""
+                         << (messages[i].empty() ? "" : messages[i][0].robot_id)
+                         << "\", seq "
+                         << (messages[i].empty() ? 0 : messages[i][0].seq)
+                         << "..) "
+                         << (appended[i].ok()
+                                 ? absl::StrCat(
+                                       "accepted ", appended[i]->accepted,
+                                       ", duplicates ", appended[i]->duplicates,
+                                       ", entry ", appended[i]->sequence)
+                                 : appended[i].status().ToString());
+    if (!appended[i].ok()) {
+      results.push_back(appended[i].status());
+      continue;
+    }
+    transport::Uploaded uploaded;
+    uploaded.result.accepted = appended[i]->accepted;
+    uploaded.result.duplicates = appended[i]->duplicates;
+    uploaded.sequence = appended[i]->sequence;
+    results.push_back(uploaded);
+  }
+  return results;
 }
 
 absl::StatusOr<transport::Uploaded> ReplicatedMemory::ForwardUpload(

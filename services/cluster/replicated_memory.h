@@ -71,6 +71,14 @@ class ReplicatedMemory final : public transport::FleetMemory {
   absl::StatusOr<transport::Uploaded> Upload(
       std::string_view fleet_id, std::span<const core::MemoryTrace> traces,
       const transport::UploadOptions& options) override;
+  // At the fleet's owner, a stream's waiting messages are checked and rated
+  // one by one (the first refused ends the call: the rest ABORTED), then
+  // written in one group commit of its write path; elsewhere Upload one
+  // after another (FleetMemory::UploadMany).
+  std::vector<absl::StatusOr<transport::Uploaded>> UploadMany(
+      std::string_view fleet_id,
+      std::span<const std::span<const core::MemoryTrace>> messages,
+      const transport::UploadOptions& options) override;
   // Entries of the fleet's log not applied yet, for a fleet owned here (one
   // call to NATS); zeros for the others.
   engine::Backlog Backlog(std::string_view fleet_id) override;
@@ -131,9 +139,11 @@ class ReplicatedMemory final : public transport::FleetMemory {
   // FAILED_PRECONDITION: another upload created the fleet meanwhile.
   absl::StatusOr<transport::Uploaded> Create(
       std::string_view fleet_id, std::span<const core::MemoryTrace> traces);
-  // An upload to a fleet owned here, through the write path.
-  absl::StatusOr<transport::Uploaded> Write(
-      std::string_view fleet_id, std::span<const core::MemoryTrace> traces);
+  // Uploads to a fleet owned here, through the write path (one group
+  // commit): one result each.
+  std::vector<absl::StatusOr<transport::Uploaded>> Write(
+      std::string_view fleet_id,
+      std::span<const std::span<const core::MemoryTrace>> messages);
   // Forwards an upload to the fleet's owner, `holder` (as TakeIfFree read
   // it; empty: looked up) (once: a forwarded upload that meets no owner
   // here is UNAVAILABLE).

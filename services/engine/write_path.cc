@@ -656,7 +656,14 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
     group.created = true;
   }
   request.result = Appended{accepted, traces.size() - accepted, 0, nullptr};
-  if (accepted == 0) return;
+  if (accepted > 0) Stage(group, request, accept, accepted, trial);
+}
+
+void WritePath::Stage(
+    Group& group, Request& request, const std::vector<bool>& accept,
+    uint64_t accepted,
+    absl::flat_hash_map<std::string_view, core::SeqSet>& trial) {
+  const std::span<const core::MemoryTrace> traces = request.traces;
   if (accepted == traces.size()) {
     request.accepted = traces;
   } else {

@@ -288,6 +288,12 @@ class WritePath {
   // Admits one upload of a group (engine/admission.h, and de-duplication
   // by (robot, seq)): its result, and its entry in `group` if it adds any.
   void Admit(FleetWrites& log, Group& group, Request& request);
+  // Adds an admitted upload's new traces (`accept`, `accepted` of them) to
+  // `group`'s appends: one entry, or a replicated log's pieces (a cut that
+  // fails refuses the upload); its robots' seqs as `trial` leaves them.
+  void Stage(Group& group, Request& request, const std::vector<bool>& accept,
+             uint64_t accepted,
+             absl::flat_hash_map<std::string_view, core::SeqSet>& trial);
   // The robot's seqs as `group` leaves them: admitted before, or received
   // by the engine and found in the log's tail at Open.
   const core::SeqSet& SeqsOf(FleetWrites& log, Group& group,
