@@ -1,5 +1,6 @@
-// The write path of embedded mode: a fleet's uploads are acknowledged at the
-// durable append to its ingest log, and applied behind it.
+// The write path (embedded mode's whole, distributed mode's owner's writing
+// half): a fleet's uploads are acknowledged at the durable append to its
+// log, and applied behind it.
 //
 // Append admits an upload (validated once against the fleet's shape,
 // deduplicated by (robot_id, seq) against everything the fleet received or
