@@ -256,9 +256,10 @@ TEST_F(NatsFleetLogTest, AGroupThatCannotBeAppendedSaysWhatTheLogHolds) {
   ASSERT_NE(log, nullptr);
   ASSERT_TRUE(AppendCall(*log, "g", "r:0", "0").ok());  // its stream
   nats_->Kill();
+  const std::vector<std::string> ids = {"r:1", "r:2", "r:3"};
   std::vector<engine::LogAppend> appends;
-  for (int i = 1; i <= 3; ++i) {
-    appends.push_back({engine::ConsolidateRecord{}, absl::StrCat("r:", i)});
+  for (const std::string& id : ids) {
+    appends.push_back({engine::ConsolidateRecord{}, id});
   }
   absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
       log->Append("g", appends, {});
