@@ -68,7 +68,10 @@ ClusterNodeOptions ReplicatedMemory::WithCallsThroughTheWritePath(
         node_.materialiser().Position(fleet_id);
     if (position.has_value()) {
       if (absl::Status owned = writes_->Own(fleet_id, *position); !owned.ok()) {
-        return owned;
+        // Not FAILED_PRECONDITION, which says "not the owner" to the caller.
+        return absl::UnavailableError(
+            absl::StrCat("fleet \"", V(fleet_id), "\": ", owned.message(),
+                         "; the call was not logged: retry"));
       }
     }
     absl::StatusOr<engine::Appended> appended =
