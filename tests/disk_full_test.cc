@@ -412,6 +412,17 @@ TEST(DiskFullTest, AnOutsideWriterFillingTheDiskDuringUploads) {
           }
         }
       });
+      // The fleet exists before the disk fills (its first upload is
+      // acknowledged: under a sanitizer the server may take longer than the
+      // wait below to answer it, and a fleet never acknowledged rightly does
+      // not exist after the restart).
+      const auto started = std::chrono::steady_clock::now();
+      while (successes.load() == 0 &&
+             std::chrono::steady_clock::now() - started <
+                 std::chrono::seconds(30)) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(5));
+      }
+      EXPECT_GT(successes.load(), 0u) << server->Output();
       std::this_thread::sleep_for(std::chrono::milliseconds(
           std::uniform_int_distribution<int>(50, 600)(rng)));
       const std::string filler = mount_point + "/filler";

@@ -65,8 +65,9 @@ upload_fleet() { # upload_fleet FLEET ROBOTS PER_ROBOT
 
 case "$MODE" in
 rest)
-  # Index snapshots every second, of any fleet: the pause metric is served.
-  printf 'index_snapshot_interval_seconds: 1\nindex_snapshot_min_codes: 0\n' \
+  # Index snapshots every second, of any fleet: the pause metric is served;
+  # retention every second too (fleet beta, below).
+  printf 'index_snapshot_interval_seconds: 1\nindex_snapshot_min_codes: 0\nretention_interval_seconds: 1\n' \
     > "$WORK/snapshots.textproto"
   serve main "$WORK/data" --config "$WORK/snapshots.textproto"
   upload_fleet alpha 6 150   # 6 x 20 clusters > K_max = 100: forgetting runs
@@ -94,6 +95,41 @@ rest)
   check "sample is 200" [ "$(http_code POST /v1/fleets/alpha/sample '{"robotId":"robot-1","count":4}')" = 200 ]
   check "sample returns 4 traces" /usr/bin/python3 -c 'import json; assert len(json.load(open("'"$WORK/body"'"))["traces"])==4'
   check "consolidate is 200" [ "$(http_code POST /v1/fleets/alpha/consolidate '{}')" = 200 ]
+  # A fleet with its own settings, over REST: made, changed, read; its
+  # traces fetched by key, re-scored and deleted; its retention run by the
+  # server (every second here) through the fleet's log.
+  check "create a fleet is 200" [ "$(http_code POST /v1/fleets '{"fleetId":"beta","settings":{"codeDimension":32,"encoderVersion":"v1","maxClusters":5,"maxTracesPerRobot":20}}')" = 200 ]
+  check "creating it again is 409" [ "$(http_code POST /v1/fleets '{"fleetId":"beta","settings":{"codeDimension":32}}')" = 409 ]
+  cli gen-traces --robots 2 --per-robot 60 --dim 32 --out "$WORK/beta.jsonl" > /dev/null
+  cli upload --fleet beta --file "$WORK/beta.jsonl" > /dev/null
+  check "settings update is 200" [ "$(http_code POST /v1/fleets/beta/settings '{"settings":{"maxClusters":4}}')" = 200 ]
+  check "get a fleet is 200" [ "$(http_code GET /v1/fleets/beta)" = 200 ]
+  check "its settings are its own" /usr/bin/python3 -c 'import json; f=json.load(open("'"$WORK/body"'"))["fleet"]; assert f["ownSettings"] and f["settings"]["maxClusters"]==4, f'
+  check "batch get is 200" [ "$(http_code POST '/v1/fleets/beta/traces:batchGet' '{"keys":[{"robotId":"robot-1","seq":"60"},{"robotId":"nobody","seq":"1"}]}')" = 200 ]
+  check "batch get finds one and misses one" /usr/bin/python3 -c 'import json; b=json.load(open("'"$WORK/body"'")); assert len(b["traces"])==1 and b["missing"][0]["robotId"]=="nobody", b'
+  check "update rewards is 200" [ "$(http_code POST '/v1/fleets/beta/traces:updateRewards' '{"updates":[{"robotId":"robot-1","seq":"60","rewardExternal":3}]}')" = 200 ]
+  check "delete traces is 200" [ "$(http_code POST '/v1/fleets/beta/traces:delete' '{"robotId":"robot-2"}')" = 200 ]
+  check "a delete of nothing named is 400" [ "$(http_code POST '/v1/fleets/beta/traces:delete' '{}')" = 400 ]
+  held_by() { # held_by ROBOT: its traces in fleet beta (0 if none)
+    http_code GET /v1/fleets/beta/stats > /dev/null
+    /usr/bin/python3 -c 'import json,sys; s=json.load(open(sys.argv[1])); print(sum(int(r.get("traces",0))+int(r.get("pendingTraces",0)) for r in s.get("robots",[]) if r["robotId"]==sys.argv[2]))' "$WORK/body" "$1"
+  }
+  check "robot-2's traces are gone" [ "$(held_by robot-2)" = 0 ]
+  for _ in $(seq 1 100); do
+    [ "$(held_by robot-1)" -le 20 ] && break
+    sleep 0.1
+  done
+  check "retention keeps robot-1's newest 20" [ "$(held_by robot-1)" = 20 ]
+  # Aliases over REST: made, read through, switched, listed, removed.
+  check "create an alias is 200" [ "$(http_code POST /v1/aliases '{"alias":"live","fleetId":"beta"}')" = 200 ]
+  check "an alias with a fleet's name is 409" [ "$(http_code POST /v1/aliases '{"alias":"alpha","fleetId":"beta"}')" = 409 ]
+  check "stats through the alias are 200" [ "$(http_code GET /v1/fleets/live/stats)" = 200 ]
+  check "they are beta's" /usr/bin/python3 -c 'import json; s=json.load(open("'"$WORK/body"'")); assert s["codeDimension"]==32 and any(r["robotId"]=="robot-1" for r in s["robots"]), s'
+  check "switch the alias is 200" [ "$(http_code POST /v1/aliases/live/switch '{"fleetId":"alpha"}')" = 200 ]
+  check "it names alpha" [ "$(http_code GET /v1/aliases)" = 200 ]
+  check "the listing says so" /usr/bin/python3 -c 'import json; a=json.load(open("'"$WORK/body"'"))["aliases"]; assert a==[{"alias":"live","fleetId":"alpha"}], a'
+  check "delete the alias is 200" [ "$(http_code POST /v1/aliases/live/delete '{}')" = 200 ]
+  check "the alias is gone (404)" [ "$(http_code GET /v1/fleets/live/stats)" = 404 ]
   check "bad JSON is 400" [ "$(http_code POST /v1/fleets/alpha/query '{"code": [1,')" = 400 ]
   check "unknown field is 400 naming it" [ "$(http_code POST /v1/fleets/alpha/query '{"codes": [1]}')" = 400 ]
   grep -q codes "$WORK/body" || fail "the message does not name the field: $(cat "$WORK/body")"
@@ -218,6 +254,7 @@ dashboard)
   command -v chromium > /dev/null || fail "chromium is not installed (make deps)"
   serve main "$WORK/data"
   upload_fleet dashfleet 3 300
+  cli create-alias --alias dashalias --fleet dashfleet > /dev/null
   ARTIFACTS=$BUILD/test-artifacts
   mkdir -p "$ARTIFACTS"
   browse() {
@@ -228,6 +265,9 @@ dashboard)
   browse --dump-dom > "$WORK/dom.html"
   browse --screenshot="$ARTIFACTS/dashboard.png" > /dev/null
   check "the DOM shows the fleet" grep -q 'data-fleet="dashfleet"' "$WORK/dom.html"
+  check "the DOM shows its alias" grep -q 'data-aliases="dashalias"' "$WORK/dom.html"
+  check "the fleet's deletion waits for its typed id" \
+    grep -q 'id="delete-button" type="button" disabled' "$WORK/dom.html"
   for r in 1 2 3; do
     check "the DOM shows robot-$r" grep -q "data-robot=\"robot-$r\"" "$WORK/dom.html"
   done

@@ -80,6 +80,97 @@ TEST_F(LimitsTest, QuotasRefuseNameTheLimitAndAreCounted) {
             grpc::StatusCode::NOT_FOUND);
 }
 
+// With auto_create_fleets off, an upload to a fleet that does not exist is
+// refused (NOT_FOUND, nothing stored) until CreateFleet makes it; the
+// fleet then takes its uploads, and a second CreateFleet is ALREADY_EXISTS.
+TEST_F(LimitsTest, FleetsMadeByCreateFleetOnly) {
+  ASSERT_NO_FATAL_FAILURE(Start("limits { auto_create_fleets: false }\n"));
+  TraceSpec spec{.robot_id = "r1", .count = 30, .dimension = 8};
+  Reply<v1::UploadTracesResponse> refused =
+      UploadTraces(*stub_, kFleet, MakeTraces(spec));
+  EXPECT_EQ(refused.status.error_code(), grpc::StatusCode::NOT_FOUND)
+      << Describe(refused.status);
+  EXPECT_TRUE(
+      absl::StrContains(refused.status.error_message(), "auto_create_fleets"));
+  EXPECT_EQ(GetStats(*stub_, kFleet).status.error_code(),
+            grpc::StatusCode::NOT_FOUND);
+  v1::CreateFleetRequest create;
+  create.set_fleet_id(kFleet);
+  create.mutable_settings()->set_code_dimension(8);
+  create.mutable_settings()->set_encoder_version(
+      MakeTraces(spec)[0].encoder_version());
+  create.mutable_settings()->set_max_clusters(3);
+  v1::CreateFleetResponse made;
+  auto context = MakeContext();
+  ASSERT_TRUE(stub_->CreateFleet(context.get(), create, &made).ok());
+  EXPECT_EQ(made.settings().max_clusters(), 3u);
+  context = MakeContext();
+  EXPECT_EQ(stub_->CreateFleet(context.get(), create, &made).error_code(),
+            grpc::StatusCode::ALREADY_EXISTS);
+  Reply<v1::UploadTracesResponse> accepted =
+      UploadTraces(*stub_, kFleet, MakeTraces(spec));
+  ASSERT_TRUE(accepted.ok()) << Describe(accepted.status);
+  EXPECT_EQ(accepted.response.accepted(), 30u);
+  // Its settings survive a restart (they are the fleet's, stored).
+  absl::StatusOr<int> stopped = server_->Stop();
+  ASSERT_TRUE(stopped.ok() && *stopped == 0);
+  ASSERT_TRUE(server_->Start().ok());
+  stub_ = MakeStub(server_->address());
+  v1::GetFleetRequest get;
+  get.set_fleet_id(kFleet);
+  v1::GetFleetResponse got;
+  context = MakeContext();
+  ASSERT_TRUE(stub_->GetFleet(context.get(), get, &got).ok());
+  EXPECT_TRUE(got.fleet().own_settings());
+  EXPECT_EQ(got.fleet().settings().max_clusters(), 3u);
+  EXPECT_EQ(got.fleet().pending_traces() + got.fleet().traces(), 30u);
+}
+
+// A fleet's retention is enforced by the server's periodic task, through
+// the fleet's log: each robot keeps its newest max_traces_per_robot, the
+// watch reports the deletes, and the metric counts them.
+TEST_F(LimitsTest, RetentionKeepsEachRobotsNewest) {
+  ASSERT_NO_FATAL_FAILURE(Start("retention_interval_seconds: 1\n"));
+  TraceSpec spec{.robot_id = "r1", .count = 120, .dimension = 8};
+  ASSERT_TRUE(UploadTraces(*stub_, kFleet, MakeTraces(spec)).ok());
+  v1::UpdateFleetRequest update;
+  update.set_fleet_id(kFleet);
+  update.mutable_settings()->set_max_traces_per_robot(25);
+  v1::UpdateFleetResponse updated;
+  auto context = MakeContext();
+  ASSERT_TRUE(stub_->UpdateFleet(context.get(), update, &updated).ok());
+  EXPECT_EQ(updated.settings().max_traces_per_robot(), 25u);
+  Reply<v1::GetStatsResponse> stats = GetStats(*stub_, kFleet);
+  for (const auto give_up =
+           std::chrono::steady_clock::now() + std::chrono::seconds(20);
+       stats.ok() &&
+       stats.response.traces() + stats.response.pending_traces() > 25 &&
+       std::chrono::steady_clock::now() < give_up;) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    stats = GetStats(*stub_, kFleet);
+  }
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(), 25u);
+  Reply<std::vector<v1::MemoryEvent>> events =
+      ReadEvents(*stub_, kFleet, 0, stats.response.last_event_id());
+  ASSERT_TRUE(events.ok());
+  ASSERT_FALSE(events.response.empty());
+  EXPECT_EQ(events.response.back().type(), v1::MemoryEvent::TRACES_DELETED);
+  // The newest 25 seqs are the ones left.
+  v1::GetTracesRequest get;
+  get.set_fleet_id(kFleet);
+  for (uint64_t seq = 90; seq <= 120; ++seq) {
+    v1::TraceKey* key = get.add_keys();
+    key->set_robot_id("r1");
+    key->set_seq(seq);
+  }
+  v1::GetTracesResponse got;
+  context = MakeContext();
+  ASSERT_TRUE(stub_->GetTraces(context.get(), get, &got).ok());
+  ASSERT_EQ(got.traces_size(), 25);
+  EXPECT_EQ(got.traces(0).seq(), 96u);
+}
+
 TEST_F(LimitsTest, StreamsPerClient) {
   ASSERT_NO_FATAL_FAILURE(Start("limits { max_streams_per_client: 2 }\n"));
   TraceSpec spec{.robot_id = "r1", .count = 50, .dimension = 8};

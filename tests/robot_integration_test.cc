@@ -14,6 +14,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <random>
 #include <sstream>
 #include <string>
@@ -24,6 +25,8 @@
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/metric_head.h"
 #include "clients/robot/memory/robot_state.pb.h"
+#include "clients/robot/sensing/encoder_factory.h"
+#include "clients/robot/sensing/observation_source.h"
 #include "fleetmem_paths.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"
@@ -36,6 +39,7 @@ namespace fleetmem::testing {
 namespace {
 
 using ::testing::HasSubstr;
+using ::testing::Not;
 using Clock = std::chrono::steady_clock;
 
 const std::string kData = FLEETMEM_DATA_DIR;
@@ -523,6 +527,138 @@ TEST_F(RobotIntegrationTest, ARobotLearnsAMetricHeadOnTheFleetCode) {
   EXPECT_THAT(ReadFileOrEmpty(dir_.Join("metric2.log")),
               HasSubstr("the robot's learned head"));
   EXPECT_EQ(Stats("f-metric", "m1").received(), 250u);
+}
+
+// The robot's own traces of a fleet, by seq, as GetTraces finds them.
+std::map<uint64_t, v1::MemoryTrace> TracesOf(v1::MemoryService::Stub& stub,
+                                             const std::string& fleet,
+                                             const std::string& robot,
+                                             uint64_t last_seq) {
+  v1::GetTracesRequest asked;
+  asked.set_fleet_id(fleet);
+  for (uint64_t seq = 1; seq <= last_seq; ++seq) {
+    v1::TraceKey* key = asked.add_keys();
+    key->set_robot_id(robot);
+    key->set_seq(seq);
+  }
+  v1::GetTracesResponse got;
+  const grpc::Status read = stub.GetTraces(MakeContext().get(), asked, &got);
+  EXPECT_TRUE(read.ok()) << Describe(read);
+  std::map<uint64_t, v1::MemoryTrace> by_seq;
+  for (const v1::MemoryTrace& t : got.traces()) by_seq[t.seq()] = t;
+  return by_seq;
+}
+
+// Issue 46's encoder migration, the robot's part: a robot that learned and
+// re-scored on fleet mig-v1 (HOG codes) moves to mig-v2 (patch codes) with
+// --migrate-from: what mig-v1 still holds of its traces arrives in mig-v2
+// under the same seqs, re-encoded from its frames with R_ex kept; what an
+// operator deleted from mig-v1 stays gone; the robot then goes on in
+// mig-v2, also when killed once along the way; a further --migrate-from
+// has nothing to do.
+TEST_F(RobotIntegrationTest, ARobotMigratesItsTracesToANewEncodersFleet) {
+  std::vector<std::string> args =
+      RobotArgs("mig-v1", "m1", kSummer, 300, 0.0, dir_.Join("m1"));
+  args.insert(args.end(), {"--learn", "--rescore"});
+  RobotProcess first(args, dir_.Join("mig1.log"));
+  ASSERT_NO_FATAL_FAILURE(first.Start());
+  ASSERT_EQ(first.Wait(), 0) << ReadFileOrEmpty(dir_.Join("mig1.log"));
+  // Re-scored after segments 2 and 3 (its segment-1 and -2 traces under the
+  // head it had then); how many the fleet held at that moment depends on
+  // the uploader's pace, so the request is what is checked.
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("mig1.log")),
+              HasSubstr("remembered traces under the new head"));
+  EXPECT_EQ(Stats("mig-v1", "m1").received(), 300u);
+
+  std::unique_ptr<v1::MemoryService::Stub> stub = MakeStub(Address());
+  v1::DeleteTracesRequest remove;
+  remove.set_fleet_id("mig-v1");
+  remove.set_robot_id("m1");
+  remove.set_seq_first(1);
+  remove.set_seq_last(20);
+  v1::DeleteTracesResponse removed;
+  grpc::Status status =
+      stub->DeleteTraces(MakeContext().get(), remove, &removed);
+  ASSERT_TRUE(status.ok()) << Describe(status);
+  const std::map<uint64_t, v1::MemoryTrace> old =
+      TracesOf(*stub, "mig-v1", "m1", 300);
+  ASSERT_GT(old.size(), 200u);
+  EXPECT_FALSE(old.contains(20));
+
+  absl::StatusOr<std::unique_ptr<robot::ObservationSource>> source =
+      robot::OpenSource(kSummer);
+  ASSERT_TRUE(source.ok()) << source.status();
+  absl::StatusOr<std::unique_ptr<robot::Encoder>> patch =
+      robot::NewEncoderByName("patchnorm-32x16-p8");
+  ASSERT_TRUE(patch.ok()) << patch.status();
+  v1::CreateFleetRequest create;
+  create.set_fleet_id("mig-v2");
+  create.mutable_settings()->set_code_dimension(
+      uint32_t((*patch)->dimension()));
+  create.mutable_settings()->set_encoder_version((*patch)->version());
+  v1::CreateFleetResponse made;
+  status = stub->CreateFleet(MakeContext().get(), create, &made);
+  ASSERT_TRUE(status.ok()) << Describe(status);
+
+  std::vector<std::string> moved =
+      RobotArgs("mig-v2", "m1", kSummer, 350, 0.0, dir_.Join("m1"));
+  moved.insert(moved.end(), {"--migrate-from", "mig-v1", "--encoder",
+                             "patchnorm-32x16-p8", "--learn"});
+  // Killed once at a random moment after the migration began (in it, or
+  // in the observing that follows), then run to the end: the same result.
+  RobotProcess killed(moved, dir_.Join("mig2.log"));
+  ASSERT_NO_FATAL_FAILURE(killed.Start());
+  for (const auto give_up = Clock::now() + std::chrono::seconds(60);
+       ReadFileOrEmpty(dir_.Join("mig2.log")).find("migrating from") ==
+           std::string::npos &&
+       Clock::now() < give_up;) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  std::mt19937 random(std::random_device{}());
+  std::this_thread::sleep_for(std::chrono::milliseconds(
+      std::uniform_int_distribution<int>(0, 400)(random)));
+  killed.Kill();
+  RobotProcess second(moved, dir_.Join("mig2.log"));
+  ASSERT_NO_FATAL_FAILURE(second.Start());
+  ASSERT_EQ(second.Wait(), 0) << ReadFileOrEmpty(dir_.Join("mig2.log"));
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("mig2.log")),
+              HasSubstr(absl::StrCat("migrated to fleet mig-v2: ", old.size(),
+                                     " traces re-encoded")));
+  EXPECT_EQ(Stats("mig-v2", "m1").received(), old.size() + 50);
+  const std::map<uint64_t, v1::MemoryTrace> now =
+      TracesOf(*stub, "mig-v2", "m1", 350);
+  for (const auto& [seq, before] : old) {
+    ASSERT_TRUE(now.contains(seq)) << "seq " << seq;
+    const v1::MemoryTrace& after = now.at(seq);
+    EXPECT_EQ(after.encoder_version(), (*patch)->version());
+    EXPECT_FLOAT_EQ(after.reward_external(), before.reward_external());
+    EXPECT_EQ(after.pose().x(), before.pose().x());
+    EXPECT_EQ(after.timestamp_ns(), before.timestamp_ns());
+  }
+  for (uint64_t seq = 1; seq <= 300; ++seq) {
+    EXPECT_EQ(now.contains(seq), old.contains(seq)) << "seq " << seq;
+  }
+  for (uint64_t seq = 301; seq <= 350; ++seq) EXPECT_TRUE(now.contains(seq));
+  // Seq 100 is observation 99 (the robot started at 0): its new code is
+  // the patch code of that frame.
+  absl::StatusOr<robot::Observation> frame = (*source)->Read(99);
+  ASSERT_TRUE(frame.ok());
+  absl::StatusOr<std::vector<float>> code = (*patch)->Encode(*frame);
+  ASSERT_TRUE(code.ok());
+  ASSERT_EQ(now.at(100).code_size(), int(code->size()));
+  for (size_t c = 0; c < code->size(); ++c) {
+    EXPECT_FLOAT_EQ(now.at(100).code(int(c)), (*code)[c]);
+  }
+  EXPECT_EQ(ReadStatus(dir_.Join("m1")).fleet_id(), "mig-v2");
+  EXPECT_TRUE(
+      std::filesystem::exists(dir_.Join("m1") + "/metric-head.bin.mig-v1.old"));
+
+  RobotProcess third(moved, dir_.Join("mig3.log"));
+  ASSERT_NO_FATAL_FAILURE(third.Start());
+  ASSERT_EQ(third.Wait(), 0) << ReadFileOrEmpty(dir_.Join("mig3.log"));
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("mig3.log")),
+              Not(HasSubstr("migrated to fleet")));
+  EXPECT_EQ(Stats("mig-v2", "m1").received(), old.size() + 50);
 }
 
 TEST_F(RobotIntegrationTest, BadSourcesGiveAClearMessage) {

@@ -9,6 +9,7 @@
 #include <iostream>
 #include <map>
 #include <mutex>
+#include <random>
 #include <string>
 #include <thread>
 #include <vector>
@@ -290,6 +291,158 @@ TEST_F(RestartTest, KilledServerRestartsFromItsPeriodicIndexSnapshot) {
     ExpectSameMessage(before.queries[i], after.queries[i],
                       "QueryPlace " + std::to_string(i));
   }
+}
+
+// A robot's traces left after a delete of them, as stored: every one, or
+// none. The server is killed at a random moment of 20 deletes (before the
+// call is logged, between its log entry and its apply, or after); after
+// the restart each robot's traces are all there or all gone, and a delete
+// the server answered is never undone.
+TEST_F(RestartTest, ADeleteKilledAtAnyMomentIsAllOrNothing) {
+  const std::string fleet = "fleet-deletes";
+  constexpr int kTrials = 20;
+  constexpr size_t kPerRobot = 250;  // a consolidated segment and pending
+  for (int r = 0; r < kTrials; ++r) {
+    const RobotPlan plan{"robot-" + std::to_string(r), kPerRobot};
+    Reply<v1::UploadTracesResponse> reply =
+        UploadTraces(stub(), fleet, MakeTraces(SpecOf(plan)), /*batch=*/250);
+    ASSERT_TRUE(reply.ok()) << Describe(reply.status);
+  }
+  Reply<v1::GetStatsResponse> filled = GetStatsApplied(stub(), fleet);
+  ASSERT_TRUE(filled.ok()) << Describe(filled.status);
+  // What each robot holds (forgetting merged and downsampled some).
+  std::vector<uint64_t> held_before(kTrials);
+  for (int r = 0; r < kTrials; ++r) {
+    const v1::RobotStats* robot =
+        FindRobot(filled.response, "robot-" + std::to_string(r));
+    ASSERT_NE(robot, nullptr);
+    held_before[r] = robot->traces() + robot->pending_traces();
+    ASSERT_GT(held_before[r], 0u);
+  }
+  std::mt19937 rng(2026);
+  int answered = 0, undone = 0, partial = 0, applied = 0;
+  for (int trial = 0; trial < kTrials; ++trial) {
+    const std::string robot = "robot-" + std::to_string(trial);
+    std::atomic<bool> acknowledged{false};
+    std::thread deleter([&] {
+      v1::DeleteTracesRequest request;
+      request.set_fleet_id(fleet);
+      request.set_robot_id(robot);
+      v1::DeleteTracesResponse response;
+      auto context = MakeContext();
+      if (MakeStub(server().address())
+              ->DeleteTraces(context.get(), request, &response)
+              .ok()) {
+        acknowledged = response.deleted() == held_before[trial];
+      }
+    });
+    // 0 to 20 ms after the call is sent (a delete is answered after 10-15 ms
+    // here): before it is logged, between its
+    // log entry and its apply, or after its answer.
+    std::this_thread::sleep_for(std::chrono::microseconds(
+        std::uniform_int_distribution<int>(0, 20000)(rng)));
+    ASSERT_NO_FATAL_FAILURE(KillAndRestart());
+    deleter.join();
+    Reply<v1::GetStatsResponse> stats = GetStatsApplied(stub(), fleet);
+    ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+    for (int r = 0; r <= trial; ++r) {
+      const v1::RobotStats* left =
+          FindRobot(stats.response, "robot-" + std::to_string(r));
+      ASSERT_NE(left, nullptr);
+      const uint64_t held = left->traces() + left->pending_traces();
+      if (held != 0 && held != held_before[r]) ++partial;
+      if (r < trial) EXPECT_EQ(held, 0u) << "robot-" << r;
+      if (r != trial) continue;
+      answered += acknowledged ? 1 : 0;
+      applied += held == 0 ? 1 : 0;
+      if (acknowledged && held != 0) ++undone;
+      EXPECT_TRUE(held == 0 || held == held_before[r])
+          << robot << ": " << held << " of " << held_before[r] << " left";
+    }
+    // Whatever the kill left, the robot's traces go now (a retry).
+    v1::DeleteTracesRequest retry;
+    retry.set_fleet_id(fleet);
+    retry.set_robot_id(robot);
+    v1::DeleteTracesResponse response;
+    auto context = MakeContext();
+    ASSERT_TRUE(stub().DeleteTraces(context.get(), retry, &response).ok());
+  }
+  EXPECT_EQ(partial, 0);
+  EXPECT_EQ(undone, 0) << "a delete the server answered was undone";
+  std::cout << "deletes killed: " << kTrials << ", answered before the kill "
+            << answered << ", applied after the restart " << applied
+            << ", partial " << partial << "\n";
+  // Every robot's traces were deleted: the fleet holds none.
+  Reply<v1::GetStatsResponse> stats = GetStatsApplied(stub(), fleet);
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(stats.response.traces() + stats.response.pending_traces(), 0u);
+}
+
+// DeleteFleet killed at any moment: after the restart the fleet is whole
+// or gone, never half; gone if the server answered the delete.
+TEST_F(RestartTest, ADeleteFleetKilledAtAnyMomentIsAllOrNothing) {
+  constexpr int kTrials = 10;
+  std::mt19937 rng(2027);
+  int answered = 0, gone = 0, partial = 0, undone = 0;
+  for (int trial = 0; trial < kTrials; ++trial) {
+    const std::string fleet = "gone-" + std::to_string(trial);
+    for (const RobotPlan& plan :
+         {RobotPlan{"robot-a", 250}, RobotPlan{"robot-b", 250}}) {
+      ASSERT_TRUE(UploadTraces(stub(), fleet, MakeTraces(SpecOf(plan))).ok());
+    }
+    Reply<v1::GetStatsResponse> filled = GetStatsApplied(stub(), fleet);
+    ASSERT_TRUE(filled.ok()) << Describe(filled.status);
+    const uint64_t held_before =
+        filled.response.traces() + filled.response.pending_traces();
+    std::atomic<bool> acknowledged{false};
+    std::thread deleter([&] {
+      v1::DeleteFleetRequest request;
+      request.set_fleet_id(fleet);
+      v1::DeleteFleetResponse response;
+      auto context = MakeContext();
+      if (MakeStub(server().address())
+              ->DeleteFleet(context.get(), request, &response)
+              .ok()) {
+        acknowledged = response.traces_deleted() == held_before;
+      }
+    });
+    std::this_thread::sleep_for(std::chrono::microseconds(
+        std::uniform_int_distribution<int>(0, 12000)(rng)));
+    ASSERT_NO_FATAL_FAILURE(KillAndRestart());
+    deleter.join();
+    answered += acknowledged ? 1 : 0;
+    Reply<v1::GetStatsResponse> stats = GetStatsApplied(stub(), fleet);
+    if (stats.status.error_code() == grpc::StatusCode::NOT_FOUND) {
+      ++gone;
+    } else {
+      ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+      const uint64_t held =
+          stats.response.traces() + stats.response.pending_traces();
+      if (held != held_before) ++partial;
+      if (acknowledged) ++undone;
+      EXPECT_EQ(held, held_before) << fleet;
+    }
+    // The id makes a new fleet whatever the kill left (deleted again if
+    // the delete did not happen).
+    if (stats.ok()) {
+      v1::DeleteFleetRequest again;
+      again.set_fleet_id(fleet);
+      v1::DeleteFleetResponse response;
+      ASSERT_TRUE(
+          stub().DeleteFleet(MakeContext().get(), again, &response).ok());
+    }
+    const std::vector<v1::MemoryTrace> fresh =
+        MakeTraces(SpecOf(RobotPlan{"robot-a", 5}));
+    Reply<v1::UploadTracesResponse> remade = UploadTraces(stub(), fleet, fresh);
+    ASSERT_TRUE(remade.ok()) << Describe(remade.status);
+    EXPECT_EQ(remade.response.accepted(), 5u) << fleet;
+  }
+  EXPECT_EQ(partial, 0);
+  EXPECT_EQ(undone, 0) << "a fleet deletion the server answered was undone";
+  std::cout << "fleet deletions killed: " << kTrials
+            << ", answered before the kill " << answered
+            << ", gone after the restart " << gone << ", partial " << partial
+            << "\n";
 }
 
 TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {

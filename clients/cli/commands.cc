@@ -4,12 +4,16 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <limits>
 #include <memory>
 #include <sstream>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "clients/cli/npy_writer.h"
 #include "clients/cli/printing.h"
 #include "clients/cli/synthetic_traces.h"
@@ -29,7 +33,7 @@ constexpr int kWatchMaxAttempts = 60;
 
 FlagSpec FleetFlag() { return {"fleet", "ID", "fleet id (required)"}; }
 
-// The command table (built once, never destroyed). Long (140 lines) by its
+// The command table (built once, never destroyed). Long (260 lines) by its
 // nature: one entry per command with its help text, in --help's order.
 const std::vector<Command>& CommandTable() {
   static const auto* const commands = new std::vector<Command>{
@@ -168,6 +172,131 @@ const std::vector<Command>& CommandTable() {
          {"out", "DIR", "output directory, created if missing (required)"},
          {"page-size", "N", "traces per request, 1..10000 (default 1000)"}}},
        RunExport},
+      {{"create-fleet",
+        "--fleet ID --dim D [--encoder V] [--place-unit U] [SETTINGS]",
+        "Admin: make a fleet with its own settings.",
+        "SETTINGS, each optional (the server's otherwise):\n"
+        "  --clusters-per-segment K  --max-traces-per-cluster N\n"
+        "  --max-clusters K_MAX      --replay-decay GAMMA\n"
+        "  --forgetting merge|drop   --max-age-seconds S\n"
+        "  --max-traces-per-robot N\n"
+        "  --index exact|hnsw|auto   --hnsw-m M  --hnsw-ef EF (fixed)\n"
+        "Every upload must match --dim and --encoder. ALREADY_EXISTS if the\n"
+        "fleet exists (made by create-fleet or its first upload).",
+        {FleetFlag(),
+         {"dim", "D", "code dimension (required)"},
+         {"encoder", "V", "encoder version of its codes"},
+         {"place-unit", "U", "unit of its places, e.g. m"},
+         {"clusters-per-segment", "K", "K, clusters per segment"},
+         {"max-traces-per-cluster", "N", "N_max, traces per cluster"},
+         {"max-clusters", "K_MAX", "K_max, clusters before forgetting"},
+         {"replay-decay", "GAMMA", "gamma of the replay weights, (0, 1]"},
+         {"forgetting", "RULE", "merge (default) or drop"},
+         {"max-age-seconds", "S", "retention: delete traces older than S"},
+         {"max-traces-per-robot", "N", "retention: keep N per robot"},
+         {"index", "KIND", "exact, hnsw or auto (default: the server's)"},
+         {"hnsw-m", "M", "HNSW's links per node, 2..128"},
+         {"hnsw-ef", "EF", "HNSW's search breadth, 1..10000"}}},
+       RunCreateFleet},
+      {{"fleet",
+        "--fleet ID",
+        "Show a fleet's settings and counts.",
+        "",
+        {FleetFlag()}},
+       RunFleet},
+      {{"update-fleet",
+        "--fleet ID [SETTINGS]",
+        "Admin: change a fleet's settings (those of create-fleet).",
+        "A smaller --max-clusters or --max-traces-per-cluster applies at the\n"
+        "next consolidation. The dimension, encoder and place unit are fixed\n"
+        "at creation.",
+        {FleetFlag(),
+         {"clusters-per-segment", "K", "K, clusters per segment"},
+         {"max-traces-per-cluster", "N", "N_max, traces per cluster"},
+         {"max-clusters", "K_MAX", "K_max, clusters before forgetting"},
+         {"replay-decay", "GAMMA", "gamma of the replay weights, (0, 1]"},
+         {"forgetting", "RULE", "merge or drop"},
+         {"max-age-seconds", "S", "retention: delete traces older than S"},
+         {"max-traces-per-robot", "N", "retention: keep N per robot"}}},
+       RunUpdateFleet},
+      {{"delete-fleet",
+        "--fleet ID --confirm ID",
+        "Admin: delete a fleet and everything it holds.",
+        "Its traces, clusters, robots' records, events, settings and index\n"
+        "snapshot leave the server's disk, after every upload acknowledged\n"
+        "before the call. --confirm must repeat the fleet's id. Refused while\n"
+        "an alias names the fleet. An upload to the id afterwards makes a new\n"
+        "fleet.",
+        {FleetFlag(), {"confirm", "ID", "the fleet's id again (required)"}}},
+       RunDeleteFleet},
+      {{"aliases",
+        "",
+        "List the fleet aliases (those of the fleets the caller may see).",
+        "",
+        {}},
+       RunAliases},
+      {{"create-alias",
+        "--alias NAME --fleet ID",
+        "Admin: make NAME a name of fleet ID in every call.",
+        "Every call that names a fleet accepts NAME in its place and reads\n"
+        "and writes the fleet it names when the call starts. NAME may not be\n"
+        "a fleet's id; ID must be a fleet, not an alias.",
+        {{"alias", "NAME", "the alias (required)"}, FleetFlag()}},
+       RunCreateAlias},
+      {{"switch-alias",
+        "--alias NAME --fleet ID",
+        "Admin: point an alias at another fleet, in one step.",
+        "Calls that start after the answer use the new fleet; a call or a\n"
+        "stream that started before stays on the old one. The encoder\n"
+        "migration in docs/api.md switches an alias once the new fleet holds\n"
+        "what the robots re-encoded.",
+        {{"alias", "NAME", "the alias (required)"}, FleetFlag()}},
+       RunSwitchAlias},
+      {{"delete-alias",
+        "--alias NAME",
+        "Admin: remove an alias (its fleet stays).",
+        "",
+        {{"alias", "NAME", "the alias (required)"}}},
+       RunDeleteAlias},
+      {{"delete-traces",
+        "--fleet ID (--robot ROBOT [--seq-first N] [--seq-last N] | "
+        "--domain D | --time-from NS | --time-to NS)...",
+        "Delete every trace that matches all the criteria given.",
+        "At least one criterion; --seq-first/--seq-last need --robot; times\n"
+        "are observation times in ns since the epoch, [FROM, TO). Applied\n"
+        "after every upload acknowledged before it, in one step; deleted\n"
+        "traces are never returned again, and an upload of one again counts\n"
+        "as a duplicate. An admin deletes any robot's traces, a robot only\n"
+        "its own (--robot naming itself).",
+        {FleetFlag(),
+         {"robot", "ROBOT", "one robot's traces"},
+         {"domain", "D", "traces of this domain"},
+         {"seq-first", "N", "the robot's seqs from N (inclusive)"},
+         {"seq-last", "N", "the robot's seqs up to N (inclusive)"},
+         {"time-from", "NS", "observed at or after NS"},
+         {"time-to", "NS", "observed before NS"}}},
+       RunDeleteTraces},
+      {{"update-rewards",
+        "--fleet ID --file FILE",
+        "Set R_ex and R_in of held traces (re-scoring).",
+        "FILE holds one fleetmem.v1.RewardUpdate per line in protobuf JSON,\n"
+        "e.g. {\"robotId\":\"robot-1\",\"seq\":\"7\","
+        "\"rewardExternal\":0.4,\"rewardInternal\":0.1}\n"
+        "('-' reads stdin; at most 10,000 lines). The next SampleReplay\n"
+        "draws with R = R_ex + R_in. Prints how many traces were updated and\n"
+        "which ones the fleet does not hold.",
+        {FleetFlag(),
+         {"file", "FILE",
+          "JSON Lines file of reward updates, '-' for stdin (required)"}}},
+       RunUpdateRewards},
+      {{"get-traces",
+        "--fleet ID --keys ROBOT:SEQ[,ROBOT:SEQ...]",
+        "Fetch traces by (robot, seq), with their codes (--json).",
+        "Prints the traces held, in the order named, and the keys the fleet\n"
+        "does not hold.",
+        {FleetFlag(),
+         {"keys", "LIST", "comma-separated ROBOT:SEQ keys (required)"}}},
+       RunGetTraces},
   };
   return *commands;
 }
@@ -181,22 +310,6 @@ absl::StatusOr<std::string> ReadAll(const Invocation& invocation,
   std::ifstream file(path);
   if (!file) return absl::InvalidArgumentError("cannot open " + path);
   return std::string(std::istreambuf_iterator<char>(file), {});
-}
-
-std::unique_ptr<client::Client> Connect(const Invocation& invocation) {
-  return client::Client::Create(invocation.client_options);
-}
-
-// Prints a unary response as JSON or through `print_table`.
-template <typename Response, typename PrintTable>
-int PrintResponse(const Invocation& invocation, const Response& response,
-                  PrintTable print_table) {
-  if (invocation.json) {
-    PrintJson(response, /*pretty=*/false, *invocation.out);
-  } else {
-    print_table(response, *invocation.out);
-  }
-  return kExitOk;
 }
 
 // Sets the position prior of `request` from --near/--radius.
@@ -306,19 +419,16 @@ int RunUpload(const Invocation& invocation) {
 int RunQuery(const Invocation& invocation) {
   absl::StatusOr<v1::QueryPlaceRequest> request = QueryFromFlags(invocation);
   if (!request.ok()) return UsageError(invocation, request.status());
-  absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
-      Connect(invocation)->QueryPlace(*request);
-  if (!matches.ok()) return ServerError(invocation, matches.status());
-  if (invocation.json) {
-    v1::QueryPlaceResponse response;
-    for (v1::PlaceMatch& match : *matches) {
-      *response.add_matches() = std::move(match);
-    }
-    PrintJson(response, /*pretty=*/false, *invocation.out);
-  } else {
-    PrintMatches(*matches, *invocation.out);
-  }
-  return kExitOk;
+  absl::StatusOr<v1::QueryPlaceResponse> response =
+      Connect(invocation)->Query(*request);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(
+      invocation, *response,
+      [](const v1::QueryPlaceResponse& answer, std::ostream& out) {
+        const std::vector<v1::PlaceMatch> matches(answer.matches().begin(),
+                                                  answer.matches().end());
+        PrintMatches(matches, out);
+      });
 }
 
 int RunSample(const Invocation& invocation) {
@@ -560,6 +670,228 @@ int RunExport(const Invocation& invocation) {
                   << ") to " << *out
                   << ": codes.npy, places.npy, metadata.csv\n";
   return kExitOk;
+}
+
+int RunDeleteTraces(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  v1::DeleteTracesRequest request;
+  request.set_fleet_id(*fleet);
+  request.set_robot_id(flags.StringOr("robot", ""));
+  request.set_domain(flags.StringOr("domain", ""));
+  for (const char* name : {"seq-first", "seq-last", "time-from", "time-to"}) {
+    if (!flags.Has(name)) continue;
+    absl::StatusOr<uint64_t> value =
+        flags.RequiredUint(name, std::numeric_limits<int64_t>::max());
+    if (!value.ok()) return UsageError(invocation, value.status());
+    const absl::string_view flag = name;
+    if (flag == "seq-first") request.set_seq_first(*value);
+    if (flag == "seq-last") request.set_seq_last(*value);
+    if (flag == "time-from") request.set_time_from_ns(*value);
+    if (flag == "time-to") request.set_time_to_ns(*value);
+  }
+  absl::StatusOr<v1::DeleteTracesResponse> response =
+      Connect(invocation)->DeleteTraces(request);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(invocation, *response, PrintDelete);
+}
+
+int RunUpdateRewards(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<std::string> file = flags.Required("file");
+  if (!file.ok()) return UsageError(invocation, file.status());
+  absl::StatusOr<std::string> text = ReadAll(invocation, *file);
+  if (!text.ok()) return UsageError(invocation, text.status());
+  std::istringstream lines(*text);
+  absl::StatusOr<std::vector<v1::RewardUpdate>> updates =
+      ReadRewardUpdatesJsonl(lines);
+  if (!updates.ok()) return UsageError(invocation, updates.status());
+  v1::UpdateRewardsRequest request;
+  request.set_fleet_id(*fleet);
+  for (v1::RewardUpdate& update : *updates) {
+    *request.add_updates() = std::move(update);
+  }
+  absl::StatusOr<v1::UpdateRewardsResponse> response =
+      Connect(invocation)->UpdateRewards(request);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(invocation, *response, PrintRewards);
+}
+
+int RunGetTraces(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<std::string> keys = flags.Required("keys");
+  if (!keys.ok()) return UsageError(invocation, keys.status());
+  v1::GetTracesRequest request;
+  request.set_fleet_id(*fleet);
+  for (absl::string_view key :
+       absl::StrSplit(*keys, ',', absl::SkipWhitespace())) {
+    const size_t colon = key.rfind(':');
+    uint64_t seq = 0;
+    if (colon == absl::string_view::npos ||
+        !absl::SimpleAtoi(key.substr(colon + 1), &seq)) {
+      return UsageError(invocation,
+                        absl::InvalidArgumentError(absl::StrCat(
+                            "--keys: \"", key, "\" is not ROBOT:SEQ")));
+    }
+    v1::TraceKey* out = request.add_keys();
+    out->set_robot_id(std::string(key.substr(0, colon)));
+    out->set_seq(seq);
+  }
+  absl::StatusOr<v1::GetTracesResponse> response =
+      Connect(invocation)->GetTraces(request);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  if (invocation.json) {
+    PrintJson(*response, /*pretty=*/false, *invocation.out);
+    return kExitOk;
+  }
+  PrintTraces(std::vector<v1::MemoryTrace>(response->traces().begin(),
+                                           response->traces().end()),
+              *invocation.out);
+  for (const v1::TraceKey& key : response->missing()) {
+    *invocation.out << "not held: " << key.robot_id() << ":" << key.seq()
+                    << "\n";
+  }
+  return kExitOk;
+}
+
+namespace {
+
+// The settings flags of create-fleet and update-fleet, as given.
+absl::Status SettingsFromFlags(const FlagValues& flags,
+                               v1::FleetSettings* settings) {
+  const std::pair<const char*, void (v1::FleetSettings::*)(uint32_t)> counts[] =
+      {{"clusters-per-segment", &v1::FleetSettings::set_clusters_per_segment},
+       {"max-traces-per-cluster",
+        &v1::FleetSettings::set_max_traces_per_cluster},
+       {"max-clusters", &v1::FleetSettings::set_max_clusters}};
+  for (const auto& [name, set] : counts) {
+    if (!flags.Has(name)) continue;
+    absl::StatusOr<uint64_t> value = flags.RequiredUint(name, UINT32_MAX);
+    if (!value.ok()) return value.status();
+    (settings->*set)(static_cast<uint32_t>(*value));
+  }
+  for (const char* name : {"max-age-seconds", "max-traces-per-robot"}) {
+    if (!flags.Has(name)) continue;
+    absl::StatusOr<uint64_t> value = flags.RequiredUint(name);
+    if (!value.ok()) return value.status();
+    if (absl::string_view(name) == "max-age-seconds") {
+      settings->set_max_age_seconds(*value);
+    } else {
+      settings->set_max_traces_per_robot(*value);
+    }
+  }
+  if (flags.Has("replay-decay")) {
+    absl::StatusOr<double> decay = flags.RequiredDouble("replay-decay");
+    if (!decay.ok()) return decay.status();
+    settings->set_replay_decay(*decay);
+  }
+  if (flags.Has("forgetting")) {
+    const std::string rule = flags.StringOr("forgetting", "");
+    if (rule != "merge" && rule != "drop") {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--forgetting: \"", rule, "\" is not merge or drop"));
+    }
+    settings->set_forgetting(rule == "merge" ? v1::FORGETTING_RULE_MERGE
+                                             : v1::FORGETTING_RULE_DROP);
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+int RunCreateFleet(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<uint64_t> dimension = flags.RequiredUint("dim", 65'536);
+  if (!dimension.ok()) return UsageError(invocation, dimension.status());
+  v1::CreateFleetRequest request;
+  request.set_fleet_id(*fleet);
+  v1::FleetSettings* settings = request.mutable_settings();
+  settings->set_code_dimension(static_cast<uint32_t>(*dimension));
+  settings->set_encoder_version(flags.StringOr("encoder", ""));
+  settings->set_place_unit(flags.StringOr("place-unit", ""));
+  if (absl::Status status = SettingsFromFlags(flags, settings); !status.ok()) {
+    return UsageError(invocation, status);
+  }
+  if (flags.Has("index")) {
+    v1::IndexKind kind = v1::INDEX_KIND_UNSPECIFIED;
+    const std::string name = absl::AsciiStrToUpper(
+        absl::StrCat("index_kind_", flags.StringOr("index", "")));
+    if (!v1::IndexKind_Parse(name, &kind) ||
+        kind == v1::INDEX_KIND_UNSPECIFIED) {
+      return UsageError(invocation,
+                        absl::InvalidArgumentError(absl::StrCat(
+                            "--index: \"", flags.StringOr("index", ""),
+                            "\" is not exact, hnsw or auto")));
+    }
+    settings->set_index(kind);
+  }
+  for (const auto& [name, set] :
+       {std::pair{"hnsw-m", &v1::FleetSettings::set_hnsw_m},
+        std::pair{"hnsw-ef", &v1::FleetSettings::set_hnsw_ef_search}}) {
+    if (!flags.Has(name)) continue;
+    absl::StatusOr<uint64_t> value = flags.RequiredUint(name, 10'000);
+    if (!value.ok()) return UsageError(invocation, value.status());
+    (settings->*set)(static_cast<uint32_t>(*value));
+  }
+  absl::StatusOr<v1::CreateFleetResponse> response =
+      Connect(invocation)->CreateFleet(request);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(
+      invocation, *response,
+      [](const v1::CreateFleetResponse& made, std::ostream& out) {
+        PrintFleetSettings(made.settings(), out);
+      });
+}
+
+int RunFleet(const Invocation& invocation) {
+  absl::StatusOr<std::string> fleet = invocation.flags->Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  absl::StatusOr<v1::GetFleetResponse> response =
+      Connect(invocation)->GetFleet(*fleet);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(
+      invocation, *response,
+      [](const v1::GetFleetResponse& got, std::ostream& out) {
+        const v1::FleetSummary& summary = got.fleet();
+        out << "fleet " << summary.fleet_id() << ": " << summary.traces()
+            << " traces, " << summary.pending_traces() << " pending, "
+            << summary.clusters() << " clusters, " << summary.robots()
+            << " robots; settings "
+            << (summary.own_settings() ? "its own" : "the server's") << "\n";
+        PrintFleetSettings(summary.settings(), out);
+      });
+}
+
+int RunUpdateFleet(const Invocation& invocation) {
+  const FlagValues& flags = *invocation.flags;
+  absl::StatusOr<std::string> fleet = flags.Required("fleet");
+  if (!fleet.ok()) return UsageError(invocation, fleet.status());
+  v1::UpdateFleetRequest request;
+  request.set_fleet_id(*fleet);
+  if (absl::Status status =
+          SettingsFromFlags(flags, request.mutable_settings());
+      !status.ok()) {
+    return UsageError(invocation, status);
+  }
+  absl::StatusOr<v1::UpdateFleetResponse> response =
+      Connect(invocation)->UpdateFleet(request);
+  if (!response.ok()) return ServerError(invocation, response.status());
+  return PrintResponse(
+      invocation, *response,
+      [](const v1::UpdateFleetResponse& updated, std::ostream& out) {
+        PrintFleetSettings(updated.settings(), out);
+      });
+}
+
+std::unique_ptr<client::Client> Connect(const Invocation& invocation) {
+  return client::Client::Create(invocation.client_options);
 }
 
 }  // namespace fleetmem::cli

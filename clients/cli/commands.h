@@ -8,12 +8,14 @@
 #include <atomic>
 #include <functional>
 #include <istream>
+#include <memory>
 #include <ostream>
 #include <span>
 #include <string>
 
 #include "absl/status/status.h"
 #include "clients/cli/flags.h"
+#include "clients/cli/printing.h"
 #include "clients/cpp/fleetmem_client.h"
 
 namespace fleetmem::cli {
@@ -61,6 +63,33 @@ int RunFleets(const Invocation& invocation);
 int RunClusters(const Invocation& invocation);
 int RunSnapshot(const Invocation& invocation);
 int RunExport(const Invocation& invocation);
+int RunDeleteTraces(const Invocation& invocation);
+int RunUpdateRewards(const Invocation& invocation);
+int RunGetTraces(const Invocation& invocation);
+int RunCreateFleet(const Invocation& invocation);
+int RunFleet(const Invocation& invocation);
+int RunUpdateFleet(const Invocation& invocation);
+// alias_commands.cc
+int RunDeleteFleet(const Invocation& invocation);
+int RunAliases(const Invocation& invocation);
+int RunCreateAlias(const Invocation& invocation);
+int RunSwitchAlias(const Invocation& invocation);
+int RunDeleteAlias(const Invocation& invocation);
+
+// A client of the server the invocation names.
+std::unique_ptr<client::Client> Connect(const Invocation& invocation);
+
+// Prints a unary response as JSON or through `print_table`.
+template <typename Response, typename PrintTable>
+int PrintResponse(const Invocation& invocation, const Response& response,
+                  PrintTable print_table) {
+  if (invocation.json) {
+    PrintJson(response, /*pretty=*/false, *invocation.out);
+  } else {
+    print_table(response, *invocation.out);
+  }
+  return kExitOk;
+}
 
 // Prints "error: <message>" and a pointer to the help; returns kExitUsage.
 int UsageError(const Invocation& invocation, const absl::Status& status);

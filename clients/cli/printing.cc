@@ -4,6 +4,7 @@
 #include <map>
 #include <utility>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "google/protobuf/util/json_util.h"
@@ -70,6 +71,59 @@ void PrintUpload(const v1::UploadTracesResponse& response, std::ostream& out) {
               {"duplicates", absl::StrCat(response.duplicates())},
               {"consolidations", absl::StrCat(response.consolidations())}},
              out);
+}
+
+void PrintFleetSettings(const v1::FleetSettings& settings, std::ostream& out) {
+  PrintPairs(
+      {{"code dimension", absl::StrCat(settings.code_dimension())},
+       {"encoder version", Or(settings.encoder_version(), "-")},
+       {"place unit", Or(settings.place_unit(), "-")},
+       {"clusters per segment (K)",
+        absl::StrCat(settings.clusters_per_segment())},
+       {"traces per cluster (N_max)",
+        absl::StrCat(settings.max_traces_per_cluster())},
+       {"clusters (K_max)", absl::StrCat(settings.max_clusters())},
+       {"replay decay (gamma)", absl::StrCat(settings.replay_decay())},
+       {"forgetting",
+        settings.forgetting() == v1::FORGETTING_RULE_DROP ? "drop" : "merge"},
+       {"max age", settings.max_age_seconds() == 0
+                       ? "-"
+                       : absl::StrCat(settings.max_age_seconds(), " s")},
+       {"max traces per robot",
+        settings.max_traces_per_robot() == 0
+            ? "-"
+            : absl::StrCat(settings.max_traces_per_robot())},
+       {"index",
+        settings.index() == v1::INDEX_KIND_UNSPECIFIED
+            ? std::string("the server's")
+            : absl::StrCat(absl::AsciiStrToLower(
+                               v1::IndexKind_Name(settings.index()).substr(11)),
+                           settings.hnsw_m()
+                               ? absl::StrCat(" M ", settings.hnsw_m())
+                               : std::string(),
+                           settings.hnsw_ef_search()
+                               ? absl::StrCat(" ef ", settings.hnsw_ef_search())
+                               : std::string())}},
+      out);
+}
+
+void PrintDelete(const v1::DeleteTracesResponse& response, std::ostream& out) {
+  PrintPairs({{"deleted traces", absl::StrCat(response.deleted())},
+              {"of them pending", absl::StrCat(response.pending_deleted())},
+              {"clusters changed", absl::StrCat(response.clusters_changed())},
+              {"clusters removed", absl::StrCat(response.clusters_removed())},
+              {"traces left", absl::StrCat(response.traces())}},
+             out);
+}
+
+void PrintRewards(const v1::UpdateRewardsResponse& response,
+                  std::ostream& out) {
+  PrintPairs({{"updated", absl::StrCat(response.updated())},
+              {"not held", absl::StrCat(response.not_held_size())}},
+             out);
+  for (const v1::TraceKey& key : response.not_held()) {
+    out << "  not held: " << key.robot_id() << " " << key.seq() << "\n";
+  }
 }
 
 void PrintConsolidate(const v1::ConsolidateResponse& response,
@@ -186,6 +240,9 @@ void PrintEvent(const v1::MemoryEvent& event, std::ostream& out) {
   if (event.type() == v1::MemoryEvent::CLUSTER_MERGED) {
     out << absl::StrFormat(" merged_into=%d traces_dropped=%d",
                            event.merged_into(), event.traces_dropped());
+  }
+  if (event.type() == v1::MemoryEvent::TRACES_DELETED) {
+    out << absl::StrFormat(" traces_deleted=%d", event.traces_dropped());
   }
   out << std::endl;  // Flushed: a watch is often piped.
 }

@@ -30,6 +30,9 @@ void PrintJson(const google::protobuf::Message& message, bool pretty,
                std::ostream& out);
 
 void PrintUpload(const v1::UploadTracesResponse& response, std::ostream& out);
+void PrintFleetSettings(const v1::FleetSettings& settings, std::ostream& out);
+void PrintDelete(const v1::DeleteTracesResponse& response, std::ostream& out);
+void PrintRewards(const v1::UpdateRewardsResponse& response, std::ostream& out);
 void PrintConsolidate(const v1::ConsolidateResponse& response,
                       std::ostream& out);
 void PrintStats(const v1::GetStatsResponse& stats, std::ostream& out);

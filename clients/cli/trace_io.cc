@@ -15,22 +15,38 @@ std::string ProtobufMessage(const google::protobuf::util::Status& status) {
 
 }  // namespace
 
-absl::StatusOr<std::vector<v1::MemoryTrace>> ReadTracesJsonl(std::istream& in) {
-  std::vector<v1::MemoryTrace> traces;
+namespace {
+
+// One `Message` per line (protobuf JSON); blank lines skipped.
+template <typename Message>
+absl::StatusOr<std::vector<Message>> ReadJsonl(std::istream& in,
+                                               absl::string_view what) {
+  std::vector<Message> messages;
   std::string line;
   for (int number = 1; std::getline(in, line); ++number) {
     if (absl::StripAsciiWhitespace(line).empty()) continue;
-    v1::MemoryTrace trace;
+    Message message;
     const auto status =
-        google::protobuf::util::JsonStringToMessage(line, &trace);
+        google::protobuf::util::JsonStringToMessage(line, &message);
     if (!status.ok()) {
       return absl::InvalidArgumentError(absl::StrCat(
-          "line ", number, ": not a MemoryTrace: ", ProtobufMessage(status)));
+          "line ", number, ": not a ", what, ": ", ProtobufMessage(status)));
     }
-    traces.push_back(std::move(trace));
+    messages.push_back(std::move(message));
   }
   if (in.bad()) return absl::DataLossError("read error");
-  return traces;
+  return messages;
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<v1::MemoryTrace>> ReadTracesJsonl(std::istream& in) {
+  return ReadJsonl<v1::MemoryTrace>(in, "MemoryTrace");
+}
+
+absl::StatusOr<std::vector<v1::RewardUpdate>> ReadRewardUpdatesJsonl(
+    std::istream& in) {
+  return ReadJsonl<v1::RewardUpdate>(in, "RewardUpdate");
 }
 
 absl::Status WriteTracesJsonl(std::span<const v1::MemoryTrace> traces,

@@ -20,6 +20,10 @@ namespace fleetmem::cli {
 // errors. INVALID_ARGUMENT names the line of the first bad trace.
 absl::StatusOr<std::vector<v1::MemoryTrace>> ReadTracesJsonl(std::istream& in);
 
+// Reads one RewardUpdate per line, as ReadTracesJsonl.
+absl::StatusOr<std::vector<v1::RewardUpdate>> ReadRewardUpdatesJsonl(
+    std::istream& in);
+
 // Writes one MemoryTrace per line (compact protobuf JSON).
 absl::Status WriteTracesJsonl(std::span<const v1::MemoryTrace> traces,
                               std::ostream& out);

@@ -365,7 +365,12 @@ absl::StatusOr<std::vector<v1::MemoryTrace>> Client::SampleReplay(
   request.set_fleet_id(std::string(fleet_id));
   request.set_robot_id(std::string(robot_id));
   request.set_count(count);
-  request.set_request_id(NewRequestId());
+  return SampleReplay(std::move(request));
+}
+
+absl::StatusOr<std::vector<v1::MemoryTrace>> Client::SampleReplay(
+    v1::SampleReplayRequest request) {
+  if (request.request_id().empty()) request.set_request_id(NewRequestId());
   v1::SampleReplayResponse response;
   grpc::Status status =
       CallWithRetry(options_, channel_.get(), /*retry=*/true,
@@ -378,7 +383,7 @@ absl::StatusOr<std::vector<v1::MemoryTrace>> Client::SampleReplay(
       std::make_move_iterator(response.mutable_traces()->end()));
 }
 
-absl::StatusOr<std::vector<v1::PlaceMatch>> Client::QueryPlace(
+absl::StatusOr<v1::QueryPlaceResponse> Client::Query(
     const v1::QueryPlaceRequest& request) {
   v1::QueryPlaceResponse response;
   grpc::Status status =
@@ -387,9 +392,16 @@ absl::StatusOr<std::vector<v1::PlaceMatch>> Client::QueryPlace(
                       return stub_->QueryPlace(context, request, &response);
                     });
   if (!status.ok()) return FromGrpcStatus(status);
+  return response;
+}
+
+absl::StatusOr<std::vector<v1::PlaceMatch>> Client::QueryPlace(
+    const v1::QueryPlaceRequest& request) {
+  absl::StatusOr<v1::QueryPlaceResponse> response = Query(request);
+  if (!response.ok()) return response.status();
   return std::vector<v1::PlaceMatch>(
-      std::make_move_iterator(response.mutable_matches()->begin()),
-      std::make_move_iterator(response.mutable_matches()->end()));
+      std::make_move_iterator(response->mutable_matches()->begin()),
+      std::make_move_iterator(response->mutable_matches()->end()));
 }
 
 absl::StatusOr<v1::GetStatsResponse> Client::GetStats(
@@ -461,6 +473,127 @@ absl::StatusOr<v1::ListClustersResponse> Client::ListClusters(
       [this](grpc::ClientContext* context, const v1::ListClustersRequest& r,
              v1::ListClustersResponse* out) {
         return stub_->ListClusters(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::CreateFleetResponse> Client::CreateFleet(
+    const v1::CreateFleetRequest& request) {
+  return Unary<v1::CreateFleetRequest, v1::CreateFleetResponse>(
+      options_, channel_.get(), /*retry=*/false, request,
+      [this](grpc::ClientContext* context, const v1::CreateFleetRequest& r,
+             v1::CreateFleetResponse* out) {
+        return stub_->CreateFleet(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::GetFleetResponse> Client::GetFleet(
+    std::string_view fleet_id) {
+  v1::GetFleetRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  return Unary<v1::GetFleetRequest, v1::GetFleetResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::GetFleetRequest& r,
+             v1::GetFleetResponse* out) {
+        return stub_->GetFleet(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::UpdateFleetResponse> Client::UpdateFleet(
+    const v1::UpdateFleetRequest& request) {
+  return Unary<v1::UpdateFleetRequest, v1::UpdateFleetResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::UpdateFleetRequest& r,
+             v1::UpdateFleetResponse* out) {
+        return stub_->UpdateFleet(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::DeleteFleetResponse> Client::DeleteFleet(
+    std::string_view fleet_id) {
+  v1::DeleteFleetRequest request;
+  request.set_fleet_id(std::string(fleet_id));
+  return Unary<v1::DeleteFleetRequest, v1::DeleteFleetResponse>(
+      options_, channel_.get(), /*retry=*/false, request,
+      [this](grpc::ClientContext* context, const v1::DeleteFleetRequest& r,
+             v1::DeleteFleetResponse* out) {
+        return stub_->DeleteFleet(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::CreateAliasResponse> Client::CreateAlias(
+    std::string_view alias, std::string_view fleet_id) {
+  v1::CreateAliasRequest request;
+  request.set_alias(std::string(alias));
+  request.set_fleet_id(std::string(fleet_id));
+  return Unary<v1::CreateAliasRequest, v1::CreateAliasResponse>(
+      options_, channel_.get(), /*retry=*/false, request,
+      [this](grpc::ClientContext* context, const v1::CreateAliasRequest& r,
+             v1::CreateAliasResponse* out) {
+        return stub_->CreateAlias(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::SwitchAliasResponse> Client::SwitchAlias(
+    std::string_view alias, std::string_view fleet_id) {
+  v1::SwitchAliasRequest request;
+  request.set_alias(std::string(alias));
+  request.set_fleet_id(std::string(fleet_id));
+  return Unary<v1::SwitchAliasRequest, v1::SwitchAliasResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::SwitchAliasRequest& r,
+             v1::SwitchAliasResponse* out) {
+        return stub_->SwitchAlias(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::DeleteAliasResponse> Client::DeleteAlias(
+    std::string_view alias) {
+  v1::DeleteAliasRequest request;
+  request.set_alias(std::string(alias));
+  return Unary<v1::DeleteAliasRequest, v1::DeleteAliasResponse>(
+      options_, channel_.get(), /*retry=*/false, request,
+      [this](grpc::ClientContext* context, const v1::DeleteAliasRequest& r,
+             v1::DeleteAliasResponse* out) {
+        return stub_->DeleteAlias(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::ListAliasesResponse> Client::ListAliases() {
+  return Unary<v1::ListAliasesRequest, v1::ListAliasesResponse>(
+      options_, channel_.get(), /*retry=*/true, v1::ListAliasesRequest(),
+      [this](grpc::ClientContext* context, const v1::ListAliasesRequest& r,
+             v1::ListAliasesResponse* out) {
+        return stub_->ListAliases(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::DeleteTracesResponse> Client::DeleteTraces(
+    const v1::DeleteTracesRequest& request) {
+  return Unary<v1::DeleteTracesRequest, v1::DeleteTracesResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::DeleteTracesRequest& r,
+             v1::DeleteTracesResponse* out) {
+        return stub_->DeleteTraces(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::UpdateRewardsResponse> Client::UpdateRewards(
+    const v1::UpdateRewardsRequest& request) {
+  return Unary<v1::UpdateRewardsRequest, v1::UpdateRewardsResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::UpdateRewardsRequest& r,
+             v1::UpdateRewardsResponse* out) {
+        return stub_->UpdateRewards(context, r, out);
+      });
+}
+
+absl::StatusOr<v1::GetTracesResponse> Client::GetTraces(
+    const v1::GetTracesRequest& request) {
+  return Unary<v1::GetTracesRequest, v1::GetTracesResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::GetTracesRequest& r,
+             v1::GetTracesResponse* out) {
+        return stub_->GetTraces(context, r, out);
       });
 }
 

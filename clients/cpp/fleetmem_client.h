@@ -128,7 +128,15 @@ class Client {
   // gets the same traces, counted once.
   absl::StatusOr<std::vector<v1::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint32_t count);
+  // The same with a whole request (a filter: robots, domains, time,
+  // encoder); an empty request_id is given a fresh one.
+  absl::StatusOr<std::vector<v1::MemoryTrace>> SampleReplay(
+      v1::SampleReplayRequest request);
   absl::StatusOr<std::vector<v1::PlaceMatch>> QueryPlace(
+      const v1::QueryPlaceRequest& request);
+  // QueryPlace's whole answer: the matches of every code, and the fleet
+  // and encoder that answered (through an alias).
+  absl::StatusOr<v1::QueryPlaceResponse> Query(
       const v1::QueryPlaceRequest& request);
   absl::StatusOr<v1::GetStatsResponse> GetStats(std::string_view fleet_id);
   // Retried (reads).
@@ -138,6 +146,37 @@ class Client {
   absl::StatusOr<v1::ListTracesResponse> ListTraces(
       std::string_view fleet_id, uint32_t page_size,
       std::string_view page_token);
+  // Not retried: a retry after a lost answer would find the fleet made
+  // (ALREADY_EXISTS) although this call made it.
+  absl::StatusOr<v1::CreateFleetResponse> CreateFleet(
+      const v1::CreateFleetRequest& request);
+  absl::StatusOr<v1::GetFleetResponse> GetFleet(std::string_view fleet_id);
+  // Retried: the same settings set again change nothing.
+  absl::StatusOr<v1::UpdateFleetResponse> UpdateFleet(
+      const v1::UpdateFleetRequest& request);
+  // Admin: removes the fleet and what it holds. Not retried (a retry after
+  // a lost answer would say NOT_FOUND, or delete a fleet made since).
+  absl::StatusOr<v1::DeleteFleetResponse> DeleteFleet(
+      std::string_view fleet_id);
+  // Fleet aliases (admin; ListAliases: any caller). Creating is not
+  // retried (a retry after a lost answer would say ALREADY_EXISTS); a
+  // switch is (the same switch twice ends the same); a delete is not
+  // (a retry after a lost answer would say NOT_FOUND).
+  absl::StatusOr<v1::CreateAliasResponse> CreateAlias(
+      std::string_view alias, std::string_view fleet_id);
+  absl::StatusOr<v1::SwitchAliasResponse> SwitchAlias(
+      std::string_view alias, std::string_view fleet_id);
+  absl::StatusOr<v1::DeleteAliasResponse> DeleteAlias(std::string_view alias);
+  absl::StatusOr<v1::ListAliasesResponse> ListAliases();
+  // Retried: a repeated delete removes what still matches (nothing, unless
+  // traces matching a time range or domain arrived since), and repeated
+  // rewards are set again.
+  absl::StatusOr<v1::DeleteTracesResponse> DeleteTraces(
+      const v1::DeleteTracesRequest& request);
+  absl::StatusOr<v1::UpdateRewardsResponse> UpdateRewards(
+      const v1::UpdateRewardsRequest& request);
+  absl::StatusOr<v1::GetTracesResponse> GetTraces(
+      const v1::GetTracesRequest& request);
   // grpc.health.v1.Health/Check of `service` ("" = the server as a whole),
   // not retried (a probe wants the answer of now): the serving status's
   // name (SERVING, NOT_SERVING, SERVICE_UNKNOWN, UNKNOWN) or the call's

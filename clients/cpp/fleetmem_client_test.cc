@@ -54,6 +54,10 @@ class FakeMemoryService final : public v1::MemoryService::Service {
     std::lock_guard<std::mutex> lock(mutex_);
     return sample_request_ids_;
   }
+  std::vector<v1::ReadFilter> sample_filters() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return sample_filters_;
+  }
 
   int calls() {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -110,6 +114,7 @@ class FakeMemoryService final : public v1::MemoryService::Service {
     {
       std::lock_guard<std::mutex> lock(mutex_);
       sample_request_ids_.push_back(request->request_id());
+      sample_filters_.push_back(request->filter());
     }
     if (StartCall(context)) return Failure();
     for (uint32_t i = 0; i < request->count(); ++i) {
@@ -199,6 +204,7 @@ class FakeMemoryService final : public v1::MemoryService::Service {
   std::string failure_message_ = "injected failure";
   int calls_ = 0;
   std::vector<std::string> sample_request_ids_;
+  std::vector<v1::ReadFilter> sample_filters_;
   std::vector<Millis> deadlines_left_;
   std::vector<int> upload_message_sizes_;
   std::set<std::pair<std::string, uint64_t>> stored_;
@@ -365,6 +371,27 @@ TEST_F(ClientTest, SampleReplayRetriesWithOneRequestId) {
   EXPECT_FALSE(ids[0].empty());
   EXPECT_EQ(ids[0], ids[1]) << "a retry must carry the same request id";
   EXPECT_NE(ids[1], ids[2]) << "a new call needs a new request id";
+}
+
+TEST_F(ClientTest, AFilteredSampleCarriesItsFilterAndGetsARequestId) {
+  std::unique_ptr<Client> client = Client::Create(Options());
+  v1::SampleReplayRequest request;
+  request.set_fleet_id("fleet");
+  request.set_robot_id("robot-1");
+  request.set_count(2);
+  request.mutable_filter()->add_robot_ids("robot-2");
+  request.mutable_filter()->add_domains("winter");
+  ASSERT_TRUE(client->SampleReplay(request).ok());
+  request.set_request_id("mine");
+  ASSERT_TRUE(client->SampleReplay(request).ok());
+  const std::vector<std::string> ids = service_.sample_request_ids();
+  ASSERT_THAT(ids, SizeIs(2));
+  EXPECT_FALSE(ids[0].empty());
+  EXPECT_EQ(ids[1], "mine");
+  const std::vector<v1::ReadFilter> filters = service_.sample_filters();
+  ASSERT_THAT(filters, SizeIs(2));
+  EXPECT_THAT(filters[0].robot_ids(), ElementsAre("robot-2"));
+  EXPECT_THAT(filters[0].domains(), ElementsAre("winter"));
 }
 
 TEST_F(ClientTest, ConsolidateAndQueryPlaceAreRetried) {

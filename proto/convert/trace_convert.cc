@@ -48,4 +48,68 @@ void TraceToProto(const core::MemoryTrace& trace, v1::MemoryTrace* out) {
   out->set_attachment(trace.attachment);
 }
 
+core::ReadFilter ReadFilterFromProto(const v1::ReadFilter& filter) {
+  core::ReadFilter out;
+  out.robot_ids.assign(filter.robot_ids().begin(), filter.robot_ids().end());
+  out.domains.assign(filter.domains().begin(), filter.domains().end());
+  if (filter.has_time_from_ns()) out.time_from_ns = filter.time_from_ns();
+  if (filter.has_time_to_ns()) out.time_to_ns = filter.time_to_ns();
+  out.encoder_version = filter.encoder_version();
+  return out;
+}
+
+void ReadFilterToProto(const core::ReadFilter& filter, v1::ReadFilter* out) {
+  for (const std::string& robot_id : filter.robot_ids) {
+    out->add_robot_ids(robot_id);
+  }
+  for (const std::string& domain : filter.domains) out->add_domains(domain);
+  if (filter.time_from_ns) out->set_time_from_ns(*filter.time_from_ns);
+  if (filter.time_to_ns) out->set_time_to_ns(*filter.time_to_ns);
+  out->set_encoder_version(filter.encoder_version);
+}
+
+core::TraceFilter FilterFromProto(const v1::DeleteTracesRequest& request) {
+  core::TraceFilter filter;
+  filter.robot_id = request.robot_id();
+  filter.domain = request.domain();
+  if (request.has_seq_first()) filter.seq_first = request.seq_first();
+  if (request.has_seq_last()) filter.seq_last = request.seq_last();
+  if (request.has_time_from_ns()) filter.time_from_ns = request.time_from_ns();
+  if (request.has_time_to_ns()) filter.time_to_ns = request.time_to_ns();
+  return filter;
+}
+
+void FilterToProto(const core::TraceFilter& filter,
+                   v1::DeleteTracesRequest* out) {
+  out->set_robot_id(filter.robot_id);
+  out->set_domain(filter.domain);
+  if (filter.seq_first) out->set_seq_first(*filter.seq_first);
+  if (filter.seq_last) out->set_seq_last(*filter.seq_last);
+  if (filter.time_from_ns) out->set_time_from_ns(*filter.time_from_ns);
+  if (filter.time_to_ns) out->set_time_to_ns(*filter.time_to_ns);
+}
+
+std::vector<core::RewardUpdate> RewardUpdatesFromProto(
+    const v1::UpdateRewardsRequest& request) {
+  std::vector<core::RewardUpdate> updates;
+  updates.reserve(request.updates_size());
+  for (const v1::RewardUpdate& update : request.updates()) {
+    updates.push_back(
+        core::RewardUpdate{core::TraceKey{update.robot_id(), update.seq()},
+                           update.reward_external(), update.reward_internal()});
+  }
+  return updates;
+}
+
+void RewardUpdatesToProto(std::span<const core::RewardUpdate> updates,
+                          v1::UpdateRewardsRequest* out) {
+  for (const core::RewardUpdate& update : updates) {
+    v1::RewardUpdate* one = out->add_updates();
+    one->set_robot_id(update.key.robot_id);
+    one->set_seq(update.key.seq);
+    one->set_reward_external(update.reward_external);
+    one->set_reward_internal(update.reward_internal);
+  }
+}
+
 }  // namespace fleetmem::api

@@ -4,7 +4,11 @@
 #ifndef FLEETMEM_PROTO_CONVERT_TRACE_CONVERT_H_
 #define FLEETMEM_PROTO_CONVERT_TRACE_CONVERT_H_
 
+#include <span>
+#include <vector>
+
 #include "fleetmem/v1/memory.pb.h"
+#include "services/core/trace_filter.h"
 #include "services/core/types.h"
 
 namespace fleetmem::api {
@@ -15,6 +19,19 @@ void PlaceToProto(const core::Place& place, v1::Pose* pose);
 // Every field, including the server-set replay_count and cluster_id.
 core::MemoryTrace TraceFromProto(const v1::MemoryTrace& trace);
 void TraceToProto(const core::MemoryTrace& trace, v1::MemoryTrace* out);
+
+// A DeleteTraces request's selection (its fleet_id aside), both ways.
+core::TraceFilter FilterFromProto(const v1::DeleteTracesRequest& request);
+core::ReadFilter ReadFilterFromProto(const v1::ReadFilter& filter);
+void ReadFilterToProto(const core::ReadFilter& filter, v1::ReadFilter* out);
+void FilterToProto(const core::TraceFilter& filter,
+                   v1::DeleteTracesRequest* out);
+
+// An UpdateRewards request's updates (its fleet_id aside), both ways.
+std::vector<core::RewardUpdate> RewardUpdatesFromProto(
+    const v1::UpdateRewardsRequest& request);
+void RewardUpdatesToProto(std::span<const core::RewardUpdate> updates,
+                          v1::UpdateRewardsRequest* out);
 
 }  // namespace fleetmem::api
 

@@ -55,6 +55,12 @@ absl::string_view ActionName(Action action) {
       return "read stats";
     case Action::kSnapshot:
       return "take snapshots";
+    case Action::kDelete:
+      return "delete traces";
+    case Action::kRescore:
+      return "update rewards";
+    case Action::kManage:
+      return "manage fleets";
   }
   return "?";
 }
@@ -76,20 +82,30 @@ absl::Status Authorize(const Principal& principal, Action action,
     case Action::kStats:
       return absl::OkStatus();
     case Action::kConsolidate:
+    case Action::kManage:
       return Denied(principal, action, "only an admin may");
     case Action::kUpload:
       if (principal.role == Role::kRobot) return absl::OkStatus();
       return Denied(principal, action, "a reader is read-only");
     case Action::kSample:
+    case Action::kDelete:
+    case Action::kRescore:
       if (principal.role != Role::kRobot) {
         return Denied(principal, action,
-                      "a reader is read-only (sampling changes replay "
-                      "weights)");
+                      action == Action::kSample
+                          ? "a reader is read-only (sampling changes replay "
+                            "weights)"
+                          : "a reader is read-only");
+      }
+      if (robot_id.empty()) {
+        return Denied(principal, action,
+                      absl::StrCat("a robot names its own robot id \"",
+                                   principal.robot_id, "\" (robot_id)"));
       }
       if (robot_id != principal.robot_id) {
         return Denied(
             principal, action,
-            absl::StrCat("it samples only for its own robot id \"",
+            absl::StrCat("it acts only for its own robot id \"",
                          principal.robot_id, "\", not \"", robot_id, "\""));
       }
       return absl::OkStatus();

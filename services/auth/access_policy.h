@@ -37,7 +37,10 @@ enum class Action {
   kSample,       // SampleReplay (changes replay weights)
   kQuery,        // QueryPlace
   kWatch,        // WatchMemory
-  kStats,        // GetStats, ListClusters, ListEvents, ListTraces
+  kStats,        // GetStats, ListClusters, ListEvents, ListTraces, GetTraces
+  kDelete,       // DeleteTraces (of `robot_id`'s traces for a robot)
+  kRescore,      // UpdateRewards (of `robot_id`'s traces for a robot)
+  kManage,       // CreateFleet, UpdateFleet (an admin's only)
   kSnapshot,     // CreateSnapshot (the whole store; no fleet)
 };
 
@@ -47,10 +50,12 @@ absl::string_view ActionName(Action action);
 // is the robot the sample is for. PERMISSION_DENIED naming the principal,
 // the action and the reason otherwise:
 //   admin   everything;
-//   robot   upload, sample (for its own robot id), query, watch, stats in
-//           its fleets;
+//   robot   upload, sample, delete and rescore (for its own robot id:
+//           `robot_id`), query, watch, stats in its fleets;
 //   reader  query, watch, stats in its fleets.
-// kSnapshot is an admin's only (`fleet_id` is ignored).
+// kSnapshot is an admin's only (`fleet_id` is ignored). kDelete and
+// kRescore are asked once per robot whose traces the call names (a delete
+// of no robot's: `robot_id` empty, an admin's only).
 absl::Status Authorize(const Principal& principal, Action action,
                        absl::string_view fleet_id,
                        absl::string_view robot_id = {});

@@ -10,6 +10,7 @@
 #include "proto/convert/trace_convert.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
+#include "services/engine/admission.h"
 #include "services/storage/fleet_image.h"
 
 namespace fleetmem::cluster {
@@ -154,18 +155,27 @@ absl::StatusOr<std::optional<engine::FleetShape>> FleetShapeFromLog(
       return engine::FleetShape{(*latest)->code_dimension,
                                 (*latest)->encoder_version};
     }
+    if (latest->has_value()) {
+      // A deleted fleet's snapshot: the fleet is what the log made after
+      // it (its first entry since, an upload or a CreateFleet), or none.
+      absl::StatusOr<std::vector<engine::LogEntry>> since =
+          log.Read(fleet_id, (*latest)->sequence, 1);
+      if (!since.ok()) return since.status();
+      if (since->empty()) return std::nullopt;
+      return engine::ShapeOfEntry(since->front());
+    }
   }
   if (!first.ok() && !trimmed) return first.status();
   if (first.ok() && first->empty()) return std::nullopt;
-  if (trimmed || first->front().traces().empty()) {
+  const std::optional<engine::FleetShape> shape =
+      trimmed ? std::nullopt : engine::ShapeOfEntry(first->front());
+  if (!shape.has_value()) {
     return absl::DataLossError(absl::StrCat(
         "cluster: the first entry of the log of fleet \"", V(fleet_id),
-        "\" is not an upload",
+        "\" is neither an upload nor a CreateFleet",
         trimmed ? " (trimmed, and no snapshot gives its shape)" : ""));
   }
-  const core::MemoryTrace& trace = first->front().traces().front();
-  return engine::FleetShape{static_cast<uint32_t>(trace.code.size()),
-                            trace.encoder_version};
+  return shape;
 }
 
 Materialiser::Materialiser(MaterialiserOptions options, engine::FleetLog* log,
@@ -308,8 +318,14 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(
            options_.clock->Now() - renewed_at < 2 * options_.renew_interval ||
            entry.sequence <= capture;
   };
+  // A DeleteFleet applied in this step: snapshot at once, so that the
+  // deleted fleet's entries and its earlier snapshot leave JetStream (the
+  // snapshot replaces the old one; the log is trimmed through it).
+  bool deleted = false;
   hooks.applied = [&](const engine::LogEntry& entry,
                       const engine::AppliedRecord& applied) {
+    deleted = deleted ||
+              std::holds_alternative<engine::DeleteFleetRecord>(entry.record);
     FLEETMEM_LOG(kDebug) << "cluster: fleet \"" << fleet_id << "\": entry "
                          << entry.sequence << " (" << entry.id
                          << ") applied after " << owned.position;
@@ -333,7 +349,7 @@ absl::StatusOr<StepResult> Materialiser::StepLocked(
   result.applied = turn->applied;
   if (!turn->stopped.ok()) return turn->stopped;
   result.position = owned.position;
-  SnapshotIfDue(fleet_id, owned, result);
+  SnapshotIfDue(fleet_id, owned, result, /*now=*/deleted);
   absl::MutexLock held(&lease_mu_);
   if (auto h = held_.find(fleet_id); h != held_.end()) {
     h->second.position = owned.position;
@@ -509,9 +525,9 @@ absl::Status Materialiser::RestoreIfBehind(std::string_view fleet_id,
 }
 
 void Materialiser::SnapshotIfDue(std::string_view fleet_id, Owned& owned,
-                                 StepResult& result) {
+                                 StepResult& result, bool now) {
   if (!writer_.joinable() ||
-      owned.position < owned.snapshot + options_.snapshot_every) {
+      (!now && owned.position < owned.snapshot + options_.snapshot_every)) {
     return;
   }
   const uint64_t through = owned.position;
@@ -609,9 +625,10 @@ absl::StatusOr<engine::ConsolidateResult> Materialiser::Consolidate(
 
 absl::StatusOr<std::vector<core::MemoryTrace>> Materialiser::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-    std::string_view request_id) {
+    std::string_view request_id, const core::ReadFilter* filter) {
   absl::StatusOr<engine::AppliedRecord> outcome =
-      Call(fleet_id, engine::SampleReplayRecord{robot_id, count, request_id});
+      Call(fleet_id,
+           engine::SampleReplayRecord{robot_id, count, request_id, filter});
   if (!outcome.ok()) return outcome.status();
   return std::move(outcome->sample);
 }

@@ -190,11 +190,15 @@ class Materialiser {
   // every replica alike); the log's error otherwise (appended or not: a
   // retry is a new entry; SampleReplay's request_id keeps it from counting
   // twice).
+  // Any call's record (Consolidate and SampleReplay below are two):
+  // appended, and the log applied through it.
+  absl::StatusOr<engine::AppliedRecord> Call(std::string_view fleet_id,
+                                             const engine::LogRecord& record);
   absl::StatusOr<engine::ConsolidateResult> Consolidate(
       std::string_view fleet_id);
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-      std::string_view request_id);
+      std::string_view request_id, const core::ReadFilter* filter = nullptr);
   // True if this replica holds the fleet's lease (as of its last step or
   // renewal). Does not wait for a step.
   bool Owns(std::string_view fleet_id) const;
@@ -264,8 +268,10 @@ class Materialiser {
   // two entries, and stored by the writer thread (then the log is trimmed),
   // so that a slow or unavailable NATS does not hold up the steps and the
   // lease renewals. Failures are logged (the log keeps its entries).
+  // `now`: whatever was applied since the latest (after a DeleteFleet, so
+  // that the deleted fleet's data leaves JetStream).
   void SnapshotIfDue(std::string_view fleet_id, Owned& owned,
-                     StepResult& result);
+                     StepResult& result, bool now = false);
   // A snapshot read and waiting for the writer.
   struct Pending {
     SnapshotInfo info;
@@ -305,9 +311,6 @@ class Materialiser {
   // entry's sequence.
   absl::StatusOr<uint64_t> AppendCall(std::string_view fleet_id,
                                       const engine::LogRecord& record);
-  // Appends a call's entry and applies the log through it.
-  absl::StatusOr<engine::AppliedRecord> Call(std::string_view fleet_id,
-                                             const engine::LogRecord& record);
 
   const MaterialiserOptions options_;
   std::function<void(const std::string&)> on_lease_lost_;

@@ -478,6 +478,72 @@ TEST_F(MaterialiserTest, SnapshotsLetNewOwnersSkipTheTrimmedLog) {
   }
 }
 
+// Issue 46: a deleted fleet's data leaves JetStream at once. The owner
+// snapshots the deleted fleet as soon as it applied the DeleteFleet (the
+// snapshot replaces the fleet's earlier one; the log is trimmed through
+// it); a replica that takes the fleet over restores it as deleted; the
+// fleet made anew after it, with another shape, is read from the log.
+TEST_F(MaterialiserTest, ADeletedFleetLeavesTheLogAndItsSnapshotAtOnce) {
+  const std::string fleet = "fleet-deleted";
+  std::unique_ptr<NatsFleetLog> log = Connect();
+  ASSERT_NE(log, nullptr);
+  const std::vector<std::vector<core::MemoryTrace>> uploads = Uploads();
+  const MaterialiserOptions options{
+      .replica_id = "replica-a", .snapshot_every = 12, .restore_after = 1};
+  Replica a, b;
+  Materialiser owner(options, log.get(), log.get(), log.get(), a.engine.get());
+  AppendUploads(*log, fleet, uploads);  // 18 entries
+  ASSERT_TRUE(owner.CatchUp(fleet).ok());
+  owner.WaitForSnapshots();
+  absl::StatusOr<std::optional<SnapshotInfo>> before = log->Latest(fleet);
+  ASSERT_TRUE(before.ok() && before->has_value()) << before.status();
+  EXPECT_EQ((*before)->code_dimension, 8u);  // the full fleet's image
+  ASSERT_GT(a.engine->GetStats(fleet)->traces, 0u);
+
+  absl::StatusOr<engine::AppliedRecord> deleted =
+      owner.Call(fleet, engine::DeleteFleetRecord{});
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  owner.WaitForSnapshots();
+  absl::StatusOr<std::optional<SnapshotInfo>> after = log->Latest(fleet);
+  ASSERT_TRUE(after.ok() && after->has_value()) << after.status();
+  EXPECT_EQ((*after)->sequence, 19u);  // the delete's entry
+  EXPECT_EQ((*after)->code_dimension, 0u);
+  absl::StatusOr<engine::LogBounds> bounds = log->Bounds(fleet);
+  ASSERT_TRUE(bounds.ok());
+  EXPECT_EQ(bounds->first, 20u);  // every entry of the deleted fleet purged
+  EXPECT_EQ(bounds->last, 19u);
+  absl::StatusOr<std::optional<engine::FleetShape>> shape =
+      FleetShapeFromLog(*log, log.get(), fleet);
+  ASSERT_TRUE(shape.ok()) << shape.status();
+  EXPECT_FALSE(shape->has_value());
+
+  // Made anew with 4-d codes: the shape is the new upload's.
+  std::vector<core::MemoryTrace> remade(uploads[0].begin(),
+                                        uploads[0].begin() + 5);
+  for (core::MemoryTrace& t : remade) t.code.resize(4);
+  AppendUploads(*log, fleet, {remade});
+  shape = FleetShapeFromLog(*log, log.get(), fleet);
+  ASSERT_TRUE(shape.ok() && shape->has_value()) << shape.status();
+  EXPECT_EQ((*shape)->code_dimension, 4u);
+  ASSERT_TRUE(owner.CatchUp(fleet).ok());
+  ASSERT_TRUE(owner.Release(fleet).ok());
+
+  // B had applied nothing: it restores the deleted fleet's snapshot, then
+  // the new upload after it, and holds what A holds.
+  Materialiser taker({.replica_id = "replica-b", .restore_after = 1}, log.get(),
+                     log.get(), log.get(), b.engine.get());
+  absl::StatusOr<StepResult> step = taker.Step(fleet);
+  ASSERT_TRUE(step.ok()) << step.status();
+  EXPECT_EQ(step->restored, 19u);
+  ASSERT_TRUE(taker.CatchUp(fleet).ok());
+  ExpectSameState(StateOf(*b.engine, fleet), StateOf(*a.engine, fleet));
+  EXPECT_EQ(b.engine->GetStats(fleet)->traces +
+                b.engine->GetStats(fleet)->pending_traces,
+            5u);
+  EXPECT_EQ(*b.engine->LogPosition(fleet), 20u);
+  ASSERT_TRUE(taker.Release(fleet).ok());
+}
+
 // A previous owner's snapshot writer may trim the log after another replica
 // took the fleet and began applying it: that replica's next read finds its
 // entries gone and restores the snapshot instead of passing them.

@@ -23,40 +23,14 @@
 #include "nats/nats.h"
 #include "proto/convert/trace_convert.h"
 #include "services/cluster/log_record.pb.h"
+#include "services/cluster/nats_aliases.h"
+#include "services/cluster/nats_status.h"
 #include "services/common/log.h"
 #include "services/core/absl_view.h"
+#include "services/storage/record_codec.h"
 
 namespace fleetmem::cluster {
 namespace {
-
-// True for the nats.c errors that say nothing of the request's outcome.
-bool Unreachable(natsStatus status) {
-  return status == NATS_TIMEOUT || status == NATS_NO_SERVER ||
-         status == NATS_NO_RESPONDERS || status == NATS_CONNECTION_CLOSED ||
-         status == NATS_CONNECTION_DISCONNECTED ||
-         status == NATS_STALE_CONNECTION || status == NATS_NOT_YET_CONNECTED;
-}
-
-std::string Hash(std::string_view fleet_id) {
-  return absl::StrFormat("%016x",
-                         XXH3_64bits(fleet_id.data(), fleet_id.size()));
-}
-
-// A status for a failed nats.c call: UNAVAILABLE when NATS cannot be
-// reached, DEADLINE_EXCEEDED on a timeout (the outcome is unknown), NOT_FOUND,
-// else INTERNAL; the message has nats.c's own words and JetStream's code.
-absl::Status FromNats(natsStatus status, int code, std::string_view what) {
-  std::string text = absl::StrCat(V(what), ": ", natsStatus_GetText(status));
-  const char* detail = nats_GetLastError(nullptr);
-  if (detail != nullptr && *detail != '\0') {
-    absl::StrAppend(&text, " (", detail, ")");
-  }
-  if (code != 0) absl::StrAppend(&text, " [JetStream error ", code, "]");
-  if (status == NATS_TIMEOUT) return absl::DeadlineExceededError(text);
-  if (Unreachable(status)) return absl::UnavailableError(text);
-  if (status == NATS_NOT_FOUND) return absl::NotFoundError(text);
-  return absl::InternalError(text);
-}
 
 int64_t Nanoseconds(absl::Duration d) { return absl::ToInt64Nanoseconds(d); }
 int64_t Milliseconds(absl::Duration d) { return absl::ToInt64Milliseconds(d); }
@@ -110,6 +84,14 @@ absl::Status ValidateNatsOptions(const NatsOptions& options) {
     return absl::InvalidArgumentError(
         "cluster: duplicate window and lease TTL must be at least 1 s, the "
         "timeout at least 10 ms");
+  }
+  if (options.alias_bucket.empty() ||
+      options.alias_bucket.find_first_not_of(
+          "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-") !=
+          std::string::npos) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("cluster: bad alias bucket name '", options.alias_bucket,
+                     "' (letters, digits, _ and - only)"));
   }
   if (options.lease_bucket.empty() ||
       options.lease_bucket.find_first_not_of(
@@ -321,9 +303,16 @@ absl::StatusOr<std::unique_ptr<NatsFleetLog>> NatsFleetLog::Connect(
       !bucket.ok()) {
     return bucket;
   }
-  return std::unique_ptr<NatsFleetLog>(
+  absl::StatusOr<std::unique_ptr<NatsAliases>> aliases = NatsAliases::Open(
+      handles->js, options.alias_bucket, options.replicas, options.timeout);
+  if (!aliases.ok()) return aliases.status();
+  std::unique_ptr<NatsFleetLog> log(
       new NatsFleetLog(std::move(options), std::move(handles)));
+  log->aliases_ = *std::move(aliases);
+  return log;
 }
+
+engine::AliasTable& NatsFleetLog::aliases() { return *aliases_; }
 
 absl::Status NatsFleetLog::EnsureStream(std::string_view fleet_id) {
   return EnsureFleetStream(fleet_id, FleetStreamName(fleet_id),
@@ -412,6 +401,27 @@ struct ToLogRecord {
     sample->set_robot_id(std::string(call.robot_id));
     sample->set_count(call.count);
     sample->set_request_id(std::string(call.request_id));
+    if (call.filter != nullptr) {
+      api::ReadFilterToProto(*call.filter, sample->mutable_filter());
+    }
+  }
+  void operator()(const engine::DeleteTracesRecord& call) const {
+    api::FilterToProto(call.filter, out->mutable_delete_traces());
+  }
+  void operator()(const engine::UpdateRewardsRecord& call) const {
+    api::RewardUpdatesToProto(call.updates, out->mutable_update_rewards());
+  }
+  void operator()(const engine::CreateFleetRecord& call) const {
+    out->set_fleet_call(storage::EncodeLoggedRecord(call));
+  }
+  void operator()(const engine::UpdateFleetRecord& call) const {
+    out->set_fleet_call(storage::EncodeLoggedRecord(call));
+  }
+  void operator()(const engine::EnforceRetentionRecord& call) const {
+    out->set_fleet_call(storage::EncodeLoggedRecord(call));
+  }
+  void operator()(const engine::DeleteFleetRecord& call) const {
+    out->set_fleet_call(storage::EncodeLoggedRecord(call));
   }
 };
 
@@ -440,9 +450,32 @@ absl::StatusOr<engine::StoredRecord> DecodeRecord(std::string_view fleet_id,
     case v1::LogRecord::kConsolidate:
       return engine::ConsolidateRecord{};
     case v1::LogRecord::kSampleReplay:
-      return engine::SampleReplayCall{record.sample_replay().robot_id(),
-                                      record.sample_replay().count(),
-                                      record.sample_replay().request_id()};
+      return engine::SampleReplayCall{
+          record.sample_replay().robot_id(), record.sample_replay().count(),
+          record.sample_replay().request_id(),
+          api::ReadFilterFromProto(record.sample_replay().filter())};
+    case v1::LogRecord::kDeleteTraces:
+      return engine::DeleteTracesRecord{
+          api::FilterFromProto(record.delete_traces())};
+    case v1::LogRecord::kUpdateRewards:
+      return engine::UpdateRewardsCall{
+          api::RewardUpdatesFromProto(record.update_rewards())};
+    case v1::LogRecord::kFleetCall: {
+      absl::StatusOr<engine::StoredRecord> call = storage::DecodeLoggedRecord(
+          absl::StrCat("cluster: entry ", sequence, " of the log of fleet \"",
+                       V(fleet_id), "\""),
+          record.fleet_call());
+      if (!call.ok()) return call.status();
+      if (!std::holds_alternative<engine::CreateFleetRecord>(*call) &&
+          !std::holds_alternative<engine::UpdateFleetRecord>(*call) &&
+          !std::holds_alternative<engine::EnforceRetentionRecord>(*call) &&
+          !std::holds_alternative<engine::DeleteFleetRecord>(*call)) {
+        return absl::DataLossError(absl::StrCat(
+            "cluster: entry ", sequence, " of the log of fleet \"", V(fleet_id),
+            "\" carries a fleet call of another kind"));
+      }
+      return call;
+    }
     case v1::LogRecord::KIND_NOT_SET:
       break;
   }

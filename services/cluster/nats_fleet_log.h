@@ -33,6 +33,7 @@
 #include "absl/status/statusor.h"
 #include "absl/time/time.h"
 #include "services/cluster/cluster_ports.h"
+#include "services/engine/fleet_aliases.h"
 #include "services/engine/fleet_log.h"
 
 namespace fleetmem::cluster {
@@ -61,6 +62,8 @@ struct NatsOptions {
   absl::Duration timeout = absl::Seconds(5);
   // The lease bucket.
   std::string lease_bucket = "fleetmem-leases";
+  // The fleet aliases' bucket (no time-to-live; nats_aliases.h).
+  std::string alias_bucket = "fleetmem-aliases";
 };
 
 // INVALID_ARGUMENT naming the first bad field.
@@ -116,6 +119,10 @@ class NatsFleetLog final : public engine::FleetLog,
   absl::StatusOr<std::optional<Lease>> Holder(
       std::string_view fleet_id) override;
   absl::Status Announce(std::string_view replica, uint64_t fleets) override;
+
+  // The fleet aliases every replica shares (nats_aliases.h), read when the
+  // log connected.
+  engine::AliasTable& aliases();
   absl::StatusOr<std::vector<std::pair<std::string, uint64_t>>> Replicas()
       override;
 
@@ -153,6 +160,7 @@ class NatsFleetLog final : public engine::FleetLog,
 
   const NatsOptions options_;
   std::unique_ptr<Handles> handles_;
+  std::unique_ptr<engine::AliasTable> aliases_;  // uses handles_
 };
 
 // The stream and subject of a fleet's log, and the key of its lease.

@@ -5,6 +5,7 @@
 #include <chrono>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <string>
 #include <thread>
 #include <tuple>
@@ -266,6 +267,53 @@ TEST_F(NatsFleetLogTest, AGroupThatCannotBeAppendedSaysWhatTheLogHolds) {
   ASSERT_FALSE(appended.ok());
   EXPECT_THAT(appended.status().message(),
               HasSubstr("the log holds 0 of these 3 entries"));
+}
+
+// Waits up to 5 s for `table` to resolve `alias` as `want` (nullopt: no
+// alias).
+bool Sees(const engine::AliasTable& table, const std::string& alias,
+          const std::optional<std::string>& want) {
+  for (int i = 0; i < 500; ++i) {
+    if (table.Resolve(alias) == want) return true;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return false;
+}
+
+TEST_F(NatsFleetLogTest, AliasesAreSharedByEveryReplica) {
+  std::unique_ptr<NatsFleetLog> a = Connect();
+  std::unique_ptr<NatsFleetLog> b = Connect();
+  ASSERT_NE(a, nullptr);
+  ASSERT_NE(b, nullptr);
+  ASSERT_TRUE(a->aliases().Create("live", "fleet:v1").ok());
+  EXPECT_EQ(a->aliases().Resolve("live"), "fleet:v1");  // at once, here
+  EXPECT_TRUE(Sees(b->aliases(), "live", "fleet:v1"));
+  const absl::Status twice = b->aliases().Create("live", "fleet:v2");
+  EXPECT_TRUE(absl::IsAlreadyExists(twice)) << twice;
+
+  absl::StatusOr<std::string> before = b->aliases().Switch("live", "fleet:v2");
+  ASSERT_TRUE(before.ok()) << before.status();
+  EXPECT_EQ(*before, "fleet:v1");
+  EXPECT_TRUE(Sees(a->aliases(), "live", "fleet:v2"));
+  EXPECT_TRUE(absl::IsNotFound(a->aliases().Switch("nope", "x").status()));
+
+  // A replica that connects later reads them when it connects.
+  ASSERT_TRUE(a->aliases().Create("other", "fleet:v1").ok());
+  std::unique_ptr<NatsFleetLog> c = Connect();
+  ASSERT_NE(c, nullptr);
+  EXPECT_TRUE(Sees(c->aliases(), "other", "fleet:v1"));
+  absl::StatusOr<std::vector<engine::FleetAlias>> listed = c->aliases().List();
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->size(), 2u);
+  EXPECT_EQ((*listed)[0].alias, "live");
+  EXPECT_EQ((*listed)[0].fleet_id, "fleet:v2");
+
+  absl::StatusOr<std::string> deleted = c->aliases().Delete("live");
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  EXPECT_EQ(*deleted, "fleet:v2");
+  EXPECT_TRUE(Sees(a->aliases(), "live", std::nullopt));
+  EXPECT_TRUE(Sees(b->aliases(), "live", std::nullopt));
+  EXPECT_TRUE(absl::IsNotFound(b->aliases().Delete("live").status()));
 }
 
 TEST_F(NatsFleetLogTest, ALeaseHasOneHolderAndFencesALateOne) {

@@ -116,6 +116,15 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Upload(
   absl::Status valid =
       engine::AdmitShape(limits, fleet_id, traces,
                          shape->has_value() ? &**shape : nullptr, max_traces);
+  if (!valid.ok() && shape->has_value()) {
+    // The shape this replica read before may be a deleted fleet's: read
+    // the log again (only when an upload does not fit it).
+    shape = ShapeOf(fleet_id, /*fresh=*/true);
+    if (!shape.ok()) return shape.status();
+    valid =
+        engine::AdmitShape(limits, fleet_id, traces,
+                           shape->has_value() ? &**shape : nullptr, max_traces);
+  }
   if (!valid.ok()) return valid;
   if (traces.empty()) return transport::Uploaded{};
   // Rates are the receiving replica's (a forwarded upload was rated there).
@@ -153,6 +162,10 @@ absl::StatusOr<transport::Uploaded> ReplicatedMemory::Create(
   // round's listing may be a round old). Two replicas creating fleets at
   // the same moment may both pass: max_fleets can be passed by as many
   // fleets as are created at once.
+  if (absl::Status valid = engine_->quota().AdmitCreationByUpload(fleet_id);
+      !valid.ok()) {
+    return valid;
+  }
   absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
   if (absl::Status valid = engine_->quota().AdmitNewFleet(
           fleet_id, fleets.ok() ? fleets->size() : node_.fleets_seen());
@@ -194,6 +207,10 @@ std::vector<absl::StatusOr<transport::Uploaded>> ReplicatedMemory::UploadMany(
     refused =
         engine::AdmitShape(engine_->quota(), fleet_id, messages[admitted],
                            &**shape, engine_->options().max_traces_per_upload);
+    if (!refused.ok() && admitted == 0) {
+      // Upload checks the shape again (a deleted fleet's, read before).
+      return FleetMemory::UploadMany(fleet_id, messages, options);
+    }
     if (refused.ok() && !options.forwarded) {
       refused = rates_.AdmitRates(fleet_id, messages[admitted]);
     }
@@ -311,11 +328,14 @@ bool ReplicatedMemory::TakeIfFree(std::string_view fleet_id,
 }
 
 absl::StatusOr<std::optional<engine::FleetShape>> ReplicatedMemory::ShapeOf(
-    std::string_view fleet_id) {
+    std::string_view fleet_id, bool fresh) {
   {
     absl::MutexLock lock(&owners_mu_);
     auto it = shapes_.find(std::string(fleet_id));
-    if (it != shapes_.end()) return it->second;
+    if (it != shapes_.end()) {
+      if (!fresh) return it->second;
+      shapes_.erase(it);
+    }
   }
   absl::StatusOr<std::optional<engine::FleetShape>> shape =
       FleetShapeFromLog(*log_, log_.get(), fleet_id);
@@ -447,15 +467,65 @@ absl::StatusOr<engine::ConsolidateResult> ReplicatedMemory::Consolidate(
 
 absl::StatusOr<std::vector<core::MemoryTrace>> ReplicatedMemory::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-    std::string_view request_id) {
+    std::string_view request_id, const core::ReadFilter* filter) {
   // Checked before it is logged, as in embedded mode (EmbeddedMemory).
-  if (absl::Status valid =
-          engine_->CheckSampleReplay(fleet_id, robot_id, count, request_id);
+  if (absl::Status valid = engine_->CheckSampleReplay(fleet_id, robot_id, count,
+                                                      request_id, filter);
       !valid.ok()) {
     return valid;
   }
   return node_.materialiser().SampleReplay(fleet_id, robot_id, count,
-                                           request_id);
+                                           request_id, filter);
+}
+
+absl::StatusOr<engine::AppliedRecord> ReplicatedMemory::Call(
+    std::string_view fleet_id, const engine::LogRecord& call) {
+  absl::StatusOr<engine::AppliedRecord> applied =
+      node_.materialiser().Call(fleet_id, call);
+  if (applied.ok() && std::holds_alternative<engine::DeleteFleetRecord>(call)) {
+    absl::MutexLock lock(&owners_mu_);
+    shapes_.erase(std::string(fleet_id));  // the next fleet may differ
+  }
+  return applied;
+}
+
+absl::Status ReplicatedMemory::CreateFleet(
+    std::string_view fleet_id, const engine::CreateFleetRecord& create) {
+  // Read afresh: a shape this replica read before may be a deleted fleet's.
+  absl::StatusOr<std::optional<engine::FleetShape>> shape =
+      ShapeOf(fleet_id, /*fresh=*/true);
+  if (!shape.ok()) return shape.status();
+  const absl::Status exists = absl::AlreadyExistsError(absl::StrCat(
+      "fleet \"", V(fleet_id),
+      "\" exists already (made by CreateFleet or its first upload); "
+      "UpdateFleet changes its settings"));
+  if (shape->has_value()) return exists;
+  absl::Status valid =
+      engine_->quota().AdmitDimension(fleet_id, create.code_dimension);
+  if (valid.ok()) {
+    absl::StatusOr<std::vector<std::string>> fleets = log_->Fleets();
+    valid = engine_->quota().AdmitNewFleet(
+        fleet_id, fleets.ok() ? fleets->size() : node_.fleets_seen());
+  }
+  if (!valid.ok()) return valid;
+  // Only as the log's first entry: of two creations (or a creation and a
+  // first upload) at once, one makes the fleet. The id makes a retry of a
+  // lost answer a duplicate.
+  const std::string id = absl::StrCat("create-fleet:", V(fleet_id));
+  const engine::LogAppend append{create, id};
+  absl::StatusOr<std::vector<engine::AppendedEntry>> appended =
+      log_->Append(fleet_id, {&append, 1}, {.only_first = true});
+  if (absl::IsFailedPrecondition(appended.status())) return exists;
+  if (!appended.ok()) return appended.status();
+  // Applied by whichever replica takes the fleet: this one if none holds
+  // it, so that a GetFleet right after finds it here.
+  std::string holder;
+  if (Serves(fleet_id) || TakeIfFree(fleet_id, &holder)) {
+    absl::StatusOr<StepResult> caught_up =
+        node_.materialiser().CatchUp(fleet_id);
+    if (!caught_up.ok()) return caught_up.status();
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace fleetmem::cluster

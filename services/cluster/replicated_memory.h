@@ -81,6 +81,8 @@ class ReplicatedMemory final : public transport::FleetMemory {
       const transport::UploadOptions& options) override;
   // Entries of the fleet's log not applied yet, for a fleet owned here (one
   // call to NATS); zeros for the others.
+  // Shared by every replica: the log's bucket (nats_aliases.h).
+  engine::AliasTable& aliases() override { return log_->aliases(); }
   engine::Backlog Backlog(std::string_view fleet_id) override;
   absl::StatusOr<std::optional<std::string>> Owner(
       std::string_view fleet_id) override;
@@ -113,7 +115,14 @@ class ReplicatedMemory final : public transport::FleetMemory {
       std::string_view fleet_id) override;
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-      std::string_view request_id) override;
+      std::string_view request_id, const core::ReadFilter* filter) override;
+  absl::StatusOr<engine::AppliedRecord> Call(
+      std::string_view fleet_id, const engine::LogRecord& call) override;
+  // Appended by the receiving replica as the fleet's log's first entry
+  // (as a first upload is: Create), then taken here if no replica owns
+  // the fleet, and applied.
+  absl::Status CreateFleet(std::string_view fleet_id,
+                           const engine::CreateFleetRecord& create) override;
 
  private:
   // The last holder read for each fleet: used while the lease table cannot
@@ -125,13 +134,16 @@ class ReplicatedMemory final : public transport::FleetMemory {
   std::vector<std::string> known_fleets_ ABSL_GUARDED_BY(owners_mu_);
 
   // The shape of each fleet, read from the first entry of its log (it
-  // never changes once a fleet exists).
+  // changes only when the fleet is deleted and made anew: read again,
+  // `fresh`, where a shape does not fit).
   absl::flat_hash_map<std::string, engine::FleetShape> shapes_
       ABSL_GUARDED_BY(owners_mu_);
   // What uploads to the fleet must match: its first upload's, from its
-  // log; nullopt for a fleet without a log (this upload fixes it).
+  // log (after a DeleteFleet's snapshot, the first entry since); nullopt
+  // for a fleet without a log (this upload fixes it). `fresh`: not the
+  // shape read before.
   absl::StatusOr<std::optional<engine::FleetShape>> ShapeOf(
-      std::string_view fleet_id);
+      std::string_view fleet_id, bool fresh = false);
 
   // `node` with the Materialiser's calls appended through writes_.
   ClusterNodeOptions WithCallsThroughTheWritePath(ClusterNodeOptions node);

@@ -59,6 +59,23 @@ absl::Status RemoveTree(const std::string& path) {
   return absl::OkStatus();
 }
 
+uint64_t BytesUnder(const std::string& directory, std::string_view skip) {
+  uint64_t bytes = 0;
+  std::error_code error;
+  for (auto it =
+           std::filesystem::recursive_directory_iterator(directory, error);
+       !error && it != std::filesystem::recursive_directory_iterator();
+       it.increment(error)) {
+    if (!skip.empty() && it->path().native().starts_with(skip)) continue;
+    std::error_code size_error;
+    if (it->is_regular_file(size_error)) {
+      const uint64_t size = it->file_size(size_error);
+      if (!size_error) bytes += size;
+    }
+  }
+  return bytes;
+}
+
 absl::StatusOr<std::unique_ptr<DirectoryLock>> DirectoryLock::Take(
     const std::string& directory, const std::string& lock_name) {
   const std::string path = absl::StrCat(directory, "/", lock_name);

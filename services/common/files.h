@@ -5,8 +5,10 @@
 #ifndef FLEETMEM_SERVICES_COMMON_FILES_H_
 #define FLEETMEM_SERVICES_COMMON_FILES_H_
 
+#include <cstdint>
 #include <memory>
 #include <string>
+#include <string_view>
 
 #include "absl/status/statusor.h"
 
@@ -25,6 +27,11 @@ absl::StatusOr<std::string> MakeTempDir(const std::string& prefix);
 
 // Removes `path` and everything below it; a missing path is OK.
 absl::Status RemoveTree(const std::string& path);
+
+// Bytes of the regular files below `directory`, but those whose path starts
+// with `skip` (when set): what a directory takes, for tests and benchmarks.
+// Files that vanish during the walk count as nothing.
+uint64_t BytesUnder(const std::string& directory, std::string_view skip = {});
 
 // An exclusive lock on a directory, held while the object lives (flock on
 // DIRECTORY/LOCK_NAME, released by the kernel when the process ends, also

@@ -64,6 +64,14 @@ ClosestPairOptions ClosestPairOptionsFor(const MemoryOptions& options) {
 
 }  // namespace
 
+bool PlansAlike(const MemoryOptions& a, const MemoryOptions& b) {
+  return a.clusters_per_batch == b.clusters_per_batch &&
+         a.max_traces_per_cluster == b.max_traces_per_cluster &&
+         a.spatial_scale_m == b.spatial_scale_m &&
+         a.clustering == b.clustering &&
+         a.kmeans_max_iterations == b.kmeans_max_iterations;
+}
+
 StaticMemory::StaticMemory(MemoryOptions options)
     : options_(std::move(options)),
       centroids_(ClosestPairOptionsFor(options_)) {}
@@ -80,6 +88,7 @@ ConsolidationPlan PlanConsolidation(const MemoryOptions& options,
                                     const std::vector<MemoryTrace>& batch,
                                     std::mt19937_64& rng) {
   ConsolidationPlan plan;
+  plan.options = options;
   if (batch.empty()) return plan;
   plan.keys.reserve(batch.size());
   for (const MemoryTrace& trace : batch) plan.keys.push_back(trace.key());
@@ -175,13 +184,15 @@ std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
 }
 
 std::vector<MemoryTrace> StaticMemory::SampleForReplayInMemoryOrder(
-    size_t count, std::mt19937_64& rng) {
+    size_t count, std::mt19937_64& rng,
+    const std::function<bool(const MemoryTrace&)>& accept) {
   std::vector<MemoryTrace*> order;
   std::vector<double> weights;
   order.reserve(trace_count_);
   weights.reserve(trace_count_);
   for (auto& [id, cluster] : clusters_) {
     for (MemoryTrace& trace : cluster.traces) {
+      if (accept && !accept(trace)) continue;
       order.push_back(&trace);
       weights.push_back(ReplayWeight(trace.reward, trace.replay_count,
                                      options_.replay_decay,
@@ -214,6 +225,100 @@ const MemoryTrace* StaticMemory::Find(const TraceKey& key) const {
   auto found = location_.find(*packed);
   if (found == location_.end()) return nullptr;
   return slot_trace_[found->second.slot];
+}
+
+void StaticMemory::SetOptions(const MemoryOptions& options) {
+  const bool reweigh = options.replay_decay != options_.replay_decay ||
+                       options.reward_floor != options_.reward_floor;
+  options_ = options;
+  if (!reweigh) return;
+  for (uint32_t slot = 0; slot < slot_trace_.size(); ++slot) {
+    const MemoryTrace* trace = slot_trace_[slot];
+    if (trace == nullptr) continue;
+    replay_.Set(slot,
+                ReplayWeight(trace->reward, trace->replay_count,
+                             options_.replay_decay, options_.reward_floor));
+  }
+}
+
+RemovalResult StaticMemory::Remove(std::span<const TraceKey> keys,
+                                   const CodeOf& code_of) {
+  // The held traces among `keys`, by cluster.
+  std::map<uint64_t, absl::flat_hash_set<PackedTraceKey>> leaving;
+  for (const TraceKey& key : keys) {
+    const std::optional<PackedTraceKey> packed =
+        robots_.Find(key.robot_id, key.seq);
+    if (!packed.has_value()) continue;
+    auto found = location_.find(*packed);
+    if (found == location_.end()) continue;
+    leaving[found->second.cluster_id].insert(*packed);
+  }
+  RemovalResult result;
+  for (const auto& [cluster_id, packed_keys] : leaving) {
+    Cluster cluster = Erase(cluster_id);
+    std::vector<MemoryTrace> kept;
+    kept.reserve(cluster.traces.size());
+    for (MemoryTrace& trace : cluster.traces) {
+      const bool leaves =
+          packed_keys.contains(*robots_.Find(trace.robot_id, trace.seq));
+      (leaves ? result.removed : kept).push_back(std::move(trace));
+    }
+    if (kept.empty()) {
+      cluster.traces.clear();
+      result.emptied.push_back(std::move(cluster));
+      continue;
+    }
+    // The centroid of what the cluster keeps, from every kept code (one
+    // that neither the memory nor code_of has is left out; none: the
+    // centroid stays).
+    Eigen::VectorXd sum;
+    size_t summed = 0;
+    for (const MemoryTrace& trace : kept) {
+      MemoryTrace probe;
+      const MemoryTrace* with_code = &trace;
+      if (trace.code.empty()) {
+        probe.code = code_of(trace);
+        probe.place = trace.place;
+        with_code = &probe;
+      }
+      if (with_code->code.size() + 3 !=
+          static_cast<size_t>(cluster.centroid.size())) {
+        continue;
+      }
+      const Eigen::VectorXd c =
+          FeatureSpatialCode(*with_code, options_.spatial_scale_m)
+              .cast<double>();
+      if (sum.size() == 0) {
+        sum = c;
+      } else {
+        sum += c;
+      }
+      ++summed;
+    }
+    if (summed > 0) cluster.centroid = Mean(sum, summed);
+    cluster.traces = std::move(kept);
+    Insert(std::move(cluster));
+    // The copy handed back holds no codes the memory dropped either.
+    result.changed.push_back(*WithCentroid(cluster_id));
+  }
+  return result;
+}
+
+bool StaticMemory::SetReward(const TraceKey& key, float reward_external,
+                             float reward_internal) {
+  const std::optional<PackedTraceKey> packed =
+      robots_.Find(key.robot_id, key.seq);
+  if (!packed.has_value()) return false;
+  auto found = location_.find(*packed);
+  if (found == location_.end()) return false;
+  MemoryTrace& trace = *slot_trace_[found->second.slot];
+  trace.reward_external = reward_external;
+  trace.reward_internal = reward_internal;
+  trace.reward = reward_external + reward_internal;
+  replay_.Set(found->second.slot,
+              ReplayWeight(trace.reward, trace.replay_count,
+                           options_.replay_decay, options_.reward_floor));
+  return true;
 }
 
 bool StaticMemory::DropCode(const TraceKey& key) {

@@ -6,9 +6,11 @@
 #define FLEETMEM_SERVICES_CORE_STATIC_MEMORY_H_
 
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <optional>
 #include <random>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -53,6 +55,24 @@ struct ConsolidationResult {
   std::vector<uint64_t> changed;
 };
 
+// What one removal of traces changed (StaticMemory::Remove); the caller
+// persists it.
+struct RemovalResult {
+  // The traces removed, as they were held (a dropped code stays empty).
+  std::vector<MemoryTrace> removed;
+  // Held clusters that lost traces but not all, as they are now, each with
+  // its centroid recomputed from the traces it keeps; ascending by id.
+  std::vector<Cluster> changed;
+  // Clusters that lost every trace: no longer held. As they were before,
+  // with their centroids, without traces (they are in `removed`);
+  // ascending by id.
+  std::vector<Cluster> emptied;
+};
+
+// The code of a held trace whose code the memory dropped (DropCode): the
+// caller keeps the codes elsewhere.
+using CodeOf = std::function<std::vector<float>(const MemoryTrace& trace)>;
+
 // The part of Algorithm 1 that depends on the batch alone (feature-spatial
 // codes, k-means, downsampling, the kept traces' centroids): pure, so a
 // caller may compute it without holding the memory's lock and hand it to
@@ -66,6 +86,9 @@ struct ConsolidationPlan {
   std::vector<std::vector<float>> centroids;
   // The batch's trace keys, in order: the plan fits only this batch.
   std::vector<TraceKey> keys;
+  // The options it was planned under (K, N_max, ...): it fits a memory
+  // whose options plan alike (PlansAlike).
+  MemoryOptions options;
 };
 
 // Plans the consolidation of `batch` (one robot's segment) under `options`:
@@ -75,6 +98,10 @@ struct ConsolidationPlan {
 ConsolidationPlan PlanConsolidation(const MemoryOptions& options,
                                     const std::vector<MemoryTrace>& batch,
                                     std::mt19937_64& rng);
+
+// True if `a` and `b` plan a batch alike (the options PlanConsolidation
+// reads: K, N_max, the spatial scale, clustering, k-means iterations).
+bool PlansAlike(const MemoryOptions& a, const MemoryOptions& b);
 
 class StaticMemory {
  public:
@@ -133,8 +160,26 @@ class StaticMemory {
   // draw the same ones from equal generators, however each was built (one
   // consolidated live, another restored). Distributed mode draws this way.
   // O(trace_count() log count) (SampleWithoutReplacement).
-  std::vector<MemoryTrace> SampleForReplayInMemoryOrder(size_t count,
-                                                        std::mt19937_64& rng);
+  // With `accept`, only the traces it accepts are drawn (a filtered
+  // replay), with the same weights.
+  std::vector<MemoryTrace> SampleForReplayInMemoryOrder(
+      size_t count, std::mt19937_64& rng,
+      const std::function<bool(const MemoryTrace&)>& accept = nullptr);
+
+  // Removes the held traces among `keys` (the others are passed over): a
+  // cluster that keeps some of its traces gets its centroid recomputed as
+  // the mean feature-spatial code of those it keeps (`code_of` gives the
+  // codes the memory dropped; a trace whose code it cannot give, an empty
+  // one, is left out of the mean), so that nothing removed weighs on
+  // forgetting any more; a cluster left empty is no longer held. The
+  // replay sampler and the per-robot and per-domain counts follow.
+  RemovalResult Remove(std::span<const TraceKey> keys, const CodeOf& code_of);
+
+  // Sets the rewards of the held trace `key`: R_ex, R_in and R = R_ex +
+  // R_in (Eq. 13), its replay weight gamma^n * R (Eq. 18) following. The
+  // caller validates them (finite, R >= 0). False if the trace is not held.
+  bool SetReward(const TraceKey& key, float reward_external,
+                 float reward_internal);
 
   // The trace with this key, or nullptr. Valid until the next mutation.
   const MemoryTrace* Find(const TraceKey& key) const;
@@ -163,6 +208,12 @@ class StaticMemory {
     return traces_by_domain_;
   }
   const MemoryOptions& options() const { return options_; }
+  // Takes new options (a fleet's UpdateFleet): every later consolidation,
+  // forgetting and draw uses them; the replay weights of the traces held
+  // follow a new gamma or reward floor now (O(traces)). Forgetting's
+  // tracker keeps its own (forgetting_exact_below, seed). `options` must
+  // pass ValidateMemoryOptions.
+  void SetOptions(const MemoryOptions& options);
 
  private:
   // Adds the cluster and its traces; its centroid to forgetting's tracker

@@ -686,3 +686,108 @@ TEST(StaticMemoryTest, RestoreAllReconcilesCentroidsSavedEarlier) {
 
 }  // namespace
 }  // namespace fleetmem::core
+
+namespace fleetmem::core {
+namespace {
+
+std::vector<TraceKey> KeysOf(const std::vector<MemoryTrace>& traces,
+                             const std::string& robot) {
+  std::vector<TraceKey> keys;
+  for (const MemoryTrace& t : traces) {
+    if (t.robot_id == robot) keys.push_back(t.key());
+  }
+  return keys;
+}
+
+TEST(StaticMemoryTest, RemovedTracesLeaveAndTheirClustersFollow) {
+  MemoryOptions options;
+  options.clusters_per_batch = 4;
+  StaticMemory memory(options);
+  std::mt19937_64 rng(5);
+  memory.Consolidate(Segment("a", 1, 40, rng), 1, rng);
+  memory.Consolidate(Segment("b", 1, 40, rng), 5, rng);
+  // Robot a's codes, by key, for the centroids' recomputation; one of them
+  // dropped by the memory as the engine's index keeps it.
+  std::map<TraceKey, std::vector<float>> codes;
+  std::vector<MemoryTrace> held;
+  for (const auto& [id, cluster] : memory.clusters()) {
+    for (const MemoryTrace& t : cluster.traces) {
+      codes[t.key()] = t.code;
+      held.push_back(t);
+    }
+  }
+  const size_t before = memory.trace_count();
+  // Half of b's traces and every one of a's, and a key never held.
+  std::vector<TraceKey> leaving = KeysOf(held, "a");
+  std::vector<TraceKey> of_b = KeysOf(held, "b");
+  leaving.insert(leaving.end(), of_b.begin(), of_b.begin() + of_b.size() / 2);
+  leaving.push_back(TraceKey{"nobody", 3});
+  ASSERT_TRUE(memory.DropCode(of_b.back()));
+  const RemovalResult removal = memory.Remove(
+      leaving, [&](const MemoryTrace& t) { return codes.at(t.key()); });
+
+  EXPECT_EQ(removal.removed.size(), leaving.size() - 1);
+  EXPECT_EQ(memory.trace_count(), before - removal.removed.size());
+  for (const TraceKey& key : leaving) EXPECT_EQ(memory.Find(key), nullptr);
+  EXPECT_FALSE(memory.traces_by_robot().contains("a"));
+  ExpectInvariants(memory);
+  // a's clusters held only a's traces: they left whole.
+  for (const Cluster& emptied : removal.emptied) {
+    EXPECT_EQ(memory.clusters().count(emptied.id), 0u);
+    EXPECT_FALSE(emptied.centroid.empty());
+  }
+  EXPECT_GE(removal.emptied.size(), 1u);
+  // A changed cluster's centroid is the mean of what it keeps.
+  for (const Cluster& changed : removal.changed) {
+    Eigen::VectorXd sum = Eigen::VectorXd::Zero(kDim + 3);
+    for (const MemoryTrace& t : changed.traces) {
+      MemoryTrace probe = t;
+      probe.code = codes.at(t.key());
+      sum += FeatureSpatialCode(probe, options.spatial_scale_m).cast<double>();
+    }
+    sum /= static_cast<double>(changed.traces.size());
+    ASSERT_EQ(changed.centroid.size(), static_cast<size_t>(kDim + 3));
+    for (int d = 0; d < kDim + 3; ++d) {
+      EXPECT_NEAR(changed.centroid[d], sum[d], 1e-5);
+    }
+    EXPECT_EQ(memory.WithCentroid(changed.id)->centroid, changed.centroid);
+  }
+  // Removing again changes nothing; replay draws only what is held.
+  EXPECT_TRUE(memory.Remove(leaving, nullptr).removed.empty());
+  const std::vector<MemoryTrace> drawn = memory.SampleForReplay(1000, rng);
+  EXPECT_EQ(drawn.size(), memory.trace_count());
+  for (const MemoryTrace& t : drawn) EXPECT_EQ(t.robot_id, "b");
+  // Forgetting still works on what is left.
+  memory.Consolidate(Segment("c", 1, 40, rng), 9, rng);
+  ExpectInvariants(memory);
+}
+
+TEST(StaticMemoryTest, ANewRewardChangesTheReplayWeight) {
+  MemoryOptions options;
+  options.replay_decay = 1.0;
+  StaticMemory memory(options);
+  for (uint64_t id = 1; id <= 2; ++id) {
+    memory.Restore(OneTraceCluster(id, std::vector<float>(kDim, id), 1.0f,
+                                   options.spatial_scale_m));
+  }
+  // Trace ("old", 2) gets almost all the weight: drawn first nearly always.
+  ASSERT_TRUE(memory.SetReward(TraceKey{"old", 2}, 900.0f, 99.0f));
+  EXPECT_FALSE(memory.SetReward(TraceKey{"old", 7}, 1.0f, 1.0f));
+  const MemoryTrace* rescored = memory.Find(TraceKey{"old", 2});
+  EXPECT_FLOAT_EQ(rescored->reward, 999.0f);
+  EXPECT_FLOAT_EQ(rescored->reward_external, 900.0f);
+  EXPECT_FLOAT_EQ(rescored->reward_internal, 99.0f);
+  int first = 0;
+  for (int trial = 0; trial < 200; ++trial) {
+    StaticMemory copy(options);
+    for (const auto& [id, cluster] : memory.clusters()) {
+      copy.Restore(*memory.WithCentroid(id));
+    }
+    std::mt19937_64 rng(trial);
+    if (copy.SampleForReplay(1, rng)[0].seq == 2) ++first;
+  }
+  EXPECT_GE(first, 195);
+}
+
+}  // namespace
+}  // namespace fleetmem::core

@@ -52,6 +52,14 @@ struct MemoryTrace {
   TraceKey key() const { return TraceKey{robot_id, seq}; }
 };
 
+// New rewards of one held trace (a fleet's UpdateRewards): R_ex and R_in;
+// R = R_ex + R_in (Eq. 13).
+struct RewardUpdate {
+  TraceKey key;
+  float reward_external = 0.0f;
+  float reward_internal = 0.0f;
+};
+
 // One cluster S_i of the static memory with its centroid mu_i in
 // feature-spatial space (Eq. 14). Ids are never reused and grow with age, so a
 // smaller id is an older cluster (forgetting breaks ties towards it).
@@ -66,10 +74,14 @@ struct Cluster {
 
 // kClusterMerged: forgetting merged the cluster into `merged_into`
 // (MemoryOptions::merge_on_forget); its id is no longer held.
+// kTracesDeleted: a DeleteTraces removed `traces_dropped` traces of the
+// cluster (0: of the pending traces); `trace_count` is what the cluster
+// holds after it (0: it left, empty).
 enum class EventType {
   kClusterAdded = 1,
   kClusterForgotten = 2,
   kClusterMerged = 3,
+  kTracesDeleted = 4,
 };
 
 // A change of a fleet's static memory that robots and dashboards can watch.
@@ -86,6 +98,7 @@ struct MemoryEvent {
   // kClusterMerged: the cluster that took this one's traces, and how many
   // traces of the two the merge dropped (trace_count is this cluster's
   // before the merge; the memory holds traces_dropped fewer traces after).
+  // kTracesDeleted: the traces deleted (trace_count: those left).
   uint64_t merged_into = 0;
   uint32_t traces_dropped = 0;
 };

@@ -12,15 +12,29 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <string_view>
 
 #include "absl/status/status.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_log.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/upload_quota.h"
 
 namespace fleetmem::engine {
+
+// The shape a fleet's log entry gives it when it is the fleet's first: an
+// upload's (its first trace's) or a CreateFleet's; none for another call.
+inline std::optional<FleetShape> ShapeOfEntry(const LogEntry& entry) {
+  if (const auto* create = std::get_if<CreateFleetRecord>(&entry.record)) {
+    return FleetShape{create->code_dimension, create->encoder_version};
+  }
+  const std::span<const core::MemoryTrace> traces = entry.traces();
+  if (traces.empty()) return std::nullopt;
+  return FleetShape{static_cast<uint32_t>(traces[0].code.size()),
+                    traces[0].encoder_version};
+}
 
 // The upload's traces are valid and of the fleet's shape (CheckTraces);
 // for a new fleet (`shape` null), its code dimension within

@@ -8,7 +8,9 @@
 //    replicated (distributed mode);
 //  - services/storage/in_memory_log.h: tests.
 // An entry is a record (an upload, or a call whose effect every replica
-// must agree on: Consolidate, SampleReplay) under a sequence the log
+// must agree on: Consolidate, SampleReplay, DeleteTraces, UpdateRewards,
+// CreateFleet, UpdateFleet)
+// under a sequence the log
 // chooses, growing; a log may skip numbers (JetStream does when a proposal
 // fails as its leader changes).
 #ifndef FLEETMEM_SERVICES_ENGINE_FLEET_LOG_H_
@@ -24,7 +26,9 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "services/core/trace_filter.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_settings.h"
 
 namespace fleetmem::engine {
 
@@ -37,18 +41,56 @@ struct SampleReplayRecord {
   std::string_view robot_id;
   uint64_t count = 0;
   std::string_view request_id;
+  // Only matching traces are drawn; null: any.
+  const core::ReadFilter* filter = nullptr;
 };
+// A DeleteTraces call: the traces `filter` matches when it is applied.
+struct DeleteTracesRecord {
+  core::TraceFilter filter;
+};
+struct UpdateRewardsRecord {
+  std::span<const core::RewardUpdate> updates;
+};
+// A CreateFleet call: a fleet's first entry (AppendOptions::only_first),
+// its shape and settings.
+struct CreateFleetRecord {
+  uint32_t code_dimension = 0;
+  std::string encoder_version;
+  FleetSettings settings;
+};
+// An UpdateFleet call.
+struct UpdateFleetRecord {
+  FleetSettingsUpdate update;
+};
+// Retention's deletes (FleetSettings::max_age_seconds,
+// max_traces_per_robot) as of `now_ns`, the clock of the server that
+// appended it: every replica deletes the same traces.
+struct EnforceRetentionRecord {
+  int64_t now_ns = 0;
+};
+// A DeleteFleet call: the fleet's state goes; entries after it make the
+// fleet anew (MemoryEngine::DeleteFleet).
+struct DeleteFleetRecord {};
 using LogRecord =
-    std::variant<UploadRecord, ConsolidateRecord, SampleReplayRecord>;
+    std::variant<UploadRecord, ConsolidateRecord, SampleReplayRecord,
+                 DeleteTracesRecord, UpdateRewardsRecord, CreateFleetRecord,
+                 UpdateFleetRecord, EnforceRetentionRecord, DeleteFleetRecord>;
 
 // A record as read back from a log: it owns what it holds.
 struct SampleReplayCall {
   std::string robot_id;
   uint64_t count = 0;
   std::string request_id;
+  core::ReadFilter filter;
 };
-using StoredRecord = std::variant<std::vector<core::MemoryTrace>,
-                                  ConsolidateRecord, SampleReplayCall>;
+struct UpdateRewardsCall {
+  std::vector<core::RewardUpdate> updates;
+};
+using StoredRecord =
+    std::variant<std::vector<core::MemoryTrace>, ConsolidateRecord,
+                 SampleReplayCall, DeleteTracesRecord, UpdateRewardsCall,
+                 CreateFleetRecord, UpdateFleetRecord, EnforceRetentionRecord,
+                 DeleteFleetRecord>;
 
 // One entry of a fleet's log, as read.
 struct LogEntry {
@@ -68,10 +110,30 @@ struct LogEntry {
   // The record as the applier takes it (views into this entry).
   LogRecord view() const {
     if (const auto* call = std::get_if<SampleReplayCall>(&record)) {
-      return SampleReplayRecord{call->robot_id, call->count, call->request_id};
+      return SampleReplayRecord{
+          call->robot_id, call->count, call->request_id,
+          call->filter.selects_all() ? nullptr : &call->filter};
     }
     if (std::holds_alternative<ConsolidateRecord>(record)) {
       return ConsolidateRecord{};
+    }
+    if (const auto* call = std::get_if<DeleteTracesRecord>(&record)) {
+      return *call;
+    }
+    if (const auto* call = std::get_if<UpdateRewardsCall>(&record)) {
+      return UpdateRewardsRecord{call->updates};
+    }
+    if (const auto* call = std::get_if<CreateFleetRecord>(&record)) {
+      return *call;
+    }
+    if (const auto* call = std::get_if<UpdateFleetRecord>(&record)) {
+      return *call;
+    }
+    if (const auto* call = std::get_if<EnforceRetentionRecord>(&record)) {
+      return *call;
+    }
+    if (std::holds_alternative<DeleteFleetRecord>(record)) {
+      return DeleteFleetRecord{};
     }
     return UploadRecord{traces()};
   }

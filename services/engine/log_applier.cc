@@ -32,10 +32,48 @@ struct Apply {
     return absl::OkStatus();
   }
   absl::Status operator()(const SampleReplayRecord& call) const {
-    absl::StatusOr<std::vector<core::MemoryTrace>> sample = engine.SampleReplay(
-        fleet_id, call.robot_id, call.count, call.request_id, sequence);
+    absl::StatusOr<std::vector<core::MemoryTrace>> sample =
+        engine.SampleReplay(fleet_id, call.robot_id, call.count,
+                            call.request_id, sequence, call.filter);
     if (!sample.ok()) return sample.status();
     applied.sample = *std::move(sample);
+    return absl::OkStatus();
+  }
+  absl::Status operator()(const DeleteTracesRecord& call) const {
+    absl::StatusOr<DeleteResult> result =
+        engine.DeleteTraces(fleet_id, call.filter, sequence);
+    if (!result.ok()) return result.status();
+    applied.deleted = *result;
+    return absl::OkStatus();
+  }
+  absl::Status operator()(const CreateFleetRecord& call) const {
+    return engine.CreateFleet(fleet_id, call, sequence);
+  }
+  absl::Status operator()(const UpdateFleetRecord& call) const {
+    absl::StatusOr<FleetSettings> result =
+        engine.UpdateFleet(fleet_id, call.update, sequence);
+    if (!result.ok()) return result.status();
+    applied.settings = *std::move(result);
+    return absl::OkStatus();
+  }
+  absl::Status operator()(const EnforceRetentionRecord& call) const {
+    absl::StatusOr<DeleteResult> result =
+        engine.EnforceRetention(fleet_id, call.now_ns, sequence);
+    if (!result.ok()) return result.status();
+    applied.deleted = *result;
+    return absl::OkStatus();
+  }
+  absl::Status operator()(const DeleteFleetRecord&) const {
+    absl::StatusOr<uint64_t> traces = engine.DeleteFleet(fleet_id, sequence);
+    if (!traces.ok()) return traces.status();
+    applied.fleet_deleted = *traces;
+    return absl::OkStatus();
+  }
+  absl::Status operator()(const UpdateRewardsRecord& call) const {
+    absl::StatusOr<RewardsResult> result =
+        engine.UpdateRewards(fleet_id, call.updates, sequence);
+    if (!result.ok()) return result.status();
+    applied.rescored = *std::move(result);
     return absl::OkStatus();
   }
 };

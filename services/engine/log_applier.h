@@ -44,6 +44,10 @@ struct AppliedRecord {
   uint64_t duplicates = 0;
   ConsolidateResult consolidated;         // a ConsolidateRecord's
   std::vector<core::MemoryTrace> sample;  // a SampleReplayRecord's
+  DeleteResult deleted;                   // a DeleteTracesRecord's
+  uint64_t fleet_deleted = 0;             // a DeleteFleetRecord's traces
+  RewardsResult rescored;                 // an UpdateRewardsRecord's
+  FleetSettings settings;                 // an UpdateFleetRecord's, after
 };
 
 // True for the statuses every replica answers alike from the fleet's state

@@ -38,6 +38,15 @@ absl::Status FleetNotFound(std::string_view fleet_id) {
                    "\" does not exist (it is created by its first upload)"));
 }
 
+std::unique_ptr<PlaceIndex> MemoryEngine::NewIndex(
+    size_t dimension, const IndexSettings& index) const {
+  if (index.kind != IndexSettings::Kind::kServer &&
+      options_.fleet_index_factory) {
+    return options_.fleet_index_factory(dimension, index);
+  }
+  return index_factory_(dimension);
+}
+
 const core::MemoryOptions& MemoryEngine::MemoryOptionsFor(
     std::string_view fleet_id) const {
   auto it = options_.fleet_memory.find(fleet_id);
@@ -59,7 +68,9 @@ absl::Status ValidateEngineOptions(const EngineOptions& options) {
       {"segment_size", options.segment_size},
       {"max_traces_per_upload", options.max_traces_per_upload},
       {"max_sample_count", options.max_sample_count},
+      {"max_keys_per_call", options.max_keys_per_call},
       {"max_query_k", options.max_query_k},
+      {"max_query_codes", options.max_query_codes},
       {"max_read_bytes", options.max_read_bytes},
       {"max_events_per_read", options.max_events_per_read},
   };
@@ -246,7 +257,7 @@ absl::StatusOr<ConsolidateResult> MemoryEngine::Consolidate(
 
 absl::Status MemoryEngine::CheckSampleReplay(
     std::string_view fleet_id, std::string_view robot_id, size_t count,
-    std::string_view request_id) const {
+    std::string_view request_id, const core::ReadFilter* filter) const {
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
   if (status.ok()) status = core::ValidateId("robot_id", robot_id);
   if (status.ok() && !request_id.empty()) {
@@ -261,15 +272,18 @@ absl::Status MemoryEngine::CheckSampleReplay(
     return absl::InvalidArgumentError(absl::StrCat(
         "count is ", count, " but must be in 1..", options_.max_sample_count));
   }
+  if (filter != nullptr) return core::ValidateReadFilter("filter", *filter);
   return absl::OkStatus();
 }
 
 absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, size_t count,
-    std::string_view request_id, uint64_t log_position) {
+    std::string_view request_id, uint64_t log_position,
+    const core::ReadFilter* filter) {
   absl::Status status =
-      CheckSampleReplay(fleet_id, robot_id, count, request_id);
+      CheckSampleReplay(fleet_id, robot_id, count, request_id, filter);
   if (!status.ok()) return status;
+  if (filter != nullptr && filter->selects_all()) filter = nullptr;
   Fleet* fleet = Fleet::Find(*this, fleet_id);
   if (fleet == nullptr) return FleetNotFound(fleet_id);
   absl::StatusOr<std::vector<core::MemoryTrace>> traces;
@@ -287,7 +301,7 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::SampleReplay(
           options_.max_read_bytes);
       if (!status.ok()) return status;
       traces = fleet->DrawSample(robot_id, count, request_id, log_position,
-                                 &mutation);
+                                 filter, &mutation);
     }
     if (traces.ok() && !mutation.put_robots.empty()) {
       // Readers may see the incremented counts while they are stored; if

@@ -36,7 +36,10 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "services/core/memory_options.h"
+#include "services/core/trace_filter.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_log.h"
+#include "services/engine/fleet_settings.h"
 #include "services/engine/memory_store.h"
 #include "services/engine/place_index.h"
 #include "services/engine/upload_quota.h"
@@ -56,6 +59,8 @@ struct EngineOptions {
   size_t max_traces_per_upload = 1000;
   // Most traces one SampleReplay may ask for.
   size_t max_sample_count = 10000;
+  // Most traces one UpdateRewards or GetTraces may name.
+  size_t max_keys_per_call = 10000;
   // A SampleReplay applied from a log entry is drawn from a generator
   // seeded by the entry's sequence. With this set (distributed mode) it is
   // drawn in memory order (StaticMemory::SampleForReplayInMemoryOrder,
@@ -64,8 +69,13 @@ struct EngineOptions {
   // whole log) draw the same traces; off (embedded mode: one server), the
   // sublinear draw (StaticMemory::SampleForReplay).
   bool draw_in_memory_order = false;
+  // The index of a fleet whose settings name its own kind (CreateFleet's
+  // IndexSettings); empty: every fleet gets the Open's index factory's.
+  FleetIndexFactory fleet_index_factory;
   // Most matches one QueryPlace may ask for.
   size_t max_query_k = 1000;
+  // Most codes one QueryPlace may carry.
+  size_t max_query_codes = 100;
   // Most bytes of traces one read returns, so that no call can make the
   // server hold an unbounded answer (a REST answer's JSON is about 3.5 times
   // this, gRPC's serialised copy once more). A trace counts 4 bytes per code
@@ -121,12 +131,49 @@ struct ConsolidateResult {
   uint64_t traces = 0;
 };
 
+// What a fleet is (GetFleet): its shape and the settings it runs with.
+struct FleetInfo {
+  FleetShape shape;
+  FleetSettings settings;
+  // The settings are the fleet's own (CreateFleet, UpdateFleet); false:
+  // the server's configuration, which it follows.
+  bool own_settings = false;
+};
+
+// What DeleteTraces did.
+struct DeleteResult {
+  uint64_t deleted = 0;           // traces removed, static memory and pending
+  uint64_t pending_deleted = 0;   // of them, those awaiting consolidation
+  uint64_t clusters_changed = 0;  // kept traces; centroids recomputed
+  uint64_t clusters_removed = 0;  // left empty
+  uint64_t traces = 0;            // static + pending traces after it
+};
+
+// What UpdateRewards did.
+struct RewardsResult {
+  // Traces held (static memory or pending) rescored, each once.
+  uint64_t updated = 0;
+  // The keys named that the fleet does not hold (never uploaded, forgotten,
+  // downsampled or deleted), each once, in the order of their last naming.
+  std::vector<core::TraceKey> not_held;
+};
+
+// What GetTraces found.
+struct TraceLookup {
+  // The traces held, with their codes, in the order named (each once).
+  std::vector<core::MemoryTrace> traces;
+  // The keys named that the fleet does not hold, in the order named.
+  std::vector<core::TraceKey> missing;
+};
+
 struct PlaceQuery {
   std::vector<float> code;
   size_t k = 1;  // 0 means 1
   // Position prior; ignored when radius_m <= 0.
   core::Place near;
   double radius_m = 0.0;
+  // Only traces it matches are considered (none set: every trace).
+  core::ReadFilter filter;
 };
 
 struct PlaceMatch {
@@ -225,6 +272,8 @@ struct EngineHooks {
                      const ConsolidateResult&, double seconds)>
       on_consolidate;
   std::function<void(std::string_view fleet, size_t count)> on_sample;
+  // Retention deleted `traces` of the fleet.
+  std::function<void(std::string_view fleet, uint64_t traces)> on_retention;
   std::function<void(std::string_view fleet, double seconds)> on_query;
   // An index snapshot of the fleet was saved; its mutating calls waited
   // `paused_seconds` for it (the write, not the sync that follows).
@@ -294,12 +343,16 @@ class MemoryEngine {
   // applied every entry through it. NOT_FOUND for an unknown fleet.
   absl::StatusOr<FleetImage> ExportFleet(std::string_view fleet_id,
                                          uint64_t log_position = 0);
+  // A deleted fleet's image (DeleteFleet applied, nothing uploaded since)
+  // is its kept position and ids, no traces.
+  //
   // Replaces whatever this engine holds of the fleet with `image` (one
   // atomic store write: its stored records are erased, the image's put)
-  // and reloads it; a fleet it does not hold is added. INVALID_ARGUMENT,
-  // with nothing changed, for an image of another fleet or of a fleet
-  // without its first upload; the store's error, with nothing changed, if
-  // the write fails.
+  // and reloads it; a fleet it does not hold is added. A deleted fleet's
+  // image leaves the fleet deleted at its position, as DeleteFleet does.
+  // INVALID_ARGUMENT, with nothing changed, for an image of another fleet
+  // or of a fleet without its first upload that is not a deleted one; the
+  // store's error, with nothing changed, if the write fails.
   absl::Status RestoreFleet(std::string_view fleet_id, FleetImage image);
 
   // Consolidates every robot's pending traces (one batch per robot).
@@ -318,19 +371,108 @@ class MemoryEngine {
   // from the fleet's seed and the position, not from the fleet's running
   // generator, so every replica applying the entry draws the same traces;
   // the position is stored with the counts.
+  //
+  // `filter` (optional): only the traces it matches are drawn, with their
+  // weights; the draw then reads every trace held, in memory order
+  // (StaticMemory::SampleForReplayInMemoryOrder).
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, size_t count,
-      std::string_view request_id = {}, uint64_t log_position = 0);
-  // SampleReplay's checks of its arguments alone (ids, count), which need
-  // no fleet: what a writer checks before it logs the call.
-  absl::Status CheckSampleReplay(std::string_view fleet_id,
-                                 std::string_view robot_id, size_t count,
-                                 std::string_view request_id) const;
+      std::string_view request_id = {}, uint64_t log_position = 0,
+      const core::ReadFilter* filter = nullptr);
+  // SampleReplay's checks of its arguments alone (ids, count, the filter if
+  // any), which need no fleet: what a writer checks before it logs the call.
+  absl::Status CheckSampleReplay(
+      std::string_view fleet_id, std::string_view robot_id, size_t count,
+      std::string_view request_id,
+      const core::ReadFilter* filter = nullptr) const;
 
   // Nearest traces to query.code among the static memory's and the pending
   // ones (cluster_id 0), nearest first.
+  // Makes the fleet with `record`'s shape and settings, stored as its own
+  // (a CreateFleet; its log's first entry). FAILED_PRECONDITION if it
+  // exists; CheckCreateFleet's refusals. `log_position` as DeleteTraces'.
+  absl::Status CreateFleet(std::string_view fleet_id,
+                           const CreateFleetRecord& record,
+                           uint64_t log_position = 0);
+  // INVALID_ARGUMENT naming the field: a dimension outside 1..65,536 or
+  // over the server's max_code_dimension, an encoder version or place unit
+  // too long, settings out of range (core::ValidateMemoryOptions),
+  // negative retention.
+  absl::Status CheckCreateFleet(std::string_view fleet_id,
+                                const CreateFleetRecord& record) const;
+  // Changes the fleet's settings (stored as its own from then on): the
+  // next consolidation uses the new K, N_max, K_max and forgetting rule (a
+  // smaller K_max or N_max applies then), the next draw the new gamma.
+  // Returns the settings after it. INVALID_ARGUMENT if the result is out
+  // of range (nothing changed).
+  absl::StatusOr<FleetSettings> UpdateFleet(std::string_view fleet_id,
+                                            const FleetSettingsUpdate& update,
+                                            uint64_t log_position = 0);
+  // The fleet's shape and settings; NOT_FOUND if it does not exist.
+  absl::StatusOr<FleetInfo> GetFleet(std::string_view fleet_id) const;
+
+  // Removes the fleet: everything stored for it goes in one atomic store
+  // write (MemoryStore::DeleteFleet), then its memory and index; the
+  // traces it held (static and pending). Afterwards the fleet does not
+  // exist (NOT_FOUND) until CreateFleet or an upload makes it again, anew
+  // (its settings the server's, its robots' seqs forgotten); its event ids
+  // go on from where they were, so a watch's cursor never meets an old id
+  // again. `log_position` as for DeleteTraces (the delete's entry is kept
+  // as the fleet's position).
+  absl::StatusOr<uint64_t> DeleteFleet(std::string_view fleet_id,
+                                       uint64_t log_position = 0);
+
+  // Removes every trace of the fleet that `filter` matches, from the
+  // static memory and the pending traces, in one atomic store write:
+  // clusters that keep some traces get their centroids recomputed
+  // (StaticMemory::Remove), empty ones leave; one kTracesDeleted event per
+  // cluster touched (and one for the pending traces). The robots' received
+  // seqs stay: a deleted trace uploaded again is a duplicate, not stored.
+  // `filter` must pass ValidateTraceFilter and set some criterion
+  // (INVALID_ARGUMENT: a filter that selects every trace). A non-zero
+  // `log_position` is the log entry's: an entry at or below the fleet's
+  // position was applied already and changes nothing.
+  absl::StatusOr<DeleteResult> DeleteTraces(std::string_view fleet_id,
+                                            const core::TraceFilter& filter,
+                                            uint64_t log_position = 0);
+  // Retention (FleetSettings::max_age_seconds, max_traces_per_robot) as
+  // of `now_ns`: a DeleteTraces of the fleet's traces observed before
+  // now - max_age and of each robot's oldest beyond its newest
+  // max_traces_per_robot (by seq), with its events. Nothing for a fleet
+  // without retention.
+  absl::StatusOr<DeleteResult> EnforceRetention(std::string_view fleet_id,
+                                                int64_t now_ns,
+                                                uint64_t log_position = 0);
+  // Checks DeleteTraces' arguments as it does, without the fleet.
+  static absl::Status CheckDeleteTraces(std::string_view fleet_id,
+                                        const core::TraceFilter& filter);
+  // Sets R_ex, R_in and R of the held traces named (static memory: their
+  // replay weights follow, Eq. 18; pending: their downsampling by reward
+  // at consolidation), in one atomic store write. Keys not held are listed,
+  // not refused. `log_position` as for DeleteTraces.
+  absl::StatusOr<RewardsResult> UpdateRewards(
+      std::string_view fleet_id, std::span<const core::RewardUpdate> updates,
+      uint64_t log_position = 0);
+  // INVALID_ARGUMENT naming the update: more than max_keys_per_call, a
+  // malformed robot id, a reward not finite or R_ex + R_in < 0.
+  absl::Status CheckUpdateRewards(
+      std::string_view fleet_id,
+      std::span<const core::RewardUpdate> updates) const;
+  // The held traces with `keys` (static memory or pending), with their
+  // codes. INVALID_ARGUMENT for more than max_keys_per_call keys, a
+  // malformed key, or traces over max_read_bytes.
+  absl::StatusOr<TraceLookup> GetTraces(
+      std::string_view fleet_id, std::span<const core::TraceKey> keys) const;
+
   absl::StatusOr<std::vector<PlaceMatch>> QueryPlace(
       std::string_view fleet_id, const PlaceQuery& query) const;
+  // QueryPlace of `query`'s code and of each of `more_codes` (a robot's
+  // last frames, a sequence search), with `query`'s k and prior, under one
+  // read of the fleet: one answer per code, in order. At most
+  // max_query_codes codes in all; their answers share one max_read_bytes.
+  absl::StatusOr<std::vector<std::vector<PlaceMatch>>> QueryPlaces(
+      std::string_view fleet_id, const PlaceQuery& query,
+      std::span<const std::vector<float>> more_codes) const;
 
   // NOT_FOUND for an unknown fleet.
   absl::StatusOr<FleetStats> GetStats(std::string_view fleet_id) const;
@@ -403,12 +545,30 @@ class MemoryEngine {
 
  private:
   struct Fleet;
+  // Which traces a delete removes (`leaves`), and the selection named in
+  // the pending traces' event.
+  struct Selection {
+    std::function<bool(const core::MemoryTrace&)> leaves;
+    core::TraceFilter filter;
+  };
+  // DeleteTraces and EnforceRetention: the traces `select` picks from the
+  // fleet (under its lock), removed in one store write.
+  absl::StatusOr<DeleteResult> Delete(
+      std::string_view fleet_id, uint64_t log_position,
+      const std::function<Selection(const Fleet&)>& select);
+  // RestoreFleet of a deleted fleet's image: the fleet deleted at
+  // kept.log_position, with kept's ids.
+  absl::Status RestoreDeletedFleet(Fleet& fleet, const FleetMeta& kept);
   MemoryEngine(EngineOptions options, MemoryStore* store,
                PlaceIndexFactory index_factory, EngineHooks hooks);
 
   EngineOptions options_;
   MemoryStore* store_;
   PlaceIndexFactory index_factory_;
+  // An empty index for a fleet with these index settings: the fleet's own
+  // kind (options_.fleet_index_factory) or the server's.
+  std::unique_ptr<PlaceIndex> NewIndex(size_t dimension,
+                                       const IndexSettings& index) const;
   EngineHooks hooks_;
   std::unique_ptr<UploadQuota> quota_;
 

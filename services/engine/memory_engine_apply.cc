@@ -149,6 +149,12 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
     UploadResult* result, PreparedUpload* prepared) {
   absl::Status status = CheckLoaded();
   if (!status.ok()) return status;
+  // An entry at or before the fleet's position is applied already: after a
+  // DeleteFleet its traces must not come back.
+  if (log_position != 0 && log_position <= meta.log_position) {
+    result->duplicates = traces.size();
+    return absl::OkStatus();
+  }
   const bool is_new = !exists();
   status = ValidateUpload(id, traces, is_new ? nullptr : &meta,
                           engine->options_.max_traces_per_upload,
@@ -191,7 +197,10 @@ absl::Status MemoryEngine::Fleet::PrepareUpload(
     mutation.meta = meta;
     mutation.meta.code_dimension = static_cast<uint32_t>(traces[0].code.size());
     mutation.meta.encoder_version = traces[0].encoder_version;
-    prepared->new_index = engine->index_factory_(mutation.meta.code_dimension);
+    prepared->new_index =
+        engine->NewIndex(mutation.meta.code_dimension,
+                         mutation.meta.settings ? mutation.meta.settings->index
+                                                : IndexSettings());
     if (prepared->new_index == nullptr) {
       mutation = FleetMutation{};
       return absl::InternalError(absl::StrCat(
@@ -292,10 +301,9 @@ core::ConsolidationPlan MemoryEngine::Fleet::Plan(
   if (batch.empty()) return {};
   std::mt19937_64 segment_rng(
       SegmentSeed(seed, batch.front().robot_id, batch.front().seq));
-  // The engine's options, not memory's: PlanAhead runs without the lock
-  // that guards memory (the two hold the same options).
-  return core::PlanConsolidation(engine->MemoryOptionsFor(id), batch,
-                                 segment_rng);
+  // The copy of memory's options: PlanAhead runs without the lock that
+  // guards memory.
+  return core::PlanConsolidation(PlanOptions(), batch, segment_rng);
 }
 
 std::optional<core::ConsolidationPlan> MemoryEngine::Fleet::PlanAhead(
@@ -405,10 +413,7 @@ size_t AppendConsolidationEvents(const core::ConsolidationResult& outcome,
   }
   meta.consolidations += 1;
   meta.clusters_forgotten += outcome.forgotten.size() + outcome.merged.size();
-  if (retained > 0 && meta.next_event_id - meta.first_event_id > retained) {
-    meta.first_event_id = meta.next_event_id - retained;
-    mutation.erase_events_before = meta.first_event_id;
-  }
+  RetainEvents(retained, meta, mutation);
   return merge_dropped;
 }
 
@@ -435,10 +440,15 @@ std::vector<core::TraceKey> LeavingTheIndex(
   return removed;
 }
 
-// Whether `plan` (made ahead, without the lock) is the plan of `batch`.
+// Whether `plan` (made ahead, without the lock) is the plan of `batch`
+// under `options` (an UpdateFleet may have changed them since).
 bool PlanFits(const core::ConsolidationPlan* plan,
-              const std::vector<core::MemoryTrace>& batch) {
-  if (plan == nullptr || plan->keys.size() != batch.size()) return false;
+              const std::vector<core::MemoryTrace>& batch,
+              const core::MemoryOptions& options) {
+  if (plan == nullptr || plan->keys.size() != batch.size() ||
+      !core::PlansAlike(plan->options, options)) {
+    return false;
+  }
   for (size_t i = 0; i < batch.size(); ++i) {
     if (plan->keys[i] != batch[i].key()) return false;
   }
@@ -476,7 +486,7 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   const FleetMeta& base =
       notices->staged.empty() ? meta : notices->staged.back().meta;
   const uint64_t first_cluster_id = base.next_cluster_id;
-  const bool fits = PlanFits(plan, batch);
+  const bool fits = PlanFits(plan, batch, memory.options());
   std::optional<core::ConsolidationPlan> own;
   if (!fits) own = Plan(batch);
   core::ConsolidationResult outcome = memory.Consolidate(
@@ -580,7 +590,8 @@ absl::Status MemoryEngine::Fleet::StoreStaged(Notices* notices) {
 
 absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
     std::string_view robot_id, size_t count, std::string_view request_id,
-    uint64_t log_position, FleetMutation* mutation) {
+    uint64_t log_position, const core::ReadFilter* filter,
+    FleetMutation* mutation) {
   RobotRecord record;
   auto known = robots.find(robot_id);
   if (known != robots.end()) {
@@ -600,7 +611,17 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
     return again;
   }
   std::vector<core::MemoryTrace> traces;
-  if (log_position == 0) {
+  if (filter != nullptr) {
+    // Among the matching traces: the sum tree holds every trace's weight,
+    // so a filtered draw reads them all (in memory order, which replicas
+    // share), seeded as below for a logged call.
+    std::mt19937_64 logged_rng(SegmentSeed(seed, "log", log_position));
+    traces = memory.SampleForReplayInMemoryOrder(
+        count, log_position == 0 ? rng : logged_rng,
+        [filter](const core::MemoryTrace& trace) {
+          return filter->Matches(trace);
+        });
+  } else if (log_position == 0) {
     traces = memory.SampleForReplay(count, rng);
   } else {
     // Seeded by the entry. In memory order: the same draw on every replica

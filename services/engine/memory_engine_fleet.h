@@ -150,6 +150,17 @@ inline absl::Status ValidateUpload(std::string_view fleet_id,
   return absl::OkStatus();
 }
 
+// Event retention (EngineOptions::max_events_per_fleet): once `meta`'s
+// events are more than `retained` (0: all kept), the oldest are erased by
+// `mutation`.
+inline void RetainEvents(size_t retained, FleetMeta& meta,
+                         FleetMutation& mutation) {
+  if (retained > 0 && meta.next_event_id - meta.first_event_id > retained) {
+    meta.first_event_id = meta.next_event_id - retained;
+    mutation.erase_events_before = meta.first_event_id;
+  }
+}
+
 inline void Accumulate(const ConsolidateResult& batch,
                        ConsolidateResult* total) {
   total->consolidated_traces += batch.consolidated_traces;
@@ -194,14 +205,15 @@ struct LoadedSnapshot {
   double index_seconds = 0;
 };
 
-// One fleet's state. Every member but `id`, `engine` and the two mutexes is
-// guarded by `mu`.
+// One fleet's state. Every member but `id`, `engine`, the mutexes and
+// `plan_options` is guarded by `mu`.
 struct MemoryEngine::Fleet {
   Fleet(std::string fleet_id, const MemoryEngine* owner)
       : id(std::move(fleet_id)),
         engine(owner),
         memory(owner->MemoryOptionsFor(id)),
         seed(FleetSeed(memory.options().seed, id)),
+        plan_options(memory.options()),
         rng(seed) {}
 
   // True once the fleet's first upload is durable.
@@ -371,12 +383,70 @@ struct MemoryEngine::Fleet {
   // record; a retry of the previous request returns its traces and leaves
   // `mutation` empty. The caller stores the mutation under the shared lock,
   // then calls FinishSample (or Reload on failure).
-  // A non-zero `log_position` seeds the draw from it and stores it.
+  // A non-zero `log_position` seeds the draw from it and stores it; a
+  // `filter` draws among the traces it matches only.
   absl::StatusOr<std::vector<core::MemoryTrace>> DrawSample(
       std::string_view robot_id, size_t count, std::string_view request_id,
-      uint64_t log_position, FleetMutation* mutation)
-      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+      uint64_t log_position, const core::ReadFilter* filter,
+      FleetMutation* mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   void FinishSample(FleetMutation mutation) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // DeleteTraces' change of memory, the pending traces and the index
+  // (exclusive lock), and the store write that makes it durable
+  // (`mutation`, with the fleet's new meta): the caller stores it, then
+  // publishes the meta, or reloads on failure. On an error here the fleet
+  // is reloaded and nothing is to be stored.
+  // `leaves` says which traces go; `filter` names the robot and domain of
+  // the pending traces' event (empty for retention's).
+  absl::Status StageDelete(
+      const std::function<bool(const core::MemoryTrace&)>& leaves,
+      const core::TraceFilter& filter, uint64_t log_position,
+      DeleteResult* result, FleetMutation* mutation)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // The traces retention deletes as of `now_ns` (the fleet's settings:
+  // older than max_age_seconds, or beyond a robot's newest
+  // max_traces_per_robot by seq).
+  std::function<bool(const core::MemoryTrace&)> RetentionLeaves(
+      int64_t now_ns) const ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // UpdateRewards' change of memory and the pending traces, and its store
+  // write, as StageDelete.
+  absl::Status StageRewards(std::span<const core::RewardUpdate> updates,
+                            uint64_t log_position, RewardsResult* result,
+                            FleetMutation* mutation)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Stores `mutation`, which memory shows already (readers see it while it
+  // is written), under the shared lock; then publishes its meta, or
+  // reloads the fleet (memory back to what the store holds) and returns the
+  // store's error. The caller holds writer_mu.
+  absl::Status StoreMutation(const FleetMutation& mutation)
+      ABSL_LOCKS_EXCLUDED(mu);
+  // The meta a log entry's apply stores: `meta` with the entry's position
+  // (no change for a direct call, or an entry below the position).
+  void AdvancePosition(uint64_t log_position, FleetMutation* mutation) const
+      ABSL_SHARED_LOCKS_REQUIRED(mu);
+  // The options memory consolidates with: the fleet's own settings if it
+  // has any stored, else the server's.
+  core::MemoryOptions OptionsOf(const FleetMeta& stored) const {
+    return stored.settings ? stored.settings->memory
+                           : engine->MemoryOptionsFor(id);
+  }
+  // Memory takes `options`, and Plan made outside the lock follows.
+  void SetOptions(const core::MemoryOptions& options)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
+    memory.SetOptions(options);
+    absl::MutexLock lock(&plan_options_mu);
+    plan_options = options;
+  }
+  core::MemoryOptions PlanOptions() const {
+    absl::MutexLock lock(&plan_options_mu);
+    return plan_options;
+  }
+  // The fleet's settings as they apply now: its own, or the server's.
+  FleetSettings Settings() const ABSL_SHARED_LOCKS_REQUIRED(mu) {
+    if (meta.settings) return *meta.settings;
+    FleetSettings settings;
+    settings.memory = memory.options();
+    return settings;
+  }
   // Sets `held` from memory (after every change of its trace count).
   void PublishHeld() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu) {
     held.store(memory.trace_count() + pending.size(),
@@ -447,6 +517,9 @@ struct MemoryEngine::Fleet {
   // The fleet's seed; replay draws from `rng`, and each segment's k-means
   // from a generator of its own (SegmentSeed).
   const uint64_t seed;
+  // A copy of memory's options for Plan, which runs without `mu`.
+  mutable absl::Mutex plan_options_mu ABSL_ACQUIRED_AFTER(mu);
+  core::MemoryOptions plan_options ABSL_GUARDED_BY(plan_options_mu);
   std::mt19937_64 rng ABSL_GUARDED_BY(mu);
 };
 

@@ -43,15 +43,20 @@ void ReturnFreedMemory() {
 #endif
 }
 
-// Version of the engine's part of an index snapshot.
-constexpr uint32_t kIndexSnapshotFormat = 0x454e4731;  // "ENG1"
+// Version of the engine's part of an index snapshot: ENG2 records the
+// fleet's index settings (its kind, HNSW's M and ef) after the dimension,
+// so that a fleet with its own index loads its snapshot into one of that
+// kind; ENG1 (before) is read as the server's kind.
+constexpr uint32_t kIndexSnapshotFormatV1 = 0x454e4731;  // "ENG1"
+constexpr uint32_t kIndexSnapshotFormat = 0x454e4732;    // "ENG2"
 
 // Reads `fleet_id`'s index snapshot through `store` and loads its index
-// (made by `factory` for the snapshot's dimension). Needs nothing of the
+// (made by `factory` for the snapshot's dimension and index settings).
+// Needs nothing of the
 // fleet, so it runs beside the store's LoadFleet (each is seconds long at
 // 1,000,000 traces).
 LoadedSnapshot ReadSnapshot(MemoryStore& store,
-                            const PlaceIndexFactory& factory,
+                            const FleetIndexFactory& factory,
                             std::string_view fleet_id) {
   LoadedSnapshot loaded;
   const absl::Time start = absl::Now();
@@ -59,9 +64,23 @@ LoadedSnapshot ReadSnapshot(MemoryStore& store,
       fleet_id, [&](std::span<const char> bytes) -> absl::Status {
         core::ByteReader in(bytes);
         uint32_t format = 0;
-        if (!in.Get(&format) || format != kIndexSnapshotFormat ||
-            !in.Get(&loaded.dimension) || loaded.dimension == 0 ||
-            !in.Get(&loaded.next_handle)) {
+        if (!in.Get(&format) ||
+            (format != kIndexSnapshotFormat &&
+             format != kIndexSnapshotFormatV1) ||
+            !in.Get(&loaded.dimension) || loaded.dimension == 0) {
+          return absl::DataLossError("bad header");
+        }
+        IndexSettings index;
+        if (format == kIndexSnapshotFormat) {
+          int32_t kind = 0;
+          if (!in.Get(&kind) || !in.Get(&index.hnsw_m) ||
+              !in.Get(&index.hnsw_ef_search) || kind < 0 ||
+              kind > static_cast<int32_t>(IndexSettings::Kind::kAuto)) {
+            return absl::DataLossError("bad index settings");
+          }
+          index.kind = static_cast<IndexSettings::Kind>(kind);
+        }
+        if (!in.Get(&loaded.next_handle)) {
           return absl::DataLossError("bad header");
         }
         absl::Status handles = loaded.handles.Load(in, loaded.next_handle);
@@ -74,7 +93,7 @@ LoadedSnapshot ReadSnapshot(MemoryStore& store,
           return absl::DataLossError("truncated centroids");
         }
         loaded.centroids.assign(centroid_bytes.begin(), centroid_bytes.end());
-        loaded.index = factory(loaded.dimension);
+        loaded.index = factory(loaded.dimension, index);
         if (loaded.index == nullptr) {
           return absl::InternalError("no index made");
         }
@@ -100,7 +119,12 @@ absl::Status MemoryEngine::Fleet::Reload() {
   // while this one reads the fleet's traces.
   LoadedSnapshot snapshot;
   auto read_snapshot = [&] {
-    snapshot = ReadSnapshot(*engine->store_, engine->index_factory_, id);
+    snapshot = ReadSnapshot(
+        *engine->store_,
+        [this](size_t dimension, const IndexSettings& index) {
+          return engine->NewIndex(dimension, index);
+        },
+        id);
   };
   std::thread beside;
   try {
@@ -153,7 +177,11 @@ absl::Status MemoryEngine::Fleet::CheckLoaded() const {
 
 void MemoryEngine::Fleet::Reset(const FleetMeta& stored) {
   meta = stored;
-  memory = core::StaticMemory(engine->MemoryOptionsFor(id));
+  memory = core::StaticMemory(OptionsOf(stored));
+  {
+    absl::MutexLock lock(&plan_options_mu);
+    plan_options = memory.options();
+  }
   pending.Clear();
   largest_attachment = 0;
   robots.clear();
@@ -205,7 +233,9 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
   // An empty index of the fleet's dimension (also after a snapshot that
   // could not be reconciled left none).
   auto start_index = [&] {
-    index.Start(engine->index_factory_(meta.code_dimension));
+    index.Start(engine->NewIndex(meta.code_dimension, meta.settings
+                                                          ? meta.settings->index
+                                                          : IndexSettings()));
     if (index.get() != nullptr) return absl::OkStatus();
     return absl::InternalError(
         absl::StrCat("the index factory made no index for fleet \"", id, "\""));
@@ -336,6 +366,11 @@ absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
       [this](core::ByteWriter& out) {
         out.Put<uint32_t>(kIndexSnapshotFormat);
         out.Put<uint32_t>(meta.code_dimension);
+        const IndexSettings settings =
+            meta.settings ? meta.settings->index : IndexSettings();
+        out.Put<int32_t>(static_cast<int32_t>(settings.kind));
+        out.Put<int32_t>(settings.hnsw_m);
+        out.Put<int32_t>(settings.hnsw_ef_search);
         index.SaveHandles(out);
         // Forgetting's centroid bookkeeping, length first so that a load
         // can hand it to memory while the index reads what follows.

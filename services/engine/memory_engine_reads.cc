@@ -60,7 +60,7 @@ absl::Status ValidateQuery(const PlaceQuery& query, size_t max_k) {
   if (query.radius_m > 0.0 && !IsFinitePlace(query.near)) {
     return absl::InvalidArgumentError("near must have finite coordinates");
   }
-  return absl::OkStatus();
+  return core::ValidateReadFilter("filter", query.filter);
 }
 
 }  // namespace
@@ -166,24 +166,60 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::Fleet::MatchesOf(
 
 absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     std::string_view fleet_id, const PlaceQuery& query) const {
-  const absl::Time start = absl::Now();
+  absl::StatusOr<std::vector<std::vector<PlaceMatch>>> answers =
+      QueryPlaces(fleet_id, query, {});
+  if (!answers.ok()) return answers.status();
+  return std::move(answers->front());
+}
+
+namespace {
+
+// QueryPlaces' arguments, before the fleet is read.
+absl::Status CheckQueryPlaces(std::string_view fleet_id,
+                              const PlaceQuery& query,
+                              std::span<const std::vector<float>> more_codes,
+                              const EngineOptions& options) {
   absl::Status status = core::ValidateId("fleet_id", fleet_id);
-  if (status.ok()) status = ValidateQuery(query, options_.max_query_k);
+  if (status.ok()) status = ValidateQuery(query, options.max_query_k);
+  if (status.ok() && more_codes.size() + 1 > options.max_query_codes) {
+    status = absl::InvalidArgumentError(
+        absl::StrCat("codes: ", more_codes.size() + 1, " given; at most ",
+                     options.max_query_codes, " per query"));
+  }
+  for (size_t i = 0; status.ok() && i < more_codes.size(); ++i) {
+    status =
+        core::ValidateCode(absl::StrCat("codes[", i + 1, "]"), more_codes[i]);
+  }
+  return status;
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<std::vector<PlaceMatch>>> MemoryEngine::QueryPlaces(
+    std::string_view fleet_id, const PlaceQuery& query,
+    std::span<const std::vector<float>> more_codes) const {
+  const absl::Time start = absl::Now();
+  absl::Status status = CheckQueryPlaces(fleet_id, query, more_codes, options_);
   if (!status.ok()) return status;
   const bool use_prior = query.radius_m > 0.0;
   Fleet* fleet = Fleet::Find(*this, fleet_id);
   if (fleet == nullptr) return FleetNotFound(fleet_id);
 
-  std::vector<PlaceMatch> matches;
+  std::vector<std::vector<PlaceMatch>> answers;
   {
     absl::ReaderMutexLock lock(&fleet->mu);
     status = fleet->CheckLoaded();
     if (!status.ok()) return status;
     if (!fleet->exists()) return FleetNotFound(fleet_id);
-    if (query.code.size() != fleet->meta.code_dimension) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "code has dimension ", query.code.size(), " but fleet \"",
-          V(fleet_id), "\" uses ", fleet->meta.code_dimension));
+    for (size_t i = 0; i <= more_codes.size(); ++i) {
+      const std::span<const float> code =
+          i == 0 ? std::span<const float>(query.code) : more_codes[i - 1];
+      if (code.size() != fleet->meta.code_dimension) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            i == 0 ? std::string("code") : absl::StrCat("codes[", i, "]"),
+            " has dimension ", code.size(), " but fleet \"", V(fleet_id),
+            "\" uses ", fleet->meta.code_dimension));
+      }
     }
     if (fleet->index.get() == nullptr) {
       return absl::InternalError(
@@ -192,29 +228,43 @@ absl::StatusOr<std::vector<PlaceMatch>> MemoryEngine::QueryPlace(
     SearchParams params;
     params.k = std::max<size_t>(query.k, 1);
     params.unit_query = true;  // as the codes were added (AddNormalized)
-    if (use_prior) {
-      params.accept = [fleet, &query](uint64_t handle) {
+    const bool use_filter = !query.filter.selects_all();
+    if (use_prior || use_filter) {
+      params.accept = [fleet, &query, use_prior, use_filter](uint64_t handle) {
         const std::optional<core::TraceKey> key = fleet->index.KeyOf(handle);
         if (!key.has_value()) return false;
         const core::MemoryTrace* trace = fleet->FindTrace(*key);
         return trace != nullptr &&
-               PlaceDistance(trace->place, query.near) <= query.radius_m;
+               (!use_prior ||
+                PlaceDistance(trace->place, query.near) <= query.radius_m) &&
+               (!use_filter || query.filter.Matches(*trace));
       };
     }
-    std::vector<std::vector<float>> codes;  // the index's, where it can
-    params.codes = &codes;
-    absl::StatusOr<std::vector<Neighbor>> neighbors =
-        fleet->index.get()->Search(query.code, params);
-    if (!neighbors.ok()) return neighbors.status();
-    absl::StatusOr<std::vector<PlaceMatch>> found =
-        fleet->MatchesOf(*neighbors, codes, query.k, options_.max_read_bytes);
-    if (!found.ok()) return found.status();
-    matches = *std::move(found);
+    // The codes' answers share one max_read_bytes, so that a call of many
+    // codes holds no more than one of one code may.
+    size_t budget = options_.max_read_bytes;
+    for (size_t i = 0; i <= more_codes.size(); ++i) {
+      const std::span<const float> code =
+          i == 0 ? std::span<const float>(query.code) : more_codes[i - 1];
+      std::vector<std::vector<float>> codes;  // the index's, where it can
+      params.codes = &codes;
+      absl::StatusOr<std::vector<Neighbor>> neighbors =
+          fleet->index.get()->Search(code, params);
+      if (!neighbors.ok()) return neighbors.status();
+      absl::StatusOr<std::vector<PlaceMatch>> found =
+          fleet->MatchesOf(*neighbors, codes, query.k, budget);
+      if (!found.ok()) return found.status();
+      for (const PlaceMatch& match : *found) {
+        budget -= std::min(budget, 4 * match.trace.code.size() +
+                                       match.trace.attachment.size());
+      }
+      answers.push_back(*std::move(found));
+    }
   }
   if (hooks_.on_query) {
     hooks_.on_query(fleet_id, absl::ToDoubleSeconds(absl::Now() - start));
   }
-  return matches;
+  return answers;
 }
 
 absl::StatusOr<FleetStats> MemoryEngine::GetStats(
@@ -227,12 +277,15 @@ absl::StatusOr<FleetStats> MemoryEngine::GetStats(
 
 absl::StatusOr<uint64_t> MemoryEngine::LogPosition(
     std::string_view fleet_id) const {
-  absl::StatusOr<uint64_t> position = Fleet::ReadExisting(
-      *this, fleet_id, [](const Fleet& fleet) -> absl::StatusOr<uint64_t> {
-        return fleet.meta.log_position;
-      });
-  if (absl::IsNotFound(position.status())) return 0;
-  return position;
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (!status.ok()) return status;
+  // A deleted fleet keeps its position (the delete's entry), not existing.
+  const Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return 0;
+  absl::ReaderMutexLock lock(&fleet->mu);
+  status = fleet->CheckLoaded();
+  if (!status.ok()) return status;
+  return fleet->meta.log_position;
 }
 
 absl::Status CheckTraces(std::string_view fleet_id,

@@ -118,7 +118,17 @@ absl::StatusOr<FleetImage> MemoryEngine::ExportFleet(std::string_view fleet_id,
     absl::MutexLock lock(&fleet->mu);
     status = fleet->EnsureLoaded();
     if (!status.ok()) return status;
-    if (!fleet->exists()) return FleetNotFound(fleet_id);
+    if (!fleet->exists()) {
+      // Deleted (DeleteFleet kept its position and ids): an image of no
+      // traces that restores the deletion on another replica.
+      if (fleet->meta.log_position == 0) return FleetNotFound(fleet_id);
+      FleetImage deleted;
+      deleted.record.fleet_id = fleet->id;
+      deleted.record.meta = fleet->meta;
+      deleted.record.meta.log_position =
+          std::max(log_position, fleet->meta.log_position);
+      return deleted;
+    }
     if (log_position > fleet->meta.log_position) {
       FleetMutation mutation;
       mutation.put_meta = true;
@@ -160,14 +170,19 @@ absl::Status MemoryEngine::RestoreFleet(std::string_view fleet_id,
         absl::StrCat("an image of fleet \"", image.record.fleet_id,
                      "\" cannot restore fleet \"", V(fleet_id), "\""));
   }
-  if (image.record.meta.code_dimension == 0) {
+  const bool deleted = image.record.meta.code_dimension == 0;
+  if (deleted &&
+      (image.record.meta.log_position == 0 || !image.record.pending.empty() ||
+       !image.record.clusters.empty())) {
     return absl::InvalidArgumentError(
         absl::StrCat("the image of fleet \"", V(fleet_id),
-                     "\" holds no upload (no code dimension)"));
+                     "\" holds no upload (no code dimension) and is not a "
+                     "deleted fleet's"));
   }
   absl::StatusOr<Fleet*> found = Fleet::FindOrAdd(*this, fleet_id);
   if (!found.ok()) return found.status();
   Fleet* fleet = *found;
+  if (deleted) return RestoreDeletedFleet(*fleet, image.record.meta);
   uint64_t last_event_id = 0;
   {
     absl::MutexLock writer(&fleet->writer_mu);
@@ -201,6 +216,22 @@ absl::Status MemoryEngine::RestoreFleet(std::string_view fleet_id,
   }
   if (status.ok()) Fleet::Notify(*this, fleet_id, last_event_id);
   return status;
+}
+
+absl::Status MemoryEngine::RestoreDeletedFleet(Fleet& fleet,
+                                               const FleetMeta& kept) {
+  // As DeleteFleet: no index snapshot written behind it.
+  absl::MutexLock snapshots(&fleet.snapshot_mu);
+  absl::MutexLock writer(&fleet.writer_mu);
+  absl::Status status = store_->DeleteFleet(fleet.id, kept);
+  if (!status.ok()) return status;  // one write: nothing was changed
+  absl::MutexLock lock(&fleet.mu);
+  status = fleet.Reload();
+  if (!status.ok()) return status;
+  FLEETMEM_LOG(kInfo) << "fleet \"" << fleet.id
+                      << "\" restored as deleted at log entry "
+                      << kept.log_position;
+  return absl::OkStatus();
 }
 
 absl::Status MemoryEngine::Checkpoint(const std::string& directory) {

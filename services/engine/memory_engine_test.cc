@@ -239,6 +239,28 @@ TEST_F(MemoryEngineTest, AnExportedFleetRestoresExactlyOverAnOlderState) {
   EXPECT_TRUE(absl::IsInvalidArgument(other->RestoreFleet("f1", empty)));
   EXPECT_EQ(other->GetStats("f1")->traces, want.traces);
   EXPECT_TRUE(absl::IsNotFound(engine_->ExportFleet("f9").status()));
+
+  // A deleted fleet's image: no traces, its position and ids; restored, it
+  // leaves the fleet deleted there, and the id makes a new fleet.
+  const uint64_t next_event = engine_->GetStats("f1")->last_event_id + 1;
+  ASSERT_TRUE(engine_->DeleteFleet("f1", 50).ok());
+  absl::StatusOr<FleetImage> gone = engine_->ExportFleet("f1", 51);
+  ASSERT_TRUE(gone.ok()) << gone.status();
+  EXPECT_EQ(gone->record.meta.code_dimension, 0u);
+  EXPECT_EQ(gone->record.meta.log_position, 51u);
+  EXPECT_EQ(gone->record.meta.next_event_id, next_event);
+  EXPECT_TRUE(gone->record.clusters.empty() && gone->record.pending.empty());
+  ASSERT_TRUE(other->RestoreFleet("f1", *gone).ok());
+  EXPECT_TRUE(absl::IsNotFound(other->GetStats("f1").status()));
+  EXPECT_EQ(*other->LogPosition("f1"), 51u);
+  std::vector<core::MemoryTrace> remade = MakeTraces("r1", 1, 5, rng_);
+  for (core::MemoryTrace& t : remade) t.code.resize(3);
+  ASSERT_TRUE(other->Upload("f1", remade, 52).ok());
+  EXPECT_EQ(other->GetStats("f1")->pending_traces, 5u);
+  EXPECT_EQ(other->GetStats("f1")->code_dimension, 3u);
+  // A deleted image that holds traces is no deleted fleet's.
+  gone->record.pending = remade;
+  EXPECT_TRUE(absl::IsInvalidArgument(other->RestoreFleet("f1", *gone)));
 }
 
 // Every consolidated cluster reaches the store with its centroid (memory

@@ -8,6 +8,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -19,6 +20,7 @@
 #include "services/core/byte_stream.h"
 #include "services/core/seq_set.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_settings.h"
 
 namespace fleetmem::engine {
 
@@ -37,6 +39,15 @@ struct FleetMeta {
   // this state (0: none, and always in the embedded mode). Entries after it
   // may be applied too (uploads are idempotent); none before it is missing.
   uint64_t log_position = 0;
+  // The fleet's own settings (CreateFleet, UpdateFleet); none: the
+  // server's configuration.
+  std::optional<FleetSettings> settings;
+};
+
+// A name that calls accept in place of a fleet id (fleet_aliases.h).
+struct FleetAlias {
+  std::string alias;
+  std::string fleet_id;
 };
 
 // Counters kept per robot (stats), persisted with the robot's SeqSet.
@@ -165,6 +176,28 @@ class MemoryStore {
       std::string_view fleet_id,
       const std::function<absl::Status(std::span<const char>)>& read) {
     return absl::NotFoundError("this store keeps no index snapshots");
+  }
+
+  // Removes everything stored for the fleet (its state, events and index
+  // snapshot) and stores `kept` as its meta instead, in one atomic write
+  // (DeleteFleet: `kept` holds the log position of the delete and where
+  // event ids go on, and no shape, so the fleet does not exist). Then
+  // frees the disk the fleet took where the store can (a failure to is
+  // logged, not returned: the delete is done). UNIMPLEMENTED by default.
+  virtual absl::Status DeleteFleet(std::string_view fleet_id,
+                                   const FleetMeta& kept) {
+    return absl::UnimplementedError("this store cannot delete fleets");
+  }
+
+  // Fleet aliases (fleet_aliases.h), beside the fleets: every alias and
+  // its fleet, sorted by alias.
+  virtual absl::StatusOr<std::vector<FleetAlias>> LoadAliases() {
+    return absl::UnimplementedError("this store keeps no aliases");
+  }
+  // Sets `alias` to name `fleet_id` (empty: erases it), durably.
+  virtual absl::Status PutAlias(std::string_view alias,
+                                std::string_view fleet_id) {
+    return absl::UnimplementedError("this store keeps no aliases");
   }
 
   // Approximate bytes the store takes on disk (0 when it keeps nothing

@@ -32,10 +32,19 @@ class PendingTraces {
   // it has none).
   std::vector<core::MemoryTrace> Take(std::string_view robot_id);
   void Clear();
+  // Takes out every pending trace for which `leaves` is true and returns
+  // them (each robot's in arrival order); the others keep their order.
+  std::vector<core::MemoryTrace> RemoveIf(
+      const std::function<bool(const core::MemoryTrace&)>& leaves);
+  // Sets the rewards of the pending trace `key` (R = R_ex + R_in) and
+  // returns it, or null if it is not pending.
+  const core::MemoryTrace* SetReward(const core::TraceKey& key,
+                                     float reward_external,
+                                     float reward_internal);
 
   // The pending trace with `key`, or null. A robot's traces only grow
-  // until they are taken, so the pointer lives until the next Take or
-  // Clear.
+  // until they are taken, so the pointer lives until the next Take,
+  // RemoveIf or Clear.
   const core::MemoryTrace* Find(const core::TraceKey& key) const;
   // The robot's pending traces, in arrival order (empty if none).
   std::span<const core::MemoryTrace> Of(std::string_view robot_id) const;

@@ -54,5 +54,28 @@ TEST(PendingTracesTest, TheViewsAgreeAsTracesComeAndGo) {
   EXPECT_EQ(pending.Find({"r2", 1}), nullptr);
 }
 
+TEST(PendingTracesTest, RemovedAndRescoredTracesKeepTheViewsInStep) {
+  PendingTraces pending;
+  pending.Add(Trace("r1", 1, "summer"));
+  pending.Add(Trace("r1", 2, "winter"));
+  pending.Add(Trace("r1", 3, "summer"));
+  pending.Add(Trace("r2", 1, "winter"));
+  const std::vector<core::MemoryTrace> removed = pending.RemoveIf(
+      [](const core::MemoryTrace& trace) { return trace.domain == "winter"; });
+  ASSERT_EQ(removed.size(), 2u);
+  EXPECT_EQ(pending.size(), 2u);
+  EXPECT_EQ(pending.by_robot().count("r2"), 0u);  // left empty: gone
+  EXPECT_EQ(pending.by_domain().count("winter"), 0u);
+  ASSERT_EQ(pending.Of("r1").size(), 2u);
+  EXPECT_EQ(pending.Of("r1")[1].seq, 3u);
+  EXPECT_EQ(pending.Find({"r1", 3})->seq, 3u);  // positions follow
+  EXPECT_EQ(pending.Find({"r1", 2}), nullptr);
+
+  const core::MemoryTrace* rescored = pending.SetReward({"r1", 3}, 2.0f, 0.5f);
+  ASSERT_NE(rescored, nullptr);
+  EXPECT_FLOAT_EQ(pending.Find({"r1", 3})->reward, 2.5f);
+  EXPECT_EQ(pending.SetReward({"r2", 1}, 1.0f, 1.0f), nullptr);
+}
+
 }  // namespace
 }  // namespace fleetmem::engine

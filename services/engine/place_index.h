@@ -15,6 +15,7 @@
 #include "absl/status/statusor.h"
 #include "services/core/byte_stream.h"
 #include "services/core/feature_space.h"
+#include "services/engine/fleet_settings.h"
 
 namespace fleetmem::engine {
 
@@ -140,6 +141,10 @@ class PlaceIndex {
 // Makes an empty index of `dimension` for one fleet.
 using PlaceIndexFactory =
     std::function<std::unique_ptr<PlaceIndex>(size_t dimension)>;
+// Makes an empty index for a fleet whose settings name its own
+// (IndexSettings::kind other than kServer).
+using FleetIndexFactory = std::function<std::unique_ptr<PlaceIndex>(
+    size_t dimension, const IndexSettings& index)>;
 
 }  // namespace fleetmem::engine
 

@@ -45,6 +45,15 @@ absl::Status UploadQuota::Refuse(std::string_view fleet_id,
       absl::StrCat("limit ", V(limit), " ", message));
 }
 
+absl::Status UploadQuota::AdmitCreationByUpload(
+    std::string_view fleet_id) const {
+  if (options_.auto_create_fleets) return absl::OkStatus();
+  return absl::NotFoundError(absl::StrCat(
+      "fleet \"", V(fleet_id),
+      "\" does not exist and this server makes fleets by CreateFleet only "
+      "(auto_create_fleets: false); nothing was stored"));
+}
+
 absl::Status UploadQuota::AdmitNewFleet(std::string_view fleet_id,
                                         size_t fleets) {
   if (options_.max_fleets == 0 || fleets < options_.max_fleets) {

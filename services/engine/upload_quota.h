@@ -40,6 +40,10 @@ struct QuotaOptions {
   uint64_t max_fleets = 1000;
   // Largest code dimension a fleet may use.
   uint32_t max_code_dimension = 4096;
+  // An upload to a fleet that does not exist creates it (with the server's
+  // settings); false: only CreateFleet creates fleets, and such an upload
+  // is refused, NOT_FOUND.
+  bool auto_create_fleets = true;
 };
 
 absl::Status ValidateQuotaOptions(const QuotaOptions& options);
@@ -54,6 +58,9 @@ class UploadQuota {
 
   const QuotaOptions& options() const { return options_; }
 
+  // NOT_FOUND (nothing stored) for an upload that would create a fleet on
+  // a server that creates fleets by CreateFleet only.
+  absl::Status AdmitCreationByUpload(std::string_view fleet_id) const;
   // RESOURCE_EXHAUSTED "limit max_fleets ..." if a new fleet would exceed it.
   absl::Status AdmitNewFleet(std::string_view fleet_id, size_t fleets);
   // RESOURCE_EXHAUSTED "limit max_code_dimension ..." for a larger code.

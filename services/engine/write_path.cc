@@ -115,6 +115,14 @@ struct WritePath::FleetWrites {
   // The engine's position in the log at Open: entries through it were
   // applied before (damage to them loses nothing). Set by Recover only.
   uint64_t opened_at = 0;
+  // A DeleteFleet was appended since Open (or found in the tail): the
+  // engine's received seqs are not the fleet's any more.
+  bool remade = false;
+  // Put before a replicated log's entry ids after a DeleteFleet ("d" and
+  // the delete's sequence), so that a robot's seqs uploaded again to the
+  // new fleet are not dropped as repeats of the deleted fleet's entries
+  // (JetStream's duplicate window).
+  std::string id_tag;
 };
 
 std::vector<std::string> BacklogWarnings(
@@ -242,10 +250,14 @@ absl::StatusOr<bool> WritePath::RecoverTail(FleetWrites& log, uint64_t position,
     if (!page.ok()) return page.status();
     for (const LogEntry& entry : *page) {
       const std::span<const core::MemoryTrace> logged = entry.traces();
-      if (!log.shape.has_value() && !logged.empty()) {
-        log.shape = FleetShape{static_cast<uint32_t>(logged[0].code.size()),
-                               logged[0].encoder_version};
+      if (std::holds_alternative<DeleteFleetRecord>(entry.record)) {
+        // What follows makes the fleet anew.
+        log.shape.reset();
+        log.recovered.clear();
+        log.remade = true;
+        log.id_tag = absl::StrCat("d", entry.sequence, "/");
       }
+      if (!log.shape.has_value()) log.shape = ShapeOfEntry(entry);
       for (const core::MemoryTrace& trace : logged) {
         log.recovered[trace.robot_id].Insert(trace.seq);
       }
@@ -398,6 +410,37 @@ absl::StatusOr<Appended> WritePath::AppendCall(std::string_view fleet_id,
   return std::move(request.result);
 }
 
+absl::StatusOr<Appended> WritePath::AppendCreate(
+    std::string_view fleet_id, const CreateFleetRecord& create) {
+  if (options_.replicated.has_value()) {
+    return absl::InternalError(
+        "a replicated write path does not create fleets (the receiving "
+        "replica appends their first entries)");
+  }
+  {
+    absl::MutexLock lock(&ready_mu_);
+    if (stopping_) {
+      return absl::UnavailableError(
+          "the server is shutting down; the fleet was not created");
+    }
+  }
+  absl::Status valid =
+      engine_->quota().AdmitDimension(fleet_id, create.code_dimension);
+  if (valid.ok() && Find(fleet_id) == nullptr) {
+    absl::ReaderMutexLock lock(&logs_mu_);
+    valid = engine_->quota().AdmitNewFleet(fleet_id, fleets_);
+  }
+  if (!valid.ok()) return valid;
+  FleetWrites* log = Log(fleet_id);
+  Request request;
+  request.call = create;
+  request.track = true;
+  absl::MutexLock lock(&log->mu);
+  log->queue.push_back(&request);
+  Commit(*log, std::span<Request>(&request, 1));
+  return std::move(request.result);
+}
+
 void WritePath::Commit(FleetWrites& log, std::span<Request> requests) {
   auto all_done = [&] {
     return std::all_of(requests.begin(), requests.end(),
@@ -487,8 +530,11 @@ std::vector<absl::StatusOr<Appended>> WritePath::AppendToNewFleet(
     std::move(rest.begin(), rest.end(), std::back_inserter(results));
     return results;
   }
-  absl::Status valid = AdmitShape(engine_->quota(), fleet_id, *first, nullptr,
-                                  engine_->options().max_traces_per_upload);
+  absl::Status valid = engine_->quota().AdmitCreationByUpload(fleet_id);
+  if (valid.ok()) {
+    valid = AdmitShape(engine_->quota(), fleet_id, *first, nullptr,
+                       engine_->options().max_traces_per_upload);
+  }
   if (valid.ok()) {
     // Nor do uploads to fleets past max_fleets (the leader admits the fleet
     // again, counting it, when it appends its first entry).
@@ -564,6 +610,10 @@ void WritePath::LeadQueued(FleetWrites& log) {
 struct WritePath::Group {
   std::optional<FleetShape> shape;
   bool created = false;  // this group's first upload makes the fleet
+  // A DeleteFleet is among this group's entries: what follows it makes the
+  // fleet anew (no shape, no seqs received).
+  bool deleted = false;
+  std::string id_tag;  // FleetWrites::id_tag as this group leaves it
   // The robots' seq sets as this group leaves them; kept only if the write
   // succeeds.
   absl::flat_hash_map<std::string, core::SeqSet> seqs;
@@ -576,11 +626,16 @@ const core::SeqSet& WritePath::SeqsOf(FleetWrites& log, Group& group,
                                       const std::string& robot_id) {
   auto [it, inserted] = group.seqs.try_emplace(robot_id);
   if (!inserted) return it->second;
+  // After a DeleteFleet (this group's, or one since Open) only what was
+  // admitted after it counts: the engine's received seqs are the deleted
+  // fleet's until the delete is applied.
+  if (group.deleted) return it->second;
   auto known = log.admitted.find(robot_id);
   if (known != log.admitted.end()) {
     it->second = known->second;
     return it->second;
   }
+  if (log.remade) return it->second;
   it->second = engine_->Received(log.id, robot_id);
   auto tail = log.recovered.find(robot_id);
   if (tail != log.recovered.end()) {
@@ -592,8 +647,37 @@ const core::SeqSet& WritePath::SeqsOf(FleetWrites& log, Group& group,
   return it->second;
 }
 
+void WritePath::AdmitCreate(FleetWrites& log, Group& group, Request& request,
+                            const CreateFleetRecord& create) {
+  if (group.shape.has_value()) {
+    request.result = absl::AlreadyExistsError(absl::StrCat(
+        "fleet \"", log.id,
+        "\" exists already (made by CreateFleet or its first upload); "
+        "UpdateFleet changes its settings"));
+    return;
+  }
+  {
+    absl::MutexLock lock(&logs_mu_);
+    absl::Status status = engine_->quota().AdmitNewFleet(log.id, fleets_);
+    if (!status.ok()) {
+      request.result = status;
+      return;
+    }
+    ++fleets_;
+  }
+  group.shape = FleetShape{create.code_dimension, create.encoder_version};
+  group.created = true;
+  request.result = Appended{};
+  group.appends.push_back({*request.call});
+  group.appending.push_back(&request);
+}
+
 void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
   if (request.call.has_value()) {
+    if (const auto* create = std::get_if<CreateFleetRecord>(&*request.call)) {
+      AdmitCreate(log, group, request, *create);
+      return;
+    }
     // A call needs the fleet (its first upload may still be in the log:
     // the call is applied after it); it adds no traces.
     if (!group.shape.has_value()) {
@@ -603,6 +687,15 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
     request.result = Appended{};
     group.appends.push_back({*request.call});
     group.appending.push_back(&request);
+    if (std::holds_alternative<DeleteFleetRecord>(*request.call)) {
+      group.shape.reset();
+      group.seqs.clear();
+      group.deleted = true;
+      // The delete's own sequence (a replicated log numbers alike while
+      // this owner is its only writer), as RecoverTail derives it.
+      group.id_tag =
+          absl::StrCat("d", log.next_sequence + group.appends.size() - 1, "/");
+    }
     return;
   }
   UploadQuota& quota = engine_->quota();
@@ -612,6 +705,7 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
                  engine_->options().max_traces_per_upload);
   const bool is_new = !group.shape.has_value();
   bool reserved = false;  // counted in fleets_ by this upload
+  if (status.ok() && is_new) status = quota.AdmitCreationByUpload(log.id);
   if (status.ok() && is_new) {
     absl::MutexLock lock(&logs_mu_);
     status = quota.AdmitNewFleet(log.id, fleets_);
@@ -645,7 +739,7 @@ void WritePath::Admit(FleetWrites& log, Group& group, Request& request) {
   if (!status.ok()) {
     if (reserved) {
       absl::MutexLock lock(&logs_mu_);
-      --fleets_;
+      fleets_ -= std::min<uint64_t>(fleets_, 1);
     }
     request.result = status;
     return;
@@ -682,7 +776,8 @@ void WritePath::Stage(
       return;
     }
     request.pieces = *std::move(pieces);
-    for (const LogPiece& piece : request.pieces) {
+    for (LogPiece& piece : request.pieces) {
+      if (!group.id_tag.empty()) piece.id = group.id_tag + piece.id;
       group.appends.push_back({UploadRecord{piece.traces}, piece.id});
       group.appending.push_back(&request);
     }
@@ -707,6 +802,7 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
     }
   }
   admitted.shape = log.shape;
+  admitted.id_tag = log.id_tag;
   for (Request* request : group) Admit(log, admitted, *request);
   if (admitted.appends.empty()) return;
   // Above the sequences this write path gave or found applied: a log that
@@ -729,7 +825,7 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
     }
     if (admitted.created) {
       absl::MutexLock lock(&logs_mu_);
-      --fleets_;
+      fleets_ -= std::min<uint64_t>(fleets_, 1);
     }
     return;
   }
@@ -748,6 +844,15 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
   }
   log.next_sequence = written->back().sequence + 1;
   log.shape = std::move(admitted.shape);
+  if (admitted.deleted) {
+    log.admitted.clear();
+    log.recovered.clear();
+    log.remade = true;
+    log.id_tag = admitted.id_tag;
+    absl::MutexLock lock(&logs_mu_);
+    fleets_ -= std::min<uint64_t>(fleets_, 1);  // one made again after it in
+                                               // this group counted itself
+  }
   for (auto& [robot_id, seqs] : admitted.seqs) {
     log.recovered.erase(robot_id);
     log.admitted[robot_id] = std::move(seqs);

@@ -197,6 +197,12 @@ class WritePath {
   // Stop.
   absl::StatusOr<Appended> AppendCall(std::string_view fleet_id,
                                       const LogRecord& call);
+  // A CreateFleet's record (embedded mode), appended as the fleet's first
+  // entry: ALREADY_EXISTS if the fleet exists or its log holds an entry;
+  // the limits a new fleet passes (max_fleets, max_code_dimension) as for
+  // its first upload. Nothing is logged on an error.
+  absl::StatusOr<Appended> AppendCreate(std::string_view fleet_id,
+                                        const CreateFleetRecord& create);
 
   // Returns once the fleet's log is applied through `sequence` (at once for
   // 0). DEADLINE_EXCEEDED at `deadline`, UNAVAILABLE after Stop,
@@ -289,6 +295,9 @@ class WritePath {
   // Admits one upload of a group (engine/admission.h, and de-duplication
   // by (robot, seq)): its result, and its entry in `group` if it adds any.
   void Admit(FleetWrites& log, Group& group, Request& request);
+  // Admit of a CreateFleet: the fleet's first entry, or ALREADY_EXISTS.
+  void AdmitCreate(FleetWrites& log, Group& group, Request& request,
+                   const CreateFleetRecord& create);
   // Adds an admitted upload's new traces (`accept`, `accepted` of them) to
   // `group`'s appends: one entry, or a replicated log's pieces (a cut that
   // fails refuses the upload); its robots' seqs as `trial` leaves them.
@@ -321,6 +330,9 @@ class WritePath {
   absl::flat_hash_map<std::string, std::shared_ptr<FleetWrites>> logs_
       ABSL_GUARDED_BY(logs_mu_);
   // Fleets that exist or whose first upload is in a log (max_fleets).
+  // Taken down to 0, never below: a replicated log's owner counts only the
+  // fleets it made or opened, and may delete one made elsewhere (an
+  // unsigned wrap refused every new fleet as over max_fleets).
   uint64_t fleets_ ABSL_GUARDED_BY(logs_mu_) = 0;
 
   absl::Mutex ready_mu_;

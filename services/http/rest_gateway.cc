@@ -711,7 +711,8 @@ HttpResponse RestGateway::ServeWatch(const auth::Principal& caller,
     }
     request.set_after_event(std::max(request.after_event(), resume));
   }
-  if (absl::Status allowed = api_->CheckWatch(caller, request); !allowed.ok()) {
+  if (absl::Status allowed = api_->CheckWatch(caller, request).status();
+      !allowed.ok()) {
     return fail(allowed);
   }
   if (stopping_.load()) {

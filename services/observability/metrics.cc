@@ -84,6 +84,17 @@ class TimedMemoryStore final : public engine::MemoryStore {
       const std::function<absl::Status(std::span<const char>)>& read) override {
     return store_->ReadIndexSnapshot(fleet_id, read);
   }
+  absl::Status DeleteFleet(std::string_view fleet_id,
+                           const engine::FleetMeta& kept) override {
+    return store_->DeleteFleet(fleet_id, kept);
+  }
+  absl::StatusOr<std::vector<engine::FleetAlias>> LoadAliases() override {
+    return store_->LoadAliases();
+  }
+  absl::Status PutAlias(std::string_view alias,
+                        std::string_view fleet_id) override {
+    return store_->PutAlias(alias, fleet_id);
+  }
   uint64_t ApproximateDiskBytes() override {
     return store_->ApproximateDiskBytes();
   }
@@ -200,6 +211,12 @@ struct Metrics::Families {
                            .Name("fleetmem_sampled_traces_total")
                            .Help("Traces handed out by SampleReplay (Eq. 18)")
                            .Register(r)),
+        retention_deleted_traces(
+            BuildCounter()
+                .Name("fleetmem_retention_deleted_traces_total")
+                .Help("Traces deleted by a fleet's retention (max age, max "
+                      "traces per robot)")
+                .Register(r)),
         query_seconds(BuildHistogram()
                           .Name("fleetmem_query_duration_seconds")
                           .Help("QueryPlace search time in the engine")
@@ -364,6 +381,7 @@ struct Metrics::Families {
   Family<Counter>& downsampled_traces;
   Family<Histogram>& consolidation_seconds;
   Family<Counter>& sampled_traces;
+  Family<Counter>& retention_deleted_traces;
   Family<Histogram>& query_seconds;
   Family<Histogram>& index_snapshot_seconds;
   Family<Histogram>& store_write_seconds;
@@ -442,6 +460,10 @@ engine::EngineHooks Metrics::EngineHooks() {
   hooks.on_sample = [f](std::string_view fleet, size_t count) {
     f->sampled_traces.Add({{"fleet", std::string(fleet)}})
         .Increment(static_cast<double>(count));
+  };
+  hooks.on_retention = [f](std::string_view fleet, uint64_t traces) {
+    f->retention_deleted_traces.Add({{"fleet", std::string(fleet)}})
+        .Increment(static_cast<double>(traces));
   };
   hooks.on_query = [f](std::string_view fleet, double seconds) {
     f->query_seconds.Add({{"fleet", std::string(fleet)}}, LatencyBuckets())

@@ -42,6 +42,7 @@
 #include "services/auth/authenticator.h"
 #include "services/common/files.h"
 #include "services/common/log.h"
+#include "services/engine/fleet_aliases.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/write_path.h"
 #include "services/http/http_server.h"
@@ -122,6 +123,30 @@ engine::PlaceIndexFactory MakeIndexFactory(const ServerConfig& config) {
       break;
   }
   return [](size_t dimension) { return index::NewExactIndex(dimension); };
+}
+
+// The index of a fleet whose settings name its own kind: the server's
+// options for that kind, with the fleet's HNSW M and ef where it sets them.
+engine::FleetIndexFactory MakeFleetIndexFactory(const ServerConfig& config) {
+  return [tiered = config.tiered](size_t dimension,
+                                  const engine::IndexSettings& index)
+             -> std::unique_ptr<engine::PlaceIndex> {
+    index::TieredIndexOptions options = tiered;
+    if (index.hnsw_m > 0) options.hnsw.m = static_cast<size_t>(index.hnsw_m);
+    if (index.hnsw_ef_search > 0) {
+      options.hnsw.ef_search = static_cast<size_t>(index.hnsw_ef_search);
+    }
+    switch (index.kind) {
+      case engine::IndexSettings::Kind::kHnsw:
+        return index::NewHnswIndex(dimension, options.hnsw);
+      case engine::IndexSettings::Kind::kAuto:
+        return index::NewTieredIndex(dimension, options);
+      case engine::IndexSettings::Kind::kExact:
+      case engine::IndexSettings::Kind::kServer:
+        break;
+    }
+    return index::NewExactIndex(dimension);
+  };
 }
 
 // "host:port" with the port replaced by `port` (for listen port 0).
@@ -354,10 +379,12 @@ class ServerRun {
   std::unique_ptr<engine::MemoryEngine> engine_;
   std::unique_ptr<PeriodicTask> snapshotter_;
   std::unique_ptr<PeriodicTask> heap_trimmer_;
+  std::unique_ptr<PeriodicTask> retention_;
   std::unique_ptr<transport::WorkQueue> work_;
   transport::ServiceOptions service_options_;
   // The mode, chosen once (services/transport/fleet_memory.h).
   std::unique_ptr<cluster::ReplicatedMemory> replicated_;
+  std::unique_ptr<engine::StoredAliases> aliases_;  // embedded mode's
   std::unique_ptr<transport::EmbeddedMemory> embedded_;
   transport::FleetMemory* memory_ = nullptr;
   std::unique_ptr<transport::MemoryServiceImpl> service_;
@@ -422,6 +449,7 @@ int ServerRun::OpenData() {
   // Replicas must draw a logged sample alike (EngineOptions).
   engine::EngineOptions engine_options = config_.engine;
   engine_options.draw_in_memory_order = config_.cluster.enabled();
+  engine_options.fleet_index_factory = MakeFleetIndexFactory(config_);
   absl::StatusOr<std::unique_ptr<engine::MemoryEngine>> engine =
       engine::MemoryEngine::Open(engine_options, store_.get(),
                                  MakeIndexFactory(config_),
@@ -469,6 +497,13 @@ int ServerRun::StartMode() {
   const int started =
       config_.cluster.enabled() ? StartDistributed() : StartEmbedded();
   if (started != 0) return started;
+  // Retention through the fleets' logs, as of this server's clock.
+  retention_ = std::make_unique<PeriodicTask>(
+      config_.retention_interval_seconds,
+      [engine = engine_.get(), memory = memory_] {
+        transport::EnforceRetention(*engine, *memory,
+                                    absl::ToUnixNanos(absl::Now()));
+      });
   service_ = std::make_unique<transport::MemoryServiceImpl>(
       engine_.get(), memory_, work_.get(), authenticator_.get(),
       service_options_);
@@ -504,11 +539,20 @@ int ServerRun::StartEmbedded() {
     result.duplicates = duplicates;
     if (on_upload) on_upload(fleet, result);
   };
+  absl::StatusOr<std::unique_ptr<engine::StoredAliases>> aliases =
+      engine::StoredAliases::Open(store_.get());
+  if (!aliases.ok()) {
+    FLEETMEM_LOG(kError) << "cannot read the fleet aliases: "
+                         << aliases.status();
+    return 1;
+  }
+  aliases_ = *std::move(aliases);
   absl::StatusOr<std::unique_ptr<transport::EmbeddedMemory>> opened =
       transport::EmbeddedMemory::Open(
           engine_.get(), log_.get(),
           {.write_path = write_path,
-           .max_apply_wait = config_.write_path_max_apply_wait});
+           .max_apply_wait = config_.write_path_max_apply_wait,
+           .aliases = aliases_.get()});
   if (!opened.ok()) {
     FLEETMEM_LOG(kError) << "cannot recover the fleets' logs: "
                          << opened.status();
@@ -672,6 +716,7 @@ void ServerRun::ShutDown() {
   health->SetServingStatus(false);
   ready_.store(false);
   service_->Shutdown();  // new calls UNAVAILABLE, watches end
+  retention_->Stop();
   // Calls being worked on get the grace period; then everything left (idle
   // connections, upload streams waiting on their client) is cancelled at
   // once instead of waiting for each client's GOAWAY ping acknowledgement.

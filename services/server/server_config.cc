@@ -102,6 +102,9 @@ void ApplyLimits(const LimitsConfig& in, engine::QuotaOptions* out,
   if (in.has_max_code_dimension()) {
     out->max_code_dimension = in.max_code_dimension();
   }
+  if (in.has_auto_create_fleets()) {
+    out->auto_create_fleets = in.auto_create_fleets();
+  }
   if (in.has_stream_idle_seconds()) {
     service->stream_idle_timeout = absl::Seconds(in.stream_idle_seconds());
   }
@@ -463,6 +466,14 @@ absl::Status ApplyPeriods(const ServerConfigFile& file, ServerConfig* config) {
   if (file.has_index_snapshot_min_codes()) {
     config->index_snapshot_min_codes = file.index_snapshot_min_codes();
   }
+  if (file.has_retention_interval_seconds()) {
+    if (file.retention_interval_seconds() > 86400) {
+      return absl::InvalidArgumentError(
+          "retention_interval_seconds: at most 86400 (0 = never)");
+    }
+    config->retention_interval_seconds =
+        static_cast<int>(file.retention_interval_seconds());
+  }
   if (file.has_heap_trim_interval_seconds()) {
     if (file.heap_trim_interval_seconds() > 86400) {
       return absl::InvalidArgumentError(
@@ -764,7 +775,8 @@ std::string DescribeConfig(const ServerConfig& config) {
       " max_read_bytes=", config.engine.max_read_bytes,
       " max_events_per_read=", config.engine.max_events_per_read,
       " max_events_per_fleet=", config.engine.max_events_per_fleet,
-      " max_fleets=", config.engine.limits.max_fleets,
+      " max_fleets=", config.engine.limits.max_fleets, " auto_create_fleets=",
+      config.engine.limits.auto_create_fleets ? "true" : "false",
       " max_traces_per_fleet=", config.engine.limits.max_traces_per_fleet,
       " max_code_dimension=", config.engine.limits.max_code_dimension,
       " robot_traces_per_second=", config.engine.limits.robot_traces_per_second,
@@ -777,6 +789,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       config.index_snapshot_interval_seconds,
       " index_snapshot_min_codes=", config.index_snapshot_min_codes,
       " heap_trim_interval_seconds=", config.heap_trim_interval_seconds,
+      " retention_interval_seconds=", config.retention_interval_seconds,
       " max_backlog_traces=", config.write_path.max_backlog_traces,
       " appliers=", config.write_path.appliers,
       " background_nice=", config.write_path.applier_nice,

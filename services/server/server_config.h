@@ -144,6 +144,10 @@ struct ServerConfig {
   // system (observability::TrimHeap: memory malloc kept after calls freed
   // it, otherwise resident); 0 = never.
   int heap_trim_interval_seconds = 60;
+  // Every this many seconds the fleets served here whose settings bound
+  // their traces' age or number per robot get a retention call through
+  // their logs (transport::EnforceRetention); 0 = never.
+  int retention_interval_seconds = 60;
   SecurityConfig security;
   // HOST:PORT of the HTTP port (REST/JSON, /metrics, /healthz, /readyz,
   // dashboard); empty = off. Same auth and TLS as gRPC.

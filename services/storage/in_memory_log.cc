@@ -88,8 +88,30 @@ class InMemoryLog final : public engine::FleetLog {
                                             upload->traces.end());
     }
     if (const auto* call = std::get_if<engine::SampleReplayRecord>(&record)) {
-      return engine::SampleReplayCall{std::string(call->robot_id), call->count,
-                                      std::string(call->request_id)};
+      return engine::SampleReplayCall{
+          std::string(call->robot_id), call->count,
+          std::string(call->request_id),
+          call->filter == nullptr ? core::ReadFilter() : *call->filter};
+    }
+    if (const auto* call = std::get_if<engine::DeleteTracesRecord>(&record)) {
+      return *call;
+    }
+    if (const auto* call = std::get_if<engine::CreateFleetRecord>(&record)) {
+      return *call;
+    }
+    if (const auto* call = std::get_if<engine::UpdateFleetRecord>(&record)) {
+      return *call;
+    }
+    if (const auto* call =
+            std::get_if<engine::EnforceRetentionRecord>(&record)) {
+      return *call;
+    }
+    if (std::holds_alternative<engine::DeleteFleetRecord>(record)) {
+      return engine::DeleteFleetRecord{};
+    }
+    if (const auto* call = std::get_if<engine::UpdateRewardsRecord>(&record)) {
+      return engine::UpdateRewardsCall{std::vector<core::RewardUpdate>(
+          call->updates.begin(), call->updates.end())};
     }
     return engine::ConsolidateRecord{};
   }

@@ -216,8 +216,45 @@ class InMemoryStore final : public engine::MemoryStore {
     return events;
   }
 
+  absl::Status DeleteFleet(std::string_view fleet_id,
+                           const engine::FleetMeta& kept) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    {
+      absl::MutexLock lock(&mu_);
+      fleets_.erase(std::string(fleet_id));
+      snapshots_.erase(std::string(fleet_id));
+    }
+    engine::FleetMutation meta;
+    meta.put_meta = true;
+    meta.meta = kept;
+    return Apply(fleet_id, meta);
+  }
+
+  absl::StatusOr<std::vector<engine::FleetAlias>> LoadAliases() override {
+    absl::MutexLock lock(&mu_);
+    std::vector<engine::FleetAlias> aliases;
+    for (const auto& [alias, fleet_id] : aliases_) {
+      aliases.push_back({alias, fleet_id});
+    }
+    return aliases;
+  }
+
+  absl::Status PutAlias(std::string_view alias,
+                        std::string_view fleet_id) override {
+    absl::MutexLock lock(&mu_);
+    if (fleet_id.empty()) {
+      aliases_.erase(std::string(alias));
+    } else {
+      aliases_[std::string(alias)] = std::string(fleet_id);
+    }
+    return absl::OkStatus();
+  }
+
  private:
   absl::Mutex mu_;
+  std::map<std::string, std::string> aliases_ ABSL_GUARDED_BY(mu_);
   std::map<std::string, Fleet, std::less<>> fleets_ ABSL_GUARDED_BY(mu_);
   // Index snapshots by fleet id.
   std::map<std::string, std::vector<char>, std::less<>> snapshots_

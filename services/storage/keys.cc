@@ -24,7 +24,8 @@ bool IsTag(char c) {
   for (Tag tag : kFleetTags) {
     if (static_cast<char>(tag) == c) return true;
   }
-  return c == static_cast<char>(Tag::kLog);
+  return c == static_cast<char>(Tag::kLog) ||
+         c == static_cast<char>(Tag::kAlias);
 }
 
 std::string_view TagName(Tag tag) {
@@ -43,6 +44,8 @@ std::string_view TagName(Tag tag) {
       return "event";
     case Tag::kLog:
       return "log";
+    case Tag::kAlias:
+      return "alias";
   }
   return "?";
 }
@@ -81,6 +84,10 @@ std::string PrefixEnd(Tag tag, std::string_view fleet_id) {
 
 std::string MetaKey(std::string_view fleet_id) {
   return Prefix(Tag::kMeta, fleet_id);
+}
+
+std::string AliasKey(std::string_view alias) {
+  return Prefix(Tag::kAlias, alias);
 }
 
 std::string PendingKey(std::string_view fleet_id, const core::TraceKey& key) {
@@ -143,6 +150,7 @@ std::string Describe(std::string_view key) {
     bool ok = true;
     switch (parsed->tag) {
       case Tag::kMeta:
+      case Tag::kAlias:
         ok = parsed->suffix.empty();
         break;
       case Tag::kPending:

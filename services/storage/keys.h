@@ -9,6 +9,8 @@
 //   event    'e'  event id (8 bytes, big-endian)
 //   log      'l'  sequence (8 bytes, big-endian): the ingest log, apart
 //                 from the fleet's state (not in kFleetTags)
+// and one kind whose id is an alias, not a fleet's (not in kFleetTags):
+//   alias    'a'  (empty); the value is the fleet id it names
 // Ids are restricted upstream to [A-Za-z0-9._:-], so 0x00 never occurs in
 // them: all keys of one (tag, fleet) form one contiguous range, a fleet id
 // that is a prefix of another ("f", "f1") cannot alias it, and big-endian
@@ -34,6 +36,7 @@ enum class Tag : char {
   kRobot = 'r',
   kEvent = 'e',
   kLog = 'l',
+  kAlias = 'a',
 };
 
 // Every tag that holds a fleet's state (not its ingest log).
@@ -56,6 +59,7 @@ std::string ClusterKey(std::string_view fleet_id, uint64_t cluster_id);
 std::string RobotKey(std::string_view fleet_id, std::string_view robot_id);
 std::string EventKey(std::string_view fleet_id, uint64_t event_id);
 std::string LogKey(std::string_view fleet_id, uint64_t sequence);
+std::string AliasKey(std::string_view alias);
 
 // The parts of a key; nullopt if `key` does not follow the layout.
 struct ParsedKey {

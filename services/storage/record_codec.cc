@@ -50,6 +50,79 @@ core::Place FromProto(const Place& place) {
 
 }  // namespace
 
+namespace {
+
+void ToRecord(const engine::FleetSettings& settings, StoredSettings* out) {
+  const core::MemoryOptions& memory = settings.memory;
+  out->set_place_unit(settings.place_unit);
+  out->set_clusters_per_batch(memory.clusters_per_batch);
+  out->set_max_traces_per_cluster(memory.max_traces_per_cluster);
+  out->set_max_clusters(memory.max_clusters);
+  out->set_replay_decay(memory.replay_decay);
+  out->set_reward_floor(memory.reward_floor);
+  out->set_spatial_scale_m(memory.spatial_scale_m);
+  out->set_clustering(memory.clustering);
+  out->set_merge_on_forget(memory.merge_on_forget);
+  out->set_kmeans_max_iterations(memory.kmeans_max_iterations);
+  out->set_seed(memory.seed);
+  out->set_forgetting_exact_below(memory.forgetting_exact_below);
+  out->set_max_age_seconds(settings.max_age_seconds);
+  out->set_max_traces_per_robot(settings.max_traces_per_robot);
+  out->set_index_kind(static_cast<int32_t>(settings.index.kind));
+  out->set_hnsw_m(settings.index.hnsw_m);
+  out->set_hnsw_ef_search(settings.index.hnsw_ef_search);
+}
+
+void ToRecord(const core::ReadFilter& filter, LoggedReadFilter* out) {
+  for (const std::string& robot_id : filter.robot_ids) {
+    out->add_robot_ids(robot_id);
+  }
+  for (const std::string& domain : filter.domains) out->add_domains(domain);
+  if (filter.time_from_ns) out->set_time_from_ns(*filter.time_from_ns);
+  if (filter.time_to_ns) out->set_time_to_ns(*filter.time_to_ns);
+  out->set_encoder_version(filter.encoder_version);
+}
+
+core::ReadFilter FromRecord(const LoggedReadFilter& stored) {
+  core::ReadFilter filter;
+  filter.robot_ids.assign(stored.robot_ids().begin(), stored.robot_ids().end());
+  filter.domains.assign(stored.domains().begin(), stored.domains().end());
+  if (stored.has_time_from_ns()) filter.time_from_ns = stored.time_from_ns();
+  if (stored.has_time_to_ns()) filter.time_to_ns = stored.time_to_ns();
+  filter.encoder_version = stored.encoder_version();
+  return filter;
+}
+
+engine::FleetSettings FromRecord(const StoredSettings& stored) {
+  engine::FleetSettings settings;
+  core::MemoryOptions& memory = settings.memory;
+  settings.place_unit = stored.place_unit();
+  memory.clusters_per_batch = stored.clusters_per_batch();
+  memory.max_traces_per_cluster = stored.max_traces_per_cluster();
+  memory.max_clusters = stored.max_clusters();
+  memory.replay_decay = stored.replay_decay();
+  memory.reward_floor = stored.reward_floor();
+  memory.spatial_scale_m = stored.spatial_scale_m();
+  memory.clustering = stored.clustering();
+  memory.merge_on_forget = stored.merge_on_forget();
+  memory.kmeans_max_iterations = stored.kmeans_max_iterations();
+  memory.seed = stored.seed();
+  memory.forgetting_exact_below = stored.forgetting_exact_below();
+  settings.max_age_seconds = stored.max_age_seconds();
+  settings.max_traces_per_robot = stored.max_traces_per_robot();
+  // A kind this version does not know: the server's index.
+  const int kind = stored.index_kind();
+  settings.index.kind =
+      kind >= 0 && kind <= static_cast<int>(engine::IndexSettings::Kind::kAuto)
+          ? static_cast<engine::IndexSettings::Kind>(kind)
+          : engine::IndexSettings::Kind::kServer;
+  settings.index.hnsw_m = stored.hnsw_m();
+  settings.index.hnsw_ef_search = stored.hnsw_ef_search();
+  return settings;
+}
+
+}  // namespace
+
 std::string EncodeMeta(const engine::FleetMeta& meta) {
   Meta record;
   record.set_code_dimension(meta.code_dimension);
@@ -60,6 +133,7 @@ std::string EncodeMeta(const engine::FleetMeta& meta) {
   record.set_clusters_forgotten(meta.clusters_forgotten);
   record.set_first_event_id(meta.first_event_id);
   record.set_log_position(meta.log_position);
+  if (meta.settings) ToRecord(*meta.settings, record.mutable_settings());
   return record.SerializeAsString();
 }
 
@@ -78,6 +152,13 @@ absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
   meta.clusters_forgotten = record.clusters_forgotten();
   meta.first_event_id = std::max<uint64_t>(1, record.first_event_id());
   meta.log_position = record.log_position();
+  if (record.has_settings()) meta.settings = FromRecord(record.settings());
+  if (meta.settings) {
+    if (absl::Status valid = core::ValidateMemoryOptions(meta.settings->memory);
+        !valid.ok()) {
+      return Corrupt(key, absl::StrCat("settings: ", valid.message()));
+    }
+  }
   return meta;
 }
 
@@ -167,21 +248,140 @@ struct ToLoggedRecord {
     sample->set_robot_id(std::string(call.robot_id));
     sample->set_count(call.count);
     sample->set_request_id(std::string(call.request_id));
+    if (call.filter != nullptr) {
+      ToRecord(*call.filter, sample->mutable_filter());
+    }
+  }
+  void operator()(const engine::DeleteTracesRecord& call) const {
+    LoggedDeleteTraces* selection = out->mutable_delete_traces();
+    const core::TraceFilter& filter = call.filter;
+    selection->set_robot_id(filter.robot_id);
+    selection->set_domain(filter.domain);
+    if (filter.seq_first) selection->set_seq_first(*filter.seq_first);
+    if (filter.seq_last) selection->set_seq_last(*filter.seq_last);
+    if (filter.time_from_ns) selection->set_time_from_ns(*filter.time_from_ns);
+    if (filter.time_to_ns) selection->set_time_to_ns(*filter.time_to_ns);
+  }
+  void operator()(const engine::CreateFleetRecord& call) const {
+    LoggedCreateFleet* create = out->mutable_create_fleet();
+    create->set_code_dimension(call.code_dimension);
+    create->set_encoder_version(call.encoder_version);
+    ToRecord(call.settings, create->mutable_settings());
+  }
+  void operator()(const engine::EnforceRetentionRecord& call) const {
+    out->mutable_enforce_retention()->set_now_ns(call.now_ns);
+  }
+  void operator()(const engine::DeleteFleetRecord&) const {
+    out->mutable_delete_fleet();
+  }
+  void operator()(const engine::UpdateFleetRecord& call) const {
+    LoggedUpdateFleet* update = out->mutable_update_fleet();
+    const engine::FleetSettingsUpdate& u = call.update;
+    if (u.clusters_per_batch) {
+      update->set_clusters_per_batch(*u.clusters_per_batch);
+    }
+    if (u.max_traces_per_cluster) {
+      update->set_max_traces_per_cluster(*u.max_traces_per_cluster);
+    }
+    if (u.max_clusters) update->set_max_clusters(*u.max_clusters);
+    if (u.replay_decay) update->set_replay_decay(*u.replay_decay);
+    if (u.merge_on_forget) update->set_merge_on_forget(*u.merge_on_forget);
+    if (u.max_age_seconds) update->set_max_age_seconds(*u.max_age_seconds);
+    if (u.max_traces_per_robot) {
+      update->set_max_traces_per_robot(*u.max_traces_per_robot);
+    }
+  }
+  void operator()(const engine::UpdateRewardsRecord& call) const {
+    LoggedUpdateRewards* rewards = out->mutable_update_rewards();
+    for (const core::RewardUpdate& update : call.updates) {
+      LoggedRewardUpdate* one = rewards->add_updates();
+      one->set_robot_id(update.key.robot_id);
+      one->set_seq(update.key.seq);
+      one->set_reward_external(update.reward_external);
+      one->set_reward_internal(update.reward_internal);
+    }
   }
 };
+
+engine::DeleteTracesRecord FromLogged(const LoggedDeleteTraces& logged) {
+  engine::DeleteTracesRecord call;
+  core::TraceFilter& filter = call.filter;
+  filter.robot_id = logged.robot_id();
+  filter.domain = logged.domain();
+  if (logged.has_seq_first()) filter.seq_first = logged.seq_first();
+  if (logged.has_seq_last()) filter.seq_last = logged.seq_last();
+  if (logged.has_time_from_ns()) filter.time_from_ns = logged.time_from_ns();
+  if (logged.has_time_to_ns()) filter.time_to_ns = logged.time_to_ns();
+  return call;
+}
+
+engine::CreateFleetRecord FromLogged(const LoggedCreateFleet& logged) {
+  return engine::CreateFleetRecord{logged.code_dimension(),
+                                   logged.encoder_version(),
+                                   FromRecord(logged.settings())};
+}
+
+engine::UpdateFleetRecord FromLogged(const LoggedUpdateFleet& logged) {
+  engine::UpdateFleetRecord call;
+  engine::FleetSettingsUpdate& u = call.update;
+  if (logged.has_clusters_per_batch()) {
+    u.clusters_per_batch = logged.clusters_per_batch();
+  }
+  if (logged.has_max_traces_per_cluster()) {
+    u.max_traces_per_cluster = logged.max_traces_per_cluster();
+  }
+  if (logged.has_max_clusters()) u.max_clusters = logged.max_clusters();
+  if (logged.has_replay_decay()) u.replay_decay = logged.replay_decay();
+  if (logged.has_merge_on_forget()) {
+    u.merge_on_forget = logged.merge_on_forget();
+  }
+  if (logged.has_max_age_seconds()) {
+    u.max_age_seconds = logged.max_age_seconds();
+  }
+  if (logged.has_max_traces_per_robot()) {
+    u.max_traces_per_robot = logged.max_traces_per_robot();
+  }
+  return call;
+}
+
+engine::UpdateRewardsCall FromLogged(const LoggedUpdateRewards& logged) {
+  engine::UpdateRewardsCall call;
+  call.updates.reserve(logged.updates_size());
+  for (const LoggedRewardUpdate& one : logged.updates()) {
+    call.updates.push_back(
+        core::RewardUpdate{core::TraceKey{one.robot_id(), one.seq()},
+                           one.reward_external(), one.reward_internal()});
+  }
+  return call;
+}
 
 // The record `logged` holds; nullopt when it holds none (no trace and no
 // call) or both.
 std::optional<engine::StoredRecord> FromLoggedRecord(
     const LoggedRecord& logged) {
-  const int calls =
-      (logged.has_consolidate() ? 1 : 0) + (logged.has_sample_replay() ? 1 : 0);
+  const int calls = (logged.has_consolidate() ? 1 : 0) +
+                    (logged.has_sample_replay() ? 1 : 0) +
+                    (logged.has_delete_traces() ? 1 : 0) +
+                    (logged.has_update_rewards() ? 1 : 0) +
+                    (logged.has_create_fleet() ? 1 : 0) +
+                    (logged.has_update_fleet() ? 1 : 0) +
+                    (logged.has_enforce_retention() ? 1 : 0) +
+                    (logged.has_delete_fleet() ? 1 : 0);
   if (calls + (logged.traces().empty() ? 0 : 1) != 1) return std::nullopt;
   if (logged.has_consolidate()) return engine::ConsolidateRecord{};
+  if (logged.has_delete_fleet()) return engine::DeleteFleetRecord{};
+  if (logged.has_delete_traces()) return FromLogged(logged.delete_traces());
+  if (logged.has_update_rewards()) return FromLogged(logged.update_rewards());
+  if (logged.has_create_fleet()) return FromLogged(logged.create_fleet());
+  if (logged.has_update_fleet()) return FromLogged(logged.update_fleet());
+  if (logged.has_enforce_retention()) {
+    return engine::EnforceRetentionRecord{logged.enforce_retention().now_ns()};
+  }
   if (logged.has_sample_replay()) {
     const LoggedSampleReplay& call = logged.sample_replay();
     return engine::SampleReplayCall{call.robot_id(), call.count(),
-                                    call.request_id()};
+                                    call.request_id(),
+                                    FromRecord(call.filter())};
   }
   std::vector<core::MemoryTrace> traces;
   traces.reserve(logged.traces_size());
@@ -354,6 +554,10 @@ std::string EncodeEvent(const core::MemoryEvent& event) {
       record.set_merged_into(event.merged_into);
       record.set_traces_dropped(event.traces_dropped);
       break;
+    case core::EventType::kTracesDeleted:
+      record.set_type(EVENT_TYPE_TRACES_DELETED);
+      record.set_traces_dropped(event.traces_dropped);
+      break;
   }
   record.set_cluster_id(event.cluster_id);
   record.set_trace_count(event.trace_count);
@@ -389,6 +593,10 @@ absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
     case EVENT_TYPE_CLUSTER_MERGED:
       event.type = core::EventType::kClusterMerged;
       event.merged_into = record.merged_into();
+      event.traces_dropped = record.traces_dropped();
+      break;
+    case EVENT_TYPE_TRACES_DELETED:
+      event.type = core::EventType::kTracesDeleted;
       event.traces_dropped = record.traces_dropped();
       break;
     default:

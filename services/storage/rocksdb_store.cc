@@ -618,6 +618,98 @@ class RocksDbStore final : public engine::MemoryStore {
                  "write fleet");
   }
 
+  absl::Status DeleteFleet(std::string_view fleet_id,
+                           const engine::FleetMeta& kept) override {
+    if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
+      return status;
+    }
+    std::vector<std::pair<std::string, std::string>> ranges;
+    for (keys::Tag tag : keys::kFleetTags) {
+      ranges.emplace_back(keys::Prefix(tag, fleet_id),
+                          keys::PrefixEnd(tag, fleet_id));
+    }
+    // Entries older builds kept in RocksDB (OpenLog moved them out).
+    ranges.emplace_back(keys::Prefix(keys::Tag::kLog, fleet_id),
+                        keys::PrefixEnd(keys::Tag::kLog, fleet_id));
+    rocksdb::WriteBatch batch;
+    for (const auto& [begin, end] : ranges) {
+      batch.DeleteRange(ToSlice(begin), ToSlice(end));
+    }
+    // After the range tombstones in the batch: the meta stays.
+    const std::string meta = EncodeMeta(kept);
+    batch.Put(ToSlice(keys::MetaKey(fleet_id)), ToSlice(meta));
+    {
+      absl::MutexLock lock(&apply_mu_);
+      absl::Status written =
+          Write(fleet_id, batch, write_options_, "delete fleet");
+      if (!written.ok()) return written;
+    }
+    std::error_code error;
+    std::filesystem::remove(
+        SnapshotFilePath(SnapshotDirectory(), std::string(fleet_id)), error);
+    if (error) {
+      FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                             << "\" deleted; its index snapshot stays on disk: "
+                             << error.message();
+    }
+    // The data leaves the disk now, not at some later compaction: the
+    // ranges' table files are rewritten without what the tombstones cover.
+    rocksdb::CompactRangeOptions compact;
+    compact.bottommost_level_compaction =
+        rocksdb::BottommostLevelCompaction::kForceOptimized;
+    for (const auto& [begin, end] : ranges) {
+      const rocksdb::Slice from = ToSlice(begin);
+      const rocksdb::Slice to = ToSlice(end);
+      const rocksdb::Status compacted = db_->CompactRange(compact, &from, &to);
+      if (!compacted.ok()) {
+        FLEETMEM_LOG(kWarning)
+            << "fleet \"" << fleet_id << "\" deleted; compacting "
+            << keys::Describe(begin)
+            << " failed (its space returns at a later compaction): "
+            << compacted.ToString();
+      }
+    }
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<std::vector<engine::FleetAlias>> LoadAliases() override {
+    std::vector<engine::FleetAlias> aliases;
+    const std::string first(1, static_cast<char>(keys::Tag::kAlias));
+    const std::string end(1, static_cast<char>(keys::Tag::kAlias) + 1);
+    absl::Status read = ForEachInRange(
+        db_.get(), rocksdb::ReadOptions(), first, end,
+        [&](std::string_view key,
+            std::string_view value) -> absl::StatusOr<bool> {
+          const std::optional<keys::ParsedKey> parsed = keys::Parse(key);
+          if (!parsed || !parsed->suffix.empty() || value.empty()) {
+            return absl::DataLossError(
+                absl::StrCat("malformed alias in RocksDB at ", path_, ": ",
+                             keys::Describe(key)));
+          }
+          aliases.push_back(
+              {std::string(parsed->fleet_id), std::string(value)});
+          return true;
+        });
+    if (!read.ok()) return read;
+    return aliases;
+  }
+
+  absl::Status PutAlias(std::string_view alias,
+                        std::string_view fleet_id) override {
+    if (absl::Status status = internal::CheckFleetId(alias); !status.ok()) {
+      return status;
+    }
+    rocksdb::WriteBatch batch;
+    const std::string key = keys::AliasKey(alias);
+    if (fleet_id.empty()) {
+      batch.Delete(ToSlice(key));
+    } else {
+      batch.Put(ToSlice(key), ToSlice(fleet_id));
+    }
+    absl::MutexLock lock(&apply_mu_);
+    return Write(alias, batch, write_options_, "write alias");
+  }
+
   // The ingest log: segment files beside RocksDB's (segment_log.h says
   // why), owned by the store because the two keep each other's rules: a
   // trim syncs the store's write-ahead log first, an append keeps the

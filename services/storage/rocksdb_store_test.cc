@@ -99,6 +99,34 @@ TEST(RocksDbStoreTest, ReopenGivesExactlyTheSameRecords) {
   }
 }
 
+// Aliases live beside the fleets (engine::StoredAliases reads them back at
+// start-up) and are no fleet's.
+TEST(RocksDbStoreTest, AliasesSurviveAReopenAndAreNoFleets) {
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+    ASSERT_NE(store, nullptr);
+    ASSERT_TRUE(store->Apply("f", ScriptedMutations(5).front()).ok());
+    ASSERT_TRUE(store->PutAlias("live", "f").ok());
+    ASSERT_TRUE(store->PutAlias("gone", "f").ok());
+    ASSERT_TRUE(store->PutAlias("gone", "").ok());
+    ASSERT_TRUE(store->PutAlias("z:1", "other").ok());
+  }
+  std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+  ASSERT_NE(store, nullptr);
+  EXPECT_EQ(store->ListFleets().value_or(std::vector<std::string>{}),
+            std::vector<std::string>{"f"});
+  absl::StatusOr<std::vector<engine::FleetAlias>> aliases =
+      store->LoadAliases();
+  ASSERT_TRUE(aliases.ok()) << aliases.status();
+  ASSERT_EQ(aliases->size(), 2u);
+  EXPECT_EQ((*aliases)[0].alias, "live");
+  EXPECT_EQ((*aliases)[0].fleet_id, "f");
+  EXPECT_EQ((*aliases)[1].alias, "z:1");
+  EXPECT_EQ((*aliases)[1].fleet_id, "other");
+}
+
 // The memory report names RocksDB's own memory; what is written sits in the
 // memtables until a flush, what is read in the block cache.
 TEST(RocksDbStoreTest, MemoryUsageNamesMemtablesTableReadersAndCache) {

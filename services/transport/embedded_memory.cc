@@ -37,7 +37,12 @@ EmbeddedMemory::EmbeddedMemory(engine::MemoryEngine* engine,
                                EmbeddedOptions options)
     : engine_(engine),
       writes_(std::move(writes)),
-      options_(std::move(options)) {}
+      options_(std::move(options)),
+      own_aliases_(options_.aliases == nullptr
+                       ? *engine::StoredAliases::Open(nullptr)
+                       : nullptr),
+      aliases_(options_.aliases != nullptr ? options_.aliases
+                                           : own_aliases_.get()) {}
 
 EmbeddedMemory::~EmbeddedMemory() { writes_->Stop(); }
 
@@ -129,6 +134,22 @@ absl::StatusOr<engine::AppliedRecord> EmbeddedMemory::Call(
   return *logged->applied;
 }
 
+absl::Status EmbeddedMemory::CreateFleet(
+    std::string_view fleet_id, const engine::CreateFleetRecord& create) {
+  absl::StatusOr<engine::Appended> logged =
+      writes_->AppendCreate(fleet_id, create);
+  if (!logged.ok()) return logged.status();
+  absl::Status applied = writes_->WaitApplied(
+      fleet_id, logged->sequence, absl::Now() + options_.max_apply_wait);
+  if (!applied.ok()) {
+    return absl::Status(applied.code(),
+                        absl::StrCat(applied.message(),
+                                     "; the fleet's creation is logged and "
+                                     "is applied in a moment"));
+  }
+  return logged->applied->refused;
+}
+
 absl::StatusOr<engine::ConsolidateResult> EmbeddedMemory::Consolidate(
     std::string_view fleet_id) {
   absl::StatusOr<engine::AppliedRecord> applied =
@@ -139,14 +160,15 @@ absl::StatusOr<engine::ConsolidateResult> EmbeddedMemory::Consolidate(
 
 absl::StatusOr<std::vector<core::MemoryTrace>> EmbeddedMemory::SampleReplay(
     std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-    std::string_view request_id) {
-  if (absl::Status valid =
-          engine_->CheckSampleReplay(fleet_id, robot_id, count, request_id);
+    std::string_view request_id, const core::ReadFilter* filter) {
+  if (absl::Status valid = engine_->CheckSampleReplay(fleet_id, robot_id, count,
+                                                      request_id, filter);
       !valid.ok()) {
     return valid;
   }
   absl::StatusOr<engine::AppliedRecord> applied =
-      Call(fleet_id, engine::SampleReplayRecord{robot_id, count, request_id});
+      Call(fleet_id,
+           engine::SampleReplayRecord{robot_id, count, request_id, filter});
   if (!applied.ok()) return applied.status();
   return std::move(applied->sample);
 }

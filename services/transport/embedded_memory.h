@@ -24,6 +24,9 @@ struct EmbeddedOptions {
   // applied through every upload acknowledged before them; past this they
   // answer UNAVAILABLE (retry) with the backlog, and change nothing.
   absl::Duration max_apply_wait = absl::Seconds(30);
+  // The fleet aliases (the server's: engine::StoredAliases over its store);
+  // null: a table in memory only (tests). Must outlive the memory.
+  engine::AliasTable* aliases = nullptr;
 };
 
 // Thread-safe.
@@ -53,7 +56,16 @@ class EmbeddedMemory final : public FleetMemory {
       std::string_view fleet_id) override;
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-      std::string_view request_id) override;
+      std::string_view request_id, const core::ReadFilter* filter) override;
+  // Every call (Consolidate, SampleReplay too): the call's record appended
+  // to the fleet's log once the uploads before it are applied (CatchUp),
+  // and what applying it did (as distributed mode's owner:
+  // cluster::Materialiser::Call). The fleet state's refusal as the error.
+  absl::StatusOr<engine::AppliedRecord> Call(
+      std::string_view fleet_id, const engine::LogRecord& call) override;
+  absl::Status CreateFleet(std::string_view fleet_id,
+                           const engine::CreateFleetRecord& create) override;
+  engine::AliasTable& aliases() override { return *aliases_; }
   engine::Backlog Backlog(std::string_view fleet_id) override;
   absl::StatusOr<std::optional<std::string>> Owner(
       std::string_view fleet_id) override;
@@ -74,12 +86,6 @@ class EmbeddedMemory final : public FleetMemory {
   // Waits for the fleet's log to be applied through what was acknowledged
   // so far (max_apply_wait); UNAVAILABLE past it.
   absl::Status CatchUp(std::string_view fleet_id);
-  // Consolidate and SampleReplay: the call's record appended to the
-  // fleet's log once the uploads before it are applied (CatchUp), and what
-  // applying it did (as distributed mode's owner: cluster::Materialiser::
-  // Call). The fleet state's refusal as the error.
-  absl::StatusOr<engine::AppliedRecord> Call(std::string_view fleet_id,
-                                             const engine::LogRecord& call);
 
   EmbeddedMemory(engine::MemoryEngine* engine,
                  std::unique_ptr<engine::WritePath> writes,
@@ -89,6 +95,8 @@ class EmbeddedMemory final : public FleetMemory {
   const std::unique_ptr<engine::WritePath> writes_;
   const EmbeddedOptions options_;
   const std::string self_;
+  std::unique_ptr<engine::AliasTable> own_aliases_;  // without options.aliases
+  engine::AliasTable* aliases_;
 };
 
 }  // namespace fleetmem::transport

@@ -28,6 +28,7 @@
 #include "absl/time/time.h"
 #include "google/protobuf/message.h"
 #include "services/core/types.h"
+#include "services/engine/fleet_aliases.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/write_path.h"
 
@@ -84,9 +85,29 @@ class FleetMemory {
   // upload acknowledged before them.
   virtual absl::StatusOr<engine::ConsolidateResult> Consolidate(
       std::string_view fleet_id) = 0;
+  // `filter` (null: any trace) travels in the call's log record.
   virtual absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-      std::string_view request_id) = 0;
+      std::string_view request_id, const core::ReadFilter* filter) = 0;
+
+  // CreateFleet (arguments checked by the caller: MemoryEngine::
+  // CheckCreateFleet): the record made the fleet's first log entry, and
+  // applied (embedded) or taken to be applied by the owner (distributed).
+  // ALREADY_EXISTS when the fleet exists (by CreateFleet or an upload).
+  virtual absl::Status CreateFleet(std::string_view fleet_id,
+                                   const engine::CreateFleetRecord& create) = 0;
+
+  // Any other call that changes memory (DeleteTraces, UpdateRewards: every
+  // record but an upload's), its arguments checked by the caller: its
+  // record logged after every upload acknowledged before it and applied
+  // through; what applying it did. The fleet state's refusal as the error
+  // (AppliedRecord::refused).
+  virtual absl::StatusOr<engine::AppliedRecord> Call(
+      std::string_view fleet_id, const engine::LogRecord& call) = 0;
+
+  // The fleet aliases of this mode (engine/fleet_aliases.h): embedded, in
+  // the store; distributed, shared by every replica.
+  virtual engine::AliasTable& aliases() = 0;
 
   // The fleet's acknowledged uploads not applied yet, as this server sees
   // them (GetStats, /metrics).
@@ -123,6 +144,14 @@ class FleetMemory {
       std::span<google::protobuf::Message* const> responses,
       absl::Time deadline) = 0;
 };
+
+// Retention (docs/api.md): for each fleet served here whose settings bound
+// its traces' age or number per robot, a retention call as of `now_ns`
+// through the fleet's log (FleetMemory::Call), so that every replica
+// deletes the same traces. The traces deleted in all; a fleet's error is
+// logged and the others go on. A server's periodic task.
+uint64_t EnforceRetention(engine::MemoryEngine& engine, FleetMemory& memory,
+                          int64_t now_ns);
 
 // The metadata key that marks a forwarded call.
 inline constexpr char kForwardedHeader[] = "x-fleetmem-forwarded";

@@ -13,8 +13,10 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/clock.h"
+#include "services/core/absl_view.h"
 #include "services/core/validation.h"
 #include "services/transport/proto_convert.h"
 #include "services/transport/upload_checks.h"
@@ -56,6 +58,35 @@ absl::Status ValidateSnapshotName(absl::string_view name) {
   return absl::OkStatus();
 }
 
+// The code of codes_by_encoder that the fleet's encoder made.
+absl::StatusOr<const v1::EncoderCode*> PickEncoderCode(
+    const v1::QueryPlaceRequest& request,
+    const std::optional<engine::FleetShape>& shape) {
+  if (request.code_size() > 0) {
+    return absl::InvalidArgumentError(
+        "code and codes_by_encoder: give one of them");
+  }
+  std::set<std::string> named;
+  for (const v1::EncoderCode& code : request.codes_by_encoder()) {
+    if (!named.insert(code.encoder_version()).second) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("codes_by_encoder: encoder \"", code.encoder_version(),
+                       "\" is named twice"));
+    }
+  }
+  if (!shape.has_value()) {
+    return absl::NotFoundError(
+        absl::StrCat("fleet \"", request.fleet_id(), "\" does not exist"));
+  }
+  for (const v1::EncoderCode& code : request.codes_by_encoder()) {
+    if (code.encoder_version() == shape->encoder_version) return &code;
+  }
+  return absl::FailedPreconditionError(
+      absl::StrCat("codes_by_encoder: none is of fleet \"", request.fleet_id(),
+                   "\"'s encoder \"", shape->encoder_version,
+                   "\" (given: ", absl::StrJoin(named, ", "), ")"));
+}
+
 }  // namespace
 
 absl::StatusOr<core::TraceKey> ParsePageToken(absl::string_view token) {
@@ -87,7 +118,31 @@ MemoryApi::MemoryApi(engine::MemoryEngine* engine, FleetMemory* memory,
   methods_["ListEvents"] = Typed(&MemoryApi::ListEvents);
   methods_["ListTraces"] = Typed(&MemoryApi::ListTraces);
   methods_["CreateSnapshot"] = Typed(&MemoryApi::CreateSnapshot);
+  methods_["DeleteTraces"] = Typed(&MemoryApi::DeleteTraces);
+  methods_["UpdateRewards"] = Typed(&MemoryApi::UpdateRewards);
+  methods_["GetTraces"] = Typed(&MemoryApi::GetTraces);
+  methods_["CreateFleet"] = Typed(&MemoryApi::CreateFleet);
+  methods_["GetFleet"] = Typed(&MemoryApi::GetFleet);
+  methods_["UpdateFleet"] = Typed(&MemoryApi::UpdateFleet);
   methods_["UploadTraces"] = Typed(&MemoryApi::UploadTraces);
+  methods_["DeleteFleet"] = Typed(&MemoryApi::DeleteFleet);
+  methods_["CreateAlias"] = Typed(&MemoryApi::CreateAlias);
+  methods_["SwitchAlias"] = Typed(&MemoryApi::SwitchAlias);
+  methods_["DeleteAlias"] = Typed(&MemoryApi::DeleteAlias);
+  methods_["ListAliases"] = Typed(&MemoryApi::ListAliases);
+}
+
+MemoryApi::Resolved MemoryApi::Resolve(const auth::Principal& caller,
+                                       std::string_view name) const {
+  Resolved resolved{std::string(name), caller};
+  std::optional<std::string> fleet_id = memory_->aliases().Resolve(name);
+  if (!fleet_id.has_value()) return resolved;
+  if (auth::MaySeeFleet(caller, V(name)) &&
+      !auth::MaySeeFleet(caller, *fleet_id)) {
+    resolved.caller.fleets.push_back(*fleet_id);
+  }
+  resolved.fleet_id = *std::move(fleet_id);
+  return resolved;
 }
 
 bool MemoryApi::Serves(absl::string_view method_name) const {
@@ -107,15 +162,51 @@ absl::Status MemoryApi::Call(absl::string_view method_name,
     return ListAllFleets(caller, static_cast<v1::ListFleetsResponse*>(response),
                          how);
   }
+  // The alias table's calls name an alias, and are served by the replica
+  // called (the table is shared): never resolved, never forwarded.
+  if (method_name == "CreateAlias" || method_name == "SwitchAlias" ||
+      method_name == "DeleteAlias" || method_name == "ListAliases") {
+    return it->second(this, caller, request, response);
+  }
+  // A fleet's call: its name resolved once (an alias's fleet at this
+  // moment), then served as a call naming that fleet.
+  const google::protobuf::FieldDescriptor* field =
+      request.GetDescriptor()->FindFieldByName("fleet_id");
+  std::unique_ptr<Message> resolved_request;
+  const Message* call = &request;
+  Resolved resolved{{}, caller};
+  if (field != nullptr) {
+    const std::string name = request.GetReflection()->GetString(request, field);
+    resolved = Resolve(caller, name);
+    if (resolved.fleet_id != name) {
+      if (method_name == "CreateFleet") {
+        return absl::AlreadyExistsError(
+            absl::StrCat("\"", name, "\" is an alias of fleet \"",
+                         resolved.fleet_id, "\"; a fleet needs another name"));
+      }
+      if (method_name == "DeleteFleet") {  // never through a name that moves
+        return absl::InvalidArgumentError(absl::StrCat(
+            "fleet_id: \"", name, "\" is an alias (of fleet \"",
+            resolved.fleet_id, "\"); DeleteFleet names the fleet itself"));
+      }
+      resolved_request.reset(request.New());
+      resolved_request->CopyFrom(request);
+      resolved_request->GetReflection()->SetString(resolved_request.get(),
+                                                   field, resolved.fleet_id);
+      call = resolved_request.get();
+    }
+  }
   if (method_name == "UploadTraces") {  // FleetMemory routes uploads itself
-    return Upload(caller, static_cast<const v1::UploadTracesRequest&>(request),
+    return Upload(resolved.caller,
+                  static_cast<const v1::UploadTracesRequest&>(*call),
                   static_cast<v1::UploadTracesResponse*>(response), how);
   }
   absl::Status status;
-  if (RouteToOwner(method_name, caller, request, response, how, &status)) {
+  if (RouteToOwner(method_name, resolved.caller, *call, response, how,
+                   &status)) {
     return status;
   }
-  return it->second(this, caller, request, response);
+  return it->second(this, resolved.caller, *call, response);
 }
 
 bool MemoryApi::RouteToOwner(absl::string_view method_name,
@@ -135,17 +226,7 @@ bool MemoryApi::RouteToOwner(absl::string_view method_name,
   if (!status->ok()) return true;
   // Authorised here: the owner serves the forwarded call as this replica's
   // (an admin of the cluster's credentials).
-  auth::Action action = auth::Action::kStats;
-  std::string robot_id;
-  if (method_name == "Consolidate") {
-    action = auth::Action::kConsolidate;
-  } else if (method_name == "SampleReplay") {
-    action = auth::Action::kSample;
-    robot_id = static_cast<const v1::SampleReplayRequest&>(request).robot_id();
-  } else if (method_name == "QueryPlace") {
-    action = auth::Action::kQuery;
-  }
-  *status = auth::Authorize(caller, action, fleet_id, robot_id);
+  *status = AuthorizeCall(method_name, caller, request, fleet_id);
   if (!status->ok()) return true;
   absl::StatusOr<std::optional<std::string>> owner = memory_->Owner(fleet_id);
   if (!owner.ok()) {
@@ -165,6 +246,48 @@ bool MemoryApi::RouteToOwner(absl::string_view method_name,
   return true;
 }
 
+absl::Status MemoryApi::AuthorizeCall(absl::string_view method_name,
+                                      const auth::Principal& caller,
+                                      const Message& request,
+                                      const std::string& fleet_id) {
+  if (method_name == "Consolidate") {
+    return auth::Authorize(caller, auth::Action::kConsolidate, fleet_id);
+  }
+  if (method_name == "SampleReplay") {
+    return auth::Authorize(
+        caller, auth::Action::kSample, fleet_id,
+        static_cast<const v1::SampleReplayRequest&>(request).robot_id());
+  }
+  if (method_name == "QueryPlace") {
+    return auth::Authorize(caller, auth::Action::kQuery, fleet_id);
+  }
+  if (method_name == "CreateFleet" || method_name == "UpdateFleet" ||
+      method_name == "DeleteFleet") {
+    return auth::Authorize(caller, auth::Action::kManage, fleet_id);
+  }
+  if (method_name == "DeleteTraces") {
+    return auth::Authorize(
+        caller, auth::Action::kDelete, fleet_id,
+        static_cast<const v1::DeleteTracesRequest&>(request).robot_id());
+  }
+  if (method_name == "UpdateRewards") {
+    // Every robot named: one of another robot's traces refuses the call.
+    std::set<std::string> robots;
+    for (const v1::RewardUpdate& update :
+         static_cast<const v1::UpdateRewardsRequest&>(request).updates()) {
+      robots.insert(update.robot_id());
+    }
+    if (robots.empty()) robots.insert(caller.robot_id);
+    for (const std::string& robot_id : robots) {
+      absl::Status allowed =
+          auth::Authorize(caller, auth::Action::kRescore, fleet_id, robot_id);
+      if (!allowed.ok()) return allowed;
+    }
+    return absl::OkStatus();
+  }
+  return auth::Authorize(caller, auth::Action::kStats, fleet_id);
+}
+
 absl::Status MemoryApi::ListAllFleets(const auth::Principal& caller,
                                       v1::ListFleetsResponse* response,
                                       const CallOptions& how) {
@@ -178,11 +301,26 @@ absl::Status MemoryApi::ListAllFleets(const auth::Principal& caller,
     if (!auth::MaySeeFleet(caller, fleet_id)) continue;
     // A forwarded ListFleets answers for this replica's fleets only.
     if (how.forwarded && owner != self) continue;
+    absl::StatusOr<engine::FleetStats> stats =
+        owner == self ? engine_->GetStats(fleet_id)
+                      : absl::StatusOr<engine::FleetStats>();
+    // A log whose fleet was deleted (DeleteFleet: its position stays) and
+    // not made again; a fleet whose first upload waits in its log is
+    // listed.
+    if (owner == self && absl::IsNotFound(stats.status()) &&
+        engine_->LogPosition(fleet_id).value_or(0) > 0) {
+      const engine::Backlog backlog = memory_->Backlog(fleet_id);
+      if (backlog.traces == 0 && backlog.entries == 0) continue;
+    }
     v1::FleetSummary& summary = summaries[fleet_id];
     summary.set_fleet_id(fleet_id);
     if (owner == self) {
-      absl::StatusOr<engine::FleetStats> stats = engine_->GetStats(fleet_id);
       if (stats.ok()) FleetSummaryToProto(fleet_id, *stats, &summary);
+      absl::StatusOr<engine::FleetInfo> info = engine_->GetFleet(fleet_id);
+      if (info.ok()) {
+        FleetSettingsToProto(*info, summary.mutable_settings());
+        summary.set_own_settings(info->own_settings);
+      }
     }
     summary.set_replica(owner);
     if (owner != self && !owner.empty()) owners.insert(owner);
@@ -211,11 +349,19 @@ void MemoryApi::AddOwnersCounts(
       owners, "ListFleets", v1::ListFleetsRequest(), answers, by);
   for (size_t i = 0; i < owners.size(); ++i) {
     if (!asked[i].ok()) continue;  // their fleets listed by id alone
+    std::set<std::string> listed;
     for (const v1::FleetSummary& summary : theirs[i].fleets()) {
       auto it = summaries->find(summary.fleet_id());
       if (it != summaries->end() && summary.replica() == owners[i]) {
         it->second = summary;
+        listed.insert(summary.fleet_id());
       }
+    }
+    // The owner's fleets it did not list were deleted.
+    for (auto it = summaries->begin(); it != summaries->end();) {
+      const bool gone =
+          it->second.replica() == owners[i] && !listed.contains(it->first);
+      it = gone ? summaries->erase(it) : std::next(it);
     }
   }
 }
@@ -239,9 +385,10 @@ absl::Status MemoryApi::SampleReplay(const auth::Principal& caller,
   absl::Status allowed = auth::Authorize(
       caller, auth::Action::kSample, request.fleet_id(), request.robot_id());
   if (!allowed.ok()) return allowed;
-  absl::StatusOr<std::vector<core::MemoryTrace>> traces =
-      memory_->SampleReplay(request.fleet_id(), request.robot_id(),
-                            request.count(), request.request_id());
+  const core::ReadFilter filter = api::ReadFilterFromProto(request.filter());
+  absl::StatusOr<std::vector<core::MemoryTrace>> traces = memory_->SampleReplay(
+      request.fleet_id(), request.robot_id(), request.count(),
+      request.request_id(), filter.selects_all() ? nullptr : &filter);
   if (!traces.ok()) return traces.status();
   SampledTracesToProto(*traces, response);
   return absl::OkStatus();
@@ -253,10 +400,175 @@ absl::Status MemoryApi::QueryPlace(const auth::Principal& caller,
   absl::Status allowed =
       auth::Authorize(caller, auth::Action::kQuery, request.fleet_id());
   if (!allowed.ok()) return allowed;
-  absl::StatusOr<std::vector<engine::PlaceMatch>> matches =
-      engine_->QueryPlace(request.fleet_id(), QueryFromProto(request));
-  if (!matches.ok()) return matches.status();
-  MatchesToProto(*matches, response);
+  const std::optional<engine::FleetShape> shape =
+      engine_->Shape(request.fleet_id());
+  engine::PlaceQuery query = QueryFromProto(request);
+  if (request.codes_by_encoder_size() > 0) {
+    absl::StatusOr<const v1::EncoderCode*> picked =
+        PickEncoderCode(request, shape);
+    if (!picked.ok()) return picked.status();
+    query.code.assign((*picked)->code().begin(), (*picked)->code().end());
+  }
+  std::vector<std::vector<float>> more_codes;
+  more_codes.reserve(request.more_codes_size());
+  for (const v1::QueryCode& more : request.more_codes()) {
+    more_codes.emplace_back(more.code().begin(), more.code().end());
+  }
+  absl::StatusOr<std::vector<std::vector<engine::PlaceMatch>>> answers =
+      engine_->QueryPlaces(request.fleet_id(), query, more_codes);
+  if (!answers.ok()) return answers.status();
+  response->set_fleet_id(request.fleet_id());
+  if (shape.has_value()) response->set_encoder_version(shape->encoder_version);
+  MatchesToProto(answers->front(), response);
+  for (size_t i = 1; i < answers->size(); ++i) {
+    v1::QueryPlaceResponse more;
+    MatchesToProto((*answers)[i], &more);
+    response->add_more_matches()->mutable_matches()->Swap(
+        more.mutable_matches());
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::DeleteFleet(const auth::Principal& caller,
+                                    const v1::DeleteFleetRequest& request,
+                                    v1::DeleteFleetResponse* response) {
+  absl::Status allowed =
+      AuthorizeCall("DeleteFleet", caller, request, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<std::vector<engine::FleetAlias>> aliases =
+      memory_->aliases().List();
+  if (!aliases.ok()) return aliases.status();
+  for (const engine::FleetAlias& alias : *aliases) {
+    if (alias.fleet_id == request.fleet_id()) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "alias \"", alias.alias, "\" names fleet \"", request.fleet_id(),
+          "\": switch it to another fleet or delete it first; nothing was "
+          "deleted"));
+    }
+  }
+  absl::StatusOr<engine::AppliedRecord> applied =
+      memory_->Call(request.fleet_id(), engine::DeleteFleetRecord{});
+  if (!applied.ok()) return applied.status();
+  response->set_traces_deleted(applied->fleet_deleted);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::DeleteTraces(const auth::Principal& caller,
+                                     const v1::DeleteTracesRequest& request,
+                                     v1::DeleteTracesResponse* response) {
+  absl::Status allowed =
+      AuthorizeCall("DeleteTraces", caller, request, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  engine::DeleteTracesRecord call{api::FilterFromProto(request)};
+  // Checked before it is logged, so that a bad one changes nothing.
+  allowed =
+      engine::MemoryEngine::CheckDeleteTraces(request.fleet_id(), call.filter);
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<engine::AppliedRecord> applied =
+      memory_->Call(request.fleet_id(), call);
+  if (!applied.ok()) return applied.status();
+  DeleteResultToProto(applied->deleted, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::UpdateRewards(const auth::Principal& caller,
+                                      const v1::UpdateRewardsRequest& request,
+                                      v1::UpdateRewardsResponse* response) {
+  absl::Status allowed =
+      AuthorizeCall("UpdateRewards", caller, request, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  const std::vector<core::RewardUpdate> updates =
+      api::RewardUpdatesFromProto(request);
+  allowed = engine_->CheckUpdateRewards(request.fleet_id(), updates);
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<engine::AppliedRecord> applied =
+      memory_->Call(request.fleet_id(), engine::UpdateRewardsRecord{updates});
+  if (!applied.ok()) return applied.status();
+  RewardsResultToProto(applied->rescored, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::GetTraces(const auth::Principal& caller,
+                                  const v1::GetTracesRequest& request,
+                                  v1::GetTracesResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kStats, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  const std::vector<core::TraceKey> keys = KeysFromProto(request.keys());
+  absl::StatusOr<engine::TraceLookup> lookup =
+      engine_->GetTraces(request.fleet_id(), keys);
+  if (!lookup.ok()) return lookup.status();
+  TraceLookupToProto(*lookup, response);
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::CreateFleet(const auth::Principal& caller,
+                                    const v1::CreateFleetRequest& request,
+                                    v1::CreateFleetResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kManage, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  const engine::CreateFleetRecord create = CreateFleetFromProto(
+      request.settings(), engine_->MemoryOptionsFor(request.fleet_id()));
+  // Checked before it is logged, so that a bad one changes nothing.
+  allowed = engine_->CheckCreateFleet(request.fleet_id(), create);
+  if (!allowed.ok()) return allowed;
+  allowed = memory_->CreateFleet(request.fleet_id(), create);
+  if (!allowed.ok()) return allowed;
+  engine::FleetInfo made;
+  made.shape = {create.code_dimension, create.encoder_version};
+  made.settings = create.settings;
+  made.own_settings = true;
+  FleetSettingsToProto(made, response->mutable_settings());
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::GetFleet(const auth::Principal& caller,
+                                 const v1::GetFleetRequest& request,
+                                 v1::GetFleetResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kStats, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<engine::FleetInfo> info =
+      engine_->GetFleet(request.fleet_id());
+  if (!info.ok()) return info.status();
+  absl::StatusOr<engine::FleetStats> stats =
+      engine_->GetStats(request.fleet_id());
+  if (!stats.ok()) return stats.status();
+  v1::FleetSummary* fleet = response->mutable_fleet();
+  FleetSummaryToProto(request.fleet_id(), *stats, fleet);
+  FleetSettingsToProto(*info, fleet->mutable_settings());
+  fleet->set_own_settings(info->own_settings);
+  fleet->set_replica(memory_->self());
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::UpdateFleet(const auth::Principal& caller,
+                                    const v1::UpdateFleetRequest& request,
+                                    v1::UpdateFleetResponse* response) {
+  absl::Status allowed =
+      auth::Authorize(caller, auth::Action::kManage, request.fleet_id());
+  if (!allowed.ok()) return allowed;
+  absl::StatusOr<engine::FleetInfo> current =
+      engine_->GetFleet(request.fleet_id());
+  if (!current.ok()) return current.status();
+  absl::StatusOr<engine::FleetSettingsUpdate> update =
+      FleetUpdateFromProto(request.settings(), *current);
+  if (!update.ok()) return update.status();
+  // The result checked here first, so that a bad one is never logged (the
+  // apply checks it again against the settings of its moment).
+  engine::FleetSettings after = update->AppliedTo(current->settings);
+  if (absl::Status valid = core::ValidateMemoryOptions(after.memory);
+      !valid.ok()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("settings: ", valid.message()));
+  }
+  absl::StatusOr<engine::AppliedRecord> applied =
+      memory_->Call(request.fleet_id(), engine::UpdateFleetRecord{*update});
+  if (!applied.ok()) return applied.status();
+  engine::FleetInfo info = *current;
+  info.settings = applied->settings;
+  FleetSettingsToProto(info, response->mutable_settings());
   return absl::OkStatus();
 }
 
@@ -327,14 +639,16 @@ absl::Status MemoryApi::Upload(const auth::Principal& caller,
   return absl::OkStatus();
 }
 
-absl::Status MemoryApi::CheckWatch(const auth::Principal& caller,
-                                   const v1::WatchMemoryRequest& request) {
-  const std::string& fleet_id = request.fleet_id();
-  if (absl::Status id = core::ValidateId("fleet_id", fleet_id); !id.ok()) {
+absl::StatusOr<MemoryApi::Resolved> MemoryApi::CheckWatch(
+    const auth::Principal& caller, const v1::WatchMemoryRequest& request) {
+  if (absl::Status id = core::ValidateId("fleet_id", request.fleet_id());
+      !id.ok()) {
     return id;
   }
+  Resolved resolved = Resolve(caller, request.fleet_id());
+  const std::string& fleet_id = resolved.fleet_id;
   absl::Status allowed =
-      auth::Authorize(caller, auth::Action::kWatch, fleet_id);
+      auth::Authorize(resolved.caller, auth::Action::kWatch, fleet_id);
   if (!allowed.ok()) return allowed;
   absl::StatusOr<std::optional<std::string>> owner = memory_->Owner(fleet_id);
   if (!owner.ok()) return owner.status();
@@ -343,17 +657,16 @@ absl::Status MemoryApi::CheckWatch(const auth::Principal& caller,
                                                "\" is served by replica \"",
                                                **owner, "\": watch it there"));
   }
-  return absl::OkStatus();
+  return resolved;
 }
 
 absl::Status MemoryApi::Watch(
     const auth::Principal& caller, const v1::WatchMemoryRequest& request,
     absl::Time until, absl::Duration heartbeat, const std::atomic<bool>* stop,
     const std::function<bool(const v1::MemoryEvent*)>& on_event) {
-  if (absl::Status allowed = CheckWatch(caller, request); !allowed.ok()) {
-    return allowed;
-  }
-  const std::string& fleet_id = request.fleet_id();
+  absl::StatusOr<Resolved> resolved = CheckWatch(caller, request);
+  if (!resolved.ok()) return resolved.status();
+  const std::string& fleet_id = resolved->fleet_id;
   // Subscribed before the first read, so that no event falls between them
   // (as WatchReactor).
   struct Wakeup {

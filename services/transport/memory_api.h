@@ -107,11 +107,64 @@ class MemoryApi {
   absl::Status UploadTraces(const auth::Principal& caller,
                             const v1::UploadTracesRequest& request,
                             v1::UploadTracesResponse* response);
+  // Admin. Logged as the fleet's first entry (FleetMemory::CreateFleet).
+  absl::Status CreateFleet(const auth::Principal& caller,
+                           const v1::CreateFleetRequest& request,
+                           v1::CreateFleetResponse* response);
+  absl::Status GetFleet(const auth::Principal& caller,
+                        const v1::GetFleetRequest& request,
+                        v1::GetFleetResponse* response);
+  // Admin. Through the fleet's log (FleetMemory::Call).
+  absl::Status UpdateFleet(const auth::Principal& caller,
+                           const v1::UpdateFleetRequest& request,
+                           v1::UpdateFleetResponse* response);
+  // Admin. Through the fleet's log (FleetMemory::Call), after every upload
+  // acknowledged before it; refused while an alias names the fleet.
+  absl::Status DeleteFleet(const auth::Principal& caller,
+                           const v1::DeleteFleetRequest& request,
+                           v1::DeleteFleetResponse* response);
+  // Through the fleet's log in both modes (FleetMemory::Call), after every
+  // upload acknowledged before them; a robot names only its own traces.
+  absl::Status DeleteTraces(const auth::Principal& caller,
+                            const v1::DeleteTracesRequest& request,
+                            v1::DeleteTracesResponse* response);
+  absl::Status UpdateRewards(const auth::Principal& caller,
+                             const v1::UpdateRewardsRequest& request,
+                             v1::UpdateRewardsResponse* response);
+  absl::Status GetTraces(const auth::Principal& caller,
+                         const v1::GetTracesRequest& request,
+                         v1::GetTracesResponse* response);
+  // Fleet aliases (FleetMemory::aliases()): admin only, but ListAliases,
+  // which lists the aliases of the fleets the caller may see. Served by
+  // the replica called (the table is shared), never forwarded.
+  absl::Status CreateAlias(const auth::Principal& caller,
+                           const v1::CreateAliasRequest& request,
+                           v1::CreateAliasResponse* response);
+  absl::Status SwitchAlias(const auth::Principal& caller,
+                           const v1::SwitchAliasRequest& request,
+                           v1::SwitchAliasResponse* response);
+  absl::Status DeleteAlias(const auth::Principal& caller,
+                           const v1::DeleteAliasRequest& request,
+                           v1::DeleteAliasResponse* response);
+  absl::Status ListAliases(const auth::Principal& caller,
+                           const v1::ListAliasesRequest& request,
+                           v1::ListAliasesResponse* response);
   // Admin only. ALREADY_EXISTS if the name is taken; on any error nothing is
   // left under the name.
   absl::Status CreateSnapshot(const auth::Principal& caller,
                               const v1::CreateSnapshotRequest& request,
                               v1::CreateSnapshotResponse* response);
+
+  // The fleet a call naming `name` reads and writes: the alias's fleet at
+  // this moment, or `name` itself; and the caller's rights through it (a
+  // credential of the alias acts for the fleet it names). Every fleet's
+  // call resolves its name once, here (Call; the upload and watch streams
+  // when they start), so a switch never splits a call.
+  struct Resolved {
+    std::string fleet_id;
+    auth::Principal caller;
+  };
+  Resolved Resolve(const auth::Principal& caller, std::string_view name) const;
 
   // Generic form for the HTTP gateway: the unary method `method_name` (e.g.
   // "GetStats") with messages of its request and response types.
@@ -137,15 +190,23 @@ class MemoryApi {
   // cursor's events are erased; also later, if retention overtakes a slow
   // reader), UNAVAILABLE (another replica owns the fleet: watch it there),
   // the access policy's errors and a failed read.
-  // Watch's checks alone (before a transport commits to a stream).
-  absl::Status CheckWatch(const auth::Principal& caller,
-                          const v1::WatchMemoryRequest& request);
+  // Watch's checks alone (before a transport commits to a stream), after
+  // resolving its name once (a watch stays on the fleet it started on: its
+  // event ids are that fleet's): the fleet watched and the caller's rights.
+  absl::StatusOr<Resolved> CheckWatch(const auth::Principal& caller,
+                                      const v1::WatchMemoryRequest& request);
   absl::Status Watch(
       const auth::Principal& caller, const v1::WatchMemoryRequest& request,
       absl::Time until, absl::Duration heartbeat, const std::atomic<bool>* stop,
       const std::function<bool(const v1::MemoryEvent*)>& on_event);
 
  private:
+  // The caller's right to `method_name` on `fleet_id` (a fleet's call, as
+  // RouteToOwner and the typed members ask it).
+  static absl::Status AuthorizeCall(absl::string_view method_name,
+                                    const auth::Principal& caller,
+                                    const google::protobuf::Message& request,
+                                    const std::string& fleet_id);
   using Generic = std::function<absl::Status(MemoryApi*, const auth::Principal&,
                                              const google::protobuf::Message&,
                                              google::protobuf::Message*)>;

@@ -28,6 +28,7 @@ class RecordingDistribution final : public FleetMemory {
     return Uploaded{};
   }
   engine::Backlog Backlog(std::string_view) override { return {}; }
+  engine::AliasTable& aliases() override { return *aliases_; }
   absl::StatusOr<std::optional<std::string>> Owner(
       std::string_view fleet_id) override {
     auto it = owners.find(std::string(fleet_id));
@@ -74,6 +75,16 @@ class RecordingDistribution final : public FleetMemory {
     }
     return statuses;
   }
+  absl::Status CreateFleet(std::string_view fleet_id,
+                           const engine::CreateFleetRecord&) override {
+    through_log.push_back("CreateFleet " + std::string(fleet_id));
+    return absl::OkStatus();
+  }
+  absl::StatusOr<engine::AppliedRecord> Call(
+      std::string_view fleet_id, const engine::LogRecord&) override {
+    through_log.push_back("Call " + std::string(fleet_id));
+    return engine::AppliedRecord{};
+  }
   absl::StatusOr<engine::ConsolidateResult> Consolidate(
       std::string_view fleet_id) override {
     through_log.push_back("Consolidate " + std::string(fleet_id));
@@ -81,7 +92,7 @@ class RecordingDistribution final : public FleetMemory {
   }
   absl::StatusOr<std::vector<core::MemoryTrace>> SampleReplay(
       std::string_view fleet_id, std::string_view robot_id, uint64_t count,
-      std::string_view) override {
+      std::string_view, const core::ReadFilter*) override {
     through_log.push_back("SampleReplay " + std::string(fleet_id) + " " +
                           std::string(robot_id) + " " + std::to_string(count));
     return std::vector<core::MemoryTrace>{};
@@ -95,6 +106,8 @@ class RecordingDistribution final : public FleetMemory {
 
  private:
   const std::string self_ = "me:1";
+  std::unique_ptr<engine::StoredAliases> aliases_ =
+      *engine::StoredAliases::Open(nullptr);
 };
 
 class MemoryApiRoutingTest : public ::testing::Test {

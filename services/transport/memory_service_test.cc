@@ -6,6 +6,7 @@
 #include <memory>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include "absl/synchronization/notification.h"
@@ -411,6 +412,118 @@ TEST_F(BusyServiceTest, WorkWhoseDeadlinePassedInTheQueueIsNotDone) {
 
   v1::GetStatsResponse stats;
   EXPECT_EQ(Stats("f", &stats).error_code(), grpc::StatusCode::NOT_FOUND);
+}
+
+// Aliases (engine/fleet_aliases.h): every fleet's call resolves its name
+// once; a stream stays on the fleet it started on.
+TEST_F(MemoryServiceTest, AnAliasIsResolvedOncePerCallAndStream) {
+  v1::UploadTracesResponse uploaded;
+  ASSERT_TRUE(Upload({Batch("old", 0, 10)}, &uploaded).ok());
+  ASSERT_TRUE(Upload({Batch("new", 100, 10)}, &uploaded).ok());
+  auto call = [this](auto method, const auto& request, auto* response) {
+    grpc::ClientContext context;
+    return (stub_.get()->*method)(&context, request, response);
+  };
+  v1::CreateAliasRequest create;
+  create.set_alias("live");
+  create.set_fleet_id("old");
+  v1::CreateAliasResponse created;
+  ASSERT_TRUE(
+      call(&v1::MemoryService::Stub::CreateAlias, create, &created).ok());
+
+  // Refused, nothing changed: an alias of a fleet id, of an alias, of no
+  // fleet, twice; a fleet made under an alias's name.
+  for (const auto& [alias, fleet, code] :
+       std::vector<std::tuple<std::string, std::string, grpc::StatusCode>>{
+           {"new", "old", grpc::StatusCode::ALREADY_EXISTS},
+           {"other", "live", grpc::StatusCode::INVALID_ARGUMENT},
+           {"other", "nope", grpc::StatusCode::NOT_FOUND},
+           {"live", "new", grpc::StatusCode::ALREADY_EXISTS}}) {
+    create.set_alias(alias);
+    create.set_fleet_id(fleet);
+    EXPECT_EQ(call(&v1::MemoryService::Stub::CreateAlias, create, &created)
+                  .error_code(),
+              code)
+        << alias << " -> " << fleet;
+  }
+  v1::CreateFleetRequest make;
+  make.set_fleet_id("live");
+  make.mutable_settings()->set_code_dimension(kDimension);
+  v1::CreateFleetResponse made;
+  EXPECT_EQ(
+      call(&v1::MemoryService::Stub::CreateFleet, make, &made).error_code(),
+      grpc::StatusCode::ALREADY_EXISTS);
+
+  // Reads and writes through the alias reach its fleet.
+  v1::GetStatsResponse stats;
+  ASSERT_TRUE(Stats("live", &stats).ok());
+  EXPECT_EQ(stats.traces() + stats.pending_traces(), 10u);
+  v1::QueryPlaceRequest query;
+  query.set_fleet_id("live");
+  *query.mutable_code() = Trace("r1", 3).code();
+  v1::QueryPlaceResponse answer;
+  ASSERT_TRUE(call(&v1::MemoryService::Stub::QueryPlace, query, &answer).ok());
+  EXPECT_EQ(answer.fleet_id(), "old");
+  EXPECT_EQ(answer.encoder_version(), "enc");
+  ASSERT_EQ(answer.matches_size(), 1);
+  EXPECT_EQ(answer.matches(0).trace().seq(), 3u);
+
+  // A stream opened before a switch stays on its fleet to its end.
+  grpc::ClientContext stream_context;
+  v1::UploadTracesResponse streamed;
+  auto writer = stub_->UploadTraces(&stream_context, &streamed);
+  ASSERT_TRUE(writer->Write(Batch("live", 10, 5)));
+  // Once the stream's first message is stored (it is bound then).
+  for (int i = 0; i < 500; ++i) {
+    ASSERT_TRUE(Stats("old", &stats).ok());
+    if (stats.traces() + stats.pending_traces() == 15) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  v1::SwitchAliasRequest to_new;
+  to_new.set_alias("live");
+  to_new.set_fleet_id("new");
+  v1::SwitchAliasResponse switched;
+  ASSERT_TRUE(
+      call(&v1::MemoryService::Stub::SwitchAlias, to_new, &switched).ok());
+  EXPECT_EQ(switched.previous_fleet_id(), "old");
+  ASSERT_TRUE(writer->Write(Batch("live", 15, 5)));
+  writer->WritesDone();
+  ASSERT_TRUE(writer->Finish().ok());
+  EXPECT_EQ(streamed.accepted(), 10u);
+  ASSERT_TRUE(Stats("old", &stats).ok());
+  EXPECT_EQ(stats.traces() + stats.pending_traces(), 20u);
+  ASSERT_TRUE(Stats("new", &stats).ok());
+  EXPECT_EQ(stats.traces() + stats.pending_traces(), 10u);
+  ASSERT_TRUE(call(&v1::MemoryService::Stub::QueryPlace, query, &answer).ok());
+  EXPECT_EQ(answer.fleet_id(), "new");
+
+  // A query naming codes by encoder takes the fleet's, or says none fits.
+  query.clear_code();
+  auto* other = query.add_codes_by_encoder();
+  other->set_encoder_version("other");
+  other->add_code(1.0f);
+  EXPECT_EQ(
+      call(&v1::MemoryService::Stub::QueryPlace, query, &answer).error_code(),
+      grpc::StatusCode::FAILED_PRECONDITION);
+  auto* enc = query.add_codes_by_encoder();
+  enc->set_encoder_version("enc");
+  *enc->mutable_code() = Trace("r1", 104).code();
+  ASSERT_TRUE(call(&v1::MemoryService::Stub::QueryPlace, query, &answer).ok());
+  ASSERT_EQ(answer.matches_size(), 1);
+  EXPECT_EQ(answer.matches(0).trace().seq(), 104u);
+
+  v1::ListAliasesResponse listed;
+  ASSERT_TRUE(call(&v1::MemoryService::Stub::ListAliases,
+                   v1::ListAliasesRequest(), &listed)
+                  .ok());
+  ASSERT_EQ(listed.aliases_size(), 1);
+  EXPECT_EQ(listed.aliases(0).fleet_id(), "new");
+  v1::DeleteAliasRequest drop;
+  drop.set_alias("live");
+  v1::DeleteAliasResponse dropped;
+  ASSERT_TRUE(call(&v1::MemoryService::Stub::DeleteAlias, drop, &dropped).ok());
+  EXPECT_EQ(dropped.previous_fleet_id(), "new");
+  EXPECT_EQ(Stats("live", &stats).error_code(), grpc::StatusCode::NOT_FOUND);
 }
 
 }  // namespace

@@ -1,5 +1,12 @@
 #include "services/transport/proto_convert.h"
 
+#include <algorithm>
+#include <climits>
+#include <cstdint>
+
+#include "absl/strings/str_cat.h"
+#include "services/core/absl_view.h"
+
 namespace fleetmem::transport {
 
 std::vector<core::MemoryTrace> UploadedTracesFromProto(
@@ -24,6 +31,8 @@ v1::MemoryEvent::Type EventTypeToProto(core::EventType type) {
       return v1::MemoryEvent::CLUSTER_FORGOTTEN;
     case core::EventType::kClusterMerged:
       return v1::MemoryEvent::CLUSTER_MERGED;
+    case core::EventType::kTracesDeleted:
+      return v1::MemoryEvent::TRACES_DELETED;
   }
   return v1::MemoryEvent::TYPE_UNSPECIFIED;
 }
@@ -50,6 +59,7 @@ engine::PlaceQuery QueryFromProto(const v1::QueryPlaceRequest& request) {
   query.k = request.k();
   query.near = PlaceFromProto(request.near());
   query.radius_m = request.radius_m();
+  query.filter = api::ReadFilterFromProto(request.filter());
   return query;
 }
 
@@ -182,6 +192,206 @@ void ClustersToProto(const engine::ClusterListing& listing,
   }
   for (const engine::TracePlace& place : listing.pending) {
     TracePlaceToProto(place, out->add_pending());
+  }
+}
+
+namespace {
+
+void KeyToProto(const core::TraceKey& key, v1::TraceKey* out) {
+  out->set_robot_id(key.robot_id);
+  out->set_seq(key.seq);
+}
+
+}  // namespace
+
+v1::IndexKind IndexKindToProto(engine::IndexSettings::Kind kind) {
+  switch (kind) {
+    case engine::IndexSettings::Kind::kExact:
+      return v1::INDEX_KIND_EXACT;
+    case engine::IndexSettings::Kind::kHnsw:
+      return v1::INDEX_KIND_HNSW;
+    case engine::IndexSettings::Kind::kAuto:
+      return v1::INDEX_KIND_AUTO;
+    case engine::IndexSettings::Kind::kServer:
+      break;
+  }
+  return v1::INDEX_KIND_UNSPECIFIED;
+}
+
+engine::IndexSettings IndexFromProto(const v1::FleetSettings& settings) {
+  engine::IndexSettings index;
+  switch (settings.index()) {
+    case v1::INDEX_KIND_EXACT:
+      index.kind = engine::IndexSettings::Kind::kExact;
+      break;
+    case v1::INDEX_KIND_HNSW:
+      index.kind = engine::IndexSettings::Kind::kHnsw;
+      break;
+    case v1::INDEX_KIND_AUTO:
+      index.kind = engine::IndexSettings::Kind::kAuto;
+      break;
+    default:
+      break;
+  }
+  index.hnsw_m = static_cast<int>(std::min<uint32_t>(settings.hnsw_m(), 1000));
+  index.hnsw_ef_search = static_cast<int>(
+      std::min<uint32_t>(settings.hnsw_ef_search(), 1'000'000));
+  return index;
+}
+
+engine::CreateFleetRecord CreateFleetFromProto(
+    const v1::FleetSettings& settings, const core::MemoryOptions& defaults) {
+  engine::CreateFleetRecord create;
+  create.code_dimension = settings.code_dimension();
+  create.encoder_version = settings.encoder_version();
+  create.settings.place_unit = settings.place_unit();
+  core::MemoryOptions& memory = create.settings.memory;
+  memory = defaults;
+  if (settings.has_clusters_per_segment()) {
+    memory.clusters_per_batch = static_cast<int>(
+        std::min<uint32_t>(settings.clusters_per_segment(), INT32_MAX));
+  }
+  if (settings.has_max_traces_per_cluster()) {
+    memory.max_traces_per_cluster = static_cast<int>(
+        std::min<uint32_t>(settings.max_traces_per_cluster(), INT32_MAX));
+  }
+  if (settings.has_max_clusters()) {
+    memory.max_clusters = static_cast<int>(
+        std::min<uint32_t>(settings.max_clusters(), INT32_MAX));
+  }
+  if (settings.has_replay_decay())
+    memory.replay_decay = settings.replay_decay();
+  if (settings.forgetting() != v1::FORGETTING_RULE_UNSPECIFIED) {
+    memory.merge_on_forget = settings.forgetting() == v1::FORGETTING_RULE_MERGE;
+  }
+  create.settings.max_age_seconds = static_cast<int64_t>(
+      std::min<uint64_t>(settings.max_age_seconds(), INT64_MAX));
+  create.settings.max_traces_per_robot = settings.max_traces_per_robot();
+  create.settings.index = IndexFromProto(settings);
+  return create;
+}
+
+absl::StatusOr<engine::FleetSettingsUpdate> FleetUpdateFromProto(
+    const v1::FleetSettings& settings, const engine::FleetInfo& current) {
+  const auto fixed = [](std::string_view field, std::string_view was,
+                        std::string_view asked) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "settings.", V(field), " is fixed at the fleet's creation (\"", V(was),
+        "\"; asked \"", V(asked),
+        "\"): make a new fleet with it and move the robots there (an alias "
+        "switches them at once; docs/api.md, \"Encoder migration\")"));
+  };
+  if (settings.code_dimension() != 0 &&
+      settings.code_dimension() != current.shape.code_dimension) {
+    return fixed("code_dimension", absl::StrCat(current.shape.code_dimension),
+                 absl::StrCat(settings.code_dimension()));
+  }
+  if (!settings.encoder_version().empty() &&
+      settings.encoder_version() != current.shape.encoder_version) {
+    return fixed("encoder_version", current.shape.encoder_version,
+                 settings.encoder_version());
+  }
+  if (!settings.place_unit().empty() &&
+      settings.place_unit() != current.settings.place_unit) {
+    return fixed("place_unit", current.settings.place_unit,
+                 settings.place_unit());
+  }
+  const engine::IndexSettings index = IndexFromProto(settings);
+  const engine::IndexSettings& held = current.settings.index;
+  if ((settings.index() != v1::INDEX_KIND_UNSPECIFIED &&
+       index.kind != held.kind) ||
+      (index.hnsw_m != 0 && index.hnsw_m != held.hnsw_m) ||
+      (index.hnsw_ef_search != 0 &&
+       index.hnsw_ef_search != held.hnsw_ef_search)) {
+    return fixed("index", IndexKind_Name(IndexKindToProto(held.kind)),
+                 IndexKind_Name(settings.index()));
+  }
+  engine::FleetSettingsUpdate update;
+  if (settings.has_clusters_per_segment()) {
+    update.clusters_per_batch = static_cast<int>(
+        std::min<uint32_t>(settings.clusters_per_segment(), INT32_MAX));
+  }
+  if (settings.has_max_traces_per_cluster()) {
+    update.max_traces_per_cluster = static_cast<int>(
+        std::min<uint32_t>(settings.max_traces_per_cluster(), INT32_MAX));
+  }
+  if (settings.has_max_clusters()) {
+    update.max_clusters = static_cast<int>(
+        std::min<uint32_t>(settings.max_clusters(), INT32_MAX));
+  }
+  if (settings.has_replay_decay())
+    update.replay_decay = settings.replay_decay();
+  if (settings.forgetting() != v1::FORGETTING_RULE_UNSPECIFIED) {
+    update.merge_on_forget = settings.forgetting() == v1::FORGETTING_RULE_MERGE;
+  }
+  if (settings.has_max_age_seconds()) {
+    update.max_age_seconds = static_cast<int64_t>(
+        std::min<uint64_t>(settings.max_age_seconds(), INT64_MAX));
+  }
+  if (settings.has_max_traces_per_robot()) {
+    update.max_traces_per_robot = settings.max_traces_per_robot();
+  }
+  return update;
+}
+
+void FleetSettingsToProto(const engine::FleetInfo& info,
+                          v1::FleetSettings* out) {
+  const core::MemoryOptions& memory = info.settings.memory;
+  out->set_code_dimension(info.shape.code_dimension);
+  out->set_encoder_version(info.shape.encoder_version);
+  out->set_place_unit(info.settings.place_unit);
+  out->set_clusters_per_segment(
+      static_cast<uint32_t>(memory.clusters_per_batch));
+  out->set_max_traces_per_cluster(
+      static_cast<uint32_t>(memory.max_traces_per_cluster));
+  out->set_max_clusters(static_cast<uint32_t>(memory.max_clusters));
+  out->set_replay_decay(memory.replay_decay);
+  out->set_forgetting(memory.merge_on_forget ? v1::FORGETTING_RULE_MERGE
+                                             : v1::FORGETTING_RULE_DROP);
+  out->set_max_age_seconds(static_cast<uint64_t>(
+      std::max<int64_t>(0, info.settings.max_age_seconds)));
+  out->set_max_traces_per_robot(info.settings.max_traces_per_robot);
+  out->set_index(IndexKindToProto(info.settings.index.kind));
+  out->set_hnsw_m(static_cast<uint32_t>(info.settings.index.hnsw_m));
+  out->set_hnsw_ef_search(
+      static_cast<uint32_t>(info.settings.index.hnsw_ef_search));
+}
+
+void DeleteResultToProto(const engine::DeleteResult& result,
+                         v1::DeleteTracesResponse* out) {
+  out->set_deleted(result.deleted);
+  out->set_pending_deleted(result.pending_deleted);
+  out->set_clusters_changed(result.clusters_changed);
+  out->set_clusters_removed(result.clusters_removed);
+  out->set_traces(result.traces);
+}
+
+void RewardsResultToProto(const engine::RewardsResult& result,
+                          v1::UpdateRewardsResponse* out) {
+  out->set_updated(result.updated);
+  for (const core::TraceKey& key : result.not_held) {
+    KeyToProto(key, out->add_not_held());
+  }
+}
+
+std::vector<core::TraceKey> KeysFromProto(
+    const google::protobuf::RepeatedPtrField<v1::TraceKey>& keys) {
+  std::vector<core::TraceKey> out;
+  out.reserve(keys.size());
+  for (const v1::TraceKey& key : keys) {
+    out.push_back(core::TraceKey{key.robot_id(), key.seq()});
+  }
+  return out;
+}
+
+void TraceLookupToProto(const engine::TraceLookup& lookup,
+                        v1::GetTracesResponse* out) {
+  out->mutable_traces()->Reserve(static_cast<int>(lookup.traces.size()));
+  for (const core::MemoryTrace& trace : lookup.traces) {
+    TraceToProto(trace, out->add_traces());
+  }
+  for (const core::TraceKey& key : lookup.missing) {
+    KeyToProto(key, out->add_missing());
   }
 }
 

@@ -27,7 +27,7 @@ using api::TraceToProto;
 std::vector<core::MemoryTrace> UploadedTracesFromProto(
     const google::protobuf::RepeatedPtrField<v1::MemoryTrace>& traces);
 
-// CLUSTER_ADDED / CLUSTER_FORGOTTEN / CLUSTER_MERGED.
+// CLUSTER_ADDED / CLUSTER_FORGOTTEN / CLUSTER_MERGED / TRACES_DELETED.
 void EventToProto(const core::MemoryEvent& event, v1::MemoryEvent* out);
 
 engine::PlaceQuery QueryFromProto(const v1::QueryPlaceRequest& request);
@@ -49,6 +49,28 @@ void FleetSummaryToProto(std::string_view fleet_id,
                          v1::FleetSummary* out);
 void ClustersToProto(const engine::ClusterListing& listing,
                      v1::ListClustersResponse* out);
+// A CreateFleet's settings: unset fields take `defaults` (the server's).
+// A fleet's index settings, and their kind in the API.
+engine::IndexSettings IndexFromProto(const v1::FleetSettings& settings);
+v1::IndexKind IndexKindToProto(engine::IndexSettings::Kind kind);
+engine::CreateFleetRecord CreateFleetFromProto(
+    const v1::FleetSettings& settings, const core::MemoryOptions& defaults);
+// An UpdateFleet's change of `current`: FAILED_PRECONDITION naming the
+// field when one fixed at creation is set to another value.
+absl::StatusOr<engine::FleetSettingsUpdate> FleetUpdateFromProto(
+    const v1::FleetSettings& settings, const engine::FleetInfo& current);
+// Every field of `info`'s settings.
+void FleetSettingsToProto(const engine::FleetInfo& info,
+                          v1::FleetSettings* out);
+
+void DeleteResultToProto(const engine::DeleteResult& result,
+                         v1::DeleteTracesResponse* out);
+void RewardsResultToProto(const engine::RewardsResult& result,
+                          v1::UpdateRewardsResponse* out);
+std::vector<core::TraceKey> KeysFromProto(
+    const google::protobuf::RepeatedPtrField<v1::TraceKey>& keys);
+void TraceLookupToProto(const engine::TraceLookup& lookup,
+                        v1::GetTracesResponse* out);
 
 }  // namespace fleetmem::transport
 

@@ -154,7 +154,15 @@ void UploadReactor::OnReadDone(bool ok) {
   } else {
     message.request = *std::move(parsed);
     message.error = CheckUploadFleet(message.request, fleet_id_);
-    if (message.error.ok()) fleet_id_ = message.request.fleet_id();
+    if (message.error.ok() && fleet_id_.empty()) {
+      // The stream binds its name and resolves it once, before any store:
+      // an alias switched meanwhile moves the next stream, not this one.
+      fleet_id_ = message.request.fleet_id();
+      MemoryApi::Resolved resolved = state_->api().Resolve(caller_, fleet_id_);
+      target_ = std::move(resolved.fleet_id);
+      caller_ = std::move(resolved.caller);
+    }
+    if (message.error.ok()) message.request.set_fleet_id(target_);
   }
   bool submit = false;
   {
@@ -249,7 +257,7 @@ bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
   options.forwarded = context_->client_metadata().count(kForwardedHeader) > 0;
   std::vector<absl::StatusOr<Uploaded>> results;
   if (!messages.empty()) {
-    results = state_->memory().UploadMany(fleet_id_, messages, options);
+    results = state_->memory().UploadMany(target_, messages, options);
   }
   for (size_t i = 0; i < results.size(); ++i) {
     if (!results[i].ok()) {
@@ -273,7 +281,7 @@ bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
                         uploaded.applied);
     ++stored_;
     if (state_->options().on_upload_bytes) {
-      state_->options().on_upload_bytes(fleet_id_, batch[i].bytes);
+      state_->options().on_upload_bytes(target_, batch[i].bytes);
     }
   }
   if (!failed.ok()) {

@@ -99,6 +99,7 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   grpc::ByteBuffer buffer_;  // the message being read
   uint64_t read_ = 0;        // messages read (gRPC's reactions only)
   std::string fleet_id_;     // of the first message, set before any store
+  std::string target_;       // the fleet it names (an alias's), set with it
   std::string client_;       // holds a stream slot if set
   auth::Principal caller_;   // authenticated before the slot is taken
   const absl::Time started_ = absl::Now();

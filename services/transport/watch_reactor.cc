@@ -25,7 +25,12 @@ WatchReactor::WatchReactor(ServiceState* state,
   absl::StatusOr<auth::Principal> caller =
       AuthenticateCall(state_->authenticator(), context);
   absl::Status valid = caller.status();
-  if (valid.ok()) valid = state_->api().CheckWatch(*caller, request);
+  if (valid.ok()) {
+    absl::StatusOr<MemoryApi::Resolved> resolved =
+        state_->api().CheckWatch(*caller, request);
+    valid = resolved.status();
+    if (valid.ok()) fleet_id_ = std::move(resolved->fleet_id);
+  }
   std::string client;
   if (valid.ok()) {
     client = ClientName(state_->authenticator(), context, *caller);

@@ -69,7 +69,7 @@ class WatchReactor : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   void FinishLocked(grpc::Status status);
 
   ServiceState* const state_;
-  const std::string fleet_id_;
+  std::string fleet_id_;  // resolved (an alias's fleet), set before use
   const std::shared_ptr<Shared> shared_;
   // Set in the constructor only (read in OnDone).
   bool registered_ = false;

@@ -15,9 +15,10 @@ as computed here (docs/results.md, tools/eval/lifelong_protocol.h):
     areas learned before;
   - the chance row from the count of correct map entries per query;
   - the methods that do not learn over the domains (classical,
-    classical_seq, joint, gpl_pretrained, gpl_joint, gpl_e2e_joint) score
-    the same after every domain;
-  - uniform_replay never holds more traces than bioslam (memory.csv).
+    classical_seq, joint, joint_seq, gpl_pretrained, gpl_joint,
+    gpl_e2e_joint) score the same after every domain;
+  - uniform_replay and uniform_seq never hold more traces than bioslam
+    (memory.csv).
 
 --quick (ctest fleetmem_eval_quick_test, slow tier): the quick settings on
 the whole route. --smoke (ctest fleetmem_eval_smoke_test, `make test`): the
@@ -33,13 +34,13 @@ import subprocess
 import sys
 
 SMOKE_PLACES = 48  # 3 areas of 16 places, every 4th held out: 4 queries each
-METHODS = ["classical", "classical_seq", "joint", "finetune", "bioslam", "bioslam_drop",
-           "bioslam_iw",
-           "uniform_replay", "no_rex", "no_rin", "no_clustering", "no_decay",
+METHODS = ["classical", "classical_seq", "joint", "joint_seq", "finetune", "bioslam",
+           "bioslam_drop", "bioslam_iw", "bioslam_rescore", "bioslam_seq",
+           "uniform_replay", "uniform_seq", "no_rex", "no_rin", "no_clustering", "no_decay",
            "fleet_shared", "gpl_pretrained", "gpl_joint", "gpl_e2e_joint",
            "gpl_finetune",
            "gpl_bioslam", "gpl_bioslam_decoded"]
-STATIC = ["classical", "classical_seq", "joint", "gpl_pretrained", "gpl_joint",
+STATIC = ["classical", "classical_seq", "joint", "joint_seq", "gpl_pretrained", "gpl_joint",
           "gpl_e2e_joint"]
 DOMAINS, AREAS, TOLERANCE = 6, 3, 2
 TOL = 2e-4  # the files print 4 decimals
@@ -126,7 +127,7 @@ def main():
     with open(os.path.join(out, "memory.csv")) as f:
         memory = {(r["method"], r["seed"]): r for r in csv.DictReader(f)}
     for (m, seed), r in memory.items():
-        if m == "uniform_replay":
+        if m in ("uniform_replay", "uniform_seq"):
             bioslam = memory[("bioslam", seed)]
             assert int(r["peak_traces"]) <= int(bioslam["peak_traces"]), (r, bioslam)
     with open(os.path.join(out, "curves.png"), "rb") as f:

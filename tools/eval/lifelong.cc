@@ -66,7 +66,7 @@ struct Settings {
   size_t segment_size = 200;
   size_t replay_per_segment = 128;
   size_t memory_capacity = 1000;
-  // classical_seq: the robot's last this many frames.
+  // *_seq: the robot's last this many frames.
   int sequence_length = 10;
 };
 
@@ -174,7 +174,9 @@ struct MethodSpec {
   bool learn = true;
   // joint: the same learner on every domain's training data at once.
   bool offline = false;
-  // classical_seq: sequence matching over the robot's last frames.
+  // *_seq: scored by sequence matching over the robot's last frames
+  // (SeqSLAM's search, lifelong_protocol.h) on the method's own single-frame
+  // similarities: the code's (classical_seq) or the learned head's.
   bool sequence = false;
   MemoryKind memory = MemoryKind::kNone;
   bool clustering = true;
@@ -189,6 +191,10 @@ struct MethodSpec {
   bool importance_weights = false;
   // gpl_e2e_joint: E, F, G and D trained together (learning.md design (b)).
   bool end_to_end = false;
+  // bioslam_rescore: after each segment the robot re-scores its own
+  // remembered traces under its new head and the fleet takes their R_ex
+  // (UpdateRewards), as fleetmem-robot --rescore does.
+  bool rescore = false;
 };
 
 // Report order. bioslam runs before uniform_replay, whose trace budget is
@@ -203,13 +209,24 @@ std::vector<MethodSpec> Specs() {
                    .learn = false,
                    .sequence = true});
   specs.push_back({.name = "joint", .offline = true});
+  specs.push_back({.name = "joint_seq", .offline = true, .sequence = true});
   specs.push_back({.name = "finetune"});
   specs.push_back({.name = "bioslam", .memory = M::kFleet});
   specs.push_back(
       {.name = "bioslam_drop", .memory = M::kFleet, .merge = false});
   specs.push_back(
       {.name = "bioslam_iw", .memory = M::kFleet, .importance_weights = true});
+  specs.push_back(
+      {.name = "bioslam_rescore", .memory = M::kFleet, .rescore = true});
+  specs.push_back(
+      {.name = "bioslam_seq", .sequence = true, .memory = M::kFleet});
   specs.push_back({.name = "uniform_replay",
+                   .memory = M::kReservoir,
+                   .clustering = false,
+                   .decay = false,
+                   .rewards = RewardMode::kUniform});
+  specs.push_back({.name = "uniform_seq",
+                   .sequence = true,
                    .memory = M::kReservoir,
                    .clustering = false,
                    .decay = false,
@@ -565,6 +582,7 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
   robot::SegmentStepOptions step_options;
   step_options.replay_per_segment = ctx.settings.replay_per_segment;
   step_options.rewards = spec.rewards;
+  step_options.rescore_remembered = spec.rescore;
   step_options.recall_per_observation =
       spec.memory == MemoryKind::kNone ? 0 : ctx.recall_per_observation;
   const robot::PlaceRecall recall =
@@ -602,6 +620,13 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
         client->Consolidate(fleet);
     if (!consolidated.ok()) return consolidated.status();
     r.traces = consolidated->traces();
+    // bioslam_rescore: the robot's own remembered traces, re-scored by the
+    // step, to the fleet (after they were uploaded) and to M_D.
+    if (!step->rescored.empty()) {
+      absl::StatusOr<v1::UpdateRewardsResponse> sent =
+          robot::SendRescored(*client, fleet, step->rescored, *r.memory);
+      if (!sent.ok()) return sent.status();
+    }
     absl::StatusOr<std::vector<v1::MemoryTrace>> sampled = client->SampleReplay(
         fleet, r.id, uint32_t(ctx.settings.memory_capacity));
     if (!sampled.ok()) return sampled.status();
@@ -667,10 +692,13 @@ std::unique_ptr<client::Client> Connect(const ServerChild& server) {
 }
 
 // Every area's winter queries against the summer map, both described by
-// `learner` (or the raw codes when it is null).
+// `learner` (or the raw codes when it is null); with `sequence`, their
+// single-frame similarities matched as sequences of the robot's last
+// frames (SequenceSimilarity) before the areas are scored.
 absl::StatusOr<std::vector<Score>> Evaluate(const Context& ctx,
                                             const CodeSet& codes,
-                                            robot::Learner* learner) {
+                                            robot::Learner* learner,
+                                            bool sequence) {
   Eigen::MatrixXf rows[kSeasons];
   for (int s = 0; s < kSeasons; ++s) {
     if (learner == nullptr) {
@@ -681,22 +709,17 @@ absl::StatusOr<std::vector<Score>> Evaluate(const Context& ctx,
     if (!d.ok()) return d.status();
     rows[s] = lifelong::UnitRows(Matrix(*d));
   }
-  return lifelong::ScoreAreas(ctx.data->split, rows[0], rows[1]);
-}
-
-// classical_seq: the HOG code's single-frame similarities, matched as
-// sequences of the robot's last frames.
-std::vector<Score> EvaluateSequences(const Context& ctx) {
-  const Eigen::MatrixXf summer = lifelong::UnitRows(Matrix(ctx.hog.codes[0]));
-  const Eigen::MatrixXf winter = lifelong::UnitRows(Matrix(ctx.hog.codes[1]));
+  if (!sequence) return lifelong::ScoreAreas(ctx.data->split, rows[0], rows[1]);
   const Eigen::MatrixXf seq = lifelong::SequenceSimilarity(
-      winter * summer.transpose(), ctx.settings.sequence_length);
+      rows[1] * rows[0].transpose(), ctx.settings.sequence_length);
   std::vector<Score> scores;
   for (int a = 0; a < kAreas; ++a) {
     const std::vector<size_t> places = ctx.data->split.Places(a, true);
-    Eigen::MatrixXf rows(places.size(), seq.cols());
-    for (size_t r = 0; r < places.size(); ++r) rows.row(r) = seq.row(places[r]);
-    scores.push_back(lifelong::ScoreQueries(rows, places));
+    Eigen::MatrixXf queries(places.size(), seq.cols());
+    for (size_t r = 0; r < places.size(); ++r) {
+      queries.row(r) = seq.row(places[r]);
+    }
+    scores.push_back(lifelong::ScoreQueries(queries, places));
   }
   return scores;
 }
@@ -769,14 +792,13 @@ absl::StatusOr<MethodResult> RunStatic(Context& ctx, const MethodSpec& spec) {
   const auto start = Clock::now();
   const CodeSet& codes = ctx.CodesOf(spec);
   std::vector<Score> scores;
-  if (spec.sequence) {
-    scores = EvaluateSequences(ctx);
-  } else if (spec.end_to_end) {
+  if (spec.end_to_end) {
     absl::StatusOr<std::vector<Score>> s = EndToEndJoint(ctx);
     if (!s.ok()) return s.status();
     scores = *s;
   } else if (spec.learner == LearnerKind::kNone) {
-    absl::StatusOr<std::vector<Score>> s = Evaluate(ctx, codes, nullptr);
+    absl::StatusOr<std::vector<Score>> s =
+        Evaluate(ctx, codes, nullptr, spec.sequence);
     if (!s.ok()) return s.status();
     scores = *s;
   } else {
@@ -815,7 +837,7 @@ absl::StatusOr<MethodResult> RunStatic(Context& ctx, const MethodSpec& spec) {
                                all.size(), *report));
     }
     absl::StatusOr<std::vector<Score>> s =
-        Evaluate(ctx, codes, robot->learner.get());
+        Evaluate(ctx, codes, robot->learner.get(), spec.sequence);
     if (!s.ok()) return s.status();
     scores = *s;
   }
@@ -855,7 +877,7 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
       if (absl::StrContains(robot->last, "COLLAPSED")) ++result.collapses;
     }
     absl::StatusOr<std::vector<Score>> scores =
-        Evaluate(ctx, ctx.CodesOf(spec), robot->learner.get());
+        Evaluate(ctx, ctx.CodesOf(spec), robot->learner.get(), spec.sequence);
     if (!scores.ok()) return scores.status();
     result.areas.push_back(*scores);
     Progress(absl::StrFormat(
@@ -890,7 +912,7 @@ struct FleetRow {
 absl::Status EvaluateRobot(Context& ctx, const MethodSpec& spec,
                            const Robot& robot, std::vector<Score>* scores) {
   absl::StatusOr<std::vector<Score>> evaluated =
-      Evaluate(ctx, ctx.CodesOf(spec), robot.learner.get());
+      Evaluate(ctx, ctx.CodesOf(spec), robot.learner.get(), spec.sequence);
   if (!evaluated.ok()) return evaluated.status();
   *scores = *std::move(evaluated);
   return absl::OkStatus();
@@ -1236,10 +1258,11 @@ absl::StatusOr<std::vector<MethodSpec>> SelectedSpecs(
   for (const MethodSpec& s : Specs()) {
     if (selected(s.name)) specs.push_back(s);
   }
-  if (selected("uniform_replay") && !selected("bioslam")) {
+  if ((selected("uniform_replay") || selected("uniform_seq")) &&
+      !selected("bioslam")) {
     return absl::InvalidArgumentError(
-        "uniform_replay keeps as many traces as bioslam's memory holds, "
-        "segment by segment: select bioslam too");
+        "uniform_replay and uniform_seq keep as many traces as bioslam's "
+        "memory holds, segment by segment: select bioslam too");
   }
   // A memory method needs the server: say so now, not after pre-training.
   if (std::any_of(

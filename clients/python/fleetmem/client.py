@@ -115,6 +115,10 @@ class Matches:
     L2-normalised codes, 0..2) beside the matched traces."""
     distances: np.ndarray
     traces: Traces
+    # The fleet that answered (an alias's at the time of the call) and its
+    # encoder version.
+    fleet_id: str = ""
+    encoder_version: str = ""
 
     def __len__(self) -> int:
         return len(self.distances)
@@ -384,25 +388,239 @@ class Client:
         """Consolidates every robot's pending traces now (Algorithm 1 + 2)."""
         return self._unary("Consolidate", pb.ConsolidateRequest(fleet_id=fleet))
 
+    # ---- fleets -------------------------------------------------------
+    _SETTINGS = ("clusters_per_segment", "max_traces_per_cluster", "max_clusters",
+                 "replay_decay", "max_age_seconds", "max_traces_per_robot")
+
+    @classmethod
+    def _settings(cls, forgetting: Optional[str], given: dict) -> pb.FleetSettings:
+        settings = pb.FleetSettings()
+        for name, value in given.items():
+            if name not in cls._SETTINGS:
+                raise TypeError(f"unknown setting {name!r}; one of {', '.join(cls._SETTINGS)}")
+            if value is None:
+                continue
+            if name == "replay_decay":
+                settings.replay_decay = float(value)
+            elif not isinstance(value, (int, np.integer)) or value < 0:
+                raise ValueError(f"{name}: want a non-negative integer, got {value!r}")
+            else:
+                setattr(settings, name, int(value))
+        if forgetting is not None:
+            if forgetting not in ("merge", "drop"):
+                raise ValueError(f"forgetting: want 'merge' or 'drop', got {forgetting!r}")
+            settings.forgetting = (pb.FORGETTING_RULE_MERGE if forgetting == "merge"
+                                   else pb.FORGETTING_RULE_DROP)
+        return settings
+
+    def create_fleet(self, fleet: str, *, code_dimension: int, encoder_version: str = "",
+                     place_unit: str = "", forgetting: Optional[str] = None,
+                     index: Optional[str] = None, hnsw_m: int = 0, hnsw_ef_search: int = 0,
+                     **settings) -> pb.FleetSettings:
+        """Admin: makes `fleet` with its own settings (keyword arguments
+        clusters_per_segment, max_traces_per_cluster, max_clusters,
+        replay_decay, max_age_seconds, max_traces_per_robot; forgetting
+        'merge' or 'drop'; index 'exact', 'hnsw' or 'auto' with HNSW's
+        hnsw_m and hnsw_ef_search, fixed at creation; the server's for those
+        not given). Returns every setting as made. ALREADY_EXISTS if the
+        fleet exists. Not retried."""
+        request = pb.CreateFleetRequest(fleet_id=_text("fleet", fleet))
+        request.settings.CopyFrom(self._settings(forgetting, settings))
+        request.settings.code_dimension = int(code_dimension)
+        request.settings.encoder_version = encoder_version
+        request.settings.place_unit = place_unit
+        if index is not None:
+            kinds = {"exact": pb.INDEX_KIND_EXACT, "hnsw": pb.INDEX_KIND_HNSW,
+                     "auto": pb.INDEX_KIND_AUTO}
+            if index not in kinds:
+                raise ValueError(f"index: want 'exact', 'hnsw' or 'auto', got {index!r}")
+            request.settings.index = kinds[index]
+        request.settings.hnsw_m = int(hnsw_m)
+        request.settings.hnsw_ef_search = int(hnsw_ef_search)
+        return self._unary("CreateFleet", request, retry=False).settings
+
+    def get_fleet(self, fleet: str) -> pb.FleetSummary:
+        """The fleet's counts and settings (FleetSummary: settings,
+        own_settings, traces, clusters, ...)."""
+        return self._unary("GetFleet", pb.GetFleetRequest(fleet_id=_text("fleet", fleet))).fleet
+
+    def update_fleet(self, fleet: str, *, forgetting: Optional[str] = None,
+                     **settings) -> pb.FleetSettings:
+        """Admin: changes the settings given (those of create_fleet but the
+        dimension, encoder and place unit); a smaller max_clusters or
+        max_traces_per_cluster applies at the next consolidation. Returns
+        every setting after the change."""
+        request = pb.UpdateFleetRequest(fleet_id=_text("fleet", fleet))
+        request.settings.CopyFrom(self._settings(forgetting, settings))
+        return self._unary("UpdateFleet", request).settings
+
+    def delete_fleet(self, fleet: str) -> int:
+        """Admin: removes `fleet` and everything it holds (after every upload
+        acknowledged before it); returns the traces it held. Refused while an
+        alias names it. Not retried."""
+        return self._unary("DeleteFleet", pb.DeleteFleetRequest(fleet_id=_text("fleet", fleet)),
+                           retry=False).traces_deleted
+
+    # ---- aliases ------------------------------------------------------
+    def create_alias(self, alias: str, fleet: str) -> None:
+        """Admin: makes `alias` a name of `fleet` in every call (it may not
+        be a fleet's id; `fleet` must be a fleet). Not retried."""
+        self._unary("CreateAlias", pb.CreateAliasRequest(alias=_text("alias", alias),
+                                                         fleet_id=_text("fleet", fleet)),
+                    retry=False)
+
+    def switch_alias(self, alias: str, fleet: str) -> str:
+        """Admin: points `alias` at `fleet` in one step; returns the fleet it
+        named before. Calls that start after the answer use the new fleet."""
+        return self._unary("SwitchAlias", pb.SwitchAliasRequest(
+            alias=_text("alias", alias), fleet_id=_text("fleet", fleet))).previous_fleet_id
+
+    def delete_alias(self, alias: str) -> str:
+        """Admin: removes `alias` (its fleet stays); returns the fleet it
+        named. Not retried."""
+        return self._unary("DeleteAlias", pb.DeleteAliasRequest(alias=_text("alias", alias)),
+                           retry=False).previous_fleet_id
+
+    def list_aliases(self) -> dict:
+        """{alias: fleet id} of the fleets the caller may see."""
+        return {a.alias: a.fleet_id for a in self._unary("ListAliases", pb.ListAliasesRequest()).aliases}
+
+    def delete_traces(self, fleet: str, *, robot_id: str = "", domain: str = "",
+                      seq_first: Optional[int] = None, seq_last: Optional[int] = None,
+                      time_from_ns: Optional[int] = None,
+                      time_to_ns: Optional[int] = None) -> pb.DeleteTracesResponse:
+        """Deletes every trace matching all the criteria given (at least
+        one): a robot's, a domain's, a seq range of a robot (inclusive), an
+        observation-time range [from, to). Applied after every upload
+        acknowledged before it, in one step; deleted traces are never
+        returned again and re-uploads of them count as duplicates. A robot's
+        credentials delete only its own traces (robot_id naming itself)."""
+        if not (robot_id or domain or seq_first is not None or seq_last is not None
+                or time_from_ns is not None or time_to_ns is not None):
+            raise ValueError("delete_traces: give robot_id, domain, a seq range or a time range")
+        request = pb.DeleteTracesRequest(fleet_id=_text("fleet", fleet),
+                                         robot_id=_text("robot_id", robot_id) if robot_id else "",
+                                         domain=domain)
+        for name, value in (("seq_first", seq_first), ("seq_last", seq_last),
+                            ("time_from_ns", time_from_ns), ("time_to_ns", time_to_ns)):
+            if value is not None:
+                if not isinstance(value, (int, np.integer)) or value < 0:
+                    raise ValueError(f"{name}: want a non-negative integer, got {value!r}")
+                setattr(request, name, int(value))
+        return self._unary("DeleteTraces", request)
+
+    def update_rewards(self, fleet: str, robot_ids, seqs, rewards_external,
+                       rewards_internal=0.0) -> pb.UpdateRewardsResponse:
+        """Re-scores held traces (Reverb's mutate_priorities): trace i is
+        (robot_ids[i] or robot_ids if a str, seqs[i]) and gets R_ex, R_in
+        (arrays of n, or one number each); R = R_ex + R_in must be finite and
+        >= 0. The next sample_replay draws with the new R. The answer's
+        not_held lists the keys the fleet does not hold."""
+        seq_array = np.asarray(seqs)
+        if seq_array.ndim != 1 or not np.issubdtype(seq_array.dtype, np.integer):
+            raise ValueError(f"seqs: want a 1-D integer array, got {seq_array.dtype} of shape {seq_array.shape}")
+        n = len(seq_array)
+        robots = [robot_ids] * n if isinstance(robot_ids, str) else list(robot_ids)
+        if len(robots) != n:
+            raise ValueError(f"robot_ids: want {n}, got {len(robots)}")
+        external = _per_trace("rewards_external", rewards_external, n, np.float32)
+        internal = _per_trace("rewards_internal", rewards_internal, n, np.float32)
+        request = pb.UpdateRewardsRequest(fleet_id=_text("fleet", fleet))
+        for robot, seq, r_ex, r_in in zip(robots, seq_array.tolist(), external.tolist(),
+                                          internal.tolist()):
+            request.updates.add(robot_id=_text("robot_id", robot), seq=seq,
+                                reward_external=r_ex, reward_internal=r_in)
+        return self._unary("UpdateRewards", request)
+
+    def get_traces(self, fleet: str, robot_ids, seqs):
+        """The traces with keys (robot_ids[i] or robot_ids if a str, seqs[i]),
+        with their codes, in the order named: (Traces, missing), missing a
+        list of the (robot_id, seq) keys the fleet does not hold."""
+        seq_array = np.asarray(seqs)
+        if seq_array.ndim != 1 or not np.issubdtype(seq_array.dtype, np.integer):
+            raise ValueError(f"seqs: want a 1-D integer array, got {seq_array.dtype} of shape {seq_array.shape}")
+        robots = [robot_ids] * len(seq_array) if isinstance(robot_ids, str) else list(robot_ids)
+        if len(robots) != len(seq_array):
+            raise ValueError(f"robot_ids: want {len(seq_array)}, got {len(robots)}")
+        request = pb.GetTracesRequest(fleet_id=_text("fleet", fleet))
+        for robot, seq in zip(robots, seq_array.tolist()):
+            request.keys.add(robot_id=_text("robot_id", robot), seq=seq)
+        answer = self._unary("GetTraces", request)
+        return (traces_from_messages(answer.traces),
+                [(key.robot_id, key.seq) for key in answer.missing])
+
     # ---- reads --------------------------------------------------------
-    def query_place(self, fleet: str, code, k: int = 1, near=None, radius_m: float = 0.0) -> Matches:
+    @staticmethod
+    def _read_filter(robot_ids, domains) -> pb.ReadFilter:
+        read_filter = pb.ReadFilter()
+        if robot_ids is not None:
+            read_filter.robot_ids.extend(
+                [robot_ids] if isinstance(robot_ids, str) else list(robot_ids))
+        if domains is not None:
+            read_filter.domains.extend([domains] if isinstance(domains, str) else list(domains))
+        return read_filter
+
+    def query_place(self, fleet: str, code, k: int = 1, near=None, radius_m: float = 0.0, *,
+                    robot_ids=None, domains=None) -> Matches:
         """The k traces nearest to `code` (d values), nearest first; with
-        `near` (x, y[, z]) and radius_m > 0 only those within radius_m."""
+        `near` (x, y[, z]) and radius_m > 0 only those within radius_m; with
+        robot_ids / domains (a str or several) only those robots' or
+        domains' traces. `code` may be a dict {encoder_version: code} (an
+        encoder migration): the server searches with the one of the fleet's
+        encoder, so a query through an alias never mixes encoders; the
+        answer's encoder_version says which."""
         request = pb.QueryPlaceRequest(fleet_id=_text("fleet", fleet), k=k, radius_m=radius_m)
-        request.code.extend(_real("code", code).astype(np.float32).ravel().tolist())
+        request.filter.CopyFrom(self._read_filter(robot_ids, domains))
+        dims = {}
+        if isinstance(code, dict):
+            for version, one in code.items():
+                values = _real("code", one).astype(np.float32).ravel()
+                dims[version] = len(values)
+                request.codes_by_encoder.add(encoder_version=version).code.extend(values.tolist())
+        else:
+            request.code.extend(_real("code", code).astype(np.float32).ravel().tolist())
         if near is not None:
             x, y, z = (list(near) + [0.0, 0.0])[:3]
             request.near.x, request.near.y, request.near.z = x, y, z
-        matches = self._unary("QueryPlace", request).matches
+        answer = self._unary("QueryPlace", request)
+        matches = answer.matches
+        dim = dims.get(answer.encoder_version, len(request.code))
         return Matches(np.fromiter((m.distance for m in matches), np.float32, len(matches)),
-                       traces_from_messages([m.trace for m in matches], len(request.code)))
+                       traces_from_messages([m.trace for m in matches], dim),
+                       answer.fleet_id, answer.encoder_version)
 
-    def sample_replay(self, fleet: str, robot_id: str, count: int) -> Traces:
+    def query_places(self, fleet: str, codes, k: int = 1, near=None,
+                     radius_m: float = 0.0, *, robot_ids=None, domains=None) -> list:
+        """query_place of each row of `codes` (n x d, n <= 100) in one call
+        and one read of the fleet: a list of n Matches, in order (a robot's
+        last frames for a sequence search)."""
+        array = _real("codes", codes).astype(np.float32)
+        if array.ndim != 2 or not 1 <= array.shape[0] <= 100:
+            raise ValueError(f"codes: want 1 to 100 rows of one code each, got shape {array.shape}")
+        request = pb.QueryPlaceRequest(fleet_id=_text("fleet", fleet), k=k, radius_m=radius_m)
+        request.filter.CopyFrom(self._read_filter(robot_ids, domains))
+        request.code.extend(array[0].tolist())
+        for row in array[1:]:
+            request.more_codes.add().code.extend(row.tolist())
+        if near is not None:
+            x, y, z = (list(near) + [0.0, 0.0])[:3]
+            request.near.x, request.near.y, request.near.z = x, y, z
+        answer = self._unary("QueryPlace", request)
+        dim = array.shape[1]
+        return [Matches(np.fromiter((m.distance for m in matches), np.float32, len(matches)),
+                        traces_from_messages([m.trace for m in matches], dim))
+                for matches in [answer.matches] + [more.matches for more in answer.more_matches]]
+
+    def sample_replay(self, fleet: str, robot_id: str, count: int, *,
+                      robot_ids=None, domains=None) -> Traces:
         """`count` distinct traces drawn with weight gamma^n * R (Eq. 18) to
         refresh robot_id's dynamic memory; replay_counts shows n after this
-        draw. A retry carries the same request id: counted once."""
+        draw. With robot_ids / domains (a str or several) only those robots'
+        or domains' traces are drawn. A retry carries the same request id:
+        counted once."""
         request = pb.SampleReplayRequest(fleet_id=fleet, robot_id=robot_id, count=count,
                                          request_id=uuid.uuid4().hex)
+        request.filter.CopyFrom(self._read_filter(robot_ids, domains))
         return traces_from_messages(self._unary("SampleReplay", request).traces)
 
     def stats(self, fleet: str) -> pb.GetStatsResponse:

@@ -198,3 +198,160 @@ def test_bad_arguments_are_python_errors_and_standing_limits_are_not_retried(tmp
             assert time.monotonic() - started < 0.5
     finally:
         server.stop()
+
+
+def test_a_deleted_robot_is_gone_from_every_read_and_rewards_change_the_draw(server, cli):
+    a, b = codes_of(11, 300), codes_of(12, 300)
+    with fleetmem.Client(server.address) as fm:
+        fm.upload("f1", a, np.arange(300) * 5.0, 1.0, robot_id="robot-a", seqs=np.arange(300))
+        fm.upload("f1", b, np.arange(300) * 5.0, 1.0, robot_id="robot-b", seqs=np.arange(300),
+                  domain="winter")
+        with pytest.raises(ValueError):
+            fm.delete_traces("f1")  # a selection of nothing deletes everything: refused here
+        with pytest.raises(fleetmem.FleetMemError) as refused:
+            fm.delete_traces("f1", seq_first=3)  # a seq range without its robot
+        assert refused.value.status == "INVALID_ARGUMENT"
+
+        deleted = fm.delete_traces("f1", robot_id="robot-b")
+        assert deleted.deleted == 300 and deleted.traces == 300
+        assert set(fm.export("f1").robot_ids) == {"robot-a"}
+        assert set(fm.sample_replay("f1", "robot-a", 300).robot_ids) == {"robot-a"}
+        for i in (0, 150, 299):
+            assert fm.query_place("f1", b[i], k=10).traces.robot_ids == ["robot-a"] * 10
+        stats = fm.stats("f1")
+        assert stats.traces + stats.pending_traces == 300
+        again = fm.upload("f1", b[:50], robot_id="robot-b", seqs=np.arange(50))
+        assert (again.accepted, again.duplicates) == (0, 50)
+        # The CLI's delete of a seq range, and its get.
+        out = cli("--server", server.address, "--json", "delete-traces", "--fleet", "f1",
+                  "--robot", "robot-a", "--seq-first", "0", "--seq-last", "9")
+        assert '"deleted":"10"' in out.replace(" ", "")
+        found, missing = fm.get_traces("f1", "robot-a", [5, 10, 11])
+        assert missing == [("robot-a", 5)] and found.seqs.tolist() == [10, 11]
+        np.testing.assert_array_equal(found.codes, a[10:12])
+
+        # Rescoring: one held trace outweighs the rest.
+        held = fm.export("f1")
+        seqs = held.seqs.astype(np.int64)
+        rewards = np.where(seqs == 42, 1e6, 0.0)
+        rescored = fm.update_rewards("f1", "robot-a", seqs, rewards)
+        assert rescored.updated == len(seqs) and not rescored.not_held
+        assert int(fm.sample_replay("f1", "robot-a", 1).seqs[0]) == 42
+        with pytest.raises(ValueError):
+            fm.get_traces("f1", "robot-a", [[1, 2]])
+
+
+def test_two_fleets_with_their_own_settings(server, cli):
+    with fleetmem.Client(server.address) as fm:
+        made = fm.create_fleet("laser", code_dimension=16, encoder_version="scan-v1",
+                               place_unit="m", max_clusters=4, max_traces_per_cluster=5,
+                               forgetting="drop", index="hnsw", hnsw_m=8)
+        assert (made.code_dimension, made.max_clusters, made.forgetting) == (
+            16, 4, fleetmem.pb.FORGETTING_RULE_DROP)
+        assert (made.index, made.hnsw_m) == (fleetmem.pb.INDEX_KIND_HNSW, 8)
+        with pytest.raises(ValueError):
+            fm.create_fleet("typo2", code_dimension=8, index="flann")
+        with pytest.raises(fleetmem.FleetMemError) as twice:
+            fm.create_fleet("laser", code_dimension=16)
+        assert twice.value.status == "ALREADY_EXISTS"
+        with pytest.raises(fleetmem.FleetMemError) as bad:
+            fm.create_fleet("nothing", code_dimension=0)
+        assert bad.value.status == "INVALID_ARGUMENT"
+        with pytest.raises(TypeError):
+            fm.create_fleet("typo", code_dimension=8, max_cluster=3)
+        fm.upload("camera", codes_of(21, 600, dim=64), np.arange(600) * 5.0, 1.0,
+                  robot_id="cam-1", seqs=np.arange(600))
+        fm.upload("laser", codes_of(22, 600, dim=16), np.arange(600) * 5.0, 1.0,
+                  robot_id="lidar-1", seqs=np.arange(600), encoder_version="scan-v1")
+        laser, camera = fm.get_fleet("laser"), fm.get_fleet("camera")
+        assert laser.own_settings and not camera.own_settings
+        assert laser.clusters <= 4 and camera.settings.max_clusters == 100
+        assert laser.settings.place_unit == "m" and laser.code_dimension == 16
+        assert laser.settings.index == fleetmem.pb.INDEX_KIND_HNSW
+        assert camera.settings.index == fleetmem.pb.INDEX_KIND_UNSPECIFIED
+        with pytest.raises(fleetmem.FleetMemError) as wrong:
+            fm.upload("laser", codes_of(23, 5, dim=64), robot_id="cam-1", seqs=np.arange(5))
+        assert wrong.value.status == "INVALID_ARGUMENT"
+
+        after = fm.update_fleet("camera", max_clusters=10, replay_decay=0.5)
+        assert (after.max_clusters, after.replay_decay, after.code_dimension) == (10, 0.5, 64)
+        assert fm.get_fleet("camera").own_settings
+        fm.upload("camera", codes_of(24, 200, dim=64), np.arange(200) * 5.0, 1.0,
+                  robot_id="cam-1", seqs=np.arange(600, 800))
+        assert fm.get_fleet("camera").clusters <= 10
+        listed = {f.fleet_id: f for f in fm.fleets()}
+        assert listed["laser"].settings.max_clusters == 4 and listed["camera"].settings.max_clusters == 10
+        out = cli("--server", server.address, "fleet", "--fleet", "laser")
+        assert "clusters (K_max)" in out and "drop" in out
+    server.stop()
+    server.start()
+    with fleetmem.Client(server.address) as fm:
+        assert fm.get_fleet("laser").settings.max_clusters == 4
+        assert fm.get_fleet("camera").settings.replay_decay == 0.5
+
+
+def test_an_alias_moves_queries_to_the_new_encoders_fleet(server, cli):
+    """The encoder migration of docs/api.md in small: codes by encoder let a
+    query through the alias answer from whichever fleet it names."""
+    a, b = codes_of(41, 50, dim=32), codes_of(42, 50, dim=16)
+    with fleetmem.Client(server.address) as fm:
+        fm.create_fleet("map-v1", code_dimension=32, encoder_version="enc-A")
+        fm.create_fleet("map-v2", code_dimension=16, encoder_version="enc-B")
+        fm.upload("map-v1", a, robot_id="r1", seqs=np.arange(50), encoder_version="enc-A")
+        fm.upload("map-v2", b, robot_id="r1", seqs=np.arange(50), encoder_version="enc-B")
+        fm.create_alias("map", "map-v1")
+        with pytest.raises(fleetmem.FleetMemError) as taken:
+            fm.create_alias("map-v2", "map-v1")
+        assert taken.value.status == "ALREADY_EXISTS"
+        both = {"enc-A": a[7], "enc-B": b[7]}
+        before = fm.query_place("map", both)
+        assert (before.fleet_id, before.encoder_version) == ("map-v1", "enc-A")
+        assert int(before.traces.seqs[0]) == 7 and before.traces.codes.shape[1] == 32
+        assert fm.switch_alias("map", "map-v2") == "map-v1"
+        after = fm.query_place("map", both)
+        assert (after.fleet_id, after.encoder_version) == ("map-v2", "enc-B")
+        assert int(after.traces.seqs[0]) == 7 and after.traces.codes.shape[1] == 16
+        assert fm.stats("map").code_dimension == 16
+        assert fm.list_aliases() == {"map": "map-v2"}
+        assert "map -> map-v2" in cli("--server", server.address, "aliases")
+        with pytest.raises(fleetmem.FleetMemError) as named:
+            fm.delete_fleet("map-v2")
+        assert named.value.status == "FAILED_PRECONDITION"
+        assert fm.delete_alias("map") == "map-v2"
+        assert fm.list_aliases() == {}
+        # The old fleet goes; its id makes a new fleet afterwards.
+        assert fm.delete_fleet("map-v1") == 50
+        with pytest.raises(fleetmem.FleetMemError) as gone:
+            fm.stats("map-v1")
+        assert gone.value.status == "NOT_FOUND"
+        assert "map-v1" not in [f.fleet_id for f in fm.fleets()]
+        fm.upload("map-v1", codes_of(43, 5, dim=8), robot_id="r1", seqs=np.arange(5))
+        again = fm.stats("map-v1")
+        assert again.code_dimension == 8 and again.traces + again.pending_traces == 5
+
+
+def test_many_codes_in_one_query(server):
+    a = codes_of(31, 400)
+    with fleetmem.Client(server.address) as fm:
+        fm.upload("f1", a, np.arange(400) * 5.0, 1.0, robot_id="robot-a", seqs=np.arange(400))
+        fm.upload("f1", codes_of(32, 50), robot_id="robot-b", seqs=np.arange(50))
+        only_b = fm.query_place("f1", a[3], k=5, robot_ids="robot-b")
+        assert only_b.traces.robot_ids == ["robot-b"] * 5
+        answers = fm.query_places("f1", a[[3, 150, 399]], k=2, robot_ids=["robot-a"])
+        assert [int(m.traces.seqs[0]) for m in answers] == [3, 150, 399]
+        assert all(len(m) == 2 and m.distances[0] < 1e-3 for m in answers)
+        with pytest.raises(ValueError):
+            fm.query_places("f1", a[0])  # one code: query_place
+        with pytest.raises(fleetmem.FleetMemError) as too_many:
+            request = fleetmem.pb.QueryPlaceRequest(fleet_id="f1", k=1)
+            request.code.extend(a[0].tolist())
+            for _ in range(100):
+                request.more_codes.add().code.extend(a[1].tolist())
+            fm._unary("QueryPlace", request)
+        assert too_many.value.status == "INVALID_ARGUMENT"
+        # A filtered replay draws one robot's traces only.
+        fm.consolidate("f1")
+        drawn = fm.sample_replay("f1", "robot-b", 30, robot_ids="robot-b")
+        assert len(drawn.seqs) > 0 and set(drawn.robot_ids) == {"robot-b"}
+        everyone = fm.sample_replay("f1", "robot-a", 300)
+        assert set(everyone.robot_ids) == {"robot-a", "robot-b"}

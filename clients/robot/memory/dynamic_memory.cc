@@ -29,6 +29,17 @@ void DynamicMemory::AddOwn(const core::MemoryTrace& trace) {
   EvictToCapacity();
 }
 
+bool DynamicMemory::SetRewards(const core::MemoryTrace& trace) {
+  for (ReplayEntry& entry : entries_) {
+    if (entry.trace.key() != trace.key()) continue;
+    entry.trace.reward_external = trace.reward_external;
+    entry.trace.reward_internal = trace.reward_internal;
+    entry.trace.reward = trace.reward;
+    return true;
+  }
+  return false;
+}
+
 void DynamicMemory::Refresh(const std::vector<core::MemoryTrace>& sampled) {
   absl::flat_hash_map<core::TraceKey, uint32_t> replays;
   for (const ReplayEntry& entry : entries_) {

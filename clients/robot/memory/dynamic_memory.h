@@ -58,6 +58,9 @@ class DynamicMemory {
   // Adds one of the robot's own new traces (replacing an entry of the same
   // (robot, seq)), then evicts down to capacity.
   void AddOwn(const core::MemoryTrace& trace);
+  // Gives the entry of `trace`'s (robot, seq) its rewards (R_ex, R_in, R),
+  // keeping its place and replay count; false if M_D holds no such entry.
+  bool SetRewards(const core::MemoryTrace& trace);
   // Eq. 18, see the header comment.
   void Refresh(const std::vector<core::MemoryTrace>& sampled);
   // Eq. 19: min(count, size()) distinct entries drawn with weight

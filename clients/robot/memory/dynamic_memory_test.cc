@@ -51,6 +51,24 @@ TEST(DynamicMemoryTest, WeightIsGammaToTheLocalReplaysTimesReward) {
   }
 }
 
+TEST(DynamicMemoryTest, SetRewardsKeepsTheEntrysPlaceAndReplayCount) {
+  DynamicMemory memory("r1", {.capacity = 10, .gamma = 0.5});
+  memory.AddOwn(Trace("r1", 1, 2.0f));
+  memory.AddOwn(Trace("r1", 2, 1.0f));
+  std::mt19937_64 rng(1);
+  ASSERT_EQ(memory.Replay(1, rng)[0].seq, 1u);
+  core::MemoryTrace rescored = Trace("r1", 1, 4.0f);
+  rescored.reward_external = 3.0f;
+  rescored.reward_internal = 1.0f;
+  EXPECT_TRUE(memory.SetRewards(rescored));
+  EXPECT_EQ(memory.entries()[0].trace.seq, 1u);  // still first
+  EXPECT_EQ(memory.entries()[0].local_replays, 1u);
+  EXPECT_FLOAT_EQ(memory.entries()[0].trace.reward_external, 3.0f);
+  EXPECT_DOUBLE_EQ(memory.Weight(memory.entries()[0]), 4.0 * 0.5);
+  EXPECT_FALSE(memory.SetRewards(Trace("r1", 9, 1.0f)));
+  EXPECT_EQ(memory.size(), 2u);
+}
+
 TEST(DynamicMemoryTest, TimeDecayShiftsReplayToLessReplayedTraces) {
   // Two traces of equal reward; after A was replayed 10 times (gamma 0.5),
   // B is drawn first almost always.

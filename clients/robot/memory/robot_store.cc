@@ -19,6 +19,9 @@ namespace {
 constexpr char kStateKey[] = "m/state";
 constexpr char kOpenPrefix[] = "o/";
 constexpr char kQueuePrefix[] = "q/";
+// seq -> source index of every sealed trace (8 bytes each), kept after the
+// upload: what an encoder migration re-encodes (RobotStore::SourceIndices).
+constexpr char kSourcePrefix[] = "i/";
 
 // Prefix + big-endian number, so keys sort by number.
 std::string Key(const char* prefix, uint64_t number) {
@@ -317,6 +320,7 @@ absl::StatusOr<uint64_t> RobotStore::SealSegment(
     const std::string value = stored.SerializeAsString();
     batch.Delete(Key(kOpenPrefix, index->first));
     batch.Put(Key(kQueuePrefix, next.next_seq()), value);
+    batch.Put(Key(kSourcePrefix, next.next_seq()), Key("", index->first));
     added.push_back({next.next_seq(), {value.size(), now}});
     added_bytes += value.size();
     next.set_next_seq(next.next_seq() + 1);
@@ -384,6 +388,46 @@ absl::Status RobotStore::MarkUploaded(uint64_t through_seq, uint64_t accepted,
   absl::Status status = Commit(batch, next);
   if (!status.ok()) return status;
   queue_.erase(queue_.begin(), end);
+  bytes_ -= freed;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<SourceIndex>> RobotStore::SourceIndices(
+    uint64_t after_seq, size_t max) const {
+  std::vector<SourceIndex> found;
+  std::unique_ptr<rocksdb::Iterator> it(
+      db_->NewIterator(rocksdb::ReadOptions()));
+  for (it->Seek(Key(kSourcePrefix, after_seq + 1));
+       it->Valid() && it->key().starts_with(kSourcePrefix) &&
+       found.size() < max;
+       it->Next()) {
+    if (it->value().size() != 8) {
+      return absl::DataLossError(absl::StrCat(
+          "the source index of seq ", KeyNumber(it->key()), " does not parse"));
+    }
+    found.push_back({KeyNumber(it->key()), KeyNumber(it->value())});
+  }
+  absl::Status status =
+      FromRocks(it->status(), "cannot read the source indices");
+  if (!status.ok()) return status;
+  return found;
+}
+
+absl::Status RobotStore::DiscardOpenSegment() {
+  absl::MutexLock lock(&mu_);
+  if (open_.empty()) return absl::OkStatus();
+  rocksdb::WriteBatch batch;
+  uint64_t freed = 0;
+  for (const auto& [index, bytes] : open_) {
+    batch.Delete(Key(kOpenPrefix, index));
+    freed += bytes;
+  }
+  RobotState next = state_;
+  next.set_next_index(open_.begin()->first);
+  next.set_observations(next.observations() - open_.size());
+  absl::Status status = Commit(batch, next);
+  if (!status.ok()) return status;
+  open_.clear();
   bytes_ -= freed;
   return absl::OkStatus();
 }

@@ -10,6 +10,8 @@
 //     twice, even across crashes; traces leave the queue only after the
 //     server acknowledged them (a repeat after a crash is a duplicate the
 //     server drops by (robot_id, seq));
+//   - each sealed trace's source position by seq, kept after its upload, so
+//     that an encoder migration can re-encode what the robot observed;
 //   - the counters and cursors of RobotState (robot_state.proto), written in
 //     the same batch as what they count.
 //
@@ -91,6 +93,13 @@ struct QueueInfo {
   uint64_t open_segment = 0;
 };
 
+// Where a sealed trace came from: its seq and its observation's index in
+// the source.
+struct SourceIndex {
+  uint64_t seq = 0;
+  uint64_t index = 0;
+};
+
 class RobotStore {
  public:
   // Opens (creating if needed) the store under `dir`. A new store takes
@@ -138,7 +147,19 @@ class RobotStore {
   // acknowledged them: `accepted` new, `duplicates` seen before).
   absl::Status MarkUploaded(uint64_t through_seq, uint64_t accepted,
                             uint64_t duplicates);
-  // Changes counters only (watch cursor, refreshes, ...).
+  // Up to `max` sealed traces with seq > after_seq and the source index of
+  // each, by seq: every trace sealed since the store kept them (this
+  // version on), uploaded or not. What an encoder migration re-encodes.
+  absl::StatusOr<std::vector<SourceIndex>> SourceIndices(uint64_t after_seq,
+                                                         size_t max) const;
+  // Forgets the open segment: its observations are recorded again from its
+  // first index (next_index goes back there; observations counts them
+  // out). An encoder migration does so rather than seal codes of the old
+  // encoder.
+  absl::Status DiscardOpenSegment();
+  // Changes counters only (watch cursor, refreshes, ...). The identity's
+  // fleet_id may change too (an encoder migration moves the data dir to
+  // the new fleet).
   absl::Status Update(const std::function<void(RobotState&)>& update);
 
  private:

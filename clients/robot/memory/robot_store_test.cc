@@ -116,6 +116,54 @@ TEST_F(RobotStoreTest, TheOpenSegmentAndPositionSurviveAReopen) {
             absl::StatusCode::kInvalidArgument);
 }
 
+TEST_F(RobotStoreTest, SealedTracesKeepTheirSourceIndexAfterTheUpload) {
+  {
+    std::unique_ptr<RobotStore> store = Open();
+    ASSERT_TRUE(store);
+    ASSERT_TRUE(store->SetFirstSeq(10).ok());  // after the server's seqs
+    Segment(*store, 0, 3);                     // seqs 10..12
+    Segment(*store, 3, 5);                     // seqs 13..14
+    ASSERT_TRUE(store->MarkUploaded(14, 5, 0).ok());
+    EXPECT_EQ(store->queue().depth, 0u);
+  }
+  std::unique_ptr<RobotStore> store = Open();
+  ASSERT_TRUE(store);
+  absl::StatusOr<std::vector<SourceIndex>> all = store->SourceIndices(0, 100);
+  ASSERT_TRUE(all.ok()) << all.status();
+  std::vector<std::pair<uint64_t, uint64_t>> pairs;
+  for (const SourceIndex& s : *all) pairs.push_back({s.seq, s.index});
+  using Pair = std::pair<uint64_t, uint64_t>;
+  EXPECT_THAT(pairs,
+              ::testing::ElementsAre(Pair{10, 0}, Pair{11, 1}, Pair{12, 2},
+                                     Pair{13, 3}, Pair{14, 4}));
+  absl::StatusOr<std::vector<SourceIndex>> page = store->SourceIndices(11, 2);
+  ASSERT_TRUE(page.ok());
+  ASSERT_EQ(page->size(), 2u);
+  EXPECT_EQ((*page)[0].seq, 12u);
+  EXPECT_EQ((*page)[1].seq, 13u);
+}
+
+TEST_F(RobotStoreTest, ADiscardedOpenSegmentIsObservedAgainFromItsStart) {
+  std::unique_ptr<RobotStore> store = Open();
+  ASSERT_TRUE(store);
+  Segment(*store, 0, 2);
+  ASSERT_TRUE(store->RecordObservation(2, Observed(2)).ok());
+  ASSERT_TRUE(store->RecordObservation(3, Observed(3)).ok());
+  EXPECT_EQ(store->state().next_index(), 4u);
+  ASSERT_TRUE(store->DiscardOpenSegment().ok());
+  EXPECT_EQ(store->state().next_index(), 2u);
+  EXPECT_EQ(store->state().observations(), 2u);
+  EXPECT_EQ(store->queue().open_segment, 0u);
+  EXPECT_EQ(store->queue().depth, 2u);
+  ASSERT_TRUE(store->DiscardOpenSegment().ok());  // nothing open: no change
+  EXPECT_EQ(store->state().next_index(), 2u);
+  store.reset();
+  store = Open();
+  ASSERT_TRUE(store);
+  EXPECT_EQ(store->state().next_index(), 2u);
+  EXPECT_TRUE(store->RecordObservation(2, Observed(2)).ok());
+}
+
 TEST_F(RobotStoreTest, AnotherRobotsDirIsRefused) {
   { ASSERT_TRUE(Open()); }
   absl::StatusOr<std::unique_ptr<RobotStore>> other = RobotStore::Open(

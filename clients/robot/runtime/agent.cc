@@ -35,6 +35,18 @@ std::string Reported(const std::string& report) {
 
 }  // namespace
 
+absl::StatusOr<float> InternalRewardOf(const Encoder& encoder,
+                                       const Observation& observation,
+                                       std::span<const float> code,
+                                       uint64_t seed, size_t index) {
+  std::mt19937_64 perturb_rng(seed * 1000003u + index);
+  absl::StatusOr<Observation> moved = encoder.Perturb(observation, perturb_rng);
+  if (!moved.ok()) return moved.status();
+  absl::StatusOr<std::vector<float>> moved_code = encoder.Encode(*moved);
+  if (!moved_code.ok()) return moved_code.status();
+  return InternalReward(code, *moved_code);
+}
+
 bool IsRetryable(absl::StatusCode code) {
   return code == absl::StatusCode::kUnavailable ||
          code == absl::StatusCode::kDeadlineExceeded ||
@@ -287,21 +299,15 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
   if (!options_.upload) {
     return RecordQuery(index, *observation, *std::move(code), relocalisation);
   }
-  // R_in (Eq. 12); the generator is seeded per observation so that a
-  // repeated observation after a crash gets the same reward.
-  std::mt19937_64 perturb_rng(options_.seed * 1000003u + index);
-  absl::StatusOr<Observation> moved =
-      encoder_->Perturb(*observation, perturb_rng);
-  if (!moved.ok()) return moved.status();
-  absl::StatusOr<std::vector<float>> moved_code = encoder_->Encode(*moved);
-  if (!moved_code.ok()) return moved_code.status();
-  const float internal = InternalReward(*code, *moved_code);
+  absl::StatusOr<float> internal =
+      InternalRewardOf(*encoder_, *observation, *code, options_.seed, index);
+  if (!internal.ok()) return internal.status();
   v1::MemoryTrace trace;
   trace.set_robot_id(options_.robot_id);
   trace.set_domain(options_.domain);
   trace.mutable_code()->Assign(code->begin(), code->end());
   api::PlaceToProto(observation->place, trace.mutable_pose());
-  trace.set_reward_internal(internal);
+  trace.set_reward_internal(*internal);
   trace.set_timestamp_ns(observation->timestamp_ns != 0
                              ? observation->timestamp_ns
                              : absl::ToUnixNanos(absl::Now()));
@@ -474,9 +480,33 @@ absl::Status Agent::SealSegment() {
       }(),
       step->replayed_own + step->replayed_peer, step->replayed_peer,
       step->recalled, Reported(step->report)));
+  SendRescored(step->rescored);
   Refresh();
   Progress(true);
   return absl::OkStatus();
+}
+
+void Agent::SendRescored(const std::vector<core::MemoryTrace>& rescored) {
+  if (rescored.empty()) return;
+  // Advisory, as a refresh is: one attempt; what the server did not take
+  // is re-scored again after the next segment (still queued traces are
+  // not held yet and go up with the R they were sealed with).
+  absl::StatusOr<v1::UpdateRewardsResponse> updated =
+      robot::SendRescored(*query_client_, options_.fleet_id, rescored, memory_);
+  if (!updated.ok()) {
+    Log(absl::StrCat("re-scoring ", rescored.size(),
+                     " remembered traces: not taken (",
+                     updated.status().ToString(), ")"));
+    return;
+  }
+  absl::Status counted = store_->Update([&](RobotState& state) {
+    state.set_traces_rescored(state.traces_rescored() + updated->updated());
+  });
+  if (!counted.ok()) Log(std::string(counted.message()));
+  Log(absl::StrFormat(
+      "re-scored %d remembered traces under the new head: %d updated, %d "
+      "not held by the fleet",
+      rescored.size(), updated->updated(), updated->not_held_size()));
 }
 
 void Agent::Refresh() {

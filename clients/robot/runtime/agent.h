@@ -58,6 +58,15 @@ namespace fleetmem::robot {
 // answer.
 bool IsRetryable(absl::StatusCode code);
 
+// R_in of an observation whose code is `code` (Eq. 12): 1 - cos of the
+// code and the code of a perturbed copy, the perturbation's generator
+// seeded by `seed` and the source index, so that a repeated observation
+// (after a crash, or re-encoded by a migration) gets the same draw.
+absl::StatusOr<float> InternalRewardOf(const Encoder& encoder,
+                                       const Observation& observation,
+                                       std::span<const float> code,
+                                       uint64_t seed, size_t index);
+
 struct AgentOptions {
   std::string fleet_id;
   std::string robot_id;
@@ -181,6 +190,9 @@ class Agent {
   absl::StatusOr<SegmentStepResult> StepSegment(
       std::vector<core::MemoryTrace> segment,
       const std::vector<size_t>& indices);
+  // Sends the step's re-scored remembered traces (UpdateRewards) and gives
+  // M_D their new R; logged, never fatal.
+  void SendRescored(const std::vector<core::MemoryTrace>& rescored);
   void Refresh();
   void UploadLoop();
   void WatchLoop();

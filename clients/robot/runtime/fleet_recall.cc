@@ -31,4 +31,20 @@ PlaceRecall NewFleetRecall(client::Client* client, std::string fleet_id,
   };
 }
 
+absl::StatusOr<v1::UpdateRewardsResponse> SendRescored(
+    client::Client& client, const std::string& fleet_id,
+    std::span<const core::MemoryTrace> rescored, DynamicMemory& memory) {
+  v1::UpdateRewardsRequest request;
+  request.set_fleet_id(fleet_id);
+  for (const core::MemoryTrace& t : rescored) {
+    v1::RewardUpdate* update = request.add_updates();
+    update->set_robot_id(t.robot_id);
+    update->set_seq(t.seq);
+    update->set_reward_external(t.reward_external);
+    update->set_reward_internal(t.reward_internal);
+    memory.SetRewards(t);
+  }
+  return client.UpdateRewards(request);
+}
+
 }  // namespace fleetmem::robot

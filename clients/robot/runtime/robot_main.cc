@@ -37,6 +37,7 @@
 #include "clients/robot/learning/metric_robot.h"
 #include "clients/robot/memory/robot_store.h"
 #include "clients/robot/runtime/agent.h"
+#include "clients/robot/runtime/migration.h"
 #include "clients/robot/sensing/encoder_factory.h"
 #include "clients/robot/sensing/observation_source.h"
 #include "clients/robot/slam/fleet_slam.h"
@@ -61,6 +62,8 @@ struct Flags {
   std::string encoder;
   std::string gpl_model;
   bool learn = false;
+  bool rescore = false;
+  std::string migrate_from;
   int learn_steps = 60;
   int torch_threads = 2;
   std::string domain;
@@ -95,7 +98,7 @@ struct Flags {
   int vo_update_steps = 5;
 };
 
-// Long (160 lines) by its nature: one CLI11 declaration per flag, in the
+// Long (170 lines) by its nature: one CLI11 declaration per flag, in the
 // order --help prints them; cut, it would only scatter that list.
 void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--server", flags.server, "fleetmem-server HOST:PORT")
@@ -134,6 +137,16 @@ void AddFlags(CLI::App& app, Flags& flags) {
                "traces replayed from the dynamic memory: a metric head on "
                "the --encoder code (kept in DATA_DIR/metric-head.bin), or "
                "with --gpl-model the GPL place head (DATA_DIR/gpl-learned.pt)");
+  app.add_flag("--rescore", flags.rescore,
+               "with --learn: after each segment, re-score the robot's own "
+               "remembered traces under the new head and send their R_ex to "
+               "the fleet (UpdateRewards), so refreshes draw with it");
+  app.add_option("--migrate-from", flags.migrate_from,
+                 "encoder migration: DATA_DIR belongs to this fleet (or "
+                 "alias); before observing, re-encode with --encoder what it "
+                 "still holds of this robot's traces and upload them to "
+                 "--fleet under the same seqs, then move DATA_DIR to --fleet "
+                 "(resumable; nothing to do once moved; docs/robot.md)");
   app.add_option("--learn-steps", flags.learn_steps,
                  "GPL place-head gradient steps per segment (--gpl-model)")
       ->capture_default_str()
@@ -400,6 +413,22 @@ Failed CheckFlags(const Flags& flags) {
   if (!flags.gpl_model.empty() && !flags.encoder.empty()) {
     return Failure{2, "give --encoder or --gpl-model, not both"};
   }
+  if (!flags.migrate_from.empty()) {
+    absl::Status valid =
+        fleetmem::core::ValidateId("--migrate-from", flags.migrate_from);
+    if (!valid.ok()) return Fail(2, valid);
+    if (flags.migrate_from == flags.fleet || flags.query_only) {
+      return Failure{2,
+                     "--migrate-from names the fleet an uploading robot's "
+                     "DATA_DIR belongs to now, another than --fleet"};
+    }
+  }
+  if (flags.rescore && (!flags.learn || flags.query_only)) {
+    return Failure{2,
+                   "--rescore re-scores with the head --learn trains, the "
+                   "robot's own uploaded traces: it needs --learn and an "
+                   "uploading robot"};
+  }
   return std::nullopt;
 }
 
@@ -483,12 +512,9 @@ Failed Connect(const Flags& flags, Clients& clients) {
   return std::nullopt;
 }
 
-// The robot's store-and-forward queue in its data dir. A first start asks
-// the server for the robot's last seq before anything is written here, and
-// continues after it.
-Failed OpenQueue(const Flags& flags, const Sensing& sensing,
-                 fleetmem::client::Client& setup,
-                 std::unique_ptr<fleetmem::robot::RobotStore>& queue) {
+// The robot's store in its data dir, as the robot of `fleet_id`.
+absl::StatusOr<std::unique_ptr<fleetmem::robot::RobotStore>> OpenStore(
+    const Flags& flags, const Sensing& sensing, const std::string& fleet_id) {
   namespace robot = fleetmem::robot;
   robot::RobotStoreOptions store_options;
   store_options.max_bytes =
@@ -496,6 +522,20 @@ Failed OpenQueue(const Flags& flags, const Sensing& sensing,
   store_options.full_policy = *robot::ParseFullPolicy(flags.queue_full_policy);
   store_options.min_free_bytes =
       static_cast<uint64_t>(flags.disk_reserve_mb * 1024.0 * 1024.0);
+  return robot::RobotStore::Open(flags.data_dir,
+                                 {.robot_id = flags.robot_id,
+                                  .fleet_id = fleet_id,
+                                  .source = sensing.source->description()},
+                                 store_options);
+}
+
+// The robot's store-and-forward queue in its data dir. A first start asks
+// the server for the robot's last seq before anything is written here, and
+// continues after it.
+Failed OpenQueue(const Flags& flags, const Sensing& sensing,
+                 fleetmem::client::Client& setup,
+                 std::unique_ptr<fleetmem::robot::RobotStore>& queue) {
+  namespace robot = fleetmem::robot;
   const bool new_dir =
       !std::filesystem::exists(std::filesystem::path(flags.data_dir) / "queue");
   std::optional<absl::StatusOr<uint64_t>> max_seq;
@@ -504,11 +544,7 @@ Failed OpenQueue(const Flags& flags, const Sensing& sensing,
     if (!max_seq->ok()) return Fail(1, max_seq->status());
   }
   absl::StatusOr<std::unique_ptr<robot::RobotStore>> store =
-      robot::RobotStore::Open(flags.data_dir,
-                              {.robot_id = flags.robot_id,
-                               .fleet_id = flags.fleet,
-                               .source = sensing.source->description()},
-                              store_options);
+      OpenStore(flags, sensing, flags.fleet);
   if (!store.ok()) return Fail(1, store.status());
   queue = *std::move(store);
   if (flags.query_only || !GaveNoSeq(*queue)) return std::nullopt;
@@ -522,6 +558,61 @@ Failed OpenQueue(const Flags& flags, const Sensing& sensing,
   }
   if (!first.ok()) return Fail(1, first);
   return std::nullopt;
+}
+
+// --migrate-from: the data dir of the old fleet moved to --fleet with its
+// traces re-encoded (migration.h), or found moved already. The learned
+// heads were fitted to the old codes: kept aside under the old fleet's
+// name, and the robot learns anew.
+Failed Migrate(const Flags& flags, const Sensing& sensing,
+               fleetmem::client::Client& setup) {
+  namespace robot = fleetmem::robot;
+  if (!std::filesystem::exists(std::filesystem::path(flags.data_dir) /
+                               "queue")) {
+    return Failure{
+        2, absl::StrCat("--migrate-from ", flags.migrate_from, ": ",
+                        flags.data_dir, " holds no robot state to migrate")};
+  }
+  absl::StatusOr<std::unique_ptr<robot::RobotStore>> store =
+      OpenStore(flags, sensing, flags.migrate_from);
+  if (absl::IsFailedPrecondition(store.status())) {
+    // Moved to --fleet already (nothing left to do), or another fleet's:
+    // --migrate-from names the fleet (or alias) the robot ran with.
+    if (OpenStore(flags, sensing, flags.fleet).ok()) return std::nullopt;
+    return Failure{2, absl::StrCat("--migrate-from ", flags.migrate_from, ": ",
+                                   store.status().message())};
+  }
+  if (!store.ok()) return Fail(1, store.status());
+  robot::MigrationOptions options;
+  options.from_fleet = flags.migrate_from;
+  options.to_fleet = flags.fleet;
+  options.seed = flags.seed;
+  options.log = [&flags](std::string_view line) {
+    std::cerr << "[" << flags.robot_id << "] " << line << "\n";
+  };
+  absl::StatusOr<robot::MigrationSummary> done = robot::MigrateRobot(
+      options, setup, *sensing.source, *sensing.encoder, **store);
+  if (!done.ok()) return Fail(1, done.status());
+  for (const char* head : {"metric-head.bin", "gpl-learned.pt"}) {
+    const std::filesystem::path path =
+        std::filesystem::path(flags.data_dir) / head;
+    std::error_code error;
+    if (!std::filesystem::exists(path, error)) continue;
+    std::filesystem::rename(
+        path, path.string() + "." + flags.migrate_from + ".old", error);
+    if (error)
+      return Failure{1, absl::StrCat("cannot set ", path.string(),
+                                     " aside: ", error.message())};
+  }
+  std::cerr << absl::StrFormat(
+      "[%s] migrated to fleet %s: %d traces re-encoded and acknowledged "
+      "(%d held there already), %d no longer held by %s, %d sealed before "
+      "source positions were kept (left in %s); the data dir now belongs to "
+      "%s\n",
+      flags.robot_id, flags.fleet, done->migrated, done->duplicates,
+      done->not_held, flags.migrate_from, done->no_source, flags.migrate_from,
+      flags.fleet);
+  return std::nullopt;  // OpenQueue opens the data dir as --fleet's
 }
 
 fleetmem::robot::AgentOptions MakeAgentOptions(const Flags& flags,
@@ -554,6 +645,7 @@ fleetmem::robot::AgentOptions MakeAgentOptions(const Flags& flags,
   options.refresh_count = flags.refresh_count;
   options.step.replay_per_segment = flags.replay_per_segment;
   options.step.recall_per_observation = flags.recall_per_observation;
+  options.step.rescore_remembered = flags.rescore;
   options.upload_batch = flags.upload_batch;
   options.drain_timeout = std::chrono::milliseconds(
       static_cast<int64_t>(flags.drain_timeout_s * 1000));
@@ -641,6 +733,11 @@ int Run(const Flags& flags) {
     return report(*failed);
   }
   if (Failed failed = Connect(flags, clients)) return report(*failed);
+  if (!flags.migrate_from.empty()) {
+    if (Failed failed = Migrate(flags, sensing, *clients.setup)) {
+      return report(*failed);
+    }
+  }
   if (Failed failed = OpenQueue(flags, sensing, *clients.setup, queue)) {
     return report(*failed);
   }

@@ -1,9 +1,68 @@
 #include "clients/robot/runtime/segment_step.h"
 
+#include <cmath>
 #include <set>
 #include <utility>
 
+#include "absl/strings/str_cat.h"
+
 namespace fleetmem::robot {
+namespace {
+
+// R (Eq. 13) of a trace whose R_ex and R_in are set, as `mode` forms it.
+float Reward(RewardMode mode, const core::MemoryTrace& t) {
+  switch (mode) {
+    case RewardMode::kFull:
+      return t.reward_external + t.reward_internal;
+    case RewardMode::kNoExternal:
+      return t.reward_internal;
+    case RewardMode::kNoInternal:
+      return t.reward_external;
+    case RewardMode::kUniform:
+      return 1.0f;
+  }
+  return t.reward_external + t.reward_internal;
+}
+
+// The robot's own traces of M_D whose R_ex under the learner changed, as
+// the segment's are scored: against the rest of what the robot remembers.
+absl::StatusOr<std::vector<core::MemoryTrace>> RescoreRemembered(
+    const DynamicMemory& memory, std::span<const core::MemoryTrace> remembered,
+    Learner& learner) {
+  std::vector<core::MemoryTrace> own, others;
+  std::set<uint64_t> own_seqs;
+  for (const ReplayEntry& e : memory.entries()) {
+    if (e.trace.robot_id != memory.robot_id()) continue;
+    own.push_back(e.trace);
+    own_seqs.insert(e.trace.seq);
+  }
+  for (const core::MemoryTrace& t : remembered) {
+    if (t.robot_id != memory.robot_id() || !own_seqs.contains(t.seq)) {
+      others.push_back(t);
+    }
+  }
+  std::vector<core::MemoryTrace> changed;
+  if (own.empty()) return changed;
+  absl::StatusOr<std::vector<float>> learned =
+      learner.ExternalRewards(own, others);
+  if (absl::IsUnimplemented(learned.status())) return changed;
+  if (!learned.ok()) return learned.status();
+  if (learned->size() != own.size()) {
+    return absl::InternalError(absl::StrCat("the learner re-scored ",
+                                            learned->size(), " of ", own.size(),
+                                            " remembered traces"));
+  }
+  for (size_t k = 0; k < own.size(); ++k) {
+    // Below a float's resolution of R: not worth a write.
+    if (std::abs((*learned)[k] - own[k].reward_external) <= 1e-6f) continue;
+    core::MemoryTrace& t = changed.emplace_back(std::move(own[k]));
+    t.reward_external = (*learned)[k];
+    t.reward = Reward(RewardMode::kFull, t);
+  }
+  return changed;
+}
+
+}  // namespace
 
 absl::StatusOr<SegmentStepResult> RunSegmentStep(
     const SegmentStepOptions& options, std::vector<core::MemoryTrace> segment,
@@ -48,6 +107,12 @@ absl::StatusOr<SegmentStepResult> RunSegmentStep(
     } else if (!learned.ok() && !absl::IsUnimplemented(learned.status())) {
       return learned.status();
     }
+    if (options.rescore_remembered && options.rewards == RewardMode::kFull) {
+      absl::StatusOr<std::vector<core::MemoryTrace>> rescored =
+          RescoreRemembered(memory, remembered, *learner);
+      if (!rescored.ok()) return rescored.status();
+      result.rescored = *std::move(rescored);
+    }
   }
   if (external.empty()) {
     std::vector<std::vector<float>> codes;
@@ -61,20 +126,7 @@ absl::StatusOr<SegmentStepResult> RunSegmentStep(
   for (size_t k = 0; k < segment.size(); ++k) {
     core::MemoryTrace& t = segment[k];
     t.reward_external = external[k];
-    switch (options.rewards) {
-      case RewardMode::kFull:
-        t.reward = t.reward_external + t.reward_internal;
-        break;
-      case RewardMode::kNoExternal:
-        t.reward = t.reward_internal;
-        break;
-      case RewardMode::kNoInternal:
-        t.reward = t.reward_external;
-        break;
-      case RewardMode::kUniform:
-        t.reward = 1.0f;
-        break;
-    }
+    t.reward = Reward(options.rewards, t);
   }
   result.traces = std::move(segment);
   return result;

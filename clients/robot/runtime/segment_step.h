@@ -54,6 +54,14 @@ struct SegmentStepOptions {
   RewardMode rewards = RewardMode::kFull;
   // R_ex in code space, for a learner without its own (or none).
   TripletOptions triplet;
+  // Re-score the robot's own remembered traces (its entries of M_D) under
+  // the learner once it learned the segment: the learner's R_ex of them now
+  // (Eq. 11), for the fleet to take by UpdateRewards (Reverb's
+  // mutate_priorities), so that the next refresh (Eq. 18) draws with the
+  // head the robot has now rather than the one it had when it uploaded
+  // them. Only with a learner that has its own R_ex (the code-space triplet
+  // of rewards.h does not change as the robot learns) and rewards kFull.
+  bool rescore_remembered = false;
 };
 
 // The fleet's traces of an observation's place: the k nearest to its code
@@ -74,6 +82,9 @@ struct SegmentStepResult {
   uint64_t recalled = 0;
   // The learner's report (empty without a learner).
   std::string report;
+  // rescore_remembered: the robot's own traces of M_D whose R_ex changed,
+  // with the new reward_external and reward (reward_internal as it was).
+  std::vector<core::MemoryTrace> rescored;
 };
 
 // One segment's step. `segment` holds the new traces (robot_id, domain,

@@ -92,6 +92,60 @@ TEST_F(SegmentStepTest, RewardsFollowTheModeAndTheLearner) {
   }
 }
 
+// R_ex = the number of traces it is scored against, so that a test sees
+// what the re-scoring compared the robot's remembered traces with.
+class CountingLearner : public FixedLearner {
+ public:
+  absl::StatusOr<std::vector<float>> ExternalRewards(
+      std::span<const core::MemoryTrace> segment,
+      std::span<const core::MemoryTrace> memory) override {
+    return std::vector<float>(segment.size(), float(memory.size()));
+  }
+};
+
+TEST_F(SegmentStepTest, RescoringGivesTheOwnRememberedTracesNewRewards) {
+  CountingLearner learner;
+  SegmentStepOptions options;
+  options.rescore_remembered = true;
+  absl::StatusOr<SegmentStepResult> step =
+      RunSegmentStep(options, Segment(), {}, memory_, rng_, &learner, nullptr);
+  ASSERT_TRUE(step.ok()) << step.status();
+  // robot-a's two traces of M_D, scored against the peer's one trace (not
+  // against themselves); R = R_ex + R_in; the peer's trace is not theirs.
+  ASSERT_EQ(step->rescored.size(), 2u);
+  for (const core::MemoryTrace& t : step->rescored) {
+    EXPECT_EQ(t.robot_id, "robot-a");
+    EXPECT_FLOAT_EQ(t.reward_external, 1.0f);
+    EXPECT_FLOAT_EQ(t.reward, 1.0f + t.reward_internal);
+  }
+  // Off by default, and off for the ablations' reward modes.
+  options.rescore_remembered = false;
+  step =
+      RunSegmentStep(options, Segment(), {}, memory_, rng_, &learner, nullptr);
+  ASSERT_TRUE(step.ok());
+  EXPECT_TRUE(step->rescored.empty());
+  options.rescore_remembered = true;
+  options.rewards = RewardMode::kUniform;
+  step =
+      RunSegmentStep(options, Segment(), {}, memory_, rng_, &learner, nullptr);
+  ASSERT_TRUE(step.ok());
+  EXPECT_TRUE(step->rescored.empty());
+  // Unchanged rewards are not sent again: R_ex already 1.
+  std::vector<core::MemoryTrace> own;
+  for (const ReplayEntry& e : memory_.entries()) {
+    if (e.trace.robot_id == "robot-a") own.push_back(e.trace);
+  }
+  for (core::MemoryTrace& t : own) {
+    t.reward_external = 1.0f;
+    memory_.AddOwn(t);  // replaces the entry of its (robot, seq)
+  }
+  options.rewards = RewardMode::kFull;
+  step =
+      RunSegmentStep(options, Segment(), {}, memory_, rng_, &learner, nullptr);
+  ASSERT_TRUE(step.ok());
+  EXPECT_TRUE(step->rescored.empty());
+}
+
 TEST_F(SegmentStepTest, ReplayCountsOwnAndPeerTraces) {
   FixedLearner learner;
   SegmentStepOptions options;

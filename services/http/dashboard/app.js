@@ -7,6 +7,7 @@
 const state = {
   token: sessionStorage.getItem('fleetmem-token') || '',
   fleets: [],
+  aliases: [],           // [{alias, fleetId}] (ListAliases)
   fleet: null,           // selected fleet id
   stats: null,
   clusters: null,
@@ -55,13 +56,19 @@ window.addEventListener('hashchange', () => {
 
 class AuthError extends Error {}
 
-async function api(path) {
+async function api(path, body) {
   const headers = state.token ? { Authorization: 'Bearer ' + state.token } : {};
-  const response = await fetch(path, { headers, cache: 'no-store' });
+  const init = { headers, cache: 'no-store' };
+  if (body !== undefined) {  // a POST of a JSON body (the fleet's deletion)
+    init.method = 'POST';
+    init.body = JSON.stringify(body);
+    headers['Content-Type'] = 'application/json';
+  }
+  const response = await fetch(path, init);
   if (response.status === 401) throw new AuthError('credentials needed');
-  const body = await response.json();
-  if (!response.ok) throw new Error(body.message || response.statusText);
-  return body;
+  const answer = await response.json();
+  if (!response.ok) throw new Error(answer.message || response.statusText);
+  return answer;
 }
 
 const num = (v) => Number(v || 0);
@@ -93,6 +100,25 @@ $('login-form').addEventListener('submit', (event) => {
   refreshFleets();
 });
 
+// The fleet's deletion: enabled only once its id is typed in full.
+$('delete-name').addEventListener('input', (event) => {
+  $('delete-button').disabled = event.target.value !== state.fleet;
+});
+$('delete-button').addEventListener('click', async () => {
+  const fleet = state.fleet;
+  if (!fleet || $('delete-name').value !== fleet) return;
+  $('delete-button').disabled = true;
+  try {
+    const answer = await api(`/v1/fleets/${encodeURIComponent(fleet)}/delete`, {});
+    $('delete-result').textContent = `fleet ${fleet} deleted (${fmt(answer.tracesDeleted)} traces)`;
+    $('delete-name').value = '';
+    state.fleet = null;
+    await refreshFleets();
+  } catch (error) {
+    $('delete-result').textContent = `not deleted: ${error.message}`;
+  }
+});
+
 $('colour-by').addEventListener('change', (event) => {
   state.colourBy = event.target.value;
   drawMap();
@@ -111,6 +137,8 @@ function selectFleet(fleetId) {
   state.fading = [];
   state.history = [];
   $('events').innerHTML = '';
+  $('delete-name').value = '';
+  $('delete-button').disabled = true;
   renderFleetList();
   refreshFleet();
   refreshMap();
@@ -123,7 +151,10 @@ function renderFleetList() {
     const link = document.createElement('a');
     link.href = fleetLink(fleet.fleetId);
     link.dataset.fleet = fleet.fleetId;
-    link.textContent = `${fleet.fleetId} (${fmt(fleet.traces)} traces, ${fleet.robots} robots)`;
+    const names = state.aliases.filter((a) => a.fleetId === fleet.fleetId).map((a) => a.alias);
+    link.textContent = `${fleet.fleetId} (${fmt(fleet.traces)} traces, ${fleet.robots} robots)` +
+      (names.length ? ` ← ${names.join(', ')}` : '');
+    if (names.length) link.dataset.aliases = names.join(',');
     if (fleet.fleetId === state.fleet) link.className = 'active';
     // A plain link: the hashchange selects it (and it opens in a new tab).
     nav.appendChild(link);
@@ -134,10 +165,15 @@ async function refreshFleets() {
   try {
     const answer = await api('/v1/fleets');
     state.fleets = answer.fleets || [];
+    // The names that stand for fleets (an older server has none).
+    state.aliases = await api('/v1/aliases').then((a) => a.aliases || [], () => []);
     $('login').hidden = true;
     $('empty').hidden = state.fleets.length > 0;
     $('main').hidden = state.fleets.length === 0;
-    const wanted = hashParams().get('fleet');
+    // #fleet= may name an alias: the fleet it names now.
+    const named = hashParams().get('fleet');
+    const alias = state.aliases.find((a) => a.alias === named);
+    const wanted = alias ? alias.fleetId : named;
     if (!state.fleet && state.fleets.length > 0) {
       selectFleet(state.fleets.some((f) => f.fleetId === wanted) ? wanted : state.fleets[0].fleetId);
     }
@@ -160,6 +196,10 @@ async function refreshFleet() {
     if (fleet !== state.fleet) return;
     state.stats = stats;
     renderStats();
+    // The fleet's settings (GetFleet), a line under the counts.
+    const info = await api(`/v1/fleets/${encodeURIComponent(fleet)}`);
+    if (fleet !== state.fleet) return;
+    renderSettings(info.fleet || {});
     await readEvents(fleet);
   } catch (error) {
     if (error instanceof AuthError) showLogin(); else setStatus(error.message, true);
@@ -182,6 +222,11 @@ async function readEvents(fleet) {
 
 function addEvent(event, live) {
   const merged = event.type === 'CLUSTER_MERGED';
+  // Traces deleted from a cluster (cluster 0: from the pending ones, which
+  // the chart does not count); a cluster left empty leaves.
+  const deleted = event.type === 'TRACES_DELETED';
+  const clusterLeft = deleted && num(event.clusterId) > 0 &&
+    num(event.traceCount) === 0;
   // A cluster leaves the memory: forgotten whole, or merged into another.
   const forgotten = event.type === 'CLUSTER_FORGOTTEN' || merged;
   state.events.push(event);
@@ -189,12 +234,17 @@ function addEvent(event, live) {
   const last = state.history.length ? state.history[state.history.length - 1]
     : { traces: 0, clusters: 0, forgotten: 0 };
   // A merge removes only what it dropped; its traces live on in merged_into.
-  const traceChange = merged ? -num(event.tracesDropped)
+  let traceChange = merged ? -num(event.tracesDropped)
     : (forgotten ? -1 : 1) * num(event.traceCount);
+  let clusterChange = forgotten ? -1 : 1;
+  if (deleted) {
+    traceChange = num(event.clusterId) > 0 ? -num(event.tracesDropped) : 0;
+    clusterChange = clusterLeft ? -1 : 0;
+  }
   state.history.push({
     t: num(event.timestampNs) / 1e6,
     traces: last.traces + traceChange,
-    clusters: last.clusters + (forgotten ? -1 : 1),
+    clusters: last.clusters + clusterChange,
     forgotten: last.forgotten + (forgotten ? 1 : 0),
   });
   if (forgotten && live && event.centroidPose) {
@@ -203,13 +253,18 @@ function addEvent(event, live) {
   }
   const item = document.createElement('li');
   item.value = num(event.id);
-  item.className = (forgotten ? 'forgotten' : 'added') + (live ? ' fresh' : '');
+  item.className = (forgotten || deleted ? 'forgotten' : 'added') +
+    (live ? ' fresh' : '');
   const when = new Date(num(event.timestampNs) / 1e6).toLocaleTimeString();
   const pose = event.centroidPose || {};
-  const verb = merged ? `merged cluster ${event.clusterId} into ${event.mergedInto}`
+  let verb = merged ? `merged cluster ${event.clusterId} into ${event.mergedInto}`
     : `${forgotten ? 'forgot' : 'added'} cluster ${event.clusterId}`;
+  if (deleted) {
+    verb = `deleted ${num(event.tracesDropped)} traces of ` +
+      (num(event.clusterId) > 0 ? `cluster ${event.clusterId}` : 'the pending');
+  }
   item.textContent = `${when} ${verb}` +
-    ` · ${event.traceCount} traces` +
+    ` · ${num(event.traceCount)} traces` + (clusterLeft ? ' (removed)' : '') +
     (merged ? ` (${num(event.tracesDropped)} dropped)` : '') +
     ` · robot ${event.robotId}` +
     (event.domain ? ` · ${event.domain}` : '') +
@@ -219,6 +274,21 @@ function addEvent(event, live) {
   while (list.children.length > 200) list.removeChild(list.lastChild);
   if (live) setTimeout(() => item.classList.remove('fresh'), 3000);
   $('events-live').textContent = `last event #${event.id}`;
+}
+
+function renderSettings(fleet) {
+  const s = fleet.settings || {};
+  const retention = [];
+  if (num(s.maxAgeSeconds) > 0) retention.push(`max age ${fmt(s.maxAgeSeconds)} s`);
+  if (num(s.maxTracesPerRobot) > 0) retention.push(`${fmt(s.maxTracesPerRobot)} traces per robot`);
+  $('fleet-settings').textContent =
+    `settings (${fleet.ownSettings ? "the fleet's own" : "the server's"}): ` +
+    `${fmt(s.codeDimension)}-d codes` + (s.encoderVersion ? ` of ${s.encoderVersion}` : '') +
+    (s.placeUnit ? `, places in ${s.placeUnit}` : '') +
+    ` · K ${fmt(s.clustersPerSegment)} · N_max ${fmt(s.maxTracesPerCluster)}` +
+    ` · K_max ${fmt(s.maxClusters)} · γ ${s.replayDecay}` +
+    ` · forgetting ${s.forgetting === 'FORGETTING_RULE_DROP' ? 'drops' : 'merges'}` +
+    ` · retention: ${retention.length ? retention.join(', ') : 'none'}`;
 }
 
 function renderStats() {
