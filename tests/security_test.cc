@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdlib>
 #include <fstream>
 #include <functional>
@@ -183,9 +184,15 @@ struct Flood {
   int wrong_calls = 0;
   int wrong_refused = 0;
   int robot_refused = 0;
-  std::vector<double> robot_ms;  // sorted
+  // The robot's first call of the flood: on a new connection it pays the
+  // one Argon2id check of its token (about 0.1 s, 0.2 s under a sanitizer),
+  // so it is reported apart and left out of the percentiles.
+  double first_ms = 0;
+  std::vector<double> robot_ms;  // the later calls, sorted
+  // Nearest rank: of 100 calls, p99 is the 99th fastest, not the slowest.
   double Percentile(double p) const {
-    return robot_ms[static_cast<size_t>(robot_ms.size() * p)];
+    const size_t rank = static_cast<size_t>(std::ceil(robot_ms.size() * p));
+    return robot_ms[std::clamp<size_t>(rank, 1, robot_ms.size()) - 1];
   }
 };
 Flood RunFlood(double rate, double seconds, std::chrono::milliseconds delay,
@@ -224,14 +231,20 @@ Flood RunFlood(double rate, double seconds, std::chrono::milliseconds delay,
   // the flood's time.
   constexpr size_t kMinRobotCalls = 100;
   const auto give_up = start + 4 * (end - start);
+  size_t calls = 0;
   while (std::chrono::steady_clock::now() < end ||
-         (flood.robot_ms.size() < kMinRobotCalls &&
+         (calls < kMinRobotCalls + 1 &&
           std::chrono::steady_clock::now() < give_up)) {
     const auto sent = std::chrono::steady_clock::now();
     const grpc::StatusCode code = call();
-    flood.robot_ms.push_back(std::chrono::duration<double, std::milli>(
-                                 std::chrono::steady_clock::now() - sent)
-                                 .count());
+    const double ms = std::chrono::duration<double, std::milli>(
+                          std::chrono::steady_clock::now() - sent)
+                          .count();
+    if (calls++ == 0) {
+      flood.first_ms = ms;
+    } else {
+      flood.robot_ms.push_back(ms);
+    }
     if (refused(code)) ++flood.robot_refused;
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
   }
@@ -328,7 +341,10 @@ TEST_F(AuthTest, WrongSecretsUnderTheRobotsNameNeverLockItOut) {
     }
     auto robot = StubOnItsOwnConnection(server_->address());
     // The flood runs before the robot's first call of the phase (its
-    // connections' first checks, one at a time, are done by then).
+    // connections' first checks, one at a time, are done by then). That
+    // first call pays the token's check and is reported apart: the bound is
+    // on the calls a cached token answers (a check per call, or a call
+    // queued behind the attackers' checks, costs one Argon2id, ~100 ms).
     const Flood flood = RunFlood(
         100, FloodSeconds(), std::chrono::milliseconds(1500),
         [&](int i, int n) {
@@ -341,8 +357,9 @@ TEST_F(AuthTest, WrongSecretsUnderTheRobotsNameNeverLockItOut) {
               << " a restart: " << flood.wrong_calls
               << " wrong-secret calls under robot-7's "
               << "name (" << flood.wrong_refused << " refused); robot-7's "
-              << flood.robot_ms.size() << " calls: " << flood.robot_refused
-              << " refused, p50 " << flood.Percentile(0.5) << " ms, p99 "
+              << flood.robot_ms.size() + 1 << " calls: " << flood.robot_refused
+              << " refused, the first (its token's check) " << flood.first_ms
+              << " ms; the others' p50 " << flood.Percentile(0.5) << " ms, p99 "
               << flood.Percentile(0.99) << " ms, max " << flood.robot_ms.back()
               << " ms\n";
     EXPECT_EQ(flood.robot_refused, 0);
