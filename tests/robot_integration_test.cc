@@ -14,6 +14,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <iostream>
 #include <map>
 #include <random>
 #include <sstream>
@@ -25,12 +26,14 @@
 #include "clients/robot/learning/gpl_model.h"
 #include "clients/robot/learning/metric_head.h"
 #include "clients/robot/memory/robot_state.pb.h"
+#include "clients/robot/memory/robot_store.h"
 #include "clients/robot/sensing/encoder_factory.h"
 #include "clients/robot/sensing/observation_source.h"
 #include "fleetmem_paths.h"
 #include "gmock/gmock.h"
 #include "google/protobuf/util/json_util.h"
 #include "gtest/gtest.h"
+#include "services/core/place_metrics.h"
 #include "tests/api_helpers.h"
 #include "tests/server_process.h"
 #include "tests/small_filesystem.h"
@@ -414,6 +417,41 @@ TEST_F(RobotIntegrationTest, TwoRobotsReplayEachOthersTracesAfterRefresh) {
   EXPECT_GT(status_a.dynamic_memory_by_robot().count("robot-b"), 0u);
   EXPECT_GT(status_b.dynamic_memory_by_robot().count("robot-a"), 0u);
   EXPECT_GT(status_a.counters().peer_clusters_added(), 0u);
+}
+
+// Issue 47: a summer robot uploads 400 places; a query-only winter robot
+// relocalises over the same places with --sequence 10. Every scored query
+// is scored twice (single frame and re-ranked over its sequence), the
+// status file reports both, and over the sequence the recall is higher
+// (HOG across seasons: SeqSLAM's case).
+TEST_F(RobotIntegrationTest, AWinterRobotRelocalisesOverSequencesOfFrames) {
+  RobotProcess summer(
+      RobotArgs("f-seq", "summer-1", kSummer, 400, 0.0, dir_.Join("summer")),
+      dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(summer.Start());
+  ASSERT_EQ(summer.Wait(), 0);
+  EXPECT_EQ(Stats("f-seq", "summer-1").received(), 400u);
+  std::vector<std::string> args =
+      RobotArgs("f-seq", "winter-1", "nordland:" + kData + "/nordland/winter",
+                400, 0.0, dir_.Join("winter"));
+  args.insert(args.end(), {"--query-only", "--sequence", "10"});
+  RobotProcess winter(args, dir_.Join("robot.log"));
+  ASSERT_NO_FATAL_FAILURE(winter.Start());
+  ASSERT_EQ(winter.Wait(), 0);
+  const robot::state::RobotStatus status = ReadStatus(dir_.Join("winter"));
+  const core::FirstCorrectRanks single =
+      robot::RelocalisationRanks(status.counters());
+  const core::FirstCorrectRanks sequence =
+      robot::SequenceRanks(status.counters());
+  EXPECT_EQ(single.size(), 400u);
+  EXPECT_EQ(sequence.size(), single.size());
+  EXPECT_DOUBLE_EQ(status.sequence_recall_at_1(), core::RecallAtK(sequence, 1));
+  std::cout << "winter robot over 400 summer places: recall@1 "
+            << core::RecallAtK(single, 1) << " single frames, "
+            << core::RecallAtK(sequence, 1) << " over sequences of 10\n";
+  EXPECT_GT(core::RecallAtK(sequence, 1), core::RecallAtK(single, 1));
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("robot.log")),
+              HasSubstr("over sequences of 10 r@1"));
 }
 
 TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {

@@ -179,7 +179,7 @@ const std::vector<Command>& CommandTable() {
         "  --clusters-per-segment K  --max-traces-per-cluster N\n"
         "  --max-clusters K_MAX      --replay-decay GAMMA\n"
         "  --forgetting merge|drop   --max-age-seconds S\n"
-        "  --max-traces-per-robot N\n"
+        "  --max-traces-per-robot N  --refresh-pairs RADIUS\n"
         "  --index exact|hnsw|auto   --hnsw-m M  --hnsw-ef EF (fixed)\n"
         "Every upload must match --dim and --encoder. ALREADY_EXISTS if the\n"
         "fleet exists (made by create-fleet or its first upload).",
@@ -194,6 +194,8 @@ const std::vector<Command>& CommandTable() {
          {"forgetting", "RULE", "merge (default) or drop"},
          {"max-age-seconds", "S", "retention: delete traces older than S"},
          {"max-traces-per-robot", "N", "retention: keep N per robot"},
+         {"refresh-pairs", "RADIUS",
+          "pair-keeping refresh within RADIUS place units (0: Eq. 18)"},
          {"index", "KIND", "exact, hnsw or auto (default: the server's)"},
          {"hnsw-m", "M", "HNSW's links per node, 2..128"},
          {"hnsw-ef", "EF", "HNSW's search breadth, 1..10000"}}},
@@ -217,7 +219,9 @@ const std::vector<Command>& CommandTable() {
          {"replay-decay", "GAMMA", "gamma of the replay weights, (0, 1]"},
          {"forgetting", "RULE", "merge or drop"},
          {"max-age-seconds", "S", "retention: delete traces older than S"},
-         {"max-traces-per-robot", "N", "retention: keep N per robot"}}},
+         {"max-traces-per-robot", "N", "retention: keep N per robot"},
+         {"refresh-pairs", "RADIUS",
+          "pair-keeping refresh within RADIUS place units (0: Eq. 18)"}}},
        RunUpdateFleet},
       {{"delete-fleet",
         "--fleet ID --confirm ID",
@@ -789,6 +793,11 @@ absl::Status SettingsFromFlags(const FlagValues& flags,
     absl::StatusOr<double> decay = flags.RequiredDouble("replay-decay");
     if (!decay.ok()) return decay.status();
     settings->set_replay_decay(*decay);
+  }
+  if (flags.Has("refresh-pairs")) {
+    absl::StatusOr<double> radius = flags.RequiredDouble("refresh-pairs");
+    if (!radius.ok()) return radius.status();
+    settings->set_refresh_pair_radius(*radius);
   }
   if (flags.Has("forgetting")) {
     const std::string rule = flags.StringOr("forgetting", "");

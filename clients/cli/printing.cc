@@ -86,6 +86,10 @@ void PrintFleetSettings(const v1::FleetSettings& settings, std::ostream& out) {
        {"replay decay (gamma)", absl::StrCat(settings.replay_decay())},
        {"forgetting",
         settings.forgetting() == v1::FORGETTING_RULE_DROP ? "drop" : "merge"},
+       {"refresh",
+        settings.refresh_pair_radius() > 0.0
+            ? absl::StrCat("pairs within ", settings.refresh_pair_radius())
+            : std::string("Eq. 18 (gamma^n R)")},
        {"max age", settings.max_age_seconds() == 0
                        ? "-"
                        : absl::StrCat(settings.max_age_seconds(), " s")},

@@ -45,6 +45,11 @@ absl::Status ValidateMemoryOptions(const MemoryOptions& options) {
     return OutOfRange("forgetting_exact_below", options.forgetting_exact_below,
                       ">= 2");
   }
+  if (!(options.refresh_pair_radius >= 0.0) ||
+      std::isinf(options.refresh_pair_radius)) {
+    return OutOfRange("refresh_pair_radius", options.refresh_pair_radius,
+                      ">= 0 and finite");
+  }
   return absl::OkStatus();
 }
 

@@ -45,6 +45,13 @@ struct MemoryOptions {
   // centroids from then on (ClosestPairTracker; approximate, O(log K) per
   // change instead of O(K)). The paper's memory (K_max = 100) stays exact.
   int forgetting_exact_below = 2048;
+  // The refresh draw (Eq. 18, StaticMemory::SampleForReplay). 0: the
+  // paper's, successive sampling by gamma^n * R. Above 0: the pair-keeping
+  // refresh (pair_draw.h, issue 47): each trace drawn by gamma^n * R comes
+  // with the nearest not-yet-drawn trace of another domain within this
+  // many place units, so that a robot's dynamic memory holds the places
+  // the fleet saw in two domains as pairs.
+  double refresh_pair_radius = 0.0;
 };
 
 // OK if every field is in range; otherwise INVALID_ARGUMENT naming the field.

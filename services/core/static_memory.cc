@@ -14,6 +14,7 @@
 #include "services/core/feature_space.h"
 #include "services/core/importance_sampler.h"
 #include "services/core/kmeans.h"
+#include "services/core/pair_draw.h"
 
 namespace fleetmem::core {
 namespace {
@@ -167,7 +168,28 @@ ConsolidationResult StaticMemory::Consolidate(std::vector<MemoryTrace> batch,
 
 std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
                                                        std::mt19937_64& rng) {
-  const std::vector<size_t> drawn = replay_.Draw(count, rng);
+  std::vector<size_t> drawn;
+  if (options_.refresh_pair_radius > 0.0) {
+    // The pair-keeping draw sees every trace (O(n log n), pair_draw.h).
+    std::vector<const MemoryTrace*> traces;
+    std::vector<double> weights;
+    std::vector<size_t> slots;
+    for (size_t slot = 0; slot < slot_trace_.size(); ++slot) {
+      const MemoryTrace* trace = slot_trace_[slot];
+      if (trace == nullptr) continue;
+      traces.push_back(trace);
+      weights.push_back(ReplayWeight(trace->reward, trace->replay_count,
+                                     options_.replay_decay,
+                                     options_.reward_floor));
+      slots.push_back(slot);
+    }
+    for (size_t i :
+         DrawPairs(traces, weights, count, options_.refresh_pair_radius, rng)) {
+      drawn.push_back(slots[i]);
+    }
+  } else {
+    drawn = replay_.Draw(count, rng);
+  }
   std::vector<MemoryTrace> out;
   out.reserve(drawn.size());
   for (size_t slot : drawn) {
@@ -201,7 +223,11 @@ std::vector<MemoryTrace> StaticMemory::SampleForReplayInMemoryOrder(
   }
   std::vector<MemoryTrace> out;
   const std::vector<size_t> drawn =
-      SampleWithoutReplacement(weights, count, rng);
+      options_.refresh_pair_radius > 0.0
+          ? DrawPairs(
+                std::vector<const MemoryTrace*>(order.begin(), order.end()),
+                weights, count, options_.refresh_pair_radius, rng)
+          : SampleWithoutReplacement(weights, count, rng);
   out.reserve(drawn.size());
   for (size_t index : drawn) {
     MemoryTrace& trace = *order[index];

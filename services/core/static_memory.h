@@ -152,7 +152,9 @@ class StaticMemory {
   // Refresh (Eq. 18): draws up to `count` distinct traces with weight
   // gamma^n * R, increments their replay_count and returns copies of them
   // (with the new counts), in draw order. O(count log trace_count()): the
-  // weights live in a sum tree kept up to date by every change.
+  // weights live in a sum tree kept up to date by every change. With
+  // options().refresh_pair_radius above 0, the pair-keeping draw instead
+  // (pair_draw.h; O(trace_count() log trace_count())).
   std::vector<MemoryTrace> SampleForReplay(size_t count, std::mt19937_64& rng);
   // The same draw over the traces in an order that depends only on what
   // memory holds (clusters by id, each cluster's traces in order), not on

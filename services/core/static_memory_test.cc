@@ -1,6 +1,7 @@
 #include "services/core/static_memory.h"
 
 #include <algorithm>
+#include <cmath>
 #include <map>
 #include <random>
 #include <set>
@@ -492,6 +493,50 @@ TEST(StaticMemoryTest, SampleForReplayIncrementsCounts) {
     EXPECT_EQ(t.replay_count, keys.contains(t.key()) ? 2u : 1u);
   }
   EXPECT_TRUE(memory.SampleForReplay(0, rng).empty());
+}
+
+// The pair-keeping refresh (refresh_pair_radius): a summer and a winter
+// segment over the same 30 places; both draws (embedded and distributed
+// mode's) hand out anchors each followed by the other season's trace of
+// its place, replay counts following; Eq. 18's draw pairs by chance only.
+TEST(StaticMemoryTest, ThePairKeepingRefreshHandsOutPlacesInBothDomains) {
+  auto seasons = [](std::mt19937_64& rng) {
+    std::vector<MemoryTrace> batch = Segment("r1", 0, 30, rng);
+    std::vector<MemoryTrace> winter = Segment("r2", 0, 30, rng);
+    for (int i = 0; i < 30; ++i) {
+      batch[i].domain = "summer";
+      batch[i].place = {.x = 10.0 * i};
+      winter[i].domain = "winter";
+      winter[i].place = {.x = 10.0 * i + 1.0};
+    }
+    batch.insert(batch.end(), winter.begin(), winter.end());
+    return batch;
+  };
+  MemoryOptions options;
+  options.clustering = false;
+  options.refresh_pair_radius = 3.0;
+  ASSERT_TRUE(ValidateMemoryOptions(options).ok());
+  for (const bool in_memory_order : {false, true}) {
+    StaticMemory memory(options);
+    std::mt19937_64 rng(11);
+    memory.Consolidate(seasons(rng), 1, rng);
+    const std::vector<MemoryTrace> drawn =
+        in_memory_order ? memory.SampleForReplayInMemoryOrder(20, rng)
+                        : memory.SampleForReplay(20, rng);
+    ASSERT_EQ(drawn.size(), 20u);
+    std::set<TraceKey> keys;
+    for (size_t i = 0; i < drawn.size(); i += 2) {
+      EXPECT_NE(drawn[i].domain, drawn[i + 1].domain);
+      EXPECT_NEAR(std::abs(drawn[i].place.x - drawn[i + 1].place.x), 1.0, 1e-9);
+    }
+    for (const MemoryTrace& t : drawn) {
+      EXPECT_TRUE(keys.insert(t.key()).second);
+      EXPECT_EQ(t.replay_count, 1u);
+      EXPECT_EQ(memory.Find(t.key())->replay_count, 1u);
+    }
+  }
+  options.refresh_pair_radius = -1.0;
+  EXPECT_FALSE(ValidateMemoryOptions(options).ok());
 }
 
 // Distributed mode's draw: a memory restored from another's clusters (its

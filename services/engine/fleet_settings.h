@@ -36,8 +36,9 @@ struct FleetSettings {
   std::string place_unit;
   // The static memory's parameters. UpdateFleet changes K
   // (clusters_per_batch), N_max (max_traces_per_cluster), K_max
-  // (max_clusters), gamma (replay_decay) and the forgetting rule
-  // (merge_on_forget); the rest stay as created (the server's then).
+  // (max_clusters), gamma (replay_decay), the forgetting rule
+  // (merge_on_forget) and the refresh draw (refresh_pair_radius); the rest
+  // stay as created (the server's then).
   core::MemoryOptions memory;
   // Retention: traces observed longer ago than this are deleted (0: kept
   // however old).
@@ -55,6 +56,7 @@ struct FleetSettingsUpdate {
   std::optional<int> max_clusters;
   std::optional<double> replay_decay;
   std::optional<bool> merge_on_forget;
+  std::optional<double> refresh_pair_radius;
   std::optional<int64_t> max_age_seconds;
   std::optional<uint64_t> max_traces_per_robot;
 
@@ -68,6 +70,9 @@ struct FleetSettingsUpdate {
     if (max_clusters) memory.max_clusters = *max_clusters;
     if (replay_decay) memory.replay_decay = *replay_decay;
     if (merge_on_forget) memory.merge_on_forget = *merge_on_forget;
+    if (refresh_pair_radius) {
+      memory.refresh_pair_radius = *refresh_pair_radius;
+    }
     if (max_age_seconds) settings.max_age_seconds = *max_age_seconds;
     if (max_traces_per_robot) {
       settings.max_traces_per_robot = *max_traces_per_robot;

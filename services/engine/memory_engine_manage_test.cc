@@ -459,6 +459,7 @@ TEST_F(ManageTest, FleetsKeepTheirOwnSettings) {
   FleetSettingsUpdate update;
   update.max_clusters = 3;
   update.replay_decay = 0.5;
+  update.refresh_pair_radius = 12.5;
   absl::StatusOr<FleetSettings> after = engine_->UpdateFleet("wide", update);
   ASSERT_TRUE(after.ok()) << after.status();
   EXPECT_EQ(after->memory.max_clusters, 3);
@@ -473,6 +474,10 @@ TEST_F(ManageTest, FleetsKeepTheirOwnSettings) {
   bad.max_clusters = 0;
   EXPECT_TRUE(
       absl::IsInvalidArgument(engine_->UpdateFleet("wide", bad).status()));
+  bad = FleetSettingsUpdate();
+  bad.refresh_pair_radius = -1.0;
+  EXPECT_TRUE(
+      absl::IsInvalidArgument(engine_->UpdateFleet("wide", bad).status()));
 
   engine_.reset();
   engine_ = OpenEngine();
@@ -480,6 +485,9 @@ TEST_F(ManageTest, FleetsKeepTheirOwnSettings) {
   ASSERT_TRUE(wide.ok());
   EXPECT_EQ(wide->settings.memory.max_clusters, 3);
   EXPECT_EQ(wide->settings.memory.replay_decay, 0.5);
+  EXPECT_EQ(wide->settings.memory.refresh_pair_radius, 12.5);
+  EXPECT_EQ(engine_->GetFleet("small")->settings.memory.refresh_pair_radius,
+            0.0);
   EXPECT_EQ(Stats("small").max_clusters, 2u);
   EXPECT_EQ(Stats("small").max_traces_per_cluster, 2u);
   EXPECT_LE(Stats("wide").clusters, 3u);

@@ -60,6 +60,9 @@ void ApplyMemory(const MemoryConfig& in, core::MemoryOptions* out) {
     out->forgetting_exact_below = in.forgetting_exact_below();
   }
   if (in.has_merge_on_forget()) out->merge_on_forget = in.merge_on_forget();
+  if (in.has_refresh_pair_radius()) {
+    out->refresh_pair_radius = in.refresh_pair_radius();
+  }
 }
 
 void ApplyEngine(const EngineConfig& in, engine::EngineOptions* out) {
@@ -767,6 +770,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       " spatial_scale_m=", memory.spatial_scale_m,
       " clustering=", memory.clustering ? "true" : "false",
       " merge_on_forget=", memory.merge_on_forget ? "true" : "false",
+      " refresh_pair_radius=", memory.refresh_pair_radius,
       " kmeans_max_iterations=", memory.kmeans_max_iterations,
       " seed=", memory.seed, " segment_size=", config.engine.segment_size,
       " max_traces_per_upload=", config.engine.max_traces_per_upload,

@@ -66,6 +66,7 @@ void ToRecord(const engine::FleetSettings& settings, StoredSettings* out) {
   out->set_kmeans_max_iterations(memory.kmeans_max_iterations);
   out->set_seed(memory.seed);
   out->set_forgetting_exact_below(memory.forgetting_exact_below);
+  out->set_refresh_pair_radius(memory.refresh_pair_radius);
   out->set_max_age_seconds(settings.max_age_seconds);
   out->set_max_traces_per_robot(settings.max_traces_per_robot);
   out->set_index_kind(static_cast<int32_t>(settings.index.kind));
@@ -108,6 +109,7 @@ engine::FleetSettings FromRecord(const StoredSettings& stored) {
   memory.kmeans_max_iterations = stored.kmeans_max_iterations();
   memory.seed = stored.seed();
   memory.forgetting_exact_below = stored.forgetting_exact_below();
+  memory.refresh_pair_radius = stored.refresh_pair_radius();
   settings.max_age_seconds = stored.max_age_seconds();
   settings.max_traces_per_robot = stored.max_traces_per_robot();
   // A kind this version does not know: the server's index.
@@ -286,6 +288,9 @@ struct ToLoggedRecord {
     if (u.max_clusters) update->set_max_clusters(*u.max_clusters);
     if (u.replay_decay) update->set_replay_decay(*u.replay_decay);
     if (u.merge_on_forget) update->set_merge_on_forget(*u.merge_on_forget);
+    if (u.refresh_pair_radius) {
+      update->set_refresh_pair_radius(*u.refresh_pair_radius);
+    }
     if (u.max_age_seconds) update->set_max_age_seconds(*u.max_age_seconds);
     if (u.max_traces_per_robot) {
       update->set_max_traces_per_robot(*u.max_traces_per_robot);
@@ -334,6 +339,9 @@ engine::UpdateFleetRecord FromLogged(const LoggedUpdateFleet& logged) {
   if (logged.has_replay_decay()) u.replay_decay = logged.replay_decay();
   if (logged.has_merge_on_forget()) {
     u.merge_on_forget = logged.merge_on_forget();
+  }
+  if (logged.has_refresh_pair_radius()) {
+    u.refresh_pair_radius = logged.refresh_pair_radius();
   }
   if (logged.has_max_age_seconds()) {
     u.max_age_seconds = logged.max_age_seconds();

@@ -264,6 +264,9 @@ engine::CreateFleetRecord CreateFleetFromProto(
   if (settings.forgetting() != v1::FORGETTING_RULE_UNSPECIFIED) {
     memory.merge_on_forget = settings.forgetting() == v1::FORGETTING_RULE_MERGE;
   }
+  if (settings.has_refresh_pair_radius()) {
+    memory.refresh_pair_radius = settings.refresh_pair_radius();
+  }
   create.settings.max_age_seconds = static_cast<int64_t>(
       std::min<uint64_t>(settings.max_age_seconds(), INT64_MAX));
   create.settings.max_traces_per_robot = settings.max_traces_per_robot();
@@ -324,6 +327,9 @@ absl::StatusOr<engine::FleetSettingsUpdate> FleetUpdateFromProto(
   if (settings.forgetting() != v1::FORGETTING_RULE_UNSPECIFIED) {
     update.merge_on_forget = settings.forgetting() == v1::FORGETTING_RULE_MERGE;
   }
+  if (settings.has_refresh_pair_radius()) {
+    update.refresh_pair_radius = settings.refresh_pair_radius();
+  }
   if (settings.has_max_age_seconds()) {
     update.max_age_seconds = static_cast<int64_t>(
         std::min<uint64_t>(settings.max_age_seconds(), INT64_MAX));
@@ -348,6 +354,7 @@ void FleetSettingsToProto(const engine::FleetInfo& info,
   out->set_replay_decay(memory.replay_decay);
   out->set_forgetting(memory.merge_on_forget ? v1::FORGETTING_RULE_MERGE
                                              : v1::FORGETTING_RULE_DROP);
+  out->set_refresh_pair_radius(memory.refresh_pair_radius);
   out->set_max_age_seconds(static_cast<uint64_t>(
       std::max<int64_t>(0, info.settings.max_age_seconds)));
   out->set_max_traces_per_robot(info.settings.max_traces_per_robot);

@@ -36,9 +36,12 @@
 #include <map>
 #include <memory>
 #include <numeric>
+#include <set>
+#include <span>
 #include <sstream>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -57,6 +60,7 @@
 #include "clients/robot/sensing/code_search.h"
 #include "clients/robot/sensing/image_encoder.h"
 #include "clients/robot/sensing/nordland.h"
+#include "clients/robot/sensing/sequence_search.h"
 #include "fleetmem_paths.h"
 #include "fleetmem_version.h"
 #include "google/protobuf/util/json_util.h"
@@ -82,6 +86,7 @@ struct DemoFlags {
   int learn_steps = 30;
   bool learn = true;
   bool sequential_robots = false;
+  int sequence = 10;
 };
 
 DemoFlags& Flags() {
@@ -102,6 +107,10 @@ using robot::state::RobotStatus;
 constexpr double kToleranceUnits = 2.0 * robot::kNordlandUnitsPerFile;
 // Matches per query: enough for WR (recall@1..6).
 constexpr uint32_t kQueryK = 6;
+// Matches per frame for the sequence search (fleetmem-robot's
+// --sequence-candidates default), and the lengths whose WR the notes list.
+constexpr uint32_t kSequenceCandidates = 20;
+constexpr size_t kSequenceLengths[] = {1, 3, 5, 10, 20};
 constexpr char kAttribution[] =
     "Data: Nordland railway, summer and winter (NRK, Nordlandsbanen footage, "
     "Creative Commons Attribution; trimmed copy from TimQuelch/seqslam).";
@@ -195,6 +204,7 @@ absl::Status RunRobots(const Setup& setup, std::vector<Drive>& drives,
                    absl::StrCat(Flags().learn_steps)});
     }
     if (query_only) args.push_back("--query-only");
+    args.insert(args.end(), {"--sequence", absl::StrCat(Flags().sequence)});
     std::vector<char*> argv;
     for (std::string& arg : args) argv.push_back(arg.data());
     argv.push_back(nullptr);
@@ -399,6 +409,56 @@ absl::StatusOr<SeasonCodes> CodesOf(
   return codes;
 }
 
+// Scores winter queries in driving order: each query's rank among its
+// first kQueryK matches (single frame) and, for every length of
+// kSequenceLengths and --sequence, among them re-ranked over the last
+// frames (sequence_search.h; the distance travelled between Nordland files
+// is their spacing). Restart() at the start of each drive.
+class QueryScorer {
+ public:
+  QueryScorer()
+      : lengths_(std::begin(kSequenceLengths), std::end(kSequenceLengths)),
+        window_(std::max<size_t>(Flags().sequence, 20)) {
+    lengths_.insert(Flags().sequence);
+  }
+  void Restart() { window_.Clear(); }
+  void Score(std::span<const robot::BruteForceIndex::Neighbour> found,
+             double x) {
+    std::vector<robot::SequenceCandidate> candidates;
+    for (const auto& neighbour : found) {
+      candidates.push_back(
+          {.place = {.x = neighbour.label}, .distance = neighbour.distance});
+    }
+    window_.Add({.x = x}, candidates);
+    for (size_t length : lengths_) {
+      const std::vector<size_t> order = robot::RankBySequence(
+          window_.frames(), {.length = length, .tolerance = kToleranceUnits});
+      std::vector<core::Place> places;
+      for (size_t i = 0; i < std::min<size_t>(kQueryK, order.size()); ++i) {
+        places.push_back(candidates[order[i]].place);
+      }
+      ranks_[length].push_back(
+          robot::FirstCorrectRank(places, {.x = x}, kToleranceUnits));
+    }
+  }
+  const core::FirstCorrectRanks& Single() { return ranks_[1]; }
+  const core::FirstCorrectRanks& Sequence() { return ranks_[Flags().sequence]; }
+  // "WR 0.412 (1), 0.455 (3), ..." over kSequenceLengths.
+  std::string ByLength() {
+    std::vector<std::string> parts;
+    for (size_t length : kSequenceLengths) {
+      parts.push_back(absl::StrFormat(
+          "%.3f (%d)", core::WeightedRecall(ranks_[length]), length));
+    }
+    return absl::StrJoin(parts, ", ");
+  }
+
+ private:
+  std::set<size_t> lengths_;
+  robot::SequenceWindow window_;
+  std::map<size_t, core::FirstCorrectRanks> ranks_;
+};
+
 using DescribeFn =
     std::function<absl::StatusOr<std::vector<std::vector<float>>>(
         std::span<const std::vector<float>>)>;
@@ -412,8 +472,8 @@ enum class Queries { kAll, kOwn, kPeers };
 // row. Time per query: the winter code's descriptor plus the brute-force
 // search (the map's descriptors are made once).
 absl::Status ScoreWinter(const DescribeFn& describe, const SeasonCodes& codes,
-                         Queries queries, size_t drive,
-                         core::FirstCorrectRanks& ranks, double& ms) {
+                         Queries queries, size_t drive, QueryScorer& scorer,
+                         double& ms) {
   absl::StatusOr<std::vector<std::vector<float>>> map = describe(codes.summer);
   if (!map.ok()) return map.status();
   if (map->empty()) return absl::OkStatus();
@@ -426,15 +486,14 @@ absl::Status ScoreWinter(const DescribeFn& describe, const SeasonCodes& codes,
         (queries == Queries::kPeers && codes.owner[j] == drive)) {
       continue;
     }
+    if (j == 0 || codes.owner[j] != codes.owner[j - 1]) scorer.Restart();
     const auto start = Clock::now();
     absl::StatusOr<std::vector<std::vector<float>>> q =
         describe(std::span<const std::vector<float>>(&codes.winter[j], 1));
     if (!q.ok()) return q.status();
-    std::vector<core::Place> found;
-    for (double x : index.Search((*q)[0], kQueryK)) found.push_back({.x = x});
+    const auto found = index.SearchScored((*q)[0], kSequenceCandidates);
     ms += MillisSince(start);
-    ranks.push_back(robot::FirstCorrectRank(found, {.x = codes.winter_x[j]},
-                                            kToleranceUnits));
+    scorer.Score(found, codes.winter_x[j]);
   }
   return absl::OkStatus();
 }
@@ -446,9 +505,13 @@ absl::Status ScoreWinter(const DescribeFn& describe, const SeasonCodes& codes,
 // queries (frames it learned from) and once with its peers' (places whose
 // winter it never saw: each query frame counts once per robot that scores
 // it, so HOG on these queries is the baseline row).
-absl::StatusOr<std::vector<Row>> MetricPass(const Setup& classical,
-                                            std::vector<Drive> drives,
-                                            client::Client& observer) {
+struct MetricRows {
+  std::vector<Row> rows;  // own, own over sequences, peers, peers over ...
+  std::string peers_by_length;  // QueryScorer::ByLength of the peers' rows
+};
+absl::StatusOr<MetricRows> MetricPass(const Setup& classical,
+                                      std::vector<Drive> drives,
+                                      client::Client& observer) {
   Setup setup = LearningSetup(classical, "-learned");
   setup.learn_metric = true;
   std::printf(
@@ -464,14 +527,8 @@ absl::StatusOr<std::vector<Row>> MetricPass(const Setup& classical,
         return classical.encoder->EncodeImage(grey);
       });
   if (!codes.ok()) return codes.status();
-  Row own = MapRow(
-      "HOG + metric head learned by each robot, its own winter frames "
-      "(learned from; all summer frames)",
-      codes->summer.size());
-  Row peers = MapRow(
-      "HOG + metric head learned by each robot, its peers' winter frames "
-      "(never seen; all summer frames)",
-      codes->summer.size());
+  const std::string head_rows = "HOG + metric head learned by each robot, ";
+  QueryScorer own, peers;
   double own_ms = 0.0, peers_ms = 0.0;
   for (size_t d = 0; d < drives.size(); ++d) {
     const std::string path = absl::StrCat(
@@ -493,15 +550,35 @@ absl::StatusOr<std::vector<Row>> MetricPass(const Setup& classical,
       return head->Describe(z);
     };
     for (absl::Status s :
-         {ScoreWinter(describe, *codes, Queries::kOwn, d, own.ranks, own_ms),
-          ScoreWinter(describe, *codes, Queries::kPeers, d, peers.ranks,
-                      peers_ms)}) {
+         {ScoreWinter(describe, *codes, Queries::kOwn, d, own, own_ms),
+          ScoreWinter(describe, *codes, Queries::kPeers, d, peers, peers_ms)}) {
       if (!s.ok()) return s;
     }
   }
-  own.query_ms = own_ms / std::max<size_t>(own.ranks.size(), 1);
-  peers.query_ms = peers_ms / std::max<size_t>(peers.ranks.size(), 1);
-  return std::vector<Row>{own, peers};
+  MetricRows rows;
+  rows.peers_by_length = peers.ByLength();
+  const size_t map_size = codes->summer.size();
+  const double own_query_ms = own_ms / std::max<size_t>(own.Single().size(), 1);
+  const double peers_query_ms =
+      peers_ms / std::max<size_t>(peers.Single().size(), 1);
+  for (const auto& [scorer, what, query_ms] :
+       {std::tuple<QueryScorer*, const char*, double>{
+            &own, "its own winter frames (learned from; all summer frames)",
+            own_query_ms},
+        {&peers, "its peers' winter frames (never seen; all summer frames)",
+         peers_query_ms}}) {
+    Row single = MapRow(absl::StrCat(head_rows, what), map_size);
+    single.ranks = scorer->Single();
+    single.query_ms = query_ms;
+    Row sequence = MapRow(
+        absl::StrCat(head_rows, what, ", sequences of ", Flags().sequence),
+        map_size);
+    sequence.ranks = scorer->Sequence();
+    sequence.query_ms = query_ms;
+    rows.rows.push_back(std::move(single));
+    rows.rows.push_back(std::move(sequence));
+  }
+  return rows;
 }
 
 // The GPL pass (--gpl-model): the same drives in a fleet of their own with
@@ -548,11 +625,13 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
       "GPL learned by each robot (summer + winter drives; all summer frames)",
       codes->summer.size());
   double frozen_ms = 0.0, learned_ms = 0.0;
+  QueryScorer frozen_scorer, learned_scorer;
   if (absl::Status s = ScoreWinter(describe_with(**fleet_model), *codes,
-                                   Queries::kAll, 0, frozen.ranks, frozen_ms);
+                                   Queries::kAll, 0, frozen_scorer, frozen_ms);
       !s.ok()) {
     return s;
   }
+  frozen.ranks = frozen_scorer.Single();
   for (size_t d = 0; d < drives.size(); ++d) {
     const std::string path = absl::StrCat(
         setup.work_dir, "/", drives[d].robot_id, "-winter/gpl-learned.pt");
@@ -561,11 +640,12 @@ absl::StatusOr<std::vector<Row>> GplPass(const Setup& classical,
     if (!own.ok()) return own.status();
     if (absl::Status s =
             ScoreWinter(describe_with(**own), *codes, Queries::kOwn, d,
-                        learned.ranks, learned_ms);
+                        learned_scorer, learned_ms);
         !s.ok()) {
       return s;
     }
   }
+  learned.ranks = learned_scorer.Single();
   frozen.query_ms = frozen_ms / std::max<size_t>(frozen.ranks.size(), 1);
   learned.query_ms = learned_ms / std::max<size_t>(learned.ranks.size(), 1);
   return std::vector<Row>{frozen, learned};
@@ -688,7 +768,9 @@ absl::StatusOr<Consolidated> ConsolidateAndLook(const Setup& setup,
 // still holds a trace near (`covered` of `queries`).
 struct Baseline {
   Row row;
-  size_t size = 0;  // codes
+  Row sequence_row;       // the same queries over sequences
+  std::string by_length;  // QueryScorer::ByLength
+  size_t size = 0;        // codes
   size_t covered = 0;
   size_t queries = 0;
 };
@@ -708,19 +790,18 @@ absl::StatusOr<Baseline> RunBaseline(const Setup& setup,
     }
   }
   std::vector<double> local_ms;
+  QueryScorer scorer;
   for (const Drive& drive : drives) {
+    scorer.Restart();
     for (size_t i = drive.stretch.begin; i < drive.stretch.end; ++i) {
       const core::Place place{.x = static_cast<double>(setup.numbers[i])};
       absl::StatusOr<std::vector<float>> code =
           EncodeFrame(setup, setup.winter_dir, setup.numbers[i]);
       if (!code.ok()) return code.status();
       const auto start = Clock::now();
-      std::vector<core::Place> found;
-      for (double x : baseline.Search(*code, kQueryK))
-        found.push_back({.x = x});
+      const auto found = baseline.SearchScored(*code, kSequenceCandidates);
       local_ms.push_back(MillisSince(start));
-      result.row.ranks.push_back(
-          robot::FirstCorrectRank(found, place, kToleranceUnits));
+      scorer.Score(found, place.x);
       // Does the memory still hold the place at all (after forgetting)?
       v1::QueryPlaceRequest near;
       near.set_fleet_id(setup.fleet_id);
@@ -736,22 +817,36 @@ absl::StatusOr<Baseline> RunBaseline(const Setup& setup,
     }
   }
   result.size = baseline.size();
+  result.row.ranks = scorer.Single();
   result.row.traces = absl::StrCat(baseline.size());
   result.row.clusters = "-";
   result.row.consolidation_ms = "-";
   result.row.query_ms = std::accumulate(local_ms.begin(), local_ms.end(), 0.0) /
                         std::max<size_t>(local_ms.size(), 1);
+  result.sequence_row = result.row;
+  result.sequence_row.system =
+      absl::StrCat("all traces, no memory bound, sequences of ",
+                   Flags().sequence, " (baseline)");
+  result.sequence_row.ranks = scorer.Sequence();
+  result.by_length = scorer.ByLength();
   return result;
 }
 
-// The fleet memory's row: the winter robots' relocalisations.
-Row MemoryRow(const std::vector<Drive>& drives, const Consolidated& done) {
+// The fleet memory's row: the winter robots' relocalisations, single
+// frames or (`sequence`) re-ranked over their last --sequence frames.
+Row MemoryRow(const std::vector<Drive>& drives, const Consolidated& done,
+              bool sequence) {
   Row row;
-  row.system = "fleet memory (server, winter fleetmem-robots)";
+  row.system = sequence ? absl::StrCat(
+                              "fleet memory, the same robots over "
+                              "sequences of ",
+                              Flags().sequence)
+                        : "fleet memory (server, winter fleetmem-robots)";
   double query_ms_sum = 0.0;
   for (const Drive& drive : drives) {
     const core::FirstCorrectRanks ranks =
-        robot::RelocalisationRanks(drive.winter.counters());
+        sequence ? robot::SequenceRanks(drive.winter.counters())
+                 : robot::RelocalisationRanks(drive.winter.counters());
     row.ranks.insert(row.ranks.end(), ranks.begin(), ranks.end());
     query_ms_sum += drive.winter.counters().relocalisation_ms_total();
   }
@@ -785,14 +880,20 @@ std::string Notes(const Setup& setup, const std::vector<Drive>& drives,
       "clusters forgotten.\n"
       "- Time per consolidation: %s.\n"
       "- Time per query: fleet memory = the robots' QueryPlace round trip "
-      "(k = %d) while driving; baseline = in-process brute force over %zu "
+      "(k = %d, of which the first 6 score a single frame) while driving; "
+      "baseline = in-process brute force over %zu "
       "codes.\n"
       "- The memory still holds a trace within +-2 files of %zu of %zu "
       "query places (%.1f%%): an upper bound of its recall.\n"
       "- Robots: a robot's peers are the other robots; its dynamic memory "
       "(capacity 1,000) is refreshed from the fleet at its start and after "
       "every segment (Eq. 18), and every segment replays 64 traces from it "
-      "(Eq. 19).\n",
+      "(Eq. 19).\n"
+      "- Sequence rows: each query's %d nearest re-ranked by the best path "
+      "over its drive's last %d frames whose places agree with the distance "
+      "driven (fleetmem-robot --sequence; docs/robot.md); the fleet memory's "
+      "from the robots' own QueryPlace answers (k = %d), with the gaps "
+      "forgetting left.\n",
       memory_row.ranks.size(), drives.size(), kToleranceUnits, drives.size(),
       uploaded, summer_s, winter_s, setup.encoder->version(),
       setup.encoder->dimension(), stats.max_traces_per_cluster(),
@@ -807,8 +908,9 @@ std::string Notes(const Setup& setup, const std::vector<Drive>& drives,
                         "every batch (stretches a multiple of the segment "
                         "size), so the final Consolidate call had nothing "
                         "to do"),
-      kQueryK, baseline.size, baseline.covered, baseline.queries,
-      100.0 * baseline.covered / std::max<size_t>(baseline.queries, 1));
+      kSequenceCandidates, baseline.size, baseline.covered, baseline.queries,
+      100.0 * baseline.covered / std::max<size_t>(baseline.queries, 1),
+      kSequenceCandidates, Flags().sequence, kSequenceCandidates);
   if (Flags().learn) {
     notes +=
         "- Learned rows: the same robots drove again in a fleet of their own "
@@ -868,14 +970,22 @@ absl::Status Run() {
   // 4. Results: fleet memory vs every summer code by brute force. ----------
   absl::StatusOr<Baseline> baseline = RunBaseline(setup, drives, *observer);
   if (!baseline.ok()) return baseline.status();
-  const Row memory_row = MemoryRow(drives, *done);
-  std::vector<Row> rows = {memory_row, baseline->row};
+  const Row memory_row = MemoryRow(drives, *done, /*sequence=*/false);
+  std::vector<Row> rows = {memory_row,
+                           MemoryRow(drives, *done, /*sequence=*/true),
+                           baseline->row, baseline->sequence_row};
+  std::string by_length = absl::StrCat(
+      "- WR by sequence length (frames, in brackets), choosing --sequence: "
+      "baseline ",
+      baseline->by_length);
   if (Flags().learn) {
-    absl::StatusOr<std::vector<Row>> learned =
-        MetricPass(setup, drives, *observer);
+    absl::StatusOr<MetricRows> learned = MetricPass(setup, drives, *observer);
     if (!learned.ok()) return learned.status();
-    rows.insert(rows.end(), learned->begin(), learned->end());
+    rows.insert(rows.end(), learned->rows.begin(), learned->rows.end());
+    absl::StrAppend(&by_length, "; metric head, peers' frames ",
+                    learned->peers_by_length);
   }
+  by_length += ".\n";
   if (!Flags().gpl_model.empty()) {
     absl::StatusOr<std::vector<Row>> gpl = GplPass(setup, drives, *observer);
     if (!gpl.ok()) return gpl.status();
@@ -884,7 +994,8 @@ absl::Status Run() {
   const std::string table = Table(rows);
   const std::string robots = RobotTable(setup, drives);
   const std::string notes =
-      Notes(setup, drives, memory_row, *done, *baseline, summer_s, winter_s);
+      Notes(setup, drives, memory_row, *done, *baseline, summer_s, winter_s) +
+      by_length;
   std::printf("\nResults (fleet %s)\n\n%s\n%s\n%s\n%s\n",
               setup.fleet_id.c_str(), table.c_str(), robots.c_str(),
               notes.c_str(), kAttribution);
@@ -964,6 +1075,11 @@ int main(int argc, char** argv) {
                "run the robots one after another instead of side by side: the "
                "server then receives their segments in a fixed order, so a run "
                "with a fixed --fleet repeats exactly");
+  app.add_option("--sequence", flags.sequence,
+                 "frames per sequence of the sequence rows (fleetmem-robot "
+                 "--sequence)")
+      ->capture_default_str()
+      ->check(CLI::Range(2, 100));
   CLI11_PARSE(app, argc, argv);
   const absl::Status status = fleetmem::demo::Run();
   if (!status.ok()) {

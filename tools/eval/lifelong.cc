@@ -184,6 +184,9 @@ struct MethodSpec {
   // Forgetting merges the closest pair (the server's default) or drops one
   // whole (bioslam_drop: the paper's Algorithm 2).
   bool merge = true;
+  // bioslam_pairs, pairs_uniform: the fleet refreshes with the pair-keeping
+  // draw (core/pair_draw.h) within the positive radius instead of Eq. 18's.
+  bool pairs = false;
   RewardMode rewards = RewardMode::kFull;
   ReplayInput replay_input = ReplayInput::kCode;
   // bioslam_iw: the metric head weighs remembered traces by 1 / R
@@ -220,6 +223,14 @@ std::vector<MethodSpec> Specs() {
       {.name = "bioslam_rescore", .memory = M::kFleet, .rescore = true});
   specs.push_back(
       {.name = "bioslam_seq", .sequence = true, .memory = M::kFleet});
+  specs.push_back(
+      {.name = "bioslam_pairs", .memory = M::kFleet, .pairs = true});
+  // Its ablation: anchors drawn uniformly (no gamma^n R), still in pairs.
+  specs.push_back({.name = "pairs_uniform",
+                   .memory = M::kFleet,
+                   .decay = false,
+                   .pairs = true,
+                   .rewards = RewardMode::kUniform});
   specs.push_back({.name = "uniform_replay",
                    .memory = M::kReservoir,
                    .clustering = false,
@@ -288,7 +299,8 @@ struct Context {
   // Traces recalled from the fleet memory per new observation (0 = none).
   uint32_t recall_per_observation = 4;
   std::string server_binary;
-  std::string config_file[2][2][2];  // [clustering][decay][merge]
+  // [clustering][decay][merge][pairs]
+  std::string config_file[2][2][2][2];
   // bioslam's static memory after each segment: uniform_replay's budget.
   std::vector<uint64_t> bioslam_traces;
 
@@ -664,7 +676,7 @@ absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
   options.binary = ctx.server_binary;
   options.data_dir = dir + "/data";
   options.config_file =
-      ctx.config_file[spec.clustering][spec.decay][spec.merge];
+      ctx.config_file[spec.clustering][spec.decay][spec.merge][spec.pairs];
   options.log_file = dir + "/server.log";
   auto server = std::make_unique<ServerChild>(options);
   absl::Status started = server->Start();
@@ -918,9 +930,88 @@ absl::Status EvaluateRobot(Context& ctx, const MethodSpec& spec,
   return absl::OkStatus();
 }
 
+// The warm start (issue 47), after the fleet-shared drives: robot C joins
+// the fleet and is scored on its peers' areas (A's and B's: places C never
+// drove) with HOG, after its warm start (its head fitted on its first
+// refresh, before any frame: robot::WarmStart) and after its first segment
+// on its own area (the third, summer); beside it the same robot after the
+// same segment without the warm start (in the fleet: "cold") and in a fleet
+// of its own ("alone"). The cold robot's segment reaches the fleet after
+// the warm one's (each uploads its own traces under its own id).
+struct WarmRow {
+  uint64_t seed = 0;
+  double hog = 0, warm = 0, warm_first_segment = 0, cold_first_segment = 0,
+         alone_first_segment = 0;
+};
+
+absl::StatusOr<WarmRow> RunWarmStart(Context& ctx, const MethodSpec& spec,
+                                     client::Client* client,
+                                     const std::string& fleet) {
+  constexpr int kOwnArea = 2;
+  auto peers_wr = [](const std::vector<Score>& s) {
+    return (s[0].wr + s[1].wr) / 2;
+  };
+  WarmRow row;
+  row.seed = ctx.seed;
+  absl::StatusOr<std::vector<Score>> hog =
+      Evaluate(ctx, ctx.hog, nullptr, spec.sequence);
+  if (!hog.ok()) return hog.status();
+  row.hog = peers_wr(*hog);
+  std::vector<Robot> robots;  // warm, cold, alone: the same seed
+  for (const char* id : {"robot-c", "robot-c-cold", "robot-c-alone"}) {
+    absl::StatusOr<Robot> r = NewRobot(ctx, spec, id, ctx.seed + 41);
+    if (!r.ok()) return r.status();
+    robots.push_back(*std::move(r));
+  }
+  Robot& warm = robots[0];
+  for (Robot* r : {&robots[0], &robots[1]}) {
+    absl::StatusOr<std::vector<v1::MemoryTrace>> sampled = client->SampleReplay(
+        fleet, r->id, uint32_t(ctx.settings.memory_capacity));
+    if (!sampled.ok()) return sampled.status();
+    std::vector<core::MemoryTrace> refreshed;
+    for (const v1::MemoryTrace& t : *sampled) {
+      refreshed.push_back(api::TraceFromProto(t));
+    }
+    r->memory->Refresh(refreshed);
+  }
+  absl::StatusOr<std::string> warmed =
+      robot::WarmStart(*warm.learner, *warm.memory);
+  if (!warmed.ok()) return warmed.status();
+  std::vector<Score> scores;
+  if (absl::Status s = EvaluateRobot(ctx, spec, warm, &scores); !s.ok()) {
+    return s;
+  }
+  row.warm = peers_wr(scores);
+  const std::vector<size_t> first = Segments(
+      ctx.data->split.Places(kOwnArea, false), ctx.settings.segment_size)[0];
+  double* after[3] = {&row.warm_first_segment, &row.cold_first_segment,
+                      &row.alone_first_segment};
+  for (size_t k = 0; k < robots.size(); ++k) {
+    const std::string to = k < 2 ? fleet : "alone-robot-c";
+    if (absl::Status s =
+            RunSegment(ctx, spec, robots[k], /*season=*/0, first, client, to);
+        !s.ok()) {
+      return s;
+    }
+    if (absl::Status s = EvaluateRobot(ctx, spec, robots[k], &scores);
+        !s.ok()) {
+      return s;
+    }
+    *after[k] = peers_wr(scores);
+  }
+  Progress(absl::StrFormat(
+      "[%s seed %d] a new robot on its peers' areas: HOG %.3f; warm start "
+      "%.3f before any frame (%s), %.3f after its first segment; without "
+      "the warm start %.3f, alone %.3f after it",
+      spec.name, ctx.seed, row.hog, row.warm, *warmed, row.warm_first_segment,
+      row.cold_first_segment, row.alone_first_segment));
+  return row;
+}
+
 absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
                                             const MethodSpec& spec,
-                                            std::vector<FleetRow>* rows) {
+                                            std::vector<FleetRow>* rows,
+                                            std::vector<WarmRow>* warm_rows) {
   MethodResult result;
   result.name = spec.name;
   result.seed = ctx.seed;
@@ -959,6 +1050,10 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
         "[%s seed %d] %s done for both robots (and each alone) (%.0f s)",
         spec.name, ctx.seed, kSeasonNames[season], Seconds(start)));
   }
+  absl::StatusOr<WarmRow> warm =
+      RunWarmStart(ctx, spec, client.get(), "fleet-shared");
+  if (!warm.ok()) return warm.status();
+  warm_rows->push_back(*warm);
   if (absl::Status s = StopServer(**server); !s.ok()) return s;
   std::vector<Score> s_shared[2], s_alone[2];
   for (int k = 0; k < 2; ++k) {
@@ -1002,22 +1097,26 @@ absl::Status WriteConfigs(Context& ctx) {
   for (int clustering = 0; clustering < 2; ++clustering) {
     for (int decay = 0; decay < 2; ++decay) {
       for (int merge = 0; merge < 2; ++merge) {
-        const std::string path = absl::StrFormat(
-            "%s/server-c%d-d%d-m%d-seed%d.textproto", ctx.options->out_dir,
-            clustering, decay, merge, ctx.seed);
-        absl::Status s = files::WriteFile(
-            path,
-            absl::StrFormat(
-                "log_level: \"warning\"\nmemory {\n  clustering: %s\n"
-                "  replay_decay: %s\n  merge_on_forget: %s\n  seed: %d\n%s}\n",
-                clustering ? "true" : "false", decay ? "0.9" : "1",
-                merge ? "true" : "false", ctx.seed,
-                ctx.options->spatial_scale > 0
-                    ? absl::StrFormat("  spatial_scale_m: %g\n",
-                                      ctx.options->spatial_scale)
-                    : ""));
-        if (!s.ok()) return s;
-        ctx.config_file[clustering][decay][merge] = path;
+        for (int pairs = 0; pairs < 2; ++pairs) {
+          const std::string path = absl::StrFormat(
+              "%s/server-c%d-d%d-m%d-p%d-seed%d.textproto",
+              ctx.options->out_dir, clustering, decay, merge, pairs, ctx.seed);
+          absl::Status s = files::WriteFile(
+              path,
+              absl::StrFormat(
+                  "log_level: \"warning\"\nmemory {\n  clustering: %s\n"
+                  "  replay_decay: %s\n  merge_on_forget: %s\n  seed: %d\n"
+                  "  refresh_pair_radius: %g\n%s}\n",
+                  clustering ? "true" : "false", decay ? "0.9" : "1",
+                  merge ? "true" : "false", ctx.seed,
+                  pairs ? ctx.mining.positive_radius : 0.0,
+                  ctx.options->spatial_scale > 0
+                      ? absl::StrFormat("  spatial_scale_m: %g\n",
+                                        ctx.options->spatial_scale)
+                      : ""));
+          if (!s.ok()) return s;
+          ctx.config_file[clustering][decay][merge][pairs] = path;
+        }
       }
     }
   }
@@ -1112,6 +1211,19 @@ std::string FleetCsv(const std::vector<FleetRow>& fleet) {
   return csv;
 }
 
+// warm_start.csv: the new robot's WR on its peers' areas (RunWarmStart).
+std::string WarmCsv(const std::vector<WarmRow>& rows) {
+  std::string csv =
+      "seed,hog,warm_start,warm_first_segment,cold_first_segment,"
+      "alone_first_segment\n";
+  for (const WarmRow& w : rows) {
+    csv += absl::StrFormat("%d,%.4f,%.4f,%.4f,%.4f,%.4f\n", w.seed, w.hog,
+                           w.warm, w.warm_first_segment, w.cold_first_segment,
+                           w.alone_first_segment);
+  }
+  return csv;
+}
+
 // curves.gp, and curves.png from curves.dat's `block` blocks (titled
 // `plot_titles`) with gnuplot: three panels over the course of training
 // (none without a block).
@@ -1157,7 +1269,8 @@ absl::Status WriteOutputs(
     const LifelongOptions& options, const Data& data,
     const std::vector<MethodSpec>& specs,
     const std::map<std::string, std::vector<MethodResult>>& results,
-    const std::vector<FleetRow>& fleet, std::string* table_out) {
+    const std::vector<FleetRow>& fleet, const std::vector<WarmRow>& warm,
+    std::string* table_out) {
   const std::string& dir = options.out_dir;
   const Score chance = lifelong::ChanceScore(data.split);
   std::string summary =
@@ -1220,7 +1333,8 @@ absl::Status WriteOutputs(
            {"curves.csv", curves},
            {"curves.dat", plot},
            {"memory.csv", memory},
-           {"fleet.csv", fleet_csv}}) {
+           {"fleet.csv", fleet_csv},
+           {"warm_start.csv", WarmCsv(warm)}}) {
     if (absl::Status s = files::WriteFile(dir + "/" + name, text); !s.ok())
       return s;
   }
@@ -1321,6 +1435,7 @@ absl::Status RunLifelong(const LifelongOptions& options) {
       options.quick ? "quick" : "full", settings.seeds));
   std::map<std::string, std::vector<MethodResult>> results;
   std::vector<FleetRow> fleet;
+  std::vector<WarmRow> warm;
   for (int k = 0; k < settings.seeds; ++k) {
     Context ctx;
     ctx.options = &options;
@@ -1344,9 +1459,9 @@ absl::Status RunLifelong(const LifelongOptions& options) {
     for (const MethodSpec& spec : specs) {
       Progress(absl::StrFormat("[%s seed %d] start (%.0f s into the run)",
                                spec.name, ctx.seed, Seconds(start)));
-      absl::StatusOr<MethodResult> r = spec.name == "fleet_shared"
-                                           ? RunFleetShared(ctx, spec, &fleet)
-                                           : RunSingleRobot(ctx, spec);
+      absl::StatusOr<MethodResult> r =
+          spec.name == "fleet_shared" ? RunFleetShared(ctx, spec, &fleet, &warm)
+                                      : RunSingleRobot(ctx, spec);
       if (!r.ok()) {
         return absl::Status(r.status().code(),
                             absl::StrCat("method ", spec.name, ", seed ",
@@ -1361,7 +1476,7 @@ absl::Status RunLifelong(const LifelongOptions& options) {
   }
   std::string table;
   if (absl::Status s =
-          WriteOutputs(options, *data, specs, results, fleet, &table);
+          WriteOutputs(options, *data, specs, results, fleet, warm, &table);
       !s.ok()) {
     return s;
   }

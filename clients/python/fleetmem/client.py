@@ -390,7 +390,8 @@ class Client:
 
     # ---- fleets -------------------------------------------------------
     _SETTINGS = ("clusters_per_segment", "max_traces_per_cluster", "max_clusters",
-                 "replay_decay", "max_age_seconds", "max_traces_per_robot")
+                 "replay_decay", "max_age_seconds", "max_traces_per_robot",
+                 "refresh_pair_radius")
 
     @classmethod
     def _settings(cls, forgetting: Optional[str], given: dict) -> pb.FleetSettings:
@@ -400,8 +401,8 @@ class Client:
                 raise TypeError(f"unknown setting {name!r}; one of {', '.join(cls._SETTINGS)}")
             if value is None:
                 continue
-            if name == "replay_decay":
-                settings.replay_decay = float(value)
+            if name in ("replay_decay", "refresh_pair_radius"):
+                setattr(settings, name, float(value))
             elif not isinstance(value, (int, np.integer)) or value < 0:
                 raise ValueError(f"{name}: want a non-negative integer, got {value!r}")
             else:
@@ -419,7 +420,8 @@ class Client:
                      **settings) -> pb.FleetSettings:
         """Admin: makes `fleet` with its own settings (keyword arguments
         clusters_per_segment, max_traces_per_cluster, max_clusters,
-        replay_decay, max_age_seconds, max_traces_per_robot; forgetting
+        replay_decay, max_age_seconds, max_traces_per_robot,
+        refresh_pair_radius (above 0: the pair-keeping refresh); forgetting
         'merge' or 'drop'; index 'exact', 'hnsw' or 'auto' with HNSW's
         hnsw_m and hnsw_ef_search, fixed at creation; the server's for those
         not given). Returns every setting as made. ALREADY_EXISTS if the

@@ -273,8 +273,10 @@ def test_two_fleets_with_their_own_settings(server, cli):
             fm.upload("laser", codes_of(23, 5, dim=64), robot_id="cam-1", seqs=np.arange(5))
         assert wrong.value.status == "INVALID_ARGUMENT"
 
-        after = fm.update_fleet("camera", max_clusters=10, replay_decay=0.5)
+        after = fm.update_fleet("camera", max_clusters=10, replay_decay=0.5,
+                                refresh_pair_radius=20)
         assert (after.max_clusters, after.replay_decay, after.code_dimension) == (10, 0.5, 64)
+        assert after.refresh_pair_radius == 20.0 and laser.settings.refresh_pair_radius == 0
         assert fm.get_fleet("camera").own_settings
         fm.upload("camera", codes_of(24, 200, dim=64), np.arange(200) * 5.0, 1.0,
                   robot_id="cam-1", seqs=np.arange(600, 800))
@@ -283,6 +285,8 @@ def test_two_fleets_with_their_own_settings(server, cli):
         assert listed["laser"].settings.max_clusters == 4 and listed["camera"].settings.max_clusters == 10
         out = cli("--server", server.address, "fleet", "--fleet", "laser")
         assert "clusters (K_max)" in out and "drop" in out
+        out = cli("--server", server.address, "fleet", "--fleet", "camera")
+        assert "pairs within 20" in out
     server.stop()
     server.start()
     with fleetmem.Client(server.address) as fm:

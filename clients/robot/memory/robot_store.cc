@@ -55,12 +55,25 @@ int64_t NowUnixNs() { return absl::ToUnixNanos(absl::Now()); }
 
 }  // namespace
 
-core::FirstCorrectRanks RelocalisationRanks(const RobotState& state) {
+namespace {
+
+core::FirstCorrectRanks RanksOf(
+    const google::protobuf::RepeatedField<uint64_t>& histogram) {
   core::FirstCorrectRanks ranks;
-  for (int r = 0; r < state.relocalisation_ranks_size(); ++r) {
-    ranks.insert(ranks.end(), state.relocalisation_ranks(r), r);
+  for (int r = 0; r < histogram.size(); ++r) {
+    ranks.insert(ranks.end(), histogram[r], r);
   }
   return ranks;
+}
+
+}  // namespace
+
+core::FirstCorrectRanks RelocalisationRanks(const RobotState& state) {
+  return RanksOf(state.relocalisation_ranks());
+}
+
+core::FirstCorrectRanks SequenceRanks(const RobotState& state) {
+  return RanksOf(state.sequence_ranks());
 }
 
 const char* FullPolicyName(FullPolicy policy) {

@@ -190,6 +190,8 @@ class RobotStore {
 // The relocalisation scores of `state` (its rank histogram) as the core's
 // first-correct ranks, for RecallAtK and WeightedRecall.
 core::FirstCorrectRanks RelocalisationRanks(const RobotState& state);
+// The same of its relocalisations re-ranked by the sequence (--sequence).
+core::FirstCorrectRanks SequenceRanks(const RobotState& state);
 
 const char* FullPolicyName(FullPolicy policy);
 // "refuse" or "drop-oldest".

@@ -67,7 +67,8 @@ Agent::Agent(AgentOptions options, client::Client* client,
       learner_(learner),
       hook_(hook),
       memory_(options_.robot_id, options_.dynamic_memory),
-      rng_(options_.seed) {
+      rng_(options_.seed),
+      window_(options_.sequence.length) {
   end_ = std::min(options_.last, source_->size());
 }
 
@@ -188,7 +189,19 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
   phase_ = "observing";
   const auto run_start = Clock::now();
   absl::Status status;
-  for (; index < end_ && !stop.load(); ++index) {
+  // A new robot learns from its peers' traces before its first frame; its
+  // learner failing stops it as at a segment's end.
+  if (learner_ != nullptr && options_.warm_start &&
+      store_->state().observations() == 0 && memory_.size() > 0) {
+    absl::StatusOr<std::string> warmed = WarmStart(*learner_, memory_);
+    if (warmed.ok()) {
+      Log(absl::StrCat("warm start from the ", memory_.size(),
+                       " traces of its first refresh: ", *warmed));
+    } else {
+      status = warmed.status();
+    }
+  }
+  for (; status.ok() && index < end_ && !stop.load(); ++index) {
     Pace(run_start, stop);
     if (stop.load()) break;
     // A refused upload or a failing disk stops the robot at once.
@@ -321,28 +334,50 @@ absl::Status Agent::ObserveOne(size_t index, const std::atomic<bool>& stop) {
 }
 
 Agent::Relocalisation Agent::Relocalise(const std::vector<float>& code,
-                                        const core::Place& place) const {
+                                        const core::Place& place) {
   Relocalisation result;
   if (!options_.relocalise) return result;
+  const bool sequence = options_.sequence.length > 1;
   v1::QueryPlaceRequest request;
   request.set_fleet_id(options_.fleet_id);
   request.mutable_code()->Assign(code.begin(), code.end());
-  request.set_k(options_.query_k);
+  request.set_k(sequence
+                    ? std::max(options_.query_k, options_.sequence_candidates)
+                    : options_.query_k);
   const auto start = Clock::now();
   absl::StatusOr<std::vector<v1::PlaceMatch>> matches =
       query_client_->QueryPlace(request);
   result.ms =
       std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-  if (matches.ok() && !matches->empty()) {
+  std::vector<SequenceCandidate> candidates;
+  if (matches.ok()) {
+    for (const v1::PlaceMatch& match : *matches) {
+      candidates.push_back({.place = PlaceFromProto(match.trace().pose()),
+                            .distance = match.distance()});
+    }
+  }
+  // Frames without an answer stay in the window as empty ones, so that the
+  // distance travelled still adds up.
+  if (sequence) window_.Add(place, candidates);
+  if (!candidates.empty()) {
     if (!options_.score_relocalisation) {
       result.unscored = true;
       return result;
     }
+    const size_t k = std::min<size_t>(options_.query_k, candidates.size());
     std::vector<core::Place> found;
-    for (const v1::PlaceMatch& match : *matches) {
-      found.push_back(PlaceFromProto(match.trace().pose()));
-    }
+    for (size_t i = 0; i < k; ++i) found.push_back(candidates[i].place);
     result.rank = FirstCorrectRank(found, place, options_.match_radius);
+    if (sequence) {
+      const std::vector<size_t> order =
+          RankBySequence(window_.frames(), options_.sequence);
+      found.clear();
+      for (size_t i = 0; i < k; ++i) {
+        found.push_back(candidates[order[i]].place);
+      }
+      result.sequence_rank =
+          FirstCorrectRank(found, place, options_.match_radius);
+    }
   } else if (matches.ok() ||
              matches.status().code() == absl::StatusCode::kNotFound) {
     result.empty = true;  // no memory yet (an unknown fleet is an empty one)
@@ -358,6 +393,13 @@ void Agent::Relocalisation::CountIn(RobotState& state) const {
       state.add_relocalisation_ranks(0);
     }
     state.set_relocalisation_ranks(rank, state.relocalisation_ranks(rank) + 1);
+  }
+  if (sequence_rank >= 0) {
+    while (state.sequence_ranks_size() <= sequence_rank) {
+      state.add_sequence_ranks(0);
+    }
+    state.set_sequence_ranks(sequence_rank,
+                             state.sequence_ranks(sequence_rank) + 1);
   }
   if (unscored) {
     state.set_relocalisation_unscored(state.relocalisation_unscored() + 1);
@@ -674,6 +716,10 @@ void Agent::WriteStatus(std::string_view phase, bool force) {
   status.set_relocalisation_recall_at_1(core::RecallAtK(ranks, 1));
   status.set_relocalisation_recall_at_5(core::RecallAtK(ranks, 5));
   status.set_relocalisation_weighted_recall(core::WeightedRecall(ranks));
+  const core::FirstCorrectRanks sequence = SequenceRanks(status.counters());
+  status.set_sequence_recall_at_1(core::RecallAtK(sequence, 1));
+  status.set_sequence_recall_at_5(core::RecallAtK(sequence, 5));
+  status.set_sequence_weighted_recall(core::WeightedRecall(sequence));
   const uint64_t answered =
       ranks.size() + status.counters().relocalisation_unscored();
   status.set_relocalisation_ms_mean(
@@ -717,6 +763,7 @@ void Agent::Progress(bool force) {
   const RobotState state = store_->state();
   const QueueInfo queue = store_->queue();
   const core::FirstCorrectRanks ranks = RelocalisationRanks(state);
+  const core::FirstCorrectRanks sequence = SequenceRanks(state);
   const double age =
       queue.oldest_stored_unix_ns == 0
           ? 0.0
@@ -725,7 +772,7 @@ void Agent::Progress(bool force) {
   Log(absl::StrFormat(
       "%s: observed %d/%d | queue %d (oldest %.1f s) | uploaded %d | "
       "refreshed %d (M_D %d, %d traces from peers) | replayed %d from "
-      "peers | relocalisation %s%s",
+      "peers | relocalisation %s%s%s",
       phase_, state.next_index(), end_, queue.depth, age,
       state.traces_uploaded(), state.refreshes(), memory_.size(),
       state.refreshed_peer_traces(), state.replayed_peer(),
@@ -733,6 +780,10 @@ void Agent::Progress(bool force) {
       ranks.empty() ? std::string("not scored yet")
                     : absl::StrFormat("r@1 %.3f over %d",
                                       core::RecallAtK(ranks, 1), ranks.size()),
+      sequence.empty() ? std::string()
+                       : absl::StrFormat(", over sequences of %d r@1 %.3f",
+                                         options_.sequence.length,
+                                         core::RecallAtK(sequence, 1)),
       state.relocalisation_unscored() == 0
           ? std::string()
           : absl::StrFormat(" (%d more without ground truth)",

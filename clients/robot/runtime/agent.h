@@ -50,6 +50,7 @@
 #include "clients/robot/sensing/observation_hook.h"
 #include "clients/robot/sensing/observation_source.h"
 #include "clients/robot/sensing/rewards.h"
+#include "clients/robot/sensing/sequence_search.h"
 
 namespace fleetmem::robot {
 
@@ -86,6 +87,15 @@ struct AgentOptions {
   uint32_t query_k = 6;
   // A match within this distance of the true place is correct (place units).
   double match_radius = 20.0;
+  // Relocalise over the last `sequence.length` frames as well
+  // (sequence_search.h; its tolerance is match_radius): each answer is
+  // re-ranked by the sequence and scored apart (sequence_ranks). 1 = single
+  // frames only. The server is then asked for sequence_candidates matches
+  // (at least query_k); the single-frame score takes the first query_k.
+  // The distance travelled between frames is taken from the observations'
+  // places (the robot's odometry; on Nordland and KITTI, their ground truth).
+  SequenceSearchOptions sequence{.length = 1};
+  uint32_t sequence_candidates = 20;
   // Score relocalisations (only where the source's places are ground truth;
   // a laser log's are odometry).
   bool score_relocalisation = true;
@@ -96,6 +106,9 @@ struct AgentOptions {
   DynamicMemoryOptions dynamic_memory;
   // Traces asked of the fleet per refresh (Eq. 18); 0 = the capacity of M_D.
   uint32_t refresh_count = 0;
+  // A new robot with a learner (nothing observed yet) fits it on its first
+  // refresh before its first observation (WarmStart in segment_step.h).
+  bool warm_start = true;
   // Traces per upload call.
   size_t upload_batch = 200;
   // Backoff of the uploader while the server cannot take traces.
@@ -163,6 +176,7 @@ class Agent {
   // One QueryPlace for an observation and how it scored.
   struct Relocalisation {
     int rank = -1;  // first correct rank (0: none in the top k); -1 unscored
+    int sequence_rank = -1;   // the same, re-ranked by the sequence
     bool unanswered = false;  // the server did not answer
     bool empty = false;       // the fleet's memory is empty (or absent)
     bool unscored = false;    // answered, but the place is not ground truth
@@ -171,7 +185,7 @@ class Agent {
     void CountIn(RobotState& state) const;
   };
   Relocalisation Relocalise(const std::vector<float>& code,
-                            const core::Place& place) const;
+                            const core::Place& place);
   // ObserveOne's ends: a query-only robot's observation (its position and
   // scores, and its code for the segment's recall); an uploading robot's
   // trace recorded in its queue, waiting while the queue is full (policy
@@ -221,6 +235,8 @@ class Agent {
   // A query-only robot's open segment: source indices and their traces.
   std::vector<size_t> query_indices_;
   std::vector<core::MemoryTrace> query_segment_;
+  // The last frames' answers, for the sequence search (main thread).
+  SequenceWindow window_;
   uint64_t observed_this_run_ = 0;
   bool source_finished_ = false;
   bool drained_ = false;

@@ -76,9 +76,12 @@ struct Flags {
   bool score_odometry = false;
   double match_radius = 0.0;  // 0 = the source's default
   uint32_t query_k = 6;
+  size_t sequence = 10;
+  uint32_t sequence_candidates = 20;
   size_t dynamic_memory = 1000;
   double gamma = 0.9;
   uint32_t refresh_count = 0;
+  bool no_warm_start = false;
   size_t replay_per_segment = 64;
   size_t recall_per_observation = 4;
   size_t upload_batch = 200;
@@ -187,6 +190,15 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--query-k", flags.query_k, "matches per relocalisation")
       ->capture_default_str()
       ->check(CLI::Range(1, 100));
+  app.add_option("--sequence", flags.sequence,
+                 "also relocalise over the last N frames (re-ranks each "
+                 "answer, scored apart; 1 = single frames only; docs/robot.md)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100));
+  app.add_option("--sequence-candidates", flags.sequence_candidates,
+                 "matches asked per frame when --sequence is above 1")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1000));
   app.add_option("--dynamic-memory", flags.dynamic_memory,
                  "capacity of the dynamic memory M_D")
       ->capture_default_str()
@@ -194,6 +206,9 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--gamma", flags.gamma, "time decay of replay (Eq. 19)")
       ->capture_default_str()
       ->check(CLI::Range(0.0, 1.0));
+  app.add_flag("--no-warm-start", flags.no_warm_start,
+               "with --learn: do not fit the learner on the first refresh "
+               "before a new robot's first frame");
   app.add_option("--refresh-count", flags.refresh_count,
                  "traces per refresh (0 = the capacity of M_D)")
       ->capture_default_str();
@@ -636,6 +651,9 @@ fleetmem::robot::AgentOptions MakeAgentOptions(const Flags& flags,
   options.match_radius = flags.match_radius > 0.0
                              ? flags.match_radius
                              : sensing.source->default_match_radius();
+  options.sequence.length = flags.sequence;
+  options.sequence.tolerance = options.match_radius;
+  options.sequence_candidates = flags.sequence_candidates;
   // Triplet radii scale with the match radius: Nordland's 20 units give the
   // demo's positives within 10 (adjacent files) and negatives beyond 100.
   options.step.triplet.positive_radius = options.match_radius / 2.0;
@@ -643,6 +661,7 @@ fleetmem::robot::AgentOptions MakeAgentOptions(const Flags& flags,
   options.dynamic_memory.capacity = flags.dynamic_memory;
   options.dynamic_memory.gamma = flags.gamma;
   options.refresh_count = flags.refresh_count;
+  options.warm_start = !flags.no_warm_start;
   options.step.replay_per_segment = flags.replay_per_segment;
   options.step.recall_per_observation = flags.recall_per_observation;
   options.step.rescore_remembered = flags.rescore;

@@ -132,4 +132,19 @@ absl::StatusOr<SegmentStepResult> RunSegmentStep(
   return result;
 }
 
+absl::StatusOr<std::string> WarmStart(Learner& learner,
+                                      const DynamicMemory& memory) {
+  if (memory.size() == 0) {
+    return absl::FailedPreconditionError(
+        "no warm start: the dynamic memory is empty (the fleet held nothing "
+        "for this robot yet)");
+  }
+  std::vector<core::MemoryTrace> remembered;
+  remembered.reserve(memory.size());
+  for (const ReplayEntry& entry : memory.entries()) {
+    remembered.push_back(entry.trace);
+  }
+  return learner.Learn({}, {}, {}, remembered);
+}
+
 }  // namespace fleetmem::robot

@@ -97,6 +97,16 @@ absl::StatusOr<SegmentStepResult> RunSegmentStep(
     std::span<const Observation> observations, DynamicMemory& memory,
     std::mt19937_64& rng, Learner* learner, const PlaceRecall& recall);
 
+// The warm start of a robot joining a fleet (issue 47): before its first
+// observation its learner learns from what its first refresh brought into
+// M_D (its peers' traces, of every domain the fleet holds: Learn with no
+// segment and M_D as the remembered traces), so that it recognises its
+// peers' places across domains from its first frame instead of after its
+// first segment. Returns the learner's report; FAILED_PRECONDITION when
+// M_D is empty (nothing to learn from: the fleet's first robot).
+absl::StatusOr<std::string> WarmStart(Learner& learner,
+                                      const DynamicMemory& memory);
+
 }  // namespace fleetmem::robot
 
 #endif  // FLEETMEM_CLIENTS_ROBOT_RUNTIME_SEGMENT_STEP_H_

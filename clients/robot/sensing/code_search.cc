@@ -32,6 +32,13 @@ void BruteForceIndex::Add(std::span<const float> code, double label) {
 
 std::vector<double> BruteForceIndex::Search(std::span<const float> query,
                                             size_t k) const {
+  std::vector<double> labels;
+  for (const Neighbour& n : SearchScored(query, k)) labels.push_back(n.label);
+  return labels;
+}
+
+std::vector<BruteForceIndex::Neighbour> BruteForceIndex::SearchScored(
+    std::span<const float> query, size_t k) const {
   std::vector<float> q = core::NormalizedCode(query);
   q.resize(dimension_, 0.0f);
   std::vector<std::pair<float, size_t>> scored(labels_.size());
@@ -46,10 +53,13 @@ std::vector<double> BruteForceIndex::Search(std::span<const float> query,
   }
   k = std::min(k, scored.size());
   std::partial_sort(scored.begin(), scored.begin() + k, scored.end());
-  std::vector<double> labels;
-  labels.reserve(k);
-  for (size_t i = 0; i < k; ++i) labels.push_back(labels_[scored[i].second]);
-  return labels;
+  std::vector<Neighbour> found;
+  found.reserve(k);
+  for (size_t i = 0; i < k; ++i) {
+    found.push_back({.label = labels_[scored[i].second],
+                     .distance = std::sqrt(scored[i].first)});
+  }
+  return found;
 }
 
 double PlaceDistance(const core::Place& a, const core::Place& b) {

@@ -34,6 +34,13 @@ class BruteForceIndex {
   // Labels of the min(k, size()) nearest codes to `query`, nearest first
   // (ties by insertion order).
   std::vector<double> Search(std::span<const float> query, size_t k) const;
+  // The same, with each one's CodeDistance to `query`.
+  struct Neighbour {
+    double label = 0.0;
+    float distance = 0.0f;
+  };
+  std::vector<Neighbour> SearchScored(std::span<const float> query,
+                                      size_t k) const;
 
  private:
   size_t dimension_;

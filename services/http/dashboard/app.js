@@ -288,6 +288,7 @@ function renderSettings(fleet) {
     ` · K ${fmt(s.clustersPerSegment)} · N_max ${fmt(s.maxTracesPerCluster)}` +
     ` · K_max ${fmt(s.maxClusters)} · γ ${s.replayDecay}` +
     ` · forgetting ${s.forgetting === 'FORGETTING_RULE_DROP' ? 'drops' : 'merges'}` +
+    ` · refresh ${num(s.refreshPairRadius) > 0 ? `keeps pairs within ${s.refreshPairRadius}` : 'by γⁿR'}` +
     ` · retention: ${retention.length ? retention.join(', ') : 'none'}`;
 }
 
