@@ -180,6 +180,7 @@ const std::vector<Command>& CommandTable() {
         "  --max-clusters K_MAX      --replay-decay GAMMA\n"
         "  --forgetting merge|drop   --max-age-seconds S\n"
         "  --max-traces-per-robot N  --refresh-pairs RADIUS\n"
+        "  --refresh-uniform true|false\n"
         "  --index exact|hnsw|auto   --hnsw-m M  --hnsw-ef EF (fixed)\n"
         "Every upload must match --dim and --encoder. ALREADY_EXISTS if the\n"
         "fleet exists (made by create-fleet or its first upload).",
@@ -196,6 +197,7 @@ const std::vector<Command>& CommandTable() {
          {"max-traces-per-robot", "N", "retention: keep N per robot"},
          {"refresh-pairs", "RADIUS",
           "pair-keeping refresh within RADIUS place units (0: Eq. 18)"},
+         {"refresh-uniform", "BOOL", "refresh with weight 1, not gamma^n R"},
          {"index", "KIND", "exact, hnsw or auto (default: the server's)"},
          {"hnsw-m", "M", "HNSW's links per node, 2..128"},
          {"hnsw-ef", "EF", "HNSW's search breadth, 1..10000"}}},
@@ -221,7 +223,8 @@ const std::vector<Command>& CommandTable() {
          {"max-age-seconds", "S", "retention: delete traces older than S"},
          {"max-traces-per-robot", "N", "retention: keep N per robot"},
          {"refresh-pairs", "RADIUS",
-          "pair-keeping refresh within RADIUS place units (0: Eq. 18)"}}},
+          "pair-keeping refresh within RADIUS place units (0: Eq. 18)"},
+         {"refresh-uniform", "BOOL", "refresh with weight 1, not gamma^n R"}}},
        RunUpdateFleet},
       {{"delete-fleet",
         "--fleet ID --confirm ID",
@@ -798,6 +801,14 @@ absl::Status SettingsFromFlags(const FlagValues& flags,
     absl::StatusOr<double> radius = flags.RequiredDouble("refresh-pairs");
     if (!radius.ok()) return radius.status();
     settings->set_refresh_pair_radius(*radius);
+  }
+  if (flags.Has("refresh-uniform")) {
+    const std::string value = flags.StringOr("refresh-uniform", "");
+    if (value != "true" && value != "false") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "--refresh-uniform: \"", value, "\" is not true or false"));
+    }
+    settings->set_refresh_uniform(value == "true");
   }
   if (flags.Has("forgetting")) {
     const std::string rule = flags.StringOr("forgetting", "");

@@ -87,9 +87,11 @@ void PrintFleetSettings(const v1::FleetSettings& settings, std::ostream& out) {
        {"forgetting",
         settings.forgetting() == v1::FORGETTING_RULE_DROP ? "drop" : "merge"},
        {"refresh",
-        settings.refresh_pair_radius() > 0.0
-            ? absl::StrCat("pairs within ", settings.refresh_pair_radius())
-            : std::string("Eq. 18 (gamma^n R)")},
+        absl::StrCat(settings.refresh_uniform() ? "uniform" : "gamma^n R",
+                     settings.refresh_pair_radius() > 0.0
+                         ? absl::StrCat(", pairs within ",
+                                        settings.refresh_pair_radius())
+                         : std::string())},
        {"max age", settings.max_age_seconds() == 0
                        ? "-"
                        : absl::StrCat(settings.max_age_seconds(), " s")},

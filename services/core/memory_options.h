@@ -52,6 +52,10 @@ struct MemoryOptions {
   // many place units, so that a robot's dynamic memory holds the places
   // the fleet saw in two domains as pairs.
   double refresh_pair_radius = 0.0;
+  // The refresh draws every trace with weight 1 instead of gamma^n * R
+  // (uniform replay from the fleet's memory; with refresh_pair_radius, the
+  // pairs' anchors uniformly). Issue 47 measured it: docs/results.md.
+  bool refresh_uniform = false;
 };
 
 // OK if every field is in range; otherwise INVALID_ARGUMENT naming the field.

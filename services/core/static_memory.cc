@@ -166,11 +166,17 @@ ConsolidationResult StaticMemory::Consolidate(std::vector<MemoryTrace> batch,
   return result;
 }
 
+double StaticMemory::RefreshWeight(const MemoryTrace& trace) const {
+  if (options_.refresh_uniform) return 1.0;
+  return ReplayWeight(trace.reward, trace.replay_count, options_.replay_decay,
+                      options_.reward_floor);
+}
+
 std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
                                                        std::mt19937_64& rng) {
   std::vector<size_t> drawn;
-  if (options_.refresh_pair_radius > 0.0) {
-    // The pair-keeping draw sees every trace (O(n log n), pair_draw.h).
+  if (options_.refresh_pair_radius > 0.0 || options_.refresh_uniform) {
+    // These draws see every trace (O(n log n), pair_draw.h).
     std::vector<const MemoryTrace*> traces;
     std::vector<double> weights;
     std::vector<size_t> slots;
@@ -178,9 +184,7 @@ std::vector<MemoryTrace> StaticMemory::SampleForReplay(size_t count,
       const MemoryTrace* trace = slot_trace_[slot];
       if (trace == nullptr) continue;
       traces.push_back(trace);
-      weights.push_back(ReplayWeight(trace->reward, trace->replay_count,
-                                     options_.replay_decay,
-                                     options_.reward_floor));
+      weights.push_back(RefreshWeight(*trace));
       slots.push_back(slot);
     }
     for (size_t i :
@@ -216,9 +220,7 @@ std::vector<MemoryTrace> StaticMemory::SampleForReplayInMemoryOrder(
     for (MemoryTrace& trace : cluster.traces) {
       if (accept && !accept(trace)) continue;
       order.push_back(&trace);
-      weights.push_back(ReplayWeight(trace.reward, trace.replay_count,
-                                     options_.replay_decay,
-                                     options_.reward_floor));
+      weights.push_back(RefreshWeight(trace));
     }
   }
   std::vector<MemoryTrace> out;

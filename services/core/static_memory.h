@@ -153,8 +153,9 @@ class StaticMemory {
   // gamma^n * R, increments their replay_count and returns copies of them
   // (with the new counts), in draw order. O(count log trace_count()): the
   // weights live in a sum tree kept up to date by every change. With
-  // options().refresh_pair_radius above 0, the pair-keeping draw instead
-  // (pair_draw.h; O(trace_count() log trace_count())).
+  // options().refresh_pair_radius above 0, the pair-keeping draw instead,
+  // and with refresh_uniform weights of 1 (both O(trace_count() log
+  // trace_count()): pair_draw.h).
   std::vector<MemoryTrace> SampleForReplay(size_t count, std::mt19937_64& rng);
   // The same draw over the traces in an order that depends only on what
   // memory holds (clusters by id, each cluster's traces in order), not on
@@ -226,6 +227,9 @@ class StaticMemory {
   void Forget(ConsolidationResult& result);
   // Merges cluster `from` into `into` (both held): see ClusterMerge.
   ClusterMerge Merge(uint64_t from, uint64_t into);
+  // A trace's weight in the refresh draw: gamma^n * R (Eq. 18), or 1 with
+  // options().refresh_uniform.
+  double RefreshWeight(const MemoryTrace& trace) const;
 
   // Where a trace is: its cluster and its slot in the replay sampler.
   struct Location {

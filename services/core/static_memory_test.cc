@@ -539,6 +539,33 @@ TEST(StaticMemoryTest, ThePairKeepingRefreshHandsOutPlacesInBothDomains) {
   EXPECT_FALSE(ValidateMemoryOptions(options).ok());
 }
 
+// refresh_uniform: a trace of reward 1e6 beside 19 of reward 1e-3 is drawn
+// first nearly always by Eq. 18's weights, about once in 20 uniformly.
+TEST(StaticMemoryTest, TheUniformRefreshIgnoresTheWeights) {
+  auto heavy_first = [](bool uniform, bool in_memory_order) {
+    MemoryOptions options;
+    options.clustering = false;
+    options.refresh_uniform = uniform;
+    int first = 0;
+    for (uint64_t seed = 1; seed <= 200; ++seed) {
+      StaticMemory memory(options);
+      std::mt19937_64 rng(seed);
+      std::vector<MemoryTrace> batch = Segment("r1", 0, 20, rng);
+      for (MemoryTrace& t : batch) t.reward = t.seq == 7 ? 1e6f : 1e-3f;
+      memory.Consolidate(batch, 1, rng);
+      const std::vector<MemoryTrace> drawn =
+          in_memory_order ? memory.SampleForReplayInMemoryOrder(1, rng)
+                          : memory.SampleForReplay(1, rng);
+      first += drawn.at(0).seq == 7 ? 1 : 0;
+    }
+    return first;
+  };
+  for (const bool in_memory_order : {false, true}) {
+    EXPECT_GE(heavy_first(false, in_memory_order), 195);
+    EXPECT_LE(heavy_first(true, in_memory_order), 30);  // mean 10
+  }
+}
+
 // Distributed mode's draw: a memory restored from another's clusters (its
 // sampler slots in another order once forgetting freed and reused some)
 // draws what the original draws from an equal generator.

@@ -37,7 +37,8 @@ struct FleetSettings {
   // The static memory's parameters. UpdateFleet changes K
   // (clusters_per_batch), N_max (max_traces_per_cluster), K_max
   // (max_clusters), gamma (replay_decay), the forgetting rule
-  // (merge_on_forget) and the refresh draw (refresh_pair_radius); the rest
+  // (merge_on_forget) and the refresh draw (refresh_pair_radius,
+  // refresh_uniform); the rest
   // stay as created (the server's then).
   core::MemoryOptions memory;
   // Retention: traces observed longer ago than this are deleted (0: kept
@@ -57,6 +58,7 @@ struct FleetSettingsUpdate {
   std::optional<double> replay_decay;
   std::optional<bool> merge_on_forget;
   std::optional<double> refresh_pair_radius;
+  std::optional<bool> refresh_uniform;
   std::optional<int64_t> max_age_seconds;
   std::optional<uint64_t> max_traces_per_robot;
 
@@ -73,6 +75,7 @@ struct FleetSettingsUpdate {
     if (refresh_pair_radius) {
       memory.refresh_pair_radius = *refresh_pair_radius;
     }
+    if (refresh_uniform) memory.refresh_uniform = *refresh_uniform;
     if (max_age_seconds) settings.max_age_seconds = *max_age_seconds;
     if (max_traces_per_robot) {
       settings.max_traces_per_robot = *max_traces_per_robot;

@@ -460,6 +460,7 @@ TEST_F(ManageTest, FleetsKeepTheirOwnSettings) {
   update.max_clusters = 3;
   update.replay_decay = 0.5;
   update.refresh_pair_radius = 12.5;
+  update.refresh_uniform = true;
   absl::StatusOr<FleetSettings> after = engine_->UpdateFleet("wide", update);
   ASSERT_TRUE(after.ok()) << after.status();
   EXPECT_EQ(after->memory.max_clusters, 3);
@@ -486,6 +487,7 @@ TEST_F(ManageTest, FleetsKeepTheirOwnSettings) {
   EXPECT_EQ(wide->settings.memory.max_clusters, 3);
   EXPECT_EQ(wide->settings.memory.replay_decay, 0.5);
   EXPECT_EQ(wide->settings.memory.refresh_pair_radius, 12.5);
+  EXPECT_TRUE(wide->settings.memory.refresh_uniform);
   EXPECT_EQ(engine_->GetFleet("small")->settings.memory.refresh_pair_radius,
             0.0);
   EXPECT_EQ(Stats("small").max_clusters, 2u);

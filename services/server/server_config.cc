@@ -63,6 +63,7 @@ void ApplyMemory(const MemoryConfig& in, core::MemoryOptions* out) {
   if (in.has_refresh_pair_radius()) {
     out->refresh_pair_radius = in.refresh_pair_radius();
   }
+  if (in.has_refresh_uniform()) out->refresh_uniform = in.refresh_uniform();
 }
 
 void ApplyEngine(const EngineConfig& in, engine::EngineOptions* out) {
@@ -771,6 +772,7 @@ std::string DescribeConfig(const ServerConfig& config) {
       " clustering=", memory.clustering ? "true" : "false",
       " merge_on_forget=", memory.merge_on_forget ? "true" : "false",
       " refresh_pair_radius=", memory.refresh_pair_radius,
+      " refresh_uniform=", memory.refresh_uniform ? "true" : "false",
       " kmeans_max_iterations=", memory.kmeans_max_iterations,
       " seed=", memory.seed, " segment_size=", config.engine.segment_size,
       " max_traces_per_upload=", config.engine.max_traces_per_upload,

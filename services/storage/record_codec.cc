@@ -67,6 +67,7 @@ void ToRecord(const engine::FleetSettings& settings, StoredSettings* out) {
   out->set_seed(memory.seed);
   out->set_forgetting_exact_below(memory.forgetting_exact_below);
   out->set_refresh_pair_radius(memory.refresh_pair_radius);
+  out->set_refresh_uniform(memory.refresh_uniform);
   out->set_max_age_seconds(settings.max_age_seconds);
   out->set_max_traces_per_robot(settings.max_traces_per_robot);
   out->set_index_kind(static_cast<int32_t>(settings.index.kind));
@@ -110,6 +111,7 @@ engine::FleetSettings FromRecord(const StoredSettings& stored) {
   memory.seed = stored.seed();
   memory.forgetting_exact_below = stored.forgetting_exact_below();
   memory.refresh_pair_radius = stored.refresh_pair_radius();
+  memory.refresh_uniform = stored.refresh_uniform();
   settings.max_age_seconds = stored.max_age_seconds();
   settings.max_traces_per_robot = stored.max_traces_per_robot();
   // A kind this version does not know: the server's index.
@@ -291,6 +293,7 @@ struct ToLoggedRecord {
     if (u.refresh_pair_radius) {
       update->set_refresh_pair_radius(*u.refresh_pair_radius);
     }
+    if (u.refresh_uniform) update->set_refresh_uniform(*u.refresh_uniform);
     if (u.max_age_seconds) update->set_max_age_seconds(*u.max_age_seconds);
     if (u.max_traces_per_robot) {
       update->set_max_traces_per_robot(*u.max_traces_per_robot);
@@ -342,6 +345,9 @@ engine::UpdateFleetRecord FromLogged(const LoggedUpdateFleet& logged) {
   }
   if (logged.has_refresh_pair_radius()) {
     u.refresh_pair_radius = logged.refresh_pair_radius();
+  }
+  if (logged.has_refresh_uniform()) {
+    u.refresh_uniform = logged.refresh_uniform();
   }
   if (logged.has_max_age_seconds()) {
     u.max_age_seconds = logged.max_age_seconds();

@@ -267,6 +267,9 @@ engine::CreateFleetRecord CreateFleetFromProto(
   if (settings.has_refresh_pair_radius()) {
     memory.refresh_pair_radius = settings.refresh_pair_radius();
   }
+  if (settings.has_refresh_uniform()) {
+    memory.refresh_uniform = settings.refresh_uniform();
+  }
   create.settings.max_age_seconds = static_cast<int64_t>(
       std::min<uint64_t>(settings.max_age_seconds(), INT64_MAX));
   create.settings.max_traces_per_robot = settings.max_traces_per_robot();
@@ -330,6 +333,9 @@ absl::StatusOr<engine::FleetSettingsUpdate> FleetUpdateFromProto(
   if (settings.has_refresh_pair_radius()) {
     update.refresh_pair_radius = settings.refresh_pair_radius();
   }
+  if (settings.has_refresh_uniform()) {
+    update.refresh_uniform = settings.refresh_uniform();
+  }
   if (settings.has_max_age_seconds()) {
     update.max_age_seconds = static_cast<int64_t>(
         std::min<uint64_t>(settings.max_age_seconds(), INT64_MAX));
@@ -355,6 +361,7 @@ void FleetSettingsToProto(const engine::FleetInfo& info,
   out->set_forgetting(memory.merge_on_forget ? v1::FORGETTING_RULE_MERGE
                                              : v1::FORGETTING_RULE_DROP);
   out->set_refresh_pair_radius(memory.refresh_pair_radius);
+  out->set_refresh_uniform(memory.refresh_uniform);
   out->set_max_age_seconds(static_cast<uint64_t>(
       std::max<int64_t>(0, info.settings.max_age_seconds)));
   out->set_max_traces_per_robot(info.settings.max_traces_per_robot);

@@ -7,7 +7,9 @@ Every system row scores ROBOTS x FRAMES winter queries (the learned head on
 its peers' frames: ROBOTS - 1 times as many): its recalls are counts over them (multiples of 1/queries), recall@1 <= recall@5, WR lies
 between what recall@1 and recall@5 allow; the baseline and the learned row
 search every summer frame (traces held = queries); the fleet memory row's
-recall@1 and WR are the frame-weighted means of the per-robot rows.
+recall@1 and WR are the frame-weighted means of the per-robot rows. The
+fleet memory, the baseline and the learned rows come each also over
+sequences (fleetmem-robot --sequence).
 Exits 1 with the failed checks.
 """
 import sys
@@ -42,7 +44,12 @@ def main():
     check(any(n.startswith("fleet memory") for n in names), "no fleet memory row")
     check(any(n.startswith("all traces") for n in names), "no baseline row")
     learned = [n for n in names if n.startswith("HOG + metric head learned")]
-    check(len(learned) == 2, "want the learned head's two rows: %s" % names)
+    check(len(learned) == 4,
+          "want the learned head's two rows, each also over sequences: %s" % names)
+    sequences = [n for n in names if "sequences of" in n]
+    check(len(sequences) == 4,
+          "want sequence rows of the fleet memory, the baseline and the two learned: %s"
+          % names)
     for name, r in systems.items():
         r1, r5, wr = float(r[1]), float(r[2]), float(r[3])
         # Each robot's head scores every peer's winter frames.

@@ -36,8 +36,8 @@ import sys
 SMOKE_PLACES = 48  # 3 areas of 16 places, every 4th held out: 4 queries each
 METHODS = ["classical", "classical_seq", "joint", "joint_seq", "finetune", "bioslam",
            "bioslam_drop", "bioslam_iw", "bioslam_rescore", "bioslam_seq",
-           "bioslam_pairs", "pairs_uniform", "uniform_replay", "uniform_seq", "no_rex", "no_rin", "no_clustering", "no_decay",
-           "fleet_shared", "gpl_pretrained", "gpl_joint", "gpl_e2e_joint",
+           "bioslam_pairs", "pairs_uniform", "fleet_uniform", "uniform_replay", "uniform_seq", "no_rex", "no_rin", "no_clustering", "no_decay",
+           "fleet_shared", "fleet_shared_pairs", "gpl_pretrained", "gpl_joint", "gpl_e2e_joint",
            "gpl_finetune",
            "gpl_bioslam", "gpl_bioslam_decoded"]
 STATIC = ["classical", "classical_seq", "joint", "joint_seq", "gpl_pretrained", "gpl_joint",
@@ -99,7 +99,7 @@ def main():
         wr[(r["method"], int(r["seed"]), int(r["after_domain"]),
             int(r["area"]))] = float(r["wr"])
     for m in METHODS:
-        if m == "fleet_shared":  # reports per robot (fleet.csv)
+        if m.startswith("fleet_shared"):  # reports per robot (fleet.csv)
             continue
         seeds = sorted({k[1] for k in wr if k[0] == m})
         assert seeds, m
@@ -133,7 +133,17 @@ def main():
     with open(os.path.join(out, "curves.png"), "rb") as f:
         assert f.read(4) == b"\x89PNG", "curves.png is not a PNG"
     with open(os.path.join(out, "fleet.csv")) as f:
-        assert len(f.readlines()) >= 3, "fleet.csv should have 2 robot rows a seed"
+        fleet = list(csv.DictReader(f))
+    for m in ("fleet_shared", "fleet_shared_pairs"):
+        assert len([r for r in fleet if r["method"] == m]) >= 2, (
+            "fleet.csv should have 2 robot rows a seed", m)
+    with open(os.path.join(out, "warm_start.csv")) as f:
+        warm = list(csv.DictReader(f))
+    assert warm, "warm_start.csv should have a row per shared method and seed"
+    for r in warm:
+        for k in ("hog", "warm_start", "warm_first_segment", "cold_first_segment",
+                  "alone_first_segment"):
+            assert 0 <= float(r[k]) <= 1, (r, k)
     for m in ["chance"] + METHODS:
         print(f"{m:20s} WR final {summary[m]['wr_final']}, AE {summary[m]['ae']}, "
               f"RA {summary[m]['ra']}")

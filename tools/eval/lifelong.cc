@@ -185,8 +185,10 @@ struct MethodSpec {
   // whole (bioslam_drop: the paper's Algorithm 2).
   bool merge = true;
   // bioslam_pairs, pairs_uniform: the fleet refreshes with the pair-keeping
-  // draw (core/pair_draw.h) within the positive radius instead of Eq. 18's.
+  // draw (core/pair_draw.h) within the positive radius instead of Eq. 18's;
+  // pairs_uniform: its anchors with weight 1 (the fleet's refresh_uniform).
   bool pairs = false;
+  bool uniform_refresh = false;
   RewardMode rewards = RewardMode::kFull;
   ReplayInput replay_input = ReplayInput::kCode;
   // bioslam_iw: the metric head weighs remembered traces by 1 / R
@@ -199,6 +201,12 @@ struct MethodSpec {
   // (UpdateRewards), as fleetmem-robot --rescore does.
   bool rescore = false;
 };
+
+// fleet_shared and fleet_shared_pairs: two robots in one fleet
+// (RunFleetShared), reported per robot.
+bool IsShared(const MethodSpec& spec) {
+  return spec.name.starts_with("fleet_shared");
+}
 
 // Report order. bioslam runs before uniform_replay, whose trace budget is
 // bioslam's (the same seed's memory, segment by segment).
@@ -225,12 +233,16 @@ std::vector<MethodSpec> Specs() {
       {.name = "bioslam_seq", .sequence = true, .memory = M::kFleet});
   specs.push_back(
       {.name = "bioslam_pairs", .memory = M::kFleet, .pairs = true});
-  // Its ablation: anchors drawn uniformly (no gamma^n R), still in pairs.
+  // The same with the anchors drawn uniformly (the fleet's
+  // refresh_uniform), the robots' rewards as bioslam's.
   specs.push_back({.name = "pairs_uniform",
                    .memory = M::kFleet,
-                   .decay = false,
                    .pairs = true,
-                   .rewards = RewardMode::kUniform});
+                   .uniform_refresh = true});
+  // And uniform refresh from the fleet's memory without pairs: what the
+  // pairs add to it.
+  specs.push_back(
+      {.name = "fleet_uniform", .memory = M::kFleet, .uniform_refresh = true});
   specs.push_back({.name = "uniform_replay",
                    .memory = M::kReservoir,
                    .clustering = false,
@@ -252,6 +264,11 @@ std::vector<MethodSpec> Specs() {
       {.name = "no_clustering", .memory = M::kFleet, .clustering = false});
   specs.push_back({.name = "no_decay", .memory = M::kFleet, .decay = false});
   specs.push_back({.name = "fleet_shared", .memory = M::kFleet});
+  // fleet_shared with the pair-keeping, uniform refresh (pairs_uniform's).
+  specs.push_back({.name = "fleet_shared_pairs",
+                   .memory = M::kFleet,
+                   .pairs = true,
+                   .uniform_refresh = true});
   specs.push_back(
       {.name = "gpl_pretrained", .learner = L::kGpl, .learn = false});
   specs.push_back({.name = "gpl_joint", .learner = L::kGpl, .offline = true});
@@ -299,8 +316,6 @@ struct Context {
   // Traces recalled from the fleet memory per new observation (0 = none).
   uint32_t recall_per_observation = 4;
   std::string server_binary;
-  // [clustering][decay][merge][pairs]
-  std::string config_file[2][2][2][2];
   // bioslam's static memory after each segment: uniform_replay's budget.
   std::vector<uint64_t> bioslam_traces;
 
@@ -661,6 +676,31 @@ std::vector<std::vector<size_t>> Segments(const std::vector<size_t>& indices,
   return out;
 }
 
+// The server configuration of `spec`'s memory (clustering, decay, the
+// forgetting rule, the refresh draw) for this seed, written at each start.
+absl::StatusOr<std::string> ConfigFile(const Context& ctx,
+                                       const MethodSpec& spec) {
+  const std::string path =
+      absl::StrFormat("%s/server-c%d-d%d-m%d-p%d-u%d-seed%d.textproto",
+                      ctx.options->out_dir, spec.clustering, spec.decay,
+                      spec.merge, spec.pairs, spec.uniform_refresh, ctx.seed);
+  absl::Status s = files::WriteFile(
+      path,
+      absl::StrFormat("log_level: \"warning\"\nmemory {\n  clustering: %s\n"
+                      "  replay_decay: %s\n  merge_on_forget: %s\n  seed: %d\n"
+                      "  refresh_pair_radius: %g\n  refresh_uniform: %s\n%s}\n",
+                      spec.clustering ? "true" : "false",
+                      spec.decay ? "0.9" : "1", spec.merge ? "true" : "false",
+                      ctx.seed, spec.pairs ? ctx.mining.positive_radius : 0.0,
+                      spec.uniform_refresh ? "true" : "false",
+                      ctx.options->spatial_scale > 0
+                          ? absl::StrFormat("  spatial_scale_m: %g\n",
+                                            ctx.options->spatial_scale)
+                          : ""));
+  if (!s.ok()) return s;
+  return path;
+}
+
 // A server child with the method's memory configuration.
 absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
     Context& ctx, const MethodSpec& spec) {
@@ -675,8 +715,9 @@ absl::StatusOr<std::unique_ptr<ServerChild>> StartServer(
   process::ServerOptions options;
   options.binary = ctx.server_binary;
   options.data_dir = dir + "/data";
-  options.config_file =
-      ctx.config_file[spec.clustering][spec.decay][spec.merge][spec.pairs];
+  absl::StatusOr<std::string> config = ConfigFile(ctx, spec);
+  if (!config.ok()) return config.status();
+  options.config_file = *config;
   options.log_file = dir + "/server.log";
   auto server = std::make_unique<ServerChild>(options);
   absl::Status started = server->Start();
@@ -914,6 +955,7 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
 // segments interleaved, through one fleet memory; each is compared with
 // itself driving alone (a fleet of its own) on the area only the peer drove.
 struct FleetRow {
+  std::string method;
   uint64_t seed = 0;
   std::string robot;
   int own_area = 0, peer_area = 0;
@@ -939,6 +981,7 @@ absl::Status EvaluateRobot(Context& ctx, const MethodSpec& spec,
 // of its own ("alone"). The cold robot's segment reaches the fleet after
 // the warm one's (each uploads its own traces under its own id).
 struct WarmRow {
+  std::string method;
   uint64_t seed = 0;
   double hog = 0, warm = 0, warm_first_segment = 0, cold_first_segment = 0,
          alone_first_segment = 0;
@@ -952,6 +995,7 @@ absl::StatusOr<WarmRow> RunWarmStart(Context& ctx, const MethodSpec& spec,
     return (s[0].wr + s[1].wr) / 2;
   };
   WarmRow row;
+  row.method = spec.name;
   row.seed = ctx.seed;
   absl::StatusOr<std::vector<Score>> hog =
       Evaluate(ctx, ctx.hog, nullptr, spec.sequence);
@@ -1067,6 +1111,7 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
   for (int k = 0; k < 2; ++k) {
     const int p = 1 - k;
     FleetRow row;
+    row.method = spec.name;
     row.seed = ctx.seed;
     row.robot = shared[k].id;
     row.own_area = areas[k] + 1;
@@ -1091,36 +1136,6 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
   result.summary.ra = peer_sum / 2;
   result.seconds = Seconds(start);
   return result;
-}
-
-absl::Status WriteConfigs(Context& ctx) {
-  for (int clustering = 0; clustering < 2; ++clustering) {
-    for (int decay = 0; decay < 2; ++decay) {
-      for (int merge = 0; merge < 2; ++merge) {
-        for (int pairs = 0; pairs < 2; ++pairs) {
-          const std::string path = absl::StrFormat(
-              "%s/server-c%d-d%d-m%d-p%d-seed%d.textproto",
-              ctx.options->out_dir, clustering, decay, merge, pairs, ctx.seed);
-          absl::Status s = files::WriteFile(
-              path,
-              absl::StrFormat(
-                  "log_level: \"warning\"\nmemory {\n  clustering: %s\n"
-                  "  replay_decay: %s\n  merge_on_forget: %s\n  seed: %d\n"
-                  "  refresh_pair_radius: %g\n%s}\n",
-                  clustering ? "true" : "false", decay ? "0.9" : "1",
-                  merge ? "true" : "false", ctx.seed,
-                  pairs ? ctx.mining.positive_radius : 0.0,
-                  ctx.options->spatial_scale > 0
-                      ? absl::StrFormat("  spatial_scale_m: %g\n",
-                                        ctx.options->spatial_scale)
-                      : ""));
-          if (!s.ok()) return s;
-          ctx.config_file[clustering][decay][merge][pairs] = path;
-        }
-      }
-    }
-  }
-  return absl::OkStatus();
 }
 
 // Mean and sample standard deviation.
@@ -1200,13 +1215,13 @@ std::string PlotBlock(const Aggregate& a) {
 // peer's.
 std::string FleetCsv(const std::vector<FleetRow>& fleet) {
   std::string csv =
-      "seed,robot,own_area,own_wr,peer_area,peer_wr_shared,peer_wr_alone,"
-      "peer_own_wr,ratio_to_peer\n";
+      "method,seed,robot,own_area,own_wr,peer_area,peer_wr_shared,"
+      "peer_wr_alone,peer_own_wr,ratio_to_peer\n";
   for (const FleetRow& f : fleet) {
-    csv += absl::StrFormat("%d,%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f\n", f.seed,
-                           f.robot, f.own_area, f.own_wr, f.peer_area,
-                           f.peer_wr_shared, f.peer_wr_alone, f.peer_own_wr,
-                           f.peer_wr_shared / std::max(1e-9, f.peer_own_wr));
+    csv += absl::StrFormat(
+        "%s,%d,%s,%d,%.4f,%d,%.4f,%.4f,%.4f,%.4f\n", f.method, f.seed, f.robot,
+        f.own_area, f.own_wr, f.peer_area, f.peer_wr_shared, f.peer_wr_alone,
+        f.peer_own_wr, f.peer_wr_shared / std::max(1e-9, f.peer_own_wr));
   }
   return csv;
 }
@@ -1214,12 +1229,12 @@ std::string FleetCsv(const std::vector<FleetRow>& fleet) {
 // warm_start.csv: the new robot's WR on its peers' areas (RunWarmStart).
 std::string WarmCsv(const std::vector<WarmRow>& rows) {
   std::string csv =
-      "seed,hog,warm_start,warm_first_segment,cold_first_segment,"
+      "method,seed,hog,warm_start,warm_first_segment,cold_first_segment,"
       "alone_first_segment\n";
   for (const WarmRow& w : rows) {
-    csv += absl::StrFormat("%d,%.4f,%.4f,%.4f,%.4f,%.4f\n", w.seed, w.hog,
-                           w.warm, w.warm_first_segment, w.cold_first_segment,
-                           w.alone_first_segment);
+    csv += absl::StrFormat("%s,%d,%.4f,%.4f,%.4f,%.4f,%.4f\n", w.method, w.seed,
+                           w.hog, w.warm, w.warm_first_segment,
+                           w.cold_first_segment, w.alone_first_segment);
   }
   return csv;
 }
@@ -1306,7 +1321,7 @@ absl::Status WriteOutputs(
         a.seeds, pm(a.wr_final, a.seeds), pm(a.ae, a.seeds), pm(a.ra, a.seeds),
         a.wr.empty() ? "-" : pm(a.unseen, a.seeds), a.seconds, a.collapses);
     for (const MethodResult& r : it->second) {
-      if (spec.memory != MemoryKind::kNone && spec.name != "fleet_shared") {
+      if (spec.memory != MemoryKind::kNone && !IsShared(spec)) {
         memory += absl::StrFormat("%s,%d,%d,%d\n", r.name, r.seed,
                                   r.peak_traces, r.final_traces);
       }
@@ -1449,7 +1464,6 @@ absl::Status RunLifelong(const LifelongOptions& options) {
     // negatives beyond 10 files.
     ctx.mining.positive_radius = lifelong::kTolerance * data->spacing;
     ctx.mining.negative_radius = 10 * data->spacing;
-    if (absl::Status s = WriteConfigs(ctx); !s.ok()) return s;
     absl::StatusOr<CodeSet> hog = HogCodes(*data, ctx.seed);
     if (!hog.ok()) return hog.status();
     ctx.hog = *std::move(hog);
@@ -1460,8 +1474,8 @@ absl::Status RunLifelong(const LifelongOptions& options) {
       Progress(absl::StrFormat("[%s seed %d] start (%.0f s into the run)",
                                spec.name, ctx.seed, Seconds(start)));
       absl::StatusOr<MethodResult> r =
-          spec.name == "fleet_shared" ? RunFleetShared(ctx, spec, &fleet, &warm)
-                                      : RunSingleRobot(ctx, spec);
+          IsShared(spec) ? RunFleetShared(ctx, spec, &fleet, &warm)
+                         : RunSingleRobot(ctx, spec);
       if (!r.ok()) {
         return absl::Status(r.status().code(),
                             absl::StrCat("method ", spec.name, ", seed ",

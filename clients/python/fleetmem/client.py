@@ -391,7 +391,7 @@ class Client:
     # ---- fleets -------------------------------------------------------
     _SETTINGS = ("clusters_per_segment", "max_traces_per_cluster", "max_clusters",
                  "replay_decay", "max_age_seconds", "max_traces_per_robot",
-                 "refresh_pair_radius")
+                 "refresh_pair_radius", "refresh_uniform")
 
     @classmethod
     def _settings(cls, forgetting: Optional[str], given: dict) -> pb.FleetSettings:
@@ -403,6 +403,10 @@ class Client:
                 continue
             if name in ("replay_decay", "refresh_pair_radius"):
                 setattr(settings, name, float(value))
+            elif name == "refresh_uniform":
+                if not isinstance(value, bool):
+                    raise ValueError(f"refresh_uniform: want True or False, got {value!r}")
+                settings.refresh_uniform = value
             elif not isinstance(value, (int, np.integer)) or value < 0:
                 raise ValueError(f"{name}: want a non-negative integer, got {value!r}")
             else:
@@ -421,7 +425,8 @@ class Client:
         """Admin: makes `fleet` with its own settings (keyword arguments
         clusters_per_segment, max_traces_per_cluster, max_clusters,
         replay_decay, max_age_seconds, max_traces_per_robot,
-        refresh_pair_radius (above 0: the pair-keeping refresh); forgetting
+        refresh_pair_radius (above 0: the pair-keeping refresh),
+        refresh_uniform (weight 1 instead of gamma^n R); forgetting
         'merge' or 'drop'; index 'exact', 'hnsw' or 'auto' with HNSW's
         hnsw_m and hnsw_ef_search, fixed at creation; the server's for those
         not given). Returns every setting as made. ALREADY_EXISTS if the

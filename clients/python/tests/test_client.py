@@ -274,7 +274,7 @@ def test_two_fleets_with_their_own_settings(server, cli):
         assert wrong.value.status == "INVALID_ARGUMENT"
 
         after = fm.update_fleet("camera", max_clusters=10, replay_decay=0.5,
-                                refresh_pair_radius=20)
+                                refresh_pair_radius=20, refresh_uniform=True)
         assert (after.max_clusters, after.replay_decay, after.code_dimension) == (10, 0.5, 64)
         assert after.refresh_pair_radius == 20.0 and laser.settings.refresh_pair_radius == 0
         assert fm.get_fleet("camera").own_settings
@@ -286,7 +286,9 @@ def test_two_fleets_with_their_own_settings(server, cli):
         out = cli("--server", server.address, "fleet", "--fleet", "laser")
         assert "clusters (K_max)" in out and "drop" in out
         out = cli("--server", server.address, "fleet", "--fleet", "camera")
-        assert "pairs within 20" in out
+        assert "uniform, pairs within 20" in out
+        with pytest.raises(ValueError):
+            fm.update_fleet("camera", refresh_uniform=1)
     server.stop()
     server.start()
     with fleetmem.Client(server.address) as fm:

@@ -288,7 +288,8 @@ function renderSettings(fleet) {
     ` · K ${fmt(s.clustersPerSegment)} · N_max ${fmt(s.maxTracesPerCluster)}` +
     ` · K_max ${fmt(s.maxClusters)} · γ ${s.replayDecay}` +
     ` · forgetting ${s.forgetting === 'FORGETTING_RULE_DROP' ? 'drops' : 'merges'}` +
-    ` · refresh ${num(s.refreshPairRadius) > 0 ? `keeps pairs within ${s.refreshPairRadius}` : 'by γⁿR'}` +
+    ` · refresh ${s.refreshUniform ? 'uniform' : 'by γⁿR'}` +
+    (num(s.refreshPairRadius) > 0 ? `, in pairs within ${s.refreshPairRadius}` : '') +
     ` · retention: ${retention.length ? retention.join(', ') : 'none'}`;
 }
 
