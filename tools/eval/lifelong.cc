@@ -243,6 +243,14 @@ std::vector<MethodSpec> Specs() {
   // pairs add to it.
   specs.push_back(
       {.name = "fleet_uniform", .memory = M::kFleet, .uniform_refresh = true});
+  // Pairs with every reward flat: R = 1 for every trace (the robots'
+  // rewards off, so consolidation's downsampling and forgetting do not
+  // favour hard traces either) and gamma = 1.
+  specs.push_back({.name = "pairs_flat_rewards",
+                   .memory = M::kFleet,
+                   .decay = false,
+                   .pairs = true,
+                   .rewards = RewardMode::kUniform});
   specs.push_back({.name = "uniform_replay",
                    .memory = M::kReservoir,
                    .clustering = false,
@@ -264,11 +272,9 @@ std::vector<MethodSpec> Specs() {
       {.name = "no_clustering", .memory = M::kFleet, .clustering = false});
   specs.push_back({.name = "no_decay", .memory = M::kFleet, .decay = false});
   specs.push_back({.name = "fleet_shared", .memory = M::kFleet});
-  // fleet_shared with the pair-keeping, uniform refresh (pairs_uniform's).
-  specs.push_back({.name = "fleet_shared_pairs",
-                   .memory = M::kFleet,
-                   .pairs = true,
-                   .uniform_refresh = true});
+  // fleet_shared with the pair-keeping refresh (bioslam_pairs's rule).
+  specs.push_back(
+      {.name = "fleet_shared_pairs", .memory = M::kFleet, .pairs = true});
   specs.push_back(
       {.name = "gpl_pretrained", .learner = L::kGpl, .learn = false});
   specs.push_back({.name = "gpl_joint", .learner = L::kGpl, .offline = true});

@@ -192,7 +192,7 @@ absl::Status Agent::Run(const std::atomic<bool>& stop) {
   // A new robot learns from its peers' traces before its first frame; its
   // learner failing stops it as at a segment's end.
   if (learner_ != nullptr && options_.warm_start &&
-      store_->state().observations() == 0 && memory_.size() > 0) {
+      store_->state().observations() == 0 && DomainCount(memory_) >= 2) {
     absl::StatusOr<std::string> warmed = WarmStart(*learner_, memory_);
     if (warmed.ok()) {
       Log(absl::StrCat("warm start from the ", memory_.size(),

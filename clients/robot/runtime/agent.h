@@ -107,7 +107,8 @@ struct AgentOptions {
   // Traces asked of the fleet per refresh (Eq. 18); 0 = the capacity of M_D.
   uint32_t refresh_count = 0;
   // A new robot with a learner (nothing observed yet) fits it on its first
-  // refresh before its first observation (WarmStart in segment_step.h).
+  // refresh before its first observation when that brought two domains or
+  // more (WarmStart in segment_step.h).
   bool warm_start = true;
   // Traces per upload call.
   size_t upload_batch = 200;

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <set>
+#include <string_view>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -132,12 +133,20 @@ absl::StatusOr<SegmentStepResult> RunSegmentStep(
   return result;
 }
 
+size_t DomainCount(const DynamicMemory& memory) {
+  std::set<std::string_view> domains;
+  for (const ReplayEntry& entry : memory.entries()) {
+    domains.insert(entry.trace.domain);
+  }
+  return domains.size();
+}
+
 absl::StatusOr<std::string> WarmStart(Learner& learner,
                                       const DynamicMemory& memory) {
-  if (memory.size() == 0) {
-    return absl::FailedPreconditionError(
-        "no warm start: the dynamic memory is empty (the fleet held nothing "
-        "for this robot yet)");
+  if (const size_t domains = DomainCount(memory); domains < 2) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "no warm start: the dynamic memory holds ", memory.size(),
+        " traces of ", domains, " domain(s); the head needs two to pair"));
   }
   std::vector<core::MemoryTrace> remembered;
   remembered.reserve(memory.size());

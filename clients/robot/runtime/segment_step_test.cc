@@ -244,3 +244,33 @@ TEST_F(SegmentStepTest, WithoutALearnerRexIsTheTripletLossInCodeSpace) {
 
 }  // namespace
 }  // namespace fleetmem::robot
+
+namespace fleetmem::robot {
+namespace {
+
+// The warm start learns from all of M_D, with no segment, once it holds two
+// domains; with one it refuses and the learner is not called.
+TEST(WarmStartTest, LearnsFromTheWholeMemoryOnceItHoldsTwoDomains) {
+  DynamicMemory memory("robot-c", DynamicMemoryOptions{});
+  FixedLearner learner;
+  EXPECT_TRUE(absl::IsFailedPrecondition(WarmStart(learner, memory).status()));
+  memory.Refresh(
+      {Trace("robot-a", 1, 0, {1, 0}), Trace("robot-a", 2, 10, {0, 1})});
+  EXPECT_EQ(DomainCount(memory), 1u);
+  EXPECT_TRUE(absl::IsFailedPrecondition(WarmStart(learner, memory).status()));
+  EXPECT_TRUE(learner.remembered.empty());
+  core::MemoryTrace summer = Trace("robot-b", 3, 0, {1, 1});
+  summer.domain = "summer";
+  memory.Refresh({Trace("robot-a", 1, 0, {1, 0}),
+                  Trace("robot-a", 2, 10, {0, 1}), summer});
+  EXPECT_EQ(DomainCount(memory), 2u);
+  absl::StatusOr<std::string> warmed = WarmStart(learner, memory);
+  ASSERT_TRUE(warmed.ok()) << warmed.status();
+  EXPECT_EQ(*warmed, "fixed");
+  EXPECT_EQ(learner.segment_size, 0u);
+  EXPECT_EQ(learner.replayed_size, 0u);
+  EXPECT_EQ(learner.remembered.size(), memory.size());
+}
+
+}  // namespace
+}  // namespace fleetmem::robot
