@@ -20,6 +20,7 @@
 #include "grpcpp/create_channel.h"
 #include "grpcpp/support/channel_arguments.h"
 #include "gtest/gtest.h"
+#include "services/common/sanitizers.h"
 #include "tests/api_helpers.h"
 #include "tests/security_helpers.h"
 #include "tests/server_process.h"
@@ -325,8 +326,9 @@ grpc::StatusCode StatsWithToken(v1::MemoryService::Stub& stub,
 // rationed per name). Eight attackers, each on its own connection, send
 // robot-7's name with a new wrong secret at 100 calls a second in all,
 // before and after a restart: robot-7's calls (on its connection) are
-// never refused, and their p99 stays under 50 ms (its first call after the
-// restart pays its one Argon2id check). FLEETMEM_FLOOD_SECONDS per phase (3).
+// never refused, and the p99 of its calls after its first (which pays the
+// token's one Argon2id check) stays under 50 ms (80 under a sanitizer).
+// FLEETMEM_FLOOD_SECONDS per phase (3).
 TEST_F(AuthTest, WrongSecretsUnderTheRobotsNameNeverLockItOut) {
   ASSERT_NO_FATAL_FAILURE(Start());
   for (const bool restarted : {false, true}) {
@@ -364,7 +366,11 @@ TEST_F(AuthTest, WrongSecretsUnderTheRobotsNameNeverLockItOut) {
               << " ms\n";
     EXPECT_EQ(flood.robot_refused, 0);
     EXPECT_EQ(flood.wrong_refused, flood.wrong_calls);
-    EXPECT_LT(flood.Percentile(0.99), 50.0);
+    // A call queued behind one attacker's check waits an Argon2id hash
+    // (~100 ms; libsodium is not instrumented): 80 ms under a sanitizer,
+    // whose server answers a cached call slower (p99 34 ms in CI's run).
+    EXPECT_LT(flood.Percentile(0.99),
+              common::kSanitizerAllocator ? 80.0 : 50.0);
   }
 }
 

@@ -38,7 +38,7 @@ METHODS = ["classical", "classical_seq", "joint", "joint_seq", "finetune", "bios
            "bioslam_drop", "bioslam_iw", "bioslam_rescore", "bioslam_seq",
            "bioslam_pairs", "pairs_uniform", "fleet_uniform", "pairs_flat_rewards",
            "uniform_replay", "uniform_seq", "no_rex", "no_rin", "no_clustering", "no_decay",
-           "fleet_shared", "fleet_shared_pairs", "gpl_pretrained", "gpl_joint", "gpl_e2e_joint",
+           "fleet_shared", "fleet_shared_pairs", "fleet_shared_flat", "gpl_pretrained", "gpl_joint", "gpl_e2e_joint",
            "gpl_finetune",
            "gpl_bioslam", "gpl_bioslam_decoded"]
 STATIC = ["classical", "classical_seq", "joint", "joint_seq", "gpl_pretrained", "gpl_joint",
@@ -135,7 +135,7 @@ def main():
         assert f.read(4) == b"\x89PNG", "curves.png is not a PNG"
     with open(os.path.join(out, "fleet.csv")) as f:
         fleet = list(csv.DictReader(f))
-    for m in ("fleet_shared", "fleet_shared_pairs"):
+    for m in ("fleet_shared", "fleet_shared_pairs", "fleet_shared_flat"):
         assert len([r for r in fleet if r["method"] == m]) >= 2, (
             "fleet.csv should have 2 robot rows a seed", m)
     with open(os.path.join(out, "warm_start.csv")) as f:

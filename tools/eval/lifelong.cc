@@ -202,7 +202,7 @@ struct MethodSpec {
   bool rescore = false;
 };
 
-// fleet_shared and fleet_shared_pairs: two robots in one fleet
+// fleet_shared, fleet_shared_pairs, fleet_shared_flat: two robots in one fleet
 // (RunFleetShared), reported per robot.
 bool IsShared(const MethodSpec& spec) {
   return spec.name.starts_with("fleet_shared");
@@ -275,6 +275,12 @@ std::vector<MethodSpec> Specs() {
   // fleet_shared with the pair-keeping refresh (bioslam_pairs's rule).
   specs.push_back(
       {.name = "fleet_shared_pairs", .memory = M::kFleet, .pairs = true});
+  // ... and with pairs_flat_rewards's.
+  specs.push_back({.name = "fleet_shared_flat",
+                   .memory = M::kFleet,
+                   .decay = false,
+                   .pairs = true,
+                   .rewards = RewardMode::kUniform});
   specs.push_back(
       {.name = "gpl_pretrained", .learner = L::kGpl, .learn = false});
   specs.push_back({.name = "gpl_joint", .learner = L::kGpl, .offline = true});

@@ -63,6 +63,7 @@ struct Flags {
   std::string gpl_model;
   bool learn = false;
   bool rescore = false;
+  std::string rewards = "full";
   std::string migrate_from;
   int learn_steps = 60;
   int torch_threads = 2;
@@ -144,6 +145,13 @@ void AddFlags(CLI::App& app, Flags& flags) {
                "with --learn: after each segment, re-score the robot's own "
                "remembered traces under the new head and send their R_ex to "
                "the fleet (UpdateRewards), so refreshes draw with it");
+  app.add_option("--rewards", flags.rewards,
+                 "the R of each trace: full (R_ex + R_in, Eq. 13) or flat "
+                 "(R = 1: with --gamma 1 and a fleet made with --refresh-pairs "
+                 "and --replay-decay 1, the memory rule that measured best "
+                 "for the learned head; docs/results.md)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"full", "flat"}));
   app.add_option("--migrate-from", flags.migrate_from,
                  "encoder migration: DATA_DIR belongs to this fleet (or "
                  "alias); before observing, re-encode with --encoder what it "
@@ -665,6 +673,9 @@ fleetmem::robot::AgentOptions MakeAgentOptions(const Flags& flags,
   options.step.replay_per_segment = flags.replay_per_segment;
   options.step.recall_per_observation = flags.recall_per_observation;
   options.step.rescore_remembered = flags.rescore;
+  options.step.rewards = flags.rewards == "flat"
+                             ? fleetmem::robot::RewardMode::kUniform
+                             : fleetmem::robot::RewardMode::kFull;
   options.upload_batch = flags.upload_batch;
   options.drain_timeout = std::chrono::milliseconds(
       static_cast<int64_t>(flags.drain_timeout_s * 1000));
