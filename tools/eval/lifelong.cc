@@ -68,6 +68,9 @@ struct Settings {
   size_t memory_capacity = 1000;
   // *_seq: the robot's last this many frames.
   int sequence_length = 10;
+  // gpl_bioslam_decoded: remembered traces decoded per part of the pool
+  // (SegmentLearnerOptions::max_decoded_remembered; 0 = all).
+  size_t max_decoded_remembered = 0;
 };
 
 Settings SettingsFor(bool quick) {
@@ -76,7 +79,8 @@ Settings SettingsFor(bool quick) {
                     .end_to_end_steps = 150,
                     .steps_per_segment = 40,
                     .generative_steps = 2,
-                    .seeds = 1};
+                    .seeds = 1,
+                    .max_decoded_remembered = 300};
   return Settings{.pretrain_steps = 300,
                   .end_to_end_steps = 1200,
                   .steps_per_segment = 100,
@@ -524,6 +528,7 @@ robot::gpl::SegmentLearnerOptions GplLearnerOptions(const Context& ctx,
                                         ? ctx.settings.generative_steps
                                         : 0;
   lo.mining = ctx.mining;
+  lo.max_decoded_remembered = ctx.settings.max_decoded_remembered;
   lo.seed = seed;
   return lo;
 }

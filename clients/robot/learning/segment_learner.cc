@@ -53,7 +53,16 @@ absl::StatusOr<SegmentLearner::Pool> SegmentLearner::BuildPool(
     pool.samples.push_back({x.place, x.domain});
     pool.codes.push_back(x.code);
   }
+  std::vector<LearnSample> kept;
   for (std::span<const LearnSample> part : remembered) {
+    const size_t cap = options_.max_decoded_remembered;
+    if (options_.replay_input == ReplayInput::kDecoded && cap > 0 &&
+        part.size() > cap) {
+      kept.clear();
+      for (size_t i = 0; i < cap; ++i)
+        kept.push_back(part[i * part.size() / cap]);
+      part = kept;
+    }
     absl::StatusOr<std::vector<std::vector<float>>> codes =
         RememberedCodes(part);
     if (!codes.ok()) return codes.status();

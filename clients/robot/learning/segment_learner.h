@@ -85,6 +85,12 @@ struct SegmentLearnerOptions {
   // weights (the optimiser's state is kept) and the segment's steps end
   // there. A head never seen healthy trains on.
   bool roll_back_collapse = true;
+  // With replay_input kDecoded, each remembered part of the pool (replayed,
+  // memory) is cut to at most this many traces (every n-th, in order)
+  // before it is decoded and re-encoded; 0 keeps all. Decoding the whole
+  // remembered pool twice a segment was 262 of fleetmem-eval --quick's 723
+  // s: its quick settings cap it (docs/results.md).
+  size_t max_decoded_remembered = 0;
   uint64_t seed = 1;
 };
 
