@@ -454,6 +454,32 @@ TEST_F(RobotIntegrationTest, AWinterRobotRelocalisesOverSequencesOfFrames) {
               HasSubstr("over sequences of 10 r@1"));
 }
 
+// Issue 47: a robot that joins with a learner a fleet holding two seasons
+// fits its head on its first refresh before its first frame, and says so.
+TEST_F(RobotIntegrationTest, ANewLearningRobotWarmStartsFromTwoSeasons) {
+  for (const auto& [robot, source] :
+       {std::pair<std::string, std::string>{"summer-1", kSummer},
+        {"winter-1", "nordland:" + kData + "/nordland/winter"}}) {
+    RobotProcess driver(
+        RobotArgs("f-warm", robot, source, 200, 0.0, dir_.Join(robot)),
+        dir_.Join("robot.log"));
+    ASSERT_NO_FATAL_FAILURE(driver.Start());
+    ASSERT_EQ(driver.Wait(), 0);
+  }
+  EXPECT_EQ(Stats("f-warm", "winter-1").received(), 200u);
+  std::vector<std::string> args =
+      RobotArgs("f-warm", "new-1", kSummer, 20, 0.0, dir_.Join("new-1"));
+  args.insert(args.end(), {"--learn", "--query-only"});
+  RobotProcess joining(args, dir_.Join("new.log"));
+  ASSERT_NO_FATAL_FAILURE(joining.Start());
+  ASSERT_EQ(joining.Wait(), 0);
+  const std::string log = ReadFileOrEmpty(dir_.Join("new.log"));
+  EXPECT_THAT(log, HasSubstr("warm start from the 400 traces of its first "
+                             "refresh"));
+  EXPECT_TRUE(std::filesystem::exists(dir_.Join("new-1/metric-head.bin")))
+      << log;
+}
+
 TEST_F(RobotIntegrationTest, ARefusedUploadStopsTheRobotAndKeepsItsQueue) {
   // The fleet holds HOG codes; a robot with another encoder is refused
   // (FAILED_PRECONDITION / INVALID_ARGUMENT are not retried).
