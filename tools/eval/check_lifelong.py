@@ -34,14 +34,14 @@ import subprocess
 import sys
 
 SMOKE_PLACES = 48  # 3 areas of 16 places, every 4th held out: 4 queries each
-METHODS = ["classical", "classical_seq", "joint", "joint_seq", "finetune", "bioslam",
-           "bioslam_drop", "bioslam_iw", "bioslam_rescore", "bioslam_seq",
+METHODS = ["classical", "classical_seq", "classical_seq_robot", "joint", "joint_seq", "finetune", "bioslam",
+           "bioslam_drop", "bioslam_iw", "bioslam_rescore", "bioslam_seq", "bioslam_seq_robot",
            "bioslam_pairs", "pairs_uniform", "fleet_uniform", "pairs_flat_rewards",
            "uniform_replay", "uniform_seq", "no_rex", "no_rin", "no_clustering", "no_decay",
            "fleet_shared", "fleet_shared_pairs", "fleet_shared_flat", "gpl_pretrained", "gpl_joint", "gpl_e2e_joint",
            "gpl_finetune",
            "gpl_bioslam", "gpl_bioslam_decoded"]
-STATIC = ["classical", "classical_seq", "joint", "joint_seq", "gpl_pretrained", "gpl_joint",
+STATIC = ["classical", "classical_seq", "classical_seq_robot", "joint", "joint_seq", "gpl_pretrained", "gpl_joint",
           "gpl_e2e_joint"]
 DOMAINS, AREAS, TOLERANCE = 6, 3, 2
 TOL = 2e-4  # the files print 4 decimals

@@ -118,6 +118,11 @@ void AddLifelongOverrides(CLI::App* sub,
                   "override: the fleet memory's spatial_scale_m (place "
                   "units that weigh like one unit of code distance; > 0)")
       ->check(CLI::PositiveNumber);
+  sub->add_option("--sequence-candidates", options.sequence_candidates,
+                  "*_seq_robot: map places per frame in the robot's "
+                  "sequence search")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1000));
 }
 
 // pretrain's flags.

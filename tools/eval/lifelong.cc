@@ -7,8 +7,10 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <limits>
 #include <map>
 #include <memory>
+#include <numeric>
 #include <random>
 #include <string>
 #include <utility>
@@ -32,6 +34,7 @@
 #include "clients/robot/sensing/encoder_factory.h"
 #include "clients/robot/sensing/nordland.h"
 #include "clients/robot/sensing/rewards.h"
+#include "clients/robot/sensing/sequence_search.h"
 #include "proto/convert/trace_convert.h"
 #include "services/common/files.h"
 #include "tools/eval/lifelong_protocol.h"
@@ -182,6 +185,10 @@ struct MethodSpec {
   // (SeqSLAM's search, lifelong_protocol.h) on the method's own single-frame
   // similarities: the code's (classical_seq) or the learned head's.
   bool sequence = false;
+  // *_seq_robot: scored instead by the robot's own sequence search
+  // (fleetmem-robot --sequence: RankBySequence over each frame's 20 nearest
+  // map places, sequence_search.h) on the same similarities.
+  bool robot_sequence = false;
   MemoryKind memory = MemoryKind::kNone;
   bool clustering = true;
   bool decay = true;
@@ -223,6 +230,10 @@ std::vector<MethodSpec> Specs() {
                    .learner = L::kNone,
                    .learn = false,
                    .sequence = true});
+  specs.push_back({.name = "classical_seq_robot",
+                   .learner = L::kNone,
+                   .learn = false,
+                   .robot_sequence = true});
   specs.push_back({.name = "joint", .offline = true});
   specs.push_back({.name = "joint_seq", .offline = true, .sequence = true});
   specs.push_back({.name = "finetune"});
@@ -235,6 +246,9 @@ std::vector<MethodSpec> Specs() {
       {.name = "bioslam_rescore", .memory = M::kFleet, .rescore = true});
   specs.push_back(
       {.name = "bioslam_seq", .sequence = true, .memory = M::kFleet});
+  specs.push_back({.name = "bioslam_seq_robot",
+                   .robot_sequence = true,
+                   .memory = M::kFleet});
   specs.push_back(
       {.name = "bioslam_pairs", .memory = M::kFleet, .pairs = true});
   // The same with the anchors drawn uniformly (the fleet's
@@ -765,10 +779,48 @@ std::unique_ptr<client::Client> Connect(const ServerChild& server) {
 // `learner` (or the raw codes when it is null); with `sequence`, their
 // single-frame similarities matched as sequences of the robot's last
 // frames (SequenceSimilarity) before the areas are scored.
+// The robot's sequence search (fleetmem-robot --sequence) on the protocol:
+// every winter frame in route order takes its `candidates` most similar
+// summer places (`similarity` row), the window of its last
+// `length` frames is searched (RankBySequence, the distance travelled
+// between frames from their places, tolerance `radius`), and the row is
+// rewritten so that the re-ranked candidates come first in their new order.
+Eigen::MatrixXf RobotSequenceRows(const Data& data,
+                                  const Eigen::MatrixXf& similarity,
+                                  size_t length, double radius,
+                                  size_t candidates_per_frame) {
+  const Eigen::Index n = similarity.rows(), m = similarity.cols();
+  Eigen::MatrixXf out =
+      Eigen::MatrixXf::Constant(n, m, -std::numeric_limits<float>::max());
+  robot::SequenceWindow window(length);
+  std::vector<Eigen::Index> order(m);
+  for (Eigen::Index q = 0; q < n; ++q) {
+    std::iota(order.begin(), order.end(), Eigen::Index{0});
+    const size_t k = std::min<size_t>(candidates_per_frame, size_t(m));
+    std::partial_sort(order.begin(), order.begin() + k, order.end(),
+                      [&](Eigen::Index a, Eigen::Index b) {
+                        return similarity(q, a) > similarity(q, b);
+                      });
+    std::vector<robot::SequenceCandidate> candidates;
+    for (size_t c = 0; c < k; ++c) {
+      candidates.push_back({.place = data.PlaceOf(size_t(order[c])),
+                            .distance = 1.0f - similarity(q, order[c])});
+    }
+    window.Add(data.PlaceOf(size_t(q)), candidates);
+    const std::vector<size_t> ranked = robot::RankBySequence(
+        window.frames(), {.length = length, .tolerance = radius});
+    for (size_t r = 0; r < ranked.size(); ++r) {
+      out(q, order[ranked[r]]) = float(k - r);
+    }
+  }
+  return out;
+}
+
 absl::StatusOr<std::vector<Score>> Evaluate(const Context& ctx,
                                             const CodeSet& codes,
                                             robot::Learner* learner,
-                                            bool sequence) {
+                                            bool sequence,
+                                            bool robot_sequence = false) {
   Eigen::MatrixXf rows[kSeasons];
   for (int s = 0; s < kSeasons; ++s) {
     if (learner == nullptr) {
@@ -779,9 +831,17 @@ absl::StatusOr<std::vector<Score>> Evaluate(const Context& ctx,
     if (!d.ok()) return d.status();
     rows[s] = lifelong::UnitRows(Matrix(*d));
   }
-  if (!sequence) return lifelong::ScoreAreas(ctx.data->split, rows[0], rows[1]);
-  const Eigen::MatrixXf seq = lifelong::SequenceSimilarity(
-      rows[1] * rows[0].transpose(), ctx.settings.sequence_length);
+  if (!sequence && !robot_sequence) {
+    return lifelong::ScoreAreas(ctx.data->split, rows[0], rows[1]);
+  }
+  const Eigen::MatrixXf seq =
+      robot_sequence
+          ? RobotSequenceRows(*ctx.data, rows[1] * rows[0].transpose(),
+                              size_t(ctx.settings.sequence_length),
+                              ctx.mining.positive_radius,
+                              size_t(ctx.options->sequence_candidates))
+          : lifelong::SequenceSimilarity(rows[1] * rows[0].transpose(),
+                                         ctx.settings.sequence_length);
   std::vector<Score> scores;
   for (int a = 0; a < kAreas; ++a) {
     const std::vector<size_t> places = ctx.data->split.Places(a, true);
@@ -868,7 +928,7 @@ absl::StatusOr<MethodResult> RunStatic(Context& ctx, const MethodSpec& spec) {
     scores = *s;
   } else if (spec.learner == LearnerKind::kNone) {
     absl::StatusOr<std::vector<Score>> s =
-        Evaluate(ctx, codes, nullptr, spec.sequence);
+        Evaluate(ctx, codes, nullptr, spec.sequence, spec.robot_sequence);
     if (!s.ok()) return s.status();
     scores = *s;
   } else {
@@ -906,8 +966,8 @@ absl::StatusOr<MethodResult> RunStatic(Context& ctx, const MethodSpec& spec) {
       Progress(absl::StrFormat("[%s] offline on %d samples: %s", spec.name,
                                all.size(), *report));
     }
-    absl::StatusOr<std::vector<Score>> s =
-        Evaluate(ctx, codes, robot->learner.get(), spec.sequence);
+    absl::StatusOr<std::vector<Score>> s = Evaluate(
+        ctx, codes, robot->learner.get(), spec.sequence, spec.robot_sequence);
     if (!s.ok()) return s.status();
     scores = *s;
   }
@@ -947,7 +1007,8 @@ absl::StatusOr<MethodResult> RunSingleRobot(Context& ctx,
       if (absl::StrContains(robot->last, "COLLAPSED")) ++result.collapses;
     }
     absl::StatusOr<std::vector<Score>> scores =
-        Evaluate(ctx, ctx.CodesOf(spec), robot->learner.get(), spec.sequence);
+        Evaluate(ctx, ctx.CodesOf(spec), robot->learner.get(), spec.sequence,
+                 spec.robot_sequence);
     if (!scores.ok()) return scores.status();
     result.areas.push_back(*scores);
     Progress(absl::StrFormat(

@@ -72,6 +72,9 @@ struct LifelongOptions {
   // Places skipped at the start of the route (the rest is the route): a
   // stretch of the data no setting was tuned on.
   int skip_places = 0;
+  // *_seq_robot: map places each frame takes into the robot's sequence
+  // search (fleetmem-robot's --sequence-candidates).
+  int sequence_candidates = 20;
 };
 
 absl::Status RunLifelong(const LifelongOptions& options);

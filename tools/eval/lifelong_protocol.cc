@@ -47,7 +47,8 @@ Score ScoreQueries(const Eigen::MatrixXf& similarity,
     const Eigen::Index k = std::min<Eigen::Index>(kMaxK, n);
     std::partial_sort(order.begin(), order.begin() + k, order.end(),
                       [&](Eigen::Index a, Eigen::Index b) {
-                        const float sa = similarity(r, a), sb = similarity(r, b);
+                        const float sa = similarity(r, a),
+                                    sb = similarity(r, b);
                         return sa > sb || (sa == sb && a < b);
                       });
     int first = 0;
@@ -70,7 +71,8 @@ std::vector<Score> ScoreAreas(const Split& split, const Eigen::MatrixXf& map,
   for (int a = 0; a < kAreas; ++a) {
     const std::vector<size_t> places = split.Places(a, true);
     Eigen::MatrixXf q(places.size(), queries.cols());
-    for (size_t r = 0; r < places.size(); ++r) q.row(r) = queries.row(places[r]);
+    for (size_t r = 0; r < places.size(); ++r)
+      q.row(r) = queries.row(places[r]);
     scores.push_back(ScoreQueries(q * map.transpose(), places, tolerance));
   }
   return scores;
@@ -116,11 +118,13 @@ Score ChanceScore(const Split& split, int tolerance) {
     ++queries;
     const long correct =
         std::min(n - 1, q + tolerance) - std::max(0L, q - tolerance) + 1;
-    // P(no correct entry in the top k) = prod_{i<k} (n - correct - i) / (n - i).
+    // P(no correct entry in the top k) = prod_{i<k} (n - correct - i) / (n -
+    // i).
     double none = 1.0;
     for (int k = 1; k <= kMaxK; ++k) {
       const long i = k - 1;
-      none *= (n - i > 0) ? std::max(0.0, double(n - correct - i) / (n - i)) : 0;
+      none *=
+          (n - i > 0) ? std::max(0.0, double(n - correct - i) / (n - i)) : 0;
       score.recall[k - 1] += 1.0 - none;
     }
   }
@@ -153,7 +157,8 @@ Summary Summarise(const std::vector<std::vector<Score>>& areas) {
     }
     if (t + 1 < domains && learned_query_areas < kAreas) {
       double later = 0;
-      for (int a = learned_query_areas; a < kAreas; ++a) later += areas[t][a].wr;
+      for (int a = learned_query_areas; a < kAreas; ++a)
+        later += areas[t][a].wr;
       unseen += later / (kAreas - learned_query_areas);
       ++unseen_n;
     }

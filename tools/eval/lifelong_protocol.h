@@ -28,8 +28,8 @@ inline constexpr int kMaxK = 6;
 inline constexpr int kTolerance = 2;
 
 struct Split {
-  std::vector<int> area;        // per place, 0..kAreas-1
-  std::vector<bool> held_out;   // per place
+  std::vector<int> area;       // per place, 0..kAreas-1
+  std::vector<bool> held_out;  // per place
   // Places of `area` that are held out (queries) or trained on, in route
   // order.
   std::vector<size_t> Places(int area, bool held) const;

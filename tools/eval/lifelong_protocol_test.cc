@@ -68,13 +68,12 @@ TEST(LifelongProtocolTest, ChanceLevelByCounting) {
   const Score c = ChanceScore(SplitRoute(12));
   EXPECT_NEAR(c.recall[0], (5 + 5 + 3) / 36.0, 1e-12);
   auto none2 = [](double m) { return (12 - m) * (11 - m) / (12.0 * 11); };
-  EXPECT_NEAR(c.recall[1],
-              1 - (2 * none2(5) + none2(3)) / 3, 1e-12);
-  EXPECT_NEAR(c.wr,
-              0.5 * c.recall[0] + 0.1 * (c.recall[1] + c.recall[2] +
-                                         c.recall[3] + c.recall[4] +
-                                         c.recall[5]),
-              1e-12);
+  EXPECT_NEAR(c.recall[1], 1 - (2 * none2(5) + none2(3)) / 3, 1e-12);
+  EXPECT_NEAR(
+      c.wr,
+      0.5 * c.recall[0] + 0.1 * (c.recall[1] + c.recall[2] + c.recall[3] +
+                                 c.recall[4] + c.recall[5]),
+      1e-12);
 }
 
 TEST(LifelongProtocolTest, SequencesResolveWhatOneFrameCannot) {

@@ -5,10 +5,10 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "services/common/files.h"
 #include "clients/robot/slam/trajectory.h"
 #include "clients/robot/slam/trajectory_metrics.h"
 #include "google/protobuf/util/json_util.h"
+#include "services/common/files.h"
 #include "tools/eval/trajectory_report.pb.h"
 
 namespace fleetmem::eval {
