@@ -431,12 +431,9 @@ class QueryScorer {
     }
     window_.Add({.x = x}, candidates);
     for (size_t length : lengths_) {
-      const std::vector<size_t> order = robot::RankBySequence(
-          window_.frames(), {.length = length, .tolerance = kToleranceUnits});
-      std::vector<core::Place> places;
-      for (size_t i = 0; i < std::min<size_t>(kQueryK, order.size()); ++i) {
-        places.push_back(candidates[order[i]].place);
-      }
+      const std::vector<core::Place> places = robot::SequencePlaces(
+          window_.frames(), {.length = length, .tolerance = kToleranceUnits},
+          kQueryK);
       ranks_[length].push_back(
           robot::FirstCorrectRank(places, {.x = x}, kToleranceUnits));
     }

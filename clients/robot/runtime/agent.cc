@@ -369,14 +369,9 @@ Agent::Relocalisation Agent::Relocalise(const std::vector<float>& code,
     for (size_t i = 0; i < k; ++i) found.push_back(candidates[i].place);
     result.rank = FirstCorrectRank(found, place, options_.match_radius);
     if (sequence) {
-      const std::vector<size_t> order =
-          RankBySequence(window_.frames(), options_.sequence);
-      found.clear();
-      for (size_t i = 0; i < k; ++i) {
-        found.push_back(candidates[order[i]].place);
-      }
-      result.sequence_rank =
-          FirstCorrectRank(found, place, options_.match_radius);
+      result.sequence_rank = FirstCorrectRank(
+          SequencePlaces(window_.frames(), options_.sequence, k), place,
+          options_.match_radius);
     }
   } else if (matches.ok() ||
              matches.status().code() == absl::StatusCode::kNotFound) {
@@ -388,18 +383,14 @@ Agent::Relocalisation Agent::Relocalise(const std::vector<float>& code,
 }
 
 void Agent::Relocalisation::CountIn(RobotState& state) const {
-  if (rank >= 0) {
-    while (state.relocalisation_ranks_size() <= rank) {
-      state.add_relocalisation_ranks(0);
-    }
-    state.set_relocalisation_ranks(rank, state.relocalisation_ranks(rank) + 1);
-  }
+  // Adds one to histogram[r] (a rank histogram of RobotState).
+  auto count = [](google::protobuf::RepeatedField<uint64_t>& histogram, int r) {
+    while (histogram.size() <= r) histogram.Add(0);
+    histogram.Set(r, histogram.Get(r) + 1);
+  };
+  if (rank >= 0) count(*state.mutable_relocalisation_ranks(), rank);
   if (sequence_rank >= 0) {
-    while (state.sequence_ranks_size() <= sequence_rank) {
-      state.add_sequence_ranks(0);
-    }
-    state.set_sequence_ranks(sequence_rank,
-                             state.sequence_ranks(sequence_rank) + 1);
+    count(*state.mutable_sequence_ranks(), sequence_rank);
   }
   if (unscored) {
     state.set_relocalisation_unscored(state.relocalisation_unscored() + 1);

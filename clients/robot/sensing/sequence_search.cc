@@ -67,6 +67,18 @@ std::vector<size_t> RankBySequence(std::span<const SequenceFrame> frames,
   return order;
 }
 
+std::vector<core::Place> SequencePlaces(std::span<const SequenceFrame> frames,
+                                        const SequenceSearchOptions& options,
+                                        size_t k) {
+  std::vector<core::Place> places;
+  if (frames.empty()) return places;
+  const std::vector<size_t> order = RankBySequence(frames, options);
+  for (size_t i = 0; i < std::min(k, order.size()); ++i) {
+    places.push_back(frames.back().candidates[order[i]].place);
+  }
+  return places;
+}
+
 void SequenceWindow::Add(const core::Place& place,
                          std::vector<SequenceCandidate> candidates) {
   SequenceFrame frame;

@@ -71,6 +71,13 @@ struct SequenceSearchOptions {
 std::vector<size_t> RankBySequence(std::span<const SequenceFrame> frames,
                                    const SequenceSearchOptions& options);
 
+// The places of the first min(k, size) of the current frame's candidates
+// in RankBySequence's order: what a relocalisation over the sequence
+// answers, for FirstCorrectRank.
+std::vector<core::Place> SequencePlaces(std::span<const SequenceFrame> frames,
+                                        const SequenceSearchOptions& options,
+                                        size_t k);
+
 // The last `length` frames of a robot, for RankBySequence. A frame with no
 // answer (the server unreachable or the memory empty) is kept as an empty
 // frame so that the travelled distances still add up.

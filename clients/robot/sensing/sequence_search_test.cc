@@ -57,6 +57,16 @@ TEST(SequenceSearchTest, AConsistentPathOutranksTheNearestSingleFrame) {
             2u);
 }
 
+TEST(SequenceSearchTest, SequencePlacesAreTheReRankedCandidatesPlaces) {
+  const auto drive = Drive(10, 6, std::vector<int>(10, 2), 2);
+  const std::vector<core::Place> places =
+      SequencePlaces(drive, {.length = 10}, 3);
+  ASSERT_EQ(places.size(), 3u);
+  EXPECT_EQ(places[0].x, 1000.0 + kStep * 9);  // the true place, first
+  EXPECT_EQ(SequencePlaces(drive, {.length = 10}, 100).size(), 6u);
+  EXPECT_TRUE(SequencePlaces({}, {}, 3).empty());
+}
+
 TEST(SequenceSearchTest, APathCrossesFramesWhosePlaceWasForgotten) {
   // Frames 2, 3, 5 and 6 hold no trace of the true place (forgotten, or
   // another robot's gap); it is fourth of six in the rest.
