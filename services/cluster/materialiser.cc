@@ -254,13 +254,19 @@ absl::StatusOr<Materialiser::Owned*> Materialiser::Take(
   if (!position.ok()) return position.status();
   absl::StatusOr<Lease> lease = leases_->Acquire(fleet_id, options_.replica_id);
   if (!lease.ok()) return lease.status();
+  // Where the log ends now: what was acknowledged before this take is in
+  // it, and reads wait until it is applied (Progress). Unread, the fleet is
+  // not taken (the lease is kept: the next step takes it again at once).
+  absl::StatusOr<engine::LogBounds> bounds = log_->Bounds(fleet_id);
+  if (!bounds.ok()) return bounds.status();
   FLEETMEM_LOG(kInfo) << "cluster: fleet \"" << fleet_id
                       << "\" taken (lease revision " << lease->revision
                       << ", this replica's store at entry " << *position << ")";
   *renewed_at = options_.clock->Now();
   {
     absl::MutexLock held(&lease_mu_);
-    held_[std::string(fleet_id)] = Held{*lease, *renewed_at, *position};
+    held_[std::string(fleet_id)] =
+        Held{*lease, *renewed_at, *position, bounds->last};
   }
   Owned taken{*position};
   // Under the lease: a restore is a write like any other.
@@ -648,6 +654,14 @@ std::optional<uint64_t> Materialiser::Position(
   auto it = held_.find(fleet_id);
   if (it == held_.end()) return std::nullopt;
   return it->second.position;
+}
+
+std::optional<Materialiser::TakeProgress> Materialiser::Progress(
+    std::string_view fleet_id) const {
+  absl::MutexLock lock(&lease_mu_);
+  auto it = held_.find(fleet_id);
+  if (it == held_.end()) return std::nullopt;
+  return TakeProgress{it->second.position, it->second.end_at_take};
 }
 
 bool Materialiser::Owns(std::string_view fleet_id) const {

@@ -206,6 +206,18 @@ class Materialiser {
   std::vector<std::pair<std::string, uint64_t>> Positions() const;
   // The last sequence applied of a fleet it holds (nullopt for another).
   std::optional<uint64_t> Position(std::string_view fleet_id) const;
+  // A fleet held here, against its log as it was when this replica took
+  // it: until `applied` reaches `end_at_take` the state here lacks writes
+  // acknowledged before the take (a hand-over, a lost owner's fleet), so
+  // its reads are not served from it (ReplicatedMemory::Owner answers
+  // UNAVAILABLE, retried). Entries appended after the take are the usual
+  // lag of an acknowledged upload. Nullopt for a fleet not held here.
+  struct TakeProgress {
+    uint64_t applied = 0;
+    uint64_t end_at_take = 0;
+    bool caught_up() const { return applied >= end_at_take; }
+  };
+  std::optional<TakeProgress> Progress(std::string_view fleet_id) const;
 
   // Returns once every snapshot taken so far is stored (or failed) and its
   // log trimmed.
@@ -244,8 +256,9 @@ class Materialiser {
   // A lease this replica holds, renewed by steps and RenewLeases alike.
   struct Held {
     Lease lease;
-    absl::Time renewed_at;  // of `lease`
-    uint64_t position = 0;  // Owned::position as of the last step's end
+    absl::Time renewed_at;     // of `lease`
+    uint64_t position = 0;     // Owned::position as of the last step's end
+    uint64_t end_at_take = 0;  // the log's last entry when it was taken
   };
   // Renews the fleet's lease if renew_interval has passed since its last
   // renewal (or `always`). FAILED_PRECONDITION once it is lost (refused, or,

@@ -345,9 +345,28 @@ absl::StatusOr<std::optional<engine::FleetShape>> ReplicatedMemory::ShapeOf(
   return shape;
 }
 
+absl::Status ReplicatedMemory::Catching(
+    std::string_view fleet_id,
+    const std::optional<Materialiser::TakeProgress>& progress) {
+  if (!progress.has_value()) {
+    return absl::UnavailableError(
+        absl::StrCat("fleet \"", V(fleet_id), "\" is being taken by replica \"",
+                     self_, "\"; retry"));
+  }
+  return absl::UnavailableError(
+      absl::StrCat("fleet \"", V(fleet_id), "\" was taken by replica \"", self_,
+                   "\" a moment ago and is applied through entry ",
+                   progress->applied, " of the ", progress->end_at_take,
+                   " logged before; it is served once they are: retry"));
+}
+
 absl::StatusOr<std::optional<std::string>> ReplicatedMemory::Owner(
     std::string_view fleet_id) {
-  if (node_.materialiser().Owns(fleet_id)) return std::nullopt;
+  if (std::optional<Materialiser::TakeProgress> held =
+          node_.materialiser().Progress(fleet_id)) {
+    if (held->caught_up()) return std::nullopt;
+    return Catching(fleet_id, *held);
+  }
   absl::StatusOr<std::optional<Lease>> holder = log_->Holder(fleet_id);
   if (!holder.ok()) {
     // NATS cannot say now (a JetStream leader election): the last owner
@@ -363,8 +382,12 @@ absl::StatusOr<std::optional<std::string>> ReplicatedMemory::Owner(
       last_owner_[std::string(fleet_id)] = (*holder)->owner;
     }
     if ((*holder)->owner == self_) {
-      // Taken by this replica's loop a moment ago.
-      return std::nullopt;
+      // Taken by this replica's loop a moment ago (or held from before a
+      // restart): served once the take has caught up.
+      const std::optional<Materialiser::TakeProgress> held =
+          node_.materialiser().Progress(fleet_id);
+      if (held.has_value() && held->caught_up()) return std::nullopt;
+      return Catching(fleet_id, held);
     }
     return (*holder)->owner;
   }

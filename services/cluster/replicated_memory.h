@@ -156,6 +156,12 @@ class ReplicatedMemory final : public transport::FleetMemory {
   std::vector<absl::StatusOr<transport::Uploaded>> Write(
       std::string_view fleet_id,
       std::span<const std::span<const core::MemoryTrace>> messages);
+  // UNAVAILABLE for a fleet this replica holds (or is taking) but whose
+  // log before the take is not applied yet (`progress`; nullopt while the
+  // take itself runs).
+  absl::Status Catching(
+      std::string_view fleet_id,
+      const std::optional<Materialiser::TakeProgress>& progress);
   // Forwards an upload to the fleet's owner, `holder` (as TakeIfFree read
   // it; empty: looked up) (once: a forwarded upload that meets no owner
   // here is UNAVAILABLE).
