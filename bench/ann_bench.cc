@@ -39,6 +39,7 @@
 #include <vector>
 
 #include "bench/bench_data.h"
+#include "bench/bench_main.h"
 #include "faiss/IndexFlat.h"
 #include "faiss/IndexHNSW.h"
 #include "hnswlib/hnswlib.h"
@@ -305,12 +306,14 @@ BENCHMARK(BM_Query)
 }  // namespace fleetmem::index
 
 int main(int argc, char** argv) {
-  benchmark::Initialize(&argc, argv);
-  fleetmem::index::MeasureCopyBandwidth();
-  benchmark::AddCustomContext(
-      "copy_bandwidth_GBps",
-      std::to_string(fleetmem::index::copy_bandwidth / 1e9));
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return fleetmem::bench::Main(
+      argc, argv, "fleetmem_ann_bench",
+      "place queries at 2,000 to 1,000,000 codes: fleetmem's exact, tiered "
+      "and HNSW indexes against hnswlib and faiss used directly.",
+      [] {
+        fleetmem::index::MeasureCopyBandwidth();
+        benchmark::AddCustomContext(
+            "copy_bandwidth_GBps",
+            std::to_string(fleetmem::index::copy_bandwidth / 1e9));
+      });
 }

@@ -16,9 +16,13 @@
 
 #include "CLI/CLI.hpp"
 #include "clients/cpp/fleetmem_client.h"
+#include "services/common/cli_program.h"
 
 int main(int argc, char** argv) {
-  CLI::App app{"Upload throughput of the C++ client (peer of the Python one)"};
+  CLI::App app{
+      "fleetmem_client_upload_bench: upload throughput of the C++ client "
+      "(peer of the Python one)."};
+  fleetmem::common::SetUpProgram(app, "fleetmem_client_upload_bench");
   std::string server, codes_file, fleet, robot, ack = "durable";
   size_t dim = 0, batch = 500;
   app.add_option("--server", server, "HOST:PORT")->required();
@@ -29,7 +33,10 @@ int main(int argc, char** argv) {
   app.add_option("--ack", ack, "durable or applied")
       ->check(CLI::IsMember({"durable", "applied"}));
   app.add_option("--batch", batch, "traces per message");
-  CLI11_PARSE(app, argc, argv);
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
+  }
 
   std::ifstream in(codes_file, std::ios::binary | std::ios::ate);
   const size_t bytes = in ? static_cast<size_t>(in.tellg()) : 0;

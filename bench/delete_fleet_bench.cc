@@ -25,6 +25,7 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "bench/bench_data.h"
+#include "services/common/cli_program.h"
 #include "services/common/files.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
@@ -159,11 +160,17 @@ int Run(size_t held, const std::string& dir) {
 }  // namespace fleetmem::engine
 
 int main(int argc, char** argv) {
-  CLI::App app("DeleteFleet's disk at scale");
+  CLI::App app(
+      "fleetmem_delete_fleet_bench: DeleteFleet's time and freed disk at "
+      "scale.");
+  fleetmem::common::SetUpProgram(app, "fleetmem_delete_fleet_bench");
   size_t held = 1'000'000;
   std::string dir = "/tmp/fleetmem-delete-fleet-bench";
   app.add_option("--held", held, "traces of the fleet deleted");
   app.add_option("--dir", dir, "store directory (removed first)");
-  CLI11_PARSE(app, argc, argv);
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
+  }
   return fleetmem::engine::Run(held, dir);
 }

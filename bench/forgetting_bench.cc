@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "Eigen/Core"
+#include "bench/bench_main.h"
 #include "services/core/closest_pair.h"
 
 namespace fleetmem::core {
@@ -135,4 +136,9 @@ BENCHMARK(BM_ForgetStep_DistanceMatrixScan)
 }  // namespace
 }  // namespace fleetmem::core
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  return fleetmem::bench::Main(
+      argc, argv, "fleetmem_forgetting_bench",
+      "the forgetting step (Algorithm 2): ClosestPairTracker against the "
+      "O(K^2) matrix scan.");
+}

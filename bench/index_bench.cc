@@ -24,6 +24,7 @@
 #include <utility>
 #include <vector>
 
+#include "bench/bench_main.h"
 #include "services/engine/place_index.h"
 #include "services/index/exact_index.h"
 #include "services/index/flann_index.h"
@@ -273,4 +274,8 @@ BENCHMARK_CAPTURE(BM_Build, flann, Kind::kFlann)
 }  // namespace
 }  // namespace fleetmem::index
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  return fleetmem::bench::Main(argc, argv, "fleetmem_index_bench",
+                               "exact against FLANN place index: query "
+                               "latency, recall@5, Add/Remove and build cost.");
+}

@@ -12,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/bench_main.h"
 #include "benchmark/benchmark.h"
 #include "rocksdb/db.h"
 #include "services/core/types.h"
@@ -103,4 +104,8 @@ BENCHMARK(BM_RocksDbSyncedAppend)->Arg(200)->Arg(500)->UseRealTime();
 }  // namespace
 }  // namespace fleetmem::storage
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  return fleetmem::bench::Main(argc, argv, "fleetmem_ingest_log_bench",
+                               "the ingest log's durable append: the segment "
+                               "log against a synced RocksDB write batch.");
+}

@@ -25,6 +25,7 @@
 #include <vector>
 
 #include "bench/bench_data.h"
+#include "bench/bench_main.h"
 #include "services/core/feature_space.h"
 #include "services/engine/memory_engine.h"
 #include "services/index/exact_index.h"
@@ -167,4 +168,9 @@ BENCHMARK(BM_Query)->Arg(100'000)->Unit(benchmark::kMillisecond);
 }  // namespace
 }  // namespace fleetmem::engine
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  return fleetmem::bench::Main(
+      argc, argv, "fleetmem_manage_bench",
+      "lookups by key at scale: GetTraces of 1,000 ids against a page of "
+      "ListTraces, filtered against plain queries.");
+}

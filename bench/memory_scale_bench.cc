@@ -33,6 +33,7 @@
 #include <vector>
 
 #include "bench/bench_data.h"
+#include "bench/bench_main.h"
 #include "services/core/feature_space.h"
 #include "services/core/importance_sampler.h"
 #include "services/core/kmeans.h"
@@ -247,4 +248,9 @@ BENCHMARK(BM_Restore)
 }  // namespace
 }  // namespace fleetmem::core
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  return fleetmem::bench::Main(
+      argc, argv, "fleetmem_memory_scale_bench",
+      "static-memory costs against memory size (consolidation, forgetting, "
+      "replay sampling, statistics).");
+}

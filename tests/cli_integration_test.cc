@@ -31,11 +31,11 @@
 #include "absl/strings/str_split.h"
 #include "absl/strings/string_view.h"
 #include "fleetmem/v1/memory.pb.h"
+#include "fleetmem_paths.h"
 #include "google/protobuf/util/json_util.h"
 #include "google/protobuf/util/message_differencer.h"
 #include "gtest/gtest.h"
 #include "tests/server_process.h"
-#include "fleetmem_paths.h"
 
 extern char** environ;
 
@@ -234,7 +234,8 @@ TEST(CliHelpTest, CommandHelpShowsItsUsage) {
     const std::string usage = absl::StrCat("Usage: fleetmem ", command, " ");
     const CliRun flag_help = RunFleetmem({command, "--help"});
     EXPECT_EQ(flag_help.exit_code, 0) << flag_help.Describe();
-    EXPECT_TRUE(absl::StartsWith(flag_help.out, usage)) << flag_help.Describe();
+    EXPECT_TRUE(absl::StrContains(flag_help.out, "\n" + usage))
+        << flag_help.Describe();
     EXPECT_TRUE(flag_help.err.empty()) << flag_help.Describe();
 
     const CliRun help_command = RunFleetmem({"help", command});

@@ -102,6 +102,11 @@ rest)
   check "creating it again is 409" [ "$(http_code POST /v1/fleets '{"fleetId":"beta","settings":{"codeDimension":32}}')" = 409 ]
   cli gen-traces --robots 2 --per-robot 60 --dim 32 --out "$WORK/beta.jsonl" > /dev/null
   cli upload --fleet beta --file "$WORK/beta.jsonl" > /dev/null
+  # operations.md's consolidate: a POST with no body at all (no
+  # Content-Length, no Content-Type), as `curl -X POST` sends it.
+  check "a POST without a body is served" \
+    [ "$(curl -s -o "$WORK/body" -w '%{http_code}' -X POST "http://$HTTP_ADDR/v1/fleets/beta/consolidate")" = 200 ]
+  check "and answers the consolidation" grep -q '"clusters"' "$WORK/body"
   check "settings update is 200" [ "$(http_code POST /v1/fleets/beta/settings '{"settings":{"maxClusters":4}}')" = 200 ]
   check "get a fleet is 200" [ "$(http_code GET /v1/fleets/beta)" = 200 ]
   check "its settings are its own" /usr/bin/python3 -c 'import json; f=json.load(open("'"$WORK/body"'"))["fleet"]; assert f["ownSettings"] and f["settings"]["maxClusters"]==4, f'
@@ -197,10 +202,20 @@ snapshot)
   cp "$WORK/acked" "$WORK/acked-before"   # acknowledged before the call began
   cli snapshot --name under-load > "$WORK/snapshot.out"
   wait "$uploader"
-  snap=$(sed -n 's/^restore: fleetmem-server --data-dir //p' "$WORK/snapshot.out")
+  snap=$(sed -n 's/^restore: fleetmem-server --data-dir NEW_DIR --restore-from //p' "$WORK/snapshot.out")
   check "snapshot directory exists" [ -d "$snap/db" ]
+  check "the snapshot says what it is" grep -q 'restore: fleetmem-server' "$snap/SNAPSHOT"
   echo "acknowledged before the snapshot: $(wc -l < "$WORK/acked-before") robots"
-  serve restored "$snap"
+  # Issue 48: a server on the snapshot itself turned it into a live store.
+  ls -R "$snap" > "$WORK/snapshot-files-before"
+  refused=0
+  "$BIN/fleetmem-server" --listen 127.0.0.1:0 --data-dir "$snap" > "$WORK/on-snapshot.log" 2>&1 || refused=$?
+  check "a server on a snapshot is refused (exit 2)" [ "$refused" = 2 ]
+  check "and says how to restore it" grep -q -- '--restore-from' "$WORK/on-snapshot.log"
+  ls -R "$snap" > "$WORK/snapshot-files-after"
+  check "and leaves the snapshot unchanged" cmp -s "$WORK/snapshot-files-before" "$WORK/snapshot-files-after"
+  serve restored "$WORK/restored" --restore-from "$snap"
+  check "the snapshot stayed a snapshot" cmp -s "$WORK/snapshot-files-before" <(ls -R "$snap")
   cli --json stats --fleet load > "$WORK/restored.json"
   check "every trace acknowledged before the snapshot is in it" /usr/bin/python3 - "$WORK/restored.json" "$WORK/acked-before" <<'EOF'
 import json, sys
@@ -279,8 +294,15 @@ dashboard)
   echo "screenshot: $ARTIFACTS/dashboard.png"
   check "the chart has its ticks" grep -q 'data-ticks="15"' "$WORK/dom.html"
   check "the map does not claim metres unless told" grep -q 'data-unit="units"' "$WORK/dom.html"
-  # Each fleet has its own address, which also names the place unit.
+  check "the map of a 2-D fleet is drawn as a map" grep -q 'data-layout="2-d"' "$WORK/dom.html"
+  check "the status says it is live, not connecting" grep -q 'id="status" class="muted">live' "$WORK/dom.html"
+  # Each fleet has its own address, which also names the place unit. Its
+  # bound is small (K_max 10): the chart draws the memory after each
+  # consolidation, never the 30 clusters between its added and merged
+  # events.
+  cli create-fleet --fleet otherfleet --dim 32 --encoder v1 --max-clusters 10 > /dev/null
   upload_fleet otherfleet 1 100
+  cli consolidate --fleet otherfleet > /dev/null
   timeout 120 chromium --headless --no-sandbox --disable-gpu \
     --user-data-dir="$WORK/chromium3" --virtual-time-budget=8000 --dump-dom \
     "http://$HTTP_ADDR/#fleet=otherfleet&unit=route%20index" > "$WORK/dom-link.html" 2> /dev/null
@@ -288,6 +310,33 @@ dashboard)
     grep -q 'data-fleet="otherfleet" class="active"' "$WORK/dom-link.html"
   check "#unit= labels the map" grep -q 'data-unit="route index"' "$WORK/dom-link.html"
   check "the map drew the other fleet's 100 places" grep -q 'data-points="100"' "$WORK/dom-link.html"
+  check "the picker names the fleet shown" grep -q 'id="fleet-current"[^>]*>otherfleet<' "$WORK/dom-link.html"
+  check "one robot is not \"1 robots\"" grep -q '1 robot<' "$WORK/dom-link.html"
+  check "the chart never passes the bound of 10 clusters" /usr/bin/python3 -c '
+import re, sys
+peak = int(re.search(r"data-peak-clusters=\"(\d+)\"", open(sys.argv[1]).read()).group(1))
+assert 0 < peak <= 10, peak' "$WORK/dom-link.html"
+  # A fleet on one line (a route index, y = 0) is folded into rows; with
+  # 60 fleets the picker lists 50 and says how to find the rest.
+  /usr/bin/python3 - "$WORK/traces.jsonl" "$WORK/route.jsonl" <<'EOF'
+import json, sys
+with open(sys.argv[2], "w") as out:
+    for i, line in enumerate(open(sys.argv[1])):
+        trace = json.loads(line)
+        trace["pose"] = {"x": float(i * 10)}
+        out.write(json.dumps(trace) + "\n")
+EOF
+  cli upload --fleet route --file "$WORK/route.jsonl" > /dev/null
+  for i in $(seq 1 57); do cli create-fleet --fleet "empty-$i" --dim 8 > /dev/null; done
+  timeout 120 chromium --headless --no-sandbox --disable-gpu \
+    --user-data-dir="$WORK/chromium4" --virtual-time-budget=8000 --dump-dom \
+    "http://$HTTP_ADDR/#fleet=route&unit=route%20index" > "$WORK/dom-route.html" 2> /dev/null
+  check "a 1-D fleet is folded into rows" grep -q 'data-layout="1-d, [0-9]* rows"' "$WORK/dom-route.html"
+  check "the picker lists 50 of 60 fleets" /usr/bin/python3 -c '
+import sys
+page = open(sys.argv[1]).read()
+assert page.count("data-fleet=") == 50, page.count("data-fleet=")
+assert "10 more: type to narrow" in page and "60 fleets on this server" in page' "$WORK/dom-route.html"
 
   # With auth on, the page asks for a reader token; given one, it shows the
   # fleet.
@@ -307,6 +356,8 @@ dashboard)
     grep -q '<div id="login">' "$WORK/dom-locked.html"
   check "without a token the page shows no fleet" \
     bash -c "! grep -q 'data-fleet=' '$WORK/dom-locked.html'"
+  check "without a token the status asks for credentials" \
+    grep -q 'id="status" class="muted">credentials needed' "$WORK/dom-locked.html"
   token=$(cat "$WORK/auth/viewer.token")
   timeout 120 chromium --headless --no-sandbox --disable-gpu \
     --user-data-dir="$WORK/chromium2" --virtual-time-budget=8000 --dump-dom \

@@ -452,6 +452,13 @@ TEST_F(RobotIntegrationTest, AWinterRobotRelocalisesOverSequencesOfFrames) {
   EXPECT_GT(core::RecallAtK(sequence, 1), core::RecallAtK(single, 1));
   EXPECT_THAT(ReadFileOrEmpty(dir_.Join("robot.log")),
               HasSubstr("over sequences of 10 r@1"));
+  // Issue 48: the first robot scored 0 against nothing but its own earlier
+  // traces, and said nothing of why; now it is counted and said.
+  const robot::state::RobotStatus first = ReadStatus(dir_.Join("summer"));
+  EXPECT_GT(first.counters().relocalisation_own_only(), 0u);
+  EXPECT_EQ(status.counters().relocalisation_own_only(), 0u);
+  EXPECT_THAT(ReadFileOrEmpty(dir_.Join("robot.log")),
+              HasSubstr("answer was one of its own earlier traces"));
 }
 
 // Issue 47: a robot that joins with a learner a fleet holding two seasons

@@ -7,6 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "clients/cli/commands.h"
 #include "clients/cli/flags.h"
+#include "services/common/usage.h"
 
 namespace fleetmem::cli {
 namespace {
@@ -29,7 +30,8 @@ std::vector<FlagSpec> GlobalFlags() {
           {"tls-key", "FILE", "PEM key of --tls-cert"},
           {"tls-server-name", "NAME",
            "name expected in the server's certificate (default: the host)"},
-          {"help", "", "show help (also -h)"}};
+          {"help", "", "print this help and exit (also -h)"},
+          {"version", "", "print the version and exit"}};
 }
 
 CommandSpec HelpSpec() {
@@ -37,7 +39,7 @@ CommandSpec HelpSpec() {
 }
 
 int ToolUsageError(const CliEnvironment& env, std::string_view message) {
-  *env.err << "error: " << message << "\nrun 'fleetmem help' for usage\n";
+  *env.err << common::UsageErrorText("fleetmem", message);
   return kExitUsage;
 }
 
@@ -83,6 +85,10 @@ int RunCli(std::span<const std::string> args, const CliEnvironment& env) {
   if (!line.ok())
     return ToolUsageError(env, std::string(line.status().message()));
 
+  if (line->global.Has("version")) {
+    *env.out << common::VersionLine("fleetmem");
+    return kExitOk;
+  }
   if (line->command.empty() || line->command == "help") {
     if (line->command.empty() && !line->help) {
       *env.err << FormatToolHelp(global_flags, specs);

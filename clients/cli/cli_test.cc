@@ -3,12 +3,14 @@
 #include <algorithm>
 #include <cmath>
 #include <mutex>
+#include <set>
 #include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "clients/cli/flags.h"
+#include "clients/cli/printing.h"
 #include "clients/cli/synthetic_traces.h"
 #include "clients/cli/trace_io.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
@@ -108,6 +110,31 @@ TEST(FlagValuesTest, ConvertsAndChecksNumbers) {
 
 // ---------------------------------------------------------------------------
 // JSON inputs and synthetic traces.
+
+// Issue 48: the write path's two lines started one column off the rest.
+TEST(PrintStatsTest, EveryValueStartsInOneColumn) {
+  v1::GetStatsResponse stats;
+  stats.set_traces(10);
+  stats.set_acknowledged_through(7);
+  stats.set_applied_through(6);
+  stats.set_backlog_traces(3);
+  stats.set_backlog_entries(1);
+  stats.set_apply_error("disk full");
+  std::ostringstream out;
+  PrintStats(stats, out);
+  std::istringstream lines(out.str());
+  std::set<size_t> starts;
+  int count = 0;
+  for (std::string line; std::getline(lines, line) && !line.empty();) {
+    // The value starts after the label and the run of spaces after it.
+    const size_t gap = line.find("  ");
+    ASSERT_NE(gap, std::string::npos) << line;
+    starts.insert(line.find_first_not_of(' ', gap));
+    ++count;
+  }
+  EXPECT_EQ(count, 12) << out.str();
+  EXPECT_EQ(starts.size(), 1u) << out.str();
+}
 
 TEST(TraceIoTest, ReadsJsonLinesAndNamesTheBadLine) {
   std::istringstream good(
@@ -299,7 +326,7 @@ TEST_F(CliTest, HelpAndUsageErrors) {
   EXPECT_THAT(out_.str(), HasSubstr("--deadline-ms"));
 
   EXPECT_EQ(Run({"upload", "--help"}), 0);
-  EXPECT_THAT(out_.str(), StartsWith("Usage: fleetmem upload --fleet ID"));
+  EXPECT_THAT(out_.str(), HasSubstr("\nUsage: fleetmem upload --fleet ID"));
 
   EXPECT_EQ(Run({"help", "gen-traces"}), 0);
   EXPECT_THAT(out_.str(), HasSubstr("SYNTHETIC"));

@@ -18,6 +18,7 @@
 #include "clients/cli/printing.h"
 #include "clients/cli/synthetic_traces.h"
 #include "clients/cli/trace_io.h"
+#include "services/common/usage.h"
 
 namespace fleetmem::cli {
 namespace {
@@ -385,8 +386,9 @@ absl::StatusOr<v1::QueryPlaceRequest> QueryFromFlags(
 std::span<const Command> Commands() { return CommandTable(); }
 
 int UsageError(const Invocation& invocation, const absl::Status& status) {
-  *invocation.err << "error: " << status.message() << "\nrun 'fleetmem "
-                  << invocation.command << " --help' for usage\n";
+  *invocation.err << common::UsageErrorText(
+      absl::StrCat("fleetmem ", invocation.command),
+      std::string(status.message()));
   return kExitUsage;
 }
 

@@ -9,6 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "services/common/usage.h"
 
 namespace fleetmem::cli {
 namespace {
@@ -29,20 +30,18 @@ const CommandSpec* FindCommand(std::span<const CommandSpec> commands,
   return nullptr;
 }
 
-void AppendFlagHelp(std::span<const FlagSpec> flags, std::string* out) {
-  size_t width = 0;
-  std::vector<std::string> heads;
+// The flags as help items ("--name VALUE", help).
+common::UsageSection FlagSection(std::string title,
+                                 std::span<const FlagSpec> flags) {
+  common::UsageSection section{std::move(title), {}};
   for (const FlagSpec& flag : flags) {
-    heads.push_back(flag.value_name.empty()
-                        ? absl::StrCat("--", flag.name)
-                        : absl::StrCat("--", flag.name, " ", flag.value_name));
-    width = std::max(width, heads.back().size());
+    section.items.push_back(
+        {flag.value_name.empty()
+             ? absl::StrCat("--", flag.name)
+             : absl::StrCat("--", flag.name, " ", flag.value_name),
+         flag.help});
   }
-  for (size_t i = 0; i < flags.size(); ++i) {
-    absl::StrAppend(out, "  ", heads[i],
-                    std::string(width - heads[i].size() + 2, ' '),
-                    flags[i].help, "\n");
-  }
+  return section;
 }
 
 }  // namespace
@@ -187,45 +186,37 @@ absl::StatusOr<CommandLine> ParseCommandLine(
 
 std::string FormatToolHelp(std::span<const FlagSpec> global_flags,
                            std::span<const CommandSpec> commands) {
-  std::string out =
+  common::UsageText text;
+  text.description =
       "fleetmem: command-line client of a fleetmem server (one shared memory "
-      "per robot fleet).\n\n"
-      "Usage: fleetmem [global flags] <command> [flags]\n"
-      "       fleetmem help [command]      fleetmem <command> --help\n\n"
-      "Commands:\n";
-  size_t width = 0;
+      "per robot fleet).";
+  text.usage = {"fleetmem [GLOBAL OPTIONS] COMMAND [OPTIONS]",
+                "fleetmem COMMAND --help", "fleetmem --version"};
+  common::UsageSection listed{"Commands", {}};
   for (const CommandSpec& command : commands) {
-    width = std::max(width, command.name.size());
+    listed.items.push_back({command.name, command.summary});
   }
-  for (const CommandSpec& command : commands) {
-    absl::StrAppend(&out, "  ", command.name,
-                    std::string(width - command.name.size() + 2, ' '),
-                    command.summary, "\n");
-  }
-  absl::StrAppend(&out, "\nGlobal flags:\n");
-  AppendFlagHelp(global_flags, &out);
-  absl::StrAppend(&out,
-                  "\nExit status: 0 success, 1 the server returned an error "
-                  "(printed as \"error: CODE: message\"), 2 bad usage or "
-                  "input.\n");
-  return out;
+  text.sections.push_back(std::move(listed));
+  text.sections.push_back(FlagSection("Global options", global_flags));
+  text.footer =
+      "Exit status: 0 success, 1 failure (the server's error printed as "
+      "\"error: CODE: message\"), 2 bad usage or input.";
+  return common::FormatUsage(text);
 }
 
 std::string FormatCommandHelp(const CommandSpec& command,
                               std::span<const FlagSpec> global_flags) {
-  std::string out =
-      absl::StrCat("Usage: fleetmem ", command.name, " ", command.synopsis,
-                   "\n\n", command.summary, "\n");
+  common::UsageText text;
+  text.description = command.summary;
   if (!command.description.empty()) {
-    absl::StrAppend(&out, "\n", command.description, "\n");
+    absl::StrAppend(&text.description, "\n\n", command.description);
   }
-  if (!command.flags.empty()) {
-    absl::StrAppend(&out, "\nFlags:\n");
-    AppendFlagHelp(command.flags, &out);
-  }
-  absl::StrAppend(&out, "\nGlobal flags:\n");
-  AppendFlagHelp(global_flags, &out);
-  return out;
+  text.usage = {absl::StrCat("fleetmem ", command.name,
+                             command.synopsis.empty() ? "" : " ",
+                             command.synopsis)};
+  text.sections.push_back(FlagSection("Options", command.flags));
+  text.sections.push_back(FlagSection("Global options", global_flags));
+  return common::FormatUsage(text);
 }
 
 }  // namespace fleetmem::cli

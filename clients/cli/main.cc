@@ -7,7 +7,6 @@
 #include <vector>
 
 #include "clients/cli/cli.h"
-#include "fleetmem_version.h"
 
 namespace {
 
@@ -19,10 +18,6 @@ extern "C" void RequestStop(int) { stop_requested = true; }
 
 int main(int argc, char** argv) {
   const std::vector<std::string> args(argv + 1, argv + argc);
-  if (args.size() == 1 && args[0] == "--version") {
-    std::cout << "fleetmem " << FLEETMEM_VERSION << "\n";
-    return 0;
-  }
   const char* server = std::getenv("FLEETMEM_SERVER");
   fleetmem::cli::CliEnvironment env;
   env.default_server = server != nullptr ? server : "";

@@ -145,38 +145,40 @@ void PrintConsolidate(const v1::ConsolidateResponse& response,
 }
 
 void PrintStats(const v1::GetStatsResponse& stats, std::ostream& out) {
-  PrintPairs({{"traces", absl::StrCat(stats.traces())},
-              {"pending traces", absl::StrCat(stats.pending_traces())},
-              {"clusters", absl::StrCat(stats.clusters(), " (max ",
-                                        stats.max_clusters(), ")")},
-              {"traces per cluster",
-               absl::StrCat("max ", stats.max_traces_per_cluster())},
-              {"code dimension", absl::StrCat(stats.code_dimension())},
-              {"encoder version", Or(stats.encoder_version(), "-")},
-              {"consolidations", absl::StrCat(stats.consolidations())},
-              {"clusters forgotten", absl::StrCat(stats.clusters_forgotten())},
-              {"last event id", absl::StrCat(stats.last_event_id())}},
-             out);
+  // One table, so that every value starts in one column.
+  std::vector<std::pair<std::string, std::string>> pairs = {
+      {"traces", absl::StrCat(stats.traces())},
+      {"pending traces", absl::StrCat(stats.pending_traces())},
+      {"clusters",
+       absl::StrCat(stats.clusters(), " (max ", stats.max_clusters(), ")")},
+      {"traces per cluster",
+       absl::StrCat("max ", stats.max_traces_per_cluster())},
+      {"code dimension", absl::StrCat(stats.code_dimension())},
+      {"encoder version", Or(stats.encoder_version(), "-")},
+      {"consolidations", absl::StrCat(stats.consolidations())},
+      {"clusters forgotten", absl::StrCat(stats.clusters_forgotten())},
+      {"last event id", absl::StrCat(stats.last_event_id())}};
   if (stats.acknowledged_through() > 0) {
     // The write path: uploads acknowledged and not applied yet.
-    PrintPairs(
-        {{"log applied through",
-          absl::StrCat(stats.applied_through(), " of ",
-                       stats.acknowledged_through(), " acknowledged")},
-         {"write backlog",
-          absl::StrFormat("%d traces in %d uploads, oldest %.1f s",
-                          stats.backlog_traces(), stats.backlog_entries(),
-                          stats.backlog_age_seconds())}},
-        out);
+    pairs.emplace_back(
+        "log applied through",
+        absl::StrCat(stats.applied_through(), " of ",
+                     stats.acknowledged_through(), " acknowledged"));
+    pairs.emplace_back(
+        "write backlog",
+        absl::StrFormat("%d traces in %d uploads, oldest %.1f s",
+                        stats.backlog_traces(), stats.backlog_entries(),
+                        stats.backlog_age_seconds()));
   }
   if (!stats.apply_error().empty()) {
-    PrintPairs({{"apply error", stats.apply_error()}}, out);
+    pairs.emplace_back("apply error", stats.apply_error());
   }
+  PrintPairs(std::move(pairs), out);
   if (!stats.robots().empty()) {
     out << '\n';
     Table robots;
     robots.AddRow(
-        {"ROBOT", "TRACES", "PENDING", "MAX SEQ", "RECEIVED", "REPLAYED"});
+        {"ROBOT", "TRACES", "PENDING", "MAX SEQ", "RECEIVED", "SAMPLED"});
     for (const v1::RobotStats& robot : stats.robots()) {
       robots.AddRow(
           {robot.robot_id(), absl::StrCat(robot.traces()),
@@ -309,7 +311,8 @@ void PrintClusters(const v1::ListClustersResponse& clusters,
 void PrintSnapshot(const v1::CreateSnapshotResponse& snapshot,
                    std::ostream& out) {
   out << "snapshot of " << snapshot.fleets() << " fleet(s) written to "
-      << snapshot.path() << "\nrestore: fleetmem-server --data-dir "
+      << snapshot.path()
+      << "\nrestore: fleetmem-server --data-dir NEW_DIR --restore-from "
       << snapshot.path() << "\n";
 }
 

@@ -11,19 +11,26 @@ What a researcher does with fleetmem without touching C++:
   3. Place recognition of the held-out winter frames against the fleet's
      memory, with the first model (recall@1 within +-2 frames, the data's
      rule).
-  4. Replay: the winter robot samples the fleet's memory (importance
-     sampling, Eq. 18) and trains its model on it: a triplet loss pulling
-     together descriptors of the same place seen in the two seasons.
+  4. Replay: the winter robot streams batches of the fleet's memory
+     (fleetmem.ReplayDataset: importance sampling, Eq. 18) into its training
+     loop: a triplet loss pulling together descriptors of the same place
+     seen in the two seasons.
   5. A new encoder version means a new fleet (a fleet holds one encoder
      version): every trace of the old fleet is exported, re-encoded from its
      attachment and uploaded to the new one; step 3 is repeated.
 
   nordland_robot.py --server 127.0.0.1:50051 --data-root ../shared/data
 docs/python.md shows a run and what it printed.
+
+Each run uses fleets of its own (nordland-py-<time>-v1 and -v2), so that a
+second run measures its own traces; with --fleet NAME it stops if NAME-v1
+or NAME-v2 exists already, unless --replace (which deletes them first: an
+admin's right when the server has credentials).
 """
 
 import argparse
 import pathlib
+import sys
 import time
 
 import numpy as np
@@ -97,10 +104,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--server", default="127.0.0.1:50051")
     parser.add_argument("--data-root", default="../shared/data")
-    parser.add_argument("--fleet", default="nordland-py")
+    parser.add_argument("--fleet", default=None,
+                        help="fleets NAME-v1 and NAME-v2 (default: nordland-py-<unix time>, new each run)")
+    parser.add_argument("--replace", action="store_true",
+                        help="delete NAME-v1 and NAME-v2 first if they exist (else the run stops)")
     parser.add_argument("--stride", type=int, default=5, help="use every STRIDE-th frame (default 5: 500 places)")
     parser.add_argument("--replay", type=int, default=600, help="traces sampled for training")
-    parser.add_argument("--steps", type=int, default=300, help="training steps")
+    parser.add_argument("--steps", type=int, default=300, help="training steps, over all batches")
+    parser.add_argument("--epochs", type=int, default=3, help="replay batches of --replay traces")
     parser.add_argument("--seed", type=int, default=7)
     args = parser.parse_args()
 
@@ -115,28 +126,54 @@ def main() -> None:
           f"queries {places[half]:.0f}..{places[-1]:.0f} are held out")
 
     model = LinearEncoder(x["summer"].shape[1], 64, args.seed)
-    v1 = f"{args.fleet}-v1"
+    name = args.fleet or f"nordland-py-{int(time.time())}"
+    v1, v2 = f"{name}-v1", f"{name}-v2"
     with fleetmem.Client(args.server) as fm:
+        # Uploads into a fleet that holds these seqs already store nothing
+        # (duplicates), and the recall below would measure the old codes.
+        held = {f.fleet_id for f in fm.fleets()} & {v1, v2}
+        if held and not args.replace:
+            parser.error(f"fleet(s) {', '.join(sorted(held))} exist already: a second run into them "
+                         f"would upload only duplicates and measure the first run's codes; give another "
+                         f"--fleet, or --replace to delete them first")
+        for fleet in sorted(held):
+            print(f"deleted fleet {fleet} ({fm.delete_fleet(fleet)} traces)")
+        print(f"fleets {v1} and {v2}")
+
         def upload(fleet, season, rows, version, robot):
             codes = model.encode(x[season][rows])
             # Reward: novelty against the previous frame (R_in, Eq. 13's spirit).
             novelty = np.concatenate([[1.0], 1.0 - np.sum(codes[1:] * codes[:-1], 1)]).clip(0.01, 2)
-            return fm.upload(fleet, codes, places[rows], novelty, robot_id=robot, seqs=np.asarray(rows),
-                             domain=season, encoder_version=version, attachments=x[season][rows].astype("<f4"))
+            result = fm.upload(fleet, codes, places[rows], novelty, robot_id=robot, seqs=np.asarray(rows),
+                               domain=season, encoder_version=version,
+                               attachments=x[season][rows].astype("<f4"))
+            if result.duplicates:
+                sys.exit(f"{fleet}: {result.duplicates} of robot {robot}'s traces were held already: stopped")
+            return result
         all_rows, first_half = np.arange(len(names)), np.arange(half)
         print("summer robot:", upload(v1, "summer", all_rows, "linear-v1", "summer"))
         print("winter robot:", upload(v1, "winter", first_half, "linear-v1", "winter"))
+        fm.consolidate(v1)  # every robot's pending traces into the static memory the replay draws
         held_out = np.arange(half, len(names))
         before = recall_at_1(fm, v1, model.encode(x["winter"][held_out]), places[held_out])
         print(f"recall@1 of {len(held_out)} held-out winter frames, model v1: {before:.3f}")
 
-        replay = fm.sample_replay(v1, "winter", args.replay)
-        features = np.stack([np.frombuffer(a, "<f4") for a in replay.attachments])
-        domains = np.array(replay.domains)
-        print(f"replay: {len(replay)} traces ({np.sum(domains == 'summer')} summer, "
-              f"{np.sum(domains == 'winter')} winter), mean reward {replay.rewards.mean():.3f}")
+        # Replay as a stream of batches (fleetmem.ReplayDataset): each batch
+        # one draw of the fleet's memory (weight gamma^n R, so each draw
+        # favours traces replayed less), the next drawn while this one trains.
+        dataset = fleetmem.ReplayDataset(fm, v1, "winter", batch_size=args.replay, batches=args.epochs)
         started = time.monotonic()
-        losses = model.train_triplets(features, replay.places[:, 0], domains, args.steps, args.seed)
+        losses = []
+        for epoch, replay in enumerate(dataset):
+            if len(replay) == 0:
+                print("the fleet's static memory is empty: nothing to replay")
+                break
+            features = np.stack([np.frombuffer(a, "<f4") for a in replay.attachments])
+            domains = np.array(replay.domains)
+            print(f"replay batch {epoch + 1}: {len(replay)} traces ({np.sum(domains == 'summer')} summer, "
+                  f"{np.sum(domains == 'winter')} winter), mean reward {replay.rewards.mean():.3f}")
+            losses += model.train_triplets(features, replay.places[:, 0], domains,
+                                           max(1, args.steps // args.epochs), args.seed + epoch)
         if not losses:
             print("the replay holds no place seen in both seasons: nothing to train on")
         else:
@@ -145,7 +182,6 @@ def main() -> None:
 
         # A new encoder version is a new fleet: everything the old one holds
         # is re-encoded from its attachment (other robots' traces too).
-        v2 = f"{args.fleet}-v2"
         old = fm.export(v1)
         for robot in sorted(set(old.robot_ids)):
             rows = np.flatnonzero(np.array(old.robot_ids) == robot)

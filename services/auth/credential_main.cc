@@ -16,15 +16,16 @@
 #include <cerrno>
 #include <cstring>
 #include <iostream>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "CLI/CLI.hpp"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
-#include "fleetmem_version.h"
 #include "services/auth/authenticator.h"
 #include "services/auth/secret.h"
+#include "services/common/cli_program.h"
 
 namespace {
 
@@ -54,9 +55,9 @@ std::string Quoted(const std::string& text) { return "\"" + text + "\""; }
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "Makes a principal for fleetmem-server's --auth-file: prints its entry "
-      "and writes its token file."};
-  app.set_version_flag("--version", "fleetmem-credential " FLEETMEM_VERSION);
+      "fleetmem-credential: makes a principal for fleetmem-server's "
+      "--auth-file: prints its entry and writes its token file."};
+  fleetmem::common::SetUpProgram(app, "fleetmem-credential");
   std::string name, role, robot_id, common_name, token_file;
   std::vector<std::string> fleets;
   app.add_option("--name", name, "principal name, e.g. robot-7")->required();
@@ -70,12 +71,14 @@ int main(int argc, char** argv) {
                  "common name of its client certificate (mutual TLS)");
   app.add_option("--token-file", token_file,
                  "new file for the token NAME:SECRET (mode 0600)");
-  CLI11_PARSE(app, argc, argv);
-
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
+  }
   if (token_file.empty() && common_name.empty()) {
-    std::cerr << "fleetmem-credential: give --token-file, --certificate-cn "
-                 "or both\n";
-    return 2;
+    std::cerr << fleetmem::common::UsageErrorText(
+        "fleetmem-credential", "give --token-file, --certificate-cn or both");
+    return fleetmem::common::kExitUsage;
   }
   std::string entry =
       absl::StrCat("principal {\n  name: ", Quoted(name), "\n  role: ");

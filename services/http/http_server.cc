@@ -12,6 +12,7 @@
 #include <string_view>
 #include <utility>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "httplib.h"
@@ -224,14 +225,28 @@ httplib::Server::HandlerResponse RefuseAmbiguousLength(
   return httplib::Server::HandlerResponse::Handled;
 }
 
+// A write to the API that frames no body at all (no Content-Length, no
+// Transfer-Encoding): its body is empty.
+bool BodilessWrite(const httplib::Request& req) {
+  return (req.method == "POST" || req.method == "PUT" ||
+          req.method == "PATCH") &&
+         absl::StartsWith(req.path, "/v1/") &&
+         !req.has_header("Content-Length") &&
+         !req.has_header("Transfer-Encoding");
+}
+
 // Bodies over the limit, unknown paths: JSON errors like the API's.
-void AnswerErrorAsJson(const httplib::Request& req, httplib::Response& res) {
+void AnswerErrorAsJson(size_t max_body_bytes, const httplib::Request& req,
+                       httplib::Response& res) {
   if (!res.body.empty()) return;
   absl::Status status;
   switch (res.status) {
     case 413:
-      status = absl::ResourceExhaustedError(
-          "request body is over the server's limit (max_body_bytes)");
+      status = absl::ResourceExhaustedError(absl::StrCat(
+          "request body of ", req.get_header_value("Content-Length"),
+          " bytes is over the server's limit of ", max_body_bytes,
+          " bytes (max_http_body_bytes in the server's config file); "
+          "nothing was read or done"));
       break;
     case 404:
       status = absl::NotFoundError(absl::StrCat("no such page: ", req.path));
@@ -313,6 +328,22 @@ void RoutePages(httplib::Server& http, const HttpEndpoints* e,
     ConnectionGuard::Handling();
     Answer(e->gateway->Handle(FromHttplib(req)), res);
   };
+  // A POST without Content-Length or Transfer-Encoding has an empty body
+  // (RFC 9112 6.3: `curl -X POST .../consolidate`); httplib would refuse it
+  // as malformed (400), so the API answers it before httplib reads.
+  http.set_pre_routing_handler(
+      [api](const httplib::Request& req, httplib::Response& res) {
+        ConnectionGuard::HeadRead();
+        const httplib::Server::HandlerResponse refused =
+            RefuseAmbiguousLength(req, res);
+        if (refused == httplib::Server::HandlerResponse::Handled)
+          return refused;
+        if (BodilessWrite(req)) {
+          api(req, res);
+          return httplib::Server::HandlerResponse::Handled;
+        }
+        return httplib::Server::HandlerResponse::Unhandled;
+      });
   http.Get("/v1/.*", api);
   http.Post("/v1/.*", api);
   http.Put("/v1/.*", api);
@@ -367,17 +398,17 @@ absl::StatusOr<std::unique_ptr<HttpServer>> HttpServer::Start(
   http.new_task_queue = [limits] { return new ConnectionGuard(limits); };
   http.set_payload_max_length(options.max_body_bytes);
   http.set_keep_alive_max_count(100);
-  // The guard's deadlines run from these marks (connection_guard.h).
-  http.set_pre_routing_handler(
-      [](const httplib::Request& req, httplib::Response& res) {
-        ConnectionGuard::HeadRead();
-        return RefuseAmbiguousLength(req, res);
-      });
+  // The guard's deadlines run from these marks (connection_guard.h); the
+  // pre-routing handler marks HeadRead (RoutePages).
   http.set_logger([](const httplib::Request&, const httplib::Response&) {
     ConnectionGuard::AnswerSent();
   });
   RoutePages(http, e, options.version);
-  http.set_error_handler(AnswerErrorAsJson);
+  http.set_error_handler(
+      [limit = options.max_body_bytes](const httplib::Request& req,
+                                       httplib::Response& res) {
+        AnswerErrorAsJson(limit, req, res);
+      });
   server->port_ = Bind(http, address->first, address->second);
   if (server->port_ <= 0) {
     return absl::UnavailableError(

@@ -110,6 +110,10 @@ TEST_F(HttpServerTest, OversizedBodyIsRefused) {
                                 "application/json");
   ASSERT_TRUE(response);
   EXPECT_EQ(response->status, 413);
+  // The setting by its config-file name, the limit and the body's size.
+  EXPECT_THAT(response->body, HasSubstr("max_http_body_bytes"));
+  EXPECT_THAT(response->body, HasSubstr("limit of 1000 bytes"));
+  EXPECT_THAT(response->body, HasSubstr("body of 5000 bytes"));
 }
 
 TEST_F(HttpServerTest, EveryDashboardFileIsServed) {
@@ -174,6 +178,48 @@ TEST_F(HttpServerTest, OpenApiDescribesExactlyTheRoutesThatAnswer) {
   EXPECT_TRUE(schemas.contains("fleetmem.v1.UploadTracesRequest"));
   EXPECT_TRUE(schemas.contains("fleetmem.v1.Pose"));
   EXPECT_TRUE(schemas.contains("fleetmem.v1.MemoryEvent"));
+  // memory.proto's comments are the schemas' descriptions (issue 48: none
+  // before), and a uint32 says its range.
+  const auto& event =
+      schemas.at("fleetmem.v1.MemoryEvent").struct_value().fields();
+  EXPECT_THAT(event.at("properties")
+                  .struct_value()
+                  .fields()
+                  .at("id")
+                  .struct_value()
+                  .fields()
+                  .at("description")
+                  .string_value(),
+              HasSubstr("Strictly increasing"));
+  const auto& count = event.at("properties")
+                          .struct_value()
+                          .fields()
+                          .at("traceCount")
+                          .struct_value()
+                          .fields();
+  EXPECT_EQ(count.at("minimum").number_value(), 0);
+  EXPECT_EQ(count.at("maximum").number_value(), 4294967295.0);
+  // The bearer requirement (or none, for a server without --auth-file) as
+  // written: `[{"bearer": []}, {}]`, and the plain endpoints need nothing
+  // (`"security": []`). An empty list once came out as `{}`, which lost
+  // the requirement for Swagger UI and generated clients.
+  const auto& security = top.at("security").list_value().values();
+  ASSERT_EQ(security.size(), 2);
+  EXPECT_TRUE(
+      security[0].struct_value().fields().at("bearer").has_list_value());
+  EXPECT_TRUE(security[1].struct_value().fields().empty());
+  const auto& health = top.at("paths")
+                           .struct_value()
+                           .fields()
+                           .at("/healthz")
+                           .struct_value()
+                           .fields()
+                           .at("get")
+                           .struct_value()
+                           .fields();
+  ASSERT_TRUE(health.contains("security"));
+  EXPECT_TRUE(health.at("security").has_list_value());
+  EXPECT_EQ(health.at("security").list_value().values_size(), 0);
 
   // Each described route answers (with its answer or the call's own error,
   // never "no route" or "method not allowed"); streams are left after the
@@ -362,6 +408,40 @@ TEST_F(HttpServerTest, AmbiguousRequestLengthsAreRefused) {
       ReadUntilClosed(socket, std::chrono::milliseconds(2000), &closed),
       "HTTP/1.1 200"));
   close(socket);
+}
+
+// `curl -X POST http://.../v1/fleets/f1/consolidate` (operations.md) sends
+// neither Content-Length nor a Content-Type: an empty body, served like
+// `{}`, the connection kept for the next request.
+TEST_F(HttpServerTest, APostWithoutABodyIsServed) {
+  core::MemoryTrace trace;
+  trace.robot_id = "r1";
+  trace.code = {1, 2, 3};
+  trace.reward = 1;
+  ASSERT_TRUE(
+      engine_->Upload("f1", std::vector<core::MemoryTrace>{trace}).ok());
+  const int socket = Connect(server_->port());
+  ASSERT_GE(socket, 0);
+  const std::string request =
+      "POST /v1/fleets/f1/consolidate HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+      "User-Agent: curl/7.88.1\r\nAccept: */*\r\n\r\n";
+  ASSERT_EQ(send(socket, request.data(), request.size(), MSG_NOSIGNAL),
+            static_cast<ssize_t>(request.size()));
+  bool closed = false;
+  const std::string got =
+      ReadUntilClosed(socket, std::chrono::milliseconds(1000), &closed);
+  EXPECT_TRUE(absl::StartsWith(got, "HTTP/1.1 200")) << got;
+  EXPECT_THAT(got, HasSubstr("\"consolidatedTraces\""));
+  EXPECT_FALSE(closed);
+  // The connection serves the next request.
+  const std::string next =
+      "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n";
+  ASSERT_EQ(send(socket, next.data(), next.size(), MSG_NOSIGNAL),
+            static_cast<ssize_t>(next.size()));
+  EXPECT_THAT(ReadUntilClosed(socket, std::chrono::milliseconds(3000), &closed),
+              HasSubstr("ok\n"));
+  close(socket);
+  EXPECT_EQ(engine_->GetStats("f1")->pending_traces, 0u);
 }
 
 class HttpConnectionLimitsTest : public HttpServerTest {

@@ -5,16 +5,25 @@
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "google/protobuf/descriptor.h"
+#include "google/protobuf/descriptor.pb.h"
 #include "google/protobuf/struct.pb.h"
 #include "google/protobuf/util/json_util.h"
 #include "services/http/http_error.pb.h"
+
+namespace fleetmem::embedded {
+// memory.proto's descriptor set with source info (proto/CMakeLists.txt).
+extern const unsigned char kMemoryDescriptorSet[];
+extern const unsigned long kMemoryDescriptorSetSize;  // NOLINT(runtime/int)
+}  // namespace fleetmem::embedded
 
 namespace fleetmem::http {
 namespace {
 
 using google::protobuf::Descriptor;
+using google::protobuf::DescriptorPool;
 using google::protobuf::EnumDescriptor;
 using google::protobuf::FieldDescriptor;
 using google::protobuf::Struct;
@@ -40,12 +49,73 @@ Value Object(std::vector<std::pair<std::string, Value>> members) {
   return value;
 }
 
+// An array value; an empty one stays an array (`[]`), never an unset
+// value (which protobuf's JSON printer writes as `{}`).
 Value List(std::vector<Value> items) {
   Value value;
+  value.mutable_list_value();
   for (Value& item : items) {
     *value.mutable_list_value()->add_values() = std::move(item);
   }
   return value;
+}
+
+// The API's descriptors with their comments: the generated code's have no
+// source info, so the build embeds memory.proto's descriptor set with it
+// (proto/CMakeLists.txt) and this pool is built from it once.
+const DescriptorPool* CommentPool() {
+  static const DescriptorPool* const pool = [] {
+    auto* built = new DescriptorPool();
+    google::protobuf::FileDescriptorSet set;
+    if (!set.ParseFromArray(
+            embedded::kMemoryDescriptorSet,
+            static_cast<int>(embedded::kMemoryDescriptorSetSize))) {
+      return static_cast<const DescriptorPool*>(built);
+    }
+    for (const google::protobuf::FileDescriptorProto& file : set.file()) {
+      (void)built->BuildFile(file);  // imports first (--include_imports)
+    }
+    return static_cast<const DescriptorPool*>(built);
+  }();
+  return pool;
+}
+
+// A proto comment as one paragraph (the lines joined, trimmed).
+std::string Paragraph(const std::string& comment) {
+  std::vector<std::string> words;
+  for (absl::string_view word :
+       absl::StrSplit(comment, absl::ByAnyChar(" \n"), absl::SkipEmpty())) {
+    words.emplace_back(word);
+  }
+  return absl::StrJoin(words, " ");
+}
+
+// The leading comment of the element named `full_name` in memory.proto
+// (a message, a field, an enum or a method); empty if none.
+template <typename Element>
+std::string CommentOf(const Element* element) {
+  if (element == nullptr) return "";
+  google::protobuf::SourceLocation location;
+  if (!element->GetSourceLocation(&location)) return "";
+  return Paragraph(location.leading_comments);
+}
+std::string MessageComment(const Descriptor& type) {
+  return CommentOf(CommentPool()->FindMessageTypeByName(type.full_name()));
+}
+std::string FieldComment(const FieldDescriptor& field) {
+  return CommentOf(CommentPool()->FindFieldByName(field.full_name()));
+}
+std::string MethodComment(const google::protobuf::MethodDescriptor& method) {
+  return CommentOf(CommentPool()->FindMethodByName(method.full_name()));
+}
+
+// `schema` with `description` added (when there is one).
+Value Described(Value schema, const std::string& description) {
+  if (!description.empty() && schema.has_struct_value()) {
+    (*schema.mutable_struct_value()->mutable_fields())["description"] =
+        Text(description);
+  }
+  return schema;
 }
 
 Value Ref(const Descriptor& type) {
@@ -79,8 +149,14 @@ Value ScalarSchema(const FieldDescriptor& field,
     case FieldDescriptor::TYPE_SFIXED32:
       return typed("integer", "int32");
     case FieldDescriptor::TYPE_UINT32:
-    case FieldDescriptor::TYPE_FIXED32:
-      return typed("integer", "int64");  // 0 .. 2^32-1 does not fit int32
+    case FieldDescriptor::TYPE_FIXED32: {
+      // 0 .. 2^32-1 does not fit int32: int64, bounded.
+      Value schema = typed("integer", "int64");
+      auto& fields = *schema.mutable_struct_value()->mutable_fields();
+      fields["minimum"].set_number_value(0);
+      fields["maximum"].set_number_value(4294967295.0);
+      return schema;
+    }
     case FieldDescriptor::TYPE_BOOL:
       return typed("boolean", nullptr);
     case FieldDescriptor::TYPE_STRING:
@@ -123,10 +199,17 @@ Value MessageSchema(const Descriptor& type,
   std::vector<std::pair<std::string, Value>> properties;
   for (int i = 0; i < type.field_count(); ++i) {
     const FieldDescriptor& field = *type.field(i);
-    properties.emplace_back(field.json_name(), FieldSchema(field, pending));
+    // A $ref cannot carry a description beside it (OpenAPI 3.0): those
+    // fields are described by their type's schema.
+    Value schema = FieldSchema(field, pending);
+    if (!schema.struct_value().fields().contains("$ref")) {
+      schema = Described(std::move(schema), FieldComment(field));
+    }
+    properties.emplace_back(field.json_name(), std::move(schema));
   }
-  return Object({{"type", Text("object")},
-                 {"properties", Object(std::move(properties))}});
+  return Described(Object({{"type", Text("object")},
+                           {"properties", Object(std::move(properties))}}),
+                   MessageComment(type));
 }
 
 // An operation's responses: its answer (JSON, or server-sent events) and
@@ -186,6 +269,9 @@ Value Operation(const Route& route, std::set<const Descriptor*>* pending) {
        Text(absl::StrCat(
            route.method->full_name(),
            route.server_sent_events ? " as server-sent events" : ""))}};
+  if (std::string about = MethodComment(*route.method); !about.empty()) {
+    operation.emplace_back("description", Text(about));
+  }
   if (route.body) {
     pending->insert(&input);
     operation.emplace_back(
@@ -202,10 +288,15 @@ Value Operation(const Route& route, std::set<const Descriptor*>* pending) {
           field.cpp_type() == FieldDescriptor::CPPTYPE_MESSAGE) {
         continue;
       }
-      parameters.push_back(Object({{"name", Text(field.json_name())},
-                                   {"in", Text("query")},
-                                   {"required", Flag(false)},
-                                   {"schema", ScalarSchema(field, pending)}}));
+      std::vector<std::pair<std::string, Value>> parameter = {
+          {"name", Text(field.json_name())},
+          {"in", Text("query")},
+          {"required", Flag(false)},
+          {"schema", ScalarSchema(field, pending)}};
+      if (std::string about = FieldComment(field); !about.empty()) {
+        parameter.emplace_back("description", Text(about));
+      }
+      parameters.push_back(Object(std::move(parameter)));
     }
   }
   if (!parameters.empty()) {

@@ -626,9 +626,11 @@ HttpResponse RestGateway::Serve(
   };
   *code = absl::StatusCode::kOk;
   if (request.body.size() > options_.max_body_bytes) {
-    HttpResponse response = fail(absl::ResourceExhaustedError(
-        absl::StrCat("request body of ", request.body.size(),
-                     " bytes is over the limit of ", options_.max_body_bytes)));
+    HttpResponse response = fail(absl::ResourceExhaustedError(absl::StrCat(
+        "request body of ", request.body.size(),
+        " bytes is over the server's limit of ", options_.max_body_bytes,
+        " bytes (max_http_body_bytes in the server's config "
+        "file); nothing was read or done")));
     response.status = 413;
     return response;
   }

@@ -306,7 +306,7 @@ TEST_F(RestGatewayTest, OversizedBodyIs413AndChangesNothing) {
   const std::string body = "{\"code\": [" + std::string(2000, ' ') + "1]}";
   HttpResponse response = Post("/v1/fleets/alpha/query", body);
   EXPECT_EQ(response.status, 413);
-  EXPECT_THAT(response.body, HasSubstr("over the limit"));
+  EXPECT_THAT(response.body, HasSubstr("over the server's limit"));
 }
 
 TEST_F(RestGatewayTest, UnknownRouteIs404AndWrongVerbIs405) {

@@ -42,6 +42,7 @@
 #include "services/auth/authenticator.h"
 #include "services/common/files.h"
 #include "services/common/log.h"
+#include "services/common/usage.h"
 #include "services/engine/fleet_aliases.h"
 #include "services/engine/memory_engine.h"
 #include "services/engine/write_path.h"
@@ -53,9 +54,11 @@
 #include "services/observability/metrics.h"
 #include "services/observability/process_stats.h"
 #include "services/server/cluster_mode.h"
+#include "services/server/reflection_v1.h"
 #include "services/server/server_config.h"
 #include "services/storage/rocksdb_store.h"
 #include "services/transport/embedded_memory.h"
+#include "services/transport/memory_api.h"
 #include "services/transport/memory_service.h"
 #include "services/transport/work_queue.h"
 
@@ -336,9 +339,12 @@ class ServerRun {
   ServerRun(const ServerRun&) = delete;
   ServerRun& operator=(const ServerRun&) = delete;
 
-  // The data directory (made if missing, locked against a second server),
-  // the credentials, the store with its log, and every fleet loaded.
+  // The data directory (made if missing, locked against a second server;
+  // refused if it is a snapshot; filled from --restore-from), the
+  // credentials, the store with its log, and every fleet loaded.
   int OpenData();
+  // --restore-from: the snapshot's db/ copied into the (new) data dir.
+  int RestoreSnapshot();
   // The background tasks, the work queue and the mode: embedded (uploads
   // acknowledged at the durable append to each fleet's log, applied behind
   // it: engine::WritePath) or distributed (this replica materialises the
@@ -389,6 +395,7 @@ class ServerRun {
   transport::FleetMemory* memory_ = nullptr;
   std::unique_ptr<transport::MemoryServiceImpl> service_;
   bool reflection_ = false;
+  std::unique_ptr<ReflectionV1> reflection_v1_;
   int port_ = 0;
   std::unique_ptr<grpc::Server> server_;
   std::atomic<bool> ready_{true};
@@ -397,8 +404,62 @@ class ServerRun {
   std::string http_address_;
 };
 
+int ServerRun::RestoreSnapshot() {
+  namespace fs = std::filesystem;
+  std::error_code error;
+  const fs::path from = fs::path(config_.restore_from) / "db";
+  const fs::path to = fs::path(config_.data_dir) / "db";
+  if (!fs::is_directory(from, error)) {
+    FLEETMEM_LOG(kError) << "--restore-from " << config_.restore_from
+                         << ": not a snapshot (no db/ in it); nothing "
+                            "restored";
+    return 2;
+  }
+  if (fs::exists(to, error) && !fs::is_empty(to, error)) {
+    FLEETMEM_LOG(kError) << "--restore-from: data dir " << config_.data_dir
+                         << " holds a store already (" << to.string()
+                         << "); a restore fills only a new data dir "
+                            "(nothing restored, nothing changed)";
+    return 2;
+  }
+  // Copied beside, then renamed into place: a copy cut short (a full disk,
+  // a kill) never leaves a partial store where the server looks.
+  const fs::path copying = fs::path(config_.data_dir) / "db.restoring";
+  fs::remove_all(copying, error);
+  fs::remove(to, error);  // an empty db/ left by an earlier attempt
+  fs::copy(from, copying, fs::copy_options::recursive, error);
+  if (!error) fs::rename(copying, to, error);
+  if (error) {
+    std::error_code ignored;
+    fs::remove_all(copying, ignored);
+    FLEETMEM_LOG(kError) << "--restore-from " << config_.restore_from
+                         << ": cannot copy its db/ into " << to.string() << ": "
+                         << error.message() << "; nothing restored";
+    return 1;
+  }
+  FLEETMEM_LOG(kInfo) << "restored snapshot " << config_.restore_from
+                      << " into " << to.string()
+                      << " (the snapshot is unchanged)";
+  return 0;
+}
+
 int ServerRun::OpenData() {
   std::error_code error;
+  // A snapshot is a backup: a server on it would make it a live store (its
+  // lock and reserve files, then new writes). Refused before anything in it
+  // changes; --restore-from copies it into a new data dir instead.
+  if (std::filesystem::exists(
+          std::filesystem::path(config_.data_dir) / transport::kSnapshotMarker,
+          error)) {
+    FLEETMEM_LOG(kError)
+        << "data dir " << config_.data_dir << " is a snapshot (it holds "
+        << transport::kSnapshotMarker
+        << "): a server on it would turn the backup into a live store; "
+           "restore it into a new data dir instead: fleetmem-server "
+           "--data-dir NEW_DIR --restore-from "
+        << config_.data_dir << " (nothing was changed)";
+    return 2;
+  }
   std::filesystem::create_directories(config_.data_dir, error);
   if (error) {
     FLEETMEM_LOG(kError) << "cannot create data dir " << config_.data_dir
@@ -414,6 +475,9 @@ int ServerRun::OpenData() {
     return 1;
   }
   data_dir_lock_ = *std::move(lock);
+  if (!config_.restore_from.empty()) {
+    if (const int restored = RestoreSnapshot(); restored != 0) return restored;
+  }
   // A ready file from an earlier run must not announce this one.
   RemoveReadyFile(config_.ready_file);
   if (!security_.auth_file.empty()) {
@@ -595,6 +659,14 @@ int ServerRun::StartGrpc() {
   // then started, and the kernel split calls between the two.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.RegisterService(service_.get());
+  // v1 beside the library's v1alpha, where reflection is served at all.
+  if (reflection_) {
+    reflection_v1_ = std::make_unique<ReflectionV1>(
+        std::vector<std::string>{kServiceName, "grpc.health.v1.Health",
+                                 "grpc.reflection.v1alpha.ServerReflection",
+                                 "grpc.reflection.v1.ServerReflection"});
+    builder.RegisterService(reflection_v1_.get());
+  }
   server_ = builder.BuildAndStart();
   if (server_ == nullptr || port_ == 0) {
     FLEETMEM_LOG(kError) << "cannot listen on " << config_.listen
@@ -780,16 +852,16 @@ int main(int argc, char** argv) {
   absl::StatusOr<server::CommandLine> command_line =
       server::ParseCommandLine(argc, argv);
   if (!command_line.ok()) {
-    std::cerr << "fleetmem-server: " << command_line.status().message()
-              << "\nRun fleetmem-server --help for usage.\n";
-    return 2;
+    std::cerr << fleetmem::common::UsageErrorText(
+        "fleetmem-server", std::string(command_line.status().message()));
+    return fleetmem::common::kExitUsage;
   }
   if (command_line->help) {
     std::cout << server::Usage();
     return 0;
   }
   if (command_line->version) {
-    std::cout << "fleetmem-server " << FLEETMEM_VERSION << "\n";
+    std::cout << fleetmem::common::VersionLine("fleetmem-server");
     return 0;
   }
   absl::StatusOr<server::ServerConfig> config =

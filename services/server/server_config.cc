@@ -14,6 +14,7 @@
 #include "absl/strings/str_split.h"
 #include "services/common/files.h"
 #include "services/common/text_format.h"
+#include "services/common/usage.h"
 #include "services/server/server_config.pb.h"
 
 namespace fleetmem::server {
@@ -280,6 +281,11 @@ const FlagSpec kFlags[] = {
      "written once the server serves: grpc=HOST:PORT, http=HOST:PORT (with "
      "--http-listen) and pid=PID, one per line; removed at shutdown (the "
      "readiness signal for whoever starts the server)"},
+    {"restore-from", &CommandLine::restore_from, "DIR",
+     "a snapshot (SNAPSHOT_DIR/NAME, from `fleetmem snapshot`) copied into "
+     "--data-dir, which must hold no store yet, before the server starts; "
+     "the snapshot is left as it was (a server refuses to run on a snapshot "
+     "itself)"},
 };
 
 constexpr std::string_view kAllowUnauthenticated = "allow-unauthenticated";
@@ -407,21 +413,29 @@ absl::StatusOr<CommandLine> ParseCommandLine(int argc,
 }
 
 std::string Usage() {
-  std::string out =
-      "Usage: fleetmem-server --data-dir DIR [flags]\n"
-      "Serves fleetmem.v1.MemoryService (gRPC) until SIGTERM or SIGINT.\n\n"
-      "Flags:\n";
+  common::UsageText text;
+  text.description =
+      "fleetmem-server: serves fleetmem.v1.MemoryService (gRPC; REST/JSON and "
+      "the dashboard with --http-listen) until SIGTERM or SIGINT.";
+  text.usage = {"fleetmem-server --data-dir DIR [OPTIONS]"};
+  common::UsageSection options{"Options", {}};
   for (const FlagSpec& flag : kFlags) {
-    absl::StrAppend(&out, "  --", std::string(flag.name), " ",
-                    std::string(flag.value_name), "\n      ",
-                    std::string(flag.help), "\n");
+    options.items.push_back(
+        {"--" + std::string(flag.name) + " " + std::string(flag.value_name),
+         std::string(flag.help)});
   }
-  absl::StrAppend(&out, "  --", std::string(kAllowUnauthenticated),
-                  "\n      serve without --auth-file on a non-loopback "
-                  "address (anyone who reaches the port may do anything)\n");
-  absl::StrAppend(&out, "  --help\n      print this text and exit\n");
-  absl::StrAppend(&out, "  --version\n      print the version and exit\n");
-  return out;
+  options.items.push_back(
+      {"--" + std::string(kAllowUnauthenticated),
+       "serve without --auth-file on a non-loopback address (anyone who "
+       "reaches the port may do anything)"});
+  options.items.push_back({"-h, --help", "print this help and exit"});
+  options.items.push_back({"--version", "print the version and exit"});
+  text.sections.push_back(std::move(options));
+  text.footer =
+      "Exit status: 0 after a clean shutdown, --help or --version; 1 a "
+      "failure while serving (the reason logged); 2 bad usage or "
+      "configuration.";
+  return common::FormatUsage(text);
 }
 
 // ApplyConfigText's parts: the ports and paths; the timed tasks' periods;
@@ -557,6 +571,9 @@ absl::Status ApplyCommandLine(const CommandLine& command_line,
     config->snapshot_dir = *command_line.snapshot_dir;
   }
   if (command_line.ready_file) config->ready_file = *command_line.ready_file;
+  if (command_line.restore_from) {
+    config->restore_from = *command_line.restore_from;
+  }
   if (command_line.log_level) {
     absl::Status status =
         ApplyLogLevel("--log-level", *command_line.log_level, config);

@@ -178,6 +178,11 @@ struct ServerConfig {
   // (--ready-file), not in the config file: it belongs to whoever starts
   // this process.
   std::string ready_file;
+  // A snapshot directory (SNAPSHOT_DIR/NAME) to copy into the data dir
+  // before starting; the data dir must hold no store yet. Flag only
+  // (--restore-from): a restore is a one-time act of whoever starts the
+  // server, not a setting.
+  std::string restore_from;
   ClusterConfig cluster;
 };
 
@@ -203,12 +208,14 @@ struct CommandLine {
   std::optional<std::string> cluster;  // comma-separated NATS URLs
   std::optional<std::string> advertise;
   std::optional<std::string> ready_file;
+  std::optional<std::string> restore_from;
   bool allow_unauthenticated = false;
 };
 
 // Parses argv[1..argc): --listen, --data-dir, --config, --log-level,
 // --index, --auth-file, --tls-cert, --tls-key, --tls-client-ca,
-// --http-listen, --snapshot-dir, --cluster, --advertise, --ready-file as
+// --http-listen, --snapshot-dir, --cluster, --advertise, --ready-file,
+// --restore-from as
 // "--name=value" or "--name value"; --allow-unauthenticated; --help or -h;
 // --version.
 // INVALID_ARGUMENT for an unknown flag, a missing value or a positional

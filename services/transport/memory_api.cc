@@ -16,6 +16,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/clock.h"
+#include "services/common/files.h"
 #include "services/core/absl_view.h"
 #include "services/core/validation.h"
 #include "services/transport/proto_convert.h"
@@ -390,7 +391,11 @@ absl::Status MemoryApi::SampleReplay(const auth::Principal& caller,
       request.fleet_id(), request.robot_id(), request.count(),
       request.request_id(), filter.selects_all() ? nullptr : &filter);
   if (!traces.ok()) return traces.status();
-  SampledTracesToProto(*traces, response);
+  if (request.columnar()) {
+    TraceColumnsToProto(*traces, response->mutable_columns());
+  } else {
+    SampledTracesToProto(*traces, response);
+  }
   return absl::OkStatus();
 }
 
@@ -811,8 +816,28 @@ absl::Status MemoryApi::CreateSnapshot(const auth::Principal& caller,
         taken.code(), absl::StrCat(taken.message(), "; no snapshot was taken (",
                                    path.string(), " removed)"));
   }
+  // The mark that makes it a snapshot: a server refuses to run on it (it
+  // would turn the backup into a live store) and --restore-from copies it.
+  const size_t fleets = engine_->ListFleets().size();
+  if (absl::Status marked = files::WriteFile(
+          (path / kSnapshotMarker).string(),
+          absl::StrCat(
+              "fleetmem snapshot \"", request.name(), "\" of ", fleets,
+              " fleet(s), taken at ",
+              absl::FormatTime(absl::RFC3339_sec, absl::FromUnixNanos(now_ns),
+                               absl::UTCTimeZone()),
+              "\nrestore: fleetmem-server --data-dir NEW_DIR "
+              "--restore-from ",
+              path.string(), "\n"));
+      !marked.ok()) {
+    fs::remove_all(path, error);
+    return absl::Status(
+        marked.code(),
+        absl::StrCat(marked.message(), "; no snapshot was taken (",
+                     path.string(), " removed)"));
+  }
   response->set_path(path.string());
-  response->set_fleets(static_cast<uint32_t>(engine_->ListFleets().size()));
+  response->set_fleets(static_cast<uint32_t>(fleets));
   response->set_timestamp_ns(now_ns);
   return absl::OkStatus();
 }

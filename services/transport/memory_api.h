@@ -40,9 +40,14 @@ struct CallOptions {
   absl::Time deadline = absl::InfiniteFuture();
 };
 
+// The file that marks a directory as a snapshot (SNAPSHOT_ROOT/NAME/
+// SNAPSHOT, written last, saying what it holds and how to restore it): a
+// server refuses it as its data dir, and --restore-from copies it.
+inline constexpr char kSnapshotMarker[] = "SNAPSHOT";
+
 struct ApiOptions {
   // Directory CreateSnapshot writes under (each snapshot a new directory
-  // SNAPSHOT_ROOT/NAME holding db/); empty refuses snapshots with
+  // SNAPSHOT_ROOT/NAME holding db/ and SNAPSHOT); empty refuses snapshots with
   // FAILED_PRECONDITION. The server sets DATA_DIR/snapshots unless
   // --snapshot-dir says otherwise.
   std::string snapshot_root;

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <climits>
 #include <cstdint>
+#include <cstring>
 
 #include "absl/strings/str_cat.h"
 #include "services/core/absl_view.h"
@@ -85,6 +86,52 @@ void SampledTracesToProto(std::span<const core::MemoryTrace> traces,
   out->mutable_traces()->Reserve(static_cast<int>(traces.size()));
   for (const core::MemoryTrace& trace : traces) {
     TraceToProto(trace, out->add_traces());
+  }
+}
+
+void TraceColumnsToProto(std::span<const core::MemoryTrace> traces,
+                         v1::TraceColumns* out) {
+  const size_t n = traces.size();
+  const size_t dimension = n == 0 ? 0 : traces.front().code.size();
+  out->set_count(static_cast<uint32_t>(n));
+  out->set_code_dimension(static_cast<uint32_t>(dimension));
+  std::string* codes = out->mutable_codes();
+  codes->resize(n * dimension * sizeof(float));
+  const int rows = static_cast<int>(n);
+  out->mutable_places()->Reserve(4 * rows);
+  out->mutable_rewards()->Reserve(rows);
+  out->mutable_rewards_external()->Reserve(rows);
+  out->mutable_rewards_internal()->Reserve(rows);
+  out->mutable_seqs()->Reserve(rows);
+  out->mutable_replay_counts()->Reserve(rows);
+  out->mutable_cluster_ids()->Reserve(rows);
+  out->mutable_timestamps_ns()->Reserve(rows);
+  bool attachments = false;
+  for (const core::MemoryTrace& trace : traces) {
+    attachments = attachments || !trace.attachment.empty();
+  }
+  for (size_t i = 0; i < n; ++i) {
+    const core::MemoryTrace& trace = traces[i];
+    // One fleet, one dimension (the engine checks it at the upload); the
+    // bytes are the host's floats: little-endian on every platform built.
+    std::memcpy(codes->data() + i * dimension * sizeof(float),
+                trace.code.data(),
+                std::min(dimension, trace.code.size()) * sizeof(float));
+    for (double value :
+         {trace.place.x, trace.place.y, trace.place.z, trace.place.yaw}) {
+      out->add_places(value);
+    }
+    out->add_rewards(trace.reward);
+    out->add_rewards_external(trace.reward_external);
+    out->add_rewards_internal(trace.reward_internal);
+    out->add_seqs(trace.seq);
+    out->add_replay_counts(trace.replay_count);
+    out->add_cluster_ids(trace.cluster_id);
+    out->add_timestamps_ns(trace.timestamp_ns);
+    out->add_robot_ids(trace.robot_id);
+    out->add_domains(trace.domain);
+    out->add_encoder_versions(trace.encoder_version);
+    if (attachments) out->add_attachments(trace.attachment);
   }
 }
 

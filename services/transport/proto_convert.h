@@ -40,6 +40,10 @@ void ConsolidateResultToProto(const engine::ConsolidateResult& result,
                               v1::ConsolidateResponse* out);
 void SampledTracesToProto(std::span<const core::MemoryTrace> traces,
                           v1::SampleReplayResponse* out);
+// The same traces as columns (SampleReplayRequest.columnar): the codes in
+// one float32 block, every other field a packed array, row i trace i.
+void TraceColumnsToProto(std::span<const core::MemoryTrace> traces,
+                         v1::TraceColumns* out);
 void MatchesToProto(std::span<const engine::PlaceMatch> matches,
                     v1::QueryPlaceResponse* out);
 void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out);

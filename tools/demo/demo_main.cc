@@ -64,6 +64,7 @@
 #include "fleetmem_paths.h"
 #include "fleetmem_version.h"
 #include "google/protobuf/util/json_util.h"
+#include "services/common/cli_program.h"
 #include "services/common/files.h"
 #include "services/core/place_metrics.h"
 
@@ -1016,16 +1017,17 @@ absl::Status Run() {
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "Fleet memory demo on Nordland: three fleetmem-robot processes share "
+      "fleetmem-demo: fleet memory demo on Nordland: three fleetmem-robot "
+      "processes share "
       "one memory of the summer route and recognise its places in winter."};
-  app.set_version_flag("--version", "fleetmem-demo " FLEETMEM_VERSION);
+  fleetmem::common::SetUpProgram(app, "fleetmem-demo");
   fleetmem::demo::DemoFlags& flags = fleetmem::demo::Flags();
   app.add_option("--server", flags.server, "fleetmem server, HOST:PORT")
       ->capture_default_str();
   app.add_option(
-         "--data", flags.data,
-         "shared data folder (holds nordland/summer and nordland/winter)")
-      ->capture_default_str();
+      "--data", flags.data,
+      "shared data folder (holds nordland/summer and nordland/winter; "
+      "default: the checkout's ../shared/data)");
   app.add_option(
          "--fleet", flags.fleet,
          "fleet id (default: nordland-demo-<UTC time>, so reruns do not "
@@ -1077,7 +1079,10 @@ int main(int argc, char** argv) {
                  "--sequence)")
       ->capture_default_str()
       ->check(CLI::Range(2, 100));
-  CLI11_PARSE(app, argc, argv);
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
+  }
   const absl::Status status = fleetmem::demo::Run();
   if (!status.ok()) {
     std::cerr << "fleetmem-demo: " << status << "\n";

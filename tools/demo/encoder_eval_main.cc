@@ -25,6 +25,7 @@
 #include "clients/robot/sensing/rewards.h"
 #include "fleetmem_paths.h"
 #include "fleetmem_version.h"
+#include "services/common/cli_program.h"
 #include "services/core/place_metrics.h"
 
 namespace fleetmem::demo {
@@ -237,13 +238,14 @@ absl::Status Run() {
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "Compares the demo's image encoders on Nordland summer -> winter."};
-  app.set_version_flag("--version", "fleetmem-encoder-eval " FLEETMEM_VERSION);
+      "fleetmem-encoder-eval: compares the demo's image encoders on Nordland "
+      "summer -> winter."};
+  fleetmem::common::SetUpProgram(app, "fleetmem-encoder-eval");
   fleetmem::demo::EncoderEvalFlags& flags = fleetmem::demo::Flags();
   app.add_option(
-         "--data", flags.data,
-         "shared data folder (holds nordland/summer and nordland/winter)")
-      ->capture_default_str();
+      "--data", flags.data,
+      "shared data folder (holds nordland/summer and nordland/winter; "
+      "default: the checkout's ../shared/data)");
   app.add_option("--robots", flags.robots, "robot stretches of the demo")
       ->capture_default_str();
   app.add_option("--stretch-length,--stretch_length", flags.stretch_length,
@@ -252,7 +254,10 @@ int main(int argc, char** argv) {
   app.add_option("--encoders", flags.encoders,
                  "comma-separated encoder names (default: all)")
       ->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
+  }
   const absl::Status status = fleetmem::demo::Run();
   if (!status.ok()) {
     std::cerr << "fleetmem-encoder-eval: " << status << "\n";

@@ -36,6 +36,7 @@
 #include "clients/robot/learning/pretrain.h"
 #include "clients/robot/sensing/nordland.h"
 #include "fleetmem_version.h"
+#include "services/common/cli_program.h"
 #include "tools/eval/continual_vo_eval.h"
 #include "tools/eval/lifelong.h"
 #include "tools/eval/slam_eval.h"
@@ -72,8 +73,7 @@ void AddLifelongFlags(CLI::App* sub, fleetmem::eval::LifelongOptions& options) {
       ->capture_default_str()
       ->check(CLI::Range(1, 64));
   sub->add_option("--server-binary", options.server_binary,
-                  "fleetmem-server to run (default: beside this program)")
-      ->capture_default_str();
+                  "fleetmem-server to run (default: beside this program)");
   sub->add_option("--code-dimension", options.code_dimension,
                   "D of the GPL memory codes (a multiple of 32)")
       ->capture_default_str();
@@ -324,8 +324,8 @@ absl::Status RunPretrain(const PretrainFlags& pre) {
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "fleetmem-eval: evaluations of fleetmem's robot side on recorded data"};
-  app.set_version_flag("--version", "fleetmem-eval " FLEETMEM_VERSION);
+      "fleetmem-eval: evaluations of fleetmem's robot side on recorded data."};
+  fleetmem::common::SetUpProgram(app, "fleetmem-eval");
   app.require_subcommand(1);
   fleetmem::eval::LifelongOptions options;
   options.server_binary = BesideThisProgram("fleetmem-server");
@@ -352,10 +352,9 @@ int main(int argc, char** argv) {
   CLI::App* slam = AddSlam(app, slam_options);
   fleetmem::eval::ContinualVoEvalOptions vo_options;
   CLI::App* continual_vo = AddContinualVo(app, vo_options);
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& e) {
-    return app.exit(e) == 0 ? 0 : 2;
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
   }
   const char* what = "fleetmem-eval";
   absl::Status status;

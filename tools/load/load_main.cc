@@ -44,6 +44,7 @@
 #include "absl/strings/str_replace.h"
 #include "clients/cpp/fleetmem_client.h"
 #include "fleetmem_version.h"
+#include "services/common/cli_program.h"
 #include "tools/load/load_generator.h"
 #include "tools/load/peer_server.h"
 
@@ -642,8 +643,10 @@ struct PeerCommand {
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"Load for a running fleetmem-server (crash trials, soak)."};
-  app.set_version_flag("--version", "fleetmem-load " FLEETMEM_VERSION);
+  CLI::App app{
+      "fleetmem-load: load for a running fleetmem-server (crash trials, "
+      "soak, benchmarks)."};
+  fleetmem::common::SetUpProgram(app, "fleetmem-load");
   app.require_subcommand(1);
   Common common;
   UploadCommand upload;
@@ -656,7 +659,10 @@ int main(int argc, char** argv) {
   bench.Add(app, &common);
   PeerCommand peer;
   peer.Add(app);
-  CLI11_PARSE(app, argc, argv);
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
+  }
   if (bench.app->parsed()) return bench.Run(common);
   if (peer.app->parsed()) return peer.Run();
   if (upload.app->parsed()) return upload.Run(common);

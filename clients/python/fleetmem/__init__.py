@@ -2,9 +2,11 @@
 
     import numpy as np, fleetmem
     with fleetmem.Client("127.0.0.1:50051") as fm:
-        fm.upload("f1", codes, places, rewards, robot_id="robot-1")
+        fm.upload("f1", codes, places, rewards, robot_id="robot-1", seqs=np.arange(len(codes)))
         matches = fm.query_place("f1", codes[0], k=5)
         replay = fm.sample_replay("f1", "robot-1", 64)   # fleetmem.Traces (arrays)
+        for batch in fleetmem.ReplayDataset(fm, "f1", "robot-1", batch_size=256, batches=10):
+            ...                                          # a training loop's batches
 
 docs/python.md has the API and the example robot.
 """
@@ -14,10 +16,12 @@ import pathlib as _pathlib
 
 import numpy as _np
 
-from fleetmem.client import Client, FleetMemError, Matches, Traces, UploadResult, Watch
+from fleetmem.client import (Client, DuplicateUploadWarning, FleetMemError, Matches, Traces,
+                             UploadResult, Watch)
+from fleetmem.replay import ReplayDataset
 from fleetmem.v1 import memory_pb2 as pb
 
-__all__ = ["Client", "FleetMemError", "Matches", "Traces", "UploadResult", "Watch", "load_export", "pb"]
+__all__ = ["Client", "DuplicateUploadWarning", "FleetMemError", "ReplayDataset", "Matches", "Traces", "UploadResult", "Watch", "load_export", "pb"]
 __version__ = "0.1.0"
 
 

@@ -20,6 +20,7 @@ import random
 import threading
 import time
 import uuid
+import warnings
 from typing import Iterator, Optional, Sequence
 
 import grpc
@@ -85,6 +86,19 @@ class UploadResult:
     last_sequence: int
     applied: bool
 
+    @property
+    def all_duplicates(self) -> bool:
+        """True if the server held every trace already (nothing stored): the
+        same (robot_id, seq) keys as an earlier upload, e.g. a script run a
+        second time into the same fleet. upload() also warns then."""
+        return self.accepted == 0 and self.duplicates > 0
+
+
+class DuplicateUploadWarning(UserWarning):
+    """An upload of which the server stored nothing: it held every
+    (robot_id, seq) already. Filter it (warnings.simplefilter) where
+    repeating uploads is intended."""
+
 
 @dataclasses.dataclass
 class Traces:
@@ -142,6 +156,57 @@ def traces_from_messages(messages: Sequence[pb.MemoryTrace], dim: int = 0) -> Tr
         timestamps_ns=np.fromiter((m.timestamp_ns for m in messages), np.int64, n),
         robot_ids=[m.robot_id for m in messages], domains=[m.domain for m in messages],
         attachments=[m.attachment for m in messages])
+
+
+def _code(name: str, values) -> np.ndarray:
+    """One code: a 1-D array of finite real numbers, as float32. ValueError
+    before anything is sent for another shape (a 2-D array would be sent
+    flat and answered "dimension ..." by the server: several codes are
+    query_places's) or for NaN / infinity."""
+    array = _real(name, values)
+    if array.ndim != 1 or array.shape[0] == 0:
+        hint = " (several codes: query_places)" if array.ndim == 2 else ""
+        raise ValueError(f"{name}: want one code, a 1-D array of d numbers, got shape {array.shape}{hint}")
+    array = array.astype(np.float32)
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name}: holds NaN or infinity")
+    return array
+
+
+def _near(near) -> tuple:
+    """(x, y, z) from 2 or 3 real numbers; ValueError otherwise."""
+    array = _real("near", near).astype(np.float64)
+    if array.shape not in ((2,), (3,)) or not np.isfinite(array).all():
+        raise ValueError(f"near: want 2 or 3 finite numbers (x, y[, z]), got shape {array.shape}")
+    return tuple(float(v) for v in array) + (0.0,) * (3 - len(array))
+
+
+def _count(name: str, value, low: int = 1) -> int:
+    """An int >= low (numpy integers too); TypeError / ValueError otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name}: want an int, got {type(value).__name__} {value!r}")
+    if value < low:
+        raise ValueError(f"{name}: want at least {low}, got {value}")
+    return int(value)
+
+
+def traces_from_columns(columns: pb.TraceColumns) -> Traces:
+    """Traces (arrays) from a TraceColumns message: the codes straight from
+    their float32 block, the other fields from packed arrays."""
+    n, dim = columns.count, columns.code_dimension
+    codes = np.frombuffer(columns.codes, "<f4")
+    if codes.size != n * dim:
+        raise ValueError(f"columns: {codes.size} code values for {n} x {dim}")
+    return Traces(
+        codes=codes.reshape(n, dim).astype(np.float32, copy=False),
+        places=np.array(columns.places, np.float64).reshape(n, 4),
+        rewards=np.array(columns.rewards, np.float32),
+        seqs=np.array(columns.seqs, np.uint64),
+        cluster_ids=np.array(columns.cluster_ids, np.uint64),
+        replay_counts=np.array(columns.replay_counts, np.uint32),
+        timestamps_ns=np.array(columns.timestamps_ns, np.int64),
+        robot_ids=list(columns.robot_ids), domains=list(columns.domains),
+        attachments=list(columns.attachments) or [b""] * n)
 
 
 def _places_array(places, n: int) -> np.ndarray:
@@ -381,8 +446,14 @@ class Client:
 
         answer = self._call("UploadTraces", lambda t: self._upload(messages(), timeout=t, metadata=self._metadata),
                             timeout=self.upload_timeout)
-        return UploadResult(answer.accepted, answer.duplicates, answer.consolidations,
-                            answer.last_sequence, answer.applied)
+        result = UploadResult(answer.accepted, answer.duplicates, answer.consolidations,
+                              answer.last_sequence, answer.applied)
+        if result.all_duplicates:
+            warnings.warn(
+                f"upload to fleet {fleet!r}: all {result.duplicates} traces of robot {robot_id!r} "
+                "were held already (the same seqs as an earlier upload): nothing was stored",
+                DuplicateUploadWarning, stacklevel=2)
+        return result
 
     def consolidate(self, fleet: str) -> pb.ConsolidateResponse:
         """Consolidates every robot's pending traces now (Algorithm 1 + 2)."""
@@ -576,19 +647,21 @@ class Client:
         encoder migration): the server searches with the one of the fleet's
         encoder, so a query through an alias never mixes encoders; the
         answer's encoder_version says which."""
-        request = pb.QueryPlaceRequest(fleet_id=_text("fleet", fleet), k=k, radius_m=radius_m)
+        request = pb.QueryPlaceRequest(fleet_id=_text("fleet", fleet), k=_count("k", k),
+                                       radius_m=float(_real("radius_m", radius_m)))
         request.filter.CopyFrom(self._read_filter(robot_ids, domains))
         dims = {}
         if isinstance(code, dict):
+            if not code:
+                raise ValueError("code: an empty dict (want {encoder_version: code})")
             for version, one in code.items():
-                values = _real("code", one).astype(np.float32).ravel()
-                dims[version] = len(values)
+                values = _code(f"code[{version!r}]", one)
+                dims[_text("encoder_version", version)] = len(values)
                 request.codes_by_encoder.add(encoder_version=version).code.extend(values.tolist())
         else:
-            request.code.extend(_real("code", code).astype(np.float32).ravel().tolist())
+            request.code.extend(_code("code", code).tolist())
         if near is not None:
-            x, y, z = (list(near) + [0.0, 0.0])[:3]
-            request.near.x, request.near.y, request.near.z = x, y, z
+            request.near.x, request.near.y, request.near.z = _near(near)
         answer = self._unary("QueryPlace", request)
         matches = answer.matches
         dim = dims.get(answer.encoder_version, len(request.code))
@@ -602,16 +675,18 @@ class Client:
         and one read of the fleet: a list of n Matches, in order (a robot's
         last frames for a sequence search)."""
         array = _real("codes", codes).astype(np.float32)
-        if array.ndim != 2 or not 1 <= array.shape[0] <= 100:
+        if array.ndim != 2 or not 1 <= array.shape[0] <= 100 or array.shape[1] == 0:
             raise ValueError(f"codes: want 1 to 100 rows of one code each, got shape {array.shape}")
-        request = pb.QueryPlaceRequest(fleet_id=_text("fleet", fleet), k=k, radius_m=radius_m)
+        if not np.isfinite(array).all():
+            raise ValueError("codes: hold NaN or infinity")
+        request = pb.QueryPlaceRequest(fleet_id=_text("fleet", fleet), k=_count("k", k),
+                                       radius_m=float(_real("radius_m", radius_m)))
         request.filter.CopyFrom(self._read_filter(robot_ids, domains))
         request.code.extend(array[0].tolist())
         for row in array[1:]:
             request.more_codes.add().code.extend(row.tolist())
         if near is not None:
-            x, y, z = (list(near) + [0.0, 0.0])[:3]
-            request.near.x, request.near.y, request.near.z = x, y, z
+            request.near.x, request.near.y, request.near.z = _near(near)
         answer = self._unary("QueryPlace", request)
         dim = array.shape[1]
         return [Matches(np.fromiter((m.distance for m in matches), np.float32, len(matches)),
@@ -619,16 +694,23 @@ class Client:
                 for matches in [answer.matches] + [more.matches for more in answer.more_matches]]
 
     def sample_replay(self, fleet: str, robot_id: str, count: int, *,
-                      robot_ids=None, domains=None) -> Traces:
+                      robot_ids=None, domains=None, columnar: bool = True) -> Traces:
         """`count` distinct traces drawn with weight gamma^n * R (Eq. 18) to
         refresh robot_id's dynamic memory; replay_counts shows n after this
         draw. With robot_ids / domains (a str or several) only those robots'
         or domains' traces are drawn. A retry carries the same request id:
-        counted once."""
-        request = pb.SampleReplayRequest(fleet_id=fleet, robot_id=robot_id, count=count,
-                                         request_id=uuid.uuid4().hex)
+        counted once. The answer comes as columns (SampleReplayRequest.
+        columnar: one float32 block of codes, no message per trace); with
+        columnar=False, or from a server without columns, as messages."""
+        request = pb.SampleReplayRequest(fleet_id=_text("fleet", fleet),
+                                         robot_id=_text("robot_id", robot_id),
+                                         count=_count("count", count), request_id=uuid.uuid4().hex,
+                                         columnar=bool(columnar))
         request.filter.CopyFrom(self._read_filter(robot_ids, domains))
-        return traces_from_messages(self._unary("SampleReplay", request).traces)
+        answer = self._unary("SampleReplay", request)
+        if answer.HasField("columns"):
+            return traces_from_columns(answer.columns)
+        return traces_from_messages(answer.traces)
 
     def stats(self, fleet: str) -> pb.GetStatsResponse:
         """The fleet's counts (GetStatsResponse: traces, clusters, robots, ...)."""

@@ -26,7 +26,8 @@ def test_two_robots_upload_query_sample_and_export(server):
         second = fm.upload("f1", b, np.arange(800) * 10.0, 0.5, robot_id="robot-b", seqs=np.arange(1000, 1800),
                            domain="winter", attachments=notes, ack="durable")
         assert (second.accepted, second.duplicates) == (800, 0) and second.last_sequence > 0
-        again = fm.upload("f1", a[:100], robot_id="robot-a", seqs=np.arange(100))
+        with pytest.warns(fleetmem.DuplicateUploadWarning):
+            again = fm.upload("f1", a[:100], robot_id="robot-a", seqs=np.arange(100))
         assert (again.accepted, again.duplicates) == (0, 100)
 
         stats = fm.stats("f1")
@@ -189,6 +190,32 @@ def test_bad_arguments_are_python_errors_and_standing_limits_are_not_retried(tmp
             with pytest.raises(TypeError, match="code"):
                 fm.query_place("f1", np.ones(64) * 1j)
             fm.upload("f1", codes_of(1, 2), robot_id="r1", seqs=[0, 1])
+            # Issue 48: every array argument's shape is checked before
+            # anything is sent (a 2-D code went out flat: "dimension 128").
+            code = codes_of(1, 2)[0]
+            for bad, match in ((codes_of(1, 2), "query_places"), (np.ones((1, 64)), "1-D"),
+                               (np.array([]), "1-D"), (np.full(64, np.nan), "NaN")):
+                with pytest.raises(ValueError, match=match):
+                    fm.query_place("f1", bad)
+            with pytest.raises(ValueError, match="1-D"):
+                fm.query_place("f1", {"v1": codes_of(1, 2)})
+            with pytest.raises(ValueError, match="near"):
+                fm.query_place("f1", code, near=[1.0])
+            with pytest.raises(ValueError, match="near"):
+                fm.query_places("f1", codes_of(1, 2), near=np.zeros((2, 2)))
+            with pytest.raises(ValueError, match="k"):
+                fm.query_place("f1", code, k=0)
+            with pytest.raises(TypeError, match="k"):
+                fm.query_place("f1", code, k=2.5)
+            with pytest.raises(ValueError, match="count"):
+                fm.sample_replay("f1", "r1", -1)
+            with pytest.raises(ValueError, match="codes"):
+                fm.query_places("f1", code)
+            assert len(fm.query_place("f1", code, k=2, near=(0.0, 0.0), radius_m=1e9)) == 2
+            # An upload of which nothing is new says so.
+            with pytest.warns(fleetmem.DuplicateUploadWarning, match="nothing was stored"):
+                again = fm.upload("f1", codes_of(1, 2), robot_id="r1", seqs=[0, 1])
+            assert again.all_duplicates and again.duplicates == 2
             started = time.monotonic()
             with pytest.raises(fleetmem.FleetMemError) as limit:
                 fm.upload("f2", codes_of(2, 2), robot_id="r1", seqs=[0, 1])
@@ -220,7 +247,8 @@ def test_a_deleted_robot_is_gone_from_every_read_and_rewards_change_the_draw(ser
             assert fm.query_place("f1", b[i], k=10).traces.robot_ids == ["robot-a"] * 10
         stats = fm.stats("f1")
         assert stats.traces + stats.pending_traces == 300
-        again = fm.upload("f1", b[:50], robot_id="robot-b", seqs=np.arange(50))
+        with pytest.warns(fleetmem.DuplicateUploadWarning):
+            again = fm.upload("f1", b[:50], robot_id="robot-b", seqs=np.arange(50))
         assert (again.accepted, again.duplicates) == (0, 50)
         # The CLI's delete of a seq range, and its get.
         out = cli("--server", server.address, "--json", "delete-traces", "--fleet", "f1",
@@ -361,3 +389,46 @@ def test_many_codes_in_one_query(server):
         assert len(drawn.seqs) > 0 and set(drawn.robot_ids) == {"robot-b"}
         everyone = fm.sample_replay("f1", "robot-a", 300)
         assert set(everyone.robot_ids) == {"robot-a", "robot-b"}
+
+
+def test_replay_dataset_streams_batches_and_keeps_the_rate_limit(server):
+    """Issue 48: replay as a stream of batches for a training loop (Reverb's
+    dataset), the answer as columns, and SampleToInsertRatio's limit."""
+    with fleetmem.Client(server.address) as fm:
+        codes = codes_of(48, 300, dim=16)
+        fm.upload("replayed", codes, np.arange(300.0), 1.0, robot_id="r1", seqs=np.arange(300),
+                  domain="summer")
+        fm.consolidate("replayed")
+        # Columns and messages carry the same kind of draw.
+        columns = fm.sample_replay("replayed", "r1", 50)
+        messages = fm.sample_replay("replayed", "r1", 50, columnar=False)
+        for drawn in (columns, messages):
+            assert drawn.codes.shape == (50, 16) and drawn.codes.dtype == np.float32
+            assert drawn.places.shape == (50, 4) and len(set(drawn.seqs.tolist())) == 50
+            assert drawn.robot_ids == ["r1"] * 50 and drawn.domains == ["summer"] * 50
+            assert (drawn.replay_counts >= 1).all()
+            # Each code is the one uploaded under its seq.
+            np.testing.assert_allclose(drawn.codes, codes[drawn.seqs.astype(int)], rtol=1e-6)
+        dataset = fleetmem.ReplayDataset(fm, "replayed", "r1", batch_size=100, batches=5)
+        batches = list(dataset)
+        assert [len(b) for b in batches] == [100] * 5 and dataset.sampled == 500
+        assert all(len(set(b.seqs.tolist())) == 100 for b in batches)
+        # No prefetch: the same, drawn when asked for.
+        assert len(list(fleetmem.ReplayDataset(fm, "replayed", "r1", batch_size=10, batches=3,
+                                               prefetch=0))) == 3
+        # At most one trace drawn per trace received: three batches of 100
+        # from 300 received, then the limit holds the fourth.
+        limited = fleetmem.ReplayDataset(fm, "replayed", "r1", batch_size=100, samples_per_insert=1.0,
+                                         poll_seconds=0.05, max_wait_seconds=0.5)
+        got = []
+        with pytest.raises(TimeoutError, match="samples_per_insert 1.0"):
+            for batch in limited:
+                got.append(len(batch))
+        assert got == [100, 100, 100] and limited.inserted == 300
+        # Not before the fleet holds min_size_to_sample.
+        waiting = fleetmem.ReplayDataset(fm, "replayed", "r1", batch_size=10, min_size_to_sample=1000,
+                                         poll_seconds=0.05, max_wait_seconds=0.3, prefetch=0)
+        with pytest.raises(TimeoutError):
+            next(iter(waiting))
+        with pytest.raises(ValueError, match="samples_per_insert"):
+            fleetmem.ReplayDataset(fm, "replayed", "r1", samples_per_insert=0)

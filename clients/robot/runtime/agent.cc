@@ -33,6 +33,20 @@ std::string Reported(const std::string& report) {
   return report.empty() ? "" : absl::StrCat("; learner: ", report);
 }
 
+// Why a first robot scores 0: what the fleet held for its queries was only
+// its own earlier traces, never the place it stood at.
+std::string OwnOnlyNote(uint64_t own_only, size_t scored) {
+  if (own_only == 0) return "";
+  if (own_only >= scored) {
+    return " (every answer was one of its own earlier traces: the fleet had "
+           "nothing of these places to relocalise against)";
+  }
+  return absl::StrFormat(
+      " (%d of them answered only with its own earlier traces: nothing of "
+      "those places from the fleet)",
+      own_only);
+}
+
 }  // namespace
 
 absl::StatusOr<float> InternalRewardOf(const Encoder& encoder,
@@ -351,7 +365,10 @@ Agent::Relocalisation Agent::Relocalise(const std::vector<float>& code,
       std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   std::vector<SequenceCandidate> candidates;
   if (matches.ok()) {
+    result.own_only = !matches->empty();
     for (const v1::PlaceMatch& match : *matches) {
+      result.own_only =
+          result.own_only && match.trace().robot_id() == options_.robot_id;
       candidates.push_back({.place = PlaceFromProto(match.trace().pose()),
                             .distance = match.distance()});
     }
@@ -389,6 +406,9 @@ void Agent::Relocalisation::CountIn(RobotState& state) const {
     histogram.Set(r, histogram.Get(r) + 1);
   };
   if (rank >= 0) count(*state.mutable_relocalisation_ranks(), rank);
+  if (rank >= 0 && own_only) {
+    state.set_relocalisation_own_only(state.relocalisation_own_only() + 1);
+  }
   if (sequence_rank >= 0) {
     count(*state.mutable_sequence_ranks(), sequence_rank);
   }
@@ -763,7 +783,7 @@ void Agent::Progress(bool force) {
   Log(absl::StrFormat(
       "%s: observed %d/%d | queue %d (oldest %.1f s) | uploaded %d | "
       "refreshed %d (M_D %d, %d traces from peers) | replayed %d from "
-      "peers | relocalisation %s%s%s",
+      "peers | relocalisation %s%s%s%s",
       phase_, state.next_index(), end_, queue.depth, age,
       state.traces_uploaded(), state.refreshes(), memory_.size(),
       state.refreshed_peer_traces(), state.replayed_peer(),
@@ -778,7 +798,8 @@ void Agent::Progress(bool force) {
       state.relocalisation_unscored() == 0
           ? std::string()
           : absl::StrFormat(" (%d more without ground truth)",
-                            state.relocalisation_unscored())));
+                            state.relocalisation_unscored()),
+      OwnOnlyNote(state.relocalisation_own_only(), ranks.size())));
 }
 
 }  // namespace fleetmem::robot

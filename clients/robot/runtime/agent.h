@@ -181,6 +181,7 @@ class Agent {
     bool unanswered = false;  // the server did not answer
     bool empty = false;       // the fleet's memory is empty (or absent)
     bool unscored = false;    // answered, but the place is not ground truth
+    bool own_only = false;    // every answer one of this robot's traces
     double ms = 0.0;
     // Adds this query to the durable counters.
     void CountIn(RobotState& state) const;

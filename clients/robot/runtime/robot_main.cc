@@ -43,6 +43,7 @@
 #include "clients/robot/slam/fleet_slam.h"
 #include "clients/robot/vo/vo_deployment.h"
 #include "fleetmem_version.h"
+#include "services/common/cli_program.h"
 #include "services/core/validation.h"
 
 namespace {
@@ -831,14 +832,12 @@ int Run(const Flags& flags) {
 
 int main(int argc, char** argv) {
   CLI::App app{"fleetmem-robot: one robot of a fleet (docs/robot.md)."};
-  app.set_version_flag("--version", "fleetmem-robot " FLEETMEM_VERSION);
+  fleetmem::common::SetUpProgram(app, "fleetmem-robot");
   Flags flags;
   AddFlags(app, flags);
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& e) {
-    const int code = app.exit(e);
-    return code == 0 ? 0 : 2;
+  if (std::optional<int> done =
+          fleetmem::common::ParseProgram(app, argc, argv)) {
+    return *done;
   }
   // A mapping robot uploads keyframes in small segments, so that its own
   // and its peers' loop candidates reach the fleet soon.

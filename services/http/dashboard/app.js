@@ -73,6 +73,8 @@ async function api(path, body) {
 
 const num = (v) => Number(v || 0);
 const fmt = (v) => num(v).toLocaleString('en-US');
+const plural = (n, word) => `${fmt(n)} ${word}${num(n) === 1 ? '' : 's'}`;
+const PICKER_ROWS = 50;  // fleets listed at once; the search narrows them
 const $ = (id) => document.getElementById(id);
 
 function colourOf(key) {
@@ -90,6 +92,7 @@ function showLogin(message) {
   $('login').hidden = false;
   $('main').hidden = true;
   $('login-error').textContent = message || '';
+  setStatus('credentials needed');
 }
 
 $('login-form').addEventListener('submit', (event) => {
@@ -144,21 +147,67 @@ function selectFleet(fleetId) {
   refreshMap();
 }
 
+// The fleet picker: a button naming the fleet shown; it opens a list of
+// the fleets that match the search (id or alias), the selected one first,
+// at most PICKER_ROWS of them, so that it works with hundreds of fleets.
+function openPicker(open) {
+  $('fleet-popup').hidden = !open;
+  $('fleet-current').setAttribute('aria-expanded', String(open));
+  if (open) {
+    $('fleet-search').focus();
+    renderFleetList();
+  }
+}
+$('fleet-current').addEventListener('click', () => openPicker($('fleet-popup').hidden));
+$('fleet-search').addEventListener('input', renderFleetList);
+$('fleet-search').addEventListener('keydown', (event) => {
+  if (event.key === 'Escape') openPicker(false);
+  if (event.key === 'Enter') {  // the first match
+    const first = $('fleet-list').querySelector('a');
+    if (first) location.hash = first.getAttribute('href');
+    openPicker(false);
+  }
+});
+document.addEventListener('click', (event) => {
+  if (!$('picker').contains(event.target)) openPicker(false);
+});
+
 function renderFleetList() {
+  const query = $('fleet-search').value.trim().toLowerCase();
+  const aliasesOf = (id) => state.aliases.filter((a) => a.fleetId === id).map((a) => a.alias);
+  const matches = state.fleets.filter((fleet) => !query ||
+    fleet.fleetId.toLowerCase().includes(query) ||
+    aliasesOf(fleet.fleetId).some((alias) => alias.toLowerCase().includes(query)));
+  matches.sort((a, b) => (b.fleetId === state.fleet) - (a.fleetId === state.fleet) ||
+    a.fleetId.localeCompare(b.fleetId));
   const nav = $('fleet-list');
   nav.innerHTML = '';
-  for (const fleet of state.fleets) {
+  for (const fleet of matches.slice(0, PICKER_ROWS)) {
     const link = document.createElement('a');
     link.href = fleetLink(fleet.fleetId);
     link.dataset.fleet = fleet.fleetId;
-    const names = state.aliases.filter((a) => a.fleetId === fleet.fleetId).map((a) => a.alias);
-    link.textContent = `${fleet.fleetId} (${fmt(fleet.traces)} traces, ${fleet.robots} robots)` +
-      (names.length ? ` ← ${names.join(', ')}` : '');
+    const names = aliasesOf(fleet.fleetId);
+    const name = document.createElement('span');
+    name.textContent = fleet.fleetId + (names.length ? ` ← ${names.join(', ')}` : '');
+    const counts = document.createElement('span');
+    counts.className = 'muted';
+    counts.textContent = `${plural(fleet.traces, 'trace')} · ${plural(fleet.robots, 'robot')}`;
+    link.append(name, counts);
     if (names.length) link.dataset.aliases = names.join(',');
     if (fleet.fleetId === state.fleet) link.className = 'active';
     // A plain link: the hashchange selects it (and it opens in a new tab).
+    link.addEventListener('click', () => openPicker(false));
     nav.appendChild(link);
   }
+  const left = matches.length - Math.min(matches.length, PICKER_ROWS);
+  $('fleet-more').textContent = (left > 0 ? `${fmt(left)} more: type to narrow. ` : '') +
+    `${plural(state.fleets.length, 'fleet')} on this server` +
+    (query ? `, ${fmt(matches.length)} matching` : '');
+  $('fleet-search').placeholder = `search ${plural(state.fleets.length, 'fleet')} and aliases`;
+  const current = state.fleets.find((f) => f.fleetId === state.fleet);
+  $('fleet-current').textContent = current ? current.fleetId : 'choose a fleet';
+  $('fleet-current').title = current
+    ? `${plural(current.traces, 'trace')} · ${plural(current.robots, 'robot')}` : '';
 }
 
 async function refreshFleets() {
@@ -241,12 +290,21 @@ function addEvent(event, live) {
     traceChange = num(event.clusterId) > 0 ? -num(event.tracesDropped) : 0;
     clusterChange = clusterLeft ? -1 : 0;
   }
-  state.history.push({
+  // One point per change of state: a consolidation's events (clusters
+  // added, then forgotten or merged) share its timestamp and make one step,
+  // so the chart never shows the half-applied memory between them (which
+  // rose above K_max).
+  const point = {
     t: num(event.timestampNs) / 1e6,
     traces: last.traces + traceChange,
     clusters: last.clusters + clusterChange,
     forgotten: last.forgotten + (forgotten ? 1 : 0),
-  });
+  };
+  if (state.history.length && last.t === point.t) {
+    state.history[state.history.length - 1] = point;
+  } else {
+    state.history.push(point);
+  }
   if (forgotten && live && event.centroidPose) {
     state.fading.push({ x: event.centroidPose.x, y: event.centroidPose.y,
       n: num(event.traceCount), at: performance.now() });
@@ -367,9 +425,6 @@ function drawMap() {
   const pad = 30;
   const spanX = Math.max(1e-6, extent.x1 - extent.x0);
   const spanY = Math.max(1e-6, extent.y1 - extent.y0);
-  const scale = Math.min((canvas.width - 2 * pad) / spanX, (canvas.height - 2 * pad) / spanY);
-  const sx = (x) => pad + (x - extent.x0) * scale + ((canvas.width - 2 * pad) - spanX * scale) / 2;
-  const sy = (y) => canvas.height - pad - (y - extent.y0) * scale - ((canvas.height - 2 * pad) - spanY * scale) / 2;
   const keyOf = (p) => (state.colourBy === 'robot' ? p.robotId : (p.domain || '(none)'));
   // Robots that pass the same places (the same route, a shared corridor)
   // would hide each other: each robot's dots are drawn in its own lane,
@@ -377,9 +432,36 @@ function drawMap() {
   const robots = [...new Set(all.map((p) => p.robotId))].sort();
   const lane = (p) => (state.colourBy === 'robot'
     ? (robots.indexOf(p.robotId) - (robots.length - 1) / 2) * LANE_PX : 0);
+  // Places on one line (every y within 1 % of the x span: a route index,
+  // as Nordland's) would be one thin line across an empty map: the line is
+  // folded into rows that fill the map instead, each labelled with the
+  // place it starts at.
+  const oneD = extent.y1 - extent.y0 <= 0.01 * spanX && all.length > 1;
+  const rowHeight = Math.max(28, robots.length * LANE_PX + 20);
+  const rows = oneD ? Math.max(1, Math.floor((canvas.height - 2 * pad) / rowHeight)) : 1;
+  const rowSpan = spanX / rows;
+  const scale = oneD ? (canvas.width - 2 * pad - 40) / rowSpan
+    : Math.min((canvas.width - 2 * pad) / spanX, (canvas.height - 2 * pad) / spanY);
+  const rowOf = (x) => Math.min(rows - 1, Math.max(0, Math.floor((x - extent.x0) / rowSpan)));
+  // Canvas coordinates of a place (x, y).
+  const sx = oneD ? (x) => pad + 40 + (x - extent.x0 - rowOf(x) * rowSpan) * scale
+    : (x) => pad + (x - extent.x0) * scale + ((canvas.width - 2 * pad) - spanX * scale) / 2;
+  const sy = oneD ? (x) => pad + rowOf(x) * rowHeight + rowHeight / 2
+    : (x, y) => canvas.height - pad - (y - extent.y0) * scale - ((canvas.height - 2 * pad) - spanY * scale) / 2;
+  canvas.dataset.layout = oneD ? `1-d, ${rows} rows` : '2-d';
+  if (oneD) {
+    ctx.strokeStyle = '#e2e8f0'; ctx.fillStyle = '#718096'; ctx.lineWidth = 1;
+    ctx.font = '11px system-ui'; ctx.textAlign = 'right';
+    for (let row = 0; row < rows; ++row) {
+      const y = pad + row * rowHeight + rowHeight / 2;
+      ctx.beginPath(); ctx.moveTo(pad + 40, y); ctx.lineTo(canvas.width - pad, y); ctx.stroke();
+      ctx.fillText(fmt(Math.round(extent.x0 + row * rowSpan)), pad + 34, y + 4);
+    }
+    ctx.textAlign = 'left';
+  }
 
   // Scale bar: a round number of the fleet's place unit.
-  const length = Math.pow(10, Math.floor(Math.log10(spanX / 4 || 1)));
+  const length = Math.pow(10, Math.floor(Math.log10((oneD ? rowSpan : spanX) / 4 || 1)));
   ctx.strokeStyle = '#4a5568'; ctx.fillStyle = '#4a5568'; ctx.lineWidth = 2;
   ctx.beginPath(); ctx.moveTo(pad, canvas.height - 10); ctx.lineTo(pad + length * scale, canvas.height - 10); ctx.stroke();
   ctx.font = '12px system-ui';
@@ -392,26 +474,26 @@ function drawMap() {
     keys.set(keyOf(p), colour);
     ctx.fillStyle = colour;
     ctx.globalAlpha = 0.75;
-    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)) + lane(p), 2.5, 0, 2 * Math.PI); ctx.fill();
+    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.x), num(p.pose.y)) + lane(p), 2.5, 0, 2 * Math.PI); ctx.fill();
   }
   ctx.globalAlpha = 1;
   for (const p of pending) {
     const colour = colourOf(keyOf(p));
     keys.set(keyOf(p), colour);
     ctx.strokeStyle = colour; ctx.lineWidth = 1;
-    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.y)) + lane(p), 2.5, 0, 2 * Math.PI); ctx.stroke();
+    ctx.beginPath(); ctx.arc(sx(num(p.pose.x)), sy(num(p.pose.x), num(p.pose.y)) + lane(p), 2.5, 0, 2 * Math.PI); ctx.stroke();
   }
   for (const c of clusters) {
     const pose = c.centroidPose || {};
     ctx.strokeStyle = '#1a202c'; ctx.lineWidth = 1.2; ctx.globalAlpha = 0.6;
-    ctx.beginPath(); ctx.arc(sx(num(pose.x)), sy(num(pose.y)), 3 + 2 * Math.sqrt(num(c.traceCount)), 0, 2 * Math.PI); ctx.stroke();
+    ctx.beginPath(); ctx.arc(sx(num(pose.x)), sy(num(pose.x), num(pose.y)), 3 + 2 * Math.sqrt(num(c.traceCount)), 0, 2 * Math.PI); ctx.stroke();
   }
   const now = performance.now();
   state.fading = state.fading.filter((f) => now - f.at < FADE_MS);
   for (const f of state.fading) {
     ctx.globalAlpha = 1 - (now - f.at) / FADE_MS;
     ctx.strokeStyle = '#c53030'; ctx.lineWidth = 2;
-    ctx.beginPath(); ctx.arc(sx(f.x), sy(f.y), 3 + 2 * Math.sqrt(f.n), 0, 2 * Math.PI); ctx.stroke();
+    ctx.beginPath(); ctx.arc(sx(f.x), sy(f.x, f.y), 3 + 2 * Math.sqrt(f.n), 0, 2 * Math.PI); ctx.stroke();
   }
   ctx.globalAlpha = 1;
   canvas.dataset.points = String(points.length + pending.length);
@@ -470,6 +552,7 @@ function drawChart() {
   }
   ctx.textAlign = 'left';
   canvas.dataset.ticks = String(ticks);
+  canvas.dataset.peakClusters = String(Math.max(...h.map((p) => p.clusters)));
   line('#2b6cb0', yl, 'traces');
   line('#2f855a', yr, 'clusters');
   line('#c53030', yr, 'forgotten');
