@@ -165,6 +165,11 @@ for path in sys.argv[2:]:
     named = {re.sub(r"_(bucket|count|sum)$", "", n) for n in named}
     missing = sorted(n for n in named if n not in served)
     assert not missing, (path, missing)
+# And the other way: every metric served has its row in operations.md's
+# table (issue 48: fleetmem_build_info had none).
+documented = set(re.findall(r"^\| `(fleetmem_\w+)`", open(sys.argv[3]).read(), re.M))
+undocumented = sorted(served - documented)
+assert not undocumented, ("served but not in docs/operations.md", undocumented)
 EOF
   cli export --fleet alpha --out "$WORK/export" --page-size 100 > /dev/null
   check "export reads back with numpy" /usr/bin/python3 - "$WORK/export" <<'EOF'
