@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""README.md's blocks run as written (issue 48: a doc can no longer drift).
+"""README.md's blocks run as written (issue 48: a doc can no longer drift),
+and the self-contained Python blocks of docs/python.md and docs/api.md.
 
 The tour (a server, the CLI, REST, a snapshot, an export), the Python block
 (a venv, pip install of clients/python, upload, query, replay) and the
@@ -61,8 +62,15 @@ def run(name, script):
     return done
 
 
+# docs/python.md's first Python block and docs/api.md's encoder migration,
+# against the tour's server, with the venv the README's block made.
+docs = {name: (source / "docs" / name).read_text() for name in ("python.md", "api.md")}
+python_blocks = [re.findall(r"```python\n(.*?)```", docs["python.md"], re.S)[0],
+                 next(b for b in re.findall(r"```python\n(.*?)```", docs["api.md"], re.S)
+                      if "switch_alias" in b)]
+more = "".join(f".venv/bin/python - <<'PY'\n{block}PY\n" for block in python_blocks)
 tour = run("tour-and-python",
-           as_here(block_with("fleetmem gen-traces --robots 2") + block_with("pip install")))
+           as_here(block_with("fleetmem gen-traces --robots 2") + block_with("pip install") + more))
 assert tour.returncode == 0, "the tour or the Python block failed"
 assert "consolidated traces" in tour.stdout and "(64, 256)" in tour.stdout, tour.stdout[-2000:]
 assert tour.stdout.count("(256, 256)") == 4, "ReplayDataset's four batches"
