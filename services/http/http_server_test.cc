@@ -70,6 +70,15 @@ class HttpServerTest : public ::testing::Test {
     gateway_->Shutdown();  // as the server does: watches end first
     server_->Stop();
   }
+  // One pending trace in `fleet` (3-d, robot r1).
+  void UploadOneTrace(const std::string& fleet) {
+    core::MemoryTrace trace;
+    trace.robot_id = "r1";
+    trace.code = {1, 2, 3};
+    trace.reward = 1;
+    ASSERT_TRUE(
+        engine_->Upload(fleet, std::vector<core::MemoryTrace>{trace}).ok());
+  }
 
   std::unique_ptr<engine::MemoryStore> store_ = storage::NewInMemoryStore();
   std::unique_ptr<engine::FleetLog> log_ = storage::NewInMemoryLog();
@@ -146,12 +155,7 @@ std::set<std::string> RoutesToServe() {
 }
 
 TEST_F(HttpServerTest, OpenApiDescribesExactlyTheRoutesThatAnswer) {
-  core::MemoryTrace trace;
-  trace.robot_id = "r1";
-  trace.code = {1, 2, 3};
-  trace.reward = 1;
-  ASSERT_TRUE(
-      engine_->Upload("f1", std::vector<core::MemoryTrace>{trace}).ok());
+  ASSERT_NO_FATAL_FAILURE(UploadOneTrace("f1"));
   auto answer = client_->Get("/openapi.json");
   ASSERT_TRUE(answer);
   ASSERT_EQ(answer->status, 200);
@@ -414,12 +418,7 @@ TEST_F(HttpServerTest, AmbiguousRequestLengthsAreRefused) {
 // neither Content-Length nor a Content-Type: an empty body, served like
 // `{}`, the connection kept for the next request.
 TEST_F(HttpServerTest, APostWithoutABodyIsServed) {
-  core::MemoryTrace trace;
-  trace.robot_id = "r1";
-  trace.code = {1, 2, 3};
-  trace.reward = 1;
-  ASSERT_TRUE(
-      engine_->Upload("f1", std::vector<core::MemoryTrace>{trace}).ok());
+  ASSERT_NO_FATAL_FAILURE(UploadOneTrace("f1"));
   const int socket = Connect(server_->port());
   ASSERT_GE(socket, 0);
   const std::string request =
