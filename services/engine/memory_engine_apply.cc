@@ -647,6 +647,7 @@ absl::StatusOr<std::vector<core::MemoryTrace>> MemoryEngine::Fleet::DrawSample(
     }
   }
   mutation->update_traces = traces;
+  mutation->update_traces_held = true;  // drawn from the static memory
   mutation->put_robots.push_back(std::move(record));
   if (log_position > meta.log_position) {
     mutation->put_meta = true;

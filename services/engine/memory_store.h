@@ -89,8 +89,13 @@ struct FleetMutation {
   std::vector<core::Cluster> put_clusters;
   std::vector<uint64_t> erase_clusters;
   // Traces of the static memory whose fields changed (e.g. replay_count);
-  // their cluster already exists.
+  // their cluster already exists. A trace the store does not hold is
+  // skipped.
   std::vector<core::MemoryTrace> update_traces;
+  // The engine vouches that every update_traces entry is held, with the
+  // cluster_id it carries (a replay draw, under the fleet's writer lock):
+  // the store may write them without reading them first.
+  bool update_traces_held = false;
   // Traces removed from an existing cluster (downsampling never does this
   // today, but forgetting of single traces may).
   std::vector<core::TraceKey> erase_traces;

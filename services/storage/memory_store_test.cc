@@ -209,6 +209,22 @@ std::vector<RoundTripCase> RoundTripCases() {
     c.want.clusters = {want};
   }
   {
+    // A replay draw's update (FleetMutation::update_traces_held): the
+    // engine names each trace's cluster, and the store writes it unread.
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "UpdateTracesHeldByTheEngine";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(4, "r", {1, 2})};
+    core::MemoryTrace replayed = MakeCluster(4, "r", {1, 2}).traces[1];
+    replayed.replay_count = 7;
+    FleetMutation& m = c.mutations.emplace_back();
+    m.update_traces = {replayed};
+    m.update_traces_held = true;
+    c.want = Want();
+    core::Cluster want = MakeCluster(4, "r", {1, 2});
+    want.traces[1].replay_count = 7;
+    c.want.clusters = {want};
+  }
+  {
     RoundTripCase& c = cases.emplace_back();
     c.name = "EraseSingleTraces";
     c.mutations.emplace_back().put_clusters = {MakeCluster(4, "r", {1, 2, 3}),
