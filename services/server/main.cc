@@ -404,6 +404,26 @@ class ServerRun {
   std::string http_address_;
 };
 
+// A snapshot is a backup: a server on it would make it a live store (its
+// lock and reserve files, then new writes). Refused (logged) before anything
+// in it changes; --restore-from copies it into a new data dir instead.
+bool IsSnapshot(const std::string& data_dir) {
+  std::error_code error;
+  if (!std::filesystem::exists(
+          std::filesystem::path(data_dir) / transport::kSnapshotMarker,
+          error)) {
+    return false;
+  }
+  FLEETMEM_LOG(kError) << "data dir " << data_dir << " is a snapshot (it holds "
+                       << transport::kSnapshotMarker
+                       << "): a server on it would turn the backup into a "
+                          "live store; restore it into a new data dir "
+                          "instead: fleetmem-server --data-dir NEW_DIR "
+                          "--restore-from "
+                       << data_dir << " (nothing was changed)";
+  return true;
+}
+
 int ServerRun::RestoreSnapshot() {
   namespace fs = std::filesystem;
   std::error_code error;
@@ -444,22 +464,8 @@ int ServerRun::RestoreSnapshot() {
 }
 
 int ServerRun::OpenData() {
+  if (IsSnapshot(config_.data_dir)) return 2;
   std::error_code error;
-  // A snapshot is a backup: a server on it would make it a live store (its
-  // lock and reserve files, then new writes). Refused before anything in it
-  // changes; --restore-from copies it into a new data dir instead.
-  if (std::filesystem::exists(
-          std::filesystem::path(config_.data_dir) / transport::kSnapshotMarker,
-          error)) {
-    FLEETMEM_LOG(kError)
-        << "data dir " << config_.data_dir << " is a snapshot (it holds "
-        << transport::kSnapshotMarker
-        << "): a server on it would turn the backup into a live store; "
-           "restore it into a new data dir instead: fleetmem-server "
-           "--data-dir NEW_DIR --restore-from "
-        << config_.data_dir << " (nothing was changed)";
-    return 2;
-  }
   std::filesystem::create_directories(config_.data_dir, error);
   if (error) {
     FLEETMEM_LOG(kError) << "cannot create data dir " << config_.data_dir

@@ -226,7 +226,8 @@ bool IsShared(const MethodSpec& spec) {
 }
 
 // Report order. bioslam runs before uniform_replay, whose trace budget is
-// bioslam's (the same seed's memory, segment by segment).
+// bioslam's (the same seed's memory, segment by segment). Long (94 lines)
+// by its nature: one entry per method of the protocol, in report order.
 std::vector<MethodSpec> Specs() {
   using L = LearnerKind;
   using M = MemoryKind;
