@@ -923,6 +923,30 @@ std::string Notes(const Setup& setup, const std::vector<Drive>& drives,
   return notes;
 }
 
+// The results: the table of rows, the robots' table and the notes, on
+// stdout and in --results-md.
+absl::Status Report(const Setup& setup, const std::vector<Drive>& drives,
+                    const std::vector<Row>& rows, const std::string& notes) {
+  const std::string table = Table(rows);
+  const std::string robots = RobotTable(setup, drives);
+  std::printf("\nResults (fleet %s)\n\n%s\n%s\n%s\n%s\n",
+              setup.fleet_id.c_str(), table.c_str(), robots.c_str(),
+              notes.c_str(), kAttribution);
+  const std::string md_path = Flags().results_md;
+  if (!md_path.empty()) {
+    std::ofstream md(md_path);
+    md << "# fleetmem demo: Nordland summer -> winter, fleet of "
+       << drives.size() << " fleetmem-robot processes\n\n"
+       << table << "\n"
+       << robots << "\n"
+       << notes << "\n"
+       << kAttribution << "\n";
+    if (!md) return absl::InternalError(absl::StrCat("cannot write ", md_path));
+    std::printf("Results table written to %s\n", md_path.c_str());
+  }
+  return absl::OkStatus();
+}
+
 absl::Status Run() {
   absl::StatusOr<Setup> made = MakeSetup();
   if (!made.ok()) return made.status();
@@ -989,27 +1013,10 @@ absl::Status Run() {
     if (!gpl.ok()) return gpl.status();
     rows.insert(rows.end(), gpl->begin(), gpl->end());
   }
-  const std::string table = Table(rows);
-  const std::string robots = RobotTable(setup, drives);
-  const std::string notes =
+  return Report(
+      setup, drives, rows,
       Notes(setup, drives, memory_row, *done, *baseline, summer_s, winter_s) +
-      by_length;
-  std::printf("\nResults (fleet %s)\n\n%s\n%s\n%s\n%s\n",
-              setup.fleet_id.c_str(), table.c_str(), robots.c_str(),
-              notes.c_str(), kAttribution);
-  const std::string md_path = Flags().results_md;
-  if (!md_path.empty()) {
-    std::ofstream md(md_path);
-    md << "# fleetmem demo: Nordland summer -> winter, fleet of "
-       << drives.size() << " fleetmem-robot processes\n\n"
-       << table << "\n"
-       << robots << "\n"
-       << notes << "\n"
-       << kAttribution << "\n";
-    if (!md) return absl::InternalError(absl::StrCat("cannot write ", md_path));
-    std::printf("Results table written to %s\n", md_path.c_str());
-  }
-  return absl::OkStatus();
+          by_length);
 }
 
 }  // namespace

@@ -617,16 +617,14 @@ robot::PlaceRecall RecallFor(const Context& ctx, const MethodSpec& spec,
   return robot::NewFleetRecall(client, fleet, radius);
 }
 
-// Algorithm 3 for one segment of one robot: the robot's own segment step
-// (clients/robot/runtime/segment_step.h: replay, recall, learn, rewards), then
-// upload and consolidate (or, for uniform_replay, keep a uniform sample)
-// and refresh M_D.
-absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
-                        int season, const std::vector<size_t>& segment,
-                        client::Client* client, const std::string& fleet) {
+// A segment's new traces (the robot's frames as the method encodes them),
+// and their observations when the replay decodes images.
+std::vector<core::MemoryTrace> SegmentTraces(
+    Context& ctx, const MethodSpec& spec, Robot& r, int season,
+    const std::vector<size_t>& segment,
+    std::vector<robot::Observation>* observations) {
   const CodeSet& codes = ctx.CodesOf(spec);
   std::vector<core::MemoryTrace> fresh;
-  std::vector<robot::Observation> observations;
   for (size_t i : segment) {
     core::MemoryTrace& t = fresh.emplace_back();
     t.robot_id = r.id;
@@ -638,12 +636,72 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
     t.timestamp_ns = int64_t(t.seq);
     t.encoder_version = r.code_version;
     if (spec.replay_input == ReplayInput::kDecoded) {
-      robot::Observation& o = observations.emplace_back();
+      robot::Observation& o = observations->emplace_back();
       o.index = i;
       o.place = t.place;
       o.image = ctx.data->images[season][i];
     }
   }
+  return fresh;
+}
+
+// After a segment's step: its traces into the method's memory (the fleet's:
+// upload, consolidate, the re-scored traces; uniform_replay's reservoir at
+// bioslam's budget), and the draw that refreshes M_D.
+absl::StatusOr<std::vector<core::MemoryTrace>> IntoMemory(
+    Context& ctx, const MethodSpec& spec, Robot& r, size_t segment_index,
+    const robot::SegmentStepResult& step, client::Client* client,
+    const std::string& fleet) {
+  const std::vector<core::MemoryTrace>& own = step.traces;
+  std::vector<core::MemoryTrace> refreshed;
+  if (spec.memory == MemoryKind::kReservoir) {
+    if (ctx.bioslam_traces.empty()) {
+      return absl::FailedPreconditionError(
+          "uniform_replay's budget is bioslam's memory: run bioslam first");
+    }
+    const size_t budget = ctx.bioslam_traces[std::min(
+        segment_index, ctx.bioslam_traces.size() - 1)];
+    for (const core::MemoryTrace& t : own) r.reservoir->Add(t, budget);
+    // Also without new traces: bioslam's memory may have shrunk.
+    r.reservoir->Shrink(budget);
+    r.traces = r.reservoir->size();
+    return r.reservoir->Sample(ctx.settings.memory_capacity);
+  }
+  std::vector<v1::MemoryTrace> traces;
+  for (const core::MemoryTrace& t : own)
+    api::TraceToProto(t, &traces.emplace_back());
+  absl::StatusOr<v1::UploadTracesResponse> uploaded =
+      client->Upload(fleet, traces);
+  if (!uploaded.ok()) return uploaded.status();
+  absl::StatusOr<v1::ConsolidateResponse> consolidated =
+      client->Consolidate(fleet);
+  if (!consolidated.ok()) return consolidated.status();
+  r.traces = consolidated->traces();
+  // bioslam_rescore: the robot's own remembered traces, re-scored by the
+  // step, to the fleet (after they were uploaded) and to M_D.
+  if (!step.rescored.empty()) {
+    absl::StatusOr<v1::UpdateRewardsResponse> sent =
+        robot::SendRescored(*client, fleet, step.rescored, *r.memory);
+    if (!sent.ok()) return sent.status();
+  }
+  absl::StatusOr<std::vector<v1::MemoryTrace>> sampled =
+      client->SampleReplay(fleet, r.id, uint32_t(ctx.settings.memory_capacity));
+  if (!sampled.ok()) return sampled.status();
+  for (const v1::MemoryTrace& t : *sampled)
+    refreshed.push_back(api::TraceFromProto(t));
+  return refreshed;
+}
+
+// Algorithm 3 for one segment of one robot: the robot's own segment step
+// (clients/robot/runtime/segment_step.h: replay, recall, learn, rewards), then
+// upload and consolidate (or, for uniform_replay, keep a uniform sample)
+// and refresh M_D.
+absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
+                        int season, const std::vector<size_t>& segment,
+                        client::Client* client, const std::string& fleet) {
+  std::vector<robot::Observation> observations;
+  std::vector<core::MemoryTrace> fresh =
+      SegmentTraces(ctx, spec, r, season, segment, &observations);
   robot::SegmentStepOptions step_options;
   step_options.replay_per_segment = ctx.settings.replay_per_segment;
   step_options.rewards = spec.rewards;
@@ -660,47 +718,12 @@ absl::Status RunSegment(Context& ctx, const MethodSpec& spec, Robot& r,
   r.last = step->report;
   const size_t segment_index = r.segments++;
   if (spec.memory == MemoryKind::kNone) return absl::OkStatus();
-  const std::vector<core::MemoryTrace>& own = step->traces;
-  std::vector<v1::MemoryTrace> traces;
-  for (const core::MemoryTrace& t : own)
-    api::TraceToProto(t, &traces.emplace_back());
-  std::vector<core::MemoryTrace> refreshed;
-  if (spec.memory == MemoryKind::kReservoir) {
-    if (ctx.bioslam_traces.empty()) {
-      return absl::FailedPreconditionError(
-          "uniform_replay's budget is bioslam's memory: run bioslam first");
-    }
-    const size_t budget = ctx.bioslam_traces[std::min(
-        segment_index, ctx.bioslam_traces.size() - 1)];
-    for (const core::MemoryTrace& t : own) r.reservoir->Add(t, budget);
-    // Also without new traces: bioslam's memory may have shrunk.
-    r.reservoir->Shrink(budget);
-    r.traces = r.reservoir->size();
-    refreshed = r.reservoir->Sample(ctx.settings.memory_capacity);
-  } else {
-    absl::StatusOr<v1::UploadTracesResponse> uploaded =
-        client->Upload(fleet, traces);
-    if (!uploaded.ok()) return uploaded.status();
-    absl::StatusOr<v1::ConsolidateResponse> consolidated =
-        client->Consolidate(fleet);
-    if (!consolidated.ok()) return consolidated.status();
-    r.traces = consolidated->traces();
-    // bioslam_rescore: the robot's own remembered traces, re-scored by the
-    // step, to the fleet (after they were uploaded) and to M_D.
-    if (!step->rescored.empty()) {
-      absl::StatusOr<v1::UpdateRewardsResponse> sent =
-          robot::SendRescored(*client, fleet, step->rescored, *r.memory);
-      if (!sent.ok()) return sent.status();
-    }
-    absl::StatusOr<std::vector<v1::MemoryTrace>> sampled = client->SampleReplay(
-        fleet, r.id, uint32_t(ctx.settings.memory_capacity));
-    if (!sampled.ok()) return sampled.status();
-    for (const v1::MemoryTrace& t : *sampled)
-      refreshed.push_back(api::TraceFromProto(t));
-  }
+  absl::StatusOr<std::vector<core::MemoryTrace>> refreshed =
+      IntoMemory(ctx, spec, r, segment_index, *step, client, fleet);
+  if (!refreshed.ok()) return refreshed.status();
   r.peak_traces = std::max(r.peak_traces, r.traces);
-  for (const core::MemoryTrace& t : own) r.memory->AddOwn(t);
-  r.memory->Refresh(refreshed);
+  for (const core::MemoryTrace& t : step->traces) r.memory->AddOwn(t);
+  r.memory->Refresh(*refreshed);
   return absl::OkStatus();
 }
 
@@ -1137,6 +1160,52 @@ absl::StatusOr<WarmRow> RunWarmStart(Context& ctx, const MethodSpec& spec,
   return row;
 }
 
+// fleet_shared's two robots scored on both areas, shared and alone: their
+// rows, and the method's summary (WR over both areas, AE on its own, RA on
+// its peer's).
+absl::Status ScoreFleetShared(Context& ctx, const MethodSpec& spec,
+                              const int (&areas)[2], std::vector<Robot>& shared,
+                              std::vector<Robot>& alone,
+                              std::vector<FleetRow>* rows,
+                              MethodResult* result) {
+  std::vector<Score> s_shared[2], s_alone[2];
+  for (int k = 0; k < 2; ++k) {
+    absl::Status evaluated = EvaluateRobot(ctx, spec, shared[k], &s_shared[k]);
+    if (evaluated.ok()) {
+      evaluated = EvaluateRobot(ctx, spec, alone[k], &s_alone[k]);
+    }
+    if (!evaluated.ok()) return evaluated;
+  }
+  double wr_sum = 0, own_sum = 0, peer_sum = 0;
+  for (int k = 0; k < 2; ++k) {
+    const int p = 1 - k;
+    FleetRow row;
+    row.method = spec.name;
+    row.seed = ctx.seed;
+    row.robot = shared[k].id;
+    row.own_area = areas[k] + 1;
+    row.peer_area = areas[p] + 1;
+    row.own_wr = s_shared[k][areas[k]].wr;
+    row.peer_wr_shared = s_shared[k][areas[p]].wr;
+    row.peer_wr_alone = s_alone[k][areas[p]].wr;
+    row.peer_own_wr = s_shared[p][areas[p]].wr;
+    rows->push_back(row);
+    wr_sum += (row.own_wr + row.peer_wr_shared) / 2;
+    own_sum += row.own_wr;
+    peer_sum += row.peer_wr_shared;
+    Progress(absl::StrFormat(
+        "[%s seed %d] %s: own area %d WR %.3f; peer's area %d WR %.3f shared "
+        "vs %.3f alone (peer's own %.3f: %.0f%%)",
+        spec.name, ctx.seed, row.robot, row.own_area, row.own_wr, row.peer_area,
+        row.peer_wr_shared, row.peer_wr_alone, row.peer_own_wr,
+        100 * row.peer_wr_shared / std::max(1e-9, row.peer_own_wr)));
+  }
+  result->summary.wr_final = wr_sum / 2;
+  result->summary.ae = own_sum / 2;
+  result->summary.ra = peer_sum / 2;
+  return absl::OkStatus();
+}
+
 absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
                                             const MethodSpec& spec,
                                             std::vector<FleetRow>* rows,
@@ -1184,41 +1253,11 @@ absl::StatusOr<MethodResult> RunFleetShared(Context& ctx,
   if (!warm.ok()) return warm.status();
   warm_rows->push_back(*warm);
   if (absl::Status s = StopServer(**server); !s.ok()) return s;
-  std::vector<Score> s_shared[2], s_alone[2];
-  for (int k = 0; k < 2; ++k) {
-    absl::Status evaluated = EvaluateRobot(ctx, spec, shared[k], &s_shared[k]);
-    if (evaluated.ok()) {
-      evaluated = EvaluateRobot(ctx, spec, alone[k], &s_alone[k]);
-    }
-    if (!evaluated.ok()) return evaluated;
+  if (absl::Status scored =
+          ScoreFleetShared(ctx, spec, areas, shared, alone, rows, &result);
+      !scored.ok()) {
+    return scored;
   }
-  double wr_sum = 0, own_sum = 0, peer_sum = 0;
-  for (int k = 0; k < 2; ++k) {
-    const int p = 1 - k;
-    FleetRow row;
-    row.method = spec.name;
-    row.seed = ctx.seed;
-    row.robot = shared[k].id;
-    row.own_area = areas[k] + 1;
-    row.peer_area = areas[p] + 1;
-    row.own_wr = s_shared[k][areas[k]].wr;
-    row.peer_wr_shared = s_shared[k][areas[p]].wr;
-    row.peer_wr_alone = s_alone[k][areas[p]].wr;
-    row.peer_own_wr = s_shared[p][areas[p]].wr;
-    rows->push_back(row);
-    wr_sum += (row.own_wr + row.peer_wr_shared) / 2;
-    own_sum += row.own_wr;
-    peer_sum += row.peer_wr_shared;
-    Progress(absl::StrFormat(
-        "[%s seed %d] %s: own area %d WR %.3f; peer's area %d WR %.3f shared "
-        "vs %.3f alone (peer's own %.3f: %.0f%%)",
-        spec.name, ctx.seed, row.robot, row.own_area, row.own_wr, row.peer_area,
-        row.peer_wr_shared, row.peer_wr_alone, row.peer_own_wr,
-        100 * row.peer_wr_shared / std::max(1e-9, row.peer_own_wr)));
-  }
-  result.summary.wr_final = wr_sum / 2;
-  result.summary.ae = own_sum / 2;
-  result.summary.ra = peer_sum / 2;
   result.seconds = Seconds(start);
   return result;
 }
