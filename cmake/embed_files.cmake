@@ -1,6 +1,7 @@
 # cmake -DOUTPUT=file.cc -DFILES="a.html|b.js" -P embed_files.cmake
 # Writes a C++ source defining fleetmem::http::DashboardFiles() with the bytes
 # of each file (URL path "/<file name>") and a content type by extension.
+include(${CMAKE_CURRENT_LIST_DIR}/bytes_literal.cmake)
 string(REPLACE "|" ";" FILES "${FILES}")
 set(body "")
 set(entries "")
@@ -19,10 +20,7 @@ foreach(file ${FILES})
   else()
     set(type "application/octet-stream")
   endif()
-  file(READ ${file} hex HEX)
-  string(LENGTH "${hex}" hex_length)
-  math(EXPR size "${hex_length} / 2")
-  string(REGEX REPLACE "([0-9a-f][0-9a-f])" "0x\\1," bytes "${hex}")
+  fleetmem_bytes_literal(${file} bytes size)
   string(APPEND body "const unsigned char kFile${index}[] = {${bytes}};\n")
   string(APPEND entries "    {\"/${name}\", \"${type}\", kFile${index}, ${size}},\n")
   math(EXPR index "${index} + 1")
