@@ -92,10 +92,8 @@ std::optional<int> ParseProgram(CLI::App& app, int argc, char** argv) {
     return std::nullopt;
   } catch (const CLI::ParseError& error) {
     if (error.get_exit_code() == 0) return app.exit(error);  // help, version
-    // The name of the program, not of the subcommand that failed.
-    const CLI::App* top = &app;
-    while (top->get_parent() != nullptr) top = top->get_parent();
-    std::cerr << UsageErrorText(top->get_name(), error.what());
+    // The program's name (`app` is the program, not a subcommand).
+    std::cerr << UsageErrorText(app.get_name(), error.what());
     return kExitUsage;
   }
 }

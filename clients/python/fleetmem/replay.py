@@ -25,6 +25,7 @@ robots' uploads: robots write at the pace they drive.
 
 from __future__ import annotations
 
+import itertools
 import queue
 import threading
 import time
@@ -115,7 +116,7 @@ class ReplayDataset:
         return batch
 
     def _count_left(self):
-        return iter(int, 1) if self._batches is None else range(self._batches)
+        return itertools.count() if self._batches is None else range(self._batches)
 
     def __iter__(self) -> Iterator[Traces]:
         if self._prefetch == 0:
