@@ -219,6 +219,11 @@ snapshot)
   check "and says how to restore it" grep -q -- '--restore-from' "$WORK/on-snapshot.log"
   ls -R "$snap" > "$WORK/snapshot-files-after"
   check "and leaves the snapshot unchanged" cmp -s "$WORK/snapshot-files-before" "$WORK/snapshot-files-after"
+  refused=0
+  "$BIN/fleetmem-server" --listen 127.0.0.1:0 --data-dir "$WORK/not-made" \
+    --restore-from "$WORK/no-snapshot" > "$WORK/bad-restore.log" 2>&1 || refused=$?
+  check "a restore from no snapshot is refused (exit 2)" [ "$refused" = 2 ]
+  check "and makes no data dir" [ ! -e "$WORK/not-made" ]
   serve restored "$WORK/restored" --restore-from "$snap"
   check "the snapshot stayed a snapshot" cmp -s "$WORK/snapshot-files-before" <(ls -R "$snap")
   cli --json stats --fleet load > "$WORK/restored.json"

@@ -429,12 +429,6 @@ int ServerRun::RestoreSnapshot() {
   std::error_code error;
   const fs::path from = fs::path(config_.restore_from) / "db";
   const fs::path to = fs::path(config_.data_dir) / "db";
-  if (!fs::is_directory(from, error)) {
-    FLEETMEM_LOG(kError) << "--restore-from " << config_.restore_from
-                         << ": not a snapshot (no db/ in it); nothing "
-                            "restored";
-    return 2;
-  }
   if (fs::exists(to, error) && !fs::is_empty(to, error)) {
     FLEETMEM_LOG(kError) << "--restore-from: data dir " << config_.data_dir
                          << " holds a store already (" << to.string()
@@ -465,6 +459,16 @@ int ServerRun::RestoreSnapshot() {
 
 int ServerRun::OpenData() {
   if (IsSnapshot(config_.data_dir)) return 2;
+  // A --restore-from that is no snapshot: refused before the data dir is
+  // made (nothing is created for a restore that cannot happen).
+  if (!config_.restore_from.empty() &&
+      !std::filesystem::is_directory(
+          std::filesystem::path(config_.restore_from) / "db")) {
+    FLEETMEM_LOG(kError) << "--restore-from " << config_.restore_from
+                         << ": not a snapshot (no db/ in it); nothing "
+                            "restored, nothing changed";
+    return 2;
+  }
   std::error_code error;
   std::filesystem::create_directories(config_.data_dir, error);
   if (error) {
