@@ -268,6 +268,10 @@ class CliTest : public ::testing::Test {
     ServerOptions options;
     options.data_dir = data_dir;
     options.log_file = dir_.Join("server.log");
+    if (const std::string config = ServerConfig(); !config.empty()) {
+      options.config_file = dir_.Join("server.textproto");
+      ASSERT_NO_FATAL_FAILURE(WriteFile(options.config_file, config));
+    }
     server_ = std::make_unique<ServerProcess>(options);
     const absl::Status started = server_->Start();
     ASSERT_TRUE(started.ok()) << started;
@@ -286,6 +290,9 @@ class CliTest : public ::testing::Test {
       std::cerr << "--- server output ---\n" << server_->Output();
     }
   }
+
+  // The server's --config file's text (none if empty).
+  virtual std::string ServerConfig() const { return ""; }
 
   // `fleetmem --server ADDRESS args...`.
   CliRun Fleetmem(std::vector<std::string> args,
@@ -511,6 +518,134 @@ TEST_F(CliTest, QueryWithAStoredCodeFindsThatTraceFirst) {
   EXPECT_EQ(cells[0], "1");
   EXPECT_EQ(cells[2], stored.robot_id());
   EXPECT_EQ(cells[3], absl::StrCat(stored.seq()));
+}
+
+// A server whose fleets get a graph from 100 codes on (the default is
+// 20,000): the import's graph is built from this test's few hundred.
+class CliImportTest : public CliTest {
+ protected:
+  std::string ServerConfig() const override {
+    return "hnsw { hnsw_from: 100 }\n";
+  }
+
+  // `--json import --fleet FLEET --from DIR args...`, parsed.
+  void Import(const std::string& fleet, const std::string& dir,
+              std::vector<std::string> args,
+              v1::ImportTracesResponse* response) {
+    args.insert(args.begin(),
+                {"--json", "import", "--fleet", fleet, "--from", dir});
+    const CliRun run = Fleetmem(args);
+    ASSERT_EQ(run.exit_code, 0) << run.Describe();
+    ASSERT_TRUE(ParseJson(run.out, response)) << run.Describe();
+  }
+};
+
+// A fleet's export imported into a new fleet, 64 rows a call: every row
+// accepted, the graph built by the last call (no code left outside it),
+// the imported traces found by their codes; a second import is refused
+// and changes nothing, and one with --resume finds every row there.
+TEST_F(CliImportTest, AnExportImportsIntoANewFleetWithItsGraphBuiltAtTheEnd) {
+  ASSERT_NO_FATAL_FAILURE(Populate());
+  const std::string exported = dir_.Join("export");
+  const CliRun exporting =
+      Fleetmem({"export", "--fleet", kFleet, "--out", exported});
+  ASSERT_EQ(exporting.exit_code, 0) << exporting.Describe();
+  v1::GetStatsResponse original;
+  ASSERT_NO_FATAL_FAILURE(Stats(&original));
+  const uint64_t rows = original.traces() + original.pending_traces();
+  ASSERT_GT(rows, 100u);
+
+  v1::ImportTracesResponse imported;
+  ASSERT_NO_FATAL_FAILURE(
+      Import("copy", exported, {"--chunk", "64"}, &imported));
+  EXPECT_EQ(imported.accepted(), rows);
+  EXPECT_EQ(imported.duplicates(), 0u);
+  EXPECT_EQ(imported.unindexed_codes(), 0u);
+  v1::GetStatsResponse copy;
+  ASSERT_NO_FATAL_FAILURE(Stats(&copy, "copy"));
+  EXPECT_EQ(copy.unindexed_codes(), 0u) << copy.DebugString();
+  EXPECT_EQ(copy.traces() + copy.pending_traces(), imported.fleet_traces());
+  EXPECT_GT(copy.traces(), 0u) << "consolidated as uploads are";
+  EXPECT_EQ(copy.code_dimension(), static_cast<uint32_t>(kDim));
+  uint64_t received = 0;
+  for (const v1::RobotStats& robot : copy.robots()) {
+    received += robot.received();
+  }
+  EXPECT_EQ(received, rows);
+
+  // A trace the copy holds is found first by its code (from the generated
+  // file the original fleet was uploaded from).
+  const CliRun sample = Fleetmem({"--json", "sample", "--fleet", "copy",
+                                  "--robot", "robot-1", "--count", "1"});
+  ASSERT_EQ(sample.exit_code, 0) << sample.Describe();
+  v1::SampleReplayResponse sampled;
+  ASSERT_TRUE(ParseJson(sample.out, &sampled));
+  ASSERT_EQ(sampled.traces_size(), 1);
+  const v1::MemoryTrace& stored = sampled.traces(0);
+  const std::string code_file = dir_.Join("code.json");
+  ASSERT_NO_FATAL_FAILURE(WriteFile(
+      code_file,
+      FindTraceLine(traces_file_, stored.robot_id(), stored.seq()) + "\n"));
+  const CliRun query = Fleetmem({"--json", "query", "--fleet", "copy",
+                                 "--code-file", code_file, "--k", "1"});
+  ASSERT_EQ(query.exit_code, 0) << query.Describe();
+  v1::QueryPlaceResponse found;
+  ASSERT_TRUE(ParseJson(query.out, &found));
+  ASSERT_EQ(found.matches_size(), 1);
+  EXPECT_EQ(found.matches(0).trace().seq(), stored.seq());
+  EXPECT_NEAR(found.matches(0).distance(), 0.0, 1e-4);
+
+  const CliRun again =
+      Fleetmem({"import", "--fleet", "copy", "--from", exported});
+  EXPECT_EQ(again.exit_code, 1) << again.Describe();
+  EXPECT_TRUE(absl::StrContains(again.err, "FAILED_PRECONDITION"))
+      << again.Describe();
+  EXPECT_TRUE(absl::StrContains(again.err, "nothing was imported"))
+      << again.Describe();
+  v1::GetStatsResponse unchanged;
+  ASSERT_NO_FATAL_FAILURE(Stats(&unchanged, "copy"));
+  EXPECT_EQ(unchanged.traces() + unchanged.pending_traces(),
+            imported.fleet_traces());
+
+  v1::ImportTracesResponse resumed;
+  ASSERT_NO_FATAL_FAILURE(Import("copy", exported, {"--resume"}, &resumed));
+  EXPECT_EQ(resumed.accepted(), 0u);
+  EXPECT_EQ(resumed.duplicates(), rows);
+}
+
+// Arrays that do not fit each other, or no rewards, are usage errors
+// naming the file: nothing is sent, no fleet is made.
+TEST_F(CliTest, ImportRefusesArraysThatDoNotFitAndMakesNoFleet) {
+  const std::string dir = dir_.Join("arrays");
+  ASSERT_EQ(mkdir(dir.c_str(), 0755), 0) << std::strerror(errno);
+  // NumPy 1.0 files of float32 / float64 rows (64-byte aligned headers).
+  const auto npy = [&](const std::string& name, const char* descr, int rows,
+                       int cols, size_t width) {
+    std::string dict = absl::StrCat("{'descr': '", descr,
+                                    "', 'fortran_order': False, 'shape': (",
+                                    rows, ", ", cols, "), }");
+    dict.append((64 - (10 + dict.size() + 1) % 64) % 64, ' ');
+    dict.push_back('\n');
+    std::string bytes("\x93NUMPY\x01\x00", 8);
+    bytes.push_back(static_cast<char>(dict.size()));
+    bytes.push_back('\0');
+    WriteFile(dir + "/" + name,
+              bytes + dict + std::string(rows * cols * width, '\0'));
+  };
+  npy("codes.npy", "<f4", 3, 8, 4);
+  npy("places.npy", "<f8", 2, 4, 8);
+  CliRun run = Fleetmem({"import", "--fleet", "bad", "--from", dir});
+  EXPECT_EQ(run.exit_code, 2) << run.Describe();
+  EXPECT_TRUE(absl::StrContains(run.err, "places.npy is 2 x 4; want 3 rows"))
+      << run.Describe();
+  npy("places.npy", "<f8", 3, 2, 8);
+  run = Fleetmem({"import", "--fleet", "bad", "--from", dir});
+  EXPECT_EQ(run.exit_code, 2) << run.Describe();
+  EXPECT_TRUE(absl::StrContains(run.err, "neither metadata.csv"))
+      << run.Describe();
+  const CliRun fleets = Fleetmem({"fleets"});
+  ASSERT_EQ(fleets.exit_code, 0) << fleets.Describe();
+  EXPECT_FALSE(absl::StrContains(fleets.out, "bad")) << fleets.Describe();
 }
 
 TEST_F(CliTest, WatchPrintsEventsFromTheCursor) {

@@ -173,6 +173,32 @@ const std::vector<Command>& CommandTable() {
          {"out", "DIR", "output directory, created if missing (required)"},
          {"page-size", "N", "traces per request, 1..10000 (default 1000)"}}},
        RunExport},
+      {{"import",
+        "--fleet ID --from DIR [--chunk N] [--resume] [--robot R] "
+        "[--encoder V]",
+        "Admin: bulk-import .npy arrays (the export's) into a new fleet.",
+        "DIR/codes.npy    float32 or float64, N x D\n"
+        "DIR/places.npy   N x 2..4: x, y[, z[, yaw]] (the rest 0)\n"
+        "DIR/metadata.csv the export's: robot_id, seq and reward per row\n"
+        "                 (domain, reward_external, reward_internal,\n"
+        "                 timestamp_ns, encoder_version where present)\n"
+        "or, without it,\n"
+        "DIR/rewards.npy  N rewards; the rows are robot --robot's, seqs 1..N\n"
+        "Chunks of rows go to the server one ImportTraces call each (durable\n"
+        "when answered, checked as uploads); the fleet's place graph is\n"
+        "built once, by the last call, from every code. Replay counts and\n"
+        "clusters are not imported: the fleet consolidates the traces anew.\n"
+        "A fleet that holds traces is refused unless --resume (an import\n"
+        "that stopped: the rows it holds count as duplicates).",
+        {FleetFlag(),
+         {"from", "DIR", "directory of the arrays (required)"},
+         {"chunk", "N",
+          "rows per call, 1..100000 (default: 8 MiB of codes, at most "
+          "10000)"},
+         {"resume", "", "go on with an import into a fleet holding traces"},
+         {"robot", "R", "robot id of rows without metadata (default import)"},
+         {"encoder", "V", "encoder version of rows without one"}}},
+       RunImport},
       {{"create-fleet",
         "--fleet ID --dim D [--encoder V] [--place-unit U] [SETTINGS]",
         "Admin: make a fleet with its own settings.",

@@ -63,6 +63,8 @@ int RunFleets(const Invocation& invocation);
 int RunClusters(const Invocation& invocation);
 int RunSnapshot(const Invocation& invocation);
 int RunExport(const Invocation& invocation);
+// import_command.cc
+int RunImport(const Invocation& invocation);
 int RunDeleteTraces(const Invocation& invocation);
 int RunUpdateRewards(const Invocation& invocation);
 int RunGetTraces(const Invocation& invocation);

@@ -597,6 +597,16 @@ absl::StatusOr<v1::GetTracesResponse> Client::GetTraces(
       });
 }
 
+absl::StatusOr<v1::ImportTracesResponse> Client::ImportTraces(
+    const v1::ImportTracesRequest& request) {
+  return Unary<v1::ImportTracesRequest, v1::ImportTracesResponse>(
+      options_, channel_.get(), /*retry=*/true, request,
+      [this](grpc::ClientContext* context, const v1::ImportTracesRequest& r,
+             v1::ImportTracesResponse* out) {
+        return stub_->ImportTraces(context, r, out);
+      });
+}
+
 absl::StatusOr<v1::ListTracesResponse> Client::ListTraces(
     std::string_view fleet_id, uint32_t page_size,
     std::string_view page_token) {

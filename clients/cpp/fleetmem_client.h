@@ -177,6 +177,12 @@ class Client {
       const v1::UpdateRewardsRequest& request);
   absl::StatusOr<v1::GetTracesResponse> GetTraces(
       const v1::GetTracesRequest& request);
+  // One call of a bulk import (v1.ImportTracesRequest), retried like an
+  // upload: rows a failed attempt stored count as duplicates when sent
+  // again. The call with `finish` builds the fleet's graph before it
+  // answers: give the client a deadline for that (minutes at millions).
+  absl::StatusOr<v1::ImportTracesResponse> ImportTraces(
+      const v1::ImportTracesRequest& request);
   // grpc.health.v1.Health/Check of `service` ("" = the server as a whole),
   // not retried (a probe wants the answer of now): the serving status's
   // name (SERVING, NOT_SERVING, SERVICE_UNKNOWN, UNKNOWN) or the call's

@@ -92,6 +92,14 @@ void FleetIndex::Start(std::unique_ptr<PlaceIndex> index) {
   index_ = std::move(index);
   handles_.Clear();
   next_handle_ = 1;
+  if (index_ != nullptr && deferred_until_ > absl::Now()) {
+    index_->DeferIndexing(deferred_until_);
+  }
+}
+
+void FleetIndex::DeferIndexing(absl::Time until) {
+  deferred_until_ = until;
+  if (index_ != nullptr) index_->DeferIndexing(until);
 }
 
 absl::Status FleetIndex::Add(

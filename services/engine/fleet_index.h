@@ -19,6 +19,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/time/time.h"
 #include "services/core/byte_stream.h"
 #include "services/core/types.h"
 #include "services/engine/place_index.h"
@@ -45,8 +46,13 @@ class FleetIndex {
   // disk is known to hold this state.
   void Reset();
   // `index` (empty, the engine's factory's for the fleet's dimension) in
-  // place of any before, with no handles.
+  // place of any before, with no handles (and the deferral below).
   void Start(std::unique_ptr<PlaceIndex> index);
+  // PlaceIndex::DeferIndexing of this index and of any Start gives it
+  // later (a bulk load that makes the fleet, or a reload).
+  void DeferIndexing(absl::Time until);
+  // The deferral in force (InfinitePast: none).
+  absl::Time deferred_until() const { return deferred_until_; }
 
   // Adds `traces`' (normalised) codes under new handles. `meanwhile`, if
   // given, runs on this thread while another fills the index when there
@@ -105,6 +111,7 @@ class FleetIndex {
   uint64_t next_handle_ = 1;
   uint64_t changes_ = 0;
   std::optional<uint64_t> snapshot_at_;
+  absl::Time deferred_until_ = absl::InfinitePast();
 };
 
 }  // namespace fleetmem::engine

@@ -477,6 +477,25 @@ class MemoryEngine {
   // NOT_FOUND for an unknown fleet.
   absl::StatusOr<FleetStats> GetStats(std::string_view fleet_id) const;
 
+  // Bulk loading (ImportTraces, docs/api.md). Until `until`, the fleet's
+  // place index leaves the codes it gets outside its graph (an exact scan
+  // finds them meanwhile, GetStats counts them as unindexed_codes): no
+  // linking in the background nor as an upload's back-pressure, so that
+  // IndexDeferred builds the graph once from all of them. A later call
+  // moves the time; one already past ends the deferral (the background
+  // linking resumes by itself then, too). It holds for an index the fleet
+  // is given later (a reload) and is not kept across a restart.
+  // NOT_FOUND for a fleet this engine does not hold (yet).
+  absl::Status DeferIndexing(std::string_view fleet_id, absl::Time until);
+  // True while a deferral of the fleet is in force.
+  bool IndexingDeferred(std::string_view fleet_id) const;
+  // Ends the fleet's deferral and links every code waiting into its graph
+  // now, on the index's insert threads (the caller's among them), in large
+  // steps with queries let in between; returns once none waits. The
+  // index's error stops it (the codes left stay found by the exact scan).
+  // NOT_FOUND for an unknown fleet.
+  absl::Status IndexDeferred(std::string_view fleet_id);
+
   // OK if the fleet exists (its first upload is durable); INVALID_ARGUMENT
   // for a malformed id, NOT_FOUND otherwise. Cheap: no stats are computed.
   absl::Status CheckFleetExists(std::string_view fleet_id) const;

@@ -366,6 +366,76 @@ TEST_F(MemoryEngineTest, StatsReportTheIndexBacklog) {
   EXPECT_EQ(Stats().unindexed_codes, 0u);
 }
 
+// A bulk load defers the fleet's graph: the codes uploaded meanwhile wait
+// in the exact segment (found by queries, counted as unindexed), none is
+// linked in the background, and IndexDeferred builds the graph from all of
+// them at once. A deferral also ends by itself when its time passes.
+TEST_F(MemoryEngineTest, ADeferredIndexIsBuiltOnceAtTheEnd) {
+  std::unique_ptr<MemoryStore> store = storage::NewInMemoryStore();
+  EngineOptions options = SmallOptions();
+  options.segment_size = 1000;  // everything stays pending (and indexed)
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options, store.get(), [](size_t dimension) {
+        index::TieredIndexOptions tiered;
+        tiered.hnsw_from = 10;
+        tiered.max_unindexed = 20;  // back-pressure, but for the deferral
+        return index::NewTieredIndex(dimension, tiered);
+      });
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  MemoryEngine& engine = **opened;
+  EXPECT_EQ(engine.DeferIndexing("f1", absl::InfiniteFuture()).code(),
+            absl::StatusCode::kNotFound);
+  EXPECT_EQ(engine.IndexDeferred("f1").code(), absl::StatusCode::kNotFound);
+  const std::vector<core::MemoryTrace> first = MakeTraces("r1", 1, 5, rng_);
+  ASSERT_TRUE(engine.Upload("f1", first).ok());
+  ASSERT_TRUE(engine.DeferIndexing("f1", absl::InfiniteFuture()).ok());
+  EXPECT_TRUE(engine.IndexingDeferred("f1"));
+  std::vector<core::MemoryTrace> traces = first;
+  for (uint64_t seq = 6; seq <= 205; seq += 50) {
+    std::vector<core::MemoryTrace> more = MakeTraces("r1", seq, 50, rng_);
+    ASSERT_TRUE(engine.Upload("f1", more).ok());
+    traces.insert(traces.end(), more.begin(), more.end());
+  }
+  absl::SleepFor(absl::Milliseconds(50));  // a background step, if any
+  absl::StatusOr<FleetStats> stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_EQ(stats->pending_traces, 205u);
+  EXPECT_EQ(stats->unindexed_codes, 205u);  // nothing linked meanwhile
+  // Found all the same (the exact scan).
+  absl::StatusOr<std::vector<PlaceMatch>> found =
+      engine.QueryPlace("f1", {.code = traces[150].code, .k = 1});
+  ASSERT_TRUE(found.ok()) << found.status();
+  ASSERT_EQ(found->size(), 1u);
+  EXPECT_EQ(found->front().trace.seq, traces[150].seq);
+
+  ASSERT_TRUE(engine.IndexDeferred("f1").ok());
+  EXPECT_FALSE(engine.IndexingDeferred("f1"));
+  stats = engine.GetStats("f1");
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_EQ(stats->unindexed_codes, 0u);
+  for (size_t i : {0, 77, 204}) {
+    found = engine.QueryPlace("f1", {.code = traces[i].code, .k = 1});
+    ASSERT_TRUE(found.ok()) << found.status();
+    ASSERT_EQ(found->size(), 1u);
+    EXPECT_EQ(found->front().trace.seq, traces[i].seq) << i;
+  }
+
+  // A deferral that lapses: the background thread links what waits.
+  const auto unindexed = [&] {
+    absl::StatusOr<FleetStats> now = engine.GetStats("f1");
+    return now.ok() ? now->unindexed_codes : uint64_t{999};
+  };
+  ASSERT_TRUE(
+      engine.DeferIndexing("f1", absl::Now() + absl::Milliseconds(200)).ok());
+  ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", 206, 50, rng_)).ok());
+  EXPECT_EQ(unindexed(), 50u);
+  const absl::Time deadline = absl::Now() + absl::Seconds(60);
+  while (unindexed() > 0 && absl::Now() < deadline) {
+    absl::SleepFor(absl::Milliseconds(10));
+  }
+  EXPECT_EQ(unindexed(), 0u);
+}
+
 TEST_F(MemoryEngineTest, StoreFailureDuringUploadStoresNothing) {
   FlakyStore flaky(store_.get());
   flaky.fail_after = 0;

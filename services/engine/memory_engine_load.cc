@@ -433,4 +433,44 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
   return absl::OkStatus();
 }
 
+absl::Status MemoryEngine::DeferIndexing(std::string_view fleet_id,
+                                         absl::Time until) {
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) {
+    return absl::NotFoundError(
+        absl::StrCat("fleet \"", V(fleet_id), "\" does not exist"));
+  }
+  // writer_mu: the index is replaced only under it, and a writer of the
+  // index may not run beside the change.
+  absl::MutexLock writer(&fleet->writer_mu);
+  absl::MutexLock lock(&fleet->mu);
+  fleet->index.DeferIndexing(until);
+  return absl::OkStatus();
+}
+
+bool MemoryEngine::IndexingDeferred(std::string_view fleet_id) const {
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) return false;
+  absl::MutexLock lock(&fleet->mu);
+  return fleet->index.deferred_until() > absl::Now();
+}
+
+absl::Status MemoryEngine::IndexDeferred(std::string_view fleet_id) {
+  Fleet* fleet = Fleet::Find(*this, fleet_id);
+  if (fleet == nullptr) {
+    return absl::NotFoundError(
+        absl::StrCat("fleet \"", V(fleet_id), "\" does not exist"));
+  }
+  // Under writer_mu (the index stays this one; the fleet's next apply
+  // waits for the build) but not the fleet's lock: queries go on.
+  absl::MutexLock writer(&fleet->writer_mu);
+  PlaceIndex* index = nullptr;
+  {
+    absl::MutexLock lock(&fleet->mu);
+    fleet->index.DeferIndexing(absl::InfinitePast());
+    index = fleet->index.get();
+  }
+  return index == nullptr ? absl::OkStatus() : index->IndexWaiting();
+}
+
 }  // namespace fleetmem::engine

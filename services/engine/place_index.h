@@ -13,6 +13,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/time/time.h"
 #include "services/core/byte_stream.h"
 #include "services/core/feature_space.h"
 #include "services/engine/fleet_settings.h"
@@ -120,6 +121,21 @@ class PlaceIndex {
   // Vectors held but not yet in the index's search structure (searched by
   // an exact scan meanwhile), e.g. a graph index's backlog; 0 by default.
   virtual size_t unindexed() const { return 0; }
+
+  // A bulk load (ImportTraces): until `until`, the index may leave the
+  // vectors it is given outside its search structure (found by an exact
+  // scan meanwhile, as unindexed()) and do none of that work, in the
+  // background or as back-pressure; the structure is then built once,
+  // from all of them, by IndexWaiting. A time already past ends the
+  // deferral (the background work resumes). A writer. Default: nothing to
+  // defer.
+  virtual void DeferIndexing(absl::Time until) {}
+  // Ends any deferral and brings every waiting vector into the search
+  // structure now, on the index's insert threads (the caller's among them),
+  // in large steps with searches let in between; returns once none waits
+  // (or with the error that stopped it: the rest stay searchable by the
+  // exact scan). A writer. Default: nothing waits.
+  virtual absl::Status IndexWaiting() { return absl::OkStatus(); }
 
   // Writes everything the index holds (ids, vectors, a graph's links) so
   // that Load into an empty index of the same kind, dimension and build

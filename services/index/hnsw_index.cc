@@ -449,6 +449,14 @@ class TieredIndex final : public engine::PlaceIndex {
     std::shared_lock lock(mu_);
     return graph_ ? tail_->size() : 0;
   }
+  void DeferIndexing(absl::Time until) override {
+    {
+      std::unique_lock lock(mu_);
+      deferred_until_ = until;
+    }
+    changed_.notify_all();
+  }
+  absl::Status IndexWaiting() override;
   // Both tiers keep codes as given, and move them between each other so.
   bool HoldsCode(uint64_t id) const override {
     std::shared_lock lock(mu_);
@@ -500,10 +508,11 @@ class TieredIndex final : public engine::PlaceIndex {
   bool HoldsCodeLocked(uint64_t id) const {
     return tail_->HoldsCode(id) || (graph_ && graph_->contains(id));
   }
-  // Nothing for the background thread to do.
+  // Nothing for the background thread to do (now: a deferral ends).
   bool Idle() const {
-    return stop_ || !graph_ || tail_->size() == 0 || paused_;
+    return stop_ || !graph_ || tail_->size() == 0 || paused_ || Deferred();
   }
+  bool Deferred() const { return absl::Now() < deferred_until_; }
   // Moves up to `count` vectors from the end of the tail into the graph,
   // under `lock` (of mu_), which it gives up while the new nodes are linked:
   // searches and readers go on under the shared lock meanwhile, and the
@@ -521,6 +530,13 @@ class TieredIndex final : public engine::PlaceIndex {
   size_t StepSize() const {
     return options_.indexer_batch * options_.hnsw.insert_threads;
   }
+  // Vectors IndexWaiting moves per step: large enough that linking them on
+  // the insert threads keeps every thread busy, small enough that the
+  // step's copy of its vectors stays small (50 MiB at 256-d).
+  static constexpr size_t kBuildStep = 50'000;
+  // Makes the graph once the tail holds hnsw_from vectors (and starts the
+  // background thread). Under mu_, exclusive.
+  void StartGraphIfDue();
   // CatchUp's work, under `lock` (of mu_).
   absl::Status CatchUpLocked(size_t count,
                              std::unique_lock<std::shared_mutex>& lock);
@@ -545,6 +561,9 @@ class TieredIndex final : public engine::PlaceIndex {
   size_t linking_count_ = 0;
   // The background thread stopped on an error; the next Add resumes it.
   bool paused_ = false;
+  // DeferIndexing's: no graph is built nor linked before this time, and
+  // no back-pressure applies.
+  absl::Time deferred_until_ = absl::InfinitePast();
   bool stop_ = false;
   // Callers of Search, Add and Remove waiting for mu_; the background
   // thread lets them all in before its next step.
@@ -573,13 +592,10 @@ absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
   const size_t waiting = graph_ ? tail_->size() : 0;
   absl::Status status = add();
   if (!status.ok()) return status;
-  if (!graph_ && tail_->size() >= options_.hnsw_from) {
-    graph_ = std::make_unique<HnswIndex>(dimension_, options_.hnsw);
-    if (options_.background && !indexer_.joinable()) {
-      indexer_ = std::thread([this] { IndexerLoop(); });
-    }
-  }
-  if (!graph_) return absl::OkStatus();
+  StartGraphIfDue();
+  // Deferred: IndexWaiting builds the graph, or the background thread
+  // once the deferral lapses.
+  if (!graph_ || Deferred()) return absl::OkStatus();
   paused_ = false;
   if (!options_.background) return MoveToGraph(tail_->size(), lock);
   changed_.notify_all();
@@ -589,16 +605,45 @@ absl::Status TieredIndex::AddToTail(std::span<const uint64_t> ids,
   return CatchUpLocked(ids.size(), lock);
 }
 
+void TieredIndex::StartGraphIfDue() {
+  if (graph_ || tail_->size() < options_.hnsw_from) return;
+  graph_ = std::make_unique<HnswIndex>(dimension_, options_.hnsw);
+  if (options_.background && !indexer_.joinable()) {
+    indexer_ = std::thread([this] { IndexerLoop(); });
+  }
+}
+
 absl::Status TieredIndex::CatchUp(size_t added) {
   const WaiterCount turn(waiters_);
   const WaiterCount writer(writers_);
   std::unique_lock lock(mu_);
   turn.Acquired();
   writer.Acquired();
-  if (!graph_ || tail_->size() <= options_.max_unindexed) {
+  if (!graph_ || tail_->size() <= options_.max_unindexed || Deferred()) {
     return absl::OkStatus();
   }
   return CatchUpLocked(added, lock);
+}
+
+absl::Status TieredIndex::IndexWaiting() {
+  const WaiterCount turn(waiters_);
+  const WaiterCount writer(writers_);
+  std::unique_lock lock(mu_);
+  turn.Acquired();
+  writer.Acquired();
+  deferred_until_ = absl::InfinitePast();
+  StartGraphIfDue();
+  paused_ = false;
+  changed_.notify_all();
+  // Large steps, each linked on every insert thread; searches (an exact
+  // scan of what still waits beside the graph) go on between and beside
+  // them. The background thread may take steps too: the same work.
+  while (graph_ && tail_->size() > 0) {
+    absl::Status status = MoveToGraph(kBuildStep, lock);
+    if (!status.ok()) return status;
+    YieldToWaiters(lock);
+  }
+  return absl::OkStatus();
 }
 
 absl::Status TieredIndex::CatchUpLocked(
@@ -785,7 +830,15 @@ void TieredIndex::IndexerLoop() {
   }
   std::unique_lock lock(mu_);
   while (true) {
-    changed_.wait(lock, [this] { return stop_ || !Idle(); });
+    if (Idle() && !stop_) {
+      // A deferral ends by itself: wake then.
+      if (Deferred() && deferred_until_ != absl::InfiniteFuture()) {
+        changed_.wait_until(lock, absl::ToChronoTime(deferred_until_));
+      } else {
+        changed_.wait(lock);
+      }
+      continue;
+    }
     if (stop_) break;
     absl::Status status = MoveToGraph(StepSize(), lock);
     if (!status.ok()) {

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/engine/place_index.h"
@@ -1128,6 +1129,43 @@ TEST(TieredIndexTest, AddedVectorsAreFoundAtOnceAndDrainIntoTheGraph) {
     EXPECT_EQ(Ids(SearchOk(*tiered, query, 10)),
               Ids(SearchOk(*exact, query, 10)));
   }
+}
+
+// A bulk load (DeferIndexing): every vector waits in the growing segment,
+// found by the exact scan, with no back-pressure and nothing linked in the
+// background; IndexWaiting builds the graph from all of them, which then
+// answers as the exact index does.
+TEST(TieredIndexTest, ADeferredGraphIsBuiltOnceByIndexWaiting) {
+  constexpr size_t kDimension = 64;
+  std::mt19937 rng(43);
+  const LowRankSource source(kDimension, 8, rng);
+  TieredIndexOptions options;
+  options.hnsw_from = 500;
+  options.max_unindexed = 100;  // would hold Add back, but for the deferral
+  std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
+  std::unique_ptr<PlaceIndex> exact = NewExactIndex(kDimension);
+  tiered->DeferIndexing(absl::InfiniteFuture());
+  for (uint64_t first = 0; first < 3000; first += 250) {
+    const Dataset batch = LowRankDataset(first, 250, source, rng);
+    ASSERT_TRUE(tiered->Add(batch.ids, batch.vectors).ok());
+    ASSERT_TRUE(exact->Add(batch.ids, batch.vectors).ok());
+    EXPECT_THAT(Ids(SearchOk(*tiered, batch.vectors.back(), 1)),
+                ElementsAre(batch.ids.back()));
+  }
+  absl::SleepFor(absl::Milliseconds(50));  // a background step, if any
+  EXPECT_EQ(tiered->unindexed(), 3000u);
+  EXPECT_EQ(WaitForIndexing(*tiered), 3000u);  // nothing to wait for
+  ASSERT_TRUE(tiered->IndexWaiting().ok());
+  EXPECT_EQ(tiered->unindexed(), 0u);
+  EXPECT_EQ(tiered->size(), 3000u);
+  std::vector<Vector> queries;
+  for (size_t q = 0; q < 100; ++q) queries.push_back(source.Next(rng));
+  const Recall recall = MeasureRecall(*tiered, *exact, queries);
+  EXPECT_GE(recall.at10, 0.95);
+  // Without a deferral the background thread links new vectors again.
+  const Dataset more = LowRankDataset(3000, 1000, source, rng);
+  ASSERT_TRUE(tiered->Add(more.ids, more.vectors).ok());
+  EXPECT_EQ(WaitForIndexing(*tiered), 0u);
 }
 
 // SearchParams::codes: the tiered index returns each neighbour's code as

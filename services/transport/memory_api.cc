@@ -126,6 +126,7 @@ MemoryApi::MemoryApi(engine::MemoryEngine* engine, FleetMemory* memory,
   methods_["GetFleet"] = Typed(&MemoryApi::GetFleet);
   methods_["UpdateFleet"] = Typed(&MemoryApi::UpdateFleet);
   methods_["UploadTraces"] = Typed(&MemoryApi::UploadTraces);
+  methods_["ImportTraces"] = Typed(&MemoryApi::ImportTraces);
   methods_["DeleteFleet"] = Typed(&MemoryApi::DeleteFleet);
   methods_["CreateAlias"] = Typed(&MemoryApi::CreateAlias);
   methods_["SwitchAlias"] = Typed(&MemoryApi::SwitchAlias);
@@ -263,7 +264,7 @@ absl::Status MemoryApi::AuthorizeCall(absl::string_view method_name,
     return auth::Authorize(caller, auth::Action::kQuery, fleet_id);
   }
   if (method_name == "CreateFleet" || method_name == "UpdateFleet" ||
-      method_name == "DeleteFleet") {
+      method_name == "DeleteFleet" || method_name == "ImportTraces") {
     return auth::Authorize(caller, auth::Action::kManage, fleet_id);
   }
   if (method_name == "DeleteTraces") {
@@ -640,6 +641,118 @@ absl::Status MemoryApi::Upload(const auth::Principal& caller,
   response->set_applied(uploaded->applied);
   if (options_.on_upload_bytes) {
     options_.on_upload_bytes(request.fleet_id(), request.ByteSizeLong());
+  }
+  return absl::OkStatus();
+}
+
+absl::Status MemoryApi::ImportTraces(const auth::Principal& caller,
+                                     const v1::ImportTracesRequest& request,
+                                     v1::ImportTracesResponse* response) {
+  const std::string& fleet_id = request.fleet_id();
+  absl::Status status = core::ValidateId("fleet_id", fleet_id);
+  if (status.ok()) {
+    status = AuthorizeCall("ImportTraces", caller, request, fleet_id);
+  }
+  if (!status.ok()) return status;
+  if (request.traces().count() > kMaxImportRows) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "traces.count: ", request.traces().count(), " rows; at most ",
+        kMaxImportRows, " a call (send the rest in further calls)"));
+  }
+  absl::StatusOr<std::vector<core::MemoryTrace>> traces =
+      ImportedTracesFromColumns(request.traces());
+  if (!traces.ok()) return traces.status();
+  const bool exists = engine_->CheckFleetExists(fleet_id).ok();
+  if (exists && !request.resume() && !engine_->IndexingDeferred(fleet_id)) {
+    absl::StatusOr<engine::FleetStats> stats = engine_->GetStats(fleet_id);
+    const uint64_t held =
+        stats.ok() ? stats->traces + stats->pending_traces : 0;
+    const engine::Backlog backlog = memory_->Backlog(fleet_id);
+    if (held + backlog.traces > 0) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "fleet \"", fleet_id, "\" holds ", held + backlog.traces,
+          " traces and no import into it is under way: an import fills a "
+          "fleet that holds none (set resume to go on with an interrupted "
+          "one); nothing was imported"));
+    }
+  }
+  // The chunk as uploads of at most max_traces_per_upload each.
+  const size_t per_message =
+      std::max<size_t>(1, engine_->options().max_traces_per_upload);
+  std::vector<std::span<const core::MemoryTrace>> messages;
+  for (size_t first = 0; first < traces->size(); first += per_message) {
+    messages.push_back(std::span<const core::MemoryTrace>(*traces).subspan(
+        first, std::min(per_message, traces->size() - first)));
+  }
+  const auto defer = [&] {
+    // Best effort: a fleet this engine does not hold (another replica
+    // applies it) is indexed as it goes.
+    (void)engine_->DeferIndexing(fleet_id, absl::Now() + kImportIdle);
+  };
+  UploadOptions options;
+  options.wait_applied = request.finish();
+  size_t sent = 0;
+  const auto upload =
+      [&](std::span<const std::span<const core::MemoryTrace>> batch,
+          const UploadOptions& how) -> absl::Status {
+    std::vector<absl::StatusOr<Uploaded>> results =
+        memory_->UploadMany(fleet_id, batch, how);
+    for (size_t i = 0; i < results.size(); ++i) {
+      if (!results[i].ok()) {
+        return absl::Status(
+            results[i].status().code(),
+            absl::StrCat("rows ", sent + 1, "..", sent + batch[i].size(),
+                         " of this call: ", results[i].status().message(),
+                         "; the ", sent,
+                         " rows before them are stored (durable; duplicates "
+                         "when sent again), none after them"));
+      }
+      response->set_accepted(response->accepted() +
+                             results[i]->result.accepted);
+      response->set_duplicates(response->duplicates() +
+                               results[i]->result.duplicates);
+      sent += batch[i].size();
+    }
+    return absl::OkStatus();
+  };
+  std::span<const std::span<const core::MemoryTrace>> rest(messages);
+  if (!exists && !rest.empty()) {
+    // The first message makes the fleet, applied before the rest, so that
+    // its index is deferred before their codes reach it.
+    UploadOptions first = options;
+    first.wait_applied = true;
+    status = upload(rest.first(1), first);
+    if (!status.ok()) return status;
+    rest = rest.subspan(1);
+  }
+  defer();
+  status = upload(rest, options);
+  if (!status.ok()) return status;
+  if (!request.finish()) {
+    defer();  // from this call's end
+    return absl::OkStatus();
+  }
+  if (!engine_->CheckFleetExists(fleet_id).ok()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "fleet \"", fleet_id,
+        "\": nothing was imported into it, so there is no graph to build"));
+  }
+  const absl::Time started = absl::Now();
+  status = engine_->IndexDeferred(fleet_id);
+  response->set_index_seconds(absl::ToDoubleSeconds(absl::Now() - started));
+  absl::StatusOr<engine::FleetStats> stats = engine_->GetStats(fleet_id);
+  if (stats.ok()) {
+    response->set_fleet_traces(stats->traces + stats->pending_traces);
+    response->set_unindexed_codes(stats->unindexed_codes);
+  }
+  if (!status.ok()) {
+    return absl::Status(
+        status.code(),
+        absl::StrCat("every row of the import is stored, but building the "
+                     "place graph stopped: ",
+                     status.message(),
+                     " (the codes left out are found by "
+                     "an exact scan)"));
   }
   return absl::OkStatus();
 }

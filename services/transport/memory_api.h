@@ -112,6 +112,22 @@ class MemoryApi {
   absl::Status UploadTraces(const auth::Principal& caller,
                             const v1::UploadTracesRequest& request,
                             v1::UploadTracesResponse* response);
+  // Admin. A bulk import's chunk (v1.ImportTracesRequest): its rows as
+  // uploads of at most max_traces_per_upload traces each (FleetMemory::
+  // UploadMany: the same admission, log and apply), with the fleet's
+  // place index deferred (engine::MemoryEngine::DeferIndexing) for
+  // kImportIdle after each call; `finish` waits until they are applied and
+  // builds the graph (IndexDeferred). A fleet that holds traces, with no
+  // import under way here, is refused unless `resume`.
+  absl::Status ImportTraces(const auth::Principal& caller,
+                            const v1::ImportTracesRequest& request,
+                            v1::ImportTracesResponse* response);
+  // How long an import's deferral of the graph lasts after its last call:
+  // an import abandoned without `finish` gets its graph built in the
+  // background then.
+  static constexpr absl::Duration kImportIdle = absl::Minutes(10);
+  // Rows one ImportTraces call may carry.
+  static constexpr int kMaxImportRows = 100'000;
   // Admin. Logged as the fleet's first entry (FleetMemory::CreateFleet).
   absl::Status CreateFleet(const auth::Principal& caller,
                            const v1::CreateFleetRequest& request,

@@ -135,6 +135,88 @@ void TraceColumnsToProto(std::span<const core::MemoryTrace> traces,
   }
 }
 
+absl::StatusOr<std::vector<core::MemoryTrace>> ImportedTracesFromColumns(
+    const v1::TraceColumns& columns) {
+  const size_t n = columns.count();
+  const size_t dimension = columns.code_dimension();
+  const auto refuse = [&](std::string_view column, std::string_view want,
+                          size_t got) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("traces.", V(column), ": ", got, " values for ", n,
+                     " rows (traces.count); want ", V(want)));
+  };
+  if (n > 0 && dimension == 0) {
+    return absl::InvalidArgumentError(
+        "traces.code_dimension: 0; want the codes' length");
+  }
+  if (columns.codes().size() != n * dimension * sizeof(float)) {
+    return refuse("codes",
+                  absl::StrCat(n * dimension * sizeof(float),
+                               " bytes (count x code_dimension "
+                               "float32)"),
+                  columns.codes().size());
+  }
+  const auto need = [&](std::string_view column, size_t got, size_t per_row,
+                        bool optional) -> absl::Status {
+    if (got == n * per_row || (optional && got == 0)) return absl::OkStatus();
+    return refuse(column, absl::StrCat(n * per_row, optional ? " or none" : ""),
+                  got);
+  };
+  for (absl::Status status : {
+           need("places", columns.places_size(), 4, false),
+           need("rewards", columns.rewards_size(), 1, false),
+           need("robot_ids", columns.robot_ids_size(), 1, false),
+           need("seqs", columns.seqs_size(), 1, false),
+           need("rewards_external", columns.rewards_external_size(), 1, true),
+           need("rewards_internal", columns.rewards_internal_size(), 1, true),
+           need("timestamps_ns", columns.timestamps_ns_size(), 1, true),
+           need("domains", columns.domains_size(), 1, true),
+           need("encoder_versions", columns.encoder_versions_size(), 1, true),
+           need("attachments", columns.attachments_size(), 1, true),
+       }) {
+    if (!status.ok()) return status;
+  }
+  if (columns.replay_counts_size() != 0 || columns.cluster_ids_size() != 0) {
+    return absl::InvalidArgumentError(
+        "traces.replay_counts and traces.cluster_ids must be empty: a "
+        "fleet's replay counts and clusters are its own (the import "
+        "consolidates the traces as uploads are)");
+  }
+  std::vector<core::MemoryTrace> traces(n);
+  const char* codes = columns.codes().data();
+  for (size_t i = 0; i < n; ++i) {
+    core::MemoryTrace& trace = traces[i];
+    const int row = static_cast<int>(i);
+    trace.code.resize(dimension);
+    std::memcpy(trace.code.data(), codes + i * dimension * sizeof(float),
+                dimension * sizeof(float));
+    trace.place.x = columns.places(4 * row);
+    trace.place.y = columns.places(4 * row + 1);
+    trace.place.z = columns.places(4 * row + 2);
+    trace.place.yaw = columns.places(4 * row + 3);
+    trace.reward = columns.rewards(row);
+    trace.robot_id = columns.robot_ids(row);
+    trace.seq = columns.seqs(row);
+    if (columns.rewards_external_size() > 0) {
+      trace.reward_external = columns.rewards_external(row);
+    }
+    if (columns.rewards_internal_size() > 0) {
+      trace.reward_internal = columns.rewards_internal(row);
+    }
+    if (columns.timestamps_ns_size() > 0) {
+      trace.timestamp_ns = columns.timestamps_ns(row);
+    }
+    if (columns.domains_size() > 0) trace.domain = columns.domains(row);
+    if (columns.encoder_versions_size() > 0) {
+      trace.encoder_version = columns.encoder_versions(row);
+    }
+    if (columns.attachments_size() > 0) {
+      trace.attachment = columns.attachments(row);
+    }
+  }
+  return traces;
+}
+
 void MatchesToProto(std::span<const engine::PlaceMatch> matches,
                     v1::QueryPlaceResponse* out) {
   out->mutable_matches()->Reserve(static_cast<int>(matches.size()));

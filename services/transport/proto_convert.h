@@ -7,6 +7,7 @@
 #include <string_view>
 #include <vector>
 
+#include "absl/status/statusor.h"
 #include "fleetmem/v1/memory.pb.h"
 #include "google/protobuf/repeated_ptr_field.h"
 #include "proto/convert/trace_convert.h"
@@ -44,6 +45,14 @@ void SampledTracesToProto(std::span<const core::MemoryTrace> traces,
 // one float32 block, every other field a packed array, row i trace i.
 void TraceColumnsToProto(std::span<const core::MemoryTrace> traces,
                          v1::TraceColumns* out);
+// The rows of an ImportTraces chunk as an upload's traces (replay_count and
+// cluster_id 0). INVALID_ARGUMENT naming the column that does not fit
+// `count` rows (codes: count x code_dimension floats; places: 4 a row;
+// the optional columns: empty or one a row), or replay_counts /
+// cluster_ids given (they are not imported). The values are checked later,
+// as an upload's.
+absl::StatusOr<std::vector<core::MemoryTrace>> ImportedTracesFromColumns(
+    const v1::TraceColumns& columns);
 void MatchesToProto(std::span<const engine::PlaceMatch> matches,
                     v1::QueryPlaceResponse* out);
 void StatsToProto(const engine::FleetStats& stats, v1::GetStatsResponse* out);

@@ -10,12 +10,14 @@
 //       duplicate; exit 1 if any was lost.
 //   fleetmem-load bench --server ADDR [--robots N --batch B --dimension D
 //                       --seconds S --query-rate Q --sample-rate S
-//                       --peer ADDR --csv FILE]
+//                       --peer ADDR --durable-peer-dir DIR --csv FILE]
 //       the same load against the server and against the bare gRPC peer
-//       (discarding uploads; started in this process unless --peer), printed
-//       with the ratio: upload throughput and latency percentiles per call.
-//   fleetmem-load peer [--listen ADDR]
-//       serves the peer alone.
+//       (discarding uploads; started in this process unless --peer), and
+//       with --durable-peer-dir against the durable peer (each message
+//       appended and fdatasynced, one at a time), printed with the ratios:
+//       upload throughput and latency percentiles per call.
+//   fleetmem-load peer [--listen ADDR --durable-file FILE]
+//       serves a peer alone.
 //   fleetmem-load soak --server ADDR --pid PID [--seconds S --interval S
 //                      --rate T/s --peak-seconds S --report FILE
 //                      --metrics HTTP_ADDR]
@@ -26,6 +28,7 @@
 //
 // Credentials as for `fleetmem`: --token-file / $FLEETMEM_TOKEN_FILE /
 // $FLEETMEM_TOKEN, --tls-ca/--tls-cert/--tls-key.
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -385,7 +388,8 @@ absl::StatusOr<PhaseResult> RunPhase(const std::string& name,
   return result;
 }
 
-// Bench's results: a table with the ratio to the peer, and as CSV at
+// Bench's results (fleetmem's first, then the bare peer's, then the durable
+// peer's if it ran): a table with the ratios to the peers, and as CSV at
 // `csv_path` (if set). The exit code.
 int Report(const std::vector<PhaseResult>& results,
            const UploadLoadOptions& load, double seconds,
@@ -401,12 +405,18 @@ int Report(const std::vector<PhaseResult>& results,
         r.query.p50, r.query.p99, r.sample.p50, r.sample.p99, r.stats.p50,
         r.stats.p99);
   }
-  const double ratio =
-      results[0].upload_rate / std::max(results[1].upload_rate, 1e-9);
-  std::cout << absl::StrFormat(
-      "fleetmem/peer upload throughput: %.3f (%.0f vs %.0f traces/s; "
-      "latencies in ms)\n",
-      ratio, results[0].upload_rate, results[1].upload_rate);
+  const auto ratio_to = [&](size_t peer, const PhaseResult& r) {
+    return peer < results.size()
+               ? r.upload_rate / std::max(results[peer].upload_rate, 1e-9)
+               : 0.0;
+  };
+  for (size_t peer = 1; peer < results.size(); ++peer) {
+    std::cout << absl::StrFormat(
+        "fleetmem/%s upload throughput: %.3f (%.0f vs %.0f traces/s; "
+        "latencies in ms)\n",
+        results[peer].target, ratio_to(peer, results[0]),
+        results[0].upload_rate, results[peer].upload_rate);
+  }
   for (const PhaseResult& r : results) {
     if (r.failed > 0) {
       std::cout << r.target << ": " << r.failed
@@ -419,29 +429,31 @@ int Report(const std::vector<PhaseResult>& results,
            "upload_p50_ms,upload_p90_ms,upload_p99_ms,upload_p999_ms,"
            "upload_max_ms,query_calls,query_p50_ms,query_p99_ms,sample_calls,"
            "sample_p50_ms,sample_p99_ms,stats_calls,stats_p50_ms,stats_p99_ms,"
-           "ratio_to_peer\n";
+           "ratio_to_peer,ratio_to_durable\n";
     for (const PhaseResult& r : results) {
       csv << absl::StrFormat(
           "%s,%d,%d,%d,%.1f,%.1f,%.4f,%.4f,%.4f,%.4f,%.4f,%u,%.4f,%.4f,%u,"
-          "%.4f,%.4f,%u,%.4f,%.4f,%.4f\n",
+          "%.4f,%.4f,%u,%.4f,%.4f,%.4f,%s\n",
           r.target, load.robots, load.batch, load.dimension, seconds,
           r.upload_rate, r.upload.p50, r.upload.p90, r.upload.p99,
           r.upload.p999, r.upload.max, r.query.count, r.query.p50, r.query.p99,
           r.sample.count, r.sample.p50, r.sample.p99, r.stats.count,
-          r.stats.p50, r.stats.p99,
-          r.upload_rate / std::max(results[1].upload_rate, 1e-9));
+          r.stats.p50, r.stats.p99, ratio_to(1, r),
+          results.size() > 2 ? absl::StrFormat("%.4f", ratio_to(2, r)) : "");
     }
     if (!csv) return Fail(absl::DataLossError("cannot write " + csv_path));
   }
   return 0;
 }
 
-// fleetmem-load bench: the load against the server, then against the bare
-// gRPC peer (started in this process unless --peer names one), as a table
-// with the ratio, and as CSV.
+// fleetmem-load bench: the load against the bare gRPC peer (started in this
+// process unless --peer names one), with `durable_dir` against the durable
+// peer (started in this process, its file in that directory), then against
+// the server, as a table with the ratios, and as CSV.
 int Bench(const Common& common, UploadLoadOptions load, double seconds,
           double query_rate, double sample_rate, double stats_rate,
-          const std::string& peer_address, const std::string& csv_path) {
+          const std::string& peer_address, const std::string& durable_dir,
+          const std::string& csv_path) {
   absl::StatusOr<fleetmem::client::ClientOptions> options =
       ClientFor(common, 1);
   if (!options.ok()) return Fail(options.status());
@@ -461,11 +473,24 @@ int Bench(const Common& common, UploadLoadOptions load, double seconds,
   } else {
     peer_options.target = peer_address;
   }
+  std::vector<std::pair<std::string, fleetmem::client::ClientOptions>> targets =
+      {{"fleetmem", *options}, {"peer", peer_options}};
+  std::unique_ptr<fleetmem::load::PeerServer> durable;
+  if (!durable_dir.empty()) {
+    absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> started =
+        fleetmem::load::PeerServer::Start(
+            "127.0.0.1:0", {.durable_file = durable_dir + "/durable-peer.log"});
+    if (!started.ok()) return Fail(started.status());
+    durable = *std::move(started);
+    targets.emplace_back("durable", *options);
+    targets.back().second.target = durable->address();
+  }
+  // The peers run first, on an idle machine: a server still applying the
+  // backlog of its own phase would take CPU from a peer run after it. The
+  // results keep fleetmem's first.
+  std::rotate(targets.begin(), targets.begin() + 1, targets.end());
   std::vector<PhaseResult> results;
-  for (const auto& [name, target] :
-       {std::pair<std::string, fleetmem::client::ClientOptions>{"fleetmem",
-                                                                *options},
-        {"peer", peer_options}}) {
+  for (const auto& [name, target] : targets) {
     std::cerr << "fleetmem-load bench: " << load.robots << " stream(s), batch "
               << load.batch << ", " << load.dimension << "-d, " << seconds
               << " s against " << name << " (" << target.target << ")\n";
@@ -476,6 +501,7 @@ int Bench(const Common& common, UploadLoadOptions load, double seconds,
     // The next phase continues the robots' seqs (no duplicates).
     load.first_seq += 100'000'000;
   }
+  std::rotate(results.rbegin(), results.rbegin() + 1, results.rend());
   return Report(results, load, seconds, csv_path);
 }
 
@@ -586,11 +612,11 @@ struct BenchCommand {
   CLI::App* app = nullptr;
   UploadLoadOptions load;
   double seconds = 10, query_rate = 0, sample_rate = 0, stats_rate = 0;
-  std::string peer_address, csv_path;
+  std::string peer_address, durable_dir, csv_path;
 
   void Add(CLI::App& parent, Common* common) {
     app = parent.add_subcommand("bench",
-                                "throughput and latency against the peer");
+                                "throughput and latency against the peers");
     AddCommon(app, common);
     app->add_option("--robots", load.robots,
                     "upload streams (0: only the other calls)")
@@ -610,12 +636,17 @@ struct BenchCommand {
     app->add_option("--peer", peer_address,
                     "HOST:PORT of a running `fleetmem-load peer` (default: "
                     "one started in this process)");
+    app->add_option("--durable-peer-dir", durable_dir,
+                    "also run against the durable peer (each upload message "
+                    "appended to a file in DIR and fdatasynced, one at a "
+                    "time)")
+        ->check(CLI::ExistingDirectory);
     app->add_option("--csv", csv_path, "write the results as CSV");
   }
 
   int Run(const Common& common) const {
     return Bench(common, load, seconds, query_rate, sample_rate, stats_rate,
-                 peer_address, csv_path);
+                 peer_address, durable_dir, csv_path);
   }
 };
 
@@ -623,16 +654,20 @@ struct BenchCommand {
 struct PeerCommand {
   CLI::App* app = nullptr;
   std::string listen = "127.0.0.1:50061";
+  fleetmem::load::PeerOptions options;
 
   void Add(CLI::App& parent) {
     app = parent.add_subcommand(
         "peer", "serve the bare gRPC peer (discards uploads) until killed");
     app->add_option("--listen", listen, "HOST:PORT");
+    app->add_option("--durable-file", options.durable_file,
+                    "the durable peer: append each upload message to FILE "
+                    "(made or truncated) and fdatasync it before answering");
   }
 
   int Run() const {
     absl::StatusOr<std::unique_ptr<fleetmem::load::PeerServer>> server =
-        fleetmem::load::PeerServer::Start(listen);
+        fleetmem::load::PeerServer::Start(listen, options);
     if (!server.ok()) return Fail(server.status());
     std::cout << "peer listening on " << (*server)->address() << std::endl;
     (*server)->Wait();

@@ -1,10 +1,16 @@
 #include "tools/load/peer_server.h"
 
+#include <fcntl.h>
 #include <grpcpp/grpcpp.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
+#include <cerrno>
 #include <cstdint>
+#include <cstring>
+#include <mutex>
+#include <string>
 
 #include "absl/strings/str_cat.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
@@ -14,12 +20,22 @@ namespace {
 
 class DiscardService final : public v1::MemoryService::Service {
  public:
+  // `fd` >= 0: the durable peer's file (owned by the caller).
+  explicit DiscardService(int fd) : fd_(fd) {}
+
   grpc::Status UploadTraces(grpc::ServerContext*,
                             grpc::ServerReader<v1::UploadTracesRequest>* reader,
                             v1::UploadTracesResponse* response) override {
     v1::UploadTracesRequest request;
     uint64_t traces = 0;
+    std::string bytes;
     while (reader->Read(&request)) {
+      if (fd_ >= 0) {
+        request.SerializeToString(&bytes);
+        if (grpc::Status synced = AppendSynced(bytes); !synced.ok()) {
+          return synced;
+        }
+      }
       traces += request.traces_size();
       if (request.traces_size() > 0) {
         dimension_.store(request.traces(0).code_size());
@@ -72,6 +88,28 @@ class DiscardService final : public v1::MemoryService::Service {
     return trace;
   }
 
+  // The durable peer's append: one message, then fdatasync, one at a time.
+  grpc::Status AppendSynced(const std::string& bytes) {
+    const std::lock_guard lock(file_mu_);
+    for (size_t written = 0; written < bytes.size();) {
+      const ssize_t n =
+          ::write(fd_, bytes.data() + written, bytes.size() - written);
+      if (n < 0 && errno == EINTR) continue;
+      if (n < 0) {
+        return grpc::Status(grpc::StatusCode::INTERNAL,
+                            absl::StrCat("peer: write: ", strerror(errno)));
+      }
+      written += static_cast<size_t>(n);
+    }
+    if (::fdatasync(fd_) != 0) {
+      return grpc::Status(grpc::StatusCode::INTERNAL,
+                          absl::StrCat("peer: fdatasync: ", strerror(errno)));
+    }
+    return grpc::Status::OK;
+  }
+
+  const int fd_;
+  std::mutex file_mu_;
   // Code dimension of the last upload seen (samples of 0-d traces before).
   std::atomic<int> dimension_{256};
 };
@@ -79,14 +117,30 @@ class DiscardService final : public v1::MemoryService::Service {
 }  // namespace
 
 struct PeerServer::Impl {
+  explicit Impl(int fd) : fd(fd), service(fd) {}
+  ~Impl() {
+    server.reset();  // shut down by ~PeerServer: no call writes to fd now
+    if (fd >= 0) ::close(fd);
+  }
+  const int fd;
   DiscardService service;
   std::unique_ptr<grpc::Server> server;
 };
 
 absl::StatusOr<std::unique_ptr<PeerServer>> PeerServer::Start(
-    const std::string& listen) {
+    const std::string& listen, PeerOptions options) {
+  int fd = -1;
+  if (!options.durable_file.empty()) {
+    fd = ::open(options.durable_file.c_str(),
+                O_WRONLY | O_CREAT | O_TRUNC | O_APPEND | O_CLOEXEC, 0644);
+    if (fd < 0) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("durable peer: cannot make ", options.durable_file, ": ",
+                       strerror(errno)));
+    }
+  }
   auto peer = std::unique_ptr<PeerServer>(new PeerServer());
-  peer->impl_ = std::make_unique<Impl>();
+  peer->impl_ = std::make_unique<Impl>(fd);
   int port = 0;
   grpc::ServerBuilder builder;
   builder.AddListeningPort(listen, grpc::InsecureServerCredentials(), &port);

@@ -1,0 +1,110 @@
+#!/bin/bash
+# Bulk import against uploads of the same codes, on one server in one run
+# (issue 49's goal: an import at >= 5x the applied rate of uploads).
+#
+# A recorded fleet of N 256-d codes (synthetic, as docs/performance.md's:
+# a 16-d gaussian latent through a fixed random map, noise 0.05,
+# normalised), its places and rewards, written as .npy arrays (codes.npy,
+# places.npy, rewards.npy: `fleetmem import`'s input without metadata).
+# The server keeps every trace (K_max = N/10 + 100, no downsampling).
+#   upload  fleetmem_client_upload_bench, one stream, batches of 200,
+#           durable acknowledgements: from the first byte until every trace
+#           is applied and in the place graph (GetStats: no backlog, no
+#           unindexed code);
+#   import  fleetmem import --from DIR: from the start until its last call
+#           answers (every row applied, the graph built).
+# Each into its own fleet; the order alternates over REPS rounds.
+#
+#   bench/import_bench.sh [BUILD_DIR] [OUT_CSV] [N]
+# Environment: REPS (1).
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+build=${1:-$here/build}
+out=${2:-/dev/stdout}
+n=${3:-100000}
+reps=${REPS:-1}
+work=$(mktemp -d "${TMPDIR:-/tmp}/import-bench.XXXXXX")
+trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
+source "$here/tools/load/server_lib.sh"
+mkdir -p "$work/arrays"
+python3 - "$work/arrays" "$n" <<'PY'
+import sys, numpy as np
+out, n = sys.argv[1], int(sys.argv[2])
+rng = np.random.default_rng(7)
+basis = rng.standard_normal((16, 256))
+codes = rng.standard_normal((n, 16)) @ basis
+codes += 0.05 * np.sqrt((codes ** 2).mean()) * rng.standard_normal((n, 256))
+codes /= np.linalg.norm(codes, axis=1, keepdims=True)
+codes = codes.astype("<f4")
+np.save(f"{out}/codes.npy", codes)
+codes.tofile(f"{out}/../codes.f32")
+places = np.zeros((n, 4))
+places[:, 0] = np.arange(n) % 1000
+places[:, 1] = np.arange(n) // 1000
+np.save(f"{out}/places.npy", places)
+np.save(f"{out}/rewards.npy", rng.uniform(0.5, 1.5, n))
+PY
+printf 'memory { max_clusters: %d }\nlimits { max_traces_per_fleet: %d }\n' \
+  $((n / 10 + 100)) $((n * 2)) >"$work/server.textproto"
+start_server "$build" "$work/data" "$work/server.log" \
+  --config "$work/server.textproto"
+
+now() { date +%s.%N; }
+# held FLEET: traces + pending, backlog traces and unindexed codes.
+held() {
+  "$build/bin/fleetmem" --server "$SERVER_ADDR" --json stats --fleet "$1" |
+    python3 -c 'import json,sys; s=json.load(sys.stdin)
+print(int(s.get("traces",0))+int(s.get("pendingTraces",0)),
+      int(s.get("backlogTraces",0)), int(s.get("unindexedCodes",0)))'
+}
+run_upload() {
+  local fleet=$1 start
+  start=$(now)
+  "$build/bin/fleetmem_client_upload_bench" --server "$SERVER_ADDR" \
+    --codes "$work/codes.f32" --dim 256 --fleet "$fleet" --robot import \
+    --batch 200 >/dev/null
+  local acked
+  acked=$(now)
+  while true; do
+    read -r traces backlog unindexed < <(held "$fleet")
+    [ "$traces" -ge "$n" ] && [ "$backlog" = 0 ] && [ "$unindexed" = 0 ] &&
+      break
+    sleep 0.2
+  done
+  python3 -c "import sys; a,b,c=map(float,sys.argv[1:]); print(f'{b-a:.2f} {c-a:.2f}')" \
+    "$start" "$acked" "$(now)"
+}
+run_import() {
+  local fleet=$1 start
+  start=$(now)
+  "$build/bin/fleetmem" --server "$SERVER_ADDR" import --fleet "$fleet" \
+    --from "$work/arrays" --robot import >"$work/import.out" 2>/dev/null
+  local done_at
+  done_at=$(now)
+  read -r traces backlog unindexed < <(held "$fleet")
+  [ "$traces" -ge "$n" ] && [ "$backlog" = 0 ] && [ "$unindexed" = 0 ] || {
+    echo "import into $fleet left $traces traces, $backlog backlog," \
+      "$unindexed unindexed" >&2
+    exit 1
+  }
+  python3 -c "import sys; a,b=map(float,sys.argv[1:]); print(f'{b-a:.2f}')" \
+    "$start" "$done_at"
+}
+echo "round,traces,upload_acked_s,upload_applied_s,upload_applied_per_s,import_s,import_per_s,ratio" >"$work/rows.csv"
+for round in $(seq 1 "$reps"); do
+  order="upload import"
+  [ $((round % 2)) = 0 ] && order="import upload"
+  for what in $order; do
+    if [ "$what" = upload ]; then
+      read -r acked applied < <(run_upload "up-$round")
+    else
+      imported=$(run_import "imp-$round")
+    fi
+  done
+  python3 -c "import sys; n,a,b,c=int(sys.argv[1]),*map(float,sys.argv[2:5])
+print(f'{sys.argv[5]},{n},{a:.2f},{b:.2f},{n/b:.0f},{c:.2f},{n/c:.0f},{b/c:.2f}')" \
+    "$n" "$acked" "$applied" "$imported" "$round" >>"$work/rows.csv"
+done
+stop_server
+cat "$work/rows.csv" >"$out"
+[ "$out" = /dev/stdout ] || cat "$work/rows.csv"
