@@ -6,8 +6,11 @@
 # time, no grouping). 256-d traces in batches of 200 from a pool of 1,000
 # codes per robot (the client is not the limit), 10 s per target, the
 # server from an empty data directory with its default settings (uploads
-# acknowledged at the synced append of its fleet log). The peer's file and
-# the server's data directory are on the same file system.
+# acknowledged at the synced append of its fleet log) but two limits that a
+# 10 s burst from one host meets: every stream comes from 127.0.0.1
+# (max_streams_per_client 1024) and a fleet fills past 1,000,000 traces
+# (max_traces_per_fleet 100,000,000). The peer's file and the server's
+# data directory are on the same file system.
 #
 #   bench/ack_streams_bench.sh [BUILD_DIR] [OUT_CSV] [STREAMS...]
 #
@@ -23,10 +26,13 @@ streams_list=("$@")
 work=$(mktemp -d "${TMPDIR:-/tmp}/ack-streams.XXXXXX")
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
+printf 'limits { max_streams_per_client: 1024 max_traces_per_fleet: 100000000 }\n' \
+  >"$work/server.textproto"
 first=1
 for streams in "${streams_list[@]}"; do
   rm -rf "$work/data" "$work/durable-peer.log"
-  start_server "$build" "$work/data" "$work/server.log"
+  start_server "$build" "$work/data" "$work/server.log" \
+    --config "$work/server.textproto"
   "$build/bin/fleetmem-load" bench --server "$SERVER_ADDR" --fleet ack \
     --dimension 256 --robots "$streams" --batch 200 --seconds 10 \
     --code-pool 1000 --durable-peer-dir "$work" --csv "$work/run.csv"

@@ -1,6 +1,10 @@
 #include "services/transport/upload_reactor.h"
 
+#include <grpcpp/support/proto_buffer_reader.h>
+
+#include <algorithm>
 #include <chrono>
+#include <memory>
 #include <span>
 #include <utility>
 #include <vector>
@@ -16,21 +20,6 @@
 #include "services/transport/upload_checks.h"
 
 namespace fleetmem::transport {
-namespace {
-
-// The bytes of a received message, in one string.
-std::string Flatten(const grpc::ByteBuffer& buffer) {
-  std::vector<grpc::Slice> slices;
-  std::string out;
-  if (!buffer.Dump(&slices).ok()) return out;
-  out.reserve(buffer.Length());
-  for (const grpc::Slice& slice : slices) {
-    out.append(reinterpret_cast<const char*>(slice.begin()), slice.size());
-  }
-  return out;
-}
-
-}  // namespace
 
 absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
     absl::string_view bytes) {
@@ -38,6 +27,20 @@ absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
   if (!request.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
     return absl::InvalidArgumentError(
         absl::StrCat(bytes.size(),
+                     " bytes do not parse as fleetmem.v1.UploadTracesRequest"));
+  }
+  return request;
+}
+
+absl::StatusOr<v1::UploadTracesRequest*> ParseUploadMessage(
+    const grpc::ByteBuffer& buffer, google::protobuf::Arena* arena) {
+  auto* request =
+      google::protobuf::Arena::CreateMessage<v1::UploadTracesRequest>(arena);
+  grpc::ByteBuffer shared(buffer);  // the reader takes a mutable buffer
+  grpc::ProtoBufferReader reader(&shared);
+  if (!request->ParseFromZeroCopyStream(&reader)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(buffer.Length(),
                      " bytes do not parse as fleetmem.v1.UploadTracesRequest"));
   }
   return request;
@@ -141,29 +144,37 @@ void UploadReactor::OnReadDone(bool ok) {
   }
   Message message;
   message.index = ++read_;
-  const std::string bytes = Flatten(buffer_);
-  buffer_.Clear();
-  message.bytes = bytes.size();
+  message.bytes = buffer_.Length();
   if (state_->shutting_down()) {
     message.error = absl::UnavailableError(
         "the server is shutting down; nothing of this message was stored");
-  } else if (absl::StatusOr<v1::UploadTracesRequest> parsed =
-                 ParseUploadMessage(bytes);
-             !parsed.ok()) {
-    message.error = parsed.status();
   } else {
-    message.request = *std::move(parsed);
-    message.error = CheckUploadFleet(message.request, fleet_id_);
-    if (message.error.ok() && fleet_id_.empty()) {
-      // The stream binds its name and resolves it once, before any store:
-      // an alias switched meanwhile moves the next stream, not this one.
-      fleet_id_ = message.request.fleet_id();
-      MemoryApi::Resolved resolved = state_->api().Resolve(caller_, fleet_id_);
-      target_ = std::move(resolved.fleet_id);
-      caller_ = std::move(resolved.caller);
+    google::protobuf::ArenaOptions sizes;
+    // About the parsed message's size: its codes are most of the bytes.
+    sizes.start_block_size = std::max<size_t>(1024, message.bytes * 5 / 4);
+    sizes.max_block_size = sizes.start_block_size;
+    message.arena = std::make_unique<google::protobuf::Arena>(sizes);
+    absl::StatusOr<v1::UploadTracesRequest*> parsed =
+        ParseUploadMessage(buffer_, message.arena.get());
+    if (!parsed.ok()) {
+      message.error = parsed.status();
+    } else {
+      message.request = *parsed;
+      message.error = CheckUploadFleet(*message.request, fleet_id_);
+      if (message.error.ok() && fleet_id_.empty()) {
+        // The stream binds its name and resolves it once, before any
+        // store: an alias switched meanwhile moves the next stream, not
+        // this one.
+        fleet_id_ = message.request->fleet_id();
+        MemoryApi::Resolved resolved =
+            state_->api().Resolve(caller_, fleet_id_);
+        target_ = std::move(resolved.fleet_id);
+        caller_ = std::move(resolved.caller);
+      }
+      if (message.error.ok()) message.request->set_fleet_id(target_);
     }
-    if (message.error.ok()) message.request.set_fleet_id(target_);
   }
+  buffer_.Clear();
   bool submit = false;
   {
     absl::MutexLock lock(&mu_);
@@ -237,7 +248,7 @@ bool UploadReactor::StoreBatch(std::deque<Message>& batch) {
     failed = message.error;
     if (failed.ok()) {
       absl::StatusOr<CheckedUpload> checked =
-          CheckUploadTraces(caller_, message.request);
+          CheckUploadTraces(caller_, *message.request);
       if (checked.ok()) {
         traces.push_back(std::move(checked->traces));
         wait_applied |= checked->wait_applied;

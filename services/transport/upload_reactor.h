@@ -15,6 +15,7 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "fleetmem/v1/memory.grpc.pb.h"
+#include "google/protobuf/arena.h"
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/server_callback.h"
 #include "services/auth/access_policy.h"
@@ -27,6 +28,9 @@ namespace fleetmem::transport {
 // not an UploadTracesRequest (the reactor adds which message it was).
 absl::StatusOr<v1::UploadTracesRequest> ParseUploadMessage(
     absl::string_view bytes);
+// The same from gRPC's buffer, into a message on `arena`.
+absl::StatusOr<v1::UploadTracesRequest*> ParseUploadMessage(
+    const grpc::ByteBuffer& buffer, google::protobuf::Arena* arena);
 
 // Reads messages (raw bytes) and parses them on gRPC's threads, and stores
 // them with FleetMemory::UploadMany on the worker pool, one store task per
@@ -71,7 +75,11 @@ class UploadReactor : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   // A message read, parsed, waiting to be stored; or the error it met.
   struct Message {
     uint64_t index = 0;  // 1-based in the stream
-    v1::UploadTracesRequest request;
+    // Parsed on an arena of its own, straight from gRPC's buffer: one
+    // allocation for the message's traces rather than several a trace,
+    // freed at once with the message.
+    std::unique_ptr<google::protobuf::Arena> arena;
+    v1::UploadTracesRequest* request = nullptr;  // on `arena`
     size_t bytes = 0;
     absl::Status error;
   };
