@@ -17,7 +17,7 @@ DEB_PACKAGES := cmake ninja-build ccache g++ pkg-config git \
   python3-venv python3-pip python3-setuptools python3-wheel python3-grpcio \
   python3-protobuf python3-pytest python3-pil \
   debootstrap docker-compose libceres-dev libhnswlib-dev libfaiss-dev \
-  libxxhash-dev nats-server libnats-dev
+  libxxhash-dev nats-server libnats-dev python3-hnswlib
 
 # ccache serves a fresh clone in another folder too: paths under the
 # checkout are hashed relative to it, and the working directory is not

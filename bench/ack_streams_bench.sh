@@ -13,6 +13,9 @@
 # data directory are on the same file system.
 #
 #   bench/ack_streams_bench.sh [BUILD_DIR] [OUT_CSV] [STREAMS...]
+# Environment: SERVER_BUILD, a build whose fleetmem-server is measured
+# (default BUILD_DIR; the load generator and the peers are BUILD_DIR's),
+# e.g. the build before a change.
 #
 # OUT_CSV gets fleetmem-load bench's rows for every stream count
 # (ratio_to_peer: the bare peer; ratio_to_durable: the durable one).
@@ -31,7 +34,7 @@ printf 'limits { max_streams_per_client: 1024 max_traces_per_fleet: 100000000 }\
 first=1
 for streams in "${streams_list[@]}"; do
   rm -rf "$work/data" "$work/durable-peer.log"
-  start_server "$build" "$work/data" "$work/server.log" \
+  start_server "${SERVER_BUILD:-$build}" "$work/data" "$work/server.log" \
     --config "$work/server.textproto"
   "$build/bin/fleetmem-load" bench --server "$SERVER_ADDR" --fleet ack \
     --dimension 256 --robots "$streams" --batch 200 --seconds 10 \

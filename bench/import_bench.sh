@@ -4,15 +4,21 @@
 #
 # A recorded fleet of N 256-d codes (synthetic, as docs/performance.md's:
 # a 16-d gaussian latent through a fixed random map, noise 0.05,
-# normalised), its places and rewards, written as .npy arrays (codes.npy,
-# places.npy, rewards.npy: `fleetmem import`'s input without metadata).
+# normalised), its places (x = row) and rewards (1), as the upload client
+# below makes them, written as .npy arrays (codes.npy, places.npy,
+# rewards.npy: `fleetmem import`'s input without metadata).
 # The server keeps every trace (K_max = N/10 + 100, no downsampling).
 #   upload  fleetmem_client_upload_bench, one stream, batches of 200,
 #           durable acknowledgements: from the first byte until every trace
 #           is applied and in the place graph (GetStats: no backlog, no
 #           unindexed code);
 #   import  fleetmem import --from DIR: from the start until its last call
-#           answers (every row applied, the graph built).
+#           answers (every row applied, the graph built); the graph's
+#           build alone is the last call's index_seconds;
+#   hnswlib Debian's python3-hnswlib inserting the same codes into its own
+#           graph (float L2, M = 16, ef_construction = 40, as the server's
+#           default graph, 2 threads), with the server idle: the graph's
+#           peer.
 # Each into its own fleet; the order alternates over REPS rounds.
 #
 #   bench/import_bench.sh [BUILD_DIR] [OUT_CSV] [N]
@@ -27,7 +33,7 @@ work=$(mktemp -d "${TMPDIR:-/tmp}/import-bench.XXXXXX")
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
 mkdir -p "$work/arrays"
-python3 - "$work/arrays" "$n" <<'PY'
+/usr/bin/python3 - "$work/arrays" "$n" <<'PY'
 import sys, numpy as np
 out, n = sys.argv[1], int(sys.argv[2])
 rng = np.random.default_rng(7)
@@ -38,11 +44,11 @@ codes /= np.linalg.norm(codes, axis=1, keepdims=True)
 codes = codes.astype("<f4")
 np.save(f"{out}/codes.npy", codes)
 codes.tofile(f"{out}/../codes.f32")
+# As fleetmem_client_upload_bench makes them: place x = row, reward 1.
 places = np.zeros((n, 4))
-places[:, 0] = np.arange(n) % 1000
-places[:, 1] = np.arange(n) // 1000
+places[:, 0] = np.arange(n)
 np.save(f"{out}/places.npy", places)
-np.save(f"{out}/rewards.npy", rng.uniform(0.5, 1.5, n))
+np.save(f"{out}/rewards.npy", np.ones(n))
 PY
 printf 'memory { max_clusters: %d }\nlimits { max_traces_per_fleet: %d }\n' \
   $((n / 10 + 100)) $((n * 2)) >"$work/server.textproto"
@@ -81,6 +87,9 @@ run_import() {
     --from "$work/arrays" --robot import >"$work/import.out" 2>/dev/null
   local done_at
   done_at=$(now)
+  sed 's/^/# /' "$work/import.out" >&2
+  INDEX_SECONDS=$(sed -n 's/.*graph built in \([0-9.]*\) s.*/\1/p' \
+    "$work/import.out")
   read -r traces backlog unindexed < <(held "$fleet")
   [ "$traces" -ge "$n" ] && [ "$backlog" = 0 ] && [ "$unindexed" = 0 ] || {
     echo "import into $fleet left $traces traces, $backlog backlog," \
@@ -90,7 +99,20 @@ run_import() {
   python3 -c "import sys; a,b=map(float,sys.argv[1:]); print(f'{b-a:.2f}')" \
     "$start" "$done_at"
 }
-echo "round,traces,upload_acked_s,upload_applied_s,upload_applied_per_s,import_s,import_per_s,ratio" >"$work/rows.csv"
+hnswlib_seconds() {
+  /usr/bin/python3 - "$work/arrays/codes.npy" <<'PY'
+import sys, time, numpy as np, hnswlib
+codes = np.load(sys.argv[1])
+index = hnswlib.Index(space="l2", dim=codes.shape[1])
+index.init_index(max_elements=len(codes), M=16, ef_construction=40,
+                 random_seed=42)
+index.set_num_threads(2)
+start = time.perf_counter()
+index.add_items(codes, np.arange(len(codes)))
+print(f"{time.perf_counter() - start:.2f}")
+PY
+}
+echo "round,traces,upload_acked_s,upload_applied_s,upload_applied_per_s,import_s,import_per_s,ratio,import_index_s,hnswlib_s,graph_to_hnswlib" >"$work/rows.csv"
 for round in $(seq 1 "$reps"); do
   order="upload import"
   [ $((round % 2)) = 0 ] && order="import upload"
@@ -98,12 +120,16 @@ for round in $(seq 1 "$reps"); do
     if [ "$what" = upload ]; then
       read -r acked applied < <(run_upload "up-$round")
     else
-      imported=$(run_import "imp-$round")
+      run_import "imp-$round" >"$work/import.s"
+      imported=$(cat "$work/import.s")
     fi
   done
-  python3 -c "import sys; n,a,b,c=int(sys.argv[1]),*map(float,sys.argv[2:5])
-print(f'{sys.argv[5]},{n},{a:.2f},{b:.2f},{n/b:.0f},{c:.2f},{n/c:.0f},{b/c:.2f}')" \
-    "$n" "$acked" "$applied" "$imported" "$round" >>"$work/rows.csv"
+  # The graph's peer, with the server idle.
+  hnsw=$(hnswlib_seconds)
+  python3 -c "import sys; n,a,b,c,i,h=int(sys.argv[1]),*map(float,sys.argv[2:7])
+print(f'{sys.argv[7]},{n},{a:.2f},{b:.2f},{n/b:.0f},{c:.2f},{n/c:.0f},{b/c:.2f},{i:.2f},{h:.2f},{h/i:.2f}')" \
+    "$n" "$acked" "$applied" "$imported" "$INDEX_SECONDS" "$hnsw" "$round" \
+    >>"$work/rows.csv"
 done
 stop_server
 cat "$work/rows.csv" >"$out"

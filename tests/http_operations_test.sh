@@ -113,6 +113,16 @@ rest)
   check "batch get is 200" [ "$(http_code POST '/v1/fleets/beta/traces:batchGet' '{"keys":[{"robotId":"robot-1","seq":"60"},{"robotId":"nobody","seq":"1"}]}')" = 200 ]
   check "batch get finds one and misses one" /usr/bin/python3 -c 'import json; b=json.load(open("'"$WORK/body"'")); assert len(b["traces"])==1 and b["missing"][0]["robotId"]=="nobody", b'
   check "update rewards is 200" [ "$(http_code POST '/v1/fleets/beta/traces:updateRewards' '{"updates":[{"robotId":"robot-1","seq":"60","rewardExternal":3}]}')" = 200 ]
+  # A bulk import over REST: two rows of 2-d codes as columns (codes as
+  # base64 float32), the last call: applied, its graph built, answered.
+  import_body=$(/usr/bin/python3 -c 'import base64,json,struct
+codes=base64.b64encode(struct.pack("<4f",1,0,0,1)).decode()
+print(json.dumps({"traces":{"count":2,"codeDimension":2,"codes":codes,
+  "places":[0,0,0,0,1,0,0,0],"rewards":[1,1],"robotIds":["r","r"],
+  "seqs":["1","2"]},"finish":True}))')
+  check "an import is 200" [ "$(http_code POST '/v1/fleets/gamma/traces:import' "$import_body")" = 200 ]
+  check "and answers what it stored" /usr/bin/python3 -c 'import json; b=json.load(open("'"$WORK/body"'")); assert b["accepted"]=="2" and b["fleetTraces"]=="2", b'
+  check "an import into a fleet holding traces is 400" [ "$(http_code POST '/v1/fleets/gamma/traces:import' "$import_body")" = 400 ]
   check "delete traces is 200" [ "$(http_code POST '/v1/fleets/beta/traces:delete' '{"robotId":"robot-2"}')" = 200 ]
   check "a delete of nothing named is 400" [ "$(http_code POST '/v1/fleets/beta/traces:delete' '{}')" = 400 ]
   held_by() { # held_by ROBOT: its traces in fleet beta (0 if none)

@@ -263,9 +263,15 @@ int RunImport(const Invocation& invocation) {
     absl::StatusOr<v1::ImportTracesResponse> response =
         client->ImportTraces(request);
     if (!response.ok()) {
-      *invocation.err << "\nimport stopped: rows 1.." << first
-                      << " are stored (a run with --resume goes on from "
-                         "there; stored rows count as duplicates)\n";
+      *invocation.err << "\nimport stopped: "
+                      << (first == 0
+                              ? std::string("no earlier call stored a row")
+                              : absl::StrCat(
+                                    "rows 1..", first,
+                                    " are stored (a run with --resume goes "
+                                    "on from there; stored rows count as "
+                                    "duplicates)"))
+                      << "\n";
       return ServerError(invocation, response.status());
     }
     accepted += response->accepted();

@@ -676,9 +676,13 @@ absl::Status MemoryApi::ImportTraces(const auth::Principal& caller,
           "one); nothing was imported"));
     }
   }
-  // The chunk as uploads of at most max_traces_per_upload each.
+  // The chunk as uploads of a segment each (at most max_traces_per_upload):
+  // a robot's rows are consolidated in the segments its uploads would have
+  // made, not in batches as large as the chunk (whose clusters would be
+  // downsampled where its robot's segments' are not).
   const size_t per_message =
-      std::max<size_t>(1, engine_->options().max_traces_per_upload);
+      std::max<size_t>(1, std::min(engine_->options().max_traces_per_upload,
+                                   engine_->options().segment_size));
   std::vector<std::span<const core::MemoryTrace>> messages;
   for (size_t first = 0; first < traces->size(); first += per_message) {
     messages.push_back(std::span<const core::MemoryTrace>(*traces).subspan(

@@ -113,7 +113,7 @@ class MemoryApi {
                             const v1::UploadTracesRequest& request,
                             v1::UploadTracesResponse* response);
   // Admin. A bulk import's chunk (v1.ImportTracesRequest): its rows as
-  // uploads of at most max_traces_per_upload traces each (FleetMemory::
+  // uploads of a segment each (at most max_traces_per_upload; FleetMemory::
   // UploadMany: the same admission, log and apply), with the fleet's
   // place index deferred (engine::MemoryEngine::DeferIndexing) for
   // kImportIdle after each call; `finish` waits until they are applied and
