@@ -210,6 +210,8 @@ perf: build
 	bench/server_scale.sh $(BUILD_DIR) $(PERF_DIR)/server_scale.csv $(PERF_SIZES)
 	bench/restart_bench.sh $(BUILD_DIR) 1000000 >$(PERF_DIR)/restart.txt && \
 	  cat $(PERF_DIR)/restart.txt
+	bench/ack_streams_bench.sh $(BUILD_DIR) $(PERF_DIR)/ack_streams.csv 1 8 64
+	bench/import_bench.sh $(BUILD_DIR) $(PERF_DIR)/import.csv 100000
 	bench/plot_perf.py $(PERF_DIR)
 
 CLANG_FORMAT ?= $(shell command -v clang-format || command -v clang-format-14)

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <limits>
 #include <optional>
 #include <string>
@@ -211,6 +212,67 @@ absl::Status ReadChunk(Sources& sources, size_t first, size_t count,
   return absl::OkStatus();
 }
 
+// The import's calls, a chunk of `per_call` rows each, progress on stderr;
+// the last call's answer with the calls' counts summed. A server's error
+// is printed (with what was stored) and returned; rows that cannot be read
+// are returned unprinted with *unreadable set (a usage error).
+absl::StatusOr<v1::ImportTracesResponse> SendChunks(
+    const Invocation& invocation, client::Client& client, Sources& sources,
+    size_t per_call, const std::string& robot, const std::string& encoder,
+    const std::function<double()>& seconds, bool* unreadable) {
+  const FlagValues& flags = *invocation.flags;
+  const std::string fleet = flags.StringOr("fleet", "");
+  const size_t rows = sources.codes.rows();
+  uint64_t accepted = 0, duplicates = 0;
+  v1::ImportTracesResponse last;
+  for (size_t first = 0; first < rows || first == 0;) {
+    const size_t count = std::min(per_call, rows - first);
+    v1::ImportTracesRequest request;
+    request.set_fleet_id(fleet);
+    request.set_resume(flags.Has("resume"));
+    request.set_finish(first + count >= rows);
+    absl::Status read = ReadChunk(sources, first, count, robot, encoder,
+                                  request.mutable_traces());
+    if (!read.ok()) {
+      *invocation.err << "\n";
+      *unreadable = true;
+      return read;
+    }
+    if (request.finish()) {
+      *invocation.err << "\rimported " << first + count << " / " << rows
+                      << " rows; building the place graph..." << std::flush;
+    }
+    absl::StatusOr<v1::ImportTracesResponse> response =
+        client.ImportTraces(request);
+    if (!response.ok()) {
+      *invocation.err << "\nimport stopped: "
+                      << (first == 0
+                              ? std::string("no earlier call stored a row")
+                              : absl::StrCat(
+                                    "rows 1..", first,
+                                    " are stored (a run with --resume goes "
+                                    "on from there; stored rows count as "
+                                    "duplicates)"))
+                      << "\n";
+      ServerError(invocation, response.status());
+      return response.status();
+    }
+    accepted += response->accepted();
+    duplicates += response->duplicates();
+    last = *response;
+    first += count;
+    if (!request.finish()) {
+      *invocation.err << absl::StrFormat("\rimported %d / %d rows (%.0f/s)",
+                                         first, rows, first / seconds())
+                      << std::flush;
+    }
+    if (rows == 0) break;
+  }
+  last.set_accepted(accepted);
+  last.set_duplicates(duplicates);
+  return last;
+}
+
 }  // namespace
 
 int RunImport(const Invocation& invocation) {
@@ -242,54 +304,18 @@ int RunImport(const Invocation& invocation) {
                                          started)
         .count();
   };
-  uint64_t accepted = 0, duplicates = 0;
-  v1::ImportTracesResponse last;
-  for (size_t first = 0; first < rows || first == 0;) {
-    const size_t count = std::min(per_call, rows - first);
-    v1::ImportTracesRequest request;
-    request.set_fleet_id(*fleet);
-    request.set_resume(flags.Has("resume"));
-    request.set_finish(first + count >= rows);
-    absl::Status read = ReadChunk(*sources, first, count, robot, encoder,
-                                  request.mutable_traces());
-    if (!read.ok()) {
-      *invocation.err << "\n";
-      return UsageError(invocation, read);
-    }
-    if (request.finish()) {
-      *invocation.err << "\rimported " << first + count << " / " << rows
-                      << " rows; building the place graph..." << std::flush;
-    }
-    absl::StatusOr<v1::ImportTracesResponse> response =
-        client->ImportTraces(request);
-    if (!response.ok()) {
-      *invocation.err << "\nimport stopped: "
-                      << (first == 0
-                              ? std::string("no earlier call stored a row")
-                              : absl::StrCat(
-                                    "rows 1..", first,
-                                    " are stored (a run with --resume goes "
-                                    "on from there; stored rows count as "
-                                    "duplicates)"))
-                      << "\n";
-      return ServerError(invocation, response.status());
-    }
-    accepted += response->accepted();
-    duplicates += response->duplicates();
-    last = *response;
-    first += count;
-    if (!request.finish()) {
-      *invocation.err << absl::StrFormat("\rimported %d / %d rows (%.0f/s)",
-                                         first, rows, first / seconds())
-                      << std::flush;
-    }
-    if (rows == 0) break;
+  bool unreadable = false;
+  absl::StatusOr<v1::ImportTracesResponse> last =
+      SendChunks(invocation, *client, *sources, per_call, robot, encoder,
+                 seconds, &unreadable);
+  if (!last.ok()) {
+    return unreadable ? UsageError(invocation, last.status())
+                      : kExitServerError;  // SendChunks said why
   }
+  const uint64_t accepted = last->accepted(), duplicates = last->duplicates();
   *invocation.err << "\n";
-  last.set_accepted(accepted);
-  last.set_duplicates(duplicates);
   if (invocation.json) {
-    PrintJson(last, /*pretty=*/false, *invocation.out);
+    PrintJson(*last, /*pretty=*/false, *invocation.out);
     return kExitOk;
   }
   *invocation.out << absl::StrFormat(
@@ -297,7 +323,7 @@ int RunImport(const Invocation& invocation) {
       "%d duplicates; the fleet holds %d traces, its place graph built in "
       "%.1f s (%d codes outside it)\n",
       rows, dimension, *fleet, seconds(), accepted, duplicates,
-      last.fleet_traces(), last.index_seconds(), last.unindexed_codes());
+      last->fleet_traces(), last->index_seconds(), last->unindexed_codes());
   return kExitOk;
 }
 

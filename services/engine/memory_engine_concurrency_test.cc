@@ -333,21 +333,32 @@ TEST_F(MemoryEngineTest, EventsErasedBesideAReaderAreReportedAsErased) {
             absl::StatusCode::kOutOfRange);
 }
 
+// An engine whose fleets' traces stay pending (and indexed) in a tiered
+// index with a graph from 10 codes on (back-pressure past max_unindexed).
+std::unique_ptr<MemoryEngine> OpenTiered(MemoryStore* store,
+                                         size_t max_unindexed) {
+  EngineOptions options = SmallOptions();
+  options.segment_size = 1000;
+  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
+      MemoryEngine::Open(options, store, [max_unindexed](size_t dimension) {
+        index::TieredIndexOptions tiered;
+        tiered.hnsw_from = 10;
+        tiered.max_unindexed = max_unindexed;
+        return index::NewTieredIndex(dimension, tiered);
+      });
+  EXPECT_TRUE(opened.ok()) << opened.status();
+  return opened.ok() ? *std::move(opened) : nullptr;
+}
+
 // GetStats reports the place index's backlog: with the tiered index, whose
 // graph fills in the background, the codes not yet in the graph, until the
 // background thread has moved them all; with the exact index, none.
 TEST_F(MemoryEngineTest, StatsReportTheIndexBacklog) {
   std::unique_ptr<MemoryStore> store = storage::NewInMemoryStore();
-  EngineOptions options = SmallOptions();
-  options.segment_size = 1000;  // everything stays pending (and indexed)
-  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
-      MemoryEngine::Open(options, store.get(), [](size_t dimension) {
-        index::TieredIndexOptions tiered;
-        tiered.hnsw_from = 10;
-        return index::NewTieredIndex(dimension, tiered);
-      });
-  ASSERT_TRUE(opened.ok()) << opened.status();
-  MemoryEngine& engine = **opened;
+  std::unique_ptr<MemoryEngine> opened =
+      OpenTiered(store.get(), index::TieredIndexOptions().max_unindexed);
+  ASSERT_NE(opened, nullptr);
+  MemoryEngine& engine = *opened;
   for (uint64_t first = 1; first <= 150; first += 50) {
     ASSERT_TRUE(engine.Upload("f1", MakeTraces("r1", first, 50, rng_)).ok());
   }
@@ -372,17 +383,10 @@ TEST_F(MemoryEngineTest, StatsReportTheIndexBacklog) {
 // them at once. A deferral also ends by itself when its time passes.
 TEST_F(MemoryEngineTest, ADeferredIndexIsBuiltOnceAtTheEnd) {
   std::unique_ptr<MemoryStore> store = storage::NewInMemoryStore();
-  EngineOptions options = SmallOptions();
-  options.segment_size = 1000;  // everything stays pending (and indexed)
-  absl::StatusOr<std::unique_ptr<MemoryEngine>> opened =
-      MemoryEngine::Open(options, store.get(), [](size_t dimension) {
-        index::TieredIndexOptions tiered;
-        tiered.hnsw_from = 10;
-        tiered.max_unindexed = 20;  // back-pressure, but for the deferral
-        return index::NewTieredIndex(dimension, tiered);
-      });
-  ASSERT_TRUE(opened.ok()) << opened.status();
-  MemoryEngine& engine = **opened;
+  // Back-pressure past 20 codes, but for the deferral.
+  std::unique_ptr<MemoryEngine> opened = OpenTiered(store.get(), 20);
+  ASSERT_NE(opened, nullptr);
+  MemoryEngine& engine = *opened;
   EXPECT_EQ(engine.DeferIndexing("f1", absl::InfiniteFuture()).code(),
             absl::StatusCode::kNotFound);
   EXPECT_EQ(engine.IndexDeferred("f1").code(), absl::StatusCode::kNotFound);

@@ -1090,6 +1090,33 @@ Dataset LowRankDataset(uint64_t first, size_t count,
   return data;
 }
 
+// Adds `count` low-rank vectors, in batches of `step`, to both indexes;
+// after each batch its newest vector finds itself in `tiered`, whichever
+// part holds it.
+void AddBatchesToBoth(PlaceIndex& tiered, PlaceIndex& exact, uint64_t count,
+                      uint64_t step, const LowRankSource& source,
+                      std::mt19937& rng) {
+  for (uint64_t first = 0; first < count; first += step) {
+    const Dataset batch = LowRankDataset(first, step, source, rng);
+    ASSERT_TRUE(tiered.Add(batch.ids, batch.vectors).ok());
+    ASSERT_TRUE(exact.Add(batch.ids, batch.vectors).ok());
+    EXPECT_EQ(tiered.size(), first + step);
+    EXPECT_THAT(Ids(SearchOk(tiered, batch.vectors.back(), 1)),
+                ElementsAre(batch.ids.back()));
+  }
+}
+
+// recall@10 of `tiered` against `exact` on 100 new codes of `source` (left
+// in *queries if given).
+double RecallAt10(const PlaceIndex& tiered, const PlaceIndex& exact,
+                  const LowRankSource& source, std::mt19937& rng,
+                  std::vector<Vector>* queries = nullptr) {
+  std::vector<Vector> mine;
+  std::vector<Vector>& used = queries != nullptr ? *queries : mine;
+  for (size_t q = 0; q < 100; ++q) used.push_back(source.Next(rng));
+  return MeasureRecall(tiered, exact, used).at10;
+}
+
 // Every vector is searchable as soon as Add returns (from the growing
 // segment), and once the background thread has drained the segment the
 // graph answers as the exact index does (recall@10 on low-rank codes).
@@ -1102,22 +1129,12 @@ TEST(TieredIndexTest, AddedVectorsAreFoundAtOnceAndDrainIntoTheGraph) {
   std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
   std::unique_ptr<PlaceIndex> exact = NewExactIndex(kDimension);
   EXPECT_EQ(tiered->unindexed(), 0u);
-  for (uint64_t first = 0; first < 3000; first += 100) {
-    const Dataset batch = LowRankDataset(first, 100, source, rng);
-    ASSERT_TRUE(tiered->Add(batch.ids, batch.vectors).ok());
-    ASSERT_TRUE(exact->Add(batch.ids, batch.vectors).ok());
-    EXPECT_EQ(tiered->size(), first + 100);
-    // The newest vector finds itself, whichever part holds it.
-    EXPECT_THAT(Ids(SearchOk(*tiered, batch.vectors.back(), 1)),
-                ElementsAre(batch.ids.back()));
-  }
+  AddBatchesToBoth(*tiered, *exact, 3000, 100, source, rng);
   EXPECT_EQ(WaitForIndexing(*tiered), 0u);
   EXPECT_EQ(tiered->unindexed(), 0u);
   EXPECT_EQ(tiered->size(), 3000u);
   std::vector<Vector> queries;
-  for (size_t q = 0; q < 100; ++q) queries.push_back(source.Next(rng));
-  const Recall recall = MeasureRecall(*tiered, *exact, queries);
-  EXPECT_GE(recall.at10, 0.95);
+  EXPECT_GE(RecallAt10(*tiered, *exact, source, rng, &queries), 0.95);
   // Below half the threshold the graph is dropped: exact answers again.
   std::vector<uint64_t> removed;
   for (uint64_t id = 0; id < 2800; ++id) removed.push_back(id);
@@ -1145,23 +1162,14 @@ TEST(TieredIndexTest, ADeferredGraphIsBuiltOnceByIndexWaiting) {
   std::unique_ptr<PlaceIndex> tiered = NewTieredIndex(kDimension, options);
   std::unique_ptr<PlaceIndex> exact = NewExactIndex(kDimension);
   tiered->DeferIndexing(absl::InfiniteFuture());
-  for (uint64_t first = 0; first < 3000; first += 250) {
-    const Dataset batch = LowRankDataset(first, 250, source, rng);
-    ASSERT_TRUE(tiered->Add(batch.ids, batch.vectors).ok());
-    ASSERT_TRUE(exact->Add(batch.ids, batch.vectors).ok());
-    EXPECT_THAT(Ids(SearchOk(*tiered, batch.vectors.back(), 1)),
-                ElementsAre(batch.ids.back()));
-  }
+  AddBatchesToBoth(*tiered, *exact, 3000, 250, source, rng);
   absl::SleepFor(absl::Milliseconds(50));  // a background step, if any
   EXPECT_EQ(tiered->unindexed(), 3000u);
   EXPECT_EQ(WaitForIndexing(*tiered), 3000u);  // nothing to wait for
   ASSERT_TRUE(tiered->IndexWaiting().ok());
   EXPECT_EQ(tiered->unindexed(), 0u);
   EXPECT_EQ(tiered->size(), 3000u);
-  std::vector<Vector> queries;
-  for (size_t q = 0; q < 100; ++q) queries.push_back(source.Next(rng));
-  const Recall recall = MeasureRecall(*tiered, *exact, queries);
-  EXPECT_GE(recall.at10, 0.95);
+  EXPECT_GE(RecallAt10(*tiered, *exact, source, rng), 0.95);
   // Without a deferral the background thread links new vectors again.
   const Dataset more = LowRankDataset(3000, 1000, source, rng);
   ASSERT_TRUE(tiered->Add(more.ids, more.vectors).ok());

@@ -14,6 +14,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -249,6 +250,20 @@ class MemoryApi {
   void AddOwnersCounts(const std::vector<std::string>& owners,
                        absl::Time deadline,
                        std::map<std::string, v1::FleetSummary>* summaries);
+
+  // ImportTraces' steps (memory_api_import.cc): OK if the fleet holds no
+  // trace (nor backlog) or an import into it is under way here,
+  // FAILED_PRECONDITION otherwise; the messages through UploadMany, their
+  // counts added to `response` (*sent: rows of the call stored so far), the
+  // error naming the rows; the last call's graph build and counts.
+  absl::Status CheckNothingHeld(const std::string& fleet_id);
+  absl::Status UploadImported(
+      const std::string& fleet_id,
+      std::span<const std::span<const core::MemoryTrace>> messages,
+      const UploadOptions& options, size_t* sent,
+      v1::ImportTracesResponse* response);
+  absl::Status BuildImportedGraph(const std::string& fleet_id,
+                                  v1::ImportTracesResponse* response);
 
   // UploadTraces, forwarded by another replica or not.
   absl::Status Upload(const auth::Principal& caller,

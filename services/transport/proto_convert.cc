@@ -135,8 +135,10 @@ void TraceColumnsToProto(std::span<const core::MemoryTrace> traces,
   }
 }
 
-absl::StatusOr<std::vector<core::MemoryTrace>> ImportedTracesFromColumns(
-    const v1::TraceColumns& columns) {
+namespace {
+
+// ImportedTracesFromColumns' shape check: every column fits `count` rows.
+absl::Status CheckColumns(const v1::TraceColumns& columns) {
   const size_t n = columns.count();
   const size_t dimension = columns.code_dimension();
   const auto refuse = [&](std::string_view column, std::string_view want,
@@ -152,8 +154,7 @@ absl::StatusOr<std::vector<core::MemoryTrace>> ImportedTracesFromColumns(
   if (columns.codes().size() != n * dimension * sizeof(float)) {
     return refuse("codes",
                   absl::StrCat(n * dimension * sizeof(float),
-                               " bytes (count x code_dimension "
-                               "float32)"),
+                               " bytes (count x code_dimension float32)"),
                   columns.codes().size());
   }
   const auto need = [&](std::string_view column, size_t got, size_t per_row,
@@ -182,6 +183,18 @@ absl::StatusOr<std::vector<core::MemoryTrace>> ImportedTracesFromColumns(
         "fleet's replay counts and clusters are its own (the import "
         "consolidates the traces as uploads are)");
   }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<core::MemoryTrace>> ImportedTracesFromColumns(
+    const v1::TraceColumns& columns) {
+  if (absl::Status checked = CheckColumns(columns); !checked.ok()) {
+    return checked;
+  }
+  const size_t n = columns.count();
+  const size_t dimension = columns.code_dimension();
   std::vector<core::MemoryTrace> traces(n);
   const char* codes = columns.codes().data();
   for (size_t i = 0; i < n; ++i) {

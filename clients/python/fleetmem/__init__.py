@@ -16,12 +16,12 @@ import pathlib as _pathlib
 
 import numpy as _np
 
-from fleetmem.client import (Client, DuplicateUploadWarning, FleetMemError, Matches, Traces,
-                             UploadResult, Watch)
+from fleetmem.client import (Client, DuplicateUploadWarning, FleetMemError, ImportResult, Matches,
+                             Traces, UploadResult, Watch)
 from fleetmem.replay import ReplayDataset
 from fleetmem.v1 import memory_pb2 as pb
 
-__all__ = ["Client", "DuplicateUploadWarning", "FleetMemError", "ReplayDataset", "Matches", "Traces", "UploadResult", "Watch", "load_export", "pb"]
+__all__ = ["Client", "DuplicateUploadWarning", "FleetMemError", "ImportResult", "ReplayDataset", "Matches", "Traces", "UploadResult", "Watch", "load_export", "pb"]
 __version__ = "0.1.0"
 
 

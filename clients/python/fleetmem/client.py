@@ -94,6 +94,19 @@ class UploadResult:
         return self.accepted == 0 and self.duplicates > 0
 
 
+@dataclasses.dataclass(frozen=True)
+class ImportResult:
+    """What a bulk import did (the calls' ImportTracesResponse summed):
+    rows stored and rows the fleet held already; after the last call, the
+    traces the fleet holds, its codes still outside the place graph (0
+    unless the build failed) and the seconds the graph's build took."""
+    accepted: int
+    duplicates: int
+    fleet_traces: int
+    unindexed_codes: int
+    index_seconds: float
+
+
 class DuplicateUploadWarning(UserWarning):
     """An upload of which the server stored nothing: it held every
     (robot_id, seq) already. Filter it (warnings.simplefilter) where
@@ -454,6 +467,81 @@ class Client:
                 "were held already (the same seqs as an earlier upload): nothing was stored",
                 DuplicateUploadWarning, stacklevel=2)
         return result
+
+    def import_traces(self, fleet: str, codes, places=None, rewards=None, *, robot_ids, seqs,
+                      domains=None, encoder_versions=None, timestamps_ns=None,
+                      rewards_external=None, rewards_internal=None, chunk: Optional[int] = None,
+                      resume: bool = False, finish_timeout: float = 24 * 3600.0) -> ImportResult:
+        """Bulk import (admin): n rows into a fleet that holds no trace yet, a
+        chunk of rows per ImportTraces call, the fleet's place graph built
+        once, by the last call (docs/api.md). A fleet that holds traces is
+        refused (FleetMemError FAILED_PRECONDITION) unless resume=True (an
+        import that stopped: the rows it holds count as duplicates).
+
+        codes: n x d; places, rewards as upload's; robot_ids: one id for
+        every row or n of them; seqs: n non-negative integers ((robot_id,
+        seq) is a row's identity); domains, encoder_versions: a string or n
+        of them; timestamps_ns, rewards_external, rewards_internal: n or
+        None. chunk: rows per call (default: 8 MiB of codes, at most
+        10,000). finish_timeout: the last call's, which waits for the
+        graph (minutes at millions of rows)."""
+        fleet = _text("fleet", fleet)
+        codes = _real("codes", codes)
+        if codes.ndim != 2 or codes.shape[1] == 0:
+            raise ValueError(f"codes: want an n x d array, got shape {codes.shape}")
+        n, dim = codes.shape
+        codes = np.ascontiguousarray(codes, "<f4")
+        if not np.isfinite(codes).all():
+            raise ValueError("codes: hold NaN or infinity")
+        seqs = np.asarray(seqs)
+        if seqs.shape != (n,) or seqs.dtype.kind not in "iu" or (seqs.dtype.kind == "i" and (seqs < 0).any()):
+            raise ValueError(f"seqs: want {n} non-negative integers, got {seqs.dtype} of shape {seqs.shape}")
+
+        def texts(name, values, default=None):
+            if values is None:
+                return None if default is None else [default] * n
+            if isinstance(values, str):
+                return [_text(name, values)] * n
+            values = [_text(name, v) for v in values]
+            if len(values) != n:
+                raise ValueError(f"{name}: want one string or {n}, got {len(values)}")
+            return values
+
+        robot_ids = texts("robot_ids", robot_ids)
+        if robot_ids is None:
+            raise ValueError("robot_ids: required (one id, or one per row)")
+        domains, encoders = texts("domains", domains), texts("encoder_versions", encoder_versions)
+        places = _places_array(places, n)
+        rewards = _per_trace("rewards", rewards, n, np.float32, default=1.0)
+        extras = {"rewards_external": _per_trace("rewards_external", rewards_external, n, np.float32),
+                  "rewards_internal": _per_trace("rewards_internal", rewards_internal, n, np.float32),
+                  "timestamps_ns": _per_trace("timestamps_ns", timestamps_ns, n, np.int64)}
+        step = _count("chunk", chunk) if chunk is not None else max(1, min(10_000, (8 << 20) // (4 * dim)))
+        totals = [0, 0]
+        answer = pb.ImportTracesResponse()
+        for start in range(0, max(n, 1), step):
+            end = min(n, start + step)
+            request = pb.ImportTracesRequest(fleet_id=fleet, finish=end >= n, resume=resume)
+            columns = request.traces
+            columns.count, columns.code_dimension = end - start, dim
+            columns.codes = codes[start:end].tobytes()
+            columns.places.extend(places[start:end].ravel().tolist())
+            columns.rewards.extend(rewards[start:end].tolist())
+            columns.robot_ids.extend(robot_ids[start:end])
+            columns.seqs.extend(int(v) for v in seqs[start:end])
+            if domains is not None:
+                columns.domains.extend(domains[start:end])
+            if encoders is not None:
+                columns.encoder_versions.extend(encoders[start:end])
+            for name, values in extras.items():
+                if values is not None:
+                    getattr(columns, name).extend(values[start:end].tolist())
+            answer = self._unary("ImportTraces", request,
+                                 timeout=finish_timeout if request.finish else None)
+            totals[0] += answer.accepted
+            totals[1] += answer.duplicates
+        return ImportResult(totals[0], totals[1], answer.fleet_traces, answer.unindexed_codes,
+                            answer.index_seconds)
 
     def consolidate(self, fleet: str) -> pb.ConsolidateResponse:
         """Consolidates every robot's pending traces now (Algorithm 1 + 2)."""

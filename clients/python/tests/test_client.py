@@ -70,6 +70,32 @@ def test_the_cli_export_loads(server, cli, tmp_path):
     np.testing.assert_array_equal(loaded.places[order, 0], np.arange(300.0))
 
 
+def test_an_export_imports_into_a_new_fleet(server):
+    codes = codes_of(4, 900)
+    with fleetmem.Client(server.address) as fm:
+        fm.upload("f3", codes, np.arange(900.0), rewards=np.linspace(0.5, 1, 900), robot_id="robot-a",
+                  seqs=np.arange(900))
+        exported = fm.export("f3")
+        result = fm.import_traces("f3-copy", exported.codes, exported.places, exported.rewards,
+                                  robot_ids=exported.robot_ids, seqs=exported.seqs,
+                                  domains=exported.domains, chunk=250)
+        assert (result.accepted, result.duplicates, result.unindexed_codes) == (len(exported), 0, 0)
+        assert result.fleet_traces == len(exported)
+        copy = fm.export("f3-copy")
+        np.testing.assert_array_equal(copy.codes, exported.codes)
+        np.testing.assert_array_equal(copy.rewards, exported.rewards)
+        match = fm.query_place("f3-copy", codes[123], k=1)
+        assert int(match.traces.seqs[0]) == 123 and match.distances[0] < 1e-3
+        with pytest.raises(fleetmem.FleetMemError) as refused:
+            fm.import_traces("f3-copy", exported.codes, robot_ids="robot-a", seqs=exported.seqs)
+        assert refused.value.code.name == "FAILED_PRECONDITION"
+        again = fm.import_traces("f3-copy", exported.codes, robot_ids=exported.robot_ids,
+                                 seqs=exported.seqs, resume=True)
+        assert (again.accepted, again.duplicates) == (0, len(exported))
+        with pytest.raises(ValueError, match="robot_ids"):
+            fm.import_traces("f4", codes[:3], robot_ids=["a", "b"], seqs=[1, 2, 3])
+
+
 def test_errors_carry_the_servers_status(server):
     with fleetmem.Client(server.address, max_attempts=1) as fm:
         with pytest.raises(fleetmem.FleetMemError) as missing:
