@@ -1,5 +1,6 @@
 #include "services/transport/proto_convert.h"
 
+#include <string>
 #include <vector>
 
 #include "gtest/gtest.h"
@@ -62,6 +63,49 @@ TEST(ProtoConvertTest, TraceToProtoOverwritesCode) {
   proto.add_code(9.0f);
   TraceToProto(SampleTrace(), &proto);
   EXPECT_EQ(proto.code_size(), 4);
+}
+
+// An import's columns come back as the traces they were made from (but
+// for replay_count and cluster_id, which an import does not carry); a
+// column of another length, or replay counts given, is refused naming it.
+TEST(ProtoConvertTest, ImportedColumnsRoundTripAndBadOnesAreNamed) {
+  core::MemoryTrace trace = SampleTrace();
+  core::MemoryTrace other = SampleTrace();
+  other.seq += 1;
+  other.code = {1.0f, 2.0f, 3.0f, 4.0f};
+  v1::TraceColumns columns;
+  TraceColumnsToProto(std::vector<core::MemoryTrace>{trace, other}, &columns);
+  columns.clear_replay_counts();
+  columns.clear_cluster_ids();
+  absl::StatusOr<std::vector<core::MemoryTrace>> imported =
+      ImportedTracesFromColumns(columns);
+  ASSERT_TRUE(imported.ok()) << imported.status();
+  ASSERT_EQ(imported->size(), 2u);
+  trace.replay_count = other.replay_count = 0;
+  trace.cluster_id = other.cluster_id = 0;
+  ExpectSameTrace((*imported)[0], trace);
+  ExpectSameTrace((*imported)[1], other);
+
+  v1::TraceColumns short_places = columns;
+  short_places.mutable_places()->RemoveLast();
+  absl::Status refused = ImportedTracesFromColumns(short_places).status();
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(refused.message()).find("traces.places: 7 values"),
+            std::string::npos)
+      << refused;
+  v1::TraceColumns replayed = columns;
+  replayed.add_replay_counts(1);
+  replayed.add_replay_counts(2);
+  refused = ImportedTracesFromColumns(replayed).status();
+  EXPECT_NE(std::string(refused.message()).find("replay_counts"),
+            std::string::npos)
+      << refused;
+  v1::TraceColumns short_codes = columns;
+  short_codes.mutable_codes()->pop_back();
+  refused = ImportedTracesFromColumns(short_codes).status();
+  EXPECT_NE(std::string(refused.message()).find("traces.codes: 31 values"),
+            std::string::npos)
+      << refused;
 }
 
 TEST(ProtoConvertTest, PlaceRoundTrip) {
