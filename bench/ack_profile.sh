@@ -7,6 +7,9 @@
 # symbols and libraries by share of the server's samples.
 #
 #   bench/ack_profile.sh [BUILD_DIR]
+# Environment: SERVER_BUILD, a build whose fleetmem-server is profiled
+# (default BUILD_DIR; the load generator is BUILD_DIR's), e.g. the build
+# before a change; ROBOTS (8); TOP (25) lines of each table.
 # Needs perf (Debian's linux-perf) and perf_event_paranoid <= 1 or root.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
@@ -18,7 +21,7 @@ trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
 printf 'limits { max_streams_per_client: 1024 max_traces_per_fleet: 100000000 }\n' \
   >"$work/server.textproto"
-start_server "$build" "$work/data" "$work/server.log" \
+start_server "${SERVER_BUILD:-$build}" "$work/data" "$work/server.log" \
   --config "$work/server.textproto"
 "$build/bin/fleetmem-load" upload --server "$SERVER_ADDR" --fleet ack \
   --dimension 256 --robots "$robots" --batch 200 --seconds 12 \
