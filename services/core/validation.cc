@@ -47,7 +47,8 @@ absl::Status CheckLength(std::string_view what, std::string_view field,
 // ValidateCode's test without its message: every value finite and the
 // norm in range (or 0). Eight independent sums, so that the loop is not
 // one long chain of dependent additions (a code of every upload passes
-// here: it was a seventh of the server's time acknowledging a burst); a
+// here: it was 11 % of the server's time acknowledging a burst,
+// bench/ack_profile.sh); a
 // non-finite value makes the sum NaN or infinite.
 bool CodeInRange(std::span<const float> code) {
   double sums[8] = {};
