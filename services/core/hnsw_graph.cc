@@ -17,8 +17,8 @@
 #include "hnswlib/hnswlib.h"
 #include "services/core/feature_space.h"
 
-#if defined(__SSE__)
-#include <xmmintrin.h>
+#if defined(__SSE2__)
+#include <immintrin.h>
 #endif
 
 namespace fleetmem::core {
@@ -76,8 +76,143 @@ class ScaledL2Space final : public hnswlib::SpaceInterface<float> {
   size_t dimension_;
 };
 
+// An int8 node (HnswGraphOptions::int8): the step s (the value of one
+// quantum) and the squared norm of the quantized vector as floats, then
+// the dimension's int8 values padded with zeros to a multiple of 16 (the
+// kernels' width).
+constexpr size_t kInt8Header = 2 * sizeof(float);
+size_t Int8Padded(size_t dimension) { return (dimension + 15) / 16 * 16; }
+size_t Int8NodeBytes(size_t dimension) {
+  return kInt8Header + Int8Padded(dimension);
+}
+
+// Writes the int8 node of `scale` times `vector` to `out`: s = max |value|
+// / 127, each value rounded to the nearest multiple of s.
+void QuantizeScaled(const float* vector, float scale, size_t dimension,
+                    char* out) {
+  float peak = 0.0f;
+  for (size_t i = 0; i < dimension; ++i) {
+    peak = std::max(peak, std::fabs(scale * vector[i]));
+  }
+  const float step = peak / 127.0f;
+  auto* values = reinterpret_cast<int8_t*>(out + kInt8Header);
+  int64_t sum = 0;
+  for (size_t i = 0; i < dimension; ++i) {
+    const long q = step > 0.0f ? std::lrint(scale * vector[i] / step) : 0;
+    values[i] = static_cast<int8_t>(std::clamp(q, -127L, 127L));
+    sum += int64_t{values[i]} * values[i];
+  }
+  std::fill(values + dimension, values + Int8Padded(dimension), int8_t{0});
+  const float norm = step * step * static_cast<float>(sum);
+  std::memcpy(out, &step, sizeof(step));
+  std::memcpy(out + sizeof(float), &norm, sizeof(norm));
+}
+
+// <x, y> of `padded` int8 values (a multiple of 16): products summed in
+// int32 (|x y| <= 127², so a sum of 2^17 of them cannot overflow).
+int32_t DotInt8(const int8_t* x, const int8_t* y, size_t padded) {
+  int32_t dot = 0;
+  size_t i = 0;
+#if defined(__SSE2__)
+  // SSE2 has no sign extension of bytes: interleave each byte with its
+  // sign, then multiply pairs of int16 and add them into int32 (madd).
+  const __m128i zero = _mm_setzero_si128();
+  __m128i sum = zero;
+  for (; i < padded; i += 16) {
+    const __m128i a = _mm_loadu_si128(reinterpret_cast<const __m128i*>(x + i));
+    const __m128i b = _mm_loadu_si128(reinterpret_cast<const __m128i*>(y + i));
+    const __m128i sa = _mm_cmpgt_epi8(zero, a), sb = _mm_cmpgt_epi8(zero, b);
+    sum = _mm_add_epi32(sum, _mm_madd_epi16(_mm_unpacklo_epi8(a, sa),
+                                            _mm_unpacklo_epi8(b, sb)));
+    sum = _mm_add_epi32(sum, _mm_madd_epi16(_mm_unpackhi_epi8(a, sa),
+                                            _mm_unpackhi_epi8(b, sb)));
+  }
+  int32_t lanes[4];
+  _mm_storeu_si128(reinterpret_cast<__m128i*>(lanes), sum);
+  dot = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+#endif
+  for (; i < padded; ++i) dot += int32_t{x[i]} * y[i];
+  return dot;
+}
+
+#if defined(__x86_64__)
+// DotInt8 with AVX2 (sign extension to 16 lanes of int16 in one
+// instruction, 32 values a step), where the processor has it: the build
+// targets baseline x86-64.
+__attribute__((target("avx2"))) int32_t DotInt8Avx2(const int8_t* x,
+                                                    const int8_t* y,
+                                                    size_t padded) {
+  __m256i sum = _mm256_setzero_si256();
+  size_t i = 0;
+  for (; i + 32 <= padded; i += 32) {
+    const __m256i a0 = _mm256_cvtepi8_epi16(
+        _mm_loadu_si128(reinterpret_cast<const __m128i*>(x + i)));
+    const __m256i b0 = _mm256_cvtepi8_epi16(
+        _mm_loadu_si128(reinterpret_cast<const __m128i*>(y + i)));
+    const __m256i a1 = _mm256_cvtepi8_epi16(
+        _mm_loadu_si128(reinterpret_cast<const __m128i*>(x + i + 16)));
+    const __m256i b1 = _mm256_cvtepi8_epi16(
+        _mm_loadu_si128(reinterpret_cast<const __m128i*>(y + i + 16)));
+    sum = _mm256_add_epi32(sum, _mm256_madd_epi16(a0, b0));
+    sum = _mm256_add_epi32(sum, _mm256_madd_epi16(a1, b1));
+  }
+  for (; i < padded; i += 16) {
+    const __m256i a = _mm256_cvtepi8_epi16(
+        _mm_loadu_si128(reinterpret_cast<const __m128i*>(x + i)));
+    const __m256i b = _mm256_cvtepi8_epi16(
+        _mm_loadu_si128(reinterpret_cast<const __m128i*>(y + i)));
+    sum = _mm256_add_epi32(sum, _mm256_madd_epi16(a, b));
+  }
+  const __m128i half = _mm_add_epi32(_mm256_castsi256_si128(sum),
+                                     _mm256_extracti128_si256(sum, 1));
+  int32_t lanes[4];
+  _mm_storeu_si128(reinterpret_cast<__m128i*>(lanes), half);
+  return (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+}
+#endif
+
+// Squared Euclidean distance between two int8 nodes: nx + ny - 2 sx sy
+// <qx, qy>, the distance between the quantized vectors.
+template <int32_t (*Dot)(const int8_t*, const int8_t*, size_t)>
+float Int8SquaredL2(const void* a, const void* b, const void* param) {
+  const size_t padded = *static_cast<const size_t*>(param);
+  const char* x = static_cast<const char*>(a);
+  const char* y = static_cast<const char*>(b);
+  float header_x[2], header_y[2];
+  std::memcpy(header_x, x, kInt8Header);
+  std::memcpy(header_y, y, kInt8Header);
+  const int32_t dot =
+      Dot(reinterpret_cast<const int8_t*>(x + kInt8Header),
+          reinterpret_cast<const int8_t*>(y + kInt8Header), padded);
+  const float squared =
+      header_x[1] + header_y[1] -
+      2.0f * (header_x[0] * header_y[0]) * static_cast<float>(dot);
+  return std::max(0.0f, squared);
+}
+
+// hnswlib space of int8 nodes.
+class Int8L2Space final : public hnswlib::SpaceInterface<float> {
+ public:
+  explicit Int8L2Space(size_t dimension) : padded_(Int8Padded(dimension)) {}
+  size_t get_data_size() override { return kInt8Header + padded_; }
+  hnswlib::DISTFUNC<float> get_dist_func() override {
+#if defined(__x86_64__)
+    if (__builtin_cpu_supports("avx2")) return Int8SquaredL2<DotInt8Avx2>;
+#endif
+    return Int8SquaredL2<DotInt8>;
+  }
+  void* get_dist_func_param() override { return &padded_; }
+
+ private:
+  size_t padded_;
+};
+
+// options.int8's floats: slots per block.
+constexpr size_t kFloatBlock = 4096;
+
 std::unique_ptr<hnswlib::SpaceInterface<float>> MakeSpace(
     size_t dimension, const HnswGraphOptions& options) {
+  if (options.int8) return std::make_unique<Int8L2Space>(dimension);
   if (options.scaled) return std::make_unique<ScaledL2Space>(dimension);
   return std::make_unique<hnswlib::L2Space>(dimension);
 }
@@ -129,11 +264,15 @@ struct HnswGraph::Impl {
   }
   std::unique_ptr<hnswlib::SpaceInterface<float>> space;
   hnswlib::HierarchicalNSW<float> hnsw;
+  // options.int8: each slot's floats as given and its scale (dimension + 1
+  // floats), kFloatBlock slots a block, so that nothing held moves as the
+  // graph grows (rescoring reads them beside Link calls).
+  std::vector<std::unique_ptr<float[]>> float_blocks;
 };
 
 HnswGraph::HnswGraph(size_t dimension, HnswGraphOptions options)
     : dimension_(dimension),
-      options_(options),
+      options_((options.scaled = options.scaled || options.int8, options)),
       impl_(std::make_unique<Impl>(dimension, 1024, options)) {}
 
 HnswGraph::~HnswGraph() = default;
@@ -146,8 +285,14 @@ void HnswGraph::Reserve(size_t count) {
   }
 }
 
-const float* HnswGraph::Stored(const float* vector, float scale,
-                               std::vector<float>& buffer) const {
+const void* HnswGraph::Stored(const float* vector, float scale,
+                              std::vector<float>& buffer) const {
+  if (options_.int8) {
+    buffer.resize(Int8NodeBytes(dimension_) / sizeof(float));
+    QuantizeScaled(vector, scale, dimension_,
+                   reinterpret_cast<char*>(buffer.data()));
+    return buffer.data();
+  }
   if (!options_.scaled) return vector;
   buffer.resize(dimension_ + 2);
   std::copy(vector, vector + dimension_, buffer.begin());
@@ -157,11 +302,25 @@ const float* HnswGraph::Stored(const float* vector, float scale,
   return buffer.data();
 }
 
+void HnswGraph::KeepFloats(uint32_t slot, const float* vector, float scale) {
+  if (!options_.int8) return;
+  auto& blocks = impl_->float_blocks;
+  const size_t stride = dimension_ + 1;
+  while (blocks.size() <= slot / kFloatBlock) {
+    blocks.push_back(std::make_unique<float[]>(kFloatBlock * stride));
+  }
+  float* kept =
+      blocks[slot / kFloatBlock].get() + (slot % kFloatBlock) * stride;
+  std::copy(vector, vector + dimension_, kept);
+  kept[dimension_] = scale;
+}
+
 uint32_t HnswGraph::Add(const float* raw, float scale) {
   std::vector<float> buffer;
-  const float* vector = Stored(raw, scale, buffer);
+  const void* vector = Stored(raw, scale, buffer);
   if (!free_slots_.empty()) {
     const uint32_t slot = free_slots_.back();
+    KeepFloats(slot, raw, scale);
     const hnswlib::tableint internal = impl_->hnsw.label_lookup_.at(slot);
     impl_->hnsw.unmarkDeletedInternal(internal);
     impl_->hnsw.updatePoint(vector, internal, options_.repair_probability);
@@ -171,6 +330,7 @@ uint32_t HnswGraph::Add(const float* raw, float scale) {
   }
   Reserve(static_cast<size_t>(next_slot_) + 1);
   const uint32_t slot = next_slot_;
+  KeepFloats(slot, raw, scale);
   impl_->hnsw.addPoint(vector, slot);
   ++next_slot_;
   ++live_;
@@ -221,6 +381,7 @@ HnswGraph::Staged HnswGraph::Stage(std::span<const float* const> vectors,
     std::memcpy(hnsw.getExternalLabeLp(internal), &label, sizeof(label));
     std::memcpy(hnsw.getDataByInternalId(internal),
                 Stored(vectors[i + k], scales[i + k], buffer), hnsw.data_size_);
+    KeepFloats(slot, vectors[i + k], scales[i + k]);
     hnsw.linkLists_[internal] = upper[k];
     staged.slots.push_back(slot);
     ++live_;
@@ -302,7 +463,7 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::SearchBesideLinks(
   if (live_ == 0 || k == 0) return out;
   k = std::min(k, live_);
   std::vector<float> buffer;
-  const float* query = Stored(raw, scale, buffer);
+  const void* query = Stored(raw, scale, buffer);
   const auto distance = [&](hnswlib::tableint node) {
     return hnsw.fstdistfunc_(query, hnsw.getDataByInternalId(node),
                              hnsw.dist_func_param_);
@@ -386,6 +547,16 @@ float HnswGraph::Scale(uint32_t slot) const {
   return options_.scaled ? Vector(slot)[dimension_] : 1.0f;
 }
 
+size_t HnswGraph::MemoryBytes() const {
+  const auto& hnsw = impl_->hnsw;
+  size_t bytes = hnsw.max_elements_ * hnsw.size_data_per_element_;
+  for (size_t i = 0; i < hnsw.cur_element_count; ++i) {
+    bytes += hnsw.element_levels_[i] * hnsw.size_links_per_element_;
+  }
+  return bytes + impl_->float_blocks.size() * kFloatBlock * (dimension_ + 1) *
+                     sizeof(float);
+}
+
 bool HnswGraph::contains(uint32_t slot) const {
   auto it = impl_->hnsw.label_lookup_.find(slot);
   return it != impl_->hnsw.label_lookup_.end() &&
@@ -393,6 +564,11 @@ bool HnswGraph::contains(uint32_t slot) const {
 }
 
 const float* HnswGraph::Vector(uint32_t slot) const {
+  if (options_.int8) {
+    if (slot >= next_slot_) throw std::out_of_range("no such slot");
+    return impl_->float_blocks[slot / kFloatBlock].get() +
+           (slot % kFloatBlock) * (dimension_ + 1);
+  }
   return reinterpret_cast<const float*>(
       impl_->hnsw.getDataByInternalId(impl_->hnsw.label_lookup_.at(slot)));
 }
@@ -402,8 +578,11 @@ namespace {
 // Version and kind of the layout Save writes (each index kind its own, so
 // one kind never parses another's bytes).
 // GRF3: the scaled flag, and scaled nodes holding their scale and squared
-// norm after the vector.
-constexpr uint32_t kGraphFormat = 0x47524633;  // "GRF3"
+// norm after the vector. GRF4 (int8 graphs only; float graphs are still
+// written as GRF3): GRF3 with an int8 flag after the scaled one, int8
+// nodes, and the slots' floats after the links.
+constexpr uint32_t kGraphFormat = 0x47524633;      // "GRF3"
+constexpr uint32_t kInt8GraphFormat = 0x47524634;  // "GRF4"
 
 template <typename Engine>
 std::string EngineState(const Engine& engine) {
@@ -423,25 +602,32 @@ absl::Status Malformed(absl::string_view what) {
   return absl::DataLossError(absl::StrCat("HNSW graph snapshot: ", what));
 }
 
+bool NonNegative(float x) { return std::isfinite(x) && x >= 0.0f; }
+
 // A scaled node's scale and the scaled vector's squared norm are finite and
 // not negative (a zero code's scale is 0).
 bool ScaleAndNormOk(const char* node, size_t dimension) {
   const auto* values = reinterpret_cast<const float*>(node);
-  const float scale = values[dimension];
-  const float norm = values[dimension + 1];
-  return std::isfinite(scale) && scale >= 0.0f && std::isfinite(norm) &&
-         norm >= 0.0f;
+  return NonNegative(values[dimension]) && NonNegative(values[dimension + 1]);
+}
+
+// So are an int8 node's step and squared norm.
+bool Int8HeaderOk(const char* node) {
+  float header[2];
+  std::memcpy(header, node, kInt8Header);
+  return NonNegative(header[0]) && NonNegative(header[1]);
 }
 
 }  // namespace
 
 void HnswGraph::Save(ByteWriter& out) const {
   const auto& hnsw = impl_->hnsw;
-  out.Put<uint32_t>(kGraphFormat);
+  out.Put<uint32_t>(options_.int8 ? kInt8GraphFormat : kGraphFormat);
   out.Put<uint64_t>(dimension_);
   out.Put<uint64_t>(hnsw.M_);
   out.Put<uint64_t>(hnsw.ef_construction_);
   out.Put<uint8_t>(options_.scaled ? 1 : 0);
+  if (options_.int8) out.Put<uint8_t>(1);
   out.Put<uint32_t>(next_slot_);
   out.Put<uint64_t>(free_slots_.size());
   out.PutBytes(free_slots_.data(), free_slots_.size() * sizeof(uint32_t));
@@ -458,6 +644,12 @@ void HnswGraph::Save(ByteWriter& out) const {
     if (level > 0) {
       out.PutBytes(hnsw.linkLists_[i], level * hnsw.size_links_per_element_);
     }
+  }
+  if (!options_.int8) return;
+  const size_t stride = dimension_ + 1;
+  for (size_t first = 0; first < count; first += kFloatBlock) {
+    out.PutBytes(impl_->float_blocks[first / kFloatBlock].get(),
+                 std::min(kFloatBlock, count - first) * stride * sizeof(float));
   }
 }
 
@@ -507,8 +699,14 @@ absl::Status HnswGraph::CheckLoaded(uint32_t count) {
         return Malformed(absl::StrCat("bad links of element ", i));
       }
     }
-    if (options_.scaled && !hnsw.isMarkedDeleted(i) &&
-        !ScaleAndNormOk(hnsw.getDataByInternalId(i), dimension_)) {
+    if (hnsw.isMarkedDeleted(i)) continue;
+    const bool sound =
+        options_.int8 ? Int8HeaderOk(hnsw.getDataByInternalId(i)) &&
+                            NonNegative(Scale(static_cast<uint32_t>(slot)))
+        : options_.scaled
+            ? ScaleAndNormOk(hnsw.getDataByInternalId(i), dimension_)
+            : true;
+    if (!sound) {
       return Malformed(absl::StrCat("bad scale or norm of element ", i));
     }
   }
@@ -519,24 +717,26 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
     size_t dimension, HnswGraphOptions options, ByteReader& in) {
   uint32_t format = 0;
   uint64_t saved_dimension = 0, m = 0, ef_construction = 0, free_count = 0;
-  uint8_t scaled = 0;
-  if (!in.Get(&format) || format != kGraphFormat) {
+  uint8_t scaled = 0, int8 = 0;
+  if (!in.Get(&format) ||
+      (format != kGraphFormat && format != kInt8GraphFormat)) {
     return Malformed("unknown format");
   }
   if (!in.Get(&saved_dimension) || !in.Get(&m) || !in.Get(&ef_construction) ||
-      !in.Get(&scaled)) {
+      !in.Get(&scaled) || (format == kInt8GraphFormat && !in.Get(&int8))) {
     return Malformed("truncated header");
   }
+  options.scaled = options.scaled || options.int8;
   auto graph = std::make_unique<HnswGraph>(dimension, options);
   auto& hnsw = graph->impl_->hnsw;
   if (saved_dimension != dimension || m != hnsw.M_ ||
       ef_construction != hnsw.ef_construction_ ||
-      (scaled != 0) != options.scaled) {
-    return Malformed(
-        absl::StrCat("built with dimension ", saved_dimension, ", m ", m,
-                     ", ef_construction ", ef_construction, ", scaled ",
-                     scaled != 0, "; this graph has ", dimension, ", ", hnsw.M_,
-                     ", ", hnsw.ef_construction_, ", ", options.scaled));
+      (scaled != 0) != options.scaled || (int8 != 0) != options.int8) {
+    return Malformed(absl::StrCat(
+        "built with dimension ", saved_dimension, ", m ", m,
+        ", ef_construction ", ef_construction, ", scaled ", scaled != 0,
+        ", int8 ", int8 != 0, "; this graph has ", dimension, ", ", hnsw.M_,
+        ", ", hnsw.ef_construction_, ", ", options.scaled, ", ", options.int8));
   }
   if (!in.Get(&graph->next_slot_) || !in.Get(&free_count) ||
       free_count > graph->next_slot_) {
@@ -580,6 +780,19 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
     }
     if (count > 0 && hnsw.element_levels_[entry] != max_level) {
       return Malformed("the entry point is not on the top level");
+    }
+    if (options.int8) {
+      const size_t stride = dimension + 1;
+      if (in.remaining() / (stride * sizeof(float)) < count) {
+        return Malformed("truncated floats");
+      }
+      for (size_t first = 0; first < count; first += kFloatBlock) {
+        graph->impl_->float_blocks.push_back(
+            std::make_unique<float[]>(kFloatBlock * stride));
+        in.GetBytes(
+            graph->impl_->float_blocks.back().get(),
+            std::min(kFloatBlock, count - first) * stride * sizeof(float));
+      }
     }
     if (absl::Status checked = graph->CheckLoaded(count); !checked.ok()) {
       return checked;

@@ -40,6 +40,18 @@ struct HnswGraphOptions {
   // norm; distances are norms minus twice the dot product). false: plain
   // vectors (hnswlib's L2 space), Add's scale must be 1.
   bool scaled = false;
+  // The graph's own copy of each vector, what its distances (while linking
+  // and searching) are computed on: false, the floats as above; true
+  // (requires `scaled`), int8 scalar quantization of the scaled vector
+  // with one scale per vector (max |value| / 127; bench/quantization_choice.py
+  // measured it against one scale per dimension) and the quantized
+  // vector's squared norm, so that a node is dimension + 8 bytes (a quarter
+  // of the floats at 256-d) and a distance is an integer dot product. The
+  // floats as given are still kept, beside the nodes (Vector, Scale,
+  // PreciseSquaredDistance read them), for rescoring the walk's candidates
+  // and for the caller's copies; search answers carry the quantized
+  // distances, so a caller rescoring them asks for more than it needs.
+  bool int8 = false;
 };
 
 class HnswGraph {
@@ -87,7 +99,9 @@ class HnswGraph {
   // Removes a live slot.
   void Remove(uint32_t slot);
   // Up to k nearest live slots to `scale` times `query` (1 unless
-  // options.scaled) as (squared Euclidean distance, slot), nearest first.
+  // options.scaled) as (squared Euclidean distance, slot), nearest first
+  // (with options.int8, both quantized: the distance and the order are
+  // approximate; PreciseSquaredDistance scores them).
   std::vector<std::pair<float, uint32_t>> Search(const float* query, size_t k,
                                                  float scale = 1.0f) const;
   // Search, safe to call while Link calls run (not beside any other
@@ -112,6 +126,10 @@ class HnswGraph {
   // The scale given with it (1 unless options.scaled).
   float Scale(uint32_t slot) const;
 
+  // The bytes the graph holds for its vectors and links (hnswlib's nodes,
+  // upper layers and, with options.int8, the floats kept beside them).
+  size_t MemoryBytes() const;
+
   // Writes the whole graph (vectors, links, removed slots and the level
   // generator's state) for Load. O(size); the graph is only read.
   void Save(ByteWriter& out) const;
@@ -133,10 +151,14 @@ class HnswGraph {
 
  private:
   struct Impl;
-  // `vector` in the layout the graph stores (with its scale when scaled);
-  // points into `buffer` or at `vector` itself.
-  const float* Stored(const float* vector, float scale,
-                      std::vector<float>& buffer) const;
+  // `vector` in the layout the graph's nodes store (with its scale when
+  // scaled, quantized when int8); points into `buffer` or at `vector`
+  // itself.
+  const void* Stored(const float* vector, float scale,
+                     std::vector<float>& buffer) const;
+  // With options.int8: keeps `vector` (as given) and `scale` as slot's
+  // floats, allocating a block of them when slot is the first of one.
+  void KeepFloats(uint32_t slot, const float* vector, float scale);
   // Load without its handlers for hnswlib's exceptions.
   static absl::StatusOr<std::unique_ptr<HnswGraph>> LoadOrThrow(
       size_t dimension, HnswGraphOptions options, ByteReader& in);

@@ -1,5 +1,6 @@
 #include "services/core/hnsw_graph.h"
 
+#include <algorithm>
 #include <atomic>
 #include <random>
 #include <span>
@@ -59,21 +60,26 @@ HnswGraph::Staged StageAndLink(HnswGraph& graph,
   return staged;
 }
 
-class HnswGraphStageTest : public ::testing::TestWithParam<bool> {
+// The graph's three node layouts.
+enum class Nodes { kPlain, kScaled, kInt8 };
+
+class HnswGraphStageTest : public ::testing::TestWithParam<Nodes> {
  protected:
   HnswGraphOptions Options() const {
     HnswGraphOptions options;
     options.m = 8;
     options.ef_construction = 32;
-    options.scaled = GetParam();
+    options.scaled = GetParam() != Nodes::kPlain;
+    options.int8 = GetParam() == Nodes::kInt8;
     return options;
   }
+  bool Scaled() const { return GetParam() != Nodes::kPlain; }
 };
 
 TEST_P(HnswGraphStageTest, LinkedInOrderItIsTheGraphOfTheAdds) {
   constexpr size_t kDimension = 12;
   const auto vectors = Gaussian(500, kDimension, 7);
-  const bool scaled = GetParam();
+  const bool scaled = Scaled();
   HnswGraph added(kDimension, Options());
   HnswGraph staged(kDimension, Options());
   std::vector<uint32_t> added_slots;
@@ -108,7 +114,7 @@ TEST_P(HnswGraphStageTest, ConcurrentlyLinkedNodesAreFoundAndSaveWhole) {
   constexpr size_t kDimension = 16;
   constexpr size_t kCount = 3000;
   const auto vectors = Gaussian(kCount, kDimension, 11);
-  const bool scaled = GetParam();
+  const bool scaled = Scaled();
   HnswGraph graph(kDimension, Options());
   size_t removed = 0;
   for (size_t first = 0; first < kCount; first += 250) {
@@ -146,11 +152,11 @@ TEST_P(HnswGraphStageTest, SearchBesideLinksAnswersAsSearch) {
   const auto vectors = Gaussian(2000, kDimension, 13);
   const auto queries = Gaussian(50, kDimension, 17);
   HnswGraph graph(kDimension, Options());
-  StageAndLink(graph, vectors, 0, 2000, GetParam(), 1);
+  StageAndLink(graph, vectors, 0, 2000, Scaled(), 1);
   for (int round = 0; round < 2; ++round) {
     for (const auto& query : queries) {
       for (size_t k : {1, 10, 40}) {
-        const float scale = GetParam() ? 1.5f : 1.0f;
+        const float scale = Scaled() ? 1.5f : 1.0f;
         EXPECT_EQ(graph.SearchBesideLinks(query.data(), k, scale),
                   graph.Search(query.data(), k, scale));
       }
@@ -171,7 +177,7 @@ TEST_P(HnswGraphStageTest, SearchBesideLinksRunsWhileNodesAreLinked) {
   constexpr size_t kDimension = 16;
   constexpr size_t kCount = 2000;
   const auto vectors = Gaussian(kCount, kDimension, 19);
-  const bool scaled = GetParam();
+  const bool scaled = Scaled();
   HnswGraph graph(kDimension, Options());
   StageAndLink(graph, vectors, 0, 500, scaled, 1);
   size_t searches = 0;
@@ -218,7 +224,101 @@ TEST_P(HnswGraphStageTest, SearchBesideLinksRunsWhileNodesAreLinked) {
   EXPECT_GE(found, kCount * 995 / 1000);
 }
 
-INSTANTIATE_TEST_SUITE_P(PlainAndScaled, HnswGraphStageTest, ::testing::Bool());
+INSTANTIATE_TEST_SUITE_P(EveryLayout, HnswGraphStageTest,
+                         ::testing::Values(Nodes::kPlain, Nodes::kScaled,
+                                           Nodes::kInt8));
+
+HnswGraphOptions Int8Options() {
+  return {.m = 8, .ef_construction = 32, .scaled = true, .int8 = true};
+}
+
+// An int8 graph keeps the floats as given (bit for bit, with their scales)
+// and walks on distances within a quantum of the precise ones; its
+// answers, rescored, are the exact nearest as often as a float graph's.
+TEST(HnswGraphInt8Test, KeepsTheFloatsAndWalksOnCloseDistances) {
+  constexpr size_t kDimension = 40;  // not a multiple of 16: padded nodes
+  const auto vectors = Gaussian(3000, kDimension, 23);
+  HnswGraph graph(kDimension, Int8Options());
+  HnswGraph floats(kDimension, {.m = 8, .ef_construction = 32, .scaled = true});
+  for (size_t i = 0; i < vectors.size(); ++i) {
+    const float scale = 1.0f + static_cast<float>(i % 7) / 10.0f;
+    ASSERT_EQ(graph.Add(vectors[i].data(), scale), i);
+    floats.Add(vectors[i].data(), scale);
+  }
+  for (uint32_t slot = 0; slot < 3000; slot += 37) {
+    EXPECT_TRUE(std::equal(vectors[slot].begin(), vectors[slot].end(),
+                           graph.Vector(slot)));
+    EXPECT_EQ(graph.Scale(slot), 1.0f + static_cast<float>(slot % 7) / 10.0f);
+  }
+  const auto queries = Gaussian(100, kDimension, 29);
+  size_t int8_hits = 0, float_hits = 0;
+  for (const auto& query : queries) {
+    const auto found = graph.Search(query.data(), 20);
+    ASSERT_EQ(found.size(), 20u);
+    for (const auto& [quantized, slot] : found) {
+      const double precise = graph.PreciseSquaredDistance(query.data(), slot);
+      // |q - p|² differs from |q - p'|² by at most about 2 |q - p| |p - p'|
+      // + |p - p'|², p' within half a quantum (max |p| / 254) a coordinate.
+      EXPECT_NEAR(quantized, precise, 0.05 * precise + 1.0) << slot;
+    }
+    // The exact nearest, by a scan of the floats.
+    uint32_t nearest = 0;
+    for (uint32_t slot = 1; slot < 3000; ++slot) {
+      if (graph.PreciseSquaredDistance(query.data(), slot) <
+          graph.PreciseSquaredDistance(query.data(), nearest)) {
+        nearest = slot;
+      }
+    }
+    uint32_t best = found[0].second;
+    for (const auto& [quantized, slot] : found) {
+      if (graph.PreciseSquaredDistance(query.data(), slot) <
+          graph.PreciseSquaredDistance(query.data(), best)) {
+        best = slot;
+      }
+    }
+    int8_hits += best == nearest;
+    float_hits += floats.Search(query.data(), 1)[0].second == nearest;
+  }
+  EXPECT_GE(int8_hits, 95u);
+  EXPECT_GE(int8_hits + 2, float_hits);
+  EXPECT_GT(graph.MemoryBytes(), 3000 * (kDimension + 1) * sizeof(float));
+}
+
+// A float graph's snapshot does not load as an int8 one (nor the other
+// way round): the error names both; a truncated int8 snapshot is refused.
+TEST(HnswGraphInt8Test, LoadRefusesAnotherLayoutAndMissingFloats) {
+  constexpr size_t kDimension = 16;
+  const auto vectors = Gaussian(200, kDimension, 31);
+  HnswGraphOptions float_options = Int8Options();
+  float_options.int8 = false;
+  HnswGraph int8(kDimension, Int8Options()), floats(kDimension, float_options);
+  for (const auto& v : vectors) {
+    int8.Add(v.data(), 2.0f);
+    floats.Add(v.data(), 2.0f);
+  }
+  const std::string int8_bytes = Saved(int8), float_bytes = Saved(floats);
+  auto load = [&](const std::string& bytes, HnswGraphOptions options) {
+    ByteReader in(std::span<const char>(bytes.data(), bytes.size()));
+    return HnswGraph::Load(kDimension, options, in);
+  };
+  absl::StatusOr<std::unique_ptr<HnswGraph>> crossed =
+      load(float_bytes, Int8Options());
+  ASSERT_EQ(crossed.status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_NE(crossed.status().message().find("int8 0"), std::string::npos)
+      << crossed.status();
+  EXPECT_EQ(load(int8_bytes, float_options).status().code(),
+            absl::StatusCode::kDataLoss);
+  EXPECT_EQ(load(int8_bytes.substr(0, int8_bytes.size() - 4), Int8Options())
+                .status()
+                .code(),
+            absl::StatusCode::kDataLoss);
+  absl::StatusOr<std::unique_ptr<HnswGraph>> loaded =
+      load(int8_bytes, Int8Options());
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_TRUE(Saved(**loaded) == int8_bytes);
+  EXPECT_TRUE(
+      std::equal(vectors[7].begin(), vectors[7].end(), (*loaded)->Vector(7)));
+}
 
 }  // namespace
 }  // namespace fleetmem::core

@@ -157,6 +157,7 @@ class HnswIndex final : public engine::PlaceIndex {
   bool contains(uint64_t id) const { return slot_of_.contains(id); }
 
   void set_ef_search(size_t ef) { graph_->set_ef_search(ef); }
+  size_t graph_bytes() const { return graph_->MemoryBytes(); }
 
   // Calls visit(id, vector as given, its scale) for every stored vector.
   void ForEach(const std::function<void(uint64_t, std::span<const float>,
@@ -178,7 +179,8 @@ class HnswIndex final : public engine::PlaceIndex {
             .ef_search = options.ef_search,
             .seed = options.seed,
             .repair_probability = options.repair_probability,
-            .scaled = true};
+            .scaled = true,
+            .int8 = options.codes == HnswIndexOptions::Codes::kInt8};
   }
 
   const HnswIndexOptions options_;
@@ -319,7 +321,10 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
   const float scale = params.unit_query ? core::UnitScale(query) : 1.0f;
   try {
     size_t asked =
-        params.accept ? params.k * options_.accept_oversample : params.k;
+        (params.accept ? params.k * options_.accept_oversample : params.k) *
+        (options_.codes == HnswIndexOptions::Codes::kInt8
+             ? std::max<size_t>(options_.rescore_oversample, 1)
+             : 1);
     while (true) {
       // Asking for half the index or more: a scan costs as much as the graph
       // search and, unlike it, reaches every vector (a graph can leave a
@@ -856,6 +861,21 @@ void TieredIndex::IndexerLoop() {
 std::unique_ptr<engine::PlaceIndex> NewHnswIndex(size_t dimension,
                                                  HnswIndexOptions options) {
   return std::make_unique<HnswIndex>(dimension, options);
+}
+
+std::optional<HnswIndexOptions::Codes> ParseHnswCodes(std::string_view word) {
+  if (word == "float") return HnswIndexOptions::Codes::kFloat;
+  if (word == "int8") return HnswIndexOptions::Codes::kInt8;
+  return std::nullopt;
+}
+
+std::string_view HnswCodesName(HnswIndexOptions::Codes codes) {
+  return codes == HnswIndexOptions::Codes::kInt8 ? "int8" : "float";
+}
+
+size_t HnswMemoryBytes(const engine::PlaceIndex& index) {
+  const auto* hnsw = dynamic_cast<const HnswIndex*>(&index);
+  return hnsw == nullptr ? 0 : hnsw->graph_bytes();
 }
 
 bool SetHnswEfSearch(engine::PlaceIndex& index, size_t ef_search) {

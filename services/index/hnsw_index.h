@@ -7,6 +7,8 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <optional>
+#include <string_view>
 
 #include "services/engine/place_index.h"
 
@@ -44,7 +46,23 @@ struct HnswIndexOptions {
   // for half the index or more (filtered or not) scans every vector
   // instead.
   size_t accept_oversample = 8;
+  // The codes the graph walks on (core::HnswGraphOptions::int8). kFloat:
+  // the codes themselves. kInt8: int8 scalar quantization with one scale
+  // per code (a quarter of the bytes each distance reads), the floats kept
+  // beside for rescoring and for CopyCode; each search asks the graph for
+  // rescore_oversample times the candidates it returns and ranks them by
+  // the precise distance. Same memory for the floats, a quarter more for
+  // the quantized nodes (docs/performance.md, "Quantized codes").
+  enum class Codes { kFloat, kInt8 };
+  Codes codes = Codes::kFloat;
+  // kInt8: candidates rescored per neighbour returned.
+  size_t rescore_oversample = 4;
 };
+
+// "float" or "int8" (a configuration's words for HnswIndexOptions::Codes);
+// nullopt for anything else.
+std::optional<HnswIndexOptions::Codes> ParseHnswCodes(std::string_view word);
+std::string_view HnswCodesName(HnswIndexOptions::Codes codes);
 
 // An empty HNSW index for vectors of `dimension`. Remove marks the node
 // deleted (it still routes searches) and a later Add reuses it, so memory is
@@ -63,6 +81,11 @@ std::unique_ptr<engine::PlaceIndex> NewHnswIndex(size_t dimension,
 // graph, once it has one) without rebuilding it; the caller serialises it
 // against Search like a writer. False for any other index.
 bool SetHnswEfSearch(engine::PlaceIndex& index, size_t ef_search);
+
+// The bytes the graph of an index made by NewHnswIndex holds for its
+// vectors and links (core::HnswGraph::MemoryBytes); 0 for any other. A
+// reader. For benchmarks.
+size_t HnswMemoryBytes(const engine::PlaceIndex& index);
 
 struct TieredIndexOptions {
   // The exact index serves while fewer vectors than this are held; from this
