@@ -208,7 +208,8 @@ const std::vector<Command>& CommandTable() {
         "  --forgetting merge|drop   --max-age-seconds S\n"
         "  --max-traces-per-robot N  --refresh-pairs RADIUS\n"
         "  --refresh-uniform true|false\n"
-        "  --index exact|hnsw|auto   --hnsw-m M  --hnsw-ef EF (fixed)\n"
+        "  --index exact|hnsw|auto   --hnsw-m M  --hnsw-ef EF\n"
+        "  --hnsw-codes int8|float (fixed)\n"
         "Every upload must match --dim and --encoder. ALREADY_EXISTS if the\n"
         "fleet exists (made by create-fleet or its first upload).",
         {FleetFlag(),
@@ -227,7 +228,10 @@ const std::vector<Command>& CommandTable() {
          {"refresh-uniform", "BOOL", "refresh with weight 1, not gamma^n R"},
          {"index", "KIND", "exact, hnsw or auto (default: the server's)"},
          {"hnsw-m", "M", "HNSW's links per node, 2..128"},
-         {"hnsw-ef", "EF", "HNSW's search breadth, 1..10000"}}},
+         {"hnsw-ef", "EF", "HNSW's search breadth, 1..10000"},
+         {"hnsw-codes", "CODES",
+          "int8 or float: what the graph walks on (default: the "
+          "server's)"}}},
        RunCreateFleet},
       {{"fleet",
         "--fleet ID",
@@ -887,6 +891,19 @@ int RunCreateFleet(const Invocation& invocation) {
     absl::StatusOr<uint64_t> value = flags.RequiredUint(name, 10'000);
     if (!value.ok()) return UsageError(invocation, value.status());
     (settings->*set)(static_cast<uint32_t>(*value));
+  }
+  if (flags.Has("hnsw-codes")) {
+    v1::HnswCodes codes = v1::HNSW_CODES_UNSPECIFIED;
+    const std::string name = absl::AsciiStrToUpper(
+        absl::StrCat("hnsw_codes_", flags.StringOr("hnsw-codes", "")));
+    if (!v1::HnswCodes_Parse(name, &codes) ||
+        codes == v1::HNSW_CODES_UNSPECIFIED) {
+      return UsageError(
+          invocation, absl::InvalidArgumentError(absl::StrCat(
+                          "--hnsw-codes: \"", flags.StringOr("hnsw-codes", ""),
+                          "\" is not int8 or float")));
+    }
+    settings->set_hnsw_codes(codes);
   }
   absl::StatusOr<v1::CreateFleetResponse> response =
       Connect(invocation)->CreateFleet(request);

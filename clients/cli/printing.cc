@@ -109,7 +109,12 @@ void PrintFleetSettings(const v1::FleetSettings& settings, std::ostream& out) {
                                : std::string(),
                            settings.hnsw_ef_search()
                                ? absl::StrCat(" ef ", settings.hnsw_ef_search())
-                               : std::string())}},
+                               : std::string())},
+       {"graph codes",
+        settings.hnsw_codes() == v1::HNSW_CODES_UNSPECIFIED
+            ? std::string("the server's")
+            : absl::AsciiStrToLower(
+                  v1::HnswCodes_Name(settings.hnsw_codes()).substr(11))}},
       out);
 }
 

@@ -28,6 +28,9 @@ struct IndexSettings {
   // server's.
   int hnsw_m = 0;
   int hnsw_ef_search = 0;
+  // The codes the HNSW graph walks on (index::HnswIndexOptions::codes).
+  enum class Codes { kServer, kInt8, kFloat };
+  Codes hnsw_codes = Codes::kServer;
 };
 
 struct FleetSettings {

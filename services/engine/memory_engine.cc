@@ -40,7 +40,8 @@ absl::Status FleetNotFound(std::string_view fleet_id) {
 
 std::unique_ptr<PlaceIndex> MemoryEngine::NewIndex(
     size_t dimension, const IndexSettings& index) const {
-  if (index.kind != IndexSettings::Kind::kServer &&
+  if ((index.kind != IndexSettings::Kind::kServer ||
+       index.hnsw_codes != IndexSettings::Codes::kServer) &&
       options_.fleet_index_factory) {
     return options_.fleet_index_factory(dimension, index);
   }

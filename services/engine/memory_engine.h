@@ -69,8 +69,9 @@ struct EngineOptions {
   // whole log) draw the same traces; off (embedded mode: one server), the
   // sublinear draw (StaticMemory::SampleForReplay).
   bool draw_in_memory_order = false;
-  // The index of a fleet whose settings name its own kind (CreateFleet's
-  // IndexSettings); empty: every fleet gets the Open's index factory's.
+  // The index of a fleet whose settings name its own kind or graph codes
+  // (CreateFleet's IndexSettings); empty: every fleet gets the Open's index
+  // factory's.
   FleetIndexFactory fleet_index_factory;
   // Most matches one QueryPlace may ask for.
   size_t max_query_k = 1000;
@@ -585,7 +586,7 @@ class MemoryEngine {
   MemoryStore* store_;
   PlaceIndexFactory index_factory_;
   // An empty index for a fleet with these index settings: the fleet's own
-  // kind (options_.fleet_index_factory) or the server's.
+  // kind or codes (options_.fleet_index_factory) or the server's.
   std::unique_ptr<PlaceIndex> NewIndex(size_t dimension,
                                        const IndexSettings& index) const;
   EngineHooks hooks_;

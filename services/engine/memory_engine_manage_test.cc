@@ -376,6 +376,41 @@ TEST_F(ManageTest, AFleetsOwnIndexKindIsMadeAndReloadedAsSuch) {
   ExpectSameStats(Stats("own"), own_before);
 }
 
+// A fleet that names only its graph codes (the server's index kind) also
+// gets its index from the fleet factory, which learns the codes; so again
+// after a restart (the setting is stored with the fleet).
+TEST_F(ManageTest, AFleetsOwnGraphCodesReachTheFleetFactory) {
+  std::vector<IndexSettings> made;
+  options_.fleet_index_factory = [&made](size_t dimension,
+                                         const IndexSettings& index) {
+    made.push_back(index);
+    return index::NewExactIndex(dimension);
+  };
+  engine_ = OpenOn(options_, store_.get());
+  ASSERT_NE(engine_, nullptr);
+  CreateFleetRecord create;
+  create.code_dimension = kDimension;
+  create.settings.memory = options_.memory;
+  create.settings.index.hnsw_codes = IndexSettings::Codes::kFloat;
+  std::vector<core::MemoryTrace> own = MakeTraces("r1", 1, 20, rng_);
+  create.encoder_version = own.front().encoder_version;
+  ASSERT_TRUE(engine_->CreateFleet("floats", create).ok());
+  ASSERT_TRUE(engine_->Upload("floats", own).ok());
+  ASSERT_EQ(made.size(), 1u);
+  EXPECT_EQ(made[0].kind, IndexSettings::Kind::kServer);
+  EXPECT_EQ(made[0].hnsw_codes, IndexSettings::Codes::kFloat);
+  engine_.reset();
+  made.clear();
+  engine_ = OpenOn(options_, store_.get());
+  ASSERT_NE(engine_, nullptr);
+  ASSERT_FALSE(made.empty());
+  for (const IndexSettings& index : made) {
+    EXPECT_EQ(index.hnsw_codes, IndexSettings::Codes::kFloat);
+  }
+  EXPECT_EQ(engine_->GetFleet("floats")->settings.index.hnsw_codes,
+            IndexSettings::Codes::kFloat);
+}
+
 TEST_F(ManageTest, GetTracesAnswersInTheOrderNamedAndListsTheMissing) {
   Fill();
   const std::vector<core::TraceKey> keys = {

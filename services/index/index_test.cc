@@ -207,7 +207,15 @@ std::vector<IndexCase> AllCases() {
       {"FlannNeverRebuildOnRemove",
        [](size_t d) { return NewFlannIndex(d, FlannOptions(0, 1e9f, 1.5f)); },
        true},
+      // int8 codes (the default) and float codes.
       {"Hnsw", [](size_t d) { return NewHnswIndex(d); }, false},
+      {"HnswFloat",
+       [](size_t d) {
+         HnswIndexOptions options;
+         options.codes = HnswIndexOptions::Codes::kFloat;
+         return NewHnswIndex(d, options);
+       },
+       false},
       // Switches exact -> HNSW at 8 vectors and back below 4, so the tests'
       // adds and removes cross the threshold both ways.
       {"TieredSwitching",
@@ -1385,10 +1393,16 @@ TEST(HnswIndexTest, DamagedSnapshotIsRefusedOrSafeToSearch) {
 // squared norm the walk uses; a snapshot whose scale or norm is not a
 // finite, non-negative number is refused rather than searched with
 // distances that mean nothing.
+HnswIndexOptions FloatCodes() {
+  HnswIndexOptions options;
+  options.codes = HnswIndexOptions::Codes::kFloat;
+  return options;
+}
+
 TEST(HnswIndexTest, SnapshotWithABadScaleOrNormIsRefused) {
   constexpr size_t kDimension = 4;
   std::mt19937 rng(29);
-  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension);
+  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension, FloatCodes());
   Dataset data = GaussianDataset(50, kDimension, rng);
   // One node whose bytes are easy to find: (2, 0, 0, 0), scale 1 (Add takes
   // vectors as they are), squared norm 4.
@@ -1401,7 +1415,7 @@ TEST(HnswIndexTest, SnapshotWithABadScaleOrNormIsRefused) {
   const size_t at = bytes->find(
       std::string(reinterpret_cast<const char*>(node), sizeof node));
   ASSERT_NE(at, std::string::npos);
-  ASSERT_TRUE(LoadFrom(*NewHnswIndex(kDimension), *bytes).ok());
+  ASSERT_TRUE(LoadFrom(*NewHnswIndex(kDimension, FloatCodes()), *bytes).ok());
   const float nan = std::numeric_limits<float>::quiet_NaN();
   const float inf = std::numeric_limits<float>::infinity();
   for (const auto& [field, value] : std::vector<std::pair<int, float>>{
@@ -1409,10 +1423,56 @@ TEST(HnswIndexTest, SnapshotWithABadScaleOrNormIsRefused) {
     std::string damaged = *bytes;
     std::memcpy(damaged.data() + at + field * sizeof(float), &value,
                 sizeof value);
-    EXPECT_EQ(LoadFrom(*NewHnswIndex(kDimension), damaged).code(),
+    EXPECT_EQ(LoadFrom(*NewHnswIndex(kDimension, FloatCodes()), damaged).code(),
               absl::StatusCode::kDataLoss)
         << (field == 4 ? "scale " : "norm ") << value;
   }
+}
+
+// The same for an int8 graph: its node's step and squared norm, and the
+// scale kept with its floats; a float graph's snapshot does not load as an
+// int8 one (a server whose hnsw.codes changed rebuilds).
+TEST(HnswIndexTest, Int8SnapshotWithABadStepNormOrScaleIsRefused) {
+  constexpr size_t kDimension = 4;
+  std::mt19937 rng(29);
+  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension);
+  Dataset data = GaussianDataset(50, kDimension, rng);
+  data.ids.push_back(1000);
+  data.vectors.push_back({2.0f, 0.0f, 0.0f, 0.0f});
+  ASSERT_TRUE(index->Add(data.ids, data.vectors).ok());
+  absl::StatusOr<std::string> bytes = Saved(*index);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  // The node: step 2/127, squared norm step² 127², then 127 and zeros.
+  const float step = 2.0f / 127.0f;
+  const float header[] = {step, step * step * static_cast<float>(127 * 127)};
+  std::string node(reinterpret_cast<const char*>(header), sizeof header);
+  node += std::string(1, static_cast<char>(127)) + std::string(15, '\0');
+  const size_t at_node = bytes->find(node);
+  ASSERT_NE(at_node, std::string::npos);
+  const float floats[] = {2.0f, 0.0f, 0.0f, 0.0f, 1.0f};  // and its scale
+  const size_t at_floats = bytes->find(
+      std::string(reinterpret_cast<const char*>(floats), sizeof floats));
+  ASSERT_NE(at_floats, std::string::npos);
+  ASSERT_TRUE(LoadFrom(*NewHnswIndex(kDimension), *bytes).ok());
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  for (size_t offset :
+       {at_node, at_node + sizeof(float), at_floats + 4 * sizeof(float)}) {
+    for (float value : {nan, inf, -0.5f}) {
+      std::string damaged = *bytes;
+      std::memcpy(damaged.data() + offset, &value, sizeof value);
+      EXPECT_EQ(LoadFrom(*NewHnswIndex(kDimension), damaged).code(),
+                absl::StatusCode::kDataLoss)
+          << "at " << offset << ": " << value;
+    }
+  }
+  std::unique_ptr<PlaceIndex> floats_index =
+      NewHnswIndex(kDimension, FloatCodes());
+  ASSERT_TRUE(floats_index->Add(data.ids, data.vectors).ok());
+  absl::StatusOr<std::string> float_bytes = Saved(*floats_index);
+  ASSERT_TRUE(float_bytes.ok());
+  EXPECT_EQ(LoadFrom(*NewHnswIndex(kDimension), *float_bytes).code(),
+            absl::StatusCode::kDataLoss);
 }
 
 // Each kind of index refuses another kind's bytes (a server restarted with

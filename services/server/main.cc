@@ -128,16 +128,37 @@ engine::PlaceIndexFactory MakeIndexFactory(const ServerConfig& config) {
   return [](size_t dimension) { return index::NewExactIndex(dimension); };
 }
 
-// The index of a fleet whose settings name its own kind: the server's
-// options for that kind, with the fleet's HNSW M and ef where it sets them.
+// The index of a fleet whose settings name its own kind or graph codes:
+// the server's options for that kind (the server's kind when the fleet
+// names only its codes), with the fleet's HNSW M, ef and codes where it
+// sets them.
 engine::FleetIndexFactory MakeFleetIndexFactory(const ServerConfig& config) {
-  return [tiered = config.tiered](size_t dimension,
-                                  const engine::IndexSettings& index)
+  return [config](size_t dimension, const engine::IndexSettings& fleet)
              -> std::unique_ptr<engine::PlaceIndex> {
-    index::TieredIndexOptions options = tiered;
+    engine::IndexSettings index = fleet;
+    if (index.kind == engine::IndexSettings::Kind::kServer) {
+      switch (config.index) {
+        case IndexKind::kHnsw:
+          index.kind = engine::IndexSettings::Kind::kHnsw;
+          break;
+        case IndexKind::kAuto:
+          index.kind = engine::IndexSettings::Kind::kAuto;
+          break;
+        case IndexKind::kExact:
+        case IndexKind::kFlann:
+          return MakeIndexFactory(config)(dimension);
+      }
+    }
+    index::TieredIndexOptions options = config.tiered;
     if (index.hnsw_m > 0) options.hnsw.m = static_cast<size_t>(index.hnsw_m);
     if (index.hnsw_ef_search > 0) {
       options.hnsw.ef_search = static_cast<size_t>(index.hnsw_ef_search);
+    }
+    if (index.hnsw_codes == engine::IndexSettings::Codes::kInt8) {
+      options.hnsw.codes = index::HnswIndexOptions::Codes::kInt8;
+    }
+    if (index.hnsw_codes == engine::IndexSettings::Codes::kFloat) {
+      options.hnsw.codes = index::HnswIndexOptions::Codes::kFloat;
     }
     switch (index.kind) {
       case engine::IndexSettings::Kind::kHnsw:

@@ -161,6 +161,9 @@ void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
   if (in.has_hnsw_from()) out->hnsw_from = in.hnsw_from();
   if (in.has_max_unindexed()) out->max_unindexed = in.max_unindexed();
   if (in.has_insert_threads()) out->hnsw.insert_threads = in.insert_threads();
+  if (in.has_rescore_oversample()) {
+    out->hnsw.rescore_oversample = in.rescore_oversample();
+  }
 }
 
 void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
@@ -547,6 +550,16 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
   ApplyStorage(file.storage(), &config->storage);
   ApplyFlann(file.flann(), &config->flann);
   ApplyHnsw(file.hnsw(), &config->tiered);
+  if (file.hnsw().has_codes()) {
+    std::optional<index::HnswIndexOptions::Codes> codes =
+        index::ParseHnswCodes(file.hnsw().codes());
+    if (!codes.has_value()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("hnsw.codes: unknown \"", file.hnsw().codes(),
+                       "\" (want int8 or float)"));
+    }
+    config->tiered.hnsw.codes = *codes;
+  }
   ApplySecurity(file.security(), &config->security);
   ApplyCluster(file.cluster(), &config->cluster);
   ApplyWritePath(file.write_path(), config);
@@ -630,6 +643,11 @@ absl::Status ValidateServing(const ServerConfig& config) {
   if (config.tiered.hnsw.insert_threads < 1 ||
       config.tiered.hnsw.insert_threads > 64) {
     return absl::InvalidArgumentError("hnsw.insert_threads: must be in 1..64");
+  }
+  if (config.tiered.hnsw.rescore_oversample < 1 ||
+      config.tiered.hnsw.rescore_oversample > 64) {
+    return absl::InvalidArgumentError(
+        "hnsw.rescore_oversample: must be in 1..64");
   }
   if (config.work.threads > 1024) {
     return absl::InvalidArgumentError("worker_threads: at most 1024");
@@ -824,9 +842,12 @@ std::string DescribeConfig(const ServerConfig& config) {
           : (config.security.require_client_certificate ? "required"
                                                         : "optional"));
   if (config.index == IndexKind::kAuto || config.index == IndexKind::kHnsw) {
-    absl::StrAppend(&out, " hnsw_m=", config.tiered.hnsw.m,
-                    " hnsw_ef_search=", config.tiered.hnsw.ef_search,
-                    " hnsw_insert_threads=", config.tiered.hnsw.insert_threads);
+    absl::StrAppend(
+        &out, " hnsw_m=", config.tiered.hnsw.m,
+        " hnsw_ef_search=", config.tiered.hnsw.ef_search,
+        " hnsw_insert_threads=", config.tiered.hnsw.insert_threads,
+        " hnsw_codes=",
+        std::string(index::HnswCodesName(config.tiered.hnsw.codes)));
     if (config.index == IndexKind::kAuto) {
       absl::StrAppend(&out, " hnsw_from=", config.tiered.hnsw_from,
                       " max_unindexed=", config.tiered.max_unindexed);

@@ -207,6 +207,9 @@ TEST(ServerConfigTest, ExampleConfigIsValid) {
             defaults.tiered.hnsw.ef_construction);
   EXPECT_EQ(config.tiered.hnsw.insert_threads,
             defaults.tiered.hnsw.insert_threads);
+  EXPECT_EQ(config.tiered.hnsw.codes, defaults.tiered.hnsw.codes);
+  EXPECT_EQ(config.tiered.hnsw.rescore_oversample,
+            defaults.tiered.hnsw.rescore_oversample);
   EXPECT_EQ(
       config.engine.fleet_memory.at("ablation-no-time-decay").replay_decay,
       1.0);
@@ -255,6 +258,7 @@ TEST(ServerConfigTest, BadFileText) {
       "log_level: \"loud\"",                     // unknown level
       "index_snapshot_interval_seconds: 90000",  // over a day
       "heap_trim_interval_seconds: 90000",       // over a day
+      "hnsw { codes: \"int4\" }",                // unknown codes
   };
   for (const char* text : cases) {
     ServerConfig config;
@@ -264,6 +268,20 @@ TEST(ServerConfigTest, BadFileText) {
   ServerConfig config;
   absl::Status status = ApplyConfigText("\n\nbogus: 1", &config);
   EXPECT_NE(status.message().find("line 3"), std::string::npos) << status;
+  status = ApplyConfigText("hnsw { codes: \"int4\" }", &config);
+  EXPECT_NE(status.message().find("hnsw.codes"), std::string::npos) << status;
+}
+
+TEST(ServerConfigTest, GraphCodesFromTheFile) {
+  ServerConfig config;
+  EXPECT_EQ(config.tiered.hnsw.codes, index::HnswIndexOptions::Codes::kInt8);
+  ASSERT_TRUE(ApplyConfigText("hnsw { codes: \"float\" rescore_oversample: 2 }",
+                              &config)
+                  .ok());
+  EXPECT_EQ(config.tiered.hnsw.codes, index::HnswIndexOptions::Codes::kFloat);
+  EXPECT_EQ(config.tiered.hnsw.rescore_oversample, 2u);
+  EXPECT_NE(DescribeConfig(config).find("hnsw_codes=float"), std::string::npos)
+      << DescribeConfig(config);
 }
 
 TEST(ServerConfigTest, Validation) {
@@ -294,6 +312,10 @@ TEST(ServerConfigTest, Validation) {
        [](ServerConfig& c) { c.tiered.hnsw.insert_threads = 0; }},
       {"insert threads",
        [](ServerConfig& c) { c.tiered.hnsw.insert_threads = 65; }},
+      {"no rescoring",
+       [](ServerConfig& c) { c.tiered.hnsw.rescore_oversample = 0; }},
+      {"rescoring",
+       [](ServerConfig& c) { c.tiered.hnsw.rescore_oversample = 65; }},
   };
   for (const Case& c : cases) {
     ServerConfig config = valid();

@@ -73,6 +73,7 @@ void ToRecord(const engine::FleetSettings& settings, StoredSettings* out) {
   out->set_index_kind(static_cast<int32_t>(settings.index.kind));
   out->set_hnsw_m(settings.index.hnsw_m);
   out->set_hnsw_ef_search(settings.index.hnsw_ef_search);
+  out->set_hnsw_codes(static_cast<int32_t>(settings.index.hnsw_codes));
 }
 
 void ToRecord(const core::ReadFilter& filter, LoggedReadFilter* out) {
@@ -122,6 +123,12 @@ engine::FleetSettings FromRecord(const StoredSettings& stored) {
           : engine::IndexSettings::Kind::kServer;
   settings.index.hnsw_m = stored.hnsw_m();
   settings.index.hnsw_ef_search = stored.hnsw_ef_search();
+  const int codes = stored.hnsw_codes();
+  settings.index.hnsw_codes =
+      codes >= 0 &&
+              codes <= static_cast<int>(engine::IndexSettings::Codes::kFloat)
+          ? static_cast<engine::IndexSettings::Codes>(codes)
+          : engine::IndexSettings::Codes::kServer;
   return settings;
 }
 

@@ -378,6 +378,16 @@ engine::IndexSettings IndexFromProto(const v1::FleetSettings& settings) {
   index.hnsw_m = static_cast<int>(std::min<uint32_t>(settings.hnsw_m(), 1000));
   index.hnsw_ef_search = static_cast<int>(
       std::min<uint32_t>(settings.hnsw_ef_search(), 1'000'000));
+  switch (settings.hnsw_codes()) {
+    case v1::HNSW_CODES_INT8:
+      index.hnsw_codes = engine::IndexSettings::Codes::kInt8;
+      break;
+    case v1::HNSW_CODES_FLOAT:
+      index.hnsw_codes = engine::IndexSettings::Codes::kFloat;
+      break;
+    default:
+      break;
+  }
   return index;
 }
 
@@ -450,7 +460,9 @@ absl::StatusOr<engine::FleetSettingsUpdate> FleetUpdateFromProto(
        index.kind != held.kind) ||
       (index.hnsw_m != 0 && index.hnsw_m != held.hnsw_m) ||
       (index.hnsw_ef_search != 0 &&
-       index.hnsw_ef_search != held.hnsw_ef_search)) {
+       index.hnsw_ef_search != held.hnsw_ef_search) ||
+      (settings.hnsw_codes() != v1::HNSW_CODES_UNSPECIFIED &&
+       index.hnsw_codes != held.hnsw_codes)) {
     return fixed("index", IndexKind_Name(IndexKindToProto(held.kind)),
                  IndexKind_Name(settings.index()));
   }
@@ -511,6 +523,16 @@ void FleetSettingsToProto(const engine::FleetInfo& info,
   out->set_hnsw_m(static_cast<uint32_t>(info.settings.index.hnsw_m));
   out->set_hnsw_ef_search(
       static_cast<uint32_t>(info.settings.index.hnsw_ef_search));
+  switch (info.settings.index.hnsw_codes) {
+    case engine::IndexSettings::Codes::kInt8:
+      out->set_hnsw_codes(v1::HNSW_CODES_INT8);
+      break;
+    case engine::IndexSettings::Codes::kFloat:
+      out->set_hnsw_codes(v1::HNSW_CODES_FLOAT);
+      break;
+    case engine::IndexSettings::Codes::kServer:
+      break;
+  }
 }
 
 void DeleteResultToProto(const engine::DeleteResult& result,

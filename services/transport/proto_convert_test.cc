@@ -108,6 +108,28 @@ TEST(ProtoConvertTest, ImportedColumnsRoundTripAndBadOnesAreNamed) {
       << refused;
 }
 
+// A fleet's graph codes: unset is the server's; set, they come back as
+// set, and an UpdateFleet naming other codes is refused as a fixed field.
+TEST(ProtoConvertTest, GraphCodesRoundTripAndAreFixed) {
+  v1::FleetSettings settings;
+  EXPECT_EQ(IndexFromProto(settings).hnsw_codes,
+            engine::IndexSettings::Codes::kServer);
+  settings.set_hnsw_codes(v1::HNSW_CODES_FLOAT);
+  engine::FleetInfo info;
+  info.settings.index = IndexFromProto(settings);
+  EXPECT_EQ(info.settings.index.hnsw_codes,
+            engine::IndexSettings::Codes::kFloat);
+  v1::FleetSettings back;
+  FleetSettingsToProto(info, &back);
+  EXPECT_EQ(back.hnsw_codes(), v1::HNSW_CODES_FLOAT);
+  v1::FleetSettings update;
+  update.set_hnsw_codes(v1::HNSW_CODES_FLOAT);
+  EXPECT_TRUE(FleetUpdateFromProto(update, info).ok());
+  update.set_hnsw_codes(v1::HNSW_CODES_INT8);
+  EXPECT_EQ(FleetUpdateFromProto(update, info).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+}
+
 TEST(ProtoConvertTest, PlaceRoundTrip) {
   core::Place place{.x = -1e6, .y = 2.5, .z = -0.0, .yaw = -3.14};
   v1::Pose pose;

@@ -580,14 +580,15 @@ class Client:
     def create_fleet(self, fleet: str, *, code_dimension: int, encoder_version: str = "",
                      place_unit: str = "", forgetting: Optional[str] = None,
                      index: Optional[str] = None, hnsw_m: int = 0, hnsw_ef_search: int = 0,
-                     **settings) -> pb.FleetSettings:
+                     hnsw_codes: Optional[str] = None, **settings) -> pb.FleetSettings:
         """Admin: makes `fleet` with its own settings (keyword arguments
         clusters_per_segment, max_traces_per_cluster, max_clusters,
         replay_decay, max_age_seconds, max_traces_per_robot,
         refresh_pair_radius (above 0: the pair-keeping refresh),
         refresh_uniform (weight 1 instead of gamma^n R); forgetting
         'merge' or 'drop'; index 'exact', 'hnsw' or 'auto' with HNSW's
-        hnsw_m and hnsw_ef_search, fixed at creation; the server's for those
+        hnsw_m and hnsw_ef_search, and hnsw_codes 'int8' or 'float' (what
+        the graph walks on), fixed at creation; the server's for those
         not given). Returns every setting as made. ALREADY_EXISTS if the
         fleet exists. Not retried."""
         request = pb.CreateFleetRequest(fleet_id=_text("fleet", fleet))
@@ -603,6 +604,11 @@ class Client:
             request.settings.index = kinds[index]
         request.settings.hnsw_m = int(hnsw_m)
         request.settings.hnsw_ef_search = int(hnsw_ef_search)
+        if hnsw_codes is not None:
+            codes = {"int8": pb.HNSW_CODES_INT8, "float": pb.HNSW_CODES_FLOAT}
+            if hnsw_codes not in codes:
+                raise ValueError(f"hnsw_codes: want 'int8' or 'float', got {hnsw_codes!r}")
+            request.settings.hnsw_codes = codes[hnsw_codes]
         return self._unary("CreateFleet", request, retry=False).settings
 
     def get_fleet(self, fleet: str) -> pb.FleetSummary:

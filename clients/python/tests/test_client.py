@@ -303,8 +303,13 @@ def test_two_fleets_with_their_own_settings(server, cli):
         assert (made.code_dimension, made.max_clusters, made.forgetting) == (
             16, 4, fleetmem.pb.FORGETTING_RULE_DROP)
         assert (made.index, made.hnsw_m) == (fleetmem.pb.INDEX_KIND_HNSW, 8)
+        assert made.hnsw_codes == fleetmem.pb.HNSW_CODES_UNSPECIFIED
+        floats = fm.create_fleet("floats", code_dimension=16, hnsw_codes="float")
+        assert floats.hnsw_codes == fleetmem.pb.HNSW_CODES_FLOAT
         with pytest.raises(ValueError):
             fm.create_fleet("typo2", code_dimension=8, index="flann")
+        with pytest.raises(ValueError):
+            fm.create_fleet("typo3", code_dimension=8, hnsw_codes="int4")
         with pytest.raises(fleetmem.FleetMemError) as twice:
             fm.create_fleet("laser", code_dimension=16)
         assert twice.value.status == "ALREADY_EXISTS"

@@ -107,6 +107,14 @@ engine::FleetMeta MakeMeta(uint64_t consolidations) {
   meta.consolidations = consolidations;
   meta.clusters_forgotten = consolidations / 2;
   meta.log_position = 30 + consolidations;
+  // Own settings: the index's among them (every field is stored).
+  engine::FleetSettings settings;
+  settings.place_unit = "m";
+  settings.index.kind = engine::IndexSettings::Kind::kAuto;
+  settings.index.hnsw_m = 12;
+  settings.index.hnsw_ef_search = 64;
+  settings.index.hnsw_codes = engine::IndexSettings::Codes::kFloat;
+  meta.settings = settings;
   return meta;
 }
 
@@ -117,7 +125,15 @@ std::string Dump(const engine::FleetRecord& record) {
       " enc=", m.encoder_version, " next_cluster=", m.next_cluster_id,
       " next_event=", m.next_event_id, " consolidations=", m.consolidations,
       " forgotten=", m.clusters_forgotten, " log_position=", m.log_position,
-      "\npending\n");
+      "\nsettings ", m.settings.has_value());
+  if (m.settings.has_value()) {
+    const engine::IndexSettings& index = m.settings->index;
+    absl::StrAppend(&out, " unit=", m.settings->place_unit,
+                    " index=", static_cast<int>(index.kind),
+                    " m=", index.hnsw_m, " ef=", index.hnsw_ef_search,
+                    " codes=", static_cast<int>(index.hnsw_codes));
+  }
+  out.append("\npending\n");
   for (const core::MemoryTrace& trace : record.pending) DumpTrace(trace, &out);
   for (const core::Cluster& cluster : record.clusters) {
     absl::StrAppend(&out, "cluster ", cluster.id, " robot=", cluster.robot_id,
