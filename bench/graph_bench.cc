@@ -98,7 +98,7 @@ class Hnswlib final : public Subject {
     return ids;
   }
   double Bytes() const override {
-    double bytes = static_cast<double>(hnsw_.max_elements_) *
+    double bytes = static_cast<double>(hnsw_.cur_element_count) *
                    static_cast<double>(hnsw_.size_data_per_element_);
     for (size_t i = 0; i < hnsw_.cur_element_count; ++i) {
       bytes += static_cast<double>(hnsw_.element_levels_[i] *

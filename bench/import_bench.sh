@@ -22,7 +22,8 @@
 # Each into its own fleet; the order alternates over REPS rounds.
 #
 #   bench/import_bench.sh [BUILD_DIR] [OUT_CSV] [N]
-# Environment: REPS (1).
+# Environment: REPS (1); HNSW_CODES (int8 or float: the server's graph
+# codes, hnsw { codes }; unset: the server's default), its column `codes`.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 build=${1:-$here/build}
@@ -52,6 +53,10 @@ np.save(f"{out}/rewards.npy", np.ones(n))
 PY
 printf 'memory { max_clusters: %d }\nlimits { max_traces_per_fleet: %d }\n' \
   $((n / 10 + 100)) $((n * 2)) >"$work/server.textproto"
+codes=${HNSW_CODES:-default}
+if [ -n "${HNSW_CODES:-}" ]; then
+  printf 'hnsw { codes: "%s" }\n' "$HNSW_CODES" >>"$work/server.textproto"
+fi
 start_server "$build" "$work/data" "$work/server.log" \
   --config "$work/server.textproto"
 
@@ -112,7 +117,7 @@ index.add_items(codes, np.arange(len(codes)))
 print(f"{time.perf_counter() - start:.2f}")
 PY
 }
-echo "round,traces,upload_acked_s,upload_applied_s,upload_applied_per_s,import_s,import_per_s,ratio,import_index_s,hnswlib_s,graph_to_hnswlib" >"$work/rows.csv"
+echo "codes,round,traces,upload_acked_s,upload_applied_s,upload_applied_per_s,import_s,import_per_s,ratio,import_index_s,hnswlib_s,graph_to_hnswlib" >"$work/rows.csv"
 for round in $(seq 1 "$reps"); do
   order="upload import"
   [ $((round % 2)) = 0 ] && order="import upload"
@@ -127,9 +132,9 @@ for round in $(seq 1 "$reps"); do
   # The graph's peer, with the server idle.
   hnsw=$(hnswlib_seconds)
   python3 -c "import sys; n,a,b,c,i,h=int(sys.argv[1]),*map(float,sys.argv[2:7])
-print(f'{sys.argv[7]},{n},{a:.2f},{b:.2f},{n/b:.0f},{c:.2f},{n/c:.0f},{b/c:.2f},{i:.2f},{h:.2f},{h/i:.2f}')" \
+print(f'{sys.argv[8]},{sys.argv[7]},{n},{a:.2f},{b:.2f},{n/b:.0f},{c:.2f},{n/c:.0f},{b/c:.2f},{i:.2f},{h:.2f},{h/i:.2f}')" \
     "$n" "$acked" "$applied" "$imported" "$INDEX_SECONDS" "$hnsw" "$round" \
-    >>"$work/rows.csv"
+    "$codes" >>"$work/rows.csv"
 done
 stop_server
 cat "$work/rows.csv" >"$out"

@@ -549,7 +549,7 @@ float HnswGraph::Scale(uint32_t slot) const {
 
 size_t HnswGraph::MemoryBytes() const {
   const auto& hnsw = impl_->hnsw;
-  size_t bytes = hnsw.max_elements_ * hnsw.size_data_per_element_;
+  size_t bytes = hnsw.cur_element_count * hnsw.size_data_per_element_;
   for (size_t i = 0; i < hnsw.cur_element_count; ++i) {
     bytes += hnsw.element_levels_[i] * hnsw.size_links_per_element_;
   }

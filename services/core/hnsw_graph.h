@@ -126,8 +126,9 @@ class HnswGraph {
   // The scale given with it (1 unless options.scaled).
   float Scale(uint32_t slot) const;
 
-  // The bytes the graph holds for its vectors and links (hnswlib's nodes,
-  // upper layers and, with options.int8, the floats kept beside them).
+  // The bytes the graph holds for its vectors and links (hnswlib's nodes in
+  // use, upper layers and, with options.int8, the blocks of floats kept
+  // beside them); capacity reserved but not used is not counted.
   size_t MemoryBytes() const;
 
   // Writes the whole graph (vectors, links, removed slots and the level

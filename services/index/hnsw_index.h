@@ -118,10 +118,15 @@ struct TieredIndexOptions {
   // Vectors moved into the graph per step and insert thread (the
   // background thread's and back-pressure's steps; hnsw.insert_threads
   // link a step's vectors) under the index's writer lock. A Search waits
-  // for at most one step (one insert per thread: 0.3-1 ms at 256-d here);
-  // between steps every waiting caller goes first. 1 (it was 4): a query
-  // beside a drain of the write backlog waits for fewer inserts.
-  size_t indexer_batch = 1;
+  // for at most one step (0.3-1 ms for one float insert per thread at
+  // 256-d here); between steps every waiting caller goes first. 0 (the
+  // default): 2 with int8 codes, whose inserts take about half a float
+  // insert's time, so that a step takes as long as a float step of 1 (it
+  // was 4, then 1: a query beside a drain of the write backlog waits for
+  // fewer inserts); a step's fixed cost (its staging, a helper thread, the
+  // lock's hand-overs) made 2 apply uploads 1.5x as fast as 1 at 100,000
+  // held (docs/performance.md, "Quantized codes").
+  size_t indexer_batch = 0;
   // The background thread's nice value (0..19; common::MarkBackgroundThread,
   // as the write path's appliers): the threads answering calls get the
   // larger CPU share while it catches up. 0: theirs.
