@@ -23,7 +23,8 @@
 #
 #   bench/import_bench.sh [BUILD_DIR] [OUT_CSV] [N]
 # Environment: REPS (1); HNSW_CODES (int8 or float: the server's graph
-# codes, hnsw { codes }; unset: the server's default), its column `codes`.
+# codes, hnsw { codes }; unset: the server's default), its column `codes`;
+# INDEXER_BATCH (hnsw { indexer_batch }; unset: the server's default).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 build=${1:-$here/build}
@@ -54,9 +55,13 @@ PY
 printf 'memory { max_clusters: %d }\nlimits { max_traces_per_fleet: %d }\n' \
   $((n / 10 + 100)) $((n * 2)) >"$work/server.textproto"
 codes=${HNSW_CODES:-default}
-if [ -n "${HNSW_CODES:-}" ]; then
-  printf 'hnsw { codes: "%s" }\n' "$HNSW_CODES" >>"$work/server.textproto"
+hnsw=""
+[ -z "${HNSW_CODES:-}" ] || hnsw="codes: \"$HNSW_CODES\""
+if [ -n "${INDEXER_BATCH:-}" ]; then
+  hnsw="$hnsw indexer_batch: $INDEXER_BATCH"
+  codes="$codes/batch-$INDEXER_BATCH"
 fi
+[ -z "$hnsw" ] || printf 'hnsw { %s }\n' "$hnsw" >>"$work/server.textproto"
 start_server "$build" "$work/data" "$work/server.log" \
   --config "$work/server.textproto"
 

@@ -52,10 +52,10 @@ struct HnswIndexOptions {
   // beside for rescoring and for CopyCode; each search asks the graph for
   // rescore_oversample times the candidates it returns and ranks them by
   // the precise distance. kInt8 by default: on 100,000 and 1,000,000 256-d
-  // codes it inserted about twice as fast as the float graph (and as
-  // hnswlib) and answered about twice as many queries a second at the same
-  // recall@10; it holds a quarter more (the floats and the int8 nodes;
-  // docs/performance.md, "Quantized codes").
+  // codes it inserted 1.9-2.1x as fast as the float graph (2.4-2.5x
+  // hnswlib) and answered 1.9-2.3x the float graph's queries a second at
+  // the same recall@10; it holds a quarter more (the floats and the int8
+  // nodes; docs/performance.md, "Quantized codes").
   enum class Codes { kFloat, kInt8 };
   Codes codes = Codes::kInt8;
   // kInt8: candidates rescored per neighbour returned.
@@ -124,8 +124,8 @@ struct TieredIndexOptions {
   // insert's time, so that a step takes as long as a float step of 1 (it
   // was 4, then 1: a query beside a drain of the write backlog waits for
   // fewer inserts); a step's fixed cost (its staging, a helper thread, the
-  // lock's hand-overs) made 2 apply uploads 1.5x as fast as 1 at 100,000
-  // held (docs/performance.md, "Quantized codes").
+  // lock's hand-overs) made 2 apply uploads 1.4-1.5x as fast as 1 at
+  // 100,000 held (docs/performance.md, "Quantized codes").
   size_t indexer_batch = 0;
   // The background thread's nice value (0..19; common::MarkBackgroundThread,
   // as the write path's appliers): the threads answering calls get the

@@ -164,6 +164,7 @@ void ApplyHnsw(const HnswConfig& in, index::TieredIndexOptions* out) {
   if (in.has_rescore_oversample()) {
     out->hnsw.rescore_oversample = in.rescore_oversample();
   }
+  if (in.has_indexer_batch()) out->indexer_batch = in.indexer_batch();
 }
 
 void ApplyFlann(const FlannConfig& in, index::FlannIndexOptions* out) {
@@ -648,6 +649,10 @@ absl::Status ValidateServing(const ServerConfig& config) {
       config.tiered.hnsw.rescore_oversample > 64) {
     return absl::InvalidArgumentError(
         "hnsw.rescore_oversample: must be in 1..64");
+  }
+  if (config.tiered.indexer_batch > 64) {
+    return absl::InvalidArgumentError(
+        "hnsw.indexer_batch: must be in 0..64 (0: by the codes)");
   }
   if (config.work.threads > 1024) {
     return absl::InvalidArgumentError("worker_threads: at most 1024");

@@ -275,9 +275,11 @@ TEST(ServerConfigTest, BadFileText) {
 TEST(ServerConfigTest, GraphCodesFromTheFile) {
   ServerConfig config;
   EXPECT_EQ(config.tiered.hnsw.codes, index::HnswIndexOptions::Codes::kInt8);
-  ASSERT_TRUE(ApplyConfigText("hnsw { codes: \"float\" rescore_oversample: 2 }",
+  ASSERT_TRUE(ApplyConfigText("hnsw { codes: \"float\" rescore_oversample: 2 "
+                              "indexer_batch: 3 }",
                               &config)
                   .ok());
+  EXPECT_EQ(config.tiered.indexer_batch, 3u);
   EXPECT_EQ(config.tiered.hnsw.codes, index::HnswIndexOptions::Codes::kFloat);
   EXPECT_EQ(config.tiered.hnsw.rescore_oversample, 2u);
   EXPECT_NE(DescribeConfig(config).find("hnsw_codes=float"), std::string::npos)
@@ -316,6 +318,7 @@ TEST(ServerConfigTest, Validation) {
        [](ServerConfig& c) { c.tiered.hnsw.rescore_oversample = 0; }},
       {"rescoring",
        [](ServerConfig& c) { c.tiered.hnsw.rescore_oversample = 65; }},
+      {"indexer batch", [](ServerConfig& c) { c.tiered.indexer_batch = 65; }},
   };
   for (const Case& c : cases) {
     ServerConfig config = valid();
