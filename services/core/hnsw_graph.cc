@@ -713,6 +713,20 @@ absl::Status HnswGraph::CheckLoaded(uint32_t count) {
   return absl::OkStatus();
 }
 
+absl::Status HnswGraph::LoadFloats(ByteReader& in, size_t count) {
+  const size_t stride = dimension_ + 1;
+  if (in.remaining() / (stride * sizeof(float)) < count) {
+    return Malformed("truncated floats");
+  }
+  for (size_t first = 0; first < count; first += kFloatBlock) {
+    impl_->float_blocks.push_back(
+        std::make_unique<float[]>(kFloatBlock * stride));
+    in.GetBytes(impl_->float_blocks.back().get(),
+                std::min(kFloatBlock, count - first) * stride * sizeof(float));
+  }
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
     size_t dimension, HnswGraphOptions options, ByteReader& in) {
   uint32_t format = 0;
@@ -726,17 +740,17 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
       !in.Get(&scaled) || (format == kInt8GraphFormat && !in.Get(&int8))) {
     return Malformed("truncated header");
   }
-  options.scaled = options.scaled || options.int8;
   auto graph = std::make_unique<HnswGraph>(dimension, options);
   auto& hnsw = graph->impl_->hnsw;
+  const HnswGraphOptions& own = graph->options_;  // int8 implies scaled
   if (saved_dimension != dimension || m != hnsw.M_ ||
-      ef_construction != hnsw.ef_construction_ ||
-      (scaled != 0) != options.scaled || (int8 != 0) != options.int8) {
+      ef_construction != hnsw.ef_construction_ || (scaled != 0) != own.scaled ||
+      (int8 != 0) != own.int8) {
     return Malformed(absl::StrCat(
         "built with dimension ", saved_dimension, ", m ", m,
         ", ef_construction ", ef_construction, ", scaled ", scaled != 0,
         ", int8 ", int8 != 0, "; this graph has ", dimension, ", ", hnsw.M_,
-        ", ", hnsw.ef_construction_, ", ", options.scaled, ", ", options.int8));
+        ", ", hnsw.ef_construction_, ", ", own.scaled, ", ", own.int8));
   }
   if (!in.Get(&graph->next_slot_) || !in.Get(&free_count) ||
       free_count > graph->next_slot_) {
@@ -781,19 +795,9 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
     if (count > 0 && hnsw.element_levels_[entry] != max_level) {
       return Malformed("the entry point is not on the top level");
     }
-    if (options.int8) {
-      const size_t stride = dimension + 1;
-      if (in.remaining() / (stride * sizeof(float)) < count) {
-        return Malformed("truncated floats");
-      }
-      for (size_t first = 0; first < count; first += kFloatBlock) {
-        graph->impl_->float_blocks.push_back(
-            std::make_unique<float[]>(kFloatBlock * stride));
-        in.GetBytes(
-            graph->impl_->float_blocks.back().get(),
-            std::min(kFloatBlock, count - first) * stride * sizeof(float));
-      }
-    }
+    absl::Status floats =
+        own.int8 ? graph->LoadFloats(in, count) : absl::OkStatus();
+    if (!floats.ok()) return floats;
     if (absl::Status checked = graph->CheckLoaded(count); !checked.ok()) {
       return checked;
     }

@@ -168,6 +168,9 @@ class HnswGraph {
   // are the nodes marked deleted, and (scaled) every scale and norm is
   // sound.
   absl::Status CheckLoaded(uint32_t count);
+  // With options.int8: reads the `count` slots' floats that Save wrote
+  // after the links into new blocks; DATA_LOSS when they are truncated.
+  absl::Status LoadFloats(ByteReader& in, size_t count);
   size_t dimension_;
   HnswGraphOptions options_;
   std::unique_ptr<Impl> impl_;

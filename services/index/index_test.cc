@@ -1399,18 +1399,26 @@ HnswIndexOptions FloatCodes() {
   return options;
 }
 
-TEST(HnswIndexTest, SnapshotWithABadScaleOrNormIsRefused) {
-  constexpr size_t kDimension = 4;
+// The snapshot of an HNSW index of 4-d vectors made with `options`: 50
+// gaussian ones and, as id 1000, one whose bytes are easy to find: (2, 0,
+// 0, 0), scale 1 (Add takes vectors as they are).
+absl::StatusOr<std::string> SavedWithAMarkedNode(HnswIndexOptions options) {
   std::mt19937 rng(29);
-  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension, FloatCodes());
-  Dataset data = GaussianDataset(50, kDimension, rng);
-  // One node whose bytes are easy to find: (2, 0, 0, 0), scale 1 (Add takes
-  // vectors as they are), squared norm 4.
+  std::unique_ptr<PlaceIndex> index = NewHnswIndex(4, options);
+  Dataset data = GaussianDataset(50, 4, rng);
   data.ids.push_back(1000);
   data.vectors.push_back({2.0f, 0.0f, 0.0f, 0.0f});
-  ASSERT_TRUE(index->Add(data.ids, data.vectors).ok());
-  absl::StatusOr<std::string> bytes = Saved(*index);
+  if (absl::Status added = index->Add(data.ids, data.vectors); !added.ok()) {
+    return added;
+  }
+  return Saved(*index);
+}
+
+TEST(HnswIndexTest, SnapshotWithABadScaleOrNormIsRefused) {
+  constexpr size_t kDimension = 4;
+  absl::StatusOr<std::string> bytes = SavedWithAMarkedNode(FloatCodes());
   ASSERT_TRUE(bytes.ok()) << bytes.status();
+  // The marked node's squared norm is 4.
   const float node[] = {2.0f, 0.0f, 0.0f, 0.0f, 1.0f, 4.0f};
   const size_t at = bytes->find(
       std::string(reinterpret_cast<const char*>(node), sizeof node));
@@ -1434,13 +1442,7 @@ TEST(HnswIndexTest, SnapshotWithABadScaleOrNormIsRefused) {
 // int8 one (a server whose hnsw.codes changed rebuilds).
 TEST(HnswIndexTest, Int8SnapshotWithABadStepNormOrScaleIsRefused) {
   constexpr size_t kDimension = 4;
-  std::mt19937 rng(29);
-  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension);
-  Dataset data = GaussianDataset(50, kDimension, rng);
-  data.ids.push_back(1000);
-  data.vectors.push_back({2.0f, 0.0f, 0.0f, 0.0f});
-  ASSERT_TRUE(index->Add(data.ids, data.vectors).ok());
-  absl::StatusOr<std::string> bytes = Saved(*index);
+  absl::StatusOr<std::string> bytes = SavedWithAMarkedNode({});
   ASSERT_TRUE(bytes.ok()) << bytes.status();
   // The node: step 2/127, squared norm step² 127², then 127 and zeros.
   const float step = 2.0f / 127.0f;
@@ -1466,10 +1468,7 @@ TEST(HnswIndexTest, Int8SnapshotWithABadStepNormOrScaleIsRefused) {
           << "at " << offset << ": " << value;
     }
   }
-  std::unique_ptr<PlaceIndex> floats_index =
-      NewHnswIndex(kDimension, FloatCodes());
-  ASSERT_TRUE(floats_index->Add(data.ids, data.vectors).ok());
-  absl::StatusOr<std::string> float_bytes = Saved(*floats_index);
+  absl::StatusOr<std::string> float_bytes = SavedWithAMarkedNode(FloatCodes());
   ASSERT_TRUE(float_bytes.ok());
   EXPECT_EQ(LoadFrom(*NewHnswIndex(kDimension), *float_bytes).code(),
             absl::StatusCode::kDataLoss);
