@@ -270,10 +270,20 @@ struct HnswGraph::Impl {
   std::vector<std::unique_ptr<float[]>> float_blocks;
 };
 
+namespace {
+
+// `options` as the graph uses them: int8 nodes hold the scaled vector.
+HnswGraphOptions Resolved(HnswGraphOptions options) {
+  options.scaled = options.scaled || options.int8;
+  return options;
+}
+
+}  // namespace
+
 HnswGraph::HnswGraph(size_t dimension, HnswGraphOptions options)
     : dimension_(dimension),
-      options_((options.scaled = options.scaled || options.int8, options)),
-      impl_(std::make_unique<Impl>(dimension, 1024, options)) {}
+      options_(Resolved(options)),
+      impl_(std::make_unique<Impl>(dimension, 1024, options_)) {}
 
 HnswGraph::~HnswGraph() = default;
 HnswGraph::HnswGraph(HnswGraph&&) noexcept = default;
@@ -302,13 +312,19 @@ const void* HnswGraph::Stored(const float* vector, float scale,
   return buffer.data();
 }
 
-void HnswGraph::KeepFloats(uint32_t slot, const float* vector, float scale) {
+void HnswGraph::ReserveFloats(size_t slots) {
   if (!options_.int8) return;
   auto& blocks = impl_->float_blocks;
-  const size_t stride = dimension_ + 1;
-  while (blocks.size() <= slot / kFloatBlock) {
-    blocks.push_back(std::make_unique<float[]>(kFloatBlock * stride));
+  while (blocks.size() * kFloatBlock < slots) {
+    blocks.push_back(std::make_unique<float[]>(kFloatBlock * (dimension_ + 1)));
   }
+}
+
+void HnswGraph::KeepFloats(uint32_t slot, const float* vector, float scale) {
+  if (!options_.int8) return;
+  ReserveFloats(static_cast<size_t>(slot) + 1);
+  auto& blocks = impl_->float_blocks;
+  const size_t stride = dimension_ + 1;
   float* kept =
       blocks[slot / kFloatBlock].get() + (slot % kFloatBlock) * stride;
   std::copy(vector, vector + dimension_, kept);
@@ -342,6 +358,8 @@ HnswGraph::Staged HnswGraph::Stage(std::span<const float* const> vectors,
   Staged staged;
   staged.slots.reserve(vectors.size());
   Reserve(static_cast<size_t>(next_slot_) + vectors.size());
+  // The floats' blocks too, so that storing the nodes below allocates none.
+  ReserveFloats(static_cast<size_t>(next_slot_) + vectors.size());
   auto& hnsw = impl_->hnsw;
   size_t i = 0;
   // Removed slots first, as Add refills them (updatePoint repairs the old

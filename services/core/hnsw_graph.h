@@ -157,8 +157,12 @@ class HnswGraph {
   // itself.
   const void* Stored(const float* vector, float scale,
                      std::vector<float>& buffer) const;
+  // With options.int8: blocks of floats for `slots` slots (may throw
+  // std::bad_alloc, keeping those it made).
+  void ReserveFloats(size_t slots);
   // With options.int8: keeps `vector` (as given) and `scale` as slot's
-  // floats, allocating a block of them when slot is the first of one.
+  // floats (ReserveFloats first: only the first slot of a new block
+  // allocates).
   void KeepFloats(uint32_t slot, const float* vector, float scale);
   // Load without its handlers for hnswlib's exceptions.
   static absl::StatusOr<std::unique_ptr<HnswGraph>> LoadOrThrow(
