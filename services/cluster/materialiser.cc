@@ -596,9 +596,15 @@ absl::StatusOr<engine::AppliedRecord> Materialiser::Call(
   // applies the entry before this call can capture what it did.
   absl::MutexLock lock(&mu_);
   if (!owned_.contains(fleet_id)) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("cluster: replica \"", options_.replica_id,
-                     "\" does not own fleet \"", V(fleet_id), "\""));
+    // Routed here as this replica's a moment ago: the fleet was handed over
+    // (balancing) or lost since, or is not taken yet. Transient, and nothing
+    // was done: UNAVAILABLE, which callers retry (FAILED_PRECONDITION told
+    // them not to; the cluster test met it under the sanitizer).
+    return absl::UnavailableError(absl::StrCat(
+        "cluster: replica \"", options_.replica_id, "\" does not own fleet \"",
+        V(fleet_id),
+        "\" (not taken yet, or handed over or lost a moment ago); nothing of "
+        "this call was logged: retry"));
   }
   absl::StatusOr<uint64_t> sequence = AppendCall(fleet_id, record);
   if (!sequence.ok()) return sequence.status();
