@@ -10,8 +10,9 @@
 #
 #   bench/compare_rss.sh A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS]
 #   (default: 200000 traces, 2 rounds)
-# Environment: HNSW_CODES (int8 or float) sets the graph's codes of both
-# (the same build twice with each setting compares the two).
+# Environment: HNSW_CODES (int8 or float) sets the graph's codes of both,
+# HNSW_FLOATS (file or memory) where int8 graphs keep their floats (the
+# same build twice with each setting compares the two).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 if [ $# -lt 2 ]; then

@@ -7,6 +7,9 @@
 //             AddNormalized in batches of 50,000 (an import's build step),
 //             linked on `threads` insert threads
 //   int8      the same with codes kInt8 (quantized walk, float rescoring)
+//   int8-file the same with the floats in a file (HnswIndexOptions::
+//             floats_dir, --floats-dir: the server's default), so that
+//             rescoring reads its candidates' rows with pread
 // at the same M and ef_construction, one kind after the other on the idle
 // machine; then each answers 1,000 queries (k = 10) one at a time on one
 // thread at each ef_search, and 200 of them are scored against the exact
@@ -18,7 +21,8 @@
 // rate >= 1.5x hnswlib's, recall@10 >= 0.95 at a QPS >= hnswlib's).
 // graph_mb is what each holds for vectors and links (hnswlib: its nodes
 // and upper layers; fleetmem: core::HnswGraph::MemoryBytes, the floats kept
-// beside int8 nodes included).
+// beside int8 nodes included; int8-file's floats are the page cache's, not
+// counted).
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -60,6 +64,7 @@ struct Settings {
   size_t rescore_oversample = 4;
   std::vector<size_t> ef_search = {64, 128, 256};
   std::vector<std::string> kinds = {"hnswlib", "float", "int8"};
+  std::string floats_dir = "/tmp";
 };
 
 // One kind under test: built, then searched at a given ef_search.
@@ -115,13 +120,15 @@ class Hnswlib final : public Subject {
 
 class Fleetmem final : public Subject {
  public:
-  Fleetmem(const Settings& s, index::HnswIndexOptions::Codes codes) {
+  Fleetmem(const Settings& s, index::HnswIndexOptions::Codes codes,
+           std::string floats_dir = "") {
     index::HnswIndexOptions options;
     options.m = s.m;
     options.ef_construction = s.ef_construction;
     options.insert_threads = s.threads;
     options.codes = codes;
     options.rescore_oversample = s.rescore_oversample;
+    options.floats_dir = std::move(floats_dir);
     index_ = index::NewHnswIndex(kDimension, options);
   }
   void Build(const std::vector<std::vector<float>>& codes) override {
@@ -219,6 +226,10 @@ int Run(const Settings& s, const std::string& out_path) {
       subject =
           std::make_unique<Fleetmem>(s, index::HnswIndexOptions::Codes::kInt8);
     }
+    if (kind == "int8-file") {
+      subject = std::make_unique<Fleetmem>(
+          s, index::HnswIndexOptions::Codes::kInt8, s.floats_dir);
+    }
     const auto start = Clock::now();
     subject->Build(codes);
     const double seconds = SecondsSince(start);
@@ -279,9 +290,12 @@ int main(int argc, char** argv) {
   app.add_option("--ef-search", s.ef_search, "search breadths")
       ->delimiter(',')
       ->capture_default_str();
-  app.add_option("--kinds", s.kinds, "hnswlib, float, int8")
+  app.add_option("--floats-dir", s.floats_dir,
+                 "int8-file: the directory of its floats' file")
+      ->capture_default_str();
+  app.add_option("--kinds", s.kinds, "hnswlib, float, int8, int8-file")
       ->delimiter(',')
-      ->check(CLI::IsMember({"hnswlib", "float", "int8"}))
+      ->check(CLI::IsMember({"hnswlib", "float", "int8", "int8-file"}))
       ->capture_default_str();
   app.add_option("--out", out, "CSV written")->capture_default_str();
   if (std::optional<int> done =

@@ -11,6 +11,7 @@
 #include <queue>
 #include <sstream>
 #include <string>
+#include <system_error>
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
@@ -207,8 +208,8 @@ class Int8L2Space final : public hnswlib::SpaceInterface<float> {
   size_t padded_;
 };
 
-// options.int8's floats: slots per block.
-constexpr size_t kFloatBlock = 4096;
+// options.int8's floats: rows a snapshot reads or writes at a time.
+constexpr size_t kFloatChunk = 4096;
 
 std::unique_ptr<hnswlib::SpaceInterface<float>> MakeSpace(
     size_t dimension, const HnswGraphOptions& options) {
@@ -261,13 +262,16 @@ struct HnswGraph::Impl {
         hnsw(space.get(), capacity, options.m, options.ef_construction,
              options.seed) {
     hnsw.setEf(options.ef_search);
+    if (!options.int8) return;
+    rows = options.float_rows
+               ? options.float_rows(dimension + 1)
+               : std::make_unique<MemoryFloatRows>(dimension + 1);
   }
   std::unique_ptr<hnswlib::SpaceInterface<float>> space;
   hnswlib::HierarchicalNSW<float> hnsw;
-  // options.int8: each slot's floats as given and its scale (dimension + 1
-  // floats), kFloatBlock slots a block, so that nothing held moves as the
-  // graph grows (rescoring reads them beside Link calls).
-  std::vector<std::unique_ptr<float[]>> float_blocks;
+  // options.int8: each slot's floats as given and its scale (a row of
+  // dimension + 1 floats), read beside Link calls by rescoring searches.
+  std::unique_ptr<FloatRows> rows;
 };
 
 namespace {
@@ -313,22 +317,23 @@ const void* HnswGraph::Stored(const float* vector, float scale,
 }
 
 void HnswGraph::ReserveFloats(size_t slots) {
-  if (!options_.int8) return;
-  auto& blocks = impl_->float_blocks;
-  while (blocks.size() * kFloatBlock < slots) {
-    blocks.push_back(std::make_unique<float[]>(kFloatBlock * (dimension_ + 1)));
-  }
+  if (options_.int8) impl_->rows->Reserve(slots);
 }
 
 void HnswGraph::KeepFloats(uint32_t slot, const float* vector, float scale) {
   if (!options_.int8) return;
   ReserveFloats(static_cast<size_t>(slot) + 1);
-  auto& blocks = impl_->float_blocks;
-  const size_t stride = dimension_ + 1;
-  float* kept =
-      blocks[slot / kFloatBlock].get() + (slot % kFloatBlock) * stride;
-  std::copy(vector, vector + dimension_, kept);
-  kept[dimension_] = scale;
+  std::vector<float> row(vector, vector + dimension_);
+  row.push_back(scale);
+  impl_->rows->Write(slot, 1, row.data());
+}
+
+const float* HnswGraph::Row(uint32_t slot, std::vector<float>& buffer) const {
+  if (slot >= next_slot_) throw std::out_of_range("no such slot");
+  if (const float* row = impl_->rows->Find(slot)) return row;
+  buffer.resize(dimension_ + 1);
+  impl_->rows->Read(slot, 1, buffer.data());
+  return buffer.data();
 }
 
 uint32_t HnswGraph::Add(const float* raw, float scale) {
@@ -367,10 +372,37 @@ HnswGraph::Staged HnswGraph::Stage(std::span<const float* const> vectors,
   for (; i < vectors.size() &&
          (!free_slots_.empty() || hnsw.cur_element_count == 0);
        ++i) {
-    staged.slots.push_back(Add(vectors[i], scales[i]));
+    try {
+      staged.slots.push_back(Add(vectors[i], scales[i]));
+    } catch (const std::system_error&) {  // its floats not written
+      staged.linked = staged.slots.size();
+      staged.complete = false;
+      return staged;
+    }
   }
   staged.linked = staged.slots.size();
   const size_t fresh = vectors.size() - i;
+  // The new slots' floats, before any node is stored (a write that fails
+  // stages none of them), kFloatChunk rows a write.
+  if (options_.int8) {
+    std::vector<float> rows;
+    try {
+      for (size_t first = 0; first < fresh; first += kFloatChunk) {
+        const size_t count = std::min(kFloatChunk, fresh - first);
+        rows.resize(count * (dimension_ + 1));
+        for (size_t k = 0; k < count; ++k) {
+          const float* vector = vectors[i + first + k];
+          float* row = rows.data() + k * (dimension_ + 1);
+          std::copy(vector, vector + dimension_, row);
+          row[dimension_] = scales[i + first + k];
+        }
+        impl_->rows->Write(next_slot_ + first, count, rows.data());
+      }
+    } catch (const std::system_error&) {
+      staged.complete = false;
+      return staged;
+    }
+  }
   // The levels, drawn in Add's order, and the upper layers' link lists,
   // allocated before the nodes are stored.
   std::vector<int> levels(fresh);
@@ -399,7 +431,6 @@ HnswGraph::Staged HnswGraph::Stage(std::span<const float* const> vectors,
     std::memcpy(hnsw.getExternalLabeLp(internal), &label, sizeof(label));
     std::memcpy(hnsw.getDataByInternalId(internal),
                 Stored(vectors[i + k], scales[i + k], buffer), hnsw.data_size_);
-    KeepFloats(slot, vectors[i + k], scales[i + k]);
     hnsw.linkLists_[internal] = upper[k];
     staged.slots.push_back(slot);
     ++live_;
@@ -550,8 +581,9 @@ void HnswGraph::set_ef_search(size_t ef) { impl_->hnsw.setEf(ef); }
 
 double HnswGraph::PreciseSquaredDistance(const float* query, uint32_t slot,
                                          float scale) const {
-  const float* stored = Vector(slot);
-  const double stored_scale = Scale(slot);
+  std::vector<float> buffer;
+  const float* stored = options_.int8 ? Row(slot, buffer) : Vector(slot);
+  const double stored_scale = options_.scaled ? stored[dimension_] : 1.0;
   double squared = 0.0;
   for (size_t i = 0; i < dimension_; ++i) {
     const double d =
@@ -562,7 +594,16 @@ double HnswGraph::PreciseSquaredDistance(const float* query, uint32_t slot,
 }
 
 float HnswGraph::Scale(uint32_t slot) const {
-  return options_.scaled ? Vector(slot)[dimension_] : 1.0f;
+  if (!options_.scaled) return 1.0f;
+  std::vector<float> buffer;
+  return options_.int8 ? Row(slot, buffer)[dimension_]
+                       : Vector(slot)[dimension_];
+}
+
+void HnswGraph::CopyVector(uint32_t slot, float* out) const {
+  std::vector<float> buffer;
+  const float* stored = options_.int8 ? Row(slot, buffer) : Vector(slot);
+  std::copy(stored, stored + dimension_, out);
 }
 
 size_t HnswGraph::MemoryBytes() const {
@@ -571,8 +612,7 @@ size_t HnswGraph::MemoryBytes() const {
   for (size_t i = 0; i < hnsw.cur_element_count; ++i) {
     bytes += hnsw.element_levels_[i] * hnsw.size_links_per_element_;
   }
-  return bytes + impl_->float_blocks.size() * kFloatBlock * (dimension_ + 1) *
-                     sizeof(float);
+  return bytes + (options_.int8 ? impl_->rows->MemoryBytes() : 0);
 }
 
 bool HnswGraph::contains(uint32_t slot) const {
@@ -584,8 +624,7 @@ bool HnswGraph::contains(uint32_t slot) const {
 const float* HnswGraph::Vector(uint32_t slot) const {
   if (options_.int8) {
     if (slot >= next_slot_) throw std::out_of_range("no such slot");
-    return impl_->float_blocks[slot / kFloatBlock].get() +
-           (slot % kFloatBlock) * (dimension_ + 1);
+    return impl_->rows->Find(slot);
   }
   return reinterpret_cast<const float*>(
       impl_->hnsw.getDataByInternalId(impl_->hnsw.label_lookup_.at(slot)));
@@ -665,9 +704,12 @@ void HnswGraph::Save(ByteWriter& out) const {
   }
   if (!options_.int8) return;
   const size_t stride = dimension_ + 1;
-  for (size_t first = 0; first < count; first += kFloatBlock) {
-    out.PutBytes(impl_->float_blocks[first / kFloatBlock].get(),
-                 std::min(kFloatBlock, count - first) * stride * sizeof(float));
+  std::vector<float> chunk;
+  for (size_t first = 0; first < count; first += kFloatChunk) {
+    const size_t rows = std::min(kFloatChunk, count - first);
+    chunk.resize(rows * stride);
+    impl_->rows->Read(first, rows, chunk.data());
+    out.PutBytes(chunk.data(), chunk.size() * sizeof(float));
   }
 }
 
@@ -718,9 +760,9 @@ absl::Status HnswGraph::CheckLoaded(uint32_t count) {
       }
     }
     if (hnsw.isMarkedDeleted(i)) continue;
+    // (int8 graphs' scales: checked by LoadFloats, with their rows.)
     const bool sound =
-        options_.int8 ? Int8HeaderOk(hnsw.getDataByInternalId(i)) &&
-                            NonNegative(Scale(static_cast<uint32_t>(slot)))
+        options_.int8 ? Int8HeaderOk(hnsw.getDataByInternalId(i))
         : options_.scaled
             ? ScaleAndNormOk(hnsw.getDataByInternalId(i), dimension_)
             : true;
@@ -736,11 +778,20 @@ absl::Status HnswGraph::LoadFloats(ByteReader& in, size_t count) {
   if (in.remaining() / (stride * sizeof(float)) < count) {
     return Malformed("truncated floats");
   }
-  for (size_t first = 0; first < count; first += kFloatBlock) {
-    impl_->float_blocks.push_back(
-        std::make_unique<float[]>(kFloatBlock * stride));
-    in.GetBytes(impl_->float_blocks.back().get(),
-                std::min(kFloatBlock, count - first) * stride * sizeof(float));
+  impl_->rows->Reserve(count);
+  std::vector<float> chunk;
+  for (size_t first = 0; first < count; first += kFloatChunk) {
+    const size_t rows = std::min(kFloatChunk, count - first);
+    chunk.resize(rows * stride);
+    in.GetBytes(chunk.data(), chunk.size() * sizeof(float));
+    // Every slot's scale, a removed one's too (its floats were written).
+    for (size_t row = 0; row < rows; ++row) {
+      if (!NonNegative(chunk[row * stride + dimension_])) {
+        return Malformed(
+            absl::StrCat("bad scale or norm of slot ", first + row));
+      }
+    }
+    impl_->rows->Write(first, rows, chunk.data());
   }
   return absl::OkStatus();
 }

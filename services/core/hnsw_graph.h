@@ -19,6 +19,7 @@
 
 #include "absl/status/statusor.h"
 #include "services/core/byte_stream.h"
+#include "services/core/float_rows.h"
 
 namespace fleetmem::core {
 
@@ -52,6 +53,11 @@ struct HnswGraphOptions {
   // and for the caller's copies; search answers carry the quantized
   // distances, so a caller rescoring them asks for more than it needs.
   bool int8 = false;
+  // With int8: where those floats are kept, a row of dimension + 1 (the
+  // vector as given, then its scale) per slot. Empty: MemoryFloatRows, on
+  // the heap; services/index's FileFloatRows keeps them in a file (the
+  // page cache), read back only to rescore and to copy codes out.
+  FloatRowsMaker float_rows;
 };
 
 class HnswGraph {
@@ -69,7 +75,9 @@ class HnswGraph {
   void Reserve(size_t count);
   // Adds `dimension` floats, standing for `scale` times them (options.scaled;
   // otherwise scale must be 1); returns the slot (a removed one if any, last
-  // removed first). May throw std::bad_alloc.
+  // removed first). May throw std::bad_alloc, or std::system_error when
+  // int8 floats kept in a file cannot be written (the graph is unchanged
+  // then).
   uint32_t Add(const float* vector, float scale = 1.0f);
   // Insertion in two steps, for linking new nodes on several threads (the
   // caller's: this library starts none). Stage adds vectors[i] standing
@@ -77,9 +85,11 @@ class HnswGraph {
   // slots, levels and stored vectors. It refills removed slots and an empty
   // graph's first node at once (Add itself; `linked` counts them, they come
   // first) and leaves the others staged: stored but not linked, so a Search
-  // does not find them yet. May throw std::bad_alloc before it changes
-  // anything; out of memory later, it stages nothing more and says so in
-  // `complete` (the vectors past `slots` are not added).
+  // does not find them yet. May throw std::bad_alloc (or std::system_error:
+  // int8 floats kept in a file that cannot grow) before it changes
+  // anything; out of memory or failing to write the floats later, it
+  // stages nothing more and says so in `complete` (the vectors past
+  // `slots` are not added).
   struct Staged {
     std::vector<uint32_t> slots;  // of the vectors added, in order
     size_t linked = 0;            // slots[0, linked) are linked already
@@ -118,17 +128,25 @@ class HnswGraph {
   // Squared Euclidean distance between `scale` times `query` and the
   // (scaled) vector of `slot`, in double precision, term by term (exact to
   // rounding, where the scaled graph's own distance loses about 1e-7 to
-  // cancellation): for scoring a search's answers.
+  // cancellation): for scoring a search's answers. With int8 floats kept
+  // in a file, reads the slot's row (std::system_error on an I/O error).
   double PreciseSquaredDistance(const float* query, uint32_t slot,
                                 float scale = 1.0f) const;
-  // The stored vector of a live slot, as given to Add (unscaled).
+  // The stored vector of a live slot, as given to Add (unscaled), where it
+  // lies in memory; nullptr for an int8 graph whose floats are kept
+  // elsewhere (options.float_rows): CopyVector reads them.
   const float* Vector(uint32_t slot) const;
-  // The scale given with it (1 unless options.scaled).
+  // Copies the stored vector of a live slot (dimension floats) to `out`;
+  // std::system_error when its row cannot be read.
+  void CopyVector(uint32_t slot, float* out) const;
+  // The scale given with it (1 unless options.scaled); std::system_error
+  // as CopyVector.
   float Scale(uint32_t slot) const;
 
   // The bytes the graph holds for its vectors and links (hnswlib's nodes in
-  // use, upper layers and, with options.int8, the blocks of floats kept
-  // beside them); capacity reserved but not used is not counted.
+  // use, upper layers and, with options.int8, the floats kept beside them
+  // where they are in the process's memory); capacity reserved but not
+  // used is not counted.
   size_t MemoryBytes() const;
 
   // Writes the whole graph (vectors, links, removed slots and the level
@@ -157,13 +175,15 @@ class HnswGraph {
   // itself.
   const void* Stored(const float* vector, float scale,
                      std::vector<float>& buffer) const;
-  // With options.int8: blocks of floats for `slots` slots (may throw
-  // std::bad_alloc, keeping those it made).
+  // With options.int8: room for the floats of `slots` slots (may throw
+  // std::bad_alloc or std::system_error, keeping what was held).
   void ReserveFloats(size_t slots);
   // With options.int8: keeps `vector` (as given) and `scale` as slot's
-  // floats (ReserveFloats first: only the first slot of a new block
-  // allocates).
+  // floats (ReserveFloats first; std::system_error on an I/O error).
   void KeepFloats(uint32_t slot, const float* vector, float scale);
+  // With options.int8: slot's row (dimension floats, then the scale) where
+  // it lies in memory, or read into `buffer`.
+  const float* Row(uint32_t slot, std::vector<float>& buffer) const;
   // Load without its handlers for hnswlib's exceptions.
   static absl::StatusOr<std::unique_ptr<HnswGraph>> LoadOrThrow(
       size_t dimension, HnswGraphOptions options, ByteReader& in);
@@ -173,7 +193,8 @@ class HnswGraph {
   // sound.
   absl::Status CheckLoaded(uint32_t count);
   // With options.int8: reads the `count` slots' floats that Save wrote
-  // after the links into new blocks; DATA_LOSS when they are truncated.
+  // after the links into the graph's rows; DATA_LOSS when they are
+  // truncated or a scale is negative or not finite.
   absl::Status LoadFloats(ByteReader& in, size_t count);
   size_t dimension_;
   HnswGraphOptions options_;

@@ -2,9 +2,12 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cerrno>
+#include <memory>
 #include <random>
 #include <span>
 #include <string>
+#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -34,6 +37,58 @@ std::string Saved(const HnswGraph& graph) {
   return bytes;
 }
 
+// A slot's vector as given, by copy (an int8 graph whose floats are kept
+// outside memory has no pointer to give).
+std::vector<float> Code(const HnswGraph& graph, uint32_t slot) {
+  std::vector<float> code(graph.dimension());
+  graph.CopyVector(slot, code.data());
+  return code;
+}
+
+// What CopiedRows is told to fail.
+struct RowFaults {
+  bool refuse_growth = false;
+  int writes_left = -1;  // < 0: every write succeeds
+};
+
+// Float rows on the heap that are read only by copy, as a file's are (Find
+// gives no pointer), and fail as `faults` says, as a full disk would.
+class CopiedRows final : public FloatRows {
+ public:
+  CopiedRows(size_t width, std::shared_ptr<RowFaults> faults)
+      : FloatRows(width), faults_(std::move(faults)) {}
+  void Reserve(size_t rows) override {
+    if (rows * width() <= values_.size()) return;
+    if (faults_->refuse_growth) {
+      throw std::system_error(ENOSPC, std::generic_category(), "test rows");
+    }
+    values_.resize(rows * width());
+  }
+  void Write(size_t first, size_t count, const float* values) override {
+    if (faults_->writes_left == 0) {
+      throw std::system_error(EIO, std::generic_category(), "test rows");
+    }
+    if (faults_->writes_left > 0) --faults_->writes_left;
+    std::copy(values, values + count * width(),
+              values_.begin() + first * width());
+  }
+  void Read(size_t first, size_t count, float* values) const override {
+    std::copy(values_.begin() + first * width(),
+              values_.begin() + (first + count) * width(), values);
+  }
+  size_t MemoryBytes() const override { return 0; }
+
+ private:
+  std::shared_ptr<RowFaults> faults_;
+  std::vector<float> values_;
+};
+
+FloatRowsMaker CopiedRowsWith(std::shared_ptr<RowFaults> faults) {
+  return [faults](size_t width) {
+    return std::make_unique<CopiedRows>(width, faults);
+  };
+}
+
 // Stages vectors[first, first + count) (scales 1 + index / 1000 when the
 // graph is scaled) and links them on `threads` threads, in order when 1.
 HnswGraph::Staged StageAndLink(HnswGraph& graph,
@@ -60,8 +115,9 @@ HnswGraph::Staged StageAndLink(HnswGraph& graph,
   return staged;
 }
 
-// The graph's three node layouts.
-enum class Nodes { kPlain, kScaled, kInt8 };
+// The graph's three node layouts, int8 with its floats in memory or read
+// by copy.
+enum class Nodes { kPlain, kScaled, kInt8, kInt8CopiedFloats };
 
 class HnswGraphStageTest : public ::testing::TestWithParam<Nodes> {
  protected:
@@ -70,7 +126,11 @@ class HnswGraphStageTest : public ::testing::TestWithParam<Nodes> {
     options.m = 8;
     options.ef_construction = 32;
     options.scaled = GetParam() != Nodes::kPlain;
-    options.int8 = GetParam() == Nodes::kInt8;
+    options.int8 =
+        GetParam() == Nodes::kInt8 || GetParam() == Nodes::kInt8CopiedFloats;
+    if (GetParam() == Nodes::kInt8CopiedFloats) {
+      options.float_rows = CopiedRowsWith(std::make_shared<RowFaults>());
+    }
     return options;
   }
   bool Scaled() const { return GetParam() != Nodes::kPlain; }
@@ -129,7 +189,8 @@ TEST_P(HnswGraphStageTest, ConcurrentlyLinkedNodesAreFoundAndSaveWhole) {
   ASSERT_EQ(graph.slot_count(), kCount - removed);
   size_t found = 0;
   for (uint32_t slot = 0; slot < graph.slot_count(); ++slot) {
-    const auto nearest = graph.Search(graph.Vector(slot), 1, graph.Scale(slot));
+    const auto nearest =
+        graph.Search(Code(graph, slot).data(), 1, graph.Scale(slot));
     found += !nearest.empty() && nearest[0].second == slot;
   }
   EXPECT_GE(found, graph.size() * 995 / 1000);
@@ -140,8 +201,9 @@ TEST_P(HnswGraphStageTest, ConcurrentlyLinkedNodesAreFoundAndSaveWhole) {
       HnswGraph::Load(kDimension, Options(), in);
   ASSERT_TRUE(loaded.ok()) << loaded.status();
   for (uint32_t slot = 0; slot < graph.slot_count(); slot += 97) {
-    EXPECT_EQ((*loaded)->Search(graph.Vector(slot), 5, graph.Scale(slot)),
-              graph.Search(graph.Vector(slot), 5, graph.Scale(slot)));
+    const std::vector<float> code = Code(graph, slot);
+    EXPECT_EQ((*loaded)->Search(code.data(), 5, graph.Scale(slot)),
+              graph.Search(code.data(), 5, graph.Scale(slot)));
   }
 }
 
@@ -218,7 +280,7 @@ TEST_P(HnswGraphStageTest, SearchBesideLinksRunsWhileNodesAreLinked) {
   size_t found = 0;
   for (uint32_t slot = 0; slot < graph.slot_count(); ++slot) {
     const auto nearest =
-        graph.SearchBesideLinks(graph.Vector(slot), 1, graph.Scale(slot));
+        graph.SearchBesideLinks(Code(graph, slot).data(), 1, graph.Scale(slot));
     found += !nearest.empty() && nearest[0].second == slot;
   }
   EXPECT_GE(found, kCount * 995 / 1000);
@@ -226,7 +288,8 @@ TEST_P(HnswGraphStageTest, SearchBesideLinksRunsWhileNodesAreLinked) {
 
 INSTANTIATE_TEST_SUITE_P(EveryLayout, HnswGraphStageTest,
                          ::testing::Values(Nodes::kPlain, Nodes::kScaled,
-                                           Nodes::kInt8));
+                                           Nodes::kInt8,
+                                           Nodes::kInt8CopiedFloats));
 
 HnswGraphOptions Int8Options() {
   return {.m = 8, .ef_construction = 32, .scaled = true, .int8 = true};
@@ -318,6 +381,64 @@ TEST(HnswGraphInt8Test, LoadRefusesAnotherLayoutAndMissingFloats) {
   EXPECT_TRUE(Saved(**loaded) == int8_bytes);
   EXPECT_TRUE(
       std::equal(vectors[7].begin(), vectors[7].end(), (*loaded)->Vector(7)));
+}
+
+// Floats that cannot be kept (a full disk, a failed write) leave the graph
+// as it was: Add throws before it changes anything, Stage stages nothing
+// more and says so; once they can be kept again, the graph goes on.
+TEST(HnswGraphInt8Test, FloatsThatCannotBeKeptLeaveTheGraphAsItWas) {
+  constexpr size_t kDimension = 16;
+  const auto vectors = Gaussian(120, kDimension, 37);
+  auto faults = std::make_shared<RowFaults>();
+  HnswGraphOptions options = Int8Options();
+  options.float_rows = CopiedRowsWith(faults);
+  HnswGraph graph(kDimension, options);
+  for (size_t i = 0; i < 50; ++i) graph.Add(vectors[i].data(), 1.5f);
+  EXPECT_EQ(graph.Vector(3), nullptr);  // read by copy only
+  EXPECT_EQ(Code(graph, 3), vectors[3]);
+  std::string before = Saved(graph);
+  auto stage = [&](size_t first, size_t count) {
+    std::vector<const float*> data;
+    for (size_t i = first; i < first + count; ++i) {
+      data.push_back(vectors[i].data());
+    }
+    return graph.Stage(data, std::vector<float>(count, 1.5f));
+  };
+
+  faults->refuse_growth = true;  // no room for the next rows
+  EXPECT_THROW(graph.Add(vectors[50].data(), 1.5f), std::system_error);
+  EXPECT_THROW(stage(50, 10), std::system_error);
+  EXPECT_EQ(graph.size(), 50u);
+  EXPECT_TRUE(Saved(graph) == before);
+
+  faults->refuse_growth = false;
+  faults->writes_left = 0;  // the 10 new rows' write fails
+  HnswGraph::Staged staged = stage(50, 10);
+  EXPECT_FALSE(staged.complete);
+  EXPECT_TRUE(staged.slots.empty());
+  EXPECT_EQ(graph.size(), 50u);
+  EXPECT_TRUE(Saved(graph) == before);
+
+  graph.Remove(7);  // a refill's row fails: nothing staged either
+  before = Saved(graph);
+  faults->writes_left = 0;
+  staged = stage(50, 10);
+  EXPECT_FALSE(staged.complete);
+  EXPECT_TRUE(staged.slots.empty());
+  EXPECT_TRUE(Saved(graph) == before);
+
+  faults->writes_left = -1;
+  staged = stage(50, 70);
+  ASSERT_TRUE(staged.complete);
+  for (size_t i = staged.linked; i < staged.slots.size(); ++i) {
+    graph.Link(staged, i);
+  }
+  EXPECT_EQ(graph.size(), 119u);
+  for (size_t i = 0; i < staged.slots.size(); ++i) {
+    EXPECT_EQ(Code(graph, staged.slots[i]), vectors[50 + i]);
+    EXPECT_EQ(graph.Search(vectors[50 + i].data(), 1, 1.5f)[0].second,
+              staged.slots[i]);
+  }
 }
 
 }  // namespace

@@ -24,6 +24,7 @@
 #include "services/core/feature_space.h"
 #include "services/core/hnsw_graph.h"
 #include "services/index/exact_index.h"
+#include "services/index/float_file.h"
 #include "services/index/index_input.h"
 
 namespace fleetmem::index {
@@ -148,8 +149,17 @@ class HnswIndex final : public engine::PlaceIndex {
   bool CopyCode(uint64_t id, std::vector<float>* code) const override {
     auto it = slot_of_.find(id);
     if (it == slot_of_.end()) return false;
-    const float* stored = graph_->Vector(it->second);
-    code->assign(stored, stored + dimension());
+    code->resize(dimension());
+    try {
+      graph_->CopyVector(it->second, code->data());
+    } catch (const std::system_error& e) {
+      // The floats' file could not be read: the caller says the code is
+      // missing (an INTERNAL status naming the trace), and the log says why.
+      FLEETMEM_LOG(kError) << "HNSW index: the code of id " << id
+                           << " could not be read: " << e.what();
+      code->clear();
+      return false;
+    }
     return true;
   }
   absl::Status Save(core::ByteWriter& out) const override;
@@ -160,11 +170,14 @@ class HnswIndex final : public engine::PlaceIndex {
   size_t graph_bytes() const { return graph_->MemoryBytes(); }
 
   // Calls visit(id, vector as given, its scale) for every stored vector.
+  // May throw std::system_error (floats kept in a file that cannot be
+  // read).
   void ForEach(const std::function<void(uint64_t, std::span<const float>,
                                         float)>& visit) const {
+    std::vector<float> vector(dimension());
     for (const auto& [id, slot] : slot_of_) {
-      visit(id, std::span<const float>(graph_->Vector(slot), dimension()),
-            graph_->Scale(slot));
+      graph_->CopyVector(slot, vector.data());
+      visit(id, vector, graph_->Scale(slot));
     }
   }
 
@@ -180,7 +193,10 @@ class HnswIndex final : public engine::PlaceIndex {
             .seed = options.seed,
             .repair_probability = options.repair_probability,
             .scaled = true,
-            .int8 = options.codes == HnswIndexOptions::Codes::kInt8};
+            .int8 = options.codes == HnswIndexOptions::Codes::kInt8,
+            .float_rows = options.floats_dir.empty()
+                              ? core::FloatRowsMaker()
+                              : FloatRowsInFiles(options.floats_dir)};
   }
 
   const HnswIndexOptions options_;
@@ -219,6 +235,10 @@ absl::StatusOr<core::HnswGraph::Staged> HnswIndex::StageScaled(
     staged = graph_->Stage(data, scales);
   } catch (const std::bad_alloc&) {
     return absl::ResourceExhaustedError("HNSW index: out of memory in Add");
+  } catch (const std::system_error& e) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "HNSW index: no room for the codes' floats (nothing added): ",
+        e.what()));
   }
   for (size_t i = 0; i < staged.slots.size(); ++i) {
     const uint32_t slot = staged.slots[i];
@@ -233,9 +253,10 @@ absl::Status HnswIndex::LinkStaged(const core::HnswGraph::Staged& staged,
                                    size_t asked) {
   LinkOnThreads(*graph_, staged, options_.insert_threads);
   if (!staged.complete) {
-    return absl::ResourceExhaustedError(
-        absl::StrCat("HNSW index: out of memory in Add after ",
-                     staged.slots.size(), " of ", asked, " vectors"));
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "HNSW index: out of memory, or the codes' floats could not be "
+        "written, in Add after ",
+        staged.slots.size(), " of ", asked, " vectors"));
   }
   return absl::OkStatus();
 }
@@ -256,7 +277,13 @@ constexpr uint32_t kTieredFormat = 0x54524431;  // "TRD1"
 
 absl::Status HnswIndex::Save(core::ByteWriter& out) const {
   out.Put<uint32_t>(kHnswFormat);
-  graph_->Save(out);
+  try {
+    graph_->Save(out);
+  } catch (const std::system_error& e) {
+    return absl::InternalError(absl::StrCat(
+        "HNSW index: the codes' floats could not be read for a snapshot: ",
+        e.what()));
+  }
   out.Put<uint64_t>(id_of_.size());
   out.PutBytes(id_of_.data(), id_of_.size() * sizeof(uint64_t));
   return absl::OkStatus();
@@ -354,6 +381,9 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
     }
   } catch (const std::bad_alloc&) {
     return absl::ResourceExhaustedError("HNSW index: out of memory in Search");
+  } catch (const std::system_error& e) {
+    return absl::InternalError(absl::StrCat(
+        "HNSW index: the codes to rescore could not be read: ", e.what()));
   }
 }
 
@@ -817,9 +847,17 @@ absl::Status TieredIndex::DropGraph() {
   // Codes go back as given: plain vectors (scale 1) through Add, scaled
   // ones through AddNormalized, which gives them the same scale again.
   IdVectors plain, scaled;
-  graph_->ForEach([&](uint64_t id, std::span<const float> vector, float scale) {
-    (scale == 1.0f ? plain : scaled).Collector()(id, vector, scale);
-  });
+  try {
+    graph_->ForEach(
+        [&](uint64_t id, std::span<const float> vector, float scale) {
+          (scale == 1.0f ? plain : scaled).Collector()(id, vector, scale);
+        });
+  } catch (const std::system_error& e) {
+    return absl::InternalError(absl::StrCat(
+        "tiered index: the graph's codes could not be read back (the graph "
+        "is kept): ",
+        e.what()));
+  }
   std::vector<std::span<const float>> codes(scaled.vectors.begin(),
                                             scaled.vectors.end());
   absl::Status status = tail_->Add(plain.ids, plain.vectors);

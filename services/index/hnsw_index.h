@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <memory>
 #include <optional>
+#include <string>
 #include <string_view>
 
 #include "services/engine/place_index.h"
@@ -60,6 +61,14 @@ struct HnswIndexOptions {
   Codes codes = Codes::kInt8;
   // kInt8: candidates rescored per neighbour returned.
   size_t rescore_oversample = 4;
+  // kInt8: where the floats kept beside the graph live. Empty: on the heap
+  // (core::MemoryFloatRows). A directory: in a file of each graph's own
+  // there (FileFloatRows, unlinked at once), so that they are the page
+  // cache's and the process holds only the int8 nodes; a search then reads
+  // its rescore_oversample × k candidates' rows with pread, and CopyCode a
+  // row. The graph's snapshot still holds the floats (it is what a restart
+  // reads them from).
+  std::string floats_dir;
 };
 
 // "float" or "int8" (a configuration's words for HnswIndexOptions::Codes);

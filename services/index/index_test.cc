@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <filesystem>
 #include <functional>
 #include <iostream>
 #include <limits>
@@ -23,6 +24,7 @@
 #include "services/engine/place_index.h"
 #include "services/index/exact_index.h"
 #include "services/index/flann_index.h"
+#include "services/index/float_file.h"
 #include "services/index/hnsw_index.h"
 
 namespace fleetmem::index {
@@ -216,12 +218,29 @@ std::vector<IndexCase> AllCases() {
          return NewHnswIndex(d, options);
        },
        false},
+      // int8 codes whose floats are kept in a file (the server's default).
+      {"HnswFloatsInAFile",
+       [](size_t d) {
+         HnswIndexOptions options;
+         options.floats_dir = ::testing::TempDir();
+         return NewHnswIndex(d, options);
+       },
+       false},
       // Switches exact -> HNSW at 8 vectors and back below 4, so the tests'
       // adds and removes cross the threshold both ways.
       {"TieredSwitching",
        [](size_t d) {
          TieredIndexOptions options;
          options.hnsw_from = 8;
+         return NewTieredIndex(d, options);
+       },
+       false},
+      // The same, the graph's floats in a file.
+      {"TieredSwitchingFloatsInAFile",
+       [](size_t d) {
+         TieredIndexOptions options;
+         options.hnsw_from = 8;
+         options.hnsw.floats_dir = ::testing::TempDir();
          return NewTieredIndex(d, options);
        },
        false},
@@ -1489,6 +1508,105 @@ TEST(IndexSnapshotTest, AnotherKindsBytesAreDataLoss) {
             absl::StatusCode::kDataLoss);
   EXPECT_EQ(LoadFrom(*NewFlannIndex(8), *bytes).code(),
             absl::StatusCode::kUnimplemented);
+}
+
+// A fresh directory of its own under the test's temporary directory.
+std::string FreshDirectory() {
+  std::string path = ::testing::TempDir() + "/floats-XXXXXX";
+  EXPECT_NE(::mkdtemp(path.data()), nullptr);
+  return path;
+}
+
+// Rows written are read back bit for bit; the file is unlinked as it is
+// made (the directory stays empty: nothing is left after the process), and
+// the process's own memory holds none of them.
+TEST(FileFloatRowsTest, RowsComeBackAndTheFileIsNowhereToBeSeen) {
+  const std::string directory = FreshDirectory();
+  FileFloatRows rows(directory, 5);
+  rows.Reserve(3);
+  EXPECT_GE(rows.reserved(), 3u);
+  EXPECT_TRUE(std::filesystem::is_empty(directory));
+  const std::vector<float> values = {1,  2,  3,    4,    5,    -1,   -2,  -3,
+                                     -4, -5, 0.1f, 0.2f, 0.3f, 0.4f, 0.5f};
+  rows.Write(0, 3, values.data());
+  rows.Reserve(5000);  // grows; what was written stays
+  const std::vector<float> last = {9, 8, 7, 6, 5};
+  rows.Write(4999, 1, last.data());
+  std::vector<float> read(15);
+  rows.Read(0, 3, read.data());
+  EXPECT_EQ(read, values);
+  read.resize(5);
+  rows.Read(4999, 1, read.data());
+  EXPECT_EQ(read, last);
+  EXPECT_EQ(rows.Find(0), nullptr);
+  EXPECT_EQ(rows.MemoryBytes(), 0u);
+  std::filesystem::remove(directory);
+}
+
+// A directory that cannot hold the file is an error the caller sees
+// (std::system_error naming it), not a crash; an index given such a
+// directory adds nothing and says why, and its searches go on.
+TEST(FileFloatRowsTest, ADirectoryThatCannotHoldTheFloatsAddsNothing) {
+  const std::string missing = ::testing::TempDir() + "/no-such-directory";
+  FileFloatRows rows(missing, 4);
+  try {
+    rows.Reserve(1);
+    ADD_FAILURE() << "Reserve in a missing directory succeeded";
+  } catch (const std::system_error& e) {
+    EXPECT_THAT(e.what(), HasSubstr("no-such-directory"));
+  }
+  HnswIndexOptions options;
+  options.floats_dir = missing;
+  std::unique_ptr<PlaceIndex> index = NewHnswIndex(4, options);
+  const absl::Status added =
+      index->Add(std::vector<uint64_t>{1, 2},
+                 std::vector<Vector>{{1, 0, 0, 0}, {0, 1, 0, 0}});
+  EXPECT_EQ(added.code(), absl::StatusCode::kResourceExhausted) << added;
+  EXPECT_THAT(added.message(), HasSubstr("nothing added"));
+  EXPECT_EQ(index->size(), 0u);
+  EXPECT_THAT(SearchOk(*index, {1, 0, 0, 0}, 3), IsEmpty());
+}
+
+// An int8 index whose floats are in a file answers as one whose floats are
+// on the heap: the same neighbours at the same distances, the same codes
+// bit for bit, the same snapshot bytes; a snapshot loads into either.
+TEST(HnswIndexTest, FloatsInAFileAnswerAsFloatsOnTheHeap) {
+  constexpr size_t kDimension = 24;
+  std::mt19937 rng(41);
+  const Dataset data = GaussianDataset(2000, kDimension, rng);
+  HnswIndexOptions heap_options;
+  heap_options.insert_threads = 1;  // the same graph from the same adds
+  HnswIndexOptions file_options = heap_options;
+  const std::string directory = FreshDirectory();
+  file_options.floats_dir = directory;
+  std::unique_ptr<PlaceIndex> heap = NewHnswIndex(kDimension, heap_options);
+  std::unique_ptr<PlaceIndex> file = NewHnswIndex(kDimension, file_options);
+  std::vector<std::span<const float>> codes(data.vectors.begin(),
+                                            data.vectors.end());
+  ASSERT_TRUE(heap->AddNormalized(data.ids, codes).ok());
+  ASSERT_TRUE(file->AddNormalized(data.ids, codes).ok());
+  ASSERT_TRUE(heap->Remove(std::vector<uint64_t>{3, 5, 7}).ok());
+  ASSERT_TRUE(file->Remove(std::vector<uint64_t>{3, 5, 7}).ok());
+  const Dataset queries = GaussianDataset(30, kDimension, rng);
+  ExpectSameAnswers(*heap, *file, queries.vectors);
+  std::vector<float> from_heap, from_file;
+  for (uint64_t id : {0, 11, 999, 1999}) {
+    ASSERT_TRUE(heap->CopyCode(data.ids[id], &from_heap));
+    ASSERT_TRUE(file->CopyCode(data.ids[id], &from_file));
+    EXPECT_EQ(from_file, from_heap);
+    EXPECT_EQ(from_file, data.vectors[id]);
+  }
+  absl::StatusOr<std::string> heap_bytes = Saved(*heap);
+  absl::StatusOr<std::string> file_bytes = Saved(*file);
+  ASSERT_TRUE(heap_bytes.ok() && file_bytes.ok());
+  EXPECT_TRUE(*heap_bytes == *file_bytes);
+  std::unique_ptr<PlaceIndex> loaded = NewHnswIndex(kDimension, file_options);
+  ASSERT_TRUE(LoadFrom(*loaded, *heap_bytes).ok());
+  ExpectSameAnswers(*heap, *loaded, queries.vectors);
+  ASSERT_TRUE(loaded->CopyCode(data.ids[42], &from_file));
+  EXPECT_EQ(from_file, data.vectors[42]);
+  EXPECT_TRUE(std::filesystem::is_empty(directory));
+  std::filesystem::remove(directory);
 }
 
 }  // namespace

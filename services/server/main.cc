@@ -366,6 +366,9 @@ class ServerRun {
   int OpenData();
   // --restore-from: the snapshot's db/ copied into the (new) data dir.
   int RestoreSnapshot();
+  // hnsw { floats: "file" }: the graphs' floats directory made, and what a
+  // crash left in it (a file made and not yet unlinked) removed.
+  absl::Status PrepareGraphFloats();
   // The background tasks, the work queue and the mode: embedded (uploads
   // acknowledged at the durable append to each fleet's log, applied behind
   // it: engine::WritePath) or distributed (this replica materialises the
@@ -445,6 +448,26 @@ bool IsSnapshot(const std::string& data_dir) {
   return true;
 }
 
+absl::Status ServerRun::PrepareGraphFloats() {
+  namespace fs = std::filesystem;
+  const std::string& directory = config_.tiered.hnsw.floats_dir;
+  if (directory.empty()) return absl::OkStatus();
+  std::error_code error;
+  fs::create_directories(directory, error);
+  if (error) {
+    return absl::InternalError(
+        absl::StrCat("cannot create ", directory,
+                     " (hnsw floats \"file\"): ", error.message()));
+  }
+  for (const fs::directory_entry& entry :
+       fs::directory_iterator(directory, error)) {
+    if (entry.path().filename().string().rfind("graph-floats-", 0) == 0) {
+      fs::remove(entry.path(), error);
+    }
+  }
+  return absl::OkStatus();
+}
+
 int ServerRun::RestoreSnapshot() {
   namespace fs = std::filesystem;
   std::error_code error;
@@ -506,6 +529,10 @@ int ServerRun::OpenData() {
     return 1;
   }
   data_dir_lock_ = *std::move(lock);
+  if (absl::Status floats = PrepareGraphFloats(); !floats.ok()) {
+    FLEETMEM_LOG(kError) << floats.message();
+    return 1;
+  }
   if (!config_.restore_from.empty()) {
     if (const int restored = RestoreSnapshot(); restored != 0) return restored;
   }

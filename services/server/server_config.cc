@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <climits>
 #include <cstdint>
+#include <filesystem>
 #include <fstream>
 #include <limits>
 #include <sstream>
@@ -561,6 +562,14 @@ absl::Status ApplyConfigText(std::string_view text, ServerConfig* config) {
     }
     config->tiered.hnsw.codes = *codes;
   }
+  if (file.hnsw().has_floats()) {
+    const std::string& floats = file.hnsw().floats();
+    if (floats != "file" && floats != "memory") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "hnsw.floats: unknown \"", floats, "\" (want file or memory)"));
+    }
+    config->graph_floats_in_files = floats == "file";
+  }
   ApplySecurity(file.security(), &config->security);
   ApplyCluster(file.cluster(), &config->cluster);
   ApplyWritePath(file.write_path(), config);
@@ -793,7 +802,14 @@ absl::StatusOr<ServerConfig> LoadServerConfig(const CommandLine& command_line) {
   if (!status.ok()) return status;
   status = ValidateServerConfig(config);
   if (!status.ok()) return status;
+  if (config.graph_floats_in_files) {
+    config.tiered.hnsw.floats_dir = GraphFloatsDir(config.data_dir);
+  }
   return config;
+}
+
+std::string GraphFloatsDir(const std::string& data_dir) {
+  return (std::filesystem::path(data_dir) / "graph-floats").string();
 }
 
 std::string DescribeConfig(const ServerConfig& config) {
@@ -852,7 +868,8 @@ std::string DescribeConfig(const ServerConfig& config) {
         " hnsw_ef_search=", config.tiered.hnsw.ef_search,
         " hnsw_insert_threads=", config.tiered.hnsw.insert_threads,
         " hnsw_codes=",
-        std::string(index::HnswCodesName(config.tiered.hnsw.codes)));
+        std::string(index::HnswCodesName(config.tiered.hnsw.codes)),
+        " hnsw_floats=", config.graph_floats_in_files ? "file" : "memory");
     if (config.index == IndexKind::kAuto) {
       absl::StrAppend(&out, " hnsw_from=", config.tiered.hnsw_from,
                       " max_unindexed=", config.tiered.max_unindexed);

@@ -114,6 +114,11 @@ struct ServerConfig {
   index::FlannIndexOptions flann;
   // Used when index is kAuto (kHnsw: its `hnsw` member).
   index::TieredIndexOptions tiered;
+  // int8 graphs keep their codes' floats in files of their own in
+  // data_dir/graph-floats (the page cache's memory, not the process's;
+  // index::HnswIndexOptions::floats_dir, set from this at startup) rather
+  // than on the heap (false). Config `hnsw { floats: "file" | "memory" }`.
+  bool graph_floats_in_files = true;
   // Memory parameters and limits of the engine.
   engine::EngineOptions engine;
   // RocksDB tuning; `path` is ignored, the database is data_dir/db.
@@ -244,6 +249,11 @@ absl::Status ValidateServerConfig(const ServerConfig& config);
 // Defaults, then the --config file (NOT_FOUND / INVALID_ARGUMENT if it
 // cannot be read or parsed), then the flags; validated.
 absl::StatusOr<ServerConfig> LoadServerConfig(const CommandLine& command_line);
+
+// Where int8 graphs keep their floats' files (graph_floats_in_files):
+// data_dir/graph-floats. LoadServerConfig sets tiered.hnsw.floats_dir to it;
+// the server makes it at startup and removes what a crash left there.
+std::string GraphFloatsDir(const std::string& data_dir);
 
 // One line of "name=value" pairs for the start-up log.
 std::string DescribeConfig(const ServerConfig& config);

@@ -286,6 +286,28 @@ TEST(ServerConfigTest, GraphCodesFromTheFile) {
       << DescribeConfig(config);
 }
 
+// Where int8 graphs keep their floats: a file per graph under the data
+// dir by default, the heap with floats: "memory"; any other word refused.
+TEST(ServerConfigTest, GraphFloatsFromTheFile) {
+  absl::StatusOr<CommandLine> line = Parse({"--data-dir", "/tmp/fm-data"});
+  ASSERT_TRUE(line.ok());
+  absl::StatusOr<ServerConfig> loaded = LoadServerConfig(*line);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_TRUE(loaded->graph_floats_in_files);
+  EXPECT_EQ(loaded->tiered.hnsw.floats_dir, "/tmp/fm-data/graph-floats");
+  EXPECT_NE(DescribeConfig(*loaded).find("hnsw_floats=file"),
+            std::string::npos);
+  ServerConfig config;
+  ASSERT_TRUE(ApplyConfigText("hnsw { floats: \"memory\" }", &config).ok());
+  EXPECT_FALSE(config.graph_floats_in_files);
+  EXPECT_NE(DescribeConfig(config).find("hnsw_floats=memory"),
+            std::string::npos);
+  const absl::Status bad =
+      ApplyConfigText("hnsw { floats: \"disk\" }", &config);
+  EXPECT_NE(bad.message().find("hnsw.floats"), std::string::npos) << bad;
+  EXPECT_FALSE(config.graph_floats_in_files);
+}
+
 TEST(ServerConfigTest, Validation) {
   auto valid = [] {
     ServerConfig config;

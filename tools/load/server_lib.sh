@@ -30,15 +30,18 @@ backlog_traces() {
 # TRACES traces in clusters of 10 (also left in LIMITS), and fills fleet
 # "scale" on WORK/data with TRACES 256-d traces (4 robots, batches of 200),
 # printing the load generator's summary. FILLED is the traces acknowledged
-# (whole batches: a little more than TRACES). HNSW_CODES (int8 or float),
-# when set, is restart.textproto's hnsw { codes }.
+# (whole batches: a little more than TRACES). HNSW_CODES (int8 or float)
+# and HNSW_FLOATS (file or memory), when set, are restart.textproto's
+# hnsw { codes floats }.
 fill_scale_fleet() {
-  local build=$1 work=$2 traces=$3
+  local build=$1 work=$2 traces=$3 hnsw=""
   LIMITS="memory { max_clusters: $((traces / 10 + 100)) }
 limits { max_traces_per_fleet: $((traces * 2)) }"
-  if [ -n "${HNSW_CODES:-}" ]; then
+  [ -z "${HNSW_CODES:-}" ] || hnsw="codes: \"$HNSW_CODES\""
+  [ -z "${HNSW_FLOATS:-}" ] || hnsw="$hnsw floats: \"$HNSW_FLOATS\""
+  if [ -n "$hnsw" ]; then
     LIMITS="$LIMITS
-hnsw { codes: \"$HNSW_CODES\" }"
+hnsw { $hnsw }"
   fi
   printf 'index: "exact"\n%s\n' "$LIMITS" >"$work/fill.textproto"
   printf 'index_snapshot_interval_seconds: 0\n%s\n' "$LIMITS" \
