@@ -56,7 +56,8 @@ struct HnswIndexOptions {
   // codes it inserted 1.9-2.1x as fast as the float graph (2.4-2.5x
   // hnswlib) and answered 1.9-2.3x the float graph's queries a second at
   // the same recall@10; it holds a quarter more (the floats and the int8
-  // nodes; docs/performance.md, "Quantized codes").
+  // nodes; docs/performance.md, "Quantized codes") unless the floats are
+  // kept in a file (floats_dir: then 0.28x in process).
   enum class Codes { kFloat, kInt8 };
   Codes codes = Codes::kInt8;
   // kInt8: candidates rescored per neighbour returned.

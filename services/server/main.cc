@@ -367,8 +367,9 @@ class ServerRun {
   // --restore-from: the snapshot's db/ copied into the (new) data dir.
   int RestoreSnapshot();
   // hnsw { floats: "file" }: the graphs' floats directory made, and what a
-  // crash left in it (a file made and not yet unlinked) removed.
-  absl::Status PrepareGraphFloats();
+  // crash left in it (a file made and not yet unlinked) removed; 1 (logged)
+  // when it cannot be made.
+  int PrepareGraphFloats();
   // The background tasks, the work queue and the mode: embedded (uploads
   // acknowledged at the durable append to each fleet's log, applied behind
   // it: engine::WritePath) or distributed (this replica materialises the
@@ -448,16 +449,16 @@ bool IsSnapshot(const std::string& data_dir) {
   return true;
 }
 
-absl::Status ServerRun::PrepareGraphFloats() {
+int ServerRun::PrepareGraphFloats() {
   namespace fs = std::filesystem;
   const std::string& directory = config_.tiered.hnsw.floats_dir;
-  if (directory.empty()) return absl::OkStatus();
+  if (directory.empty()) return 0;
   std::error_code error;
   fs::create_directories(directory, error);
   if (error) {
-    return absl::InternalError(
-        absl::StrCat("cannot create ", directory,
-                     " (hnsw floats \"file\"): ", error.message()));
+    FLEETMEM_LOG(kError) << "cannot create " << directory
+                         << " (hnsw floats \"file\"): " << error.message();
+    return 1;
   }
   for (const fs::directory_entry& entry :
        fs::directory_iterator(directory, error)) {
@@ -465,7 +466,7 @@ absl::Status ServerRun::PrepareGraphFloats() {
       fs::remove(entry.path(), error);
     }
   }
-  return absl::OkStatus();
+  return 0;
 }
 
 int ServerRun::RestoreSnapshot() {
@@ -529,10 +530,7 @@ int ServerRun::OpenData() {
     return 1;
   }
   data_dir_lock_ = *std::move(lock);
-  if (absl::Status floats = PrepareGraphFloats(); !floats.ok()) {
-    FLEETMEM_LOG(kError) << floats.message();
-    return 1;
-  }
+  if (const int floats = PrepareGraphFloats(); floats != 0) return floats;
   if (!config_.restore_from.empty()) {
     if (const int restored = RestoreSnapshot(); restored != 0) return restored;
   }
