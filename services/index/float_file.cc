@@ -21,6 +21,22 @@ namespace {
   throw std::system_error(error, std::generic_category(), what);
 }
 
+// Moves `bytes` between `data` and the file at `offset` with `io` (pread
+// or pwrite), going on after a partial transfer or an interruption.
+template <typename Byte, typename Io>
+void TransferAll(Byte* data, size_t bytes, off_t offset, Io io,
+                 const char* what) {
+  while (bytes > 0) {
+    const ssize_t moved = io(data, bytes, offset);
+    if (moved < 0 && errno == EINTR) continue;
+    if (moved < 0) Fail(errno, what);
+    if (moved == 0) Fail(EIO, absl::StrCat(what, ": past the file's end"));
+    data += moved;
+    offset += moved;
+    bytes -= static_cast<size_t>(moved);
+  }
+}
+
 }  // namespace
 
 FileFloatRows::FileFloatRows(std::string directory, size_t width)
@@ -52,37 +68,24 @@ void FileFloatRows::Reserve(size_t rows) {
 
 void FileFloatRows::Write(size_t first, size_t count, const float* values) {
   const size_t row_bytes = width() * sizeof(float);
-  const char* data = reinterpret_cast<const char*>(values);
-  size_t left = count * row_bytes;
-  off_t offset = static_cast<off_t>(first * row_bytes);
-  while (left > 0) {
-    const ssize_t written = ::pwrite(fd_, data, left, offset);
-    if (written < 0) {
-      if (errno == EINTR) continue;
-      Fail(errno, "writing the graph's floats");
-    }
-    data += written;
-    offset += written;
-    left -= static_cast<size_t>(written);
-  }
+  TransferAll(
+      reinterpret_cast<const char*>(values), count * row_bytes,
+      static_cast<off_t>(first * row_bytes),
+      [this](const char* data, size_t bytes, off_t offset) {
+        return ::pwrite(fd_, data, bytes, offset);
+      },
+      "writing the graph's floats");
 }
 
 void FileFloatRows::Read(size_t first, size_t count, float* values) const {
   const size_t row_bytes = width() * sizeof(float);
-  char* data = reinterpret_cast<char*>(values);
-  size_t left = count * row_bytes;
-  off_t offset = static_cast<off_t>(first * row_bytes);
-  while (left > 0) {
-    const ssize_t got = ::pread(fd_, data, left, offset);
-    if (got < 0) {
-      if (errno == EINTR) continue;
-      Fail(errno, "reading the graph's floats");
-    }
-    if (got == 0) Fail(EIO, "reading the graph's floats: past the file's end");
-    data += got;
-    offset += got;
-    left -= static_cast<size_t>(got);
-  }
+  TransferAll(
+      reinterpret_cast<char*>(values), count * row_bytes,
+      static_cast<off_t>(first * row_bytes),
+      [this](char* data, size_t bytes, off_t offset) {
+        return ::pread(fd_, data, bytes, offset);
+      },
+      "reading the graph's floats");
 }
 
 core::FloatRowsMaker FloatRowsInFiles(std::string directory) {
