@@ -213,7 +213,7 @@ perf: build
 	bench/ack_streams_bench.sh $(BUILD_DIR) $(PERF_DIR)/ack_streams.csv 1 8 64
 	bench/import_bench.sh $(BUILD_DIR) $(PERF_DIR)/import.csv 100000
 	$(BUILD_DIR)/bin/fleetmem_graph_bench --size 100000 \
-	  --out $(PERF_DIR)/graph.csv
+	  --kinds hnswlib,float,int8,int8-file --out $(PERF_DIR)/graph.csv
 	/usr/bin/python3 bench/quantization_choice.py 100000 \
 	  >$(PERF_DIR)/quantization_choice.csv
 	bench/plot_perf.py $(PERF_DIR)
