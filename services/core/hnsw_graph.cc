@@ -579,18 +579,56 @@ std::vector<std::pair<float, uint32_t>> HnswGraph::SearchBesideLinks(
 
 void HnswGraph::set_ef_search(size_t ef) { impl_->hnsw.setEf(ef); }
 
+namespace {
+
+// |scale query - stored_scale stored|² in double precision, term by term.
+double PreciseSquared(const float* query, double scale, const float* stored,
+                      double stored_scale, size_t dimension) {
+  double squared = 0.0;
+  for (size_t i = 0; i < dimension; ++i) {
+    const double d = scale * query[i] - stored_scale * stored[i];
+    squared += d * d;
+  }
+  return squared;
+}
+
+}  // namespace
+
 double HnswGraph::PreciseSquaredDistance(const float* query, uint32_t slot,
                                          float scale) const {
   std::vector<float> buffer;
   const float* stored = options_.int8 ? Row(slot, buffer) : Vector(slot);
-  const double stored_scale = options_.scaled ? stored[dimension_] : 1.0;
-  double squared = 0.0;
-  for (size_t i = 0; i < dimension_; ++i) {
-    const double d =
-        static_cast<double>(scale) * query[i] - stored_scale * stored[i];
-    squared += d * d;
+  return PreciseSquared(query, scale, stored,
+                        options_.scaled ? stored[dimension_] : 1.0, dimension_);
+}
+
+void HnswGraph::ScanPrecise(
+    const float* query, float scale,
+    const std::function<bool(uint32_t)>& wanted,
+    const std::function<void(uint32_t, double)>& visit) const {
+  const size_t stride = dimension_ + 1;
+  std::vector<float> chunk;
+  for (size_t first = 0; first < next_slot_; first += kFloatChunk) {
+    const size_t count = std::min<size_t>(kFloatChunk, next_slot_ - first);
+    // int8 rows not in memory: the chunk's rows in one read.
+    const bool copied = options_.int8 && impl_->rows->Find(first) == nullptr;
+    if (copied) {
+      chunk.resize(count * stride);
+      impl_->rows->Read(first, count, chunk.data());
+    }
+    for (size_t k = 0; k < count; ++k) {
+      const auto slot = static_cast<uint32_t>(first + k);
+      if (!contains(slot) || !wanted(slot)) continue;
+      if (!options_.int8) {
+        visit(slot, PreciseSquaredDistance(query, slot, scale));
+        continue;
+      }
+      const float* row =
+          copied ? chunk.data() + k * stride : impl_->rows->Find(slot);
+      visit(slot,
+            PreciseSquared(query, scale, row, row[dimension_], dimension_));
+    }
   }
-  return squared;
 }
 
 float HnswGraph::Scale(uint32_t slot) const {
@@ -600,10 +638,11 @@ float HnswGraph::Scale(uint32_t slot) const {
                        : Vector(slot)[dimension_];
 }
 
-void HnswGraph::CopyVector(uint32_t slot, float* out) const {
+float HnswGraph::CopyVector(uint32_t slot, float* out) const {
   std::vector<float> buffer;
   const float* stored = options_.int8 ? Row(slot, buffer) : Vector(slot);
   std::copy(stored, stored + dimension_, out);
+  return options_.scaled ? stored[dimension_] : 1.0f;
 }
 
 size_t HnswGraph::MemoryBytes() const {

@@ -12,6 +12,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <span>
 #include <utility>
@@ -136,9 +137,17 @@ class HnswGraph {
   // lies in memory; nullptr for an int8 graph whose floats are kept
   // elsewhere (options.float_rows): CopyVector reads them.
   const float* Vector(uint32_t slot) const;
-  // Copies the stored vector of a live slot (dimension floats) to `out`;
-  // std::system_error when its row cannot be read.
-  void CopyVector(uint32_t slot, float* out) const;
+  // Copies the stored vector of a live slot (dimension floats) to `out`
+  // and returns its scale (one read of its row); std::system_error when
+  // the row cannot be read.
+  float CopyVector(uint32_t slot, float* out) const;
+  // visit(slot, PreciseSquaredDistance(query, slot, scale)) for every live
+  // slot that `wanted` accepts, in slot order: a scan of the graph's floats,
+  // read a chunk of rows at a time where they are not in memory (one read
+  // per 4,096 rows, not one per row). std::system_error as CopyVector.
+  void ScanPrecise(const float* query, float scale,
+                   const std::function<bool(uint32_t)>& wanted,
+                   const std::function<void(uint32_t, double)>& visit) const;
   // The scale given with it (1 unless options.scaled); std::system_error
   // as CopyVector.
   float Scale(uint32_t slot) const;

@@ -286,6 +286,33 @@ TEST_P(HnswGraphStageTest, SearchBesideLinksRunsWhileNodesAreLinked) {
   EXPECT_GE(found, kCount * 995 / 1000);
 }
 
+// A scan visits every live slot the filter wants once, in slot order, at
+// its precise distance, across chunks of rows (more than 4,096 slots).
+TEST_P(HnswGraphStageTest, ScanPreciseVisitsEachWantedLiveSlotOnce) {
+  constexpr size_t kDimension = 8;
+  const auto vectors = Gaussian(5000, kDimension, 43);
+  HnswGraph graph(kDimension, Options());
+  StageAndLink(graph, vectors, 0, vectors.size(), Scaled(), 1);
+  for (uint32_t slot = 4000; slot < 4200; ++slot) graph.Remove(slot);
+  const auto query = Gaussian(1, kDimension, 47)[0];
+  const float scale = Scaled() ? 1.5f : 1.0f;
+  std::vector<uint32_t> visited;
+  graph.ScanPrecise(
+      query.data(), scale, [](uint32_t slot) { return slot % 3 != 0; },
+      [&](uint32_t slot, double squared) {
+        visited.push_back(slot);
+        EXPECT_EQ(squared,
+                  graph.PreciseSquaredDistance(query.data(), slot, scale));
+      });
+  std::vector<uint32_t> expected;
+  for (uint32_t slot = 0; slot < 5000; ++slot) {
+    if (slot % 3 != 0 && (slot < 4000 || slot >= 4200)) {
+      expected.push_back(slot);
+    }
+  }
+  EXPECT_EQ(visited, expected);
+}
+
 INSTANTIATE_TEST_SUITE_P(EveryLayout, HnswGraphStageTest,
                          ::testing::Values(Nodes::kPlain, Nodes::kScaled,
                                            Nodes::kInt8,

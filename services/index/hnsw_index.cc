@@ -176,8 +176,8 @@ class HnswIndex final : public engine::PlaceIndex {
                                         float)>& visit) const {
     std::vector<float> vector(dimension());
     for (const auto& [id, slot] : slot_of_) {
-      graph_->CopyVector(slot, vector.data());
-      visit(id, vector, graph_->Scale(slot));
+      const float scale = graph_->CopyVector(slot, vector.data());
+      visit(id, vector, scale);
     }
   }
 
@@ -329,12 +329,14 @@ std::vector<Neighbor> HnswIndex::Scan(std::span<const float> query, float scale,
                                       const SearchParams& params) const {
   std::vector<Neighbor> all;
   all.reserve(slot_of_.size());
-  for (const auto& [id, slot] : slot_of_) {
-    if (params.accept && !params.accept(id)) continue;
-    const double squared =
-        graph_->PreciseSquaredDistance(query.data(), slot, scale);
-    all.push_back({id, static_cast<float>(std::sqrt(squared))});
-  }
+  graph_->ScanPrecise(
+      query.data(), scale,
+      [&](uint32_t slot) {
+        return !params.accept || params.accept(id_of_[slot]);
+      },
+      [&](uint32_t slot, double squared) {
+        all.push_back({id_of_[slot], static_cast<float>(std::sqrt(squared))});
+      });
   return all;
 }
 
