@@ -4,8 +4,9 @@
 # clusters of 10) is filled and its HNSW graph built and saved (index
 # snapshot, clean stop) with B's build; then ROUNDS rounds each start A's
 # server and B's on that data dir, timed until the port answers, and print
-# the RSS 3 s after (the load is done when the port opens) and the
-# engine's snapshot load line. Each is stopped with kill -9, so the snapshot
+# the RSS 3 s after (the load is done when the port opens), the
+# engine's snapshot load line and its split of the load (the store's read,
+# then memory and index). Each is stopped with kill -9, so the snapshot
 # on disk stays the one B wrote. A's build must read B's snapshot layout.
 #
 #   bench/compare_rss.sh A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS]
@@ -38,7 +39,7 @@ while [ "$(unindexed_codes "$b" scale)" -gt 0 ]; do sleep 2; done
 stop_server
 
 payload_mib=$(awk -v n="$FILLED" 'BEGIN { print n * 1024 / 1048576 }')
-echo "build,round,rss_mib,rss_over_payload,port_seconds,snapshot_load"
+echo "build,round,rss_mib,rss_over_payload,port_seconds,snapshot_load,store_read_s,memory_and_index_s"
 for round in $(seq 1 "$rounds"); do
   for build in "$a" "$b"; do
     start=$(date +%s.%N)
@@ -49,10 +50,14 @@ for round in $(seq 1 "$rounds"); do
     rss=$(server_rss_mib "$SERVER_PID")
     load=$(sed -n 's/.*loaded from its index snapshot in \([0-9.]*\) s.*/\1 s/p' \
       "$work/restart.log")
+    # The engine's own split: the store's read (the snapshot's beside it),
+    # then memory and index.
+    split=$(sed -n 's/.*store read \([0-9.]*\) s, memory and index \([0-9.]*\) s.*/\1,\2/p' \
+      "$work/restart.log")
     awk -v b="$build" -v r="$round" -v m="$rss" -v p="$payload_mib" \
-      -v s="$port_s" -v l="$load" \
-      'BEGIN { printf "%s,%d,%d,%.2f,%s,%s\n", b, r, m, m / p, s,
-               l == "" ? "rebuilt" : l }'
+      -v s="$port_s" -v l="$load" -v x="${split:-,}" \
+      'BEGIN { printf "%s,%d,%d,%.2f,%s,%s,%s\n", b, r, m, m / p, s,
+               l == "" ? "rebuilt" : l, x }'
     kill -9 "$SERVER_PID"
     wait "$SERVER_PID" 2>/dev/null || true
   done

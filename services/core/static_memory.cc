@@ -418,6 +418,10 @@ absl::Status StaticMemory::RestoreAll(std::vector<Cluster> clusters,
     centroids_ = std::move(loaded);
   }
   if (reconciled != nullptr) *reconciled = changes;
+  size_t traces = 0;
+  for (const Cluster& cluster : clusters) traces += cluster.traces.size();
+  location_.reserve(location_.size() + traces);  // no rehash on the way
+  slot_trace_.reserve(slot_trace_.size() + traces);
   for (Cluster& cluster : clusters) {
     if (clusters_.contains(cluster.id)) Erase(cluster.id);  // id must be new
     Insert(std::move(cluster), /*with_centroid=*/!status.ok());

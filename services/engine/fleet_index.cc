@@ -42,15 +42,21 @@ void RunBeside(const std::function<void()>& first, size_t items,
   }
 }
 
-// A sample of the snapshot's `kept` traces, spread over all of them, must
-// have the codes the store has: DATA_LOSS naming the first that does not.
+// A sample of the snapshot's `kept` traces that came with a code, spread
+// over all of them, must have the codes the store has: DATA_LOSS naming
+// the first that does not.
 absl::Status CheckSnapshotCodes(
     const PlaceIndex& loaded, const TraceHandles& saved,
     std::span<const core::MemoryTrace* const> kept) {
+  std::vector<const core::MemoryTrace*> with_code;
+  for (const core::MemoryTrace* trace : kept) {
+    if (!trace->code.empty()) with_code.push_back(trace);
+  }
   std::vector<float> code;
-  const size_t step = std::max<size_t>(1, kept.size() / kCodesCheckedOnLoad);
-  for (size_t i = 0; i < kept.size(); i += step) {
-    const core::MemoryTrace& trace = *kept[i];
+  const size_t step =
+      std::max<size_t>(1, with_code.size() / kCodesCheckedOnLoad);
+  for (size_t i = 0; i < with_code.size(); i += step) {
+    const core::MemoryTrace& trace = *with_code[i];
     if (!loaded.CopyCode(saved.Find(trace.key()), &code) ||
         code != trace.code) {
       return absl::DataLossError(
@@ -79,6 +85,10 @@ std::vector<uint64_t> GoneHandles(
 }
 
 }  // namespace
+
+bool FleetIndex::CheckedOnLoad(uint64_t handle, size_t saved) {
+  return handle % std::max<size_t>(1, saved / kCodesCheckedOnLoad) == 0;
+}
 
 void FleetIndex::Reset() {
   index_.reset();

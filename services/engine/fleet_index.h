@@ -29,6 +29,11 @@ namespace fleetmem::engine {
 
 class FleetIndex {
  public:
+  // Whether a load should keep the store's code of the trace under
+  // `handle` in a snapshot of `saved` handles, for Reconcile's check: about
+  // 1,024 of them, spread over the handles (every one below 2,048).
+  static bool CheckedOnLoad(uint64_t handle, size_t saved);
+
   // What Reconcile did to a snapshot's index.
   struct Reconciled {
     size_t kept = 0;     // codes of stored traces the snapshot held
@@ -90,6 +95,10 @@ class FleetIndex {
   // first that does not: a snapshot of another history), what the store
   // no longer holds is removed and what the snapshot lacks is added. On an
   // error this index is left empty (Reset): the caller rebuilds it.
+  // A stored trace the snapshot holds may come without its code (a load
+  // that left it in the store: MemoryStore::LoadFleetWithoutHeldCodes);
+  // the sample is of those that have one, and a load keeps the codes of
+  // the handles CheckedOnLoad picks for it.
   absl::StatusOr<Reconciled> Reconcile(
       std::unique_ptr<PlaceIndex> loaded, TraceHandles saved,
       uint64_t next_handle,
@@ -100,10 +109,20 @@ class FleetIndex {
   uint64_t changes() const { return changes_; }
   // Something else the snapshot holds changed (forgetting's centroids).
   void MarkChanged() { ++changes_; }
-  // The snapshot on disk holds the state after changes() changes.
-  bool SnapshotCurrent() const { return snapshot_at_ == changes_; }
-  // A snapshot of the state after `changes` changes is on disk.
-  void SnapshotWritten(uint64_t changes) { snapshot_at_ = changes; }
+  // The snapshot on disk holds the state after changes() changes, with no
+  // fewer codes outside the graph than now (codes the background thread
+  // linked since a snapshot holding them unlinked make it stale: a load of
+  // it would link them again).
+  bool SnapshotCurrent() const {
+    return snapshot_at_ == changes_ &&
+           (index_ == nullptr || index_->unindexed() >= snapshot_unindexed_);
+  }
+  // A snapshot of the state after `changes` changes, with `unindexed`
+  // codes outside the graph (read before it was taken), is on disk.
+  void SnapshotWritten(uint64_t changes, size_t unindexed) {
+    snapshot_at_ = changes;
+    snapshot_unindexed_ = unindexed;
+  }
 
  private:
   std::unique_ptr<PlaceIndex> index_;
@@ -111,6 +130,7 @@ class FleetIndex {
   uint64_t next_handle_ = 1;
   uint64_t changes_ = 0;
   std::optional<uint64_t> snapshot_at_;
+  size_t snapshot_unindexed_ = 0;
   absl::Time deferred_until_ = absl::InfinitePast();
 };
 

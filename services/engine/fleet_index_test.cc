@@ -8,6 +8,7 @@
 #include "gtest/gtest.h"
 #include "services/core/byte_stream.h"
 #include "services/index/exact_index.h"
+#include "services/index/hnsw_index.h"
 
 namespace fleetmem::engine {
 namespace {
@@ -121,18 +122,40 @@ TEST(FleetIndexTest, TheSnapshotIsCurrentUntilTheNextChange) {
   EXPECT_FALSE(index.SnapshotCurrent());  // none written
   const std::vector<MemoryTrace> traces = {Trace("a", 1), Trace("a", 2)};
   ASSERT_TRUE(index.Add(Pointers(traces)).ok());
-  index.SnapshotWritten(index.changes());
+  index.SnapshotWritten(index.changes(), 0);
   EXPECT_TRUE(index.SnapshotCurrent());
   ASSERT_TRUE(index.Remove({TraceKey{"a", 1}}).ok());
   EXPECT_FALSE(index.SnapshotCurrent());
   // Removing what it does not hold changes nothing.
-  index.SnapshotWritten(index.changes());
+  index.SnapshotWritten(index.changes(), 0);
   ASSERT_TRUE(index.Remove({TraceKey{"a", 1}}).ok());
   EXPECT_TRUE(index.SnapshotCurrent());
   index.Reset();
   EXPECT_EQ(index.get(), nullptr);
   EXPECT_EQ(index.changes(), 0u);
   EXPECT_FALSE(index.SnapshotCurrent());
+}
+
+// Codes the tiered index's background thread links after a snapshot that
+// held them unlinked make it stale: a load of it would link them again.
+TEST(FleetIndexTest, CodesLinkedAfterASnapshotMakeItStale) {
+  index::TieredIndexOptions options;
+  options.hnsw_from = 10;
+  FleetIndex index;
+  index.Start(index::NewTieredIndex(kDimension, options));
+  index.DeferIndexing(absl::InfiniteFuture());  // nothing linked meanwhile
+  std::vector<MemoryTrace> traces;
+  for (uint64_t seq = 1; seq <= 40; ++seq) traces.push_back(Trace("a", seq));
+  ASSERT_TRUE(index.Add(Pointers(traces)).ok());
+  const size_t unindexed = index.get()->unindexed();
+  ASSERT_GT(unindexed, 0u);
+  index.SnapshotWritten(index.changes(), unindexed);
+  EXPECT_TRUE(index.SnapshotCurrent());
+  ASSERT_TRUE(index.get()->IndexWaiting().ok());
+  ASSERT_EQ(index.get()->unindexed(), 0u);
+  EXPECT_FALSE(index.SnapshotCurrent());
+  index.SnapshotWritten(index.changes(), 0);
+  EXPECT_TRUE(index.SnapshotCurrent());
 }
 
 // A snapshot taken before the store moved on: what the store holds now is
@@ -169,6 +192,53 @@ TEST(FleetIndexTest, ASnapshotIsReconciledWithTheStore) {
     EXPECT_EQ(after.KeyOf((*found)[0].id), trace.key());
   }
   EXPECT_EQ(after.changes(), 0u);
+}
+
+// A restart leaves the codes the snapshot holds in the store but for the
+// sample CheckedOnLoad picks: the reconciled index answers with the
+// snapshot's codes, and the sample still catches another history.
+TEST(FleetIndexTest, TracesLoadedWithoutTheSnapshotsCodesAreReconciled) {
+  FleetIndex before;
+  before.Start(index::NewExactIndex(kDimension));
+  std::vector<MemoryTrace> then;
+  for (uint64_t seq = 1; seq <= 5000; ++seq) then.push_back(Trace("a", seq));
+  ASSERT_TRUE(before.Add(Pointers(then)).ok());
+  for (bool other_history : {false, true}) {
+    Image image = Snapshot(before);
+    std::vector<MemoryTrace> now = then;
+    size_t kept_codes = 0;
+    MemoryTrace* sampled = nullptr;
+    for (MemoryTrace& trace : now) {
+      const uint64_t handle = image.saved.Find(trace.key());
+      ASSERT_NE(handle, 0u);
+      if (FleetIndex::CheckedOnLoad(handle, image.saved.size())) {
+        ++kept_codes;
+        sampled = &trace;
+      } else {
+        trace.code.clear();
+      }
+    }
+    EXPECT_GT(kept_codes, 800u);
+    EXPECT_LT(kept_codes, 2600u);
+    ASSERT_NE(sampled, nullptr);
+    if (other_history) sampled->code = Trace("b", 1).code;
+    FleetIndex after;
+    absl::StatusOr<FleetIndex::Reconciled> reconciled =
+        after.Reconcile(std::move(image.loaded), std::move(image.saved),
+                        image.next_handle, Pointers(now));
+    if (other_history) {
+      EXPECT_EQ(reconciled.status().code(), absl::StatusCode::kDataLoss);
+      EXPECT_EQ(after.get(), nullptr);
+      continue;
+    }
+    ASSERT_TRUE(reconciled.ok()) << reconciled.status();
+    EXPECT_EQ(reconciled->kept, then.size());
+    std::vector<float> code;
+    for (size_t i = 0; i < then.size(); i += 97) {
+      ASSERT_TRUE(after.CopyCode(then[i].key(), &code));
+      EXPECT_EQ(code, then[i].code);
+    }
+  }
 }
 
 TEST(FleetIndexTest, ASnapshotOfAnotherHistoryIsRefusedAndLeavesNoIndex) {

@@ -200,9 +200,11 @@ struct LoadedSnapshot {
   uint64_t next_handle = 0;
   std::unique_ptr<PlaceIndex> index;
   TraceHandles handles;
-  std::string centroids;  // what StaticMemory::SaveCentroids wrote
+  bool handles_loaded = false;  // `handles` are the snapshot's
+  std::string centroids;        // what StaticMemory::SaveCentroids wrote
   double handles_seconds = 0;
   double index_seconds = 0;
+  size_t unindexed = 0;  // the loaded index's codes outside its graph
 };
 
 // One fleet's state. Every member but `id`, `engine`, the mutexes and

@@ -82,6 +82,7 @@ absl::Status MemoryEngine::SaveIndexSnapshots(
     }
     const uint64_t changes = index.changes();
     const size_t codes = index.size();
+    const size_t unindexed = index.get()->unindexed();
     const absl::Time start = absl::Now();
     absl::Status status = fleet->SaveIndexSnapshot(release);
     release();  // the store did not call it (an error, or nothing to sync)
@@ -95,7 +96,7 @@ absl::Status MemoryEngine::SaveIndexSnapshots(
     {
       absl::MutexLock writer(&fleet->writer_mu);
       absl::MutexLock lock(&fleet->mu);
-      fleet->index.SnapshotWritten(changes);
+      fleet->index.SnapshotWritten(changes, unindexed);
     }
     const double held = absl::ToDoubleSeconds(released - start);
     FLEETMEM_LOG(kInfo) << "fleet \"" << fleet->id << "\": index snapshot of "

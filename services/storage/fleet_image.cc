@@ -1,6 +1,5 @@
 #include "services/storage/fleet_image.h"
 
-#include <map>
 #include <utility>
 #include <vector>
 
@@ -69,7 +68,7 @@ namespace {
 // every trace is read, so their records wait here.
 struct DecodedImage {
   engine::FleetImage image;
-  std::map<core::TraceKey, core::MemoryTrace> traces;
+  TraceTable traces;
   std::vector<std::pair<std::string_view, StoredCluster>> clusters;
   bool has_meta = false;
 };
@@ -91,10 +90,7 @@ absl::Status DecodeImageRecord(std::string_view fleet_id, keys::Tag tag,
     case keys::Tag::kTrace: {
       absl::StatusOr<core::MemoryTrace> trace =
           DecodeTrace(record.key(), record.value());
-      if (trace.ok()) {
-        core::TraceKey trace_key = trace->key();
-        out.traces.emplace(std::move(trace_key), *std::move(trace));
-      }
+      if (trace.ok()) out.traces.Add(*std::move(trace));
       return trace.status();
     }
     case keys::Tag::kCluster: {
@@ -163,11 +159,10 @@ absl::StatusOr<engine::FleetImage> DecodeFleetImage(std::string_view fleet_id,
       return status;
     }
   }
-  if (!decoded.traces.empty()) {
+  if (const core::MemoryTrace* orphan = decoded.traces.AnyLeft()) {
     return absl::DataLossError(absl::StrCat(
-        "fleet image of \"", V(fleet_id), "\": trace ",
-        decoded.traces.begin()->first.robot_id, "/",
-        decoded.traces.begin()->first.seq, " belongs to no cluster"));
+        "fleet image of \"", V(fleet_id), "\": trace ", orphan->robot_id, "/",
+        orphan->seq, " belongs to no cluster"));
   }
   return std::move(decoded.image);
 }

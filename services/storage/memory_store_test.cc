@@ -313,6 +313,38 @@ TEST_P(StoreTest, EmptyStore) {
   EXPECT_TRUE(Events(store(), "nobody", 0, 10).empty());
 }
 
+// A restart with an index snapshot leaves out the codes the snapshot
+// holds: only those, never a pending trace's; everything else as LoadFleet.
+TEST_P(StoreTest, LoadWithoutHeldCodesLeavesOutOnlyThose) {
+  FleetMutation m;
+  m.put_meta = true;
+  m.meta = MakeMeta(1);
+  m.put_pending = {MakeTrace("r2", 9)};
+  m.put_clusters = {MakeCluster(1, "r1", {3, 1}), MakeCluster(2, "r2", {4})};
+  ASSERT_TRUE(store().Apply("f", m).ok());
+  const FleetRecord full = Load(store(), "f");
+  std::vector<std::string> asked;
+  absl::StatusOr<FleetRecord> partial =
+      store().LoadFleetWithoutHeldCodes("f", [&](const core::TraceKey& key) {
+        asked.push_back(absl::StrCat(key.robot_id, "/", key.seq));
+        return key.seq != 4;
+      });
+  ASSERT_TRUE(partial.ok()) << partial.status();
+  EXPECT_THAT(asked, ::testing::UnorderedElementsAre("r1/1", "r1/3", "r2/4"));
+  FleetRecord want = full;
+  for (core::Cluster& cluster : want.clusters) {
+    for (core::MemoryTrace& trace : cluster.traces) {
+      if (trace.seq != 4) trace.code.clear();
+    }
+  }
+  ASSERT_FALSE(want.pending.front().code.empty());
+  EXPECT_EQ(Dump(*partial), Dump(want));
+  // A null function keeps every code.
+  absl::StatusOr<FleetRecord> all = store().LoadFleetWithoutHeldCodes("f", {});
+  ASSERT_TRUE(all.ok());
+  EXPECT_EQ(Dump(*all), Dump(full));
+}
+
 TEST_P(StoreTest, EventsAfterCursorWithLimit) {
   std::vector<core::MemoryEvent> all;
   for (uint64_t id = 1; id <= 300; ++id) {

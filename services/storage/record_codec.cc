@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <optional>
+#include <tuple>
 #include <variant>
 
 #include "absl/status/status.h"
@@ -191,12 +192,12 @@ void ToRecord(const core::MemoryTrace& trace, Trace* record) {
   record->set_attachment(trace.attachment);
 }
 
-core::MemoryTrace FromRecord(const Trace& record) {
+core::MemoryTrace FromRecord(const Trace& record, bool with_code = true) {
   core::MemoryTrace trace;
   trace.robot_id = record.robot_id();
   trace.seq = record.seq();
   trace.domain = record.domain();
-  trace.code.assign(record.code().begin(), record.code().end());
+  if (with_code) trace.code.assign(record.code().begin(), record.code().end());
   trace.place = FromProto(record.place());
   trace.reward = record.reward();
   trace.reward_external = record.reward_external();
@@ -219,6 +220,12 @@ std::string EncodeTrace(const core::MemoryTrace& trace) {
 
 absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
                                               std::string_view value) {
+  return DecodeTrace(key, value, [](const core::TraceKey&) { return true; });
+}
+
+absl::StatusOr<core::MemoryTrace> DecodeTrace(
+    std::string_view key, std::string_view value,
+    absl::FunctionRef<bool(const core::TraceKey&)> keep_code) {
   Trace record;
   if (absl::Status status = Parse(key, value, &record); !status.ok()) {
     return status;
@@ -231,7 +238,7 @@ absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
       key_of_record->seq != record.seq()) {
     return Corrupt(key, "trace does not match its key");
   }
-  return FromRecord(record);
+  return FromRecord(record, keep_code(*key_of_record));
 }
 
 struct LoggedRecordBytes::Impl {
@@ -634,24 +641,75 @@ absl::StatusOr<core::MemoryEvent> DecodeEvent(std::string_view key,
   return event;
 }
 
-absl::Status AssembleCluster(
-    std::string_view key, StoredCluster stored,
-    std::map<core::TraceKey, core::MemoryTrace>* traces,
-    std::vector<core::Cluster>* clusters) {
+namespace {
+
+bool KeyLess(const core::MemoryTrace& a, const core::MemoryTrace& b) {
+  return std::tie(a.robot_id, a.seq) < std::tie(b.robot_id, b.seq);
+}
+
+}  // namespace
+
+void TraceTable::Add(core::MemoryTrace trace) {
+  if (!traces_.empty() && !KeyLess(traces_.back(), trace)) sorted_ = false;
+  traces_.push_back(std::move(trace));
+  taken_.push_back(false);
+  ++left_;
+}
+
+void TraceTable::Sort() {
+  // Stable: of a key added twice, the first stays first and is taken.
+  std::stable_sort(traces_.begin(), traces_.end(), KeyLess);
+  sorted_ = true;
+}
+
+std::optional<core::MemoryTrace> TraceTable::Take(const core::TraceKey& key,
+                                                  uint64_t cluster_id) {
+  if (!sorted_) Sort();
+  auto found = std::lower_bound(
+      traces_.begin(), traces_.end(), key,
+      [](const core::MemoryTrace& trace, const core::TraceKey& k) {
+        return std::tie(trace.robot_id, trace.seq) <
+               std::tie(k.robot_id, k.seq);
+      });
+  if (found == traces_.end() || found->robot_id != key.robot_id ||
+      found->seq != key.seq || found->cluster_id != cluster_id) {
+    return std::nullopt;
+  }
+  const size_t at = static_cast<size_t>(found - traces_.begin());
+  if (taken_[at]) return std::nullopt;
+  taken_[at] = true;
+  --left_;
+  core::MemoryTrace taken = std::move(*found);
+  // The slot keeps its key: the table stays sorted for the next search.
+  found->robot_id = taken.robot_id;
+  found->seq = taken.seq;
+  return taken;
+}
+
+const core::MemoryTrace* TraceTable::AnyLeft() const {
+  if (left_ == 0) return nullptr;
+  for (size_t i = 0; i < traces_.size(); ++i) {
+    if (!taken_[i]) return &traces_[i];
+  }
+  return nullptr;
+}
+
+absl::Status AssembleCluster(std::string_view key, StoredCluster stored,
+                             TraceTable* traces,
+                             std::vector<core::Cluster>* clusters) {
   core::Cluster cluster;
   cluster.id = stored.id;
   cluster.robot_id = std::move(stored.robot_id);
   cluster.centroid = std::move(stored.centroid);
   cluster.traces.reserve(stored.members.size());
   for (const core::TraceKey& member : stored.members) {
-    auto trace = traces->find(member);
-    if (trace == traces->end() || trace->second.cluster_id != stored.id) {
+    std::optional<core::MemoryTrace> trace = traces->Take(member, stored.id);
+    if (!trace) {
       return Corrupt(key,
                      absl::StrCat("member ", member.robot_id, "/", member.seq,
                                   " has no trace of this cluster"));
     }
-    cluster.traces.push_back(std::move(trace->second));
-    traces->erase(trace);
+    cluster.traces.push_back(std::move(*trace));
   }
   clusters->push_back(std::move(cluster));
   return absl::OkStatus();

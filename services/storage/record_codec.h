@@ -7,13 +7,14 @@
 #define FLEETMEM_SERVICES_STORAGE_RECORD_CODEC_H_
 
 #include <cstdint>
-#include <map>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
 #include <vector>
 
+#include "absl/functional/function_ref.h"
 #include "absl/status/statusor.h"
 #include "services/core/types.h"
 #include "services/engine/fleet_log.h"
@@ -38,6 +39,12 @@ absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
 std::string EncodeTrace(const core::MemoryTrace& trace);
 absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
                                               std::string_view value);
+// DecodeTrace, with the code left empty where `keep_code(its key)` is
+// false (a restart whose index snapshot holds the code: LoadFleet's
+// `code_held_elsewhere`).
+absl::StatusOr<core::MemoryTrace> DecodeTrace(
+    std::string_view key, std::string_view value,
+    absl::FunctionRef<bool(const core::TraceKey&)> keep_code);
 
 std::string EncodeCluster(const StoredCluster& cluster);
 absl::StatusOr<StoredCluster> DecodeCluster(std::string_view key,
@@ -80,13 +87,37 @@ absl::StatusOr<engine::LogEntry> DecodeLoggedUpload(std::string_view key,
 absl::StatusOr<engine::StoredRecord> DecodeLoggedRecord(std::string_view where,
                                                         std::string_view value);
 
+// The traces of a fleet's clusters as they are read, before the cluster
+// records that list them: added in any order (a scan's are in key order),
+// then each taken once by AssembleCluster. A sorted vector, not a map: a
+// load of 1,000,000 traces allocated a map node for each.
+class TraceTable {
+ public:
+  // A key added twice is taken once: the other copy is left over (a load
+  // reports it as a trace of no cluster).
+  void Add(core::MemoryTrace trace);
+  // The trace under `key`, moved out, if it is here, not taken and of
+  // cluster `cluster_id`; else nullopt.
+  std::optional<core::MemoryTrace> Take(const core::TraceKey& key,
+                                        uint64_t cluster_id);
+  // A trace no cluster took, or nullptr when every one was.
+  const core::MemoryTrace* AnyLeft() const;
+
+ private:
+  void Sort();
+
+  std::vector<core::MemoryTrace> traces_;
+  std::vector<bool> taken_;
+  size_t left_ = 0;
+  bool sorted_ = true;
+};
+
 // Moves the member traces of `stored` (read at `key`) out of `traces` into
 // a new cluster at the end of `clusters`; DATA_LOSS if a member has no
 // trace of this cluster there.
-absl::Status AssembleCluster(
-    std::string_view key, StoredCluster stored,
-    std::map<core::TraceKey, core::MemoryTrace>* traces,
-    std::vector<core::Cluster>* clusters);
+absl::Status AssembleCluster(std::string_view key, StoredCluster stored,
+                             TraceTable* traces,
+                             std::vector<core::Cluster>* clusters);
 
 }  // namespace fleetmem::storage
 

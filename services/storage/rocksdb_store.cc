@@ -529,6 +529,13 @@ class RocksDbStore final : public engine::MemoryStore {
 
   absl::StatusOr<engine::FleetRecord> LoadFleet(
       std::string_view fleet_id) override {
+    return LoadFleetWithoutHeldCodes(fleet_id, nullptr);
+  }
+
+  absl::StatusOr<engine::FleetRecord> LoadFleetWithoutHeldCodes(
+      std::string_view fleet_id,
+      const std::function<bool(const TraceKey&)>& code_held_elsewhere)
+      override {
     engine::FleetRecord record;
     record.fleet_id = std::string(fleet_id);
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
@@ -564,17 +571,16 @@ class RocksDbStore final : public engine::MemoryStore {
                   });
     if (!status.ok()) return status;
 
-    std::map<TraceKey, core::MemoryTrace> traces;
+    TraceTable traces;
+    auto keep_code = [&](const TraceKey& key) {
+      return !code_held_elsewhere || !code_held_elsewhere(key);
+    };
     status = Scan(read, keys::Tag::kTrace, fleet_id,
                   [&](std::string_view key, std::string_view v) {
                     absl::StatusOr<core::MemoryTrace> trace =
-                        DecodeTrace(key, v);
+                        DecodeTrace(key, v, keep_code);
                     if (!trace.ok()) return trace.status();
-                    // Keys arrive in order: appending at the end costs no
-                    // search.
-                    TraceKey trace_key = trace->key();
-                    traces.emplace_hint(traces.end(), std::move(trace_key),
-                                        std::move(*trace));
+                    traces.Add(*std::move(trace));
                     return absl::OkStatus();
                   });
     if (!status.ok()) return status;
@@ -587,12 +593,11 @@ class RocksDbStore final : public engine::MemoryStore {
                                            &record.clusters);
                   });
     if (!status.ok()) return status;
-    if (!traces.empty()) {
-      const TraceKey& orphan = traces.begin()->first;
+    if (const core::MemoryTrace* orphan = traces.AnyLeft()) {
       return absl::DataLossError(
           absl::StrCat("corrupt record at ",
-                       keys::Describe(keys::TraceKey(fleet_id, orphan)),
-                       ": trace of cluster ", traces.begin()->second.cluster_id,
+                       keys::Describe(keys::TraceKey(fleet_id, orphan->key())),
+                       ": trace of cluster ", orphan->cluster_id,
                        " which does not list it"));
     }
     return record;
