@@ -24,13 +24,6 @@ namespace {
 using engine::Neighbor;
 using engine::SearchParams;
 
-// Makes room for `needed` elements, at least doubling the capacity, so that
-// a series of Adds copies each element O(1) times.
-template <typename T>
-void ReserveGeometric(std::vector<T>& v, size_t needed) {
-  if (needed > v.capacity()) v.reserve(std::max(needed, 2 * v.capacity()));
-}
-
 // scores[c] = squared_norms[c] - 2 * query_scale * scales[c] * <column c,
 // query> + query_norm for the first `count` columns of `vectors` (dimension ×
 // count, column-major), in one pass: one column at a time with four SSE

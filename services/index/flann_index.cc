@@ -38,13 +38,6 @@ absl::Status ExceptionToStatus(const char* where) {
   }
 }
 
-// Makes room for `needed` elements, at least doubling the capacity, so that
-// a series of Adds copies each element O(1) times.
-template <typename T>
-void ReserveGeometric(std::vector<T>& v, size_t needed) {
-  if (needed > v.capacity()) v.reserve(std::max(needed, 2 * v.capacity()));
-}
-
 class FlannIndex final : public engine::PlaceIndex {
  public:
   FlannIndex(size_t dimension, const FlannIndexOptions& options)

@@ -217,9 +217,12 @@ absl::StatusOr<core::HnswGraph::Staged> HnswIndex::StageScaled(
     return status;
   }
   try {
-    graph_->Reserve(slot_of_.size() + ids.size());
-    slot_of_.reserve(slot_of_.size() + ids.size());
-    id_of_.reserve(slot_of_.size() + ids.size());
+    const size_t needed = slot_of_.size() + ids.size();
+    graph_->Reserve(needed);
+    slot_of_.reserve(needed);
+    // Doubling: a reserve of exactly `needed` copied the whole table at
+    // every step of a few codes, 80 MB a step at 10,000,000 held.
+    ReserveGeometric(id_of_, needed);
   } catch (const std::bad_alloc&) {
     return absl::ResourceExhaustedError("HNSW index: out of memory in Add");
   }

@@ -1,8 +1,10 @@
-// Input checks shared by the PlaceIndex implementations of this module
-// (internal to services/index; not part of the engine's port).
+// Input checks and a growth rule shared by the PlaceIndex implementations
+// of this module (internal to services/index; not part of the engine's
+// port).
 #ifndef FLEETMEM_SERVICES_INDEX_INDEX_INPUT_H_
 #define FLEETMEM_SERVICES_INDEX_INDEX_INPUT_H_
 
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <functional>
@@ -26,6 +28,14 @@ absl::Status CheckAddBatch(size_t dimension, std::span<const uint64_t> ids,
 
 // A query must have `dimension` finite values; INVALID_ARGUMENT otherwise.
 absl::Status CheckQuery(size_t dimension, std::span<const float> query);
+
+// Makes room for `needed` elements, at least doubling the capacity, so that
+// a series of Adds copies each element O(1) times (a reserve of exactly
+// `needed` copies the whole vector at every Add).
+template <typename T>
+void ReserveGeometric(std::vector<T>& v, size_t needed) {
+  if (needed > v.capacity()) v.reserve(std::max(needed, 2 * v.capacity()));
+}
 
 }  // namespace fleetmem::index
 
