@@ -190,6 +190,11 @@ struct Notices {
 // A fleet's index snapshot as read from the store, before it meets the
 // fleet's stored traces: the index loaded, its handle table, and
 // forgetting's centroid bookkeeping still as bytes.
+// Gives freed heap pages back to the system, which glibc does not do by
+// itself for pages amid the heap (malloc_trim): after a load, or after a
+// million codes of 1 KB each were released.
+void ReturnFreedMemory();
+
 struct LoadedSnapshot {
   // NOT_FOUND when there is none; why it is unusable otherwise.
   absl::Status status = absl::NotFoundError("no index snapshot read");
@@ -286,8 +291,8 @@ struct MemoryEngine::Fleet {
   // Returns the codes freed.
   size_t ReleaseCodes(const std::vector<core::TraceKey>& keys)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
-  // ReleaseCodes of every static-memory trace that still has its code,
-  // then the freed pages go back to the system.
+  // ReleaseCodes of every static-memory trace that still has its code
+  // (the caller returns the freed pages: ReturnFreedMemory).
   size_t ReleaseAllCodes() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
 
   // An upload in three steps, so that readers wait only for the last:

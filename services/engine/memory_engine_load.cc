@@ -33,16 +33,13 @@
 
 namespace fleetmem::engine {
 
-namespace {
-
-// Gives freed heap pages back to the system, which glibc does not do by
-// itself for pages amid the heap: after a load dropped a million codes of
-// 1 KB each (ReleaseCodes).
 void ReturnFreedMemory() {
 #if defined(__GLIBC__)
   malloc_trim(0);
 #endif
 }
+
+namespace {
 
 // Version of the engine's part of an index snapshot: ENG2 records the
 // fleet's index settings (its kind, HNSW's M and ef) after the dimension,
@@ -192,8 +189,9 @@ absl::Status MemoryEngine::Fleet::Reload() {
     return status;
   }
   // The load's temporaries (its records, decoded and freed a trace at a
-  // time) leave holes amid the heap that glibc keeps: 880 MiB of 2,209
-  // resident at 1,000,000 traces when the codes stayed in the store.
+  // time, and the codes the index took) leave holes amid the heap that
+  // glibc keeps: 880 MiB of 2,209 resident at 1,000,000 traces when the
+  // codes stayed in the store. Once per load.
   if (memory.trace_count() >= 10'000) ReturnFreedMemory();
   stale = absl::OkStatus();
   PublishHeld();
@@ -351,10 +349,7 @@ size_t MemoryEngine::Fleet::ReleaseAllCodes() {
       if (!trace.code.empty()) keys.push_back(trace.key());
     }
   }
-  const size_t released = ReleaseCodes(keys);
-  // Large releases leave holes amid the heap that glibc keeps.
-  if (released >= 10'000) ReturnFreedMemory();
-  return released;
+  return ReleaseCodes(keys);
 }
 
 absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(

@@ -43,6 +43,8 @@ size_t MemoryEngine::ReleaseIndexedCodes() {
     absl::MutexLock lock(&fleet->mu);
     released += fleet->ReleaseAllCodes();
   }
+  // Large releases leave holes amid the heap that glibc keeps.
+  if (released >= 10'000) ReturnFreedMemory();
   return released;
 }
 
