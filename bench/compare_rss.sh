@@ -8,6 +8,9 @@
 # engine's snapshot load line and its split of the load (the store's read,
 # then memory and index). Each is stopped with kill -9, so the snapshot
 # on disk stays the one B wrote. A's build must read B's snapshot layout.
+# A starts on a copy of B's data dir: a newer A may migrate the store's
+# layout (builds after 2026-11-30 do, once: round 0, A's first start, shows
+# it), which B would no longer read.
 #
 #   bench/compare_rss.sh A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS]
 #   (default: 200000 traces, 2 rounds)
@@ -38,12 +41,17 @@ start_server "$b" "$work/data" "$work/build.log" --config "$work/restart.textpro
 while [ "$(unindexed_codes "$b" scale)" -gt 0 ]; do sleep 2; done
 stop_server
 
+cp -a "$work/data" "$work/data-a"
+
 payload_mib=$(awk -v n="$FILLED" 'BEGIN { print n * 1024 / 1048576 }')
 echo "build,round,rss_mib,rss_over_payload,port_seconds,snapshot_load,store_read_s,memory_and_index_s"
-for round in $(seq 1 "$rounds"); do
+for round in $(seq 0 "$rounds"); do
   for build in "$a" "$b"; do
+    [ "$round" -gt 0 ] || [ "$build" = "$a" ] || continue
+    data="$work/data"
+    [ "$build" != "$a" ] || data="$work/data-a"
     start=$(date +%s.%N)
-    SERVER_START_SECONDS=1200 start_server "$build" "$work/data" \
+    SERVER_START_SECONDS=1200 start_server "$build" "$data" \
       "$work/restart.log" --config "$work/restart.textproto"
     port_s=$(awk "BEGIN { printf \"%.2f\", $(date +%s.%N) - $start }")
     sleep 3

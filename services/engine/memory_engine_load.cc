@@ -121,8 +121,7 @@ absl::Status MemoryEngine::Fleet::Reload() {
   const absl::Time start = absl::Now();
   // The index snapshot is read and its index loaded on a second thread
   // while this one reads the fleet's traces, without the codes the
-  // snapshot's handles say it holds but a sample for Reconcile's check
-  // (from the moment those are read: the first part of the snapshot).
+  // snapshot's handles say it holds but a sample for Reconcile's check.
   LoadedSnapshot snapshot;
   absl::Notification handles_read;
   auto read_snapshot = [&] {
@@ -139,12 +138,12 @@ absl::Status MemoryEngine::Fleet::Reload() {
   } catch (const std::system_error&) {
     read_snapshot();  // no thread: one after the other
   }
-  // No wait for the handles: traces read before they are in keep their
-  // codes (released once the index holds them, as after a rebuild).
+  // Asked once the store has read the fleet's records (which takes about
+  // as long as the snapshot's checksum and handles): the wait is short,
+  // and reading every code meanwhile would cost more.
   auto held_by_snapshot = [&](const core::TraceKey& key) {
-    if (!handles_read.HasBeenNotified() || !snapshot.handles_loaded) {
-      return false;
-    }
+    handles_read.WaitForNotification();
+    if (!snapshot.handles_loaded) return false;
     const uint64_t handle = snapshot.handles.Find(key);
     return handle != 0 &&
            !FleetIndex::CheckedOnLoad(handle, snapshot.handles.size());

@@ -90,7 +90,8 @@ struct FleetMutation {
   std::vector<uint64_t> erase_clusters;
   // Traces of the static memory whose fields changed (e.g. replay_count);
   // their cluster already exists. A trace the store does not hold is
-  // skipped.
+  // skipped. An update never changes a trace's code: a store may keep the
+  // code it holds and write the other fields only.
   std::vector<core::MemoryTrace> update_traces;
   // The engine vouches that every update_traces entry is held, with the
   // cluster_id it carries (a replay draw, under the fleet's writer lock):
@@ -136,7 +137,9 @@ class MemoryStore {
   // LoadFleet, with the code of each trace of a cluster for which
   // `code_held_elsewhere(key)` is true left empty (pending traces keep
   // theirs): a restart whose index snapshot holds those codes does not
-  // decode them a second time (1 GB at 1,000,000 256-d traces). This
+  // read them a second time (1 GB at 1,000,000 256-d traces). The function
+  // is asked once per such trace, on the calling thread, after the fleet's
+  // other records are read (so it may wait for what it needs). This
   // default loads everything, then empties those codes; a store may skip
   // them as it reads. A null function keeps every code.
   virtual absl::StatusOr<FleetRecord> LoadFleetWithoutHeldCodes(

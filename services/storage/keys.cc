@@ -38,6 +38,8 @@ std::string_view TagName(Tag tag) {
       return "cluster";
     case Tag::kTrace:
       return "trace";
+    case Tag::kCode:
+      return "code";
     case Tag::kRobot:
       return "robot";
     case Tag::kEvent:
@@ -98,6 +100,10 @@ std::string TraceKey(std::string_view fleet_id, const core::TraceKey& key) {
   return KeyWithTraceSuffix(Tag::kTrace, fleet_id, key);
 }
 
+std::string CodeKey(std::string_view fleet_id, const core::TraceKey& key) {
+  return KeyWithTraceSuffix(Tag::kCode, fleet_id, key);
+}
+
 std::string ClusterKey(std::string_view fleet_id, uint64_t cluster_id) {
   return KeyWithIdSuffix(Tag::kCluster, fleet_id, cluster_id);
 }
@@ -154,7 +160,8 @@ std::string Describe(std::string_view key) {
         ok = parsed->suffix.empty();
         break;
       case Tag::kPending:
-      case Tag::kTrace: {
+      case Tag::kTrace:
+      case Tag::kCode: {
         const std::optional<core::TraceKey> trace_key =
             ParseTraceSuffix(parsed->suffix);
         ok = trace_key.has_value();

@@ -5,6 +5,10 @@
 //   pending  'p'  robot id | 0x00 | seq (8 bytes, big-endian)
 //   cluster  'c'  cluster id (8 bytes, big-endian)
 //   trace    't'  robot id | 0x00 | seq (8 bytes, big-endian)
+//   code     'k'  robot id | 0x00 | seq: the code of the trace under 't'
+//                 with the same suffix, apart from its other fields (so
+//                 that a restart whose index snapshot holds the codes reads
+//                 ~150 bytes a trace, not ~1,200; layout 2)
 //   robot    'r'  robot id
 //   event    'e'  event id (8 bytes, big-endian)
 //   log      'l'  sequence (8 bytes, big-endian): the ingest log, apart
@@ -33,6 +37,7 @@ enum class Tag : char {
   kPending = 'p',
   kCluster = 'c',
   kTrace = 't',
+  kCode = 'k',
   kRobot = 'r',
   kEvent = 'e',
   kLog = 'l',
@@ -41,11 +46,16 @@ enum class Tag : char {
 
 // Every tag that holds a fleet's state (not its ingest log).
 inline constexpr Tag kFleetTags[] = {Tag::kMeta,  Tag::kPending, Tag::kCluster,
-                                     Tag::kTrace, Tag::kRobot,   Tag::kEvent};
+                                     Tag::kTrace, Tag::kCode,    Tag::kRobot,
+                                     Tag::kEvent};
 
 inline constexpr char kSeparator = '\0';
 inline constexpr std::string_view kFormatKey = "!format";
-inline constexpr std::string_view kFormatVersion = "fleetmem.storage/1";
+// Layout 2 keeps a static-memory trace's code under its own key ('k');
+// layout 1 kept it inside the trace record. A store of layout 1 is
+// migrated when it opens (rocksdb_store.cc: MigrateCodes).
+inline constexpr std::string_view kFormatVersion = "fleetmem.storage/2";
+inline constexpr std::string_view kFormatVersion1 = "fleetmem.storage/1";
 
 // tag | fleet | 0x00: every key of (tag, fleet) starts with it.
 std::string Prefix(Tag tag, std::string_view fleet_id);
@@ -55,6 +65,7 @@ std::string PrefixEnd(Tag tag, std::string_view fleet_id);
 std::string MetaKey(std::string_view fleet_id);
 std::string PendingKey(std::string_view fleet_id, const core::TraceKey& key);
 std::string TraceKey(std::string_view fleet_id, const core::TraceKey& key);
+std::string CodeKey(std::string_view fleet_id, const core::TraceKey& key);
 std::string ClusterKey(std::string_view fleet_id, uint64_t cluster_id);
 std::string RobotKey(std::string_view fleet_id, std::string_view robot_id);
 std::string EventKey(std::string_view fleet_id, uint64_t event_id);

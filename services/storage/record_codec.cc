@@ -1,6 +1,8 @@
 #include "services/storage/record_codec.h"
 
 #include <algorithm>
+#include <bit>
+#include <cstring>
 #include <optional>
 #include <tuple>
 #include <variant>
@@ -176,11 +178,14 @@ absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
 
 namespace {
 
-void ToRecord(const core::MemoryTrace& trace, Trace* record) {
+void ToRecord(const core::MemoryTrace& trace, Trace* record,
+              bool with_code = true) {
   record->set_robot_id(trace.robot_id);
   record->set_seq(trace.seq);
   record->set_domain(trace.domain);
-  record->mutable_code()->Add(trace.code.begin(), trace.code.end());
+  if (with_code) {
+    record->mutable_code()->Add(trace.code.begin(), trace.code.end());
+  }
   ToProto(trace.place, record->mutable_place());
   record->set_reward(trace.reward);
   record->set_reward_external(trace.reward_external);
@@ -192,12 +197,12 @@ void ToRecord(const core::MemoryTrace& trace, Trace* record) {
   record->set_attachment(trace.attachment);
 }
 
-core::MemoryTrace FromRecord(const Trace& record, bool with_code = true) {
+core::MemoryTrace FromRecord(const Trace& record) {
   core::MemoryTrace trace;
   trace.robot_id = record.robot_id();
   trace.seq = record.seq();
   trace.domain = record.domain();
-  if (with_code) trace.code.assign(record.code().begin(), record.code().end());
+  trace.code.assign(record.code().begin(), record.code().end());
   trace.place = FromProto(record.place());
   trace.reward = record.reward();
   trace.reward_external = record.reward_external();
@@ -220,12 +225,6 @@ std::string EncodeTrace(const core::MemoryTrace& trace) {
 
 absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
                                               std::string_view value) {
-  return DecodeTrace(key, value, [](const core::TraceKey&) { return true; });
-}
-
-absl::StatusOr<core::MemoryTrace> DecodeTrace(
-    std::string_view key, std::string_view value,
-    absl::FunctionRef<bool(const core::TraceKey&)> keep_code) {
   Trace record;
   if (absl::Status status = Parse(key, value, &record); !status.ok()) {
     return status;
@@ -238,7 +237,34 @@ absl::StatusOr<core::MemoryTrace> DecodeTrace(
       key_of_record->seq != record.seq()) {
     return Corrupt(key, "trace does not match its key");
   }
-  return FromRecord(record, keep_code(*key_of_record));
+  return FromRecord(record);
+}
+
+std::string EncodeTraceWithoutCode(const core::MemoryTrace& trace) {
+  Trace record;
+  ToRecord(trace, &record, /*with_code=*/false);
+  return record.SerializeAsString();
+}
+
+// Codes are written as the floats' bytes in memory.
+static_assert(std::endian::native == std::endian::little,
+              "codes are stored little-endian: this build assumes a "
+              "little-endian machine");
+
+std::string EncodeCode(std::span<const float> code) {
+  return std::string(reinterpret_cast<const char*>(code.data()),
+                     code.size() * sizeof(float));
+}
+
+absl::Status DecodeCode(std::string_view key, std::string_view value,
+                        std::vector<float>* code) {
+  if (value.empty() || value.size() % sizeof(float) != 0) {
+    return Corrupt(key, absl::StrCat("a code of ", value.size(),
+                                     " bytes is not a whole number of floats"));
+  }
+  code->resize(value.size() / sizeof(float));
+  std::memcpy(code->data(), value.data(), value.size());
+  return absl::OkStatus();
 }
 
 struct LoggedRecordBytes::Impl {
@@ -692,6 +718,16 @@ const core::MemoryTrace* TraceTable::AnyLeft() const {
     if (!taken_[i]) return &traces_[i];
   }
   return nullptr;
+}
+
+absl::Status TraceTable::ForEach(
+    absl::FunctionRef<absl::Status(core::MemoryTrace&)> visit) {
+  if (!sorted_) Sort();
+  for (size_t i = 0; i < traces_.size(); ++i) {
+    if (taken_[i]) continue;
+    if (absl::Status status = visit(traces_[i]); !status.ok()) return status;
+  }
+  return absl::OkStatus();
 }
 
 absl::Status AssembleCluster(std::string_view key, StoredCluster stored,

@@ -35,16 +35,23 @@ std::string EncodeMeta(const engine::FleetMeta& meta);
 absl::StatusOr<engine::FleetMeta> DecodeMeta(std::string_view key,
                                              std::string_view value);
 
-// Pending and static-memory traces alike (cluster_id is 0 while pending).
+// Pending and static-memory traces alike (cluster_id is 0 while pending),
+// with the code inside: pending records and fleet images.
 std::string EncodeTrace(const core::MemoryTrace& trace);
 absl::StatusOr<core::MemoryTrace> DecodeTrace(std::string_view key,
                                               std::string_view value);
-// DecodeTrace, with the code left empty where `keep_code(its key)` is
-// false (a restart whose index snapshot holds the code: LoadFleet's
-// `code_held_elsewhere`).
-absl::StatusOr<core::MemoryTrace> DecodeTrace(
-    std::string_view key, std::string_view value,
-    absl::FunctionRef<bool(const core::TraceKey&)> keep_code);
+// A static-memory trace's record without its code, which goes under
+// keys::CodeKey (EncodeCode). DecodeTrace reads it back with an empty code
+// (and a record of layout 1 with its code).
+std::string EncodeTraceWithoutCode(const core::MemoryTrace& trace);
+
+// A code under keys::CodeKey: its floats, 4 bytes each, little-endian (the
+// bytes are the floats in memory: no parse). DecodeCode fills `code`;
+// DATA_LOSS naming `key` for an empty value or one not a whole number of
+// floats.
+std::string EncodeCode(std::span<const float> code);
+absl::Status DecodeCode(std::string_view key, std::string_view value,
+                        std::vector<float>* code);
 
 std::string EncodeCluster(const StoredCluster& cluster);
 absl::StatusOr<StoredCluster> DecodeCluster(std::string_view key,
@@ -102,6 +109,10 @@ class TraceTable {
                                         uint64_t cluster_id);
   // A trace no cluster took, or nullptr when every one was.
   const core::MemoryTrace* AnyLeft() const;
+  // Calls `visit` with each trace not taken, ascending by key (the order of
+  // a scan of their keys), until it fails; returns its status.
+  absl::Status ForEach(
+      absl::FunctionRef<absl::Status(core::MemoryTrace&)> visit);
 
  private:
   void Sort();

@@ -1,6 +1,8 @@
 // TraceTable: the traces of a load waiting for the clusters that list them.
 #include "services/storage/record_codec.h"
 
+#include <bit>
+#include <cstdint>
 #include <optional>
 #include <string>
 #include <vector>
@@ -54,26 +56,70 @@ TEST(TraceTableTest, AKeyAddedTwiceLeavesOneCopyOver) {
   EXPECT_EQ(table.AnyLeft()->domain, "second");
 }
 
-TEST(RecordCodecTest, ATraceDecodesWithoutItsCodeWhenAsked) {
+TEST(TraceTableTest, ForEachVisitsWhatIsLeftInKeyOrder) {
+  TraceTable table;
+  table.Add(TraceOf("r2", 1, 7));
+  table.Add(TraceOf("r1", 10, 7));
+  table.Add(TraceOf("r1", 2, 7));
+  ASSERT_TRUE(table.Take({"r1", 10}, 7));
+  std::vector<core::TraceKey> seen;
+  ASSERT_TRUE(table
+                  .ForEach([&](core::MemoryTrace& trace) {
+                    seen.push_back(trace.key());
+                    return absl::OkStatus();
+                  })
+                  .ok());
+  EXPECT_EQ(seen, (std::vector<core::TraceKey>{{"r1", 2}, {"r2", 1}}));
+  const absl::Status stopped = table.ForEach(
+      [](core::MemoryTrace&) { return absl::DataLossError("stop"); });
+  EXPECT_EQ(stopped.code(), absl::StatusCode::kDataLoss);
+}
+
+TEST(RecordCodecTest, ATraceRecordWithoutItsCodeHoldsEverythingElse) {
   const core::MemoryTrace trace = TraceOf("r1", 5, 2);
+  ASSERT_FALSE(trace.code.empty());
   const std::string key = keys::TraceKey("f", trace.key());
-  const std::string value = EncodeTrace(trace);
-  absl::StatusOr<core::MemoryTrace> with = DecodeTrace(key, value);
-  ASSERT_TRUE(with.ok()) << with.status();
-  EXPECT_EQ(with->code, trace.code);
-  core::TraceKey asked;
-  absl::StatusOr<core::MemoryTrace> without =
-      DecodeTrace(key, value, [&](const core::TraceKey& k) {
-        asked = k;
-        return false;
-      });
-  ASSERT_TRUE(without.ok()) << without.status();
-  EXPECT_EQ(asked, trace.key());
-  EXPECT_TRUE(without->code.empty());
-  core::MemoryTrace expected = *with;
+  const std::string whole = EncodeTrace(trace);
+  const std::string without = EncodeTraceWithoutCode(trace);
+  EXPECT_LT(without.size() + trace.code.size() * sizeof(float),
+            whole.size() + 8);
+  absl::StatusOr<core::MemoryTrace> decoded = DecodeTrace(key, without);
+  ASSERT_TRUE(decoded.ok()) << decoded.status();
+  EXPECT_TRUE(decoded->code.empty());
+  core::MemoryTrace expected = trace;
   expected.code.clear();
-  EXPECT_EQ(testing::Dump(engine::FleetRecord{.pending = {*without}}),
+  EXPECT_EQ(testing::Dump(engine::FleetRecord{.pending = {*decoded}}),
             testing::Dump(engine::FleetRecord{.pending = {expected}}));
+  // A record of layout 1 still decodes with its code.
+  absl::StatusOr<core::MemoryTrace> old = DecodeTrace(key, whole);
+  ASSERT_TRUE(old.ok()) << old.status();
+  EXPECT_EQ(old->code, trace.code);
+}
+
+TEST(RecordCodecTest, ACodeRoundTripsBitForBit) {
+  const std::vector<float> code = {0.0f, -1.5f, 3.25e-8f, 1e30f, -0.0f};
+  const std::string key = keys::CodeKey("f", {"r1", 5});
+  const std::string value = EncodeCode(code);
+  EXPECT_EQ(value.size(), code.size() * sizeof(float));
+  std::vector<float> decoded = {9.0f};
+  ASSERT_TRUE(DecodeCode(key, value, &decoded).ok());
+  ASSERT_EQ(decoded.size(), code.size());
+  for (size_t i = 0; i < code.size(); ++i) {
+    EXPECT_EQ(std::bit_cast<uint32_t>(decoded[i]),
+              std::bit_cast<uint32_t>(code[i]))
+        << i;
+  }
+}
+
+TEST(RecordCodecTest, ACodeOfPartialFloatsIsDataLossNamingItsKey) {
+  const std::string key = keys::CodeKey("f", {"r1", 5});
+  std::vector<float> decoded;
+  for (const std::string value : {std::string(), std::string(7, 'x')}) {
+    const absl::Status status = DecodeCode(key, value, &decoded);
+    EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << value.size();
+    EXPECT_NE(status.message().find("code[f/r1/5]"), std::string_view::npos)
+        << status;
+  }
 }
 
 }  // namespace

@@ -10,9 +10,11 @@
 #include <cstring>
 #include <exception>
 #include <filesystem>
+#include <iterator>
 #include <map>
 #include <optional>
 #include <set>
+#include <span>
 #include <string>
 #include <system_error>
 #include <utility>
@@ -226,6 +228,25 @@ class MutationWriter {
     return std::move(*trace);
   }
 
+  // A static-memory trace: its record, and its code under a key of its own
+  // (keys.h). CheckMutation has made sure that the code is there.
+  void PutTrace(const core::MemoryTrace& trace) {
+    PutTraceRecord(trace);
+    staging_->Put(keys::CodeKey(fleet_id_, trace.key()),
+                  EncodeCode(trace.code));
+  }
+  // The record alone: an update never changes a trace's code
+  // (FleetMutation::update_traces), so a replay draw or a reward update
+  // writes ~150 bytes a trace, not its 1 KB code again.
+  void PutTraceRecord(const core::MemoryTrace& trace) {
+    staging_->Put(keys::TraceKey(fleet_id_, trace.key()),
+                  EncodeTraceWithoutCode(trace));
+  }
+  void DeleteTrace(const TraceKey& key) {
+    staging_->Delete(keys::TraceKey(fleet_id_, key));
+    staging_->Delete(keys::CodeKey(fleet_id_, key));
+  }
+
   void PutClusterRecord(const StoredCluster& cluster) {
     staging_->Put(keys::ClusterKey(fleet_id_, cluster.id),
                   EncodeCluster(cluster));
@@ -246,9 +267,7 @@ class MutationWriter {
     absl::StatusOr<std::optional<StoredCluster>> cluster = GetCluster(id);
     if (!cluster.ok()) return cluster.status();
     if (!cluster->has_value()) return absl::OkStatus();
-    for (const TraceKey& member : (*cluster)->members) {
-      staging_->Delete(keys::TraceKey(fleet_id_, member));
-    }
+    for (const TraceKey& member : (*cluster)->members) DeleteTrace(member);
     staging_->Delete(keys::ClusterKey(fleet_id_, id));
     return absl::OkStatus();
   }
@@ -257,7 +276,7 @@ class MutationWriter {
     absl::StatusOr<std::optional<core::MemoryTrace>> trace = GetTrace(key);
     if (!trace.ok()) return trace.status();
     if (!trace->has_value()) return absl::OkStatus();
-    staging_->Delete(keys::TraceKey(fleet_id_, key));
+    DeleteTrace(key);
     return DropMember((*trace)->cluster_id, key);
   }
 
@@ -270,9 +289,7 @@ class MutationWriter {
     if (!old.ok()) return old.status();
     if (old->has_value()) {
       for (const TraceKey& member : (*old)->members) {
-        if (!keep.contains(member)) {
-          staging_->Delete(keys::TraceKey(fleet_id_, member));
-        }
+        if (!keep.contains(member)) DeleteTrace(member);
       }
     }
     StoredCluster stored{cluster.id, cluster.robot_id, cluster.centroid, {}};
@@ -290,7 +307,7 @@ class MutationWriter {
       }
       core::MemoryTrace copy = trace;
       copy.cluster_id = cluster.id;
-      staging_->Put(keys::TraceKey(fleet_id_, trace.key()), EncodeTrace(copy));
+      PutTrace(copy);
       stored.members.push_back(trace.key());
     }
     PutClusterRecord(stored);
@@ -303,7 +320,7 @@ class MutationWriter {
     // traces read 1,000 records only to keep their cluster ids, half of the
     // draw's time: issue 48's replay benchmark).
     if (held && trace.cluster_id != 0) {
-      staging_->Put(keys::TraceKey(fleet_id_, trace.key()), EncodeTrace(trace));
+      PutTraceRecord(trace);
       return absl::OkStatus();
     }
     absl::StatusOr<std::optional<core::MemoryTrace>> existing =
@@ -312,7 +329,7 @@ class MutationWriter {
     if (!existing->has_value()) return absl::OkStatus();
     core::MemoryTrace copy = trace;
     copy.cluster_id = (*existing)->cluster_id;
-    staging_->Put(keys::TraceKey(fleet_id_, trace.key()), EncodeTrace(copy));
+    PutTraceRecord(copy);
     return absl::OkStatus();
   }
 
@@ -328,6 +345,17 @@ class MutationWriter {
 constexpr int kResumeAttempts = 40;
 // Entries per read when moving an earlier build's log out of RocksDB.
 constexpr size_t kLegacyPage = 64;
+// Traces per write when moving codes out of their records (MigrateCodes).
+constexpr uint64_t kMigrationBatch = 4096;
+
+// Records the current key layout (synced).
+absl::Status WriteFormat(rocksdb::DB* db, const std::string& path) {
+  rocksdb::WriteOptions write;
+  write.sync = true;
+  return FromRocksDb(
+      db->Put(write, ToSlice(keys::kFormatKey), ToSlice(keys::kFormatVersion)),
+      absl::StrCat("write format version at '", path, "'"));
+}
 constexpr absl::Duration kResumeInterval = absl::Milliseconds(200);
 
 absl::StatusOr<uint64_t> StatvfsFreeBytes(const std::string& path) {
@@ -571,18 +599,20 @@ class RocksDbStore final : public engine::MemoryStore {
                   });
     if (!status.ok()) return status;
 
+    // The records first (~150 bytes a trace), then the codes they need:
+    // those `code_held_elsewhere` leaves to the store, by one pass over the
+    // codes in key order that seeks past the rest.
     TraceTable traces;
-    auto keep_code = [&](const TraceKey& key) {
-      return !code_held_elsewhere || !code_held_elsewhere(key);
-    };
     status = Scan(read, keys::Tag::kTrace, fleet_id,
                   [&](std::string_view key, std::string_view v) {
                     absl::StatusOr<core::MemoryTrace> trace =
-                        DecodeTrace(key, v, keep_code);
+                        DecodeTrace(key, v);
                     if (!trace.ok()) return trace.status();
                     traces.Add(*std::move(trace));
                     return absl::OkStatus();
                   });
+    if (!status.ok()) return status;
+    status = ReadCodes(read, fleet_id, code_held_elsewhere, traces);
     if (!status.ok()) return status;
     status = Scan(read, keys::Tag::kCluster, fleet_id,
                   [&](std::string_view key, std::string_view v) {
@@ -668,21 +698,10 @@ class RocksDbStore final : public engine::MemoryStore {
     }
     // The data leaves the disk now, not at some later compaction: the
     // ranges' table files are rewritten without what the tombstones cover.
-    rocksdb::CompactRangeOptions compact;
-    compact.bottommost_level_compaction =
-        rocksdb::BottommostLevelCompaction::kForceOptimized;
-    for (const auto& [begin, end] : ranges) {
-      const rocksdb::Slice from = ToSlice(begin);
-      const rocksdb::Slice to = ToSlice(end);
-      const rocksdb::Status compacted = db_->CompactRange(compact, &from, &to);
-      if (!compacted.ok()) {
-        FLEETMEM_LOG(kWarning)
-            << "fleet \"" << fleet_id << "\" deleted; compacting "
-            << keys::Describe(begin)
-            << " failed (its space returns at a later compaction): "
-            << compacted.ToString();
-      }
-    }
+    std::vector<keys::Tag> tags(std::begin(keys::kFleetTags),
+                                std::end(keys::kFleetTags));
+    tags.push_back(keys::Tag::kLog);
+    CompactRanges(fleet_id, tags);
     return absl::OkStatus();
   }
 
@@ -775,6 +794,62 @@ class RocksDbStore final : public engine::MemoryStore {
     return events;
   }
 
+  // Layout 1 -> 2 (keys.h): moves each static-memory trace's code out of
+  // its record to a key of its own, kMigrationBatch traces a write, then
+  // records layout 2. A crash in between leaves records of both layouts,
+  // which a load reads alike (a record that still holds its code is used as
+  // it is), and the next open carries on. A one-off: ~1.2 GB rewritten at
+  // 1,000,000 256-d traces.
+  absl::Status MigrateCodes() {
+    std::vector<std::string> fleets;
+    if (absl::Status listed = ForEachFleet(
+            keys::Tag::kTrace,
+            [&](std::string_view fleet_id) { fleets.emplace_back(fleet_id); });
+        !listed.ok()) {
+      return listed;
+    }
+    for (const std::string& fleet : fleets) {
+      const absl::Time start = absl::Now();
+      uint64_t moved = 0;
+      rocksdb::WriteBatch batch;
+      auto flush = [&]() -> absl::Status {
+        if (batch.Count() == 0) return absl::OkStatus();
+        absl::Status written =
+            Write(fleet, batch, unsynced_write_options_, "migrate codes of");
+        batch.Clear();
+        return written;
+      };
+      absl::Status status = Scan(
+          rocksdb::ReadOptions(), keys::Tag::kTrace, fleet,
+          [&](std::string_view key, std::string_view value) -> absl::Status {
+            absl::StatusOr<core::MemoryTrace> trace = DecodeTrace(key, value);
+            if (!trace.ok()) return trace.status();
+            if (trace->code.empty()) return absl::OkStatus();  // moved
+            batch.Put(ToSlice(key), EncodeTraceWithoutCode(*trace));
+            batch.Put(ToSlice(keys::CodeKey(fleet, trace->key())),
+                      EncodeCode(trace->code));
+            if (++moved % kMigrationBatch == 0) return flush();
+            return absl::OkStatus();
+          });
+      if (status.ok()) status = flush();
+      if (!status.ok()) return status;
+      // The records' earlier versions leave the disk now, not at some
+      // later compaction (they are most of the fleet's bytes).
+      constexpr keys::Tag kMigrated[] = {keys::Tag::kTrace, keys::Tag::kCode};
+      CompactRanges(fleet, kMigrated);
+      FLEETMEM_LOG(kInfo) << "fleet \"" << fleet << "\": moved the codes of "
+                          << moved << " traces to keys of their own in "
+                          << absl::ToDoubleSeconds(absl::Now() - start)
+                          << " s (store layout 2)";
+    }
+    if (absl::Status synced = FromRocksDb(db_->FlushWAL(/*sync=*/true),
+                                          "sync the migrated records");
+        !synced.ok()) {
+      return synced;
+    }
+    return WriteFormat(db_.get(), path_);
+  }
+
   // At open: the reserve file is taken now if there is room, so that a
   // store never written to can open again on a filesystem filled since.
   void TakeReserveAtOpen() {
@@ -850,6 +925,30 @@ class RocksDbStore final : public engine::MemoryStore {
     return absl::OkStatus();
   }
 
+  // Rewrites the table files of the fleet's records of `tags` without the
+  // versions and tombstones they hide, so that their space returns now. A
+  // failure is logged: the space returns at a later compaction.
+  void CompactRanges(std::string_view fleet_id,
+                     std::span<const keys::Tag> tags) {
+    rocksdb::CompactRangeOptions compact;
+    compact.bottommost_level_compaction =
+        rocksdb::BottommostLevelCompaction::kForceOptimized;
+    for (keys::Tag tag : tags) {
+      const std::string begin = keys::Prefix(tag, fleet_id);
+      const std::string end = keys::PrefixEnd(tag, fleet_id);
+      const rocksdb::Slice from = ToSlice(begin);
+      const rocksdb::Slice to = ToSlice(end);
+      const rocksdb::Status compacted = db_->CompactRange(compact, &from, &to);
+      if (!compacted.ok()) {
+        FLEETMEM_LOG(kWarning)
+            << "fleet \"" << fleet_id << "\": compacting "
+            << keys::Describe(begin)
+            << " failed (its space returns at a later compaction): "
+            << compacted.ToString();
+      }
+    }
+  }
+
   // Calls `visit` with each fleet that has records of `tag`, ascending: a
   // skip scan, one seek per fleet, not one step per record.
   absl::Status ForEachFleet(keys::Tag tag,
@@ -871,6 +970,52 @@ class RocksDbStore final : public engine::MemoryStore {
       it->Seek(ToSlice(keys::PrefixEnd(tag, fleet_id)));
     }
     return FromRocksDb(it->status(), "list fleets");
+  }
+
+  // Fills the code of each trace in `traces` that has none (its record is
+  // of layout 2) and that `code_held_elsewhere` (if set) does not claim,
+  // from its key under keys::CodeKey. One iterator, in key order: it steps
+  // to the next code when that is the one needed (a load without an index
+  // snapshot reads them all) and seeks over a run of codes held elsewhere
+  // (a load with one reads a few). DATA_LOSS naming the trace if its code
+  // is missing.
+  absl::Status ReadCodes(
+      const rocksdb::ReadOptions& read, std::string_view fleet_id,
+      const std::function<bool(const TraceKey&)>& code_held_elsewhere,
+      TraceTable& traces) {
+    const std::string end = keys::PrefixEnd(keys::Tag::kCode, fleet_id);
+    const rocksdb::Slice upper_bound = ToSlice(end);
+    rocksdb::ReadOptions options = read;
+    options.iterate_upper_bound = &upper_bound;
+    std::unique_ptr<rocksdb::Iterator> it(db_->NewIterator(options));
+    // Steps before a seek: a seek costs a few steps' worth of reading.
+    constexpr int kStepsBeforeSeek = 4;
+    absl::Status status = traces.ForEach([&](core::MemoryTrace& trace) {
+      if (!trace.code.empty()) return absl::OkStatus();  // layout 1
+      if (code_held_elsewhere && code_held_elsewhere(trace.key())) {
+        return absl::OkStatus();
+      }
+      const std::string key = keys::CodeKey(fleet_id, trace.key());
+      const rocksdb::Slice wanted = ToSlice(key);
+      for (int step = 0; step < kStepsBeforeSeek && it->Valid() &&
+                         it->key().compare(wanted) < 0;
+           ++step) {
+        it->Next();
+      }
+      if (!it->Valid() || it->key().compare(wanted) < 0) it->Seek(wanted);
+      if (!it->status().ok()) return FromRocksDb(it->status(), "read codes");
+      if (!it->Valid() || it->key() != wanted) {
+        return absl::DataLossError(absl::StrCat(
+            "corrupt store: ",
+            keys::Describe(keys::TraceKey(fleet_id, trace.key())),
+            " has no code (", keys::Describe(key), " is missing)"));
+      }
+      absl::Status decoded = DecodeCode(key, ToView(it->value()), &trace.code);
+      it->Next();
+      return decoded;
+    });
+    if (!status.ok()) return status;
+    return FromRocksDb(it->status(), "read codes");
   }
 
   // Index snapshots live beside RocksDB's files, one per fleet.
@@ -1082,27 +1227,30 @@ rocksdb::Options MakeOptions(const RocksDbStoreOptions& options,
 }
 
 // Writes the layout version into a new database; refuses another version.
-absl::Status CheckFormat(rocksdb::DB* db, const std::string& path) {
+// The store's key layout: the current one for a new store (written now),
+// keys::kFormatVersion1 for one to migrate, FAILED_PRECONDITION for any
+// other.
+absl::StatusOr<std::string> CheckFormat(rocksdb::DB* db,
+                                        const std::string& path) {
   std::string version;
   const rocksdb::Status got =
       db->Get(rocksdb::ReadOptions(), ToSlice(keys::kFormatKey), &version);
   if (got.IsNotFound()) {
-    rocksdb::WriteOptions write;
-    write.sync = true;
-    return FromRocksDb(db->Put(write, ToSlice(keys::kFormatKey),
-                               ToSlice(keys::kFormatVersion)),
-                       absl::StrCat("write format version at '", path, "'"));
+    absl::Status written = WriteFormat(db, path);
+    if (!written.ok()) return written;
+    return std::string(keys::kFormatVersion);
   }
   if (!got.ok()) {
     return FromRocksDb(got,
                        absl::StrCat("read format version at '", path, "'"));
   }
-  if (version != keys::kFormatVersion) {
+  if (version != keys::kFormatVersion && version != keys::kFormatVersion1) {
     return absl::FailedPreconditionError(
         absl::StrCat("RocksDB at '", path, "' has key layout \"", version,
-                     "\", this build reads \"", V(keys::kFormatVersion), "\""));
+                     "\", this build reads \"", V(keys::kFormatVersion),
+                     "\" (and migrates \"", V(keys::kFormatVersion1), "\")"));
   }
-  return absl::OkStatus();
+  return version;
 }
 
 absl::StatusOr<std::unique_ptr<RocksDbStore>> Open(
@@ -1160,9 +1308,10 @@ absl::StatusOr<std::unique_ptr<RocksDbStore>> Open(
     return FromRocksDb(status, absl::StrCat("open '", options.path, "'"));
   }
   std::unique_ptr<rocksdb::DB> db(raw);
-  if (absl::Status format = CheckFormat(db.get(), options.path); !format.ok()) {
+  absl::StatusOr<std::string> format = CheckFormat(db.get(), options.path);
+  if (!format.ok()) {
     db->Close().PermitUncheckedError();
-    return format;
+    return format.status();
   }
   FLEETMEM_LOG(kInfo) << "opened RocksDB store at " << options.path
                       << (options.sync ? " (sync writes)" : " (async writes)");
@@ -1170,6 +1319,16 @@ absl::StatusOr<std::unique_ptr<RocksDbStore>> Open(
       std::move(env), std::move(reserve_given_back), std::move(db), options);
   if (absl::Status log = store->OpenLog(); !log.ok()) return log;
   store->TakeReserveAtOpen();
+  if (*format == keys::kFormatVersion1) {
+    if (absl::Status migrated = store->MigrateCodes(); !migrated.ok()) {
+      return absl::Status(
+          migrated.code(),
+          absl::StrCat("migrating RocksDB at '", options.path, "' to \"",
+                       V(keys::kFormatVersion), "\": ", migrated.message(),
+                       " (the store stays readable by this build; the "
+                       "migration resumes at the next start)"));
+    }
+  }
   return store;
 }
 

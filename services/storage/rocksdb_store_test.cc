@@ -380,6 +380,172 @@ void PutRaw(const std::string& path,
   ASSERT_TRUE(db->Close().ok());
 }
 
+// Deletes `keys` from the (closed) database at `path`.
+void DeleteRaw(const std::string& path, const std::vector<std::string>& keys) {
+  rocksdb::DB* raw = nullptr;
+  ASSERT_TRUE(rocksdb::DB::Open(rocksdb::Options(), path, &raw).ok());
+  std::unique_ptr<rocksdb::DB> db(raw);
+  for (const std::string& key : keys) {
+    ASSERT_TRUE(db->Delete(rocksdb::WriteOptions(), key).ok());
+  }
+  ASSERT_TRUE(db->Close().ok());
+}
+
+// Every key/value pair of the (closed) database at `path`.
+std::map<std::string, std::string> ReadRaw(const std::string& path) {
+  std::map<std::string, std::string> records;
+  rocksdb::DB* raw = nullptr;
+  EXPECT_TRUE(rocksdb::DB::Open(rocksdb::Options(), path, &raw).ok());
+  std::unique_ptr<rocksdb::DB> db(raw);
+  if (db == nullptr) return records;
+  std::unique_ptr<rocksdb::Iterator> it(
+      db->NewIterator(rocksdb::ReadOptions()));
+  for (it->SeekToFirst(); it->Valid(); it->Next()) {
+    records.emplace(it->key().ToString(), it->value().ToString());
+  }
+  it.reset();
+  EXPECT_TRUE(db->Close().ok());
+  return records;
+}
+
+bool HasTag(const std::string& key, keys::Tag tag) {
+  return !key.empty() && key.front() == static_cast<char>(tag);
+}
+
+// Layout 2 (keys.h): a static-memory trace's record holds no code; its code
+// is under a key of its own, one per trace, and goes with the trace.
+TEST(RocksDbStoreTest, EveryStoredTraceHasOneCodeApartAndNoCodeOutlivesIt) {
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  size_t held = 0;
+  {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+    ASSERT_NE(store, nullptr);
+    // Consolidations, replay updates, forgetting and single erasures.
+    for (const FleetMutation& m : ScriptedMutations(60)) {
+      ASSERT_TRUE(store->Apply("f", m).ok());
+    }
+    absl::StatusOr<FleetRecord> record = store->LoadFleet("f");
+    ASSERT_TRUE(record.ok()) << record.status();
+    for (const core::Cluster& cluster : record->clusters) {
+      held += cluster.traces.size();
+      for (const core::MemoryTrace& trace : cluster.traces) {
+        EXPECT_FALSE(trace.code.empty()) << trace.robot_id << "/" << trace.seq;
+      }
+    }
+  }
+  ASSERT_GT(held, 3u);
+  size_t records = 0;
+  size_t codes = 0;
+  for (const auto& [key, value] : ReadRaw(path)) {
+    if (HasTag(key, keys::Tag::kTrace)) {
+      ++records;
+      absl::StatusOr<core::MemoryTrace> trace = DecodeTrace(key, value);
+      ASSERT_TRUE(trace.ok()) << trace.status();
+      EXPECT_TRUE(trace->code.empty()) << keys::Describe(key);
+    }
+    if (HasTag(key, keys::Tag::kCode)) ++codes;
+  }
+  EXPECT_EQ(records, held);
+  EXPECT_EQ(codes, held);
+}
+
+TEST(RocksDbStoreTest, AnUpdateRewritesTheRecordAndKeepsTheStoredCode) {
+  TempDir dir;
+  std::unique_ptr<engine::MemoryStore> store = OpenOrDie(dir.path());
+  ASSERT_NE(store, nullptr);
+  FleetMutation put;
+  put.put_clusters = {testing::MakeCluster(1, "r", {1, 2})};
+  ASSERT_TRUE(store->Apply("f", put).ok());
+  for (bool held : {true, false}) {
+    FleetMutation update;
+    core::MemoryTrace changed = put.put_clusters[0].traces[1];
+    changed.replay_count += held ? 5 : 7;
+    changed.code.assign(changed.code.size(), 42.0f);  // never done: ignored
+    update.update_traces = {changed};
+    update.update_traces_held = held;
+    ASSERT_TRUE(store->Apply("f", update).ok());
+    absl::StatusOr<FleetRecord> record = store->LoadFleet("f");
+    ASSERT_TRUE(record.ok()) << record.status();
+    const core::MemoryTrace& loaded = record->clusters.at(0).traces.at(1);
+    EXPECT_EQ(loaded.replay_count, changed.replay_count) << held;
+    EXPECT_EQ(loaded.code, put.put_clusters[0].traces[1].code) << held;
+  }
+}
+
+// What a build of layout 1 wrote: the codes inside the trace records, no
+// code keys. `migrated_already` traces are left in layout 2 (a migration
+// that a crash cut short).
+void BackToLayoutOne(const std::string& path, size_t migrated_already) {
+  std::vector<std::pair<std::string, std::string>> puts;
+  std::vector<std::string> erased;
+  const std::map<std::string, std::string> records = ReadRaw(path);
+  size_t seen = 0;
+  for (const auto& [key, value] : records) {
+    if (!HasTag(key, keys::Tag::kTrace) || seen++ < migrated_already) continue;
+    absl::StatusOr<core::MemoryTrace> trace = DecodeTrace(key, value);
+    ASSERT_TRUE(trace.ok()) << trace.status();
+    const std::optional<keys::ParsedKey> parsed = keys::Parse(key);
+    ASSERT_TRUE(parsed.has_value());
+    const std::string code_key = keys::CodeKey(parsed->fleet_id, trace->key());
+    ASSERT_TRUE(records.contains(code_key)) << keys::Describe(code_key);
+    ASSERT_TRUE(DecodeCode(code_key, records.at(code_key), &trace->code).ok());
+    puts.emplace_back(key, EncodeTrace(*trace));
+    erased.push_back(code_key);
+  }
+  puts.emplace_back(std::string(keys::kFormatKey),
+                    std::string(keys::kFormatVersion1));
+  DeleteRaw(path, erased);
+  PutRaw(path, puts);
+}
+
+TEST(RocksDbStoreTest, AStoreOfLayoutOneIsMigratedWhereACrashLeftIt) {
+  for (size_t migrated_already : {size_t{0}, size_t{3}}) {
+    TempDir dir;
+    const std::string path = absl::StrCat(dir.path(), "/db");
+    std::vector<std::string> before;
+    const std::vector<std::string> fleets = {"f", "f1"};
+    {
+      std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+      ASSERT_NE(store, nullptr);
+      for (const std::string& fleet : fleets) {
+        for (const FleetMutation& m : ScriptedMutations(40)) {
+          ASSERT_TRUE(store->Apply(fleet, m).ok());
+        }
+        before.push_back(DumpFleet(*store, fleet));
+      }
+    }
+    BackToLayoutOne(path, migrated_already);
+    size_t codes_left = 0;
+    for (const auto& [key, value] : ReadRaw(path)) {
+      codes_left += HasTag(key, keys::Tag::kCode);
+    }
+    ASSERT_EQ(codes_left, migrated_already);
+    for (int open = 0; open < 2; ++open) {  // migrated, then as it is
+      std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+      ASSERT_NE(store, nullptr);
+      for (size_t i = 0; i < fleets.size(); ++i) {
+        EXPECT_EQ(DumpFleet(*store, fleets[i]), before[i])
+            << fleets[i] << " open " << open << " " << migrated_already;
+      }
+    }
+    const std::map<std::string, std::string> records = ReadRaw(path);
+    EXPECT_EQ(records.at(std::string(keys::kFormatKey)), keys::kFormatVersion);
+    size_t traces = 0;
+    for (const auto& [key, value] : records) {
+      if (!HasTag(key, keys::Tag::kTrace)) continue;
+      ++traces;
+      absl::StatusOr<core::MemoryTrace> trace = DecodeTrace(key, value);
+      ASSERT_TRUE(trace.ok()) << trace.status();
+      EXPECT_TRUE(trace->code.empty()) << keys::Describe(key);
+      const std::optional<keys::ParsedKey> parsed = keys::Parse(key);
+      EXPECT_TRUE(
+          records.contains(keys::CodeKey(parsed->fleet_id, trace->key())));
+    }
+    EXPECT_GT(traces, 3u);
+  }
+}
+
 class RocksDbCorruptionTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -439,6 +605,16 @@ TEST_F(RocksDbCorruptionTest, ClusterMemberWithoutTrace) {
   PutRaw(path_, {{keys::ClusterKey("f", 2),
                   EncodeCluster(StoredCluster{2, "r", {1.0f}, {{"r", 7}}})}});
   ExpectDataLoss("cluster[f/2]", false);
+}
+
+TEST_F(RocksDbCorruptionTest, TraceWithoutItsCode) {
+  DeleteRaw(path_, {keys::CodeKey("f", {"r", 2})});
+  ExpectDataLoss("trace[f/r/2] has no code (code[f/r/2] is missing)", false);
+}
+
+TEST_F(RocksDbCorruptionTest, CodeOfPartialFloats) {
+  PutRaw(path_, {{keys::CodeKey("f", {"r", 2}), "xyz"}});
+  ExpectDataLoss("code[f/r/2]", false);
 }
 
 TEST_F(RocksDbCorruptionTest, OtherKeyLayoutVersionIsRefused) {
