@@ -27,9 +27,11 @@ a=$1
 b=$2
 traces=${3:-200000}
 rounds=${4:-2}
-for dir in "$a" "$b"; do
-  if [ ! -x "$dir/bin/fleetmem-server" ]; then
-    echo "$dir/bin/fleetmem-server: no such executable (build it first)" >&2
+# B's CLI waits for the graph: without it the wait would end at once and
+# the snapshot hold a graph still linking.
+for tool in "$a/bin/fleetmem-server" "$b/bin/fleetmem-server" "$b/bin/fleetmem"; do
+  if [ ! -x "$tool" ]; then
+    echo "$tool: no such executable (build it first)" >&2
     exit 2
   fi
 done

@@ -141,8 +141,13 @@ absl::Status MemoryEngine::Fleet::Reload() {
   // Asked once the store has read the fleet's records (which takes about
   // as long as the snapshot's checksum and handles): the wait is short,
   // and reading every code meanwhile would cost more.
+  absl::Duration waited_for_handles;
   auto held_by_snapshot = [&](const core::TraceKey& key) {
-    handles_read.WaitForNotification();
+    if (!handles_read.HasBeenNotified()) {
+      const absl::Time wait = absl::Now();
+      handles_read.WaitForNotification();
+      waited_for_handles = absl::Now() - wait;
+    }
     if (!snapshot.handles_loaded) return false;
     const uint64_t handle = snapshot.handles.Find(key);
     return handle != 0 &&
@@ -150,6 +155,7 @@ absl::Status MemoryEngine::Fleet::Reload() {
   };
   absl::StatusOr<FleetRecord> record =
       engine->store_->LoadFleetWithoutHeldCodes(id, held_by_snapshot);
+  const absl::Time store_done = absl::Now();
   if (beside.joinable()) beside.join();
   const bool codes_left_out = snapshot.handles_loaded;
   if (codes_left_out && record.ok() &&
@@ -178,7 +184,12 @@ absl::Status MemoryEngine::Fleet::Reload() {
                         << " pending; store read "
                         << absl::ToDoubleSeconds(read - start)
                         << " s, memory and index "
-                        << absl::ToDoubleSeconds(absl::Now() - read) << " s";
+                        << absl::ToDoubleSeconds(absl::Now() - read)
+                        << " s (the store's read waited "
+                        << absl::ToDoubleSeconds(waited_for_handles)
+                        << " s for the snapshot's handles; its thread ended "
+                        << absl::ToDoubleSeconds(read - store_done)
+                        << " s after the read)";
   }
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id

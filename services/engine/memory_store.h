@@ -139,23 +139,14 @@ class MemoryStore {
   // theirs): a restart whose index snapshot holds those codes does not
   // read them a second time (1 GB at 1,000,000 256-d traces). The function
   // is asked once per such trace, on the calling thread, after the fleet's
-  // other records are read (so it may wait for what it needs). This
-  // default loads everything, then empties those codes; a store may skip
-  // them as it reads. A null function keeps every code.
+  // other records are read (so it may wait for what it needs); a null
+  // function keeps every code. Pure virtual, so that a decorator cannot
+  // fall back to reading every code without saying so (the metrics'
+  // decorator did until 2026-11-30).
   virtual absl::StatusOr<FleetRecord> LoadFleetWithoutHeldCodes(
       std::string_view fleet_id,
-      const std::function<bool(const core::TraceKey&)>& code_held_elsewhere) {
-    absl::StatusOr<FleetRecord> record = LoadFleet(fleet_id);
-    if (!record.ok() || !code_held_elsewhere) return record;
-    for (core::Cluster& cluster : record->clusters) {
-      for (core::MemoryTrace& trace : cluster.traces) {
-        if (code_held_elsewhere(trace.key())) {
-          std::vector<float>().swap(trace.code);
-        }
-      }
-    }
-    return record;
-  }
+      const std::function<bool(const core::TraceKey&)>&
+          code_held_elsewhere) = 0;
 
   // Applies `mutation` atomically; when OK is returned the change is durable
   // (survives a process crash, and with sync on, a machine crash).

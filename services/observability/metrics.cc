@@ -1,6 +1,7 @@
 #include "services/observability/metrics.h"
 
 #include <algorithm>
+#include <functional>
 #include <sstream>
 #include <utility>
 #include <vector>
@@ -57,6 +58,12 @@ class TimedMemoryStore final : public engine::MemoryStore {
   absl::StatusOr<engine::FleetRecord> LoadFleet(
       std::string_view fleet_id) override {
     return store_->LoadFleet(fleet_id);
+  }
+  absl::StatusOr<engine::FleetRecord> LoadFleetWithoutHeldCodes(
+      std::string_view fleet_id,
+      const std::function<bool(const core::TraceKey&)>& code_held_elsewhere)
+      override {
+    return store_->LoadFleetWithoutHeldCodes(fleet_id, code_held_elsewhere);
   }
   absl::Status Apply(std::string_view fleet_id,
                      const engine::FleetMutation& mutation) override {

@@ -129,6 +129,24 @@ class InMemoryStore final : public engine::MemoryStore {
     return record;
   }
 
+  // Everything is in memory: the codes are copied, then the held ones
+  // dropped (outside the lock: the function may wait).
+  absl::StatusOr<engine::FleetRecord> LoadFleetWithoutHeldCodes(
+      std::string_view fleet_id,
+      const std::function<bool(const TraceKey&)>& code_held_elsewhere)
+      override {
+    absl::StatusOr<engine::FleetRecord> record = LoadFleet(fleet_id);
+    if (!record.ok() || !code_held_elsewhere) return record;
+    for (core::Cluster& cluster : record->clusters) {
+      for (core::MemoryTrace& trace : cluster.traces) {
+        if (code_held_elsewhere(trace.key())) {
+          std::vector<float>().swap(trace.code);
+        }
+      }
+    }
+    return record;
+  }
+
   absl::Status Apply(std::string_view fleet_id,
                      const engine::FleetMutation& m) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {

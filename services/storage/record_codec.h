@@ -107,6 +107,8 @@ class TraceTable {
   // cluster `cluster_id`; else nullopt.
   std::optional<core::MemoryTrace> Take(const core::TraceKey& key,
                                         uint64_t cluster_id);
+  // Traces added.
+  size_t size() const { return traces_.size(); }
   // A trace no cluster took, or nullptr when every one was.
   const core::MemoryTrace* AnyLeft() const;
   // Calls `visit` with each trace not taken, ascending by key (the order of

@@ -345,6 +345,8 @@ class MutationWriter {
 constexpr int kResumeAttempts = 40;
 // Entries per read when moving an earlier build's log out of RocksDB.
 constexpr size_t kLegacyPage = 64;
+// A load of this many traces or more logs where its time went.
+constexpr size_t kLoadLoggedFrom = 10'000;
 // Traces per write when moving codes out of their records (MigrateCodes).
 constexpr uint64_t kMigrationBatch = 4096;
 
@@ -603,6 +605,7 @@ class RocksDbStore final : public engine::MemoryStore {
     // those `code_held_elsewhere` leaves to the store, by one pass over the
     // codes in key order that seeks past the rest.
     TraceTable traces;
+    const absl::Time start = absl::Now();
     status = Scan(read, keys::Tag::kTrace, fleet_id,
                   [&](std::string_view key, std::string_view v) {
                     absl::StatusOr<core::MemoryTrace> trace =
@@ -612,8 +615,13 @@ class RocksDbStore final : public engine::MemoryStore {
                     return absl::OkStatus();
                   });
     if (!status.ok()) return status;
-    status = ReadCodes(read, fleet_id, code_held_elsewhere, traces);
+    const absl::Time records_read = absl::Now();
+    size_t codes_read = 0;
+    status =
+        ReadCodes(read, fleet_id, code_held_elsewhere, traces, &codes_read);
     if (!status.ok()) return status;
+    const absl::Time codes_done = absl::Now();
+    const size_t trace_count = traces.size();
     status = Scan(read, keys::Tag::kCluster, fleet_id,
                   [&](std::string_view key, std::string_view v) {
                     absl::StatusOr<StoredCluster> stored =
@@ -629,6 +637,16 @@ class RocksDbStore final : public engine::MemoryStore {
                        keys::Describe(keys::TraceKey(fleet_id, orphan->key())),
                        ": trace of cluster ", orphan->cluster_id,
                        " which does not list it"));
+    }
+    if (trace_count >= kLoadLoggedFrom) {
+      FLEETMEM_LOG(kInfo) << "fleet \"" << fleet_id << "\": read "
+                          << trace_count << " trace records in "
+                          << absl::ToDoubleSeconds(records_read - start)
+                          << " s, " << codes_read << " codes in "
+                          << absl::ToDoubleSeconds(codes_done - records_read)
+                          << " s, " << record.clusters.size() << " clusters in "
+                          << absl::ToDoubleSeconds(absl::Now() - codes_done)
+                          << " s";
     }
     return record;
   }
@@ -982,7 +1000,7 @@ class RocksDbStore final : public engine::MemoryStore {
   absl::Status ReadCodes(
       const rocksdb::ReadOptions& read, std::string_view fleet_id,
       const std::function<bool(const TraceKey&)>& code_held_elsewhere,
-      TraceTable& traces) {
+      TraceTable& traces, size_t* codes_read) {
     const std::string end = keys::PrefixEnd(keys::Tag::kCode, fleet_id);
     const rocksdb::Slice upper_bound = ToSlice(end);
     rocksdb::ReadOptions options = read;
@@ -1011,6 +1029,7 @@ class RocksDbStore final : public engine::MemoryStore {
             " has no code (", keys::Describe(key), " is missing)"));
       }
       absl::Status decoded = DecodeCode(key, ToView(it->value()), &trace.code);
+      ++*codes_read;
       it->Next();
       return decoded;
     });

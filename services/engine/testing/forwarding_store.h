@@ -4,6 +4,7 @@
 #define FLEETMEM_SERVICES_ENGINE_TESTING_FORWARDING_STORE_H_
 
 #include <cstdint>
+#include <functional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -25,6 +26,12 @@ class ForwardingStore : public MemoryStore {
   }
   absl::StatusOr<FleetRecord> LoadFleet(std::string_view fleet_id) override {
     return inner_->LoadFleet(fleet_id);
+  }
+  absl::StatusOr<FleetRecord> LoadFleetWithoutHeldCodes(
+      std::string_view fleet_id,
+      const std::function<bool(const core::TraceKey&)>& code_held_elsewhere)
+      override {
+    return inner_->LoadFleetWithoutHeldCodes(fleet_id, code_held_elsewhere);
   }
   absl::Status Apply(std::string_view fleet_id,
                      const FleetMutation& mutation) override {
