@@ -22,7 +22,8 @@
 #             (the durable write included);
 #   restart   SIGTERM (the index snapshot written; its seconds from the
 #             log), then a start timed until the port answers, the engine's
-#             load split and the RSS 3 s after.
+#             load split, the RSS 3 s after and its peak (VmHWM), and the
+#             engine's lines about the load (as comments).
 #
 #   bench/scale_fleet.sh [BUILD_DIR] [N] [OUT]
 #   (default: build 10000000 /dev/stdout; OUT gets one `name,value` per line)
@@ -199,6 +200,12 @@ split=$(sed -n 's/.*store read \([0-9.]*\) s, memory and index \([0-9.]*\) s.*/\
   "$work/restart.log")
 row restart_store_read_seconds "${split% *}"
 row restart_memory_and_index_seconds "${split#* }"
+# The load's peak resident set, and the engine's own lines about it (the
+# store's split, the wait for the snapshot's handles, the reconcile).
+server_pid=$(pgrep -P "$SERVER_PID" -f fleetmem-server || echo "$SERVER_PID")
+row restart_peak_rss_mib "$(awk '/^VmHWM/ { printf "%d", $2 / 1024 }' "/proc/$server_pid/status")"
+grep -o 'fleet "big"\(: read [0-9]* trace records\|: index snapshot reconciled\| loaded:\).*' \
+  "$work/restart.log" | sed 's/^/# /' >>"$work/rows.csv"
 stop_server
 [ "$out" = /dev/stdout ] || cp "$work/rows.csv" "$out"
 cat "$work/rows.csv"
