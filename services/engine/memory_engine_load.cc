@@ -115,22 +115,26 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
   if (!loaded.status.ok() || !loaded.index_status.ok()) loaded.index.reset();
 }
 
-}  // namespace
+// How Reload's read of the store went beside the snapshot's thread.
+struct ReadTimes {
+  absl::Duration waited_for_handles;  // by the store's read
+  absl::Duration thread_after_read;   // the snapshot's thread, joined after
+};
 
-absl::Status MemoryEngine::Fleet::Reload() {
-  const absl::Time start = absl::Now();
-  // The index snapshot is read and its index loaded on a second thread
-  // while this one reads the fleet's traces, without the codes the
-  // snapshot's handles say it holds but a sample for Reconcile's check.
-  LoadedSnapshot snapshot;
+// Reads `fleet_id` from `store` while a second thread reads its index
+// snapshot into `snapshot` and loads its index there, without the codes
+// the snapshot's handles say it holds but a sample for Reconcile's check.
+// The store asks about each code once it has read the fleet's records
+// (which takes about as long as the snapshot's checksum and handles): the
+// wait is short, and reading every code meanwhile would cost more.
+absl::StatusOr<FleetRecord> ReadBesideSnapshot(MemoryStore& store,
+                                               const FleetIndexFactory& factory,
+                                               std::string_view fleet_id,
+                                               LoadedSnapshot& snapshot,
+                                               ReadTimes* times) {
   absl::Notification handles_read;
   auto read_snapshot = [&] {
-    ReadSnapshot(
-        *engine->store_,
-        [this](size_t dimension, const IndexSettings& index) {
-          return engine->NewIndex(dimension, index);
-        },
-        id, snapshot, handles_read);
+    ReadSnapshot(store, factory, fleet_id, snapshot, handles_read);
   };
   std::thread beside;
   try {
@@ -138,15 +142,11 @@ absl::Status MemoryEngine::Fleet::Reload() {
   } catch (const std::system_error&) {
     read_snapshot();  // no thread: one after the other
   }
-  // Asked once the store has read the fleet's records (which takes about
-  // as long as the snapshot's checksum and handles): the wait is short,
-  // and reading every code meanwhile would cost more.
-  absl::Duration waited_for_handles;
   auto held_by_snapshot = [&](const core::TraceKey& key) {
     if (!handles_read.HasBeenNotified()) {
       const absl::Time wait = absl::Now();
       handles_read.WaitForNotification();
-      waited_for_handles = absl::Now() - wait;
+      times->waited_for_handles = absl::Now() - wait;
     }
     if (!snapshot.handles_loaded) return false;
     const uint64_t handle = snapshot.handles.Find(key);
@@ -154,9 +154,25 @@ absl::Status MemoryEngine::Fleet::Reload() {
            !FleetIndex::CheckedOnLoad(handle, snapshot.handles.size());
   };
   absl::StatusOr<FleetRecord> record =
-      engine->store_->LoadFleetWithoutHeldCodes(id, held_by_snapshot);
+      store.LoadFleetWithoutHeldCodes(fleet_id, held_by_snapshot);
   const absl::Time store_done = absl::Now();
   if (beside.joinable()) beside.join();
+  times->thread_after_read = absl::Now() - store_done;
+  return record;
+}
+
+}  // namespace
+
+absl::Status MemoryEngine::Fleet::Reload() {
+  const absl::Time start = absl::Now();
+  LoadedSnapshot snapshot;
+  ReadTimes times;
+  absl::StatusOr<FleetRecord> record = ReadBesideSnapshot(
+      *engine->store_,
+      [this](size_t dimension, const IndexSettings& index) {
+        return engine->NewIndex(dimension, index);
+      },
+      id, snapshot, &times);
   const bool codes_left_out = snapshot.handles_loaded;
   if (codes_left_out && record.ok() &&
       (!snapshot.status.ok() || !snapshot.index_status.ok())) {
@@ -186,9 +202,9 @@ absl::Status MemoryEngine::Fleet::Reload() {
                         << " s, memory and index "
                         << absl::ToDoubleSeconds(absl::Now() - read)
                         << " s (the store's read waited "
-                        << absl::ToDoubleSeconds(waited_for_handles)
+                        << absl::ToDoubleSeconds(times.waited_for_handles)
                         << " s for the snapshot's handles; its thread ended "
-                        << absl::ToDoubleSeconds(read - store_done)
+                        << absl::ToDoubleSeconds(times.thread_after_read)
                         << " s after the read)";
   }
   if (!status.ok()) {

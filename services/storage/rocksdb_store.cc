@@ -819,14 +819,10 @@ class RocksDbStore final : public engine::MemoryStore {
   // it is), and the next open carries on. A one-off: ~1.2 GB rewritten at
   // 1,000,000 256-d traces.
   absl::Status MigrateCodes() {
-    std::vector<std::string> fleets;
-    if (absl::Status listed = ForEachFleet(
-            keys::Tag::kTrace,
-            [&](std::string_view fleet_id) { fleets.emplace_back(fleet_id); });
-        !listed.ok()) {
-      return listed;
-    }
-    for (const std::string& fleet : fleets) {
+    absl::StatusOr<std::vector<std::string>> fleets =
+        FleetsWith(keys::Tag::kTrace);
+    if (!fleets.ok()) return fleets.status();
+    for (const std::string& fleet : *fleets) {
       const absl::Time start = absl::Now();
       uint64_t moved = 0;
       rocksdb::WriteBatch batch;
@@ -884,14 +880,10 @@ class RocksDbStore final : public engine::MemoryStore {
   // crash in between leaves them in both: the entries already moved are
   // skipped when this runs again.
   absl::Status MoveLegacyLog() {
-    std::vector<std::string> fleets;
-    if (absl::Status listed = ForEachFleet(
-            keys::Tag::kLog,
-            [&](std::string_view fleet_id) { fleets.emplace_back(fleet_id); });
-        !listed.ok()) {
-      return listed;
-    }
-    for (const std::string& fleet : fleets) {
+    absl::StatusOr<std::vector<std::string>> fleets =
+        FleetsWith(keys::Tag::kLog);
+    if (!fleets.ok()) return fleets.status();
+    for (const std::string& fleet : *fleets) {
       absl::StatusOr<engine::LogBounds> moved = log_->Bounds(fleet);
       if (!moved.ok()) return moved.status();
       uint64_t after = moved->last;
@@ -965,6 +957,15 @@ class RocksDbStore final : public engine::MemoryStore {
             << compacted.ToString();
       }
     }
+  }
+
+  // The fleets that have records of `tag`, ascending.
+  absl::StatusOr<std::vector<std::string>> FleetsWith(keys::Tag tag) {
+    std::vector<std::string> fleets;
+    absl::Status listed = ForEachFleet(
+        tag, [&](std::string_view fleet_id) { fleets.emplace_back(fleet_id); });
+    if (!listed.ok()) return listed;
+    return fleets;
   }
 
   // Calls `visit` with each fleet that has records of `tag`, ascending: a
