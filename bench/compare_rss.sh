@@ -6,7 +6,8 @@
 # server and B's on that data dir, timed until the port answers, and print
 # the RSS 3 s after (the load is done when the port opens), the
 # engine's snapshot load line and its split of the load (the store's read,
-# then memory and index). Each is stopped with kill -9, so the snapshot
+# then memory and index), with the store's and the reconcile's log lines
+# as comment rows. Each is stopped with kill -9, so the snapshot
 # on disk stays the one B wrote. A's build must read B's snapshot layout.
 # A starts on a copy of B's data dir: a newer A may migrate the store's
 # layout (builds after 2026-11-30 do, once: round 0, A's first start, shows
@@ -68,6 +69,9 @@ for round in $(seq 0 "$rounds"); do
       -v s="$port_s" -v l="$load" -v x="${split:-,}" \
       'BEGIN { printf "%s,%d,%d,%.2f,%s,%s,%s\n", b, r, m, m / p, s,
                l == "" ? "rebuilt" : l, x }'
+    # The store's split (records, codes, clusters) and the reconcile's.
+    grep -o 'fleet "scale": \(read [0-9]* trace records\|index snapshot reconciled\).*' \
+      "$work/restart.log" | sed 's/^/# /' || true
     kill -9 "$SERVER_PID"
     wait "$SERVER_PID" 2>/dev/null || true
   done

@@ -20,23 +20,9 @@ n=${2:-1000000}
 server_build=${SERVER_BUILD:-$build}
 command -v perf >/dev/null || { echo "perf not found (apt-get install linux-perf)" >&2; exit 2; }
 source "$here/tools/load/server_lib.sh"
-if [ -n "${KEEP:-}" ]; then
-  work=$KEEP
-  mkdir -p "$work"
-  trap 'kill $(jobs -p) 2>/dev/null || true; wait' EXIT
-else
-  work=$(mktemp -d "${TMPDIR:-/tmp}/restart-profile.XXXXXX")
-  trap 'kill $(jobs -p) 2>/dev/null || true; wait; rm -rf "$work"' EXIT
-fi
-if [ ! -f "$work/filled" ]; then
-  rm -rf "$work/data"
-  fill_scale_fleet "$server_build" "$work" "$n"
-  start_server "$server_build" "$work/data" "$work/build.log" \
-    --config "$work/restart.textproto"
-  while [ "$(unindexed_codes "$build" scale)" -gt 0 ]; do sleep 2; done
-  stop_server
-  echo "$FILLED" >"$work/filled"
-fi
+bench_work restart-profile
+work=$WORK
+fill_scale_fleet_once "$server_build" "$work" "$n"
 
 start=$(date +%s.%N)
 SERVER_START_SECONDS=1200 \

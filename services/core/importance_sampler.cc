@@ -86,6 +86,21 @@ void WeightedSampler::SumTree::Set(size_t slot, double value) {
   }
 }
 
+void WeightedSampler::SumTree::Assign(std::span<const double> values) {
+  size_t used = values.size();
+  while (used > 0 && values[used - 1] == 0.0) --used;
+  if (used == 0) return;  // Set(i, 0) on an empty tree leaves it so
+  // As Set grows the tree for its largest slot, used - 1.
+  size_t leaves = std::max<size_t>(leaves_, 16);
+  while (leaves < used) leaves *= 2;
+  nodes_.assign(2 * leaves, 0.0);
+  std::copy(values.begin(), values.begin() + used, nodes_.begin() + leaves);
+  for (size_t i = leaves - 1; i >= 1; --i) {
+    nodes_[i] = nodes_[2 * i] + nodes_[2 * i + 1];
+  }
+  leaves_ = leaves;
+}
+
 double WeightedSampler::SumTree::Get(size_t slot) const {
   return slot < leaves_ ? nodes_[leaves_ + slot] : 0.0;
 }
@@ -120,6 +135,27 @@ void WeightedSampler::Set(size_t slot, double weight) {
     if (positive_.Get(slot) > 0.0) positive_.Set(slot, 0.0);
   }
   if (!was) ++size_;
+}
+
+void WeightedSampler::SetAll(std::span<const double> weights) {
+  if (size_ != 0 || positive_.Total() != 0.0 || zero_.Total() != 0.0) {
+    for (size_t i = 0; i < weights.size(); ++i) Set(i, weights[i]);
+    return;
+  }
+  std::vector<double> positive(weights.size(), 0.0);
+  std::vector<double> zero(weights.size(), 0.0);
+  for (size_t i = 0; i < weights.size(); ++i) {
+    // As Set does.
+    if (weights[i] > 0.0) {
+      positive[i] = std::min(weights[i],
+                             std::numeric_limits<double>::max() / (1ull << 40));
+    } else {
+      zero[i] = 1.0;
+    }
+  }
+  positive_.Assign(positive);
+  zero_.Assign(zero);
+  size_ = weights.size();
 }
 
 void WeightedSampler::Clear(size_t slot) {

@@ -4,7 +4,9 @@
 #include <limits>
 #include <map>
 #include <numeric>
+#include <random>
 #include <set>
+#include <vector>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -244,6 +246,48 @@ TEST(WeightedSamplerTest, GrowsAndReusesSlots) {
   for (size_t slot : all) EXPECT_EQ(slot % 2, 1u);
   sampler.Set(4000, 2.0);
   EXPECT_EQ(sampler.size(), 501u);
+}
+
+// SetAll builds what one Set per slot builds: the same draws follow, and
+// later changes act alike, for weights with zeros (trailing too), NaN,
+// negatives and an infinity.
+TEST(WeightedSamplerTest, SetAllDrawsAsSetsOneByOne) {
+  for (size_t n : {0, 1, 5, 16, 17, 1000}) {
+    std::mt19937_64 gen(n);
+    std::vector<double> weights(n);
+    for (size_t i = 0; i < n; ++i) {
+      const uint64_t kind = gen() % 10;
+      weights[i] = kind == 0   ? 0.0
+                   : kind == 1 ? -1.0
+                   : kind == 2 ? std::nan("")
+                               : static_cast<double>(gen() % 1000) / 7.0;
+    }
+    if (n == 1000) weights[3] = std::numeric_limits<double>::infinity();
+    if (n >= 5) weights[n - 1] = weights[n - 2] = 0.0;
+    WeightedSampler one_by_one;
+    for (size_t i = 0; i < n; ++i) one_by_one.Set(i, weights[i]);
+    WeightedSampler at_once;
+    at_once.SetAll(weights);
+    EXPECT_EQ(at_once.size(), one_by_one.size());
+    for (int round = 0; round < 3; ++round) {
+      std::mt19937_64 rng_a(round);
+      std::mt19937_64 rng_b(round);
+      EXPECT_EQ(at_once.Draw(n / 2 + 1, rng_a),
+                one_by_one.Draw(n / 2 + 1, rng_b))
+          << n;
+      if (n > 0) {
+        at_once.Set(round % n, 2.5);
+        one_by_one.Set(round % n, 2.5);
+        at_once.Clear((round + 1) % n);
+        one_by_one.Clear((round + 1) % n);
+      }
+    }
+  }
+  // On a sampler that holds slots already: as Set for each.
+  WeightedSampler used;
+  used.Set(0, 1.0);
+  used.SetAll(std::vector<double>{0.0, 3.0});
+  EXPECT_EQ(used.size(), 2u);
 }
 
 }  // namespace

@@ -221,7 +221,11 @@ class StaticMemory {
  private:
   // Adds the cluster and its traces; its centroid to forgetting's tracker
   // too unless `with_centroid` is false (RestoreAll loads the tracker).
-  void Insert(Cluster cluster, bool with_centroid = true);
+  // With `weights` (an empty memory's restore, slots taken in order), the
+  // traces' replay weights are appended there for WeightedSampler::SetAll
+  // instead of set one by one.
+  void Insert(Cluster cluster, bool with_centroid = true,
+              std::vector<double>* weights = nullptr);
   Cluster Erase(uint64_t cluster_id);
   // Algorithm 2: removes or merges clusters until at most K_max remain.
   void Forget(ConsolidationResult& result);

@@ -17,6 +17,11 @@ namespace {
 // does (a sample: a trace's code never changes under its key, so a
 // difference means the snapshot is of another history of the fleet).
 constexpr size_t kCodesCheckedOnLoad = 1024;
+// ... taken as runs of this many consecutive handles: traces are mostly
+// indexed in key order (a robot's segment at a time), so a run's codes lie
+// side by side in the store and a cold restart reads a few blocks per run
+// instead of seeking for each code (1,024 seeks took 7 s at 10,000,000).
+constexpr size_t kCheckedRun = 32;
 
 // Runs `first` on this thread and `second` beside it on another one when
 // `items` makes that pay off (a restart: each is seconds long at 1,000,000
@@ -87,7 +92,8 @@ std::vector<uint64_t> GoneHandles(
 }  // namespace
 
 bool FleetIndex::CheckedOnLoad(uint64_t handle, size_t saved) {
-  return handle % std::max<size_t>(1, saved / kCodesCheckedOnLoad) == 0;
+  const size_t runs = kCodesCheckedOnLoad / kCheckedRun;
+  return handle % std::max<size_t>(kCheckedRun, saved / runs) < kCheckedRun;
 }
 
 void FleetIndex::Reset() {
@@ -202,7 +208,18 @@ absl::StatusOr<FleetIndex::Reconciled> FleetIndex::Reconcile(
   std::vector<const core::MemoryTrace*> kept;
   kept.reserve(std::min(stored.size(), saved.size()));
   for (const core::MemoryTrace* trace : stored) {
-    (saved.contains(trace->key()) ? kept : missing).push_back(trace);
+    // A trace without its code is one the load left to the snapshot after
+    // finding it in `saved`: not looked up again (10,000,000 lookups were
+    // 7 s of a restart).
+    const bool held = trace->code.empty() || saved.contains(trace->key());
+    (held ? kept : missing).push_back(trace);
+  }
+  if (kept.size() > saved.size()) {
+    return absl::DataLossError(
+        absl::StrCat(kept.size(),
+                     " stored traces came without codes or are "
+                     "in the snapshot, which holds only ",
+                     saved.size()));
   }
   absl::Status status = CheckSnapshotCodes(*loaded, saved, kept);
   if (!status.ok()) return status;

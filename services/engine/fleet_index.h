@@ -31,7 +31,8 @@ class FleetIndex {
  public:
   // Whether a load should keep the store's code of the trace under
   // `handle` in a snapshot of `saved` handles, for Reconcile's check: about
-  // 1,024 of them, spread over the handles (every one below 2,048).
+  // 1,024 of them, in 32 runs of 32 consecutive handles spread over the
+  // handles (every one below 1,056).
   static bool CheckedOnLoad(uint64_t handle, size_t saved);
 
   // What Reconcile did to a snapshot's index.
@@ -98,7 +99,9 @@ class FleetIndex {
   // A stored trace the snapshot holds may come without its code (a load
   // that left it in the store: MemoryStore::LoadFleetWithoutHeldCodes);
   // the sample is of those that have one, and a load keeps the codes of
-  // the handles CheckedOnLoad picks for it.
+  // the handles CheckedOnLoad picks for it. A trace without its code is
+  // taken to be one of `saved` (the load found it there) and is not looked
+  // up; more of them than `saved` holds is DATA_LOSS.
   absl::StatusOr<Reconciled> Reconcile(
       std::unique_ptr<PlaceIndex> loaded, TraceHandles saved,
       uint64_t next_handle,

@@ -262,5 +262,25 @@ TEST(FleetIndexTest, ASnapshotOfAnotherHistoryIsRefusedAndLeavesNoIndex) {
   EXPECT_EQ(after.size(), 0u);
 }
 
+// Traces without codes are taken as the snapshot's (the load found them
+// in its handles): more of them than it holds cannot be, and is refused.
+TEST(FleetIndexTest, MoreTracesWithoutCodesThanTheSnapshotHoldsAreRefused) {
+  FleetIndex before;
+  before.Start(index::NewExactIndex(kDimension));
+  const std::vector<MemoryTrace> then = {Trace("a", 1), Trace("a", 2)};
+  ASSERT_TRUE(before.Add(Pointers(then)).ok());
+  Image image = Snapshot(before);
+
+  std::vector<MemoryTrace> now = {Trace("a", 1), Trace("a", 2), Trace("a", 3)};
+  for (MemoryTrace& trace : now) trace.code.clear();
+  FleetIndex after;
+  absl::StatusOr<FleetIndex::Reconciled> reconciled =
+      after.Reconcile(std::move(image.loaded), std::move(image.saved),
+                      image.next_handle, Pointers(now));
+  EXPECT_EQ(reconciled.status().code(), absl::StatusCode::kDataLoss)
+      << reconciled.status();
+  EXPECT_EQ(after.get(), nullptr);
+}
+
 }  // namespace
 }  // namespace fleetmem::engine

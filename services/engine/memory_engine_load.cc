@@ -63,8 +63,7 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
   };
   const absl::Time start = absl::Now();
   loaded.status = store.ReadIndexSnapshot(
-      fleet_id, [&](std::span<const char> bytes) -> absl::Status {
-        core::ByteReader in(bytes);
+      fleet_id, [&](core::ByteReader& in) -> absl::Status {
         uint32_t format = 0;
         if (!in.Get(&format) ||
             (format != kIndexSnapshotFormat &&

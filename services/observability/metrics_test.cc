@@ -230,8 +230,7 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
   uint32_t read = 0;
   ASSERT_TRUE(store
                   ->ReadIndexSnapshot("f1",
-                                      [&read](std::span<const char> bytes) {
-                                        core::ByteReader in(bytes);
+                                      [&read](core::ByteReader& in) {
                                         in.Get(&read);
                                         return absl::OkStatus();
                                       })

@@ -203,7 +203,7 @@ class InMemoryStore final : public engine::MemoryStore {
 
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(std::span<const char>)>& read) override {
+      const std::function<absl::Status(core::ByteReader&)>& read) override {
     std::vector<char> bytes;
     {
       absl::MutexLock lock(&mu_);
@@ -214,7 +214,8 @@ class InMemoryStore final : public engine::MemoryStore {
       }
       bytes = it->second;  // a copy: `read` runs outside the lock
     }
-    return read(bytes);
+    core::ByteReader in(bytes);
+    return read(in);
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(

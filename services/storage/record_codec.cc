@@ -688,27 +688,64 @@ void TraceTable::Sort() {
   sorted_ = true;
 }
 
+size_t TraceTable::LowerBound(const core::TraceKey& key) {
+  const size_t n = traces_.size();
+  auto before = [&](size_t i) {
+    return std::tie(traces_[i].robot_id, traces_[i].seq) <
+           std::tie(key.robot_id, key.seq);
+  };
+  // The answer lies in [lo, hi]; gallop from the hint to bracket it.
+  const size_t at = std::min(hint_, n);
+  size_t lo = 0;
+  size_t hi = n;
+  if (at < n && before(at)) {
+    lo = at + 1;
+    for (size_t step = 1; at + step < n; step *= 2) {
+      if (!before(at + step)) {
+        hi = at + step;
+        break;
+      }
+      lo = at + step + 1;
+    }
+  } else {
+    hi = at;
+    for (size_t step = 1; step <= at; step *= 2) {
+      if (before(at - step)) {
+        lo = at - step + 1;
+        break;
+      }
+      hi = at - step;
+    }
+  }
+  while (lo < hi) {
+    const size_t mid = lo + (hi - lo) / 2;
+    if (before(mid)) {
+      lo = mid + 1;
+    } else {
+      hi = mid;
+    }
+  }
+  hint_ = lo;
+  return lo;
+}
+
 std::optional<core::MemoryTrace> TraceTable::Take(const core::TraceKey& key,
                                                   uint64_t cluster_id) {
   if (!sorted_) Sort();
-  auto found = std::lower_bound(
-      traces_.begin(), traces_.end(), key,
-      [](const core::MemoryTrace& trace, const core::TraceKey& k) {
-        return std::tie(trace.robot_id, trace.seq) <
-               std::tie(k.robot_id, k.seq);
-      });
-  if (found == traces_.end() || found->robot_id != key.robot_id ||
-      found->seq != key.seq || found->cluster_id != cluster_id) {
+  const size_t at = LowerBound(key);
+  if (at == traces_.size()) return std::nullopt;
+  core::MemoryTrace& found = traces_[at];
+  if (found.robot_id != key.robot_id || found.seq != key.seq ||
+      found.cluster_id != cluster_id) {
     return std::nullopt;
   }
-  const size_t at = static_cast<size_t>(found - traces_.begin());
   if (taken_[at]) return std::nullopt;
   taken_[at] = true;
   --left_;
-  core::MemoryTrace taken = std::move(*found);
+  core::MemoryTrace taken = std::move(found);
   // The slot keeps its key: the table stays sorted for the next search.
-  found->robot_id = taken.robot_id;
-  found->seq = taken.seq;
+  found.robot_id = taken.robot_id;
+  found.seq = taken.seq;
   return taken;
 }
 

@@ -1,9 +1,11 @@
 // TraceTable: the traces of a load waiting for the clusters that list them.
 #include "services/storage/record_codec.h"
 
+#include <algorithm>
 #include <bit>
 #include <cstdint>
 #include <optional>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -73,6 +75,39 @@ TEST(TraceTableTest, ForEachVisitsWhatIsLeftInKeyOrder) {
   const absl::Status stopped = table.ForEach(
       [](core::MemoryTrace&) { return absl::DataLossError("stop"); });
   EXPECT_EQ(stopped.code(), absl::StatusCode::kDataLoss);
+}
+
+// Searches start where the last one ended: takes in any order, near and
+// far, backwards and forwards, find every trace, and no key between them.
+TEST(TraceTableTest, TakesInAnyOrderFindEveryTraceAndNothingBetween) {
+  TraceTable table;
+  std::vector<core::TraceKey> keys;
+  for (const std::string robot : {"a", "b", "c"}) {
+    for (uint64_t seq = 2; seq <= 800; seq += 2) {
+      table.Add(TraceOf(robot, seq, seq / 20 + 1));
+      keys.push_back({robot, seq});
+    }
+  }
+  std::vector<core::TraceKey> order;
+  for (size_t i = 0; i < keys.size(); i += 2) order.push_back(keys[i]);
+  for (size_t i = keys.size() - 1; i < keys.size(); i -= 2) {
+    order.push_back(keys[i]);  // backwards, over the odd positions
+  }
+  std::mt19937_64 rng(7);
+  std::shuffle(order.begin() + order.size() * 3 / 4, order.end(), rng);
+  for (const core::TraceKey& key : order) {
+    EXPECT_FALSE(table.Take({key.robot_id, key.seq - 1}, key.seq / 20 + 1))
+        << key.robot_id << "/" << key.seq - 1;
+    EXPECT_FALSE(table.Take({key.robot_id, key.seq + 1}, key.seq / 20 + 1))
+        << key.robot_id << "/" << key.seq + 1;
+    std::optional<core::MemoryTrace> taken = table.Take(key, key.seq / 20 + 1);
+    ASSERT_TRUE(taken.has_value()) << key.robot_id << "/" << key.seq;
+    EXPECT_EQ(taken->key(), key);
+  }
+  EXPECT_EQ(table.AnyLeft(), nullptr);
+  EXPECT_FALSE(table.Take({"0", 1}, 1));  // before the first
+  EXPECT_FALSE(table.Take({"d", 1}, 1));  // after the last
+  EXPECT_FALSE(table.Take({"a", 2}, 1));  // taken already
 }
 
 TEST(RecordCodecTest, ATraceRecordWithoutItsCodeHoldsEverythingElse) {

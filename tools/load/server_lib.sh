@@ -57,6 +57,44 @@ hnsw { $hnsw }"
   stop_server
 }
 
+# bench_work NAME [PATH...]: sets WORK for a benchmark: KEEP when set (made
+# if needed, kept at exit but for the PATHs in it), else a new temporary
+# directory named after NAME (removed at exit). At exit the script's
+# background jobs are stopped first.
+bench_work() {
+  local name=$1 removed="" path
+  shift
+  if [ -n "${KEEP:-}" ]; then
+    WORK=$KEEP
+    mkdir -p "$WORK"
+    for path in "$@"; do removed="$removed '$WORK/$path'"; done
+  else
+    WORK=$(mktemp -d "${TMPDIR:-/tmp}/$name.XXXXXX")
+    removed="'$WORK'"
+  fi
+  # shellcheck disable=SC2064  # the paths are fixed now
+  trap "kill \$(jobs -p) 2>/dev/null || true; wait; rm -rf $removed" EXIT
+}
+
+# fill_scale_fleet_once BUILD WORK TRACES: fill_scale_fleet, then its HNSW
+# graph built and saved by a clean stop, unless WORK/filled says an earlier
+# run did (a kept WORK: the restart benchmarks' KEEP); FILLED is then read
+# back from it.
+fill_scale_fleet_once() {
+  local build=$1 work=$2 traces=$3
+  if [ -f "$work/filled" ]; then
+    FILLED=$(cat "$work/filled")
+    return
+  fi
+  rm -rf "$work/data"
+  fill_scale_fleet "$build" "$work" "$traces"
+  start_server "$build" "$work/data" "$work/build.log" \
+    --config "$work/restart.textproto"
+  while [ "$(unindexed_codes "$build" scale)" -gt 0 ]; do sleep 2; done
+  stop_server
+  echo "$FILLED" >"$work/filled"
+}
+
 # server_rss_mib PID: the resident set of fleetmem-server PID, or of the
 # fleetmem-server child of PID (a wrapper's), in MiB.
 server_rss_mib() {
