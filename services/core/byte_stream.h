@@ -7,7 +7,6 @@
 #ifndef FLEETMEM_SERVICES_CORE_BYTE_STREAM_H_
 #define FLEETMEM_SERVICES_CORE_BYTE_STREAM_H_
 
-#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
@@ -50,29 +49,11 @@ class ByteWriter {
   uint64_t written_ = 0;
 };
 
-// Checks bytes before a ByteReader hands them out: a file verified a chunk
-// at a time as it is read (storage's index snapshots), so that a reader
-// never sees a byte that failed its checksum, and the file is read once.
-class ByteVerifier {
- public:
-  virtual ~ByteVerifier() = default;
-  // Verifies the bytes up to at least `end` (<= the reader's size) and
-  // returns how far they are verified now (>= end), or 0 when they fail.
-  virtual size_t VerifyTo(size_t end) = 0;
-};
-
 // Reads what a ByteWriter wrote. Every Get returns false, and reads nothing,
 // when fewer bytes remain than it needs; callers turn that into DATA_LOSS.
-// With a verifier, a Get also returns false when the bytes it would read
-// fail their check (what was read before stays read); a large GetBytes
-// verifies and copies a chunk at a time.
 class ByteReader {
  public:
-  explicit ByteReader(std::span<const char> bytes,
-                      ByteVerifier* verifier = nullptr)
-      : bytes_(bytes),
-        verifier_(verifier),
-        verified_(verifier == nullptr ? bytes.size() : 0) {}
+  explicit ByteReader(std::span<const char> bytes) : bytes_(bytes) {}
 
   template <typename T>
   bool Get(T* value) {
@@ -81,31 +62,21 @@ class ByteReader {
   }
   bool GetBytes(void* out, size_t size) {
     if (size > remaining()) return false;
-    char* to = static_cast<char*>(out);
-    while (size > 0) {
-      if (position_ == verified_ && !Verify(position_ + 1)) return false;
-      const size_t take = std::min(size, verified_ - position_);
-      std::memcpy(to, bytes_.data() + position_, take);
-      position_ += take;
-      to += take;
-      size -= take;
-    }
+    if (size > 0) std::memcpy(out, bytes_.data() + position_, size);
+    position_ += size;
     return true;
   }
   // At most `max_size` characters (a corrupt length must not allocate).
   bool GetString(std::string* text, size_t max_size) {
     uint64_t size = 0;
-    if (!Get(&size) || size > max_size || size > remaining() ||
-        !Verify(position_ + size)) {
-      return false;
-    }
+    if (!Get(&size) || size > max_size || size > remaining()) return false;
     text->assign(bytes_.data() + position_, size);
     position_ += size;
     return true;
   }
   // The next `size` bytes as they are (no copy), skipped over.
   bool GetSpan(size_t size, std::span<const char>* out) {
-    if (size > remaining() || !Verify(position_ + size)) return false;
+    if (size > remaining()) return false;
     *out = bytes_.subspan(position_, size);
     position_ += size;
     return true;
@@ -113,19 +84,8 @@ class ByteReader {
   size_t remaining() const { return bytes_.size() - position_; }
 
  private:
-  // True once the bytes up to `end` are verified.
-  bool Verify(size_t end) {
-    if (end <= verified_) return true;
-    const size_t verified = verifier_->VerifyTo(end);
-    if (verified < end) return false;
-    verified_ = verified;
-    return true;
-  }
-
   std::span<const char> bytes_;
   size_t position_ = 0;
-  ByteVerifier* verifier_;
-  size_t verified_;
 };
 
 }  // namespace fleetmem::core

@@ -472,9 +472,8 @@ void StaticMemory::Insert(Cluster cluster, bool with_centroid,
   cluster.centroid = std::vector<float>();
   Cluster& stored = clusters_.emplace(id, std::move(cluster)).first->second;
   trace_count_ += stored.traces.size();
-  // Counted per run of one robot and of one domain: a cluster's traces
-  // are mostly one robot's segment (a map lookup per trace was a tenth of
-  // a restart's memory load at 10,000,000 traces).
+  // Counted per run of one robot and of one domain (a cluster's traces
+  // are mostly one robot's segment): a map lookup per run, not per trace.
   RunCounter by_robot(traces_by_robot_);
   RunCounter by_domain(traces_by_domain_);
   for (MemoryTrace& trace : stored.traces) {

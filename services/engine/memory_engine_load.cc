@@ -63,7 +63,8 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
   };
   const absl::Time start = absl::Now();
   loaded.status = store.ReadIndexSnapshot(
-      fleet_id, [&](core::ByteReader& in) -> absl::Status {
+      fleet_id, [&](std::span<const char> bytes) -> absl::Status {
+        core::ByteReader in(bytes);
         uint32_t format = 0;
         if (!in.Get(&format) ||
             (format != kIndexSnapshotFormat &&

@@ -383,9 +383,7 @@ TEST_F(IndexSnapshotTest, SnapshotOfAnotherHistoryIsRebuilt) {
   std::vector<char> bytes;
   ASSERT_TRUE(store_
                   ->ReadIndexSnapshot("f1",
-                                      [&bytes](core::ByteReader& in) {
-                                        std::span<const char> read;
-                                        in.GetSpan(in.remaining(), &read);
+                                      [&bytes](std::span<const char> read) {
                                         bytes.assign(read.begin(), read.end());
                                         return absl::OkStatus();
                                       })

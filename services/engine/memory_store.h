@@ -188,16 +188,13 @@ class MemoryStore {
       const std::function<void()>& written = nullptr) {
     return absl::UnimplementedError("this store keeps no index snapshots");
   }
-  // Calls `read` with a reader of the fleet's latest snapshot and returns
-  // its status; the snapshot is kept. NOT_FOUND when there is none;
-  // DATA_LOSS when it is damaged (it fails a checksum: it is then
-  // discarded). A store may check the bytes as `read` reads them (the
-  // reader's Gets fail at damaged bytes, which `read` never sees) and
-  // report the damage after `read` returned: whatever `read` built is then
-  // to be dropped.
+  // Calls `read` with the fleet's latest snapshot and returns its status;
+  // the snapshot is kept. NOT_FOUND when there is none; DATA_LOSS when it is
+  // damaged (it fails its checksum: it is then discarded); `read` is not
+  // called then.
   virtual absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteReader&)>& read) {
+      const std::function<absl::Status(std::span<const char>)>& read) {
     return absl::NotFoundError("this store keeps no index snapshots");
   }
 

@@ -88,7 +88,7 @@ class TimedMemoryStore final : public engine::MemoryStore {
   }
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteReader&)>& read) override {
+      const std::function<absl::Status(std::span<const char>)>& read) override {
     return store_->ReadIndexSnapshot(fleet_id, read);
   }
   absl::Status DeleteFleet(std::string_view fleet_id,

@@ -230,7 +230,8 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
   uint32_t read = 0;
   ASSERT_TRUE(store
                   ->ReadIndexSnapshot("f1",
-                                      [&read](core::ByteReader& in) {
+                                      [&read](std::span<const char> bytes) {
+                                        core::ByteReader in(bytes);
                                         in.Get(&read);
                                         return absl::OkStatus();
                                       })

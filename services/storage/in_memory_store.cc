@@ -203,7 +203,7 @@ class InMemoryStore final : public engine::MemoryStore {
 
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteReader&)>& read) override {
+      const std::function<absl::Status(std::span<const char>)>& read) override {
     std::vector<char> bytes;
     {
       absl::MutexLock lock(&mu_);
@@ -214,8 +214,7 @@ class InMemoryStore final : public engine::MemoryStore {
       }
       bytes = it->second;  // a copy: `read` runs outside the lock
     }
-    core::ByteReader in(bytes);
-    return read(in);
+    return read(bytes);
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(

@@ -565,11 +565,7 @@ absl::StatusOr<std::string> ReadSnapshot(engine::MemoryStore& store,
                                          std::string_view fleet) {
   std::string payload;
   absl::Status status =
-      store.ReadIndexSnapshot(fleet, [&](core::ByteReader& in) {
-        std::span<const char> bytes;
-        if (!in.GetSpan(in.remaining(), &bytes)) {
-          return absl::DataLossError("unreadable");
-        }
+      store.ReadIndexSnapshot(fleet, [&](std::span<const char> bytes) {
         payload.assign(bytes.begin(), bytes.end());
         return absl::OkStatus();
       });

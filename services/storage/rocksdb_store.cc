@@ -505,7 +505,7 @@ class RocksDbStore final : public engine::MemoryStore {
 
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(core::ByteReader&)>& read) override {
+      const std::function<absl::Status(std::span<const char>)>& read) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }

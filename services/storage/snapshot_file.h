@@ -1,19 +1,14 @@
 // Index snapshots on disk (the file side of MemoryStore::SaveIndexSnapshot):
 // one file per key (a fleet id) in a directory, named after the key's
 // XXH3-64 in hex (a fixed length whatever the key), framed as
-//   "FMIDXSN2" | stamp (uint64) | key (uint64 length, bytes) | payload |
-//   XXH3-64 of each 8 MiB chunk of the payload (uint64 each) |
-//   chunk size (uint64) | payload size (uint64) |
-//   XXH3-64 of the stamp, key, chunk checksums and chunk size (uint64)
+//   "FMIDXSN1" | stamp (uint64) | key (uint64 length, bytes) | payload |
+//   payload size (uint64) | XXH3-64 of everything after the magic
+//   (uint64)
 // and written atomically (a temporary file, fsync, rename, fsync of the
-// directory), so a crash leaves the earlier file or the new one, whole. A
-// reader checks the frame, then each chunk as it reaches it (the file is
-// read once: at 10,000,000 traces a 16 GB snapshot was read twice, once
-// for its checksum). Files of the first format ("FMIDXSN1": one checksum of
-// everything after the magic, then the payload size before it) are read
-// too, checked whole first. The stamp records the state of the store that
-// wrote it (RocksDB's latest sequence number); readers reconcile a snapshot
-// with the store instead of requiring the stamp to be current.
+// directory), so a crash leaves the earlier file or the new one, whole. The
+// stamp records the state of the store that wrote it (RocksDB's latest
+// sequence number); readers reconcile a snapshot with the store instead of
+// requiring the stamp to be current.
 #ifndef FLEETMEM_SERVICES_STORAGE_SNAPSHOT_FILE_H_
 #define FLEETMEM_SERVICES_STORAGE_SNAPSHOT_FILE_H_
 
@@ -44,18 +39,14 @@ absl::Status WriteSnapshotFile(
     const std::function<absl::Status()>& check_room = nullptr,
     const std::function<void()>& written = nullptr);
 
-// Calls `read` with a reader of the payload of `key`'s snapshot in
-// `directory` if the frame is intact and the key is `key`, and returns its
-// status; the file stays. The reader hands out only bytes that passed
-// their chunk's checksum (a Get fails at a damaged chunk). NOT_FOUND when
-// there is none; DATA_LOSS when it is damaged (the file is then removed):
-// before `read` is called for a damaged frame, after it for a damaged
-// chunk, whether `read` reached it or not, so a caller drops what it read
-// whenever the status is DATA_LOSS. `*stamp`, if given, gets the stamp the
-// file was written with.
+// Calls `read` with the payload of `key`'s snapshot in `directory` and
+// returns its status if the frame and checksum are intact and the key is
+// `key`; the file stays. NOT_FOUND when there is none, DATA_LOSS when it is
+// damaged (the file is then removed); `read` is not called then. `*stamp`,
+// if given, gets the stamp the file was written with.
 absl::Status ReadSnapshotFile(
     const std::string& directory, std::string_view key,
-    const std::function<absl::Status(core::ByteReader&)>& read,
+    const std::function<absl::Status(std::span<const char>)>& read,
     uint64_t* stamp = nullptr);
 
 // The file that holds `key`'s snapshot in `directory`.
