@@ -673,6 +673,11 @@ bool KeyLess(const core::MemoryTrace& a, const core::MemoryTrace& b) {
   return std::tie(a.robot_id, a.seq) < std::tie(b.robot_id, b.seq);
 }
 
+// True if `trace` comes before `key` in key order.
+bool KeyBefore(const core::MemoryTrace& trace, const core::TraceKey& key) {
+  return std::tie(trace.robot_id, trace.seq) < std::tie(key.robot_id, key.seq);
+}
+
 }  // namespace
 
 void TraceTable::Add(core::MemoryTrace trace) {
@@ -690,11 +695,9 @@ void TraceTable::Sort() {
 
 size_t TraceTable::LowerBound(const core::TraceKey& key) {
   const size_t n = traces_.size();
-  auto before = [&](size_t i) {
-    return std::tie(traces_[i].robot_id, traces_[i].seq) <
-           std::tie(key.robot_id, key.seq);
-  };
-  // The answer lies in [lo, hi]; gallop from the hint to bracket it.
+  auto before = [&](size_t i) { return KeyBefore(traces_[i], key); };
+  // The answer lies in [lo, hi]; gallop from the hint to bracket it, then
+  // search the bracket.
   const size_t at = std::min(hint_, n);
   size_t lo = 0;
   size_t hi = n;
@@ -717,16 +720,10 @@ size_t TraceTable::LowerBound(const core::TraceKey& key) {
       hi = at - step;
     }
   }
-  while (lo < hi) {
-    const size_t mid = lo + (hi - lo) / 2;
-    if (before(mid)) {
-      lo = mid + 1;
-    } else {
-      hi = mid;
-    }
-  }
-  hint_ = lo;
-  return lo;
+  const auto first = std::lower_bound(traces_.begin() + lo,
+                                      traces_.begin() + hi, key, KeyBefore);
+  hint_ = static_cast<size_t>(first - traces_.begin());
+  return hint_;
 }
 
 std::optional<core::MemoryTrace> TraceTable::Take(const core::TraceKey& key,
