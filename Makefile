@@ -217,6 +217,8 @@ perf: build
 	  --kinds hnswlib,float,int8,int8-file --out $(PERF_DIR)/graph.csv
 	/usr/bin/python3 bench/quantization_choice.py 100000 \
 	  >$(PERF_DIR)/quantization_choice.csv
+	$(BUILD_DIR)/bin/fleetmem_row_read_bench --benchmark_min_time=2 \
+	  --benchmark_out=$(PERF_DIR)/row_read.json --benchmark_out_format=json
 	bench/plot_perf.py $(PERF_DIR)
 
 # Issue 49's fleet of ten million traces (bench/scale_fleet.sh: about 50 GB

@@ -4,6 +4,13 @@
 
 namespace fleetmem::core {
 
+void FloatRows::Gather(std::span<const uint32_t> rows, float* values) const {
+  for (const uint32_t row : rows) {
+    Read(row, 1, values);
+    values += width_;
+  }
+}
+
 void MemoryFloatRows::Reserve(size_t rows) {
   while (blocks_.size() * kBlockRows < rows) {
     blocks_.push_back(std::make_unique<float[]>(kBlockRows * width()));

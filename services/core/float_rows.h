@@ -11,8 +11,10 @@
 #define FLEETMEM_SERVICES_CORE_FLOAT_ROWS_H_
 
 #include <cstddef>
+#include <cstdint>
 #include <functional>
 #include <memory>
+#include <span>
 #include <vector>
 
 namespace fleetmem::core {
@@ -37,6 +39,14 @@ class FloatRows {
   // values (count × width floats) := rows [first, first + count), which
   // were written. Throws std::system_error on an I/O error.
   virtual void Read(size_t first, size_t count, float* values) const = 0;
+  // values (rows.size() × width floats) := each of `rows` in turn (in any
+  // order, repeats allowed), which were written: a search's candidates or
+  // a sample's codes in one call. A store whose rows may be on disk
+  // (FileFloatRows) starts every read it has to wait for before waiting
+  // for the first, so that the call waits about as long as the slowest
+  // read, not as long as all of them in turn. This one Reads each row.
+  // Throws std::system_error on an I/O error.
+  virtual void Gather(std::span<const uint32_t> rows, float* values) const;
   // Row `row` where it lies in this process's memory, or nullptr if this
   // store keeps its rows elsewhere (Read copies them).
   virtual const float* Find(size_t row) const { return nullptr; }

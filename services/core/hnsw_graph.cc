@@ -602,6 +602,49 @@ double HnswGraph::PreciseSquaredDistance(const float* query, uint32_t slot,
                         options_.scaled ? stored[dimension_] : 1.0, dimension_);
 }
 
+std::vector<double> HnswGraph::PreciseSquaredDistances(
+    const float* query, std::span<const uint32_t> slots, float scale) const {
+  std::vector<double> squared(slots.size());
+  VisitRows(slots, [&](size_t i, const float* stored) {
+    squared[i] =
+        PreciseSquared(query, scale, stored,
+                       options_.scaled ? stored[dimension_] : 1.0, dimension_);
+  });
+  return squared;
+}
+
+void HnswGraph::CopyVectors(std::span<const uint32_t> slots,
+                            std::span<float* const> out) const {
+  VisitRows(slots, [&](size_t i, const float* stored) {
+    std::copy(stored, stored + dimension_, out[i]);
+  });
+}
+
+void HnswGraph::VisitRows(
+    std::span<const uint32_t> slots,
+    const std::function<void(size_t, const float*)>& visit) const {
+  std::vector<uint32_t> away;  // int8 rows not in memory, and where they go
+  std::vector<size_t> at;
+  for (size_t i = 0; i < slots.size(); ++i) {
+    if (!options_.int8) {
+      visit(i, Vector(slots[i]));
+      continue;
+    }
+    if (slots[i] >= next_slot_) throw std::out_of_range("no such slot");
+    if (const float* row = impl_->rows->Find(slots[i])) {
+      visit(i, row);
+    } else {
+      away.push_back(slots[i]);
+      at.push_back(i);
+    }
+  }
+  if (away.empty()) return;
+  const size_t stride = dimension_ + 1;
+  std::vector<float> rows(away.size() * stride);
+  impl_->rows->Gather(away, rows.data());
+  for (size_t k = 0; k < away.size(); ++k) visit(at[k], &rows[k * stride]);
+}
+
 void HnswGraph::ScanPrecise(
     const float* query, float scale,
     const std::function<bool(uint32_t)>& wanted,

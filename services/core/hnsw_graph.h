@@ -133,6 +133,13 @@ class HnswGraph {
   // in a file, reads the slot's row (std::system_error on an I/O error).
   double PreciseSquaredDistance(const float* query, uint32_t slot,
                                 float scale = 1.0f) const;
+  // PreciseSquaredDistance of each of `slots` (live), in order: an int8
+  // graph's rows not in memory are read in one FloatRows::Gather (a file's
+  // rows off the page cache are then read side by side, not one after
+  // another). std::system_error on an I/O error.
+  std::vector<double> PreciseSquaredDistances(const float* query,
+                                              std::span<const uint32_t> slots,
+                                              float scale = 1.0f) const;
   // The stored vector of a live slot, as given to Add (unscaled), where it
   // lies in memory; nullptr for an int8 graph whose floats are kept
   // elsewhere (options.float_rows): CopyVector reads them.
@@ -141,6 +148,10 @@ class HnswGraph {
   // and returns its scale (one read of its row); std::system_error when
   // the row cannot be read.
   float CopyVector(uint32_t slot, float* out) const;
+  // CopyVector of each of `slots` (live) into out[i], the rows read as
+  // PreciseSquaredDistances reads them.
+  void CopyVectors(std::span<const uint32_t> slots,
+                   std::span<float* const> out) const;
   // visit(slot, PreciseSquaredDistance(query, slot, scale)) for every live
   // slot that `wanted` accepts, in slot order: a scan of the graph's floats,
   // read a chunk of rows at a time where they are not in memory (one read
@@ -193,6 +204,11 @@ class HnswGraph {
   // With options.int8: slot's row (dimension floats, then the scale) where
   // it lies in memory, or read into `buffer`.
   const float* Row(uint32_t slot, std::vector<float>& buffer) const;
+  // visit(i, the stored vector of slots[i] (dimension floats, then the
+  // scale with options.scaled)) for each i: rows in memory where they lie,
+  // an int8 graph's others gathered into one buffer first.
+  void VisitRows(std::span<const uint32_t> slots,
+                 const std::function<void(size_t, const float*)>& visit) const;
   // Load without its handlers for hnswlib's exceptions.
   static absl::StatusOr<std::unique_ptr<HnswGraph>> LoadOrThrow(
       size_t dimension, HnswGraphOptions options, ByteReader& in);

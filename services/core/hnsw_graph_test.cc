@@ -313,6 +313,40 @@ TEST_P(HnswGraphStageTest, ScanPreciseVisitsEachWantedLiveSlotOnce) {
   EXPECT_EQ(visited, expected);
 }
 
+// The batch reads (a search's candidates, a sample's codes) answer as one
+// read per slot: the same distances and the same floats, bit for bit, for
+// slots in any order and repeated; a slot never added is refused.
+TEST_P(HnswGraphStageTest, BatchesAnswerAsOneSlotAtATime) {
+  constexpr size_t kDimension = 10;
+  const auto vectors = Gaussian(300, kDimension, 53);
+  HnswGraph graph(kDimension, Options());
+  StageAndLink(graph, vectors, 0, vectors.size(), Scaled(), 1);
+  graph.Remove(17);
+  const std::vector<uint32_t> slots = {299, 0, 42, 42, 150, 1, 298, 0};
+  const auto query = Gaussian(1, kDimension, 59)[0];
+  const float scale = Scaled() ? 0.75f : 1.0f;
+  const std::vector<double> squared =
+      graph.PreciseSquaredDistances(query.data(), slots, scale);
+  ASSERT_EQ(squared.size(), slots.size());
+  std::vector<std::vector<float>> copies(slots.size());
+  std::vector<float*> out;
+  for (auto& copy : copies) {
+    copy.assign(kDimension, -1.0f);
+    out.push_back(copy.data());
+  }
+  graph.CopyVectors(slots, out);
+  for (size_t i = 0; i < slots.size(); ++i) {
+    EXPECT_EQ(squared[i],
+              graph.PreciseSquaredDistance(query.data(), slots[i], scale))
+        << "slot " << slots[i];
+    EXPECT_EQ(copies[i], vectors[slots[i]]) << "slot " << slots[i];
+  }
+  EXPECT_TRUE(graph.PreciseSquaredDistances(query.data(), {}, scale).empty());
+  const std::vector<uint32_t> unknown = {3, 1000};
+  EXPECT_THROW(graph.PreciseSquaredDistances(query.data(), unknown, scale),
+               std::out_of_range);
+}
+
 INSTANTIATE_TEST_SUITE_P(EveryLayout, HnswGraphStageTest,
                          ::testing::Values(Nodes::kPlain, Nodes::kScaled,
                                            Nodes::kInt8,

@@ -3,6 +3,7 @@
 #include <chrono>
 #include <cmath>
 #include <functional>
+#include <iterator>
 #include <map>
 #include <random>
 #include <string>
@@ -474,6 +475,26 @@ FleetMutation MemoryEngine::Fleet::ErasingPending(
   return mutation;
 }
 
+absl::Status MemoryEngine::Fleet::PutWithCodes(
+    std::span<const uint64_t> cluster_ids, FleetMutation& mutation,
+    std::vector<core::TraceKey>* keys) const {
+  std::vector<core::Cluster> held;
+  for (uint64_t cluster_id : cluster_ids) {
+    std::optional<core::Cluster> cluster = memory.WithCentroid(cluster_id);
+    if (!cluster.has_value()) continue;
+    for (const core::MemoryTrace& trace : cluster->traces) {
+      keys->push_back(trace.key());
+    }
+    held.push_back(*std::move(cluster));
+  }
+  // Every code in one batch: a memory that forgets by merging puts a
+  // survivor's older traces, whose codes only the index has.
+  if (absl::Status filled = FillCodes(held); !filled.ok()) return filled;
+  std::move(held.begin(), held.end(),
+            std::back_inserter(mutation.put_clusters));
+  return absl::OkStatus();
+}
+
 absl::Status MemoryEngine::Fleet::ConsolidateRobot(
     const std::string& robot_id, Notices* notices, CarriedUpload* carried,
     const core::ConsolidationPlan* plan) {
@@ -503,23 +524,15 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   mutation.erase_clusters.insert(mutation.erase_clusters.end(),
                                  changes.erased.begin(), changes.erased.end());
   std::sort(mutation.erase_clusters.begin(), mutation.erase_clusters.end());
-  // Held clusters with every code (a survivor's older traces may have
-  // theirs in the index only): the mutation holds copies of the new
-  // clusters' codes, and the index may drop its own below.
+  // The mutation holds copies of the new clusters' codes, and the index
+  // may drop its own below.
   std::vector<core::TraceKey> kept;
-  for (uint64_t put : changes.put) {
-    std::optional<core::Cluster> held = memory.WithCentroid(put);
-    if (!held.has_value()) continue;
-    for (const core::MemoryTrace& trace : held->traces) {
-      kept.push_back(trace.key());
-    }
-    if (absl::Status filled = FillCodes(held->traces); !filled.ok()) {
-      FLEETMEM_LOG(kError) << "fleet \"" << id << "\": " << filled;
-      notices->staged.clear();
-      Reload().IgnoreError();
-      return filled;
-    }
-    mutation.put_clusters.push_back(*std::move(held));
+  if (absl::Status filled = PutWithCodes(changes.put, mutation, &kept);
+      !filled.ok()) {
+    FLEETMEM_LOG(kError) << "fleet \"" << id << "\": " << filled;
+    notices->staged.clear();
+    Reload().IgnoreError();
+    return filled;
   }
   const size_t merge_dropped = AppendConsolidationEvents(
       outcome, engine->options_.now_ns(), engine->options_.max_events_per_fleet,

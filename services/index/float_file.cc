@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <stdlib.h>
+#include <sys/uio.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -86,6 +87,40 @@ void FileFloatRows::Read(size_t first, size_t count, float* values) const {
         return ::pread(fd_, data, bytes, offset);
       },
       "reading the graph's floats");
+}
+
+void FileFloatRows::Gather(std::span<const uint32_t> rows,
+                           float* values) const {
+  if (!nowait_.load(std::memory_order_relaxed)) {
+    core::FloatRows::Gather(rows, values);
+    return;
+  }
+  const size_t row_bytes = width() * sizeof(float);
+  auto offset = [&](uint32_t row) {
+    return static_cast<off_t>(static_cast<size_t>(row) * row_bytes);
+  };
+  std::vector<size_t> missed;  // of rows: not whole in the page cache
+  for (size_t i = 0; i < rows.size(); ++i) {
+    iovec target{values + i * width(), row_bytes};
+    ssize_t copied;
+    do {
+      copied = ::preadv2(fd_, &target, 1, offset(rows[i]), RWF_NOWAIT);
+    } while (copied < 0 && errno == EINTR);
+    if (copied == static_cast<ssize_t>(row_bytes)) continue;
+    if (copied < 0 && errno != EAGAIN) {
+      if (errno != EOPNOTSUPP && errno != EINVAL && errno != ENOSYS) {
+        Fail(errno, "reading the graph's floats");
+      }
+      nowait_.store(false, std::memory_order_relaxed);
+    }
+    missed.push_back(i);
+  }
+  // A hint: where it fails, the reads below wait for each row in turn.
+  for (const size_t i : missed) {
+    ::posix_fadvise(fd_, offset(rows[i]), static_cast<off_t>(row_bytes),
+                    POSIX_FADV_WILLNEED);
+  }
+  for (const size_t i : missed) Read(rows[i], 1, values + i * width());
 }
 
 core::FloatRowsMaker FloatRowsInFiles(std::string directory) {

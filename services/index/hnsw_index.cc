@@ -162,6 +162,10 @@ class HnswIndex final : public engine::PlaceIndex {
     }
     return true;
   }
+  // CopyCode of each held id, the graph's rows read in one batch
+  // (HnswGraph::CopyVectors); the code of an id not held is left as it is.
+  bool CopyCodes(std::span<const uint64_t> ids,
+                 std::span<std::vector<float>* const> codes) const override;
   absl::Status Save(core::ByteWriter& out) const override;
   absl::Status Load(core::ByteReader& in) override;
   bool contains(uint64_t id) const { return slot_of_.contains(id); }
@@ -343,6 +347,35 @@ std::vector<Neighbor> HnswIndex::Scan(std::span<const float> query, float scale,
   return all;
 }
 
+bool HnswIndex::CopyCodes(std::span<const uint64_t> ids,
+                          std::span<std::vector<float>* const> codes) const {
+  std::vector<uint32_t> slots;
+  std::vector<float*> out;
+  bool all = true;
+  for (size_t i = 0; i < ids.size(); ++i) {
+    auto it = slot_of_.find(ids[i]);
+    if (it == slot_of_.end()) {
+      all = false;
+      continue;
+    }
+    codes[i]->resize(dimension());
+    slots.push_back(it->second);
+    out.push_back(codes[i]->data());
+  }
+  try {
+    graph_->CopyVectors(slots, out);
+  } catch (const std::system_error& e) {
+    // As CopyCode: the caller says which codes are missing.
+    FLEETMEM_LOG(kError) << "HNSW index: the codes of " << slots.size()
+                         << " ids could not be read: " << e.what();
+    for (size_t i = 0; i < ids.size(); ++i) {
+      if (slot_of_.contains(ids[i])) codes[i]->clear();
+    }
+    return false;
+  }
+  return all;
+}
+
 absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
     std::span<const float> query, const SearchParams& params) const {
   if (absl::Status status = CheckQuery(dimension(), query); !status.ok()) {
@@ -366,17 +399,23 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
         KeepNearest(all, params.k);
         return all;
       }
-      std::vector<Neighbor> neighbors;
-      // The graph's distances walk it; the answers are scored precisely.
+      // The graph's distances walk it; the answers are scored precisely,
+      // their rows read in one batch.
       const size_t wanted = std::min(asked, live);
+      std::vector<uint32_t> slots;
       for (const auto& [approximate, slot] :
            linking_ ? graph_->SearchBesideLinks(query.data(), wanted, scale)
                     : graph_->Search(query.data(), wanted, scale)) {
-        const uint64_t id = id_of_[slot];
-        if (params.accept && !params.accept(id)) continue;
-        const double squared =
-            graph_->PreciseSquaredDistance(query.data(), slot, scale);
-        neighbors.push_back({id, static_cast<float>(std::sqrt(squared))});
+        if (params.accept && !params.accept(id_of_[slot])) continue;
+        slots.push_back(slot);
+      }
+      const std::vector<double> squared =
+          graph_->PreciseSquaredDistances(query.data(), slots, scale);
+      std::vector<Neighbor> neighbors;
+      neighbors.reserve(slots.size());
+      for (size_t i = 0; i < slots.size(); ++i) {
+        neighbors.push_back(
+            {id_of_[slots[i]], static_cast<float>(std::sqrt(squared[i]))});
       }
       if (neighbors.size() >= params.k || asked >= live || !params.accept) {
         KeepNearest(neighbors, params.k);
@@ -520,11 +559,7 @@ class TieredIndex final : public engine::PlaceIndex {
   bool CopyCodes(std::span<const uint64_t> ids,
                  std::span<std::vector<float>* const> codes) const override {
     std::shared_lock lock(mu_);
-    bool all = true;
-    for (size_t i = 0; i < ids.size(); ++i) {
-      all = CopyCodeLocked(ids[i], codes[i]) && all;
-    }
-    return all;
+    return CopyCodesLocked(ids, codes);
   }
   // The tail and the graph as they are: a backlog is saved as a backlog.
   absl::Status Save(core::ByteWriter& out) const override;
@@ -547,6 +582,19 @@ class TieredIndex final : public engine::PlaceIndex {
   }
   bool CopyCodeLocked(uint64_t id, std::vector<float>* code) const {
     return tail_->CopyCode(id, code) || (graph_ && graph_->CopyCode(id, code));
+  }
+  // The tail's codes one by one, the graph's in one batch.
+  bool CopyCodesLocked(std::span<const uint64_t> ids,
+                       std::span<std::vector<float>* const> codes) const {
+    std::vector<uint64_t> graph_ids;
+    std::vector<std::vector<float>*> graph_codes;
+    for (size_t i = 0; i < ids.size(); ++i) {
+      if (tail_->CopyCode(ids[i], codes[i])) continue;
+      graph_ids.push_back(ids[i]);
+      graph_codes.push_back(codes[i]);
+    }
+    if (graph_ids.empty()) return true;
+    return graph_ != nullptr && graph_->CopyCodes(graph_ids, graph_codes);
   }
   bool HoldsCodeLocked(uint64_t id) const {
     return tail_->HoldsCode(id) || (graph_ && graph_->contains(id));
@@ -802,12 +850,14 @@ absl::StatusOr<std::vector<Neighbor>> TieredIndex::Search(
   }
   if (params.codes != nullptr) {
     params.codes->assign(found->size(), {});
+    std::vector<uint64_t> ids;
+    std::vector<std::vector<float>*> codes;
     for (size_t i = 0; i < found->size(); ++i) {
-      if (!CopyCodeLocked((*found)[i].id, &(*params.codes)[i])) {
-        params.codes->clear();  // the caller's CopyCodes says which
-        break;
-      }
+      ids.push_back((*found)[i].id);
+      codes.push_back(&(*params.codes)[i]);
     }
+    // The caller's CopyCodes says which is missing.
+    if (!CopyCodesLocked(ids, codes)) params.codes->clear();
   }
   return found;
 }

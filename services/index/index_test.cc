@@ -1,3 +1,6 @@
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <Eigen/Core>
 #include <algorithm>
 #include <atomic>
@@ -1543,6 +1546,61 @@ TEST(FileFloatRowsTest, RowsComeBackAndTheFileIsNowhereToBeSeen) {
   std::filesystem::remove(directory);
 }
 
+// Writes the file of each FileFloatRows made in `directory` back and drops
+// its pages from the page cache (the file is unlinked: it is found among
+// this process's descriptors), so that the next reads go to the disk.
+void DropFloatsFromPageCache(const std::string& directory) {
+  const std::string made =
+      std::filesystem::canonical(directory).string() + "/graph-floats-";
+  int dropped = 0;
+  for (const auto& entry :
+       std::filesystem::directory_iterator("/proc/self/fd")) {
+    std::error_code error;
+    const std::string target =
+        std::filesystem::read_symlink(entry.path(), error).string();
+    if (error || target.rfind(made, 0) != 0) continue;
+    const int fd = std::stoi(entry.path().filename().string());
+    ASSERT_EQ(::fdatasync(fd), 0);
+    ASSERT_EQ(::posix_fadvise(fd, 0, 0, POSIX_FADV_DONTNEED), 0);
+    ++dropped;
+  }
+  ASSERT_GT(dropped, 0) << "no floats' file of " << made << " is open";
+}
+
+// Gather hands back the rows asked, in the order asked and repeated where
+// asked, bit for bit, whether the page cache holds them (read without
+// waiting) or not (their reads started together, then waited for); a row
+// past the file's end is an I/O error the caller sees.
+TEST(FileFloatRowsTest, GatherReadsRowsInTheCacheAndOffIt) {
+  constexpr size_t kWidth = 257;  // rows across page boundaries
+  constexpr size_t kRows = 3000;
+  const std::string directory = FreshDirectory();
+  FileFloatRows rows(directory, kWidth);
+  rows.Reserve(kRows);
+  std::mt19937 rng(61);
+  std::normal_distribution<float> normal;
+  std::vector<float> values(kRows * kWidth);
+  for (float& value : values) value = normal(rng);
+  rows.Write(0, kRows, values.data());
+  const std::vector<uint32_t> asked = {2999, 0, 1500, 1500, 16, 17, 4, 2999};
+  for (const bool cold : {true, false}) {
+    if (cold) DropFloatsFromPageCache(directory);
+    std::vector<float> gathered(asked.size() * kWidth, -1.0f);
+    rows.Gather(asked, gathered.data());
+    for (size_t i = 0; i < asked.size(); ++i) {
+      EXPECT_TRUE(std::equal(gathered.begin() + i * kWidth,
+                             gathered.begin() + (i + 1) * kWidth,
+                             values.begin() + asked[i] * kWidth))
+          << "row " << asked[i] << (cold ? " off the page cache" : "");
+    }
+  }
+  const std::vector<uint32_t> past_end = {
+      1, static_cast<uint32_t>(rows.reserved() + 10)};
+  std::vector<float> gathered(past_end.size() * kWidth);
+  EXPECT_THROW(rows.Gather(past_end, gathered.data()), std::system_error);
+  std::filesystem::remove(directory);
+}
+
 // A directory that cannot hold the file is an error the caller sees
 // (std::system_error naming it), not a crash; an index given such a
 // directory adds nothing and says why, and its searches go on.
@@ -1596,6 +1654,20 @@ TEST(HnswIndexTest, FloatsInAFileAnswerAsFloatsOnTheHeap) {
     EXPECT_EQ(from_file, from_heap);
     EXPECT_EQ(from_file, data.vectors[id]);
   }
+  // CopyCodes: the held ids' codes in one batch off the page cache, an id
+  // not held left as it was and said so.
+  DropFloatsFromPageCache(directory);
+  const std::vector<uint64_t> batch = {data.ids[1999], 3, data.ids[0],
+                                       data.ids[500]};
+  std::vector<std::vector<float>> copies(batch.size(), {-7.0f});
+  std::vector<std::vector<float>*> targets;
+  for (auto& copy : copies) targets.push_back(&copy);
+  EXPECT_FALSE(file->CopyCodes(batch, targets));  // 3 was removed
+  EXPECT_EQ(copies[0], data.vectors[1999]);
+  EXPECT_EQ(copies[1], std::vector<float>{-7.0f});
+  EXPECT_EQ(copies[2], data.vectors[0]);
+  EXPECT_EQ(copies[3], data.vectors[500]);
+  ExpectSameAnswers(*heap, *file, queries.vectors);
   absl::StatusOr<std::string> heap_bytes = Saved(*heap);
   absl::StatusOr<std::string> file_bytes = Saved(*file);
   ASSERT_TRUE(heap_bytes.ok() && file_bytes.ok());
