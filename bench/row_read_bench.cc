@@ -10,11 +10,10 @@
 // random rows, the same ones for both ways.
 //
 //   build/bin/fleetmem_row_read_bench --benchmark_min_time=2
+#include <benchmark/benchmark.h>
 #include <fcntl.h>
 #include <stdlib.h>
 #include <unistd.h>
-
-#include <benchmark/benchmark.h>
 
 #include <cstdint>
 #include <cstdlib>
