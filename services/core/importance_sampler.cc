@@ -26,6 +26,12 @@ bool DrawnBefore(const Key& a, const Key& b) {
   return a.index < b.index;
 }
 
+// A positive weight as the sum tree holds it: an infinite weight is drawn
+// first among finite ones; the sums stay finite.
+double Capped(double weight) {
+  return std::min(weight, std::numeric_limits<double>::max() / (1ull << 40));
+}
+
 }  // namespace
 
 double ReplayWeight(float reward, uint32_t replay_count, double gamma,
@@ -125,10 +131,7 @@ size_t WeightedSampler::SumTree::Find(double target) const {
 void WeightedSampler::Set(size_t slot, double weight) {
   const bool was = positive_.Get(slot) > 0.0 || zero_.Get(slot) > 0.0;
   if (weight > 0.0) {
-    // An infinite weight is drawn first among finite ones; keep the sums
-    // finite.
-    positive_.Set(slot, std::min(weight, std::numeric_limits<double>::max() /
-                                             (1ull << 40)));
+    positive_.Set(slot, Capped(weight));
     if (zero_.Get(slot) > 0.0) zero_.Set(slot, 0.0);
   } else {
     zero_.Set(slot, 1.0);
@@ -147,8 +150,7 @@ void WeightedSampler::SetAll(std::span<const double> weights) {
   for (size_t i = 0; i < weights.size(); ++i) {
     // As Set does.
     if (weights[i] > 0.0) {
-      positive[i] = std::min(weights[i],
-                             std::numeric_limits<double>::max() / (1ull << 40));
+      positive[i] = Capped(weights[i]);
     } else {
       zero[i] = 1.0;
     }

@@ -146,21 +146,10 @@ class HnswIndex final : public engine::PlaceIndex {
   size_t size() const override { return slot_of_.size(); }
   size_t dimension() const override { return graph_->dimension(); }
   bool HoldsCode(uint64_t id) const override { return contains(id); }
+  // CopyCodes of the one id.
   bool CopyCode(uint64_t id, std::vector<float>* code) const override {
-    auto it = slot_of_.find(id);
-    if (it == slot_of_.end()) return false;
-    code->resize(dimension());
-    try {
-      graph_->CopyVector(it->second, code->data());
-    } catch (const std::system_error& e) {
-      // The floats' file could not be read: the caller says the code is
-      // missing (an INTERNAL status naming the trace), and the log says why.
-      FLEETMEM_LOG(kError) << "HNSW index: the code of id " << id
-                           << " could not be read: " << e.what();
-      code->clear();
-      return false;
-    }
-    return true;
+    return CopyCodes(std::span<const uint64_t>(&id, 1),
+                     std::span<std::vector<float>* const>(&code, 1));
   }
   // CopyCode of each held id, the graph's rows read in one batch
   // (HnswGraph::CopyVectors); the code of an id not held is left as it is.
@@ -365,7 +354,8 @@ bool HnswIndex::CopyCodes(std::span<const uint64_t> ids,
   try {
     graph_->CopyVectors(slots, out);
   } catch (const std::system_error& e) {
-    // As CopyCode: the caller says which codes are missing.
+    // The floats' file could not be read: the caller says which codes are
+    // missing (an INTERNAL status naming the trace), and the log says why.
     FLEETMEM_LOG(kError) << "HNSW index: the codes of " << slots.size()
                          << " ids could not be read: " << e.what();
     for (size_t i = 0; i < ids.size(); ++i) {
