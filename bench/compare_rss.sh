@@ -39,10 +39,7 @@ done
 work=$(mktemp -d)
 trap 'kill $(jobs -p) 2>/dev/null || true; wait; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
-fill_scale_fleet "$b" "$work" "$traces"
-start_server "$b" "$work/data" "$work/build.log" --config "$work/restart.textproto"
-while [ "$(unindexed_codes "$b" scale)" -gt 0 ]; do sleep 2; done
-stop_server
+fill_scale_fleet_once "$b" "$work" "$traces"
 
 cp -a "$work/data" "$work/data-a"
 

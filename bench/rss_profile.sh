@@ -24,12 +24,8 @@ command -v heaptrack >/dev/null || {
 work=$(mktemp -d)
 trap 'kill $(jobs -p) 2>/dev/null || true; wait; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
-fill_scale_fleet "$build" "$work" "$traces"
 # The graph is built once, then saved by the clean stop.
-start_server "$build" "$work/data" "$work/build.log" \
-  --config "$work/restart.textproto"
-while [ "$(unindexed_codes "$build" scale)" -gt 0 ]; do sleep 2; done
-stop_server
+fill_scale_fleet_once "$build" "$work" "$traces"
 
 # Loaded from the snapshot under heaptrack: the port opens after the load.
 SERVER_WRAPPER="heaptrack -o $out/server" SERVER_START_SECONDS=1200 \
