@@ -14,9 +14,12 @@
 # Then, the page cache dropped again and the memory made full (K_max
 # lowered to the clusters held), CONSOLIDATE_TRACES more traces are
 # uploaded by one robot in segments of 200, so that every consolidation
-# forgets by merging (a survivor's older codes read from the floats), and
-# the mean consolidation time (the server's histogram) is printed as a
-# `#` row. Needs root (/proc/sys/vm/drop_caches).
+# forgets by merging, and the mean consolidation time (the server's
+# histogram) and the seconds until all are applied (store writes
+# included) are printed as a `#` row. Last, the page cache dropped once
+# more, REWARD_CALLS (5) UpdateRewards of 1,000 random keys each (their
+# mean time, the server's histogram, as a `#` row). Needs root
+# (/proc/sys/vm/drop_caches).
 #
 #   bench/cold_rows_ab.sh A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS] [SECONDS]
 #   (default: 200000 traces, 2 rounds, 15 s)
@@ -44,6 +47,7 @@ if [ ! -w /proc/sys/vm/drop_caches ]; then
   exit 2
 fi
 consolidate_traces=${CONSOLIDATE_TRACES:-20000}
+reward_calls=${REWARD_CALLS:-5}
 source "$here/tools/load/server_lib.sh"
 bench_work cold_rows data-a data-b
 fill_scale_fleet_once "$b" "$WORK" "$traces"
@@ -81,16 +85,56 @@ consolidations() {
   sync
   echo 3 >/proc/sys/vm/drop_caches
   read -r sum0 count0 < <(consolidation_metric)
+  local t0
+  t0=$(date +%s.%N)
   "$b/bin/fleetmem-load" upload --server "$SERVER_ADDR" --fleet scale \
     --dimension 256 --robots 1 --batch 200 --seconds 100000 \
     --first-seq 100000000 \
     --traces "$consolidate_traces" >/dev/null
-  while [ "$(backlog_traces "$b" scale)" -gt 0 ]; do sleep 1; done
+  while [ "$(backlog_traces "$b" scale)" -gt 0 ]; do sleep 0.2; done
+  local t1
+  t1=$(date +%s.%N)
   read -r sum1 count1 < <(consolidation_metric)
   awk -v l="$1" -v s0="$sum0" -v s1="$sum1" -v a="$count0" -v b="$count1" \
-    -v f="$(($(stat clustersForgotten) - forgotten0))" \
-    'BEGIN { printf "# %s: %d consolidations, %d clusters forgotten, mean %.2f ms\n",
-             l, b - a, f, (b > a ? 1000 * (s1 - s0) / (b - a) : 0) }'
+    -v f="$(($(stat clustersForgotten) - forgotten0))" -v t="$t1 - $t0" \
+    'BEGIN { split(t, w, " - ");
+             printf "# %s: %d consolidations, %d clusters forgotten, mean %.2f ms; all applied after %.1f s\n",
+             l, b - a, f, (b > a ? 1000 * (s1 - s0) / (b - a) : 0), w[1] - w[2] }'
+}
+
+# rewards_metric: UpdateRewards' latency histogram's sum and count.
+rewards_metric() {
+  curl -s "http://$SERVER_HTTP_ADDR/metrics" |
+    awk '/^fleetmem_rpc_duration_seconds_(sum|count)\{.*method="UpdateRewards"/ { v[$1 ~ /_sum/] += $2 }
+         END { printf "%s %s\n", v[1], v[0] }'
+}
+# rewards LABEL ROUND: REWARD_CALLS UpdateRewards of 1,000 random keys of
+# the fill's robots each (the same keys for both builds of a round), the
+# page cache dropped first; a `#` row with the traces updated and the mean
+# call time.
+rewards() {
+  local sum0 count0 sum1 count1 call updated=0 n
+  sync
+  echo 3 >/proc/sys/vm/drop_caches
+  read -r sum0 count0 < <(rewards_metric)
+  for call in $(seq 1 "$reward_calls"); do
+    /usr/bin/python3 -c '
+import random, sys
+rng = random.Random(int(sys.argv[1]))
+for _ in range(1000):
+    print("{\"robotId\":\"load-%d\",\"seq\":\"%d\",\"rewardExternal\":%.3f,\"rewardInternal\":0.1}"
+          % (rng.randrange(4), rng.randint(1, int(sys.argv[2])), rng.random()))
+' "$((1000 * $2 + call))" "$((traces / 4))" >"$WORK/rewards.jsonl"
+    n=$("$b/bin/fleetmem" --server "$SERVER_ADDR" --json update-rewards \
+      --fleet scale --file "$WORK/rewards.jsonl" |
+      /usr/bin/python3 -c 'import json, sys; print(int(json.load(sys.stdin).get("updated", 0)))')
+    updated=$((updated + n))
+  done
+  read -r sum1 count1 < <(rewards_metric)
+  awk -v l="$1" -v s0="$sum0" -v s1="$sum1" -v a="$count0" -v b="$count1" \
+    -v u="$updated" \
+    'BEGIN { printf "# %s: %d UpdateRewards of 1,000 keys, %d traces updated, mean %.2f ms\n",
+             l, b - a, u, (b > a ? 1000 * (s1 - s0) / (b - a) : 0) }'
 }
 
 echo "build,round,cache,query_calls,query_p50_ms,query_p99_ms,sample_calls,sample_p50_ms,sample_p99_ms"
@@ -109,6 +153,7 @@ for round in $(seq 1 "$rounds"); do
     echo 3 >/proc/sys/vm/drop_caches
     calls "$build,$round,cold"
     consolidations "$build,$round"
+    rewards "$build,$round" "$round"
     kill -9 "$SERVER_PID"
     wait "$SERVER_PID" 2>/dev/null || true
   done

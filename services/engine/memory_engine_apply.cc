@@ -475,24 +475,17 @@ FleetMutation MemoryEngine::Fleet::ErasingPending(
   return mutation;
 }
 
-absl::Status MemoryEngine::Fleet::PutWithCodes(
-    std::span<const uint64_t> cluster_ids, FleetMutation& mutation,
-    std::vector<core::TraceKey>* keys) const {
-  std::vector<core::Cluster> held;
+void MemoryEngine::Fleet::PutClusters(std::span<const uint64_t> cluster_ids,
+                                      FleetMutation& mutation,
+                                      std::vector<core::TraceKey>* keys) const {
   for (uint64_t cluster_id : cluster_ids) {
     std::optional<core::Cluster> cluster = memory.WithCentroid(cluster_id);
     if (!cluster.has_value()) continue;
     for (const core::MemoryTrace& trace : cluster->traces) {
       keys->push_back(trace.key());
     }
-    held.push_back(*std::move(cluster));
+    mutation.put_clusters.push_back(*std::move(cluster));
   }
-  // Every code in one batch: a memory that forgets by merging puts a
-  // survivor's older traces, whose codes only the index has.
-  if (absl::Status filled = FillCodes(held); !filled.ok()) return filled;
-  std::move(held.begin(), held.end(),
-            std::back_inserter(mutation.put_clusters));
-  return absl::OkStatus();
 }
 
 absl::Status MemoryEngine::Fleet::ConsolidateRobot(
@@ -524,16 +517,10 @@ absl::Status MemoryEngine::Fleet::ConsolidateRobot(
   mutation.erase_clusters.insert(mutation.erase_clusters.end(),
                                  changes.erased.begin(), changes.erased.end());
   std::sort(mutation.erase_clusters.begin(), mutation.erase_clusters.end());
-  // The mutation holds copies of the new clusters' codes, and the index
-  // may drop its own below.
+  // The mutation holds copies of the batch's codes (the only ones memory
+  // still has), and the index may drop its own below.
   std::vector<core::TraceKey> kept;
-  if (absl::Status filled = PutWithCodes(changes.put, mutation, &kept);
-      !filled.ok()) {
-    FLEETMEM_LOG(kError) << "fleet \"" << id << "\": " << filled;
-    notices->staged.clear();
-    Reload().IgnoreError();
-    return filled;
-  }
+  PutClusters(changes.put, mutation, &kept);
   const size_t merge_dropped = AppendConsolidationEvents(
       outcome, engine->options_.now_ns(), engine->options_.max_events_per_fleet,
       new_meta, mutation);

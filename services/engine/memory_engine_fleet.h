@@ -280,18 +280,13 @@ struct MemoryEngine::Fleet {
   // in one PlaceIndex::CopyCodes (one batch of its rows).
   absl::Status FillCodes(std::vector<core::MemoryTrace>& traces) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
-  // The same for every trace of `clusters`, in one batch.
-  absl::Status FillCodes(std::vector<core::Cluster>& clusters) const
-      ABSL_SHARED_LOCKS_REQUIRED(mu);
-  absl::Status FillCodesOf(std::span<core::MemoryTrace* const> traces) const
-      ABSL_SHARED_LOCKS_REQUIRED(mu);
-  // Appends the held clusters among `cluster_ids` to mutation.put_clusters,
-  // whole (centroid and every code, filled in one batch), and their
-  // traces' keys to *keys. An error of FillCodes leaves the mutation as it
-  // was.
-  absl::Status PutWithCodes(std::span<const uint64_t> cluster_ids,
-                            FleetMutation& mutation,
-                            std::vector<core::TraceKey>* keys) const
+  // Appends the held clusters among `cluster_ids` to mutation.put_clusters
+  // with their centroids, and their traces' keys to *keys. A trace whose
+  // code memory dropped goes without it: the store keeps the code it holds
+  // (FleetMutation::put_clusters), so a merge reads and rewrites no code.
+  void PutClusters(std::span<const uint64_t> cluster_ids,
+                   FleetMutation& mutation,
+                   std::vector<core::TraceKey>* keys) const
       ABSL_SHARED_LOCKS_REQUIRED(mu);
   // A query's matches from the index's `neighbors` (`codes`: the index's
   // copies of their codes, taken where it gave them), each trace copied

@@ -391,41 +391,24 @@ absl::StatusOr<core::MemoryTrace> MemoryEngine::Fleet::WithCode(
 
 absl::Status MemoryEngine::Fleet::FillCodes(
     std::vector<core::MemoryTrace>& traces) const {
-  std::vector<core::MemoryTrace*> all;
-  all.reserve(traces.size());
-  for (core::MemoryTrace& trace : traces) all.push_back(&trace);
-  return FillCodesOf(all);
-}
-
-absl::Status MemoryEngine::Fleet::FillCodes(
-    std::vector<core::Cluster>& clusters) const {
-  std::vector<core::MemoryTrace*> all;
-  for (core::Cluster& cluster : clusters) {
-    for (core::MemoryTrace& trace : cluster.traces) all.push_back(&trace);
-  }
-  return FillCodesOf(all);
-}
-
-absl::Status MemoryEngine::Fleet::FillCodesOf(
-    std::span<core::MemoryTrace* const> traces) const {
   // One turn of the index's lock for all (PlaceIndex::CopyCodes).
   std::vector<core::TraceKey> keys;
   std::vector<std::vector<float>*> codes;
-  for (core::MemoryTrace* trace : traces) {
-    if (!trace->code.empty()) continue;
-    keys.push_back(trace->key());
-    codes.push_back(&trace->code);
+  for (core::MemoryTrace& trace : traces) {
+    if (!trace.code.empty()) continue;
+    keys.push_back(trace.key());
+    codes.push_back(&trace.code);
   }
   if (keys.empty()) return absl::OkStatus();
   std::vector<const core::TraceKey*> asked;
   asked.reserve(keys.size());
   for (const core::TraceKey& key : keys) asked.push_back(&key);
   if (index.CopyCodes(asked, codes)) return absl::OkStatus();
-  for (core::MemoryTrace* trace : traces) {  // which one: WithCode says
-    if (!trace->code.empty()) continue;
-    absl::StatusOr<core::MemoryTrace> filled = WithCode(std::move(*trace));
+  for (core::MemoryTrace& trace : traces) {  // which one: WithCode says
+    if (!trace.code.empty()) continue;
+    absl::StatusOr<core::MemoryTrace> filled = WithCode(std::move(trace));
     if (!filled.ok()) return filled.status();
-    *trace = *std::move(filled);
+    trace = *std::move(filled);
   }
   return absl::OkStatus();
 }

@@ -129,15 +129,12 @@ absl::Status MemoryEngine::Fleet::StageDelete(
   for (const core::MemoryTrace& trace : pending_removed) {
     leaving.push_back(trace.key());
   }
-  absl::Status status;
+  // A changed cluster's traces go without the codes memory dropped: the
+  // store keeps the ones it holds (FleetMutation::put_clusters).
   for (core::Cluster& changed : removal.changed) {
-    // The store rewrites a changed cluster with its traces, codes and all.
-    status = FillCodes(changed.traces);
-    if (!status.ok()) break;
     mutation->put_clusters.push_back(std::move(changed));
   }
-  if (status.ok()) status = index.Remove(leaving);
-  if (!status.ok()) {
+  if (absl::Status status = index.Remove(leaving); !status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
                          << "\": a delete could not be staged, reloading: "
                          << status;
@@ -181,11 +178,8 @@ absl::Status MemoryEngine::Fleet::StageRewards(
       result->not_held.push_back(update.key);
     }
   }
-  // The store writes a trace whole, with its code.
-  if (absl::Status filled = FillCodes(mutation->update_traces); !filled.ok()) {
-    Reload().IgnoreError();
-    return filled;
-  }
+  // Without the codes memory dropped: an update keeps the stored code
+  // (FleetMutation::update_traces).
   AdvancePosition(log_position, mutation);
   return absl::OkStatus();
 }

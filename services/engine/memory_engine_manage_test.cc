@@ -1,6 +1,7 @@
 // MemoryEngine's DeleteTraces, UpdateRewards and GetTraces: what is
 // deleted is never returned again by any read, in memory or after a
 // reopen; rewards change the replay draw; lookups by key.
+#include <algorithm>
 #include <map>
 #include <memory>
 #include <set>
@@ -10,6 +11,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/engine/memory_engine.h"
+#include "services/engine/testing/forwarding_store.h"
 #include "services/index/exact_index.h"
 #include "services/testing/memory_engine_test_util.h"
 
@@ -739,6 +741,105 @@ TEST_F(ManageTest, AFilteredQueryReturnsOnlyWhatPassesTheFilter) {
   query.filter.robot_ids = {"bad id"};
   EXPECT_TRUE(
       absl::IsInvalidArgument(engine_->QueryPlace("f1", query).status()));
+}
+
+// Counts the put clusters' and updates' traces that reach the store
+// without their codes.
+class CodelessCountingStore : public ForwardingStore {
+ public:
+  using ForwardingStore::ForwardingStore;
+  absl::Status Apply(std::string_view fleet_id,
+                     const FleetMutation& mutation) override {
+    for (const core::Cluster& cluster : mutation.put_clusters) {
+      for (const core::MemoryTrace& trace : cluster.traces) {
+        if (trace.code.empty()) ++codeless_clustered;
+      }
+    }
+    for (const core::MemoryTrace& trace : mutation.update_traces) {
+      if (trace.code.empty()) ++codeless_updated;
+    }
+    return ForwardingStore::Apply(fleet_id, mutation);
+  }
+  int codeless_clustered = 0;
+  int codeless_updated = 0;
+};
+
+// Merges of forgetting, a delete that leaves a cluster some of its traces
+// and a reward update write the traces they keep without the codes memory
+// dropped (no code read back from the index): the store keeps what it
+// holds, each code the one uploaded, across a restart too.
+TEST_F(MemoryEngineTest, MergesDeletesAndRewardsKeepEveryStoredCode) {
+  CodelessCountingStore counting(store_.get());
+  // The engine on `counting` stops before `counting` goes, whatever fails.
+  struct StopFirst {
+    std::unique_ptr<MemoryEngine>& engine;
+    ~StopFirst() { engine.reset(); }
+  } stop_first{engine_};
+  engine_.reset();
+  engine_ = OpenOn(options_, &counting);
+  ASSERT_NE(engine_, nullptr);
+  std::map<core::TraceKey, std::vector<float>> uploaded;
+  for (int segment = 0; segment < 8; ++segment) {
+    const std::string robot = segment % 2 == 0 ? "r1" : "r2";
+    const std::vector<core::MemoryTrace> traces =
+        MakeTraces(robot, 1 + 20 * (segment / 2), 20, rng_);
+    for (const core::MemoryTrace& trace : traces) {
+      uploaded[trace.key()] = trace.code;
+    }
+    MustUpload(traces);
+  }
+  EXPECT_GT(Stats().clusters_forgotten, 0u);  // merged (merge_on_forget)
+  EXPECT_GT(counting.codeless_clustered, 0);
+
+  const std::vector<core::MemoryTrace> held = AllTraces(*engine_, "f1", 200);
+  std::map<uint64_t, std::vector<core::TraceKey>> members;
+  for (const core::MemoryTrace& trace : held) {
+    members[trace.cluster_id].push_back(trace.key());
+  }
+  auto shared = std::find_if(members.begin(), members.end(),
+                             [](const auto& m) { return m.second.size() > 1; });
+  ASSERT_NE(shared, members.end());
+  const core::TraceKey gone = shared->second.front();
+  const core::TraceKey rewarded = shared->second.back();
+  const int clustered_before = counting.codeless_clustered;
+  core::TraceFilter one;
+  one.robot_id = gone.robot_id;
+  one.seq_first = one.seq_last = gone.seq;
+  absl::StatusOr<DeleteResult> deleted = engine_->DeleteTraces("f1", one);
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  EXPECT_EQ(deleted->deleted, 1u);
+  EXPECT_EQ(deleted->clusters_changed, 1u);
+  EXPECT_GT(counting.codeless_clustered, clustered_before);
+  const std::vector<core::RewardUpdate> updates = {{rewarded, 2.0f, 0.5f}};
+  absl::StatusOr<RewardsResult> rescored =
+      engine_->UpdateRewards("f1", updates);
+  ASSERT_TRUE(rescored.ok()) << rescored.status();
+  EXPECT_EQ(rescored->updated, 1u);
+  EXPECT_EQ(counting.codeless_updated, 1);
+
+  absl::StatusOr<FleetRecord> stored = store_->LoadFleet("f1");
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  size_t traces = 0;
+  for (const core::Cluster& cluster : stored->clusters) {
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      ++traces;
+      EXPECT_NE(trace.key(), gone);
+      EXPECT_EQ(trace.code, uploaded.at(trace.key()))
+          << trace.robot_id << "/" << trace.seq;
+      if (trace.key() == rewarded) EXPECT_EQ(trace.reward, 2.5f);
+    }
+  }
+  EXPECT_EQ(traces, held.size() - 1);
+
+  engine_.reset();
+  engine_ = OpenEngine();
+  ASSERT_NE(engine_, nullptr);
+  const std::vector<core::MemoryTrace> reopened =
+      AllTraces(*engine_, "f1", 200);
+  EXPECT_EQ(reopened.size(), held.size() - 1);
+  for (const core::MemoryTrace& trace : reopened) {
+    EXPECT_EQ(trace.code, uploaded.at(trace.key()));
+  }
 }
 
 }  // namespace

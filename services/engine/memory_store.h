@@ -86,12 +86,19 @@ struct FleetMutation {
   std::vector<core::TraceKey> erase_pending;
   // Clusters (centroid + membership) and their traces. A put cluster's
   // traces are written with it; an erased cluster's traces are erased.
+  // A put trace with an empty code keeps the code the store holds for it:
+  // a trace of the static memory as the store held it before this
+  // mutation (in this cluster or another, one that this mutation erases
+  // included), so that a merge or a changed cluster rewrites no code (a
+  // trace's code never changes once stored). The store holds no code for
+  // it (a new or a pending trace): INVALID_ARGUMENT, nothing applied.
   std::vector<core::Cluster> put_clusters;
   std::vector<uint64_t> erase_clusters;
   // Traces of the static memory whose fields changed (e.g. replay_count);
   // their cluster already exists. A trace the store does not hold is
-  // skipped. An update never changes a trace's code: a store may keep the
-  // code it holds and write the other fields only.
+  // skipped. An update never changes a trace's code: the store keeps the
+  // code it holds and writes the other fields only (the code given, which
+  // may be empty, is not read).
   std::vector<core::MemoryTrace> update_traces;
   // The engine vouches that every update_traces entry is held, with the
   // cluster_id it carries (a replay draw, under the fleet's writer lock):

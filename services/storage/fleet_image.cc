@@ -90,8 +90,16 @@ absl::Status DecodeImageRecord(std::string_view fleet_id, keys::Tag tag,
     case keys::Tag::kTrace: {
       absl::StatusOr<core::MemoryTrace> trace =
           DecodeTrace(record.key(), record.value());
-      if (trace.ok()) out.traces.Add(*std::move(trace));
-      return trace.status();
+      if (!trace.ok()) return trace.status();
+      // An image is whole: a store given a trace without its code would
+      // keep the one it holds (engine::FleetMutation::put_clusters).
+      if (trace->code.empty()) {
+        return absl::DataLossError(
+            absl::StrCat("fleet image of \"", V(fleet_id), "\": record ",
+                         keys::Describe(record.key()), " has no code"));
+      }
+      out.traces.Add(*std::move(trace));
+      return absl::OkStatus();
     }
     case keys::Tag::kCluster: {
       absl::StatusOr<StoredCluster> cluster =

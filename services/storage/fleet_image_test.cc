@@ -72,6 +72,16 @@ TEST(FleetImageTest, DamagedOrForeignImagesAreRefused) {
   absl::StatusOr<engine::FleetImage> damaged = DecodeFleetImage("f1", *bytes);
   EXPECT_TRUE(absl::IsDataLoss(damaged.status())) << damaged.status();
   EXPECT_THAT(damaged.status().message(), HasSubstr("has no trace"));
+
+  // A clustered trace without its code: a store would keep the one it
+  // holds, so an image that lacks one is refused.
+  image = ScriptedImage();
+  image.record.clusters.back().traces.back().code.clear();
+  bytes = EncodeFleetImage(image);
+  ASSERT_TRUE(bytes.ok());
+  damaged = DecodeFleetImage("f1", *bytes);
+  EXPECT_TRUE(absl::IsDataLoss(damaged.status())) << damaged.status();
+  EXPECT_THAT(damaged.status().message(), HasSubstr("has no code"));
 }
 
 // The fuzzer's seed (fuzz_corpus/fleet_image_fuzz) is a valid image, so

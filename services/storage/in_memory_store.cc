@@ -9,6 +9,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "services/storage/mutation_checks.h"
@@ -57,7 +58,29 @@ struct Fleet {
     traces.erase(trace);
   }
 
-  void PutCluster(const core::Cluster& cluster) {
+  // The codes of the put clusters' traces that come without one, as held
+  // before `m` (a merge's survivor may take the traces of a cluster that
+  // `m` erases first); INVALID_ARGUMENT if a trace has none held.
+  absl::StatusOr<std::map<TraceKey, std::vector<float>>> KeptCodes(
+      const engine::FleetMutation& m) const {
+    std::map<TraceKey, std::vector<float>> codes;
+    for (const core::Cluster& cluster : m.put_clusters) {
+      for (const core::MemoryTrace& trace : cluster.traces) {
+        if (!trace.code.empty()) continue;
+        auto held = traces.find(trace.key());
+        if (held == traces.end()) {
+          return absl::InvalidArgumentError(absl::StrCat(
+              "trace ", trace.robot_id, "/", trace.seq, " of cluster ",
+              cluster.id, " comes without a code and none is stored for it"));
+        }
+        codes[trace.key()] = held->second.code;
+      }
+    }
+    return codes;
+  }
+
+  void PutCluster(const core::Cluster& cluster,
+                  std::map<TraceKey, std::vector<float>>& kept_codes) {
     std::set<TraceKey> keep;
     for (const core::MemoryTrace& trace : cluster.traces) {
       keep.insert(trace.key());
@@ -77,6 +100,7 @@ struct Fleet {
       core::MemoryTrace& slot = traces[trace.key()];
       slot = trace;
       slot.cluster_id = cluster.id;
+      if (slot.code.empty()) slot.code = std::move(kept_codes[trace.key()]);
       stored.members.push_back(trace.key());
     }
     clusters[cluster.id] = std::move(stored);
@@ -86,8 +110,10 @@ struct Fleet {
     auto existing = traces.find(trace.key());
     if (existing == traces.end()) return;
     const uint64_t cluster_id = existing->second.cluster_id;
+    std::vector<float> code = std::move(existing->second.code);
     existing->second = trace;
     existing->second.cluster_id = cluster_id;
+    existing->second.code = std::move(code);  // an update keeps the code
   }
 };
 
@@ -158,6 +184,12 @@ class InMemoryStore final : public engine::MemoryStore {
     absl::MutexLock lock(&mu_);
     auto it = fleets_.try_emplace(std::string(fleet_id)).first;
     Fleet& fleet = it->second;
+    absl::StatusOr<std::map<TraceKey, std::vector<float>>> kept_codes =
+        fleet.KeptCodes(m);
+    if (!kept_codes.ok()) {
+      if (fleet.empty()) fleets_.erase(it);
+      return kept_codes.status();
+    }
     for (const TraceKey& key : m.erase_pending) fleet.pending.erase(key);
     for (uint64_t id : m.erase_clusters) fleet.EraseCluster(id);
     for (const TraceKey& key : m.erase_traces) fleet.EraseTrace(key);
@@ -166,7 +198,7 @@ class InMemoryStore final : public engine::MemoryStore {
       fleet.pending[trace.key()] = trace;
     }
     for (const core::Cluster& cluster : m.put_clusters) {
-      fleet.PutCluster(cluster);
+      fleet.PutCluster(cluster, *kept_codes);
     }
     for (const core::MemoryTrace& trace : m.update_traces) {
       fleet.UpdateTrace(trace);

@@ -225,6 +225,61 @@ std::vector<RoundTripCase> RoundTripCases() {
     c.want.clusters = {want};
   }
   {
+    // A merge as the engine writes it: the survivor takes the traces of a
+    // cluster erased in the same mutation, none with its code (the store
+    // keeps what it holds; FleetMutation::put_clusters).
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "MergeWithoutCodesKeepsTheStoredOnes";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {1, 2}),
+                                               MakeCluster(2, "r", {3, 4})};
+    core::Cluster merged = MakeCluster(1, "r", {1, 2, 3});
+    merged.centroid = {0.5f, 0.25f};
+    merged.traces[0].replay_count = 4;
+    core::Cluster sent = merged;
+    for (core::MemoryTrace& trace : sent.traces) trace.code.clear();
+    FleetMutation& m = c.mutations.emplace_back();
+    m.erase_clusters = {2};
+    m.put_clusters = {sent};
+    c.want = Want();
+    c.want.clusters = {merged};
+  }
+  {
+    // A trace moved between two put clusters without its code, the
+    // cluster it leaves put first, then last.
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "TraceMovesWithoutItsCode";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(1, "r", {1, 2}),
+                                               MakeCluster(2, "r", {3})};
+    auto codeless = [](core::Cluster cluster) {
+      for (core::MemoryTrace& trace : cluster.traces) trace.code.clear();
+      return cluster;
+    };
+    c.mutations.emplace_back().put_clusters = {
+        codeless(MakeCluster(1, "r", {1})),
+        codeless(MakeCluster(2, "r", {3, 2}))};
+    c.mutations.emplace_back().put_clusters = {
+        codeless(MakeCluster(2, "r", {3})),
+        codeless(MakeCluster(1, "r", {1, 2}))};
+    c.mutations.emplace_back().put_clusters = {
+        codeless(MakeCluster(2, "r", {3, 2})),
+        codeless(MakeCluster(1, "r", {1}))};
+    c.want = Want();
+    c.want.clusters = {MakeCluster(1, "r", {1}), MakeCluster(2, "r", {3, 2})};
+  }
+  {
+    RoundTripCase& c = cases.emplace_back();
+    c.name = "UpdateWithoutCodeKeepsTheStoredOne";
+    c.mutations.emplace_back().put_clusters = {MakeCluster(4, "r", {1, 2})};
+    core::MemoryTrace rewarded = MakeCluster(4, "r", {1, 2}).traces[1];
+    rewarded.reward = 3.5f;
+    rewarded.code.clear();
+    c.mutations.emplace_back().update_traces = {rewarded};
+    c.want = Want();
+    core::Cluster want = MakeCluster(4, "r", {1, 2});
+    want.traces[1].reward = 3.5f;
+    c.want.clusters = {want};
+  }
+  {
     RoundTripCase& c = cases.emplace_back();
     c.name = "EraseSingleTraces";
     c.mutations.emplace_back().put_clusters = {MakeCluster(4, "r", {1, 2, 3}),
@@ -506,7 +561,7 @@ TEST_P(StoreTest, InvalidMutationsChangeNothing) {
   core::MemoryTrace codeless = MakeTrace("r", 3);
   codeless.code.clear();
   add("pending trace without code", "f").put_pending.push_back(codeless);
-  add("updated trace without code", "f").update_traces = {codeless};
+  // No code stored for it either (the store is empty).
   core::Cluster codeless_cluster = MakeCluster(4, "r", {1, 2});
   codeless_cluster.traces[1].code.clear();
   add("clustered trace without code", "f").put_clusters = {codeless_cluster};
@@ -520,6 +575,32 @@ TEST_P(StoreTest, InvalidMutationsChangeNothing) {
   EXPECT_TRUE(Fleets(store()).empty());
   EXPECT_EQ(store().LoadFleet("").status().code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+// A put cluster's trace without a code takes the stored one, and a
+// pending trace's code is not one: the write is refused whole.
+TEST_P(StoreTest, ClusteredTraceWithoutAStoredCodeChangesNothing) {
+  FleetMutation upload;
+  upload.put_pending = {MakeTrace("r", 5)};
+  upload.put_clusters = {MakeCluster(1, "r", {1})};
+  ASSERT_TRUE(store().Apply("f", upload).ok());
+  const std::string before = Dump(Load(store(), "f"));
+
+  core::Cluster consolidated = MakeCluster(2, "r", {5, 1});
+  consolidated.traces[0].code.clear();  // pending: its code is not stored
+  consolidated.traces[1].code.clear();  // stored: would be kept
+  FleetMutation m;
+  m.put_meta = true;
+  m.meta = MakeMeta(3);
+  m.erase_pending = {{"r", 5}};
+  m.erase_clusters = {1};
+  m.put_clusters = {consolidated};
+  const absl::Status status = store().Apply("f", m);
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << status;
+  EXPECT_THAT(std::string(status.message()),
+              ::testing::HasSubstr("trace r/5 of cluster 2 comes without a "
+                                   "code and none is stored for it"));
+  EXPECT_EQ(Dump(Load(store(), "f")), before);
 }
 
 TEST_P(StoreTest, ScriptedWorkloadMatchesInMemoryReference) {

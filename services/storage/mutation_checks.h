@@ -34,7 +34,7 @@ inline absl::Status CheckRobotId(const std::string& what,
   return absl::OkStatus();
 }
 
-// INVALID_ARGUMENT if a stored trace has no code, a robot id holds 0x00, a put
+// INVALID_ARGUMENT if a pending trace has no code, a robot id holds 0x00, a put
 // cluster or an appended event has id 0, two put clusters share an id, or a
 // trace key occurs twice among the put clusters' traces.
 inline absl::Status CheckMutation(const engine::FleetMutation& m) {
@@ -45,22 +45,14 @@ inline absl::Status CheckMutation(const engine::FleetMutation& m) {
           CheckRobotId(absl::StrCat(what, "[", i, "]"), traces[i].robot_id);
     }
   };
-  // A stored trace keeps its code (the engine's memory may have dropped its
-  // copy: the index holds it; MemoryEngine fills it back in).
-  auto check_codes = [&](const std::string& what,
-                         const std::vector<core::MemoryTrace>& traces) {
-    for (size_t i = 0; i < traces.size() && status.ok(); ++i) {
-      if (traces[i].code.empty()) {
-        status = absl::InvalidArgumentError(
-            absl::StrCat(what, "[", i, "] has no code"));
-      }
+  // A pending trace is stored with its code. (A put cluster's trace may
+  // leave its code to the store, which checks that it holds one; an
+  // update's code is not read: engine::FleetMutation.)
+  for (size_t i = 0; i < m.put_pending.size() && status.ok(); ++i) {
+    if (m.put_pending[i].code.empty()) {
+      status = absl::InvalidArgumentError(
+          absl::StrCat("put_pending[", i, "] has no code"));
     }
-  };
-  check_codes("put_pending", m.put_pending);
-  check_codes("update_traces", m.update_traces);
-  for (size_t i = 0; i < m.put_clusters.size(); ++i) {
-    check_codes(absl::StrCat("put_clusters[", i, "].traces"),
-                m.put_clusters[i].traces);
   }
   check_traces("put_pending", m.put_pending);
   check_traces("erase_pending", m.erase_pending);

@@ -171,6 +171,11 @@ class MutationWriter {
       : fleet_id_(fleet_id), staging_(staging) {}
 
   absl::Status Run(const engine::FleetMutation& m) {
+    for (const core::Cluster& cluster : m.put_clusters) {
+      for (const core::MemoryTrace& trace : cluster.traces) {
+        if (trace.code.empty()) codes_kept_.insert(trace.key());
+      }
+    }
     for (const TraceKey& key : m.erase_pending) {
       staging_->Delete(keys::PendingKey(fleet_id_, key));
     }
@@ -229,9 +234,11 @@ class MutationWriter {
   }
 
   // A static-memory trace: its record, and its code under a key of its own
-  // (keys.h). CheckMutation has made sure that the code is there.
+  // (keys.h); without a code, the record alone (the caller has made sure
+  // that a code is stored).
   void PutTrace(const core::MemoryTrace& trace) {
     PutTraceRecord(trace);
+    if (trace.code.empty()) return;
     staging_->Put(keys::CodeKey(fleet_id_, trace.key()),
                   EncodeCode(trace.code));
   }
@@ -242,8 +249,15 @@ class MutationWriter {
     staging_->Put(keys::TraceKey(fleet_id_, trace.key()),
                   EncodeTraceWithoutCode(trace));
   }
+  // Erases a stored trace (the callers know it is stored: a member of a
+  // stored cluster, or a record read), its code too unless a put cluster
+  // takes the trace without one: that code stays, and the put finds it.
   void DeleteTrace(const TraceKey& key) {
     staging_->Delete(keys::TraceKey(fleet_id_, key));
+    if (codes_kept_.contains(key)) {
+      code_stored_.insert(key);
+      return;
+    }
     staging_->Delete(keys::CodeKey(fleet_id_, key));
   }
 
@@ -305,6 +319,12 @@ class MutationWriter {
           return status;
         }
       }
+      if (trace.code.empty() && !existing->has_value() &&
+          !code_stored_.contains(trace.key())) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "trace ", trace.robot_id, "/", trace.seq, " of cluster ",
+            cluster.id, " comes without a code and none is stored for it"));
+      }
       core::MemoryTrace copy = trace;
       copy.cluster_id = cluster.id;
       PutTrace(copy);
@@ -335,6 +355,10 @@ class MutationWriter {
 
   std::string_view fleet_id_;
   Staging* staging_;
+  // Put clusters' traces that come without a code (the stored one stays).
+  std::set<TraceKey> codes_kept_;
+  // Those of them this mutation's erasures found stored.
+  std::set<TraceKey> code_stored_;
 };
 
 // How a write waits for RocksDB to recover from a background error: up to

@@ -10,14 +10,18 @@
 //   cluster_id = the cluster's id and in the given order; traces of an earlier
 //   version of the cluster that are no longer listed are erased; a trace that
 //   belonged to another cluster moves (a trace is in exactly one cluster).
-// - update_traces rewrites a static-memory trace and keeps its cluster; an
-//   update of a trace that is not in the static memory (e.g. forgotten in
-//   between) is ignored.
+//   A trace put without a code keeps the code stored for it before the
+//   mutation (its erasures do not take it); INVALID_ARGUMENT, nothing
+//   applied, when none is (a new or a pending trace).
+// - update_traces rewrites a static-memory trace and keeps its cluster and
+//   its stored code (the code given is not read); an update of a trace
+//   that is not in the static memory (e.g. forgotten in between) is
+//   ignored.
 // - A cluster both erased and put in one mutation ends up stored (erasures
 //   come first).
 // - INVALID_ARGUMENT, with nothing applied: empty fleet id, 0x00 in a fleet or
 //   robot id, cluster or event id 0, a cluster or trace put twice in one
-//   mutation.
+//   mutation, a pending trace without a code.
 // - LoadFleet returns meta (defaults if never put), pending traces by
 //   (robot_id, seq), clusters by id with their traces, robots by id. A fleet
 //   appears in ListFleets while it has any stored record.

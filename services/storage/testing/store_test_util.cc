@@ -219,6 +219,9 @@ std::vector<engine::FleetMutation> ScriptedMutations(int count) {
         core::MemoryTrace& trace = it->second.traces.front();
         ++trace.replay_count;
         m.update_traces.push_back(trace);
+        // Every other update without its code, as a reward update is
+        // written (the store keeps the code).
+        if (updated == 1) m.update_traces.back().code.clear();
         ++robot.replayed;
       }
       m.put_robots.back() = robot;
@@ -231,6 +234,25 @@ std::vector<engine::FleetMutation> ScriptedMutations(int count) {
       ++meta.clusters_forgotten;
       m.append_events.push_back(MakeEvent(
           meta.next_event_id++, core::EventType::kClusterForgotten, id));
+    }
+    // Forgetting by merging: the oldest cluster goes into the next oldest,
+    // put with the traces of both and none of their codes, as the engine
+    // writes a merge (the store keeps the codes it holds).
+    if (i % 13 == 12 && clusters.size() > 2) {
+      core::Cluster from = clusters.begin()->second;
+      clusters.erase(clusters.begin());
+      core::Cluster& into = clusters.begin()->second;
+      for (core::MemoryTrace& trace : from.traces) {
+        trace.cluster_id = into.id;
+        into.traces.push_back(std::move(trace));
+      }
+      into.centroid[1] += 1.0f;
+      m.erase_clusters.push_back(from.id);
+      core::Cluster& put = m.put_clusters.emplace_back(into);
+      for (core::MemoryTrace& trace : put.traces) trace.code.clear();
+      ++meta.clusters_forgotten;
+      m.append_events.push_back(MakeEvent(
+          meta.next_event_id++, core::EventType::kClusterMerged, from.id));
     }
     // A single trace leaves the newest cluster.
     if (i % 11 == 10 && !clusters.empty()) {
