@@ -15,8 +15,9 @@
 # lowered to the clusters held), CONSOLIDATE_TRACES more traces are
 # uploaded by one robot in segments of 200, so that every consolidation
 # forgets by merging, and the mean consolidation time (the server's
-# histogram) and the seconds until all are applied (store writes
-# included) are printed as a `#` row. Last, the page cache dropped once
+# histogram), the seconds until all are applied (store writes
+# included) and the server's bytes read and written meanwhile are printed
+# as a `#` row. Last, the page cache dropped once
 # more, REWARD_CALLS (5) UpdateRewards of 1,000 random keys each (their
 # mean time, the server's histogram, as a `#` row). Needs root
 # (/proc/sys/vm/drop_caches).
@@ -75,6 +76,13 @@ consolidation_metric() {
     awk '/^fleetmem_consolidation_duration_seconds_(sum|count)/ { v[$1 ~ /_sum/] += $2 }
          END { printf "%s %s\n", v[1], v[0] }'
 }
+# io_bytes: the server's bytes read from and written to storage so far
+# (/proc/PID/io read_bytes write_bytes: every thread, RocksDB's flushes
+# and compactions included).
+io_bytes() {
+  awk '/^read_bytes/ { r = $2 } /^write_bytes/ { w = $2 } END { print r, w }' \
+    "/proc/$SERVER_PID/io"
+}
 # consolidations LABEL: CONSOLIDATE_TRACES uploaded into the full memory
 # with a cold page cache; a `#` row with the mean consolidation time.
 consolidations() {
@@ -85,8 +93,9 @@ consolidations() {
   sync
   echo 3 >/proc/sys/vm/drop_caches
   read -r sum0 count0 < <(consolidation_metric)
-  local t0
+  local t0 read0 written0 read1 written1
   t0=$(date +%s.%N)
+  read -r read0 written0 < <(io_bytes)
   "$b/bin/fleetmem-load" upload --server "$SERVER_ADDR" --fleet scale \
     --dimension 256 --robots 1 --batch 200 --seconds 100000 \
     --first-seq 100000000 \
@@ -94,12 +103,15 @@ consolidations() {
   while [ "$(backlog_traces "$b" scale)" -gt 0 ]; do sleep 0.2; done
   local t1
   t1=$(date +%s.%N)
+  read -r read1 written1 < <(io_bytes)
   read -r sum1 count1 < <(consolidation_metric)
   awk -v l="$1" -v s0="$sum0" -v s1="$sum1" -v a="$count0" -v b="$count1" \
     -v f="$(($(stat clustersForgotten) - forgotten0))" -v t="$t1 - $t0" \
-    'BEGIN { split(t, w, " - ");
-             printf "# %s: %d consolidations, %d clusters forgotten, mean %.2f ms; all applied after %.1f s\n",
-             l, b - a, f, (b > a ? 1000 * (s1 - s0) / (b - a) : 0), w[1] - w[2] }'
+    -v r="$((read1 - read0))" -v w="$((written1 - written0))" \
+    'BEGIN { split(t, s, " - ");
+             printf "# %s: %d consolidations, %d clusters forgotten, mean %.2f ms; all applied after %.1f s; %.1f MiB read, %.1f MiB written\n",
+             l, b - a, f, (b > a ? 1000 * (s1 - s0) / (b - a) : 0), s[1] - s[2],
+             r / 1048576, w / 1048576 }'
 }
 
 # rewards_metric: UpdateRewards' latency histogram's sum and count.
@@ -113,10 +125,11 @@ rewards_metric() {
 # page cache dropped first; a `#` row with the traces updated and the mean
 # call time.
 rewards() {
-  local sum0 count0 sum1 count1 call updated=0 n
+  local sum0 count0 sum1 count1 call updated=0 n read0 written0 read1 written1
   sync
   echo 3 >/proc/sys/vm/drop_caches
   read -r sum0 count0 < <(rewards_metric)
+  read -r read0 written0 < <(io_bytes)
   for call in $(seq 1 "$reward_calls"); do
     /usr/bin/python3 -c '
 import random, sys
@@ -131,10 +144,12 @@ for _ in range(1000):
     updated=$((updated + n))
   done
   read -r sum1 count1 < <(rewards_metric)
+  read -r read1 written1 < <(io_bytes)
   awk -v l="$1" -v s0="$sum0" -v s1="$sum1" -v a="$count0" -v b="$count1" \
-    -v u="$updated" \
-    'BEGIN { printf "# %s: %d UpdateRewards of 1,000 keys, %d traces updated, mean %.2f ms\n",
-             l, b - a, u, (b > a ? 1000 * (s1 - s0) / (b - a) : 0) }'
+    -v u="$updated" -v r="$((read1 - read0))" -v w="$((written1 - written0))" \
+    'BEGIN { printf "# %s: %d UpdateRewards of 1,000 keys, %d traces updated, mean %.2f ms; %.1f MiB read, %.1f MiB written\n",
+             l, b - a, u, (b > a ? 1000 * (s1 - s0) / (b - a) : 0),
+             r / 1048576, w / 1048576 }'
 }
 
 echo "build,round,cache,query_calls,query_p50_ms,query_p99_ms,sample_calls,sample_p50_ms,sample_p99_ms"
