@@ -50,7 +50,7 @@ fi
 consolidate_traces=${CONSOLIDATE_TRACES:-20000}
 reward_calls=${REWARD_CALLS:-5}
 source "$here/tools/load/server_lib.sh"
-bench_work cold_rows data-a data-b
+bench_work cold_rows data-run
 fill_scale_fleet_once "$b" "$WORK" "$traces"
 
 # calls LABEL: the load generator's queries and samples for SECONDS, one
@@ -69,12 +69,6 @@ stat() {
   "$b/bin/fleetmem" --server "$SERVER_ADDR" --json stats --fleet scale |
     /usr/bin/python3 -c \
       'import json, sys; print(int(json.load(sys.stdin).get(sys.argv[1], 0)))' "$1"
-}
-# consolidation_metric: the consolidation histogram's sum and count.
-consolidation_metric() {
-  curl -s "http://$SERVER_HTTP_ADDR/metrics" |
-    awk '/^fleetmem_consolidation_duration_seconds_(sum|count)/ { v[$1 ~ /_sum/] += $2 }
-         END { printf "%s %s\n", v[1], v[0] }'
 }
 # io_bytes: the server's bytes read from and written to storage so far
 # (/proc/PID/io read_bytes write_bytes: every thread, RocksDB's flushes
@@ -155,14 +149,8 @@ for _ in range(1000):
 echo "build,round,cache,query_calls,query_p50_ms,query_p99_ms,sample_calls,sample_p50_ms,sample_p99_ms"
 for round in $(seq 1 "$rounds"); do
   for build in "$a" "$b"; do
-    data="$WORK/data-b"
-    [ "$build" != "$a" ] || data="$WORK/data-a"
-    rm -rf "$data"
-    cp -a "$WORK/data" "$data"
-    SERVER_START_SECONDS=1200 start_server "$build" "$data" \
-      "$WORK/serve.log" --config "$WORK/restart.textproto" \
-      --http-listen 127.0.0.1:0
-    while [ "$(unindexed_codes "$b" scale)" -gt 0 ]; do sleep 1; done
+    # One copy at a time (a copy of a 10,000,000-trace fill is 27 GB).
+    serve_fill_copy "$build" "$WORK" data-run "$WORK/serve.log"
     calls "$build,$round,warm"
     sync
     echo 3 >/proc/sys/vm/drop_caches
@@ -171,5 +159,6 @@ for round in $(seq 1 "$rounds"); do
     rewards "$build,$round" "$round"
     kill -9 "$SERVER_PID"
     wait "$SERVER_PID" 2>/dev/null || true
+    rm -rf "$WORK/data-run"
   done
 done

@@ -6,9 +6,9 @@
 # clusters held; then one robot uploads CONSOLIDATE_TRACES (20,000) traces
 # in segments of 200 (every consolidation forgets 20 clusters by merging)
 # while `perf record -e cpu-clock -g` samples the server. Prints the mean
-# consolidation time (the server's histogram) and the samples by thread
-# and by symbol (share of all the server's samples while the traces were
-# applied).
+# consolidation time (the server's histogram) and the samples by thread,
+# by symbol and by symbol in the applier's thread alone (shares of all the
+# server's samples while the traces were applied).
 #
 #   bench/consolidation_profile.sh [BUILD_DIR] [N]
 #   (default: build 1000000)
@@ -23,23 +23,13 @@ command -v perf >/dev/null || { echo "perf not found (apt-get install linux-perf
 source "$here/tools/load/server_lib.sh"
 bench_work consolidation-profile data-profile
 fill_scale_fleet_once "$build" "$WORK" "$n"
-rm -rf "$WORK/data-profile"
-cp -a "$WORK/data" "$WORK/data-profile"
-SERVER_START_SECONDS=1200 start_server "$build" "$WORK/data-profile" \
-  "$WORK/profile.log" --config "$WORK/restart.textproto" \
-  --http-listen 127.0.0.1:0
-while [ "$(unindexed_codes "$build" scale)" -gt 0 ]; do sleep 1; done
+serve_fill_copy "$build" "$WORK" data-profile "$WORK/profile.log"
 clusters=$("$build/bin/fleetmem" --server "$SERVER_ADDR" --json stats \
   --fleet scale | /usr/bin/python3 -c \
   'import json, sys; print(int(json.load(sys.stdin)["clusters"]))')
 "$build/bin/fleetmem" --server "$SERVER_ADDR" update-fleet --fleet scale \
   --max-clusters "$clusters" >/dev/null
-metric() {
-  curl -s "http://$SERVER_HTTP_ADDR/metrics" |
-    awk '/^fleetmem_consolidation_duration_seconds_(sum|count)/ { v[$1 ~ /_sum/] += $2 }
-         END { printf "%s %s\n", v[1], v[0] }'
-}
-read -r sum0 count0 < <(metric)
+read -r sum0 count0 < <(consolidation_metric)
 server=$(pgrep -P "$SERVER_PID" -f fleetmem-server || echo "$SERVER_PID")
 perf record -q -e cpu-clock -F 999 -g -p "$server" -o "$WORK/perf.data" &
 perf_pid=$!
@@ -50,7 +40,7 @@ sleep 1
 while [ "$(backlog_traces "$build" scale)" -gt 0 ]; do sleep 0.2; done
 kill -INT "$perf_pid"
 wait "$perf_pid" 2>/dev/null || true
-read -r sum1 count1 < <(metric)
+read -r sum1 count1 < <(consolidation_metric)
 awk -v s0="$sum0" -v s1="$sum1" -v a="$count0" -v b="$count1" \
   'BEGIN { printf "consolidations,%d\nmean_ms,%.2f\n", b - a,
            (b > a ? 1000 * (s1 - s0) / (b - a) : 0) }'
@@ -59,7 +49,13 @@ wait "$SERVER_PID" 2>/dev/null || true
 echo "# by thread"
 perf report -i "$WORK/perf.data" --no-children --sort comm --stdio -g none \
   2>/dev/null | grep -v '^#' | grep '%' | sed 's/  */ /g' | head -10 || true
+# symbols [PERF REPORT ARGS...]: the samples by symbol, TOP of them.
+symbols() {
+  perf report -i "$WORK/perf.data" --no-children --sort symbol --stdio \
+    -g none "$@" 2>/dev/null | grep -v '^#' | grep '%' | sed 's/  */ /g' |
+    head -"${TOP:-40}" || true  # head closes the pipe early: not a failure
+}
 echo "# by symbol"
-perf report -i "$WORK/perf.data" --no-children --sort symbol --stdio \
-  -g none 2>/dev/null | grep -v '^#' | grep '%' | sed 's/  */ /g' |
-  head -"${TOP:-40}" || true  # head closes the pipe early: not a failure
+symbols
+echo "# the applier's thread alone (shares of all the samples)"
+symbols --comm fleetmem-apply

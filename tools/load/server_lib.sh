@@ -88,11 +88,36 @@ fill_scale_fleet_once() {
   fi
   rm -rf "$work/data"
   fill_scale_fleet "$build" "$work" "$traces"
-  start_server "$build" "$work/data" "$work/build.log" \
+  # The first start applies what the fill left waiting and reads every
+  # code (the fill's exact index is of another kind): minutes at millions.
+  SERVER_START_SECONDS=${SERVER_START_SECONDS:-1200} \
+    start_server "$build" "$work/data" "$work/build.log" \
     --config "$work/restart.textproto"
   while [ "$(unindexed_codes "$build" scale)" -gt 0 ]; do sleep 2; done
   stop_server
   echo "$FILLED" >"$work/filled"
+}
+
+# serve_fill_copy BUILD WORK NAME LOG [ARGS...]: WORK/data (the fill of
+# fill_scale_fleet_once) copied to WORK/NAME, BUILD's server started on the
+# copy (WORK/restart.textproto, HTTP on a free port, ARGS), its output in
+# LOG, and waited for until its graph holds every code of fleet "scale".
+serve_fill_copy() {
+  local build=$1 work=$2 name=$3 log=$4
+  shift 4
+  rm -rf "${work:?}/$name"
+  cp -a "$work/data" "$work/$name"
+  SERVER_START_SECONDS=1200 start_server "$build" "$work/$name" "$log" \
+    --config "$work/restart.textproto" --http-listen 127.0.0.1:0 "$@"
+  while [ "$(unindexed_codes "$build" scale)" -gt 0 ]; do sleep 1; done
+}
+
+# consolidation_metric: the sum and count of the server's
+# fleetmem_consolidation_duration_seconds (SERVER_HTTP_ADDR's /metrics).
+consolidation_metric() {
+  curl -s "http://$SERVER_HTTP_ADDR/metrics" |
+    awk '/^fleetmem_consolidation_duration_seconds_(sum|count)/ { v[$1 ~ /_sum/] += $2 }
+         END { printf "%s %s\n", v[1], v[0] }'
 }
 
 # server_rss_mib PID: the resident set of fleetmem-server PID, or of the
