@@ -47,15 +47,8 @@ awk -v s0="$sum0" -v s1="$sum1" -v a="$count0" -v b="$count1" \
 kill -9 "$SERVER_PID"
 wait "$SERVER_PID" 2>/dev/null || true
 echo "# by thread"
-perf report -i "$WORK/perf.data" --no-children --sort comm --stdio -g none \
-  2>/dev/null | grep -v '^#' | grep '%' | sed 's/  */ /g' | head -10 || true
-# symbols [PERF REPORT ARGS...]: the samples by symbol, TOP of them.
-symbols() {
-  perf report -i "$WORK/perf.data" --no-children --sort symbol --stdio \
-    -g none "$@" 2>/dev/null | grep -v '^#' | grep '%' | sed 's/  */ /g' |
-    head -"${TOP:-40}" || true  # head closes the pipe early: not a failure
-}
+perf_report "$WORK/perf.data" --sort comm
 echo "# by symbol"
-symbols
+perf_report "$WORK/perf.data" --sort symbol
 echo "# the applier's thread alone (shares of all the samples)"
-symbols --comm fleetmem-apply
+perf_report "$WORK/perf.data" --sort symbol --comm fleetmem-apply

@@ -120,6 +120,16 @@ consolidation_metric() {
          END { printf "%s %s\n", v[1], v[0] }'
 }
 
+# perf_report DATA [PERF REPORT ARGS...]: `perf report` of DATA (no call
+# graphs, no children), one line per entry, the first TOP (40).
+perf_report() {
+  local data=$1
+  shift
+  perf report -i "$data" --no-children --stdio -g none "$@" 2>/dev/null |
+    grep -v '^#' | grep '%' | sed 's/  */ /g' |
+    head -"${TOP:-40}" || true  # head closes the pipe early: not a failure
+}
+
 # server_rss_mib PID: the resident set of fleetmem-server PID, or of the
 # fleetmem-server child of PID (a wrapper's), in MiB.
 server_rss_mib() {
