@@ -69,9 +69,7 @@ struct Fleet {
         if (!trace.code.empty()) continue;
         auto held = traces.find(trace.key());
         if (held == traces.end()) {
-          return absl::InvalidArgumentError(absl::StrCat(
-              "trace ", trace.robot_id, "/", trace.seq, " of cluster ",
-              cluster.id, " comes without a code and none is stored for it"));
+          return internal::NoStoredCode(trace, cluster.id);
         }
         codes[trace.key()] = held->second.code;
       }

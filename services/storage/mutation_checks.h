@@ -3,6 +3,7 @@
 #ifndef FLEETMEM_SERVICES_STORAGE_MUTATION_CHECKS_H_
 #define FLEETMEM_SERVICES_STORAGE_MUTATION_CHECKS_H_
 
+#include <cstdint>
 #include <set>
 #include <string>
 #include <string_view>
@@ -32,6 +33,16 @@ inline absl::Status CheckRobotId(const std::string& what,
         absl::StrCat(what, ".robot_id contains a NUL byte"));
   }
   return absl::OkStatus();
+}
+
+// The refusal of a put cluster's trace that comes without its code when the
+// store holds none for it (engine::FleetMutation::put_clusters): both stores
+// say it alike.
+inline absl::Status NoStoredCode(const core::MemoryTrace& trace,
+                                 uint64_t cluster_id) {
+  return absl::InvalidArgumentError(absl::StrCat(
+      "trace ", trace.robot_id, "/", trace.seq, " of cluster ", cluster_id,
+      " comes without a code and none is stored for it"));
 }
 
 // INVALID_ARGUMENT if a pending trace has no code, a robot id holds 0x00, a put

@@ -321,9 +321,7 @@ class MutationWriter {
       }
       if (trace.code.empty() && !existing->has_value() &&
           !code_stored_.contains(trace.key())) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "trace ", trace.robot_id, "/", trace.seq, " of cluster ",
-            cluster.id, " comes without a code and none is stored for it"));
+        return internal::NoStoredCode(trace, cluster.id);
       }
       core::MemoryTrace copy = trace;
       copy.cluster_id = cluster.id;
