@@ -6,9 +6,12 @@
 # server and B's on that data dir, timed until the port answers, and print
 # the RSS 3 s after (the load is done when the port opens), the
 # engine's snapshot load line and its split of the load (the store's read,
-# then memory and index), with the store's and the reconcile's log lines
-# as comment rows. Each is stopped with kill -9, so the snapshot
-# on disk stays the one B wrote. A's build must read B's snapshot layout.
+# then memory and index), with the store's, the memory image's and the
+# reconcile's log lines as comment rows. Each is stopped with kill -9
+# (but A's first, below), so the snapshot
+# on disk stays the one its build wrote. A's build must read B's snapshot
+# layout: A's first start (round 0) loads B's snapshot and ends with a
+# clean stop, which writes A's own for its later rounds.
 # A starts on a copy of B's data dir: a newer A may migrate the store's
 # layout (builds after 2026-11-30 do, once: round 0, A's first start, shows
 # it), which B would no longer read.
@@ -67,9 +70,16 @@ for round in $(seq 0 "$rounds"); do
       'BEGIN { printf "%s,%d,%d,%.2f,%s,%s,%s\n", b, r, m, m / p, s,
                l == "" ? "rebuilt" : l, x }'
     # The store's split (records, codes, clusters) and the reconcile's.
-    grep -o 'fleet "scale": \(read [0-9]* trace records\|index snapshot reconciled\).*' \
+    grep -o 'fleet "scale": \(read [0-9]* trace records\|index snapshot reconciled\|[0-9]* traces in [0-9]* clusters taken\).*' \
       "$work/restart.log" | sed 's/^/# /' || true
-    kill -9 "$SERVER_PID"
-    wait "$SERVER_PID" 2>/dev/null || true
+    if [ "$round" -eq 0 ]; then
+      # A's first start read B's snapshot; its clean stop writes A's own
+      # (with a build that keeps one, the clusters' memory image too), which
+      # A's later rounds load as after any clean stop.
+      stop_server
+    else
+      kill -9 "$SERVER_PID"
+      wait "$SERVER_PID" 2>/dev/null || true
+    fi
   done
 done

@@ -260,6 +260,13 @@ struct IndexSnapshotSelection {
   // traces indexed or removed, or clusters consolidated, since it was
   // written or loaded (replay counts are not in a snapshot).
   bool only_changed = false;
+  // With only_changed: also fleets whose snapshot no longer describes the
+  // store (MemoryStore::IndexSnapshotCurrent: a write since it was saved,
+  // such as a replay draw or a reward update, which leave the index as it
+  // was), so that the next start takes the clusters from the snapshot's
+  // memory image. For a stop: periodic snapshots would write a fleet that
+  // draws replays at every turn.
+  bool refresh_memory_image = false;
 };
 
 // Observers of the engine (metrics); every member may be empty. Called

@@ -208,6 +208,10 @@ struct LoadedSnapshot {
   TraceHandles handles;
   bool handles_loaded = false;  // `handles` are the snapshot's
   std::string centroids;        // what StaticMemory::SaveCentroids wrote
+  // The memory image's bytes (memory_image.h), copied out of the file;
+  // image_loaded: the snapshot has one (format ENG3).
+  std::string image;
+  bool image_loaded = false;
   double handles_seconds = 0;
   double index_seconds = 0;
   size_t unindexed = 0;  // the loaded index's codes outside its graph

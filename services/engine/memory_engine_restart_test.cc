@@ -297,6 +297,127 @@ TEST_F(IndexSnapshotTest, CleanShutdownSkipsTheRebuildAndKeepsEveryHandle) {
   ExpectOnlyHeldKeys(Nearest(queries));
 }
 
+// Forwards to the engine's store with its index snapshots and counts how
+// fleets are read.
+class LoadCountingStore : public ForwardingStore {
+ public:
+  explicit LoadCountingStore(MemoryStore* inner)
+      : ForwardingStore(inner), inner_(inner) {}
+  absl::StatusOr<FleetRecord> LoadFleetWithoutHeldCodes(
+      std::string_view fleet_id,
+      const std::function<bool(const core::TraceKey&)>& code_held_elsewhere)
+      override {
+    ++with_clusters;
+    return inner_->LoadFleetWithoutHeldCodes(fleet_id, code_held_elsewhere);
+  }
+  absl::StatusOr<FleetRecord> LoadFleetWithoutClusters(
+      std::string_view fleet_id) override {
+    ++without_clusters;
+    return inner_->LoadFleetWithoutClusters(fleet_id);
+  }
+  absl::Status SaveIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(core::ByteWriter&)>& write,
+      const std::function<void()>& written) override {
+    return inner_->SaveIndexSnapshot(fleet_id, write, written);
+  }
+  absl::Status ReadIndexSnapshot(
+      std::string_view fleet_id,
+      const std::function<absl::Status(std::span<const char>)>& read) override {
+    return inner_->ReadIndexSnapshot(fleet_id, read);
+  }
+  bool IndexSnapshotCurrent(std::string_view fleet_id) override {
+    return inner_->IndexSnapshotCurrent(fleet_id);
+  }
+
+  int with_clusters = 0;
+  int without_clusters = 0;
+
+ private:
+  MemoryStore* inner_;
+};
+
+// Every held trace with every field, by key (for comparing two loads).
+std::map<core::TraceKey, std::string> Described(const MemoryEngine& engine) {
+  std::map<core::TraceKey, std::string> described;
+  for (const core::MemoryTrace& t : AllTraces(engine, "f1", 5000)) {
+    std::string& out = described[t.key()];
+    out = absl::StrCat(t.domain, " ", t.encoder_version, " ", t.place.x, " ",
+                       t.place.y, " ", t.reward, " ", t.reward_external, " ",
+                       t.reward_internal, " ", t.timestamp_ns, " ",
+                       t.replay_count, " ", t.cluster_id, " ", t.attachment,
+                       " ", t.code.size());
+    for (float value : t.code) absl::StrAppend(&out, ",", value);
+  }
+  return described;
+}
+
+// After a clean stop the fleet's snapshot describes the store exactly: the
+// next start takes the clusters from its memory image and reads none from
+// the store, and holds what the store would have given (replay counts and
+// rewards written after the snapshot's index included). A write after it
+// (a replay draw) makes the store's read come back; a stop's save writes
+// the snapshot again although its index did not change.
+TEST_F(IndexSnapshotTest, CleanStopLoadsTheClustersFromTheMemoryImage) {
+  LoadCountingStore counting(store_.get());
+  engine_ = Open(nullptr, &counting);
+  ASSERT_NE(engine_, nullptr);
+  UploadSegments("r1", 1, 600);
+  UploadSegments("r2", 1, 400);
+  MustUpload(MakeTraces("r3", 1, 70, rng_));  // stays pending
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r1", 50).ok());
+  const std::vector<core::MemoryTrace> some = AllTraces(*engine_, "f1", 20);
+  std::vector<core::RewardUpdate> rewards;
+  for (const core::MemoryTrace& trace : some) {
+    rewards.push_back({trace.key(), 2.5f, 0.5f});
+  }
+  ASSERT_TRUE(engine_->UpdateRewards("f1", rewards).ok());
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  const FleetStats stats = Stats();
+  const auto described = Described(*engine_);
+  const std::vector<core::MemoryTrace> queries = MakeTraces("q", 1, 30, rng_);
+  const auto nearest = Nearest(queries);
+
+  engine_ = Open(nullptr, &counting);
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(counting.with_clusters, 0);
+  EXPECT_EQ(counting.without_clusters, 1);
+  EXPECT_EQ(loads_.load(), 1);
+  ExpectSameStats(Stats(), stats);
+  EXPECT_EQ(Described(*engine_), described);
+  EXPECT_EQ(Nearest(queries), nearest);
+  ExpectEveryTraceFindsItself();
+
+  // A replay draw writes the store, not the index: no longer current, so a
+  // crash's restart reads the store, and gets the new counts.
+  ASSERT_TRUE(engine_->SampleReplay("f1", "r2", 50).ok());
+  const auto drawn = Described(*engine_);
+  ASSERT_NE(drawn, described);
+  engine_ = Open(nullptr, &counting);
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(counting.with_clusters, 1);
+  EXPECT_EQ(Described(*engine_), drawn);
+  // A periodic save skips the unchanged index; a stop's writes it again.
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  EXPECT_FALSE(counting.IndexSnapshotCurrent("f1"));
+  ASSERT_TRUE(engine_
+                  ->SaveIndexSnapshots(
+                      {.only_changed = true, .refresh_memory_image = true})
+                  .ok());
+  EXPECT_TRUE(counting.IndexSnapshotCurrent("f1"));
+  const int saves = saves_.load();
+  ASSERT_TRUE(engine_
+                  ->SaveIndexSnapshots(
+                      {.only_changed = true, .refresh_memory_image = true})
+                  .ok());
+  EXPECT_EQ(saves_.load(), saves);  // current for both: not written again
+  engine_ = Open(nullptr, &counting);
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(counting.with_clusters, 1);
+  EXPECT_EQ(counting.without_clusters, 2);
+  EXPECT_EQ(Described(*engine_), drawn);
+}
+
 // A snapshot of another kind of index: memory takes its part (the
 // centroids), the index is rebuilt from the restored memory's traces.
 TEST_F(IndexSnapshotTest, IndexOfAnotherKindIsRebuiltBesideTheRestoredMemory) {
@@ -388,12 +509,10 @@ TEST_F(IndexSnapshotTest, SnapshotOfAnotherHistoryIsRebuilt) {
                                         return absl::OkStatus();
                                       })
                   .ok());
-  // The same keys with other codes, in another store, with the snapshot.
+  // The same keys with other codes, in another store, with the snapshot
+  // (put there before those writes: a snapshot saved after a fleet's last
+  // write is taken as its exact state, memory image included).
   std::unique_ptr<MemoryStore> other = storage::NewInMemoryStore();
-  engine_ = Open(nullptr, other.get());
-  ASSERT_NE(engine_, nullptr);
-  UploadSegments("r1", 1, 400);
-  engine_.reset();
   ASSERT_TRUE(other
                   ->SaveIndexSnapshot("f1",
                                       [&bytes](core::ByteWriter& out) {
@@ -402,6 +521,11 @@ TEST_F(IndexSnapshotTest, SnapshotOfAnotherHistoryIsRebuilt) {
                                         return absl::OkStatus();
                                       })
                   .ok());
+  engine_ = Open(nullptr, other.get());
+  ASSERT_NE(engine_, nullptr);
+  UploadSegments("r1", 1, 400);
+  engine_.reset();
+  ASSERT_FALSE(other->IndexSnapshotCurrent("f1"));
   engine_ = Open(nullptr, other.get());
   ASSERT_NE(engine_, nullptr);
   ExpectEveryTraceFindsItself();

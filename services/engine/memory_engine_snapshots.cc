@@ -79,7 +79,9 @@ absl::Status MemoryEngine::SaveIndexSnapshots(
     const FleetIndex& index = fleet->index;
     if (!fleet->stale.ok() || !fleet->exists() || index.get() == nullptr ||
         index.size() == 0 || index.size() < which.min_codes ||
-        (which.only_changed && index.SnapshotCurrent())) {
+        (which.only_changed && index.SnapshotCurrent() &&
+         (!which.refresh_memory_image ||
+          store_->IndexSnapshotCurrent(fleet->id)))) {
       continue;
     }
     const uint64_t changes = index.changes();

@@ -155,6 +155,12 @@ class MemoryStore {
       const std::function<bool(const core::TraceKey&)>&
           code_held_elsewhere) = 0;
 
+  // LoadFleet without the clusters and their traces (meta, pending traces,
+  // robots): for a load that takes the clusters from the fleet's index
+  // snapshot (IndexSnapshotCurrent). Pure virtual, as above.
+  virtual absl::StatusOr<FleetRecord> LoadFleetWithoutClusters(
+      std::string_view fleet_id) = 0;
+
   // Applies `mutation` atomically; when OK is returned the change is durable
   // (survives a process crash, and with sync on, a machine crash).
   virtual absl::Status Apply(std::string_view fleet_id,
@@ -204,6 +210,17 @@ class MemoryStore {
       const std::function<absl::Status(std::span<const char>)>& read) {
     return absl::NotFoundError("this store keeps no index snapshots");
   }
+  // True if the fleet's snapshot (the one ReadIndexSnapshot reads now) was
+  // saved after the store's last write of the fleet, so that it describes
+  // exactly what the store holds: the engine may then take the fleet's
+  // clusters from it rather than read them (a restart after a clean stop).
+  // A write of the fleet (Apply, DeleteFleet) makes it false until the
+  // next SaveIndexSnapshot; so does anything the store cannot vouch for
+  // (the RocksDB store: a start after a crash, or after a build that keeps
+  // no such record wrote the store). A SaveIndexSnapshot of the fleet that
+  // ends meanwhile may change which snapshot that is: callers keep saves
+  // out. False by default.
+  virtual bool IndexSnapshotCurrent(std::string_view fleet_id) { return false; }
 
   // Removes everything stored for the fleet (its state, events and index
   // snapshot) and stores `kept` as its meta instead, in one atomic write

@@ -65,6 +65,10 @@ class TimedMemoryStore final : public engine::MemoryStore {
       override {
     return store_->LoadFleetWithoutHeldCodes(fleet_id, code_held_elsewhere);
   }
+  absl::StatusOr<engine::FleetRecord> LoadFleetWithoutClusters(
+      std::string_view fleet_id) override {
+    return store_->LoadFleetWithoutClusters(fleet_id);
+  }
   absl::Status Apply(std::string_view fleet_id,
                      const engine::FleetMutation& mutation) override {
     const absl::Time start = absl::Now();
@@ -90,6 +94,9 @@ class TimedMemoryStore final : public engine::MemoryStore {
       std::string_view fleet_id,
       const std::function<absl::Status(std::span<const char>)>& read) override {
     return store_->ReadIndexSnapshot(fleet_id, read);
+  }
+  bool IndexSnapshotCurrent(std::string_view fleet_id) override {
+    return store_->IndexSnapshotCurrent(fleet_id);
   }
   absl::Status DeleteFleet(std::string_view fleet_id,
                            const engine::FleetMeta& kept) override {

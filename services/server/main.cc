@@ -867,11 +867,15 @@ void ServerRun::ShutDown() {
     embedded_.reset();
   }
   // Nothing changes memory any more: the next start loads the place
-  // indexes instead of rebuilding them (a failure only costs that). Fleets
-  // whose periodic snapshot is current are not written again.
+  // indexes instead of rebuilding them (a failure only costs that), and
+  // their clusters from the snapshots' memory images instead of reading
+  // every trace. Fleets whose snapshot is current for both are not written
+  // again.
   snapshotter_->Stop();
   heap_trimmer_->Stop();
-  engine_->SaveIndexSnapshots({.only_changed = true}).IgnoreError();
+  engine_
+      ->SaveIndexSnapshots({.only_changed = true, .refresh_memory_image = true})
+      .IgnoreError();
   engine_.reset();
   store_.reset();
   FLEETMEM_LOG(kInfo) << "stopped";

@@ -153,6 +153,13 @@ class InMemoryStore final : public engine::MemoryStore {
     return record;
   }
 
+  absl::StatusOr<engine::FleetRecord> LoadFleetWithoutClusters(
+      std::string_view fleet_id) override {
+    absl::StatusOr<engine::FleetRecord> record = LoadFleet(fleet_id);
+    if (record.ok()) record->clusters.clear();
+    return record;
+  }
+
   // Everything is in memory: the codes are copied, then the held ones
   // dropped (outside the lock: the function may wait).
   absl::StatusOr<engine::FleetRecord> LoadFleetWithoutHeldCodes(
@@ -188,6 +195,7 @@ class InMemoryStore final : public engine::MemoryStore {
       if (fleet.empty()) fleets_.erase(it);
       return kept_codes.status();
     }
+    ++writes_[std::string(fleet_id)];
     for (const TraceKey& key : m.erase_pending) fleet.pending.erase(key);
     for (uint64_t id : m.erase_clusters) fleet.EraseCluster(id);
     for (const TraceKey& key : m.erase_traces) fleet.EraseTrace(key);
@@ -225,9 +233,16 @@ class InMemoryStore final : public engine::MemoryStore {
       bytes.insert(bytes.end(), chunk.begin(), chunk.end());
     });
     if (absl::Status status = write(out); !status.ok()) return status;
+    // The fleet's writes so far: what `write` read (the caller keeps writes
+    // out until `written`).
+    uint64_t writes = 0;
+    {
+      absl::MutexLock lock(&mu_);
+      writes = writes_[std::string(fleet_id)];
+    }
     if (written) written();
     absl::MutexLock lock(&mu_);
-    snapshots_[std::string(fleet_id)] = std::move(bytes);
+    snapshots_[std::string(fleet_id)] = {std::move(bytes), writes};
     return absl::OkStatus();
   }
 
@@ -242,9 +257,18 @@ class InMemoryStore final : public engine::MemoryStore {
         return absl::NotFoundError(absl::StrCat("no index snapshot of fleet \"",
                                                 std::string(fleet_id), "\""));
       }
-      bytes = it->second;  // a copy: `read` runs outside the lock
+      bytes = it->second.bytes;  // a copy: `read` runs outside the lock
     }
     return read(bytes);
+  }
+
+  bool IndexSnapshotCurrent(std::string_view fleet_id) override {
+    absl::MutexLock lock(&mu_);
+    auto snapshot = snapshots_.find(fleet_id);
+    auto writes = writes_.find(fleet_id);
+    return snapshot != snapshots_.end() &&
+           snapshot->second.writes ==
+               (writes == writes_.end() ? 0 : writes->second);
   }
 
   absl::StatusOr<std::vector<core::MemoryEvent>> ReadEvents(
@@ -273,6 +297,7 @@ class InMemoryStore final : public engine::MemoryStore {
       absl::MutexLock lock(&mu_);
       fleets_.erase(std::string(fleet_id));
       snapshots_.erase(std::string(fleet_id));
+      ++writes_[std::string(fleet_id)];
     }
     engine::FleetMutation meta;
     meta.put_meta = true;
@@ -304,9 +329,14 @@ class InMemoryStore final : public engine::MemoryStore {
   absl::Mutex mu_;
   std::map<std::string, std::string> aliases_ ABSL_GUARDED_BY(mu_);
   std::map<std::string, Fleet, std::less<>> fleets_ ABSL_GUARDED_BY(mu_);
-  // Index snapshots by fleet id.
-  std::map<std::string, std::vector<char>, std::less<>> snapshots_
-      ABSL_GUARDED_BY(mu_);
+  // Index snapshots by fleet id, with the fleet's writes when saved.
+  struct Snapshot {
+    std::vector<char> bytes;
+    uint64_t writes = 0;
+  };
+  std::map<std::string, Snapshot, std::less<>> snapshots_ ABSL_GUARDED_BY(mu_);
+  // Writes of each fleet (Apply, DeleteFleet) since the store was made.
+  std::map<std::string, uint64_t, std::less<>> writes_ ABSL_GUARDED_BY(mu_);
 };
 
 }  // namespace

@@ -25,7 +25,8 @@ bool IsTag(char c) {
     if (static_cast<char>(tag) == c) return true;
   }
   return c == static_cast<char>(Tag::kLog) ||
-         c == static_cast<char>(Tag::kAlias);
+         c == static_cast<char>(Tag::kAlias) ||
+         c == static_cast<char>(Tag::kSnapshotMark);
 }
 
 std::string_view TagName(Tag tag) {
@@ -48,6 +49,8 @@ std::string_view TagName(Tag tag) {
       return "log";
     case Tag::kAlias:
       return "alias";
+    case Tag::kSnapshotMark:
+      return "mark";
   }
   return "?";
 }
@@ -90,6 +93,10 @@ std::string MetaKey(std::string_view fleet_id) {
 
 std::string AliasKey(std::string_view alias) {
   return Prefix(Tag::kAlias, alias);
+}
+
+std::string SnapshotMarkKey(std::string_view fleet_id) {
+  return Prefix(Tag::kSnapshotMark, fleet_id);
 }
 
 std::string PendingKey(std::string_view fleet_id, const core::TraceKey& key) {
@@ -157,6 +164,7 @@ std::string Describe(std::string_view key) {
     switch (parsed->tag) {
       case Tag::kMeta:
       case Tag::kAlias:
+      case Tag::kSnapshotMark:
         ok = parsed->suffix.empty();
         break;
       case Tag::kPending:

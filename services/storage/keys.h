@@ -13,13 +13,21 @@
 //   event    'e'  event id (8 bytes, big-endian)
 //   log      'l'  sequence (8 bytes, big-endian): the ingest log, apart
 //                 from the fleet's state (not in kFleetTags)
+//   mark     's'  (empty); the value is the id (stamp, checksum) of the
+//                 fleet's index snapshot, put when it is saved and deleted
+//                 by the fleet's next write: while it is here and names
+//                 the file on disk, that snapshot describes the fleet's
+//                 state exactly (not in kFleetTags)
 // and one kind whose id is an alias, not a fleet's (not in kFleetTags):
 //   alias    'a'  (empty); the value is the fleet id it names
 // Ids are restricted upstream to [A-Za-z0-9._:-], so 0x00 never occurs in
 // them: all keys of one (tag, fleet) form one contiguous range, a fleet id
 // that is a prefix of another ("f", "f1") cannot alias it, and big-endian
-// numbers sort numerically. One more key, kFormatKey, holds the layout
-// version and belongs to no fleet.
+// numbers sort numerically. Two more keys belong to no fleet: kFormatKey
+// holds the layout version; kClosedKey the store's latest sequence number
+// before a clean close wrote it (a start that finds the sequence one past
+// it knows that nothing, no older build either, wrote since: the marks
+// hold).
 #ifndef FLEETMEM_SERVICES_STORAGE_KEYS_H_
 #define FLEETMEM_SERVICES_STORAGE_KEYS_H_
 
@@ -42,6 +50,7 @@ enum class Tag : char {
   kEvent = 'e',
   kLog = 'l',
   kAlias = 'a',
+  kSnapshotMark = 's',
 };
 
 // Every tag that holds a fleet's state (not its ingest log).
@@ -56,6 +65,7 @@ inline constexpr std::string_view kFormatKey = "!format";
 // migrated when it opens (rocksdb_store.cc: MigrateCodes).
 inline constexpr std::string_view kFormatVersion = "fleetmem.storage/2";
 inline constexpr std::string_view kFormatVersion1 = "fleetmem.storage/1";
+inline constexpr std::string_view kClosedKey = "!closed";
 
 // tag | fleet | 0x00: every key of (tag, fleet) starts with it.
 std::string Prefix(Tag tag, std::string_view fleet_id);
@@ -71,6 +81,7 @@ std::string RobotKey(std::string_view fleet_id, std::string_view robot_id);
 std::string EventKey(std::string_view fleet_id, uint64_t event_id);
 std::string LogKey(std::string_view fleet_id, uint64_t sequence);
 std::string AliasKey(std::string_view alias);
+std::string SnapshotMarkKey(std::string_view fleet_id);
 
 // The parts of a key; nullopt if `key` does not follow the layout.
 struct ParsedKey {

@@ -748,6 +748,69 @@ TEST_P(StoreTest, IndexSnapshotWrittenComesBeforeTheReplacement) {
   EXPECT_EQ(calls, 1);
 }
 
+// A snapshot saved after the fleet's last write describes the fleet
+// exactly (the engine then takes its clusters from the snapshot): until the
+// fleet's next write, whatever other fleets write, across a clean reopen.
+// A refused write changes nothing, so leaves it current; a delete does not.
+TEST_P(StoreTest, IndexSnapshotIsCurrentUntilTheFleetsNextWrite) {
+  FleetMutation first;
+  first.put_meta = true;
+  first.meta = MakeMeta(1);
+  first.put_pending = {MakeTrace("r1", 1)};
+  ASSERT_TRUE(store().Apply("f1", first).ok());
+  EXPECT_FALSE(store().IndexSnapshotCurrent("f1"));  // none saved
+  ASSERT_TRUE(SaveSnapshot(store(), "f1", "index").ok());
+  EXPECT_TRUE(store().IndexSnapshotCurrent("f1"));
+  ASSERT_TRUE(store().Apply("f2", first).ok());
+  ASSERT_TRUE(SaveSnapshot(store(), "f2", "other").ok());
+  FleetMutation refused;
+  refused.put_pending = {MakeTrace("r1", 2)};
+  refused.put_pending.front().code.clear();
+  ASSERT_FALSE(store().Apply("f1", refused).ok());
+  EXPECT_TRUE(store().IndexSnapshotCurrent("f1"));
+  harness_.Reopen();
+  EXPECT_TRUE(store().IndexSnapshotCurrent("f1"));
+  EXPECT_TRUE(store().IndexSnapshotCurrent("f2"));
+
+  FleetMutation next;
+  next.put_pending = {MakeTrace("r1", 3)};
+  ASSERT_TRUE(store().Apply("f1", next).ok());
+  EXPECT_FALSE(store().IndexSnapshotCurrent("f1"));
+  EXPECT_TRUE(store().IndexSnapshotCurrent("f2"));
+  EXPECT_EQ(ReadSnapshot(store(), "f1").value_or(""), "index");  // still read
+  harness_.Reopen();
+  EXPECT_FALSE(store().IndexSnapshotCurrent("f1"));
+  ASSERT_TRUE(SaveSnapshot(store(), "f1", "newer").ok());
+  EXPECT_TRUE(store().IndexSnapshotCurrent("f1"));
+
+  engine::FleetMeta kept;
+  kept.log_position = 9;
+  ASSERT_TRUE(store().DeleteFleet("f1", kept).ok());
+  EXPECT_FALSE(store().IndexSnapshotCurrent("f1"));
+  EXPECT_TRUE(store().IndexSnapshotCurrent("f2"));
+}
+
+// The record without its clusters: meta, pending traces and robots as
+// LoadFleet has them.
+TEST_P(StoreTest, LoadWithoutClustersIsLoadFleetLessTheClusters) {
+  FleetMutation m;
+  m.put_meta = true;
+  m.meta = MakeMeta(1);
+  m.put_pending = {MakeTrace("r2", 9)};
+  m.put_clusters = {MakeCluster(1, "r1", {3, 1}), MakeCluster(2, "r2", {4})};
+  engine::RobotRecord robot;
+  robot.robot_id = "r1";
+  robot.replayed = 4;
+  m.put_robots = {robot};
+  ASSERT_TRUE(store().Apply("f", m).ok());
+  FleetRecord want = Load(store(), "f");
+  ASSERT_EQ(want.clusters.size(), 2u);
+  want.clusters.clear();
+  absl::StatusOr<FleetRecord> record = store().LoadFleetWithoutClusters("f");
+  ASSERT_TRUE(record.ok()) << record.status();
+  EXPECT_EQ(Dump(*record), Dump(want));
+}
+
 INSTANTIATE_TEST_SUITE_P(BothStores, StoreTest,
                          ::testing::Values(StoreKind::kInMemory,
                                            StoreKind::kRocksDb),

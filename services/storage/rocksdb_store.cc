@@ -436,6 +436,23 @@ std::unique_ptr<rocksdb::Env> MakeEnv(
   return rocksdb::NewCompositeEnv(NewWalRoomFileSystem(std::move(room)));
 }
 
+// A mark's value (keys.h: 's'), and the clean close's record (its stamp
+// only): stamp and digest, 8 bytes each.
+std::string EncodeMark(const SnapshotFileId& id) {
+  std::string value(16, '\0');
+  std::memcpy(value.data(), &id.stamp, 8);
+  std::memcpy(value.data() + 8, &id.digest, 8);
+  return value;
+}
+
+std::optional<SnapshotFileId> DecodeMark(std::string_view value) {
+  if (value.size() != 16) return std::nullopt;
+  SnapshotFileId id;
+  std::memcpy(&id.stamp, value.data(), 8);
+  std::memcpy(&id.digest, value.data() + 8, 8);
+  return id;
+}
+
 class RocksDbStore final : public engine::MemoryStore {
  public:
   RocksDbStore(std::unique_ptr<rocksdb::Env> env,
@@ -458,6 +475,17 @@ class RocksDbStore final : public engine::MemoryStore {
   }
 
   ~RocksDbStore() override {
+    // The sequence number before this last write: a start that finds one
+    // past it knows that nothing wrote the store since (LoadSnapshotMarks).
+    const std::string closed =
+        EncodeMark({.stamp = db_->GetLatestSequenceNumber(), .digest = 0});
+    const rocksdb::Status put = db_->Put(
+        synced_write_options_, ToSlice(keys::kClosedKey), ToSlice(closed));
+    if (!put.ok()) {
+      FLEETMEM_LOG(kWarning)
+          << "RocksDB at " << path_ << ": no record of the clean close ("
+          << put.ToString() << "); the next start reads every fleet";
+    }
     // No iterator or snapshot outlives a call, so the database can close.
     const rocksdb::Status status = db_->Close();
     if (!status.ok()) {
@@ -520,9 +548,28 @@ class RocksDbStore final : public engine::MemoryStore {
       }
       return absl::OkStatus();
     };
-    return WriteSnapshotFile(SnapshotDirectory(), fleet_id,
-                             db_->GetLatestSequenceNumber(), write, check_room,
-                             written);
+    // Once the bytes are in the file and before the caller lets writes in
+    // again, the mark names it: the fleet's next write deletes it.
+    const uint64_t stamp = db_->GetLatestSequenceNumber();
+    auto mark = [&](uint64_t digest) {
+      PutMark(fleet_id, {.stamp = stamp, .digest = digest});
+      if (written) written();
+    };
+    return WriteSnapshotFile(SnapshotDirectory(), fleet_id, stamp, write,
+                             check_room, mark);
+  }
+
+  bool IndexSnapshotCurrent(std::string_view fleet_id) override {
+    std::optional<SnapshotFileId> mark;
+    {
+      absl::MutexLock lock(&marks_map_mu_);
+      auto it = marks_.find(fleet_id);
+      if (it == marks_.end()) return false;
+      mark = it->second;
+    }
+    absl::StatusOr<SnapshotFileId> file =
+        ReadSnapshotFileId(SnapshotDirectory(), fleet_id);
+    return file.ok() && *file == *mark;
   }
 
   absl::Status ReadIndexSnapshot(
@@ -584,10 +631,23 @@ class RocksDbStore final : public engine::MemoryStore {
     return LoadFleetWithoutHeldCodes(fleet_id, nullptr);
   }
 
+  absl::StatusOr<engine::FleetRecord> LoadFleetWithoutClusters(
+      std::string_view fleet_id) override {
+    return Load(fleet_id, /*clusters=*/false, nullptr);
+  }
+
   absl::StatusOr<engine::FleetRecord> LoadFleetWithoutHeldCodes(
       std::string_view fleet_id,
       const std::function<bool(const TraceKey&)>& code_held_elsewhere)
       override {
+    return Load(fleet_id, /*clusters=*/true, code_held_elsewhere);
+  }
+
+  // LoadFleet; without the clusters and their traces if `clusters` is
+  // false.
+  absl::StatusOr<engine::FleetRecord> Load(
+      std::string_view fleet_id, bool clusters,
+      const std::function<bool(const TraceKey&)>& code_held_elsewhere) {
     engine::FleetRecord record;
     record.fleet_id = std::string(fleet_id);
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
@@ -622,6 +682,7 @@ class RocksDbStore final : public engine::MemoryStore {
                     return Append(DecodeRobot(key, v), &record.robots);
                   });
     if (!status.ok()) return status;
+    if (!clusters) return record;
 
     // The records first (~150 bytes a trace), then the codes they need:
     // those `code_held_elsewhere` leaves to the store, by one pass over the
@@ -715,6 +776,8 @@ class RocksDbStore final : public engine::MemoryStore {
     // Entries older builds kept in RocksDB (OpenLog moved them out).
     ranges.emplace_back(keys::Prefix(keys::Tag::kLog, fleet_id),
                         keys::PrefixEnd(keys::Tag::kLog, fleet_id));
+    ranges.emplace_back(keys::Prefix(keys::Tag::kSnapshotMark, fleet_id),
+                        keys::PrefixEnd(keys::Tag::kSnapshotMark, fleet_id));
     rocksdb::WriteBatch batch;
     for (const auto& [begin, end] : ranges) {
       batch.DeleteRange(ToSlice(begin), ToSlice(end));
@@ -791,6 +854,68 @@ class RocksDbStore final : public engine::MemoryStore {
 
   // Opens the ingest log at PATH/ingest-log and moves into it the entries
   // that builds before it kept in RocksDB (their keys are then erased).
+  // Reads the marks (keys.h: 's') at open, before anything writes: kept if
+  // the last write was the clean close's record, so that none was written
+  // since by a build that does not delete them (an older one) or lost with
+  // a crash; else deleted, every one, so that they cannot outlive a write
+  // this start does not know of.
+  absl::Status LoadSnapshotMarks() {
+    std::string value;
+    const rocksdb::Status got =
+        db_->Get(rocksdb::ReadOptions(), ToSlice(keys::kClosedKey), &value);
+    if (!got.ok() && !got.IsNotFound()) {
+      return FromRocksDb(got, "read the clean close's record");
+    }
+    const std::optional<SnapshotFileId> closed =
+        got.ok() ? DecodeMark(value) : std::nullopt;
+    const bool trusted =
+        closed && closed->stamp + 1 == db_->GetLatestSequenceNumber();
+    const std::string begin(1, static_cast<char>(keys::Tag::kSnapshotMark));
+    const std::string end(1, static_cast<char>(keys::Tag::kSnapshotMark) + 1);
+    std::map<std::string, SnapshotFileId, std::less<>> marks;
+    absl::Status read = ForEachInRange(
+        db_.get(), rocksdb::ReadOptions(), begin, end,
+        [&](std::string_view key,
+            std::string_view mark) -> absl::StatusOr<bool> {
+          const std::optional<keys::ParsedKey> parsed = keys::Parse(key);
+          const std::optional<SnapshotFileId> id = DecodeMark(mark);
+          if (parsed && id) marks[std::string(parsed->fleet_id)] = *id;
+          return true;
+        });
+    if (!read.ok()) return read;
+    if (trusted || marks.empty()) {
+      absl::MutexLock lock(&marks_map_mu_);
+      marks_ = std::move(marks);
+      return absl::OkStatus();
+    }
+    FLEETMEM_LOG(kInfo) << "RocksDB at " << path_
+                        << ": not closed cleanly by this build last time; "
+                           "fleets are read from the store, not from their "
+                           "index snapshots' memory";
+    rocksdb::WriteBatch batch;
+    batch.DeleteRange(ToSlice(begin), ToSlice(end));
+    return FromRocksDb(db_->Write(synced_write_options_, &batch),
+                       "delete the index snapshots' marks");
+  }
+
+  // Records that `fleet_id`'s index snapshot is the file `id`; a failure is
+  // logged (the next load then reads the fleet from the store).
+  void PutMark(std::string_view fleet_id, const SnapshotFileId& id) {
+    absl::MutexLock marks(&marks_mu_);
+    const std::string value = EncodeMark(id);
+    const rocksdb::Status put =
+        db_->Put(unsynced_write_options_,
+                 ToSlice(keys::SnapshotMarkKey(fleet_id)), ToSlice(value));
+    if (!put.ok()) {
+      FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
+                             << "\": its index snapshot is not marked current ("
+                             << put.ToString() << ")";
+      return;
+    }
+    absl::MutexLock lock(&marks_map_mu_);
+    marks_[std::string(fleet_id)] = id;
+  }
+
   absl::Status OpenLog() {
     SegmentLogOptions options;
     options.directory = path_ + "/ingest-log";
@@ -1094,6 +1219,29 @@ class RocksDbStore final : public engine::MemoryStore {
   absl::Status Write(std::string_view fleet_id, rocksdb::WriteBatch& batch,
                      const rocksdb::WriteOptions& options,
                      std::string_view what) {
+    // The fleet's index snapshot no longer describes it: its mark goes in
+    // the same batch (no mark is put meanwhile).
+    absl::ReaderMutexLock marks(&marks_mu_);
+    std::optional<SnapshotFileId> mark;
+    {
+      absl::MutexLock lock(&marks_map_mu_);
+      auto it = marks_.find(fleet_id);
+      if (it != marks_.end()) mark = it->second;
+    }
+    if (mark) batch.Delete(ToSlice(keys::SnapshotMarkKey(fleet_id)));
+    absl::Status status = WriteBatchOf(fleet_id, batch, options, what);
+    if (status.ok() && mark) {
+      absl::MutexLock lock(&marks_map_mu_);
+      marks_.erase(std::string(fleet_id));
+    }
+    return status;
+  }
+
+  // Write without the mark's deletion.
+  absl::Status WriteBatchOf(std::string_view fleet_id,
+                            rocksdb::WriteBatch& batch,
+                            const rocksdb::WriteOptions& options,
+                            std::string_view what) {
     // The batch goes to the write-ahead log now and to a table file later.
     if (absl::Status room = CheckRoom(fleet_id, 2 * batch.GetDataSize());
         !room.ok()) {
@@ -1208,6 +1356,12 @@ class RocksDbStore final : public engine::MemoryStore {
   rocksdb::WriteOptions synced_write_options_;
   rocksdb::WriteOptions unsynced_write_options_;
   absl::Mutex apply_mu_;
+  // Held shared by every write of a fleet's state, alone by PutMark.
+  absl::Mutex marks_mu_;
+  absl::Mutex marks_map_mu_;
+  // The marks in the store (keys.h: 's'), by fleet.
+  std::map<std::string, SnapshotFileId, std::less<>> marks_
+      ABSL_GUARDED_BY(marks_map_mu_);
   // Written by Apply (under apply_mu_) and by the log's appends and trims
   // (not under it).
   std::atomic<bool> low_space_ = false;
@@ -1359,6 +1513,9 @@ absl::StatusOr<std::unique_ptr<RocksDbStore>> Open(
                       << (options.sync ? " (sync writes)" : " (async writes)");
   auto store = std::make_unique<RocksDbStore>(
       std::move(env), std::move(reserve_given_back), std::move(db), options);
+  if (absl::Status marks = store->LoadSnapshotMarks(); !marks.ok()) {
+    return marks;
+  }
   if (absl::Status log = store->OpenLog(); !log.ok()) return log;
   store->TakeReserveAtOpen();
   if (*format == keys::kFormatVersion1) {

@@ -745,5 +745,58 @@ TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
   EXPECT_FALSE(std::ifstream(path).is_open());
 }
 
+// An index snapshot is current only while its mark names the file on disk
+// and the store knows that nothing wrote behind it: a write by a build
+// that keeps no marks (here: raw, after a clean close) makes every mark
+// void at the next open, and they are deleted; a file that is not the one
+// marked (put there by hand) is not current either.
+TEST(RocksDbStoreTest, IndexSnapshotMarksDoNotOutliveAnUnknownWrite) {
+  TempDir dir;
+  const std::string path = absl::StrCat(dir.path(), "/db");
+  const std::string snapshots = absl::StrCat(path, "/index-snapshots");
+  auto save = [](engine::MemoryStore& store, std::string_view fleet,
+                 std::string_view payload) {
+    return store.SaveIndexSnapshot(fleet, [&](core::ByteWriter& out) {
+      out.PutString(payload);
+      return absl::OkStatus();
+    });
+  };
+  {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+    ASSERT_NE(store, nullptr);
+    ASSERT_TRUE(save(*store, "f1", "one").ok());
+    ASSERT_TRUE(save(*store, "f2", "two").ok());
+  }
+  // A copy of f2's file, to put back over a later one.
+  std::filesystem::copy_file(SnapshotFilePath(snapshots, "f2"),
+                             absl::StrCat(dir.path(), "/f2-old"));
+  {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+    ASSERT_NE(store, nullptr);
+    EXPECT_TRUE(store->IndexSnapshotCurrent("f1"));
+    ASSERT_TRUE(save(*store, "f2", "two, later").ok());
+    EXPECT_TRUE(store->IndexSnapshotCurrent("f2"));
+    std::filesystem::copy_file(
+        absl::StrCat(dir.path(), "/f2-old"), SnapshotFilePath(snapshots, "f2"),
+        std::filesystem::copy_options::overwrite_existing);
+    EXPECT_FALSE(store->IndexSnapshotCurrent("f2"));
+  }
+  PutRaw(path, {{keys::RobotKey("f3", "r1"), "written by an older build"}});
+  {
+    std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+    ASSERT_NE(store, nullptr);
+    EXPECT_FALSE(store->IndexSnapshotCurrent("f1"));
+  }
+  for (const auto& [key, value] : ReadRaw(path)) {
+    EXPECT_NE(key.front(), static_cast<char>(keys::Tag::kSnapshotMark))
+        << keys::Describe(key);
+  }
+  // The next save marks again.
+  std::unique_ptr<engine::MemoryStore> store = OpenOrDie(path);
+  ASSERT_NE(store, nullptr);
+  ASSERT_TRUE(save(*store, "f1", "one, again").ok());
+  EXPECT_TRUE(store->IndexSnapshotCurrent("f1"));
+}
+
 }  // namespace
 }  // namespace fleetmem::storage

@@ -158,7 +158,7 @@ absl::Status WriteSnapshotFile(
     const std::string& directory, std::string_view key, uint64_t stamp,
     const std::function<absl::Status(core::ByteWriter&)>& write,
     const std::function<absl::Status()>& check_room,
-    const std::function<void()>& written) {
+    const std::function<void(uint64_t digest)>& written) {
   const std::string path = SnapshotFilePath(directory, key);
   const std::string temporary = path + ".tmp";
   std::error_code ignored;
@@ -191,7 +191,7 @@ absl::Status WriteSnapshotFile(
   file.Append({reinterpret_cast<const char*>(&digest), sizeof(digest)}, false);
   file.Flush();
   if (status.ok()) status = file.error();
-  if (status.ok() && written) written();
+  if (status.ok() && written) written(digest);
   if (status.ok() && ::fsync(fd) != 0) {
     status = absl::UnavailableError(absl::StrCat("fsync: ", ErrnoText(errno)));
   }
@@ -255,6 +255,45 @@ absl::Status ReadSnapshotFile(
   }
   if (stamp != nullptr) *stamp = ReadAt<uint64_t>(bytes, kMagic.size());
   return read(bytes.subspan(kHeaderBytes + 8 + key_size, payload_size));
+}
+
+absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
+                                                  std::string_view key) {
+  const std::string path = SnapshotFilePath(directory, key);
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    const int error = errno;
+    if (error == ENOENT) {
+      return absl::NotFoundError(
+          absl::StrCat("no index snapshot at '", path, "'"));
+    }
+    return absl::DataLossError(
+        absl::StrCat("open '", path, "': ", ErrnoText(error)));
+  }
+  // The header, the key and the trailer; the payload between is not read.
+  struct stat info;
+  std::vector<char> head(kHeaderBytes + 8 + key.size());
+  char trailer[kTrailerBytes];
+  const bool read =
+      ::fstat(fd, &info) == 0 &&
+      static_cast<size_t>(info.st_size) >= head.size() + kTrailerBytes &&
+      ::pread(fd, head.data(), head.size(), 0) ==
+          static_cast<ssize_t>(head.size()) &&
+      ::pread(fd, trailer, kTrailerBytes, info.st_size - kTrailerBytes) ==
+          static_cast<ssize_t>(kTrailerBytes);
+  ::close(fd);
+  const std::span<const char> header(head);
+  const std::span<const char> tail(trailer, kTrailerBytes);
+  if (!read || std::string_view(head.data(), kMagic.size()) != kMagic ||
+      ReadAt<uint64_t>(header, kHeaderBytes) != key.size() ||
+      std::string_view(head.data() + kHeaderBytes + 8, key.size()) != key ||
+      ReadAt<uint64_t>(tail, 0) !=
+          static_cast<size_t>(info.st_size) - head.size() - kTrailerBytes) {
+    return absl::DataLossError(
+        absl::StrCat("index snapshot '", path, "' has a damaged frame"));
+  }
+  return SnapshotFileId{.stamp = ReadAt<uint64_t>(header, kMagic.size()),
+                        .digest = ReadAt<uint64_t>(tail, 8)};
 }
 
 }  // namespace fleetmem::storage

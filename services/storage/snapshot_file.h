@@ -19,6 +19,7 @@
 #include <string_view>
 
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "services/core/byte_stream.h"
 
 namespace fleetmem::storage {
@@ -28,7 +29,8 @@ namespace fleetmem::storage {
 // if set, is asked before each 1 MiB written and stops the write with its
 // error (a disk reserve). `written`, if set, is called once `write` has
 // returned OK and its bytes are in the file (not yet synced): the caller
-// may change what `write` read from then on. On any error (`write`'s,
+// may change what `write` read from then on; it gets the file's checksum
+// (SnapshotFileId::digest). On any error (`write`'s,
 // `check_room`'s, or I/O: a full disk, a failed fsync) the earlier snapshot
 // of `key`, if any, is left as it was, no temporary file remains, and the
 // status says so. Calls for one key must not overlap (they share the
@@ -37,7 +39,22 @@ absl::Status WriteSnapshotFile(
     const std::string& directory, std::string_view key, uint64_t stamp,
     const std::function<absl::Status(core::ByteWriter&)>& write,
     const std::function<absl::Status()>& check_room = nullptr,
-    const std::function<void()>& written = nullptr);
+    const std::function<void(uint64_t digest)>& written = nullptr);
+
+// What tells one snapshot file from another: the stamp it was written with
+// and the checksum in its trailer.
+struct SnapshotFileId {
+  uint64_t stamp = 0;
+  uint64_t digest = 0;
+  friend bool operator==(const SnapshotFileId&,
+                         const SnapshotFileId&) = default;
+};
+
+// The id of `key`'s snapshot in `directory`, read off its frame without
+// checking the payload (ReadSnapshotFile does): NOT_FOUND when there is
+// none, DATA_LOSS when its frame is damaged or it is another key's.
+absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
+                                                  std::string_view key);
 
 // Calls `read` with the payload of `key`'s snapshot in `directory` and
 // returns its status if the frame and checksum are intact and the key is

@@ -33,6 +33,10 @@ class ForwardingStore : public MemoryStore {
       override {
     return inner_->LoadFleetWithoutHeldCodes(fleet_id, code_held_elsewhere);
   }
+  absl::StatusOr<FleetRecord> LoadFleetWithoutClusters(
+      std::string_view fleet_id) override {
+    return inner_->LoadFleetWithoutClusters(fleet_id);
+  }
   absl::Status Apply(std::string_view fleet_id,
                      const FleetMutation& mutation) override {
     return inner_->Apply(fleet_id, mutation);
