@@ -18,7 +18,8 @@
 #
 #   bench/compare_rss.sh A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS]
 #   (default: 200000 traces, 2 rounds)
-# Environment: HNSW_CODES (int8 or float) sets the graph's codes of both,
+# Environment: KEEP=DIR keeps the fill in DIR for the next run (its data
+# dir as B's runs left it), HNSW_CODES (int8 or float) sets the graph's codes of both,
 # HNSW_FLOATS (file or memory) where int8 graphs keep their floats (the
 # same build twice with each setting compares the two).
 set -euo pipefail
@@ -39,9 +40,9 @@ for tool in "$a/bin/fleetmem-server" "$b/bin/fleetmem-server" "$b/bin/fleetmem";
     exit 2
   fi
 done
-work=$(mktemp -d)
-trap 'kill $(jobs -p) 2>/dev/null || true; wait; rm -rf "$work"' EXIT
 source "$here/tools/load/server_lib.sh"
+bench_work compare-rss data-a
+work=$WORK
 fill_scale_fleet_once "$b" "$work" "$traces"
 
 cp -a "$work/data" "$work/data-a"

@@ -32,7 +32,7 @@ SERVER_START_SECONDS=1200 \
 echo "port_seconds,$(awk "BEGIN { printf \"%.2f\", $(date +%s.%N) - $start }")"
 kill -TERM "$(pgrep -P "$SERVER_PID" -f fleetmem-server)"
 wait "$SERVER_PID" 2>/dev/null || true
-grep -o 'fleet "scale": \(read [0-9]* trace records\|loaded from\|rebuilding\|index snapshot reconciled\).*' \
+grep -o 'fleet "scale": \(read [0-9]* trace records\|[0-9]* traces in [0-9]* clusters taken\|loaded from\|rebuilding\|index snapshot reconciled\).*' \
   "$work/restart.log" || true
 grep -o 'fleet "scale" loaded.*' "$work/restart.log"
 echo "# by symbol (share of the samples from start to stop; the stop is a"

@@ -201,10 +201,11 @@ split=$(sed -n 's/.*store read \([0-9.]*\) s, memory and index \([0-9.]*\) s.*/\
 row restart_store_read_seconds "${split% *}"
 row restart_memory_and_index_seconds "${split#* }"
 # The load's peak resident set, and the engine's own lines about it (the
-# store's split, the wait for the snapshot's handles, the reconcile).
+# store's split or the memory image's, the wait for the snapshot's
+# handles, the reconcile).
 server_pid=$(pgrep -P "$SERVER_PID" -f fleetmem-server || echo "$SERVER_PID")
 row restart_peak_rss_mib "$(awk '/^VmHWM/ { printf "%d", $2 / 1024 }' "/proc/$server_pid/status")"
-grep -o 'fleet "big"\(: read [0-9]* trace records\|: index snapshot reconciled\| loaded:\).*' \
+grep -o 'fleet "big"\(: read [0-9]* trace records\|: index snapshot reconciled\|: [0-9]* traces in [0-9]* clusters taken\| loaded:\).*' \
   "$work/restart.log" | sed 's/^/# /' >>"$work/rows.csv"
 stop_server
 [ "$out" = /dev/stdout ] || cp "$work/rows.csv" "$out"

@@ -201,6 +201,11 @@ class StaticMemory {
   // A copy of the held cluster `id` with its centroid (the store's record),
   // or nullopt.
   std::optional<Cluster> WithCentroid(uint64_t id) const;
+  // The held cluster `id`'s centroid (empty if none is held), valid until
+  // the memory changes.
+  std::span<const float> CentroidOf(uint64_t id) const {
+    return centroids_.point(id);
+  }
   size_t trace_count() const { return trace_count_; }
   // Traces held per robot and per domain (kept up to date by every change,
   // so statistics cost O(robots + domains), not O(traces)).

@@ -509,10 +509,13 @@ absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
         out.Put<int32_t>(settings.hnsw_ef_search);
         // The memory image, length first so that a load can hand it over
         // before it reads what follows.
+        auto centroid_of = [this](uint64_t cluster_id) {
+          return memory.CentroidOf(cluster_id);
+        };
         core::ByteWriter image_counter([](std::span<const char>) {});
-        SaveMemoryImage(memory.clusters(), image_counter);
+        SaveMemoryImage(memory.clusters(), centroid_of, image_counter);
         out.Put<uint64_t>(image_counter.written());
-        SaveMemoryImage(memory.clusters(), out);
+        SaveMemoryImage(memory.clusters(), centroid_of, out);
         index.SaveHandles(out);
         // Forgetting's centroid bookkeeping, length first so that a load
         // can hand it to memory while the index reads what follows.

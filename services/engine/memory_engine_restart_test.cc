@@ -327,9 +327,10 @@ class LoadCountingStore : public ForwardingStore {
     return inner_->ReadIndexSnapshot(fleet_id, read);
   }
   bool IndexSnapshotCurrent(std::string_view fleet_id) override {
-    return inner_->IndexSnapshotCurrent(fleet_id);
+    return report_current && inner_->IndexSnapshotCurrent(fleet_id);
   }
 
+  bool report_current = true;  // false: every load reads the store
   int with_clusters = 0;
   int without_clusters = 0;
 
@@ -416,6 +417,54 @@ TEST_F(IndexSnapshotTest, CleanStopLoadsTheClustersFromTheMemoryImage) {
   EXPECT_EQ(counting.with_clusters, 1);
   EXPECT_EQ(counting.without_clusters, 2);
   EXPECT_EQ(Described(*engine_), drawn);
+}
+
+// Forgetting goes on after a load from the memory image exactly as after
+// the store's read of the same state (the image's centroids are the
+// store's, feature and place: forgetting's tracker loads, not rebuilt):
+// two stores filled alike, one loaded each way, the same uploads after.
+TEST_F(IndexSnapshotTest, MemoryImageForgetsAsTheStoresRecordsWould) {
+  std::unique_ptr<MemoryStore> second = storage::NewInMemoryStore();
+  LoadCountingStore imaged(store_.get());
+  LoadCountingStore recorded(second.get());
+  recorded.report_current = false;
+  struct Run {
+    FleetStats stats;
+    std::vector<std::string> events;
+    std::vector<std::vector<core::TraceKey>> nearest;
+  };
+  const std::vector<core::MemoryTrace> queries = MakeTraces("q", 1, 30, rng_);
+  auto run = [&](LoadCountingStore& store) {
+    rng_.seed(11);
+    engine_ = Open(nullptr, &store);
+    UploadSegments("r1", 1, 500);
+    UploadSegments("r2", 1, 400);
+    EXPECT_GT(Stats().clusters_forgotten, 0u);
+    EXPECT_TRUE(engine_->SaveIndexSnapshots().ok());
+    engine_ = Open(nullptr, &store);  // the load under test
+    UploadSegments("r1", 501, 900);
+    UploadSegments("r3", 1, 300);
+    Run result{Stats(), {}, Nearest(queries)};
+    absl::StatusOr<std::vector<core::MemoryEvent>> events =
+        engine_->ReadEvents("f1", 0);
+    EXPECT_TRUE(events.ok()) << events.status();
+    if (!events.ok()) return result;
+    for (const core::MemoryEvent& e : *events) {
+      result.events.push_back(absl::StrCat(e.id, " ", static_cast<int>(e.type),
+                                           " ", e.cluster_id, " ",
+                                           e.trace_count, " ", e.merged_into));
+    }
+    return result;
+  };
+  const Run from_image = run(imaged);
+  EXPECT_EQ(imaged.with_clusters, 0);
+  EXPECT_EQ(imaged.without_clusters, 1);
+  const Run from_records = run(recorded);
+  EXPECT_EQ(recorded.with_clusters, 1);
+  ExpectSameStats(from_image.stats, from_records.stats);
+  EXPECT_GT(from_image.stats.clusters_forgotten, 0u);
+  EXPECT_EQ(from_image.events, from_records.events);
+  EXPECT_EQ(from_image.nearest, from_records.nearest);
 }
 
 // A snapshot of another kind of index: memory takes its part (the

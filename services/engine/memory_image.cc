@@ -53,8 +53,10 @@ absl::Status Damaged(std::string_view what) {
 
 }  // namespace
 
-void SaveMemoryImage(const std::map<uint64_t, core::Cluster>& clusters,
-                     core::ByteWriter& out) {
+void SaveMemoryImage(
+    const std::map<uint64_t, core::Cluster>& clusters,
+    const std::function<std::span<const float>(uint64_t)>& centroid_of,
+    core::ByteWriter& out) {
   StringTable table;
   for (const auto& [id, cluster] : clusters) {
     table.Add(cluster.robot_id);
@@ -75,9 +77,10 @@ void SaveMemoryImage(const std::map<uint64_t, core::Cluster>& clusters,
     bytes.clear();
     Append(bytes, cluster.id);
     Append(bytes, table.Number(cluster.robot_id));
-    Append(bytes, static_cast<uint32_t>(cluster.centroid.size()));
-    bytes.append(reinterpret_cast<const char*>(cluster.centroid.data()),
-                 cluster.centroid.size() * sizeof(float));
+    const std::span<const float> centroid = centroid_of(id);
+    Append(bytes, static_cast<uint32_t>(centroid.size()));
+    bytes.append(reinterpret_cast<const char*>(centroid.data()),
+                 centroid.size() * sizeof(float));
     Append(bytes, static_cast<uint32_t>(cluster.traces.size()));
     for (const core::MemoryTrace& trace : cluster.traces) {
       Append(bytes, table.Number(trace.robot_id));

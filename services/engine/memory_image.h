@@ -1,5 +1,6 @@
 // The clusters of a fleet's static memory as its index snapshot carries
-// them (the memory image): each cluster's id, robot and centroid, and every
+// them (the memory image): each cluster's id, robot and centroid (as the
+// store holds it: memory keeps it in forgetting's tracker), and every
 // field of its traces but the code, which the snapshot's index holds. A
 // load after a clean stop takes the clusters from here rather than read
 // every trace record and cluster from the store
@@ -17,7 +18,9 @@
 #define FLEETMEM_SERVICES_ENGINE_MEMORY_IMAGE_H_
 
 #include <cstdint>
+#include <functional>
 #include <map>
+#include <span>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -26,9 +29,12 @@
 
 namespace fleetmem::engine {
 
-// Writes `clusters` (a static memory's, by id) without their traces' codes.
-void SaveMemoryImage(const std::map<uint64_t, core::Cluster>& clusters,
-                     core::ByteWriter& out);
+// Writes `clusters` (a static memory's, by id) without their traces' codes,
+// each with the centroid `centroid_of(id)` gives.
+void SaveMemoryImage(
+    const std::map<uint64_t, core::Cluster>& clusters,
+    const std::function<std::span<const float>(uint64_t)>& centroid_of,
+    core::ByteWriter& out);
 
 // The clusters SaveMemoryImage wrote, in id order, each trace's cluster_id
 // set and its code empty; DATA_LOSS if the bytes are not such an image

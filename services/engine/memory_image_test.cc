@@ -55,7 +55,12 @@ std::string Saved(const std::map<uint64_t, core::Cluster>& clusters) {
   core::ByteWriter out([&bytes](std::span<const char> data) {
     bytes.append(data.data(), data.size());
   });
-  SaveMemoryImage(clusters, out);
+  SaveMemoryImage(
+      clusters,
+      [&clusters](uint64_t id) {
+        return std::span<const float>(clusters.at(id).centroid);
+      },
+      out);
   EXPECT_EQ(out.written(), bytes.size());
   return bytes;
 }

@@ -851,7 +851,7 @@ void WritePath::Lead(FleetWrites& log, std::span<Request* const> group) {
     log.id_tag = admitted.id_tag;
     absl::MutexLock lock(&logs_mu_);
     fleets_ -= std::min<uint64_t>(fleets_, 1);  // one made again after it in
-                                               // this group counted itself
+                                                // this group counted itself
   }
   for (auto& [robot_id, seqs] : admitted.seqs) {
     log.recovered.erase(robot_id);
