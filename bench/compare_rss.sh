@@ -6,8 +6,8 @@
 # server and B's on that data dir, timed until the port answers, and print
 # the RSS 3 s after (the load is done when the port opens), the
 # engine's snapshot load line and its split of the load (the store's read,
-# then memory and index), with the store's, the memory image's and the
-# reconcile's log lines as comment rows. Each is stopped with kill -9
+# then memory and index), with the store's, the memory image's, the
+# reconcile's and the load's log lines as comment rows. Each is stopped with kill -9
 # (but A's first, below), so the snapshot
 # on disk stays the one its build wrote. A's build must read B's snapshot
 # layout: A's first start (round 0) loads B's snapshot and ends with a
@@ -19,7 +19,8 @@
 #   bench/compare_rss.sh A_BUILD_DIR B_BUILD_DIR [TRACES] [ROUNDS]
 #   (default: 200000 traces, 2 rounds)
 # Environment: KEEP=DIR keeps the fill in DIR for the next run (its data
-# dir as B's runs left it), HNSW_CODES (int8 or float) sets the graph's codes of both,
+# dir as B's runs left it), WARM=1 reads the data dir into the page cache
+# before each start (untimed), HNSW_CODES (int8 or float) sets the graph's codes of both,
 # HNSW_FLOATS (file or memory) where int8 graphs keep their floats (the
 # same build twice with each setting compares the two).
 set -euo pipefail
@@ -54,6 +55,11 @@ for round in $(seq 0 "$rounds"); do
     [ "$round" -gt 0 ] || [ "$build" = "$a" ] || continue
     data="$work/data"
     [ "$build" != "$a" ] || data="$work/data-a"
+    # WARM: the data dir read into the page cache first, as on a host that
+    # keeps it (this VM's pages out what goes unused for a minute).
+    if [ -n "${WARM:-}" ]; then
+      find "$data" -type f -exec cat {} + >/dev/null
+    fi
     start=$(date +%s.%N)
     SERVER_START_SECONDS=1200 start_server "$build" "$data" \
       "$work/restart.log" --config "$work/restart.textproto"
@@ -71,7 +77,7 @@ for round in $(seq 0 "$rounds"); do
       'BEGIN { printf "%s,%d,%d,%.2f,%s,%s,%s\n", b, r, m, m / p, s,
                l == "" ? "rebuilt" : l, x }'
     # The store's split (records, codes, clusters) and the reconcile's.
-    grep -o 'fleet "scale": \(read [0-9]* trace records\|index snapshot reconciled\|[0-9]* traces in [0-9]* clusters taken\).*' \
+    grep -o 'fleet "scale"\(: read [0-9]* trace records\|: index snapshot reconciled\|: [0-9]* traces in [0-9]* clusters taken\| loaded:\).*' \
       "$work/restart.log" | sed 's/^/# /' || true
     if [ "$round" -eq 0 ]; then
       # A's first start read B's snapshot; its clean stop writes A's own

@@ -208,9 +208,11 @@ struct LoadedSnapshot {
   TraceHandles handles;
   bool handles_loaded = false;  // `handles` are the snapshot's
   std::string centroids;        // what StaticMemory::SaveCentroids wrote
-  // The memory image's bytes (memory_image.h), copied out of the file;
-  // image_loaded: the snapshot has one (format ENG3).
-  std::string image;
+  // The memory image (memory_image.h) and the handles' bytes in the mapped
+  // file, handed to the loading thread (ReadWithImage) for it to parse;
+  // image_loaded: they are (a snapshot of format ENG3 read for that).
+  std::span<const char> image;
+  std::span<const char> handle_bytes;
   bool image_loaded = false;
   double handles_seconds = 0;
   double index_seconds = 0;

@@ -49,29 +49,65 @@ namespace {
 // so that a fleet with its own index loads its snapshot into one of that
 // kind; ENG1 (before) is read as the server's kind. ENG3 (2026-12-01)
 // adds the memory image (its length, then memory_image.h) before the
-// handles.
+// handles, and the handles' length before them, so that the loading
+// thread can parse both while the snapshot's thread loads the index.
 constexpr uint32_t kIndexSnapshotFormatV1 = 0x454e4731;  // "ENG1"
 constexpr uint32_t kIndexSnapshotFormatV2 = 0x454e4732;  // "ENG2"
 constexpr uint32_t kIndexSnapshotFormat = 0x454e4733;    // "ENG3"
 
+// How ReadSnapshot's thread and the loading thread share a snapshot.
+struct SnapshotHandOff {
+  // Set before the read: a snapshot with a memory image hands the image and
+  // the handles' bytes to the loading thread (ReadWithImage), which parses
+  // both while this thread loads the index; the file stays mapped until
+  // the loading thread notifies `released`.
+  bool split = false;
+  // Notified once `loaded.image` and `loaded.handle_bytes` are set
+  // (image_loaded) or it is known that they will not be.
+  absl::Notification image_read;
+  // Notified once the snapshot's handles are in `loaded` (handles_loaded)
+  // or it is known that they will not be; `loaded.handles` is not touched
+  // after that.
+  absl::Notification handles_read;
+  absl::Notification released;
+};
+
+// Parses the handles (the next handle, then TraceHandles) in `bytes` into
+// `loaded`.
+absl::Status LoadHandles(std::span<const char> bytes, LoadedSnapshot& loaded) {
+  core::ByteReader in(bytes);
+  if (!in.Get(&loaded.next_handle)) return absl::DataLossError("bad header");
+  absl::Status status = loaded.handles.Load(in, loaded.next_handle);
+  if (status.ok() && in.remaining() != 0) {
+    status = absl::DataLossError("bytes after the handles");
+  }
+  loaded.handles_loaded = status.ok();
+  return status;
+}
+
 // Reads `fleet_id`'s index snapshot through `store` into `loaded` and loads
 // its index (made by `factory` for the snapshot's dimension and index
 // settings). Needs nothing of the fleet, so it runs beside the store's
-// LoadFleet (each is seconds long at 1,000,000 traces). `handles_read` is
-// notified once the snapshot's handles are in `loaded` (handles_loaded)
-// or it is known that they will not be; `loaded.handles` is not touched
-// after that. `image_read` likewise for `loaded.image`.
+// LoadFleet (each is seconds long at 1,000,000 traces); `hand_off` says
+// what it leaves to the loading thread and when.
 void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
                   std::string_view fleet_id, LoadedSnapshot& loaded,
-                  absl::Notification& handles_read,
-                  absl::Notification& image_read) {
+                  SnapshotHandOff& hand_off) {
+  bool handed = false;
   absl::Cleanup notify = [&] {
-    if (!image_read.HasBeenNotified()) image_read.Notify();
-    if (!handles_read.HasBeenNotified()) handles_read.Notify();
+    if (!hand_off.image_read.HasBeenNotified()) hand_off.image_read.Notify();
+    if (handed) hand_off.released.WaitForNotification();
+    if (!hand_off.handles_read.HasBeenNotified()) {
+      hand_off.handles_read.Notify();
+    }
   };
   const absl::Time start = absl::Now();
   loaded.status = store.ReadIndexSnapshot(
       fleet_id, [&](std::span<const char> bytes) -> absl::Status {
+        // The loading thread reads the spans until it releases them.
+        absl::Cleanup keep_mapped = [&] {
+          if (handed) hand_off.released.WaitForNotification();
+        };
         core::ByteReader in(bytes);
         uint32_t format = 0;
         if (!in.Get(&format) ||
@@ -93,22 +129,37 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
         }
         if (format == kIndexSnapshotFormat) {
           uint64_t image_size = 0;
+          uint64_t handles_size = 0;
           std::span<const char> image;
-          if (!in.Get(&image_size) || !in.GetSpan(image_size, &image)) {
-            return absl::DataLossError("truncated memory image");
+          std::span<const char> handle_bytes;
+          if (!in.Get(&image_size) || !in.GetSpan(image_size, &image) ||
+              !in.Get(&handles_size) ||
+              !in.GetSpan(handles_size, &handle_bytes)) {
+            return absl::DataLossError("truncated memory image or handles");
           }
-          loaded.image.assign(image.begin(), image.end());
-          loaded.image_loaded = true;
+          if (hand_off.split) {
+            loaded.image = image;
+            loaded.handle_bytes = handle_bytes;
+            loaded.image_loaded = true;
+            handed = true;
+            hand_off.image_read.Notify();
+          } else {
+            absl::Status handles = LoadHandles(handle_bytes, loaded);
+            if (!handles.ok()) return handles;
+          }
+        } else {
+          hand_off.image_read.Notify();
+          if (!in.Get(&loaded.next_handle)) {
+            return absl::DataLossError("bad header");
+          }
+          absl::Status handles = loaded.handles.Load(in, loaded.next_handle);
+          if (!handles.ok()) return handles;
+          loaded.handles_loaded = true;
         }
-        image_read.Notify();
-        if (!in.Get(&loaded.next_handle)) {
-          return absl::DataLossError("bad header");
+        if (!handed) {
+          loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
+          hand_off.handles_read.Notify();
         }
-        absl::Status handles = loaded.handles.Load(in, loaded.next_handle);
-        if (!handles.ok()) return handles;
-        loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
-        loaded.handles_loaded = true;
-        handles_read.Notify();
         uint64_t centroid_size = 0;
         std::span<const char> centroid_bytes;
         if (!in.Get(&centroid_size) ||
@@ -124,14 +175,12 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
         absl::Status status = loaded.index->Load(in);
         loaded.index_seconds = absl::ToDoubleSeconds(absl::Now() - index_start);
         loaded.unindexed = loaded.index->unindexed();
-        if (status.ok() && (loaded.index->size() != loaded.handles.size() ||
-                            in.remaining() != 0)) {
-          status = absl::DataLossError("the index does not match its handles");
+        if (status.ok() && in.remaining() != 0) {
+          status = absl::DataLossError("bytes after the index");
         }
         loaded.index_status = status;
         return absl::OkStatus();
       });
-  if (!loaded.status.ok() || !loaded.index_status.ok()) loaded.index.reset();
 }
 
 // How Reload's read of the store went beside the snapshot's thread.
@@ -141,24 +190,36 @@ struct ReadTimes {
   // The clusters came from the snapshot's memory image, without their codes
   // (the store read the rest of the fleet).
   bool from_image = false;
-  absl::Duration image;  // waiting for the image and decoding it
+  absl::Duration image;  // waiting for the image, decoding it and the handles
 };
 
-// The fleet's record with its clusters from the memory image `loaded` has
-// once `image_read` is notified, and the rest from `store`; nullopt if the
-// snapshot has no image that decodes (the store's read then reads them).
+// The fleet's record with its clusters from the memory image the snapshot's
+// thread hands over (`hand_off`), and the rest from `store`; the
+// snapshot's handles are parsed here too, beside that thread's index.
+// nullopt if the snapshot has no image that decodes (the store's read then
+// reads the clusters).
 absl::StatusOr<std::optional<FleetRecord>> ReadWithImage(
     MemoryStore& store, std::string_view fleet_id, LoadedSnapshot& loaded,
-    absl::Notification& image_read) {
+    SnapshotHandOff& hand_off) {
+  absl::Cleanup release = [&] { hand_off.released.Notify(); };
   absl::StatusOr<FleetRecord> record = store.LoadFleetWithoutClusters(fleet_id);
   if (!record.ok()) return record.status();
-  image_read.WaitForNotification();
+  hand_off.image_read.WaitForNotification();
   if (!loaded.image_loaded) return std::nullopt;
+  const absl::Time start = absl::Now();
   core::ByteReader in(loaded.image);
   absl::StatusOr<std::vector<core::Cluster>> clusters = LoadMemoryImage(in);
-  std::string().swap(loaded.image);
   if (clusters.ok() && in.remaining() != 0) {
     clusters = absl::DataLossError("the memory image has bytes after its end");
+  }
+  absl::Status handles = LoadHandles(loaded.handle_bytes, loaded);
+  loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
+  loaded.image = {};
+  loaded.handle_bytes = {};
+  if (!handles.ok()) {
+    // The snapshot is unusable: the store's read, the index rebuilt.
+    loaded.handles = TraceHandles();
+    return std::nullopt;
   }
   if (!clusters.ok()) {
     FLEETMEM_LOG(kWarning) << "fleet \"" << fleet_id
@@ -177,28 +238,30 @@ absl::StatusOr<std::optional<FleetRecord>> ReadWithImage(
 // (which takes about as long as the snapshot's checksum and handles): the
 // wait is short, and reading every code meanwhile would cost more.
 // When the store says that the snapshot is current, the fleet's clusters
-// come from its memory image instead (ReadWithImage).
+// come from its memory image instead, and this thread parses the image
+// and the handles while the second loads the index (ReadWithImage).
 absl::StatusOr<FleetRecord> ReadBesideSnapshot(MemoryStore& store,
                                                const FleetIndexFactory& factory,
                                                std::string_view fleet_id,
                                                LoadedSnapshot& snapshot,
                                                ReadTimes* times) {
   const bool current = store.IndexSnapshotCurrent(fleet_id);
-  absl::Notification handles_read;
-  absl::Notification image_read;
+  SnapshotHandOff hand_off;
+  hand_off.split = current;
   auto read_snapshot = [&] {
-    ReadSnapshot(store, factory, fleet_id, snapshot, handles_read, image_read);
+    ReadSnapshot(store, factory, fleet_id, snapshot, hand_off);
   };
   std::thread beside;
   try {
     beside = std::thread(read_snapshot);
   } catch (const std::system_error&) {
-    read_snapshot();  // no thread: one after the other
+    hand_off.split = false;  // nothing to hand to: it ends before
+    read_snapshot();         // no thread: one after the other
   }
   auto held_by_snapshot = [&](const core::TraceKey& key) {
-    if (!handles_read.HasBeenNotified()) {
+    if (!hand_off.handles_read.HasBeenNotified()) {
       const absl::Time wait = absl::Now();
-      handles_read.WaitForNotification();
+      hand_off.handles_read.WaitForNotification();
       times->waited_for_handles = absl::Now() - wait;
     }
     if (!snapshot.handles_loaded) return false;
@@ -209,8 +272,10 @@ absl::StatusOr<FleetRecord> ReadBesideSnapshot(MemoryStore& store,
   absl::StatusOr<std::optional<FleetRecord>> imaged = std::nullopt;
   if (current) {
     const absl::Time start = absl::Now();
-    imaged = ReadWithImage(store, fleet_id, snapshot, image_read);
+    imaged = ReadWithImage(store, fleet_id, snapshot, hand_off);
     times->image = absl::Now() - start;
+  } else {
+    hand_off.released.Notify();
   }
   times->from_image = imaged.ok() && imaged->has_value();
   absl::StatusOr<FleetRecord> record =
@@ -221,6 +286,17 @@ absl::StatusOr<FleetRecord> ReadBesideSnapshot(MemoryStore& store,
   const absl::Time store_done = absl::Now();
   if (beside.joinable()) beside.join();
   times->thread_after_read = absl::Now() - store_done;
+  // The index must hold what the handles name (the handles may have been
+  // parsed on this thread).
+  if (snapshot.status.ok() && snapshot.index_status.ok() &&
+      (!snapshot.handles_loaded ||
+       snapshot.index->size() != snapshot.handles.size())) {
+    snapshot.index_status =
+        absl::DataLossError("the index does not match its handles");
+  }
+  if (!snapshot.status.ok() || !snapshot.index_status.ok()) {
+    snapshot.index.reset();
+  }
   return record;
 }
 
@@ -516,6 +592,9 @@ absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
         SaveMemoryImage(memory.clusters(), centroid_of, image_counter);
         out.Put<uint64_t>(image_counter.written());
         SaveMemoryImage(memory.clusters(), centroid_of, out);
+        core::ByteWriter handles_counter([](std::span<const char>) {});
+        index.SaveHandles(handles_counter);
+        out.Put<uint64_t>(handles_counter.written());
         index.SaveHandles(out);
         // Forgetting's centroid bookkeeping, length first so that a load
         // can hand it to memory while the index reads what follows.
