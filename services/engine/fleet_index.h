@@ -89,6 +89,8 @@ class FleetIndex {
   // The index snapshot's parts: the next handle and the handles, then
   // (after what the caller writes between) the index itself.
   void SaveHandles(core::ByteWriter& out) const;
+  // The bytes SaveHandles writes.
+  uint64_t SavedHandlesSize() const { return 8 + handles_.SavedSize(); }
   absl::Status SaveIndex(core::ByteWriter& out) const;
   // Takes a snapshot's `loaded` index (its `saved` handles, `next_handle`)
   // in place of this one, reconciled with `stored`, the store's traces: a

@@ -583,18 +583,12 @@ absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
         out.Put<int32_t>(static_cast<int32_t>(settings.kind));
         out.Put<int32_t>(settings.hnsw_m);
         out.Put<int32_t>(settings.hnsw_ef_search);
-        // The memory image, length first so that a load can hand it over
-        // before it reads what follows.
+        // The memory image (its length first).
         auto centroid_of = [this](uint64_t cluster_id) {
           return memory.CentroidOf(cluster_id);
         };
-        core::ByteWriter image_counter([](std::span<const char>) {});
-        SaveMemoryImage(memory.clusters(), centroid_of, image_counter);
-        out.Put<uint64_t>(image_counter.written());
         SaveMemoryImage(memory.clusters(), centroid_of, out);
-        core::ByteWriter handles_counter([](std::span<const char>) {});
-        index.SaveHandles(handles_counter);
-        out.Put<uint64_t>(handles_counter.written());
+        out.Put<uint64_t>(index.SavedHandlesSize());
         index.SaveHandles(out);
         // Forgetting's centroid bookkeeping, length first so that a load
         // can hand it to memory while the index reads what follows.

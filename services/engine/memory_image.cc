@@ -66,6 +66,18 @@ void SaveMemoryImage(
       table.Add(trace.encoder_version);
     }
   }
+  // The length first, so that a load can hand the image over without
+  // parsing it; counted here rather than by encoding twice.
+  uint64_t size = 4 + 4 + 8;
+  for (std::string_view text : table.strings()) size += 8 + text.size();
+  for (const auto& [id, cluster] : clusters) {
+    size += kClusterBytes + centroid_of(id).size() * sizeof(float) +
+            cluster.traces.size() * kTraceBytes;
+    for (const core::MemoryTrace& trace : cluster.traces) {
+      size += trace.attachment.size();
+    }
+  }
+  out.Put<uint64_t>(size);
   out.Put<uint32_t>(kMagic);
   out.Put<uint32_t>(static_cast<uint32_t>(table.strings().size()));
   for (std::string_view text : table.strings()) out.PutString(text);

@@ -6,7 +6,8 @@
 // every trace record and cluster from the store
 // (MemoryStore::IndexSnapshotCurrent says when it may). Strings that repeat
 // (robot ids, domains, encoder versions) are written once, in a table:
-//   "MIM1" | strings: count (u32), each: length (u64), bytes
+//   length of what follows (u64)
+//   | "MIM1" | strings: count (u32), each: length (u64), bytes
 //   | clusters: count (u64), each:
 //       id (u64) | robot (u32, into the table) | centroid: n (u32), floats
 //       | traces: n (u32), each: robot (u32) | seq (u64) | domain (u32)
@@ -36,9 +37,10 @@ void SaveMemoryImage(
     const std::function<std::span<const float>(uint64_t)>& centroid_of,
     core::ByteWriter& out);
 
-// The clusters SaveMemoryImage wrote, in id order, each trace's cluster_id
-// set and its code empty; DATA_LOSS if the bytes are not such an image
-// (truncated, a string out of its table, a length past the end).
+// The clusters SaveMemoryImage wrote (after its length, which the caller
+// has read), in id order, each trace's cluster_id set and its code empty;
+// DATA_LOSS if the bytes are not such an image (truncated, a string out of
+// its table, a length past the end).
 absl::StatusOr<std::vector<core::Cluster>> LoadMemoryImage(
     core::ByteReader& in);
 

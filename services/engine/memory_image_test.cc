@@ -1,6 +1,7 @@
 #include "services/engine/memory_image.h"
 
 #include <cstdint>
+#include <cstring>
 #include <map>
 #include <span>
 #include <string>
@@ -61,8 +62,12 @@ std::string Saved(const std::map<uint64_t, core::Cluster>& clusters) {
         return std::span<const float>(clusters.at(id).centroid);
       },
       out);
-  EXPECT_EQ(out.written(), bytes.size());
-  return bytes;
+  // The length it starts with is that of the rest.
+  uint64_t size = 0;
+  EXPECT_GE(bytes.size(), sizeof(size));
+  std::memcpy(&size, bytes.data(), sizeof(size));
+  EXPECT_EQ(size, bytes.size() - sizeof(size));
+  return bytes.substr(sizeof(size));
 }
 
 // Every field but the code, as a string to compare.

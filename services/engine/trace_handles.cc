@@ -67,6 +67,14 @@ void TraceHandles::ForEach(const std::function<void(uint64_t, std::string_view,
   }
 }
 
+uint64_t TraceHandles::SavedSize() const {
+  uint64_t size = 8 + 8 + key_of_.size() * (4 + 8 + 8);
+  for (uint32_t robot = 0; robot < robots_.size(); ++robot) {
+    size += 8 + robots_.robot_id(robot).size();
+  }
+  return size;
+}
+
 void TraceHandles::Save(core::ByteWriter& out) const {
   out.Put<uint64_t>(robots_.size());
   for (uint32_t robot = 0; robot < robots_.size(); ++robot) {

@@ -47,6 +47,8 @@ class TraceHandles {
   // Writes the table for Load: the robot ids once, then (robot number,
   // seq, handle) per entry.
   void Save(core::ByteWriter& out) const;
+  // The bytes Save writes.
+  uint64_t SavedSize() const;
   // Reads what Save wrote into this empty table. DATA_LOSS (and an empty
   // table) unless every entry is well formed, with distinct keys and
   // distinct handles in [1, next_handle).

@@ -96,6 +96,8 @@ TEST(TraceHandlesTest, SavedTableLoadsEqualAndBadBytesAreRefused) {
   }
   handles.Erase(TraceKey{"robot-1", 3});
   const std::string bytes = Saved(handles);
+  EXPECT_EQ(handles.SavedSize(), bytes.size());
+  EXPECT_EQ(TraceHandles().SavedSize(), Saved(TraceHandles()).size());
   TraceHandles loaded;
   core::ByteReader in(bytes);
   ASSERT_TRUE(loaded.Load(in, 301).ok());
