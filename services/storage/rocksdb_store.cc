@@ -852,8 +852,6 @@ class RocksDbStore final : public engine::MemoryStore {
   // store's disk reserve, and a checkpoint copies both.
   engine::FleetLog* log() { return log_.get(); }
 
-  // Opens the ingest log at PATH/ingest-log and moves into it the entries
-  // that builds before it kept in RocksDB (their keys are then erased).
   // Reads the marks (keys.h: 's') at open, before anything writes: kept if
   // the last write was the clean close's record, so that none was written
   // since by a build that does not delete them (an older one) or lost with
@@ -916,6 +914,8 @@ class RocksDbStore final : public engine::MemoryStore {
     marks_[std::string(fleet_id)] = id;
   }
 
+  // Opens the ingest log at PATH/ingest-log and moves into it the entries
+  // that builds before it kept in RocksDB (their keys are then erased).
   absl::Status OpenLog() {
     SegmentLogOptions options;
     options.directory = path_ + "/ingest-log";
