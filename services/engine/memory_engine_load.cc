@@ -85,6 +85,48 @@ absl::Status LoadHandles(std::span<const char> bytes, LoadedSnapshot& loaded) {
   return status;
 }
 
+// ENG3's memory image and handles: handed to the loading thread
+// (`hand_off.split`: `*handed` is set) or the handles parsed here.
+absl::Status TakeImageAndHandles(core::ByteReader& in, LoadedSnapshot& loaded,
+                                 SnapshotHandOff& hand_off, bool* handed) {
+  uint64_t image_size = 0;
+  uint64_t handles_size = 0;
+  std::span<const char> image;
+  std::span<const char> handle_bytes;
+  if (!in.Get(&image_size) || !in.GetSpan(image_size, &image) ||
+      !in.Get(&handles_size) || !in.GetSpan(handles_size, &handle_bytes)) {
+    return absl::DataLossError("truncated memory image or handles");
+  }
+  if (!hand_off.split) return LoadHandles(handle_bytes, loaded);
+  loaded.image = image;
+  loaded.handle_bytes = handle_bytes;
+  loaded.image_loaded = true;
+  *handed = true;
+  hand_off.image_read.Notify();
+  return absl::OkStatus();
+}
+
+// Reads a snapshot's header: its format, the codes' dimension and (from
+// ENG2) the index settings.
+absl::Status ReadHeader(core::ByteReader& in, uint32_t* format,
+                        uint32_t* dimension, IndexSettings* index) {
+  if (!in.Get(format) ||
+      (*format != kIndexSnapshotFormat && *format != kIndexSnapshotFormatV2 &&
+       *format != kIndexSnapshotFormatV1) ||
+      !in.Get(dimension) || *dimension == 0) {
+    return absl::DataLossError("bad header");
+  }
+  if (*format == kIndexSnapshotFormatV1) return absl::OkStatus();
+  int32_t kind = 0;
+  if (!in.Get(&kind) || !in.Get(&index->hnsw_m) ||
+      !in.Get(&index->hnsw_ef_search) || kind < 0 ||
+      kind > static_cast<int32_t>(IndexSettings::Kind::kAuto)) {
+    return absl::DataLossError("bad index settings");
+  }
+  index->kind = static_cast<IndexSettings::Kind>(kind);
+  return absl::OkStatus();
+}
+
 // Reads `fleet_id`'s index snapshot through `store` into `loaded` and loads
 // its index (made by `factory` for the snapshot's dimension and index
 // settings). Needs nothing of the fleet, so it runs beside the store's
@@ -110,43 +152,16 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
         };
         core::ByteReader in(bytes);
         uint32_t format = 0;
-        if (!in.Get(&format) ||
-            (format != kIndexSnapshotFormat &&
-             format != kIndexSnapshotFormatV2 &&
-             format != kIndexSnapshotFormatV1) ||
-            !in.Get(&loaded.dimension) || loaded.dimension == 0) {
-          return absl::DataLossError("bad header");
-        }
         IndexSettings index;
-        if (format != kIndexSnapshotFormatV1) {
-          int32_t kind = 0;
-          if (!in.Get(&kind) || !in.Get(&index.hnsw_m) ||
-              !in.Get(&index.hnsw_ef_search) || kind < 0 ||
-              kind > static_cast<int32_t>(IndexSettings::Kind::kAuto)) {
-            return absl::DataLossError("bad index settings");
-          }
-          index.kind = static_cast<IndexSettings::Kind>(kind);
+        if (absl::Status header =
+                ReadHeader(in, &format, &loaded.dimension, &index);
+            !header.ok()) {
+          return header;
         }
         if (format == kIndexSnapshotFormat) {
-          uint64_t image_size = 0;
-          uint64_t handles_size = 0;
-          std::span<const char> image;
-          std::span<const char> handle_bytes;
-          if (!in.Get(&image_size) || !in.GetSpan(image_size, &image) ||
-              !in.Get(&handles_size) ||
-              !in.GetSpan(handles_size, &handle_bytes)) {
-            return absl::DataLossError("truncated memory image or handles");
-          }
-          if (hand_off.split) {
-            loaded.image = image;
-            loaded.handle_bytes = handle_bytes;
-            loaded.image_loaded = true;
-            handed = true;
-            hand_off.image_read.Notify();
-          } else {
-            absl::Status handles = LoadHandles(handle_bytes, loaded);
-            if (!handles.ok()) return handles;
-          }
+          absl::Status taken =
+              TakeImageAndHandles(in, loaded, hand_off, &handed);
+          if (!taken.ok()) return taken;
         } else {
           hand_off.image_read.Notify();
           if (!in.Get(&loaded.next_handle)) {

@@ -914,6 +914,12 @@ class RocksDbStore final : public engine::MemoryStore {
     marks_[std::string(fleet_id)] = id;
   }
 
+  // LoadSnapshotMarks, then OpenLog: the marks before anything writes.
+  absl::Status OpenMarksAndLog() {
+    if (absl::Status marks = LoadSnapshotMarks(); !marks.ok()) return marks;
+    return OpenLog();
+  }
+
   // Opens the ingest log at PATH/ingest-log and moves into it the entries
   // that builds before it kept in RocksDB (their keys are then erased).
   absl::Status OpenLog() {
@@ -1513,10 +1519,7 @@ absl::StatusOr<std::unique_ptr<RocksDbStore>> Open(
                       << (options.sync ? " (sync writes)" : " (async writes)");
   auto store = std::make_unique<RocksDbStore>(
       std::move(env), std::move(reserve_given_back), std::move(db), options);
-  if (absl::Status marks = store->LoadSnapshotMarks(); !marks.ok()) {
-    return marks;
-  }
-  if (absl::Status log = store->OpenLog(); !log.ok()) return log;
+  if (absl::Status log = store->OpenMarksAndLog(); !log.ok()) return log;
   store->TakeReserveAtOpen();
   if (*format == keys::kFormatVersion1) {
     if (absl::Status migrated = store->MigrateCodes(); !migrated.ok()) {

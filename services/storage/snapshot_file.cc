@@ -106,18 +106,24 @@ class Mapping {
   size_t size_;
 };
 
+// Opens the snapshot at `path` for reading: NOT_FOUND when absent.
+absl::StatusOr<int> OpenForReading(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd >= 0) return fd;
+  const int error = errno;
+  if (error == ENOENT) {
+    return absl::NotFoundError(
+        absl::StrCat("no index snapshot at '", path, "'"));
+  }
+  return absl::DataLossError(
+      absl::StrCat("open '", path, "': ", ErrnoText(error)));
+}
+
 // Opens and maps the snapshot at `path`: NOT_FOUND when absent.
 absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) {
-    const int error = errno;
-    if (error == ENOENT) {
-      return absl::NotFoundError(
-          absl::StrCat("no index snapshot at '", path, "'"));
-    }
-    return absl::DataLossError(
-        absl::StrCat("open '", path, "': ", ErrnoText(error)));
-  }
+  absl::StatusOr<int> opened = OpenForReading(path);
+  if (!opened.ok()) return opened.status();
+  const int fd = *opened;
   struct stat info;
   if (::fstat(fd, &info) != 0 ||
       static_cast<size_t>(info.st_size) < kHeaderBytes + kTrailerBytes) {
@@ -260,16 +266,9 @@ absl::Status ReadSnapshotFile(
 absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
                                                   std::string_view key) {
   const std::string path = SnapshotFilePath(directory, key);
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) {
-    const int error = errno;
-    if (error == ENOENT) {
-      return absl::NotFoundError(
-          absl::StrCat("no index snapshot at '", path, "'"));
-    }
-    return absl::DataLossError(
-        absl::StrCat("open '", path, "': ", ErrnoText(error)));
-  }
+  absl::StatusOr<int> opened = OpenForReading(path);
+  if (!opened.ok()) return opened.status();
+  const int fd = *opened;
   // The header, the key and the trailer; the payload between is not read.
   struct stat info;
   std::vector<char> head(kHeaderBytes + 8 + key.size());
