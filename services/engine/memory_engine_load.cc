@@ -22,7 +22,7 @@
 #include "absl/cleanup/cleanup.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
-#include "absl/synchronization/notification.h"
+#include "absl/synchronization/mutex.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "services/common/log.h"
@@ -55,6 +55,33 @@ constexpr uint32_t kIndexSnapshotFormatV1 = 0x454e4731;  // "ENG1"
 constexpr uint32_t kIndexSnapshotFormatV2 = 0x454e4732;  // "ENG2"
 constexpr uint32_t kIndexSnapshotFormat = 0x454e4733;    // "ENG3"
 
+// A one-time signal between two threads, as absl::Notification, on a
+// Mutex and a CondVar: `make test-tsan` annotates those for Debian's
+// uninstrumented absl (tools/tsan/absl_mutex_annotations.cc) but not the
+// Condition wait inside Notification, so ThreadSanitizer saw no order
+// between a notify and what the other thread read after its wait.
+class Signal {
+ public:
+  void Notify() {
+    absl::MutexLock lock(&mu_);
+    notified_ = true;
+    cv_.SignalAll();
+  }
+  void Wait() {
+    absl::MutexLock lock(&mu_);
+    while (!notified_) cv_.Wait(&mu_);
+  }
+  bool notified() {
+    absl::MutexLock lock(&mu_);
+    return notified_;
+  }
+
+ private:
+  absl::Mutex mu_;
+  absl::CondVar cv_;
+  bool notified_ ABSL_GUARDED_BY(mu_) = false;
+};
+
 // How ReadSnapshot's thread and the loading thread share a snapshot.
 struct SnapshotHandOff {
   // Set before the read: a snapshot with a memory image hands the image and
@@ -64,12 +91,12 @@ struct SnapshotHandOff {
   bool split = false;
   // Notified once `loaded.image` and `loaded.handle_bytes` are set
   // (image_loaded) or it is known that they will not be.
-  absl::Notification image_read;
+  Signal image_read;
   // Notified once the snapshot's handles are in `loaded` (handles_loaded)
   // or it is known that they will not be; `loaded.handles` is not touched
   // after that.
-  absl::Notification handles_read;
-  absl::Notification released;
+  Signal handles_read;
+  Signal released;
 };
 
 // Parses the handles (the next handle, then TraceHandles) in `bytes` into
@@ -137,18 +164,16 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
                   SnapshotHandOff& hand_off) {
   bool handed = false;
   absl::Cleanup notify = [&] {
-    if (!hand_off.image_read.HasBeenNotified()) hand_off.image_read.Notify();
-    if (handed) hand_off.released.WaitForNotification();
-    if (!hand_off.handles_read.HasBeenNotified()) {
-      hand_off.handles_read.Notify();
-    }
+    hand_off.image_read.Notify();
+    if (handed) hand_off.released.Wait();
+    hand_off.handles_read.Notify();
   };
   const absl::Time start = absl::Now();
   loaded.status = store.ReadIndexSnapshot(
       fleet_id, [&](std::span<const char> bytes) -> absl::Status {
         // The loading thread reads the spans until it releases them.
         absl::Cleanup keep_mapped = [&] {
-          if (handed) hand_off.released.WaitForNotification();
+          if (handed) hand_off.released.Wait();
         };
         core::ByteReader in(bytes);
         uint32_t format = 0;
@@ -219,7 +244,7 @@ absl::StatusOr<std::optional<FleetRecord>> ReadWithImage(
   absl::Cleanup release = [&] { hand_off.released.Notify(); };
   absl::StatusOr<FleetRecord> record = store.LoadFleetWithoutClusters(fleet_id);
   if (!record.ok()) return record.status();
-  hand_off.image_read.WaitForNotification();
+  hand_off.image_read.Wait();
   if (!loaded.image_loaded) return std::nullopt;
   const absl::Time start = absl::Now();
   core::ByteReader in(loaded.image);
@@ -273,11 +298,13 @@ absl::StatusOr<FleetRecord> ReadBesideSnapshot(MemoryStore& store,
     hand_off.split = false;  // nothing to hand to: it ends before
     read_snapshot();         // no thread: one after the other
   }
+  bool handles_waited = false;  // asked once per trace: one wait
   auto held_by_snapshot = [&](const core::TraceKey& key) {
-    if (!hand_off.handles_read.HasBeenNotified()) {
+    if (!handles_waited) {
       const absl::Time wait = absl::Now();
-      hand_off.handles_read.WaitForNotification();
+      hand_off.handles_read.Wait();
       times->waited_for_handles = absl::Now() - wait;
+      handles_waited = true;
     }
     if (!snapshot.handles_loaded) return false;
     const uint64_t handle = snapshot.handles.Find(key);
