@@ -445,6 +445,9 @@ TEST_F(RestartTest, ADeleteFleetKilledAtAnyMomentIsAllOrNothing) {
             << "\n";
 }
 
+// A clean stop and start keep everything observable, the clusters then
+// coming from the stop's index snapshot; a kill after a later write keeps
+// that write.
 TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
   const std::string fleet = "fleet-clean-restart";
   const std::vector<RobotPlan> plans = {{"robot-a", 230}, {"robot-b", 200}};
@@ -479,6 +482,27 @@ TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
     // Includes each match's replay_count and cluster_id.
     ExpectSameMessage(before.queries[i], after.queries[i],
                       "QueryPlace " + std::to_string(i));
+  }
+  // The stop's snapshot (written after the replay draws) gave the clusters;
+  // RocksDB gave none.
+  EXPECT_NE(
+      server().Output().find("taken from its index snapshot's memory image"),
+      std::string::npos)
+      << server().Output();
+
+  // A replay draw writes the store after that snapshot, so the restart
+  // after a kill must not take the snapshot's clusters (their counts are
+  // older): it holds the new counts.
+  ASSERT_TRUE(SampleReplay(stub(), fleet, "robot-a", 60).ok());
+  Observation drawn;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &drawn));
+  ASSERT_NO_FATAL_FAILURE(KillAndRestart());
+  Observation killed;
+  ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &killed));
+  ExpectSameMessage(drawn.stats, killed.stats, "GetStats after the kill");
+  for (size_t i = 0; i < drawn.queries.size(); ++i) {
+    ExpectSameMessage(drawn.queries[i], killed.queries[i],
+                      "QueryPlace after the kill " + std::to_string(i));
   }
 }
 
