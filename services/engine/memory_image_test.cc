@@ -2,6 +2,8 @@
 
 #include <cstdint>
 #include <cstring>
+#include <fstream>
+#include <iterator>
 #include <map>
 #include <span>
 #include <string>
@@ -10,6 +12,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/escaping.h"
 #include "absl/strings/str_cat.h"
+#include "fleetmem_paths.h"
 #include "gtest/gtest.h"
 
 namespace fleetmem::engine {
@@ -134,6 +137,25 @@ TEST(MemoryImageTest, DamagedImagesAreDataLoss) {
   other[0] = 'X';
   core::ByteReader in(other);
   EXPECT_EQ(LoadMemoryImage(in).status().code(), absl::StatusCode::kDataLoss);
+}
+
+// The fuzzer's seed (make fuzz) is an image: two clusters, an attachment.
+TEST(MemoryImageTest, TheFuzzSeedDecodes) {
+  std::ifstream file(std::string(FLEETMEM_SOURCE_DIR) +
+                         "/services/engine/fuzz_corpus/memory_image_fuzz/"
+                         "two_clusters.bin",
+                     std::ios::binary);
+  ASSERT_TRUE(file.good());
+  const std::string bytes((std::istreambuf_iterator<char>(file)),
+                          std::istreambuf_iterator<char>());
+  core::ByteReader in(bytes);
+  absl::StatusOr<std::vector<core::Cluster>> clusters = LoadMemoryImage(in);
+  ASSERT_TRUE(clusters.ok()) << clusters.status();
+  EXPECT_EQ(in.remaining(), 0u);
+  ASSERT_EQ(clusters->size(), 2u);
+  EXPECT_EQ((*clusters)[0].traces.size(), 3u);
+  EXPECT_EQ((*clusters)[0].traces[1].attachment, "scan");
+  EXPECT_EQ((*clusters)[1].traces[0].robot_id, "r2");
 }
 
 }  // namespace
