@@ -144,6 +144,28 @@ def main():
           "ct>k1>r1>k2,4.85,1.59\nct>k1>k2,7.48,1.63\n")
     write(traj, "scan", struct.pack("<Hf3H", 3, 3.14159265, 1500, 0, 2000))
 
+    # An index snapshot's memory image (engine/memory_image.h, after its
+    # length): a string table, two clusters, one trace with an attachment.
+    image = "services/engine/fuzz_corpus/memory_image_fuzz"
+    strings = [b"r1", b"summer", b"hog-v1", b"r2"]
+    data = struct.pack("<II", 0x314D494D, len(strings))
+    data += b"".join(struct.pack("<Q", len(t)) + t for t in strings)
+    data += struct.pack("<Q", 2)
+    for cluster_id, robot, centroid, members in (
+            (4, 0, [0.5, -1.0, 7.0, 2.0], [(0, 1, b""), (0, 2, b"scan"),
+                                            (3, 9, b"")]),
+            (11, 3, [1.0, 2.0, 3.0, 4.0], [(3, 10, b"")])):
+        data += struct.pack("<QII", cluster_id, robot, len(centroid))
+        data += struct.pack("<%df" % len(centroid), *centroid)
+        data += struct.pack("<I", len(members))
+        for member, seq, attachment in members:
+            data += struct.pack("<IQII", member, seq, 1, 2)
+            data += struct.pack("<dddd", 1.5 * seq, -2.0, 0.0, 0.5)
+            data += struct.pack("<fff", 0.75, 0.5, 0.25)
+            data += struct.pack("<qI", 1700000000000000000 + seq, seq * 3)
+            data += struct.pack("<I", len(attachment)) + attachment
+    write(image, "two_clusters.bin", data)
+
 
 if __name__ == "__main__":
     main()
