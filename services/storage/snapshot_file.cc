@@ -132,7 +132,11 @@ absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
         absl::StrCat("index snapshot '", path, "' is truncated"));
   }
   const size_t size = static_cast<size_t>(info.st_size);
-  void* data = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
+  // Populated at once: the checksum reads every page anyway, and one pass
+  // of the kernel's read-ahead costs less than a fault per page (docs/
+  // performance.md, ninth round: the snapshot thread's leg).
+  void* data =
+      ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE | MAP_POPULATE, fd, 0);
   const int error = errno;
   ::close(fd);
   if (data == MAP_FAILED) {
