@@ -61,6 +61,26 @@ struct Observation {
   std::vector<v1::QueryPlaceResponse> queries;
 };
 
+// `after` answers as `before` did: GetStats, every event (if
+// `with_events`) and every QueryPlace (each match's replay_count and
+// cluster_id included).
+void ExpectSameObservation(const Observation& before, const Observation& after,
+                           bool with_events) {
+  ExpectSameMessage(before.stats, after.stats, "GetStats");
+  if (with_events) {
+    ASSERT_EQ(after.events.size(), before.events.size());
+    for (size_t i = 0; i < before.events.size(); ++i) {
+      ExpectSameMessage(before.events[i], after.events[i],
+                        "event " + std::to_string(i));
+    }
+  }
+  ASSERT_EQ(after.queries.size(), before.queries.size());
+  for (size_t i = 0; i < before.queries.size(); ++i) {
+    ExpectSameMessage(before.queries[i], after.queries[i],
+                      "QueryPlace " + std::to_string(i));
+  }
+}
+
 class RestartTest : public ServerTest {
  protected:
   void Observe(const std::string& fleet,
@@ -172,18 +192,7 @@ TEST_F(RestartTest, KilledServerKeepsEverythingAcknowledged) {
 
   Observation after;
   ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &after));
-  ExpectSameMessage(before.stats, after.stats, "GetStats");
-  ASSERT_EQ(after.events.size(), before.events.size());
-  for (size_t i = 0; i < before.events.size(); ++i) {
-    ExpectSameMessage(before.events[i], after.events[i],
-                      "event " + std::to_string(i));
-  }
-  ASSERT_EQ(after.queries.size(), before.queries.size());
-  for (size_t i = 0; i < before.queries.size(); ++i) {
-    // Includes each match's replay_count and cluster_id.
-    ExpectSameMessage(before.queries[i], after.queries[i],
-                      "QueryPlace " + std::to_string(i));
-  }
+  ExpectSameObservation(before, after, /*with_events=*/true);
 
   // Every trace is still known: a full retry is all duplicates.
   uint64_t duplicates = 0, accepted = 0;
@@ -286,11 +295,7 @@ TEST_F(RestartTest, KilledServerRestartsFromItsPeriodicIndexSnapshot) {
       << "the restart did not use the periodic snapshot";
   Observation after;
   ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &after));
-  ExpectSameMessage(before.stats, after.stats, "GetStats");
-  for (size_t i = 0; i < before.queries.size(); ++i) {
-    ExpectSameMessage(before.queries[i], after.queries[i],
-                      "QueryPlace " + std::to_string(i));
-  }
+  ExpectSameObservation(before, after, /*with_events=*/false);
 }
 
 // A robot's traces left after a delete of them, as stored: every one, or
@@ -472,17 +477,7 @@ TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
 
   Observation after;
   ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &after));
-  ExpectSameMessage(before.stats, after.stats, "GetStats");
-  ASSERT_EQ(after.events.size(), before.events.size());
-  for (size_t i = 0; i < before.events.size(); ++i) {
-    ExpectSameMessage(before.events[i], after.events[i],
-                      "event " + std::to_string(i));
-  }
-  for (size_t i = 0; i < before.queries.size(); ++i) {
-    // Includes each match's replay_count and cluster_id.
-    ExpectSameMessage(before.queries[i], after.queries[i],
-                      "QueryPlace " + std::to_string(i));
-  }
+  ExpectSameObservation(before, after, /*with_events=*/true);
   // The stop's snapshot (written after the replay draws) gave the clusters;
   // RocksDB gave none.
   EXPECT_NE(
@@ -499,11 +494,7 @@ TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
   ASSERT_NO_FATAL_FAILURE(KillAndRestart());
   Observation killed;
   ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &killed));
-  ExpectSameMessage(drawn.stats, killed.stats, "GetStats after the kill");
-  for (size_t i = 0; i < drawn.queries.size(); ++i) {
-    ExpectSameMessage(drawn.queries[i], killed.queries[i],
-                      "QueryPlace after the kill " + std::to_string(i));
-  }
+  ExpectSameObservation(drawn, killed, /*with_events=*/true);
 }
 
 TEST_F(RestartTest, SigtermDuringUploadExitsCleanlyAndKeepsAcknowledgedData) {
