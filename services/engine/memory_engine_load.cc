@@ -164,8 +164,9 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
                   SnapshotHandOff& hand_off) {
   bool handed = false;
   absl::Cleanup notify = [&] {
+    // After the read: with the spans handed over, the loading thread has
+    // released them (so parsed the handles) before it returned.
     hand_off.image_read.Notify();
-    if (handed) hand_off.released.Wait();
     hand_off.handles_read.Notify();
   };
   const absl::Time start = absl::Now();
@@ -354,7 +355,8 @@ absl::Status MemoryEngine::Fleet::Reload() {
         return engine->NewIndex(dimension, index);
       },
       id, snapshot, &times);
-  const bool codes_left_out = snapshot.handles_loaded || times.from_image;
+  // From the image too: the handles parsed there (handles_loaded).
+  const bool codes_left_out = snapshot.handles_loaded;
   if (codes_left_out && record.ok() &&
       (!snapshot.status.ok() || !snapshot.index_status.ok())) {
     // Its index cannot be used (another kind, other settings): the index

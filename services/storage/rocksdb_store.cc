@@ -562,7 +562,7 @@ class RocksDbStore final : public engine::MemoryStore {
   bool IndexSnapshotCurrent(std::string_view fleet_id) override {
     std::optional<SnapshotFileId> mark;
     {
-      absl::MutexLock lock(&marks_map_mu_);
+      absl::ReaderMutexLock lock(&marks_mu_);
       auto it = marks_.find(fleet_id);
       if (it == marks_.end()) return false;
       mark = it->second;
@@ -882,7 +882,7 @@ class RocksDbStore final : public engine::MemoryStore {
         });
     if (!read.ok()) return read;
     if (trusted || marks.empty()) {
-      absl::MutexLock lock(&marks_map_mu_);
+      absl::MutexLock lock(&marks_mu_);
       marks_ = std::move(marks);
       return absl::OkStatus();
     }
@@ -910,7 +910,6 @@ class RocksDbStore final : public engine::MemoryStore {
                              << put.ToString() << ")";
       return;
     }
-    absl::MutexLock lock(&marks_map_mu_);
     marks_[std::string(fleet_id)] = id;
   }
 
@@ -1227,18 +1226,20 @@ class RocksDbStore final : public engine::MemoryStore {
                      std::string_view what) {
     // The fleet's index snapshot no longer describes it: its mark goes in
     // the same batch (no mark is put meanwhile).
-    absl::ReaderMutexLock marks(&marks_mu_);
     std::optional<SnapshotFileId> mark;
+    absl::Status status;
     {
-      absl::MutexLock lock(&marks_map_mu_);
+      absl::ReaderMutexLock lock(&marks_mu_);
       auto it = marks_.find(fleet_id);
       if (it != marks_.end()) mark = it->second;
+      if (mark) batch.Delete(ToSlice(keys::SnapshotMarkKey(fleet_id)));
+      status = WriteBatchOf(fleet_id, batch, options, what);
     }
-    if (mark) batch.Delete(ToSlice(keys::SnapshotMarkKey(fleet_id)));
-    absl::Status status = WriteBatchOf(fleet_id, batch, options, what);
     if (status.ok() && mark) {
-      absl::MutexLock lock(&marks_map_mu_);
-      marks_.erase(std::string(fleet_id));
+      // Unless a newer mark was put since (another snapshot's).
+      absl::MutexLock lock(&marks_mu_);
+      auto it = marks_.find(fleet_id);
+      if (it != marks_.end() && it->second == *mark) marks_.erase(it);
     }
     return status;
   }
@@ -1362,12 +1363,12 @@ class RocksDbStore final : public engine::MemoryStore {
   rocksdb::WriteOptions synced_write_options_;
   rocksdb::WriteOptions unsynced_write_options_;
   absl::Mutex apply_mu_;
-  // Held shared by every write of a fleet's state, alone by PutMark.
+  // Held shared by every write of a fleet's state (across the write, so
+  // that no mark is put meanwhile), alone to change marks_.
   absl::Mutex marks_mu_;
-  absl::Mutex marks_map_mu_;
   // The marks in the store (keys.h: 's'), by fleet.
   std::map<std::string, SnapshotFileId, std::less<>> marks_
-      ABSL_GUARDED_BY(marks_map_mu_);
+      ABSL_GUARDED_BY(marks_mu_);
   // Written by Apply (under apply_mu_) and by the log's appends and trims
   // (not under it).
   std::atomic<bool> low_space_ = false;
