@@ -7,7 +7,8 @@
 # the RSS 3 s after (the load is done when the port opens), the
 # engine's snapshot load line and its split of the load (the store's read,
 # then memory and index), with the store's, the memory image's, the
-# reconcile's and the load's log lines as comment rows. Each is stopped with kill -9
+# reconcile's and the load's log lines as comment rows, and the snapshot
+# saves (B's after the fill, A's at the end of round 0) and files' sizes. Each is stopped with kill -9
 # (but A's first, below), so the snapshot
 # on disk stays the one its build wrote. A's build must read B's snapshot
 # layout: A's first start (round 0) loads B's snapshot and ends with a
@@ -45,6 +46,14 @@ source "$here/tools/load/server_lib.sh"
 bench_work compare-rss data-a
 work=$WORK
 fill_scale_fleet_once "$b" "$work" "$traces"
+
+# save_line WHO LOG: the snapshot save LOG's server logged, as a comment row
+# (its seconds, and how long uploads waited for it).
+save_line() {
+  grep -o 'index snapshot of [0-9]* codes saved in .*' "$2" | tail -1 |
+    sed "s/^/# $1: /" || true
+}
+save_line "B's stop after the fill" "$work/build.log"
 
 cp -a "$work/data" "$work/data-a"
 
@@ -84,9 +93,14 @@ for round in $(seq 0 "$rounds"); do
       # (with a build that keeps one, the clusters' memory image too), which
       # A's later rounds load as after any clean stop.
       stop_server
+      save_line "A's stop" "$work/restart.log"
     else
       kill -9 "$SERVER_PID"
       wait "$SERVER_PID" 2>/dev/null || true
     fi
   done
+done
+# Each build's snapshot file on disk (A's written by its round 0's stop).
+for dir in data-a data; do
+  echo "# snapshot bytes in $dir: $(stat -c %s "$work/$dir"/db/index-snapshots/*.snapshot)"
 done
