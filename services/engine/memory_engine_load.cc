@@ -99,16 +99,23 @@ struct SnapshotHandOff {
   Signal released;
 };
 
-// Parses the handles (the next handle, then TraceHandles) in `bytes` into
+// Reads the handles (the next handle, then TraceHandles) from `in` into
 // `loaded`.
-absl::Status LoadHandles(std::span<const char> bytes, LoadedSnapshot& loaded) {
-  core::ByteReader in(bytes);
+absl::Status LoadHandles(core::ByteReader& in, LoadedSnapshot& loaded) {
   if (!in.Get(&loaded.next_handle)) return absl::DataLossError("bad header");
   absl::Status status = loaded.handles.Load(in, loaded.next_handle);
+  loaded.handles_loaded = status.ok();
+  return status;
+}
+
+// The same from exactly `bytes`.
+absl::Status LoadHandles(std::span<const char> bytes, LoadedSnapshot& loaded) {
+  core::ByteReader in(bytes);
+  absl::Status status = LoadHandles(in, loaded);
   if (status.ok() && in.remaining() != 0) {
+    loaded.handles_loaded = false;
     status = absl::DataLossError("bytes after the handles");
   }
-  loaded.handles_loaded = status.ok();
   return status;
 }
 
@@ -190,12 +197,9 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
           if (!taken.ok()) return taken;
         } else {
           hand_off.image_read.Notify();
-          if (!in.Get(&loaded.next_handle)) {
-            return absl::DataLossError("bad header");
+          if (absl::Status handles = LoadHandles(in, loaded); !handles.ok()) {
+            return handles;
           }
-          absl::Status handles = loaded.handles.Load(in, loaded.next_handle);
-          if (!handles.ok()) return handles;
-          loaded.handles_loaded = true;
         }
         if (!handed) {
           loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
