@@ -88,6 +88,9 @@ for round in $(seq 0 "$rounds"); do
     # The store's split (records, codes, clusters) and the reconcile's.
     grep -o 'fleet "scale"\(: read [0-9]* trace records\|: index snapshot reconciled\|: [0-9]* traces in [0-9]* clusters taken\| loaded:\).*' \
       "$work/restart.log" | sed 's/^/# /' || true
+    # The disk its graph holds beside the data dir (its floats' file).
+    held=$(server_held_mib "$SERVER_PID")
+    echo "# floats' file ${held% *} MiB, replaced snapshots held ${held#* } MiB"
     if [ "$round" -eq 0 ]; then
       # A's first start read B's snapshot; its clean stop writes A's own
       # (with a build that keeps one, the clusters' memory image too), which

@@ -121,15 +121,10 @@ row rss_mib "$rss"
 row rss_over_payload "$(awk -v r="$rss" -v p="$payload_mib" 'BEGIN { printf "%.2f", r / p }')"
 row store_mib "$(mib --exclude=index-snapshots "$work/data/db")"
 # The floats' file is unlinked when made: its blocks, through the server's
-# descriptor.
-floats_kib=0
-pid=$(pgrep -P "$SERVER_PID" -f fleetmem-server || echo "$SERVER_PID")
-for fd in /proc/"$pid"/fd/*; do
-  case "$(readlink "$fd")" in
-    *graph-floats*) floats_kib=$((floats_kib + $(stat -Lc '%b * %B' "$fd") / 1024)) ;;
-  esac
-done
-row floats_file_mib $((floats_kib / 1024))
+# descriptor; and a snapshot file replaced but still read.
+held=$(server_held_mib "$SERVER_PID")
+row floats_file_mib "${held% *}"
+row held_snapshot_mib "${held#* }"
 
 "$python" - "$SERVER_ADDR" "$work" <<'PY' >>"$work/rows.csv"
 import sys, time, numpy as np, fleetmem

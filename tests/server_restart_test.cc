@@ -5,6 +5,7 @@
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -495,6 +496,92 @@ TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
   Observation killed;
   ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &killed));
   ExpectSameObservation(drawn, killed, /*with_events=*/true);
+}
+
+// Descriptors process `pid` holds open on files whose path starts with
+// `prefix` (an unlinked file's too: its path then ends in " (deleted)").
+int OpenFilesUnder(pid_t pid, const std::string& prefix) {
+  int open = 0;
+  std::error_code error;
+  for (const auto& entry : std::filesystem::directory_iterator(
+           "/proc/" + std::to_string(pid) + "/fd", error)) {
+    std::error_code unreadable;
+    const std::string target =
+        std::filesystem::read_symlink(entry.path(), unreadable).string();
+    if (!unreadable && target.rfind(prefix, 0) == 0) ++open;
+  }
+  return open;
+}
+
+// Until every code of `fleet` is in its place graph (GetStats'
+// unindexed_codes 0): a graph's answers then depend on nothing that
+// runs in the background.
+void WaitUntilIndexed(v1::MemoryService::Stub& stub, const std::string& fleet) {
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  for (;;) {
+    Reply<v1::GetStatsResponse> stats = GetStats(stub, fleet);
+    ASSERT_TRUE(stats.ok()) << Describe(stats.status);
+    if (stats.response.unindexed_codes() == 0) return;
+    ASSERT_LT(std::chrono::steady_clock::now(), deadline)
+        << stats.response.unindexed_codes() << " codes still unindexed";
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+}
+
+// A fleet with a place graph (hnsw_from lowered) keeps its graph's floats
+// in its index snapshot's file: a clean start reads them there (the server
+// opens no floats' file of its own), uploads after it put their rows in a
+// file of the graph's own, and the next stop's snapshot takes them over
+// again. Everything a client sees is the same across both restarts.
+TEST_F(RestartTest, AGraphReadsItsFloatsFromItsSnapshotAcrossRestarts) {
+  const std::string config = temp_dir().Join("graph.textproto");
+  {
+    std::ofstream file(config);
+    file << "hnsw { hnsw_from: 100 }\n"
+            "index_snapshot_min_codes: 0\n";
+  }
+  set_server_args({"--config", config});
+  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  const std::string fleet = "fleet-graph-floats";
+  const std::string floats_files =
+      std::filesystem::canonical(data_dir()).string() +
+      "/graph-floats/graph-floats-";
+  std::vector<v1::QueryPlaceRequest> queries;
+  const std::vector<RobotPlan> plans = {
+      {"robot-a", 230}, {"robot-b", 200}, {"robot-c", 150}};
+  for (const RobotPlan& plan : plans) {
+    for (uint64_t seq : {1, 77, 150}) {
+      v1::QueryPlaceRequest& request = queries.emplace_back();
+      request.set_fleet_id(fleet);
+      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
+      for (float value : trace.code()) request.add_code(value);
+      request.set_k(5);
+    }
+  }
+  for (int round = 0; round < 2; ++round) {
+    // Round 1 uploads after a restart: rows of the graph's own.
+    const std::vector<RobotPlan> uploaded =
+        round == 0 ? std::vector<RobotPlan>{plans[0], plans[1]}
+                   : std::vector<RobotPlan>{plans[2]};
+    for (const RobotPlan& plan : uploaded) {
+      ASSERT_TRUE(UploadTraces(stub(), fleet, MakeTraces(SpecOf(plan))).ok());
+    }
+    ASSERT_NO_FATAL_FAILURE(WaitUntilIndexed(stub(), fleet));
+    if (round == 1) {
+      EXPECT_EQ(OpenFilesUnder(server().pid(), floats_files), 1)
+          << "the rows written since the start are in no file of their own";
+    }
+    Observation before;
+    ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &before));
+    ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+    ASSERT_NO_FATAL_FAILURE(WaitUntilIndexed(stub(), fleet));
+    EXPECT_EQ(OpenFilesUnder(server().pid(), floats_files), 0)
+        << "the restart copied the graph's floats out of its snapshot";
+    Observation after;
+    ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &after));
+    ExpectSameObservation(before, after, /*with_events=*/true);
+  }
 }
 
 TEST_F(RestartTest, SigtermDuringUploadExitsCleanlyAndKeepsAcknowledgedData) {

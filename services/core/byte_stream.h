@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <cstring>
 #include <functional>
+#include <memory>
 #include <span>
 #include <string>
 #include <string_view>
@@ -19,13 +20,29 @@
 
 namespace fleetmem::core {
 
+// Where a ByteReader's or a ByteWriter's bytes lie in a file, when they do
+// (an index snapshot, which services/storage maps to read and writes
+// through a sink): a reader keeping a large part of its bytes, or a writer's
+// caller whose memory holds what it wrote, may read that part from the
+// file later instead of keeping a copy. Such a file is never changed once
+// written (a newer one replaces it by a rename, which leaves this one
+// readable through `descriptor`). The core reads no file: it only passes
+// this along (FloatRows::Adopt).
+struct FileBytes {
+  // The open file; closed when the last copy is dropped.
+  std::shared_ptr<const int> descriptor;
+  // Where in the file the stream's first byte is.
+  uint64_t offset = 0;
+};
+
 // Receives bytes in order. The sink's owner records its own errors (a full
 // disk) and reports them once the writing is done.
 using ByteSink = std::function<void(std::span<const char>)>;
 
 class ByteWriter {
  public:
-  explicit ByteWriter(ByteSink sink) : sink_(std::move(sink)) {}
+  explicit ByteWriter(ByteSink sink, const FileBytes* file = nullptr)
+      : sink_(std::move(sink)), file_(file) {}
 
   template <typename T>
   void Put(const T& value) {
@@ -43,9 +60,14 @@ class ByteWriter {
     PutBytes(text.data(), text.size());
   }
   uint64_t written() const { return written_; }
+  // The file the sink writes to, its first byte written() == 0's (nullptr:
+  // none, or not said). Its bytes are in the file once the sink's owner
+  // says so (a snapshot's `written`), not when Put returns.
+  const FileBytes* file() const { return file_; }
 
  private:
   ByteSink sink_;
+  const FileBytes* file_;
   uint64_t written_ = 0;
 };
 
@@ -53,7 +75,11 @@ class ByteWriter {
 // when fewer bytes remain than it needs; callers turn that into DATA_LOSS.
 class ByteReader {
  public:
-  explicit ByteReader(std::span<const char> bytes) : bytes_(bytes) {}
+  // `file`, if given, holds `bytes` from its offset on and outlives the
+  // reader.
+  explicit ByteReader(std::span<const char> bytes,
+                      const FileBytes* file = nullptr)
+      : bytes_(bytes), file_(file) {}
 
   template <typename T>
   bool Get(T* value) {
@@ -82,9 +108,16 @@ class ByteReader {
     return true;
   }
   size_t remaining() const { return bytes_.size() - position_; }
+  // The file the bytes lie in (nullptr: none), and where in it a span
+  // GetSpan returned starts.
+  const FileBytes* file() const { return file_; }
+  uint64_t FileOffset(std::span<const char> part) const {
+    return file_->offset + static_cast<uint64_t>(part.data() - bytes_.data());
+  }
 
  private:
   std::span<const char> bytes_;
+  const FileBytes* file_;
   size_t position_ = 0;
 };
 

@@ -17,6 +17,8 @@
 #include <span>
 #include <vector>
 
+#include "services/core/byte_stream.h"
+
 namespace fleetmem::core {
 
 class FloatRows {
@@ -47,6 +49,19 @@ class FloatRows {
   // read, not as long as all of them in turn. This one Reads each row.
   // Throws std::system_error on an I/O error.
   virtual void Gather(std::span<const uint32_t> rows, float* values) const;
+  // Rows [0, rows) but those in `keep` (ascending, each below `rows`) :=
+  // the rows lying in `file` from `offset` on (width floats each, as Write
+  // takes them), read from there from now on instead of copied: a graph
+  // loaded from its mapped snapshot, or one just saved to a file, whose
+  // rows written since are `keep`. Rows past them and in `keep` keep what
+  // they held; a row written later is this store's own again. True if this
+  // store took them (what it held for them is dropped); false (the
+  // default) if it keeps its rows elsewhere: then nothing changed, and a
+  // caller loading them Writes them.
+  virtual bool Adopt(const FileBytes& file, uint64_t offset, size_t rows,
+                     std::span<const uint32_t> keep) {
+    return false;
+  }
   // Row `row` where it lies in this process's memory, or nullptr if this
   // store keeps its rows elsewhere (Read copies them).
   virtual const float* Find(size_t row) const { return nullptr; }

@@ -8,6 +8,7 @@
 #include <limits>
 #include <mutex>
 #include <new>
+#include <optional>
 #include <queue>
 #include <sstream>
 #include <string>
@@ -272,6 +273,15 @@ struct HnswGraph::Impl {
   // options.int8: each slot's floats as given and its scale (a row of
   // dimension + 1 floats), read beside Link calls by rescoring searches.
   std::unique_ptr<FloatRows> rows;
+  // Where the last Save to a file put the floats (AdoptSavedFloats), and
+  // the saved rows written again since (removed slots reused).
+  struct SavedFloats {
+    FileBytes file;
+    uint64_t offset = 0;
+    size_t rows = 0;
+    std::vector<uint32_t> written_since;
+  };
+  std::optional<SavedFloats> saved;
 };
 
 namespace {
@@ -325,6 +335,9 @@ void HnswGraph::KeepFloats(uint32_t slot, const float* vector, float scale) {
   ReserveFloats(static_cast<size_t>(slot) + 1);
   std::vector<float> row(vector, vector + dimension_);
   row.push_back(scale);
+  if (impl_->saved && slot < impl_->saved->rows) {
+    impl_->saved->written_since.push_back(slot);  // before: it may fail
+  }
   impl_->rows->Write(slot, 1, row.data());
 }
 
@@ -785,6 +798,13 @@ void HnswGraph::Save(ByteWriter& out) const {
     }
   }
   if (!options_.int8) return;
+  impl_->saved.reset();
+  if (out.file() != nullptr) {
+    impl_->saved =
+        Impl::SavedFloats{.file = *out.file(),
+                          .offset = out.file()->offset + out.written(),
+                          .rows = count};
+  }
   const size_t stride = dimension_ + 1;
   std::vector<float> chunk;
   for (size_t first = 0; first < count; first += kFloatChunk) {
@@ -857,25 +877,47 @@ absl::Status HnswGraph::CheckLoaded(uint32_t count) {
 
 absl::Status HnswGraph::LoadFloats(ByteReader& in, size_t count) {
   const size_t stride = dimension_ + 1;
-  if (in.remaining() / (stride * sizeof(float)) < count) {
+  std::span<const char> bytes;
+  if (in.remaining() / (stride * sizeof(float)) < count ||
+      !in.GetSpan(count * stride * sizeof(float), &bytes)) {
     return Malformed("truncated floats");
+  }
+  // Every slot's scale, a removed one's too (its floats were written).
+  for (size_t row = 0; row < count; ++row) {
+    float scale;
+    std::memcpy(&scale, bytes.data() + (row * stride + dimension_) * 4, 4);
+    if (!NonNegative(scale)) {
+      return Malformed(absl::StrCat("bad scale or norm of slot ", row));
+    }
+  }
+  if (in.file() != nullptr &&
+      impl_->rows->Adopt(*in.file(), in.FileOffset(bytes), count, {})) {
+    return absl::OkStatus();
   }
   impl_->rows->Reserve(count);
   std::vector<float> chunk;
   for (size_t first = 0; first < count; first += kFloatChunk) {
     const size_t rows = std::min(kFloatChunk, count - first);
     chunk.resize(rows * stride);
-    in.GetBytes(chunk.data(), chunk.size() * sizeof(float));
-    // Every slot's scale, a removed one's too (its floats were written).
-    for (size_t row = 0; row < rows; ++row) {
-      if (!NonNegative(chunk[row * stride + dimension_])) {
-        return Malformed(
-            absl::StrCat("bad scale or norm of slot ", first + row));
-      }
-    }
+    std::memcpy(chunk.data(), bytes.data() + first * stride * sizeof(float),
+                chunk.size() * sizeof(float));
     impl_->rows->Write(first, rows, chunk.data());
   }
   return absl::OkStatus();
+}
+
+bool HnswGraph::AdoptSavedFloats() {
+  if (!impl_->saved) return false;
+  Impl::SavedFloats saved = *std::move(impl_->saved);
+  impl_->saved.reset();
+  // Rows written since the Save read them stay the rows' own. (New slots'
+  // rows are past the saved ones: not adopted.)
+  std::sort(saved.written_since.begin(), saved.written_since.end());
+  saved.written_since.erase(
+      std::unique(saved.written_since.begin(), saved.written_since.end()),
+      saved.written_since.end());
+  return impl_->rows->Adopt(saved.file, saved.offset, saved.rows,
+                            saved.written_since);
 }
 
 absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(

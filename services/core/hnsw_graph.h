@@ -170,13 +170,23 @@ class HnswGraph {
   size_t MemoryBytes() const;
 
   // Writes the whole graph (vectors, links, removed slots and the level
-  // generator's state) for Load. O(size); the graph is only read.
+  // generator's state) for Load. O(size); the graph is only read, but an
+  // int8 graph notes where its floats went when `out` writes to a file
+  // (ByteWriter::file), for AdoptSavedFloats: Saves must not overlap.
   void Save(ByteWriter& out) const;
+  // After the last Save wrote to a file and its bytes are there: an int8
+  // graph whose floats no Add has written since reads them from that file
+  // from now on (FloatRows::Adopt), and drops its own copy (a file's rows
+  // whose disk is then freed). False, changing nothing, otherwise (no such
+  // Save, a row written since, rows that keep no file). A writer.
+  bool AdoptSavedFloats();
   // A graph equal to the one Save wrote: the same searches give the same
-  // results and the same later calls build the same graph. `dimension`,
-  // options.m and options.ef_construction must be those it was built with
-  // (options.ef_search may differ). DATA_LOSS names what does not fit (a
-  // truncated or inconsistent graph, other build options: every link and
+  // results and the same later calls build the same graph. An int8 graph
+  // read from a file (ByteReader::file) leaves its floats there when its
+  // rows can read them from it (FloatRows::Adopt) rather than copy them.
+  // `dimension`, options.m and options.ef_construction must be those it was
+  // built with (options.ef_search may differ). DATA_LOSS names what does not
+  // fit (a truncated or inconsistent graph, other build options: every link and
   // slot is checked, so a bad snapshot cannot make a search read out of
   // bounds); RESOURCE_EXHAUSTED when out of memory.
   static absl::StatusOr<std::unique_ptr<HnswGraph>> Load(

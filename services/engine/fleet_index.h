@@ -123,10 +123,13 @@ class FleetIndex {
            (index_ == nullptr || index_->unindexed() >= snapshot_unindexed_);
   }
   // A snapshot of the state after `changes` changes, with `unindexed`
-  // codes outside the graph (read before it was taken), is on disk.
+  // codes outside the graph (read before it was taken), is on disk, durably:
+  // the index may read from it what it keeps outside memory
+  // (PlaceIndex::SavedToFile). A writer.
   void SnapshotWritten(uint64_t changes, size_t unindexed) {
     snapshot_at_ = changes;
     snapshot_unindexed_ = unindexed;
+    if (index_ != nullptr) index_->SavedToFile();
   }
 
  private:

@@ -178,12 +178,14 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
   };
   const absl::Time start = absl::Now();
   loaded.status = store.ReadIndexSnapshot(
-      fleet_id, [&](std::span<const char> bytes) -> absl::Status {
+      fleet_id,
+      [&](std::span<const char> bytes,
+          const core::FileBytes* file) -> absl::Status {
         // The loading thread reads the spans until it releases them.
         absl::Cleanup keep_mapped = [&] {
           if (handed) hand_off.released.Wait();
         };
-        core::ByteReader in(bytes);
+        core::ByteReader in(bytes, file);
         uint32_t format = 0;
         IndexSettings index;
         if (absl::Status header =

@@ -321,9 +321,8 @@ class LoadCountingStore : public ForwardingStore {
       const std::function<void()>& written) override {
     return inner_->SaveIndexSnapshot(fleet_id, write, written);
   }
-  absl::Status ReadIndexSnapshot(
-      std::string_view fleet_id,
-      const std::function<absl::Status(std::span<const char>)>& read) override {
+  absl::Status ReadIndexSnapshot(std::string_view fleet_id,
+                                 const IndexSnapshotRead& read) override {
     return inner_->ReadIndexSnapshot(fleet_id, read);
   }
   bool IndexSnapshotCurrent(std::string_view fleet_id) override {
@@ -553,7 +552,8 @@ TEST_F(IndexSnapshotTest, SnapshotOfAnotherHistoryIsRebuilt) {
   std::vector<char> bytes;
   ASSERT_TRUE(store_
                   ->ReadIndexSnapshot("f1",
-                                      [&bytes](std::span<const char> read) {
+                                      [&bytes](std::span<const char> read,
+                                               const core::FileBytes*) {
                                         bytes.assign(read.begin(), read.end());
                                         return absl::OkStatus();
                                       })

@@ -131,6 +131,13 @@ struct FleetMutation {
 
 // Thread-safe. Every method returns a non-OK status on storage failure,
 // never throws.
+// Reads an index snapshot (MemoryStore::ReadIndexSnapshot): its bytes and,
+// where they are mapped from a file the store never changes (the RocksDB
+// store's), where they lie in it (nullptr for a store that keeps them in
+// memory): a reader may keep the file open and read parts of it later.
+using IndexSnapshotRead = std::function<absl::Status(
+    std::span<const char> bytes, const core::FileBytes* file)>;
+
 class MemoryStore {
  public:
   virtual ~MemoryStore() = default;
@@ -201,13 +208,13 @@ class MemoryStore {
       const std::function<void()>& written = nullptr) {
     return absl::UnimplementedError("this store keeps no index snapshots");
   }
-  // Calls `read` with the fleet's latest snapshot and returns its status;
-  // the snapshot is kept. NOT_FOUND when there is none; DATA_LOSS when it is
-  // damaged (it fails its checksum: it is then discarded); `read` is not
-  // called then.
-  virtual absl::Status ReadIndexSnapshot(
-      std::string_view fleet_id,
-      const std::function<absl::Status(std::span<const char>)>& read) {
+  // Calls `read` with the fleet's latest snapshot (and, for a store that
+  // maps it from a file, where it lies there: see IndexSnapshotRead) and
+  // returns its status; the snapshot is kept. NOT_FOUND when there is none;
+  // DATA_LOSS when it is damaged (it fails its checksum: it is then discarded);
+  // `read` is not called then.
+  virtual absl::Status ReadIndexSnapshot(std::string_view fleet_id,
+                                         const IndexSnapshotRead& read) {
     return absl::NotFoundError("this store keeps no index snapshots");
   }
   // True if the fleet's snapshot (the one ReadIndexSnapshot reads now) was

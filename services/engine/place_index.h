@@ -145,7 +145,15 @@ class PlaceIndex {
   virtual absl::Status Save(core::ByteWriter& out) const {
     return absl::UnimplementedError("this index cannot be saved");
   }
-  // Restores what Save wrote into this empty index (a writer). DATA_LOSS
+  // Called once the bytes of the last Save, made to a file
+  // (core::ByteWriter::file), are all in it: an index may then read what
+  // it holds outside memory from that file instead of its own copy (an
+  // int8 graph's floats, core::HnswGraph::AdoptSavedFloats), unless it
+  // changed since. A writer. Default: nothing.
+  virtual void SavedToFile() {}
+  // Restores what Save wrote into this empty index (a writer); from a
+  // file (core::ByteReader::file), an index may keep reading parts of it
+  // from there. DATA_LOSS
   // when the bytes are malformed or come from another kind of index or other
   // options (the index is then unusable: discard it); UNIMPLEMENTED for an
   // index that cannot.

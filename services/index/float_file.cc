@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <stdlib.h>
+#include <sys/stat.h>
 #include <sys/uio.h>
 #include <unistd.h>
 
@@ -47,19 +48,26 @@ FileFloatRows::~FileFloatRows() {
   if (fd_ >= 0) ::close(fd_);
 }
 
+void FileFloatRows::Open() {
+  if (fd_ >= 0) return;
+  std::string path = absl::StrCat(directory_, "/graph-floats-XXXXXX");
+  const int fd = ::mkostemp(path.data(), O_CLOEXEC);
+  if (fd < 0) Fail(errno, absl::StrCat("making a file in ", directory_));
+  ::unlink(path.c_str());  // the open descriptor keeps it
+  fd_ = fd;
+}
+
 void FileFloatRows::Reserve(size_t rows) {
   if (rows <= reserved_) return;
-  if (fd_ < 0) {
-    std::string path = absl::StrCat(directory_, "/graph-floats-XXXXXX");
-    const int fd = ::mkostemp(path.data(), O_CLOEXEC);
-    if (fd < 0) Fail(errno, absl::StrCat("making a file in ", directory_));
-    ::unlink(path.c_str());  // the open descriptor keeps it
-    fd_ = fd;
-  }
+  Open();
   const size_t target =
       std::max({rows, reserved_ + reserved_ / 4, static_cast<size_t>(1024)});
   const size_t row_bytes = width() * sizeof(float);
-  const int error = ::posix_fallocate(fd_, 0, target * row_bytes);
+  // The adopted rows' blocks are the adopted file's (a hole here).
+  const size_t from = std::min(adopted_, target) * row_bytes;
+  const int error =
+      ::posix_fallocate(fd_, static_cast<off_t>(from),
+                        static_cast<off_t>(target * row_bytes - from));
   if (error != 0) {
     Fail(error, absl::StrCat("allocating ", target * row_bytes,
                              " bytes for the graph's floats in ", directory_));
@@ -68,6 +76,7 @@ void FileFloatRows::Reserve(size_t rows) {
 }
 
 void FileFloatRows::Write(size_t first, size_t count, const float* values) {
+  Open();
   const size_t row_bytes = width() * sizeof(float);
   TransferAll(
       reinterpret_cast<const char*>(values), count * row_bytes,
@@ -76,17 +85,89 @@ void FileFloatRows::Write(size_t first, size_t count, const float* values) {
         return ::pwrite(fd_, data, bytes, offset);
       },
       "writing the graph's floats");
+  // Read from here from now on (after the write: a failed one leaves the
+  // adopted row).
+  for (size_t row = first; row < std::min(first + count, adopted_); ++row) {
+    rewritten_[row / 64].fetch_or(uint64_t{1} << (row % 64),
+                                  std::memory_order_release);
+  }
+}
+
+FileFloatRows::Place FileFloatRows::PlaceOf(size_t row) const {
+  const size_t row_bytes = width() * sizeof(float);
+  if (row < adopted_ && (rewritten_[row / 64].load(std::memory_order_acquire) &
+                         (uint64_t{1} << (row % 64))) == 0) {
+    return {*adopted_file_.descriptor,
+            static_cast<off_t>(adopted_offset_ + row * row_bytes)};
+  }
+  return {fd_, static_cast<off_t>(row * row_bytes)};
 }
 
 void FileFloatRows::Read(size_t first, size_t count, float* values) const {
   const size_t row_bytes = width() * sizeof(float);
-  TransferAll(
-      reinterpret_cast<char*>(values), count * row_bytes,
-      static_cast<off_t>(first * row_bytes),
-      [this](char* data, size_t bytes, off_t offset) {
-        return ::pread(fd_, data, bytes, offset);
-      },
-      "reading the graph's floats");
+  // Runs of rows in one file, each read at once.
+  for (size_t row = first; row < first + count;) {
+    const Place place = PlaceOf(row);
+    size_t run = 1;
+    while (row + run < first + count) {
+      const Place next = PlaceOf(row + run);
+      if (next.fd != place.fd ||
+          next.offset != place.offset + static_cast<off_t>(run * row_bytes)) {
+        break;
+      }
+      ++run;
+    }
+    TransferAll(
+        reinterpret_cast<char*>(values + (row - first) * width()),
+        run * row_bytes, place.offset,
+        [fd = place.fd](char* data, size_t bytes, off_t offset) {
+          return ::pread(fd, data, bytes, offset);
+        },
+        "reading the graph's floats");
+    row += run;
+  }
+}
+
+bool FileFloatRows::Adopt(const core::FileBytes& file, uint64_t offset,
+                          size_t rows, std::span<const uint32_t> keep) {
+  if (file.descriptor == nullptr) return false;
+  const size_t row_bytes = width() * sizeof(float);
+  const size_t words = (rows + 63) / 64;
+  auto rewritten = std::make_unique<std::atomic<uint64_t>[]>(words);
+  for (size_t word = 0; word < words; ++word) rewritten[word] = 0;
+  for (const uint32_t row : keep) {
+    rewritten[row / 64].fetch_or(uint64_t{1} << (row % 64));
+  }
+  if (fd_ >= 0) {
+    // The rows' copies here are not read again: their blocks go back (a
+    // hint; where the file system cannot punch, they only cost disk), each
+    // run between two kept rows at once.
+    size_t from = 0;
+    auto punch = [&](size_t end) {
+      if (end > from) {
+        ::fallocate(fd_, FALLOC_FL_PUNCH_HOLE | FALLOC_FL_KEEP_SIZE,
+                    static_cast<off_t>(from * row_bytes),
+                    static_cast<off_t>((end - from) * row_bytes));
+      }
+    };
+    for (const uint32_t row : keep) {
+      punch(row);
+      from = static_cast<size_t>(row) + 1;
+    }
+    punch(rows);
+  }
+  adopted_file_ = file;
+  adopted_offset_ = offset;
+  adopted_ = rows;
+  rewritten_ = std::move(rewritten);
+  reserved_ = std::max(reserved_, rows);
+  return true;
+}
+
+size_t FileFloatRows::AllocatedBytes() const {
+  struct stat info;
+  if (fd_ < 0 || ::fstat(fd_, &info) != 0) return 0;
+  return static_cast<size_t>(info.st_blocks) * 512;
 }
 
 void FileFloatRows::Gather(std::span<const uint32_t> rows,
@@ -96,15 +177,13 @@ void FileFloatRows::Gather(std::span<const uint32_t> rows,
     return;
   }
   const size_t row_bytes = width() * sizeof(float);
-  auto offset = [&](uint32_t row) {
-    return static_cast<off_t>(static_cast<size_t>(row) * row_bytes);
-  };
   std::vector<size_t> missed;  // of rows: not whole in the page cache
   for (size_t i = 0; i < rows.size(); ++i) {
     iovec target{values + i * width(), row_bytes};
+    const Place place = PlaceOf(rows[i]);
     ssize_t copied;
     do {
-      copied = ::preadv2(fd_, &target, 1, offset(rows[i]), RWF_NOWAIT);
+      copied = ::preadv2(place.fd, &target, 1, place.offset, RWF_NOWAIT);
     } while (copied < 0 && errno == EINTR);
     if (copied == static_cast<ssize_t>(row_bytes)) continue;
     if (copied < 0 && errno != EAGAIN) {
@@ -117,7 +196,8 @@ void FileFloatRows::Gather(std::span<const uint32_t> rows,
   }
   // A hint: where it fails, the reads below wait for each row in turn.
   for (const size_t i : missed) {
-    ::posix_fadvise(fd_, offset(rows[i]), static_cast<off_t>(row_bytes),
+    const Place place = PlaceOf(rows[i]);
+    ::posix_fadvise(place.fd, place.offset, static_cast<off_t>(row_bytes),
                     POSIX_FADV_WILLNEED);
   }
   for (const size_t i : missed) Read(rows[i], 1, values + i * width());

@@ -156,6 +156,7 @@ class HnswIndex final : public engine::PlaceIndex {
   bool CopyCodes(std::span<const uint64_t> ids,
                  std::span<std::vector<float>* const> codes) const override;
   absl::Status Save(core::ByteWriter& out) const override;
+  void SavedToFile() override { graph_->AdoptSavedFloats(); }
   absl::Status Load(core::ByteReader& in) override;
   bool contains(uint64_t id) const { return slot_of_.contains(id); }
 
@@ -553,6 +554,10 @@ class TieredIndex final : public engine::PlaceIndex {
   }
   // The tail and the graph as they are: a backlog is saved as a backlog.
   absl::Status Save(core::ByteWriter& out) const override;
+  void SavedToFile() override {
+    std::unique_lock lock(mu_);
+    if (graph_) graph_->SavedToFile();
+  }
   absl::Status Load(core::ByteReader& in) override;
 
  private:

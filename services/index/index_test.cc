@@ -1,4 +1,5 @@
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <Eigen/Core>
@@ -1679,6 +1680,276 @@ TEST(HnswIndexTest, FloatsInAFileAnswerAsFloatsOnTheHeap) {
   EXPECT_EQ(from_file, data.vectors[42]);
   EXPECT_TRUE(std::filesystem::is_empty(directory));
   std::filesystem::remove(directory);
+}
+
+// A file holding `bytes` after `prefix` bytes of zeros, open for reading,
+// as the store hands a snapshot's payload to a reader (the descriptor
+// closed with its last holder; the file itself is unlinked at once).
+core::FileBytes FileHolding(const std::string& directory,
+                            std::string_view bytes, size_t prefix) {
+  std::string path = directory + "/held-XXXXXX";
+  const int fd = ::mkostemp(path.data(), O_CLOEXEC);
+  EXPECT_GE(fd, 0);
+  ::unlink(path.c_str());
+  const std::string zeros(prefix, '\0');
+  EXPECT_EQ(::pwrite(fd, zeros.data(), zeros.size(), 0),
+            static_cast<ssize_t>(prefix));
+  EXPECT_EQ(::pwrite(fd, bytes.data(), bytes.size(), prefix),
+            static_cast<ssize_t>(bytes.size()));
+  return {.descriptor = std::shared_ptr<const int>(new int(fd),
+                                                   [](const int* held) {
+                                                     ::close(*held);
+                                                     delete held;
+                                                   }),
+          .offset = prefix};
+}
+
+// The disk blocks (st_blocks) of the floats' files made in `directory`
+// that this process holds open, and how many there are.
+std::pair<size_t, int> FloatFilesInUse(const std::string& directory) {
+  const std::string made =
+      std::filesystem::canonical(directory).string() + "/graph-floats-";
+  size_t bytes = 0;
+  int files = 0;
+  for (const auto& entry :
+       std::filesystem::directory_iterator("/proc/self/fd")) {
+    std::error_code error;
+    const std::string target =
+        std::filesystem::read_symlink(entry.path(), error).string();
+    if (error || target.rfind(made, 0) != 0) continue;
+    struct stat info;
+    if (::stat(entry.path().c_str(), &info) != 0) continue;
+    bytes += static_cast<size_t>(info.st_blocks) * 512;
+    ++files;
+  }
+  return {bytes, files};
+}
+
+// Adopted rows are read from the file they lie in (no copy: a change to
+// that file, which a store never makes, shows through) until a row is
+// written again; the rows' own file takes no block for them.
+TEST(FileFloatRowsTest, AdoptedRowsAreReadFromTheirFileUntilWrittenAgain) {
+  constexpr size_t kWidth = 257;
+  constexpr size_t kRows = 2000;
+  const size_t row_bytes = kWidth * sizeof(float);
+  const std::string directory = FreshDirectory();
+  std::mt19937 rng(67);
+  std::normal_distribution<float> normal;
+  std::vector<float> values(kRows * kWidth);
+  for (float& value : values) value = normal(rng);
+  const core::FileBytes file =
+      FileHolding(directory,
+                  std::string_view(reinterpret_cast<const char*>(values.data()),
+                                   values.size() * sizeof(float)),
+                  /*prefix=*/100);
+  FileFloatRows rows(directory, kWidth);
+  ASSERT_TRUE(rows.Adopt(file, 100, kRows, {}));
+  EXPECT_EQ(rows.adopted(), kRows);
+  std::vector<float> read(kRows * kWidth);
+  rows.Read(0, kRows, read.data());
+  EXPECT_EQ(read, values);
+  EXPECT_EQ(rows.AllocatedBytes(), 0u);  // no file of its own yet
+
+  // A row written again is the rows' own; its neighbours are still the
+  // adopted file's; rows past the adopted ones are reserved and written
+  // as before.
+  std::vector<float> row7(kWidth, 7.0f);
+  rows.Write(7, 1, row7.data());
+  rows.Reserve(kRows + 1);
+  std::vector<float> past(kWidth, -3.0f);
+  rows.Write(kRows, 1, past.data());
+  std::vector<float> expected = values;
+  std::copy(row7.begin(), row7.end(), expected.begin() + 7 * kWidth);
+  expected.insert(expected.end(), past.begin(), past.end());
+  read.assign((kRows + 1) * kWidth, 0.0f);
+  rows.Read(0, kRows + 1, read.data());
+  EXPECT_EQ(read, expected);
+  const std::vector<uint32_t> asked = {kRows, 7, 6, 8, 1999, 7};
+  std::vector<float> gathered(asked.size() * kWidth);
+  rows.Gather(asked, gathered.data());
+  for (size_t i = 0; i < asked.size(); ++i) {
+    EXPECT_TRUE(std::equal(gathered.begin() + i * kWidth,
+                           gathered.begin() + (i + 1) * kWidth,
+                           expected.begin() + asked[i] * kWidth))
+        << "row " << asked[i];
+  }
+  // Its own file holds row 7 and the rows reserved past the adopted ones,
+  // not the adopted rows.
+  EXPECT_GT(rows.AllocatedBytes(), 0u);
+  EXPECT_LT(rows.AllocatedBytes(), kRows * row_bytes / 2);
+
+  // Not a copy: the adopted file's row 6 changed shows through (row 7,
+  // written since, does not).
+  std::vector<float> changed(2 * kWidth, 42.0f);
+  ASSERT_EQ(::pwrite(*file.descriptor, changed.data(), 2 * row_bytes,
+                     100 + 6 * row_bytes),
+            static_cast<ssize_t>(2 * row_bytes));
+  read.assign(2 * kWidth, 0.0f);
+  rows.Read(6, 2, read.data());
+  EXPECT_TRUE(std::all_of(read.begin(), read.begin() + kWidth,
+                          [](float v) { return v == 42.0f; }));
+  EXPECT_TRUE(std::equal(read.begin() + kWidth, read.end(), row7.begin()));
+  std::filesystem::remove_all(directory);
+}
+
+// Adopting rows a store wrote itself (a graph just saved) frees their
+// blocks in its file but those of the rows written since (`keep`), which
+// it goes on reading as its own.
+TEST(FileFloatRowsTest, AdoptingSavedRowsKeepsTheRowsWrittenSince) {
+  constexpr size_t kWidth = 257;
+  constexpr size_t kRows = 2000;
+  const size_t row_bytes = kWidth * sizeof(float);
+  const std::string directory = FreshDirectory();
+  std::vector<float> saved(kRows * kWidth);
+  for (size_t i = 0; i < saved.size(); ++i) saved[i] = static_cast<float>(i);
+  FileFloatRows rows(directory, kWidth);
+  rows.Reserve(kRows);
+  rows.Write(0, kRows, saved.data());
+  const core::FileBytes file =
+      FileHolding(directory,
+                  std::string_view(reinterpret_cast<const char*>(saved.data()),
+                                   saved.size() * sizeof(float)),
+                  /*prefix=*/0);
+  const size_t before = rows.AllocatedBytes();
+  EXPECT_GE(before, kRows * row_bytes);
+  std::vector<float> since(kWidth, -1.0f);
+  rows.Write(5, 1, since.data());
+  rows.Write(1500, 1, since.data());
+  const std::vector<uint32_t> keep = {5, 1500};
+  ASSERT_TRUE(rows.Adopt(file, 0, kRows, keep));
+  EXPECT_LT(rows.AllocatedBytes(), before / 4);
+  std::vector<float> expected = saved;
+  for (const uint32_t row : keep) {
+    std::copy(since.begin(), since.end(), expected.begin() + row * kWidth);
+  }
+  std::vector<float> read(kRows * kWidth);
+  rows.Read(0, kRows, read.data());
+  EXPECT_EQ(read, expected);
+  std::filesystem::remove_all(directory);
+}
+
+// An int8 graph loaded from a snapshot that lies in a file (as the RocksDB
+// store hands it over) makes no floats' file until it writes a row: its
+// floats are read from the snapshot's. Answers and codes are those of the
+// saved index, and stay those of a copy loaded from memory through later
+// changes.
+TEST(HnswIndexTest, AGraphLoadedFromAFileReadsItsFloatsThere) {
+  constexpr size_t kDimension = 24;
+  std::mt19937 rng(43);
+  const Dataset data = GaussianDataset(2000, kDimension, rng);
+  HnswIndexOptions options;
+  options.insert_threads = 1;
+  const std::string directory = FreshDirectory();
+  options.floats_dir = directory;
+  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension, options);
+  std::vector<std::span<const float>> codes(data.vectors.begin(),
+                                            data.vectors.end());
+  ASSERT_TRUE(index->AddNormalized(data.ids, codes).ok());
+  ASSERT_TRUE(index->Remove(std::vector<uint64_t>{3, 5, 7}).ok());
+  absl::StatusOr<std::string> bytes = Saved(*index);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  index.reset();
+  ASSERT_EQ(FloatFilesInUse(directory).second, 0);
+
+  const core::FileBytes file = FileHolding(directory, *bytes, 64);
+  std::unique_ptr<PlaceIndex> from_file = NewHnswIndex(kDimension, options);
+  core::ByteReader in(*bytes, &file);
+  ASSERT_TRUE(from_file->Load(in).ok());
+  EXPECT_EQ(FloatFilesInUse(directory).second, 0);
+  std::unique_ptr<PlaceIndex> copied = NewHnswIndex(kDimension, options);
+  ASSERT_TRUE(LoadFrom(*copied, *bytes).ok());
+  const Dataset queries = GaussianDataset(30, kDimension, rng);
+  ExpectSameAnswers(*copied, *from_file, queries.vectors);
+  std::vector<float> code;
+  for (uint64_t id : {0, 11, 999, 1999}) {
+    ASSERT_TRUE(from_file->CopyCode(data.ids[id], &code));
+    EXPECT_EQ(code, data.vectors[id]);
+  }
+  // Removed slots reused and new ones added: the rows written go to a file
+  // of the graph's own, the rest are still read from the snapshot's.
+  const Dataset more = GaussianDataset(10, kDimension, rng, 5000);
+  std::vector<std::span<const float>> more_codes(more.vectors.begin(),
+                                                 more.vectors.end());
+  for (PlaceIndex* each : {copied.get(), from_file.get()}) {
+    ASSERT_TRUE(each->AddNormalized(more.ids, more_codes).ok());
+  }
+  ExpectSameAnswers(*copied, *from_file, queries.vectors);
+  ASSERT_TRUE(from_file->CopyCode(more.ids[0], &code));
+  EXPECT_EQ(code, more.vectors[0]);
+  ASSERT_TRUE(from_file->CopyCode(data.ids[1998], &code));
+  EXPECT_EQ(code, data.vectors[1998]);
+  absl::StatusOr<std::string> again = Saved(*from_file);
+  absl::StatusOr<std::string> copied_again = Saved(*copied);
+  ASSERT_TRUE(again.ok() && copied_again.ok());
+  EXPECT_TRUE(*again == *copied_again);
+  from_file.reset();
+  copied.reset();
+  std::filesystem::remove_all(directory);
+}
+
+// Once a Save to a file is in it (PlaceIndex::SavedToFile), an int8 graph
+// reads its floats from there and frees its own file's blocks, but for the
+// rows written after the Save read them (a removed slot reused), which it
+// keeps: the same answers and codes as a twin whose floats stay on the
+// heap.
+TEST(HnswIndexTest, ASavedGraphReadsItsFloatsFromTheSnapshot) {
+  constexpr size_t kDimension = 24;
+  std::mt19937 rng(47);
+  const Dataset data = GaussianDataset(3000, kDimension, rng);
+  HnswIndexOptions heap_options;
+  heap_options.insert_threads = 1;
+  HnswIndexOptions file_options = heap_options;
+  const std::string directory = FreshDirectory();
+  file_options.floats_dir = directory;
+  std::unique_ptr<PlaceIndex> heap = NewHnswIndex(kDimension, heap_options);
+  std::unique_ptr<PlaceIndex> file = NewHnswIndex(kDimension, file_options);
+  std::vector<std::span<const float>> codes(data.vectors.begin(),
+                                            data.vectors.end());
+  ASSERT_TRUE(heap->AddNormalized(data.ids, codes).ok());
+  ASSERT_TRUE(file->AddNormalized(data.ids, codes).ok());
+  const size_t own_before = FloatFilesInUse(directory).first;
+  EXPECT_GE(own_before, 3000 * (kDimension + 1) * sizeof(float));
+
+  // Saved to a file through a writer that says where its bytes go.
+  std::string saved;
+  const core::FileBytes target = FileHolding(directory, "", 0);
+  {
+    core::ByteWriter out(
+        [&](std::span<const char> data) {
+          ASSERT_EQ(::pwrite(*target.descriptor, data.data(), data.size(),
+                             static_cast<off_t>(saved.size())),
+                    static_cast<ssize_t>(data.size()));
+          saved.append(data.data(), data.size());
+        },
+        &target);
+    ASSERT_TRUE(file->Save(out).ok());
+  }
+  // Written after the Save read the floats: a removed slot reused.
+  const Dataset more = GaussianDataset(1, kDimension, rng, 9000);
+  std::vector<std::span<const float>> more_codes(more.vectors.begin(),
+                                                 more.vectors.end());
+  for (PlaceIndex* each : {heap.get(), file.get()}) {
+    ASSERT_TRUE(each->Remove(std::vector<uint64_t>{data.ids[100]}).ok());
+    ASSERT_TRUE(each->AddNormalized(more.ids, more_codes).ok());
+  }
+  file->SavedToFile();
+  // What stays: the block of the row written since and the rows reserved
+  // past the saved ones (a quarter more than the 3,000).
+  EXPECT_LT(FloatFilesInUse(directory).first, own_before / 2);
+  const Dataset queries = GaussianDataset(30, kDimension, rng);
+  ExpectSameAnswers(*heap, *file, queries.vectors);
+  std::vector<float> code;
+  ASSERT_TRUE(file->CopyCode(more.ids[0], &code));
+  EXPECT_EQ(code, more.vectors[0]);
+  for (uint64_t id : {0, 99, 101, 2999}) {
+    ASSERT_TRUE(file->CopyCode(data.ids[id], &code));
+    EXPECT_EQ(code, data.vectors[id]);
+  }
+  // A second call has no Save to adopt: nothing changes.
+  file->SavedToFile();
+  ExpectSameAnswers(*heap, *file, queries.vectors);
+  file.reset();
+  std::filesystem::remove_all(directory);
 }
 
 }  // namespace

@@ -92,7 +92,7 @@ class TimedMemoryStore final : public engine::MemoryStore {
   }
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(std::span<const char>)>& read) override {
+      const engine::IndexSnapshotRead& read) override {
     return store_->ReadIndexSnapshot(fleet_id, read);
   }
   bool IndexSnapshotCurrent(std::string_view fleet_id) override {

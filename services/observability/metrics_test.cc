@@ -230,7 +230,8 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
   uint32_t read = 0;
   ASSERT_TRUE(store
                   ->ReadIndexSnapshot("f1",
-                                      [&read](std::span<const char> bytes) {
+                                      [&read](std::span<const char> bytes,
+                                              const core::FileBytes*) {
                                         core::ByteReader in(bytes);
                                         in.Get(&read);
                                         return absl::OkStatus();

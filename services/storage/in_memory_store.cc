@@ -248,7 +248,7 @@ class InMemoryStore final : public engine::MemoryStore {
 
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(std::span<const char>)>& read) override {
+      const engine::IndexSnapshotRead& read) override {
     std::vector<char> bytes;
     {
       absl::MutexLock lock(&mu_);
@@ -259,7 +259,7 @@ class InMemoryStore final : public engine::MemoryStore {
       }
       bytes = it->second.bytes;  // a copy: `read` runs outside the lock
     }
-    return read(bytes);
+    return read(bytes, nullptr);
   }
 
   bool IndexSnapshotCurrent(std::string_view fleet_id) override {

@@ -645,8 +645,8 @@ absl::Status SaveSnapshot(engine::MemoryStore& store, std::string_view fleet,
 absl::StatusOr<std::string> ReadSnapshot(engine::MemoryStore& store,
                                          std::string_view fleet) {
   std::string payload;
-  absl::Status status =
-      store.ReadIndexSnapshot(fleet, [&](std::span<const char> bytes) {
+  absl::Status status = store.ReadIndexSnapshot(
+      fleet, [&](std::span<const char> bytes, const core::FileBytes*) {
         payload.assign(bytes.begin(), bytes.end());
         return absl::OkStatus();
       });

@@ -574,7 +574,7 @@ class RocksDbStore final : public engine::MemoryStore {
 
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(std::span<const char>)>& read) override {
+      const engine::IndexSnapshotRead& read) override {
     if (absl::Status status = internal::CheckFleetId(fleet_id); !status.ok()) {
       return status;
     }

@@ -700,7 +700,8 @@ TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
   std::string earlier;
   ASSERT_TRUE((*store)
                   ->ReadIndexSnapshot("f1",
-                                      [&earlier](std::span<const char> bytes) {
+                                      [&earlier](std::span<const char> bytes,
+                                                 const core::FileBytes*) {
                                         core::ByteReader in(bytes);
                                         in.GetString(&earlier, 100);
                                         return absl::OkStatus();
@@ -734,8 +735,8 @@ TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
     file.put('b');
   }
   bool read = false;
-  absl::Status status =
-      (*store)->ReadIndexSnapshot("f1", [&read](std::span<const char>) {
+  absl::Status status = (*store)->ReadIndexSnapshot(
+      "f1", [&read](std::span<const char>, const core::FileBytes*) {
         read = true;
         return absl::OkStatus();
       });

@@ -90,20 +90,32 @@ absl::Status SyncParent(const std::string& path) {
       std::filesystem::path(path).parent_path().string());
 }
 
-// A read-only mapping of a whole file, unmapped on destruction.
+// `fd`, closed when the last copy is dropped.
+std::shared_ptr<const int> SharedDescriptor(int fd) {
+  return std::shared_ptr<const int>(new int(fd), [](const int* descriptor) {
+    ::close(*descriptor);
+    delete descriptor;
+  });
+}
+
+// A read-only mapping of a whole file, unmapped on destruction; the file
+// stays open as long as its descriptor is shared.
 class Mapping {
  public:
-  Mapping(const char* data, size_t size) : data_(data), size_(size) {}
+  Mapping(const char* data, size_t size, int fd)
+      : data_(data), size_(size), descriptor_(SharedDescriptor(fd)) {}
   ~Mapping() {
     if (size_ > 0) ::munmap(const_cast<char*>(data_), size_);
   }
   Mapping(const Mapping&) = delete;
   Mapping& operator=(const Mapping&) = delete;
   std::span<const char> bytes() const { return {data_, size_}; }
+  const std::shared_ptr<const int>& descriptor() const { return descriptor_; }
 
  private:
   const char* data_;
   size_t size_;
+  std::shared_ptr<const int> descriptor_;
 };
 
 // Opens the snapshot at `path` for reading: NOT_FOUND when absent.
@@ -138,13 +150,13 @@ absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
   void* data =
       ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE | MAP_POPULATE, fd, 0);
   const int error = errno;
-  ::close(fd);
   if (data == MAP_FAILED) {
+    ::close(fd);
     return absl::DataLossError(
         absl::StrCat("mmap '", path, "': ", ErrnoText(error)));
   }
   ::madvise(data, size, MADV_SEQUENTIAL);
-  return std::make_unique<Mapping>(static_cast<const char*>(data), size);
+  return std::make_unique<Mapping>(static_cast<const char*>(data), size, fd);
 }
 
 template <typename T>
@@ -189,10 +201,19 @@ absl::Status WriteSnapshotFile(
   uint64_t payload = 0;
   absl::Status status;
   {
-    core::ByteWriter out([&file, &payload](std::span<const char> bytes) {
-      file.Append(bytes, /*hashed=*/true);
-      payload += bytes.size();
-    });
+    // The payload's place in the file, for a writer's caller that reads it
+    // back from there once `written` says its bytes are in (the file's
+    // descriptor: the rename keeps it the snapshot's).
+    const int shared = ::dup(fd);
+    const core::FileBytes in_file{
+        .descriptor = shared >= 0 ? SharedDescriptor(shared) : nullptr,
+        .offset = kHeaderBytes + 8 + key.size()};
+    core::ByteWriter out(
+        [&file, &payload](std::span<const char> bytes) {
+          file.Append(bytes, /*hashed=*/true);
+          payload += bytes.size();
+        },
+        shared >= 0 ? &in_file : nullptr);
     status = write(out);
   }
   const uint64_t digest = file.digest();
@@ -223,7 +244,8 @@ absl::Status WriteSnapshotFile(
 
 absl::Status ReadSnapshotFile(
     const std::string& directory, std::string_view key,
-    const std::function<absl::Status(std::span<const char>)>& read,
+    const std::function<absl::Status(std::span<const char>,
+                                     const core::FileBytes*)>& read,
     uint64_t* stamp) {
   const std::string path = SnapshotFilePath(directory, key);
   absl::StatusOr<std::unique_ptr<Mapping>> mapping = Map(path);
@@ -264,7 +286,10 @@ absl::Status ReadSnapshotFile(
         absl::StrCat("index snapshot '", path, "' belongs to another key"));
   }
   if (stamp != nullptr) *stamp = ReadAt<uint64_t>(bytes, kMagic.size());
-  return read(bytes.subspan(kHeaderBytes + 8 + key_size, payload_size));
+  const core::FileBytes in_file{.descriptor = (*mapping)->descriptor(),
+                                .offset = kHeaderBytes + 8 + key_size};
+  return read(bytes.subspan(kHeaderBytes + 8 + key_size, payload_size),
+              &in_file);
 }
 
 absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,

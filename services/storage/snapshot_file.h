@@ -30,7 +30,9 @@ namespace fleetmem::storage {
 // error (a disk reserve). `written`, if set, is called once `write` has
 // returned OK and its bytes are in the file (not yet synced): the caller
 // may change what `write` read from then on; it gets the file's checksum
-// (SnapshotFileId::digest). On any error (`write`'s,
+// (SnapshotFileId::digest). `write`'s ByteWriter says where the payload
+// lies in the file (ByteWriter::file): what it wrote may be read from
+// there once this returns OK. On any error (`write`'s,
 // `check_room`'s, or I/O: a full disk, a failed fsync) the earlier snapshot
 // of `key`, if any, is left as it was, no temporary file remains, and the
 // status says so. Calls for one key must not overlap (they share the
@@ -56,14 +58,16 @@ struct SnapshotFileId {
 absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
                                                   std::string_view key);
 
-// Calls `read` with the payload of `key`'s snapshot in `directory` and
-// returns its status if the frame and checksum are intact and the key is
-// `key`; the file stays. NOT_FOUND when there is none, DATA_LOSS when it is
-// damaged (the file is then removed); `read` is not called then. `*stamp`,
-// if given, gets the stamp the file was written with.
+// Calls `read` with the payload of `key`'s snapshot in `directory` (and
+// where it lies in the file, which `read` may keep open: the payload is
+// mapped from it) and returns its status if the frame and checksum are
+// intact and the key is `key`; the file stays. NOT_FOUND when there is none,
+// DATA_LOSS when it is damaged (the file is then removed); `read` is not called
+// then. `*stamp`, if given, gets the stamp the file was written with.
 absl::Status ReadSnapshotFile(
     const std::string& directory, std::string_view key,
-    const std::function<absl::Status(std::span<const char>)>& read,
+    const std::function<absl::Status(std::span<const char>,
+                                     const core::FileBytes*)>& read,
     uint64_t* stamp = nullptr);
 
 // The file that holds `key`'s snapshot in `directory`.

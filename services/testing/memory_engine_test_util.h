@@ -244,7 +244,7 @@ class SlowSyncStore : public ForwardingStore {
   }
   absl::Status ReadIndexSnapshot(
       std::string_view fleet_id,
-      const std::function<absl::Status(std::span<const char>)>& read) override {
+      const engine::IndexSnapshotRead& read) override {
     return inner_->ReadIndexSnapshot(fleet_id, read);
   }
 

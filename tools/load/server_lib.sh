@@ -137,3 +137,20 @@ server_rss_mib() {
   pid=$(pgrep -P "$1" -f fleetmem-server || echo "$1")
   echo $(( $(ps -o rss= -p "$pid") / 1024 ))
 }
+
+# server_held_mib PID: the disk blocks of the files fleetmem-server PID (or
+# its child) holds open that no directory shows, in MiB, as "FLOATS HELD":
+# its graphs' floats' files (unlinked when made) and snapshot files replaced
+# since it opened them (a graph reads its floats from its snapshot's file).
+server_held_mib() {
+  local pid fd target floats=0 held=0
+  pid=$(pgrep -P "$1" -f fleetmem-server || echo "$1")
+  for fd in /proc/"$pid"/fd/*; do
+    target=$(readlink "$fd" || true)
+    case "$target" in
+      *graph-floats*) floats=$((floats + $(stat -Lc '%b * %B' "$fd"))) ;;
+      *.snapshot*"(deleted)") held=$((held + $(stat -Lc '%b * %B' "$fd"))) ;;
+    esac
+  done
+  echo "$((floats / 1048576)) $((held / 1048576))"
+}
