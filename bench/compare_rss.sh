@@ -23,7 +23,9 @@
 # dir as B's runs left it), WARM=1 reads the data dir into the page cache
 # before each start (untimed), HNSW_CODES (int8 or float) sets the graph's codes of both,
 # HNSW_FLOATS (file or memory) where int8 graphs keep their floats (the
-# same build twice with each setting compares the two).
+# same build twice with each setting compares the two), SAVE=1 ends the
+# last round's starts with a replay draw and a clean stop, whose snapshot
+# saves it prints.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 if [ $# -lt 2 ]; then
@@ -97,6 +99,15 @@ for round in $(seq 0 "$rounds"); do
       # A's later rounds load as after any clean stop.
       stop_server
       save_line "A's stop" "$work/restart.log"
+    elif [ -n "${SAVE:-}" ] && [ "$round" -eq "$rounds" ]; then
+      # SAVE=1: the last round's servers each draw one replay sample (a
+      # write of the store: the stop must save again) and stop cleanly, so
+      # that both builds save the same fleet after the same start.
+      "$b/bin/fleetmem" --server "$SERVER_ADDR" sample --fleet scale \
+        --robot robot-0 --count 1000 >/dev/null
+      stop_server
+      save_line "$([ "$build" = "$a" ] && echo A || echo B)'s stop after a replay draw" \
+        "$work/restart.log"
     else
       kill -9 "$SERVER_PID"
       wait "$SERVER_PID" 2>/dev/null || true
