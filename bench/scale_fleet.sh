@@ -22,8 +22,10 @@
 #             (the durable write included);
 #   restart   SIGTERM (the index snapshot written; its seconds from the
 #             log), then a start timed until the port answers, the engine's
-#             load split, the RSS 3 s after and its peak (VmHWM), and the
-#             engine's lines about the load (as comments).
+#             load split, the RSS 3 s after and its peak (VmHWM), the disk
+#             its graph then holds beside the data dir (floats' file,
+#             replaced snapshots still read), and the engine's lines about
+#             the load (as comments).
 #
 #   bench/scale_fleet.sh [BUILD_DIR] [N] [OUT]
 #   (default: build 10000000 /dev/stdout; OUT gets one `name,value` per line)
@@ -191,6 +193,11 @@ SERVER_START_SECONDS=3600 start_server "$build" "$work/data" \
 row restart_port_seconds "$(seconds_since "$start")"
 sleep 3
 row restart_rss_mib "$(server_rss_mib "$SERVER_PID")"
+# What the graph holds beside the data dir after the start: since the
+# tenth round it reads its floats from the snapshot's file (no copy).
+held=$(server_held_mib "$SERVER_PID")
+row restart_floats_file_mib "${held% *}"
+row restart_held_snapshot_mib "${held#* }"
 split=$(sed -n 's/.*store read \([0-9.]*\) s, memory and index \([0-9.]*\) s.*/\1 \2/p' \
   "$work/restart.log")
 row restart_store_read_seconds "${split% *}"
