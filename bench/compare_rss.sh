@@ -25,7 +25,8 @@
 # HNSW_FLOATS (file or memory) where int8 graphs keep their floats (the
 # same build twice with each setting compares the two), SAVE=1 ends the
 # last round's starts with a replay draw and a clean stop, whose snapshot
-# saves it prints.
+# saves it prints, A_WRAPPER runs A's servers under a command (e.g. "env
+# GLIBC_TUNABLES=glibc.malloc.hugetlb=1", with A and B the same build).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 if [ $# -lt 2 ]; then
@@ -71,9 +72,11 @@ for round in $(seq 0 "$rounds"); do
     if [ -n "${WARM:-}" ]; then
       find "$data" -type f -exec cat {} + >/dev/null
     fi
+    wrapper=
+    [ "$build" != "$a" ] || wrapper=${A_WRAPPER:-}
     start=$(date +%s.%N)
-    SERVER_START_SECONDS=1200 start_server "$build" "$data" \
-      "$work/restart.log" --config "$work/restart.textproto"
+    SERVER_WRAPPER=$wrapper SERVER_START_SECONDS=1200 start_server "$build" \
+      "$data" "$work/restart.log" --config "$work/restart.textproto"
     port_s=$(awk "BEGIN { printf \"%.2f\", $(date +%s.%N) - $start }")
     sleep 3
     rss=$(server_rss_mib "$SERVER_PID")

@@ -64,6 +64,12 @@ EXPOSE 50051 8080
 # docker/healthcheck.sh).
 HEALTHCHECK --interval=10s --timeout=3s --start-period=30s --retries=3 \
   CMD ["fleetmem-healthcheck"]
+# glibc's malloc asks for transparent huge pages for its larger blocks
+# (where the host's THP mode is `madvise`, Debian's default, or `always`):
+# fewer page faults while a start builds its memory, the graph and the
+# maps; a restart of 1,000,000 traces opened its port 0.69-0.81x as late
+# for 1-2 MiB more resident (docs/performance.md, tenth round of issue 49).
+ENV GLIBC_TUNABLES=glibc.malloc.hugetlb=1
 ENTRYPOINT ["fleetmem-server"]
 CMD ["--config", "/etc/fleetmem/server.textproto"]
 ARG FLEETMEM_VERSION=0.1.0
