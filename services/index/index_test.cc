@@ -1547,25 +1547,34 @@ TEST(FileFloatRowsTest, RowsComeBackAndTheFileIsNowhereToBeSeen) {
   std::filesystem::remove(directory);
 }
 
-// Writes the file of each FileFloatRows made in `directory` back and drops
-// its pages from the page cache (the file is unlinked: it is found among
-// this process's descriptors), so that the next reads go to the disk.
-void DropFloatsFromPageCache(const std::string& directory) {
+// This process's descriptors of the floats' files made in `directory`
+// (unlinked: found through /proc/self/fd).
+std::vector<int> FloatFileDescriptors(const std::string& directory) {
   const std::string made =
       std::filesystem::canonical(directory).string() + "/graph-floats-";
-  int dropped = 0;
+  std::vector<int> descriptors;
   for (const auto& entry :
        std::filesystem::directory_iterator("/proc/self/fd")) {
     std::error_code error;
     const std::string target =
         std::filesystem::read_symlink(entry.path(), error).string();
     if (error || target.rfind(made, 0) != 0) continue;
-    const int fd = std::stoi(entry.path().filename().string());
+    descriptors.push_back(std::stoi(entry.path().filename().string()));
+  }
+  return descriptors;
+}
+
+// Writes the file of each FileFloatRows made in `directory` back and drops
+// its pages from the page cache, so that the next reads go to the disk.
+void DropFloatsFromPageCache(const std::string& directory) {
+  int dropped = 0;
+  for (const int fd : FloatFileDescriptors(directory)) {
     ASSERT_EQ(::fdatasync(fd), 0);
     ASSERT_EQ(::posix_fadvise(fd, 0, 0, POSIX_FADV_DONTNEED), 0);
     ++dropped;
   }
-  ASSERT_GT(dropped, 0) << "no floats' file of " << made << " is open";
+  ASSERT_GT(dropped, 0) << "no floats' file made in " << directory
+                        << " is open";
 }
 
 // Gather hands back the rows asked, in the order asked and repeated where
@@ -1707,18 +1716,11 @@ core::FileBytes FileHolding(const std::string& directory,
 // The disk blocks (st_blocks) of the floats' files made in `directory`
 // that this process holds open, and how many there are.
 std::pair<size_t, int> FloatFilesInUse(const std::string& directory) {
-  const std::string made =
-      std::filesystem::canonical(directory).string() + "/graph-floats-";
   size_t bytes = 0;
   int files = 0;
-  for (const auto& entry :
-       std::filesystem::directory_iterator("/proc/self/fd")) {
-    std::error_code error;
-    const std::string target =
-        std::filesystem::read_symlink(entry.path(), error).string();
-    if (error || target.rfind(made, 0) != 0) continue;
+  for (const int fd : FloatFileDescriptors(directory)) {
     struct stat info;
-    if (::stat(entry.path().c_str(), &info) != 0) continue;
+    if (::fstat(fd, &info) != 0) continue;
     bytes += static_cast<size_t>(info.st_blocks) * 512;
     ++files;
   }
@@ -1828,6 +1830,22 @@ TEST(FileFloatRowsTest, AdoptingSavedRowsKeepsTheRowsWrittenSince) {
   std::filesystem::remove_all(directory);
 }
 
+// An HNSW index (int8 codes, one insert thread: the same graph from the
+// same adds) holding `data`'s codes as uploaded, its floats in
+// `floats_dir` (on the heap when empty).
+std::unique_ptr<PlaceIndex> Int8IndexHolding(const Dataset& data,
+                                             size_t dimension,
+                                             const std::string& floats_dir) {
+  HnswIndexOptions options;
+  options.insert_threads = 1;
+  options.floats_dir = floats_dir;
+  std::unique_ptr<PlaceIndex> index = NewHnswIndex(dimension, options);
+  const std::vector<std::span<const float>> codes(data.vectors.begin(),
+                                                  data.vectors.end());
+  EXPECT_TRUE(index->AddNormalized(data.ids, codes).ok());
+  return index;
+}
+
 // An int8 graph loaded from a snapshot that lies in a file (as the RocksDB
 // store hands it over) makes no floats' file until it writes a row: its
 // floats are read from the snapshot's. Answers and codes are those of the
@@ -1837,15 +1855,13 @@ TEST(HnswIndexTest, AGraphLoadedFromAFileReadsItsFloatsThere) {
   constexpr size_t kDimension = 24;
   std::mt19937 rng(43);
   const Dataset data = GaussianDataset(2000, kDimension, rng);
+  const std::string directory = FreshDirectory();
+  std::unique_ptr<PlaceIndex> index =
+      Int8IndexHolding(data, kDimension, directory);
+  ASSERT_TRUE(index->Remove(std::vector<uint64_t>{3, 5, 7}).ok());
   HnswIndexOptions options;
   options.insert_threads = 1;
-  const std::string directory = FreshDirectory();
   options.floats_dir = directory;
-  std::unique_ptr<PlaceIndex> index = NewHnswIndex(kDimension, options);
-  std::vector<std::span<const float>> codes(data.vectors.begin(),
-                                            data.vectors.end());
-  ASSERT_TRUE(index->AddNormalized(data.ids, codes).ok());
-  ASSERT_TRUE(index->Remove(std::vector<uint64_t>{3, 5, 7}).ok());
   absl::StatusOr<std::string> bytes = Saved(*index);
   ASSERT_TRUE(bytes.ok()) << bytes.status();
   index.reset();
@@ -1896,17 +1912,10 @@ TEST(HnswIndexTest, ASavedGraphReadsItsFloatsFromTheSnapshot) {
   constexpr size_t kDimension = 24;
   std::mt19937 rng(47);
   const Dataset data = GaussianDataset(3000, kDimension, rng);
-  HnswIndexOptions heap_options;
-  heap_options.insert_threads = 1;
-  HnswIndexOptions file_options = heap_options;
   const std::string directory = FreshDirectory();
-  file_options.floats_dir = directory;
-  std::unique_ptr<PlaceIndex> heap = NewHnswIndex(kDimension, heap_options);
-  std::unique_ptr<PlaceIndex> file = NewHnswIndex(kDimension, file_options);
-  std::vector<std::span<const float>> codes(data.vectors.begin(),
-                                            data.vectors.end());
-  ASSERT_TRUE(heap->AddNormalized(data.ids, codes).ok());
-  ASSERT_TRUE(file->AddNormalized(data.ids, codes).ok());
+  std::unique_ptr<PlaceIndex> heap = Int8IndexHolding(data, kDimension, "");
+  std::unique_ptr<PlaceIndex> file =
+      Int8IndexHolding(data, kDimension, directory);
   const size_t own_before = FloatFilesInUse(directory).first;
   EXPECT_GE(own_before, 3000 * (kDimension + 1) * sizeof(float));
 
