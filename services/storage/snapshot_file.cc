@@ -90,6 +90,10 @@ absl::Status SyncParent(const std::string& path) {
       std::filesystem::path(path).parent_path().string());
 }
 
+// Where a snapshot's payload starts in its file: after the header, the
+// key's length and the key.
+uint64_t PayloadOffset(size_t key_size) { return kHeaderBytes + 8 + key_size; }
+
 // `fd`, closed when the last copy is dropped.
 std::shared_ptr<const int> SharedDescriptor(int fd) {
   return std::shared_ptr<const int>(new int(fd), [](const int* descriptor) {
@@ -207,7 +211,7 @@ absl::Status WriteSnapshotFile(
     const int shared = ::dup(fd);
     const core::FileBytes in_file{
         .descriptor = shared >= 0 ? SharedDescriptor(shared) : nullptr,
-        .offset = kHeaderBytes + 8 + key.size()};
+        .offset = PayloadOffset(key.size())};
     core::ByteWriter out(
         [&file, &payload](std::span<const char> bytes) {
           file.Append(bytes, /*hashed=*/true);
@@ -287,9 +291,8 @@ absl::Status ReadSnapshotFile(
   }
   if (stamp != nullptr) *stamp = ReadAt<uint64_t>(bytes, kMagic.size());
   const core::FileBytes in_file{.descriptor = (*mapping)->descriptor(),
-                                .offset = kHeaderBytes + 8 + key_size};
-  return read(bytes.subspan(kHeaderBytes + 8 + key_size, payload_size),
-              &in_file);
+                                .offset = PayloadOffset(key_size)};
+  return read(bytes.subspan(in_file.offset, payload_size), &in_file);
 }
 
 absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
@@ -300,7 +303,7 @@ absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
   const int fd = *opened;
   // The header, the key and the trailer; the payload between is not read.
   struct stat info;
-  std::vector<char> head(kHeaderBytes + 8 + key.size());
+  std::vector<char> head(PayloadOffset(key.size()));
   char trailer[kTrailerBytes];
   const bool read =
       ::fstat(fd, &info) == 0 &&
