@@ -214,9 +214,19 @@ struct LoadedSnapshot {
   std::span<const char> image;
   std::span<const char> handle_bytes;
   bool image_loaded = false;
+  // `dimension` and `centroids` are read (and the checksum passed).
+  bool centroids_read = false;
   double handles_seconds = 0;
+  double check_seconds = 0;  // the store's checksum (IndexSnapshotBytes)
   double index_seconds = 0;
+  double thread_waited_seconds = 0;  // the load's join of the reading thread
   size_t unindexed = 0;  // the loaded index's codes outside its graph
+  // Set while a thread still reads the snapshot into this (the load's
+  // SnapshotReader, after the clusters came from the memory image): wait
+  // until `centroids_read` is set or will not be (`dimension` is set
+  // then), and until the thread ended (every member set).
+  std::function<void()> await_centroids;
+  std::function<void()> await_all;
 };
 
 // One fleet's state. Every member but `id`, `engine`, the mutexes and
@@ -254,8 +264,10 @@ struct MemoryEngine::Fleet {
       std::vector<core::Cluster>& clusters) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // A load from the fleet's index snapshot (written by SaveIndexSnapshot
   // at a clean shutdown or periodically while serving), read and its index
-  // loaded beside the store's read (ReadSnapshot): memory restores
-  // `clusters` with forgetting's centroid bookkeeping from it; then both
+  // loaded beside the store's read (ReadSnapshot; after a read of the
+  // memory image the index may still be loading: LoadedSnapshot::
+  // await_all): memory restores `clusters` with forgetting's centroid
+  // bookkeeping from it, meanwhile; then both
   // are reconciled with `traces`, the stored ones: what the snapshot holds
   // that the store no longer does is removed, what it lacks is added under
   // new handles (the tiered index's background thread catches up). On an
@@ -263,7 +275,7 @@ struct MemoryEngine::Fleet {
   // memory is complete and only the index must be rebuilt (it is left
   // without one then).
   absl::Status LoadFromSnapshot(
-      LoadedSnapshot snapshot, std::vector<core::Cluster>& clusters,
+      LoadedSnapshot& snapshot, std::vector<core::Cluster>& clusters,
       const std::vector<const core::MemoryTrace*>& traces, bool* restored)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // Writes the index and the handles through the store (SaveIndexSnapshots);

@@ -86,16 +86,26 @@ class Signal {
 struct SnapshotHandOff {
   // Set before the read: a snapshot with a memory image hands the image and
   // the handles' bytes to the loading thread (ReadWithImage), which parses
-  // both while this thread loads the index; the file stays mapped until
-  // the loading thread notifies `released`.
+  // both while this thread checks the snapshot's checksum and then loads
+  // the index; the file stays mapped until the loading thread notifies
+  // `released`.
   bool split = false;
   // Notified once `loaded.image` and `loaded.handle_bytes` are set
   // (image_loaded) or it is known that they will not be.
   Signal image_read;
+  // Notified once the checksum's verdict is in `checked`, or it is known
+  // that there will be none (`checked` is then not OK). What the loading
+  // thread parsed from the image is used only once `checked` is OK.
+  Signal check_done;
+  absl::Status checked =
+      absl::DataLossError("the snapshot's checksum was not checked");
   // Notified once the snapshot's handles are in `loaded` (handles_loaded)
   // or it is known that they will not be; `loaded.handles` is not touched
   // after that.
   Signal handles_read;
+  // Notified once `loaded.centroids` are read (centroids_read) or it is
+  // known that they will not be: memory restores beside the index's load.
+  Signal centroids_read;
   Signal released;
 };
 
@@ -119,24 +129,16 @@ absl::Status LoadHandles(std::span<const char> bytes, LoadedSnapshot& loaded) {
   return status;
 }
 
-// ENG3's memory image and handles: handed to the loading thread
-// (`hand_off.split`: `*handed` is set) or the handles parsed here.
-absl::Status TakeImageAndHandles(core::ByteReader& in, LoadedSnapshot& loaded,
-                                 SnapshotHandOff& hand_off, bool* handed) {
+// ENG3's memory image and handles, as spans into the snapshot.
+absl::Status TakeImageAndHandles(core::ByteReader& in,
+                                 std::span<const char>* image,
+                                 std::span<const char>* handle_bytes) {
   uint64_t image_size = 0;
   uint64_t handles_size = 0;
-  std::span<const char> image;
-  std::span<const char> handle_bytes;
-  if (!in.Get(&image_size) || !in.GetSpan(image_size, &image) ||
-      !in.Get(&handles_size) || !in.GetSpan(handles_size, &handle_bytes)) {
+  if (!in.Get(&image_size) || !in.GetSpan(image_size, image) ||
+      !in.Get(&handles_size) || !in.GetSpan(handles_size, handle_bytes)) {
     return absl::DataLossError("truncated memory image or handles");
   }
-  if (!hand_off.split) return LoadHandles(handle_bytes, loaded);
-  loaded.image = image;
-  loaded.handle_bytes = handle_bytes;
-  loaded.image_loaded = true;
-  *handed = true;
-  hand_off.image_read.Notify();
   return absl::OkStatus();
 }
 
@@ -161,11 +163,51 @@ absl::Status ReadHeader(core::ByteReader& in, uint32_t* format,
   return absl::OkStatus();
 }
 
+// The handles and centroids of a snapshot whose checksum passed, then its
+// index (made by `factory`): ReadSnapshot's part after the check.
+absl::Status LoadCheckedSnapshot(core::ByteReader& in, uint32_t format,
+                                 const IndexSettings& index,
+                                 std::span<const char> handle_bytes,
+                                 bool handed, const FleetIndexFactory& factory,
+                                 LoadedSnapshot& loaded,
+                                 SnapshotHandOff& hand_off, absl::Time start) {
+  if (!handed) {
+    hand_off.image_read.Notify();
+    absl::Status handles = format == kIndexSnapshotFormat
+                               ? LoadHandles(handle_bytes, loaded)
+                               : LoadHandles(in, loaded);
+    if (!handles.ok()) return handles;
+    loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
+    hand_off.handles_read.Notify();
+  }
+  uint64_t centroid_size = 0;
+  std::span<const char> centroid_bytes;
+  if (!in.Get(&centroid_size) || !in.GetSpan(centroid_size, &centroid_bytes)) {
+    return absl::DataLossError("truncated centroids");
+  }
+  loaded.centroids.assign(centroid_bytes.begin(), centroid_bytes.end());
+  loaded.centroids_read = true;
+  hand_off.centroids_read.Notify();
+  loaded.index = factory(loaded.dimension, index);
+  if (loaded.index == nullptr) return absl::InternalError("no index made");
+  const absl::Time index_start = absl::Now();
+  absl::Status status = loaded.index->Load(in);
+  loaded.index_seconds = absl::ToDoubleSeconds(absl::Now() - index_start);
+  loaded.unindexed = loaded.index->unindexed();
+  if (status.ok() && in.remaining() != 0) {
+    status = absl::DataLossError("bytes after the index");
+  }
+  loaded.index_status = status;
+  return absl::OkStatus();
+}
+
 // Reads `fleet_id`'s index snapshot through `store` into `loaded` and loads
 // its index (made by `factory` for the snapshot's dimension and index
 // settings). Needs nothing of the fleet, so it runs beside the store's
 // LoadFleet (each is seconds long at 1,000,000 traces); `hand_off` says
-// what it leaves to the loading thread and when.
+// what it leaves to the loading thread and when: with `split`, the image
+// and the handles are handed over before the checksum is checked, and the
+// loading thread parses them meanwhile.
 void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
                   std::string_view fleet_id, LoadedSnapshot& loaded,
                   SnapshotHandOff& hand_off) {
@@ -174,18 +216,18 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
     // After the read: with the spans handed over, the loading thread has
     // released them (so parsed the handles) before it returned.
     hand_off.image_read.Notify();
+    hand_off.check_done.Notify();
     hand_off.handles_read.Notify();
+    hand_off.centroids_read.Notify();
   };
   const absl::Time start = absl::Now();
   loaded.status = store.ReadIndexSnapshot(
-      fleet_id,
-      [&](std::span<const char> bytes,
-          const core::FileBytes* file) -> absl::Status {
+      fleet_id, [&](const IndexSnapshotBytes& snapshot) -> absl::Status {
         // The loading thread reads the spans until it releases them.
         absl::Cleanup keep_mapped = [&] {
           if (handed) hand_off.released.Wait();
         };
-        core::ByteReader in(bytes, file);
+        core::ByteReader in(snapshot.bytes, snapshot.file);
         uint32_t format = 0;
         IndexSettings index;
         if (absl::Status header =
@@ -193,58 +235,46 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
             !header.ok()) {
           return header;
         }
+        std::span<const char> image;
+        std::span<const char> handle_bytes;
         if (format == kIndexSnapshotFormat) {
-          absl::Status taken =
-              TakeImageAndHandles(in, loaded, hand_off, &handed);
+          absl::Status taken = TakeImageAndHandles(in, &image, &handle_bytes);
           if (!taken.ok()) return taken;
-        } else {
-          hand_off.image_read.Notify();
-          if (absl::Status handles = LoadHandles(in, loaded); !handles.ok()) {
-            return handles;
+          if (hand_off.split) {
+            loaded.image = image;
+            loaded.handle_bytes = handle_bytes;
+            loaded.image_loaded = true;
+            handed = true;
+            hand_off.image_read.Notify();
           }
         }
-        if (!handed) {
-          loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
-          hand_off.handles_read.Notify();
-        }
-        uint64_t centroid_size = 0;
-        std::span<const char> centroid_bytes;
-        if (!in.Get(&centroid_size) ||
-            !in.GetSpan(centroid_size, &centroid_bytes)) {
-          return absl::DataLossError("truncated centroids");
-        }
-        loaded.centroids.assign(centroid_bytes.begin(), centroid_bytes.end());
-        loaded.index = factory(loaded.dimension, index);
-        if (loaded.index == nullptr) {
-          return absl::InternalError("no index made");
-        }
-        const absl::Time index_start = absl::Now();
-        absl::Status status = loaded.index->Load(in);
-        loaded.index_seconds = absl::ToDoubleSeconds(absl::Now() - index_start);
-        loaded.unindexed = loaded.index->unindexed();
-        if (status.ok() && in.remaining() != 0) {
-          status = absl::DataLossError("bytes after the index");
-        }
-        loaded.index_status = status;
-        return absl::OkStatus();
+        const absl::Time check_start = absl::Now();
+        absl::Status checked = snapshot.check();
+        loaded.check_seconds = absl::ToDoubleSeconds(absl::Now() - check_start);
+        hand_off.checked = checked;
+        hand_off.check_done.Notify();
+        if (!checked.ok()) return checked;
+        return LoadCheckedSnapshot(in, format, index, handle_bytes, handed,
+                                   factory, loaded, hand_off, start);
       });
 }
 
 // How Reload's read of the store went beside the snapshot's thread.
 struct ReadTimes {
   absl::Duration waited_for_handles;  // by the store's read
-  absl::Duration thread_after_read;   // the snapshot's thread, joined after
   // The clusters came from the snapshot's memory image, without their codes
   // (the store read the rest of the fleet).
   bool from_image = false;
-  absl::Duration image;  // waiting for the image, decoding it and the handles
+  // Waiting for the image, decoding it and the handles, and for the
+  // checksum's verdict.
+  absl::Duration image;
 };
 
 // The fleet's record with its clusters from the memory image the snapshot's
 // thread hands over (`hand_off`), and the rest from `store`; the
-// snapshot's handles are parsed here too, beside that thread's index.
-// nullopt if the snapshot has no image that decodes (the store's read then
-// reads the clusters).
+// snapshot's handles are parsed here too, beside that thread's checksum
+// and index. nullopt if the snapshot has no image that decodes or fails
+// its checksum (the store's read then reads the clusters).
 absl::StatusOr<std::optional<FleetRecord>> ReadWithImage(
     MemoryStore& store, std::string_view fleet_id, LoadedSnapshot& loaded,
     SnapshotHandOff& hand_off) {
@@ -263,9 +293,12 @@ absl::StatusOr<std::optional<FleetRecord>> ReadWithImage(
   loaded.handles_seconds = absl::ToDoubleSeconds(absl::Now() - start);
   loaded.image = {};
   loaded.handle_bytes = {};
-  if (!handles.ok()) {
+  // Parsed before the checksum passed: used only after.
+  hand_off.check_done.Wait();
+  if (!hand_off.checked.ok() || !handles.ok()) {
     // The snapshot is unusable: the store's read, the index rebuilt.
     loaded.handles = TraceHandles();
+    loaded.handles_loaded = false;
     return std::nullopt;
   }
   if (!clusters.ok()) {
@@ -278,75 +311,117 @@ absl::StatusOr<std::optional<FleetRecord>> ReadWithImage(
   return std::optional<FleetRecord>(*std::move(record));
 }
 
-// Reads `fleet_id` from `store` while a second thread reads its index
-// snapshot into `snapshot` and loads its index there, without the codes
-// the snapshot's handles say it holds but a sample for Reconcile's check.
-// The store asks about each code once it has read the fleet's records
-// (which takes about as long as the snapshot's checksum and handles): the
-// wait is short, and reading every code meanwhile would cost more.
-// When the store says that the snapshot is current, the fleet's clusters
-// come from its memory image instead, and this thread parses the image
-// and the handles while the second loads the index (ReadWithImage).
-absl::StatusOr<FleetRecord> ReadBesideSnapshot(MemoryStore& store,
-                                               const FleetIndexFactory& factory,
-                                               std::string_view fleet_id,
-                                               LoadedSnapshot& snapshot,
-                                               ReadTimes* times) {
-  const bool current = store.IndexSnapshotCurrent(fleet_id);
-  SnapshotHandOff hand_off;
-  hand_off.split = current;
-  auto read_snapshot = [&] {
-    ReadSnapshot(store, factory, fleet_id, snapshot, hand_off);
+// A fleet's index snapshot read on a second thread (ReadSnapshot) beside
+// the loading thread's read of the store (Read), into `loaded`; joined by
+// Finish (or the destructor). After a read of the clusters from the
+// snapshot's memory image the thread is still loading the index when Read
+// returns: memory restores meanwhile (LoadedSnapshot::await_centroids,
+// await_all).
+class SnapshotReader {
+ public:
+  SnapshotReader(MemoryStore& store, FleetIndexFactory factory,
+                 std::string_view fleet_id, LoadedSnapshot& loaded)
+      : store_(store),
+        factory_(std::move(factory)),
+        fleet_id_(fleet_id),
+        loaded_(loaded) {}
+  ~SnapshotReader() {
+    Finish();
+    loaded_.await_centroids = nullptr;
+    loaded_.await_all = nullptr;
+  }
+
+  // Reads `fleet_id` from the store while the second thread reads the
+  // snapshot and loads its index there, without the codes the snapshot's
+  // handles say it holds but a sample for Reconcile's check. The store
+  // asks about each code once it has read the fleet's records (which takes
+  // about as long as the snapshot's checksum and handles): the wait is
+  // short, and reading every code meanwhile would cost more. When the
+  // store says that the snapshot is current, the fleet's clusters come
+  // from its memory image instead, and this thread parses the image and
+  // the handles while the second checks the checksum and loads the index
+  // (ReadWithImage); the thread is then left running (Finish).
+  absl::StatusOr<FleetRecord> Read(ReadTimes* times);
+
+  // Joins the thread (once; LoadedSnapshot::thread_waited_seconds says how
+  // long it waited); the index must then hold what the handles name.
+  void Finish();
+
+ private:
+  MemoryStore& store_;
+  const FleetIndexFactory factory_;
+  const std::string_view fleet_id_;
+  LoadedSnapshot& loaded_;
+  SnapshotHandOff hand_off_;
+  std::thread thread_;
+  bool finished_ = false;
+};
+
+absl::StatusOr<FleetRecord> SnapshotReader::Read(ReadTimes* times) {
+  const bool current = store_.IndexSnapshotCurrent(fleet_id_);
+  hand_off_.split = current;
+  auto read_snapshot = [this] {
+    ReadSnapshot(store_, factory_, fleet_id_, loaded_, hand_off_);
   };
-  std::thread beside;
   try {
-    beside = std::thread(read_snapshot);
+    thread_ = std::thread(read_snapshot);
   } catch (const std::system_error&) {
-    hand_off.split = false;  // nothing to hand to: it ends before
-    read_snapshot();         // no thread: one after the other
+    hand_off_.split = false;  // nothing to hand to: it ends before
+    read_snapshot();          // no thread: one after the other
   }
   bool handles_waited = false;  // asked once per trace: one wait
   auto held_by_snapshot = [&](const core::TraceKey& key) {
     if (!handles_waited) {
       const absl::Time wait = absl::Now();
-      hand_off.handles_read.Wait();
+      hand_off_.handles_read.Wait();
       times->waited_for_handles = absl::Now() - wait;
       handles_waited = true;
     }
-    if (!snapshot.handles_loaded) return false;
-    const uint64_t handle = snapshot.handles.Find(key);
+    if (!loaded_.handles_loaded) return false;
+    const uint64_t handle = loaded_.handles.Find(key);
     return handle != 0 &&
-           !FleetIndex::CheckedOnLoad(handle, snapshot.handles.size());
+           !FleetIndex::CheckedOnLoad(handle, loaded_.handles.size());
   };
   absl::StatusOr<std::optional<FleetRecord>> imaged = std::nullopt;
-  if (current) {
+  if (hand_off_.split) {
     const absl::Time start = absl::Now();
-    imaged = ReadWithImage(store, fleet_id, snapshot, hand_off);
+    imaged = ReadWithImage(store_, fleet_id_, loaded_, hand_off_);
     times->image = absl::Now() - start;
   } else {
-    hand_off.released.Notify();
+    hand_off_.released.Notify();
   }
   times->from_image = imaged.ok() && imaged->has_value();
   absl::StatusOr<FleetRecord> record =
       !imaged.ok() ? imaged.status()
       : times->from_image
           ? **std::move(imaged)
-          : store.LoadFleetWithoutHeldCodes(fleet_id, held_by_snapshot);
-  const absl::Time store_done = absl::Now();
-  if (beside.joinable()) beside.join();
-  times->thread_after_read = absl::Now() - store_done;
-  // The index must hold what the handles name (the handles may have been
-  // parsed on this thread).
-  if (snapshot.status.ok() && snapshot.index_status.ok() &&
-      (!snapshot.handles_loaded ||
-       snapshot.index->size() != snapshot.handles.size())) {
-    snapshot.index_status =
-        absl::DataLossError("the index does not match its handles");
-  }
-  if (!snapshot.status.ok() || !snapshot.index_status.ok()) {
-    snapshot.index.reset();
+          : store_.LoadFleetWithoutHeldCodes(fleet_id_, held_by_snapshot);
+  if (times->from_image) {
+    loaded_.await_centroids = [this] { hand_off_.centroids_read.Wait(); };
+    loaded_.await_all = [this] { Finish(); };
+  } else {
+    Finish();
   }
   return record;
+}
+
+void SnapshotReader::Finish() {
+  if (finished_) return;
+  finished_ = true;
+  const absl::Time start = absl::Now();
+  if (thread_.joinable()) thread_.join();
+  loaded_.thread_waited_seconds = absl::ToDoubleSeconds(absl::Now() - start);
+  // The index must hold what the handles name (the handles may have been
+  // parsed on the loading thread).
+  if (loaded_.status.ok() && loaded_.index_status.ok() &&
+      (!loaded_.handles_loaded ||
+       loaded_.index->size() != loaded_.handles.size())) {
+    loaded_.index_status =
+        absl::DataLossError("the index does not match its handles");
+  }
+  if (!loaded_.status.ok() || !loaded_.index_status.ok()) {
+    loaded_.index.reset();
+  }
 }
 
 }  // namespace
@@ -355,19 +430,23 @@ absl::Status MemoryEngine::Fleet::Reload() {
   const absl::Time start = absl::Now();
   LoadedSnapshot snapshot;
   ReadTimes times;
-  absl::StatusOr<FleetRecord> record = ReadBesideSnapshot(
+  // Joined before `snapshot` goes (declared after it).
+  SnapshotReader reader(
       *engine->store_,
       [this](size_t dimension, const IndexSettings& index) {
         return engine->NewIndex(dimension, index);
       },
-      id, snapshot, &times);
+      id, snapshot);
+  absl::StatusOr<FleetRecord> record = reader.Read(&times);
   // From the image too: the handles parsed there (handles_loaded).
   const bool codes_left_out = snapshot.handles_loaded;
-  if (codes_left_out && record.ok() &&
+  if (codes_left_out && !times.from_image && record.ok() &&
       (!snapshot.status.ok() || !snapshot.index_status.ok())) {
     // Its index cannot be used (another kind, other settings): the index
     // is rebuilt from the store's codes; memory may still take the
-    // snapshot's centroids.
+    // snapshot's centroids. (After a read from the memory image the thread
+    // is still loading the index: Rebuild finds out, and the codes are
+    // read below.)
     record = engine->store_->LoadFleet(id);
   }
   const absl::Time read = absl::Now();
@@ -400,9 +479,10 @@ absl::Status MemoryEngine::Fleet::Reload() {
                         << absl::ToDoubleSeconds(absl::Now() - read)
                         << " s (the store's read waited "
                         << absl::ToDoubleSeconds(times.waited_for_handles)
-                        << " s for the snapshot's handles; its thread ended "
-                        << absl::ToDoubleSeconds(times.thread_after_read)
-                        << " s after the read)";
+                        << " s for the snapshot's handles; its checksum "
+                        << snapshot.check_seconds
+                        << " s; the load waited for its thread "
+                        << snapshot.thread_waited_seconds << " s)";
   }
   if (!status.ok()) {
     FLEETMEM_LOG(kError) << "fleet \"" << id
@@ -509,8 +589,7 @@ absl::Status MemoryEngine::Fleet::Rebuild(FleetRecord record,
     absl::Status status =
         snapshot == nullptr
             ? absl::NotFoundError("no index snapshot read")
-            : LoadFromSnapshot(std::move(*snapshot), record.clusters, traces,
-                               &restored);
+            : LoadFromSnapshot(*snapshot, record.clusters, traces, &restored);
     if (status.ok()) {
       FLEETMEM_LOG(kInfo) << "fleet \"" << id
                           << "\": loaded from its index snapshot in "
@@ -652,10 +731,21 @@ absl::Status MemoryEngine::Fleet::SaveIndexSnapshot(
 }
 
 absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
-    LoadedSnapshot snapshot, std::vector<core::Cluster>& clusters,
+    LoadedSnapshot& snapshot, std::vector<core::Cluster>& clusters,
     const std::vector<const core::MemoryTrace*>& traces, bool* restored) {
-  if (!snapshot.status.ok()) return snapshot.status;
+  // Memory restores while the snapshot's thread may still load the index:
+  // it needs the centroids alone.
+  if (snapshot.await_centroids) snapshot.await_centroids();
+  auto await_all = [&snapshot] {
+    if (snapshot.await_all) snapshot.await_all();
+  };
+  if (!snapshot.centroids_read) {
+    await_all();
+    return snapshot.status.ok() ? absl::DataLossError("no centroids read")
+                                : snapshot.status;
+  }
   if (snapshot.dimension != meta.code_dimension) {
+    await_all();
     return absl::DataLossError(
         absl::StrCat("the snapshot's codes have ", snapshot.dimension,
                      " dimensions, the fleet's ", meta.code_dimension));
@@ -673,7 +763,9 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
   }
   const double memory_seconds =
       absl::ToDoubleSeconds(absl::Now() - memory_start);
-  absl::Status status = snapshot.index_status;
+  await_all();
+  absl::Status status =
+      snapshot.status.ok() ? snapshot.index_status : snapshot.status;
   if (!status.ok()) return status;
   const size_t unindexed = snapshot.unindexed;
 

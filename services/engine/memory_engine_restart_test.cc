@@ -323,13 +323,24 @@ class LoadCountingStore : public ForwardingStore {
   }
   absl::Status ReadIndexSnapshot(std::string_view fleet_id,
                                  const IndexSnapshotRead& read) override {
-    return inner_->ReadIndexSnapshot(fleet_id, read);
+    if (!fail_checks) return inner_->ReadIndexSnapshot(fleet_id, read);
+    // The same bytes, whose checksum fails as a damaged file's would.
+    return inner_->ReadIndexSnapshot(
+        fleet_id, [&read](const IndexSnapshotBytes& snapshot) {
+          IndexSnapshotBytes damaged = snapshot;
+          damaged.check = [] {
+            return absl::DataLossError("fails its checksum (test)");
+          };
+          const absl::Status status = read(damaged);
+          return status.ok() ? damaged.check() : status;
+        });
   }
   bool IndexSnapshotCurrent(std::string_view fleet_id) override {
     return report_current && inner_->IndexSnapshotCurrent(fleet_id);
   }
 
   bool report_current = true;  // false: every load reads the store
+  bool fail_checks = false;    // every snapshot's checksum fails
   int with_clusters = 0;
   int without_clusters = 0;
 
@@ -416,6 +427,36 @@ TEST_F(IndexSnapshotTest, CleanStopLoadsTheClustersFromTheMemoryImage) {
   EXPECT_EQ(counting.with_clusters, 1);
   EXPECT_EQ(counting.without_clusters, 2);
   EXPECT_EQ(Described(*engine_), drawn);
+}
+
+// The memory image is parsed while the store checks the snapshot's
+// checksum (IndexSnapshotBytes): a snapshot that fails it is not used,
+// however far its parse got. The clusters come from the store's records,
+// the index is rebuilt from the store's codes, and the fleet holds what it
+// held.
+TEST_F(IndexSnapshotTest, AMemoryImageIsUsedOnlyOnceItsChecksumPassed) {
+  LoadCountingStore counting(store_.get());
+  engine_ = Open(nullptr, &counting);
+  ASSERT_NE(engine_, nullptr);
+  UploadSegments("r1", 1, 600);
+  MustUpload(MakeTraces("r2", 1, 70, rng_));  // stays pending
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  const FleetStats stats = Stats();
+  const auto described = Described(*engine_);
+  const std::vector<core::MemoryTrace> queries = MakeTraces("q", 1, 30, rng_);
+  const auto nearest = Nearest(queries);
+  const int loads = loads_.load();
+
+  counting.fail_checks = true;
+  engine_ = Open(nullptr, &counting);
+  ASSERT_NE(engine_, nullptr);
+  EXPECT_EQ(counting.without_clusters, 1);  // the image was read
+  EXPECT_EQ(counting.with_clusters, 1);     // and not used
+  EXPECT_EQ(loads_.load(), loads);          // nor the index
+  ExpectSameStats(Stats(), stats);
+  EXPECT_EQ(Described(*engine_), described);
+  EXPECT_EQ(Nearest(queries), nearest);
+  ExpectEveryTraceFindsItself();
 }
 
 // Forgetting goes on after a load from the memory image exactly as after
@@ -550,14 +591,15 @@ TEST_F(IndexSnapshotTest, SnapshotOfAnotherHistoryIsRebuilt) {
   UploadSegments("r1", 1, 400);
   ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
   std::vector<char> bytes;
-  ASSERT_TRUE(store_
-                  ->ReadIndexSnapshot("f1",
-                                      [&bytes](std::span<const char> read,
-                                               const core::FileBytes*) {
-                                        bytes.assign(read.begin(), read.end());
-                                        return absl::OkStatus();
-                                      })
-                  .ok());
+  ASSERT_TRUE(
+      store_
+          ->ReadIndexSnapshot("f1",
+                              [&bytes](const IndexSnapshotBytes& snapshot) {
+                                bytes.assign(snapshot.bytes.begin(),
+                                             snapshot.bytes.end());
+                                return absl::OkStatus();
+                              })
+          .ok());
   // The same keys with other codes, in another store, with the snapshot
   // (put there before those writes: a snapshot saved after a fleet's last
   // write is taken as its exact state, memory image included).

@@ -229,13 +229,13 @@ TEST(MetricsTest, TimedStoreForwardsIndexSnapshots) {
                   .ok());
   uint32_t read = 0;
   ASSERT_TRUE(store
-                  ->ReadIndexSnapshot("f1",
-                                      [&read](std::span<const char> bytes,
-                                              const core::FileBytes*) {
-                                        core::ByteReader in(bytes);
-                                        in.Get(&read);
-                                        return absl::OkStatus();
-                                      })
+                  ->ReadIndexSnapshot(
+                      "f1",
+                      [&read](const engine::IndexSnapshotBytes& snapshot) {
+                        core::ByteReader in(snapshot.bytes);
+                        in.Get(&read);
+                        return absl::OkStatus();
+                      })
                   .ok());
   EXPECT_EQ(read, 42u);
 }

@@ -646,8 +646,8 @@ absl::StatusOr<std::string> ReadSnapshot(engine::MemoryStore& store,
                                          std::string_view fleet) {
   std::string payload;
   absl::Status status = store.ReadIndexSnapshot(
-      fleet, [&](std::span<const char> bytes, const core::FileBytes*) {
-        payload.assign(bytes.begin(), bytes.end());
+      fleet, [&](const engine::IndexSnapshotBytes& snapshot) {
+        payload.assign(snapshot.bytes.begin(), snapshot.bytes.end());
         return absl::OkStatus();
       });
   if (!status.ok()) return status;

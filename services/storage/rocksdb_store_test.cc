@@ -12,6 +12,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <memory>
 #include <string>
@@ -699,19 +700,21 @@ TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
             1);  // the earlier one, no temporary file
   std::string earlier;
   ASSERT_TRUE((*store)
-                  ->ReadIndexSnapshot("f1",
-                                      [&earlier](std::span<const char> bytes,
-                                                 const core::FileBytes*) {
-                                        core::ByteReader in(bytes);
-                                        in.GetString(&earlier, 100);
-                                        return absl::OkStatus();
-                                      })
+                  ->ReadIndexSnapshot(
+                      "f1",
+                      [&earlier](const engine::IndexSnapshotBytes& snapshot) {
+                        core::ByteReader in(snapshot.bytes);
+                        in.GetString(&earlier, 100);
+                        return absl::OkStatus();
+                      })
                   .ok());
   EXPECT_EQ(earlier, "earlier");
 }
 
-// A damaged index snapshot is refused (never handed to the engine) and
-// removed; the store itself is untouched.
+// A damaged index snapshot is refused and removed: its bytes are handed
+// before the checksum is checked, whose verdict is DATA_LOSS, and so is the
+// read's status whether the reader asked for the verdict or not; the store
+// itself is untouched.
 TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
   TempDir dir;
   RocksDbStoreOptions options;
@@ -734,16 +737,33 @@ TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
     file.seekp(1000);
     file.put('b');
   }
-  bool read = false;
-  absl::Status status = (*store)->ReadIndexSnapshot(
-      "f1", [&read](std::span<const char>, const core::FileBytes*) {
-        read = true;
-        return absl::OkStatus();
-      });
-  EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
-  EXPECT_THAT(std::string(status.message()), HasSubstr("checksum"));
-  EXPECT_FALSE(read);
-  EXPECT_FALSE(std::ifstream(path).is_open());
+  const std::string damaged = [&] {
+    std::ifstream file(path, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(file), {});
+  }();
+  for (const bool asks : {true, false}) {
+    SCOPED_TRACE(asks ? "the reader checks" : "the reader does not check");
+    {
+      std::ofstream file(path, std::ios::binary | std::ios::trunc);
+      file << damaged;  // back after the first read removed it
+    }
+    bool read = false;
+    absl::Status verdict;
+    absl::Status status = (*store)->ReadIndexSnapshot(
+        "f1", [&](const engine::IndexSnapshotBytes& snapshot) {
+          read = true;
+          if (asks) {
+            verdict = snapshot.check();
+            EXPECT_EQ(snapshot.check(), verdict);  // once
+          }
+          return absl::OkStatus();
+        });
+    EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
+    EXPECT_THAT(std::string(status.message()), HasSubstr("checksum"));
+    EXPECT_TRUE(read);
+    if (asks) EXPECT_EQ(verdict, status);
+    EXPECT_FALSE(std::ifstream(path).is_open());
+  }
 }
 
 // An index snapshot is current only while its mark names the file on disk

@@ -10,11 +10,13 @@
 #include <cstring>
 #include <filesystem>
 #include <memory>
+#include <optional>
 #include <string_view>
 #include <vector>
 
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
 #include "services/storage/file_io.h"
 
 namespace fleetmem::storage {
@@ -246,11 +248,10 @@ absl::Status WriteSnapshotFile(
   return absl::OkStatus();
 }
 
-absl::Status ReadSnapshotFile(
-    const std::string& directory, std::string_view key,
-    const std::function<absl::Status(std::span<const char>,
-                                     const core::FileBytes*)>& read,
-    uint64_t* stamp) {
+absl::Status ReadSnapshotFile(const std::string& directory,
+                              std::string_view key,
+                              const engine::IndexSnapshotRead& read,
+                              uint64_t* stamp) {
   const std::string path = SnapshotFilePath(directory, key);
   absl::StatusOr<std::unique_ptr<Mapping>> mapping = Map(path);
   if (!mapping.ok()) {
@@ -280,19 +281,35 @@ absl::Status ReadSnapshotFile(
       payload_size != body_size - 8 - key_size) {
     return damaged("has a damaged frame");
   }
-  const uint64_t digest =
-      XXH3_64bits(bytes.data() + kMagic.size(), 8 + body_size);
-  if (digest != ReadAt<uint64_t>(bytes, bytes.size() - 8)) {
-    return damaged("fails its checksum");
-  }
+  // The checksum, once, on the thread that asks first (the reader parses
+  // meanwhile: IndexSnapshotBytes).
+  absl::Mutex check_mu;
+  std::optional<absl::Status> verdict;
+  auto check = [&]() -> absl::Status {
+    absl::MutexLock lock(&check_mu);
+    if (!verdict.has_value()) {
+      const uint64_t digest =
+          XXH3_64bits(bytes.data() + kMagic.size(), 8 + body_size);
+      verdict = digest == ReadAt<uint64_t>(bytes, bytes.size() - 8)
+                    ? absl::OkStatus()
+                    : damaged("fails its checksum");
+    }
+    return *verdict;
+  };
   if (std::string_view(bytes.data() + kHeaderBytes + 8, key_size) != key) {
+    if (absl::Status checked = check(); !checked.ok()) return checked;
     return absl::NotFoundError(
         absl::StrCat("index snapshot '", path, "' belongs to another key"));
   }
   if (stamp != nullptr) *stamp = ReadAt<uint64_t>(bytes, kMagic.size());
   const core::FileBytes in_file{.descriptor = (*mapping)->descriptor(),
                                 .offset = PayloadOffset(key_size)};
-  return read(bytes.subspan(in_file.offset, payload_size), &in_file);
+  const absl::Status status =
+      read({.bytes = bytes.subspan(in_file.offset, payload_size),
+            .file = &in_file,
+            .check = check});
+  if (absl::Status checked = check(); !checked.ok()) return checked;
+  return status;
 }
 
 absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,

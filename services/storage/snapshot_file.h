@@ -21,6 +21,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "services/core/byte_stream.h"
+#include "services/engine/memory_store.h"
 
 namespace fleetmem::storage {
 
@@ -58,17 +59,19 @@ struct SnapshotFileId {
 absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
                                                   std::string_view key);
 
-// Calls `read` with the payload of `key`'s snapshot in `directory` (and
-// where it lies in the file, which `read` may keep open: the payload is
-// mapped from it) and returns its status if the frame and checksum are
-// intact and the key is `key`; the file stays. NOT_FOUND when there is none,
-// DATA_LOSS when it is damaged (the file is then removed); `read` is not called
-// then. `*stamp`, if given, gets the stamp the file was written with.
-absl::Status ReadSnapshotFile(
-    const std::string& directory, std::string_view key,
-    const std::function<absl::Status(std::span<const char>,
-                                     const core::FileBytes*)>& read,
-    uint64_t* stamp = nullptr);
+// Calls `read` with the payload of `key`'s snapshot in `directory`, mapped
+// from the file (`file` says where it lies there; `read` may keep the file
+// open), once the frame is intact and the key is `key`, and before the
+// checksum is checked: `check` checks it on the caller's thread (it is
+// valid until `read` returns). Returns `read`'s status once `check`, called
+// by `read` or after it, passed; the file stays. NOT_FOUND when there is
+// none, DATA_LOSS when it is damaged (its frame, and `read` is not called;
+// or its checksum): the file is then removed. `*stamp`, if given, gets the
+// stamp the file was written with.
+absl::Status ReadSnapshotFile(const std::string& directory,
+                              std::string_view key,
+                              const engine::IndexSnapshotRead& read,
+                              uint64_t* stamp = nullptr);
 
 // The file that holds `key`'s snapshot in `directory`.
 std::string SnapshotFilePath(const std::string& directory,
