@@ -21,7 +21,8 @@
 #   (default: 200000 traces, 2 rounds)
 # Environment: KEEP=DIR keeps the fill in DIR for the next run (its data
 # dir as B's runs left it), WARM=1 reads the data dir into the page cache
-# before each start (untimed), HNSW_CODES (int8 or float) sets the graph's codes of both,
+# before each start (untimed), COLD=1 drops the page cache before each
+# start instead (needs root: /proc/sys/vm/drop_caches), HNSW_CODES (int8 or float) sets the graph's codes of both,
 # HNSW_FLOATS (file or memory) where int8 graphs keep their floats (the
 # same build twice with each setting compares the two), SAVE=1 ends the
 # last round's starts with a replay draw and a clean stop, whose snapshot
@@ -45,6 +46,10 @@ for tool in "$a/bin/fleetmem-server" "$b/bin/fleetmem-server" "$b/bin/fleetmem";
     exit 2
   fi
 done
+if [ -n "${COLD:-}" ] && [ ! -w /proc/sys/vm/drop_caches ]; then
+  echo "$0: COLD=1 drops the page cache: run it as root" >&2
+  exit 2
+fi
 source "$here/tools/load/server_lib.sh"
 bench_work compare-rss data-a
 work=$WORK
@@ -71,6 +76,10 @@ for round in $(seq 0 "$rounds"); do
     # keeps it (this VM's pages out what goes unused for a minute).
     if [ -n "${WARM:-}" ]; then
       find "$data" -type f -exec cat {} + >/dev/null
+    fi
+    if [ -n "${COLD:-}" ]; then
+      sync
+      echo 3 >/proc/sys/vm/drop_caches
     fi
     wrapper=
     [ "$build" != "$a" ] || wrapper=${A_WRAPPER:-}

@@ -117,6 +117,12 @@ class Mapping {
   Mapping& operator=(const Mapping&) = delete;
   std::span<const char> bytes() const { return {data_, size_}; }
   const std::shared_ptr<const int>& descriptor() const { return descriptor_; }
+  // Maps every page at once (the kernel's read-ahead in one pass, cheaper
+  // than a fault per page: docs/performance.md, ninth round); on a kernel
+  // before 5.14 (no MADV_POPULATE_READ) the pages fault in as read.
+  void Populate() const {
+    ::madvise(const_cast<char*>(data_), size_, MADV_POPULATE_READ);
+  }
 
  private:
   const char* data_;
@@ -150,11 +156,9 @@ absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
         absl::StrCat("index snapshot '", path, "' is truncated"));
   }
   const size_t size = static_cast<size_t>(info.st_size);
-  // Populated at once: the checksum reads every page anyway, and one pass
-  // of the kernel's read-ahead costs less than a fault per page (docs/
-  // performance.md, ninth round: the snapshot thread's leg).
-  void* data =
-      ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE | MAP_POPULATE, fd, 0);
+  // Populated by the checksum (Mapping::Populate), not here: the reader
+  // parses the first pages meanwhile (IndexSnapshotBytes).
+  void* data = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
   const int error = errno;
   if (data == MAP_FAILED) {
     ::close(fd);
@@ -288,6 +292,7 @@ absl::Status ReadSnapshotFile(const std::string& directory,
   auto check = [&]() -> absl::Status {
     absl::MutexLock lock(&check_mu);
     if (!verdict.has_value()) {
+      (*mapping)->Populate();
       const uint64_t digest =
           XXH3_64bits(bytes.data() + kMagic.size(), 8 + body_size);
       verdict = digest == ReadAt<uint64_t>(bytes, bytes.size() - 8)
