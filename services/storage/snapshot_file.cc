@@ -6,7 +6,6 @@
 #include <unistd.h>
 #include <xxhash.h>
 
-#include <algorithm>
 #include <cerrno>
 #include <cstring>
 #include <filesystem>
@@ -28,8 +27,6 @@ constexpr std::string_view kMagic = "FMIDXSN1";
 constexpr size_t kHeaderBytes = 16;
 constexpr size_t kTrailerBytes = 16;
 constexpr size_t kBufferBytes = 1 << 20;
-// Bytes a checksum maps at once (Mapping::PopulateAndHash).
-constexpr size_t kPopulateBytes = 64 << 20;
 
 using file_io::ErrnoText;
 
@@ -120,28 +117,6 @@ class Mapping {
   Mapping& operator=(const Mapping&) = delete;
   std::span<const char> bytes() const { return {data_, size_}; }
   const std::shared_ptr<const int>& descriptor() const { return descriptor_; }
-  // The XXH3-64 of `length` bytes from `offset`, each stretch of
-  // kPopulateBytes mapped at once before it is hashed (the kernel's
-  // read-ahead in one pass, cheaper than a fault per page:
-  // docs/performance.md, ninth round) and hashed while it is in the page
-  // cache (a file larger than the memory left would otherwise be read
-  // twice: eleventh round). On a kernel before 5.14 (no
-  // MADV_POPULATE_READ) the pages fault in as they are hashed.
-  uint64_t PopulateAndHash(size_t offset, size_t length) const {
-    std::unique_ptr<XXH3_state_t, HashState> state(XXH3_createState());
-    if (state == nullptr || XXH3_64bits_reset(state.get()) != XXH_OK) {
-      return XXH3_64bits(data_ + offset, length);  // no state: one pass
-    }
-    const size_t page = static_cast<size_t>(::sysconf(_SC_PAGESIZE));
-    for (size_t at = offset; at < offset + length; at += kPopulateBytes) {
-      const size_t stretch = std::min(kPopulateBytes, offset + length - at);
-      const size_t aligned = at / page * page;
-      ::madvise(const_cast<char*>(data_) + aligned, at + stretch - aligned,
-                MADV_POPULATE_READ);
-      XXH3_64bits_update(state.get(), data_ + at, stretch);
-    }
-    return XXH3_64bits_digest(state.get());
-  }
 
  private:
   const char* data_;
@@ -175,9 +150,11 @@ absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
         absl::StrCat("index snapshot '", path, "' is truncated"));
   }
   const size_t size = static_cast<size_t>(info.st_size);
-  // Populated by the checksum (Mapping::PopulateAndHash), not here: the reader
-  // parses the first pages meanwhile (IndexSnapshotBytes).
-  void* data = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
+  // Populated at once: the checksum reads every page anyway, and one pass
+  // of the kernel's read-ahead costs less than a fault per page (docs/
+  // performance.md, ninth round: the snapshot thread's leg).
+  void* data =
+      ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE | MAP_POPULATE, fd, 0);
   const int error = errno;
   if (data == MAP_FAILED) {
     ::close(fd);
@@ -312,7 +289,7 @@ absl::Status ReadSnapshotFile(const std::string& directory,
     absl::MutexLock lock(&check_mu);
     if (!verdict.has_value()) {
       const uint64_t digest =
-          (*mapping)->PopulateAndHash(kMagic.size(), 8 + body_size);
+          XXH3_64bits(bytes.data() + kMagic.size(), 8 + body_size);
       verdict = digest == ReadAt<uint64_t>(bytes, bytes.size() - 8)
                     ? absl::OkStatus()
                     : damaged("fails its checksum");
