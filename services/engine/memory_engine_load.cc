@@ -358,8 +358,7 @@ class SnapshotReader {
 };
 
 absl::StatusOr<FleetRecord> SnapshotReader::Read(ReadTimes* times) {
-  const bool current = store_.IndexSnapshotCurrent(fleet_id_);
-  hand_off_.split = current;
+  hand_off_.split = store_.IndexSnapshotCurrent(fleet_id_);
   auto read_snapshot = [this] {
     ReadSnapshot(store_, factory_, fleet_id_, loaded_, hand_off_);
   };

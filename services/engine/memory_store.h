@@ -142,8 +142,9 @@ struct IndexSnapshotBytes {
   const core::FileBytes* file = nullptr;
   // Checks `bytes` against the checksum they were saved with, once (a
   // second call returns the first verdict): OK, or DATA_LOSS, and the
-  // store discards the snapshot. Seconds at 1,000,000 traces, on the
-  // caller's thread. Thread-safe.
+  // store discards the snapshot. On the caller's thread (0.11 s at
+  // 1,000,000 traces with the file in the page cache, 8 s at 10,000,000
+  // on a 24 GiB host). Thread-safe; valid until the read returns.
   std::function<absl::Status()> check;
 };
 
@@ -153,7 +154,6 @@ using IndexSnapshotRead =
 
 // Thread-safe. Every method returns a non-OK status on storage failure,
 // never throws.
-
 class MemoryStore {
  public:
   virtual ~MemoryStore() = default;
