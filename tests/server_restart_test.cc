@@ -584,6 +584,118 @@ TEST_F(RestartTest, AGraphReadsItsFloatsFromItsSnapshotAcrossRestarts) {
   }
 }
 
+// The one index snapshot file under `data_dir` (empty if none or several).
+std::string TheSnapshotFile(const std::string& data_dir) {
+  std::string found;
+  int count = 0;
+  for (const auto& entry :
+       std::filesystem::recursive_directory_iterator(data_dir)) {
+    if (entry.path().extension() == ".snapshot") {
+      found = entry.path().string();
+      ++count;
+    }
+  }
+  return count == 1 ? found : std::string();
+}
+
+// Flips one bit in each row of the self-checked floats of the snapshot at
+// `path` (an FMIDXSN2 file: its ranges listed before the trailer); returns
+// how many bytes it flipped.
+size_t DamageEveryFloatRow(const std::string& path, size_t row_bytes) {
+  std::fstream file(path, std::ios::in | std::ios::out | std::ios::binary);
+  auto read_at = [&file](std::streamoff at) {
+    uint64_t value = 0;
+    file.seekg(at);
+    file.read(reinterpret_cast<char*>(&value), sizeof(value));
+    return value;
+  };
+  file.seekg(0, std::ios::end);
+  const std::streamoff size = file.tellg();
+  const uint64_t ranges = read_at(size - 24);
+  const uint64_t payload = 16 + 8 + read_at(16);  // after the key
+  size_t flipped = 0;
+  for (uint64_t i = 0; i < ranges; ++i) {
+    const std::streamoff entry = size - 24 - 16 * (ranges - i);
+    const uint64_t offset = read_at(entry), length = read_at(entry + 8);
+    for (uint64_t row = 0; row + row_bytes <= length; row += row_bytes) {
+      const std::streamoff at = payload + offset + row + row_bytes / 2;
+      char byte = 0;
+      file.seekg(at);
+      file.get(byte);
+      file.seekp(at);
+      file.put(static_cast<char>(byte ^ 0x10));
+      ++flipped;
+    }
+  }
+  return file.good() ? flipped : 0;
+}
+
+// The floats of a graph's index snapshot are checked row by row when a row
+// is read, not when the file is: a start with every row damaged serves,
+// a query that rescores a damaged row gets DATA_LOSS (never an answer from
+// it), and the next write rebuilds the index from the store's codes, after
+// which every query finds its trace and the stop's snapshot is sound.
+TEST_F(RestartTest, DamagedFloatsInTheSnapshotAreNeverUsedAndAreRebuilt) {
+  const std::string config = temp_dir().Join("graph.textproto");
+  {
+    std::ofstream file(config);
+    file << "hnsw { hnsw_from: 100 }\n"
+            "index_snapshot_min_codes: 0\n";
+  }
+  set_server_args({"--config", config});
+  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  const std::string fleet = "fleet-damaged-floats";
+  const std::vector<RobotPlan> plans = {{"robot-a", 230}, {"robot-b", 200}};
+  for (const RobotPlan& plan : plans) {
+    ASSERT_TRUE(UploadTraces(stub(), fleet, MakeTraces(SpecOf(plan))).ok());
+  }
+  ASSERT_NO_FATAL_FAILURE(WaitUntilIndexed(stub(), fleet));
+  std::vector<v1::QueryPlaceRequest> queries;
+  for (const RobotPlan& plan : plans) {
+    for (uint64_t seq : {1, 77, 150}) {
+      v1::QueryPlaceRequest& request = queries.emplace_back();
+      request.set_fleet_id(fleet);
+      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
+      for (float value : trace.code()) request.add_code(value);
+      request.set_k(5);
+    }
+  }
+  StopServer();
+  const std::string snapshot = TheSnapshotFile(data_dir());
+  ASSERT_FALSE(snapshot.empty());
+  ASSERT_GT(DamageEveryFloatRow(snapshot, (kDim + 1) * sizeof(float)), 0u);
+  StartServer();
+  // The file's checksum leaves the floats out: the snapshot is used.
+  EXPECT_NE(server().Output().find("taken from its index snapshot"),
+            std::string::npos);
+  Reply<v1::QueryPlaceResponse> damaged = QueryPlace(stub(), queries[0]);
+  EXPECT_EQ(damaged.status.error_code(), grpc::StatusCode::DATA_LOSS)
+      << Describe(damaged.status);
+  EXPECT_NE(damaged.status.error_message().find("fails its checksum"),
+            std::string::npos)
+      << Describe(damaged.status);
+
+  // A write rebuilds the index from the store.
+  ASSERT_TRUE(
+      UploadTraces(stub(), fleet, MakeTraces(SpecOf({"robot-c", 150}))).ok());
+  ASSERT_NO_FATAL_FAILURE(WaitUntilIndexed(stub(), fleet));
+  EXPECT_NE(server().Output().find("rebuilding the index from the store"),
+            std::string::npos);
+  auto expect_each_finds_itself = [&] {
+    for (const v1::QueryPlaceRequest& request : queries) {
+      Reply<v1::QueryPlaceResponse> reply = QueryPlace(stub(), request);
+      ASSERT_TRUE(reply.ok()) << Describe(reply.status);
+      ASSERT_GT(reply.response.matches_size(), 0);
+      EXPECT_NEAR(reply.response.matches(0).distance(), 0.0, 1e-4);
+    }
+  };
+  ASSERT_NO_FATAL_FAILURE(expect_each_finds_itself());
+  // The stop's snapshot is written from the rebuilt index: sound.
+  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  ASSERT_NO_FATAL_FAILURE(WaitUntilIndexed(stub(), fleet));
+  ASSERT_NO_FATAL_FAILURE(expect_each_finds_itself());
+}
+
 TEST_F(RestartTest, SigtermDuringUploadExitsCleanlyAndKeepsAcknowledgedData) {
   const std::string fleet = "fleet-shutdown";
   Reply<v1::UploadTracesResponse> acked = UploadTraces(

@@ -41,8 +41,14 @@ using ByteSink = std::function<void(std::span<const char>)>;
 
 class ByteWriter {
  public:
-  explicit ByteWriter(ByteSink sink, const FileBytes* file = nullptr)
-      : sink_(std::move(sink)), file_(file) {}
+  // `self_checked`, if given, receives what PutSelfCheckedBytes writes
+  // (else `sink` does): a sink that checksums its bytes (an index
+  // snapshot's file) may leave those out.
+  explicit ByteWriter(ByteSink sink, const FileBytes* file = nullptr,
+                      ByteSink self_checked = nullptr)
+      : sink_(std::move(sink)),
+        self_checked_(std::move(self_checked)),
+        file_(file) {}
 
   template <typename T>
   void Put(const T& value) {
@@ -52,6 +58,16 @@ class ByteWriter {
   void PutBytes(const void* data, size_t size) {
     if (size == 0) return;
     sink_(std::span<const char>(static_cast<const char*>(data), size));
+    written_ += size;
+  }
+  // Bytes whose integrity the payload checks itself, part by part (an int8
+  // graph's floats, each row's checksum written after them): a reader can
+  // trust the rest without reading these, and checks a part when it reads
+  // it. Lie in the stream like PutBytes's.
+  void PutSelfCheckedBytes(const void* data, size_t size) {
+    if (size == 0) return;
+    (self_checked_ ? self_checked_ : sink_)(
+        std::span<const char>(static_cast<const char*>(data), size));
     written_ += size;
   }
   // Length (uint64) then the characters.
@@ -67,6 +83,7 @@ class ByteWriter {
 
  private:
   ByteSink sink_;
+  ByteSink self_checked_;
   const FileBytes* file_;
   uint64_t written_ = 0;
 };

@@ -1,8 +1,14 @@
 #include "services/core/float_rows.h"
 
+#include <xxhash.h>
+
 #include <algorithm>
 
 namespace fleetmem::core {
+
+uint32_t RowCheck(std::span<const float> row) {
+  return static_cast<uint32_t>(XXH3_64bits(row.data(), row.size_bytes()));
+}
 
 void FloatRows::Gather(std::span<const uint32_t> rows, float* values) const {
   for (const uint32_t row : rows) {

@@ -53,13 +53,17 @@ class FloatRows {
   // the rows lying in `file` from `offset` on (width floats each, as Write
   // takes them), read from there from now on instead of copied: a graph
   // loaded from its mapped snapshot, or one just saved to a file, whose
-  // rows written since are `keep`. Rows past them and in `keep` keep what
-  // they held; a row written later is this store's own again. True if this
-  // store took them (what it held for them is dropped); false (the
-  // default) if it keeps its rows elsewhere: then nothing changed, and a
-  // caller loading them Writes them.
+  // rows written since are `keep`. `checks`, if not empty, holds each
+  // row's RowCheck (rows the file's own checksum does not cover: a row
+  // read from the file that fails it is a std::system_error of
+  // std::errc::bad_message, never returned); empty, the file was checked
+  // whole. Rows past them and in `keep` keep what they held; a row written
+  // later is this store's own again. True if this store took them (what
+  // it held for them is dropped); false (the default) if it keeps its rows
+  // elsewhere: then nothing changed, and a caller loading them Writes them.
   virtual bool Adopt(const FileBytes& file, uint64_t offset, size_t rows,
-                     std::span<const uint32_t> keep) {
+                     std::span<const uint32_t> keep,
+                     std::vector<uint32_t> checks) {
     return false;
   }
   // Row `row` where it lies in this process's memory, or nullptr if this
@@ -72,6 +76,11 @@ class FloatRows {
  private:
   size_t width_;
 };
+
+// A row's checksum (the low 32 bits of XXH3-64 of its bytes), which an
+// int8 graph's snapshot keeps beside its floats so that a row read from the
+// snapshot's file is checked when it is read, not when the file is.
+uint32_t RowCheck(std::span<const float> row);
 
 // Makes the rows of a graph: `width` floats a row.
 using FloatRowsMaker = std::function<std::unique_ptr<FloatRows>(size_t width)>;

@@ -280,6 +280,7 @@ struct HnswGraph::Impl {
     uint64_t offset = 0;
     size_t rows = 0;
     std::vector<uint32_t> written_since;
+    std::vector<uint32_t> checks;  // each row's RowCheck
   };
   std::optional<SavedFloats> saved;
 };
@@ -732,9 +733,12 @@ namespace {
 // GRF3: the scaled flag, and scaled nodes holding their scale and squared
 // norm after the vector. GRF4 (int8 graphs only; float graphs are still
 // written as GRF3): GRF3 with an int8 flag after the scaled one, int8
-// nodes, and the slots' floats after the links.
-constexpr uint32_t kGraphFormat = 0x47524633;      // "GRF3"
-constexpr uint32_t kInt8GraphFormat = 0x47524634;  // "GRF4"
+// nodes, and the slots' floats after the links. GRF5 (what int8 graphs
+// write; GRF4 is still read): GRF4 with the floats self-checked and each
+// row's RowCheck (uint32) after them.
+constexpr uint32_t kGraphFormat = 0x47524633;        // "GRF3"
+constexpr uint32_t kInt8GraphFormat = 0x47524634;    // "GRF4"
+constexpr uint32_t kCheckedInt8Format = 0x47524635;  // "GRF5"
 
 template <typename Engine>
 std::string EngineState(const Engine& engine) {
@@ -774,7 +778,7 @@ bool Int8HeaderOk(const char* node) {
 
 void HnswGraph::Save(ByteWriter& out) const {
   const auto& hnsw = impl_->hnsw;
-  out.Put<uint32_t>(options_.int8 ? kInt8GraphFormat : kGraphFormat);
+  out.Put<uint32_t>(options_.int8 ? kCheckedInt8Format : kGraphFormat);
   out.Put<uint64_t>(dimension_);
   out.Put<uint64_t>(hnsw.M_);
   out.Put<uint64_t>(hnsw.ef_construction_);
@@ -799,19 +803,26 @@ void HnswGraph::Save(ByteWriter& out) const {
   }
   if (!options_.int8) return;
   impl_->saved.reset();
-  if (out.file() != nullptr) {
-    impl_->saved =
-        Impl::SavedFloats{.file = *out.file(),
-                          .offset = out.file()->offset + out.written(),
-                          .rows = count};
-  }
+  const uint64_t floats_at =
+      out.file() != nullptr ? out.file()->offset + out.written() : 0;
   const size_t stride = dimension_ + 1;
   std::vector<float> chunk;
+  std::vector<uint32_t> checks(count);
   for (size_t first = 0; first < count; first += kFloatChunk) {
     const size_t rows = std::min(kFloatChunk, count - first);
     chunk.resize(rows * stride);
     impl_->rows->Read(first, rows, chunk.data());
-    out.PutBytes(chunk.data(), chunk.size() * sizeof(float));
+    for (size_t k = 0; k < rows; ++k) {
+      checks[first + k] = RowCheck({chunk.data() + k * stride, stride});
+    }
+    out.PutSelfCheckedBytes(chunk.data(), chunk.size() * sizeof(float));
+  }
+  out.PutBytes(checks.data(), checks.size() * sizeof(uint32_t));
+  if (out.file() != nullptr) {
+    impl_->saved = Impl::SavedFloats{.file = *out.file(),
+                                     .offset = floats_at,
+                                     .rows = count,
+                                     .checks = std::move(checks)};
   }
 }
 
@@ -875,24 +886,45 @@ absl::Status HnswGraph::CheckLoaded(uint32_t count) {
   return absl::OkStatus();
 }
 
-absl::Status HnswGraph::LoadFloats(ByteReader& in, size_t count) {
+absl::Status HnswGraph::LoadFloats(ByteReader& in, size_t count,
+                                   bool with_checks) {
   const size_t stride = dimension_ + 1;
-  std::span<const char> bytes;
+  std::span<const char> bytes, check_bytes;
   if (in.remaining() / (stride * sizeof(float)) < count ||
-      !in.GetSpan(count * stride * sizeof(float), &bytes)) {
+      !in.GetSpan(count * stride * sizeof(float), &bytes) ||
+      (with_checks && !in.GetSpan(count * sizeof(uint32_t), &check_bytes))) {
     return Malformed("truncated floats");
   }
+  std::vector<uint32_t> checks(with_checks ? count : 0);
+  if (with_checks) {
+    std::memcpy(checks.data(), check_bytes.data(), check_bytes.size());
+  }
+  // Rows with their checks are adopted unread: each is checked when it is
+  // read. (Their scales, checked when each row came in and covered by its
+  // check since, are not checked again.)
+  if (with_checks && in.file() != nullptr &&
+      impl_->rows->Adopt(*in.file(), in.FileOffset(bytes), count, {},
+                         std::move(checks))) {
+    return absl::OkStatus();
+  }
   // Every slot's scale, a removed one's too (its floats were written).
-  for (size_t row = 0; row < count; ++row) {
+  auto row_ok = [&](size_t row) -> absl::Status {
+    const char* at = bytes.data() + row * stride * sizeof(float);
     float scale;
-    std::memcpy(&scale, bytes.data() + (row * stride + dimension_) * 4, 4);
+    std::memcpy(&scale, at + dimension_ * sizeof(float), sizeof(float));
     if (!NonNegative(scale)) {
       return Malformed(absl::StrCat("bad scale or norm of slot ", row));
     }
-  }
-  if (in.file() != nullptr &&
-      impl_->rows->Adopt(*in.file(), in.FileOffset(bytes), count, {})) {
     return absl::OkStatus();
+  };
+  if (!with_checks) {
+    for (size_t row = 0; row < count; ++row) {
+      if (absl::Status ok = row_ok(row); !ok.ok()) return ok;
+    }
+    if (in.file() != nullptr &&
+        impl_->rows->Adopt(*in.file(), in.FileOffset(bytes), count, {}, {})) {
+      return absl::OkStatus();
+    }
   }
   impl_->rows->Reserve(count);
   std::vector<float> chunk;
@@ -901,6 +933,13 @@ absl::Status HnswGraph::LoadFloats(ByteReader& in, size_t count) {
     chunk.resize(rows * stride);
     std::memcpy(chunk.data(), bytes.data() + first * stride * sizeof(float),
                 chunk.size() * sizeof(float));
+    for (size_t k = 0; with_checks && k < rows; ++k) {
+      if (RowCheck({chunk.data() + k * stride, stride}) != checks[first + k]) {
+        return Malformed(absl::StrCat("the floats of slot ", first + k,
+                                      " fail their checksum"));
+      }
+      if (absl::Status ok = row_ok(first + k); !ok.ok()) return ok;
+    }
     impl_->rows->Write(first, rows, chunk.data());
   }
   return absl::OkStatus();
@@ -917,7 +956,7 @@ bool HnswGraph::AdoptSavedFloats() {
       std::unique(saved.written_since.begin(), saved.written_since.end()),
       saved.written_since.end());
   return impl_->rows->Adopt(saved.file, saved.offset, saved.rows,
-                            saved.written_since);
+                            saved.written_since, std::move(saved.checks));
 }
 
 absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
@@ -926,11 +965,12 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
   uint64_t saved_dimension = 0, m = 0, ef_construction = 0, free_count = 0;
   uint8_t scaled = 0, int8 = 0;
   if (!in.Get(&format) ||
-      (format != kGraphFormat && format != kInt8GraphFormat)) {
+      (format != kGraphFormat && format != kInt8GraphFormat &&
+       format != kCheckedInt8Format)) {
     return Malformed("unknown format");
   }
   if (!in.Get(&saved_dimension) || !in.Get(&m) || !in.Get(&ef_construction) ||
-      !in.Get(&scaled) || (format == kInt8GraphFormat && !in.Get(&int8))) {
+      !in.Get(&scaled) || (format != kGraphFormat && !in.Get(&int8))) {
     return Malformed("truncated header");
   }
   auto graph = std::make_unique<HnswGraph>(dimension, options);
@@ -989,7 +1029,8 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
       return Malformed("the entry point is not on the top level");
     }
     absl::Status floats =
-        own.int8 ? graph->LoadFloats(in, count) : absl::OkStatus();
+        own.int8 ? graph->LoadFloats(in, count, format == kCheckedInt8Format)
+                 : absl::OkStatus();
     if (!floats.ok()) return floats;
     if (absl::Status checked = graph->CheckLoaded(count); !checked.ok()) {
       return checked;

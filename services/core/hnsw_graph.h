@@ -172,7 +172,9 @@ class HnswGraph {
   // Writes the whole graph (vectors, links, removed slots and the level
   // generator's state) for Load. O(size); the graph is only read, but an
   // int8 graph notes where its floats went when `out` writes to a file
-  // (ByteWriter::file), for AdoptSavedFloats: Saves must not overlap.
+  // (ByteWriter::file), for AdoptSavedFloats: Saves must not overlap. An
+  // int8 graph's floats are self-checked bytes (ByteWriter::
+  // PutSelfCheckedBytes), each row's RowCheck written after them.
   void Save(ByteWriter& out) const;
   // After the last Save wrote to a file and its bytes are there: an int8
   // graph whose floats no Add has written since reads them from that file
@@ -183,7 +185,9 @@ class HnswGraph {
   // A graph equal to the one Save wrote: the same searches give the same
   // results and the same later calls build the same graph. An int8 graph
   // read from a file (ByteReader::file) leaves its floats there when its
-  // rows can read them from it (FloatRows::Adopt) rather than copy them.
+  // rows can read them from it (FloatRows::Adopt) rather than copy them;
+  // it reads none of them then (each row is checked against its RowCheck
+  // when it is read), else each row is checked as it is copied.
   // `dimension`, options.m and options.ef_construction must be those it was
   // built with (options.ef_search may differ). DATA_LOSS names what does not
   // fit (a truncated or inconsistent graph, other build options: every link and
@@ -230,7 +234,7 @@ class HnswGraph {
   // With options.int8: reads the `count` slots' floats that Save wrote
   // after the links into the graph's rows; DATA_LOSS when they are
   // truncated or a scale is negative or not finite.
-  absl::Status LoadFloats(ByteReader& in, size_t count);
+  absl::Status LoadFloats(ByteReader& in, size_t count, bool with_checks);
   size_t dimension_;
   HnswGraphOptions options_;
   std::unique_ptr<Impl> impl_;

@@ -444,6 +444,57 @@ TEST(HnswGraphInt8Test, LoadRefusesAnotherLayoutAndMissingFloats) {
       std::equal(vectors[7].begin(), vectors[7].end(), (*loaded)->Vector(7)));
 }
 
+// An int8 graph writes its floats as self-checked bytes, each row's
+// RowCheck after them: a load that copies the rows checks each (a flipped
+// bit in a row or in its check is DATA_LOSS naming the slot). The layout
+// before the checks (GRF4: the same bytes without them) still loads.
+TEST(HnswGraphInt8Test, EachRowOfFloatsIsCheckedWhenItIsCopied) {
+  constexpr size_t kDimension = 16;
+  constexpr size_t kCount = 200;
+  const auto vectors = Gaussian(kCount, kDimension, 37);
+  HnswGraph graph(kDimension, Int8Options());
+  for (const auto& v : vectors) graph.Add(v.data(), 2.0f);
+  std::string bytes;
+  size_t floats_at = 0, floats_size = 0;
+  ByteWriter out(
+      [&](std::span<const char> chunk) {
+        bytes.append(chunk.data(), chunk.size());
+      },
+      nullptr,
+      [&](std::span<const char> chunk) {
+        if (floats_size == 0) floats_at = bytes.size();
+        floats_size += chunk.size();
+        bytes.append(chunk.data(), chunk.size());
+      });
+  graph.Save(out);
+  const size_t row_bytes = (kDimension + 1) * sizeof(float);
+  ASSERT_EQ(floats_size, kCount * row_bytes);
+  ASSERT_EQ(bytes.size(), floats_at + floats_size + kCount * sizeof(uint32_t));
+  auto load = [&](const std::string& saved) {
+    ByteReader in(std::span<const char>(saved.data(), saved.size()));
+    return HnswGraph::Load(kDimension, Int8Options(), in);
+  };
+  ASSERT_TRUE(load(bytes).ok());
+  for (const size_t at : {floats_at + 50 * row_bytes + 5,
+                          floats_at + floats_size + 50 * sizeof(uint32_t)}) {
+    std::string damaged = bytes;
+    damaged[at] ^= 0x20;
+    const absl::StatusOr<std::unique_ptr<HnswGraph>> loaded = load(damaged);
+    EXPECT_EQ(loaded.status().code(), absl::StatusCode::kDataLoss);
+    EXPECT_NE(loaded.status().message().find("slot 50 fail their checksum"),
+              std::string::npos)
+        << loaded.status();
+  }
+  std::string earlier = bytes.substr(0, floats_at + floats_size);
+  const uint32_t grf4 = 0x47524634;
+  std::memcpy(earlier.data(), &grf4, sizeof(grf4));
+  const absl::StatusOr<std::unique_ptr<HnswGraph>> loaded = load(earlier);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_EQ(Saved(**loaded), Saved(graph));
+  EXPECT_TRUE(
+      std::equal(vectors[7].begin(), vectors[7].end(), (*loaded)->Vector(7)));
+}
+
 // Floats that cannot be kept (a full disk, a failed write) leave the graph
 // as it was: Add throws before it changes anything, Stage stages nothing
 // more and says so; once they can be kept again, the graph goes on.

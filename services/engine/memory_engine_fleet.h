@@ -245,10 +245,14 @@ struct MemoryEngine::Fleet {
     return meta.code_dimension != 0;
   }
 
-  // Rebuilds every member from the store. On failure the fleet is left empty
-  // and `stale` holds the error; the next mutating call retries.
-  absl::Status Reload() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
-  // Reloads if a previous reload failed.
+  // Rebuilds every member from the store (and the fleet's index snapshot,
+  // unless `with_snapshot` is false: the index is then built from the
+  // store's codes). On failure the fleet is left empty and `stale` holds
+  // the error; the next mutating call retries.
+  absl::Status Reload(bool with_snapshot = true)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // Reloads if a previous reload failed, or without the index snapshot if
+  // the index met damage in it (PlaceIndex::Damaged).
   absl::Status EnsureLoaded() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
   // For readers: OK unless a reload failed.
   absl::Status CheckLoaded() const ABSL_SHARED_LOCKS_REQUIRED(mu);

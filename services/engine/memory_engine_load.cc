@@ -425,7 +425,7 @@ void SnapshotReader::Finish() {
 
 }  // namespace
 
-absl::Status MemoryEngine::Fleet::Reload() {
+absl::Status MemoryEngine::Fleet::Reload(bool with_snapshot) {
   const absl::Time start = absl::Now();
   LoadedSnapshot snapshot;
   ReadTimes times;
@@ -436,7 +436,8 @@ absl::Status MemoryEngine::Fleet::Reload() {
         return engine->NewIndex(dimension, index);
       },
       id, snapshot);
-  absl::StatusOr<FleetRecord> record = reader.Read(&times);
+  absl::StatusOr<FleetRecord> record =
+      with_snapshot ? reader.Read(&times) : engine->store_->LoadFleet(id);
   // From the image too: the handles parsed there (handles_loaded).
   const bool codes_left_out = snapshot.handles_loaded;
   if (codes_left_out && !times.from_image && record.ok() &&
@@ -449,8 +450,9 @@ absl::Status MemoryEngine::Fleet::Reload() {
     record = engine->store_->LoadFleet(id);
   }
   const absl::Time read = absl::Now();
-  absl::Status status =
-      record.ok() ? Rebuild(*std::move(record), &snapshot) : record.status();
+  absl::Status status = !record.ok()    ? record.status()
+                        : with_snapshot ? Rebuild(*std::move(record), &snapshot)
+                                        : Rebuild(*std::move(record));
   if (!status.ok() && codes_left_out) {
     // The snapshot was not usable after all: the store's codes are needed.
     FLEETMEM_LOG(kWarning) << "fleet \"" << id
@@ -501,6 +503,15 @@ absl::Status MemoryEngine::Fleet::Reload() {
 }
 
 absl::Status MemoryEngine::Fleet::EnsureLoaded() {
+  if (index.get() != nullptr && index.get()->Damaged()) {
+    // A row read from the index snapshot's file failed its check: the
+    // index is built again from the store's codes (the file is replaced
+    // by the next snapshot).
+    FLEETMEM_LOG(kWarning) << "fleet \"" << id
+                           << "\": its index met damage in its snapshot's "
+                              "file; rebuilding the index from the store";
+    return Reload(/*with_snapshot=*/false);
+  }
   if (stale.ok()) return absl::OkStatus();
   return Reload();
 }

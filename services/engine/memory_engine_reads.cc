@@ -250,6 +250,12 @@ absl::StatusOr<std::vector<std::vector<PlaceMatch>>> MemoryEngine::QueryPlaces(
       params.codes = &codes;
       absl::StatusOr<std::vector<Neighbor>> neighbors =
           fleet->index.get()->Search(code, params);
+      if (!neighbors.ok() && fleet->index.get()->Damaged()) {
+        return absl::DataLossError(absl::StrCat(
+            neighbors.status().message(),
+            "; the fleet's index is rebuilt from the store's codes at its "
+            "next write or index snapshot"));
+      }
       if (!neighbors.ok()) return neighbors.status();
       absl::StatusOr<std::vector<PlaceMatch>> found =
           fleet->MatchesOf(*neighbors, codes, query.k, budget);

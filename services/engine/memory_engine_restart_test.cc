@@ -585,6 +585,66 @@ TEST_F(IndexSnapshotTest, PeriodicSnapshotsSkipUnchangedAndSmallFleets) {
   EXPECT_EQ(saves_.load(), 1);
 }
 
+// A CountingIndex that says it met damage (PlaceIndex::Damaged: a row read
+// from its snapshot's file failed its check) once `*damaged` reaches its
+// number (indexes are numbered as they are made, from 1).
+class DamageableIndex : public CountingIndex {
+ public:
+  DamageableIndex(size_t dimension, std::atomic<int>* loads, int number,
+                  const std::atomic<int>* damaged)
+      : CountingIndex(dimension, loads), number_(number), damaged_(damaged) {}
+  bool Damaged() const override { return damaged_->load() >= number_; }
+
+ private:
+  const int number_;
+  const std::atomic<int>* damaged_;
+};
+
+// A damaged index is rebuilt from the store's codes, not from its snapshot
+// (which would bring the damage back): at the fleet's next snapshot,
+// before it is written, and at its next write. Everything is as before.
+TEST_F(IndexSnapshotTest, ADamagedIndexIsRebuiltFromTheStore) {
+  std::atomic<int> made{0};
+  std::atomic<int> damaged{0};
+  auto factory = [&](size_t dimension) {
+    return std::make_unique<DamageableIndex>(dimension, &loads_, ++made,
+                                             &damaged);
+  };
+  engine_ = Open(factory);
+  ASSERT_NE(engine_, nullptr);
+  UploadSegments("r1", 1, 600);
+  MustUpload(MakeTraces("r2", 1, 50, rng_));  // pending
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  engine_ = Open(factory);
+  ASSERT_NE(engine_, nullptr);
+  ASSERT_EQ(loads_.load(), 1);
+  const FleetStats stats = Stats();
+  const std::vector<core::MemoryTrace> queries = MakeTraces("q", 1, 20, rng_);
+  const auto before = Nearest(queries);
+
+  // At the next snapshot: a new index, not loaded from the file, then
+  // saved.
+  saves_ = 0;
+  damaged = made.load();
+  ASSERT_TRUE(engine_->SaveIndexSnapshots({.only_changed = true}).ok());
+  EXPECT_EQ(loads_.load(), 1);
+  EXPECT_GT(made.load(), damaged.load());
+  EXPECT_EQ(saves_.load(), 1);
+  ExpectSameStats(Stats(), stats);
+  ExpectEveryTraceFindsItself();
+  ExpectOnlyHeldKeys(Nearest(queries));
+  EXPECT_EQ(Nearest(queries).size(), before.size());
+
+  // At the next write.
+  damaged = made.load();
+  MustUpload(MakeTraces("r2", 51, 10, rng_));
+  EXPECT_EQ(loads_.load(), 1);
+  EXPECT_GT(made.load(), damaged.load());
+  EXPECT_EQ(Stats().pending_traces, stats.pending_traces + 10);
+  ExpectEveryTraceFindsItself();
+  engine_.reset();  // before the counters its indexes point to
+}
+
 // A snapshot whose codes differ from the store's under the same keys (the
 // fleet of another server's history) is refused and the index rebuilt.
 TEST_F(IndexSnapshotTest, SnapshotOfAnotherHistoryIsRebuilt) {

@@ -160,6 +160,11 @@ class PlaceIndex {
   virtual absl::Status Load(core::ByteReader& in) {
     return absl::UnimplementedError("this index cannot be loaded");
   }
+  // True once a read of what the index keeps outside memory met damage (a
+  // row of an index snapshot's file that failed its own checksum: the call
+  // that needed it got DATA_LOSS, never a wrong answer); the engine then
+  // rebuilds the index from the store. Thread-safe. Default: false.
+  virtual bool Damaged() const { return false; }
 };
 
 // Makes an empty index of `dimension` for one fleet.

@@ -103,6 +103,17 @@ FileFloatRows::Place FileFloatRows::PlaceOf(size_t row) const {
   return {fd_, static_cast<off_t>(row * row_bytes)};
 }
 
+void FileFloatRows::Check(size_t row, const Place& place,
+                          const float* values) const {
+  if (checks_.empty() || place.fd == fd_ || row >= checks_.size()) return;
+  if (core::RowCheck({values, width()}) == checks_[row]) return;
+  Fail(static_cast<int>(std::errc::bad_message),
+       absl::StrCat("row ", row,
+                    " of the graph's floats fails its checksum in the index "
+                    "snapshot's file (byte ",
+                    place.offset, ")"));
+}
+
 void FileFloatRows::Read(size_t first, size_t count, float* values) const {
   const size_t row_bytes = width() * sizeof(float);
   // Runs of rows in one file, each read at once.
@@ -117,20 +128,28 @@ void FileFloatRows::Read(size_t first, size_t count, float* values) const {
       }
       ++run;
     }
+    float* out = values + (row - first) * width();
     TransferAll(
-        reinterpret_cast<char*>(values + (row - first) * width()),
-        run * row_bytes, place.offset,
+        reinterpret_cast<char*>(out), run * row_bytes, place.offset,
         [fd = place.fd](char* data, size_t bytes, off_t offset) {
           return ::pread(fd, data, bytes, offset);
         },
         "reading the graph's floats");
+    for (size_t k = 0; k < run; ++k) {
+      Check(row + k,
+            {place.fd, place.offset + static_cast<off_t>(k * row_bytes)},
+            out + k * width());
+    }
     row += run;
   }
 }
 
 bool FileFloatRows::Adopt(const core::FileBytes& file, uint64_t offset,
-                          size_t rows, std::span<const uint32_t> keep) {
-  if (file.descriptor == nullptr) return false;
+                          size_t rows, std::span<const uint32_t> keep,
+                          std::vector<uint32_t> checks) {
+  if (file.descriptor == nullptr || (!checks.empty() && checks.size() < rows)) {
+    return false;
+  }
   const size_t row_bytes = width() * sizeof(float);
   const size_t words = (rows + 63) / 64;
   auto rewritten = std::make_unique<std::atomic<uint64_t>[]>(words);
@@ -160,6 +179,7 @@ bool FileFloatRows::Adopt(const core::FileBytes& file, uint64_t offset,
   adopted_offset_ = offset;
   adopted_ = rows;
   rewritten_ = std::move(rewritten);
+  checks_ = std::move(checks);
   reserved_ = std::max(reserved_, rows);
   return true;
 }
@@ -185,7 +205,10 @@ void FileFloatRows::Gather(std::span<const uint32_t> rows,
     do {
       copied = ::preadv2(place.fd, &target, 1, place.offset, RWF_NOWAIT);
     } while (copied < 0 && errno == EINTR);
-    if (copied == static_cast<ssize_t>(row_bytes)) continue;
+    if (copied == static_cast<ssize_t>(row_bytes)) {
+      Check(rows[i], place, values + i * width());
+      continue;
+    }
     if (copied < 0 && errno != EAGAIN) {
       if (errno != EOPNOTSUPP && errno != EINVAL && errno != ENOSYS) {
         Fail(errno, "reading the graph's floats");

@@ -10,7 +10,10 @@
 // saved to it) are read from the snapshot's file itself, held open, until
 // they are written again: a start copies no float, and the rows' disk and
 // page cache are the snapshot's. Their own file then holds only the rows
-// written since (a sparse file: a hole under each adopted row).
+// written since (a sparse file: a hole under each adopted row). Adopted
+// with their checks (a snapshot's file that leaves the floats out of its
+// checksum), each row read from the file is checked first: a row that
+// fails is a std::system_error (std::errc::bad_message) naming it.
 #ifndef FLEETMEM_SERVICES_INDEX_FLOAT_FILE_H_
 #define FLEETMEM_SERVICES_INDEX_FLOAT_FILE_H_
 
@@ -20,6 +23,7 @@
 #include <memory>
 #include <span>
 #include <string>
+#include <vector>
 
 #include "services/core/byte_stream.h"
 #include "services/core/float_rows.h"
@@ -55,9 +59,12 @@ class FileFloatRows final : public core::FloatRows {
   // the file: holes punched) and reads them from `file` at `offset` until
   // each is written again. True unless `file` has no descriptor.
   bool Adopt(const core::FileBytes& file, uint64_t offset, size_t rows,
-             std::span<const uint32_t> keep) override;
-  // The bitmap of adopted rows written since.
-  size_t MemoryBytes() const override { return (adopted_ + 63) / 64 * 8; }
+             std::span<const uint32_t> keep,
+             std::vector<uint32_t> checks) override;
+  // The bitmap of adopted rows written since, and their checks.
+  size_t MemoryBytes() const override {
+    return (adopted_ + 63) / 64 * 8 + checks_.capacity() * sizeof(uint32_t);
+  }
 
   // Rows the file has room for (tests).
   size_t reserved() const { return reserved_; }
@@ -73,6 +80,9 @@ class FileFloatRows final : public core::FloatRows {
     off_t offset;
   };
   Place PlaceOf(size_t row) const;
+  // Throws unless `values` (one row, read from `place`) passes its check,
+  // where the row has one.
+  void Check(size_t row, const Place& place, const float* values) const;
   // Makes the file if it is not made yet.
   void Open();
 
@@ -85,6 +95,8 @@ class FileFloatRows final : public core::FloatRows {
   uint64_t adopted_offset_ = 0;
   size_t adopted_ = 0;
   std::unique_ptr<std::atomic<uint64_t>[]> rewritten_;
+  // Each adopted row's core::RowCheck; empty when the file was checked.
+  std::vector<uint32_t> checks_;
   // Cleared when preadv2 says RWF_NOWAIT is not supported here.
   mutable std::atomic<bool> nowait_ = true;
 };

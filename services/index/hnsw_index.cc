@@ -158,6 +158,9 @@ class HnswIndex final : public engine::PlaceIndex {
   absl::Status Save(core::ByteWriter& out) const override;
   void SavedToFile() override { graph_->AdoptSavedFloats(); }
   absl::Status Load(core::ByteReader& in) override;
+  bool Damaged() const override {
+    return damaged_.load(std::memory_order_acquire);
+  }
   bool contains(uint64_t id) const { return slot_of_.contains(id); }
 
   void set_ef_search(size_t ef) { graph_->set_ef_search(ef); }
@@ -176,6 +179,20 @@ class HnswIndex final : public engine::PlaceIndex {
   }
 
  private:
+  // The status of a read of the codes' floats that failed with `e`:
+  // DATA_LOSS when a row failed its checksum (read from a damaged index
+  // snapshot's file; the store still holds the code), which marks the
+  // index Damaged; INTERNAL otherwise (an I/O error).
+  absl::Status FloatsNotRead(const std::system_error& e,
+                             absl::string_view what) const {
+    const std::string message =
+        absl::StrCat("HNSW index: ", what, ": ", e.what());
+    if (e.code() != std::errc::bad_message) {
+      return absl::InternalError(message);
+    }
+    damaged_.store(true, std::memory_order_release);
+    return absl::DataLossError(message);
+  }
   // Every accepted vector's distance to `scale` times `query`, by scanning.
   std::vector<Neighbor> Scan(std::span<const float> query, float scale,
                              const SearchParams& params) const;
@@ -196,6 +213,8 @@ class HnswIndex final : public engine::PlaceIndex {
   const HnswIndexOptions options_;
   std::unique_ptr<core::HnswGraph> graph_;
   bool linking_ = false;
+  // Set by FloatsNotRead (any reader's thread).
+  mutable std::atomic<bool> damaged_ = false;
   absl::flat_hash_map<uint64_t, uint32_t> slot_of_;  // id -> slot
   std::vector<uint64_t> id_of_;                      // slot -> id
 };
@@ -277,9 +296,8 @@ absl::Status HnswIndex::Save(core::ByteWriter& out) const {
   try {
     graph_->Save(out);
   } catch (const std::system_error& e) {
-    return absl::InternalError(absl::StrCat(
-        "HNSW index: the codes' floats could not be read for a snapshot: ",
-        e.what()));
+    return FloatsNotRead(e,
+                         "the codes' floats could not be read for a snapshot");
   }
   out.Put<uint64_t>(id_of_.size());
   out.PutBytes(id_of_.data(), id_of_.size() * sizeof(uint64_t));
@@ -357,8 +375,9 @@ bool HnswIndex::CopyCodes(std::span<const uint64_t> ids,
   } catch (const std::system_error& e) {
     // The floats' file could not be read: the caller says which codes are
     // missing (an INTERNAL status naming the trace), and the log says why.
-    FLEETMEM_LOG(kError) << "HNSW index: the codes of " << slots.size()
-                         << " ids could not be read: " << e.what();
+    FLEETMEM_LOG(kError) << FloatsNotRead(
+        e,
+        absl::StrCat("the codes of ", slots.size(), " ids could not be read"));
     for (size_t i = 0; i < ids.size(); ++i) {
       if (slot_of_.contains(ids[i])) codes[i]->clear();
     }
@@ -417,8 +436,7 @@ absl::StatusOr<std::vector<Neighbor>> HnswIndex::Search(
   } catch (const std::bad_alloc&) {
     return absl::ResourceExhaustedError("HNSW index: out of memory in Search");
   } catch (const std::system_error& e) {
-    return absl::InternalError(absl::StrCat(
-        "HNSW index: the codes to rescore could not be read: ", e.what()));
+    return FloatsNotRead(e, "the codes to rescore could not be read");
   }
 }
 
@@ -559,6 +577,10 @@ class TieredIndex final : public engine::PlaceIndex {
     if (graph_) graph_->SavedToFile();
   }
   absl::Status Load(core::ByteReader& in) override;
+  bool Damaged() const override {
+    std::shared_lock lock(mu_);
+    return graph_ != nullptr && graph_->Damaged();
+  }
 
  private:
   // Add and AddNormalized: `add` stores the batch in the tail (it checks

@@ -1745,7 +1745,7 @@ TEST(FileFloatRowsTest, AdoptedRowsAreReadFromTheirFileUntilWrittenAgain) {
                                    values.size() * sizeof(float)),
                   /*prefix=*/100);
   FileFloatRows rows(directory, kWidth);
-  ASSERT_TRUE(rows.Adopt(file, 100, kRows, {}));
+  ASSERT_TRUE(rows.Adopt(file, 100, kRows, {}, {}));
   EXPECT_EQ(rows.adopted(), kRows);
   std::vector<float> read(kRows * kWidth);
   rows.Read(0, kRows, read.data());
@@ -1794,6 +1794,58 @@ TEST(FileFloatRowsTest, AdoptedRowsAreReadFromTheirFileUntilWrittenAgain) {
   std::filesystem::remove_all(directory);
 }
 
+// Rows adopted with their checks (a snapshot whose checksum leaves them
+// out) are checked as they are read: a damaged row is a std::system_error
+// of std::errc::bad_message from Read and from Gather, its neighbours read
+// as they were, and a row written again since is the rows' own (unchecked).
+TEST(FileFloatRowsTest, AdoptedRowsWithChecksAreCheckedWhenRead) {
+  constexpr size_t kWidth = 257;
+  constexpr size_t kRows = 300;
+  const size_t row_bytes = kWidth * sizeof(float);
+  const std::string directory = FreshDirectory();
+  std::vector<float> values(kRows * kWidth);
+  for (size_t i = 0; i < values.size(); ++i) values[i] = 0.5f * i;
+  std::vector<uint32_t> checks(kRows);
+  for (size_t row = 0; row < kRows; ++row) {
+    checks[row] = core::RowCheck({values.data() + row * kWidth, kWidth});
+  }
+  std::string bytes(reinterpret_cast<const char*>(values.data()),
+                    values.size() * sizeof(float));
+  bytes[40 * row_bytes + 17] ^= 0x04;  // row 40
+  bytes[41 * row_bytes + 3] ^= 0x04;   // row 41, written again below
+  const core::FileBytes file = FileHolding(directory, bytes, /*prefix=*/8);
+  FileFloatRows rows(directory, kWidth);
+  ASSERT_TRUE(rows.Adopt(file, 8, kRows, {}, checks));
+  rows.Write(41, 1, values.data() + 41 * kWidth);
+  std::vector<float> read(kWidth);
+  auto fails_its_check = [](const std::function<void()>& call) {
+    try {
+      call();
+    } catch (const std::system_error& e) {
+      return e.code() == std::errc::bad_message &&
+             std::string(e.what()).find("row 40 ") != std::string::npos;
+    }
+    return false;
+  };
+  EXPECT_TRUE(fails_its_check([&] { rows.Read(40, 1, read.data()); }));
+  std::vector<float> many(kRows * kWidth);
+  EXPECT_TRUE(fails_its_check([&] { rows.Read(0, kRows, many.data()); }));
+  const std::vector<uint32_t> asked = {39, 40, 41};
+  std::vector<float> gathered(asked.size() * kWidth);
+  EXPECT_TRUE(fails_its_check([&] { rows.Gather(asked, gathered.data()); }));
+  for (const uint32_t row : {39u, 41u, 42u}) {
+    rows.Read(row, 1, read.data());
+    EXPECT_TRUE(
+        std::equal(read.begin(), read.end(), values.begin() + row * kWidth))
+        << row;
+  }
+  // Checks for fewer rows than adopted: not taken.
+  FileFloatRows short_checks(directory, kWidth);
+  EXPECT_FALSE(
+      short_checks.Adopt(file, 8, kRows, {}, std::vector<uint32_t>(kRows - 1)));
+  std::filesystem::remove_all(directory);
+}
+
 // Adopting rows a store wrote itself (a graph just saved) frees their
 // blocks in its file but those of the rows written since (`keep`), which
 // it goes on reading as its own.
@@ -1818,7 +1870,7 @@ TEST(FileFloatRowsTest, AdoptingSavedRowsKeepsTheRowsWrittenSince) {
   rows.Write(5, 1, since.data());
   rows.Write(1500, 1, since.data());
   const std::vector<uint32_t> keep = {5, 1500};
-  ASSERT_TRUE(rows.Adopt(file, 0, kRows, keep));
+  ASSERT_TRUE(rows.Adopt(file, 0, kRows, keep, {}));
   EXPECT_LT(rows.AllocatedBytes(), before / 4);
   std::vector<float> expected = saved;
   for (const uint32_t row : keep) {

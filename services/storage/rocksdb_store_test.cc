@@ -7,6 +7,7 @@
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
+#include <xxhash.h>
 
 #include <atomic>
 #include <cstdlib>
@@ -764,6 +765,96 @@ TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
     if (asks) EXPECT_EQ(verdict, status);
     EXPECT_FALSE(std::ifstream(path).is_open());
   }
+}
+
+// A snapshot's self-checked bytes (ByteWriter::PutSelfCheckedBytes) are
+// left out of its file's checksum: a change there is handed to the reader
+// (whose own checks find it), a change anywhere else, or to the list of
+// those ranges, is DATA_LOSS. A file of the earlier frame (FMIDXSN1, every
+// byte checked) is still read.
+TEST(RocksDbStoreTest, SelfCheckedBytesAreLeftOutOfTheSnapshotsChecksum) {
+  TempDir dir;
+  RocksDbStoreOptions options;
+  options.path = absl::StrCat(dir.path(), "/db");
+  absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
+      OpenRocksDbStore(options);
+  ASSERT_TRUE(store.ok()) << store.status();
+  const std::string path =
+      SnapshotFilePath(absl::StrCat(options.path, "/index-snapshots"), "f1");
+  auto save = [&] {
+    return (*store)->SaveIndexSnapshot("f1", [](core::ByteWriter& out) {
+      out.PutString("head");
+      out.PutSelfCheckedBytes(std::string(4096, 'x').data(), 4096);
+      out.PutSelfCheckedBytes(std::string(100, 'y').data(), 100);
+      out.PutString("tail");
+      return absl::OkStatus();
+    });
+  };
+  // The payload as read, or the read's status.
+  auto read = [&]() -> absl::StatusOr<std::string> {
+    std::string payload;
+    absl::Status status = (*store)->ReadIndexSnapshot(
+        "f1", [&](const engine::IndexSnapshotBytes& snapshot) {
+          payload.assign(snapshot.bytes.begin(), snapshot.bytes.end());
+          return snapshot.check();
+        });
+    if (!status.ok()) return status;
+    return payload;
+  };
+  auto flip = [&](std::streamoff at) {
+    std::fstream file(path, std::ios::in | std::ios::out | std::ios::binary);
+    char byte = 0;
+    file.seekg(at);
+    file.get(byte);
+    file.seekp(at);
+    file.put(static_cast<char>(byte ^ 1));
+    return file.good();
+  };
+  const std::streamoff payload_at = 16 + 8 + 2;  // after the key "f1"
+  const std::streamoff self_checked_at = payload_at + 8 + 4;
+  std::string expected = std::string("\x04\0\0\0\0\0\0\0head", 12) +
+                         std::string(4096, 'x') + std::string(100, 'y') +
+                         std::string("\x04\0\0\0\0\0\0\0tail", 12);
+
+  ASSERT_TRUE(save().ok());
+  ASSERT_EQ(read().value_or("not read"), expected);
+  // One range (the two writes are adjacent), then the trailer.
+  EXPECT_EQ(std::filesystem::file_size(path),
+            payload_at + expected.size() + 16 + 8 + 16);
+  ASSERT_TRUE(flip(self_checked_at + 4000));
+  expected[12 + 4000] ^= 1;
+  EXPECT_EQ(read().value_or("not read"), expected);
+  for (const std::streamoff at :
+       {payload_at + 9, self_checked_at + 4196 + 10,
+        static_cast<std::streamoff>(payload_at + expected.size() + 3),
+        static_cast<std::streamoff>(payload_at + expected.size() + 17)}) {
+    SCOPED_TRACE(at);
+    ASSERT_TRUE(save().ok());
+    ASSERT_TRUE(flip(at));
+    const absl::StatusOr<std::string> damaged = read();
+    EXPECT_EQ(damaged.status().code(), absl::StatusCode::kDataLoss)
+        << damaged.status();
+    EXPECT_FALSE(std::filesystem::exists(path));
+  }
+
+  // FMIDXSN1: magic, stamp, key, payload, its size, XXH3 of all after the
+  // magic.
+  std::string whole = "FMIDXSN1";
+  auto put = [&whole](uint64_t value) {
+    whole.append(reinterpret_cast<const char*>(&value), sizeof(value));
+  };
+  put(7);
+  put(2);
+  whole += "f1";
+  whole += "an earlier build's payload";
+  const uint64_t digest = XXH3_64bits(whole.data() + 8, whole.size() - 8);
+  put(26);
+  put(digest);
+  {
+    std::ofstream file(path, std::ios::binary | std::ios::trunc);
+    file << whole;
+  }
+  EXPECT_EQ(read().value_or("not read"), "an earlier build's payload");
 }
 
 // An index snapshot is current only while its mark names the file on disk

@@ -22,7 +22,11 @@
 namespace fleetmem::storage {
 namespace {
 
-constexpr std::string_view kMagic = "FMIDXSN1";
+// FMIDXSN1 checksums every byte after the magic; FMIDXSN2 (what is
+// written; FMIDXSN1 is still read) leaves out the payload's self-checked
+// ranges (ByteWriter::PutSelfCheckedBytes), listed after the payload.
+constexpr std::string_view kMagic = "FMIDXSN2";
+constexpr std::string_view kWholeMagic = "FMIDXSN1";
 // Magic and stamp before the payload; size and checksum after it.
 constexpr size_t kHeaderBytes = 16;
 constexpr size_t kTrailerBytes = 16;
@@ -137,7 +141,8 @@ absl::StatusOr<int> OpenForReading(const std::string& path) {
       absl::StrCat("open '", path, "': ", ErrnoText(error)));
 }
 
-// Opens and maps the snapshot at `path`: NOT_FOUND when absent.
+// Opens and maps the snapshot at `path`: NOT_FOUND when absent. Its pages
+// are read by Populate.
 absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
   absl::StatusOr<int> opened = OpenForReading(path);
   if (!opened.ok()) return opened.status();
@@ -150,11 +155,7 @@ absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
         absl::StrCat("index snapshot '", path, "' is truncated"));
   }
   const size_t size = static_cast<size_t>(info.st_size);
-  // Populated at once: the checksum reads every page anyway, and one pass
-  // of the kernel's read-ahead costs less than a fault per page (docs/
-  // performance.md, ninth round: the snapshot thread's leg).
-  void* data =
-      ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE | MAP_POPULATE, fd, 0);
+  void* data = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
   const int error = errno;
   if (data == MAP_FAILED) {
     ::close(fd);
@@ -165,11 +166,104 @@ absl::StatusOr<std::unique_ptr<Mapping>> Map(const std::string& path) {
   return std::make_unique<Mapping>(static_cast<const char*>(data), size, fd);
 }
 
+// Reads `part`'s pages in at once: the checksum reads each of them anyway,
+// and one pass of the kernel's read-ahead costs less than a fault per page
+// (docs/performance.md, ninth round). A hint: a kernel without
+// MADV_POPULATE_READ (before 5.14) faults them in as they are read.
+void Populate(std::span<const char> part) {
+#ifdef MADV_POPULATE_READ
+  const uintptr_t page = static_cast<uintptr_t>(::sysconf(_SC_PAGESIZE));
+  const uintptr_t start =
+      reinterpret_cast<uintptr_t>(part.data()) / page * page;
+  const uintptr_t end = reinterpret_cast<uintptr_t>(part.data()) + part.size();
+  if (end > start) {
+    ::madvise(reinterpret_cast<void*>(start), end - start, MADV_POPULATE_READ);
+  }
+#endif
+}
+
 template <typename T>
 T ReadAt(std::span<const char> bytes, size_t offset) {
   T value;
   std::memcpy(&value, bytes.data() + offset, sizeof(T));
   return value;
+}
+
+// A snapshot file's frame, as its bytes say: the key's and the payload's
+// sizes and the payload's self-checked ranges (offset, length; none in an
+// FMIDXSN1 file).
+struct Frame {
+  uint64_t key_size = 0;
+  uint64_t payload_size = 0;
+  std::vector<std::pair<uint64_t, uint64_t>> unhashed;
+};
+
+// The frame of `bytes` (at least the header and the trailer), or nullopt
+// when its magic, sizes or ranges do not fit together.
+std::optional<Frame> ParseFrame(std::span<const char> bytes) {
+  const std::string_view magic(bytes.data(), kMagic.size());
+  const bool whole = magic == kWholeMagic;
+  if (!whole && magic != kMagic) return std::nullopt;
+  // Everything between the header and the trailer: the key (its length
+  // first), the payload and, in FMIDXSN2, the ranges (their count last).
+  uint64_t body = bytes.size() - kHeaderBytes - kTrailerBytes;
+  Frame frame;
+  if (!whole) {
+    if (body < 8) return std::nullopt;
+    const uint64_t count = ReadAt<uint64_t>(bytes, kHeaderBytes + body - 8);
+    body -= 8;
+    if (count > body / 16) return std::nullopt;
+    body -= count * 16;
+    frame.unhashed.resize(count);
+    for (uint64_t i = 0; i < count; ++i) {
+      const size_t at = kHeaderBytes + body + i * 16;
+      frame.unhashed[i] = {ReadAt<uint64_t>(bytes, at),
+                           ReadAt<uint64_t>(bytes, at + 8)};
+    }
+  }
+  frame.key_size = body >= 8 ? ReadAt<uint64_t>(bytes, kHeaderBytes) : 0;
+  frame.payload_size = ReadAt<uint64_t>(bytes, bytes.size() - 16);
+  if (body < 8 || frame.key_size > body - 8 ||
+      frame.payload_size != body - 8 - frame.key_size) {
+    return std::nullopt;
+  }
+  // In order, apart and inside the payload.
+  uint64_t end = 0;
+  for (const auto& [offset, length] : frame.unhashed) {
+    if (offset < end || length == 0 || offset > frame.payload_size ||
+        length > frame.payload_size - offset) {
+      return std::nullopt;
+    }
+    end = offset + length;
+  }
+  return frame;
+}
+
+// What the checksum covers, in order: everything after the magic but the
+// self-checked ranges and the trailer.
+std::vector<std::span<const char>> HashedParts(std::span<const char> bytes,
+                                               const Frame& frame) {
+  std::vector<std::span<const char>> parts;
+  const size_t payload = PayloadOffset(frame.key_size);
+  size_t from = kMagic.size();
+  for (const auto& [offset, length] : frame.unhashed) {
+    parts.push_back(bytes.subspan(from, payload + offset - from));
+    from = payload + offset + length;
+  }
+  parts.push_back(bytes.subspan(from, bytes.size() - kTrailerBytes - from));
+  return parts;
+}
+
+// The checksum of `parts`; nullopt when there is no memory for its state.
+std::optional<uint64_t> Digest(std::span<const std::span<const char>> parts) {
+  std::unique_ptr<XXH3_state_t, HashState> state(XXH3_createState());
+  if (state == nullptr || XXH3_64bits_reset(state.get()) != XXH_OK) {
+    return std::nullopt;
+  }
+  for (const std::span<const char> part : parts) {
+    XXH3_64bits_update(state.get(), part.data(), part.size());
+  }
+  return XXH3_64bits_digest(state.get());
 }
 
 }  // namespace
@@ -205,6 +299,9 @@ absl::Status WriteSnapshotFile(
               true);
   file.Append(key, true);
   uint64_t payload = 0;
+  // The self-checked ranges (offset in the payload, length), adjacent ones
+  // joined.
+  std::vector<std::pair<uint64_t, uint64_t>> unhashed;
   absl::Status status;
   {
     // The payload's place in the file, for a writer's caller that reads it
@@ -219,9 +316,25 @@ absl::Status WriteSnapshotFile(
           file.Append(bytes, /*hashed=*/true);
           payload += bytes.size();
         },
-        shared >= 0 ? &in_file : nullptr);
+        shared >= 0 ? &in_file : nullptr,
+        [&file, &payload, &unhashed](std::span<const char> bytes) {
+          if (!unhashed.empty() &&
+              unhashed.back().first + unhashed.back().second == payload) {
+            unhashed.back().second += bytes.size();
+          } else {
+            unhashed.emplace_back(payload, bytes.size());
+          }
+          file.Append(bytes, /*hashed=*/false);
+          payload += bytes.size();
+        });
     status = write(out);
   }
+  for (const auto& [offset, length] : unhashed) {
+    const uint64_t range[2] = {offset, length};
+    file.Append({reinterpret_cast<const char*>(range), sizeof(range)}, true);
+  }
+  const uint64_t ranges = unhashed.size();
+  file.Append({reinterpret_cast<const char*>(&ranges), sizeof(ranges)}, true);
   const uint64_t digest = file.digest();
   file.Append({reinterpret_cast<const char*>(&payload), sizeof(payload)},
               false);
@@ -270,17 +383,10 @@ absl::Status ReadSnapshotFile(const std::string& directory,
         absl::StrCat("index snapshot '", path, "' ", std::string(what)));
   };
   const std::span<const char> bytes = (*mapping)->bytes();
-  // Everything between the header and the trailer: the key, then the
-  // payload.
-  const size_t body_size = bytes.size() - kHeaderBytes - kTrailerBytes;
-  const uint64_t payload_size = ReadAt<uint64_t>(bytes, bytes.size() - 16);
-  const uint64_t key_size =
-      body_size >= 8 ? ReadAt<uint64_t>(bytes, kHeaderBytes) : 0;
-  if (std::string_view(bytes.data(), kMagic.size()) != kMagic ||
-      body_size < 8 || key_size > body_size - 8 ||
-      payload_size != body_size - 8 - key_size) {
-    return damaged("has a damaged frame");
-  }
+  const std::optional<Frame> frame = ParseFrame(bytes);
+  if (!frame.has_value()) return damaged("has a damaged frame");
+  const std::vector<std::span<const char>> hashed = HashedParts(bytes, *frame);
+  for (const std::span<const char> part : hashed) Populate(part);
   // The checksum, once, on the thread that asks first (the reader parses
   // meanwhile: IndexSnapshotBytes).
   absl::Mutex check_mu;
@@ -288,14 +394,18 @@ absl::Status ReadSnapshotFile(const std::string& directory,
   auto check = [&]() -> absl::Status {
     absl::MutexLock lock(&check_mu);
     if (!verdict.has_value()) {
-      const uint64_t digest =
-          XXH3_64bits(bytes.data() + kMagic.size(), 8 + body_size);
-      verdict = digest == ReadAt<uint64_t>(bytes, bytes.size() - 8)
+      const std::optional<uint64_t> digest = Digest(hashed);
+      verdict = !digest.has_value()
+                    ? absl::ResourceExhaustedError(
+                          "no memory for an index snapshot's checksum")
+                : *digest == ReadAt<uint64_t>(bytes, bytes.size() - 8)
                     ? absl::OkStatus()
                     : damaged("fails its checksum");
     }
     return *verdict;
   };
+  const uint64_t key_size = frame->key_size;
+  const uint64_t payload_size = frame->payload_size;
   if (std::string_view(bytes.data() + kHeaderBytes + 8, key_size) != key) {
     if (absl::Status checked = check(); !checked.ok()) return checked;
     return absl::NotFoundError(
@@ -318,30 +428,39 @@ absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
   absl::StatusOr<int> opened = OpenForReading(path);
   if (!opened.ok()) return opened.status();
   const int fd = *opened;
-  // The header, the key and the trailer; the payload between is not read.
+  // The header, the key and the trailer (with an FMIDXSN2 file's count of
+  // ranges before it); the payload between is not read.
   struct stat info;
   std::vector<char> head(PayloadOffset(key.size()));
-  char trailer[kTrailerBytes];
+  char trailer[kTrailerBytes + 8];
   const bool read =
       ::fstat(fd, &info) == 0 &&
       static_cast<size_t>(info.st_size) >= head.size() + kTrailerBytes &&
+      static_cast<size_t>(info.st_size) >= sizeof(trailer) &&
       ::pread(fd, head.data(), head.size(), 0) ==
           static_cast<ssize_t>(head.size()) &&
-      ::pread(fd, trailer, kTrailerBytes, info.st_size - kTrailerBytes) ==
-          static_cast<ssize_t>(kTrailerBytes);
+      ::pread(fd, trailer, sizeof(trailer), info.st_size - sizeof(trailer)) ==
+          static_cast<ssize_t>(sizeof(trailer));
   ::close(fd);
   const std::span<const char> header(head);
-  const std::span<const char> tail(trailer, kTrailerBytes);
-  if (!read || std::string_view(head.data(), kMagic.size()) != kMagic ||
+  const std::span<const char> tail(trailer, sizeof(trailer));
+  const std::string_view magic(head.data(), kMagic.size());
+  const uint64_t ranges = ReadAt<uint64_t>(tail, 0);
+  const uint64_t after_payload = magic == kWholeMagic ? kTrailerBytes
+                                 : ranges < (uint64_t{1} << 40)
+                                     ? kTrailerBytes + 8 + 16 * ranges
+                                     : ~uint64_t{0};
+  if (!read || (magic != kMagic && magic != kWholeMagic) ||
       ReadAt<uint64_t>(header, kHeaderBytes) != key.size() ||
       std::string_view(head.data() + kHeaderBytes + 8, key.size()) != key ||
-      ReadAt<uint64_t>(tail, 0) !=
-          static_cast<size_t>(info.st_size) - head.size() - kTrailerBytes) {
+      static_cast<uint64_t>(info.st_size) < head.size() + after_payload ||
+      ReadAt<uint64_t>(tail, 8) !=
+          static_cast<uint64_t>(info.st_size) - head.size() - after_payload) {
     return absl::DataLossError(
         absl::StrCat("index snapshot '", path, "' has a damaged frame"));
   }
   return SnapshotFileId{.stamp = ReadAt<uint64_t>(header, kMagic.size()),
-                        .digest = ReadAt<uint64_t>(tail, 8)};
+                        .digest = ReadAt<uint64_t>(tail, 16)};
 }
 
 }  // namespace fleetmem::storage

@@ -1,9 +1,14 @@
 // Index snapshots on disk (the file side of MemoryStore::SaveIndexSnapshot):
 // one file per key (a fleet id) in a directory, named after the key's
 // XXH3-64 in hex (a fixed length whatever the key), framed as
-//   "FMIDXSN1" | stamp (uint64) | key (uint64 length, bytes) | payload |
-//   payload size (uint64) | XXH3-64 of everything after the magic
-//   (uint64)
+//   "FMIDXSN2" | stamp (uint64) | key (uint64 length, bytes) | payload |
+//   the payload's self-checked ranges (offset, length: uint64 each) |
+//   their count (uint64) | payload size (uint64) | XXH3-64 of everything
+//   after the magic but those ranges (uint64)
+// The self-checked ranges (ByteWriter::PutSelfCheckedBytes: an int8
+// graph's floats, whose rows carry their own checks) are neither read nor
+// checked when the file is: their reader checks what it reads. FMIDXSN1
+// files (no ranges; the checksum covers everything) are still read.
 // and written atomically (a temporary file, fsync, rename, fsync of the
 // directory), so a crash leaves the earlier file or the new one, whole. The
 // stamp records the state of the store that wrote it (RocksDB's latest
@@ -62,8 +67,9 @@ absl::StatusOr<SnapshotFileId> ReadSnapshotFileId(const std::string& directory,
 // Calls `read` with the payload of `key`'s snapshot in `directory`, mapped
 // from the file (`file` says where it lies there; `read` may keep the file
 // open), once the frame is intact and the key is `key`, and before the
-// checksum is checked: `check` checks it on the caller's thread (it is
-// valid until `read` returns). Returns `read`'s status once `check`, called
+// checksum is checked (the pages it covers are read in first; the
+// self-checked ranges' are not): `check` checks it on the caller's thread (it
+// is valid until `read` returns). Returns `read`'s status once `check`, called
 // by `read` or after it, passed; the file stays. NOT_FOUND when there is
 // none, DATA_LOSS when it is damaged (its frame, and `read` is not called;
 // or its checksum): the file is then removed. `*stamp`, if given, gets the

@@ -155,6 +155,7 @@ class ForwardingIndex : public PlaceIndex {
     return inner_->Save(out);
   }
   absl::Status Load(core::ByteReader& in) override { return inner_->Load(in); }
+  bool Damaged() const override { return inner_->Damaged(); }
 
  protected:
   std::unique_ptr<PlaceIndex> inner_;
