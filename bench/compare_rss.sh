@@ -106,9 +106,13 @@ for round in $(seq 0 "$rounds"); do
     held=$(server_held_mib "$SERVER_PID")
     echo "# floats' file ${held% *} MiB, replaced snapshots held ${held#* } MiB"
     if [ "$round" -eq 0 ]; then
-      # A's first start read B's snapshot; its clean stop writes A's own
-      # (with a build that keeps one, the clusters' memory image too), which
-      # A's later rounds load as after any clean stop.
+      # A's first start read B's snapshot; a replay draw (a write of the
+      # store: the snapshot is no longer current) and a clean stop write
+      # A's own (with a build that keeps one, the clusters' memory image
+      # too, in A's layout), which A's later rounds load as after any clean
+      # stop.
+      "$b/bin/fleetmem" --server "$SERVER_ADDR" sample --fleet scale \
+        --robot robot-0 --count 1000 >/dev/null
       stop_server
       save_line "A's stop" "$work/restart.log"
     elif [ -n "${SAVE:-}" ] && [ "$round" -eq "$rounds" ]; then

@@ -207,20 +207,15 @@ std::optional<Frame> ParseFrame(std::span<const char> bytes) {
   // Everything between the header and the trailer: the key (its length
   // first), the payload and, in FMIDXSN2, the ranges (their count last).
   uint64_t body = bytes.size() - kHeaderBytes - kTrailerBytes;
-  Frame frame;
+  uint64_t count = 0;
   if (!whole) {
     if (body < 8) return std::nullopt;
-    const uint64_t count = ReadAt<uint64_t>(bytes, kHeaderBytes + body - 8);
-    body -= 8;
-    if (count > body / 16) return std::nullopt;
-    body -= count * 16;
-    frame.unhashed.resize(count);
-    for (uint64_t i = 0; i < count; ++i) {
-      const size_t at = kHeaderBytes + body + i * 16;
-      frame.unhashed[i] = {ReadAt<uint64_t>(bytes, at),
-                           ReadAt<uint64_t>(bytes, at + 8)};
-    }
+    count = ReadAt<uint64_t>(bytes, kHeaderBytes + body - 8);
+    if (count > (body - 8) / 16) return std::nullopt;
+    body -= 8 + count * 16;
   }
+  // The sizes first: the trailer's payload size must fit a damaged count.
+  Frame frame;
   frame.key_size = body >= 8 ? ReadAt<uint64_t>(bytes, kHeaderBytes) : 0;
   frame.payload_size = ReadAt<uint64_t>(bytes, bytes.size() - 16);
   if (body < 8 || frame.key_size > body - 8 ||
@@ -229,11 +224,15 @@ std::optional<Frame> ParseFrame(std::span<const char> bytes) {
   }
   // In order, apart and inside the payload.
   uint64_t end = 0;
-  for (const auto& [offset, length] : frame.unhashed) {
+  for (uint64_t i = 0; i < count; ++i) {
+    const size_t at = kHeaderBytes + body + i * 16;
+    const uint64_t offset = ReadAt<uint64_t>(bytes, at);
+    const uint64_t length = ReadAt<uint64_t>(bytes, at + 8);
     if (offset < end || length == 0 || offset > frame.payload_size ||
         length > frame.payload_size - offset) {
       return std::nullopt;
     }
+    frame.unhashed.emplace_back(offset, length);
     end = offset + length;
   }
   return frame;
