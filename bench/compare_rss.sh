@@ -12,7 +12,7 @@
 # (but A's first, below), so the snapshot
 # on disk stays the one its build wrote. A's build must read B's snapshot
 # layout: A's first start (round 0) loads B's snapshot and ends with a
-# clean stop, which writes A's own for its later rounds.
+# replay draw and a clean stop, which writes A's own for its later rounds.
 # A starts on a copy of B's data dir: a newer A may migrate the store's
 # layout (builds after 2026-11-30 do, once: round 0, A's first start, shows
 # it), which B would no longer read.

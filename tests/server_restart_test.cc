@@ -84,6 +84,13 @@ void ExpectSameObservation(const Observation& before, const Observation& after,
 
 class RestartTest : public ServerTest {
  protected:
+  // Restarts the server with a configuration file of `text`.
+  void RestartWithConfig(const std::string& text) {
+    const std::string config = temp_dir().Join("server.textproto");
+    std::ofstream(config) << text;
+    set_server_args({"--config", config});
+    ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  }
   void Observe(const std::string& fleet,
                const std::vector<v1::QueryPlaceRequest>& queries,
                Observation* observation) {
@@ -254,14 +261,9 @@ TEST_F(RestartTest, KilledServerKeepsEverythingAcknowledged) {
 // was stored after it, instead of rebuilding its place index; a client sees
 // the same state as before the kill.
 TEST_F(RestartTest, KilledServerRestartsFromItsPeriodicIndexSnapshot) {
-  const std::string config = temp_dir().Join("snapshots.textproto");
-  {
-    std::ofstream file(config);
-    file << "index_snapshot_interval_seconds: 1\n"
-            "index_snapshot_min_codes: 0\n";
-  }
-  set_server_args({"--config", config});
-  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  ASSERT_NO_FATAL_FAILURE(
+      RestartWithConfig("index_snapshot_interval_seconds: 1\n"
+                        "index_snapshot_min_codes: 0\n"));
   const std::string fleet = "fleet-periodic-snapshot";
   ASSERT_TRUE(
       UploadTraces(stub(), fleet, MakeTraces(SpecOf({"robot-a", 230}))).ok());
@@ -500,6 +502,23 @@ TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
 
 // Descriptors process `pid` holds open on files whose path starts with
 // `prefix` (an unlinked file's too: its path then ends in " (deleted)").
+// A QueryPlace (k = 5) of `fleet` for the code of traces 1, 77 and 150 of
+// each of `plans`.
+std::vector<v1::QueryPlaceRequest> QueriesOfTheirTraces(
+    const std::string& fleet, const std::vector<RobotPlan>& plans) {
+  std::vector<v1::QueryPlaceRequest> queries;
+  for (const RobotPlan& plan : plans) {
+    for (uint64_t seq : {1, 77, 150}) {
+      v1::QueryPlaceRequest& request = queries.emplace_back();
+      request.set_fleet_id(fleet);
+      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
+      for (float value : trace.code()) request.add_code(value);
+      request.set_k(5);
+    }
+  }
+  return queries;
+}
+
 int OpenFilesUnder(pid_t pid, const std::string& prefix) {
   int open = 0;
   std::error_code error;
@@ -535,30 +554,17 @@ void WaitUntilIndexed(v1::MemoryService::Stub& stub, const std::string& fleet) {
 // file of the graph's own, and the next stop's snapshot takes them over
 // again. Everything a client sees is the same across both restarts.
 TEST_F(RestartTest, AGraphReadsItsFloatsFromItsSnapshotAcrossRestarts) {
-  const std::string config = temp_dir().Join("graph.textproto");
-  {
-    std::ofstream file(config);
-    file << "hnsw { hnsw_from: 100 }\n"
-            "index_snapshot_min_codes: 0\n";
-  }
-  set_server_args({"--config", config});
-  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  ASSERT_NO_FATAL_FAILURE(
+      RestartWithConfig("hnsw { hnsw_from: 100 }\n"
+                        "index_snapshot_min_codes: 0\n"));
   const std::string fleet = "fleet-graph-floats";
   const std::string floats_files =
       std::filesystem::canonical(data_dir()).string() +
       "/graph-floats/graph-floats-";
-  std::vector<v1::QueryPlaceRequest> queries;
   const std::vector<RobotPlan> plans = {
       {"robot-a", 230}, {"robot-b", 200}, {"robot-c", 150}};
-  for (const RobotPlan& plan : plans) {
-    for (uint64_t seq : {1, 77, 150}) {
-      v1::QueryPlaceRequest& request = queries.emplace_back();
-      request.set_fleet_id(fleet);
-      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
-      for (float value : trace.code()) request.add_code(value);
-      request.set_k(5);
-    }
-  }
+  const std::vector<v1::QueryPlaceRequest> queries =
+      QueriesOfTheirTraces(fleet, plans);
   for (int round = 0; round < 2; ++round) {
     // Round 1 uploads after a restart: rows of the graph's own.
     const std::vector<RobotPlan> uploaded =
@@ -636,30 +642,17 @@ size_t DamageEveryFloatRow(const std::string& path, size_t row_bytes) {
 // it), and the next write rebuilds the index from the store's codes, after
 // which every query finds its trace and the stop's snapshot is sound.
 TEST_F(RestartTest, DamagedFloatsInTheSnapshotAreNeverUsedAndAreRebuilt) {
-  const std::string config = temp_dir().Join("graph.textproto");
-  {
-    std::ofstream file(config);
-    file << "hnsw { hnsw_from: 100 }\n"
-            "index_snapshot_min_codes: 0\n";
-  }
-  set_server_args({"--config", config});
-  ASSERT_NO_FATAL_FAILURE(StopAndRestart());
+  ASSERT_NO_FATAL_FAILURE(
+      RestartWithConfig("hnsw { hnsw_from: 100 }\n"
+                        "index_snapshot_min_codes: 0\n"));
   const std::string fleet = "fleet-damaged-floats";
   const std::vector<RobotPlan> plans = {{"robot-a", 230}, {"robot-b", 200}};
   for (const RobotPlan& plan : plans) {
     ASSERT_TRUE(UploadTraces(stub(), fleet, MakeTraces(SpecOf(plan))).ok());
   }
   ASSERT_NO_FATAL_FAILURE(WaitUntilIndexed(stub(), fleet));
-  std::vector<v1::QueryPlaceRequest> queries;
-  for (const RobotPlan& plan : plans) {
-    for (uint64_t seq : {1, 77, 150}) {
-      v1::QueryPlaceRequest& request = queries.emplace_back();
-      request.set_fleet_id(fleet);
-      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
-      for (float value : trace.code()) request.add_code(value);
-      request.set_k(5);
-    }
-  }
+  const std::vector<v1::QueryPlaceRequest> queries =
+      QueriesOfTheirTraces(fleet, plans);
   StopServer();
   const std::string snapshot = TheSnapshotFile(data_dir());
   ASSERT_FALSE(snapshot.empty());

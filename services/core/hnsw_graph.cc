@@ -740,6 +740,11 @@ constexpr uint32_t kGraphFormat = 0x47524633;        // "GRF3"
 constexpr uint32_t kInt8GraphFormat = 0x47524634;    // "GRF4"
 constexpr uint32_t kCheckedInt8Format = 0x47524635;  // "GRF5"
 
+bool KnownFormat(uint32_t format) {
+  return format == kGraphFormat || format == kInt8GraphFormat ||
+         format == kCheckedInt8Format;
+}
+
 template <typename Engine>
 std::string EngineState(const Engine& engine) {
   std::ostringstream text;
@@ -964,9 +969,7 @@ absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(
   uint32_t format = 0;
   uint64_t saved_dimension = 0, m = 0, ef_construction = 0, free_count = 0;
   uint8_t scaled = 0, int8 = 0;
-  if (!in.Get(&format) ||
-      (format != kGraphFormat && format != kInt8GraphFormat &&
-       format != kCheckedInt8Format)) {
+  if (!in.Get(&format) || !KnownFormat(format)) {
     return Malformed("unknown format");
   }
   if (!in.Get(&saved_dimension) || !in.Get(&m) || !in.Get(&ef_construction) ||

@@ -712,6 +712,13 @@ TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
   EXPECT_EQ(earlier, "earlier");
 }
 
+// A store in `dir`/db (options.path set to it).
+absl::StatusOr<std::unique_ptr<engine::MemoryStore>> OpenInDb(
+    const TempDir& dir, RocksDbStoreOptions& options) {
+  options.path = absl::StrCat(dir.path(), "/db");
+  return OpenRocksDbStore(options);
+}
+
 // A damaged index snapshot is refused and removed: its bytes are handed
 // before the checksum is checked, whose verdict is DATA_LOSS, and so is the
 // read's status whether the reader asked for the verdict or not; the store
@@ -719,9 +726,8 @@ TEST(RocksDbStoreTest, IndexSnapshotStopsAtTheDiskReserve) {
 TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
   TempDir dir;
   RocksDbStoreOptions options;
-  options.path = absl::StrCat(dir.path(), "/db");
   absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
-      OpenRocksDbStore(options);
+      OpenInDb(dir, options);
   ASSERT_TRUE(store.ok()) << store.status();
   ASSERT_TRUE((*store)
                   ->SaveIndexSnapshot("f1",
@@ -775,9 +781,8 @@ TEST(RocksDbStoreTest, DamagedIndexSnapshotIsDataLoss) {
 TEST(RocksDbStoreTest, SelfCheckedBytesAreLeftOutOfTheSnapshotsChecksum) {
   TempDir dir;
   RocksDbStoreOptions options;
-  options.path = absl::StrCat(dir.path(), "/db");
   absl::StatusOr<std::unique_ptr<engine::MemoryStore>> store =
-      OpenRocksDbStore(options);
+      OpenInDb(dir, options);
   ASSERT_TRUE(store.ok()) << store.status();
   const std::string path =
       SnapshotFilePath(absl::StrCat(options.path, "/index-snapshots"), "f1");

@@ -90,6 +90,17 @@ class FileWriter {
   absl::Status error_;  // the first error
 };
 
+// Appends the list of self-checked ranges and their count (checksummed).
+void AppendRanges(std::span<const std::pair<uint64_t, uint64_t>> unhashed,
+                  FileWriter& file) {
+  for (const auto& [offset, length] : unhashed) {
+    const uint64_t range[2] = {offset, length};
+    file.Append({reinterpret_cast<const char*>(range), sizeof(range)}, true);
+  }
+  const uint64_t ranges = unhashed.size();
+  file.Append({reinterpret_cast<const char*>(&ranges), sizeof(ranges)}, true);
+}
+
 // Syncs the directory that holds `path`.
 absl::Status SyncParent(const std::string& path) {
   return file_io::SyncDirectory(
@@ -328,12 +339,7 @@ absl::Status WriteSnapshotFile(
         });
     status = write(out);
   }
-  for (const auto& [offset, length] : unhashed) {
-    const uint64_t range[2] = {offset, length};
-    file.Append({reinterpret_cast<const char*>(range), sizeof(range)}, true);
-  }
-  const uint64_t ranges = unhashed.size();
-  file.Append({reinterpret_cast<const char*>(&ranges), sizeof(ranges)}, true);
+  AppendRanges(unhashed, file);
   const uint64_t digest = file.digest();
   file.Append({reinterpret_cast<const char*>(&payload), sizeof(payload)},
               false);

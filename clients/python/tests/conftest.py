@@ -34,9 +34,28 @@ class Server:
         self.http = f"http://127.0.0.1:{self.http_port}"
         self.extra = list(extra)
         self.process = None
+        self.started = False
         self.log = data_dir.parent / f"{data_dir.name}.log"
 
     def start(self, timeout: float = 60.0) -> "Server":
+        # A port free_port() found may be taken by another test (ctest runs
+        # two at once) before the server binds it: a first start that cannot
+        # listen tries new ports; a restart keeps its own.
+        for attempt in range(5):
+            logged = self.log.stat().st_size if self.log.exists() else 0
+            if self._launch(timeout):
+                self.started = True
+                return self
+            lost_port = "cannot listen" in self.log.read_text()[logged:]
+            if self.started or not lost_port:
+                break
+            self.grpc_port, self.http_port = free_port(), free_port()
+            self.address = f"127.0.0.1:{self.grpc_port}"
+            self.http = f"http://127.0.0.1:{self.http_port}"
+        raise RuntimeError(f"fleetmem-server not ready; log:\n{self.log.read_text()[-3000:]}")
+
+    def _launch(self, timeout: float) -> bool:
+        """Starts the server; True once it is ready, False once it exited or timed out."""
         ready = self.data_dir.parent / f"{self.data_dir.name}.ready"
         ready.unlink(missing_ok=True)
         with open(self.log, "ab") as log:
@@ -47,9 +66,12 @@ class Server:
         deadline = time.monotonic() + timeout
         while not ready.exists():
             if self.process.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"fleetmem-server not ready; log:\n{self.log.read_text()[-3000:]}")
+                if self.process.poll() is None:
+                    self.process.kill()
+                self.process.wait()
+                return False
             time.sleep(0.02)
-        return self
+        return True
 
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
