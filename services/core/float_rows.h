@@ -63,7 +63,7 @@ class FloatRows {
   // elsewhere: then nothing changed, and a caller loading them Writes them.
   virtual bool Adopt(const FileBytes& file, uint64_t offset, size_t rows,
                      std::span<const uint32_t> keep,
-                     std::vector<uint32_t> checks) {
+                     std::span<const uint32_t> checks) {
     return false;
   }
   // Row `row` where it lies in this process's memory, or nullptr if this

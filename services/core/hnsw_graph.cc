@@ -908,8 +908,7 @@ absl::Status HnswGraph::LoadFloats(ByteReader& in, size_t count,
   // read. (Their scales, checked when each row came in and covered by its
   // check since, are not checked again.)
   if (with_checks && in.file() != nullptr &&
-      impl_->rows->Adopt(*in.file(), in.FileOffset(bytes), count, {},
-                         std::move(checks))) {
+      impl_->rows->Adopt(*in.file(), in.FileOffset(bytes), count, {}, checks)) {
     return absl::OkStatus();
   }
   // Every slot's scale, a removed one's too (its floats were written).
@@ -961,7 +960,7 @@ bool HnswGraph::AdoptSavedFloats() {
       std::unique(saved.written_since.begin(), saved.written_since.end()),
       saved.written_since.end());
   return impl_->rows->Adopt(saved.file, saved.offset, saved.rows,
-                            saved.written_since, std::move(saved.checks));
+                            saved.written_since, saved.checks);
 }
 
 absl::StatusOr<std::unique_ptr<HnswGraph>> HnswGraph::LoadOrThrow(

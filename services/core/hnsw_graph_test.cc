@@ -475,6 +475,15 @@ TEST(HnswGraphInt8Test, EachRowOfFloatsIsCheckedWhenItIsCopied) {
     return HnswGraph::Load(kDimension, Int8Options(), in);
   };
   ASSERT_TRUE(load(bytes).ok());
+  // From a file, into rows that keep none (on the heap): copied and
+  // checked all the same.
+  const FileBytes file{.descriptor = std::make_shared<const int>(-1)};
+  ByteReader from_file(std::span<const char>(bytes.data(), bytes.size()),
+                       &file);
+  absl::StatusOr<std::unique_ptr<HnswGraph>> copied =
+      HnswGraph::Load(kDimension, Int8Options(), from_file);
+  ASSERT_TRUE(copied.ok()) << copied.status();
+  EXPECT_EQ(Saved(**copied), Saved(graph));
   for (const size_t at : {floats_at + 50 * row_bytes + 5,
                           floats_at + floats_size + 50 * sizeof(uint32_t)}) {
     std::string damaged = bytes;

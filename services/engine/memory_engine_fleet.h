@@ -254,6 +254,12 @@ struct MemoryEngine::Fleet {
   // Reloads if a previous reload failed, or without the index snapshot if
   // the index met damage in it (PlaceIndex::Damaged).
   absl::Status EnsureLoaded() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+  // True if the fleet's index met damage in its snapshot's file
+  // (PlaceIndex::Damaged); takes `mu` shared.
+  bool IndexDamaged() const ABSL_LOCKS_EXCLUDED(mu) {
+    absl::ReaderMutexLock lock(&mu);
+    return index.get() != nullptr && index.get()->Damaged();
+  }
   // For readers: OK unless a reload failed.
   absl::Status CheckLoaded() const ABSL_SHARED_LOCKS_REQUIRED(mu);
   // `snapshot`, if given, is the fleet's index snapshot read beside the

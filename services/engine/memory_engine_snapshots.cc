@@ -59,17 +59,16 @@ absl::Status MemoryEngine::SaveIndexSnapshots(
   for (Fleet* fleet : fleets) {
     // One snapshot of a fleet at a time (they share the store's file).
     absl::MutexLock one_at_a_time(&fleet->snapshot_mu);
-    {
-      // An index that met damage in its snapshot's file (a row that failed
-      // its check) is rebuilt from the store first: this save replaces the
-      // file with one written from the store's codes.
+    // An index that met damage in its snapshot's file (a row that failed
+    // its check) is rebuilt from the store first: this save replaces the
+    // file with one written from the store's codes. (Asked under the shared
+    // lock: queries go on.)
+    if (fleet->IndexDamaged()) {
       absl::MutexLock writer(&fleet->writer_mu);
       absl::MutexLock lock(&fleet->mu);
-      if (fleet->index.get() != nullptr && fleet->index.get()->Damaged()) {
-        if (absl::Status rebuilt = fleet->EnsureLoaded(); !rebuilt.ok()) {
-          first.Update(rebuilt);
-          continue;
-        }
+      if (absl::Status rebuilt = fleet->EnsureLoaded(); !rebuilt.ok()) {
+        first.Update(rebuilt);
+        continue;
       }
     }
     // writer_mu keeps every change out while the snapshot is written;

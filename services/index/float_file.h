@@ -60,7 +60,7 @@ class FileFloatRows final : public core::FloatRows {
   // each is written again. True unless `file` has no descriptor.
   bool Adopt(const core::FileBytes& file, uint64_t offset, size_t rows,
              std::span<const uint32_t> keep,
-             std::vector<uint32_t> checks) override;
+             std::span<const uint32_t> checks) override;
   // The bitmap of adopted rows written since, and their checks.
   size_t MemoryBytes() const override {
     return (adopted_ + 63) / 64 * 8 + checks_.capacity() * sizeof(uint32_t);
