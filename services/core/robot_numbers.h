@@ -55,6 +55,31 @@ class RobotNumbers {
   absl::flat_hash_map<std::string, uint32_t> numbers_;
 };
 
+// Packs the keys of traces that come in runs of one robot (a cluster's
+// traces are mostly one robot's segment) with one lookup of the robot's
+// number per run instead of one per key. The robot ids it is given must
+// outlive it.
+class RunPacker {
+ public:
+  explicit RunPacker(RobotNumbers& numbers) : numbers_(numbers) {}
+  RunPacker(const RunPacker&) = delete;
+  RunPacker& operator=(const RunPacker&) = delete;
+
+  // RobotNumbers::Pack.
+  PackedTraceKey Pack(const std::string& robot_id, uint64_t seq) {
+    if (last_ == nullptr || *last_ != robot_id) {
+      number_ = numbers_.Pack(robot_id, 0).robot;
+      last_ = &robot_id;
+    }
+    return PackedTraceKey{seq, number_};
+  }
+
+ private:
+  RobotNumbers& numbers_;
+  const std::string* last_ = nullptr;
+  uint32_t number_ = 0;
+};
+
 }  // namespace fleetmem::core
 
 #endif  // FLEETMEM_SERVICES_CORE_ROBOT_NUMBERS_H_

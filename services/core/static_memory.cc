@@ -398,76 +398,122 @@ class RunCounter {
 
 }  // namespace
 
-absl::Status StaticMemory::RestoreAll(std::vector<Cluster> clusters,
-                                      ByteReader& centroids,
-                                      size_t* reconciled) {
+absl::Status StaticMemory::RestoreCentroids(std::vector<Cluster>& clusters,
+                                            ByteReader& centroids,
+                                            size_t* changes) {
   for (Cluster& cluster : clusters) {
     if (cluster.centroid.empty() && !cluster.traces.empty()) {
       cluster.centroid = Centroid(cluster.traces, options_.spatial_scale_m);
     }
   }
   ClosestPairTracker loaded(ClosestPairOptionsFor(options_));
-  absl::Status status =
-      clusters_.empty()
-          ? loaded.Load(centroids)
-          : absl::FailedPreconditionError("RestoreAll into a used memory");
+  if (!clusters_.empty()) {
+    return absl::FailedPreconditionError("RestoreAll into a used memory");
+  }
+  if (absl::Status status = loaded.Load(centroids); !status.ok()) {
+    return status;
+  }
   // Every centroid of one memory has one dimension; a point of another
   // means the bytes are not this memory's.
   for (const Cluster& cluster : clusters) {
-    const std::span<const float> point =
-        status.ok() ? loaded.point(cluster.id) : std::span<const float>();
+    const std::span<const float> point = loaded.point(cluster.id);
     if (!point.empty() && point.size() != cluster.centroid.size()) {
-      status = absl::DataLossError(absl::StrCat(
+      return absl::DataLossError(absl::StrCat(
           "the centroid snapshot holds cluster ", cluster.id, " with ",
           point.size(), " dimensions, the memory ", cluster.centroid.size()));
     }
   }
-  size_t changes = 0;
-  if (status.ok()) {
-    absl::flat_hash_set<uint64_t> held;
-    held.reserve(clusters.size());
-    for (const Cluster& cluster : clusters) held.insert(cluster.id);
-    for (uint64_t id : loaded.ids()) {
-      if (held.contains(id)) continue;
-      loaded.Remove(id);
-      ++changes;
-    }
-    for (const Cluster& cluster : clusters) {
-      const std::span<const float> point = loaded.point(cluster.id);
-      if (!point.empty() &&
-          std::equal(cluster.centroid.begin(), cluster.centroid.end(),
-                     point.begin(), point.end())) {
-        continue;
-      }
-      if (!point.empty()) loaded.Remove(cluster.id);
-      loaded.Insert(cluster.id, ToVector(cluster.centroid));
-      ++changes;
-    }
-    centroids_ = std::move(loaded);
+  absl::flat_hash_set<uint64_t> held;
+  held.reserve(clusters.size());
+  for (const Cluster& cluster : clusters) held.insert(cluster.id);
+  for (uint64_t id : loaded.ids()) {
+    if (held.contains(id)) continue;
+    loaded.Remove(id);
+    ++*changes;
   }
-  if (reconciled != nullptr) *reconciled = changes;
+  for (const Cluster& cluster : clusters) {
+    const std::span<const float> point = loaded.point(cluster.id);
+    if (!point.empty() &&
+        std::equal(cluster.centroid.begin(), cluster.centroid.end(),
+                   point.begin(), point.end())) {
+      continue;
+    }
+    if (!point.empty()) loaded.Remove(cluster.id);
+    loaded.Insert(cluster.id, ToVector(cluster.centroid));
+    ++*changes;
+  }
+  centroids_ = std::move(loaded);
+  return absl::OkStatus();
+}
+
+void StaticMemory::LocateInOrder(
+    std::span<const std::pair<uint64_t, std::span<const MemoryTrace>>> clusters,
+    size_t trace_count) {
+  location_.reserve(location_.size() + trace_count);  // no rehash on the way
+  RunPacker packer(robots_);
+  uint32_t slot = 0;
+  for (const auto& [cluster_id, traces] : clusters) {
+    for (const MemoryTrace& trace : traces) {
+      location_[packer.Pack(trace.robot_id, trace.seq)] =
+          Location{cluster_id, slot++};
+    }
+  }
+}
+
+absl::Status StaticMemory::RestoreAll(std::vector<Cluster> clusters,
+                                      ByteReader& centroids, size_t* reconciled,
+                                      const RunBoth& run_both) {
   size_t traces = 0;
   for (const Cluster& cluster : clusters) traces += cluster.traces.size();
-  location_.reserve(location_.size() + traces);  // no rehash on the way
-  slot_trace_.reserve(slot_trace_.size() + traces);
   // Into an empty memory the traces take slots 0, 1, ... in order, and the
   // sampler's sums are built once at the end.
   const bool fresh = clusters_.empty() && slot_trace_.empty();
-  std::vector<double> weights;
-  if (fresh) weights.reserve(traces);
-  for (Cluster& cluster : clusters) {
-    if (clusters_.contains(cluster.id)) Erase(cluster.id);  // id must be new
-    Insert(std::move(cluster), /*with_centroid=*/!status.ok(),
-           fresh ? &weights : nullptr);
+  // Distinct ids (ascending): no cluster replaces another, so the
+  // locations follow from the order alone.
+  const bool ascending =
+      std::adjacent_find(clusters.begin(), clusters.end(),
+                         [](const Cluster& a, const Cluster& b) {
+                           return a.id >= b.id;
+                         }) == clusters.end();
+  const bool halves = fresh && ascending && run_both != nullptr;
+  // Where each cluster's traces lie, taken before the clusters move into
+  // clusters_ (a vector's elements stay where they are when it moves).
+  std::vector<std::pair<uint64_t, std::span<const MemoryTrace>>> placed;
+  if (halves) {
+    placed.reserve(clusters.size());
+    for (const Cluster& cluster : clusters) {
+      placed.emplace_back(cluster.id, cluster.traces);
+    }
   }
-  if (fresh) replay_.SetAll(weights);
+  size_t changes = 0;
+  absl::Status status;
+  auto restore_the_rest = [&] {
+    status = RestoreCentroids(clusters, centroids, &changes);
+    if (!halves) location_.reserve(location_.size() + traces);
+    slot_trace_.reserve(slot_trace_.size() + traces);
+    std::vector<double> weights;
+    if (fresh) weights.reserve(traces);
+    const InsertMode mode{.with_centroid = !status.ok(),
+                          .weights = fresh ? &weights : nullptr,
+                          .with_locations = !halves};
+    for (Cluster& cluster : clusters) {
+      if (clusters_.contains(cluster.id)) Erase(cluster.id);  // id must be new
+      Insert(std::move(cluster), mode);
+    }
+    if (fresh) replay_.SetAll(weights);
+  };
+  if (halves) {
+    run_both(restore_the_rest, [&] { LocateInOrder(placed, traces); });
+  } else {
+    restore_the_rest();
+  }
+  if (reconciled != nullptr) *reconciled = changes;
   return status;
 }
 
-void StaticMemory::Insert(Cluster cluster, bool with_centroid,
-                          std::vector<double>* weights) {
+void StaticMemory::Insert(Cluster cluster, const InsertMode& mode) {
   const uint64_t id = cluster.id;
-  if (with_centroid) centroids_.Insert(id, ToVector(cluster.centroid));
+  if (mode.with_centroid) centroids_.Insert(id, ToVector(cluster.centroid));
   // The tracker holds the centroid; one copy (WithCentroid).
   cluster.centroid = std::vector<float>();
   Cluster& stored = clusters_.emplace(id, std::move(cluster)).first->second;
@@ -476,6 +522,7 @@ void StaticMemory::Insert(Cluster cluster, bool with_centroid,
   // are mostly one robot's segment): a map lookup per run, not per trace.
   RunCounter by_robot(traces_by_robot_);
   RunCounter by_domain(traces_by_domain_);
+  RunPacker packer(robots_);
   for (MemoryTrace& trace : stored.traces) {
     uint32_t slot;
     if (!free_slots_.empty()) {
@@ -489,12 +536,14 @@ void StaticMemory::Insert(Cluster cluster, bool with_centroid,
     const double weight =
         ReplayWeight(trace.reward, trace.replay_count, options_.replay_decay,
                      options_.reward_floor);
-    if (weights != nullptr) {
-      weights->push_back(weight);  // slot == weights->size() - 1
+    if (mode.weights != nullptr) {
+      mode.weights->push_back(weight);  // slot == weights->size() - 1
     } else {
       replay_.Set(slot, weight);
     }
-    location_[robots_.Pack(trace.robot_id, trace.seq)] = Location{id, slot};
+    if (mode.with_locations) {
+      location_[packer.Pack(trace.robot_id, trace.seq)] = Location{id, slot};
+    }
     by_robot.Add(trace.robot_id);
     by_domain.Add(trace.domain);
   }

@@ -12,6 +12,7 @@
 #include <random>
 #include <span>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
@@ -103,6 +104,11 @@ ConsolidationPlan PlanConsolidation(const MemoryOptions& options,
 // reads: K, N_max, the spatial scale, clustering, k-means iterations).
 bool PlansAlike(const MemoryOptions& a, const MemoryOptions& b);
 
+// Runs `first` and `second` to completion, in either order or at once
+// (they touch disjoint state): a caller's way to lend a second thread.
+using RunBoth = std::function<void(const std::function<void()>& first,
+                                   const std::function<void()>& second)>;
+
 class StaticMemory {
  public:
   // `options` must pass ValidateMemoryOptions.
@@ -127,8 +133,17 @@ class StaticMemory {
   // another dimension) the bookkeeping is rebuilt as Restore does and the
   // status says why. The memory is complete either way. The clusters'
   // traces do not move.
+  //
+  // Into an empty memory, with distinct ids ascending (a memory image's
+  // order), the restore is two halves that touch disjoint state: the
+  // location of every trace by key (half the work at 1,000,000 traces) and
+  // the rest (clusters, the sampler's slots and weights, the counts,
+  // forgetting's centroids). `run_both`, if given, runs them: on two
+  // threads, or one after the other (the core starts no thread). Otherwise,
+  // or for any other memory, one thread restores it all.
   absl::Status RestoreAll(std::vector<Cluster> clusters, ByteReader& centroids,
-                          size_t* reconciled = nullptr);
+                          size_t* reconciled = nullptr,
+                          const RunBoth& run_both = nullptr);
   // Writes forgetting's centroid bookkeeping for RestoreAll.
   void SaveCentroids(ByteWriter& out) const { centroids_.Save(out); }
 
@@ -224,13 +239,34 @@ class StaticMemory {
   void SetOptions(const MemoryOptions& options);
 
  private:
-  // Adds the cluster and its traces; its centroid to forgetting's tracker
-  // too unless `with_centroid` is false (RestoreAll loads the tracker).
-  // With `weights` (an empty memory's restore, slots taken in order), the
-  // traces' replay weights are appended there for WeightedSampler::SetAll
-  // instead of set one by one.
-  void Insert(Cluster cluster, bool with_centroid = true,
-              std::vector<double>* weights = nullptr);
+  // How Insert adds a cluster.
+  struct InsertMode {
+    // Its centroid into forgetting's tracker (false: RestoreAll loaded
+    // the tracker).
+    bool with_centroid = true;
+    // An empty memory's restore (slots taken in order): the traces'
+    // replay weights are appended here for WeightedSampler::SetAll
+    // instead of set one by one.
+    std::vector<double>* weights = nullptr;
+    // Its traces into location_ (false: RestoreAll's other half does it,
+    // LocateInOrder).
+    bool with_locations = true;
+  };
+  // Adds the cluster and its traces.
+  void Insert(Cluster cluster, const InsertMode& mode);
+  void Insert(Cluster cluster) { Insert(std::move(cluster), InsertMode()); }
+  // Forgetting's tracker from `centroids` (what SaveCentroids wrote),
+  // reconciled with `clusters` (RestoreAll); `*changes` counts what it
+  // changed. Not OK: the tracker is left as it was.
+  absl::Status RestoreCentroids(std::vector<Cluster>& clusters,
+                                ByteReader& centroids, size_t* changes);
+  // The locations of the traces of `clusters` (id, traces) when they take
+  // slots 0, 1, ... in order: the half of an empty memory's RestoreAll
+  // that touches location_ and robots_ alone.
+  void LocateInOrder(
+      std::span<const std::pair<uint64_t, std::span<const MemoryTrace>>>
+          clusters,
+      size_t trace_count);
   Cluster Erase(uint64_t cluster_id);
   // Algorithm 2: removes or merges clusters until at most K_max remain.
   void Forget(ConsolidationResult& result);

@@ -2,10 +2,14 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <map>
+#include <memory>
 #include <random>
 #include <set>
+#include <thread>
 
+#include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "services/core/downsampler.h"
@@ -754,6 +758,105 @@ TEST(StaticMemoryTest, RestoreAllReconcilesCentroidsSavedEarlier) {
       ExpectInvariants(restored);
     }
   }
+}
+
+// An empty memory's restore in two halves (RunBoth) gives the memory that
+// one thread restores, whichever half runs first and when they run at
+// once: every trace found in its cluster, the same counts, the same draws
+// from equal generators. A restore the halves would not fit (a used
+// memory, ids out of order) is done on one thread.
+TEST(StaticMemoryTest, RestoreAllInTwoHalvesRestoresWhatOneThreadDoes) {
+  MemoryOptions options;
+  options.clusters_per_batch = 6;
+  options.max_traces_per_cluster = 5;
+  options.max_clusters = 60;
+  options.merge_on_forget = true;  // clusters that mix robots
+  StaticMemory memory(options);
+  std::mt19937_64 rng(41);
+  uint64_t next_cluster = 1;
+  for (int b = 0; b < 15; ++b) {
+    const std::string robot = absl::StrCat("robot-", b % 3);
+    next_cluster +=
+        memory.Consolidate(Segment(robot, 1000 * b, 40, rng), next_cluster, rng)
+            .added.size();
+  }
+  std::string bytes;
+  ByteWriter out([&bytes](std::span<const char> data) {
+    bytes.append(data.data(), data.size());
+  });
+  memory.SaveCentroids(out);
+  std::vector<Cluster> clusters;
+  for (const auto& [id, cluster] : memory.clusters()) {
+    clusters.push_back(*memory.WithCentroid(id));
+  }
+
+  int calls = 0;
+  const RunBoth second_first = [&calls](const std::function<void()>& first,
+                                        const std::function<void()>& second) {
+    ++calls;
+    second();
+    first();
+  };
+  const RunBoth at_once = [&calls](const std::function<void()>& first,
+                                   const std::function<void()>& second) {
+    ++calls;
+    std::thread thread(second);
+    first();
+    thread.join();
+  };
+  auto restore = [&](std::vector<Cluster> restored_clusters,
+                     const RunBoth& run_both) {
+    auto restored = std::make_unique<StaticMemory>(options);
+    ByteReader in(bytes);
+    size_t reconciled = 99;
+    EXPECT_TRUE(restored
+                    ->RestoreAll(std::move(restored_clusters), in, &reconciled,
+                                 run_both)
+                    .ok());
+    EXPECT_EQ(reconciled, 0u);
+    return restored;
+  };
+  auto draws = [](StaticMemory& restored) {
+    std::mt19937_64 draw_rng(7);
+    std::vector<TraceKey> keys;
+    for (const MemoryTrace& trace : restored.SampleForReplay(100, draw_rng)) {
+      keys.push_back(trace.key());
+    }
+    return keys;
+  };
+  const std::unique_ptr<StaticMemory> one = restore(clusters, nullptr);
+  ExpectInvariants(*one);
+  ASSERT_EQ(one->trace_count(), memory.trace_count());
+  const std::vector<TraceKey> one_draws = draws(*one);
+  for (const RunBoth* run_both : {&second_first, &at_once}) {
+    calls = 0;
+    const std::unique_ptr<StaticMemory> two = restore(clusters, *run_both);
+    EXPECT_EQ(calls, 1);
+    ExpectInvariants(*two);
+    EXPECT_EQ(two->trace_count(), one->trace_count());
+    EXPECT_EQ(two->traces_by_robot(), one->traces_by_robot());
+    EXPECT_EQ(draws(*two), one_draws);
+  }
+
+  // Ids out of order: one thread, the same memory.
+  calls = 0;
+  std::vector<Cluster> reversed(clusters.rbegin(), clusters.rend());
+  const std::unique_ptr<StaticMemory> from_reversed =
+      restore(reversed, second_first);
+  EXPECT_EQ(calls, 0);
+  ExpectInvariants(*from_reversed);
+  EXPECT_EQ(from_reversed->trace_count(), one->trace_count());
+  // A used memory: one thread (and the saved centroids refused).
+  StaticMemory used(options);
+  used.Restore(clusters.front());
+  ByteReader in(bytes);
+  const absl::Status status = used.RestoreAll(
+      std::vector<Cluster>(clusters.begin() + 1, clusters.end()), in, nullptr,
+      second_first);
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition) << status;
+  EXPECT_EQ(calls, 0);
+  ExpectInvariants(used);
+  EXPECT_EQ(used.trace_count(), one->trace_count());
 }
 
 }  // namespace

@@ -129,6 +129,24 @@ absl::Status LoadHandles(std::span<const char> bytes, LoadedSnapshot& loaded) {
   return status;
 }
 
+// Runs `first` on this thread and `second` on a thread of its own (one
+// after the other if no thread can be started): memory's restore in two
+// halves (core::RunBoth), the second core's work once the index's load
+// beside it has ended.
+void RunOnTwoThreads(const std::function<void()>& first,
+                     const std::function<void()>& second) {
+  std::thread thread;
+  try {
+    thread = std::thread(second);
+  } catch (const std::system_error&) {
+    first();
+    second();
+    return;
+  }
+  absl::Cleanup join = [&thread] { thread.join(); };
+  first();
+}
+
 // ENG3's memory image and handles, as spans into the snapshot.
 absl::Status TakeImageAndHandles(core::ByteReader& in,
                                  std::span<const char>* image,
@@ -763,8 +781,8 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
   const absl::Time memory_start = absl::Now();
   size_t centroids_reconciled = 0;
   core::ByteReader centroids(snapshot.centroids);
-  absl::Status kept_centroids =
-      memory.RestoreAll(std::move(clusters), centroids, &centroids_reconciled);
+  absl::Status kept_centroids = memory.RestoreAll(
+      std::move(clusters), centroids, &centroids_reconciled, RunOnTwoThreads);
   *restored = true;
   if (!kept_centroids.ok()) {
     FLEETMEM_LOG(kWarning) << "fleet \"" << id
