@@ -207,7 +207,11 @@ struct LoadedSnapshot {
   std::unique_ptr<PlaceIndex> index;
   TraceHandles handles;
   bool handles_loaded = false;  // `handles` are the snapshot's
-  std::string centroids;        // what StaticMemory::SaveCentroids wrote
+  // What StaticMemory::SaveCentroids wrote: in the snapshot's mapped file
+  // while the loading thread keeps it (from a memory image, until
+  // `await_all`), else in `centroids`.
+  std::span<const char> centroid_bytes;
+  std::string centroids;
   // The memory image (memory_image.h) and the handles' bytes in the mapped
   // file, handed to the loading thread (ReadWithImage) for it to parse;
   // image_loaded: they are (a snapshot of format ENG3 read for that).

@@ -88,7 +88,8 @@ struct SnapshotHandOff {
   // the handles' bytes to the loading thread (ReadWithImage), which parses
   // both while this thread checks the snapshot's checksum and then loads
   // the index; the file stays mapped until the loading thread notifies
-  // `released`.
+  // `released` (SnapshotReader::Release: after memory's restore, which
+  // reads forgetting's centroids from the file).
   bool split = false;
   // Notified once `loaded.image` and `loaded.handle_bytes` are set
   // (image_loaded) or it is known that they will not be.
@@ -107,6 +108,13 @@ struct SnapshotHandOff {
   // known that they will not be: memory restores beside the index's load.
   Signal centroids_read;
   Signal released;
+  // Whether forgetting's centroids are borrowed from the mapped file
+  // (LoadedSnapshot::centroid_bytes) or copied: borrowed while the loading
+  // thread holds the file (split, before `mapping_released`); a release
+  // before memory's restore copies what was borrowed.
+  absl::Mutex centroids_mu;
+  bool mapping_released ABSL_GUARDED_BY(centroids_mu) = false;
+  bool centroids_borrowed ABSL_GUARDED_BY(centroids_mu) = false;
 };
 
 // Reads the handles (the next handle, then TraceHandles) from `in` into
@@ -203,7 +211,18 @@ absl::Status LoadCheckedSnapshot(core::ByteReader& in, uint32_t format,
   if (!in.Get(&centroid_size) || !in.GetSpan(centroid_size, &centroid_bytes)) {
     return absl::DataLossError("truncated centroids");
   }
-  loaded.centroids.assign(centroid_bytes.begin(), centroid_bytes.end());
+  {
+    // 100 MB at 1,000,000 traces (100,060 centroids), 1 GB at 10,000,000:
+    // borrowed from the file while the loading thread keeps it mapped.
+    absl::MutexLock lock(&hand_off.centroids_mu);
+    if (handed && !hand_off.mapping_released) {
+      loaded.centroid_bytes = centroid_bytes;
+      hand_off.centroids_borrowed = true;
+    } else {
+      loaded.centroids.assign(centroid_bytes.begin(), centroid_bytes.end());
+      loaded.centroid_bytes = loaded.centroids;
+    }
+  }
   loaded.centroids_read = true;
   hand_off.centroids_read.Notify();
   loaded.index = factory(loaded.dimension, index);
@@ -241,7 +260,8 @@ void ReadSnapshot(MemoryStore& store, const FleetIndexFactory& factory,
   const absl::Time start = absl::Now();
   loaded.status = store.ReadIndexSnapshot(
       fleet_id, [&](const IndexSnapshotBytes& snapshot) -> absl::Status {
-        // The loading thread reads the spans until it releases them.
+        // The loading thread reads the spans until it releases them
+        // (SnapshotReader::Release).
         absl::Cleanup keep_mapped = [&] {
           if (handed) hand_off.released.Wait();
         };
@@ -296,7 +316,6 @@ struct ReadTimes {
 absl::StatusOr<std::optional<FleetRecord>> ReadWithImage(
     MemoryStore& store, std::string_view fleet_id, LoadedSnapshot& loaded,
     SnapshotHandOff& hand_off) {
-  absl::Cleanup release = [&] { hand_off.released.Notify(); };
   absl::StatusOr<FleetRecord> record = store.LoadFleetWithoutClusters(fleet_id);
   if (!record.ok()) return record.status();
   hand_off.image_read.Wait();
@@ -361,11 +380,20 @@ class SnapshotReader {
   // (ReadWithImage); the thread is then left running (Finish).
   absl::StatusOr<FleetRecord> Read(ReadTimes* times);
 
-  // Joins the thread (once; LoadedSnapshot::thread_waited_seconds says how
+  // Releases the file (the centroids dropped: Read released it already
+  // unless memory restores from the image, which is over by then), then
+  // joins the thread (once; LoadedSnapshot::thread_waited_seconds says how
   // long it waited); the index must then hold what the handles name.
   void Finish();
 
  private:
+  // Lets the thread unmap the snapshot's file (once). The centroids it
+  // lent from there (LoadedSnapshot::centroid_bytes) are copied first if
+  // `keep_centroids` (memory restores later), else dropped (memory has
+  // restored from them, or will not: 100 MB at 1,000,000 traces, whose
+  // copy took 1 s on a VM with slow page faults).
+  void Release(bool keep_centroids);
+
   MemoryStore& store_;
   const FleetIndexFactory factory_;
   const std::string_view fleet_id_;
@@ -404,10 +432,12 @@ absl::StatusOr<FleetRecord> SnapshotReader::Read(ReadTimes* times) {
     const absl::Time start = absl::Now();
     imaged = ReadWithImage(store_, fleet_id_, loaded_, hand_off_);
     times->image = absl::Now() - start;
-  } else {
-    hand_off_.released.Notify();
   }
   times->from_image = imaged.ok() && imaged->has_value();
+  // Memory restores from the image with the centroids in the file: the
+  // file is released after (await_all). Otherwise now: the store's read
+  // waits for the handles, which the thread sets once it let the file go.
+  if (!times->from_image) Release(/*keep_centroids=*/true);
   absl::StatusOr<FleetRecord> record =
       !imaged.ok() ? imaged.status()
       : times->from_image
@@ -422,9 +452,31 @@ absl::StatusOr<FleetRecord> SnapshotReader::Read(ReadTimes* times) {
   return record;
 }
 
+void SnapshotReader::Release(bool keep_centroids) {
+  {
+    absl::MutexLock lock(&hand_off_.centroids_mu);
+    if (hand_off_.mapping_released) return;
+    hand_off_.mapping_released = true;
+    if (hand_off_.centroids_borrowed) {
+      if (keep_centroids) {
+        loaded_.centroids.assign(loaded_.centroid_bytes.begin(),
+                                 loaded_.centroid_bytes.end());
+        loaded_.centroid_bytes = loaded_.centroids;
+      } else {
+        loaded_.centroid_bytes = {};
+      }
+      hand_off_.centroids_borrowed = false;
+    }
+  }
+  hand_off_.released.Notify();
+}
+
 void SnapshotReader::Finish() {
   if (finished_) return;
   finished_ = true;
+  // After Read's Release of its own in every case but a read of the
+  // memory image, whose restore is over.
+  Release(/*keep_centroids=*/false);
   const absl::Time start = absl::Now();
   if (thread_.joinable()) thread_.join();
   loaded_.thread_waited_seconds = absl::ToDoubleSeconds(absl::Now() - start);
@@ -780,7 +832,7 @@ absl::Status MemoryEngine::Fleet::LoadFromSnapshot(
   }
   const absl::Time memory_start = absl::Now();
   size_t centroids_reconciled = 0;
-  core::ByteReader centroids(snapshot.centroids);
+  core::ByteReader centroids(snapshot.centroid_bytes);
   absl::Status kept_centroids = memory.RestoreAll(
       std::move(clusters), centroids, &centroids_reconciled, RunOnTwoThreads);
   *restored = true;

@@ -429,6 +429,32 @@ TEST_F(IndexSnapshotTest, CleanStopLoadsTheClustersFromTheMemoryImage) {
   EXPECT_EQ(Described(*engine_), drawn);
 }
 
+// Forgetting's centroids come with the memory image, and memory reads them
+// where the snapshot's thread left them (borrowed from the store's bytes,
+// valid until that read returns: the in-memory store scribbles over its
+// copy then): a load from the image and one from the store's records both
+// take them, neither rebuilds them.
+TEST_F(IndexSnapshotTest, ALoadTakesForgettingsCentroidsFromTheSnapshot) {
+  LoadCountingStore counting(store_.get());
+  engine_ = Open(nullptr, &counting);
+  ASSERT_NE(engine_, nullptr);
+  UploadSegments("r1", 1, 600);
+  UploadSegments("r2", 1, 400);
+  ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
+  for (const bool current : {true, false}) {
+    SCOPED_TRACE(current ? "from the memory image" : "from the records");
+    counting.report_current = current;
+    testing::internal::CaptureStderr();
+    engine_ = Open(nullptr, &counting);
+    const std::string log = testing::internal::GetCapturedStderr();
+    ASSERT_NE(engine_, nullptr);
+    EXPECT_EQ(log.find("memory image in") != std::string::npos, current) << log;
+    EXPECT_NE(log.find("index snapshot reconciled"), std::string::npos) << log;
+    EXPECT_EQ(log.find("centroid graph rebuilt"), std::string::npos) << log;
+    ExpectEveryTraceFindsItself();
+  }
+}
+
 // The memory image is parsed while the store checks the snapshot's
 // checksum (IndexSnapshotBytes): a snapshot that fails it is not used,
 // however far its parse got. The clusters come from the store's records,

@@ -260,9 +260,13 @@ class InMemoryStore final : public engine::MemoryStore {
       bytes = it->second.bytes;  // a copy: `read` runs outside the lock
     }
     // Kept in memory, never damaged: nothing to check.
-    return read({.bytes = bytes, .file = nullptr, .check = [] {
-                   return absl::OkStatus();
-                 }});
+    absl::Status status = read({.bytes = bytes, .file = nullptr, .check = [] {
+                                  return absl::OkStatus();
+                                }});
+    // The bytes are the reader's until the read returns (a file's mapping
+    // is gone then): a reader that kept a span reads this, not the snapshot.
+    std::fill(bytes.begin(), bytes.end(), '\xa5');
+    return status;
   }
 
   bool IndexSnapshotCurrent(std::string_view fleet_id) override {
