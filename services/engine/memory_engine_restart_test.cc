@@ -438,8 +438,8 @@ TEST_F(IndexSnapshotTest, ALoadTakesForgettingsCentroidsFromTheSnapshot) {
   LoadCountingStore counting(store_.get());
   engine_ = Open(nullptr, &counting);
   ASSERT_NE(engine_, nullptr);
-  UploadSegments("r1", 1, 600);
-  UploadSegments("r2", 1, 400);
+  for (const char* robot : {"r1", "r2", "r3"}) UploadSegments(robot, 1, 400);
+  ASSERT_GT(Stats().clusters_forgotten, 0u);  // the centroids in use
   ASSERT_TRUE(engine_->SaveIndexSnapshots().ok());
   for (const bool current : {true, false}) {
     SCOPED_TRACE(current ? "from the memory image" : "from the records");
