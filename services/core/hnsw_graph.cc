@@ -827,6 +827,7 @@ void HnswGraph::Save(ByteWriter& out) const {
     impl_->saved = Impl::SavedFloats{.file = *out.file(),
                                      .offset = floats_at,
                                      .rows = count,
+                                     .written_since = {},
                                      .checks = std::move(checks)};
   }
 }
