@@ -7,6 +7,7 @@
 #include <condition_variable>
 #include <filesystem>
 #include <fstream>
+#include <initializer_list>
 #include <iostream>
 #include <map>
 #include <mutex>
@@ -109,6 +110,24 @@ class RestartTest : public ServerTest {
     }
   }
 };
+
+// A QueryPlace (k = `k`) of `fleet` for the code of traces `seqs` of each
+// of `plans`.
+std::vector<v1::QueryPlaceRequest> QueriesOfTheirTraces(
+    const std::string& fleet, const std::vector<RobotPlan>& plans,
+    std::initializer_list<uint64_t> seqs = {1, 77, 150}, int k = 5) {
+  std::vector<v1::QueryPlaceRequest> queries;
+  for (const RobotPlan& plan : plans) {
+    for (uint64_t seq : seqs) {
+      v1::QueryPlaceRequest& request = queries.emplace_back();
+      request.set_fleet_id(fleet);
+      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
+      for (float value : trace.code()) request.add_code(value);
+      request.set_k(k);
+    }
+  }
+  return queries;
+}
 
 TEST_F(RestartTest, KilledServerKeepsEverythingAcknowledged) {
   const std::string fleet = "fleet-durable";
@@ -278,16 +297,9 @@ TEST_F(RestartTest, KilledServerRestartsFromItsPeriodicIndexSnapshot) {
   // Stored after it: another robot's segment and more pending traces.
   ASSERT_TRUE(
       UploadTraces(stub(), fleet, MakeTraces(SpecOf({"robot-b", 260}))).ok());
-  std::vector<v1::QueryPlaceRequest> queries;
-  for (const RobotPlan& plan : {RobotPlan{"robot-a", 230}, {"robot-b", 260}}) {
-    for (uint64_t seq : {1, 99, 201, 230}) {
-      v1::QueryPlaceRequest& request = queries.emplace_back();
-      request.set_fleet_id(fleet);
-      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
-      for (float value : trace.code()) request.add_code(value);
-      request.set_k(10);
-    }
-  }
+  const std::vector<v1::QueryPlaceRequest> queries = QueriesOfTheirTraces(
+      fleet, {{"robot-a", 230}, {"robot-b", 260}}, {1, 99, 201, 230},
+      /*k=*/10);
   Observation before;
   ASSERT_NO_FATAL_FAILURE(Observe(fleet, queries, &before));
 
@@ -502,23 +514,6 @@ TEST_F(RestartTest, CleanRestartKeepsTheObservableState) {
 
 // Descriptors process `pid` holds open on files whose path starts with
 // `prefix` (an unlinked file's too: its path then ends in " (deleted)").
-// A QueryPlace (k = 5) of `fleet` for the code of traces 1, 77 and 150 of
-// each of `plans`.
-std::vector<v1::QueryPlaceRequest> QueriesOfTheirTraces(
-    const std::string& fleet, const std::vector<RobotPlan>& plans) {
-  std::vector<v1::QueryPlaceRequest> queries;
-  for (const RobotPlan& plan : plans) {
-    for (uint64_t seq : {1, 77, 150}) {
-      v1::QueryPlaceRequest& request = queries.emplace_back();
-      request.set_fleet_id(fleet);
-      const v1::MemoryTrace trace = MakeTrace(SpecOf(plan), seq);
-      for (float value : trace.code()) request.add_code(value);
-      request.set_k(5);
-    }
-  }
-  return queries;
-}
-
 int OpenFilesUnder(pid_t pid, const std::string& prefix) {
   int open = 0;
   std::error_code error;
