@@ -12,7 +12,10 @@
 # generator stays BUILD_DIR's), HNSW_CODES, HNSW_FLOATS (as
 # bench/compare_rss.sh), TOP (30 symbols), KEEP (a directory: the filled
 # data dir is kept there and reused by the next run with the same KEEP,
-# which then skips the fill).
+# which then skips the fill), DWARF=1 (call graphs unwound from DWARF,
+# at 499 Hz: the symbols are then also printed with what they call
+# included, so that a copy inlined into a caller shows with its page
+# faults).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 build=${1:-$here/build}
@@ -24,9 +27,11 @@ bench_work restart-profile
 work=$WORK
 fill_scale_fleet_once "$server_build" "$work" "$n"
 
+graph="-F 999 -g"
+[ -n "${DWARF:-}" ] && graph="-F 499 --call-graph dwarf,8192"
 start=$(date +%s.%N)
 SERVER_START_SECONDS=1200 \
-  SERVER_WRAPPER="perf record -q -e cpu-clock -F 999 -g -o $work/perf.data --" \
+  SERVER_WRAPPER="perf record -q -e cpu-clock $graph -o $work/perf.data --" \
   start_server "$server_build" "$work/data" "$work/restart.log" \
   --config "$work/restart.textproto"
 echo "port_seconds,$(awk "BEGIN { printf \"%.2f\", $(date +%s.%N) - $start }")"
@@ -40,3 +45,9 @@ echo "# small tail: no snapshot is written when nothing changed)"
 perf report -i "$work/perf.data" --no-children --sort symbol --stdio \
   -g none 2>/dev/null | grep -v '^#' | grep '%' | sed 's/  */ /g' |
   head -"${TOP:-30}" || true  # head closes the pipe early: not a failure
+if [ -n "${DWARF:-}" ]; then
+  echo "# with what each calls included (inlined frames too)"
+  perf report -i "$work/perf.data" --children --sort symbol --stdio \
+    -g none 2>/dev/null | grep -v '^#' | grep '%' | sed 's/  */ /g' |
+    head -"${TOP:-30}" || true
+fi
